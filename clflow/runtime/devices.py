@@ -1,0 +1,333 @@
+"""OpenCL platform/device discovery, selection by name, and the per-device runtime.
+
+A :class:`Device` owns one context and one in-order queue (created lazily, reused) and
+caches every program and kernel it builds. Devices are chosen by name, never silently by
+index:
+
+* ``spec`` (from ``--device`` or ``CLFLOW_DEVICE``) is a case-insensitive substring of the
+  device name, or ``"platform:device"`` with a substring for each part;
+* without a spec: the first GPU, else PoCL's CPU device, else any CPU device.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+from clflow.errors import DeviceError
+
+INSTALL_HINT = (
+    "install an OpenCL driver; on Debian/Ubuntu the CPU one is: "
+    "apt-get install pocl-opencl-icd ocl-icd-libopencl1"
+)
+ENV_DEVICE = "CLFLOW_DEVICE"
+
+
+def default_kernel_cache_dir() -> Path:
+    """Per-user directory for PoCL's compiled-kernel cache (``$XDG_CACHE_HOME/clflow/pocl``)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "clflow" / "pocl"
+
+
+def _configure_kernel_cache() -> Path:
+    """Point PoCL's kernel cache at a per-user directory unless the user chose one.
+
+    Must run before the OpenCL runtime is initialised (PoCL reads it when it starts).
+    """
+    if "POCL_CACHE_DIR" not in os.environ:
+        path = default_kernel_cache_dir()
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+            os.environ["POCL_CACHE_DIR"] = str(path)
+        except OSError:  # read-only home: PoCL falls back to its own default
+            pass
+    return Path(os.environ.get("POCL_CACHE_DIR", default_kernel_cache_dir()))
+
+
+def _import_pyopencl():
+    try:
+        import pyopencl as cl
+    except ImportError as exc:  # libOpenCL.so missing or pyopencl not installed
+        raise DeviceError(f"cannot load the OpenCL runtime ({exc}); {INSTALL_HINT}") from None
+    return cl
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    """What clflow needs to know about an OpenCL device (sizes in bytes)."""
+
+    platform: str
+    name: str
+    type: str  # "GPU", "CPU", "ACCELERATOR" or "OTHER"
+    opencl_version: str
+    opencl_c_version: str
+    driver_version: str
+    fp64: bool
+    float_atomics: bool  # cl_ext_float_atomics present (kernels also check the feature macros)
+    host_unified_memory: bool  # host and device share memory: buffers can alias tensors
+    compute_units: int
+    max_work_group_size: int
+    local_mem_size: int
+    global_mem_size: int
+
+    @property
+    def is_pocl(self) -> bool:
+        return "portable computing language" in self.platform.lower() or "pocl" in self.platform.lower()
+
+    @property
+    def is_oclgrind(self) -> bool:
+        return "oclgrind" in self.platform.lower()
+
+    @property
+    def label(self) -> str:
+        """``platform:device``, the form accepted by ``--device``."""
+        return f"{self.platform}:{self.name}"
+
+
+def _device_type(cl, dev) -> str:
+    t = dev.type
+    for name in ("GPU", "CPU", "ACCELERATOR"):
+        if t & getattr(cl.device_type, name):
+            return name
+    return "OTHER"
+
+
+def _describe(cl, platform, dev) -> DeviceInfo:
+    extensions = set(dev.extensions.split())
+    dtype = _device_type(cl, dev)
+    try:
+        unified = bool(dev.host_unified_memory)
+    except cl.Error:  # removed from the OpenCL 3.0 core query set on some drivers
+        unified = False
+    return DeviceInfo(
+        platform=platform.name.strip(),
+        name=dev.name.strip(),
+        type=dtype,
+        opencl_version=dev.version.strip(),
+        opencl_c_version=dev.opencl_c_version.strip(),
+        driver_version=dev.driver_version.strip(),
+        fp64="cl_khr_fp64" in extensions,
+        float_atomics="cl_ext_float_atomics" in extensions,
+        host_unified_memory=unified or dtype == "CPU",
+        compute_units=int(dev.max_compute_units),
+        max_work_group_size=int(dev.max_work_group_size),
+        local_mem_size=int(dev.local_mem_size),
+        global_mem_size=int(dev.global_mem_size),
+    )
+
+
+def _discover() -> list[tuple[DeviceInfo, Any]]:
+    """All (info, pyopencl.Device) pairs of all platforms, in platform order."""
+    _configure_kernel_cache()
+    cl = _import_pyopencl()
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error:
+        platforms = []
+    found = []
+    for platform in platforms:
+        try:
+            devices = platform.get_devices()
+        except cl.Error:  # a platform with no devices raises DEVICE_NOT_FOUND
+            continue
+        found.extend((_describe(cl, platform, d), d) for d in devices)
+    if not found:
+        raise DeviceError(f"no OpenCL platform or device found; {INSTALL_HINT}")
+    return found
+
+
+def list_devices() -> list[DeviceInfo]:
+    """Every OpenCL device of every platform."""
+    return [info for info, _ in _discover()]
+
+
+def _matches(info: DeviceInfo, spec: str) -> bool:
+    spec = spec.strip().lower()
+    if ":" in spec:
+        plat, _, dev = spec.partition(":")
+        return plat.strip() in info.platform.lower() and dev.strip() in info.name.lower()
+    return spec in info.name.lower() or spec == info.platform.lower()
+
+
+def _choose(found: list[tuple[DeviceInfo, Any]], spec: str | None) -> tuple[DeviceInfo, Any]:
+    if spec:
+        hits = [pair for pair in found if _matches(pair[0], spec)]
+        available = "\n".join(f"  {info.label} ({info.type})" for info, _ in found)
+        if not hits:
+            raise DeviceError(f"no OpenCL device matches {spec!r}; available devices:\n{available}")
+        if len(hits) > 1:
+            names = "\n".join(f"  {info.label}" for info, _ in hits)
+            raise DeviceError(
+                f"{spec!r} matches several devices; use a longer name or 'platform:device':\n{names}"
+            )
+        return hits[0]
+    for want in (
+        lambda i: i.type == "GPU",
+        lambda i: i.is_pocl and i.type == "CPU",
+        lambda i: i.type == "CPU",
+        lambda i: True,
+    ):
+        for pair in found:
+            if want(pair[0]):
+                return pair
+    raise AssertionError("unreachable: _discover never returns an empty list")
+
+
+def round_up(n: int, multiple: int) -> int:
+    """Smallest multiple of ``multiple`` that is >= n (and >= multiple)."""
+    return max(multiple, -(-n // multiple) * multiple)
+
+
+class Device:
+    """One OpenCL device with its context, in-order queue and kernel cache.
+
+    Get instances from :func:`get_device`; they are shared and thread-safe to build on.
+    """
+
+    def __init__(self, info: DeviceInfo, cl_device: Any):
+        self.info = info
+        self.cl_device = cl_device
+        self._lock = threading.RLock()
+        self._context = None
+        self._queue = None
+        self._programs: dict[tuple, Any] = {}
+        self._kernels: dict[tuple, Any] = {}
+
+    def __repr__(self) -> str:
+        return f"Device({self.info.label!r})"
+
+    @property
+    def context(self):
+        with self._lock:
+            if self._context is None:
+                cl = _import_pyopencl()
+                self._context = cl.Context([self.cl_device])
+            return self._context
+
+    @property
+    def queue(self):
+        """The device's one in-order command queue."""
+        with self._lock:
+            if self._queue is None:
+                cl = _import_pyopencl()
+                self._queue = cl.CommandQueue(self.context)
+            return self._queue
+
+    @property
+    def kernel_cache_dir(self) -> Path:
+        return Path(os.environ.get("POCL_CACHE_DIR", default_kernel_cache_dir()))
+
+    def require_real(self, real: str) -> None:
+        """Raise :class:`DeviceError` unless the device can run ``real`` ("float"/"double")."""
+        if real not in ("float", "double"):
+            raise ValueError(f"real must be 'float' or 'double', not {real!r}")
+        if real == "double" and not self.info.fp64:
+            raise DeviceError(
+                f"double precision was requested but device {self.info.name!r} has no cl_khr_fp64"
+            )
+
+    # -- programs and kernels -------------------------------------------------------------
+
+    def program(self, source: str, real: str = "float", defines: dict[str, Any] | None = None):
+        """Build (once) the program of ``kernels_cl/<source>`` with the given switches.
+
+        Args:
+            source: path of the ``.cl`` file relative to ``kernels_cl/``.
+            real: ``"float"`` or ``"double"``: the ``REAL``/``real`` type of the kernels.
+            defines: extra ``-D`` macros (name -> value).
+        """
+        from clflow.runtime.programs import build_options, load_source
+
+        self.require_real(real)
+        key = (source, real, tuple(sorted((defines or {}).items())))
+        with self._lock:
+            prog = self._programs.get(key)
+            if prog is None:
+                cl = _import_pyopencl()
+                text = load_source(source)
+                options = build_options(self.info, real, defines)
+                try:
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore", cl.CompilerWarning)
+                        prog = cl.Program(self.context, text).build(options=options)
+                except cl.RuntimeError as exc:
+                    from clflow.errors import KernelBuildError
+
+                    raise KernelBuildError(
+                        f"building kernels_cl/{source} ({' '.join(options)}) failed on "
+                        f"{self.info.name}:\n{exc}"
+                    ) from None
+                self._programs[key] = prog
+            return prog
+
+    def kernel(self, source: str, name: str, real: str = "float", defines: dict[str, Any] | None = None):
+        """The cached ``cl.Kernel`` ``name`` of ``kernels_cl/<source>`` (built once, reused)."""
+        key = (source, name, real, tuple(sorted((defines or {}).items())))
+        with self._lock:
+            kern = self._kernels.get(key)
+            if kern is None:
+                kern = getattr(self.program(source, real, defines), name)
+                self._kernels[key] = kern
+            return kern
+
+    def launch(
+        self,
+        kernel,
+        global_size: int | Sequence[int],
+        args: Sequence[Any],
+        local_size: int | Sequence[int] | None = 64,
+    ):
+        """Enqueue ``kernel(*args)`` with the global size padded to whole work-groups.
+
+        PoCL has no non-uniform work-groups, so every dimension of ``global_size`` is rounded
+        up to a multiple of ``local_size``; kernels guard their tail work-items. ``local_size``
+        None leaves the choice to the driver (no padding).
+        """
+        gsize = (global_size,) if isinstance(global_size, int) else tuple(global_size)
+        if local_size is None:
+            lsize = None
+        else:
+            lsize = (local_size,) + (1,) * (len(gsize) - 1) if isinstance(local_size, int) else tuple(local_size)
+            lsize = tuple(min(l, self.info.max_work_group_size) for l in lsize)
+            gsize = tuple(round_up(g, l) for g, l in zip(gsize, lsize))
+        kernel.set_args(*args)
+        cl = _import_pyopencl()
+        return cl.enqueue_nd_range_kernel(self.queue, kernel, gsize, lsize)
+
+    def finish(self) -> None:
+        """Wait for every command enqueued on the device."""
+        self.queue.finish()
+
+    def bind(self):
+        """A :class:`~clflow.runtime.bridge.TensorBinding` for torch tensors on this device."""
+        from clflow.runtime.bridge import TensorBinding
+
+        return TensorBinding(self)
+
+
+_DEVICES: dict[str, Device] = {}
+_DEFAULT_SPEC: str | None = None
+_REGISTRY_LOCK = threading.Lock()
+
+
+def set_default_device(spec: str | None) -> None:
+    """Make ``spec`` the device that :func:`get_device` returns when given no spec."""
+    global _DEFAULT_SPEC
+    _DEFAULT_SPEC = spec
+
+
+def get_device(spec: str | None = None) -> Device:
+    """The shared :class:`Device` for ``spec`` (default: set_default_device, $CLFLOW_DEVICE,
+    then the first GPU, PoCL's CPU device, any CPU)."""
+    spec = spec or _DEFAULT_SPEC or os.environ.get(ENV_DEVICE) or None
+    with _REGISTRY_LOCK:
+        if spec in _DEVICES:
+            return _DEVICES[spec]
+        info, cl_device = _choose(_discover(), spec)
+        device = next((d for d in _DEVICES.values() if d.info == info), None) or Device(info, cl_device)
+        _DEVICES[spec] = device
+        return device

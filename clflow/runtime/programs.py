@@ -1,0 +1,81 @@
+"""Finding OpenCL C sources in ``kernels_cl/`` and the switches they are built with.
+
+``#include "path.h"`` lines are resolved here, against ``kernels_cl/`` (the include path),
+and inlined, so the text handed to the driver is self-contained: the driver's kernel cache
+(PoCL's hashes the program text and options) then also sees every header change, and tools
+such as oclgrind need no include flags.
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+from pathlib import Path
+from typing import Any
+
+from clflow.errors import KernelBuildError
+
+_INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$')
+
+
+@functools.lru_cache(maxsize=1)
+def kernels_dir() -> Path:
+    """Root of the OpenCL sources: inside the installed package, else the source checkout."""
+    package = Path(__file__).resolve().parent.parent  # .../clflow
+    for candidate in (package / "kernels_cl", package.parent / "kernels_cl"):
+        if (candidate / "common").is_dir():
+            return candidate
+    raise KernelBuildError(
+        f"OpenCL sources not found next to {package} (looked for kernels_cl/ in the package "
+        "and in the source checkout); reinstall clflow"
+    )
+
+
+def load_source(relpath: str) -> str:
+    """Text of ``kernels_cl/<relpath>`` with its ``#include "..."`` lines inlined (once each)."""
+    root = kernels_dir()
+    seen: set[Path] = set()
+
+    def expand(path: Path, stack: tuple[Path, ...]) -> list[str]:
+        if path in stack:
+            chain = " -> ".join(p.relative_to(root).as_posix() for p in stack + (path,))
+            raise KernelBuildError(f"circular #include: {chain}")
+        if path in seen:
+            return []
+        if not path.is_file():
+            raise KernelBuildError(f"OpenCL source not found: {path}")
+        seen.add(path)
+        lines = [f'#line 1 "{path.relative_to(root).as_posix()}"']
+        for number, line in enumerate(path.read_text().splitlines(), start=1):
+            match = _INCLUDE.match(line)
+            if match:
+                target = (root / match.group(1)).resolve()
+                lines.extend(expand(target, stack + (path,)))
+                lines.append(f'#line {number + 1} "{path.relative_to(root).as_posix()}"')
+            else:
+                lines.append(line)
+        return lines
+
+    return "\n".join(expand((root / relpath).resolve(), ())) + "\n"
+
+
+def build_options(info, real: str, defines: dict[str, Any] | None = None) -> list[str]:
+    """Compiler options: the ``REAL`` switch, the feature defines and any extra ``-D``.
+
+    Defines every kernel can rely on:
+      REAL (float|double), REAL_IS_DOUBLE (0|1), CLFLOW_FLOAT_ATOMICS (0|1: the device
+      announces cl_ext_float_atomics), CLFLOW_OCLGRIND (0|1: running under oclgrind).
+    """
+    opts = [
+        f"-DREAL={real}",
+        f"-DREAL_IS_DOUBLE={int(real == 'double')}",
+        f"-DCLFLOW_FLOAT_ATOMICS={int(info.float_atomics)}",
+        f"-DCLFLOW_OCLGRIND={int(info.is_oclgrind)}",
+    ]
+    if info.float_atomics and "3." in info.opencl_c_version:
+        opts.append("-cl-std=CL3.0")  # cl_ext_float_atomics builds on the OpenCL C 3.0 atomics
+    for name, value in sorted((defines or {}).items()):
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+            raise ValueError(f"invalid macro name {name!r}")
+        opts.append(f"-D{name}={int(value) if isinstance(value, bool) else value}")
+    return opts

@@ -1,0 +1,3 @@
+from clflow_cli.main import cli
+
+cli(prog_name="clflow")

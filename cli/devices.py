@@ -1,0 +1,38 @@
+"""``clflow devices``: the OpenCL platforms and devices clflow can use."""
+
+import click
+
+
+@click.command()
+@click.option("--json", "as_json", is_flag=True, help="Print a JSON list instead of a table.")
+@click.pass_obj
+def devices(obj, as_json: bool) -> None:
+    """List OpenCL devices with the capabilities clflow uses.
+
+    The device marked '*' is the one clflow selects (--device / CLFLOW_DEVICE / default).
+    """
+    import dataclasses
+    import json
+
+    from clflow.runtime import get_device, list_devices
+
+    infos = list_devices()
+    selected = get_device(obj.device_spec).info
+    if as_json:
+        rows = [dict(dataclasses.asdict(i), selected=(i == selected)) for i in infos]
+        click.echo(json.dumps({"devices": rows, "kernel_cache_dir": str(get_device(obj.device_spec).kernel_cache_dir)}, indent=2))
+        return
+    yes = {True: "yes", False: "no"}
+    for info in infos:
+        mark = "*" if info == selected else " "
+        click.echo(f"{mark} {info.label}")
+        click.echo(f"    type:               {info.type}")
+        click.echo(f"    OpenCL:             {info.opencl_version}; {info.opencl_c_version}")
+        click.echo(f"    fp64:               {yes[info.fp64]}")
+        click.echo(f"    float atomics:      {yes[info.float_atomics]}")
+        click.echo(f"    unified memory:     {yes[info.host_unified_memory]}")
+        click.echo(f"    compute units:      {info.compute_units}")
+        click.echo(f"    max work-group:     {info.max_work_group_size}")
+        click.echo(f"    local memory:       {info.local_mem_size // 1024} KiB")
+        click.echo(f"    global memory:      {info.global_mem_size / 2**30:.1f} GiB")
+    click.echo(f"kernel cache dir: {get_device(obj.device_spec).kernel_cache_dir}")

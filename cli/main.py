@@ -1,0 +1,97 @@
+"""Root ``clflow`` command: global options and lazy registration of subcommands."""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import sys
+from importlib.metadata import entry_points
+
+import click
+
+from clflow import __version__
+
+# name -> "module:attribute" of clflow's own subcommands. Modules here import only click at
+# module level; heavy imports (torch, pyopencl, cv2) happen inside the command functions.
+BUILTIN_COMMANDS: dict[str, str] = {
+    "devices": "clflow_cli.devices:devices",
+}
+
+PLUGIN_GROUP = "clflow.commands"
+
+
+class LazyGroup(click.Group):
+    """A click group that imports a subcommand's module only when it is needed."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        names = set(BUILTIN_COMMANDS) | {ep.name for ep in entry_points(group=PLUGIN_GROUP)}
+        return sorted(names | set(super().list_commands(ctx)))
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name in BUILTIN_COMMANDS:
+            module_name, attr = BUILTIN_COMMANDS[name].split(":")
+            return getattr(importlib.import_module(module_name), attr)
+        for ep in entry_points(group=PLUGIN_GROUP, name=name):
+            try:
+                return ep.load()
+            except Exception as exc:  # a broken plugin must not break the whole CLI
+                raise click.ClickException(f"plugin command {name!r} failed to load: {exc}")
+        return super().get_command(ctx, name)
+
+    def invoke(self, ctx: click.Context):
+        # User-fixable problems (bad input, missing device, ...) end with one clear line and
+        # exit code 1; anything else is a bug and keeps its traceback.
+        from clflow.errors import ClflowError
+
+        try:
+            return super().invoke(ctx)
+        except ClflowError as exc:
+            raise click.ClickException(str(exc)) from None
+
+
+class CliContext:
+    """Shared state handed to subcommands as ``ctx.obj``."""
+
+    def __init__(self, device: str | None, verbosity: int):
+        self.device_spec = device
+        self.verbosity = verbosity
+
+    def device(self):
+        """The selected OpenCL device (``--device`` / ``CLFLOW_DEVICE`` / default)."""
+        from clflow.runtime import get_device
+
+        return get_device(self.device_spec)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, "--version", prog_name="clflow")
+@click.option(
+    "--device",
+    "-d",
+    metavar="NAME",
+    envvar="CLFLOW_DEVICE",
+    help="OpenCL device: a case-insensitive substring of the device name, or "
+    "'platform:device'. Default: $CLFLOW_DEVICE, else the first GPU, else PoCL's CPU device.",
+)
+@click.option("-v", "--verbose", count=True, help="More log output (repeatable).")
+@click.option("-q", "--quiet", count=True, help="Less log output (repeatable).")
+@click.pass_context
+def cli(ctx: click.Context, device: str | None, verbose: int, quiet: int) -> None:
+    """clflow: physically simulated 4D scenes from 3D Gaussian splats and a guidance video.
+
+    OpenCL MLS-MPM and Gaussian-splat kernels (forward and adjoint) behind a PyTorch API.
+    """
+    verbosity = verbose - quiet
+    level = {-2: logging.ERROR, -1: logging.WARNING, 0: logging.INFO}.get(
+        max(-2, min(verbosity, 1)), logging.DEBUG
+    )
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    ctx.obj = CliContext(device, verbosity)
+    if device:
+        from clflow.runtime import set_default_device
+
+        set_default_device(device)
+
+
+def main() -> None:  # pragma: no cover - thin wrapper for `python -m clflow_cli`
+    cli()

@@ -1,0 +1,61 @@
+/* atomic_add_real(p, v): *p += v atomically for a __global real.
+ *
+ * Uses cl_ext_float_atomics when the host announced it (CLFLOW_FLOAT_ATOMICS) and the
+ * compiler confirms the matching feature macro; otherwise a compare-and-swap loop on the
+ * value's bit pattern (32-bit for float, 64-bit for double via cl_khr_int64_base_atomics).
+ * Comparing bit patterns, not values, keeps the loop finite when *p is NaN.
+ *
+ * The order of concurrent additions is not fixed, so sums through this helper are not
+ * bit-reproducible: CPU paths use private copies reduced in a fixed order instead. */
+#ifndef CLFLOW_ATOMICS_H
+#define CLFLOW_ATOMICS_H
+
+#include "common/real.h"
+
+#ifndef CLFLOW_FLOAT_ATOMICS
+#define CLFLOW_FLOAT_ATOMICS 0
+#endif
+
+#if REAL_IS_DOUBLE
+#if CLFLOW_FLOAT_ATOMICS && defined(__opencl_c_ext_fp64_global_atomic_add)
+#define CLFLOW_NATIVE_ATOMIC_ADD 1
+#else
+#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
+#define CLFLOW_NATIVE_ATOMIC_ADD 0
+#endif
+#else
+#if CLFLOW_FLOAT_ATOMICS && defined(__opencl_c_ext_fp32_global_atomic_add)
+#define CLFLOW_NATIVE_ATOMIC_ADD 1
+#else
+#define CLFLOW_NATIVE_ATOMIC_ADD 0
+#endif
+#endif
+
+inline void atomic_add_real(volatile __global real *p, real v)
+{
+#if CLFLOW_NATIVE_ATOMIC_ADD
+#if REAL_IS_DOUBLE
+    atomic_fetch_add_explicit((volatile __global atomic_double *)p, v, memory_order_relaxed,
+                              memory_scope_device);
+#else
+    atomic_fetch_add_explicit((volatile __global atomic_float *)p, v, memory_order_relaxed,
+                              memory_scope_device);
+#endif
+#elif REAL_IS_DOUBLE
+    volatile __global ulong *bits = (volatile __global ulong *)p;
+    ulong seen = *bits, expected;
+    do {
+        expected = seen;
+        seen = atom_cmpxchg(bits, expected, as_ulong(as_double(expected) + v));
+    } while (seen != expected);
+#else
+    volatile __global uint *bits = (volatile __global uint *)p;
+    uint seen = *bits, expected;
+    do {
+        expected = seen;
+        seen = atomic_cmpxchg(bits, expected, as_uint(as_float(expected) + v));
+    } while (seen != expected);
+#endif
+}
+
+#endif /* CLFLOW_ATOMICS_H */
