@@ -14,6 +14,7 @@ from clflow import __version__
 # name -> "module:attribute" of clflow's own subcommands. Modules here import only click at
 # module level; heavy imports (torch, pyopencl, cv2) happen inside the command functions.
 BUILTIN_COMMANDS: dict[str, str] = {
+    "bench": "clflow_cli.bench:bench",
     "devices": "clflow_cli.devices:devices",
 }
 
@@ -21,17 +22,27 @@ PLUGIN_GROUP = "clflow.commands"
 
 
 class LazyGroup(click.Group):
-    """A click group that imports a subcommand's module only when it is needed."""
+    """A click group that imports a subcommand's module only when it is needed.
+
+    ``table`` maps command names to ``"module:attribute"``; ``plugin_group`` names the
+    entry-point group third-party packages register extra commands in (None: no plugins).
+    """
+
+    table: dict[str, str] = BUILTIN_COMMANDS
+    plugin_group: str | None = PLUGIN_GROUP
+
+    def _plugins(self, **select):
+        return entry_points(group=self.plugin_group, **select) if self.plugin_group else []
 
     def list_commands(self, ctx: click.Context) -> list[str]:
-        names = set(BUILTIN_COMMANDS) | {ep.name for ep in entry_points(group=PLUGIN_GROUP)}
+        names = set(self.table) | {ep.name for ep in self._plugins()}
         return sorted(names | set(super().list_commands(ctx)))
 
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
-        if name in BUILTIN_COMMANDS:
-            module_name, attr = BUILTIN_COMMANDS[name].split(":")
+        if name in self.table:
+            module_name, attr = self.table[name].split(":")
             return getattr(importlib.import_module(module_name), attr)
-        for ep in entry_points(group=PLUGIN_GROUP, name=name):
+        for ep in self._plugins(name=name):
             try:
                 return ep.load()
             except Exception as exc:  # a broken plugin must not break the whole CLI

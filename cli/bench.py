@@ -1,0 +1,19 @@
+"""``clflow bench ...``: throughput benchmarks (figures recorded in docs/benchmarks.md)."""
+
+import click
+
+from clflow_cli.main import LazyGroup
+
+# name -> "module:command" of each benchmark; imported only when it runs.
+BENCHMARKS: dict[str, str] = {
+}
+
+
+class BenchGroup(LazyGroup):
+    table = BENCHMARKS
+    plugin_group = None
+
+
+@click.group(cls=BenchGroup)
+def bench() -> None:
+    """Measure throughput of clflow's kernels on the selected device."""
