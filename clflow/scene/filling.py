@@ -1,0 +1,149 @@
+"""Particles from the Gaussians of an object: its Gaussians plus particles filling the inside.
+
+3DGS places Gaussians on surfaces only, so a simulation of their centres alone would be a
+hollow shell. The inside is found on a voxel grid of spacing ``spacing`` (m):
+
+1. shell: each Gaussian marks the voxels of its centre and of points at +-1 and +-2 standard
+   deviations along its three axes (reach capped at ``max_reach`` voxels, so a degenerate,
+   huge Gaussian costs the same bounded work as any other); transparent Gaussians
+   (opacity < ``min_opacity``) mark nothing;
+2. the shell is closed by ``closing`` voxels of dilation so small gaps do not let the
+   outside leak in;
+3. outside = flood fill from the grid border through non-shell voxels; the object is
+   everything else once the outside has grown back over the closing voxels that are not
+   shell; its voxels not on the shell receive ``per_axis^3`` particles each on a regular
+   sub-grid.
+
+Every particle (Gaussian centres first, then fill particles) gets the same rest volume:
+the object's volume (interior voxels, plus half of each shell voxel since the surface runs
+through them) divided by the particle count.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as nnf
+
+from clflow.errors import InputError
+
+MAX_VOXELS = 256**3  # refuse grids larger than this (memory/time); choose a larger spacing
+
+
+@dataclass
+class ObjectParticles:
+    """Particles of an object. positions [M, 3] (m): rows 0..n_gaussians-1 are the
+    Gaussians' centres, the rest fill particles; volume: rest volume of each particle (m^3)."""
+
+    positions: torch.Tensor
+    n_gaussians: int
+    volume: float
+
+    @property
+    def n_fill(self) -> int:
+        return self.positions.shape[0] - self.n_gaussians
+
+
+def _grow(region: torch.Tensor) -> torch.Tensor:
+    """``region`` plus its 6-connected neighbours (bool [nx, ny, nz])."""
+    grown = region.clone()
+    grown[1:] |= region[:-1]
+    grown[:-1] |= region[1:]
+    grown[:, 1:] |= region[:, :-1]
+    grown[:, :-1] |= region[:, 1:]
+    grown[:, :, 1:] |= region[:, :, :-1]
+    grown[:, :, :-1] |= region[:, :, 1:]
+    return grown
+
+
+def _dilate(region: torch.Tensor, voxels: int) -> torch.Tensor:
+    """``region`` grown by ``voxels`` in every direction (a cube structuring element)."""
+    if voxels <= 0:
+        return region
+    k = 2 * voxels + 1
+    return nnf.max_pool3d(region[None, None].float(), k, stride=1, padding=voxels)[0, 0] > 0
+
+
+def _axes(quats: torch.Tensor) -> torch.Tensor:
+    """Columns of each Gaussian's rotation matrix, [N, 3, 3] (axis index last)."""
+    w, x, y, z = nnf.normalize(quats, dim=-1).unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(-1, 3, 3)
+
+
+def fill_object(
+    means: torch.Tensor,
+    scales: torch.Tensor,
+    quats: torch.Tensor,
+    opacities: torch.Tensor,
+    spacing: float,
+    *,
+    per_axis: int = 2,
+    min_opacity: float = 0.1,
+    max_reach: int = 3,
+    closing: int = 1,
+) -> ObjectParticles:
+    """Fill the object outlined by Gaussians (means [N,3] m, scales [N,3] m, quats [N,4]
+    wxyz, opacities [N]) with particles on a grid of ``spacing`` m (see module docstring)."""
+    if means.shape[0] == 0:
+        raise InputError("the object selection is empty: no Gaussians to fill")
+    if not (spacing > 0 and math.isfinite(spacing)):
+        raise InputError(f"fill spacing must be a positive length in metres, got {spacing}")
+    if per_axis < 1:
+        raise InputError(f"fill particles per axis must be >= 1, got {per_axis}")
+    means64 = means.detach().double()
+    pad = closing + 2
+    lower = means64.min(0).values - pad * spacing
+    dims = torch.ceil((means64.max(0).values + pad * spacing - lower) / spacing).long() + 1
+    if int(dims.prod()) > MAX_VOXELS:
+        raise InputError(
+            f"filling needs a {dims.tolist()} voxel grid at spacing {spacing} m (more than "
+            f"{round(MAX_VOXELS ** (1 / 3))}^3); use a larger spacing"
+        )
+    nx, ny, nz = dims.tolist()
+
+    visible = opacities.detach() >= min_opacity
+    centres = means64[visible]
+    axes = _axes(quats.detach()[visible].double())  # [n, 3, 3]
+    reach = (scales.detach()[visible].double().clamp(max=max_reach * spacing / 2)).unsqueeze(1)  # [n, 1, 3]
+    offsets = [torch.zeros(1, 3, dtype=torch.float64)]
+    for k in (-2.0, -1.0, 1.0, 2.0):
+        offsets.append(k * torch.eye(3, dtype=torch.float64))
+    factors = torch.cat(offsets)  # [13, 3]: multiples of each axis' standard deviation
+    points = centres.unsqueeze(1) + torch.einsum("kj,nij->nki", factors * 1.0, axes * reach)
+    cells = torch.floor((points.reshape(-1, 3) - lower) / spacing).long()
+    cells = torch.maximum(torch.minimum(cells, dims - 1), torch.zeros(3, dtype=torch.long))
+    shell = torch.zeros(nx, ny, nz, dtype=torch.bool)
+    shell[cells[:, 0], cells[:, 1], cells[:, 2]] = True
+
+    closed = _dilate(shell, closing)
+    outside = torch.zeros_like(shell)
+    outside[[0, -1], :, :] = True
+    outside[:, [0, -1], :] = True
+    outside[:, :, [0, -1]] = True
+    outside &= ~closed
+    while True:  # 6-connected flood fill through empty voxels
+        grown = _grow(outside) & ~closed
+        if torch.equal(grown, outside):
+            break
+        outside = grown
+    outside = _dilate(outside, closing) & ~shell  # give back what the closing took
+    inside = ~outside
+    interior = inside & ~shell
+    fill_cells = interior.nonzero().double()  # [M, 3]
+    sub = (torch.arange(per_axis, dtype=torch.float64) + 0.5) / per_axis
+    sub = torch.stack(torch.meshgrid(sub, sub, sub, indexing="ij"), -1).reshape(-1, 3)
+    fill = (lower + spacing * (fill_cells.unsqueeze(1) + sub)).reshape(-1, 3)
+    positions = torch.cat([means64, fill]).to(means.dtype)
+    # the surface runs through the shell voxels: count them half
+    object_volume = (float(interior.sum()) + 0.5 * float((inside & shell).sum())) * spacing**3
+    volume = object_volume / positions.shape[0]
+    return ObjectParticles(positions=positions, n_gaussians=means.shape[0], volume=volume)
