@@ -1,0 +1,480 @@
+"""Scene configuration files (YAML or JSON) for `clflow simulate/optimize/render4d`.
+
+Every key is checked: unknown keys (typos), wrong types and out-of-range values raise an
+:class:`~clflow.errors.InputError` that names the file and the dotted key, e.g.
+``scene.yaml: simulation.frames: must be an integer >= 1, got -3``. Paths are relative to
+the config file. Lengths in the ``simulation``/``forces``/``boundaries`` sections are metres
+in the simulation frame (+y up); ``object.select`` is in scene units of the splat file.
+
+A complete example with every default spelled out: ``docs/scene_config.md``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from clflow.errors import InputError
+from clflow.materials import DENSITY, get_material, validate_params
+
+UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
+COLLIDER_MODES = ("sticky", "slip", "separate")
+FLOW_METHODS = ("dis", "farneback")
+FLOW_LOSSES = ("l2", "charbonnier")
+
+
+_DEFAULT = object()
+
+
+class _Reader:
+    """Walks a parsed config with the dotted path of each key for error messages."""
+
+    def __init__(self, source: str, base: Path):
+        self.source = source
+        self.base = base
+
+    def fail(self, path: str, message: str) -> InputError:
+        return InputError(f"{self.source}: {path}: {message}" if path else f"{self.source}: {message}")
+
+    def section(self, data: Any, path: str, known: tuple[str, ...]) -> dict:
+        data = self.mapping(data, path)
+        unknown = [k for k in data if k not in known]
+        if unknown:
+            raise self.fail(f"{path}.{unknown[0]}" if path else str(unknown[0]),
+                            f"unknown key; known keys here: {', '.join(known)}")
+        return data
+
+    def mapping(self, data: Any, path: str) -> dict:
+        """A mapping whose keys are checked elsewhere."""
+        if data is None:
+            return {}
+        if not isinstance(data, dict):
+            raise self.fail(path, f"must be a mapping of keys to values, got {type(data).__name__}")
+        return data
+
+    def _get(self, data: dict, key: str, path: str, default: Any) -> tuple[str, Any]:
+        """(dotted key, value), value _DEFAULT when absent and a default exists."""
+        where = f"{path}.{key}" if path else key
+        if key not in data or data[key] is None:
+            if default is None:
+                raise self.fail(where, "is required")
+            return where, _DEFAULT
+        return where, data[key]
+
+    def number(self, data: dict, key: str, path: str, default: float | None = None, *,
+               low: float | None = None, high: float | None = None, strict_low: bool = False) -> float:
+        where, value = self._get(data, key, path, default)
+        if value is _DEFAULT:
+            return default
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(where, f"must be a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise self.fail(where, f"must be finite, got {value}")
+        if low is not None and (value < low or (strict_low and value == low)):
+            raise self.fail(where, f"must be {'>' if strict_low else '>='} {low:g}, got {value:g}")
+        if high is not None and value > high:
+            raise self.fail(where, f"must be <= {high:g}, got {value:g}")
+        return value
+
+    def integer(self, data: dict, key: str, path: str, default: int | None = None, *, low: int = 0) -> int:
+        where, value = self._get(data, key, path, default)
+        if value is _DEFAULT:
+            return default
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise self.fail(where, f"must be an integer >= {low}, got {value!r}")
+        return value
+
+    def vec3(self, data: dict, key: str, path: str, default: tuple | None = None) -> tuple[float, float, float]:
+        where, value = self._get(data, key, path, default)
+        if value is _DEFAULT:
+            return default
+        if (not isinstance(value, (list, tuple)) or len(value) != 3
+                or not all(isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in value)):
+            raise self.fail(where, f"must be a list of 3 finite numbers, got {value!r}")
+        return tuple(float(c) for c in value)
+
+    def choice(self, data: dict, key: str, path: str, options: tuple[str, ...], default: str | None = None) -> str:
+        where = f"{path}.{key}" if path else key
+        value = data.get(key, default)
+        if value is None:
+            raise self.fail(where, "is required")
+        if value not in options:
+            raise self.fail(where, f"must be one of {', '.join(options)}, got {value!r}")
+        return value
+
+    def file(self, data: dict, key: str, path: str, required: bool = True) -> Path | None:
+        where = f"{path}.{key}" if path else key
+        value = data.get(key)
+        if value is None:
+            if required:
+                raise self.fail(where, "is required (a file path, relative to the config file)")
+            return None
+        if not isinstance(value, str) or not value:
+            raise self.fail(where, f"must be a file path, got {value!r}")
+        resolved = (self.base / value).resolve()
+        if not resolved.is_file():
+            raise self.fail(where, f"file not found: {resolved}")
+        return resolved
+
+    def items(self, data: dict, key: str, path: str) -> list:
+        value = data.get(key, [])
+        if value is None:
+            return []
+        if not isinstance(value, list):
+            raise self.fail(f"{path}.{key}" if path else key, f"must be a list, got {type(value).__name__}")
+        return value
+
+
+# ---------------------------------------------------------------------------------------
+# The configuration, section by section.
+
+
+@dataclass(frozen=True)
+class Region:
+    """A box (lower, upper corners), a sphere (centre, radius) or everything (kind "all")."""
+
+    kind: str  # "box" | "sphere" | "all"
+    lower: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    upper: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    radius: float = 0.0
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Which Gaussians form the object: a region in scene units, or a mask file (.npy of N
+    booleans or of indices)."""
+
+    region: Region | None
+    mask: Path | None
+
+
+@dataclass(frozen=True)
+class FillSettings:
+    enabled: bool = True
+    spacing: float | None = None  # m; None: twice the median distance between neighbours
+    per_axis: int = 2
+
+
+@dataclass(frozen=True)
+class MaterialConfig:
+    """``type`` is a registry material, or "query" to ask the material query first."""
+
+    type: str
+    parameters: dict[str, float]
+    density: float
+    query_image: Path | None = None
+    query_prompt: str = ""
+    query_backend: str = "offline"
+
+
+@dataclass(frozen=True)
+class ForceStage:
+    """A force (N, spread over the region's particles by mass) or an acceleration (m/s^2)
+    on a region of particles during [start, end) s."""
+
+    region: Region
+    vector: tuple[float, float, float]
+    kind: str  # "force" | "acceleration"
+    start: float
+    end: float
+
+
+@dataclass(frozen=True)
+class Collider:
+    point: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    mode: str
+    friction: float
+    start: float = 0.0
+    end: float = math.inf
+
+
+@dataclass(frozen=True)
+class SimulationSettings:
+    grid_resolution: int = 32  # cells along the longest side of the domain
+    domain_lower: tuple[float, float, float] | None = None  # m; None: around the object
+    domain_upper: tuple[float, float, float] | None = None
+    substep_dt: float | None = None  # s; None: automatic (CFL and elastic wave speed)
+    fps: float = 24.0
+    frames: int = 24
+    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)  # m/s^2
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """A camera from a 3DGS cameras.json / NeRF transforms.json entry, or explicit."""
+
+    cameras_file: Path | None = None
+    index: int = 0
+    position: tuple[float, float, float] | None = None  # scene units
+    look_at: tuple[float, float, float] | None = None
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    fov_y_deg: float = 50.0
+    width: int = 512
+    height: int = 512
+
+
+@dataclass(frozen=True)
+class FlowSettings:
+    method: str = "dis"
+    preset: str = "medium"
+    loss: str = "l2"
+    mask: str = "alpha"  # "alpha" (rendered object alpha at frame 0), "none", or a file
+
+
+@dataclass(frozen=True)
+class OptimizeSettings:
+    parameters: tuple[str, ...] = ()
+    learning_rates: dict[str, float] = field(default_factory=dict)  # in the optimiser's space
+    iterations: int = 30
+    horizon_start: int = 0  # frames in the first iteration's loss (0: all)
+    horizon_step: int = 0  # frames added per iteration
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    source: Path
+    splats: Path
+    scale: float
+    up: str
+    selection: Selection
+    fill: FillSettings
+    material: MaterialConfig
+    forces: tuple[ForceStage, ...]
+    colliders: tuple[Collider, ...]
+    simulation: SimulationSettings
+    camera: CameraConfig
+    video: Path | None
+    flow: FlowSettings
+    optimize: OptimizeSettings
+    output: Path
+
+
+def _region(r: _Reader, data: Any, path: str, allow_all: bool) -> Region:
+    if data == "all" and allow_all:
+        return Region("all")
+    shapes = ("box", "sphere") + (("all",) if allow_all else ())
+    body = r.section(data, path, ("box", "sphere"))
+    if len(body) != 1:
+        raise r.fail(path, f"give exactly one of {', '.join(shapes)}")
+    if "box" in body:
+        box = r.section(body["box"], f"{path}.box", ("min", "max"))
+        lower, upper = r.vec3(box, "min", f"{path}.box"), r.vec3(box, "max", f"{path}.box")
+        if not all(lo < hi for lo, hi in zip(lower, upper)):
+            raise r.fail(f"{path}.box", f"min {list(lower)} must be below max {list(upper)} on every axis")
+        return Region("box", lower=lower, upper=upper)
+    sphere = r.section(body["sphere"], f"{path}.sphere", ("center", "radius"))
+    return Region("sphere", center=r.vec3(sphere, "center", f"{path}.sphere"),
+                  radius=r.number(sphere, "radius", f"{path}.sphere", low=0.0, strict_low=True))
+
+
+def _window(r: _Reader, data: dict, path: str) -> tuple[float, float]:
+    start = r.number(data, "start", path, 0.0, low=0.0)
+    end = r.number(data, "end", path, math.inf) if data.get("end") is not None else math.inf
+    if end <= start:
+        raise r.fail(f"{path}.end", f"must be after start ({start:g} s), got {end:g}")
+    return start, end
+
+
+def _material(r: _Reader, data: Any) -> MaterialConfig:
+    body = r.section(data, "material", ("type", "parameters", "density", "query"))
+    kind = body.get("type")
+    if not isinstance(kind, str):
+        raise r.fail("material.type", "is required: a material name or 'query'")
+    params_in = r.mapping(body.get("parameters"), "material.parameters")  # names: the registry checks
+    if kind == "query":
+        query = r.section(body.get("query"), "material.query", ("image", "prompt", "backend"))
+        density = r.number(body, "density", "material", DENSITY.default, low=0.0, strict_low=True)
+        return MaterialConfig("query", dict(params_in), density, query_image=r.file(query, "image", "material.query"),
+                              query_prompt=str(query.get("prompt", "")), query_backend=str(query.get("backend", "offline")))
+    try:
+        material = get_material(kind)
+        params = validate_params(material.name, params_in)
+    except InputError as exc:
+        raise r.fail("material", str(exc)) from None
+    density = r.number(body, "density", "material", material.default_density, low=0.0, strict_low=True)
+    DENSITY.check(density)
+    return MaterialConfig(material.name, params, density)
+
+
+def _forces(r: _Reader, items: list) -> tuple[ForceStage, ...]:
+    stages = []
+    for i, item in enumerate(items):
+        path = f"forces[{i}]"
+        body = r.section(item, path, ("region", "force", "acceleration", "start", "end"))
+        kinds = [k for k in ("force", "acceleration") if k in body]
+        if len(kinds) != 1:
+            raise r.fail(path, "give exactly one of force (N) and acceleration (m/s^2)")
+        start, end = _window(r, body, path)
+        stages.append(ForceStage(_region(r, body.get("region", "all"), f"{path}.region", allow_all=True),
+                                 r.vec3(body, kinds[0], path), kinds[0], start, end))
+    return tuple(stages)
+
+
+def _colliders(r: _Reader, data: Any) -> tuple[Collider, ...]:
+    body = r.section(data, "boundaries", ("ground", "colliders"))
+    out = []
+    if body.get("ground") is not None:
+        ground = r.section(body["ground"], "boundaries.ground", ("height", "mode", "friction"))
+        out.append(Collider((0.0, r.number(ground, "height", "boundaries.ground", 0.0), 0.0), (0.0, 1.0, 0.0),
+                            r.choice(ground, "mode", "boundaries.ground", COLLIDER_MODES, "slip"),
+                            r.number(ground, "friction", "boundaries.ground", 0.0, low=0.0)))
+    for i, item in enumerate(r.items(body, "colliders", "boundaries")):
+        path = f"boundaries.colliders[{i}]"
+        c = r.section(item, path, ("point", "normal", "mode", "friction", "start", "end"))
+        normal = r.vec3(c, "normal", path)
+        if not any(normal):
+            raise r.fail(f"{path}.normal", "must not be the zero vector")
+        start, end = _window(r, c, path)
+        out.append(Collider(r.vec3(c, "point", path), normal, r.choice(c, "mode", path, COLLIDER_MODES, "slip"),
+                            r.number(c, "friction", path, 0.0, low=0.0), start, end))
+    return tuple(out)
+
+
+def _simulation(r: _Reader, data: Any) -> SimulationSettings:
+    p = "simulation"
+    body = r.section(data, p, ("grid_resolution", "domain", "substep_dt", "fps", "frames", "gravity"))
+    lower = upper = None
+    if body.get("domain") is not None:
+        dom = r.section(body["domain"], f"{p}.domain", ("min", "max"))
+        lower, upper = r.vec3(dom, "min", f"{p}.domain"), r.vec3(dom, "max", f"{p}.domain")
+        if not all(lo < hi for lo, hi in zip(lower, upper)):
+            raise r.fail(f"{p}.domain", f"min {list(lower)} must be below max {list(upper)} on every axis")
+    dt = body.get("substep_dt", "auto")
+    substep_dt = None if dt == "auto" else r.number(body, "substep_dt", p, low=0.0, strict_low=True)
+    return SimulationSettings(
+        grid_resolution=r.integer(body, "grid_resolution", p, 32, low=8),
+        domain_lower=lower, domain_upper=upper, substep_dt=substep_dt,
+        fps=r.number(body, "fps", p, 24.0, low=0.0, strict_low=True),
+        frames=r.integer(body, "frames", p, 24, low=1),
+        gravity=r.vec3(body, "gravity", p, (0.0, -9.81, 0.0)),
+    )
+
+
+def _camera(r: _Reader, data: Any) -> CameraConfig:
+    p = "camera"
+    body = r.section(data, p, ("file", "index", "position", "look_at", "up", "fov_y_deg", "width", "height"))
+    if body.get("file") is None and body.get("position") is None:
+        raise r.fail(p, "give a camera file (cameras.json / transforms.json) or position and look_at")
+    explicit = body.get("file") is None
+    return CameraConfig(
+        cameras_file=r.file(body, "file", p, required=False),
+        index=r.integer(body, "index", p, 0),
+        position=r.vec3(body, "position", p) if explicit else None,
+        look_at=r.vec3(body, "look_at", p) if explicit else None,
+        up=r.vec3(body, "up", p, (0.0, 1.0, 0.0)),
+        fov_y_deg=r.number(body, "fov_y_deg", p, 50.0, low=1.0, high=179.0),
+        width=r.integer(body, "width", p, 512, low=8),
+        height=r.integer(body, "height", p, 512, low=8),
+    )
+
+
+def _optimize(r: _Reader, data: Any, material: MaterialConfig) -> OptimizeSettings:
+    p = "optimize"
+    body = r.section(data, p, ("parameters", "learning_rates", "iterations", "horizon"))
+    names = body.get("parameters", [])
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise r.fail(f"{p}.parameters", f"must be a list of parameter names, got {names!r}")
+    if material.type != "query":
+        mat = get_material(material.type)
+        for name in names:
+            if name != "density" and name not in mat.param_names:
+                raise r.fail(f"{p}.parameters", f"{name!r} is not a parameter of {mat.name} "
+                                                f"(its parameters: {', '.join(mat.param_names)}, density)")
+    rates_in = r.mapping(body.get("learning_rates"), f"{p}.learning_rates")
+    for name in rates_in:
+        if name not in names:
+            raise r.fail(f"{p}.learning_rates.{name}", f"is not among optimize.parameters {names}")
+    rates = {n: r.number(rates_in, n, f"{p}.learning_rates", low=0.0, strict_low=True) for n in rates_in}
+    horizon = r.section(body.get("horizon"), f"{p}.horizon", ("start", "step"))
+    return OptimizeSettings(
+        parameters=tuple(names), learning_rates=rates, iterations=r.integer(body, "iterations", p, 30, low=1),
+        horizon_start=r.integer(horizon, "start", f"{p}.horizon", 0), horizon_step=r.integer(horizon, "step", f"{p}.horizon", 0),
+    )
+
+
+TOP_KEYS = ("splats", "scene", "object", "material", "forces", "boundaries", "simulation", "camera",
+            "video", "flow", "optimize", "output")
+
+
+def parse_config(data: Any, source: str = "<config>", base: Path | None = None) -> SceneConfig:
+    """Validate a parsed config (dict) and return a :class:`SceneConfig`."""
+    r = _Reader(source, base or Path.cwd())
+    top = r.section(data, "", TOP_KEYS)
+    if not top:
+        raise r.fail("", "the config is empty")
+    scene = r.section(top.get("scene"), "scene", ("scale", "up"))
+    obj = r.section(top.get("object"), "object", ("select", "fill"))
+    select = r.section(obj.get("select"), "object.select", ("box", "sphere", "mask"))
+    if not select:
+        raise r.fail("object.select", "is required: a box, a sphere or a mask file")
+    if "mask" in select:
+        if len(select) > 1:
+            raise r.fail("object.select", "give exactly one of box, sphere and mask")
+        selection = Selection(None, r.file(select, "mask", "object.select"))
+    else:
+        selection = Selection(_region(r, select, "object.select", allow_all=False), None)
+    fill_in = r.section(obj.get("fill"), "object.fill", ("enabled", "spacing", "per_axis"))
+    enabled = fill_in.get("enabled", True)
+    if not isinstance(enabled, bool):
+        raise r.fail("object.fill.enabled", f"must be true or false, got {enabled!r}")
+    fill = FillSettings(
+        enabled=enabled,
+        spacing=r.number(fill_in, "spacing", "object.fill", low=0.0, strict_low=True) if fill_in.get("spacing") is not None else None,
+        per_axis=r.integer(fill_in, "per_axis", "object.fill", 2, low=1),
+    )
+    material = _material(r, top.get("material"))
+    flow_in = r.section(top.get("flow"), "flow", ("method", "preset", "loss", "mask"))
+    flow = FlowSettings(
+        method=r.choice(flow_in, "method", "flow", FLOW_METHODS, "dis"),
+        preset=str(flow_in.get("preset", "medium")),
+        loss=r.choice(flow_in, "loss", "flow", FLOW_LOSSES, "l2"),
+        mask=str(flow_in.get("mask", "alpha")),
+    )
+    output = top.get("output", "results")
+    if not isinstance(output, str) or not output:
+        raise r.fail("output", f"must be a folder path, got {output!r}")
+    return SceneConfig(
+        source=Path(source),
+        splats=r.file(top, "splats", ""),
+        scale=r.number(scene, "scale", "scene", 1.0, low=0.0, strict_low=True),
+        up=r.choice(scene, "up", "scene", UP_AXES, "+y"),
+        selection=selection,
+        fill=fill,
+        material=material,
+        forces=_forces(r, r.items(top, "forces", "")),
+        colliders=_colliders(r, top.get("boundaries")),
+        simulation=_simulation(r, top.get("simulation")),
+        camera=_camera(r, top.get("camera")),
+        video=r.file(top, "video", "", required=False),
+        flow=flow,
+        optimize=_optimize(r, top.get("optimize"), material),
+        output=(r.base / output).resolve(),
+    )
+
+
+def load_config(path: str | Path) -> SceneConfig:
+    """Read and validate a YAML (.yaml/.yml) or JSON (.json) scene config."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise InputError(f"cannot read config {path}: {exc.strerror}") from None
+    loader: Callable[[str], Any]
+    if path.suffix.lower() == ".json":
+        loader = json.loads
+        errors: tuple[type[Exception], ...] = (json.JSONDecodeError,)
+    else:
+        import yaml
+
+        loader, errors = yaml.safe_load, (yaml.YAMLError,)
+    try:
+        data = loader(text)
+    except errors as exc:
+        raise InputError(f"{path}: not valid {'JSON' if path.suffix.lower() == '.json' else 'YAML'}: {exc}") from None
+    return parse_config(data, str(path), path.parent.resolve())

@@ -1,0 +1,123 @@
+"""Scene configs: a complete example parses; each bad config gets its own specific error."""
+
+import copy
+import dataclasses
+import json
+import math
+
+import pytest
+
+from clflow.errors import InputError
+from clflow.scene.config import load_config, parse_config
+
+GOOD = {
+    "splats": "scene.ply",
+    "scene": {"scale": 0.5, "up": "+z"},
+    "object": {"select": {"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}, "fill": {"spacing": 0.02}},
+    "material": {"type": "elastic", "parameters": {"youngs_modulus": 1e4}, "density": 500},
+    "forces": [{"region": {"sphere": {"center": [0, 0.5, 0], "radius": 0.1}}, "force": [0, 0, 2], "start": 0, "end": 0.2}],
+    "boundaries": {"ground": {"height": 0.0, "mode": "slip", "friction": 0.3},
+                   "colliders": [{"point": [1, 0, 0], "normal": [-1, 0, 0], "mode": "sticky"}]},
+    "simulation": {"grid_resolution": 32, "fps": 24, "frames": 12, "substep_dt": "auto"},
+    "camera": {"position": [0, 1, 3], "look_at": [0, 0.5, 0], "width": 256, "height": 256},
+    "optimize": {"parameters": ["youngs_modulus"], "learning_rates": {"youngs_modulus": 0.1}, "iterations": 5},
+}
+
+
+@pytest.fixture
+def folder(tmp_path):
+    (tmp_path / "scene.ply").write_bytes(b"ply\n")
+    return tmp_path
+
+
+def parse(data, folder):
+    return parse_config(data, "scene.yaml", folder)
+
+
+def test_a_complete_config_parses_with_defaults(folder):
+    cfg = parse(GOOD, folder)
+    assert cfg.splats == folder / "scene.ply" and cfg.scale == 0.5 and cfg.up == "+z"
+    assert cfg.material.type == "elastic" and cfg.material.density == 500.0
+    assert cfg.material.parameters == {"youngs_modulus": 1e4, "poissons_ratio": 0.3}
+    assert cfg.forces[0].kind == "force" and cfg.forces[0].region.kind == "sphere"
+    assert cfg.forces[0].end == 0.2 and cfg.colliders[0].normal == (0.0, 1.0, 0.0)
+    assert cfg.colliders[1].mode == "sticky" and cfg.colliders[1].end == math.inf
+    assert cfg.simulation.substep_dt is None and cfg.simulation.gravity == (0.0, -9.81, 0.0)
+    assert cfg.flow.method == "dis" and cfg.optimize.iterations == 5
+    assert cfg.output == (folder / "results").resolve()
+
+
+def test_yaml_and_json_files(folder):
+    import yaml
+
+    (folder / "scene.yaml").write_text(yaml.safe_dump(GOOD))
+    (folder / "scene.json").write_text(json.dumps(GOOD))
+    from_json = load_config(folder / "scene.json")
+    assert from_json.source == folder / "scene.json"
+    assert load_config(folder / "scene.yaml") == dataclasses.replace(from_json, source=folder / "scene.yaml")
+    (folder / "broken.yaml").write_text("material: [unclosed\n")
+    with pytest.raises(InputError, match="broken.yaml: not valid YAML"):
+        load_config(folder / "broken.yaml")
+    with pytest.raises(InputError, match="cannot read config"):
+        load_config(folder / "missing.yaml")
+
+
+def edit(path, value):
+    data = copy.deepcopy(GOOD)
+    keys = path.split(".")
+    node = data
+    for key in keys[:-1]:
+        node = node[int(key)] if isinstance(node, list) else node[key]
+    if value is DELETE:
+        del node[keys[-1]]
+    else:
+        node[keys[-1]] = value
+    return data
+
+
+DELETE = object()
+
+BAD = [
+    ("splats", "nope.ply", "scene.yaml: splats: file not found"),
+    ("splats", DELETE, "splats: is required"),
+    ("simulaton", {}, "simulaton: unknown key; known keys here: splats, scene"),
+    ("simulation.frames", -3, "simulation.frames: must be an integer >= 1, got -3"),
+    ("simulation.fps", "fast", "simulation.fps: must be a number, got 'fast'"),
+    ("simulation.substep_dt", 0, "simulation.substep_dt: must be > 0"),
+    ("simulation.gravity", [0, -9.81], "simulation.gravity: must be a list of 3 finite numbers"),
+    ("simulation.domain", {"min": [0, 0, 0], "max": [1, -1, 1]}, "simulation.domain: min .* must be below max"),
+    ("scene.up", "up", "scene.up: must be one of"),
+    ("scene.scale", 0, "scene.scale: must be > 0"),
+    ("object.select", {}, "object.select: is required"),
+    ("object.select", {"box": {"min": [0, 0, 0], "max": [1, 1, 1]}, "sphere": {}}, "object.select: give exactly one"),
+    ("object.select", {"mask": "mask.npy"}, "object.select.mask: file not found"),
+    ("object.fill.spacing", -0.1, "object.fill.spacing: must be > 0"),
+    ("material.type", "lava", "material: unknown material 'lava'"),
+    ("material.parameters", {"poissons_ratio": 0.5}, r"material: elastic: poissons_ratio \(nu\) = 0.5 is outside"),
+    ("material.parameters", {"yield_stress": 10}, "material 'elastic' has no parameter 'yield_stress'"),
+    ("material.density", -1, "material.density: must be > 0"),
+    ("forces.0.force", [0, 0], "forces\\[0\\].force: must be a list of 3"),
+    ("forces.0.end", -1, "forces\\[0\\].end: must be after start"),
+    ("forces.0.acceleration", [0, 0, 1], "forces\\[0\\]: give exactly one of force"),
+    ("forces.0.region", {"cube": 1}, "forces\\[0\\].region.cube: unknown key"),
+    ("boundaries.ground.mode", "bouncy", "boundaries.ground.mode: must be one of sticky, slip, separate"),
+    ("boundaries.colliders", [{"point": [0, 0, 0], "normal": [0, 0, 0]}], "boundaries.colliders\\[0\\].normal: must not be the zero"),
+    ("camera", {}, "camera: give a camera file"),
+    ("camera.fov_y_deg", 200, "camera.fov_y_deg: must be <= 179"),
+    ("optimize.parameters", ["yield_stress"], "'yield_stress' is not a parameter of elastic"),
+    ("optimize.learning_rates", {"poissons_ratio": 0.1}, "optimize.learning_rates.poissons_ratio: is not among"),
+    ("video", "guide.mp4", "video: file not found"),
+]
+
+
+@pytest.mark.parametrize("path, value, message", BAD, ids=[f"{p}={v!r}"[:40] for p, v, _ in BAD])
+def test_bad_configs_name_the_key_and_the_problem(folder, path, value, message):
+    with pytest.raises(InputError, match=message):
+        parse(edit(path, value), folder)
+
+
+def test_not_a_mapping(folder):
+    with pytest.raises(InputError, match="must be a mapping"):
+        parse(["splats"], folder)
+    with pytest.raises(InputError, match="the config is empty"):
+        parse({}, folder)
