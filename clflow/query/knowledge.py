@@ -35,6 +35,7 @@ FUZZY_MIN_RATIO = 0.85  # difflib ratio for a misspelt word ("aluminum" ~ "alumi
 FUZZY_MIN_LENGTH = 5  # shorter words must match exactly ("cap" is not "can")
 COMPOUND_MIN_LENGTH = 4  # alias glued to another word in a file name ("rubberduck")
 COMPOUND_SCORE = 0.75
+CONTAINER_FACTOR = 0.8  # "glass of water", "can of beans": the container is not the object
 TYPE_NAME_CONFIDENCE = 0.3  # only a material type's name ("metal", "granular") matched
 
 
@@ -102,7 +103,8 @@ class KnowledgeBase:
         Each alias of each entry is looked for as a phrase of whole words: exactly (after
         lower-casing, stripping accents and plurals), with misspelt words (difflib ratio
         >= 0.85 for words of 5+ letters), or glued into one word ("rubberduck", "sandcastle").
-        Ties go to the longer alias, then to the earlier position in the text.
+        A phrase followed by "of" is a container or a quantity ("glass of water") and
+        counts 0.8 times. Ties go to the longer alias, then to the earlier position.
         """
         texts = [("name", object_name), ("prompt", prompt), ("file", file_name)]
         found = []  # (sort key, where, first word, end word, match)
@@ -113,6 +115,8 @@ class KnowledgeBase:
                     hit = _find_phrase(tokenize(alias), words)
                     if hit is not None:
                         score, start, end = hit
+                        if end < len(words) and words[end] == "of":
+                            score *= CONTAINER_FACTOR
                         confidence = round(score * SOURCE_WEIGHTS[where], 3)
                         key = (confidence, len(alias), -start)
                         found.append((key, where, start, end, Match(entry, confidence, alias, where)))
