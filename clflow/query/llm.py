@@ -42,6 +42,7 @@ MODEL_ENV = ("CLFLOW_LLM_MODEL",)
 KEY_ENV = ("CLFLOW_LLM_API_KEY", "OPENAI_API_KEY")
 RETRY_STATUS = frozenset({408, 429, 500, 502, 503, 504})
 SCHEMA_REJECTED_STATUS = frozenset({400, 422})
+_TYPES = ", ".join(MATERIALS)
 
 SYSTEM_PROMPT = (
     "You are a materials scientist who sets up physics simulations. You look at an object, "
@@ -76,6 +77,12 @@ class ModelConfig:
     image_format: ImageFormat = "png"
     structured_output: bool = True
 
+    def __post_init__(self):
+        if not (self.timeout > 0 and self.retries >= 0 and self.backoff >= 0 and self.max_backoff >= 0):
+            raise InputError("the model backend needs timeout > 0 s, retries >= 0, backoff >= 0 s")
+        if self.image_format not in ("png", "jpeg"):
+            raise InputError(f"image format {self.image_format!r} is not 'png' or 'jpeg'")
+
     @classmethod
     def resolve(cls, url: str | None = None, model: str | None = None, **options) -> "ModelConfig":
         """A config from arguments, else environment variables: the endpoint from
@@ -96,10 +103,6 @@ class ModelConfig:
                 f"no API key for {urllib.parse.urlsplit(endpoint).hostname}: set ${KEY_ENV[0]} "
                 f"(or ${KEY_ENV[1]}); only a server on this machine may go without one"
             )
-        if options.get("timeout", 1.0) <= 0 or options.get("retries", 0) < 0 or options.get("backoff", 0.0) < 0:
-            raise InputError("timeout must be > 0 s, retries >= 0 and backoff >= 0 s")
-        if options.get("image_format", "png") not in ("png", "jpeg"):
-            raise InputError(f"image format {options['image_format']!r} is not 'png' or 'jpeg'")
         return cls(url=endpoint, model=model, api_key=key, **options)
 
 
@@ -137,10 +140,9 @@ def answer_schema() -> dict:
 
     def quantity(p: Param) -> dict:
         lo, hi = p.typical
-        return _closed(
-            {"value": {"type": "number", "description": f"{p.doc or p.name} ({p.symbol}), typically {lo:g} to {hi:g} {p.unit}"},
-             "unit": {"type": "string", "enum": [p.unit]}}
-        )
+        about = f"{p.doc or p.name} ({p.symbol}), typically {lo:g} to {hi:g} {p.unit}"
+        return _closed({"value": {"type": "number", "description": about},
+                        "unit": {"type": "string", "enum": [p.unit]}})
 
     variants = [
         {**_closed({p.name: quantity(p) for p in m.params}), "description": f"parameters of {m.name}: {m.model}"}
@@ -222,17 +224,20 @@ class _Failure(Exception):
 
 
 def _post_once(config: ModelConfig, payload: bytes) -> bytes:
-    headers = {"Content-Type": "application/json", "Accept": "application/json", "User-Agent": f"clflow/{__version__}"}
+    headers = {"Content-Type": "application/json", "Accept": "application/json",
+               "User-Agent": f"clflow/{__version__}"}
     if config.api_key:
         headers["Authorization"] = f"Bearer {config.api_key}"
     req = urllib.request.Request(config.url, data=payload, headers=headers, method="POST")
-    # A server on this machine is never reached through a proxy.
-    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}) if is_loopback(config.url) else urllib.request.ProxyHandler())
+    # A server on this machine is never reached through a proxy ($http_proxy etc.).
+    proxies = {} if is_loopback(config.url) else None
+    opener = urllib.request.build_opener(urllib.request.ProxyHandler(proxies))
     try:
         with opener.open(req, timeout=config.timeout) as resp:
             return resp.read()
     except urllib.error.HTTPError as exc:
-        raise _Failure(exc.code, f"HTTP {exc.code} {exc.reason}: {_error_text(exc)}", _retry_after(exc.headers)) from None
+        message = f"HTTP {exc.code} {exc.reason}: {_error_text(exc)}"
+        raise _Failure(exc.code, message, _retry_after(exc.headers)) from None
     except urllib.error.URLError as exc:
         raise _Failure(None, _reason(exc.reason, config.timeout)) from None
     except (OSError, http.client.HTTPException) as exc:
@@ -270,23 +275,29 @@ def _post(config: ModelConfig, body: dict) -> bytes:
     rejected ``response_format`` is re-raised as :class:`_Failure` for the caller)."""
     payload = json.dumps(body).encode()
     attempts = config.retries + 1
-    for attempt in range(attempts):
+    attempt = 0
+    while True:
         try:
             return _post_once(config, payload)
         except _Failure as failure:
             if "response_format" in body and failure.status in SCHEMA_REJECTED_STATUS:
                 raise
-            if not failure.retryable or attempt == attempts - 1:
-                hint = {401: " (check the API key)", 403: " (check the API key)", 404: " (check --llm-url and --model)"}
-                tried = f" after {attempts} attempts" if attempts > 1 and failure.retryable else ""
-                verb = "refused the request" if failure.status else "could not be reached"
-                raise ModelServiceError(_redact(
-                    f"model server {config.url} {verb}{tried}: {failure.message}{hint.get(failure.status, '')}", config
-                )) from None
-            delay = min(config.max_backoff, failure.retry_after if failure.retry_after is not None else config.backoff * 2**attempt)
-            log.warning(_redact(f"{config.url}: {failure.message}; retrying in {delay:.3g} s ({attempt + 2}/{attempts})", config))
+            attempt += 1
+            if not failure.retryable or attempt == attempts:
+                raise _service_error(config, failure, attempt) from None
+            delay = config.backoff * 2 ** (attempt - 1) if failure.retry_after is None else failure.retry_after
+            delay = min(config.max_backoff, delay)
+            log.warning(_redact(f"{config.url}: {failure.message}; retrying in {delay:.3g} s "
+                                f"({attempt + 1}/{attempts})", config))
             time.sleep(delay)
-    raise AssertionError("unreachable")  # pragma: no cover
+
+
+def _service_error(config: ModelConfig, failure: _Failure, attempts: int) -> ModelServiceError:
+    verb = "refused the request" if failure.status else "could not be reached"
+    tried = f" after {attempts} attempts" if attempts > 1 else ""
+    hint = {401: " (check the API key)", 403: " (check the API key)", 404: " (check --llm-url and --model)"}
+    message = f"model server {config.url} {verb}{tried}: {failure.message}{hint.get(failure.status, '')}"
+    return ModelServiceError(_redact(message, config))
 
 
 def _redact(text: str, config: ModelConfig) -> str:
@@ -300,7 +311,8 @@ def _message_text(raw: bytes, config: ModelConfig) -> str:
         message = envelope["choices"][0]["message"]
     except (ValueError, KeyError, IndexError, TypeError):
         excerpt = raw[:300].decode("utf-8", "replace")
-        raise ModelServiceError(_redact(f"{config.url} did not answer as a chat-completions server: {excerpt!r}", config)) from None
+        message = f"{config.url} did not answer as a chat-completions server: {excerpt!r}"
+        raise ModelServiceError(_redact(message, config)) from None
     if message.get("refusal"):
         raise ModelAnswerError(_redact(f"the model refused to answer: {message['refusal']}", config))
     content = message.get("content")
@@ -355,8 +367,9 @@ def _excerpt(text: str, n: int = 200) -> str:
     return repr(text if len(text) <= n else text[:n] + "...")
 
 
-def interpret_answer(answer: dict, kb: KnowledgeBase) -> tuple[str, float, dict[str, float], list[str]]:
-    """(material, density kg/m^3, parameters SI, warnings) of a parsed answer (rules above)."""
+def interpret_answer(answer: dict, kb: KnowledgeBase) -> dict:
+    """The :class:`QueryResult` fields material, density (kg/m^3), parameters (SI), object,
+    confidence and warnings of a parsed answer, by the rules of this module's docstring."""
     warnings: list[str] = []
     material = _material(answer.get("material"), kb, warnings)
     defaults = kb.default_entry(material)
@@ -376,12 +389,28 @@ def interpret_answer(answer: dict, kb: KnowledgeBase) -> tuple[str, float, dict[
         p.name: _quantity(by_name.get(p.name), p, defaults.parameters[p.name].value, p.name, warnings)
         for p in mat.params
     }
-    return material, density, parameters, warnings
+    confidence = answer.get("confidence")
+    if confidence is not None and not (_is_number(confidence) and 0.0 <= confidence <= 1.0):
+        warnings.append(f"confidence {confidence!r} is not a number in [0, 1]; dropped")
+        confidence = None
+    obj = answer.get("object")
+    return {
+        "material": material,
+        "density": density,
+        "parameters": parameters,
+        "object": obj if isinstance(obj, str) else None,
+        "confidence": None if confidence is None else float(confidence),
+        "warnings": warnings,
+    }
+
+
+def _is_number(x: object) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
 def _material(value: object, kb: KnowledgeBase, warnings: list[str]) -> str:
     if not isinstance(value, str) or not value.strip():
-        raise ModelAnswerError(f"the answer has no material type (got {value!r}); expected one of {', '.join(MATERIALS)}")
+        raise ModelAnswerError(f"the answer has no material type (got {value!r}); expected one of {_TYPES}")
     try:
         return get_material(value).name
     except InputError:
@@ -389,9 +418,10 @@ def _material(value: object, kb: KnowledgeBase, warnings: list[str]) -> str:
     matches = kb.match(object_name=value)
     if matches and matches[0].confidence >= 0.85:
         entry = matches[0].entry
-        warnings.append(f"material {value!r} is not a type; the knowledge base files {entry.name!r} under {entry.material}")
+        warnings.append(f"material {value!r} is not a type; the knowledge base files {entry.name!r} "
+                        f"under {entry.material}")
         return entry.material
-    raise ModelAnswerError(f"the model answered an unknown material type {value!r}; clflow knows {', '.join(MATERIALS)}")
+    raise ModelAnswerError(f"the model answered an unknown material type {value!r}; clflow knows {_TYPES}")
 
 
 def _quantity(raw: object, p: Param, default: float, where: str, warnings: list[str]) -> float:
@@ -401,7 +431,7 @@ def _quantity(raw: object, p: Param, default: float, where: str, warnings: list[
         warnings.append(f"{where} is missing{fallback}")
         return default
     value, unit = (raw.get("value"), raw.get("unit")) if isinstance(raw, dict) else (raw, None)
-    if not isinstance(value, (int, float)) or isinstance(value, bool):
+    if not _is_number(value):
         warnings.append(f"{where} value {value!r} is not a number{fallback}")
         return default
     if unit is None:
@@ -422,7 +452,8 @@ def _quantity(raw: object, p: Param, default: float, where: str, warnings: list[
     lo, hi = p.typical
     if not lo <= value <= hi:
         clamped = min(max(value, lo), hi)
-        warnings.append(f"{where} = {value:g} {p.unit} is outside the typical range [{lo:g}, {hi:g}]; clamped to {clamped:g}")
+        warnings.append(f"{where} = {value:g} {p.unit} is outside the typical range [{lo:g}, {hi:g}]; "
+                        f"clamped to {clamped:g}")
         value = clamped
     return value
 
@@ -452,26 +483,16 @@ def query_model(
     answer, surrounded = extract_json_object(content)
     if surrounded:
         warnings.append("text around the JSON answer was ignored")
-    material, density, parameters, answer_warnings = interpret_answer(answer, kb)
-    confidence = answer.get("confidence")
-    if confidence is not None and not (isinstance(confidence, (int, float)) and not isinstance(confidence, bool)
-                                       and 0.0 <= confidence <= 1.0):
-        answer_warnings.append(f"confidence {confidence!r} is not a number in [0, 1]; dropped")
-        confidence = None
-    obj = answer.get("object")
-    for warning in answer_warnings:
+    fields = interpret_answer(answer, kb)
+    for warning in fields["warnings"]:
         log.warning("%s", warning)
+    fields["warnings"] = warnings + fields["warnings"]
     return QueryResult(
-        material=material,
-        density=density,
-        parameters=parameters,
+        **fields,
         backend="openai",
-        object=obj if isinstance(obj, str) else None,
         model=config.model,
         prompt=text,
         raw_answer=content,
-        confidence=None if confidence is None else float(confidence),
-        warnings=warnings + answer_warnings,
         image=image.source,
         crop_box=list(image.box),
         structured_output=structured,

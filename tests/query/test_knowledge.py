@@ -145,16 +145,26 @@ def raw_kb():
     return json.loads((resources.files("clflow") / "data" / "materials_kb.json").read_text())
 
 
+def _first(kb, *keys):
+    """kb["entries"][0][keys[0]][keys[1]]..."""
+    node = kb["entries"][0]
+    for k in keys:
+        node = node[k]
+    return node
+
+
 @pytest.mark.parametrize(
     "edit, message",
     [
-        (lambda kb: kb["entries"][0]["parameters"].pop("poissons_ratio"), r"needs exactly \['youngs_modulus', 'poissons_ratio'\]"),
-        (lambda kb: kb["entries"][0]["parameters"]["youngs_modulus"].update(value=-1.0), "outside the valid range"),
-        (lambda kb: kb["entries"][0]["parameters"]["youngs_modulus"].update(range=[1e6, 1e12]), "registry's typical range"),
-        (lambda kb: kb["entries"][0]["density"].update(source="wikipedia"), "'wikipedia' is not a key of 'sources'"),
-        (lambda kb: kb["entries"][0].update(material="rubbery"), "unknown material 'rubbery'"),
-        (lambda kb: kb["entries"][0].update(material="jelly"), "write the registry name 'elastic'"),
-        (lambda kb: kb["entries"][1]["aliases"].append("Rubber Ducks"), "alias 'Rubber Ducks' of 'silicone' already belongs to 'rubber'"),
+        (lambda kb: _first(kb, "parameters").pop("poissons_ratio"),
+         r"needs exactly \['youngs_modulus', 'poissons_ratio'\]"),
+        (lambda kb: _first(kb, "parameters", "youngs_modulus").update(value=-1.0), "outside the valid range"),
+        (lambda kb: _first(kb, "parameters", "youngs_modulus").update(range=[1e6, 1e12]), "registry's typical range"),
+        (lambda kb: _first(kb, "density").update(source="wikipedia"), "'wikipedia' is not a key of 'sources'"),
+        (lambda kb: _first(kb).update(material="rubbery"), "unknown material 'rubbery'"),
+        (lambda kb: _first(kb).update(material="jelly"), "write the registry name 'elastic'"),
+        (lambda kb: kb["entries"][1]["aliases"].append("Rubber Ducks"),
+         "alias 'Rubber Ducks' of 'silicone' already belongs to 'rubber'"),
         (lambda kb: kb["type_defaults"].pop("snow"), "type_defaults must name one entry"),
         (lambda kb: kb["type_defaults"].update(snow="rubber"), "is not a snow entry"),
         (lambda kb: kb.update(version=2), "not a clflow-materials-kb file of version 1"),

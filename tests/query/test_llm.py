@@ -157,6 +157,13 @@ def test_loopback_server_needs_no_key(server, photo):
     assert "Authorization" not in server.requests[0].headers
 
 
+def test_bad_settings():
+    with pytest.raises(InputError, match="timeout > 0 s"):
+        ModelConfig("http://localhost/v1/chat/completions", "m", timeout=0)
+    with pytest.raises(InputError, match="'gif' is not 'png' or 'jpeg'"):
+        ModelConfig.resolve("http://localhost/v1", "m", image_format="gif")
+
+
 @pytest.mark.parametrize(
     "url, model, key, message",
     [
@@ -211,7 +218,8 @@ def test_missing_material_is_rejected_missing_numbers_take_defaults(server, phot
     with pytest.raises(ModelAnswerError, match="no material type"):
         ask(server, photo)
 
-    server.play(chat(answer(material="metal", density=None, parameters={"youngs_modulus": {"value": 7e10, "unit": "Pa"}})))
+    only_e = {"youngs_modulus": {"value": 7e10, "unit": "Pa"}}
+    server.play(chat(answer(material="metal", density=None, parameters=only_e)))
     result = ask(server, photo)
     steel = load_knowledge_base().default_entry("metal")  # the documented default of metal
     assert result.material == "metal"
@@ -289,7 +297,8 @@ def test_units_are_converted_or_refused(server, photo):
 
 def test_client_errors_are_not_retried(server, photo):
     server.play(error(401, "Invalid authentication"))
-    with pytest.raises(ModelServiceError, match=r"refused the request: HTTP 401 .*Invalid authentication \(check the API key\)"):
+    refused = r"refused the request: HTTP 401 .*Invalid authentication \(check the API key\)"
+    with pytest.raises(ModelServiceError, match=refused):
         ask(server, photo)
     assert len(server.requests) == 1
     server.play(error(404, "model 'test-vision' not found"))
