@@ -110,16 +110,13 @@ class KnowledgeBase:
         found = []  # (sort key, where, first word, end word, match)
         for where, text in texts:
             words = tokenize(text)
-            for entry in self.entries if words else ():
-                for alias in entry.aliases:
-                    hit = _find_phrase(tokenize(alias), words)
-                    if hit is not None:
-                        score, start, end = hit
-                        if end < len(words) and words[end] == "of":
-                            score *= CONTAINER_FACTOR
-                        confidence = round(score * SOURCE_WEIGHTS[where], 3)
-                        key = (confidence, len(alias), -start)
-                        found.append((key, where, start, end, Match(entry, confidence, alias, where)))
+            for index, (score, start, end) in self._find_phrases(words).items():
+                entry, alias, _ = self._phrases[index]
+                if end < len(words) and words[end] == "of":
+                    score *= CONTAINER_FACTOR
+                confidence = round(score * SOURCE_WEIGHTS[where], 3)
+                key = (confidence, len(alias), -start)
+                found.append((key, where, start, end, Match(entry, confidence, alias, where)))
         # Greedy, best first: one match per entry, and a phrase inside a better one does
         # not count ("tin" in "tin foil", "can" in "soda can").
         found.sort(key=lambda f: f[0], reverse=True)
@@ -131,6 +128,67 @@ class KnowledgeBase:
                 taken.append((where, start, end))
                 matches.append(m)
         return matches
+
+    @functools.cached_property
+    def _phrases(self) -> list[tuple[Entry, str, tuple[str, ...]]]:
+        """(entry, alias, alias words) of every alias."""
+        return [(e, a, tuple(tokenize(a))) for e in self.entries for a in e.aliases]
+
+    @functools.cached_property
+    def _by_first_word(self) -> dict[str, list[int]]:
+        index: dict[str, list[int]] = {}
+        for i, (_, _, phrase) in enumerate(self._phrases):
+            index.setdefault(phrase[0], []).append(i)
+        return index
+
+    @functools.cached_property
+    def _by_glued(self) -> dict[str, list[int]]:
+        """Aliases written as one word ("rubberduck") of 4+ letters -> phrase indices."""
+        index: dict[str, list[int]] = {}
+        for i, (_, _, phrase) in enumerate(self._phrases):
+            if len(glued := "".join(phrase)) >= COMPOUND_MIN_LENGTH:
+                index.setdefault(glued, []).append(i)
+        return index
+
+    @functools.cached_property
+    def _vocabulary(self) -> frozenset[str]:
+        return frozenset(w for _, _, phrase in self._phrases for w in phrase)
+
+    def _find_phrases(self, words: list[str]) -> dict[int, tuple[float, int, int]]:
+        """phrase index -> (score, first word, end word) of its best occurrence in ``words``:
+        as whole words (score: mean word score), else glued into one word (1 if the word
+        is the glued phrase, 0.75 if it starts or ends with it)."""
+        similar = [self._similar_words(w) for w in words]
+        best: dict[int, tuple[float, int, int]] = {}
+        for i in range(len(words)):
+            for first, first_score in similar[i].items():
+                for index in self._by_first_word.get(first, ()):
+                    phrase = self._phrases[index][2]
+                    end = i + len(phrase)
+                    if end > len(words):
+                        continue
+                    scores = [first_score] + [similar[i + k].get(a, 0.0) for k, a in enumerate(phrase) if k]
+                    score = sum(scores) / len(scores)
+                    if all(scores) and (index not in best or score > best[index][0]):
+                        best[index] = (score, i, end)
+        for i, w in enumerate(words):
+            glued = [(1.0, w)] + [(COMPOUND_SCORE, part) for cut in range(COMPOUND_MIN_LENGTH, len(w))
+                                  for part in (w[:cut], w[-cut:])]
+            for score, part in glued:
+                for index in self._by_glued.get(part, ()):
+                    best.setdefault(index, (score, i, i + 1))
+        return best
+
+    @functools.cached_property
+    def _similar_cache(self) -> dict[str, dict[str, float]]:
+        return {}
+
+    def _similar_words(self, word: str) -> dict[str, float]:
+        """Alias words that ``word`` may stand for -> word score (1 exact, < 1 misspelt)."""
+        cache = self._similar_cache
+        if word not in cache:
+            cache[word] = {a: s for a in self._vocabulary if (s := _word_score(a, word))}
+        return cache[word]
 
     def match_type_name(self, *texts: str) -> str | None:
         """A registry material type or alias named in the texts ("metal", "granular"), or None."""
@@ -170,30 +228,14 @@ def tokenize(text: str) -> list[str]:
 def _word_score(alias_word: str, word: str) -> float:
     if alias_word == word:
         return 1.0
-    if min(len(alias_word), len(word)) < FUZZY_MIN_LENGTH:
+    short, total = min(len(alias_word), len(word)), len(alias_word) + len(word)
+    if short < FUZZY_MIN_LENGTH or 2 * short < FUZZY_MIN_RATIO * total:  # ratio <= 2 short / total
         return 0.0
-    ratio = difflib.SequenceMatcher(None, alias_word, word).ratio()
+    matcher = difflib.SequenceMatcher(None, alias_word, word)
+    if matcher.quick_ratio() < FUZZY_MIN_RATIO:  # an upper bound of ratio(), much cheaper
+        return 0.0
+    ratio = matcher.ratio()
     return ratio if ratio >= FUZZY_MIN_RATIO else 0.0
-
-
-def _find_phrase(phrase: list[str], words: list[str]) -> tuple[float, int, int] | None:
-    """(score, first word, end word) of the best occurrence of ``phrase`` in ``words``, or None."""
-    best: tuple[float, int, int] | None = None
-    n = len(phrase)
-    for i in range(len(words) - n + 1):
-        scores = [_word_score(a, w) for a, w in zip(phrase, words[i : i + n])]
-        if all(scores):
-            score = sum(scores) / n
-            if best is None or score > best[0]:
-                best = (score, i, i + n)
-    glued = "".join(phrase)
-    if best is None and len(glued) >= COMPOUND_MIN_LENGTH:
-        for i, w in enumerate(words):
-            if w == glued:
-                return 1.0, i, i + 1
-            if len(w) > len(glued) and (w.startswith(glued) or w.endswith(glued)):
-                return COMPOUND_SCORE, i, i + 1
-    return best
 
 
 # --------------------------------------------------------------------------- loading

@@ -96,3 +96,9 @@ def test_errors_are_one_line(run, photo, refused_url, args, message):
 def test_unknown_backend_is_a_usage_error(run, photo):
     res = run(photo[0], "--backend", "gpt4")
     assert res.exit_code == 2 and "'gpt4' is not one of 'offline', 'openai'" in res.output
+
+
+def test_benchmark_runs():
+    res = CliRunner().invoke(cli, ["bench", "query", "--repeat", "1"], catch_exceptions=False)
+    assert res.exit_code == 0
+    assert res.output.startswith("offline lookup first") and "image jpeg encode" in res.output
