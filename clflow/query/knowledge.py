@@ -70,13 +70,12 @@ class Match:
 
     ``confidence`` in [0, 1] is the match strength (exact phrase 1, misspelt or glued words
     less) times the weight of where it was found (object name 1, prompt 0.9, file name
-    0.7); it is not a probability. ``phrase`` is the alias that matched, ``where`` the text.
+    0.7); it is not a probability. ``phrase`` is the alias that matched.
     """
 
     entry: Entry
     confidence: float
     phrase: str
-    where: str
 
 
 @dataclass(frozen=True)
@@ -116,7 +115,7 @@ class KnowledgeBase:
                     score *= CONTAINER_FACTOR
                 confidence = round(score * SOURCE_WEIGHTS[where], 3)
                 key = (confidence, len(alias), -start)
-                found.append((key, where, start, end, Match(entry, confidence, alias, where)))
+                found.append((key, where, start, end, Match(entry, confidence, alias)))
         # Greedy, best first: one match per entry, and a phrase inside a better one does
         # not count ("tin" in "tin foil", "can" in "soda can").
         found.sort(key=lambda f: f[0], reverse=True)

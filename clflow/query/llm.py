@@ -309,6 +309,8 @@ def _message_text(raw: bytes, config: ModelConfig) -> str:
     try:
         envelope = loads_strict(raw)
         message = envelope["choices"][0]["message"]
+        if not isinstance(message, dict):
+            raise TypeError("message is not an object")
     except (ValueError, KeyError, IndexError, TypeError):
         excerpt = raw[:300].decode("utf-8", "replace")
         message = f"{config.url} did not answer as a chat-completions server: {excerpt!r}"

@@ -355,6 +355,7 @@ def test_server_without_json_schema_gets_a_plain_prompt(server, photo, tmp_path)
     [
         (Reply(200, b"<html>gateway</html>"), ModelServiceError, "did not answer as a chat-completions server"),
         (Reply(200, {"choices": []}), ModelServiceError, "did not answer as a chat-completions server"),
+        (Reply(200, {"choices": [{"message": "hi"}]}), ModelServiceError, "did not answer as a chat-completions"),
         (chat("", refusal="I can't help with that."), ModelAnswerError, "refused to answer: I can't"),
         (chat("", finish_reason="length"), ModelAnswerError, "empty.*length"),
     ],
