@@ -36,7 +36,8 @@ FUZZY_MIN_LENGTH = 5  # shorter words must match exactly ("cap" is not "can")
 COMPOUND_MIN_LENGTH = 4  # alias glued to another word in a file name ("rubberduck")
 COMPOUND_SCORE = 0.75
 CONTAINER_FACTOR = 0.8  # "glass of water", "can of beans": the container is not the object
-TYPE_NAME_CONFIDENCE = 0.3  # only a material type's name ("metal", "granular") matched
+TYPE_NAME_CONFIDENCE = 0.3
+IDENTIFY_MIN_CONFIDENCE = 0.85  # a name matched at least this well is taken as that entry  # only a material type's name ("metal", "granular") matched
 
 
 @dataclass(frozen=True)
@@ -127,6 +128,11 @@ class KnowledgeBase:
                 taken.append((where, start, end))
                 matches.append(m)
         return matches
+
+    def identify(self, name: str) -> Entry | None:
+        """The entry an object name clearly means ("steel spoon" -> steel), else None."""
+        matches = self.match(object_name=name)
+        return matches[0].entry if matches and matches[0].confidence >= IDENTIFY_MIN_CONFIDENCE else None
 
     @functools.cached_property
     def _phrases(self) -> list[tuple[Entry, str, tuple[str, ...]]]:

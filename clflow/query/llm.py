@@ -417,9 +417,8 @@ def _material(value: object, kb: KnowledgeBase, warnings: list[str]) -> str:
         return get_material(value).name
     except InputError:
         pass
-    matches = kb.match(object_name=value)
-    if matches and matches[0].confidence >= 0.85:
-        entry = matches[0].entry
+    entry = kb.identify(value)
+    if entry is not None:
         warnings.append(f"material {value!r} is not a type; the knowledge base files {entry.name!r} "
                         f"under {entry.material}")
         return entry.material
@@ -460,6 +459,20 @@ def _quantity(raw: object, p: Param, default: float, where: str, warnings: list[
     return value
 
 
+def _cross_check(fields: dict, kb: KnowledgeBase) -> str | None:
+    """The knowledge-base entry of the object the model named (None if none matches well);
+    a warning in ``fields`` if the knowledge base files it under another material type."""
+    entry = kb.identify(fields["object"] or "")
+    if entry is None:
+        return None
+    if entry.material != fields["material"]:
+        fields["warnings"].append(
+            f"the model chose {fields['material']} for {fields['object']!r}; the knowledge base files "
+            f"{entry.name!r} under {entry.material}"
+        )
+    return entry.name
+
+
 def query_model(
     image: ObjectImage,
     config: ModelConfig,
@@ -486,6 +499,7 @@ def query_model(
     if surrounded:
         warnings.append("text around the JSON answer was ignored")
     fields = interpret_answer(answer, kb)
+    matched = _cross_check(fields, kb)
     for warning in fields["warnings"]:
         log.warning("%s", warning)
     fields["warnings"] = warnings + fields["warnings"]
@@ -495,6 +509,7 @@ def query_model(
         model=config.model,
         prompt=text,
         raw_answer=content,
+        matched=matched,
         image=image.source,
         crop_box=list(image.box),
         structured_output=structured,

@@ -96,7 +96,17 @@ def test_request_carries_image_schema_and_headers(server, photo):
     assert result.prompt == text
     assert json.loads(result.raw_answer) == answer()
     assert result.crop_box == list(BOX) and result.structured_output is True
+    assert result.matched == "rubber"  # the object the model named, in the knowledge base
     assert result.warnings == []
+
+
+def test_a_type_that_contradicts_the_knowledge_base_is_flagged(server, photo):
+    server.play(chat(answer(object="honey jar", material="elastic")))
+    result = ask(server, photo)
+    assert result.material == "elastic" and result.matched == "honey"
+    assert result.warnings == [
+        "the model chose elastic for 'honey jar'; the knowledge base files 'honey' under newtonian"
+    ]
 
 
 def test_jpeg_images_are_sent_as_jpeg(server, photo):
