@@ -36,8 +36,8 @@ FUZZY_MIN_LENGTH = 5  # shorter words must match exactly ("cap" is not "can")
 COMPOUND_MIN_LENGTH = 4  # alias glued to another word in a file name ("rubberduck")
 COMPOUND_SCORE = 0.75
 CONTAINER_FACTOR = 0.8  # "glass of water", "can of beans": the container is not the object
-TYPE_NAME_CONFIDENCE = 0.3
-IDENTIFY_MIN_CONFIDENCE = 0.85  # a name matched at least this well is taken as that entry  # only a material type's name ("metal", "granular") matched
+TYPE_NAME_CONFIDENCE = 0.3  # only a material type's name ("metal", "granular") matched
+IDENTIFY_MIN_CONFIDENCE = 0.85  # a name matched at least this well is taken as that entry
 
 
 @dataclass(frozen=True)

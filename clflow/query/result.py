@@ -31,10 +31,11 @@ class QueryResult:
     of the type in SI units. ``backend`` is "offline" or "openai"; ``model`` the model name
     (None offline); ``prompt`` the text asked or matched; ``raw_answer`` the model's reply
     verbatim (None offline); ``matched`` the knowledge-base entry of the object (offline:
-    the match; openai: the object the model named; None if none matches); ``confidence`` in [0, 1] (match strength offline,
-    the model's own estimate online, None if it gave none); ``warnings`` everything the
-    query had to assume, clamp or convert. ``crop_box`` is the pixel box (x0, y0, x1, y1)
-    the model saw. The API key is never part of it.
+    the match; openai: the object the model named; None if none matches); ``confidence``
+    in [0, 1] (match strength offline, the model's own estimate online, None if it gave
+    none); ``warnings`` everything the query had to assume, clamp or convert;
+    ``alternatives`` other entries the offline backend found; ``crop_box`` the pixel box
+    (x0, y0, x1, y1) the model saw. The API key is never part of it.
     """
 
     material: str
