@@ -44,6 +44,12 @@ RETRY_STATUS = frozenset({408, 429, 500, 502, 503, 504})
 SCHEMA_REJECTED_STATUS = frozenset({400, 422})
 _TYPES = ", ".join(MATERIALS)
 
+# The knowledge base's convention (source "weakly-compressible" in materials_kb.json).
+FLUID_CONVENTION = (
+    "For fluids, bulk_modulus is the weakly compressible simulation value, about 1e5 to 1e6 Pa, "
+    "not the physical bulk modulus (2.2e9 Pa for water). Unit [1] means dimensionless."
+)
+
 SYSTEM_PROMPT = (
     "You are a materials scientist who sets up physics simulations. You look at an object, "
     "name it, choose the closest simulated material type and estimate its density and "
@@ -174,15 +180,17 @@ def question(prompt: str = "", object_name: str = "") -> str:
     lines += [
         "Decide what the object is and which of these material types describes how it deforms "
         "and flows, then estimate its density and every parameter of that type, in exactly "
-        "these SI units (typical ranges in brackets):",
+        "these SI units (units in brackets, typical ranges in parentheses):",
         f"- density [{DENSITY.unit}] ({DENSITY.typical[0]:g} to {DENSITY.typical[1]:g})",
     ]
     for m in MATERIALS.values():
-        params = "; ".join(f"{p.name} ({p.symbol}) [{p.unit}] ({p.typical[0]:g} to {p.typical[1]:g})" for p in m.params)
+        params = "; ".join(f"{p.name} ({p.symbol}) [{p.unit}] ({p.typical[0]:g} to {p.typical[1]:g})"
+                           for p in m.params)
         lines.append(f"- {m.name}: {m.model}. Parameters: {params}")
+    lines.append(FLUID_CONVENTION)
     lines.append(
         'Answer with one JSON object only: {"object": "...", "material": "<type>", '
-        '"density": {"value": <number>, "unit": "kg/m^3"}, "parameters": {"<name>": '
+        f'"density": {{"value": <number>, "unit": "{DENSITY.unit}"}}, "parameters": {{"<name>": '
         '{"value": <number>, "unit": "<unit>"}, ...}, "confidence": <0 to 1>, "reasoning": "..."}'
     )
     return "\n".join(lines)
