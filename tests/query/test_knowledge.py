@@ -189,3 +189,10 @@ def test_a_container_is_not_the_object():
     result = query_material(prompt="a glass of water")
     assert result.matched == "water"
     assert result.alternatives == [{"entry": "glass", "material": "elastic", "confidence": 0.72, "phrase": "glass"}]
+
+
+def test_every_alias_finds_its_own_entry():
+    for entry in KB.entries:
+        for alias in (entry.name, *entry.aliases):
+            best = KB.match(object_name=alias)[0]
+            assert (best.entry.name, best.confidence) == (entry.name, 1.0), alias
