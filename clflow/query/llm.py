@@ -1,0 +1,524 @@
+"""Foundation-model backend: ask an OpenAI-compatible chat-completions endpoint with an image.
+
+Works with hosted models and local servers (Ollama, vLLM, llama.cpp) that accept
+``image_url`` content parts. Standard library only (urllib). The question lists every
+material type of the registry with its parameters, SI units and typical ranges, and asks
+for one JSON object; the same description is sent as a ``json_schema`` response format.
+A server that rejects ``response_format`` (HTTP 400/422) is asked again without it.
+
+Answer rules (see :func:`interpret_answer`): the answer is rejected only when the material
+type cannot be known; a number that cannot be used (missing, not a number, unknown unit,
+physically invalid such as a negative modulus) is replaced by the type's default from the
+knowledge base with a warning; a value outside the registry's typical range is clamped
+into it with a warning; other SI spellings of a unit (MPa, cP, g/cm^3) are converted.
+"""
+
+from __future__ import annotations
+
+import http.client
+import ipaddress
+import json
+import logging
+import os
+import socket
+import time
+import urllib.error
+import urllib.parse
+import urllib.request
+from dataclasses import dataclass, field
+
+from clflow import __version__
+from clflow.errors import ClflowError, InputError
+from clflow.materials import DENSITY, MATERIALS, Param, get_material
+from clflow.query.image import ImageFormat, ObjectImage
+from clflow.query.knowledge import KnowledgeBase
+from clflow.query.result import QueryResult, loads_strict
+from clflow.query.units import si_factor
+
+log = logging.getLogger("clflow.query")
+
+URL_ENV = ("CLFLOW_LLM_URL", "OPENAI_BASE_URL")
+MODEL_ENV = ("CLFLOW_LLM_MODEL",)
+KEY_ENV = ("CLFLOW_LLM_API_KEY", "OPENAI_API_KEY")
+RETRY_STATUS = frozenset({408, 429, 500, 502, 503, 504})
+SCHEMA_REJECTED_STATUS = frozenset({400, 422})
+_TYPES = ", ".join(MATERIALS)
+
+# The knowledge base's convention (source "weakly-compressible" in materials_kb.json).
+FLUID_CONVENTION = (
+    "For fluids, bulk_modulus is the weakly compressible simulation value, about 1e5 to 1e6 Pa, "
+    "not the physical bulk modulus (2.2e9 Pa for water). Unit [1] means dimensionless."
+)
+
+SYSTEM_PROMPT = (
+    "You are a materials scientist who sets up physics simulations. You look at an object, "
+    "name it, choose the closest simulated material type and estimate its density and "
+    "material parameters in SI units. You answer with one JSON object and nothing else."
+)
+
+
+class ModelServiceError(ClflowError):
+    """The model server is unreachable, timed out, refused the request or did not speak
+    the chat-completions protocol."""
+
+
+class ModelAnswerError(ClflowError):
+    """The model answered, but no material can be read from the answer."""
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """How to reach the model. ``url`` is the chat-completions endpoint; ``timeout`` (s)
+    bounds the connection and each read; a failed attempt that may succeed later (no
+    connection, timeout, HTTP 408/429/5xx) is retried ``retries`` times after
+    ``backoff * 2**attempt`` seconds (or the server's Retry-After), at most ``max_backoff``."""
+
+    url: str
+    model: str
+    api_key: str | None = field(default=None, repr=False)
+    timeout: float = 60.0
+    retries: int = 2
+    backoff: float = 1.0
+    max_backoff: float = 30.0
+    image_format: ImageFormat = "png"
+    structured_output: bool = True
+
+    def __post_init__(self):
+        if not (self.timeout > 0 and self.retries >= 0 and self.backoff >= 0 and self.max_backoff >= 0):
+            raise InputError("the model backend needs timeout > 0 s, retries >= 0, backoff >= 0 s")
+        if self.image_format not in ("png", "jpeg"):
+            raise InputError(f"image format {self.image_format!r} is not 'png' or 'jpeg'")
+
+    @classmethod
+    def resolve(cls, url: str | None = None, model: str | None = None, **options) -> "ModelConfig":
+        """A config from arguments, else environment variables: the endpoint from
+        ``--llm-url`` / $CLFLOW_LLM_URL / $OPENAI_BASE_URL (a base URL such as
+        http://localhost:11434/v1 gets /chat/completions appended), the model from
+        ``--model`` / $CLFLOW_LLM_MODEL, the key from $CLFLOW_LLM_API_KEY / $OPENAI_API_KEY.
+        The key may be absent only for a server on this machine (loopback address)."""
+        url = url or _env(URL_ENV)
+        if not url:
+            raise InputError(f"the openai backend needs an endpoint: pass --llm-url or set ${URL_ENV[0]}")
+        model = model or _env(MODEL_ENV)
+        if not model:
+            raise InputError(f"the openai backend needs a model name: pass --model or set ${MODEL_ENV[0]}")
+        endpoint = chat_endpoint(url)
+        key = _env(KEY_ENV)
+        if not key and not is_loopback(endpoint):
+            raise InputError(
+                f"no API key for {urllib.parse.urlsplit(endpoint).hostname}: set ${KEY_ENV[0]} "
+                f"(or ${KEY_ENV[1]}); only a server on this machine may go without one"
+            )
+        return cls(url=endpoint, model=model, api_key=key, **options)
+
+
+def _env(names: tuple[str, ...]) -> str | None:
+    return next((os.environ[n] for n in names if os.environ.get(n)), None)
+
+
+def chat_endpoint(url: str) -> str:
+    """The chat-completions URL of ``url`` (an endpoint or an OpenAI-style base URL)."""
+    parts = urllib.parse.urlsplit(url.strip())
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise InputError(f"--llm-url {url!r} is not an http(s) URL such as http://localhost:11434/v1")
+    path = parts.path.rstrip("/")
+    if not path.endswith("/chat/completions"):
+        path += "/chat/completions"
+    return urllib.parse.urlunsplit((parts.scheme, parts.netloc, path, parts.query, ""))
+
+
+def is_loopback(url: str) -> bool:
+    host = urllib.parse.urlsplit(url).hostname or ""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+# --------------------------------------------------------------------------- the question
+
+
+def answer_schema() -> dict:
+    """JSON schema of the answer, built from the registry (strict-mode compatible: every
+    object closed, every property required)."""
+
+    def quantity(p: Param) -> dict:
+        lo, hi = p.typical
+        about = f"{p.doc or p.name} ({p.symbol}), typically {lo:g} to {hi:g} {p.unit}"
+        return _closed({"value": {"type": "number", "description": about},
+                        "unit": {"type": "string", "enum": [p.unit]}})
+
+    variants = [
+        {**_closed({p.name: quantity(p) for p in m.params}), "description": f"parameters of {m.name}: {m.model}"}
+        for m in MATERIALS.values()
+    ]
+    return _closed(
+        {
+            "object": {"type": "string", "description": "what the object is, in a few words"},
+            "material": {"type": "string", "enum": list(MATERIALS), "description": "closest material type"},
+            "density": quantity(DENSITY),
+            "parameters": {"anyOf": variants, "description": "every parameter of the chosen material type"},
+            "confidence": {"type": "number", "description": "how sure you are, 0 to 1"},
+            "reasoning": {"type": "string", "description": "one or two sentences"},
+        }
+    )
+
+
+def _closed(properties: dict) -> dict:
+    return {"type": "object", "properties": properties, "required": list(properties), "additionalProperties": False}
+
+
+def question(prompt: str = "", object_name: str = "") -> str:
+    """The user message: the task, the material types with parameters and units, the format."""
+    lines = ["Look at the object in the image."]
+    if object_name:
+        lines.append(f"The object is: {object_name}.")
+    if prompt:
+        lines.append(f"The user says: {prompt}")
+    lines += [
+        "Decide what the object is and which of these material types describes how it deforms "
+        "and flows, then estimate its density and every parameter of that type, in exactly "
+        "these SI units (units in brackets, typical ranges in parentheses):",
+        f"- density [{DENSITY.unit}] ({DENSITY.typical[0]:g} to {DENSITY.typical[1]:g})",
+    ]
+    for m in MATERIALS.values():
+        params = "; ".join(f"{p.name} ({p.symbol}) [{p.unit}] ({p.typical[0]:g} to {p.typical[1]:g})"
+                           for p in m.params)
+        lines.append(f"- {m.name}: {m.model}. Parameters: {params}")
+    lines.append(FLUID_CONVENTION)
+    lines.append(
+        'Answer with one JSON object only: {"object": "...", "material": "<type>", '
+        f'"density": {{"value": <number>, "unit": "{DENSITY.unit}"}}, "parameters": {{"<name>": '
+        '{"value": <number>, "unit": "<unit>"}, ...}, "confidence": <0 to 1>, "reasoning": "..."}'
+    )
+    return "\n".join(lines)
+
+
+def request_body(config: ModelConfig, text: str, image: ObjectImage, structured: bool) -> dict:
+    body = {
+        "model": config.model,
+        "temperature": 0,
+        "messages": [
+            {"role": "system", "content": SYSTEM_PROMPT},
+            {"role": "user", "content": [
+                {"type": "text", "text": text},
+                {"type": "image_url", "image_url": {"url": image.data_url(config.image_format)}},
+            ]},
+        ],
+    }
+    if structured:
+        body["response_format"] = {
+            "type": "json_schema",
+            "json_schema": {"name": "material_query", "strict": True, "schema": answer_schema()},
+        }
+    return body
+
+
+# --------------------------------------------------------------------------- HTTP
+
+
+class _Failure(Exception):
+    """One failed attempt: ``status`` (None for no HTTP answer), a message, Retry-After (s)."""
+
+    def __init__(self, status: int | None, message: str, retry_after: float | None = None):
+        super().__init__(message)
+        self.status, self.message, self.retry_after = status, message, retry_after
+
+    @property
+    def retryable(self) -> bool:
+        return self.status is None or self.status in RETRY_STATUS
+
+
+def _post_once(config: ModelConfig, payload: bytes) -> bytes:
+    headers = {"Content-Type": "application/json", "Accept": "application/json",
+               "User-Agent": f"clflow/{__version__}"}
+    if config.api_key:
+        headers["Authorization"] = f"Bearer {config.api_key}"
+    req = urllib.request.Request(config.url, data=payload, headers=headers, method="POST")
+    # A server on this machine is never reached through a proxy ($http_proxy etc.).
+    proxies = {} if is_loopback(config.url) else None
+    opener = urllib.request.build_opener(urllib.request.ProxyHandler(proxies))
+    try:
+        with opener.open(req, timeout=config.timeout) as resp:
+            return resp.read()
+    except urllib.error.HTTPError as exc:
+        message = f"HTTP {exc.code} {exc.reason}: {_error_text(exc)}"
+        raise _Failure(exc.code, message, _retry_after(exc.headers)) from None
+    except urllib.error.URLError as exc:
+        raise _Failure(None, _reason(exc.reason, config.timeout)) from None
+    except (OSError, http.client.HTTPException) as exc:
+        raise _Failure(None, _reason(exc, config.timeout)) from None
+
+
+def _reason(reason: object, timeout: float) -> str:
+    if isinstance(reason, ConnectionRefusedError):
+        return "connection refused (is the server running?)"
+    if isinstance(reason, (TimeoutError, socket.timeout)):
+        return f"no answer within the {timeout:g} s timeout"
+    if isinstance(reason, socket.gaierror):
+        return f"unknown host ({reason.strerror})"
+    return str(reason) or type(reason).__name__
+
+
+def _error_text(exc: urllib.error.HTTPError) -> str:
+    body = exc.read()[:2000].decode("utf-8", "replace")
+    try:
+        err = json.loads(body)["error"]
+        return str(err.get("message", err)) if isinstance(err, dict) else str(err)
+    except (ValueError, KeyError, TypeError):
+        return body.strip() or "(no message)"
+
+
+def _retry_after(headers) -> float | None:
+    try:
+        return max(0.0, float(headers.get("Retry-After")))
+    except (TypeError, ValueError):
+        return None
+
+
+def _post(config: ModelConfig, body: dict) -> bytes:
+    """POST ``body`` with retries; the response body, or :class:`ModelServiceError` (a
+    rejected ``response_format`` is re-raised as :class:`_Failure` for the caller)."""
+    payload = json.dumps(body).encode()
+    attempts = config.retries + 1
+    attempt = 0
+    while True:
+        try:
+            return _post_once(config, payload)
+        except _Failure as failure:
+            if "response_format" in body and failure.status in SCHEMA_REJECTED_STATUS:
+                raise
+            attempt += 1
+            if not failure.retryable or attempt == attempts:
+                raise _service_error(config, failure, attempt) from None
+            delay = config.backoff * 2 ** (attempt - 1) if failure.retry_after is None else failure.retry_after
+            delay = min(config.max_backoff, delay)
+            log.warning(_redact(f"{config.url}: {failure.message}; retrying in {delay:.3g} s "
+                                f"({attempt + 1}/{attempts})", config))
+            time.sleep(delay)
+
+
+def _service_error(config: ModelConfig, failure: _Failure, attempts: int) -> ModelServiceError:
+    verb = "refused the request" if failure.status else "could not be reached"
+    tried = f" after {attempts} attempts" if attempts > 1 else ""
+    hint = {401: " (check the API key)", 403: " (check the API key)", 404: " (check --llm-url and --model)"}
+    message = f"model server {config.url} {verb}{tried}: {failure.message}{hint.get(failure.status, '')}"
+    return ModelServiceError(_redact(message, config))
+
+
+def _redact(text: str, config: ModelConfig) -> str:
+    return text.replace(config.api_key, "***") if config.api_key else text
+
+
+def _message_text(raw: bytes, config: ModelConfig) -> str:
+    """The assistant's text of a chat-completions response."""
+    try:
+        envelope = loads_strict(raw)
+        message = envelope["choices"][0]["message"]
+        if not isinstance(message, dict):
+            raise TypeError("message is not an object")
+    except (ValueError, KeyError, IndexError, TypeError):
+        excerpt = raw[:300].decode("utf-8", "replace")
+        message = f"{config.url} did not answer as a chat-completions server: {excerpt!r}"
+        raise ModelServiceError(_redact(message, config)) from None
+    if message.get("refusal"):
+        raise ModelAnswerError(_redact(f"the model refused to answer: {message['refusal']}", config))
+    content = message.get("content")
+    if isinstance(content, list):  # some servers answer in content parts
+        content = "".join(part.get("text", "") for part in content if isinstance(part, dict))
+    if not isinstance(content, str) or not content.strip():
+        reason = envelope["choices"][0].get("finish_reason")
+        raise ModelAnswerError(f"the model's answer is empty (finish_reason: {reason})")
+    return content
+
+
+# --------------------------------------------------------------------------- the answer
+
+
+def extract_json_object(text: str) -> tuple[dict, bool]:
+    """The one JSON object in ``text`` and whether text surrounded it.
+
+    Rule: the whole text is the object, or exactly one top-level ``{...}`` in it parses as
+    JSON (prose or a Markdown fence around it is ignored). No object, or two or more, is a
+    :class:`ModelAnswerError`; so is NaN/Infinity, which JSON does not allow.
+    """
+    stripped = text.strip()
+    try:
+        value = loads_strict(stripped)
+    except ValueError:
+        pass
+    else:
+        if isinstance(value, dict):
+            return value, False
+        raise ModelAnswerError(f"the model answered JSON but not an object: {_excerpt(stripped)}")
+    decoder = json.JSONDecoder(parse_constant=_no_constant)
+    objects, i = [], 0
+    while (i := stripped.find("{", i)) != -1:
+        try:
+            obj, end = decoder.raw_decode(stripped, i)
+        except ValueError:
+            i += 1
+            continue
+        objects.append(obj)
+        i = end
+    if len(objects) != 1:
+        found = "no JSON object" if not objects else f"{len(objects)} JSON objects"
+        raise ModelAnswerError(f"the model's answer has {found} (expected exactly one): {_excerpt(stripped)}")
+    return objects[0], True
+
+
+def _no_constant(name: str):
+    raise ValueError(name)
+
+
+def _excerpt(text: str, n: int = 200) -> str:
+    return repr(text if len(text) <= n else text[:n] + "...")
+
+
+def interpret_answer(answer: dict, kb: KnowledgeBase) -> dict:
+    """The :class:`QueryResult` fields material, density (kg/m^3), parameters (SI), object,
+    confidence and warnings of a parsed answer, by the rules of this module's docstring."""
+    warnings: list[str] = []
+    material = _material(answer.get("material"), kb, warnings)
+    defaults = kb.default_entry(material)
+    density = _quantity(answer.get("density"), DENSITY, defaults.density.value, "density", warnings)
+    given = answer.get("parameters")
+    if not isinstance(given, dict):
+        warnings.append(f"the answer has no parameters object; using the defaults of {material} ({defaults.name!r})")
+        given = {}
+    mat = get_material(material)
+    by_name: dict[str, object] = {}
+    for key, value in given.items():
+        try:
+            by_name[mat.param(key).name] = value
+        except InputError:
+            warnings.append(f"ignored parameter {key!r}: {material} has no such parameter")
+    parameters = {
+        p.name: _quantity(by_name.get(p.name), p, defaults.parameters[p.name].value, p.name, warnings)
+        for p in mat.params
+    }
+    confidence = answer.get("confidence")
+    if confidence is not None and not (_is_number(confidence) and 0.0 <= confidence <= 1.0):
+        warnings.append(f"confidence {confidence!r} is not a number in [0, 1]; dropped")
+        confidence = None
+    obj = answer.get("object")
+    return {
+        "material": material,
+        "density": density,
+        "parameters": parameters,
+        "object": obj if isinstance(obj, str) else None,
+        "confidence": None if confidence is None else float(confidence),
+        "warnings": warnings,
+    }
+
+
+def _is_number(x: object) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _material(value: object, kb: KnowledgeBase, warnings: list[str]) -> str:
+    if not isinstance(value, str) or not value.strip():
+        raise ModelAnswerError(f"the answer has no material type (got {value!r}); expected one of {_TYPES}")
+    try:
+        return get_material(value).name
+    except InputError:
+        pass
+    entry = kb.identify(value)
+    if entry is not None:
+        warnings.append(f"material {value!r} is not a type; the knowledge base files {entry.name!r} "
+                        f"under {entry.material}")
+        return entry.material
+    raise ModelAnswerError(f"the model answered an unknown material type {value!r}; clflow knows {_TYPES}")
+
+
+def _quantity(raw: object, p: Param, default: float, where: str, warnings: list[str]) -> float:
+    """The SI value of one answered quantity ({"value", "unit"} or a bare number)."""
+    fallback = f"; using the default {default:g} {p.unit}"
+    if raw is None:
+        warnings.append(f"{where} is missing{fallback}")
+        return default
+    value, unit = (raw.get("value"), raw.get("unit")) if isinstance(raw, dict) else (raw, None)
+    if not _is_number(value):
+        warnings.append(f"{where} value {value!r} is not a number{fallback}")
+        return default
+    if unit is None:
+        warnings.append(f"{where} has no unit; read {value:g} as {p.unit}")
+    else:
+        factor = si_factor(str(unit), p.unit)
+        if factor is None:
+            warnings.append(f"{where} unit {unit!r} is not a unit of {p.unit}{fallback}")
+            return default
+        if factor != 1.0:
+            warnings.append(f"{where}: converted {value:g} {unit} to {value * factor:g} {p.unit}")
+            value *= factor
+    try:
+        value = p.check(value, where)
+    except InputError as exc:
+        warnings.append(f"{exc}{fallback}")
+        return default
+    lo, hi = p.typical
+    if not lo <= value <= hi:
+        clamped = min(max(value, lo), hi)
+        warnings.append(f"{where} = {value:g} {p.unit} is outside the typical range [{lo:g}, {hi:g}]; "
+                        f"clamped to {clamped:g}")
+        value = clamped
+    return value
+
+
+def _cross_check(fields: dict, kb: KnowledgeBase) -> str | None:
+    """The knowledge-base entry of the object the model named (None if none matches well);
+    a warning in ``fields`` if the knowledge base files it under another material type."""
+    entry = kb.identify(fields["object"] or "")
+    if entry is None:
+        return None
+    if entry.material != fields["material"]:
+        fields["warnings"].append(
+            f"the model chose {fields['material']} for {fields['object']!r}; the knowledge base files "
+            f"{entry.name!r} under {entry.material}"
+        )
+    return entry.name
+
+
+def query_model(
+    image: ObjectImage,
+    config: ModelConfig,
+    kb: KnowledgeBase,
+    prompt: str = "",
+    object_name: str = "",
+) -> QueryResult:
+    """Ask the model about the object in ``image``; the validated :class:`QueryResult`."""
+    text = question(prompt, object_name)
+    h, w = image.pixels.shape[:2]
+    log.info("asking %s at %s about a %dx%d px crop of %s", config.model, config.url, w, h, image.source)
+    warnings: list[str] = []
+    structured = config.structured_output
+    try:
+        raw = _post(config, request_body(config, text, image, structured))
+    except _Failure as failure:
+        warnings.append(_redact(f"the server rejected the json_schema response format ({failure.message}); "
+                                "asked for JSON in the prompt instead", config))
+        log.warning(warnings[-1])
+        structured = False
+        raw = _post(config, request_body(config, text, image, structured))
+    content = _redact(_message_text(raw, config), config)
+    answer, surrounded = extract_json_object(content)
+    if surrounded:
+        warnings.append("text around the JSON answer was ignored")
+    fields = interpret_answer(answer, kb)
+    matched = _cross_check(fields, kb)
+    for warning in fields["warnings"]:
+        log.warning("%s", warning)
+    fields["warnings"] = warnings + fields["warnings"]
+    return QueryResult(
+        **fields,
+        backend="openai",
+        model=config.model,
+        prompt=text,
+        raw_answer=content,
+        matched=matched,
+        image=image.source,
+        crop_box=list(image.box),
+        structured_output=structured,
+    )
