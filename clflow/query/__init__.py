@@ -12,10 +12,11 @@ shipped in clflow/data/materials_kb.json; "openai" asks any OpenAI-compatible
 chat-completions endpoint with the cropped image. See docs/query.md.
 """
 
+from clflow.query.answer import ModelAnswerError
 from clflow.query.backends import BACKENDS, query_material, query_offline
 from clflow.query.image import ObjectImage, crop_object
 from clflow.query.knowledge import Entry, KnowledgeBase, Match, load_knowledge_base
-from clflow.query.llm import ModelAnswerError, ModelConfig, ModelServiceError
+from clflow.query.llm import ModelConfig, ModelServiceError
 from clflow.query.result import QueryResult, load_query_result
 
 __all__ = [

@@ -7,7 +7,6 @@ from pathlib import Path
 from typing import Literal, Sequence
 
 from clflow.errors import InputError
-from clflow.materials import get_material
 from clflow.query.image import crop_object
 from clflow.query.knowledge import TYPE_NAME_CONFIDENCE, KnowledgeBase, load_knowledge_base
 from clflow.query.llm import ModelConfig, query_model

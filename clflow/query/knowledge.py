@@ -16,6 +16,7 @@ from __future__ import annotations
 import difflib
 import functools
 import json
+import math
 import re
 import unicodedata
 from dataclasses import dataclass
@@ -156,8 +157,10 @@ class KnowledgeBase:
         return index
 
     @functools.cached_property
-    def _vocabulary(self) -> frozenset[str]:
-        return frozenset(w for _, _, phrase in self._phrases for w in phrase)
+    def _vocabulary(self) -> dict[int, frozenset[str]]:
+        """Alias words by length."""
+        words = {w for _, _, phrase in self._phrases for w in phrase}
+        return {n: frozenset(w for w in words if len(w) == n) for n in {len(w) for w in words}}
 
     def _find_phrases(self, words: list[str]) -> dict[int, tuple[float, int, int]]:
         """phrase index -> (score, first word, end word) of its best occurrence in ``words``:
@@ -192,7 +195,15 @@ class KnowledgeBase:
         """Alias words that ``word`` may stand for -> word score (1 exact, < 1 misspelt)."""
         cache = self._similar_cache
         if word not in cache:
-            cache[word] = {a: s for a in self._vocabulary if (s := _word_score(a, word))}
+            n = len(word)
+            similar = {word: 1.0} if word in self._vocabulary.get(n, ()) else {}
+            if n >= FUZZY_MIN_LENGTH:
+                # ratio <= 2 min(n, m) / (n + m) >= r needs r n / (2 - r) <= m <= (2 - r) n / r
+                r = FUZZY_MIN_RATIO
+                lengths = range(max(FUZZY_MIN_LENGTH, math.ceil(r * n / (2 - r))), math.floor((2 - r) * n / r) + 1)
+                for m in lengths:
+                    similar.update((a, s) for a in self._vocabulary.get(m, ()) if (s := _word_score(a, word)))
+            cache[word] = similar
         return cache[word]
 
     def match_type_name(self, *texts: str) -> str | None:

@@ -117,10 +117,14 @@ def load_query_result(path: str | Path) -> QueryResult:
     return QueryResult(material=material, density=density, parameters=parameters, **extra)
 
 
-def loads_strict(text: str | bytes):
-    """``json.loads`` that rejects NaN and Infinity (Python accepts them; JSON does not)."""
-    return json.loads(text, parse_constant=_reject_constant)
-
-
 def _reject_constant(name: str) -> float:
     raise ValueError(f"{name} is not a number JSON allows")
+
+
+# Python's json accepts NaN and Infinity; JSON does not, and neither does clflow.
+STRICT_JSON = json.JSONDecoder(parse_constant=_reject_constant)
+
+
+def loads_strict(text: str | bytes):
+    """``json.loads`` that rejects NaN and Infinity."""
+    return json.loads(text, parse_constant=_reject_constant)

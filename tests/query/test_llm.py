@@ -21,7 +21,8 @@ from clflow.query import (
     load_query_result,
     query_material,
 )
-from clflow.query.llm import answer_schema, chat_endpoint, extract_json_object
+from clflow.query.answer import extract_json_object
+from clflow.query.llm import answer_schema, chat_endpoint
 
 from .conftest import API_KEY, Reply, chat, error
 
