@@ -1,0 +1,1 @@
+"""Gaussian splats: 3DGS files, the Gaussians container, cameras and rendering."""
