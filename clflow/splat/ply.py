@@ -219,6 +219,12 @@ def load_ply(path: str | os.PathLike, *, point_scale: float | None = None, point
     """
     columns = read_ply_vertices(path)
     where = str(path)
+    for name, values in columns.items():
+        bad = np.flatnonzero(~np.isfinite(values)) if values.dtype.kind == "f" else []
+        if len(bad):
+            raise InputError(
+                f"{where}: attribute '{name}' has {len(bad)} non-finite values (first: vertex {bad[0]}, {values[bad[0]]})"
+            )
     missing_xyz = [a for a in ("x", "y", "z") if a not in columns]
     if missing_xyz:
         raise InputError(f"{where}: vertex element has no {', '.join(missing_xyz)} (properties: {', '.join(columns)})")
@@ -238,12 +244,15 @@ def load_ply(path: str | os.PathLike, *, point_scale: float | None = None, point
     except InputError as exc:
         raise InputError(f"{where}: {len(rest_names)} f_rest attributes: {exc}") from None
 
-    def stack(names: list[str]) -> torch.Tensor:
+    n = len(columns["x"])
+
+    def stack(names: list[str]) -> torch.Tensor:  # [N, len(names)] float32
+        if not names:
+            return torch.empty(n, 0)
         return torch.from_numpy(np.stack([columns[k].astype(np.float32) for k in names], axis=-1))
 
-    n = len(columns["x"])
     dc = stack(["f_dc_0", "f_dc_1", "f_dc_2"])  # [N, 3]
-    rest = stack(rest_names).reshape(n, 3, -1).transpose(1, 2)  # channel-major in the file
+    rest = stack(rest_names).reshape(n, 3, len(rest_names) // 3).transpose(1, 2)  # channel-major in the file
     known = set(gaussian_property_names(degree))
     feature_names = tuple(k for k in columns if k not in known)
     gaussians = Gaussians(
@@ -271,7 +280,7 @@ def save_ply(path: str | os.PathLike, gaussians: Gaussians, *, ascii: bool = Fal
     else:
         raise InputError(f"{path}: a 3DGS PLY stores RGB; these Gaussians have {g.colors.shape[1]} colour channels")
     n = len(g)
-    rest = sh[:, 1:, :].transpose(1, 2).reshape(n, -1)  # channel-major
+    rest = sh[:, 1:, :].transpose(1, 2).flatten(1)  # channel-major
     values = torch.cat(
         [g.means, torch.zeros(n, 3), sh[:, 0, :], rest, g.opacity_logits[:, None], g.log_scales, g.quats]
         + ([g.features] if g.features is not None else []),
