@@ -391,15 +391,15 @@ class Gaussians:
         return point
 
 
-def nearest_neighbour_rms(points: torch.Tensor, k: int = 3) -> torch.Tensor:
+def nearest_neighbour_rms(points: torch.Tensor, k: int = 3, *, block_distances: int = 2**26) -> torch.Tensor:
     """[N] root mean square distance (m) of each point to its ``k`` nearest other points.
 
-    Exact brute force in row blocks (about 2^26 distances at a time): O(N^2) work, fine up to
-    a few 10^5 points.
+    Exact brute force in row blocks of about ``block_distances`` distances: O(N^2) work,
+    fine up to a few 10^5 points.
     """
     n = points.shape[0]
     k = min(k, n - 1)
-    block = max(1, 2**26 // n)
+    block = max(1, block_distances // n)
     out = torch.empty(n, dtype=points.dtype)
     for start in range(0, n, block):
         d2 = torch.cdist(points[start : start + block], points).square_()
