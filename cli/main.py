@@ -16,6 +16,7 @@ from clflow import __version__
 BUILTIN_COMMANDS: dict[str, str] = {
     "bench": "clflow_cli.bench:bench",
     "devices": "clflow_cli.devices:devices",
+    "render": "clflow_cli.render:render",
 }
 
 PLUGIN_GROUP = "clflow.commands"

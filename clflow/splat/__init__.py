@@ -1,1 +1,39 @@
-"""Gaussian splats: 3DGS files, the Gaussians container, cameras and rendering."""
+"""Gaussian splats: 3DGS PLY files, the Gaussians container, cameras and rendering.
+
+    from clflow.splat import load_ply, look_at, rasterize
+    gaussians = load_ply("point_cloud.ply")                  # 3DGS PLY or x y z [r g b] points
+    camera = look_at((2, 0, 1), (0, 0, 0), fov_x=0.9, width=512, height=512)
+    image, alpha, depth, meta = rasterize(gaussians, camera)  # differentiable
+
+Importing this package builds no OpenCL kernels; the rasteriser loads on first use.
+"""
+
+from clflow.splat.cameras import (
+    Camera,
+    frame_box,
+    intrinsics,
+    load_cameras_json,
+    load_transforms_json,
+    look_at,
+    orbit,
+)
+from clflow.splat.gaussians import Gaussians, rgb_to_sh0, sh0_to_rgb
+from clflow.splat.ply import load_ply, save_ply
+from clflow.splat.render import Render, rasterize
+
+__all__ = [
+    "Camera",
+    "Gaussians",
+    "Render",
+    "frame_box",
+    "intrinsics",
+    "load_cameras_json",
+    "load_transforms_json",
+    "load_ply",
+    "look_at",
+    "orbit",
+    "rasterize",
+    "rgb_to_sh0",
+    "save_ply",
+    "sh0_to_rgb",
+]
