@@ -77,7 +77,7 @@ def rasterize(
             sh_degree = available
         elif not 0 <= sh_degree <= available:
             raise InputError(f"sh_degree {sh_degree} is outside 0..{available}, the degree of these Gaussians")
-        colors = gaussians.sh[:, : (sh_degree + 1) ** 2]
+        colors = gaussians.sh  # the rasteriser reads the first (sh_degree + 1)^2 coefficients
         n_colors = 3
     else:
         sh_degree = None
