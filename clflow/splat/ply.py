@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from numpy.lib.recfunctions import structured_to_unstructured
 
 from clflow.errors import InputError
 from clflow.fileio import atomic_path
@@ -52,12 +53,12 @@ class _Element:
 # -- the generic PLY layer -----------------------------------------------------------------
 
 
-def read_ply_vertices(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """The ``vertex`` element of a PLY file as ``{property: array [N]}`` in file order.
+def read_ply_vertices(path: str | os.PathLike) -> np.ndarray:
+    """The ``vertex`` element of a PLY file as a structured array [N], fields in file order.
 
-    Values keep the file's types. Other elements (faces, ...) are skipped. Raises
-    :class:`InputError` naming the file for a malformed header, a missing vertex element or
-    truncated data.
+    Fields keep the file's types (native byte order). Other elements (faces, ...) are
+    skipped. Raises :class:`InputError` naming the file for a malformed header, a missing
+    vertex element or truncated data.
     """
     path = Path(path)
     try:
@@ -87,38 +88,32 @@ def read_ply_vertices(path: str | os.PathLike) -> dict[str, np.ndarray]:
             f"({vertex.count * dtype.itemsize} bytes) but only {max(available, 0)} bytes follow"
         )
     table = np.frombuffer(data, dtype=dtype, count=vertex.count, offset=offset)
-    return {name: table[name].astype(table[name].dtype.newbyteorder("=")) for name, _ in vertex.properties}
+    return table.astype(_dtype(vertex, "="), copy=False)  # read-only view when already native
 
 
-def write_ply_vertices(path: str | os.PathLike, columns: dict[str, np.ndarray], *, ascii: bool = False) -> None:
-    """Write ``{property: array [N]}`` as a PLY ``vertex`` element, atomically.
+def write_ply_vertices(path: str | os.PathLike, table: np.ndarray, *, ascii: bool = False) -> None:
+    """Write a structured array [N] as a PLY ``vertex`` element (one property per field), atomically.
 
     Binary little-endian by default (as every 3DGS trainer writes it), or ASCII with
     float32 values in 9 significant digits (enough to read back the same bits).
     """
-    names = list(columns)
-    arrays = [np.asarray(columns[name]) for name in names]
-    lengths = {a.shape for a in arrays}
-    if len(lengths) != 1 or len(next(iter(lengths))) != 1:
-        raise InputError(f"PLY columns must be 1-D arrays of one length, got shapes {sorted(lengths)}")
-    n = len(arrays[0])
-    codes = [a.dtype.str[1:] for a in arrays]
-    unknown = [f"{name} ({a.dtype})" for name, a, c in zip(names, arrays, codes) if c not in PLY_NAME_OF]
+    if table.dtype.names is None or table.ndim != 1:
+        raise InputError(f"write_ply_vertices takes a 1-D structured array, got {table.dtype} {table.shape}")
+    codes = [table.dtype[name].str[1:] for name in table.dtype.names]
+    unknown = [f"{name} ({code})" for name, code in zip(table.dtype.names, codes) if code not in PLY_NAME_OF]
     if unknown:
         raise InputError(f"cannot write PLY properties of these types: {', '.join(unknown)}")
-    header = ["ply", f"format {'ascii' if ascii else 'binary_little_endian'} 1.0", f"element vertex {n}"]
-    header += [f"property {PLY_NAME_OF[c]} {name}" for name, c in zip(names, codes)]
+    header = ["ply", f"format {'ascii' if ascii else 'binary_little_endian'} 1.0", f"element vertex {len(table)}"]
+    header += [f"property {PLY_NAME_OF[code]} {name}" for name, code in zip(table.dtype.names, codes)]
     header.append("end_header")
     head = ("\n".join(header) + "\n").encode("ascii")
     if ascii:
         formats = ["%.9g" if c == "f4" else "%.17g" if c == "f8" else "%d" for c in codes]
-        lines = [" ".join(f % v for f, v in zip(formats, row)) for row in zip(*(a.tolist() for a in arrays))]
+        lines = [" ".join(f % v for f, v in zip(formats, row)) for row in table.tolist()]
         body = ("\n".join(lines) + ("\n" if lines else "")).encode("ascii")
     else:
-        table = np.empty(n, dtype=[(name, "<" + c) for name, c in zip(names, codes)])
-        for name, a in zip(names, arrays):
-            table[name] = a
-        body = table.tobytes()
+        little = np.dtype([(name, "<" + code) for name, code in zip(table.dtype.names, codes)])
+        body = table.astype(little, copy=False).tobytes()
     with atomic_path(path) as tmp:
         tmp.write_bytes(head + body)
 
@@ -164,7 +159,7 @@ def _dtype(element: _Element, byte_order: str) -> np.dtype:
     return np.dtype([(name, byte_order + code) for name, code in element.properties])
 
 
-def _read_ascii(body: bytes, before: list[_Element], vertex: _Element, path: Path) -> dict[str, np.ndarray]:
+def _read_ascii(body: bytes, before: list[_Element], vertex: _Element, path: Path) -> np.ndarray:
     skip = sum(e.count for e in before)  # in ASCII every element instance is one line
     lines = body.split(b"\n", skip + vertex.count)[skip : skip + vertex.count]
     if len(lines) < vertex.count or (lines and not lines[-1].strip()):
@@ -182,7 +177,10 @@ def _read_ascii(body: bytes, before: list[_Element], vertex: _Element, path: Pat
             f"{path}: vertex {bad} has {len(lines[bad].split())} values, the header declares {width}"
         )
     values = values.reshape(vertex.count, width)
-    return {name: values[:, j].astype(code) for j, (name, code) in enumerate(vertex.properties)}
+    table = np.empty(vertex.count, dtype=_dtype(vertex, "="))
+    for j, (name, _) in enumerate(vertex.properties):
+        table[name] = values[:, j]
+    return table
 
 
 def _all_numbers(line: bytes) -> bool:
@@ -217,24 +215,33 @@ def load_ply(path: str | os.PathLike, *, point_scale: float | None = None, point
     Raises :class:`InputError` naming the file for malformed or truncated files, missing
     attributes, non-finite values, degenerate quaternions and scales that are 0 after exp.
     """
-    columns = read_ply_vertices(path)
+    table = read_ply_vertices(path)
     where = str(path)
-    for name, values in columns.items():
-        bad = np.flatnonzero(~np.isfinite(values)) if values.dtype.kind == "f" else []
-        if len(bad):
-            raise InputError(
-                f"{where}: attribute '{name}' has {len(bad)} non-finite values (first: vertex {bad[0]}, {values[bad[0]]})"
-            )
-    missing_xyz = [a for a in ("x", "y", "z") if a not in columns]
+    names = list(table.dtype.names)
+    values = _float32_matrix(table)  # [N, P], one column per property
+    finite = np.isfinite(values)
+    if not finite.all():
+        j = int(np.flatnonzero(~finite.all(axis=0))[0])
+        bad = np.flatnonzero(~finite[:, j])
+        raise InputError(
+            f"{where}: attribute '{names[j]}' has {len(bad)} non-finite values "
+            f"(first: vertex {bad[0]}, {values[bad[0], j]})"
+        )
+    missing_xyz = [a for a in ("x", "y", "z") if a not in names]
     if missing_xyz:
-        raise InputError(f"{where}: vertex element has no {', '.join(missing_xyz)} (properties: {', '.join(columns)})")
+        raise InputError(f"{where}: vertex element has no {', '.join(missing_xyz)} (properties: {', '.join(names)})")
+    column = {name: j for j, name in enumerate(names)}
+
+    def take(keys: list[str]) -> torch.Tensor:  # [N, len(keys)] float32
+        return torch.from_numpy(values[:, [column[k] for k in keys]])
+
     splat_keys = ["f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
-    if not any(key in columns for key in splat_keys):
-        return _points_to_gaussians(columns, where, point_scale, point_opacity)
-    missing = [key for key in splat_keys if key not in columns]
+    if not any(key in column for key in splat_keys):
+        return _points_to_gaussians(table, take, where, point_scale, point_opacity)
+    missing = [key for key in splat_keys if key not in column]
     if missing:
         raise InputError(f"{where}: 3DGS PLY is missing attributes: {', '.join(missing)}")
-    rest_names = sorted((k for k in columns if k.startswith("f_rest_")), key=lambda k: int(k[7:]))
+    rest_names = sorted((k for k in names if k.startswith("f_rest_")), key=lambda k: int(k[7:]))
     if rest_names != [f"f_rest_{i}" for i in range(len(rest_names))]:
         raise InputError(f"{where}: f_rest_* attributes are not numbered 0..{len(rest_names) - 1}")
     if len(rest_names) % 3:
@@ -243,25 +250,18 @@ def load_ply(path: str | os.PathLike, *, point_scale: float | None = None, point
         degree = sh_degree_of(len(rest_names) // 3 + 1)
     except InputError as exc:
         raise InputError(f"{where}: {len(rest_names)} f_rest attributes: {exc}") from None
-
-    n = len(columns["x"])
-
-    def stack(names: list[str]) -> torch.Tensor:  # [N, len(names)] float32
-        if not names:
-            return torch.empty(n, 0)
-        return torch.from_numpy(np.stack([columns[k].astype(np.float32) for k in names], axis=-1))
-
-    dc = stack(["f_dc_0", "f_dc_1", "f_dc_2"])  # [N, 3]
-    rest = stack(rest_names).reshape(n, 3, len(rest_names) // 3).transpose(1, 2)  # channel-major in the file
+    n = len(table)
+    dc = take(["f_dc_0", "f_dc_1", "f_dc_2"])  # [N, 3]
+    rest = take(rest_names).reshape(n, 3, len(rest_names) // 3).transpose(1, 2)  # channel-major in the file
     known = set(gaussian_property_names(degree))
-    feature_names = tuple(k for k in columns if k not in known)
+    feature_names = tuple(k for k in names if k not in known)
     gaussians = Gaussians(
-        means=stack(["x", "y", "z"]),
-        quats=stack(["rot_0", "rot_1", "rot_2", "rot_3"]),
-        log_scales=stack(["scale_0", "scale_1", "scale_2"]),
-        opacity_logits=stack(["opacity"])[:, 0].contiguous(),
-        sh=torch.cat([dc[:, None, :], rest], dim=1).contiguous(),
-        features=stack(list(feature_names)) if feature_names else None,
+        means=take(["x", "y", "z"]),
+        quats=take(["rot_0", "rot_1", "rot_2", "rot_3"]),
+        log_scales=take(["scale_0", "scale_1", "scale_2"]),
+        opacity_logits=take(["opacity"])[:, 0].contiguous(),
+        sh=torch.cat([dc[:, None, :], rest], dim=1),
+        features=take(list(feature_names)) if feature_names else None,
         feature_names=feature_names,
     )
     return gaussians.validate(where)
@@ -287,25 +287,30 @@ def save_ply(path: str | os.PathLike, gaussians: Gaussians, *, ascii: bool = Fal
         dim=1,
     ).numpy()
     names = gaussian_property_names(sh_degree_of(sh.shape[1]), g.feature_names)
-    write_ply_vertices(path, {name: values[:, j] for j, name in enumerate(names)}, ascii=ascii)
+    table = values.view(np.dtype([(name, "<f4") for name in names]))[:, 0]  # rows as records, no copy
+    write_ply_vertices(path, table, ascii=ascii)
 
 
-def _points_to_gaussians(
-    columns: dict[str, np.ndarray], where: str, scale: float | None, opacity: float
-) -> Gaussians:
-    points = torch.from_numpy(np.stack([columns[k] for k in ("x", "y", "z")], axis=-1).astype(np.float32))
+def _float32_matrix(table: np.ndarray) -> np.ndarray:
+    """[N, P] float32 of a structured array's P fields (a view when they all are float32)."""
+    if all(table.dtype[name] == np.float32 for name in table.dtype.names):
+        return table.view(np.float32).reshape(len(table), len(table.dtype.names))
+    return structured_to_unstructured(table, dtype=np.float32)
+
+
+def _points_to_gaussians(table: np.ndarray, take, where: str, scale: float | None, opacity: float) -> Gaussians:
     rgb = None
     for names in COLOR_NAMES:
-        present = [k for k in names if k in columns]
+        present = [k for k in names if k in table.dtype.names]
         if present and len(present) < 3:
             raise InputError(f"{where}: point colours need all of {', '.join(names)}, found {', '.join(present)}")
         if present:
-            raw = np.stack([columns[k] for k in names], axis=-1)
             # Integer colours are 0..max of their type (uchar: 255); float colours are in [0, 1].
-            full = np.iinfo(raw.dtype).max if np.issubdtype(raw.dtype, np.integer) else 1.0
-            rgb = torch.from_numpy((raw.astype(np.float64) / full).astype(np.float32))
+            kind = table.dtype[names[0]]
+            full = float(np.iinfo(kind).max) if np.issubdtype(kind, np.integer) else 1.0
+            rgb = take(list(names)) / full
             break
     try:
-        return Gaussians.from_points(points, rgb, scale=scale, opacity=opacity)
+        return Gaussians.from_points(take(["x", "y", "z"]), rgb, scale=scale, opacity=opacity)
     except InputError as exc:
         raise InputError(f"{where}: point cloud: {exc}") from None

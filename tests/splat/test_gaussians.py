@@ -134,12 +134,12 @@ def test_shapes_are_checked():
         make(features=torch.zeros(6, 2), feature_names=("a",))
 
 
-def test_nearest_neighbour_rms_matches_brute_force_over_blocks():
+def test_nearest_neighbour_rms_matches_brute_force():
     points = torch.randn(300, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
     d2 = torch.cdist(points, points).square()
     d2.fill_diagonal_(float("inf"))
     expected = d2.topk(3, largest=False).values.mean(1).sqrt()
-    assert torch.allclose(nearest_neighbour_rms(points, block_distances=7 * 300), expected, rtol=1e-12)
+    assert torch.allclose(nearest_neighbour_rms(points), expected, rtol=1e-12)
 
 
 def test_bounds_with_outlier_quantile():

@@ -115,10 +115,12 @@ def test_rgb_colors_are_written_as_degree_zero_sh(tmp_path):
 def test_point_cloud_with_uchar_colors_becomes_isotropic_gaussians(tmp_path):
     xyz = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0]], dtype=np.float32)
     rgb = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255], [255, 255, 255], [0, 0, 0]], dtype=np.uint8)
-    write_ply_vertices(
-        tmp_path / "pc.ply",
-        {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2]},
-    )
+    table = np.empty(5, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    for j, axis in enumerate("xyz"):
+        table[axis] = xyz[:, j]
+    for j, channel in enumerate(("red", "green", "blue")):
+        table[channel] = rgb[:, j]
+    write_ply_vertices(tmp_path / "pc.ply", table)
     g = load_ply(tmp_path / "pc.ply")
     assert g.sh_degree == 0 and len(g) == 5
     assert torch.allclose(sh0_to_rgb(g.sh[:, 0]), torch.from_numpy(rgb / 255.0).float(), atol=1e-6)
@@ -130,7 +132,9 @@ def test_point_cloud_with_uchar_colors_becomes_isotropic_gaussians(tmp_path):
 
 
 def test_point_cloud_without_colors_is_grey_and_takes_a_given_scale(tmp_path):
-    write_ply_vertices(tmp_path / "pc.ply", {k: np.arange(3, dtype=np.float32) for k in "xyz"}, ascii=True)
+    table = np.zeros(3, dtype=[("x", "f4"), ("y", "f4"), ("z", "f8")])
+    table["x"] = np.arange(3)
+    write_ply_vertices(tmp_path / "pc.ply", table, ascii=True)
     g = load_ply(tmp_path / "pc.ply", point_scale=0.02, point_opacity=0.9)
     assert torch.allclose(sh0_to_rgb(g.sh[:, 0]), torch.full((3, 3), 0.5))
     assert torch.allclose(g.scales, torch.full((3, 3), 0.02))
