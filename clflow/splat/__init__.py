@@ -1,4 +1,4 @@
-"""Gaussian splats: 3DGS PLY files, the Gaussians container, cameras and rendering.
+"""Gaussian splats: 3DGS PLY files, the Gaussians container, cameras and the differentiable rasteriser.
 
     from clflow.splat import load_ply, look_at, rasterize
     gaussians = load_ply("point_cloud.ply")                  # 3DGS PLY or x y z [r g b] points
