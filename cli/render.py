@@ -65,6 +65,7 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, eye, 
     frames the scene (the centres between the 1st and 99th percentiles on each axis).
     Positions are in the PLY's world units (m).
     """
+    import time
     from pathlib import Path
 
     import torch
@@ -80,12 +81,19 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, eye, 
                      math.radians(elevation), math.radians(azimuth), math.radians(fov), width, height)
     output_dir = Path(output_dir)
     frames = []
+    seconds = 0.0
     for camera in cameras:
-        image = rasterize(gaussians, camera, background=background, sh_degree=sh_degree, render_depth=False).image
+        start = time.perf_counter()
+        with torch.no_grad():
+            image = rasterize(gaussians, camera, background=background, sh_degree=sh_degree, render_depth=False).image
+        seconds += time.perf_counter() - start
         frame = to_uint8(image)
         _write_png(output_dir / f"{_file_stem(camera.name)}.png", frame)
         frames.append(frame)
-    click.echo(f"rendered {len(gaussians)} Gaussians: {len(frames)} view(s) -> {output_dir}/")
+    click.echo(
+        f"rendered {len(gaussians)} Gaussians: {len(frames)} view(s) -> {output_dir}/ "
+        f"({1e3 * seconds / len(frames):.0f} ms per view, first includes kernel builds)"
+    )
     if video is not None:
         _write_video(Path(video), frames, fps)
         click.echo(f"video: {video}")

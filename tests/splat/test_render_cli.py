@@ -226,3 +226,17 @@ def test_cli_bad_files(tmp_path, scene):
     assert result.exit_code == 1 and "no camera named 'nope'" in result.output
     result = run("render", scene, "--cameras", tmp_path / "cameras.json", "--orbit", 3)
     assert result.exit_code == 1 and "do not combine" in result.output
+
+
+def test_cli_renders_a_plain_point_cloud(tmp_path):
+    table = np.zeros(4, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    table["x"] = [0, 0.1, 0, 0.1]
+    table["y"] = [0, 0, 0.1, 0.1]
+    table["red"] = 255
+    from clflow.splat.ply import write_ply_vertices
+
+    write_ply_vertices(tmp_path / "points.ply", table)
+    result = run("render", tmp_path / "points.ply", "-o", tmp_path / "o", "--width", 16, "--height", 16)
+    assert result.exit_code == 0, result.output
+    png = read_png(tmp_path / "o" / "orbit_0000.png")
+    assert png[..., 0].max() > 0 and png[..., 1:].max() == 0  # red points on black
