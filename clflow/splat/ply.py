@@ -145,6 +145,8 @@ def _parse_header(data: bytes, path: Path) -> tuple[str, list[_Element], int]:
             if len(words) == 5 and words[1] == "list":
                 elements[-1].has_list = True
             elif len(words) == 3 and words[1] in PLY_TYPES:
+                if any(words[2] == name for name, _ in elements[-1].properties):
+                    raise InputError(f"{where}: property '{words[2]}' appears twice in element '{elements[-1].name}'")
                 elements[-1].properties.append((words[2], PLY_TYPES[words[1]]))
             else:
                 raise InputError(f"{where}: expected 'property TYPE NAME' with a PLY scalar type")
@@ -287,6 +289,9 @@ def save_ply(path: str | os.PathLike, gaussians: Gaussians, *, ascii: bool = Fal
         dim=1,
     ).numpy()
     names = gaussian_property_names(sh_degree_of(sh.shape[1]), g.feature_names)
+    clashes = sorted({name for name in g.feature_names if names.count(name) > 1})
+    if clashes:
+        raise InputError(f"{path}: feature names {', '.join(clashes)} clash with 3DGS attributes or repeat")
     table = values.view(np.dtype([(name, "<f4") for name in names]))[:, 0]  # rows as records, no copy
     write_ply_vertices(path, table, ascii=ascii)
 

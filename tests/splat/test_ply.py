@@ -209,6 +209,7 @@ def test_sh_count_that_is_no_degree_is_rejected(tmp_path):
         (b"ply\nformat binary_middle_endian 1.0\nend_header\n", "header line 2"),
         (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float128 x\nend_header\n1\n", "PLY scalar type"),
         (b"ply\nformat ascii 1.0\nelement face 0\nend_header\n", "no 'vertex' element"),
+        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float x\nend_header\n1 1\n", "appears twice"),
         (b"ply\nelement vertex 0\nend_header\n", "no 'format' line"),
         (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n", "truncated"),
         (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n4 5\n", "vertex 1 has 2 values"),
@@ -241,6 +242,13 @@ def test_failed_save_leaves_no_file(tmp_path):
     with pytest.raises(InputError, match="4 colour channels"):
         save_ply(tmp_path / "x.ply", g)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_feature_names_that_clash_with_3dgs_attributes_are_rejected(tmp_path):
+    g = load_ply(_bad_file(tmp_path))
+    g.features, g.feature_names = torch.zeros(4, 1), ("opacity",)
+    with pytest.raises(InputError, match="feature names opacity clash"):
+        save_ply(tmp_path / "clash.ply", g)
 
 
 def test_empty_file_round_trips(tmp_path):
