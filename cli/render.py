@@ -79,16 +79,23 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, eye, 
     gaussians = load_ply(splats).to(getattr(torch, precision))
     cameras = _views(gaussians, cameras_json, transforms_json, camera_keys, eye, target, up, n_orbit,
                      math.radians(elevation), math.radians(azimuth), math.radians(fov), width, height)
+    sizes = {(c.width, c.height) for c in cameras}
+    if video is not None and len(sizes) > 1:
+        raise InputError(f"--video: the views have different sizes {sorted(sizes)}; a video needs one size")
     output_dir = Path(output_dir)
     frames = []
     seconds = 0.0
-    for camera in cameras:
+    stems: set[str] = set()
+    for i, camera in enumerate(cameras):
         start = time.perf_counter()
         with torch.no_grad():
             image = rasterize(gaussians, camera, background=background, sh_degree=sh_degree, render_depth=False).image
         seconds += time.perf_counter() - start
         frame = to_uint8(image)
-        _write_png(output_dir / f"{_file_stem(camera.name)}.png", frame)
+        stem = _file_stem(camera.name)
+        stem = stem if stem not in stems else f"{stem}_{i:04d}"  # e.g. train/r_0 and test/r_0
+        stems.add(stem)
+        _write_png(output_dir / f"{stem}.png", frame)
         frames.append(frame)
     click.echo(
         f"rendered {len(gaussians)} Gaussians: {len(frames)} view(s) -> {output_dir}/ "

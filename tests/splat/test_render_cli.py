@@ -218,6 +218,19 @@ def test_cli_bad_options(tmp_path, scene, args, message):
     assert result.exit_code != 0 and message in result.output, result.output
 
 
+def test_cli_cameras_with_one_file_name_and_two_sizes(tmp_path, scene):
+    cams = [look_at((0, -4, 1), (0, 0, 0.5), fov_x=0.7, width=w, height=16) for w in (16, 20)]
+    frames = [dict(file_path=f"./{split}/r_0", transform_matrix=(c.camtoworld() @ torch.diag(torch.tensor([1.0, -1, -1, 1], dtype=F64))).tolist(),
+                   w=c.width, h=c.height) for split, c in zip(("train", "test"), cams)]
+    (tmp_path / "t.json").write_text(json.dumps(dict(camera_angle_x=0.7, frames=frames)))
+    result = run("render", scene, "-o", tmp_path / "o", "--transforms", tmp_path / "t.json")
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["r_0.png", "r_0_0001.png"]
+    assert read_png(tmp_path / "o" / "r_0_0001.png").shape == (16, 20, 3)
+    result = run("render", scene, "-o", tmp_path / "o", "--transforms", tmp_path / "t.json", "--video", tmp_path / "v.mp4")
+    assert result.exit_code == 1 and "different sizes" in result.output
+
+
 def test_cli_bad_files(tmp_path, scene):
     result = run("render", tmp_path / "missing.ply")
     assert result.exit_code == 1 and "missing.ply: cannot read PLY file" in result.output
