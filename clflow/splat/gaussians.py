@@ -98,37 +98,33 @@ class Gaussians:
         self.feature_names = tuple(self.feature_names)
         if (self.sh is None) == (self.colors is None):
             raise InputError("Gaussians need exactly one of sh (SH coefficients) and colors")
-        n = self.means.shape[0] if self.means.dim() == 2 else -1
-        expected = {
+        n = self.means.shape[0] if isinstance(self.means, torch.Tensor) and self.means.dim() == 2 else -1
+        expected = {  # None: any size
             "means": (n, 3),
             "quats": (n, 4),
             "log_scales": (n, 3),
             "opacity_logits": (n,),
+            "sh": (n, None, 3),
+            "colors": (n, None),
+            "features": (n, None),
         }
         for name, shape in expected.items():
             value = getattr(self, name)
-            if not isinstance(value, torch.Tensor) or tuple(value.shape) != shape:
-                got = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+            if value is None and name in ("sh", "colors", "features"):
+                continue
+            if not isinstance(value, torch.Tensor) or not _shape_matches(value, shape):
+                got = list(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
                 raise InputError(f"Gaussians.{name} must have shape {_shape_text(shape)}, got {got}")
         if self.sh is not None:
-            if self.sh.dim() != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3:
-                raise InputError(f"Gaussians.sh must have shape [N={n}, K, 3], got {tuple(self.sh.shape)}")
             sh_degree_of(self.sh.shape[1])
-        if self.colors is not None and (self.colors.dim() != 2 or self.colors.shape[0] != n):
-            raise InputError(f"Gaussians.colors must have shape [N={n}, C], got {tuple(self.colors.shape)}")
         if self.features is None:
             if self.feature_names:
                 raise InputError(f"feature_names {self.feature_names} given without features")
-        else:
-            if self.features.dim() != 2 or self.features.shape[0] != n:
-                raise InputError(
-                    f"Gaussians.features must have shape [N={n}, F], got {tuple(self.features.shape)}"
-                )
-            if len(self.feature_names) != self.features.shape[1]:
-                raise InputError(
-                    f"{self.features.shape[1]} feature channels but {len(self.feature_names)} "
-                    f"feature_names {self.feature_names}"
-                )
+        elif len(self.feature_names) != self.features.shape[1]:
+            raise InputError(
+                f"{self.features.shape[1]} feature channels but {len(self.feature_names)} "
+                f"feature_names {self.feature_names}"
+            )
 
     # -- construction ---------------------------------------------------------------------
 
@@ -427,5 +423,9 @@ def _width(t: torch.Tensor | None) -> int | None:
     return None if t is None else t.shape[1]
 
 
-def _shape_text(shape: tuple[int, ...]) -> str:
-    return "[" + ", ".join("N" if s == -1 else str(s) for s in shape) + "]"
+def _shape_matches(value: torch.Tensor, shape: tuple[int | None, ...]) -> bool:
+    return value.dim() == len(shape) and all(s is None or s == d for s, d in zip(shape, value.shape))
+
+
+def _shape_text(shape: tuple[int | None, ...]) -> str:
+    return "[" + ", ".join("N" if s == -1 else "*" if s is None else str(s) for s in shape) + "]"

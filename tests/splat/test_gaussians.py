@@ -126,6 +126,8 @@ def test_from_activated_rejects_values_no_renderer_can_use(kwargs, message):
 def test_shapes_are_checked():
     with pytest.raises(InputError, match="quats must have shape \\[2, 4\\]"):
         Gaussians(torch.zeros(2, 3), torch.zeros(3, 4), torch.zeros(2, 3), torch.zeros(2), colors=torch.zeros(2, 3))
+    with pytest.raises(InputError, match="means must have shape \\[N, 3\\], got list"):
+        Gaussians([[0.0, 0, 0]], torch.zeros(1, 4), torch.zeros(1, 3), torch.zeros(1), colors=torch.zeros(1, 3))
     with pytest.raises(InputError, match="exactly one of sh"):
         Gaussians(torch.zeros(2, 3), torch.zeros(2, 4), torch.zeros(2, 3), torch.zeros(2))
     with pytest.raises(InputError, match="not \\(d\\+1\\)\\^2"):
