@@ -159,11 +159,11 @@ def composite(
     with device.bind() as b:
         device.launch(
             kern,
-            tiles_x * tiles_y * TILE_SIZE * TILE_SIZE,
+            tiles_x * tiles_y * TILE_SIZE,
             [b.input(ranges), b.input(sorted_slots), b.input(slot_gaussian), b.input(means2d), b.input(conics),
              b.input(opacities), b.input(features), b.input(background), b.output(out), b.output(T_final),
-             b.output(n_contrib), np.int32(width), np.int32(height), np.int32(tiles_x)],
-            TILE_SIZE * TILE_SIZE,
+             b.output(n_contrib), np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(tiles_x * tiles_y)],
+            TILE_SIZE,  # one work-item per tile row
         )
     return out, T_final, n_contrib
 
