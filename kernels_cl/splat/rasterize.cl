@@ -67,14 +67,27 @@ inline realv load_row(__global const real *p, const int stride, const int count)
     const realv falloff = exp(-sigma);                                                         \
     const realv alpha = fmin((realv)(real)ALPHA_MAX, o * falloff)
 
+/* True when no lane of the row can reach ALPHA_MIN: sigma is convex in dx, so its minimum
+ * over the lanes is at dx* = -B dy / A clamped to the lanes' range; skip when that minimum
+ * exceeds the Gaussian's cut-off log(o / ALPHA_MIN) by ROW_CULL_MARGIN (far beyond rounding,
+ * so the skip never changes a result). */
+inline bool row_culled(const real mx, const real dy, const int px0, const real A, const real B,
+                       const real C, const real sigma_cut)
+{
+    const real dx = clamp(-B * dy / A, mx - px0 - (real)(TILE_SIZE - 0.5), mx - px0 - (real)0.5);
+    const real sigma_min = (real)0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy;
+    return sigma_min > sigma_cut + (real)ROW_CULL_MARGIN;
+}
+
 /* Forward: work-item (tile, row) composites its 16 pixels front to back; it stops once all
  * are done. Writes out [H,W,CHANNELS], T_final [H,W] and n_contrib [H,W] (entries walked
  * up to the pixel's last contributor). */
 __kernel void rasterize_forward(
     __global const int *ranges, __global const int *sorted_slots,
     __global const int *slot_gaussian, __global const real *means2d,
-    __global const real *conics, __global const real *opacities, __global const real *features,
-    __global const real *background, __global real *out, __global real *T_final,
+    __global const real *conics, __global const real *opacities, __global const real *sigma_cuts,
+    __global const real *features, __global const real *background, __global real *out,
+    __global real *T_final,
     __global int *n_contrib, const int width, const int height, const int tiles_x,
     const int n_tiles)
 {
@@ -98,6 +111,8 @@ __kernel void rasterize_forward(
         const int g = slot_gaussian[sorted_slots[i]];
         const real mx = means2d[2 * g], my = means2d[2 * g + 1];
         const real A = conics[3 * g], B = conics[3 * g + 1], C = conics[3 * g + 2], o = opacities[g];
+        if (row_culled(mx, my - cy, px0, A, B, C, sigma_cuts[g]))
+            continue;
         ROW_ALPHA(dx, dy, sigma, falloff, alpha);
         const maskv hit = !done & isgreaterequal(sigma, (realv)0) & isgreaterequal(alpha, (realv)(real)ALPHA_MIN);
         if (!any(hit))
@@ -138,8 +153,8 @@ __kernel void rasterize_forward(
 __kernel void rasterize_backward(
     __global const int *ranges, __global const int *sorted_slots,
     __global const int *slot_gaussian, __global const real *means2d,
-    __global const real *conics, __global const real *opacities, __global const real *features,
-    __global const real *background, __global const real *T_final,
+    __global const real *conics, __global const real *opacities, __global const real *sigma_cuts,
+    __global const real *features, __global const real *background, __global const real *T_final,
     __global const int *n_contrib, __global const real *v_out, __global const real *v_T,
     __global real *slot_grads, const int width, const int height, const int tiles_x,
     const int n_tiles)
@@ -177,6 +192,8 @@ __kernel void rasterize_backward(
             const real mx = means2d[2 * gid], my = means2d[2 * gid + 1];
             const real A = conics[3 * gid], B = conics[3 * gid + 1], C = conics[3 * gid + 2];
             const real o = opacities[gid];
+            if (row_culled(mx, my - cy, px0, A, B, C, sigma_cuts[gid]))
+                continue;
             ROW_ALPHA(dx, dy, sigma, falloff, alpha);
             const int16 active = (int16)(i - start) < n_row;
             const maskv hit = isgreaterequal(sigma, (realv)0) & isgreaterequal(alpha, (realv)(real)ALPHA_MIN)
