@@ -230,6 +230,8 @@ def load_ply(path: str | os.PathLike, *, point_scale: float | None = None, point
             f"(first: vertex {bad[0]}, {values[bad[0], j]})"
         )
     missing_xyz = [a for a in ("x", "y", "z") if a not in names]
+    if "packed_position" in names:
+        raise InputError(f"{where}: a compressed (SuperSplat/PlayCanvas) PLY; clflow reads uncompressed 3DGS PLY files")
     if missing_xyz:
         raise InputError(f"{where}: vertex element has no {', '.join(missing_xyz)} (properties: {', '.join(names)})")
     column = {name: j for j, name in enumerate(names)}

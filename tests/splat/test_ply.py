@@ -141,6 +141,15 @@ def test_point_cloud_without_colors_is_grey_and_takes_a_given_scale(tmp_path):
     assert torch.allclose(g.opacities, torch.full((3,), 0.9))
 
 
+def test_point_cloud_with_float_rgb_in_unit_range(tmp_path):
+    table = np.zeros(2, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("r", "f4"), ("g", "f4"), ("b", "f4")])
+    table["x"] = [0, 1]
+    table["r"], table["g"], table["b"] = [0.2, 1.0], [0.4, 0.0], [0.6, 0.5]
+    write_ply_vertices(tmp_path / "pc.ply", table)
+    g = load_ply(tmp_path / "pc.ply")
+    assert torch.allclose(sh0_to_rgb(g.sh[:, 0]), torch.tensor([[0.2, 0.4, 0.6], [1.0, 0.0, 0.5]]), atol=1e-6)
+
+
 def test_elements_around_the_vertex_element_are_skipped(tmp_path):
     body = struct.pack("<B", 7) + struct.pack("<3f", 1, 2, 3) + struct.pack("<B3i", 3, 0, 0, 0)
     header = (
@@ -215,6 +224,7 @@ def test_sh_count_that_is_no_degree_is_rejected(tmp_path):
         (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n4 5\n", "vertex 1 has 2 values"),
         (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 two 3\n", "not a number"),
         (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n", "no z"),
+        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty uint packed_position\nend_header\n1\n", "compressed"),
         (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nend_header\n1 2 3 4\n", "need all of red, green, blue"),
     ],
 )
