@@ -374,7 +374,11 @@ class Gaussians:
         means = self.means.detach().double()
         if quantile == 0:
             return means.min(0).values, means.max(0).values
-        return torch.quantile(means, quantile, dim=0), torch.quantile(means, 1 - quantile, dim=0)
+        # k-th smallest per axis (1-based k); torch.quantile refuses more than 2^24 values.
+        last = len(self) - 1
+        low = torch.kthvalue(means, math.floor(quantile * last) + 1, dim=0).values
+        high = torch.kthvalue(means, math.ceil((1 - quantile) * last) + 1, dim=0).values
+        return low, high
 
     def _map(self, fn) -> "Gaussians":
         fields = {
