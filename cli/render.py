@@ -39,6 +39,10 @@ class Numbers(click.ParamType):
               help="NeRF-style transforms.json; render its frames (all, or those picked by --camera).")
 @click.option("--camera", "camera_keys", multiple=True, metavar="NAME|INDEX",
               help="Pick a camera of --cameras/--transforms by image name, file_path or index (repeatable).")
+@click.option("--box", type=Numbers(6), metavar="X0,Y0,Z0,X1,Y1,Z1",
+              help="Render only the Gaussians whose centres lie in this box (m).")
+@click.option("--sphere", type=Numbers(4), metavar="X,Y,Z,R",
+              help="Render only the Gaussians whose centres lie within R m of X,Y,Z.")
 @click.option("--eye", type=Numbers(3), help="Look-at camera position X,Y,Z (m).")
 @click.option("--target", type=Numbers(3), help="Look-at target X,Y,Z (m); default: the scene centre.")
 @click.option("--up", type=Numbers(3), default="0,0,1", show_default=True, help="World up direction.")
@@ -56,14 +60,15 @@ class Numbers(click.ParamType):
 @click.option("--fps", type=click.FloatRange(min=0, min_open=True), default=24.0, show_default=True, help="Video frame rate.")
 @click.option("--precision", type=click.Choice(["float32", "float64"]), default="float32", show_default=True,
               help="Compute precision of the rasteriser.")
-def render(splats, output_dir, cameras_json, transforms_json, camera_keys, eye, target, up, n_orbit, elevation,
-           azimuth, fov, width, height, background, sh_degree, video, fps, precision) -> None:
+def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, sphere, eye, target, up, n_orbit,
+           elevation, azimuth, fov, width, height, background, sh_degree, video, fps, precision) -> None:
     """Render SPLATS (a 3DGS PLY file, or a plain x y z [r g b] point cloud) to PNG images.
 
     The views are the cameras of --cameras or --transforms, a look-at camera (--eye,
     --target), an orbit of --orbit N views around the target, or by default one view that
     frames the scene (the centres between the 1st and 99th percentiles on each axis).
-    Positions are in the PLY's world units (m).
+    --box and --sphere render a selection (both: the intersection), e.g. to check the
+    object region before simulating it. Positions are in the PLY's world units (m).
     """
     import time
     from pathlib import Path
@@ -77,6 +82,13 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, eye, 
     if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:
         raise InputError(f"--video {video}: the file name must end in {' or '.join(VIDEO_SUFFIXES)}")
     gaussians = load_ply(splats).to(getattr(torch, precision))
+    total = len(gaussians)
+    if box is not None:
+        gaussians = gaussians.select_box(box[:3], box[3:])
+    if sphere is not None:
+        gaussians = gaussians.select_sphere(sphere[:3], sphere[3])
+    if (box or sphere) and len(gaussians) == 0:
+        raise InputError(f"--box/--sphere select none of the {total} Gaussians of {splats}")
     cameras = _views(gaussians, cameras_json, transforms_json, camera_keys, eye, target, up, n_orbit,
                      math.radians(elevation), math.radians(azimuth), math.radians(fov), width, height)
     sizes = {(c.width, c.height) for c in cameras}

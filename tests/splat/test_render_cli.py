@@ -169,6 +169,26 @@ def test_cli_cameras_json_view_matches_the_python_api(tmp_path, scene):
     assert png[row, col, 0] > 150 and png[0, 0].tolist() == [0, 0, 255]  # red splat on blue
 
 
+def test_cli_renders_a_selection(tmp_path, scene):
+    cam = camera()
+    means = three_gaussians(cam).means
+    entry = dict(img_name="v", width=W, height=H, position=cam.position.tolist(), rotation=cam.R.T.tolist(), fx=cam.fx, fy=cam.fy)
+    (tmp_path / "cameras.json").write_text(json.dumps([entry]))
+    sphere = ",".join(map(str, means[0].tolist() + [0.05]))
+    result = run("render", scene, "-o", tmp_path / "s", "--cameras", tmp_path / "cameras.json", "--sphere", sphere)
+    assert result.exit_code == 0, result.output
+    png = read_png(tmp_path / "s" / "v.png")
+    (c0, r0), (c1, r1) = PIXELS[:2]
+    assert png[r0, c0, 0] > 150 and png[r1, c1].max() == 0  # Gaussian 0 kept, Gaussian 1 not
+    low, high = (means[1] - 0.01).tolist(), (means[1] + 0.01).tolist()
+    result = run("render", scene, "-o", tmp_path / "b", "--cameras", tmp_path / "cameras.json", "--box", ",".join(map(str, low + high)))
+    assert result.exit_code == 0, result.output
+    png = read_png(tmp_path / "b" / "v.png")
+    assert png[r1, c1, 1] > 100 and png[r0, c0].max() == 0
+    result = run("render", scene, "--sphere", "9,9,9,0.1")
+    assert result.exit_code == 1 and "select none of the 3 Gaussians" in result.output
+
+
 def test_cli_default_view_and_orbit_video(tmp_path, scene):
     result = run("render", scene, "-o", tmp_path / "one", "--width", 40, "--height", 30)
     assert result.exit_code == 0, result.output
