@@ -6,8 +6,8 @@ import pytest
 import torch
 from splat_scenes import camera, random_scene, rotations
 
-from clflow.splat.rasterize import covariances_from_quats_scales, rasterize_gaussians
-from clflow.splat.reference import rasterize_reference
+from clflow.splat.rasterize import covariances, rasterize_gaussians
+from clflow.splat.reference import covariances_from_quats_scales, rasterize_reference
 
 W, H = 40, 36  # 3 x 3 tiles, the last row and column partial
 
@@ -73,7 +73,8 @@ def test_covariances_give_the_same_image_as_quats_and_scales():
     means, quats, scales, opacities, colors = random_scene(25, seed=6)
     viewmat, K = camera(W, H, 30.0)
     a = rasterize_gaussians(means, quats, scales, opacities, colors, viewmat, K, W, H)
-    covars = covariances_from_quats_scales(quats, scales)
+    covars = covariances(quats, scales)
+    assert_close(covars, covariances_from_quats_scales(quats, scales), 1e-14)
     b = rasterize_gaussians(means, None, None, opacities, colors, viewmat, K, W, H, covars=covars)
     for x, y in zip(a[:3], b[:3]):
         assert_close(x, y, 1e-12)
@@ -85,6 +86,7 @@ def test_rotation_and_scale_give_the_expected_covariance():
     c = s = math.sqrt(0.5)  # 45 degrees about z
     R = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=torch.float64)
     expected = R @ torch.diag(scales[0] ** 2) @ R.T
+    assert_close(covariances(quats, scales)[0], expected, 1e-12)
     assert_close(covariances_from_quats_scales(quats, scales)[0], expected, 1e-12)
 
 

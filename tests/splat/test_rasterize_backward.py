@@ -6,7 +6,7 @@ import torch
 from splat_scenes import camera, random_scene, rotations
 
 from clflow.splat.binning import build_tile_lists
-from clflow.splat.rasterize import composite, covariances_from_quats_scales, project, rasterize_gaussians
+from clflow.splat.rasterize import composite, covariances, project, rasterize_gaussians
 from clflow.splat.reference import rasterize_reference
 
 W, H = 24, 20  # 2 x 2 tiles, partial
@@ -48,7 +48,7 @@ def test_gradcheck_means_quats_scales_opacities_colours_and_flow_feature():
 
 def test_gradcheck_covariances():
     means, quats, scales, opacities, colors, viewmat, K = small_scene(1)
-    covars = covariances_from_quats_scales(quats, scales)
+    covars = covariances(quats, scales)
 
     def f(means, covars, opacities):
         out = rasterize_gaussians(means, None, None, opacities, colors, viewmat, K, W, H, covars=covars)
@@ -56,6 +56,14 @@ def test_gradcheck_covariances():
 
     inputs = [t.clone().requires_grad_() for t in (means, covars, opacities)]
     assert torch.autograd.gradcheck(f, inputs, **GRADCHECK)
+
+
+def test_gradcheck_and_opcheck_covariances_from_quats_and_scales():
+    _, quats, scales, *_ = small_scene(10)
+    quats, scales = quats.requires_grad_(), scales.requires_grad_()
+    assert torch.autograd.gradcheck(covariances, (quats, scales), **GRADCHECK)
+    torch.library.opcheck(covariances, (quats, scales),
+                          test_utils=("test_schema", "test_autograd_registration", "test_faketensor"))
 
 
 def test_gradcheck_sh_coefficients_and_rotations():
@@ -121,7 +129,7 @@ def test_gradients_are_deterministic():
 
 def test_opcheck_project_and_composite():
     means, quats, scales, opacities, colors, viewmat, K = small_scene(9)
-    covars = covariances_from_quats_scales(quats, scales).contiguous()
+    covars = covariances(quats, scales).contiguous()
     args = (means.requires_grad_(), covars.requires_grad_(), viewmat, K, W, H, 0.01)
     torch.library.opcheck(project, args, test_utils=("test_schema", "test_autograd_registration", "test_faketensor"))
     means2d, conics, depths, radii, touched = project(*args)

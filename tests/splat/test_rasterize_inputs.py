@@ -9,7 +9,7 @@ from splat_scenes import camera, random_scene
 from clflow.errors import InputError
 from clflow.splat.binning import build_tile_lists, sort_pairs, tile_grid
 from clflow.splat.constants import TILE_SIZE
-from clflow.splat.rasterize import covariances_from_quats_scales, project, rasterize_gaussians
+from clflow.splat.rasterize import covariances, project, rasterize_gaussians
 from clflow.splat.reference import tile_rect_reference
 
 W, H = 40, 36
@@ -72,7 +72,7 @@ def test_device_radix_sort_is_stable_and_matches_torch():
 def test_tile_lists_hold_each_tiles_gaussians_front_to_back():
     means, quats, scales, opacities, _ = random_scene(50, seed=1, spread=1.0)
     viewmat, K = camera(W, H, 30.0)
-    covars = covariances_from_quats_scales(quats, scales).contiguous()
+    covars = covariances(quats, scales).contiguous()
     means2d, conics, depths, radii, touched = project(means, covars, viewmat, K, W, H, 0.01)
     lists = build_tile_lists(means2d, depths, radii, touched, W, H)
     tiles_x, tiles_y = tile_grid(W, H)
