@@ -2,7 +2,8 @@
 
 Pipeline of :func:`rasterize_gaussians`, one view:
 
-1. covariances Sigma = R(q) S S^T R(q)^T (torch, or given), colours from SH (torch, sh.py);
+1. ``clflow::splat_covariances``: Sigma = R(q) S S^T R(q)^T (covariance.cl), unless given;
+   colours from SH in torch (sh.py);
 2. ``clflow::splat_project``: EWA projection, culling, radii (project.cl);
 3. tile lists sorted by (tile, depth) on the device (binning.py, binning.cl, sort.cl);
 4. ``clflow::splat_composite``: per-tile front-to-back compositing of every channel
@@ -29,11 +30,62 @@ ORTHONORMAL_TOL = 1e-4  # |W W^T - I| allowed in the viewmat's rotation
 QUAT_MIN_NORM = 1e-12  # a quaternion shorter than this has no rotation
 
 
-# -- projection op ----------------------------------------------------------------------
-
-
 def _kernel(source: str, name: str, dtype: torch.dtype, **defines):
+    """The cached kernel ``name`` of ``kernels_cl/splat/<source>`` for ``dtype``."""
     return get_device().kernel(f"splat/{source}", name, real_of(dtype, name), {**SPLAT_DEFINES, **defines})
+
+
+# -- covariance op ----------------------------------------------------------------------
+
+
+@torch.library.custom_op("clflow::splat_covariances", mutates_args=())
+def covariances(quats: Tensor, scales: Tensor) -> Tensor:
+    """Sigma = R(q) S S^T R(q)^T [N, 3, 3] (m^2) from quats [N, 4] (w, x, y, z; normalised
+    here) and scales [N, 3] (standard deviations, m), on the device."""
+    device = get_device()
+    n = quats.shape[0]
+    covars = quats.new_empty(n, 3, 3)
+    with device.bind() as b:
+        device.launch(_kernel("covariance.cl", "covariance_forward", quats.dtype), n,
+                      [b.input(quats), b.input(scales), b.output(covars), np.int32(n)])
+    return covars
+
+
+@covariances.register_fake
+def _covariances_fake(quats, scales):
+    return quats.new_empty(quats.shape[0], 3, 3)
+
+
+@torch.library.custom_op("clflow::splat_covariances_backward", mutates_args=())
+def covariances_backward(quats: Tensor, scales: Tensor, v_covars: Tensor) -> tuple[Tensor, Tensor]:
+    """Adjoint of :func:`covariances`: (dL/dquats [N, 4], dL/dscales [N, 3])."""
+    device = get_device()
+    n = quats.shape[0]
+    v_quats, v_scales = torch.empty_like(quats), torch.empty_like(scales)
+    with device.bind() as b:
+        device.launch(_kernel("covariance.cl", "covariance_backward", quats.dtype), n,
+                      [b.input(quats), b.input(scales), b.input(v_covars), b.output(v_quats), b.output(v_scales),
+                       np.int32(n)])
+    return v_quats, v_scales
+
+
+@covariances_backward.register_fake
+def _covariances_backward_fake(quats, scales, v_covars):
+    return torch.empty_like(quats), torch.empty_like(scales)
+
+
+def _covariances_setup(ctx, inputs, output) -> None:
+    ctx.save_for_backward(*inputs)
+
+
+def _covariances_grad(ctx, v_covars):
+    return covariances_backward(*ctx.saved_tensors, v_covars.contiguous())
+
+
+covariances.register_autograd(_covariances_grad, setup_context=_covariances_setup)
+
+
+# -- projection op ----------------------------------------------------------------------
 
 
 @torch.library.custom_op("clflow::splat_project", mutates_args=())
@@ -247,22 +299,6 @@ composite.register_autograd(_composite_backward, setup_context=_composite_setup)
 # -- public function --------------------------------------------------------------------
 
 
-def covariances_from_quats_scales(quats: Tensor, scales: Tensor) -> Tensor:
-    """Sigma = R(q) S S^T R(q)^T [N, 3, 3] (m^2) from quats [N, 4] (w, x, y, z; normalised
-    here) and scales [N, 3] (standard deviations, m)."""
-    w, x, y, z = (quats / quats.norm(dim=-1, keepdim=True)).unbind(-1)
-    R = torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(-1, 3, 3)
-    M = R * scales.unsqueeze(-2)  # R S
-    return M @ M.transpose(-1, -2)
-
-
 def view_directions(means: Tensor, viewmat: Tensor, sh_rotations: Tensor | None = None) -> Tensor:
     """Unit directions [N, 3] from the camera centre to each mean, in each Gaussian's rest
     frame when ``sh_rotations`` [N, 3, 3] are given (dir -> R^T dir)."""
@@ -434,7 +470,7 @@ def rasterize_gaussians(
     viewmat = viewmat.to(dtype).contiguous()
     K = K.to(dtype).contiguous()
     if covars is None:
-        covars = covariances_from_quats_scales(quats, scales)
+        covars = covariances(quats.contiguous(), scales.contiguous())
     means2d, conics, depths, radii, tiles_touched = project(
         means.contiguous(), covars.contiguous(), viewmat, K, int(width), int(height), float(near)
     )
