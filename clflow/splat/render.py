@@ -1,6 +1,7 @@
 """High-level rendering: :class:`Gaussians` seen by a :class:`Camera`, differentiably.
 
-    from clflow.splat import load_ply, look_at, rasterize
+    from clflow.splat import load_ply, look_at
+    from clflow.splat.render import rasterize
     g = load_ply("point_cloud.ply")
     cam = look_at((2, 0, 1), (0, 0, 0), fov_x=0.9, width=512, height=512)
     image, alpha, depth, meta = rasterize(g, cam, background=(1, 1, 1))

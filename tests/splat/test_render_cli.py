@@ -10,8 +10,8 @@ import torch
 from click.testing import CliRunner
 
 from clflow.errors import InputError
-from clflow.splat import Gaussians, look_at, rasterize, rgb_to_sh0, save_ply
-from clflow.splat.render import to_uint8
+from clflow.splat import Gaussians, look_at, rgb_to_sh0, save_ply
+from clflow.splat.render import rasterize, to_uint8
 from clflow_cli.main import cli
 
 F64 = torch.float64
