@@ -7,6 +7,8 @@ from clflow_cli.main import LazyGroup
 # name -> "module:command" of each benchmark; imported only when it runs.
 BENCHMARKS: dict[str, str] = {
     "query": "clflow_cli.bench_query:query",
+    "ply": "clflow_cli.bench_ply:ply",
+    "raster": "clflow_cli.bench_raster:raster",
 }
 
 

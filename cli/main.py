@@ -17,6 +17,7 @@ BUILTIN_COMMANDS: dict[str, str] = {
     "bench": "clflow_cli.bench:bench",
     "devices": "clflow_cli.devices:devices",
     "query": "clflow_cli.query:query",
+    "render": "clflow_cli.render:render",
 }
 
 PLUGIN_GROUP = "clflow.commands"

@@ -1,0 +1,435 @@
+"""The :class:`Gaussians` container: a set of 3D Gaussian splats as torch tensors.
+
+Parameters are stored the way 3DGS trainers optimise and save them (and the PLY file holds
+them): raw quaternions, log scales and opacity logits. The activated values the rasteriser
+and the simulator use are properties::
+
+    g = load_ply("point_cloud.ply")
+    g.means          # [N, 3] m, world frame
+    g.scales         # [N, 3] m        = exp(log_scales)
+    g.opacities      # [N]   in (0, 1) = sigmoid(opacity_logits)
+    g.unit_quats     # [N, 4] wxyz, normalised
+    g.sh             # [N, K, 3] SH coefficients, K = (sh_degree + 1)^2 (or None: g.colors)
+    obj = g.select_sphere(center=(0, 0, 0.5), radius=0.3)
+
+Storing the raw values makes a PLY round trip bit-exact and lets an optimiser work on
+unconstrained parameters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from clflow.errors import InputError
+
+SH_C0 = 0.28209479177387814  # Y_0^0: RGB = SH_C0 * f_dc + 0.5 for degree 0
+MAX_SH_DEGREE = 3
+MIN_QUAT_NORM = 1e-8  # a quaternion shorter than this has no defined rotation
+
+TensorLike = torch.Tensor | Sequence[float]
+
+
+def sh_degree_of(num_coeffs: int) -> int:
+    """The SH degree d with (d + 1)^2 == num_coeffs (0..3), else :class:`InputError`."""
+    for degree in range(MAX_SH_DEGREE + 1):
+        if (degree + 1) ** 2 == num_coeffs:
+            return degree
+    raise InputError(
+        f"{num_coeffs} SH coefficients per channel is not (d+1)^2 for a degree d in 0..{MAX_SH_DEGREE}"
+    )
+
+
+def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
+    """Degree-0 SH coefficient that renders as colour ``rgb`` (in [0, 1]) from every direction."""
+    return (rgb - 0.5) / SH_C0
+
+
+def sh0_to_rgb(sh0: torch.Tensor) -> torch.Tensor:
+    """The view-independent colour of degree-0 coefficients (before clamping at 0)."""
+    return sh0 * SH_C0 + 0.5
+
+
+def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices [N, 3, 3] of wxyz quaternions [N, 4] (normalised here)."""
+    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(quats.shape[:-1] + (3, 3))
+
+
+@dataclass(eq=False)
+class Gaussians:
+    """N 3D Gaussians (world frame, SI units) in their stored parameterisation.
+
+    Attributes:
+        means: [N, 3] centres, m.
+        quats: [N, 4] rotations as w, x, y, z quaternions, not necessarily normalised.
+        log_scales: [N, 3] log of the standard deviations along the local axes (log m).
+        opacity_logits: [N] logit of the peak opacity.
+        sh: [N, K, 3] spherical-harmonics coefficients of R, G, B, K = (degree + 1)^2;
+            ``sh[:, 0]`` is the 3DGS file's ``f_dc``. None when ``colors`` are given instead.
+        colors: [N, C] view-independent colours or features, blended as they are. Exactly
+            one of ``sh`` and ``colors`` is set.
+        features: [N, F] optional extra per-Gaussian channels (e.g. labels, flow), named by
+            ``feature_names``; rendered as additional channels.
+    """
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    log_scales: torch.Tensor
+    opacity_logits: torch.Tensor
+    sh: torch.Tensor | None = None
+    colors: torch.Tensor | None = None
+    features: torch.Tensor | None = None
+    feature_names: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        self.feature_names = tuple(self.feature_names)
+        if (self.sh is None) == (self.colors is None):
+            raise InputError("Gaussians need exactly one of sh (SH coefficients) and colors")
+        n = self.means.shape[0] if isinstance(self.means, torch.Tensor) and self.means.dim() == 2 else -1
+        expected = {  # None: any size
+            "means": (n, 3),
+            "quats": (n, 4),
+            "log_scales": (n, 3),
+            "opacity_logits": (n,),
+            "sh": (n, None, 3),
+            "colors": (n, None),
+            "features": (n, None),
+        }
+        for name, shape in expected.items():
+            value = getattr(self, name)
+            if value is None and name in ("sh", "colors", "features"):
+                continue
+            if not isinstance(value, torch.Tensor) or not _shape_matches(value, shape):
+                got = list(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+                raise InputError(f"Gaussians.{name} must have shape {_shape_text(shape)}, got {got}")
+        if self.sh is not None:
+            sh_degree_of(self.sh.shape[1])
+        if self.features is None:
+            if self.feature_names:
+                raise InputError(f"feature_names {self.feature_names} given without features")
+        elif len(self.feature_names) != self.features.shape[1]:
+            raise InputError(
+                f"{self.features.shape[1]} feature channels but {len(self.feature_names)} "
+                f"feature_names {self.feature_names}"
+            )
+
+    # -- construction ---------------------------------------------------------------------
+
+    @classmethod
+    def from_activated(
+        cls,
+        means: torch.Tensor,
+        quats: torch.Tensor,
+        scales: torch.Tensor,
+        opacities: torch.Tensor,
+        *,
+        sh: torch.Tensor | None = None,
+        colors: torch.Tensor | None = None,
+        features: torch.Tensor | None = None,
+        feature_names: Sequence[str] = (),
+    ) -> "Gaussians":
+        """Gaussians from activated values: ``scales`` [N, 3] > 0 m, ``opacities`` [N] in (0, 1).
+
+        Raises :class:`InputError` for non-positive scales or opacities outside (0, 1), which
+        have no log / logit.
+        """
+        scales = torch.as_tensor(scales)
+        opacities = torch.as_tensor(opacities)
+        _check_finite("scales", scales)
+        _check_finite("opacities", opacities)
+        if bool((scales <= 0).any()):
+            bad = (scales <= 0).nonzero()
+            i, axis = bad[0].tolist()
+            raise InputError(
+                f"{len(bad)} scales are <= 0 (first: Gaussian {i}, axis {axis}, "
+                f"{scales[i, axis].item():g} m); a scale is a standard deviation and must be > 0"
+            )
+        outside = (opacities <= 0) | (opacities >= 1)
+        if bool(outside.any()):
+            bad = outside.nonzero().flatten()
+            i = bad[0].item()
+            raise InputError(
+                f"{len(bad)} opacities are outside (0, 1) (first: Gaussian {i}, {opacities[i].item():g}); "
+                "opacities are stored as logits, so 0 and 1 themselves are not representable"
+            )
+        gaussians = cls(
+            means=torch.as_tensor(means),
+            quats=torch.as_tensor(quats),
+            log_scales=torch.log(scales),
+            opacity_logits=torch.logit(opacities),
+            sh=sh,
+            colors=colors,
+            features=features,
+            feature_names=tuple(feature_names),
+        )
+        gaussians.validate()
+        return gaussians
+
+    @classmethod
+    def from_points(
+        cls,
+        points: torch.Tensor,
+        rgb: torch.Tensor | None = None,
+        *,
+        scale: float | None = None,
+        opacity: float = 0.1,
+    ) -> "Gaussians":
+        """Isotropic degree-0 Gaussians at ``points`` [N, 3] m, as 3DGS initialises from a point cloud.
+
+        Args:
+            rgb: [N, 3] colours in [0, 1]; mid grey when None.
+            scale: standard deviation in m for every Gaussian; default: the root mean
+                square distance to each point's three nearest neighbours (3DGS's rule).
+            opacity: peak opacity in (0, 1); 0.1 is 3DGS's initial value.
+        """
+        points = torch.as_tensor(points)
+        if points.dim() != 2 or points.shape[1] != 3:
+            raise InputError(f"points must have shape [N, 3], got {tuple(points.shape)}")
+        n = points.shape[0]
+        _check_finite("points", points)
+        if scale is None:
+            if n < 2:
+                raise InputError(f"{n} point(s): cannot derive a scale from neighbours; pass scale=")
+            scales = nearest_neighbour_rms(points, k=3).clamp_min(math.sqrt(1e-7))
+        else:
+            if not scale > 0:
+                raise InputError(f"scale must be > 0 m, got {scale}")
+            scales = torch.full((n,), float(scale), dtype=points.dtype)
+        if rgb is None:
+            rgb = torch.full((n, 3), 0.5, dtype=points.dtype)
+        rgb = torch.as_tensor(rgb, dtype=points.dtype)
+        if tuple(rgb.shape) != (n, 3):
+            raise InputError(f"rgb must have shape [N={n}, 3], got {tuple(rgb.shape)}")
+        quats = torch.zeros(n, 4, dtype=points.dtype)
+        quats[:, 0] = 1
+        return cls.from_activated(
+            points,
+            quats,
+            scales[:, None].expand(n, 3).contiguous(),
+            torch.full((n,), float(opacity), dtype=points.dtype),
+            sh=rgb_to_sh0(rgb)[:, None, :],
+        )
+
+    # -- activated values -----------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def scales(self) -> torch.Tensor:
+        """[N, 3] standard deviations along the local axes, m."""
+        return torch.exp(self.log_scales)
+
+    @property
+    def opacities(self) -> torch.Tensor:
+        """[N] peak opacities in (0, 1)."""
+        return torch.sigmoid(self.opacity_logits)
+
+    @property
+    def unit_quats(self) -> torch.Tensor:
+        """[N, 4] normalised wxyz quaternions."""
+        return torch.nn.functional.normalize(self.quats, dim=-1)
+
+    @property
+    def rotations(self) -> torch.Tensor:
+        """[N, 3, 3] local-to-world rotation matrices."""
+        return quat_to_rotmat(self.quats)
+
+    @property
+    def covariances(self) -> torch.Tensor:
+        """[N, 3, 3] world covariances R diag(s^2) R^T, m^2."""
+        rs = self.rotations * self.scales[:, None, :]
+        return rs @ rs.transpose(1, 2)
+
+    @property
+    def sh_degree(self) -> int | None:
+        """SH degree 0..3, or None when the Gaussians carry plain colours."""
+        return None if self.sh is None else sh_degree_of(self.sh.shape[1])
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.means.dtype
+
+    # -- checks ----------------------------------------------------------------------------
+
+    def validate(self, where: str = "Gaussians") -> "Gaussians":
+        """Raise :class:`InputError` (prefixed by ``where``) for values no renderer can use.
+
+        Checks: every value finite, quaternions of norm >= 1e-8, scales > 0 after
+        activation (a log scale below about -87 underflows to 0 in float32).
+        """
+        for name in ("means", "quats", "log_scales", "opacity_logits", "sh", "colors", "features"):
+            value = getattr(self, name)
+            if value is not None:
+                _check_finite(name, value, where)
+        with torch.no_grad():
+            short = torch.linalg.vector_norm(self.quats, dim=-1) < MIN_QUAT_NORM
+            if bool(short.any()):
+                bad = short.nonzero().flatten()
+                i = bad[0].item()
+                raise InputError(
+                    f"{where}: {len(bad)} degenerate quaternions of norm < {MIN_QUAT_NORM:g} "
+                    f"(first: Gaussian {i}, wxyz {self.quats[i].tolist()}); a rotation needs a non-zero quaternion"
+                )
+            zero = self.scales <= 0
+            if bool(zero.any()):
+                bad = zero.nonzero()
+                i, axis = bad[0].tolist()
+                raise InputError(
+                    f"{where}: {len(bad)} scales are 0 after activation (first: Gaussian {i}, "
+                    f"log scale_{axis} = {self.log_scales[i, axis].item():g}); exp() underflows below "
+                    f"{math.log(torch.finfo(self.dtype).tiny):.1f}"
+                )
+        return self
+
+    # -- selection and assembly ------------------------------------------------------------
+
+    def select(self, mask: torch.Tensor) -> "Gaussians":
+        """The Gaussians picked by a boolean ``mask`` [N] or an index tensor (may be empty)."""
+        mask = torch.as_tensor(mask)
+        if mask.dtype == torch.bool:
+            if tuple(mask.shape) != (len(self),):
+                raise InputError(f"selection mask has shape {tuple(mask.shape)}, expected [{len(self)}]")
+        elif mask.dtype in (torch.int32, torch.int64) and mask.dim() == 1:
+            if len(mask) and (mask.min() < -len(self) or mask.max() >= len(self)):
+                raise InputError(f"selection index out of range for {len(self)} Gaussians")
+        else:
+            raise InputError(f"select takes a bool mask or a 1-D integer index, got {mask.dtype} {tuple(mask.shape)}")
+        return self._map(lambda t: t[mask])
+
+    def box_mask(self, low: TensorLike, high: TensorLike) -> torch.Tensor:
+        """[N] bool: centres inside the axis-aligned box ``low`` <= x <= ``high`` (m)."""
+        low, high = self._point(low, "box low"), self._point(high, "box high")
+        if not bool((low <= high).all()):
+            raise InputError(f"box low {low.tolist()} is not <= high {high.tolist()} on every axis")
+        return ((self.means >= low) & (self.means <= high)).all(dim=-1)
+
+    def sphere_mask(self, center: TensorLike, radius: float) -> torch.Tensor:
+        """[N] bool: centres within ``radius`` m of ``center``."""
+        if not radius >= 0:
+            raise InputError(f"sphere radius must be >= 0 m, got {radius}")
+        center = self._point(center, "sphere center")
+        return ((self.means - center) ** 2).sum(-1) <= radius**2
+
+    def select_box(self, low: TensorLike, high: TensorLike) -> "Gaussians":
+        """The Gaussians whose centres lie in the box ``low`` <= x <= ``high`` (m)."""
+        return self.select(self.box_mask(low, high))
+
+    def select_sphere(self, center: TensorLike, radius: float) -> "Gaussians":
+        """The Gaussians whose centres lie within ``radius`` m of ``center``."""
+        return self.select(self.sphere_mask(center, radius))
+
+    @staticmethod
+    def cat(parts: Sequence["Gaussians"]) -> "Gaussians":
+        """Concatenate Gaussians with the same colour model, SH degree, features and dtype."""
+        if not parts:
+            raise InputError("Gaussians.cat needs at least one set of Gaussians")
+        first = parts[0]
+        for i, g in enumerate(parts[1:], start=1):
+            mismatch = [
+                what
+                for what, a, b in (
+                    ("SH degree", first.sh_degree, g.sh_degree),
+                    ("colour channels", _width(first.colors), _width(g.colors)),
+                    ("feature names", first.feature_names, g.feature_names),
+                    ("dtype", first.dtype, g.dtype),
+                )
+                if a != b
+            ]
+            if mismatch:
+                raise InputError(f"cannot concatenate Gaussians: part {i} differs from part 0 in {', '.join(mismatch)}")
+        fields = {
+            f.name: (torch.cat([getattr(g, f.name) for g in parts]) if getattr(first, f.name) is not None else None)
+            for f in dataclasses.fields(first)
+            if f.name != "feature_names"
+        }
+        return Gaussians(**fields, feature_names=first.feature_names)
+
+    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> "Gaussians":
+        """A copy with floating-point tensors in ``dtype`` and/or on ``device``."""
+        return self._map(lambda t: t.to(device=device, dtype=dtype))
+
+    def detach(self) -> "Gaussians":
+        return self._map(torch.Tensor.detach)
+
+    def bounds(self, quantile: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+        """(low, high) [3] of the centres, m; ``quantile`` > 0 ignores that fraction of outliers per side."""
+        if len(self) == 0:
+            raise InputError("the bounds of an empty set of Gaussians are undefined")
+        if not 0 <= quantile < 0.5:
+            raise InputError(f"quantile must be in [0, 0.5), got {quantile}")
+        means = self.means.detach().double()
+        if quantile == 0:
+            return means.min(0).values, means.max(0).values
+        # k-th smallest per axis (1-based k); torch.quantile refuses more than 2^24 values.
+        last = len(self) - 1
+        low = torch.kthvalue(means, math.floor(quantile * last) + 1, dim=0).values
+        high = torch.kthvalue(means, math.ceil((1 - quantile) * last) + 1, dim=0).values
+        return low, high
+
+    def _map(self, fn) -> "Gaussians":
+        fields = {
+            f.name: (fn(v) if isinstance(v := getattr(self, f.name), torch.Tensor) else v)
+            for f in dataclasses.fields(self)
+        }
+        return Gaussians(**fields)
+
+    def _point(self, value: TensorLike, what: str) -> torch.Tensor:
+        point = torch.as_tensor(value, dtype=self.dtype, device=self.means.device)
+        if tuple(point.shape) != (3,):
+            raise InputError(f"{what} must be 3 numbers (m), got shape {tuple(point.shape)}")
+        return point
+
+
+def nearest_neighbour_rms(points: torch.Tensor, k: int = 3) -> torch.Tensor:
+    """[N] root mean square distance (m) of each point to its ``k`` nearest other points.
+
+    Exact, with a KD-tree (scipy): about a second for 10^5 points.
+    """
+    from scipy.spatial import cKDTree
+
+    xyz = points.detach().cpu().double().numpy()
+    k = min(k, len(xyz) - 1)
+    # k + 1 nearest include the point itself (distance 0); a duplicate point is a neighbour at 0.
+    distances, _ = cKDTree(xyz).query(xyz, k=k + 1)
+    rms = np.sqrt(np.mean(np.square(distances[:, 1:]), axis=1))
+    return torch.from_numpy(rms).to(points.dtype)
+
+
+def _check_finite(name: str, value: torch.Tensor, where: str = "") -> None:
+    with torch.no_grad():
+        if bool(torch.isfinite(value).all()):
+            return
+        bad = (~torch.isfinite(value)).nonzero()
+    if len(bad):
+        prefix = f"{where}: " if where else ""
+        first = tuple(bad[0].tolist())
+        raise InputError(
+            f"{prefix}{len(bad)} non-finite values in {name} (first at index {first}: "
+            f"{value[first].item()})"
+        )
+
+
+def _width(t: torch.Tensor | None) -> int | None:
+    return None if t is None else t.shape[1]
+
+
+def _shape_matches(value: torch.Tensor, shape: tuple[int | None, ...]) -> bool:
+    return value.dim() == len(shape) and all(s is None or s == d for s, d in zip(shape, value.shape))
+
+
+def _shape_text(shape: tuple[int | None, ...]) -> str:
+    return "[" + ", ".join("N" if s == -1 else "*" if s is None else str(s) for s in shape) + "]"

@@ -1,0 +1,53 @@
+"""``clflow bench ply``: 3DGS PLY write / read throughput and point-cloud initialisation."""
+
+import click
+
+
+@click.command()
+@click.option("--gaussians", "count", type=click.IntRange(min=1), default=1_000_000, show_default=True,
+              help="Number of Gaussians in the file.")
+@click.option("--sh-degree", type=click.IntRange(0, 3), default=3, show_default=True)
+@click.option("--points", type=click.IntRange(min=0), default=100_000, show_default=True,
+              help="Points for Gaussians.from_points (3-NN scales); 0 skips it.")
+@click.option("--repeat", type=click.IntRange(min=1), default=3, show_default=True, help="Timed runs (median reported).")
+def ply(count: int, sh_degree: int, points: int, repeat: int) -> None:
+    """Median time of save_ply and load_ply (binary float32, INRIA layout) and of from_points."""
+    import statistics
+    import tempfile
+    import time
+    from pathlib import Path
+
+    import torch
+
+    from clflow.splat import Gaussians, load_ply, save_ply
+
+    gen = torch.Generator().manual_seed(0)
+    g = Gaussians(
+        means=torch.randn(count, 3, generator=gen),
+        quats=torch.randn(count, 4, generator=gen),
+        log_scales=torch.randn(count, 3, generator=gen) - 4,
+        opacity_logits=torch.randn(count, generator=gen),
+        sh=torch.randn(count, (sh_degree + 1) ** 2, 3, generator=gen),
+    )
+
+    def median_seconds(fn) -> float:
+        fn()  # warm-up: imports, page cache
+        times = []
+        for _ in range(repeat):
+            start = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - start)
+        return statistics.median(times)
+
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "bench.ply"
+        save_seconds = median_seconds(lambda: save_ply(path, g))
+        load_seconds = median_seconds(lambda: load_ply(path))
+        mib = path.stat().st_size / 2**20
+    click.echo(f"PLY, {count} Gaussians of SH degree {sh_degree} ({mib:.0f} MiB), median of {repeat}:")
+    click.echo(f"  save_ply  {save_seconds:6.2f} s  ({mib / save_seconds:5.0f} MiB/s)")
+    click.echo(f"  load_ply  {load_seconds:6.2f} s  ({mib / load_seconds:5.0f} MiB/s)")
+    if points:
+        cloud = torch.randn(points, 3, generator=gen)
+        seconds = median_seconds(lambda: Gaussians.from_points(cloud))
+        click.echo(f"  from_points ({points} points, exact 3-NN scales)  {seconds:6.2f} s")

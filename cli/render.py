@@ -1,0 +1,218 @@
+"""``clflow render``: images and an orbit video of a 3DGS PLY file."""
+
+from __future__ import annotations
+
+import math
+import re
+
+import click
+
+VIDEO_SUFFIXES = (".mp4", ".gif")
+
+
+class Numbers(click.ParamType):
+    """A comma-separated list of ``count`` numbers, e.g. ``0,0,1``."""
+
+    def __init__(self, count: int):
+        self.count = count
+        self.name = ",".join(["N"] * count)
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        try:
+            numbers = tuple(float(v) for v in str(value).split(","))
+        except ValueError:
+            numbers = ()
+        if len(numbers) != self.count or not all(math.isfinite(v) for v in numbers):
+            self.fail(f"expected {self.count} comma-separated finite numbers, got {value!r}", param, ctx)
+        return numbers
+
+
+@click.command()
+@click.argument("splats", type=click.Path(dir_okay=False))
+@click.option("-o", "--output-dir", type=click.Path(file_okay=False), default="renders", show_default=True,
+              help="Folder for the PNG images (one per view).")
+@click.option("--cameras", "cameras_json", type=click.Path(dir_okay=False),
+              help="3DGS cameras.json; render its cameras (all, or those picked by --camera).")
+@click.option("--transforms", "transforms_json", type=click.Path(dir_okay=False),
+              help="NeRF-style transforms.json; render its frames (all, or those picked by --camera).")
+@click.option("--camera", "camera_keys", multiple=True, metavar="NAME|INDEX",
+              help="Pick a camera of --cameras/--transforms by image name, file_path or index (repeatable).")
+@click.option("--box", type=Numbers(6), metavar="X0,Y0,Z0,X1,Y1,Z1",
+              help="Render only the Gaussians whose centres lie in this box (m).")
+@click.option("--sphere", type=Numbers(4), metavar="X,Y,Z,R",
+              help="Render only the Gaussians whose centres lie within R m of X,Y,Z.")
+@click.option("--eye", type=Numbers(3), help="Look-at camera position X,Y,Z (m).")
+@click.option("--target", type=Numbers(3), help="Look-at target X,Y,Z (m); default: the scene centre.")
+@click.option("--up", type=Numbers(3), default="0,0,1", show_default=True, help="World up direction.")
+@click.option("--orbit", "n_orbit", type=click.IntRange(min=1), help="Render N views on a circle around the target.")
+@click.option("--elevation", type=float, default=20.0, show_default=True,
+              help="Orbit / default view elevation above the horizontal plane, degrees.")
+@click.option("--azimuth", type=float, default=0.0, show_default=True, help="First orbit / default view azimuth, degrees.")
+@click.option("--fov", type=click.FloatRange(1, 179), default=50.0, show_default=True,
+              help="Horizontal field of view of generated views, degrees.")
+@click.option("--width", type=click.IntRange(min=1), default=512, show_default=True, help="Image width of generated views, pixels.")
+@click.option("--height", type=click.IntRange(min=1), default=512, show_default=True, help="Image height of generated views, pixels.")
+@click.option("--background", type=Numbers(3), default="0,0,0", show_default=True, help="Background colour R,G,B in [0, 1].")
+@click.option("--sh-degree", type=click.IntRange(0, 3), help="Evaluate SH only up to this degree (default: all).")
+@click.option("--video", type=click.Path(dir_okay=False), help="Also write the views as a video (.mp4 or .gif).")
+@click.option("--fps", type=click.FloatRange(min=0, min_open=True), default=24.0, show_default=True, help="Video frame rate.")
+@click.option("--precision", type=click.Choice(["float32", "float64"]), default="float32", show_default=True,
+              help="Compute precision of the rasteriser.")
+def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, sphere, eye, target, up, n_orbit,
+           elevation, azimuth, fov, width, height, background, sh_degree, video, fps, precision) -> None:
+    """Render SPLATS (a 3DGS PLY file, or a plain x y z [r g b] point cloud) to PNG images.
+
+    The views are the cameras of --cameras or --transforms, a look-at camera (--eye,
+    --target), an orbit of --orbit N views around the target, or by default one view that
+    frames the scene (the centres between the 1st and 99th percentiles on each axis).
+    --box and --sphere render a selection (both: the intersection), e.g. to check the
+    object region before simulating it. Positions are in the PLY's world units (m).
+    """
+    import time
+    from pathlib import Path
+
+    import torch
+
+    from clflow.errors import InputError
+    from clflow.splat import load_ply
+    from clflow.splat.render import rasterize, to_uint8
+
+    if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:
+        raise InputError(f"--video {video}: the file name must end in {' or '.join(VIDEO_SUFFIXES)}")
+    gaussians = load_ply(splats).to(getattr(torch, precision))
+    total = len(gaussians)
+    if box is not None:
+        gaussians = gaussians.select_box(box[:3], box[3:])
+    if sphere is not None:
+        gaussians = gaussians.select_sphere(sphere[:3], sphere[3])
+    if (box or sphere) and len(gaussians) == 0:
+        raise InputError(f"--box/--sphere select none of the {total} Gaussians of {splats}")
+    cameras = _views(gaussians, cameras_json, transforms_json, camera_keys, eye, target, up, n_orbit,
+                     math.radians(elevation), math.radians(azimuth), math.radians(fov), width, height)
+    sizes = {(c.width, c.height) for c in cameras}
+    if video is not None and len(sizes) > 1:
+        raise InputError(f"--video: the views have different sizes {sorted(sizes)}; a video needs one size")
+    output_dir = Path(output_dir)
+    frames = []
+    seconds = 0.0
+    stems: set[str] = set()
+    for i, camera in enumerate(cameras):
+        start = time.perf_counter()
+        with torch.no_grad():
+            image = rasterize(gaussians, camera, background=background, sh_degree=sh_degree, render_depth=False).image
+        seconds += time.perf_counter() - start
+        frame = to_uint8(image)
+        stem = _file_stem(camera.name)
+        stem = stem if stem not in stems else f"{stem}_{i:04d}"  # e.g. train/r_0 and test/r_0
+        stems.add(stem)
+        _write_png(output_dir / f"{stem}.png", frame)
+        frames.append(frame)
+    click.echo(
+        f"rendered {len(gaussians)} Gaussians: {len(frames)} view(s) -> {output_dir}/ "
+        f"({1e3 * seconds / len(frames):.0f} ms per view, first includes kernel builds)"
+    )
+    if video is not None:
+        _write_video(Path(video), frames, fps)
+        click.echo(f"video: {video}")
+
+
+def _views(gaussians, cameras_json, transforms_json, camera_keys, eye, target, up, n_orbit, elevation, azimuth,
+           fov_x, width, height):
+    """The cameras the options ask for (see the command's help)."""
+    import torch
+
+    from clflow.errors import InputError
+    from clflow.splat import cameras as cams
+
+    if cameras_json and transforms_json:
+        raise InputError("give --cameras or --transforms, not both")
+    if cameras_json or transforms_json:
+        if eye or target or n_orbit:
+            raise InputError("--eye, --target and --orbit make new views; they do not combine with --cameras/--transforms")
+        loaded = cams.load_cameras_json(cameras_json) if cameras_json else cams.load_transforms_json(transforms_json)
+        return [_pick(loaded, key, cameras_json or transforms_json) for key in camera_keys] or loaded
+    if camera_keys:
+        raise InputError("--camera picks from --cameras or --transforms; give one of them")
+    view = dict(fov_x=fov_x, width=width, height=height)
+    if eye is None:
+        if len(gaussians) == 0:
+            raise InputError("the scene has no Gaussians to frame; give --eye (and --target) for the view")
+        low, high = gaussians.bounds(quantile=0.01)
+        if target is not None:  # keep the framing distance, centre the given target
+            shift = torch.tensor(target, dtype=low.dtype) - 0.5 * (low + high)
+            low, high = low + shift, high + shift
+        return cams.frame_box(low, high, n_views=n_orbit or 1, elevation=elevation, azimuth=azimuth, up=up, **view)
+    if target is None:
+        if len(gaussians) == 0:
+            raise InputError("the scene has no Gaussians to aim at; give --target")
+        low, high = gaussians.bounds(quantile=0.01)
+        target = (0.5 * (low + high)).tolist()
+    if not n_orbit:
+        return [cams.look_at(eye, target, up, **view)]
+    # An orbit through the eye: its distance to the target and its elevation about up.
+    offset = torch.tensor(eye, dtype=torch.float64) - torch.tensor(target, dtype=torch.float64)
+    unit_up = torch.tensor(up, dtype=torch.float64) / torch.tensor(up, dtype=torch.float64).norm()
+    radius = offset.norm().item()
+    if radius == 0:
+        raise InputError("--eye and --target are the same point")
+    return cams.orbit(target, radius, n_views=n_orbit, elevation=math.asin((offset @ unit_up).item() / radius),
+                      up=up, azimuth=azimuth, **view)
+
+
+def _pick(cameras, key: str, source: str):
+    """The camera named ``key``, or at index ``key``."""
+    for camera in cameras:
+        if camera.name == key or _file_stem(camera.name) == key:
+            return camera
+    if key.lstrip("-").isdigit() and -len(cameras) <= int(key) < len(cameras):
+        return cameras[int(key)]
+    from clflow.errors import InputError
+
+    names = ", ".join(c.name for c in cameras[:5]) + (", ..." if len(cameras) > 5 else "")
+    raise InputError(f"{source}: no camera named {key!r} and no index {key} among {len(cameras)} ({names})")
+
+
+def _file_stem(name: str) -> str:
+    """A camera name as a safe file name: its last path component, odd characters replaced."""
+    stem = re.sub(r"[^A-Za-z0-9_.-]", "_", name.replace("\\", "/").rsplit("/", 1)[-1])
+    stem = re.sub(r"\.(png|jpe?g)$", "", stem, flags=re.IGNORECASE)
+    return stem.strip(".") or "view"
+
+
+def _write_png(path, rgb) -> None:
+    import cv2
+
+    from clflow.errors import ClflowError
+    from clflow.fileio import atomic_path
+
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+            raise ClflowError(f"{path}: OpenCV could not write the PNG image")
+
+
+def _write_video(path, frames, fps: float) -> None:
+    """Frames [H, W, 3] uint8 RGB as an MP4 (MPEG-4 part 2) or an endlessly looping GIF."""
+    import cv2
+
+    from clflow.errors import ClflowError
+    from clflow.fileio import atomic_path
+
+    bgr = [cv2.cvtColor(f, cv2.COLOR_RGB2BGR) for f in frames]
+    with atomic_path(path) as tmp:
+        if path.suffix.lower() == ".gif":
+            animation = cv2.Animation()
+            animation.frames = bgr
+            animation.durations = [round(1000 / fps)] * len(bgr)  # ms per frame
+            animation.loop_count = 0
+            ok = cv2.imwriteanimation(str(tmp), animation)
+        else:
+            height, width = bgr[0].shape[:2]
+            writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, height))
+            ok = writer.isOpened()
+            for frame in bgr if ok else []:
+                writer.write(frame)
+            writer.release()
+        if not ok:
+            raise ClflowError(f"{path}: OpenCV could not write the video")

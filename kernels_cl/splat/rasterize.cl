@@ -1,0 +1,252 @@
+/* Per-tile compositing of sorted splats: forward (front to back) and adjoint (back to front).
+ *
+ * Inputs per Gaussian g: mean2d [N,2] (pixels), conic [N,3] (A, B, C), opacity [N],
+ * features [N, CHANNELS]; per tile t: ranges[t] = [start, end) into the (tile, depth)
+ * sorted list, whose entry i names slot sorted_slots[i] of Gaussian slot_gaussian[slot].
+ * Pixel p (centre at i + 0.5) composites, front to back,
+ *   out_p = sum_i f_i alpha_i T_i + T_final background,  T_{i+1} = T_i (1 - alpha_i)
+ * skipping alpha < ALPHA_MIN and stopping before T would fall below T_MIN. */
+#include "splat/common.h"
+
+#ifndef CHANNELS
+#error "build with -DCHANNELS=<feature channels>"
+#endif
+
+/* Layout for CPU devices: a work-item owns one row of TILE_SIZE = 16 pixels of a tile and
+ * holds them in one 16-wide vector (realv), so every step runs on all 16 pixels at once in
+ * SIMD registers (PoCL does not vectorise the per-pixel loops across work-items here). The
+ * Gaussian read at each step is the same for all lanes. No barriers, no local memory. */
+#if TILE_SIZE != 16
+#error "rasterize.cl holds a tile row in a 16-wide vector: TILE_SIZE must be 16"
+#endif
+#if REAL_IS_DOUBLE
+typedef double16 realv;
+typedef long16 maskv;
+typedef double8 real8;
+typedef double4 real4;
+typedef double2 real2;
+#define INT_TO_MASK(m) convert_long16(m)
+#define MASK_TO_INT(m) convert_int16(m)
+#else
+typedef float16 realv;
+typedef int16 maskv;
+typedef float8 real8;
+typedef float4 real4;
+typedef float2 real2;
+#define INT_TO_MASK(m) (m)
+#define MASK_TO_INT(m) (m)
+#endif
+
+#define LANES ((realv)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
+#define ILANES ((int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
+
+/* Sum of the 16 lanes in a fixed order (pairwise halving): deterministic. */
+inline real hsum(const realv v)
+{
+    const real8 a = v.lo + v.hi;
+    const real4 b = a.lo + a.hi;
+    const real2 c = b.lo + b.hi;
+    return c.x + c.y;
+}
+
+/* Lanes [0, count) of row values p[0], p[stride], ...; 0 beyond. */
+inline realv load_row(__global const real *p, const int stride, const int count)
+{
+    real tmp[16];
+    for (int l = 0; l < 16; ++l)
+        tmp[l] = l < count ? p[l * stride] : 0;
+    return vload16(0, tmp);
+}
+
+/* The falloff of Gaussian (mx, my, A, B, C, o) over a row at x = cx (lanes), y = cy; the
+ * same expressions as splat_alpha() in common.h, lane-wise. */
+#define ROW_ALPHA(dx, dy, sigma, falloff, alpha)                                               \
+    const realv dx = mx - cx;                                                                  \
+    const real dy = my - cy;                                                                   \
+    const realv sigma = (real)0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy;                 \
+    const realv falloff = exp(-sigma);                                                         \
+    const realv alpha = fmin((realv)(real)ALPHA_MAX, o * falloff)
+
+/* True when no lane of the row can reach ALPHA_MIN: sigma is convex in dx, so its minimum
+ * over the lanes is at dx* = -B dy / A clamped to the lanes' range; skip when that minimum
+ * exceeds the Gaussian's cut-off log(o / ALPHA_MIN) by ROW_CULL_MARGIN (far beyond rounding,
+ * so the skip never changes a result). */
+inline bool row_culled(const real mx, const real dy, const int px0, const real A, const real B,
+                       const real C, const real sigma_cut)
+{
+    const real dx = clamp(-B * dy / A, mx - px0 - (real)(TILE_SIZE - 0.5), mx - px0 - (real)0.5);
+    const real sigma_min = (real)0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy;
+    return sigma_min > sigma_cut + (real)ROW_CULL_MARGIN;
+}
+
+/* Forward: work-item (tile, row) composites its 16 pixels front to back; it stops once all
+ * are done. Writes out [H,W,CHANNELS], T_final [H,W] and n_contrib [H,W] (entries walked
+ * up to the pixel's last contributor). */
+__kernel void rasterize_forward(
+    __global const int *ranges, __global const int *sorted_slots,
+    __global const int *slot_gaussian, __global const real *means2d,
+    __global const real *conics, __global const real *opacities, __global const real *sigma_cuts,
+    __global const real *features, __global const real *background, __global real *out,
+    __global real *T_final,
+    __global int *n_contrib, const int width, const int height, const int tiles_x,
+    const int n_tiles)
+{
+    const int tile = get_global_id(0) / TILE_SIZE;
+    const int py = (tile / tiles_x) * TILE_SIZE + get_global_id(0) % TILE_SIZE;
+    if (tile >= n_tiles || py >= height)
+        return;
+    const int px0 = (tile % tiles_x) * TILE_SIZE;
+    const int n_px = min(TILE_SIZE, width - px0);
+    const realv cx = LANES + (real)px0 + (real)0.5;
+    const real cy = py + (real)0.5;
+    const int start = ranges[2 * tile], end = ranges[2 * tile + 1];
+
+    realv acc[CHANNELS];
+    for (int k = 0; k < CHANNELS; ++k)
+        acc[k] = 0;
+    realv T = 1;
+    int16 last = 0;
+    maskv done = isgreaterequal(LANES, (realv)n_px);  /* lanes beyond the image */
+    for (int i = start; i < end && !all(done); ++i) {
+        const int g = slot_gaussian[sorted_slots[i]];
+        const real mx = means2d[2 * g], my = means2d[2 * g + 1];
+        const real A = conics[3 * g], B = conics[3 * g + 1], C = conics[3 * g + 2], o = opacities[g];
+        if (row_culled(mx, my - cy, px0, A, B, C, sigma_cuts[g]))
+            continue;
+        ROW_ALPHA(dx, dy, sigma, falloff, alpha);
+        const maskv hit = !done & isgreaterequal(sigma, (realv)0) & isgreaterequal(alpha, (realv)(real)ALPHA_MIN);
+        if (!any(hit))
+            continue;
+        const realv T_next = T * (1 - alpha);
+        const maskv stop = hit & isless(T_next, (realv)(real)T_MIN);
+        const maskv take = hit & !stop;
+        done |= stop;
+        const realv w = select((realv)0, alpha * T, take);
+        __global const real *f = features + (size_t)g * CHANNELS;
+        for (int k = 0; k < CHANNELS; ++k)
+            acc[k] += f[k] * w;
+        T = select(T, T_next, take);
+        last = select(last, (int16)(i - start + 1), MASK_TO_INT(take));
+    }
+    real tmp[16];
+    int tmp_last[16];
+    const size_t p0 = (size_t)py * width + px0;
+    vstore16(T, 0, tmp);
+    vstore16(last, 0, tmp_last);
+    for (int l = 0; l < n_px; ++l) {
+        T_final[p0 + l] = tmp[l];
+        n_contrib[p0 + l] = tmp_last[l];
+    }
+    for (int k = 0; k < CHANNELS; ++k) {
+        vstore16(acc[k] + T * background[k], 0, tmp);
+        for (int l = 0; l < n_px; ++l)
+            out[(p0 + l) * CHANNELS + k] = tmp[l];
+    }
+}
+
+/* Adjoint, one work-item per tile: its rows in order, each row's contributors back to front
+ * (T_i = T_{i+1} / (1 - alpha_i)), 16 pixels at a time. The gradient of entry i, summed over
+ * the row's lanes in a fixed order, is added into row sorted_slots[i] of
+ * slot_grads [M, 6 + CHANNELS] = (dmean2d x, y, dconic A, B, C, dopacity, dfeatures...).
+ * Each slot row belongs to one (tile, Gaussian) pair, hence to this work-item only: the
+ * sums are deterministic. In: v_out [H,W,CHANNELS] = dL/dout, v_T [H,W] = dL/dT_final. */
+__kernel void rasterize_backward(
+    __global const int *ranges, __global const int *sorted_slots,
+    __global const int *slot_gaussian, __global const real *means2d,
+    __global const real *conics, __global const real *opacities, __global const real *sigma_cuts,
+    __global const real *features, __global const real *background, __global const real *T_final,
+    __global const int *n_contrib, __global const real *v_out, __global const real *v_T,
+    __global real *slot_grads, const int width, const int height, const int tiles_x,
+    const int n_tiles)
+{
+    const int tile = get_global_id(0);
+    if (tile >= n_tiles)
+        return;
+    const int start = ranges[2 * tile];
+    const int px0 = (tile % tiles_x) * TILE_SIZE, py0 = (tile / tiles_x) * TILE_SIZE;
+    const int n_px = min(TILE_SIZE, width - px0);
+    const realv cx = LANES + (real)px0 + (real)0.5;
+    for (int py = py0; py < min(py0 + TILE_SIZE, height); ++py) {
+        const real cy = py + (real)0.5;
+        const size_t p0 = (size_t)py * width + px0;
+        const realv T_end = load_row(T_final + p0, 1, n_px);
+        int tmp_n[16];
+        for (int l = 0; l < 16; ++l)
+            tmp_n[l] = l < n_px ? n_contrib[p0 + l] : 0;
+        const int16 n_row = vload16(0, tmp_n);
+        int n_max = 0;
+        for (int l = 0; l < n_px; ++l)
+            n_max = max(n_max, tmp_n[l]);
+        realv g[CHANNELS], S[CHANNELS];  /* dL/dout_k; sum of f alpha T over later contributors */
+        realv bg_dot_g = 0;
+        for (int k = 0; k < CHANNELS; ++k) {
+            g[k] = load_row(v_out + p0 * CHANNELS + k, CHANNELS, n_px);
+            S[k] = 0;
+            bg_dot_g += background[k] * g[k];
+        }
+        const realv v_T_end = load_row(v_T + p0, 1, n_px) + bg_dot_g;  /* background included */
+        realv T = T_end;
+        for (int i = start + n_max - 1; i >= start; --i) {
+            const int slot = sorted_slots[i];
+            const int gid = slot_gaussian[slot];
+            const real mx = means2d[2 * gid], my = means2d[2 * gid + 1];
+            const real A = conics[3 * gid], B = conics[3 * gid + 1], C = conics[3 * gid + 2];
+            const real o = opacities[gid];
+            if (row_culled(mx, my - cy, px0, A, B, C, sigma_cuts[gid]))
+                continue;
+            ROW_ALPHA(dx, dy, sigma, falloff, alpha);
+            const int16 active = (int16)(i - start) < n_row;
+            const maskv hit = isgreaterequal(sigma, (realv)0) & isgreaterequal(alpha, (realv)(real)ALPHA_MIN)
+                              & INT_TO_MASK(active);
+            if (!any(hit))
+                continue;
+            const realv one_minus = 1 - alpha;
+            T = select(T, T / one_minus, hit);
+            const realv w = select((realv)0, alpha * T, hit);
+            __global const real *f = features + (size_t)gid * CHANNELS;
+            __global real *row = slot_grads + (size_t)slot * (6 + CHANNELS);
+            realv v_alpha = -T_end / one_minus * v_T_end;
+            for (int k = 0; k < CHANNELS; ++k) {
+                row[6 + k] += hsum(w * g[k]);
+                v_alpha += (f[k] * T - S[k] / one_minus) * g[k];
+                S[k] += f[k] * w;
+            }
+            /* clamped alpha (o exp(-sigma) > ALPHA_MAX): no gradient to opacity or shape */
+            const maskv free = hit & islessequal(o * falloff, (realv)(real)ALPHA_MAX);
+            const realv v_sigma = select((realv)0, -o * falloff * v_alpha, free);
+            row[0] += hsum(v_sigma * (A * dx + B * dy));
+            row[1] += hsum(v_sigma * (B * dx + C * dy));
+            row[2] += hsum(v_sigma * (real)0.5 * dx * dx);
+            row[3] += hsum(v_sigma * dx * dy);
+            row[4] += hsum(v_sigma * (real)0.5 * dy * dy);
+            row[5] += hsum(select((realv)0, falloff * v_alpha, free));
+        }
+    }
+}
+
+/* Per Gaussian g: the sum of its slot rows [first_slot[g], first_slot[g] + tiles_touched[g])
+ * in slot order, split into dL/dmean2d [N,2], dL/dconic [N,3], dL/dopacity [N] and
+ * dL/dfeatures [N, CHANNELS]. */
+__kernel void reduce_slots(__global const real *slot_grads, __global const int *first_slot,
+                           __global const int *tiles_touched, __global real *v_means2d,
+                           __global real *v_conics, __global real *v_opacities,
+                           __global real *v_features, const int n)
+{
+    const int g = get_global_id(0);
+    if (g >= n)
+        return;
+    real sum[6 + CHANNELS];
+    for (int k = 0; k < 6 + CHANNELS; ++k)
+        sum[k] = 0;
+    const int first = first_slot[g];
+    for (int s = first; s < first + tiles_touched[g]; ++s)
+        for (int k = 0; k < 6 + CHANNELS; ++k)
+            sum[k] += slot_grads[(size_t)s * (6 + CHANNELS) + k];
+    v_means2d[2 * g] = sum[0];
+    v_means2d[2 * g + 1] = sum[1];
+    for (int k = 0; k < 3; ++k)
+        v_conics[3 * g + k] = sum[2 + k];
+    v_opacities[g] = sum[5];
+    for (int k = 0; k < CHANNELS; ++k)
+        v_features[(size_t)g * CHANNELS + k] = sum[6 + k];
+}
