@@ -1,0 +1,158 @@
+"""Simulated optical flow of moving Gaussians, differentiable (pure torch).
+
+Between frames t and t+1 each Gaussian i moves its projected mean mu_i (px) by
+dmu_i = mu_i(t+1) - mu_i(t) and changes its 2D covariance from Sigma_i(t) to Sigma_i(t+1).
+Two per-Gaussian flow models, both rendered as feature channels of the rasteriser at
+frame t's geometry and blended with the weights alpha_i T_i:
+
+- ``"mean"``: flow_i(x) = dmu_i (the projected displacement);
+- ``"affine"``: flow_i(x) = (A_i - I)(x - mu_i) + dmu_i, where A_i maps the 2D Gaussian
+  of frame t onto that of frame t+1: A_i Sigma_i(t) A_i^T = Sigma_i(t+1).
+
+Such an A is not unique (any rotation R with R Sigma R^T = Sigma can follow it); clflow
+takes the unique symmetric positive-definite one, the optimal-transport (Monge) map
+between the two Gaussians, A = S^-1 (S Sigma(t+1) S)^1/2 S^-1 with S = Sigma(t)^1/2.
+Covariances carry no rotation about the Gaussian's own axes, so a rotation-free A is the
+least motion the data supports; A = L(t+1) L(t)^-1 with Cholesky factors L (one published
+choice) adds a shear that depends on the image axes. The affine flow is affine in the pixel
+x, so it renders exactly as 6 channels: the entries of A_i - I and b_i = dmu_i - (A_i - I) mu_i,
+and the pixel's flow is M(x) x + b(x) from the blended M and b.
+
+Pixels: continuous coordinates with pixel (i, j) centred at (j + 0.5, i + 0.5), as in the
+rasteriser; flows in pixels per frame step.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+
+from clflow.errors import InputError
+
+#: Low-pass dilation added to every 2D covariance (px^2), as in the 3DGS rasteriser.
+EPS2D = 0.3
+
+FlowModel = Literal["mean", "affine"]
+#: Feature channels each flow model renders.
+FLOW_CHANNELS = {"mean": 2, "affine": 6}
+
+
+def _camera_points(means: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
+    """[..., N, 3] world points (m) to camera coordinates (OpenCV axes, m)."""
+    viewmat = viewmat.to(means.dtype)
+    return means @ viewmat[:3, :3].T + viewmat[:3, 3]
+
+
+def project_means(means: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Pinhole projection of [..., N, 3] world points (m) to [..., N, 2] pixels.
+
+    viewmat: [4, 4] world-to-camera (OpenCV axes); K: [3, 3] intrinsics (px)."""
+    p = _camera_points(means, viewmat) @ K.to(means.dtype).T
+    return p[..., :2] / p[..., 2:3]
+
+
+def covariance_2d(
+    means: torch.Tensor, covars: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, eps2d: float = EPS2D
+) -> torch.Tensor:
+    """[..., N, 2, 2] image-plane covariances (px^2) of Gaussians with [..., N, 3] means (m)
+    and [..., N, 3, 3] world covariances (m^2): J W Sigma W^T J^T + eps2d I (EWA splatting,
+    J the projection's Jacobian at the mean; no field-of-view clamp)."""
+    dtype = means.dtype
+    K, viewmat = K.to(dtype), viewmat.to(dtype)
+    x, y, z = _camera_points(means, viewmat).unbind(-1)
+    zero = torch.zeros_like(z)
+    fx, fy, skew = K[0, 0], K[1, 1], K[0, 1]
+    J = torch.stack(
+        [
+            torch.stack([fx / z, skew / z, -(fx * x + skew * y) / z**2], -1),
+            torch.stack([zero, fy / z, -fy * y / z**2], -1),
+        ],
+        -2,
+    )  # [..., N, 2, 3]
+    T = J @ viewmat[:3, :3]
+    return T @ covars @ T.transpose(-1, -2) + eps2d * torch.eye(2, dtype=dtype, device=means.device)
+
+
+def sqrtm_spd_2x2(M: torch.Tensor) -> torch.Tensor:
+    """Principal square root of symmetric positive-definite [..., 2, 2] matrices:
+    (M + sqrt(det M) I) / sqrt(tr M + 2 sqrt(det M)) (Cayley-Hamilton), differentiable."""
+    s = torch.sqrt(torch.linalg.det(M))
+    t = torch.sqrt(M[..., 0, 0] + M[..., 1, 1] + 2.0 * s)
+    eye = torch.eye(2, dtype=M.dtype, device=M.device)
+    return (M + s[..., None, None] * eye) / t[..., None, None]
+
+
+def gaussian_transport_map(sigma0: torch.Tensor, sigma1: torch.Tensor) -> torch.Tensor:
+    """The symmetric positive-definite A with A sigma0 A^T = sigma1 ([..., 2, 2] SPD
+    covariances): A = S^-1 (S sigma1 S)^1/2 S^-1, S = sigma0^1/2."""
+    S = sqrtm_spd_2x2(sigma0)
+    S_inv = torch.linalg.inv(S)
+    return S_inv @ sqrtm_spd_2x2(S @ sigma1 @ S) @ S_inv
+
+
+def flow_features(
+    means_t: torch.Tensor,
+    means_t1: torch.Tensor,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    *,
+    model: FlowModel = "mean",
+    covars_t: torch.Tensor | None = None,
+    covars_t1: torch.Tensor | None = None,
+    eps2d: float = EPS2D,
+) -> torch.Tensor:
+    """Per-Gaussian flow features for the rasteriser, from the Gaussians at frames t, t+1.
+
+    Args:
+        means_t, means_t1: [N, 3] world positions (m) at frames t and t+1.
+        viewmat: [4, 4] world-to-camera (OpenCV axes); K: [3, 3] intrinsics (px).
+        model: ``"mean"`` (projected displacement) or ``"affine"`` (also the change of the
+            2D covariance; needs ``covars_t``, ``covars_t1`` [N, 3, 3] in m^2).
+
+    Returns:
+        [N, 2] dmu (px) for ``"mean"``; [N, 6] = (A - I) row-major and b (px) for ``"affine"``.
+    """
+    if means_t.shape != means_t1.shape or means_t.shape[-1] != 3:
+        raise InputError(f"simulated flow: means at t and t+1 must both be [N, 3], got {tuple(means_t.shape)} and {tuple(means_t1.shape)}")
+    mu_t = project_means(means_t, viewmat, K)
+    dmu = project_means(means_t1, viewmat, K) - mu_t
+    if model == "mean":
+        return dmu
+    if model != "affine":
+        raise InputError(f"unknown simulated-flow model {model!r}; choose 'mean' or 'affine'")
+    if covars_t is None or covars_t1 is None:
+        raise InputError("the 'affine' simulated-flow model needs covars_t and covars_t1 ([N, 3, 3] world covariances)")
+    A = gaussian_transport_map(
+        covariance_2d(means_t, covars_t, viewmat, K, eps2d), covariance_2d(means_t1, covars_t1, viewmat, K, eps2d)
+    )
+    D = A - torch.eye(2, dtype=A.dtype, device=A.device)
+    b = dmu - (D @ mu_t.unsqueeze(-1)).squeeze(-1)
+    return torch.cat([D.flatten(-2), b], -1)
+
+
+def pixel_centres(height: int, width: int, dtype=torch.float64, device=None) -> torch.Tensor:
+    """[H, W, 2] continuous coordinates (x, y) of the pixel centres (j + 0.5, i + 0.5)."""
+    v = torch.arange(height, dtype=dtype, device=device) + 0.5
+    u = torch.arange(width, dtype=dtype, device=device) + 0.5
+    return torch.stack(torch.meshgrid(u, v, indexing="xy"), -1)
+
+
+def flow_from_features(features: torch.Tensor, alpha: torch.Tensor | None = None, eps: float = 1e-6) -> torch.Tensor:
+    """Per-pixel flow [H, W, 2] (px) from rendered flow features [H, W, 2 | 6].
+
+    With ``alpha`` ([H, W, 1], the rendered opacity) the flow is divided by max(alpha, eps):
+    the blended flow of the Gaussians alone, not pulled towards zero at soft edges.
+    """
+    if features.dim() != 3 or features.shape[-1] not in (2, 6):
+        raise InputError(f"flow features must be [H, W, 2] or [H, W, 6], got {tuple(features.shape)}")
+    if features.shape[-1] == 2:
+        flow = features
+    else:
+        height, width = features.shape[:2]
+        x = pixel_centres(height, width, features.dtype, features.device)
+        M = features[..., :4].reshape(height, width, 2, 2)
+        flow = (M @ x.unsqueeze(-1)).squeeze(-1) + features[..., 4:]
+    if alpha is not None:
+        flow = flow / alpha.to(flow.dtype).clamp_min(eps)
+    return flow
