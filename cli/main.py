@@ -16,6 +16,7 @@ from clflow import __version__
 BUILTIN_COMMANDS: dict[str, str] = {
     "bench": "clflow_cli.bench:bench",
     "devices": "clflow_cli.devices:devices",
+    "flow": "clflow_cli.flow:flow",
 }
 
 PLUGIN_GROUP = "clflow.commands"

@@ -122,8 +122,9 @@ class Video:
             frames = np.clip(np.rint(blend), 0, 255).astype(np.uint8)
         else:
             raise InputError(f"unknown resampling mode {mode!r}; choose 'nearest' or 'linear'")
-        fps = 1.0 / float(np.mean(np.diff(times))) if len(times) > 1 and np.all(np.diff(times) > 0) else None
-        return Video(np.ascontiguousarray(frames), times, fps, self.source)
+        step = np.diff(times)
+        uniform = len(times) > 1 and step[0] > 0 and np.allclose(step, step[0], rtol=1e-6, atol=0.0)
+        return Video(np.ascontiguousarray(frames), times, 1.0 / float(step[0]) if uniform else None, self.source)
 
 
 def _natural_key(path: Path) -> tuple:
