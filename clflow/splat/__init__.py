@@ -1,0 +1,1 @@
+"""Gaussian splatting: 3DGS files, cameras and the differentiable OpenCL rasteriser."""

@@ -1,0 +1,62 @@
+"""Real spherical harmonics of degree 0..3 (the 3DGS convention) evaluated in torch.
+
+Colour = sum_k c_k Y_k(dir) + 0.5, clamped at 0, with coefficients [N, K, 3],
+K = (degree + 1)^2 and dir a unit view direction (Gaussian centre minus camera centre).
+"""
+
+from __future__ import annotations
+
+import torch
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
+
+
+def num_sh_bases(degree: int) -> int:
+    """K = (degree + 1)^2 coefficients per colour channel."""
+    return (degree + 1) ** 2
+
+
+def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
+    """Basis values Y_k(dir): [N, 3] unit directions -> [N, (degree + 1)^2]."""
+    x, y, z = dirs.unbind(-1)
+    basis = [torch.full_like(x, SH_C0)]
+    if degree >= 1:
+        basis += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        basis += [
+            SH_C2[0] * x * y,
+            SH_C2[1] * y * z,
+            SH_C2[2] * (2 * zz - xx - yy),
+            SH_C2[3] * x * z,
+            SH_C2[4] * (xx - yy),
+        ]
+    if degree >= 3:
+        basis += [
+            SH_C3[0] * y * (3 * xx - yy),
+            SH_C3[1] * x * y * z,
+            SH_C3[2] * y * (4 * zz - xx - yy),
+            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+            SH_C3[4] * x * (4 * zz - xx - yy),
+            SH_C3[5] * z * (xx - yy),
+            SH_C3[6] * x * (xx - 3 * yy),
+        ]
+    return torch.stack(basis, dim=-1)
+
+
+def sh_to_rgb(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """RGB [N, 3] from SH coefficients [N, K, 3] seen along unit directions dirs [N, 3]."""
+    basis = sh_basis(degree, dirs)  # [N, K]
+    rgb = torch.einsum("nk,nkc->nc", basis, coeffs[:, : basis.shape[1]])
+    return torch.clamp_min(rgb + 0.5, 0.0)
