@@ -29,9 +29,10 @@ from typing import Literal
 import torch
 
 from clflow.errors import InputError
+from clflow.splat.constants import EPS2D
 
-#: Low-pass dilation added to every 2D covariance (px^2), as in the 3DGS rasteriser.
-EPS2D = 0.3
+#: Rendered opacity below which a pixel has no simulated flow when normalising by alpha.
+MIN_ALPHA = 1e-2
 
 FlowModel = Literal["mean", "affine"]
 #: Feature channels each flow model renders.
@@ -57,7 +58,8 @@ def covariance_2d(
 ) -> torch.Tensor:
     """[..., N, 2, 2] image-plane covariances (px^2) of Gaussians with [..., N, 3] means (m)
     and [..., N, 3, 3] world covariances (m^2): J W Sigma W^T J^T + eps2d I (EWA splatting,
-    J the projection's Jacobian at the mean; no field-of-view clamp)."""
+    J the projection's Jacobian at the mean). Unlike the rasteriser, J is not clamped to
+    1.3x the field of view: that only differs for Gaussians far outside the image."""
     dtype = means.dtype
     K, viewmat = K.to(dtype), viewmat.to(dtype)
     x, y, z = _camera_points(means, viewmat).unbind(-1)
@@ -138,11 +140,13 @@ def pixel_centres(height: int, width: int, dtype=torch.float64, device=None) -> 
     return torch.stack(torch.meshgrid(u, v, indexing="xy"), -1)
 
 
-def flow_from_features(features: torch.Tensor, alpha: torch.Tensor | None = None, eps: float = 1e-6) -> torch.Tensor:
+def flow_from_features(features: torch.Tensor, alpha: torch.Tensor | None = None, min_alpha: float = MIN_ALPHA) -> torch.Tensor:
     """Per-pixel flow [H, W, 2] (px) from rendered flow features [H, W, 2 | 6].
 
-    With ``alpha`` ([H, W, 1], the rendered opacity) the flow is divided by max(alpha, eps):
-    the blended flow of the Gaussians alone, not pulled towards zero at soft edges.
+    With ``alpha`` ([H, W, 1], the rendered opacity) the flow is divided by alpha: the
+    blended flow of the Gaussians alone, not pulled towards zero at soft edges. Pixels
+    with alpha below ``min_alpha`` get zero flow (their flow is undefined and 1/alpha
+    would blow up the gradient).
     """
     if features.dim() != 3 or features.shape[-1] not in (2, 6):
         raise InputError(f"flow features must be [H, W, 2] or [H, W, 6], got {tuple(features.shape)}")
@@ -154,5 +158,49 @@ def flow_from_features(features: torch.Tensor, alpha: torch.Tensor | None = None
         M = features[..., :4].reshape(height, width, 2, 2)
         flow = (M @ x.unsqueeze(-1)).squeeze(-1) + features[..., 4:]
     if alpha is not None:
-        flow = flow / alpha.to(flow.dtype).clamp_min(eps)
+        alpha = alpha.to(flow.dtype)
+        covered = alpha >= min_alpha
+        flow = torch.where(covered, flow / torch.where(covered, alpha, torch.ones_like(alpha)), torch.zeros_like(flow))
     return flow
+
+
+def render_simulated_flow(
+    means_t: torch.Tensor,
+    means_t1: torch.Tensor,
+    covars_t: torch.Tensor,
+    opacities: torch.Tensor,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    *,
+    model: FlowModel = "mean",
+    covars_t1: torch.Tensor | None = None,
+    normalize: bool = True,
+    near: float = 0.01,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Render the simulated optical flow from frame t to t+1, differentiably.
+
+    The per-Gaussian flow features (:func:`flow_features`) are rasterised as colour
+    channels at frame t's geometry (means_t, covars_t), then turned into a per-pixel flow.
+
+    Args:
+        means_t, means_t1: [N, 3] world positions (m) at frames t and t+1.
+        covars_t: [N, 3, 3] world covariances (m^2) at frame t.
+        opacities: [N] in [0, 1].
+        viewmat: [4, 4] world-to-camera (OpenCV axes); K: [3, 3] intrinsics (px).
+        width, height: image size (px).
+        model: ``"mean"`` or ``"affine"`` (needs ``covars_t1`` [N, 3, 3], m^2).
+        normalize: divide by the rendered alpha (see :func:`flow_from_features`).
+
+    Returns:
+        flow [H, W, 2] (px per frame step) and alpha [H, W, 1].
+    """
+    from clflow.splat.rasterize import rasterize_gaussians
+
+    features = flow_features(means_t, means_t1, viewmat, K, model=model, covars_t=covars_t, covars_t1=covars_t1)
+    image, alpha, _, _ = rasterize_gaussians(
+        means_t, None, None, opacities, features, viewmat, K, width, height,
+        covars=covars_t, near=near, render_depth=False,
+    )
+    return flow_from_features(image, alpha if normalize else None), alpha
