@@ -29,13 +29,16 @@ def _box(ctx, param, value):
 @click.option("--start", type=float, default=0.0, show_default=True, help="First time to use (s).")
 @click.option("--end", type=float, default=None, help="End of the time window (s, exclusive).")
 @click.option("--stride", type=int, default=1, show_default=True, help="Use every N-th frame.")
+@click.option("--sim-fps", type=float, default=None,
+              help="Resample (nearest frame) to this rate, e.g. the simulation's frames per second.")
 @click.option("--mask", "mask_image", type=click.Path(dir_okay=False, path_type=str), default=None,
               help="Object mask image (object where grey > 127), the video's size.")
 @click.option("--box", callback=_box, default=None, metavar="X0,Y0,X1,Y1", help="Object box in pixels.")
 @click.option("--video/--no-video", "write_panels_video", default=True, show_default=True,
               help="Also write flow.mp4 (frame | colour-coded flow).")
 @click.pass_obj
-def flow(obj, video, output, method, preset, raft_weights, fps, start, end, stride, mask_image, box, write_panels_video):
+def flow(obj, video, output, method, preset, raft_weights, fps, start, end, stride, sim_fps, mask_image, box,
+         write_panels_video):
     """Optical flow between consecutive frames of VIDEO (a video file or an image folder).
 
     Writes OUTPUT/flow.npz (flow [T-1, H, W, 2] px, valid [T-1, H, W] = forward-backward
@@ -61,6 +64,8 @@ def flow(obj, video, output, method, preset, raft_weights, fps, start, end, stri
         clip = clip.window(start, end)
     if stride != 1:
         clip = clip.every(stride)
+    if sim_fps is not None:
+        clip = clip.resample_rate(sim_fps)
     frames = clip.frames
     kwargs = dict(preset=preset, raft_weights=raft_weights, source=clip.source)
     forward = observed_flow(frames, method, **kwargs)

@@ -4,6 +4,7 @@
     video.frames                                    # [T, H, W, 3] uint8 RGB
     video = video.window(0.0, 2.0).every(2)         # seconds [start, end), every 2nd frame
     video = video.resample(sim_times)               # frames at the simulation's times (s)
+    video = video.resample_rate(24.0)               # or at a rate (frames/s)
     video, K = fit_to_camera(video, K_video, width, height, K_camera)
 
 Pixel coordinates follow the rasteriser: pixel (i, j) has its centre at (j + 0.5, i + 0.5),
@@ -125,6 +126,14 @@ class Video:
         step = np.diff(times)
         uniform = len(times) > 1 and step[0] > 0 and np.allclose(step, step[0], rtol=1e-6, atol=0.0)
         return Video(np.ascontiguousarray(frames), times, 1.0 / float(step[0]) if uniform else None, self.source)
+
+    def resample_rate(self, fps: float, mode: Literal["nearest", "linear"] = "nearest") -> "Video":
+        """Frames at ``fps`` frames per second from the first frame's time to the last's."""
+        t = self._times("resample it")
+        if not (np.isfinite(fps) and fps > 0):
+            raise InputError(f"{self.source}: resampling rate must be a positive number of frames/s, got {fps!r}")
+        count = int(np.floor((t[-1] - t[0]) * fps + 1e-6)) + 1
+        return self.resample(t[0] + np.arange(count) / fps, mode)
 
 
 def _natural_key(path: Path) -> tuple:

@@ -40,6 +40,11 @@ def test_flow_command_window_and_errors(tmp_path, translating):
     assert result.exit_code == 0, result.output
     assert np.load(tmp_path / "w" / "flow.npz")["flow"].shape[0] == 2
     assert not (tmp_path / "w" / "flow.mp4").exists()
+    result = runner.invoke(cli, ["flow", str(path), "-o", str(tmp_path / "r"), "--sim-fps", "20", "--no-video"])
+    assert result.exit_code == 0, result.output
+    data = np.load(tmp_path / "r" / "flow.npz")
+    np.testing.assert_allclose(data["times"], np.arange(11) / 20.0)  # 0 .. 0.5 s at 20 frames/s
+    assert data["flow"].shape[0] == 10 and float(data["fps"]) == 20.0
     result = runner.invoke(cli, ["flow", str(path), "-o", str(tmp_path / "x"), "--start", "0.5"])
     assert result.exit_code == 1 and "optical flow needs at least 2 frames, the video has 1" in result.output
     assert "Traceback" not in result.output and not (tmp_path / "x").exists()
@@ -47,3 +52,9 @@ def test_flow_command_window_and_errors(tmp_path, translating):
     assert result.exit_code == 1 and "nope.mp4: no such video file or image folder" in result.output
     result = runner.invoke(cli, ["flow", str(path), "--box", "1,2,3"])
     assert result.exit_code == 2 and "expected x0,y0,x1,y1" in result.output
+
+
+def test_bench_flow_runs_small():
+    result = CliRunner().invoke(cli, ["bench", "flow", "--frames", "3", "--size", "64", "-n", "300", "--sim-frames", "1"])
+    assert result.exit_code == 0, result.output
+    assert "dis medium" in result.output and "affine render + loss + backward" in result.output

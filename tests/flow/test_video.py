@@ -68,6 +68,11 @@ def test_window_stride_and_resample():
     sim = video.resample(np.arange(0, 0.9, 1 / 24))  # the simulation's 24 fps frame times
     assert nearest.fps is None and sim.fps == pytest.approx(24.0)
     assert values(sim)[:6] == [0, 0, 1, 1, 2, 2]  # 0, .042, .083, .125, .167, .208 s
+    at_rate = video.resample_rate(24.0)
+    assert at_rate.frame_count == 22 and at_rate.fps == pytest.approx(24.0)  # 0 .. 21/24 <= 0.9 s
+    assert values(at_rate) == values(video.resample(np.arange(22) / 24.0))
+    with pytest.raises(InputError, match="clock: resampling rate must be a positive number"):
+        video.resample_rate(0.0)
     linear = video.resample([0.25, 0.5], mode="linear")
     assert linear.frames[:, 0, 0, 0].tolist() == [25, 50]
 
