@@ -6,7 +6,7 @@ import pytest
 from clflow.errors import InputError
 from clflow.flow.video import Video, crop_resize, fit_to_camera, read_video, scale_intrinsics
 from clflow.flow.visualize import write_image, write_video
-from conftest import mean_abs, write_image_folder
+from flow_helpers import mean_abs, write_image_folder
 
 FPS = 12.5  # a GIF stores frame durations in 1/100 s: 80 ms is exact
 
