@@ -144,3 +144,16 @@ def test_middlebury_colours():
     assert colours[4].tolist() == [191, 0, 0]  # beyond the scale: darkened to 0.75
     panel = comparison_panel(np.zeros((5, 6, 3), np.uint8), np.zeros((5, 6, 2)), np.ones((5, 6, 2)))
     assert panel.shape == (5, 24, 3)
+
+
+def test_visualisation_errors(tmp_path):
+    from clflow.flow.visualize import write_video
+
+    frames = np.zeros((2, 8, 8, 3), np.uint8)
+    with pytest.raises(InputError, match="out.flv: unsupported video suffix '.flv'"):
+        write_video(tmp_path / "out.flv", frames, 10.0)
+    with pytest.raises(InputError, match=r"out.mp4: video frames must be \[T, H, W, 3\]"):
+        write_video(tmp_path / "out.mp4", frames[..., 0], 10.0)
+    with pytest.raises(InputError, match="flow to colour: the flow contains NaN"):
+        flow_to_color(np.full((2, 2, 2), np.nan))
+    assert list(tmp_path.iterdir()) == []

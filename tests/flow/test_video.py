@@ -16,6 +16,7 @@ FPS = 12.5  # a GIF stores frame durations in 1/100 s: 80 ms is exact
     [
         (".mkv", 0.0),  # FFV1, lossless
         (".mp4", 6.0),  # MPEG-4 part 2
+        (".mov", 6.0),  # MPEG-4 part 2 in QuickTime
         (".avi", 6.0),  # Motion-JPEG
         (".webm", 6.0),  # VP9
         (".gif", 25.0),  # OpenCV's GIF writer quantises to a small fixed palette
