@@ -1,4 +1,7 @@
-"""Simulated optical flow of moving Gaussians, differentiable (pure torch).
+"""Simulated optical flow of moving Gaussians, differentiable.
+
+The per-Gaussian part is pure torch; :func:`render_simulated_flow` blends it with the
+OpenCL rasteriser (``clflow.splat.rasterize_gaussians``).
 
 Between frames t and t+1 each Gaussian i moves its projected mean mu_i (px) by
 dmu_i = mu_i(t+1) - mu_i(t) and changes its 2D covariance from Sigma_i(t) to Sigma_i(t+1).
@@ -9,7 +12,7 @@ frame t's geometry and blended with the weights alpha_i T_i:
 - ``"affine"``: flow_i(x) = (A_i - I)(x - mu_i) + dmu_i, where A_i maps the 2D Gaussian
   of frame t onto that of frame t+1: A_i Sigma_i(t) A_i^T = Sigma_i(t+1).
 
-Such an A is not unique (any rotation R with R Sigma R^T = Sigma can follow it); clflow
+Such an A is not unique (so is A S Q S^-1 for any orthogonal Q, S = Sigma(t)^1/2); clflow
 takes the unique symmetric positive-definite one, the optimal-transport (Monge) map
 between the two Gaussians, A = S^-1 (S Sigma(t+1) S)^1/2 S^-1 with S = Sigma(t)^1/2.
 Covariances carry no rotation about the Gaussian's own axes, so a rotation-free A is the
@@ -35,8 +38,6 @@ from clflow.splat.constants import EPS2D
 MIN_ALPHA = 1e-2
 
 FlowModel = Literal["mean", "affine"]
-#: Feature channels each flow model renders.
-FLOW_CHANNELS = {"mean": 2, "affine": 6}
 
 
 def _camera_points(means: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
