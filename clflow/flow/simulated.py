@@ -54,13 +54,45 @@ def project_means(means: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -
     return p[..., :2] / p[..., 2:3]
 
 
+# Symmetric 2x2 matrices [[a, b], [b, c]] as component triples: closed forms beat batched
+# torch.linalg calls on millions of tiny matrices by an order of magnitude.
+
+
+def _sym(M: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    return M[..., 0, 0], 0.5 * (M[..., 0, 1] + M[..., 1, 0]), M[..., 1, 1]
+
+
+def _mat(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    return torch.stack([torch.stack([a, b], -1), torch.stack([b, c], -1)], -2)
+
+
+def _sqrt_sym(a, b, c):
+    """Principal square root of an SPD matrix: (M + sqrt(det M) I) / sqrt(tr M + 2 sqrt(det M))
+    (Cayley-Hamilton)."""
+    s = torch.sqrt(a * c - b * b)
+    t = torch.sqrt(a + c + 2.0 * s)
+    return (a + s) / t, b / t, (c + s) / t
+
+
+def _inv_sym(a, b, c):
+    det = a * c - b * b
+    return c / det, -b / det, a / det
+
+
+def _sandwich(p, q, r, x, y, z):
+    """P X P for symmetric P = (p, q, r) and X = (x, y, z); symmetric again."""
+    u, v = p * x + q * y, p * y + q * z  # first row of P X
+    w, k = q * x + r * y, q * y + r * z  # second row
+    return p * u + q * v, q * u + r * v, q * w + r * k
+
+
 def covariance_2d(
     means: torch.Tensor, covars: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, eps2d: float = EPS2D
 ) -> torch.Tensor:
     """[..., N, 2, 2] image-plane covariances (px^2) of Gaussians with [..., N, 3] means (m)
-    and [..., N, 3, 3] world covariances (m^2): J W Sigma W^T J^T + eps2d I (EWA splatting,
-    J the projection's Jacobian at the mean). Unlike the rasteriser, J is not clamped to
-    1.3x the field of view: that only differs for Gaussians far outside the image."""
+    and [..., N, 3, 3] symmetric world covariances (m^2): J W Sigma W^T J^T + eps2d I (EWA
+    splatting, J the projection's Jacobian at the mean). Unlike the rasteriser, J is not
+    clamped to 1.3x the field of view: that only differs for Gaussians far outside the image."""
     dtype = means.dtype
     K, viewmat = K.to(dtype), viewmat.to(dtype)
     x, y, z = _camera_points(means, viewmat).unbind(-1)
@@ -77,21 +109,20 @@ def covariance_2d(
     return T @ covars @ T.transpose(-1, -2) + eps2d * torch.eye(2, dtype=dtype, device=means.device)
 
 
+def _transport_sym(sigma0, sigma1):
+    S = _sqrt_sym(*sigma0)
+    return _sandwich(*_inv_sym(*S), *_sqrt_sym(*_sandwich(*S, *sigma1)))
+
+
 def sqrtm_spd_2x2(M: torch.Tensor) -> torch.Tensor:
-    """Principal square root of symmetric positive-definite [..., 2, 2] matrices:
-    (M + sqrt(det M) I) / sqrt(tr M + 2 sqrt(det M)) (Cayley-Hamilton), differentiable."""
-    s = torch.sqrt(torch.linalg.det(M))
-    t = torch.sqrt(M[..., 0, 0] + M[..., 1, 1] + 2.0 * s)
-    eye = torch.eye(2, dtype=M.dtype, device=M.device)
-    return (M + s[..., None, None] * eye) / t[..., None, None]
+    """Principal square root of symmetric positive-definite [..., 2, 2] matrices, differentiable."""
+    return _mat(*_sqrt_sym(*_sym(M)))
 
 
 def gaussian_transport_map(sigma0: torch.Tensor, sigma1: torch.Tensor) -> torch.Tensor:
     """The symmetric positive-definite A with A sigma0 A^T = sigma1 ([..., 2, 2] SPD
     covariances): A = S^-1 (S sigma1 S)^1/2 S^-1, S = sigma0^1/2."""
-    S = sqrtm_spd_2x2(sigma0)
-    S_inv = torch.linalg.inv(S)
-    return S_inv @ sqrtm_spd_2x2(S @ sigma1 @ S) @ S_inv
+    return _mat(*_transport_sym(_sym(sigma0), _sym(sigma1)))
 
 
 def flow_features(
@@ -126,12 +157,12 @@ def flow_features(
         raise InputError(f"unknown simulated-flow model {model!r}; choose 'mean' or 'affine'")
     if covars_t is None or covars_t1 is None:
         raise InputError("the 'affine' simulated-flow model needs covars_t and covars_t1 ([N, 3, 3] world covariances)")
-    A = gaussian_transport_map(
-        covariance_2d(means_t, covars_t, viewmat, K, eps2d), covariance_2d(means_t1, covars_t1, viewmat, K, eps2d)
+    a, b, c = _transport_sym(
+        _sym(covariance_2d(means_t, covars_t, viewmat, K, eps2d)), _sym(covariance_2d(means_t1, covars_t1, viewmat, K, eps2d))
     )
-    D = A - torch.eye(2, dtype=A.dtype, device=A.device)
-    b = dmu - (D @ mu_t.unsqueeze(-1)).squeeze(-1)
-    return torch.cat([D.flatten(-2), b], -1)
+    u, v = mu_t.unbind(-1)
+    offset = dmu - torch.stack([(a - 1.0) * u + b * v, b * u + (c - 1.0) * v], -1)  # dmu - (A - I) mu
+    return torch.cat([torch.stack([a - 1.0, b, b, c - 1.0], -1), offset], -1)
 
 
 def pixel_centres(height: int, width: int, dtype=torch.float64, device=None) -> torch.Tensor:
