@@ -35,7 +35,7 @@ def _box(ctx, param, value):
               help="Object mask image (object where grey > 127), the video's size.")
 @click.option("--box", callback=_box, default=None, metavar="X0,Y0,X1,Y1", help="Object box in pixels.")
 @click.option("--video/--no-video", "write_panels_video", default=True, show_default=True,
-              help="Also write flow.mp4 (frame | colour-coded flow).")
+              help="Also write flow.mp4 (frame | colour-coded flow; played at 24 fps when the rate is unknown).")
 @click.pass_obj
 def flow(obj, video, output, method, preset, raft_weights, fps, start, end, stride, sim_fps, mask_image, box,
          write_panels_video):
@@ -66,17 +66,18 @@ def flow(obj, video, output, method, preset, raft_weights, fps, start, end, stri
         clip = clip.every(stride)
     if sim_fps is not None:
         clip = clip.resample_rate(sim_fps)
+    object_mask = True
+    if mask_image:
+        object_mask = mask_from_image(mask_image, clip.width, clip.height)
+    elif box:
+        object_mask = mask_from_box(box, clip.width, clip.height)
     frames = clip.frames
     kwargs = dict(preset=preset, raft_weights=raft_weights, source=clip.source)
     forward = observed_flow(frames, method, **kwargs)
     backward = observed_flow(frames[::-1].copy(), method, **kwargs)[::-1]
-    valid = forward_backward_mask(forward, backward)
-    if mask_image:
-        valid &= mask_from_image(mask_image, clip.width, clip.height)
-    elif box:
-        valid &= mask_from_box(box, clip.width, clip.height)
+    valid = forward_backward_mask(forward, backward) & object_mask
 
-    out = Path(output) if output else Path(Path(video).name.split(".")[0] + "_flow")
+    out = Path(output) if output else Path(Path(video).stem + "_flow")
     with atomic_path(out / "flow.npz") as tmp:
         np.savez_compressed(
             tmp, flow=forward, valid=valid, times=np.asarray([] if clip.times is None else clip.times),

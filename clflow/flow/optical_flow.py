@@ -100,6 +100,7 @@ def raft_flow(frames: np.ndarray, weights: str | os.PathLike | None, *, source: 
     torchvision is not a dependency of clflow and nothing is downloaded: a missing
     torchvision or weights file is a clear :class:`ClflowError`.
     """
+    _check_frames(frames, source)
     if weights is None:
         raise InputError("the RAFT backend needs a weights file on disk (raft_weights=PATH / --raft-weights PATH)")
     weights = Path(weights)
@@ -118,7 +119,6 @@ def raft_flow(frames: np.ndarray, weights: str | os.PathLike | None, *, source: 
     except Exception as exc:
         raise InputError(f"{weights}: not a torchvision RAFT-large state dict ({exc})") from None
     model.eval()
-    _check_frames(frames, source)
     if frames.ndim == 3:
         frames = np.repeat(frames[..., None], 3, axis=-1)
     height, width = frames.shape[1:3]

@@ -50,6 +50,8 @@ def test_flow_command_window_and_errors(tmp_path, translating):
     assert "Traceback" not in result.output and not (tmp_path / "x").exists()
     result = runner.invoke(cli, ["flow", str(tmp_path / "nope.mp4")])
     assert result.exit_code == 1 and "nope.mp4: no such video file or image folder" in result.output
+    result = runner.invoke(cli, ["flow", str(path), "-o", str(tmp_path / "m"), "--mask", str(tmp_path / "none.png")])
+    assert result.exit_code == 1 and "none.png: not a readable mask image" in result.output
     result = runner.invoke(cli, ["flow", str(path), "--box", "1,2,3"])
     assert result.exit_code == 2 and "expected x0,y0,x1,y1" in result.output
 
