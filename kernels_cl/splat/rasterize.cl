@@ -203,15 +203,15 @@ __kernel void rasterize_backward(
                               & INT_TO_MASK(active);
             if (!any(hit))
                 continue;
-            const realv one_minus = 1 - alpha;
-            T = select(T, T / one_minus, hit);
+            const realv inv_one_minus = 1 / (1 - alpha);
+            T = select(T, T * inv_one_minus, hit);
             const realv w = select((realv)0, alpha * T, hit);
             __global const real *f = features + (size_t)gid * CHANNELS;
             __global real *row = slot_grads + (size_t)slot * (6 + CHANNELS);
-            realv v_alpha = -T_end / one_minus * v_T_end;
+            realv v_alpha = -T_end * inv_one_minus * v_T_end;
             for (int k = 0; k < CHANNELS; ++k) {
                 row[6 + k] += hsum(w * g[k]);
-                v_alpha += (f[k] * T - S[k] / one_minus) * g[k];
+                v_alpha += (f[k] * T - S[k] * inv_one_minus) * g[k];
                 S[k] += f[k] * w;
             }
             /* clamped alpha (o exp(-sigma) > ALPHA_MAX): no gradient to opacity or shape */
