@@ -7,6 +7,7 @@ from clflow_cli.main import LazyGroup
 # name -> "module:command" of each benchmark; imported only when it runs.
 BENCHMARKS: dict[str, str] = {
     "flow": "clflow_cli.bench_flow:flow",
+    "raster": "clflow_cli.bench_raster:raster",
 }
 
 

@@ -7,6 +7,7 @@ ALPHA_MIN = 1.0 / 255.0  # a Gaussian whose alpha at a pixel is below this is sk
 ALPHA_MAX = 0.99  # alpha = min(ALPHA_MAX, opacity * exp(-sigma))
 T_MIN = 1e-4  # compositing stops before a Gaussian that would take T below this
 LIM_FOV = 1.3  # J is evaluated at x/z, y/z clamped to 1.3 x the field of view
+ROW_CULL_MARGIN = 1e-3  # a tile row is skipped when its smallest sigma exceeds log(o/ALPHA_MIN) by this
 MIN_RADIUS_EIGEN = 0.1  # lambda_max = mid + sqrt(max(MIN_RADIUS_EIGEN, mid^2 - det))
 
 SPLAT_DEFINES = {
@@ -17,4 +18,5 @@ SPLAT_DEFINES = {
     "T_MIN": repr(T_MIN),
     "LIM_FOV": repr(LIM_FOV),
     "MIN_RADIUS_EIGEN": repr(MIN_RADIUS_EIGEN),
+    "ROW_CULL_MARGIN": repr(ROW_CULL_MARGIN),
 }

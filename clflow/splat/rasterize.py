@@ -2,7 +2,8 @@
 
 Pipeline of :func:`rasterize_gaussians`, one view:
 
-1. covariances Sigma = R(q) S S^T R(q)^T (torch, or given), colours from SH (torch, sh.py);
+1. ``clflow::splat_covariances``: Sigma = R(q) S S^T R(q)^T (covariance.cl), unless given;
+   colours from SH in torch (sh.py);
 2. ``clflow::splat_project``: EWA projection, culling, radii (project.cl);
 3. tile lists sorted by (tile, depth) on the device (binning.py, binning.cl, sort.cl);
 4. ``clflow::splat_composite``: per-tile front-to-back compositing of every channel
@@ -22,18 +23,69 @@ from clflow.errors import InputError
 from clflow.runtime.devices import get_device
 from clflow.runtime.reduction import real_of
 from clflow.splat.binning import build_tile_lists, tile_grid
-from clflow.splat.constants import SPLAT_DEFINES, TILE_SIZE
+from clflow.splat.constants import ALPHA_MIN, SPLAT_DEFINES, TILE_SIZE
 from clflow.splat.sh import num_sh_bases, sh_to_rgb
 
 ORTHONORMAL_TOL = 1e-4  # |W W^T - I| allowed in the viewmat's rotation
-QUAT_MIN_NORM = 1e-12  # a quaternion shorter than this has no rotation
-
-
-# -- projection op ----------------------------------------------------------------------
+QUAT_MIN_NORM = 1e-12  # a quaternion whose entries are all smaller than this has no rotation
 
 
 def _kernel(source: str, name: str, dtype: torch.dtype, **defines):
+    """The cached kernel ``name`` of ``kernels_cl/splat/<source>`` for ``dtype``."""
     return get_device().kernel(f"splat/{source}", name, real_of(dtype, name), {**SPLAT_DEFINES, **defines})
+
+
+# -- covariance op ----------------------------------------------------------------------
+
+
+@torch.library.custom_op("clflow::splat_covariances", mutates_args=())
+def covariances(quats: Tensor, scales: Tensor) -> Tensor:
+    """Sigma = R(q) S S^T R(q)^T [N, 3, 3] (m^2) from quats [N, 4] (w, x, y, z; normalised
+    here) and scales [N, 3] (standard deviations, m), on the device."""
+    device = get_device()
+    n = quats.shape[0]
+    covars = quats.new_empty(n, 3, 3)
+    with device.bind() as b:
+        device.launch(_kernel("covariance.cl", "covariance_forward", quats.dtype), n,
+                      [b.input(quats), b.input(scales), b.output(covars), np.int32(n)])
+    return covars
+
+
+@covariances.register_fake
+def _covariances_fake(quats, scales):
+    return quats.new_empty(quats.shape[0], 3, 3)
+
+
+@torch.library.custom_op("clflow::splat_covariances_backward", mutates_args=())
+def covariances_backward(quats: Tensor, scales: Tensor, v_covars: Tensor) -> tuple[Tensor, Tensor]:
+    """Adjoint of :func:`covariances`: (dL/dquats [N, 4], dL/dscales [N, 3])."""
+    device = get_device()
+    n = quats.shape[0]
+    v_quats, v_scales = torch.empty_like(quats), torch.empty_like(scales)
+    with device.bind() as b:
+        device.launch(_kernel("covariance.cl", "covariance_backward", quats.dtype), n,
+                      [b.input(quats), b.input(scales), b.input(v_covars), b.output(v_quats), b.output(v_scales),
+                       np.int32(n)])
+    return v_quats, v_scales
+
+
+@covariances_backward.register_fake
+def _covariances_backward_fake(quats, scales, v_covars):
+    return torch.empty_like(quats), torch.empty_like(scales)
+
+
+def _covariances_setup(ctx, inputs, output) -> None:
+    ctx.save_for_backward(*inputs)
+
+
+def _covariances_grad(ctx, v_covars):
+    return covariances_backward(*ctx.saved_tensors, v_covars.contiguous())
+
+
+covariances.register_autograd(_covariances_grad, setup_context=_covariances_setup)
+
+
+# -- projection op ----------------------------------------------------------------------
 
 
 @torch.library.custom_op("clflow::splat_project", mutates_args=())
@@ -133,6 +185,11 @@ project.register_autograd(_project_backward, setup_context=_project_setup)
 # -- compositing op ---------------------------------------------------------------------
 
 
+def _sigma_cuts(opacities: Tensor) -> Tensor:
+    """log(o / ALPHA_MIN) [N]: a Gaussian whose sigma exceeds this is below ALPHA_MIN."""
+    return torch.log(opacities.detach() / ALPHA_MIN)
+
+
 @torch.library.custom_op("clflow::splat_composite", mutates_args=())
 def composite(
     means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, background: Tensor, ranges: Tensor,
@@ -159,11 +216,12 @@ def composite(
     with device.bind() as b:
         device.launch(
             kern,
-            tiles_x * tiles_y * TILE_SIZE * TILE_SIZE,
+            tiles_x * tiles_y * TILE_SIZE,
             [b.input(ranges), b.input(sorted_slots), b.input(slot_gaussian), b.input(means2d), b.input(conics),
-             b.input(opacities), b.input(features), b.input(background), b.output(out), b.output(T_final),
-             b.output(n_contrib), np.int32(width), np.int32(height), np.int32(tiles_x)],
-            TILE_SIZE * TILE_SIZE,
+             b.input(opacities), b.input(_sigma_cuts(opacities)), b.input(features), b.input(background),
+             b.output(out), b.output(T_final),
+             b.output(n_contrib), np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(tiles_x * tiles_y)],
+            TILE_SIZE,  # one work-item per tile row
         )
     return out, T_final, n_contrib
 
@@ -186,7 +244,7 @@ def composite_backward(
     n, channels = features.shape
     m = sorted_slots.shape[0]
     tiles_x, tiles_y = tile_grid(width, height)
-    slot_grads = features.new_zeros(m, 6 + channels)  # one row per (tile, Gaussian) pair
+    slot_grads = features.new_empty(m, 6 + channels)  # one row per (tile, Gaussian) pair, zeroed by its tile
     v_means2d, v_conics = torch.empty_like(means2d), torch.empty_like(conics)
     v_opacities, v_features = torch.empty_like(opacities), torch.empty_like(features)
     backward = _kernel("rasterize.cl", "rasterize_backward", features.dtype, CHANNELS=channels)
@@ -198,7 +256,8 @@ def composite_backward(
             backward,
             tiles_x * tiles_y,
             [b.input(ranges), b.input(sorted_slots), b.input(slot_gaussian), b.input(means2d), b.input(conics),
-             b.input(opacities), b.input(features), b.input(background), b.input(T_final), b.input(n_contrib),
+             b.input(opacities), b.input(_sigma_cuts(opacities)), b.input(features), b.input(background),
+             b.input(T_final), b.input(n_contrib),
              b.input(v_out), b.input(v_T_final), slots, np.int32(width), np.int32(height), np.int32(tiles_x),
              np.int32(tiles_x * tiles_y)],
             1,
@@ -240,22 +299,6 @@ composite.register_autograd(_composite_backward, setup_context=_composite_setup)
 # -- public function --------------------------------------------------------------------
 
 
-def covariances_from_quats_scales(quats: Tensor, scales: Tensor) -> Tensor:
-    """Sigma = R(q) S S^T R(q)^T [N, 3, 3] (m^2) from quats [N, 4] (w, x, y, z; normalised
-    here) and scales [N, 3] (standard deviations, m)."""
-    w, x, y, z = (quats / quats.norm(dim=-1, keepdim=True)).unbind(-1)
-    R = torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(-1, 3, 3)
-    M = R * scales.unsqueeze(-2)  # R S
-    return M @ M.transpose(-1, -2)
-
-
 def view_directions(means: Tensor, viewmat: Tensor, sh_rotations: Tensor | None = None) -> Tensor:
     """Unit directions [N, 3] from the camera centre to each mean, in each Gaussian's rest
     frame when ``sh_rotations`` [N, 3, 3] are given (dir -> R^T dir)."""
@@ -278,8 +321,13 @@ def _check(t: Tensor | None, name: str, shape: tuple, dtype: torch.dtype | None)
         raise InputError(f"rasterize: {name} is {t.dtype} but means are {dtype}; use one float dtype")
     if t.device.type != "cpu":
         raise InputError(f"rasterize: {name} is on {t.device}; clflow takes CPU tensors")
-    if not bool(torch.isfinite(t).all()):
-        bad = torch.nonzero(~torch.isfinite(t.reshape(t.shape[0], -1)).all(dim=-1))[0].item() if t.dim() else 0
+    # one reduction in the common case: a sum is finite unless some value is NaN or inf
+    # (or the values are so large that they overflow, which the exact check then clears)
+    if t.numel() and not bool(torch.isfinite(t.sum())):
+        finite_rows = torch.isfinite(t.reshape(t.shape[0], -1)).all(dim=-1) if t.dim() else torch.isfinite(t)[None]
+        if bool(finite_rows.all()):
+            return
+        bad = torch.nonzero(~finite_rows)[0].item()
         raise InputError(f"rasterize: {name} has NaN or infinite values (first at index {bad})")
 
 
@@ -299,17 +347,15 @@ def _validate(means, quats, scales, opacities, colors, viewmat, K, width, height
             raise InputError("rasterize: quats and scales are required when covars is None")
         _check(quats, "quats", (n, 4), dtype)
         _check(scales, "scales", (n, 3), dtype)
-        short = torch.nonzero(quats.norm(dim=-1) < QUAT_MIN_NORM)
-        if short.numel():
-            raise InputError(f"rasterize: quats[{short[0].item()}] is (nearly) zero: a degenerate rotation")
-        bad = torch.nonzero((scales <= 0).any(dim=-1))
-        if bad.numel():
-            i = bad[0].item()
+        if n and float(quats.abs().amax(dim=-1).min()) < QUAT_MIN_NORM:
+            i = torch.nonzero(quats.abs().amax(dim=-1) < QUAT_MIN_NORM)[0].item()
+            raise InputError(f"rasterize: quats[{i}] is (nearly) zero: a degenerate rotation")
+        if n and float(scales.min()) <= 0:
+            i = torch.nonzero((scales <= 0).any(dim=-1))[0].item()
             raise InputError(f"rasterize: scales[{i}] = {scales[i].tolist()} has a zero or negative standard deviation")
     _check(opacities, "opacities", (n,), dtype)
-    bad = torch.nonzero((opacities < 0) | (opacities > 1))
-    if bad.numel():
-        i = bad[0].item()
+    if n and not 0 <= float(opacities.min()) <= float(opacities.max()) <= 1:
+        i = torch.nonzero((opacities < 0) | (opacities > 1))[0].item()
         raise InputError(f"rasterize: opacities[{i}] = {opacities[i].item()} is outside [0, 1] (apply the sigmoid)")
     if sh_degree is None:
         _check(colors, "colors", (n, -1), dtype)
@@ -421,13 +467,14 @@ def rasterize_gaussians(
         Differentiable w.r.t. means, quats, scales, covars, opacities, colors, sh_rotations,
         features and background.
     """
-    _validate(means, quats, scales, opacities, colors, viewmat, K, width, height, covars, sh_degree,
-              sh_rotations, features, background, near)
+    with torch.no_grad():
+        _validate(means, quats, scales, opacities, colors, viewmat, K, width, height, covars, sh_degree,
+                  sh_rotations, features, background, near)
     dtype = means.dtype
     viewmat = viewmat.to(dtype).contiguous()
     K = K.to(dtype).contiguous()
     if covars is None:
-        covars = covariances_from_quats_scales(quats, scales)
+        covars = covariances(quats.contiguous(), scales.contiguous())
     means2d, conics, depths, radii, tiles_touched = project(
         means.contiguous(), covars.contiguous(), viewmat, K, int(width), int(height), float(near)
     )

@@ -7,6 +7,7 @@
  *   ALPHA_MIN      a Gaussian with alpha below this is skipped at a pixel
  *   ALPHA_MAX      alpha is clamped to at most this
  *   T_MIN          compositing stops before a Gaussian that takes T below this
+ *   ROW_CULL_MARGIN  margin (in sigma) of the exact row cull in rasterize.cl
  * Contraction to fma is off so the forward and backward kernels take the same
  * skip/stop decisions from the same inputs. */
 #ifndef CLFLOW_SPLAT_COMMON_H
@@ -16,7 +17,7 @@
 
 #pragma OPENCL FP_CONTRACT OFF
 
-#if !defined(TILE_SIZE) || !defined(EPS2D) || !defined(ALPHA_MIN) || !defined(ALPHA_MAX) || !defined(T_MIN)
+#if !defined(TILE_SIZE) || !defined(EPS2D) || !defined(ALPHA_MIN) || !defined(ALPHA_MAX) || !defined(T_MIN) || !defined(ROW_CULL_MARGIN)
 #error "build with the splat constants (clflow/splat/rasterize.py: SPLAT_DEFINES)"
 #endif
 

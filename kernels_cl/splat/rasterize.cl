@@ -12,101 +12,149 @@
 #error "build with -DCHANNELS=<feature channels>"
 #endif
 
-#define TILE_PIXELS (TILE_SIZE * TILE_SIZE)
+/* Layout for CPU devices: a work-item owns one row of TILE_SIZE = 16 pixels of a tile and
+ * holds them in one 16-wide vector (realv), so every step runs on all 16 pixels at once in
+ * SIMD registers (PoCL does not vectorise the per-pixel loops across work-items here). The
+ * Gaussian read at each step is the same for all lanes. No barriers, no local memory. */
+#if TILE_SIZE != 16
+#error "rasterize.cl holds a tile row in a 16-wide vector: TILE_SIZE must be 16"
+#endif
+#if REAL_IS_DOUBLE
+typedef double16 realv;
+typedef long16 maskv;
+typedef double8 real8;
+typedef double4 real4;
+typedef double2 real2;
+#define INT_TO_MASK(m) convert_long16(m)
+#define MASK_TO_INT(m) convert_int16(m)
+#else
+typedef float16 realv;
+typedef int16 maskv;
+typedef float8 real8;
+typedef float4 real4;
+typedef float2 real2;
+#define INT_TO_MASK(m) (m)
+#define MASK_TO_INT(m) (m)
+#endif
 
-/* One work-group of TILE_PIXELS work-items per tile, one work-item per pixel. The tile's
- * Gaussians are staged TILE_PIXELS at a time in local memory; the group stops early once
- * every pixel is done (the count of done pixels is read after a barrier: uniform). */
-__kernel __attribute__((reqd_work_group_size(TILE_PIXELS, 1, 1))) void rasterize_forward(
-    __global const int *ranges, __global const int *sorted_slots,
-    __global const int *slot_gaussian, __global const real *means2d,
-    __global const real *conics, __global const real *opacities, __global const real *features,
-    __global const real *background, __global real *out, __global real *T_final,
-    __global int *n_contrib, const int width, const int height, const int tiles_x)
+#define LANES ((realv)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
+#define ILANES ((int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
+
+/* Sum of the 16 lanes in a fixed order (pairwise halving): deterministic. */
+inline real hsum(const realv v)
 {
-    __local int l_gaussian[TILE_PIXELS];
-    __local real l_mx[TILE_PIXELS], l_my[TILE_PIXELS];
-    __local real l_A[TILE_PIXELS], l_B[TILE_PIXELS], l_C[TILE_PIXELS], l_o[TILE_PIXELS];
-    __local volatile int n_done;
-
-    const int tile = get_group_id(0);
-    const int lid = get_local_id(0);
-    const int px = (tile % tiles_x) * TILE_SIZE + lid % TILE_SIZE;
-    const int py = (tile / tiles_x) * TILE_SIZE + lid / TILE_SIZE;
-    const bool inside = px < width && py < height;
-    const real cx = px + (real)0.5, cy = py + (real)0.5;
-    const int start = ranges[2 * tile], end = ranges[2 * tile + 1];
-
-    real acc[CHANNELS];
-    for (int k = 0; k < CHANNELS; ++k)
-        acc[k] = 0;
-    real T = 1;
-    int seen = 0, last = 0;  /* entries walked; entries up to the last contributor */
-    bool done = !inside;
-
-    if (lid == 0)
-        n_done = 0;
-    barrier(CLK_LOCAL_MEM_FENCE);
-    if (done)
-        atomic_inc(&n_done);
-    for (int batch = start; batch < end; batch += TILE_PIXELS) {
-        barrier(CLK_LOCAL_MEM_FENCE);
-        if (n_done == TILE_PIXELS)
-            break;
-        const int i = batch + lid;
-        if (i < end) {
-            const int g = slot_gaussian[sorted_slots[i]];
-            l_gaussian[lid] = g;
-            l_mx[lid] = means2d[2 * g];
-            l_my[lid] = means2d[2 * g + 1];
-            l_A[lid] = conics[3 * g];
-            l_B[lid] = conics[3 * g + 1];
-            l_C[lid] = conics[3 * g + 2];
-            l_o[lid] = opacities[g];
-        }
-        barrier(CLK_LOCAL_MEM_FENCE);
-        const int count = min(TILE_PIXELS, end - batch);
-        for (int j = 0; !done && j < count; ++j) {
-            ++seen;
-            real sigma, falloff;
-            const real alpha = splat_alpha(l_mx[j] - cx, l_my[j] - cy, l_A[j], l_B[j], l_C[j],
-                                           l_o[j], &sigma, &falloff);
-            if (alpha == 0)
-                continue;
-            const real T_next = T * (1 - alpha);
-            if (T_next < (real)T_MIN) {
-                done = true;
-                atomic_inc(&n_done);
-                break;
-            }
-            __global const real *f = features + (size_t)l_gaussian[j] * CHANNELS;
-            const real w = alpha * T;
-            for (int k = 0; k < CHANNELS; ++k)
-                acc[k] += f[k] * w;
-            T = T_next;
-            last = seen;
-        }
-    }
-    if (!inside)
-        return;
-    const size_t p = (size_t)py * width + px;
-    for (int k = 0; k < CHANNELS; ++k)
-        out[p * CHANNELS + k] = acc[k] + T * background[k];
-    T_final[p] = T;
-    n_contrib[p] = last;
+    const real8 a = v.lo + v.hi;
+    const real4 b = a.lo + a.hi;
+    const real2 c = b.lo + b.hi;
+    return c.x + c.y;
 }
 
-/* Adjoint, one work-item per tile walking its pixels in order and, per pixel, its
- * contributors back to front (T_i = T_{i+1} / (1 - alpha_i)). The gradient of entry i is
- * added into row sorted_slots[i] of slot_grads [M, 6 + CHANNELS] =
- * (dmean2d x, y, dconic A, B, C, dopacity, dfeatures...): each row belongs to one
- * (tile, Gaussian) pair, hence to this work-item only, and the pixel order is fixed, so the
- * sums are deterministic. In: v_out [H,W,CHANNELS] = dL/dout, v_T [H,W] = dL/dT_final. */
+/* Lanes [0, count) of row values p[0], p[stride], ...; 0 beyond. */
+inline realv load_row(__global const real *p, const int stride, const int count)
+{
+    real tmp[16];
+    for (int l = 0; l < 16; ++l)
+        tmp[l] = l < count ? p[l * stride] : 0;
+    return vload16(0, tmp);
+}
+
+/* The falloff of Gaussian (mx, my, A, B, C, o) over a row at x = cx (lanes), y = cy; the
+ * same expressions as splat_alpha() in common.h, lane-wise. */
+#define ROW_ALPHA(dx, dy, sigma, falloff, alpha)                                               \
+    const realv dx = mx - cx;                                                                  \
+    const real dy = my - cy;                                                                   \
+    const realv sigma = (real)0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy;                 \
+    const realv falloff = exp(-sigma);                                                         \
+    const realv alpha = fmin((realv)(real)ALPHA_MAX, o * falloff)
+
+/* True when no lane of the row can reach ALPHA_MIN: sigma is convex in dx, so its minimum
+ * over the lanes is at dx* = -B dy / A clamped to the lanes' range; skip when that minimum
+ * exceeds the Gaussian's cut-off log(o / ALPHA_MIN) by ROW_CULL_MARGIN (far beyond rounding,
+ * so the skip never changes a result). */
+inline bool row_culled(const real mx, const real dy, const int px0, const real A, const real B,
+                       const real C, const real sigma_cut)
+{
+    const real dx = clamp(-B * dy / A, mx - px0 - (real)(TILE_SIZE - 0.5), mx - px0 - (real)0.5);
+    const real sigma_min = (real)0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy;
+    return sigma_min > sigma_cut + (real)ROW_CULL_MARGIN;
+}
+
+/* Forward: work-item (tile, row) composites its 16 pixels front to back; it stops once all
+ * are done. Writes out [H,W,CHANNELS], T_final [H,W] and n_contrib [H,W] (entries walked
+ * up to the pixel's last contributor). */
+__kernel void rasterize_forward(
+    __global const int *ranges, __global const int *sorted_slots,
+    __global const int *slot_gaussian, __global const real *means2d,
+    __global const real *conics, __global const real *opacities, __global const real *sigma_cuts,
+    __global const real *features, __global const real *background, __global real *out,
+    __global real *T_final,
+    __global int *n_contrib, const int width, const int height, const int tiles_x,
+    const int n_tiles)
+{
+    const int tile = get_global_id(0) / TILE_SIZE;
+    const int py = (tile / tiles_x) * TILE_SIZE + get_global_id(0) % TILE_SIZE;
+    if (tile >= n_tiles || py >= height)
+        return;
+    const int px0 = (tile % tiles_x) * TILE_SIZE;
+    const int n_px = min(TILE_SIZE, width - px0);
+    const realv cx = LANES + (real)px0 + (real)0.5;
+    const real cy = py + (real)0.5;
+    const int start = ranges[2 * tile], end = ranges[2 * tile + 1];
+
+    realv acc[CHANNELS];
+    for (int k = 0; k < CHANNELS; ++k)
+        acc[k] = 0;
+    realv T = 1;
+    int16 last = 0;
+    maskv done = isgreaterequal(LANES, (realv)n_px);  /* lanes beyond the image */
+    for (int i = start; i < end && !all(done); ++i) {
+        const int g = slot_gaussian[sorted_slots[i]];
+        const real mx = means2d[2 * g], my = means2d[2 * g + 1];
+        const real A = conics[3 * g], B = conics[3 * g + 1], C = conics[3 * g + 2], o = opacities[g];
+        if (row_culled(mx, my - cy, px0, A, B, C, sigma_cuts[g]))
+            continue;
+        ROW_ALPHA(dx, dy, sigma, falloff, alpha);
+        const maskv hit = !done & isgreaterequal(sigma, (realv)0) & isgreaterequal(alpha, (realv)(real)ALPHA_MIN);
+        if (!any(hit))
+            continue;
+        const realv T_next = T * (1 - alpha);
+        const maskv stop = hit & isless(T_next, (realv)(real)T_MIN);
+        const maskv take = hit & !stop;
+        done |= stop;
+        const realv w = select((realv)0, alpha * T, take);
+        __global const real *f = features + (size_t)g * CHANNELS;
+        for (int k = 0; k < CHANNELS; ++k)
+            acc[k] += f[k] * w;
+        T = select(T, T_next, take);
+        last = select(last, (int16)(i - start + 1), MASK_TO_INT(take));
+    }
+    real tmp[16];
+    int tmp_last[16];
+    const size_t p0 = (size_t)py * width + px0;
+    vstore16(T, 0, tmp);
+    vstore16(last, 0, tmp_last);
+    for (int l = 0; l < n_px; ++l) {
+        T_final[p0 + l] = tmp[l];
+        n_contrib[p0 + l] = tmp_last[l];
+    }
+    for (int k = 0; k < CHANNELS; ++k) {
+        vstore16(acc[k] + T * background[k], 0, tmp);
+        for (int l = 0; l < n_px; ++l)
+            out[(p0 + l) * CHANNELS + k] = tmp[l];
+    }
+}
+
+/* Adjoint, one work-item per tile: its rows in order, each row's contributors back to front
+ * (T_i = T_{i+1} / (1 - alpha_i)), 16 pixels at a time. The gradient of entry i, summed over
+ * the row's lanes in a fixed order, is added into row sorted_slots[i] of
+ * slot_grads [M, 6 + CHANNELS] = (dmean2d x, y, dconic A, B, C, dopacity, dfeatures...).
+ * Each slot row belongs to one (tile, Gaussian) pair, hence to this work-item only (which
+ * zeroes it first): the sums are deterministic. In: v_out [H,W,CHANNELS] = dL/dout, v_T [H,W] = dL/dT_final. */
 __kernel void rasterize_backward(
     __global const int *ranges, __global const int *sorted_slots,
     __global const int *slot_gaussian, __global const real *means2d,
-    __global const real *conics, __global const real *opacities, __global const real *features,
-    __global const real *background, __global const real *T_final,
+    __global const real *conics, __global const real *opacities, __global const real *sigma_cuts,
+    __global const real *features, __global const real *background, __global const real *T_final,
     __global const int *n_contrib, __global const real *v_out, __global const real *v_T,
     __global real *slot_grads, const int width, const int height, const int tiles_x,
     const int n_tiles)
@@ -114,55 +162,67 @@ __kernel void rasterize_backward(
     const int tile = get_global_id(0);
     if (tile >= n_tiles)
         return;
-    const int start = ranges[2 * tile];
-    const int x0 = (tile % tiles_x) * TILE_SIZE, y0 = (tile / tiles_x) * TILE_SIZE;
-    const int x1 = min(x0 + TILE_SIZE, width), y1 = min(y0 + TILE_SIZE, height);
-    for (int py = y0; py < y1; ++py) {
-        for (int px = x0; px < x1; ++px) {
-            const size_t p = (size_t)py * width + px;
-            const real cx = px + (real)0.5, cy = py + (real)0.5;
-            const real T_end = T_final[p];
-            real g[CHANNELS], S[CHANNELS];  /* dL/dout_k; sum over later contributors of f alpha T */
-            real bg_dot_g = 0;
+    const int start = ranges[2 * tile], end = ranges[2 * tile + 1];
+    for (int i = start; i < end; ++i)
+        for (int k = 0; k < 6 + CHANNELS; ++k)
+            slot_grads[(size_t)sorted_slots[i] * (6 + CHANNELS) + k] = 0;
+    const int px0 = (tile % tiles_x) * TILE_SIZE, py0 = (tile / tiles_x) * TILE_SIZE;
+    const int n_px = min(TILE_SIZE, width - px0);
+    const realv cx = LANES + (real)px0 + (real)0.5;
+    for (int py = py0; py < min(py0 + TILE_SIZE, height); ++py) {
+        const real cy = py + (real)0.5;
+        const size_t p0 = (size_t)py * width + px0;
+        const realv T_end = load_row(T_final + p0, 1, n_px);
+        int tmp_n[16];
+        for (int l = 0; l < 16; ++l)
+            tmp_n[l] = l < n_px ? n_contrib[p0 + l] : 0;
+        const int16 n_row = vload16(0, tmp_n);
+        int n_max = 0;
+        for (int l = 0; l < n_px; ++l)
+            n_max = max(n_max, tmp_n[l]);
+        realv g[CHANNELS], S[CHANNELS];  /* dL/dout_k; sum of f alpha T over later contributors */
+        realv bg_dot_g = 0;
+        for (int k = 0; k < CHANNELS; ++k) {
+            g[k] = load_row(v_out + p0 * CHANNELS + k, CHANNELS, n_px);
+            S[k] = 0;
+            bg_dot_g += background[k] * g[k];
+        }
+        const realv v_T_end = load_row(v_T + p0, 1, n_px) + bg_dot_g;  /* background included */
+        realv T = T_end;
+        for (int i = start + n_max - 1; i >= start; --i) {
+            const int slot = sorted_slots[i];
+            const int gid = slot_gaussian[slot];
+            const real mx = means2d[2 * gid], my = means2d[2 * gid + 1];
+            const real A = conics[3 * gid], B = conics[3 * gid + 1], C = conics[3 * gid + 2];
+            const real o = opacities[gid];
+            if (row_culled(mx, my - cy, px0, A, B, C, sigma_cuts[gid]))
+                continue;
+            ROW_ALPHA(dx, dy, sigma, falloff, alpha);
+            const int16 active = (int16)(i - start) < n_row;
+            const maskv hit = isgreaterequal(sigma, (realv)0) & isgreaterequal(alpha, (realv)(real)ALPHA_MIN)
+                              & INT_TO_MASK(active);
+            if (!any(hit))
+                continue;
+            const realv inv_one_minus = 1 / (1 - alpha);
+            T = select(T, T * inv_one_minus, hit);
+            const realv w = select((realv)0, alpha * T, hit);
+            __global const real *f = features + (size_t)gid * CHANNELS;
+            __global real *row = slot_grads + (size_t)slot * (6 + CHANNELS);
+            realv v_alpha = -T_end * inv_one_minus * v_T_end;
             for (int k = 0; k < CHANNELS; ++k) {
-                g[k] = v_out[p * CHANNELS + k];
-                S[k] = 0;
-                bg_dot_g += background[k] * g[k];
+                row[6 + k] += hsum(w * g[k]);
+                v_alpha += (f[k] * T - S[k] * inv_one_minus) * g[k];
+                S[k] += f[k] * w;
             }
-            const real v_T_end = v_T[p] + bg_dot_g;  /* dL/dT_final, background included */
-            real T = T_end;
-            for (int i = start + n_contrib[p] - 1; i >= start; --i) {
-                const int slot = sorted_slots[i];
-                const int gid = slot_gaussian[slot];
-                const real dx = means2d[2 * gid] - cx, dy = means2d[2 * gid + 1] - cy;
-                const real A = conics[3 * gid], B = conics[3 * gid + 1], C = conics[3 * gid + 2];
-                const real o = opacities[gid];
-                real sigma, falloff;
-                const real alpha = splat_alpha(dx, dy, A, B, C, o, &sigma, &falloff);
-                if (alpha == 0)
-                    continue;
-                const real one_minus = 1 - alpha;
-                T = T / one_minus;
-                const real w = alpha * T;
-                __global const real *f = features + (size_t)gid * CHANNELS;
-                __global real *row = slot_grads + (size_t)slot * (6 + CHANNELS);
-                real v_alpha = 0;
-                for (int k = 0; k < CHANNELS; ++k) {
-                    row[6 + k] += w * g[k];
-                    v_alpha += (f[k] * T - S[k] / one_minus) * g[k];
-                    S[k] += f[k] * w;
-                }
-                v_alpha -= T_end / one_minus * v_T_end;
-                if (o * falloff > (real)ALPHA_MAX)
-                    continue;  /* clamped alpha: no gradient to opacity or shape */
-                const real v_sigma = -o * falloff * v_alpha;
-                row[0] += v_sigma * (A * dx + B * dy);
-                row[1] += v_sigma * (B * dx + C * dy);
-                row[2] += v_sigma * (real)0.5 * dx * dx;
-                row[3] += v_sigma * dx * dy;
-                row[4] += v_sigma * (real)0.5 * dy * dy;
-                row[5] += falloff * v_alpha;
-            }
+            /* clamped alpha (o exp(-sigma) > ALPHA_MAX): no gradient to opacity or shape */
+            const maskv free = hit & islessequal(o * falloff, (realv)(real)ALPHA_MAX);
+            const realv v_sigma = select((realv)0, -o * falloff * v_alpha, free);
+            row[0] += hsum(v_sigma * (A * dx + B * dy));
+            row[1] += hsum(v_sigma * (B * dx + C * dy));
+            row[2] += hsum(v_sigma * (real)0.5 * dx * dx);
+            row[3] += hsum(v_sigma * dx * dy);
+            row[4] += hsum(v_sigma * (real)0.5 * dy * dy);
+            row[5] += hsum(select((realv)0, falloff * v_alpha, free));
         }
     }
 }

@@ -1,0 +1,71 @@
+"""``clflow bench raster``: forward and backward time of the splat rasteriser."""
+
+import click
+
+
+def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=None):
+    """A synthetic scene in front of an OpenCV camera at the origin looking down +z.
+
+    Means uniform in a 2 m cube centred 4 m away; log-uniform scales 5-30 mm (a few pixels
+    to a few tens of pixels on screen, as in trained 3DGS scenes); opacities 0.1-0.9.
+    Returns the positional and keyword arguments of ``rasterize_gaussians``.
+    """
+    import torch
+
+    dtype = dtype or torch.float32
+    g = torch.Generator().manual_seed(seed)
+    means = (torch.rand(n, 3, generator=g, dtype=dtype) * 2 - 1) + torch.tensor([0.0, 0.0, 4.0], dtype=dtype)
+    quats = torch.randn(n, 4, generator=g, dtype=dtype)
+    scales = torch.exp(torch.empty(n, 3, dtype=dtype).uniform_(float(torch.log(torch.tensor(0.005))), float(torch.log(torch.tensor(0.03))), generator=g))
+    opacities = torch.rand(n, generator=g, dtype=dtype) * 0.8 + 0.1
+    colors = torch.rand(n, 3, generator=g, dtype=dtype)
+    viewmat = torch.eye(4, dtype=dtype)
+    focal = float(width)  # fx = width: a 53 degree horizontal field of view
+    K = torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1]], dtype=dtype)
+    return (means, quats, scales, opacities, colors, viewmat, K, width, height), {}
+
+
+@click.command()
+@click.option("-n", "--gaussians", default=100_000, show_default=True, help="Number of Gaussians.")
+@click.option("--size", default=512, show_default=True, help="Image width and height (pixels).")
+@click.option("--repeat", default=10, show_default=True, help="Timed runs (the median is printed).")
+@click.option("--double", is_flag=True, help="float64 instead of float32.")
+@click.pass_obj
+def raster(obj, gaussians: int, size: int, repeat: int, double: bool) -> None:
+    """Forward and backward time for N Gaussians at SIZE x SIZE, RGB + depth."""
+    import os
+    import statistics
+    import time
+
+    import torch
+
+    from clflow.runtime import set_default_device
+    from clflow.splat.rasterize import rasterize_gaussians
+
+    if obj is not None and obj.device_spec:
+        set_default_device(obj.device_spec)
+    dtype = torch.float64 if double else torch.float32
+    args, kwargs = make_scene(gaussians, size, size, dtype=dtype)
+    leaves = [a.requires_grad_() for a in args[:5]]
+    forward, backward = [], []  # (wall, CPU of all threads) seconds
+    for i in range(repeat + 1):  # the first run builds the kernels and is not timed
+        for leaf in leaves:
+            leaf.grad = None
+        t0, c0 = time.perf_counter(), time.process_time()
+        image, alpha, depth, meta = rasterize_gaussians(*args, **kwargs)
+        t1, c1 = time.perf_counter(), time.process_time()
+        loss = image.sum() + alpha.sum() + depth.sum()
+        t2, c2 = time.perf_counter(), time.process_time()
+        loss.backward()
+        t3, c3 = time.perf_counter(), time.process_time()
+        if i:
+            forward.append((t1 - t0, c1 - c0))
+            backward.append((t3 - t2, c3 - c2))
+    visible = int((meta["radii"] > 0).sum())
+    click.echo(f"raster: {gaussians} Gaussians ({visible} visible), {size}x{size}, RGB + depth, {dtype}")
+    click.echo(f"  tile entries: {meta['num_tile_entries']} ({meta['tile_list_bytes'] / 2**20:.1f} MiB of tile lists)")
+    for name, runs in (("forward", forward), ("backward", backward)):
+        wall = 1e3 * statistics.median(t for t, _ in runs)
+        cpu = 1e3 * statistics.median(c for _, c in runs)
+        click.echo(f"  {name + ':':9} {wall:8.1f} ms wall, {cpu:8.1f} ms CPU (medians of {repeat})")
+    click.echo(f"  load average: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (wall times grow with it)")
