@@ -8,6 +8,7 @@ from clflow_cli.main import LazyGroup
 BENCHMARKS: dict[str, str] = {
     "query": "clflow_cli.bench_query:query",
     "ply": "clflow_cli.bench_ply:ply",
+    "flow": "clflow_cli.bench_flow:flow",
     "raster": "clflow_cli.bench_raster:raster",
 }
 

@@ -18,6 +18,7 @@ BUILTIN_COMMANDS: dict[str, str] = {
     "devices": "clflow_cli.devices:devices",
     "query": "clflow_cli.query:query",
     "render": "clflow_cli.render:render",
+    "flow": "clflow_cli.flow:flow",
 }
 
 PLUGIN_GROUP = "clflow.commands"

@@ -27,7 +27,7 @@ from clflow.splat.constants import ALPHA_MIN, SPLAT_DEFINES, TILE_SIZE
 from clflow.splat.sh import num_sh_bases, sh_to_rgb
 
 ORTHONORMAL_TOL = 1e-4  # |W W^T - I| allowed in the viewmat's rotation
-QUAT_MIN_NORM = 1e-12  # a quaternion shorter than this has no rotation
+QUAT_MIN_NORM = 1e-12  # a quaternion whose entries are all smaller than this has no rotation
 
 
 def _kernel(source: str, name: str, dtype: torch.dtype, **defines):
@@ -244,7 +244,7 @@ def composite_backward(
     n, channels = features.shape
     m = sorted_slots.shape[0]
     tiles_x, tiles_y = tile_grid(width, height)
-    slot_grads = features.new_zeros(m, 6 + channels)  # one row per (tile, Gaussian) pair
+    slot_grads = features.new_empty(m, 6 + channels)  # one row per (tile, Gaussian) pair, zeroed by its tile
     v_means2d, v_conics = torch.empty_like(means2d), torch.empty_like(conics)
     v_opacities, v_features = torch.empty_like(opacities), torch.empty_like(features)
     backward = _kernel("rasterize.cl", "rasterize_backward", features.dtype, CHANNELS=channels)
@@ -321,8 +321,13 @@ def _check(t: Tensor | None, name: str, shape: tuple, dtype: torch.dtype | None)
         raise InputError(f"rasterize: {name} is {t.dtype} but means are {dtype}; use one float dtype")
     if t.device.type != "cpu":
         raise InputError(f"rasterize: {name} is on {t.device}; clflow takes CPU tensors")
-    if not bool(torch.isfinite(t).all()):
-        bad = torch.nonzero(~torch.isfinite(t.reshape(t.shape[0], -1)).all(dim=-1))[0].item() if t.dim() else 0
+    # one reduction in the common case: a sum is finite unless some value is NaN or inf
+    # (or the values are so large that they overflow, which the exact check then clears)
+    if t.numel() and not bool(torch.isfinite(t.sum())):
+        finite_rows = torch.isfinite(t.reshape(t.shape[0], -1)).all(dim=-1) if t.dim() else torch.isfinite(t)[None]
+        if bool(finite_rows.all()):
+            return
+        bad = torch.nonzero(~finite_rows)[0].item()
         raise InputError(f"rasterize: {name} has NaN or infinite values (first at index {bad})")
 
 
@@ -342,17 +347,15 @@ def _validate(means, quats, scales, opacities, colors, viewmat, K, width, height
             raise InputError("rasterize: quats and scales are required when covars is None")
         _check(quats, "quats", (n, 4), dtype)
         _check(scales, "scales", (n, 3), dtype)
-        short = torch.nonzero(quats.norm(dim=-1) < QUAT_MIN_NORM)
-        if short.numel():
-            raise InputError(f"rasterize: quats[{short[0].item()}] is (nearly) zero: a degenerate rotation")
-        bad = torch.nonzero((scales <= 0).any(dim=-1))
-        if bad.numel():
-            i = bad[0].item()
+        if n and float(quats.abs().amax(dim=-1).min()) < QUAT_MIN_NORM:
+            i = torch.nonzero(quats.abs().amax(dim=-1) < QUAT_MIN_NORM)[0].item()
+            raise InputError(f"rasterize: quats[{i}] is (nearly) zero: a degenerate rotation")
+        if n and float(scales.min()) <= 0:
+            i = torch.nonzero((scales <= 0).any(dim=-1))[0].item()
             raise InputError(f"rasterize: scales[{i}] = {scales[i].tolist()} has a zero or negative standard deviation")
     _check(opacities, "opacities", (n,), dtype)
-    bad = torch.nonzero((opacities < 0) | (opacities > 1))
-    if bad.numel():
-        i = bad[0].item()
+    if n and not 0 <= float(opacities.min()) <= float(opacities.max()) <= 1:
+        i = torch.nonzero((opacities < 0) | (opacities > 1))[0].item()
         raise InputError(f"rasterize: opacities[{i}] = {opacities[i].item()} is outside [0, 1] (apply the sigmoid)")
     if sh_degree is None:
         _check(colors, "colors", (n, -1), dtype)
@@ -464,8 +467,9 @@ def rasterize_gaussians(
         Differentiable w.r.t. means, quats, scales, covars, opacities, colors, sh_rotations,
         features and background.
     """
-    _validate(means, quats, scales, opacities, colors, viewmat, K, width, height, covars, sh_degree,
-              sh_rotations, features, background, near)
+    with torch.no_grad():
+        _validate(means, quats, scales, opacities, colors, viewmat, K, width, height, covars, sh_degree,
+                  sh_rotations, features, background, near)
     dtype = means.dtype
     viewmat = viewmat.to(dtype).contiguous()
     K = K.to(dtype).contiguous()

@@ -148,8 +148,8 @@ __kernel void rasterize_forward(
  * (T_i = T_{i+1} / (1 - alpha_i)), 16 pixels at a time. The gradient of entry i, summed over
  * the row's lanes in a fixed order, is added into row sorted_slots[i] of
  * slot_grads [M, 6 + CHANNELS] = (dmean2d x, y, dconic A, B, C, dopacity, dfeatures...).
- * Each slot row belongs to one (tile, Gaussian) pair, hence to this work-item only: the
- * sums are deterministic. In: v_out [H,W,CHANNELS] = dL/dout, v_T [H,W] = dL/dT_final. */
+ * Each slot row belongs to one (tile, Gaussian) pair, hence to this work-item only (which
+ * zeroes it first): the sums are deterministic. In: v_out [H,W,CHANNELS] = dL/dout, v_T [H,W] = dL/dT_final. */
 __kernel void rasterize_backward(
     __global const int *ranges, __global const int *sorted_slots,
     __global const int *slot_gaussian, __global const real *means2d,
@@ -162,7 +162,10 @@ __kernel void rasterize_backward(
     const int tile = get_global_id(0);
     if (tile >= n_tiles)
         return;
-    const int start = ranges[2 * tile];
+    const int start = ranges[2 * tile], end = ranges[2 * tile + 1];
+    for (int i = start; i < end; ++i)
+        for (int k = 0; k < 6 + CHANNELS; ++k)
+            slot_grads[(size_t)sorted_slots[i] * (6 + CHANNELS) + k] = 0;
     const int px0 = (tile % tiles_x) * TILE_SIZE, py0 = (tile / tiles_x) * TILE_SIZE;
     const int n_px = min(TILE_SIZE, width - px0);
     const realv cx = LANES + (real)px0 + (real)0.5;
@@ -200,15 +203,15 @@ __kernel void rasterize_backward(
                               & INT_TO_MASK(active);
             if (!any(hit))
                 continue;
-            const realv one_minus = 1 - alpha;
-            T = select(T, T / one_minus, hit);
+            const realv inv_one_minus = 1 / (1 - alpha);
+            T = select(T, T * inv_one_minus, hit);
             const realv w = select((realv)0, alpha * T, hit);
             __global const real *f = features + (size_t)gid * CHANNELS;
             __global real *row = slot_grads + (size_t)slot * (6 + CHANNELS);
-            realv v_alpha = -T_end / one_minus * v_T_end;
+            realv v_alpha = -T_end * inv_one_minus * v_T_end;
             for (int k = 0; k < CHANNELS; ++k) {
                 row[6 + k] += hsum(w * g[k]);
-                v_alpha += (f[k] * T - S[k] / one_minus) * g[k];
+                v_alpha += (f[k] * T - S[k] * inv_one_minus) * g[k];
                 S[k] += f[k] * w;
             }
             /* clamped alpha (o exp(-sigma) > ALPHA_MAX): no gradient to opacity or shape */

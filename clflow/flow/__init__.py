@@ -1,0 +1,1 @@
+"""Guidance video, observed optical flow, simulated flow, flow losses and metrics."""

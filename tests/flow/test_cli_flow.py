@@ -1,0 +1,62 @@
+"""``clflow flow VIDEO``."""
+
+import numpy as np
+from click.testing import CliRunner
+
+from clflow.flow.flo import read_flo
+from clflow.flow.video import read_video
+from clflow.flow.visualize import write_video
+from clflow_cli.main import cli
+
+
+def test_flow_command_writes_fields_and_visualisation(tmp_path, translating):
+    frames, truth = translating
+    path = tmp_path / "guide.mkv"
+    write_video(path, frames, 10.0)
+    out = tmp_path / "out"
+    result = CliRunner().invoke(cli, ["flow", str(path), "-o", str(out), "--box", "8,8,72,56", "--stride", "1"])
+    assert result.exit_code == 0, result.output
+    assert "6 frames, 80x64, 10 fps" in result.output and "5 flow fields" in result.output
+    data = np.load(out / "flow.npz")
+    assert data["flow"].shape == (5, 64, 80, 2) and data["valid"].shape == (5, 64, 80)
+    np.testing.assert_allclose(data["times"], np.arange(6) / 10.0)
+    assert str(data["method"]) == "dis" and float(data["fps"]) == 10.0
+    valid = data["valid"]
+    assert valid.mean() > 0.5 and not valid[:, :4].any()  # outside the box
+    assert np.abs(data["flow"] - truth)[valid].mean() < 0.2
+    for t in range(5):
+        assert np.array_equal(read_flo(out / "flo" / f"flow_{t:04d}.flo"), data["flow"][t])
+    assert len(list((out / "png").glob("flow_*.png"))) == 5
+    panels = read_video(out / "flow.mp4")
+    assert panels.frames.shape == (5, 64, 160, 3)
+    assert not [p for p in out.rglob(".*")]  # no temporary file left behind
+
+
+def test_flow_command_window_and_errors(tmp_path, translating):
+    path = tmp_path / "guide.mkv"
+    write_video(path, translating[0], 10.0)
+    runner = CliRunner()
+    result = runner.invoke(cli, ["flow", str(path), "-o", str(tmp_path / "w"), "--start", "0.1", "--end", "0.4", "--no-video"])
+    assert result.exit_code == 0, result.output
+    assert np.load(tmp_path / "w" / "flow.npz")["flow"].shape[0] == 2
+    assert not (tmp_path / "w" / "flow.mp4").exists()
+    result = runner.invoke(cli, ["flow", str(path), "-o", str(tmp_path / "r"), "--sim-fps", "20", "--no-video"])
+    assert result.exit_code == 0, result.output
+    data = np.load(tmp_path / "r" / "flow.npz")
+    np.testing.assert_allclose(data["times"], np.arange(11) / 20.0)  # 0 .. 0.5 s at 20 frames/s
+    assert data["flow"].shape[0] == 10 and float(data["fps"]) == 20.0
+    result = runner.invoke(cli, ["flow", str(path), "-o", str(tmp_path / "x"), "--start", "0.5"])
+    assert result.exit_code == 1 and "optical flow needs at least 2 frames, the video has 1" in result.output
+    assert "Traceback" not in result.output and not (tmp_path / "x").exists()
+    result = runner.invoke(cli, ["flow", str(tmp_path / "nope.mp4")])
+    assert result.exit_code == 1 and "nope.mp4: no such video file or image folder" in result.output
+    result = runner.invoke(cli, ["flow", str(path), "-o", str(tmp_path / "m"), "--mask", str(tmp_path / "none.png")])
+    assert result.exit_code == 1 and "none.png: not a readable mask image" in result.output
+    result = runner.invoke(cli, ["flow", str(path), "--box", "1,2,3"])
+    assert result.exit_code == 2 and "expected x0,y0,x1,y1" in result.output
+
+
+def test_bench_flow_runs_small():
+    result = CliRunner().invoke(cli, ["bench", "flow", "--frames", "3", "--size", "64", "-n", "300", "--sim-frames", "1"])
+    assert result.exit_code == 0, result.output
+    assert "dis medium" in result.output and "affine render + loss + backward" in result.output

@@ -1,0 +1,107 @@
+"""Observed optical flow against known motion; consistency and object masks."""
+
+import numpy as np
+import pytest
+
+from clflow.errors import ClflowError, InputError
+from clflow.flow.metrics import endpoint_error
+from clflow.flow.optical_flow import (
+    forward_backward_mask,
+    mask_from_alpha,
+    mask_from_box,
+    mask_from_image,
+    observed_flow,
+)
+from clflow.flow.synthetic import Motion, moving_texture
+from clflow.flow.visualize import write_image
+
+HEIGHT, WIDTH = 96, 128
+MOTIONS = {
+    "translate": Motion(shift=(2.3, -1.4)),
+    "rotate": Motion(angle=np.deg2rad(1.5)),
+    "scale": Motion(scale=1.02),
+    "similarity": Motion(shift=(1.0, 0.5), angle=0.01, scale=0.99),
+}
+OBJECT_BOX = (16, 16, WIDTH - 16, HEIGHT - 16)  # away from the frame border, where texture leaves
+
+
+@pytest.mark.parametrize("motion", MOTIONS.values(), ids=MOTIONS.keys())
+@pytest.mark.parametrize("method", ["dis", "farneback"])
+def test_flow_of_known_motion(motion, method):
+    frames, truth = moving_texture(3, HEIGHT, WIDTH, motion, seed=2)
+    flow = observed_flow(frames, method)
+    assert flow.shape == (2, HEIGHT, WIDTH, 2) and flow.dtype == np.float32
+    assert endpoint_error(flow, truth, mask_from_box(OBJECT_BOX, WIDTH, HEIGHT)) < 0.2
+
+
+@pytest.mark.parametrize("preset", ["ultrafast", "fast", "medium"])
+def test_dis_presets(preset):
+    frames, truth = moving_texture(2, HEIGHT, WIDTH, MOTIONS["translate"], seed=3)
+    assert endpoint_error(observed_flow(frames, preset=preset), truth, mask_from_box(OBJECT_BOX, WIDTH, HEIGHT)) < 0.25
+
+
+def test_forward_backward_mask(translating):
+    frames, _ = moving_texture(3, HEIGHT, WIDTH, MOTIONS["similarity"], seed=4)
+    forward = observed_flow(frames)
+    backward = observed_flow(frames[::-1].copy())[::-1]
+    valid = forward_backward_mask(forward, backward)
+    assert valid.shape == (2, HEIGHT, WIDTH)
+    assert valid.mean() > 0.9
+    # A backward flow that does not undo a 1.7 px motion: |w + w_b|^2 = 2.8 px^2 > bound.
+    forward = observed_flow(translating[0])
+    assert forward_backward_mask(forward, np.zeros_like(forward)).mean() < 0.01
+    # Pixels carried out of the frame are invalid: a 3 px shift right leaves the last 3 columns.
+    shift = np.zeros((HEIGHT, WIDTH, 2), np.float32)
+    shift[..., 0] = 3.0
+    valid = forward_backward_mask(shift, -shift)
+    assert valid[:, : WIDTH - 3].all() and not valid[:, WIDTH - 3 :].any()
+
+
+def test_object_masks(tmp_path):
+    box = mask_from_box((1.0, 2.0, 4.0, 3.0), 6, 5)
+    expected = np.zeros((5, 6), bool)
+    expected[2, 1:4] = True  # pixel centres 1.5, 2.5, 3.5 in x; 2.5 in y
+    assert np.array_equal(box, expected)
+    image = np.zeros((5, 6, 3), np.uint8)
+    image[1:3, 2:5] = 255
+    write_image(tmp_path / "mask.png", image)
+    assert np.array_equal(mask_from_image(tmp_path / "mask.png", 6, 5), image[..., 0] > 0)
+    alpha = np.zeros((5, 6, 1))
+    alpha[3, 4] = 0.8
+    assert np.argwhere(mask_from_alpha(alpha)).tolist() == [[3, 4]]
+    with pytest.raises(InputError, match="mask.png: mask is 6x5 but the video is 7x5"):
+        mask_from_image(tmp_path / "mask.png", 7, 5)
+    write_image(tmp_path / "black.png", np.zeros((5, 6, 3), np.uint8))
+    with pytest.raises(InputError, match="black.png: the object mask is empty"):
+        mask_from_image(tmp_path / "black.png", 6, 5)
+    with pytest.raises(InputError, match="outside.png: not a readable mask image"):
+        mask_from_image(tmp_path / "outside.png", 6, 5)
+    with pytest.raises(InputError, match="object box .* the object mask is empty"):
+        mask_from_box((10, 10, 20, 20), 6, 5)
+    with pytest.raises(InputError, match="rendered alpha above 0.5: the object mask is empty"):
+        mask_from_alpha(np.zeros((5, 6)))
+    with pytest.raises(InputError, match="NaN"):
+        mask_from_alpha(np.full((5, 6), np.nan))
+
+
+def test_flow_errors(tmp_path, translating):
+    frames = translating[0]
+    with pytest.raises(InputError, match="guide.mp4: optical flow needs at least 2 frames, the video has 1"):
+        observed_flow(frames[:1], source="guide.mp4")
+    with pytest.raises(InputError, match="unknown DIS preset 'slow'"):
+        observed_flow(frames, preset="slow")
+    with pytest.raises(InputError, match="unknown optical flow method 'lk'"):
+        observed_flow(frames, "lk")
+    with pytest.raises(InputError, match="needs a weights file"):
+        observed_flow(frames, "raft")
+    with pytest.raises(InputError, match="raft.pth: RAFT weights file not found"):
+        observed_flow(frames, "raft", raft_weights=tmp_path / "raft.pth")
+    (tmp_path / "raft.pth").write_bytes(b"weights")
+    try:
+        import torchvision  # noqa: F401
+    except Exception:
+        with pytest.raises(ClflowError, match="needs torchvision"):
+            observed_flow(frames, "raft", raft_weights=tmp_path / "raft.pth")
+    else:
+        with pytest.raises(InputError, match="raft.pth: not a torchvision RAFT-large state dict"):
+            observed_flow(frames, "raft", raft_weights=tmp_path / "raft.pth")
