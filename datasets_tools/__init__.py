@@ -1,0 +1,1 @@
+"""Generators of the demo and of benchmark scenes (installed as clflow_datasets)."""

@@ -1,0 +1,51 @@
+/* Substep stage 4: grid to particle (APIC) and advection.
+ *
+ *   v_p' = sum_i w v_i ;  C_p' = (4/dx^2) sum_i w v_i d^T ;  x_p' = x_p + dt v_p'
+ * A particle not yet released (t < release_time[p], layer release) stays put: x' = x,
+ * v' = 0, C' = 0. A particle leaving [CLAMP_MARGIN, n - 1 - CLAMP_MARGIN] cells is clamped
+ * back in and counted in *clamped (an integer atomic: the count is exact and deterministic). */
+#include "mpm/mpm.h"
+
+__kernel void g2p(const int nx, const int ny, const int nz, const real dx, const real ox,
+                  const real oy, const real oz, const int n, const real dt, const real t,
+                  __global const real *x_in, __global const real *grid_v,
+                  __global const real *release_time, __global real *x_out, __global real *v_out,
+                  __global real *C_out, volatile __global int *clamped)
+{
+    const int p = get_global_id(0);
+    if (p >= n)
+        return;
+    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    real xp[3], v[3] = {0, 0, 0}, C[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+    load_row(x_in, p, 3, xp);
+    if (t >= release_time[p]) {
+        const stencil_t st = make_stencil(&g, xp);
+        const real scale = 4 / (dx * dx);
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                for (int k = 0; k < 3; ++k) {
+                    const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
+                    const real d[3] = {(i - st.fx[0]) * dx, (j - st.fx[1]) * dx, (k - st.fx[2]) * dx};
+                    real vi[3];
+                    load_row(grid_v, grid_index(&g, st.base[0] + i, st.base[1] + j, st.base[2] + k), 3, vi);
+                    for (int a = 0; a < 3; ++a) {
+                        v[a] += w * vi[a];
+                        for (int b = 0; b < 3; ++b)
+                            C[3 * a + b] += scale * w * vi[a] * d[b];
+                    }
+                }
+        int out = 0;
+        for (int a = 0; a < 3; ++a) {
+            const real lo = g.origin[a] + CLAMP_MARGIN * dx;
+            const real hi = g.origin[a] + (grid_extent(&g, a) - 1 - CLAMP_MARGIN) * dx;
+            const real moved = xp[a] + dt * v[a];
+            xp[a] = clamp(moved, lo, hi);
+            out |= xp[a] != moved;
+        }
+        if (out)
+            atomic_inc(clamped);
+    }
+    store_row(x_out, p, 3, xp);
+    store_row(v_out, p, 3, v);
+    store_row(C_out, p, 9, C);
+}
