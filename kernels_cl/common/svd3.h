@@ -17,13 +17,16 @@
 
 #if REAL_IS_DOUBLE
 #define SVD3_EPS DBL_EPSILON
+#define SVD3_SQRT_EPS 1.4901161193847656e-08 /* sqrt(DBL_EPSILON) */
 #else
 #define SVD3_EPS FLT_EPSILON
+#define SVD3_SQRT_EPS 3.4526698e-04f /* sqrt(FLT_EPSILON) */
 #endif
 #define SVD3_MAX_SWEEPS 16
 
-/* Rotate columns p, q of b (and of v) to make them orthogonal. Returns 0 if they already are. */
-inline int svd3_orthogonalize(real *b, real *v, const int p, const int q)
+/* Rotate columns p, q of b (and of v) to make them orthogonal; returns |tan| of the rotation
+ * angle (0 when they already are orthogonal to working precision). */
+inline real svd3_orthogonalize(real *b, real *v, const int p, const int q)
 {
     real alpha = 0, beta = 0, gamma = 0;
     for (int k = 0; k < 3; ++k) {
@@ -31,7 +34,7 @@ inline int svd3_orthogonalize(real *b, real *v, const int p, const int q)
         beta += b[3 * k + q] * b[3 * k + q];
         gamma += b[3 * k + p] * b[3 * k + q];
     }
-    if (fabs(gamma) <= SVD3_EPS * sqrt(alpha * beta))
+    if (gamma * gamma <= SVD3_EPS * SVD3_EPS * alpha * beta)
         return 0;
     const real zeta = (beta - alpha) / (2 * gamma);
     const real t = (zeta >= 0 ? (real)1 : (real)-1) / (fabs(zeta) + sqrt(1 + zeta * zeta));
@@ -44,7 +47,7 @@ inline int svd3_orthogonalize(real *b, real *v, const int p, const int q)
         v[3 * k + p] = c * vp - s * vq;
         v[3 * k + q] = s * vp + c * vq;
     }
-    return 1;
+    return fabs(t);
 }
 
 /* Put the longer of columns i, j of b first: swap them in b and v, negating one (det v stays +1). */
@@ -89,11 +92,13 @@ inline void svd3(const real *F, real *U, real *s, real *V)
     real b[9];
     mat3_copy(F, b);
     mat3_identity(V);
+    /* Jacobi converges quadratically: once a sweep only needed rotations of angle below
+     * sqrt(eps), what they left off the diagonal is O(angle^2) <= eps, so no further sweep. */
     for (int sweep = 0; sweep < SVD3_MAX_SWEEPS; ++sweep) {
-        int rotated = svd3_orthogonalize(b, V, 0, 1);
-        rotated += svd3_orthogonalize(b, V, 0, 2);
-        rotated += svd3_orthogonalize(b, V, 1, 2);
-        if (!rotated)
+        const real t01 = svd3_orthogonalize(b, V, 0, 1);
+        const real t02 = svd3_orthogonalize(b, V, 0, 2);
+        const real t12 = svd3_orthogonalize(b, V, 1, 2);
+        if (fmax(t01, fmax(t02, t12)) <= SVD3_SQRT_EPS)
             break;
     }
     svd3_sort_pair(b, V, 0, 1);
