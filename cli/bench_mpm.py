@@ -17,6 +17,8 @@ GRID = 64
 def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double):
     """Particle-substeps per second of each material on a cube of particles under gravity,
     and the memory per particle."""
+    import logging
+    import os
     import time
 
     import torch
@@ -33,10 +35,13 @@ def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double):
     x = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
     n = x.shape[0]
     names = list(materials) or list(MATERIALS)
+    logging.getLogger("pyopencl").setLevel(logging.WARNING)  # no build chatter between rows
+    load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
+    click.echo(f"load average before the run: {load} (figures scale down on a shared machine)")
     click.echo(f"device: {device.info.label if device else 'default'}; {n:,} particles, grid {grid_res}^3, "
                f"{'float64' if double else 'float32'}, {substeps} timed substeps")
     for name in names:
-        sim = Simulator(x, h**3, MaterialSpec(name), Grid((grid_res,) * 3, dx), frame_dt=1e-3, substeps=10,
+        sim = Simulator(x, h**3, MaterialSpec(name), Grid((grid_res,) * 3, dx), frame_dt=1e-3,
                         dtype=dtype, device=device)
         sim.step()  # builds kernels and warms the caches
         start = time.perf_counter()
