@@ -10,6 +10,7 @@ BENCHMARKS: dict[str, str] = {
     "ply": "clflow_cli.bench_ply:ply",
     "flow": "clflow_cli.bench_flow:flow",
     "raster": "clflow_cli.bench_raster:raster",
+    "mpm": "clflow_cli.bench_mpm:mpm",
 }
 
 

@@ -19,6 +19,7 @@ BUILTIN_COMMANDS: dict[str, str] = {
     "query": "clflow_cli.query:query",
     "render": "clflow_cli.render:render",
     "flow": "clflow_cli.flow:flow",
+    "simulate": "clflow_cli.simulate:simulate",
 }
 
 PLUGIN_GROUP = "clflow.commands"

@@ -1,0 +1,245 @@
+"""Boundary conditions (grid side) and drivers (particle side) of a simulation, in SI units.
+
+Grid side, evaluated in table order each substep where a node has mass:
+  :class:`HalfSpace` colliders (sticky / slip / separate, Coulomb friction, time window),
+  :class:`Box` velocity regions (fixed: velocity 0; moving: any velocity),
+  :class:`RotatingCylinder` (propeller-like driver), and the domain walls.
+Particle side: :class:`Force` stages on a region (:class:`BoxRegion`, :class:`SphereRegion`
+or a boolean mask) in newtons or m/s^2, and layer release (:func:`layer_release_times`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence, Union
+
+import torch
+
+from clflow.errors import InputError
+from clflow.mpm.constants import BC_BOX, BC_CYLINDER, BC_HALFSPACE, BC_STRIDE, COLLIDER_MODES
+
+Vec3 = Sequence[float]
+INF = math.inf
+
+
+def _vec3(value, what: str) -> list[float]:
+    try:
+        out = [float(c) for c in value]
+    except (TypeError, ValueError):
+        raise InputError(f"{what} must be 3 numbers, got {value!r}") from None
+    if len(out) != 3 or not all(math.isfinite(c) for c in out):
+        raise InputError(f"{what} must be 3 finite numbers, got {value!r}")
+    return out
+
+
+def _unit(value, what: str) -> list[float]:
+    v = _vec3(value, what)
+    norm = math.sqrt(sum(c * c for c in v))
+    if norm == 0:
+        raise InputError(f"{what} must not be the zero vector")
+    return [c / norm for c in v]
+
+
+def _window(start: float, end: float, what: str) -> list[float]:
+    if math.isnan(start) or math.isnan(end) or end <= start:
+        raise InputError(f"{what}: time window [{start}, {end}) is empty or not a number")
+    return [float(start), float(end)]
+
+
+@dataclass(frozen=True)
+class HalfSpace:
+    """Collider filling {x : (x - point).normal < 0}; ``normal`` points into the free side.
+
+    mode: "sticky" (v = 0), "slip" (normal velocity removed) or "separate" (removed only when
+    moving into the collider); ``friction`` mu_f is Coulomb friction for slip/separate.
+    Active for start <= t < end (s)."""
+
+    point: Vec3
+    normal: Vec3
+    mode: str = "slip"
+    friction: float = 0.0
+    start: float = 0.0
+    end: float = INF
+
+    def record(self) -> list[float]:
+        if self.mode not in COLLIDER_MODES:
+            raise InputError(f"collider mode {self.mode!r} unknown; choose one of {', '.join(COLLIDER_MODES)}")
+        if not (self.friction >= 0 and math.isfinite(self.friction)):
+            raise InputError(f"collider friction must be a finite number >= 0, got {self.friction}")
+        return ([BC_HALFSPACE] + _window(self.start, self.end, "collider") + _vec3(self.point, "collider point")
+                + _unit(self.normal, "collider normal") + [COLLIDER_MODES[self.mode], float(self.friction)])
+
+
+@dataclass(frozen=True)
+class Box:
+    """Grid nodes in the box [lower, upper] (m) move with ``velocity`` (m/s): a fixed region
+    (velocity 0) or a moving one. Active for start <= t < end (s)."""
+
+    lower: Vec3
+    upper: Vec3
+    velocity: Vec3 = (0.0, 0.0, 0.0)
+    start: float = 0.0
+    end: float = INF
+
+    def record(self) -> list[float]:
+        lo, hi = _vec3(self.lower, "box lower"), _vec3(self.upper, "box upper")
+        if any(a > b for a, b in zip(lo, hi)):
+            raise InputError(f"box lower {lo} is not below upper {hi}")
+        return [BC_BOX] + _window(self.start, self.end, "box") + lo + hi + _vec3(self.velocity, "box velocity")
+
+
+@dataclass(frozen=True)
+class RotatingCylinder:
+    """Grid nodes in the cylinder (``center``, unit ``axis``, ``radius``, ``half_length``, m)
+    rotate rigidly at ``angular_velocity`` (rad/s, right-handed about axis): a propeller
+    driver. Active for start <= t < end (s)."""
+
+    center: Vec3
+    axis: Vec3
+    radius: float
+    half_length: float
+    angular_velocity: float
+    start: float = 0.0
+    end: float = INF
+
+    def record(self) -> list[float]:
+        if not (self.radius > 0 and self.half_length > 0):
+            raise InputError(f"cylinder radius and half_length must be > 0, got {self.radius}, {self.half_length}")
+        if not math.isfinite(self.angular_velocity):
+            raise InputError(f"cylinder angular_velocity must be finite, got {self.angular_velocity}")
+        return ([BC_CYLINDER] + _window(self.start, self.end, "cylinder") + _vec3(self.center, "cylinder center")
+                + _unit(self.axis, "cylinder axis") + [float(self.radius), float(self.half_length),
+                                                        float(self.angular_velocity)])
+
+
+GridCondition = Union[HalfSpace, Box, RotatingCylinder]
+
+
+def wall_colliders(lower: Vec3, upper: Vec3, cells: int, dx: float, mode: str, friction: float) -> list[HalfSpace]:
+    """The six domain walls: nodes within ``cells`` cells of a face are inside a collider."""
+    walls = []
+    for axis in range(3):
+        for sign, face in ((1.0, lower[axis] + cells * dx), (-1.0, upper[axis] - cells * dx)):
+            point = [0.0, 0.0, 0.0]
+            normal = [0.0, 0.0, 0.0]
+            point[axis], normal[axis] = face, sign
+            walls.append(HalfSpace(point, normal, mode, friction))
+    return walls
+
+
+def boundary_table(conditions: Sequence[GridCondition], dtype: torch.dtype) -> torch.Tensor:
+    """[B, BC_STRIDE] table of the kernels (kernels_cl/mpm/grid.cl)."""
+    table = torch.zeros(len(conditions), BC_STRIDE, dtype=torch.float64)
+    for row, cond in enumerate(conditions):
+        rec = cond.record()
+        table[row, : len(rec)] = torch.tensor(rec, dtype=torch.float64)
+    # inf time bounds stay inf in float32 too
+    return table.to(dtype)
+
+
+@dataclass(frozen=True)
+class BoxRegion:
+    """Particles whose initial position lies in [lower, upper] (m)."""
+
+    lower: Vec3
+    upper: Vec3
+
+    def select(self, x: torch.Tensor) -> torch.Tensor:
+        lo = torch.tensor(_vec3(self.lower, "region lower"), dtype=x.dtype)
+        hi = torch.tensor(_vec3(self.upper, "region upper"), dtype=x.dtype)
+        return ((x >= lo) & (x <= hi)).all(-1)
+
+
+@dataclass(frozen=True)
+class SphereRegion:
+    """Particles whose initial position lies within ``radius`` (m) of ``center``."""
+
+    center: Vec3
+    radius: float
+
+    def select(self, x: torch.Tensor) -> torch.Tensor:
+        c = torch.tensor(_vec3(self.center, "region center"), dtype=x.dtype)
+        return ((x - c) ** 2).sum(-1) <= float(self.radius) ** 2
+
+
+Region = Union[BoxRegion, SphereRegion, torch.Tensor]
+
+
+@dataclass(frozen=True)
+class Force:
+    """A driver stage: for start <= t < end (s) the particles of ``region`` are pushed by a
+    total ``force`` (N, shared in proportion to mass: every particle gets F / M_region) or by
+    an ``acceleration`` (m/s^2). Chain stages by giving consecutive time windows."""
+
+    region: Region
+    start: float
+    end: float
+    force: Vec3 | None = None
+    acceleration: Vec3 | None = None
+
+    def mask(self, x0: torch.Tensor) -> torch.Tensor:
+        region = self.region
+        if isinstance(region, torch.Tensor):
+            if region.dtype != torch.bool or region.shape != x0.shape[:1]:
+                raise InputError(f"force region mask must be a bool tensor of shape [{x0.shape[0]}], "
+                                 f"got {region.dtype} {tuple(region.shape)}")
+            mask = region
+        else:
+            mask = region.select(x0)
+        if not bool(mask.any()):
+            raise InputError(f"force region {region!r} contains no particle")
+        return mask
+
+    def acceleration_of(self, region_mass: float) -> list[float]:
+        """The stage's acceleration (m/s^2) given the region's total mass (kg)."""
+        _window(self.start, self.end, "force")
+        if (self.force is None) == (self.acceleration is None):
+            raise InputError("a force stage needs exactly one of force (N) or acceleration (m/s^2)")
+        if self.force is not None:
+            return [f / region_mass for f in _vec3(self.force, "force")]
+        return _vec3(self.acceleration, "acceleration")
+
+
+class DriverGroups:
+    """Particles grouped by which force stages act on them: group [N] int32 (-1: none) and,
+    per substep, the acceleration table [groups, 3] (the sum of the active stages)."""
+
+    def __init__(self, forces: Sequence[Force], x0: torch.Tensor, mass: torch.Tensor):
+        n = x0.shape[0]
+        self.forces = list(forces)
+        if not self.forces:
+            self.group = torch.full((n,), -1, dtype=torch.int32)
+            self.members = torch.zeros(0, 0, dtype=torch.bool)
+            self.stage_accel = torch.zeros(0, 3, dtype=torch.float64)
+            return
+        masks = torch.stack([f.mask(x0) for f in self.forces], 1)  # [N, S]
+        self.stage_accel = torch.tensor(
+            [f.acceleration_of(float(mass[m].double().sum())) for f, m in zip(self.forces, masks.T)],
+            dtype=torch.float64,
+        )
+        members, inverse = torch.unique(masks, dim=0, return_inverse=True)  # [G, S], [N]
+        inside = members.any(1)
+        # group ids only for combinations that contain at least one stage
+        ids = torch.cumsum(inside.long(), 0) - 1
+        self.group = torch.where(inside[inverse], ids[inverse], -1).to(torch.int32)
+        self.members = members[inside]
+
+    def accel(self, t: float, dtype: torch.dtype) -> torch.Tensor:
+        """[groups, 3] acceleration (m/s^2) at time t."""
+        active = torch.tensor([f.start <= t < f.end for f in self.forces], dtype=torch.float64)
+        return ((self.members.double() * active) @ self.stage_accel).to(dtype).contiguous()
+
+
+def layer_release_times(x: torch.Tensor, layers: int, interval: float, axis: int = 1,
+                        top_first: bool = True) -> torch.Tensor:
+    """Release times [N] (s) that free the particles in ``layers`` equal slabs along ``axis``,
+    one slab every ``interval`` seconds (the top slab at t = 0 when ``top_first``)."""
+    if layers < 1 or not interval >= 0:
+        raise InputError(f"layer release needs layers >= 1 and interval >= 0, got {layers}, {interval}")
+    h = x[:, axis].double()
+    lo, hi = float(h.min()), float(h.max())
+    frac = (h - lo) / max(hi - lo, 1e-30)
+    layer = torch.clamp((frac * layers).long(), max=layers - 1)
+    order = (layers - 1 - layer) if top_first else layer
+    return (order.double() * interval).to(x.dtype)

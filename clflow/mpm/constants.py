@@ -1,0 +1,121 @@
+"""Constants shared by the MPM kernels, the host code and the torch reference.
+
+Each is written once here; the kernels get them as ``-D`` defines (:func:`kernel_defines`).
+"""
+
+from __future__ import annotations
+
+import math
+
+from clflow.errors import InputError
+from clflow.materials import get_material, lame_parameters, validate_params
+
+# Kernel material ids. "neo_hookean" is the elastic material's optional model.
+MATERIAL_IDS: dict[str, int] = {
+    "elastic": 0,
+    "neo_hookean": 1,
+    "plasticine": 2,
+    "metal": 3,
+    "foam": 4,
+    "sand": 5,
+    "newtonian": 6,
+    "non_newtonian": 7,
+    "snow": 8,
+}
+ELASTIC_MODELS = ("fixed_corotated", "neo_hookean")
+
+PARAM_COUNT = 5  # kernel parameters per particle (see kernel_params)
+HENCKY_S_MIN = 0.05  # singular values are floored here before the log of Hencky strain
+SAND_S_MIN = 1e-4  # the same for Drucker-Prager (on |s|)
+SAFE_NORM_EPS2 = 1e-16  # ||x|| = sqrt(x.x + eps2) wherever a norm is divided by
+NEWTONIAN_J_MIN = 0.05  # floor of the fluid's volume ratio J
+CLAMP_MARGIN = 1  # particles are kept >= this many cells inside the grid
+MASS_EPS_REL = 1e-12  # grid nodes lighter than this x the lightest particle are empty (see docs/mpm.md)
+
+# Boundary-condition records (kernels_cl/mpm/grid.cl)
+BC_STRIDE = 16
+BC_HALFSPACE, BC_BOX, BC_CYLINDER = 1, 2, 3
+COLLIDER_MODES: dict[str, int] = {"sticky": 0, "slip": 1, "separate": 2}
+
+
+def kernel_defines() -> dict[str, object]:
+    """The -D switches every MPM kernel is built with."""
+    defines: dict[str, object] = {f"MAT_{name.upper()}": i for name, i in MATERIAL_IDS.items()}
+    defines.update(
+        PARAM_COUNT=PARAM_COUNT,
+        HENCKY_S_MIN=repr(HENCKY_S_MIN),
+        SAND_S_MIN=repr(SAND_S_MIN),
+        SAFE_NORM_EPS2=repr(SAFE_NORM_EPS2),
+        NEWTONIAN_J_MIN=repr(NEWTONIAN_J_MIN),
+        CLAMP_MARGIN=CLAMP_MARGIN,
+        BC_STRIDE=BC_STRIDE,
+        BC_HALFSPACE=BC_HALFSPACE,
+        BC_BOX=BC_BOX,
+        BC_CYLINDER=BC_CYLINDER,
+        **{f"COLLIDE_{name.upper()}": i for name, i in COLLIDER_MODES.items()},
+    )
+    return defines
+
+
+def drucker_prager_alpha(friction_angle_deg: float) -> float:
+    """alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi)) of the Drucker-Prager cone."""
+    sin_phi = math.sin(math.radians(friction_angle_deg))
+    return math.sqrt(2.0 / 3.0) * 2.0 * sin_phi / (3.0 - sin_phi)
+
+
+def kernel_params(material: str, params: dict[str, float], model: str | None = None) -> tuple[int, list[float], float]:
+    """(material id, PARAM_COUNT kernel parameters, initial plastic state) of one material.
+
+    ``params`` are SI registry parameters (missing ones take their defaults). Kernel
+    parameters per material (kernels_cl/mpm/materials/*.h):
+      elastic (mu, lambda) | plasticine (mu, lambda, tau_Y) | metal (mu, lambda, tau_Y, xi) |
+      foam, non_newtonian (mu, lambda, tau_Y, eta) | sand (mu, lambda, alpha, c) |
+      newtonian (mu, kappa) | snow (mu0, lambda0, theta_c, theta_s, xi).
+    The plastic state is the metal's gained yield stress (0 Pa) or snow's J_P (1).
+    """
+    mat = get_material(material)
+    p = validate_params(mat.name, params)
+    if model is not None and mat.name != "elastic":
+        raise InputError(f"material {mat.name!r} has no model option (got model={model!r})")
+    if mat.name == "elastic":
+        model = model or "fixed_corotated"
+        if model not in ELASTIC_MODELS:
+            raise InputError(f"elastic model {model!r} unknown; choose one of {', '.join(ELASTIC_MODELS)}")
+        mu, lam = lame_parameters(p["youngs_modulus"], p["poissons_ratio"])
+        name = "neo_hookean" if model == "neo_hookean" else "elastic"
+        values, plastic = [mu, lam], 0.0
+    elif mat.name in ("plasticine", "metal", "foam", "sand", "snow"):
+        mu, lam = lame_parameters(p["youngs_modulus"], p["poissons_ratio"])
+        name, plastic = mat.name, 0.0
+        if mat.name == "plasticine":
+            values = [mu, lam, p["yield_stress"]]
+        elif mat.name == "metal":
+            values = [mu, lam, p["yield_stress"], p["hardening"]]
+        elif mat.name == "foam":
+            values = [mu, lam, p["yield_stress"], p["viscosity"]]
+        elif mat.name == "sand":
+            values = [mu, lam, drucker_prager_alpha(p["friction_angle"]), p["cohesion"]]
+        else:
+            values = [mu, lam, p["critical_compression"], p["critical_stretch"], p["hardening"]]
+            plastic = 1.0
+    elif mat.name == "newtonian":
+        name, values, plastic = "newtonian", [p["viscosity"], p["bulk_modulus"]], 0.0
+    else:  # non_newtonian: lambda = kappa - 2 mu / 3
+        mu = p["shear_modulus"]
+        name, plastic = "non_newtonian", 0.0
+        values = [mu, p["bulk_modulus"] - 2.0 * mu / 3.0, p["yield_stress"], p["viscosity"]]
+    return MATERIAL_IDS[name], values + [0.0] * (PARAM_COUNT - len(values)), plastic
+
+
+def wave_speed(material: str, params: dict[str, float], density: float) -> float:
+    """Speed (m/s) of the fastest elastic (pressure) wave of the material at rest."""
+    mat = get_material(material)
+    p = validate_params(mat.name, params)
+    if mat.name == "newtonian":
+        modulus = p["bulk_modulus"]
+    elif mat.name == "non_newtonian":
+        modulus = p["bulk_modulus"] + 4.0 * p["shear_modulus"] / 3.0
+    else:
+        mu, lam = lame_parameters(p["youngs_modulus"], p["poissons_ratio"])
+        modulus = lam + 2.0 * mu
+    return math.sqrt(max(modulus, 0.0) / density)

@@ -1,0 +1,310 @@
+"""The MLS-MPM simulator: particles, materials, boundaries and time settings -> trajectories.
+
+    from clflow.mpm import Simulator, MaterialSpec, Grid, HalfSpace
+    sim = Simulator(positions, volume=1e-6, materials=MaterialSpec("elastic", {"youngs_modulus": 1e5}),
+                    grid=Grid((64, 64, 64), dx=1 / 64), frame_dt=1 / 24)
+    traj = sim.run(frames=24)          # traj.x [25, N, 3] (m), frame 0 is the initial state
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import warnings
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import torch
+
+from clflow.errors import ClflowError, InputError
+from clflow.materials import DENSITY, get_material
+from clflow.mpm.boundaries import DriverGroups, Force, GridCondition, boundary_table, wall_colliders
+from clflow.mpm.constants import CLAMP_MARGIN, COLLIDER_MODES, MASS_EPS_REL, kernel_params, wave_speed
+from clflow.mpm.substep import Grid, P2GMode, Particles, State, SubstepKernels
+from clflow.runtime import Device, get_device
+
+log = logging.getLogger(__name__)
+
+CFL_NUMBER = 0.3  # dt <= CFL_NUMBER dx / max|v|
+WAVE_NUMBER = 0.5  # dt <= WAVE_NUMBER dx / c, c the fastest elastic wave speed
+
+
+class SimulationError(ClflowError):
+    """A run produced NaN/inf; the message names the frame and the likely cause."""
+
+
+class StabilityWarning(UserWarning):
+    """The time step exceeds a stability limit (CFL or elastic wave speed)."""
+
+
+@dataclass(frozen=True)
+class MaterialSpec:
+    """A material (a registry name or alias), its SI parameters (missing ones take the
+    registry defaults), density (kg/m^3, default: the material's) and, for elastic, the
+    model ("fixed_corotated" or "neo_hookean")."""
+
+    name: str
+    params: dict[str, float] = field(default_factory=dict)
+    density: float | None = None
+    model: str | None = None
+
+
+@dataclass
+class Trajectory:
+    """Per-frame states; frame 0 is the initial state. x, v [T, N, 3] (m, m/s),
+    F [T, N, 3, 3], plastic [T, N], time [T] (s), clamped [T] (particles clamped back into
+    the domain during the frame)."""
+
+    x: torch.Tensor
+    v: torch.Tensor
+    F: torch.Tensor
+    plastic: torch.Tensor
+    time: torch.Tensor
+    clamped: torch.Tensor
+
+
+def _as_tensor(value, shape: tuple[int, ...], what: str, dtype: torch.dtype) -> torch.Tensor:
+    t = torch.as_tensor(value, dtype=torch.float64)
+    if t.dim() == 0 and len(shape) == 1:
+        t = t.expand(shape)
+    if tuple(t.shape) != shape:
+        raise InputError(f"{what}: expected shape {list(shape)}, got {list(t.shape)}")
+    if not bool(torch.isfinite(t).all()):
+        raise InputError(f"{what} contains NaN or inf")
+    return t.to(dtype, copy=True).contiguous()  # never alias the caller's tensor
+
+
+class Simulator:
+    """MLS-MPM simulation of particles with per-particle materials on one OpenCL device.
+
+    Args:
+        positions: [N, 3] initial positions (m), inside the grid.
+        volume: rest volume per particle (m^3), a number or [N].
+        materials: one :class:`MaterialSpec` or a list of them (then ``material_index`` [N]
+            picks each particle's entry).
+        grid: the background :class:`Grid`.
+        velocities: [N, 3] initial velocities (m/s), default 0.
+        frame_dt: time between output frames (s).
+        substeps: substeps per frame; None chooses the smallest stable count.
+        gravity: (m/s^2).
+        walls: domain-wall mode ("separate", "slip", "sticky") or None for no walls;
+            ``wall_cells`` thick, with Coulomb ``wall_friction``.
+        boundaries: further grid conditions (HalfSpace, Box, RotatingCylinder).
+        forces: :class:`~clflow.mpm.boundaries.Force` stages.
+        release_times: [N] time (s) each particle is released (see layer_release_times).
+        dtype: torch.float32 (default) or torch.float64.
+        device: OpenCL device (default: clflow.runtime.get_device()).
+        p2g: "auto" (private grid copies on CPUs, atomics elsewhere), "private" or "atomic".
+    """
+
+    def __init__(
+        self,
+        positions: torch.Tensor,
+        volume: float | torch.Tensor,
+        materials: MaterialSpec | Sequence[MaterialSpec],
+        grid: Grid,
+        *,
+        material_index: torch.Tensor | None = None,
+        velocities: torch.Tensor | None = None,
+        frame_dt: float = 1.0 / 24.0,
+        substeps: int | None = None,
+        gravity: Sequence[float] = (0.0, -9.81, 0.0),
+        walls: str | None = "separate",
+        wall_friction: float = 0.0,
+        wall_cells: int = 3,
+        boundaries: Sequence[GridCondition] = (),
+        forces: Sequence[Force] = (),
+        release_times: torch.Tensor | None = None,
+        dtype: torch.dtype = torch.float32,
+        device: Device | None = None,
+        p2g: P2GMode = "auto",
+    ):
+        if dtype not in (torch.float32, torch.float64):
+            raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        self.device = device or get_device()
+        self.dtype, self.grid = dtype, grid
+        self._check_grid(grid)
+        positions = torch.as_tensor(positions)
+        if positions.dim() != 2 or positions.shape[1] != 3:
+            raise InputError(f"positions: expected shape [N, 3], got {list(positions.shape)}")
+        n = positions.shape[0]
+        if n == 0:
+            raise InputError("positions: the particle set is empty")
+        x = _as_tensor(positions, (n, 3), "positions", dtype)
+        self._check_inside(x)
+        v = torch.zeros(n, 3, dtype=dtype) if velocities is None else _as_tensor(velocities, (n, 3), "velocities", dtype)
+        vol = _as_tensor(volume, (n,), "volume", torch.float64)
+        if not bool((vol > 0).all()):
+            raise InputError("volume: every particle volume must be > 0 m^3")
+
+        specs = [materials] if isinstance(materials, MaterialSpec) else list(materials)
+        if not specs:
+            raise InputError("materials: give at least one MaterialSpec")
+        if material_index is None:
+            if len(specs) > 1:
+                raise InputError(f"{len(specs)} materials given: pass material_index [N] to assign them")
+            index = torch.zeros(n, dtype=torch.long)
+        else:
+            index = torch.as_tensor(material_index).long()
+            if index.shape != (n,):
+                raise InputError(f"material_index: expected shape [{n}], got {list(index.shape)}")
+            if int(index.min()) < 0 or int(index.max()) >= len(specs):
+                raise InputError(f"material_index values must lie in [0, {len(specs)}), got "
+                                 f"[{int(index.min())}, {int(index.max())}]")
+        rows, densities, plastic0, self.wave_speeds = [], [], [], []
+        for k, spec in enumerate(specs):
+            mat = get_material(spec.name)
+            rho = DENSITY.check(mat.default_density if spec.density is None else spec.density, f"materials[{k}]")
+            mid, values, plastic = kernel_params(mat.name, spec.params, spec.model)
+            rows.append([mid] + values)
+            densities.append(rho)
+            plastic0.append(plastic)
+            self.wave_speeds.append((mat.name, wave_speed(mat.name, spec.params, rho)))
+        table = torch.tensor(rows, dtype=torch.float64)
+        material = table[index, 0].to(torch.int32).contiguous()
+        param = table[index, 1:].to(dtype).contiguous()
+        mass = vol * torch.tensor(densities, dtype=torch.float64)[index]
+
+        self.drivers = DriverGroups(forces, x.double(), mass)
+        if release_times is None:
+            release = torch.full((n,), -math.inf, dtype=dtype)
+        else:
+            release = torch.as_tensor(release_times, dtype=torch.float64)
+            if release.shape != (n,) or bool(torch.isnan(release).any()):
+                raise InputError(f"release_times: expected [{n}] numbers, got shape {list(release.shape)}")
+            release = release.to(dtype).contiguous()
+        self.particles = Particles(
+            mass=mass.to(dtype).contiguous(), volume=vol.to(dtype).contiguous(), material=material, param=param,
+            group=self.drivers.group.contiguous(), release_time=release,
+            mass_eps=MASS_EPS_REL * float(mass.min()),
+        )
+        eye = torch.eye(3, dtype=dtype).expand(n, 3, 3).contiguous()
+        self.state = State(x, v, torch.zeros(n, 3, 3, dtype=dtype), eye,
+                           torch.tensor(plastic0, dtype=dtype)[index].contiguous())
+        self._next = self.state.empty_like()
+
+        conditions = list(boundaries)
+        if walls is not None:
+            if walls not in COLLIDER_MODES:
+                raise InputError(f"walls {walls!r} unknown; choose one of {', '.join(COLLIDER_MODES)} or None")
+            conditions = wall_colliders(grid.origin, grid.upper, wall_cells, grid.dx, walls, wall_friction) + conditions
+        self.boundaries = boundary_table(conditions, dtype)
+        self.gravity = tuple(float(g) for g in gravity)
+        if len(self.gravity) != 3 or not all(math.isfinite(g) for g in self.gravity):
+            raise InputError(f"gravity must be 3 finite numbers (m/s^2), got {gravity!r}")
+
+        if not (frame_dt > 0 and math.isfinite(frame_dt)):
+            raise InputError(f"frame_dt must be a positive number of seconds, got {frame_dt}")
+        self.frame_dt = float(frame_dt)
+        auto = self.stable_substeps(v)
+        if substeps is None:
+            substeps = auto
+        elif int(substeps) < 1:
+            raise InputError(f"substeps must be >= 1, got {substeps}")
+        elif int(substeps) < auto:
+            warnings.warn(
+                f"dt = {self.frame_dt / int(substeps):.3g} s exceeds the stable limit {self.frame_dt / auto:.3g} s "
+                f"({self._limit_reason(v)}); use substeps >= {auto} per frame (or substeps=None to choose it)",
+                StabilityWarning, stacklevel=2,
+            )
+        self.substeps = int(substeps)
+        self.dt = self.frame_dt / self.substeps
+        self.time = 0.0
+        self.frame = 0
+        self.kernels = SubstepKernels(self.device, dtype, n, grid, self.particles.material, p2g)
+        self._clamped = torch.zeros(n, dtype=torch.uint8)
+
+    # -- validation -------------------------------------------------------------------------
+
+    @staticmethod
+    def _check_grid(grid: Grid) -> None:
+        if len(grid.resolution) != 3 or any(int(r) < 2 * CLAMP_MARGIN + 3 for r in grid.resolution):
+            raise InputError(f"grid resolution {grid.resolution} too small: need >= {2 * CLAMP_MARGIN + 3} per axis")
+        if not (grid.dx > 0 and math.isfinite(grid.dx)):
+            raise InputError(f"grid dx must be a positive length (m), got {grid.dx}")
+
+    def _check_inside(self, x: torch.Tensor) -> None:
+        lo = torch.tensor(self.grid.origin, dtype=x.dtype) + CLAMP_MARGIN * self.grid.dx
+        hi = torch.tensor(self.grid.upper, dtype=x.dtype) - CLAMP_MARGIN * self.grid.dx
+        outside = int(((x < lo) | (x > hi)).any(-1).sum())
+        if outside:
+            raise InputError(
+                f"positions: {outside} of {x.shape[0]} particles lie outside the grid's interior "
+                f"[{lo.tolist()}, {hi.tolist()}] m; enlarge or move the grid"
+            )
+
+    def _dt_limits(self, v: torch.Tensor) -> list[tuple[float, str]]:
+        limits = [(WAVE_NUMBER * self.grid.dx / c, f"elastic wave speed {c:.3g} m/s of {name}")
+                  for name, c in self.wave_speeds if c > 0]
+        vmax = float(v.double().norm(dim=-1).max()) if v.numel() else 0.0
+        if vmax > 0:
+            limits.append((CFL_NUMBER * self.grid.dx / vmax, f"CFL with max speed {vmax:.3g} m/s"))
+        return limits
+
+    def stable_substeps(self, v: torch.Tensor | None = None) -> int:
+        """Smallest substep count per frame meeting the CFL and elastic-wave limits."""
+        limits = self._dt_limits(self.state.v if v is None else v)
+        dt_max = min((lim for lim, _ in limits), default=self.frame_dt)
+        return max(1, math.ceil(self.frame_dt / dt_max * (1 - 1e-12)))
+
+    def _limit_reason(self, v: torch.Tensor) -> str:
+        return min(self._dt_limits(v), default=(0.0, "no limit"))[1]
+
+    # -- stepping ---------------------------------------------------------------------------
+
+    @property
+    def n(self) -> int:
+        return self.state.x.shape[0]
+
+    def step(self) -> None:
+        """Advance one substep (dt seconds)."""
+        accel = self.drivers.accel(self.time, self.dtype)
+        self.kernels.run(self.state, self._next, self.particles, self.time, self.dt, self.gravity,
+                         self.boundaries, accel, self._clamped)
+        self.state, self._next = self._next, self.state
+        self.time += self.dt
+
+    def advance_frame(self) -> int:
+        """Run one frame of substeps; returns how many particles were clamped into the domain
+        at least once.
+
+        Raises :class:`SimulationError` if the state became NaN/inf."""
+        self._clamped.zero_()
+        v_before = self.state.v.clone()
+        for _ in range(self.substeps):
+            self.step()
+        self.frame += 1
+        s = self.state
+        if not all(bool(torch.isfinite(t).all()) for t in (s.x, s.v, s.F)):
+            raise SimulationError(
+                f"the simulation became NaN/inf during frame {self.frame} (t = {self.time:.4g} s); likely cause: "
+                f"dt = {self.dt:.3g} s is too large ({self._limit_reason(v_before)}; stable substeps per frame now: "
+                f"{self.stable_substeps(v_before)}), or extreme material parameters / forces"
+            )
+        count = int(self._clamped.sum(dtype=torch.int64))
+        if count:
+            warnings.warn(f"frame {self.frame}: {count} particles left the grid and were clamped to "
+                          f"its boundary (enlarge the grid or add walls)", RuntimeWarning, stacklevel=2)
+        vmax = float(s.v.double().norm(dim=-1).max())
+        if vmax * self.dt > CFL_NUMBER * self.grid.dx:
+            warnings.warn(f"frame {self.frame}: max speed {vmax:.3g} m/s breaks the CFL limit at dt = {self.dt:.3g} s; "
+                          f"use substeps >= {self.stable_substeps()}", StabilityWarning, stacklevel=2)
+        return count
+
+    def run(self, frames: int) -> Trajectory:
+        """Simulate ``frames`` frames; returns the :class:`Trajectory` (frames + 1 states)."""
+        if int(frames) < 0:
+            raise InputError(f"frames must be >= 0, got {frames}")
+        snaps = [self._snapshot(0)]
+        for _ in range(int(frames)):
+            snaps.append(self._snapshot(self.advance_frame()))
+        return Trajectory(
+            x=torch.stack([s[0] for s in snaps]), v=torch.stack([s[1] for s in snaps]),
+            F=torch.stack([s[2] for s in snaps]), plastic=torch.stack([s[3] for s in snaps]),
+            time=torch.tensor([s[4] for s in snaps], dtype=torch.float64),
+            clamped=torch.tensor([s[5] for s in snaps], dtype=torch.int64),
+        )
+
+    def _snapshot(self, clamped: int):
+        s = self.state
+        return s.x.clone(), s.v.clone(), s.F.clone(), s.plastic.clone(), self.time, clamped

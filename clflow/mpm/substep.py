@@ -1,0 +1,181 @@
+"""One MLS-MPM substep on an OpenCL device: four kernels with explicit inputs and outputs.
+
+    update_stress : (F_n, C_n, plastic_n, param)          -> F_n+1, plastic_n+1, tau
+    p2g           : (x_n, v_n, C_n, tau, mass, volume)     -> grid [nodes, 4] (m, mv)
+    grid_update   : (grid, boundary table, t)              -> grid_v [nodes, 3]
+    g2p           : (x_n, grid_v, release_time)            -> x_n+1, v_n+1, C_n+1
+
+State n is only read, so the adjoint can replay a substep from a checkpoint; tau, grid and
+grid_v of the last substep stay in :class:`SubstepKernels` for it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Literal
+
+import numpy as np
+import torch
+
+from clflow.mpm.constants import MATERIAL_IDS, kernel_defines
+from clflow.runtime.devices import Device
+
+P2GMode = Literal["auto", "private", "atomic"]
+MAX_GRID_COPIES = 16  # private P2G grids at most (memory: copies x nodes x 4 reals)
+GRID_COPY_BUDGET = 1 << 30  # bytes all private grid copies may take together
+SIMD_LANES = 8  # particles per work-item of the all-elastic stress kernel
+
+
+@dataclass(frozen=True)
+class Grid:
+    """The background grid: ``resolution`` nodes per axis, spacing ``dx`` (m), node (0, 0, 0)
+    at ``origin`` (m). The simulated domain is origin + [0, (resolution - 1) dx]."""
+
+    resolution: tuple[int, int, int]
+    dx: float
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    @property
+    def nodes(self) -> int:
+        return int(np.prod(self.resolution))
+
+    @property
+    def upper(self) -> tuple[float, float, float]:
+        return tuple(o + (n - 1) * self.dx for o, n in zip(self.origin, self.resolution))
+
+    def kernel_args(self, real_t) -> list:
+        return [np.int32(n) for n in self.resolution] + [real_t(self.dx)] + [real_t(o) for o in self.origin]
+
+
+@dataclass
+class State:
+    """Particle state at one instant (SI): x, v [N, 3] (m, m/s), C, F [N, 3, 3] (affine velocity
+    1/s, deformation gradient), plastic [N] (metal: yield stress gained, Pa; snow: J_P)."""
+
+    x: torch.Tensor
+    v: torch.Tensor
+    C: torch.Tensor
+    F: torch.Tensor
+    plastic: torch.Tensor
+
+    def clone(self) -> "State":
+        return State(*(getattr(self, f.name).clone() for f in fields(self)))
+
+    def empty_like(self) -> "State":
+        return State(*(torch.empty_like(getattr(self, f.name)) for f in fields(self)))
+
+
+@dataclass
+class Particles:
+    """What stays constant during a run: mass, volume [N] (kg, m^3), material [N] int32
+    (kernel ids), param [N, PARAM_COUNT] kernel parameters, group [N] int32 (driver group or
+    -1), release_time [N] (s; a particle moves only from then on) and mass_eps (kg): grid
+    nodes lighter than this are empty (MASS_EPS_REL x the lightest particle)."""
+
+    mass: torch.Tensor
+    volume: torch.Tensor
+    material: torch.Tensor
+    param: torch.Tensor
+    group: torch.Tensor
+    release_time: torch.Tensor
+    mass_eps: float
+
+
+class SubstepKernels:
+    """The substep kernels of one device, precision, particle count, grid and set of material
+    ids (``materials``: the kernel ids of the particles), with their scratch buffers (tau,
+    grid, grid_v and the private P2G grid copies)."""
+
+    def __init__(self, device: Device, dtype: torch.dtype, n: int, grid: Grid, materials: torch.Tensor,
+                 p2g: P2GMode = "auto"):
+        import pyopencl as cl
+
+        self.device, self.dtype, self.n, self.grid = device, dtype, n, grid
+        self.real = "double" if dtype == torch.float64 else "float"
+        self.real_t = np.float64 if dtype == torch.float64 else np.float32
+        if p2g == "auto":
+            p2g = "private" if device.info.type == "CPU" else "atomic"
+        self.p2g = p2g
+        defines = kernel_defines()
+        k = lambda src, name, extra={}: device.kernel(src, name, self.real, {**defines, **extra})  # noqa: E731
+        present = [int(m) for m in torch.unique(materials)]
+        # all fixed-corotated elastic: SIMD_LANES particles per work-item in vector registers;
+        # otherwise one particle per work-item, with only the models present compiled in
+        self.stress_lanes = SIMD_LANES if present == [MATERIAL_IDS["elastic"]] else 1
+        if self.stress_lanes > 1:
+            self.k_stress = k("mpm/stress.cl", "update_stress_elastic_simd", {"CLFLOW_SIMD_LANES": SIMD_LANES})
+        else:
+            self.k_stress = k("mpm/stress.cl", "update_stress", {"MATERIALS_PRESENT": sum(1 << m for m in present)})
+        self.k_grid = k("mpm/grid.cl", "grid_update")
+        self.k_g2p = k("mpm/g2p.cl", "g2p")
+        itemsize = torch.tensor([], dtype=dtype).element_size()
+        grid_bytes = 4 * grid.nodes * itemsize
+        if p2g == "private":
+            self.k_p2g = k("mpm/p2g.cl", "p2g_private")
+            self.k_reduce = k("mpm/p2g.cl", "p2g_reduce")
+            want = max(2, 2 * device.info.compute_units)
+            self.copies = max(1, min(want, MAX_GRID_COPIES, GRID_COPY_BUDGET // grid_bytes, n))
+            self.chunk = -(-n // self.copies)
+            self.grid_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * grid_bytes)
+        elif p2g == "atomic":
+            self.k_p2g = k("mpm/p2g.cl", "p2g_atomic")
+        else:
+            raise ValueError(f"p2g must be 'auto', 'private' or 'atomic', not {p2g!r}")
+        self.tau = torch.empty(n, 3, 3, dtype=dtype)
+        self.grid_mv = torch.empty(grid.nodes, 4, dtype=dtype)  # (m, mv) per node
+        self.grid_v = torch.empty(grid.nodes, 3, dtype=dtype)
+
+    def run(
+        self,
+        state: State,
+        out: State,
+        particles: Particles,
+        t: float,
+        dt: float,
+        gravity: tuple[float, float, float],
+        boundaries: torch.Tensor,
+        accel: torch.Tensor,
+        clamped: torch.Tensor,
+    ) -> None:
+        """Advance ``state`` (time t) by ``dt`` into ``out``; ``boundaries`` [B, BC_STRIDE] is
+        the boundary table, ``accel`` [groups, 3] the driver accelerations (m/s^2) of this
+        substep, ``clamped`` uint8 [N] flags that G2P sets to 1 for particles it clamps."""
+        dev, R, n = self.device, self.real_t, np.int32(self.n)
+        grid_args = self.grid.kernel_args(R)
+        with dev.bind() as b:
+            x, v, C = b.input(state.x, "x"), b.input(state.v, "v"), b.input(state.C, "C")
+            tau = b.inout(self.tau, "tau")
+            grid_mv, grid_v = b.inout(self.grid_mv, "grid"), b.inout(self.grid_v, "grid_v")
+            material = [] if self.stress_lanes > 1 else [b.input(particles.material, "material")]
+            dev.launch(
+                self.k_stress,
+                -(-self.n // self.stress_lanes),
+                [n, R(dt), b.input(state.F, "F"), C, b.input(state.plastic, "plastic"), *material,
+                 b.input(particles.param, "param"), b.output(out.F, "F_out"), b.output(out.plastic, "plastic_out"),
+                 tau],
+            )
+            p2g_args = [n, R(dt), x, v, C, tau, b.input(particles.mass, "mass"),
+                        b.input(particles.volume, "volume"), b.input(particles.group, "group"),
+                        b.input(accel, "accel")]
+            if self.p2g == "private":
+                dev.launch(self.k_p2g, self.copies, grid_args + p2g_args +
+                           [np.int32(self.copies), np.int32(self.chunk), self.grid_copies], local_size=1)
+                size = 4 * self.grid.nodes
+                dev.launch(self.k_reduce, size, [np.int64(size), np.int32(self.copies), self.grid_copies, grid_mv])
+            else:
+                self.grid_mv.zero_()
+                dev.launch(self.k_p2g, self.n, grid_args + p2g_args + [grid_mv])
+            dev.launch(
+                self.k_grid,
+                self.grid.nodes,
+                grid_args + [R(dt), R(t), *(R(g) for g in gravity), R(particles.mass_eps), grid_mv, grid_v,
+                             b.input(boundaries, "boundaries"), np.int32(boundaries.shape[0])],
+            )
+            dev.launch(
+                self.k_g2p,
+                self.n,
+                grid_args + [n, R(dt), R(t), x, grid_v, b.input(particles.release_time, "release_time"),
+                             b.output(out.x, "x_out"), b.output(out.v, "v_out"), b.output(out.C, "C_out"),
+                             b.inout(clamped, "clamped", torch.uint8)],
+            )
+

@@ -1,0 +1,55 @@
+/* Substep stage 4: grid to particle (APIC) and advection.
+ *
+ *   v_p' = sum_i w v_i ;  C_p' = (4/dx^2) sum_i w v_i d^T ;  x_p' = x_p + dt v_p'
+ * A particle not yet released (t < release_time[p], layer release) stays put: x' = x,
+ * v' = 0, C' = 0. A particle leaving [CLAMP_MARGIN, n - 1 - CLAMP_MARGIN] cells is clamped
+ * back in and counted in *clamped (an integer atomic: the count is exact and deterministic). */
+#include "mpm/mpm.h"
+
+__kernel void g2p(const int nx, const int ny, const int nz, const real dx, const real ox,
+                  const real oy, const real oz, const int n, const real dt, const real t,
+                  __global const real *restrict x_in, __global const real *restrict grid_v,
+                  __global const real *restrict release_time, __global real *restrict x_out, __global real *restrict v_out,
+                  __global real *restrict C_out, __global uchar *restrict clamped)
+{
+    const int p = get_global_id(0);
+    if (p >= n)
+        return;
+    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    real xp[3];
+    vec3r v = 0, C0 = 0, C1 = 0, C2 = 0; /* v and the rows of C */
+    load_row(x_in, p, 3, xp);
+    if (t >= release_time[p]) {
+        const stencil_t st = make_stencil(&g, xp);
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                for (int k = 0; k < 3; ++k) {
+                    const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
+                    const vec3r d = (vec3r)((i - st.fx[0]) * dx, (j - st.fx[1]) * dx, (k - st.fx[2]) * dx);
+                    const vec3r wv = w * vload3(grid_index(&g, st.base[0] + i, st.base[1] + j, st.base[2] + k), grid_v);
+                    v += wv;
+                    C0 += wv.x * d;
+                    C1 += wv.y * d;
+                    C2 += wv.z * d;
+                }
+        const real scale = 4 / (dx * dx);
+        C0 *= scale;
+        C1 *= scale;
+        C2 *= scale;
+        int out = 0;
+        for (int a = 0; a < 3; ++a) {
+            const real lo = g.origin[a] + CLAMP_MARGIN * dx;
+            const real hi = g.origin[a] + (grid_extent(&g, a) - 1 - CLAMP_MARGIN) * dx;
+            const real moved = xp[a] + dt * (a == 0 ? v.x : (a == 1 ? v.y : v.z));
+            xp[a] = clamp(moved, lo, hi);
+            out |= xp[a] != moved;
+        }
+        if (out)
+            clamped[p] = 1;
+    }
+    store_row(x_out, p, 3, xp);
+    vstore3(v, p, v_out);
+    vstore3(C0, 3 * p, C_out);
+    vstore3(C1, 3 * p + 1, C_out);
+    vstore3(C2, 3 * p + 2, C_out);
+}

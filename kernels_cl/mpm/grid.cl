@@ -1,0 +1,106 @@
+/* Substep stage 3: grid velocities and boundary conditions.
+ *
+ *   v_i = mv_i / m_i + dt g   where m_i > mass_eps, else 0
+ * then every boundary record active at time t (t_start <= t < t_end) in table order.
+ * Record layout (BC_STRIDE reals, slots named in clflow/mpm/constants.py):
+ *   [kind, t_start, t_end, a0 a1 a2, b0 b1 b2, c0 c1 c2 ...]
+ *   BC_HALFSPACE: point a, outward normal b (unit), c0 = mode, c1 = friction mu_f. Nodes with
+ *       (x_i - a).b < 0 are inside the collider: sticky v = 0; slip v -= (v.n) n; separate
+ *       the same only when v.n < 0. Where the normal part is removed, Coulomb friction
+ *       shrinks the tangential part by mu_f |v.n| (to zero at most).
+ *   BC_BOX: lower corner a, upper corner b, velocity c: nodes inside get v = c.
+ *   BC_CYLINDER: centre a, unit axis b, c0 radius, c1 half length, c2 angular velocity omega
+ *       (rad/s, right-handed about b): nodes inside get v = omega b x (x_i - a). */
+#include "mpm/mpm.h"
+
+inline void apply_halfspace(__global const real *rec, const real *xi, real *v)
+{
+    real n[3], rel = 0, vn = 0;
+    for (int a = 0; a < 3; ++a) {
+        n[a] = rec[6 + a];
+        rel += (xi[a] - rec[3 + a]) * n[a];
+        vn += v[a] * n[a];
+    }
+    if (rel >= 0)
+        return;
+    const int mode = (int)rec[9];
+    if (mode == COLLIDE_STICKY) {
+        for (int a = 0; a < 3; ++a)
+            v[a] = 0;
+        return;
+    }
+    if (mode == COLLIDE_SEPARATE && vn >= 0)
+        return;
+    real vt[3], vt2 = 0;
+    for (int a = 0; a < 3; ++a) {
+        vt[a] = v[a] - vn * n[a];
+        vt2 += vt[a] * vt[a];
+    }
+    const real vt_norm = sqrt(vt2);
+    const real keep = vt_norm > 0 ? fmax((real)0, 1 - rec[10] * fabs(vn) / vt_norm) : (real)0;
+    for (int a = 0; a < 3; ++a)
+        v[a] = keep * vt[a];
+}
+
+inline void apply_box(__global const real *rec, const real *xi, real *v)
+{
+    for (int a = 0; a < 3; ++a)
+        if (xi[a] < rec[3 + a] || xi[a] > rec[6 + a])
+            return;
+    for (int a = 0; a < 3; ++a)
+        v[a] = rec[9 + a];
+}
+
+inline void apply_cylinder(__global const real *rec, const real *xi, real *v)
+{
+    real r[3], along = 0;
+    for (int a = 0; a < 3; ++a) {
+        r[a] = xi[a] - rec[3 + a];
+        along += r[a] * rec[6 + a];
+    }
+    real radial2 = 0;
+    for (int a = 0; a < 3; ++a) {
+        const real ra = r[a] - along * rec[6 + a];
+        radial2 += ra * ra;
+    }
+    if (fabs(along) > rec[10] || radial2 > rec[9] * rec[9])
+        return;
+    const real omega = rec[11];
+    v[0] = omega * (rec[7] * r[2] - rec[8] * r[1]);
+    v[1] = omega * (rec[8] * r[0] - rec[6] * r[2]);
+    v[2] = omega * (rec[6] * r[1] - rec[7] * r[0]);
+}
+
+__kernel void grid_update(const int nx, const int ny, const int nz, const real dx, const real ox,
+                          const real oy, const real oz, const real dt, const real t, const real gx,
+                          const real gy, const real gz, const real mass_eps,
+                          __global const real *grid, __global real *grid_v,
+                          __global const real *bc, const int n_bc)
+{
+    const long node = get_global_id(0);
+    const long nodes = (long)nx * ny * nz;
+    if (node >= nodes)
+        return;
+    const real m = grid[4 * node];
+    real v[3] = {0, 0, 0};
+    if (m > mass_eps) {
+        const real g[3] = {gx, gy, gz};
+        for (int a = 0; a < 3; ++a)
+            v[a] = grid[4 * node + 1 + a] / m + dt * g[a];
+        const int k = node % nz, j = (node / nz) % ny, i = node / ((long)nz * ny);
+        const real xi[3] = {ox + i * dx, oy + j * dx, oz + k * dx};
+        for (int b = 0; b < n_bc; ++b) {
+            __global const real *rec = bc + (long)b * BC_STRIDE;
+            if (t < rec[1] || t >= rec[2])
+                continue;
+            const int kind = (int)rec[0];
+            if (kind == BC_HALFSPACE)
+                apply_halfspace(rec, xi, v);
+            else if (kind == BC_BOX)
+                apply_box(rec, xi, v);
+            else if (kind == BC_CYLINDER)
+                apply_cylinder(rec, xi, v);
+        }
+    }
+    store_row(grid_v, node, 3, v);
+}

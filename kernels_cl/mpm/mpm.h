@@ -1,0 +1,92 @@
+/* Shared definitions of the MLS-MPM kernels: grid indexing, quadratic B-spline weights.
+ *
+ * Grid: nx*ny*nz nodes, node (i, j, k) at origin + dx (i, j, k), flat index (i*ny + j)*nz + k.
+ * A particle at x has xi = (x - origin)/dx, base = floor(xi - 0.5), f = xi - base, and
+ * touches the 3x3x3 nodes base + (0..2) with weights w0 = 0.5(1.5-f)^2, w1 = 0.75-(f-1)^2,
+ * w2 = 0.5(f-0.5)^2 per axis; D^-1 = 4/dx^2. Positions are kept inside
+ * [CLAMP_MARGIN, n-1-CLAMP_MARGIN] cells by G2P, so base is always a valid node. */
+#ifndef CLFLOW_MPM_H
+#define CLFLOW_MPM_H
+
+#include "common/mat3.h"
+
+#if !defined(PARAM_COUNT) || !defined(CLAMP_MARGIN)
+#error "build the MPM kernels through clflow.mpm (it passes PARAM_COUNT, CLAMP_MARGIN, ...)"
+#endif
+
+/* 3-vectors in registers for the transfer loops (private arrays indexed in loops may stay
+ * in memory; vector accumulators do not). */
+#if REAL_IS_DOUBLE
+typedef double3 vec3r;
+#else
+typedef float3 vec3r;
+#endif
+
+typedef struct {
+    int nx, ny, nz;
+    real dx;
+    real origin[3];
+} grid_t;
+
+inline grid_t make_grid(const int nx, const int ny, const int nz, const real dx, const real ox,
+                        const real oy, const real oz)
+{
+    grid_t g;
+    g.nx = nx;
+    g.ny = ny;
+    g.nz = nz;
+    g.dx = dx;
+    g.origin[0] = ox;
+    g.origin[1] = oy;
+    g.origin[2] = oz;
+    return g;
+}
+
+inline int grid_extent(const grid_t *g, const int axis)
+{
+    return axis == 0 ? g->nx : (axis == 1 ? g->ny : g->nz);
+}
+
+inline long grid_index(const grid_t *g, const int i, const int j, const int k)
+{
+    return ((long)i * g->ny + j) * g->nz + k;
+}
+
+/* The 3x3x3 stencil of a particle: base node, and weights w[axis][0..2] of each axis. */
+typedef struct {
+    int base[3];
+    real fx[3]; /* xi - base, in [0.5, 1.5) */
+    real w[3][3];
+} stencil_t;
+
+inline stencil_t make_stencil(const grid_t *g, const real *x)
+{
+    stencil_t st;
+    for (int a = 0; a < 3; ++a) {
+        const real xi = (x[a] - g->origin[a]) / g->dx;
+        /* clamp keeps memory safe even for a position G2P has not clamped (initial state) */
+        const int base = clamp((int)floor(xi - (real)0.5), 0, grid_extent(g, a) - 3);
+        const real f = xi - base;
+        st.base[a] = base;
+        st.fx[a] = f;
+        st.w[a][0] = (real)0.5 * ((real)1.5 - f) * ((real)1.5 - f);
+        st.w[a][1] = (real)0.75 - (f - 1) * (f - 1);
+        st.w[a][2] = (real)0.5 * (f - (real)0.5) * (f - (real)0.5);
+    }
+    return st;
+}
+
+/* Row i of a [rows, width] array (x, v: width 3; C, F, tau: width 9, row-major 3x3). */
+inline void load_row(__global const real *a, const long i, const int width, real *row)
+{
+    for (int c = 0; c < width; ++c)
+        row[c] = a[width * i + c];
+}
+
+inline void store_row(__global real *a, const long i, const int width, const real *row)
+{
+    for (int c = 0; c < width; ++c)
+        a[width * i + c] = row[c];
+}
+
+#endif /* CLFLOW_MPM_H */

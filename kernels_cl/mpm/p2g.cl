@@ -1,0 +1,100 @@
+/* Substep stage 2: particle to grid (APIC / MLS-MPM momentum and mass transfer).
+ *
+ * For each of the 27 nodes i of particle p, with d = x_i - x_p:
+ *   m_i  += w m_p
+ *   mv_i += w [ m_p (v_p + dt a_p) + affine d ],  affine = m_p C_p - dt V_p (4/dx^2) tau_p
+ * a_p = accel[group[p]] is the particle's driver acceleration (group -1: none).
+ * Grid layout: grid[4*node + (0: m, 1..3: mv)].
+ *
+ * Two ways to sum, chosen by the host from the device record:
+ *  - p2g_private + p2g_reduce (CPU devices, no float atomics): work-item k scatters the
+ *    contiguous particle chunk k into its own grid copy with plain adds, then the copies
+ *    are summed node by node in the fixed order k = 0, 1, ...: deterministic, bit-identical.
+ *  - p2g_atomic (GPUs): one work-item per particle, atomic_add_real into one grid. */
+#include "mpm/mpm.h"
+#include "common/atomics.h"
+
+inline void p2g_particle(const grid_t *g, const int p, const real dt, __global const real *x,
+                         __global const real *v, __global const real *C, __global const real *tau,
+                         __global const real *mass, __global const real *volume,
+                         __global const int *group, __global const real *accel,
+                         __global real *grid, const int use_atomics)
+{
+    real xp[3];
+    load_row(x, p, 3, xp);
+    const real m = mass[p];
+    const real stress_scale = -dt * volume[p] * 4 / (g->dx * g->dx);
+    vec3r affine[3]; /* rows of m C - dt V (4/dx^2) tau */
+    for (int r = 0; r < 3; ++r)
+        affine[r] = stress_scale * vload3(3 * p + r, tau) + m * vload3(3 * p + r, C);
+    const int gp = group[p];
+    const vec3r momentum = m * (vload3(p, v) + (gp >= 0 ? dt * vload3(gp, accel) : (vec3r)0));
+    const stencil_t st = make_stencil(g, xp);
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            for (int k = 0; k < 3; ++k) {
+                const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
+                const vec3r d = (vec3r)((i - st.fx[0]) * g->dx, (j - st.fx[1]) * g->dx, (k - st.fx[2]) * g->dx);
+                const vec3r mv = w * (momentum + (vec3r)(dot(affine[0], d), dot(affine[1], d), dot(affine[2], d)));
+                __global real *node = grid + 4 * grid_index(g, st.base[0] + i, st.base[1] + j, st.base[2] + k);
+                if (use_atomics) {
+                    atomic_add_real(node, w * m);
+                    atomic_add_real(node + 1, mv.x);
+                    atomic_add_real(node + 2, mv.y);
+                    atomic_add_real(node + 3, mv.z);
+                } else {
+                    node[0] += w * m;
+                    node[1] += mv.x;
+                    node[2] += mv.y;
+                    node[3] += mv.z;
+                }
+            }
+}
+
+#define P2G_GRID_ARGS                                                                           \
+    const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,   \
+        const real oz
+#define P2G_PARTICLE_ARGS                                                                       \
+    const int n, const real dt, __global const real *x, __global const real *v,              \
+        __global const real *C, __global const real *tau, __global const real *mass,         \
+        __global const real *volume, __global const int *group, __global const real *accel
+
+/* Work-item k zeroes grid copy k and scatters particles [k*chunk, (k+1)*chunk) into it. */
+__kernel void p2g_private(P2G_GRID_ARGS, P2G_PARTICLE_ARGS, const int copies, const int chunk,
+                          __global real *grid_copies)
+{
+    const int k = get_global_id(0);
+    if (k >= copies)
+        return;
+    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const long size = 4L * nx * ny * nz;
+    __global real *grid = grid_copies + k * size;
+    for (long e = 0; e < size; ++e)
+        grid[e] = 0;
+    const int end = min(n, (k + 1) * chunk);
+    for (int p = k * chunk; p < end; ++p)
+        p2g_particle(&g, p, dt, x, v, C, tau, mass, volume, group, accel, grid, 0);
+}
+
+/* grid[e] = sum over copies k = 0, 1, ... of grid_copies[k][e], in that order. */
+__kernel void p2g_reduce(const long size, const int copies, __global const real *grid_copies,
+                         __global real *grid)
+{
+    const long e = get_global_id(0);
+    if (e >= size)
+        return;
+    real sum = grid_copies[e];
+    for (int k = 1; k < copies; ++k)
+        sum += grid_copies[k * size + e];
+    grid[e] = sum;
+}
+
+/* One work-item per particle, atomic adds into `grid` (zeroed by the host). */
+__kernel void p2g_atomic(P2G_GRID_ARGS, P2G_PARTICLE_ARGS, __global real *grid)
+{
+    const int p = get_global_id(0);
+    if (p >= n)
+        return;
+    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    p2g_particle(&g, p, dt, x, v, C, tau, mass, volume, group, accel, grid, 1);
+}

@@ -1,0 +1,41 @@
+"""Small scenes the MPM tests share."""
+
+from __future__ import annotations
+
+import torch
+
+from clflow.mpm import Grid, MaterialSpec, Simulator
+
+# Parameters that make every material's return mapping active within a few substeps of
+# the random-velocity scene below (checked by test_substep.py).
+MATERIAL_CASES: dict[str, dict[str, float]] = {
+    "elastic": {"youngs_modulus": 1e4, "poissons_ratio": 0.3},
+    "plasticine": {"youngs_modulus": 1e4, "poissons_ratio": 0.3, "yield_stress": 300.0},
+    "metal": {"youngs_modulus": 1e4, "poissons_ratio": 0.3, "yield_stress": 300.0, "hardening": 1.0},
+    "foam": {"youngs_modulus": 1e4, "poissons_ratio": 0.3, "yield_stress": 300.0, "viscosity": 0.05},
+    "sand": {"youngs_modulus": 1e4, "poissons_ratio": 0.3, "friction_angle": 35.0, "cohesion": 0.001},
+    "newtonian": {"viscosity": 1.0, "bulk_modulus": 1e4},
+    "non_newtonian": {"shear_modulus": 2e3, "bulk_modulus": 1e4, "yield_stress": 80.0, "viscosity": 0.05},
+    "snow": {"youngs_modulus": 1e4, "poissons_ratio": 0.2},
+}
+
+
+def cube(n_side: int, lower: float, upper: float, dtype=torch.float64) -> torch.Tensor:
+    """n_side^3 particles on a regular lattice filling [lower, upper]^3 (m)."""
+    h = (upper - lower) / n_side
+    axis = lower + h * (0.5 + torch.arange(n_side, dtype=dtype))
+    return torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+
+
+def random_scene(materials, seed: int = 0, n: int = 300, dtype=torch.float64, **kwargs) -> Simulator:
+    """Particles at random in [0.3, 0.7]^3 m on a 16^3 grid of 1/16 m, with random velocities
+    (so stresses and yield are exercised), one material per particle cycling through
+    ``materials`` ({name: params})."""
+    gen = torch.Generator().manual_seed(seed)
+    x = 0.3 + 0.4 * torch.rand(n, 3, generator=gen, dtype=torch.float64)
+    v = 0.6 * torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    specs = [MaterialSpec(name, params) for name, params in materials.items()]
+    kwargs.setdefault("substeps", 10)
+    kwargs.setdefault("frame_dt", 1e-2)
+    return Simulator(x, 1e-5, specs, Grid((16, 16, 16), 1 / 16), velocities=v, dtype=dtype,
+                     material_index=torch.arange(n) % len(specs), **kwargs)
