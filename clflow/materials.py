@@ -57,8 +57,9 @@ class Param:
         if below or above:
             lb = "[" if self.low_inclusive else "("
             rb = "]" if self.high_inclusive else ")"
+            unit = "" if self.unit == "1" else f" {self.unit}"
             raise InputError(
-                f"{prefix}{self.name} ({self.symbol}) = {value:g} {self.unit} is outside the valid "
+                f"{prefix}{self.name} ({self.symbol}) = {value:g}{unit} is outside the valid "
                 f"range {lb}{lo:g}, {hi:g}{rb}"
             )
         return value

@@ -9,3 +9,34 @@ def device():
     from clflow.runtime import get_device
 
     return get_device()
+
+
+@pytest.fixture
+def oclgrind(tmp_path):
+    """Run a Python snippet under oclgrind (out-of-bounds, data-race and uninitialised-value
+    checks) and return ``(stdout, log)``; skips when oclgrind is not installed.
+
+    Oclgrind replaces the OpenCL runtime for the child process, so inside it the only
+    device is the Oclgrind simulator (a non-unified device: the bridge's copy path runs).
+    """
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    exe = shutil.which("oclgrind")
+    if exe is None:
+        pytest.skip("oclgrind is not installed (apt-get install oclgrind)")
+
+    def run(code: str, timeout: float = 300):
+        script, log = tmp_path / "under_oclgrind.py", tmp_path / "oclgrind.log"
+        script.write_text(code)
+        env = {k: v for k, v in os.environ.items() if k != "CLFLOW_DEVICE"}
+        res = subprocess.run(
+            [exe, "--data-races", "--uninitialized", "--log", str(log), sys.executable, str(script)],
+            capture_output=True, text=True, timeout=timeout, env=env,
+        )
+        assert res.returncode == 0, res.stderr
+        return res.stdout, (log.read_text() if log.exists() else "")
+
+    return run

@@ -96,7 +96,13 @@ class TensorBinding:
 
     def scratch(self, nbytes: int):
         """Device-only buffer of ``nbytes`` (at least 16) for intermediate results."""
-        buf = self._cl.Buffer(self.device.context, self._cl.mem_flags.READ_WRITE, max(16, int(nbytes)))
+        mf, size = self._cl.mem_flags, max(16, int(nbytes))
+        if self.device.info.is_oclgrind:
+            # oclgrind's uninitialised-value check keeps flagging a buffer the host never
+            # wrote, even after a kernel wrote it: give it host-written contents there.
+            buf = self._cl.Buffer(self.device.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=np.zeros(size, np.uint8))
+        else:
+            buf = self._cl.Buffer(self.device.context, mf.READ_WRITE, size)
         self._keep.append(buf)
         return buf
 

@@ -3,7 +3,9 @@
  * Uses cl_ext_float_atomics when the host announced it (CLFLOW_FLOAT_ATOMICS) and the
  * compiler confirms the matching feature macro; otherwise a compare-and-swap loop on the
  * value's bit pattern (32-bit for float, 64-bit for double via cl_khr_int64_base_atomics).
- * Comparing bit patterns, not values, keeps the loop finite when *p is NaN.
+ * Comparing bit patterns, not values, keeps the loop finite when *p is NaN. The first
+ * attempt guesses *p == 0 instead of reading it with a plain load, which would race with
+ * the other work-items' compare-and-swaps (oclgrind reports it).
  *
  * The order of concurrent additions is not fixed, so sums through this helper are not
  * bit-reproducible: CPU paths use private copies reduced in a fixed order instead. */
@@ -43,14 +45,14 @@ inline void atomic_add_real(volatile __global real *p, real v)
 #endif
 #elif REAL_IS_DOUBLE
     volatile __global ulong *bits = (volatile __global ulong *)p;
-    ulong seen = *bits, expected;
+    ulong seen = as_ulong(0.0), expected;
     do {
         expected = seen;
         seen = atom_cmpxchg(bits, expected, as_ulong(as_double(expected) + v));
     } while (seen != expected);
 #else
     volatile __global uint *bits = (volatile __global uint *)p;
-    uint seen = *bits, expected;
+    uint seen = as_uint(0.0f), expected;
     do {
         expected = seen;
         seen = atomic_cmpxchg(bits, expected, as_uint(as_float(expected) + v));

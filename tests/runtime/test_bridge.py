@@ -1,0 +1,82 @@
+"""The torch bridge: zero-copy buffers on unified memory, copies otherwise, clear errors."""
+
+import numpy as np
+import pytest
+import torch
+
+from clflow.errors import InputError
+
+
+def scatter_kernel(device, real="float"):
+    return device.kernel("common/scatter_add.cl", "scatter_add", real)
+
+
+def run_scatter(device, binding, values, index, out):
+    n = index.numel()
+    device.launch(
+        scatter_kernel(device, "double" if values.dtype == torch.float64 else "float"),
+        n,
+        [binding.input(values), binding.input(index), binding.inout(out), np.int32(n), np.int32(1)],
+    )
+
+
+def test_zero_copy_buffer_aliases_the_tensor_and_kernels_write_into_it(device):
+    assert device.info.host_unified_memory
+    out = torch.zeros(4)
+    with device.bind() as b:
+        assert b.zero_copy
+        buf = b.inout(out)
+        host = buf.get_host_array(out.shape, np.float32)
+        assert host.__array_interface__["data"][0] == out.data_ptr()  # the buffer is the tensor
+        device.launch(
+            scatter_kernel(device), 3,
+            [b.input(torch.tensor([1.5, 2.0, 4.0])), b.input(torch.tensor([3, 0, 3], dtype=torch.int32)),
+             buf, np.int32(3), np.int32(1)],
+        )
+        device.finish()
+        # PoCL's CPU device wrote straight into the tensor: visible before any copy or map.
+        assert out.tolist() == [2.0, 0.0, 0.0, 5.5]
+    assert out.tolist() == [2.0, 0.0, 0.0, 5.5]
+
+
+def test_copy_path_for_discrete_devices(device):
+    out = torch.zeros(3, dtype=torch.float64)
+    with device.bind() as b:
+        b.zero_copy = False  # what a discrete GPU gets: copy in, run, copy back
+        run_scatter(device, b, torch.tensor([1.0, 2.0], dtype=torch.float64), torch.tensor([2, 2], dtype=torch.int32), out)
+    assert out.tolist() == [0.0, 0.0, 3.0]
+
+
+def test_outputs_are_current_when_the_block_ends(device):
+    out = torch.zeros(1000)
+    values = torch.ones(100000)
+    index = torch.randint(0, 1000, (100000,), dtype=torch.int32)
+    with device.bind() as b:
+        run_scatter(device, b, values, index, out)
+    assert torch.equal(out, torch.bincount(index, minlength=1000).float())
+
+
+def test_empty_tensors_are_fine(device):
+    with device.bind() as b:
+        b.input(torch.empty(0))
+        b.output(torch.empty(0, 3, dtype=torch.float64))
+
+
+@pytest.mark.parametrize(
+    "tensor, message",
+    [
+        (torch.zeros(4, 4).t(), "not contiguous"),
+        (torch.zeros(4, 4)[:, 1], "not contiguous"),
+        (torch.zeros(3, dtype=torch.float16), "unsupported dtype"),
+        (torch.zeros(3, device="meta"), "CPU tensors"),
+        (np.zeros(3), "expected a torch.Tensor"),
+    ],
+)
+def test_bad_tensors_are_refused(device, tensor, message):
+    with device.bind() as b, pytest.raises(InputError, match=message):
+        b.input(tensor)
+
+
+def test_dtype_is_checked_when_asked(device):
+    with device.bind() as b, pytest.raises(InputError, match="expected torch.float64"):
+        b.input(torch.zeros(3), "positions", dtype=torch.float64)

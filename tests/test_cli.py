@@ -1,0 +1,64 @@
+"""The CLI skeleton: lazy imports, version, devices, device selection errors."""
+
+import json
+import subprocess
+import sys
+
+from click.testing import CliRunner
+
+from clflow import __version__
+from clflow_cli.main import BUILTIN_COMMANDS, cli
+
+
+def test_help_and_every_command_help_import_neither_torch_nor_opencl():
+    # `clflow --help` must be instant: listing commands imports their modules, which may
+    # import only click at module level.
+    code = (
+        "import sys\n"
+        "from click.testing import CliRunner\n"
+        "from clflow_cli.main import cli, BUILTIN_COMMANDS\n"
+        "r = CliRunner().invoke(cli, ['--help']); assert r.exit_code == 0, r.output\n"
+        "for name in BUILTIN_COMMANDS:\n"
+        "    r = CliRunner().invoke(cli, [name, '--help']); assert r.exit_code == 0, (name, r.output)\n"
+        "heavy = sorted(m for m in ('torch', 'pyopencl', 'cv2', 'numpy', 'kornia') if m in sys.modules)\n"
+        "print(heavy)\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "[]"
+
+
+def test_help_lists_the_builtin_commands():
+    out = CliRunner().invoke(cli, ["--help"]).output
+    for name in BUILTIN_COMMANDS:
+        assert name in out
+
+
+def test_version():
+    res = CliRunner().invoke(cli, ["--version"])
+    assert res.exit_code == 0 and __version__ in res.output
+
+
+def test_devices_lists_the_capabilities(device):
+    res = CliRunner().invoke(cli, ["devices"])
+    assert res.exit_code == 0, res.output
+    for field in ("fp64", "float atomics", "unified memory", "compute units", "kernel cache dir", "OpenCL C"):
+        assert field in res.output
+    assert f"* {device.info.label}" in res.output
+
+
+def test_devices_json(device):
+    res = CliRunner().invoke(cli, ["devices", "--json"])
+    data = json.loads(res.output)
+    assert any(d["selected"] and d["name"] == device.info.name for d in data["devices"])
+
+
+def test_unknown_device_is_a_clear_error(monkeypatch):
+    from clflow.runtime import devices as devmod
+
+    monkeypatch.setattr(devmod, "_DEFAULT_SPEC", None)
+    res = CliRunner().invoke(cli, ["--device", "no-such-gpu", "devices"])
+    monkeypatch.setattr(devmod, "_DEFAULT_SPEC", None)
+    assert res.exit_code == 1
+    assert "no OpenCL device matches 'no-such-gpu'" in res.output and "available devices" in res.output
+    assert res.exception is None or isinstance(res.exception, SystemExit)
