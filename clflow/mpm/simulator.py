@@ -211,8 +211,8 @@ class Simulator:
         self.dt = self.frame_dt / self.substeps
         self.time = 0.0
         self.frame = 0
-        self.kernels = SubstepKernels(self.device, dtype, n, grid, p2g)
-        self._clamped = torch.zeros(1, dtype=torch.int32)
+        self.kernels = SubstepKernels(self.device, dtype, n, grid, self.particles.material, p2g)
+        self._clamped = torch.zeros(n, dtype=torch.uint8)
 
     # -- validation -------------------------------------------------------------------------
 
@@ -265,7 +265,8 @@ class Simulator:
         self.time += self.dt
 
     def advance_frame(self) -> int:
-        """Run one frame of substeps; returns how many particles were clamped into the domain.
+        """Run one frame of substeps; returns how many particles were clamped into the domain
+        at least once.
 
         Raises :class:`SimulationError` if the state became NaN/inf."""
         self._clamped.zero_()
@@ -280,9 +281,9 @@ class Simulator:
                 f"dt = {self.dt:.3g} s is too large ({self._limit_reason(v_before)}; stable substeps per frame now: "
                 f"{self.stable_substeps(v_before)}), or extreme material parameters / forces"
             )
-        count = int(self._clamped[0])
+        count = int(self._clamped.sum(dtype=torch.int64))
         if count:
-            warnings.warn(f"frame {self.frame}: {count} particle positions left the grid and were clamped to "
+            warnings.warn(f"frame {self.frame}: {count} particles left the grid and were clamped to "
                           f"its boundary (enlarge the grid or add walls)", RuntimeWarning, stacklevel=2)
         vmax = float(s.v.double().norm(dim=-1).max())
         if vmax * self.dt > CFL_NUMBER * self.grid.dx:

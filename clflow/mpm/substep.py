@@ -81,10 +81,12 @@ class Particles:
 
 
 class SubstepKernels:
-    """The substep kernels of one device, precision, particle count and grid, with their
-    scratch buffers (tau, grid, grid_v and the private P2G grid copies)."""
+    """The substep kernels of one device, precision, particle count, grid and set of material
+    ids (``materials``: the kernel ids of the particles), with their scratch buffers (tau,
+    grid, grid_v and the private P2G grid copies)."""
 
-    def __init__(self, device: Device, dtype: torch.dtype, n: int, grid: Grid, p2g: P2GMode = "auto"):
+    def __init__(self, device: Device, dtype: torch.dtype, n: int, grid: Grid, materials: torch.Tensor,
+                 p2g: P2GMode = "auto"):
         import pyopencl as cl
 
         self.device, self.dtype, self.n, self.grid = device, dtype, n, grid
@@ -94,6 +96,8 @@ class SubstepKernels:
             p2g = "private" if device.info.type == "CPU" else "atomic"
         self.p2g = p2g
         defines = kernel_defines()
+        # only the constitutive models of the materials present are compiled in
+        defines["MATERIALS_PRESENT"] = sum(1 << int(m) for m in torch.unique(materials))
         k = lambda src, name: device.kernel(src, name, self.real, defines)  # noqa: E731
         self.k_stress = k("mpm/stress.cl", "update_stress")
         self.k_grid = k("mpm/grid.cl", "grid_update")
@@ -129,7 +133,7 @@ class SubstepKernels:
     ) -> None:
         """Advance ``state`` (time t) by ``dt`` into ``out``; ``boundaries`` [B, BC_STRIDE] is
         the boundary table, ``accel`` [groups, 3] the driver accelerations (m/s^2) of this
-        substep, ``clamped`` an int32 [1] counter that G2P adds clamped particles to."""
+        substep, ``clamped`` uint8 [N] flags that G2P sets to 1 for particles it clamps."""
         dev, R, n = self.device, self.real_t, np.int32(self.n)
         grid_args = self.grid.kernel_args(R)
         with dev.bind() as b:
@@ -165,6 +169,6 @@ class SubstepKernels:
                 self.n,
                 grid_args + [n, R(dt), R(t), x, grid_v, b.input(particles.release_time, "release_time"),
                              b.output(out.x, "x_out"), b.output(out.v, "v_out"), b.output(out.C, "C_out"),
-                             b.inout(clamped, "clamped", torch.int32)],
+                             b.inout(clamped, "clamped", torch.uint8)],
             )
 

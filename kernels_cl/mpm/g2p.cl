@@ -8,9 +8,9 @@
 
 __kernel void g2p(const int nx, const int ny, const int nz, const real dx, const real ox,
                   const real oy, const real oz, const int n, const real dt, const real t,
-                  __global const real *x_in, __global const real *grid_v,
-                  __global const real *release_time, __global real *x_out, __global real *v_out,
-                  __global real *C_out, volatile __global int *clamped)
+                  __global const real *restrict x_in, __global const real *restrict grid_v,
+                  __global const real *restrict release_time, __global real *restrict x_out, __global real *restrict v_out,
+                  __global real *restrict C_out, __global uchar *restrict clamped)
 {
     const int p = get_global_id(0);
     if (p >= n)
@@ -20,20 +20,25 @@ __kernel void g2p(const int nx, const int ny, const int nz, const real dx, const
     load_row(x_in, p, 3, xp);
     if (t >= release_time[p]) {
         const stencil_t st = make_stencil(&g, xp);
-        const real scale = 4 / (dx * dx);
+        real wv[3];
+#pragma unroll
         for (int i = 0; i < 3; ++i)
+#pragma unroll
             for (int j = 0; j < 3; ++j)
+#pragma unroll
                 for (int k = 0; k < 3; ++k) {
                     const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
                     const real d[3] = {(i - st.fx[0]) * dx, (j - st.fx[1]) * dx, (k - st.fx[2]) * dx};
-                    real vi[3];
-                    load_row(grid_v, grid_index(&g, st.base[0] + i, st.base[1] + j, st.base[2] + k), 3, vi);
+                    load_row(grid_v, grid_index(&g, st.base[0] + i, st.base[1] + j, st.base[2] + k), 3, wv);
                     for (int a = 0; a < 3; ++a) {
-                        v[a] += w * vi[a];
+                        wv[a] *= w;
+                        v[a] += wv[a];
                         for (int b = 0; b < 3; ++b)
-                            C[3 * a + b] += scale * w * vi[a] * d[b];
+                            C[3 * a + b] += wv[a] * d[b];
                     }
                 }
+        for (int k = 0; k < 9; ++k)
+            C[k] *= 4 / (dx * dx);
         int out = 0;
         for (int a = 0; a < 3; ++a) {
             const real lo = g.origin[a] + CLAMP_MARGIN * dx;
@@ -43,7 +48,7 @@ __kernel void g2p(const int nx, const int ny, const int nz, const real dx, const
             out |= xp[a] != moved;
         }
         if (out)
-            atomic_inc(clamped);
+            clamped[p] = 1;
     }
     store_row(x_out, p, 3, xp);
     store_row(v_out, p, 3, v);
