@@ -7,6 +7,7 @@ from clflow_cli.main import LazyGroup
 # name -> "module:command" of each benchmark; imported only when it runs.
 BENCHMARKS: dict[str, str] = {
     "mpm": "clflow_cli.bench_mpm:mpm",
+    "mpm-adjoint": "clflow_cli.bench_mpm_adjoint:mpm_adjoint",
 }
 
 

@@ -24,6 +24,7 @@ a tensor.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 import weakref
 from dataclasses import dataclass
 
@@ -32,8 +33,8 @@ import torch
 from clflow.errors import InputError
 from clflow.materials import lame_parameters
 from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, SubstepTape, check_adjoint_materials, run_recorded
-from clflow.mpm.constants import MATERIAL_IDS
-from clflow.mpm.simulator import SimulationError, Simulator
+from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT
+from clflow.mpm.simulator import CFL_NUMBER, SimulationError, Simulator, StabilityWarning
 from clflow.mpm.substep import Particles, State, SubstepKernels
 from clflow.runtime.reduction import sum_rows
 
@@ -71,9 +72,10 @@ def _engine(sim: Simulator) -> _Engine:
 class _Run:
     """One differentiable run: its settings, and the checkpoints its forward leaves for backward."""
 
-    def __init__(self, sim: Simulator, frames: int):
-        self.sim, self.frames, self.engine = sim, frames, _engine(sim)
-        self.t0, self.dt, self.substeps = sim.time, sim.dt, sim.substeps
+    def __init__(self, sim: Simulator, frames: int, substeps: int, strict_cfl: bool = False):
+        self.sim, self.frames, self.engine, self.strict_cfl = sim, frames, _engine(sim), strict_cfl
+        self.t0, self.substeps = sim.time, substeps
+        self.dt = sim.frame_dt / substeps
 
     def time(self, frame: int, substep: int) -> float:
         return self.t0 + (frame * self.substeps + substep) * self.dt
@@ -114,6 +116,13 @@ class _Run:
                     f"the differentiable run became NaN/inf during frame {f + 1} "
                     f"(t = {self.time(f + 1, 0):.4g} s); reduce dt (substeps per frame now {self.substeps}) "
                     f"or the material stiffness / forces")
+            vmax = float(a.v.double().norm(dim=-1).max())
+            if vmax * self.dt > CFL_NUMBER * sim.grid.dx:
+                message = (f"differentiable run, frame {f + 1}: max speed {vmax:.3g} m/s breaks the CFL limit "
+                           f"at dt = {self.dt:.3g} s ({self.substeps} substeps per frame)")
+                if self.strict_cfl:
+                    raise SimulationError(message)
+                warnings.warn(message, StabilityWarning, stacklevel=4)
             for buf, value in ((self.x, a.x), (self.v, a.v), (self.C, a.C), (self.F, a.F),
                                (self.plastic, a.plastic)):
                 buf[f + 1] = value
@@ -145,6 +154,19 @@ class _Run:
                 grad, spare = spare, grad
         add_output_grads(0)
         return param_grad, mass_grad, grad.x, grad.v
+
+
+def memory_estimate(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype) -> int:
+    """Bytes a differentiable run of n particles on ``nodes`` grid nodes holds at its peak:
+    (frames + 1) checkpoints and outputs (25 + 15 reals per particle), one frame's replay
+    (substeps states of 25 reals and tau of 9 per particle, grids of 7 reals per node) and
+    the adjoint's own buffers (two state gradients, taubar, parameter and mass gradients;
+    grid adjoints of 7 reals per node)."""
+    itemsize = torch.tensor([], dtype=dtype).element_size()
+    checkpoints = (frames + 1) * n * (25 + 15)
+    replay = substeps * (n * (25 + 9) + 7 * nodes)
+    adjoint = n * (2 * 24 + 9 + PARAM_COUNT + 1) + 7 * nodes
+    return itemsize * (checkpoints + replay + adjoint)
 
 
 class _Simulate(torch.autograd.Function):
@@ -203,6 +225,7 @@ def simulate(
     positions=None,
     velocities=None,
     kernel_params=None,
+    retries: int = 0,
 ) -> Frames:
     """Differentiable run of ``frames`` frames from the simulator's current state.
 
@@ -218,6 +241,10 @@ def simulate(
         positions, velocities: initial x [N, 3] (m) and v [N, 3] (m/s).
         kernel_params: [N, PARAM_COUNT] kernel parameters (clflow.mpm.constants.kernel_params),
             an alternative to youngs_modulus / poissons_ratio.
+        retries: NaN/CFL guard: when a frame turns NaN/inf or breaks the CFL limit, halve dt
+            (double the substeps per frame) and run again, at most this many times (a
+            StabilityWarning says so). The last attempt raises :class:`SimulationError` on
+            NaN/inf and only warns on a CFL violation.
 
     Returns:
         :class:`Frames` with x, v [frames + 1, N, 3] and F [frames + 1, N, 3, 3].
@@ -263,8 +290,14 @@ def simulate(
             raise InputError(f"{name}: expected shape [{n}, 3], got {list(value.shape)}")
         if not bool(torch.isfinite(value.detach()).all()):
             raise InputError(f"{name} contains NaN or inf")
-    x, v, F = _Simulate.apply(_Run(sim, int(frames)), param, mass, x0, v0)
-    return Frames(x, v, F)
+    substeps = sim.substeps
+    for _ in range(int(retries)):
+        try:
+            return Frames(*_Simulate.apply(_Run(sim, int(frames), substeps, True), param, mass, x0, v0))
+        except SimulationError as err:
+            warnings.warn(f"{err}; retrying with {2 * substeps} substeps per frame", StabilityWarning, stacklevel=2)
+            substeps *= 2
+    return Frames(*_Simulate.apply(_Run(sim, int(frames), substeps), param, mass, x0, v0))
 
 
-__all__ = ["Frames", "per_particle", "simulate"]
+__all__ = ["Frames", "memory_estimate", "per_particle", "simulate"]
