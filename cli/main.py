@@ -16,6 +16,7 @@ from clflow import __version__
 BUILTIN_COMMANDS: dict[str, str] = {
     "bench": "clflow_cli.bench:bench",
     "devices": "clflow_cli.devices:devices",
+    "simulate": "clflow_cli.simulate:simulate",
 }
 
 PLUGIN_GROUP = "clflow.commands"

@@ -70,7 +70,7 @@ inline void svd3_sort_pair(real *b, real *v, const int i, const int j)
 inline void svd3_givens(real *b, real *q, const int i, const int j)
 {
     const real x = b[3 * i + i], y = b[3 * j + i];
-    const real rho = hypot(x, y);
+    const real rho = sqrt(x * x + y * y);
     if (rho == (real)0)
         return;
     const real c = x / rho, s = y / rho;

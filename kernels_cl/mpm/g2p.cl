@@ -16,34 +16,31 @@ __kernel void g2p(const int nx, const int ny, const int nz, const real dx, const
     if (p >= n)
         return;
     const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
-    real xp[3], v[3] = {0, 0, 0}, C[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+    real xp[3];
+    vec3r v = 0, C0 = 0, C1 = 0, C2 = 0; /* v and the rows of C */
     load_row(x_in, p, 3, xp);
     if (t >= release_time[p]) {
         const stencil_t st = make_stencil(&g, xp);
-        real wv[3];
-#pragma unroll
         for (int i = 0; i < 3; ++i)
-#pragma unroll
             for (int j = 0; j < 3; ++j)
-#pragma unroll
                 for (int k = 0; k < 3; ++k) {
                     const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
-                    const real d[3] = {(i - st.fx[0]) * dx, (j - st.fx[1]) * dx, (k - st.fx[2]) * dx};
-                    load_row(grid_v, grid_index(&g, st.base[0] + i, st.base[1] + j, st.base[2] + k), 3, wv);
-                    for (int a = 0; a < 3; ++a) {
-                        wv[a] *= w;
-                        v[a] += wv[a];
-                        for (int b = 0; b < 3; ++b)
-                            C[3 * a + b] += wv[a] * d[b];
-                    }
+                    const vec3r d = (vec3r)((i - st.fx[0]) * dx, (j - st.fx[1]) * dx, (k - st.fx[2]) * dx);
+                    const vec3r wv = w * vload3(grid_index(&g, st.base[0] + i, st.base[1] + j, st.base[2] + k), grid_v);
+                    v += wv;
+                    C0 += wv.x * d;
+                    C1 += wv.y * d;
+                    C2 += wv.z * d;
                 }
-        for (int k = 0; k < 9; ++k)
-            C[k] *= 4 / (dx * dx);
+        const real scale = 4 / (dx * dx);
+        C0 *= scale;
+        C1 *= scale;
+        C2 *= scale;
         int out = 0;
         for (int a = 0; a < 3; ++a) {
             const real lo = g.origin[a] + CLAMP_MARGIN * dx;
             const real hi = g.origin[a] + (grid_extent(&g, a) - 1 - CLAMP_MARGIN) * dx;
-            const real moved = xp[a] + dt * v[a];
+            const real moved = xp[a] + dt * (a == 0 ? v.x : (a == 1 ? v.y : v.z));
             xp[a] = clamp(moved, lo, hi);
             out |= xp[a] != moved;
         }
@@ -51,6 +48,8 @@ __kernel void g2p(const int nx, const int ny, const int nz, const real dx, const
             clamped[p] = 1;
     }
     store_row(x_out, p, 3, xp);
-    store_row(v_out, p, 3, v);
-    store_row(C_out, p, 9, C);
+    vstore3(v, p, v_out);
+    vstore3(C0, 3 * p, C_out);
+    vstore3(C1, 3 * p + 1, C_out);
+    vstore3(C2, 3 * p + 2, C_out);
 }

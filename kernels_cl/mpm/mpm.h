@@ -14,6 +14,14 @@
 #error "build the MPM kernels through clflow.mpm (it passes PARAM_COUNT, CLAMP_MARGIN, ...)"
 #endif
 
+/* 3-vectors in registers for the transfer loops (private arrays indexed in loops may stay
+ * in memory; vector accumulators do not). */
+#if REAL_IS_DOUBLE
+typedef double3 vec3r;
+#else
+typedef float3 vec3r;
+#endif
+
 typedef struct {
     int nx, ny, nz;
     real dx;

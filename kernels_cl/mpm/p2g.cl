@@ -20,37 +20,34 @@ inline void p2g_particle(const grid_t *g, const int p, const real dt, __global c
                          __global const int *group, __global const real *accel,
                          __global real *grid, const int use_atomics)
 {
-    real xp[3], vp[3], Cp[9], taup[9], affine[9];
+    real xp[3];
     load_row(x, p, 3, xp);
-    load_row(v, p, 3, vp);
-    load_row(C, p, 9, Cp);
-    load_row(tau, p, 9, taup);
     const real m = mass[p];
     const real stress_scale = -dt * volume[p] * 4 / (g->dx * g->dx);
-    for (int k = 0; k < 9; ++k)
-        affine[k] = stress_scale * taup[k] + m * Cp[k];
+    vec3r affine[3]; /* rows of m C - dt V (4/dx^2) tau */
+    for (int r = 0; r < 3; ++r)
+        affine[r] = stress_scale * vload3(3 * p + r, tau) + m * vload3(3 * p + r, C);
     const int gp = group[p];
-    real momentum[3];
-    for (int a = 0; a < 3; ++a)
-        momentum[a] = m * (vp[a] + (gp >= 0 ? dt * accel[3 * gp + a] : 0));
+    const vec3r momentum = m * (vload3(p, v) + (gp >= 0 ? dt * vload3(gp, accel) : (vec3r)0));
     const stencil_t st = make_stencil(g, xp);
     for (int i = 0; i < 3; ++i)
         for (int j = 0; j < 3; ++j)
             for (int k = 0; k < 3; ++k) {
                 const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
-                const real d[3] = {(i - st.fx[0]) * g->dx, (j - st.fx[1]) * g->dx, (k - st.fx[2]) * g->dx};
+                const vec3r d = (vec3r)((i - st.fx[0]) * g->dx, (j - st.fx[1]) * g->dx, (k - st.fx[2]) * g->dx);
+                const vec3r mv = w * (momentum + (vec3r)(dot(affine[0], d), dot(affine[1], d), dot(affine[2], d)));
                 __global real *node = grid + 4 * grid_index(g, st.base[0] + i, st.base[1] + j, st.base[2] + k);
-                real add[4];
-                add[0] = w * m;
-                for (int a = 0; a < 3; ++a)
-                    add[1 + a] = w * (momentum[a] + affine[3 * a] * d[0] + affine[3 * a + 1] * d[1] +
-                                      affine[3 * a + 2] * d[2]);
-                if (use_atomics)
-                    for (int c = 0; c < 4; ++c)
-                        atomic_add_real(node + c, add[c]);
-                else
-                    for (int c = 0; c < 4; ++c)
-                        node[c] += add[c];
+                if (use_atomics) {
+                    atomic_add_real(node, w * m);
+                    atomic_add_real(node + 1, mv.x);
+                    atomic_add_real(node + 2, mv.y);
+                    atomic_add_real(node + 3, mv.z);
+                } else {
+                    node[0] += w * m;
+                    node[1] += mv.x;
+                    node[2] += mv.y;
+                    node[3] += mv.z;
+                }
             }
 }
 

@@ -1,0 +1,58 @@
+"""``clflow simulate`` end to end on tiny scenes."""
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from clflow_cli.main import cli
+
+FAST = ["--grid", "16", "--frames", "2", "--size", "0.3", "-p", "youngs_modulus=1e4"]
+
+
+def run(args):
+    return CliRunner().invoke(cli, ["simulate", *args], catch_exceptions=False)
+
+
+@pytest.mark.parametrize("shape", ["box", "sphere", "torus"])
+def test_builtin_shape_writes_positions_and_png_preview(tmp_path, shape):
+    res = run([*FAST, "--shape", shape, "--preview", "png", "-o", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    data = np.load(tmp_path / "positions.npz")
+    assert data["x"].shape[0] == 3 and data["x"].shape[2] == 3
+    assert data["time"].tolist() == pytest.approx([0, 1 / 24, 2 / 24])
+    assert data["x"][-1, :, 1].mean() < data["x"][0, :, 1].mean()  # it falls
+    assert sorted(p.name for p in (tmp_path / "preview").iterdir()) == [f"frame_{k:04d}.png" for k in range(3)]
+
+
+def test_npz_particles_and_mp4_preview(tmp_path):
+    x = 0.4 + 0.2 * np.random.default_rng(0).random((100, 3))
+    np.savez(tmp_path / "in.npz", positions=x, volume=np.full(100, 1e-5))
+    res = run([str(tmp_path / "in.npz"), *FAST, "-m", "plasticine", "-o", str(tmp_path / "out")])
+    assert res.exit_code == 0, res.output
+    assert np.load(tmp_path / "out" / "positions.npz")["x"].shape == (3, 100, 3)
+    assert (tmp_path / "out" / "preview.mp4").stat().st_size > 0
+
+
+def test_ply_particles(tmp_path):
+    x = 0.4 + 0.2 * np.random.default_rng(1).random((50, 3))
+    header = "ply\nformat ascii 1.0\nelement vertex 50\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    (tmp_path / "in.ply").write_text(header + "\n".join(" ".join(f"{c:.6f}" for c in p) for p in x) + "\n")
+    res = run([str(tmp_path / "in.ply"), *FAST, "--preview", "none", "-o", str(tmp_path / "out")])
+    assert res.exit_code == 0, res.output
+    assert np.allclose(np.load(tmp_path / "out" / "positions.npz")["x"][0], x, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["-m", "honey"], "unknown material 'honey'"),
+        (["-p", "poissons_ratio=0.5"], "poissons_ratio (nu) = 0.5"),
+        (["missing.npz"], "particle file not found: missing.npz"),
+        (["-p", "youngs_modulus"], "--param takes NAME=VALUE"),
+    ],
+)
+def test_bad_input_is_one_clear_line(tmp_path, args, message):
+    res = CliRunner().invoke(cli, ["simulate", *FAST, "--preview", "none", "-o", str(tmp_path), *args])
+    assert res.exit_code != 0
+    assert message in res.output
+    assert not (tmp_path / "positions.npz").exists()

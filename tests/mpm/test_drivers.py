@@ -1,0 +1,138 @@
+"""Boundary conditions and drivers: colliders, velocity regions, forces, release, rotation."""
+
+import math
+
+import pytest
+import torch
+
+from clflow.mpm import (
+    Box,
+    BoxRegion,
+    Force,
+    Grid,
+    HalfSpace,
+    MaterialSpec,
+    RotatingCylinder,
+    Simulator,
+    SphereRegion,
+    layer_release_times,
+)
+from tests.mpm.scenes import cube
+
+GRID = Grid((32, 32, 32), 1 / 32)
+SOFT = MaterialSpec("elastic", {"youngs_modulus": 2e4, "poissons_ratio": 0.3})
+FLOOR_Y = 0.2
+
+
+def sliding_block(mode: str, friction: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean x-velocity of a block sliding at 1 m/s over a floor collider, and of its bottom
+    layer, at frames 0..4 (0.05 s apart)."""
+    x = cube(8, 0.0, 0.25) + torch.tensor([0.3, FLOOR_Y + 0.001, 0.3], dtype=torch.float64)
+    sim = Simulator(x, (0.25 / 8) ** 3, SOFT, GRID, velocities=torch.tensor([[1.0, 0, 0]]).expand(x.shape[0], 3),
+                    boundaries=[HalfSpace((0, FLOOR_Y, 0), (0, 1, 0), mode, friction)], frame_dt=0.05)
+    traj = sim.run(4)
+    bottom = x[:, 1] < FLOOR_Y + 0.04
+    return traj.v[:, :, 0].mean(1).double(), traj.v[:, bottom, 0].mean(1).double()
+
+
+def test_slip_collider_lets_a_block_slide():
+    for vx in sliding_block("slip", 0.0):
+        assert (vx - 1.0).abs().max() < 0.02
+
+
+def test_sticky_collider_holds_the_block():
+    _, bottom = sliding_block("sticky", 0.0)
+    assert bottom[-1].abs() < 0.2  # the bottom stops (the top may rock)
+
+
+@pytest.mark.parametrize("mode", ["slip", "separate"])
+def test_coulomb_friction_decelerates_at_mu_g(mode):
+    mu_f = 0.3
+    vx, _ = sliding_block(mode, mu_f)
+    # v(t) = v0 - mu_f g t on average (the elastic block rocks a little about it)
+    decel = (vx[0] - vx[4]) / 0.2
+    assert decel == pytest.approx(mu_f * 9.81, rel=0.1)
+    assert bool((vx[1:] < vx[:-1]).all()) and float(vx[-1]) > 0  # steadily slower, never reversed
+
+
+def test_collider_time_window():
+    """A sticky floor switched on at t = 0.1 s changes nothing before and stops the fall after."""
+    x = cube(6, 0.0, 0.15) + torch.tensor([0.4, 0.5, 0.4], dtype=torch.float64)
+    runs = []
+    for boundaries in ([HalfSpace((0, 0.48, 0), (0, 1, 0), "sticky", start=0.1)], []):
+        sim = Simulator(x, 1e-5, SOFT, GRID, boundaries=boundaries, walls=None, frame_dt=0.05)
+        runs.append(sim.run(4))
+    with_floor, free = runs
+    assert torch.equal(with_floor.x[2], free.x[2])  # identical up to t = 0.1 s
+    assert float(with_floor.x[2][:, 1].min()) < 0.48  # by then the block reached into the floor
+    assert float(with_floor.x[-1][:, 1].mean()) > float(free.x[-1][:, 1].mean()) + 0.05
+
+
+def test_moving_box_region_carries_particles():
+    x = cube(6, 0.4, 0.55)
+    box = Box((0.35, 0.35, 0.35), (0.6, 0.6, 0.6), velocity=(0.2, 0.0, 0.0), end=0.1)
+    sim = Simulator(x, 1e-5, SOFT, GRID, boundaries=[box], gravity=(0, 0, 0), frame_dt=0.05)
+    traj = sim.run(2)
+    assert (traj.v[1][:, 0] - 0.2).abs().max() < 1e-5
+    assert (traj.x[2][:, 0] - traj.x[0][:, 0] - 0.2 * 0.1).abs().max() < 1e-5
+
+
+def test_rotating_cylinder_spins_particles():
+    x = cube(8, 0.4, 0.6)
+    omega = 3.0
+    center = (0.5, 0.5, 0.5)
+    drive = RotatingCylinder(center, axis=(0, 1, 0), radius=0.2, half_length=0.15, angular_velocity=omega)
+    sim = Simulator(x, 1e-5, SOFT, GRID, boundaries=[drive], gravity=(0, 0, 0), walls=None, frame_dt=0.02)
+    traj = sim.run(1)
+    r = traj.x[1].double() - torch.tensor(center, dtype=torch.float64)
+    expected = omega * torch.cross(torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64).expand_as(r), r, dim=-1)
+    # v = omega x r exactly at the nodes; particles interpolate a linear field exactly,
+    # up to one substep of rotation
+    assert (traj.v[1].double() - expected).abs().max() < 2 * omega * omega * 0.15 * sim.dt + 1e-5
+
+
+def test_force_stages_add_exact_impulses():
+    """Chained stages: the total momentum gained is F1 T1 + F2 T2 (no gravity, no walls)."""
+    x = cube(6, 0.4, 0.6)
+    n = x.shape[0]
+    upper = BoxRegion((0.0, 0.5, 0.0), (1.0, 1.0, 1.0))
+    stages = [Force(upper, 0.0, 0.04, force=(0.5, 0.0, 0.0)), Force(upper, 0.04, 0.1, force=(0.0, 0.0, -0.25))]
+    sim = Simulator(x, 1e-5, SOFT, GRID, forces=stages, gravity=(0, 0, 0), walls=None, frame_dt=0.02, substeps=20,
+                    dtype=torch.float64)
+    traj = sim.run(5)
+    p = (sim.particles.mass[:, None] * traj.v[-1]).sum(0)
+    assert p.tolist() == pytest.approx([0.5 * 0.04, 0.0, -0.25 * 0.06], abs=1e-12)
+    assert int(upper.select(x).sum()) < n  # only part of the body was pushed
+
+
+def test_acceleration_on_sphere_region_and_mask():
+    x = cube(6, 0.4, 0.6)
+    mask = torch.zeros(x.shape[0], dtype=torch.bool)
+    mask[:10] = True
+    stages = [Force(SphereRegion((0.5, 0.5, 0.5), 0.05), 0.0, 0.02, acceleration=(0, 3.0, 0)),
+              Force(mask, 0.0, 0.02, acceleration=(1.0, 0, 0))]
+    sim = Simulator(x, 1e-5, SOFT, GRID, forces=stages, gravity=(0, 0, 0), walls=None, frame_dt=0.02, substeps=20,
+                    dtype=torch.float64)
+    sphere_mass = float(sim.particles.mass[stages[0].mask(x)].sum())
+    traj = sim.run(1)
+    p = (sim.particles.mass[:, None] * traj.v[-1]).sum(0)
+    assert p.tolist() == pytest.approx([float(sim.particles.mass[:10].sum()) * 0.02, sphere_mass * 3.0 * 0.02, 0.0],
+                                       abs=1e-12)
+
+
+def test_layer_release_holds_layers_until_their_time():
+    x = cube(6, 0.4, 0.6)
+    release = layer_release_times(x, layers=3, interval=0.05)
+    assert sorted(release.unique().tolist()) == pytest.approx([0.0, 0.05, 0.1])
+    sim = Simulator(x, 1e-5, SOFT, GRID, release_times=release, walls=None, frame_dt=0.025)
+    traj = sim.run(2)
+    held = release > 0.05 - 1e-9
+    assert torch.equal(traj.x[2][held], traj.x[0][held].float())  # still in place at t = 0.05 s
+    assert float(traj.v[2][~held, 1].mean()) < -0.1  # the top layer falls
+
+
+def test_layer_release_rejects_bad_arguments():
+    from clflow.errors import InputError
+
+    with pytest.raises(InputError, match="layers >= 1"):
+        layer_release_times(cube(2, 0, 1), layers=0, interval=0.1)
