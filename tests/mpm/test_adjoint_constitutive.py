@@ -12,8 +12,9 @@ from clflow.mpm.adjoint import SubstepAdjoint
 from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT
 from clflow.mpm.substep import Grid
 
-MU, LAMBDA = 3.0e4, 5.0e4
+MU, LAMBDA, TAU_Y = 3.0e4, 5.0e4, 300.0
 GRID = Grid((8, 8, 8), 0.1)
+MATERIALS = ["elastic", "neo_hookean", "plasticine"]
 
 
 def rotation(axis, angle):
@@ -36,16 +37,23 @@ def deformations():
         "two_equal": R @ torch.diag(torch.tensor([1.1, 1.1, 0.9], dtype=torch.float64)) @ Q.T,
         "nearly_equal": R @ torch.diag(torch.tensor([1.0, 1.0 + 1e-9, 0.95], dtype=torch.float64)) @ Q.T,
         "generic": torch.eye(3, dtype=torch.float64) + 0.2 * torch.randn(3, 3, generator=gen, dtype=torch.float64),
+        "below_yield": R @ torch.diag(torch.tensor([1.001, 1.0, 0.999], dtype=torch.float64)) @ Q.T,
+        "above_yield": R @ torch.diag(torch.tensor([1.02, 1.0, 0.98], dtype=torch.float64)) @ Q.T,
     }
 
 
-def stress_vjp(device, material, F, tau_bar, dtype):
-    """(Fbar, [mubar, lambdabar]) of L = <tau_bar, tau(F)> by the kernel (C = 0, F'bar = 0)."""
+def kernel_params(n, dtype=torch.float64, mu=MU, lam=LAMBDA, tau_Y=TAU_Y):
+    q = torch.zeros(n, PARAM_COUNT, dtype=dtype)
+    q[:, 0], q[:, 1], q[:, 2] = mu, lam, tau_Y
+    return q
+
+
+def stress_vjp(device, material, F, tau_bar, F_new_bar, dtype):
+    """(Fbar, param_bar) of L = <tau_bar, tau(F)> + <F_new_bar, F'(F)> by the kernel (C = 0)."""
     n = F.shape[0]
     mat = torch.full((n,), MATERIAL_IDS[material], dtype=torch.int32)
     adjoint = SubstepAdjoint(device, dtype, n, GRID, mat)
-    param = torch.zeros(n, PARAM_COUNT, dtype=dtype)
-    param[:, 0], param[:, 1] = MU, LAMBDA
+    param = kernel_params(n, dtype)
     F_bar = torch.empty(n, 3, 3, dtype=dtype)
     C_bar = torch.zeros(n, 3, 3, dtype=dtype)
     param_bar = torch.zeros(n, PARAM_COUNT, dtype=dtype)
@@ -54,37 +62,50 @@ def stress_vjp(device, material, F, tau_bar, dtype):
         device.launch(adjoint.k_stress, n, [
             np.int32(n), R(1e-3), b.input(F.to(dtype).contiguous()), b.input(torch.zeros(n, 3, 3, dtype=dtype)),
             b.input(mat), b.input(param), b.input(tau_bar.to(dtype).contiguous()),
-            b.input(torch.zeros(n, 3, 3, dtype=dtype)), b.output(F_bar), b.inout(C_bar), b.inout(param_bar)])
-    return F_bar.double(), param_bar[:, :2].double()
+            b.input(F_new_bar.to(dtype).contiguous()), b.output(F_bar), b.inout(C_bar), b.inout(param_bar)])
+    return F_bar.double(), param_bar.double()
 
 
-def reference_tau(material, F, mu, lam):
-    q = torch.zeros(F.shape[0], PARAM_COUNT, dtype=torch.float64)
-    q[:, 0], q[:, 1] = mu, lam
-    _, _, tau = reference.constitutive(MATERIAL_IDS[material], F, None, q, torch.zeros(F.shape[0]), 1e-3)
-    return tau
+def reference_loss(material, F, q, tau_bar, F_new_bar) -> float:
+    """<tau_bar, tau> + <F_new_bar, F'> of the float64 reference for one F [3, 3]."""
+    F_new, _, tau = reference.constitutive(MATERIAL_IDS[material], F[None], None, q[None], torch.zeros(1), 1e-3)
+    return float((tau_bar * tau[0]).sum() + (F_new_bar * F_new[0]).sum())
 
 
-@pytest.mark.parametrize("material", ["elastic", "neo_hookean"])
+def is_yielded(material, F):
+    F_new, _, _ = reference.constitutive(MATERIAL_IDS[material], F[None], None, kernel_params(1), torch.zeros(1), 1e-3)
+    return not torch.equal(F_new[0], F)
+
+
+def test_cases_cover_both_sides_of_the_yield_surface():
+    cases = deformations()
+    assert not is_yielded("plasticine", cases["below_yield"]) and not is_yielded("plasticine", cases["identity"])
+    assert is_yielded("plasticine", cases["above_yield"]) and is_yielded("plasticine", cases["two_equal"])
+
+
+@pytest.mark.parametrize("material", MATERIALS)
 def test_stress_adjoint_matches_central_differences(device, material):
     cases = deformations()
     F = torch.stack(list(cases.values()))
     gen = torch.Generator().manual_seed(5)
     tau_bar = torch.randn(F.shape, generator=gen, dtype=torch.float64)
-    F_bar, q_bar = stress_vjp(device, material, F, tau_bar, torch.float64)
-    h = 1e-6
+    F_new_bar = 1e4 * torch.randn(F.shape, generator=gen, dtype=torch.float64)
+    F_bar, q_bar = stress_vjp(device, material, F, tau_bar, F_new_bar, torch.float64)
+    q = kernel_params(1)[0]
     for idx, name in enumerate(cases):
+        loss = lambda Fi, qi: reference_loss(material, Fi, qi, tau_bar[idx], F_new_bar[idx])  # noqa: E731
+        h = 1e-7
+        scale = 1 + float(F_bar[idx].abs().max())
         for k in range(9):
-            dF = torch.zeros(1, 3, 3, dtype=torch.float64)
+            dF = torch.zeros(3, 3, dtype=torch.float64)
             dF.view(-1)[k] = h
-            Fi = F[idx : idx + 1]
-            diff = (reference_tau(material, Fi + dF, MU, LAMBDA) - reference_tau(material, Fi - dF, MU, LAMBDA)) / (2 * h)
-            fd = float((tau_bar[idx] * diff[0]).sum())
-            assert abs(F_bar[idx].view(-1)[k] - fd) < 1e-7 * (1 + F_bar[idx].abs().max()), (name, k)
-        for j, (dmu, dlam) in enumerate(((1.0, 0.0), (0.0, 1.0))):
-            diff = (reference_tau(material, Fi, MU + dmu, LAMBDA + dlam)
-                    - reference_tau(material, Fi, MU - dmu, LAMBDA - dlam)) / 2
-            assert abs(q_bar[idx, j] - float((tau_bar[idx] * diff[0]).sum())) < 1e-8 * (1 + q_bar[idx].abs().max())
+            fd = (loss(F[idx] + dF, q) - loss(F[idx] - dF, q)) / (2 * h)
+            assert abs(float(F_bar[idx].view(-1)[k]) - fd) < 1e-6 * scale, (name, k)
+        for j in range(3):
+            dq = torch.zeros(PARAM_COUNT, dtype=torch.float64)
+            dq[j] = 1e-4 * float(q[j])
+            fd = (loss(F[idx], q + dq) - loss(F[idx], q - dq)) / (2 * float(dq[j]))
+            assert abs(float(q_bar[idx, j]) - fd) < 1e-6 * (1 + float(q_bar[idx].abs().max())), (name, j)
 
 
 def test_float32_adjoint_is_accurate_at_equal_singular_values(device):
@@ -92,7 +113,8 @@ def test_float32_adjoint_is_accurate_at_equal_singular_values(device):
     backward (1/(s_i^2 - s_j^2)) breaks down."""
     F = torch.stack(list(deformations().values()))
     tau_bar = torch.randn(F.shape, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
-    F64, q64 = stress_vjp(device, "elastic", F, tau_bar, torch.float64)
-    F32, q32 = stress_vjp(device, "elastic", F, tau_bar, torch.float32)
+    zero = torch.zeros_like(F)
+    F64, q64 = stress_vjp(device, "elastic", F, tau_bar, zero, torch.float64)
+    F32, q32 = stress_vjp(device, "elastic", F, tau_bar, zero, torch.float32)
     assert float((F32 - F64).abs().max() / F64.abs().max()) < 1e-5
     assert float((q32 - q64).abs().max() / q64.abs().max()) < 1e-5

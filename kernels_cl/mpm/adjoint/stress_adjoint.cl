@@ -1,7 +1,7 @@
 /* Adjoint of the stress stage (stress.cl): F_tr = (I + dt C) F, F' = Z(F_tr), tau(F').
  *
  * Given taubar (from the P2G adjoint) and F'bar of state n+1:
- *   F_trbar = F'bar + dtau/dF_tr^T taubar (elastic models: Z is the identity)
+ *   F_trbar = dZ/dF_tr^T F'bar + dtau/dF_tr^T taubar (elastic models: Z is the identity)
  *   Fbar = (I + dt C)^T F_trbar,   Cbar += dt F_trbar F^T,   param_bar += dtau/dparam^T taubar
  * C_bar holds the P2G adjoint's part on entry; param_bar [n, PARAM_COUNT] is accumulated into
  * (one row per particle, summed over substeps: the host reduces rows in a fixed order).
@@ -9,6 +9,7 @@
 #include "mpm/mpm.h"
 #include "mpm/materials/elastic.h"
 #include "mpm/materials/elastic_adjoint.h"
+#include "mpm/materials/hencky_adjoint.h"
 
 __kernel void update_stress_adjoint(const int n, const real dt, __global const real *F_in,
                                     __global const real *C_in, __global const int *material,
@@ -19,11 +20,11 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
     const int p = get_global_id(0);
     if (p >= n)
         return;
-    real F[9], C[9], step[9], F_tr[9], F_tr_bar[9], tb[9], Cb[9], Fb[9], dCb[9];
+    real F[9], C[9], step[9], F_tr[9], F_new_bar[9], F_tr_bar[9], tb[9], Cb[9], Fb[9], dCb[9];
     load_row(F_in, p, 9, F);
     load_row(C_in, p, 9, C);
     load_row(tau_bar, p, 9, tb);
-    load_row(F_bar_out, p, 9, F_tr_bar);
+    load_row(F_bar_out, p, 9, F_new_bar);
     for (int k = 0; k < 9; ++k)
         step[k] = dt * C[k] + ((k % 4 == 0) ? (real)1 : (real)0);
     mat3_mul(step, F, F_tr);
@@ -31,6 +32,9 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
     real q_bar[PARAM_COUNT];
     for (int k = 0; k < PARAM_COUNT; ++k)
         q_bar[k] = 0;
+    const int elastic = material[p] == MAT_ELASTIC || material[p] == MAT_NEO_HOOKEAN;
+    for (int k = 0; k < 9; ++k) /* elastic models: F' = F_tr */
+        F_tr_bar[k] = elastic ? F_new_bar[k] : (real)0;
     switch (material[p]) {
 #if MATERIALS_PRESENT & (1 << MAT_ELASTIC)
     case MAT_ELASTIC:
@@ -40,6 +44,11 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
 #if MATERIALS_PRESENT & (1 << MAT_NEO_HOOKEAN)
     case MAT_NEO_HOOKEAN:
         neo_hookean_stress_adjoint(F_tr, q[0], q[1], tb, F_tr_bar, &q_bar[0], &q_bar[1]);
+        break;
+#endif
+#if MATERIALS_PRESENT & (1 << MAT_PLASTICINE)
+    case MAT_PLASTICINE:
+        plasticine_stress_adjoint(F_tr, q[0], q[1], q[2], tb, F_new_bar, F_tr_bar, q_bar);
         break;
 #endif
     default: /* unreachable: the host refuses materials without an adjoint */

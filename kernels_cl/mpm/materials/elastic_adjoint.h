@@ -21,7 +21,7 @@ inline void fixed_corotated_adjoint(const real *F, const real *U, const real *s,
 {
     const real ones[3] = {1, 1, 1};
     const real zeros[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
-    real R[9], F_minus_R[9], tau_bar_F[9], R_bar[9], from_R[9], cof[9];
+    real R[9], F_minus_R[9], tau_bar_F[9], R_bar[9], cof[9];
     mat3_udvt(U, ones, V, R);
     for (int k = 0; k < 9; ++k)
         F_minus_R[k] = F[k] - R[k];
@@ -29,7 +29,7 @@ inline void fixed_corotated_adjoint(const real *F, const real *U, const real *s,
     const real mean[3] = {2 / (s[0] + s[1]), 2 / (s[0] + s[2]), 2 / (s[1] + s[2])};
     for (int k = 0; k < 9; ++k)
         R_bar[k] = -2 * mu * tau_bar_F[k];
-    svd3_isotropic_adjoint(U, V, zeros, zeros, mean, R_bar, from_R);
+    svd3_isotropic_adjoint(U, V, zeros, zeros, mean, R_bar, F_bar);
     mat3_cofactor(F, cof);
     const real J = s[0] * s[1] * s[2];
     const real trace_bar = mat3_trace(tau_bar);
@@ -40,7 +40,7 @@ inline void fixed_corotated_adjoint(const real *F, const real *U, const real *s,
             /* (taubar^T (F - R))_rc = sum_k taubar_kr (F - R)_kc */
             const real tbt_fr = tau_bar[r] * F_minus_R[c] + tau_bar[3 + r] * F_minus_R[3 + c] +
                                 tau_bar[6 + r] * F_minus_R[6 + c];
-            F_bar[rc] += 2 * mu * (tau_bar_F[rc] + tbt_fr) + from_R[rc] +
+            F_bar[rc] += 2 * mu * (tau_bar_F[rc] + tbt_fr) +
                          lambda * (2 * J - 1) * trace_bar * cof[rc];
             energy += tau_bar_F[rc] * F_minus_R[rc];
         }
