@@ -215,6 +215,19 @@ def per_particle(value, n: int, name: str, dtype: torch.dtype, device, trailing:
     return out
 
 
+# kernel materials whose parameter rows start with (mu, lambda), and with tau_Y in column 2
+LAME_MATERIALS = ("elastic", "neo_hookean", "plasticine", "metal", "foam", "sand", "snow")
+YIELD_MATERIALS = ("plasticine", "metal", "foam", "non_newtonian")
+
+
+def _require(present: set[int], allowed: tuple[str, ...], what: str) -> None:
+    names = {i: name for name, i in MATERIAL_IDS.items()}
+    wrong = sorted(names[m] for m in present if names[m] not in allowed)
+    if wrong:
+        raise InputError(f"{what}: not a parameter of {', '.join(wrong)} (it applies to {', '.join(allowed)}); "
+                         f"use kernel_params")
+
+
 def simulate(
     simulator: Simulator,
     frames: int,
@@ -224,6 +237,7 @@ def simulate(
     density=None,
     positions=None,
     velocities=None,
+    yield_stress=None,
     kernel_params=None,
     retries: int = 0,
 ) -> Frames:
@@ -236,7 +250,8 @@ def simulate(
             (clflow.mpm.adjoint.ADJOINT_MATERIALS). It is not advanced.
         frames: number of output frames (each ``simulator.substeps`` substeps).
         youngs_modulus: E (Pa), global (0-d) or per particle [N].
-        poissons_ratio: nu, global or [N].
+        poissons_ratio: nu, global or [N] (materials with Lame parameters: LAME_MATERIALS).
+        yield_stress: tau_Y (Pa), global or [N] (YIELD_MATERIALS).
         density: rho (kg/m^3), global or [N]: particle mass = rho x rest volume.
         positions, velocities: initial x [N, 3] (m) and v [N, 3] (m/s).
         kernel_params: [N, PARAM_COUNT] kernel parameters (clflow.mpm.constants.kernel_params),
@@ -253,29 +268,34 @@ def simulate(
     if int(frames) < 1:
         raise InputError(f"frames must be >= 1, got {frames}")
     base = sim.particles
-    if kernel_params is not None and (youngs_modulus is not None or poissons_ratio is not None):
-        raise InputError("give kernel_params or youngs_modulus/poissons_ratio, not both")
+    present = {int(m) for m in torch.unique(base.material)}
+    if kernel_params is not None and (youngs_modulus is not None or poissons_ratio is not None
+                                      or yield_stress is not None):
+        raise InputError("give kernel_params or youngs_modulus/poissons_ratio/yield_stress, not both")
     if kernel_params is not None:
         param = torch.as_tensor(kernel_params)
         if tuple(param.shape) != tuple(base.param.shape):
             raise InputError(f"kernel_params: expected shape {list(base.param.shape)}, got {list(param.shape)}")
         param = param.to(dtype)
-    elif youngs_modulus is not None or poissons_ratio is not None:
-        elastic = {MATERIAL_IDS["elastic"], MATERIAL_IDS["neo_hookean"]}
-        if any(int(m) not in elastic for m in torch.unique(base.material)):
-            raise InputError("youngs_modulus/poissons_ratio: every particle must be elastic; "
-                             "use kernel_params for other materials")
-        mu0, lam0 = base.param[:, 0].double(), base.param[:, 1].double()
-        E0 = mu0 * (3 * lam0 + 2 * mu0) / (lam0 + mu0)  # current values, for the one not given
-        nu0 = lam0 / (2 * (lam0 + mu0))
-        E = E0 if youngs_modulus is None else per_particle(youngs_modulus, n, "youngs_modulus", dtype, sim.device)
-        nu = nu0 if poissons_ratio is None else per_particle(poissons_ratio, n, "poissons_ratio", dtype, sim.device)
-        if bool((E.detach() <= 0).any()) or bool(((nu.detach() <= -1) | (nu.detach() >= 0.5)).any()):
-            raise InputError("youngs_modulus must be > 0 Pa and poissons_ratio in (-1, 0.5)")
-        mu, lam = lame_parameters(E.to(dtype), nu.to(dtype))
-        param = torch.cat([torch.stack([mu, lam], 1), base.param[:, 2:]], 1)
     else:
-        param = base.param
+        columns = [base.param[:, k] for k in range(base.param.shape[1])]
+        if youngs_modulus is not None or poissons_ratio is not None:
+            _require(present, LAME_MATERIALS, "youngs_modulus/poissons_ratio")
+            mu0, lam0 = base.param[:, 0], base.param[:, 1]
+            E0 = mu0 * (3 * lam0 + 2 * mu0) / (lam0 + mu0)  # current values, for the one not given
+            nu0 = lam0 / (2 * (lam0 + mu0))
+            E = E0 if youngs_modulus is None else per_particle(youngs_modulus, n, "youngs_modulus", dtype, sim.device)
+            nu = nu0 if poissons_ratio is None else per_particle(poissons_ratio, n, "poissons_ratio", dtype,
+                                                                 sim.device)
+            if bool((E.detach() <= 0).any()) or bool(((nu.detach() <= -1) | (nu.detach() >= 0.5)).any()):
+                raise InputError("youngs_modulus must be > 0 Pa and poissons_ratio in (-1, 0.5)")
+            columns[0], columns[1] = lame_parameters(E, nu)
+        if yield_stress is not None:
+            _require(present, YIELD_MATERIALS, "yield_stress")
+            columns[2] = per_particle(yield_stress, n, "yield_stress", dtype, sim.device)
+            if bool((columns[2].detach() < 0).any()):
+                raise InputError("yield_stress must be >= 0 Pa")
+        param = torch.stack(columns, 1)
     if density is not None:
         rho = per_particle(density, n, "density", dtype, sim.device)
         if bool((rho.detach() <= 0).any()):

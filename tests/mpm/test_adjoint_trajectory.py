@@ -8,17 +8,20 @@ from clflow.mpm import Grid, MaterialSpec, Simulator
 from clflow.mpm.autograd import simulate
 from tests.mpm.scenes import cube
 
-E_TRUE, NU_TRUE, RHO_TRUE = 2e4, 0.3, 800.0
+E_TRUE, NU_TRUE, RHO_TRUE, TAU_Y_TRUE = 2e4, 0.3, 800.0, 500.0
 
 
-def scene(dtype=torch.float64, substeps=10, model=None, seed=0):
+def scene(dtype=torch.float64, substeps=10, model=None, seed=0, material="elastic"):
     """216 particles in a cube with a smooth swirling velocity field, far from the walls for
     the few frames simulated (no contact kinks), 16^3 grid of 1/16 m."""
     x = cube(6, 0.38, 0.62)
     c = x - 0.5
     v = torch.stack([-c[:, 1], c[:, 0], 0.5 * c[:, 2]], 1) * 4.0 + torch.tensor([0.2, 0.0, -0.1])
     v += 0.05 * torch.randn(x.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
-    spec = MaterialSpec("elastic", {"youngs_modulus": E_TRUE, "poissons_ratio": NU_TRUE}, density=RHO_TRUE, model=model)
+    params = {"youngs_modulus": E_TRUE, "poissons_ratio": NU_TRUE}
+    if material == "plasticine":
+        params["yield_stress"] = TAU_Y_TRUE
+    spec = MaterialSpec(material, params, density=RHO_TRUE, model=model)
     return Simulator(x, (0.24 / 6) ** 3, spec, Grid((16, 16, 16), 1 / 16), velocities=v, frame_dt=1e-2,
                      substeps=substeps, dtype=dtype)
 
@@ -35,8 +38,9 @@ def loss_of(out, w):
     return (w[0] * out.x).sum() + 0.1 * (w[1] * out.v).sum() + (w[2] * out.F).sum()
 
 
-def make_inputs(sim, dtype):
-    return {
+def make_inputs(sim, dtype, material="elastic"):
+    extra = {"yield_stress": torch.tensor(TAU_Y_TRUE, dtype=dtype, requires_grad=True)} if material == "plasticine" else {}
+    return extra | {
         "youngs_modulus": torch.tensor(E_TRUE, dtype=dtype, requires_grad=True),
         "poissons_ratio": torch.tensor(NU_TRUE, dtype=dtype, requires_grad=True),
         "density": torch.tensor(RHO_TRUE, dtype=dtype, requires_grad=True),
@@ -48,12 +52,15 @@ def make_inputs(sim, dtype):
 FRAMES = 3
 
 
-@pytest.mark.parametrize("model", ["fixed_corotated", "neo_hookean"])
-def test_trajectory_gradient_matches_central_differences(model):
-    sim = scene(model=model)
+@pytest.mark.parametrize("material,model", [("elastic", "fixed_corotated"), ("elastic", "neo_hookean"),
+                                            ("plasticine", None)])
+def test_trajectory_gradient_matches_central_differences(material, model):
+    sim = scene(model=model, material=material)
     w = weights(sim, FRAMES)
-    inputs = make_inputs(sim, torch.float64)
+    inputs = make_inputs(sim, torch.float64, material)
     loss_of(simulate(sim, FRAMES, **inputs), w).backward()
+    if material == "plasticine":  # the return mapping is active: tau_Y matters
+        assert abs(float(inputs["yield_stress"].grad)) > 0
     gen = torch.Generator().manual_seed(2)
     for name, value in inputs.items():
         direction = torch.randn(value.shape, generator=gen, dtype=torch.float64)
