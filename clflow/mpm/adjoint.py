@@ -24,22 +24,24 @@ from clflow.errors import InputError
 from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, kernel_defines
 from clflow.mpm.substep import GRID_COPY_BUDGET, MAX_GRID_COPIES, Grid, Particles, State, SubstepKernels
 
-ADJOINT_MATERIALS = ("elastic", "neo_hookean", "plasticine")  # kernel materials whose stress has an adjoint
+ADJOINT_MATERIALS = ("elastic", "neo_hookean", "plasticine", "metal")  # kernel materials whose stress has an adjoint
 
 
 @dataclass
 class StateGrad:
-    """dL/d(state) of one instant: x, v [N, 3], C, F [N, 3, 3] (same units as 1/State)."""
+    """dL/d(state) of one instant: x, v [N, 3], C, F [N, 3, 3], plastic [N] (units: 1/State's)."""
 
     x: torch.Tensor
     v: torch.Tensor
     C: torch.Tensor
     F: torch.Tensor
+    plastic: torch.Tensor
 
     @staticmethod
     def zeros(n: int, dtype: torch.dtype) -> "StateGrad":
         return StateGrad(torch.zeros(n, 3, dtype=dtype), torch.zeros(n, 3, dtype=dtype),
-                         torch.zeros(n, 3, 3, dtype=dtype), torch.zeros(n, 3, 3, dtype=dtype))
+                         torch.zeros(n, 3, 3, dtype=dtype), torch.zeros(n, 3, 3, dtype=dtype),
+                         torch.zeros(n, dtype=dtype))
 
     def zero_(self) -> "StateGrad":
         for f in fields(self):
@@ -156,9 +158,11 @@ class SubstepAdjoint:
                 b.input(particles.group, "group"), b.input(accel, "accel"), grid_bar, x_bar,
                 b.output(grad.v, "v_bar"), C_bar, tau_bar, b.inout(mass_grad, "mass_bar")])
             dev.launch(self.k_stress, self.n, [
-                n, R(dt), b.input(state.F, "F"), C, b.input(particles.material, "material"),
-                b.input(particles.param, "param"), tau_bar, b.input(grad_after.F, "F_bar_out"),
-                b.output(grad.F, "F_bar"), C_bar, b.inout(param_grad, "param_bar")])
+                n, R(dt), b.input(state.F, "F"), C, b.input(state.plastic, "plastic"),
+                b.input(particles.material, "material"), b.input(particles.param, "param"), tau_bar,
+                b.input(grad_after.F, "F_bar_out"), b.input(grad_after.plastic, "plastic_bar_out"),
+                b.output(grad.F, "F_bar"), C_bar, b.output(grad.plastic, "plastic_bar"),
+                b.inout(param_grad, "param_bar")])
 
 
 __all__ = ["ADJOINT_MATERIALS", "PARAM_COUNT", "StateGrad", "SubstepAdjoint", "SubstepTape",

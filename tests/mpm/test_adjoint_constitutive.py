@@ -12,9 +12,10 @@ from clflow.mpm.adjoint import SubstepAdjoint
 from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT
 from clflow.mpm.substep import Grid
 
-MU, LAMBDA, TAU_Y = 3.0e4, 5.0e4, 300.0
+MU, LAMBDA, TAU_Y, XI = 3.0e4, 5.0e4, 300.0, 2.0
+HARDENING = 40.0  # metal: yield stress gained so far (Pa), the plastic state
 GRID = Grid((8, 8, 8), 0.1)
-MATERIALS = ["elastic", "neo_hookean", "plasticine"]
+MATERIALS = ["elastic", "neo_hookean", "plasticine", "metal"]
 
 
 def rotation(axis, angle):
@@ -42,45 +43,53 @@ def deformations():
     }
 
 
-def kernel_params(n, dtype=torch.float64, mu=MU, lam=LAMBDA, tau_Y=TAU_Y):
+def kernel_params(n, dtype=torch.float64):
     q = torch.zeros(n, PARAM_COUNT, dtype=dtype)
-    q[:, 0], q[:, 1], q[:, 2] = mu, lam, tau_Y
+    q[:, 0], q[:, 1], q[:, 2], q[:, 3] = MU, LAMBDA, TAU_Y, XI
     return q
 
 
-def stress_vjp(device, material, F, tau_bar, F_new_bar, dtype):
-    """(Fbar, param_bar) of L = <tau_bar, tau(F)> + <F_new_bar, F'(F)> by the kernel (C = 0)."""
+def stress_vjp(device, material, F, tau_bar, F_new_bar, plastic, plastic_new_bar, dtype):
+    """(Fbar, plastic_bar, param_bar) of L = <tau_bar, tau> + <F_new_bar, F'> + <plastic_new_bar,
+    plastic'> of (F, plastic) by the kernel (C = 0)."""
     n = F.shape[0]
     mat = torch.full((n,), MATERIAL_IDS[material], dtype=torch.int32)
     adjoint = SubstepAdjoint(device, dtype, n, GRID, mat)
     param = kernel_params(n, dtype)
     F_bar = torch.empty(n, 3, 3, dtype=dtype)
+    plastic_bar = torch.empty(n, dtype=dtype)
     C_bar = torch.zeros(n, 3, 3, dtype=dtype)
     param_bar = torch.zeros(n, PARAM_COUNT, dtype=dtype)
     R = adjoint.real_t
     with device.bind() as b:
         device.launch(adjoint.k_stress, n, [
             np.int32(n), R(1e-3), b.input(F.to(dtype).contiguous()), b.input(torch.zeros(n, 3, 3, dtype=dtype)),
-            b.input(mat), b.input(param), b.input(tau_bar.to(dtype).contiguous()),
-            b.input(F_new_bar.to(dtype).contiguous()), b.output(F_bar), b.inout(C_bar), b.inout(param_bar)])
-    return F_bar.double(), param_bar.double()
+            b.input(plastic.to(dtype).contiguous()), b.input(mat), b.input(param),
+            b.input(tau_bar.to(dtype).contiguous()), b.input(F_new_bar.to(dtype).contiguous()),
+            b.input(plastic_new_bar.to(dtype).contiguous()), b.output(F_bar), b.inout(C_bar),
+            b.output(plastic_bar), b.inout(param_bar)])
+    return F_bar.double(), plastic_bar.double(), param_bar.double()
 
 
-def reference_loss(material, F, q, tau_bar, F_new_bar) -> float:
-    """<tau_bar, tau> + <F_new_bar, F'> of the float64 reference for one F [3, 3]."""
-    F_new, _, tau = reference.constitutive(MATERIAL_IDS[material], F[None], None, q[None], torch.zeros(1), 1e-3)
-    return float((tau_bar * tau[0]).sum() + (F_new_bar * F_new[0]).sum())
+def reference_loss(material, F, plastic, q, tau_bar, F_new_bar, plastic_new_bar) -> float:
+    """<tau_bar, tau> + <F_new_bar, F'> + plastic_new_bar plastic' of the float64 reference for
+    one F [3, 3] and plastic state (a number)."""
+    F_new, plastic_new, tau = reference.constitutive(MATERIAL_IDS[material], F[None], None, q[None],
+                                                     torch.tensor([plastic], dtype=torch.float64), 1e-3)
+    return float((tau_bar * tau[0]).sum() + (F_new_bar * F_new[0]).sum() + plastic_new_bar * plastic_new[0])
 
 
 def is_yielded(material, F):
-    F_new, _, _ = reference.constitutive(MATERIAL_IDS[material], F[None], None, kernel_params(1), torch.zeros(1), 1e-3)
+    F_new, _, _ = reference.constitutive(MATERIAL_IDS[material], F[None], None, kernel_params(1),
+                                         torch.full((1,), HARDENING, dtype=torch.float64), 1e-3)
     return not torch.equal(F_new[0], F)
 
 
 def test_cases_cover_both_sides_of_the_yield_surface():
     cases = deformations()
-    assert not is_yielded("plasticine", cases["below_yield"]) and not is_yielded("plasticine", cases["identity"])
-    assert is_yielded("plasticine", cases["above_yield"]) and is_yielded("plasticine", cases["two_equal"])
+    for material in ("plasticine", "metal"):
+        assert not is_yielded(material, cases["below_yield"]) and not is_yielded(material, cases["identity"])
+        assert is_yielded(material, cases["above_yield"]) and is_yielded(material, cases["two_equal"])
 
 
 @pytest.mark.parametrize("material", MATERIALS)
@@ -90,10 +99,15 @@ def test_stress_adjoint_matches_central_differences(device, material):
     gen = torch.Generator().manual_seed(5)
     tau_bar = torch.randn(F.shape, generator=gen, dtype=torch.float64)
     F_new_bar = 1e4 * torch.randn(F.shape, generator=gen, dtype=torch.float64)
-    F_bar, q_bar = stress_vjp(device, material, F, tau_bar, F_new_bar, torch.float64)
+    plastic = torch.full(F.shape[:1], HARDENING, dtype=torch.float64)
+    plastic_new_bar = torch.randn(F.shape[:1], generator=gen, dtype=torch.float64)
+    F_bar, plastic_bar, q_bar = stress_vjp(device, material, F, tau_bar, F_new_bar, plastic, plastic_new_bar,
+                                           torch.float64)
     q = kernel_params(1)[0]
     for idx, name in enumerate(cases):
-        loss = lambda Fi, qi: reference_loss(material, Fi, qi, tau_bar[idx], F_new_bar[idx])  # noqa: E731
+        def loss(Fi, qi, h=HARDENING):
+            return reference_loss(material, Fi, h, qi, tau_bar[idx], F_new_bar[idx], float(plastic_new_bar[idx]))
+
         h = 1e-7
         scale = 1 + float(F_bar[idx].abs().max())
         for k in range(9):
@@ -101,11 +115,13 @@ def test_stress_adjoint_matches_central_differences(device, material):
             dF.view(-1)[k] = h
             fd = (loss(F[idx] + dF, q) - loss(F[idx] - dF, q)) / (2 * h)
             assert abs(float(F_bar[idx].view(-1)[k]) - fd) < 1e-6 * scale, (name, k)
-        for j in range(3):
+        for j in range(4):
             dq = torch.zeros(PARAM_COUNT, dtype=torch.float64)
             dq[j] = 1e-4 * float(q[j])
             fd = (loss(F[idx], q + dq) - loss(F[idx], q - dq)) / (2 * float(dq[j]))
             assert abs(float(q_bar[idx, j]) - fd) < 1e-6 * (1 + float(q_bar[idx].abs().max())), (name, j)
+        fd = (loss(F[idx], q, HARDENING + 1e-3) - loss(F[idx], q, HARDENING - 1e-3)) / 2e-3
+        assert abs(float(plastic_bar[idx]) - fd) < 1e-6 * (1 + abs(fd)), (name, "plastic")
 
 
 def test_float32_adjoint_is_accurate_at_equal_singular_values(device):
@@ -113,8 +129,8 @@ def test_float32_adjoint_is_accurate_at_equal_singular_values(device):
     backward (1/(s_i^2 - s_j^2)) breaks down."""
     F = torch.stack(list(deformations().values()))
     tau_bar = torch.randn(F.shape, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
-    zero = torch.zeros_like(F)
-    F64, q64 = stress_vjp(device, "elastic", F, tau_bar, zero, torch.float64)
-    F32, q32 = stress_vjp(device, "elastic", F, tau_bar, zero, torch.float32)
+    zero, zero_n = torch.zeros_like(F), torch.zeros(F.shape[0], dtype=torch.float64)
+    F64, _, q64 = stress_vjp(device, "elastic", F, tau_bar, zero, zero_n, zero_n, torch.float64)
+    F32, _, q32 = stress_vjp(device, "elastic", F, tau_bar, zero, zero_n, zero_n, torch.float32)
     assert float((F32 - F64).abs().max() / F64.abs().max()) < 1e-5
     assert float((q32 - q64).abs().max() / q64.abs().max()) < 1e-5

@@ -8,7 +8,7 @@ from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, SubstepTape, run_recor
 from clflow.mpm.substep import Particles
 from tests.mpm.scenes import MATERIAL_CASES, random_scene
 
-GRAD_FIELDS = ("x", "v", "C", "F")
+GRAD_FIELDS = ("x", "v", "C", "F", "plastic")
 
 
 def warmed_up(steps=5, material="elastic", **kwargs):
@@ -43,19 +43,19 @@ def reference_vjp(sim, grad_after: StateGrad):
     leaves = {f: getattr(s, f).clone().requires_grad_() for f in GRAD_FIELDS}
     param = p.param.clone().requires_grad_()
     mass = p.mass.clone().requires_grad_()
-    state = type(s)(leaves["x"], leaves["v"], leaves["C"], leaves["F"], s.plastic)
+    state = type(s)(*(leaves[f] for f in GRAD_FIELDS))
     particles = Particles(mass, p.volume, p.material, param, p.group, p.release_time, p.mass_eps)
     out, _ = reference.substep(state, particles, sim.grid, sim.time, sim.dt, sim.gravity, sim.boundaries,
                                sim.drivers.accel(sim.time, sim.dtype))
     loss = sum((getattr(grad_after, f) * getattr(out, f)).sum() for f in GRAD_FIELDS)
     grads = torch.autograd.grad(loss, [leaves[f] for f in GRAD_FIELDS] + [param, mass])
-    return StateGrad(*grads[:4]), grads[4], grads[5]
+    return StateGrad(*grads[:5]), grads[5], grads[6]
 
 
 def random_grad(n, seed=1):
     gen = torch.Generator().manual_seed(seed)
     return StateGrad(*(torch.randn(shape, generator=gen, dtype=torch.float64)
-                       for shape in ((n, 3), (n, 3), (n, 3, 3), (n, 3, 3))))
+                       for shape in ((n, 3), (n, 3), (n, 3, 3), (n, 3, 3), (n,))))
 
 
 def rel_err(a, b):
@@ -74,7 +74,7 @@ def test_substep_adjoint_matches_autograd_of_reference(walls, friction):
     assert rel_err(mass_grad, ref_mass) < 1e-9
 
 
-@pytest.mark.parametrize("material", ["plasticine"])
+@pytest.mark.parametrize("material", ["plasticine", "metal"])
 def test_material_substep_adjoint_matches_autograd_of_reference(material):
     sim = warmed_up(material=material)
     grad_after = random_grad(sim.n)
@@ -112,7 +112,7 @@ def test_substep_adjoint_dot_product_with_central_differences():
                       + (param_grad * dparam).sum() + (mass_grad * dmass).sum())
 
     def loss_at(h):
-        state = type(s)(*(getattr(s, f) + h * dirs[f] for f in GRAD_FIELDS), s.plastic)
+        state = type(s)(*(getattr(s, f) + h * dirs[f] for f in GRAD_FIELDS))
         particles = Particles(p.mass + h * dmass, p.volume, p.material, p.param + h * dparam, p.group,
                               p.release_time, p.mass_eps)
         return kernel_loss(sim, grad_after, state, particles)

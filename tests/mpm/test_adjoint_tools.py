@@ -95,7 +95,7 @@ def test_bad_inputs_are_named():
         simulate(sim, 1, positions=torch.zeros(2, 3))
     with pytest.raises(InputError, match="density must be > 0"):
         simulate(sim, 1, density=torch.tensor(-1.0))
-    plastic = Simulator(cube(3, 0.4, 0.6), 1e-5, MaterialSpec("plasticine"), Grid((16, 16, 16), 1 / 16),
+    sand = Simulator(cube(3, 0.4, 0.6), 1e-5, MaterialSpec("sand"), Grid((16, 16, 16), 1 / 16),
                         substeps=2, frame_dt=1e-3, dtype=torch.float64)
     with pytest.raises(InputError, match="no adjoint for material"):
-        simulate(plastic, 1)
+        simulate(sand, 1)

@@ -1,8 +1,9 @@
 /* Adjoint of the stress stage (stress.cl): F_tr = (I + dt C) F, F' = Z(F_tr), tau(F').
  *
- * Given taubar (from the P2G adjoint) and F'bar of state n+1:
+ * Given taubar (from the P2G adjoint) and F'bar, plastic'bar of state n+1:
  *   F_trbar = dZ/dF_tr^T F'bar + dtau/dF_tr^T taubar (elastic models: Z is the identity)
- *   Fbar = (I + dt C)^T F_trbar,   Cbar += dt F_trbar F^T,   param_bar += dtau/dparam^T taubar
+ *   Fbar = (I + dt C)^T F_trbar,   Cbar += dt F_trbar F^T,   param_bar += dtau/dparam^T taubar,
+ *   plasticbar = dplastic'/dplastic^T plastic'bar (+ the yield stress's share for metal)
  * C_bar holds the P2G adjoint's part on entry; param_bar [n, PARAM_COUNT] is accumulated into
  * (one row per particle, summed over substeps: the host reduces rows in a fixed order).
  * Built only for the materials with an adjoint (ADJOINT_MATERIALS in clflow/mpm/adjoint.py). */
@@ -12,10 +13,12 @@
 #include "mpm/materials/hencky_adjoint.h"
 
 __kernel void update_stress_adjoint(const int n, const real dt, __global const real *F_in,
-                                    __global const real *C_in, __global const int *material,
-                                    __global const real *param, __global const real *tau_bar,
-                                    __global const real *F_bar_out, __global real *F_bar,
-                                    __global real *C_bar, __global real *param_bar)
+                                    __global const real *C_in, __global const real *plastic_in,
+                                    __global const int *material, __global const real *param,
+                                    __global const real *tau_bar, __global const real *F_bar_out,
+                                    __global const real *plastic_bar_out, __global real *F_bar,
+                                    __global real *C_bar, __global real *plastic_bar,
+                                    __global real *param_bar)
 {
     const int p = get_global_id(0);
     if (p >= n)
@@ -32,6 +35,7 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
     real q_bar[PARAM_COUNT];
     for (int k = 0; k < PARAM_COUNT; ++k)
         q_bar[k] = 0;
+    real plastic_b = plastic_bar_out[p]; /* the plastic state passes through unchanged by default */
     const int elastic = material[p] == MAT_ELASTIC || material[p] == MAT_NEO_HOOKEAN;
     for (int k = 0; k < 9; ++k) /* elastic models: F' = F_tr */
         F_tr_bar[k] = elastic ? F_new_bar[k] : (real)0;
@@ -51,6 +55,12 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
         plasticine_stress_adjoint(F_tr, q[0], q[1], q[2], tb, F_new_bar, F_tr_bar, q_bar);
         break;
 #endif
+#if MATERIALS_PRESENT & (1 << MAT_METAL)
+    case MAT_METAL:
+        plastic_b = metal_stress_adjoint(F_tr, q[0], q[1], q[2], q[3], plastic_in[p], tb, F_new_bar, plastic_b,
+                                         F_tr_bar, q_bar);
+        break;
+#endif
     default: /* unreachable: the host refuses materials without an adjoint */
         for (int k = 0; k < 9; ++k)
             F_tr_bar[k] = NAN;
@@ -62,6 +72,7 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
         Cb[k] += dt * dCb[k];
     store_row(F_bar, p, 9, Fb);
     store_row(C_bar, p, 9, Cb);
+    plastic_bar[p] = plastic_b;
     for (int k = 0; k < PARAM_COUNT; ++k)
         param_bar[(long)p * PARAM_COUNT + k] += q_bar[k];
 }

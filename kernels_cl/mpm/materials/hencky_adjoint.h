@@ -69,16 +69,18 @@ inline void von_mises_jacobian_apply(const von_mises_t *vm, const real *v, real 
         out[a] = mean + vm->y * ((v[a] - mean) / vm->norm - vm->eps_hat[a] * hat_dot / n3);
 }
 
-/* Adjoint of (F', tau) = von Mises + Hencky stress of F_tr at the return's yield stress tau_Y.
- * F_tr_bar is accumulated into; returns epsbar'.n (the gradient along the return direction,
- * for the yield stress and hardening) and writes mu_bar, lambda_bar. */
+/* Adjoint of (F', tau, dgamma) = von Mises + Hencky stress of F_tr at yield stress tau_Y, with
+ * dgamma_bar the gradient of whatever else uses the plastic step dgamma (metal hardening).
+ * F_tr_bar is accumulated into; writes mu_bar, lambda_bar, *dgamma_out, and returns
+ * tau_Y_bar. */
 inline real hencky_von_mises_adjoint(const real *F_tr, const real mu, const real lambda, const real tau_Y,
-                                     const real *tau_bar, const real *F_new_bar, real *F_tr_bar,
-                                     real *mu_bar, real *lambda_bar)
+                                     const real *tau_bar, const real *F_new_bar, const real dgamma_bar,
+                                     real *F_tr_bar, real *mu_bar, real *lambda_bar, real *dgamma_out)
 {
     real U[9], s[3], V[9];
     svd3(F_tr, U, s, V);
     const von_mises_t vm = von_mises_state(s, mu, tau_Y);
+    *dgamma_out = vm.dgamma;
     const int yielded = vm.dgamma > 0;
     const real tr_new = vm.eps_new[0] + vm.eps_new[1] + vm.eps_new[2];
     const real ones[3] = {1, 1, 1};
@@ -99,12 +101,16 @@ inline real hencky_von_mises_adjoint(const real *F_tr, const real mu, const real
         for (int k = 0; k < 9; ++k)
             F_tr_bar[k] += F_new_bar[k];
 
-    /* diagonal: epsbar' from t and F', through J, then d eps/d s */
+    /* diagonal: epsbar' from t and F', through J (and dgamma = ||eps_hat|| - y: d/d eps = n),
+     * then d eps/d s */
     const real g_sum = G_t[0] + G_t[4] + G_t[8];
     real eps_new_bar[3], eps_bar[3], F_hat[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
     for (int a = 0; a < 3; ++a)
         eps_new_bar[a] = 2 * mu * G_t[4 * a] + lambda * g_sum + G_F[4 * a] * p_F[a];
     von_mises_jacobian_apply(&vm, eps_new_bar, eps_bar);
+    if (yielded)
+        for (int a = 0; a < 3; ++a)
+            eps_bar[a] += dgamma_bar * vm.eps_hat[a] / vm.norm;
     for (int k = 0; k < 3; ++k)
         F_hat[4 * k] = s[k] > (real)HENCKY_S_MIN ? eps_bar[k] / s[k] : (real)0;
 
@@ -128,15 +134,17 @@ inline real hencky_von_mises_adjoint(const real *F_tr, const real mu, const real
         svd3_add_off_diagonal(G_F, diff_F, mean_F, F_hat);
     svd3_add_back(U, V, F_hat, F_tr_bar);
 
-    /* parameters: t depends on mu, lambda directly, eps' on y = sqrt(2/3) tau_Y/(2 mu) */
-    real along_n = 0, g_eps = 0;
+    /* parameters: t depends on mu, lambda directly; eps' = mean(eps) + y n and dgamma on
+     * y = sqrt(2/3) tau_Y/(2 mu) (only when yielded) */
+    real y_bar = 0, g_eps = 0;
     for (int a = 0; a < 3; ++a) {
-        along_n += eps_new_bar[a] * (yielded ? vm.eps_hat[a] / vm.norm : (real)0);
+        y_bar += eps_new_bar[a] * vm.eps_hat[a] / vm.norm;
         g_eps += G_t[4 * a] * vm.eps_new[a];
     }
-    *mu_bar = 2 * g_eps - along_n * vm.y / mu;
+    y_bar = yielded ? y_bar - dgamma_bar : (real)0;
+    *mu_bar = 2 * g_eps - y_bar * vm.y / mu;
     *lambda_bar = tr_new * g_sum;
-    return along_n;
+    return y_bar * sqrt((real)2 / 3) / (2 * mu);
 }
 
 /* Plasticine (plasticine.h): q_bar[0..2] = (mu_bar, lambda_bar, tau_Y_bar). */
@@ -144,9 +152,29 @@ inline void plasticine_stress_adjoint(const real *F_tr, const real mu, const rea
                                       const real *tau_bar, const real *F_new_bar, real *F_tr_bar,
                                       real *q_bar)
 {
-    const real along_n = hencky_von_mises_adjoint(F_tr, mu, lambda, tau_Y, tau_bar, F_new_bar, F_tr_bar,
-                                                  &q_bar[0], &q_bar[1]);
-    q_bar[2] = along_n * sqrt((real)2 / 3) / (2 * mu);
+    real dgamma;
+    q_bar[2] = hencky_von_mises_adjoint(F_tr, mu, lambda, tau_Y, tau_bar, F_new_bar, 0, F_tr_bar, &q_bar[0],
+                                        &q_bar[1], &dgamma);
+}
+
+/* Metal (metal.h): yield stress tau_Y + h (h: hardening state), h' = h + 2 mu xi dgamma when
+ * yielded. q_bar[0..3] = (mu_bar, lambda_bar, tau_Y_bar, xi_bar); returns hbar of state n. */
+inline real metal_stress_adjoint(const real *F_tr, const real mu, const real lambda, const real tau_Y,
+                                 const real xi, const real hardening, const real *tau_bar,
+                                 const real *F_new_bar, const real hardening_new_bar, real *F_tr_bar,
+                                 real *q_bar)
+{
+    real dgamma;
+    /* dgamma_bar of h': used only if yielded, where h' = h + 2 mu xi dgamma */
+    const real dgamma_bar = 2 * mu * xi * hardening_new_bar;
+    const real yield_bar = hencky_von_mises_adjoint(F_tr, mu, lambda, tau_Y + hardening, tau_bar, F_new_bar,
+                                                    dgamma_bar, F_tr_bar, &q_bar[0], &q_bar[1], &dgamma);
+    q_bar[2] = yield_bar;
+    if (dgamma > 0) {
+        q_bar[0] += 2 * xi * dgamma * hardening_new_bar;
+        q_bar[3] = 2 * mu * dgamma * hardening_new_bar;
+    }
+    return hardening_new_bar + yield_bar;
 }
 
 #endif /* CLFLOW_MPM_HENCKY_ADJOINT_H */
