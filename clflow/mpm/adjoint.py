@@ -24,7 +24,8 @@ from clflow.errors import InputError
 from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, kernel_defines
 from clflow.mpm.substep import GRID_COPY_BUDGET, MAX_GRID_COPIES, Grid, Particles, State, SubstepKernels
 
-ADJOINT_MATERIALS = ("elastic", "neo_hookean", "plasticine", "metal")  # kernel materials whose stress has an adjoint
+# kernel materials whose stress has an adjoint (all but snow)
+ADJOINT_MATERIALS = ("elastic", "neo_hookean", "plasticine", "metal", "foam", "sand", "newtonian", "non_newtonian")
 
 
 @dataclass

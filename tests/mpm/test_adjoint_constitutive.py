@@ -15,7 +15,13 @@ from clflow.mpm.substep import Grid
 MU, LAMBDA, TAU_Y, XI = 3.0e4, 5.0e4, 300.0, 2.0
 HARDENING = 40.0  # metal: yield stress gained so far (Pa), the plastic state
 GRID = Grid((8, 8, 8), 0.1)
-MATERIALS = ["elastic", "neo_hookean", "plasticine", "metal"]
+# kernel parameter rows (clflow.mpm.constants.kernel_params) per material
+PARAMS = {
+    "elastic": (MU, LAMBDA), "neo_hookean": (MU, LAMBDA), "plasticine": (MU, LAMBDA, TAU_Y),
+    "metal": (MU, LAMBDA, TAU_Y, XI), "foam": (MU, LAMBDA, TAU_Y, 50.0), "non_newtonian": (MU, LAMBDA, TAU_Y, 50.0),
+    "sand": (MU, LAMBDA, 0.3, 0.01), "newtonian": (1.0, 1e4),  # sand: cohesion keeps F = I off the tip
+}
+MATERIALS = list(PARAMS)
 
 
 def rotation(axis, angle):
@@ -40,12 +46,14 @@ def deformations():
         "generic": torch.eye(3, dtype=torch.float64) + 0.2 * torch.randn(3, 3, generator=gen, dtype=torch.float64),
         "below_yield": R @ torch.diag(torch.tensor([1.001, 1.0, 0.999], dtype=torch.float64)) @ Q.T,
         "above_yield": R @ torch.diag(torch.tensor([1.02, 1.0, 0.98], dtype=torch.float64)) @ Q.T,
+        "compressed": R @ torch.diag(torch.tensor([0.95, 0.93, 0.9], dtype=torch.float64)) @ Q.T,
+        "sheared": R @ torch.diag(torch.tensor([1.1, 1.0, 0.88], dtype=torch.float64)) @ Q.T,
     }
 
 
-def kernel_params(n, dtype=torch.float64):
+def kernel_params(n, material, dtype=torch.float64):
     q = torch.zeros(n, PARAM_COUNT, dtype=dtype)
-    q[:, 0], q[:, 1], q[:, 2], q[:, 3] = MU, LAMBDA, TAU_Y, XI
+    q[:, : len(PARAMS[material])] = torch.tensor(PARAMS[material], dtype=dtype)
     return q
 
 
@@ -55,7 +63,7 @@ def stress_vjp(device, material, F, tau_bar, F_new_bar, plastic, plastic_new_bar
     n = F.shape[0]
     mat = torch.full((n,), MATERIAL_IDS[material], dtype=torch.int32)
     adjoint = SubstepAdjoint(device, dtype, n, GRID, mat)
-    param = kernel_params(n, dtype)
+    param = kernel_params(n, material, dtype)
     F_bar = torch.empty(n, 3, 3, dtype=dtype)
     plastic_bar = torch.empty(n, dtype=dtype)
     C_bar = torch.zeros(n, 3, 3, dtype=dtype)
@@ -74,22 +82,34 @@ def stress_vjp(device, material, F, tau_bar, F_new_bar, plastic, plastic_new_bar
 def reference_loss(material, F, plastic, q, tau_bar, F_new_bar, plastic_new_bar) -> float:
     """<tau_bar, tau> + <F_new_bar, F'> + plastic_new_bar plastic' of the float64 reference for
     one F [3, 3] and plastic state (a number)."""
-    F_new, plastic_new, tau = reference.constitutive(MATERIAL_IDS[material], F[None], None, q[None],
+    F_new, plastic_new, tau = reference.constitutive(MATERIAL_IDS[material], F[None],
+                                                     torch.zeros(1, 3, 3, dtype=F.dtype), q[None],
                                                      torch.tensor([plastic], dtype=torch.float64), 1e-3)
     return float((tau_bar * tau[0]).sum() + (F_new_bar * F_new[0]).sum() + plastic_new_bar * plastic_new[0])
 
 
-def is_yielded(material, F):
-    F_new, _, _ = reference.constitutive(MATERIAL_IDS[material], F[None], None, kernel_params(1),
-                                         torch.full((1,), HARDENING, dtype=torch.float64), 1e-3)
-    return not torch.equal(F_new[0], F)
+def returned(material, F):
+    """F' of the reference for F (C = 0)."""
+    F_new, _, _ = reference.constitutive(MATERIAL_IDS[material], F[None], torch.zeros(1, 3, 3, dtype=F.dtype),
+                                         kernel_params(1, material), torch.full((1,), HARDENING, dtype=F.dtype), 1e-3)
+    return F_new[0]
 
 
-def test_cases_cover_both_sides_of_the_yield_surface():
+def test_cases_cover_every_branch_of_the_returns():
     cases = deformations()
-    for material in ("plasticine", "metal"):
-        assert not is_yielded(material, cases["below_yield"]) and not is_yielded(material, cases["identity"])
-        assert is_yielded(material, cases["above_yield"]) and is_yielded(material, cases["two_equal"])
+    for material in ("plasticine", "metal", "foam", "non_newtonian"):
+        assert torch.equal(returned(material, cases["below_yield"]), cases["below_yield"]), material
+        assert torch.equal(returned(material, cases["identity"]), cases["identity"]), material
+        assert not torch.equal(returned(material, cases["above_yield"]), cases["above_yield"]), material
+        assert not torch.equal(returned(material, cases["two_equal"]), cases["two_equal"]), material
+    # sand: inside the cone (compressed, at rest), onto the cone (sheared), past the tip
+    # (stretched: F' = exp(c) R)
+    assert torch.equal(returned("sand", cases["compressed"]), cases["compressed"])
+    assert torch.equal(returned("sand", cases["identity"]), cases["identity"])
+    sheared = returned("sand", cases["sheared"])
+    assert not torch.equal(sheared, cases["sheared"]) and float(torch.linalg.det(sheared)) < 1
+    tip = cases["uniform_scale"] / 1.2 * math.exp(PARAMS["sand"][3])
+    assert torch.allclose(returned("sand", cases["uniform_scale"]), tip, atol=1e-14)
 
 
 @pytest.mark.parametrize("material", MATERIALS)
@@ -103,7 +123,7 @@ def test_stress_adjoint_matches_central_differences(device, material):
     plastic_new_bar = torch.randn(F.shape[:1], generator=gen, dtype=torch.float64)
     F_bar, plastic_bar, q_bar = stress_vjp(device, material, F, tau_bar, F_new_bar, plastic, plastic_new_bar,
                                            torch.float64)
-    q = kernel_params(1)[0]
+    q = kernel_params(1, material)[0]
     for idx, name in enumerate(cases):
         def loss(Fi, qi, h=HARDENING):
             return reference_loss(material, Fi, h, qi, tau_bar[idx], F_new_bar[idx], float(plastic_new_bar[idx]))
@@ -115,9 +135,9 @@ def test_stress_adjoint_matches_central_differences(device, material):
             dF.view(-1)[k] = h
             fd = (loss(F[idx] + dF, q) - loss(F[idx] - dF, q)) / (2 * h)
             assert abs(float(F_bar[idx].view(-1)[k]) - fd) < 1e-6 * scale, (name, k)
-        for j in range(4):
+        for j in range(len(PARAMS[material])):
             dq = torch.zeros(PARAM_COUNT, dtype=torch.float64)
-            dq[j] = 1e-4 * float(q[j])
+            dq[j] = 1e-4 * float(q[j]) if q[j] != 0 else 1e-6
             fd = (loss(F[idx], q + dq) - loss(F[idx], q - dq)) / (2 * float(dq[j]))
             assert abs(float(q_bar[idx, j]) - fd) < 1e-6 * (1 + float(q_bar[idx].abs().max())), (name, j)
         fd = (loss(F[idx], q, HARDENING + 1e-3) - loss(F[idx], q, HARDENING - 1e-3)) / 2e-3

@@ -11,6 +11,7 @@
 #include "mpm/materials/elastic.h"
 #include "mpm/materials/elastic_adjoint.h"
 #include "mpm/materials/hencky_adjoint.h"
+#include "mpm/materials/newtonian_adjoint.h"
 
 __kernel void update_stress_adjoint(const int n, const real dt, __global const real *F_in,
                                     __global const real *C_in, __global const real *plastic_in,
@@ -35,6 +36,7 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
     real q_bar[PARAM_COUNT];
     for (int k = 0; k < PARAM_COUNT; ++k)
         q_bar[k] = 0;
+    real C_direct_bar[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}; /* models whose stress reads C */
     real plastic_b = plastic_bar_out[p]; /* the plastic state passes through unchanged by default */
     const int elastic = material[p] == MAT_ELASTIC || material[p] == MAT_NEO_HOOKEAN;
     for (int k = 0; k < 9; ++k) /* elastic models: F' = F_tr */
@@ -61,6 +63,22 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
                                          F_tr_bar, q_bar);
         break;
 #endif
+#if MATERIALS_PRESENT & ((1 << MAT_FOAM) | (1 << MAT_NON_NEWTONIAN))
+    case MAT_FOAM:
+    case MAT_NON_NEWTONIAN:
+        viscoplastic_stress_adjoint(F_tr, q[0], q[1], q[2], q[3], dt, tb, F_new_bar, F_tr_bar, q_bar);
+        break;
+#endif
+#if MATERIALS_PRESENT & (1 << MAT_SAND)
+    case MAT_SAND:
+        sand_stress_adjoint(F_tr, q[0], q[1], q[2], q[3], tb, F_new_bar, F_tr_bar, q_bar);
+        break;
+#endif
+#if MATERIALS_PRESENT & (1 << MAT_NEWTONIAN)
+    case MAT_NEWTONIAN:
+        newtonian_stress_adjoint(F_tr, C, q[0], q[1], tb, F_new_bar, F_tr_bar, C_direct_bar, q_bar);
+        break;
+#endif
     default: /* unreachable: the host refuses materials without an adjoint */
         for (int k = 0; k < 9; ++k)
             F_tr_bar[k] = NAN;
@@ -69,7 +87,7 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
     mat3_mul_bt(F_tr_bar, F, dCb);
     load_row(C_bar, p, 9, Cb);
     for (int k = 0; k < 9; ++k)
-        Cb[k] += dt * dCb[k];
+        Cb[k] += dt * dCb[k] + C_direct_bar[k];
     store_row(F_bar, p, 9, Fb);
     store_row(C_bar, p, 9, Cb);
     plastic_bar[p] = plastic_b;
