@@ -24,8 +24,9 @@ from clflow.errors import InputError
 from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, kernel_defines
 from clflow.mpm.substep import GRID_COPY_BUDGET, MAX_GRID_COPIES, Grid, Particles, State, SubstepKernels
 
-# kernel materials whose stress has an adjoint (all but snow)
-ADJOINT_MATERIALS = ("elastic", "neo_hookean", "plasticine", "metal", "foam", "sand", "newtonian", "non_newtonian")
+# kernel materials whose stress has an adjoint
+ADJOINT_MATERIALS = ("elastic", "neo_hookean", "plasticine", "metal", "foam", "sand", "newtonian", "non_newtonian",
+                     "snow")
 
 
 @dataclass

@@ -13,13 +13,19 @@ from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT
 from clflow.mpm.substep import Grid
 
 MU, LAMBDA, TAU_Y, XI = 3.0e4, 5.0e4, 300.0, 2.0
-HARDENING = 40.0  # metal: yield stress gained so far (Pa), the plastic state
+HARDENING = 40.0  # metal's plastic state: the yield stress gained so far (Pa)
+
+
+def plastic_state(material):
+    """The plastic state the tests start from: snow's J_P, else the metal's hardening."""
+    return 0.98 if material == "snow" else HARDENING
 GRID = Grid((8, 8, 8), 0.1)
 # kernel parameter rows (clflow.mpm.constants.kernel_params) per material
 PARAMS = {
     "elastic": (MU, LAMBDA), "neo_hookean": (MU, LAMBDA), "plasticine": (MU, LAMBDA, TAU_Y),
     "metal": (MU, LAMBDA, TAU_Y, XI), "foam": (MU, LAMBDA, TAU_Y, 50.0), "non_newtonian": (MU, LAMBDA, TAU_Y, 50.0),
     "sand": (MU, LAMBDA, 0.3, 0.01), "newtonian": (1.0, 1e4),  # sand: cohesion keeps F = I off the tip
+    "snow": (MU, LAMBDA, 0.025, 0.0075, 10.0),
 }
 MATERIALS = list(PARAMS)
 
@@ -108,6 +114,10 @@ def test_cases_cover_every_branch_of_the_returns():
     assert torch.equal(returned("sand", cases["identity"]), cases["identity"])
     sheared = returned("sand", cases["sheared"])
     assert not torch.equal(sheared, cases["sheared"]) and float(torch.linalg.det(sheared)) < 1
+    # snow: singular values inside [1 - theta_c, 1 + theta_s] stay, outside are clamped
+    assert torch.equal(returned("snow", cases["rotation"]), cases["rotation"])
+    assert not torch.equal(returned("snow", cases["uniform_scale"]), cases["uniform_scale"])
+    assert not torch.equal(returned("snow", cases["compressed"]), cases["compressed"])
     tip = cases["uniform_scale"] / 1.2 * math.exp(PARAMS["sand"][3])
     assert torch.allclose(returned("sand", cases["uniform_scale"]), tip, atol=1e-14)
 
@@ -119,13 +129,13 @@ def test_stress_adjoint_matches_central_differences(device, material):
     gen = torch.Generator().manual_seed(5)
     tau_bar = torch.randn(F.shape, generator=gen, dtype=torch.float64)
     F_new_bar = 1e4 * torch.randn(F.shape, generator=gen, dtype=torch.float64)
-    plastic = torch.full(F.shape[:1], HARDENING, dtype=torch.float64)
+    plastic = torch.full(F.shape[:1], plastic_state(material), dtype=torch.float64)
     plastic_new_bar = torch.randn(F.shape[:1], generator=gen, dtype=torch.float64)
     F_bar, plastic_bar, q_bar = stress_vjp(device, material, F, tau_bar, F_new_bar, plastic, plastic_new_bar,
                                            torch.float64)
     q = kernel_params(1, material)[0]
     for idx, name in enumerate(cases):
-        def loss(Fi, qi, h=HARDENING):
+        def loss(Fi, qi, h=plastic_state(material)):
             return reference_loss(material, Fi, h, qi, tau_bar[idx], F_new_bar[idx], float(plastic_new_bar[idx]))
 
         h = 1e-7
@@ -140,7 +150,8 @@ def test_stress_adjoint_matches_central_differences(device, material):
             dq[j] = 1e-4 * float(q[j]) if q[j] != 0 else 1e-6
             fd = (loss(F[idx], q + dq) - loss(F[idx], q - dq)) / (2 * float(dq[j]))
             assert abs(float(q_bar[idx, j]) - fd) < 1e-6 * (1 + float(q_bar[idx].abs().max())), (name, j)
-        fd = (loss(F[idx], q, HARDENING + 1e-3) - loss(F[idx], q, HARDENING - 1e-3)) / 2e-3
+        h0, dh = plastic_state(material), 1e-5
+        fd = (loss(F[idx], q, h0 + dh) - loss(F[idx], q, h0 - dh)) / (2 * dh)
         assert abs(float(plastic_bar[idx]) - fd) < 1e-6 * (1 + abs(fd)), (name, "plastic")
 
 

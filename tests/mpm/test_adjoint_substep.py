@@ -74,7 +74,7 @@ def test_substep_adjoint_matches_autograd_of_reference(walls, friction):
     assert rel_err(mass_grad, ref_mass) < 1e-9
 
 
-@pytest.mark.parametrize("material", ["plasticine", "metal", "foam", "sand", "newtonian", "non_newtonian"])
+@pytest.mark.parametrize("material", ["plasticine", "metal", "foam", "sand", "newtonian", "non_newtonian", "snow"])
 def test_material_substep_adjoint_matches_autograd_of_reference(material):
     sim = warmed_up(material=material)
     grad_after = random_grad(sim.n)

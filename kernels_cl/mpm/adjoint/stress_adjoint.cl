@@ -79,6 +79,12 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
         newtonian_stress_adjoint(F_tr, C, q[0], q[1], tb, F_new_bar, F_tr_bar, C_direct_bar, q_bar);
         break;
 #endif
+#if MATERIALS_PRESENT & (1 << MAT_SNOW)
+    case MAT_SNOW:
+        plastic_b = snow_stress_adjoint(F_tr, q[0], q[1], q[2], q[3], q[4], plastic_in[p], tb, F_new_bar,
+                                        plastic_b, F_tr_bar, q_bar);
+        break;
+#endif
     default: /* unreachable: the host refuses materials without an adjoint */
         for (int k = 0; k < 9; ++k)
             F_tr_bar[k] = NAN;

@@ -81,4 +81,54 @@ inline void neo_hookean_stress_adjoint(const real *F, const real mu, const real 
     *lambda_bar = trace_bar * log(J);
 }
 
+/* Snow (snow.h): F_E = U diag(s_E) V^T, s_E = clamp(s, 1 - theta_c, 1 + theta_s),
+ * J_P' = J_P prod(s)/prod(s_E), h = exp(xi (1 - J_P')), tau = fixed corotated of F_E at
+ * (mu0 h, lambda0 h); F' = F_E. Through the clamp: ds_E/ds = 1 inside, 0 when clamped (then
+ * s_E depends on theta_c or theta_s instead), and J_P' depends on s_k only where s_k is
+ * clamped (dJ_P'/ds_k = J_P'/s_k). q_bar[0..4] = (mu0, lambda0, theta_c, theta_s, xi)
+ * gradients; returns J_P bar of state n. */
+inline real snow_stress_adjoint(const real *F_tr, const real mu0, const real lambda0, const real theta_c,
+                                const real theta_s, const real xi, const real J_P, const real *tau_bar,
+                                const real *F_new_bar, const real J_P_new_bar, real *F_tr_bar, real *q_bar)
+{
+    real U[9], s[3], V[9], s_E[3], F_E[9], F_E_bar[9], G[9], F_hat[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+    svd3(F_tr, U, s, V);
+    const real lo = 1 - theta_c, hi = 1 + theta_s;
+    for (int a = 0; a < 3; ++a)
+        s_E[a] = clamp(s[a], lo, hi);
+    mat3_udvt(U, s_E, V, F_E);
+    const real volume_ratio = (s[0] * s[1] * s[2]) / (s_E[0] * s_E[1] * s_E[2]);
+    const real J_P_new = J_P * volume_ratio;
+    const real h = exp(xi * (1 - J_P_new));
+    real mu_bar, lambda_bar;
+    mat3_copy(F_new_bar, F_E_bar);
+    fixed_corotated_adjoint(F_E, U, s_E, V, mu0 * h, lambda0 * h, tau_bar, F_E_bar, &mu_bar, &lambda_bar);
+    const real h_bar = mu_bar * mu0 + lambda_bar * lambda0;
+    const real J_P_bar = J_P_new_bar - h_bar * h * xi; /* of J_P' */
+    q_bar[0] = mu_bar * h;
+    q_bar[1] = lambda_bar * h;
+    q_bar[4] = h_bar * h * (1 - J_P_new);
+    svd3_project(U, V, F_E_bar, G);
+    for (int k = 0; k < 3; ++k) {
+        if (s[k] < lo || s[k] > hi) {
+            const real sign = s[k] < lo ? (real)-1 : (real)1; /* ds_E/dtheta_c = -1, ds_E/dtheta_s = +1 */
+            const real s_E_bar = G[4 * k] - J_P_bar * J_P_new / s_E[k];
+            q_bar[s[k] < lo ? 2 : 3] += sign * s_E_bar;
+            F_hat[4 * k] = J_P_bar * J_P_new / s[k];
+        } else {
+            F_hat[4 * k] = G[4 * k];
+        }
+    }
+    real diff[3], mean[3];
+    for (int q = 0; q < 3; ++q) {
+        const int i = SVD3_PAIR_I[q], j = SVD3_PAIR_J[q];
+        const int inside_i = s[i] >= lo && s[i] <= hi;
+        diff[q] = s[i] != s[j] ? (s_E[i] - s_E[j]) / (s[i] - s[j]) : (real)inside_i;
+        mean[q] = (s_E[i] + s_E[j]) / (s[i] + s[j]);
+    }
+    svd3_add_off_diagonal(G, diff, mean, F_hat);
+    svd3_add_back(U, V, F_hat, F_tr_bar);
+    return J_P_bar * volume_ratio;
+}
+
 #endif /* CLFLOW_MPM_ELASTIC_ADJOINT_H */
