@@ -11,6 +11,7 @@ BENCHMARKS: dict[str, str] = {
     "flow": "clflow_cli.bench_flow:flow",
     "raster": "clflow_cli.bench_raster:raster",
     "mpm": "clflow_cli.bench_mpm:mpm",
+    "mpm-adjoint": "clflow_cli.bench_mpm_adjoint:mpm_adjoint",
 }
 
 

@@ -1,0 +1,171 @@
+"""Hand-written adjoint of one MLS-MPM substep (kernels in kernels_cl/mpm/adjoint/).
+
+The substep (clflow/mpm/substep.py) maps state n to state n+1 through tau, the grid (m, mv)
+and the grid velocities. Its adjoint maps dL/d(state n+1) to dL/d(state n) and accumulates
+the gradients of the per-particle kernel parameters and masses, in reverse kernel order:
+
+    g2p_adjoint_private + p2g_reduce : (xbar', vbar', Cbar', grid_v) -> grid_vbar, xbar (part)
+    grid_update_adjoint              : (grid_vbar, grid, boundaries) -> grid_bar (mbar_i, pbar_i)
+    p2g_adjoint                      : (grid_bar, x, v, C, tau)      -> xbar, vbar, Cbar (part), taubar, massbar
+    update_stress_adjoint            : (taubar, Fbar', F, C, param)  -> Fbar, Cbar, parambar
+
+Every sum has a fixed order (private grid copies reduced in order, per-node and per-particle
+gathers), so gradients are bit-identical across runs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+
+from clflow.errors import InputError
+from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, kernel_defines
+from clflow.mpm.substep import GRID_COPY_BUDGET, MAX_GRID_COPIES, Grid, Particles, State, SubstepKernels
+
+# kernel materials whose stress has an adjoint
+ADJOINT_MATERIALS = ("elastic", "neo_hookean", "plasticine", "metal", "foam", "sand", "newtonian", "non_newtonian",
+                     "snow")
+
+
+@dataclass
+class StateGrad:
+    """dL/d(state) of one instant: x, v [N, 3], C, F [N, 3, 3], plastic [N] (units: 1/State's)."""
+
+    x: torch.Tensor
+    v: torch.Tensor
+    C: torch.Tensor
+    F: torch.Tensor
+    plastic: torch.Tensor
+
+    @staticmethod
+    def zeros(n: int, dtype: torch.dtype) -> "StateGrad":
+        return StateGrad(torch.zeros(n, 3, dtype=dtype), torch.zeros(n, 3, dtype=dtype),
+                         torch.zeros(n, 3, 3, dtype=dtype), torch.zeros(n, 3, 3, dtype=dtype),
+                         torch.zeros(n, dtype=dtype))
+
+    def zero_(self) -> "StateGrad":
+        for f in fields(self):
+            getattr(self, f.name).zero_()
+        return self
+
+
+@dataclass
+class SubstepTape:
+    """What the adjoint of one substep reads from its forward run: tau [N, 3, 3] and the
+    grid [nodes, 4] (m, mv) and grid velocities [nodes, 3]."""
+
+    tau: torch.Tensor
+    grid_mv: torch.Tensor
+    grid_v: torch.Tensor
+
+    @staticmethod
+    def empty(n: int, nodes: int, dtype: torch.dtype) -> "SubstepTape":
+        return SubstepTape(torch.empty(n, 3, 3, dtype=dtype), torch.empty(nodes, 4, dtype=dtype),
+                           torch.empty(nodes, 3, dtype=dtype))
+
+
+def check_adjoint_materials(materials: torch.Tensor) -> None:
+    """Raise :class:`InputError` if a particle's kernel material has no adjoint yet."""
+    supported = {MATERIAL_IDS[m] for m in ADJOINT_MATERIALS}
+    names = {i: name for name, i in MATERIAL_IDS.items()}
+    missing = sorted(names[int(m)] for m in torch.unique(materials) if int(m) not in supported)
+    if missing:
+        raise InputError(f"no adjoint for material(s) {', '.join(missing)} yet; differentiable "
+                         f"materials: {', '.join(ADJOINT_MATERIALS)}")
+
+
+def run_recorded(kernels: SubstepKernels, tape: SubstepTape, state: State, out: State, *args) -> None:
+    """``kernels.run(state, out, *args)`` with tau and the grids written into ``tape``."""
+    scratch = kernels.tau, kernels.grid_mv, kernels.grid_v
+    kernels.tau, kernels.grid_mv, kernels.grid_v = tape.tau, tape.grid_mv, tape.grid_v
+    try:
+        kernels.run(state, out, *args)
+    finally:
+        kernels.tau, kernels.grid_mv, kernels.grid_v = scratch
+
+
+class SubstepAdjoint:
+    """The adjoint kernels of one device, precision, particle count, grid and material set,
+    with their scratch buffers (grid adjoints, taubar, private grid copies)."""
+
+    def __init__(self, device, dtype: torch.dtype, n: int, grid: Grid, materials: torch.Tensor):
+        import pyopencl as cl
+
+        check_adjoint_materials(materials)
+        self.device, self.dtype, self.n, self.grid = device, dtype, n, grid
+        real = "double" if dtype == torch.float64 else "float"
+        self.real_t = np.float64 if dtype == torch.float64 else np.float32
+        defines = kernel_defines()
+        defines["MATERIALS_PRESENT"] = sum(1 << int(m) for m in torch.unique(materials))
+        k = lambda src, name: device.kernel(src, name, real, defines)  # noqa: E731
+        self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_private")
+        self.k_reduce = k("mpm/p2g.cl", "p2g_reduce")
+        self.k_grid = k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
+        self.k_p2g = k("mpm/adjoint/p2g_adjoint.cl", "p2g_adjoint")
+        self.k_stress = k("mpm/adjoint/stress_adjoint.cl", "update_stress_adjoint")
+        itemsize = torch.tensor([], dtype=dtype).element_size()
+        copy_bytes = 3 * grid.nodes * itemsize
+        want = max(2, 2 * device.info.compute_units)
+        self.copies = max(1, min(want, MAX_GRID_COPIES, GRID_COPY_BUDGET // copy_bytes, n))
+        self.chunk = -(-n // self.copies)
+        self.grid_v_bar_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * copy_bytes)
+        self.grid_v_bar = torch.empty(grid.nodes, 3, dtype=dtype)
+        self.grid_bar = torch.empty(grid.nodes, 4, dtype=dtype)
+        self.tau_bar = torch.empty(n, 3, 3, dtype=dtype)
+
+    def run(
+        self,
+        state: State,
+        after: State,
+        tape: SubstepTape,
+        particles: Particles,
+        t: float,
+        dt: float,
+        gravity: tuple[float, float, float],
+        boundaries: torch.Tensor,
+        accel: torch.Tensor,
+        grad_after: StateGrad,
+        grad: StateGrad,
+        param_grad: torch.Tensor,
+        mass_grad: torch.Tensor,
+    ) -> None:
+        """Pull ``grad_after`` = dL/d(after) back through the substep state -> after (time t,
+        step dt, recorded in ``tape``) into ``grad`` = dL/d(state) (overwritten); adds the
+        parameter and mass gradients into ``param_grad`` [N, PARAM_COUNT] and ``mass_grad`` [N]."""
+        dev, R, n = self.device, self.real_t, np.int32(self.n)
+        grid_args = self.grid.kernel_args(R)
+        with dev.bind() as b:
+            x = b.input(state.x, "x")
+            C = b.input(state.C, "C")
+            x_bar = b.inout(grad.x, "x_bar")
+            C_bar = b.inout(grad.C, "C_bar")
+            grid_v_bar, grid_bar = b.inout(self.grid_v_bar, "grid_v_bar"), b.inout(self.grid_bar, "grid_bar")
+            tau_bar = b.inout(self.tau_bar, "tau_bar")
+            dev.launch(self.k_g2p, self.copies, grid_args + [
+                n, R(dt), R(t), x, b.input(after.v, "v_out"), b.input(particles.release_time, "release_time"),
+                b.input(tape.grid_v, "grid_v"), b.input(grad_after.x, "x_bar_out"),
+                b.input(grad_after.v, "v_bar_out"), b.input(grad_after.C, "C_bar_out"),
+                np.int32(self.copies), np.int32(self.chunk), self.grid_v_bar_copies, x_bar], local_size=1)
+            size = 3 * self.grid.nodes
+            dev.launch(self.k_reduce, size, [np.int64(size), np.int32(self.copies), self.grid_v_bar_copies,
+                                             grid_v_bar])
+            dev.launch(self.k_grid, self.grid.nodes, grid_args + [
+                R(dt), R(t), *(R(g) for g in gravity), R(particles.mass_eps), b.input(tape.grid_mv, "grid"),
+                grid_v_bar, b.input(boundaries, "boundaries"), np.int32(boundaries.shape[0]), grid_bar])
+            dev.launch(self.k_p2g, self.n, grid_args + [
+                n, R(dt), x, b.input(state.v, "v"), C, b.input(tape.tau, "tau"),
+                b.input(particles.mass, "mass"), b.input(particles.volume, "volume"),
+                b.input(particles.group, "group"), b.input(accel, "accel"), grid_bar, x_bar,
+                b.output(grad.v, "v_bar"), C_bar, tau_bar, b.inout(mass_grad, "mass_bar")])
+            dev.launch(self.k_stress, self.n, [
+                n, R(dt), b.input(state.F, "F"), C, b.input(state.plastic, "plastic"),
+                b.input(particles.material, "material"), b.input(particles.param, "param"), tau_bar,
+                b.input(grad_after.F, "F_bar_out"), b.input(grad_after.plastic, "plastic_bar_out"),
+                b.output(grad.F, "F_bar"), C_bar, b.output(grad.plastic, "plastic_bar"),
+                b.inout(param_grad, "param_bar")])
+
+
+__all__ = ["ADJOINT_MATERIALS", "PARAM_COUNT", "StateGrad", "SubstepAdjoint", "SubstepTape",
+           "check_adjoint_materials", "run_recorded"]

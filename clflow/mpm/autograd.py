@@ -1,0 +1,323 @@
+"""Differentiable MPM trajectories: :func:`simulate`, a torch autograd op whose backward runs
+the hand-written adjoint kernels (clflow/mpm/adjoint.py) over the whole trajectory.
+
+    sim = Simulator(x0, volume, MaterialSpec("elastic", {...}), grid, dtype=torch.float64)
+    E = torch.tensor(2e5, dtype=torch.float64, requires_grad=True)
+    frames = simulate(sim, 10, youngs_modulus=E)      # frames.x [11, N, 3] (m)
+    loss = ((frames.x[-1] - target) ** 2).sum()
+    loss.backward()                                   # E.grad: exact trajectory gradient
+
+Checkpointing: forward keeps one state per output frame; backward replays a frame's
+substeps from its checkpoint (recording tau and the grids), then runs their adjoints in
+reverse. Memory, in reals: (frames + 1) N 25 (checkpoints incl. the outputs)
++ substeps (34 N + 7 nodes) (one frame's replay) + adjoint scratch; see docs/mpm_adjoint.md.
+
+Parameter gradients are per particle; a global parameter (a 0-d tensor) is broadcast to
+the particles with a backward that sums the rows in a fixed order
+(clflow.runtime.reduction.sum_rows), so gradients are bit-identical across runs.
+
+The op is a ``torch.autograd.Function`` rather than a ``torch.library.custom_op``: its
+configuration (grid, boundary table, drivers, compiled kernels) is a :class:`Simulator`, not
+a tensor.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+import weakref
+from dataclasses import dataclass
+
+import torch
+
+from clflow.errors import InputError
+from clflow.materials import lame_parameters
+from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, SubstepTape, check_adjoint_materials, run_recorded
+from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT
+from clflow.mpm.simulator import CFL_NUMBER, SimulationError, Simulator, StabilityWarning
+from clflow.mpm.substep import Particles, State, SubstepKernels
+from clflow.runtime.reduction import sum_rows
+
+
+@dataclass
+class Frames:
+    """Per-frame states of a differentiable run; frame 0 is the initial state.
+    x, v [T+1, N, 3] (m, m/s), F [T+1, N, 3, 3] (deformation gradient)."""
+
+    x: torch.Tensor
+    v: torch.Tensor
+    F: torch.Tensor
+
+
+class _Engine:
+    """Forward and adjoint kernels of one simulator (built once, reused by every run)."""
+
+    def __init__(self, sim: Simulator):
+        n, materials = sim.n, sim.particles.material
+        check_adjoint_materials(materials)
+        self.forward = SubstepKernels(sim.device, sim.dtype, n, sim.grid, materials, sim.kernels.p2g)
+        self.adjoint = SubstepAdjoint(sim.device, sim.dtype, n, sim.grid, materials)
+
+
+_ENGINES: "weakref.WeakKeyDictionary[Simulator, _Engine]" = weakref.WeakKeyDictionary()
+
+
+def _engine(sim: Simulator) -> _Engine:
+    engine = _ENGINES.get(sim)
+    if engine is None:
+        engine = _ENGINES[sim] = _Engine(sim)
+    return engine
+
+
+class _Run:
+    """One differentiable run: its settings, and the checkpoints its forward leaves for backward."""
+
+    def __init__(self, sim: Simulator, frames: int, substeps: int, strict_cfl: bool = False):
+        self.sim, self.frames, self.engine, self.strict_cfl = sim, frames, _engine(sim), strict_cfl
+        self.t0, self.substeps = sim.time, substeps
+        self.dt = sim.frame_dt / substeps
+
+    def time(self, frame: int, substep: int) -> float:
+        return self.t0 + (frame * self.substeps + substep) * self.dt
+
+    def substep(self, state: State, out: State, frame: int, s: int, tape: SubstepTape | None = None) -> None:
+        sim, t = self.sim, self.time(frame, s)
+        args = (self.particles, t, self.dt, sim.gravity, sim.boundaries, sim.drivers.accel(t, sim.dtype),
+                self.clamped)
+        if tape is None:
+            self.engine.forward.run(state, out, *args)
+        else:
+            run_recorded(self.engine.forward, tape, state, out, *args)
+
+    def checkpoint(self, frame: int) -> State:
+        return State(self.x[frame], self.v[frame], self.C[frame], self.F[frame], self.plastic[frame])
+
+    def forward(self, param, mass, x0, v0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        sim, T, n = self.sim, self.frames, self.sim.n
+        self.particles = dataclasses.replace(sim.particles, param=param.detach().contiguous(),
+                                             mass=mass.detach().contiguous())
+        self.clamped = torch.zeros(n, dtype=torch.uint8)
+        dtype = sim.dtype
+        self.x = torch.empty(T + 1, n, 3, dtype=dtype)
+        self.v = torch.empty(T + 1, n, 3, dtype=dtype)
+        self.C = torch.empty(T + 1, n, 3, 3, dtype=dtype)
+        self.F = torch.empty(T + 1, n, 3, 3, dtype=dtype)
+        self.plastic = torch.empty(T + 1, n, dtype=dtype)
+        s0 = sim.state
+        for buf, value in ((self.x, x0), (self.v, v0), (self.C, s0.C), (self.F, s0.F), (self.plastic, s0.plastic)):
+            buf[0] = value.detach()
+        a, b = self.checkpoint(0).clone(), s0.empty_like()
+        for f in range(T):
+            for s in range(self.substeps):
+                self.substep(a, b, f, s)
+                a, b = b, a
+            if not all(bool(torch.isfinite(t).all()) for t in (a.x, a.v, a.F)):
+                raise SimulationError(
+                    f"the differentiable run became NaN/inf during frame {f + 1} "
+                    f"(t = {self.time(f + 1, 0):.4g} s); reduce dt (substeps per frame now {self.substeps}) "
+                    f"or the material stiffness / forces")
+            vmax = float(a.v.double().norm(dim=-1).max())
+            if vmax * self.dt > CFL_NUMBER * sim.grid.dx:
+                message = (f"differentiable run, frame {f + 1}: max speed {vmax:.3g} m/s breaks the CFL limit "
+                           f"at dt = {self.dt:.3g} s ({self.substeps} substeps per frame)")
+                if self.strict_cfl:
+                    raise SimulationError(message)
+                warnings.warn(message, StabilityWarning, stacklevel=4)
+            for buf, value in ((self.x, a.x), (self.v, a.v), (self.C, a.C), (self.F, a.F),
+                               (self.plastic, a.plastic)):
+                buf[f + 1] = value
+        return self.x, self.v, self.F
+
+    def backward(self, grad_x, grad_v, grad_F):
+        sim, n, S, dtype = self.sim, self.sim.n, self.substeps, self.sim.dtype
+        adjoint = self.engine.adjoint
+        grad, spare = StateGrad.zeros(n, dtype), StateGrad.zeros(n, dtype)
+        param_grad = torch.zeros_like(self.particles.param)
+        mass_grad = torch.zeros_like(self.particles.mass)
+        states = [None] + [sim.state.empty_like() for _ in range(S)]
+        tapes = [SubstepTape.empty(n, sim.grid.nodes, dtype) for _ in range(S)]
+
+        def add_output_grads(frame: int) -> None:
+            for g, acc in ((grad_x, grad.x), (grad_v, grad.v), (grad_F, grad.F)):
+                if g is not None:
+                    acc += g[frame]
+
+        for f in reversed(range(self.frames)):
+            add_output_grads(f + 1)
+            states[0] = self.checkpoint(f)
+            for s in range(S):
+                self.substep(states[s], states[s + 1], f, s, tapes[s])
+            for s in reversed(range(S)):
+                t = self.time(f, s)
+                adjoint.run(states[s], states[s + 1], tapes[s], self.particles, t, self.dt, sim.gravity,
+                            sim.boundaries, sim.drivers.accel(t, dtype), grad, spare, param_grad, mass_grad)
+                grad, spare = spare, grad
+        add_output_grads(0)
+        return param_grad, mass_grad, grad.x, grad.v
+
+
+def memory_estimate(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype) -> int:
+    """Bytes a differentiable run of n particles on ``nodes`` grid nodes holds at its peak:
+    (frames + 1) checkpoints and outputs (25 + 15 reals per particle), one frame's replay
+    (substeps states of 25 reals and tau of 9 per particle, grids of 7 reals per node) and
+    the adjoint's own buffers (two state gradients, taubar, parameter and mass gradients;
+    grid adjoints of 7 reals per node)."""
+    itemsize = torch.tensor([], dtype=dtype).element_size()
+    checkpoints = (frames + 1) * n * (25 + 15)
+    replay = substeps * (n * (25 + 9) + 7 * nodes)
+    adjoint = n * (2 * 24 + 9 + PARAM_COUNT + 1) + 7 * nodes
+    return itemsize * (checkpoints + replay + adjoint)
+
+
+class _Simulate(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, run: _Run, param, mass, x0, v0):
+        ctx.run = run
+        x, v, F = run.forward(param, mass, x0, v0)
+        return x.clone(), v.clone(), F.clone()  # the checkpoints stay private to the run
+
+    @staticmethod
+    def backward(ctx, grad_x, grad_v, grad_F):
+        run = ctx.run
+        contiguous = [None if g is None else g.contiguous() for g in (grad_x, grad_v, grad_F)]
+        return (None, *run.backward(*contiguous))
+
+
+class _BroadcastRows(torch.autograd.Function):
+    """value [...] -> [N, ...] (the same for every particle); backward: fixed-order row sum."""
+
+    @staticmethod
+    def forward(ctx, value, n: int, device):
+        ctx.shape, ctx.device = value.shape, device
+        return value.detach().reshape(1, -1).expand(n, -1).reshape((n,) + tuple(value.shape)).clone()
+
+    @staticmethod
+    def backward(ctx, grad):
+        rows = grad.reshape(grad.shape[0], -1).contiguous()
+        return sum_rows(rows, ctx.device).to(grad.dtype).reshape(ctx.shape), None, None
+
+
+def per_particle(value, n: int, name: str, dtype: torch.dtype, device, trailing: tuple[int, ...] = ()) -> torch.Tensor:
+    """``value`` as [N, *trailing] of ``dtype``: a global value (shape ``trailing``) is
+    broadcast with a deterministic backward; a per-particle one is taken as it is."""
+    value = torch.as_tensor(value)
+    if not value.is_floating_point():
+        value = value.to(dtype)
+    if tuple(value.shape) == trailing:
+        out = _BroadcastRows.apply(value.to(dtype), n, device)
+    elif tuple(value.shape) == (n,) + trailing:
+        out = value.to(dtype)
+    else:
+        raise InputError(f"{name}: expected shape {list(trailing)} (global) or {[n, *trailing]} "
+                         f"(per particle), got {list(value.shape)}")
+    if not bool(torch.isfinite(out.detach()).all()):
+        raise InputError(f"{name} contains NaN or inf")
+    return out
+
+
+# kernel materials whose parameter rows start with (mu, lambda), and with tau_Y in column 2
+LAME_MATERIALS = ("elastic", "neo_hookean", "plasticine", "metal", "foam", "sand", "snow")
+YIELD_MATERIALS = ("plasticine", "metal", "foam", "non_newtonian")
+
+
+def _require(present: set[int], allowed: tuple[str, ...], what: str) -> None:
+    names = {i: name for name, i in MATERIAL_IDS.items()}
+    wrong = sorted(names[m] for m in present if names[m] not in allowed)
+    if wrong:
+        raise InputError(f"{what}: not a parameter of {', '.join(wrong)} (it applies to {', '.join(allowed)}); "
+                         f"use kernel_params")
+
+
+def simulate(
+    simulator: Simulator,
+    frames: int,
+    *,
+    youngs_modulus=None,
+    poissons_ratio=None,
+    density=None,
+    positions=None,
+    velocities=None,
+    yield_stress=None,
+    kernel_params=None,
+    retries: int = 0,
+) -> Frames:
+    """Differentiable run of ``frames`` frames from the simulator's current state.
+
+    Every keyword may be a tensor that requires grad; None keeps the simulator's value.
+
+    Args:
+        simulator: a :class:`Simulator` whose particles all use a material with an adjoint
+            (clflow.mpm.adjoint.ADJOINT_MATERIALS). It is not advanced.
+        frames: number of output frames (each ``simulator.substeps`` substeps).
+        youngs_modulus: E (Pa), global (0-d) or per particle [N].
+        poissons_ratio: nu, global or [N] (materials with Lame parameters: LAME_MATERIALS).
+        yield_stress: tau_Y (Pa), global or [N] (YIELD_MATERIALS).
+        density: rho (kg/m^3), global or [N]: particle mass = rho x rest volume.
+        positions, velocities: initial x [N, 3] (m) and v [N, 3] (m/s).
+        kernel_params: [N, PARAM_COUNT] kernel parameters (clflow.mpm.constants.kernel_params),
+            an alternative to youngs_modulus / poissons_ratio.
+        retries: NaN/CFL guard: when a frame turns NaN/inf or breaks the CFL limit, halve dt
+            (double the substeps per frame) and run again, at most this many times (a
+            StabilityWarning says so). The last attempt raises :class:`SimulationError` on
+            NaN/inf and only warns on a CFL violation.
+
+    Returns:
+        :class:`Frames` with x, v [frames + 1, N, 3] and F [frames + 1, N, 3, 3].
+    """
+    sim, n, dtype = simulator, simulator.n, simulator.dtype
+    if int(frames) < 1:
+        raise InputError(f"frames must be >= 1, got {frames}")
+    base = sim.particles
+    present = {int(m) for m in torch.unique(base.material)}
+    if kernel_params is not None and (youngs_modulus is not None or poissons_ratio is not None
+                                      or yield_stress is not None):
+        raise InputError("give kernel_params or youngs_modulus/poissons_ratio/yield_stress, not both")
+    if kernel_params is not None:
+        param = torch.as_tensor(kernel_params)
+        if tuple(param.shape) != tuple(base.param.shape):
+            raise InputError(f"kernel_params: expected shape {list(base.param.shape)}, got {list(param.shape)}")
+        param = param.to(dtype)
+    else:
+        columns = [base.param[:, k] for k in range(base.param.shape[1])]
+        if youngs_modulus is not None or poissons_ratio is not None:
+            _require(present, LAME_MATERIALS, "youngs_modulus/poissons_ratio")
+            mu0, lam0 = base.param[:, 0], base.param[:, 1]
+            E0 = mu0 * (3 * lam0 + 2 * mu0) / (lam0 + mu0)  # current values, for the one not given
+            nu0 = lam0 / (2 * (lam0 + mu0))
+            E = E0 if youngs_modulus is None else per_particle(youngs_modulus, n, "youngs_modulus", dtype, sim.device)
+            nu = nu0 if poissons_ratio is None else per_particle(poissons_ratio, n, "poissons_ratio", dtype,
+                                                                 sim.device)
+            if bool((E.detach() <= 0).any()) or bool(((nu.detach() <= -1) | (nu.detach() >= 0.5)).any()):
+                raise InputError("youngs_modulus must be > 0 Pa and poissons_ratio in (-1, 0.5)")
+            columns[0], columns[1] = lame_parameters(E, nu)
+        if yield_stress is not None:
+            _require(present, YIELD_MATERIALS, "yield_stress")
+            columns[2] = per_particle(yield_stress, n, "yield_stress", dtype, sim.device)
+            if bool((columns[2].detach() < 0).any()):
+                raise InputError("yield_stress must be >= 0 Pa")
+        param = torch.stack(columns, 1)
+    if density is not None:
+        rho = per_particle(density, n, "density", dtype, sim.device)
+        if bool((rho.detach() <= 0).any()):
+            raise InputError("density must be > 0 kg/m^3")
+        mass = rho * base.volume
+    else:
+        mass = base.mass
+    x0 = sim.state.x if positions is None else torch.as_tensor(positions).to(dtype)
+    v0 = sim.state.v if velocities is None else torch.as_tensor(velocities).to(dtype)
+    for name, value in (("positions", x0), ("velocities", v0)):
+        if tuple(value.shape) != (n, 3):
+            raise InputError(f"{name}: expected shape [{n}, 3], got {list(value.shape)}")
+        if not bool(torch.isfinite(value.detach()).all()):
+            raise InputError(f"{name} contains NaN or inf")
+    substeps = sim.substeps
+    for _ in range(int(retries)):
+        try:
+            return Frames(*_Simulate.apply(_Run(sim, int(frames), substeps, True), param, mass, x0, v0))
+        except SimulationError as err:
+            warnings.warn(f"{err}; retrying with {2 * substeps} substeps per frame", StabilityWarning, stacklevel=2)
+            substeps *= 2
+    return Frames(*_Simulate.apply(_Run(sim, int(frames), substeps), param, mass, x0, v0))
+
+
+__all__ = ["Frames", "memory_estimate", "per_particle", "simulate"]

@@ -1,0 +1,59 @@
+"""``clflow bench mpm-adjoint``: backward (replay + adjoint) time against forward time of a
+differentiable MPM run, and its peak memory against the checkpointing formula."""
+
+import click
+
+
+@click.command("mpm-adjoint")
+@click.option("--particles", default=65536, show_default=True, help="Particles (a 2:1:1 block, 2 per cell and axis).")
+@click.option("--grid", "grid_res", default=64, show_default=True, help="Grid nodes per axis.")
+@click.option("--frames", default=10, show_default=True)
+@click.option("--substeps", default=20, show_default=True, help="Substeps per frame.")
+@click.option("--double", is_flag=True, help="float64 instead of float32.")
+@click.pass_context
+def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
+    """Elastic block thrown against the floor: forward seconds, backward seconds (incl. replay),
+    their ratio (target <= 3), and peak memory (measured RSS growth vs the formula)."""
+    import resource
+    import time
+
+    import torch
+
+    from clflow.mpm import Grid, MaterialSpec, Simulator
+    from clflow.mpm.autograd import memory_estimate, simulate
+
+    device = ctx.obj.device() if ctx.obj else None
+    dtype = torch.float64 if double else torch.float32
+    dx = 1.0 / grid_res
+    ny = max(1, round((particles / 2) ** (1 / 3)))  # block of (2 ny) x ny x ny particles
+    h = dx / 2
+    axes = [0.5 - (m * h) / 2 + h * (0.5 + torch.arange(m, dtype=torch.float64)) for m in (2 * ny, ny, ny)]
+    x = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    n = x.shape[0]
+    v = torch.tensor([0.5, -1.0, 0.3], dtype=torch.float64).expand(n, 3)
+    sim = Simulator(x, h**3, MaterialSpec("elastic", {"youngs_modulus": 1e5, "poissons_ratio": 0.3}),
+                    Grid((grid_res,) * 3, dx), velocities=v, frame_dt=substeps * 2e-4, substeps=substeps,
+                    dtype=dtype, device=device)
+    E = torch.tensor(1e5, dtype=dtype, requires_grad=True)
+    simulate(sim, 1, youngs_modulus=E).x.sum().backward()  # builds every kernel once
+
+    def peak_mib():
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+    with open("/proc/self/statm") as statm:  # resident pages now (Linux)
+        base = int(statm.read().split()[1]) * resource.getpagesize() / 2**20
+    start = time.perf_counter()
+    out = simulate(sim, frames, youngs_modulus=E)
+    forward = time.perf_counter() - start
+    loss = (out.x[-1] ** 2).sum() + (out.F[-1] ** 2).sum()
+    start = time.perf_counter()
+    loss.backward()
+    backward = time.perf_counter() - start
+    peak = peak_mib() - base
+    steps = frames * substeps
+    click.echo(f"device: {device.info.label if device else 'default'}; {n:,} particles, grid {grid_res}^3, "
+               f"{frames} frames x {substeps} substeps, {'float64' if double else 'float32'}")
+    click.echo(f"forward  {forward:8.2f} s  ({n * steps / forward / 1e6:.2f} M particle-substeps/s)")
+    click.echo(f"backward {backward:8.2f} s  (replay + adjoint; {backward / forward:.2f}x forward, target <= 3x)")
+    est = memory_estimate(n, sim.grid.nodes, frames, substeps, dtype) / 2**20
+    click.echo(f"peak memory growth {peak:8.1f} MiB (peak RSS - RSS before the run); formula {est:.1f} MiB")

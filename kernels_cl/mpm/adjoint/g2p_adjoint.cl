@@ -1,0 +1,85 @@
+/* Adjoint of G2P (g2p.cl), a scatter onto the grid, deterministic without float atomics:
+ * work-item k handles the contiguous particle chunk k into its own grid copy; the host then
+ * sums the copies in a fixed order (p2g.cl: p2g_reduce).
+ *
+ * Forward: v' = sum_i w v_i,  C' = (4/dx^2) sum_i w v_i d^T,  x' = clamp(x + dt v').
+ * Given xbar', vbar', Cbar' of state n+1, with u = vbar' + dt xbar' (xbar' zeroed on clamped
+ * axes) and B = (4/dx^2) Cbar':
+ *   vbar_i += w (u + B d)
+ *   xbar   = xbar' (unclamped axes) + sum_i [ grad(w) (v_i . u + v_i . B d) - w B^T v_i ]
+ * Unreleased particles (t < release_time) do not move: xbar = xbar', nothing to the grid. */
+#include "mpm/adjoint/adjoint.h"
+
+inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, const real t,
+                                 __global const real *x_in, __global const real *v_out,
+                                 __global const real *release_time, __global const real *grid_v,
+                                 __global const real *x_bar_out, __global const real *v_bar_out,
+                                 __global const real *C_bar_out, __global real *grid_v_bar,
+                                 __global real *x_bar)
+{
+    const real dx = g->dx;
+    real xp[3], vp[3], xb[3], u[3], B[9], vi[3];
+    load_row(x_in, p, 3, xp);
+    load_row(x_bar_out, p, 3, xb);
+    if (t < release_time[p]) {
+        store_row(x_bar, p, 3, xb);
+        return;
+    }
+    load_row(v_out, p, 3, vp);
+    load_row(v_bar_out, p, 3, u);
+    load_row(C_bar_out, p, 9, B);
+    for (int a = 0; a < 3; ++a) {
+        const real lo = g->origin[a] + CLAMP_MARGIN * dx;
+        const real hi = g->origin[a] + (grid_extent(g, a) - 1 - CLAMP_MARGIN) * dx;
+        const real moved = xp[a] + dt * vp[a];
+        if (clamp(moved, lo, hi) != moved)
+            xb[a] = 0;
+        u[a] += dt * xb[a];
+    }
+    for (int k = 0; k < 9; ++k)
+        B[k] *= 4 / (dx * dx);
+    const stencil_t st = make_stencil(g, xp);
+    const stencil_gradient_t sg = make_stencil_gradient(&st, dx);
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            for (int k = 0; k < 3; ++k) {
+                const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
+                const real d[3] = {(i - st.fx[0]) * dx, (j - st.fx[1]) * dx, (k - st.fx[2]) * dx};
+                const long node = grid_index(g, st.base[0] + i, st.base[1] + j, st.base[2] + k);
+                load_row(grid_v, node, 3, vi);
+                real grad_w[3], s = 0;
+                weight_gradient(&st, &sg, i, j, k, grad_w);
+                for (int a = 0; a < 3; ++a) {
+                    const real Bd = B[3 * a] * d[0] + B[3 * a + 1] * d[1] + B[3 * a + 2] * d[2];
+                    grid_v_bar[3 * node + a] += w * (u[a] + Bd);
+                    s += vi[a] * (u[a] + Bd);
+                }
+                for (int a = 0; a < 3; ++a)
+                    xb[a] += grad_w[a] * s - w * (B[a] * vi[0] + B[3 + a] * vi[1] + B[6 + a] * vi[2]);
+            }
+    store_row(x_bar, p, 3, xb);
+}
+
+/* Work-item k zeroes grid copy k ([nodes, 3]) and scatters particles [k*chunk, (k+1)*chunk)
+ * into it; x_bar of those particles is written directly. */
+__kernel void g2p_adjoint_private(const int nx, const int ny, const int nz, const real dx, const real ox,
+                                  const real oy, const real oz, const int n, const real dt, const real t,
+                                  __global const real *x_in, __global const real *v_out,
+                                  __global const real *release_time, __global const real *grid_v,
+                                  __global const real *x_bar_out, __global const real *v_bar_out,
+                                  __global const real *C_bar_out, const int copies, const int chunk,
+                                  __global real *grid_v_bar_copies, __global real *x_bar)
+{
+    const int k = get_global_id(0);
+    if (k >= copies)
+        return;
+    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const long size = 3L * nx * ny * nz;
+    __global real *grid_v_bar = grid_v_bar_copies + k * size;
+    for (long e = 0; e < size; ++e)
+        grid_v_bar[e] = 0;
+    const int end = min(n, (k + 1) * chunk);
+    for (int p = k * chunk; p < end; ++p)
+        g2p_adjoint_particle(&g, p, dt, t, x_in, v_out, release_time, grid_v, x_bar_out, v_bar_out, C_bar_out,
+                             grid_v_bar, x_bar);
+}

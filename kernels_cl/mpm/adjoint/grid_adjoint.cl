@@ -1,0 +1,124 @@
+/* Adjoint of the grid update (grid.cl): boundary conditions in reverse table order, then
+ * v = mv/m + dt g:  pbar = vbar/m,  mbar = -(mv . vbar)/m^2  (0 on empty nodes).
+ *
+ * The velocity before boundary b is recomputed from v0 = mv/m + dt g by replaying
+ * conditions 0..b-1 (tables are short). Per condition:
+ *   half-space, node inside: sticky -> 0; separate with v.n >= 0 -> unchanged; otherwise
+ *     v' = keep vt, vt = v - (v.n) n, keep = 1 - mu_f |v.n|/|vt| (v' = 0 when keep <= 0):
+ *     vtbar = keep v'bar + (mu_f |v.n|/|vt|) (vt . v'bar) vt/|vt|^2,
+ *     vnbar = -mu_f sign(v.n) (vt . v'bar)/|vt|,   vbar = P vtbar + vnbar n, P = I - n n^T;
+ *   box / cylinder, node inside: v is overridden -> vbar = 0 (their velocities are not
+ *     differentiated). */
+#include "mpm/grid.cl"
+
+inline void halfspace_adjoint(__global const real *rec, const real *xi, const real *v, real *v_bar)
+{
+    real n[3], rel = 0, vn = 0;
+    for (int a = 0; a < 3; ++a) {
+        n[a] = rec[6 + a];
+        rel += (xi[a] - rec[3 + a]) * n[a];
+        vn += v[a] * n[a];
+    }
+    if (rel >= 0)
+        return;
+    const int mode = (int)rec[9];
+    if (mode == COLLIDE_SEPARATE && vn >= 0)
+        return;
+    real vt[3], vt2 = 0, vt_dot = 0;
+    for (int a = 0; a < 3; ++a) {
+        vt[a] = v[a] - vn * n[a];
+        vt2 += vt[a] * vt[a];
+        vt_dot += vt[a] * v_bar[a];
+    }
+    const real vt_norm = sqrt(vt2);
+    const real ratio = vt_norm > 0 ? rec[10] * fabs(vn) / vt_norm : (real)0;
+    if (mode == COLLIDE_STICKY || vt_norm == 0 || ratio >= 1) {
+        for (int a = 0; a < 3; ++a)
+            v_bar[a] = 0;
+        return;
+    }
+    const real sign_vn = (real)((vn > 0) - (vn < 0));
+    const real vn_bar = -rec[10] * sign_vn * vt_dot / vt_norm;
+    real vt_bar[3], vt_bar_n = 0;
+    for (int a = 0; a < 3; ++a) {
+        vt_bar[a] = (1 - ratio) * v_bar[a] + ratio * vt_dot / vt2 * vt[a];
+        vt_bar_n += vt_bar[a] * n[a];
+    }
+    for (int a = 0; a < 3; ++a)
+        v_bar[a] = vt_bar[a] - vt_bar_n * n[a] + vn_bar * n[a];
+}
+
+/* 1 if node xi lies inside the box / cylinder record (mirrors apply_box / apply_cylinder). */
+inline int overrides(__global const real *rec, const real *xi)
+{
+    real probe[3] = {NAN, NAN, NAN};
+    if ((int)rec[0] == BC_BOX)
+        apply_box(rec, xi, probe);
+    else
+        apply_cylinder(rec, xi, probe);
+    return !isnan(probe[0]);
+}
+
+inline int bc_active(__global const real *rec, const real t)
+{
+    return t >= rec[1] && t < rec[2];
+}
+
+inline void apply_condition(__global const real *rec, const real *xi, real *v)
+{
+    const int kind = (int)rec[0];
+    if (kind == BC_HALFSPACE)
+        apply_halfspace(rec, xi, v);
+    else if (kind == BC_BOX)
+        apply_box(rec, xi, v);
+    else if (kind == BC_CYLINDER)
+        apply_cylinder(rec, xi, v);
+}
+
+__kernel void grid_update_adjoint(const int nx, const int ny, const int nz, const real dx, const real ox,
+                                  const real oy, const real oz, const real dt, const real t, const real gx,
+                                  const real gy, const real gz, const real mass_eps,
+                                  __global const real *grid, __global const real *grid_v_bar,
+                                  __global const real *bc, const int n_bc, __global real *grid_bar)
+{
+    const long node = get_global_id(0);
+    const long nodes = (long)nx * ny * nz;
+    if (node >= nodes)
+        return;
+    const real m = grid[4 * node];
+    real out[4] = {0, 0, 0, 0};
+    if (m > mass_eps) {
+        const real g[3] = {gx, gy, gz};
+        real v0[3], v_bar[3], mv[3];
+        for (int a = 0; a < 3; ++a) {
+            mv[a] = grid[4 * node + 1 + a];
+            v0[a] = mv[a] / m + dt * g[a];
+            v_bar[a] = grid_v_bar[3 * node + a];
+        }
+        const int k = node % nz, j = (node / nz) % ny, i = node / ((long)nz * ny);
+        const real xi[3] = {ox + i * dx, oy + j * dx, oz + k * dx};
+        for (int b = n_bc - 1; b >= 0; --b) {
+            __global const real *rec = bc + (long)b * BC_STRIDE;
+            if (!bc_active(rec, t))
+                continue;
+            const int kind = (int)rec[0];
+            if (kind == BC_HALFSPACE) {
+                real v[3] = {v0[0], v0[1], v0[2]};
+                for (int e = 0; e < b; ++e)
+                    if (bc_active(bc + (long)e * BC_STRIDE, t))
+                        apply_condition(bc + (long)e * BC_STRIDE, xi, v);
+                halfspace_adjoint(rec, xi, v, v_bar);
+            } else if (overrides(rec, xi)) {
+                for (int a = 0; a < 3; ++a)
+                    v_bar[a] = 0;
+            }
+        }
+        real mv_dot = 0;
+        for (int a = 0; a < 3; ++a) {
+            out[1 + a] = v_bar[a] / m;
+            mv_dot += mv[a] * v_bar[a];
+        }
+        out[0] = -mv_dot / (m * m);
+    }
+    store_row(grid_bar, node, 4, out);
+}

@@ -1,0 +1,101 @@
+"""Optimisation helpers: parameterisations from the registry ranges, gradient clipping, the
+NaN/CFL guard with retries."""
+
+import math
+
+import pytest
+import torch
+
+from clflow.errors import InputError
+from clflow.mpm import Grid, MaterialSpec, Simulator, StabilityWarning
+from clflow.mpm.autograd import simulate
+from clflow.mpm.parameterization import clip_gradients, parameterization
+from tests.mpm.scenes import cube
+
+
+@pytest.mark.parametrize("material,name,value", [
+    ("elastic", "youngs_modulus", 3e5), ("elastic", "poissons_ratio", 0.3), ("sand", "friction_angle", 35.0),
+    ("metal", "hardening", 2.0), ("newtonian", "viscosity", 0.5), ("plasticine", "density", 1500.0),
+])
+def test_parameterization_round_trip_and_gradient(material, name, value):
+    p = parameterization(material, name)
+    z = p.encode(value).requires_grad_()
+    decoded = p.decode(z)
+    assert math.isclose(float(decoded.detach()), value, rel_tol=1e-12)
+    decoded.backward()
+    h = 1e-6
+    fd = (float(p.decode(z.detach() + h)) - float(p.decode(z.detach() - h))) / (2 * h)
+    assert math.isclose(float(z.grad), fd, rel_tol=1e-6)
+
+
+def test_bounded_parameters_stay_in_their_range():
+    nu = parameterization("elastic", "nu")
+    lo, hi = nu.bounds
+    values = nu.decode(torch.tensor([-30.0, 0.0, 30.0], dtype=torch.float64))
+    assert bool(((values >= lo) & (values <= hi)).all()) and lo == 0.0 and hi == 0.49
+
+
+def test_parameterization_rejects_values_outside_the_range():
+    with pytest.raises(InputError, match="poissons_ratio"):
+        parameterization("elastic", "poissons_ratio").encode(0.5)
+    with pytest.raises(InputError, match="youngs_modulus"):
+        parameterization("elastic", "youngs_modulus").encode(-1.0)
+    with pytest.raises(InputError, match="no parameter 'viscosity'"):
+        parameterization("elastic", "viscosity")
+
+
+def test_clip_gradients_scales_and_zeroes_non_finite():
+    a = torch.zeros(2, requires_grad=True)
+    b = torch.zeros(1, requires_grad=True)
+    a.grad, b.grad = torch.tensor([3.0, 0.0]), torch.tensor([4.0])
+    assert clip_gradients([a, b], 1.0) == 5.0
+    assert torch.allclose(a.grad, torch.tensor([0.6, 0.0])) and torch.allclose(b.grad, torch.tensor([0.8]))
+    a.grad = torch.tensor([float("nan"), 1.0])
+    assert math.isnan(clip_gradients([a, b], 1.0))
+    assert float(a.grad.abs().sum()) == 0.0 and float(b.grad.abs().sum()) == 0.0
+    with pytest.raises(InputError, match="max_norm"):
+        clip_gradients([a], 0.0)
+
+
+def stiff_scene(substeps):
+    """A stiff block with a shear velocity: 1 substep per frame is far beyond the wave-speed limit."""
+    x = cube(5, 0.4, 0.6)
+    v = torch.zeros_like(x)
+    v[:, 0] = torch.linspace(-1, 1, x.shape[0], dtype=torch.float64)
+    with pytest.warns(StabilityWarning, match="exceeds the stable limit"):
+        return Simulator(x, 1e-5, MaterialSpec("elastic", {"youngs_modulus": 1e6}), Grid((16, 16, 16), 1 / 16),
+                         velocities=v, frame_dt=1e-2, substeps=substeps, dtype=torch.float64)
+
+
+def test_guard_retries_with_smaller_dt():
+    sim = stiff_scene(1)
+    with pytest.warns(StabilityWarning, match="retrying with 2 substeps"):
+        out = simulate(sim, 3, retries=5)
+    speed = out.v.norm(dim=-1).max()
+    assert float(speed) * 1e-2 / 8 <= 0.3 / 16  # the accepted run keeps the CFL limit
+
+
+def test_guard_reports_when_out_of_retries():
+    """The last attempt keeps its (unstable) result and says so; it would raise on NaN."""
+    sim = stiff_scene(1)
+    with pytest.warns(StabilityWarning) as record:
+        simulate(sim, 3, retries=1)
+    messages = [str(w.message) for w in record]
+    assert any("retrying with 2 substeps" in m for m in messages)
+    assert any("breaks the CFL limit" in m and "(2 substeps per frame)" in m and "retrying" not in m
+               for m in messages)
+
+
+def test_bad_inputs_are_named():
+    sim = Simulator(cube(3, 0.4, 0.6), 1e-5, MaterialSpec("elastic"), Grid((16, 16, 16), 1 / 16), substeps=2,
+                    frame_dt=1e-3, dtype=torch.float64)
+    with pytest.raises(InputError, match="youngs_modulus: expected shape"):
+        simulate(sim, 1, youngs_modulus=torch.ones(5))
+    with pytest.raises(InputError, match="positions: expected shape"):
+        simulate(sim, 1, positions=torch.zeros(2, 3))
+    with pytest.raises(InputError, match="density must be > 0"):
+        simulate(sim, 1, density=torch.tensor(-1.0))
+    sand = Simulator(cube(3, 0.4, 0.6), 1e-5, MaterialSpec("sand"), Grid((16, 16, 16), 1 / 16),
+                        substeps=2, frame_dt=1e-3, dtype=torch.float64)
+    with pytest.raises(InputError, match="no adjoint for material"):
+        simulate(sand, 1)
