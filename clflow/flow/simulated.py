@@ -18,8 +18,9 @@ between the two Gaussians, A = S^-1 (S Sigma(t+1) S)^1/2 S^-1 with S = Sigma(t)^
 Covariances carry no rotation about the Gaussian's own axes, so a rotation-free A is the
 least motion the data supports; A = L(t+1) L(t)^-1 with Cholesky factors L (one published
 choice) adds a shear that depends on the image axes. The affine flow is affine in the pixel
-x, so it renders exactly as 6 channels: the entries of A_i - I and b_i = dmu_i - (A_i - I) mu_i,
-and the pixel's flow is M(x) x + b(x) from the blended M and b.
+x, so it renders exactly as 5 channels: the entries (a - 1, b, c - 1) of the symmetric
+A_i - I and o_i = dmu_i - (A_i - I) mu_i; the pixel's flow is M(x) x + o(x) from the
+blended M and o.
 
 Pixels: continuous coordinates with pixel (i, j) centred at (j + 0.5, i + 0.5), as in the
 rasteriser; flows in pixels per frame step.
@@ -145,7 +146,8 @@ def flow_features(
             2D covariance; needs ``covars_t``, ``covars_t1`` [N, 3, 3] in m^2).
 
     Returns:
-        [N, 2] dmu (px) for ``"mean"``; [N, 6] = (A - I) row-major and b (px) for ``"affine"``.
+        [N, 2] dmu (px) for ``"mean"``; [N, 5] for ``"affine"``: the symmetric A - I as
+        (a - 1, b, c - 1), then o = dmu - (A - I) mu (px).
     """
     if means_t.shape != means_t1.shape or means_t.shape[-1] != 3:
         raise InputError(f"simulated flow: means at t and t+1 must both be [N, 3], got {tuple(means_t.shape)} and {tuple(means_t1.shape)}")
@@ -162,7 +164,7 @@ def flow_features(
     )
     u, v = mu_t.unbind(-1)
     offset = dmu - torch.stack([(a - 1.0) * u + b * v, b * u + (c - 1.0) * v], -1)  # dmu - (A - I) mu
-    return torch.cat([torch.stack([a - 1.0, b, b, c - 1.0], -1), offset], -1)
+    return torch.cat([torch.stack([a - 1.0, b, c - 1.0], -1), offset], -1)
 
 
 def pixel_centres(height: int, width: int, dtype=torch.float64, device=None) -> torch.Tensor:
@@ -173,22 +175,26 @@ def pixel_centres(height: int, width: int, dtype=torch.float64, device=None) -> 
 
 
 def flow_from_features(features: torch.Tensor, alpha: torch.Tensor | None = None, min_alpha: float = MIN_ALPHA) -> torch.Tensor:
-    """Per-pixel flow [H, W, 2] (px) from rendered flow features [H, W, 2 | 6].
+    """Per-pixel flow [H, W, 2] (px) from rendered flow features [H, W, 2 | 5].
+
+    Two channels are the flow itself; five are an affine field M x + o with M symmetric,
+    stored as (M_xx, M_xy, M_yy, o_x, o_y) (see :func:`flow_features`).
 
     With ``alpha`` ([H, W, 1], the rendered opacity) the flow is divided by alpha: the
     blended flow of the Gaussians alone, not pulled towards zero at soft edges. Pixels
     with alpha below ``min_alpha`` get zero flow (their flow is undefined and 1/alpha
     would blow up the gradient).
     """
-    if features.dim() != 3 or features.shape[-1] not in (2, 6):
-        raise InputError(f"flow features must be [H, W, 2] or [H, W, 6], got {tuple(features.shape)}")
+    if features.dim() != 3 or features.shape[-1] not in (2, 5):
+        raise InputError(f"flow features must be [H, W, 2] or [H, W, 5], got {tuple(features.shape)}")
     if features.shape[-1] == 2:
         flow = features
     else:
         height, width = features.shape[:2]
         x = pixel_centres(height, width, features.dtype, features.device)
-        M = features[..., :4].reshape(height, width, 2, 2)
-        flow = (M @ x.unsqueeze(-1)).squeeze(-1) + features[..., 4:]
+        m_xx, m_xy, m_yy, o_x, o_y = features.unbind(-1)
+        u, v = x.unbind(-1)
+        flow = torch.stack([m_xx * u + m_xy * v + o_x, m_xy * u + m_yy * v + o_y], -1)
     if alpha is not None:
         alpha = alpha.to(flow.dtype)
         covered = alpha >= min_alpha

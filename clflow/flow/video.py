@@ -68,12 +68,9 @@ class Video:
             raise InputError(f"{self.source}: the frame rate is unknown, cannot {what}; pass fps= when reading it")
         return self.times
 
-    def _subset(self, index: np.ndarray, frames: np.ndarray | None = None, fps: float | None = None) -> "Video":
-        frames = self.frames[index] if frames is None else frames
-        if frames.shape[0] == 0:
-            raise InputError(f"{self.source}: the selection holds no frame")
+    def _subset(self, index: np.ndarray, fps: float | None) -> "Video":
         times = None if self.times is None else self.times[index]
-        return Video(np.ascontiguousarray(frames), times, self.fps if fps is None else fps, self.source)
+        return Video(np.ascontiguousarray(self.frames[index]), times, fps, self.source)
 
     def window(self, start: float = 0.0, end: float | None = None) -> "Video":
         """Frames whose time lies in [start, end) seconds (end None: to the last frame)."""
@@ -84,7 +81,7 @@ class Video:
                 f"{self.source}: no frame in the window [{start:g}, {end}) s; the video spans "
                 f"[{t[0]:g}, {t[-1]:g}] s"
             )
-        return self._subset(np.flatnonzero(keep))
+        return self._subset(np.flatnonzero(keep), self.fps)
 
     def every(self, stride: int) -> "Video":
         """Every ``stride``-th frame, starting with the first."""

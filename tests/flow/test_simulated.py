@@ -121,7 +121,8 @@ def test_affine_flow_matches_point_motion(angle):
     true = project_means(moved, viewmat, K) - project_means(points, viewmat, K)
     x = project_means(points, viewmat, K)
     feat = flow_features(mean, mean + shift, viewmat, K, model="affine", covars_t=covar, covars_t1=F @ covar @ F.T, eps2d=0.0)
-    M, b = feat[0, :4].reshape(2, 2), feat[0, 4:]
+    (m_xx, m_xy, m_yy), b = feat[0, :3], feat[0, 3:]
+    M = torch.stack([torch.stack([m_xx, m_xy]), torch.stack([m_xy, m_yy])])
     affine = x @ M.T + b
     plain = flow_features(mean, mean + shift, viewmat, K, model="mean").expand_as(true)
     err_affine = (affine - true).norm(dim=-1).max()
@@ -138,16 +139,16 @@ def test_static_gaussians_have_no_flow_and_mean_features_render_as_constants():
     feat = flow_features(means, means, viewmat, K, model="affine", covars_t=covars, covars_t1=covars)
     torch.testing.assert_close(feat, torch.zeros_like(feat), atol=1e-10, rtol=0)
     mean_flow = flow_features(means, moved, viewmat, K, model="mean")
-    image = torch.zeros(3, 4, 6, dtype=D)
-    image[..., 4:] = mean_flow[0]
+    image = torch.zeros(3, 4, 5, dtype=D)
+    image[..., 3:] = mean_flow[0]
     torch.testing.assert_close(flow_from_features(image), mean_flow[0].expand(3, 4, 2))
 
 
 def test_flow_from_features_affine_and_alpha():
     height, width = 5, 7
-    M = torch.tensor([[0.1, -0.2], [0.05, 0.3]], dtype=D)
+    M = torch.tensor([[0.1, -0.2], [-0.2, 0.3]], dtype=D)
     b = torch.tensor([1.5, -2.0], dtype=D)
-    features = torch.cat([M.flatten(), b]).expand(height, width, 6)
+    features = torch.tensor([0.1, -0.2, 0.3, 1.5, -2.0], dtype=D).expand(height, width, 5)
     x = pixel_centres(height, width)
     assert x[2, 3].tolist() == [3.5, 2.5]
     torch.testing.assert_close(flow_from_features(features), x @ M.T + b)
@@ -165,4 +166,4 @@ def test_bad_input():
     with pytest.raises(InputError, match=r"\[N, 3\]"):
         flow_features(means, means[:1], viewmat, K)
     with pytest.raises(InputError, match=r"\[H, W, 2\]"):
-        flow_from_features(torch.zeros(4, 4, 3))
+        flow_from_features(torch.zeros(4, 4, 6))
