@@ -66,23 +66,9 @@ def _dilate(region: torch.Tensor, voxels: int) -> torch.Tensor:
     return nnf.max_pool3d(region[None, None].float(), k, stride=1, padding=voxels)[0, 0] > 0
 
 
-def _axes(quats: torch.Tensor) -> torch.Tensor:
-    """Columns of each Gaussian's rotation matrix, [N, 3, 3] (axis index last)."""
-    w, x, y, z = nnf.normalize(quats, dim=-1).unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(-1, 3, 3)
-
-
 def fill_object(
     means: torch.Tensor,
-    scales: torch.Tensor,
-    quats: torch.Tensor,
+    covariances: torch.Tensor,
     opacities: torch.Tensor,
     spacing: float,
     *,
@@ -91,8 +77,8 @@ def fill_object(
     max_reach: int = 3,
     closing: int = 1,
 ) -> ObjectParticles:
-    """Fill the object outlined by Gaussians (means [N,3] m, scales [N,3] m, quats [N,4]
-    wxyz, opacities [N]) with particles on a grid of ``spacing`` m (see module docstring)."""
+    """Fill the object outlined by Gaussians (means [N, 3] m, covariances [N, 3, 3] m^2,
+    opacities [N]) with particles on a grid of ``spacing`` m (see module docstring)."""
     if means.shape[0] == 0:
         raise InputError("the object selection is empty: no Gaussians to fill")
     if not (spacing > 0 and math.isfinite(spacing)):
@@ -112,8 +98,9 @@ def fill_object(
 
     visible = opacities.detach() >= min_opacity
     centres = means64[visible]
-    axes = _axes(quats.detach()[visible].double())  # [n, 3, 3]
-    reach = (scales.detach()[visible].double().clamp(max=max_reach * spacing / 2)).unsqueeze(1)  # [n, 1, 3]
+    variances, axes = torch.linalg.eigh(covariances.detach()[visible].double())  # axes: columns
+    sigma = variances.clamp(min=0).sqrt()
+    reach = sigma.clamp(max=max_reach * spacing / 2).unsqueeze(1)  # [n, 1, 3]: capped std devs
     offsets = [torch.zeros(1, 3, dtype=torch.float64)]
     for k in (-2.0, -1.0, 1.0, 2.0):
         offsets.append(k * torch.eye(3, dtype=torch.float64))

@@ -8,17 +8,15 @@ import torch
 from clflow.errors import InputError
 from clflow.scene.filling import fill_object
 
-ID_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0])
-
-
 def sphere_shell(n=3000, radius=0.1, sigma=0.004, seed=0):
+    """Gaussians on a sphere: means [n, 3], isotropic covariances, opacities."""
     d = torch.nn.functional.normalize(torch.randn(n, 3, generator=torch.Generator().manual_seed(seed)), dim=-1)
-    return radius * d, torch.full((n, 3), sigma), ID_QUAT.repeat(n, 1), torch.full((n,), 0.9)
+    return radius * d, sigma**2 * torch.eye(3).repeat(n, 1, 1), torch.full((n,), 0.9)
 
 
 def test_a_sphere_shell_is_filled_with_the_sphere_volume():
-    means, scales, quats, opac = sphere_shell()
-    obj = fill_object(means, scales, quats, opac, spacing=0.01)
+    means, covs, opac = sphere_shell()
+    obj = fill_object(means, covs, opac, spacing=0.01)
     assert torch.equal(obj.positions[: obj.n_gaussians], means)  # Gaussians first, unchanged
     fill = obj.positions[obj.n_gaussians:]
     assert obj.n_fill > 0 and fill.norm(dim=1).max() < 0.1 + 2 * 0.004 + 0.01 * math.sqrt(3) / 2
@@ -28,30 +26,30 @@ def test_a_sphere_shell_is_filled_with_the_sphere_volume():
 
 
 def test_a_shell_with_a_wide_hole_is_not_filled():
-    means, scales, quats, opac = sphere_shell()
+    means, covs, opac = sphere_shell()
     keep = means[:, 2] < 0.06  # cut the cap off: the outside reaches the centre
-    obj = fill_object(means[keep], scales[keep], quats[keep], opac[keep], spacing=0.01)
-    assert obj.n_fill < 0.05 * fill_object(means, scales, quats, opac, spacing=0.01).n_fill
+    obj = fill_object(means[keep], covs[keep], opac[keep], spacing=0.01)
+    assert obj.n_fill < 0.05 * fill_object(means, covs, opac, spacing=0.01).n_fill
 
 
 def test_degenerate_huge_gaussians_cost_bounded_work():
-    means, scales, quats, opac = sphere_shell(n=500)
-    scales[0] = 1e6  # a runaway Gaussian from a bad trainer
-    obj = fill_object(means, scales, quats, opac, spacing=0.01)
+    means, covs, opac = sphere_shell(n=500)
+    covs[0] = 1e12 * torch.eye(3)  # a runaway Gaussian from a bad trainer
+    obj = fill_object(means, covs, opac, spacing=0.01)
     assert obj.positions.shape[0] < 50_000
 
 
 def test_transparent_gaussians_do_not_close_the_shell():
-    means, scales, quats, opac = sphere_shell()
-    obj = fill_object(means, scales, quats, torch.full_like(opac, 0.01), spacing=0.01)
+    means, covs, opac = sphere_shell()
+    obj = fill_object(means, covs, torch.full_like(opac, 0.01), spacing=0.01)
     assert obj.n_fill == 0
 
 
 def test_bad_inputs():
-    means, scales, quats, opac = sphere_shell(n=10)
+    means, covs, opac = sphere_shell(n=10)
     with pytest.raises(InputError, match="selection is empty"):
-        fill_object(means[:0], scales[:0], quats[:0], opac[:0], spacing=0.01)
+        fill_object(means[:0], covs[:0], opac[:0], spacing=0.01)
     with pytest.raises(InputError, match="positive length"):
-        fill_object(means, scales, quats, opac, spacing=0.0)
+        fill_object(means, covs, opac, spacing=0.0)
     with pytest.raises(InputError, match="larger spacing"):
-        fill_object(means * 1000, scales, quats, opac, spacing=0.001)
+        fill_object(means * 1000, covs, opac, spacing=0.001)

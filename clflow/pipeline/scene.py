@@ -1,0 +1,154 @@
+"""A scene config made concrete: splats in the simulation frame, the object's particles, the
+simulator and the guidance camera.
+
+Frames: the splat file is in *scene units* with an arbitrary up axis; the simulation frame
+is metres with +y up: x_sim = scale * R_up x_scene. Gaussians are moved into the simulation
+frame once, at load (covariances scale by scale^2 and rotate by R_up; their SH stay in the
+file's frame, so every render passes ``sh_rotations`` = R R_up). Cameras keep their
+rotation and have their translation scaled: projection is scale-invariant, so pixels do
+not change and depths come out in metres.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from clflow.errors import InputError
+from clflow.scene.config import Region, SceneConfig
+from clflow.scene.deform import deformed_covariances, polar_rotations
+
+WALL_CELLS = 3  # grid cells of the domain walls (clflow.mpm default)
+
+
+def up_rotation(up: str) -> torch.Tensor:
+    """R_up [3, 3] (float64): the proper rotation taking the scene's ``up`` axis to +y."""
+    sign = 1.0 if up[0] == "+" else -1.0
+    axis = "xyz".index(up[1])
+    if axis == 1:
+        return torch.diag(torch.tensor([1.0, sign, sign], dtype=torch.float64))  # -y: turn about x
+    R = torch.zeros(3, 3, dtype=torch.float64)
+    if axis == 0:  # +x -> +y, +y -> -x, z fixed (for -x: +x -> -y, +y -> +x)
+        R[1, 0], R[0, 1], R[2, 2] = sign, -sign, 1.0
+    else:  # +z -> +y, +y -> -z, x fixed (for -z: +z -> -y, +y -> +z)
+        R[1, 2], R[2, 1], R[0, 0] = sign, -sign, 1.0
+    return R
+
+
+@dataclass
+class SceneGaussians:
+    """Gaussians in the simulation frame. means [N, 3] m, covariances [N, 3, 3] m^2,
+    opacities [N], sh [N, K, 3] or colors [N, C], sh_rotations [N, 3, 3] (rotations since
+    the SH were fitted)."""
+
+    means: torch.Tensor
+    covariances: torch.Tensor
+    opacities: torch.Tensor
+    sh: torch.Tensor | None
+    colors: torch.Tensor | None
+    sh_rotations: torch.Tensor
+
+    def take(self, index: torch.Tensor) -> "SceneGaussians":
+        pick = lambda t: None if t is None else t[index]  # noqa: E731
+        return SceneGaussians(self.means[index], self.covariances[index], self.opacities[index],
+                              pick(self.sh), pick(self.colors), self.sh_rotations[index])
+
+    @staticmethod
+    def cat(a: "SceneGaussians", b: "SceneGaussians") -> "SceneGaussians":
+        join = lambda x, y: None if x is None else torch.cat([x, y])  # noqa: E731
+        return SceneGaussians(torch.cat([a.means, b.means]), torch.cat([a.covariances, b.covariances]),
+                              torch.cat([a.opacities, b.opacities]), join(a.sh, b.sh), join(a.colors, b.colors),
+                              torch.cat([a.sh_rotations, b.sh_rotations]))
+
+
+def _region_mask(region: Region, points: torch.Tensor) -> torch.Tensor:
+    if region.kind == "box":
+        lo, hi = torch.tensor(region.lower, dtype=points.dtype), torch.tensor(region.upper, dtype=points.dtype)
+        return ((points >= lo) & (points <= hi)).all(-1)
+    if region.kind == "sphere":
+        c = torch.tensor(region.center, dtype=points.dtype)
+        return ((points - c) ** 2).sum(-1) <= region.radius**2
+    return torch.ones(points.shape[0], dtype=torch.bool)
+
+
+def select_object(cfg: SceneConfig, means_scene: torch.Tensor) -> torch.Tensor:
+    """Bool mask [N] of the object's Gaussians (selection in scene units)."""
+    sel = cfg.selection
+    if sel.mask is not None:
+        raw = np.load(sel.mask)
+        n = means_scene.shape[0]
+        if raw.dtype == bool and raw.shape == (n,):
+            mask = torch.from_numpy(raw)
+        elif np.issubdtype(raw.dtype, np.integer) and raw.ndim == 1:
+            if raw.size and (raw.min() < 0 or raw.max() >= n):
+                raise InputError(f"{sel.mask}: Gaussian indices must lie in [0, {n})")
+            mask = torch.zeros(n, dtype=torch.bool)
+            mask[torch.from_numpy(raw.astype(np.int64))] = True
+        else:
+            raise InputError(f"{sel.mask}: expected {n} booleans or a list of indices, got {raw.dtype} {raw.shape}")
+    else:
+        mask = _region_mask(sel.region, means_scene)
+    if not bool(mask.any()):
+        raise InputError(f"{cfg.source}: object.select selects no Gaussian of {cfg.splats.name}")
+    return mask
+
+
+def load_scene_gaussians(cfg: SceneConfig, dtype: torch.dtype) -> tuple[SceneGaussians, torch.Tensor]:
+    """All Gaussians of the splat file in the simulation frame, and the object mask [N]."""
+    from clflow.splat.ply import load_ply
+
+    g = load_ply(cfg.splats)
+    mask = select_object(cfg, g.means.double())
+    R_up = up_rotation(cfg.up)
+    means = cfg.scale * g.means.double() @ R_up.T
+    covs = cfg.scale**2 * (R_up @ g.covariances.double() @ R_up.T)
+    n = means.shape[0]
+    return SceneGaussians(
+        means.to(dtype), covs.to(dtype), g.opacities.to(dtype),
+        None if g.sh is None else g.sh.to(dtype), None if g.colors is None else g.colors.to(dtype),
+        R_up.to(dtype).expand(n, 3, 3).contiguous(),
+    ), mask
+
+
+def to_simulation_camera(camera, cfg: SceneConfig):
+    """The camera with its world frame changed from scene units to the simulation frame."""
+    from clflow.splat.cameras import Camera
+
+    R_up = up_rotation(cfg.up).to(camera.viewmat.dtype)
+    view = camera.viewmat.clone()
+    view[:3, :3] = camera.viewmat[:3, :3] @ R_up.T
+    view[:3, 3] = cfg.scale * camera.viewmat[:3, 3]
+    return Camera(view, camera.K.clone(), camera.width, camera.height, camera.name)
+
+
+def guidance_camera(cfg: SceneConfig):
+    """The configured guidance camera, in the simulation frame."""
+    from clflow.splat import cameras
+
+    cam = cfg.camera
+    if cam.cameras_file is not None:
+        import json
+
+        try:  # 3DGS cameras.json is a list; NeRF transforms.json an object with "frames"
+            is_list = isinstance(json.loads(cam.cameras_file.read_text()), list)
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{cam.cameras_file}: not a readable JSON camera file ({exc})") from None
+        load = cameras.load_cameras_json if is_list else cameras.load_transforms_json
+        loaded = load(cam.cameras_file)
+        if not 0 <= cam.index < len(loaded):
+            raise InputError(f"{cfg.source}: camera.index {cam.index} is outside the {len(loaded)} cameras of "
+                             f"{cam.cameras_file.name}")
+        return to_simulation_camera(loaded[cam.index], cfg)
+    fov_x = 2 * math.atan(math.tan(math.radians(cam.fov_y_deg) / 2) * cam.width / cam.height)  # rad
+    scene_cam = cameras.look_at(cam.position, cam.look_at, cam.up, fov_x=fov_x, width=cam.width, height=cam.height,
+                                name="guidance")
+    return to_simulation_camera(scene_cam, cfg)
+
+
+def deformed_object(rest: SceneGaussians, x: torch.Tensor, F: torch.Tensor) -> SceneGaussians:
+    """The object's Gaussians moved to particle positions x [N, 3] and deformed by F [N, 3, 3]."""
+    return SceneGaussians(x, deformed_covariances(rest.covariances, F), rest.opacities, rest.sh, rest.colors,
+                          polar_rotations(F) @ rest.sh_rotations)
