@@ -156,8 +156,8 @@ class Selection:
 @dataclass(frozen=True)
 class FillSettings:
     enabled: bool = True
-    spacing: float | None = None  # m; None: twice the median distance between neighbours
-    per_axis: int = 2
+    spacing: float | None = None  # m; None: half the grid spacing (8 particles per cell)
+    per_axis: int = 1
 
 
 @dataclass(frozen=True)
@@ -253,6 +253,7 @@ class SceneConfig:
     flow: FlowSettings
     optimize: OptimizeSettings
     output: Path
+    ground_truth: dict[str, float] = field(default_factory=dict)  # for metrics (RE) only
 
 
 def _region(r: _Reader, data: Any, path: str, allow_all: bool) -> Region:
@@ -399,7 +400,7 @@ def _optimize(r: _Reader, data: Any, material: MaterialConfig) -> OptimizeSettin
 
 
 TOP_KEYS = ("splats", "scene", "object", "material", "forces", "boundaries", "simulation", "camera",
-            "video", "flow", "optimize", "output")
+            "video", "flow", "optimize", "evaluation", "output")
 
 
 def parse_config(data: Any, source: str = "<config>", base: Path | None = None) -> SceneConfig:
@@ -426,7 +427,7 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     fill = FillSettings(
         enabled=enabled,
         spacing=r.number(fill_in, "spacing", "object.fill", low=0.0, strict_low=True) if fill_in.get("spacing") is not None else None,
-        per_axis=r.integer(fill_in, "per_axis", "object.fill", 2, low=1),
+        per_axis=r.integer(fill_in, "per_axis", "object.fill", 1, low=1),
     )
     material = _material(r, top.get("material"))
     flow_in = r.section(top.get("flow"), "flow", ("method", "preset", "loss", "mask"))
@@ -436,6 +437,13 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         loss=r.choice(flow_in, "loss", "flow", FLOW_LOSSES, "l2"),
         mask=str(flow_in.get("mask", "alpha")),
     )
+    evaluation = r.section(top.get("evaluation"), "evaluation", ("ground_truth",))
+    truth = r.mapping(evaluation.get("ground_truth"), "evaluation.ground_truth")
+    if truth and material.type != "query":
+        try:
+            truth = {k: v for k, v in validate_params(material.type, truth).items() if k in truth}
+        except InputError as exc:
+            raise r.fail("evaluation.ground_truth", str(exc)) from None
     output = top.get("output", "results")
     if not isinstance(output, str) or not output:
         raise r.fail("output", f"must be a folder path, got {output!r}")
@@ -455,6 +463,7 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         flow=flow,
         optimize=_optimize(r, top.get("optimize"), material),
         output=(r.base / output).resolve(),
+        ground_truth=dict(truth),
     )
 
 

@@ -9,14 +9,15 @@ hollow shell. The inside is found on a voxel grid of spacing ``spacing`` (m):
    (opacity < ``min_opacity``) mark nothing;
 2. the shell is closed by ``closing`` voxels of dilation so small gaps do not let the
    outside leak in;
-3. outside = flood fill from the grid border through non-shell voxels; the object is
-   everything else once the outside has grown back over the closing voxels that are not
-   shell; its voxels not on the shell receive ``per_axis^3`` particles each on a regular
-   sub-grid.
+3. outside = flood fill from the grid border through voxels off the closed shell; the
+   voxels neither outside nor on the closed shell are the interior and receive
+   ``per_axis^3`` particles each on a regular sub-grid (the Gaussian centres themselves
+   are the particles of the shell).
 
 Every particle (Gaussian centres first, then fill particles) gets the same rest volume:
-the object's volume (interior voxels, plus half of each shell voxel since the surface runs
-through them) divided by the particle count.
+the object's volume (interior voxels plus the shell voxels nearer to the interior than to
+the outside: the surface runs through the middle of the shell) divided by the particle
+count.
 """
 
 from __future__ import annotations
@@ -64,6 +65,25 @@ def _dilate(region: torch.Tensor, voxels: int) -> torch.Tensor:
         return region
     k = 2 * voxels + 1
     return nnf.max_pool3d(region[None, None].float(), k, stride=1, padding=voxels)[0, 0] > 0
+
+
+def _object_voxels(interior: torch.Tensor, outside: torch.Tensor, closed: torch.Tensor) -> float:
+    """Voxel count of the object: the interior, plus the closed-shell voxels nearer to the
+    interior than to the outside (half of those as near to both): the surface runs through
+    the middle of the shell. A shell with no interior (a thin sheet) counts half."""
+    if not bool(interior.any()):
+        return 0.5 * float(closed.sum())
+    count = float(interior.sum())
+    reached_in, reached_out = interior.clone(), outside.clone()
+    while True:
+        new_in = _grow(reached_in) & closed & ~reached_in & ~reached_out
+        new_out = _grow(reached_out) & closed & ~reached_out & ~reached_in
+        if not bool(new_in.any() or new_out.any()):
+            return count
+        tie = new_in & new_out
+        count += float((new_in & ~tie).sum()) + 0.5 * float(tie.sum())
+        reached_in |= new_in
+        reached_out |= new_out
 
 
 def fill_object(
@@ -122,15 +142,12 @@ def fill_object(
         if torch.equal(grown, outside):
             break
         outside = grown
-    outside = _dilate(outside, closing) & ~shell  # give back what the closing took
-    inside = ~outside
-    interior = inside & ~shell
+    interior = ~outside & ~closed
     fill_cells = interior.nonzero().double()  # [M, 3]
     sub = (torch.arange(per_axis, dtype=torch.float64) + 0.5) / per_axis
     sub = torch.stack(torch.meshgrid(sub, sub, sub, indexing="ij"), -1).reshape(-1, 3)
     fill = (lower + spacing * (fill_cells.unsqueeze(1) + sub)).reshape(-1, 3)
     positions = torch.cat([means64, fill]).to(means.dtype)
-    # the surface runs through the shell voxels: count them half
-    object_volume = (float(interior.sum()) + 0.5 * float((inside & shell).sum())) * spacing**3
+    object_volume = _object_voxels(interior, outside, closed) * spacing**3
     volume = object_volume / positions.shape[0]
     return ObjectParticles(positions=positions, n_gaussians=means.shape[0], volume=volume)

@@ -53,3 +53,19 @@ def test_bad_inputs():
         fill_object(means, covs, opac, spacing=0.0)
     with pytest.raises(InputError, match="larger spacing"):
         fill_object(means * 1000, covs, opac, spacing=0.001)
+
+
+def test_a_cube_of_flat_face_gaussians_is_filled_inside_only():
+    # Face Gaussians overhang the cube's edges by two standard deviations: the fill must
+    # still stay inside the cube, and the volume must be the cube's.
+    import numpy as np
+
+    from clflow_datasets.demo import cube_surface
+
+    means, scales, _ = cube_surface(0.2, (0.0, 0.1, 0.0), 8, np.random.default_rng(0))
+    means, covs = torch.tensor(means), torch.diag_embed(torch.tensor(scales) ** 2)
+    for spacing in (0.0167, 0.01):
+        obj = fill_object(means, covs, torch.full((len(means),), 0.95, dtype=torch.float64), spacing, per_axis=1)
+        fill = obj.positions[obj.n_gaussians:] - torch.tensor([0.0, 0.1, 0.0], dtype=torch.float64)
+        assert obj.n_fill > 0 and float(fill.abs().max()) < 0.1
+        assert obj.volume * obj.positions.shape[0] == pytest.approx(0.2**3, rel=0.1)

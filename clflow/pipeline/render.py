@@ -1,0 +1,58 @@
+"""Rendering a simulated scene: colours of a frame, and the simulated optical flow between
+two frames (differentiable in the object's positions and deformation gradients)."""
+
+from __future__ import annotations
+
+import torch
+
+from clflow.pipeline.scene import SceneGaussians, deformed_object
+
+
+def frame_gaussians(static: SceneGaussians, obj_rest: SceneGaussians, x: torch.Tensor, F: torch.Tensor) -> SceneGaussians:
+    """The scene at one frame: the object's n Gaussians at particle positions x [>= n, 3] with
+    deformation gradients F [>= n, 3, 3] (fill particles beyond n are ignored), then the
+    static Gaussians."""
+    n = obj_rest.means.shape[0]
+    moved = deformed_object(obj_rest, x[:n].to(obj_rest.means.dtype), F[:n].to(obj_rest.means.dtype))
+    return SceneGaussians.cat(moved, static)
+
+
+def render_rgb(g: SceneGaussians, camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
+    """[H, W, 3] colours in [0, 1] (values may exceed 1 before clipping)."""
+    from clflow.splat.rasterize import rasterize_gaussians
+
+    dtype = g.means.dtype
+    colors = g.sh if g.sh is not None else g.colors
+    sh_degree = None if g.sh is None else int(round(g.sh.shape[1] ** 0.5)) - 1
+    image, _, _, _ = rasterize_gaussians(
+        g.means, None, None, g.opacities, colors, camera.viewmat.to(dtype), camera.K.to(dtype),
+        camera.width, camera.height, covars=g.covariances, sh_degree=sh_degree,
+        sh_rotations=g.sh_rotations if sh_degree else None,
+        background=torch.tensor(background, dtype=dtype), render_depth=False,
+    )
+    return image
+
+
+def render_flow(g_t: SceneGaussians, g_t1: SceneGaussians, camera, normalize: bool = True):
+    """Simulated optical flow [H, W, 2] (px per frame) from frame t to t+1 rendered at frame
+    t's geometry, and alpha [H, W, 1]; both scenes list the same Gaussians in the same order."""
+    from clflow.flow.simulated import render_simulated_flow
+
+    dtype = g_t.means.dtype
+    return render_simulated_flow(
+        g_t.means, g_t1.means, g_t.covariances, g_t.opacities, camera.viewmat.to(dtype), camera.K.to(dtype),
+        camera.width, camera.height, normalize=normalize,
+    )
+
+
+def render_object_alpha(g: SceneGaussians, camera) -> torch.Tensor:
+    """[H, W] opacity of ``g`` alone (e.g. the object at frame 0)."""
+    from clflow.splat.rasterize import rasterize_gaussians
+
+    dtype = g.means.dtype
+    ones = torch.ones(g.means.shape[0], 1, dtype=dtype)
+    _, alpha, _, _ = rasterize_gaussians(
+        g.means, None, None, g.opacities, ones, camera.viewmat.to(dtype), camera.K.to(dtype),
+        camera.width, camera.height, covars=g.covariances, render_depth=False,
+    )
+    return alpha[..., 0]

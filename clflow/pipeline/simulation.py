@@ -1,0 +1,117 @@
+"""The object's particles and the MPM simulator of a scene config, and differentiable runs.
+
+The object's Gaussians are the first particles (their centres), followed by the particles
+that fill the inside (clflow.scene.filling). Grid: ``simulation.grid_resolution`` nodes
+along the longest side of the domain; the domain is the configured one or, by default, the
+object's box grown by 75% of its size on every side and down to below the ground collider.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from clflow.errors import InputError
+from clflow.materials import get_material
+from clflow.pipeline.scene import WALL_CELLS, SceneGaussians
+from clflow.scene.config import SceneConfig
+from clflow.scene.filling import ObjectParticles, fill_object
+
+# material parameters that clflow.mpm.autograd.simulate takes as differentiable tensors
+DIFFERENTIABLE = ("youngs_modulus", "poissons_ratio", "yield_stress", "density")
+
+
+@dataclass
+class ObjectSetup:
+    """Everything about the simulated object that does not change between iterations."""
+
+    particles: ObjectParticles  # positions [M, 3] m (Gaussian centres first), rest volume
+    grid: "Grid"  # noqa: F821  (clflow.mpm.Grid)
+
+
+def simulation_grid(cfg: SceneConfig, lower: torch.Tensor, upper: torch.Tensor):
+    """The background grid for an object spanning [lower, upper] (m, simulation frame)."""
+    from clflow.mpm import Grid
+
+    sim = cfg.simulation
+    res = sim.grid_resolution
+    if sim.domain_lower is not None:
+        lo = torch.tensor(sim.domain_lower, dtype=torch.float64)
+        hi = torch.tensor(sim.domain_upper, dtype=torch.float64)
+    else:
+        pad = 0.75 * float((upper - lower).max())
+        lo, hi = lower - pad, upper + pad
+        # a ground collider (normal +y) must lie inside the domain, above the wall cells
+        grounds = [c.point[1] for c in cfg.colliders if c.normal == (0.0, 1.0, 0.0)]
+        if grounds:
+            dx_guess = float((hi - lo).max()) / (res - 1)
+            lo[1] = min(float(lo[1]), min(grounds) - (WALL_CELLS + 1) * dx_guess)
+    dx = float((hi - lo).max()) / (res - 1)
+    resolution = tuple(int(math.ceil(float(e) / dx)) + 1 for e in (hi - lo))
+    return Grid(resolution, dx, tuple(float(v) for v in lo))
+
+
+def setup_object(cfg: SceneConfig, obj: SceneGaussians) -> ObjectSetup:
+    """Particles of the object (Gaussians in the simulation frame) and the grid."""
+    means = obj.means.detach().double()
+    lower, upper = means.min(0).values, means.max(0).values
+    grid = simulation_grid(cfg, lower, upper)
+    if cfg.fill.enabled:
+        spacing = cfg.fill.spacing or grid.dx / 2  # default: 8 particles per grid cell (per_axis 1)
+        particles = fill_object(means, obj.covariances.double(), obj.opacities, spacing, per_axis=cfg.fill.per_axis)
+    else:
+        volume = float(torch.prod(upper - lower)) / means.shape[0]
+        particles = ObjectParticles(means, means.shape[0], volume)
+    inner_lo = torch.tensor(grid.origin, dtype=torch.float64) + (WALL_CELLS + 1) * grid.dx
+    inner_hi = torch.tensor(grid.upper, dtype=torch.float64) - (WALL_CELLS + 1) * grid.dx
+    x = particles.positions.double()
+    if bool(((x < inner_lo) | (x > inner_hi)).any()):
+        raise InputError(f"{cfg.source}: the object ({lower.tolist()} .. {upper.tolist()} m) does not fit inside "
+                         f"simulation.domain minus its walls ({inner_lo.tolist()} .. {inner_hi.tolist()} m)")
+    return ObjectSetup(particles, grid)
+
+
+def build_simulator(cfg: SceneConfig, setup: ObjectSetup, params: dict[str, float], density: float,
+                    dtype: torch.dtype = torch.float32):
+    """A :class:`clflow.mpm.Simulator` for material parameters ``params`` (SI) and
+    ``density`` (kg/m^3); substeps from ``simulation.substep_dt`` or the stability limits
+    of these parameters."""
+    from clflow.mpm import BoxRegion, Force, HalfSpace, MaterialSpec, Simulator, SphereRegion
+
+    sim_cfg = cfg.simulation
+    frame_dt = 1.0 / sim_cfg.fps
+    substeps = None if sim_cfg.substep_dt is None else max(1, math.ceil(frame_dt / sim_cfg.substep_dt - 1e-9))
+    x = setup.particles.positions
+    forces = []
+    for stage in cfg.forces:
+        region = stage.region
+        if region.kind == "box":
+            where = BoxRegion(region.lower, region.upper)
+        elif region.kind == "sphere":
+            where = SphereRegion(region.center, region.radius)
+        else:
+            where = torch.ones(x.shape[0], dtype=torch.bool)
+        vec = list(stage.vector)
+        forces.append(Force(where, stage.start, stage.end, force=vec if stage.kind == "force" else None,
+                            acceleration=vec if stage.kind == "acceleration" else None))
+    colliders = [HalfSpace(c.point, c.normal, c.mode, c.friction, c.start, c.end) for c in cfg.colliders]
+    material = get_material(cfg.material.type).name
+    return Simulator(
+        x, setup.particles.volume, MaterialSpec(material, dict(params), density), setup.grid,
+        frame_dt=frame_dt, substeps=substeps, gravity=sim_cfg.gravity, boundaries=colliders, forces=forces,
+        dtype=dtype,
+    )
+
+
+def run(simulator, frames: int, values: dict[str, torch.Tensor]):
+    """Differentiable run (clflow.mpm.autograd.simulate) with the parameters in ``values``
+    (name -> 0-d tensor, SI) as inputs; returns Frames (x, v [T+1, M, 3], F [T+1, M, 3, 3])."""
+    from clflow.mpm.autograd import simulate
+
+    unknown = [name for name in values if name not in DIFFERENTIABLE]
+    if unknown:
+        raise InputError(f"optimising {', '.join(unknown)} is not supported yet; differentiable parameters: "
+                         f"{', '.join(DIFFERENTIABLE)}")
+    return simulate(simulator, frames, retries=2, **values)
