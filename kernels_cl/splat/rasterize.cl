@@ -144,12 +144,14 @@ __kernel void rasterize_forward(
     }
 }
 
-/* Adjoint, one work-item per tile: its rows in order, each row's contributors back to front
- * (T_i = T_{i+1} / (1 - alpha_i)), 16 pixels at a time. The gradient of entry i, summed over
- * the row's lanes in a fixed order, is added into row sorted_slots[i] of
+/* Adjoint, one work-item per tile. The tile's 16 rows keep their state (T, S, dL/dout) in
+ * 16-wide vectors; the entries are walked once, back to front from the tile's last
+ * contributor, and at each entry every row that it reaches steps back
+ * (T_i = T_{i+1} / (1 - alpha_i)). The entry's gradient is summed over the rows lane-wise,
+ * then over the lanes in a fixed order, and written to row sorted_slots[i] of
  * slot_grads [M, 6 + CHANNELS] = (dmean2d x, y, dconic A, B, C, dopacity, dfeatures...).
- * Each slot row belongs to one (tile, Gaussian) pair, hence to this work-item only (which
- * zeroes it first): the sums are deterministic. In: v_out [H,W,CHANNELS] = dL/dout, v_T [H,W] = dL/dT_final. */
+ * Each slot row belongs to one (tile, Gaussian) pair, hence to this work-item only: no
+ * atomics, deterministic sums. In: v_out [H,W,CHANNELS] = dL/dout, v_T [H,W] = dL/dT_final. */
 __kernel void rasterize_backward(
     __global const int *ranges, __global const int *sorted_slots,
     __global const int *slot_gaussian, __global const real *means2d,
@@ -163,67 +165,87 @@ __kernel void rasterize_backward(
     if (tile >= n_tiles)
         return;
     const int start = ranges[2 * tile], end = ranges[2 * tile + 1];
-    for (int i = start; i < end; ++i)
-        for (int k = 0; k < 6 + CHANNELS; ++k)
-            slot_grads[(size_t)sorted_slots[i] * (6 + CHANNELS) + k] = 0;
     const int px0 = (tile % tiles_x) * TILE_SIZE, py0 = (tile / tiles_x) * TILE_SIZE;
     const int n_px = min(TILE_SIZE, width - px0);
+    const int n_rows = min(TILE_SIZE, height - py0);
     const realv cx = LANES + (real)px0 + (real)0.5;
-    for (int py = py0; py < min(py0 + TILE_SIZE, height); ++py) {
-        const real cy = py + (real)0.5;
-        const size_t p0 = (size_t)py * width + px0;
-        const realv T_end = load_row(T_final + p0, 1, n_px);
-        int tmp_n[16];
-        for (int l = 0; l < 16; ++l)
-            tmp_n[l] = l < n_px ? n_contrib[p0 + l] : 0;
-        const int16 n_row = vload16(0, tmp_n);
-        int n_max = 0;
-        for (int l = 0; l < n_px; ++l)
-            n_max = max(n_max, tmp_n[l]);
-        realv g[CHANNELS], S[CHANNELS];  /* dL/dout_k; sum of f alpha T over later contributors */
+
+    /* per row r: T (walked back), T_final, dL/dT_final + bg . g, g = dL/dout, S = sum of
+     * f alpha T over the contributors behind, and the entries walked up to the last one */
+    realv T[TILE_SIZE], T_end[TILE_SIZE], v_T_end[TILE_SIZE];
+    realv g[TILE_SIZE][CHANNELS], S[TILE_SIZE][CHANNELS];
+    int16 n_row[TILE_SIZE];
+    int n_max = 0;
+    for (int r = 0; r < n_rows; ++r) {
+        const size_t p0 = (size_t)(py0 + r) * width + px0;
+        T_end[r] = T[r] = load_row(T_final + p0, 1, n_px);
         realv bg_dot_g = 0;
         for (int k = 0; k < CHANNELS; ++k) {
-            g[k] = load_row(v_out + p0 * CHANNELS + k, CHANNELS, n_px);
-            S[k] = 0;
-            bg_dot_g += background[k] * g[k];
+            g[r][k] = load_row(v_out + p0 * CHANNELS + k, CHANNELS, n_px);
+            S[r][k] = 0;
+            bg_dot_g += background[k] * g[r][k];
         }
-        const realv v_T_end = load_row(v_T + p0, 1, n_px) + bg_dot_g;  /* background included */
-        realv T = T_end;
-        for (int i = start + n_max - 1; i >= start; --i) {
-            const int slot = sorted_slots[i];
-            const int gid = slot_gaussian[slot];
-            const real mx = means2d[2 * gid], my = means2d[2 * gid + 1];
-            const real A = conics[3 * gid], B = conics[3 * gid + 1], C = conics[3 * gid + 2];
-            const real o = opacities[gid];
+        v_T_end[r] = load_row(v_T + p0, 1, n_px) + bg_dot_g;  /* background included */
+        int tmp_n[16];
+        for (int l = 0; l < 16; ++l) {
+            tmp_n[l] = l < n_px ? n_contrib[p0 + l] : 0;
+            n_max = max(n_max, tmp_n[l]);
+        }
+        n_row[r] = vload16(0, tmp_n);
+    }
+    /* entries behind every pixel's last contributor get no gradient */
+    for (int i = start + n_max; i < end; ++i)
+        for (int k = 0; k < 6 + CHANNELS; ++k)
+            slot_grads[(size_t)sorted_slots[i] * (6 + CHANNELS) + k] = 0;
+
+    for (int i = start + n_max - 1; i >= start; --i) {
+        const int slot = sorted_slots[i];
+        const int gid = slot_gaussian[slot];
+        const real mx = means2d[2 * gid], my = means2d[2 * gid + 1];
+        const real A = conics[3 * gid], B = conics[3 * gid + 1], C = conics[3 * gid + 2];
+        const real o = opacities[gid];
+        __global const real *f = features + (size_t)gid * CHANNELS;
+        realv v_mean_x = 0, v_mean_y = 0, v_A = 0, v_B = 0, v_C = 0, v_o = 0, v_f[CHANNELS];
+        for (int k = 0; k < CHANNELS; ++k)
+            v_f[k] = 0;
+        for (int r = 0; r < n_rows; ++r) {
+            const real cy = py0 + r + (real)0.5;
             if (row_culled(mx, my - cy, px0, A, B, C, sigma_cuts[gid]))
                 continue;
             ROW_ALPHA(dx, dy, sigma, falloff, alpha);
-            const int16 active = (int16)(i - start) < n_row;
+            const int16 active = (int16)(i - start) < n_row[r];
             const maskv hit = isgreaterequal(sigma, (realv)0) & isgreaterequal(alpha, (realv)(real)ALPHA_MIN)
                               & INT_TO_MASK(active);
             if (!any(hit))
                 continue;
             const realv inv_one_minus = 1 / (1 - alpha);
-            T = select(T, T * inv_one_minus, hit);
-            const realv w = select((realv)0, alpha * T, hit);
-            __global const real *f = features + (size_t)gid * CHANNELS;
-            __global real *row = slot_grads + (size_t)slot * (6 + CHANNELS);
-            realv v_alpha = -T_end * inv_one_minus * v_T_end;
+            T[r] = select(T[r], T[r] * inv_one_minus, hit);
+            const realv w = select((realv)0, alpha * T[r], hit);
+            realv v_alpha = -T_end[r] * inv_one_minus * v_T_end[r];
             for (int k = 0; k < CHANNELS; ++k) {
-                row[6 + k] += hsum(w * g[k]);
-                v_alpha += (f[k] * T - S[k] * inv_one_minus) * g[k];
-                S[k] += f[k] * w;
+                v_f[k] += w * g[r][k];
+                v_alpha += (f[k] * T[r] - S[r][k] * inv_one_minus) * g[r][k];
+                S[r][k] += f[k] * w;
             }
             /* clamped alpha (o exp(-sigma) > ALPHA_MAX): no gradient to opacity or shape */
             const maskv free = hit & islessequal(o * falloff, (realv)(real)ALPHA_MAX);
             const realv v_sigma = select((realv)0, -o * falloff * v_alpha, free);
-            row[0] += hsum(v_sigma * (A * dx + B * dy));
-            row[1] += hsum(v_sigma * (B * dx + C * dy));
-            row[2] += hsum(v_sigma * (real)0.5 * dx * dx);
-            row[3] += hsum(v_sigma * dx * dy);
-            row[4] += hsum(v_sigma * (real)0.5 * dy * dy);
-            row[5] += hsum(select((realv)0, falloff * v_alpha, free));
+            v_mean_x += v_sigma * (A * dx + B * dy);
+            v_mean_y += v_sigma * (B * dx + C * dy);
+            v_A += v_sigma * (real)0.5 * dx * dx;
+            v_B += v_sigma * dx * dy;
+            v_C += v_sigma * (real)0.5 * dy * dy;
+            v_o += select((realv)0, falloff * v_alpha, free);
         }
+        __global real *row = slot_grads + (size_t)slot * (6 + CHANNELS);
+        row[0] = hsum(v_mean_x);
+        row[1] = hsum(v_mean_y);
+        row[2] = hsum(v_A);
+        row[3] = hsum(v_B);
+        row[4] = hsum(v_C);
+        row[5] = hsum(v_o);
+        for (int k = 0; k < CHANNELS; ++k)
+            row[6 + k] = hsum(v_f[k]);
     }
 }
 
