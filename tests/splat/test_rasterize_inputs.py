@@ -95,3 +95,13 @@ def test_tile_lists_hold_each_tiles_gaussians_front_to_back():
 def test_image_size_not_a_multiple_of_the_tile_size():
     img, alpha, _, _ = render(width=TILE_SIZE + 1, height=3)
     assert img.shape == (3, TILE_SIZE + 1, 3) and torch.isfinite(img).all()
+
+
+def test_bench_raster_command_runs_on_a_small_scene():
+    from click.testing import CliRunner
+
+    from clflow_cli.main import cli
+
+    result = CliRunner().invoke(cli, ["bench", "raster", "-n", "2000", "--size", "64", "--repeat", "1"])
+    assert result.exit_code == 0, result.output
+    assert "tile entries" in result.output and "forward:" in result.output and "backward:" in result.output
