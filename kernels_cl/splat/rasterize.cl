@@ -67,80 +67,121 @@ inline realv load_row(__global const real *p, const int stride, const int count)
     const realv falloff = exp(-sigma);                                                         \
     const realv alpha = fmin((realv)(real)ALPHA_MAX, o * falloff)
 
-/* True when no lane of the row can reach ALPHA_MIN: sigma is convex in dx, so its minimum
- * over the lanes is at dx* = -B dy / A clamped to the lanes' range; skip when that minimum
- * exceeds the Gaussian's cut-off log(o / ALPHA_MIN) by ROW_CULL_MARGIN (far beyond rounding,
- * so the skip never changes a result). */
-inline bool row_culled(const real mx, const real dy, const int px0, const real A, const real B,
-                       const real C, const real sigma_cut)
+/* Which rows of a tile a Gaussian can reach, and the exact per-row test.
+ *
+ * A pixel is skipped when sigma > cut = log(o / ALPHA_MIN) (its alpha is below ALPHA_MIN).
+ * Over all x, sigma at row offset dy is at least 0.5 dy^2 det / A (det = AC - B^2), so only
+ * rows with |dy| <= sqrt(2 cut A / det) can be reached: entry_rows() returns that range.
+ * Within it, sigma is convex in dx, so its minimum over the row's 16 lanes is at
+ * dx* = -B dy / A clamped to the lanes' range: row_culled() skips rows whose minimum exceeds
+ * cut. Both tests keep a margin ROW_CULL_MARGIN (in sigma) far beyond rounding, so a skip
+ * never changes a result. */
+typedef struct {
+    real mx, my, A, B, C, o, cut, slope;  /* slope = -B / A */
+    int r0, r1;                            /* rows [r0, r1) of the tile it can reach */
+} entry_t;
+
+inline entry_t load_entry(const int gid, __global const real *means2d, __global const real *conics,
+                          __global const real *opacities, const int py0, const int n_rows)
 {
-    const real dx = clamp(-B * dy / A, mx - px0 - (real)(TILE_SIZE - 0.5), mx - px0 - (real)0.5);
-    const real sigma_min = (real)0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy;
-    return sigma_min > sigma_cut + (real)ROW_CULL_MARGIN;
+    entry_t e;
+    e.mx = means2d[2 * gid];
+    e.my = means2d[2 * gid + 1];
+    e.A = conics[3 * gid];
+    e.B = conics[3 * gid + 1];
+    e.C = conics[3 * gid + 2];
+    e.o = opacities[gid];
+    e.cut = log(e.o / (real)ALPHA_MIN) + (real)ROW_CULL_MARGIN;
+    e.slope = -e.B / e.A;
+    const real det = e.A * e.C - e.B * e.B;
+    const real reach = e.cut > 0 ? sqrt(2 * e.cut * e.A / det) + (real)ROW_CULL_MARGIN : -1;
+    /* row r has centre py0 + r + 0.5; keep |my - centre| <= reach */
+    const real lo = e.my - reach - py0 - (real)0.5, hi = e.my + reach - py0 - (real)0.5;
+    e.r0 = (int)ceil(clamp(lo, (real)0, (real)n_rows));
+    e.r1 = (int)floor(clamp(hi, (real)-1, (real)(n_rows - 1))) + 1;
+    return e;
 }
 
-/* Forward: work-item (tile, row) composites its 16 pixels front to back; it stops once all
- * are done. Writes out [H,W,CHANNELS], T_final [H,W] and n_contrib [H,W] (entries walked
- * up to the pixel's last contributor). */
+inline bool row_culled(const entry_t *e, const real dy, const int px0)
+{
+    const real dx = clamp(e->slope * dy, e->mx - px0 - (real)(TILE_SIZE - 0.5), e->mx - px0 - (real)0.5);
+    const real sigma_min = (real)0.5 * (e->A * dx * dx + e->C * dy * dy) + e->B * dx * dy;
+    return sigma_min > e->cut;
+}
+
+/* Forward: one work-item per tile, its 16 rows held as 16-wide vectors. Entries front to
+ * back; each row a Gaussian can reach composites it until the row is done (T would fall
+ * below T_MIN); the tile stops when all rows are done. Writes out [H,W,CHANNELS],
+ * T_final [H,W] and n_contrib [H,W] (entries walked up to the pixel's last contributor). */
 __kernel void rasterize_forward(
     __global const int *ranges, __global const int *sorted_slots,
     __global const int *slot_gaussian, __global const real *means2d,
-    __global const real *conics, __global const real *opacities, __global const real *sigma_cuts,
+    __global const real *conics, __global const real *opacities,
     __global const real *features, __global const real *background, __global real *out,
-    __global real *T_final,
-    __global int *n_contrib, const int width, const int height, const int tiles_x,
-    const int n_tiles)
+    __global real *T_final, __global int *n_contrib, const int width, const int height,
+    const int tiles_x, const int n_tiles)
 {
-    const int tile = get_global_id(0) / TILE_SIZE;
-    const int py = (tile / tiles_x) * TILE_SIZE + get_global_id(0) % TILE_SIZE;
-    if (tile >= n_tiles || py >= height)
+    const int tile = get_global_id(0);
+    if (tile >= n_tiles)
         return;
-    const int px0 = (tile % tiles_x) * TILE_SIZE;
+    const int px0 = (tile % tiles_x) * TILE_SIZE, py0 = (tile / tiles_x) * TILE_SIZE;
     const int n_px = min(TILE_SIZE, width - px0);
+    const int n_rows = min(TILE_SIZE, height - py0);
     const realv cx = LANES + (real)px0 + (real)0.5;
-    const real cy = py + (real)0.5;
     const int start = ranges[2 * tile], end = ranges[2 * tile + 1];
 
-    realv acc[CHANNELS];
-    for (int k = 0; k < CHANNELS; ++k)
-        acc[k] = 0;
-    realv T = 1;
-    int16 last = 0;
-    maskv done = isgreaterequal(LANES, (realv)n_px);  /* lanes beyond the image */
-    for (int i = start; i < end && !all(done); ++i) {
-        const int g = slot_gaussian[sorted_slots[i]];
-        const real mx = means2d[2 * g], my = means2d[2 * g + 1];
-        const real A = conics[3 * g], B = conics[3 * g + 1], C = conics[3 * g + 2], o = opacities[g];
-        if (row_culled(mx, my - cy, px0, A, B, C, sigma_cuts[g]))
-            continue;
-        ROW_ALPHA(dx, dy, sigma, falloff, alpha);
-        const maskv hit = !done & isgreaterequal(sigma, (realv)0) & isgreaterequal(alpha, (realv)(real)ALPHA_MIN);
-        if (!any(hit))
-            continue;
-        const realv T_next = T * (1 - alpha);
-        const maskv stop = hit & isless(T_next, (realv)(real)T_MIN);
-        const maskv take = hit & !stop;
-        done |= stop;
-        const realv w = select((realv)0, alpha * T, take);
-        __global const real *f = features + (size_t)g * CHANNELS;
+    realv acc[TILE_SIZE][CHANNELS], T[TILE_SIZE];
+    int16 last[TILE_SIZE];
+    maskv done[TILE_SIZE];
+    for (int r = 0; r < n_rows; ++r) {
         for (int k = 0; k < CHANNELS; ++k)
-            acc[k] += f[k] * w;
-        T = select(T, T_next, take);
-        last = select(last, (int16)(i - start + 1), MASK_TO_INT(take));
+            acc[r][k] = 0;
+        T[r] = 1;
+        last[r] = 0;
+        done[r] = isgreaterequal(LANES, (realv)n_px);  /* lanes beyond the image */
+    }
+    int rows_left = n_rows;
+    for (int i = start; i < end && rows_left > 0; ++i) {
+        const int g = slot_gaussian[sorted_slots[i]];
+        const entry_t e = load_entry(g, means2d, conics, opacities, py0, n_rows);
+        const real mx = e.mx, my = e.my, A = e.A, B = e.B, C = e.C, o = e.o;
+        __global const real *f = features + (size_t)g * CHANNELS;
+        for (int r = e.r0; r < e.r1; ++r) {
+            const real cy = py0 + r + (real)0.5;
+            if (all(done[r]) || row_culled(&e, my - cy, px0))
+                continue;
+            ROW_ALPHA(dx, dy, sigma, falloff, alpha);
+            const maskv hit = !done[r] & isgreaterequal(sigma, (realv)0)
+                              & isgreaterequal(alpha, (realv)(real)ALPHA_MIN);
+            if (!any(hit))
+                continue;
+            const realv T_next = T[r] * (1 - alpha);
+            const maskv stop = hit & isless(T_next, (realv)(real)T_MIN);
+            const maskv take = hit & !stop;
+            const realv w = select((realv)0, alpha * T[r], take);
+            for (int k = 0; k < CHANNELS; ++k)
+                acc[r][k] += f[k] * w;
+            T[r] = select(T[r], T_next, take);
+            last[r] = select(last[r], (int16)(i - start + 1), MASK_TO_INT(take));
+            done[r] |= stop;
+            rows_left -= all(done[r]) ? 1 : 0;
+        }
     }
     real tmp[16];
     int tmp_last[16];
-    const size_t p0 = (size_t)py * width + px0;
-    vstore16(T, 0, tmp);
-    vstore16(last, 0, tmp_last);
-    for (int l = 0; l < n_px; ++l) {
-        T_final[p0 + l] = tmp[l];
-        n_contrib[p0 + l] = tmp_last[l];
-    }
-    for (int k = 0; k < CHANNELS; ++k) {
-        vstore16(acc[k] + T * background[k], 0, tmp);
-        for (int l = 0; l < n_px; ++l)
-            out[(p0 + l) * CHANNELS + k] = tmp[l];
+    for (int r = 0; r < n_rows; ++r) {
+        const size_t p0 = (size_t)(py0 + r) * width + px0;
+        vstore16(T[r], 0, tmp);
+        vstore16(last[r], 0, tmp_last);
+        for (int l = 0; l < n_px; ++l) {
+            T_final[p0 + l] = tmp[l];
+            n_contrib[p0 + l] = tmp_last[l];
+        }
+        for (int k = 0; k < CHANNELS; ++k) {
+            vstore16(acc[r][k] + T[r] * background[k], 0, tmp);
+            for (int l = 0; l < n_px; ++l)
+                out[(p0 + l) * CHANNELS + k] = tmp[l];
+        }
     }
 }
 
@@ -155,7 +196,7 @@ __kernel void rasterize_forward(
 __kernel void rasterize_backward(
     __global const int *ranges, __global const int *sorted_slots,
     __global const int *slot_gaussian, __global const real *means2d,
-    __global const real *conics, __global const real *opacities, __global const real *sigma_cuts,
+    __global const real *conics, __global const real *opacities,
     __global const real *features, __global const real *background, __global const real *T_final,
     __global const int *n_contrib, __global const real *v_out, __global const real *v_T,
     __global real *slot_grads, const int width, const int height, const int tiles_x,
@@ -201,16 +242,15 @@ __kernel void rasterize_backward(
     for (int i = start + n_max - 1; i >= start; --i) {
         const int slot = sorted_slots[i];
         const int gid = slot_gaussian[slot];
-        const real mx = means2d[2 * gid], my = means2d[2 * gid + 1];
-        const real A = conics[3 * gid], B = conics[3 * gid + 1], C = conics[3 * gid + 2];
-        const real o = opacities[gid];
+        const entry_t e = load_entry(gid, means2d, conics, opacities, py0, n_rows);
+        const real mx = e.mx, my = e.my, A = e.A, B = e.B, C = e.C, o = e.o;
         __global const real *f = features + (size_t)gid * CHANNELS;
         realv v_mean_x = 0, v_mean_y = 0, v_A = 0, v_B = 0, v_C = 0, v_o = 0, v_f[CHANNELS];
         for (int k = 0; k < CHANNELS; ++k)
             v_f[k] = 0;
-        for (int r = 0; r < n_rows; ++r) {
+        for (int r = e.r0; r < e.r1; ++r) {
             const real cy = py0 + r + (real)0.5;
-            if (row_culled(mx, my - cy, px0, A, B, C, sigma_cuts[gid]))
+            if (row_culled(&e, my - cy, px0))
                 continue;
             ROW_ALPHA(dx, dy, sigma, falloff, alpha);
             const int16 active = (int16)(i - start) < n_row[r];
