@@ -23,7 +23,7 @@ from clflow.errors import InputError
 from clflow.runtime.devices import get_device
 from clflow.runtime.reduction import real_of
 from clflow.splat.binning import build_tile_lists, tile_grid
-from clflow.splat.constants import SPLAT_DEFINES, TILE_SIZE
+from clflow.splat.constants import SPLAT_DEFINES
 from clflow.splat.sh import num_sh_bases, sh_to_rgb
 
 ORTHONORMAL_TOL = 1e-4  # |W W^T - I| allowed in the viewmat's rotation

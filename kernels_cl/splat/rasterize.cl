@@ -12,10 +12,9 @@
 #error "build with -DCHANNELS=<feature channels>"
 #endif
 
-/* Layout for CPU devices: a work-item owns one row of TILE_SIZE = 16 pixels of a tile and
- * holds them in one 16-wide vector (realv), so every step runs on all 16 pixels at once in
- * SIMD registers (PoCL does not vectorise the per-pixel loops across work-items here). The
- * Gaussian read at each step is the same for all lanes. No barriers, no local memory. */
+/* Layout for CPU devices: a work-item owns one 16 x 16 tile and holds each of its rows in a
+ * 16-wide vector (realv), so every step runs on 16 pixels at once in SIMD registers (PoCL
+ * did not vectorise per-pixel loops across work-items). No barriers, no local memory. */
 #if TILE_SIZE != 16
 #error "rasterize.cl holds a tile row in a 16-wide vector: TILE_SIZE must be 16"
 #endif
@@ -38,7 +37,6 @@ typedef float2 real2;
 #endif
 
 #define LANES ((realv)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
-#define ILANES ((int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
 
 /* Sum of the 16 lanes in a fixed order (pairwise halving): deterministic. */
 inline real hsum(const realv v)
@@ -59,7 +57,8 @@ inline realv load_row(__global const real *p, const int stride, const int count)
 }
 
 /* The falloff of Gaussian (mx, my, A, B, C, o) over a row at x = cx (lanes), y = cy; the
- * same expressions as splat_alpha() in common.h, lane-wise. */
+ * falloff exp(-sigma), sigma = 0.5 (A dx^2 + C dy^2) + B dx dy with d = mean2d - pixel
+ * centre, and alpha = min(ALPHA_MAX, o falloff). */
 #define ROW_ALPHA(dx, dy, sigma, falloff, alpha)                                               \
     const realv dx = mx - cx;                                                                  \
     const real dy = my - cy;                                                                   \
