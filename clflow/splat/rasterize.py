@@ -190,7 +190,7 @@ def composite(
     means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, background: Tensor, ranges: Tensor,
     sorted_slots: Tensor, slot_gaussian: Tensor, first_slot: Tensor, tiles_touched: Tensor, width: int, height: int,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Front-to-back compositing of sorted splats (OpenCL), one work-group per tile.
+    """Front-to-back compositing of sorted splats (OpenCL), one work-item per 16 x 16 tile.
 
     Args:
         means2d [N, 2], conics [N, 3], opacities [N], features [N, C], background [C];
@@ -239,13 +239,13 @@ def composite_backward(
     n, channels = features.shape
     m = sorted_slots.shape[0]
     tiles_x, tiles_y = tile_grid(width, height)
-    slot_grads = features.new_empty(m, 6 + channels)  # one row per (tile, Gaussian) pair, zeroed by its tile
     v_means2d, v_conics = torch.empty_like(means2d), torch.empty_like(conics)
     v_opacities, v_features = torch.empty_like(opacities), torch.empty_like(features)
     backward = _kernel("rasterize.cl", "rasterize_backward", features.dtype, CHANNELS=channels)
     reduce = _kernel("rasterize.cl", "reduce_slots", features.dtype, CHANNELS=channels)
     with device.bind() as b:
-        slots = b.inout(slot_grads)
+        # [M, 6 + C]: one gradient row per (tile, Gaussian) pair, written once by its tile
+        slots = b.scratch(m * (6 + channels) * features.dtype.itemsize)
         # local size 1: each tile is a work-group of its own, so the busy tiles spread over the cores
         device.launch(
             backward,
