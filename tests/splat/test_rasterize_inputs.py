@@ -117,3 +117,11 @@ def test_huge_gaussians_are_capped_or_culled_never_undefined(dtype, scale, radiu
     img, alpha, depth, meta = rasterize_gaussians(means, quats, scales, opacities, colors, viewmat, K, W, H)
     assert int(meta["radii"][0]) == radius
     assert torch.isfinite(img).all() and torch.isfinite(depth).all()
+
+
+def test_tile_lists_past_the_memory_bound_raise(monkeypatch):
+    import clflow.splat.binning as binning
+
+    monkeypatch.setattr(binning, "MAX_TILE_ENTRIES", 3)
+    with pytest.raises(InputError, match=r"\(tile, Gaussian\) pairs, more than the bound 3"):
+        render()
