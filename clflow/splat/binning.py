@@ -130,6 +130,14 @@ def build_tile_lists(
     def kern(name):
         return device.kernel("splat/binning.cl", name, real, SPLAT_DEFINES)
 
+    # checked before the device's int32 scan of the counts can overflow
+    total = int(tiles_touched.sum(dtype=torch.int64))
+    if total > MAX_TILE_ENTRIES:
+        raise InputError(
+            f"rasterize: the Gaussians touch {total} (tile, Gaussian) pairs, more than the bound "
+            f"{MAX_TILE_ENTRIES} ({MAX_TILE_ENTRIES * BYTES_PER_ENTRY / 2**30:.1f} GiB of tile lists); "
+            "render fewer or smaller Gaussians, or a smaller image"
+        )
     scan = device.kernel("splat/sort.cl", "scan_exclusive")
     # 1. Gaussians by depth; entry offsets in that order
     depth_pairs = [torch.empty(n, dtype=torch.int32) for _ in range(4)]
@@ -144,12 +152,6 @@ def build_tile_lists(
         device.launch(scan, 1, [counts, b.output(offsets), np.int32(n)], 1)
     order = depth_pairs[3] if swapped else depth_pairs[1]
     m = int(offsets[n])
-    if m > MAX_TILE_ENTRIES:
-        raise InputError(
-            f"rasterize: the Gaussians touch {m} (tile, Gaussian) pairs, more than the bound "
-            f"{MAX_TILE_ENTRIES} ({MAX_TILE_ENTRIES * BYTES_PER_ENTRY / 2**30:.1f} GiB of tile lists); "
-            "render fewer or smaller Gaussians, or a smaller image"
-        )
     # 2. entries in depth order, 3. stable sort by tile, 4. per-tile ranges
     tile_pairs = [torch.empty(m, dtype=torch.int32) for _ in range(4)]
     slot_gaussian = torch.empty(m, dtype=torch.int32)

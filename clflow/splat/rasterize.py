@@ -23,7 +23,7 @@ from clflow.errors import InputError
 from clflow.runtime.devices import get_device
 from clflow.runtime.reduction import real_of
 from clflow.splat.binning import build_tile_lists, tile_grid
-from clflow.splat.constants import ALPHA_MIN, SPLAT_DEFINES, TILE_SIZE
+from clflow.splat.constants import SPLAT_DEFINES
 from clflow.splat.sh import num_sh_bases, sh_to_rgb
 
 ORTHONORMAL_TOL = 1e-4  # |W W^T - I| allowed in the viewmat's rotation
@@ -185,17 +185,12 @@ project.register_autograd(_project_backward, setup_context=_project_setup)
 # -- compositing op ---------------------------------------------------------------------
 
 
-def _sigma_cuts(opacities: Tensor) -> Tensor:
-    """log(o / ALPHA_MIN) [N]: a Gaussian whose sigma exceeds this is below ALPHA_MIN."""
-    return torch.log(opacities.detach() / ALPHA_MIN)
-
-
 @torch.library.custom_op("clflow::splat_composite", mutates_args=())
 def composite(
     means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, background: Tensor, ranges: Tensor,
     sorted_slots: Tensor, slot_gaussian: Tensor, first_slot: Tensor, tiles_touched: Tensor, width: int, height: int,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Front-to-back compositing of sorted splats (OpenCL), one work-group per tile.
+    """Front-to-back compositing of sorted splats (OpenCL), one work-item per 16 x 16 tile.
 
     Args:
         means2d [N, 2], conics [N, 3], opacities [N], features [N, C], background [C];
@@ -216,12 +211,12 @@ def composite(
     with device.bind() as b:
         device.launch(
             kern,
-            tiles_x * tiles_y * TILE_SIZE,
+            tiles_x * tiles_y,
             [b.input(ranges), b.input(sorted_slots), b.input(slot_gaussian), b.input(means2d), b.input(conics),
-             b.input(opacities), b.input(_sigma_cuts(opacities)), b.input(features), b.input(background),
+             b.input(opacities), b.input(features), b.input(background),
              b.output(out), b.output(T_final),
              b.output(n_contrib), np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(tiles_x * tiles_y)],
-            TILE_SIZE,  # one work-item per tile row
+            1,  # one work-item per tile, each its own work-group: busy tiles spread over the cores
         )
     return out, T_final, n_contrib
 
@@ -244,19 +239,19 @@ def composite_backward(
     n, channels = features.shape
     m = sorted_slots.shape[0]
     tiles_x, tiles_y = tile_grid(width, height)
-    slot_grads = features.new_empty(m, 6 + channels)  # one row per (tile, Gaussian) pair, zeroed by its tile
     v_means2d, v_conics = torch.empty_like(means2d), torch.empty_like(conics)
     v_opacities, v_features = torch.empty_like(opacities), torch.empty_like(features)
     backward = _kernel("rasterize.cl", "rasterize_backward", features.dtype, CHANNELS=channels)
     reduce = _kernel("rasterize.cl", "reduce_slots", features.dtype, CHANNELS=channels)
     with device.bind() as b:
-        slots = b.inout(slot_grads)
+        # [M, 6 + C]: one gradient row per (tile, Gaussian) pair, written once by its tile
+        slots = b.scratch(m * (6 + channels) * features.dtype.itemsize)
         # local size 1: each tile is a work-group of its own, so the busy tiles spread over the cores
         device.launch(
             backward,
             tiles_x * tiles_y,
             [b.input(ranges), b.input(sorted_slots), b.input(slot_gaussian), b.input(means2d), b.input(conics),
-             b.input(opacities), b.input(_sigma_cuts(opacities)), b.input(features), b.input(background),
+             b.input(opacities), b.input(features), b.input(background),
              b.input(T_final), b.input(n_contrib),
              b.input(v_out), b.input(v_T_final), slots, np.int32(width), np.int32(height), np.int32(tiles_x),
              np.int32(tiles_x * tiles_y)],

@@ -12,7 +12,16 @@ import math
 import torch
 from torch import Tensor
 
-from clflow.splat.constants import ALPHA_MAX, ALPHA_MIN, EPS2D, LIM_FOV, MIN_RADIUS_EIGEN, T_MIN, TILE_SIZE
+from clflow.splat.constants import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    EPS2D,
+    LIM_FOV,
+    MAX_RADIUS,
+    MIN_RADIUS_EIGEN,
+    T_MIN,
+    TILE_SIZE,
+)
 from clflow.splat.rasterize import assemble_channels, split_outputs
 
 
@@ -56,7 +65,7 @@ def project_reference(means: Tensor, covars: Tensor, viewmat: Tensor, K: Tensor,
     means2d = torch.stack([fx * u + cx, fy * v + cy], dim=-1)
     mid = 0.5 * (a + c)
     lambda_max = mid + torch.sqrt(torch.clamp_min(mid * mid - det, MIN_RADIUS_EIGEN))
-    radii = torch.ceil(3 * torch.sqrt(lambda_max.detach().clamp_min(0))).to(torch.int32)
+    radii = torch.ceil(3 * torch.sqrt(lambda_max.detach().clamp_min(0))).clamp_max(MAX_RADIUS).to(torch.int32)
     tiles_x, tiles_y = math.ceil(width / TILE_SIZE), math.ceil(height / TILE_SIZE)
     x0, y0, x1, y1 = tile_rect_reference(means2d.detach(), radii, tiles_x, tiles_y)
     touched = (x1 - x0).clamp_min(0) * (y1 - y0).clamp_min(0)

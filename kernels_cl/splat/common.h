@@ -1,8 +1,8 @@
 /* Constants and helpers shared by the splat kernels (projection, binning, compositing).
  *
- * The constants come from the host as -D defines (clflow/splat/rasterize.py, one Python
+ * The constants come from the host as -D defines (clflow/splat/constants.py, one Python
  * constant each) so forward, backward and the torch reference use the same numbers:
- *   TILE_SIZE      pixels per tile side (a work-group composites one tile)
+ *   TILE_SIZE      pixels per tile side (a work-item composites one tile)
  *   EPS2D          low-pass dilation added to the 2D covariance (pixel^2)
  *   ALPHA_MIN      a Gaussian with alpha below this is skipped at a pixel
  *   ALPHA_MAX      alpha is clamped to at most this
@@ -18,7 +18,7 @@
 #pragma OPENCL FP_CONTRACT OFF
 
 #if !defined(TILE_SIZE) || !defined(EPS2D) || !defined(ALPHA_MIN) || !defined(ALPHA_MAX) || !defined(T_MIN) || !defined(ROW_CULL_MARGIN)
-#error "build with the splat constants (clflow/splat/rasterize.py: SPLAT_DEFINES)"
+#error "build with the splat constants (clflow/splat/constants.py: SPLAT_DEFINES)"
 #endif
 
 /* Tiles [x0, x1) x [y0, y1) whose pixels [16k, 16k+16) meet the box mean2d +- radius.
@@ -33,22 +33,6 @@ inline int tile_rect(const real mx, const real my, const int radius, const int t
     *x1 = (int)floor(clamp((mx + r) / TILE_SIZE + 1, (real)0, (real)tiles_x));
     *y1 = (int)floor(clamp((my + r) / TILE_SIZE + 1, (real)0, (real)tiles_y));
     return max(*x1 - *x0, 0) * max(*y1 - *y0, 0);
-}
-
-/* Gaussian falloff at pixel centre (px, py): sigma = 0.5 (A dx^2 + C dy^2) + B dx dy with
- * d = mean2d - p; returns alpha = min(ALPHA_MAX, o exp(-sigma)), or 0 when the Gaussian is
- * skipped (sigma < 0 or alpha < ALPHA_MIN). */
-inline real splat_alpha(const real dx, const real dy, const real A, const real B, const real C,
-                        const real opacity, real *sigma_out, real *falloff_out)
-{
-    const real sigma = (real)0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy;
-    *sigma_out = sigma;
-    if (sigma < 0)
-        return 0;
-    const real falloff = exp(-sigma);
-    *falloff_out = falloff;
-    const real alpha = min((real)ALPHA_MAX, opacity * falloff);
-    return alpha < (real)ALPHA_MIN ? 0 : alpha;
 }
 
 #endif /* CLFLOW_SPLAT_COMMON_H */

@@ -59,15 +59,16 @@ __kernel void covariance_backward(__global const real *quats, __global const rea
     for (int k = 0; k < 9; ++k) {
         G[k] = v_covars[9 * i + k] + v_covars[9 * i + 3 * (k % 3) + k / 3];  /* G + G^T */
     }
-    for (int j = 0; j < 3; ++j)
-        v_scales[3 * i + j] = 0;
+    real ds[3] = {0, 0, 0};
     for (int r = 0; r < 3; ++r) {
         for (int c = 0; c < 3; ++c) {
             const real dM = G[3 * r] * M[c] + G[3 * r + 1] * M[3 + c] + G[3 * r + 2] * M[6 + c];
             dR[3 * r + c] = dM * scales[3 * i + c];
-            v_scales[3 * i + c] += dM * R[3 * r + c];
+            ds[c] += dM * R[3 * r + c];
         }
     }
+    for (int c = 0; c < 3; ++c)
+        v_scales[3 * i + c] = ds[c];
     /* dL/d(unit quaternion) */
     const real dw = 2 * (-z * dR[1] + y * dR[2] + z * dR[3] - x * dR[5] - y * dR[6] + x * dR[7]);
     const real dx = 2 * (y * dR[1] + z * dR[2] + y * dR[3] - 2 * x * dR[4] - w * dR[5] + z * dR[6] + w * dR[7]

@@ -6,13 +6,14 @@
  *   u = x/z, v = y/z; J evaluated at (u, v) clamped to LIM_FOV x the field of view
  *   Sigma_2D = J W Sigma W^T J^T + EPS2D I,  conic = Sigma_2D^-1 = (A, B, C)
  *   mean2d = (fx u + cx, fy v + cy),  depth = z
- *   radius = ceil(3 sqrt(lambda_max(Sigma_2D)))
+ *   radius = ceil(3 sqrt(lambda_max(Sigma_2D))), at most MAX_RADIUS (an overflowed or
+ *   absurd covariance still gives a valid int; such a box covers the image anyway)
  * Sigma is read symmetrised, 0.5 (Sigma + Sigma^T), so its gradient is exact for all nine
  * entries. Buffers: means [N,3], covars [N,3,3], viewmat [4,4], intrinsics [3,3] (row-major). */
 #include "splat/common.h"
 
-#if !defined(LIM_FOV) || !defined(MIN_RADIUS_EIGEN)
-#error "build with -DLIM_FOV=... -DMIN_RADIUS_EIGEN=..."
+#if !defined(LIM_FOV) || !defined(MIN_RADIUS_EIGEN) || !defined(MAX_RADIUS)
+#error "build with -DLIM_FOV=... -DMIN_RADIUS_EIGEN=... -DMAX_RADIUS=..."
 #endif
 
 typedef struct {
@@ -111,7 +112,7 @@ __kernel void project_forward(__global const real *means, __global const real *c
         return;
     const real mid = (real)0.5 * (p.a + p.c);
     const real lambda_max = mid + sqrt(max((real)MIN_RADIUS_EIGEN, mid * mid - p.det));
-    const int radius = (int)ceil(3 * sqrt(lambda_max));
+    const int radius = (int)fmin(ceil(3 * sqrt(lambda_max)), (real)MAX_RADIUS);
     const real mx = cam.fx * p.u + cam.cx, my = cam.fy * p.v + cam.cy;
     const int tiles_x = (width + TILE_SIZE - 1) / TILE_SIZE, tiles_y = (height + TILE_SIZE - 1) / TILE_SIZE;
     int x0, y0, x1, y1;

@@ -12,10 +12,9 @@
 #error "build with -DCHANNELS=<feature channels>"
 #endif
 
-/* Layout for CPU devices: a work-item owns one row of TILE_SIZE = 16 pixels of a tile and
- * holds them in one 16-wide vector (realv), so every step runs on all 16 pixels at once in
- * SIMD registers (PoCL does not vectorise the per-pixel loops across work-items here). The
- * Gaussian read at each step is the same for all lanes. No barriers, no local memory. */
+/* Layout for CPU devices: a work-item owns one 16 x 16 tile and holds each of its rows in a
+ * 16-wide vector (realv), so every step runs on 16 pixels at once in SIMD registers (PoCL
+ * did not vectorise per-pixel loops across work-items). No barriers, no local memory. */
 #if TILE_SIZE != 16
 #error "rasterize.cl holds a tile row in a 16-wide vector: TILE_SIZE must be 16"
 #endif
@@ -38,7 +37,6 @@ typedef float2 real2;
 #endif
 
 #define LANES ((realv)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
-#define ILANES ((int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
 
 /* Sum of the 16 lanes in a fixed order (pairwise halving): deterministic. */
 inline real hsum(const realv v)
@@ -59,7 +57,8 @@ inline realv load_row(__global const real *p, const int stride, const int count)
 }
 
 /* The falloff of Gaussian (mx, my, A, B, C, o) over a row at x = cx (lanes), y = cy; the
- * same expressions as splat_alpha() in common.h, lane-wise. */
+ * falloff exp(-sigma), sigma = 0.5 (A dx^2 + C dy^2) + B dx dy with d = mean2d - pixel
+ * centre, and alpha = min(ALPHA_MAX, o falloff). */
 #define ROW_ALPHA(dx, dy, sigma, falloff, alpha)                                               \
     const realv dx = mx - cx;                                                                  \
     const real dy = my - cy;                                                                   \
@@ -67,93 +66,136 @@ inline realv load_row(__global const real *p, const int stride, const int count)
     const realv falloff = exp(-sigma);                                                         \
     const realv alpha = fmin((realv)(real)ALPHA_MAX, o * falloff)
 
-/* True when no lane of the row can reach ALPHA_MIN: sigma is convex in dx, so its minimum
- * over the lanes is at dx* = -B dy / A clamped to the lanes' range; skip when that minimum
- * exceeds the Gaussian's cut-off log(o / ALPHA_MIN) by ROW_CULL_MARGIN (far beyond rounding,
- * so the skip never changes a result). */
-inline bool row_culled(const real mx, const real dy, const int px0, const real A, const real B,
-                       const real C, const real sigma_cut)
+/* Which rows of a tile a Gaussian can reach, and the exact per-row test.
+ *
+ * A pixel is skipped when sigma > cut = log(o / ALPHA_MIN) (its alpha is below ALPHA_MIN).
+ * Over all x, sigma at row offset dy is at least 0.5 dy^2 det / A (det = AC - B^2), so only
+ * rows with |dy| <= sqrt(2 cut A / det) can be reached: entry_rows() returns that range.
+ * Within it, sigma is convex in dx, so its minimum over the row's 16 lanes is at
+ * dx* = -B dy / A clamped to the lanes' range: row_culled() skips rows whose minimum exceeds
+ * cut. Both tests keep a margin ROW_CULL_MARGIN (in sigma) far beyond rounding, so a skip
+ * never changes a result. */
+typedef struct {
+    real mx, my, A, B, C, o, cut, slope;  /* slope = -B / A */
+    int r0, r1;                            /* rows [r0, r1) of the tile it can reach */
+} entry_t;
+
+inline entry_t load_entry(const int gid, __global const real *means2d, __global const real *conics,
+                          __global const real *opacities, const int py0, const int n_rows)
 {
-    const real dx = clamp(-B * dy / A, mx - px0 - (real)(TILE_SIZE - 0.5), mx - px0 - (real)0.5);
-    const real sigma_min = (real)0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy;
-    return sigma_min > sigma_cut + (real)ROW_CULL_MARGIN;
+    entry_t e;
+    e.mx = means2d[2 * gid];
+    e.my = means2d[2 * gid + 1];
+    e.A = conics[3 * gid];
+    e.B = conics[3 * gid + 1];
+    e.C = conics[3 * gid + 2];
+    e.o = opacities[gid];
+    e.cut = log(e.o / (real)ALPHA_MIN) + (real)ROW_CULL_MARGIN;
+    e.slope = -e.B / e.A;
+    const real det = e.A * e.C - e.B * e.B;
+    const real reach = e.cut > 0 ? sqrt(2 * e.cut * e.A / det) + (real)ROW_CULL_MARGIN : -1;
+    /* row r has centre py0 + r + 0.5; keep |my - centre| <= reach */
+    const real lo = e.my - reach - py0 - (real)0.5, hi = e.my + reach - py0 - (real)0.5;
+    e.r0 = (int)ceil(clamp(lo, (real)0, (real)n_rows));
+    e.r1 = (int)floor(clamp(hi, (real)-1, (real)(n_rows - 1))) + 1;
+    return e;
 }
 
-/* Forward: work-item (tile, row) composites its 16 pixels front to back; it stops once all
- * are done. Writes out [H,W,CHANNELS], T_final [H,W] and n_contrib [H,W] (entries walked
- * up to the pixel's last contributor). */
+inline bool row_culled(const entry_t *e, const real dy, const int px0)
+{
+    const real dx = clamp(e->slope * dy, e->mx - px0 - (real)(TILE_SIZE - 0.5), e->mx - px0 - (real)0.5);
+    const real sigma_min = (real)0.5 * (e->A * dx * dx + e->C * dy * dy) + e->B * dx * dy;
+    return sigma_min > e->cut;
+}
+
+/* Forward: one work-item per tile, its 16 rows held as 16-wide vectors. Entries front to
+ * back; each row a Gaussian can reach composites it until the row is done (T would fall
+ * below T_MIN); the tile stops when all rows are done. Writes out [H,W,CHANNELS],
+ * T_final [H,W] and n_contrib [H,W] (entries walked up to the pixel's last contributor). */
 __kernel void rasterize_forward(
     __global const int *ranges, __global const int *sorted_slots,
     __global const int *slot_gaussian, __global const real *means2d,
-    __global const real *conics, __global const real *opacities, __global const real *sigma_cuts,
+    __global const real *conics, __global const real *opacities,
     __global const real *features, __global const real *background, __global real *out,
-    __global real *T_final,
-    __global int *n_contrib, const int width, const int height, const int tiles_x,
-    const int n_tiles)
+    __global real *T_final, __global int *n_contrib, const int width, const int height,
+    const int tiles_x, const int n_tiles)
 {
-    const int tile = get_global_id(0) / TILE_SIZE;
-    const int py = (tile / tiles_x) * TILE_SIZE + get_global_id(0) % TILE_SIZE;
-    if (tile >= n_tiles || py >= height)
+    const int tile = get_global_id(0);
+    if (tile >= n_tiles)
         return;
-    const int px0 = (tile % tiles_x) * TILE_SIZE;
+    const int px0 = (tile % tiles_x) * TILE_SIZE, py0 = (tile / tiles_x) * TILE_SIZE;
     const int n_px = min(TILE_SIZE, width - px0);
+    const int n_rows = min(TILE_SIZE, height - py0);
     const realv cx = LANES + (real)px0 + (real)0.5;
-    const real cy = py + (real)0.5;
     const int start = ranges[2 * tile], end = ranges[2 * tile + 1];
 
-    realv acc[CHANNELS];
-    for (int k = 0; k < CHANNELS; ++k)
-        acc[k] = 0;
-    realv T = 1;
-    int16 last = 0;
-    maskv done = isgreaterequal(LANES, (realv)n_px);  /* lanes beyond the image */
-    for (int i = start; i < end && !all(done); ++i) {
-        const int g = slot_gaussian[sorted_slots[i]];
-        const real mx = means2d[2 * g], my = means2d[2 * g + 1];
-        const real A = conics[3 * g], B = conics[3 * g + 1], C = conics[3 * g + 2], o = opacities[g];
-        if (row_culled(mx, my - cy, px0, A, B, C, sigma_cuts[g]))
-            continue;
-        ROW_ALPHA(dx, dy, sigma, falloff, alpha);
-        const maskv hit = !done & isgreaterequal(sigma, (realv)0) & isgreaterequal(alpha, (realv)(real)ALPHA_MIN);
-        if (!any(hit))
-            continue;
-        const realv T_next = T * (1 - alpha);
-        const maskv stop = hit & isless(T_next, (realv)(real)T_MIN);
-        const maskv take = hit & !stop;
-        done |= stop;
-        const realv w = select((realv)0, alpha * T, take);
-        __global const real *f = features + (size_t)g * CHANNELS;
+    realv acc[TILE_SIZE][CHANNELS], T[TILE_SIZE];
+    int16 last[TILE_SIZE];
+    maskv done[TILE_SIZE];
+    for (int r = 0; r < n_rows; ++r) {
         for (int k = 0; k < CHANNELS; ++k)
-            acc[k] += f[k] * w;
-        T = select(T, T_next, take);
-        last = select(last, (int16)(i - start + 1), MASK_TO_INT(take));
+            acc[r][k] = 0;
+        T[r] = 1;
+        last[r] = 0;
+        done[r] = isgreaterequal(LANES, (realv)n_px);  /* lanes beyond the image */
+    }
+    int rows_left = n_rows;
+    for (int i = start; i < end && rows_left > 0; ++i) {
+        const int g = slot_gaussian[sorted_slots[i]];
+        const entry_t e = load_entry(g, means2d, conics, opacities, py0, n_rows);
+        const real mx = e.mx, my = e.my, A = e.A, B = e.B, C = e.C, o = e.o;
+        __global const real *f = features + (size_t)g * CHANNELS;
+        for (int r = e.r0; r < e.r1; ++r) {
+            const real cy = py0 + r + (real)0.5;
+            if (all(done[r]) || row_culled(&e, my - cy, px0))
+                continue;
+            ROW_ALPHA(dx, dy, sigma, falloff, alpha);
+            const maskv hit = !done[r] & isgreaterequal(sigma, (realv)0)
+                              & isgreaterequal(alpha, (realv)(real)ALPHA_MIN);
+            if (!any(hit))
+                continue;
+            const realv T_next = T[r] * (1 - alpha);
+            const maskv stop = hit & isless(T_next, (realv)(real)T_MIN);
+            const maskv take = hit & !stop;
+            const realv w = select((realv)0, alpha * T[r], take);
+            for (int k = 0; k < CHANNELS; ++k)
+                acc[r][k] += f[k] * w;
+            T[r] = select(T[r], T_next, take);
+            last[r] = select(last[r], (int16)(i - start + 1), MASK_TO_INT(take));
+            done[r] |= stop;
+            rows_left -= all(done[r]) ? 1 : 0;
+        }
     }
     real tmp[16];
     int tmp_last[16];
-    const size_t p0 = (size_t)py * width + px0;
-    vstore16(T, 0, tmp);
-    vstore16(last, 0, tmp_last);
-    for (int l = 0; l < n_px; ++l) {
-        T_final[p0 + l] = tmp[l];
-        n_contrib[p0 + l] = tmp_last[l];
-    }
-    for (int k = 0; k < CHANNELS; ++k) {
-        vstore16(acc[k] + T * background[k], 0, tmp);
-        for (int l = 0; l < n_px; ++l)
-            out[(p0 + l) * CHANNELS + k] = tmp[l];
+    for (int r = 0; r < n_rows; ++r) {
+        const size_t p0 = (size_t)(py0 + r) * width + px0;
+        vstore16(T[r], 0, tmp);
+        vstore16(last[r], 0, tmp_last);
+        for (int l = 0; l < n_px; ++l) {
+            T_final[p0 + l] = tmp[l];
+            n_contrib[p0 + l] = tmp_last[l];
+        }
+        for (int k = 0; k < CHANNELS; ++k) {
+            vstore16(acc[r][k] + T[r] * background[k], 0, tmp);
+            for (int l = 0; l < n_px; ++l)
+                out[(p0 + l) * CHANNELS + k] = tmp[l];
+        }
     }
 }
 
-/* Adjoint, one work-item per tile: its rows in order, each row's contributors back to front
- * (T_i = T_{i+1} / (1 - alpha_i)), 16 pixels at a time. The gradient of entry i, summed over
- * the row's lanes in a fixed order, is added into row sorted_slots[i] of
+/* Adjoint, one work-item per tile. The tile's 16 rows keep their state (T, S, dL/dout) in
+ * 16-wide vectors; the entries are walked once, back to front from the tile's last
+ * contributor, and at each entry every row that it reaches steps back
+ * (T_i = T_{i+1} / (1 - alpha_i)). The entry's gradient is summed over the rows lane-wise,
+ * then over the lanes in a fixed order, and written to row sorted_slots[i] of
  * slot_grads [M, 6 + CHANNELS] = (dmean2d x, y, dconic A, B, C, dopacity, dfeatures...).
- * Each slot row belongs to one (tile, Gaussian) pair, hence to this work-item only (which
- * zeroes it first): the sums are deterministic. In: v_out [H,W,CHANNELS] = dL/dout, v_T [H,W] = dL/dT_final. */
+ * Each slot row belongs to one (tile, Gaussian) pair, hence to this work-item only: no
+ * atomics, deterministic sums. In: v_out [H,W,CHANNELS] = dL/dout, v_T [H,W] = dL/dT_final. */
 __kernel void rasterize_backward(
     __global const int *ranges, __global const int *sorted_slots,
     __global const int *slot_gaussian, __global const real *means2d,
-    __global const real *conics, __global const real *opacities, __global const real *sigma_cuts,
+    __global const real *conics, __global const real *opacities,
     __global const real *features, __global const real *background, __global const real *T_final,
     __global const int *n_contrib, __global const real *v_out, __global const real *v_T,
     __global real *slot_grads, const int width, const int height, const int tiles_x,
@@ -163,67 +205,86 @@ __kernel void rasterize_backward(
     if (tile >= n_tiles)
         return;
     const int start = ranges[2 * tile], end = ranges[2 * tile + 1];
-    for (int i = start; i < end; ++i)
-        for (int k = 0; k < 6 + CHANNELS; ++k)
-            slot_grads[(size_t)sorted_slots[i] * (6 + CHANNELS) + k] = 0;
     const int px0 = (tile % tiles_x) * TILE_SIZE, py0 = (tile / tiles_x) * TILE_SIZE;
     const int n_px = min(TILE_SIZE, width - px0);
+    const int n_rows = min(TILE_SIZE, height - py0);
     const realv cx = LANES + (real)px0 + (real)0.5;
-    for (int py = py0; py < min(py0 + TILE_SIZE, height); ++py) {
-        const real cy = py + (real)0.5;
-        const size_t p0 = (size_t)py * width + px0;
-        const realv T_end = load_row(T_final + p0, 1, n_px);
-        int tmp_n[16];
-        for (int l = 0; l < 16; ++l)
-            tmp_n[l] = l < n_px ? n_contrib[p0 + l] : 0;
-        const int16 n_row = vload16(0, tmp_n);
-        int n_max = 0;
-        for (int l = 0; l < n_px; ++l)
-            n_max = max(n_max, tmp_n[l]);
-        realv g[CHANNELS], S[CHANNELS];  /* dL/dout_k; sum of f alpha T over later contributors */
+
+    /* per row r: T (walked back), T_final, dL/dT_final + bg . g, g = dL/dout, S = sum of
+     * f alpha T over the contributors behind, and the entries walked up to the last one */
+    realv T[TILE_SIZE], T_end[TILE_SIZE], v_T_end[TILE_SIZE];
+    realv g[TILE_SIZE][CHANNELS], S[TILE_SIZE][CHANNELS];
+    int16 n_row[TILE_SIZE];
+    int n_max = 0;
+    for (int r = 0; r < n_rows; ++r) {
+        const size_t p0 = (size_t)(py0 + r) * width + px0;
+        T_end[r] = T[r] = load_row(T_final + p0, 1, n_px);
         realv bg_dot_g = 0;
         for (int k = 0; k < CHANNELS; ++k) {
-            g[k] = load_row(v_out + p0 * CHANNELS + k, CHANNELS, n_px);
-            S[k] = 0;
-            bg_dot_g += background[k] * g[k];
+            g[r][k] = load_row(v_out + p0 * CHANNELS + k, CHANNELS, n_px);
+            S[r][k] = 0;
+            bg_dot_g += background[k] * g[r][k];
         }
-        const realv v_T_end = load_row(v_T + p0, 1, n_px) + bg_dot_g;  /* background included */
-        realv T = T_end;
-        for (int i = start + n_max - 1; i >= start; --i) {
-            const int slot = sorted_slots[i];
-            const int gid = slot_gaussian[slot];
-            const real mx = means2d[2 * gid], my = means2d[2 * gid + 1];
-            const real A = conics[3 * gid], B = conics[3 * gid + 1], C = conics[3 * gid + 2];
-            const real o = opacities[gid];
-            if (row_culled(mx, my - cy, px0, A, B, C, sigma_cuts[gid]))
+        v_T_end[r] = load_row(v_T + p0, 1, n_px) + bg_dot_g;  /* background included */
+        int tmp_n[16];
+        for (int l = 0; l < 16; ++l) {
+            tmp_n[l] = l < n_px ? n_contrib[p0 + l] : 0;
+            n_max = max(n_max, tmp_n[l]);
+        }
+        n_row[r] = vload16(0, tmp_n);
+    }
+    /* entries behind every pixel's last contributor get no gradient */
+    for (int i = start + n_max; i < end; ++i)
+        for (int k = 0; k < 6 + CHANNELS; ++k)
+            slot_grads[(size_t)sorted_slots[i] * (6 + CHANNELS) + k] = 0;
+
+    for (int i = start + n_max - 1; i >= start; --i) {
+        const int slot = sorted_slots[i];
+        const int gid = slot_gaussian[slot];
+        const entry_t e = load_entry(gid, means2d, conics, opacities, py0, n_rows);
+        const real mx = e.mx, my = e.my, A = e.A, B = e.B, C = e.C, o = e.o;
+        __global const real *f = features + (size_t)gid * CHANNELS;
+        realv v_mean_x = 0, v_mean_y = 0, v_A = 0, v_B = 0, v_C = 0, v_o = 0, v_f[CHANNELS];
+        for (int k = 0; k < CHANNELS; ++k)
+            v_f[k] = 0;
+        for (int r = e.r0; r < e.r1; ++r) {
+            const real cy = py0 + r + (real)0.5;
+            if (row_culled(&e, my - cy, px0))
                 continue;
             ROW_ALPHA(dx, dy, sigma, falloff, alpha);
-            const int16 active = (int16)(i - start) < n_row;
+            const int16 active = (int16)(i - start) < n_row[r];
             const maskv hit = isgreaterequal(sigma, (realv)0) & isgreaterequal(alpha, (realv)(real)ALPHA_MIN)
                               & INT_TO_MASK(active);
             if (!any(hit))
                 continue;
             const realv inv_one_minus = 1 / (1 - alpha);
-            T = select(T, T * inv_one_minus, hit);
-            const realv w = select((realv)0, alpha * T, hit);
-            __global const real *f = features + (size_t)gid * CHANNELS;
-            __global real *row = slot_grads + (size_t)slot * (6 + CHANNELS);
-            realv v_alpha = -T_end * inv_one_minus * v_T_end;
+            T[r] = select(T[r], T[r] * inv_one_minus, hit);
+            const realv w = select((realv)0, alpha * T[r], hit);
+            realv v_alpha = -T_end[r] * inv_one_minus * v_T_end[r];
             for (int k = 0; k < CHANNELS; ++k) {
-                row[6 + k] += hsum(w * g[k]);
-                v_alpha += (f[k] * T - S[k] * inv_one_minus) * g[k];
-                S[k] += f[k] * w;
+                v_f[k] += w * g[r][k];
+                v_alpha += (f[k] * T[r] - S[r][k] * inv_one_minus) * g[r][k];
+                S[r][k] += f[k] * w;
             }
             /* clamped alpha (o exp(-sigma) > ALPHA_MAX): no gradient to opacity or shape */
             const maskv free = hit & islessequal(o * falloff, (realv)(real)ALPHA_MAX);
             const realv v_sigma = select((realv)0, -o * falloff * v_alpha, free);
-            row[0] += hsum(v_sigma * (A * dx + B * dy));
-            row[1] += hsum(v_sigma * (B * dx + C * dy));
-            row[2] += hsum(v_sigma * (real)0.5 * dx * dx);
-            row[3] += hsum(v_sigma * dx * dy);
-            row[4] += hsum(v_sigma * (real)0.5 * dy * dy);
-            row[5] += hsum(select((realv)0, falloff * v_alpha, free));
+            v_mean_x += v_sigma * (A * dx + B * dy);
+            v_mean_y += v_sigma * (B * dx + C * dy);
+            v_A += v_sigma * (real)0.5 * dx * dx;
+            v_B += v_sigma * dx * dy;
+            v_C += v_sigma * (real)0.5 * dy * dy;
+            v_o += select((realv)0, falloff * v_alpha, free);
         }
+        __global real *row = slot_grads + (size_t)slot * (6 + CHANNELS);
+        row[0] = hsum(v_mean_x);
+        row[1] = hsum(v_mean_y);
+        row[2] = hsum(v_A);
+        row[3] = hsum(v_B);
+        row[4] = hsum(v_C);
+        row[5] = hsum(v_o);
+        for (int k = 0; k < CHANNELS; ++k)
+            row[6 + k] = hsum(v_f[k]);
     }
 }
 

@@ -28,12 +28,17 @@ def assert_close(a, b, tol):
         dict(n=30, seed=0),
         # opaque and overlapping: exercises the ALPHA_MAX clamp and the T_MIN stop
         dict(n=60, seed=1, opacity=(0.9, 1.0), spread=0.15),
-        # Gaussians near and beyond the image border and partly behind the near plane
+        # Gaussians near and beyond the image border, where J's x/z, y/z are clamped
         dict(n=40, seed=2, spread=2.6),
+        # some Gaussians behind the camera or the near plane, some in front
+        dict(n=40, seed=3, spread=1.0, depth_shift=-2.5),
     ],
 )
 def test_forward_matches_reference_float64(scene):
+    scene = dict(scene)
+    shift = scene.pop("depth_shift", 0.0)
     means, quats, scales, opacities, colors = random_scene(**scene)
+    means[:, 2] += shift
     viewmat, K = camera(W, H, 30.0)
     flow = torch.randn(means.shape[0], 2, dtype=torch.float64)
     background = torch.tensor([0.2, 0.3, 0.4, -1.0, 0.5], dtype=torch.float64)
@@ -49,6 +54,8 @@ def test_forward_matches_reference_float64(scene):
     assert_close(alpha, r_alpha, 1e-9)
     assert_close(depth, r_depth, 1e-9)
     assert alpha.max() > 0.5  # the scene is really seen
+    if shift:
+        assert 0 < int((meta["radii"] == 0).sum()) < means.shape[0]  # some culled, some seen
     if scene["seed"] == 1:
         assert alpha.max() > 1 - 2e-4  # some pixel stopped at T_MIN
 

@@ -81,11 +81,12 @@ def test_gradcheck_sh_coefficients_and_rotations():
     assert torch.autograd.gradcheck(f, inputs, **GRADCHECK)
 
 
-@pytest.mark.parametrize("seed,opacity", [(5, (0.2, 0.9)), (6, (0.9, 1.0))])
-def test_gradients_match_reference_autograd(seed, opacity):
+@pytest.mark.parametrize("seed,opacity,spread", [(5, (0.2, 0.9), 0.3), (6, (0.9, 1.0), 0.3), (11, (0.2, 0.9), 2.6)])
+def test_gradients_match_reference_autograd(seed, opacity, spread):
     """Kernel adjoint vs torch autograd through the dense reference, including opaque,
-    overlapping scenes where alpha clamps and compositing stops early."""
-    means, quats, scales, opacities, colors = random_scene(30, seed, opacity=opacity, spread=0.3)
+    overlapping scenes where alpha clamps and compositing stops early, and a wide one whose
+    Gaussians past 1.3 x the field of view have J evaluated at the clamped x/z, y/z."""
+    means, quats, scales, opacities, colors = random_scene(30, seed, opacity=opacity, spread=spread)
     viewmat, K = camera(40, 36, 30.0)
     inputs = [t.clone().requires_grad_() for t in (means, quats, scales, opacities, colors)]
     grads = []

@@ -95,3 +95,33 @@ def test_tile_lists_hold_each_tiles_gaussians_front_to_back():
 def test_image_size_not_a_multiple_of_the_tile_size():
     img, alpha, _, _ = render(width=TILE_SIZE + 1, height=3)
     assert img.shape == (3, TILE_SIZE + 1, 3) and torch.isfinite(img).all()
+
+
+def test_bench_raster_command_runs_on_a_small_scene():
+    from click.testing import CliRunner
+
+    from clflow_cli.main import cli
+
+    result = CliRunner().invoke(cli, ["bench", "raster", "-n", "2000", "--size", "64", "--repeat", "1"])
+    assert result.exit_code == 0, result.output
+    assert "tile entries" in result.output and "forward:" in result.output and "backward:" in result.output
+
+
+@pytest.mark.parametrize("dtype,scale,radius", [(torch.float64, 1e12, 1 << 24), (torch.float32, 1e18, 0)])
+def test_huge_gaussians_are_capped_or_culled_never_undefined(dtype, scale, radius):
+    """A radius past MAX_RADIUS is capped (the box covers the image); a covariance whose
+    2D projection overflows float32 (det is not finite) is culled."""
+    means, quats, scales, opacities, colors = (t.to(dtype) for t in random_scene(3, seed=2))
+    scales[0] = scale
+    viewmat, K = camera(W, H, 30.0, dtype=dtype)
+    img, alpha, depth, meta = rasterize_gaussians(means, quats, scales, opacities, colors, viewmat, K, W, H)
+    assert int(meta["radii"][0]) == radius
+    assert torch.isfinite(img).all() and torch.isfinite(depth).all()
+
+
+def test_tile_lists_past_the_memory_bound_raise(monkeypatch):
+    import clflow.splat.binning as binning
+
+    monkeypatch.setattr(binning, "MAX_TILE_ENTRIES", 3)
+    with pytest.raises(InputError, match=r"\(tile, Gaussian\) pairs, more than the bound 3"):
+        render()
