@@ -6,6 +6,14 @@ PARTICLES_PER_AXIS = 64  # 64^3 = 262,144 particles: a cube of 32^3 cells at 2^3
 GRID = 64
 
 
+def _cpu_seconds() -> float:
+    """CPU time of this process and its threads (the OpenCL driver's workers included)."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
 @click.command("mpm")
 @click.option("--substeps", default=10, show_default=True, help="Timed substeps per material.")
 @click.option("--particles-per-axis", default=PARTICLES_PER_AXIS, show_default=True,
@@ -16,7 +24,10 @@ GRID = 64
 @click.pass_context
 def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double):
     """Particle-substeps per second of each material on a cube of particles under gravity,
-    and the memory per particle."""
+    and the memory per particle. Also per CPU-second: on a machine shared with other jobs the
+    wall-clock figure understates what the device does when it has its cores to itself."""
+    import logging
+    import os
     import time
 
     import torch
@@ -33,19 +44,22 @@ def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double):
     x = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
     n = x.shape[0]
     names = list(materials) or list(MATERIALS)
-    click.echo(f"device: {device.info.label if device else 'default'}; {n:,} particles, grid {grid_res}^3, "
+    logging.getLogger("pyopencl").setLevel(logging.WARNING)  # no build chatter between rows
+    load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
+    click.echo(f"load average before the run: {load} (figures scale down on a shared machine)")
+    p2g = "private grid copies" if (device.info.type if device else "CPU") == "CPU" else "atomics"
+    click.echo(f"device: {device.info.label if device else 'default'} (P2G: {p2g}); {n:,} particles, grid {grid_res}^3, "
                f"{'float64' if double else 'float32'}, {substeps} timed substeps")
     for name in names:
-        sim = Simulator(x, h**3, MaterialSpec(name), Grid((grid_res,) * 3, dx), frame_dt=1e-3, substeps=10,
+        sim = Simulator(x, h**3, MaterialSpec(name), Grid((grid_res,) * 3, dx), frame_dt=1e-3,
                         dtype=dtype, device=device)
         sim.step()  # builds kernels and warms the caches
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), _cpu_seconds()
         for _ in range(substeps):
             sim.step()
-        elapsed = time.perf_counter() - start
-        rate = n * substeps / elapsed
-        click.echo(f"{name:14s} {rate / 1e6:7.2f} M particle-substeps/s  ({elapsed / substeps * 1e3:7.1f} ms/substep, "
-                   f"p2g={sim.kernels.p2g})")
+        elapsed, cpu = time.perf_counter() - start, _cpu_seconds() - cpu_start
+        click.echo(f"{name:14s} {n * substeps / elapsed / 1e6:7.2f} M particle-substeps/s  "
+                   f"({elapsed / substeps * 1e3:6.1f} ms/substep; {n * substeps / cpu / 1e6:5.2f} M per CPU-second)")
     itemsize = torch.tensor([], dtype=dtype).element_size()
     state = 3 + 3 + 9 + 9 + 1  # x, v, C, F, plastic
     per_particle = (2 * state + 9 + 2 + 5 + 1) * itemsize + 3 * 4  # two states, tau, mass+volume,

@@ -8,7 +8,6 @@
 
 from __future__ import annotations
 
-import logging
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -22,8 +21,6 @@ from clflow.mpm.boundaries import DriverGroups, Force, GridCondition, boundary_t
 from clflow.mpm.constants import CLAMP_MARGIN, COLLIDER_MODES, MASS_EPS_REL, kernel_params, wave_speed
 from clflow.mpm.substep import Grid, P2GMode, Particles, State, SubstepKernels
 from clflow.runtime import Device, get_device
-
-log = logging.getLogger(__name__)
 
 CFL_NUMBER = 0.3  # dt <= CFL_NUMBER dx / max|v|
 WAVE_NUMBER = 0.5  # dt <= WAVE_NUMBER dx / c, c the fastest elastic wave speed
@@ -72,6 +69,43 @@ def _as_tensor(value, shape: tuple[int, ...], what: str, dtype: torch.dtype) -> 
     if not bool(torch.isfinite(t).all()):
         raise InputError(f"{what} contains NaN or inf")
     return t.to(dtype, copy=True).contiguous()  # never alias the caller's tensor
+
+
+def _material_arrays(materials, material_index, n: int, dtype: torch.dtype):
+    """Per-particle kernel material ids [N] int32, kernel parameters [N, PARAM_COUNT],
+    densities [N] (kg/m^3, float64), initial plastic state [N], and (name, wave speed m/s)
+    of each material spec."""
+    specs = [materials] if isinstance(materials, MaterialSpec) else list(materials)
+    if not specs:
+        raise InputError("materials: give at least one MaterialSpec")
+    if material_index is None:
+        if len(specs) > 1:
+            raise InputError(f"{len(specs)} materials given: pass material_index [N] to assign them")
+        index = torch.zeros(n, dtype=torch.long)
+    else:
+        index = torch.as_tensor(material_index).long()
+        if index.shape != (n,):
+            raise InputError(f"material_index: expected shape [{n}], got {list(index.shape)}")
+        if int(index.min()) < 0 or int(index.max()) >= len(specs):
+            raise InputError(f"material_index values must lie in [0, {len(specs)}), got "
+                             f"[{int(index.min())}, {int(index.max())}]")
+    rows, densities, plastic0, wave_speeds = [], [], [], []
+    for k, spec in enumerate(specs):
+        mat = get_material(spec.name)
+        rho = DENSITY.check(mat.default_density if spec.density is None else spec.density, f"materials[{k}]")
+        mid, values, plastic = kernel_params(mat.name, spec.params, spec.model)
+        rows.append([mid] + values)
+        densities.append(rho)
+        plastic0.append(plastic)
+        wave_speeds.append((mat.name, wave_speed(mat.name, spec.params, rho)))
+    table = torch.tensor(rows, dtype=torch.float64)[index]
+    return (
+        table[:, 0].to(torch.int32).contiguous(),
+        table[:, 1:].to(dtype).contiguous(),
+        torch.tensor(densities, dtype=torch.float64)[index],
+        torch.tensor(plastic0, dtype=dtype)[index].contiguous(),
+        wave_speeds,
+    )
 
 
 class Simulator:
@@ -137,33 +171,8 @@ class Simulator:
         if not bool((vol > 0).all()):
             raise InputError("volume: every particle volume must be > 0 m^3")
 
-        specs = [materials] if isinstance(materials, MaterialSpec) else list(materials)
-        if not specs:
-            raise InputError("materials: give at least one MaterialSpec")
-        if material_index is None:
-            if len(specs) > 1:
-                raise InputError(f"{len(specs)} materials given: pass material_index [N] to assign them")
-            index = torch.zeros(n, dtype=torch.long)
-        else:
-            index = torch.as_tensor(material_index).long()
-            if index.shape != (n,):
-                raise InputError(f"material_index: expected shape [{n}], got {list(index.shape)}")
-            if int(index.min()) < 0 or int(index.max()) >= len(specs):
-                raise InputError(f"material_index values must lie in [0, {len(specs)}), got "
-                                 f"[{int(index.min())}, {int(index.max())}]")
-        rows, densities, plastic0, self.wave_speeds = [], [], [], []
-        for k, spec in enumerate(specs):
-            mat = get_material(spec.name)
-            rho = DENSITY.check(mat.default_density if spec.density is None else spec.density, f"materials[{k}]")
-            mid, values, plastic = kernel_params(mat.name, spec.params, spec.model)
-            rows.append([mid] + values)
-            densities.append(rho)
-            plastic0.append(plastic)
-            self.wave_speeds.append((mat.name, wave_speed(mat.name, spec.params, rho)))
-        table = torch.tensor(rows, dtype=torch.float64)
-        material = table[index, 0].to(torch.int32).contiguous()
-        param = table[index, 1:].to(dtype).contiguous()
-        mass = vol * torch.tensor(densities, dtype=torch.float64)[index]
+        material, param, density, plastic0, self.wave_speeds = _material_arrays(materials, material_index, n, dtype)
+        mass = vol * density
 
         self.drivers = DriverGroups(forces, x.double(), mass)
         if release_times is None:
@@ -179,8 +188,7 @@ class Simulator:
             mass_eps=MASS_EPS_REL * float(mass.min()),
         )
         eye = torch.eye(3, dtype=dtype).expand(n, 3, 3).contiguous()
-        self.state = State(x, v, torch.zeros(n, 3, 3, dtype=dtype), eye,
-                           torch.tensor(plastic0, dtype=dtype)[index].contiguous())
+        self.state = State(x, v, torch.zeros(n, 3, 3, dtype=dtype), eye, plastic0)
         self._next = self.state.empty_like()
 
         conditions = list(boundaries)

@@ -17,12 +17,13 @@ from typing import Literal
 import numpy as np
 import torch
 
-from clflow.mpm.constants import kernel_defines
+from clflow.mpm.constants import MATERIAL_IDS, kernel_defines
 from clflow.runtime.devices import Device
 
 P2GMode = Literal["auto", "private", "atomic"]
 MAX_GRID_COPIES = 16  # private P2G grids at most (memory: copies x nodes x 4 reals)
 GRID_COPY_BUDGET = 1 << 30  # bytes all private grid copies may take together
+SIMD_LANES = 8  # particles per work-item of the all-elastic stress kernel
 
 
 @dataclass(frozen=True)
@@ -96,10 +97,15 @@ class SubstepKernels:
             p2g = "private" if device.info.type == "CPU" else "atomic"
         self.p2g = p2g
         defines = kernel_defines()
-        # only the constitutive models of the materials present are compiled in
-        defines["MATERIALS_PRESENT"] = sum(1 << int(m) for m in torch.unique(materials))
-        k = lambda src, name: device.kernel(src, name, self.real, defines)  # noqa: E731
-        self.k_stress = k("mpm/stress.cl", "update_stress")
+        k = lambda src, name, extra={}: device.kernel(src, name, self.real, {**defines, **extra})  # noqa: E731
+        present = [int(m) for m in torch.unique(materials)]
+        # all fixed-corotated elastic: SIMD_LANES particles per work-item in vector registers;
+        # otherwise one particle per work-item, with only the models present compiled in
+        self.stress_lanes = SIMD_LANES if present == [MATERIAL_IDS["elastic"]] else 1
+        if self.stress_lanes > 1:
+            self.k_stress = k("mpm/stress.cl", "update_stress_elastic_simd", {"CLFLOW_SIMD_LANES": SIMD_LANES})
+        else:
+            self.k_stress = k("mpm/stress.cl", "update_stress", {"MATERIALS_PRESENT": sum(1 << m for m in present)})
         self.k_grid = k("mpm/grid.cl", "grid_update")
         self.k_g2p = k("mpm/g2p.cl", "g2p")
         itemsize = torch.tensor([], dtype=dtype).element_size()
@@ -140,12 +146,13 @@ class SubstepKernels:
             x, v, C = b.input(state.x, "x"), b.input(state.v, "v"), b.input(state.C, "C")
             tau = b.inout(self.tau, "tau")
             grid_mv, grid_v = b.inout(self.grid_mv, "grid"), b.inout(self.grid_v, "grid_v")
+            material = [] if self.stress_lanes > 1 else [b.input(particles.material, "material")]
             dev.launch(
                 self.k_stress,
-                self.n,
-                [n, R(dt), b.input(state.F, "F"), C, b.input(state.plastic, "plastic"),
-                 b.input(particles.material, "material"), b.input(particles.param, "param"),
-                 b.output(out.F, "F_out"), b.output(out.plastic, "plastic_out"), tau],
+                -(-self.n // self.stress_lanes),
+                [n, R(dt), b.input(state.F, "F"), C, b.input(state.plastic, "plastic"), *material,
+                 b.input(particles.param, "param"), b.output(out.F, "F_out"), b.output(out.plastic, "plastic_out"),
+                 tau],
             )
             p2g_args = [n, R(dt), x, v, C, tau, b.input(particles.mass, "mass"),
                         b.input(particles.volume, "volume"), b.input(particles.group, "group"),

@@ -16,6 +16,17 @@
 #include "mpm/materials/snow.h"
 #include "mpm/materials/viscoplastic.h"
 
+/* F_tr = (I + dt C) F for T = real, and realv with CLFLOW_SIMD_LANES */
+#define DEFINE_TRIAL_DEFORMATION(SFX, T)                                                     \
+    inline void trial_deformation##SFX(const T *F, const T *C, const real dt, T *F_tr)      \
+    {                                                                                       \
+        T step[9];                                                                          \
+        for (int k = 0; k < 9; ++k)                                                         \
+            step[k] = dt * C[k] + ((k % 4 == 0) ? (T)1 : (T)0);                             \
+        mat3_mul##SFX(step, F, F_tr);                                                       \
+    }
+DEFINE_TRIAL_DEFORMATION(, real)
+
 __kernel void update_stress(const int n, const real dt, __global const real *F_in,
                             __global const real *C_in, __global const real *plastic_in,
                             __global const int *material, __global const real *param,
@@ -24,12 +35,10 @@ __kernel void update_stress(const int n, const real dt, __global const real *F_i
     const int p = get_global_id(0);
     if (p >= n)
         return;
-    real F[9], C[9], F_tr[9], F_new[9], tau[9], step[9];
+    real F[9], C[9], F_tr[9], F_new[9], tau[9];
     load_row(F_in, p, 9, F);
     load_row(C_in, p, 9, C);
-    for (int k = 0; k < 9; ++k)
-        step[k] = dt * C[k] + ((k % 4 == 0) ? (real)1 : (real)0);
-    mat3_mul(step, F, F_tr);
+    trial_deformation(F, C, dt, F_tr);
     __global const real *q = param + (long)p * PARAM_COUNT;
     const real plastic = plastic_in[p];
     real plastic_new = plastic;
@@ -86,3 +95,40 @@ __kernel void update_stress(const int n, const real dt, __global const real *F_i
     plastic_out[p] = plastic_new;
     store_row(tau_out, p, 9, tau);
 }
+
+#ifdef CLFLOW_SIMD_LANES
+DEFINE_TRIAL_DEFORMATION(_v, realv)
+
+/* update_stress for scenes whose particles are all fixed-corotated elastic (the common
+ * case): CLFLOW_SIMD_LANES consecutive particles per work-item, one per vector lane, so the
+ * SVD runs in SIMD registers. Same equations as update_stress. */
+__kernel void update_stress_elastic_simd(const int n, const real dt, __global const real *F_in,
+                                         __global const real *C_in, __global const real *plastic_in,
+                                         __global const real *param, __global real *F_out,
+                                         __global real *plastic_out, __global real *tau_out)
+{
+    const int p0 = get_global_id(0) * CLFLOW_SIMD_LANES;
+    if (p0 >= n)
+        return;
+    realv F[9], C[9], F_tr[9], tau[9], mu, lambda;
+    for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) {
+        const int p = min(p0 + l, n - 1); /* lanes past the end repeat the last particle */
+        for (int k = 0; k < 9; ++k) {
+            ((real *)&F[k])[l] = F_in[9 * p + k];
+            ((real *)&C[k])[l] = C_in[9 * p + k];
+        }
+        ((real *)&mu)[l] = param[(long)p * PARAM_COUNT];
+        ((real *)&lambda)[l] = param[(long)p * PARAM_COUNT + 1];
+    }
+    trial_deformation_v(F, C, dt, F_tr);
+    elastic_stress_v(F_tr, mu, lambda, tau);
+    for (int l = 0; l < CLFLOW_SIMD_LANES && p0 + l < n; ++l) {
+        const int p = p0 + l;
+        for (int k = 0; k < 9; ++k) {
+            F_out[9 * p + k] = ((real *)&F_tr[k])[l];
+            tau_out[9 * p + k] = ((real *)&tau[k])[l];
+        }
+        plastic_out[p] = plastic_in[p];
+    }
+}
+#endif

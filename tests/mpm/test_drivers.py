@@ -1,6 +1,5 @@
 """Boundary conditions and drivers: colliders, velocity regions, forces, release, rotation."""
 
-import math
 
 import pytest
 import torch

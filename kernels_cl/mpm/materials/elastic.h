@@ -7,28 +7,34 @@
 
 #include "common/svd3.h"
 
-inline void fixed_corotated_tau(const real *F, const real *U, const real *s, const real *V,
-                                const real mu, const real lambda, real *tau)
-{
-    const real ones[3] = {1, 1, 1};
-    real R[9], F_minus_R[9];
-    mat3_udvt(U, ones, V, R);
-    for (int k = 0; k < 9; ++k)
-        F_minus_R[k] = F[k] - R[k];
-    mat3_mul_bt(F_minus_R, F, tau);
-    const real J = s[0] * s[1] * s[2];
-    for (int k = 0; k < 9; ++k)
-        tau[k] *= 2 * mu;
-    for (int a = 0; a < 3; ++a)
-        tau[4 * a] += lambda * (J - 1) * J;
+#define CLFLOW_DEFINE_FIXED_COROTATED(SFX, T) \
+inline void fixed_corotated_tau##SFX(const T *F, const T *U, const T *s, const T *V, const T mu,  \
+                                    const T lambda, T *tau)                                       \
+{                                                                                                 \
+    const T ones[3] = {(T)1, (T)1, (T)1};                                                         \
+    T R[9], F_minus_R[9];                                                                         \
+    mat3_udvt##SFX(U, ones, V, R);                                                                \
+    for (int k = 0; k < 9; ++k)                                                                   \
+        F_minus_R[k] = F[k] - R[k];                                                               \
+    mat3_mul_bt##SFX(F_minus_R, F, tau);                                                          \
+    const T J = s[0] * s[1] * s[2];                                                               \
+    for (int k = 0; k < 9; ++k)                                                                   \
+        tau[k] *= 2 * mu;                                                                         \
+    for (int a = 0; a < 3; ++a)                                                                   \
+        tau[4 * a] += lambda * (J - 1) * J;                                                       \
+}                                                                                                 \
+                                                                                                  \
+inline void elastic_stress##SFX(const T *F, const T mu, const T lambda, T *tau)                   \
+{                                                                                                 \
+    T U[9], s[3], V[9];                                                                           \
+    svd3##SFX(F, U, s, V);                                                                        \
+    fixed_corotated_tau##SFX(F, U, s, V, mu, lambda, tau);                                        \
 }
 
-inline void elastic_stress(const real *F, const real mu, const real lambda, real *tau)
-{
-    real U[9], s[3], V[9];
-    svd3(F, U, s, V);
-    fixed_corotated_tau(F, U, s, V, mu, lambda, tau);
-}
+CLFLOW_DEFINE_FIXED_COROTATED(, real)
+#ifdef CLFLOW_SIMD_LANES
+CLFLOW_DEFINE_FIXED_COROTATED(_v, realv)
+#endif
 
 inline void neo_hookean_stress(const real *F, const real mu, const real lambda, real *tau)
 {
