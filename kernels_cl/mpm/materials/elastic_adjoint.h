@@ -32,7 +32,7 @@ inline void fixed_corotated_adjoint(const real *F, const real *U, const real *s,
     svd3_isotropic_adjoint(U, V, zeros, zeros, mean, R_bar, F_bar);
     mat3_cofactor(F, cof);
     const real J = s[0] * s[1] * s[2];
-    const real trace_bar = mat3_trace(tau_bar);
+    const real trace_bar = trace3(tau_bar);
     real energy = 0; /* <taubar, (F - R) F^T> */
     for (int r = 0; r < 3; ++r)
         for (int c = 0; c < 3; ++c) {
@@ -63,7 +63,7 @@ inline void neo_hookean_stress_adjoint(const real *F, const real mu, const real 
     const real det = mat3_det(F);
     const real floor_J = (real)(HENCKY_S_MIN * HENCKY_S_MIN * HENCKY_S_MIN);
     const real J = fmax(det, floor_J);
-    const real trace_bar = mat3_trace(tau_bar);
+    const real trace_bar = trace3(tau_bar);
     real sym[9], sym_F[9], FFt[9], cof[9];
     for (int r = 0; r < 3; ++r)
         for (int c = 0; c < 3; ++c)
