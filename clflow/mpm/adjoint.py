@@ -15,19 +15,13 @@ gathers), so gradients are bit-identical across runs.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from clflow.errors import InputError
-from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, kernel_defines
+from clflow.mpm.constants import kernel_defines
 from clflow.mpm.substep import GRID_COPY_BUDGET, MAX_GRID_COPIES, Grid, Particles, State, SubstepKernels
-
-# kernel materials whose stress has an adjoint
-ADJOINT_MATERIALS = ("elastic", "neo_hookean", "plasticine", "metal", "foam", "sand", "newtonian", "non_newtonian",
-                     "snow")
-
 
 @dataclass
 class StateGrad:
@@ -45,11 +39,6 @@ class StateGrad:
                          torch.zeros(n, 3, 3, dtype=dtype), torch.zeros(n, 3, 3, dtype=dtype),
                          torch.zeros(n, dtype=dtype))
 
-    def zero_(self) -> "StateGrad":
-        for f in fields(self):
-            getattr(self, f.name).zero_()
-        return self
-
 
 @dataclass
 class SubstepTape:
@@ -64,16 +53,6 @@ class SubstepTape:
     def empty(n: int, nodes: int, dtype: torch.dtype) -> "SubstepTape":
         return SubstepTape(torch.empty(n, 3, 3, dtype=dtype), torch.empty(nodes, 4, dtype=dtype),
                            torch.empty(nodes, 3, dtype=dtype))
-
-
-def check_adjoint_materials(materials: torch.Tensor) -> None:
-    """Raise :class:`InputError` if a particle's kernel material has no adjoint yet."""
-    supported = {MATERIAL_IDS[m] for m in ADJOINT_MATERIALS}
-    names = {i: name for name, i in MATERIAL_IDS.items()}
-    missing = sorted(names[int(m)] for m in torch.unique(materials) if int(m) not in supported)
-    if missing:
-        raise InputError(f"no adjoint for material(s) {', '.join(missing)} yet; differentiable "
-                         f"materials: {', '.join(ADJOINT_MATERIALS)}")
 
 
 def run_recorded(kernels: SubstepKernels, tape: SubstepTape, state: State, out: State, *args) -> None:
@@ -93,7 +72,6 @@ class SubstepAdjoint:
     def __init__(self, device, dtype: torch.dtype, n: int, grid: Grid, materials: torch.Tensor):
         import pyopencl as cl
 
-        check_adjoint_materials(materials)
         self.device, self.dtype, self.n, self.grid = device, dtype, n, grid
         real = "double" if dtype == torch.float64 else "float"
         self.real_t = np.float64 if dtype == torch.float64 else np.float32
@@ -167,5 +145,4 @@ class SubstepAdjoint:
                 b.inout(param_grad, "param_bar")])
 
 
-__all__ = ["ADJOINT_MATERIALS", "PARAM_COUNT", "StateGrad", "SubstepAdjoint", "SubstepTape",
-           "check_adjoint_materials", "run_recorded"]
+__all__ = ["StateGrad", "SubstepAdjoint", "SubstepTape", "run_recorded"]

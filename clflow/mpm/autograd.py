@@ -32,10 +32,10 @@ import torch
 
 from clflow.errors import InputError
 from clflow.materials import lame_parameters
-from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, SubstepTape, check_adjoint_materials, run_recorded
+from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, SubstepTape, run_recorded
 from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT
 from clflow.mpm.simulator import CFL_NUMBER, SimulationError, Simulator, StabilityWarning
-from clflow.mpm.substep import Particles, State, SubstepKernels
+from clflow.mpm.substep import State, SubstepKernels
 from clflow.runtime.reduction import sum_rows
 
 
@@ -54,7 +54,6 @@ class _Engine:
 
     def __init__(self, sim: Simulator):
         n, materials = sim.n, sim.particles.material
-        check_adjoint_materials(materials)
         self.forward = SubstepKernels(sim.device, sim.dtype, n, sim.grid, materials, sim.kernels.p2g)
         self.adjoint = SubstepAdjoint(sim.device, sim.dtype, n, sim.grid, materials)
 
@@ -246,8 +245,7 @@ def simulate(
     Every keyword may be a tensor that requires grad; None keeps the simulator's value.
 
     Args:
-        simulator: a :class:`Simulator` whose particles all use a material with an adjoint
-            (clflow.mpm.adjoint.ADJOINT_MATERIALS). It is not advanced.
+        simulator: the :class:`Simulator` (any materials, boundaries, drivers); it is not advanced.
         frames: number of output frames (each ``simulator.substeps`` substeps).
         youngs_modulus: E (Pa), global (0-d) or per particle [N].
         poissons_ratio: nu, global or [N] (materials with Lame parameters: LAME_MATERIALS).
