@@ -71,10 +71,12 @@ def _engine(sim: Simulator) -> _Engine:
 class _Run:
     """One differentiable run: its settings, and the checkpoints its forward leaves for backward."""
 
-    def __init__(self, sim: Simulator, frames: int, substeps: int, strict_cfl: bool = False):
+    def __init__(self, sim: Simulator, frames: int, substeps: int, memory_budget: int | None = None,
+                 strict_cfl: bool = False):
         self.sim, self.frames, self.engine, self.strict_cfl = sim, frames, _engine(sim), strict_cfl
         self.t0, self.substeps = sim.time, substeps
         self.dt = sim.frame_dt / substeps
+        self.segment = replay_segment(sim.n, sim.grid.nodes, frames, substeps, sim.dtype, memory_budget)
 
     def time(self, frame: int, substep: int) -> float:
         return self.t0 + (frame * self.substeps + substep) * self.dt
@@ -129,12 +131,17 @@ class _Run:
 
     def backward(self, grad_x, grad_v, grad_F):
         sim, n, S, dtype = self.sim, self.sim.n, self.substeps, self.sim.dtype
+        k = self.segment
         adjoint = self.engine.adjoint
         grad, spare = StateGrad.zeros(n, dtype), StateGrad.zeros(n, dtype)
         param_grad = torch.zeros_like(self.particles.param)
         mass_grad = torch.zeros_like(self.particles.mass)
-        states = [None] + [sim.state.empty_like() for _ in range(S)]
-        tapes = [SubstepTape.empty(n, sim.grid.nodes, dtype) for _ in range(S)]
+        states = [None] + [sim.state.empty_like() for _ in range(k)]
+        tapes = [SubstepTape.empty(n, sim.grid.nodes, dtype) for _ in range(k)]
+        starts = list(range(0, S, k))  # first substep of each segment
+        # second level (only when a frame's replay exceeds the budget): segment start states
+        segment_states = [sim.state.empty_like() for _ in starts[1:]]
+        scratch = [states[1], sim.state.empty_like()] if segment_states else []
 
         def add_output_grads(frame: int) -> None:
             for g, acc in ((grad_x, grad.x), (grad_v, grad.v), (grad_F, grad.F)):
@@ -143,29 +150,56 @@ class _Run:
 
         for f in reversed(range(self.frames)):
             add_output_grads(f + 1)
-            states[0] = self.checkpoint(f)
-            for s in range(S):
-                self.substep(states[s], states[s + 1], f, s, tapes[s])
-            for s in reversed(range(S)):
-                t = self.time(f, s)
-                adjoint.run(states[s], states[s + 1], tapes[s], self.particles, t, self.dt, sim.gravity,
-                            sim.boundaries, sim.drivers.accel(t, dtype), grad, spare, param_grad, mass_grad)
-                grad, spare = spare, grad
+            if segment_states:  # replay the frame once, keeping each later segment's first state
+                src = self.checkpoint(f)
+                for s in range(starts[-1]):
+                    dst = segment_states[(s + 1) // k - 1] if (s + 1) % k == 0 else scratch[s % 2]
+                    self.substep(src, dst, f, s)
+                    src = dst
+            for j in reversed(range(len(starts))):
+                states[0] = self.checkpoint(f) if j == 0 else segment_states[j - 1]
+                steps = range(starts[j], min(starts[j] + k, S))
+                for i, s in enumerate(steps):
+                    self.substep(states[i], states[i + 1], f, s, tapes[i])
+                for i, s in reversed(list(enumerate(steps))):
+                    t = self.time(f, s)
+                    adjoint.run(states[i], states[i + 1], tapes[i], self.particles, t, self.dt, sim.gravity,
+                                sim.boundaries, sim.drivers.accel(t, dtype), grad, spare, param_grad, mass_grad)
+                    grad, spare = spare, grad
         add_output_grads(0)
         return param_grad, mass_grad, grad.x, grad.v
 
 
-def memory_estimate(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype) -> int:
+def memory_estimate(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype,
+                    segment: int | None = None) -> int:
     """Bytes a differentiable run of n particles on ``nodes`` grid nodes holds at its peak:
-    (frames + 1) checkpoints and outputs (25 + 15 reals per particle), one frame's replay
-    (substeps states of 25 reals and tau of 9 per particle, grids of 7 reals per node) and
-    the adjoint's own buffers (two state gradients, taubar, parameter and mass gradients;
-    grid adjoints of 7 reals per node)."""
+    (frames + 1) checkpoints and outputs (25 + 15 reals per particle); the replay of
+    ``segment`` substeps at once (default: a whole frame), each a state of 25 reals and tau of
+    9 per particle and grids of 7 reals per node, plus, when segment < substeps, the first
+    state of every later segment and a scratch state (two-level checkpointing); and the
+    adjoint's own buffers (two state gradients, taubar, parameter and mass gradients; grid
+    adjoints of 7 reals per node)."""
     itemsize = torch.tensor([], dtype=dtype).element_size()
+    k = substeps if segment is None else segment
     checkpoints = (frames + 1) * n * (25 + 15)
-    replay = substeps * (n * (25 + 9) + 7 * nodes)
-    adjoint = n * (2 * 24 + 9 + PARAM_COUNT + 1) + 7 * nodes
+    replay = k * (n * (25 + 9) + 7 * nodes) + (n * 25 * (-(-substeps // k)) if k < substeps else 0)
+    adjoint = n * (2 * 25 + 9 + PARAM_COUNT + 1) + 7 * nodes
     return itemsize * (checkpoints + replay + adjoint)
+
+
+def replay_segment(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype,
+                   memory_budget: int | None) -> int:
+    """Substeps replayed at once in backward: a whole frame when that fits ``memory_budget``
+    (bytes; None: no limit), else the longest segment that does (two-level checkpointing).
+    InputError when not even one substep at a time fits."""
+    if memory_budget is None or memory_estimate(n, nodes, frames, substeps, dtype) <= memory_budget:
+        return substeps
+    for k in range(substeps - 1, 0, -1):
+        if memory_estimate(n, nodes, frames, substeps, dtype, k) <= memory_budget:
+            return k
+    need = memory_estimate(n, nodes, frames, substeps, dtype, 1)
+    raise InputError(f"memory_budget {memory_budget / 2**20:.1f} MiB is too small for {frames} frames of {n} "
+                     f"particles: the checkpoints and a one-substep replay need {need / 2**20:.1f} MiB")
 
 
 class _Simulate(torch.autograd.Function):
@@ -239,6 +273,7 @@ def simulate(
     yield_stress=None,
     kernel_params=None,
     retries: int = 0,
+    memory_budget: int | None = None,
 ) -> Frames:
     """Differentiable run of ``frames`` frames from the simulator's current state.
 
@@ -258,6 +293,9 @@ def simulate(
             (double the substeps per frame) and run again, at most this many times (a
             StabilityWarning says so). The last attempt raises :class:`SimulationError` on
             NaN/inf and only warns on a CFL violation.
+        memory_budget: bytes the run may hold (see :func:`memory_estimate`); when a whole
+            frame's replay does not fit, backward replays it in shorter segments from
+            intermediate states (two-level checkpointing: one more forward pass per frame).
 
     Returns:
         :class:`Frames` with x, v [frames + 1, N, 3] and F [frames + 1, N, 3, 3].
@@ -311,11 +349,12 @@ def simulate(
     substeps = sim.substeps
     for _ in range(int(retries)):
         try:
-            return Frames(*_Simulate.apply(_Run(sim, int(frames), substeps, True), param, mass, x0, v0))
+            run = _Run(sim, int(frames), substeps, memory_budget, strict_cfl=True)
+            return Frames(*_Simulate.apply(run, param, mass, x0, v0))
         except SimulationError as err:
             warnings.warn(f"{err}; retrying with {2 * substeps} substeps per frame", StabilityWarning, stacklevel=2)
             substeps *= 2
-    return Frames(*_Simulate.apply(_Run(sim, int(frames), substeps), param, mass, x0, v0))
+    return Frames(*_Simulate.apply(_Run(sim, int(frames), substeps, memory_budget), param, mass, x0, v0))
 
 
-__all__ = ["Frames", "memory_estimate", "per_particle", "simulate"]
+__all__ = ["Frames", "memory_estimate", "per_particle", "replay_segment", "simulate"]
