@@ -83,7 +83,7 @@ class _Run:
 
     def substep(self, state: State, out: State, frame: int, s: int, tape: SubstepTape | None = None) -> None:
         sim, t = self.sim, self.time(frame, s)
-        args = (self.particles, t, self.dt, sim.gravity, sim.boundaries, sim.drivers.accel(t, sim.dtype),
+        args = (self.particles, t, self.dt, sim.gravity, sim.boundaries, self.accel(t),
                 self.clamped)
         if tape is None:
             self.engine.forward.run(state, out, *args)
@@ -93,8 +93,18 @@ class _Run:
     def checkpoint(self, frame: int) -> State:
         return State(self.x[frame], self.v[frame], self.C[frame], self.F[frame], self.plastic[frame])
 
-    def forward(self, param, mass, x0, v0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def stages_active(self, t: float) -> torch.Tensor:
+        return torch.tensor([f.start <= t < f.end for f in self.sim.drivers.forces], dtype=torch.float64)
+
+    def accel(self, t: float) -> torch.Tensor:
+        """[groups, 3] driver accelerations (m/s^2) at time t from this run's stage accelerations
+        (the sum of the active stages each group belongs to; see boundaries.DriverGroups)."""
+        drivers = self.sim.drivers
+        return ((drivers.members.double() * self.stages_active(t)) @ self.stage_accel).to(self.sim.dtype).contiguous()
+
+    def forward(self, param, mass, x0, v0, stage_accel) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         sim, T, n = self.sim, self.frames, self.sim.n
+        self.stage_accel = stage_accel.detach().double()
         self.particles = dataclasses.replace(sim.particles, param=param.detach().contiguous(),
                                              mass=mass.detach().contiguous())
         self.clamped = torch.zeros(n, dtype=torch.uint8)
@@ -136,6 +146,9 @@ class _Run:
         grad, spare = StateGrad.zeros(n, dtype), StateGrad.zeros(n, dtype)
         param_grad = torch.zeros_like(self.particles.param)
         mass_grad = torch.zeros_like(self.particles.mass)
+        # driver stages: dt vbar summed per stage over the substeps it is active (P2G adds
+        # m dt a to the momentum, so abar_p = dt vbar_p), reduced over its particles at the end
+        stage_rows = torch.zeros(len(sim.drivers.forces), n, 3, dtype=dtype)
         states = [None] + [sim.state.empty_like() for _ in range(k)]
         tapes = [SubstepTape.empty(n, sim.grid.nodes, dtype) for _ in range(k)]
         starts = list(range(0, S, k))  # first substep of each segment
@@ -164,10 +177,16 @@ class _Run:
                 for i, s in reversed(list(enumerate(steps))):
                     t = self.time(f, s)
                     adjoint.run(states[i], states[i + 1], tapes[i], self.particles, t, self.dt, sim.gravity,
-                                sim.boundaries, sim.drivers.accel(t, dtype), grad, spare, param_grad, mass_grad)
+                                sim.boundaries, self.accel(t), grad, spare, param_grad, mass_grad)
                     grad, spare = spare, grad
+                    for stage in torch.nonzero(self.stages_active(t)).flatten().tolist():
+                        stage_rows[stage] += self.dt * grad.v
         add_output_grads(0)
-        return param_grad, mass_grad, grad.x, grad.v
+        stage_grad = torch.zeros(len(sim.drivers.forces), 3, dtype=dtype)
+        for stage in range(len(sim.drivers.forces)):
+            rows = stage_rows[stage][_stage_members(sim, stage)].contiguous()
+            stage_grad[stage] = sum_rows(rows, sim.device).to(dtype)
+        return param_grad, mass_grad, grad.x, grad.v, stage_grad
 
 
 def memory_estimate(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype,
@@ -204,9 +223,9 @@ def replay_segment(n: int, nodes: int, frames: int, substeps: int, dtype: torch.
 
 class _Simulate(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, run: _Run, param, mass, x0, v0):
+    def forward(ctx, run: _Run, param, mass, x0, v0, stage_accel):
         ctx.run = run
-        x, v, F = run.forward(param, mass, x0, v0)
+        x, v, F = run.forward(param, mass, x0, v0, stage_accel)
         return x.clone(), v.clone(), F.clone()  # the checkpoints stay private to the run
 
     @staticmethod
@@ -271,6 +290,7 @@ def simulate(
     positions=None,
     velocities=None,
     yield_stress=None,
+    stage_accelerations=None,
     kernel_params=None,
     retries: int = 0,
     memory_budget: int | None = None,
@@ -287,6 +307,10 @@ def simulate(
         yield_stress: tau_Y (Pa), global or [N] (YIELD_MATERIALS).
         density: rho (kg/m^3), global or [N]: particle mass = rho x rest volume.
         positions, velocities: initial x [N, 3] (m) and v [N, 3] (m/s).
+        stage_accelerations: [S, 3] acceleration (m/s^2) of each driver stage (the simulator's
+            ``forces``, in order). A stage given as a force F (N) on a region of mass M
+            accelerates it by F / M: pass ``force / region_masses(simulator)[s]`` to
+            differentiate with respect to the force.
         kernel_params: [N, PARAM_COUNT] kernel parameters (clflow.mpm.constants.kernel_params),
             an alternative to youngs_modulus / poissons_ratio.
         retries: NaN/CFL guard: when a frame turns NaN/inf or breaks the CFL limit, halve dt
@@ -346,15 +370,34 @@ def simulate(
             raise InputError(f"{name}: expected shape [{n}, 3], got {list(value.shape)}")
         if not bool(torch.isfinite(value.detach()).all()):
             raise InputError(f"{name} contains NaN or inf")
+    stages = sim.drivers.stage_accel.shape[0]
+    stage_accel = sim.drivers.stage_accel if stage_accelerations is None else torch.as_tensor(stage_accelerations)
+    if tuple(stage_accel.shape) != (stages, 3):
+        raise InputError(f"stage_accelerations: expected shape [{stages}, 3] (one row per force stage), "
+                         f"got {list(stage_accel.shape)}")
+    stage_accel = stage_accel.to(dtype)
     substeps = sim.substeps
     for _ in range(int(retries)):
         try:
             run = _Run(sim, int(frames), substeps, memory_budget, strict_cfl=True)
-            return Frames(*_Simulate.apply(run, param, mass, x0, v0))
+            return Frames(*_Simulate.apply(run, param, mass, x0, v0, stage_accel))
         except SimulationError as err:
             warnings.warn(f"{err}; retrying with {2 * substeps} substeps per frame", StabilityWarning, stacklevel=2)
             substeps *= 2
-    return Frames(*_Simulate.apply(_Run(sim, int(frames), substeps, memory_budget), param, mass, x0, v0))
+    return Frames(*_Simulate.apply(_Run(sim, int(frames), substeps, memory_budget), param, mass, x0, v0, stage_accel))
 
 
-__all__ = ["Frames", "memory_estimate", "per_particle", "replay_segment", "simulate"]
+def _stage_members(simulator: Simulator, stage: int) -> torch.Tensor:
+    """[N] bool: the particles driver stage ``stage`` acts on."""
+    group = simulator.drivers.group.long()
+    return (group >= 0) & simulator.drivers.members[group.clamp(min=0), stage]
+
+
+def region_masses(simulator: Simulator) -> torch.Tensor:
+    """[S] total mass (kg) of the particles each driver stage acts on (float64)."""
+    mass = simulator.particles.mass.double()
+    return torch.stack([mass[_stage_members(simulator, s)].sum() for s in range(len(simulator.drivers.forces))]
+                       ) if simulator.drivers.forces else torch.zeros(0, dtype=torch.float64)
+
+
+__all__ = ["Frames", "memory_estimate", "per_particle", "region_masses", "replay_segment", "simulate"]
