@@ -3,14 +3,15 @@ the hand-written adjoint kernels (clflow/mpm/adjoint.py) over the whole trajecto
 
     sim = Simulator(x0, volume, MaterialSpec("elastic", {...}), grid, dtype=torch.float64)
     E = torch.tensor(2e5, dtype=torch.float64, requires_grad=True)
-    frames = simulate(sim, 10, youngs_modulus=E)      # frames.x [11, N, 3] (m)
+    frames = simulate(sim, 10, params={"youngs_modulus": E})   # frames.x [11, N, 3] (m)
     loss = ((frames.x[-1] - target) ** 2).sum()
     loss.backward()                                   # E.grad: exact trajectory gradient
 
 Checkpointing: forward keeps one state per output frame; backward replays a frame's
 substeps from its checkpoint (recording tau and the grids), then runs their adjoints in
-reverse. Memory, in reals: (frames + 1) N 25 (checkpoints incl. the outputs)
-+ substeps (34 N + 7 nodes) (one frame's replay) + adjoint scratch; see docs/mpm_adjoint.md.
+reverse. Memory, in reals: (frames + 1) N 55 (checkpoints, outputs and their gradients)
++ substeps (34 N + 7 nodes) (one frame's replay) + adjoint scratch (memory_estimate,
+docs/mpm_adjoint.md).
 
 Parameter gradients are per particle; a global parameter (a 0-d tensor) is broadcast to
 the particles with a backward that sums the rows in a fixed order
@@ -31,7 +32,7 @@ from dataclasses import dataclass
 import torch
 
 from clflow.errors import InputError
-from clflow.materials import lame_parameters
+from clflow.materials import get_material, lame_parameters
 from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, SubstepTape, run_recorded
 from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT
 from clflow.mpm.simulator import CFL_NUMBER, SimulationError, Simulator, StabilityWarning
@@ -192,7 +193,8 @@ class _Run:
 def memory_estimate(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype,
                     segment: int | None = None) -> int:
     """Bytes a differentiable run of n particles on ``nodes`` grid nodes holds at its peak:
-    (frames + 1) checkpoints and outputs (25 + 15 reals per particle); the replay of
+    per frame + 1, the checkpoint, the returned x, v, F and their gradients (25 + 15 + 15
+    reals per particle); the replay of
     ``segment`` substeps at once (default: a whole frame), each a state of 25 reals and tau of
     9 per particle and grids of 7 reals per node, plus, when segment < substeps, the first
     state of every later segment and a scratch state (two-level checkpointing); and the
@@ -200,7 +202,7 @@ def memory_estimate(n: int, nodes: int, frames: int, substeps: int, dtype: torch
     adjoints of 7 reals per node)."""
     itemsize = torch.tensor([], dtype=dtype).element_size()
     k = substeps if segment is None else segment
-    checkpoints = (frames + 1) * n * (25 + 15)
+    checkpoints = (frames + 1) * n * (25 + 15 + 15)
     replay = k * (n * (25 + 9) + 7 * nodes) + (n * 25 * (-(-substeps // k)) if k < substeps else 0)
     adjoint = n * (2 * 25 + 9 + PARAM_COUNT + 1) + 7 * nodes
     return itemsize * (checkpoints + replay + adjoint)
@@ -267,29 +269,92 @@ def per_particle(value, n: int, name: str, dtype: torch.dtype, device, trailing:
     return out
 
 
-# kernel materials whose parameter rows start with (mu, lambda), and with tau_Y in column 2
-LAME_MATERIALS = ("elastic", "neo_hookean", "plasticine", "metal", "foam", "sand", "snow")
-YIELD_MATERIALS = ("plasticine", "metal", "foam", "non_newtonian")
+_LAME = ("youngs_modulus", "poissons_ratio")
+# registry parameters of each kernel material, in kernel-column order where they map one to
+# one (clflow.mpm.constants.kernel_params): E, nu -> (mu, lambda); friction_angle -> alpha;
+# non-Newtonian (shear_modulus, bulk_modulus) -> (mu, kappa - 2 mu / 3)
+KERNEL_PARAMETERS: dict[str, tuple[str, ...]] = {
+    "elastic": _LAME,
+    "neo_hookean": _LAME,
+    "plasticine": _LAME + ("yield_stress",),
+    "metal": _LAME + ("yield_stress", "hardening"),
+    "foam": _LAME + ("yield_stress", "viscosity"),
+    "sand": _LAME + ("friction_angle", "cohesion"),
+    "snow": _LAME + ("critical_compression", "critical_stretch", "hardening"),
+    "newtonian": ("viscosity", "bulk_modulus"),
+    "non_newtonian": ("shear_modulus", "bulk_modulus", "yield_stress", "viscosity"),
+}
+_SQRT_2_3 = (2.0 / 3.0) ** 0.5
 
 
-def _require(present: set[int], allowed: tuple[str, ...], what: str) -> None:
+def _registry_values(kernel_material: str, q: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Registry parameters (SI) of particles of one kernel material from their kernel rows q."""
+    names = KERNEL_PARAMETERS[kernel_material]
+    values = {name: q[:, k] for k, name in enumerate(names)}
+    if names[:2] == _LAME:
+        mu, lam = q[:, 0], q[:, 1]
+        values["youngs_modulus"] = mu * (3 * lam + 2 * mu) / (lam + mu)
+        values["poissons_ratio"] = lam / (2 * (lam + mu))
+    if kernel_material == "sand":  # alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi))
+        values["friction_angle"] = torch.rad2deg(torch.asin(3 * q[:, 2] / (2 * _SQRT_2_3 + q[:, 2])))
+    if kernel_material == "non_newtonian":
+        values["bulk_modulus"] = q[:, 1] + 2 * q[:, 0] / 3
+    return values
+
+
+def _kernel_columns(kernel_material: str, values: dict[str, torch.Tensor]) -> list[torch.Tensor]:
+    """Kernel parameter columns (differentiable) from registry values: the inverse of
+    :func:`_registry_values`."""
+    names = KERNEL_PARAMETERS[kernel_material]
+    columns = [values[name] for name in names]
+    if names[:2] == _LAME:
+        columns[0], columns[1] = lame_parameters(values["youngs_modulus"], values["poissons_ratio"])
+    if kernel_material == "sand":
+        sin_phi = torch.sin(torch.deg2rad(values["friction_angle"]))
+        columns[2] = _SQRT_2_3 * 2 * sin_phi / (3 - sin_phi)
+    if kernel_material == "non_newtonian":
+        columns[1] = values["bulk_modulus"] - 2 * values["shear_modulus"] / 3
+    return columns
+
+
+def _material_param_rows(sim: Simulator, params: dict, dtype: torch.dtype) -> torch.Tensor:
+    """[N, PARAM_COUNT] kernel rows with the registry parameters ``params`` (name -> global or
+    per-particle tensor) replacing the simulator's, for every particle whose material has them."""
+    base, n = sim.particles, sim.n
     names = {i: name for name, i in MATERIAL_IDS.items()}
-    wrong = sorted(names[m] for m in present if names[m] not in allowed)
-    if wrong:
-        raise InputError(f"{what}: not a parameter of {', '.join(wrong)} (it applies to {', '.join(allowed)}); "
-                         f"use kernel_params")
+    present = [names[int(m)] for m in torch.unique(base.material)]
+    known = {name for m in present for name in KERNEL_PARAMETERS[m]}
+    unknown = sorted(set(params) - known)
+    if unknown:
+        raise InputError(f"params: {', '.join(unknown)} is not a parameter of the simulated material(s) "
+                         f"{', '.join(present)}; their parameters: {', '.join(sorted(known))}")
+    rows = {name: per_particle(value, n, name, dtype, sim.device) for name, value in params.items()}
+    columns = [base.param[:, k] for k in range(base.param.shape[1])]
+    for kernel_material in present:
+        given = [name for name in KERNEL_PARAMETERS[kernel_material] if name in rows]
+        if not given:
+            continue
+        index = torch.nonzero(base.material == MATERIAL_IDS[kernel_material]).flatten()
+        values = _registry_values(kernel_material, base.param[index].double())
+        registry = get_material("elastic" if kernel_material == "neo_hookean" else kernel_material)
+        for name in given:
+            values[name] = rows[name][index].to(torch.float64)
+            lo, hi = float(values[name].detach().min()), float(values[name].detach().max())
+            registry.param(name).check(lo, "params")
+            registry.param(name).check(hi, "params")
+        for k, column in enumerate(_kernel_columns(kernel_material, values)):
+            columns[k] = columns[k].index_put((index,), column.to(dtype))
+    return torch.stack(columns, 1)
 
 
 def simulate(
     simulator: Simulator,
     frames: int,
     *,
-    youngs_modulus=None,
-    poissons_ratio=None,
+    params=None,
     density=None,
     positions=None,
     velocities=None,
-    yield_stress=None,
     stage_accelerations=None,
     kernel_params=None,
     retries: int = 0,
@@ -302,9 +367,10 @@ def simulate(
     Args:
         simulator: the :class:`Simulator` (any materials, boundaries, drivers); it is not advanced.
         frames: number of output frames (each ``simulator.substeps`` substeps).
-        youngs_modulus: E (Pa), global (0-d) or per particle [N].
-        poissons_ratio: nu, global or [N] (materials with Lame parameters: LAME_MATERIALS).
-        yield_stress: tau_Y (Pa), global or [N] (YIELD_MATERIALS).
+        params: material parameters by registry name (clflow/materials.py, SI units: e.g.
+            "youngs_modulus" Pa, "poissons_ratio", "yield_stress" Pa, "friction_angle" deg,
+            "viscosity" Pa s), each global (0-d) or per particle [N]; a name applies to every
+            particle whose material has it (KERNEL_PARAMETERS); the rest keep their values.
         density: rho (kg/m^3), global or [N]: particle mass = rho x rest volume.
         positions, velocities: initial x [N, 3] (m) and v [N, 3] (m/s).
         stage_accelerations: [S, 3] acceleration (m/s^2) of each driver stage (the simulator's
@@ -312,7 +378,7 @@ def simulate(
             accelerates it by F / M: pass ``force / region_masses(simulator)[s]`` to
             differentiate with respect to the force.
         kernel_params: [N, PARAM_COUNT] kernel parameters (clflow.mpm.constants.kernel_params),
-            an alternative to youngs_modulus / poissons_ratio.
+            an alternative to params.
         retries: NaN/CFL guard: when a frame turns NaN/inf or breaks the CFL limit, halve dt
             (double the substeps per frame) and run again, at most this many times (a
             StabilityWarning says so). The last attempt raises :class:`SimulationError` on
@@ -328,34 +394,17 @@ def simulate(
     if int(frames) < 1:
         raise InputError(f"frames must be >= 1, got {frames}")
     base = sim.particles
-    present = {int(m) for m in torch.unique(base.material)}
-    if kernel_params is not None and (youngs_modulus is not None or poissons_ratio is not None
-                                      or yield_stress is not None):
-        raise InputError("give kernel_params or youngs_modulus/poissons_ratio/yield_stress, not both")
+    if kernel_params is not None and params:
+        raise InputError("give kernel_params or params, not both")
     if kernel_params is not None:
         param = torch.as_tensor(kernel_params)
         if tuple(param.shape) != tuple(base.param.shape):
             raise InputError(f"kernel_params: expected shape {list(base.param.shape)}, got {list(param.shape)}")
         param = param.to(dtype)
+    elif params:
+        param = _material_param_rows(sim, dict(params), dtype)
     else:
-        columns = [base.param[:, k] for k in range(base.param.shape[1])]
-        if youngs_modulus is not None or poissons_ratio is not None:
-            _require(present, LAME_MATERIALS, "youngs_modulus/poissons_ratio")
-            mu0, lam0 = base.param[:, 0], base.param[:, 1]
-            E0 = mu0 * (3 * lam0 + 2 * mu0) / (lam0 + mu0)  # current values, for the one not given
-            nu0 = lam0 / (2 * (lam0 + mu0))
-            E = E0 if youngs_modulus is None else per_particle(youngs_modulus, n, "youngs_modulus", dtype, sim.device)
-            nu = nu0 if poissons_ratio is None else per_particle(poissons_ratio, n, "poissons_ratio", dtype,
-                                                                 sim.device)
-            if bool((E.detach() <= 0).any()) or bool(((nu.detach() <= -1) | (nu.detach() >= 0.5)).any()):
-                raise InputError("youngs_modulus must be > 0 Pa and poissons_ratio in (-1, 0.5)")
-            columns[0], columns[1] = lame_parameters(E, nu)
-        if yield_stress is not None:
-            _require(present, YIELD_MATERIALS, "yield_stress")
-            columns[2] = per_particle(yield_stress, n, "yield_stress", dtype, sim.device)
-            if bool((columns[2].detach() < 0).any()):
-                raise InputError("yield_stress must be >= 0 Pa")
-        param = torch.stack(columns, 1)
+        param = base.param
     if density is not None:
         rho = per_particle(density, n, "density", dtype, sim.device)
         if bool((rho.detach() <= 0).any()):
@@ -400,4 +449,4 @@ def region_masses(simulator: Simulator) -> torch.Tensor:
                        ) if simulator.drivers.forces else torch.zeros(0, dtype=torch.float64)
 
 
-__all__ = ["Frames", "memory_estimate", "per_particle", "region_masses", "replay_segment", "simulate"]
+__all__ = ["KERNEL_PARAMETERS", "Frames", "memory_estimate", "per_particle", "region_masses", "replay_segment", "simulate"]

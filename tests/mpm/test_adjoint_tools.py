@@ -90,10 +90,12 @@ def test_bad_inputs_are_named():
     sim = Simulator(cube(3, 0.4, 0.6), 1e-5, MaterialSpec("elastic"), Grid((16, 16, 16), 1 / 16), substeps=2,
                     frame_dt=1e-3, dtype=torch.float64)
     with pytest.raises(InputError, match="youngs_modulus: expected shape"):
-        simulate(sim, 1, youngs_modulus=torch.ones(5))
+        simulate(sim, 1, params={"youngs_modulus": torch.ones(5)})
+    with pytest.raises(InputError, match="poissons_ratio .* outside the valid range"):
+        simulate(sim, 1, params={"poissons_ratio": torch.tensor(0.5)})
     with pytest.raises(InputError, match="positions: expected shape"):
         simulate(sim, 1, positions=torch.zeros(2, 3))
     with pytest.raises(InputError, match="density must be > 0"):
         simulate(sim, 1, density=torch.tensor(-1.0))
-    with pytest.raises(InputError, match="yield_stress: not a parameter of elastic"):
-        simulate(sim, 1, yield_stress=torch.tensor(100.0))
+    with pytest.raises(InputError, match="yield_stress is not a parameter of the simulated material"):
+        simulate(sim, 1, params={"yield_stress": torch.tensor(100.0)})
