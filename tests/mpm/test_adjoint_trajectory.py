@@ -6,8 +6,10 @@ import torch
 
 from clflow.mpm import Force, Grid, MaterialSpec, Simulator
 from clflow.errors import InputError
-from clflow.mpm.autograd import memory_estimate, region_masses, replay_segment, simulate
-from tests.mpm.scenes import cube
+from clflow.materials import get_material
+from clflow.mpm.autograd import KERNEL_PARAMETERS, memory_estimate, region_masses, replay_segment, simulate
+from clflow.mpm.constants import MATERIAL_IDS
+from tests.mpm.scenes import MATERIAL_CASES, cube
 
 E_TRUE, NU_TRUE, RHO_TRUE, TAU_Y_TRUE = 2e4, 0.3, 800.0, 500.0
 
@@ -185,3 +187,33 @@ def test_driver_force_gradient_matches_central_differences():
     predicted = float((force.grad * direction).sum())
     assert abs(measured - predicted) < 1e-5 * abs(measured)
     assert float(force.grad[1].abs().sum()) > 0  # the second stage (t >= 0.015 s) is reached
+
+
+@pytest.mark.parametrize("material", sorted(MATERIAL_CASES))
+def test_every_material_parameter_matches_central_differences(material):
+    """d loss / d p for every registry parameter p of each material (global), on the swirling
+    block with the parameters of tests/mpm/scenes.py (which make the return mappings active)."""
+    x = cube(6, 0.38, 0.62)
+    c = x - 0.5
+    v = torch.stack([-c[:, 1], c[:, 0], 0.5 * c[:, 2]], 1) * 4.0
+    sim = Simulator(x, (0.24 / 6) ** 3, MaterialSpec(material, MATERIAL_CASES[material], density=RHO_TRUE),
+                    Grid((16, 16, 16), 1 / 16), velocities=v, frame_dt=1e-2, substeps=10, dtype=torch.float64)
+    kernel_material = {int(m) for m in sim.particles.material}.pop()
+    names = KERNEL_PARAMETERS[next(k for k, i in MATERIAL_IDS.items() if i == kernel_material)]
+    current = get_material(material).defaults() | MATERIAL_CASES[material]
+    inputs = {name: torch.tensor(float(current[name]), dtype=torch.float64, requires_grad=True) for name in names}
+    w = weights(sim, FRAMES)
+    loss = loss_of(simulate(sim, FRAMES, params=inputs), w)
+    loss.backward()
+    for name, value in inputs.items():
+        step = 1e-5 * max(abs(float(value)), 1e-3)  # small: the return mappings have kinks
+        # rounding of the loss (a sum of ~5,000 terms) limits what a difference quotient resolves
+        resolution = 1e-14 * float(abs(loss)) / step
+
+        def loss_at(h):
+            shifted = {k: v.detach() + (h if k == name else 0.0) for k, v in inputs.items()}
+            with torch.no_grad():
+                return float(loss_of(simulate(sim, FRAMES, params=shifted), w))
+
+        measured = (loss_at(step) - loss_at(-step)) / (2 * step)
+        assert abs(measured - float(value.grad)) < 1e-5 * abs(measured) + resolution, (name, measured, float(value.grad))
