@@ -14,6 +14,17 @@ def _cpu_seconds() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
+def _particle_bytes(sim) -> int:
+    """Bytes of every per-particle array of a simulator: two states, the constant particle
+    data, the kernels' per-particle scratch (tau, U, s, V) and the clamp flags."""
+    from dataclasses import fields
+
+    tensors = [getattr(st, f.name) for st in (sim.state, sim._next) for f in fields(st)]
+    tensors += [getattr(sim.particles, f.name) for f in fields(sim.particles) if f.name != "mass_eps"]
+    tensors += [sim.kernels.tau, sim.kernels.U, sim.kernels.s, sim.kernels.V, sim._clamped]
+    return sum(t.numel() * t.element_size() for t in tensors)
+
+
 @click.command("mpm")
 @click.option("--substeps", default=10, show_default=True, help="Timed substeps per material.")
 @click.option("--particles-per-axis", default=PARTICLES_PER_AXIS, show_default=True,
@@ -59,12 +70,10 @@ def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double):
             sim.step()
         elapsed, cpu = time.perf_counter() - start, _cpu_seconds() - cpu_start
         click.echo(f"{name:14s} {n * substeps / elapsed / 1e6:7.2f} M particle-substeps/s  "
-                   f"({elapsed / substeps * 1e3:6.1f} ms/substep; {n * substeps / cpu / 1e6:5.2f} M per CPU-second)")
+                   f"({elapsed / substeps * 1e3:6.1f} ms/substep; {n * substeps / cpu / 1e6:5.2f} M per CPU-second; "
+                   f"{_particle_bytes(sim) // n} B/particle)")
     itemsize = torch.tensor([], dtype=dtype).element_size()
-    state = 3 + 3 + 9 + 9 + 1  # x, v, C, F, plastic
-    per_particle = (2 * state + 9 + 2 + 5 + 1) * itemsize + 3 * 4  # two states, tau, mass+volume,
-    # params, release time (reals); material id, group, plus 4 bytes of slack for alignment (ints)
     grid_bytes = sim.grid.nodes * 7 * itemsize
     copies = getattr(sim.kernels, "copies", 0)
-    click.echo(f"memory: {per_particle} B per particle; grid {grid_bytes / 2**20:.1f} MiB"
+    click.echo(f"memory besides the particles: grid {grid_bytes / 2**20:.1f} MiB"
                + (f" + {copies} private P2G copies {copies * grid_bytes * 4 / 7 / 2**20:.1f} MiB" if copies else ""))

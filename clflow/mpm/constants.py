@@ -23,6 +23,9 @@ MATERIAL_IDS: dict[str, int] = {
     "snow": 8,
 }
 ELASTIC_MODELS = ("fixed_corotated", "neo_hookean")
+# the models that need the SVD of F_tr (all but neo-Hookean and the J-only Newtonian fluid)
+SVD_MATERIALS = sum(1 << i for name, i in MATERIAL_IDS.items() if name not in ("neo_hookean", "newtonian"))
+SIMD_LANES = 8  # particles per work-item of the SIMD stress kernels (vector registers)
 
 PARAM_COUNT = 5  # kernel parameters per particle (see kernel_params)
 HENCKY_S_MIN = 0.05  # singular values are floored here before the log of Hencky strain
@@ -43,6 +46,8 @@ def kernel_defines() -> dict[str, object]:
     defines: dict[str, object] = {f"MAT_{name.upper()}": i for name, i in MATERIAL_IDS.items()}
     defines.update(
         PARAM_COUNT=PARAM_COUNT,
+        SVD_MATERIALS=SVD_MATERIALS,
+        CLFLOW_SIMD_LANES=SIMD_LANES,
         HENCKY_S_MIN=repr(HENCKY_S_MIN),
         SAND_S_MIN=repr(SAND_S_MIN),
         SAFE_NORM_EPS2=repr(SAFE_NORM_EPS2),

@@ -1,12 +1,14 @@
-"""One MLS-MPM substep on an OpenCL device: four kernels with explicit inputs and outputs.
+"""One MLS-MPM substep on an OpenCL device: four stages with explicit inputs and outputs.
 
-    update_stress : (F_n, C_n, plastic_n, param)          -> F_n+1, plastic_n+1, tau
+    trial_svd_simd: (F_n, C_n)                             -> U, s, V = svd3(F_tr)
+    update_stress : (F_n, C_n, U, s, V, plastic_n, param)  -> F_n+1, plastic_n+1, tau
+                    (update_stress_elastic_simd: both in one when all particles are elastic)
     p2g           : (x_n, v_n, C_n, tau, mass, volume)     -> grid [nodes, 4] (m, mv)
     grid_update   : (grid, boundary table, t)              -> grid_v [nodes, 3]
     g2p           : (x_n, grid_v, release_time)            -> x_n+1, v_n+1, C_n+1
 
-State n is only read, so the adjoint can replay a substep from a checkpoint; tau, grid and
-grid_v of the last substep stay in :class:`SubstepKernels` for it.
+State n is only read, so the adjoint can replay a substep from a checkpoint; U, s, V, tau,
+grid and grid_v of the last substep stay in :class:`SubstepKernels` for it.
 """
 
 from __future__ import annotations
@@ -17,13 +19,12 @@ from typing import Literal
 import numpy as np
 import torch
 
-from clflow.mpm.constants import MATERIAL_IDS, kernel_defines
+from clflow.mpm.constants import MATERIAL_IDS, SIMD_LANES, SVD_MATERIALS, kernel_defines
 from clflow.runtime.devices import Device
 
 P2GMode = Literal["auto", "private", "atomic"]
 MAX_GRID_COPIES = 16  # private P2G grids at most (memory: copies x nodes x 4 reals)
 GRID_COPY_BUDGET = 1 << 30  # bytes all private grid copies may take together
-SIMD_LANES = 8  # particles per work-item of the all-elastic stress kernel
 
 
 @dataclass(frozen=True)
@@ -83,8 +84,8 @@ class Particles:
 
 class SubstepKernels:
     """The substep kernels of one device, precision, particle count, grid and set of material
-    ids (``materials``: the kernel ids of the particles), with their scratch buffers (tau,
-    grid, grid_v and the private P2G grid copies)."""
+    ids (``materials``: the kernel ids of the particles), with their scratch buffers (U, s, V
+    of F_tr, tau, grid, grid_v and the private P2G grid copies)."""
 
     def __init__(self, device: Device, dtype: torch.dtype, n: int, grid: Grid, materials: torch.Tensor,
                  p2g: P2GMode = "auto"):
@@ -96,16 +97,22 @@ class SubstepKernels:
         if p2g == "auto":
             p2g = "private" if device.info.type == "CPU" else "atomic"
         self.p2g = p2g
-        defines = kernel_defines()
-        k = lambda src, name, extra={}: device.kernel(src, name, self.real, {**defines, **extra})  # noqa: E731
         present = [int(m) for m in torch.unique(materials)]
-        # all fixed-corotated elastic: SIMD_LANES particles per work-item in vector registers;
-        # otherwise one particle per work-item, with only the models present compiled in
-        self.stress_lanes = SIMD_LANES if present == [MATERIAL_IDS["elastic"]] else 1
-        if self.stress_lanes > 1:
-            self.k_stress = k("mpm/stress.cl", "update_stress_elastic_simd", {"CLFLOW_SIMD_LANES": SIMD_LANES})
+        # only the constitutive models of the materials present are compiled in
+        defines = {**kernel_defines(), "MATERIALS_PRESENT": sum(1 << m for m in present)}
+        k = lambda src, name: device.kernel(src, name, self.real, defines)  # noqa: E731
+        # all fixed-corotated elastic: one fused SIMD kernel; otherwise the SVD in SIMD lanes
+        # (if any model needs it), then one particle per work-item for the models
+        self.elastic_only = present == [MATERIAL_IDS["elastic"]]
+        self.needs_svd = not self.elastic_only and any((1 << m) & SVD_MATERIALS for m in present)
+        if self.elastic_only:
+            self.k_stress = k("mpm/stress.cl", "update_stress_elastic_simd")
         else:
-            self.k_stress = k("mpm/stress.cl", "update_stress", {"MATERIALS_PRESENT": sum(1 << m for m in present)})
+            self.k_stress = k("mpm/stress.cl", "update_stress")
+        self.k_svd = k("mpm/stress.cl", "trial_svd_simd") if self.needs_svd else None
+        m = n if self.needs_svd else 0
+        self.U, self.s, self.V = (torch.empty(m, 3, 3, dtype=dtype), torch.empty(m, 3, dtype=dtype),
+                                  torch.empty(m, 3, 3, dtype=dtype))  # svd3(F_tr)
         self.k_grid = k("mpm/grid.cl", "grid_update")
         self.k_g2p = k("mpm/g2p.cl", "g2p")
         itemsize = torch.tensor([], dtype=dtype).element_size()
@@ -146,14 +153,19 @@ class SubstepKernels:
             x, v, C = b.input(state.x, "x"), b.input(state.v, "v"), b.input(state.C, "C")
             tau = b.inout(self.tau, "tau")
             grid_mv, grid_v = b.inout(self.grid_mv, "grid"), b.inout(self.grid_v, "grid_v")
-            material = [] if self.stress_lanes > 1 else [b.input(particles.material, "material")]
-            dev.launch(
-                self.k_stress,
-                -(-self.n // self.stress_lanes),
-                [n, R(dt), b.input(state.F, "F"), C, b.input(state.plastic, "plastic"), *material,
-                 b.input(particles.param, "param"), b.output(out.F, "F_out"), b.output(out.plastic, "plastic_out"),
-                 tau],
-            )
+            F, plastic = b.input(state.F, "F"), b.input(state.plastic, "plastic")
+            param, F_out, plastic_out = b.input(particles.param, "param"), b.output(out.F, "F_out"), b.output(
+                out.plastic, "plastic_out")
+            lanes = -(-self.n // SIMD_LANES)
+            if self.elastic_only:
+                dev.launch(self.k_stress, lanes, [n, R(dt), F, C, plastic, param, F_out, plastic_out, tau])
+            else:
+                U, s, V = b.inout(self.U, "U"), b.inout(self.s, "s"), b.inout(self.V, "V")
+                if self.needs_svd:
+                    dev.launch(self.k_svd, lanes, [n, R(dt), F, C, U, s, V])
+                dev.launch(self.k_stress, self.n, [n, R(dt), F, C, U, s, V, plastic,
+                                                   b.input(particles.material, "material"), param, F_out,
+                                                   plastic_out, tau])
             p2g_args = [n, R(dt), x, v, C, tau, b.input(particles.mass, "mass"),
                         b.input(particles.volume, "volume"), b.input(particles.group, "group"),
                         b.input(accel, "accel")]

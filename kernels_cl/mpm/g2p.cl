@@ -3,14 +3,16 @@
  *   v_p' = sum_i w v_i ;  C_p' = (4/dx^2) sum_i w v_i d^T ;  x_p' = x_p + dt v_p'
  * A particle not yet released (t < release_time[p], layer release) stays put: x' = x,
  * v' = 0, C' = 0. A particle leaving [CLAMP_MARGIN, n - 1 - CLAMP_MARGIN] cells is clamped
- * back in and counted in *clamped (an integer atomic: the count is exact and deterministic). */
+ * back in and flagged: clamped[p] = 1 (the host zeroes the flags and counts them per frame;
+ * an atomic counter would keep PoCL from vectorising the kernel). */
 #include "mpm/mpm.h"
 
 __kernel void g2p(const int nx, const int ny, const int nz, const real dx, const real ox,
                   const real oy, const real oz, const int n, const real dt, const real t,
                   __global const real *restrict x_in, __global const real *restrict grid_v,
-                  __global const real *restrict release_time, __global real *restrict x_out, __global real *restrict v_out,
-                  __global real *restrict C_out, __global uchar *restrict clamped)
+                  __global const real *restrict release_time, __global real *restrict x_out,
+                  __global real *restrict v_out, __global real *restrict C_out,
+                  __global uchar *restrict clamped)
 {
     const int p = get_global_id(0);
     if (p >= n)

@@ -2,6 +2,11 @@
  *
  *   F_tr = (I + dt C_n) F_n;  (F_{n+1}, plastic_{n+1}) = Z(F_tr; param);  tau = tau(F_{n+1})
  *
+ * Two kernels (one, update_stress_elastic_simd, when every particle is fixed-corotated
+ * elastic): trial_svd_simd writes U, s, V = svd3(F_tr) with CLFLOW_SIMD_LANES particles per
+ * work-item in vector registers (CPU compilers do not vectorise the SVD's Jacobi loop across
+ * work-items themselves), then update_stress applies each particle's model.
+ *
  * Reads state n, writes state n+1's F and plastic state and this substep's tau: nothing
  * is overwritten that the adjoint needs. param[p] holds PARAM_COUNT kernel parameters per
  * particle (their meaning per material: clflow/mpm/constants.py, kernel_params()).
@@ -28,17 +33,24 @@
 DEFINE_TRIAL_DEFORMATION(, real)
 
 __kernel void update_stress(const int n, const real dt, __global const real *F_in,
-                            __global const real *C_in, __global const real *plastic_in,
+                            __global const real *C_in, __global const real *U_in,
+                            __global const real *s_in, __global const real *V_in,
+                            __global const real *plastic_in,
                             __global const int *material, __global const real *param,
                             __global real *F_out, __global real *plastic_out, __global real *tau_out)
 {
     const int p = get_global_id(0);
     if (p >= n)
         return;
-    real F[9], C[9], F_tr[9], F_new[9], tau[9];
+    real F[9], C[9], F_tr[9], F_new[9], tau[9], U[9], s[3], V[9];
     load_row(F_in, p, 9, F);
     load_row(C_in, p, 9, C);
     trial_deformation(F, C, dt, F_tr);
+#if MATERIALS_PRESENT & SVD_MATERIALS
+    load_row(U_in, p, 9, U);
+    load_row(s_in, p, 3, s);
+    load_row(V_in, p, 9, V);
+#endif
     __global const real *q = param + (long)p * PARAM_COUNT;
     const real plastic = plastic_in[p];
     real plastic_new = plastic;
@@ -46,7 +58,7 @@ __kernel void update_stress(const int n, const real dt, __global const real *F_i
 #if MATERIALS_PRESENT & (1 << MAT_ELASTIC)
     case MAT_ELASTIC:
         mat3_copy(F_tr, F_new);
-        elastic_stress(F_new, q[0], q[1], tau);
+        fixed_corotated_tau(F_tr, U, s, V, q[0], q[1], tau);
         break;
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_NEO_HOOKEAN)
@@ -57,23 +69,23 @@ __kernel void update_stress(const int n, const real dt, __global const real *F_i
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_PLASTICINE)
     case MAT_PLASTICINE:
-        plasticine_stress(F_tr, q[0], q[1], q[2], F_new, tau);
+        plasticine_stress(F_tr, U, s, V, q[0], q[1], q[2], F_new, tau);
         break;
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_METAL)
     case MAT_METAL:
-        metal_stress(F_tr, q[0], q[1], q[2], q[3], plastic, F_new, &plastic_new, tau);
+        metal_stress(F_tr, U, s, V, q[0], q[1], q[2], q[3], plastic, F_new, &plastic_new, tau);
         break;
 #endif
 #if MATERIALS_PRESENT & ((1 << MAT_FOAM) | (1 << MAT_NON_NEWTONIAN))
     case MAT_FOAM:
     case MAT_NON_NEWTONIAN:
-        viscoplastic_stress(F_tr, q[0], q[1], q[2], q[3], dt, F_new, tau);
+        viscoplastic_stress(F_tr, U, s, V, q[0], q[1], q[2], q[3], dt, F_new, tau);
         break;
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_SAND)
     case MAT_SAND:
-        sand_stress(F_tr, q[0], q[1], q[2], q[3], F_new, tau);
+        sand_stress(F_tr, U, s, V, q[0], q[1], q[2], q[3], F_new, tau);
         break;
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_NEWTONIAN)
@@ -83,7 +95,7 @@ __kernel void update_stress(const int n, const real dt, __global const real *F_i
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_SNOW)
     case MAT_SNOW:
-        snow_stress(F_tr, q[0], q[1], q[2], q[3], q[4], plastic, F_new, &plastic_new, tau);
+        snow_stress(F_tr, U, s, V, q[0], q[1], q[2], q[3], q[4], plastic, F_new, &plastic_new, tau);
         break;
 #endif
     default: /* unreachable: the host builds with every material id its particles use */
@@ -99,9 +111,47 @@ __kernel void update_stress(const int n, const real dt, __global const real *F_i
 #ifdef CLFLOW_SIMD_LANES
 DEFINE_TRIAL_DEFORMATION(_v, realv)
 
+/* The lanes of a SIMD work-item: particles p0 .. p0 + CLFLOW_SIMD_LANES - 1 (past the end,
+ * the last particle again; such lanes are computed but never stored). */
+inline void load_trial_deformation_v(const int n, const int p0, const real dt, __global const real *F_in,
+                                     __global const real *C_in, realv *F_tr)
+{
+    realv F[9], C[9];
+    for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) {
+        const int p = min(p0 + l, n - 1);
+        for (int k = 0; k < 9; ++k) {
+            ((real *)&F[k])[l] = F_in[9 * p + k];
+            ((real *)&C[k])[l] = C_in[9 * p + k];
+        }
+    }
+    trial_deformation_v(F, C, dt, F_tr);
+}
+
+inline void store_lanes_v(const int n, const int p0, const int width, const realv *m, __global real *out)
+{
+    for (int l = 0; l < CLFLOW_SIMD_LANES && p0 + l < n; ++l)
+        for (int k = 0; k < width; ++k)
+            out[width * (p0 + l) + k] = ((const real *)&m[k])[l];
+}
+
+/* U, s, V = svd3(F_tr) for CLFLOW_SIMD_LANES particles per work-item. */
+__kernel void trial_svd_simd(const int n, const real dt, __global const real *F_in,
+                             __global const real *C_in, __global real *U_out, __global real *s_out,
+                             __global real *V_out)
+{
+    const int p0 = get_global_id(0) * CLFLOW_SIMD_LANES;
+    if (p0 >= n)
+        return;
+    realv F_tr[9], U[9], s[3], V[9];
+    load_trial_deformation_v(n, p0, dt, F_in, C_in, F_tr);
+    svd3_v(F_tr, U, s, V);
+    store_lanes_v(n, p0, 9, U, U_out);
+    store_lanes_v(n, p0, 3, s, s_out);
+    store_lanes_v(n, p0, 9, V, V_out);
+}
+
 /* update_stress for scenes whose particles are all fixed-corotated elastic (the common
- * case): CLFLOW_SIMD_LANES consecutive particles per work-item, one per vector lane, so the
- * SVD runs in SIMD registers. Same equations as update_stress. */
+ * case), fused with the SVD: CLFLOW_SIMD_LANES particles per work-item. */
 __kernel void update_stress_elastic_simd(const int n, const real dt, __global const real *F_in,
                                          __global const real *C_in, __global const real *plastic_in,
                                          __global const real *param, __global real *F_out,
@@ -110,25 +160,18 @@ __kernel void update_stress_elastic_simd(const int n, const real dt, __global co
     const int p0 = get_global_id(0) * CLFLOW_SIMD_LANES;
     if (p0 >= n)
         return;
-    realv F[9], C[9], F_tr[9], tau[9], mu, lambda;
+    realv F_tr[9], U[9], s[3], V[9], tau[9], mu, lambda;
+    load_trial_deformation_v(n, p0, dt, F_in, C_in, F_tr);
     for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) {
-        const int p = min(p0 + l, n - 1); /* lanes past the end repeat the last particle */
-        for (int k = 0; k < 9; ++k) {
-            ((real *)&F[k])[l] = F_in[9 * p + k];
-            ((real *)&C[k])[l] = C_in[9 * p + k];
-        }
+        const int p = min(p0 + l, n - 1);
         ((real *)&mu)[l] = param[(long)p * PARAM_COUNT];
         ((real *)&lambda)[l] = param[(long)p * PARAM_COUNT + 1];
     }
-    trial_deformation_v(F, C, dt, F_tr);
-    elastic_stress_v(F_tr, mu, lambda, tau);
-    for (int l = 0; l < CLFLOW_SIMD_LANES && p0 + l < n; ++l) {
-        const int p = p0 + l;
-        for (int k = 0; k < 9; ++k) {
-            F_out[9 * p + k] = ((real *)&F_tr[k])[l];
-            tau_out[9 * p + k] = ((real *)&tau[k])[l];
-        }
+    svd3_v(F_tr, U, s, V);
+    fixed_corotated_tau_v(F_tr, U, s, V, mu, lambda, tau);
+    store_lanes_v(n, p0, 9, F_tr, F_out);
+    store_lanes_v(n, p0, 9, tau, tau_out);
+    for (int p = p0; p < min(n, p0 + CLFLOW_SIMD_LANES); ++p)
         plastic_out[p] = plastic_in[p];
-    }
 }
 #endif

@@ -56,3 +56,13 @@ def test_bad_input_is_one_clear_line(tmp_path, args, message):
     assert res.exit_code != 0
     assert message in res.output
     assert not (tmp_path / "positions.npz").exists()
+
+
+def test_bench_mpm_runs_on_a_small_scene():
+    res = CliRunner().invoke(cli, ["bench", "mpm", "--substeps", "1", "--particles-per-axis", "8", "--grid", "16",
+                                   "--material", "elastic", "--material", "sand"], catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    assert "512 particles" in res.output
+    rows = [line for line in res.output.splitlines() if "M particle-substeps/s" in line]
+    assert [r.split()[0] for r in rows] == ["elastic", "sand"]
+    assert "B/particle" in rows[0]

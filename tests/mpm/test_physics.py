@@ -54,7 +54,7 @@ def test_block_at_rest_stays_at_rest():
 def test_particles_leaving_the_domain_are_clamped_and_counted():
     x0 = cube(4, 0.7, 0.85)
     sim = Simulator(x0, 1e-5, ELASTIC, GRID, velocities=torch.tensor([[20.0, 0, 0]]).expand(64, 3),
-                    gravity=(0, 0, 0), walls=None, frame_dt=0.02, substeps=20, dtype=torch.float32)
+                    gravity=(0, 0, 0), walls=None, frame_dt=0.02, dtype=torch.float32)
     with pytest.warns(RuntimeWarning, match=r"\d+ particles left the grid and were clamped"):
         traj = sim.run(1)
     assert traj.clamped[1] > 0

@@ -31,8 +31,10 @@ def run_both(sim, substeps):
 @pytest.mark.parametrize("material", list(MATERIAL_CASES))
 def test_matches_reference_float64(material, substeps):
     sim = random_scene({material: MATERIAL_CASES[material]})  # 300 particles: a partial SIMD tail
-    # elastic-only scenes take the SIMD stress kernel (8 particles per work-item)
-    assert sim.kernels.stress_lanes == (8 if material == "elastic" else 1)
+    # elastic-only scenes take the fused SIMD stress kernel; the others the SIMD SVD (but the
+    # J-only Newtonian fluid) and the per-particle model kernel
+    assert sim.kernels.elastic_only == (material == "elastic")
+    assert sim.kernels.needs_svd == (material not in ("elastic", "newtonian"))
     assert run_both(sim, substeps) < 1e-9
 
 

@@ -1,7 +1,9 @@
 /* Elastic: fixed corotated (default) or neo-Hookean hyperelasticity. param = (mu, lambda).
  *
  * fixed corotated: tau = 2 mu (F - R) F^T + lambda (J - 1) J I, R = U V^T
- * neo-Hookean:     tau = mu (F F^T - I) + lambda log(J) I   (J floored at HENCKY_S_MIN^3) */
+ * neo-Hookean:     tau = mu (F F^T - I) + lambda log(J) I   (J floored at HENCKY_S_MIN^3)
+ * The SVD-based models here and in the other headers take U, s, V = svd3(F_tr) from the
+ * caller (stress.cl computes it for 8 particles at a time in SIMD lanes). */
 #ifndef CLFLOW_MPM_ELASTIC_H
 #define CLFLOW_MPM_ELASTIC_H
 
@@ -22,13 +24,6 @@ inline void fixed_corotated_tau##SFX(const T *F, const T *U, const T *s, const T
         tau[k] *= 2 * mu;                                                                         \
     for (int a = 0; a < 3; ++a)                                                                   \
         tau[4 * a] += lambda * (J - 1) * J;                                                       \
-}                                                                                                 \
-                                                                                                  \
-inline void elastic_stress##SFX(const T *F, const T mu, const T lambda, T *tau)                   \
-{                                                                                                 \
-    T U[9], s[3], V[9];                                                                           \
-    svd3##SFX(F, U, s, V);                                                                        \
-    fixed_corotated_tau##SFX(F, U, s, V, mu, lambda, tau);                                        \
 }
 
 CLFLOW_DEFINE_FIXED_COROTATED(, real)

@@ -7,12 +7,12 @@
 
 #include "mpm/materials/hencky.h"
 
-inline void metal_stress(const real *F_tr, const real mu, const real lambda, const real tau_Y,
+inline void metal_stress(const real *F_tr, const real *U, const real *s, const real *V,
+                              const real mu, const real lambda, const real tau_Y,
                          const real xi, const real hardening, real *F_new, real *hardening_new,
                          real *tau)
 {
-    real U[9], s[3], V[9], eps[3];
-    svd3(F_tr, U, s, V);
+    real eps[3];
     hencky_strain(s, eps);
     const real dgamma = von_mises_return(eps, mu, tau_Y + hardening);
     if (dgamma > 0) {

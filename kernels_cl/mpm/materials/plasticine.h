@@ -5,11 +5,11 @@
 
 #include "mpm/materials/hencky.h"
 
-inline void plasticine_stress(const real *F_tr, const real mu, const real lambda, const real tau_Y,
+inline void plasticine_stress(const real *F_tr, const real *U, const real *s, const real *V,
+                              const real mu, const real lambda, const real tau_Y,
                               real *F_new, real *tau)
 {
-    real U[9], s[3], V[9], eps[3];
-    svd3(F_tr, U, s, V);
+    real eps[3];
     hencky_strain(s, eps);
     if (von_mises_return(eps, mu, tau_Y) > 0)
         f_from_strain(U, eps, V, F_new);

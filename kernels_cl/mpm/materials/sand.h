@@ -10,11 +10,11 @@
 
 #include "mpm/materials/hencky.h"
 
-inline void sand_stress(const real *F_tr, const real mu, const real lambda, const real alpha,
+inline void sand_stress(const real *F_tr, const real *U, const real *s, const real *V,
+                              const real mu, const real lambda, const real alpha,
                         const real c, real *F_new, real *tau)
 {
-    real U[9], s[3], V[9], eps[3], eps_hat[3];
-    svd3(F_tr, U, s, V);
+    real eps[3], eps_hat[3];
     for (int a = 0; a < 3; ++a)
         eps[a] = log(fmax(fabs(s[a]), (real)SAND_S_MIN));
     const real excess = eps[0] + eps[1] + eps[2] - 3 * c;

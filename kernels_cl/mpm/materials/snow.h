@@ -9,12 +9,12 @@
 
 #include "mpm/materials/elastic.h"
 
-inline void snow_stress(const real *F_tr, const real mu0, const real lambda0, const real theta_c,
+inline void snow_stress(const real *F_tr, const real *U, const real *s, const real *V,
+                              const real mu0, const real lambda0, const real theta_c,
                         const real theta_s, const real xi, const real J_P, real *F_new,
                         real *J_P_new, real *tau)
 {
-    real U[9], s[3], V[9], s_E[3];
-    svd3(F_tr, U, s, V);
+    real s_E[3];
     for (int a = 0; a < 3; ++a)
         s_E[a] = clamp(s[a], 1 - theta_c, 1 + theta_s);
     mat3_udvt(U, s_E, V, F_new);

@@ -11,11 +11,11 @@
 
 #include "mpm/materials/hencky.h"
 
-inline void viscoplastic_stress(const real *F_tr, const real mu, const real lambda, const real tau_Y,
+inline void viscoplastic_stress(const real *F_tr, const real *U, const real *s, const real *V,
+                              const real mu, const real lambda, const real tau_Y,
                                 const real eta, const real dt, real *F_new, real *tau)
 {
-    real U[9], s[3], V[9], eps[3], eps_hat[3];
-    svd3(F_tr, U, s, V);
+    real eps[3], eps_hat[3];
     hencky_strain(s, eps);
     deviator3(eps, eps_hat);
     const real s_norm = 2 * mu * safe_norm3(eps_hat);
