@@ -419,6 +419,7 @@ def simulate(
             raise InputError(f"{name}: expected shape [{n}, 3], got {list(value.shape)}")
         if not bool(torch.isfinite(value.detach()).all()):
             raise InputError(f"{name} contains NaN or inf")
+    sim._check_inside(x0.detach())
     stages = sim.drivers.stage_accel.shape[0]
     stage_accel = sim.drivers.stage_accel if stage_accelerations is None else torch.as_tensor(stage_accelerations)
     if tuple(stage_accel.shape) != (stages, 3):

@@ -95,6 +95,8 @@ def test_bad_inputs_are_named():
         simulate(sim, 1, params={"poissons_ratio": torch.tensor(0.5)})
     with pytest.raises(InputError, match="positions: expected shape"):
         simulate(sim, 1, positions=torch.zeros(2, 3))
+    with pytest.raises(InputError, match="outside the grid's interior"):
+        simulate(sim, 1, positions=sim.state.x + 0.5)
     with pytest.raises(InputError, match="density must be > 0"):
         simulate(sim, 1, density=torch.tensor(-1.0))
     with pytest.raises(InputError, match="yield_stress is not a parameter of the simulated material"):
