@@ -15,12 +15,18 @@ from tests.mpm.scenes import MATERIAL_CASES, cube
 E_TRUE, NU_TRUE, RHO_TRUE, TAU_Y_TRUE = 2e4, 0.3, 800.0, 500.0
 
 
+def swirling_block():
+    """216 particles in a cube (m) and a smooth swirling velocity field (m/s)."""
+    x = cube(6, 0.38, 0.62)
+    c = x - 0.5
+    return x, torch.stack([-c[:, 1], c[:, 0], 0.5 * c[:, 2]], 1) * 4.0
+
+
 def scene(dtype=torch.float64, substeps=10, model=None, seed=0, material="elastic"):
     """216 particles in a cube with a smooth swirling velocity field, far from the walls for
     the few frames simulated (no contact kinks), 16^3 grid of 1/16 m."""
-    x = cube(6, 0.38, 0.62)
-    c = x - 0.5
-    v = torch.stack([-c[:, 1], c[:, 0], 0.5 * c[:, 2]], 1) * 4.0 + torch.tensor([0.2, 0.0, -0.1])
+    x, v = swirling_block()
+    v = v + torch.tensor([0.2, 0.0, -0.1])
     v += 0.05 * torch.randn(x.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
     params = {"youngs_modulus": E_TRUE, "poissons_ratio": NU_TRUE}
     if material == "plasticine":
@@ -138,9 +144,7 @@ def test_identification_recovers_the_parameter(material, name, true, start, para
     """Start from a wrong value; 25 Adam steps in the registry's log space on the mismatch of
     a simulated trajectory recover it within 5%. (A parameter the trajectory does not depend
     on cannot be identified: a yield stress above every stress reached has zero gradient.)"""
-    x = cube(6, 0.38, 0.62)
-    c = x - 0.5
-    v = torch.stack([-c[:, 1], c[:, 0], 0.5 * c[:, 2]], 1) * 4.0
+    x, v = swirling_block()
     sim = Simulator(x, (0.24 / 6) ** 3, MaterialSpec(material, params | {name: true}, density=RHO_TRUE),
                     Grid((16, 16, 16), 1 / 16), velocities=v, frame_dt=1e-2, substeps=10, dtype=torch.float64)
     frames = 2
@@ -208,9 +212,7 @@ def test_driver_force_gradient_matches_central_differences():
 def test_every_material_parameter_matches_central_differences(material):
     """d loss / d p for every registry parameter p of each material (global), on the swirling
     block with the parameters of tests/mpm/scenes.py (which make the return mappings active)."""
-    x = cube(6, 0.38, 0.62)
-    c = x - 0.5
-    v = torch.stack([-c[:, 1], c[:, 0], 0.5 * c[:, 2]], 1) * 4.0
+    x, v = swirling_block()
     sim = Simulator(x, (0.24 / 6) ** 3, MaterialSpec(material, MATERIAL_CASES[material], density=RHO_TRUE),
                     Grid((16, 16, 16), 1 / 16), velocities=v, frame_dt=1e-2, substeps=10, dtype=torch.float64)
     kernel_material = {int(m) for m in sim.particles.material}.pop()
