@@ -20,7 +20,7 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
     import torch
 
     from clflow.mpm import Grid, MaterialSpec, Simulator
-    from clflow.mpm.autograd import memory_estimate, simulate
+    from clflow.mpm.autograd import engine, memory_estimate, simulate
 
     device = ctx.obj.device() if ctx.obj else None
     dtype = torch.float64 if double else torch.float32
@@ -59,5 +59,6 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
                f"{frames} frames x {substeps} substeps, {'float64' if double else 'float32'}")
     click.echo(f"forward  {forward:8.2f} s  ({n * steps / forward / 1e6:.2f} M particle-substeps/s)")
     click.echo(f"backward {backward:8.2f} s  (replay + adjoint; {backward / forward:.2f}x forward, target <= 3x)")
-    est = memory_estimate(n, sim.grid.nodes, frames, substeps, dtype) / 2**20
+    copies = engine(sim).adjoint.copies if sim.kernels.p2g == "private" else 0
+    est = memory_estimate(n, sim.grid.nodes, frames, substeps, dtype, grid_copies=copies) / 2**20
     click.echo(f"peak memory growth {peak:8.1f} MiB (peak RSS - RSS before the run); formula {est:.1f} MiB")

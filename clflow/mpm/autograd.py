@@ -62,7 +62,8 @@ class _Engine:
 _ENGINES: "weakref.WeakKeyDictionary[Simulator, _Engine]" = weakref.WeakKeyDictionary()
 
 
-def _engine(sim: Simulator) -> _Engine:
+def engine(sim: Simulator) -> _Engine:
+    """The forward and adjoint kernels (with their buffers) that simulate() uses for ``sim``."""
     engine = _ENGINES.get(sim)
     if engine is None:
         engine = _ENGINES[sim] = _Engine(sim)
@@ -74,7 +75,7 @@ class _Run:
 
     def __init__(self, sim: Simulator, frames: int, substeps: int, memory_budget: int | None = None,
                  strict_cfl: bool = False):
-        self.sim, self.frames, self.engine, self.strict_cfl = sim, frames, _engine(sim), strict_cfl
+        self.sim, self.frames, self.engine, self.strict_cfl = sim, frames, engine(sim), strict_cfl
         self.t0, self.substeps = sim.time, substeps
         self.dt = sim.frame_dt / substeps
         self.segment = replay_segment(sim.n, sim.grid.nodes, frames, substeps, sim.dtype, memory_budget)
@@ -191,21 +192,21 @@ class _Run:
 
 
 def memory_estimate(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype,
-                    segment: int | None = None) -> int:
+                    segment: int | None = None, grid_copies: int = 0) -> int:
     """Bytes a differentiable run of n particles on ``nodes`` grid nodes holds at its peak:
     per frame + 1, the checkpoint, the returned x, v, F and their gradients (25 + 15 + 15
-    reals per particle); the replay of
-    ``segment`` substeps at once (default: a whole frame), each a state of 25 reals and tau of
-    9 per particle and grids of 7 reals per node, plus, when segment < substeps, the first
-    state of every later segment and a scratch state (two-level checkpointing); and the
-    adjoint's own buffers (two state gradients, taubar, parameter and mass gradients; grid
-    adjoints of 7 reals per node)."""
+    reals per particle); the replay of ``segment`` substeps at once (default: a whole frame),
+    each a state of 25 reals and tau of 9 per particle and grids of 7 reals per node, plus,
+    when segment < substeps, the first state of every later segment and a scratch state
+    (two-level checkpointing); the kernels' working buffers (two forward states, tau, grids;
+    two state gradients, taubar, parameter and mass gradients, grid adjoints); and
+    ``grid_copies`` private grid copies of 4 + 3 reals per node (CPU path: P2G and its adjoint)."""
     itemsize = torch.tensor([], dtype=dtype).element_size()
     k = substeps if segment is None else segment
     checkpoints = (frames + 1) * n * (25 + 15 + 15)
     replay = k * (n * (25 + 9) + 7 * nodes) + (n * 25 * (-(-substeps // k)) if k < substeps else 0)
-    adjoint = n * (2 * 25 + 9 + PARAM_COUNT + 1) + 7 * nodes
-    return itemsize * (checkpoints + replay + adjoint)
+    working = n * (2 * 25 + 9) + 7 * nodes + n * (2 * 25 + 9 + PARAM_COUNT + 1) + 7 * nodes
+    return itemsize * (checkpoints + replay + working + grid_copies * 7 * nodes)
 
 
 def replay_segment(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype,

@@ -40,8 +40,11 @@ inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, co
         B[k] *= 4 / (dx * dx);
     const stencil_t st = make_stencil(g, xp);
     const stencil_gradient_t sg = make_stencil_gradient(&st, dx);
+#pragma unroll
     for (int i = 0; i < 3; ++i)
+#pragma unroll
         for (int j = 0; j < 3; ++j)
+#pragma unroll
             for (int k = 0; k < 3; ++k) {
                 const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
                 const real d[3] = {(i - st.fx[0]) * dx, (j - st.fx[1]) * dx, (k - st.fx[2]) * dx};

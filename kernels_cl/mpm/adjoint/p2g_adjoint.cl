@@ -38,8 +38,11 @@ __kernel void p2g_adjoint(const int nx, const int ny, const int nz, const real d
     const stencil_t st = make_stencil(&g, xp);
     const stencil_gradient_t sg = make_stencil_gradient(&st, dx);
     real sum_p[3] = {0, 0, 0}, A_bar[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, sum_m = 0;
+#pragma unroll
     for (int i = 0; i < 3; ++i)
+#pragma unroll
         for (int j = 0; j < 3; ++j)
+#pragma unroll
             for (int k = 0; k < 3; ++k) {
                 const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
                 const real d[3] = {(i - st.fx[0]) * dx, (j - st.fx[1]) * dx, (k - st.fx[2]) * dx};
