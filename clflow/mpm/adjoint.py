@@ -7,7 +7,7 @@ the gradients of the per-particle kernel parameters and masses, in reverse kerne
     g2p_adjoint_private + p2g_reduce : (xbar', vbar', Cbar', grid_v) -> grid_vbar, xbar (part)
     grid_update_adjoint              : (grid_vbar, grid, boundaries) -> grid_bar (mbar_i, pbar_i)
     p2g_adjoint                      : (grid_bar, x, v, C, tau)      -> xbar, vbar, Cbar (part), taubar, massbar
-    update_stress_adjoint            : (taubar, Fbar', F, C, param)  -> Fbar, Cbar, parambar
+    trial_svd_simd + update_stress_adjoint : (taubar, Fbar', F, C, param) -> Fbar, Cbar, parambar
 
 Every sum has a fixed order (private grid copies reduced in order, per-node and per-particle
 gathers), so gradients are bit-identical across runs.
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from clflow.mpm.constants import kernel_defines
+from clflow.mpm.constants import SIMD_LANES, SVD_MATERIALS, kernel_defines
 from clflow.mpm.substep import GRID_COPY_BUDGET, MAX_GRID_COPIES, Grid, Particles, State, SubstepKernels
 
 @dataclass
@@ -76,8 +76,14 @@ class SubstepAdjoint:
         real = "double" if dtype == torch.float64 else "float"
         self.real_t = np.float64 if dtype == torch.float64 else np.float32
         defines = kernel_defines()
-        defines["MATERIALS_PRESENT"] = sum(1 << int(m) for m in torch.unique(materials))
+        present = sum(1 << int(m) for m in torch.unique(materials))
+        defines["MATERIALS_PRESENT"] = present
         k = lambda src, name: device.kernel(src, name, real, defines)  # noqa: E731
+        # svd3(F_tr) by the forward's SIMD kernel: fast, and the very SVD the forward used
+        self.k_svd = k("mpm/stress.cl", "trial_svd_simd") if present & SVD_MATERIALS else None
+        m = n if self.k_svd is not None else 0
+        self.U, self.s, self.V = (torch.empty(m, 3, 3, dtype=dtype), torch.empty(m, 3, dtype=dtype),
+                                  torch.empty(m, 3, 3, dtype=dtype))
         self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_private")
         self.k_reduce = k("mpm/p2g.cl", "p2g_reduce")
         self.k_grid = k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
@@ -137,8 +143,12 @@ class SubstepAdjoint:
                 b.input(particles.mass, "mass"), b.input(particles.volume, "volume"),
                 b.input(particles.group, "group"), b.input(accel, "accel"), grid_bar, x_bar,
                 b.output(grad.v, "v_bar"), C_bar, tau_bar, b.inout(mass_grad, "mass_bar")])
+            F = b.input(state.F, "F")
+            U, s, V = b.inout(self.U, "U"), b.inout(self.s, "s"), b.inout(self.V, "V")
+            if self.k_svd is not None:
+                dev.launch(self.k_svd, -(-self.n // SIMD_LANES), [n, R(dt), F, C, U, s, V])
             dev.launch(self.k_stress, self.n, [
-                n, R(dt), b.input(state.F, "F"), C, b.input(state.plastic, "plastic"),
+                n, R(dt), F, C, U, s, V, b.input(state.plastic, "plastic"),
                 b.input(particles.material, "material"), b.input(particles.param, "param"), tau_bar,
                 b.input(grad_after.F, "F_bar_out"), b.input(grad_after.plastic, "plastic_bar_out"),
                 b.output(grad.F, "F_bar"), C_bar, b.output(grad.plastic, "plastic_bar"),
