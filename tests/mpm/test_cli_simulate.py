@@ -66,3 +66,26 @@ def test_bench_mpm_runs_on_a_small_scene():
     rows = [line for line in res.output.splitlines() if "M particle-substeps/s" in line]
     assert [r.split()[0] for r in rows] == ["elastic", "sand"]
     assert "B/particle" in rows[0]
+
+
+def test_binary_ply_and_bad_particle_files(tmp_path):
+    from clflow.errors import InputError
+    from clflow.mpm.shapes import load_particles
+
+    x = np.random.default_rng(2).random((7, 3))
+    rows = np.zeros(7, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("opacity", "<f4")])
+    rows["x"], rows["y"], rows["z"] = x.T
+    header = ("ply\nformat binary_little_endian 1.0\nelement vertex 7\nproperty float x\nproperty float y\n"
+              "property float z\nproperty float opacity\nend_header\n")
+    (tmp_path / "b.ply").write_bytes(header.encode() + rows.tobytes())
+    loaded, volume = load_particles(tmp_path / "b.ply")
+    assert volume is None and np.allclose(loaded.numpy(), x, atol=1e-6)
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="not a readable .npz"):
+        load_particles(tmp_path / "bad.npz")
+    np.savez(tmp_path / "nokey.npz", points=x)
+    with pytest.raises(InputError, match="no 'positions'"):
+        load_particles(tmp_path / "nokey.npz")
+    (tmp_path / "short.ply").write_bytes(header.encode() + rows.tobytes()[:40])
+    with pytest.raises(InputError, match="truncated PLY"):
+        load_particles(tmp_path / "short.ply")
