@@ -4,8 +4,8 @@ The substep (clflow/mpm/substep.py) maps state n to state n+1 through tau, the g
 and the grid velocities. Its adjoint maps dL/d(state n+1) to dL/d(state n) and accumulates
 the gradients of the per-particle kernel parameters and masses, in reverse kernel order:
 
-    g2p_adjoint_private + p2g_reduce : (xbar', vbar', Cbar', grid_v) -> grid_vbar, xbar (part)
-    grid_update_adjoint              : (grid_vbar, grid, boundaries) -> grid_bar (mbar_i, pbar_i)
+    g2p_adjoint_private              : (xbar', vbar', Cbar', grid_v) -> grid_vbar copies, xbar (part)
+    grid_update_adjoint              : (grid_vbar copies, grid, boundaries) -> grid_bar (mbar_i, pbar_i)
     p2g_adjoint                      : (grid_bar, x, v, C, tau)      -> xbar, vbar, Cbar (part), taubar, massbar
     trial_svd_simd + update_stress_adjoint : (taubar, Fbar', F, C, param) -> Fbar, Cbar, parambar
 
@@ -67,7 +67,7 @@ def run_recorded(kernels: SubstepKernels, tape: SubstepTape, state: State, out: 
 
 class SubstepAdjoint:
     """The adjoint kernels of one device, precision, particle count, grid and material set,
-    with their scratch buffers (grid adjoints, taubar, private grid copies)."""
+    with their scratch buffers (grid adjoint, taubar, U s V, private grid copies)."""
 
     def __init__(self, device, dtype: torch.dtype, n: int, grid: Grid, materials: torch.Tensor):
         import pyopencl as cl
@@ -85,7 +85,6 @@ class SubstepAdjoint:
         self.U, self.s, self.V = (torch.empty(m, 3, 3, dtype=dtype), torch.empty(m, 3, dtype=dtype),
                                   torch.empty(m, 3, 3, dtype=dtype))
         self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_private")
-        self.k_reduce = k("mpm/p2g.cl", "p2g_reduce")
         self.k_grid = k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
         self.k_p2g = k("mpm/adjoint/p2g_adjoint.cl", "p2g_adjoint")
         self.k_stress = k("mpm/adjoint/stress_adjoint.cl", "update_stress_adjoint")
@@ -95,7 +94,6 @@ class SubstepAdjoint:
         self.copies = max(1, min(want, MAX_GRID_COPIES, GRID_COPY_BUDGET // copy_bytes, n))
         self.chunk = -(-n // self.copies)
         self.grid_v_bar_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * copy_bytes)
-        self.grid_v_bar = torch.empty(grid.nodes, 3, dtype=dtype)
         self.grid_bar = torch.empty(grid.nodes, 4, dtype=dtype)
         self.tau_bar = torch.empty(n, 3, 3, dtype=dtype)
 
@@ -125,19 +123,17 @@ class SubstepAdjoint:
             C = b.input(state.C, "C")
             x_bar = b.inout(grad.x, "x_bar")
             C_bar = b.inout(grad.C, "C_bar")
-            grid_v_bar, grid_bar = b.inout(self.grid_v_bar, "grid_v_bar"), b.inout(self.grid_bar, "grid_bar")
+            grid_bar = b.inout(self.grid_bar, "grid_bar")
             tau_bar = b.inout(self.tau_bar, "tau_bar")
             dev.launch(self.k_g2p, self.copies, grid_args + [
                 n, R(dt), R(t), x, b.input(after.v, "v_out"), b.input(particles.release_time, "release_time"),
                 b.input(tape.grid_v, "grid_v"), b.input(grad_after.x, "x_bar_out"),
                 b.input(grad_after.v, "v_bar_out"), b.input(grad_after.C, "C_bar_out"),
                 np.int32(self.copies), np.int32(self.chunk), self.grid_v_bar_copies, x_bar], local_size=1)
-            size = 3 * self.grid.nodes
-            dev.launch(self.k_reduce, size, [np.int64(size), np.int32(self.copies), self.grid_v_bar_copies,
-                                             grid_v_bar])
             dev.launch(self.k_grid, self.grid.nodes, grid_args + [
                 R(dt), R(t), *(R(g) for g in gravity), R(particles.mass_eps), b.input(tape.grid_mv, "grid"),
-                grid_v_bar, b.input(boundaries, "boundaries"), np.int32(boundaries.shape[0]), grid_bar])
+                self.grid_v_bar_copies, np.int32(self.copies), b.input(boundaries, "boundaries"),
+                np.int32(boundaries.shape[0]), grid_bar])
             dev.launch(self.k_p2g, self.n, grid_args + [
                 n, R(dt), x, b.input(state.v, "v"), C, b.input(tape.tau, "tau"),
                 b.input(particles.mass, "mass"), b.input(particles.volume, "volume"),

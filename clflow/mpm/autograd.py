@@ -199,13 +199,13 @@ def memory_estimate(n: int, nodes: int, frames: int, substeps: int, dtype: torch
     each a state of 25 reals and tau of 9 per particle and grids of 7 reals per node, plus,
     when segment < substeps, the first state of every later segment and a scratch state
     (two-level checkpointing); the kernels' working buffers (two forward states, tau, grids;
-    two state gradients, taubar, parameter and mass gradients, grid adjoints); and
+    two state gradients, taubar, U s V, parameter and mass gradients, grid adjoint); and
     ``grid_copies`` private grid copies of 4 + 3 reals per node (CPU path: P2G and its adjoint)."""
     itemsize = torch.tensor([], dtype=dtype).element_size()
     k = substeps if segment is None else segment
     checkpoints = (frames + 1) * n * (25 + 15 + 15)
     replay = k * (n * (25 + 9) + 7 * nodes) + (n * 25 * (-(-substeps // k)) if k < substeps else 0)
-    working = n * (2 * 25 + 9) + 7 * nodes + n * (2 * 25 + 9 + PARAM_COUNT + 1) + 7 * nodes
+    working = n * (2 * 25 + 9) + 7 * nodes + n * (2 * 25 + 9 + 21 + PARAM_COUNT + 1) + 4 * nodes
     return itemsize * (checkpoints + replay + working + grid_copies * 7 * nodes)
 
 
