@@ -451,4 +451,5 @@ def region_masses(simulator: Simulator) -> torch.Tensor:
                        ) if simulator.drivers.forces else torch.zeros(0, dtype=torch.float64)
 
 
-__all__ = ["KERNEL_PARAMETERS", "Frames", "memory_estimate", "per_particle", "region_masses", "replay_segment", "simulate"]
+__all__ = ["KERNEL_PARAMETERS", "Frames", "engine", "memory_estimate", "per_particle", "region_masses",
+           "replay_segment", "simulate"]
