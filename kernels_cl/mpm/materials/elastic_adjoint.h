@@ -79,7 +79,8 @@ inline void neo_hookean_stress_adjoint(const real *F, const real mu, const real 
  * s_E depends on theta_c or theta_s instead), and J_P' depends on s_k only where s_k is
  * clamped (dJ_P'/ds_k = J_P'/s_k). q_bar[0..4] = (mu0, lambda0, theta_c, theta_s, xi)
  * gradients; returns J_P bar of state n. */
-inline real snow_stress_adjoint(const real *U, const real *s, const real *V, const real mu0, const real lambda0, const real theta_c,
+inline real snow_stress_adjoint(const real *U, const real *s, const real *V,
+                                const real mu0, const real lambda0, const real theta_c,
                                 const real theta_s, const real xi, const real J_P, const real *tau_bar,
                                 const real *F_new_bar, const real J_P_new_bar, real *F_tr_bar, real *q_bar)
 {

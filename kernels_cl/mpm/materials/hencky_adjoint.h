@@ -133,7 +133,8 @@ inline void hencky_end(const hencky_t *h, const real *eps_bar, const real *s_bar
  * eps' = mean(eps) + y n (yielded), y = sqrt(2/3) tau_Y/(2 mu), n = eps_hat/||eps_hat||,
  * J = d eps'/d eps = 1 1^T/3 + y (P_dev/||eps_hat|| - eps_hat eps_hat^T/||eps_hat||^3) (symmetric).
  * F_tr_bar is accumulated into; writes mu_bar, lambda_bar, *dgamma_out; returns tau_Y_bar. */
-inline real hencky_von_mises_adjoint(const real *U, const real *s, const real *V, const real mu, const real lambda, const real tau_Y,
+inline real hencky_von_mises_adjoint(const real *U, const real *s, const real *V,
+                                     const real mu, const real lambda, const real tau_Y,
                                      const real *tau_bar, const real *F_new_bar, const real dgamma_bar,
                                      real *F_tr_bar, real *mu_bar, real *lambda_bar, real *dgamma_out)
 {
@@ -171,7 +172,8 @@ inline real hencky_von_mises_adjoint(const real *U, const real *s, const real *V
 }
 
 /* Plasticine (plasticine.h): q_bar[0..2] = (mu_bar, lambda_bar, tau_Y_bar). */
-inline void plasticine_stress_adjoint(const real *U, const real *s, const real *V, const real mu, const real lambda, const real tau_Y,
+inline void plasticine_stress_adjoint(const real *U, const real *s, const real *V,
+                                      const real mu, const real lambda, const real tau_Y,
                                       const real *tau_bar, const real *F_new_bar, real *F_tr_bar,
                                       real *q_bar)
 {
@@ -182,7 +184,8 @@ inline void plasticine_stress_adjoint(const real *U, const real *s, const real *
 
 /* Metal (metal.h): yield stress tau_Y + h (h: hardening state), h' = h + 2 mu xi dgamma when
  * yielded. q_bar[0..3] = (mu_bar, lambda_bar, tau_Y_bar, xi_bar); returns hbar of state n. */
-inline real metal_stress_adjoint(const real *U, const real *s, const real *V, const real mu, const real lambda, const real tau_Y,
+inline real metal_stress_adjoint(const real *U, const real *s, const real *V,
+                                 const real mu, const real lambda, const real tau_Y,
                                  const real xi, const real hardening, const real *tau_bar,
                                  const real *F_new_bar, const real hardening_new_bar, real *F_tr_bar,
                                  real *q_bar)
@@ -203,7 +206,8 @@ inline real metal_stress_adjoint(const real *U, const real *s, const real *V, co
 /* Foam / non-Newtonian (viscoplastic.h): q_bar[0..3] = (mu, lambda, tau_Y, eta) gradients.
  * eps' = mean(eps) + r eps_hat, r = 1 - beta + beta sqrt(2/3) tau_Y/(2 mu ||eps_hat||),
  * beta = 1/(1 + eta/(2 mu_hat dt)), mu_hat = mu sum(s^2)/3 (a direct dependence on s). */
-inline void viscoplastic_stress_adjoint(const real *U, const real *s, const real *V, const real mu, const real lambda, const real tau_Y,
+inline void viscoplastic_stress_adjoint(const real *U, const real *s, const real *V,
+                                        const real mu, const real lambda, const real tau_Y,
                                         const real eta, const real dt, const real *tau_bar,
                                         const real *F_new_bar, real *F_tr_bar, real *q_bar)
 {
@@ -256,7 +260,8 @@ inline void viscoplastic_stress_adjoint(const real *U, const real *s, const real
 /* Sand (sand.h): q_bar[0..3] = (mu, lambda, alpha, c) gradients. Tip: eps' = (c, c, c)
  * (no dependence on eps); cone: eps' = eps - dgamma eps_hat/||eps_hat||,
  * dgamma = ||eps_hat|| + K alpha (tr(eps) - 3c), K = (3 lambda + 2 mu)/(2 mu). */
-inline void sand_stress_adjoint(const real *U, const real *s, const real *V, const real mu, const real lambda, const real alpha,
+inline void sand_stress_adjoint(const real *U, const real *s, const real *V,
+                                const real mu, const real lambda, const real alpha,
                                 const real c, const real *tau_bar, const real *F_new_bar, real *F_tr_bar,
                                 real *q_bar)
 {
