@@ -139,6 +139,11 @@ class _Run:
             for buf, value in ((self.x, a.x), (self.v, a.v), (self.C, a.C), (self.F, a.F),
                                (self.plastic, a.plastic)):
                 buf[f + 1] = value
+        clamped = int(self.clamped.sum(dtype=torch.int64))
+        if clamped:
+            warnings.warn(f"differentiable run: {clamped} particles left the grid and were clamped to its "
+                          f"boundary (no gradient flows along a clamped axis); enlarge the grid or add walls",
+                          RuntimeWarning, stacklevel=4)
         return self.x, self.v, self.F
 
     def backward(self, grad_x, grad_v, grad_F):

@@ -101,3 +101,17 @@ def test_bad_inputs_are_named():
         simulate(sim, 1, density=torch.tensor(-1.0))
     with pytest.raises(InputError, match="yield_stress is not a parameter of the simulated material"):
         simulate(sim, 1, params={"yield_stress": torch.tensor(100.0)})
+
+
+def test_clamped_particles_are_reported():
+    x = cube(3, 0.4, 0.6)
+    x[0, 0] = 0.87  # at the upper end of the grid's interior (0.875 m), moving out
+    v = torch.zeros_like(x)
+    v[0, 0] = 5.0
+    sim = Simulator(x, 1e-5, MaterialSpec("elastic"), Grid((16, 16, 16), 1 / 16), velocities=v, walls=None,
+                    frame_dt=2e-3, substeps=2, dtype=torch.float64)
+    positions = sim.state.x.clone().requires_grad_()
+    with pytest.warns(RuntimeWarning, match="1 particles left the grid"):
+        out = simulate(sim, 1, positions=positions)
+    out.x[-1, 0, 0].backward()
+    assert float(out.x[-1, 0, 0]) == 0.875 and float(positions.grad[0, 0]) == 0.0
