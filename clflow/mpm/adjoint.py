@@ -4,10 +4,10 @@ The substep (clflow/mpm/substep.py) maps state n to state n+1 through tau, the g
 and the grid velocities. Its adjoint maps dL/d(state n+1) to dL/d(state n) and accumulates
 the gradients of the per-particle kernel parameters and masses, in reverse kernel order:
 
-    g2p_adjoint_private + p2g_reduce : (xbar', vbar', Cbar', grid_v) -> grid_vbar, xbar (part)
-    grid_update_adjoint              : (grid_vbar, grid, boundaries) -> grid_bar (mbar_i, pbar_i)
+    g2p_adjoint_private              : (xbar', vbar', Cbar', grid_v) -> grid_vbar copies, xbar (part)
+    grid_update_adjoint              : (grid_vbar copies, grid, boundaries) -> grid_bar (mbar_i, pbar_i)
     p2g_adjoint                      : (grid_bar, x, v, C, tau)      -> xbar, vbar, Cbar (part), taubar, massbar
-    update_stress_adjoint            : (taubar, Fbar', F, C, param)  -> Fbar, Cbar, parambar
+    trial_svd_simd + update_stress_adjoint : (taubar, Fbar', F, C, param) -> Fbar, Cbar, parambar
 
 Every sum has a fixed order (private grid copies reduced in order, per-node and per-particle
 gathers), so gradients are bit-identical across runs.
@@ -15,19 +15,13 @@ gathers), so gradients are bit-identical across runs.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from clflow.errors import InputError
-from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, kernel_defines
+from clflow.mpm.constants import SIMD_LANES, SVD_MATERIALS, kernel_defines
 from clflow.mpm.substep import GRID_COPY_BUDGET, MAX_GRID_COPIES, Grid, Particles, State, SubstepKernels
-
-# kernel materials whose stress has an adjoint
-ADJOINT_MATERIALS = ("elastic", "neo_hookean", "plasticine", "metal", "foam", "sand", "newtonian", "non_newtonian",
-                     "snow")
-
 
 @dataclass
 class StateGrad:
@@ -45,11 +39,6 @@ class StateGrad:
                          torch.zeros(n, 3, 3, dtype=dtype), torch.zeros(n, 3, 3, dtype=dtype),
                          torch.zeros(n, dtype=dtype))
 
-    def zero_(self) -> "StateGrad":
-        for f in fields(self):
-            getattr(self, f.name).zero_()
-        return self
-
 
 @dataclass
 class SubstepTape:
@@ -66,16 +55,6 @@ class SubstepTape:
                            torch.empty(nodes, 3, dtype=dtype))
 
 
-def check_adjoint_materials(materials: torch.Tensor) -> None:
-    """Raise :class:`InputError` if a particle's kernel material has no adjoint yet."""
-    supported = {MATERIAL_IDS[m] for m in ADJOINT_MATERIALS}
-    names = {i: name for name, i in MATERIAL_IDS.items()}
-    missing = sorted(names[int(m)] for m in torch.unique(materials) if int(m) not in supported)
-    if missing:
-        raise InputError(f"no adjoint for material(s) {', '.join(missing)} yet; differentiable "
-                         f"materials: {', '.join(ADJOINT_MATERIALS)}")
-
-
 def run_recorded(kernels: SubstepKernels, tape: SubstepTape, state: State, out: State, *args) -> None:
     """``kernels.run(state, out, *args)`` with tau and the grids written into ``tape``."""
     scratch = kernels.tau, kernels.grid_mv, kernels.grid_v
@@ -88,20 +67,24 @@ def run_recorded(kernels: SubstepKernels, tape: SubstepTape, state: State, out: 
 
 class SubstepAdjoint:
     """The adjoint kernels of one device, precision, particle count, grid and material set,
-    with their scratch buffers (grid adjoints, taubar, private grid copies)."""
+    with their scratch buffers (grid adjoint, taubar, U s V, private grid copies)."""
 
     def __init__(self, device, dtype: torch.dtype, n: int, grid: Grid, materials: torch.Tensor):
         import pyopencl as cl
 
-        check_adjoint_materials(materials)
         self.device, self.dtype, self.n, self.grid = device, dtype, n, grid
         real = "double" if dtype == torch.float64 else "float"
         self.real_t = np.float64 if dtype == torch.float64 else np.float32
         defines = kernel_defines()
-        defines["MATERIALS_PRESENT"] = sum(1 << int(m) for m in torch.unique(materials))
+        present = sum(1 << int(m) for m in torch.unique(materials))
+        defines["MATERIALS_PRESENT"] = present
         k = lambda src, name: device.kernel(src, name, real, defines)  # noqa: E731
+        # svd3(F_tr) by the forward's SIMD kernel: fast, and the very SVD the forward used
+        self.k_svd = k("mpm/stress.cl", "trial_svd_simd") if present & SVD_MATERIALS else None
+        m = n if self.k_svd is not None else 0
+        self.U, self.s, self.V = (torch.empty(m, 3, 3, dtype=dtype), torch.empty(m, 3, dtype=dtype),
+                                  torch.empty(m, 3, 3, dtype=dtype))
         self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_private")
-        self.k_reduce = k("mpm/p2g.cl", "p2g_reduce")
         self.k_grid = k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
         self.k_p2g = k("mpm/adjoint/p2g_adjoint.cl", "p2g_adjoint")
         self.k_stress = k("mpm/adjoint/stress_adjoint.cl", "update_stress_adjoint")
@@ -111,7 +94,6 @@ class SubstepAdjoint:
         self.copies = max(1, min(want, MAX_GRID_COPIES, GRID_COPY_BUDGET // copy_bytes, n))
         self.chunk = -(-n // self.copies)
         self.grid_v_bar_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * copy_bytes)
-        self.grid_v_bar = torch.empty(grid.nodes, 3, dtype=dtype)
         self.grid_bar = torch.empty(grid.nodes, 4, dtype=dtype)
         self.tau_bar = torch.empty(n, 3, 3, dtype=dtype)
 
@@ -141,31 +123,32 @@ class SubstepAdjoint:
             C = b.input(state.C, "C")
             x_bar = b.inout(grad.x, "x_bar")
             C_bar = b.inout(grad.C, "C_bar")
-            grid_v_bar, grid_bar = b.inout(self.grid_v_bar, "grid_v_bar"), b.inout(self.grid_bar, "grid_bar")
+            grid_bar = b.inout(self.grid_bar, "grid_bar")
             tau_bar = b.inout(self.tau_bar, "tau_bar")
             dev.launch(self.k_g2p, self.copies, grid_args + [
                 n, R(dt), R(t), x, b.input(after.v, "v_out"), b.input(particles.release_time, "release_time"),
                 b.input(tape.grid_v, "grid_v"), b.input(grad_after.x, "x_bar_out"),
                 b.input(grad_after.v, "v_bar_out"), b.input(grad_after.C, "C_bar_out"),
                 np.int32(self.copies), np.int32(self.chunk), self.grid_v_bar_copies, x_bar], local_size=1)
-            size = 3 * self.grid.nodes
-            dev.launch(self.k_reduce, size, [np.int64(size), np.int32(self.copies), self.grid_v_bar_copies,
-                                             grid_v_bar])
             dev.launch(self.k_grid, self.grid.nodes, grid_args + [
                 R(dt), R(t), *(R(g) for g in gravity), R(particles.mass_eps), b.input(tape.grid_mv, "grid"),
-                grid_v_bar, b.input(boundaries, "boundaries"), np.int32(boundaries.shape[0]), grid_bar])
+                self.grid_v_bar_copies, np.int32(self.copies), b.input(boundaries, "boundaries"),
+                np.int32(boundaries.shape[0]), grid_bar])
             dev.launch(self.k_p2g, self.n, grid_args + [
                 n, R(dt), x, b.input(state.v, "v"), C, b.input(tape.tau, "tau"),
                 b.input(particles.mass, "mass"), b.input(particles.volume, "volume"),
                 b.input(particles.group, "group"), b.input(accel, "accel"), grid_bar, x_bar,
                 b.output(grad.v, "v_bar"), C_bar, tau_bar, b.inout(mass_grad, "mass_bar")])
+            F = b.input(state.F, "F")
+            U, s, V = b.inout(self.U, "U"), b.inout(self.s, "s"), b.inout(self.V, "V")
+            if self.k_svd is not None:
+                dev.launch(self.k_svd, -(-self.n // SIMD_LANES), [n, R(dt), F, C, U, s, V])
             dev.launch(self.k_stress, self.n, [
-                n, R(dt), b.input(state.F, "F"), C, b.input(state.plastic, "plastic"),
+                n, R(dt), F, C, U, s, V, b.input(state.plastic, "plastic"),
                 b.input(particles.material, "material"), b.input(particles.param, "param"), tau_bar,
                 b.input(grad_after.F, "F_bar_out"), b.input(grad_after.plastic, "plastic_bar_out"),
                 b.output(grad.F, "F_bar"), C_bar, b.output(grad.plastic, "plastic_bar"),
                 b.inout(param_grad, "param_bar")])
 
 
-__all__ = ["ADJOINT_MATERIALS", "PARAM_COUNT", "StateGrad", "SubstepAdjoint", "SubstepTape",
-           "check_adjoint_materials", "run_recorded"]
+__all__ = ["StateGrad", "SubstepAdjoint", "SubstepTape", "run_recorded"]

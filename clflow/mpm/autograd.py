@@ -3,14 +3,15 @@ the hand-written adjoint kernels (clflow/mpm/adjoint.py) over the whole trajecto
 
     sim = Simulator(x0, volume, MaterialSpec("elastic", {...}), grid, dtype=torch.float64)
     E = torch.tensor(2e5, dtype=torch.float64, requires_grad=True)
-    frames = simulate(sim, 10, youngs_modulus=E)      # frames.x [11, N, 3] (m)
+    frames = simulate(sim, 10, params={"youngs_modulus": E})   # frames.x [11, N, 3] (m)
     loss = ((frames.x[-1] - target) ** 2).sum()
     loss.backward()                                   # E.grad: exact trajectory gradient
 
 Checkpointing: forward keeps one state per output frame; backward replays a frame's
 substeps from its checkpoint (recording tau and the grids), then runs their adjoints in
-reverse. Memory, in reals: (frames + 1) N 25 (checkpoints incl. the outputs)
-+ substeps (34 N + 7 nodes) (one frame's replay) + adjoint scratch; see docs/mpm_adjoint.md.
+reverse. Memory, in reals: (frames + 1) N 55 (checkpoints, outputs and their gradients)
++ substeps (34 N + 7 nodes) (one frame's replay) + adjoint scratch (memory_estimate,
+docs/mpm_adjoint.md).
 
 Parameter gradients are per particle; a global parameter (a 0-d tensor) is broadcast to
 the particles with a backward that sums the rows in a fixed order
@@ -31,11 +32,11 @@ from dataclasses import dataclass
 import torch
 
 from clflow.errors import InputError
-from clflow.materials import lame_parameters
-from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, SubstepTape, check_adjoint_materials, run_recorded
+from clflow.materials import get_material, lame_parameters
+from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, SubstepTape, run_recorded
 from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT
 from clflow.mpm.simulator import CFL_NUMBER, SimulationError, Simulator, StabilityWarning
-from clflow.mpm.substep import Particles, State, SubstepKernels
+from clflow.mpm.substep import State, SubstepKernels
 from clflow.runtime.reduction import sum_rows
 
 
@@ -54,7 +55,6 @@ class _Engine:
 
     def __init__(self, sim: Simulator):
         n, materials = sim.n, sim.particles.material
-        check_adjoint_materials(materials)
         self.forward = SubstepKernels(sim.device, sim.dtype, n, sim.grid, materials, sim.kernels.p2g)
         self.adjoint = SubstepAdjoint(sim.device, sim.dtype, n, sim.grid, materials)
 
@@ -62,7 +62,8 @@ class _Engine:
 _ENGINES: "weakref.WeakKeyDictionary[Simulator, _Engine]" = weakref.WeakKeyDictionary()
 
 
-def _engine(sim: Simulator) -> _Engine:
+def engine(sim: Simulator) -> _Engine:
+    """The forward and adjoint kernels (with their buffers) that simulate() uses for ``sim``."""
     engine = _ENGINES.get(sim)
     if engine is None:
         engine = _ENGINES[sim] = _Engine(sim)
@@ -72,17 +73,19 @@ def _engine(sim: Simulator) -> _Engine:
 class _Run:
     """One differentiable run: its settings, and the checkpoints its forward leaves for backward."""
 
-    def __init__(self, sim: Simulator, frames: int, substeps: int, strict_cfl: bool = False):
-        self.sim, self.frames, self.engine, self.strict_cfl = sim, frames, _engine(sim), strict_cfl
+    def __init__(self, sim: Simulator, frames: int, substeps: int, memory_budget: int | None = None,
+                 strict_cfl: bool = False):
+        self.sim, self.frames, self.engine, self.strict_cfl = sim, frames, engine(sim), strict_cfl
         self.t0, self.substeps = sim.time, substeps
         self.dt = sim.frame_dt / substeps
+        self.segment = replay_segment(sim.n, sim.grid.nodes, frames, substeps, sim.dtype, memory_budget)
 
     def time(self, frame: int, substep: int) -> float:
         return self.t0 + (frame * self.substeps + substep) * self.dt
 
     def substep(self, state: State, out: State, frame: int, s: int, tape: SubstepTape | None = None) -> None:
         sim, t = self.sim, self.time(frame, s)
-        args = (self.particles, t, self.dt, sim.gravity, sim.boundaries, sim.drivers.accel(t, sim.dtype),
+        args = (self.particles, t, self.dt, sim.gravity, sim.boundaries, self.accel(t),
                 self.clamped)
         if tape is None:
             self.engine.forward.run(state, out, *args)
@@ -92,8 +95,18 @@ class _Run:
     def checkpoint(self, frame: int) -> State:
         return State(self.x[frame], self.v[frame], self.C[frame], self.F[frame], self.plastic[frame])
 
-    def forward(self, param, mass, x0, v0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def stages_active(self, t: float) -> torch.Tensor:
+        return torch.tensor([f.start <= t < f.end for f in self.sim.drivers.forces], dtype=torch.float64)
+
+    def accel(self, t: float) -> torch.Tensor:
+        """[groups, 3] driver accelerations (m/s^2) at time t from this run's stage accelerations
+        (the sum of the active stages each group belongs to; see boundaries.DriverGroups)."""
+        drivers = self.sim.drivers
+        return ((drivers.members.double() * self.stages_active(t)) @ self.stage_accel).to(self.sim.dtype).contiguous()
+
+    def forward(self, param, mass, x0, v0, stage_accel) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         sim, T, n = self.sim, self.frames, self.sim.n
+        self.stage_accel = stage_accel.detach().double()
         self.particles = dataclasses.replace(sim.particles, param=param.detach().contiguous(),
                                              mass=mass.detach().contiguous())
         self.clamped = torch.zeros(n, dtype=torch.uint8)
@@ -126,16 +139,29 @@ class _Run:
             for buf, value in ((self.x, a.x), (self.v, a.v), (self.C, a.C), (self.F, a.F),
                                (self.plastic, a.plastic)):
                 buf[f + 1] = value
+        clamped = int(self.clamped.sum(dtype=torch.int64))
+        if clamped:
+            warnings.warn(f"differentiable run: {clamped} particles left the grid and were clamped to its "
+                          f"boundary (no gradient flows along a clamped axis); enlarge the grid or add walls",
+                          RuntimeWarning, stacklevel=4)
         return self.x, self.v, self.F
 
     def backward(self, grad_x, grad_v, grad_F):
         sim, n, S, dtype = self.sim, self.sim.n, self.substeps, self.sim.dtype
+        k = self.segment
         adjoint = self.engine.adjoint
         grad, spare = StateGrad.zeros(n, dtype), StateGrad.zeros(n, dtype)
         param_grad = torch.zeros_like(self.particles.param)
         mass_grad = torch.zeros_like(self.particles.mass)
-        states = [None] + [sim.state.empty_like() for _ in range(S)]
-        tapes = [SubstepTape.empty(n, sim.grid.nodes, dtype) for _ in range(S)]
+        # driver stages: dt vbar summed per stage over the substeps it is active (P2G adds
+        # m dt a to the momentum, so abar_p = dt vbar_p), reduced over its particles at the end
+        stage_rows = torch.zeros(len(sim.drivers.forces), n, 3, dtype=dtype)
+        states = [None] + [sim.state.empty_like() for _ in range(k)]
+        tapes = [SubstepTape.empty(n, sim.grid.nodes, dtype) for _ in range(k)]
+        starts = list(range(0, S, k))  # first substep of each segment
+        # second level (only when a frame's replay exceeds the budget): segment start states
+        segment_states = [sim.state.empty_like() for _ in starts[1:]]
+        scratch = [states[1], sim.state.empty_like()] if segment_states else []
 
         def add_output_grads(frame: int) -> None:
             for g, acc in ((grad_x, grad.x), (grad_v, grad.v), (grad_F, grad.F)):
@@ -144,36 +170,70 @@ class _Run:
 
         for f in reversed(range(self.frames)):
             add_output_grads(f + 1)
-            states[0] = self.checkpoint(f)
-            for s in range(S):
-                self.substep(states[s], states[s + 1], f, s, tapes[s])
-            for s in reversed(range(S)):
-                t = self.time(f, s)
-                adjoint.run(states[s], states[s + 1], tapes[s], self.particles, t, self.dt, sim.gravity,
-                            sim.boundaries, sim.drivers.accel(t, dtype), grad, spare, param_grad, mass_grad)
-                grad, spare = spare, grad
+            if segment_states:  # replay the frame once, keeping each later segment's first state
+                src = self.checkpoint(f)
+                for s in range(starts[-1]):
+                    dst = segment_states[(s + 1) // k - 1] if (s + 1) % k == 0 else scratch[s % 2]
+                    self.substep(src, dst, f, s)
+                    src = dst
+            for j in reversed(range(len(starts))):
+                states[0] = self.checkpoint(f) if j == 0 else segment_states[j - 1]
+                steps = range(starts[j], min(starts[j] + k, S))
+                for i, s in enumerate(steps):
+                    self.substep(states[i], states[i + 1], f, s, tapes[i])
+                for i, s in reversed(list(enumerate(steps))):
+                    t = self.time(f, s)
+                    adjoint.run(states[i], states[i + 1], tapes[i], self.particles, t, self.dt, sim.gravity,
+                                sim.boundaries, self.accel(t), grad, spare, param_grad, mass_grad)
+                    grad, spare = spare, grad
+                    for stage in torch.nonzero(self.stages_active(t)).flatten().tolist():
+                        stage_rows[stage] += self.dt * grad.v
         add_output_grads(0)
-        return param_grad, mass_grad, grad.x, grad.v
+        stage_grad = torch.zeros(len(sim.drivers.forces), 3, dtype=dtype)
+        for stage in range(len(sim.drivers.forces)):
+            rows = stage_rows[stage][_stage_members(sim, stage)].contiguous()
+            stage_grad[stage] = sum_rows(rows, sim.device).to(dtype)
+        return param_grad, mass_grad, grad.x, grad.v, stage_grad
 
 
-def memory_estimate(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype) -> int:
+def memory_estimate(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype,
+                    segment: int | None = None, grid_copies: int = 0) -> int:
     """Bytes a differentiable run of n particles on ``nodes`` grid nodes holds at its peak:
-    (frames + 1) checkpoints and outputs (25 + 15 reals per particle), one frame's replay
-    (substeps states of 25 reals and tau of 9 per particle, grids of 7 reals per node) and
-    the adjoint's own buffers (two state gradients, taubar, parameter and mass gradients;
-    grid adjoints of 7 reals per node)."""
+    per frame + 1, the checkpoint, the returned x, v, F and their gradients (25 + 15 + 15
+    reals per particle); the replay of ``segment`` substeps at once (default: a whole frame),
+    each a state of 25 reals and tau of 9 per particle and grids of 7 reals per node, plus,
+    when segment < substeps, the first state of every later segment and a scratch state
+    (two-level checkpointing); the kernels' working buffers (two forward states, tau, grids;
+    two state gradients, taubar, U s V, parameter and mass gradients, grid adjoint); and
+    ``grid_copies`` private grid copies of 4 + 3 reals per node (CPU path: P2G and its adjoint)."""
     itemsize = torch.tensor([], dtype=dtype).element_size()
-    checkpoints = (frames + 1) * n * (25 + 15)
-    replay = substeps * (n * (25 + 9) + 7 * nodes)
-    adjoint = n * (2 * 24 + 9 + PARAM_COUNT + 1) + 7 * nodes
-    return itemsize * (checkpoints + replay + adjoint)
+    k = substeps if segment is None else segment
+    checkpoints = (frames + 1) * n * (25 + 15 + 15)
+    replay = k * (n * (25 + 9) + 7 * nodes) + (n * 25 * (-(-substeps // k)) if k < substeps else 0)
+    working = n * (2 * 25 + 9) + 7 * nodes + n * (2 * 25 + 9 + 21 + PARAM_COUNT + 1) + 4 * nodes
+    return itemsize * (checkpoints + replay + working + grid_copies * 7 * nodes)
+
+
+def replay_segment(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype,
+                   memory_budget: int | None) -> int:
+    """Substeps replayed at once in backward: a whole frame when that fits ``memory_budget``
+    (bytes; None: no limit), else the longest segment that does (two-level checkpointing).
+    InputError when not even one substep at a time fits."""
+    if memory_budget is None or memory_estimate(n, nodes, frames, substeps, dtype) <= memory_budget:
+        return substeps
+    for k in range(substeps - 1, 0, -1):
+        if memory_estimate(n, nodes, frames, substeps, dtype, k) <= memory_budget:
+            return k
+    need = memory_estimate(n, nodes, frames, substeps, dtype, 1)
+    raise InputError(f"memory_budget {memory_budget / 2**20:.1f} MiB is too small for {frames} frames of {n} "
+                     f"particles: the checkpoints and a one-substep replay need {need / 2**20:.1f} MiB")
 
 
 class _Simulate(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, run: _Run, param, mass, x0, v0):
+    def forward(ctx, run: _Run, param, mass, x0, v0, stage_accel):
         ctx.run = run
-        x, v, F = run.forward(param, mass, x0, v0)
+        x, v, F = run.forward(param, mass, x0, v0, stage_accel)
         return x.clone(), v.clone(), F.clone()  # the checkpoints stay private to the run
 
     @staticmethod
@@ -215,51 +275,123 @@ def per_particle(value, n: int, name: str, dtype: torch.dtype, device, trailing:
     return out
 
 
-# kernel materials whose parameter rows start with (mu, lambda), and with tau_Y in column 2
-LAME_MATERIALS = ("elastic", "neo_hookean", "plasticine", "metal", "foam", "sand", "snow")
-YIELD_MATERIALS = ("plasticine", "metal", "foam", "non_newtonian")
+_LAME = ("youngs_modulus", "poissons_ratio")
+# registry parameters of each kernel material, in kernel-column order where they map one to
+# one (clflow.mpm.constants.kernel_params): E, nu -> (mu, lambda); friction_angle -> alpha;
+# non-Newtonian (shear_modulus, bulk_modulus) -> (mu, kappa - 2 mu / 3)
+KERNEL_PARAMETERS: dict[str, tuple[str, ...]] = {
+    "elastic": _LAME,
+    "neo_hookean": _LAME,
+    "plasticine": _LAME + ("yield_stress",),
+    "metal": _LAME + ("yield_stress", "hardening"),
+    "foam": _LAME + ("yield_stress", "viscosity"),
+    "sand": _LAME + ("friction_angle", "cohesion"),
+    "snow": _LAME + ("critical_compression", "critical_stretch", "hardening"),
+    "newtonian": ("viscosity", "bulk_modulus"),
+    "non_newtonian": ("shear_modulus", "bulk_modulus", "yield_stress", "viscosity"),
+}
+_SQRT_2_3 = (2.0 / 3.0) ** 0.5
 
 
-def _require(present: set[int], allowed: tuple[str, ...], what: str) -> None:
+def _registry_values(kernel_material: str, q: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Registry parameters (SI) of particles of one kernel material from their kernel rows q."""
+    names = KERNEL_PARAMETERS[kernel_material]
+    values = {name: q[:, k] for k, name in enumerate(names)}
+    if names[:2] == _LAME:
+        mu, lam = q[:, 0], q[:, 1]
+        values["youngs_modulus"] = mu * (3 * lam + 2 * mu) / (lam + mu)
+        values["poissons_ratio"] = lam / (2 * (lam + mu))
+    if kernel_material == "sand":  # alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi))
+        values["friction_angle"] = torch.rad2deg(torch.asin(3 * q[:, 2] / (2 * _SQRT_2_3 + q[:, 2])))
+    if kernel_material == "non_newtonian":
+        values["bulk_modulus"] = q[:, 1] + 2 * q[:, 0] / 3
+    return values
+
+
+def _kernel_columns(kernel_material: str, values: dict[str, torch.Tensor]) -> list[torch.Tensor]:
+    """Kernel parameter columns (differentiable) from registry values: the inverse of
+    :func:`_registry_values`."""
+    names = KERNEL_PARAMETERS[kernel_material]
+    columns = [values[name] for name in names]
+    if names[:2] == _LAME:
+        columns[0], columns[1] = lame_parameters(values["youngs_modulus"], values["poissons_ratio"])
+    if kernel_material == "sand":
+        sin_phi = torch.sin(torch.deg2rad(values["friction_angle"]))
+        columns[2] = _SQRT_2_3 * 2 * sin_phi / (3 - sin_phi)
+    if kernel_material == "non_newtonian":
+        columns[1] = values["bulk_modulus"] - 2 * values["shear_modulus"] / 3
+    return columns
+
+
+def _material_param_rows(sim: Simulator, params: dict, dtype: torch.dtype) -> torch.Tensor:
+    """[N, PARAM_COUNT] kernel rows with the registry parameters ``params`` (name -> global or
+    per-particle tensor) replacing the simulator's, for every particle whose material has them."""
+    base, n = sim.particles, sim.n
     names = {i: name for name, i in MATERIAL_IDS.items()}
-    wrong = sorted(names[m] for m in present if names[m] not in allowed)
-    if wrong:
-        raise InputError(f"{what}: not a parameter of {', '.join(wrong)} (it applies to {', '.join(allowed)}); "
-                         f"use kernel_params")
+    present = [names[int(m)] for m in torch.unique(base.material)]
+    known = {name for m in present for name in KERNEL_PARAMETERS[m]}
+    unknown = sorted(set(params) - known)
+    if unknown:
+        raise InputError(f"params: {', '.join(unknown)} is not a parameter of the simulated material(s) "
+                         f"{', '.join(present)}; their parameters: {', '.join(sorted(known))}")
+    rows = {name: per_particle(value, n, name, dtype, sim.device) for name, value in params.items()}
+    columns = [base.param[:, k] for k in range(base.param.shape[1])]
+    for kernel_material in present:
+        given = [name for name in KERNEL_PARAMETERS[kernel_material] if name in rows]
+        if not given:
+            continue
+        index = torch.nonzero(base.material == MATERIAL_IDS[kernel_material]).flatten()
+        values = _registry_values(kernel_material, base.param[index].double())
+        registry = get_material("elastic" if kernel_material == "neo_hookean" else kernel_material)
+        for name in given:
+            values[name] = rows[name][index].to(torch.float64)
+            lo, hi = float(values[name].detach().min()), float(values[name].detach().max())
+            registry.param(name).check(lo, "params")
+            registry.param(name).check(hi, "params")
+        for k, column in enumerate(_kernel_columns(kernel_material, values)):
+            columns[k] = columns[k].index_put((index,), column.to(dtype))
+    return torch.stack(columns, 1)
 
 
 def simulate(
     simulator: Simulator,
     frames: int,
     *,
-    youngs_modulus=None,
-    poissons_ratio=None,
+    params=None,
     density=None,
     positions=None,
     velocities=None,
-    yield_stress=None,
+    stage_accelerations=None,
     kernel_params=None,
     retries: int = 0,
+    memory_budget: int | None = None,
 ) -> Frames:
     """Differentiable run of ``frames`` frames from the simulator's current state.
 
     Every keyword may be a tensor that requires grad; None keeps the simulator's value.
 
     Args:
-        simulator: a :class:`Simulator` whose particles all use a material with an adjoint
-            (clflow.mpm.adjoint.ADJOINT_MATERIALS). It is not advanced.
+        simulator: the :class:`Simulator` (any materials, boundaries, drivers); it is not advanced.
         frames: number of output frames (each ``simulator.substeps`` substeps).
-        youngs_modulus: E (Pa), global (0-d) or per particle [N].
-        poissons_ratio: nu, global or [N] (materials with Lame parameters: LAME_MATERIALS).
-        yield_stress: tau_Y (Pa), global or [N] (YIELD_MATERIALS).
+        params: material parameters by registry name (clflow/materials.py, SI units: e.g.
+            "youngs_modulus" Pa, "poissons_ratio", "yield_stress" Pa, "friction_angle" deg,
+            "viscosity" Pa s), each global (0-d) or per particle [N]; a name applies to every
+            particle whose material has it (KERNEL_PARAMETERS); the rest keep their values.
         density: rho (kg/m^3), global or [N]: particle mass = rho x rest volume.
         positions, velocities: initial x [N, 3] (m) and v [N, 3] (m/s).
+        stage_accelerations: [S, 3] acceleration (m/s^2) of each driver stage (the simulator's
+            ``forces``, in order). A stage given as a force F (N) on a region of mass M
+            accelerates it by F / M: pass ``force / region_masses(simulator)[s]`` to
+            differentiate with respect to the force.
         kernel_params: [N, PARAM_COUNT] kernel parameters (clflow.mpm.constants.kernel_params),
-            an alternative to youngs_modulus / poissons_ratio.
+            an alternative to params.
         retries: NaN/CFL guard: when a frame turns NaN/inf or breaks the CFL limit, halve dt
             (double the substeps per frame) and run again, at most this many times (a
             StabilityWarning says so). The last attempt raises :class:`SimulationError` on
             NaN/inf and only warns on a CFL violation.
+        memory_budget: bytes the run may hold (see :func:`memory_estimate`); when a whole
+            frame's replay does not fit, backward replays it in shorter segments from
+            intermediate states (two-level checkpointing: one more forward pass per frame).
 
     Returns:
         :class:`Frames` with x, v [frames + 1, N, 3] and F [frames + 1, N, 3, 3].
@@ -268,34 +400,17 @@ def simulate(
     if int(frames) < 1:
         raise InputError(f"frames must be >= 1, got {frames}")
     base = sim.particles
-    present = {int(m) for m in torch.unique(base.material)}
-    if kernel_params is not None and (youngs_modulus is not None or poissons_ratio is not None
-                                      or yield_stress is not None):
-        raise InputError("give kernel_params or youngs_modulus/poissons_ratio/yield_stress, not both")
+    if kernel_params is not None and params:
+        raise InputError("give kernel_params or params, not both")
     if kernel_params is not None:
         param = torch.as_tensor(kernel_params)
         if tuple(param.shape) != tuple(base.param.shape):
             raise InputError(f"kernel_params: expected shape {list(base.param.shape)}, got {list(param.shape)}")
         param = param.to(dtype)
+    elif params:
+        param = _material_param_rows(sim, dict(params), dtype)
     else:
-        columns = [base.param[:, k] for k in range(base.param.shape[1])]
-        if youngs_modulus is not None or poissons_ratio is not None:
-            _require(present, LAME_MATERIALS, "youngs_modulus/poissons_ratio")
-            mu0, lam0 = base.param[:, 0], base.param[:, 1]
-            E0 = mu0 * (3 * lam0 + 2 * mu0) / (lam0 + mu0)  # current values, for the one not given
-            nu0 = lam0 / (2 * (lam0 + mu0))
-            E = E0 if youngs_modulus is None else per_particle(youngs_modulus, n, "youngs_modulus", dtype, sim.device)
-            nu = nu0 if poissons_ratio is None else per_particle(poissons_ratio, n, "poissons_ratio", dtype,
-                                                                 sim.device)
-            if bool((E.detach() <= 0).any()) or bool(((nu.detach() <= -1) | (nu.detach() >= 0.5)).any()):
-                raise InputError("youngs_modulus must be > 0 Pa and poissons_ratio in (-1, 0.5)")
-            columns[0], columns[1] = lame_parameters(E, nu)
-        if yield_stress is not None:
-            _require(present, YIELD_MATERIALS, "yield_stress")
-            columns[2] = per_particle(yield_stress, n, "yield_stress", dtype, sim.device)
-            if bool((columns[2].detach() < 0).any()):
-                raise InputError("yield_stress must be >= 0 Pa")
-        param = torch.stack(columns, 1)
+        param = base.param
     if density is not None:
         rho = per_particle(density, n, "density", dtype, sim.device)
         if bool((rho.detach() <= 0).any()):
@@ -310,14 +425,36 @@ def simulate(
             raise InputError(f"{name}: expected shape [{n}, 3], got {list(value.shape)}")
         if not bool(torch.isfinite(value.detach()).all()):
             raise InputError(f"{name} contains NaN or inf")
+    sim._check_inside(x0.detach())
+    stages = sim.drivers.stage_accel.shape[0]
+    stage_accel = sim.drivers.stage_accel if stage_accelerations is None else torch.as_tensor(stage_accelerations)
+    if tuple(stage_accel.shape) != (stages, 3):
+        raise InputError(f"stage_accelerations: expected shape [{stages}, 3] (one row per force stage), "
+                         f"got {list(stage_accel.shape)}")
+    stage_accel = stage_accel.to(dtype)
     substeps = sim.substeps
     for _ in range(int(retries)):
         try:
-            return Frames(*_Simulate.apply(_Run(sim, int(frames), substeps, True), param, mass, x0, v0))
+            run = _Run(sim, int(frames), substeps, memory_budget, strict_cfl=True)
+            return Frames(*_Simulate.apply(run, param, mass, x0, v0, stage_accel))
         except SimulationError as err:
             warnings.warn(f"{err}; retrying with {2 * substeps} substeps per frame", StabilityWarning, stacklevel=2)
             substeps *= 2
-    return Frames(*_Simulate.apply(_Run(sim, int(frames), substeps), param, mass, x0, v0))
+    return Frames(*_Simulate.apply(_Run(sim, int(frames), substeps, memory_budget), param, mass, x0, v0, stage_accel))
 
 
-__all__ = ["Frames", "memory_estimate", "per_particle", "simulate"]
+def _stage_members(simulator: Simulator, stage: int) -> torch.Tensor:
+    """[N] bool: the particles driver stage ``stage`` acts on."""
+    group = simulator.drivers.group.long()
+    return (group >= 0) & simulator.drivers.members[group.clamp(min=0), stage]
+
+
+def region_masses(simulator: Simulator) -> torch.Tensor:
+    """[S] total mass (kg) of the particles each driver stage acts on (float64)."""
+    mass = simulator.particles.mass.double()
+    return torch.stack([mass[_stage_members(simulator, s)].sum() for s in range(len(simulator.drivers.forces))]
+                       ) if simulator.drivers.forces else torch.zeros(0, dtype=torch.float64)
+
+
+__all__ = ["KERNEL_PARAMETERS", "Frames", "engine", "memory_estimate", "per_particle", "region_masses",
+           "replay_segment", "simulate"]

@@ -70,6 +70,11 @@ inline void svd3_isotropic_adjoint(const real *U, const real *V, const real *dp_
     svd3_add_back(U, V, F_hat, F_bar);
 }
 
+inline real trace3(const real *a)
+{
+    return a[0] + a[4] + a[8];
+}
+
 /* Cofactor matrix of a: d det(a)/d a, finite for singular a. */
 inline void mat3_cofactor(const real *a, real *out)
 {

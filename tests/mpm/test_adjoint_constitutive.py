@@ -9,7 +9,7 @@ import torch
 
 from clflow.mpm import reference
 from clflow.mpm.adjoint import SubstepAdjoint
-from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT
+from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, SIMD_LANES
 from clflow.mpm.substep import Grid
 
 MU, LAMBDA, TAU_Y, XI = 3.0e4, 5.0e4, 300.0, 2.0
@@ -75,11 +75,15 @@ def stress_vjp(device, material, F, tau_bar, F_new_bar, plastic, plastic_new_bar
     C_bar = torch.zeros(n, 3, 3, dtype=dtype)
     param_bar = torch.zeros(n, PARAM_COUNT, dtype=dtype)
     R = adjoint.real_t
+    F_in, C_in = F.to(dtype).contiguous(), torch.zeros(n, 3, 3, dtype=dtype)
     with device.bind() as b:
+        F_buf, C_buf = b.input(F_in), b.input(C_in)
+        U, s, V = b.inout(adjoint.U), b.inout(adjoint.s), b.inout(adjoint.V)
+        if adjoint.k_svd is not None:
+            device.launch(adjoint.k_svd, -(-n // SIMD_LANES), [np.int32(n), R(1e-3), F_buf, C_buf, U, s, V])
         device.launch(adjoint.k_stress, n, [
-            np.int32(n), R(1e-3), b.input(F.to(dtype).contiguous()), b.input(torch.zeros(n, 3, 3, dtype=dtype)),
-            b.input(plastic.to(dtype).contiguous()), b.input(mat), b.input(param),
-            b.input(tau_bar.to(dtype).contiguous()), b.input(F_new_bar.to(dtype).contiguous()),
+            np.int32(n), R(1e-3), F_buf, C_buf, U, s, V, b.input(plastic.to(dtype).contiguous()), b.input(mat),
+            b.input(param), b.input(tau_bar.to(dtype).contiguous()), b.input(F_new_bar.to(dtype).contiguous()),
             b.input(plastic_new_bar.to(dtype).contiguous()), b.output(F_bar), b.inout(C_bar),
             b.output(plastic_bar), b.inout(param_bar)])
     return F_bar.double(), plastic_bar.double(), param_bar.double()

@@ -90,12 +90,28 @@ def test_bad_inputs_are_named():
     sim = Simulator(cube(3, 0.4, 0.6), 1e-5, MaterialSpec("elastic"), Grid((16, 16, 16), 1 / 16), substeps=2,
                     frame_dt=1e-3, dtype=torch.float64)
     with pytest.raises(InputError, match="youngs_modulus: expected shape"):
-        simulate(sim, 1, youngs_modulus=torch.ones(5))
+        simulate(sim, 1, params={"youngs_modulus": torch.ones(5)})
+    with pytest.raises(InputError, match="poissons_ratio .* outside the valid range"):
+        simulate(sim, 1, params={"poissons_ratio": torch.tensor(0.5)})
     with pytest.raises(InputError, match="positions: expected shape"):
         simulate(sim, 1, positions=torch.zeros(2, 3))
+    with pytest.raises(InputError, match="outside the grid's interior"):
+        simulate(sim, 1, positions=sim.state.x + 0.5)
     with pytest.raises(InputError, match="density must be > 0"):
         simulate(sim, 1, density=torch.tensor(-1.0))
-    sand = Simulator(cube(3, 0.4, 0.6), 1e-5, MaterialSpec("sand"), Grid((16, 16, 16), 1 / 16),
-                        substeps=2, frame_dt=1e-3, dtype=torch.float64)
-    with pytest.raises(InputError, match="no adjoint for material"):
-        simulate(sand, 1)
+    with pytest.raises(InputError, match="yield_stress is not a parameter of the simulated material"):
+        simulate(sim, 1, params={"yield_stress": torch.tensor(100.0)})
+
+
+def test_clamped_particles_are_reported():
+    x = cube(3, 0.4, 0.6)
+    x[0, 0] = 0.87  # at the upper end of the grid's interior (0.875 m), moving out
+    v = torch.zeros_like(x)
+    v[0, 0] = 5.0
+    sim = Simulator(x, 1e-5, MaterialSpec("elastic"), Grid((16, 16, 16), 1 / 16), velocities=v, walls=None,
+                    frame_dt=2e-3, substeps=2, dtype=torch.float64)
+    positions = sim.state.x.clone().requires_grad_()
+    with pytest.warns(RuntimeWarning, match="1 particles left the grid"):
+        out = simulate(sim, 1, positions=positions)
+    out.x[-1, 0, 0].backward()
+    assert float(out.x[-1, 0, 0]) == 0.875 and float(positions.grad[0, 0]) == 0.0

@@ -6,7 +6,8 @@
  * Given xbar', vbar', Cbar' of state n+1, with u = vbar' + dt xbar' (xbar' zeroed on clamped
  * axes) and B = (4/dx^2) Cbar':
  *   vbar_i += w (u + B d)
- *   xbar   = xbar' (unclamped axes) + sum_i [ grad(w) (v_i . u + v_i . B d) - w B^T v_i ]
+ *   xbar   = xbar' (unclamped axes) + sum_i grad(w) (v_i . u + v_i . B d) - B^T v'
+ * (sum_i w v_i = v', the forward's output, read back).
  * Unreleased particles (t < release_time) do not move: xbar = xbar', nothing to the grid. */
 #include "mpm/adjoint/adjoint.h"
 
@@ -40,8 +41,11 @@ inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, co
         B[k] *= 4 / (dx * dx);
     const stencil_t st = make_stencil(g, xp);
     const stencil_gradient_t sg = make_stencil_gradient(&st, dx);
+#pragma unroll
     for (int i = 0; i < 3; ++i)
+#pragma unroll
         for (int j = 0; j < 3; ++j)
+#pragma unroll
             for (int k = 0; k < 3; ++k) {
                 const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
                 const real d[3] = {(i - st.fx[0]) * dx, (j - st.fx[1]) * dx, (k - st.fx[2]) * dx};
@@ -55,8 +59,10 @@ inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, co
                     s += vi[a] * (u[a] + Bd);
                 }
                 for (int a = 0; a < 3; ++a)
-                    xb[a] += grad_w[a] * s - w * (B[a] * vi[0] + B[3 + a] * vi[1] + B[6 + a] * vi[2]);
+                    xb[a] += grad_w[a] * s;
             }
+    for (int a = 0; a < 3; ++a) /* sum_i w B^T v_i = B^T v' */
+        xb[a] -= B[a] * vp[0] + B[3 + a] * vp[1] + B[6 + a] * vp[2];
     store_row(x_bar, p, 3, xb);
 }
 

@@ -1,4 +1,5 @@
-/* Adjoint of the grid update (grid.cl): boundary conditions in reverse table order, then
+/* Adjoint of the grid update (grid.cl), reading vbar as the sum of the G2P adjoint's grid
+ * copies (only on nodes with mass): boundary conditions in reverse table order, then
  * v = mv/m + dt g:  pbar = vbar/m,  mbar = -(mv . vbar)/m^2  (0 on empty nodes).
  *
  * The velocity before boundary b is recomputed from v0 = mv/m + dt g by replaying
@@ -78,8 +79,9 @@ inline void apply_condition(__global const real *rec, const real *xi, real *v)
 __kernel void grid_update_adjoint(const int nx, const int ny, const int nz, const real dx, const real ox,
                                   const real oy, const real oz, const real dt, const real t, const real gx,
                                   const real gy, const real gz, const real mass_eps,
-                                  __global const real *grid, __global const real *grid_v_bar,
-                                  __global const real *bc, const int n_bc, __global real *grid_bar)
+                                  __global const real *grid, __global const real *grid_v_bar_copies,
+                                  const int copies, __global const real *bc, const int n_bc,
+                                  __global real *grid_bar)
 {
     const long node = get_global_id(0);
     const long nodes = (long)nx * ny * nz;
@@ -93,7 +95,10 @@ __kernel void grid_update_adjoint(const int nx, const int ny, const int nz, cons
         for (int a = 0; a < 3; ++a) {
             mv[a] = grid[4 * node + 1 + a];
             v0[a] = mv[a] / m + dt * g[a];
-            v_bar[a] = grid_v_bar[3 * node + a];
+            /* the G2P adjoint's private grid copies, summed in the fixed order k = 0, 1, ... */
+            v_bar[a] = grid_v_bar_copies[3 * node + a];
+            for (int k = 1; k < copies; ++k)
+                v_bar[a] += grid_v_bar_copies[k * 3 * nodes + 3 * node + a];
         }
         const int k = node % nz, j = (node / nz) % ny, i = node / ((long)nz * ny);
         const real xi[3] = {ox + i * dx, oy + j * dx, oz + k * dx};

@@ -5,7 +5,7 @@
  *   vbar  = m sum_i w pbar_i
  *   Abar  = sum_i w pbar_i d^T;  Cbar = m Abar;  taubar = -dt V (4/dx^2) Abar
  *   mbar += sum_i w [mbar_i + pbar_i . (v + dt a)] + <Abar, C>
- *   xbar += sum_i grad(w) [m mbar_i + pbar_i . (m (v + dt a) + A d)] - w A^T pbar_i
+ *   xbar += sum_i grad(w) [m mbar_i + pbar_i . (m (v + dt a) + A d)] - A^T sum_i w pbar_i
  * x_bar and mass_bar are accumulated into; v_bar, C_bar, tau_bar are written. */
 #include "mpm/adjoint/adjoint.h"
 
@@ -38,8 +38,11 @@ __kernel void p2g_adjoint(const int nx, const int ny, const int nz, const real d
     const stencil_t st = make_stencil(&g, xp);
     const stencil_gradient_t sg = make_stencil_gradient(&st, dx);
     real sum_p[3] = {0, 0, 0}, A_bar[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, sum_m = 0;
+#pragma unroll
     for (int i = 0; i < 3; ++i)
+#pragma unroll
         for (int j = 0; j < 3; ++j)
+#pragma unroll
             for (int k = 0; k < 3; ++k) {
                 const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
                 const real d[3] = {(i - st.fx[0]) * dx, (j - st.fx[1]) * dx, (k - st.fx[2]) * dx};
@@ -56,12 +59,13 @@ __kernel void p2g_adjoint(const int nx, const int ny, const int nz, const real d
                         A_bar[3 * a + b] += w * pb * d[b];
                 }
                 for (int a = 0; a < 3; ++a)
-                    xb[a] += grad_w[a] * s - w * (A[a] * gb[1] + A[3 + a] * gb[2] + A[6 + a] * gb[3]);
+                    xb[a] += grad_w[a] * s;
             }
     real mb = sum_m, vb[3], Cb[9], tb[9];
     for (int a = 0; a < 3; ++a) {
         vb[a] = m * sum_p[a];
         mb += sum_p[a] * vel[a];
+        xb[a] -= A[a] * sum_p[0] + A[3 + a] * sum_p[1] + A[6 + a] * sum_p[2]; /* sum_i w A^T pbar_i */
     }
     for (int k = 0; k < 9; ++k) {
         mb += A_bar[k] * Cp[k];

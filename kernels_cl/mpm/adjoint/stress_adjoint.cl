@@ -6,7 +6,7 @@
  *   plasticbar = dplastic'/dplastic^T plastic'bar (+ the yield stress's share for metal)
  * C_bar holds the P2G adjoint's part on entry; param_bar [n, PARAM_COUNT] is accumulated into
  * (one row per particle, summed over substeps: the host reduces rows in a fixed order).
- * Built only for the materials with an adjoint (ADJOINT_MATERIALS in clflow/mpm/adjoint.py). */
+ * U, s, V = svd3(F_tr) come from the forward's trial_svd_simd (stress.cl). */
 #include "mpm/mpm.h"
 #include "mpm/materials/elastic.h"
 #include "mpm/materials/elastic_adjoint.h"
@@ -14,7 +14,9 @@
 #include "mpm/materials/newtonian_adjoint.h"
 
 __kernel void update_stress_adjoint(const int n, const real dt, __global const real *F_in,
-                                    __global const real *C_in, __global const real *plastic_in,
+                                    __global const real *C_in, __global const real *U_in,
+                                    __global const real *s_in, __global const real *V_in,
+                                    __global const real *plastic_in,
                                     __global const int *material, __global const real *param,
                                     __global const real *tau_bar, __global const real *F_bar_out,
                                     __global const real *plastic_bar_out, __global real *F_bar,
@@ -24,7 +26,7 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
     const int p = get_global_id(0);
     if (p >= n)
         return;
-    real F[9], C[9], step[9], F_tr[9], F_new_bar[9], F_tr_bar[9], tb[9], Cb[9], Fb[9], dCb[9];
+    real F[9], C[9], step[9], F_tr[9], F_new_bar[9], F_tr_bar[9], tb[9], Cb[9], Fb[9], dCb[9], U[9], s[3], V[9];
     load_row(F_in, p, 9, F);
     load_row(C_in, p, 9, C);
     load_row(tau_bar, p, 9, tb);
@@ -32,6 +34,11 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
     for (int k = 0; k < 9; ++k)
         step[k] = dt * C[k] + ((k % 4 == 0) ? (real)1 : (real)0);
     mat3_mul(step, F, F_tr);
+#if MATERIALS_PRESENT & SVD_MATERIALS
+    load_row(U_in, p, 9, U);
+    load_row(s_in, p, 3, s);
+    load_row(V_in, p, 9, V);
+#endif
     __global const real *q = param + (long)p * PARAM_COUNT;
     real q_bar[PARAM_COUNT];
     for (int k = 0; k < PARAM_COUNT; ++k)
@@ -44,7 +51,7 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
     switch (material[p]) {
 #if MATERIALS_PRESENT & (1 << MAT_ELASTIC)
     case MAT_ELASTIC:
-        elastic_stress_adjoint(F_tr, q[0], q[1], tb, F_tr_bar, &q_bar[0], &q_bar[1]);
+        fixed_corotated_adjoint(F_tr, U, s, V, q[0], q[1], tb, F_tr_bar, &q_bar[0], &q_bar[1]);
         break;
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_NEO_HOOKEAN)
@@ -54,24 +61,24 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_PLASTICINE)
     case MAT_PLASTICINE:
-        plasticine_stress_adjoint(F_tr, q[0], q[1], q[2], tb, F_new_bar, F_tr_bar, q_bar);
+        plasticine_stress_adjoint(U, s, V, q[0], q[1], q[2], tb, F_new_bar, F_tr_bar, q_bar);
         break;
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_METAL)
     case MAT_METAL:
-        plastic_b = metal_stress_adjoint(F_tr, q[0], q[1], q[2], q[3], plastic_in[p], tb, F_new_bar, plastic_b,
+        plastic_b = metal_stress_adjoint(U, s, V, q[0], q[1], q[2], q[3], plastic_in[p], tb, F_new_bar, plastic_b,
                                          F_tr_bar, q_bar);
         break;
 #endif
 #if MATERIALS_PRESENT & ((1 << MAT_FOAM) | (1 << MAT_NON_NEWTONIAN))
     case MAT_FOAM:
     case MAT_NON_NEWTONIAN:
-        viscoplastic_stress_adjoint(F_tr, q[0], q[1], q[2], q[3], dt, tb, F_new_bar, F_tr_bar, q_bar);
+        viscoplastic_stress_adjoint(U, s, V, q[0], q[1], q[2], q[3], dt, tb, F_new_bar, F_tr_bar, q_bar);
         break;
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_SAND)
     case MAT_SAND:
-        sand_stress_adjoint(F_tr, q[0], q[1], q[2], q[3], tb, F_new_bar, F_tr_bar, q_bar);
+        sand_stress_adjoint(U, s, V, q[0], q[1], q[2], q[3], tb, F_new_bar, F_tr_bar, q_bar);
         break;
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_NEWTONIAN)
@@ -81,7 +88,7 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_SNOW)
     case MAT_SNOW:
-        plastic_b = snow_stress_adjoint(F_tr, q[0], q[1], q[2], q[3], q[4], plastic_in[p], tb, F_new_bar,
+        plastic_b = snow_stress_adjoint(U, s, V, q[0], q[1], q[2], q[3], q[4], plastic_in[p], tb, F_new_bar,
                                         plastic_b, F_tr_bar, q_bar);
         break;
 #endif

@@ -32,7 +32,7 @@ inline void fixed_corotated_adjoint(const real *F, const real *U, const real *s,
     svd3_isotropic_adjoint(U, V, zeros, zeros, mean, R_bar, F_bar);
     mat3_cofactor(F, cof);
     const real J = s[0] * s[1] * s[2];
-    const real trace_bar = mat3_trace(tau_bar);
+    const real trace_bar = trace3(tau_bar);
     real energy = 0; /* <taubar, (F - R) F^T> */
     for (int r = 0; r < 3; ++r)
         for (int c = 0; c < 3; ++c) {
@@ -49,21 +49,13 @@ inline void fixed_corotated_adjoint(const real *F, const real *U, const real *s,
     *lambda_bar = trace_bar * (J - 1) * J;
 }
 
-inline void elastic_stress_adjoint(const real *F, const real mu, const real lambda, const real *tau_bar,
-                                   real *F_bar, real *mu_bar, real *lambda_bar)
-{
-    real U[9], s[3], V[9];
-    svd3(F, U, s, V);
-    fixed_corotated_adjoint(F, U, s, V, mu, lambda, tau_bar, F_bar, mu_bar, lambda_bar);
-}
-
 inline void neo_hookean_stress_adjoint(const real *F, const real mu, const real lambda, const real *tau_bar,
                                        real *F_bar, real *mu_bar, real *lambda_bar)
 {
     const real det = mat3_det(F);
     const real floor_J = (real)(HENCKY_S_MIN * HENCKY_S_MIN * HENCKY_S_MIN);
     const real J = fmax(det, floor_J);
-    const real trace_bar = mat3_trace(tau_bar);
+    const real trace_bar = trace3(tau_bar);
     real sym[9], sym_F[9], FFt[9], cof[9];
     for (int r = 0; r < 3; ++r)
         for (int c = 0; c < 3; ++c)
@@ -87,12 +79,12 @@ inline void neo_hookean_stress_adjoint(const real *F, const real mu, const real 
  * s_E depends on theta_c or theta_s instead), and J_P' depends on s_k only where s_k is
  * clamped (dJ_P'/ds_k = J_P'/s_k). q_bar[0..4] = (mu0, lambda0, theta_c, theta_s, xi)
  * gradients; returns J_P bar of state n. */
-inline real snow_stress_adjoint(const real *F_tr, const real mu0, const real lambda0, const real theta_c,
+inline real snow_stress_adjoint(const real *U, const real *s, const real *V,
+                                const real mu0, const real lambda0, const real theta_c,
                                 const real theta_s, const real xi, const real J_P, const real *tau_bar,
                                 const real *F_new_bar, const real J_P_new_bar, real *F_tr_bar, real *q_bar)
 {
-    real U[9], s[3], V[9], s_E[3], F_E[9], F_E_bar[9], G[9], F_hat[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
-    svd3(F_tr, U, s, V);
+    real s_E[3], F_E[9], F_E_bar[9], G[9], F_hat[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
     const real lo = 1 - theta_c, hi = 1 + theta_s;
     for (int a = 0; a < 3; ++a)
         s_E[a] = clamp(s[a], lo, hi);

@@ -33,8 +33,9 @@ inline real expm1_ratio(const real x)
     return x == 0 ? (real)1 : expm1(x) / x;
 }
 
-/* What a Hencky model's adjoint shares: the SVD of F_tr, its strain eps = log max(s, s_min)
- * and the returned strain eps' with eps'_i - eps'_j = c (eps_i - eps_j). */
+/* What a Hencky model's adjoint shares: the SVD of F_tr (the forward's own, from
+ * trial_svd_simd, so branches agree bit for bit), its strain eps = log max(s, s_min) and the
+ * returned strain eps' with eps'_i - eps'_j = c (eps_i - eps_j). */
 typedef struct {
     real U[9], s[3], V[9];
     real eps[3], eps_new[3];
@@ -44,9 +45,13 @@ typedef struct {
     int absolute;
 } hencky_t;
 
-inline void hencky_begin(hencky_t *h, const real *F_tr, const real s_min, const int absolute)
+inline void hencky_begin(hencky_t *h, const real *U, const real *s, const real *V, const real s_min,
+                         const int absolute)
 {
-    svd3(F_tr, h->U, h->s, h->V);
+    mat3_copy(U, h->U);
+    mat3_copy(V, h->V);
+    for (int a = 0; a < 3; ++a)
+        h->s[a] = s[a];
     h->s_min = s_min;
     h->absolute = absolute;
     for (int a = 0; a < 3; ++a) {
@@ -128,12 +133,13 @@ inline void hencky_end(const hencky_t *h, const real *eps_bar, const real *s_bar
  * eps' = mean(eps) + y n (yielded), y = sqrt(2/3) tau_Y/(2 mu), n = eps_hat/||eps_hat||,
  * J = d eps'/d eps = 1 1^T/3 + y (P_dev/||eps_hat|| - eps_hat eps_hat^T/||eps_hat||^3) (symmetric).
  * F_tr_bar is accumulated into; writes mu_bar, lambda_bar, *dgamma_out; returns tau_Y_bar. */
-inline real hencky_von_mises_adjoint(const real *F_tr, const real mu, const real lambda, const real tau_Y,
+inline real hencky_von_mises_adjoint(const real *U, const real *s, const real *V,
+                                     const real mu, const real lambda, const real tau_Y,
                                      const real *tau_bar, const real *F_new_bar, const real dgamma_bar,
                                      real *F_tr_bar, real *mu_bar, real *lambda_bar, real *dgamma_out)
 {
     hencky_t h;
-    hencky_begin(&h, F_tr, (real)HENCKY_S_MIN, 0);
+    hencky_begin(&h, U, s, V, (real)HENCKY_S_MIN, 0);
     real eps_hat[3];
     deviator3(h.eps, eps_hat);
     const real norm = safe_norm3(eps_hat);
@@ -166,18 +172,20 @@ inline real hencky_von_mises_adjoint(const real *F_tr, const real mu, const real
 }
 
 /* Plasticine (plasticine.h): q_bar[0..2] = (mu_bar, lambda_bar, tau_Y_bar). */
-inline void plasticine_stress_adjoint(const real *F_tr, const real mu, const real lambda, const real tau_Y,
+inline void plasticine_stress_adjoint(const real *U, const real *s, const real *V,
+                                      const real mu, const real lambda, const real tau_Y,
                                       const real *tau_bar, const real *F_new_bar, real *F_tr_bar,
                                       real *q_bar)
 {
     real dgamma;
-    q_bar[2] = hencky_von_mises_adjoint(F_tr, mu, lambda, tau_Y, tau_bar, F_new_bar, 0, F_tr_bar, &q_bar[0],
+    q_bar[2] = hencky_von_mises_adjoint(U, s, V, mu, lambda, tau_Y, tau_bar, F_new_bar, 0, F_tr_bar, &q_bar[0],
                                         &q_bar[1], &dgamma);
 }
 
 /* Metal (metal.h): yield stress tau_Y + h (h: hardening state), h' = h + 2 mu xi dgamma when
  * yielded. q_bar[0..3] = (mu_bar, lambda_bar, tau_Y_bar, xi_bar); returns hbar of state n. */
-inline real metal_stress_adjoint(const real *F_tr, const real mu, const real lambda, const real tau_Y,
+inline real metal_stress_adjoint(const real *U, const real *s, const real *V,
+                                 const real mu, const real lambda, const real tau_Y,
                                  const real xi, const real hardening, const real *tau_bar,
                                  const real *F_new_bar, const real hardening_new_bar, real *F_tr_bar,
                                  real *q_bar)
@@ -185,7 +193,7 @@ inline real metal_stress_adjoint(const real *F_tr, const real mu, const real lam
     real dgamma;
     /* dgamma_bar of h': used only if yielded, where h' = h + 2 mu xi dgamma */
     const real dgamma_bar = 2 * mu * xi * hardening_new_bar;
-    const real yield_bar = hencky_von_mises_adjoint(F_tr, mu, lambda, tau_Y + hardening, tau_bar, F_new_bar,
+    const real yield_bar = hencky_von_mises_adjoint(U, s, V, mu, lambda, tau_Y + hardening, tau_bar, F_new_bar,
                                                     dgamma_bar, F_tr_bar, &q_bar[0], &q_bar[1], &dgamma);
     q_bar[2] = yield_bar;
     if (dgamma > 0) {
@@ -198,12 +206,13 @@ inline real metal_stress_adjoint(const real *F_tr, const real mu, const real lam
 /* Foam / non-Newtonian (viscoplastic.h): q_bar[0..3] = (mu, lambda, tau_Y, eta) gradients.
  * eps' = mean(eps) + r eps_hat, r = 1 - beta + beta sqrt(2/3) tau_Y/(2 mu ||eps_hat||),
  * beta = 1/(1 + eta/(2 mu_hat dt)), mu_hat = mu sum(s^2)/3 (a direct dependence on s). */
-inline void viscoplastic_stress_adjoint(const real *F_tr, const real mu, const real lambda, const real tau_Y,
+inline void viscoplastic_stress_adjoint(const real *U, const real *s, const real *V,
+                                        const real mu, const real lambda, const real tau_Y,
                                         const real eta, const real dt, const real *tau_bar,
                                         const real *F_new_bar, real *F_tr_bar, real *q_bar)
 {
     hencky_t h;
-    hencky_begin(&h, F_tr, (real)HENCKY_S_MIN, 0);
+    hencky_begin(&h, U, s, V, (real)HENCKY_S_MIN, 0);
     real eps_hat[3];
     deviator3(h.eps, eps_hat);
     const real norm = safe_norm3(eps_hat);
@@ -251,12 +260,13 @@ inline void viscoplastic_stress_adjoint(const real *F_tr, const real mu, const r
 /* Sand (sand.h): q_bar[0..3] = (mu, lambda, alpha, c) gradients. Tip: eps' = (c, c, c)
  * (no dependence on eps); cone: eps' = eps - dgamma eps_hat/||eps_hat||,
  * dgamma = ||eps_hat|| + K alpha (tr(eps) - 3c), K = (3 lambda + 2 mu)/(2 mu). */
-inline void sand_stress_adjoint(const real *F_tr, const real mu, const real lambda, const real alpha,
+inline void sand_stress_adjoint(const real *U, const real *s, const real *V,
+                                const real mu, const real lambda, const real alpha,
                                 const real c, const real *tau_bar, const real *F_new_bar, real *F_tr_bar,
                                 real *q_bar)
 {
     hencky_t h;
-    hencky_begin(&h, F_tr, (real)SAND_S_MIN, 1);
+    hencky_begin(&h, U, s, V, (real)SAND_S_MIN, 1);
     real eps_hat[3];
     const real excess = h.eps[0] + h.eps[1] + h.eps[2] - 3 * c;
     deviator3(h.eps, eps_hat);

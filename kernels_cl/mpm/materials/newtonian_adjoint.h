@@ -33,8 +33,8 @@ inline void newtonian_stress_adjoint(const real *F_tr, const real *C, const real
         rate_work += tau_bar[k] * D_dev[k];
         C_bar[k] += 2 * mu * J * T_dev[k];
     }
-    const real tr_bar = mat3_trace(tau_bar);
-    const real J_bar = 2 * mu * rate_work - tr_bar * (p - kappa / J7) + mat3_trace(F_new_bar) * cbrt(J) / (3 * J);
+    const real tr_bar = trace3(tau_bar);
+    const real J_bar = 2 * mu * rate_work - tr_bar * (p - kappa / J7) + trace3(F_new_bar) * cbrt(J) / (3 * J);
     if (det > (real)NEWTONIAN_J_MIN) {
         mat3_cofactor(F_tr, cof);
         for (int k = 0; k < 9; ++k)
