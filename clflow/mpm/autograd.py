@@ -43,11 +43,13 @@ from clflow.runtime.reduction import sum_rows
 @dataclass
 class Frames:
     """Per-frame states of a differentiable run; frame 0 is the initial state.
-    x, v [T+1, N, 3] (m, m/s), F [T+1, N, 3, 3] (deformation gradient)."""
+    x, v [T+1, N, 3] (m, m/s), F [T+1, N, 3, 3] (deformation gradient); ``substeps`` per
+    frame that the run used (more than the simulator's after a NaN/CFL retry)."""
 
     x: torch.Tensor
     v: torch.Tensor
     F: torch.Tensor
+    substeps: int = 0
 
 
 class _Engine:
@@ -436,11 +438,12 @@ def simulate(
     for _ in range(int(retries)):
         try:
             run = _Run(sim, int(frames), substeps, memory_budget, strict_cfl=True)
-            return Frames(*_Simulate.apply(run, param, mass, x0, v0, stage_accel))
+            return Frames(*_Simulate.apply(run, param, mass, x0, v0, stage_accel), substeps=substeps)
         except SimulationError as err:
             warnings.warn(f"{err}; retrying with {2 * substeps} substeps per frame", StabilityWarning, stacklevel=2)
             substeps *= 2
-    return Frames(*_Simulate.apply(_Run(sim, int(frames), substeps, memory_budget), param, mass, x0, v0, stage_accel))
+    run = _Run(sim, int(frames), substeps, memory_budget)
+    return Frames(*_Simulate.apply(run, param, mass, x0, v0, stage_accel), substeps=substeps)
 
 
 def _stage_members(simulator: Simulator, stage: int) -> torch.Tensor:

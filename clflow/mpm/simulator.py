@@ -215,8 +215,7 @@ class Simulator:
                 f"({self._limit_reason(v)}); use substeps >= {auto} per frame (or substeps=None to choose it)",
                 StabilityWarning, stacklevel=2,
             )
-        self.substeps = int(substeps)
-        self.dt = self.frame_dt / self.substeps
+        self.use_substeps(substeps)
         self.time = 0.0
         self.frame = 0
         self.kernels = SubstepKernels(self.device, dtype, n, grid, self.particles.material, p2g)
@@ -254,6 +253,13 @@ class Simulator:
         limits = self._dt_limits(self.state.v if v is None else v)
         dt_max = min((lim for lim, _ in limits), default=self.frame_dt)
         return max(1, math.ceil(self.frame_dt / dt_max * (1 - 1e-12)))
+
+    def use_substeps(self, substeps: int) -> None:
+        """Take ``substeps`` per frame from now on (>= 1; no stability check)."""
+        if int(substeps) < 1:
+            raise InputError(f"substeps must be >= 1, got {substeps}")
+        self.substeps = int(substeps)
+        self.dt = self.frame_dt / self.substeps
 
     def _limit_reason(self, v: torch.Tensor) -> str:
         return min(self._dt_limits(v), default=(0.0, "no limit"))[1]

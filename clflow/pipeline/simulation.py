@@ -15,12 +15,10 @@ import torch
 
 from clflow.errors import InputError
 from clflow.materials import get_material
-from clflow.pipeline.scene import WALL_CELLS, SceneGaussians
+from clflow.pipeline.scene import WALL_CELLS, SceneGaussians, region_mask
 from clflow.scene.config import SceneConfig
 from clflow.scene.filling import ObjectParticles, fill_object
 
-# material parameters that clflow.mpm.autograd.simulate takes as differentiable tensors
-DIFFERENTIABLE = ("youngs_modulus", "poissons_ratio", "yield_stress", "density")
 
 
 @dataclass
@@ -74,10 +72,10 @@ def setup_object(cfg: SceneConfig, obj: SceneGaussians) -> ObjectSetup:
 
 
 def build_simulator(cfg: SceneConfig, setup: ObjectSetup, params: dict[str, float], density: float,
-                    dtype: torch.dtype = torch.float32):
+                    dtype: torch.dtype = torch.float32, min_substeps: int = 1):
     """A :class:`clflow.mpm.Simulator` for material parameters ``params`` (SI) and
-    ``density`` (kg/m^3); substeps from ``simulation.substep_dt`` or the stability limits
-    of these parameters."""
+    ``density`` (kg/m^3); substeps from ``simulation.substep_dt``, else the stability limits
+    of these parameters but at least ``min_substeps``."""
     from clflow.mpm import BoxRegion, Force, HalfSpace, MaterialSpec, Simulator, SphereRegion
 
     sim_cfg = cfg.simulation
@@ -85,8 +83,11 @@ def build_simulator(cfg: SceneConfig, setup: ObjectSetup, params: dict[str, floa
     substeps = None if sim_cfg.substep_dt is None else max(1, math.ceil(frame_dt / sim_cfg.substep_dt - 1e-9))
     x = setup.particles.positions
     forces = []
-    for stage in cfg.forces:
+    for i, stage in enumerate(cfg.forces):
         region = stage.region
+        if not bool(region_mask(region, x.double()).any()):
+            raise InputError(f"{cfg.source}: forces[{i}].region holds no particle of the object (the object spans "
+                             f"{x.min(0).values.tolist()} .. {x.max(0).values.tolist()} m in the simulation frame)")
         if region.kind == "box":
             where = BoxRegion(region.lower, region.upper)
         elif region.kind == "sphere":
@@ -98,20 +99,21 @@ def build_simulator(cfg: SceneConfig, setup: ObjectSetup, params: dict[str, floa
                             acceleration=vec if stage.kind == "acceleration" else None))
     colliders = [HalfSpace(c.point, c.normal, c.mode, c.friction, c.start, c.end) for c in cfg.colliders]
     material = get_material(cfg.material.type).name
-    return Simulator(
+    sim = Simulator(
         x, setup.particles.volume, MaterialSpec(material, dict(params), density), setup.grid,
         frame_dt=frame_dt, substeps=substeps, gravity=sim_cfg.gravity, boundaries=colliders, forces=forces,
         dtype=dtype,
     )
+    if substeps is None and sim.substeps < min_substeps:
+        sim.use_substeps(min_substeps)
+    return sim
 
 
 def run(simulator, frames: int, values: dict[str, torch.Tensor]):
-    """Differentiable run (clflow.mpm.autograd.simulate) with the parameters in ``values``
-    (name -> 0-d tensor, SI) as inputs; returns Frames (x, v [T+1, M, 3], F [T+1, M, 3, 3])."""
+    """Differentiable run (clflow.mpm.autograd.simulate) with the material parameters in
+    ``values`` (registry name or "density" -> 0-d tensor, SI) as inputs; returns Frames
+    (x, v [T+1, M, 3], F [T+1, M, 3, 3])."""
     from clflow.mpm.autograd import simulate
 
-    unknown = [name for name in values if name not in DIFFERENTIABLE]
-    if unknown:
-        raise InputError(f"optimising {', '.join(unknown)} is not supported yet; differentiable parameters: "
-                         f"{', '.join(DIFFERENTIABLE)}")
-    return simulate(simulator, frames, retries=2, **values)
+    params = {name: value for name, value in values.items() if name != "density"}
+    return simulate(simulator, frames, params=params or None, density=values.get("density"), retries=2)
