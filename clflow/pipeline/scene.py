@@ -64,7 +64,8 @@ class SceneGaussians:
                               torch.cat([a.sh_rotations, b.sh_rotations]))
 
 
-def _region_mask(region: Region, points: torch.Tensor) -> torch.Tensor:
+def region_mask(region: Region, points: torch.Tensor) -> torch.Tensor:
+    """Bool [N]: which points [N, 3] lie in the region (same units and frame)."""
     if region.kind == "box":
         lo, hi = torch.tensor(region.lower, dtype=points.dtype), torch.tensor(region.upper, dtype=points.dtype)
         return ((points >= lo) & (points <= hi)).all(-1)
@@ -90,7 +91,7 @@ def select_object(cfg: SceneConfig, means_scene: torch.Tensor) -> torch.Tensor:
         else:
             raise InputError(f"{sel.mask}: expected {n} booleans or a list of indices, got {raw.dtype} {raw.shape}")
     else:
-        mask = _region_mask(sel.region, means_scene)
+        mask = region_mask(sel.region, means_scene)
     if not bool(mask.any()):
         raise InputError(f"{cfg.source}: object.select selects no Gaussian of {cfg.splats.name}")
     return mask

@@ -106,7 +106,7 @@ class _Reader:
             raise self.fail(where, f"must be one of {', '.join(options)}, got {value!r}")
         return value
 
-    def file(self, data: dict, key: str, path: str, required: bool = True) -> Path | None:
+    def file(self, data: dict, key: str, path: str, required: bool = True, folder_ok: bool = False) -> Path | None:
         where = f"{path}.{key}" if path else key
         value = data.get(key)
         if value is None:
@@ -116,8 +116,8 @@ class _Reader:
         if not isinstance(value, str) or not value:
             raise self.fail(where, f"must be a file path, got {value!r}")
         resolved = (self.base / value).resolve()
-        if not resolved.is_file():
-            raise self.fail(where, f"file not found: {resolved}")
+        if not (resolved.is_file() or (folder_ok and resolved.is_dir())):
+            raise self.fail(where, f"{'file or folder' if folder_ok else 'file'} not found: {resolved}")
         return resolved
 
     def items(self, data: dict, key: str, path: str) -> list:
@@ -166,7 +166,7 @@ class MaterialConfig:
 
     type: str
     parameters: dict[str, float]
-    density: float
+    density: float | None  # kg/m^3; None only for "query" without a given density
     query_image: Path | None = None
     query_prompt: str = ""
     query_backend: str = "offline"
@@ -234,6 +234,7 @@ class OptimizeSettings:
     iterations: int = 30
     horizon_start: int = 0  # frames in the first iteration's loss (0: all)
     horizon_step: int = 0  # frames added per iteration
+    final_rate: float = 0.1  # the rate falls (cosine) to this fraction of itself by the last iteration
 
 
 @dataclass(frozen=True)
@@ -290,9 +291,11 @@ def _material(r: _Reader, data: Any) -> MaterialConfig:
     params_in = r.mapping(body.get("parameters"), "material.parameters")  # names: the registry checks
     if kind == "query":
         query = r.section(body.get("query"), "material.query", ("image", "prompt", "backend"))
-        density = r.number(body, "density", "material", DENSITY.default, low=0.0, strict_low=True)
+        density = (r.number(body, "density", "material", low=0.0, strict_low=True)
+                   if body.get("density") is not None else None)  # None: the query's
+        backend = r.choice(query, "backend", "material.query", ("offline", "openai"), "offline")
         return MaterialConfig("query", dict(params_in), density, query_image=r.file(query, "image", "material.query"),
-                              query_prompt=str(query.get("prompt", "")), query_backend=str(query.get("backend", "offline")))
+                              query_prompt=str(query.get("prompt", "")), query_backend=backend)
     try:
         material = get_material(kind)
         params = validate_params(material.name, params_in)
@@ -377,7 +380,7 @@ def _camera(r: _Reader, data: Any) -> CameraConfig:
 
 def _optimize(r: _Reader, data: Any, material: MaterialConfig) -> OptimizeSettings:
     p = "optimize"
-    body = r.section(data, p, ("parameters", "learning_rates", "iterations", "horizon"))
+    body = r.section(data, p, ("parameters", "learning_rates", "iterations", "horizon", "final_rate"))
     names = body.get("parameters", [])
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise r.fail(f"{p}.parameters", f"must be a list of parameter names, got {names!r}")
@@ -396,6 +399,7 @@ def _optimize(r: _Reader, data: Any, material: MaterialConfig) -> OptimizeSettin
     return OptimizeSettings(
         parameters=tuple(names), learning_rates=rates, iterations=r.integer(body, "iterations", p, 30, low=1),
         horizon_start=r.integer(horizon, "start", f"{p}.horizon", 0), horizon_step=r.integer(horizon, "step", f"{p}.horizon", 0),
+        final_rate=r.number(body, "final_rate", p, 0.1, low=0.0, high=1.0),
     )
 
 
@@ -459,7 +463,7 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         colliders=_colliders(r, top.get("boundaries")),
         simulation=_simulation(r, top.get("simulation")),
         camera=_camera(r, top.get("camera")),
-        video=r.file(top, "video", "", required=False),
+        video=r.file(top, "video", "", required=False, folder_ok=True),  # a video or an image folder
         flow=flow,
         optimize=_optimize(r, top.get("optimize"), material),
         output=(r.base / output).resolve(),

@@ -106,7 +106,10 @@ BAD = [
     ("camera.fov_y_deg", 200, "camera.fov_y_deg: must be <= 179"),
     ("optimize.parameters", ["yield_stress"], "'yield_stress' is not a parameter of elastic"),
     ("optimize.learning_rates", {"poissons_ratio": 0.1}, "optimize.learning_rates.poissons_ratio: is not among"),
-    ("video", "guide.mp4", "video: file not found"),
+    ("video", "guide.mp4", "video: file or folder not found"),
+    ("optimize.final_rate", 2, "optimize.final_rate: must be <= 1, got 2"),
+    ("material", {"type": "query", "query": {"image": "scene.ply", "backend": "gpt"}},
+     "material.query.backend: must be one of offline, openai"),
 ]
 
 

@@ -1,0 +1,46 @@
+"""Stage 2 of the pipeline: a config whose ``material.type`` is ``query`` gets its material
+type, density and initial parameters from the material query (clflow.query)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+from clflow.errors import InputError
+from clflow.materials import get_material, validate_params
+from clflow.scene.config import SceneConfig
+
+log = logging.getLogger(__name__)
+
+
+def resolve_material(cfg: SceneConfig) -> SceneConfig:
+    """The config with a concrete material.
+
+    For ``type: query`` the query (offline knowledge base or a foundation model) decides the
+    type, density and parameters; parameters and density written in the config override the
+    query's. The query record is saved as ``output/material_query.json``. Other configs are
+    returned unchanged."""
+    mat = cfg.material
+    if mat.type != "query":
+        return cfg
+    from clflow.query.backends import query_material
+
+    result = query_material(mat.query_image, prompt=mat.query_prompt, backend=mat.query_backend)
+    for warning in result.warnings:
+        log.warning("material query: %s", warning)
+    cfg.output.mkdir(parents=True, exist_ok=True)
+    result.save(cfg.output / "material_query.json")
+    where = f"{cfg.source}: material.parameters (material {result.material} from the query)"
+    params = validate_params(result.material, {**result.parameters, **mat.parameters}, where)
+    known = set(get_material(result.material).param_names) | {"density"}
+    wrong = [n for n in (*cfg.optimize.parameters, *cfg.ground_truth) if n not in known]
+    if wrong:
+        raise InputError(f"{cfg.source}: the query chose {result.material}, which has no parameter "
+                         f"{', '.join(map(repr, wrong))} (optimize.parameters / evaluation.ground_truth)")
+    density = mat.density if mat.density is not None else result.density
+    log.info("material query: %s, density %g kg/m^3, %s", result.material, density, params)
+    material = dataclasses.replace(mat, type=result.material, parameters=params, density=density)
+    return dataclasses.replace(cfg, material=material)
+
+
+__all__ = ["resolve_material"]
