@@ -20,6 +20,9 @@ BUILTIN_COMMANDS: dict[str, str] = {
     "render": "clflow_cli.render:render",
     "flow": "clflow_cli.flow:flow",
     "simulate": "clflow_cli.simulate:simulate",
+    "optimize": "clflow_cli.optimize:optimize",
+    "render4d": "clflow_cli.render4d:render4d",
+    "demo": "clflow_cli.demo:demo",
 }
 
 PLUGIN_GROUP = "clflow.commands"

@@ -26,6 +26,42 @@ def _params(items):
     return out
 
 
+CONFIG_SUFFIXES = (".yaml", ".yml", ".json")
+
+
+def simulate_scene(config_path: str, params_file: str | None, out_dir: str | None, preview: str) -> None:
+    """``clflow simulate CONFIG``: the config's scene with its material (or the parameters of
+    an optimisation's params.json), written as per-frame Gaussians and a guidance-view video."""
+    import json
+    from pathlib import Path
+
+    from clflow.errors import InputError
+    from clflow.pipeline.forward import render_video, simulate_config
+    from clflow.pipeline.frames4d import export_gaussians
+    from clflow.pipeline.material import resolve_material
+    from clflow.scene.config import load_config
+
+    cfg = resolve_material(load_config(config_path))
+    overrides = {}
+    if params_file:
+        try:
+            record = json.loads(Path(params_file).read_text())
+            overrides = {**record["parameters"], "density": record["density"]}
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise InputError(f"{params_file}: not a params.json of clflow optimize ({exc})") from None
+        if record.get("material") != cfg.material.type:
+            raise InputError(f"{params_file} is for {record.get('material')!r}, the config simulates {cfg.material.type!r}")
+    out = Path(out_dir) if out_dir else cfg.output / "simulation"
+    result = simulate_config(cfg, overrides)
+    click.echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {cfg.simulation.frames} frames")
+    export_gaussians(result, out)
+    click.echo(f"wrote {out / 'gaussians.npz'} and {result.x.shape[0]} PLY frames")
+    if preview != "none":
+        video = out / "guidance.mp4" if preview == "mp4" else None
+        render_video(result, out / "guidance", video=video)
+        click.echo(f"wrote {video or out / 'guidance'}")
+
+
 @click.command("simulate")
 @click.argument("particles", required=False, type=click.Path(dir_okay=False))
 @click.option("--shape", type=click.Choice(["box", "sphere", "torus"]), default="box", show_default=True,
@@ -50,16 +86,37 @@ def _params(items):
               show_default=True, help="Domain-wall condition.")
 @click.option("--wall-friction", default=0.0, show_default=True, help="Coulomb friction of the walls.")
 @click.option("--double", is_flag=True, help="Simulate in float64.")
-@click.option("--out", "-o", "out_dir", default="simulation", show_default=True, type=click.Path(file_okay=False),
-              help="Output folder: positions.npz and the preview.")
+@click.option("--out", "-o", "out_dir", default=None, type=click.Path(file_okay=False),
+              help="Output folder [default: simulation; for a config: its output/simulation].")
+@click.option("--params", "params_file", type=click.Path(dir_okay=False),
+              help="With a CONFIG: simulate with the parameters of this params.json (clflow optimize).")
 @click.option("--preview", type=click.Choice(["mp4", "png", "none"]), default="mp4", show_default=True,
               help="Preview video, PNG frames, or none.")
 @click.pass_context
 def simulate(ctx, particles, shape, size, center, material, params, model, density, velocity, domain, resolution,
-             particle_volume, frames, fps, substeps, gravity, walls, wall_friction, double, out_dir, preview):
+             particle_volume, frames, fps, substeps, gravity, walls, wall_friction, double, out_dir, params_file,
+             preview):
     """Simulate PARTICLES (.npz with 'positions' [N, 3] in m and optional 'volume' [N] in
     m^3, or a .ply point cloud) or a built-in shape, and write the per-frame positions
-    (OUT/positions.npz: x [frames+1, N, 3], time [frames+1]) and a preview."""
+    (OUT/positions.npz: x [frames+1, N, 3], time [frames+1]) and a preview.
+
+    Given a scene CONFIG (.yaml/.yml/.json) instead, simulate its object in its scene and
+    write per-frame Gaussians (OUT/gaussians.npz and OUT/frame_000.ply ...; see
+    `clflow render4d`) and the guidance camera's view."""
+    if particles and particles.lower().endswith(CONFIG_SUFFIXES):
+        from click.core import ParameterSource
+
+        particle_only = [p.opts[0] for p in ctx.command.params
+                         if p.name not in ("particles", "out_dir", "params_file", "preview")
+                         and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE]
+        if particle_only:
+            raise click.UsageError(f"with a scene config, the config sets the simulation; drop "
+                                   f"{', '.join(particle_only)}")
+        simulate_scene(particles, params_file, out_dir, preview)
+        return
+    if params_file:
+        raise click.UsageError("--params needs a scene CONFIG (.yaml/.yml/.json)")
+    out_dir = out_dir or "simulation"
     import logging
     from pathlib import Path
 

@@ -1,0 +1,203 @@
+"""Stage 5 of the pipeline: the simulated scene as per-frame Gaussians (4D), written once by
+``clflow simulate CONFIG`` and rendered from any viewpoint over time by ``clflow render4d``.
+
+``gaussians.npz`` (simulation frame: metres, +y up) holds the object's n Gaussians per frame
+and the static ones once::
+
+    object_means [T+1, n, 3] m, object_covariances [T+1, n, 3, 3] m^2,
+    object_sh_rotations [T+1, n, 3, 3]    rotation of each Gaussian since its SH were fitted
+    static_means [S, 3], static_covariances [S, 3, 3], static_sh_rotations [S, 3, 3]
+    opacities [n + S], sh [n + S, K, 3] (or colors [n + S, C]), object first
+    time [T+1] s, fps, camera_viewmat [4, 4], camera_K [3, 3], camera_size [2] (guidance camera)
+    scale, up_rotation [3, 3]           x_sim = scale * up_rotation @ x_file
+
+``frame_000.ply ...`` are standard 3DGS PLY files in the splat file's own frame and units,
+so they overlay the input scene in any 3DGS viewer. A PLY cannot say that a Gaussian's SH
+turned with it, so the view-dependent part (degree >= 1) of a deformed Gaussian's colour is
+exact only in the npz (whose renders apply ``sh_rotations``); degree 0 is exact in both.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from clflow.errors import InputError
+from clflow.fileio import atomic_path
+from clflow.pipeline.scene import SceneGaussians, up_rotation
+
+NPZ_NAME = "gaussians.npz"
+
+
+@dataclass
+class Frames4D:
+    """Per-frame Gaussians of a simulated scene (see the module docstring for the arrays)."""
+
+    arrays: dict[str, np.ndarray]
+
+    @property
+    def frame_count(self) -> int:
+        return int(self.arrays["object_means"].shape[0])
+
+    @property
+    def fps(self) -> float:
+        return float(self.arrays["fps"])
+
+    def scene_at(self, t: int, dtype: torch.dtype = torch.float32) -> SceneGaussians:
+        """The whole scene at frame t (object Gaussians first)."""
+        a = self.arrays
+        get = lambda name, *index: None if name not in a else torch.from_numpy(a[name][index]).to(dtype)  # noqa: E731
+        return SceneGaussians(
+            torch.cat([get("object_means", t), get("static_means")]),
+            torch.cat([get("object_covariances", t), get("static_covariances")]),
+            get("opacities"), get("sh"), get("colors"),
+            torch.cat([get("object_sh_rotations", t), get("static_sh_rotations")]),
+        )
+
+    def guidance_camera(self):
+        from clflow.splat.cameras import Camera
+
+        width, height = (int(v) for v in self.arrays["camera_size"])
+        return Camera(torch.from_numpy(self.arrays["camera_viewmat"]).double(),
+                      torch.from_numpy(self.arrays["camera_K"]).double(), width, height, "guidance")
+
+    def object_center(self) -> np.ndarray:
+        """Centre (m) of the object's Gaussians at rest: the orbit's target."""
+        means = self.arrays["object_means"][0]
+        return 0.5 * (means.min(0) + means.max(0))
+
+
+def export_gaussians(result, folder: Path) -> None:
+    """Write ``folder/gaussians.npz`` and ``folder/frame_000.ply ...`` of a
+    :class:`clflow.pipeline.forward.SimulationResult`, each file atomically."""
+    from clflow.splat.gaussians import Gaussians
+    from clflow.splat.ply import save_ply
+
+    prepared = result.prepared
+    cfg, static = prepared.cfg, prepared.static
+    folder.mkdir(parents=True, exist_ok=True)
+    frames = [result.scene_at(t) for t in range(result.x.shape[0])]
+    n = prepared.obj_rest.means.shape[0]
+    f32 = lambda t: t.detach().float().numpy()  # noqa: E731
+    first, cam = frames[0], prepared.camera
+    arrays = {
+        "object_means": np.stack([f32(f.means[:n]) for f in frames]),
+        "object_covariances": np.stack([f32(f.covariances[:n]) for f in frames]),
+        "object_sh_rotations": np.stack([f32(f.sh_rotations[:n]) for f in frames]),
+        "static_means": f32(static.means), "static_covariances": f32(static.covariances),
+        "static_sh_rotations": f32(static.sh_rotations), "opacities": f32(first.opacities),
+        "time": np.arange(len(frames)) / cfg.simulation.fps, "fps": np.float64(cfg.simulation.fps),
+        "camera_viewmat": cam.viewmat.double().numpy(), "camera_K": cam.K.double().numpy(),
+        "camera_size": np.array([cam.width, cam.height]), "scale": np.float64(cfg.scale),
+        "up_rotation": up_rotation(cfg.up).numpy(),
+    }
+    arrays["sh" if first.sh is not None else "colors"] = f32(first.sh if first.sh is not None else first.colors)
+    with atomic_path(folder / NPZ_NAME) as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+    R_up = up_rotation(cfg.up)
+    for t, g in enumerate(frames):
+        # back to the file's frame, then diagonalise each covariance into scales and a rotation
+        means = g.means.double() @ R_up / cfg.scale
+        covs = R_up.T @ g.covariances.double() @ R_up / cfg.scale**2
+        variances, axes = torch.linalg.eigh(covs)
+        axes = axes * torch.sign(torch.det(axes))[:, None, None]  # proper rotations
+        save_ply(folder / f"frame_{t:03d}.ply", Gaussians.from_activated(
+            means, rotmat_to_quat(axes), variances.clamp(min=1e-20).sqrt(), g.opacities.double().clamp(1e-6, 1 - 1e-6),
+            sh=None if g.sh is None else g.sh.double(), colors=None if g.colors is None else g.colors.double()))
+
+
+def load_frames(folder: str | Path) -> Frames4D:
+    """Read ``folder/gaussians.npz`` written by :func:`export_gaussians`."""
+    path = Path(folder) / NPZ_NAME
+    if not path.is_file():
+        raise InputError(f"{path} not found: run `clflow simulate CONFIG -o {folder}` first")
+    try:
+        with np.load(path) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable npz file ({exc})") from None
+    required = ("object_means", "object_covariances", "object_sh_rotations", "static_means", "opacities",
+                "camera_viewmat", "camera_K", "camera_size", "fps")
+    missing = [k for k in required if k not in arrays]
+    if missing:
+        raise InputError(f"{path}: missing arrays {', '.join(missing)} (not written by clflow simulate?)")
+    return Frames4D(arrays)
+
+
+def orbit_cameras(frames: Frames4D, count: int, turns: float = 1.0) -> list:
+    """``count`` cameras circling the object (about +y) at the guidance camera's distance and
+    elevation, starting at its azimuth and turning ``turns`` times over the sequence."""
+    from clflow.splat.cameras import look_at
+
+    guide = frames.guidance_camera()
+    R, t = guide.viewmat[:3, :3], guide.viewmat[:3, 3]
+    eye = (-R.T @ t).numpy()
+    center = frames.object_center()
+    offset = eye - center
+    radius = float(np.linalg.norm(offset))
+    elevation = math.asin(max(-0.99, min(0.99, offset[1] / radius)))
+    azimuth = math.atan2(offset[2], offset[0])
+    fov_x = 2 * math.atan(guide.width / (2 * float(guide.K[0, 0])))
+    cams = []
+    for i in range(count):
+        phi = azimuth + 2 * math.pi * turns * i / max(1, count)
+        direction = np.array([math.cos(elevation) * math.cos(phi), math.sin(elevation),
+                              math.cos(elevation) * math.sin(phi)])
+        cams.append(look_at(center + radius * direction, center, (0.0, 1.0, 0.0), fov_x=fov_x,
+                            width=guide.width, height=guide.height, name=f"orbit_{i:03d}"))
+    return cams
+
+
+def render_4d(frames: Frames4D, out: Path, *, views: int = 0, turns: float = 1.0, video_format: str = "mp4",
+              background=(1.0, 1.0, 1.0)) -> list[Path]:
+    """Render the sequence into ``out``: ``guidance/`` (the guidance camera), ``orbit/`` (a
+    camera circling the object while time runs) and, for ``views`` > 0, ``view_k/`` from k
+    fixed novel viewpoints on the same circle. Each folder gets PNG frames and a video
+    (``<name>.mp4`` or ``.gif``). Returns the videos written."""
+    from clflow.flow.visualize import write_image, write_video
+    from clflow.pipeline.forward import to_uint8
+    from clflow.pipeline.render import render_rgb
+
+    if video_format not in ("mp4", "gif"):
+        raise InputError(f"video format must be mp4 or gif, got {video_format!r}")
+    T = frames.frame_count
+    sequences = {"guidance": [frames.guidance_camera()] * T, "orbit": orbit_cameras(frames, T, turns)}
+    for k, cam in enumerate(orbit_cameras(frames, views)):
+        sequences[f"view_{k}"] = [cam] * T
+    videos = []
+    for name, cams in sequences.items():
+        images = []
+        with torch.no_grad():
+            for t, cam in enumerate(cams):
+                image = to_uint8(render_rgb(frames.scene_at(t), cam, background))
+                write_image(out / name / f"{t:03d}.png", image)
+                images.append(image)
+        video = out / f"{name}.{video_format}"
+        write_video(video, np.stack(images), frames.fps)
+        videos.append(video)
+    return videos
+
+
+def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """wxyz quaternions [N, 4] of proper rotation matrices [N, 3, 3] (Shepperd's method)."""
+    m = R
+    trace = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    cand = torch.stack([
+        torch.stack([1 + trace, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], -1),
+        torch.stack([m[:, 2, 1] - m[:, 1, 2], 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2], m[:, 0, 1] + m[:, 1, 0],
+                     m[:, 0, 2] + m[:, 2, 0]], -1),
+        torch.stack([m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0], 1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2],
+                     m[:, 1, 2] + m[:, 2, 1]], -1),
+        torch.stack([m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1],
+                     1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], -1),
+    ], 1)  # [N, 4 candidates, 4]; the one with the largest norm is the best conditioned
+    best = cand.norm(dim=-1).argmax(dim=1)
+    q = cand[torch.arange(R.shape[0]), best]
+    return q / q.norm(dim=-1, keepdim=True)
+
+
+__all__ = ["Frames4D", "export_gaussians", "load_frames", "orbit_cameras", "render_4d", "rotmat_to_quat"]

@@ -1,0 +1,67 @@
+"""``clflow optimize``: material parameters of a scene config from its guidance video."""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+
+def _format_row(row: dict | None) -> str:
+    if not row:
+        return ""
+    params = " ".join(f"{name}={value:.4g}" for name, value in row["params"].items())
+    return f"loss {row['loss']:.4g}  {params}  {row['seconds']:.1f} s/it"
+
+
+def run_optimization(config_path: str, resume: bool, iterations: int | None, output: str | None) -> dict:
+    """Load the config, optimise with a progress bar, write the results; returns the metrics."""
+    import dataclasses
+    from pathlib import Path
+
+    from clflow.pipeline.optimize import Optimization, parameter_unit
+    from clflow.scene.config import load_config
+
+    cfg = load_config(config_path)
+    if iterations is not None:
+        cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=iterations))
+    if output is not None:
+        cfg = dataclasses.replace(cfg, output=Path(output).resolve())
+    opt = Optimization(cfg)  # loads the scene, runs the material query, computes the video's flow
+    with click.progressbar(length=cfg.optimize.iterations, label="optimising", show_pos=True,
+                           item_show_func=_format_row, file=sys.stderr) as bar:
+        opt.progress = lambda row: bar.update(1, row)
+        if resume and opt.checkpoint.exists():
+            bar.update(opt.load_state().iteration)
+        try:
+            state = opt.run(resume=resume)
+        except KeyboardInterrupt:
+            done = opt.load_state().iteration if opt.checkpoint.exists() else 0
+            raise click.ClickException(
+                f"interrupted after {done} iterations (saved in {opt.checkpoint}); continue with "
+                f"`clflow optimize {config_path} --resume`") from None
+    metrics = opt.write_results(state)
+    final = opt.values(state.z)
+    click.echo("optimised: " + ", ".join(f"{n} = {v:.6g} {parameter_unit(opt.cfg, n)}" for n, v in final.items()))
+    if "relative_error" in metrics:
+        click.echo("relative error vs ground truth: " +
+                   ", ".join(f"{n} {100 * e:.2f}%" for n, e in metrics["relative_error"].items()))
+    click.echo(f"flow loss {metrics['flow_loss']:.4g}, end-point error {metrics['epe_px']:.3g} px, "
+               f"{metrics['seconds_per_iteration']:.2f} s per iteration; results in {cfg.output}")
+    return metrics
+
+
+@click.command("optimize")
+@click.argument("config", type=click.Path(dir_okay=False))
+@click.option("--resume", is_flag=True, help="Continue from OUTPUT/checkpoint.json (after Ctrl-C or a kill).")
+@click.option("--iterations", type=click.IntRange(min=1), default=None,
+              help="Override optimize.iterations of the config.")
+@click.option("--output", "-o", type=click.Path(file_okay=False), default=None,
+              help="Results folder (default: the config's output).")
+def optimize(config, resume, iterations, output):
+    """Optimise the material parameters of CONFIG (YAML/JSON scene config) so that the
+    simulated optical flow matches the guidance video's.
+
+    Writes into the output folder: params.json (final parameters, SI), metrics.json,
+    history.json, loss.png, comparison.mp4 and checkpoint.json (after every iteration)."""
+    run_optimization(config, resume, iterations, output)

@@ -1,0 +1,51 @@
+"""material.type: query -> the material query decides type, density and initial parameters."""
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from clflow.errors import InputError
+from clflow.pipeline.material import resolve_material
+from clflow.scene.config import load_config
+
+
+def query_config(quick_demo, tmp_path, material, optimize=("youngs_modulus",)):
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "jelly.png"), np.full((32, 32, 3), 128, np.uint8))
+    data = yaml.safe_load((quick_demo / "config.yaml").read_text())
+    data["splats"] = str(quick_demo / "scene.ply")
+    data["video"] = str(quick_demo / "guidance")
+    data["material"] = material
+    data["optimize"] = {"parameters": list(optimize)}
+    data["evaluation"] = {}
+    data["output"] = str(tmp_path / "out")
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return load_config(path)
+
+
+def test_query_fills_in_the_material_and_config_values_win(quick_demo, tmp_path):
+    cfg = query_config(quick_demo, tmp_path, {"type": "query", "query": {"image": "jelly.png"},
+                                              "parameters": {"poissons_ratio": 0.4}})
+    assert cfg.material.density is None
+    resolved = resolve_material(cfg)
+    record = json.loads((tmp_path / "out" / "material_query.json").read_text())
+    assert resolved.material.type == record["material"] == "elastic"
+    assert resolved.material.density == record["density"] > 0
+    assert resolved.material.parameters["youngs_modulus"] == record["parameters"]["youngs_modulus"]
+    assert resolved.material.parameters["poissons_ratio"] == 0.4  # the config's value, not the query's
+
+
+def test_query_result_without_the_optimised_parameter(quick_demo, tmp_path):
+    cfg = query_config(quick_demo, tmp_path, {"type": "query", "query": {"image": "jelly.png"}, "density": 900},
+                       optimize=("friction_angle",))
+    with pytest.raises(InputError, match="the query chose elastic, which has no parameter 'friction_angle'"):
+        resolve_material(cfg)
+
+
+def test_concrete_material_is_unchanged(demo_config):
+    cfg = demo_config()
+    assert resolve_material(cfg) is cfg

@@ -1,0 +1,99 @@
+"""clflow optimize on the reduced demo: recovery, resume, rollback, results."""
+
+import dataclasses
+import json
+import math
+
+import pytest
+
+from clflow.errors import ClflowError
+from clflow.pipeline.optimize import Optimization, OptimizerState, horizon, rate_schedule
+from clflow_datasets.demo import TRUTH
+
+
+def test_demo_recovers_youngs_modulus_from_a_10x_low_guess(demo_config):
+    cfg = demo_config()
+    assert cfg.material.parameters["youngs_modulus"] == pytest.approx(TRUTH["youngs_modulus"] / 10)
+    opt = Optimization(cfg)
+    state = opt.run()
+    final = opt.values(state.z)["youngs_modulus"]
+    assert abs(final - TRUTH["youngs_modulus"]) / TRUTH["youngs_modulus"] < 0.10
+    losses = [row["loss"] for row in state.history]
+    assert losses[1] < losses[0]
+
+    metrics = opt.write_results(state)  # its flow loss: at the final parameters, all frames
+    initial = opt.evaluate(opt.initial_state().z, cfg.simulation.frames, with_grad=False).loss
+    assert metrics["flow_loss"] < 0.2 * initial
+    assert metrics["relative_error"]["youngs_modulus"] < 0.10
+    out = cfg.output
+    for name in ("params.json", "metrics.json", "history.json", "loss.png", "comparison.mp4", "checkpoint.json"):
+        assert (out / name).stat().st_size > 0, name
+    record = json.loads((out / "params.json").read_text())
+    assert record["material"] == "elastic" and record["units"] == {"youngs_modulus": "Pa"}
+    assert record["parameters"]["youngs_modulus"] == pytest.approx(final)
+    assert not list(out.glob("*.tmp*")), "temporary files left behind"
+
+
+def test_resume_after_an_interruption_gives_the_uninterrupted_result(demo_config):
+    whole = Optimization(demo_config(iterations=4, name="whole")).run()
+    cfg = demo_config(iterations=4, name="split")
+    Optimization(cfg).run(stop_after=2)
+    saved = json.loads((cfg.output / "checkpoint.json").read_text())["state"]
+    assert saved["iteration"] == 2
+    resumed = Optimization(cfg).run(resume=True)  # a fresh process would build a new Optimization too
+    assert resumed.iteration == whole.iteration == 4
+    assert resumed.z == whole.z and resumed.m == whole.m and resumed.v == whole.v
+    assert [r["loss"] for r in resumed.history] == [r["loss"] for r in whole.history]
+
+
+def test_a_failed_iteration_rolls_back_and_halves_the_step(demo_config, monkeypatch):
+    opt = Optimization(demo_config(iterations=3))
+    real = opt.evaluate
+    calls = []
+
+    def flaky(z, frames, **kw):
+        calls.append(dict(z))
+        if len(calls) == 2:  # the second evaluation "blows up"
+            raise FloatingPointError("the flow loss is not finite")
+        return real(z, frames, **kw)
+
+    monkeypatch.setattr(opt, "evaluate", flaky)
+    state = opt.run()
+    assert state.iteration == 3 and state.step_scale == 0.5
+    assert calls[2] == calls[0], "the retry starts from the last good parameters"
+
+
+def test_repeated_failures_stop_with_the_reason_and_keep_the_checkpoint(demo_config, monkeypatch):
+    opt = Optimization(demo_config(iterations=5))
+    opt.run(stop_after=1)
+    before = (opt.checkpoint).read_text()
+
+    def broken(z, frames, **kw):
+        raise FloatingPointError("the gradient is not finite")
+
+    monkeypatch.setattr(opt, "evaluate", broken)
+    with pytest.raises(ClflowError, match="optimisation stopped at iteration 1: the gradient is not finite"):
+        opt.run(resume=True)
+    assert opt.checkpoint.read_text() == before, "the last good checkpoint survives"
+
+
+def test_adam_restarts_its_momentum_after_an_overshoot(demo_config):
+    opt = Optimization.__new__(Optimization)
+    opt.cfg = demo_config()
+    state = OptimizerState(5, {"youngs_modulus": 4.5}, {"youngs_modulus": -0.3}, {"youngs_modulus": 1.0},
+                           history=[{"z": {"youngs_modulus": 4.3}}], momentum_steps=5)
+    # the last step went up by 0.2 and the gradient is now positive: uphill, so restart
+    after = opt.adam_step(state, {"youngs_modulus": 2.0})
+    assert after.momentum_steps == 1 and after.z["youngs_modulus"] < 4.5
+    # the same step with a negative gradient keeps the momentum
+    kept = opt.adam_step(state, {"youngs_modulus": -2.0})
+    assert kept.momentum_steps == 6 and kept.m["youngs_modulus"] < -0.3
+
+
+def test_schedules(demo_config):
+    opt = dataclasses.replace(demo_config().optimize, iterations=11, final_rate=0.1, horizon_start=4, horizon_step=1)
+    assert rate_schedule(opt, 0) == 1.0 and rate_schedule(opt, 10) == pytest.approx(0.1)
+    assert rate_schedule(opt, 5) == pytest.approx(0.55)
+    cfg = dataclasses.replace(demo_config(), optimize=opt)
+    assert [horizon(cfg, i) for i in (0, 1, 4, 10)] == [4, 5, 8, 8]
+    assert math.isclose(sum(rate_schedule(opt, i) for i in range(11)), 6.05, rel_tol=1e-12)
