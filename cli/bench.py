@@ -12,6 +12,7 @@ BENCHMARKS: dict[str, str] = {
     "raster": "clflow_cli.bench_raster:raster",
     "mpm": "clflow_cli.bench_mpm:mpm",
     "mpm-adjoint": "clflow_cli.bench_mpm_adjoint:mpm_adjoint",
+    "optimize": "clflow_cli.bench_optimize:optimize",
 }
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib
 import logging
 import sys
+import warnings
 from importlib.metadata import entry_points
 
 import click
@@ -104,11 +105,17 @@ def cli(ctx: click.Context, device: str | None, verbose: int, quiet: int) -> Non
         max(-2, min(verbosity, 1)), logging.DEBUG
     )
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    warnings.showwarning = _log_warning
     ctx.obj = CliContext(device, verbosity)
     if device:
         from clflow.runtime import set_default_device
 
         set_default_device(device)
+
+
+def _log_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Python warnings (e.g. clflow.mpm's StabilityWarning) as one log line each."""
+    logging.getLogger("clflow").warning("%s: %s", category.__name__, message)
 
 
 def main() -> None:  # pragma: no cover - thin wrapper for `python -m clflow_cli`

@@ -42,6 +42,13 @@ class DemoSize:
 QUICK = DemoSize(cube_edge=8, floor_side=24, image=96, grid=16, frames=8, iterations=14)
 
 
+def benchmark_size(gaussians: int, image: int = 256, grid: int = 24, frames: int = 12) -> DemoSize:
+    """A demo-like scene of about ``gaussians`` Gaussians, a fifth of them on the object."""
+    cube_edge = max(2, round((gaussians / 5 / 6) ** 0.5))
+    floor_side = max(2, round(max(0, gaussians - 6 * cube_edge**2) ** 0.5))
+    return DemoSize(cube_edge=cube_edge, floor_side=floor_side, image=image, grid=grid, frames=frames)
+
+
 def _checker(u: np.ndarray, v: np.ndarray, cells: int, a, b) -> np.ndarray:
     """RGB [n, 3] of a checkerboard with ``cells`` squares per unit of (u, v) in [0, 1]."""
     odd = (np.floor(u * cells) + np.floor(v * cells)).astype(int) % 2 == 1
@@ -148,4 +155,4 @@ def make_demo(folder: str | Path, size: DemoSize = DemoSize(), seed: int = 0) ->
     return folder / "config.yaml"
 
 
-__all__ = ["DemoSize", "QUICK", "TRUTH", "demo_config", "make_demo", "write_scene"]
+__all__ = ["DemoSize", "QUICK", "TRUTH", "benchmark_size", "demo_config", "make_demo", "write_scene"]
