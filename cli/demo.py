@@ -22,7 +22,8 @@ def demo(folder, quick, resume, views):
     from clflow_cli.optimize import run_optimization
     from clflow_cli.render4d import render4d
     from clflow_cli.simulate import simulate_scene
-    from clflow_datasets.demo import QUICK, DemoSize, make_demo
+    from clflow_datasets.demo import QUICK, make_demo
+    from clflow_datasets.synthetic import Resolution
 
     start = time.perf_counter()
     folder = Path(folder)
@@ -31,7 +32,7 @@ def demo(folder, quick, resume, views):
         click.echo(f"resuming the demo in {folder}")
     else:
         click.echo(f"making the demo scene and its guidance video in {folder}")
-        make_demo(folder, QUICK if quick else DemoSize())
+        make_demo(folder, QUICK if quick else Resolution())
     run_optimization(str(config), resume, None, None)
     results = folder / "results"
     simulate_scene(str(config), str(results / "params.json"), str(results / "simulation"), "none")

@@ -74,7 +74,7 @@ class Frames4D:
 def export_gaussians(result, folder: Path) -> None:
     """Write ``folder/gaussians.npz`` and ``folder/frame_000.ply ...`` of a
     :class:`clflow.pipeline.forward.SimulationResult`, each file atomically."""
-    from clflow.splat.gaussians import Gaussians
+    from clflow.splat.gaussians import Gaussians, rotmat_to_quat
     from clflow.splat.ply import save_ply
 
     prepared = result.prepared
@@ -182,22 +182,4 @@ def render_4d(frames: Frames4D, out: Path, *, views: int = 0, turns: float = 1.0
     return videos
 
 
-def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
-    """wxyz quaternions [N, 4] of proper rotation matrices [N, 3, 3] (Shepperd's method)."""
-    m = R
-    trace = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
-    cand = torch.stack([
-        torch.stack([1 + trace, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], -1),
-        torch.stack([m[:, 2, 1] - m[:, 1, 2], 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2], m[:, 0, 1] + m[:, 1, 0],
-                     m[:, 0, 2] + m[:, 2, 0]], -1),
-        torch.stack([m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0], 1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2],
-                     m[:, 1, 2] + m[:, 2, 1]], -1),
-        torch.stack([m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1],
-                     1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], -1),
-    ], 1)  # [N, 4 candidates, 4]; the one with the largest norm is the best conditioned
-    best = cand.norm(dim=-1).argmax(dim=1)
-    q = cand[torch.arange(R.shape[0]), best]
-    return q / q.norm(dim=-1, keepdim=True)
-
-
-__all__ = ["Frames4D", "export_gaussians", "load_frames", "orbit_cameras", "render_4d", "rotmat_to_quat"]
+__all__ = ["Frames4D", "export_gaussians", "load_frames", "orbit_cameras", "render_4d"]

@@ -2,8 +2,9 @@
 
 The object's Gaussians are the first particles (their centres), followed by the particles
 that fill the inside (clflow.scene.filling). Grid: ``simulation.grid_resolution`` nodes
-along the longest side of the domain; the domain is the configured one or, by default, the
-object's box grown by 75% of its size on every side and down to below the ground collider.
+along the longest side of the configured domain or, by default, of the object's box grown
+by 75% of its size (at least the wall cells + 1) on every side; the default domain also
+reaches down below the ground collider, with as many more nodes as that takes.
 """
 
 from __future__ import annotations
@@ -38,15 +39,21 @@ def simulation_grid(cfg: SceneConfig, lower: torch.Tensor, upper: torch.Tensor):
     if sim.domain_lower is not None:
         lo = torch.tensor(sim.domain_lower, dtype=torch.float64)
         hi = torch.tensor(sim.domain_upper, dtype=torch.float64)
+        dx = float((hi - lo).max()) / (res - 1)
     else:
-        pad = 0.75 * float((upper - lower).max())
+        # pad the object's box by 75 % of its size, and by at least the wall cells + 1
+        size = float((upper - lower).max())
+        inner = res - 1 - 2 * (WALL_CELLS + 1)
+        if inner < 2:
+            raise InputError(f"{cfg.source}: simulation.grid_resolution {res} is too small: the walls take "
+                             f"{2 * (WALL_CELLS + 1)} cells; use at least {2 * (WALL_CELLS + 1) + 3}")
+        dx = max(2.5 * size / (res - 1), size / inner)
+        pad = max(0.75 * size, (WALL_CELLS + 1) * dx)
         lo, hi = lower - pad, upper + pad
         # a ground collider (normal +y) must lie inside the domain, above the wall cells
         grounds = [c.point[1] for c in cfg.colliders if c.normal == (0.0, 1.0, 0.0)]
         if grounds:
-            dx_guess = float((hi - lo).max()) / (res - 1)
-            lo[1] = min(float(lo[1]), min(grounds) - (WALL_CELLS + 1) * dx_guess)
-    dx = float((hi - lo).max()) / (res - 1)
+            lo[1] = min(float(lo[1]), min(grounds) - (WALL_CELLS + 1) * dx)
     resolution = tuple(int(math.ceil(float(e) / dx)) + 1 for e in (hi - lo))
     return Grid(resolution, dx, tuple(float(v) for v in lo))
 

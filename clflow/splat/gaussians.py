@@ -68,6 +68,24 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     ).reshape(quats.shape[:-1] + (3, 3))
 
 
+def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """wxyz quaternions [N, 4] of proper rotation matrices [N, 3, 3] (Shepperd's method)."""
+    m = R
+    trace = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    cand = torch.stack([
+        torch.stack([1 + trace, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], -1),
+        torch.stack([m[:, 2, 1] - m[:, 1, 2], 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2], m[:, 0, 1] + m[:, 1, 0],
+                     m[:, 0, 2] + m[:, 2, 0]], -1),
+        torch.stack([m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0], 1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2],
+                     m[:, 1, 2] + m[:, 2, 1]], -1),
+        torch.stack([m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1],
+                     1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], -1),
+    ], 1)  # [N, 4 candidates, 4]; the one with the largest norm is the best conditioned
+    best = cand.norm(dim=-1).argmax(dim=1)
+    q = cand[torch.arange(R.shape[0]), best]
+    return q / q.norm(dim=-1, keepdim=True)
+
+
 @dataclass(eq=False)
 class Gaussians:
     """N 3D Gaussians (world frame, SI units) in their stored parameterisation.

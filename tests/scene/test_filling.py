@@ -60,9 +60,9 @@ def test_a_cube_of_flat_face_gaussians_is_filled_inside_only():
     # still stay inside the cube, and the volume must be the cube's.
     import numpy as np
 
-    from clflow_datasets.demo import cube_surface
+    from clflow_datasets.synthetic import cube_surface
 
-    means, scales, _ = cube_surface(0.2, (0.0, 0.1, 0.0), 8, np.random.default_rng(0))
+    means, scales, _, _ = cube_surface(0.2, (0.0, 0.1, 0.0), 8, np.random.default_rng(0))
     means, covs = torch.tensor(means), torch.diag_embed(torch.tensor(scales) ** 2)
     for spacing in (0.0167, 0.01):
         obj = fill_object(means, covs, torch.full((len(means),), 0.95, dtype=torch.float64), spacing, per_axis=1)

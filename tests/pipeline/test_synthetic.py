@@ -1,0 +1,52 @@
+"""datasets_tools: synthetic cases of every shape, a drop, and the scene they write."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from clflow.pipeline.forward import prepare, simulate_config
+from clflow.scene.config import load_config
+from clflow_datasets.synthetic import Resolution, SyntheticCase, make_case, sphere_surface, torus_surface
+
+TINY = Resolution(object_detail=7, floor_side=8, image=48, grid=16, frames=4, iterations=2)
+
+
+def test_surface_gaussians_lie_flat_on_the_shape():
+    rng = np.random.default_rng(0)
+    means, scales, rotations, _ = sphere_surface(0.2, (0, 0.1, 0), 10, rng)
+    radial = (means - [0, 0.1, 0]) / 0.1
+    np.testing.assert_allclose(np.linalg.norm(means - [0, 0.1, 0], axis=1), 0.1, rtol=1e-12)
+    np.testing.assert_allclose(np.abs(np.einsum("ni,ni->n", rotations[:, :, 2], radial)), 1.0, rtol=1e-12)
+    assert np.all(scales[:, 2] < 0.2 * scales[:, 0])  # thin along the normal
+    np.testing.assert_allclose(np.einsum("nij,nik->njk", rotations, rotations), np.broadcast_to(np.eye(3), rotations.shape),
+                               atol=1e-12)
+    means, _, rotations, _ = torus_surface(0.2, (0, 0.05, 0), 10, rng)
+    ring = means.copy()
+    ring[:, 1] -= 0.05
+    horizontal = np.linalg.norm(ring[:, [0, 2]], axis=1)
+    tube = np.hypot(horizontal - 0.05, ring[:, 1])  # R = 0.05, a = 0.05
+    np.testing.assert_allclose(tube, 0.05, rtol=1e-12)
+    assert np.all(np.linalg.det(rotations) > 0.999)
+
+
+@pytest.mark.parametrize("shape, volume", [("sphere", math.pi * 0.2**3 / 6), ("torus", 2 * math.pi**2 * 0.05 * 0.05**2)])
+def test_shapes_are_filled_with_their_volume(tmp_path, shape, volume):
+    config = make_case(tmp_path, SyntheticCase(shape=shape, forces=()), TINY)
+    cfg = load_config(config)
+    particles = prepare(cfg).setup.particles
+    assert particles.n_fill > 0
+    assert particles.volume * particles.positions.shape[0] == pytest.approx(volume, rel=0.2)
+    assert len(list((tmp_path / "guidance").glob("*.png"))) == TINY.frames + 1
+
+
+def test_a_dropped_sphere_falls_freely_until_it_lands(tmp_path):
+    case = SyntheticCase(shape="sphere", lift=0.1, forces=(), truth={"youngs_modulus": 1e5, "poissons_ratio": 0.3})
+    config = make_case(tmp_path, case, TINY)
+    result = simulate_config(load_config(tmp_path / "config_truth.yaml"))
+    drop = (result.x[:, :, 1].mean(1) - result.x[0, :, 1].mean()).double()
+    t = torch.arange(result.x.shape[0], dtype=torch.float64) / 24
+    falling = t <= math.sqrt(2 * 0.1 / 9.81) - 1 / 24  # before the first contact
+    torch.testing.assert_close(drop[falling], -0.5 * 9.81 * t[falling] ** 2, rtol=0.05, atol=2e-3)
+    assert load_config(config).optimize.parameters == ("youngs_modulus",)
