@@ -1,14 +1,17 @@
 """Sand's volume correction (Tampubolon et al. 2017): the forward kernel against the float64
-reference, and what the correction does to a column of sand that is thrown apart and falls
-back together."""
+reference, the substep and trajectory adjoints, and what the correction does to a column of
+sand that is thrown apart and falls back together."""
 
 import pytest
 import torch
 
 from clflow.errors import InputError
 from clflow.mpm import Grid, MaterialSpec, Simulator, reference
+from clflow.mpm.autograd import simulate
 from clflow.mpm.constants import MATERIAL_IDS
 from tests.mpm.scenes import MATERIAL_CASES, VOLUME_CORRECTED_SAND, random_scene
+from tests.mpm.test_adjoint_substep import GRAD_FIELDS, kernel_vjp, random_grad, reference_vjp, rel_err
+from tests.mpm.test_adjoint_trajectory import FRAMES, loss_of, swirling_block, weights
 from tests.mpm.test_material_physics import lattice
 from tests.mpm.test_substep import run_both
 
@@ -64,6 +67,65 @@ def branches_seen(sim, substeps: int) -> list[int]:
 
 def test_scene_exercises_every_branch_with_a_correction():
     assert min(branches_seen(random_scene([VOLUME_CORRECTED_SAND]), 20)) > 0
+
+
+def test_substep_adjoint_matches_autograd_of_reference():
+    """After 20 substeps some particles carry v_c > 0: its gradient is part of the state's."""
+    sim = random_scene([VOLUME_CORRECTED_SAND], wall_cells=5)
+    for _ in range(20):
+        sim.step()
+    assert float(sim.state.plastic.max()) > 0
+    grad_after = random_grad(sim.n)
+    grad, param_grad, mass_grad = kernel_vjp(sim, grad_after)
+    ref, ref_param, ref_mass = reference_vjp(sim, grad_after)
+    for f in GRAD_FIELDS:
+        assert rel_err(getattr(grad, f), getattr(ref, f)) < 1e-9, f
+    for k in range(4):
+        assert rel_err(param_grad[:, k], ref_param[:, k]) < 1e-9, k
+    assert rel_err(mass_grad, ref_mass) < 1e-9
+    assert float(grad.plastic[sim.state.plastic > 0].abs().min()) > 0
+
+
+def compressed_block() -> Simulator:
+    """The swirling block of test_adjoint_trajectory squeezed along x (-4 (x - 0.5) m/s) and
+    stretched along z, its particles carrying corrections v_c in [0, 0.05) from an earlier
+    expansion: within 3 frames x 10 substeps particles go past the tip and give corrections
+    back on the cone and inside it."""
+    x, v = swirling_block()
+    v[:, 0] -= 4.0 * (x[:, 0] - 0.5)
+    sim = Simulator(x, (0.24 / 6) ** 3, VOLUME_CORRECTED_SAND, Grid((16, 16, 16), 1 / 16), velocities=v,
+                    frame_dt=1e-2, substeps=10, dtype=torch.float64)
+    sim.state.plastic.copy_(0.05 * torch.rand(sim.n, generator=torch.Generator().manual_seed(4), dtype=torch.float64))
+    return sim
+
+
+def test_trajectory_gradient_matches_central_differences():
+    """d loss / d (E, nu, phi, c, initial velocities) through the compressed block: the
+    gradient crosses substeps through v_c."""
+    assert min(branches_seen(compressed_block(), FRAMES * 10)) > 0
+    sim = compressed_block()
+    inputs = {name: torch.tensor(value, dtype=torch.float64, requires_grad=True)
+              for name, value in MATERIAL_CASES["sand"].items()}
+    velocities = sim.state.v.clone().requires_grad_()
+    w = weights(sim, FRAMES)
+    loss = loss_of(simulate(sim, FRAMES, params=inputs, velocities=velocities), w)
+    loss.backward()
+    resolution = 1e-14 * abs(float(loss.detach()))  # rounding of the loss over a step
+    gen = torch.Generator().manual_seed(3)
+    directions = {name: 1e-5 * max(abs(value), 1e-3) for name, value in MATERIAL_CASES["sand"].items()}
+    directions["velocities"] = 1e-5 * torch.randn(velocities.shape, generator=gen, dtype=torch.float64)
+    for name, direction in directions.items():
+        grad = velocities.grad if name == "velocities" else inputs[name].grad
+        predicted = float((grad * direction).sum())
+
+        def loss_at(h):
+            shifted = {k: val.detach() + (h * direction if k == name else 0.0) for k, val in inputs.items()}
+            moved = velocities.detach() + (h * direction if name == "velocities" else 0.0)
+            with torch.no_grad():
+                return float(loss_of(simulate(sim, FRAMES, params=shifted, velocities=moved), w))
+
+        measured = (loss_at(1.0) - loss_at(-1.0)) / 2
+        assert abs(measured - predicted) < 1e-5 * abs(measured) + resolution, (name, measured, predicted)
 
 
 def settled_height(model, throw: float) -> float:
