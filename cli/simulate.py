@@ -71,7 +71,8 @@ def simulate_scene(config_path: str, params_file: str | None, out_dir: str | Non
 @click.option("--material", "-m", default="elastic", show_default=True, help="Material name (clflow.materials).")
 @click.option("--param", "-p", "params", multiple=True, metavar="NAME=VALUE",
               help="Material parameter in SI units, e.g. -p youngs_modulus=2e5 (repeatable).")
-@click.option("--model", default=None, help="Elastic model: fixed_corotated (default) or neo_hookean.")
+@click.option("--model", default=None, help="Elastic model: fixed_corotated (default) or neo_hookean; sand: drucker_prager "
+                                           "(default) or volume_corrected.")
 @click.option("--density", type=float, default=None, help="Density (kg/m^3); default: the material's.")
 @click.option("--velocity", default="0,0,0", show_default=True, help="Initial velocity 'vx,vy,vz' (m/s).")
 @click.option("--domain", default=1.0, show_default=True, help="Side of the cubic domain (m), origin at 0.")

@@ -34,7 +34,7 @@ import torch
 from clflow.errors import InputError
 from clflow.materials import get_material, lame_parameters
 from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, SubstepTape, run_recorded
-from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT
+from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, REGISTRY_MATERIAL
 from clflow.mpm.simulator import CFL_NUMBER, SimulationError, Simulator, StabilityWarning
 from clflow.mpm.substep import State, SubstepKernels
 from clflow.runtime.reduction import sum_rows
@@ -288,6 +288,7 @@ KERNEL_PARAMETERS: dict[str, tuple[str, ...]] = {
     "metal": _LAME + ("yield_stress", "hardening"),
     "foam": _LAME + ("yield_stress", "viscosity"),
     "sand": _LAME + ("friction_angle", "cohesion"),
+    "sand_volume_corrected": _LAME + ("friction_angle", "cohesion"),  # the same kernel row
     "snow": _LAME + ("critical_compression", "critical_stretch", "hardening"),
     "newtonian": ("viscosity", "bulk_modulus"),
     "non_newtonian": ("shear_modulus", "bulk_modulus", "yield_stress", "viscosity"),
@@ -303,7 +304,7 @@ def _registry_values(kernel_material: str, q: torch.Tensor) -> dict[str, torch.T
         mu, lam = q[:, 0], q[:, 1]
         values["youngs_modulus"] = mu * (3 * lam + 2 * mu) / (lam + mu)
         values["poissons_ratio"] = lam / (2 * (lam + mu))
-    if kernel_material == "sand":  # alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi))
+    if "friction_angle" in names:  # sand: alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi))
         values["friction_angle"] = torch.rad2deg(torch.asin(3 * q[:, 2] / (2 * _SQRT_2_3 + q[:, 2])))
     if kernel_material == "non_newtonian":
         values["bulk_modulus"] = q[:, 1] + 2 * q[:, 0] / 3
@@ -317,7 +318,7 @@ def _kernel_columns(kernel_material: str, values: dict[str, torch.Tensor]) -> li
     columns = [values[name] for name in names]
     if names[:2] == _LAME:
         columns[0], columns[1] = lame_parameters(values["youngs_modulus"], values["poissons_ratio"])
-    if kernel_material == "sand":
+    if "friction_angle" in names:  # sand
         sin_phi = torch.sin(torch.deg2rad(values["friction_angle"]))
         columns[2] = _SQRT_2_3 * 2 * sin_phi / (3 - sin_phi)
     if kernel_material == "non_newtonian":
@@ -344,7 +345,7 @@ def _material_param_rows(sim: Simulator, params: dict, dtype: torch.dtype) -> to
             continue
         index = torch.nonzero(base.material == MATERIAL_IDS[kernel_material]).flatten()
         values = _registry_values(kernel_material, base.param[index].double())
-        registry = get_material("elastic" if kernel_material == "neo_hookean" else kernel_material)
+        registry = get_material(REGISTRY_MATERIAL.get(kernel_material, kernel_material))
         for name in given:
             values[name] = rows[name][index].to(torch.float64)
             lo, hi = float(values[name].detach().min()), float(values[name].detach().max())

@@ -10,7 +10,8 @@ import math
 from clflow.errors import InputError
 from clflow.materials import get_material, lame_parameters, validate_params
 
-# Kernel material ids. "neo_hookean" is the elastic material's optional model.
+# Kernel material ids. "neo_hookean" is the elastic material's optional model,
+# "sand_volume_corrected" sand's (Drucker-Prager with Tampubolon et al. 2017's volume correction).
 MATERIAL_IDS: dict[str, int] = {
     "elastic": 0,
     "neo_hookean": 1,
@@ -21,8 +22,12 @@ MATERIAL_IDS: dict[str, int] = {
     "newtonian": 6,
     "non_newtonian": 7,
     "snow": 8,
+    "sand_volume_corrected": 9,
 }
+# the registry material of each kernel material that is a model option of another
+REGISTRY_MATERIAL: dict[str, str] = {"neo_hookean": "elastic", "sand_volume_corrected": "sand"}
 ELASTIC_MODELS = ("fixed_corotated", "neo_hookean")
+SAND_MODELS = ("drucker_prager", "volume_corrected")
 # the models that need the SVD of F_tr (all but neo-Hookean and the J-only Newtonian fluid)
 SVD_MATERIALS = sum(1 << i for name, i in MATERIAL_IDS.items() if name not in ("neo_hookean", "newtonian"))
 SIMD_LANES = 8  # particles per work-item of the SIMD stress kernels (vector registers)
@@ -76,12 +81,16 @@ def kernel_params(material: str, params: dict[str, float], model: str | None = N
       elastic (mu, lambda) | plasticine (mu, lambda, tau_Y) | metal (mu, lambda, tau_Y, xi) |
       foam, non_newtonian (mu, lambda, tau_Y, eta) | sand (mu, lambda, alpha, c) |
       newtonian (mu, kappa) | snow (mu0, lambda0, theta_c, theta_s, xi).
-    The plastic state is the metal's gained yield stress (0 Pa) or snow's J_P (1).
+    The plastic state is the metal's gained yield stress (0 Pa), snow's J_P (1) or the
+    volume-corrected sand's log volume correction v_c (0). ``model`` picks elastic's
+    (ELASTIC_MODELS) or sand's (SAND_MODELS) variant.
     """
     mat = get_material(material)
     p = validate_params(mat.name, params)
-    if model is not None and mat.name != "elastic":
+    if model is not None and mat.name not in ("elastic", "sand"):
         raise InputError(f"material {mat.name!r} has no model option (got model={model!r})")
+    if mat.name == "sand" and (model or "drucker_prager") not in SAND_MODELS:
+        raise InputError(f"sand model {model!r} unknown; choose one of {', '.join(SAND_MODELS)}")
     if mat.name == "elastic":
         model = model or "fixed_corotated"
         if model not in ELASTIC_MODELS:
@@ -100,6 +109,7 @@ def kernel_params(material: str, params: dict[str, float], model: str | None = N
             values = [mu, lam, p["yield_stress"], p["viscosity"]]
         elif mat.name == "sand":
             values = [mu, lam, drucker_prager_alpha(p["friction_angle"]), p["cohesion"]]
+            name = "sand_volume_corrected" if model == "volume_corrected" else "sand"
         else:
             values = [mu, lam, p["critical_compression"], p["critical_stretch"], p["hardening"]]
             plastic = 1.0

@@ -106,6 +106,7 @@ def constitutive(material_id: int, F_tr, C, q, plastic, dt):
         J_P = plastic * s.prod(-1) / s_E.prod(-1)
         h = torch.exp(q[:, 4] * (1 - J_P))
         return F_E, J_P, fixed_corotated_tau(F_E, U, s_E, V, mu * h, lam * h)
+    F_elastic = F_tr  # F' where the return leaves the strain as it is
     if material_id in (ids["plasticine"], ids["metal"]):
         eps = _log_strain(s)
         hardening = plastic if material_id == ids["metal"] else torch.zeros_like(plastic)
@@ -121,8 +122,13 @@ def constitutive(material_id: int, F_tr, C, q, plastic, dt):
         s_norm_new = s_norm - y / (1 + q[:, 3] / (2 * mu_hat * dt))
         yielded = y > 0
         eps = torch.where(yielded[:, None], (s_norm_new / s_norm)[:, None] * eps_hat + eps.mean(-1, keepdim=True), eps)
-    elif material_id == ids["sand"]:
-        eps = torch.log(torch.clamp(s.abs(), min=SAND_S_MIN))
+    elif material_id in (ids["sand"], ids["sand_volume_corrected"]):
+        # Tampubolon et al. 2017: eps = log|s| + v_c/3, v_c' = v_c + log det F_tr - log det F'
+        corrected = material_id == ids["sand_volume_corrected"]
+        v_c = plastic if corrected else torch.zeros_like(plastic)
+        eps_tr = torch.log(torch.clamp(s.abs(), min=SAND_S_MIN))
+        eps = eps_tr + v_c[:, None] / 3
+        F_elastic = torch.exp(v_c / 3)[:, None, None] * F_tr
         c = q[:, 3]
         excess = eps.sum(-1) - 3 * c
         eps_hat = _deviator(eps)
@@ -133,9 +139,11 @@ def constitutive(material_id: int, F_tr, C, q, plastic, dt):
         eps = torch.where(tip[:, None], c[:, None].expand(-1, 3), eps)
         eps = torch.where(cone[:, None], eps - dgamma[:, None] * eps_hat / norm[:, None], eps)
         yielded = tip | cone
+        if corrected:
+            plastic = v_c + eps_tr.sum(-1) - eps.sum(-1)
     else:
         raise ValueError(f"unknown material id {material_id}")
-    F_new = torch.where(yielded[:, None, None], _exp_f(U, eps, V), F_tr)
+    F_new = torch.where(yielded[:, None, None], _exp_f(U, eps, V), F_elastic)
     return F_new, plastic, _hencky_tau(U, eps, mu, lam)
 
 

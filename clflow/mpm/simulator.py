@@ -38,7 +38,8 @@ class StabilityWarning(UserWarning):
 class MaterialSpec:
     """A material (a registry name or alias), its SI parameters (missing ones take the
     registry defaults), density (kg/m^3, default: the material's) and, for elastic, the
-    model ("fixed_corotated" or "neo_hookean")."""
+    model ("fixed_corotated" or "neo_hookean"), for sand "drucker_prager" (default) or
+    "volume_corrected" (Tampubolon et al. 2017's volume correction; docs/mpm.md)."""
 
     name: str
     params: dict[str, float] = field(default_factory=dict)

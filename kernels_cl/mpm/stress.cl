@@ -84,8 +84,15 @@ __kernel void update_stress(const int n, const real dt, __global const real *F_i
         break;
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_SAND)
-    case MAT_SAND:
-        sand_stress(F_tr, U, s, V, q[0], q[1], q[2], q[3], F_new, tau);
+    case MAT_SAND: { /* no volume correction: v_c = 0, the plastic state is unused */
+        real v_c_new;
+        sand_stress(F_tr, U, s, V, q[0], q[1], q[2], q[3], 0, F_new, &v_c_new, tau);
+        break;
+    }
+#endif
+#if MATERIALS_PRESENT & (1 << MAT_SAND_VOLUME_CORRECTED)
+    case MAT_SAND_VOLUME_CORRECTED: /* plastic state: the log volume correction v_c */
+        sand_stress(F_tr, U, s, V, q[0], q[1], q[2], q[3], plastic, F_new, &plastic_new, tau);
         break;
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_NEWTONIAN)

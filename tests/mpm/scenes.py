@@ -27,14 +27,21 @@ def cube(n_side: int, lower: float, upper: float, dtype=torch.float64) -> torch.
     return torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
 
 
+# sand with Tampubolon et al.'s volume correction (a model option of sand)
+VOLUME_CORRECTED_SAND = MaterialSpec("sand", MATERIAL_CASES["sand"], model="volume_corrected")
+
+
 def random_scene(materials, seed: int = 0, n: int = 300, dtype=torch.float64, **kwargs) -> Simulator:
     """Particles at random in [0.3, 0.7]^3 m on a 16^3 grid of 1/16 m, with random velocities
     (so stresses and yield are exercised), one material per particle cycling through
-    ``materials`` ({name: params})."""
+    ``materials`` ({name: params}, or a list of MaterialSpec)."""
     gen = torch.Generator().manual_seed(seed)
     x = 0.3 + 0.4 * torch.rand(n, 3, generator=gen, dtype=torch.float64)
     v = 0.6 * torch.randn(n, 3, generator=gen, dtype=torch.float64)
-    specs = [MaterialSpec(name, params) for name, params in materials.items()]
+    if isinstance(materials, dict):
+        specs = [MaterialSpec(name, params) for name, params in materials.items()]
+    else:
+        specs = list(materials)
     kwargs.setdefault("substeps", 10)
     kwargs.setdefault("frame_dt", 1e-2)
     return Simulator(x, 1e-5, specs, Grid((16, 16, 16), 1 / 16), velocities=v, dtype=dtype,

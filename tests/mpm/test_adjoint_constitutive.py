@@ -14,17 +14,19 @@ from clflow.mpm.substep import Grid
 
 MU, LAMBDA, TAU_Y, XI = 3.0e4, 5.0e4, 300.0, 2.0
 HARDENING = 40.0  # metal's plastic state: the yield stress gained so far (Pa)
+V_C = 0.02  # volume-corrected sand's plastic state: the log volume correction
 
 
 def plastic_state(material):
-    """The plastic state the tests start from: snow's J_P, else the metal's hardening."""
-    return 0.98 if material == "snow" else HARDENING
+    """The plastic state the tests start from: snow's J_P, sand's v_c, else the metal's hardening."""
+    return {"snow": 0.98, "sand_volume_corrected": V_C}.get(material, HARDENING)
 GRID = Grid((8, 8, 8), 0.1)
 # kernel parameter rows (clflow.mpm.constants.kernel_params) per material
 PARAMS = {
     "elastic": (MU, LAMBDA), "neo_hookean": (MU, LAMBDA), "plasticine": (MU, LAMBDA, TAU_Y),
     "metal": (MU, LAMBDA, TAU_Y, XI), "foam": (MU, LAMBDA, TAU_Y, 50.0), "non_newtonian": (MU, LAMBDA, TAU_Y, 50.0),
     "sand": (MU, LAMBDA, 0.3, 0.01), "newtonian": (1.0, 1e4),  # sand: cohesion keeps F = I off the tip
+    "sand_volume_corrected": (MU, LAMBDA, 0.3, 0.01),  # c > V_C/3: F = I stays inside the cone
     "snow": (MU, LAMBDA, 0.025, 0.0075, 10.0),
 }
 MATERIALS = list(PARAMS)
@@ -98,10 +100,10 @@ def reference_loss(material, F, plastic, q, tau_bar, F_new_bar, plastic_new_bar)
     return float((tau_bar * tau[0]).sum() + (F_new_bar * F_new[0]).sum() + plastic_new_bar * plastic_new[0])
 
 
-def returned(material, F):
+def returned(material, F, plastic=HARDENING):
     """F' of the reference for F (C = 0)."""
     F_new, _, _ = reference.constitutive(MATERIAL_IDS[material], F[None], torch.zeros(1, 3, 3, dtype=F.dtype),
-                                         kernel_params(1, material), torch.full((1,), HARDENING, dtype=F.dtype), 1e-3)
+                                         kernel_params(1, material), torch.full((1,), plastic, dtype=F.dtype), 1e-3)
     return F_new[0]
 
 
@@ -125,6 +127,15 @@ def test_cases_cover_every_branch_of_the_returns():
     assert not torch.allclose(returned("snow", cases["compressed"]), cases["compressed"], atol=1e-3)
     tip = cases["uniform_scale"] / 1.2 * math.exp(PARAMS["sand"][3])
     assert torch.allclose(returned("sand", cases["uniform_scale"]), tip, atol=1e-14)
+    # volume-corrected sand with v_c = V_C: inside the cone F' = exp(v_c/3) F, past the tip the
+    # same as without, onto the cone (a different F' than without: the trace is shifted)
+    for name in ("compressed", "identity"):
+        inside = returned("sand_volume_corrected", cases[name], V_C)
+        assert torch.equal(inside, math.exp(V_C / 3) * cases[name]), name
+    assert torch.allclose(returned("sand_volume_corrected", cases["uniform_scale"], V_C), tip, atol=1e-14)
+    sheared = returned("sand_volume_corrected", cases["sheared"], V_C)
+    assert not torch.allclose(sheared, returned("sand", cases["sheared"]), atol=1e-6)
+    assert not torch.allclose(sheared, math.exp(V_C / 3) * cases["sheared"], atol=1e-6)
 
 
 @pytest.mark.parametrize("material", MATERIALS)

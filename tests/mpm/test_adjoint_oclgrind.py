@@ -13,12 +13,13 @@ SCRIPT = textwrap.dedent(
     """
     import warnings
     import torch
-    from clflow.mpm import Box, Force, HalfSpace, RotatingCylinder
+    from clflow.mpm import Box, Force, HalfSpace, MaterialSpec, RotatingCylinder
     from clflow.mpm.autograd import simulate
-    from tests.mpm.scenes import MATERIAL_CASES, random_scene
+    from tests.mpm.scenes import MATERIAL_CASES, VOLUME_CORRECTED_SAND, random_scene
     warnings.simplefilter("ignore")
-    n = 16
-    sim = random_scene(MATERIAL_CASES, n=n, substeps=2, frame_dt=2e-4, walls=None, p2g="private",
+    n = 18
+    specs = [MaterialSpec(name, params) for name, params in MATERIAL_CASES.items()] + [VOLUME_CORRECTED_SAND]
+    sim = random_scene(specs, n=n, substeps=2, frame_dt=2e-4, walls=None, p2g="private",
                        forces=[Force(torch.arange(n) % 2 == 0, 0, 1, force=(1, 0, 0))],
                        boundaries=[HalfSpace((0, 0.35, 0), (0, 1, 0), "separate", 0.3),
                                    Box((0.4,) * 3, (0.5,) * 3), RotatingCylinder((0.5,) * 3, (0, 1, 0), 0.2, 0.1, 2.0)])

@@ -49,6 +49,7 @@ def test_ply_particles(tmp_path):
         (["-p", "poissons_ratio=0.5"], "poissons_ratio (nu) = 0.5"),
         (["missing.npz"], "particle file not found: missing.npz"),
         (["-p", "youngs_modulus"], "--param takes NAME=VALUE"),
+        (["-m", "sand", "--model", "cap"], "sand model 'cap' unknown; choose one of drucker_prager, volume_corrected"),
     ],
 )
 def test_bad_input_is_one_clear_line(tmp_path, args, message):
@@ -56,6 +57,13 @@ def test_bad_input_is_one_clear_line(tmp_path, args, message):
     assert res.exit_code != 0
     assert message in res.output
     assert not (tmp_path / "positions.npz").exists()
+
+
+def test_volume_corrected_sand(tmp_path):
+    res = run([*FAST, "-m", "sand", "--model", "volume_corrected", "--preview", "none", "-o", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    x = np.load(tmp_path / "positions.npz")["x"]
+    assert x[-1, :, 1].mean() < x[0, :, 1].mean()  # it falls
 
 
 def test_bench_mpm_runs_on_a_small_scene():

@@ -20,7 +20,8 @@ SCRIPT = textwrap.dedent(
     v = torch.randn(20, 3, generator=gen, dtype=torch.float64)
     v[0] = torch.tensor([30.0, 0.0, 0.0])
     names = ["elastic", "plasticine", "metal", "foam", "sand", "newtonian", "non_newtonian", "snow"]
-    scenes = [([MaterialSpec(m) for m in names], torch.arange(20) % 8), ([MaterialSpec("elastic")], None)]
+    specs = [MaterialSpec(m) for m in names] + [MaterialSpec("sand", model="volume_corrected")]
+    scenes = [(specs, torch.arange(20) % len(specs)), ([MaterialSpec("elastic")], None)]
     for specs, index in scenes:
         sim = Simulator(x, 1e-5, specs, Grid((8, 8, 8), 1 / 7), material_index=index, velocities=v, walls=None,
                         frame_dt=2e-4, substeps=2, p2g="private",

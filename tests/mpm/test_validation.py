@@ -32,7 +32,8 @@ def make(materials=ELASTIC, x=X, **kwargs):
         (MaterialSpec("elastic", {"stiffness": 1.0}), "has no parameter 'stiffness'"),
         (MaterialSpec("elastic", density=-3.0), r"density \(rho\) = -3"),
         (MaterialSpec("elastic", model="mooney"), "elastic model 'mooney' unknown"),
-        (MaterialSpec("sand", model="neo_hookean"), "has no model option"),
+        (MaterialSpec("plasticine", model="neo_hookean"), "has no model option"),
+        (MaterialSpec("sand", model="neo_hookean"), "sand model 'neo_hookean' unknown"),
     ],
 )
 def test_bad_material_is_a_clear_error(spec, match):

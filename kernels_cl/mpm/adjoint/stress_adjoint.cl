@@ -77,8 +77,14 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
         break;
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_SAND)
-    case MAT_SAND:
-        sand_stress_adjoint(U, s, V, q[0], q[1], q[2], q[3], tb, F_new_bar, F_tr_bar, q_bar);
+    case MAT_SAND: /* v_c = 0; the unused plastic state passes through */
+        sand_stress_adjoint(F_tr, U, s, V, q[0], q[1], q[2], q[3], 0, tb, F_new_bar, 0, F_tr_bar, q_bar);
+        break;
+#endif
+#if MATERIALS_PRESENT & (1 << MAT_SAND_VOLUME_CORRECTED)
+    case MAT_SAND_VOLUME_CORRECTED:
+        plastic_b = sand_stress_adjoint(F_tr, U, s, V, q[0], q[1], q[2], q[3], plastic_in[p], tb, F_new_bar,
+                                        plastic_b, F_tr_bar, q_bar);
         break;
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_NEWTONIAN)

@@ -257,16 +257,22 @@ inline void viscoplastic_stress_adjoint(const real *U, const real *s, const real
     hencky_end(&h, eps_bar, s_bar, F_hat, F_tr_bar);
 }
 
-/* Sand (sand.h): q_bar[0..3] = (mu, lambda, alpha, c) gradients. Tip: eps' = (c, c, c)
- * (no dependence on eps); cone: eps' = eps - dgamma eps_hat/||eps_hat||,
- * dgamma = ||eps_hat|| + K alpha (tr(eps) - 3c), K = (3 lambda + 2 mu)/(2 mu). */
-inline void sand_stress_adjoint(const real *U, const real *s, const real *V,
-                                const real mu, const real lambda, const real alpha,
-                                const real c, const real *tau_bar, const real *F_new_bar, real *F_tr_bar,
-                                real *q_bar)
+/* Sand (sand.h): q_bar[0..3] = (mu, lambda, alpha, c) gradients; returns v_c_bar of state n.
+ * eps = log max(|s|, s_min) + v_c/3. Tip: eps' = (c, c, c) (no dependence on eps),
+ * v_c' = tr(eps) - 3c; cone: eps' = eps - dgamma eps_hat/||eps_hat||,
+ * dgamma = ||eps_hat|| + K alpha (tr(eps) - 3c), K = (3 lambda + 2 mu)/(2 mu), v_c' = 0;
+ * inside: eps' = eps, F' = exp(v_c/3) F_tr, v_c' = 0. Every eps_k depends on v_c by 1/3. */
+inline real sand_stress_adjoint(const real *F_tr, const real *U, const real *s, const real *V,
+                                const real mu, const real lambda, const real alpha, const real c,
+                                const real v_c, const real *tau_bar, const real *F_new_bar,
+                                const real v_c_new_bar, real *F_tr_bar, real *q_bar)
 {
     hencky_t h;
     hencky_begin(&h, U, s, V, (real)SAND_S_MIN, 1);
+    for (int a = 0; a < 3; ++a) { /* the forward's expressions: branches agree bit for bit */
+        h.eps[a] += v_c / 3;
+        h.eps_new[a] = h.eps[a];
+    }
     real eps_hat[3];
     const real excess = h.eps[0] + h.eps[1] + h.eps[2] - 3 * c;
     deviator3(h.eps, eps_hat);
@@ -284,11 +290,21 @@ inline void sand_stress_adjoint(const real *U, const real *s, const real *V,
         h.c = 1 - dgamma / norm;
     }
     h.yielded = tip || cone;
+    /* inside the cone F' = exp(v_c/3) F_tr: F_tr_bar gets exp(v_c/3) F'bar, v_c the rest */
+    const real scale = h.yielded ? (real)1 : exp(v_c / 3);
+    real F_scaled_bar[9], v_c_bar = 0;
+    for (int k = 0; k < 9; ++k) {
+        F_scaled_bar[k] = scale * F_new_bar[k];
+        v_c_bar += h.yielded ? (real)0 : F_scaled_bar[k] * F_tr[k] / 3;
+    }
     real F_hat[9], eps_new_bar[3], eps_bar[3] = {0, 0, 0};
     const real zeros[3] = {0, 0, 0};
-    hencky_stress_adjoint(&h, mu, lambda, tau_bar, F_new_bar, F_tr_bar, F_hat, eps_new_bar, &q_bar[0], &q_bar[1]);
+    hencky_stress_adjoint(&h, mu, lambda, tau_bar, F_scaled_bar, F_tr_bar, F_hat, eps_new_bar, &q_bar[0],
+                          &q_bar[1]);
     if (tip) {
-        q_bar[3] = eps_new_bar[0] + eps_new_bar[1] + eps_new_bar[2];
+        q_bar[3] = eps_new_bar[0] + eps_new_bar[1] + eps_new_bar[2] - 3 * v_c_new_bar;
+        for (int a = 0; a < 3; ++a)
+            eps_bar[a] = v_c_new_bar;
     } else if (cone) {
         real hat_dot = 0;
         for (int a = 0; a < 3; ++a)
@@ -309,6 +325,7 @@ inline void sand_stress_adjoint(const real *U, const real *s, const real *V,
             eps_bar[a] = eps_new_bar[a];
     }
     hencky_end(&h, eps_bar, zeros, F_hat, F_tr_bar);
+    return v_c_bar + (eps_bar[0] + eps_bar[1] + eps_bar[2]) / 3;
 }
 
 #endif /* CLFLOW_MPM_HENCKY_ADJOINT_H */
