@@ -107,7 +107,7 @@ def build_simulator(cfg: SceneConfig, setup: ObjectSetup, params: dict[str, floa
     colliders = [HalfSpace(c.point, c.normal, c.mode, c.friction, c.start, c.end) for c in cfg.colliders]
     material = get_material(cfg.material.type).name
     sim = Simulator(
-        x, setup.particles.volume, MaterialSpec(material, dict(params), density), setup.grid,
+        x, setup.particles.volume, MaterialSpec(material, dict(params), density, cfg.material.model), setup.grid,
         frame_dt=frame_dt, substeps=substeps, gravity=sim_cfg.gravity, boundaries=colliders, forces=forces,
         dtype=dtype,
     )

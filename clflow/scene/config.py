@@ -19,11 +19,13 @@ from typing import Any, Callable
 
 from clflow.errors import InputError
 from clflow.materials import DENSITY, get_material, validate_params
+from clflow.mpm.constants import ELASTIC_MODELS, SAND_MODELS
 
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 COLLIDER_MODES = ("sticky", "slip", "separate")
 FLOW_METHODS = ("dis", "farneback")
 FLOW_LOSSES = ("l2", "charbonnier")
+MATERIAL_MODELS = {"elastic": ELASTIC_MODELS, "sand": SAND_MODELS}  # material.model options
 
 
 _DEFAULT = object()
@@ -167,6 +169,7 @@ class MaterialConfig:
     type: str
     parameters: dict[str, float]
     density: float | None  # kg/m^3; None only for "query" without a given density
+    model: str | None = None  # elastic: fixed_corotated/neo_hookean; sand: drucker_prager/volume_corrected
     query_image: Path | None = None
     query_prompt: str = ""
     query_backend: str = "offline"
@@ -284,7 +287,7 @@ def _window(r: _Reader, data: dict, path: str) -> tuple[float, float]:
 
 
 def _material(r: _Reader, data: Any) -> MaterialConfig:
-    body = r.section(data, "material", ("type", "parameters", "density", "query"))
+    body = r.section(data, "material", ("type", "parameters", "density", "model", "query"))
     kind = body.get("type")
     if not isinstance(kind, str):
         raise r.fail("material.type", "is required: a material name or 'query'")
@@ -303,7 +306,13 @@ def _material(r: _Reader, data: Any) -> MaterialConfig:
         raise r.fail("material", str(exc)) from None
     density = r.number(body, "density", "material", material.default_density, low=0.0, strict_low=True)
     DENSITY.check(density)
-    return MaterialConfig(material.name, params, density)
+    model = None
+    if body.get("model") is not None:
+        if material.name not in MATERIAL_MODELS:
+            raise r.fail("material.model", f"{material.name} has no model option (only "
+                                           f"{', '.join(MATERIAL_MODELS)} have)")
+        model = r.choice(body, "model", "material", MATERIAL_MODELS[material.name])
+    return MaterialConfig(material.name, params, density, model=model)
 
 
 def _forces(r: _Reader, items: list) -> tuple[ForceStage, ...]:

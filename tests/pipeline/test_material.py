@@ -49,3 +49,23 @@ def test_query_result_without_the_optimised_parameter(quick_demo, tmp_path):
 def test_concrete_material_is_unchanged(demo_config):
     cfg = demo_config()
     assert resolve_material(cfg) is cfg
+
+
+@pytest.mark.parametrize("material, model, kernel_material", [
+    ("sand", "volume_corrected", "sand_volume_corrected"), ("sand", None, "sand"),
+    ("elastic", "neo_hookean", "neo_hookean"), ("elastic", None, "elastic"),
+])
+def test_material_model_reaches_the_simulator(demo_config, material, model, kernel_material):
+    import dataclasses
+
+    from clflow.materials import validate_params
+    from clflow.mpm.constants import MATERIAL_IDS
+    from clflow.pipeline.forward import prepare
+    from clflow.pipeline.simulation import build_simulator
+
+    cfg = demo_config()
+    params = validate_params(material, {})
+    cfg = dataclasses.replace(cfg, material=dataclasses.replace(cfg.material, type=material, parameters=params,
+                                                                model=model))
+    sim = build_simulator(cfg, prepare(cfg).setup, params, 1500.0)
+    assert set(sim.particles.material.tolist()) == {MATERIAL_IDS[kernel_material]}

@@ -107,6 +107,7 @@ BAD = [
     ("optimize.parameters", ["yield_stress"], "'yield_stress' is not a parameter of elastic"),
     ("optimize.learning_rates", {"poissons_ratio": 0.1}, "optimize.learning_rates.poissons_ratio: is not among"),
     ("video", "guide.mp4", "video: file or folder not found"),
+    ("material.model", "stvk", "material.model: must be one of fixed_corotated, neo_hookean, got 'stvk'"),
     ("optimize.final_rate", 2, "optimize.final_rate: must be <= 1, got 2"),
     ("material", {"type": "query", "query": {"image": "scene.ply", "backend": "gpt"}},
      "material.query.backend: must be one of offline, openai"),
