@@ -46,19 +46,22 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
 
     with open("/proc/self/statm") as statm:  # resident pages now (Linux)
         base = int(statm.read().split()[1]) * resource.getpagesize() / 2**20
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), time.process_time()
     out = simulate(sim, frames, params={"youngs_modulus": E})
-    forward = time.perf_counter() - start
+    forward, forward_cpu = time.perf_counter() - start, time.process_time() - cpu_start
     loss = (out.x[-1] ** 2).sum() + (out.F[-1] ** 2).sum()
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), time.process_time()
     loss.backward()
-    backward = time.perf_counter() - start
+    backward, backward_cpu = time.perf_counter() - start, time.process_time() - cpu_start
     peak = peak_mib() - base
     steps = frames * substeps
     click.echo(f"device: {device.info.label if device else 'default'}; {n:,} particles, grid {grid_res}^3, "
                f"{frames} frames x {substeps} substeps, {'float64' if double else 'float32'}")
-    click.echo(f"forward  {forward:8.2f} s  ({n * steps / forward / 1e6:.2f} M particle-substeps/s)")
-    click.echo(f"backward {backward:8.2f} s  (replay + adjoint; {backward / forward:.2f}x forward, target <= 3x)")
+    click.echo(f"forward  {forward:8.2f} s  ({n * steps / forward / 1e6:.2f} M particle-substeps/s); "
+               f"CPU {forward_cpu:.2f} s")
+    click.echo(f"backward {backward:8.2f} s  (replay + adjoint; {backward / forward:.2f}x forward, target <= 3x); "
+               f"CPU {backward_cpu:.2f} s ({backward_cpu / forward_cpu:.2f}x: all threads of this process, "
+               f"so other jobs on the machine barely change it)")
     copies = engine(sim).adjoint.copies if sim.kernels.p2g == "private" else 0
     est = memory_estimate(n, sim.grid.nodes, frames, substeps, dtype, grid_copies=copies) / 2**20
     click.echo(f"peak memory growth {peak:8.1f} MiB (peak RSS - RSS before the run); formula {est:.1f} MiB")
