@@ -28,9 +28,14 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
     if output is not None:
         cfg = dataclasses.replace(cfg, output=Path(output).resolve())
     opt = Optimization(cfg)  # loads the scene, runs the material query, computes the video's flow
-    with click.progressbar(length=cfg.optimize.iterations, label="optimising", show_pos=True,
+    total = cfg.optimize.iterations
+    with click.progressbar(length=total, label="optimising", show_pos=True,
                            item_show_func=_format_row, file=sys.stderr) as bar:
-        opt.progress = lambda row: bar.update(1, row)
+        if sys.stderr.isatty():
+            opt.progress = lambda row: bar.update(1, row)
+        else:  # a log file or CI: one line per iteration instead of a redrawn bar
+            opt.progress = lambda row: click.echo(f"iteration {row['iteration'] + 1}/{total}: {_format_row(row)}",
+                                                  err=True)
         if resume and opt.checkpoint.exists():
             bar.update(opt.load_state().iteration)
         try:
