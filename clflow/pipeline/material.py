@@ -16,16 +16,22 @@ log = logging.getLogger(__name__)
 def resolve_material(cfg: SceneConfig) -> SceneConfig:
     """The config with a concrete material.
 
-    For ``type: query`` the query (offline knowledge base or a foundation model) decides the
-    type, density and parameters; parameters and density written in the config override the
-    query's. The query record is saved as ``output/material_query.json``. Other configs are
+    For ``type: query`` the query (offline knowledge base or a foundation model), or the
+    record of an earlier ``clflow query`` (``material.query.result``), decides the type,
+    density and parameters; parameters and density written in the config override the
+    query's. The record is saved as ``output/material_query.json``. Other configs are
     returned unchanged."""
     mat = cfg.material
     if mat.type != "query":
         return cfg
-    from clflow.query.backends import query_material
+    if mat.query_result is not None:
+        from clflow.query.result import load_query_result
 
-    result = query_material(mat.query_image, prompt=mat.query_prompt, backend=mat.query_backend)
+        result = load_query_result(mat.query_result)
+    else:
+        from clflow.query.backends import query_material
+
+        result = query_material(mat.query_image, prompt=mat.query_prompt, backend=mat.query_backend)
     for warning in result.warnings:
         log.warning("material query: %s", warning)
     cfg.output.mkdir(parents=True, exist_ok=True)

@@ -171,6 +171,7 @@ class MaterialConfig:
     density: float | None  # kg/m^3; None only for "query" without a given density
     model: str | None = None  # elastic: fixed_corotated/neo_hookean; sand: drucker_prager/volume_corrected
     query_image: Path | None = None
+    query_result: Path | None = None  # a record of `clflow query`, read instead of asking
     query_prompt: str = ""
     query_backend: str = "offline"
 
@@ -293,11 +294,16 @@ def _material(r: _Reader, data: Any) -> MaterialConfig:
         raise r.fail("material.type", "is required: a material name or 'query'")
     params_in = r.mapping(body.get("parameters"), "material.parameters")  # names: the registry checks
     if kind == "query":
-        query = r.section(body.get("query"), "material.query", ("image", "prompt", "backend"))
+        query = r.section(body.get("query"), "material.query", ("image", "prompt", "backend", "result"))
+        if (query.get("image") is None) == (query.get("result") is None):
+            raise r.fail("material.query", "give exactly one of image (ask the query now) and result "
+                                           "(a record `clflow query` wrote)")
         density = (r.number(body, "density", "material", low=0.0, strict_low=True)
                    if body.get("density") is not None else None)  # None: the query's
         backend = r.choice(query, "backend", "material.query", ("offline", "openai"), "offline")
-        return MaterialConfig("query", dict(params_in), density, query_image=r.file(query, "image", "material.query"),
+        return MaterialConfig("query", dict(params_in), density,
+                              query_image=r.file(query, "image", "material.query", required=False),
+                              query_result=r.file(query, "result", "material.query", required=False),
                               query_prompt=str(query.get("prompt", "")), query_backend=backend)
     try:
         material = get_material(kind)

@@ -39,6 +39,21 @@ def test_query_fills_in_the_material_and_config_values_win(quick_demo, tmp_path)
     assert resolved.material.parameters["poissons_ratio"] == 0.4  # the config's value, not the query's
 
 
+def test_a_saved_query_record_is_the_initial_guess(quick_demo, tmp_path):
+    from clflow.query.backends import query_material
+
+    query_material(object_name="steel spoon").save(tmp_path / "spoon.material.json")
+    cfg = query_config(quick_demo, tmp_path, {"type": "query", "query": {"result": "spoon.material.json"}},
+                       optimize=("youngs_modulus",))
+    resolved = resolve_material(cfg)
+    assert resolved.material.type == "metal" and resolved.material.density > 7000
+
+
+def test_query_needs_an_image_or_a_record(quick_demo, tmp_path):
+    with pytest.raises(InputError, match="material.query: give exactly one of image"):
+        query_config(quick_demo, tmp_path, {"type": "query", "query": {"prompt": "jelly"}})
+
+
 def test_query_result_without_the_optimised_parameter(quick_demo, tmp_path):
     cfg = query_config(quick_demo, tmp_path, {"type": "query", "query": {"image": "jelly.png"}, "density": 900},
                        optimize=("friction_angle",))
