@@ -1,62 +1,124 @@
-"""docs/scene_config.md stays true: its examples parse, and it names every key the parser takes."""
+"""docs/scene_config.md stays true: its examples load, and it names every key the parser takes."""
 
+import dataclasses
+import json
+import math
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
-from clflow.scene.config import parse_config
+from clflow.scene import config as config_module
+from clflow.scene.config import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 DOC = (ROOT / "docs" / "scene_config.md").read_text()
-BLOCKS = [yaml.safe_load(b) for b in re.findall(r"```yaml\n(.*?)```", DOC, re.S)]
+BLOCKS = re.findall(r"```yaml\n(.*?)```", DOC, re.S)
 
 
-@pytest.fixture
-def folder(tmp_path):
-    """The files the examples name: scene.ply, guidance/, object.png, cameras.json."""
-    from clflow_datasets.demo import DEMO
-    from clflow_datasets.synthetic import Resolution, write_scene
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    """The files the examples name: scene.ply, guidance/, object.png, object.npy,
+    object.material.json, cameras.json (parsing checks only that they exist)."""
+    from clflow_datasets.demo import DEMO, QUICK
+    from clflow_datasets.synthetic import write_scene
 
-    write_scene(tmp_path, DEMO, Resolution(object_detail=3, floor_side=3))
-    (tmp_path / "guidance").mkdir()
-    (tmp_path / "object.png").write_bytes(b"")  # only its existence is checked when parsing
-    (tmp_path / "cameras.json").write_text("[]")
-    return tmp_path
+    path = tmp_path_factory.mktemp("scene_config_doc")
+    write_scene(path, DEMO, QUICK)
+    (path / "guidance").mkdir()
+    (path / "object.png").write_bytes(b"")
+    np.save(path / "object.npy", np.arange(4))
+    (path / "object.material.json").write_text("{}")
+    (path / "cameras.json").write_text("[]")
+    return path
 
 
-def test_the_complete_example_parses_with_its_values(folder):
-    cfg = parse_config(BLOCKS[0], "scene.yaml", folder)
-    assert (cfg.simulation.frames, cfg.simulation.fps, cfg.simulation.grid_resolution) == (12, 24.0, 24)
+def _load(folder: Path, data, name: str = "scene.yaml"):
+    path = folder / name
+    path.write_text(json.dumps(data) if name.endswith(".json") else yaml.safe_dump(data))
+    return load_config(path)
+
+
+def _merge(base: dict, alt: dict) -> dict:
+    """``base`` with the sections of ``alt``: object.select and camera replaced, material and
+    forces replaced, simulation keys updated."""
+    out = dict(base)
+    for key, value in alt.items():
+        if key == "object":
+            out["object"] = {**base["object"], "select": value["select"]}
+        elif key == "simulation":
+            out["simulation"] = {**base["simulation"], **value}
+        else:
+            out[key] = value
+    return out
+
+
+def test_the_doc_has_the_complete_example_and_the_alternatives():
+    assert len(BLOCKS) == 3
+
+
+def test_the_complete_example_loads_with_its_values(folder):
+    (folder / "scene.yaml").write_text(BLOCKS[0])
+    cfg = load_config(folder / "scene.yaml")
+    sim = cfg.simulation
+    assert (sim.frames, sim.fps, sim.grid_resolution, sim.substep_dt) == (12, 24.0, 24, None)
+    assert sim.domain_lower == (-0.5, -0.2, -0.5) and sim.gravity == (0.0, -9.81, 0.0)
+    assert cfg.splats == (folder / "scene.ply").resolve() and cfg.video == (folder / "guidance").resolve()
+    assert cfg.selection.region.kind == "box" and cfg.fill.spacing == 0.01
     assert cfg.material.model == "fixed_corotated" and cfg.material.parameters["youngs_modulus"] == 2000.0
-    assert cfg.optimize.horizon_start == 4 and cfg.optimize.learning_rates == {"youngs_modulus": 0.2}
-    assert [c.mode for c in cfg.colliders] == ["sticky", "separate"] and cfg.colliders[1].end == 0.5
     assert cfg.forces[0].kind == "acceleration" and cfg.forces[0].end == 0.12
+    assert [c.mode for c in cfg.colliders] == ["sticky", "separate"] and cfg.colliders[1].end == 0.5
+    assert cfg.camera.position == (0.25, 0.45, 0.75) and cfg.camera.width == 96
+    assert cfg.optimize.horizon_start == 4 and cfg.optimize.learning_rates == {"youngs_modulus": 0.2}
+    assert cfg.ground_truth["youngs_modulus"] == 20000.0 and cfg.output == (folder / "results").resolve()
+    # the same as JSON
+    assert _load(folder, yaml.safe_load(BLOCKS[0]), "scene.json") == dataclasses.replace(
+        cfg, source=folder / "scene.json")
 
 
-def test_the_alternative_forms_parse(folder):
-    data = dict(BLOCKS[0])
-    alt = BLOCKS[1]
-    data["object"] = {**data["object"], "select": alt["object"]["select"]}
-    data["material"], data["forces"], data["camera"] = alt["material"], alt["forces"], alt["camera"]
-    data["simulation"] = {**data["simulation"], **alt["simulation"]}
-    cfg = parse_config(data, "scene.yaml", folder)
-    assert cfg.selection.region.kind == "sphere" and cfg.material.type == "query"
-    assert cfg.material.density == 1100.0 and cfg.forces[0].region.kind == "all" and cfg.forces[0].kind == "force"
+def test_the_alternative_forms_load(folder):
+    base = yaml.safe_load(BLOCKS[0])
+    cfg = _load(folder, _merge(base, yaml.safe_load(BLOCKS[1])))
+    assert cfg.selection.region.kind == "sphere" and cfg.selection.region.radius == 0.12
+    assert cfg.material.type == "query" and cfg.material.query_image == (folder / "object.png").resolve()
+    assert cfg.material.density == 1100.0 and cfg.material.parameters == {"poissons_ratio": 0.4}
+    assert cfg.forces[0].region.kind == "all" and cfg.forces[0].kind == "force"
+    assert math.isinf(cfg.forces[0].end)
     assert cfg.camera.cameras_file == (folder / "cameras.json").resolve() and cfg.simulation.substep_dt == 0.0005
-    # without a mask file the select block has only one shape: the mask form is a comment
-    assert "mask: object.npy" in DOC
+
+    cfg = _load(folder, _merge(base, yaml.safe_load(BLOCKS[2])))
+    assert cfg.selection.mask == (folder / "object.npy").resolve()
+    assert cfg.material.query_result == (folder / "object.material.json").resolve()
+    assert cfg.material.query_image is None and cfg.material.density is None
 
 
-def test_every_key_of_the_parser_is_documented():
-    source = (ROOT / "clflow" / "scene" / "config.py").read_text()
+def _section_keys(source: str) -> set[str]:
+    """The keys of every ``r.section(..., (known keys))`` call and of TOP_KEYS."""
     keys = set()
-    for line in source.splitlines():
-        if "r.section(" in line:  # the known keys: a tuple of strings, the call's last argument
-            for tuple_text in re.findall(r'\(("\w+"(?:, "\w+")*,?)\)', line):
-                keys.update(re.findall(r'"(\w+)"', tuple_text))
+    for match in re.finditer(r"r\.section\(", source):
+        depth, i = 1, match.end()
+        while depth:  # the call's text, to its closing parenthesis
+            depth += {"(": 1, ")": -1}.get(source[i], 0)
+            i += 1
+        call = source[match.end():i - 1]
+        if call.rstrip().endswith("TOP_KEYS"):
+            continue  # read below
+        known = re.findall(r"\(([^()]*)\)\s*$", call)  # the last argument: a tuple of strings
+        assert known, f"r.section call without a literal tuple of keys: {call!r}"
+        keys.update(re.findall(r'"(\w+)"', known[0]))
     keys.update(re.findall(r'"(\w+)"', re.search(r"TOP_KEYS = \(([^)]*)\)", source).group(1)))
-    assert len(keys) > 50
-    missing = sorted(k for k in keys if not re.search(rf"\b{k}\b", DOC))
-    assert not missing, f"docs/scene_config.md does not mention {missing}"
+    return keys
+
+
+def test_every_key_and_option_of_the_parser_is_documented():
+    source = Path(config_module.__file__).read_text()
+    keys = _section_keys(source)
+    assert {"splats", "grid_resolution", "per_axis", "fov_y_deg", "result", "final_rate"} <= keys
+    missing = sorted(k for k in keys if not re.search(rf"`[^`\n]*\b{k}\b[^`\n]*`|^\s*-?\s*{k}:", DOC, re.M))
+    assert not missing, f"docs/scene_config.md does not mention the keys {missing}"
+    options = [*config_module.UP_AXES, *config_module.COLLIDER_MODES, *config_module.FLOW_METHODS,
+               *config_module.FLOW_LOSSES, *(m for ms in config_module.MATERIAL_MODELS.values() for m in ms),
+               "auto", "all", "query", "alpha", "none", "offline", "openai"]
+    assert not [o for o in options if o not in DOC], "an option value is missing from the doc"
