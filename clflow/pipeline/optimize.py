@@ -95,7 +95,8 @@ def observed_flow_of(cfg: SceneConfig, prepared: Prepared, frames: int) -> tuple
     if cfg.video is None:
         raise InputError(f"{cfg.source}: video is required to optimise (the guidance video or image folder)")
     cam = prepared.camera
-    video = read_video(cfg.video, fps=cfg.simulation.fps)
+    # a video file keeps its own frame rate; an image folder has none: frame k is at k / fps
+    video = read_video(cfg.video, fps=cfg.simulation.fps if cfg.video.is_dir() else None)
     times = np.arange(frames + 1) / cfg.simulation.fps
     if video.times is not None and video.times[-1] + 1e-9 < times[-1]:
         raise InputError(f"{cfg.video}: the video lasts {video.times[-1]:.3g} s, the simulation "

@@ -97,3 +97,24 @@ def test_schedules(demo_config):
     cfg = dataclasses.replace(demo_config(), optimize=opt)
     assert [horizon(cfg, i) for i in (0, 1, 4, 10)] == [4, 5, 8, 8]
     assert math.isclose(sum(rate_schedule(opt, i) for i in range(11)), 6.05, rel_tol=1e-12)
+
+
+def test_a_video_file_keeps_its_own_frame_rate(demo_config, quick_demo, tmp_path):
+    """The guidance frames as a 48 fps video (each frame twice) give the flow of the 24 fps
+    image folder, not half of it."""
+    import cv2
+    import numpy as np
+
+    from clflow.flow.visualize import write_video
+    from clflow.pipeline.forward import prepare
+    from clflow.pipeline.optimize import observed_flow_of
+
+    frames = [cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB) for p in sorted((quick_demo / "guidance").glob("*.png"))]
+    write_video(tmp_path / "guidance48.mp4", np.stack([f for f in frames for _ in range(2)]), 48.0)
+    folder_cfg = demo_config(name="folder")
+    video_cfg = dataclasses.replace(demo_config(name="video"), video=tmp_path / "guidance48.mp4")
+    T = folder_cfg.simulation.frames
+    _, from_folder = observed_flow_of(folder_cfg, prepare(folder_cfg), T)
+    _, from_video = observed_flow_of(video_cfg, prepare(video_cfg), T)
+    speed = lambda flow: float(np.linalg.norm(flow, axis=-1).mean())  # noqa: E731
+    assert speed(from_video) == pytest.approx(speed(from_folder), rel=0.15)
