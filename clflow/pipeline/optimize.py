@@ -135,7 +135,7 @@ def loss_mask(cfg: SceneConfig, prepared: Prepared) -> torch.Tensor:
         return grown
     from clflow.flow.optical_flow import mask_from_image
 
-    return torch.from_numpy(mask_from_image((cfg.source.parent / setting).resolve(), cam.width, cam.height))
+    return torch.from_numpy(mask_from_image(setting, cam.width, cam.height))  # a path resolved by the config
 
 
 def simulated_flows(prepared: Prepared, x: torch.Tensor, F: torch.Tensor, frames: int) -> list[torch.Tensor]:

@@ -51,7 +51,7 @@ def simulation_grid(cfg: SceneConfig, lower: torch.Tensor, upper: torch.Tensor):
         pad = max(0.75 * size, (WALL_CELLS + 1) * dx)
         lo, hi = lower - pad, upper + pad
         # a ground collider (normal +y) must lie inside the domain, above the wall cells
-        grounds = [c.point[1] for c in cfg.colliders if c.normal == (0.0, 1.0, 0.0)]
+        grounds = [c.point[1] for c in cfg.colliders if c.normal[0] == c.normal[2] == 0.0 and c.normal[1] > 0]
         if grounds:
             lo[1] = min(float(lo[1]), min(grounds) - (WALL_CELLS + 1) * dx)
     resolution = tuple(int(math.ceil(float(e) / dx)) + 1 for e in (hi - lo))

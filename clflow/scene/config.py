@@ -1,4 +1,4 @@
-"""Scene configuration files (YAML or JSON) for `clflow simulate/optimize/render4d`.
+"""Scene configuration files (YAML or JSON) for `clflow optimize` and `clflow simulate CONFIG`.
 
 Every key is checked: unknown keys (typos), wrong types and out-of-range values raise an
 :class:`~clflow.errors.InputError` that names the file and the dotted key, e.g.
@@ -25,6 +25,7 @@ UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 COLLIDER_MODES = ("sticky", "slip", "separate")
 FLOW_METHODS = ("dis", "farneback")
 FLOW_LOSSES = ("l2", "charbonnier")
+DIS_PRESETS = ("ultrafast", "fast", "medium")  # OpenCV DIS presets (clflow.flow.optical_flow)
 MATERIAL_MODELS = {"elastic": ELASTIC_MODELS, "sand": SAND_MODELS}  # material.model options
 
 
@@ -101,7 +102,9 @@ class _Reader:
 
     def choice(self, data: dict, key: str, path: str, options: tuple[str, ...], default: str | None = None) -> str:
         where = f"{path}.{key}" if path else key
-        value = data.get(key, default)
+        value = data.get(key)
+        if value is None:
+            value = default
         if value is None:
             raise self.fail(where, "is required")
         if value not in options:
@@ -200,7 +203,7 @@ class Collider:
 
 @dataclass(frozen=True)
 class SimulationSettings:
-    grid_resolution: int = 32  # cells along the longest side of the domain
+    grid_resolution: int = 32  # nodes along the longest side of the domain
     domain_lower: tuple[float, float, float] | None = None  # m; None: around the object
     domain_upper: tuple[float, float, float] | None = None
     substep_dt: float | None = None  # s; None: automatic (CFL and elastic wave speed)
@@ -279,6 +282,16 @@ def _region(r: _Reader, data: Any, path: str, allow_all: bool) -> Region:
                   radius=r.number(sphere, "radius", f"{path}.sphere", low=0.0, strict_low=True))
 
 
+def _flow_mask(r: _Reader, flow_in: dict) -> str:
+    """"alpha", "none", or the resolved path of a mask image (checked to exist)."""
+    mask = flow_in.get("mask")
+    if mask is None or mask in ("alpha", "none"):
+        return mask or "alpha"
+    if not isinstance(mask, str):
+        raise r.fail("flow.mask", f"must be alpha, none or a mask image file, got {mask!r}")
+    return str(r.file(flow_in, "mask", "flow"))
+
+
 def _window(r: _Reader, data: dict, path: str) -> tuple[float, float]:
     start = r.number(data, "start", path, 0.0, low=0.0)
     end = r.number(data, "end", path, math.inf) if data.get("end") is not None else math.inf
@@ -293,7 +306,13 @@ def _material(r: _Reader, data: Any) -> MaterialConfig:
     if not isinstance(kind, str):
         raise r.fail("material.type", "is required: a material name or 'query'")
     params_in = r.mapping(body.get("parameters"), "material.parameters")  # names: the registry checks
+    for name, value in params_in.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise r.fail(f"material.parameters.{name}", f"must be a number, got {value!r} "
+                                                        "(YAML reads 2e4 as text: write 2.0e+4 or 20000.0)")
     if kind == "query":
+        if body.get("model") is not None:
+            raise r.fail("material.model", "cannot be chosen before the query picks the material type")
         query = r.section(body.get("query"), "material.query", ("image", "prompt", "backend", "result"))
         if (query.get("image") is None) == (query.get("result") is None):
             raise r.fail("material.query", "give exactly one of image (ask the query now) and result "
@@ -305,6 +324,8 @@ def _material(r: _Reader, data: Any) -> MaterialConfig:
                               query_image=r.file(query, "image", "material.query", required=False),
                               query_result=r.file(query, "result", "material.query", required=False),
                               query_prompt=str(query.get("prompt", "")), query_backend=backend)
+    if body.get("query") is not None:
+        raise r.fail("material.query", f"is only read with type: query (the type is {kind!r})")
     try:
         material = get_material(kind)
         params = validate_params(material.name, params_in)
@@ -367,7 +388,7 @@ def _simulation(r: _Reader, data: Any) -> SimulationSettings:
     dt = body.get("substep_dt", "auto")
     substep_dt = None if dt == "auto" else r.number(body, "substep_dt", p, low=0.0, strict_low=True)
     return SimulationSettings(
-        grid_resolution=r.integer(body, "grid_resolution", p, 32, low=8),
+        grid_resolution=r.integer(body, "grid_resolution", p, 32, low=11),  # walls: 4 cells a side
         domain_lower=lower, domain_upper=upper, substep_dt=substep_dt,
         fps=r.number(body, "fps", p, 24.0, low=0.0, strict_low=True),
         frames=r.integer(body, "frames", p, 24, low=1),
@@ -381,6 +402,11 @@ def _camera(r: _Reader, data: Any) -> CameraConfig:
     if body.get("file") is None and body.get("position") is None:
         raise r.fail(p, "give a camera file (cameras.json / transforms.json) or position and look_at")
     explicit = body.get("file") is None
+    ignored = [k for k in ("position", "look_at", "up", "fov_y_deg", "width", "height") if k in body]
+    if not explicit and ignored:
+        raise r.fail(p, f"with a camera file, {', '.join(ignored)} come from the file: drop them")
+    if explicit and "index" in body:
+        raise r.fail(f"{p}.index", "picks an entry of a camera file: give file as well, or drop it")
     return CameraConfig(
         cameras_file=r.file(body, "file", p, required=False),
         index=r.integer(body, "index", p, 0),
@@ -452,17 +478,28 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     flow_in = r.section(top.get("flow"), "flow", ("method", "preset", "loss", "mask"))
     flow = FlowSettings(
         method=r.choice(flow_in, "method", "flow", FLOW_METHODS, "dis"),
-        preset=str(flow_in.get("preset", "medium")),
+        preset=r.choice(flow_in, "preset", "flow", DIS_PRESETS, "medium"),
         loss=r.choice(flow_in, "loss", "flow", FLOW_LOSSES, "l2"),
-        mask=str(flow_in.get("mask", "alpha")),
+        mask=_flow_mask(r, flow_in),
     )
     evaluation = r.section(top.get("evaluation"), "evaluation", ("ground_truth",))
-    truth = r.mapping(evaluation.get("ground_truth"), "evaluation.ground_truth")
+    truth = dict(r.mapping(evaluation.get("ground_truth"), "evaluation.ground_truth"))
+    for name, value in truth.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise r.fail(f"evaluation.ground_truth.{name}", f"must be a number, got {value!r}")
+    true_density = truth.pop("density", None)
+    if true_density is not None:
+        try:
+            DENSITY.check(true_density)
+        except InputError as exc:
+            raise r.fail("evaluation.ground_truth", str(exc)) from None
     if truth and material.type != "query":
         try:
             truth = {k: v for k, v in validate_params(material.type, truth).items() if k in truth}
         except InputError as exc:
             raise r.fail("evaluation.ground_truth", str(exc)) from None
+    if true_density is not None:
+        truth["density"] = float(true_density)
     output = top.get("output", "results")
     if not isinstance(output, str) or not output:
         raise r.fail("output", f"must be a folder path, got {output!r}")
