@@ -8,6 +8,7 @@ the gradients of the per-particle kernel parameters and masses, in reverse kerne
     grid_update_adjoint              : (grid_vbar copies, grid, boundaries) -> grid_bar (mbar_i, pbar_i)
     p2g_adjoint                      : (grid_bar, x, v, C, tau)      -> xbar, vbar, Cbar (part), taubar, massbar
     trial_svd_simd + update_stress_adjoint : (taubar, Fbar', F, C, param) -> Fbar, Cbar, parambar
+      (update_stress_elastic_adjoint_simd when every particle is fixed-corotated elastic)
 
 Every sum has a fixed order (private grid copies reduced in order, per-node and per-particle
 gathers), so gradients are bit-identical across runs.
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from clflow.mpm.constants import SIMD_LANES, SVD_MATERIALS, kernel_defines
+from clflow.mpm.constants import MATERIAL_IDS, SIMD_LANES, SVD_MATERIALS, kernel_defines
 from clflow.mpm.substep import GRID_COPY_BUDGET, MAX_GRID_COPIES, Grid, Particles, State, SubstepKernels
 
 @dataclass
@@ -79,15 +80,21 @@ class SubstepAdjoint:
         present = sum(1 << int(m) for m in torch.unique(materials))
         defines["MATERIALS_PRESENT"] = present
         k = lambda src, name: device.kernel(src, name, real, defines)  # noqa: E731
-        # svd3(F_tr) by the forward's SIMD kernel: fast, and the very SVD the forward used
-        self.k_svd = k("mpm/stress.cl", "trial_svd_simd") if present & SVD_MATERIALS else None
+        # all fixed-corotated elastic: one fused SIMD kernel (SVD and adjoint, as the forward);
+        # otherwise svd3(F_tr) by the forward's SIMD kernel, then one particle per work-item
+        self.elastic_only = present == 1 << MATERIAL_IDS["elastic"]
+        if self.elastic_only:
+            self.k_stress = k("mpm/adjoint/stress_adjoint.cl", "update_stress_elastic_adjoint_simd")
+        else:
+            self.k_stress = k("mpm/adjoint/stress_adjoint.cl", "update_stress_adjoint")
+        needs_svd = not self.elastic_only and present & SVD_MATERIALS
+        self.k_svd = k("mpm/stress.cl", "trial_svd_simd") if needs_svd else None
         m = n if self.k_svd is not None else 0
         self.U, self.s, self.V = (torch.empty(m, 3, 3, dtype=dtype), torch.empty(m, 3, dtype=dtype),
                                   torch.empty(m, 3, 3, dtype=dtype))
         self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_private")
         self.k_grid = k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
         self.k_p2g = k("mpm/adjoint/p2g_adjoint.cl", "p2g_adjoint")
-        self.k_stress = k("mpm/adjoint/stress_adjoint.cl", "update_stress_adjoint")
         itemsize = torch.tensor([], dtype=dtype).element_size()
         copy_bytes = 3 * grid.nodes * itemsize
         want = max(2, 2 * device.info.compute_units)
@@ -139,16 +146,28 @@ class SubstepAdjoint:
                 b.input(particles.mass, "mass"), b.input(particles.volume, "volume"),
                 b.input(particles.group, "group"), b.input(accel, "accel"), grid_bar, x_bar,
                 b.output(grad.v, "v_bar"), C_bar, tau_bar, b.inout(mass_grad, "mass_bar")])
-            F = b.input(state.F, "F")
-            U, s, V = b.inout(self.U, "U"), b.inout(self.s, "s"), b.inout(self.V, "V")
-            if self.k_svd is not None:
-                dev.launch(self.k_svd, -(-self.n // SIMD_LANES), [n, R(dt), F, C, U, s, V])
-            dev.launch(self.k_stress, self.n, [
-                n, R(dt), F, C, U, s, V, b.input(state.plastic, "plastic"),
+            self.launch_stress_adjoint(
+                b, dt, b.input(state.F, "F"), C, b.input(state.plastic, "plastic"),
                 b.input(particles.material, "material"), b.input(particles.param, "param"), tau_bar,
                 b.input(grad_after.F, "F_bar_out"), b.input(grad_after.plastic, "plastic_bar_out"),
                 b.output(grad.F, "F_bar"), C_bar, b.output(grad.plastic, "plastic_bar"),
-                b.inout(param_grad, "param_bar")])
+                b.inout(param_grad, "param_bar"))
+
+    def launch_stress_adjoint(self, b, dt: float, F, C, plastic, material, param, tau_bar, F_bar_out,
+                              plastic_bar_out, F_bar, C_bar, plastic_bar, param_bar) -> None:
+        """Enqueue the stress stage's adjoint on buffers of the binding ``b``: F_bar, plastic_bar
+        written, C_bar and param_bar accumulated into (see kernels_cl/mpm/adjoint/stress_adjoint.cl)."""
+        dev, R, n = self.device, self.real_t, np.int32(self.n)
+        lanes = -(-self.n // SIMD_LANES)
+        if self.elastic_only:
+            dev.launch(self.k_stress, lanes, [n, R(dt), F, C, param, tau_bar, F_bar_out, plastic_bar_out,
+                                              F_bar, C_bar, plastic_bar, param_bar])
+            return
+        U, s, V = b.inout(self.U, "U"), b.inout(self.s, "s"), b.inout(self.V, "V")
+        if self.k_svd is not None:
+            dev.launch(self.k_svd, lanes, [n, R(dt), F, C, U, s, V])
+        dev.launch(self.k_stress, self.n, [n, R(dt), F, C, U, s, V, plastic, material, param, tau_bar, F_bar_out,
+                                           plastic_bar_out, F_bar, C_bar, plastic_bar, param_bar])
 
 
 __all__ = ["StateGrad", "SubstepAdjoint", "SubstepTape", "run_recorded"]

@@ -60,6 +60,33 @@ typedef CLFLOW_VEC(REAL, CLFLOW_SIMD_LANES) realv;
     {                                                                                       \
         return a[0] * (a[4] * a[8] - a[5] * a[7]) - a[1] * (a[3] * a[8] - a[5] * a[6]) +   \
                a[2] * (a[3] * a[7] - a[4] * a[6]);                                          \
+    }                                                                                       \
+                                                                                            \
+    /* out = a^T b */                                                                       \
+    inline void mat3_mul_at##SFX(const T *a, const T *b, T *out)                            \
+    {                                                                                       \
+        for (int r = 0; r < 3; ++r)                                                         \
+            for (int c = 0; c < 3; ++c)                                                     \
+                out[3 * r + c] = a[r] * b[c] + a[3 + r] * b[3 + c] + a[6 + r] * b[6 + c];  \
+    }                                                                                       \
+                                                                                            \
+    inline T trace3##SFX(const T *a)                                                        \
+    {                                                                                       \
+        return a[0] + a[4] + a[8];                                                          \
+    }                                                                                       \
+                                                                                            \
+    /* Cofactor matrix of a: d det(a)/d a, finite for singular a. */                        \
+    inline void mat3_cofactor##SFX(const T *a, T *out)                                      \
+    {                                                                                       \
+        out[0] = a[4] * a[8] - a[5] * a[7];                                                 \
+        out[1] = a[5] * a[6] - a[3] * a[8];                                                 \
+        out[2] = a[3] * a[7] - a[4] * a[6];                                                 \
+        out[3] = a[2] * a[7] - a[1] * a[8];                                                 \
+        out[4] = a[0] * a[8] - a[2] * a[6];                                                 \
+        out[5] = a[1] * a[6] - a[0] * a[7];                                                 \
+        out[6] = a[1] * a[5] - a[2] * a[4];                                                 \
+        out[7] = a[2] * a[3] - a[0] * a[5];                                                 \
+        out[8] = a[0] * a[4] - a[1] * a[3];                                                 \
     }
 
 CLFLOW_DEFINE_MAT3(, real)

@@ -14,14 +14,6 @@
 
 #include "common/mat3.h"
 
-/* out = a^T b */
-inline void mat3_mul_at(const real *a, const real *b, real *out)
-{
-    for (int r = 0; r < 3; ++r)
-        for (int c = 0; c < 3; ++c)
-            out[3 * r + c] = a[r] * b[c] + a[3 + r] * b[3 + c] + a[6 + r] * b[6 + c];
-}
-
 /* The singular-value pairs (i, j), i < j, in the order of the `diff` and `mean` arrays. */
 __constant int SVD3_PAIR_I[3] = {0, 0, 1};
 __constant int SVD3_PAIR_J[3] = {1, 2, 2};
@@ -68,25 +60,6 @@ inline void svd3_isotropic_adjoint(const real *U, const real *V, const real *dp_
         F_hat[4 * k] = dp_ds[k] * G[0] + dp_ds[3 + k] * G[4] + dp_ds[6 + k] * G[8];
     svd3_add_off_diagonal(G, diff, mean, F_hat);
     svd3_add_back(U, V, F_hat, F_bar);
-}
-
-inline real trace3(const real *a)
-{
-    return a[0] + a[4] + a[8];
-}
-
-/* Cofactor matrix of a: d det(a)/d a, finite for singular a. */
-inline void mat3_cofactor(const real *a, real *out)
-{
-    out[0] = a[4] * a[8] - a[5] * a[7];
-    out[1] = a[5] * a[6] - a[3] * a[8];
-    out[2] = a[3] * a[7] - a[4] * a[6];
-    out[3] = a[2] * a[7] - a[1] * a[8];
-    out[4] = a[0] * a[8] - a[2] * a[6];
-    out[5] = a[1] * a[6] - a[0] * a[7];
-    out[6] = a[1] * a[5] - a[2] * a[4];
-    out[7] = a[2] * a[3] - a[0] * a[5];
-    out[8] = a[0] * a[4] - a[1] * a[3];
 }
 
 #endif /* CLFLOW_SVD3_ADJOINT_H */

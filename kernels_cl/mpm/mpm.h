@@ -89,4 +89,47 @@ inline void store_row(__global real *a, const long i, const int width, const rea
         a[width * i + c] = row[c];
 }
 
+/* F_tr = (I + dt C) F, the trial deformation of the stress stage; step = I + dt C is
+ * returned too (the adjoint needs it). For T = real, and realv with CLFLOW_SIMD_LANES. */
+#define CLFLOW_DEFINE_TRIAL_DEFORMATION(SFX, T)                                             \
+    inline void trial_deformation##SFX(const T *F, const T *C, const real dt, T *step, T *F_tr) \
+    {                                                                                       \
+        for (int k = 0; k < 9; ++k)                                                         \
+            step[k] = dt * C[k] + ((k % 4 == 0) ? (T)1 : (T)0);                             \
+        mat3_mul##SFX(step, F, F_tr);                                                       \
+    }
+CLFLOW_DEFINE_TRIAL_DEFORMATION(, real)
+
+#ifdef CLFLOW_SIMD_LANES
+CLFLOW_DEFINE_TRIAL_DEFORMATION(_v, realv)
+
+/* Rows p0 .. p0 + CLFLOW_SIMD_LANES - 1 of a [n, width] array, one lane each: m[c] holds
+ * column c of every lane. Lanes past the end repeat row n - 1; they are computed but never
+ * stored. */
+inline void load_lanes_v(const int n, const int p0, const int width, __global const real *a, realv *m)
+{
+    for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) {
+        const int p = min(p0 + l, n - 1);
+        for (int c = 0; c < width; ++c)
+            ((real *)&m[c])[l] = a[width * p + c];
+    }
+}
+
+inline void store_lanes_v(const int n, const int p0, const int width, const realv *m, __global real *a)
+{
+    for (int l = 0; l < CLFLOW_SIMD_LANES && p0 + l < n; ++l)
+        for (int c = 0; c < width; ++c)
+            a[width * (p0 + l) + c] = ((const real *)&m[c])[l];
+}
+
+/* Column `column` of a [n, PARAM_COUNT] parameter array in lanes, as load_lanes_v. */
+inline realv load_param_lanes_v(const int n, const int p0, __global const real *param, const int column)
+{
+    realv q;
+    for (int l = 0; l < CLFLOW_SIMD_LANES; ++l)
+        ((real *)&q)[l] = param[(long)min(p0 + l, n - 1) * PARAM_COUNT + column];
+    return q;
+}
+#endif
+
 #endif /* CLFLOW_MPM_H */

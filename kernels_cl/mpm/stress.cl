@@ -21,17 +21,6 @@
 #include "mpm/materials/snow.h"
 #include "mpm/materials/viscoplastic.h"
 
-/* F_tr = (I + dt C) F for T = real, and realv with CLFLOW_SIMD_LANES */
-#define DEFINE_TRIAL_DEFORMATION(SFX, T)                                                     \
-    inline void trial_deformation##SFX(const T *F, const T *C, const real dt, T *F_tr)      \
-    {                                                                                       \
-        T step[9];                                                                          \
-        for (int k = 0; k < 9; ++k)                                                         \
-            step[k] = dt * C[k] + ((k % 4 == 0) ? (T)1 : (T)0);                             \
-        mat3_mul##SFX(step, F, F_tr);                                                       \
-    }
-DEFINE_TRIAL_DEFORMATION(, real)
-
 __kernel void update_stress(const int n, const real dt, __global const real *F_in,
                             __global const real *C_in, __global const real *U_in,
                             __global const real *s_in, __global const real *V_in,
@@ -42,10 +31,10 @@ __kernel void update_stress(const int n, const real dt, __global const real *F_i
     const int p = get_global_id(0);
     if (p >= n)
         return;
-    real F[9], C[9], F_tr[9], F_new[9], tau[9], U[9], s[3], V[9];
+    real F[9], C[9], step[9], F_tr[9], F_new[9], tau[9], U[9], s[3], V[9];
     load_row(F_in, p, 9, F);
     load_row(C_in, p, 9, C);
-    trial_deformation(F, C, dt, F_tr);
+    trial_deformation(F, C, dt, step, F_tr);
 #if MATERIALS_PRESENT & SVD_MATERIALS
     load_row(U_in, p, 9, U);
     load_row(s_in, p, 3, s);
@@ -116,29 +105,13 @@ __kernel void update_stress(const int n, const real dt, __global const real *F_i
 }
 
 #ifdef CLFLOW_SIMD_LANES
-DEFINE_TRIAL_DEFORMATION(_v, realv)
-
-/* The lanes of a SIMD work-item: particles p0 .. p0 + CLFLOW_SIMD_LANES - 1 (past the end,
- * the last particle again; such lanes are computed but never stored). */
 inline void load_trial_deformation_v(const int n, const int p0, const real dt, __global const real *F_in,
                                      __global const real *C_in, realv *F_tr)
 {
-    realv F[9], C[9];
-    for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) {
-        const int p = min(p0 + l, n - 1);
-        for (int k = 0; k < 9; ++k) {
-            ((real *)&F[k])[l] = F_in[9 * p + k];
-            ((real *)&C[k])[l] = C_in[9 * p + k];
-        }
-    }
-    trial_deformation_v(F, C, dt, F_tr);
-}
-
-inline void store_lanes_v(const int n, const int p0, const int width, const realv *m, __global real *out)
-{
-    for (int l = 0; l < CLFLOW_SIMD_LANES && p0 + l < n; ++l)
-        for (int k = 0; k < width; ++k)
-            out[width * (p0 + l) + k] = ((const real *)&m[k])[l];
+    realv F[9], C[9], step[9];
+    load_lanes_v(n, p0, 9, F_in, F);
+    load_lanes_v(n, p0, 9, C_in, C);
+    trial_deformation_v(F, C, dt, step, F_tr);
 }
 
 /* U, s, V = svd3(F_tr) for CLFLOW_SIMD_LANES particles per work-item. */
@@ -169,11 +142,8 @@ __kernel void update_stress_elastic_simd(const int n, const real dt, __global co
         return;
     realv F_tr[9], U[9], s[3], V[9], tau[9], mu, lambda;
     load_trial_deformation_v(n, p0, dt, F_in, C_in, F_tr);
-    for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) {
-        const int p = min(p0 + l, n - 1);
-        ((real *)&mu)[l] = param[(long)p * PARAM_COUNT];
-        ((real *)&lambda)[l] = param[(long)p * PARAM_COUNT + 1];
-    }
+    mu = load_param_lanes_v(n, p0, param, 0);
+    lambda = load_param_lanes_v(n, p0, param, 1);
     svd3_v(F_tr, U, s, V);
     fixed_corotated_tau_v(F_tr, U, s, V, mu, lambda, tau);
     store_lanes_v(n, p0, 9, F_tr, F_out);

@@ -3,13 +3,12 @@ values, against central differences of the float64 reference; float32 against fl
 
 import math
 
-import numpy as np
 import pytest
 import torch
 
 from clflow.mpm import reference
 from clflow.mpm.adjoint import SubstepAdjoint
-from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, SIMD_LANES
+from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT
 from clflow.mpm.substep import Grid
 
 MU, LAMBDA, TAU_Y, XI = 3.0e4, 5.0e4, 300.0, 2.0
@@ -76,18 +75,13 @@ def stress_vjp(device, material, F, tau_bar, F_new_bar, plastic, plastic_new_bar
     plastic_bar = torch.empty(n, dtype=dtype)
     C_bar = torch.zeros(n, 3, 3, dtype=dtype)
     param_bar = torch.zeros(n, PARAM_COUNT, dtype=dtype)
-    R = adjoint.real_t
     F_in, C_in = F.to(dtype).contiguous(), torch.zeros(n, 3, 3, dtype=dtype)
     with device.bind() as b:
-        F_buf, C_buf = b.input(F_in), b.input(C_in)
-        U, s, V = b.inout(adjoint.U), b.inout(adjoint.s), b.inout(adjoint.V)
-        if adjoint.k_svd is not None:
-            device.launch(adjoint.k_svd, -(-n // SIMD_LANES), [np.int32(n), R(1e-3), F_buf, C_buf, U, s, V])
-        device.launch(adjoint.k_stress, n, [
-            np.int32(n), R(1e-3), F_buf, C_buf, U, s, V, b.input(plastic.to(dtype).contiguous()), b.input(mat),
+        adjoint.launch_stress_adjoint(
+            b, 1e-3, b.input(F_in), b.input(C_in), b.input(plastic.to(dtype).contiguous()), b.input(mat),
             b.input(param), b.input(tau_bar.to(dtype).contiguous()), b.input(F_new_bar.to(dtype).contiguous()),
             b.input(plastic_new_bar.to(dtype).contiguous()), b.output(F_bar), b.inout(C_bar),
-            b.output(plastic_bar), b.inout(param_bar)])
+            b.output(plastic_bar), b.inout(param_bar))
     return F_bar.double(), plastic_bar.double(), param_bar.double()
 
 

@@ -1,5 +1,6 @@
 """Every MPM adjoint kernel under oclgrind: no out-of-bounds access, no data race (tiny scene
-with every material, colliders, velocity regions, a force stage and a clamped particle)."""
+with every material, colliders, velocity regions, a force stage and a clamped particle; and an
+elastic-only scene, which takes the fused SIMD stress adjoint)."""
 
 import os
 import shutil
@@ -32,6 +33,12 @@ SCRIPT = textwrap.dedent(
     (out.x.sum() + out.F.sum()).backward()
     assert float(out.x[1, 0, 0]) == 0.875  # clamped to the interior's upper bound
     assert bool(torch.isfinite(positions.grad).all())
+    # elastic only: the fused SIMD stress adjoint, 13 particles (a partial second work-item)
+    solo = random_scene({"elastic": MATERIAL_CASES["elastic"]}, n=13, substeps=2, frame_dt=2e-4, walls=None,
+                        p2g="private")
+    E = torch.tensor(1e4, dtype=torch.float64, requires_grad=True)
+    simulate(solo, 1, params={"youngs_modulus": E}).x.sum().backward()
+    assert bool(torch.isfinite(E.grad))
     print("done on", sim.device.info.label)
     """
 )

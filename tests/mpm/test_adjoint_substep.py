@@ -11,11 +11,11 @@ from tests.mpm.scenes import MATERIAL_CASES, random_scene
 GRAD_FIELDS = ("x", "v", "C", "F", "plastic")
 
 
-def warmed_up(steps=5, material="elastic", **kwargs):
+def warmed_up(steps=5, materials=("elastic",), **kwargs):
     """A float64 scene after a few substeps: C != 0, F != I, and walls 5 cells thick that cut
     through the particles' stencils (so the boundary adjoints are exercised)."""
     kwargs.setdefault("wall_cells", 5)
-    sim = random_scene({material: MATERIAL_CASES[material]}, **kwargs)
+    sim = random_scene({m: MATERIAL_CASES[m] for m in materials}, **kwargs)
     for _ in range(steps):
         sim.step()
     return sim
@@ -62,21 +62,7 @@ def rel_err(a, b):
     return float((a - b).abs().max() / b.abs().max().clamp(min=1e-300))
 
 
-@pytest.mark.parametrize("walls,friction", [("separate", 0.0), ("slip", 0.3), ("sticky", 0.0)])
-def test_substep_adjoint_matches_autograd_of_reference(walls, friction):
-    sim = warmed_up(walls=walls, wall_friction=friction)
-    grad_after = random_grad(sim.n)
-    grad, param_grad, mass_grad = kernel_vjp(sim, grad_after)
-    ref, ref_param, ref_mass = reference_vjp(sim, grad_after)
-    for f in GRAD_FIELDS:
-        assert rel_err(getattr(grad, f), getattr(ref, f)) < 1e-9, f
-    assert rel_err(param_grad, ref_param) < 1e-9
-    assert rel_err(mass_grad, ref_mass) < 1e-9
-
-
-@pytest.mark.parametrize("material", ["plasticine", "metal", "foam", "sand", "newtonian", "non_newtonian", "snow"])
-def test_material_substep_adjoint_matches_autograd_of_reference(material):
-    sim = warmed_up(material=material)
+def assert_adjoint_matches_reference(sim):
     grad_after = random_grad(sim.n)
     grad, param_grad, mass_grad = kernel_vjp(sim, grad_after)
     ref, ref_param, ref_mass = reference_vjp(sim, grad_after)
@@ -85,6 +71,25 @@ def test_material_substep_adjoint_matches_autograd_of_reference(material):
     for k in range(param_grad.shape[1]):
         assert rel_err(param_grad[:, k], ref_param[:, k]) < 1e-9, k
     assert rel_err(mass_grad, ref_mass) < 1e-9
+
+
+@pytest.mark.parametrize("walls,friction", [("separate", 0.0), ("slip", 0.3), ("sticky", 0.0)])
+def test_substep_adjoint_matches_autograd_of_reference(walls, friction):
+    assert_adjoint_matches_reference(warmed_up(walls=walls, wall_friction=friction))
+
+
+@pytest.mark.parametrize("material", ["plasticine", "metal", "foam", "sand", "newtonian", "non_newtonian", "snow"])
+def test_material_substep_adjoint_matches_autograd_of_reference(material):
+    assert_adjoint_matches_reference(warmed_up(materials=(material,)))
+
+
+@pytest.mark.parametrize("materials,fused", [(("elastic",), True), (("elastic", "plasticine"), False)])
+def test_elastic_stress_adjoint_fused_and_per_particle(materials, fused):
+    """Elastic-only scenes take the fused SIMD stress adjoint (300 particles: a partial last
+    work-item), mixed scenes the per-particle one: both match the reference."""
+    sim = warmed_up(materials=materials)
+    assert SubstepAdjoint(sim.device, sim.dtype, sim.n, sim.grid, sim.particles.material).elastic_only == fused
+    assert_adjoint_matches_reference(sim)
 
 
 def kernel_loss(sim, grad_after: StateGrad, state, particles) -> float:

@@ -6,7 +6,8 @@
  *   plasticbar = dplastic'/dplastic^T plastic'bar (+ the yield stress's share for metal)
  * C_bar holds the P2G adjoint's part on entry; param_bar [n, PARAM_COUNT] is accumulated into
  * (one row per particle, summed over substeps: the host reduces rows in a fixed order).
- * U, s, V = svd3(F_tr) come from the forward's trial_svd_simd (stress.cl). */
+ * U, s, V = svd3(F_tr) come from the forward's trial_svd_simd (stress.cl); scenes of
+ * fixed-corotated elastic particles only take update_stress_elastic_adjoint_simd instead. */
 #include "mpm/mpm.h"
 #include "mpm/materials/elastic.h"
 #include "mpm/materials/elastic_adjoint.h"
@@ -31,9 +32,7 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
     load_row(C_in, p, 9, C);
     load_row(tau_bar, p, 9, tb);
     load_row(F_bar_out, p, 9, F_new_bar);
-    for (int k = 0; k < 9; ++k)
-        step[k] = dt * C[k] + ((k % 4 == 0) ? (real)1 : (real)0);
-    mat3_mul(step, F, F_tr);
+    trial_deformation(F, C, dt, step, F_tr);
 #if MATERIALS_PRESENT & SVD_MATERIALS
     load_row(U_in, p, 9, U);
     load_row(s_in, p, 3, s);
@@ -113,3 +112,44 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
     for (int k = 0; k < PARAM_COUNT; ++k)
         param_bar[(long)p * PARAM_COUNT + k] += q_bar[k];
 }
+
+#ifdef CLFLOW_SIMD_LANES
+/* update_stress_adjoint for scenes whose particles are all fixed-corotated elastic (the
+ * forward's update_stress_elastic_simd), fused with svd3(F_tr): CLFLOW_SIMD_LANES particles
+ * per work-item. F' = F_tr and the plastic state passes through. */
+__kernel void update_stress_elastic_adjoint_simd(const int n, const real dt, __global const real *F_in,
+                                                 __global const real *C_in, __global const real *param,
+                                                 __global const real *tau_bar,
+                                                 __global const real *F_bar_out,
+                                                 __global const real *plastic_bar_out, __global real *F_bar,
+                                                 __global real *C_bar, __global real *plastic_bar,
+                                                 __global real *param_bar)
+{
+    const int p0 = get_global_id(0) * CLFLOW_SIMD_LANES;
+    if (p0 >= n)
+        return;
+    realv F[9], C[9], step[9], F_tr[9], U[9], s[3], V[9], tb[9], F_tr_bar[9], Fb[9], Cb[9], dCb[9];
+    load_lanes_v(n, p0, 9, F_in, F);
+    load_lanes_v(n, p0, 9, C_in, C);
+    load_lanes_v(n, p0, 9, tau_bar, tb);
+    load_lanes_v(n, p0, 9, F_bar_out, F_tr_bar);
+    load_lanes_v(n, p0, 9, C_bar, Cb);
+    const realv mu = load_param_lanes_v(n, p0, param, 0), lambda = load_param_lanes_v(n, p0, param, 1);
+    trial_deformation_v(F, C, dt, step, F_tr);
+    svd3_v(F_tr, U, s, V);
+    realv mu_bar, lambda_bar;
+    fixed_corotated_adjoint_v(F_tr, U, s, V, mu, lambda, tb, F_tr_bar, &mu_bar, &lambda_bar);
+    mat3_mul_at_v(step, F_tr_bar, Fb);
+    mat3_mul_bt_v(F_tr_bar, F, dCb);
+    for (int k = 0; k < 9; ++k)
+        Cb[k] += dt * dCb[k];
+    store_lanes_v(n, p0, 9, Fb, F_bar);
+    store_lanes_v(n, p0, 9, Cb, C_bar);
+    for (int l = 0; l < CLFLOW_SIMD_LANES && p0 + l < n; ++l) {
+        const long p = p0 + l;
+        plastic_bar[p] = plastic_bar_out[p];
+        param_bar[p * PARAM_COUNT] += ((real *)&mu_bar)[l];
+        param_bar[p * PARAM_COUNT + 1] += ((real *)&lambda_bar)[l];
+    }
+}
+#endif
