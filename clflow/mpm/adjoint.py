@@ -141,7 +141,7 @@ class SubstepAdjoint:
                 R(dt), R(t), *(R(g) for g in gravity), R(particles.mass_eps), b.input(tape.grid_mv, "grid"),
                 self.grid_v_bar_copies, np.int32(self.copies), b.input(boundaries, "boundaries"),
                 np.int32(boundaries.shape[0]), grid_bar])
-            dev.launch(self.k_p2g, self.n, grid_args + [
+            dev.launch(self.k_p2g, -(-self.n // SIMD_LANES), grid_args + [
                 n, R(dt), x, b.input(state.v, "v"), C, b.input(tape.tau, "tau"),
                 b.input(particles.mass, "mass"), b.input(particles.volume, "volume"),
                 b.input(particles.group, "group"), b.input(accel, "accel"), grid_bar, x_bar,

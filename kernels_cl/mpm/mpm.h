@@ -130,6 +130,34 @@ inline realv load_param_lanes_v(const int n, const int p0, __global const real *
         ((real *)&q)[l] = param[(long)min(p0 + l, n - 1) * PARAM_COUNT + column];
     return q;
 }
+/* make_stencil for the lanes of a SIMD work-item (x[axis] in lanes): each lane's base node
+ * as a flat grid index, fx and the weights in lanes. */
+typedef struct {
+    long corner[CLFLOW_SIMD_LANES];
+    realv fx[3];
+    realv w[3][3];
+} stencil_v_t;
+
+inline stencil_v_t make_stencil_v(const grid_t *g, const realv *x)
+{
+    stencil_v_t st;
+    for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) {
+        int base[3];
+        for (int a = 0; a < 3; ++a) {
+            const real xi = (((const real *)&x[a])[l] - g->origin[a]) / g->dx;
+            base[a] = clamp((int)floor(xi - (real)0.5), 0, grid_extent(g, a) - 3);
+            ((real *)&st.fx[a])[l] = xi - base[a];
+        }
+        st.corner[l] = grid_index(g, base[0], base[1], base[2]);
+    }
+    for (int a = 0; a < 3; ++a) {
+        const realv f = st.fx[a];
+        st.w[a][0] = (real)0.5 * ((real)1.5 - f) * ((real)1.5 - f);
+        st.w[a][1] = (real)0.75 - (f - 1) * (f - 1);
+        st.w[a][2] = (real)0.5 * (f - (real)0.5) * (f - (real)0.5);
+    }
+    return st;
+}
 #endif
 
 #endif /* CLFLOW_MPM_H */

@@ -8,21 +8,29 @@
 
 #include "mpm/mpm.h"
 
-typedef struct {
-    real dw[3][3]; /* dw[axis][offset] = d w[axis][offset] / d x_axis (1/m) */
-} stencil_gradient_t;
-
-inline stencil_gradient_t make_stencil_gradient(const stencil_t *st, const real dx)
-{
-    stencil_gradient_t sg;
-    for (int a = 0; a < 3; ++a) {
-        const real f = st->fx[a];
-        sg.dw[a][0] = -((real)1.5 - f) / dx;
-        sg.dw[a][1] = -2 * (f - 1) / dx;
-        sg.dw[a][2] = (f - (real)0.5) / dx;
+/* stencil_gradient_t (for stencil_t) and, with CLFLOW_SIMD_LANES, stencil_gradient_v_t in
+ * lanes (for stencil_v_t): dw[axis][offset] = d w[axis][offset] / d x_axis (1/m). */
+#define CLFLOW_DEFINE_STENCIL_GRADIENT(SFX, T)                                              \
+    typedef struct {                                                                        \
+        T dw[3][3];                                                                         \
+    } stencil_gradient##SFX##_t;                                                            \
+                                                                                            \
+    inline stencil_gradient##SFX##_t make_stencil_gradient##SFX(const stencil##SFX##_t *st, \
+                                                                const real dx)              \
+    {                                                                                       \
+        stencil_gradient##SFX##_t sg;                                                       \
+        for (int a = 0; a < 3; ++a) {                                                       \
+            const T f = st->fx[a];                                                          \
+            sg.dw[a][0] = -((real)1.5 - f) / dx;                                            \
+            sg.dw[a][1] = -2 * (f - 1) / dx;                                                \
+            sg.dw[a][2] = (f - (real)0.5) / dx;                                             \
+        }                                                                                   \
+        return sg;                                                                          \
     }
-    return sg;
-}
+CLFLOW_DEFINE_STENCIL_GRADIENT(, real)
+#ifdef CLFLOW_SIMD_LANES
+CLFLOW_DEFINE_STENCIL_GRADIENT(_v, realv)
+#endif
 
 /* Gradient (1/m) of the node weight w = w[0][i] w[1][j] w[2][k] with respect to x_p. */
 inline void weight_gradient(const stencil_t *st, const stencil_gradient_t *sg, const int i, const int j,
