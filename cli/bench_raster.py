@@ -63,7 +63,8 @@ def raster(obj, gaussians: int, size: int, repeat: int, double: bool) -> None:
             backward.append((t3 - t2, c3 - c2))
     visible = int((meta["radii"] > 0).sum())
     click.echo(f"raster: {gaussians} Gaussians ({visible} visible), {size}x{size}, RGB + depth, {dtype}")
-    click.echo(f"  tile entries: {meta['num_tile_entries']} ({meta['tile_list_bytes'] / 2**20:.1f} MiB of tile lists)")
+    click.echo(f"  tile entries: {meta['num_tile_entries']} ({meta['tile_list_bytes'] / 2**20:.1f} MiB of tile lists, "
+               f"{meta['entry_record_bytes'] / 2**20:.1f} MiB of compositing records)")
     for name, runs in (("forward", forward), ("backward", backward)):
         wall = 1e3 * statistics.median(t for t, _ in runs)
         cpu = 1e3 * statistics.median(c for _, c in runs)

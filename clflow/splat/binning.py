@@ -19,7 +19,7 @@ from clflow.splat.constants import SPLAT_DEFINES, TILE_SIZE
 SORT_BLOCKS = 64  # radix sort: contiguous blocks walked by one work-item each
 DEPTH_DIGIT_BITS = 8  # 32-bit depth keys: 4 passes of 8 bits
 TILE_DIGIT_BITS = 12  # tile keys: ceil(bits / 12) passes (one pass up to 4096 tiles)
-MAX_TILE_ENTRIES = 1 << 28  # bound on (tile, Gaussian) entries: 5.4 GB of lists at the bound
+MAX_TILE_ENTRIES = 1 << 26  # bound on (tile, Gaussian) entries: 1.3 GB of lists (+ compositing records)
 BYTES_PER_ENTRY = 20  # tile key + slot, double-buffered for the sort, + slot's Gaussian id
 
 
@@ -135,7 +135,8 @@ def build_tile_lists(
     if total > MAX_TILE_ENTRIES:
         raise InputError(
             f"rasterize: the Gaussians touch {total} (tile, Gaussian) pairs, more than the bound "
-            f"{MAX_TILE_ENTRIES} ({MAX_TILE_ENTRIES * BYTES_PER_ENTRY / 2**30:.1f} GiB of tile lists); "
+            f"{MAX_TILE_ENTRIES} ({MAX_TILE_ENTRIES * BYTES_PER_ENTRY / 2**30:.1f} GiB of tile lists, and compositing "
+            "records of 9 + channels reals per entry); "
             "render fewer or smaller Gaussians, or a smaller image"
         )
     scan = device.kernel("splat/sort.cl", "scan_exclusive")

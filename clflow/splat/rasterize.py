@@ -185,6 +185,33 @@ project.register_autograd(_project_backward, setup_context=_project_setup)
 # -- compositing op ---------------------------------------------------------------------
 
 
+ENTRY_FIELDS = 9  # per-Gaussian record of the compositing kernels (rasterize.cl: entry_records)
+
+
+def entry_record_bytes(n: int, m: int, channels: int, dtype: torch.dtype) -> int:
+    """Scratch the compositing kernels take for N Gaussians, M tile entries and C channels:
+    the per-Gaussian records and the records of the sorted entries (with the features)."""
+    itemsize = torch.tensor([], dtype=dtype).element_size()
+    return itemsize * (n * ENTRY_FIELDS + m * (ENTRY_FIELDS + channels))
+
+
+def _sorted_entry_records(device, b, means2d, conics, opacities, features, sorted_slots, slot_gaussian):
+    """Scratch buffer [M, ENTRY_FIELDS + C] of binding ``b``: per sorted tile entry, what the
+    compositing kernels read (mean2d, conic, opacity, the row cull's cut, slope and reach,
+    then the features), in entry order (rasterize.cl: entry_records, sort_entry_records)."""
+    n, channels = features.shape
+    m = sorted_slots.shape[0]
+    itemsize = features.dtype.itemsize
+    records = b.scratch(n * ENTRY_FIELDS * itemsize)
+    entries = b.scratch(m * (ENTRY_FIELDS + channels) * itemsize)
+    kernel = lambda name: _kernel("rasterize.cl", name, features.dtype, CHANNELS=channels)  # noqa: E731
+    device.launch(kernel("entry_records"), n,
+                  [b.input(means2d), b.input(conics), b.input(opacities), records, np.int32(n)])
+    device.launch(kernel("sort_entry_records"), m,
+                  [b.input(sorted_slots), b.input(slot_gaussian), records, b.input(features), entries, np.int32(m)])
+    return entries
+
+
 @torch.library.custom_op("clflow::splat_composite", mutates_args=())
 def composite(
     means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, background: Tensor, ranges: Tensor,
@@ -209,11 +236,11 @@ def composite(
     tiles_x, tiles_y = tile_grid(width, height)
     kern = _kernel("rasterize.cl", "rasterize_forward", features.dtype, CHANNELS=channels)
     with device.bind() as b:
+        entries = _sorted_entry_records(device, b, means2d, conics, opacities, features, sorted_slots, slot_gaussian)
         device.launch(
             kern,
             tiles_x * tiles_y,
-            [b.input(ranges), b.input(sorted_slots), b.input(slot_gaussian), b.input(means2d), b.input(conics),
-             b.input(opacities), b.input(features), b.input(background),
+            [b.input(ranges), entries, b.input(background),
              b.output(out), b.output(T_final),
              b.output(n_contrib), np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(tiles_x * tiles_y)],
             1,  # one work-item per tile, each its own work-group: busy tiles spread over the cores
@@ -244,14 +271,14 @@ def composite_backward(
     backward = _kernel("rasterize.cl", "rasterize_backward", features.dtype, CHANNELS=channels)
     reduce = _kernel("rasterize.cl", "reduce_slots", features.dtype, CHANNELS=channels)
     with device.bind() as b:
+        entries = _sorted_entry_records(device, b, means2d, conics, opacities, features, sorted_slots, slot_gaussian)
         # [M, 6 + C]: one gradient row per (tile, Gaussian) pair, written once by its tile
         slots = b.scratch(m * (6 + channels) * features.dtype.itemsize)
         # local size 1: each tile is a work-group of its own, so the busy tiles spread over the cores
         device.launch(
             backward,
             tiles_x * tiles_y,
-            [b.input(ranges), b.input(sorted_slots), b.input(slot_gaussian), b.input(means2d), b.input(conics),
-             b.input(opacities), b.input(features), b.input(background),
+            [b.input(ranges), b.input(sorted_slots), entries, b.input(background),
              b.input(T_final), b.input(n_contrib),
              b.input(v_out), b.input(v_T_final), slots, np.int32(width), np.int32(height), np.int32(tiles_x),
              np.int32(tiles_x * tiles_y)],
@@ -458,7 +485,9 @@ def rasterize_gaussians(
     Returns:
         image [H, W, C_out], alpha [H, W, 1] (= 1 - T_final), depth [H, W, 1] (m; 0 where
         alpha is 0) or None, and meta: means2d [N, 2], conics [N, 3], depths [N], radii [N]
-        (int32, 0 = culled), tiles_touched [N], num_tile_entries, tile_list_bytes.
+        (int32, 0 = culled), tiles_touched [N], num_tile_entries, tile_list_bytes and
+        entry_record_bytes (device memory of the tile lists, and of the per-entry records
+        the compositing kernels read, while they run).
         Differentiable w.r.t. means, quats, scales, covars, opacities, colors, sh_rotations,
         features and background.
     """
@@ -491,5 +520,6 @@ def rasterize_gaussians(
         "tiles_touched": tiles_touched,
         "num_tile_entries": lists.num_entries,
         "tile_list_bytes": lists.nbytes,
+        "entry_record_bytes": entry_record_bytes(means.shape[0], lists.num_entries, channels.shape[1], dtype),
     }
     return image, alpha, depth, meta

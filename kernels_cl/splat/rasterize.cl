@@ -80,20 +80,65 @@ typedef struct {
     int r0, r1;                            /* rows [r0, r1) of the tile it can reach */
 } entry_t;
 
-inline entry_t load_entry(const int gid, __global const real *means2d, __global const real *conics,
-                          __global const real *opacities, const int py0, const int n_rows)
+/* Per Gaussian, once per view (not per tile entry: the log, root and divisions would be
+ * redone for every tile a Gaussian touches): records [N, ENTRY_FIELDS] = (mean2d x, y,
+ * conic A, B, C, opacity, cut, slope, reach). Culled Gaussians get records no tile reads. */
+#define ENTRY_FIELDS 9
+__kernel void entry_records(__global const real *means2d, __global const real *conics,
+                            __global const real *opacities, __global real *records, const int n)
 {
+    const int g = get_global_id(0);
+    if (g >= n)
+        return;
+    const real A = conics[3 * g], B = conics[3 * g + 1], C = conics[3 * g + 2], o = opacities[g];
+    const real cut = log(o / (real)ALPHA_MIN) + (real)ROW_CULL_MARGIN;
+    const real det = A * C - B * B;
+    __global real *rec = records + (size_t)g * ENTRY_FIELDS;
+    rec[0] = means2d[2 * g];
+    rec[1] = means2d[2 * g + 1];
+    rec[2] = A;
+    rec[3] = B;
+    rec[4] = C;
+    rec[5] = o;
+    rec[6] = cut;
+    rec[7] = -B / A;
+    rec[8] = cut > 0 ? sqrt(2 * cut * A / det) + (real)ROW_CULL_MARGIN : -1;
+}
+
+/* The records of the sorted tile entries, in entry order: entries [M, ENTRY_STRIDE] = (the
+ * record of the entry's Gaussian, its CHANNELS features). The compositing loops then read
+ * memory in order: chasing entry -> slot -> Gaussian -> record instead (two scattered,
+ * dependent reads per entry) left them waiting on memory for a third of their time. */
+#define ENTRY_STRIDE (ENTRY_FIELDS + CHANNELS)
+__kernel void sort_entry_records(__global const int *sorted_slots, __global const int *slot_gaussian,
+                                 __global const real *records, __global const real *features,
+                                 __global real *entries, const int m)
+{
+    const int i = get_global_id(0);
+    if (i >= m)
+        return;
+    const int g = slot_gaussian[sorted_slots[i]];
+    __global real *out = entries + (size_t)i * ENTRY_STRIDE;
+    for (int k = 0; k < ENTRY_FIELDS; ++k)
+        out[k] = records[(size_t)g * ENTRY_FIELDS + k];
+    for (int k = 0; k < CHANNELS; ++k)
+        out[ENTRY_FIELDS + k] = features[(size_t)g * CHANNELS + k];
+}
+
+/* Entry i of the sorted list, with the rows [r0, r1) of the tile at py0 it can reach. */
+inline entry_t load_entry(const int i, __global const real *entries, const int py0, const int n_rows)
+{
+    __global const real *rec = entries + (size_t)i * ENTRY_STRIDE;
     entry_t e;
-    e.mx = means2d[2 * gid];
-    e.my = means2d[2 * gid + 1];
-    e.A = conics[3 * gid];
-    e.B = conics[3 * gid + 1];
-    e.C = conics[3 * gid + 2];
-    e.o = opacities[gid];
-    e.cut = log(e.o / (real)ALPHA_MIN) + (real)ROW_CULL_MARGIN;
-    e.slope = -e.B / e.A;
-    const real det = e.A * e.C - e.B * e.B;
-    const real reach = e.cut > 0 ? sqrt(2 * e.cut * e.A / det) + (real)ROW_CULL_MARGIN : -1;
+    e.mx = rec[0];
+    e.my = rec[1];
+    e.A = rec[2];
+    e.B = rec[3];
+    e.C = rec[4];
+    e.o = rec[5];
+    e.cut = rec[6];
+    e.slope = rec[7];
+    const real reach = rec[8];
     /* row r has centre py0 + r + 0.5; keep |my - centre| <= reach */
     const real lo = e.my - reach - py0 - (real)0.5, hi = e.my + reach - py0 - (real)0.5;
     e.r0 = (int)ceil(clamp(lo, (real)0, (real)n_rows));
@@ -113,10 +158,8 @@ inline bool row_culled(const entry_t *e, const real dy, const int px0)
  * below T_MIN); the tile stops when all rows are done. Writes out [H,W,CHANNELS],
  * T_final [H,W] and n_contrib [H,W] (entries walked up to the pixel's last contributor). */
 __kernel void rasterize_forward(
-    __global const int *ranges, __global const int *sorted_slots,
-    __global const int *slot_gaussian, __global const real *means2d,
-    __global const real *conics, __global const real *opacities,
-    __global const real *features, __global const real *background, __global real *out,
+    __global const int *ranges, __global const real *entries, __global const real *background,
+    __global real *out,
     __global real *T_final, __global int *n_contrib, const int width, const int height,
     const int tiles_x, const int n_tiles)
 {
@@ -141,10 +184,9 @@ __kernel void rasterize_forward(
     }
     int rows_left = n_rows;
     for (int i = start; i < end && rows_left > 0; ++i) {
-        const int g = slot_gaussian[sorted_slots[i]];
-        const entry_t e = load_entry(g, means2d, conics, opacities, py0, n_rows);
+        const entry_t e = load_entry(i, entries, py0, n_rows);
         const real mx = e.mx, my = e.my, A = e.A, B = e.B, C = e.C, o = e.o;
-        __global const real *f = features + (size_t)g * CHANNELS;
+        __global const real *f = entries + (size_t)i * ENTRY_STRIDE + ENTRY_FIELDS;
         for (int r = e.r0; r < e.r1; ++r) {
             const real cy = py0 + r + (real)0.5;
             if (all(done[r]) || row_culled(&e, my - cy, px0))
@@ -152,8 +194,8 @@ __kernel void rasterize_forward(
             ROW_ALPHA(dx, dy, sigma, falloff, alpha);
             const maskv hit = !done[r] & isgreaterequal(sigma, (realv)0)
                               & isgreaterequal(alpha, (realv)(real)ALPHA_MIN);
-            if (!any(hit))
-                continue;
+            /* no early exit when no lane is hit: the masked update is cheaper than the
+             * mispredicted branch (and adds exact zeros) */
             const realv T_next = T[r] * (1 - alpha);
             const maskv stop = hit & isless(T_next, (realv)(real)T_MIN);
             const maskv take = hit & !stop;
@@ -193,10 +235,8 @@ __kernel void rasterize_forward(
  * Each slot row belongs to one (tile, Gaussian) pair, hence to this work-item only: no
  * atomics, deterministic sums. In: v_out [H,W,CHANNELS] = dL/dout, v_T [H,W] = dL/dT_final. */
 __kernel void rasterize_backward(
-    __global const int *ranges, __global const int *sorted_slots,
-    __global const int *slot_gaussian, __global const real *means2d,
-    __global const real *conics, __global const real *opacities,
-    __global const real *features, __global const real *background, __global const real *T_final,
+    __global const int *ranges, __global const int *sorted_slots, __global const real *entries,
+    __global const real *background, __global const real *T_final,
     __global const int *n_contrib, __global const real *v_out, __global const real *v_T,
     __global real *slot_grads, const int width, const int height, const int tiles_x,
     const int n_tiles)
@@ -239,11 +279,9 @@ __kernel void rasterize_backward(
             slot_grads[(size_t)sorted_slots[i] * (6 + CHANNELS) + k] = 0;
 
     for (int i = start + n_max - 1; i >= start; --i) {
-        const int slot = sorted_slots[i];
-        const int gid = slot_gaussian[slot];
-        const entry_t e = load_entry(gid, means2d, conics, opacities, py0, n_rows);
+        const entry_t e = load_entry(i, entries, py0, n_rows);
         const real mx = e.mx, my = e.my, A = e.A, B = e.B, C = e.C, o = e.o;
-        __global const real *f = features + (size_t)gid * CHANNELS;
+        __global const real *f = entries + (size_t)i * ENTRY_STRIDE + ENTRY_FIELDS;
         realv v_mean_x = 0, v_mean_y = 0, v_A = 0, v_B = 0, v_C = 0, v_o = 0, v_f[CHANNELS];
         for (int k = 0; k < CHANNELS; ++k)
             v_f[k] = 0;
@@ -255,8 +293,6 @@ __kernel void rasterize_backward(
             const int16 active = (int16)(i - start) < n_row[r];
             const maskv hit = isgreaterequal(sigma, (realv)0) & isgreaterequal(alpha, (realv)(real)ALPHA_MIN)
                               & INT_TO_MASK(active);
-            if (!any(hit))
-                continue;
             const realv inv_one_minus = 1 / (1 - alpha);
             T[r] = select(T[r], T[r] * inv_one_minus, hit);
             const realv w = select((realv)0, alpha * T[r], hit);
@@ -276,7 +312,7 @@ __kernel void rasterize_backward(
             v_C += v_sigma * (real)0.5 * dy * dy;
             v_o += select((realv)0, falloff * v_alpha, free);
         }
-        __global real *row = slot_grads + (size_t)slot * (6 + CHANNELS);
+        __global real *row = slot_grads + (size_t)sorted_slots[i] * (6 + CHANNELS);
         row[0] = hsum(v_mean_x);
         row[1] = hsum(v_mean_y);
         row[2] = hsum(v_A);

@@ -171,3 +171,5 @@ def test_meta_reports_tile_lists():
     assert depth is None
     assert meta["num_tile_entries"] == int(meta["tiles_touched"].sum()) > 0
     assert meta["tile_list_bytes"] >= 20 * meta["num_tile_entries"]
+    # float64 records: 9 per Gaussian, 9 + 3 colour channels per entry (no depth channel)
+    assert meta["entry_record_bytes"] == 8 * (9 * 30 + 12 * meta["num_tile_entries"])
