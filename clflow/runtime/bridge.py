@@ -55,6 +55,7 @@ class TensorBinding:
         self.zero_copy = device.info.host_unified_memory
         self._keep: list[object] = []  # tensors, arrays and buffers alive until finish
         self._readback: list[tuple[object, np.ndarray]] = []  # (buffer, host array) to sync
+        self._scratch: list[object] = []  # the device's reusable scratch buffers, given back at finish
 
     def __enter__(self) -> "TensorBinding":
         return self
@@ -101,9 +102,10 @@ class TensorBinding:
             # oclgrind's uninitialised-value check keeps flagging a buffer the host never
             # wrote, even after a kernel wrote it: give it host-written contents there.
             buf = self._cl.Buffer(self.device.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=np.zeros(size, np.uint8))
+            self._keep.append(buf)
         else:
-            buf = self._cl.Buffer(self.device.context, mf.READ_WRITE, size)
-        self._keep.append(buf)
+            buf = self.device.take_scratch(size)
+            self._scratch.append(buf)
         return buf
 
     def finish(self) -> None:
@@ -122,3 +124,6 @@ class TensorBinding:
         queue.finish()
         self._keep.clear()
         self._readback.clear()
+        for buf in self._scratch:
+            self.device.give_back_scratch(buf)
+        self._scratch.clear()

@@ -80,3 +80,22 @@ def test_bad_tensors_are_refused(device, tensor, message):
 def test_dtype_is_checked_when_asked(device):
     with device.bind() as b, pytest.raises(InputError, match="expected torch.float64"):
         b.input(torch.zeros(3), "positions", dtype=torch.float64)
+
+
+def test_scratch_buffers_are_reused_once_given_back_and_the_spare_memory_is_bounded(device, monkeypatch):
+    from clflow.runtime import devices
+
+    with device.bind() as b:
+        first = b.scratch(3000)
+        second = b.scratch(3000)  # in use at the same time: a different buffer
+        assert first.int_ptr != second.int_ptr
+    with device.bind() as b:
+        again = b.scratch(2000)  # fits a spare one (2000 <= 3000 <= 2 x 2000): reused
+        assert again.int_ptr in (first.int_ptr, second.int_ptr)
+        bigger = b.scratch(7000)  # no spare is large enough: a new one
+        assert bigger.size >= 7000 and bigger.int_ptr not in (first.int_ptr, second.int_ptr)
+        small = b.scratch(100)  # a spare 3000-byte buffer would waste more than half: a new one
+        assert small.int_ptr not in (first.int_ptr, second.int_ptr)
+    monkeypatch.setattr(devices, "SPARE_SCRATCH_BYTES", 5000)
+    device.give_back_scratch(device.take_scratch(4000))  # keeps the newest within the bound
+    assert sum(buf.size for buf in device._spare_scratch) <= 5000
