@@ -1,6 +1,7 @@
 /* EWA projection of 3D Gaussians to screen space, and its adjoint.
  *
- * Per Gaussian i (one work-item each, no atomics):
+ * Per Gaussian i (forward: PROJECT_LANES per work-item in vector lanes; adjoint: one per
+ * work-item; no atomics):
  *   mu_c = W mu + t                     camera-space mean (viewmat = [W t; 0 1], OpenCV axes)
  *   culled when z <= near, det(Sigma_2D) <= 0 or its tile box is empty (radius = 0)
  *   u = x/z, v = y/z; J evaluated at (u, v) clamped to LIM_FOV x the field of view
@@ -12,8 +13,8 @@
  * entries. Buffers: means [N,3], covars [N,3,3], viewmat [4,4], intrinsics [3,3] (row-major). */
 #include "splat/common.h"
 
-#if !defined(LIM_FOV) || !defined(MIN_RADIUS_EIGEN) || !defined(MAX_RADIUS)
-#error "build with -DLIM_FOV=... -DMIN_RADIUS_EIGEN=... -DMAX_RADIUS=..."
+#if !defined(LIM_FOV) || !defined(MIN_RADIUS_EIGEN) || !defined(MAX_RADIUS) || PROJECT_LANES != 8
+#error "build with the splat constants (clflow/splat/constants.py); realv below is 8 lanes wide"
 #endif
 
 typedef struct {
@@ -45,87 +46,111 @@ inline camera_t load_camera(__global const real *viewmat, __global const real *i
     return cam;
 }
 
-/* Everything the forward computes for one Gaussian (the adjoint recomputes it). */
-typedef struct {
-    real mc[3];       /* camera-space mean */
-    real u, v;        /* x/z, y/z */
-    real tu, tv;      /* clamped u, v used in J */
-    real J00, J02, J11, J12;
-    real Sc[9];       /* W Sigma W^T */
-    real a, b, c;     /* Sigma_2D = [[a, b], [b, c]] */
-    real det;
-} projection_t;
+/* Everything the forward computes for one Gaussian (the adjoint recomputes it), from its
+ * mean [3] and covariance [9]: projection_t / project_one for T = real, projection_v_t /
+ * project_one_v for PROJECT_LANES Gaussians in vector lanes (the same operations lane by
+ * lane, so the same results). */
+#define CLFLOW_DEFINE_PROJECT_ONE(SFX, T)                                                          \
+    typedef struct {                                                                               \
+        T mc[3];         /* camera-space mean */                                                   \
+        T u, v;          /* x/z, y/z */                                                            \
+        T tu, tv;        /* clamped u, v used in J */                                              \
+        T J00, J02, J11, J12;                                                                      \
+        T Sc[9];         /* W Sigma W^T */                                                         \
+        T a, b, c;       /* Sigma_2D = [[a, b], [b, c]] */                                         \
+        T det;                                                                                     \
+    } projection##SFX##_t;                                                                         \
+                                                                                                   \
+    inline projection##SFX##_t project_one##SFX(const camera_t *cam, const T *mean, const T *covar) \
+    {                                                                                              \
+        projection##SFX##_t p;                                                                     \
+        for (int r = 0; r < 3; ++r)                                                                \
+            p.mc[r] = cam->W[3 * r] * mean[0] + cam->W[3 * r + 1] * mean[1] + cam->W[3 * r + 2] * mean[2] \
+                      + cam->t[r];                                                                 \
+        const T z = p.mc[2];                                                                       \
+        p.u = p.mc[0] / z;                                                                         \
+        p.v = p.mc[1] / z;                                                                         \
+        p.tu = clamp(p.u, -cam->lim_u_neg, cam->lim_u_pos);                                        \
+        p.tv = clamp(p.v, -cam->lim_v_neg, cam->lim_v_pos);                                        \
+        p.J00 = cam->fx / z;                                                                       \
+        p.J02 = -cam->fx * p.tu / z;                                                               \
+        p.J11 = cam->fy / z;                                                                       \
+        p.J12 = -cam->fy * p.tv / z;                                                               \
+        T S[9], WS[9];                                                                             \
+        for (int r = 0; r < 3; ++r)                                                                \
+            for (int c = 0; c < 3; ++c)                                                            \
+                S[3 * r + c] = (real)0.5 * (covar[3 * r + c] + covar[3 * c + r]);                  \
+        for (int r = 0; r < 3; ++r)                                                                \
+            for (int c = 0; c < 3; ++c)                                                            \
+                WS[3 * r + c] = cam->W[3 * r] * S[c] + cam->W[3 * r + 1] * S[3 + c] + cam->W[3 * r + 2] * S[6 + c]; \
+        for (int r = 0; r < 3; ++r)                                                                \
+            for (int c = 0; c < 3; ++c)                                                            \
+                p.Sc[3 * r + c] = WS[3 * r] * cam->W[3 * c] + WS[3 * r + 1] * cam->W[3 * c + 1]    \
+                                  + WS[3 * r + 2] * cam->W[3 * c + 2];                             \
+        /* rows of J: j0 = (J00, 0, J02), j1 = (0, J11, J12) */                                    \
+        const T *Sc = p.Sc;                                                                        \
+        p.a = p.J00 * (p.J00 * Sc[0] + p.J02 * Sc[2]) + p.J02 * (p.J00 * Sc[6] + p.J02 * Sc[8]) + (real)EPS2D; \
+        p.b = p.J00 * (p.J11 * Sc[1] + p.J12 * Sc[2]) + p.J02 * (p.J11 * Sc[7] + p.J12 * Sc[8]);  \
+        p.c = p.J11 * (p.J11 * Sc[4] + p.J12 * Sc[5]) + p.J12 * (p.J11 * Sc[7] + p.J12 * Sc[8]) + (real)EPS2D; \
+        p.det = p.a * p.c - p.b * p.b;                                                             \
+        return p;                                                                                  \
+    }
 
-inline projection_t project_one(const camera_t *cam, __global const real *mean,
-                                __global const real *covar)
-{
-    projection_t p;
-    for (int r = 0; r < 3; ++r)
-        p.mc[r] = cam->W[3 * r] * mean[0] + cam->W[3 * r + 1] * mean[1] + cam->W[3 * r + 2] * mean[2]
-                  + cam->t[r];
-    const real z = p.mc[2];
-    p.u = p.mc[0] / z;
-    p.v = p.mc[1] / z;
-    p.tu = clamp(p.u, -cam->lim_u_neg, cam->lim_u_pos);
-    p.tv = clamp(p.v, -cam->lim_v_neg, cam->lim_v_pos);
-    p.J00 = cam->fx / z;
-    p.J02 = -cam->fx * p.tu / z;
-    p.J11 = cam->fy / z;
-    p.J12 = -cam->fy * p.tv / z;
-    real S[9], WS[9];
-    for (int r = 0; r < 3; ++r)
-        for (int c = 0; c < 3; ++c)
-            S[3 * r + c] = (real)0.5 * (covar[3 * r + c] + covar[3 * c + r]);
-    for (int r = 0; r < 3; ++r)
-        for (int c = 0; c < 3; ++c)
-            WS[3 * r + c] = cam->W[3 * r] * S[c] + cam->W[3 * r + 1] * S[3 + c] + cam->W[3 * r + 2] * S[6 + c];
-    for (int r = 0; r < 3; ++r)
-        for (int c = 0; c < 3; ++c)
-            p.Sc[3 * r + c] = WS[3 * r] * cam->W[3 * c] + WS[3 * r + 1] * cam->W[3 * c + 1]
-                              + WS[3 * r + 2] * cam->W[3 * c + 2];
-    /* rows of J: j0 = (J00, 0, J02), j1 = (0, J11, J12) */
-    const real *Sc = p.Sc;
-    p.a = p.J00 * (p.J00 * Sc[0] + p.J02 * Sc[2]) + p.J02 * (p.J00 * Sc[6] + p.J02 * Sc[8]) + (real)EPS2D;
-    p.b = p.J00 * (p.J11 * Sc[1] + p.J12 * Sc[2]) + p.J02 * (p.J11 * Sc[7] + p.J12 * Sc[8]);
-    p.c = p.J11 * (p.J11 * Sc[4] + p.J12 * Sc[5]) + p.J12 * (p.J11 * Sc[7] + p.J12 * Sc[8]) + (real)EPS2D;
-    p.det = p.a * p.c - p.b * p.b;
-    return p;
-}
+#if REAL_IS_DOUBLE
+typedef double8 realv;
+#else
+typedef float8 realv;
+#endif
+#define LANE(v, l) (((const real *)&(v))[l])
 
+CLFLOW_DEFINE_PROJECT_ONE(, real)
+CLFLOW_DEFINE_PROJECT_ONE(_v, realv)
+
+/* Forward, PROJECT_LANES Gaussians per work-item in vector lanes (PoCL does not vectorise
+ * this kernel across work-items itself: its loads and stores are strided); the culling and
+ * the tile box are per lane. */
 __kernel void project_forward(__global const real *means, __global const real *covars,
                               __global const real *viewmat, __global const real *intrinsics,
                               __global real *means2d, __global real *conics, __global real *depths,
                               __global int *radii, __global int *tiles_touched, const int n,
                               const int width, const int height, const real near_plane)
 {
-    const int i = get_global_id(0);
-    if (i >= n)
+    const int i0 = get_global_id(0) * PROJECT_LANES;
+    if (i0 >= n)
         return;
-    means2d[2 * i] = means2d[2 * i + 1] = 0;
-    conics[3 * i] = conics[3 * i + 1] = conics[3 * i + 2] = 0;
-    radii[i] = 0;
-    tiles_touched[i] = 0;
     const camera_t cam = load_camera(viewmat, intrinsics, width, height);
-    const projection_t p = project_one(&cam, means + 3 * i, covars + 9 * i);
-    depths[i] = p.mc[2];
-    if (!(p.mc[2] > near_plane) || !(p.det > 0))
-        return;
-    const real mid = (real)0.5 * (p.a + p.c);
-    const real lambda_max = mid + sqrt(max((real)MIN_RADIUS_EIGEN, mid * mid - p.det));
-    const int radius = (int)fmin(ceil(3 * sqrt(lambda_max)), (real)MAX_RADIUS);
-    const real mx = cam.fx * p.u + cam.cx, my = cam.fy * p.v + cam.cy;
+    realv mean[3], covar[9];
+    for (int l = 0; l < PROJECT_LANES; ++l) { /* lanes past the end repeat the last Gaussian */
+        const int i = min(i0 + l, n - 1);
+        for (int k = 0; k < 3; ++k)
+            ((real *)&mean[k])[l] = means[3 * i + k];
+        for (int k = 0; k < 9; ++k)
+            ((real *)&covar[k])[l] = covars[9 * i + k];
+    }
+    const projection_v_t p = project_one_v(&cam, mean, covar);
+    const realv mid = (real)0.5 * (p.a + p.c);
+    const realv lambda_max = mid + sqrt(fmax((realv)(real)MIN_RADIUS_EIGEN, mid * mid - p.det));
+    const realv radius_real = fmin(ceil(3 * sqrt(lambda_max)), (realv)(real)MAX_RADIUS);
+    const realv mx = cam.fx * p.u + cam.cx, my = cam.fy * p.v + cam.cy;
+    const realv A = p.c / p.det, B = -p.b / p.det, C = p.a / p.det;
     const int tiles_x = (width + TILE_SIZE - 1) / TILE_SIZE, tiles_y = (height + TILE_SIZE - 1) / TILE_SIZE;
-    int x0, y0, x1, y1;
-    const int touched = tile_rect(mx, my, radius, tiles_x, tiles_y, &x0, &y0, &x1, &y1);
-    if (touched == 0)
-        return;
-    means2d[2 * i] = mx;
-    means2d[2 * i + 1] = my;
-    conics[3 * i] = p.c / p.det;
-    conics[3 * i + 1] = -p.b / p.det;
-    conics[3 * i + 2] = p.a / p.det;
-    radii[i] = radius;
-    tiles_touched[i] = touched;
+    for (int l = 0; l < PROJECT_LANES && i0 + l < n; ++l) {
+        const int i = i0 + l;
+        depths[i] = LANE(p.mc[2], l);
+        int radius = 0, touched = 0, x0, y0, x1, y1;
+        if (LANE(p.mc[2], l) > near_plane && LANE(p.det, l) > 0) {
+            radius = (int)LANE(radius_real, l);
+            touched = tile_rect(LANE(mx, l), LANE(my, l), radius, tiles_x, tiles_y, &x0, &y0, &x1, &y1);
+        }
+        const int seen = touched > 0;
+        means2d[2 * i] = seen ? LANE(mx, l) : 0;
+        means2d[2 * i + 1] = seen ? LANE(my, l) : 0;
+        conics[3 * i] = seen ? LANE(A, l) : 0;
+        conics[3 * i + 1] = seen ? LANE(B, l) : 0;
+        conics[3 * i + 2] = seen ? LANE(C, l) : 0;
+        radii[i] = seen ? radius : 0;
+        tiles_touched[i] = touched;
+    }
 }
 
 /* Adjoint of project_forward for the visible Gaussians (radius > 0; others get zeros).
@@ -148,7 +173,12 @@ __kernel void project_backward(__global const real *means, __global const real *
     if (radii[i] <= 0)
         return;
     const camera_t cam = load_camera(viewmat, intrinsics, width, height);
-    const projection_t p = project_one(&cam, means + 3 * i, covars + 9 * i);
+    real mean[3], covar[9];
+    for (int k = 0; k < 3; ++k)
+        mean[k] = means[3 * i + k];
+    for (int k = 0; k < 9; ++k)
+        covar[k] = covars[9 * i + k];
+    const projection_t p = project_one(&cam, mean, covar);
     const real z = p.mc[2];
 
     /* conic = Sigma_2D^-1: dL/dSigma_2D = -Q G Q with G = [[gA, gB/2], [gB/2, gC]] */
