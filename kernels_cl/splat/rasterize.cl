@@ -200,6 +200,7 @@ __kernel void rasterize_forward(
             const maskv stop = hit & isless(T_next, (realv)(real)T_MIN);
             const maskv take = hit & !stop;
             const realv w = select((realv)0, alpha * T[r], take);
+#pragma unroll
             for (int k = 0; k < CHANNELS; ++k)
                 acc[r][k] += f[k] * w;
             T[r] = select(T[r], T_next, take);
@@ -208,20 +209,26 @@ __kernel void rasterize_forward(
             rows_left -= all(done[r]) ? 1 : 0;
         }
     }
-    real tmp[16];
-    int tmp_last[16];
+    real row[16 * CHANNELS]; /* a row's pixels, channels interleaved as in out */
     for (int r = 0; r < n_rows; ++r) {
         const size_t p0 = (size_t)(py0 + r) * width + px0;
-        vstore16(T[r], 0, tmp);
-        vstore16(last[r], 0, tmp_last);
-        for (int l = 0; l < n_px; ++l) {
-            T_final[p0 + l] = tmp[l];
-            n_contrib[p0 + l] = tmp_last[l];
-        }
         for (int k = 0; k < CHANNELS; ++k) {
-            vstore16(acc[r][k] + T[r] * background[k], 0, tmp);
-            for (int l = 0; l < n_px; ++l)
-                out[(p0 + l) * CHANNELS + k] = tmp[l];
+            const realv value = acc[r][k] + T[r] * background[k];
+            for (int l = 0; l < 16; ++l)
+                row[l * CHANNELS + k] = ((const real *)&value)[l];
+        }
+        if (n_px == 16) { /* whole rows: vector stores */
+            vstore16(T[r], 0, T_final + p0);
+            vstore16(last[r], 0, n_contrib + p0);
+            for (int q = 0; q < CHANNELS; ++q)
+                vstore16(vload16(q, row), q, out + p0 * CHANNELS);
+        } else {
+            for (int l = 0; l < n_px; ++l) {
+                T_final[p0 + l] = ((const real *)&T[r])[l];
+                n_contrib[p0 + l] = ((const int *)&last[r])[l];
+            }
+            for (int e = 0; e < n_px * CHANNELS; ++e)
+                out[p0 * CHANNELS + e] = row[e];
         }
     }
 }
