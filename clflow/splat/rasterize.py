@@ -23,7 +23,7 @@ from clflow.errors import InputError
 from clflow.runtime.devices import get_device
 from clflow.runtime.reduction import real_of
 from clflow.splat.binning import build_tile_lists, tile_grid
-from clflow.splat.constants import PROJECT_LANES, SPLAT_DEFINES
+from clflow.splat.constants import SPLAT_LANES, SPLAT_DEFINES
 from clflow.splat.sh import num_sh_bases, sh_to_rgb
 
 ORTHONORMAL_TOL = 1e-4  # |W W^T - I| allowed in the viewmat's rotation
@@ -46,7 +46,7 @@ def covariances(quats: Tensor, scales: Tensor) -> Tensor:
     n = quats.shape[0]
     covars = quats.new_empty(n, 3, 3)
     with device.bind() as b:
-        device.launch(_kernel("covariance.cl", "covariance_forward", quats.dtype), n,
+        device.launch(_kernel("covariance.cl", "covariance_forward", quats.dtype), -(-n // SPLAT_LANES),
                       [b.input(quats), b.input(scales), b.output(covars), np.int32(n)])
     return covars
 
@@ -116,7 +116,7 @@ def project(
     with device.bind() as b:
         device.launch(
             kern,
-            -(-n // PROJECT_LANES),
+            -(-n // SPLAT_LANES),
             [b.input(means), b.input(covars), b.input(viewmat), b.input(K), b.output(means2d), b.output(conics),
              b.output(depths), b.output(radii), b.output(tiles_touched), np.int32(n), np.int32(width),
              np.int32(height), near_real],

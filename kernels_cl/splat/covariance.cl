@@ -2,45 +2,52 @@
  *
  *   q = (w, x, y, z) / |q|,  R = R(q),  M = R diag(s),  Sigma = M M^T
  * Buffers: quats [N,4], scales [N,3] (standard deviations), covars [N,3,3] (row-major). */
-#include "common/real.h"
+#include "splat/common.h"
 
-/* R(q) of a unit quaternion, row-major. */
-inline void quat_to_rotation(const real w, const real x, const real y, const real z, real R[9])
-{
-    R[0] = 1 - 2 * (y * y + z * z);
-    R[1] = 2 * (x * y - w * z);
-    R[2] = 2 * (x * z + w * y);
-    R[3] = 2 * (x * y + w * z);
-    R[4] = 1 - 2 * (x * x + z * z);
-    R[5] = 2 * (y * z - w * x);
-    R[6] = 2 * (x * z - w * y);
-    R[7] = 2 * (y * z + w * x);
-    R[8] = 1 - 2 * (x * x + y * y);
-}
+/* R(q) of a unit quaternion (row-major), and R of q / |q| with M = R diag(s), returning
+ * 1 / |q|: for T = real, and realv (SPLAT_LANES Gaussians in lanes). */
+#define CLFLOW_DEFINE_ROTATION(SFX, T)                                                           \
+    inline void quat_to_rotation##SFX(const T w, const T x, const T y, const T z, T R[9])        \
+    {                                                                                            \
+        R[0] = 1 - 2 * (y * y + z * z);                                                          \
+        R[1] = 2 * (x * y - w * z);                                                              \
+        R[2] = 2 * (x * z + w * y);                                                              \
+        R[3] = 2 * (x * y + w * z);                                                              \
+        R[4] = 1 - 2 * (x * x + z * z);                                                          \
+        R[5] = 2 * (y * z - w * x);                                                              \
+        R[6] = 2 * (x * z - w * y);                                                              \
+        R[7] = 2 * (y * z + w * x);                                                              \
+        R[8] = 1 - 2 * (x * x + y * y);                                                          \
+    }                                                                                            \
+                                                                                                 \
+    inline T rotation_and_scale##SFX(const T *q, const T *s, T R[9], T M[9])                     \
+    {                                                                                            \
+        const T inv_norm = 1 / sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);      \
+        quat_to_rotation##SFX(q[0] * inv_norm, q[1] * inv_norm, q[2] * inv_norm, q[3] * inv_norm, R); \
+        for (int k = 0; k < 9; ++k)                                                              \
+            M[k] = R[k] * s[k % 3];                                                              \
+        return inv_norm;                                                                         \
+    }
+CLFLOW_DEFINE_ROTATION(, real)
+CLFLOW_DEFINE_ROTATION(_v, realv)
 
-/* R of q / |q| and M = R diag(s) of Gaussian i; returns 1 / |q|. */
-inline real rotation_and_scale(__global const real *quats, __global const real *scales, const int i,
-                               real R[9], real M[9])
-{
-    __global const real *q = quats + 4 * i;
-    const real inv_norm = 1 / sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-    quat_to_rotation(q[0] * inv_norm, q[1] * inv_norm, q[2] * inv_norm, q[3] * inv_norm, R);
-    for (int k = 0; k < 9; ++k)
-        M[k] = R[k] * scales[3 * i + k % 3];
-    return inv_norm;
-}
-
+/* Sigma = M M^T, SPLAT_LANES Gaussians per work-item in vector lanes. */
 __kernel void covariance_forward(__global const real *quats, __global const real *scales,
                                  __global real *covars, const int n)
 {
-    const int i = get_global_id(0);
-    if (i >= n)
+    const int i0 = get_global_id(0) * SPLAT_LANES;
+    if (i0 >= n)
         return;
-    real R[9], M[9];
-    rotation_and_scale(quats, scales, i, R, M);
+    realv q[4], s[3], R[9], M[9], S[9];
+    load_lanes(n, i0, 4, quats, q);
+    load_lanes(n, i0, 3, scales, s);
+    rotation_and_scale_v(q, s, R, M);
     for (int r = 0; r < 3; ++r)
         for (int c = 0; c < 3; ++c)
-            covars[9 * i + 3 * r + c] = M[3 * r] * M[3 * c] + M[3 * r + 1] * M[3 * c + 1] + M[3 * r + 2] * M[3 * c + 2];
+            S[3 * r + c] = M[3 * r] * M[3 * c] + M[3 * r + 1] * M[3 * c + 1] + M[3 * r + 2] * M[3 * c + 2];
+    for (int l = 0; l < SPLAT_LANES && i0 + l < n; ++l)
+        for (int k = 0; k < 9; ++k)
+            covars[9 * (size_t)(i0 + l) + k] = LANE(S[k], l);
 }
 
 /* dL/dSigma = G [N,3,3] -> dL/dM = (G + G^T) M -> dL/dR = dL/dM diag(s),
@@ -52,9 +59,12 @@ __kernel void covariance_backward(__global const real *quats, __global const rea
     const int i = get_global_id(0);
     if (i >= n)
         return;
-    real R[9], M[9], G[9], dR[9];
-    const real inv_norm = rotation_and_scale(quats, scales, i, R, M);
-    __global const real *q = quats + 4 * i;
+    real q[4], s[3], R[9], M[9], G[9], dR[9];
+    for (int k = 0; k < 4; ++k)
+        q[k] = quats[4 * i + k];
+    for (int k = 0; k < 3; ++k)
+        s[k] = scales[3 * i + k];
+    const real inv_norm = rotation_and_scale(q, s, R, M);
     const real w = q[0] * inv_norm, x = q[1] * inv_norm, y = q[2] * inv_norm, z = q[3] * inv_norm;
     for (int k = 0; k < 9; ++k) {
         G[k] = v_covars[9 * i + k] + v_covars[9 * i + 3 * (k % 3) + k / 3];  /* G + G^T */
@@ -63,7 +73,7 @@ __kernel void covariance_backward(__global const real *quats, __global const rea
     for (int r = 0; r < 3; ++r) {
         for (int c = 0; c < 3; ++c) {
             const real dM = G[3 * r] * M[c] + G[3 * r + 1] * M[3 + c] + G[3 * r + 2] * M[6 + c];
-            dR[3 * r + c] = dM * scales[3 * i + c];
+            dR[3 * r + c] = dM * s[c];
             ds[c] += dM * R[3 * r + c];
         }
     }

@@ -1,6 +1,6 @@
 /* EWA projection of 3D Gaussians to screen space, and its adjoint.
  *
- * Per Gaussian i (forward: PROJECT_LANES per work-item in vector lanes; adjoint: one per
+ * Per Gaussian i (forward: SPLAT_LANES per work-item in vector lanes; adjoint: one per
  * work-item; no atomics):
  *   mu_c = W mu + t                     camera-space mean (viewmat = [W t; 0 1], OpenCV axes)
  *   culled when z <= near, det(Sigma_2D) <= 0 or its tile box is empty (radius = 0)
@@ -13,8 +13,8 @@
  * entries. Buffers: means [N,3], covars [N,3,3], viewmat [4,4], intrinsics [3,3] (row-major). */
 #include "splat/common.h"
 
-#if !defined(LIM_FOV) || !defined(MIN_RADIUS_EIGEN) || !defined(MAX_RADIUS) || PROJECT_LANES != 8
-#error "build with the splat constants (clflow/splat/constants.py); realv below is 8 lanes wide"
+#if !defined(LIM_FOV) || !defined(MIN_RADIUS_EIGEN) || !defined(MAX_RADIUS)
+#error "build with -DLIM_FOV=... -DMIN_RADIUS_EIGEN=... -DMAX_RADIUS=..."
 #endif
 
 typedef struct {
@@ -48,7 +48,7 @@ inline camera_t load_camera(__global const real *viewmat, __global const real *i
 
 /* Everything the forward computes for one Gaussian (the adjoint recomputes it), from its
  * mean [3] and covariance [9]: projection_t / project_one for T = real, projection_v_t /
- * project_one_v for PROJECT_LANES Gaussians in vector lanes (the same operations lane by
+ * project_one_v for SPLAT_LANES Gaussians in vector lanes (the same operations lane by
  * lane, so the same results). */
 #define CLFLOW_DEFINE_PROJECT_ONE(SFX, T)                                                          \
     typedef struct {                                                                               \
@@ -96,17 +96,10 @@ inline camera_t load_camera(__global const real *viewmat, __global const real *i
         return p;                                                                                  \
     }
 
-#if REAL_IS_DOUBLE
-typedef double8 realv;
-#else
-typedef float8 realv;
-#endif
-#define LANE(v, l) (((const real *)&(v))[l])
-
 CLFLOW_DEFINE_PROJECT_ONE(, real)
 CLFLOW_DEFINE_PROJECT_ONE(_v, realv)
 
-/* Forward, PROJECT_LANES Gaussians per work-item in vector lanes (PoCL does not vectorise
+/* Forward, SPLAT_LANES Gaussians per work-item in vector lanes (PoCL does not vectorise
  * this kernel across work-items itself: its loads and stores are strided); the culling and
  * the tile box are per lane. */
 __kernel void project_forward(__global const real *means, __global const real *covars,
@@ -115,18 +108,13 @@ __kernel void project_forward(__global const real *means, __global const real *c
                               __global int *radii, __global int *tiles_touched, const int n,
                               const int width, const int height, const real near_plane)
 {
-    const int i0 = get_global_id(0) * PROJECT_LANES;
+    const int i0 = get_global_id(0) * SPLAT_LANES;
     if (i0 >= n)
         return;
     const camera_t cam = load_camera(viewmat, intrinsics, width, height);
     realv mean[3], covar[9];
-    for (int l = 0; l < PROJECT_LANES; ++l) { /* lanes past the end repeat the last Gaussian */
-        const int i = min(i0 + l, n - 1);
-        for (int k = 0; k < 3; ++k)
-            ((real *)&mean[k])[l] = means[3 * i + k];
-        for (int k = 0; k < 9; ++k)
-            ((real *)&covar[k])[l] = covars[9 * i + k];
-    }
+    load_lanes(n, i0, 3, means, mean);
+    load_lanes(n, i0, 9, covars, covar);
     const projection_v_t p = project_one_v(&cam, mean, covar);
     const realv mid = (real)0.5 * (p.a + p.c);
     const realv lambda_max = mid + sqrt(fmax((realv)(real)MIN_RADIUS_EIGEN, mid * mid - p.det));
@@ -134,7 +122,7 @@ __kernel void project_forward(__global const real *means, __global const real *c
     const realv mx = cam.fx * p.u + cam.cx, my = cam.fy * p.v + cam.cy;
     const realv A = p.c / p.det, B = -p.b / p.det, C = p.a / p.det;
     const int tiles_x = (width + TILE_SIZE - 1) / TILE_SIZE, tiles_y = (height + TILE_SIZE - 1) / TILE_SIZE;
-    for (int l = 0; l < PROJECT_LANES && i0 + l < n; ++l) {
+    for (int l = 0; l < SPLAT_LANES && i0 + l < n; ++l) {
         const int i = i0 + l;
         depths[i] = LANE(p.mc[2], l);
         int radius = 0, touched = 0, x0, y0, x1, y1;

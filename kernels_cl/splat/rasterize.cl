@@ -13,13 +13,13 @@
 #endif
 
 /* Layout for CPU devices: a work-item owns one 16 x 16 tile and holds each of its rows in a
- * 16-wide vector (realv), so every step runs on 16 pixels at once in SIMD registers (PoCL
+ * 16-wide vector (rowv), so every step runs on 16 pixels at once in SIMD registers (PoCL
  * did not vectorise per-pixel loops across work-items). No barriers, no local memory. */
 #if TILE_SIZE != 16
 #error "rasterize.cl holds a tile row in a 16-wide vector: TILE_SIZE must be 16"
 #endif
 #if REAL_IS_DOUBLE
-typedef double16 realv;
+typedef double16 rowv;
 typedef long16 maskv;
 typedef double8 real8;
 typedef double4 real4;
@@ -27,7 +27,7 @@ typedef double2 real2;
 #define INT_TO_MASK(m) convert_long16(m)
 #define MASK_TO_INT(m) convert_int16(m)
 #else
-typedef float16 realv;
+typedef float16 rowv;
 typedef int16 maskv;
 typedef float8 real8;
 typedef float4 real4;
@@ -36,10 +36,10 @@ typedef float2 real2;
 #define MASK_TO_INT(m) (m)
 #endif
 
-#define LANES ((realv)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
+#define LANES ((rowv)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
 
 /* Sum of the 16 lanes in a fixed order (pairwise halving): deterministic. */
-inline real hsum(const realv v)
+inline real hsum(const rowv v)
 {
     const real8 a = v.lo + v.hi;
     const real4 b = a.lo + a.hi;
@@ -48,7 +48,7 @@ inline real hsum(const realv v)
 }
 
 /* Lanes [0, count) of row values p[0], p[stride], ...; 0 beyond. */
-inline realv load_row(__global const real *p, const int stride, const int count)
+inline rowv load_row(__global const real *p, const int stride, const int count)
 {
     real tmp[16];
     for (int l = 0; l < 16; ++l)
@@ -60,11 +60,11 @@ inline realv load_row(__global const real *p, const int stride, const int count)
  * falloff exp(-sigma), sigma = 0.5 (A dx^2 + C dy^2) + B dx dy with d = mean2d - pixel
  * centre, and alpha = min(ALPHA_MAX, o falloff). */
 #define ROW_ALPHA(dx, dy, sigma, falloff, alpha)                                               \
-    const realv dx = mx - cx;                                                                  \
+    const rowv dx = mx - cx;                                                                  \
     const real dy = my - cy;                                                                   \
-    const realv sigma = (real)0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy;                 \
-    const realv falloff = exp(-sigma);                                                         \
-    const realv alpha = fmin((realv)(real)ALPHA_MAX, o * falloff)
+    const rowv sigma = (real)0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy;                 \
+    const rowv falloff = exp(-sigma);                                                         \
+    const rowv alpha = fmin((rowv)(real)ALPHA_MAX, o * falloff)
 
 /* Which rows of a tile a Gaussian can reach, and the exact per-row test.
  *
@@ -169,10 +169,10 @@ __kernel void rasterize_forward(
     const int px0 = (tile % tiles_x) * TILE_SIZE, py0 = (tile / tiles_x) * TILE_SIZE;
     const int n_px = min(TILE_SIZE, width - px0);
     const int n_rows = min(TILE_SIZE, height - py0);
-    const realv cx = LANES + (real)px0 + (real)0.5;
+    const rowv cx = LANES + (real)px0 + (real)0.5;
     const int start = ranges[2 * tile], end = ranges[2 * tile + 1];
 
-    realv acc[TILE_SIZE][CHANNELS], T[TILE_SIZE];
+    rowv acc[TILE_SIZE][CHANNELS], T[TILE_SIZE];
     int16 last[TILE_SIZE];
     maskv done[TILE_SIZE];
     for (int r = 0; r < n_rows; ++r) {
@@ -180,7 +180,7 @@ __kernel void rasterize_forward(
             acc[r][k] = 0;
         T[r] = 1;
         last[r] = 0;
-        done[r] = isgreaterequal(LANES, (realv)n_px);  /* lanes beyond the image */
+        done[r] = isgreaterequal(LANES, (rowv)n_px);  /* lanes beyond the image */
     }
     int rows_left = n_rows;
     for (int i = start; i < end && rows_left > 0; ++i) {
@@ -192,14 +192,14 @@ __kernel void rasterize_forward(
             if (all(done[r]) || row_culled(&e, my - cy, px0))
                 continue;
             ROW_ALPHA(dx, dy, sigma, falloff, alpha);
-            const maskv hit = !done[r] & isgreaterequal(sigma, (realv)0)
-                              & isgreaterequal(alpha, (realv)(real)ALPHA_MIN);
+            const maskv hit = !done[r] & isgreaterequal(sigma, (rowv)0)
+                              & isgreaterequal(alpha, (rowv)(real)ALPHA_MIN);
             /* no early exit when no lane is hit: the masked update is cheaper than the
              * mispredicted branch (and adds exact zeros) */
-            const realv T_next = T[r] * (1 - alpha);
-            const maskv stop = hit & isless(T_next, (realv)(real)T_MIN);
+            const rowv T_next = T[r] * (1 - alpha);
+            const maskv stop = hit & isless(T_next, (rowv)(real)T_MIN);
             const maskv take = hit & !stop;
-            const realv w = select((realv)0, alpha * T[r], take);
+            const rowv w = select((rowv)0, alpha * T[r], take);
 #pragma unroll
             for (int k = 0; k < CHANNELS; ++k)
                 acc[r][k] += f[k] * w;
@@ -213,7 +213,7 @@ __kernel void rasterize_forward(
     for (int r = 0; r < n_rows; ++r) {
         const size_t p0 = (size_t)(py0 + r) * width + px0;
         for (int k = 0; k < CHANNELS; ++k) {
-            const realv value = acc[r][k] + T[r] * background[k];
+            const rowv value = acc[r][k] + T[r] * background[k];
             for (int l = 0; l < 16; ++l)
                 row[l * CHANNELS + k] = ((const real *)&value)[l];
         }
@@ -255,18 +255,18 @@ __kernel void rasterize_backward(
     const int px0 = (tile % tiles_x) * TILE_SIZE, py0 = (tile / tiles_x) * TILE_SIZE;
     const int n_px = min(TILE_SIZE, width - px0);
     const int n_rows = min(TILE_SIZE, height - py0);
-    const realv cx = LANES + (real)px0 + (real)0.5;
+    const rowv cx = LANES + (real)px0 + (real)0.5;
 
     /* per row r: T (walked back), T_final, dL/dT_final + bg . g, g = dL/dout, S = sum of
      * f alpha T over the contributors behind, and the entries walked up to the last one */
-    realv T[TILE_SIZE], T_end[TILE_SIZE], v_T_end[TILE_SIZE];
-    realv g[TILE_SIZE][CHANNELS], S[TILE_SIZE][CHANNELS];
+    rowv T[TILE_SIZE], T_end[TILE_SIZE], v_T_end[TILE_SIZE];
+    rowv g[TILE_SIZE][CHANNELS], S[TILE_SIZE][CHANNELS];
     int16 n_row[TILE_SIZE];
     int n_max = 0;
     for (int r = 0; r < n_rows; ++r) {
         const size_t p0 = (size_t)(py0 + r) * width + px0;
         T_end[r] = T[r] = load_row(T_final + p0, 1, n_px);
-        realv bg_dot_g = 0;
+        rowv bg_dot_g = 0;
         for (int k = 0; k < CHANNELS; ++k) {
             g[r][k] = load_row(v_out + p0 * CHANNELS + k, CHANNELS, n_px);
             S[r][k] = 0;
@@ -289,7 +289,7 @@ __kernel void rasterize_backward(
         const entry_t e = load_entry(i, entries, py0, n_rows);
         const real mx = e.mx, my = e.my, A = e.A, B = e.B, C = e.C, o = e.o;
         __global const real *f = entries + (size_t)i * ENTRY_STRIDE + ENTRY_FIELDS;
-        realv v_mean_x = 0, v_mean_y = 0, v_A = 0, v_B = 0, v_C = 0, v_o = 0, v_f[CHANNELS];
+        rowv v_mean_x = 0, v_mean_y = 0, v_A = 0, v_B = 0, v_C = 0, v_o = 0, v_f[CHANNELS];
         for (int k = 0; k < CHANNELS; ++k)
             v_f[k] = 0;
         for (int r = e.r0; r < e.r1; ++r) {
@@ -298,26 +298,26 @@ __kernel void rasterize_backward(
                 continue;
             ROW_ALPHA(dx, dy, sigma, falloff, alpha);
             const int16 active = (int16)(i - start) < n_row[r];
-            const maskv hit = isgreaterequal(sigma, (realv)0) & isgreaterequal(alpha, (realv)(real)ALPHA_MIN)
+            const maskv hit = isgreaterequal(sigma, (rowv)0) & isgreaterequal(alpha, (rowv)(real)ALPHA_MIN)
                               & INT_TO_MASK(active);
-            const realv inv_one_minus = 1 / (1 - alpha);
+            const rowv inv_one_minus = 1 / (1 - alpha);
             T[r] = select(T[r], T[r] * inv_one_minus, hit);
-            const realv w = select((realv)0, alpha * T[r], hit);
-            realv v_alpha = -T_end[r] * inv_one_minus * v_T_end[r];
+            const rowv w = select((rowv)0, alpha * T[r], hit);
+            rowv v_alpha = -T_end[r] * inv_one_minus * v_T_end[r];
             for (int k = 0; k < CHANNELS; ++k) {
                 v_f[k] += w * g[r][k];
                 v_alpha += (f[k] * T[r] - S[r][k] * inv_one_minus) * g[r][k];
                 S[r][k] += f[k] * w;
             }
             /* clamped alpha (o exp(-sigma) > ALPHA_MAX): no gradient to opacity or shape */
-            const maskv free = hit & islessequal(o * falloff, (realv)(real)ALPHA_MAX);
-            const realv v_sigma = select((realv)0, -o * falloff * v_alpha, free);
+            const maskv free = hit & islessequal(o * falloff, (rowv)(real)ALPHA_MAX);
+            const rowv v_sigma = select((rowv)0, -o * falloff * v_alpha, free);
             v_mean_x += v_sigma * (A * dx + B * dy);
             v_mean_y += v_sigma * (B * dx + C * dy);
             v_A += v_sigma * (real)0.5 * dx * dx;
             v_B += v_sigma * dx * dy;
             v_C += v_sigma * (real)0.5 * dy * dy;
-            v_o += select((realv)0, falloff * v_alpha, free);
+            v_o += select((rowv)0, falloff * v_alpha, free);
         }
         __global real *row = slot_grads + (size_t)sorted_slots[i] * (6 + CHANNELS);
         row[0] = hsum(v_mean_x);
