@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import os
 import sys
 import warnings
 from importlib.metadata import entry_points
@@ -11,6 +12,12 @@ from importlib.metadata import entry_points
 import click
 
 from clflow import __version__
+
+# torch's OpenMP threads spin for a while after every parallel torch op, taking the cores
+# from the OpenCL CPU device's worker threads (measured: 10-20 % of the rasteriser's forward
+# time). Let them sleep unless the user chose otherwise; libgomp reads this when torch loads,
+# which is after this line (the commands import torch lazily).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # name -> "module:attribute" of clflow's own subcommands. Modules here import only click at
 # module level; heavy imports (torch, pyopencl, cv2) happen inside the command functions.

@@ -1,9 +1,11 @@
 """The CLI skeleton: lazy imports, version, devices, device selection errors."""
 
 import json
+import os
 import subprocess
 import sys
 
+import pytest
 from click.testing import CliRunner
 
 from clflow import __version__
@@ -26,6 +28,18 @@ def test_help_and_every_command_help_import_neither_torch_nor_opencl():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     assert res.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("preset,expected", [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])
+def test_cli_lets_torch_openmp_threads_sleep_unless_told_otherwise(preset, expected):
+    # set before torch loads (the commands import it lazily), so libgomp sees it
+    code = "import os, sys; import clflow_cli.main; assert 'torch' not in sys.modules; print(os.environ['OMP_WAIT_POLICY'])"
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if preset:
+        env["OMP_WAIT_POLICY"] = preset
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == expected
 
 
 def test_help_lists_the_builtin_commands():
