@@ -3,6 +3,8 @@
  * Inputs per Gaussian g: mean2d [N,2] (pixels), conic [N,3] (A, B, C), opacity [N],
  * features [N, CHANNELS]; per tile t: ranges[t] = [start, end) into the (tile, depth)
  * sorted list, whose entry i names slot sorted_slots[i] of Gaussian slot_gaussian[slot].
+ * entry_records and sort_entry_records first copy what the compositing loops read into
+ * entry order (entries [M, ENTRY_STRIDE]).
  * Pixel p (centre at i + 0.5) composites, front to back,
  *   out_p = sum_i f_i alpha_i T_i + T_final background,  T_{i+1} = T_i (1 - alpha_i)
  * skipping alpha < ALPHA_MIN and stopping before T would fall below T_MIN. */
