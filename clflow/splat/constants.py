@@ -10,6 +10,7 @@ LIM_FOV = 1.3  # J is evaluated at x/z, y/z clamped to 1.3 x the field of view
 ROW_CULL_MARGIN = 1e-3  # a tile row is skipped when its smallest sigma exceeds log(o/ALPHA_MIN) by this
 MAX_RADIUS = 1 << 24  # pixels; radii are capped here (exact in float32, far past any image)
 MIN_RADIUS_EIGEN = 0.1  # lambda_max = mid + sqrt(max(MIN_RADIUS_EIGEN, mid^2 - det))
+MIN_QUAT_NORM = 1e-8  # a quaternion shorter than this (Euclidean norm) has no defined rotation
 SPLAT_LANES = 8  # Gaussians per work-item (vector lanes) of the forward projection and covariance kernels
 
 SPLAT_DEFINES = {

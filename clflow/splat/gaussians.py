@@ -27,10 +27,10 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
+from clflow.splat.constants import MIN_QUAT_NORM
 
 SH_C0 = 0.28209479177387814  # Y_0^0: RGB = SH_C0 * f_dc + 0.5 for degree 0
 MAX_SH_DEGREE = 3
-MIN_QUAT_NORM = 1e-8  # a quaternion shorter than this has no defined rotation
 
 TensorLike = torch.Tensor | Sequence[float]
 
@@ -286,7 +286,7 @@ class Gaussians:
     def validate(self, where: str = "Gaussians") -> "Gaussians":
         """Raise :class:`InputError` (prefixed by ``where``) for values no renderer can use.
 
-        Checks: every value finite, quaternions of norm >= 1e-8, scales > 0 after
+        Checks: every value finite, quaternions of norm >= MIN_QUAT_NORM (1e-8), scales > 0 after
         activation (a log scale below about -87 underflows to 0 in float32).
         """
         for name in ("means", "quats", "log_scales", "opacity_logits", "sh", "colors", "features"):

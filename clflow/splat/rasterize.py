@@ -23,11 +23,10 @@ from clflow.errors import InputError
 from clflow.runtime.devices import get_device
 from clflow.runtime.reduction import real_of
 from clflow.splat.binning import build_tile_lists, tile_grid
-from clflow.splat.constants import SPLAT_LANES, SPLAT_DEFINES
+from clflow.splat.constants import MIN_QUAT_NORM, SPLAT_DEFINES, SPLAT_LANES
 from clflow.splat.sh import num_sh_bases, sh_to_rgb
 
 ORTHONORMAL_TOL = 1e-4  # |W W^T - I| allowed in the viewmat's rotation
-QUAT_MIN_NORM = 1e-12  # a quaternion whose entries are all smaller than this has no rotation
 
 
 def _kernel(source: str, name: str, dtype: torch.dtype, **defines):
@@ -369,9 +368,10 @@ def _validate(means, quats, scales, opacities, colors, viewmat, K, width, height
             raise InputError("rasterize: quats and scales are required when covars is None")
         _check(quats, "quats", (n, 4), dtype)
         _check(scales, "scales", (n, 3), dtype)
-        if n and float(quats.abs().amax(dim=-1).min()) < QUAT_MIN_NORM:
-            i = torch.nonzero(quats.abs().amax(dim=-1) < QUAT_MIN_NORM)[0].item()
-            raise InputError(f"rasterize: quats[{i}] is (nearly) zero: a degenerate rotation")
+        short = torch.linalg.vector_norm(quats, dim=-1) < MIN_QUAT_NORM
+        if n and bool(short.any()):
+            i = torch.nonzero(short)[0].item()
+            raise InputError(f"rasterize: quats[{i}] is (nearly) zero (norm < {MIN_QUAT_NORM:g}): a degenerate rotation")
         if n and float(scales.min()) <= 0:
             i = torch.nonzero((scales <= 0).any(dim=-1))[0].item()
             raise InputError(f"rasterize: scales[{i}] = {scales[i].tolist()} has a zero or negative standard deviation")

@@ -36,6 +36,7 @@ def with_value(name, index, value):
         (with_value("means", (3, 1), math.nan), "means has NaN or infinite values (first at index 3)"),
         (with_value("colors", (2, 0), math.inf), "colors has NaN or infinite values (first at index 2)"),
         (with_value("quats", 5, 0.0), "quats[5] is (nearly) zero"),
+        (with_value("quats", 2, 1e-9), "quats[2] is (nearly) zero (norm < 1e-08)"),  # as Gaussians.validate
         (with_value("scales", (4, 2), 0.0), "scales[4]"),
         (with_value("scales", (1, 0), -0.1), "zero or negative standard deviation"),
         (with_value("opacities", 6, 1.5), "opacities[6] = 1.5 is outside [0, 1]"),
