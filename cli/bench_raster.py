@@ -40,7 +40,7 @@ def raster(obj, gaussians: int, size: int, repeat: int, double: bool) -> None:
     import torch
 
     from clflow.runtime import set_default_device
-    from clflow.splat.rasterize import rasterize_gaussians
+    from clflow.splat.ops import rasterize_gaussians
 
     if obj is not None and obj.device_spec:
         set_default_device(obj.device_spec)

@@ -234,7 +234,7 @@ def render_simulated_flow(
     Returns:
         flow [H, W, 2] (px per frame step) and alpha [H, W, 1].
     """
-    from clflow.splat.rasterize import rasterize_gaussians
+    from clflow.splat.ops import rasterize_gaussians
 
     features = flow_features(means_t, means_t1, viewmat, K, model=model, covars_t=covars_t, covars_t1=covars_t1)
     image, alpha, _, _ = rasterize_gaussians(

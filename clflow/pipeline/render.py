@@ -19,7 +19,7 @@ def frame_gaussians(static: SceneGaussians, obj_rest: SceneGaussians, x: torch.T
 
 def render_rgb(g: SceneGaussians, camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
     """[H, W, 3] colours in [0, 1] (values may exceed 1 before clipping)."""
-    from clflow.splat.rasterize import rasterize_gaussians
+    from clflow.splat.ops import rasterize_gaussians
 
     dtype = g.means.dtype
     colors = g.sh if g.sh is not None else g.colors
@@ -47,7 +47,7 @@ def render_flow(g_t: SceneGaussians, g_t1: SceneGaussians, camera, normalize: bo
 
 def render_object_alpha(g: SceneGaussians, camera) -> torch.Tensor:
     """[H, W] opacity of ``g`` alone (e.g. the object at frame 0)."""
-    from clflow.splat.rasterize import rasterize_gaussians
+    from clflow.splat.ops import rasterize_gaussians
 
     dtype = g.means.dtype
     ones = torch.ones(g.means.shape[0], 1, dtype=dtype)

@@ -1,14 +1,13 @@
 """Gaussian splats: 3DGS PLY files, the Gaussians container, cameras and the differentiable rasteriser.
 
-    from clflow.splat import load_ply, look_at
-    from clflow.splat.render import rasterize
+    from clflow.splat import load_ply, look_at, rasterize
     gaussians = load_ply("point_cloud.ply")                  # 3DGS PLY or x y z [r g b] points
     camera = look_at((2, 0, 1), (0, 0, 0), fov_x=0.9, width=512, height=512)
     image, alpha, depth, meta = rasterize(gaussians, camera)  # differentiable
 
-``rasterize`` is not re-exported here: the name would be replaced by the submodule
-``clflow.splat.rasterize`` (the low-level op) as soon as that is imported. Importing this
-package builds no OpenCL kernels.
+The torch ops over the kernels (``rasterize_gaussians`` on raw tensors, ``covariances``,
+``project``, ``composite``) are in :mod:`clflow.splat.ops`. Importing this package builds no
+OpenCL kernels.
 """
 
 from clflow.splat.cameras import (
@@ -22,6 +21,7 @@ from clflow.splat.cameras import (
 )
 from clflow.splat.gaussians import Gaussians, rgb_to_sh0, sh0_to_rgb
 from clflow.splat.ply import load_ply, save_ply
+from clflow.splat.render import Render, rasterize
 
 __all__ = [
     "Camera",
@@ -33,6 +33,8 @@ __all__ = [
     "load_ply",
     "look_at",
     "orbit",
+    "rasterize",
+    "Render",
     "rgb_to_sh0",
     "save_ply",
     "sh0_to_rgb",

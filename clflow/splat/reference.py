@@ -22,7 +22,7 @@ from clflow.splat.constants import (
     T_MIN,
     TILE_SIZE,
 )
-from clflow.splat.rasterize import assemble_channels, split_outputs
+from clflow.splat.ops import assemble_channels, split_outputs
 
 
 def covariances_from_quats_scales(quats: Tensor, scales: Tensor) -> Tensor:
@@ -125,7 +125,7 @@ def rasterize_reference(means, quats, scales, opacities, colors, viewmat, K, wid
                         sh_degree=None, sh_rotations=None, features=None, background=None, near=0.01,
                         render_depth=True):
     """Same interface and outputs (image, alpha, depth, meta) as
-    :func:`clflow.splat.rasterize.rasterize_gaussians`; meta holds means2d, conics, depths, radii."""
+    :func:`clflow.splat.ops.rasterize_gaussians`; meta holds means2d, conics, depths, radii."""
     dtype = means.dtype
     viewmat, K = viewmat.to(dtype), K.to(dtype)
     if covars is None:

@@ -1,12 +1,11 @@
 """High-level rendering: :class:`Gaussians` seen by a :class:`Camera`, differentiably.
 
-    from clflow.splat import load_ply, look_at
-    from clflow.splat.render import rasterize
+    from clflow.splat import load_ply, look_at, rasterize
     g = load_ply("point_cloud.ply")
     cam = look_at((2, 0, 1), (0, 0, 0), fov_x=0.9, width=512, height=512)
     image, alpha, depth, meta = rasterize(g, cam, background=(1, 1, 1))
 
-The OpenCL rasteriser (:func:`clflow.splat.rasterize.rasterize_gaussians`) is imported on
+The OpenCL rasteriser (:func:`clflow.splat.ops.rasterize_gaussians`) is imported on
 the first call, so importing this module builds no kernels.
 """
 
@@ -69,7 +68,7 @@ def rasterize(
     Returns:
         :class:`Render` (image [H, W, C], alpha [H, W, 1], depth [H, W, 1] or None, meta).
     """
-    from clflow.splat.rasterize import rasterize_gaussians
+    from clflow.splat.ops import rasterize_gaussians
 
     dtype = gaussians.dtype
     if gaussians.sh is not None:

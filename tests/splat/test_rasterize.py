@@ -6,7 +6,7 @@ import pytest
 import torch
 from splat_scenes import camera, random_scene, rotations
 
-from clflow.splat.rasterize import covariances, rasterize_gaussians
+from clflow.splat.ops import covariances, rasterize_gaussians
 from clflow.splat.reference import covariances_from_quats_scales, rasterize_reference
 
 W, H = 40, 36  # 3 x 3 tiles, the last row and column partial

@@ -6,7 +6,7 @@ import torch
 from splat_scenes import camera, random_scene, rotations
 
 from clflow.splat.binning import build_tile_lists
-from clflow.splat.rasterize import composite, covariances, project, rasterize_gaussians
+from clflow.splat.ops import composite, covariances, project, rasterize_gaussians
 from clflow.splat.reference import rasterize_reference
 
 W, H = 24, 20  # 2 x 2 tiles, partial

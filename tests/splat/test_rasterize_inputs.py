@@ -9,7 +9,7 @@ from splat_scenes import camera, random_scene
 from clflow.errors import InputError
 from clflow.splat.binning import build_tile_lists, sort_pairs, tile_grid
 from clflow.splat.constants import TILE_SIZE
-from clflow.splat.rasterize import covariances, project, rasterize_gaussians
+from clflow.splat.ops import covariances, project, rasterize_gaussians
 from clflow.splat.reference import tile_rect_reference
 
 W, H = 40, 36

@@ -273,3 +273,11 @@ def test_cli_renders_a_plain_point_cloud(tmp_path):
     assert result.exit_code == 0, result.output
     png = read_png(tmp_path / "o" / "orbit_0000.png")
     assert png[..., 0].max() > 0 and png[..., 1:].max() == 0  # red points on black
+
+
+def test_the_package_exports_the_rasterize_function_even_after_the_ops_module_is_imported():
+    import clflow.splat
+    import clflow.splat.ops  # noqa: F401  (used to replace clflow.splat.rasterize by a module)
+    from clflow.splat import rasterize as exported
+
+    assert exported is rasterize and callable(clflow.splat.rasterize)
