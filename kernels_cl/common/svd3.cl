@@ -18,3 +18,27 @@ __kernel void svd3_batch(const int n, __global const real *F, __global real *U, 
     for (int k = 0; k < 3; ++k)
         s[3 * i + k] = sv[k];
 }
+
+#ifdef CLFLOW_SIMD_LANES
+/* R = U V^T [n, 9], the rotation of the polar decomposition F = R S: proper even for
+ * det F <= 0 (the signed SVD keeps the reflection in s). CLFLOW_SIMD_LANES matrices per
+ * work-item in vector lanes. */
+__kernel void polar_rotation(const int n, __global const real *F, __global real *R)
+{
+    const int i0 = get_global_id(0) * CLFLOW_SIMD_LANES;
+    if (i0 >= n)
+        return;
+    const realv ones[3] = {(realv)1, (realv)1, (realv)1};
+    realv f[9], u[9], s[3], v[9], r[9];
+    for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) { /* lanes past the end repeat the last matrix */
+        const int i = min(i0 + l, n - 1);
+        for (int k = 0; k < 9; ++k)
+            ((real *)&f[k])[l] = F[9 * i + k];
+    }
+    svd3_v(f, u, s, v);
+    mat3_udvt_v(u, ones, v, r);
+    for (int l = 0; l < CLFLOW_SIMD_LANES && i0 + l < n; ++l)
+        for (int k = 0; k < 9; ++k)
+            R[9 * (i0 + l) + k] = ((const real *)&r[k])[l];
+}
+#endif

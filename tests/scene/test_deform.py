@@ -36,3 +36,15 @@ def test_polar_rotation_is_proper_and_recovers_the_rotation():
     inverted[:, :, 2] *= -1  # det F < 0: still a proper rotation out
     assert torch.allclose(torch.det(polar_rotations(inverted)), torch.ones(20, dtype=torch.float64))
     torch.testing.assert_close(polar_rotations(torch.eye(3, dtype=torch.float64).repeat(4, 1, 1)), torch.eye(3, dtype=torch.float64).repeat(4, 1, 1))
+
+
+def test_polar_rotation_in_float32_and_of_singular_matrices():
+    R = random_rotations(13, seed=4)
+    F = R @ torch.diag_embed(torch.rand(13, 3, dtype=torch.float64) + 0.5)
+    torch.testing.assert_close(polar_rotations(F.float()), R.float(), atol=1e-5, rtol=0)
+    flat = F.clone()
+    flat[:, :, 1] = 0  # det F = 0 (a flattened element): still a rotation
+    Rf = polar_rotations(flat)
+    torch.testing.assert_close(Rf @ Rf.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(13, 3, 3))
+    assert torch.allclose(torch.det(Rf), torch.ones(13, dtype=torch.float64))
+    assert polar_rotations(torch.empty(0, 3, 3)).shape == (0, 3, 3)
