@@ -325,15 +325,15 @@ class Device:
 
     def give_back_scratch(self, buf) -> None:
         """Keep ``buf`` (from :meth:`take_scratch`, no longer in use) for reuse; at most
-        SPARE_SCRATCH_BYTES are kept, the most recent first."""
+        SPARE_SCRATCH_BYTES are kept, the most recently given back first (a buffer larger
+        than the bound on its own is dropped without evicting the others)."""
         with self._lock:
-            self._spare_scratch.insert(0, buf)
-            total = 0
-            for k, spare in enumerate(self._spare_scratch):
-                total += spare.size
-                if total > SPARE_SCRATCH_BYTES:
-                    del self._spare_scratch[k:]
-                    break
+            kept, total = [], 0
+            for spare in [buf] + self._spare_scratch:
+                if total + spare.size <= SPARE_SCRATCH_BYTES:
+                    kept.append(spare)
+                    total += spare.size
+            self._spare_scratch = kept
 
     def bind(self):
         """A :class:`~clflow.runtime.bridge.TensorBinding` for torch tensors on this device."""

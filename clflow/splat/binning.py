@@ -19,7 +19,7 @@ from clflow.splat.constants import SPLAT_DEFINES, TILE_SIZE
 SORT_BLOCKS = 64  # radix sort: contiguous blocks walked by one work-item each
 DEPTH_DIGIT_BITS = 8  # 32-bit depth keys: 4 passes of 8 bits
 TILE_DIGIT_BITS = 12  # tile keys: ceil(bits / 12) passes (one pass up to 4096 tiles)
-MAX_TILE_ENTRIES = 1 << 26  # bound on (tile, Gaussian) entries: 1.3 GB of lists (+ compositing records)
+MAX_TILE_ENTRIES = 1 << 26  # bound on (tile, Gaussian) entries: 1.3 GB of lists, + (9 + C) reals of records each
 BYTES_PER_ENTRY = 20  # tile key + slot, double-buffered for the sort, + slot's Gaussian id
 
 

@@ -111,7 +111,7 @@ inline void load_lanes_v(const int n, const int p0, const int width, __global co
     for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) {
         const int p = min(p0 + l, n - 1);
         for (int c = 0; c < width; ++c)
-            ((real *)&m[c])[l] = a[width * p + c];
+            ((real *)&m[c])[l] = a[(long)width * p + c];
     }
 }
 
@@ -119,7 +119,7 @@ inline void store_lanes_v(const int n, const int p0, const int width, const real
 {
     for (int l = 0; l < CLFLOW_SIMD_LANES && p0 + l < n; ++l)
         for (int c = 0; c < width; ++c)
-            a[width * (p0 + l) + c] = ((const real *)&m[c])[l];
+            a[(long)width * (p0 + l) + c] = ((const real *)&m[c])[l];
 }
 
 /* Column `column` of a [n, PARAM_COUNT] parameter array in lanes, as load_lanes_v. */

@@ -85,6 +85,7 @@ def test_dtype_is_checked_when_asked(device):
 def test_scratch_buffers_are_reused_once_given_back_and_the_spare_memory_is_bounded(device, monkeypatch):
     from clflow.runtime import devices
 
+    monkeypatch.setattr(device, "_spare_scratch", [])  # the session's device: start with no spares
     with device.bind() as b:
         first = b.scratch(3000)
         second = b.scratch(3000)  # in use at the same time: a different buffer
@@ -99,3 +100,6 @@ def test_scratch_buffers_are_reused_once_given_back_and_the_spare_memory_is_boun
     monkeypatch.setattr(devices, "SPARE_SCRATCH_BYTES", 5000)
     device.give_back_scratch(device.take_scratch(4000))  # keeps the newest within the bound
     assert sum(buf.size for buf in device._spare_scratch) <= 5000
+    kept = list(device._spare_scratch)
+    device.give_back_scratch(device.take_scratch(6000))  # too large on its own: dropped alone
+    assert device._spare_scratch == kept
