@@ -1,20 +1,14 @@
 /* 3x3 matrix helpers on private row-major arrays: m[3*r + c].
  *
  * Small, inline and allocation-free so constitutive models read like their equations.
- * Defined for `real` (mat3_mul, ...) and, when a kernel defines CLFLOW_SIMD_LANES before
- * including this header, for `realv` = a vector of that many reals holding one matrix
- * entry of several particles (mat3_mul_v, ...): explicit SIMD that CPU compilers do not
- * find on their own in loop-heavy code such as the SVD. */
+ * Defined for `real` (mat3_mul, ...) and, when a kernel defines CLFLOW_SIMD_LANES, for
+ * `realv` (common/lanes.h) holding one matrix entry of several particles (mat3_mul_v, ...):
+ * explicit SIMD that CPU compilers do not find on their own in loop-heavy code such as the
+ * SVD. */
 #ifndef CLFLOW_MAT3_H
 #define CLFLOW_MAT3_H
 
-#include "common/real.h"
-
-#ifdef CLFLOW_SIMD_LANES
-#define CLFLOW_VEC_(T, N) T##N
-#define CLFLOW_VEC(T, N) CLFLOW_VEC_(T, N)
-typedef CLFLOW_VEC(REAL, CLFLOW_SIMD_LANES) realv;
-#endif
+#include "common/lanes.h"
 
 /* The helpers for element type T, names suffixed with SFX. */
 #define CLFLOW_DEFINE_MAT3(SFX, T)                                                          \

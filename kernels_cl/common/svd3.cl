@@ -30,15 +30,9 @@ __kernel void polar_rotation(const int n, __global const real *F, __global real 
         return;
     const realv ones[3] = {(realv)1, (realv)1, (realv)1};
     realv f[9], u[9], s[3], v[9], r[9];
-    for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) { /* lanes past the end repeat the last matrix */
-        const int i = min(i0 + l, n - 1);
-        for (int k = 0; k < 9; ++k)
-            ((real *)&f[k])[l] = F[9 * i + k];
-    }
+    load_lanes_v(n, i0, 9, F, f);
     svd3_v(f, u, s, v);
     mat3_udvt_v(u, ones, v, r);
-    for (int l = 0; l < CLFLOW_SIMD_LANES && i0 + l < n; ++l)
-        for (int k = 0; k < 9; ++k)
-            R[9 * (i0 + l) + k] = ((const real *)&r[k])[l];
+    store_lanes_v(n, i0, 9, r, R);
 }
 #endif

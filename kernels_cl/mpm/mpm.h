@@ -52,6 +52,14 @@ inline long grid_index(const grid_t *g, const int i, const int j, const int k)
     return ((long)i * g->ny + j) * g->nz + k;
 }
 
+/* Quadratic B-spline weights w[0..2] of one axis at f = xi - base (real or realv). */
+#define STENCIL_WEIGHTS(f, w)                                         \
+    do {                                                              \
+        (w)[0] = (real)0.5 * ((real)1.5 - (f)) * ((real)1.5 - (f));   \
+        (w)[1] = (real)0.75 - ((f) - 1) * ((f) - 1);                  \
+        (w)[2] = (real)0.5 * ((f) - (real)0.5) * ((f) - (real)0.5);   \
+    } while (0)
+
 /* The 3x3x3 stencil of a particle: base node, and weights w[axis][0..2] of each axis. */
 typedef struct {
     int base[3];
@@ -69,9 +77,7 @@ inline stencil_t make_stencil(const grid_t *g, const real *x)
         const real f = xi - base;
         st.base[a] = base;
         st.fx[a] = f;
-        st.w[a][0] = (real)0.5 * ((real)1.5 - f) * ((real)1.5 - f);
-        st.w[a][1] = (real)0.75 - (f - 1) * (f - 1);
-        st.w[a][2] = (real)0.5 * (f - (real)0.5) * (f - (real)0.5);
+        STENCIL_WEIGHTS(f, st.w[a]);
     }
     return st;
 }
@@ -103,25 +109,6 @@ CLFLOW_DEFINE_TRIAL_DEFORMATION(, real)
 #ifdef CLFLOW_SIMD_LANES
 CLFLOW_DEFINE_TRIAL_DEFORMATION(_v, realv)
 
-/* Rows p0 .. p0 + CLFLOW_SIMD_LANES - 1 of a [n, width] array, one lane each: m[c] holds
- * column c of every lane. Lanes past the end repeat row n - 1; they are computed but never
- * stored. */
-inline void load_lanes_v(const int n, const int p0, const int width, __global const real *a, realv *m)
-{
-    for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) {
-        const int p = min(p0 + l, n - 1);
-        for (int c = 0; c < width; ++c)
-            ((real *)&m[c])[l] = a[(long)width * p + c];
-    }
-}
-
-inline void store_lanes_v(const int n, const int p0, const int width, const realv *m, __global real *a)
-{
-    for (int l = 0; l < CLFLOW_SIMD_LANES && p0 + l < n; ++l)
-        for (int c = 0; c < width; ++c)
-            a[(long)width * (p0 + l) + c] = ((const real *)&m[c])[l];
-}
-
 /* Column `column` of a [n, PARAM_COUNT] parameter array in lanes, as load_lanes_v. */
 inline realv load_param_lanes_v(const int n, const int p0, __global const real *param, const int column)
 {
@@ -144,18 +131,14 @@ inline stencil_v_t make_stencil_v(const grid_t *g, const realv *x)
     for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) {
         int base[3];
         for (int a = 0; a < 3; ++a) {
-            const real xi = (((const real *)&x[a])[l] - g->origin[a]) / g->dx;
+            const real xi = (LANE(x[a], l) - g->origin[a]) / g->dx;
             base[a] = clamp((int)floor(xi - (real)0.5), 0, grid_extent(g, a) - 3);
             ((real *)&st.fx[a])[l] = xi - base[a];
         }
         st.corner[l] = grid_index(g, base[0], base[1], base[2]);
     }
-    for (int a = 0; a < 3; ++a) {
-        const realv f = st.fx[a];
-        st.w[a][0] = (real)0.5 * ((real)1.5 - f) * ((real)1.5 - f);
-        st.w[a][1] = (real)0.75 - (f - 1) * (f - 1);
-        st.w[a][2] = (real)0.5 * (f - (real)0.5) * (f - (real)0.5);
-    }
+    for (int a = 0; a < 3; ++a)
+        STENCIL_WEIGHTS(st.fx[a], st.w[a]);
     return st;
 }
 #endif

@@ -13,7 +13,8 @@
 #ifndef CLFLOW_SPLAT_COMMON_H
 #define CLFLOW_SPLAT_COMMON_H
 
-#include "common/real.h"
+/* realv (common/lanes.h): the per-Gaussian forward kernels take CLFLOW_SIMD_LANES at a time */
+#include "common/lanes.h"
 
 #pragma OPENCL FP_CONTRACT OFF
 
@@ -33,29 +34,6 @@ inline int tile_rect(const real mx, const real my, const int radius, const int t
     *x1 = (int)floor(clamp((mx + r) / TILE_SIZE + 1, (real)0, (real)tiles_x));
     *y1 = (int)floor(clamp((my + r) / TILE_SIZE + 1, (real)0, (real)tiles_y));
     return max(*x1 - *x0, 0) * max(*y1 - *y0, 0);
-}
-
-#if !defined(SPLAT_LANES) || SPLAT_LANES != 8
-#error "build with SPLAT_LANES=8 (clflow/splat/constants.py): realv is 8 lanes wide"
-#endif
-/* SPLAT_LANES Gaussians in vector lanes (per-Gaussian forward kernels: PoCL does not
- * vectorise them across work-items itself, their loads and stores being strided). */
-#if REAL_IS_DOUBLE
-typedef double8 realv;
-#else
-typedef float8 realv;
-#endif
-#define LANE(v, l) (((const real *)&(v))[l])
-
-/* Rows i0 .. i0 + SPLAT_LANES - 1 of a [n, width] array, one lane each (m[c]: column c);
- * lanes past the end repeat row n - 1 (computed, never stored). */
-inline void load_lanes(const int n, const int i0, const int width, __global const real *a, realv *m)
-{
-    for (int l = 0; l < SPLAT_LANES; ++l) {
-        const int i = min(i0 + l, n - 1);
-        for (int c = 0; c < width; ++c)
-            ((real *)&m[c])[l] = a[(size_t)width * i + c];
-    }
 }
 
 #endif /* CLFLOW_SPLAT_COMMON_H */

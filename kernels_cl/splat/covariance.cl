@@ -5,7 +5,7 @@
 #include "splat/common.h"
 
 /* R(q) of a unit quaternion (row-major), and R of q / |q| with M = R diag(s), returning
- * 1 / |q|: for T = real, and realv (SPLAT_LANES Gaussians in lanes). */
+ * 1 / |q|: for T = real, and realv (CLFLOW_SIMD_LANES Gaussians in lanes). */
 #define CLFLOW_DEFINE_ROTATION(SFX, T)                                                           \
     inline void quat_to_rotation##SFX(const T w, const T x, const T y, const T z, T R[9])        \
     {                                                                                            \
@@ -31,23 +31,21 @@
 CLFLOW_DEFINE_ROTATION(, real)
 CLFLOW_DEFINE_ROTATION(_v, realv)
 
-/* Sigma = M M^T, SPLAT_LANES Gaussians per work-item in vector lanes. */
+/* Sigma = M M^T, CLFLOW_SIMD_LANES Gaussians per work-item in vector lanes. */
 __kernel void covariance_forward(__global const real *quats, __global const real *scales,
                                  __global real *covars, const int n)
 {
-    const int i0 = get_global_id(0) * SPLAT_LANES;
+    const int i0 = get_global_id(0) * CLFLOW_SIMD_LANES;
     if (i0 >= n)
         return;
     realv q[4], s[3], R[9], M[9], S[9];
-    load_lanes(n, i0, 4, quats, q);
-    load_lanes(n, i0, 3, scales, s);
+    load_lanes_v(n, i0, 4, quats, q);
+    load_lanes_v(n, i0, 3, scales, s);
     rotation_and_scale_v(q, s, R, M);
     for (int r = 0; r < 3; ++r)
         for (int c = 0; c < 3; ++c)
             S[3 * r + c] = M[3 * r] * M[3 * c] + M[3 * r + 1] * M[3 * c + 1] + M[3 * r + 2] * M[3 * c + 2];
-    for (int l = 0; l < SPLAT_LANES && i0 + l < n; ++l)
-        for (int k = 0; k < 9; ++k)
-            covars[9 * (size_t)(i0 + l) + k] = LANE(S[k], l);
+    store_lanes_v(n, i0, 9, S, covars);
 }
 
 /* dL/dSigma = G [N,3,3] -> dL/dM = (G + G^T) M -> dL/dR = dL/dM diag(s),

@@ -1,6 +1,6 @@
 /* EWA projection of 3D Gaussians to screen space, and its adjoint.
  *
- * Per Gaussian i (forward: SPLAT_LANES per work-item in vector lanes; adjoint: one per
+ * Per Gaussian i (forward: CLFLOW_SIMD_LANES per work-item in vector lanes; adjoint: one per
  * work-item; no atomics):
  *   mu_c = W mu + t                     camera-space mean (viewmat = [W t; 0 1], OpenCV axes)
  *   culled when z <= near, det(Sigma_2D) <= 0 or its tile box is empty (radius = 0)
@@ -48,7 +48,7 @@ inline camera_t load_camera(__global const real *viewmat, __global const real *i
 
 /* Everything the forward computes for one Gaussian (the adjoint recomputes it), from its
  * mean [3] and covariance [9]: projection_t / project_one for T = real, projection_v_t /
- * project_one_v for SPLAT_LANES Gaussians in vector lanes (the same operations lane by
+ * project_one_v for CLFLOW_SIMD_LANES Gaussians in vector lanes (the same operations lane by
  * lane, so the same results). */
 #define CLFLOW_DEFINE_PROJECT_ONE(SFX, T)                                                          \
     typedef struct {                                                                               \
@@ -99,7 +99,7 @@ inline camera_t load_camera(__global const real *viewmat, __global const real *i
 CLFLOW_DEFINE_PROJECT_ONE(, real)
 CLFLOW_DEFINE_PROJECT_ONE(_v, realv)
 
-/* Forward, SPLAT_LANES Gaussians per work-item in vector lanes (PoCL does not vectorise
+/* Forward, CLFLOW_SIMD_LANES Gaussians per work-item in vector lanes (PoCL does not vectorise
  * this kernel across work-items itself: its loads and stores are strided); the culling and
  * the tile box are per lane. */
 __kernel void project_forward(__global const real *means, __global const real *covars,
@@ -108,13 +108,13 @@ __kernel void project_forward(__global const real *means, __global const real *c
                               __global int *radii, __global int *tiles_touched, const int n,
                               const int width, const int height, const real near_plane)
 {
-    const int i0 = get_global_id(0) * SPLAT_LANES;
+    const int i0 = get_global_id(0) * CLFLOW_SIMD_LANES;
     if (i0 >= n)
         return;
     const camera_t cam = load_camera(viewmat, intrinsics, width, height);
     realv mean[3], covar[9];
-    load_lanes(n, i0, 3, means, mean);
-    load_lanes(n, i0, 9, covars, covar);
+    load_lanes_v(n, i0, 3, means, mean);
+    load_lanes_v(n, i0, 9, covars, covar);
     const projection_v_t p = project_one_v(&cam, mean, covar);
     const realv mid = (real)0.5 * (p.a + p.c);
     const realv lambda_max = mid + sqrt(fmax((realv)(real)MIN_RADIUS_EIGEN, mid * mid - p.det));
@@ -122,7 +122,7 @@ __kernel void project_forward(__global const real *means, __global const real *c
     const realv mx = cam.fx * p.u + cam.cx, my = cam.fy * p.v + cam.cy;
     const realv A = p.c / p.det, B = -p.b / p.det, C = p.a / p.det;
     const int tiles_x = (width + TILE_SIZE - 1) / TILE_SIZE, tiles_y = (height + TILE_SIZE - 1) / TILE_SIZE;
-    for (int l = 0; l < SPLAT_LANES && i0 + l < n; ++l) {
+    for (int l = 0; l < CLFLOW_SIMD_LANES && i0 + l < n; ++l) {
         const int i = i0 + l;
         depths[i] = LANE(p.mc[2], l);
         int radius = 0, touched = 0, x0, y0, x1, y1;

@@ -217,7 +217,7 @@ __kernel void rasterize_forward(
         for (int k = 0; k < CHANNELS; ++k) {
             const rowv value = acc[r][k] + T[r] * background[k];
             for (int l = 0; l < 16; ++l)
-                row[l * CHANNELS + k] = ((const real *)&value)[l];
+                row[l * CHANNELS + k] = LANE(value, l);
         }
         if (n_px == 16) { /* whole rows: vector stores */
             vstore16(T[r], 0, T_final + p0);
@@ -226,7 +226,7 @@ __kernel void rasterize_forward(
                 vstore16(vload16(q, row), q, out + p0 * CHANNELS);
         } else {
             for (int l = 0; l < n_px; ++l) {
-                T_final[p0 + l] = ((const real *)&T[r])[l];
+                T_final[p0 + l] = LANE(T[r], l);
                 n_contrib[p0 + l] = ((const int *)&last[r])[l];
             }
             for (int e = 0; e < n_px * CHANNELS; ++e)

@@ -109,5 +109,5 @@ __kernel void p2g_adjoint(const int nx, const int ny, const int nz, const real d
     store_lanes_v(n, p0, 9, Cb, C_bar);
     store_lanes_v(n, p0, 9, tb, tau_bar);
     for (int l = 0; l < CLFLOW_SIMD_LANES && p0 + l < n; ++l)
-        mass_bar[p0 + l] += ((const real *)&mb)[l];
+        mass_bar[p0 + l] += LANE(mb, l);
 }

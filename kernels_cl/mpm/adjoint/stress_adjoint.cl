@@ -148,8 +148,8 @@ __kernel void update_stress_elastic_adjoint_simd(const int n, const real dt, __g
     for (int l = 0; l < CLFLOW_SIMD_LANES && p0 + l < n; ++l) {
         const long p = p0 + l;
         plastic_bar[p] = plastic_bar_out[p];
-        param_bar[p * PARAM_COUNT] += ((real *)&mu_bar)[l];
-        param_bar[p * PARAM_COUNT + 1] += ((real *)&lambda_bar)[l];
+        param_bar[p * PARAM_COUNT] += LANE(mu_bar, l);
+        param_bar[p * PARAM_COUNT + 1] += LANE(lambda_bar, l);
     }
 }
 #endif
