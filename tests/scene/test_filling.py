@@ -69,3 +69,22 @@ def test_a_cube_of_flat_face_gaussians_is_filled_inside_only():
         fill = obj.positions[obj.n_gaussians:] - torch.tensor([0.0, 0.1, 0.0], dtype=torch.float64)
         assert obj.n_fill > 0 and float(fill.abs().max()) < 0.1
         assert obj.volume * obj.positions.shape[0] == pytest.approx(0.2**3, rel=0.1)
+
+
+def test_voxels_finer_than_the_surface_sampling_do_not_leave_the_object_hollow():
+    # 8 x 8 Gaussians per 0.2 m face are 25 mm apart: a 4 mm fill voxel grid sees gaps
+    # between their marks, and the flood fill used to leak in and leave only the shell.
+    import numpy as np
+
+    from clflow_datasets.synthetic import cube_surface
+    from clflow.scene.filling import surface_gap
+
+    means, scales, _, _ = cube_surface(0.2, (0.0, 0.1, 0.0), 8, np.random.default_rng(0))
+    means, covs = torch.tensor(means), torch.diag_embed(torch.tensor(scales) ** 2)
+    assert surface_gap(means) == pytest.approx(0.025, rel=0.01)
+    obj = fill_object(means, covs, torch.full((len(means),), 0.95, dtype=torch.float64), 0.004, per_axis=1)
+    fill = obj.positions[obj.n_gaussians:]
+    assert obj.volume * obj.positions.shape[0] == pytest.approx(0.2**3, rel=0.1)
+    assert obj.n_fill == pytest.approx(0.2**3 / 0.004**3, rel=0.25)  # the requested particle spacing
+    spacing = torch.cdist(fill[:500], fill).topk(2, largest=False).values[:, 1]
+    assert float(spacing.median()) == pytest.approx(0.004, rel=0.05)
