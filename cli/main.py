@@ -31,6 +31,7 @@ BUILTIN_COMMANDS: dict[str, str] = {
     "optimize": "clflow_cli.optimize:optimize",
     "render4d": "clflow_cli.render4d:render4d",
     "demo": "clflow_cli.demo:demo",
+    "eval": "clflow_cli.eval:eval_group",
 }
 
 PLUGIN_GROUP = "clflow.commands"

@@ -5,11 +5,18 @@ parameters, forces (or a drop), a camera, and the guidance video rendered by clf
 
 - ``scene.ply``: procedural 3DGS Gaussians (metres, +y up): the shape's surface (flat
   Gaussians tangent to it; the pipeline fills the inside) and a static floor;
-- ``config_truth.yaml``: the scene with the ground-truth material;
+- ``config_truth.yaml``: the scene with the ground-truth material, simulated at
+  ``truth_scale`` times the grid resolution (so its own, finer particle sampling and a
+  smaller substep) and rendered at ``truth_scale`` times the image size;
 - ``guidance/000.png ...`` and ``guidance.mp4``: the ground-truth simulation seen by the
-  guidance camera (lossless PNG frames);
-- ``config.yaml``: the same scene starting from ``case.guess`` with ``optimize`` set to
-  recover ``case.optimize`` from the guidance video's optical flow.
+  guidance camera, area-downsampled to the camera's size, with optional sensor noise
+  (lossless PNG frames; ``codec`` makes the optimiser read a compressed video instead);
+- ``config.yaml``: the same scene at the normal resolution starting from ``case.guess``
+  with ``optimize`` set to recover ``case.optimize`` from the guidance video's optical flow;
+- ``case.json``: how the guidance was made (resolutions, substeps, clamped particles).
+
+A ``truth_scale`` above 1 keeps the benchmark honest: the optimiser cannot reproduce the
+guidance exactly ("inverse crime"), as with a real video.
 
 The bundled demo (datasets_tools/demo.py) is one case; benchmarks make others.
 """
@@ -61,6 +68,8 @@ class SyntheticCase:
     horizon: tuple[int, int] = (4, 1)  # frames in the first iteration's loss, frames added per iteration
     forces: tuple[dict, ...] = ()
     ground: str = "sticky"
+    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)  # initial velocity (m/s, scene frame)
+    spread: float | None = None  # room around the shape on each side (sizes); None: the default domain
     camera_offset: tuple[float, float, float] = (1.25, 1.75, 3.75)  # camera - centre, in sizes
     fov_y_deg: float = 40.0
 
@@ -190,8 +199,30 @@ def _rounded(values) -> list[float]:
     return [round(float(v), 9) for v in values]
 
 
-def case_config(case: SyntheticCase, resolution: Resolution, parameters: dict[str, float], optimize: bool) -> dict:
-    """The case's scene config (as a dict; see clflow.scene.config)."""
+def case_domain(case: SyntheticCase, resolution: Resolution) -> tuple[list[float], list[float], int]:
+    """(domain min, domain max (m), grid nodes along its longest side) of a case with
+    ``spread``: ``spread`` sizes of room around the shape on every horizontal side and half
+    a size above it, besides the domain walls, the ground half a cell above the bottom
+    walls, at the grid spacing the default domain of ``resolution.grid`` nodes would have
+    (2.5 sizes across)."""
+    from clflow.pipeline.scene import WALL_CELLS
+
+    s, c = case.size, case.center
+    dx = 2.5 * s / (resolution.grid - 1)
+    walls = (WALL_CELLS + 1) * dx  # the walls and the cell next to them are no room to move in
+    room = case.spread * s + walls
+    height = (s / 4 if case.shape == "torus" else s / 2)
+    lower = [c[0] - s / 2 - room, -walls - 0.5 * dx, c[2] - s / 2 - room]
+    upper = [c[0] + s / 2 + room, c[1] + height + 0.5 * s + walls, c[2] + s / 2 + room]
+    longest = max(u - lo for lo, u in zip(lower, upper))
+    nodes = int(math.ceil(longest / dx - 1e-9)) + 1
+    return _rounded(lower), _rounded(upper), nodes
+
+
+def case_config(case: SyntheticCase, resolution: Resolution, parameters: dict[str, float], optimize: bool,
+                scale: int = 1) -> dict:
+    """The case's scene config (as a dict; see clflow.scene.config); ``scale`` multiplies
+    the grid resolution (nodes - 1) and the image size."""
     c, s = case.center, case.size
     margin = 0.025 * s
     half = s / 2 + margin
@@ -203,18 +234,25 @@ def case_config(case: SyntheticCase, resolution: Resolution, parameters: dict[st
         if box is not None:
             box["min"], box["max"] = _rounded(np.add(box["min"], c)), _rounded(np.add(box["max"], c))
         forces.append(stage)
+    simulation = {"grid_resolution": (resolution.grid - 1) * scale + 1, "fps": 24, "frames": resolution.frames}
+    if case.spread is not None:
+        lower, upper, nodes = case_domain(case, resolution)
+        simulation.update(grid_resolution=(nodes - 1) * scale + 1, domain={"min": lower, "max": upper})
+    obj = {"select": {"box": {"min": _rounded([c[0] - half, case.lift - margin, c[2] - half]),
+                              "max": _rounded([c[0] + half, c[1] + height, c[2] + half])}}}
+    if any(case.velocity):
+        obj["velocity"] = _rounded(case.velocity)
     config = {
         "splats": "scene.ply",
         "scene": {"scale": 1.0, "up": "+y"},
-        "object": {"select": {"box": {"min": _rounded([c[0] - half, case.lift - margin, c[2] - half]),
-                                      "max": _rounded([c[0] + half, c[1] + height, c[2] + half])}}},
+        "object": obj,
         "material": {"type": case.material, "parameters": dict(parameters), "density": case.density},
         "forces": forces,
         "boundaries": {"ground": {"height": 0.0, "mode": case.ground}},
-        "simulation": {"grid_resolution": resolution.grid, "fps": 24, "frames": resolution.frames},
+        "simulation": simulation,
         "camera": {"position": _rounded(c + s * np.asarray(case.camera_offset)),
                    "look_at": _rounded(c), "fov_y_deg": case.fov_y_deg,
-                   "width": resolution.image, "height": resolution.image},
+                   "width": resolution.image * scale, "height": resolution.image * scale},
         "flow": {"method": "dis", "preset": "medium", "loss": "l2", "mask": "alpha"},
         "output": "results",
     }
@@ -228,25 +266,83 @@ def case_config(case: SyntheticCase, resolution: Resolution, parameters: dict[st
     return config
 
 
-def make_case(folder: str | Path, case: SyntheticCase, resolution: Resolution = Resolution(), seed: int = 0) -> Path:
-    """Write the case into ``folder`` (see module docstring); returns its ``config.yaml``."""
+def wall_contacts(result) -> int:
+    """Particle-frames of a simulation result (clflow.pipeline.forward.SimulationResult)
+    inside the domain's wall cells or the cell next to them, where the walls, not the
+    material, decide the motion."""
+    from clflow.pipeline.scene import WALL_CELLS
+
+    grid = result.prepared.setup.grid
+    reach = (WALL_CELLS + 1) * grid.dx
+    lower = torch.tensor(grid.origin, dtype=result.x.dtype) + reach
+    upper = torch.tensor(grid.upper, dtype=result.x.dtype) - reach
+    return int(((result.x < lower) | (result.x > upper)).any(-1).sum())
+
+
+def degrade(frames: np.ndarray, size: int, noise: float, rng: np.random.Generator) -> np.ndarray:
+    """Frames [T, H, W, 3] uint8 area-averaged down to [T, size, size, 3], with Gaussian
+    sensor noise of ``noise`` grey levels (standard deviation, 8-bit scale) added."""
+    import cv2
+
+    out = np.stack([cv2.resize(f, (size, size), interpolation=cv2.INTER_AREA) for f in frames]).astype(np.float64)
+    if noise > 0:
+        out += rng.normal(0.0, noise, out.shape)
+    return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+
+
+def make_case(folder: str | Path, case: SyntheticCase, resolution: Resolution = Resolution(), seed: int = 0,
+              *, truth_scale: int = 1, noise: float = 0.0, codec: str | None = None) -> Path:
+    """Write the case into ``folder`` (see module docstring); returns its ``config.yaml``.
+
+    ``truth_scale``: the ground truth's grid and image refinement (1: the optimiser's own
+    resolution, an inverse crime; 2 for benchmarks); ``noise``: sensor noise (8-bit grey
+    levels); ``codec``: a video suffix (".mp4", ".webm", ...) whose lossy encoding the
+    optimiser then reads instead of the PNG frames. Raises ValueError if the ground-truth
+    run clamps particles at the grid's edge (the domain is too small for the motion)."""
+    import json
+
     import yaml
 
     from clflow.fileio import atomic_write_text
-    from clflow.pipeline.forward import render_video, simulate_config
+    from clflow.flow.visualize import write_image, write_video
+    from clflow.pipeline.forward import render_frames, simulate_config
     from clflow.scene.config import parse_config
 
+    if int(truth_scale) < 1:
+        raise ValueError(f"truth_scale must be an integer >= 1, got {truth_scale}")
+    if not noise >= 0:
+        raise ValueError(f"noise must be >= 0 grey levels, got {noise}")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     write_scene(folder, case, resolution, seed)
-    truth = case_config(case, resolution, case.truth, optimize=False)
+    truth = case_config(case, resolution, case.truth, optimize=False, scale=int(truth_scale))
     atomic_write_text(folder / "config_truth.yaml", yaml.safe_dump(truth, sort_keys=False))
     result = simulate_config(parse_config(truth, str(folder / "config_truth.yaml"), folder))
-    render_video(result, folder / "guidance", video=folder / "guidance.mp4")
+    clamped, at_walls = int(result.clamped.sum()), wall_contacts(result)
+    if clamped or at_walls:
+        raise ValueError(f"{folder}: the ground-truth run clamped {clamped} particle-frames at the grid's edge and "
+                         f"brought {at_walls} particle-frames into the domain walls; give the case more room "
+                         f"(SyntheticCase.spread)")
+    frames = degrade(render_frames(result), resolution.image, noise, np.random.default_rng(seed + 1))
+    (folder / "guidance").mkdir(exist_ok=True)
+    for t, frame in enumerate(frames):
+        write_image(folder / "guidance" / f"{t:03d}.png", frame)
+    fps = truth["simulation"]["fps"]
+    write_video(folder / "guidance.mp4", frames, fps)
     config = case_config(case, resolution, {**case.truth, **case.guess}, optimize=True)
+    if codec is not None:
+        write_video(folder / f"guidance_coded{codec}", frames, fps)
+        config["video"] = f"guidance_coded{codec}"
     atomic_write_text(folder / "config.yaml", yaml.safe_dump(config, sort_keys=False))
+    record = {"truth_grid_resolution": truth["simulation"]["grid_resolution"],
+              "grid_resolution": config["simulation"]["grid_resolution"],
+              "truth_image": truth["camera"]["width"], "image": config["camera"]["width"],
+              "truth_particles": int(result.x.shape[1]), "truth_substeps": result.substeps,
+              "clamped": clamped, "wall_contacts": at_walls, "noise": noise, "codec": codec, "seed": seed}
+    atomic_write_text(folder / "case.json", json.dumps(record, indent=2))
     return folder / "config.yaml"
 
 
-__all__ = ["Resolution", "SHAPES", "SyntheticCase", "case_config", "cube_surface", "floor", "make_case",
+__all__ = ["Resolution", "SHAPES", "SyntheticCase", "case_config", "case_domain", "cube_surface", "degrade", "wall_contacts", "floor",
+           "make_case",
            "push_upper_part", "sphere_surface", "torus_surface", "write_scene"]

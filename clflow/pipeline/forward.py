@@ -37,6 +37,8 @@ class SimulationResult:
     density: float
     x: torch.Tensor  # [T+1, M, 3] particle positions (m)
     F: torch.Tensor  # [T+1, M, 3, 3] deformation gradients
+    clamped: torch.Tensor | None = None  # [T+1] particles clamped at the grid's edge per frame
+    substeps: int = 0  # substeps per frame the run used
 
     def scene_at(self, t: int) -> SceneGaussians:
         p = self.prepared
@@ -72,7 +74,7 @@ def simulate_config(cfg: SceneConfig, overrides: dict[str, float] | None = None,
     params, density = material_values(cfg, overrides)
     sim = build_simulator(cfg, prepared.setup, params, density)
     traj = sim.run(cfg.simulation.frames)
-    return SimulationResult(prepared, params, density, traj.x, traj.F)
+    return SimulationResult(prepared, params, density, traj.x, traj.F, traj.clamped, sim.substeps)
 
 
 def to_uint8(image: torch.Tensor) -> np.ndarray:

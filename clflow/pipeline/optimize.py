@@ -286,9 +286,16 @@ class Optimization:
 
     # -- results -------------------------------------------------------------------------
 
+    def endpoint_error(self, flows: list[torch.Tensor]) -> float:
+        """Mean flow endpoint error (px) of simulated flows [H, W, 2] per frame step against
+        the observed flow, inside the loss mask."""
+        from clflow.flow.metrics import endpoint_error
+
+        mask = self.mask.numpy()
+        return float(np.mean([endpoint_error(f.numpy(), self.observed[t].numpy(), mask) for t, f in enumerate(flows)]))
+
     def write_results(self, state: OptimizerState) -> dict:
         """params.json, metrics.json, history.json, loss.png and comparison.mp4 in output/."""
-        from clflow.flow.metrics import endpoint_error
         from clflow.flow.visualize import comparison_panel, write_video
 
         out = self.cfg.output
@@ -296,9 +303,7 @@ class Optimization:
         params, density = material_values(self.cfg, final)
         result = self.evaluate(state.z, self.frames, with_grad=False, min_substeps=state.substeps)
         loss, flows = result.loss, result.flows
-        mask = self.mask.numpy()
-        epe = float(np.mean([endpoint_error(f.numpy(), self.observed[t].numpy(), mask) for t, f in enumerate(flows)]))
-        metrics = {"flow_loss": loss, "epe_px": epe, "iterations": state.iteration,
+        metrics = {"flow_loss": loss, "epe_px": self.endpoint_error(flows), "iterations": state.iteration,
                    "seconds_per_iteration": float(np.mean([h["seconds"] for h in state.history])) if state.history else 0.0}
         truth = self.cfg.ground_truth
         if truth:

@@ -42,7 +42,7 @@ def test_shapes_are_filled_with_their_volume(tmp_path, shape, volume):
 
 
 def test_a_dropped_sphere_falls_freely_until_it_lands(tmp_path):
-    case = SyntheticCase(shape="sphere", lift=0.1, forces=(), truth={"youngs_modulus": 1e5, "poissons_ratio": 0.3})
+    case = SyntheticCase(shape="sphere", lift=0.1, spread=0.5, forces=(), truth={"youngs_modulus": 1e5, "poissons_ratio": 0.3})
     config = make_case(tmp_path, case, TINY)
     result = simulate_config(load_config(tmp_path / "config_truth.yaml"))
     drop = (result.x[:, :, 1].mean(1) - result.x[0, :, 1].mean()).double()

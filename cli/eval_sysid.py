@@ -1,0 +1,60 @@
+"""``clflow eval sysid``: the nine-case system-identification benchmark (datasets_tools/sysid.py)."""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+
+@click.command("sysid")
+@click.option("--output", "-o", "output", type=click.Path(file_okay=False), required=True,
+              help="Results folder: sysid.json, sysid.md and cases/NAME/ (scene, guidance, results).")
+@click.option("--case", "cases", multiple=True, metavar="NAME",
+              help="Run only this case (repeatable). Default: all nine, or the three of --quick.")
+@click.option("--quick", is_flag=True,
+              help="Three cases (elastic torus, plasticine playdoh, Newtonian droplet) at a small grid and image: "
+                   "minutes, for CI.")
+@click.option("--iterations", type=click.IntRange(min=1), default=None, help="Override the iterations per case.")
+@click.option("--truth-scale", type=click.IntRange(min=1), default=2, show_default=True,
+              help="Grid and image refinement of the ground truth (1 reproduces the optimiser's own forward: "
+                   "an inverse crime, for diagnosis only).")
+@click.option("--noise", type=click.FloatRange(min=0.0), default=0.0, show_default=True,
+              help="Sensor noise added to the guidance frames, 8-bit grey levels (standard deviation).")
+@click.option("--codec", type=click.Choice([".mp4", ".webm", ".avi"]), default=None,
+              help="Read the guidance through this lossy video encoding instead of lossless PNG frames.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the scene's texture grain and the noise.")
+@click.option("--force", is_flag=True, help="Replace sysid results of other settings in the output folder.")
+def sysid(output, cases, quick, iterations, truth_scale, noise, codec, seed, force):
+    """Identify the material parameters of PAC-NeRF's nine synthetic cases (re-made with
+    clflow's geometry; guidance from a finer simulation and rendering than the optimiser's)
+    from the published initial guesses, and print a table like Table 3 of the PhysFlow paper.
+
+    A rerun with the same settings skips finished cases and resumes an interrupted one."""
+    import dataclasses
+    from pathlib import Path
+
+    from clflow_datasets.sysid import CASES, FULL, QUICK, QUICK_CASES, Settings, evaluate, markdown
+
+    resolution = QUICK if quick else FULL
+    if iterations is not None:
+        resolution = dataclasses.replace(resolution, iterations=iterations)
+    names = list(dict.fromkeys(cases)) or list(QUICK_CASES if quick else CASES)
+    settings = Settings(resolution=resolution, truth_scale=truth_scale, noise=noise, codec=codec, seed=seed)
+
+    def progress(name: str, row: dict) -> None:
+        params = " ".join(f"{n}={v:.4g}" for n, v in row["params"].items())
+        click.echo(f"{name}: iteration {row['iteration'] + 1}/{resolution.iterations} loss {row['loss']:.4g} "
+                   f"{params} ({row['seconds']:.1f} s)", err=True)
+
+    out = Path(output)
+    try:
+        summary = evaluate(names, out, settings, force=force, progress=progress)
+    except KeyboardInterrupt:
+        raise click.ClickException(f"interrupted; finished cases are kept in {out / 'sysid.json'}; run the same "
+                                   f"command again to resume") from None
+    click.echo(markdown(summary), nl=False)
+    failed = [n for n, r in summary["cases"].items() if r.get("status") != "ok"]
+    if failed:
+        click.echo(f"failed: {', '.join(failed)} (see {out / 'sysid.json'})", err=True)
+        sys.exit(1)

@@ -1,0 +1,290 @@
+"""The system-identification benchmark behind ``clflow eval sysid``.
+
+PAC-NeRF's nine synthetic cases (materials, ground truths and initial guesses from its
+configs; ../shared/docs/pipeline.md), re-made with clflow's own geometry: a textured shape
+dropped onto a sticky floor, seen by one guidance camera. Parameters are in clflow's SI
+conventions; for the Newtonian cases that is viscosity = mu_PAC / 2 and bulk modulus =
+7 kappa_PAC (docs/pipeline.md), which leaves every relative error unchanged.
+
+Every case's guidance video comes from a finer simulation and rendering than the one the
+optimiser runs (``truth_scale``: grid and image refined 2x, its own particle sampling and
+substep, area-downsampled frames; optional noise and video compression), so the optimiser
+cannot reproduce it exactly. ``floor_epe_px`` in a result is the flow error of the ground
+truth parameters at the optimised resolution: the model error no optimiser can remove.
+
+    results = evaluate(["torus"], Path("out"), QUICK, Settings())   # writes out/sysid.json, .md
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+from clflow_datasets.synthetic import Resolution, SyntheticCase, make_case
+
+log = logging.getLogger(__name__)
+
+# name -> case; shapes are clflow's own (cube, sphere, torus), sizes in metres, truths SI.
+CASES: dict[str, SyntheticCase] = {
+    "droplet": SyntheticCase(shape="sphere", size=0.2, lift=0.08, spread=1.75, material="newtonian",
+                             truth={"viscosity": 100.0, "bulk_modulus": 7.0e5},
+                             guess={"viscosity": 0.5, "bulk_modulus": 7.0e3},
+                             optimize=("viscosity", "bulk_modulus")),
+    "letter": SyntheticCase(shape="cube", size=0.2, lift=0.08, spread=1.75, material="newtonian",
+                            truth={"viscosity": 50.0, "bulk_modulus": 7.0e5},
+                            guess={"viscosity": 0.5, "bulk_modulus": 7.0e6},
+                            optimize=("viscosity", "bulk_modulus")),
+    "cream": SyntheticCase(shape="sphere", size=0.2, lift=0.08, spread=1.25, material="non_newtonian",
+                           truth={"shear_modulus": 1.0e4, "bulk_modulus": 1.0e6, "yield_stress": 3.0e3, "viscosity": 10.0},
+                           guess={"shear_modulus": 100.0, "bulk_modulus": 1.0e4, "yield_stress": 10.0, "viscosity": 1.0},
+                           optimize=("shear_modulus", "bulk_modulus", "yield_stress", "viscosity")),
+    "toothpaste": SyntheticCase(shape="torus", size=0.2, lift=0.08, spread=1.25, material="non_newtonian",
+                                truth={"shear_modulus": 5.0e3, "bulk_modulus": 1.0e5, "yield_stress": 200.0,
+                                       "viscosity": 10.0},
+                                guess={"shear_modulus": 100.0, "bulk_modulus": 1.0e4, "yield_stress": 10.0,
+                                       "viscosity": 0.1},
+                                optimize=("shear_modulus", "bulk_modulus", "yield_stress", "viscosity")),
+    "torus": SyntheticCase(shape="torus", size=0.2, lift=0.08, spread=0.75, material="elastic",
+                           truth={"youngs_modulus": 1.0e6, "poissons_ratio": 0.3},
+                           guess={"youngs_modulus": 1.0e5, "poissons_ratio": 0.1},
+                           optimize=("youngs_modulus", "poissons_ratio")),
+    "bird": SyntheticCase(shape="sphere", size=0.2, lift=0.08, spread=0.75, material="elastic",
+                          truth={"youngs_modulus": 3.0e5, "poissons_ratio": 0.3},
+                          guess={"youngs_modulus": 1.0e3, "poissons_ratio": 0.1},
+                          optimize=("youngs_modulus", "poissons_ratio")),
+    "playdoh": SyntheticCase(shape="cube", size=0.2, lift=0.08, spread=0.75, material="plasticine",
+                             truth={"youngs_modulus": 2.0e6, "poissons_ratio": 0.3, "yield_stress": 1.54e4},
+                             guess={"youngs_modulus": 1.0e5, "poissons_ratio": 0.4, "yield_stress": 1.0e3},
+                             optimize=("youngs_modulus", "poissons_ratio", "yield_stress")),
+    "cat": SyntheticCase(shape="sphere", size=0.2, lift=0.08, spread=0.75, material="plasticine",
+                         truth={"youngs_modulus": 1.0e6, "poissons_ratio": 0.3, "yield_stress": 3.85e3},
+                         guess={"youngs_modulus": 1.0e3, "poissons_ratio": 0.2, "yield_stress": 100.0},
+                         optimize=("youngs_modulus", "poissons_ratio", "yield_stress")),
+    "trophy": SyntheticCase(shape="cube", size=0.2, lift=0.08, spread=1.25, material="sand",
+                            truth={"friction_angle": 40.0, "youngs_modulus": 1.0e6, "poissons_ratio": 0.3},
+                            guess={"friction_angle": 10.0}, optimize=("friction_angle",)),
+}
+
+QUICK_CASES = ("torus", "playdoh", "droplet")  # elastic, plasticine, Newtonian: the CI subset
+
+# PAC-NeRF's 14 frames at 24 fps and 30 iterations; QUICK is small enough for CI.
+FULL = Resolution(object_detail=12, floor_side=32, image=160, grid=24, frames=14, iterations=30)
+QUICK = Resolution(object_detail=8, floor_side=20, image=96, grid=16, frames=8, iterations=12)
+
+# Table 3 of the PhysFlow paper (CVPR 2025): (mean RE, EPE px) per case and method; their
+# images are 800 x 800 px, so their EPE is not comparable with ours in pixels.
+PUBLISHED: dict[str, dict[str, tuple[float, float]]] = {
+    "droplet": {"PAC-NeRF": (0.06, 0.28), "GIC": (0.41, 0.42), "PhysFlow": (0.02, 0.08)},
+    "letter": {"PAC-NeRF": (0.26, 0.11), "GIC": (0.02, 0.07), "PhysFlow": (0.46, 0.13)},
+    "cream": {"PAC-NeRF": (3.04, 0.61), "GIC": (0.21, 0.20), "PhysFlow": (0.54, 0.64)},
+    "toothpaste": {"PAC-NeRF": (0.42, 0.15), "GIC": (0.11, 0.07), "PhysFlow": (0.24, 0.16)},
+    "torus": {"PAC-NeRF": (0.06, 0.52), "GIC": (0.01, 0.24), "PhysFlow": (0.51, 1.04)},
+    "bird": {"PAC-NeRF": (0.08, 0.62), "GIC": (0.04, 0.36), "PhysFlow": (0.31, 0.69)},
+    "playdoh": {"PAC-NeRF": (0.37, 0.55), "GIC": (0.10, 0.16), "PhysFlow": (0.15, 0.29)},
+    "cat": {"PAC-NeRF": (0.31, 0.34), "GIC": (0.02, 0.08), "PhysFlow": (0.34, 0.24)},
+    "trophy": {"PAC-NeRF": (0.10, 3.30), "GIC": (0.05, 1.85), "PhysFlow": (0.01, 1.33)},
+}
+PUBLISHED_MEAN = {"PAC-NeRF": (0.52, 0.72), "GIC": (0.11, 0.38), "PhysFlow": (0.29, 0.51)}
+METHODS = ("PAC-NeRF", "GIC", "PhysFlow")
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What a benchmark run depends on besides its cases (a rerun resumes only with equal settings)."""
+
+    resolution: Resolution = FULL
+    truth_scale: int = 2  # ground truth's grid and image refinement
+    noise: float = 0.0  # sensor noise, 8-bit grey levels
+    codec: str | None = None  # video suffix of a lossy guidance video, e.g. ".mp4"
+    seed: int = 0
+
+
+def check_case(name: str, case: SyntheticCase) -> None:
+    """ValueError if a case's truth or guess is not a valid start for its material."""
+    from clflow.materials import validate_params
+    from clflow.mpm.parameterization import parameterization
+
+    for label, values in (("truth", case.truth), ("guess", {**case.truth, **case.guess})):
+        try:
+            validate_params(case.material, values)
+            for p in case.optimize:
+                parameterization(case.material, p).encode(values[p])
+        except Exception as exc:  # InputError from the registry or the encoding
+            raise ValueError(f"case {name!r}: its {label} is out of range: {exc}") from None
+
+
+def run_case(name: str, folder: Path, settings: Settings, *, progress: Callable[[dict], None] | None = None) -> dict:
+    """Make case ``name`` in ``folder`` (unless a finished copy is there), optimise it (resuming
+    an interrupted optimisation) and return its result record (see module docstring)."""
+    import numpy as np
+
+    from clflow.errors import ClflowError
+    from clflow.pipeline.optimize import Optimization
+    from clflow.scene.config import load_config
+
+    case = CASES[name]
+    check_case(name, case)
+    start = time.perf_counter()
+    made = folder / "case.json"
+    if not made.exists():  # an interrupted generation leaves no case.json: make it again
+        make_case(folder, case, settings.resolution, settings.seed, truth_scale=settings.truth_scale,
+                  noise=settings.noise, codec=settings.codec)
+    generation = json.loads(made.read_text())
+    generated = time.perf_counter()
+    cfg = load_config(folder / "config.yaml")
+    record = {"case": name, "material": case.material, "generation": generation, "status": "ok"}
+    try:
+        opt = Optimization(cfg, progress=progress)
+        state = opt.run(resume=True)
+        metrics = opt.write_results(state)
+        truth_z = {n: float(opt.params[n].encode(case.truth[n])) for n in opt.params}
+        floor = opt.evaluate(truth_z, opt.frames, with_grad=False, min_substeps=state.substeps)
+        floor_epe = opt.endpoint_error(floor.flows)
+    except ClflowError as exc:
+        record.update(status=f"failed: {exc}", seconds=time.perf_counter() - start)
+        return record
+    found = opt.values(state.z)
+    record["parameters"] = {n: {"found": found[n], "truth": case.truth[n], "guess": case.guess.get(n, case.truth[n]),
+                                "re": abs(found[n] - case.truth[n]) / abs(case.truth[n])} for n in case.optimize}
+    record.update(
+        mean_re=float(np.mean([p["re"] for p in record["parameters"].values()])),
+        epe_px=metrics["epe_px"], floor_epe_px=floor_epe, iterations=state.iteration,
+        substeps=state.substeps, generation_seconds=generated - start,
+        seconds=time.perf_counter() - start,
+    )
+    return record
+
+
+def settings_record(settings: Settings) -> dict:
+    return json.loads(json.dumps(asdict(settings)))
+
+
+def evaluate(names: list[str], out: Path, settings: Settings, *, force: bool = False,
+             progress: Callable[[str, dict], None] | None = None) -> dict:
+    """Run the cases ``names`` into ``out`` (``out/cases/NAME``), writing ``sysid.json`` and
+    ``sysid.md`` after each case. A rerun with the same settings skips finished cases and
+    resumes an interrupted one; other results in ``out`` are refused unless ``force``."""
+    from clflow.errors import InputError
+    from clflow.fileio import atomic_write_text
+
+    unknown = [n for n in names if n not in CASES]
+    if unknown:
+        raise InputError(f"unknown case(s) {', '.join(unknown)}; the cases are {', '.join(CASES)}")
+    for n in names:
+        try:
+            check_case(n, CASES[n])
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+    summary_path = out / "sysid.json"
+    wanted = settings_record(settings)
+    summary = {"settings": wanted, "cases": {}}
+    if summary_path.exists():
+        try:
+            previous = json.loads(summary_path.read_text())
+            same = previous.get("settings") == wanted
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{summary_path} is not a clflow sysid result ({exc}); use --force to start over") from None
+        if same:
+            summary = previous
+        elif not force:
+            raise InputError(f"{out} holds sysid results of other settings ({_difference(previous.get('settings'), wanted)}); "
+                             f"use another -o folder, or --force to replace them")
+    elif out.exists() and any(out.iterdir()) and not force:
+        raise InputError(f"{out} exists and holds other files; use an empty or new -o folder, or --force")
+    if force and summary["cases"] == {} and (out / "cases").exists():
+        shutil.rmtree(out / "cases")
+    out.mkdir(parents=True, exist_ok=True)
+    summary["environment"] = environment()
+    for name in names:
+        if summary["cases"].get(name, {}).get("status") == "ok":
+            log.info("%s: done earlier, skipped", name)
+            continue
+        record = run_case(name, out / "cases" / name, settings,
+                          progress=(lambda row, n=name: progress(n, row)) if progress else None)
+        summary["cases"][name] = record
+        atomic_write_text(summary_path, json.dumps(summary, indent=2))
+        atomic_write_text(out / "sysid.md", markdown(summary))
+    return summary
+
+
+def _difference(old: dict | None, new: dict) -> str:
+    if not isinstance(old, dict):
+        return "no settings recorded"
+    keys = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+    return ", ".join(f"{k}: {old.get(k)} -> {new.get(k)}" for k in keys)
+
+
+def environment() -> dict:
+    """Versions and the OpenCL device a result was made with."""
+    import platform
+
+    import pyopencl
+    import torch
+
+    import clflow
+    from clflow.runtime import get_device
+
+    device = get_device()
+    return {"clflow": clflow.__version__, "torch": torch.__version__, "pyopencl": pyopencl.VERSION_TEXT,
+            "device": str(getattr(device, "name", device)), "python": platform.python_version(),
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            "load": _load_average()}
+
+
+def _load_average() -> float | None:
+    try:
+        import os
+
+        return round(os.getloadavg()[0], 2)
+    except OSError:
+        return None
+
+
+def _fmt(value: float) -> str:
+    return f"{value:.3g}"
+
+
+def markdown(summary: dict) -> str:
+    """The results as a Markdown table in the layout of the paper's Table 3, with the
+    published rows (RE / EPE) beside ours."""
+    cases = summary["cases"]
+    lines = ["| case | material | parameter: found (truth) | RE | EPE px (floor) | iterations | seconds | "
+             + " | ".join(f"{m} RE/EPE" for m in METHODS) + " |",
+             "|---" * (7 + len(METHODS)) + "|"]
+    ok = [r for r in cases.values() if r.get("status") == "ok"]
+    for name, r in cases.items():
+        published = " | ".join(f"{PUBLISHED[name][m][0]:.2f}/{PUBLISHED[name][m][1]:.2f}" for m in METHODS)
+        if r.get("status") != "ok":
+            lines.append(f"| {name} | {r['material']} | {r['status']} | - | - | - | {r.get('seconds', 0):.0f} | {published} |")
+            continue
+        params = "<br>".join(f"{n}: {_fmt(p['found'])} ({_fmt(p['truth'])}), RE {p['re']:.3f}"
+                             for n, p in r["parameters"].items())
+        lines.append(f"| {name} | {r['material']} | {params} | {r['mean_re']:.3f} | {r['epe_px']:.3f} "
+                     f"({r['floor_epe_px']:.3f}) | {r['iterations']} | {r['seconds']:.0f} | {published} |")
+    if ok:
+        mean_re = sum(r["mean_re"] for r in ok) / len(ok)
+        mean_epe = sum(r["epe_px"] for r in ok) / len(ok)
+        published = " | ".join(f"{PUBLISHED_MEAN[m][0]:.2f}/{PUBLISHED_MEAN[m][1]:.2f}" for m in METHODS)
+        total = sum(r.get("seconds", 0.0) for r in cases.values())
+        lines.append(f"| **mean** ({len(ok)} of {len(cases)}) | | | **{mean_re:.3f}** | **{mean_epe:.3f}** | | "
+                     f"{total:.0f} | {published} |")
+    s = summary["settings"]
+    res = s["resolution"]
+    env = summary.get("environment", {})
+    lines += ["", f"Settings: grid {res['grid']} nodes, image {res['image']} px, {res['frames']} frames, "
+              f"{res['iterations']} iterations; ground truth at {s['truth_scale']}x grid and image; noise "
+              f"{s['noise']} grey levels; codec {s['codec'] or 'none (PNG)'}; seed {s['seed']}.",
+              f"Made {env.get('date', '?')} with clflow {env.get('clflow', '?')}, torch {env.get('torch', '?')}, "
+              f"pyopencl {env.get('pyopencl', '?')} on {env.get('device', '?')} (load {env.get('load', '?')}). "
+              "Published rows: PhysFlow (CVPR 2025) Table 3, 800 x 800 px images."]
+    return "\n".join(lines) + "\n"
+
+
+__all__ = ["CASES", "FULL", "METHODS", "PUBLISHED", "PUBLISHED_MEAN", "QUICK", "QUICK_CASES", "Settings",
+           "check_case", "environment", "evaluate", "markdown", "run_case"]
+

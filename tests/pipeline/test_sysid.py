@@ -1,0 +1,127 @@
+"""``clflow eval sysid``: the benchmark's cases, its honesty (no inverse crime), bad input and resuming."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from clflow.errors import InputError
+from clflow_cli.main import cli
+from clflow_datasets import sysid
+from clflow_datasets.synthetic import Resolution, SyntheticCase, make_case
+
+TINY = Resolution(object_detail=6, floor_side=8, image=48, grid=14, frames=3, iterations=2)
+
+
+@pytest.mark.parametrize("name", list(sysid.CASES))
+def test_every_case_starts_from_a_valid_guess(name):
+    sysid.check_case(name, sysid.CASES[name])  # e.g. the trophy's 10 degree friction angle (PAC-NeRF's start)
+    assert set(sysid.PUBLISHED[name]) == set(sysid.METHODS)
+
+
+def test_the_guidance_is_not_the_optimisers_own_forward(tmp_path):
+    case = SyntheticCase(shape="sphere", lift=0.02, spread=0.75)
+    config = make_case(tmp_path, case, TINY, truth_scale=2)
+    truth, opt = (yaml.safe_load((tmp_path / name).read_text()) for name in ("config_truth.yaml", "config.yaml"))
+    assert truth["simulation"]["grid_resolution"] - 1 == 2 * (opt["simulation"]["grid_resolution"] - 1)
+    assert truth["simulation"]["domain"] == opt["simulation"]["domain"]  # the same space, half the spacing
+    assert truth["camera"]["width"] == 2 * opt["camera"]["width"] == 2 * TINY.image
+    record = json.loads((tmp_path / "case.json").read_text())
+    assert record["truth_grid_resolution"] != record["grid_resolution"] and record["truth_image"] != record["image"]
+    assert record["clamped"] == 0 and record["wall_contacts"] == 0
+    import cv2
+
+    frame = cv2.imread(str(tmp_path / "guidance" / "000.png"))
+    assert frame.shape[:2] == (TINY.image, TINY.image)  # area-downsampled to the optimiser's camera
+    assert config.name == "config.yaml"
+
+
+def test_noise_and_codec_reach_the_optimisers_input(tmp_path):
+    make_case(tmp_path / "clean", SyntheticCase(), TINY, truth_scale=1)
+    make_case(tmp_path / "noisy", SyntheticCase(), TINY, truth_scale=1, noise=4.0, codec=".avi")
+    import cv2
+
+    clean, noisy = (cv2.imread(str(tmp_path / d / "guidance" / "001.png")).astype(float) for d in ("clean", "noisy"))
+    assert 3.0 < np.std(noisy - clean) < 5.0
+    cfg = yaml.safe_load((tmp_path / "noisy" / "config.yaml").read_text())
+    assert cfg["video"] == "guidance_coded.avi" and (tmp_path / "noisy" / "guidance_coded.avi").stat().st_size > 0
+
+
+def test_a_case_without_room_for_its_motion_fails(tmp_path):
+    # a runny fluid dropped into a domain with no room to spread reaches the walls
+    case = SyntheticCase(shape="cube", lift=0.05, spread=0.0, material="newtonian",
+                         truth={"viscosity": 0.01, "bulk_modulus": 1e5}, guess={}, optimize=("viscosity",))
+    with pytest.raises(ValueError, match="more room"):
+        make_case(tmp_path, case, dataclasses.replace(TINY, frames=10), truth_scale=1)
+
+
+def test_unknown_case_is_one_clear_line(tmp_path):
+    result = CliRunner().invoke(cli, ["eval", "sysid", "-o", str(tmp_path / "out"), "--case", "teapot"])
+    assert result.exit_code != 0
+    assert "unknown case(s) teapot" in result.output and "Traceback" not in result.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_case_out_of_range_is_refused_before_any_work(tmp_path, monkeypatch):
+    bad = dataclasses.replace(sysid.CASES["torus"], guess={"poissons_ratio": 0.7})
+    monkeypatch.setitem(sysid.CASES, "torus", bad)
+    with pytest.raises(InputError, match="torus.*guess is out of range"):
+        sysid.evaluate(["torus"], tmp_path / "out", sysid.Settings(resolution=TINY))
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_folder_with_other_files_is_refused_without_force(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="holds other files"):
+        sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))
+    assert (out / "notes.txt").read_text() == "mine"
+
+
+@pytest.fixture
+def tiny_cases(monkeypatch):
+    """The torus case, shrunk to a few seconds."""
+    case = dataclasses.replace(sysid.CASES["torus"], guess={"youngs_modulus": 3e5}, optimize=("youngs_modulus",))
+    monkeypatch.setitem(sysid.CASES, "torus", case)
+
+
+def test_rerun_skips_finished_cases_and_other_settings_need_force(tmp_path, tiny_cases):
+    out = tmp_path / "out"
+    first = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))
+    record = first["cases"]["torus"]
+    assert record["status"] == "ok" and record["iterations"] == TINY.iterations
+    assert set(record["parameters"]) == {"youngs_modulus"} and record["floor_epe_px"] >= 0
+    table = (out / "sysid.md").read_text()
+    assert "| torus | elastic |" in table and "PhysFlow RE/EPE" in table and "0.51/1.04" in table
+    again = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))
+    assert again["cases"]["torus"] == record  # skipped, not rerun
+    other = sysid.Settings(resolution=TINY, noise=2.0)
+    with pytest.raises(InputError, match="other settings.*noise: 0.0 -> 2.0"):
+        sysid.evaluate(["torus"], out, other)
+    assert json.loads((out / "sysid.json").read_text())["cases"]["torus"] == record  # nothing lost
+    replaced = sysid.evaluate(["torus"], out, other, force=True)
+    assert replaced["settings"]["noise"] == 2.0 and replaced["cases"]["torus"]["generation"]["noise"] == 2.0
+
+
+def test_an_interrupted_case_resumes_its_optimisation(tmp_path, tiny_cases, monkeypatch):
+    from clflow.pipeline import optimize
+
+    out = tmp_path / "out"
+    real_run = optimize.Optimization.run
+
+    def interrupted(self, resume=False, stop_after=None):
+        real_run(self, resume=resume, stop_after=1)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(optimize.Optimization, "run", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))
+    checkpoint = json.loads((out / "cases" / "torus" / "results" / "checkpoint.json").read_text())
+    assert checkpoint["state"]["iteration"] == 1
+    monkeypatch.setattr(optimize.Optimization, "run", real_run)
+    resumed = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))["cases"]["torus"]
+    assert resumed["status"] == "ok" and resumed["iterations"] == TINY.iterations
