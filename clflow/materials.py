@@ -13,7 +13,7 @@ scene configs and the optimiser's parameterisations. Pure Python: importing it i
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 from clflow.errors import InputError
@@ -152,11 +152,13 @@ MATERIALS: dict[str, Material] = {
         ),
         Material(
             "newtonian",
-            "J-based fluid: Tait pressure kappa (J^-7 - 1) and viscous stress 2 mu J dev(sym C)",
+            "J-based fluid: Tait pressure (kappa / 7)(J^-7 - 1), kappa the bulk modulus, and viscous "
+            "stress 2 mu J dev(sym C)",
             (
                 Param("viscosity", "mu", "Pa*s", 1.0, (0.0, INF), (1e-4, 1e5), low_inclusive=True,
                       doc="dynamic viscosity (PAC-NeRF's 'mu' is twice this)"),
-                _KAPPA,
+                replace(_KAPPA, doc="bulk modulus -J dp/dJ at rest, sound speed sqrt(kappa / rho) "
+                                    "(PAC-NeRF's Tait kappa is 1/7 of it)"),
             ),
             1000.0,
             aliases=("newtonian_fluid", "fluid", "water"),
