@@ -27,8 +27,9 @@ class Param:
 
     ``valid`` is the open/closed interval the model accepts at all (outside it the physics
     is undefined: e.g. nu >= 0.5); ``typical`` is the plausible range for real materials,
-    used to clamp foundation-model answers and to bound optimisation. ``scale`` says how an
-    optimiser should parameterise it (log10 for moduli and viscosities).
+    used to clamp foundation-model answers and to size the optimiser's steps of bounded
+    parameters (never to reject a valid start). ``scale`` says how an optimiser should
+    parameterise it (log10 for moduli and viscosities; clflow.mpm.parameterization).
     """
 
     name: str  # spelled-out API name, e.g. "youngs_modulus"
