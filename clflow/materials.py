@@ -13,7 +13,7 @@ scene configs and the optimiser's parameterisations. Pure Python: importing it i
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 from clflow.errors import InputError
@@ -27,8 +27,9 @@ class Param:
 
     ``valid`` is the open/closed interval the model accepts at all (outside it the physics
     is undefined: e.g. nu >= 0.5); ``typical`` is the plausible range for real materials,
-    used to clamp foundation-model answers and to bound optimisation. ``scale`` says how an
-    optimiser should parameterise it (log10 for moduli and viscosities).
+    used to clamp foundation-model answers and to size the optimiser's steps of bounded
+    parameters (never to reject a valid start). ``scale`` says how an optimiser should
+    parameterise it (log10 for moduli and viscosities; clflow.mpm.parameterization).
     """
 
     name: str  # spelled-out API name, e.g. "youngs_modulus"
@@ -152,11 +153,13 @@ MATERIALS: dict[str, Material] = {
         ),
         Material(
             "newtonian",
-            "J-based fluid: Tait pressure kappa (J^-7 - 1) and viscous stress 2 mu J dev(sym C)",
+            "J-based fluid: Tait pressure (kappa / 7)(J^-7 - 1), kappa the bulk modulus, and viscous "
+            "stress 2 mu J dev(sym C)",
             (
                 Param("viscosity", "mu", "Pa*s", 1.0, (0.0, INF), (1e-4, 1e5), low_inclusive=True,
                       doc="dynamic viscosity (PAC-NeRF's 'mu' is twice this)"),
-                _KAPPA,
+                replace(_KAPPA, doc="bulk modulus -J dp/dJ at rest, sound speed sqrt(kappa / rho) "
+                                    "(PAC-NeRF's Tait kappa is 1/7 of it)"),
             ),
             1000.0,
             aliases=("newtonian_fluid", "fluid", "water"),

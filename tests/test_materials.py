@@ -17,6 +17,8 @@ def test_every_material_of_the_method_is_registered_with_consistent_params():
         for p in mat.params:
             lo, hi = p.valid
             assert lo <= p.typical[0] <= p.typical[1] <= hi, (mat.name, p.name)
+            if p.scale == "bounded":  # its logistic map covers (lo, hi), steps set by the typical range
+                assert math.isfinite(hi - lo) and p.typical[0] < p.typical[1], (mat.name, p.name)
             assert p.check(p.default) == p.default  # defaults are valid
             assert p.unit and p.doc
         assert DENSITY.check(mat.default_density)

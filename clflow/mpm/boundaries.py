@@ -52,7 +52,8 @@ class HalfSpace:
     """Collider filling {x : (x - point).normal < 0}; ``normal`` points into the free side.
 
     mode: "sticky" (v = 0), "slip" (normal velocity removed) or "separate" (removed only when
-    moving into the collider); ``friction`` mu_f is Coulomb friction for slip/separate.
+    moving into the collider); ``friction`` mu_f is Coulomb friction for slip/separate, acting
+    while the node moves into the collider (it takes mu_f |v.n| off the tangential speed).
     Active for start <= t < end (s)."""
 
     point: Vec3

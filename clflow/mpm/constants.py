@@ -122,6 +122,17 @@ def kernel_params(material: str, params: dict[str, float], model: str | None = N
     return MATERIAL_IDS[name], values + [0.0] * (PARAM_COUNT - len(values)), plastic
 
 
+def explicit_viscosity(material: str, params: dict[str, float]) -> float:
+    """Dynamic viscosity (Pa s) whose stress the kernels take explicitly from the current
+    velocity gradient, so that it limits dt like diffusion: the Newtonian fluid's
+    (tau = 2 mu J dev(sym C)). 0 for every other material: the viscoplastic return of foam and
+    the non-Newtonian fluid relaxes the overstress implicitly in eta (||s'|| = ||s|| -
+    y / (1 + eta / (2 mu_hat dt))), which never stiffens it beyond its elastic response, so
+    their elastic wave limit suffices (docs/mpm.md, "Safety")."""
+    mat = get_material(material)
+    return validate_params(mat.name, params)["viscosity"] if mat.name == "newtonian" else 0.0
+
+
 def wave_speed(material: str, params: dict[str, float], density: float) -> float:
     """Speed (m/s) of the fastest elastic (pressure) wave of the material at rest."""
     mat = get_material(material)

@@ -6,8 +6,12 @@ the registry's ranges (clflow/materials.py), and gradient clipping.
     frames = simulate(sim, 10, youngs_modulus=p.decode(z))
 
 Scales (``Param.scale``): "log" -> value = 10^z (moduli, viscosities, yield stresses);
-"bounded" -> value = lo + (hi - lo) sigmoid(z) on the parameter's typical range (Poisson's
-ratio in (0, 0.49), friction angle); "linear" -> value = z, clamped into the valid range by
+"bounded" -> value = lo + (hi - lo) sigmoid(a z + b) on the parameter's whole valid range
+(lo, hi) (Poisson's ratio in (-1, 0.5), friction angle in (0, 90) deg), so every valid value
+is a possible start; the typical range only sets the step: z = 0 is its middle, where one
+unit of z is a quarter of its width (friction angle 11.25 deg, Poisson's ratio 0.1225: what a
+logistic map onto the typical range alone would give, and near PAC-NeRF's Adam rates at the
+default rate of 0.1 per iteration); "linear" -> value = z, clamped into the valid range by
 the caller's choice of steps (hardening, cohesion).
 """
 
@@ -31,8 +35,17 @@ class Parameterization:
 
     @property
     def bounds(self) -> tuple[float, float]:
-        """(lower, upper) of a bounded parameter: its typical range."""
-        return self.param.typical
+        """(lower, upper) of a bounded parameter: its valid range, open at both ends."""
+        return self.param.valid
+
+    @property
+    def logistic(self) -> tuple[float, float]:
+        """(a, b) of a bounded parameter's map u = sigmoid(a z + b), value = lo + (hi - lo) u:
+        z = 0 at the middle of the typical range, d value / dz there = a quarter of its width."""
+        lo, hi = self.bounds
+        typical_lo, typical_hi = self.param.typical
+        u0 = ((typical_lo + typical_hi) / 2 - lo) / (hi - lo)
+        return (typical_hi - typical_lo) / (4 * (hi - lo) * u0 * (1 - u0)), math.log(u0 / (1 - u0))
 
     def decode(self, z: torch.Tensor) -> torch.Tensor:
         """The parameter value (SI) of z; differentiable."""
@@ -41,11 +54,13 @@ class Parameterization:
             return torch.pow(10.0, z)
         if scale == "bounded":
             lo, hi = self.bounds
-            return lo + (hi - lo) * torch.sigmoid(z)
+            a, b = self.logistic
+            return lo + (hi - lo) * torch.sigmoid(a * z + b)
         return z
 
     def encode(self, value, dtype: torch.dtype = torch.float64) -> torch.Tensor:
-        """z of a parameter value (a number or tensor, SI); InputError outside the range."""
+        """z of a parameter value (a number or tensor, SI); InputError outside the range
+        (for a bounded parameter: its valid range without the ends, which no z reaches)."""
         value = torch.as_tensor(value, dtype=dtype).clone()
         scale, name = self.param.scale, self.param.name
         if scale == "log":
@@ -54,10 +69,15 @@ class Parameterization:
             return torch.log10(value)
         if scale == "bounded":
             lo, hi = self.bounds
-            if bool(((value <= lo) | (value >= hi)).any()):
-                raise InputError(f"{name}: value {value.tolist()} outside the bounded range ({lo:g}, {hi:g})")
+            outside = ~((value > lo) & (value < hi))  # NaN too
+            if bool(outside.any()):
+                shown = f"{float(value):g}" if value.dim() == 0 else str(value[outside].tolist())
+                unit = "" if self.param.unit == "1" else f" {self.param.unit}"
+                raise InputError(f"{name} ({self.param.symbol}) = {shown}{unit} is outside the open range "
+                                 f"({lo:g}, {hi:g}) that its optimisation variable covers")
+            a, b = self.logistic
             u = (value - lo) / (hi - lo)
-            return torch.log(u) - torch.log1p(-u)
+            return (torch.log(u) - torch.log1p(-u) - b) / a
         return value
 
 

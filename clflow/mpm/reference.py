@@ -188,7 +188,9 @@ def _apply_boundaries(grid: Grid, v, active, boundaries, t):
             else:
                 vt = v - vn[:, None] * b
                 vt_norm = vt.norm(dim=-1)
-                keep = torch.where(vt_norm > 0, torch.clamp(1 - rec[10] * vn.abs() / torch.where(vt_norm > 0, vt_norm, 1.0), min=0), 0.0)
+                friction = rec[10] * torch.clamp(-vn, min=0)  # Coulomb: only while moving into the surface
+                keep = torch.where(vt_norm > friction, 1 - friction / torch.where(vt_norm > 0, vt_norm, 1.0),
+                                   (friction == 0).to(v.dtype))
                 new = keep[:, None] * vt
                 if mode == COLLIDER_MODES["separate"]:
                     inside = inside & (vn < 0)

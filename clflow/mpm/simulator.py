@@ -18,12 +18,22 @@ import torch
 from clflow.errors import ClflowError, InputError
 from clflow.materials import DENSITY, get_material
 from clflow.mpm.boundaries import DriverGroups, Force, GridCondition, boundary_table, wall_colliders
-from clflow.mpm.constants import CLAMP_MARGIN, COLLIDER_MODES, MASS_EPS_REL, kernel_params, wave_speed
+from clflow.mpm.constants import (
+    CLAMP_MARGIN,
+    COLLIDER_MODES,
+    MASS_EPS_REL,
+    explicit_viscosity,
+    kernel_params,
+    wave_speed,
+)
 from clflow.mpm.substep import Grid, P2GMode, Particles, State, SubstepKernels
 from clflow.runtime import Device, get_device
 
 CFL_NUMBER = 0.3  # dt <= CFL_NUMBER dx / max|v|
 WAVE_NUMBER = 0.5  # dt <= WAVE_NUMBER dx / c, c the fastest elastic wave speed
+# dt <= VISCOUS_NUMBER rho dx^2 / mu, mu the explicit viscosity (constants.explicit_viscosity);
+# a Newtonian block blows up above 0.34-0.46 (measured, docs/mpm.md "Safety")
+VISCOUS_NUMBER = 0.2
 
 
 class SimulationError(ClflowError):
@@ -31,7 +41,7 @@ class SimulationError(ClflowError):
 
 
 class StabilityWarning(UserWarning):
-    """The time step exceeds a stability limit (CFL or elastic wave speed)."""
+    """The time step exceeds a stability limit (CFL, elastic wave speed or viscous diffusion)."""
 
 
 @dataclass(frozen=True)
@@ -45,6 +55,17 @@ class MaterialSpec:
     params: dict[str, float] = field(default_factory=dict)
     density: float | None = None
     model: str | None = None
+
+
+@dataclass(frozen=True)
+class MaterialLimits:
+    """What limits the time step of one material spec: its fastest elastic wave speed (m/s),
+    the viscosity it applies explicitly (Pa s) and its density (kg/m^3)."""
+
+    name: str
+    wave_speed: float
+    viscosity: float
+    density: float
 
 
 @dataclass
@@ -74,8 +95,8 @@ def _as_tensor(value, shape: tuple[int, ...], what: str, dtype: torch.dtype) -> 
 
 def _material_arrays(materials, material_index, n: int, dtype: torch.dtype):
     """Per-particle kernel material ids [N] int32, kernel parameters [N, PARAM_COUNT],
-    densities [N] (kg/m^3, float64), initial plastic state [N], and (name, wave speed m/s)
-    of each material spec."""
+    densities [N] (kg/m^3, float64), initial plastic state [N], and the
+    :class:`MaterialLimits` of each material spec."""
     specs = [materials] if isinstance(materials, MaterialSpec) else list(materials)
     if not specs:
         raise InputError("materials: give at least one MaterialSpec")
@@ -90,7 +111,7 @@ def _material_arrays(materials, material_index, n: int, dtype: torch.dtype):
         if int(index.min()) < 0 or int(index.max()) >= len(specs):
             raise InputError(f"material_index values must lie in [0, {len(specs)}), got "
                              f"[{int(index.min())}, {int(index.max())}]")
-    rows, densities, plastic0, wave_speeds = [], [], [], []
+    rows, densities, plastic0, limits = [], [], [], []
     for k, spec in enumerate(specs):
         mat = get_material(spec.name)
         rho = DENSITY.check(mat.default_density if spec.density is None else spec.density, f"materials[{k}]")
@@ -98,14 +119,15 @@ def _material_arrays(materials, material_index, n: int, dtype: torch.dtype):
         rows.append([mid] + values)
         densities.append(rho)
         plastic0.append(plastic)
-        wave_speeds.append((mat.name, wave_speed(mat.name, spec.params, rho)))
+        limits.append(MaterialLimits(mat.name, wave_speed(mat.name, spec.params, rho),
+                                     explicit_viscosity(mat.name, spec.params), rho))
     table = torch.tensor(rows, dtype=torch.float64)[index]
     return (
         table[:, 0].to(torch.int32).contiguous(),
         table[:, 1:].to(dtype).contiguous(),
         torch.tensor(densities, dtype=torch.float64)[index],
         torch.tensor(plastic0, dtype=dtype)[index].contiguous(),
-        wave_speeds,
+        limits,
     )
 
 
@@ -172,7 +194,7 @@ class Simulator:
         if not bool((vol > 0).all()):
             raise InputError("volume: every particle volume must be > 0 m^3")
 
-        material, param, density, plastic0, self.wave_speeds = _material_arrays(materials, material_index, n, dtype)
+        material, param, density, plastic0, self.material_limits = _material_arrays(materials, material_index, n, dtype)
         mass = vol * density
 
         self.drivers = DriverGroups(forces, x.double(), mass)
@@ -242,15 +264,23 @@ class Simulator:
             )
 
     def _dt_limits(self, v: torch.Tensor) -> list[tuple[float, str]]:
-        limits = [(WAVE_NUMBER * self.grid.dx / c, f"elastic wave speed {c:.3g} m/s of {name}")
-                  for name, c in self.wave_speeds if c > 0]
+        dx = self.grid.dx
+        limits = []
+        for m in self.material_limits:
+            if m.wave_speed > 0:
+                limits.append((WAVE_NUMBER * dx / m.wave_speed,
+                               f"elastic wave speed {m.wave_speed:.3g} m/s of {m.name}"))
+            if m.viscosity > 0:
+                limits.append((VISCOUS_NUMBER * m.density * dx**2 / m.viscosity,
+                               f"viscous diffusion of {m.name}, viscosity {m.viscosity:.3g} Pa s at "
+                               f"{m.density:.3g} kg/m^3"))
         vmax = float(v.double().norm(dim=-1).max()) if v.numel() else 0.0
         if vmax > 0:
-            limits.append((CFL_NUMBER * self.grid.dx / vmax, f"CFL with max speed {vmax:.3g} m/s"))
+            limits.append((CFL_NUMBER * dx / vmax, f"CFL with max speed {vmax:.3g} m/s"))
         return limits
 
     def stable_substeps(self, v: torch.Tensor | None = None) -> int:
-        """Smallest substep count per frame meeting the CFL and elastic-wave limits."""
+        """Smallest substep count per frame meeting the CFL, elastic-wave and viscous limits."""
         limits = self._dt_limits(self.state.v if v is None else v)
         dt_max = min((lim for lim, _ in limits), default=self.frame_dt)
         return max(1, math.ceil(self.frame_dt / dt_max * (1 - 1e-12)))

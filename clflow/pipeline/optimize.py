@@ -40,7 +40,9 @@ log = logging.getLogger(__name__)
 
 BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
-DEFAULT_RATE = 0.1  # per iteration, in z units (a decade per 10 steps for log parameters)
+# per iteration, in z units: a decade per 10 steps for log parameters, a fortieth of the
+# typical range (nu 0.012, phi 1.1 deg) near its middle for bounded ones
+DEFAULT_RATE = 0.1
 MAX_FAILURES = 4  # consecutive failed iterations before giving up
 CLIP_NORM = 10.0  # gradient clipping in z space
 

@@ -206,7 +206,7 @@ class SimulationSettings:
     grid_resolution: int = 32  # nodes along the longest side of the domain
     domain_lower: tuple[float, float, float] | None = None  # m; None: around the object
     domain_upper: tuple[float, float, float] | None = None
-    substep_dt: float | None = None  # s; None: automatic (CFL and elastic wave speed)
+    substep_dt: float | None = None  # s; None: automatic (CFL, elastic wave speed, viscosity)
     fps: float = 24.0
     frames: int = 24
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)  # m/s^2

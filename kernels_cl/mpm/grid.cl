@@ -6,8 +6,9 @@
  *   [kind, t_start, t_end, a0 a1 a2, b0 b1 b2, c0 c1 c2 ...]
  *   BC_HALFSPACE: point a, outward normal b (unit), c0 = mode, c1 = friction mu_f. Nodes with
  *       (x_i - a).b < 0 are inside the collider: sticky v = 0; slip v -= (v.n) n; separate
- *       the same only when v.n < 0. Where the normal part is removed, Coulomb friction
- *       shrinks the tangential part by mu_f |v.n| (to zero at most).
+ *       the same only when v.n < 0. While the node moves into the surface (v.n < 0), Coulomb
+ *       friction shrinks the tangential part by mu_f |v.n| (to zero at most); a slip node
+ *       moving away (v.n >= 0) keeps its tangential part.
  *   BC_BOX: lower corner a, upper corner b, velocity c: nodes inside get v = c.
  *   BC_CYLINDER: centre a, unit axis b, c0 radius, c1 half length, c2 angular velocity omega
  *       (rad/s, right-handed about b): nodes inside get v = omega b x (x_i - a). */
@@ -31,13 +32,14 @@ inline void apply_halfspace(__global const real *rec, const real *xi, real *v)
     }
     if (mode == COLLIDE_SEPARATE && vn >= 0)
         return;
+    const real friction = vn < 0 ? -rec[10] * vn : (real)0; /* tangential speed it removes */
     real vt[3], vt2 = 0;
     for (int a = 0; a < 3; ++a) {
         vt[a] = v[a] - vn * n[a];
         vt2 += vt[a] * vt[a];
     }
     const real vt_norm = sqrt(vt2);
-    const real keep = vt_norm > 0 ? fmax((real)0, 1 - rec[10] * fabs(vn) / vt_norm) : (real)0;
+    const real keep = vt_norm > friction ? 1 - friction / vt_norm : (real)(friction == 0);
     for (int a = 0; a < 3; ++a)
         v[a] = keep * vt[a];
 }

@@ -3,10 +3,10 @@
 import pytest
 import torch
 
-from clflow.mpm import reference
+from clflow.mpm import Grid, HalfSpace, MaterialSpec, Simulator, reference
 from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, SubstepTape, run_recorded
 from clflow.mpm.substep import Particles
-from tests.mpm.scenes import MATERIAL_CASES, random_scene
+from tests.mpm.scenes import MATERIAL_CASES, cube, random_scene
 
 GRAD_FIELDS = ("x", "v", "C", "F", "plastic")
 
@@ -62,12 +62,16 @@ def rel_err(a, b):
     return float((a - b).abs().max() / b.abs().max().clamp(min=1e-300))
 
 
-def assert_adjoint_matches_reference(sim):
+def assert_adjoint_matches_reference(sim, parameters=True):
+    """The kernel's state gradients and (``parameters``: where they are not round-off) the
+    parameter and mass gradients agree with the reference's to 1e-9."""
     grad_after = random_grad(sim.n)
     grad, param_grad, mass_grad = kernel_vjp(sim, grad_after)
     ref, ref_param, ref_mass = reference_vjp(sim, grad_after)
     for f in GRAD_FIELDS:
         assert rel_err(getattr(grad, f), getattr(ref, f)) < 1e-9, f
+    if not parameters:
+        return
     for k in range(param_grad.shape[1]):
         assert rel_err(param_grad[:, k], ref_param[:, k]) < 1e-9, k
     assert rel_err(mass_grad, ref_mass) < 1e-9
@@ -99,9 +103,74 @@ def kernel_loss(sim, grad_after: StateGrad, state, particles) -> float:
     return float(sum((getattr(grad_after, f) * getattr(out, f)).sum() for f in GRAD_FIELDS))
 
 
-def test_substep_adjoint_dot_product_with_central_differences():
+FLOOR_Y, FLOOR_FRICTION = 0.45, 2.0
+
+
+def over_a_floor(mode: str):
+    """The warmed-up random scene cut by a floor collider (y < 0.45 m), no walls; mu_f = 2 so
+    that some floor nodes stick."""
+    return warmed_up(walls=None, boundaries=[HalfSpace((0, FLOOR_Y, 0), (0, 1, 0), mode, FLOOR_FRICTION)])
+
+
+def floor_node_velocities(sim) -> torch.Tensor:
+    """[k, 3] velocities (m/s) of the next substep's grid nodes below FLOOR_Y, before the
+    boundary conditions."""
+    sim.kernels.run(sim.state, sim.state.empty_like(), sim.particles, sim.time, sim.dt, sim.gravity,
+                    sim.boundaries, sim.drivers.accel(sim.time, sim.dtype), torch.zeros(sim.n, dtype=torch.uint8))
+    m, mv = sim.kernels.grid_mv[:, 0], sim.kernels.grid_mv[:, 1:]
+    node_y = sim.grid.dx * (torch.arange(sim.grid.nodes) // sim.grid.resolution[2] % sim.grid.resolution[1])
+    on_floor = (m > sim.particles.mass_eps) & (node_y.double() < FLOOR_Y)
+    return mv[on_floor] / m[on_floor, None] + sim.dt * torch.tensor(sim.gravity, dtype=torch.float64)
+
+
+def floor_branches(sim) -> dict[str, int]:
+    """How many floor nodes of the next substep move into the floor and slide (|vt| > mu_f
+    |v.n|), move into it and stick (|vt| <= mu_f |v.n|), or move away (v.n >= 0)."""
+    v = floor_node_velocities(sim)
+    vn, vt = v[:, 1], v[:, [0, 2]].norm(dim=-1)
+    friction = FLOOR_FRICTION * (-vn).clamp(min=0)
+    return {"slide": int(((vn < 0) & (vt > friction)).sum()), "stick": int(((vn < 0) & (vt <= friction)).sum()),
+            "away": int((vn >= 0).sum())}
+
+
+@pytest.mark.parametrize("mode", ["slip", "separate"])
+def test_floor_friction_adjoint_matches_autograd_of_reference(mode):
+    """Coulomb friction only while moving into the floor: every branch of the half-space
+    adjoint is exercised (sliding, stuck and moving-away nodes) and matches the reference."""
+    sim = over_a_floor(mode)
+    assert min(floor_branches(sim).values()) > 0, floor_branches(sim)
+    assert_adjoint_matches_reference(sim)
+
+
+def falling_straight_onto_a_frictionless_floor():
+    """Unstressed fluid particles (F = I, C = 0) falling at 1 m/s onto a slip floor without
+    friction (the J-only fluid: the reference's SVD has no derivative at F = I)."""
+    x = cube(6, 0.4, 0.6)
+    v = torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64).expand(x.shape[0], 3)
+    return Simulator(x, 1e-5, MaterialSpec("newtonian", MATERIAL_CASES["newtonian"]), Grid((16, 16, 16), 1 / 16),
+                     velocities=v, walls=None, boundaries=[HalfSpace((0, FLOOR_Y, 0), (0, 1, 0), "slip", 0.0)],
+                     frame_dt=1e-2, substeps=10, dtype=torch.float64)
+
+
+def test_frictionless_slip_passes_tangential_adjoints_at_zero_tangential_velocity():
+    """A floor node moving straight into a frictionless slip floor (vt = 0 exactly) keeps the
+    tangential part of a perturbation (v' = P v, so vbar = P v'bar), not zero. (Unstressed
+    and moving as one, the particles' parameter and mass gradients vanish: only round-off.)"""
+    sim = falling_straight_onto_a_frictionless_floor()
+    v = floor_node_velocities(sim)
+    assert v.shape[0] > 0 and bool((v[:, [0, 2]] == 0).all()) and bool((v[:, 1] < 0).all())
+    assert_adjoint_matches_reference(sim, parameters=False)
+    assert_dot_product_matches_central_differences(sim)
+
+
+@pytest.mark.parametrize("sim", [lambda: warmed_up(walls="slip", wall_friction=0.2), lambda: over_a_floor("slip")],
+                         ids=["slip_walls", "slip_floor"])
+def test_substep_adjoint_dot_product_with_central_differences(sim):
+    assert_dot_product_matches_central_differences(sim())
+
+
+def assert_dot_product_matches_central_differences(sim):
     """<J^T ybar, xdot> = d/dh <ybar, f(x + h xdot)> for a random direction of every input."""
-    sim = warmed_up(walls="slip", wall_friction=0.2)
     grad_after = random_grad(sim.n)
     grad, param_grad, mass_grad = kernel_vjp(sim, grad_after)
     gen = torch.Generator().manual_seed(7)

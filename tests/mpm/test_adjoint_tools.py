@@ -32,7 +32,35 @@ def test_bounded_parameters_stay_in_their_range():
     nu = parameterization("elastic", "nu")
     lo, hi = nu.bounds
     values = nu.decode(torch.tensor([-30.0, 0.0, 30.0], dtype=torch.float64))
-    assert bool(((values >= lo) & (values <= hi)).all()) and lo == 0.0 and hi == 0.49
+    assert bool(((values > lo) & (values < hi)).all()) and lo == -1.0 and hi == 0.5
+
+
+@pytest.mark.parametrize("material,name,values", [
+    ("sand", "friction_angle", [10.0, 1e-6, 0.5, 15.0, 37.5, 60.0, 89.5, 90 - 1e-6]),
+    ("elastic", "poissons_ratio", [0.45, 0.1, -0.999, -0.5, 0.0, 0.3, 0.49, 0.4999]),
+    ("snow", "poissons_ratio", [0.45, 0.1, -0.5, 0.49]),
+])
+def test_bounded_parameters_encode_their_whole_valid_range(material, name, values):
+    """A start anywhere in the open valid range round-trips (PAC-NeRF's sand starts at
+    phi = 10 deg, below the typical 15-60 deg), and z = 0 is the typical range's middle, where
+    one unit of z moves the value by a quarter of the typical range."""
+    p = parameterization(material, name)
+    assert p.bounds == p.param.valid
+    values = torch.tensor(values, dtype=torch.float64)
+    assert torch.allclose(p.decode(p.encode(values)), values, rtol=1e-12, atol=1e-12)
+    z0 = torch.zeros((), dtype=torch.float64, requires_grad=True)
+    middle = p.decode(z0)
+    middle.backward()
+    lo, hi = p.param.typical
+    assert math.isclose(float(middle), (lo + hi) / 2, rel_tol=1e-12)
+    assert math.isclose(float(z0.grad), (hi - lo) / 4, rel_tol=1e-12)
+
+
+@pytest.mark.parametrize("value", [0.0, 90.0, -5.0, 95.0, math.nan])
+def test_friction_angle_outside_its_open_range_is_a_clear_error(value):
+    with pytest.raises(InputError, match=rf"friction_angle \(phi\) = {value:g} deg is outside the open range "
+                                         rf"\(0, 90\)"):
+        parameterization("sand", "friction_angle").encode(value)
 
 
 def test_parameterization_rejects_values_outside_the_range():

@@ -15,6 +15,7 @@ from clflow.mpm import (
     Simulator,
     SphereRegion,
     layer_release_times,
+    reference,
 )
 from tests.mpm.scenes import cube
 
@@ -52,6 +53,39 @@ def test_coulomb_friction_decelerates_at_mu_g(mode):
     decel = (vx[0] - vx[4]) / 0.2
     assert decel == pytest.approx(mu_f * 9.81, rel=0.1)
     assert bool((vx[1:] < vx[:-1]).all()) and float(vx[-1]) > 0  # steadily slower, never reversed
+
+
+@pytest.mark.parametrize("mode,away_floor_velocity", [("slip", (1.0, 0.0, 0.0)), ("separate", (1.0, 0.5, 0.0))])
+def test_collider_friction_acts_only_while_moving_into_the_surface(mode, away_floor_velocity):
+    """Two unstressed blocks (F = I, C = 0: a node's velocity is the blocks' before the
+    collider) straddle a floor with mu_f = 0.5, one moving into it at (1, -0.5, 0) m/s and one
+    away at (1, 0.5, 0) m/s. Floor nodes of the first lose the normal part and mu_f |v.n| =
+    0.25 m/s of the tangential 1 m/s; those of the second keep all of the tangential part
+    (slip removes the normal part, separate lets it go). The float64 kernel matches the
+    reference substep."""
+    dx, floor, mu_f = 1 / 16, 0.5 + 1 / 32, 0.5
+    block = cube(4, 0.0, 2 * dx) + torch.tensor([0.0, floor - dx, 0.4], dtype=torch.float64)
+    x = torch.cat([block + torch.tensor([0.25, 0, 0], dtype=torch.float64),
+                   block + torch.tensor([0.625, 0, 0], dtype=torch.float64)])
+    v = torch.tensor([[1.0, -0.5, 0.0]] * 64 + [[1.0, 0.5, 0.0]] * 64, dtype=torch.float64)
+    sim = Simulator(x, (dx / 2) ** 3, SOFT, Grid((16, 16, 16), dx), velocities=v, gravity=(0, 0, 0), walls=None,
+                    boundaries=[HalfSpace((0, floor, 0), (0, 1, 0), mode, mu_f)], frame_dt=1e-3, substeps=1,
+                    dtype=torch.float64)
+    before = sim.state.clone()
+    sim.step()
+    idx = torch.arange(sim.grid.nodes)
+    node_x, node_y = dx * (idx // 256).double(), dx * (idx // 16 % 16).double()
+    on_floor = (sim.kernels.grid_mv[:, 0] > 0) & (node_y < floor)
+    into, away = on_floor & (node_x < 0.5), on_floor & (node_x > 0.5)
+    assert int(into.sum()) > 0 and int(away.sum()) > 0
+    expected_into = torch.tensor([1 - mu_f * 0.5, 0.0, 0.0], dtype=torch.float64)
+    assert torch.allclose(sim.kernels.grid_v[into], expected_into, rtol=0, atol=1e-12)
+    expected_away = torch.tensor(away_floor_velocity, dtype=torch.float64)
+    assert torch.allclose(sim.kernels.grid_v[away], expected_away, rtol=0, atol=1e-12)
+    ref, _ = reference.substep(before, sim.particles, sim.grid, 0.0, sim.dt, sim.gravity, sim.boundaries,
+                               sim.drivers.accel(0.0, sim.dtype))
+    for f in ("x", "v", "C", "F"):
+        assert torch.allclose(getattr(sim.state, f), getattr(ref, f), rtol=0, atol=1e-12), f
 
 
 def test_collider_time_window():

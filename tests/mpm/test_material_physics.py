@@ -104,3 +104,24 @@ def test_fluid_column_spreads():
     # nearly incompressible: the volume ratio J = det F stays near 1
     J = torch.linalg.det(traj.F[-1].double())
     assert float((J - 1).abs().mean()) < 0.05
+
+
+def test_newtonian_bulk_modulus_is_kappa():
+    """The Newtonian kernel's pressure p(J) = -tau_00 / J (C = 0) has -dp/dJ = kappa at J = 1:
+    ``bulk_modulus`` is the bulk modulus, the sound speed is wave_speed() = sqrt(kappa/rho),
+    and bulk_modulus = 7 kappa_PAC reproduces PAC-NeRF's p = kappa_PAC (J^-7 - 1)."""
+    kappa, rho, h = 7e5, 1000.0, 1e-4
+    J = torch.tensor([1 - h, 1 + h, 0.9, 1.1], dtype=torch.float64)
+    x = torch.full((4, 3), 0.5, dtype=torch.float64)
+    spec = MaterialSpec("newtonian", {"viscosity": 1.0, "bulk_modulus": kappa}, density=rho)
+    sim = Simulator(x, 1e-6, spec, Grid((8, 8, 8), 1 / 8), dtype=torch.float64, walls=None, gravity=(0, 0, 0))
+    sim.state.F.copy_(J.pow(1 / 3)[:, None, None] * torch.eye(3, dtype=torch.float64))
+    sim.step()
+    tau = sim.kernels.tau
+    assert torch.equal(tau, tau[:, 0, 0, None, None] * torch.eye(3, dtype=torch.float64))  # a pure pressure
+    p = -tau[:, 0, 0] / J
+    bulk_modulus = -float(p[1] - p[0]) / (2 * h)
+    assert bulk_modulus == pytest.approx(kappa, rel=1e-6)
+    assert sim.material_limits[0].wave_speed == pytest.approx(math.sqrt(bulk_modulus / rho), rel=1e-6)
+    kappa_pac = kappa / 7
+    assert p[2:].tolist() == pytest.approx((kappa_pac * (J[2:] ** -7 - 1)).tolist(), rel=1e-12)

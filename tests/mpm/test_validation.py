@@ -7,7 +7,9 @@ import pytest
 import torch
 
 from clflow.errors import InputError
+from clflow.materials import get_material
 from clflow.mpm import Force, Grid, HalfSpace, MaterialSpec, SimulationError, Simulator, StabilityWarning
+from clflow.mpm.simulator import VISCOUS_NUMBER
 from tests.mpm.scenes import cube
 
 GRID = Grid((16, 16, 16), 1 / 16)
@@ -101,3 +103,62 @@ def test_nan_during_a_run_stops_with_frame_and_cause():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             sim.run(50)
+
+
+def resting_block(material: MaterialSpec, frame_dt: float, **kwargs) -> Simulator:
+    """216 particles (2 per cell and axis) filling 3^3 cells on the bottom wall, float64."""
+    x = cube(6, 3 * GRID.dx, 6 * GRID.dx)
+    x[:, [0, 2]] += 0.25
+    return Simulator(x, (GRID.dx / 2) ** 3, material, GRID, frame_dt=frame_dt, dtype=torch.float64, **kwargs)
+
+
+def max_speed_after(sim: Simulator, frames: int) -> float:
+    """max |v| (m/s) after ``frames`` frames; inf if the run turned NaN/inf."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", StabilityWarning)
+            sim.run(frames)
+    except SimulationError:
+        return math.inf
+    return float(sim.state.v.norm(dim=-1).max())
+
+
+def test_viscous_fluid_takes_the_viscous_time_step_limit():
+    """A very viscous fluid: at the substeps its CFL and wave limits alone give (the count
+    clflow chose before it had a viscous limit) it blows up; the automatic count, set by
+    dt <= VISCOUS_NUMBER rho dx^2 / mu, keeps it at rest on the ground."""
+    frame_dt, rho, mu = 1 / 24, 1000.0, 1e3
+    thick = MaterialSpec("newtonian", {"viscosity": mu, "bulk_modulus": 1e4}, density=rho)
+    thin = MaterialSpec("newtonian", {"viscosity": 1e-3, "bulk_modulus": 1e4}, density=rho)
+    wave_and_cfl_only = resting_block(thin, frame_dt).substeps  # its viscous limit is 781 s
+    auto = resting_block(thick, frame_dt)
+    assert auto.substeps == math.ceil(frame_dt / (VISCOUS_NUMBER * rho * GRID.dx**2 / mu))
+    assert wave_and_cfl_only < auto.substeps
+    with pytest.warns(StabilityWarning, match=rf"viscous diffusion of newtonian, viscosity 1e\+03 Pa s .* "
+                                              rf"use substeps >= {auto.substeps} per frame"):
+        old = resting_block(thick, frame_dt, substeps=wave_and_cfl_only)
+    assert max_speed_after(old, 4) > 100.0
+    assert max_speed_after(auto, 4) < 0.5  # settling; free fall would reach g t = 1.6 m/s
+
+
+@pytest.mark.parametrize("material,params,eta", [
+    ("foam", {"youngs_modulus": 1e5, "poissons_ratio": 0.3}, 1e4),
+    ("foam", {"youngs_modulus": 1e5, "poissons_ratio": 0.3}, 1e6),
+    ("non_newtonian", {"shear_modulus": 1e4, "bulk_modulus": 1e5}, 1e4),
+    ("non_newtonian", {"shear_modulus": 1e4, "bulk_modulus": 1e5}, 1e6),
+])
+def test_viscoplastic_viscosity_needs_no_viscous_limit(material, params, eta):
+    """The viscoplastic return relaxes the overstress implicitly in eta, so eta adds no time
+    step limit: with tau_Y = 0 (always yielding) and eta = 1e4 or 1e6 Pa s, the automatic
+    substeps are those of eta = 0, with dt over 10 x what an explicit viscosity eta would
+    allow, and the stirred block stays stable."""
+    gen = torch.Generator().manual_seed(0)
+    v = 0.5 * torch.randn(216, 3, generator=gen, dtype=torch.float64)
+    spec = MaterialSpec(material, {**params, "yield_stress": 0.0, "viscosity": eta})
+    sim = resting_block(spec, 0.02, velocities=v)
+    inviscid = resting_block(MaterialSpec(material, {**params, "yield_stress": 0.0, "viscosity": 0.0}), 0.02,
+                             velocities=v)
+    assert sim.substeps == inviscid.substeps
+    rho = get_material(material).default_density
+    assert sim.dt > 10 * VISCOUS_NUMBER * rho * GRID.dx**2 / eta
+    assert max_speed_after(sim, 5) < float(v.norm(dim=-1).max())

@@ -5,9 +5,10 @@
  * The velocity before boundary b is recomputed from v0 = mv/m + dt g by replaying
  * conditions 0..b-1 (tables are short). Per condition:
  *   half-space, node inside: sticky -> 0; separate with v.n >= 0 -> unchanged; otherwise
- *     v' = keep vt, vt = v - (v.n) n, keep = 1 - mu_f |v.n|/|vt| (v' = 0 when keep <= 0):
- *     vtbar = keep v'bar + (mu_f |v.n|/|vt|) (vt . v'bar) vt/|vt|^2,
- *     vnbar = -mu_f sign(v.n) (vt . v'bar)/|vt|,   vbar = P vtbar + vnbar n, P = I - n n^T;
+ *     v' = keep vt, vt = v - (v.n) n, with friction f = mu_f max(-v.n, 0) (only moving in):
+ *     f = 0: v' = vt, vbar = P v'bar, P = I - n n^T; |vt| <= f: v' = 0, vbar = 0; else
+ *     keep = 1 - f/|vt|, vtbar = keep v'bar + (f/|vt|) (vt . v'bar) vt/|vt|^2,
+ *     vnbar = mu_f (vt . v'bar)/|vt|,   vbar = P vtbar + vnbar n;
  *   box / cylinder, node inside: v is overridden -> vbar = 0 (their velocities are not
  *     differentiated). */
 #include "mpm/grid.cl"
@@ -32,17 +33,19 @@ inline void halfspace_adjoint(__global const real *rec, const real *xi, const re
         vt_dot += vt[a] * v_bar[a];
     }
     const real vt_norm = sqrt(vt2);
-    const real ratio = vt_norm > 0 ? rec[10] * fabs(vn) / vt_norm : (real)0;
-    if (mode == COLLIDE_STICKY || vt_norm == 0 || ratio >= 1) {
+    const real friction = vn < 0 ? -rec[10] * vn : (real)0;
+    if (mode == COLLIDE_STICKY || (friction > 0 && vt_norm <= friction)) {
         for (int a = 0; a < 3; ++a)
             v_bar[a] = 0;
         return;
     }
-    const real sign_vn = (real)((vn > 0) - (vn < 0));
-    const real vn_bar = -rec[10] * sign_vn * vt_dot / vt_norm;
+    /* here |vt| > f > 0, or f = 0 (then |vt| may be 0) */
+    const real ratio = friction > 0 ? friction / vt_norm : (real)0;
+    const real along = friction > 0 ? ratio * vt_dot / vt2 : (real)0;
+    const real vn_bar = friction > 0 ? rec[10] * vt_dot / vt_norm : (real)0;
     real vt_bar[3], vt_bar_n = 0;
     for (int a = 0; a < 3; ++a) {
-        vt_bar[a] = (1 - ratio) * v_bar[a] + ratio * vt_dot / vt2 * vt[a];
+        vt_bar[a] = (1 - ratio) * v_bar[a] + along * vt[a];
         vt_bar_n += vt_bar[a] * n[a];
     }
     for (int a = 0; a < 3; ++a)
