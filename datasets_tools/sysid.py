@@ -200,6 +200,7 @@ def evaluate(names: list[str], out: Path, settings: Settings, *, force: bool = F
         shutil.rmtree(out / "cases")
     out.mkdir(parents=True, exist_ok=True)
     summary["environment"] = environment()
+    atomic_write_text(summary_path, json.dumps(summary, indent=2))  # settings first: an interrupted run resumes
     for name in names:
         if summary["cases"].get(name, {}).get("status") == "ok":
             log.info("%s: done earlier, skipped", name)

@@ -40,8 +40,9 @@ def test_the_guidance_is_not_the_optimisers_own_forward(tmp_path):
 
 
 def test_noise_and_codec_reach_the_optimisers_input(tmp_path):
-    make_case(tmp_path / "clean", SyntheticCase(), TINY, truth_scale=1)
-    make_case(tmp_path / "noisy", SyntheticCase(), TINY, truth_scale=1, noise=4.0, codec=".avi")
+    case = SyntheticCase(spread=0.5)
+    make_case(tmp_path / "clean", case, TINY, truth_scale=1)
+    make_case(tmp_path / "noisy", case, TINY, truth_scale=1, noise=4.0, codec=".avi")
     import cv2
 
     clean, noisy = (cv2.imread(str(tmp_path / d / "guidance" / "001.png")).astype(float) for d in ("clean", "noisy"))
