@@ -43,9 +43,10 @@ def sysid(output, cases, quick, iterations, truth_scale, noise, codec, seed, for
     settings = Settings(resolution=resolution, truth_scale=truth_scale, noise=noise, codec=codec, seed=seed)
 
     def progress(name: str, row: dict) -> None:
-        params = " ".join(f"{n}={v:.4g}" for n, v in row["params"].items())
-        click.echo(f"{name}: iteration {row['iteration'] + 1}/{resolution.iterations} loss {row['loss']:.4g} "
-                   f"{params} ({row['seconds']:.1f} s)", err=True)
+        from clflow_cli.optimize import _format_row
+
+        step = "search sample" if row.get("phase") == "search" else "iteration"
+        click.echo(f"{name}: {step} {row['iteration'] + 1}: {_format_row(row)}", err=True)
 
     out = Path(output)
     try:

@@ -11,7 +11,8 @@ def _format_row(row: dict | None) -> str:
     if not row:
         return ""
     params = " ".join(f"{name}={value:.4g}" for name, value in row["params"].items())
-    return f"loss {row['loss']:.4g}  {params}  {row['seconds']:.1f} s/it"
+    loss = "failed" if row["loss"] is None else f"{row['loss']:.4g}"
+    return f"loss {loss}  {params}  {row['seconds']:.1f} s/it"
 
 
 def run_optimization(config_path: str, resume: bool, iterations: int | None, output: str | None) -> dict:
@@ -29,13 +30,18 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
         cfg = dataclasses.replace(cfg, output=Path(output).resolve())
     opt = Optimization(cfg)  # loads the scene, runs the material query, computes the video's flow
     total = cfg.optimize.iterations
+    search = cfg.optimize.search
     with click.progressbar(length=total, label="optimising", show_pos=True,
                            item_show_func=_format_row, file=sys.stderr) as bar:
-        if sys.stderr.isatty():
-            opt.progress = lambda row: bar.update(1, row)
-        else:  # a log file or CI: one line per iteration instead of a redrawn bar
-            opt.progress = lambda row: click.echo(f"iteration {row['iteration'] + 1}/{total}: {_format_row(row)}",
-                                                  err=True)
+        def progress(row: dict) -> None:
+            if row.get("phase") == "search":  # the global phase: one line per sample
+                click.echo(f"search {row['iteration'] + 1}/{search.samples}: {_format_row(row)}", err=True)
+            elif sys.stderr.isatty():
+                bar.update(1, row)
+            else:  # a log file or CI: one line per iteration instead of a redrawn bar
+                click.echo(f"iteration {row['iteration'] + 1}/{total}: {_format_row(row)}", err=True)
+
+        opt.progress = progress
         if resume and opt.checkpoint.exists():
             bar.update(opt.load_state().iteration)
         try:

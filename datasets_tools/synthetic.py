@@ -66,6 +66,7 @@ class SyntheticCase:
     optimize: tuple[str, ...] = ("youngs_modulus",)
     learning_rate: float = 0.2  # per iteration, in the optimiser's z units (decades for moduli)
     horizon: tuple[int, int] = (4, 1)  # frames in the first iteration's loss, frames added per iteration
+    search: int = 0  # samples of the optimiser's global phase (0: none)
     forces: tuple[dict, ...] = ()
     ground: str = "sticky"
     velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)  # initial velocity (m/s, scene frame)
@@ -262,6 +263,8 @@ def case_config(case: SyntheticCase, resolution: Resolution, parameters: dict[st
                               "learning_rates": {n: case.learning_rate for n in case.optimize},
                               "iterations": resolution.iterations,
                               "horizon": {"start": case.horizon[0], "step": case.horizon[1]}}
+        if case.search:
+            config["optimize"]["search"] = {"samples": case.search}
         config["evaluation"] = {"ground_truth": dict(case.truth)}
     return config
 

@@ -62,6 +62,10 @@ class OptimizerState:
     # needed, so the loss stays one smooth function of the parameters instead of jumping
     # where a NaN/CFL retry would change dt
     substeps: int = 1
+    # the global phase's samples so far ({"z", "params", "loss", "seconds"}; loss None where
+    # the simulation failed) and whether it is over (its best point is then z)
+    search: list[dict] = field(default_factory=list)
+    searched: bool = False
 
 
 @dataclass
@@ -228,6 +232,70 @@ class Optimization:
                 raise FloatingPointError("the gradient is not finite")
         return Evaluation(float(loss.detach()), grads, [f.detach() for f in flows], traj)
 
+    # -- the global phase ------------------------------------------------------------------
+
+    def search_box(self, z0: dict[str, float]) -> dict[str, tuple[float, float]]:
+        """(lower, upper) in z of each parameter's search box: ``optimize.bounds`` when
+        given; else a log parameter's start times 10^(+-decades) within its typical range,
+        and a bounded or linear one's typical range; each widened to hold the start."""
+        opt = self.cfg.optimize
+        box = {}
+        for name, p in self.params.items():
+            if name in opt.bounds:
+                lo, hi = (float(p.encode(v)) for v in opt.bounds[name])
+                if not lo <= z0[name] <= hi:
+                    raise InputError(f"{self.cfg.source}: the start of {name} lies outside optimize.bounds.{name} "
+                                     f"{list(opt.bounds[name])}")
+            else:
+                lo, hi = (float(p.encode(v)) for v in p.param.typical) if p.param.scale != "linear" else p.param.typical
+                if p.param.scale == "log":
+                    lo, hi = max(lo, z0[name] - opt.search.decades), min(hi, z0[name] + opt.search.decades)
+                lo, hi = min(lo, z0[name]), max(hi, z0[name])
+            box[name] = (lo, hi)
+        return box
+
+    def search_points(self, z0: dict[str, float]) -> list[dict[str, float]]:
+        """The global phase's design: the start, then a scrambled Sobol sequence (seed 0,
+        reproducible) over the search box."""
+        box = self.search_box(z0)
+        names = list(self.params)
+        count = self.cfg.optimize.search.samples
+        unit = torch.quasirandom.SobolEngine(len(names), scramble=True, seed=0).draw(max(0, count - 1), dtype=torch.float64)
+        points = [dict(z0)]
+        for row in unit.tolist():
+            points.append({n: box[n][0] + u * (box[n][1] - box[n][0]) for n, u in zip(names, row)})
+        return points
+
+    def global_search(self, state: OptimizerState) -> OptimizerState:
+        """Forward-only losses at the search design (resuming after the samples already in
+        ``state.search``); returns the state with z at the best sample and ``searched``."""
+        settings = self.cfg.optimize.search
+        frames = min(self.frames, settings.frames or self.frames)
+        points = self.search_points(state.z)
+        rows = list(state.search)
+        for z in points[len(rows):]:
+            start = time.perf_counter()
+            try:
+                loss = self.evaluate(z, frames, with_grad=False).loss
+            except (FloatingPointError, ClflowError) as exc:
+                log.info("search sample %s failed: %s", self.values(z), exc)
+                loss = None
+            rows.append({"z": z, "params": self.values(z), "loss": loss, "frames": frames,
+                         "seconds": time.perf_counter() - start})
+            state = dataclasses.replace(state, search=list(rows))
+            self.save_state(state)
+            self.progress({**rows[-1], "phase": "search", "iteration": len(rows) - 1})
+        finite = [r for r in rows if r["loss"] is not None]
+        if not finite:
+            raise ClflowError(f"the global search found no parameters whose simulation ran ({len(rows)} samples)")
+        best = min(finite, key=lambda r: r["loss"])
+        log.info("global search: best of %d samples %s (loss %.4g)", len(rows), best["params"], best["loss"])
+        state = dataclasses.replace(state, z=dict(best["z"]), searched=True)
+        self.save_state(state)
+        return state
+
+    # -- the gradient phase -----------------------------------------------------------------
+
     def adam_step(self, state: OptimizerState, grads: dict[str, float]) -> OptimizerState:
         """One Adam step in z, gradient clipped to CLIP_NORM, with adaptive restart
         (O'Donoghue and Candes 2015): when the last step went uphill along the new gradient
@@ -257,6 +325,8 @@ class Optimization:
         in this call, for tests of resuming); returns the final state."""
         self.cfg.output.mkdir(parents=True, exist_ok=True)
         state = self.load_state() if resume and self.checkpoint.exists() else self.initial_state()
+        if self.cfg.optimize.search is not None and not state.searched:
+            state = self.global_search(state)
         failures, done_here = 0, 0
         while state.iteration < self.cfg.optimize.iterations and (stop_after is None or done_here < stop_after):
             frames = horizon(self.cfg, state.iteration)
@@ -315,6 +385,8 @@ class Optimization:
         atomic_write_text(out / "params.json", json.dumps(record, indent=2))
         atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2))
         atomic_write_text(out / "history.json", json.dumps(state.history, indent=1))
+        if state.search:
+            atomic_write_text(out / "search.json", json.dumps(state.search, indent=1))
         write_history_plot(out / "loss.png", state.history, truth)
         # side by side: guidance | guidance flow | simulated flow | error, plus the simulated frames
         traj = result.trajectory

@@ -235,6 +235,15 @@ class FlowSettings:
 
 
 @dataclass(frozen=True)
+class SearchSettings:
+    """The global phase before the gradient iterations (clflow.pipeline.optimize)."""
+
+    samples: int = 32  # forward-only runs over the parameter box
+    decades: float = 3.0  # the box of a log-scale parameter: the start times 10^(+-decades)
+    frames: int = 0  # frames in the search's loss (0: all)
+
+
+@dataclass(frozen=True)
 class OptimizeSettings:
     parameters: tuple[str, ...] = ()
     learning_rates: dict[str, float] = field(default_factory=dict)  # in the optimiser's space
@@ -242,6 +251,8 @@ class OptimizeSettings:
     horizon_start: int = 0  # frames in the first iteration's loss (0: all)
     horizon_step: int = 0  # frames added per iteration
     final_rate: float = 0.1  # the rate falls (cosine) to this fraction of itself by the last iteration
+    search: SearchSettings | None = None  # None: no global phase
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)  # SI; the search box of a parameter
 
 
 @dataclass(frozen=True)
@@ -421,7 +432,8 @@ def _camera(r: _Reader, data: Any) -> CameraConfig:
 
 def _optimize(r: _Reader, data: Any, material: MaterialConfig) -> OptimizeSettings:
     p = "optimize"
-    body = r.section(data, p, ("parameters", "learning_rates", "iterations", "horizon", "final_rate"))
+    body = r.section(data, p, ("parameters", "learning_rates", "iterations", "horizon", "final_rate", "search",
+                               "bounds"))
     names = body.get("parameters", [])
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise r.fail(f"{p}.parameters", f"must be a list of parameter names, got {names!r}")
@@ -437,10 +449,27 @@ def _optimize(r: _Reader, data: Any, material: MaterialConfig) -> OptimizeSettin
             raise r.fail(f"{p}.learning_rates.{name}", f"is not among optimize.parameters {names}")
     rates = {n: r.number(rates_in, n, f"{p}.learning_rates", low=0.0, strict_low=True) for n in rates_in}
     horizon = r.section(body.get("horizon"), f"{p}.horizon", ("start", "step"))
+    search = None
+    if body.get("search") is not None:
+        found = r.section(body["search"], f"{p}.search", ("samples", "decades", "frames"))
+        search = SearchSettings(samples=r.integer(found, "samples", f"{p}.search", 32, low=1),
+                                decades=r.number(found, "decades", f"{p}.search", 3.0, low=0.0, strict_low=True),
+                                frames=r.integer(found, "frames", f"{p}.search", 0))
+    bounds = {}
+    for name, box in r.mapping(body.get("bounds"), f"{p}.bounds").items():
+        where = f"{p}.bounds.{name}"
+        if name not in names:
+            raise r.fail(where, f"is not among optimize.parameters {names}")
+        if (not isinstance(box, list) or len(box) != 2
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in box)):
+            raise r.fail(where, f"must be [lower, upper] (SI), got {box!r}")
+        if not box[0] < box[1]:
+            raise r.fail(where, f"is empty or inverted: lower {box[0]:g} must be below upper {box[1]:g}")
+        bounds[name] = (float(box[0]), float(box[1]))
     return OptimizeSettings(
         parameters=tuple(names), learning_rates=rates, iterations=r.integer(body, "iterations", p, 30, low=1),
         horizon_start=r.integer(horizon, "start", f"{p}.horizon", 0), horizon_step=r.integer(horizon, "step", f"{p}.horizon", 0),
-        final_rate=r.number(body, "final_rate", p, 0.1, low=0.0, high=1.0),
+        final_rate=r.number(body, "final_rate", p, 0.1, low=0.0, high=1.0), search=search, bounds=bounds,
     )
 
 

@@ -1,0 +1,123 @@
+"""The optimiser's global phase (optimize.search): the design, its box, finding the right basin, resuming."""
+
+import dataclasses
+import json
+import math
+from types import SimpleNamespace
+
+import pytest
+
+from clflow.errors import InputError
+from clflow.pipeline.optimize import Evaluation, Optimization
+from clflow.scene.config import SearchSettings, parse_config
+
+
+def two_basins(z: float) -> float:
+    """A 1-D loss of log10 E with a shallow local minimum at 3.3 and the global one at 4.3."""
+    return min(0.6 + 4 * (z - 3.3) ** 2, 8 * (z - 4.3) ** 2) + 0.05 * math.sin(7 * z) ** 2
+
+
+@pytest.fixture
+def searching(demo_config, monkeypatch):
+    """The demo's optimiser with a search phase and a synthetic loss (no simulation)."""
+
+    def make(samples=16, decades=2.0, iterations=1, name="results"):
+        cfg = demo_config(iterations=iterations, name=name)
+        cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(
+            cfg.optimize, search=SearchSettings(samples=samples, decades=decades)))
+        opt = Optimization(cfg)
+        calls = []
+
+        def evaluate(z, frames, with_grad=True, min_substeps=1):
+            calls.append(dict(z))
+            value = two_basins(z["youngs_modulus"])
+            grads = {"youngs_modulus": 0.0} if with_grad else {}
+            return Evaluation(value, grads, [], SimpleNamespace(substeps=1))
+
+        monkeypatch.setattr(opt, "evaluate", evaluate)
+        monkeypatch.setattr(opt, "write_results", lambda state: None)
+        return opt, calls
+
+    return make
+
+
+def test_the_search_finds_the_global_basin_from_the_local_one(searching):
+    opt, calls = searching(samples=16)
+    start = opt.initial_state().z["youngs_modulus"]
+    assert start == pytest.approx(math.log10(2e3))  # the demo's guess, in the shallow basin's reach
+    descent_alone = start - 0.01 * (8 * (start - 3.3))  # a gradient step stays in the local basin
+    assert abs(descent_alone - 3.3) < abs(descent_alone - 4.3)
+    state = opt.global_search(opt.initial_state())
+    assert state.searched and len(state.search) == 16 and calls[0] == opt.initial_state().z
+    assert abs(state.z["youngs_modulus"] - 4.3) < 0.15  # in the global basin
+    box = opt.search_box(opt.initial_state().z)["youngs_modulus"]
+    assert box == pytest.approx((3.0, start + 2.0))  # clipped below by the typical range, E >= 1e3 Pa
+    assert all(box[0] <= r["z"]["youngs_modulus"] <= box[1] for r in state.search)
+
+
+def test_the_design_is_reproducible_and_a_resumed_search_is_the_same(searching):
+    whole, _ = searching(name="whole")
+    done = whole.global_search(whole.initial_state())
+    split, calls = searching(name="split")
+    partial = dataclasses.replace(split.initial_state(), search=[])
+    # stop after 5 samples: the progress callback raises like a Ctrl-C would
+    seen = []
+
+    def stop(row):
+        seen.append(row)
+        if len(seen) == 5:
+            raise KeyboardInterrupt
+
+    split.progress = stop
+    with pytest.raises(KeyboardInterrupt):
+        split.global_search(partial)
+    saved = json.loads(split.checkpoint.read_text())["state"]
+    assert len(saved["search"]) == 5 and not saved["searched"]
+    split.progress = lambda row: None
+    resumed = split.run(resume=True)
+    assert len(calls) == 16 + 1  # 16 samples once each, then one gradient iteration
+    assert [r["z"] for r in resumed.search] == [r["z"] for r in done.search]
+    assert resumed.history[0]["z"] == done.z
+
+
+def test_failed_samples_are_skipped_and_none_running_is_an_error(searching, monkeypatch):
+    opt, _ = searching(samples=6)
+
+    def failing(z, frames, with_grad=True, min_substeps=1):
+        raise FloatingPointError("the flow loss is not finite")
+
+    monkeypatch.setattr(opt, "evaluate", failing)
+    from clflow.errors import ClflowError
+
+    with pytest.raises(ClflowError, match="no parameters whose simulation ran"):
+        opt.global_search(opt.initial_state())
+
+
+def config_with(optimize: dict) -> dict:
+    from tests.scene.test_config import GOOD
+
+    data = json.loads(json.dumps(GOOD))
+    data["optimize"].update(optimize)
+    return data
+
+
+@pytest.mark.parametrize("bounds, message", [
+    ({"youngs_modulus": [1e6, 1e4]}, "empty or inverted"),
+    ({"youngs_modulus": [1e4, 1e4]}, "empty or inverted"),
+    ({"youngs_modulus": [1e4]}, r"must be \[lower, upper\]"),
+    ({"youngs_modulus": ["a", 1e6]}, r"must be \[lower, upper\]"),
+    ({"poissons_ratio": [0.1, 0.4]}, "not among optimize.parameters"),
+])
+def test_a_bad_parameter_box_is_refused(tmp_path, bounds, message):
+    (tmp_path / "scene.ply").write_bytes(b"ply\n")
+    data = config_with({"bounds": bounds})
+    with pytest.raises(InputError, match=message):
+        parse_config(data, "scene.yaml", tmp_path)
+
+
+def test_search_settings_are_read(tmp_path):
+    (tmp_path / "scene.ply").write_bytes(b"ply\n")
+    data = config_with({"search": {"samples": 8, "decades": 1.5}, "bounds": {"youngs_modulus": [1e3, 1e7]}})
+    opt = parse_config(data, "scene.yaml", tmp_path).optimize
+    assert opt.search == SearchSettings(samples=8, decades=1.5, frames=0)
+    assert opt.bounds == {"youngs_modulus": (1e3, 1e7)}
