@@ -131,6 +131,7 @@ def run_case(name: str, folder: Path, settings: Settings, *, progress: Callable[
     import numpy as np
 
     from clflow.errors import ClflowError
+    from clflow.fileio import atomic_write_text
     from clflow.pipeline.optimize import Optimization
     from clflow.scene.config import load_config
 
@@ -138,9 +139,15 @@ def run_case(name: str, folder: Path, settings: Settings, *, progress: Callable[
     check_case(name, case)
     start = time.perf_counter()
     made = folder / "case.json"
+    definition = case_definition(case)
+    if made.exists() and json.loads(made.read_text()).get("definition") != definition:
+        shutil.rmtree(folder)  # made from another definition of the case: make it anew
     if not made.exists():  # an interrupted generation leaves no case.json: make it again
         make_case(folder, case, settings.resolution, settings.seed, truth_scale=settings.truth_scale,
                   noise=settings.noise, codec=settings.codec)
+        record = json.loads(made.read_text())
+        record["definition"] = definition
+        atomic_write_text(made, json.dumps(record, indent=2))
     generation = json.loads(made.read_text())
     generated = time.perf_counter()
     cfg = load_config(folder / "config.yaml")
@@ -165,6 +172,11 @@ def run_case(name: str, folder: Path, settings: Settings, *, progress: Callable[
         seconds=time.perf_counter() - start,
     )
     return record
+
+
+def case_definition(case: SyntheticCase) -> dict:
+    """A case's definition as JSON data (a finished result counts only for an equal one)."""
+    return json.loads(json.dumps(asdict(case)))
 
 
 def settings_record(settings: Settings) -> dict:
@@ -209,7 +221,8 @@ def evaluate(names: list[str], out: Path, settings: Settings, *, force: bool = F
     summary["environment"] = environment()
     atomic_write_text(summary_path, json.dumps(summary, indent=2))  # settings first: an interrupted run resumes
     for name in names:
-        if summary["cases"].get(name, {}).get("status") == "ok":
+        done = summary["cases"].get(name, {})
+        if done.get("status") == "ok" and done["generation"].get("definition") == case_definition(CASES[name]):
             log.info("%s: done earlier, skipped", name)
             continue
         record = run_case(name, out / "cases" / name, settings,

@@ -126,3 +126,13 @@ def test_an_interrupted_case_resumes_its_optimisation(tmp_path, tiny_cases, monk
     monkeypatch.setattr(optimize.Optimization, "run", real_run)
     resumed = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))["cases"]["torus"]
     assert resumed["status"] == "ok" and resumed["iterations"] == TINY.iterations
+
+
+def test_a_changed_case_definition_is_made_and_run_again(tmp_path, tiny_cases, monkeypatch):
+    out = tmp_path / "out"
+    first = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))["cases"]["torus"]
+    changed = dataclasses.replace(sysid.CASES["torus"], lift=0.25)
+    monkeypatch.setitem(sysid.CASES, "torus", changed)
+    second = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))["cases"]["torus"]
+    assert first["generation"]["definition"]["lift"] != second["generation"]["definition"]["lift"] == 0.25
+    assert yaml.safe_load((out / "cases" / "torus" / "config.yaml").read_text())["object"]["select"]["box"]["min"][1] > 0.2
