@@ -45,6 +45,10 @@ ADAM_EPS = 1e-8
 DEFAULT_RATE = 0.1
 MAX_FAILURES = 4  # consecutive failed iterations before giving up
 CLIP_NORM = 10.0  # gradient clipping in z space
+# Levenberg-Marquardt (optimize.method: levenberg_marquardt)
+LM_STEP = 0.01  # finite-difference step in z (a 2.3 % change of a log-scale parameter)
+LM_DAMPING = 1e-2  # initial damping (relative to the diagonal of J^T J)
+LM_MAX_STEP = 1.0  # longest step in z (a decade of a log-scale parameter)
 
 
 @dataclass
@@ -66,6 +70,9 @@ class OptimizerState:
     # the simulation failed) and whether it is over (its best point is then z)
     search: list[dict] = field(default_factory=list)
     searched: bool = False
+    # Levenberg-Marquardt: damping, and the best point so far (its z, loss and horizon)
+    damping: float = LM_DAMPING
+    best: dict | None = None
 
 
 @dataclass
@@ -186,6 +193,7 @@ class Optimization:
         self.video_frames, observed = observed_flow_of(cfg, self.prepared, self.frames)
         self.observed = torch.from_numpy(observed).double()
         self.checkpoint = cfg.output / "checkpoint.json"
+        self._lm_cache: tuple | None = None  # ((z, frames), Evaluation, J) of the last Jacobian
 
     # -- state ---------------------------------------------------------------------------
 
@@ -294,6 +302,56 @@ class Optimization:
         self.save_state(state)
         return state
 
+    # -- Levenberg-Marquardt ----------------------------------------------------------------
+
+    def residuals(self, flows: list[torch.Tensor]) -> torch.Tensor:
+        """[R] float64 flow residuals whose sum of squares is the l2 flow loss of ``flows``
+        (simulated [H, W, 2] per frame step)."""
+        weight = self.mask.double()
+        scale = 1.0 / math.sqrt(float(weight.sum()) * len(flows))
+        root = weight.sqrt()[..., None]
+        return torch.cat([((f.double() - self.observed[t]) * root * scale)[self.mask].reshape(-1)
+                          for t, f in enumerate(flows)])
+
+    def jacobian(self, z: dict[str, float], frames: int, min_substeps: int) -> tuple[Evaluation, torch.Tensor]:
+        """The evaluation at z and the Jacobian [R, P] of its residuals by backward
+        differences of LM_STEP (softer neighbours need no more substeps than z, so every run
+        shares z's time step); cached for a rejected step's retry."""
+        key = (tuple(sorted(z.items())), frames)
+        if self._lm_cache is not None and self._lm_cache[0] == key:
+            return self._lm_cache[1], self._lm_cache[2]
+        base = self.evaluate(z, frames, with_grad=False, min_substeps=min_substeps)
+        r0 = self.residuals(base.flows)
+        columns = []
+        for name in self.params:
+            nearby = self.evaluate({**z, name: z[name] - LM_STEP}, frames, with_grad=False,
+                                   min_substeps=base.substeps)
+            columns.append((r0 - self.residuals(nearby.flows)) / LM_STEP)
+        J = torch.stack(columns, 1)
+        self._lm_cache = (key, base, J)
+        return base, J
+
+    def lm_step(self, state: OptimizerState, base: Evaluation, J: torch.Tensor, frames: int) -> OptimizerState:
+        """Accept or reject the point just evaluated (its loss against the best so far at this
+        horizon), then one damped Gauss-Newton step from the best point:
+        (J^T J + damping diag(J^T J)) dz = -J^T r, at most LM_MAX_STEP long."""
+        best = state.best
+        if best is not None and best["frames"] == frames and base.loss > best["loss"]:
+            # uphill: back to the best point with more damping (its J is recomputed or cached)
+            return dataclasses.replace(state, iteration=state.iteration + 1, z=dict(best["z"]),
+                                       damping=state.damping * 4.0)
+        damping = state.damping / 3.0 if best is not None else state.damping
+        best = {"z": dict(state.z), "loss": base.loss, "frames": frames}
+        r = self.residuals(base.flows)
+        A, g = J.T @ J, J.T @ r
+        diagonal = torch.diag(torch.diag(A).clamp(min=1e-12 * float(torch.diag(A).max().clamp(min=1e-30))))
+        step = -torch.linalg.solve(A + damping * diagonal, g)
+        length = float(step.norm())
+        if length > LM_MAX_STEP:
+            step *= LM_MAX_STEP / length
+        z = {n: state.z[n] + float(d) for n, d in zip(self.params, step)}
+        return dataclasses.replace(state, iteration=state.iteration + 1, z=z, damping=damping, best=best)
+
     # -- the gradient phase -----------------------------------------------------------------
 
     def adam_step(self, state: OptimizerState, grads: dict[str, float]) -> OptimizerState:
@@ -327,12 +385,16 @@ class Optimization:
         state = self.load_state() if resume and self.checkpoint.exists() else self.initial_state()
         if self.cfg.optimize.search is not None and not state.searched:
             state = self.global_search(state)
+        lm = self.cfg.optimize.method == "levenberg_marquardt"
         failures, done_here = 0, 0
         while state.iteration < self.cfg.optimize.iterations and (stop_after is None or done_here < stop_after):
             frames = horizon(self.cfg, state.iteration)
             start = time.perf_counter()
             try:
-                result = self.evaluate(state.z, frames, min_substeps=state.substeps)
+                if lm:
+                    result, J = self.jacobian(state.z, frames, state.substeps)
+                else:
+                    result = self.evaluate(state.z, frames, min_substeps=state.substeps)
             except (FloatingPointError, ClflowError) as exc:
                 failures += 1
                 if failures > MAX_FAILURES or state.iteration == 0 and failures > 1:
@@ -342,13 +404,14 @@ class Optimization:
                 log.warning("iteration %d failed (%s): back to the last good parameters, half the step, "
                             "momentum dropped", state.iteration, exc)
                 state = dataclasses.replace(state, z=dict(previous), m={n: 0.0 for n in state.m},
-                                            step_scale=state.step_scale / 2, momentum_steps=0)
+                                            step_scale=state.step_scale / 2, momentum_steps=0,
+                                            damping=state.damping * 4.0)
                 continue
             failures = 0
             row = {"iteration": state.iteration, "loss": result.loss, "frames": frames, "z": dict(state.z),
                    "params": self.values(state.z), "substeps": result.substeps,
                    "seconds": time.perf_counter() - start}
-            state = self.adam_step(state, result.grads)
+            state = self.lm_step(state, result, J, frames) if lm else self.adam_step(state, result.grads)
             state.substeps = max(state.substeps, result.substeps)
             state.history.append(row)
             self.save_state(state)

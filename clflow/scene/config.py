@@ -234,6 +234,9 @@ class FlowSettings:
     mask: str = "alpha"  # "alpha" (rendered object alpha at frame 0), "none", or a file
 
 
+OPTIMIZERS = ("adam", "levenberg_marquardt")
+
+
 @dataclass(frozen=True)
 class SearchSettings:
     """The global phase before the gradient iterations (clflow.pipeline.optimize)."""
@@ -252,6 +255,7 @@ class OptimizeSettings:
     horizon_step: int = 0  # frames added per iteration
     final_rate: float = 0.1  # the rate falls (cosine) to this fraction of itself by the last iteration
     search: SearchSettings | None = None  # None: no global phase
+    method: str = "adam"  # the local phase: "adam" or "levenberg_marquardt" (flow loss l2 only)
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)  # SI; the search box of a parameter
 
 
@@ -433,7 +437,7 @@ def _camera(r: _Reader, data: Any) -> CameraConfig:
 def _optimize(r: _Reader, data: Any, material: MaterialConfig) -> OptimizeSettings:
     p = "optimize"
     body = r.section(data, p, ("parameters", "learning_rates", "iterations", "horizon", "final_rate", "search",
-                               "bounds"))
+                               "bounds", "method"))
     names = body.get("parameters", [])
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise r.fail(f"{p}.parameters", f"must be a list of parameter names, got {names!r}")
@@ -470,6 +474,7 @@ def _optimize(r: _Reader, data: Any, material: MaterialConfig) -> OptimizeSettin
         parameters=tuple(names), learning_rates=rates, iterations=r.integer(body, "iterations", p, 30, low=1),
         horizon_start=r.integer(horizon, "start", f"{p}.horizon", 0), horizon_step=r.integer(horizon, "step", f"{p}.horizon", 0),
         final_rate=r.number(body, "final_rate", p, 0.1, low=0.0, high=1.0), search=search, bounds=bounds,
+        method=r.choice(body, "method", p, OPTIMIZERS, "adam"),
     )
 
 
@@ -532,6 +537,10 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     output = top.get("output", "results")
     if not isinstance(output, str) or not output:
         raise r.fail("output", f"must be a folder path, got {output!r}")
+    optimize = _optimize(r, top.get("optimize"), material)
+    if optimize.method == "levenberg_marquardt" and flow.loss != "l2":
+        raise r.fail("optimize.method", f"levenberg_marquardt minimises a sum of squares: it needs flow.loss l2, "
+                                        f"not {flow.loss}")
     return SceneConfig(
         source=Path(source),
         splats=r.file(top, "splats", ""),
@@ -546,7 +555,7 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         camera=_camera(r, top.get("camera")),
         video=r.file(top, "video", "", required=False, folder_ok=True),  # a video or an image folder
         flow=flow,
-        optimize=_optimize(r, top.get("optimize"), material),
+        optimize=optimize,
         output=(r.base / output).resolve(),
         ground_truth=dict(truth),
     )

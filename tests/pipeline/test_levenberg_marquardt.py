@@ -1,0 +1,82 @@
+"""The Levenberg-Marquardt local phase (optimize.method: levenberg_marquardt) on a synthetic
+flow model with a known minimiser: convergence, rejected steps, the residuals' loss."""
+
+import dataclasses
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from clflow.errors import InputError
+from clflow.pipeline.optimize import LM_DAMPING, Evaluation, Optimization, flow_loss
+
+Z_TRUE = math.log10(2e4) + 0.37  # the model's minimiser, 1.37 decades above the demo's start
+
+
+@pytest.fixture
+def lm(demo_config, monkeypatch):
+    """The demo's optimiser with simulated flows observed + tanh(z - z_true) x a fixed field:
+    a nonlinear residual that vanishes at z_true."""
+
+    def make(iterations=8, curvature=1.0):
+        cfg = demo_config(iterations=iterations)
+        cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, method="levenberg_marquardt",
+                                                                     horizon_start=0))
+        opt = Optimization(cfg)
+        field = torch.randn(opt.observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+        calls = []
+
+        def evaluate(z, frames, with_grad=True, min_substeps=1):
+            calls.append(dict(z))
+            shift = math.tanh(curvature * (z["youngs_modulus"] - Z_TRUE)) / curvature
+            flows = [opt.observed[t] + shift * field[t] for t in range(frames)]
+            loss = float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.mask))
+            return Evaluation(loss, {}, flows, SimpleNamespace(substeps=1))
+
+        monkeypatch.setattr(opt, "evaluate", evaluate)
+        return opt, calls
+
+    return make
+
+
+def test_the_residuals_sum_of_squares_is_the_flow_loss(lm):
+    opt, _ = lm()
+    ev = opt.evaluate({"youngs_modulus": Z_TRUE + 0.3}, opt.frames)
+    assert float((opt.residuals(ev.flows) ** 2).sum()) == pytest.approx(ev.loss, rel=1e-12)
+
+
+def test_it_converges_from_over_a_decade_off_in_a_few_iterations(lm):
+    opt, calls = lm(iterations=6)
+    assert opt.initial_state().z["youngs_modulus"] == pytest.approx(Z_TRUE - 1.37)  # the demo's 10x-low start
+    state = opt.run()
+    assert abs(state.z["youngs_modulus"] - Z_TRUE) < 1e-4
+    losses = [row["loss"] for row in state.history]
+    assert losses[-1] < 1e-8 * losses[0]
+    assert len(calls) <= 2 * len(state.history)  # one base run and one per parameter
+
+
+def test_an_uphill_step_is_rejected_and_the_damping_grows(lm, monkeypatch):
+    opt, _ = lm(iterations=2, curvature=1.0)
+    state = opt.initial_state()
+    base, J = opt.jacobian(state.z, opt.frames, 1)
+    stepped = opt.lm_step(state, base, J, opt.frames)
+    assert stepped.best["z"] == state.z and stepped.damping == pytest.approx(LM_DAMPING)
+    uphill = dataclasses.replace(base, loss=2 * base.loss)  # as if the new point were worse
+    rejected = opt.lm_step(stepped, uphill, J, opt.frames)
+    assert rejected.z == state.z and rejected.damping == pytest.approx(4 * LM_DAMPING)
+    assert rejected.iteration == stepped.iteration + 1
+
+
+def test_it_needs_the_l2_loss(tmp_path):
+    from clflow.scene.config import parse_config
+    from tests.scene.test_config import GOOD
+
+    import json
+
+    (tmp_path / "scene.ply").write_bytes(b"ply\n")
+    data = json.loads(json.dumps(GOOD))
+    data["optimize"]["method"] = "levenberg_marquardt"
+    data["flow"] = {"loss": "charbonnier"}
+    with pytest.raises(InputError, match="needs flow.loss l2"):
+        parse_config(data, "scene.yaml", tmp_path)
