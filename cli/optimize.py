@@ -29,7 +29,7 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
     if output is not None:
         cfg = dataclasses.replace(cfg, output=Path(output).resolve())
     opt = Optimization(cfg)  # loads the scene, runs the material query, computes the video's flow
-    total = cfg.optimize.iterations
+    total = opt.total_iterations  # the velocity phase's (optimize.estimate_velocity) and the main phase's
     search = cfg.optimize.search
     with click.progressbar(length=total, label="optimising", show_pos=True,
                            item_show_func=_format_row, file=sys.stderr) as bar:
@@ -57,6 +57,8 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
     if "relative_error" in metrics:
         click.echo("relative error vs ground truth: " +
                    ", ".join(f"{n} {100 * e:.2f}%" for n, e in metrics["relative_error"].items()))
+    if "velocity_error_m_s" in metrics:
+        click.echo(f"initial velocity off by {metrics['velocity_error_m_s']:.3g} m/s")
     click.echo(f"flow loss {metrics['flow_loss']:.4g}, end-point error {metrics['epe_px']:.3g} px, "
                f"{metrics['seconds_per_iteration']:.2f} s per iteration; results in {cfg.output}")
     return metrics

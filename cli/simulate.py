@@ -30,9 +30,12 @@ CONFIG_SUFFIXES = (".yaml", ".yml", ".json")
 
 
 def simulate_scene(config_path: str, params_file: str | None, out_dir: str | None, preview: str) -> None:
-    """``clflow simulate CONFIG``: the config's scene with its material (or the parameters of
-    an optimisation's params.json), written as per-frame Gaussians and a guidance-view video."""
+    """``clflow simulate CONFIG``: the config's scene with its material and initial velocity
+    (or those of an optimisation's params.json), written as per-frame Gaussians and a
+    guidance-view video."""
+    import dataclasses
     import json
+    import math
     from pathlib import Path
 
     from clflow.errors import InputError
@@ -47,10 +50,15 @@ def simulate_scene(config_path: str, params_file: str | None, out_dir: str | Non
         try:
             record = json.loads(Path(params_file).read_text())
             overrides = {**record["parameters"], "density": record["density"]}
+            velocity = record.get("velocity", list(cfg.velocity))  # older records have none
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise InputError(f"{params_file}: not a params.json of clflow optimize ({exc})") from None
         if record.get("material") != cfg.material.type:
             raise InputError(f"{params_file} is for {record.get('material')!r}, the config simulates {cfg.material.type!r}")
+        if not (isinstance(velocity, list) and len(velocity) == 3
+                and all(isinstance(v, (int, float)) and math.isfinite(v) for v in velocity)):
+            raise InputError(f"{params_file}: velocity must be a list of 3 finite numbers (m/s), got {velocity!r}")
+        cfg = dataclasses.replace(cfg, velocity=tuple(float(v) for v in velocity))  # the optimised one
     out = Path(out_dir) if out_dir else cfg.output / "simulation"
     result = simulate_config(cfg, overrides)
     click.echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {cfg.simulation.frames} frames")

@@ -73,6 +73,7 @@ class SyntheticCase:
     spread: float | None = None  # room around the shape on each side (sizes); None: the default domain
     camera_offset: tuple[float, float, float] = (1.25, 1.75, 3.75)  # camera - centre, in sizes
     fov_y_deg: float = 40.0
+    velocity: tuple = (0.0, 0.0, 0.0)  # initial velocity, m/s
 
     @property
     def center(self) -> np.ndarray:
@@ -257,6 +258,8 @@ def case_config(case: SyntheticCase, resolution: Resolution, parameters: dict[st
         "flow": {"method": "dis", "preset": "medium", "loss": "l2", "mask": "alpha"},
         "output": "results",
     }
+    if any(case.velocity):
+        config["object"]["velocity"] = _rounded(case.velocity)
     if optimize:
         config["video"] = "guidance"
         config["optimize"] = {"parameters": list(case.optimize),

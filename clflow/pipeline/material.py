@@ -8,7 +8,7 @@ import logging
 
 from clflow.errors import InputError
 from clflow.materials import get_material, validate_params
-from clflow.scene.config import SceneConfig
+from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +38,7 @@ def resolve_material(cfg: SceneConfig) -> SceneConfig:
     result.save(cfg.output / "material_query.json")
     where = f"{cfg.source}: material.parameters (material {result.material} from the query)"
     params = validate_params(result.material, {**result.parameters, **mat.parameters}, where)
-    known = set(get_material(result.material).param_names) | {"density"}
+    known = set(get_material(result.material).param_names) | {"density", VELOCITY, *VELOCITY_COMPONENTS}
     wrong = [n for n in (*cfg.optimize.parameters, *cfg.ground_truth) if n not in known]
     if wrong:
         raise InputError(f"{cfg.source}: the query chose {result.material}, which has no parameter "

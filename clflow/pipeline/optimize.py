@@ -5,9 +5,12 @@ camera -> masked flow loss against the video's flow -> adjoint -> one Adam step 
 parameters' unconstrained variables z (log10 for moduli, bounded maps for ratios: see
 clflow.mpm.parameterization) with a cosine-decaying rate. The loss may cover only the first
 frames at first (``optimize.horizon``): a short horizon keeps the loss monotone far from the
-optimum, where a long one has local minima (docs/pipeline.md). Adam is written out here in float64 so that its whole state
-goes into ``checkpoint.json`` after every iteration; ``resume`` continues from it and gives
-the same result as an uninterrupted run. A failed iteration (NaN, a simulation that blows
+optimum, where a long one has local minima (docs/pipeline.md). With
+``optimize.estimate_velocity`` a velocity phase comes first: only the object's initial
+velocity is optimised, over the first frames, with the material at its initial guess; the
+main phase starts from that estimate. Adam is written out here in float64 so that its whole
+state goes into ``checkpoint.json`` after every iteration; ``resume`` continues from it and
+gives the same result as an uninterrupted run. A failed iteration (NaN, a simulation that blows
 up) rolls back to the last good parameters, halves the step and tries again.
 
 Results in ``output/``: params.json, metrics.json, history.json, loss.png, comparison.mp4,
@@ -34,7 +37,7 @@ from clflow.pipeline.forward import Prepared, SimulationResult, material_values,
 from clflow.pipeline.material import resolve_material
 from clflow.pipeline.render import frame_gaussians, render_flow, render_object_alpha
 from clflow.pipeline.simulation import build_simulator, run
-from clflow.scene.config import SceneConfig
+from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +46,7 @@ ADAM_EPS = 1e-8
 # per iteration, in z units: a decade per 10 steps for log parameters, a fortieth of the
 # typical range (nu 0.012, phi 1.1 deg) near its middle for bounded ones
 DEFAULT_RATE = 0.1
+DEFAULT_VELOCITY_RATE = 0.1  # m/s per iteration for each velocity component
 MAX_FAILURES = 4  # consecutive failed iterations before giving up
 CLIP_NORM = 10.0  # gradient clipping in z space
 # Levenberg-Marquardt (optimize.method: levenberg_marquardt)
@@ -91,12 +95,14 @@ class Evaluation:
 
 
 def _parameterizations(cfg: SceneConfig):
+    """Material parameter name -> its parameterisation, for each of optimize.parameters
+    but velocity."""
     from clflow.mpm.parameterization import parameterization
 
     names = cfg.optimize.parameters
     if not names:
         raise InputError(f"{cfg.source}: optimize.parameters is empty: name the parameters to optimise")
-    return {name: parameterization(cfg.material.type, name) for name in names}
+    return {name: parameterization(cfg.material.type, name) for name in names if name != VELOCITY}
 
 
 def observed_flow_of(cfg: SceneConfig, prepared: Prepared, frames: int) -> tuple[np.ndarray, np.ndarray]:
@@ -164,19 +170,28 @@ def flow_loss(cfg: SceneConfig, flows, observed: torch.Tensor, mask: torch.Tenso
     return torch.stack([fn(f.double(), observed[t], mask) for t, f in enumerate(flows)]).mean()
 
 
+def phase_of(opt, iteration: int) -> tuple[str, int, int]:
+    """(phase, iteration within it, its iterations) of overall ``iteration``: "velocity"
+    (``optimize.estimate_velocity``) comes first, then "main"."""
+    if iteration < opt.estimate_velocity_iterations:
+        return "velocity", iteration, opt.estimate_velocity_iterations
+    return "main", iteration - opt.estimate_velocity_iterations, opt.iterations
+
+
 def horizon(cfg: SceneConfig, iteration: int) -> int:
-    """Frames in the loss at ``iteration`` (the horizon curriculum: first frames first)."""
+    """Frames in the loss at ``iteration`` of the main phase (the horizon curriculum: first
+    frames first)."""
     total, opt = cfg.simulation.frames, cfg.optimize
     if opt.horizon_start <= 0:
         return total
     return min(total, opt.horizon_start + opt.horizon_step * iteration)
 
 
-def rate_schedule(opt, iteration: int) -> float:
-    """Factor on the learning rates at ``iteration``: cosine from 1 down to
-    ``optimize.final_rate`` at the last iteration (large steps far from the optimum, small
-    ones to settle in it)."""
-    progress = iteration / max(1, opt.iterations - 1)
+def rate_schedule(opt, iteration: int, iterations: int | None = None) -> float:
+    """Factor on the learning rates at ``iteration`` of a phase of ``iterations`` (default
+    ``optimize.iterations``): cosine from 1 down to ``optimize.final_rate`` at its last
+    iteration (large steps far from the optimum, small ones to settle in it)."""
+    progress = iteration / max(1, (opt.iterations if iterations is None else iterations) - 1)
     return opt.final_rate + (1.0 - opt.final_rate) * 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
@@ -186,6 +201,12 @@ class Optimization:
     def __init__(self, cfg: SceneConfig, *, progress: Callable[[dict], None] | None = None):
         self.cfg = cfg = resolve_material(cfg)
         self.params = _parameterizations(cfg)
+        opt = cfg.optimize
+        optimised = VELOCITY_COMPONENTS if VELOCITY in opt.parameters else ()
+        estimated = VELOCITY_COMPONENTS if opt.estimate_velocity_iterations and not optimised else ()
+        self.main_variables = tuple(self.params) + optimised  # z names the main phase optimises
+        self.variables = self.main_variables + estimated  # every z name
+        self.total_iterations = opt.estimate_velocity_iterations + opt.iterations
         self.progress = progress or (lambda row: None)
         self.prepared = prepare(cfg)
         self.frames = cfg.simulation.frames
@@ -201,6 +222,8 @@ class Optimization:
         values, density = material_values(self.cfg)
         values["density"] = density
         z = {n: float(p.encode(values[n])) for n, p in self.params.items()}
+        if VELOCITY_COMPONENTS[0] in self.variables:
+            z.update(zip(VELOCITY_COMPONENTS, self.cfg.velocity))
         return OptimizerState(0, z, {n: 0.0 for n in z}, {n: 0.0 for n in z})
 
     def load_state(self) -> OptimizerState:
@@ -209,25 +232,36 @@ class Optimization:
             state = OptimizerState(**data["state"])
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise InputError(f"cannot resume from {self.checkpoint}: {exc}") from None
-        if set(state.z) != set(self.params):
-            raise InputError(f"{self.checkpoint} optimises {sorted(state.z)}, the config {sorted(self.params)}")
+        if set(state.z) != set(self.variables):
+            raise InputError(f"{self.checkpoint} optimises {sorted(state.z)}, the config {sorted(self.variables)}")
         return state
 
     def save_state(self, state: OptimizerState) -> None:
         atomic_write_text(self.checkpoint, json.dumps({"config": str(self.cfg.source), "state": asdict(state)}))
 
     def values(self, z: dict[str, float]) -> dict[str, float]:
-        return {n: float(p.decode(torch.tensor(z[n], dtype=torch.float64))) for n, p in self.params.items()}
+        """The value of every variable in z: material parameters in SI, velocity components in m/s."""
+        out = {n: float(p.decode(torch.tensor(z[n], dtype=torch.float64))) for n, p in self.params.items()}
+        out.update((n, z[n]) for n in VELOCITY_COMPONENTS if n in z)
+        return out
+
+    def velocity(self, z: dict[str, float]) -> tuple[float, float, float]:
+        """The object's initial velocity (m/s, simulation frame) at z."""
+        return tuple(z[n] for n in VELOCITY_COMPONENTS) if VELOCITY_COMPONENTS[0] in z else self.cfg.velocity
 
     # -- one iteration -------------------------------------------------------------------
 
-    def evaluate(self, z: dict[str, float], frames: int, with_grad: bool = True, min_substeps: int = 1) -> Evaluation:
-        """Loss (and dloss/dz) at z over ``frames`` frames."""
-        zt = {n: torch.tensor(v, dtype=torch.float64, requires_grad=with_grad) for n, v in z.items()}
-        decoded = {n: self.params[n].decode(zt[n]) for n in zt}
+    def evaluate(self, z: dict[str, float], frames: int, with_grad: bool = True, min_substeps: int = 1,
+                 variables: tuple[str, ...] | None = None) -> Evaluation:
+        """Loss (and dloss/dz of ``variables``, default every z name) at z over ``frames`` frames."""
+        variables = self.variables if variables is None else variables
+        zt = {n: torch.tensor(v, dtype=torch.float64, requires_grad=with_grad and n in variables) for n, v in z.items()}
+        decoded = {n: p.decode(zt[n]) for n, p in self.params.items()}
         params, density = material_values(self.cfg, {n: float(v.detach()) for n, v in decoded.items()})
-        sim = build_simulator(self.cfg, self.prepared.setup, params, density, min_substeps=min_substeps)
-        traj = run(sim, frames, decoded)
+        velocity = torch.stack([zt[n] for n in VELOCITY_COMPONENTS]) if VELOCITY_COMPONENTS[0] in zt else None
+        sim = build_simulator(self.cfg, self.prepared.setup, params, density, min_substeps=min_substeps,
+                              velocity=velocity)
+        traj = run(sim, frames, decoded, velocity)
         flows = simulated_flows(self.prepared, traj.x, traj.F, frames)
         loss = flow_loss(self.cfg, flows, self.observed[:frames], self.mask)
         if not bool(torch.isfinite(loss.detach())):
@@ -235,7 +269,7 @@ class Optimization:
         grads = {}
         if with_grad:
             loss.backward()
-            grads = {n: float(zt[n].grad) for n in zt}
+            grads = {n: float(zt[n].grad) for n in variables}
             if not all(math.isfinite(g) for g in grads.values()):
                 raise FloatingPointError("the gradient is not finite")
         return Evaluation(float(loss.detach()), grads, [f.detach() for f in flows], traj)
@@ -271,7 +305,7 @@ class Optimization:
         unit = torch.quasirandom.SobolEngine(len(names), scramble=True, seed=0).draw(max(0, count - 1), dtype=torch.float64)
         points = [dict(z0)]
         for row in unit.tolist():
-            points.append({n: box[n][0] + u * (box[n][1] - box[n][0]) for n, u in zip(names, row)})
+            points.append({**z0, **{n: box[n][0] + u * (box[n][1] - box[n][0]) for n, u in zip(names, row)}})
         return points
 
     def global_search(self, state: OptimizerState) -> OptimizerState:
@@ -313,17 +347,18 @@ class Optimization:
         return torch.cat([((f.double() - self.observed[t]) * root * scale)[self.mask].reshape(-1)
                           for t, f in enumerate(flows)])
 
-    def jacobian(self, z: dict[str, float], frames: int, min_substeps: int) -> tuple[Evaluation, torch.Tensor]:
-        """The evaluation at z and the Jacobian [R, P] of its residuals by backward
-        differences of LM_STEP (softer neighbours need no more substeps than z, so every run
-        shares z's time step); cached for a rejected step's retry."""
-        key = (tuple(sorted(z.items())), frames)
+    def jacobian(self, z: dict[str, float], frames: int, min_substeps: int,
+                 variables: tuple[str, ...]) -> tuple[Evaluation, torch.Tensor]:
+        """The evaluation at z and the Jacobian [R, P] of its residuals with respect to
+        ``variables`` by backward differences of LM_STEP (softer neighbours need no more
+        substeps than z, so every run shares z's time step); cached for a rejected step's retry."""
+        key = (tuple(sorted(z.items())), frames, variables)
         if self._lm_cache is not None and self._lm_cache[0] == key:
             return self._lm_cache[1], self._lm_cache[2]
         base = self.evaluate(z, frames, with_grad=False, min_substeps=min_substeps)
         r0 = self.residuals(base.flows)
         columns = []
-        for name in self.params:
+        for name in variables:
             nearby = self.evaluate({**z, name: z[name] - LM_STEP}, frames, with_grad=False,
                                    min_substeps=base.substeps)
             columns.append((r0 - self.residuals(nearby.flows)) / LM_STEP)
@@ -331,7 +366,8 @@ class Optimization:
         self._lm_cache = (key, base, J)
         return base, J
 
-    def lm_step(self, state: OptimizerState, base: Evaluation, J: torch.Tensor, frames: int) -> OptimizerState:
+    def lm_step(self, state: OptimizerState, base: Evaluation, J: torch.Tensor, frames: int,
+                variables: tuple[str, ...]) -> OptimizerState:
         """Accept or reject the point just evaluated (its loss against the best so far at this
         horizon), then one damped Gauss-Newton step from the best point:
         (J^T J + damping diag(J^T J)) dz = -J^T r, at most LM_MAX_STEP long."""
@@ -349,7 +385,7 @@ class Optimization:
         length = float(step.norm())
         if length > LM_MAX_STEP:
             step *= LM_MAX_STEP / length
-        z = {n: state.z[n] + float(d) for n, d in zip(self.params, step)}
+        z = {**state.z, **{n: state.z[n] + float(d) for n, d in zip(variables, step)}}
         return dataclasses.replace(state, iteration=state.iteration + 1, z=z, damping=damping, best=best)
 
     # -- the gradient phase -----------------------------------------------------------------
@@ -367,34 +403,42 @@ class Optimization:
             last = state.history[-1]["z"]
             if sum(grads[n] * (z[n] - last[n]) for n in grads) > 0:
                 m, k_m = {n: 0.0 for n in m}, 1
-        k = state.iteration + 1
-        schedule = rate_schedule(self.cfg.optimize, state.iteration)
+        _, iteration, iterations = phase_of(self.cfg.optimize, state.iteration)
+        k = iteration + 1  # gradients in v since the phase began (for Adam's bias correction)
+        schedule = rate_schedule(self.cfg.optimize, iteration, iterations)
         for n, g in grads.items():
             g *= scale
             m[n] = BETAS[0] * m[n] + (1 - BETAS[0]) * g
             v[n] = BETAS[1] * v[n] + (1 - BETAS[1]) * g * g
             m_hat, v_hat = m[n] / (1 - BETAS[0] ** k_m), v[n] / (1 - BETAS[1] ** k)
-            rate = self.cfg.optimize.learning_rates.get(n, DEFAULT_RATE) * state.step_scale * schedule
+            rate = learning_rate(self.cfg, n) * state.step_scale * schedule
             z[n] -= rate * m_hat / (math.sqrt(v_hat) + ADAM_EPS)
-        return dataclasses.replace(state, iteration=k, z=z, m=m, v=v, history=list(state.history), momentum_steps=k_m)
+        return dataclasses.replace(state, iteration=state.iteration + 1, z=z, m=m, v=v, history=list(state.history),
+                                   momentum_steps=k_m)
 
     def run(self, resume: bool = False, stop_after: int | None = None) -> OptimizerState:
-        """Optimise for ``optimize.iterations`` iterations (``stop_after``: at most this many
-        in this call, for tests of resuming); returns the final state."""
+        """Optimise for the velocity phase's and ``optimize.iterations`` iterations
+        (``stop_after``: at most this many in this call, for tests of resuming); returns the
+        final state. Each phase starts with fresh Adam moments and step scale."""
+        opt = self.cfg.optimize
         self.cfg.output.mkdir(parents=True, exist_ok=True)
         state = self.load_state() if resume and self.checkpoint.exists() else self.initial_state()
-        if self.cfg.optimize.search is not None and not state.searched:
-            state = self.global_search(state)
         lm = self.cfg.optimize.method == "levenberg_marquardt"
         failures, done_here = 0, 0
-        while state.iteration < self.cfg.optimize.iterations and (stop_after is None or done_here < stop_after):
-            frames = horizon(self.cfg, state.iteration)
+        while state.iteration < self.total_iterations and (stop_after is None or done_here < stop_after):
+            phase, iteration, _ = phase_of(opt, state.iteration)
+            if phase == "main" and opt.search is not None and not state.searched:
+                state = self.global_search(state)  # after the velocity phase: from its estimate
+            if phase == "velocity":
+                frames, variables = opt.estimate_velocity_frames, VELOCITY_COMPONENTS
+            else:
+                frames, variables = horizon(self.cfg, iteration), self.main_variables
             start = time.perf_counter()
             try:
                 if lm:
-                    result, J = self.jacobian(state.z, frames, state.substeps)
+                    result, J = self.jacobian(state.z, frames, state.substeps, variables)
                 else:
-                    result = self.evaluate(state.z, frames, min_substeps=state.substeps)
+                    result = self.evaluate(state.z, frames, min_substeps=state.substeps, variables=variables)
             except (FloatingPointError, ClflowError) as exc:
                 failures += 1
                 if failures > MAX_FAILURES or state.iteration == 0 and failures > 1:
@@ -408,12 +452,15 @@ class Optimization:
                                             damping=state.damping * 4.0)
                 continue
             failures = 0
-            row = {"iteration": state.iteration, "loss": result.loss, "frames": frames, "z": dict(state.z),
-                   "params": self.values(state.z), "substeps": result.substeps,
+            row = {"iteration": state.iteration, "phase": phase, "loss": result.loss, "frames": frames,
+                   "z": dict(state.z), "params": self.values(state.z), "substeps": result.substeps,
                    "seconds": time.perf_counter() - start}
-            state = self.lm_step(state, result, J, frames) if lm else self.adam_step(state, result.grads)
+            state = self.lm_step(state, result, J, frames, variables) if lm else self.adam_step(state, result.grads)
             state.substeps = max(state.substeps, result.substeps)
             state.history.append(row)
+            if phase_of(opt, state.iteration)[0] != phase:
+                state = dataclasses.replace(state, m={n: 0.0 for n in state.m}, v={n: 0.0 for n in state.v},
+                                            momentum_steps=0, step_scale=1.0, damping=LM_DAMPING, best=None)
             self.save_state(state)
             self.progress(row)
             done_here += 1
@@ -435,16 +482,23 @@ class Optimization:
 
         out = self.cfg.output
         final = self.values(state.z)
-        params, density = material_values(self.cfg, final)
+        params, density = material_values(self.cfg, {n: final[n] for n in self.params})
+        velocity = self.velocity(state.z)
         result = self.evaluate(state.z, self.frames, with_grad=False, min_substeps=state.substeps)
         loss, flows = result.loss, result.flows
         metrics = {"flow_loss": loss, "epe_px": self.endpoint_error(flows), "iterations": state.iteration,
                    "seconds_per_iteration": float(np.mean([h["seconds"] for h in state.history])) if state.history else 0.0}
         truth = self.cfg.ground_truth
         if truth:
-            metrics["relative_error"] = {n: abs(final[n] - truth[n]) / abs(truth[n]) for n in final if n in truth}
+            metrics["relative_error"] = {n: abs(final[n] - truth[n]) / abs(truth[n]) for n in self.params if n in truth}
+            if VELOCITY_COMPONENTS[0] in final and VELOCITY_COMPONENTS[0] in truth:
+                true_velocity = [truth[n] for n in VELOCITY_COMPONENTS]
+                metrics["velocity_error_m_s"] = math.dist(velocity, true_velocity)  # |v - v_true|
+                if any(true_velocity):
+                    metrics["relative_error"][VELOCITY] = metrics["velocity_error_m_s"] / math.hypot(*true_velocity)
         record = {"material": self.cfg.material.type, "parameters": params, "density": density,
-                  "optimized": final, "units": {n: parameter_unit(self.cfg, n) for n in final}}
+                  "velocity": list(velocity), "optimized": final,
+                  "units": {n: parameter_unit(self.cfg, n) for n in final}}
         atomic_write_text(out / "params.json", json.dumps(record, indent=2))
         atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2))
         atomic_write_text(out / "history.json", json.dumps(state.history, indent=1))
@@ -461,16 +515,27 @@ class Optimization:
         return metrics
 
 
+def learning_rate(cfg: SceneConfig, name: str) -> float:
+    """Learning rate of the z variable ``name`` per iteration (before the schedule): the
+    config's, else DEFAULT_VELOCITY_RATE (m/s) for a velocity component and DEFAULT_RATE."""
+    rates = cfg.optimize.learning_rates
+    if name in VELOCITY_COMPONENTS:
+        return rates.get(VELOCITY, DEFAULT_VELOCITY_RATE)
+    return rates.get(name, DEFAULT_RATE)
+
+
 def parameter_unit(cfg: SceneConfig, name: str) -> str:
-    """SI unit of an optimised parameter (of a config with a concrete material)."""
+    """SI unit of an optimised variable (of a config with a concrete material)."""
     from clflow.materials import DENSITY, get_material
 
+    if name in VELOCITY_COMPONENTS:
+        return "m/s"
     return DENSITY.unit if name == "density" else get_material(cfg.material.type).param(name).unit
 
 
 def write_history_plot(path: Path, history: list[dict], truth: dict[str, float]) -> None:
-    """PNG: the loss (log scale) and each parameter (log10 of its value) per iteration,
-    with the ground truth as a dashed line when known. Drawn with OpenCV."""
+    """PNG: the loss (log scale) and each parameter (log10 of its value; velocity components
+    in m/s) per iteration, with the ground truth as a dashed line when known. Drawn with OpenCV."""
     import cv2
 
     from clflow.flow.visualize import write_image
@@ -478,6 +543,9 @@ def write_history_plot(path: Path, history: list[dict], truth: dict[str, float])
     names = sorted(history[0]["params"]) if history else []
     panels = [("flow loss (log10)", [math.log10(max(h["loss"], 1e-30)) for h in history], None)]
     for n in names:
+        if n in VELOCITY_COMPONENTS:  # either sign: linear
+            panels.append((f"{n} (m/s)", [h["params"][n] for h in history], truth.get(n)))
+            continue
         t = math.log10(truth[n]) if n in truth and truth[n] > 0 else None
         panels.append((f"log10 {n}", [math.log10(max(h["params"][n], 1e-30)) for h in history], t))
     width, height = 420, 220
@@ -503,4 +571,5 @@ def write_history_plot(path: Path, history: list[dict], truth: dict[str, float])
     write_image(path, np.concatenate(images, 0))
 
 
-__all__ = ["Optimization", "OptimizerState", "horizon", "parameter_unit", "rate_schedule", "write_history_plot"]
+__all__ = ["Optimization", "OptimizerState", "horizon", "learning_rate", "parameter_unit", "phase_of", "rate_schedule",
+           "write_history_plot"]

@@ -21,7 +21,6 @@ from clflow.scene.config import SceneConfig
 from clflow.scene.filling import ObjectParticles, fill_object
 
 
-
 @dataclass
 class ObjectSetup:
     """Everything about the simulated object that does not change between iterations."""
@@ -79,10 +78,12 @@ def setup_object(cfg: SceneConfig, obj: SceneGaussians) -> ObjectSetup:
 
 
 def build_simulator(cfg: SceneConfig, setup: ObjectSetup, params: dict[str, float], density: float,
-                    dtype: torch.dtype = torch.float32, min_substeps: int = 1):
-    """A :class:`clflow.mpm.Simulator` for material parameters ``params`` (SI) and
-    ``density`` (kg/m^3); substeps from ``simulation.substep_dt``, else the stability limits
-    of these parameters but at least ``min_substeps``."""
+                    dtype: torch.dtype = torch.float32, min_substeps: int = 1,
+                    velocity: torch.Tensor | None = None):
+    """A :class:`clflow.mpm.Simulator` for material parameters ``params`` (SI), ``density``
+    (kg/m^3) and initial velocity ``velocity`` ([3] m/s in the simulation frame, default
+    ``object.velocity``); substeps from ``simulation.substep_dt``, else the stability limits
+    of these parameters and this speed but at least ``min_substeps``."""
     from clflow.mpm import BoxRegion, Force, HalfSpace, MaterialSpec, Simulator, SphereRegion
 
     sim_cfg = cfg.simulation
@@ -106,21 +107,27 @@ def build_simulator(cfg: SceneConfig, setup: ObjectSetup, params: dict[str, floa
                             acceleration=vec if stage.kind == "acceleration" else None))
     colliders = [HalfSpace(c.point, c.normal, c.mode, c.friction, c.start, c.end) for c in cfg.colliders]
     material = get_material(cfg.material.type).name
+    velocity = torch.as_tensor(cfg.velocity if velocity is None else velocity, dtype=torch.float64)
+    velocities = velocity.detach().expand(x.shape[0], 3)
     sim = Simulator(
         x, setup.particles.volume, MaterialSpec(material, dict(params), density, cfg.material.model), setup.grid,
-        frame_dt=frame_dt, substeps=substeps, gravity=sim_cfg.gravity, boundaries=colliders, forces=forces,
-        dtype=dtype,
+        velocities=velocities, frame_dt=frame_dt, substeps=substeps, gravity=sim_cfg.gravity, boundaries=colliders,
+        forces=forces, dtype=dtype,
     )
     if substeps is None and sim.substeps < min_substeps:
         sim.use_substeps(min_substeps)
     return sim
 
 
-def run(simulator, frames: int, values: dict[str, torch.Tensor]):
+def run(simulator, frames: int, values: dict[str, torch.Tensor], velocity: torch.Tensor | None = None):
     """Differentiable run (clflow.mpm.autograd.simulate) with the material parameters in
-    ``values`` (registry name or "density" -> 0-d tensor, SI) as inputs; returns Frames
-    (x, v [T+1, M, 3], F [T+1, M, 3, 3])."""
-    from clflow.mpm.autograd import simulate
+    ``values`` (registry name or "density" -> 0-d tensor, SI) and the initial velocity
+    ``velocity`` ([3] m/s, simulation frame, given to every particle; default: the
+    simulator's) as inputs; returns Frames (x, v [T+1, M, 3], F [T+1, M, 3, 3])."""
+    from clflow.mpm.autograd import per_particle, simulate
 
     params = {name: value for name, value in values.items() if name != "density"}
-    return simulate(simulator, frames, params=params or None, density=values.get("density"), retries=2)
+    velocities = None if velocity is None else per_particle(velocity, simulator.n, "velocity", simulator.dtype,
+                                                            simulator.device, trailing=(3,))
+    return simulate(simulator, frames, params=params or None, density=values.get("density"), velocities=velocities,
+                    retries=2)

@@ -4,7 +4,8 @@ Every key is checked: unknown keys (typos), wrong types and out-of-range values 
 :class:`~clflow.errors.InputError` that names the file and the dotted key, e.g.
 ``scene.yaml: simulation.frames: must be an integer >= 1, got -3``. Paths are relative to
 the config file. Lengths in the ``simulation``/``forces``/``boundaries`` sections are metres
-in the simulation frame (+y up); ``object.select`` is in scene units of the splat file.
+in the simulation frame (+y up), and so is ``object.velocity`` (m/s); ``object.select`` is in
+scene units of the splat file.
 
 A complete example with every default spelled out: ``docs/scene_config.md``.
 """
@@ -27,6 +28,8 @@ FLOW_METHODS = ("dis", "farneback")
 FLOW_LOSSES = ("l2", "charbonnier")
 DIS_PRESETS = ("ultrafast", "fast", "medium")  # OpenCV DIS presets (clflow.flow.optical_flow)
 MATERIAL_MODELS = {"elastic": ELASTIC_MODELS, "sand": SAND_MODELS}  # material.model options
+VELOCITY = "velocity"  # the name of the object's initial velocity in optimize.parameters, evaluation.ground_truth
+VELOCITY_COMPONENTS = ("velocity_x", "velocity_y", "velocity_z")  # its components: m/s, scene axes
 
 
 _DEFAULT = object()
@@ -257,6 +260,8 @@ class OptimizeSettings:
     search: SearchSettings | None = None  # None: no global phase
     method: str = "adam"  # the local phase: "adam" or "levenberg_marquardt" (flow loss l2 only)
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)  # SI; the search box of a parameter
+    estimate_velocity_frames: int = 0  # frames in the loss of the velocity phase
+    estimate_velocity_iterations: int = 0  # iterations of the velocity phase before the main one (0: none)
 
 
 @dataclass(frozen=True)
@@ -276,7 +281,8 @@ class SceneConfig:
     flow: FlowSettings
     optimize: OptimizeSettings
     output: Path
-    ground_truth: dict[str, float] = field(default_factory=dict)  # for metrics (RE) only
+    ground_truth: dict[str, float] = field(default_factory=dict)  # for metrics (RE) only; velocity as components
+    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the object's initial velocity, m/s, scene axes
 
 
 def _region(r: _Reader, data: Any, path: str, allow_all: bool) -> Region:
@@ -434,23 +440,33 @@ def _camera(r: _Reader, data: Any) -> CameraConfig:
     )
 
 
-def _optimize(r: _Reader, data: Any, material: MaterialConfig) -> OptimizeSettings:
+def _optimize(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> OptimizeSettings:
     p = "optimize"
     body = r.section(data, p, ("parameters", "learning_rates", "iterations", "horizon", "final_rate", "search",
-                               "bounds", "method"))
+                               "bounds", "method", "estimate_velocity"))
     names = body.get("parameters", [])
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise r.fail(f"{p}.parameters", f"must be a list of parameter names, got {names!r}")
     if material.type != "query":
         mat = get_material(material.type)
         for name in names:
-            if name != "density" and name not in mat.param_names:
+            if name not in ("density", VELOCITY) and name not in mat.param_names:
                 raise r.fail(f"{p}.parameters", f"{name!r} is not a parameter of {mat.name} "
-                                                f"(its parameters: {', '.join(mat.param_names)}, density)")
+                                                f"(its parameters: {', '.join(mat.param_names)}, density, velocity)")
+    estimate = r.section(body.get("estimate_velocity"), f"{p}.estimate_velocity", ("frames", "iterations"))
+    estimate_frames = estimate_iterations = 0
+    if estimate:
+        estimate_frames = r.integer(estimate, "frames", f"{p}.estimate_velocity", low=1)
+        estimate_iterations = r.integer(estimate, "iterations", f"{p}.estimate_velocity", low=1)
+        if estimate_frames > frames:
+            raise r.fail(f"{p}.estimate_velocity.frames", f"must be <= simulation.frames ({frames}), "
+                                                          f"got {estimate_frames}")
     rates_in = r.mapping(body.get("learning_rates"), f"{p}.learning_rates")
     for name in rates_in:
-        if name not in names:
-            raise r.fail(f"{p}.learning_rates.{name}", f"is not among optimize.parameters {names}")
+        if name not in names and not (name == VELOCITY and estimate):
+            raise r.fail(f"{p}.learning_rates.{name}", f"is not among optimize.parameters {names}"
+                                                       + (" (nor estimated: optimize.estimate_velocity)"
+                                                          if name == VELOCITY else ""))
     rates = {n: r.number(rates_in, n, f"{p}.learning_rates", low=0.0, strict_low=True) for n in rates_in}
     horizon = r.section(body.get("horizon"), f"{p}.horizon", ("start", "step"))
     search = None
@@ -475,6 +491,7 @@ def _optimize(r: _Reader, data: Any, material: MaterialConfig) -> OptimizeSettin
         horizon_start=r.integer(horizon, "start", f"{p}.horizon", 0), horizon_step=r.integer(horizon, "step", f"{p}.horizon", 0),
         final_rate=r.number(body, "final_rate", p, 0.1, low=0.0, high=1.0), search=search, bounds=bounds,
         method=r.choice(body, "method", p, OPTIMIZERS, "adam"),
+        estimate_velocity_frames=estimate_frames, estimate_velocity_iterations=estimate_iterations,
     )
 
 
@@ -489,7 +506,7 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     if not top:
         raise r.fail("", "the config is empty")
     scene = r.section(top.get("scene"), "scene", ("scale", "up"))
-    obj = r.section(top.get("object"), "object", ("select", "fill"))
+    obj = r.section(top.get("object"), "object", ("select", "fill", "velocity"))
     select = r.section(obj.get("select"), "object.select", ("box", "sphere", "mask"))
     if not select:
         raise r.fail("object.select", "is required: a box, a sphere or a mask file")
@@ -518,6 +535,8 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     )
     evaluation = r.section(top.get("evaluation"), "evaluation", ("ground_truth",))
     truth = dict(r.mapping(evaluation.get("ground_truth"), "evaluation.ground_truth"))
+    true_velocity = r.vec3(truth, VELOCITY, "evaluation.ground_truth", ())  # () when not given
+    truth.pop(VELOCITY, None)
     for name, value in truth.items():
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise r.fail(f"evaluation.ground_truth.{name}", f"must be a number, got {value!r}")
@@ -534,10 +553,12 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
             raise r.fail("evaluation.ground_truth", str(exc)) from None
     if true_density is not None:
         truth["density"] = float(true_density)
+    truth.update(zip(VELOCITY_COMPONENTS, true_velocity))
+    simulation = _simulation(r, top.get("simulation"))
     output = top.get("output", "results")
     if not isinstance(output, str) or not output:
         raise r.fail("output", f"must be a folder path, got {output!r}")
-    optimize = _optimize(r, top.get("optimize"), material)
+    optimize = _optimize(r, top.get("optimize"), material, simulation.frames)
     if optimize.method == "levenberg_marquardt" and flow.loss != "l2":
         raise r.fail("optimize.method", f"levenberg_marquardt minimises a sum of squares: it needs flow.loss l2, "
                                         f"not {flow.loss}")
@@ -551,13 +572,14 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         material=material,
         forces=_forces(r, r.items(top, "forces", "")),
         colliders=_colliders(r, top.get("boundaries")),
-        simulation=_simulation(r, top.get("simulation")),
+        simulation=simulation,
         camera=_camera(r, top.get("camera")),
         video=r.file(top, "video", "", required=False, folder_ok=True),  # a video or an image folder
         flow=flow,
         optimize=optimize,
         output=(r.base / output).resolve(),
         ground_truth=dict(truth),
+        velocity=r.vec3(obj, "velocity", "object", (0.0, 0.0, 0.0)),
     )
 
 

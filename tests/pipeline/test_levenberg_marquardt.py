@@ -27,7 +27,7 @@ def lm(demo_config, monkeypatch):
         field = torch.randn(opt.observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
         calls = []
 
-        def evaluate(z, frames, with_grad=True, min_substeps=1):
+        def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None):
             calls.append(dict(z))
             shift = math.tanh(curvature * (z["youngs_modulus"] - Z_TRUE)) / curvature
             flows = [opt.observed[t] + shift * field[t] for t in range(frames)]
@@ -59,11 +59,12 @@ def test_it_converges_from_over_a_decade_off_in_a_few_iterations(lm):
 def test_an_uphill_step_is_rejected_and_the_damping_grows(lm, monkeypatch):
     opt, _ = lm(iterations=2, curvature=1.0)
     state = opt.initial_state()
-    base, J = opt.jacobian(state.z, opt.frames, 1)
-    stepped = opt.lm_step(state, base, J, opt.frames)
+    variables = ("youngs_modulus",)
+    base, J = opt.jacobian(state.z, opt.frames, 1, variables)
+    stepped = opt.lm_step(state, base, J, opt.frames, variables)
     assert stepped.best["z"] == state.z and stepped.damping == pytest.approx(LM_DAMPING)
     uphill = dataclasses.replace(base, loss=2 * base.loss)  # as if the new point were worse
-    rejected = opt.lm_step(stepped, uphill, J, opt.frames)
+    rejected = opt.lm_step(stepped, uphill, J, opt.frames, variables)
     assert rejected.z == state.z and rejected.damping == pytest.approx(4 * LM_DAMPING)
     assert rejected.iteration == stepped.iteration + 1
 

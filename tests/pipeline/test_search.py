@@ -28,7 +28,7 @@ def searching(demo_config, monkeypatch):
         opt = Optimization(cfg)
         calls = []
 
-        def evaluate(z, frames, with_grad=True, min_substeps=1):
+        def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None):
             calls.append(dict(z))
             value = two_basins(z["youngs_modulus"])
             grads = {"youngs_modulus": 0.0} if with_grad else {}
@@ -83,7 +83,7 @@ def test_the_design_is_reproducible_and_a_resumed_search_is_the_same(searching):
 def test_failed_samples_are_skipped_and_none_running_is_an_error(searching, monkeypatch):
     opt, _ = searching(samples=6)
 
-    def failing(z, frames, with_grad=True, min_substeps=1):
+    def failing(z, frames, with_grad=True, min_substeps=1, variables=None):
         raise FloatingPointError("the flow loss is not finite")
 
     monkeypatch.setattr(opt, "evaluate", failing)

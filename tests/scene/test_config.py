@@ -121,6 +121,20 @@ BAD = [
     ("optimize.final_rate", 2, "optimize.final_rate: must be <= 1, got 2"),
     ("material", {"type": "query", "query": {"image": "scene.ply", "backend": "gpt"}},
      "material.query.backend: must be one of offline, openai"),
+    ("object.velocity", [1.0, 2.0], r"object.velocity: must be a list of 3 finite numbers, got \[1.0, 2.0\]"),
+    ("object.velocity", [float("nan"), 0, 0], "object.velocity: must be a list of 3 finite numbers, got \\[nan"),
+    ("object.velocity", "fast", "object.velocity: must be a list of 3 finite numbers, got 'fast'"),
+    ("object.velocity", ["1", "2", "3"], "object.velocity: must be a list of 3 finite numbers"),
+    ("object.velocity", [True, 0, 0], "object.velocity: must be a list of 3 finite numbers"),
+    ("optimize.parameters", ["speed"], "'speed' is not a parameter of elastic .*density, velocity"),
+    ("optimize.learning_rates", {"velocity": 0.1}, r"optimize.learning_rates.velocity: is not among optimize.parameters"
+                                                   r" \['youngs_modulus'\] \(nor estimated"),
+    ("optimize.estimate_velocity", {"frames": 13, "iterations": 5},
+     r"optimize.estimate_velocity.frames: must be <= simulation.frames \(12\), got 13"),
+    ("optimize.estimate_velocity", {"frames": 3}, "optimize.estimate_velocity.iterations: is required"),
+    ("optimize.estimate_velocity", {"frames": 0, "iterations": 5}, "optimize.estimate_velocity.frames: must be an integer >= 1"),
+    ("optimize.estimate_velocity", {"frames": 3, "iterations": 5, "lr": 1}, "optimize.estimate_velocity.lr: unknown key"),
+    ("evaluation", {"ground_truth": {"velocity": 2.0}}, "evaluation.ground_truth.velocity: must be a list of 3 finite"),
 ]
 
 
@@ -131,6 +145,25 @@ def test_bad_configs_name_the_key_and_the_problem(folder, path, value, message):
         return
     with pytest.raises(InputError, match=message):
         parse(edit(path, value), folder)
+
+
+def test_velocity_keys(folder):
+    assert parse(GOOD, folder).velocity == (0.0, 0.0, 0.0)  # at rest by default
+    data = edit("object.velocity", [0.5, -1, 2])
+    data["optimize"] = {"parameters": ["youngs_modulus", "velocity"], "learning_rates": {"velocity": 0.2},
+                        "estimate_velocity": {"frames": 4, "iterations": 10}}
+    data["evaluation"] = {"ground_truth": {"youngs_modulus": 2e4, "velocity": [0.5, -1, 0]}}
+    cfg = parse(data, folder)
+    assert cfg.velocity == (0.5, -1.0, 2.0)  # as written: m/s in the simulation frame
+    opt = cfg.optimize
+    assert opt.parameters == ("youngs_modulus", "velocity") and opt.learning_rates == {"velocity": 0.2}
+    assert (opt.estimate_velocity_frames, opt.estimate_velocity_iterations) == (4, 10)
+    assert cfg.ground_truth == {"youngs_modulus": 2e4, "velocity_x": 0.5, "velocity_y": -1.0, "velocity_z": 0.0}
+    # a rate for the velocity phase alone
+    data["optimize"] = {"parameters": ["youngs_modulus"], "learning_rates": {"velocity": 0.2},
+                        "estimate_velocity": {"frames": 4, "iterations": 10}}
+    assert parse(data, folder).optimize.learning_rates == {"velocity": 0.2}
+    assert parse(GOOD, folder).optimize.estimate_velocity_iterations == 0  # no velocity phase by default
 
 
 def test_not_a_mapping(folder):
