@@ -67,6 +67,7 @@ class SyntheticCase:
     learning_rate: float = 0.2  # per iteration, in the optimiser's z units (decades for moduli)
     horizon: tuple[int, int] = (4, 1)  # frames in the first iteration's loss, frames added per iteration
     search: int = 0  # samples of the optimiser's global phase (0: none)
+    method: str = "adam"  # the optimiser's local phase (optimize.method)
     forces: tuple[dict, ...] = ()
     ground: str = "sticky"
     velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)  # initial velocity (m/s, scene frame)
@@ -268,6 +269,8 @@ def case_config(case: SyntheticCase, resolution: Resolution, parameters: dict[st
                               "horizon": {"start": case.horizon[0], "step": case.horizon[1]}}
         if case.search:
             config["optimize"]["search"] = {"samples": case.search}
+        if case.method != "adam":
+            config["optimize"]["method"] = case.method
         config["evaluation"] = {"ground_truth": dict(case.truth)}
     return config
 

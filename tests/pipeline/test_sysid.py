@@ -86,7 +86,7 @@ def test_a_folder_with_other_files_is_refused_without_force(tmp_path):
 @pytest.fixture
 def tiny_cases(monkeypatch):
     """The torus case, shrunk to a few seconds."""
-    case = dataclasses.replace(sysid.CASES["torus"], guess={"youngs_modulus": 3e5}, optimize=("youngs_modulus",))
+    case = dataclasses.replace(sysid.CASES["torus"], guess={"youngs_modulus": 3e5}, optimize=("youngs_modulus",), search=3)
     monkeypatch.setitem(sysid.CASES, "torus", case)
 
 
@@ -136,3 +136,19 @@ def test_a_changed_case_definition_is_made_and_run_again(tmp_path, tiny_cases, m
     second = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))["cases"]["torus"]
     assert first["generation"]["definition"]["lift"] != second["generation"]["definition"]["lift"] == 0.25
     assert yaml.safe_load((out / "cases" / "torus" / "config.yaml").read_text())["object"]["select"]["box"]["min"][1] > 0.2
+
+
+@pytest.mark.slow
+def test_the_quick_torus_reaches_the_loss_of_the_ground_truth(tmp_path):
+    """End to end on an honest case (`clflow eval sysid --quick --case torus`, guidance from a
+    2x finer simulation and rendering): from the published guess, 10x and 3x off, the search
+    and the local phase reach a flow loss no higher than the ground truth's own at this
+    resolution. Below that, the model error rules (docs/benchmarks.md); RE <= 0.3 is the
+    open target of issue 12."""
+    result = CliRunner().invoke(cli, ["eval", "sysid", "--quick", "--case", "torus", "-o", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    record = json.loads((tmp_path / "out" / "sysid.json").read_text())["cases"]["torus"]
+    assert record["status"] == "ok"
+    history = json.loads((tmp_path / "out" / "cases" / "torus" / "results" / "history.json").read_text())
+    assert record["final_loss"] <= 1.02 * record["truth_loss"] < history[0]["loss"]
+    assert record["epe_px"] <= 1.02 * record["floor_epe_px"]
