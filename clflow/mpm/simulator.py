@@ -282,7 +282,10 @@ class Simulator:
     def stable_substeps(self, v: torch.Tensor | None = None) -> int:
         """Smallest substep count per frame meeting the CFL, elastic-wave and viscous limits."""
         limits = self._dt_limits(self.state.v if v is None else v)
-        dt_max = min((lim for lim, _ in limits), default=self.frame_dt)
+        dt_max, reason = min(limits, default=(self.frame_dt, ""))
+        if not dt_max > 0:  # a speed so large its square overflows: the run has blown up
+            raise SimulationError(f"no stable time step is left ({reason}): the simulation blew up; use smaller "
+                                  f"substeps (simulation.substep_dt) or check the material parameters and forces")
         return max(1, math.ceil(self.frame_dt / dt_max * (1 - 1e-12)))
 
     def use_substeps(self, substeps: int) -> None:

@@ -95,6 +95,13 @@ def test_cfl_limit_counts_initial_speed():
     assert fast.dt <= 0.3 * GRID.dx / math.sqrt(300.0) * (1 + 1e-9)
 
 
+def test_a_speed_beyond_any_time_step_is_a_clear_error():
+    # finite float64 speeds whose CFL limit underflows to 0 (ZeroDivisionError before)
+    sim = make(dtype=torch.float64, frame_dt=0.01)
+    with pytest.raises(SimulationError, match=r"no stable time step is left \(CFL with max speed .*\): the simulation blew up"):
+        sim.stable_substeps(torch.full((64, 3), 1e307, dtype=torch.float64))
+
+
 def test_nan_during_a_run_stops_with_frame_and_cause():
     with pytest.warns(StabilityWarning):
         sim = make(MaterialSpec("elastic", {"youngs_modulus": 1e9}), frame_dt=0.01, substeps=1, walls=None,
