@@ -169,7 +169,7 @@ def run_case(name: str, folder: Path, settings: Settings, *, progress: Callable[
     record.update(
         mean_re=float(np.mean([p["re"] for p in record["parameters"].values()])),
         epe_px=metrics["epe_px"], floor_epe_px=floor_epe, final_loss=metrics["flow_loss"], truth_loss=floor.loss,
-        iterations=state.iteration,
+        iterations=len(state.history),
         substeps=state.substeps, generation_seconds=generated - start,
         seconds=time.perf_counter() - start,
     )

@@ -53,6 +53,7 @@ CLIP_NORM = 10.0  # gradient clipping in z space
 LM_STEP = 0.01  # finite-difference step in z (a 2.3 % change of a log-scale parameter)
 LM_DAMPING = 1e-2  # initial damping (relative to the diagonal of J^T J)
 LM_MAX_STEP = 1.0  # longest step in z (a decade of a log-scale parameter)
+LM_TOLERANCE = 1e-3  # converged when an accepted step moves every variable less (0.23 % of a log-scale one)
 
 
 @dataclass
@@ -352,7 +353,7 @@ class Optimization:
         """The evaluation at z and the Jacobian [R, P] of its residuals with respect to
         ``variables`` by backward differences of LM_STEP (softer neighbours need no more
         substeps than z, so every run shares z's time step); cached for a rejected step's retry."""
-        key = (tuple(sorted(z.items())), frames, variables)
+        key = (tuple(sorted(z.items())), frames, variables, min_substeps)
         if self._lm_cache is not None and self._lm_cache[0] == key:
             return self._lm_cache[1], self._lm_cache[2]
         base = self.evaluate(z, frames, with_grad=False, min_substeps=min_substeps)
@@ -372,7 +373,9 @@ class Optimization:
         horizon), then one damped Gauss-Newton step from the best point:
         (J^T J + damping diag(J^T J)) dz = -J^T r, at most LM_MAX_STEP long."""
         best = state.best
-        if best is not None and best["frames"] == frames and base.loss > best["loss"]:
+        # back at the best point its loss may differ from the one recorded (a later iteration
+        # raised the substeps): take the new value rather than reject the point against itself
+        if best is not None and best["frames"] == frames and state.z != best["z"] and base.loss > best["loss"]:
             # uphill: back to the best point with more damping (its J is recomputed or cached)
             return dataclasses.replace(state, iteration=state.iteration + 1, z=dict(best["z"]),
                                        damping=state.damping * 4.0)
@@ -455,8 +458,13 @@ class Optimization:
             row = {"iteration": state.iteration, "phase": phase, "loss": result.loss, "frames": frames,
                    "z": dict(state.z), "params": self.values(state.z), "substeps": result.substeps,
                    "seconds": time.perf_counter() - start}
+            previous = state
             state = self.lm_step(state, result, J, frames, variables) if lm else self.adam_step(state, result.grads)
             state.substeps = max(state.substeps, result.substeps)
+            if (lm and phase == "main" and state.best is not None and state.best is not previous.best
+                    and max(abs(state.z[n] - state.best["z"][n]) for n in variables) < LM_TOLERANCE):
+                row["converged"] = True  # the step would change nothing that matters: stop here
+                state = dataclasses.replace(state, iteration=self.total_iterations)
             state.history.append(row)
             if phase_of(opt, state.iteration)[0] != phase:
                 state = dataclasses.replace(state, m={n: 0.0 for n in state.m}, v={n: 0.0 for n in state.v},
@@ -486,7 +494,7 @@ class Optimization:
         velocity = self.velocity(state.z)
         result = self.evaluate(state.z, self.frames, with_grad=False, min_substeps=state.substeps)
         loss, flows = result.loss, result.flows
-        metrics = {"flow_loss": loss, "epe_px": self.endpoint_error(flows), "iterations": state.iteration,
+        metrics = {"flow_loss": loss, "epe_px": self.endpoint_error(flows), "iterations": len(state.history),
                    "seconds_per_iteration": float(np.mean([h["seconds"] for h in state.history])) if state.history else 0.0}
         truth = self.cfg.ground_truth
         if truth:

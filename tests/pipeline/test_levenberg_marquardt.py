@@ -47,12 +47,13 @@ def test_the_residuals_sum_of_squares_is_the_flow_loss(lm):
 
 
 def test_it_converges_from_over_a_decade_off_in_a_few_iterations(lm):
-    opt, calls = lm(iterations=6)
+    opt, calls = lm(iterations=12)
     assert opt.initial_state().z["youngs_modulus"] == pytest.approx(Z_TRUE - 1.37)  # the demo's 10x-low start
     state = opt.run()
-    assert abs(state.z["youngs_modulus"] - Z_TRUE) < 1e-4
+    assert abs(state.z["youngs_modulus"] - Z_TRUE) < 1e-3
+    assert state.history[-1].get("converged") and state.iteration == opt.total_iterations
     losses = [row["loss"] for row in state.history]
-    assert losses[-1] < 1e-8 * losses[0]
+    assert losses[-1] < 1e-6 * losses[0] and len(losses) < 12  # stopped by progress, not by the count
     assert len(calls) <= 2 * len(state.history)  # one base run and one per parameter
 
 
@@ -67,6 +68,20 @@ def test_an_uphill_step_is_rejected_and_the_damping_grows(lm, monkeypatch):
     rejected = opt.lm_step(stepped, uphill, J, opt.frames, variables)
     assert rejected.z == state.z and rejected.damping == pytest.approx(4 * LM_DAMPING)
     assert rejected.iteration == stepped.iteration + 1
+
+
+def test_back_at_the_best_point_a_changed_loss_is_taken_not_rejected(lm):
+    # a later iteration raised the substeps, so the best point's loss comes out a little
+    # higher than recorded: rejecting it against itself would stall for good
+    opt, _ = lm(iterations=2)
+    state = opt.initial_state()
+    variables = ("youngs_modulus",)
+    base, J = opt.jacobian(state.z, opt.frames, 1, variables)
+    stepped = opt.lm_step(state, base, J, opt.frames, variables)
+    back = dataclasses.replace(stepped, z=dict(stepped.best["z"]))
+    higher = dataclasses.replace(base, loss=base.loss * 1.001)
+    again = opt.lm_step(back, higher, J, opt.frames, variables)
+    assert again.z != back.z and again.best["loss"] == higher.loss and again.damping < back.damping
 
 
 def test_it_needs_the_l2_loss(tmp_path):

@@ -94,7 +94,7 @@ def test_rerun_skips_finished_cases_and_other_settings_need_force(tmp_path, tiny
     out = tmp_path / "out"
     first = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))
     record = first["cases"]["torus"]
-    assert record["status"] == "ok" and record["iterations"] == TINY.iterations
+    assert record["status"] == "ok" and 1 <= record["iterations"] <= TINY.iterations
     assert set(record["parameters"]) == {"youngs_modulus"} and record["floor_epe_px"] >= 0
     table = (out / "sysid.md").read_text()
     assert "| torus | elastic |" in table and "PhysFlow RE/EPE" in table and "0.51/1.04" in table
@@ -125,7 +125,7 @@ def test_an_interrupted_case_resumes_its_optimisation(tmp_path, tiny_cases, monk
     assert checkpoint["state"]["iteration"] == 1
     monkeypatch.setattr(optimize.Optimization, "run", real_run)
     resumed = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))["cases"]["torus"]
-    assert resumed["status"] == "ok" and resumed["iterations"] == TINY.iterations
+    assert resumed["status"] == "ok" and 1 <= resumed["iterations"] <= TINY.iterations
 
 
 def test_a_changed_case_definition_is_made_and_run_again(tmp_path, tiny_cases, monkeypatch):
