@@ -54,6 +54,10 @@ LM_STEP = 0.01  # finite-difference step in z (a 2.3 % change of a log-scale par
 LM_DAMPING = 1e-2  # initial damping (relative to the diagonal of J^T J)
 LM_MAX_STEP = 1.0  # longest step in z (a decade of a log-scale parameter)
 LM_TOLERANCE = 1e-3  # converged when an accepted step moves every variable less (0.23 % of a log-scale one)
+# identifiability: a variable is weakly constrained beyond this standard error in z (a factor
+# 1.26 of a log-scale parameter), two trade off beyond this correlation
+WEAK_STD_Z = 0.1
+TRADE_OFF_CORRELATION = 0.95
 
 
 @dataclass
@@ -476,6 +480,29 @@ class Optimization:
 
     # -- results -------------------------------------------------------------------------
 
+    def identifiability(self, z: dict[str, float], min_substeps: int) -> dict:
+        """How well the video pins down each variable at z: from the residuals' Jacobian J
+        (one forward run per variable), the Gauss-Newton covariance s^2 (J^T J)^-1 with s^2
+        the loss per residual degree of freedom. Its standard errors (z units: decades for
+        log-scale parameters) treat pixels as independent, so they are lower bounds; the
+        correlations show which parameters trade off."""
+        variables = self.main_variables
+        base, J = self.jacobian(z, self.frames, min_substeps, variables)
+        residuals, count = self.residuals(base.flows), len(variables)
+        dof = max(1, residuals.numel() - count)
+        curvature = J.T @ J
+        ridge = 1e-12 * float(curvature.diagonal().max().clamp(min=1e-300))  # an unconstrained direction: huge
+        covariance = torch.linalg.inv(curvature + ridge * torch.eye(count, dtype=curvature.dtype)) * (
+            float((residuals ** 2).sum()) / dof)
+        std = covariance.diagonal().clamp(min=0).sqrt()
+        correlation = covariance / torch.outer(std, std).clamp(min=1e-300)
+        weak = [n for n, sd in zip(variables, std.tolist()) if not sd <= WEAK_STD_Z]
+        pairs = [[a, b, float(correlation[i, j])] for i, a in enumerate(variables) for j, b in enumerate(variables)
+                 if i < j and abs(float(correlation[i, j])) > TRADE_OFF_CORRELATION]
+        return {"std_z": dict(zip(variables, std.tolist())),
+                "correlation": {a: dict(zip(variables, row)) for a, row in zip(variables, correlation.tolist())},
+                "weakly_constrained": weak, "trade_offs": pairs}
+
     def endpoint_error(self, flows: list[torch.Tensor]) -> float:
         """Mean flow endpoint error (px) of simulated flows [H, W, 2] per frame step against
         the observed flow, inside the loss mask."""
@@ -496,6 +523,12 @@ class Optimization:
         loss, flows = result.loss, result.flows
         metrics = {"flow_loss": loss, "epe_px": self.endpoint_error(flows), "iterations": len(state.history),
                    "seconds_per_iteration": float(np.mean([h["seconds"] for h in state.history])) if state.history else 0.0}
+        metrics["identifiability"] = self.identifiability(state.z, state.substeps)
+        for name in metrics["identifiability"]["weakly_constrained"]:
+            log.warning("%s is weakly constrained by the video: standard error %.2g in the optimiser's units (a "
+                        "lower bound); its value is uncertain", name, metrics["identifiability"]["std_z"][name])
+        for a, b, rho in metrics["identifiability"]["trade_offs"]:
+            log.warning("%s and %s trade off (correlation %.3f): the video fixes a combination of them", a, b, rho)
         truth = self.cfg.ground_truth
         if truth:
             metrics["relative_error"] = {n: abs(final[n] - truth[n]) / abs(truth[n]) for n in self.params if n in truth}

@@ -96,3 +96,34 @@ def test_it_needs_the_l2_loss(tmp_path):
     data["flow"] = {"loss": "charbonnier"}
     with pytest.raises(InputError, match="needs flow.loss l2"):
         parse_config(data, "scene.yaml", tmp_path)
+
+
+@pytest.mark.parametrize("model, weak, trade_off", [
+    ("independent", [], False),  # E and nu each move the flow their own way
+    ("nu_does_nothing", ["poissons_ratio"], False),
+    ("only_the_sum_matters", ["youngs_modulus", "poissons_ratio"], True),
+])
+def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypatch, model, weak, trade_off):
+    cfg = demo_config()
+    cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, parameters=("youngs_modulus", "poissons_ratio")))
+    opt = Optimization(cfg)
+    g = torch.Generator().manual_seed(1)
+    field_e, field_nu = (torch.randn(opt.observed.shape, generator=g, dtype=torch.float64) for _ in range(2))
+    noise = 0.01 * torch.randn(opt.observed.shape, generator=g, dtype=torch.float64)
+
+    def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None):
+        e, nu = z["youngs_modulus"] - Z_TRUE, z["poissons_ratio"]
+        shift = {"independent": e * field_e + nu * field_nu, "nu_does_nothing": e * field_e,
+                 "only_the_sum_matters": (e + nu) * field_e}[model]
+        flows = [opt.observed[t] + noise[t] + shift[t] for t in range(frames)]
+        return Evaluation(float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.mask)), {}, flows,
+                          SimpleNamespace(substeps=1))
+
+    monkeypatch.setattr(opt, "evaluate", evaluate)
+    report = opt.identifiability({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0}, 1)
+    assert sorted(report["weakly_constrained"]) == sorted(weak)
+    assert bool(report["trade_offs"]) == trade_off
+    if trade_off:
+        assert report["trade_offs"][0][2] < -0.95  # E up, nu down: the same flow
+    if not weak:
+        assert max(report["std_z"].values()) < 1e-3
