@@ -21,7 +21,7 @@ def _box(ctx, param, value):
               help="Output folder. Default: VIDEO's name + '_flow' in the current folder.")
 @click.option("--method", type=click.Choice(["dis", "farneback", "raft"]), default="dis", show_default=True,
               help="Optical flow backend (raft only with --raft-weights).")
-@click.option("--preset", type=click.Choice(["ultrafast", "fast", "medium", "fine"]), default="medium", show_default=True,
+@click.option("--preset", type=click.Choice(["ultrafast", "fast", "medium", "fine"]), default="fine", show_default=True,
               help="DIS quality preset (clflow.flow.optical_flow.DIS_PRESETS).")
 @click.option("--raft-weights", type=click.Path(dir_okay=False, path_type=str), default=None,
               help="torchvision RAFT-large state dict already on disk (nothing is downloaded).")

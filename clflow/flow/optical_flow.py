@@ -1,6 +1,6 @@
 """Observed optical flow of a guidance video, masks of where it can be trusted.
 
-    flows = observed_flow(video.frames)                         # DIS "medium": [T-1, H, W, 2] px
+    flows = observed_flow(video.frames)                         # DIS "fine": [T-1, H, W, 2] px
     confidence = flow_confidence(flows, backward_flow(video.frames))  # [T-1, H, W] in [0, 1]
     mask = mask_from_box((40, 30, 200, 180), video.width, video.height)
 
@@ -25,10 +25,11 @@ FlowMethod = Literal["dis", "farneback", "raft"]
 #: quarter (ultrafast, fast) or half (medium) of the image size, and ``fine``: medium
 #: refined down to full resolution.
 DIS_PRESETS = ("ultrafast", "fast", "medium", "fine")
-DEFAULT_PRESET = "medium"
+#: The defaults: the least biased settings measured (docs/flow.md, "Observed-flow bias").
+DEFAULT_PRESET = "fine"
 #: Per-pixel confidence of the observed flow (:func:`observed_confidence`).
 CONFIDENCES = ("none", "forward_backward")
-DEFAULT_CONFIDENCE = "none"
+DEFAULT_CONFIDENCE = "forward_backward"
 
 
 def _grey(frame: np.ndarray) -> np.ndarray:
