@@ -9,6 +9,7 @@ BENCHMARKS: dict[str, str] = {
     "query": "clflow_cli.bench_query:query",
     "ply": "clflow_cli.bench_ply:ply",
     "flow": "clflow_cli.bench_flow:flow",
+    "flow-bias": "clflow_cli.bench_flow_bias:flow_bias",
     "raster": "clflow_cli.bench_raster:raster",
     "mpm": "clflow_cli.bench_mpm:mpm",
     "mpm-adjoint": "clflow_cli.bench_mpm_adjoint:mpm_adjoint",

@@ -21,8 +21,8 @@ def _box(ctx, param, value):
               help="Output folder. Default: VIDEO's name + '_flow' in the current folder.")
 @click.option("--method", type=click.Choice(["dis", "farneback", "raft"]), default="dis", show_default=True,
               help="Optical flow backend (raft only with --raft-weights).")
-@click.option("--preset", type=click.Choice(["ultrafast", "fast", "medium"]), default="medium", show_default=True,
-              help="DIS quality preset.")
+@click.option("--preset", type=click.Choice(["ultrafast", "fast", "medium", "fine"]), default="fine", show_default=True,
+              help="DIS quality preset (clflow.flow.optical_flow.DIS_PRESETS).")
 @click.option("--raft-weights", type=click.Path(dir_okay=False, path_type=str), default=None,
               help="torchvision RAFT-large state dict already on disk (nothing is downloaded).")
 @click.option("--fps", type=float, default=None, help="Frame rate (frames/s); needed for an image folder's times.")
@@ -52,7 +52,13 @@ def flow(obj, video, output, method, preset, raft_weights, fps, start, end, stri
     from clflow.errors import InputError
     from clflow.fileio import atomic_path
     from clflow.flow.flo import write_flo
-    from clflow.flow.optical_flow import forward_backward_mask, mask_from_box, mask_from_image, observed_flow
+    from clflow.flow.optical_flow import (
+        backward_flow,
+        forward_backward_mask,
+        mask_from_box,
+        mask_from_image,
+        observed_flow,
+    )
     from clflow.flow.video import read_video
     from clflow.flow.visualize import comparison_panel, write_image, write_video
 
@@ -74,7 +80,7 @@ def flow(obj, video, output, method, preset, raft_weights, fps, start, end, stri
     frames = clip.frames
     kwargs = dict(preset=preset, raft_weights=raft_weights, source=clip.source)
     forward = observed_flow(frames, method, **kwargs)
-    backward = observed_flow(frames[::-1].copy(), method, **kwargs)[::-1]
+    backward = backward_flow(frames, method, **kwargs)
     valid = forward_backward_mask(forward, backward) & object_mask
 
     out = Path(output) if output else Path(Path(video).stem + "_flow")

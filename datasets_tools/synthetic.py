@@ -25,11 +25,13 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from clflow.scene.config import FlowSettings
 
 SHAPES = ("cube", "sphere", "torus")
 
@@ -256,7 +258,7 @@ def case_config(case: SyntheticCase, resolution: Resolution, parameters: dict[st
         "camera": {"position": _rounded(c + s * np.asarray(case.camera_offset)),
                    "look_at": _rounded(c), "fov_y_deg": case.fov_y_deg,
                    "width": resolution.image * scale, "height": resolution.image * scale},
-        "flow": {"method": "dis", "preset": "medium", "loss": "l2", "mask": "alpha"},
+        "flow": asdict(FlowSettings()),  # the defaults, spelled out
         "output": "results",
     }
     if any(case.velocity):

@@ -1,7 +1,10 @@
 """Flow losses (the supervision of material identification) and the render-loss ablation.
 
 All flows are [..., H, W, 2] tensors in pixels per frame step; masks are [..., H, W]
-(bool or weights in [0, 1]) broadcastable against the flows' leading shape.
+(bool, or weights >= 0 such as the loss mask times the observed flow's confidence)
+broadcastable against the flows' leading shape. A loss is the weighted per-pixel mean
+sum(w e) / sum(w): a pixel of weight 0 adds nothing to it or to its gradient, and uniform
+weights give the plain masked mean.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ def _finite(t: torch.Tensor, what: str) -> None:
 
 
 def _masked_mean(per_pixel: torch.Tensor, mask: torch.Tensor | None, what: str) -> torch.Tensor:
-    """Mean of per-pixel values [..., H, W] weighted by the mask."""
+    """sum(w v) / sum(w) of per-pixel values v [..., H, W] and mask weights w."""
     if mask is None:
         return per_pixel.mean()
     mask = torch.as_tensor(mask, device=per_pixel.device)
@@ -31,6 +34,8 @@ def _masked_mean(per_pixel: torch.Tensor, mask: torch.Tensor | None, what: str) 
     except RuntimeError:
         raise InputError(f"{what}: mask shape {tuple(mask.shape)} does not match flows of shape {tuple(per_pixel.shape)} + (2,)") from None
     _finite(weight, f"{what}: mask")
+    if bool((weight < 0).any()):
+        raise InputError(f"{what}: the mask has negative weights")
     total = weight.sum()
     if total <= 0:
         raise InputError(f"{what}: the mask is all zero, there is no pixel to compare")

@@ -1,7 +1,8 @@
-"""Flow metrics: end-point error and ECMS, the paper's motion score.
+"""Flow metrics: end-point error, the least-squares slope of one flow on another (the
+observed flow's scale bias) and ECMS, the paper's motion score.
 
 Flows (velocity fields) are [T, H, W, 2] (or [H, W, 2]) arrays in pixels per frame step;
-masks are bool [H, W] or [T, H, W].
+masks are [H, W] or [T, H, W], bool or weights >= 0 (ECMS uses the pixels of weight > 0).
 """
 
 from __future__ import annotations
@@ -23,26 +24,48 @@ def _as_array(x, what: str) -> np.ndarray:
     return x
 
 
-def _mask(mask, shape: tuple[int, ...], what: str) -> np.ndarray:
+def _weights(mask, shape: tuple[int, ...], what: str) -> np.ndarray:
+    """float64 weights of shape ``shape`` from a bool or weight mask (None: ones)."""
     if mask is None:
-        return np.ones(shape, bool)
-    mask = np.asarray(mask.detach().cpu() if hasattr(mask, "detach") else mask).astype(bool)
+        return np.ones(shape)
+    mask = np.asarray(mask.detach().cpu() if hasattr(mask, "detach") else mask, dtype=np.float64)
     try:
         mask = np.broadcast_to(mask, shape)
     except ValueError:
         raise InputError(f"{what}: mask shape {mask.shape} does not match flows of shape {shape} + (2,)") from None
+    if not np.isfinite(mask).all() or (mask < 0).any():
+        raise InputError(f"{what}: mask weights must be finite and >= 0")
     if not mask.any():
         raise InputError(f"{what}: the mask is all zero")
     return mask
 
 
-def endpoint_error(flow, reference, mask=None) -> float:
-    """Mean end-point error |flow - reference| in pixels over the masked pixels."""
-    flow, reference = _as_array(flow, "EPE"), _as_array(reference, "EPE reference")
+def _pair(flow, reference, what: str) -> tuple[np.ndarray, np.ndarray]:
+    flow, reference = _as_array(flow, what), _as_array(reference, f"{what} reference")
     if flow.shape != reference.shape:
-        raise InputError(f"EPE: flow shapes differ, {flow.shape} and {reference.shape}")
+        raise InputError(f"{what}: flow shapes differ, {flow.shape} and {reference.shape}")
+    return flow, reference
+
+
+def endpoint_error(flow, reference, mask=None) -> float:
+    """Mean end-point error |flow - reference| in pixels over the masked pixels (weighted
+    mean for a weight mask)."""
+    flow, reference = _pair(flow, reference, "EPE")
     error = np.linalg.norm(flow - reference, axis=-1)
-    return float(error[_mask(mask, error.shape, "EPE")].mean())
+    weight = _weights(mask, error.shape, "EPE")
+    return float((weight * error).sum() / weight.sum())
+
+
+def flow_slope(flow, reference, mask=None) -> float:
+    """Least-squares scale s of ``flow`` on ``reference`` over the masked pixels:
+    s = sum w flow.reference / sum w |reference|^2, the minimiser of sum w |flow - s reference|^2.
+    1 is unbiased; below 1 ``flow`` underestimates the motion of ``reference``."""
+    flow, reference = _pair(flow, reference, "flow slope")
+    weight = _weights(mask, flow.shape[:-1], "flow slope")
+    motion = (weight * np.sum(reference * reference, axis=-1)).sum()
+    if motion <= 0:
+        raise InputError("flow slope: the reference flow is zero wherever the mask is set")
+    return float((weight * np.sum(flow * reference, axis=-1)).sum() / motion)
 
 
 def ecms(velocity, mask=None, alpha: float = ECMS_ALPHA) -> float:
@@ -63,14 +86,14 @@ def ecms(velocity, mask=None, alpha: float = ECMS_ALPHA) -> float:
 
     Args:
         velocity: [T, H, W, 2] flows, T >= 1.
-        mask: bool [H, W] (or [T, H, W]) pixels to score; None: all pixels.
+        mask: bool [H, W] (or [T, H, W]) pixels to score (or weights: those > 0); None: all pixels.
     """
     v = _as_array(velocity, "ECMS")
     if v.ndim == 3:
         v = v[None]
     if v.ndim != 4:
         raise InputError(f"ECMS: velocity must be [T, H, W, 2], got shape {v.shape}")
-    m = _mask(mask, v.shape[:-1], "ECMS")
+    m = _weights(mask, v.shape[:-1], "ECMS") > 0
     temporal = sum(
         float(np.sum((v[t + 1] - v[t]) ** 2, axis=-1)[m[t] & m[t + 1]].mean()) if (m[t] & m[t + 1]).any() else 0.0
         for t in range(v.shape[0] - 1)

@@ -1,7 +1,7 @@
 """Observed optical flow of a guidance video, masks of where it can be trusted.
 
-    flows = observed_flow(video.frames)                         # DIS "medium": [T-1, H, W, 2] px
-    valid = forward_backward_mask(flows, observed_flow(video.frames[::-1])[::-1])
+    flows = observed_flow(video.frames)                         # DIS "fine": [T-1, H, W, 2] px
+    confidence = flow_confidence(flows, backward_flow(video.frames))  # [T-1, H, W] in [0, 1]
     mask = mask_from_box((40, 30, 200, 180), video.width, video.height)
 
 Flow convention (OpenCV's, Middlebury's): ``flow[t, i, j] = (du, dv)`` in pixels moves
@@ -21,8 +21,15 @@ import numpy as np
 from clflow.errors import ClflowError, InputError
 
 FlowMethod = Literal["dis", "farneback", "raft"]
-#: OpenCV's DIS presets, fastest to most accurate.
-DIS_PRESETS = ("ultrafast", "fast", "medium")
+#: DIS presets, fastest to most accurate: OpenCV's three, whose finest pyramid level is a
+#: quarter (ultrafast, fast) or half (medium) of the image size, and ``fine``: medium
+#: refined down to full resolution.
+DIS_PRESETS = ("ultrafast", "fast", "medium", "fine")
+#: The defaults: the least biased settings measured (docs/flow.md, "Observed-flow bias").
+DEFAULT_PRESET = "fine"
+#: Per-pixel confidence of the observed flow (:func:`observed_confidence`).
+CONFIDENCES = ("none", "forward_backward")
+DEFAULT_CONFIDENCE = "forward_backward"
 
 
 def _grey(frame: np.ndarray) -> np.ndarray:
@@ -45,17 +52,21 @@ def _dis(preset: str):
         "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
         "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
         "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+        "fine": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
     }
     if preset not in presets:
         raise InputError(f"unknown DIS preset {preset!r}; choose one of {', '.join(DIS_PRESETS)}")
-    return cv2.DISOpticalFlow.create(presets[preset])
+    dis = cv2.DISOpticalFlow.create(presets[preset])
+    if preset == "fine":
+        dis.setFinestScale(0)  # pyramid level 0: the full-resolution image
+    return dis
 
 
 def observed_flow(
     frames: np.ndarray,
     method: FlowMethod = "dis",
     *,
-    preset: str = "medium",
+    preset: str = DEFAULT_PRESET,
     raft_weights: str | os.PathLike | None = None,
     source: str = "video",
 ) -> np.ndarray:
@@ -92,6 +103,12 @@ def observed_flow(
     else:
         raise InputError(f"unknown optical flow method {method!r}; choose 'dis', 'farneback' or 'raft'")
     return np.stack(flows).astype(np.float32)
+
+
+def backward_flow(frames: np.ndarray, method: FlowMethod = "dis", **kwargs) -> np.ndarray:
+    """Backward flow [T-1, H, W, 2] (px): entry t takes frame t+1 to frame t. The
+    forward flow of the reversed video, reversed; ``kwargs`` as :func:`observed_flow`'s."""
+    return observed_flow(np.ascontiguousarray(np.asarray(frames)[::-1]), method, **kwargs)[::-1].copy()
 
 
 def raft_flow(frames: np.ndarray, weights: str | os.PathLike | None, *, source: str = "video") -> np.ndarray:
@@ -141,6 +158,29 @@ def warp_flow(flow_b: np.ndarray, flow_f: np.ndarray) -> np.ndarray:
                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
+def _consistency(forward: np.ndarray, backward: np.ndarray, alpha1: float, alpha2: float):
+    """Forward-backward consistency of each pixel x: the ratio |w + w_b|^2 / (alpha1 (|w|^2 +
+    |w_b|^2) + alpha2) with w = forward(x), w_b = backward(x + w) (float [..., H, W]), and
+    whether x + w lies in the frame (bool [..., H, W])."""
+    forward, backward = np.asarray(forward), np.asarray(backward)
+    if forward.shape != backward.shape or forward.shape[-1] != 2:
+        raise InputError(f"forward and backward flows must have one [..., H, W, 2] shape, got {forward.shape} and {backward.shape}")
+    lead = forward.shape[:-3]
+    f = forward.reshape(-1, *forward.shape[-3:])
+    b = backward.reshape(-1, *backward.shape[-3:])
+    height, width = f.shape[1:3]
+    jj, ii = np.meshgrid(np.arange(width), np.arange(height))
+    ratio = np.empty(f.shape[:-1], np.float32)
+    inside = np.empty(f.shape[:-1], bool)
+    for k in range(f.shape[0]):
+        wb = warp_flow(b[k], f[k])
+        err = np.sum((f[k] + wb) ** 2, axis=-1)
+        ratio[k] = err / (alpha1 * (np.sum(f[k] ** 2, axis=-1) + np.sum(wb**2, axis=-1)) + alpha2)
+        x, y = jj + f[k][..., 0], ii + f[k][..., 1]
+        inside[k] = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
+    return ratio.reshape(*lead, height, width), inside.reshape(*lead, height, width)
+
+
 def forward_backward_mask(
     forward: np.ndarray, backward: np.ndarray, alpha1: float = 0.01, alpha2: float = 0.5
 ) -> np.ndarray:
@@ -157,23 +197,35 @@ def forward_backward_mask(
     Returns:
         bool [..., H, W], True where the flow is consistent.
     """
-    forward, backward = np.asarray(forward), np.asarray(backward)
-    if forward.shape != backward.shape or forward.shape[-1] != 2:
-        raise InputError(f"forward and backward flows must have one [..., H, W, 2] shape, got {forward.shape} and {backward.shape}")
-    lead = forward.shape[:-3]
-    f = forward.reshape(-1, *forward.shape[-3:])
-    b = backward.reshape(-1, *backward.shape[-3:])
-    height, width = f.shape[1:3]
-    jj, ii = np.meshgrid(np.arange(width), np.arange(height))
-    out = np.empty(f.shape[:-1], bool)
-    for k in range(f.shape[0]):
-        wb = warp_flow(b[k], f[k])
-        err = np.sum((f[k] + wb) ** 2, axis=-1)
-        bound = alpha1 * (np.sum(f[k] ** 2, axis=-1) + np.sum(wb**2, axis=-1)) + alpha2
-        x, y = jj + f[k][..., 0], ii + f[k][..., 1]
-        inside = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
-        out[k] = (err < bound) & inside
-    return out.reshape(*lead, height, width)
+    ratio, inside = _consistency(forward, backward, alpha1, alpha2)
+    return (ratio < 1.0) & inside
+
+
+def flow_confidence(
+    forward: np.ndarray, backward: np.ndarray, alpha1: float = 0.01, alpha2: float = 0.5
+) -> np.ndarray:
+    """Soft form of :func:`forward_backward_mask`: exp(-|w + w_b|^2 / (alpha1 (|w|^2 + |w_b|^2)
+    + alpha2)), 1 where the two flows cancel exactly, e^-1 on the mask's threshold, and 0
+    where x + w leaves the frame (occluded by the border).
+
+    Args and shapes as :func:`forward_backward_mask`'s; returns float32 [..., H, W] in [0, 1].
+    """
+    ratio, inside = _consistency(forward, backward, alpha1, alpha2)
+    return np.where(inside, np.exp(-ratio), 0.0).astype(np.float32)
+
+
+def observed_confidence(frames: np.ndarray, flow: np.ndarray, setting: str, method: FlowMethod = "dis",
+                        **kwargs) -> np.ndarray:
+    """Confidence [T-1, H, W] float32 in [0, 1] of ``flow``, the forward flow of ``frames``.
+
+    ``setting`` is one of :data:`CONFIDENCES`: ``none`` gives ones; ``forward_backward``
+    computes the backward flow (same ``method`` and ``kwargs`` as :func:`observed_flow`)
+    and returns :func:`flow_confidence`."""
+    if setting == "none":
+        return np.ones(flow.shape[:-1], np.float32)
+    if setting == "forward_backward":
+        return flow_confidence(flow, backward_flow(frames, method, **kwargs))
+    raise InputError(f"unknown flow confidence {setting!r}; choose one of {', '.join(CONFIDENCES)}")
 
 
 def _nonempty(mask: np.ndarray, what: str) -> np.ndarray:

@@ -14,7 +14,7 @@ gives the same result as an uninterrupted run. A failed iteration (NaN, a simula
 up) rolls back to the last good parameters, halves the step and tries again.
 
 Results in ``output/``: params.json, metrics.json, history.json, loss.png, comparison.mp4,
-observed_flow.npz (the video's flow, computed once).
+observed_flow.npz (the video's flow and its confidence, computed once).
 """
 
 from __future__ import annotations
@@ -110,10 +110,11 @@ def _parameterizations(cfg: SceneConfig):
     return {name: parameterization(cfg.material.type, name) for name in names if name != VELOCITY}
 
 
-def observed_flow_of(cfg: SceneConfig, prepared: Prepared, frames: int) -> tuple[np.ndarray, np.ndarray]:
-    """The guidance video's frames [T+1, H, W, 3] at the simulation's frame times and their
-    optical flow [T, H, W, 2] (px per frame), cached in ``output/observed_flow.npz``."""
-    from clflow.flow.optical_flow import observed_flow
+def observed_flow_of(cfg: SceneConfig, prepared: Prepared, frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The guidance video's frames [T+1, H, W, 3] at the simulation's frame times, their
+    optical flow [T, H, W, 2] (px per frame) and its confidence [T, H, W] in [0, 1]
+    (``flow.confidence``), cached in ``output/observed_flow.npz``."""
+    from clflow.flow.optical_flow import observed_confidence, observed_flow
     from clflow.flow.video import read_video
 
     if cfg.video is None:
@@ -130,15 +131,17 @@ def observed_flow_of(cfg: SceneConfig, prepared: Prepared, frames: int) -> tuple
         raise InputError(f"{cfg.video}: frames are {video.width}x{video.height} px, the guidance camera "
                          f"{cam.width}x{cam.height}; crop/resize the video (clflow.flow.video.fit_to_camera)")
     cache = cfg.output / "observed_flow.npz"
-    key = np.array([cfg.flow.method, cfg.flow.preset, str(cfg.video), str(frames)])
+    key = np.array([cfg.flow.method, cfg.flow.preset, cfg.flow.confidence, str(cfg.video), str(frames)])
     if cache.exists():
         with np.load(cache) as data:
             if data["key"].tolist() == key.tolist():
-                return video.frames, data["flow"]
-    flow = observed_flow(video.frames, cfg.flow.method, preset=cfg.flow.preset, source=str(cfg.video))
+                return video.frames, data["flow"], data["confidence"]
+    estimator = dict(preset=cfg.flow.preset, source=str(cfg.video))
+    flow = observed_flow(video.frames, cfg.flow.method, **estimator)
+    confidence = observed_confidence(video.frames, flow, cfg.flow.confidence, cfg.flow.method, **estimator)
     with atomic_path(cache) as tmp, open(tmp, "wb") as fh:
-        np.savez_compressed(fh, flow=flow, key=key)
-    return video.frames, flow
+        np.savez_compressed(fh, flow=flow, confidence=confidence, key=key)
+    return video.frames, flow, confidence
 
 
 def loss_mask(cfg: SceneConfig, prepared: Prepared) -> torch.Tensor:
@@ -168,11 +171,14 @@ def simulated_flows(prepared: Prepared, x: torch.Tensor, F: torch.Tensor, frames
     return [render_flow(scenes[t], scenes[t + 1], prepared.camera)[0] for t in range(frames)]
 
 
-def flow_loss(cfg: SceneConfig, flows, observed: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+def flow_loss(cfg: SceneConfig, flows, observed: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """The ``flow.loss`` of the simulated flows (T of [H, W, 2]) against ``observed``
+    [T, H, W, 2], weighted per pixel by ``weight`` [T, H, W] (the loss mask times the observed
+    flow's confidence) and divided by the weight's sum: a weighted per-pixel mean."""
     from clflow.flow.losses import charbonnier_flow_loss, masked_flow_loss
 
     fn = masked_flow_loss if cfg.flow.loss == "l2" else charbonnier_flow_loss
-    return torch.stack([fn(f.double(), observed[t], mask) for t, f in enumerate(flows)]).mean()
+    return fn(torch.stack(flows).double(), observed, weight)
 
 
 def phase_of(opt, iteration: int) -> tuple[str, int, int]:
@@ -216,8 +222,9 @@ class Optimization:
         self.prepared = prepare(cfg)
         self.frames = cfg.simulation.frames
         self.mask = loss_mask(cfg, self.prepared)
-        self.video_frames, observed = observed_flow_of(cfg, self.prepared, self.frames)
+        self.video_frames, observed, confidence = observed_flow_of(cfg, self.prepared, self.frames)
         self.observed = torch.from_numpy(observed).double()
+        self.weight = self.mask * torch.from_numpy(confidence).double()  # [T, H, W] in [0, 1]
         self.checkpoint = cfg.output / "checkpoint.json"
         self._lm_cache: tuple | None = None  # ((z, frames), Evaluation, J) of the last Jacobian
 
@@ -268,7 +275,7 @@ class Optimization:
                               velocity=velocity)
         traj = run(sim, frames, decoded, velocity)
         flows = simulated_flows(self.prepared, traj.x, traj.F, frames)
-        loss = flow_loss(self.cfg, flows, self.observed[:frames], self.mask)
+        loss = flow_loss(self.cfg, flows, self.observed[:frames], self.weight[:frames])
         if not bool(torch.isfinite(loss.detach())):
             raise FloatingPointError("the flow loss is not finite")
         grads = {}
@@ -345,11 +352,10 @@ class Optimization:
 
     def residuals(self, flows: list[torch.Tensor]) -> torch.Tensor:
         """[R] float64 flow residuals whose sum of squares is the l2 flow loss of ``flows``
-        (simulated [H, W, 2] per frame step)."""
-        weight = self.mask.double()
-        scale = 1.0 / math.sqrt(float(weight.sum()) * len(flows))
-        root = weight.sqrt()[..., None]
-        return torch.cat([((f.double() - self.observed[t]) * root * scale)[self.mask].reshape(-1)
+        (simulated [H, W, 2] per frame step), weighted by mask x confidence like the loss."""
+        weight = self.weight[: len(flows)]  # [T, H, W]
+        root = (weight / weight.sum()).sqrt()[..., None]
+        return torch.cat([((f.double() - self.observed[t]) * root[t])[weight[t] > 0].reshape(-1)
                           for t, f in enumerate(flows)])
 
     def jacobian(self, z: dict[str, float], frames: int, min_substeps: int,

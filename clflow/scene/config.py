@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from clflow.errors import InputError
+from clflow.flow.optical_flow import CONFIDENCES, DEFAULT_CONFIDENCE, DEFAULT_PRESET, DIS_PRESETS
 from clflow.materials import DENSITY, get_material, validate_params
 from clflow.mpm.constants import ELASTIC_MODELS, SAND_MODELS
 
@@ -26,7 +27,6 @@ UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 COLLIDER_MODES = ("sticky", "slip", "separate")
 FLOW_METHODS = ("dis", "farneback")
 FLOW_LOSSES = ("l2", "charbonnier")
-DIS_PRESETS = ("ultrafast", "fast", "medium")  # OpenCV DIS presets (clflow.flow.optical_flow)
 MATERIAL_MODELS = {"elastic": ELASTIC_MODELS, "sand": SAND_MODELS}  # material.model options
 VELOCITY = "velocity"  # the name of the object's initial velocity in optimize.parameters, evaluation.ground_truth
 VELOCITY_COMPONENTS = ("velocity_x", "velocity_y", "velocity_z")  # its components: m/s, scene axes
@@ -232,9 +232,10 @@ class CameraConfig:
 @dataclass(frozen=True)
 class FlowSettings:
     method: str = "dis"
-    preset: str = "medium"
+    preset: str = DEFAULT_PRESET
     loss: str = "l2"
     mask: str = "alpha"  # "alpha" (rendered object alpha at frame 0), "none", or a file
+    confidence: str = DEFAULT_CONFIDENCE  # per-pixel weight of the observed flow in the loss
 
 
 OPTIMIZERS = ("adam", "levenberg_marquardt")
@@ -526,12 +527,13 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         per_axis=r.integer(fill_in, "per_axis", "object.fill", 1, low=1),
     )
     material = _material(r, top.get("material"))
-    flow_in = r.section(top.get("flow"), "flow", ("method", "preset", "loss", "mask"))
+    flow_in = r.section(top.get("flow"), "flow", ("method", "preset", "loss", "mask", "confidence"))
     flow = FlowSettings(
         method=r.choice(flow_in, "method", "flow", FLOW_METHODS, "dis"),
-        preset=r.choice(flow_in, "preset", "flow", DIS_PRESETS, "medium"),
+        preset=r.choice(flow_in, "preset", "flow", DIS_PRESETS, DEFAULT_PRESET),
         loss=r.choice(flow_in, "loss", "flow", FLOW_LOSSES, "l2"),
         mask=_flow_mask(r, flow_in),
+        confidence=r.choice(flow_in, "confidence", "flow", CONFIDENCES, DEFAULT_CONFIDENCE),
     )
     evaluation = r.section(top.get("evaluation"), "evaluation", ("ground_truth",))
     truth = dict(r.mapping(evaluation.get("ground_truth"), "evaluation.ground_truth"))

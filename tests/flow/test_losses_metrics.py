@@ -7,7 +7,7 @@ import torch
 from clflow.errors import InputError
 from clflow.flow.flo import read_flo, write_flo
 from clflow.flow.losses import charbonnier_flow_loss, masked_flow_loss, render_loss
-from clflow.flow.metrics import ECMS_ALPHA, ecms, endpoint_error
+from clflow.flow.metrics import ECMS_ALPHA, ecms, endpoint_error, flow_slope
 from clflow.flow.visualize import colour_wheel, comparison_panel, flow_to_color
 
 D = torch.float64
@@ -39,6 +39,36 @@ def test_flow_losses_gradcheck(loss):
     assert torch.autograd.gradcheck(lambda s: loss(s, obs, mask), (sim.requires_grad_(),))
 
 
+@pytest.mark.parametrize("loss", [masked_flow_loss, charbonnier_flow_loss])
+def test_a_pixel_of_zero_weight_changes_neither_the_loss_nor_its_gradient(loss):
+    sim, obs = flows()
+    weight = torch.rand(2, 4, 5, dtype=D)  # e.g. loss mask x observed-flow confidence
+    weight[1, 2, 3] = 0.0
+    far = obs.clone()
+    far[1, 2, 3] = torch.tensor([40.0, -25.0])  # a wild observed flow where the weight is 0
+
+    def value_and_grad(observed):
+        x = sim.clone().requires_grad_()
+        value = loss(x, observed, weight)
+        value.backward()
+        return value.item(), x.grad
+
+    (value, grad), (value_far, grad_far) = value_and_grad(obs), value_and_grad(far)
+    assert value_far == value
+    assert torch.equal(grad_far, grad) and not grad[1, 2, 3].any()
+    assert grad[0, 2, 3].abs().sum() > 0  # the same pixel in the other frame counts
+
+
+@pytest.mark.parametrize("loss", [masked_flow_loss, charbonnier_flow_loss])
+def test_uniform_weights_give_the_unweighted_loss(loss):
+    sim, obs = flows()
+    mask = torch.zeros(4, 5, dtype=torch.bool)
+    mask[1:3, 2:] = True
+    uniform = 0.37 * mask * torch.ones(2, 1, 1, dtype=D)  # [T, H, W], the same weight everywhere in the mask
+    assert loss(sim, obs, uniform).item() == pytest.approx(loss(sim, obs, mask).item(), rel=1e-14)
+    assert loss(sim, obs, torch.full((2, 4, 5), 0.5, dtype=D)).item() == pytest.approx(loss(sim, obs).item(), rel=1e-14)
+
+
 def test_flow_loss_errors():
     sim, obs = flows()
     with pytest.raises(InputError, match="flow loss: the mask is all zero"):
@@ -53,6 +83,8 @@ def test_flow_loss_errors():
         masked_flow_loss(sim, obs[:1])
     with pytest.raises(InputError, match="mask shape"):
         masked_flow_loss(sim, obs, torch.ones(3, 3))
+    with pytest.raises(InputError, match="flow loss: the mask has negative weights"):
+        masked_flow_loss(sim, obs, -torch.ones(4, 5))
 
 
 def test_render_loss():
@@ -84,6 +116,28 @@ def test_endpoint_error():
     ref[0, 1, 1, 1] = np.nan
     with pytest.raises(InputError, match="EPE reference: the flow contains NaN"):
         endpoint_error(flow, ref)
+
+
+def test_weighted_endpoint_error_and_flow_slope():
+    rng = np.random.default_rng(0)
+    reference = rng.standard_normal((2, 4, 5, 2))
+    across = np.stack([-reference[..., 1], reference[..., 0]], axis=-1)  # perpendicular to the reference
+    flow = 0.8 * reference + 0.3 * across
+    # slope = sum w flow.ref / sum w |ref|^2: the perpendicular part adds nothing
+    assert flow_slope(flow, reference) == pytest.approx(0.8, rel=1e-12)
+    weight = rng.random((2, 4, 5))
+    assert flow_slope(flow, reference, weight) == pytest.approx(0.8, rel=1e-12)
+    flow[0, 1, 1] *= 10.0  # an outlier, then weighted out
+    weight[0, 1, 1] = 0.0
+    assert flow_slope(flow, reference, weight) == pytest.approx(0.8, rel=1e-12)
+    assert flow_slope(flow, reference) > 0.85
+    error = np.linalg.norm(flow - reference, axis=-1)
+    assert endpoint_error(flow, reference, weight) == pytest.approx((weight * error).sum() / weight.sum(), rel=1e-12)
+    assert endpoint_error(flow, reference, weight > 0.5) == pytest.approx(error[weight > 0.5].mean(), rel=1e-12)
+    with pytest.raises(InputError, match="flow slope: the reference flow is zero wherever the mask is set"):
+        flow_slope(flow, np.zeros_like(reference))
+    with pytest.raises(InputError, match="EPE: mask weights must be finite and >= 0"):
+        endpoint_error(flow, reference, -weight)
 
 
 def test_ecms_analytic_cases():

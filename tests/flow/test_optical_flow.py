@@ -6,13 +6,17 @@ import pytest
 from clflow.errors import ClflowError, InputError
 from clflow.flow.metrics import endpoint_error
 from clflow.flow.optical_flow import (
+    DIS_PRESETS,
+    backward_flow,
+    flow_confidence,
     forward_backward_mask,
     mask_from_alpha,
     mask_from_box,
     mask_from_image,
+    observed_confidence,
     observed_flow,
 )
-from clflow.flow.synthetic import Motion, moving_texture
+from clflow.flow.synthetic import Motion, moving_texture, textured_image
 from clflow.flow.visualize import write_image
 
 HEIGHT, WIDTH = 96, 128
@@ -34,7 +38,7 @@ def test_flow_of_known_motion(motion, method):
     assert endpoint_error(flow, truth, mask_from_box(OBJECT_BOX, WIDTH, HEIGHT)) < 0.2
 
 
-@pytest.mark.parametrize("preset", ["ultrafast", "fast", "medium"])
+@pytest.mark.parametrize("preset", DIS_PRESETS)
 def test_dis_presets(preset):
     frames, truth = moving_texture(2, HEIGHT, WIDTH, MOTIONS["translate"], seed=3)
     assert endpoint_error(observed_flow(frames, preset=preset), truth, mask_from_box(OBJECT_BOX, WIDTH, HEIGHT)) < 0.25
@@ -55,6 +59,53 @@ def test_forward_backward_mask(translating):
     shift[..., 0] = 3.0
     valid = forward_backward_mask(shift, -shift)
     assert valid[:, : WIDTH - 3].all() and not valid[:, WIDTH - 3 :].any()
+
+
+def square_on_texture(x0: int, size: int, height: int = HEIGHT, width: int = WIDTH) -> np.ndarray:
+    """[H, W, 3] uint8: a textured square of side ``size`` px with its left edge at column
+    ``x0`` (rows 26 ...) over a different static texture."""
+    image = textured_image(height, width, seed=1)
+    image[26 : 26 + size, x0 : x0 + size] = textured_image(height, width, seed=2)[26 : 26 + size, 30 : 30 + size]
+    return image
+
+
+def test_fine_preset_follows_a_small_fast_square():
+    # A 12 px square moving 3 px over a static texture: at half resolution (medium) DIS
+    # blends it with the background and finds 0.9 px on average over the square; at full
+    # resolution (fine) 2.7 px.
+    frames = np.stack([square_on_texture(40, 12), square_on_texture(43, 12)])
+    flow = observed_flow(frames, preset="fine")[0]
+    assert flow[26:38, 40:52, 0].mean() == pytest.approx(3.0, rel=0.15)
+
+
+def test_confidence_of_a_known_translation():
+    frames, truth = moving_texture(2, HEIGHT, WIDTH, Motion(shift=(4.0, 0.0)), seed=5)
+    forward = observed_flow(frames)
+    backward = backward_flow(frames)
+    np.testing.assert_allclose(backward[:, 8:-8, 8:-8], -truth[:, 8:-8, 8:-8], atol=0.1)
+    confidence = flow_confidence(forward, backward)
+    assert confidence.shape == (1, HEIGHT, WIDTH) and confidence.dtype == np.float32
+    assert confidence[:, 8:-8, 8 : WIDTH - 12].min() > 0.9  # consistent inside
+    assert not confidence[:, :, WIDTH - 4 :].any()  # carried out of the frame: occluded by its border
+    # the soft weight is e^-1 on the hard mask's threshold: w = 0 and |w_b|^2 = s with
+    # s = 0.01 s + 0.5 px^2
+    off = np.zeros((1, 4, 5, 2), np.float32)
+    off[..., 0] = (0.5 / 0.99) ** 0.5
+    np.testing.assert_allclose(flow_confidence(np.zeros_like(off), off), np.exp(-1.0), rtol=1e-6)
+
+
+def test_confidence_is_low_where_a_moving_square_covers_the_background():
+    frames = np.stack([square_on_texture(30, 24), square_on_texture(35, 24)])  # 5 px to the right
+    forward = observed_flow(frames)
+    confidence = observed_confidence(frames, forward, "forward_backward")
+    assert confidence.shape == (1, HEIGHT, WIDTH)
+    covered = confidence[0, 28:48, 55:59]  # background the square's right edge moves over
+    assert covered.mean() < 0.3
+    assert confidence[0, 30:46, 34:50].mean() > 0.95  # inside the square
+    assert confidence[0, :16].mean() > 0.9  # static background away from the square
+    np.testing.assert_array_equal(observed_confidence(frames, forward, "none"), np.ones((1, HEIGHT, WIDTH)))
+    with pytest.raises(InputError, match="unknown flow confidence 'bogus'; choose one of none, forward_backward"):
+        observed_confidence(frames, forward, "bogus")
 
 
 def test_object_masks(tmp_path):

@@ -31,7 +31,7 @@ def lm(demo_config, monkeypatch):
             calls.append(dict(z))
             shift = math.tanh(curvature * (z["youngs_modulus"] - Z_TRUE)) / curvature
             flows = [opt.observed[t] + shift * field[t] for t in range(frames)]
-            loss = float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.mask))
+            loss = float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.weight[:frames]))
             return Evaluation(loss, {}, flows, SimpleNamespace(substeps=1))
 
         monkeypatch.setattr(opt, "evaluate", evaluate)
@@ -116,7 +116,7 @@ def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypat
         shift = {"independent": e * field_e + nu * field_nu, "nu_does_nothing": e * field_e,
                  "only_the_sum_matters": (e + nu) * field_e}[model]
         flows = [opt.observed[t] + noise[t] + shift[t] for t in range(frames)]
-        return Evaluation(float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.mask)), {}, flows,
+        return Evaluation(float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.weight[:frames])), {}, flows,
                           SimpleNamespace(substeps=1))
 
     monkeypatch.setattr(opt, "evaluate", evaluate)

@@ -114,7 +114,33 @@ def test_a_video_file_keeps_its_own_frame_rate(demo_config, quick_demo, tmp_path
     folder_cfg = demo_config(name="folder")
     video_cfg = dataclasses.replace(demo_config(name="video"), video=tmp_path / "guidance48.mp4")
     T = folder_cfg.simulation.frames
-    _, from_folder = observed_flow_of(folder_cfg, prepare(folder_cfg), T)
-    _, from_video = observed_flow_of(video_cfg, prepare(video_cfg), T)
+    _, from_folder, _ = observed_flow_of(folder_cfg, prepare(folder_cfg), T)
+    _, from_video, _ = observed_flow_of(video_cfg, prepare(video_cfg), T)
     speed = lambda flow: float(np.linalg.norm(flow, axis=-1).mean())  # noqa: E731
     assert speed(from_video) == pytest.approx(speed(from_folder), rel=0.15)
+
+
+def test_the_cached_observed_flow_is_reused_only_with_the_same_confidence_setting(demo_config, monkeypatch):
+    import numpy as np
+
+    import clflow.flow.optical_flow
+    from clflow.pipeline.forward import prepare
+    from clflow.pipeline.optimize import observed_flow_of
+
+    cfg = demo_config()
+    with_confidence = dataclasses.replace(cfg, flow=dataclasses.replace(cfg.flow, confidence="forward_backward"))
+    without = dataclasses.replace(cfg, flow=dataclasses.replace(cfg.flow, confidence="none"))
+    prepared, T = prepare(cfg), cfg.simulation.frames
+    _, flow, confidence = observed_flow_of(with_confidence, prepared, T)
+    assert confidence.shape == flow.shape[:-1] == (T, cfg.camera.height, cfg.camera.width)
+    assert 0.0 <= confidence.min() < 0.5 and confidence.max() <= 1.0  # the cube's edges occlude the floor
+    _, flow_again, ones = observed_flow_of(without, prepared, T)  # same folder, other setting: recomputed
+    assert np.array_equal(flow_again, flow) and np.all(ones == 1.0)
+
+    def no_estimator(*args, **kwargs):
+        raise AssertionError("the cache should have been used")
+
+    observed_flow_of(with_confidence, prepared, T)  # recomputed and cached again
+    monkeypatch.setattr(clflow.flow.optical_flow, "observed_flow", no_estimator)
+    _, cached_flow, cached = observed_flow_of(with_confidence, prepared, T)
+    assert np.array_equal(cached_flow, flow) and np.array_equal(cached, confidence)

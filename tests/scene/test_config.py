@@ -108,7 +108,8 @@ BAD = [
     ("optimize.learning_rates", {"poissons_ratio": 0.1}, "optimize.learning_rates.poissons_ratio: is not among"),
     ("video", "guide.mp4", "video: file or folder not found"),
     ("material.model", "stvk", "material.model: must be one of fixed_corotated, neo_hookean, got 'stvk'"),
-    ("flow", {"preset": "slow"}, "flow.preset: must be one of ultrafast, fast, medium, got 'slow'"),
+    ("flow", {"preset": "slow"}, "flow.preset: must be one of ultrafast, fast, medium, fine, got 'slow'"),
+    ("flow", {"confidence": "fb"}, "flow.confidence: must be one of none, forward_backward, got 'fb'"),
     ("flow", {"mask": "nope.png"}, "flow.mask: file not found"),
     ("scene.up", None, None),  # null takes the default
     ("camera.file", "scene.ply", "camera: with a camera file, position, look_at.* come from the file"),

@@ -1,0 +1,136 @@
+"""``clflow bench flow-bias``: how far the observed flow is from the simulated one at the
+ground truth, and what that does to the recovered parameters (docs/flow.md)."""
+
+import click
+
+CASES = ("cube", "torus", "plasticine")
+
+
+def synthetic_cases() -> dict:
+    """The benchmark's cases: the demo's jelly cube, an elastic torus and a plasticine
+    sphere, each pushed sideways on the floor (``SyntheticCase`` of datasets_tools)."""
+    from clflow_datasets.demo import DEMO
+    from clflow_datasets.synthetic import SyntheticCase, push_upper_part
+
+    torus = SyntheticCase(shape="torus", material="elastic", truth={"youngs_modulus": 5e4, "poissons_ratio": 0.3},
+                          guess={"youngs_modulus": 5e3}, forces=(push_upper_part(0.2),))
+    plasticine = SyntheticCase(shape="sphere", material="plasticine",
+                               truth={"youngs_modulus": 1e5, "poissons_ratio": 0.3, "yield_stress": 2e3},
+                               guess={"yield_stress": 2e2}, optimize=("yield_stress",),
+                               forces=(push_upper_part(0.2, acceleration=20.0),))
+    return {"cube": DEMO, "torus": torus, "plasticine": plasticine}
+
+
+SEARCH_HALF_WIDTH = 0.5  # z units (decades for moduli) either side of the truth
+
+
+def loss_minimum(opt, z_truth: dict[str, float], name: str, steps: int = 16) -> float:
+    """z of the minimum of the full-horizon loss along parameter ``name`` (the others at the
+    truth), by golden-section search over z_truth +- SEARCH_HALF_WIDTH; the bracket shrinks
+    to 0.618^steps of its width. A result at the bracket's edge means "there or beyond"."""
+    ratio = (5**0.5 - 1) / 2
+
+    def loss(z: float) -> float:
+        return opt.evaluate({**z_truth, name: z}, opt.frames, with_grad=False).loss
+
+    lo, hi = z_truth[name] - SEARCH_HALF_WIDTH, z_truth[name] + SEARCH_HALF_WIDTH
+    a, b = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
+    loss_a, loss_b = loss(a), loss(b)
+    for _ in range(steps):
+        if loss_a < loss_b:
+            hi, b, loss_b = b, a, loss_a
+            a = hi - ratio * (hi - lo)
+            loss_a = loss(a)
+        else:
+            lo, a, loss_a = a, b, loss_b
+            b = lo + ratio * (hi - lo)
+            loss_b = loss(b)
+    return (lo + hi) / 2
+
+
+def measure(config, output, preset: str, confidence: str, iterations: int | None) -> dict:
+    """Flow bias at the case's ground truth (slope of the observed on the simulated flow and
+    EPE, px, both weighted as the loss weighs pixels: mask x confidence), the signed relative
+    error of each parameter at the loss minimum near the truth (the bias the flow error puts
+    into the parameters, whatever the optimiser does; ``beyond``: the names whose minimum is
+    at the search's edge or further) and, unless ``iterations`` is 0, that of each parameter
+    ``clflow optimize`` recovers from the case's guess."""
+    import dataclasses
+    import time
+
+    import torch
+
+    from clflow.flow.metrics import endpoint_error, flow_slope
+    from clflow.pipeline.optimize import Optimization
+    from clflow.scene.config import load_config
+
+    cfg = load_config(config)
+    cfg = dataclasses.replace(cfg, output=output, flow=dataclasses.replace(cfg.flow, preset=preset, confidence=confidence))
+    if iterations is not None:
+        cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=max(iterations, 1)))
+    opt = Optimization(cfg)
+    truth = cfg.ground_truth
+    z_truth = {n: float(p.encode(truth[n])) for n, p in opt.params.items()}
+    at_truth = opt.evaluate(z_truth, opt.frames, with_grad=False)
+    simulated, observed, weight = torch.stack(at_truth.flows).numpy(), opt.observed.numpy(), opt.weight.numpy()
+    z_minimum = {n: loss_minimum(opt, z_truth, n) for n in z_truth}
+    at_minimum = opt.values(z_minimum)
+    row = {"slope": flow_slope(observed, simulated, weight), "epe": endpoint_error(observed, simulated, weight),
+           "kept": float(weight.sum() / opt.mask.sum() / opt.frames),
+           "minimum": {n: (at_minimum[n] - truth[n]) / truth[n] for n in at_minimum},
+           "beyond": {n for n, z in z_minimum.items() if abs(z - z_truth[n]) > 0.99 * SEARCH_HALF_WIDTH},
+           "error": {}, "seconds": 0.0}
+    if iterations != 0:
+        start = time.perf_counter()
+        final = opt.values(opt.run().z)
+        row["seconds"] = time.perf_counter() - start
+        row["error"] = {n: (final[n] - truth[n]) / truth[n] for n in final}
+    return row
+
+
+@click.command("flow-bias")
+@click.option("--case", "cases", type=click.Choice(CASES), multiple=True, help="Only these cases (repeatable; default all).")
+@click.option("--preset", "presets", multiple=True, help="DIS presets to compare (repeatable; default all).")
+@click.option("--confidence", "confidences", multiple=True,
+              help="flow.confidence settings to compare (repeatable; default all).")
+@click.option("--size", type=click.Choice(["quick", "demo"]), default="quick", show_default=True,
+              help="quick: 96 px, 8 frames, 14 iterations (the QUICK demo); demo: 160 px, 12 frames, 20.")
+@click.option("--iterations", type=click.IntRange(min=0), default=None,
+              help="Optimisation iterations (0: the flow bias only). Default: the size's.")
+def flow_bias(cases, presets, confidences, size, iterations):
+    """Observed-flow bias of each DIS preset with and without the flow confidence, on
+    synthetic cases with known parameters: at the truth, the least-squares slope of the
+    observed on the simulated flow (1 = unbiased) and their EPE, both weighted as the loss
+    weighs pixels; the signed relative error (RE) of each parameter at the minimum of the
+    loss near the truth; the RE of the parameters `clflow optimize` recovers from the case's
+    guess."""
+    import os
+    import tempfile
+    import warnings
+    from pathlib import Path
+
+    from clflow.flow.optical_flow import CONFIDENCES, DIS_PRESETS
+    from clflow.mpm.simulator import StabilityWarning
+    from clflow_datasets.demo import QUICK
+    from clflow_datasets.synthetic import Resolution, make_case
+
+    warnings.simplefilter("ignore", StabilityWarning)
+    resolution = QUICK if size == "quick" else Resolution()
+    known = synthetic_cases()
+    click.echo(f"load average {os.getloadavg()[0]:.2f}; {resolution.image} px, {resolution.frames} frames, "
+               f"{resolution.iterations if iterations is None else iterations} iterations")
+    click.echo(f"{'case':11s} {'preset':10s} {'confidence':17s} {'slope':>6s} {'EPE px':>7s} {'kept':>5s}  "
+               f"RE at the loss minimum; RE recovered")
+    with tempfile.TemporaryDirectory(prefix="clflow-flow-bias-") as folder:
+        for name in cases or CASES:
+            config = make_case(Path(folder) / name, known[name], resolution)
+            for preset in presets or DIS_PRESETS:
+                for confidence in confidences or CONFIDENCES:
+                    row = measure(config, Path(folder) / name / f"{preset}-{confidence}", preset, confidence, iterations)
+                    at_minimum = ", ".join(f"{n} {'beyond ' if n in row['beyond'] else ''}{e:+.2%}"
+                                           for n, e in row["minimum"].items())
+                    recovered = ", ".join(f"{e:+.2%}" for e in row["error"].values())
+                    timing = f" ({row['seconds']:.0f} s)" if row["error"] else ""
+                    click.echo(f"{name:11s} {preset:10s} {confidence:17s} {row['slope']:6.3f} {row['epe']:7.3f} "
+                               f"{row['kept']:5.2f}  {at_minimum}; {recovered or '-'}{timing}")
+    click.echo(f"load average {os.getloadavg()[0]:.2f}")
