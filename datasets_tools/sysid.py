@@ -169,6 +169,7 @@ def run_case(name: str, folder: Path, settings: Settings, *, progress: Callable[
     record.update(
         mean_re=float(np.mean([p["re"] for p in record["parameters"].values()])),
         epe_px=metrics["epe_px"], floor_epe_px=floor_epe, final_loss=metrics["flow_loss"], truth_loss=floor.loss,
+        identifiability=metrics["identifiability"],
         iterations=len(state.history),
         substeps=state.substeps, generation_seconds=generated - start,
         seconds=time.perf_counter() - start,
@@ -285,8 +286,9 @@ def markdown(summary: dict) -> str:
         if r.get("status") != "ok":
             lines.append(f"| {name} | {r['material']} | {r['status']} | - | - | - | {r.get('seconds', 0):.0f} | {published} |")
             continue
+        weak = set(r.get("identifiability", {}).get("weakly_constrained", []))
         params = "<br>".join(f"{n}: {_fmt(p['found'])} ({_fmt(p['truth'])}), RE {p['re']:.3f}"
-                             for n, p in r["parameters"].items())
+                             + (" (weakly constrained)" if n in weak else "") for n, p in r["parameters"].items())
         lines.append(f"| {name} | {r['material']} | {params} | {r['mean_re']:.3f} | {r['epe_px']:.3f} "
                      f"({r['floor_epe_px']:.3f}) | {r['iterations']} | {r['seconds']:.0f} | {published} |")
     if ok:
