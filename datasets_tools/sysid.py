@@ -254,10 +254,23 @@ def environment() -> dict:
     from clflow.runtime import get_device
 
     device = get_device()
-    return {"clflow": clflow.__version__, "torch": torch.__version__, "pyopencl": pyopencl.VERSION_TEXT,
+    return {"clflow": clflow.__version__, "commit": _commit(Path(clflow.__file__).parent),
+            "torch": torch.__version__, "pyopencl": pyopencl.VERSION_TEXT,
             "device": str(getattr(device, "name", device)), "python": platform.python_version(),
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
             "load": _load_average()}
+
+
+def _commit(folder: Path) -> str | None:
+    """The git commit clflow runs from (an editable install in a checkout), else None."""
+    import subprocess
+
+    try:
+        done = subprocess.run(["git", "-C", str(folder), "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() or None if done.returncode == 0 else None
 
 
 def _load_average() -> float | None:
@@ -304,7 +317,8 @@ def markdown(summary: dict) -> str:
     lines += ["", f"Settings: grid {res['grid']} nodes, image {res['image']} px, {res['frames']} frames, "
               f"{res['iterations']} iterations; ground truth at {s['truth_scale']}x grid and image; noise "
               f"{s['noise']} grey levels; codec {s['codec'] or 'none (PNG)'}; seed {s['seed']}.",
-              f"Made {env.get('date', '?')} with clflow {env.get('clflow', '?')}, torch {env.get('torch', '?')}, "
+              f"Made {env.get('date', '?')} with clflow {env.get('clflow', '?')} (commit {env.get('commit') or '?'}), "
+              f"torch {env.get('torch', '?')}, "
               f"pyopencl {env.get('pyopencl', '?')} on {env.get('device', '?')} (load {env.get('load', '?')}). "
               "Published rows: PhysFlow (CVPR 2025) Table 3, 800 x 800 px images."]
     return "\n".join(lines) + "\n"
