@@ -6,6 +6,8 @@ import sys
 
 import click
 
+from clflow_cli.main import Interrupted
+
 
 def _format_row(row: dict | None) -> str:
     if not row:
@@ -48,7 +50,7 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
             state = opt.run(resume=resume)
         except KeyboardInterrupt:
             done = opt.load_state().iteration if opt.checkpoint.exists() else 0
-            raise click.ClickException(
+            raise Interrupted(
                 f"interrupted after {done} iterations (saved in {opt.checkpoint}); continue with "
                 f"`clflow optimize {config_path} --resume`") from None
     metrics = opt.write_results(state)

@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 
+import click
 import pytest
 from click.testing import CliRunner
 
@@ -76,3 +77,52 @@ def test_unknown_device_is_a_clear_error(monkeypatch):
     assert res.exit_code == 1
     assert "no OpenCL device matches 'no-such-gpu'" in res.output and "available devices" in res.output
     assert res.exception is None or isinstance(res.exception, SystemExit)
+
+
+class _InterruptedOptimization:
+    """Stands in for clflow.pipeline.optimize.Optimization: Ctrl-C during run()."""
+
+    total_iterations = 3
+
+    def __init__(self, cfg, checkpoint, iterations_done):
+        self.cfg, self.checkpoint, self.progress = cfg, checkpoint, None
+        if iterations_done is not None:
+            checkpoint.write_text(json.dumps({"state": {"iteration": iterations_done}}))
+
+    def load_state(self):
+        from types import SimpleNamespace
+
+        return SimpleNamespace(iteration=json.loads(self.checkpoint.read_text())["state"]["iteration"])
+
+    def run(self, resume):
+        raise KeyboardInterrupt
+
+
+def interrupt_optimize(monkeypatch, tmp_path, iterations_done):
+    """`clflow optimize` with the config loading faked and Ctrl-C during the optimisation."""
+    from types import SimpleNamespace
+
+    import clflow.pipeline.optimize
+    import clflow.scene.config
+
+    cfg = SimpleNamespace(optimize=SimpleNamespace(search=None), output=tmp_path)
+    monkeypatch.setattr(clflow.scene.config, "load_config", lambda path: cfg)
+    monkeypatch.setattr(clflow.pipeline.optimize, "Optimization",
+                        lambda cfg: _InterruptedOptimization(cfg, tmp_path / "checkpoint.json", iterations_done))
+    return CliRunner().invoke(cli, ["optimize", "scene.yaml"])
+
+
+def test_ctrl_c_in_any_command_is_one_line_and_exit_130(monkeypatch):
+    @click.command("sleepy")
+    def sleepy():
+        raise KeyboardInterrupt
+
+    monkeypatch.setitem(cli.commands, "sleepy", sleepy)
+    res = CliRunner().invoke(cli, ["sleepy"])
+    assert res.exit_code == 130 and res.output == "Error: interrupted\n"
+
+
+def test_ctrl_c_in_optimize_gives_the_resume_hint_and_exit_130(monkeypatch, tmp_path):
+    res = interrupt_optimize(monkeypatch, tmp_path, iterations_done=2)
+    assert res.exit_code == 130, res.output
+    assert "interrupted after 2 iterations" in res.output and "--resume" in res.output
