@@ -84,10 +84,9 @@ class _InterruptedOptimization:
 
     total_iterations = 3
 
-    def __init__(self, cfg, checkpoint, iterations_done):
+    def __init__(self, cfg, checkpoint, iterations_in_run):
         self.cfg, self.checkpoint, self.progress = cfg, checkpoint, None
-        if iterations_done is not None:
-            checkpoint.write_text(json.dumps({"state": {"iteration": iterations_done}}))
+        self.iterations_in_run = iterations_in_run
 
     def load_state(self):
         from types import SimpleNamespace
@@ -95,11 +94,14 @@ class _InterruptedOptimization:
         return SimpleNamespace(iteration=json.loads(self.checkpoint.read_text())["state"]["iteration"])
 
     def run(self, resume):
+        if self.iterations_in_run:
+            self.checkpoint.write_text(json.dumps({"state": {"iteration": self.iterations_in_run}}))
         raise KeyboardInterrupt
 
 
-def interrupt_optimize(monkeypatch, tmp_path, iterations_done):
-    """`clflow optimize` with the config loading faked and Ctrl-C during the optimisation."""
+def interrupt_optimize(monkeypatch, tmp_path, iterations_in_run, *args):
+    """`clflow optimize scene.yaml *args` with the config loading faked and Ctrl-C after
+    ``iterations_in_run`` checkpointed iterations (0: before the first finished)."""
     from types import SimpleNamespace
 
     import clflow.pipeline.optimize
@@ -108,8 +110,8 @@ def interrupt_optimize(monkeypatch, tmp_path, iterations_done):
     cfg = SimpleNamespace(optimize=SimpleNamespace(search=None), output=tmp_path)
     monkeypatch.setattr(clflow.scene.config, "load_config", lambda path: cfg)
     monkeypatch.setattr(clflow.pipeline.optimize, "Optimization",
-                        lambda cfg: _InterruptedOptimization(cfg, tmp_path / "checkpoint.json", iterations_done))
-    return CliRunner().invoke(cli, ["optimize", "scene.yaml"])
+                        lambda cfg: _InterruptedOptimization(cfg, tmp_path / "checkpoint.json", iterations_in_run))
+    return CliRunner().invoke(cli, ["optimize", "scene.yaml", *args])
 
 
 def test_ctrl_c_in_any_command_is_one_line_and_exit_130(monkeypatch):
@@ -123,6 +125,21 @@ def test_ctrl_c_in_any_command_is_one_line_and_exit_130(monkeypatch):
 
 
 def test_ctrl_c_in_optimize_gives_the_resume_hint_and_exit_130(monkeypatch, tmp_path):
-    res = interrupt_optimize(monkeypatch, tmp_path, iterations_done=2)
+    res = interrupt_optimize(monkeypatch, tmp_path, 2)
     assert res.exit_code == 130, res.output
     assert "interrupted after 2 iterations" in res.output and "--resume" in res.output
+
+
+def test_ctrl_c_before_the_first_iteration_says_nothing_was_saved(monkeypatch, tmp_path):
+    for earlier_run in (False, True):  # an earlier run's checkpoint.json is not this run's
+        if earlier_run:
+            (tmp_path / "checkpoint.json").write_text(json.dumps({"state": {"iteration": 7}}))
+        res = interrupt_optimize(monkeypatch, tmp_path, 0)
+        assert res.exit_code == 130, res.output
+        assert "nothing was saved" in res.output and "saved in" not in res.output and "--resume" not in res.output
+
+
+def test_ctrl_c_right_after_resuming_keeps_the_resume_hint(monkeypatch, tmp_path):
+    (tmp_path / "checkpoint.json").write_text(json.dumps({"state": {"iteration": 7}}))
+    res = interrupt_optimize(monkeypatch, tmp_path, 0, "--resume")
+    assert res.exit_code == 130 and "interrupted after 7 iterations" in res.output and "--resume" in res.output
