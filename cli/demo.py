@@ -11,7 +11,8 @@ import click
 @click.option("--resume", is_flag=True, help="Continue an interrupted optimisation of an existing demo folder.")
 @click.option("--views", type=click.IntRange(min=0), default=2, show_default=True,
               help="Fixed novel viewpoints of the 4D render.")
-def demo(folder, quick, resume, views):
+@click.option("--force", is_flag=True, help="Overwrite the demo's files (config.yaml, results/, ...) in FOLDER.")
+def demo(folder, quick, resume, views, force):
     """Make the demo case in FOLDER (a jelly cube pushed sideways on a floor; its guidance
     video rendered from a ground-truth simulation, E = 20 kPa), then recover Young's
     modulus from a 10x too low guess (`clflow optimize`), simulate with the result
@@ -23,12 +24,17 @@ def demo(folder, quick, resume, views):
     from clflow_cli.render4d import render4d
     from clflow_cli.simulate import simulate_scene
     from clflow_datasets.demo import QUICK, make_demo
-    from clflow_datasets.synthetic import Resolution
+    from clflow_datasets.synthetic import CASE_FILES, Resolution
 
     start = time.perf_counter()
     folder = Path(folder)
     config = folder / "config.yaml"
-    if resume and config.is_file():
+    resuming = resume and config.is_file()
+    existing = [name for name in (*CASE_FILES, "results") if (folder / name).exists()]
+    if existing and not resuming and not force:
+        raise click.ClickException(f"{folder} already holds {', '.join(existing)}; the demo would overwrite "
+                                   f"them: give another folder, --resume an interrupted demo, or --force")
+    if resuming:
         click.echo(f"resuming the demo in {folder}")
     else:
         click.echo(f"making the demo scene and its guidance video in {folder}")

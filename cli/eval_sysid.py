@@ -6,6 +6,8 @@ import sys
 
 import click
 
+from clflow_cli.main import Interrupted
+
 
 @click.command("sysid")
 @click.option("--output", "-o", "output", type=click.Path(file_okay=False), required=True,
@@ -52,7 +54,7 @@ def sysid(output, cases, quick, iterations, truth_scale, noise, codec, seed, for
     try:
         summary = evaluate(names, out, settings, force=force, progress=progress)
     except KeyboardInterrupt:
-        raise click.ClickException(f"interrupted; finished cases are kept in {out / 'sysid.json'}; run the same "
+        raise Interrupted(f"interrupted; finished cases are kept in {out / 'sysid.json'}; run the same "
                                    f"command again to resume") from None
     click.echo(markdown(summary), nl=False)
     failed = [n for n, r in summary["cases"].items() if r.get("status") != "ok"]

@@ -37,6 +37,15 @@ BUILTIN_COMMANDS: dict[str, str] = {
 PLUGIN_GROUP = "clflow.commands"
 
 
+INTERRUPTED_EXIT_CODE = 130  # 128 + SIGINT, what shells report for a command ended by Ctrl-C
+
+
+class Interrupted(click.ClickException):
+    """Ctrl-C: a one-line message (e.g. how to resume) and exit code 130."""
+
+    exit_code = INTERRUPTED_EXIT_CODE
+
+
 class LazyGroup(click.Group):
     """A click group that imports a subcommand's module only when it is needed.
 
@@ -67,13 +76,15 @@ class LazyGroup(click.Group):
 
     def invoke(self, ctx: click.Context):
         # User-fixable problems (bad input, missing device, ...) end with one clear line and
-        # exit code 1; anything else is a bug and keeps its traceback.
+        # exit code 1; Ctrl-C with one line and 130; anything else is a bug and keeps its traceback.
         from clflow.errors import ClflowError
 
         try:
             return super().invoke(ctx)
         except ClflowError as exc:
             raise click.ClickException(str(exc)) from None
+        except KeyboardInterrupt:
+            raise Interrupted("interrupted") from None
 
 
 class CliContext:

@@ -6,6 +6,8 @@ import sys
 
 import click
 
+from clflow_cli.main import Interrupted
+
 
 def _format_row(row: dict | None) -> str:
     if not row:
@@ -13,6 +15,14 @@ def _format_row(row: dict | None) -> str:
     params = " ".join(f"{name}={value:.4g}" for name, value in row["params"].items())
     loss = "failed" if row["loss"] is None else f"{row['loss']:.4g}"
     return f"loss {loss}  {params}  {row['seconds']:.1f} s/it"
+
+
+def _modified(path) -> int | None:
+    """``path``'s modification time in ns, None if it does not exist."""
+    try:
+        return path.stat().st_mtime_ns
+    except FileNotFoundError:
+        return None
 
 
 def run_optimization(config_path: str, resume: bool, iterations: int | None, output: str | None) -> dict:
@@ -44,13 +54,16 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
         opt.progress = progress
         if resume and opt.checkpoint.exists():
             bar.update(opt.load_state().iteration)
+        earlier_checkpoint = _modified(opt.checkpoint)
         try:
             state = opt.run(resume=resume)
         except KeyboardInterrupt:
-            done = opt.load_state().iteration if opt.checkpoint.exists() else 0
-            raise click.ClickException(
-                f"interrupted after {done} iterations (saved in {opt.checkpoint}); continue with "
-                f"`clflow optimize {config_path} --resume`") from None
+            # without --resume, a checkpoint.json untouched since the start is an earlier run's
+            if _modified(opt.checkpoint) is None or (not resume and _modified(opt.checkpoint) == earlier_checkpoint):
+                raise Interrupted("interrupted before the first iteration finished; nothing was saved") from None
+            raise Interrupted(
+                f"interrupted after {opt.load_state().iteration} iterations (saved in {opt.checkpoint}); "
+                f"continue with `clflow optimize {config_path} --resume`") from None
     metrics = opt.write_results(state)
     final = opt.values(state.z)
     click.echo("optimised: " + ", ".join(f"{n} = {v:.6g} {parameter_unit(opt.cfg, n)}" for n, v in final.items()))

@@ -301,6 +301,10 @@ def degrade(frames: np.ndarray, size: int, noise: float, rng: np.random.Generato
     return np.clip(out + 0.5, 0, 255).astype(np.uint8)
 
 
+CASE_FILES = ("scene.ply", "config_truth.yaml", "guidance", "guidance.mp4", "config.yaml", "case.json")
+"""What :func:`make_case` writes into its folder (besides ``guidance_coded*`` with a codec)."""
+
+
 def make_case(folder: str | Path, case: SyntheticCase, resolution: Resolution = Resolution(), seed: int = 0,
               *, truth_scale: int = 1, noise: float = 0.0, codec: str | None = None) -> Path:
     """Write the case into ``folder`` (see module docstring); returns its ``config.yaml``.
@@ -355,5 +359,5 @@ def make_case(folder: str | Path, case: SyntheticCase, resolution: Resolution = 
 
 
 __all__ = ["Resolution", "SHAPES", "SyntheticCase", "case_config", "case_domain", "cube_surface", "degrade", "wall_contacts", "floor",
-           "make_case",
+           "make_case", "CASE_FILES",
            "push_upper_part", "sphere_surface", "torus_surface", "write_scene"]

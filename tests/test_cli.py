@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 
+import click
 import pytest
 from click.testing import CliRunner
 
@@ -76,3 +77,69 @@ def test_unknown_device_is_a_clear_error(monkeypatch):
     assert res.exit_code == 1
     assert "no OpenCL device matches 'no-such-gpu'" in res.output and "available devices" in res.output
     assert res.exception is None or isinstance(res.exception, SystemExit)
+
+
+class _InterruptedOptimization:
+    """Stands in for clflow.pipeline.optimize.Optimization: Ctrl-C during run()."""
+
+    total_iterations = 3
+
+    def __init__(self, cfg, checkpoint, iterations_in_run):
+        self.cfg, self.checkpoint, self.progress = cfg, checkpoint, None
+        self.iterations_in_run = iterations_in_run
+
+    def load_state(self):
+        from types import SimpleNamespace
+
+        return SimpleNamespace(iteration=json.loads(self.checkpoint.read_text())["state"]["iteration"])
+
+    def run(self, resume):
+        if self.iterations_in_run:
+            self.checkpoint.write_text(json.dumps({"state": {"iteration": self.iterations_in_run}}))
+        raise KeyboardInterrupt
+
+
+def interrupt_optimize(monkeypatch, tmp_path, iterations_in_run, *args):
+    """`clflow optimize scene.yaml *args` with the config loading faked and Ctrl-C after
+    ``iterations_in_run`` checkpointed iterations (0: before the first finished)."""
+    from types import SimpleNamespace
+
+    import clflow.pipeline.optimize
+    import clflow.scene.config
+
+    cfg = SimpleNamespace(optimize=SimpleNamespace(search=None), output=tmp_path)
+    monkeypatch.setattr(clflow.scene.config, "load_config", lambda path: cfg)
+    monkeypatch.setattr(clflow.pipeline.optimize, "Optimization",
+                        lambda cfg: _InterruptedOptimization(cfg, tmp_path / "checkpoint.json", iterations_in_run))
+    return CliRunner().invoke(cli, ["optimize", "scene.yaml", *args])
+
+
+def test_ctrl_c_in_any_command_is_one_line_and_exit_130(monkeypatch):
+    @click.command("sleepy")
+    def sleepy():
+        raise KeyboardInterrupt
+
+    monkeypatch.setitem(cli.commands, "sleepy", sleepy)
+    res = CliRunner().invoke(cli, ["sleepy"])
+    assert res.exit_code == 130 and res.output == "Error: interrupted\n"
+
+
+def test_ctrl_c_in_optimize_gives_the_resume_hint_and_exit_130(monkeypatch, tmp_path):
+    res = interrupt_optimize(monkeypatch, tmp_path, 2)
+    assert res.exit_code == 130, res.output
+    assert "interrupted after 2 iterations" in res.output and "--resume" in res.output
+
+
+def test_ctrl_c_before_the_first_iteration_says_nothing_was_saved(monkeypatch, tmp_path):
+    for earlier_run in (False, True):  # an earlier run's checkpoint.json is not this run's
+        if earlier_run:
+            (tmp_path / "checkpoint.json").write_text(json.dumps({"state": {"iteration": 7}}))
+        res = interrupt_optimize(monkeypatch, tmp_path, 0)
+        assert res.exit_code == 130, res.output
+        assert "nothing was saved" in res.output and "saved in" not in res.output and "--resume" not in res.output
+
+
+def test_ctrl_c_right_after_resuming_keeps_the_resume_hint(monkeypatch, tmp_path):
+    (tmp_path / "checkpoint.json").write_text(json.dumps({"state": {"iteration": 7}}))
+    res = interrupt_optimize(monkeypatch, tmp_path, 0, "--resume")
+    assert res.exit_code == 130 and "interrupted after 7 iterations" in res.output and "--resume" in res.output

@@ -206,6 +206,17 @@ def rate_schedule(opt, iteration: int, iterations: int | None = None) -> float:
     return opt.final_rate + (1.0 - opt.final_rate) * 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
+def config_digests(cfg: SceneConfig) -> dict[str, str]:
+    """A SHA-256 of each top-level field of the resolved config (canonical JSON, paths as
+    strings), except ``output``: what a resumed run must share with its checkpoint."""
+    import hashlib
+
+    fields = asdict(cfg)
+    fields.pop("output", None)
+    return {name: hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()[:16]
+            for name, value in fields.items()}
+
+
 class Optimization:
     """One optimisation run of a config (see module docstring)."""
 
@@ -246,10 +257,17 @@ class Optimization:
             raise InputError(f"cannot resume from {self.checkpoint}: {exc}") from None
         if set(state.z) != set(self.variables):
             raise InputError(f"{self.checkpoint} optimises {sorted(state.z)}, the config {sorted(self.variables)}")
+        saved = data.get("config_digests")  # absent in checkpoints of older versions
+        digests = config_digests(self.cfg)
+        if isinstance(saved, dict) and saved != digests:
+            changed = sorted(k for k in saved.keys() | digests.keys() if saved.get(k) != digests.get(k))
+            raise InputError(f"cannot resume from {self.checkpoint}: the config changed since it was saved "
+                             f"({', '.join(changed)}); give another --output, or delete the checkpoint to start over")
         return state
 
     def save_state(self, state: OptimizerState) -> None:
-        atomic_write_text(self.checkpoint, json.dumps({"config": str(self.cfg.source), "state": asdict(state)}))
+        atomic_write_text(self.checkpoint, json.dumps({"config": str(self.cfg.source), "state": asdict(state),
+                                                       "config_digests": config_digests(self.cfg)}))
 
     def values(self, z: dict[str, float]) -> dict[str, float]:
         """The value of every variable in z: material parameters in SI, velocity components in m/s."""

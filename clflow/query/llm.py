@@ -15,6 +15,7 @@ import ipaddress
 import json
 import logging
 import os
+import re
 import socket
 import time
 import urllib.error
@@ -73,6 +74,9 @@ class ModelConfig:
     image_format: ImageFormat = "png"
     structured_output: bool = True
 
+    def __repr__(self) -> str:
+        return f"ModelConfig(url={redact_url(self.url)!r}, model={self.model!r}, timeout={self.timeout!r})"
+
     def __post_init__(self):
         if not (self.timeout > 0 and self.retries >= 0 and self.backoff >= 0 and self.max_backoff >= 0):
             raise InputError("the model backend needs timeout > 0 s, retries >= 0, backoff >= 0 s")
@@ -102,6 +106,39 @@ class ModelConfig:
         return cls(url=endpoint, model=model, api_key=key, **options)
 
 
+_SECRET_PARAMETER = re.compile(r"key|token|secret|password|passwd|auth|sig", re.IGNORECASE)
+
+
+def redact_url(url: str) -> str:
+    """``url`` for messages: user:password@ and the values of key/token-like query
+    parameters (``?api-key=...``) replaced by ``***``."""
+    try:
+        parts = urllib.parse.urlsplit(url)
+    except ValueError:
+        return "***"
+    netloc = parts.netloc
+    if "@" in netloc:
+        netloc = "***@" + netloc.rpartition("@")[2]
+    query = "&".join(_redact_parameter(p) for p in parts.query.split("&")) if parts.query else ""
+    return urllib.parse.urlunsplit((parts.scheme, netloc, parts.path, query, parts.fragment))
+
+
+def _redact_parameter(parameter: str) -> str:
+    name, equals, value = parameter.partition("=")
+    return f"{name}=***" if equals and value and _SECRET_PARAMETER.search(name) else parameter
+
+
+def _url_secrets(url: str) -> list[str]:
+    """The credentials written into ``url`` (its userinfo, key/token query values)."""
+    try:
+        parts = urllib.parse.urlsplit(url)
+    except ValueError:
+        return [url]
+    secrets = [parts.netloc.rpartition("@")[0]] if "@" in parts.netloc else []
+    secrets += [p.partition("=")[2] for p in parts.query.split("&") if _redact_parameter(p) != p]
+    return [s for s in secrets if s]
+
+
 def _env(names: tuple[str, ...]) -> str | None:
     return next((os.environ[n] for n in names if os.environ.get(n)), None)
 
@@ -110,7 +147,7 @@ def chat_endpoint(url: str) -> str:
     """The chat-completions URL of ``url`` (an endpoint or an OpenAI-style base URL)."""
     parts = urllib.parse.urlsplit(url.strip())
     if parts.scheme not in ("http", "https") or not parts.hostname:
-        raise InputError(f"--llm-url {url!r} is not an http(s) URL such as http://localhost:11434/v1")
+        raise InputError(f"--llm-url {redact_url(url)!r} is not an http(s) URL such as http://localhost:11434/v1")
     path = parts.path.rstrip("/")
     if not path.endswith("/chat/completions"):
         path += "/chat/completions"
@@ -299,7 +336,12 @@ def _service_error(config: ModelConfig, failure: _Failure, attempts: int) -> Mod
 
 
 def _redact(text: str, config: ModelConfig) -> str:
-    return text.replace(config.api_key, "***") if config.api_key else text
+    """``text`` without the API key and the credentials in the endpoint URL."""
+    text = text.replace(config.url, redact_url(config.url))
+    for secret in [config.api_key, *_url_secrets(config.url)]:
+        if secret:
+            text = text.replace(secret, "***")
+    return text
 
 
 def _message_text(raw: bytes, config: ModelConfig) -> str:
@@ -334,7 +376,7 @@ def query_model(
     """Ask the model about the object in ``image``; the validated :class:`QueryResult`."""
     text = question(prompt, object_name)
     h, w = image.pixels.shape[:2]
-    log.info("asking %s at %s about a %dx%d px crop of %s", config.model, config.url, w, h, image.source)
+    log.info("asking %s at %s about a %dx%d px crop of %s", config.model, redact_url(config.url), w, h, image.source)
     warnings: list[str] = []
     structured = config.structured_output
     try:

@@ -585,6 +585,66 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     )
 
 
+def _dotted(path: str, key: object) -> str:
+    """``path`` extended by a mapping key (``a.b``) or a list index (``a[0]``)."""
+    if isinstance(key, int):
+        return f"{path}[{key}]"
+    return f"{path}.{key}" if path else str(key)
+
+
+class _JsonPairs(list):
+    """A JSON object as its (key, value) pairs, so duplicate keys survive parsing."""
+
+
+def _json_without_duplicates(value: Any, path: str = "") -> Any:
+    """Turn parsed :class:`_JsonPairs` into dicts; a key given twice raises with its dotted path."""
+    if isinstance(value, _JsonPairs):
+        out: dict[str, Any] = {}
+        for key, item in value:
+            if key in out:
+                raise _DuplicateKey(_dotted(path, key))
+            out[key] = _json_without_duplicates(item, _dotted(path, key))
+        return out
+    if isinstance(value, list):
+        return [_json_without_duplicates(item, _dotted(path, i)) for i, item in enumerate(value)]
+    return value
+
+
+class _DuplicateKey(Exception):
+    """A mapping key given twice; the argument is its dotted path (and YAML line)."""
+
+
+def _load_json(text: str) -> Any:
+    return _json_without_duplicates(json.loads(text, object_pairs_hook=_JsonPairs))
+
+
+def _load_yaml(text: str) -> Any:
+    """``yaml.safe_load`` that rejects a mapping key given twice (PyYAML keeps the last)."""
+    import yaml
+
+    class StrictLoader(yaml.SafeLoader):
+        def construct_document(self, node):
+            self._check_duplicates(node, "")
+            return super().construct_document(node)
+
+        def _check_duplicates(self, node, path: str) -> None:
+            if isinstance(node, yaml.MappingNode):
+                seen = set()
+                for key_node, value_node in node.value:
+                    key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+                    if key is not None and key != "<<":
+                        if key in seen:
+                            line = key_node.start_mark.line + 1
+                            raise _DuplicateKey(f"{_dotted(path, key)} (line {line})")
+                        seen.add(key)
+                    self._check_duplicates(value_node, _dotted(path, key))
+            elif isinstance(node, yaml.SequenceNode):
+                for i, item in enumerate(node.value):
+                    self._check_duplicates(item, _dotted(path, i))
+
+    return yaml.load(text, Loader=StrictLoader)
+
+
 def load_config(path: str | Path) -> SceneConfig:
     """Read and validate a YAML (.yaml/.yml) or JSON (.json) scene config."""
     path = Path(path)
@@ -594,14 +654,16 @@ def load_config(path: str | Path) -> SceneConfig:
         raise InputError(f"cannot read config {path}: {exc.strerror}") from None
     loader: Callable[[str], Any]
     if path.suffix.lower() == ".json":
-        loader = json.loads
+        loader = _load_json
         errors: tuple[type[Exception], ...] = (json.JSONDecodeError,)
     else:
         import yaml
 
-        loader, errors = yaml.safe_load, (yaml.YAMLError,)
+        loader, errors = _load_yaml, (yaml.YAMLError,)
     try:
         data = loader(text)
     except errors as exc:
         raise InputError(f"{path}: not valid {'JSON' if path.suffix.lower() == '.json' else 'YAML'}: {exc}") from None
+    except _DuplicateKey as exc:
+        raise InputError(f"{path}: {exc}: duplicate key (each key may appear only once)") from None
     return parse_config(data, str(path), path.parent.resolve())

@@ -2,6 +2,7 @@
 
 import json
 
+import pytest
 from click.testing import CliRunner
 
 from clflow_cli.main import cli
@@ -17,3 +18,25 @@ def test_quick_demo_end_to_end(tmp_path):
     for video in ("guidance", "orbit", "view_0"):
         assert (results / "simulation" / "render4d" / f"{video}.mp4").stat().st_size > 0
     assert (results / "simulation" / "frame_008.ply").is_file()
+
+
+EXISTING = ["config.yaml", "scene.ply", "config_truth.yaml", "guidance.mp4", "case.json", "guidance/000.png",
+            "results/params.json"]
+
+
+@pytest.mark.parametrize("name", EXISTING)
+def test_demo_never_overwrites_a_file_in_folder_without_force(tmp_path, monkeypatch, name):
+    import clflow_datasets.demo
+
+    made = []
+    monkeypatch.setattr(clflow_datasets.demo, "make_demo", lambda *args: made.append(args) or 1 / 0)
+    mine = tmp_path / name
+    mine.parent.mkdir(parents=True, exist_ok=True)
+    mine.write_text("my own")
+    before = sorted(tmp_path.rglob("*"))
+    res = CliRunner().invoke(cli, ["demo", str(tmp_path), "--quick"])
+    assert res.exit_code == 1 and "already holds " + name.split("/")[0] in res.output and "--force" in res.output
+    assert not made and mine.read_text() == "my own"
+    assert sorted(tmp_path.rglob("*")) == before  # nothing written
+    res = CliRunner().invoke(cli, ["demo", str(tmp_path), "--quick", "--force"])
+    assert made and isinstance(res.exception, ZeroDivisionError)  # past the check, into making the demo

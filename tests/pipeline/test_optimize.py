@@ -144,3 +144,30 @@ def test_the_cached_observed_flow_is_reused_only_with_the_same_confidence_settin
     monkeypatch.setattr(clflow.flow.optical_flow, "observed_flow", no_estimator)
     _, cached_flow, cached = observed_flow_of(with_confidence, prepared, T)
     assert np.array_equal(cached_flow, flow) and np.array_equal(cached, confidence)
+
+
+def test_resume_refuses_a_changed_config_and_names_what_changed(tmp_path):
+    import dataclasses
+
+    from clflow.errors import InputError
+    from clflow.pipeline.optimize import OptimizerState
+    from clflow.scene.config import parse_config
+
+    (tmp_path / "scene.ply").write_bytes(b"ply\n")
+    data = {"splats": "scene.ply", "object": {"select": {"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}},
+            "material": {"type": "elastic", "parameters": {"youngs_modulus": 1e4}},
+            "camera": {"position": [0, 1, 3], "look_at": [0, 0, 0]}, "optimize": {"parameters": ["youngs_modulus"]}}
+    cfg = parse_config(data, "scene.yaml", tmp_path)
+
+    def checkpointing(cfg):  # just what save_state/load_state use, without the scene's preparation
+        opt = Optimization.__new__(Optimization)
+        opt.cfg, opt.checkpoint, opt.variables = cfg, tmp_path / "checkpoint.json", ["youngs_modulus"]
+        return opt
+
+    state = OptimizerState(3, {"youngs_modulus": 1.0}, {"youngs_modulus": 0.0}, {"youngs_modulus": 0.0})
+    checkpointing(cfg).save_state(state)
+    assert checkpointing(dataclasses.replace(cfg, output=tmp_path / "elsewhere")).load_state().iteration == 3
+    changed = dataclasses.replace(cfg, scale=2.0, simulation=dataclasses.replace(cfg.simulation, frames=99))
+    with pytest.raises(InputError, match=r"config changed since it was saved \(scale, simulation\); "
+                                         r"give another --output, or delete the checkpoint"):
+        checkpointing(changed).load_state()

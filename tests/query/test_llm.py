@@ -22,7 +22,7 @@ from clflow.query import (
     query_material,
 )
 from clflow.query.answer import extract_json_object
-from clflow.query.llm import answer_schema, chat_endpoint
+from clflow.query.llm import answer_schema, chat_endpoint, redact_url
 
 from .conftest import API_KEY, Reply, chat, error
 
@@ -392,3 +392,36 @@ def test_extract_json_object_rule():
         extract_json_object('{"a": 1}\n{"b": 2}')
     with pytest.raises(ModelAnswerError, match="no JSON object"):
         extract_json_object('{"a": Infinity}')
+
+
+@pytest.mark.parametrize(
+    "url, shown",
+    [
+        ("https://user:sk-secret@api.example.com/v1", "https://***@api.example.com/v1"),
+        ("https://sk-secret@api.example.com/v1", "https://***@api.example.com/v1"),
+        ("https://api.example.com/v1?api-key=sk-secret", "https://api.example.com/v1?api-key=***"),
+        ("https://api.example.com/v1?key=sk-secret&x=1", "https://api.example.com/v1?key=***&x=1"),
+        ("https://api.example.com/v1?x=1&token=sk-secret", "https://api.example.com/v1?x=1&token=***"),
+        ("http://localhost:11434/v1", "http://localhost:11434/v1"),
+    ],
+)
+def test_redact_url_hides_credentials(url, shown):
+    assert redact_url(url) == shown
+    assert "sk-secret" not in repr(ModelConfig(url=url, model="m"))
+
+
+@pytest.mark.parametrize("credentials", ["?api-key=sk-secret", "?key=sk-secret", "?token=sk-secret", "user:sk-secret@"])
+def test_a_key_in_the_url_is_never_logged_or_shown(server, photo, caplog, credentials):
+    caplog.set_level(logging.DEBUG)
+    if credentials.endswith("@"):
+        url = server.base_url.replace("://", "://" + credentials)
+    else:
+        url = server.base_url + credentials
+    server.play(error(503, "busy"), error(401, "Incorrect API key provided: sk-secret"))
+    with pytest.raises(ModelServiceError) as exc:
+        query_material(photo[0], box=BOX, backend="openai", model_config=config(url, retries=1))
+    assert "sk-secret" not in str(exc.value) and "***" in str(exc.value)
+    assert "sk-secret" not in caplog.text
+    with pytest.raises(InputError) as exc:
+        chat_endpoint("ftp://" + credentials.rstrip("@").lstrip("?") + "@example.com/v1?api-key=sk-secret")
+    assert "sk-secret" not in str(exc.value)

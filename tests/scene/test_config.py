@@ -172,3 +172,24 @@ def test_not_a_mapping(folder):
         parse(["splats"], folder)
     with pytest.raises(InputError, match="the config is empty"):
         parse({}, folder)
+
+
+DUPLICATES = [
+    ("scene.yaml", "splats: scene.ply\nsplats: other.ply\n", r"splats \(line 2\): duplicate key"),
+    ("scene.yaml", "splats: scene.ply\nsimulation:\n  fps: 24\n  frames: 3\n  fps: 30\n",
+     r"simulation.fps \(line 5\): duplicate key"),
+    ("scene.yaml", "splats: scene.ply\nforces:\n  - {force: [0, 0, 1], force: [0, 0, 2]}\n",
+     r"forces\[0\].force \(line 3\): duplicate key"),
+    ("scene.json", '{"splats": "scene.ply", "splats": "other.ply"}', "splats: duplicate key"),
+    ("scene.json", '{"splats": "scene.ply", "scene": {"scale": 1, "up": "+y", "scale": 2}}',
+     "scene.scale: duplicate key"),
+    ("scene.json", '{"splats": "scene.ply", "forces": [{"start": 0, "start": 1}]}',
+     r"forces\[0\].start: duplicate key"),
+]
+
+
+@pytest.mark.parametrize("name, text, message", DUPLICATES, ids=[t[:30] for _, t, _ in DUPLICATES])
+def test_a_duplicate_key_is_an_error_with_its_dotted_path(folder, name, text, message):
+    (folder / name).write_text(text)
+    with pytest.raises(InputError, match=f"{name}: {message}"):
+        load_config(folder / name)
