@@ -208,11 +208,13 @@ def rate_schedule(opt, iteration: int, iterations: int | None = None) -> float:
 
 def config_digests(cfg: SceneConfig) -> dict[str, str]:
     """A SHA-256 of each top-level field of the resolved config (canonical JSON, paths as
-    strings), except ``output``: what a resumed run must share with its checkpoint."""
+    strings), except ``output`` and ``optimize.iterations`` (``--resume --iterations N``
+    extends a run): what a resumed run must share with its checkpoint."""
     import hashlib
 
     fields = asdict(cfg)
     fields.pop("output", None)
+    fields["optimize"].pop("iterations", None)
     return {name: hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()[:16]
             for name, value in fields.items()}
 

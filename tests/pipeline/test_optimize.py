@@ -167,6 +167,8 @@ def test_resume_refuses_a_changed_config_and_names_what_changed(tmp_path):
     state = OptimizerState(3, {"youngs_modulus": 1.0}, {"youngs_modulus": 0.0}, {"youngs_modulus": 0.0})
     checkpointing(cfg).save_state(state)
     assert checkpointing(dataclasses.replace(cfg, output=tmp_path / "elsewhere")).load_state().iteration == 3
+    longer = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=60))
+    assert checkpointing(longer).load_state().iteration == 3  # --resume --iterations N extends a run
     changed = dataclasses.replace(cfg, scale=2.0, simulation=dataclasses.replace(cfg.simulation, frames=99))
     with pytest.raises(InputError, match=r"config changed since it was saved \(scale, simulation\); "
                                          r"give another --output, or delete the checkpoint"):
