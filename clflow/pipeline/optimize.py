@@ -36,6 +36,7 @@ from clflow.fileio import atomic_path, atomic_write_text
 from clflow.pipeline.forward import Prepared, SimulationResult, material_values, prepare, render_frames
 from clflow.pipeline.material import resolve_material
 from clflow.pipeline.render import frame_gaussians, render_flow, render_object_alpha
+from clflow.pipeline.scene import guidance_camera
 from clflow.pipeline.simulation import build_simulator, run
 from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig
 
@@ -93,6 +94,7 @@ class Evaluation:
     grads: dict[str, float]
     flows: list[torch.Tensor]
     trajectory: "Frames"  # noqa: F821  (clflow.mpm.autograd.Frames)
+    more_flows: tuple[list[torch.Tensor], ...] = ()  # the flows seen by views 1.. (several guidance views)
 
     @property
     def substeps(self) -> int:
@@ -110,45 +112,67 @@ def _parameterizations(cfg: SceneConfig):
     return {name: parameterization(cfg.material.type, name) for name in names if name != VELOCITY}
 
 
-def observed_flow_of(cfg: SceneConfig, prepared: Prepared, frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The guidance video's frames [T+1, H, W, 3] at the simulation's frame times, their
-    optical flow [T, H, W, 2] (px per frame) and its confidence [T, H, W] in [0, 1]
-    (``flow.confidence``), cached in ``output/observed_flow.npz``."""
-    from clflow.flow.optical_flow import observed_confidence, observed_flow
+def guidance_views(cfg: SceneConfig) -> list[tuple["CameraConfig", Path | None]]:  # noqa: F821
+    """(camera, video) of each guidance view: view 0 is ``camera``, ``video``."""
+    return [(cfg.camera, cfg.video)] + [(v.camera, v.video) for v in cfg.more_views]
+
+
+def guidance_video(cfg: SceneConfig, path: Path | None, cam, frames: int):
+    """The guidance video at ``path`` (a clflow.flow.video.Video) resampled to the simulation's
+    frame times, checked against the simulated time and the camera ``cam``'s image size."""
     from clflow.flow.video import read_video
 
-    if cfg.video is None:
+    if path is None:
         raise InputError(f"{cfg.source}: video is required to optimise (the guidance video or image folder)")
-    cam = prepared.camera
     # a video file keeps its own frame rate; an image folder has none: frame k is at k / fps
-    video = read_video(cfg.video, fps=cfg.simulation.fps if cfg.video.is_dir() else None)
+    video = read_video(path, fps=cfg.simulation.fps if path.is_dir() else None)
     times = np.arange(frames + 1) / cfg.simulation.fps
     if video.times is not None and video.times[-1] + 1e-9 < times[-1]:
-        raise InputError(f"{cfg.video}: the video lasts {video.times[-1]:.3g} s, the simulation "
+        raise InputError(f"{path}: the video lasts {video.times[-1]:.3g} s, the simulation "
                          f"{times[-1]:.3g} s ({frames} frames at {cfg.simulation.fps:g} fps)")
-    video = video.resample(times)
-    if (video.width, video.height) != (cam.width, cam.height):
-        raise InputError(f"{cfg.video}: frames are {video.width}x{video.height} px, the guidance camera "
+    resampled = video.resample(times)
+    if (resampled.width, resampled.height) != (cam.width, cam.height):
+        raise InputError(f"{path}: frames are {resampled.width}x{resampled.height} px, the guidance camera "
                          f"{cam.width}x{cam.height}; crop/resize the video (clflow.flow.video.fit_to_camera)")
-    cache = cfg.output / "observed_flow.npz"
-    key = np.array([cfg.flow.method, cfg.flow.preset, cfg.flow.confidence, str(cfg.video), str(frames)])
+    return dataclasses.replace(resampled, fps=video.fps)  # fps: the source's, to compare views
+
+
+def _observed_flow(cfg: SceneConfig, path: Path, frames: np.ndarray, cache: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Optical flow [T, H, W, 2] of ``frames`` [T+1, H, W, 3] (the video at ``path``) and its
+    confidence [T, H, W], cached in ``cache``."""
+    from clflow.flow.optical_flow import observed_confidence, observed_flow
+
+    key = np.array([cfg.flow.method, cfg.flow.preset, cfg.flow.confidence, str(path), str(len(frames) - 1)])
     if cache.exists():
         with np.load(cache) as data:
             if data["key"].tolist() == key.tolist():
-                return video.frames, data["flow"], data["confidence"]
-    estimator = dict(preset=cfg.flow.preset, source=str(cfg.video))
-    flow = observed_flow(video.frames, cfg.flow.method, **estimator)
-    confidence = observed_confidence(video.frames, flow, cfg.flow.confidence, cfg.flow.method, **estimator)
+                return data["flow"], data["confidence"]
+    estimator = dict(preset=cfg.flow.preset, source=str(path))
+    flow = observed_flow(frames, cfg.flow.method, **estimator)
+    confidence = observed_confidence(frames, flow, cfg.flow.confidence, cfg.flow.method, **estimator)
     with atomic_path(cache) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, flow=flow, confidence=confidence, key=key)
-    return video.frames, flow, confidence
+    return flow, confidence
 
 
-def loss_mask(cfg: SceneConfig, prepared: Prepared) -> torch.Tensor:
-    """[H, W] bool: where the flow loss is evaluated."""
+def observed_flow_cache(cfg: SceneConfig, view: int) -> Path:
+    """Where the observed flow of guidance view ``view`` is cached."""
+    return cfg.output / ("observed_flow.npz" if view == 0 else f"observed_flow_{view}.npz")
+
+
+def observed_flow_of(cfg: SceneConfig, prepared: Prepared, frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The guidance video's frames [T+1, H, W, 3] at the simulation's frame times, their
+    optical flow [T, H, W, 2] (px per frame) and its confidence [T, H, W] in [0, 1]
+    (``flow.confidence``), cached in ``output/observed_flow.npz`` (view 0)."""
+    video = guidance_video(cfg, cfg.video, prepared.camera, frames)
+    return (video.frames, *_observed_flow(cfg, cfg.video, video.frames, observed_flow_cache(cfg, 0)))
+
+
+def loss_mask(cfg: SceneConfig, prepared: Prepared, camera=None, what: str = "the guidance camera") -> torch.Tensor:
+    """[H, W] bool: where the flow loss of the guidance camera (or ``camera``, named ``what``) is evaluated."""
     import torch.nn.functional as nnf
 
-    cam = prepared.camera
+    cam = prepared.camera if camera is None else camera
     setting = cfg.flow.mask
     if setting == "none":
         return torch.ones(cam.height, cam.width, dtype=torch.bool)
@@ -158,7 +182,7 @@ def loss_mask(cfg: SceneConfig, prepared: Prepared) -> torch.Tensor:
         grow = max(2, min(cam.width, cam.height) // 12)
         grown = nnf.max_pool2d((alpha > 0.5).float()[None, None], 2 * grow + 1, stride=1, padding=grow)[0, 0] > 0
         if not bool(grown.any()):
-            raise InputError(f"{cfg.source}: the object is not visible from the guidance camera (empty flow mask)")
+            raise InputError(f"{cfg.source}: the object is not visible from {what} (empty flow mask)")
         return grown
     from clflow.flow.optical_flow import mask_from_image
 
@@ -167,8 +191,14 @@ def loss_mask(cfg: SceneConfig, prepared: Prepared) -> torch.Tensor:
 
 def simulated_flows(prepared: Prepared, x: torch.Tensor, F: torch.Tensor, frames: int) -> list[torch.Tensor]:
     """Simulated flow [H, W, 2] of each frame step t -> t+1 for t < frames."""
+    return simulated_view_flows(prepared, x, F, frames, [prepared.camera])[0]
+
+
+def simulated_view_flows(prepared: Prepared, x: torch.Tensor, F: torch.Tensor, frames: int,
+                         cameras: list) -> list[list[torch.Tensor]]:
+    """The simulated flows (as simulated_flows) seen by each of ``cameras``."""
     scenes = [frame_gaussians(prepared.static, prepared.obj_rest, x[t], F[t]) for t in range(frames + 1)]
-    return [render_flow(scenes[t], scenes[t + 1], prepared.camera)[0] for t in range(frames)]
+    return [[render_flow(scenes[t], scenes[t + 1], cam)[0] for t in range(frames)] for cam in cameras]
 
 
 def flow_loss(cfg: SceneConfig, flows, observed: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
@@ -215,8 +245,22 @@ def config_digests(cfg: SceneConfig) -> dict[str, str]:
     fields = asdict(cfg)
     fields.pop("output", None)
     fields["optimize"].pop("iterations", None)
+    if not fields["more_views"]:  # one view: the digests of checkpoints from before several views
+        fields.pop("more_views")
     return {name: hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()[:16]
             for name, value in fields.items()}
+
+
+@dataclass
+class View:
+    """One guidance view: its camera (simulation frame), observed flow [T, H, W, 2], loss
+    weight [T, H, W] (mask x confidence), loss mask [H, W] and video frames [T+1, H, W, 3]."""
+
+    camera: object  # clflow.splat.cameras.Camera
+    observed: torch.Tensor
+    weight: torch.Tensor
+    mask: torch.Tensor
+    video_frames: np.ndarray
 
 
 class Optimization:
@@ -234,12 +278,35 @@ class Optimization:
         self.progress = progress or (lambda row: None)
         self.prepared = prepare(cfg)
         self.frames = cfg.simulation.frames
-        self.mask = loss_mask(cfg, self.prepared)
-        self.video_frames, observed, confidence = observed_flow_of(cfg, self.prepared, self.frames)
-        self.observed = torch.from_numpy(observed).double()
-        self.weight = self.mask * torch.from_numpy(confidence).double()  # [T, H, W] in [0, 1]
+        self.views = self._views()
         self.checkpoint = cfg.output / "checkpoint.json"
         self._lm_cache: tuple | None = None  # ((z, frames), Evaluation, J) of the last Jacobian
+
+    def _views(self) -> list[View]:
+        """Every guidance view, its videos and masks checked before any optical flow is computed."""
+        cfg, several = self.cfg, len(self.cfg.more_views) > 0
+        cameras = [self.prepared.camera] + [guidance_camera(cfg, v.camera) for v in cfg.more_views]
+        paths = [path for _, path in guidance_views(cfg)]
+        videos = [guidance_video(cfg, path, cam, self.frames) for path, cam in zip(paths, cameras)]
+        rates = [video.fps for video in videos if video.fps]  # an image folder's is simulation.fps
+        if rates and max(rates) > 1.001 * min(rates):
+            raise InputError(f"{cfg.source}: the guidance videos have different frame rates "
+                             f"({', '.join(f'{v.fps:g}' if v.fps else 'variable' for v in videos)} fps): give "
+                             f"views recorded at one rate")
+        masks = [loss_mask(cfg, self.prepared, cam, f"guidance camera {i}" if several else "the guidance camera")
+                 for i, cam in enumerate(cameras)]
+        views = []
+        for i, (cam, path, video, mask) in enumerate(zip(cameras, paths, videos, masks)):
+            flow, confidence = _observed_flow(cfg, path, video.frames, observed_flow_cache(cfg, i))
+            weight = mask * torch.from_numpy(confidence).double()  # [T, H, W] in [0, 1]
+            views.append(View(cam, torch.from_numpy(flow).double(), weight, mask, video.frames))
+        return views
+
+    # view 0's state (one view: the only one)
+    observed = property(lambda self: self.views[0].observed)
+    weight = property(lambda self: self.views[0].weight)
+    mask = property(lambda self: self.views[0].mask)
+    video_frames = property(lambda self: self.views[0].video_frames)
 
     # -- state ---------------------------------------------------------------------------
 
@@ -294,8 +361,11 @@ class Optimization:
         sim = build_simulator(self.cfg, self.prepared.setup, params, density, min_substeps=min_substeps,
                               velocity=velocity)
         traj = run(sim, frames, decoded, velocity)
-        flows = simulated_flows(self.prepared, traj.x, traj.F, frames)
-        loss = flow_loss(self.cfg, flows, self.observed[:frames], self.weight[:frames])
+        cameras = [v.camera for v in self.views]
+        flows, *more_flows = simulated_view_flows(self.prepared, traj.x, traj.F, frames, cameras)
+        # the mean over views of each view's loss
+        loss = sum(flow_loss(self.cfg, f, v.observed[:frames], v.weight[:frames])
+                   for f, v in zip([flows, *more_flows], self.views)) / len(self.views)
         if not bool(torch.isfinite(loss.detach())):
             raise FloatingPointError("the flow loss is not finite")
         grads = {}
@@ -304,7 +374,8 @@ class Optimization:
             grads = {n: float(zt[n].grad) for n in variables}
             if not all(math.isfinite(g) for g in grads.values()):
                 raise FloatingPointError("the gradient is not finite")
-        return Evaluation(float(loss.detach()), grads, [f.detach() for f in flows], traj)
+        return Evaluation(float(loss.detach()), grads, [f.detach() for f in flows], traj,
+                          tuple([f.detach() for f in view] for view in more_flows))
 
     # -- the global phase ------------------------------------------------------------------
 
@@ -370,13 +441,17 @@ class Optimization:
 
     # -- Levenberg-Marquardt ----------------------------------------------------------------
 
-    def residuals(self, flows: list[torch.Tensor]) -> torch.Tensor:
+    def residuals(self, flows: list[torch.Tensor], more_flows: tuple[list[torch.Tensor], ...] = ()) -> torch.Tensor:
         """[R] float64 flow residuals whose sum of squares is the l2 flow loss of ``flows``
-        (simulated [H, W, 2] per frame step), weighted by mask x confidence like the loss."""
-        weight = self.weight[: len(flows)]  # [T, H, W]
-        root = (weight / weight.sum()).sqrt()[..., None]
-        return torch.cat([((f.double() - self.observed[t]) * root[t])[weight[t] > 0].reshape(-1)
-                          for t, f in enumerate(flows)])
+        (simulated [H, W, 2] per frame step; ``more_flows`` those of views 1..), weighted by
+        mask x confidence like the loss."""
+        parts = []
+        for view_flows, view in zip([flows, *more_flows], self.views):
+            weight = view.weight[: len(view_flows)]  # [T, H, W]
+            root = (weight / weight.sum() / len(self.views)).sqrt()[..., None]
+            parts += [((f.double() - view.observed[t]) * root[t])[weight[t] > 0].reshape(-1)
+                      for t, f in enumerate(view_flows)]
+        return torch.cat(parts)
 
     def jacobian(self, z: dict[str, float], frames: int, min_substeps: int,
                  variables: tuple[str, ...]) -> tuple[Evaluation, torch.Tensor]:
@@ -387,12 +462,12 @@ class Optimization:
         if self._lm_cache is not None and self._lm_cache[0] == key:
             return self._lm_cache[1], self._lm_cache[2]
         base = self.evaluate(z, frames, with_grad=False, min_substeps=min_substeps)
-        r0 = self.residuals(base.flows)
+        r0 = self.residuals(base.flows, base.more_flows)
         columns = []
         for name in variables:
             nearby = self.evaluate({**z, name: z[name] - LM_STEP}, frames, with_grad=False,
                                    min_substeps=base.substeps)
-            columns.append((r0 - self.residuals(nearby.flows)) / LM_STEP)
+            columns.append((r0 - self.residuals(nearby.flows, nearby.more_flows)) / LM_STEP)
         J = torch.stack(columns, 1)
         self._lm_cache = (key, base, J)
         return base, J
@@ -411,7 +486,7 @@ class Optimization:
                                        damping=state.damping * 4.0)
         damping = state.damping / 3.0 if best is not None else state.damping
         best = {"z": dict(state.z), "loss": base.loss, "frames": frames}
-        r = self.residuals(base.flows)
+        r = self.residuals(base.flows, base.more_flows)
         A, g = J.T @ J, J.T @ r
         diagonal = torch.diag(torch.diag(A).clamp(min=1e-12 * float(torch.diag(A).max().clamp(min=1e-30))))
         step = -torch.linalg.solve(A + damping * diagonal, g)
@@ -514,7 +589,7 @@ class Optimization:
         correlations show which parameters trade off."""
         variables = self.main_variables
         base, J = self.jacobian(z, self.frames, min_substeps, variables)
-        residuals, count = self.residuals(base.flows), len(variables)
+        residuals, count = self.residuals(base.flows, base.more_flows), len(variables)
         dof = max(1, residuals.numel() - count)
         curvature = J.T @ J
         ridge = 1e-12 * float(curvature.diagonal().max().clamp(min=1e-300))  # an unconstrained direction: huge
@@ -529,13 +604,14 @@ class Optimization:
                 "correlation": {a: dict(zip(variables, row)) for a, row in zip(variables, correlation.tolist())},
                 "weakly_constrained": weak, "trade_offs": pairs}
 
-    def endpoint_error(self, flows: list[torch.Tensor]) -> float:
+    def endpoint_error(self, flows: list[torch.Tensor], more_flows: tuple[list[torch.Tensor], ...] = ()) -> float:
         """Mean flow endpoint error (px) of simulated flows [H, W, 2] per frame step against
-        the observed flow, inside the loss mask."""
+        the observed flow, inside the loss mask (``more_flows``: views 1..; the mean over views)."""
         from clflow.flow.metrics import endpoint_error
 
-        mask = self.mask.numpy()
-        return float(np.mean([endpoint_error(f.numpy(), self.observed[t].numpy(), mask) for t, f in enumerate(flows)]))
+        return float(np.mean([np.mean([endpoint_error(f.numpy(), view.observed[t].numpy(), view.mask.numpy())
+                                       for t, f in enumerate(view_flows)])
+                              for view_flows, view in zip([flows, *more_flows], self.views)]))
 
     def write_results(self, state: OptimizerState) -> dict:
         """params.json, metrics.json, history.json, loss.png and comparison.mp4 in output/."""
@@ -547,7 +623,7 @@ class Optimization:
         velocity = self.velocity(state.z)
         result = self.evaluate(state.z, self.frames, with_grad=False, min_substeps=state.substeps)
         loss, flows = result.loss, result.flows
-        metrics = {"flow_loss": loss, "epe_px": self.endpoint_error(flows), "iterations": len(state.history),
+        metrics = {"flow_loss": loss, "epe_px": self.endpoint_error(flows, result.more_flows), "iterations": len(state.history),
                    "seconds_per_iteration": float(np.mean([h["seconds"] for h in state.history])) if state.history else 0.0}
         metrics["identifiability"] = self.identifiability(state.z, state.substeps)
         for name in metrics["identifiability"]["weakly_constrained"]:

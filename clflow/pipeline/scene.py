@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
-from clflow.scene.config import Region, SceneConfig
+from clflow.scene.config import CameraConfig, Region, SceneConfig
 from clflow.scene.deform import deformed_covariances, polar_rotations
 
 WALL_CELLS = 3  # grid cells of the domain walls (clflow.mpm default)
@@ -125,11 +125,11 @@ def to_simulation_camera(camera, cfg: SceneConfig):
     return Camera(view, camera.K.clone(), camera.width, camera.height, camera.name)
 
 
-def guidance_camera(cfg: SceneConfig):
-    """The configured guidance camera, in the simulation frame."""
+def guidance_camera(cfg: SceneConfig, camera: CameraConfig | None = None):
+    """The configured guidance camera (or ``camera``, another view's), in the simulation frame."""
     from clflow.splat import cameras
 
-    cam = cfg.camera
+    cam = cfg.camera if camera is None else camera
     if cam.cameras_file is not None:
         import json
 

@@ -230,6 +230,14 @@ class CameraConfig:
 
 
 @dataclass(frozen=True)
+class GuidanceView:
+    """A further guidance view (``camera`` and ``video`` given as lists): its camera and video."""
+
+    camera: CameraConfig
+    video: Path | None
+
+
+@dataclass(frozen=True)
 class FlowSettings:
     method: str = "dis"
     preset: str = DEFAULT_PRESET
@@ -284,6 +292,7 @@ class SceneConfig:
     output: Path
     ground_truth: dict[str, float] = field(default_factory=dict)  # for metrics (RE) only; velocity as components
     velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the object's initial velocity, m/s, scene axes
+    more_views: tuple[GuidanceView, ...] = ()  # views 1.. when camera and video are lists; view 0 is camera, video
 
 
 def _region(r: _Reader, data: Any, path: str, allow_all: bool) -> Region:
@@ -418,8 +427,7 @@ def _simulation(r: _Reader, data: Any) -> SimulationSettings:
     )
 
 
-def _camera(r: _Reader, data: Any) -> CameraConfig:
-    p = "camera"
+def _camera(r: _Reader, data: Any, p: str = "camera") -> CameraConfig:
     body = r.section(data, p, ("file", "index", "position", "look_at", "up", "fov_y_deg", "width", "height"))
     if body.get("file") is None and body.get("position") is None:
         raise r.fail(p, "give a camera file (cameras.json / transforms.json) or position and look_at")
@@ -439,6 +447,26 @@ def _camera(r: _Reader, data: Any) -> CameraConfig:
         width=r.integer(body, "width", p, 512, low=8),
         height=r.integer(body, "height", p, 512, low=8),
     )
+
+
+def _views(r: _Reader, top: dict) -> tuple[list[CameraConfig], list[Path | None]]:
+    """The guidance views: ``camera`` and ``video`` each one entry or a list of one per view."""
+    cameras, videos = top.get("camera"), top.get("video")
+    for key, value in (("camera", cameras), ("video", videos)):
+        if isinstance(value, list) and not value:
+            raise r.fail(key, "is an empty list: give one entry per guidance view")
+    if not isinstance(cameras, list):
+        cameras = [cameras]
+    if videos is not None and not isinstance(videos, list):
+        videos = [videos]
+    if videos is not None and len(videos) != len(cameras):
+        raise r.fail("video", f"has {len(videos)} entries, camera {len(cameras)}: give one video per camera")
+    if len(cameras) == 1:  # one view: the keys read as always (error messages without an index)
+        return [_camera(r, cameras[0])], [r.file({"video": videos and videos[0]}, "video", "", required=False,
+                                                 folder_ok=True)]
+    return ([_camera(r, c, f"camera[{i}]") for i, c in enumerate(cameras)],
+            [None] * len(cameras) if videos is None else
+            [r.file({f"video[{i}]": v}, f"video[{i}]", "", folder_ok=True) for i, v in enumerate(videos)])
 
 
 def _optimize(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> OptimizeSettings:
@@ -564,6 +592,9 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     if optimize.method == "levenberg_marquardt" and flow.loss != "l2":
         raise r.fail("optimize.method", f"levenberg_marquardt minimises a sum of squares: it needs flow.loss l2, "
                                         f"not {flow.loss}")
+    cameras, videos = _views(r, top)
+    if len(cameras) > 1 and flow.mask not in ("alpha", "none"):
+        raise r.fail("flow.mask", "a mask image fits one view: with several guidance views use alpha or none")
     return SceneConfig(
         source=Path(source),
         splats=r.file(top, "splats", ""),
@@ -575,13 +606,14 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         forces=_forces(r, r.items(top, "forces", "")),
         colliders=_colliders(r, top.get("boundaries")),
         simulation=simulation,
-        camera=_camera(r, top.get("camera")),
-        video=r.file(top, "video", "", required=False, folder_ok=True),  # a video or an image folder
+        camera=cameras[0],
+        video=videos[0],  # a video or an image folder
         flow=flow,
         optimize=optimize,
         output=(r.base / output).resolve(),
         ground_truth=dict(truth),
         velocity=r.vec3(obj, "velocity", "object", (0.0, 0.0, 0.0)),
+        more_views=tuple(GuidanceView(c, v) for c, v in zip(cameras[1:], videos[1:])),
     )
 
 
