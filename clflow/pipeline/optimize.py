@@ -38,7 +38,7 @@ from clflow.pipeline.material import resolve_material
 from clflow.pipeline.render import frame_gaussians, render_flow, render_object_alpha
 from clflow.pipeline.scene import guidance_camera
 from clflow.pipeline.simulation import build_simulator, run
-from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig
+from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, CameraConfig, SceneConfig
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +112,7 @@ def _parameterizations(cfg: SceneConfig):
     return {name: parameterization(cfg.material.type, name) for name in names if name != VELOCITY}
 
 
-def guidance_views(cfg: SceneConfig) -> list[tuple["CameraConfig", Path | None]]:  # noqa: F821
+def guidance_views(cfg: SceneConfig) -> list[tuple[CameraConfig, Path | None]]:
     """(camera, video) of each guidance view: view 0 is ``camera``, ``video``."""
     return [(cfg.camera, cfg.video)] + [(v.camera, v.video) for v in cfg.more_views]
 
