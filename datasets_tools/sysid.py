@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+import statistics
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -311,6 +312,8 @@ def markdown(summary: dict) -> str:
         total = sum(r.get("seconds", 0.0) for r in cases.values())
         lines.append(f"| **mean** ({len(ok)} of {len(cases)}) | | | **{mean_re:.3f}** | **{mean_epe:.3f}** | | "
                      f"{total:.0f} | {published} |")
+        lines.append(f"| median | | | {statistics.median(r['mean_re'] for r in ok):.3f} | "
+                     f"{statistics.median(r['epe_px'] for r in ok):.3f} | | | | | |")
     s = summary["settings"]
     res = s["resolution"]
     env = summary.get("environment", {})

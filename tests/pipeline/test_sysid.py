@@ -98,6 +98,7 @@ def test_rerun_skips_finished_cases_and_other_settings_need_force(tmp_path, tiny
     assert set(record["parameters"]) == {"youngs_modulus"} and record["floor_epe_px"] >= 0
     table = (out / "sysid.md").read_text()
     assert "| torus | elastic |" in table and "PhysFlow RE/EPE" in table and "0.51/1.04" in table
+    assert "| median |" in table  # beside the mean, which one unobservable parameter can swamp
     again = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))
     assert again["cases"]["torus"] == record  # skipped, not rerun
     other = sysid.Settings(resolution=TINY, noise=2.0)
