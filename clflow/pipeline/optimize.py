@@ -621,7 +621,8 @@ class Optimization:
         final = self.values(state.z)
         params, density = material_values(self.cfg, {n: final[n] for n in self.params})
         velocity = self.velocity(state.z)
-        result = self.evaluate(state.z, self.frames, with_grad=False, min_substeps=state.substeps)
+        # the identifiability check below needs this evaluation as its Jacobian's base: run it once
+        result, _ = self.jacobian(state.z, self.frames, state.substeps, self.main_variables)
         loss, flows = result.loss, result.flows
         metrics = {"flow_loss": loss, "epe_px": self.endpoint_error(flows, result.more_flows), "iterations": len(state.history),
                    "seconds_per_iteration": float(np.mean([h["seconds"] for h in state.history])) if state.history else 0.0}

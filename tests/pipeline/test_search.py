@@ -45,8 +45,6 @@ def test_the_search_finds_the_global_basin_from_the_local_one(searching):
     opt, calls = searching(samples=16)
     start = opt.initial_state().z["youngs_modulus"]
     assert start == pytest.approx(math.log10(2e3))  # the demo's guess, in the shallow basin's reach
-    descent_alone = start - 0.01 * (8 * (start - 3.3))  # a gradient step stays in the local basin
-    assert abs(descent_alone - 3.3) < abs(descent_alone - 4.3)
     state = opt.global_search(opt.initial_state())
     assert state.searched and len(state.search) == 16 and calls[0] == opt.initial_state().z
     assert abs(state.z["youngs_modulus"] - 4.3) < 0.15  # in the global basin
