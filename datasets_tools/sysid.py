@@ -115,6 +115,7 @@ class Settings:
 
 def check_case(name: str, case: SyntheticCase) -> None:
     """ValueError if a case's truth or guess is not a valid start for its material."""
+    from clflow.errors import InputError
     from clflow.materials import validate_params
     from clflow.mpm.parameterization import parameterization
 
@@ -123,7 +124,7 @@ def check_case(name: str, case: SyntheticCase) -> None:
             validate_params(case.material, values)
             for p in case.optimize:
                 parameterization(case.material, p).encode(values[p])
-        except Exception as exc:  # InputError from the registry or the encoding
+        except InputError as exc:  # from the registry or the encoding
             raise ValueError(f"case {name!r}: its {label} is out of range: {exc}") from None
 
 
