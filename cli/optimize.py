@@ -38,9 +38,24 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
         cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=iterations))
     if output is not None:
         cfg = dataclasses.replace(cfg, output=Path(output).resolve())
-    opt = Optimization(cfg)  # loads the scene, runs the material query, computes the video's flow
+    start, hypotheses, search = None, None, cfg.optimize.search
+    if cfg.optimize.materials:  # material hypotheses: search each, optimise the best
+        from clflow.pipeline.hypotheses import choose_material
+
+        def searched(material: str, row: dict) -> None:
+            click.echo(f"{material}: search {row['iteration'] + 1}/{search.samples}: {_format_row(row)}", err=True)
+
+        try:
+            cfg, start, hypotheses = choose_material(cfg, resume=resume, progress=searched)
+        except KeyboardInterrupt:
+            raise Interrupted(f"interrupted while searching the material hypotheses (each saves its samples in "
+                              f"{cfg.output / 'hypotheses'}); continue with `clflow optimize {config_path} "
+                              f"--resume`") from None
+        click.echo(f"material: {hypotheses['chosen']} fits best (best search loss: " + ", ".join(
+            f"{m} {r['loss']:.4g}" if "loss" in r else f"{m} failed" for m, r in hypotheses["hypotheses"].items())
+            + ")", err=True)
+    opt = Optimization(cfg, hypotheses=hypotheses)  # loads the scene, runs the material query, computes the video's flow
     total = opt.total_iterations  # the velocity phase's (optimize.estimate_velocity) and the main phase's
-    search = cfg.optimize.search
     with click.progressbar(length=total, label="optimising", show_pos=True,
                            item_show_func=_format_row, file=sys.stderr) as bar:
         def progress(row: dict) -> None:
@@ -56,7 +71,7 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
             bar.update(opt.load_state().iteration)
         earlier_checkpoint = _modified(opt.checkpoint)
         try:
-            state = opt.run(resume=resume)
+            state = opt.run(resume=resume, start=start)
         except KeyboardInterrupt:
             # without --resume, a checkpoint.json untouched since the start is an earlier run's
             if _modified(opt.checkpoint) is None or (not resume and _modified(opt.checkpoint) == earlier_checkpoint):

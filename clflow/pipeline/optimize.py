@@ -266,8 +266,10 @@ class View:
 class Optimization:
     """One optimisation run of a config (see module docstring)."""
 
-    def __init__(self, cfg: SceneConfig, *, progress: Callable[[dict], None] | None = None):
+    def __init__(self, cfg: SceneConfig, *, progress: Callable[[dict], None] | None = None,
+                 hypotheses: dict | None = None):
         self.cfg = cfg = resolve_material(cfg)
+        self.hypotheses = hypotheses  # how the material was chosen (clflow.pipeline.hypotheses), for metrics
         self.params = _parameterizations(cfg)
         opt = cfg.optimize
         optimised = VELOCITY_COMPONENTS if VELOCITY in opt.parameters else ()
@@ -524,13 +526,18 @@ class Optimization:
         return dataclasses.replace(state, iteration=state.iteration + 1, z=z, m=m, v=v, history=list(state.history),
                                    momentum_steps=k_m)
 
-    def run(self, resume: bool = False, stop_after: int | None = None) -> OptimizerState:
+    def run(self, resume: bool = False, stop_after: int | None = None,
+            start: OptimizerState | None = None) -> OptimizerState:
         """Optimise for the velocity phase's and ``optimize.iterations`` iterations
-        (``stop_after``: at most this many in this call, for tests of resuming); returns the
-        final state. Each phase starts with fresh Adam moments and step scale."""
+        (``stop_after``: at most this many in this call, for tests of resuming), from the
+        checkpoint (``resume``), else ``start``, else the initial state; returns the final
+        state. Each phase starts with fresh Adam moments and step scale."""
         opt = self.cfg.optimize
         self.cfg.output.mkdir(parents=True, exist_ok=True)
-        state = self.load_state() if resume and self.checkpoint.exists() else self.initial_state()
+        if resume and self.checkpoint.exists():
+            state = self.load_state()
+        else:
+            state = start or self.initial_state()
         lm = self.cfg.optimize.method == "levenberg_marquardt"
         failures, done_here = 0, 0
         while state.iteration < self.total_iterations and (stop_after is None or done_here < stop_after):
@@ -627,6 +634,8 @@ class Optimization:
         metrics = {"flow_loss": loss, "epe_px": self.endpoint_error(flows, result.more_flows), "iterations": len(state.history),
                    "seconds_per_iteration": float(np.mean([h["seconds"] for h in state.history])) if state.history else 0.0}
         metrics["identifiability"] = self.identifiability(state.z, state.substeps)
+        if self.hypotheses:
+            metrics["material_hypotheses"] = self.hypotheses
         for name in metrics["identifiability"]["weakly_constrained"]:
             log.warning("%s is weakly constrained by the video: standard error %.2g in the optimiser's units (a "
                         "lower bound); its value is uncertain", name, metrics["identifiability"]["std_z"][name])

@@ -269,6 +269,9 @@ class OptimizeSettings:
     search: SearchSettings | None = None  # None: no global phase
     method: str = "adam"  # the local phase: "adam" or "levenberg_marquardt" (flow loss l2 only)
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)  # SI; the search box of a parameter
+    # material hypotheses: registry names, each searched before the one that fits best is
+    # optimised (clflow.pipeline.hypotheses); () for the config's own material only
+    materials: tuple[str, ...] = ()
     estimate_velocity_frames: int = 0  # frames in the loss of the velocity phase
     estimate_velocity_iterations: int = 0  # iterations of the velocity phase before the main one (0: none)
 
@@ -472,11 +475,12 @@ def _views(r: _Reader, top: dict) -> tuple[list[CameraConfig], list[Path | None]
 def _optimize(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> OptimizeSettings:
     p = "optimize"
     body = r.section(data, p, ("parameters", "learning_rates", "iterations", "horizon", "final_rate", "search",
-                               "bounds", "method", "estimate_velocity"))
+                               "bounds", "method", "estimate_velocity", "material"))
     names = body.get("parameters", [])
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise r.fail(f"{p}.parameters", f"must be a list of parameter names, got {names!r}")
-    if material.type != "query":
+    hypotheses = _hypotheses(r, body.get("material"), names)
+    if material.type != "query" and not hypotheses:
         mat = get_material(material.type)
         for name in names:
             if name not in ("density", VELOCITY) and name not in mat.param_names:
@@ -498,7 +502,7 @@ def _optimize(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> O
                                                           if name == VELOCITY else ""))
     rates = {n: r.number(rates_in, n, f"{p}.learning_rates", low=0.0, strict_low=True) for n in rates_in}
     horizon = r.section(body.get("horizon"), f"{p}.horizon", ("start", "step"))
-    search = None
+    search = SearchSettings() if hypotheses else None  # hypotheses are told apart by the search
     if body.get("search") is not None:
         found = r.section(body["search"], f"{p}.search", ("samples", "decades", "frames"))
         search = SearchSettings(samples=r.integer(found, "samples", f"{p}.search", 32, low=1),
@@ -521,7 +525,35 @@ def _optimize(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> O
         final_rate=r.number(body, "final_rate", p, 0.1, low=0.0, high=1.0), search=search, bounds=bounds,
         method=r.choice(body, "method", p, OPTIMIZERS, "adam"),
         estimate_velocity_frames=estimate_frames, estimate_velocity_iterations=estimate_iterations,
+        materials=hypotheses,
     )
+
+
+def _hypotheses(r: _Reader, data: Any, names: list[str]) -> tuple[str, ...]:
+    """``optimize.material``: registry names (aliases resolved), each with at least one of
+    ``optimize.parameters``; every parameter belongs to at least one of them."""
+    p = "optimize.material"
+    if data is None:
+        return ()
+    if not isinstance(data, list) or not data or not all(isinstance(n, str) for n in data):
+        raise r.fail(p, f"must be a non-empty list of material names, got {data!r}")
+    try:
+        materials = [get_material(n) for n in data]
+    except InputError as exc:
+        raise r.fail(p, str(exc)) from None
+    canonical = [m.name for m in materials]
+    if len(set(canonical)) < len(canonical):
+        raise r.fail(p, f"names a material twice: {data!r}")
+    common = ("density", VELOCITY)
+    for m in materials:
+        if not any(n in common or n in m.param_names for n in names):
+            raise r.fail(p, f"{m.name} has none of optimize.parameters {names} (its parameters: "
+                            f"{', '.join(m.param_names)}, density, velocity)")
+    for n in names:
+        if n not in common and not any(n in m.param_names for m in materials):
+            raise r.fail("optimize.parameters", f"{n!r} is a parameter of none of the hypotheses "
+                                                f"{', '.join(canonical)}")
+    return tuple(canonical)
 
 
 TOP_KEYS = ("splats", "scene", "object", "material", "forces", "boundaries", "simulation", "camera",
@@ -576,19 +608,22 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
             DENSITY.check(true_density)
         except InputError as exc:
             raise r.fail("evaluation.ground_truth", str(exc)) from None
-    if truth and material.type != "query":
-        try:
-            truth = {k: v for k, v in validate_params(material.type, truth).items() if k in truth}
-        except InputError as exc:
-            raise r.fail("evaluation.ground_truth", str(exc)) from None
-    if true_density is not None:
-        truth["density"] = float(true_density)
-    truth.update(zip(VELOCITY_COMPONENTS, true_velocity))
     simulation = _simulation(r, top.get("simulation"))
     output = top.get("output", "results")
     if not isinstance(output, str) or not output:
         raise r.fail("output", f"must be a folder path, got {output!r}")
     optimize = _optimize(r, top.get("optimize"), material, simulation.frames)
+    if truth and (optimize.materials or material.type != "query"):
+        # with hypotheses, the truth's material is one of them: the first that has all its names
+        candidates = optimize.materials or (material.type,)
+        fitting = [m for m in candidates if set(truth) <= set(get_material(m).param_names)] or candidates[:1]
+        try:
+            truth = {k: v for k, v in validate_params(fitting[0], truth).items() if k in truth}
+        except InputError as exc:
+            raise r.fail("evaluation.ground_truth", str(exc)) from None
+    if true_density is not None:
+        truth["density"] = float(true_density)
+    truth.update(zip(VELOCITY_COMPONENTS, true_velocity))
     if optimize.method == "levenberg_marquardt" and flow.loss != "l2":
         raise r.fail("optimize.method", f"levenberg_marquardt minimises a sum of squares: it needs flow.loss l2, "
                                         f"not {flow.loss}")

@@ -136,6 +136,11 @@ BAD = [
     ("optimize.estimate_velocity", {"frames": 0, "iterations": 5}, "optimize.estimate_velocity.frames: must be an integer >= 1"),
     ("optimize.estimate_velocity", {"frames": 3, "iterations": 5, "lr": 1}, "optimize.estimate_velocity.lr: unknown key"),
     ("evaluation", {"ground_truth": {"velocity": 2.0}}, "evaluation.ground_truth.velocity: must be a list of 3 finite"),
+    ("optimize.material", ["elastic", "lava"], "optimize.material: unknown material 'lava'"),
+    ("optimize.material", "elastic", "optimize.material: must be a non-empty list of material names, got 'elastic'"),
+    ("optimize.material", [], "optimize.material: must be a non-empty list"),
+    ("optimize.material", ["elastic", "jelly"], r"optimize.material: names a material twice"),  # jelly: an alias
+    ("optimize.material", ["elastic", "newtonian"], "optimize.material: newtonian has none of optimize.parameters"),
 ]
 
 
@@ -193,3 +198,16 @@ def test_a_duplicate_key_is_an_error_with_its_dotted_path(folder, name, text, me
     (folder / name).write_text(text)
     with pytest.raises(InputError, match=f"{name}: {message}"):
         load_config(folder / name)
+
+
+def test_material_hypotheses_check_parameters_against_all_of_them(folder):
+    data = edit("optimize", {"parameters": ["youngs_modulus", "viscosity"], "material": ["Elastic", "newtonian"]})
+    cfg = parse(data, folder)
+    assert cfg.optimize.materials == ("elastic", "newtonian")  # registry names
+    assert cfg.optimize.search is not None  # the search tells them apart: on by default
+    with pytest.raises(InputError, match="optimize.parameters: 'yield_stress' is a parameter of none of the hypotheses"):
+        parse(edit("optimize", {"parameters": ["youngs_modulus", "yield_stress"], "material": ["elastic"]}), folder)
+    # a ground truth may belong to any hypothesis
+    truth = edit("evaluation", {"ground_truth": {"viscosity": 10.0}})
+    truth["optimize"] = data["optimize"]
+    assert parse(truth, folder).ground_truth == {"viscosity": 10.0}

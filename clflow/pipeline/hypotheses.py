@@ -1,0 +1,104 @@
+"""Material hypotheses (``optimize.material: [elastic, plasticine, ...]``).
+
+When the material type is uncertain (a query that hesitates, a user who does not know), each
+hypothesis runs the global phase of ``clflow optimize`` alone: the same search design over
+its own parameters, forward runs only, against the same guidance. The hypothesis whose best
+sample has the lowest flow loss is kept and optimised to the end; the others' losses are
+recorded in ``hypotheses.json`` and ``metrics.json``. Each hypothesis searches in
+``output/hypotheses/<material>/`` with its own checkpoint, so ``--resume`` skips finished
+searches.
+
+A hypothesis starts from the config's parameters where the names agree (``youngs_modulus``
+of an elastic config carries over to plasticine) and from the registry's defaults
+elsewhere; it optimises the entries of ``optimize.parameters`` that it has.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import shutil
+import time
+from typing import Callable
+
+from clflow.errors import ClflowError, InputError
+from clflow.fileio import atomic_write_text
+from clflow.materials import get_material, validate_params
+from clflow.pipeline.material import resolve_material
+from clflow.scene.config import VELOCITY, MaterialConfig, SceneConfig
+
+log = logging.getLogger(__name__)
+
+
+def hypothesis_config(cfg: SceneConfig, material: str) -> SceneConfig:
+    """``cfg`` (a concrete material) with material ``material`` and the parameters it has;
+    its output is ``cfg.output/hypotheses/<material>``; no further hypotheses."""
+    mat = get_material(material)
+    same = cfg.material.type == mat.name
+    params = validate_params(mat.name, {k: v for k, v in cfg.material.parameters.items() if k in mat.param_names})
+    names = tuple(n for n in cfg.optimize.parameters if n in ("density", VELOCITY) or n in mat.param_names)
+    optimize = dataclasses.replace(
+        cfg.optimize, parameters=names, materials=(),
+        learning_rates={k: v for k, v in cfg.optimize.learning_rates.items() if k in names or k == VELOCITY},
+        bounds={k: v for k, v in cfg.optimize.bounds.items() if k in names})
+    material_cfg = MaterialConfig(mat.name, params, cfg.material.density, model=cfg.material.model if same else None)
+    return dataclasses.replace(cfg, material=material_cfg, optimize=optimize,
+                               output=cfg.output / "hypotheses" / mat.name)
+
+
+def choose_material(cfg: SceneConfig, *, resume: bool = False,
+                    progress: Callable[[str, dict], None] | None = None):
+    """Search each of ``optimize.material``'s hypotheses and keep the best.
+
+    Returns (the chosen hypothesis' config with output ``cfg.output``, the optimiser state
+    its search ended in (the main run starts from it), the record written to
+    ``output/hypotheses.json``: per material its best loss, parameters, samples and seconds,
+    and the chosen one). ``progress(material, row)`` sees every search sample."""
+    from clflow.pipeline.optimize import Optimization, observed_flow_cache
+
+    cfg = resolve_material(cfg)
+    cfg.output.mkdir(parents=True, exist_ok=True)
+    record, states, configs = {}, {}, {}
+    for material in cfg.optimize.materials:
+        hyp = hypothesis_config(cfg, material)
+        hyp.output.mkdir(parents=True, exist_ok=True)
+        for view in range(1 + len(cfg.more_views)):  # the observed flow is computed once for all
+            shared, own = observed_flow_cache(cfg, view), observed_flow_cache(hyp, view)
+            if shared.exists() and not own.exists():
+                shutil.copyfile(shared, own)
+        start = time.perf_counter()
+        opt = Optimization(hyp, progress=(lambda row, m=material: progress(m, row)) if progress else None)
+        state = opt.load_state() if resume and opt.checkpoint.exists() else opt.initial_state()
+        try:
+            if not state.searched:
+                state = opt.global_search(state)
+        except ClflowError as exc:  # no sample of this material ran: the others may
+            if isinstance(exc, InputError):  # the user's config: no hypothesis can fix that
+                raise
+            record[material] = {"failed": str(exc), "seconds_this_run": time.perf_counter() - start}
+            log.warning("hypothesis %s failed: %s", material, exc)
+            continue
+        for view in range(1 + len(cfg.more_views)):
+            if not observed_flow_cache(cfg, view).exists():
+                shutil.copyfile(observed_flow_cache(hyp, view), observed_flow_cache(cfg, view))
+        finite = [r for r in state.search if r["loss"] is not None]
+        best = min(finite, key=lambda r: r["loss"])
+        record[material] = {"loss": best["loss"], "parameters": best["params"], "samples": len(state.search),
+                            "failed_samples": len(state.search) - len(finite),
+                            "seconds": sum(r["seconds"] for r in state.search),
+                            "seconds_this_run": time.perf_counter() - start}
+        states[material], configs[material] = state, hyp
+        log.info("hypothesis %s: best search loss %.4g at %s", material, best["loss"], best["params"])
+    ran = [m for m in record if "loss" in record[m]]
+    if not ran:
+        raise ClflowError("no material hypothesis could be simulated: " +
+                          "; ".join(f"{m}: {r['failed']}" for m, r in record.items()))
+    chosen = min(ran, key=lambda m: record[m]["loss"])
+    summary = {"chosen": chosen, "hypotheses": record}
+    atomic_write_text(cfg.output / "hypotheses.json", json.dumps(summary, indent=2))
+    log.info("material hypotheses: %s fits best (%s)", chosen, ", ".join(f"{m} {record[m]['loss']:.4g}" for m in ran))
+    return dataclasses.replace(configs[chosen], output=cfg.output), states[chosen], summary
+
+
+__all__ = ["choose_material", "hypothesis_config"]
