@@ -26,8 +26,11 @@ from clflow_cli.main import Interrupted
 @click.option("--codec", type=click.Choice([".mp4", ".webm", ".avi"]), default=None,
               help="Read the guidance through this lossy video encoding instead of lossless PNG frames.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the scene's texture grain and the noise.")
+@click.option("--views", type=click.IntRange(1, 4), default=1, show_default=True,
+              help="Guidance views of each case (the first, then cameras turned 90, -90 and 180 deg about the "
+                   "vertical); the loss is the mean over views.")
 @click.option("--force", is_flag=True, help="Replace sysid results of other settings in the output folder.")
-def sysid(output, cases, quick, iterations, truth_scale, noise, codec, seed, force):
+def sysid(output, cases, quick, iterations, truth_scale, noise, codec, seed, views, force):
     """Identify the material parameters of PAC-NeRF's nine synthetic cases (re-made with
     clflow's geometry; guidance from a finer simulation and rendering than the optimiser's)
     from the published initial guesses, and print a table like Table 3 of the PhysFlow paper.
@@ -42,7 +45,8 @@ def sysid(output, cases, quick, iterations, truth_scale, noise, codec, seed, for
     if iterations is not None:
         resolution = dataclasses.replace(resolution, iterations=iterations)
     names = list(dict.fromkeys(cases)) or list(QUICK_CASES if quick else CASES)
-    settings = Settings(resolution=resolution, truth_scale=truth_scale, noise=noise, codec=codec, seed=seed)
+    settings = Settings(resolution=resolution, truth_scale=truth_scale, noise=noise, codec=codec, seed=seed,
+                        views=views)
 
     def progress(name: str, row: dict) -> None:
         from clflow_cli.optimize import _format_row

@@ -76,7 +76,6 @@ class SyntheticCase:
     spread: float | None = None  # room around the shape on each side (sizes); None: the default domain
     camera_offset: tuple[float, float, float] = (1.25, 1.75, 3.75)  # camera - centre, in sizes
     fov_y_deg: float = 40.0
-    velocity: tuple = (0.0, 0.0, 0.0)  # initial velocity, m/s
 
     @property
     def center(self) -> np.ndarray:
@@ -224,10 +223,33 @@ def case_domain(case: SyntheticCase, resolution: Resolution) -> tuple[list[float
     return _rounded(lower), _rounded(upper), nodes
 
 
+# guidance views of a case: view k circles the shape about +y by this azimuth from view 0
+# (the second view looks across the first, where a single view sees depth worst)
+VIEW_AZIMUTHS_DEG = (0.0, 90.0, -90.0, 180.0)
+
+
+def case_camera(case: SyntheticCase, image: int, view: int = 0) -> dict:
+    """Config camera of guidance view ``view`` (0 .. len(VIEW_AZIMUTHS_DEG) - 1), ``image`` px square."""
+    c, s = case.center, case.size
+    a = math.radians(VIEW_AZIMUTHS_DEG[view])
+    x, y, z = case.camera_offset
+    offset = np.array([x * math.cos(a) + z * math.sin(a), y, -x * math.sin(a) + z * math.cos(a)])
+    return {"position": _rounded(c + s * offset), "look_at": _rounded(c), "fov_y_deg": case.fov_y_deg,
+            "width": image, "height": image}
+
+
+def guidance_name(view: int) -> str:
+    """The guidance frame folder of view ``view``."""
+    return "guidance" if view == 0 else f"guidance_{view}"
+
+
 def case_config(case: SyntheticCase, resolution: Resolution, parameters: dict[str, float], optimize: bool,
-                scale: int = 1) -> dict:
+                scale: int = 1, views: int = 1) -> dict:
     """The case's scene config (as a dict; see clflow.scene.config); ``scale`` multiplies
-    the grid resolution (nodes - 1) and the image size."""
+    the grid resolution (nodes - 1) and the image size; ``views`` guidance cameras (and
+    videos) as lists when more than one."""
+    if not 1 <= views <= len(VIEW_AZIMUTHS_DEG):
+        raise ValueError(f"views must be 1..{len(VIEW_AZIMUTHS_DEG)}, got {views}")
     c, s = case.center, case.size
     margin = 0.025 * s
     half = s / 2 + margin
@@ -255,16 +277,13 @@ def case_config(case: SyntheticCase, resolution: Resolution, parameters: dict[st
         "forces": forces,
         "boundaries": {"ground": {"height": 0.0, "mode": case.ground}},
         "simulation": simulation,
-        "camera": {"position": _rounded(c + s * np.asarray(case.camera_offset)),
-                   "look_at": _rounded(c), "fov_y_deg": case.fov_y_deg,
-                   "width": resolution.image * scale, "height": resolution.image * scale},
+        "camera": [case_camera(case, resolution.image * scale, v) for v in range(views)] if views > 1 else
+        case_camera(case, resolution.image * scale),
         "flow": asdict(FlowSettings()),  # the defaults, spelled out
         "output": "results",
     }
-    if any(case.velocity):
-        config["object"]["velocity"] = _rounded(case.velocity)
     if optimize:
-        config["video"] = "guidance"
+        config["video"] = [guidance_name(v) for v in range(views)] if views > 1 else guidance_name(0)
         config["optimize"] = {"parameters": list(case.optimize),
                               "learning_rates": {n: case.learning_rate for n in case.optimize},
                               "iterations": resolution.iterations,
@@ -302,18 +321,21 @@ def degrade(frames: np.ndarray, size: int, noise: float, rng: np.random.Generato
 
 
 CASE_FILES = ("scene.ply", "config_truth.yaml", "guidance", "guidance.mp4", "config.yaml", "case.json")
-"""What :func:`make_case` writes into its folder (besides ``guidance_coded*`` with a codec)."""
+"""What :func:`make_case` writes into its folder (besides ``guidance_coded*`` with a codec,
+and ``guidance_K*`` for further views)."""
 
 
 def make_case(folder: str | Path, case: SyntheticCase, resolution: Resolution = Resolution(), seed: int = 0,
-              *, truth_scale: int = 1, noise: float = 0.0, codec: str | None = None) -> Path:
+              *, truth_scale: int = 1, noise: float = 0.0, codec: str | None = None, views: int = 1) -> Path:
     """Write the case into ``folder`` (see module docstring); returns its ``config.yaml``.
 
     ``truth_scale``: the ground truth's grid and image refinement (1: the optimiser's own
     resolution, an inverse crime; 2 for benchmarks); ``noise``: sensor noise (8-bit grey
     levels); ``codec``: a video suffix (".mp4", ".webm", ...) whose lossy encoding the
-    optimiser then reads instead of the PNG frames. Raises ValueError if the ground-truth
-    run clamps particles at the grid's edge (the domain is too small for the motion)."""
+    optimiser then reads instead of the PNG frames; ``views``: guidance views of the same
+    motion (``guidance/``, ``guidance_1/`` ..., cameras at VIEW_AZIMUTHS_DEG). Raises
+    ValueError if the ground-truth run clamps particles at the grid's edge (the domain is
+    too small for the motion)."""
     import json
 
     import yaml
@@ -321,6 +343,7 @@ def make_case(folder: str | Path, case: SyntheticCase, resolution: Resolution = 
     from clflow.fileio import atomic_write_text
     from clflow.flow.visualize import write_image, write_video
     from clflow.pipeline.forward import render_frames, simulate_config
+    from clflow.pipeline.scene import guidance_camera
     from clflow.scene.config import parse_config
 
     if int(truth_scale) < 1:
@@ -330,34 +353,43 @@ def make_case(folder: str | Path, case: SyntheticCase, resolution: Resolution = 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     write_scene(folder, case, resolution, seed)
-    truth = case_config(case, resolution, case.truth, optimize=False, scale=int(truth_scale))
+    truth = case_config(case, resolution, case.truth, optimize=False, scale=int(truth_scale), views=views)
     atomic_write_text(folder / "config_truth.yaml", yaml.safe_dump(truth, sort_keys=False))
-    result = simulate_config(parse_config(truth, str(folder / "config_truth.yaml"), folder))
+    truth_cfg = parse_config(truth, str(folder / "config_truth.yaml"), folder)
+    result = simulate_config(truth_cfg)
     clamped, at_walls = int(result.clamped.sum()), wall_contacts(result)
     if clamped or at_walls:
         raise ValueError(f"{folder}: the ground-truth run clamped {clamped} particle-frames at the grid's edge and "
                          f"brought {at_walls} particle-frames into the domain walls; give the case more room "
                          f"(SyntheticCase.spread)")
-    frames = degrade(render_frames(result), resolution.image, noise, np.random.default_rng(seed + 1))
-    (folder / "guidance").mkdir(exist_ok=True)
-    for t, frame in enumerate(frames):
-        write_image(folder / "guidance" / f"{t:03d}.png", frame)
     fps = truth["simulation"]["fps"]
-    write_video(folder / "guidance.mp4", frames, fps)
-    config = case_config(case, resolution, {**case.truth, **case.guess}, optimize=True)
-    if codec is not None:
-        write_video(folder / f"guidance_coded{codec}", frames, fps)
-        config["video"] = f"guidance_coded{codec}"
+    config = case_config(case, resolution, {**case.truth, **case.guess}, optimize=True, views=views)
+    cameras = [None] + [guidance_camera(truth_cfg, v.camera) for v in truth_cfg.more_views]
+    coded = []
+    for view, camera in enumerate(cameras):  # view 0's noise draws are those of a one-view case
+        frames = degrade(render_frames(result, camera), resolution.image, noise,
+                         np.random.default_rng(seed + 1 + 1000 * view))
+        name = guidance_name(view)
+        (folder / name).mkdir(exist_ok=True)
+        for t, frame in enumerate(frames):
+            write_image(folder / name / f"{t:03d}.png", frame)
+        write_video(folder / f"{name}.mp4", frames, fps)
+        if codec is not None:
+            write_video(folder / f"{name}_coded{codec}", frames, fps)
+            coded.append(f"{name}_coded{codec}")
+    if coded:
+        config["video"] = coded if views > 1 else coded[0]
     atomic_write_text(folder / "config.yaml", yaml.safe_dump(config, sort_keys=False))
     record = {"truth_grid_resolution": truth["simulation"]["grid_resolution"],
               "grid_resolution": config["simulation"]["grid_resolution"],
-              "truth_image": truth["camera"]["width"], "image": config["camera"]["width"],
+              "truth_image": truth_cfg.camera.width, "image": resolution.image,
               "truth_particles": int(result.x.shape[1]), "truth_substeps": result.substeps,
-              "clamped": clamped, "wall_contacts": at_walls, "noise": noise, "codec": codec, "seed": seed}
+              "clamped": clamped, "wall_contacts": at_walls, "noise": noise, "codec": codec, "seed": seed,
+              "views": views}
     atomic_write_text(folder / "case.json", json.dumps(record, indent=2))
     return folder / "config.yaml"
 
 
-__all__ = ["Resolution", "SHAPES", "SyntheticCase", "case_config", "case_domain", "cube_surface", "degrade", "wall_contacts", "floor",
+__all__ = ["Resolution", "SHAPES", "SyntheticCase", "VIEW_AZIMUTHS_DEG", "case_camera", "case_config", "guidance_name", "case_domain", "cube_surface", "degrade", "wall_contacts", "floor",
            "make_case", "CASE_FILES",
            "push_upper_part", "sphere_surface", "torus_surface", "write_scene"]

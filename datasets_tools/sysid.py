@@ -111,6 +111,7 @@ class Settings:
     noise: float = 0.0  # sensor noise, 8-bit grey levels
     codec: str | None = None  # video suffix of a lossy guidance video, e.g. ".mp4"
     seed: int = 0
+    views: int = 1  # guidance views (clflow_datasets.synthetic.VIEW_AZIMUTHS_DEG)
 
 
 def check_case(name: str, case: SyntheticCase) -> None:
@@ -147,7 +148,7 @@ def run_case(name: str, folder: Path, settings: Settings, *, progress: Callable[
         shutil.rmtree(folder)  # made from another definition of the case: make it anew
     if not made.exists():  # an interrupted generation leaves no case.json: make it again
         make_case(folder, case, settings.resolution, settings.seed, truth_scale=settings.truth_scale,
-                  noise=settings.noise, codec=settings.codec)
+                  noise=settings.noise, codec=settings.codec, views=settings.views)
         record = json.loads(made.read_text())
         record["definition"] = definition
         atomic_write_text(made, json.dumps(record, indent=2))
@@ -161,7 +162,7 @@ def run_case(name: str, folder: Path, settings: Settings, *, progress: Callable[
         metrics = opt.write_results(state)
         truth_z = {n: float(opt.params[n].encode(case.truth[n])) for n in opt.params}
         floor = opt.evaluate({**state.z, **truth_z}, opt.frames, with_grad=False, min_substeps=state.substeps)
-        floor_epe = opt.endpoint_error(floor.flows)
+        floor_epe = opt.endpoint_error(floor.flows, floor.more_flows)
     except ClflowError as exc:
         record.update(status=f"failed: {exc}", seconds=time.perf_counter() - start)
         return record
@@ -320,7 +321,8 @@ def markdown(summary: dict) -> str:
     env = summary.get("environment", {})
     lines += ["", f"Settings: grid {res['grid']} nodes, image {res['image']} px, {res['frames']} frames, "
               f"{res['iterations']} iterations; ground truth at {s['truth_scale']}x grid and image; noise "
-              f"{s['noise']} grey levels; codec {s['codec'] or 'none (PNG)'}; seed {s['seed']}.",
+              f"{s['noise']} grey levels; codec {s['codec'] or 'none (PNG)'}; seed {s['seed']}; "
+              f"{s.get('views', 1)} guidance view{'s' if s.get('views', 1) > 1 else ''}.",
               f"Made {env.get('date', '?')} with clflow {env.get('clflow', '?')} (commit {env.get('commit') or '?'}), "
               f"torch {env.get('torch', '?')}, "
               f"pyopencl {env.get('pyopencl', '?')} on {env.get('device', '?')} (load {env.get('load', '?')}). "

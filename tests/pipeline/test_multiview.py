@@ -107,3 +107,30 @@ def test_a_short_or_faster_second_video_fails_before_any_flow(quick_demo, tmp_pa
     with pytest.raises(InputError, match="different frame rates"):
         _optimization(quick_demo, tmp_path, "fast", camera=[data["camera"], side_camera],
                       video=["guidance.mp4", str(tmp_path / "fast.mp4")])
+
+
+def test_a_second_view_narrows_what_one_view_leaves_open(tmp_path):
+    """The benchmark's elastic torus, small: seen by one camera, E and nu trade off
+    (correlation beyond 0.9) and nu is weakly constrained; a second camera turned 90 degrees
+    about the vertical sees the sideways bulge that the first sees in depth, and every
+    standard error at the truth shrinks (measured: nu 0.33 -> 0.23, E 0.024 -> 0.017)."""
+    from clflow.pipeline.optimize import Optimization
+    from clflow.scene.config import load_config
+    from clflow_datasets.synthetic import Resolution, make_case
+    from clflow_datasets.sysid import CASES
+
+    case = CASES["torus"]
+    small = Resolution(object_detail=6, floor_side=12, image=64, grid=16, frames=8, iterations=2)
+    make_case(tmp_path, case, small, truth_scale=2, views=2)
+    cfg = load_config(tmp_path / "config.yaml")
+    found = {}
+    for views in (1, 2):
+        opt = Optimization(dataclasses.replace(cfg, more_views=cfg.more_views[:views - 1],
+                                               output=tmp_path / f"results_{views}"))
+        truth = {n: float(p.encode(case.truth[n])) for n, p in opt.params.items()}
+        found[views] = opt.identifiability(truth, 1)
+    one, two = found[1], found[2]
+    assert abs(one["correlation"]["youngs_modulus"]["poissons_ratio"]) > 0.9
+    assert "poissons_ratio" in one["weakly_constrained"]
+    for name in ("youngs_modulus", "poissons_ratio"):
+        assert two["std_z"][name] < 0.8 * one["std_z"][name]

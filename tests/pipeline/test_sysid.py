@@ -51,6 +51,26 @@ def test_noise_and_codec_reach_the_optimisers_input(tmp_path):
     assert cfg["video"] == "guidance_coded.avi" and (tmp_path / "noisy" / "guidance_coded.avi").stat().st_size > 0
 
 
+def test_a_case_with_several_views_films_one_motion_from_each_camera(tmp_path):
+    from clflow.pipeline.optimize import Optimization
+    from clflow.scene.config import load_config
+
+    case = SyntheticCase(shape="sphere", lift=0.02, spread=0.75)
+    make_case(tmp_path, case, TINY, truth_scale=2, views=2)
+    cfg = yaml.safe_load((tmp_path / "config.yaml").read_text())
+    assert cfg["video"] == ["guidance", "guidance_1"] and len(cfg["camera"]) == 2
+    front, side = (np.subtract(c["position"], c["look_at"]) for c in cfg["camera"])
+    assert np.linalg.norm(front) == pytest.approx(np.linalg.norm(side), rel=1e-6)
+    assert abs(front[0] * side[0] + front[2] * side[2]) < 1e-6  # turned 90 degrees about the vertical
+    import cv2
+
+    first, second = (cv2.imread(str(tmp_path / d / "001.png")) for d in ("guidance", "guidance_1"))
+    assert first.shape == second.shape == (TINY.image, TINY.image, 3) and np.abs(first.astype(int) - second).mean() > 5
+    assert json.loads((tmp_path / "case.json").read_text())["views"] == 2
+    opt = Optimization(load_config(tmp_path / "config.yaml"))
+    assert len(opt.views) == 2
+
+
 def test_a_case_without_room_for_its_motion_fails(tmp_path):
     # a runny fluid dropped into a domain with no room to spread reaches the walls
     case = SyntheticCase(shape="cube", lift=0.05, spread=0.0, material="newtonian",
