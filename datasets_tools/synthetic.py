@@ -34,6 +34,10 @@ import torch
 from clflow.scene.config import FlowSettings
 
 SHAPES = ("cube", "sphere", "torus")
+# bumped whenever make_case makes a case differently from the same SyntheticCase, so that
+# results made before are not taken for results of the new cases (2: the ground GROUND_OFFSET
+# cells above a node row at both the optimiser's and the truth's spacing)
+GENERATOR_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -203,24 +207,29 @@ def _rounded(values) -> list[float]:
     return [round(float(v), 9) for v in values]
 
 
-def case_domain(case: SyntheticCase, resolution: Resolution) -> tuple[list[float], list[float], int]:
+def case_domain(case: SyntheticCase, resolution: Resolution, scale: int = 1) -> tuple[list[float], list[float], int]:
     """(domain min, domain max (m), grid nodes along its longest side) of a case with
     ``spread``: ``spread`` sizes of room around the shape on every horizontal side and half
-    a size above it, besides the domain walls, the ground half a cell above the bottom
-    walls, at the grid spacing the default domain of ``resolution.grid`` nodes would have
-    (2.5 sizes across)."""
+    a size above it, besides the domain walls, at the grid spacing the default domain of
+    ``resolution.grid`` nodes would have (2.5 sizes across), refined ``scale`` times. The
+    ground lies GROUND_OFFSET cells above a node row at either spacing (the refined grid's
+    domain is shifted down by a fraction of its cell for that), as in default domains."""
     from clflow.pipeline.scene import WALL_CELLS
+    from clflow.pipeline.simulation import GROUND_OFFSET
 
     s, c = case.size, case.center
     dx = 2.5 * s / (resolution.grid - 1)
     walls = (WALL_CELLS + 1) * dx  # the walls and the cell next to them are no room to move in
     room = case.spread * s + walls
     height = (s / 4 if case.shape == "torus" else s / 2)
-    lower = [c[0] - s / 2 - room, -walls - 0.5 * dx, c[2] - s / 2 - room]
+    lower = [c[0] - s / 2 - room, -walls - GROUND_OFFSET * dx, c[2] - s / 2 - room]
     upper = [c[0] + s / 2 + room, c[1] + height + 0.5 * s + walls, c[2] + s / 2 + room]
     longest = max(u - lo for lo, u in zip(lower, upper))
     nodes = int(math.ceil(longest / dx - 1e-9)) + 1
-    return _rounded(lower), _rounded(upper), nodes
+    fine = dx / scale  # the ground is (WALL_CELLS + 1 + GROUND_OFFSET) scale fine cells up: shift to GROUND_OFFSET
+    shift = ((WALL_CELLS + 1 + GROUND_OFFSET) * scale - GROUND_OFFSET) % 1.0 * fine
+    lower[1], upper[1] = lower[1] + shift, upper[1] + shift
+    return _rounded(lower), _rounded(upper), (nodes - 1) * scale + 1
 
 
 # guidance views of a case: view k circles the shape about +y by this azimuth from view 0
@@ -263,8 +272,8 @@ def case_config(case: SyntheticCase, resolution: Resolution, parameters: dict[st
         forces.append(stage)
     simulation = {"grid_resolution": (resolution.grid - 1) * scale + 1, "fps": 24, "frames": resolution.frames}
     if case.spread is not None:
-        lower, upper, nodes = case_domain(case, resolution)
-        simulation.update(grid_resolution=(nodes - 1) * scale + 1, domain={"min": lower, "max": upper})
+        lower, upper, nodes = case_domain(case, resolution, scale)
+        simulation.update(grid_resolution=nodes, domain={"min": lower, "max": upper})
     obj = {"select": {"box": {"min": _rounded([c[0] - half, case.lift - margin, c[2] - half]),
                               "max": _rounded([c[0] + half, c[1] + height, c[2] + half])}}}
     if any(case.velocity):
@@ -390,6 +399,6 @@ def make_case(folder: str | Path, case: SyntheticCase, resolution: Resolution = 
     return folder / "config.yaml"
 
 
-__all__ = ["Resolution", "SHAPES", "SyntheticCase", "VIEW_AZIMUTHS_DEG", "case_camera", "case_config", "guidance_name", "case_domain", "cube_surface", "degrade", "wall_contacts", "floor",
+__all__ = ["GENERATOR_VERSION", "Resolution", "SHAPES", "SyntheticCase", "VIEW_AZIMUTHS_DEG", "case_camera", "case_config", "guidance_name", "case_domain", "cube_surface", "degrade", "wall_contacts", "floor",
            "make_case", "CASE_FILES",
            "push_upper_part", "sphere_surface", "torus_surface", "write_scene"]

@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
-from clflow_datasets.synthetic import Resolution, SyntheticCase, make_case
+from clflow_datasets.synthetic import GENERATOR_VERSION, Resolution, SyntheticCase, make_case
 
 log = logging.getLogger(__name__)
 
@@ -181,8 +181,9 @@ def run_case(name: str, folder: Path, settings: Settings, *, progress: Callable[
 
 
 def case_definition(case: SyntheticCase) -> dict:
-    """A case's definition as JSON data (a finished result counts only for an equal one)."""
-    return json.loads(json.dumps(asdict(case)))
+    """A case's definition as JSON data, with the generator's version (a finished result
+    counts only for an equal one)."""
+    return json.loads(json.dumps({**asdict(case), "generator": GENERATOR_VERSION}))
 
 
 def settings_record(settings: Settings) -> dict:

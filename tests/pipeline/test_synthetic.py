@@ -50,3 +50,16 @@ def test_a_dropped_sphere_falls_freely_until_it_lands(tmp_path):
     falling = t <= math.sqrt(2 * 0.1 / 9.81) - 1 / 24  # before the first contact
     torch.testing.assert_close(drop[falling], -0.5 * 9.81 * t[falling] ** 2, rtol=0.05, atol=2e-3)
     assert load_config(config).optimize.parameters == ("youngs_modulus",)
+
+
+@pytest.mark.parametrize("lift", [0.0, 0.37])
+def test_the_default_domain_puts_the_ground_a_fixed_fraction_of_a_cell_above_a_node_row(tmp_path, lift):
+    """Where the ground plane cuts the cells changes the contact (clflow.pipeline.simulation):
+    a default domain always puts it GROUND_OFFSET cells above a node row, above the walls."""
+    from clflow.pipeline.scene import WALL_CELLS
+    from clflow.pipeline.simulation import GROUND_OFFSET
+
+    config = make_case(tmp_path, SyntheticCase(shape="sphere", lift=lift, forces=()), TINY)
+    grid = prepare(load_config(config)).setup.grid
+    cells = (0.0 - grid.origin[1]) / grid.dx  # the ground is at y = 0
+    assert cells % 1 == pytest.approx(GROUND_OFFSET) and cells > WALL_CELLS + 1

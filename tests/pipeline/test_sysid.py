@@ -27,7 +27,15 @@ def test_the_guidance_is_not_the_optimisers_own_forward(tmp_path):
     config = make_case(tmp_path, case, TINY, truth_scale=2)
     truth, opt = (yaml.safe_load((tmp_path / name).read_text()) for name in ("config_truth.yaml", "config.yaml"))
     assert truth["simulation"]["grid_resolution"] - 1 == 2 * (opt["simulation"]["grid_resolution"] - 1)
-    assert truth["simulation"]["domain"] == opt["simulation"]["domain"]  # the same space, half the spacing
+    (tlo, thi), (olo, ohi) = ((c["simulation"]["domain"]["min"], c["simulation"]["domain"]["max"]) for c in (truth, opt))
+    assert tlo[0::2] == olo[0::2] and thi[0::2] == ohi[0::2]  # the same space, half the spacing,
+    assert thi[1] - tlo[1] == pytest.approx(ohi[1] - olo[1])  # shifted up a fraction of a fine cell so that
+    from clflow.pipeline.simulation import GROUND_OFFSET  # the ground meets either grid the same way:
+
+    for lo, hi, nodes in ((tlo, thi, truth["simulation"]["grid_resolution"]),
+                          (olo, ohi, opt["simulation"]["grid_resolution"])):
+        cells = -lo[1] / (max(h - low for low, h in zip(lo, hi)) / (nodes - 1))  # ground height in cells
+        assert cells % 1 == pytest.approx(GROUND_OFFSET) and cells > 4
     assert truth["camera"]["width"] == 2 * opt["camera"]["width"] == 2 * TINY.image
     record = json.loads((tmp_path / "case.json").read_text())
     assert record["truth_grid_resolution"] != record["grid_resolution"] and record["truth_image"] != record["image"]
