@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
-from clflow.fileio import atomic_path
+from clflow.fileio import atomic_path, load_arrays
 from clflow.pipeline.scene import SceneGaussians, up_rotation
 
 NPZ_NAME = "gaussians.npz"
@@ -69,6 +69,21 @@ class Frames4D:
         """Centre (m) of the object's Gaussians at rest: the orbit's target."""
         means = self.arrays["object_means"][0]
         return 0.5 * (means.min(0) + means.max(0))
+
+
+def export_size(prepared, frames: int, preview: bool) -> tuple[int, int]:
+    """Upper bounds of (bytes written, bytes held in memory) by simulating ``frames`` frames of
+    a :class:`clflow.pipeline.forward.Prepared` scene and exporting them (PLY, npz, preview)."""
+    from clflow.limits import TRAJECTORY_REALS
+
+    n, s = prepared.obj_rest.means.shape[0], prepared.static.means.shape[0]
+    g = prepared.obj_rest
+    colours = g.sh[0].numel() if g.sh is not None else g.colors.shape[1]
+    particles = prepared.setup.particles.positions.shape[0]
+    cam = prepared.camera
+    per_frame = 4 * (21 * n + (n + s) * (14 + colours)) + (6 * cam.width * cam.height if preview else 0)
+    held = 4 * (TRAJECTORY_REALS * particles + 21 * n + (n + s) * (22 + colours))  # trajectory, frames, stacks
+    return (frames + 1) * per_frame, (frames + 1) * held
 
 
 def export_gaussians(result, folder: Path) -> None:
@@ -115,11 +130,7 @@ def load_frames(folder: str | Path) -> Frames4D:
     path = Path(folder) / NPZ_NAME
     if not path.is_file():
         raise InputError(f"{path} not found: run `clflow simulate CONFIG -o {folder}` first")
-    try:
-        with np.load(path) as data:
-            arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: not a readable npz file ({exc})") from None
+    arrays = load_arrays(path, "gaussians file of clflow simulate")
     required = ("object_means", "object_covariances", "object_sh_rotations", "static_means", "opacities",
                 "camera_viewmat", "camera_K", "camera_size", "fps")
     missing = [k for k in required if k not in arrays]
@@ -182,4 +193,4 @@ def render_4d(frames: Frames4D, out: Path, *, views: int = 0, turns: float = 1.0
     return videos
 
 
-__all__ = ["Frames4D", "export_gaussians", "load_frames", "orbit_cameras", "render_4d"]
+__all__ = ["Frames4D", "export_gaussians", "export_size", "load_frames", "orbit_cameras", "render_4d"]

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
+from clflow.fileio import load_arrays
 from clflow.scene.config import CameraConfig, Region, SceneConfig
 from clflow.scene.deform import deformed_covariances, polar_rotations
 
@@ -79,7 +80,7 @@ def select_object(cfg: SceneConfig, means_scene: torch.Tensor) -> torch.Tensor:
     """Bool mask [N] of the object's Gaussians (selection in scene units)."""
     sel = cfg.selection
     if sel.mask is not None:
-        raw = np.load(sel.mask)
+        raw = next(iter(load_arrays(sel.mask, "object mask").values()), np.zeros(0))
         n = means_scene.shape[0]
         if raw.dtype == bool and raw.shape == (n,):
             mask = torch.from_numpy(raw)
