@@ -17,6 +17,8 @@ from clflow.errors import InputError
 DEFAULT_MAX_OUTPUT_GB = 10.0
 #: Bytes one simulated particle-frame holds in memory: x, v (3), F (9), plastic (1) reals.
 TRAJECTORY_REALS = 16
+#: Free bytes below which a failed write is put down to a full disk.
+LOW_DISK_BYTES = 1 << 20
 
 
 def format_bytes(n: float) -> str:
@@ -43,7 +45,8 @@ def check_output(path: str | os.PathLike, nbytes: int = 0, max_gb: float = DEFAU
     path = Path(path)
     existing = _nearest_existing(path)
     if not existing.is_dir():
-        raise InputError(f"output folder {path}: {existing} is a file, not a folder")
+        where = "" if existing == Path(os.path.abspath(path)) else f": {existing}"
+        raise InputError(f"output folder {path}{where} is a file, not a folder")
     if not os.access(existing, os.W_OK | os.X_OK):
         raise InputError(f"output folder {path}: {existing} is not writable (read-only file system or no permission)")
     size = f"would write up to {format_bytes(nbytes)} ({what})"
@@ -52,6 +55,18 @@ def check_output(path: str | os.PathLike, nbytes: int = 0, max_gb: float = DEFAU
     free = shutil.disk_usage(existing).free
     if nbytes > free:
         raise InputError(f"{path}: {size}, the disk has {format_bytes(free)} free{hint and '; '}{hint}")
+
+
+def why_not_written(path: str | os.PathLike) -> str:
+    """Why a writer that reports only failure (OpenCV) could not write ``path``, if its
+    folder or disk is the cause; else ''."""
+    folder = _nearest_existing(Path(path).parent)
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return f"{folder} is not writable (read-only file system or no permission)"
+    free = shutil.disk_usage(folder).free
+    if free < LOW_DISK_BYTES:
+        return f"no space left on the device ({format_bytes(free)} free)"
+    return ""
 
 
 def physical_memory() -> int:

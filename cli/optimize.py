@@ -30,6 +30,7 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
     import dataclasses
     from pathlib import Path
 
+    from clflow.limits import check_output
     from clflow.pipeline.optimize import Optimization, parameter_unit
     from clflow.scene.config import load_config
 
@@ -38,6 +39,7 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
         cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=iterations))
     if output is not None:
         cfg = dataclasses.replace(cfg, output=Path(output).resolve())
+    check_output(cfg.output)
     opt = Optimization(cfg)  # loads the scene, runs the material query, computes the video's flow
     total = opt.total_iterations  # the velocity phase's (optimize.estimate_velocity) and the main phase's
     search = cfg.optimize.search
