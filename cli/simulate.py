@@ -152,12 +152,17 @@ def simulate(ctx, particles, shape, size, center, material, params, model, densi
     from clflow.mpm import Grid, MaterialSpec, Simulator
     from clflow.mpm.preview import PREVIEW_SIZE, write_preview
     from clflow.mpm.shapes import lattice_fill, load_particles
+    from clflow.mpm.substep import check_grid_memory
+    from clflow.runtime import get_device
 
     log = logging.getLogger("clflow.simulate")
     if resolution < 8 or not domain > 0:
         raise InputError(f"--grid must be >= 8 and --domain > 0, got {resolution}, {domain}")
     dx = domain / (resolution - 1)
     grid = Grid((resolution,) * 3, dx)
+    dtype = torch.float64 if double else torch.float32
+    device = ctx.obj.device() if ctx.obj else None
+    check_grid_memory((device or get_device()).info, grid, dtype.itemsize)  # before filling the shape at dx / 2
     if particles:
         x, volume = load_particles(particles)
         if volume is None:
@@ -168,13 +173,12 @@ def simulate(ctx, particles, shape, size, center, material, params, model, densi
         c = _vec3(center, "--center") if center else [domain / 2] * 3
         x = lattice_fill(shape, size, c, spacing)
         volume = spacing**3
-    dtype = torch.float64 if double else torch.float32
     sim = Simulator(
         x, volume, MaterialSpec(material, _params(params), density, model), grid,
         velocities=torch.tensor(_vec3(velocity, "--velocity"), dtype=torch.float64).expand(x.shape[0], 3),
         frame_dt=1.0 / fps, substeps=substeps, gravity=_vec3(gravity, "--gravity"),
         walls=None if walls == "none" else walls, wall_friction=wall_friction, dtype=dtype,
-        device=ctx.obj.device() if ctx.obj else None,
+        device=device,
     )
     out = Path(out_dir)
     less = "simulate fewer --frames"
