@@ -118,7 +118,7 @@ def load_arrays(path: str | os.PathLike, what: str = "array file") -> dict[str, 
         with np.load(path, allow_pickle=False) as data:
             return {k: data[k] for k in data.files}
     except ValueError as exc:
-        if "pickled" in str(exc):
+        if "pickle" in str(exc):  # npz: "pickled (object) data", npy: "allow_pickle=False"
             raise InputError(f"{path}: the {what} holds Python objects, not plain arrays; refusing to unpickle") from None
         raise InputError(f"{path}: damaged or truncated {what} ({exc})") from None
     except (EOFError, OSError, zipfile.BadZipFile, zlib.error) as exc:

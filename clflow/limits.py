@@ -54,7 +54,7 @@ def check_output(path: str | os.PathLike, nbytes: int = 0, max_gb: float = DEFAU
         raise InputError(f"{path}: {size}, more than --max-output-gb {max_gb:g}; raise it{hint and ' or '}{hint}")
     free = shutil.disk_usage(existing).free
     if nbytes > free:
-        raise InputError(f"{path}: {size}, the disk has {format_bytes(free)} free{hint and '; '}{hint}")
+        raise InputError(f"{path}: {size}, the disk has {format_bytes(free)} free; free some space{hint and ' or '}{hint}")
 
 
 def why_not_written(path: str | os.PathLike) -> str:
