@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import math
 import os
 import sys
 import warnings
@@ -92,6 +93,18 @@ class LazyGroup(click.Group):
             raise click.ClickException(describe_os_error(exc)) from None
         except KeyboardInterrupt:
             raise Interrupted("interrupted") from None
+
+
+class FiniteFloat(click.FloatRange):
+    """A number option that refuses NaN and infinities (FloatRange lets NaN through)."""
+
+    name = "number"
+
+    def convert(self, value, param, ctx):
+        number = super().convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return number
 
 
 max_output_option = click.option(

@@ -7,7 +7,7 @@ import re
 
 import click
 
-from clflow_cli.main import max_output_option
+from clflow_cli.main import FiniteFloat, max_output_option
 
 VIDEO_SUFFIXES = (".mp4", ".gif")
 
@@ -49,17 +49,17 @@ class Numbers(click.ParamType):
 @click.option("--target", type=Numbers(3), help="Look-at target X,Y,Z (m); default: the scene centre.")
 @click.option("--up", type=Numbers(3), default="0,0,1", show_default=True, help="World up direction.")
 @click.option("--orbit", "n_orbit", type=click.IntRange(min=1), help="Render N views on a circle around the target.")
-@click.option("--elevation", type=float, default=20.0, show_default=True,
+@click.option("--elevation", type=FiniteFloat(), default=20.0, show_default=True,
               help="Orbit / default view elevation above the horizontal plane, degrees.")
-@click.option("--azimuth", type=float, default=0.0, show_default=True, help="First orbit / default view azimuth, degrees.")
-@click.option("--fov", type=click.FloatRange(1, 179), default=50.0, show_default=True,
+@click.option("--azimuth", type=FiniteFloat(), default=0.0, show_default=True, help="First orbit / default view azimuth, degrees.")
+@click.option("--fov", type=FiniteFloat(1, 179), default=50.0, show_default=True,
               help="Horizontal field of view of generated views, degrees.")
 @click.option("--width", type=click.IntRange(min=1), default=512, show_default=True, help="Image width of generated views, pixels.")
 @click.option("--height", type=click.IntRange(min=1), default=512, show_default=True, help="Image height of generated views, pixels.")
 @click.option("--background", type=Numbers(3), default="0,0,0", show_default=True, help="Background colour R,G,B in [0, 1].")
 @click.option("--sh-degree", type=click.IntRange(0, 3), help="Evaluate SH only up to this degree (default: all).")
 @click.option("--video", type=click.Path(dir_okay=False), help="Also write the views as a video (.mp4 or .gif).")
-@click.option("--fps", type=click.FloatRange(min=0, min_open=True), default=24.0, show_default=True, help="Video frame rate.")
+@click.option("--fps", type=FiniteFloat(min=0, min_open=True), default=24.0, show_default=True, help="Video frame rate.")
 @click.option("--precision", type=click.Choice(["float32", "float64"]), default="float32", show_default=True,
               help="Compute precision of the rasteriser.")
 @max_output_option

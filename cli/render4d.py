@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from clflow_cli.main import max_output_option
+from clflow_cli.main import FiniteFloat, max_output_option
 
 
 @click.command("render4d")
@@ -13,7 +13,7 @@ from clflow_cli.main import max_output_option
               help="Output folder [default: SIMULATION/render4d].")
 @click.option("--views", type=click.IntRange(min=0), default=0, show_default=True,
               help="Also render N fixed novel viewpoints on the orbit circle.")
-@click.option("--turns", type=float, default=1.0, show_default=True,
+@click.option("--turns", type=FiniteFloat(), default=1.0, show_default=True,
               help="Turns of the orbiting camera over the sequence.")
 @click.option("--format", "video_format", type=click.Choice(["mp4", "gif"]), default="mp4", show_default=True,
               help="Video format.")

@@ -128,6 +128,7 @@ class Probe:
     message: str  # regular expression the one error line must match
     left: tuple[str, ...] = ()  # paths (relative to the test's folder) that must not exist afterwards
     setup: Callable[[Case], None] = field(default=lambda c: None)
+    exit_code: int = 1  # 2: click's usage error (a bad option value)
 
 
 PROBES = [
@@ -188,7 +189,9 @@ PROBES = [
     Probe("huge-gaussians", lambda c: ["optimize", huge_splats(c)],
           r"huge.ply: 384 of the object's 384 Gaussians are larger than the whole scene", ("out",)),
     Probe("render4d-turns-nan", lambda c: ["render4d", c.sim, "-o", c.tmp / "r", "--turns", "nan"],
-          r"turns of the orbiting camera must be a finite number, got nan", ("r",)),
+          r"Invalid value for '--turns': 'nan' is not a finite number", ("r",), exit_code=2),
+    Probe("render-azimuth-inf", lambda c: ["render", c.demo / "scene.ply", "-o", c.tmp / "r", "--azimuth", "inf"],
+          r"Invalid value for '--azimuth': 'inf' is not a finite number", ("r",), exit_code=2),
     # too large: refused with the predicted numbers and the way out, before any work
     Probe("grid-1000-no-fill",
           lambda c: ["simulate", c.config("grid", **{"simulation.grid_resolution": 1000, "object.fill": {"enabled": False}}),
@@ -220,7 +223,7 @@ def test_bad_input_is_one_line_and_leaves_nothing(probe, quick_demo, simulation,
     res = CliRunner().invoke(cli, args)
     monkeypatch.undo()
     errors = [line for line in res.output.splitlines() if line.startswith("Error")]
-    assert res.exit_code == 1 and len(errors) == 1, res.output
+    assert res.exit_code == probe.exit_code and len(errors) == 1, res.output
     assert re.search(probe.message, errors[0]), errors[0]
     assert "Traceback" not in res.output
     for path in probe.left:
