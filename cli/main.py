@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import math
 import os
 import sys
 import warnings
@@ -12,6 +13,7 @@ from importlib.metadata import entry_points
 import click
 
 from clflow import __version__
+from clflow.limits import DEFAULT_MAX_OUTPUT_GB
 
 # torch's OpenMP threads spin for a while after every parallel torch op, taking the cores
 # from the OpenCL CPU device's worker threads (measured: 10-20 % of the rasteriser's forward
@@ -76,15 +78,38 @@ class LazyGroup(click.Group):
 
     def invoke(self, ctx: click.Context):
         # User-fixable problems (bad input, missing device, ...) end with one clear line and
-        # exit code 1; Ctrl-C with one line and 130; anything else is a bug and keeps its traceback.
+        # exit code 1, and so do file-system refusals (disk full, read-only, a file where a
+        # folder should be); Ctrl-C with one line and 130; anything else is a bug and keeps its traceback.
         from clflow.errors import ClflowError
+        from clflow.fileio import FILE_SYSTEM_ERRNOS, describe_os_error
 
         try:
             return super().invoke(ctx)
         except ClflowError as exc:
             raise click.ClickException(str(exc)) from None
+        except OSError as exc:
+            if exc.errno not in FILE_SYSTEM_ERRNOS:
+                raise
+            raise click.ClickException(describe_os_error(exc)) from None
         except KeyboardInterrupt:
             raise Interrupted("interrupted") from None
+
+
+class FiniteFloat(click.FloatRange):
+    """A number option that refuses NaN and infinities (FloatRange lets NaN through)."""
+
+    name = "number"
+
+    def convert(self, value, param, ctx):
+        number = super().convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return number
+
+
+max_output_option = click.option(
+    "--max-output-gb", type=click.FloatRange(min=0, min_open=True), default=DEFAULT_MAX_OUTPUT_GB, show_default=True,
+    help="Refuse, before any work, a run whose predicted output (an uncompressed upper bound) exceeds this many GB.")
 
 
 class CliContext:

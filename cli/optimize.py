@@ -30,6 +30,7 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
     import dataclasses
     from pathlib import Path
 
+    from clflow.limits import check_output
     from clflow.pipeline.optimize import Optimization, parameter_unit
     from clflow.scene.config import load_config
 
@@ -38,6 +39,7 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
         cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=iterations))
     if output is not None:
         cfg = dataclasses.replace(cfg, output=Path(output).resolve())
+    check_output(cfg.output)
     start, hypotheses, search = None, None, cfg.optimize.search
     if cfg.optimize.materials:  # material hypotheses: search each, optimise the best
         from clflow.pipeline.hypotheses import choose_material

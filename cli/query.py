@@ -42,14 +42,17 @@ def query(image, prompt, object_name, box, mask, backend, llm_url, model, timeou
     """
     import json
 
+    from clflow.limits import check_output
     from clflow.query import ModelConfig, query_material
 
+    output = output or Path(f"{image.stem}.material.json")
+    check_output(output.parent)
     config = None
     if backend == "openai":
         config = ModelConfig.resolve(llm_url, model, timeout=timeout, retries=retries, image_format=image_format)
     result = query_material(image, prompt=prompt, object_name=object_name, box=box, mask=mask,
                             backend=backend, model_config=config)
-    path = result.save(output or Path(f"{image.stem}.material.json"))
+    path = result.save(output)
     if as_json:
         click.echo(json.dumps(result.to_dict(), indent=2))
         return

@@ -7,6 +7,8 @@ import re
 
 import click
 
+from clflow_cli.main import FiniteFloat, max_output_option
+
 VIDEO_SUFFIXES = (".mp4", ".gif")
 
 
@@ -47,21 +49,22 @@ class Numbers(click.ParamType):
 @click.option("--target", type=Numbers(3), help="Look-at target X,Y,Z (m); default: the scene centre.")
 @click.option("--up", type=Numbers(3), default="0,0,1", show_default=True, help="World up direction.")
 @click.option("--orbit", "n_orbit", type=click.IntRange(min=1), help="Render N views on a circle around the target.")
-@click.option("--elevation", type=float, default=20.0, show_default=True,
+@click.option("--elevation", type=FiniteFloat(), default=20.0, show_default=True,
               help="Orbit / default view elevation above the horizontal plane, degrees.")
-@click.option("--azimuth", type=float, default=0.0, show_default=True, help="First orbit / default view azimuth, degrees.")
-@click.option("--fov", type=click.FloatRange(1, 179), default=50.0, show_default=True,
+@click.option("--azimuth", type=FiniteFloat(), default=0.0, show_default=True, help="First orbit / default view azimuth, degrees.")
+@click.option("--fov", type=FiniteFloat(1, 179), default=50.0, show_default=True,
               help="Horizontal field of view of generated views, degrees.")
 @click.option("--width", type=click.IntRange(min=1), default=512, show_default=True, help="Image width of generated views, pixels.")
 @click.option("--height", type=click.IntRange(min=1), default=512, show_default=True, help="Image height of generated views, pixels.")
 @click.option("--background", type=Numbers(3), default="0,0,0", show_default=True, help="Background colour R,G,B in [0, 1].")
 @click.option("--sh-degree", type=click.IntRange(0, 3), help="Evaluate SH only up to this degree (default: all).")
 @click.option("--video", type=click.Path(dir_okay=False), help="Also write the views as a video (.mp4 or .gif).")
-@click.option("--fps", type=click.FloatRange(min=0, min_open=True), default=24.0, show_default=True, help="Video frame rate.")
+@click.option("--fps", type=FiniteFloat(min=0, min_open=True), default=24.0, show_default=True, help="Video frame rate.")
 @click.option("--precision", type=click.Choice(["float32", "float64"]), default="float32", show_default=True,
               help="Compute precision of the rasteriser.")
+@max_output_option
 def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, sphere, eye, target, up, n_orbit,
-           elevation, azimuth, fov, width, height, background, sh_degree, video, fps, precision) -> None:
+           elevation, azimuth, fov, width, height, background, sh_degree, video, fps, precision, max_output_gb) -> None:
     """Render SPLATS (a 3DGS PLY file, or a plain x y z [r g b] point cloud) to PNG images.
 
     The views are the cameras of --cameras or --transforms, a look-at camera (--eye,
@@ -75,7 +78,12 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
 
     import torch
 
+    import numpy as np
+
     from clflow.errors import InputError
+    from clflow.fileio import atomic_dir
+    from clflow.flow.visualize import write_image, write_video
+    from clflow.limits import check_output
     from clflow.splat import load_ply
     from clflow.splat.render import rasterize, to_uint8
 
@@ -95,28 +103,35 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
     if video is not None and len(sizes) > 1:
         raise InputError(f"--video: the views have different sizes {sorted(sizes)}; a video needs one size")
     output_dir = Path(output_dir)
+    image_bytes = sum(3 * c.width * c.height for c in cameras)
+    what, less = f"{len(cameras):,} views", "render fewer views"
+    check_output(output_dir, image_bytes, max_output_gb, what, less)
+    if video is not None:
+        check_output(Path(video).parent, image_bytes, max_output_gb, what, less)
     frames = []
     seconds = 0.0
     stems: set[str] = set()
-    for i, camera in enumerate(cameras):
-        start = time.perf_counter()
-        with torch.no_grad():
-            image = rasterize(gaussians, camera, background=background, sh_degree=sh_degree, render_depth=False).image
-        seconds += time.perf_counter() - start
-        frame = to_uint8(image)
-        stem = _file_stem(camera.name)
-        stem = stem if stem not in stems else f"{stem}_{i:04d}"  # e.g. train/r_0 and test/r_0
-        stems.add(stem)
-        _write_png(output_dir / f"{stem}.png", frame)
-        frames.append(frame)
+    with atomic_dir(output_dir) as tmp:  # all or nothing: a failure leaves the folder as it was
+        for i, camera in enumerate(cameras):
+            start = time.perf_counter()
+            with torch.no_grad():
+                image = rasterize(gaussians, camera, background=background, sh_degree=sh_degree,
+                                  render_depth=False).image
+            seconds += time.perf_counter() - start
+            frame = to_uint8(image)
+            stem = _file_stem(camera.name)
+            stem = stem if stem not in stems else f"{stem}_{i:04d}"  # e.g. train/r_0 and test/r_0
+            stems.add(stem)
+            write_image(tmp / f"{stem}.png", frame)
+            frames.append(frame)
+        if video is not None:
+            write_video(video, np.stack(frames), fps)
     click.echo(
         f"rendered {len(gaussians)} Gaussians: {len(frames)} view(s) -> {output_dir}/ "
         f"({1e3 * seconds / len(frames):.0f} ms per view, first includes kernel builds)"
     )
     if video is not None:
-        _write_video(Path(video), frames, fps)
         click.echo(f"video: {video}")
-
 
 def _views(gaussians, cameras_json, transforms_json, camera_keys, eye, target, up, n_orbit, elevation, azimuth,
            fov_x, width, height):
@@ -180,39 +195,3 @@ def _file_stem(name: str) -> str:
     stem = re.sub(r"\.(png|jpe?g)$", "", stem, flags=re.IGNORECASE)
     return stem.strip(".") or "view"
 
-
-def _write_png(path, rgb) -> None:
-    import cv2
-
-    from clflow.errors import ClflowError
-    from clflow.fileio import atomic_path
-
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-            raise ClflowError(f"{path}: OpenCV could not write the PNG image")
-
-
-def _write_video(path, frames, fps: float) -> None:
-    """Frames [H, W, 3] uint8 RGB as an MP4 (MPEG-4 part 2) or an endlessly looping GIF."""
-    import cv2
-
-    from clflow.errors import ClflowError
-    from clflow.fileio import atomic_path
-
-    bgr = [cv2.cvtColor(f, cv2.COLOR_RGB2BGR) for f in frames]
-    with atomic_path(path) as tmp:
-        if path.suffix.lower() == ".gif":
-            animation = cv2.Animation()
-            animation.frames = bgr
-            animation.durations = [round(1000 / fps)] * len(bgr)  # ms per frame
-            animation.loop_count = 0
-            ok = cv2.imwriteanimation(str(tmp), animation)
-        else:
-            height, width = bgr[0].shape[:2]
-            writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, height))
-            ok = writer.isOpened()
-            for frame in bgr if ok else []:
-                writer.write(frame)
-            writer.release()
-        if not ok:
-            raise ClflowError(f"{path}: OpenCV could not write the video")

@@ -2,6 +2,9 @@
 
 import click
 
+from clflow.limits import DEFAULT_MAX_OUTPUT_GB
+from clflow_cli.main import max_output_option
+
 
 def _vec3(text: str, what: str):
     try:
@@ -29,7 +32,8 @@ def _params(items):
 CONFIG_SUFFIXES = (".yaml", ".yml", ".json")
 
 
-def simulate_scene(config_path: str, params_file: str | None, out_dir: str | None, preview: str) -> None:
+def simulate_scene(config_path: str, params_file: str | None, out_dir: str | None, preview: str,
+                   max_output_gb: float = DEFAULT_MAX_OUTPUT_GB) -> None:
     """``clflow simulate CONFIG``: the config's scene with its material and initial velocity
     (or those of an optimisation's params.json), written as per-frame Gaussians and a
     guidance-view video."""
@@ -39,8 +43,10 @@ def simulate_scene(config_path: str, params_file: str | None, out_dir: str | Non
     from pathlib import Path
 
     from clflow.errors import InputError
-    from clflow.pipeline.forward import render_video, simulate_config
-    from clflow.pipeline.frames4d import export_gaussians
+    from clflow.fileio import atomic_dir
+    from clflow.limits import check_memory, check_output
+    from clflow.pipeline.forward import prepare, render_video, simulate_config
+    from clflow.pipeline.frames4d import export_gaussians, export_size
     from clflow.pipeline.material import resolve_material
     from clflow.scene.config import load_config
 
@@ -60,14 +66,21 @@ def simulate_scene(config_path: str, params_file: str | None, out_dir: str | Non
             raise InputError(f"{params_file}: velocity must be a list of 3 finite numbers (m/s), got {velocity!r}")
         cfg = dataclasses.replace(cfg, velocity=tuple(float(v) for v in velocity))  # the optimised one
     out = Path(out_dir) if out_dir else cfg.output / "simulation"
-    result = simulate_config(cfg, overrides)
-    click.echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {cfg.simulation.frames} frames")
-    export_gaussians(result, out)
+    prepared = prepare(cfg)
+    frames = cfg.simulation.frames
+    written, memory = export_size(prepared, frames, preview != "none")
+    less = "simulate fewer frames (simulation.frames)"
+    check_output(out, written, max_output_gb, f"{frames + 1:,} frames of Gaussians", less)
+    check_memory(memory, f"simulating {frames + 1:,} frames", less)
+    result = simulate_config(cfg, overrides, prepared)
+    click.echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
+    with atomic_dir(out) as tmp:  # all or nothing: a failure leaves OUT as it was
+        export_gaussians(result, tmp)
+        if preview != "none":
+            render_video(result, tmp / "guidance", video=tmp / "guidance.mp4" if preview == "mp4" else None)
     click.echo(f"wrote {out / 'gaussians.npz'} and {result.x.shape[0]} PLY frames")
     if preview != "none":
-        video = out / "guidance.mp4" if preview == "mp4" else None
-        render_video(result, out / "guidance", video=video)
-        click.echo(f"wrote {video or out / 'guidance'}")
+        click.echo(f"wrote {out / 'guidance.mp4' if preview == 'mp4' else out / 'guidance'}")
 
 
 @click.command("simulate")
@@ -101,10 +114,11 @@ def simulate_scene(config_path: str, params_file: str | None, out_dir: str | Non
               help="With a CONFIG: simulate with the parameters of this params.json (clflow optimize).")
 @click.option("--preview", type=click.Choice(["mp4", "png", "none"]), default="mp4", show_default=True,
               help="Preview video, PNG frames, or none.")
+@max_output_option
 @click.pass_context
 def simulate(ctx, particles, shape, size, center, material, params, model, density, velocity, domain, resolution,
              particle_volume, frames, fps, substeps, gravity, walls, wall_friction, double, out_dir, params_file,
-             preview):
+             preview, max_output_gb):
     """Simulate PARTICLES (.npz with 'positions' [N, 3] in m and optional 'volume' [N] in
     m^3, or a .ply point cloud) or a built-in shape, and write the per-frame positions
     (OUT/positions.npz: x [frames+1, N, 3], time [frames+1]) and a preview.
@@ -116,12 +130,12 @@ def simulate(ctx, particles, shape, size, center, material, params, model, densi
         from click.core import ParameterSource
 
         particle_only = [p.opts[0] for p in ctx.command.params
-                         if p.name not in ("particles", "out_dir", "params_file", "preview")
+                         if p.name not in ("particles", "out_dir", "params_file", "preview", "max_output_gb")
                          and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE]
         if particle_only:
             raise click.UsageError(f"with a scene config, the config sets the simulation; drop "
                                    f"{', '.join(particle_only)}")
-        simulate_scene(particles, params_file, out_dir, preview)
+        simulate_scene(particles, params_file, out_dir, preview, max_output_gb)
         return
     if params_file:
         raise click.UsageError("--params needs a scene CONFIG (.yaml/.yml/.json)")
@@ -133,16 +147,22 @@ def simulate(ctx, particles, shape, size, center, material, params, model, densi
     import torch
 
     from clflow.errors import InputError
-    from clflow.fileio import atomic_path
+    from clflow.fileio import atomic_dir
+    from clflow.limits import TRAJECTORY_REALS, check_memory, check_output
     from clflow.mpm import Grid, MaterialSpec, Simulator
-    from clflow.mpm.preview import write_preview
+    from clflow.mpm.preview import PREVIEW_SIZE, write_preview
     from clflow.mpm.shapes import lattice_fill, load_particles
+    from clflow.mpm.substep import check_grid_memory
+    from clflow.runtime import get_device
 
     log = logging.getLogger("clflow.simulate")
     if resolution < 8 or not domain > 0:
         raise InputError(f"--grid must be >= 8 and --domain > 0, got {resolution}, {domain}")
     dx = domain / (resolution - 1)
     grid = Grid((resolution,) * 3, dx)
+    dtype = torch.float64 if double else torch.float32
+    device = ctx.obj.device() if ctx.obj else None
+    check_grid_memory((device or get_device()).info, grid, dtype.itemsize)  # before filling the shape at dx / 2
     if particles:
         x, volume = load_particles(particles)
         if volume is None:
@@ -153,21 +173,25 @@ def simulate(ctx, particles, shape, size, center, material, params, model, densi
         c = _vec3(center, "--center") if center else [domain / 2] * 3
         x = lattice_fill(shape, size, c, spacing)
         volume = spacing**3
-    dtype = torch.float64 if double else torch.float32
     sim = Simulator(
         x, volume, MaterialSpec(material, _params(params), density, model), grid,
         velocities=torch.tensor(_vec3(velocity, "--velocity"), dtype=torch.float64).expand(x.shape[0], 3),
         frame_dt=1.0 / fps, substeps=substeps, gravity=_vec3(gravity, "--gravity"),
         walls=None if walls == "none" else walls, wall_friction=wall_friction, dtype=dtype,
-        device=ctx.obj.device() if ctx.obj else None,
+        device=device,
     )
+    out = Path(out_dir)
+    less = "simulate fewer --frames"
+    image = 0 if preview == "none" else 3 * PREVIEW_SIZE**2  # bytes of an uncompressed preview frame
+    check_output(out, (frames + 1) * (12 * sim.n + image), max_output_gb, f"{frames + 1:,} frames of {sim.n:,} particles", less)
+    check_memory((frames + 1) * sim.n * TRAJECTORY_REALS * dtype.itemsize, f"simulating {frames + 1:,} frames", less)
     click.echo(f"{sim.n:,} particles of {material}, {frames} frames x {sim.substeps} substeps (dt = {sim.dt:.3g} s)")
     traj = sim.run(frames)
-    out = Path(out_dir)
-    with atomic_path(out / "positions.npz") as tmp:
-        np.savez(tmp, x=traj.x.float().numpy(), time=traj.time.numpy())
+    target = out / ("preview.mp4" if preview == "mp4" else "preview")
+    with atomic_dir(out) as tmp:  # all or nothing: a failure leaves OUT as it was
+        np.savez(tmp / "positions.npz", x=traj.x.float().numpy(), time=traj.time.numpy())
+        if preview != "none":
+            write_preview(traj.x, grid.origin, grid.upper, tmp / target.name, fps, PREVIEW_SIZE)
     click.echo(f"wrote {out / 'positions.npz'}")
     if preview != "none":
-        target = out / ("preview.mp4" if preview == "mp4" else "preview")
-        write_preview(traj.x, grid.origin, grid.upper, target, fps)
         click.echo(f"wrote {target}")

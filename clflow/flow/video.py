@@ -173,10 +173,13 @@ def _read_container(path: Path, fps: float | None) -> Video:
                 raise InputError(f"{path}: frame {len(frames)} changes size; cannot read a variable-size video")
             frames.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
         source_fps = capture.get(cv2.CAP_PROP_FPS)
+        listed = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))  # what the container's index says
     finally:
         capture.release()
     if not frames:
         raise InputError(f"{path}: the video holds no decodable frame")
+    if len(frames) < listed:
+        raise InputError(f"{path}: damaged video: only the first {len(frames)} of its {listed} frames decode")
     if fps is None and source_fps > 0 and np.isfinite(source_fps):
         fps = float(source_fps)
     return _make_video(np.stack(frames), fps, str(path))

@@ -12,6 +12,7 @@ import numpy as np
 
 from clflow.errors import ClflowError, InputError
 from clflow.fileio import atomic_path
+from clflow.limits import why_not_written
 
 #: Hue segments of the Middlebury colour wheel (Baker et al. 2011): red-yellow, yellow-green,
 #: green-cyan, cyan-blue, blue-magenta, magenta-red; more steps where the eye sees more hues.
@@ -100,13 +101,19 @@ def comparison_panel(
     return np.concatenate(panels, axis=1)
 
 
+def _write_failed(path, what: str) -> ClflowError:
+    """The error of an OpenCV writer that reported only failure: a full disk or unwritable
+    folder if either is the cause, else ``what``."""
+    return ClflowError(f"{path}: {why_not_written(path) or what}")
+
+
 def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     """Write a [H, W, 3] uint8 RGB image (PNG, JPEG, ... by suffix) atomically."""
     import cv2
 
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), cv2.cvtColor(np.asarray(image, np.uint8), cv2.COLOR_RGB2BGR)):
-            raise InputError(f"{path}: OpenCV cannot write an image of this type")
+            raise _write_failed(path, "OpenCV cannot write an image of this type")
 
 
 def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float) -> None:
@@ -128,16 +135,18 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float) -> None
             animation.frames = bgr
             animation.durations = [int(round(1000.0 / fps))] * len(bgr)
             if not cv2.imwriteanimation(str(tmp), animation):
-                raise ClflowError(f"{path}: OpenCV could not write the GIF")
+                raise _write_failed(path, "OpenCV could not write the GIF")
             return
         if suffix not in VIDEO_FOURCC:
             raise InputError(f"{path}: unsupported video suffix {suffix!r}; use .gif or one of {', '.join(VIDEO_FOURCC)}")
         height, width = frames.shape[1:3]
         writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*VIDEO_FOURCC[suffix]), float(fps), (width, height))
         if not writer.isOpened():
-            raise ClflowError(f"{path}: OpenCV's FFmpeg cannot encode {VIDEO_FOURCC[suffix]!r} video here")
+            raise _write_failed(path, f"OpenCV's FFmpeg cannot encode {VIDEO_FOURCC[suffix]!r} video here")
         try:
             for f in bgr:
                 writer.write(f)
         finally:
             writer.release()
+        if why_not_written(tmp):  # FFmpeg does not report failed writes: a full disk truncates silently
+            raise _write_failed(path, "")

@@ -47,7 +47,10 @@ def render_points(x: torch.Tensor, lower, upper, size: int = 512, azimuth: float
     return img
 
 
-def write_preview(frames: torch.Tensor, lower, upper, out: Path, fps: float, size: int = 512) -> Path:
+PREVIEW_SIZE = 512  # px, side of the square preview frames
+
+
+def write_preview(frames: torch.Tensor, lower, upper, out: Path, fps: float, size: int = PREVIEW_SIZE) -> Path:
     """Write frames [T, N, 3] as ``out``: an .mp4/.avi video, or a folder of PNG images."""
     import cv2
 

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
+from clflow.fileio import load_arrays
 
 SHAPES = ("box", "sphere", "torus")
 
@@ -99,15 +100,12 @@ def load_particles(path: str | Path) -> tuple[torch.Tensor, torch.Tensor | None]
         raise InputError(f"particle file not found: {path}")
     volume = None
     if path.suffix.lower() == ".npz":
-        try:
-            data = np.load(path)
-        except (OSError, ValueError) as exc:
-            raise InputError(f"{path}: not a readable .npz file ({exc})") from None
-        key = next((k for k in ("positions", "x") if k in data.files), None)
+        data = load_arrays(path, "particle file")
+        key = next((k for k in ("positions", "x") if k in data), None)
         if key is None:
-            raise InputError(f"{path}: no 'positions' (or 'x') array; it has {', '.join(data.files) or 'none'}")
+            raise InputError(f"{path}: no 'positions' (or 'x') array; it has {', '.join(data) or 'none'}")
         x = np.asarray(data[key], dtype=np.float64)
-        if "volume" in data.files:
+        if "volume" in data:
             volume = torch.from_numpy(np.asarray(data["volume"], dtype=np.float64).reshape(-1))
     elif path.suffix.lower() == ".ply":
         x = _read_ply_vertices(path)

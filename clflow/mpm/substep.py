@@ -19,6 +19,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from clflow.errors import InputError
 from clflow.mpm.constants import MATERIAL_IDS, SIMD_LANES, SVD_MATERIALS, kernel_defines
 from clflow.runtime.devices import Device
 
@@ -82,6 +83,23 @@ class Particles:
     mass_eps: float
 
 
+def check_grid_memory(info, grid: Grid, itemsize: int) -> None:
+    """Refuse a grid whose node arrays do not fit device ``info`` (a DeviceInfo): (m, mv) and
+    v per node, and on CPU devices at least one private P2G copy of (m, mv)."""
+    from clflow.limits import format_bytes
+
+    nodes = grid.nodes
+    total = nodes * itemsize * (7 + (4 if info.type == "CPU" else 0))
+    largest = nodes * itemsize * 4
+    if total > info.global_mem_size or largest > info.max_mem_alloc_size:
+        size = "x".join(str(int(r)) for r in grid.resolution)
+        raise InputError(
+            f"a {size} grid ({nodes:,} nodes) needs {format_bytes(total)} of device memory, buffers up to "
+            f"{format_bytes(largest)}; {info.name} has {format_bytes(info.global_mem_size)}, buffers up to "
+            f"{format_bytes(info.max_mem_alloc_size)}: use a coarser grid (simulation.grid_resolution or "
+            f"--grid) or a smaller simulation.domain")
+
+
 class SubstepKernels:
     """The substep kernels of one device, precision, particle count, grid and set of material
     ids (``materials``: the kernel ids of the particles), with their scratch buffers (U, s, V
@@ -116,6 +134,7 @@ class SubstepKernels:
         self.k_grid = k("mpm/grid.cl", "grid_update")
         self.k_g2p = k("mpm/g2p.cl", "g2p")
         itemsize = torch.tensor([], dtype=dtype).element_size()
+        check_grid_memory(device.info, grid, itemsize)
         grid_bytes = 4 * grid.nodes * itemsize
         if p2g == "private":
             self.k_p2g = k("mpm/p2g.cl", "p2g_private")

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
-from clflow.fileio import atomic_path
+from clflow.fileio import atomic_path, load_arrays
 from clflow.pipeline.scene import SceneGaussians, up_rotation
 
 NPZ_NAME = "gaussians.npz"
@@ -69,6 +69,21 @@ class Frames4D:
         """Centre (m) of the object's Gaussians at rest: the orbit's target."""
         means = self.arrays["object_means"][0]
         return 0.5 * (means.min(0) + means.max(0))
+
+
+def export_size(prepared, frames: int, preview: bool) -> tuple[int, int]:
+    """Upper bounds of (bytes written, bytes held in memory) by simulating ``frames`` frames of
+    a :class:`clflow.pipeline.forward.Prepared` scene and exporting them (PLY, npz, preview)."""
+    from clflow.limits import TRAJECTORY_REALS
+
+    n, s = prepared.obj_rest.means.shape[0], prepared.static.means.shape[0]
+    g = prepared.obj_rest
+    colours = g.sh[0].numel() if g.sh is not None else g.colors.shape[1]
+    particles = prepared.setup.particles.positions.shape[0]
+    cam = prepared.camera
+    per_frame = 4 * (21 * n + (n + s) * (14 + colours)) + (6 * cam.width * cam.height if preview else 0)
+    held = 4 * (TRAJECTORY_REALS * particles + 21 * n + (n + s) * (22 + colours))  # trajectory, frames, stacks
+    return (frames + 1) * per_frame, (frames + 1) * held
 
 
 def export_gaussians(result, folder: Path) -> None:
@@ -115,16 +130,16 @@ def load_frames(folder: str | Path) -> Frames4D:
     path = Path(folder) / NPZ_NAME
     if not path.is_file():
         raise InputError(f"{path} not found: run `clflow simulate CONFIG -o {folder}` first")
-    try:
-        with np.load(path) as data:
-            arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: not a readable npz file ({exc})") from None
+    arrays = load_arrays(path, "gaussians file of clflow simulate")
     required = ("object_means", "object_covariances", "object_sh_rotations", "static_means", "opacities",
                 "camera_viewmat", "camera_K", "camera_size", "fps")
     missing = [k for k in required if k not in arrays]
     if missing:
         raise InputError(f"{path}: missing arrays {', '.join(missing)} (not written by clflow simulate?)")
+    for name, a in arrays.items():
+        if a.dtype.kind == "f" and not np.isfinite(a).all():
+            where = f" (first in frame {int(np.argwhere(~np.isfinite(a))[0, 0])})" if name.startswith("object_") else ""
+            raise InputError(f"{path}: {name} holds NaN or infinite values{where}")
     return Frames4D(arrays)
 
 
@@ -152,34 +167,42 @@ def orbit_cameras(frames: Frames4D, count: int, turns: float = 1.0) -> list:
     return cams
 
 
+def render_4d_size(frames: Frames4D, views: int) -> int:
+    """Upper bound of the bytes :func:`render_4d` writes: uncompressed PNG frames and video."""
+    width, height = (int(v) for v in frames.arrays["camera_size"])
+    return 2 * (views + 2) * frames.frame_count * 3 * width * height
+
+
 def render_4d(frames: Frames4D, out: Path, *, views: int = 0, turns: float = 1.0, video_format: str = "mp4",
               background=(1.0, 1.0, 1.0)) -> list[Path]:
     """Render the sequence into ``out``: ``guidance/`` (the guidance camera), ``orbit/`` (a
     camera circling the object while time runs) and, for ``views`` > 0, ``view_k/`` from k
     fixed novel viewpoints on the same circle. Each folder gets PNG frames and a video
-    (``<name>.mp4`` or ``.gif``). Returns the videos written."""
+    (``<name>.mp4`` or ``.gif``), all written in a temporary folder and moved into ``out`` at
+    the end: a failure leaves ``out`` as it was. Returns the videos written."""
+    from clflow.fileio import atomic_dir
     from clflow.flow.visualize import write_image, write_video
     from clflow.pipeline.forward import to_uint8
     from clflow.pipeline.render import render_rgb
 
     if video_format not in ("mp4", "gif"):
         raise InputError(f"video format must be mp4 or gif, got {video_format!r}")
+    if not math.isfinite(turns):
+        raise InputError(f"turns of the orbiting camera must be a finite number, got {turns}")
     T = frames.frame_count
     sequences = {"guidance": [frames.guidance_camera()] * T, "orbit": orbit_cameras(frames, T, turns)}
     for k, cam in enumerate(orbit_cameras(frames, views)):
         sequences[f"view_{k}"] = [cam] * T
-    videos = []
-    for name, cams in sequences.items():
-        images = []
-        with torch.no_grad():
-            for t, cam in enumerate(cams):
-                image = to_uint8(render_rgb(frames.scene_at(t), cam, background))
-                write_image(out / name / f"{t:03d}.png", image)
-                images.append(image)
-        video = out / f"{name}.{video_format}"
-        write_video(video, np.stack(images), frames.fps)
-        videos.append(video)
-    return videos
+    with atomic_dir(out) as tmp:
+        for name, cams in sequences.items():
+            images = []
+            with torch.no_grad():
+                for t, cam in enumerate(cams):
+                    image = to_uint8(render_rgb(frames.scene_at(t), cam, background))
+                    write_image(tmp / name / f"{t:03d}.png", image)
+                    images.append(image)
+            write_video(tmp / f"{name}.{video_format}", np.stack(images), frames.fps)
+    return [out / f"{name}.{video_format}" for name in sequences]
 
 
-__all__ = ["Frames4D", "export_gaussians", "load_frames", "orbit_cameras", "render_4d"]
+__all__ = ["Frames4D", "export_gaussians", "export_size", "load_frames", "orbit_cameras", "render_4d", "render_4d_size"]

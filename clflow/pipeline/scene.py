@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
+from clflow.fileio import load_arrays
 from clflow.scene.config import CameraConfig, Region, SceneConfig
 from clflow.scene.deform import deformed_covariances, polar_rotations
 
@@ -79,7 +80,7 @@ def select_object(cfg: SceneConfig, means_scene: torch.Tensor) -> torch.Tensor:
     """Bool mask [N] of the object's Gaussians (selection in scene units)."""
     sel = cfg.selection
     if sel.mask is not None:
-        raw = np.load(sel.mask)
+        raw = next(iter(load_arrays(sel.mask, "object mask").values()), np.zeros(0))
         n = means_scene.shape[0]
         if raw.dtype == bool and raw.shape == (n,):
             mask = torch.from_numpy(raw)
@@ -97,12 +98,25 @@ def select_object(cfg: SceneConfig, means_scene: torch.Tensor) -> torch.Tensor:
     return mask
 
 
+def check_object_sizes(cfg: SceneConfig, means: torch.Tensor, scales: torch.Tensor, mask: torch.Tensor) -> None:
+    """Refuse object Gaussians larger than the whole scene (std dev beyond its extent): a
+    broken splat file, which would otherwise simulate and render as nonsense."""
+    extent = float((means.max(0).values - means.min(0).values).norm())
+    largest = scales[mask].max(-1).values
+    huge = int((largest > max(extent, 1e-12)).sum())
+    if huge:
+        raise InputError(f"{cfg.splats}: {huge} of the object's {int(mask.sum())} Gaussians are larger than the "
+                         f"whole scene (std dev up to {float(largest.max()):.3g}, the scene spans {extent:.3g} in "
+                         f"scene units); check the file's scale_* values (log std devs in 3DGS files)")
+
+
 def load_scene_gaussians(cfg: SceneConfig, dtype: torch.dtype) -> tuple[SceneGaussians, torch.Tensor]:
     """All Gaussians of the splat file in the simulation frame, and the object mask [N]."""
     from clflow.splat.ply import load_ply
 
     g = load_ply(cfg.splats)
     mask = select_object(cfg, g.means.double())
+    check_object_sizes(cfg, g.means.double(), g.scales.double(), mask)
     R_up = up_rotation(cfg.up)
     means = cfg.scale * g.means.double() @ R_up.T
     covs = cfg.scale**2 * (R_up @ g.covariances.double() @ R_up.T)

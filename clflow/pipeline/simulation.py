@@ -24,7 +24,9 @@ import torch
 
 from clflow.errors import InputError
 from clflow.materials import get_material
+from clflow.mpm.substep import check_grid_memory
 from clflow.pipeline.scene import WALL_CELLS, SceneGaussians, region_mask
+from clflow.runtime import get_device
 from clflow.scene.config import SceneConfig
 from clflow.scene.filling import ObjectParticles, fill_object
 
@@ -75,6 +77,7 @@ def setup_object(cfg: SceneConfig, obj: SceneGaussians) -> ObjectSetup:
     means = obj.means.detach().double()
     lower, upper = means.min(0).values, means.max(0).values
     grid = simulation_grid(cfg, lower, upper)
+    check_grid_memory(get_device().info, grid, itemsize=4)  # before the fill, whose own limit would blame its spacing
     if cfg.fill.enabled:
         spacing = cfg.fill.spacing or grid.dx / 2  # default: 8 particles per grid cell (per_axis 1)
         particles = fill_object(means, obj.covariances.double(), obj.opacities, spacing, per_axis=cfg.fill.per_axis)

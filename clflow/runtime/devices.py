@@ -76,6 +76,7 @@ class DeviceInfo:
     max_work_group_size: int
     local_mem_size: int
     global_mem_size: int
+    max_mem_alloc_size: int  # the largest single buffer
 
     @property
     def is_pocl(self) -> bool:
@@ -120,6 +121,7 @@ def _describe(cl, platform, dev) -> DeviceInfo:
         max_work_group_size=int(dev.max_work_group_size),
         local_mem_size=int(dev.local_mem_size),
         global_mem_size=int(dev.global_mem_size),
+        max_mem_alloc_size=int(dev.max_mem_alloc_size),
     )
 
 

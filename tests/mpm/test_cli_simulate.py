@@ -89,7 +89,7 @@ def test_binary_ply_and_bad_particle_files(tmp_path):
     loaded, volume = load_particles(tmp_path / "b.ply")
     assert volume is None and np.allclose(loaded.numpy(), x, atol=1e-6)
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
-    with pytest.raises(InputError, match="not a readable .npz"):
+    with pytest.raises(InputError, match="not a numpy .npz"):
         load_particles(tmp_path / "bad.npz")
     np.savez(tmp_path / "nokey.npz", points=x)
     with pytest.raises(InputError, match="no 'positions'"):

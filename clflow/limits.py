@@ -1,0 +1,82 @@
+"""Limits checked before long work starts: the predicted output size (a limit the user
+raises with ``--max-output-gb``), the disk's free space and the machine's memory.
+
+Sizes are bytes; the predictions are upper bounds (uncompressed), so a run that passes
+never stops half-way for these reasons.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+from clflow.errors import InputError
+
+#: Default of the commands' --max-output-gb (GB = 1e9 bytes).
+DEFAULT_MAX_OUTPUT_GB = 10.0
+#: Bytes one simulated particle-frame holds in memory: x, v (3), F (9), plastic (1) reals.
+TRAJECTORY_REALS = 16
+#: Free bytes below which a failed write is put down to a full disk.
+LOW_DISK_BYTES = 1 << 20
+
+
+def format_bytes(n: float) -> str:
+    """``n`` bytes as B, kB, MB, GB or TB (powers of 1000)."""
+    for unit in ("B", "kB", "MB", "GB"):
+        if abs(n) < 1000:
+            return f"{n:.3g} {unit}"
+        n /= 1000
+    return f"{n:.3g} TB"
+
+
+def _nearest_existing(path: Path) -> Path:
+    path = Path(os.path.abspath(path))
+    while not path.exists():
+        path = path.parent
+    return path
+
+
+def check_output(path: str | os.PathLike, nbytes: int = 0, max_gb: float = DEFAULT_MAX_OUTPUT_GB,
+                 what: str = "", hint: str = "") -> None:
+    """Raise InputError unless folder ``path`` exists or can be made and is writable, and
+    ``nbytes`` (the predicted output: ``what``) is within ``max_gb`` and the disk's free
+    space; ``hint`` says how to write less. Creates nothing: call it before the work."""
+    path = Path(path)
+    existing = _nearest_existing(path)
+    if not existing.is_dir():
+        where = "" if existing == Path(os.path.abspath(path)) else f": {existing}"
+        raise InputError(f"output folder {path}{where} is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(f"output folder {path}: {existing} is not writable (read-only file system or no permission)")
+    size = f"would write up to {format_bytes(nbytes)} ({what})"
+    if nbytes > max_gb * 1e9:
+        raise InputError(f"{path}: {size}, more than --max-output-gb {max_gb:g}; raise it{hint and ' or '}{hint}")
+    free = shutil.disk_usage(existing).free
+    if nbytes > free:
+        raise InputError(f"{path}: {size}, the disk has {format_bytes(free)} free; free some space{hint and ' or '}{hint}")
+
+
+def why_not_written(path: str | os.PathLike) -> str:
+    """Why a writer that reports only failure (OpenCV) could not write ``path``, if its
+    folder or disk is the cause; else ''."""
+    folder = _nearest_existing(Path(path).parent)
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return f"{folder} is not writable (read-only file system or no permission)"
+    free = shutil.disk_usage(folder).free
+    if free < LOW_DISK_BYTES:
+        return f"no space left on the device ({format_bytes(free)} free)"
+    return ""
+
+
+def physical_memory() -> int:
+    """Bytes of RAM of this machine."""
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def check_memory(nbytes: int, what: str, hint: str) -> None:
+    """Raise InputError if ``nbytes`` (held in memory for ``what``) exceed the machine's RAM."""
+    ram = physical_memory()
+    if nbytes > ram:
+        raise InputError(f"{what} would hold about {format_bytes(nbytes)} in memory, the machine has "
+                         f"{format_bytes(ram)}; {hint}")
