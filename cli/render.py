@@ -73,9 +73,11 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
     import time
     from pathlib import Path
 
+    import numpy as np
     import torch
 
     from clflow.errors import InputError
+    from clflow.media import write_image, write_video
     from clflow.splat import load_ply
     from clflow.splat.render import rasterize, to_uint8
 
@@ -107,14 +109,14 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
         stem = _file_stem(camera.name)
         stem = stem if stem not in stems else f"{stem}_{i:04d}"  # e.g. train/r_0 and test/r_0
         stems.add(stem)
-        _write_png(output_dir / f"{stem}.png", frame)
+        write_image(output_dir / f"{stem}.png", frame)
         frames.append(frame)
     click.echo(
         f"rendered {len(gaussians)} Gaussians: {len(frames)} view(s) -> {output_dir}/ "
         f"({1e3 * seconds / len(frames):.0f} ms per view, first includes kernel builds)"
     )
     if video is not None:
-        _write_video(Path(video), frames, fps)
+        write_video(video, np.stack(frames), fps)
         click.echo(f"video: {video}")
 
 
@@ -179,40 +181,3 @@ def _file_stem(name: str) -> str:
     stem = re.sub(r"[^A-Za-z0-9_.-]", "_", name.replace("\\", "/").rsplit("/", 1)[-1])
     stem = re.sub(r"\.(png|jpe?g)$", "", stem, flags=re.IGNORECASE)
     return stem.strip(".") or "view"
-
-
-def _write_png(path, rgb) -> None:
-    import cv2
-
-    from clflow.errors import ClflowError
-    from clflow.fileio import atomic_path
-
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-            raise ClflowError(f"{path}: OpenCV could not write the PNG image")
-
-
-def _write_video(path, frames, fps: float) -> None:
-    """Frames [H, W, 3] uint8 RGB as an MP4 (MPEG-4 part 2) or an endlessly looping GIF."""
-    import cv2
-
-    from clflow.errors import ClflowError
-    from clflow.fileio import atomic_path
-
-    bgr = [cv2.cvtColor(f, cv2.COLOR_RGB2BGR) for f in frames]
-    with atomic_path(path) as tmp:
-        if path.suffix.lower() == ".gif":
-            animation = cv2.Animation()
-            animation.frames = bgr
-            animation.durations = [round(1000 / fps)] * len(bgr)  # ms per frame
-            animation.loop_count = 0
-            ok = cv2.imwriteanimation(str(tmp), animation)
-        else:
-            height, width = bgr[0].shape[:2]
-            writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, height))
-            ok = writer.isOpened()
-            for frame in bgr if ok else []:
-                writer.write(frame)
-            writer.release()
-        if not ok:
-            raise ClflowError(f"{path}: OpenCV could not write the video")

@@ -1,23 +1,19 @@
-"""Flow visualisation: the Middlebury colour wheel, comparison panels, image and video files.
+"""Flow visualisation: the Middlebury colour wheel and comparison panels.
 
-Images are [H, W, 3] uint8 RGB; files are written atomically.
+Images are [H, W, 3] uint8 RGB. ``write_image`` and ``write_video`` (clflow.media) are
+imported here too for the callers that write panels.
 """
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 
-from clflow.errors import ClflowError, InputError
-from clflow.fileio import atomic_path
+from clflow.errors import InputError
+from clflow.media import write_image, write_video  # noqa: F401 (re-exported)
 
 #: Hue segments of the Middlebury colour wheel (Baker et al. 2011): red-yellow, yellow-green,
 #: green-cyan, cyan-blue, blue-magenta, magenta-red; more steps where the eye sees more hues.
 WHEEL_SEGMENTS = (15, 6, 4, 11, 13, 6)
-#: fourcc of the codec each video suffix is written with (all in opencv-python's FFmpeg).
-VIDEO_FOURCC = {".mp4": "mp4v", ".avi": "MJPG", ".webm": "VP90", ".mkv": "FFV1", ".mov": "mp4v"}
 
 
 def colour_wheel() -> np.ndarray:
@@ -98,46 +94,3 @@ def comparison_panel(
             _label(error_to_color(error, max_flow), f"EPE {error.mean():.2f} px"),
         ]
     return np.concatenate(panels, axis=1)
-
-
-def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
-    """Write a [H, W, 3] uint8 RGB image (PNG, JPEG, ... by suffix) atomically."""
-    import cv2
-
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(np.asarray(image, np.uint8), cv2.COLOR_RGB2BGR)):
-            raise InputError(f"{path}: OpenCV cannot write an image of this type")
-
-
-def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float) -> None:
-    """Write [T, H, W, 3] uint8 RGB frames as a video atomically; the suffix picks the codec
-    (:data:`VIDEO_FOURCC`, or ``.gif`` through OpenCV's animation writer)."""
-    import cv2
-
-    path = Path(path)
-    frames = np.asarray(frames, np.uint8)
-    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[0] < 1:
-        raise InputError(f"{path}: video frames must be [T, H, W, 3] with T >= 1, got shape {frames.shape}")
-    if not fps > 0:
-        raise InputError(f"{path}: frame rate must be positive, got {fps!r}")
-    suffix = path.suffix.lower()
-    bgr = [cv2.cvtColor(f, cv2.COLOR_RGB2BGR) for f in frames]
-    with atomic_path(path) as tmp:
-        if suffix == ".gif":
-            animation = cv2.Animation()
-            animation.frames = bgr
-            animation.durations = [int(round(1000.0 / fps))] * len(bgr)
-            if not cv2.imwriteanimation(str(tmp), animation):
-                raise ClflowError(f"{path}: OpenCV could not write the GIF")
-            return
-        if suffix not in VIDEO_FOURCC:
-            raise InputError(f"{path}: unsupported video suffix {suffix!r}; use .gif or one of {', '.join(VIDEO_FOURCC)}")
-        height, width = frames.shape[1:3]
-        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*VIDEO_FOURCC[suffix]), float(fps), (width, height))
-        if not writer.isOpened():
-            raise ClflowError(f"{path}: OpenCV's FFmpeg cannot encode {VIDEO_FOURCC[suffix]!r} video here")
-        try:
-            for f in bgr:
-                writer.write(f)
-        finally:
-            writer.release()
