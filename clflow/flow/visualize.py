@@ -56,6 +56,39 @@ def flow_to_color(flow: np.ndarray, max_flow: float | None = None) -> np.ndarray
     return np.floor(255.0 * colour).astype(np.uint8)
 
 
+def wheel_legend(size: int, max_flow: float) -> np.ndarray:
+    """[size, size, 3] uint8 RGB key of :func:`flow_to_color`: each pixel of the disc has the
+    colour of a flow pointing from the centre to it (image axes: x right, y down), the rim
+    standing for ``max_flow`` px, which the label below the disc gives. Black outside it."""
+    import cv2
+
+    radius = 0.5 * size - 1.0
+    label_height = max(8, size // 5)
+    centre = np.array([0.5 * size, 0.5 * (size - label_height)])
+    y, x = np.mgrid[0 : size - label_height, 0:size] + 0.5
+    offset = np.stack([x - centre[0], y - centre[1]], axis=-1)
+    scale = (size - label_height) / size
+    inside = np.linalg.norm(offset, axis=-1) <= radius * scale
+    disc = flow_to_color(offset * (max_flow / (radius * scale)), max_flow) * inside[..., None]
+    key = np.zeros((size, size, 3), np.uint8)
+    key[: size - label_height] = disc
+    text, font = f"{max_flow:.3g} px", cv2.FONT_HERSHEY_SIMPLEX
+    font_scale = 0.3 * label_height / 8
+    width = cv2.getTextSize(text, font, font_scale, 1)[0][0]
+    cv2.putText(key, text, (max(0, (size - width) // 2), size - 2), font, font_scale, (255, 255, 255), 1, cv2.LINE_AA)
+    return key
+
+
+def _with_legend(image: np.ndarray, max_flow: float) -> np.ndarray:
+    """``image`` with a :func:`wheel_legend` in its bottom-right corner (none below 32 px)."""
+    size = min(image.shape[:2]) // 4
+    if size < 32:
+        return image
+    out = image.copy()
+    out[-size - 2 : -2, -size - 2 : -2] = wheel_legend(size, max_flow)
+    return out
+
+
 def _label(image: np.ndarray, text: str) -> np.ndarray:
     import cv2
 
@@ -80,12 +113,13 @@ def comparison_panel(
     """Side by side: guidance frame | guidance flow | simulated flow | end-point error.
 
     Without ``simulated`` only the first two panels. Both flows share one colour scale
-    (``max_flow`` px, default the largest observed speed); the error panel spans 0 to it.
+    (``max_flow`` px, default the largest observed speed), keyed by a colour wheel in the
+    guidance flow's corner (panels of 128 px and more); the error panel spans 0 to it.
     Returns [H, k W, 3] uint8 RGB.
     """
     if max_flow is None:
         max_flow = max(float(np.linalg.norm(observed, axis=-1).max()), 1e-6)
-    panels = [_label(np.asarray(frame, np.uint8), "guidance"), _label(flow_to_color(observed, max_flow), "guidance flow")]
+    panels = [_label(np.asarray(frame, np.uint8), "guidance"), _label(_with_legend(flow_to_color(observed, max_flow), max_flow), "guidance flow")]
     if simulated is not None:
         simulated = np.asarray(simulated)
         error = np.linalg.norm(simulated - observed, axis=-1)
