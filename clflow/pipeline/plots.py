@@ -47,6 +47,7 @@ def history_figure(history: list[dict], truth: dict[str, float]):
     import matplotlib
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
+    from matplotlib.ticker import MaxNLocator
 
     names = sorted(history[0]["params"], key=lambda n: (n in VELOCITY_COMPONENTS, n)) if history else []
     fig = Figure(figsize=(7.0, 2.6 * (1 + len(names))))
@@ -63,9 +64,9 @@ def history_figure(history: list[dict], truth: dict[str, float]):
                        markersize=3, linewidth=1.2, label=f"{phase} phase")
     handles = loss_axis.get_legend_handles_labels()[0]
     changes = [row for before, row in zip(history, history[1:]) if row["frames"] != before["frames"]]
-    for row in changes:
+    for row in history[:1] + changes:  # the first horizon labelled too, without a line
         x = row["iteration"] - 0.5
-        for axis in axes:
+        for axis in axes if row is not history[0] else ():
             axis.axvline(x, color="grey", linestyle=":", linewidth=0.8)
         loss_axis.annotate(f"{row['frames']}", (x, 1.0), xycoords=("data", "axes fraction"), fontsize=7,
                            color="dimgrey", ha="center", va="bottom")
@@ -96,5 +97,6 @@ def history_figure(history: list[dict], truth: dict[str, float]):
         if history:
             axis.set_xlim(history[0]["iteration"] - 0.5, history[-1]["iteration"] + 0.5)
     axes[-1].set_xlabel("iteration")
+    axes[-1].xaxis.set_major_locator(MaxNLocator(integer=True))
     fig.tight_layout()
     return fig
