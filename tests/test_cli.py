@@ -151,6 +151,8 @@ def test_pyopencl_build_messages_fold_into_one_line_unless_vv(device, caplog, fl
 
     assert CliRunner().invoke(cli, [*flags, "devices"]).exit_code == 0
     caplog.clear()
+    for name in ("pyopencl", "pyopencl.cache"):  # whatever level an earlier test left them at
+        caplog.set_level(logging.DEBUG, logger=name)
     with caplog.at_level(logging.DEBUG):
         for kernel in ("p2g", "g2p"):  # what pyopencl logs after a slow uncached build
             logging.getLogger("pyopencl").info("build program: kernel '%s' was part of a lengthy %s (%.2f s)",
