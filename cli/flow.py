@@ -60,7 +60,8 @@ def flow(obj, video, output, method, preset, raft_weights, fps, start, end, stri
         observed_flow,
     )
     from clflow.flow.video import read_video
-    from clflow.flow.visualize import comparison_panel, write_image, write_video
+    from clflow.flow.visualize import comparison_panel
+    from clflow.media import write_image, write_video
 
     if mask_image and box:
         raise InputError("give either --mask or --box, not both")

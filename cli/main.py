@@ -136,7 +136,8 @@ class CliContext:
     help="OpenCL device: a case-insensitive substring of the device name, or "
     "'platform:device'. Default: $CLFLOW_DEVICE, else the first GPU, else PoCL's CPU device.",
 )
-@click.option("-v", "--verbose", count=True, help="More log output (repeatable).")
+@click.option("-v", "--verbose", count=True,
+              help="More log output (repeatable; -vv adds pyopencl's per-kernel build messages).")
 @click.option("-q", "--quiet", count=True, help="Less log output (repeatable).")
 @click.pass_context
 def cli(ctx: click.Context, device: str | None, verbose: int, quiet: int) -> None:
@@ -149,12 +150,43 @@ def cli(ctx: click.Context, device: str | None, verbose: int, quiet: int) -> Non
         max(-2, min(verbosity, 1)), logging.DEBUG
     )
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    _fold_kernel_builds(verbosity < 2)
     warnings.showwarning = _log_warning
     ctx.obj = CliContext(device, verbosity)
     if device:
         from clflow.runtime import set_default_device
 
         set_default_device(device)
+
+
+class _FoldKernelBuilds(logging.Filter):
+    """pyopencl's "build program: ..." records (one per kernel of a slow uncached build) as a
+    single "compiling kernels (first run only)" line."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.said = False
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not str(record.msg).startswith("build program"):
+            return True
+        if self.said or record.levelno < logging.INFO:
+            return False
+        self.said = True
+        record.name, record.msg, record.args = "clflow", "compiling kernels (first run only)", ()
+        return True
+
+
+def _fold_kernel_builds(fold: bool) -> None:
+    """Fold pyopencl's build messages (``fold``), or let them through as they are (-vv)."""
+    loggers = [logging.getLogger(name) for name in ("pyopencl", "pyopencl.cache")]
+    for logger in loggers:
+        for old in [f for f in logger.filters if isinstance(f, _FoldKernelBuilds)]:
+            logger.removeFilter(old)
+    if fold:
+        folding = _FoldKernelBuilds()  # one for both loggers: the line comes once
+        for logger in loggers:
+            logger.addFilter(folding)
 
 
 def _log_warning(message, category, filename, lineno, file=None, line=None) -> None:

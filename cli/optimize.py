@@ -25,8 +25,10 @@ def _modified(path) -> int | None:
         return None
 
 
-def run_optimization(config_path: str, resume: bool, iterations: int | None, output: str | None) -> dict:
-    """Load the config, optimise with a progress bar, write the results; returns the metrics."""
+def run_optimization(config_path: str, resume: bool, iterations: int | None, output: str | None,
+                     overrides: tuple[str, ...] = ()) -> dict:
+    """Load the config (``overrides``: ``--set KEY=VALUE``), optimise with a progress bar,
+    write the results; returns the metrics."""
     import dataclasses
     from pathlib import Path
 
@@ -34,7 +36,7 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
     from clflow.pipeline.optimize import Optimization, parameter_unit
     from clflow.scene.config import load_config
 
-    cfg = load_config(config_path)
+    cfg = load_config(config_path, overrides)
     if iterations is not None:
         cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=iterations))
     if output is not None:
@@ -101,10 +103,13 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
               help="Override optimize.iterations of the config.")
 @click.option("--output", "-o", type=click.Path(file_okay=False), default=None,
               help="Results folder (default: the config's output).")
-def optimize(config, resume, iterations, output):
+@click.option("--set", "overrides", multiple=True, metavar="KEY.SUB=VALUE",
+              help="Set a config key, the value read as YAML, e.g. --set material.parameters.youngs_modulus=2e4 "
+                   "(repeatable; checked like the file). --resume needs the same --set as the run it continues.")
+def optimize(config, resume, iterations, output, overrides):
     """Optimise the material parameters of CONFIG (YAML/JSON scene config) so that the
     simulated optical flow matches the guidance video's.
 
     Writes into the output folder: params.json (final parameters, SI), metrics.json,
     history.json, loss.png, comparison.mp4 and checkpoint.json (after every iteration)."""
-    run_optimization(config, resume, iterations, output)
+    run_optimization(config, resume, iterations, output, overrides)

@@ -76,13 +76,12 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
     import time
     from pathlib import Path
 
-    import torch
-
     import numpy as np
+    import torch
 
     from clflow.errors import InputError
     from clflow.fileio import atomic_dir
-    from clflow.flow.visualize import write_image, write_video
+    from clflow.media import write_image, write_video
     from clflow.limits import check_output
     from clflow.splat import load_ply
     from clflow.splat.render import rasterize, to_uint8
@@ -132,6 +131,7 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
     )
     if video is not None:
         click.echo(f"video: {video}")
+
 
 def _views(gaussians, cameras_json, transforms_json, camera_keys, eye, target, up, n_orbit, elevation, azimuth,
            fov_x, width, height):

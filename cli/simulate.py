@@ -33,10 +33,10 @@ CONFIG_SUFFIXES = (".yaml", ".yml", ".json")
 
 
 def simulate_scene(config_path: str, params_file: str | None, out_dir: str | None, preview: str,
-                   max_output_gb: float = DEFAULT_MAX_OUTPUT_GB) -> None:
-    """``clflow simulate CONFIG``: the config's scene with its material and initial velocity
-    (or those of an optimisation's params.json), written as per-frame Gaussians and a
-    guidance-view video."""
+                   max_output_gb: float = DEFAULT_MAX_OUTPUT_GB, settings: tuple[str, ...] = ()) -> None:
+    """``clflow simulate CONFIG``: the config's scene (``settings``: ``--set KEY=VALUE``) with
+    its material and initial velocity (or those of an optimisation's params.json), written as
+    per-frame Gaussians and a guidance-view video."""
     import dataclasses
     import json
     import math
@@ -50,7 +50,7 @@ def simulate_scene(config_path: str, params_file: str | None, out_dir: str | Non
     from clflow.pipeline.material import resolve_material
     from clflow.scene.config import load_config
 
-    cfg = resolve_material(load_config(config_path))
+    cfg = resolve_material(load_config(config_path, settings))
     overrides = {}
     if params_file:
         try:
@@ -115,10 +115,13 @@ def simulate_scene(config_path: str, params_file: str | None, out_dir: str | Non
 @click.option("--preview", type=click.Choice(["mp4", "png", "none"]), default="mp4", show_default=True,
               help="Preview video, PNG frames, or none.")
 @max_output_option
+@click.option("--set", "overrides", multiple=True, metavar="KEY.SUB=VALUE",
+              help="With a CONFIG: set a config key, the value read as YAML, e.g. --set simulation.frames=48 "
+                   "(repeatable; checked like the file).")
 @click.pass_context
 def simulate(ctx, particles, shape, size, center, material, params, model, density, velocity, domain, resolution,
              particle_volume, frames, fps, substeps, gravity, walls, wall_friction, double, out_dir, params_file,
-             preview, max_output_gb):
+             preview, max_output_gb, overrides):
     """Simulate PARTICLES (.npz with 'positions' [N, 3] in m and optional 'volume' [N] in
     m^3, or a .ply point cloud) or a built-in shape, and write the per-frame positions
     (OUT/positions.npz: x [frames+1, N, 3], time [frames+1]) and a preview.
@@ -130,15 +133,16 @@ def simulate(ctx, particles, shape, size, center, material, params, model, densi
         from click.core import ParameterSource
 
         particle_only = [p.opts[0] for p in ctx.command.params
-                         if p.name not in ("particles", "out_dir", "params_file", "preview", "max_output_gb")
+                         if p.name not in ("particles", "out_dir", "params_file", "preview", "max_output_gb",
+                                           "overrides")
                          and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE]
         if particle_only:
             raise click.UsageError(f"with a scene config, the config sets the simulation; drop "
                                    f"{', '.join(particle_only)}")
-        simulate_scene(particles, params_file, out_dir, preview, max_output_gb)
+        simulate_scene(particles, params_file, out_dir, preview, max_output_gb, overrides)
         return
-    if params_file:
-        raise click.UsageError("--params needs a scene CONFIG (.yaml/.yml/.json)")
+    if params_file or overrides:
+        raise click.UsageError(f"{'--params' if params_file else '--set'} needs a scene CONFIG (.yaml/.yml/.json)")
     out_dir = out_dir or "simulation"
     import logging
     from pathlib import Path

@@ -350,7 +350,7 @@ def make_case(folder: str | Path, case: SyntheticCase, resolution: Resolution = 
     import yaml
 
     from clflow.fileio import atomic_write_text
-    from clflow.flow.visualize import write_image, write_video
+    from clflow.media import write_image, write_video
     from clflow.pipeline.forward import render_frames, simulate_config
     from clflow.pipeline.scene import guidance_camera
     from clflow.scene.config import parse_config

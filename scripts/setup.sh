@@ -3,7 +3,9 @@
 #   1. PoCL (the CPU OpenCL driver), the ICD loader and oclgrind, from apt;
 #   2. a virtual environment in .venv;
 #   3. torch 2.13.0 first (a CPU build; any other torch request pulls a multi-GB CUDA build),
-#   4. then clflow itself (editable) with its test extras.
+#   4. then clflow itself (editable) with its test extras; pip brings the dependencies that
+#      pyproject.toml declares (PyAV with its own FFmpeg and libx264 for H.264 video, Pillow,
+#      matplotlib, ...), none of which asks for another torch.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 

@@ -93,7 +93,7 @@ class _InterruptedOptimization:
 
         return SimpleNamespace(iteration=json.loads(self.checkpoint.read_text())["state"]["iteration"])
 
-    def run(self, resume):
+    def run(self, resume, start=None):
         if self.iterations_in_run:
             self.checkpoint.write_text(json.dumps({"state": {"iteration": self.iterations_in_run}}))
         raise KeyboardInterrupt
@@ -107,10 +107,11 @@ def interrupt_optimize(monkeypatch, tmp_path, iterations_in_run, *args):
     import clflow.pipeline.optimize
     import clflow.scene.config
 
-    cfg = SimpleNamespace(optimize=SimpleNamespace(search=None), output=tmp_path)
-    monkeypatch.setattr(clflow.scene.config, "load_config", lambda path: cfg)
+    cfg = SimpleNamespace(optimize=SimpleNamespace(search=None, materials=()), output=tmp_path)
+    monkeypatch.setattr(clflow.scene.config, "load_config", lambda path, overrides=(): cfg)
     monkeypatch.setattr(clflow.pipeline.optimize, "Optimization",
-                        lambda cfg: _InterruptedOptimization(cfg, tmp_path / "checkpoint.json", iterations_in_run))
+                        lambda cfg, hypotheses=None: _InterruptedOptimization(cfg, tmp_path / "checkpoint.json",
+                                                                              iterations_in_run))
     return CliRunner().invoke(cli, ["optimize", "scene.yaml", *args])
 
 
@@ -143,3 +144,25 @@ def test_ctrl_c_right_after_resuming_keeps_the_resume_hint(monkeypatch, tmp_path
     (tmp_path / "checkpoint.json").write_text(json.dumps({"state": {"iteration": 7}}))
     res = interrupt_optimize(monkeypatch, tmp_path, 0, "--resume")
     assert res.exit_code == 130 and "interrupted after 7 iterations" in res.output and "--resume" in res.output
+
+
+@pytest.mark.parametrize("flags, folded", [([], True), (["-v"], True), (["-vv"], False)])
+def test_pyopencl_build_messages_fold_into_one_line_unless_vv(device, caplog, flags, folded):
+    import logging
+
+    assert CliRunner().invoke(cli, [*flags, "devices"]).exit_code == 0
+    caplog.clear()
+    for name in ("pyopencl", "pyopencl.cache"):  # whatever level an earlier test left them at
+        caplog.set_level(logging.DEBUG, logger=name)
+    with caplog.at_level(logging.DEBUG):
+        for kernel in ("p2g", "g2p"):  # what pyopencl logs after a slow uncached build
+            logging.getLogger("pyopencl").info("build program: kernel '%s' was part of a lengthy %s (%.2f s)",
+                                               kernel, "uncached source build", 1.5)
+            logging.getLogger("pyopencl.cache").debug("build program: binary cache miss (key: %s)", kernel)
+        logging.getLogger("pyopencl").info("another message")
+    lines = [(r.name, r.getMessage()) for r in caplog.records]
+    if folded:
+        assert lines == [("clflow", "compiling kernels (first run only)"), ("pyopencl", "another message")]
+    else:
+        assert len(lines) == 5 and lines[0] == ("pyopencl", "build program: kernel 'p2g' was part of a lengthy "
+                                                            "uncached source build (1.50 s)")

@@ -24,7 +24,7 @@ import numpy as np
 
 from clflow.errors import InputError
 
-#: Suffixes read with OpenCV's FFmpeg backend (GIF included).
+#: Suffixes read through FFmpeg (PyAV; GIF included).
 VIDEO_SUFFIXES = (".mp4", ".avi", ".webm", ".mkv", ".mov", ".gif")
 #: Suffixes of frames in an image folder; the number in each name gives the order.
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
@@ -36,9 +36,10 @@ class Video:
 
     Attributes:
         frames: [T, H, W, 3] uint8 RGB.
-        times: [T] float64 seconds from the start of the source, or None when the frame
+        times: [T] float64 seconds from the first frame, or None when the frame
             rate is unknown (an image folder read without ``fps``).
-        fps: frames per second of the source (None: unknown).
+        fps: frames per second of the source (None: unknown, or variable: then ``times``
+            holds the file's own timestamps).
         source: the file or folder the frames came from (named in error messages).
     """
 
@@ -60,7 +61,7 @@ class Video:
         return self.frames.shape[2]
 
     def describe(self) -> str:
-        fps = f"{self.fps:g} fps" if self.fps else "unknown fps"
+        fps = f"{self.fps:g} fps" if self.fps else "unknown fps" if self.times is None else "variable frame rate"
         return f"{self.source}: {self.frame_count} frames, {self.width}x{self.height}, {fps}"
 
     def _times(self, what: str) -> np.ndarray:
@@ -158,31 +159,18 @@ def _read_image_folder(folder: Path, fps: float | None) -> Video:
 
 
 def _read_container(path: Path, fps: float | None) -> Video:
-    import cv2
+    from clflow.media import decode_video
 
-    capture = cv2.VideoCapture(str(path))
-    if not capture.isOpened():
-        raise InputError(f"{path}: not a readable video (OpenCV/FFmpeg cannot open it)")
-    frames = []
-    try:
-        while True:
-            ok, image = capture.read()
-            if not ok:
-                break
-            if frames and image.shape != frames[0].shape:
-                raise InputError(f"{path}: frame {len(frames)} changes size; cannot read a variable-size video")
-            frames.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
-        source_fps = capture.get(cv2.CAP_PROP_FPS)
-        listed = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))  # what the container's index says
-    finally:
-        capture.release()
-    if not frames:
-        raise InputError(f"{path}: the video holds no decodable frame")
-    if len(frames) < listed:
-        raise InputError(f"{path}: damaged video: only the first {len(frames)} of its {listed} frames decode")
-    if fps is None and source_fps > 0 and np.isfinite(source_fps):
-        fps = float(source_fps)
-    return _make_video(np.stack(frames), fps, str(path))
+    frames, stamps, rate = decode_video(path)
+    if fps is not None or stamps is None or len(stamps) < 2:
+        return _make_video(frames, fps or rate, str(path))
+    steps = np.diff(stamps)
+    if not (steps > 0).all():
+        raise InputError(f"{path}: frame timestamps do not increase (frame {int(np.argmin(steps)) + 1})")
+    period = 1.0 / rate if rate else float(steps.mean())
+    if np.all(np.abs(steps - period) <= 0.01 * period):  # constant rate (timestamps are rounded)
+        return _make_video(frames, 1.0 / period, str(path))
+    return Video(frames, stamps, None, str(path))  # variable frame rate: the file's own times
 
 
 def _make_video(frames: np.ndarray, fps: float | None, source: str) -> Video:
@@ -199,6 +187,7 @@ def read_video(path: str | os.PathLike, *, fps: float | None = None) -> Video:
         path: the file, or a folder of images ordered by the number in their names.
         fps: frame rate in frames per second; overrides the file's and is the only source
             of timing for an image folder (without it the folder's times are unknown).
+            Without it a file with a variable frame rate keeps its own timestamps.
 
     Returns:
         :class:`Video` with [T, H, W, 3] uint8 RGB frames.

@@ -1,24 +1,17 @@
-"""Flow visualisation: the Middlebury colour wheel, comparison panels, image and video files.
+"""Flow visualisation: the Middlebury colour wheel and comparison panels.
 
-Images are [H, W, 3] uint8 RGB; files are written atomically.
+Images are [H, W, 3] uint8 RGB; clflow.media writes them.
 """
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 
-from clflow.errors import ClflowError, InputError
-from clflow.fileio import atomic_path
-from clflow.limits import why_not_written
+from clflow.errors import InputError
 
 #: Hue segments of the Middlebury colour wheel (Baker et al. 2011): red-yellow, yellow-green,
 #: green-cyan, cyan-blue, blue-magenta, magenta-red; more steps where the eye sees more hues.
 WHEEL_SEGMENTS = (15, 6, 4, 11, 13, 6)
-#: fourcc of the codec each video suffix is written with (all in opencv-python's FFmpeg).
-VIDEO_FOURCC = {".mp4": "mp4v", ".avi": "MJPG", ".webm": "VP90", ".mkv": "FFV1", ".mov": "mp4v"}
 
 
 def colour_wheel() -> np.ndarray:
@@ -61,6 +54,39 @@ def flow_to_color(flow: np.ndarray, max_flow: float | None = None) -> np.ndarray
     return np.floor(255.0 * colour).astype(np.uint8)
 
 
+def wheel_legend(size: int, max_flow: float) -> np.ndarray:
+    """[size, size, 3] uint8 RGB key of :func:`flow_to_color`: each pixel of the disc has the
+    colour of a flow pointing from the centre to it (image axes: x right, y down), the rim
+    standing for ``max_flow`` px, which the label below the disc gives. Black outside it."""
+    import cv2
+
+    radius = 0.5 * size - 1.0
+    label_height = max(8, size // 5)
+    centre = np.array([0.5 * size, 0.5 * (size - label_height)])
+    y, x = np.mgrid[0 : size - label_height, 0:size] + 0.5
+    offset = np.stack([x - centre[0], y - centre[1]], axis=-1)
+    scale = (size - label_height) / size
+    inside = np.linalg.norm(offset, axis=-1) <= radius * scale
+    disc = flow_to_color(offset * (max_flow / (radius * scale)), max_flow) * inside[..., None]
+    key = np.zeros((size, size, 3), np.uint8)
+    key[: size - label_height] = disc
+    text, font = f"{max_flow:.3g} px", cv2.FONT_HERSHEY_SIMPLEX
+    font_scale = 0.3 * label_height / 8
+    width = cv2.getTextSize(text, font, font_scale, 1)[0][0]
+    cv2.putText(key, text, (max(0, (size - width) // 2), size - 2), font, font_scale, (255, 255, 255), 1, cv2.LINE_AA)
+    return key
+
+
+def _with_legend(image: np.ndarray, max_flow: float) -> np.ndarray:
+    """``image`` with a :func:`wheel_legend` in its bottom-right corner (none below 32 px)."""
+    size = min(image.shape[:2]) // 4
+    if size < 32:
+        return image
+    out = image.copy()
+    out[-size - 2 : -2, -size - 2 : -2] = wheel_legend(size, max_flow)
+    return out
+
+
 def _label(image: np.ndarray, text: str) -> np.ndarray:
     import cv2
 
@@ -85,12 +111,13 @@ def comparison_panel(
     """Side by side: guidance frame | guidance flow | simulated flow | end-point error.
 
     Without ``simulated`` only the first two panels. Both flows share one colour scale
-    (``max_flow`` px, default the largest observed speed); the error panel spans 0 to it.
+    (``max_flow`` px, default the largest observed speed), keyed by a colour wheel in the
+    guidance flow's corner (panels of 128 px and more); the error panel spans 0 to it.
     Returns [H, k W, 3] uint8 RGB.
     """
     if max_flow is None:
         max_flow = max(float(np.linalg.norm(observed, axis=-1).max()), 1e-6)
-    panels = [_label(np.asarray(frame, np.uint8), "guidance"), _label(flow_to_color(observed, max_flow), "guidance flow")]
+    panels = [_label(np.asarray(frame, np.uint8), "guidance"), _label(_with_legend(flow_to_color(observed, max_flow), max_flow), "guidance flow")]
     if simulated is not None:
         simulated = np.asarray(simulated)
         error = np.linalg.norm(simulated - observed, axis=-1)
@@ -99,54 +126,3 @@ def comparison_panel(
             _label(error_to_color(error, max_flow), f"EPE {error.mean():.2f} px"),
         ]
     return np.concatenate(panels, axis=1)
-
-
-def _write_failed(path, what: str) -> ClflowError:
-    """The error of an OpenCV writer that reported only failure: a full disk or unwritable
-    folder if either is the cause, else ``what``."""
-    return ClflowError(f"{path}: {why_not_written(path) or what}")
-
-
-def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
-    """Write a [H, W, 3] uint8 RGB image (PNG, JPEG, ... by suffix) atomically."""
-    import cv2
-
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(np.asarray(image, np.uint8), cv2.COLOR_RGB2BGR)):
-            raise _write_failed(path, "OpenCV cannot write an image of this type")
-
-
-def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float) -> None:
-    """Write [T, H, W, 3] uint8 RGB frames as a video atomically; the suffix picks the codec
-    (:data:`VIDEO_FOURCC`, or ``.gif`` through OpenCV's animation writer)."""
-    import cv2
-
-    path = Path(path)
-    frames = np.asarray(frames, np.uint8)
-    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[0] < 1:
-        raise InputError(f"{path}: video frames must be [T, H, W, 3] with T >= 1, got shape {frames.shape}")
-    if not fps > 0:
-        raise InputError(f"{path}: frame rate must be positive, got {fps!r}")
-    suffix = path.suffix.lower()
-    bgr = [cv2.cvtColor(f, cv2.COLOR_RGB2BGR) for f in frames]
-    with atomic_path(path) as tmp:
-        if suffix == ".gif":
-            animation = cv2.Animation()
-            animation.frames = bgr
-            animation.durations = [int(round(1000.0 / fps))] * len(bgr)
-            if not cv2.imwriteanimation(str(tmp), animation):
-                raise _write_failed(path, "OpenCV could not write the GIF")
-            return
-        if suffix not in VIDEO_FOURCC:
-            raise InputError(f"{path}: unsupported video suffix {suffix!r}; use .gif or one of {', '.join(VIDEO_FOURCC)}")
-        height, width = frames.shape[1:3]
-        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*VIDEO_FOURCC[suffix]), float(fps), (width, height))
-        if not writer.isOpened():
-            raise _write_failed(path, f"OpenCV's FFmpeg cannot encode {VIDEO_FOURCC[suffix]!r} video here")
-        try:
-            for f in bgr:
-                writer.write(f)
-        finally:
-            writer.release()
-        if why_not_written(tmp):  # FFmpeg does not report failed writes: a full disk truncates silently
-            raise _write_failed(path, "")

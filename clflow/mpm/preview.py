@@ -1,4 +1,4 @@
-"""A quick point renderer for previews of simulated particles (OpenCV, no GPU)."""
+"""A quick point renderer for previews of simulated particles (numpy, no GPU)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from clflow.fileio import atomic_path
+from clflow.media import write_image, write_video
 
 
 def _view_rotation(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
@@ -21,7 +21,7 @@ def _view_rotation(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
 
 def render_points(x: torch.Tensor, lower, upper, size: int = 512, azimuth: float = 30.0,
                   elevation: float = 20.0) -> np.ndarray:
-    """[size, size, 3] uint8 BGR image of positions x [N, 3] (m) from an orthographic camera
+    """[size, size, 3] uint8 RGB image of positions x [N, 3] (m) from an orthographic camera
     looking at the box [lower, upper] from ``azimuth`` / ``elevation`` (degrees, y up);
     nearer points are brighter and drawn over farther ones."""
     lo, hi = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
@@ -41,9 +41,9 @@ def render_points(x: torch.Tensor, lower, upper, size: int = 512, azimuth: float
     for dy in (0, 1):  # 2x2 pixel dots
         for dx in (0, 1):
             yy, xx = np.clip(py[order] + dy, 0, size - 1), np.clip(px[order] + dx, 0, size - 1)
-            img[yy, xx, 0] = shade // 2
+            img[yy, xx, 0] = 255 - shade // 2
             img[yy, xx, 1] = shade
-            img[yy, xx, 2] = 255 - shade // 2
+            img[yy, xx, 2] = shade // 2
     return img
 
 
@@ -52,21 +52,11 @@ PREVIEW_SIZE = 512  # px, side of the square preview frames
 
 def write_preview(frames: torch.Tensor, lower, upper, out: Path, fps: float, size: int = PREVIEW_SIZE) -> Path:
     """Write frames [T, N, 3] as ``out``: an .mp4/.avi video, or a folder of PNG images."""
-    import cv2
-
     out = Path(out)
     if out.suffix.lower() in (".mp4", ".avi"):
-        with atomic_path(out) as tmp:
-            fourcc = cv2.VideoWriter_fourcc(*("mp4v" if out.suffix.lower() == ".mp4" else "MJPG"))
-            writer = cv2.VideoWriter(str(tmp), fourcc, float(fps), (size, size))
-            try:
-                for x in frames:
-                    writer.write(render_points(x, lower, upper, size))
-            finally:
-                writer.release()
+        write_video(out, np.stack([render_points(x, lower, upper, size) for x in frames]), fps)
         return out
     out.mkdir(parents=True, exist_ok=True)
     for k, x in enumerate(frames):
-        with atomic_path(out / f"frame_{k:04d}.png") as tmp:
-            cv2.imwrite(str(tmp), render_points(x, lower, upper, size))
+        write_image(out / f"frame_{k:04d}.png", render_points(x, lower, upper, size))
     return out

@@ -90,7 +90,7 @@ def render_frames(result: SimulationResult, camera=None) -> np.ndarray:
 
 def render_video(result: SimulationResult, frames_dir: Path, video: Path | None = None, camera=None) -> np.ndarray:
     """Write the frames as ``frames_dir/000.png ...`` (and ``video``, .mp4 or .gif); each file atomically."""
-    from clflow.flow.visualize import write_image, write_video
+    from clflow.media import write_image, write_video
 
     frames = render_frames(result, camera)
     frames_dir.mkdir(parents=True, exist_ok=True)

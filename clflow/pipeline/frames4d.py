@@ -181,7 +181,7 @@ def render_4d(frames: Frames4D, out: Path, *, views: int = 0, turns: float = 1.0
     (``<name>.mp4`` or ``.gif``), all written in a temporary folder and moved into ``out`` at
     the end: a failure leaves ``out`` as it was. Returns the videos written."""
     from clflow.fileio import atomic_dir
-    from clflow.flow.visualize import write_image, write_video
+    from clflow.media import write_image, write_video
     from clflow.pipeline.forward import to_uint8
     from clflow.pipeline.render import render_rgb
 

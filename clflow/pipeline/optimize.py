@@ -35,6 +35,7 @@ from clflow.errors import ClflowError, InputError
 from clflow.fileio import atomic_path, atomic_write_text
 from clflow.pipeline.forward import Prepared, SimulationResult, material_values, prepare, render_frames
 from clflow.pipeline.material import resolve_material
+from clflow.pipeline.plots import write_history_plot
 from clflow.pipeline.render import frame_gaussians, render_flow, render_object_alpha
 from clflow.pipeline.scene import guidance_camera
 from clflow.pipeline.simulation import build_simulator, run
@@ -622,7 +623,8 @@ class Optimization:
 
     def write_results(self, state: OptimizerState) -> dict:
         """params.json, metrics.json, history.json, loss.png and comparison.mp4 in output/."""
-        from clflow.flow.visualize import comparison_panel, write_video
+        from clflow.flow.visualize import comparison_panel
+        from clflow.media import write_video
 
         out = self.cfg.output
         final = self.values(state.z)
@@ -684,44 +686,6 @@ def parameter_unit(cfg: SceneConfig, name: str) -> str:
     if name in VELOCITY_COMPONENTS:
         return "m/s"
     return DENSITY.unit if name == "density" else get_material(cfg.material.type).param(name).unit
-
-
-def write_history_plot(path: Path, history: list[dict], truth: dict[str, float]) -> None:
-    """PNG: the loss (log scale) and each parameter (log10 of its value; velocity components
-    in m/s) per iteration, with the ground truth as a dashed line when known. Drawn with OpenCV."""
-    import cv2
-
-    from clflow.flow.visualize import write_image
-
-    names = sorted(history[0]["params"]) if history else []
-    panels = [("flow loss (log10)", [math.log10(max(h["loss"], 1e-30)) for h in history], None)]
-    for n in names:
-        if n in VELOCITY_COMPONENTS:  # either sign: linear
-            panels.append((f"{n} (m/s)", [h["params"][n] for h in history], truth.get(n)))
-            continue
-        t = math.log10(truth[n]) if n in truth and truth[n] > 0 else None
-        panels.append((f"log10 {n}", [math.log10(max(h["params"][n], 1e-30)) for h in history], t))
-    width, height = 420, 220
-    images = []
-    for title, values, target in panels:
-        img = np.full((height, width, 3), 255, np.uint8)
-        cv2.putText(img, title, (10, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-        if values:
-            lo, hi = min(values + ([target] if target is not None else [])), max(values + ([target] if target is not None else []))
-            span = hi - lo or 1.0
-            to_px = lambda i, y: (int(40 + (width - 60) * i / max(1, len(values) - 1)),  # noqa: E731
-                                  int(height - 30 - (height - 60) * (y - lo) / span))
-            cv2.rectangle(img, (40, 30), (width - 20, height - 30), (200, 200, 200), 1)
-            if target is not None:
-                y = to_px(0, target)[1]
-                for x0 in range(40, width - 20, 12):
-                    cv2.line(img, (x0, y), (min(x0 + 6, width - 20), y), (0, 160, 0), 1)
-            pts = np.array([to_px(i, y) for i, y in enumerate(values)], np.int32)
-            cv2.polylines(img, [pts], False, (200, 60, 30), 2, cv2.LINE_AA)
-            cv2.putText(img, f"{hi:.3g}", (2, 36), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1)
-            cv2.putText(img, f"{lo:.3g}", (2, height - 30), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1)
-        images.append(img)
-    write_image(path, np.concatenate(images, 0))
 
 
 __all__ = ["Optimization", "OptimizerState", "horizon", "learning_rate", "parameter_unit", "phase_of", "rate_schedule",

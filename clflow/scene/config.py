@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 from clflow.errors import InputError
 from clflow.flow.optical_flow import CONFIDENCES, DEFAULT_CONFIDENCE, DEFAULT_PRESET, DIS_PRESETS
@@ -685,8 +686,14 @@ def _load_json(text: str) -> Any:
     return _json_without_duplicates(json.loads(text, object_pairs_hook=_JsonPairs))
 
 
+#: A number with an exponent that YAML 1.1 (PyYAML) reads as a string: no dot (``2e4``) or
+#: no sign in the exponent (``2.0e4``). YAML 1.2 and JSON read them as numbers, and so do we.
+_EXPONENT_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$")
+
+
 def _load_yaml(text: str) -> Any:
-    """``yaml.safe_load`` that rejects a mapping key given twice (PyYAML keeps the last)."""
+    """``yaml.safe_load`` that reads ``2e4`` as a float and rejects a mapping key given twice
+    (PyYAML keeps the last)."""
     import yaml
 
     class StrictLoader(yaml.SafeLoader):
@@ -709,11 +716,16 @@ def _load_yaml(text: str) -> Any:
                 for i, item in enumerate(node.value):
                     self._check_duplicates(item, _dotted(path, i))
 
+    StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _EXPONENT_FLOAT, list("-+0123456789."))
     return yaml.load(text, Loader=StrictLoader)
 
 
-def load_config(path: str | Path) -> SceneConfig:
-    """Read and validate a YAML (.yaml/.yml) or JSON (.json) scene config."""
+def load_config(path: str | Path, overrides: Sequence[str] = ()) -> SceneConfig:
+    """Read and validate a YAML (.yaml/.yml) or JSON (.json) scene config.
+
+    ``overrides``: ``key.sub=value`` strings (the CLI's ``--set``), each value read as YAML
+    (``2e4``, ``[0, 1, 0]``, ``auto``), set over the file's before the whole is validated.
+    """
     path = Path(path)
     try:
         text = path.read_text()
@@ -733,4 +745,45 @@ def load_config(path: str | Path) -> SceneConfig:
         raise InputError(f"{path}: not valid {'JSON' if path.suffix.lower() == '.json' else 'YAML'}: {exc}") from None
     except _DuplicateKey as exc:
         raise InputError(f"{path}: {exc}: duplicate key (each key may appear only once)") from None
-    return parse_config(data, str(path), path.parent.resolve())
+    data = {} if data is None else data
+    keys = {}
+    for item in overrides:
+        keys[_override(data, item)] = item
+    try:
+        return parse_config(data, str(path), path.parent.resolve())
+    except InputError as exc:
+        # name the --set that brought in the bad key or value, not only the file
+        where = str(exc).removeprefix(f"{path}: ").split(":")[0]
+        for key, item in keys.items():
+            if key == where or key.startswith((where + ".", where + "[")) or where.startswith(key + "."):
+                raise InputError(f"--set {item}: {str(exc).removeprefix(f'{path}: ')}") from None
+        raise
+
+
+def _override(data: Any, item: str) -> str:
+    """Set ``key.sub=value`` (value read as YAML) in the parsed config ``data``, making the
+    mappings on the way; returns the dotted key."""
+    import yaml
+
+    key, sep, text = item.partition("=")
+    parts = key.strip().split(".")
+    if not sep or not all(re.fullmatch(r"[A-Za-z0-9_]+", p) for p in parts):
+        raise InputError(f"--set {item}: expected KEY.SUB=VALUE with a dotted key of config names, "
+                         f"e.g. simulation.frames=24")
+    try:
+        value = _load_yaml(text)
+    except (yaml.YAMLError, _DuplicateKey) as exc:
+        raise InputError(f"--set {item}: the value is not valid YAML ({' '.join(str(exc).split())})") from None
+    node, walked = data, []
+    for part in parts[:-1]:
+        if not isinstance(node, dict):
+            break
+        if node.get(part) is None:
+            node[part] = {}
+        node = node[part]
+        walked.append(part)
+    if not isinstance(node, dict):
+        where = ".".join(walked) or "the config"
+        raise InputError(f"--set {item}: {where} is a {type(node).__name__} in the config, not a mapping of keys")
+    node[parts[-1]] = value
+    return ".".join(parts)

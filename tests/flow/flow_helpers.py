@@ -4,7 +4,7 @@ import numpy as np
 
 
 def write_image_folder(folder, frames, names=None):
-    from clflow.flow.visualize import write_image
+    from clflow.media import write_image
 
     folder.mkdir(parents=True, exist_ok=True)
     names = names or [f"frame_{i}.png" for i in range(len(frames))]  # unpadded: order by number, not text

@@ -5,7 +5,7 @@ from click.testing import CliRunner
 
 from clflow.flow.flo import read_flo
 from clflow.flow.video import read_video
-from clflow.flow.visualize import write_video
+from clflow.media import write_video
 from clflow_cli.main import cli
 
 

@@ -8,7 +8,7 @@ from clflow.errors import InputError
 from clflow.flow.flo import read_flo, write_flo
 from clflow.flow.losses import charbonnier_flow_loss, masked_flow_loss, render_loss
 from clflow.flow.metrics import ECMS_ALPHA, ecms, endpoint_error, flow_slope
-from clflow.flow.visualize import colour_wheel, comparison_panel, flow_to_color
+from clflow.flow.visualize import colour_wheel, comparison_panel, flow_to_color, wheel_legend
 
 D = torch.float64
 
@@ -200,8 +200,24 @@ def test_middlebury_colours():
     assert panel.shape == (5, 24, 3)
 
 
+def test_colour_wheel_legend_keys_the_flow_colours():
+    key = wheel_legend(60, 4.0)
+    disc = 60 - 60 // 5  # the label takes the rows below the disc
+    cy, cx = disc // 2, 30
+    expected = flow_to_color(np.array([[[3.0, 0.0], [0.0, -3.0], [0.0, 0.0]]]), 4.0)[0].astype(int)
+    for (y, x), colour in zip([(cy, cx + 18), (cy - 18, cx), (cy, cx)], expected):  # right, up, centre
+        assert np.abs(key[y, x].astype(int) - colour).max() <= 12
+    assert key[0, 0].tolist() == [0, 0, 0]  # outside the disc
+    assert key[disc:].max() == 255  # the "4 px" label
+    flow = np.zeros((160, 200, 2))
+    flow[..., 0] = 4.0
+    panel = comparison_panel(np.zeros((160, 200, 3), np.uint8), flow)
+    np.testing.assert_array_equal(panel[-42:-2, -42:-2], wheel_legend(40, 4.0))  # in the guidance flow's corner
+    assert (panel[40:100, 200:300] == flow_to_color(flow, 4.0)[40:100, :100]).all()  # below the label: the flow
+
+
 def test_visualisation_errors(tmp_path):
-    from clflow.flow.visualize import write_video
+    from clflow.media import write_video
 
     frames = np.zeros((2, 8, 8, 3), np.uint8)
     with pytest.raises(InputError, match="out.flv: unsupported video suffix '.flv'"):

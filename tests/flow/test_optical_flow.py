@@ -17,7 +17,7 @@ from clflow.flow.optical_flow import (
     observed_flow,
 )
 from clflow.flow.synthetic import Motion, moving_texture, textured_image
-from clflow.flow.visualize import write_image
+from clflow.media import write_image
 
 HEIGHT, WIDTH = 96, 128
 MOTIONS = {

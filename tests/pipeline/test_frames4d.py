@@ -137,3 +137,23 @@ def test_optimize_cli_bad_config(quick_demo, tmp_path, key, value, message):
     res = run("optimize", bad)
     assert res.exit_code == 1 and re.search(message, res.output), res.output
     assert "Traceback" not in res.output
+
+
+def test_set_overrides_config_keys_on_simulate_and_optimize(quick_demo, tmp_path):
+    out = tmp_path / "short"
+    res = run("simulate", quick_demo / "config_truth.yaml", "--set", "simulation.frames=2", "--set",
+              "material.parameters.youngs_modulus=3e4", "-o", out, "--preview", "none")
+    assert res.exit_code == 0, res.output
+    assert len(list(out.glob("frame_*.ply"))) == 3  # 2 frames + the initial state, not the config's 8
+    for command, item, message in [
+        ("simulate", "simulation.framez=3", "simulation.framez: unknown key; known keys here:"),
+        ("optimize", "material.parameters.youngs_modulus=soft", "youngs_modulus"),
+        ("optimize", "optimize.iterations=2.5", "optimize.iterations: must be an integer >= 1, got 2.5"),
+    ]:
+        res = run(command, quick_demo / "config.yaml", "--set", item, "-o", tmp_path / "bad")
+        assert res.exit_code == 1, res.output
+        assert res.output.startswith(f"Error: --set {item}: ") and message in res.output
+        assert res.output.count("\n") == 1
+    assert not (tmp_path / "bad").exists()
+    res = run("simulate", "--set", "simulation.frames=2", "-o", tmp_path / "shape")
+    assert res.exit_code == 2 and "--set needs a scene CONFIG" in res.output

@@ -87,7 +87,7 @@ def test_bad_view_lists_are_config_errors(quick_demo, keys, message):
 def test_a_short_or_faster_second_video_fails_before_any_flow(quick_demo, tmp_path, side_view):
     import shutil
 
-    from clflow.flow.visualize import write_video
+    from clflow.media import write_video
 
     data = yaml.safe_load((quick_demo / "config.yaml").read_text())
     side_camera, side_video = side_view

@@ -105,7 +105,7 @@ def test_a_video_file_keeps_its_own_frame_rate(demo_config, quick_demo, tmp_path
     import cv2
     import numpy as np
 
-    from clflow.flow.visualize import write_video
+    from clflow.media import write_video
     from clflow.pipeline.forward import prepare
     from clflow.pipeline.optimize import observed_flow_of
 

@@ -211,3 +211,50 @@ def test_material_hypotheses_check_parameters_against_all_of_them(folder):
     truth = edit("evaluation", {"ground_truth": {"viscosity": 10.0}})
     truth["optimize"] = data["optimize"]
     assert parse(truth, folder).ground_truth == {"viscosity": 10.0}
+
+
+def test_yaml_numbers_with_an_exponent_are_numbers(folder):
+    import yaml
+
+    text = yaml.safe_dump(GOOD).replace("youngs_modulus: 10000.0", "youngs_modulus: 2e4")
+    assert "youngs_modulus: 2e4" in text
+    (folder / "scene.yaml").write_text(text + "evaluation:\n  ground_truth: {youngs_modulus: 1.5E+5, density: 5e2}\n")
+    cfg = load_config(folder / "scene.yaml")
+    assert cfg.material.parameters["youngs_modulus"] == 2e4
+    assert cfg.ground_truth == {"youngs_modulus": 1.5e5, "density": 500.0}
+    (folder / "quoted.yaml").write_text(text.replace("youngs_modulus: 2e4", "youngs_modulus: '2e4'"))
+    with pytest.raises(InputError, match=r"youngs_modulus.*'2e4'"):  # a quoted string stays a string
+        load_config(folder / "quoted.yaml")
+
+
+@pytest.fixture
+def scene_yaml(folder):
+    import yaml
+
+    (folder / "scene.yaml").write_text(yaml.safe_dump(GOOD))
+    return folder / "scene.yaml"
+
+
+def test_overrides_set_keys_before_validation(scene_yaml):
+    cfg = load_config(scene_yaml, ["simulation.frames=20", "material.parameters.youngs_modulus=3e5",
+                                   "object.velocity=[0, 1.5, 0]", "optimize.search.samples=4", "scene.up=+y"])
+    assert cfg.simulation.frames == 20 and cfg.material.parameters["youngs_modulus"] == 3e5
+    assert cfg.velocity == (0.0, 1.5, 0.0) and cfg.optimize.search.samples == 4 and cfg.up == "+y"
+    assert load_config(scene_yaml, ["simulation.frames=20", "simulation.frames=8"]).simulation.frames == 8  # last wins
+    assert load_config(scene_yaml).simulation.frames == 12
+
+
+@pytest.mark.parametrize("item, message", [
+    ("simulation.framez=3", r"^--set simulation.framez=3: simulation.framez: unknown key; known keys here: .*frames"),
+    ("simulation.frames=many", r"^--set simulation.frames=many: simulation.frames: must be an integer >= 1, got 'many'$"),
+    ("material.parameters.youngs_modulus=-5", r"^--set material.parameters.youngs_modulus=-5: .*youngs_modulus"),
+    ("bogus.key=1", r"^--set bogus.key=1: bogus: unknown key"),
+    ("scene.scale.x=1", r"^--set scene.scale.x=1: scene.scale is a float in the config, not a mapping of keys$"),
+    ("simulation.frames", r"^--set simulation.frames: expected KEY.SUB=VALUE"),
+    ("simulation..frames=2", r"^--set simulation..frames=2: expected KEY.SUB=VALUE"),
+    ("object.velocity=[0, 1", r"^--set object.velocity=\[0, 1: the value is not valid YAML"),
+])
+def test_a_bad_override_is_one_line_naming_it(scene_yaml, item, message):
+    with pytest.raises(InputError, match=message) as error:
+        load_config(scene_yaml, [item])
+    assert "\n" not in str(error.value)

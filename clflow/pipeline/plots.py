@@ -1,0 +1,102 @@
+"""Plots of an optimisation (matplotlib figures drawn by Agg: no display, no pyplot state).
+
+    write_history_plot("results/loss.png", history, truth)
+    fig = history_figure(history, truth)      # to inspect or save elsewhere
+
+``history`` holds the optimiser's rows (``iteration``, ``phase``, ``loss``, ``frames`` and
+``params``: see clflow.pipeline.optimize); ``truth`` the ground-truth values when known.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from clflow.fileio import atomic_path
+from clflow.materials import DENSITY, MATERIALS
+from clflow.scene.config import VELOCITY_COMPONENTS
+
+#: Colour and marker of each optimiser phase (another phase gets the next default colour).
+PHASE_STYLE = {"velocity": ("tab:orange", "s"), "search": ("tab:green", "^"), "main": ("tab:blue", "o")}
+#: Loss axis label: flow.loss l2 is in px^2, charbonnier in px.
+LOSS_LABEL = "flow loss per frame and pixel\n(px² for l2, px for Charbonnier)"
+
+
+def _parameter_axis(name: str) -> tuple[str, bool]:
+    """(axis label with unit, whether the axis is logarithmic) of an optimised variable."""
+    if name in VELOCITY_COMPONENTS:
+        return f"{name} (m/s)", False
+    params = {p.name: p for material in MATERIALS.values() for p in material.params} | {DENSITY.name: DENSITY}
+    if name not in params:
+        return name, False
+    p = params[name]
+    return f"{p.name} ({'dimensionless' if p.unit == '1' else p.unit})", p.scale == "log"
+
+
+def write_history_plot(path: Path, history: list[dict], truth: dict[str, float]) -> None:
+    """:func:`history_figure` as a PNG, written atomically."""
+    with atomic_path(path) as tmp:
+        history_figure(history, truth).savefig(tmp, format="png", dpi=110)
+
+
+def history_figure(history: list[dict], truth: dict[str, float]):
+    """A matplotlib Figure: the loss per frame and pixel against iteration (log scale;
+    phases in their own colours, legend in this panel only; each change of the loss
+    horizon marked in every panel), then each
+    parameter against iteration (log scale for log-scale parameters) with the ground truth
+    as a dashed line when ``truth`` has it."""
+    import matplotlib
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from matplotlib.ticker import MaxNLocator
+
+    names = sorted(history[0]["params"], key=lambda n: (n in VELOCITY_COMPONENTS, n)) if history else []
+    fig = Figure(figsize=(7.0, 2.6 * (1 + len(names))))
+    axes = fig.subplots(1 + len(names), 1, sharex=True, squeeze=False)[:, 0]
+    phases = list(dict.fromkeys(h["phase"] for h in history))
+    colours = iter(matplotlib.rcParams["axes.prop_cycle"].by_key()["color"][3:])
+    style = {p: PHASE_STYLE.get(p) or (next(colours), "o") for p in phases}
+
+    loss_axis = axes[0]
+    for phase in phases:
+        rows = [h for h in history if h["phase"] == phase]
+        colour, marker = style[phase]
+        loss_axis.plot([h["iteration"] for h in rows], [h["loss"] for h in rows], color=colour, marker=marker,
+                       markersize=3, linewidth=1.2, label=f"{phase} phase")
+    handles = loss_axis.get_legend_handles_labels()[0]
+    changes = [row for before, row in zip(history, history[1:]) if row["frames"] != before["frames"]]
+    for row in history[:1] + changes:  # the first horizon labelled too, without a line
+        x = row["iteration"] - 0.5
+        for axis in axes if row is not history[0] else ():
+            axis.axvline(x, color="grey", linestyle=":", linewidth=0.8)
+        loss_axis.annotate(f"{row['frames']}", (x, 1.0), xycoords=("data", "axes fraction"), fontsize=7,
+                           color="dimgrey", ha="center", va="bottom")
+    if changes:
+        handles.append(Line2D([], [], color="grey", linestyle=":", label="horizon grows to N frames"))
+    if history:
+        loss_axis.set_yscale("log")
+        loss_axis.legend(handles=handles, fontsize=8, loc="upper right")
+    loss_axis.set_ylabel(LOSS_LABEL, fontsize=8)
+    loss_axis.set_title("optimisation history", fontsize=10, pad=14)
+
+    for axis, name in zip(axes[1:], names):
+        label, log_scale = _parameter_axis(name)
+        for phase in phases:
+            rows = [h for h in history if h["phase"] == phase]
+            colour, marker = style[phase]
+            axis.plot([h["iteration"] for h in rows], [h["params"][name] for h in rows], color=colour, marker=marker,
+                      markersize=3, linewidth=1.2)
+        if name in truth:
+            axis.axhline(truth[name], color="black", linestyle="--", linewidth=1.0, label=f"truth {truth[name]:.4g}")
+        if log_scale:
+            axis.set_yscale("log")
+        axis.set_ylabel(label, fontsize=8)
+        if name in truth:
+            axis.legend(fontsize=8, loc="best")
+    for axis in axes:
+        axis.grid(True, which="major", alpha=0.3)
+        if history:
+            axis.set_xlim(history[0]["iteration"] - 0.5, history[-1]["iteration"] + 0.5)
+    axes[-1].set_xlabel("iteration")
+    axes[-1].xaxis.set_major_locator(MaxNLocator(integer=True))
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,44 @@
+"""The optimisation history plot: loss panel with phases and horizon, a panel per parameter."""
+
+import numpy as np
+
+from clflow.pipeline.plots import history_figure, write_history_plot
+
+
+def history():
+    rows = []
+    for i in range(12):
+        phase = "velocity" if i < 3 else "main"
+        frames = 2 if i < 3 else 4 + 2 * ((i - 3) // 4)  # 4, 6, 8: the horizon grows twice
+        rows.append({"iteration": i, "phase": phase, "loss": 0.5 * 0.8**i, "frames": frames,
+                     "params": {"youngs_modulus": 1e4 * 1.3**i, "poissons_ratio": 0.3, "velocity_x": 0.01 * i}})
+    return rows
+
+
+def test_history_figure_panels_scales_truth_and_horizon():
+    fig = history_figure(history(), {"youngs_modulus": 1e5, "velocity_x": 0.1})
+    loss, *params = fig.axes
+    assert [a.get_ylabel().split(" (")[0] for a in params] == ["poissons_ratio", "youngs_modulus", "velocity_x"]
+    assert [a.get_ylabel() for a in params] == ["poissons_ratio (dimensionless)", "youngs_modulus (Pa)", "velocity_x (m/s)"]
+    assert loss.get_yscale() == "log" and [a.get_yscale() for a in params] == ["linear", "log", "linear"]
+    assert params[-1].get_xlabel() == "iteration"
+    legend = [t.get_text() for t in loss.get_legend().get_texts()]
+    assert legend == ["velocity phase", "main phase", "horizon grows to N frames"]
+    phase_lines = loss.get_lines()[:2]
+    assert phase_lines[0].get_color() != phase_lines[1].get_color()
+    np.testing.assert_array_equal(phase_lines[1].get_xdata(), np.arange(3, 12))
+    horizon = [line.get_xdata()[0] for line in loss.get_lines()[2:]]
+    assert horizon == [2.5, 6.5, 10.5]  # where frames goes 2 -> 4 -> 6 -> 8
+    assert [t.get_text() for t in loss.texts] == ["2", "4", "6", "8"]  # the first horizon, then each growth
+    truth = [line for line in params[1].get_lines() if line.get_linestyle() == "--"]
+    assert len(truth) == 1 and truth[0].get_ydata()[0] == 1e5
+    assert params[0].get_legend() is None  # no truth for poissons_ratio
+
+
+def test_write_history_plot_writes_a_png(tmp_path):
+    from PIL import Image
+
+    write_history_plot(tmp_path / "loss.png", history(), {})
+    with Image.open(tmp_path / "loss.png") as image:
+        assert image.format == "PNG" and image.height > image.width > 500
+    assert [p.name for p in tmp_path.iterdir()] == ["loss.png"]
