@@ -45,4 +45,7 @@ def demo(folder, quick, resume, views, force):
     ctx = click.get_current_context()
     ctx.invoke(render4d, simulation=str(results / "simulation"), out_dir=None, views=views, turns=1.0,
                video_format="mp4")
-    click.echo(f"demo finished in {time.perf_counter() - start:.0f} s: see {results}")
+    from clflow.pipeline.report import write_report
+
+    report = write_report(results)  # again, now with the 4D renders
+    click.echo(f"demo finished in {time.perf_counter() - start:.0f} s: open {report}")

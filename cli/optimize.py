@@ -84,6 +84,10 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
                 f"interrupted after {opt.load_state().iteration} iterations (saved in {opt.checkpoint}); "
                 f"continue with `clflow optimize {config_path} --resume`") from None
     metrics = opt.write_results(state)
+    from clflow.pipeline.report import write_report, write_run_record
+
+    write_run_record(opt.cfg, cfg.output)
+    report = write_report(cfg.output)
     final = opt.values(state.z)
     click.echo("optimised: " + ", ".join(f"{n} = {v:.6g} {parameter_unit(opt.cfg, n)}" for n, v in final.items()))
     if "relative_error" in metrics:
@@ -92,7 +96,7 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
     if "velocity_error_m_s" in metrics:
         click.echo(f"initial velocity off by {metrics['velocity_error_m_s']:.3g} m/s")
     click.echo(f"flow loss {metrics['flow_loss']:.4g}, end-point error {metrics['epe_px']:.3g} px, "
-               f"{metrics['seconds_per_iteration']:.2f} s per iteration; results in {cfg.output}")
+               f"{metrics['seconds_per_iteration']:.2f} s per iteration; results in {cfg.output} (open {report.name})")
     return metrics
 
 

@@ -225,6 +225,8 @@ def evaluate(names: list[str], out: Path, settings: Settings, *, force: bool = F
     if force and summary["cases"] == {} and (out / "cases").exists():
         shutil.rmtree(out / "cases")
     out.mkdir(parents=True, exist_ok=True)
+    from clflow.pipeline.report import environment
+
     summary["environment"] = environment()
     atomic_write_text(summary_path, json.dumps(summary, indent=2))  # settings first: an interrupted run resumes
     for name in names:
@@ -245,45 +247,6 @@ def _difference(old: dict | None, new: dict) -> str:
         return "no settings recorded"
     keys = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
     return ", ".join(f"{k}: {old.get(k)} -> {new.get(k)}" for k in keys)
-
-
-def environment() -> dict:
-    """Versions and the OpenCL device a result was made with."""
-    import platform
-
-    import pyopencl
-    import torch
-
-    import clflow
-    from clflow.runtime import get_device
-
-    device = get_device()
-    return {"clflow": clflow.__version__, "commit": _commit(Path(clflow.__file__).parent),
-            "torch": torch.__version__, "pyopencl": pyopencl.VERSION_TEXT,
-            "device": str(getattr(device, "name", device)), "python": platform.python_version(),
-            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-            "load": _load_average()}
-
-
-def _commit(folder: Path) -> str | None:
-    """The git commit clflow runs from (an editable install in a checkout), else None."""
-    import subprocess
-
-    try:
-        done = subprocess.run(["git", "-C", str(folder), "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, timeout=10)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return done.stdout.strip() or None if done.returncode == 0 else None
-
-
-def _load_average() -> float | None:
-    try:
-        import os
-
-        return round(os.getloadavg()[0], 2)
-    except OSError:
-        return None
 
 
 def _fmt(value: float) -> str:

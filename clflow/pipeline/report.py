@@ -1,0 +1,150 @@
+"""The results folder as a page people open: ``index.html`` and ``run.json``.
+
+``write_run_record(cfg, output)`` writes ``run.json``: clflow, torch, pyopencl and PoCL
+versions, the OpenCL device, the git commit, the resolved config and the command line.
+``write_report(output)`` writes ``index.html`` from what the folder holds (params.json,
+metrics.json, hypotheses.json, loss.png, comparison.mp4, simulation/render4d/*.mp4,
+run.json): self-contained, every link relative, no script or style from elsewhere, so the
+folder can be zipped, served or opened from disk. Each video's duration, once the browser
+has read it, is written under it (``data-duration``), which the tests read back.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import html
+import json
+import sys
+import time
+from pathlib import Path
+
+from clflow.fileio import atomic_write_text
+
+RENDERS = "simulation/render4d"  # where `clflow demo` / `clflow render4d` put the 4D renders
+
+
+def environment() -> dict:
+    """Versions, the OpenCL device, the git commit and the machine's load of this run."""
+    import os
+    import platform
+
+    import pyopencl
+    import torch
+
+    import clflow
+    from clflow.runtime import get_device
+
+    device = get_device()
+    info = getattr(device, "info", None)
+    try:
+        load = round(os.getloadavg()[0], 2)
+    except OSError:
+        load = None
+    return {"clflow": clflow.__version__, "commit": _commit(Path(clflow.__file__).parent),
+            "torch": torch.__version__, "pyopencl": pyopencl.VERSION_TEXT,
+            "device": str(getattr(device, "name", device)),
+            "opencl_platform": getattr(info, "platform", None), "opencl_driver": getattr(info, "driver_version", None), "python": platform.python_version(),
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load": load}
+
+
+def _commit(folder: Path) -> str | None:
+    """The git commit clflow runs from (an editable install in a checkout), else None."""
+    import subprocess
+
+    try:
+        done = subprocess.run(["git", "-C", str(folder), "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() or None if done.returncode == 0 else None
+
+
+def write_run_record(cfg, output: Path, argv: list[str] | None = None) -> dict:
+    """``output/run.json``: environment(), the resolved config ``cfg`` (a SceneConfig) and
+    the command line (default sys.argv)."""
+    record = {"environment": environment(), "command": list(sys.argv if argv is None else argv),
+              "config": json.loads(json.dumps(dataclasses.asdict(cfg), default=str))}
+    atomic_write_text(output / "run.json", json.dumps(record, indent=2))
+    return record
+
+
+def _read(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _table(rows: list[tuple[str, ...]], head: tuple[str, ...]) -> str:
+    cells = lambda tag, row: "".join(f"<{tag}>{html.escape(str(c))}</{tag}>" for c in row)  # noqa: E731
+    return (f"<table><thead><tr>{cells('th', head)}</tr></thead><tbody>"
+            + "".join(f"<tr>{cells('td', r)}</tr>" for r in rows) + "</tbody></table>")
+
+
+def _video(rel: str, caption: str) -> str:
+    return (f'<figure><video src="{html.escape(rel)}" controls loop muted playsinline preload="metadata" '
+            f'onloadedmetadata="this.parentNode.dataset.duration=this.duration.toFixed(3);'
+            f"this.nextElementSibling.textContent+=' (' + this.duration.toFixed(2) + ' s)'\"></video>"
+            f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+
+
+STYLE = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}
+table{border-collapse:collapse;margin:0.5em 0 1.5em}td,th{border:1px solid #ccc;padding:4px 10px;text-align:left}
+th{background:#f3f3f3}figure{display:inline-block;margin:0 1em 1em 0;vertical-align:top}
+video,img{max-width:100%;border:1px solid #ddd}figcaption{font-size:0.9em;color:#555}
+.bad{color:#a00}code{background:#f3f3f3;padding:1px 4px}"""
+
+
+def write_report(output: Path) -> Path:
+    """``output/index.html`` from the results in ``output`` (see module docstring)."""
+    output = Path(output).resolve()
+    params, metrics = _read(output / "params.json"), _read(output / "metrics.json")
+    run = _read(output / "run.json")
+    parts = [f"<h1>clflow results: {html.escape(output.name)}</h1>"]
+    if params:
+        units = params.get("units", {})
+        rows = [(n, f"{v:.6g}", units.get(n, "")) for n, v in params.get("optimized", {}).items()]
+        parts.append(f"<h2>Material: {html.escape(params.get('material', '?'))}</h2>")
+        parts.append("<h3>Optimised</h3>" + _table(rows, ("parameter", "value", "unit")))
+        fixed = [(n, f"{v:.6g}") for n, v in params.get("parameters", {}).items() if n not in params.get("optimized", {})]
+        fixed.append(("density (kg/m^3)", f"{params.get('density', float('nan')):.6g}"))
+        fixed.append(("initial velocity (m/s)", ", ".join(f"{v:.4g}" for v in params.get("velocity", []))))
+        parts.append("<h3>All parameters (SI)</h3>" + _table(fixed, ("parameter", "value")))
+    if metrics:
+        rows = [("flow loss (per frame and pixel)", f"{metrics.get('flow_loss', float('nan')):.4g}"),
+                ("flow end-point error (px)", f"{metrics.get('epe_px', float('nan')):.4g}"),
+                ("iterations", metrics.get("iterations", "")),
+                ("seconds per iteration", f"{metrics.get('seconds_per_iteration', float('nan')):.3g}")]
+        rows += [(f"relative error: {n}", f"{e:.3%}") for n, e in metrics.get("relative_error", {}).items()]
+        ident = metrics.get("identifiability", {})
+        rows += [(f"weakly constrained: {n}", "the video barely fixes it") for n in ident.get("weakly_constrained", [])]
+        rows += [(f"trade-off: {a} / {b}", f"correlation {rho:.3f}") for a, b, rho in ident.get("trade_offs", [])]
+        chosen = metrics.get("material_hypotheses")
+        if chosen:
+            rows += [(f"hypothesis {m}", f"best search loss {r['loss']:.4g}" if "loss" in r else "failed")
+                     for m, r in chosen["hypotheses"].items()]
+        parts.append("<h2>Metrics</h2>" + _table(rows, ("metric", "value")))
+    if (output / "loss.png").exists():
+        parts.append('<h2>Optimisation</h2><img src="loss.png" alt="loss and parameters per iteration">')
+    videos = [("comparison.mp4", "guidance | guidance flow | simulated flow | error | simulation")]
+    videos += [(f"{RENDERS}/{p.name}", f"4D render: {p.stem}") for p in sorted((output / RENDERS).glob("*.mp4"))]
+    shown = [_video(rel, caption) for rel, caption in videos if (output / rel).exists()]
+    if shown:
+        parts.append("<h2>Videos</h2>" + "".join(shown))
+    if run:
+        env = run.get("environment", {})
+        rows = [(k, v) for k, v in env.items() if v is not None]
+        rows.append(("command", " ".join(run.get("command", []))))
+        parts.append('<h2>Made with</h2>' + _table(rows, ("", "")) + '<p>Resolved config and all versions: '
+                     '<a href="run.json">run.json</a></p>')
+    links = [n for n in ("params.json", "metrics.json", "history.json", "hypotheses.json", "search.json")
+             if (output / n).exists()]
+    if links:
+        parts.append("<p>Data: " + ", ".join(f'<a href="{n}">{n}</a>' for n in links) + "</p>")
+    page = (f"<!doctype html><html lang=en><head><meta charset=utf-8><title>clflow results: "
+            f"{html.escape(output.name)}</title><style>{STYLE}</style></head><body>{''.join(parts)}</body></html>\n")
+    atomic_write_text(output / "index.html", page)
+    return output / "index.html"
+
+
+__all__ = ["environment", "write_report", "write_run_record"]

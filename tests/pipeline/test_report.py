@@ -1,0 +1,66 @@
+"""The results page: index.html and run.json of `clflow optimize`, opened in a headless browser."""
+
+import json
+import re
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from clflow_cli.main import cli
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.fixture(scope="module")
+def results(quick_demo, tmp_path_factory):
+    import sys
+
+    out = tmp_path_factory.mktemp("report") / "results"
+    args = ["optimize", str(quick_demo / "config.yaml"), "--iterations", "1", "-o", str(out)]
+    argv, sys.argv = sys.argv, ["clflow", *args]  # the command line run.json records
+    try:
+        res = CliRunner().invoke(cli, args)
+    finally:
+        sys.argv = argv
+    assert res.exit_code == 0, res.output
+    assert "open index.html" in res.output
+    return out
+
+
+def test_run_json_says_what_made_the_results(results):
+    run = json.loads((results / "run.json").read_text())
+    env = run["environment"]
+    assert env["torch"].startswith("2.13") and env["pyopencl"] and "Portable Computing Language" in env["opencl_platform"]
+    assert run["config"]["material"]["type"] == "elastic" and run["config"]["optimize"]["iterations"] == 1
+    assert run["command"][:2] == ["clflow", "optimize"]
+
+
+def test_the_page_links_only_files_beside_it(results):
+    page = (results / "index.html").read_text()
+    links = re.findall(r'(?:src|href)="([^"]+)"', page)
+    assert {"loss.png", "comparison.mp4", "run.json", "params.json"} <= set(links)
+    for link in links:
+        assert not re.match(r"[a-z]+:|/", link), link  # relative: the folder can move
+        assert (results / link).is_file(), link
+    assert "youngs_modulus" in page and "Pa" in page and "relative error" in page
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="headless Chromium is not installed (CI installs it)")
+def test_the_page_shows_in_a_browser_and_its_videos_play(results, tmp_path):
+    import cv2
+
+    url = (results / "index.html").as_uri()
+    flags = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--virtual-time-budget=8000"]
+    shot = tmp_path / "page.png"
+    subprocess.run([*flags, "--window-size=1000,1400", f"--screenshot={shot}", url], capture_output=True, timeout=120)
+    image = cv2.imread(str(shot))
+    assert image is not None and image.shape[:2] == (1400, 1000)
+    assert image.std() > 20 and (image < 128).mean() > 0.01  # not a blank page: text, tables, the plot
+    dom = subprocess.run([*flags, "--dump-dom", url], capture_output=True, text=True, timeout=120).stdout
+    durations = [float(d) for d in re.findall(r'data-duration="([0-9.]+)"', dom)]
+    frames = json.loads((results / "run.json").read_text())["config"]["simulation"]["frames"]
+    assert durations and durations[0] == pytest.approx(frames / 24, abs=0.05)  # comparison.mp4 decoded: H.264 plays
+    assert np.all(np.array(durations) > 0)
