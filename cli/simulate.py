@@ -29,7 +29,8 @@ def _params(items):
 CONFIG_SUFFIXES = (".yaml", ".yml", ".json")
 
 
-def simulate_scene(config_path: str, params_file: str | None, out_dir: str | None, preview: str) -> None:
+def simulate_scene(config_path: str, params_file: str | None, out_dir: str | None, preview: str,
+                   max_substeps: int | None = None) -> None:
     """``clflow simulate CONFIG``: the config's scene with its material and initial velocity
     (or those of an optimisation's params.json), written as per-frame Gaussians and a
     guidance-view video."""
@@ -60,7 +61,7 @@ def simulate_scene(config_path: str, params_file: str | None, out_dir: str | Non
             raise InputError(f"{params_file}: velocity must be a list of 3 finite numbers (m/s), got {velocity!r}")
         cfg = dataclasses.replace(cfg, velocity=tuple(float(v) for v in velocity))  # the optimised one
     out = Path(out_dir) if out_dir else cfg.output / "simulation"
-    result = simulate_config(cfg, overrides)
+    result = simulate_config(cfg, overrides, max_substeps=max_substeps or cfg.simulation.max_substeps)
     click.echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {cfg.simulation.frames} frames")
     export_gaussians(result, out)
     click.echo(f"wrote {out / 'gaussians.npz'} and {result.x.shape[0]} PLY frames")
@@ -101,10 +102,13 @@ def simulate_scene(config_path: str, params_file: str | None, out_dir: str | Non
               help="With a CONFIG: simulate with the parameters of this params.json (clflow optimize).")
 @click.option("--preview", type=click.Choice(["mp4", "png", "none"]), default="mp4", show_default=True,
               help="Preview video, PNG frames, or none.")
+@click.option("--max-substeps", type=click.IntRange(min=1), default=None,
+              help="Refuse a run needing more substeps per frame [default: a config's simulation.max_substeps, "
+                   "else 2000].")
 @click.pass_context
 def simulate(ctx, particles, shape, size, center, material, params, model, density, velocity, domain, resolution,
              particle_volume, frames, fps, substeps, gravity, walls, wall_friction, double, out_dir, params_file,
-             preview):
+             preview, max_substeps):
     """Simulate PARTICLES (.npz with 'positions' [N, 3] in m and optional 'volume' [N] in
     m^3, or a .ply point cloud) or a built-in shape, and write the per-frame positions
     (OUT/positions.npz: x [frames+1, N, 3], time [frames+1]) and a preview.
@@ -116,12 +120,12 @@ def simulate(ctx, particles, shape, size, center, material, params, model, densi
         from click.core import ParameterSource
 
         particle_only = [p.opts[0] for p in ctx.command.params
-                         if p.name not in ("particles", "out_dir", "params_file", "preview")
+                         if p.name not in ("particles", "out_dir", "params_file", "preview", "max_substeps")
                          and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE]
         if particle_only:
             raise click.UsageError(f"with a scene config, the config sets the simulation; drop "
                                    f"{', '.join(particle_only)}")
-        simulate_scene(particles, params_file, out_dir, preview)
+        simulate_scene(particles, params_file, out_dir, preview, max_substeps)
         return
     if params_file:
         raise click.UsageError("--params needs a scene CONFIG (.yaml/.yml/.json)")
@@ -137,6 +141,7 @@ def simulate(ctx, particles, shape, size, center, material, params, model, densi
     from clflow.mpm import Grid, MaterialSpec, Simulator
     from clflow.mpm.preview import write_preview
     from clflow.mpm.shapes import lattice_fill, load_particles
+    from clflow.scene.config import DEFAULT_MAX_SUBSTEPS
 
     log = logging.getLogger("clflow.simulate")
     if resolution < 8 or not domain > 0:
@@ -161,7 +166,13 @@ def simulate(ctx, particles, shape, size, center, material, params, model, densi
         walls=None if walls == "none" else walls, wall_friction=wall_friction, dtype=dtype,
         device=ctx.obj.device() if ctx.obj else None,
     )
-    click.echo(f"{sim.n:,} particles of {material}, {frames} frames x {sim.substeps} substeps (dt = {sim.dt:.3g} s)")
+    click.echo(f"{sim.n:,} particles of {material}, {frames} frames x {sim.substeps} substeps (dt = {sim.dt:.3g} s, "
+               f"limited by {sim._limit_reason(sim.state.v)})")
+    limit = max_substeps or DEFAULT_MAX_SUBSTEPS
+    if sim.substeps > limit:
+        raise InputError(f"{sim.substeps} substeps per frame (dt = {sim.dt:.3g} s) is beyond the limit of {limit}; "
+                         f"ways out: a softer material, a coarser --grid, fewer --substeps, or raise the limit "
+                         f"with --max-substeps N")
     traj = sim.run(frames)
     out = Path(out_dir)
     with atomic_path(out / "positions.npz") as tmp:
