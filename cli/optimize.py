@@ -25,7 +25,8 @@ def _modified(path) -> int | None:
         return None
 
 
-def run_optimization(config_path: str, resume: bool, iterations: int | None, output: str | None) -> dict:
+def run_optimization(config_path: str, resume: bool, iterations: int | None, output: str | None,
+                     max_substeps: int | None = None, force_video: bool = False) -> dict:
     """Load the config, optimise with a progress bar, write the results; returns the metrics."""
     import dataclasses
     from pathlib import Path
@@ -38,7 +39,9 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
         cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=iterations))
     if output is not None:
         cfg = dataclasses.replace(cfg, output=Path(output).resolve())
-    opt = Optimization(cfg)  # loads the scene, runs the material query, computes the video's flow
+    if max_substeps is not None:
+        cfg = dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, max_substeps=max_substeps))
+    opt = Optimization(cfg, force_video=force_video)  # loads the scene, runs the material query, computes the video's flow
     total = opt.total_iterations  # the velocity phase's (optimize.estimate_velocity) and the main phase's
     search = cfg.optimize.search
     with click.progressbar(length=total, label="optimising", show_pos=True,
@@ -72,6 +75,11 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
                    ", ".join(f"{n} {100 * e:.2f}%" for n, e in metrics["relative_error"].items()))
     if "velocity_error_m_s" in metrics:
         click.echo(f"initial velocity off by {metrics['velocity_error_m_s']:.3g} m/s")
+    if metrics.get("rollbacks"):
+        click.echo(f"{len(metrics['rollbacks'])} unstable or failed iterations were rolled back "
+                   f"(metrics.json: rollbacks)", err=True)
+    for warning in metrics.get("warnings", []):
+        click.echo(f"WARNING: {warning}; the result is likely wrong", err=True)
     click.echo(f"flow loss {metrics['flow_loss']:.4g}, end-point error {metrics['epe_px']:.3g} px, "
                f"{metrics['seconds_per_iteration']:.2f} s per iteration; results in {cfg.output}")
     return metrics
@@ -84,10 +92,15 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
               help="Override optimize.iterations of the config.")
 @click.option("--output", "-o", type=click.Path(file_okay=False), default=None,
               help="Results folder (default: the config's output).")
-def optimize(config, resume, iterations, output):
+@click.option("--max-substeps", type=click.IntRange(min=1), default=None,
+              help="Refuse a run needing more substeps per frame (default: simulation.max_substeps, 2000).")
+@click.option("--force-video", is_flag=True,
+              help="Optimise even when the guidance checks fail (no motion, noise, a camera that does not fit); "
+                   "the failures are warned about and recorded in metrics.json.")
+def optimize(config, resume, iterations, output, max_substeps, force_video):
     """Optimise the material parameters of CONFIG (YAML/JSON scene config) so that the
     simulated optical flow matches the guidance video's.
 
     Writes into the output folder: params.json (final parameters, SI), metrics.json,
     history.json, loss.png, comparison.mp4 and checkpoint.json (after every iteration)."""
-    run_optimization(config, resume, iterations, output)
+    run_optimization(config, resume, iterations, output, max_substeps, force_video)
