@@ -110,7 +110,7 @@ def interrupt_optimize(monkeypatch, tmp_path, iterations_in_run, *args):
     cfg = SimpleNamespace(optimize=SimpleNamespace(search=None), output=tmp_path)
     monkeypatch.setattr(clflow.scene.config, "load_config", lambda path: cfg)
     monkeypatch.setattr(clflow.pipeline.optimize, "Optimization",
-                        lambda cfg: _InterruptedOptimization(cfg, tmp_path / "checkpoint.json", iterations_in_run))
+                        lambda cfg, **options: _InterruptedOptimization(cfg, tmp_path / "checkpoint.json", iterations_in_run))
     return CliRunner().invoke(cli, ["optimize", "scene.yaml", *args])
 
 
