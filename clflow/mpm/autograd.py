@@ -190,7 +190,6 @@ class _Run:
 
         progress = FrameProgress("adjoint", self.frames, S)
         for f in reversed(range(self.frames)):
-            progress.tick(self.frames - 1 - f, S - 1)
             add_output_grads(f + 1)
             if segment_states:  # replay the frame once, keeping each later segment's first state
                 src = self.checkpoint(f)
@@ -210,6 +209,7 @@ class _Run:
                     grad, spare = spare, grad
                     for stage in torch.nonzero(self.stages_active(t)).flatten().tolist():
                         stage_rows[stage] += self.dt * grad.v
+                    progress.tick(self.frames - 1 - f, S - 1 - s)  # counted in the order the adjoint runs
         add_output_grads(0)
         stage_grad = torch.zeros(len(sim.drivers.forces), 3, dtype=dtype)
         for stage in range(len(sim.drivers.forces)):
@@ -411,7 +411,8 @@ def simulate(
         retries: NaN/CFL guard: when a frame turns NaN/inf or breaks the CFL limit, halve dt
             (double the substeps per frame) and run again, at most this many times (a
             StabilityWarning says so). The last attempt raises :class:`SimulationError` on
-            NaN/inf and only warns on a CFL violation.
+            NaN/inf and only warns on a CFL violation; Frames.cfl_violation and Frames.clamped
+            (particles clamped at the grid's edge) record what it warned about.
         memory_budget: bytes the run may hold (see :func:`memory_estimate`); when a whole
             frame's replay does not fit, backward replays it in shorter segments from
             intermediate states (two-level checkpointing: one more forward pass per frame).

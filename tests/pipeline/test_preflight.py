@@ -86,11 +86,13 @@ def test_a_long_frame_logs_its_progress(monkeypatch, caplog):
     x = torch.rand(64, 3, dtype=torch.float64) * 0.2 + 0.4
     sim = Simulator(x, 1e-5, MaterialSpec("elastic", {"youngs_modulus": 1e4}), Grid((16, 16, 16), 1 / 16),
                     frame_dt=0.01, substeps=3)
+    E = torch.tensor(1e4, dtype=torch.float64, requires_grad=True)
     with caplog.at_level(logging.INFO, logger="clflow.mpm"):
         sim.run(2)
-        simulate(sim, 1)
+        simulate(sim, 1, params={"youngs_modulus": E}).x.sum().backward()
     assert "simulation: frame 2/2, substep 3/3" in caplog.text
     assert "differentiable run: frame 1/1, substep 2/3" in caplog.text
+    assert "adjoint: frame 1/1, substep 3/3" in caplog.text
 
 
 # -- 2. an unstable iteration is never accepted -------------------------------------------------
