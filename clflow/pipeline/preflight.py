@@ -122,7 +122,8 @@ def plan_run(cfg: SceneConfig, setup, params: dict[str, float], density: float, 
     from clflow.pipeline.simulation import build_simulator
 
     sim = build_simulator(cfg, setup, params, density, dtype=dtype, min_substeps=min_substeps, velocity=velocity)
-    limit = sim._limit_reason(sim.state.v)
+    stable = sim._limit_reason(sim.state.v)
+    limit = stable if cfg.simulation.substep_dt is None else f"simulation.substep_dt; stable: {stable}"
     if max_substeps is not None and sim.substeps > max_substeps:
         sim.step()  # a timing for the message: the one substep is cheap next to the refused run
         start = time.perf_counter()
@@ -132,7 +133,7 @@ def plan_run(cfg: SceneConfig, setup, params: dict[str, float], density: float, 
     needed = sim.stable_substeps()
     if optimizing and sim.substeps < needed:
         raise InputError(f"{cfg.source}: simulation.substep_dt = {cfg.simulation.substep_dt:.3g} s is above the "
-                         f"stable step {sim.frame_dt / needed:.3g} s of the starting parameters ({limit}); the "
+                         f"stable step {sim.frame_dt / needed:.3g} s of the starting parameters ({stable}); the "
                          f"optimiser rejects unstable runs: use substep_dt: auto or at most {sim.frame_dt / needed:.3g} s")
     sim.step()  # the first substep may build kernels
     start = time.perf_counter()
