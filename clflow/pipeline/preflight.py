@@ -106,10 +106,11 @@ def substep_limit_message(cfg: SceneConfig, substeps: int, dt: float, limit: str
 
 
 def check_substeps(cfg: SceneConfig, sim, max_substeps: int | None) -> None:
-    """SubstepLimitError when ``sim`` takes more than ``max_substeps`` substeps per frame."""
+    """SubstepLimitError when ``sim`` takes more than ``max_substeps`` substeps per frame (the
+    optimiser's check of each iteration: build_simulator(max_substeps=...))."""
     if max_substeps is not None and sim.substeps > max_substeps:
         raise SubstepLimitError(substep_limit_message(cfg, sim.substeps, sim.dt, sim._limit_reason(sim.state.v),
-                                                      max_substeps))
+                                                      max_substeps, optimizing=True))
 
 
 def plan_run(cfg: SceneConfig, setup, params: dict[str, float], density: float, *, frames: int | None = None,

@@ -165,6 +165,17 @@ def test_a_clamped_iteration_is_rolled_back(demo_config, monkeypatch):
     assert [r["reason"] for r in state.rollbacks] == ["7 particles left the grid and were clamped to its boundary"]
 
 
+def test_an_iteration_beyond_the_substep_limit_is_rolled_back(demo_config):
+    cfg = demo_config(iterations=2)
+    cfg = dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, max_substeps=12),
+                              optimize=dataclasses.replace(cfg.optimize, learning_rates={"youngs_modulus": 1.5}))
+    state = Optimization(cfg).run()  # the start needs 5 (10 after its CFL retry), the step to 6.3e4 Pa 23
+    assert state.iteration == 2 and len(state.rollbacks) == 1
+    reason = state.rollbacks[0]["reason"]
+    assert re.search(r"needs 2\d substeps per frame .* beyond the limit of 12", reason) and "substep_dt" not in reason
+    assert all(row["params"]["youngs_modulus"] == pytest.approx(2000.0) for row in state.history)
+
+
 def test_a_fixed_substep_too_long_for_the_start_is_refused(quick_demo, tmp_path):
     one_line_error(run("optimize", bad_config(quick_demo, tmp_path, "long_dt", simulation={"substep_dt": 0.02})),
                    r"simulation.substep_dt = 0.02 s is above the stable step 0.00833 s of the starting parameters "
