@@ -72,8 +72,9 @@ class LazyGroup(click.Group):
         for ep in self._plugins(name=name):
             try:
                 return ep.load()
-            except Exception as exc:  # a broken plugin must not break the whole CLI
-                raise click.ClickException(f"plugin command {name!r} failed to load: {exc}")
+            except Exception as exc:  # a broken plugin must not break the whole CLI (nor --help)
+                return broken_command(name, f"plugin command {name!r} ({ep.value}) failed to load: "
+                                            f"{type(exc).__name__}: {exc}")
         return super().get_command(ctx, name)
 
     def invoke(self, ctx: click.Context):
@@ -93,6 +94,18 @@ class LazyGroup(click.Group):
             raise click.ClickException(describe_os_error(exc)) from None
         except KeyboardInterrupt:
             raise Interrupted("interrupted") from None
+
+
+def broken_command(name: str, message: str) -> click.Command:
+    """A placeholder for a command that cannot be loaded: listed by --help as broken, and
+    running it prints ``message`` and exits 1 (as rasterio's click-plugins do)."""
+
+    def fail(**_):
+        raise click.ClickException(message)
+
+    return click.Command(name, callback=fail, help=message, short_help="(broken plugin: run it to see why)",
+                         context_settings={"ignore_unknown_options": True, "allow_extra_args": True},
+                         add_help_option=False)
 
 
 class FiniteFloat(click.FloatRange):

@@ -26,7 +26,8 @@ def _modified(path) -> int | None:
 
 
 def run_optimization(config_path: str, resume: bool, iterations: int | None, output: str | None,
-                     overrides: tuple[str, ...] = ()) -> dict:
+                     overrides: tuple[str, ...] = (), max_substeps: int | None = None,
+                     force_video: bool = False) -> dict:
     """Load the config (``overrides``: ``--set KEY=VALUE``), optimise with a progress bar,
     write the results; returns the metrics."""
     import dataclasses
@@ -42,6 +43,8 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
     if output is not None:
         cfg = dataclasses.replace(cfg, output=Path(output).resolve())
     check_output(cfg.output)
+    if max_substeps is not None:
+        cfg = dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, max_substeps=max_substeps))
     start, hypotheses, search = None, None, cfg.optimize.search
     if cfg.optimize.materials:  # material hypotheses: search each, optimise the best
         from clflow.pipeline.hypotheses import choose_material
@@ -50,7 +53,7 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
             click.echo(f"{material}: search {row['iteration'] + 1}/{search.samples}: {_format_row(row)}", err=True)
 
         try:
-            cfg, start, hypotheses = choose_material(cfg, resume=resume, progress=searched)
+            cfg, start, hypotheses = choose_material(cfg, resume=resume, progress=searched, force_video=force_video)
         except KeyboardInterrupt:
             raise Interrupted(f"interrupted while searching the material hypotheses (each saves its samples in "
                               f"{cfg.output / 'hypotheses'}); continue with `clflow optimize {config_path} "
@@ -58,7 +61,7 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
         click.echo(f"material: {hypotheses['chosen']} fits best (best search loss: " + ", ".join(
             f"{m} {r['loss']:.4g}" if "loss" in r else f"{m} failed" for m, r in hypotheses["hypotheses"].items())
             + ")", err=True)
-    opt = Optimization(cfg, hypotheses=hypotheses)  # loads the scene, runs the material query, computes the video's flow
+    opt = Optimization(cfg, hypotheses=hypotheses, force_video=force_video)  # loads the scene, runs the material query, computes the video's flow
     total = opt.total_iterations  # the velocity phase's (optimize.estimate_velocity) and the main phase's
     with click.progressbar(length=total, label="optimising", show_pos=True,
                            item_show_func=_format_row, file=sys.stderr) as bar:
@@ -95,6 +98,11 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
                    ", ".join(f"{n} {100 * e:.2f}%" for n, e in metrics["relative_error"].items()))
     if "velocity_error_m_s" in metrics:
         click.echo(f"initial velocity off by {metrics['velocity_error_m_s']:.3g} m/s")
+    if metrics.get("rollbacks"):
+        click.echo(f"{len(metrics['rollbacks'])} unstable or failed iterations were rolled back "
+                   f"(metrics.json: rollbacks)", err=True)
+    for warning in metrics.get("warnings", []):
+        click.echo(f"WARNING: {warning}; the result is likely wrong", err=True)
     click.echo(f"flow loss {metrics['flow_loss']:.4g}, end-point error {metrics['epe_px']:.3g} px, "
                f"{metrics['seconds_per_iteration']:.2f} s per iteration; results in {cfg.output} (open {report.name})")
     return metrics
@@ -110,10 +118,15 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
 @click.option("--set", "overrides", multiple=True, metavar="KEY.SUB=VALUE",
               help="Set a config key, the value read as YAML, e.g. --set material.parameters.youngs_modulus=2e4 "
                    "(repeatable; checked like the file). --resume needs the same --set as the run it continues.")
-def optimize(config, resume, iterations, output, overrides):
+@click.option("--max-substeps", type=click.IntRange(min=1), default=None,
+              help="Refuse a run needing more substeps per frame (default: simulation.max_substeps, 2000).")
+@click.option("--force-video", is_flag=True,
+              help="Optimise even when the guidance checks fail (no motion, noise, a camera that does not fit); "
+                   "the failures are warned about and recorded in metrics.json.")
+def optimize(config, resume, iterations, output, overrides, max_substeps, force_video):
     """Optimise the material parameters of CONFIG (YAML/JSON scene config) so that the
     simulated optical flow matches the guidance video's.
 
     Writes into the output folder: params.json (final parameters, SI), metrics.json,
     history.json, loss.png, comparison.mp4 and checkpoint.json (after every iteration)."""
-    run_optimization(config, resume, iterations, output, overrides)
+    run_optimization(config, resume, iterations, output, overrides, max_substeps, force_video)

@@ -33,10 +33,12 @@ CONFIG_SUFFIXES = (".yaml", ".yml", ".json")
 
 
 def simulate_scene(config_path: str, params_file: str | None, out_dir: str | None, preview: str,
-                   max_output_gb: float = DEFAULT_MAX_OUTPUT_GB, settings: tuple[str, ...] = ()) -> None:
+                   max_output_gb: float = DEFAULT_MAX_OUTPUT_GB, settings: tuple[str, ...] = (),
+                   max_substeps: int | None = None) -> None:
     """``clflow simulate CONFIG``: the config's scene (``settings``: ``--set KEY=VALUE``) with
     its material and initial velocity (or those of an optimisation's params.json), written as
-    per-frame Gaussians and a guidance-view video."""
+    per-frame Gaussians and a guidance-view video; ``max_substeps`` overrides the config's
+    ``simulation.max_substeps``."""
     import dataclasses
     import json
     import math
@@ -72,7 +74,7 @@ def simulate_scene(config_path: str, params_file: str | None, out_dir: str | Non
     less = "simulate fewer frames (simulation.frames)"
     check_output(out, written, max_output_gb, f"{frames + 1:,} frames of Gaussians", less)
     check_memory(memory, f"simulating {frames + 1:,} frames", less)
-    result = simulate_config(cfg, overrides, prepared)
+    result = simulate_config(cfg, overrides, prepared, max_substeps=max_substeps or cfg.simulation.max_substeps)
     click.echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
     with atomic_dir(out) as tmp:  # all or nothing: a failure leaves OUT as it was
         export_gaussians(result, tmp)
@@ -118,10 +120,13 @@ def simulate_scene(config_path: str, params_file: str | None, out_dir: str | Non
 @click.option("--set", "overrides", multiple=True, metavar="KEY.SUB=VALUE",
               help="With a CONFIG: set a config key, the value read as YAML, e.g. --set simulation.frames=48 "
                    "(repeatable; checked like the file).")
+@click.option("--max-substeps", type=click.IntRange(min=1), default=None,
+              help="Refuse a run needing more substeps per frame [default: a config's simulation.max_substeps, "
+                   "else 2000].")
 @click.pass_context
 def simulate(ctx, particles, shape, size, center, material, params, model, density, velocity, domain, resolution,
              particle_volume, frames, fps, substeps, gravity, walls, wall_friction, double, out_dir, params_file,
-             preview, max_output_gb, overrides):
+             preview, max_output_gb, overrides, max_substeps):
     """Simulate PARTICLES (.npz with 'positions' [N, 3] in m and optional 'volume' [N] in
     m^3, or a .ply point cloud) or a built-in shape, and write the per-frame positions
     (OUT/positions.npz: x [frames+1, N, 3], time [frames+1]) and a preview.
@@ -134,12 +139,12 @@ def simulate(ctx, particles, shape, size, center, material, params, model, densi
 
         particle_only = [p.opts[0] for p in ctx.command.params
                          if p.name not in ("particles", "out_dir", "params_file", "preview", "max_output_gb",
-                                           "overrides")
+                                           "overrides", "max_substeps")
                          and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE]
         if particle_only:
             raise click.UsageError(f"with a scene config, the config sets the simulation; drop "
                                    f"{', '.join(particle_only)}")
-        simulate_scene(particles, params_file, out_dir, preview, max_output_gb, overrides)
+        simulate_scene(particles, params_file, out_dir, preview, max_output_gb, overrides, max_substeps)
         return
     if params_file or overrides:
         raise click.UsageError(f"{'--params' if params_file else '--set'} needs a scene CONFIG (.yaml/.yml/.json)")
@@ -158,6 +163,7 @@ def simulate(ctx, particles, shape, size, center, material, params, model, densi
     from clflow.mpm.shapes import lattice_fill, load_particles
     from clflow.mpm.substep import check_grid_memory
     from clflow.runtime import get_device
+    from clflow.scene.config import DEFAULT_MAX_SUBSTEPS
 
     log = logging.getLogger("clflow.simulate")
     if resolution < 8 or not domain > 0:
@@ -189,7 +195,13 @@ def simulate(ctx, particles, shape, size, center, material, params, model, densi
     image = 0 if preview == "none" else 3 * PREVIEW_SIZE**2  # bytes of an uncompressed preview frame
     check_output(out, (frames + 1) * (12 * sim.n + image), max_output_gb, f"{frames + 1:,} frames of {sim.n:,} particles", less)
     check_memory((frames + 1) * sim.n * TRAJECTORY_REALS * dtype.itemsize, f"simulating {frames + 1:,} frames", less)
-    click.echo(f"{sim.n:,} particles of {material}, {frames} frames x {sim.substeps} substeps (dt = {sim.dt:.3g} s)")
+    click.echo(f"{sim.n:,} particles of {material}, {frames} frames x {sim.substeps} substeps (dt = {sim.dt:.3g} s, "
+               f"limited by {sim._limit_reason(sim.state.v)})")
+    limit = max_substeps or DEFAULT_MAX_SUBSTEPS
+    if sim.substeps > limit:
+        raise InputError(f"{sim.substeps} substeps per frame (dt = {sim.dt:.3g} s) is beyond the limit of {limit}; "
+                         f"ways out: a softer material, a coarser --grid, fewer --substeps, or raise the limit "
+                         f"with --max-substeps N")
     traj = sim.run(frames)
     target = out / ("preview.mp4" if preview == "mp4" else "preview")
     with atomic_dir(out) as tmp:  # all or nothing: a failure leaves OUT as it was

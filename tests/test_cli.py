@@ -110,8 +110,7 @@ def interrupt_optimize(monkeypatch, tmp_path, iterations_in_run, *args):
     cfg = SimpleNamespace(optimize=SimpleNamespace(search=None, materials=()), output=tmp_path)
     monkeypatch.setattr(clflow.scene.config, "load_config", lambda path, overrides=(): cfg)
     monkeypatch.setattr(clflow.pipeline.optimize, "Optimization",
-                        lambda cfg, hypotheses=None: _InterruptedOptimization(cfg, tmp_path / "checkpoint.json",
-                                                                              iterations_in_run))
+                        lambda cfg, **options: _InterruptedOptimization(cfg, tmp_path / "checkpoint.json", iterations_in_run))
     return CliRunner().invoke(cli, ["optimize", "scene.yaml", *args])
 
 
@@ -166,3 +165,22 @@ def test_pyopencl_build_messages_fold_into_one_line_unless_vv(device, caplog, fl
     else:
         assert len(lines) == 5 and lines[0] == ("pyopencl", "build program: kernel 'p2g' was part of a lengthy "
                                                             "uncached source build (1.50 s)")
+
+
+def test_a_broken_plugin_is_listed_and_reports_its_error_when_run(monkeypatch):
+    import clflow_cli.main as main
+
+    class BrokenEntryPoint:
+        name, value = "sparkle", "clflow_sparkle.cli:sparkle"
+
+        def load(self):
+            raise ImportError("No module named 'clflow_sparkle'")
+
+    monkeypatch.setattr(main, "entry_points", lambda group, **select: [
+        ep for ep in [BrokenEntryPoint()] if select.get("name", ep.name) == ep.name])
+    listing = CliRunner().invoke(cli, ["--help"])
+    assert listing.exit_code == 0 and "sparkle" in listing.output and "broken plugin" in listing.output
+    run = CliRunner().invoke(cli, ["sparkle", "--anything"])
+    assert run.exit_code == 1
+    assert "plugin command 'sparkle' (clflow_sparkle.cli:sparkle) failed to load: ImportError" in run.output
+    assert "Traceback" not in run.output

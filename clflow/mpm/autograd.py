@@ -35,7 +35,7 @@ from clflow.errors import InputError
 from clflow.materials import get_material, lame_parameters
 from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, SubstepTape, run_recorded
 from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, REGISTRY_MATERIAL
-from clflow.mpm.simulator import CFL_NUMBER, SimulationError, Simulator, StabilityWarning
+from clflow.mpm.simulator import CFL_NUMBER, FrameProgress, SimulationError, Simulator, StabilityWarning
 from clflow.mpm.substep import State, SubstepKernels
 from clflow.runtime.reduction import sum_rows
 
@@ -50,6 +50,20 @@ class Frames:
     v: torch.Tensor
     F: torch.Tensor
     substeps: int = 0
+    # what makes the run untrustworthy though it finished: particles clamped at the grid's edge
+    # (at least once in some frame) and the first CFL violation (a message; None: none)
+    clamped: int = 0
+    cfl_violation: str | None = None
+
+    @property
+    def unstable(self) -> str | None:
+        """Why this run is not to be trusted (a CFL violation, particles clamped at the grid's
+        edge), or None. A NaN/inf run raises SimulationError instead."""
+        if self.cfl_violation:
+            return self.cfl_violation
+        if self.clamped:
+            return f"{self.clamped} particles left the grid and were clamped to its boundary"
+        return None
 
 
 class _Engine:
@@ -122,10 +136,13 @@ class _Run:
         for buf, value in ((self.x, x0), (self.v, v0), (self.C, s0.C), (self.F, s0.F), (self.plastic, s0.plastic)):
             buf[0] = value.detach()
         a, b = self.checkpoint(0).clone(), s0.empty_like()
+        self.cfl_violation = None
+        progress = FrameProgress("differentiable run", T, self.substeps)
         for f in range(T):
             for s in range(self.substeps):
                 self.substep(a, b, f, s)
                 a, b = b, a
+                progress.tick(f, s)
             if not all(bool(torch.isfinite(t).all()) for t in (a.x, a.v, a.F)):
                 raise SimulationError(
                     f"the differentiable run became NaN/inf during frame {f + 1} "
@@ -138,10 +155,11 @@ class _Run:
                 if self.strict_cfl:
                     raise SimulationError(message)
                 warnings.warn(message, StabilityWarning, stacklevel=4)
+                self.cfl_violation = self.cfl_violation or message
             for buf, value in ((self.x, a.x), (self.v, a.v), (self.C, a.C), (self.F, a.F),
                                (self.plastic, a.plastic)):
                 buf[f + 1] = value
-        clamped = int(self.clamped.sum(dtype=torch.int64))
+        clamped = self.clamped_count = int(self.clamped.sum(dtype=torch.int64))
         if clamped:
             warnings.warn(f"differentiable run: {clamped} particles left the grid and were clamped to its "
                           f"boundary (no gradient flows along a clamped axis); enlarge the grid or add walls",
@@ -170,6 +188,7 @@ class _Run:
                 if g is not None:
                     acc += g[frame]
 
+        progress = FrameProgress("adjoint", self.frames, S)
         for f in reversed(range(self.frames)):
             add_output_grads(f + 1)
             if segment_states:  # replay the frame once, keeping each later segment's first state
@@ -190,6 +209,7 @@ class _Run:
                     grad, spare = spare, grad
                     for stage in torch.nonzero(self.stages_active(t)).flatten().tolist():
                         stage_rows[stage] += self.dt * grad.v
+                    progress.tick(self.frames - 1 - f, S - 1 - s)  # counted in the order the adjoint runs
         add_output_grads(0)
         stage_grad = torch.zeros(len(sim.drivers.forces), 3, dtype=dtype)
         for stage in range(len(sim.drivers.forces)):
@@ -391,7 +411,8 @@ def simulate(
         retries: NaN/CFL guard: when a frame turns NaN/inf or breaks the CFL limit, halve dt
             (double the substeps per frame) and run again, at most this many times (a
             StabilityWarning says so). The last attempt raises :class:`SimulationError` on
-            NaN/inf and only warns on a CFL violation.
+            NaN/inf and only warns on a CFL violation; Frames.cfl_violation and Frames.clamped
+            (particles clamped at the grid's edge) record what it warned about.
         memory_budget: bytes the run may hold (see :func:`memory_estimate`); when a whole
             frame's replay does not fit, backward replays it in shorter segments from
             intermediate states (two-level checkpointing: one more forward pass per frame).
@@ -439,12 +460,14 @@ def simulate(
     for _ in range(int(retries)):
         try:
             run = _Run(sim, int(frames), substeps, memory_budget, strict_cfl=True)
-            return Frames(*_Simulate.apply(run, param, mass, x0, v0, stage_accel), substeps=substeps)
+            return Frames(*_Simulate.apply(run, param, mass, x0, v0, stage_accel), substeps=substeps,
+                          clamped=run.clamped_count)
         except SimulationError as err:
             warnings.warn(f"{err}; retrying with {2 * substeps} substeps per frame", StabilityWarning, stacklevel=2)
             substeps *= 2
     run = _Run(sim, int(frames), substeps, memory_budget)
-    return Frames(*_Simulate.apply(run, param, mass, x0, v0, stage_accel), substeps=substeps)
+    return Frames(*_Simulate.apply(run, param, mass, x0, v0, stage_accel), substeps=substeps,
+                  clamped=run.clamped_count, cfl_violation=run.cfl_violation)
 
 
 def _stage_members(simulator: Simulator, stage: int) -> torch.Tensor:

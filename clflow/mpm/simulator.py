@@ -8,7 +8,9 @@
 
 from __future__ import annotations
 
+import logging
 import math
+import time
 import warnings
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -34,6 +36,31 @@ WAVE_NUMBER = 0.5  # dt <= WAVE_NUMBER dx / c, c the fastest elastic wave speed
 # dt <= VISCOUS_NUMBER rho dx^2 / mu, mu the explicit viscosity (constants.explicit_viscosity);
 # a Newtonian block blows up above 0.34-0.46 (measured, docs/mpm.md "Safety")
 VISCOUS_NUMBER = 0.2
+PROGRESS_SECONDS = 5.0  # a frame that takes longer logs its progress this often
+
+log = logging.getLogger("clflow.mpm")
+
+
+class FrameProgress:
+    """Logs where a long run stands (frame, substep, seconds) at most every PROGRESS_SECONDS,
+    so a run of many substeps per frame does not look like a hang."""
+
+    def __init__(self, what: str, frames: int, substeps: int, every: float | None = None, first: int = 0):
+        self.what, self.frames, self.substeps, self.first = what, frames, substeps, first
+        self.every = PROGRESS_SECONDS if every is None else every
+        self.start = self.last = time.perf_counter()
+
+    def tick(self, frame: int, substep: int) -> None:
+        """Called after substep ``substep`` (0-based) of frame ``frame`` (counted from ``first``)."""
+        frame -= self.first
+        now = time.perf_counter()
+        if now - self.last >= self.every:
+            self.last = now
+            done = frame * self.substeps + substep + 1
+            total = self.frames * self.substeps
+            log.info("%s: frame %d/%d, substep %d/%d, %.0f s so far, about %.0f s left", self.what, frame + 1,
+                     self.frames, substep + 1, self.substeps, now - self.start,
+                     (now - self.start) * (total - done) / done)
 
 
 class SimulationError(ClflowError):
@@ -243,6 +270,7 @@ class Simulator:
         self.frame = 0
         self.kernels = SubstepKernels(self.device, dtype, n, grid, self.particles.material, p2g)
         self._clamped = torch.zeros(n, dtype=torch.uint8)
+        self._progress: FrameProgress | None = None  # set while run() runs
 
     # -- validation -------------------------------------------------------------------------
 
@@ -319,8 +347,10 @@ class Simulator:
         Raises :class:`SimulationError` if the state became NaN/inf."""
         self._clamped.zero_()
         v_before = self.state.v.clone()
-        for _ in range(self.substeps):
+        for s in range(self.substeps):
             self.step()
+            if self._progress is not None:
+                self._progress.tick(self.frame, s)
         self.frame += 1
         s = self.state
         if not all(bool(torch.isfinite(t).all()) for t in (s.x, s.v, s.F)):
@@ -344,8 +374,12 @@ class Simulator:
         if int(frames) < 0:
             raise InputError(f"frames must be >= 0, got {frames}")
         snaps = [self._snapshot(0)]
-        for _ in range(int(frames)):
-            snaps.append(self._snapshot(self.advance_frame()))
+        self._progress = FrameProgress("simulation", int(frames), self.substeps, first=self.frame)
+        try:
+            for _ in range(int(frames)):
+                snaps.append(self._snapshot(self.advance_frame()))
+        finally:
+            self._progress = None
         return Trajectory(
             x=torch.stack([s[0] for s in snaps]), v=torch.stack([s[1] for s in snaps]),
             F=torch.stack([s[2] for s in snaps]), plastic=torch.stack([s[3] for s in snaps]),

@@ -68,10 +68,17 @@ def material_values(cfg: SceneConfig, overrides: dict[str, float] | None = None)
 
 
 def simulate_config(cfg: SceneConfig, overrides: dict[str, float] | None = None,
-                    prepared: Prepared | None = None) -> SimulationResult:
-    """Run the config's simulation (no gradients) with its material or ``overrides``."""
+                    prepared: Prepared | None = None, max_substeps: int | None = None) -> SimulationResult:
+    """Run the config's simulation (no gradients) with its material or ``overrides``. With
+    ``max_substeps``, first log the substeps and the predicted time, and refuse
+    (SubstepLimitError) a run needing more substeps per frame."""
     prepared = prepared or prepare(cfg)
     params, density = material_values(cfg, overrides)
+    if max_substeps is not None:
+        from clflow.pipeline.preflight import describe, plan_run
+
+        log.info("%s", describe(plan_run(cfg, prepared.setup, params, density, max_substeps=max_substeps),
+                                "simulation", gradient=False))
     sim = build_simulator(cfg, prepared.setup, params, density)
     traj = sim.run(cfg.simulation.frames)
     return SimulationResult(prepared, params, density, traj.x, traj.F, traj.clamped, sim.substeps)

@@ -48,14 +48,16 @@ def hypothesis_config(cfg: SceneConfig, material: str) -> SceneConfig:
 
 
 def choose_material(cfg: SceneConfig, *, resume: bool = False,
-                    progress: Callable[[str, dict], None] | None = None):
+                    progress: Callable[[str, dict], None] | None = None, force_video: bool = False):
     """Search each of ``optimize.material``'s hypotheses and keep the best.
 
     Returns (the chosen hypothesis' config with output ``cfg.output``, the optimiser state
     its search ended in (the main run starts from it), the record written to
     ``output/hypotheses.json``: per material its best loss, parameters, samples and seconds,
-    and the chosen one). ``progress(material, row)`` sees every search sample."""
+    and the chosen one). ``progress(material, row)`` sees every search sample; a hypothesis
+    whose start needs more substeps than allowed is recorded as failed."""
     from clflow.pipeline.optimize import Optimization, observed_flow_cache
+    from clflow.pipeline.preflight import SubstepLimitError
 
     cfg = resolve_material(cfg)
     cfg.output.mkdir(parents=True, exist_ok=True)
@@ -68,14 +70,15 @@ def choose_material(cfg: SceneConfig, *, resume: bool = False,
             if shared.exists() and not own.exists():
                 shutil.copyfile(shared, own)
         start = time.perf_counter()
-        opt = Optimization(hyp, progress=(lambda row, m=material: progress(m, row)) if progress else None)
-        state = opt.load_state() if resume and opt.checkpoint.exists() else opt.initial_state()
         try:
+            opt = Optimization(hyp, progress=(lambda row, m=material: progress(m, row)) if progress else None,
+                               force_video=force_video)
+            state = opt.load_state() if resume and opt.checkpoint.exists() else opt.initial_state()
             if not state.searched:
                 state = opt.global_search(state)
         except ClflowError as exc:  # no sample of this material ran: the others may
-            if isinstance(exc, InputError):  # the user's config: no hypothesis can fix that
-                raise
+            if isinstance(exc, InputError) and not isinstance(exc, SubstepLimitError):
+                raise  # the user's config: no hypothesis can fix that
             record[material] = {"failed": str(exc), "seconds_this_run": time.perf_counter() - start}
             log.warning("hypothesis %s failed: %s", material, exc)
             continue

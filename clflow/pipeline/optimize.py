@@ -11,7 +11,12 @@ velocity is optimised, over the first frames, with the material at its initial g
 main phase starts from that estimate. Adam is written out here in float64 so that its whole
 state goes into ``checkpoint.json`` after every iteration; ``resume`` continues from it and
 gives the same result as an uninterrupted run. A failed iteration (NaN, a simulation that blows
-up) rolls back to the last good parameters, halves the step and tries again.
+up, breaks the CFL limit, clamps particles at the grid's edge or needs more substeps than
+``simulation.max_substeps``) is never accepted: it rolls back to the last good parameters,
+halves the step and tries again (``rollbacks`` in metrics.json), or stops with the reason.
+Before the first iteration the pre-flight checks (clflow.pipeline.preflight) print the
+substeps and the predicted time, and refuse a run beyond the substep limit or a guidance
+video that does not fit the scene (``force_video``: warn and record it instead).
 
 Results in ``output/``: params.json, metrics.json, history.json, loss.png, comparison.mp4,
 observed_flow.npz (the video's flow and its confidence, computed once).
@@ -84,6 +89,14 @@ class OptimizerState:
     # Levenberg-Marquardt: damping, and the best point so far (its z, loss and horizon)
     damping: float = LM_DAMPING
     best: dict | None = None
+    # every iteration that failed or was unstable and was rolled back: {"iteration", "phase",
+    # "reason", "params" (the rejected point), "back_to" (the last good parameters)}
+    rollbacks: list[dict] = field(default_factory=list)
+
+
+class UnstableRun(ClflowError):
+    """A simulation finished but is not to be trusted (CFL broken, particles clamped at the
+    grid's edge): the optimiser rejects it like a NaN."""
 
 
 @dataclass
@@ -246,6 +259,7 @@ def config_digests(cfg: SceneConfig) -> dict[str, str]:
     fields = asdict(cfg)
     fields.pop("output", None)
     fields["optimize"].pop("iterations", None)
+    fields["simulation"].pop("max_substeps", None)  # a run stopped by the limit may resume with a higher one
     if not fields["more_views"]:  # one view: the digests of checkpoints from before several views
         fields.pop("more_views")
     return {name: hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()[:16]
@@ -268,7 +282,7 @@ class Optimization:
     """One optimisation run of a config (see module docstring)."""
 
     def __init__(self, cfg: SceneConfig, *, progress: Callable[[dict], None] | None = None,
-                 hypotheses: dict | None = None):
+                 hypotheses: dict | None = None, force_video: bool = False):
         self.cfg = cfg = resolve_material(cfg)
         self.hypotheses = hypotheses  # how the material was chosen (clflow.pipeline.hypotheses), for metrics
         self.params = _parameterizations(cfg)
@@ -281,7 +295,9 @@ class Optimization:
         self.progress = progress or (lambda row: None)
         self.prepared = prepare(cfg)
         self.frames = cfg.simulation.frames
+        self.plan = self.preflight()  # before the optical flow: refuse a run beyond the substep limit in seconds
         self.views = self._views()
+        self.guidance_warnings = self.check_guidance(force_video)
         self.checkpoint = cfg.output / "checkpoint.json"
         self._lm_cache: tuple | None = None  # ((z, frames), Evaluation, J) of the last Jacobian
 
@@ -304,6 +320,39 @@ class Optimization:
             weight = mask * torch.from_numpy(confidence).double()  # [T, H, W] in [0, 1]
             views.append(View(cam, torch.from_numpy(flow).double(), weight, mask, video.frames))
         return views
+
+    def preflight(self):
+        """Force stages and the substeps at the initial parameters: the predicted time is
+        logged, a run beyond ``simulation.max_substeps`` refused (SubstepLimitError)."""
+        from clflow.pipeline.preflight import check_forces, describe, plan_run
+
+        check_forces(self.cfg, self.prepared.setup.particles.positions)
+        z = self.initial_state().z
+        values = self.values(z)
+        params, density = material_values(self.cfg, {n: values[n] for n in self.params})
+        plan = plan_run(self.cfg, self.prepared.setup, params, density, velocity=torch.tensor(self.velocity(z)),
+                        max_substeps=self.cfg.simulation.max_substeps, optimizing=True)
+        log.info("%s", describe(plan, "optimize", gradient=True))
+        return plan
+
+    def check_guidance(self, force: bool) -> list[str]:
+        """The guidance checks of every view (clflow.pipeline.preflight.check_guidance): their
+        problems when forced, else InputError on any."""
+        from clflow.pipeline.preflight import AGREEMENT_FRAMES, check_guidance, flow_agreement, measure_view
+
+        # inside the mask the weight is the observed flow's confidence
+        self.guidance = [measure_view(self.prepared, view.camera, view.mask, view.video_frames, view.observed.numpy(),
+                                      view.weight.numpy()) for view in self.views]
+        if VELOCITY_COMPONENTS[0] not in self.variables:  # else the start's velocity may be anything
+            try:
+                start = self.evaluate(self.initial_state().z, min(AGREEMENT_FRAMES, self.frames), with_grad=False)
+            except (FloatingPointError, ClflowError) as exc:  # the first iteration will say so
+                log.info("no flow-direction check: the start's simulation fails (%s)", exc)
+            else:
+                self.guidance = [dataclasses.replace(check, agreement=flow_agreement(flows, view.observed, view.weight))
+                                 for check, view, flows in zip(self.guidance, self.views,
+                                                               [start.flows, *start.more_flows])]
+        return check_guidance(self.cfg, self.guidance, force)
 
     # view 0's state (one view: the only one)
     observed = property(lambda self: self.views[0].observed)
@@ -362,8 +411,14 @@ class Optimization:
         params, density = material_values(self.cfg, {n: float(v.detach()) for n, v in decoded.items()})
         velocity = torch.stack([zt[n] for n in VELOCITY_COMPONENTS]) if VELOCITY_COMPONENTS[0] in zt else None
         sim = build_simulator(self.cfg, self.prepared.setup, params, density, min_substeps=min_substeps,
-                              velocity=velocity)
+                              velocity=velocity, max_substeps=self.cfg.simulation.max_substeps)
         traj = run(sim, frames, decoded, velocity)
+        needed = sim.stable_substeps()
+        if traj.substeps < needed:  # a fixed simulation.substep_dt too long for these parameters
+            raise UnstableRun(f"dt = {sim.frame_dt / traj.substeps:.3g} s exceeds the stable step "
+                              f"{sim.frame_dt / needed:.3g} s of these parameters ({sim._limit_reason(sim.state.v)})")
+        if traj.unstable:  # finished, but not a run to learn from
+            raise UnstableRun(traj.unstable)
         cameras = [v.camera for v in self.views]
         flows, *more_flows = simulated_view_flows(self.prepared, traj.x, traj.F, frames, cameras)
         # the mean over views of each view's loss
@@ -558,14 +613,18 @@ class Optimization:
             except (FloatingPointError, ClflowError) as exc:
                 failures += 1
                 if failures > MAX_FAILURES or state.iteration == 0 and failures > 1:
+                    good = (f"last good parameters: {self.values(state.history[-1]['z'])}" if state.history else
+                            f"the initial parameters {self.values(state.z)} fail")
                     raise ClflowError(f"optimisation stopped at iteration {state.iteration}: {exc} "
-                                      f"({failures} failed attempts); last good parameters: {self.values(state.z)}")
+                                      f"({failures} failed attempts); {good}")
                 previous = state.history[-1]["z"] if state.history else state.z
                 log.warning("iteration %d failed (%s): back to the last good parameters, half the step, "
                             "momentum dropped", state.iteration, exc)
+                rollback = {"iteration": state.iteration, "phase": phase, "reason": str(exc),
+                            "params": self.values(state.z), "back_to": self.values(previous)}
                 state = dataclasses.replace(state, z=dict(previous), m={n: 0.0 for n in state.m},
                                             step_scale=state.step_scale / 2, momentum_steps=0,
-                                            damping=state.damping * 4.0)
+                                            damping=state.damping * 4.0, rollbacks=[*state.rollbacks, rollback])
                 continue
             failures = 0
             row = {"iteration": state.iteration, "phase": phase, "loss": result.loss, "frames": frames,
@@ -627,14 +686,31 @@ class Optimization:
         from clflow.media import write_video
 
         out = self.cfg.output
+        # the identifiability check below needs this evaluation as its Jacobian's base: run it once
+        try:
+            result, _ = self.jacobian(state.z, self.frames, state.substeps, self.main_variables)
+        except (FloatingPointError, ClflowError) as exc:
+            if not state.history:
+                raise
+            # the last step's point is not a result: back to the last accepted one (state changes in place)
+            good = state.history[-1]["z"]
+            log.warning("the final parameters fail (%s): the results are those of the last good ones", exc)
+            state.rollbacks.append({"iteration": state.iteration, "phase": "final", "reason": str(exc),
+                                    "params": self.values(state.z), "back_to": self.values(good)})
+            state.z = dict(good)
+            self.save_state(state)
+            result, _ = self.jacobian(state.z, self.frames, state.substeps, self.main_variables)
         final = self.values(state.z)
         params, density = material_values(self.cfg, {n: final[n] for n in self.params})
         velocity = self.velocity(state.z)
-        # the identifiability check below needs this evaluation as its Jacobian's base: run it once
-        result, _ = self.jacobian(state.z, self.frames, state.substeps, self.main_variables)
         loss, flows = result.loss, result.flows
         metrics = {"flow_loss": loss, "epe_px": self.endpoint_error(flows, result.more_flows), "iterations": len(state.history),
                    "seconds_per_iteration": float(np.mean([h["seconds"] for h in state.history])) if state.history else 0.0}
+        metrics["rollbacks"] = state.rollbacks  # every rejected iteration: its reason and parameters
+        if getattr(self, "guidance", None):
+            metrics["guidance_checks"] = [check.record() for check in self.guidance]
+        if getattr(self, "guidance_warnings", None):  # forced past a failed guidance check (--force-video)
+            metrics["warnings"] = list(self.guidance_warnings)
         metrics["identifiability"] = self.identifiability(state.z, state.substeps)
         if self.hypotheses:
             metrics["material_hypotheses"] = self.hypotheses

@@ -95,29 +95,25 @@ def setup_object(cfg: SceneConfig, obj: SceneGaussians) -> ObjectSetup:
 
 def build_simulator(cfg: SceneConfig, setup: ObjectSetup, params: dict[str, float], density: float,
                     dtype: torch.dtype = torch.float32, min_substeps: int = 1,
-                    velocity: torch.Tensor | None = None):
+                    velocity: torch.Tensor | None = None, max_substeps: int | None = None):
     """A :class:`clflow.mpm.Simulator` for material parameters ``params`` (SI), ``density``
     (kg/m^3) and initial velocity ``velocity`` ([3] m/s in the simulation frame, default
     ``object.velocity``); substeps from ``simulation.substep_dt``, else the stability limits
-    of these parameters and this speed but at least ``min_substeps``."""
-    from clflow.mpm import BoxRegion, Force, HalfSpace, MaterialSpec, Simulator, SphereRegion
+    of these parameters and this speed but at least ``min_substeps``. SubstepLimitError
+    (clflow.pipeline.preflight) beyond ``max_substeps`` per frame (None: no limit); InputError
+    for a force stage that holds no particle or never acts."""
+    from clflow.mpm import Force, HalfSpace, MaterialSpec, Simulator
+    from clflow.pipeline.preflight import check_forces, check_substeps
 
     sim_cfg = cfg.simulation
     frame_dt = 1.0 / sim_cfg.fps
     substeps = None if sim_cfg.substep_dt is None else max(1, math.ceil(frame_dt / sim_cfg.substep_dt - 1e-9))
     x = setup.particles.positions
+    check_forces(cfg, x, dtype)
     forces = []
-    for i, stage in enumerate(cfg.forces):
-        region = stage.region
-        if not bool(region_mask(region, x.double()).any()):
-            raise InputError(f"{cfg.source}: forces[{i}].region holds no particle of the object (the object spans "
-                             f"{x.min(0).values.tolist()} .. {x.max(0).values.tolist()} m in the simulation frame)")
-        if region.kind == "box":
-            where = BoxRegion(region.lower, region.upper)
-        elif region.kind == "sphere":
-            where = SphereRegion(region.center, region.radius)
-        else:
-            where = torch.ones(x.shape[0], dtype=torch.bool)
+    for stage in cfg.forces:
+        # the particles the simulator would select (float64 tests of its own dtype's coordinates), as a mask
+        where = region_mask(stage.region, x.to(dtype).double())
         vec = list(stage.vector)
         forces.append(Force(where, stage.start, stage.end, force=vec if stage.kind == "force" else None,
                             acceleration=vec if stage.kind == "acceleration" else None))
@@ -132,6 +128,7 @@ def build_simulator(cfg: SceneConfig, setup: ObjectSetup, params: dict[str, floa
     )
     if substeps is None and sim.substeps < min_substeps:
         sim.use_substeps(min_substeps)
+    check_substeps(cfg, sim, max_substeps)
     return sim
 
 

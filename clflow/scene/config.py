@@ -205,6 +205,9 @@ class Collider:
     end: float = math.inf
 
 
+DEFAULT_MAX_SUBSTEPS = 2000  # substeps per frame: beyond, a run is refused (docs/pipeline.md, pre-flight)
+
+
 @dataclass(frozen=True)
 class SimulationSettings:
     grid_resolution: int = 32  # nodes along the longest side of the domain
@@ -214,6 +217,8 @@ class SimulationSettings:
     fps: float = 24.0
     frames: int = 24
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)  # m/s^2
+    # refuse a run (optimize, simulate) needing more substeps per frame (--max-substeps overrides)
+    max_substeps: int = DEFAULT_MAX_SUBSTEPS
 
 
 @dataclass(frozen=True)
@@ -413,7 +418,7 @@ def _colliders(r: _Reader, data: Any) -> tuple[Collider, ...]:
 
 def _simulation(r: _Reader, data: Any) -> SimulationSettings:
     p = "simulation"
-    body = r.section(data, p, ("grid_resolution", "domain", "substep_dt", "fps", "frames", "gravity"))
+    body = r.section(data, p, ("grid_resolution", "domain", "substep_dt", "fps", "frames", "gravity", "max_substeps"))
     lower = upper = None
     if body.get("domain") is not None:
         dom = r.section(body["domain"], f"{p}.domain", ("min", "max"))
@@ -428,6 +433,7 @@ def _simulation(r: _Reader, data: Any) -> SimulationSettings:
         fps=r.number(body, "fps", p, 24.0, low=0.0, strict_low=True),
         frames=r.integer(body, "frames", p, 24, low=1),
         gravity=r.vec3(body, "gravity", p, (0.0, -9.81, 0.0)),
+        max_substeps=r.integer(body, "max_substeps", p, DEFAULT_MAX_SUBSTEPS, low=1),
     )
 
 
