@@ -33,7 +33,7 @@ from typing import Callable
 
 import numpy as np
 
-from clflow.errors import InputError
+from clflow.errors import ClflowError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +153,11 @@ def inspect_model(path: str | os.PathLike) -> ModelInfo:
         raise InputError(f"{path}: model_index.json names {cls!r}, which clflow generate does not run "
                          f"(image-to-video only). Expected: {expected_layout()}")
     for name, kind in family.components.items():
-        _check_component(path, name, kind, index, family)
+        try:
+            _check_component(path, name, kind, index, family)
+        except InputError as exc:
+            raise InputError(f"{exc}. Expected a {cls} folder: model_index.json and the folders "
+                             f"{', '.join(family.components)}, each with its config and weights") from None
     if family.name.startswith("CogVideoX"):
         return _cogvideox_info(path, cls, family)
     return _svd_info(path, cls, family)
@@ -190,7 +194,10 @@ def _cogvideox_info(path: Path, cls: str, family: Family) -> ModelInfo:
     tr = _read_json(path / "transformer" / "config.json", f"{path}: transformer")
     vae = _read_json(path / "vae" / "config.json", f"{path}: vae")
     spatial = 2 ** (len(vae.get("block_out_channels", [128, 256, 256, 512])) - 1)
-    temporal = int(vae.get("temporal_compression_ratio", 4))
+    # the VAE compresses time 4x and decodes the latent frames after the first in pairs: only
+    # an odd latent count decodes to the frames asked for (9 -> 3 -> 9, but 5 -> 2 -> 8), so
+    # the frame counts are 1 + k * 8 (49 for CogVideoX-5b-I2V, 81 for 1.5)
+    temporal = 2 * int(vae.get("temporal_compression_ratio", 4))
     patch = int(tr.get("patch_size", 2))
     return ModelInfo(
         path, cls, family,
@@ -268,7 +275,7 @@ def check_request(info: ModelInfo, request: GenerateRequest) -> Resolved:
         raise InputError(f"frames: {where} needs at least 2 frames, got {frames}")
     if step > 1 and (frames - 1) % step:
         below = 1 + (frames - 1) // step * step
-        raise InputError(f"frames: {where} makes 1 + k x {step} frames (its VAE compresses time {step}x): "
+        raise InputError(f"frames: {where} makes 1 + k x {step} frames (what its VAE decodes): "
                          f"got {frames}; use {max(below, 1 + step)} or {below + step}")
     size = request.size or info.default_size
     w, h = size
@@ -403,7 +410,7 @@ def estimate_seconds(info: ModelInfo, resolved: Resolved, cores: int | None = No
     guidance) at :data:`CPU_FLOPS_PER_CORE` per core. An order of magnitude, no more."""
     params = info.weight_bytes / 2  # released checkpoints are half precision
     w, h = resolved.size
-    latent_frames = (resolved.frames - 1) // info.frame_step + 1
+    latent_frames = (resolved.frames - 1) // max(1, info.frame_step // 2) + 1 if info.uses_prompt else resolved.frames
     tokens = latent_frames * (w // info.size_multiple) * (h // info.size_multiple)
     if not info.uses_prompt:  # a UNet: convolutions over every latent pixel; tokens at 1/2 of a 2x2 patch grid
         tokens = latent_frames * (w // 8) * (h // 8) / 4
@@ -489,6 +496,9 @@ def generate_video(image: np.ndarray, info: ModelInfo, request: GenerateRequest,
                        fps=max(1, round(resolved.fps)), **common)
     generate_s = time.perf_counter() - start
     video = np.asarray(out.frames[0], np.float32)  # [T, h, w, 3] in [0, 1]
+    if video.shape[0] != resolved.frames:  # check_request's rule for this model is wrong: say so
+        raise ClflowError(f"{info.path}: the model made {video.shape[0]} frames, not the {resolved.frames} asked for; "
+                          f"please report this with the model's model_index.json")
     frames = (np.clip(np.nan_to_num(video), 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
     if resolved.request.output_size == "image":
         frames = restore_frames(frames, placement)

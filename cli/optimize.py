@@ -42,6 +42,11 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
     if output is not None:
         cfg = dataclasses.replace(cfg, output=Path(output).resolve())
     check_output(cfg.output)
+    if getattr(cfg, "generate", None) is not None:  # video: {generate: ...}: the guidance video first
+        from clflow.pipeline.generated_video import ensure_guidance_video
+
+        cfg = ensure_guidance_video(cfg, progress=lambda step, total: click.echo(
+            f"generating the guidance video: step {step}/{total}", err=True))
     start, hypotheses, search = None, None, cfg.optimize.search
     if cfg.optimize.materials:  # material hypotheses: search each, optimise the best
         from clflow.pipeline.hypotheses import choose_material
