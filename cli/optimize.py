@@ -45,6 +45,11 @@ def run_optimization(config_path: str, resume: bool, iterations: int | None, out
     check_output(cfg.output)
     if max_substeps is not None:
         cfg = dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, max_substeps=max_substeps))
+    if getattr(cfg, "generate", None) is not None:  # video: {generate: ...}: the guidance video first
+        from clflow.pipeline.generated_video import ensure_guidance_video
+
+        cfg = ensure_guidance_video(cfg, progress=lambda step, total: click.echo(
+            f"generating the guidance video: step {step}/{total}", err=True))
     start, hypotheses, search = None, None, cfg.optimize.search
     if cfg.optimize.materials:  # material hypotheses: search each, optimise the best
         from clflow.pipeline.hypotheses import choose_material

@@ -39,6 +39,7 @@ import torch
 from clflow.errors import ClflowError, InputError
 from clflow.fileio import atomic_path, atomic_write_text
 from clflow.pipeline.forward import Prepared, SimulationResult, material_values, prepare, render_frames
+from clflow.pipeline.generated_video import ensure_guidance_video
 from clflow.pipeline.material import resolve_material
 from clflow.pipeline.plots import write_history_plot
 from clflow.pipeline.render import frame_gaussians, render_flow, render_object_alpha
@@ -262,6 +263,8 @@ def config_digests(cfg: SceneConfig) -> dict[str, str]:
     fields["simulation"].pop("max_substeps", None)  # a run stopped by the limit may resume with a higher one
     if not fields["more_views"]:  # one view: the digests of checkpoints from before several views
         fields.pop("more_views")
+    if fields.get("generate") is None:  # no generated video: the digests of checkpoints from before it
+        fields.pop("generate", None)
     return {name: hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()[:16]
             for name, value in fields.items()}
 
@@ -283,7 +286,7 @@ class Optimization:
 
     def __init__(self, cfg: SceneConfig, *, progress: Callable[[dict], None] | None = None,
                  hypotheses: dict | None = None, force_video: bool = False):
-        self.cfg = cfg = resolve_material(cfg)
+        self.cfg = cfg = ensure_guidance_video(resolve_material(cfg))  # video: {generate: ...} made first
         self.hypotheses = hypotheses  # how the material was chosen (clflow.pipeline.hypotheses), for metrics
         self.params = _parameterizations(cfg)
         opt = cfg.optimize

@@ -244,6 +244,29 @@ class GuidanceView:
 
 
 @dataclass(frozen=True)
+class GenerateSettings:
+    """``video: {generate: ...}``: make the guidance video with an image-to-video model first
+    (clflow.pipeline.generated_video; None values: the model's or the scene's defaults)."""
+
+    model: Path  # a local diffusers folder (clflow.generate.inspect_model)
+    prompt: str | None = None  # None: the motion prompt filled from the forces (prompt_template)
+    prompt_template: str | None = None  # None: clflow.pipeline.generated_video.PROMPT_TEMPLATE
+    object: str = "object"  # what the object is, for the template
+    negative_prompt: str = ""
+    image: Path | None = None  # None: the scene rendered from the guidance camera
+    seed: int = 0
+    frames: int | None = None  # None: enough for the simulated time, as the model makes them
+    fps: float | None = None  # None: simulation.fps
+    steps: int | None = None
+    guidance_scale: float | None = None
+    size: tuple[int, int] | None = None  # (width, height) the model generates at
+    fit: str = "pad"
+    cpu_offload: bool = False
+    vae_tiling: bool = False
+    vae_slicing: bool = False
+
+
+@dataclass(frozen=True)
 class FlowSettings:
     method: str = "dis"
     preset: str = DEFAULT_PRESET
@@ -302,6 +325,7 @@ class SceneConfig:
     ground_truth: dict[str, float] = field(default_factory=dict)  # for metrics (RE) only; velocity as components
     velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the object's initial velocity, m/s, scene axes
     more_views: tuple[GuidanceView, ...] = ()  # views 1.. when camera and video are lists; view 0 is camera, video
+    generate: GenerateSettings | None = None  # video: {generate: ...}; video is None until it is made
 
 
 def _region(r: _Reader, data: Any, path: str, allow_all: bool) -> Region:
@@ -462,6 +486,11 @@ def _camera(r: _Reader, data: Any, p: str = "camera") -> CameraConfig:
 def _views(r: _Reader, top: dict) -> tuple[list[CameraConfig], list[Path | None]]:
     """The guidance views: ``camera`` and ``video`` each one entry or a list of one per view."""
     cameras, videos = top.get("camera"), top.get("video")
+    if isinstance(videos, dict):  # video: {generate: ...}: one view, its video made later
+        if isinstance(cameras, list) and len(cameras) != 1:
+            raise r.fail("video.generate", f"makes one guidance view's video; with {len(cameras)} cameras give a "
+                                           f"list of video files")
+        return [_camera(r, cameras[0] if isinstance(cameras, list) else cameras)], [None]
     for key, value in (("camera", cameras), ("video", videos)):
         if isinstance(value, list) and not value:
             raise r.fail(key, "is an empty list: give one entry per guidance view")
@@ -477,6 +506,62 @@ def _views(r: _Reader, top: dict) -> tuple[list[CameraConfig], list[Path | None]
     return ([_camera(r, c, f"camera[{i}]") for i, c in enumerate(cameras)],
             [None] * len(cameras) if videos is None else
             [r.file({f"video[{i}]": v}, f"video[{i}]", "", folder_ok=True) for i, v in enumerate(videos)])
+
+
+def _generate(r: _Reader, data: Any, simulation: SimulationSettings) -> GenerateSettings | None:
+    """``video: {generate: {...}}``, its model folder and request checked as far as they can
+    be before the scene is loaded (clflow.generate.check_request; the JSON files only)."""
+    if not isinstance(data, dict):
+        return None
+    p = "video.generate"
+    outer = r.section(data, "video", ("generate",))
+    body = r.section(outer.get("generate"), p, ("model", "prompt", "prompt_template", "object", "negative_prompt",
+                                                "image", "seed", "frames", "fps", "steps", "guidance_scale", "size",
+                                                "fit", "cpu_offload", "vae_tiling", "vae_slicing"))
+    if not body:
+        raise r.fail(p, "is required: at least the model folder (video: {generate: {model: ...}})")
+    model = body.get("model")
+    if not isinstance(model, str) or not model:
+        raise r.fail(f"{p}.model", f"is required: a local diffusers model folder, got {model!r}")
+    texts = {}
+    for key in ("prompt", "prompt_template", "object", "negative_prompt"):
+        value = body.get(key)
+        if value is not None and not isinstance(value, str):
+            raise r.fail(f"{p}.{key}", f"must be text, got {value!r}")
+        texts[key] = value
+    flags = {}
+    for key in ("cpu_offload", "vae_tiling", "vae_slicing"):
+        flags[key] = body.get(key, False)
+        if not isinstance(flags[key], bool):
+            raise r.fail(f"{p}.{key}", f"must be true or false, got {flags[key]!r}")
+    size = None
+    if body.get("size") is not None:
+        value = body["size"]
+        if (isinstance(value, list) and len(value) == 2
+                and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)):
+            size = (value[0], value[1])
+        elif isinstance(value, str):
+            from clflow.generate import parse_size
+
+            try:
+                size = parse_size(value)
+            except InputError as exc:
+                raise r.fail(f"{p}.size", str(exc)) from None
+        else:
+            raise r.fail(f"{p}.size", f"must be WIDTHxHEIGHT or [width, height] in pixels, got {value!r}")
+    settings = GenerateSettings(
+        model=(r.base / model).resolve(), prompt=texts["prompt"], prompt_template=texts["prompt_template"],
+        object=texts["object"] or "object", negative_prompt=texts["negative_prompt"] or "",
+        image=r.file(body, "image", p, required=False), seed=r.integer(body, "seed", p, 0),
+        frames=r.integer(body, "frames", p, low=2) if body.get("frames") is not None else None,
+        fps=r.number(body, "fps", p, low=0.0, strict_low=True) if body.get("fps") is not None else None,
+        steps=r.integer(body, "steps", p, low=1) if body.get("steps") is not None else None,
+        guidance_scale=r.number(body, "guidance_scale", p, low=0.0) if body.get("guidance_scale") is not None
+        else None, size=size, fit=r.choice(body, "fit", p, ("pad", "crop"), "pad"), **flags)
+    from clflow.pipeline.generated_video import check_settings
+
+    check_settings(settings, simulation, fail=lambda key, message: r.fail(f"{p}.{key}" if key else p, message))
+    return settings
 
 
 def _optimize(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> OptimizeSettings:
@@ -656,6 +741,7 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         ground_truth=dict(truth),
         velocity=r.vec3(obj, "velocity", "object", (0.0, 0.0, 0.0)),
         more_views=tuple(GuidanceView(c, v) for c, v in zip(cameras[1:], videos[1:])),
+        generate=_generate(r, top.get("video"), simulation),
     )
 
 

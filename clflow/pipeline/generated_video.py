@@ -1,0 +1,195 @@
+"""``video: {generate: ...}``: the guidance video made by an image-to-video model as the first
+step of ``clflow optimize`` (docs/generate.md), cached by a hash of everything that makes it.
+
+    cfg = ensure_guidance_video(cfg)   # cfg.video: output/generated/guidance-<hash>.mp4
+
+The input image is ``video.generate.image``, or else the splat scene rendered from the
+guidance camera (the paper's set-up: the model animates the view the optimiser compares
+with). The prompt is ``video.generate.prompt``, or else :data:`PROMPT_TEMPLATE` filled from
+the scene's forces and initial velocity (:func:`motion_prompt`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import string
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from clflow.errors import InputError
+from clflow.scene.config import GenerateSettings, SceneConfig, SimulationSettings
+
+log = logging.getLogger(__name__)
+
+#: The physical-motion prompt, in the style of the paper's prompts for its generated guidance
+#: videos ("the object ... is pushed ..."; a static camera, so that the video's optical flow
+#: is the object's motion). Placeholders: {object}, {motion}, {material}.
+PROMPT_TEMPLATE = ("A static camera shot. The {object} is {motion}, and moves and deforms like a real {material} "
+                   "object would. The camera and the background do not move.")
+PLACEHOLDERS = ("object", "motion", "material")
+CACHE_FOLDER = "generated"  # under the config's output folder
+
+
+def _direction(vector) -> str:
+    """Words for a direction in the simulation frame (+y up), for the default view: a camera
+    looking along -z with +x to its right (other views: write the prompt yourself)."""
+    words = (("to the right", "to the left"), ("upwards", "downwards"), ("towards the camera", "away from the camera"))
+    v = np.asarray(vector, float)
+    big = [i for i in np.argsort(-np.abs(v)) if abs(v[i]) >= 0.5 * np.abs(v).max() > 0]
+    return " and ".join(words[i][0 if v[i] > 0 else 1] for i in big[:2])
+
+
+def motion_prompt(cfg: SceneConfig, template: str | None = None, object_name: str | None = None) -> str:
+    """The prompt for the config's motion: each force or acceleration stage ("pushed to the
+    left", with its start time when it is not at once), the initial velocity ("thrown ..."),
+    else a fall under gravity."""
+    gen = cfg.generate
+    template = template or (gen.prompt_template if gen and gen.prompt_template else PROMPT_TEMPLATE)
+    object_name = object_name or (gen.object if gen else "object")
+    parts = []
+    if any(cfg.velocity):
+        parts.append(f"thrown {_direction(cfg.velocity)}")
+    for stage in cfg.forces:
+        if not any(stage.vector):
+            continue
+        when = f" after {stage.start:g} s" if stage.start > 0 else ""
+        how = "pushed" if stage.end - stage.start > 0.25 or math.isinf(stage.end) else "hit and pushed"
+        parts.append(f"{how} {_direction(stage.vector)}{when}")
+    if not parts:
+        parts.append("falling under gravity" if any(cfg.simulation.gravity) else "at rest")
+    motion = ", then ".join(parts)
+    material = cfg.material.type if cfg.material.type != "query" else "physical"
+    return template.format(object=object_name, motion=motion, material=material.replace("_", " "))
+
+
+def _check_template(template: str, fail: Callable[[str, str], Exception]) -> None:
+    try:
+        names = [name for _, name, _, _ in string.Formatter().parse(template) if name is not None]
+    except ValueError as exc:
+        raise fail("prompt_template", f"is not a valid template ({exc}); use {{object}}, {{motion}}, "
+                                      f"{{material}} and {{{{ }}}} for braces") from None
+    unknown = [n for n in names if n not in PLACEHOLDERS]
+    if unknown:
+        raise fail("prompt_template", f"has the unknown placeholder {{{unknown[0]}}}; known: "
+                                      f"{', '.join('{' + p + '}' for p in PLACEHOLDERS)}")
+
+
+def _request(settings: GenerateSettings, simulation: SimulationSettings, info, prompt: str):
+    """The clflow.generate.GenerateRequest: frames default to enough to cover the simulated
+    time at the video's frame rate (default simulation.fps), as many as the model makes."""
+    from clflow.generate import GenerateRequest
+
+    fps = settings.fps or simulation.fps
+    frames = settings.frames
+    if frames is None:
+        needed = math.ceil(simulation.frames * fps / simulation.fps - 1e-9) + 1
+        step = info.frame_step
+        frames = 1 + math.ceil((needed - 1) / step) * step
+    return GenerateRequest(prompt=prompt, negative_prompt=settings.negative_prompt, frames=frames, fps=fps,
+                           seed=settings.seed, steps=settings.steps, guidance_scale=settings.guidance_scale,
+                           size=settings.size, fit=settings.fit, output_size="image",
+                           cpu_offload=settings.cpu_offload, vae_tiling=settings.vae_tiling,
+                           vae_slicing=settings.vae_slicing)
+
+
+def check_settings(settings: GenerateSettings, simulation: SimulationSettings,
+                   fail: Callable[[str, str], Exception]):
+    """Check ``video.generate`` against its model folder (JSON files only) and the simulated
+    time; ``fail(key, message)`` makes the error naming the key. Returns the model's info."""
+    from clflow.generate import check_request, inspect_model
+
+    try:
+        info = inspect_model(settings.model)
+    except InputError as exc:
+        raise fail("model", str(exc)) from None
+    if settings.prompt_template is not None:
+        _check_template(settings.prompt_template, fail)
+    request = _request(settings, simulation, info, settings.prompt or "a motion prompt")
+    duration = simulation.frames / simulation.fps
+    if (request.frames - 1) / request.fps < duration - 1e-9:
+        raise fail("frames", f"{request.frames} frames at {request.fps:g} fps last {(request.frames - 1) / request.fps:.3g}"
+                             f" s, the simulation {duration:.3g} s: give at least "
+                             f"{math.ceil(duration * request.fps - 1e-9) + 1}")
+    if settings.prompt is not None and info.uses_prompt and not settings.prompt.strip():
+        raise fail("prompt", "is empty: drop it for the motion prompt from the forces, or describe the motion")
+    try:
+        check_request(info, request)
+    except InputError as exc:
+        key, _, rest = str(exc).partition(": ")
+        known = {"frames": "frames", "size": "size", "prompt": "prompt", "guidance scale": "guidance_scale",
+                 "fps must be positive, got": "fps", "VAE tiling": "vae_tiling", "VAE slicing": "vae_slicing"}
+        if key in known:
+            raise fail(known[key], rest) from None
+        raise fail("", str(exc)) from None
+    return info
+
+
+def guidance_image(cfg: SceneConfig) -> np.ndarray:
+    """The model's input: ``video.generate.image`` (the guidance camera's size), or the splat
+    scene rendered from the guidance camera at rest."""
+    import torch
+
+    from clflow.generate import load_image
+    from clflow.pipeline.forward import to_uint8
+    from clflow.pipeline.render import render_rgb
+    from clflow.pipeline.scene import guidance_camera, load_scene_gaussians
+
+    camera = guidance_camera(cfg)
+    if cfg.generate.image is not None:
+        image = load_image(cfg.generate.image)
+        if image.shape[1::-1] != (camera.width, camera.height):
+            raise InputError(f"{cfg.source}: video.generate.image: {cfg.generate.image} is {image.shape[1]}x"
+                             f"{image.shape[0]} px, the guidance camera {camera.width}x{camera.height}: give the "
+                             f"object as the guidance camera sees it (or drop image: the scene is rendered)")
+        return image
+    gaussians, _ = load_scene_gaussians(cfg, torch.float32)
+    with torch.no_grad():
+        return to_uint8(render_rgb(gaussians, camera))
+
+
+def generated_path(cfg: SceneConfig, digest: str) -> Path:
+    return cfg.output / CACHE_FOLDER / f"guidance-{digest[:16]}.mp4"
+
+
+def ensure_guidance_video(cfg: SceneConfig, progress: Callable[[int, int], None] | None = None) -> SceneConfig:
+    """``cfg`` with ``video`` set to the generated guidance video, made now unless a video
+    from the same inputs (model folder, image pixels, prompt, seed, frames, fps, steps,
+    guidance, size) is cached in ``output/generated/``. Configs without ``video.generate``,
+    or whose video is already set, come back as they are."""
+    gen = getattr(cfg, "generate", None)
+    if gen is None or getattr(cfg, "video", None) is not None:
+        return cfg
+    import time
+
+    from clflow.generate import check_request, generate_video, request_digest, write_generated
+    from clflow.media import write_image
+
+    fail = lambda key, message: InputError(f"{cfg.source}: video.generate{'.' + key if key else ''}: {message}")  # noqa: E731
+    info = check_settings(gen, cfg.simulation, fail)
+    prompt = gen.prompt if gen.prompt is not None else motion_prompt(cfg)
+    resolved = check_request(info, _request(gen, cfg.simulation, info, prompt if info.uses_prompt else ""))
+    start = time.perf_counter()
+    image = guidance_image(cfg)
+    digest = request_digest(info, resolved, image)
+    path = generated_path(cfg, digest)
+    meta = path.with_suffix(".json")
+    if path.is_file() and meta.is_file():
+        try:
+            if json.loads(meta.read_text()).get("digest") == digest:
+                log.info("guidance video: %s (generated earlier from the same inputs)", path)
+                return dataclasses.replace(cfg, video=path)
+        except (OSError, json.JSONDecodeError):
+            pass  # a damaged record: make it again
+    log.info("generating the guidance video with %s (%s): %s", info.path.name, info.family.name,
+             prompt if info.uses_prompt else "image only")
+    frames, record = generate_video(image, info, resolved.request, progress=progress)
+    write_image(path.with_suffix(".input.png"), image)
+    record.update(digest=digest, config=str(cfg.source), image=str(gen.image) if gen.image else "rendered scene")
+    write_generated(path, frames, record, total_s=time.perf_counter() - start)
+    log.info("guidance video: %s (%d frames at %g fps)", path, frames.shape[0], resolved.fps)
+    return dataclasses.replace(cfg, video=path)
