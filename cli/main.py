@@ -34,6 +34,7 @@ BUILTIN_COMMANDS: dict[str, str] = {
     "render4d": "clflow_cli.render4d:render4d",
     "demo": "clflow_cli.demo:demo",
     "eval": "clflow_cli.eval:eval_group",
+    "sweep": "clflow_cli.sweep:sweep",
 }
 
 PLUGIN_GROUP = "clflow.commands"
