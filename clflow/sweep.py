@@ -453,18 +453,18 @@ def _ray_task(run: Run, folder: str) -> dict:
     return execute(run, folder)  # the env came with the task's runtime_env, before OpenCL started
 
 
-def ray_missing() -> str:
-    return "Ray is not installed: pip install 'clflow[sweep]' (or run the same spec in this process with --serial)"
+def ray_missing(instead: str = "run the same spec in this process with --serial") -> str:
+    return f"Ray is not installed: pip install 'clflow[sweep]' (or {instead})"
 
 
-def start_ray(address: str | None, cpus: int | None = None):
+def start_ray(address: str | None, cpus: int | None = None, instead: str | None = None):
     """Join the cluster at ``address`` (``ray://host:port`` or ``auto``), or start an embedded
     local Ray with this machine's cores, no dashboard and a small object store. Returns
     True when it started one (so the caller shuts it down)."""
     try:
         import ray
     except ImportError:
-        raise InputError(ray_missing()) from None
+        raise InputError(ray_missing(*([instead] if instead else []))) from None
     if ray.is_initialized():
         return False
     quiet = {"log_to_driver": False, "configure_logging": True, "logging_level": logging.WARNING}
@@ -516,6 +516,10 @@ def run_on_ray(runs: list[Run], folder_of: Callable[[Run], Path], timeout: float
                 run, start = running.pop(ref)
                 try:
                     record = ray.get(ref)
+                except ray.exceptions.RayTaskError as exc:  # raised past execute() (a task without it)
+                    cause = exc.cause if exc.cause is not None else exc
+                    record = {"name": run.name, **run.params(), "status": "failed", "reason": _reason(cause),
+                              "result": None, "seconds": round(time.perf_counter() - start, 3)}
                 except ray.exceptions.RayError as exc:  # the worker died (killed, out of memory, node lost)
                     cause = " ".join(str(exc).split())[:300]
                     record = {"name": run.name, **run.params(), "status": "killed",
@@ -534,6 +538,50 @@ def run_on_ray(runs: list[Run], folder_of: Callable[[Run], Path], timeout: float
             with contextlib.suppress(Exception):
                 ray.cancel(ref, force=True)
         raise
+
+
+def _sysid_task(name: str, folder: str, settings, case) -> dict:
+    from clflow_datasets import sysid
+
+    sysid.CASES[name] = case  # the driver's definition of the case, whatever this worker's copy says
+    return sysid.run_case(name, Path(folder), settings)
+
+
+def sysid_on_ray(*, address: str | None = None, cpus_per_task: int = 1, resources: dict[str, float] | None = None,
+                 device: str | None = None, timeout: float | None = None,
+                 echo: Callable[[str], None] = lambda line: None) -> Callable:
+    """A ``run_cases`` for clflow_datasets.sysid.evaluate (``clflow eval sysid --parallel``):
+    each case a Ray task with the serial path's P2G sum order, so the records match it."""
+
+    def run_cases(names: list[str], out: Path, settings, done: Callable[[str, dict], None]) -> None:
+        from clflow_datasets.sysid import CASES
+
+        if not names:
+            return
+        runs = [Run("sysid", case=n, sysid={}, label=n) for n in names]
+
+        def finished(record: dict) -> None:
+            name = record["case"]
+            if record.get("status") in ("failed", "killed", "timeout"):  # recorded by run_on_ray, not run_case
+                record = {"case": name, "material": CASES[name].material, "seconds": record["seconds"],
+                          "status": f"failed: {record['status']}: {record['reason']}"}
+            echo(f"{name}: {record['status']} ({record.get('seconds', 0):.0f} s)")
+            done(name, record)
+
+        started = start_ray(address, instead="drop --parallel")
+        try:
+            run_on_ray(runs, lambda run: out / "cases" / run.case, timeout, finished,
+                       env=task_env(cpus_per_task, device, default_grid_copies()), cpus_per_task=cpus_per_task,
+                       resources=resources, task=_sysid_task,
+                       args=lambda run: (run.case, str((out / "cases" / run.case).resolve()), settings,
+                                         CASES[run.case]))
+        finally:
+            if started:
+                import ray
+
+                ray.shutdown()
+
+    return run_cases
 
 
 # ------------------------------------------------------------------------------- the sweep
