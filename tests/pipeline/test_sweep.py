@@ -142,3 +142,64 @@ def test_a_sweep_on_local_ray_records_failures_resumes_and_matches_the_serial_pa
     result = _sweep(spec, "-o", serial, "--serial", "--retry-failed")
     assert "1 run(s) finished earlier, skipped" in result.output
     assert sum(r["status"] == "ok" for r in _outputs(serial)[0]["runs"].values()) == 2
+
+
+@pytest.mark.slow
+def test_a_killed_task_is_recorded_and_the_others_go_on(spec_dir):
+    pytest.importorskip("ray")
+    import ray
+
+    from clflow.sweep import execute, run_on_ray, start_ray, task_env
+
+    folder, write = spec_dir
+    spec = load_spec(write({key: FOUR_RUNS[key] for key in ("command", "base", "options", "set", "grid")}))
+
+    def task(run, where):  # the first run's worker dies as if killed (out of memory, kill -9)
+        import os
+
+        if "youngs_modulus=2000.0" in run.name:
+            os._exit(9)
+        return execute(run, where)
+
+    records = []
+    start_ray(None)
+    try:
+        run_on_ray(list(spec.runs), lambda run: folder / "out" / run.name, None, records.append,
+                   env=task_env(1, None, 4), task=task)
+    finally:
+        ray.shutdown()
+    status = {r["name"].split("-")[2]: (r["status"], r["reason"]) for r in records}
+    assert status["youngs_modulus=20000.0"] == ("ok", None)
+    killed, reason = status["youngs_modulus=2000.0"]
+    assert killed == "killed" and ("Worker" in reason or "died" in reason), reason
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_the_sweep_and_keeps_what_finished(spec_dir):
+    pytest.importorskip("ray")
+    import os
+    import signal
+    import subprocess
+    import time
+
+    folder, write = spec_dir
+    spec = write({"command": "simulate", "base": "demo/config.yaml", "options": {"preview": "none"},
+                  "overrides": [{"simulation.frames": 2}, {"simulation.frames": 3000}]})
+    out = folder / "out"
+    clflow = os.path.join(os.path.dirname(sys.executable), "clflow")
+    proc = subprocess.Popen([clflow, "sweep", str(spec), "-o", str(out)], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:  # until the short run is in
+        summary = json.loads((out / "sweep.json").read_text()) if (out / "sweep.json").exists() else {}
+        if summary.get("finished") == 1:
+            break
+        time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    output, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 130, output
+    assert "interrupted; finished runs are kept" in output
+    summary = json.loads((out / "sweep.json").read_text())
+    assert sorted(r["status"] for r in summary["runs"].values()) == ["ok", "pending"]
+    again = _sweep(spec, "-o", out, "--serial", "--timeout", "1")  # the short run is not run again
+    assert "1 run(s) finished earlier, skipped" in again.output
