@@ -10,9 +10,9 @@ rewritten atomically as runs finish.
 
 Runs execute as Ray tasks (:func:`run_on_ray`: an embedded local Ray by default, or a
 cluster) or one after another in this process (:func:`run_serial`). Each Ray task gets
-``cpus_per_task`` CPUs and its OpenCL CPU driver as many threads (``POCL_MAX_PTHREAD_COUNT``,
-``OMP_NUM_THREADS``), so tasks do not oversubscribe the cores; ``CLFLOW_P2G_COPIES`` fixes the
-MPM's P2G sum order so a task gives the bits the serial path gives.
+``cpus_per_task`` CPUs and its OpenCL CPU driver as many threads (``POCL_MAX_PTHREAD_COUNT``),
+so tasks do not oversubscribe the cores; ``CLFLOW_P2G_COPIES`` and ``OMP_NUM_THREADS`` are the
+driver's (:func:`serial_order`) so a task gives the bits the serial path gives.
 
     spec = load_spec("sweep.yaml")
     summary = sweep(spec, Path("out"), serial=True)       # or serial=False: Ray
@@ -318,7 +318,7 @@ def execute(run: Run, folder: str, env: dict[str, str] | None = None) -> dict:
     with open(folder_path / "run.log", "a") as out, contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
         handler = logging.StreamHandler(out)
         handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
-        root.addHandler(handler)
+        handlers, root.handlers = root.handlers, [handler]  # the run's log lines go to its run.log only
         level = root.level
         root.setLevel(min(level, logging.INFO) if level else logging.INFO)
         try:
@@ -329,7 +329,7 @@ def execute(run: Run, folder: str, env: dict[str, str] | None = None) -> dict:
             traceback.print_exc(file=out)
             record.update(status="failed", reason=_reason(exc), result=None)
         finally:
-            root.removeHandler(handler)
+            root.handlers = handlers
             root.setLevel(level)
             for key, value in saved.items():
                 if value is None:
@@ -410,26 +410,29 @@ def _timed_out(run: Run, limit: float, seconds: float) -> dict:
             "reason": f"exceeded the time limit of {limit:g} s", "result": None, "seconds": round(seconds, 3)}
 
 
-def task_env(cpus_per_task: int, device: str | None, grid_copies: int) -> dict[str, str]:
-    """Environment of each task: its OpenCL CPU driver and torch limited to its CPUs, the
-    device chosen by the driver, and the P2G sum order of the serial path."""
-    from clflow.mpm.substep import GRID_COPIES_ENV
-
+def task_env(cpus_per_task: int, device: str | None, order: dict[str, str]) -> dict[str, str]:
+    """Environment of each task: its OpenCL CPU driver limited to its CPUs, the device chosen
+    by the driver, and ``order`` (:func:`serial_order`: the serial path's last bits)."""
     threads = str(cpus_per_task)
     env = {"POCL_MAX_PTHREAD_COUNT": threads,  # PoCL <= 4 (pthread driver)
            "POCL_CPU_MAX_CU_COUNT": threads,  # PoCL >= 5
-           "OMP_NUM_THREADS": threads, "OMP_WAIT_POLICY": "PASSIVE", GRID_COPIES_ENV: str(grid_copies)}
+           "OMP_WAIT_POLICY": "PASSIVE", **order}
     if device:
         env["CLFLOW_DEVICE"] = device
     return env
 
 
-def default_grid_copies() -> int:
-    """The P2G copies this process's device uses: what a task is told, so it matches the serial path."""
-    from clflow.mpm.substep import wanted_grid_copies
+def serial_order() -> dict[str, str]:
+    """What sets a run's last bits in this process besides its inputs: the MPM's P2G grid
+    copies (follows PoCL's threads unless fixed) and torch's threads (its reductions split
+    their sums by thread). A task given these gives the serial path's bits whatever its own
+    thread count; torch's threads sleep between its (short) ops, OMP_WAIT_POLICY=PASSIVE."""
+    import torch
+
+    from clflow.mpm.substep import GRID_COPIES_ENV, wanted_grid_copies
     from clflow.runtime import get_device
 
-    return wanted_grid_copies(get_device())
+    return {GRID_COPIES_ENV: str(wanted_grid_copies(get_device())), "OMP_NUM_THREADS": str(torch.get_num_threads())}
 
 
 # -------------------------------------------------------------------------------- executors
@@ -571,7 +574,7 @@ def sysid_on_ray(*, address: str | None = None, cpus_per_task: int = 1, resource
         started = start_ray(address, instead="drop --parallel")
         try:
             run_on_ray(runs, lambda run: out / "cases" / run.case, timeout, finished,
-                       env=task_env(cpus_per_task, device, default_grid_copies()), cpus_per_task=cpus_per_task,
+                       env=task_env(cpus_per_task, device, serial_order()), cpus_per_task=cpus_per_task,
                        resources=resources, task=_sysid_task,
                        args=lambda run: (run.case, str((out / "cases" / run.case).resolve()), settings,
                                          CASES[run.case]))
@@ -645,17 +648,15 @@ def sweep(spec: Spec, out: Path, *, serial: bool = False, address: str | None = 
                                                                 " (--retry-failed reruns the failed ones)"))
     if not todo:
         return summary
-    copies = default_grid_copies()
+    order = serial_order()
     summary["mode"] = "serial" if serial else f"ray ({address or 'local'}, {cpus_per_task} CPU per task)"
     try:
         if serial:
-            from clflow.mpm.substep import GRID_COPIES_ENV
-
-            run_serial(todo, folder_of, timeout, done, env={GRID_COPIES_ENV: str(copies)})
+            run_serial(todo, folder_of, timeout, done, env=order)  # (torch's threads are this process's already)
         else:
             started = start_ray(address)
             try:
-                run_on_ray(todo, folder_of, timeout, done, env=task_env(cpus_per_task, device, copies),
+                run_on_ray(todo, folder_of, timeout, done, env=task_env(cpus_per_task, device, order),
                            cpus_per_task=cpus_per_task, resources=resources)
             finally:
                 if started:

@@ -149,7 +149,7 @@ def test_a_killed_task_is_recorded_and_the_others_go_on(spec_dir):
     pytest.importorskip("ray")
     import ray
 
-    from clflow.sweep import execute, run_on_ray, start_ray, task_env
+    from clflow.sweep import execute, run_on_ray, serial_order, start_ray, task_env
 
     folder, write = spec_dir
     spec = load_spec(write({key: FOUR_RUNS[key] for key in ("command", "base", "options", "set", "grid")}))
@@ -165,7 +165,7 @@ def test_a_killed_task_is_recorded_and_the_others_go_on(spec_dir):
     start_ray(None)
     try:
         run_on_ray(list(spec.runs), lambda run: folder / "out" / run.name, None, records.append,
-                   env=task_env(1, None, 4), task=task)
+                   env=task_env(1, None, serial_order()), task=task)
     finally:
         ray.shutdown()
     status = {r["name"].split("-")[2]: (r["status"], r["reason"]) for r in records}
@@ -203,3 +203,20 @@ def test_ctrl_c_stops_the_sweep_and_keeps_what_finished(spec_dir):
     assert sorted(r["status"] for r in summary["runs"].values()) == ["ok", "pending"]
     again = _sweep(spec, "-o", out, "--serial", "--timeout", "1")  # the short run is not run again
     assert "1 run(s) finished earlier, skipped" in again.output
+
+
+@pytest.mark.slow
+def test_an_optimisation_on_ray_gives_the_serial_bits(spec_dir):
+    """A one-thread task with the driver's P2G copies and torch threads (clflow.sweep.serial_order)
+    ends where the serial path does, to the last bit of the loss and the parameters."""
+    pytest.importorskip("ray")
+    folder, write = spec_dir
+    spec = write({"command": "optimize", "configs": ["demo/config.yaml"], "options": {"iterations": 2}})
+    results = {}
+    for mode in ("ray", "serial"):
+        result = _sweep(spec, "-o", folder / mode, *(["--serial"] if mode == "serial" else []))
+        assert result.exit_code == 0, result.output
+        (record,) = json.loads((folder / mode / "sweep.json").read_text())["runs"].values()
+        params = json.loads((folder / mode / "runs" / record["name"] / "results" / "params.json").read_text())
+        results[mode] = (record["result"]["flow_loss"], params["parameters"])
+    assert results["ray"] == results["serial"]
