@@ -498,7 +498,7 @@ def run_on_ray(runs: list[Run], folder_of: Callable[[Run], Path], timeout: float
     remote = ray.remote(task).options(num_cpus=cpus, num_gpus=gpus, resources=resources or None, max_retries=0,
                                       runtime_env={"env_vars": env})
     total = ray.cluster_resources()
-    wanted = {"CPU": cpus, "GPU": gpus, **resources}
+    wanted = {k: v for k, v in {"CPU": cpus, "GPU": gpus, **resources}.items() if v}
     room = [int(total.get(k, 0) // v) for k, v in wanted.items() if v]
     if min(room, default=1) < 1:
         raise InputError(f"the Ray cluster has no room for a task of {wanted} (it has {total})")
@@ -631,14 +631,11 @@ def sweep(spec: Spec, out: Path, *, serial: bool = False, address: str | None = 
 
     def done(record: dict) -> None:
         record["date"] = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
-        atomic_write_text(folder_of_name(record["name"]) / "result.json", json.dumps(record, indent=2))
+        atomic_write_text(runs_dir / record["name"] / "result.json", json.dumps(record, indent=2))
         summary["runs"][record["name"]] = record
         write()
         echo(f"{record['name']}: {record['status']}{': ' + record['reason'] if record.get('reason') else ''} "
              f"({record['seconds']:.1f} s)")
-
-    def folder_of_name(name: str) -> Path:
-        return runs_dir / name
 
     out.mkdir(parents=True, exist_ok=True)
     write()
