@@ -220,3 +220,16 @@ def test_an_optimisation_on_ray_gives_the_serial_bits(spec_dir):
         params = json.loads((folder / mode / "runs" / record["name"] / "results" / "params.json").read_text())
         results[mode] = (record["result"]["flow_loss"], params["parameters"])
     assert results["ray"] == results["serial"]
+
+
+def test_resources_and_modes_are_checked_as_usage(spec_dir):
+    from clflow_cli.sweep import parse_resources
+
+    assert parse_resources(("GPU=1", "memory_gb=4.5")) == {"GPU": 1.0, "memory_gb": 4.5}
+    folder, write = spec_dir
+    spec = write(FOUR_RUNS)
+    for args, message in ((["--resources", "GPU"], "expected NAME=AMOUNT"), (["--resources", "GPU=0"], "amount > 0"),
+                          (["--serial", "--address", "auto"], "drop --address")):
+        result = _sweep(spec, "-o", folder / "out", *args)
+        assert result.exit_code == 2 and message in result.output, result.output
+    assert not (folder / "out").exists()
