@@ -7,6 +7,7 @@ import sys
 import click
 
 from clflow_cli.main import Interrupted
+from clflow_cli.sweep import parse_resources, with_ray_options
 
 
 @click.command("sysid")
@@ -30,7 +31,13 @@ from clflow_cli.main import Interrupted
               help="Guidance views of each case (the first, then cameras turned 90, -90 and 180 deg about the "
                    "vertical); the loss is the mean over views.")
 @click.option("--force", is_flag=True, help="Replace sysid results of other settings in the output folder.")
-def sysid(output, cases, quick, iterations, truth_scale, noise, codec, seed, views, force):
+@click.option("--parallel", is_flag=True,
+              help="Run the cases as Ray tasks (clflow[sweep]; a local Ray on this machine's cores, or --address); "
+                   "the results are the serial path's.")
+@with_ray_options
+@click.pass_context
+def sysid(ctx, output, cases, quick, iterations, truth_scale, noise, codec, seed, views, force, parallel, address,
+          cpus_per_task, resources):
     """Identify the material parameters of PAC-NeRF's nine synthetic cases (re-made with
     clflow's geometry; guidance from a finer simulation and rendering than the optimiser's)
     from the published initial guesses, and print a table like Table 3 of the PhysFlow paper.
@@ -54,9 +61,17 @@ def sysid(output, cases, quick, iterations, truth_scale, noise, codec, seed, vie
         step = "search sample" if row.get("phase") == "search" else "iteration"
         click.echo(f"{name}: {step} {row['iteration'] + 1}: {_format_row(row)}", err=True)
 
+    run_cases = None
+    if parallel:
+        from clflow.sweep import sysid_on_ray
+
+        run_cases = sysid_on_ray(address=address, cpus_per_task=cpus_per_task, resources=parse_resources(resources),
+                                 device=ctx.obj.device_spec if ctx.obj else None, echo=lambda l: click.echo(l, err=True))
+    elif address or resources:
+        raise click.UsageError("--address and --resources go with --parallel")
     out = Path(output)
     try:
-        summary = evaluate(names, out, settings, force=force, progress=progress)
+        summary = evaluate(names, out, settings, force=force, progress=progress, run_cases=run_cases)
     except KeyboardInterrupt:
         raise Interrupted(f"interrupted; finished cases are kept in {out / 'sysid.json'}; run the same "
                                    f"command again to resume") from None

@@ -35,6 +35,7 @@ BUILTIN_COMMANDS: dict[str, str] = {
     "demo": "clflow_cli.demo:demo",
     "eval": "clflow_cli.eval:eval_group",
     "generate": "clflow_cli.generate:generate",
+    "sweep": "clflow_cli.sweep:sweep",
 }
 
 PLUGIN_GROUP = "clflow.commands"

@@ -191,10 +191,12 @@ def settings_record(settings: Settings) -> dict:
 
 
 def evaluate(names: list[str], out: Path, settings: Settings, *, force: bool = False,
-             progress: Callable[[str, dict], None] | None = None) -> dict:
+             progress: Callable[[str, dict], None] | None = None, run_cases: Callable | None = None) -> dict:
     """Run the cases ``names`` into ``out`` (``out/cases/NAME``), writing ``sysid.json`` and
     ``sysid.md`` after each case. A rerun with the same settings skips finished cases and
-    resumes an interrupted one; other results in ``out`` are refused unless ``force``."""
+    resumes an interrupted one; other results in ``out`` are refused unless ``force``.
+    ``run_cases(names, out, settings, done)`` runs the cases elsewhere (``clflow.sweep``: Ray),
+    calling ``done(name, record)`` as each finishes; the summary is the serial path's."""
     from clflow.errors import InputError
     from clflow.fileio import atomic_write_text
 
@@ -229,16 +231,27 @@ def evaluate(names: list[str], out: Path, settings: Settings, *, force: bool = F
 
     summary["environment"] = environment()
     atomic_write_text(summary_path, json.dumps(summary, indent=2))  # settings first: an interrupted run resumes
+    todo = []
     for name in names:
         done = summary["cases"].get(name, {})
         if done.get("status") == "ok" and done["generation"].get("definition") == case_definition(CASES[name]):
             log.info("%s: done earlier, skipped", name)
             continue
-        record = run_case(name, out / "cases" / name, settings,
-                          progress=(lambda row, n=name: progress(n, row)) if progress else None)
+        todo.append(name)
+    order = list(summary["cases"]) + [n for n in todo if n not in summary["cases"]]  # the serial path's
+
+    def finished(name: str, record: dict) -> None:
         summary["cases"][name] = record
+        summary["cases"] = {n: summary["cases"][n] for n in order if n in summary["cases"]}
         atomic_write_text(summary_path, json.dumps(summary, indent=2))
         atomic_write_text(out / "sysid.md", markdown(summary))
+
+    if run_cases is not None:
+        run_cases(todo, out, settings, finished)
+        return summary
+    for name in todo:
+        finished(name, run_case(name, out / "cases" / name, settings,
+                                progress=(lambda row, n=name: progress(n, row)) if progress else None))
     return summary
 
 

@@ -3,11 +3,11 @@
 #   1. PoCL (the CPU OpenCL driver), the ICD loader and oclgrind, from apt;
 #   2. a virtual environment in .venv;
 #   3. torch 2.13.0 first (a CPU build; any other torch request pulls a multi-GB CUDA build),
-#   4. then clflow itself (editable) with its test extras and the video extra (diffusers,
-#      transformers, accelerate: `clflow generate`, whose tests build tiny models and need it;
-#      about 30 MB of wheels, no torch); pip brings the dependencies that pyproject.toml
-#      declares (PyAV with its own FFmpeg and libx264 for H.264 video, Pillow, matplotlib, ...),
-#      none of which asks for another torch.
+#   4. then clflow itself (editable) with its test, video and sweep extras (diffusers,
+#      transformers, accelerate: `clflow generate`, whose tests build tiny models; Ray: the
+#      tests of `clflow sweep`; no torch in either); pip brings the dependencies that
+#      pyproject.toml declares (PyAV with its own FFmpeg and libx264 for H.264 video, Pillow,
+#      matplotlib, ...), none of which asks for another torch.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -25,5 +25,5 @@ fi
 pip=(.venv/bin/python -m pip install --quiet --disable-pip-version-check)
 .venv/bin/python -c 'import torch, sys; sys.exit(torch.__version__.split("+")[0] != "2.13.0")' 2>/dev/null \
     || "${pip[@]}" torch==2.13.0
-"${pip[@]}" -e ".[test,video]"
+"${pip[@]}" -e ".[test,video,sweep]"
 echo "clflow is set up in $(pwd)/.venv"

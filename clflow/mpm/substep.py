@@ -26,6 +26,23 @@ from clflow.runtime.devices import Device
 P2GMode = Literal["auto", "private", "atomic"]
 MAX_GRID_COPIES = 16  # private P2G grids at most (memory: copies x nodes x 4 reals)
 GRID_COPY_BUDGET = 1 << 30  # bytes all private grid copies may take together
+#: Fixes the number of private P2G grid copies. The copies' sum order sets the last bits of a
+#: CPU run, and their default number follows the device's compute units (PoCL's threads):
+#: ``clflow sweep`` sets this in every task so a run limited to fewer threads than the machine
+#: gives the same bits as the serial path (docs/sweep.md).
+GRID_COPIES_ENV = "CLFLOW_P2G_COPIES"
+
+
+def wanted_grid_copies(device: Device) -> int:
+    """Private P2G grid copies wanted on ``device``: $CLFLOW_P2G_COPIES, else 2 per compute unit."""
+    import os
+
+    fixed = os.environ.get(GRID_COPIES_ENV, "").strip()
+    if fixed:
+        if not fixed.isdigit() or int(fixed) < 1:
+            raise InputError(f"${GRID_COPIES_ENV} must be a whole number >= 1, got {fixed!r}")
+        return int(fixed)
+    return max(2, 2 * device.info.compute_units)
 
 
 @dataclass(frozen=True)
@@ -139,7 +156,7 @@ class SubstepKernels:
         if p2g == "private":
             self.k_p2g = k("mpm/p2g.cl", "p2g_private")
             self.k_reduce = k("mpm/p2g.cl", "p2g_reduce")
-            want = max(2, 2 * device.info.compute_units)
+            want = wanted_grid_copies(device)
             self.copies = max(1, min(want, MAX_GRID_COPIES, GRID_COPY_BUDGET // grid_bytes, n))
             self.chunk = -(-n // self.copies)
             self.grid_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * grid_bytes)

@@ -181,3 +181,21 @@ def test_the_quick_torus_reaches_the_loss_of_the_ground_truth(tmp_path):
     assert record["final_loss"] <= 1.02 * record["truth_loss"] < history[0]["loss"]
     assert record["epe_px"] <= 1.02 * record["floor_epe_px"]
     assert record["mean_re"] <= 0.3, record["parameters"]
+
+
+@pytest.mark.slow
+def test_parallel_cases_on_ray_give_the_serial_results(tmp_path, tiny_cases, monkeypatch):
+    pytest.importorskip("ray")
+    from clflow.sweep import sysid_on_ray
+
+    bird = dataclasses.replace(sysid.CASES["bird"], guess={"youngs_modulus": 1e5}, optimize=("youngs_modulus",), search=3)
+    monkeypatch.setitem(sysid.CASES, "bird", bird)  # the tasks get the driver's definitions
+    settings = sysid.Settings(resolution=TINY)
+    serial = sysid.evaluate(["torus", "bird"], tmp_path / "serial", settings)
+    parallel = sysid.evaluate(["torus", "bird"], tmp_path / "parallel", settings, run_cases=sysid_on_ray())
+    timing = {"seconds", "generation_seconds", "generation"}  # (generation: its own times and paths)
+    assert list(parallel["cases"]) == ["torus", "bird"]
+    for name, record in serial["cases"].items():
+        assert record["status"] == "ok"
+        same = {k: v for k, v in record.items() if k not in timing}
+        assert {k: v for k, v in parallel["cases"][name].items() if k not in timing} == same, name
