@@ -218,13 +218,16 @@ def reconstruct(
     resume: bool = False,
     checkpoint_every: int = 1000,
     preview_every: int = 0,
+    eval_every: int = 0,
     progress: Callable[[int, dict], None] | None = None,
 ) -> Result:
     """Train Gaussians on ``views`` and write ``out``/point_cloud.ply, cameras.json,
     metrics.json (held-out PSNR, SSIM, timing) and checkpoint.pt (every
     ``checkpoint_every`` iterations and at the end; ``resume`` continues from it).
     ``preview_every`` > 0 writes ``out``/preview/iter_NNNNNN.png (render | target of the
-    first held-out view). ``progress(step, info)`` is called every iteration with
+    first held-out view). ``eval_every`` > 0 records the held-out PSNR every so many
+    iterations in metrics["history"] (rows step, training seconds, PSNR dB; evaluation time
+    not counted). ``progress(step, info)`` is called every iteration with
     {"psnr": running training PSNR (dB), "gaussians": N}."""
     from clflow.flow.losses import render_loss
 
@@ -236,10 +239,10 @@ def reconstruct(
         state = _load_checkpoint(out / CHECKPOINT, settings)
         optimizer = _optimizer(state["params"], settings, extent)
         optimizer.load_state_dict(state["optimizer"])
-        start, stats, seconds = state["step"], state["stats"], state["seconds"]
+        start, stats, seconds, history = state["step"], state["stats"], state["seconds"], state["history"]
     else:
         optimizer = _optimizer(_parameters(initial_gaussians(views, train, settings), settings.sh_degree), settings, extent)
-        start, seconds = 0, 0.0
+        start, seconds, history = 0, 0.0, []
         stats = ViewSpaceStats.zeros(optimizer.param_groups[0]["params"][0].shape[0])
     params = {g["name"]: g["params"][0] for g in optimizer.param_groups}
     running = None
@@ -270,11 +273,17 @@ def reconstruct(
                 reset_opacities(optimizer)
         if progress is not None:
             progress(step, {"psnr": running, "gaussians": params["means"].shape[0]})
+        if eval_every and test and step % eval_every == 0:
+            paused = time.perf_counter()
+            history.append([step, seconds + paused - began, evaluate(params, test, sh_degree, background)["psnr"]])
+            began += time.perf_counter() - paused
         if preview_every and step % preview_every == 0:
             _write_preview(out / "preview" / f"iter_{step:06d}.png", params, (test or train)[0], sh_degree, background)
         if step % checkpoint_every == 0 or step == settings.iterations:
-            _save_checkpoint(out / CHECKPOINT, optimizer, stats, step, seconds + time.perf_counter() - began, settings)
-    seconds += time.perf_counter() - began
+            _save_checkpoint(out / CHECKPOINT, optimizer, stats, step, seconds + time.perf_counter() - began, history,
+                             settings)
+    elapsed = time.perf_counter() - began
+    seconds += elapsed
     done = settings.iterations - start
     sh_degree = min(settings.sh_degree, (settings.iterations - 1) // settings.sh_every)
     metrics = {
@@ -282,9 +291,10 @@ def reconstruct(
         "train": evaluate(params, train, sh_degree, background),
         "iterations": settings.iterations,
         "seconds": seconds,
-        "iterations_per_second": done / max(time.perf_counter() - began, 1e-9) if done else None,
+        "iterations_per_second": done / max(elapsed, 1e-9) if done else None,
         "gaussians": params["means"].shape[0],
         "scene_extent_m": extent,
+        "history": history,
         "settings": _settings_record(settings),
     }
     gaussians = _gaussians({k: v.detach() for k, v in params.items()})
@@ -300,10 +310,12 @@ def _settings_record(settings: Settings) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(settings)))
 
 
-def _save_checkpoint(path: Path, optimizer, stats: ViewSpaceStats, step: int, seconds: float, settings: Settings) -> None:
+def _save_checkpoint(path: Path, optimizer, stats: ViewSpaceStats, step: int, seconds: float, history: list,
+                     settings: Settings) -> None:
     state = {
         "step": step,
         "seconds": seconds,
+        "history": history,
         "settings": _settings_record(settings),
         "params": {g["name"]: g["params"][0].detach() for g in optimizer.param_groups},
         "optimizer": optimizer.state_dict(),
