@@ -12,7 +12,7 @@ LOG_EVERY = 100  # iterations between progress lines when stderr is not a termin
 
 
 @click.command("reconstruct")
-@click.argument("images", type=click.Path(file_okay=False))
+@click.argument("images", type=click.Path())
 @click.option("-o", "--output-dir", required=True, type=click.Path(file_okay=False),
               help="Folder for point_cloud.ply, cameras.json, metrics.json, checkpoint.pt and preview/.")
 @click.option("--transforms", type=click.Path(dir_okay=False), help="NeRF-style transforms.json (OpenGL axes).")
@@ -39,9 +39,17 @@ LOG_EVERY = 100  # iterations between progress lines when stderr is not a termin
               help="Write preview/iter_N.png (render | target of a held-out view) every N iterations (0: never).")
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=1000, show_default=True)
 @click.option("--resume", is_flag=True, help="Continue from OUTPUT_DIR/checkpoint.pt with the same options.")
+@click.option("--depth", type=click.Path(dir_okay=False),
+              help="Single image + depth: IMAGES is one image, this its depth map (.npy in m, or 16-bit PNG); no training.")
+@click.option("--depth-scale", type=click.FloatRange(min=0, min_open=True),
+              help="Metres per depth unit (default: 1 for .npy, 0.001 for PNG).")
+@click.option("--fov", type=click.FloatRange(1, 179), default=50.0, show_default=True,
+              help="With --depth: horizontal field of view of the photo, degrees.")
+@click.option("--shell", type=click.Choice(["mirror", "extrude", "none"]), default="mirror", show_default=True,
+              help="With --depth: how the hidden side is closed.")
 def reconstruct(images, output_dir, transforms, colmap, cameras_json, masks, background, iterations, seed, sh_degree,
                 sh_every, densify_from, densify_until, densify_every, reset_every, init_points, holdout_every,
-                preview_every, checkpoint_every, resume) -> None:
+                preview_every, checkpoint_every, resume, depth, depth_scale, fov, shell) -> None:
     """Train 3D Gaussians on the posed IMAGES and write a standard 3DGS PLY.
 
     Cameras come from --transforms, --colmap or --cameras, or are found next to IMAGES
@@ -49,7 +57,13 @@ def reconstruct(images, output_dir, transforms, colmap, cameras_json, masks, bac
     checked before training: missing images, images whose size differs from their
     camera's, non-orthonormal rotations and empty masks end with a one-line error. The
     held-out views' PSNR and SSIM go to metrics.json. Units are the cameras' (m).
+
+    With --depth, IMAGES is a single photo: its pixels are back-projected along a camera at
+    the origin (OpenCV axes, --fov) into Gaussians, the hidden side closed by --shell, and
+    point_cloud.ply and cameras.json are written without training.
     """
+    if depth is not None:
+        return _from_depth(images, depth, depth_scale, fov, shell, output_dir)
     from clflow.recon import Settings, load_views
     from clflow.recon.train import reconstruct as train
 
@@ -82,3 +96,29 @@ def reconstruct(images, output_dir, transforms, colmap, cameras_json, masks, bac
                 if test["views"] else "no held-out views")
     click.echo(f"{result.metrics['gaussians']} Gaussians, {held_out}, "
                f"{result.metrics['iterations_per_second'] or 0:.1f} it/s -> {output_dir}/point_cloud.ply")
+
+
+def _from_depth(image_path, depth_path, depth_scale, fov, shell, output_dir) -> None:
+    """Write the back-projected Gaussians of one photo and its camera."""
+    import math
+    from pathlib import Path
+
+    import torch
+
+    from clflow.errors import InputError
+    from clflow.recon.depth import backproject, read_depth
+    from clflow.recon.views import read_image
+    from clflow.splat.cameras import Camera, intrinsics, save_cameras_json
+    from clflow.splat.ply import save_ply
+
+    if not Path(image_path).is_file():
+        raise InputError(f"{image_path}: with --depth, IMAGES must be one image file")
+    rgba = torch.from_numpy(read_image(Path(image_path)))
+    height, width = rgba.shape[:2]
+    camera = Camera(torch.eye(4, dtype=torch.float64), intrinsics(width, height, math.radians(fov)), width, height,
+                    Path(image_path).name)
+    mask = rgba[..., 3] > 0.5 if rgba.shape[2] == 4 else None
+    gaussians = backproject(rgba[..., :3], read_depth(depth_path, depth_scale), camera, mask=mask, shell=shell)
+    save_ply(Path(output_dir) / "point_cloud.ply", gaussians)
+    save_cameras_json(Path(output_dir) / "cameras.json", [camera])
+    click.echo(f"{len(gaussians)} Gaussians from {image_path} and {depth_path} -> {output_dir}/point_cloud.ply")
