@@ -74,6 +74,10 @@ class Settings:
         if self.init_points < 1:
             raise InputError(f"init_points must be >= 1, got {self.init_points}")
 
+    def sh_degree_at(self, step: int) -> int:
+        """The SH degree rendered at iteration ``step`` (from 1)."""
+        return min(self.sh_degree, (step - 1) // self.sh_every)
+
 
 @dataclass
 class Result:
@@ -249,9 +253,9 @@ def reconstruct(
     began = time.perf_counter()
     for step in range(start + 1, settings.iterations + 1):
         fraction = (step - 1) / max(settings.iterations - 1, 1)
-        optimizer.param_groups[0]["lr"] = extent * math.exp(
+        optimizer.param_groups[0]["lr"] = extent * math.exp(  # group 0: the means
             (1 - fraction) * math.log(settings.lr_means) + fraction * math.log(settings.lr_means_final))
-        sh_degree = min(settings.sh_degree, (step - 1) // settings.sh_every)
+        sh_degree = settings.sh_degree_at(step)
         view = train[view_order(len(train), step, settings.seed)]
         image, meta = render_view(params, view.camera, sh_degree, background)
         meta["means2d"].retain_grad()
@@ -285,7 +289,7 @@ def reconstruct(
     elapsed = time.perf_counter() - began
     seconds += elapsed
     done = settings.iterations - start
-    sh_degree = min(settings.sh_degree, (settings.iterations - 1) // settings.sh_every)
+    sh_degree = settings.sh_degree_at(settings.iterations)
     metrics = {
         "test": evaluate(params, test, sh_degree, background),
         "train": evaluate(params, train, sh_degree, background),

@@ -82,3 +82,16 @@ def test_held_out_psnr_on_60_views_at_128px(tmp_path):
     metrics = reconstruct(load_views(tmp_path / "images"), tmp_path / "out", settings, checkpoint_every=iterations).metrics
     assert metrics["test"]["views"] == 8
     assert metrics["test"]["psnr"] >= 28.0 and metrics["test"]["ssim"] >= 0.93
+
+
+def test_bench_reconstruct_reports_speed_and_quality():
+    from click.testing import CliRunner
+
+    from clflow_cli.main import cli
+
+    result = CliRunner().invoke(cli, ["bench", "reconstruct", "--views", "8", "--size", "32", "--detail", "4",
+                                      "--iterations", "20", "--init-points", "200", "--eval-every", "10"])
+    assert result.exit_code == 0, result.output
+    assert re.search(r"sphere, 8 views at 32\^2 \(1 held out\), 20 iterations", result.output)
+    assert re.search(r"it/s, .* held-out PSNR [\d.]+ dB", result.output.replace("\n", " "))
+    assert "25 dB: " in result.output and "28 dB: " in result.output
