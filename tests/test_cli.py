@@ -93,7 +93,7 @@ class _InterruptedOptimization:
 
         return SimpleNamespace(iteration=json.loads(self.checkpoint.read_text())["state"]["iteration"])
 
-    def run(self, resume):
+    def run(self, resume, start=None):
         if self.iterations_in_run:
             self.checkpoint.write_text(json.dumps({"state": {"iteration": self.iterations_in_run}}))
         raise KeyboardInterrupt
@@ -107,10 +107,11 @@ def interrupt_optimize(monkeypatch, tmp_path, iterations_in_run, *args):
     import clflow.pipeline.optimize
     import clflow.scene.config
 
-    cfg = SimpleNamespace(optimize=SimpleNamespace(search=None), output=tmp_path)
+    cfg = SimpleNamespace(optimize=SimpleNamespace(search=None, materials=()), output=tmp_path)
     monkeypatch.setattr(clflow.scene.config, "load_config", lambda path: cfg)
     monkeypatch.setattr(clflow.pipeline.optimize, "Optimization",
-                        lambda cfg: _InterruptedOptimization(cfg, tmp_path / "checkpoint.json", iterations_in_run))
+                        lambda cfg, hypotheses=None: _InterruptedOptimization(cfg, tmp_path / "checkpoint.json",
+                                                                              iterations_in_run))
     return CliRunner().invoke(cli, ["optimize", "scene.yaml", *args])
 
 
