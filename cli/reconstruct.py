@@ -89,6 +89,10 @@ def reconstruct(images, output_dir, transforms, colmap, cameras_json, masks, bac
             result = train(views, output_dir, settings, resume=resume, checkpoint_every=checkpoint_every,
                            preview_every=preview_every, progress=progress)
         except KeyboardInterrupt:
+            from pathlib import Path
+
+            if not (Path(output_dir) / "checkpoint.pt").is_file():
+                raise Interrupted("interrupted before the first checkpoint; nothing was saved") from None
             raise Interrupted(f"interrupted; the last checkpoint (every {checkpoint_every} iterations) is in "
                               f"{output_dir}/checkpoint.pt: continue with the same command and --resume") from None
     test = result.metrics["test"]

@@ -149,3 +149,19 @@ def test_no_cameras_and_two_camera_sources(tmp_path):
     capture(tmp_path)
     with pytest.raises(InputError, match="give one cameras source, not transforms and colmap"):
         load_views(tmp_path / "images", transforms=tmp_path / "transforms.json", colmap=tmp_path)
+
+
+def test_ctrl_c_says_whether_there_is_a_checkpoint_to_resume(tmp_path, monkeypatch):
+    import clflow.recon.train
+
+    def interrupted(views, out, *args, **kwargs):
+        raise KeyboardInterrupt
+
+    capture(tmp_path)
+    monkeypatch.setattr(clflow.recon.train, "reconstruct", interrupted)
+    code, output = run([tmp_path / "images", "-o", tmp_path / "out"])
+    assert code == 130 and "interrupted before the first checkpoint; nothing was saved" in output
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "checkpoint.pt").write_bytes(b"")
+    code, output = run([tmp_path / "images", "-o", tmp_path / "out"])
+    assert code == 130 and "continue with the same command and --resume" in output
