@@ -14,6 +14,7 @@ BENCHMARKS: dict[str, str] = {
     "mpm": "clflow_cli.bench_mpm:mpm",
     "mpm-adjoint": "clflow_cli.bench_mpm_adjoint:mpm_adjoint",
     "optimize": "clflow_cli.bench_optimize:optimize",
+    "reconstruct": "clflow_cli.bench_reconstruct:reconstruct",
 }
 
 

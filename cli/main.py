@@ -32,6 +32,7 @@ BUILTIN_COMMANDS: dict[str, str] = {
     "simulate": "clflow_cli.simulate:simulate",
     "optimize": "clflow_cli.optimize:optimize",
     "render4d": "clflow_cli.render4d:render4d",
+    "reconstruct": "clflow_cli.reconstruct:reconstruct",
     "demo": "clflow_cli.demo:demo",
     "eval": "clflow_cli.eval:eval_group",
     "generate": "clflow_cli.generate:generate",

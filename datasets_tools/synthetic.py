@@ -180,9 +180,18 @@ def floor(size: float, n: int, height: float = 0.0):
     return means, scales, np.broadcast_to(np.eye(3), (uu.size, 3, 3)).copy(), rgb
 
 
+def surface_gaussians(parts: list[tuple], opacity: float = 0.95):
+    """Degree-0 float32 :class:`~clflow.splat.gaussians.Gaussians` of surface parts
+    (means, scales, rotations, rgb arrays as the ``*_surface`` functions return), in order."""
+    from clflow.splat.gaussians import Gaussians, rgb_to_sh0, rotmat_to_quat
+
+    means, scales, rotations, rgb = (torch.from_numpy(np.concatenate(arrays)) for arrays in zip(*parts))
+    return Gaussians.from_activated(means.float(), rotmat_to_quat(rotations).float(), scales.float(),
+                                    torch.full((means.shape[0],), opacity), sh=rgb_to_sh0(rgb.float())[:, None, :])
+
+
 def write_scene(folder: Path, case: SyntheticCase, resolution: Resolution, seed: int = 0) -> None:
     """Write the case's scene.ply: the shape's surface Gaussians, then the floor's."""
-    from clflow.splat.gaussians import Gaussians, rgb_to_sh0, rotmat_to_quat
     from clflow.splat.ply import save_ply
 
     if case.shape not in SURFACES:
@@ -190,10 +199,7 @@ def write_scene(folder: Path, case: SyntheticCase, resolution: Resolution, seed:
     rng = np.random.default_rng(seed)
     parts = [SURFACES[case.shape](case.size, case.center, resolution.object_detail, rng),
              floor(6 * case.size, resolution.floor_side)]
-    means, scales, rotations, rgb = (torch.from_numpy(np.concatenate(arrays)) for arrays in zip(*parts))
-    g = Gaussians.from_activated(means.float(), rotmat_to_quat(rotations).float(), scales.float(),
-                                 torch.full((means.shape[0],), 0.95), sh=rgb_to_sh0(rgb.float())[:, None, :])
-    save_ply(folder / "scene.ply", g)
+    save_ply(folder / "scene.ply", surface_gaussians(parts))
 
 
 def push_upper_part(case_size: float = 0.2, acceleration: float = 12.0, duration: float = 0.12) -> dict:
@@ -401,4 +407,4 @@ def make_case(folder: str | Path, case: SyntheticCase, resolution: Resolution = 
 
 __all__ = ["GENERATOR_VERSION", "Resolution", "SHAPES", "SyntheticCase", "VIEW_AZIMUTHS_DEG", "case_camera", "case_config", "guidance_name", "case_domain", "cube_surface", "degrade", "wall_contacts", "floor",
            "make_case", "CASE_FILES",
-           "push_upper_part", "sphere_surface", "torus_surface", "write_scene"]
+           "push_upper_part", "sphere_surface", "surface_gaussians", "torus_surface", "write_scene"]

@@ -18,6 +18,7 @@ from clflow.splat.cameras import (
     load_transforms_json,
     look_at,
     orbit,
+    save_cameras_json,
 )
 from clflow.splat.gaussians import Gaussians, rgb_to_sh0, sh0_to_rgb
 from clflow.splat.ply import load_ply, save_ply
@@ -36,6 +37,7 @@ __all__ = [
     "rasterize",
     "Render",
     "rgb_to_sh0",
+    "save_cameras_json",
     "save_ply",
     "sh0_to_rgb",
 ]

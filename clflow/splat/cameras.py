@@ -293,6 +293,19 @@ def load_cameras_json(path: str | os.PathLike) -> list[Camera]:
     return cameras
 
 
+def save_cameras_json(path: str | os.PathLike, cameras: Sequence[Camera]) -> None:
+    """Write ``cameras`` as a 3DGS ``cameras.json`` (the layout :func:`load_cameras_json`
+    reads), atomically. The format has no principal point: readers put it at the image centre."""
+    from clflow.fileio import atomic_write_text
+
+    entries = [
+        {"id": i, "img_name": c.name, "width": c.width, "height": c.height, "position": c.position.tolist(),
+         "rotation": c.R.T.tolist(), "fy": c.fy, "fx": c.fx}
+        for i, c in enumerate(cameras)
+    ]
+    atomic_write_text(path, json.dumps(entries) + "\n")
+
+
 def load_transforms_json(path: str | os.PathLike, *, width: int | None = None, height: int | None = None) -> list[Camera]:
     """Cameras from a NeRF-style ``transforms.json`` (NeRF synthetic, instant-ngp, nerfstudio).
 

@@ -1,0 +1,128 @@
+"""``clflow reconstruct``: 3D Gaussians trained from posed images (3DGS recipe, OpenCL rasteriser)."""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from clflow_cli.main import Interrupted
+
+LOG_EVERY = 100  # iterations between progress lines when stderr is not a terminal
+
+
+@click.command("reconstruct")
+@click.argument("images", type=click.Path())
+@click.option("-o", "--output-dir", required=True, type=click.Path(file_okay=False),
+              help="Folder for point_cloud.ply, cameras.json, metrics.json, checkpoint.pt and preview/.")
+@click.option("--transforms", type=click.Path(dir_okay=False), help="NeRF-style transforms.json (OpenGL axes).")
+@click.option("--colmap", type=click.Path(file_okay=False), help="COLMAP sparse model folder (.bin or .txt), e.g. sparse/0.")
+@click.option("--cameras", "cameras_json", type=click.Path(dir_okay=False), help="3DGS cameras.json.")
+@click.option("--masks", type=click.Path(file_okay=False),
+              help="Folder of masks named like the images (white = object); default: the images' alpha channel, if any.")
+@click.option("--background", type=click.Choice(["black", "white"]), default="black", show_default=True,
+              help="Colour behind the masked object, in the targets and the renders.")
+@click.option("--iterations", type=click.IntRange(min=1), help="Training iterations (default 7000).")
+@click.option("--seed", type=int, help="Seeds the initial points, view order and splits (default 0).")
+@click.option("--sh-degree", type=click.IntRange(0, 3), help="Highest SH degree (default 3).")
+@click.option("--sh-every", type=click.IntRange(min=1), help="Raise the SH degree by one every N iterations (default 1000).")
+@click.option("--densify-from", type=click.IntRange(min=0), help="First densification after this iteration (default 500).")
+@click.option("--densify-until", type=click.IntRange(min=0), help="Last densification at this iteration (default 3500).")
+@click.option("--densify-every", type=click.IntRange(min=1), help="Densify every N iterations (default 100).")
+@click.option("--reset-every", type=click.IntRange(min=1),
+              help="Reset the opacities every N iterations while densifying (default 3000).")
+@click.option("--init-points", type=click.IntRange(min=1),
+              help="Random initial Gaussians when the cameras bring no point cloud (COLMAP's points3D; default 10000).")
+@click.option("--holdout-every", type=click.IntRange(min=0),
+              help="Hold out views 0, N, 2N, ... for the metrics (0: none; default 8).")
+@click.option("--preview-every", type=click.IntRange(min=0), default=500, show_default=True,
+              help="Write preview/iter_N.png (render | target of a held-out view) every N iterations (0: never).")
+@click.option("--checkpoint-every", type=click.IntRange(min=1), default=1000, show_default=True)
+@click.option("--resume", is_flag=True, help="Continue from OUTPUT_DIR/checkpoint.pt with the same options.")
+@click.option("--depth", type=click.Path(dir_okay=False),
+              help="Single image + depth: IMAGES is one image, this its depth map (.npy in m, or 16-bit PNG); no training.")
+@click.option("--depth-scale", type=click.FloatRange(min=0, min_open=True),
+              help="Metres per depth unit (default: 1 for .npy, 0.001 for PNG).")
+@click.option("--fov", type=click.FloatRange(1, 179), default=50.0, show_default=True,
+              help="With --depth: horizontal field of view of the photo, degrees.")
+@click.option("--shell", type=click.Choice(["mirror", "extrude", "none"]), default="mirror", show_default=True,
+              help="With --depth: how the hidden side is closed.")
+def reconstruct(images, output_dir, transforms, colmap, cameras_json, masks, background, iterations, seed, sh_degree,
+                sh_every, densify_from, densify_until, densify_every, reset_every, init_points, holdout_every,
+                preview_every, checkpoint_every, resume, depth, depth_scale, fov, shell) -> None:
+    """Train 3D Gaussians on the posed IMAGES and write a standard 3DGS PLY.
+
+    Cameras come from --transforms, --colmap or --cameras, or are found next to IMAGES
+    (transforms.json, cameras.json or sparse/0 in it or its parent). Every input is
+    checked before training: missing images, images whose size differs from their
+    camera's, non-orthonormal rotations and empty masks end with a one-line error. The
+    held-out views' PSNR and SSIM go to metrics.json. Units are the cameras' (m).
+
+    With --depth, IMAGES is a single photo: its pixels are back-projected along a camera at
+    the origin (OpenCV axes, --fov) into Gaussians, the hidden side closed by --shell, and
+    point_cloud.ply and cameras.json are written without training.
+    """
+    if depth is not None:
+        return _from_depth(images, depth, depth_scale, fov, shell, output_dir)
+    from clflow.recon import Settings, load_views
+    from clflow.recon.train import reconstruct as train
+
+    rgb = (1.0, 1.0, 1.0) if background == "white" else (0.0, 0.0, 0.0)
+    given = dict(iterations=iterations, seed=seed, sh_degree=sh_degree, sh_every=sh_every, densify_from=densify_from,
+                 densify_until=densify_until, densify_every=densify_every, reset_every=reset_every,
+                 init_points=init_points, holdout_every=holdout_every)
+    settings = Settings(background=rgb, **{k: v for k, v in given.items() if v is not None})
+    iterations = settings.iterations
+    views = load_views(images, transforms=transforms, colmap=colmap, cameras_json=cameras_json, masks=masks,
+                       background=rgb)
+    click.echo(f"{len(views.views)} views; training {iterations} iterations -> {output_dir}", err=True)
+    show = lambda info: "" if info is None else f"PSNR {info['psnr']:.2f} dB, {info['gaussians']} Gaussians"  # noqa: E731
+    with click.progressbar(length=iterations, label="reconstructing", show_pos=True, item_show_func=show,
+                           file=sys.stderr) as bar:
+        def progress(step: int, info: dict) -> None:
+            if sys.stderr.isatty():
+                bar.update(step - bar.pos, info)
+            elif step % LOG_EVERY == 0 or step == iterations:
+                click.echo(f"iteration {step}/{iterations}: {show(info)}", err=True)
+
+        try:
+            result = train(views, output_dir, settings, resume=resume, checkpoint_every=checkpoint_every,
+                           preview_every=preview_every, progress=progress)
+        except KeyboardInterrupt:
+            from pathlib import Path
+
+            if not (Path(output_dir) / "checkpoint.pt").is_file():
+                raise Interrupted("interrupted before the first checkpoint; nothing was saved") from None
+            raise Interrupted(f"interrupted; the last checkpoint (every {checkpoint_every} iterations) is in "
+                              f"{output_dir}/checkpoint.pt: continue with the same command and --resume") from None
+    test = result.metrics["test"]
+    held_out = (f"held-out PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f} ({test['views']} views)"
+                if test["views"] else "no held-out views")
+    click.echo(f"{result.metrics['gaussians']} Gaussians, {held_out}, "
+               f"{result.metrics['iterations_per_second'] or 0:.1f} it/s -> {output_dir}/point_cloud.ply")
+
+
+def _from_depth(image_path, depth_path, depth_scale, fov, shell, output_dir) -> None:
+    """Write the back-projected Gaussians of one photo and its camera."""
+    import math
+    from pathlib import Path
+
+    import torch
+
+    from clflow.errors import InputError
+    from clflow.recon.depth import backproject, read_depth
+    from clflow.recon.views import read_image
+    from clflow.splat.cameras import Camera, intrinsics, save_cameras_json
+    from clflow.splat.ply import save_ply
+
+    if not Path(image_path).is_file():
+        raise InputError(f"{image_path}: with --depth, IMAGES must be one image file")
+    rgba = torch.from_numpy(read_image(Path(image_path)))
+    height, width = rgba.shape[:2]
+    camera = Camera(torch.eye(4, dtype=torch.float64), intrinsics(width, height, math.radians(fov)), width, height,
+                    Path(image_path).name)
+    mask = rgba[..., 3] > 0.5 if rgba.shape[2] == 4 else None
+    gaussians = backproject(rgba[..., :3], read_depth(depth_path, depth_scale), camera, mask=mask, shell=shell)
+    save_ply(Path(output_dir) / "point_cloud.ply", gaussians)
+    save_cameras_json(Path(output_dir) / "cameras.json", [camera])
+    click.echo(f"{len(gaussians)} Gaussians from {image_path} and {depth_path} -> {output_dir}/point_cloud.ply")

@@ -1,0 +1,97 @@
+"""The training loop: outputs other tools read, repeatable and resumable runs, and the
+held-out quality reached on a procedural capture rendered by a dense Gaussian model."""
+
+import dataclasses
+import json
+import re
+
+import pytest
+import torch
+
+from clflow.errors import InputError
+from clflow.recon import Settings, load_views, reconstruct
+from clflow.recon.train import random_points, visible_count
+from clflow.splat import load_cameras_json, load_ply
+from clflow_datasets.multiview import make_multiview
+
+# a short run that still densifies (at 20..50), resets opacities (at 40) and raises the SH degree
+SHORT = Settings(iterations=60, densify_from=19, densify_until=50, densify_every=10, reset_every=40, sh_every=20,
+                 init_points=300)
+
+
+@pytest.fixture(scope="module")
+def small_capture(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("capture")
+    make_multiview(folder, shape="cube", views=12, size=32, detail=8)
+    return folder
+
+
+def test_random_points_lie_in_every_cameras_view(small_capture):
+    cameras = [v.camera for v in load_views(small_capture / "images").views]
+    points = random_points(cameras, 500, torch.Generator().manual_seed(1))
+    assert points.shape == (500, 3)
+    assert bool((visible_count(points.double(), cameras, 1e-3) == len(cameras)).all())
+    assert torch.equal(points, random_points(cameras, 500, torch.Generator().manual_seed(1)))
+
+
+def test_outputs_are_standard_files_and_a_resumed_run_is_identical(small_capture, tmp_path):
+    views = load_views(small_capture / "images")
+    reconstruct(views, tmp_path / "a", SHORT, checkpoint_every=30, preview_every=30)
+    ply = (tmp_path / "a" / "point_cloud.ply").read_bytes()
+    g = load_ply(tmp_path / "a" / "point_cloud.ply")
+    assert g.sh_degree == 3 and len(g) > 0
+    cameras = load_cameras_json(tmp_path / "a" / "cameras.json")
+    assert [c.name for c in cameras] == [v.camera.name for v in views.views]
+    assert torch.allclose(cameras[5].viewmat, views.views[5].camera.viewmat, atol=1e-12)
+    metrics = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    assert metrics["test"]["views"] == 2 and metrics["train"]["views"] == 10 and metrics["iterations"] == 60
+    assert sorted(p.name for p in (tmp_path / "a" / "preview").iterdir()) == ["iter_000030.png", "iter_000060.png"]
+
+    def interrupt(step, info):
+        if step == 35:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        reconstruct(views, tmp_path / "b", SHORT, checkpoint_every=30, progress=interrupt)
+    assert not (tmp_path / "b" / "point_cloud.ply").exists()
+    reconstruct(views, tmp_path / "b", SHORT, checkpoint_every=30, resume=True)
+    assert (tmp_path / "b" / "point_cloud.ply").read_bytes() == ply  # same seed: bit-identical on the CPU
+    with pytest.raises(InputError, match="settings differ from it: seed"):
+        reconstruct(views, tmp_path / "b", dataclasses.replace(SHORT, seed=1), resume=True)
+
+
+def test_cli_help_states_the_settings_defaults():
+    from clflow_cli.reconstruct import reconstruct as command
+
+    stated = {p.name: re.search(r"default (\d+)\)", p.help) for p in command.params if p.help}
+    stated = {name: int(match.group(1)) for name, match in stated.items() if match}
+    assert len(stated) == 10
+    for name, value in stated.items():
+        assert getattr(Settings(), name) == value, name
+
+
+@pytest.mark.slow
+def test_held_out_psnr_on_60_views_at_128px(tmp_path):
+    """The issue's target: >= 28 dB held out, from random points. Measured 31.09 dB, SSIM
+    0.962 in 800 iterations (17 s at load 5.7 on 2 cores, 2026-11-24); the truth is a
+    6,144-Gaussian checkered sphere, not the trainer's initialisation."""
+    make_multiview(tmp_path, shape="sphere", views=60, size=128, detail=32)
+    iterations = 800
+    settings = Settings(iterations=iterations, densify_from=80, densify_until=480, reset_every=iterations + 1,
+                        sh_every=iterations // 3, init_points=5000)
+    metrics = reconstruct(load_views(tmp_path / "images"), tmp_path / "out", settings, checkpoint_every=iterations).metrics
+    assert metrics["test"]["views"] == 8
+    assert metrics["test"]["psnr"] >= 28.0 and metrics["test"]["ssim"] >= 0.93
+
+
+def test_bench_reconstruct_reports_speed_and_quality():
+    from click.testing import CliRunner
+
+    from clflow_cli.main import cli
+
+    result = CliRunner().invoke(cli, ["bench", "reconstruct", "--views", "8", "--size", "32", "--detail", "4",
+                                      "--iterations", "20", "--init-points", "200", "--eval-every", "10"])
+    assert result.exit_code == 0, result.output
+    assert re.search(r"sphere, 8 views at 32\^2 \(1 held out\), 20 iterations", result.output)
+    assert re.search(r"it/s, .* held-out PSNR [\d.]+ dB", result.output.replace("\n", " "))
+    assert "25 dB: " in result.output and "28 dB: " in result.output
