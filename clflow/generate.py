@@ -34,6 +34,7 @@ from typing import Callable
 import numpy as np
 
 from clflow.errors import ClflowError, InputError
+from clflow.limits import format_duration
 
 log = logging.getLogger(__name__)
 
@@ -419,14 +420,6 @@ def estimate_seconds(info: ModelInfo, resolved: Resolved, cores: int | None = No
     return flops / (CPU_FLOPS_PER_CORE * (cores or os.cpu_count() or 1))
 
 
-def _human(seconds: float) -> str:
-    if seconds < 120:
-        return f"{seconds:.0f} s"
-    if seconds < 7200:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds / 3600:.1f} h"
-
-
 def versions() -> dict[str, str]:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -457,7 +450,7 @@ def generate_video(image: np.ndarray, info: ModelInfo, request: GenerateRequest,
     if device == "cpu":
         log.warning("no CUDA device: generating on the CPU (%d cores) takes about %s for %s at %dx%d, %d frames, "
                     "%d steps (a rough estimate from the weights' size; measured after the first step)",
-                    os.cpu_count() or 1, _human(estimate_seconds(info, resolved)), info.path.name,
+                    os.cpu_count() or 1, format_duration(estimate_seconds(info, resolved)), info.path.name,
                     *resolved.size, resolved.frames, resolved.steps)
     dtype = torch.float32 if device == "cpu" else (torch.bfloat16 if info.uses_prompt else torch.float16)
     pipe = _load(info, dtype)
@@ -479,7 +472,7 @@ def generate_video(image: np.ndarray, info: ModelInfo, request: GenerateRequest,
             progress(i + 1, resolved.steps)
         if i == 0 and device == "cpu" and resolved.steps > 1:
             per_step = step_times[0] - start
-            log.info("first step took %.1f s: about %s to go", per_step, _human(per_step * (resolved.steps - 1)))
+            log.info("first step took %.1f s: about %s to go", per_step, format_duration(per_step * (resolved.steps - 1)))
         return {}
 
     generator = torch.Generator(device="cpu").manual_seed(resolved.request.seed)

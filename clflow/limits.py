@@ -30,6 +30,15 @@ def format_bytes(n: float) -> str:
     return f"{n:.3g} TB"
 
 
+def format_duration(seconds: float) -> str:
+    """``seconds`` as s, min or h, to 2-3 significant digits."""
+    if seconds < 120:
+        return f"{seconds:.2g} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.3g} min"
+    return f"{seconds / 3600:.3g} h"
+
+
 def _nearest_existing(path: Path) -> Path:
     path = Path(os.path.abspath(path))
     while not path.exists():

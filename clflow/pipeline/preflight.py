@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
+from clflow.limits import format_duration
 from clflow.scene.config import SceneConfig
 
 log = logging.getLogger(__name__)
@@ -148,16 +149,8 @@ def describe(plan: RunPlan, what: str, gradient: bool) -> str:
     """One line: substeps, dt and the predicted time of a run (``gradient``: per iteration)."""
     seconds = plan.forward_seconds * (GRADIENT_COST if gradient else 1.0)
     return (f"{what}: {plan.substeps} substeps per frame (dt = {plan.dt:.3g} s, limited by {plan.limit}), "
-            f"{plan.particles:,} particles, {plan.frames} frames: about {_duration(seconds)}"
+            f"{plan.particles:,} particles, {plan.frames} frames: about {format_duration(seconds)}"
             f"{' per iteration' if gradient else ''} ({1e3 * plan.seconds_per_substep:.3g} ms per substep)")
-
-
-def _duration(seconds: float) -> str:
-    if seconds < 120:
-        return f"{seconds:.2g} s"
-    if seconds < 7200:
-        return f"{seconds / 60:.3g} min"
-    return f"{seconds / 3600:.3g} h"
 
 
 # -- the guidance video -------------------------------------------------------------------------
