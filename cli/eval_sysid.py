@@ -66,7 +66,7 @@ def sysid(ctx, output, cases, quick, iterations, truth_scale, noise, codec, seed
         from clflow.sweep import sysid_on_ray
 
         run_cases = sysid_on_ray(address=address, cpus_per_task=cpus_per_task, resources=parse_resources(resources),
-                                 device=ctx.obj.device_spec if ctx.obj else None, echo=lambda l: click.echo(l, err=True))
+                                 device=ctx.obj.device_spec if ctx.obj else None, echo=lambda line: click.echo(line, err=True))
     elif address or resources:
         raise click.UsageError("--address and --resources go with --parallel")
     out = Path(output)

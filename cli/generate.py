@@ -65,8 +65,15 @@ def generate(image, model_path, prompt, negative_prompt, output, frames, fps, se
     """
     import time
 
-    from clflow.generate import (GenerateRequest, check_request, generate_video, inspect_model, load_image,
-                                 require_extra, write_generated)
+    from clflow.generate import (
+        GenerateRequest,
+        check_request,
+        generate_video,
+        inspect_model,
+        load_image,
+        require_extra,
+        write_generated,
+    )
     from clflow.limits import check_output
     from clflow.media import VIDEO_CODECS
 

@@ -81,8 +81,8 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
 
     from clflow.errors import InputError
     from clflow.fileio import atomic_dir
-    from clflow.media import write_image, write_video
     from clflow.limits import check_output
+    from clflow.media import write_image, write_video
     from clflow.splat import load_ply
     from clflow.splat.render import rasterize, to_uint8
 

@@ -308,5 +308,5 @@ def markdown(summary: dict) -> str:
 
 
 __all__ = ["CASES", "FULL", "METHODS", "PUBLISHED", "PUBLISHED_MEAN", "QUICK", "QUICK_CASES", "Settings",
-           "check_case", "environment", "evaluate", "markdown", "run_case"]
+           "check_case", "evaluate", "markdown", "run_case"]
 

@@ -5,11 +5,11 @@ import os
 import re
 import subprocess
 import sys
-import tomllib
 import zipfile
 from pathlib import Path
 
 import pytest
+import tomllib
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE_DIRS = {"clflow": "clflow", "clflow_cli": "cli", "clflow_datasets": "datasets_tools"}

@@ -22,8 +22,16 @@ import numpy as np
 import torch
 
 from clflow.mpm.constants import MATERIAL_IDS, SIMD_LANES, SVD_MATERIALS, kernel_defines
-from clflow.mpm.substep import (GRID_COPY_BUDGET, MAX_GRID_COPIES, Grid, Particles, State, SubstepKernels,
-                                 wanted_grid_copies)
+from clflow.mpm.substep import (
+    GRID_COPY_BUDGET,
+    MAX_GRID_COPIES,
+    Grid,
+    Particles,
+    State,
+    SubstepKernels,
+    wanted_grid_copies,
+)
+
 
 @dataclass
 class StateGrad:

@@ -298,8 +298,8 @@ class Device:
             lsize = None
         else:
             lsize = (local_size,) + (1,) * (len(gsize) - 1) if isinstance(local_size, int) else tuple(local_size)
-            lsize = tuple(min(l, self.info.max_work_group_size) for l in lsize)
-            gsize = tuple(round_up(g, l) for g, l in zip(gsize, lsize))
+            lsize = tuple(min(size, self.info.max_work_group_size) for size in lsize)
+            gsize = tuple(round_up(g, size) for g, size in zip(gsize, lsize))
         kernel.set_args(*args)
         cl = _import_pyopencl()
         return cl.enqueue_nd_range_kernel(self.queue, kernel, gsize, lsize)

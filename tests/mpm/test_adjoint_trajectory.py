@@ -4,9 +4,9 @@ float64, float32 smoke, determinism, parameter identification."""
 import pytest
 import torch
 
-from clflow.mpm import Force, Grid, MaterialSpec, Simulator
 from clflow.errors import InputError
 from clflow.materials import get_material
+from clflow.mpm import Force, Grid, MaterialSpec, Simulator
 from clflow.mpm.autograd import KERNEL_PARAMETERS, memory_estimate, region_masses, replay_segment, simulate
 from clflow.mpm.constants import MATERIAL_IDS
 from clflow.mpm.parameterization import parameterization

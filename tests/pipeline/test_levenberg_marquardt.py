@@ -85,10 +85,10 @@ def test_back_at_the_best_point_a_changed_loss_is_taken_not_rejected(lm):
 
 
 def test_it_needs_the_l2_loss(tmp_path):
+    import json
+
     from clflow.scene.config import parse_config
     from tests.scene.test_config import GOOD
-
-    import json
 
     (tmp_path / "scene.ply").write_bytes(b"ply\n")
     data = json.loads(json.dumps(GOOD))

@@ -11,7 +11,7 @@ import torch
 import yaml
 
 from clflow.mpm import Force, Grid, MaterialSpec, Simulator
-from clflow.pipeline.forward import material_values, prepare, render_video, simulate_config
+from clflow.pipeline.forward import material_values, prepare
 from clflow.pipeline.optimize import Optimization
 from clflow.pipeline.simulation import build_simulator, run
 from clflow.scene.config import VELOCITY_COMPONENTS, load_config

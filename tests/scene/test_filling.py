@@ -8,6 +8,7 @@ import torch
 from clflow.errors import InputError
 from clflow.scene.filling import fill_object
 
+
 def sphere_shell(n=3000, radius=0.1, sigma=0.004, seed=0):
     """Gaussians on a sphere: means [n, 3], isotropic covariances, opacities."""
     d = torch.nn.functional.normalize(torch.randn(n, 3, generator=torch.Generator().manual_seed(seed)), dim=-1)
@@ -76,8 +77,8 @@ def test_voxels_finer_than_the_surface_sampling_do_not_leave_the_object_hollow()
     # between their marks, and the flood fill used to leak in and leave only the shell.
     import numpy as np
 
-    from clflow_datasets.synthetic import cube_surface
     from clflow.scene.filling import surface_gap
+    from clflow_datasets.synthetic import cube_surface
 
     means, scales, _, _ = cube_surface(0.2, (0.0, 0.1, 0.0), 8, np.random.default_rng(0))
     means, covs = torch.tensor(means), torch.diag_embed(torch.tensor(scales) ** 2)
