@@ -1,9 +1,9 @@
 """Synthetic guidance videos shared by the flow tests."""
 
 import pytest
-from flow_helpers import write_image_folder
 
 from clflow.flow.synthetic import Motion, moving_texture
+from tests.flow._helpers import write_image_folder
 
 
 @pytest.fixture(scope="session")

@@ -2,11 +2,11 @@
 
 import numpy as np
 import pytest
-from flow_helpers import mean_abs, write_image_folder
 
 from clflow.errors import InputError
 from clflow.flow.video import Video, crop_resize, fit_to_camera, read_video, scale_intrinsics
 from clflow.media import write_image, write_video
+from tests.flow._helpers import mean_abs, write_image_folder
 
 FPS = 12.5  # a GIF stores frame durations in 1/100 s: 80 ms is exact
 

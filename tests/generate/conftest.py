@@ -1,4 +1,4 @@
-"""Tiny image-to-video models (tests/generate/tiny_models.py), built once per session; the
+"""Tiny image-to-video models (tests/generate/_helpers.py), built once per session; the
 tests skip where the optional extra clflow[video] is not installed (CI installs it)."""
 
 import numpy as np
@@ -10,7 +10,7 @@ def models(tmp_path_factory):
     """{"cog": folder, "svd": folder} of tiny randomly initialised pipelines."""
     pytest.importorskip("diffusers", reason="the optional extra clflow[video] is not installed")
     pytest.importorskip("transformers", reason="the optional extra clflow[video] is not installed")
-    from tests.generate import tiny_models
+    from tests.generate import _helpers as tiny_models
 
     root = tmp_path_factory.mktemp("models")
     return {"cog": tiny_models.cogvideox(root / "cog"), "svd": tiny_models.svd(root / "svd")}

@@ -1,5 +1,5 @@
 """``video: {generate: ...}`` in a scene config: checked with the config, made as the first
-step of `clflow optimize` (the tiny CogVideoX of tiny_models.py), cached by its inputs, and
+step of `clflow optimize` (the tiny CogVideoX of _helpers.py), cached by its inputs, and
 the motion prompt filled from the forces."""
 
 import json

@@ -16,7 +16,7 @@ SCRIPT = textwrap.dedent(
     import torch
     from clflow.mpm import Box, Force, HalfSpace, MaterialSpec, RotatingCylinder
     from clflow.mpm.autograd import simulate
-    from tests.mpm.scenes import MATERIAL_CASES, VOLUME_CORRECTED_SAND, random_scene
+    from tests.mpm._helpers import MATERIAL_CASES, VOLUME_CORRECTED_SAND, random_scene
     warnings.simplefilter("ignore")
     n = 18
     specs = [MaterialSpec(name, params) for name, params in MATERIAL_CASES.items()] + [VOLUME_CORRECTED_SAND]

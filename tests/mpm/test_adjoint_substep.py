@@ -6,7 +6,7 @@ import torch
 from clflow.mpm import Grid, HalfSpace, MaterialSpec, Simulator, reference
 from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, SubstepTape, run_recorded
 from clflow.mpm.substep import Particles
-from tests.mpm.scenes import MATERIAL_CASES, cube, random_scene
+from tests.mpm._helpers import MATERIAL_CASES, cube, random_scene
 
 GRAD_FIELDS = ("x", "v", "C", "F", "plastic")
 

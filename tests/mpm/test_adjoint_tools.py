@@ -10,7 +10,7 @@ from clflow.errors import InputError
 from clflow.mpm import Grid, MaterialSpec, Simulator, StabilityWarning
 from clflow.mpm.autograd import simulate
 from clflow.mpm.parameterization import clip_gradients, parameterization
-from tests.mpm.scenes import cube
+from tests.mpm._helpers import cube
 
 
 @pytest.mark.parametrize("material,name,value", [

@@ -10,7 +10,7 @@ from clflow.mpm import Force, Grid, MaterialSpec, Simulator
 from clflow.mpm.autograd import KERNEL_PARAMETERS, memory_estimate, region_masses, replay_segment, simulate
 from clflow.mpm.constants import MATERIAL_IDS
 from clflow.mpm.parameterization import parameterization
-from tests.mpm.scenes import MATERIAL_CASES, cube
+from tests.mpm._helpers import MATERIAL_CASES, cube
 
 E_TRUE, NU_TRUE, RHO_TRUE, TAU_Y_TRUE = 2e4, 0.3, 800.0, 500.0
 
@@ -213,7 +213,7 @@ def test_driver_force_gradient_matches_central_differences():
 @pytest.mark.parametrize("material", sorted(MATERIAL_CASES))
 def test_every_material_parameter_matches_central_differences(material):
     """d loss / d p for every registry parameter p of each material (global), on the swirling
-    block with the parameters of tests/mpm/scenes.py (which make the return mappings active)."""
+    block with the parameters of tests/mpm/_helpers.py (which make the return mappings active)."""
     x, v = swirling_block()
     sim = Simulator(x, (0.24 / 6) ** 3, MaterialSpec(material, MATERIAL_CASES[material], density=RHO_TRUE),
                     Grid((16, 16, 16), 1 / 16), velocities=v, frame_dt=1e-2, substeps=10, dtype=torch.float64)

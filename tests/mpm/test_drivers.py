@@ -17,7 +17,7 @@ from clflow.mpm import (
     layer_release_times,
     reference,
 )
-from tests.mpm.scenes import cube
+from tests.mpm._helpers import cube
 
 GRID = Grid((32, 32, 32), 1 / 32)
 SOFT = MaterialSpec("elastic", {"youngs_modulus": 2e4, "poissons_ratio": 0.3})

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from clflow.mpm import Grid, MaterialSpec, Simulator
-from tests.mpm.scenes import cube
+from tests.mpm._helpers import cube
 
 ELASTIC = MaterialSpec("elastic", {"youngs_modulus": 1e4, "poissons_ratio": 0.3})
 GRID = Grid((16, 16, 16), 1 / 16)

@@ -9,7 +9,7 @@ from clflow.errors import InputError
 from clflow.mpm import Grid, MaterialSpec, Simulator, reference
 from clflow.mpm.autograd import simulate
 from clflow.mpm.constants import MATERIAL_IDS
-from tests.mpm.scenes import MATERIAL_CASES, VOLUME_CORRECTED_SAND, random_scene
+from tests.mpm._helpers import MATERIAL_CASES, VOLUME_CORRECTED_SAND, random_scene
 from tests.mpm.test_adjoint_substep import GRAD_FIELDS, kernel_vjp, random_grad, reference_vjp, rel_err
 from tests.mpm.test_adjoint_trajectory import FRAMES, loss_of, swirling_block, weights
 from tests.mpm.test_material_physics import lattice

@@ -5,7 +5,7 @@ import torch
 
 from clflow.mpm import reference
 from clflow.mpm.constants import MATERIAL_IDS
-from tests.mpm.scenes import MATERIAL_CASES, random_scene
+from tests.mpm._helpers import MATERIAL_CASES, random_scene
 
 FIELDS = ("x", "v", "C", "F", "plastic")
 

@@ -10,7 +10,7 @@ from clflow.errors import InputError
 from clflow.materials import get_material
 from clflow.mpm import Force, Grid, HalfSpace, MaterialSpec, SimulationError, Simulator, StabilityWarning
 from clflow.mpm.simulator import VISCOUS_NUMBER
-from tests.mpm.scenes import cube
+from tests.mpm._helpers import cube
 
 GRID = Grid((16, 16, 16), 1 / 16)
 X = cube(4, 0.4, 0.6)

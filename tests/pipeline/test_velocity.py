@@ -15,7 +15,7 @@ from clflow.pipeline.forward import material_values, prepare
 from clflow.pipeline.optimize import Optimization
 from clflow.pipeline.simulation import build_simulator, run
 from clflow.scene.config import VELOCITY_COMPONENTS, load_config
-from tests.mpm.scenes import cube
+from tests.mpm._helpers import cube
 from tests.pipeline.test_frames4d import run as run_cli
 
 # m/s, perpendicular to the view direction (1, 2, 3) of the camera of `thrown`: a single view

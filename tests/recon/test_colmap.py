@@ -10,7 +10,7 @@ import torch
 from clflow.errors import InputError
 from clflow.recon.colmap import model_cameras, read_model
 from clflow.splat.cameras import orbit
-from tests.recon.colmap_files import model_of, write_bin, write_txt
+from tests.recon._helpers import model_of, write_bin, write_txt
 
 
 def cameras():

@@ -13,7 +13,7 @@ from clflow.errors import InputError
 from clflow.recon.views import load_views
 from clflow.splat.cameras import OPENGL_TO_OPENCV, load_cameras_json, orbit, save_cameras_json
 from clflow_cli.main import cli
-from tests.recon.colmap_files import model_of, write_bin
+from tests.recon._helpers import model_of, write_bin
 
 W, H = 16, 12
 

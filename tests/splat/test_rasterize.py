@@ -4,10 +4,10 @@ import math
 
 import pytest
 import torch
-from splat_scenes import camera, random_scene, rotations
 
 from clflow.splat.ops import covariances, rasterize_gaussians
 from clflow.splat.reference import covariances_from_quats_scales, rasterize_reference
+from tests.splat._helpers import camera, random_scene, rotations
 
 W, H = 40, 36  # 3 x 3 tiles, the last row and column partial
 

@@ -3,11 +3,11 @@ autograd, float32 against float64, determinism, and opcheck of the custom ops.""
 
 import pytest
 import torch
-from splat_scenes import camera, random_scene, rotations
 
 from clflow.splat.binning import build_tile_lists
 from clflow.splat.ops import composite, covariances, project, rasterize_gaussians
 from clflow.splat.reference import rasterize_reference
+from tests.splat._helpers import camera, random_scene, rotations
 
 W, H = 24, 20  # 2 x 2 tiles, partial
 GRADCHECK = dict(eps=1e-6, atol=1e-6, rtol=1e-5)

@@ -4,13 +4,13 @@ import math
 
 import pytest
 import torch
-from splat_scenes import camera, random_scene
 
 from clflow.errors import InputError
 from clflow.splat.binning import build_tile_lists, sort_pairs, tile_grid
 from clflow.splat.constants import TILE_SIZE
 from clflow.splat.ops import covariances, project, rasterize_gaussians
 from clflow.splat.reference import tile_rect_reference
+from tests.splat._helpers import camera, random_scene
 
 W, H = 40, 36
 

@@ -19,7 +19,7 @@ SCRIPT = textwrap.dedent(
     """
     import sys, torch
     sys.path.insert(0, {tests!r})
-    from splat_scenes import camera, random_scene
+    from tests.splat._helpers import camera, random_scene
     from clflow.splat.ops import rasterize_gaussians
     scene = [t.requires_grad_() for t in random_scene(6, seed=0, dtype=torch.float32)]
     flow = torch.ones(6, 2, requires_grad=True)
