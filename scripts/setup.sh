@@ -12,8 +12,9 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 apt_packages=(pocl-opencl-icd ocl-icd-libopencl1 clinfo oclgrind)
-# CI also opens the results page (results/index.html) in a headless browser
-[ "${CI:-}" = true ] && apt_packages+=(chromium)
+# CI also opens the results page (results/index.html) in a headless browser and checks the
+# kernels' formatting
+[ "${CI:-}" = true ] && apt_packages+=(chromium clang-format)
 if ! dpkg -s "${apt_packages[@]}" >/dev/null 2>&1; then
     sudo=""
     [ "$(id -u)" -eq 0 ] || sudo="sudo"

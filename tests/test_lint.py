@@ -1,4 +1,4 @@
-"""Lint: ruff's checks (configured in pyproject.toml) pass on the whole tree."""
+"""Lint: ruff's checks (pyproject.toml) on the Python tree, clang-format (.clang-format) on the kernels."""
 
 import shutil
 import subprocess
@@ -17,3 +17,13 @@ def test_ruff_finds_nothing():
     done = subprocess.run([ruff, "check", "--no-cache", "clflow", "cli", "datasets_tools", "tests"], cwd=ROOT,
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_the_kernels_are_clang_formatted():
+    clang_format = shutil.which("clang-format")
+    if clang_format is None:
+        pytest.skip("clang-format is not installed (CI installs it)")
+    sources = sorted(str(p) for p in (ROOT / "kernels_cl").rglob("*") if p.suffix in (".cl", ".h"))
+    done = subprocess.run([clang_format, "--style=file", "--dry-run", "-Werror", *sources], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-3000:]

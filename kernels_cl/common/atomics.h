@@ -37,11 +37,9 @@ inline void atomic_add_real(volatile __global real *p, real v)
 {
 #if CLFLOW_NATIVE_ATOMIC_ADD
 #if REAL_IS_DOUBLE
-    atomic_fetch_add_explicit((volatile __global atomic_double *)p, v, memory_order_relaxed,
-                              memory_scope_device);
+    atomic_fetch_add_explicit((volatile __global atomic_double *)p, v, memory_order_relaxed, memory_scope_device);
 #else
-    atomic_fetch_add_explicit((volatile __global atomic_float *)p, v, memory_order_relaxed,
-                              memory_scope_device);
+    atomic_fetch_add_explicit((volatile __global atomic_float *)p, v, memory_order_relaxed, memory_scope_device);
 #endif
 #elif REAL_IS_DOUBLE
     volatile __global ulong *bits = (volatile __global ulong *)p;

@@ -10,7 +10,7 @@
 
 #ifdef CLFLOW_SIMD_LANES
 #define CLFLOW_VEC_(T, N) T##N
-#define CLFLOW_VEC(T, N) CLFLOW_VEC_(T, N)
+#define CLFLOW_VEC(T, N)  CLFLOW_VEC_(T, N)
 typedef CLFLOW_VEC(REAL, CLFLOW_SIMD_LANES) realv;
 
 /* Lane l of v, as a real. */

@@ -16,30 +16,30 @@
 #error "build with -DREDUCE_WG=... -DROWS_PER_ITEM=..."
 #endif
 
-#define DEFINE_SUM_ROWS_PARTIAL(NAME, IN_T)                                                  \
-    __kernel __attribute__((reqd_work_group_size(REDUCE_WG, 1, 1))) void NAME(              \
-        __global const IN_T *x, __global double *partial, const int n, const int k)         \
-    {                                                                                        \
-        __local double scratch[REDUCE_WG];                                                   \
-        const int l = get_local_id(0);                                                       \
-        const int g = get_group_id(0);                                                       \
-        const int col = get_global_id(1);                                                    \
-        const long first = (long)g * (REDUCE_WG * ROWS_PER_ITEM) + l;                        \
-        double acc = 0.0;                                                                    \
-        for (int j = 0; j < ROWS_PER_ITEM; ++j) {                                            \
-            const long row = first + (long)j * REDUCE_WG;                                    \
-            if (row < n)                                                                     \
-                acc += (double)x[row * k + col];                                             \
-        }                                                                                    \
-        scratch[l] = acc;                                                                    \
-        barrier(CLK_LOCAL_MEM_FENCE);                                                        \
-        for (int stride = REDUCE_WG / 2; stride > 0; stride >>= 1) {                               \
-            if (l < stride)                                                                  \
-                scratch[l] += scratch[l + stride];                                           \
-            barrier(CLK_LOCAL_MEM_FENCE);                                                    \
-        }                                                                                    \
-        if (l == 0)                                                                          \
-            partial[(long)g * k + col] = scratch[0];                                         \
+#define DEFINE_SUM_ROWS_PARTIAL(NAME, IN_T)                                                                            \
+    __kernel __attribute__((reqd_work_group_size(REDUCE_WG, 1, 1))) void NAME(                                         \
+        __global const IN_T *x, __global double *partial, const int n, const int k)                                    \
+    {                                                                                                                  \
+        __local double scratch[REDUCE_WG];                                                                             \
+        const int l = get_local_id(0);                                                                                 \
+        const int g = get_group_id(0);                                                                                 \
+        const int col = get_global_id(1);                                                                              \
+        const long first = (long)g * (REDUCE_WG * ROWS_PER_ITEM) + l;                                                  \
+        double acc = 0.0;                                                                                              \
+        for (int j = 0; j < ROWS_PER_ITEM; ++j) {                                                                      \
+            const long row = first + (long)j * REDUCE_WG;                                                              \
+            if (row < n)                                                                                               \
+                acc += (double)x[row * k + col];                                                                       \
+        }                                                                                                              \
+        scratch[l] = acc;                                                                                              \
+        barrier(CLK_LOCAL_MEM_FENCE);                                                                                  \
+        for (int stride = REDUCE_WG / 2; stride > 0; stride >>= 1) {                                                   \
+            if (l < stride)                                                                                            \
+                scratch[l] += scratch[l + stride];                                                                     \
+            barrier(CLK_LOCAL_MEM_FENCE);                                                                              \
+        }                                                                                                              \
+        if (l == 0)                                                                                                    \
+            partial[(long)g * k + col] = scratch[0];                                                                   \
     }
 
 DEFINE_SUM_ROWS_PARTIAL(sum_rows_partial, real)

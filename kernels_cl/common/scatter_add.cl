@@ -2,8 +2,8 @@
  * Each row i carries `width` consecutive values: out[index[i]*width + c] += values[i*width + c]. */
 #include "common/atomics.h"
 
-__kernel void scatter_add(__global const real *values, __global const int *index,
-                          __global real *out, const int n, const int width)
+__kernel void scatter_add(__global const real *values, __global const int *index, __global real *out, const int n,
+                          const int width)
 {
     const int i = get_global_id(0);
     if (i >= n)

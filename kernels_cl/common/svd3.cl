@@ -1,8 +1,7 @@
 /* Batched 3x3 SVD (common/svd3.h): F [n, 9] -> U [n, 9], s [n, 3], V [n, 9], row-major. */
 #include "common/svd3.h"
 
-__kernel void svd3_batch(const int n, __global const real *F, __global real *U, __global real *s,
-                         __global real *V)
+__kernel void svd3_batch(const int n, __global const real *F, __global real *U, __global real *s, __global real *V)
 {
     const int i = get_global_id(0);
     if (i >= n)

@@ -51,8 +51,8 @@ inline void svd3_add_back(const real *U, const real *V, const real *F_hat, real 
 
 /* F_bar += adjoint of P = U diag(p(s)) V^T for P_bar, with dp_ds[3*i + k] = dp_i/ds_k and
  * the pair arrays of svd3_add_off_diagonal. */
-inline void svd3_isotropic_adjoint(const real *U, const real *V, const real *dp_ds, const real *diff,
-                                   const real *mean, const real *P_bar, real *F_bar)
+inline void svd3_isotropic_adjoint(const real *U, const real *V, const real *dp_ds, const real *diff, const real *mean,
+                                   const real *P_bar, real *F_bar)
 {
     real G[9], F_hat[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
     svd3_project(U, V, P_bar, G);

@@ -7,11 +7,10 @@
  * an atomic counter would keep PoCL from vectorising the kernel). */
 #include "mpm/mpm.h"
 
-__kernel void g2p(const int nx, const int ny, const int nz, const real dx, const real ox,
-                  const real oy, const real oz, const int n, const real dt, const real t,
-                  __global const real *restrict x_in, __global const real *restrict grid_v,
-                  __global const real *restrict release_time, __global real *restrict x_out,
-                  __global real *restrict v_out, __global real *restrict C_out,
+__kernel void g2p(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy, const real oz,
+                  const int n, const real dt, const real t, __global const real *restrict x_in,
+                  __global const real *restrict grid_v, __global const real *restrict release_time,
+                  __global real *restrict x_out, __global real *restrict v_out, __global real *restrict C_out,
                   __global uchar *restrict clamped)
 {
     const int p = get_global_id(0);

@@ -73,10 +73,9 @@ inline void apply_cylinder(__global const real *rec, const real *xi, real *v)
     v[2] = omega * (rec[6] * r[1] - rec[7] * r[0]);
 }
 
-__kernel void grid_update(const int nx, const int ny, const int nz, const real dx, const real ox,
-                          const real oy, const real oz, const real dt, const real t, const real gx,
-                          const real gy, const real gz, const real mass_eps,
-                          __global const real *grid, __global real *grid_v,
+__kernel void grid_update(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
+                          const real oz, const real dt, const real t, const real gx, const real gy, const real gz,
+                          const real mass_eps, __global const real *grid, __global real *grid_v,
                           __global const real *bc, const int n_bc)
 {
     const long node = get_global_id(0);

@@ -28,8 +28,8 @@ typedef struct {
     real origin[3];
 } grid_t;
 
-inline grid_t make_grid(const int nx, const int ny, const int nz, const real dx, const real ox,
-                        const real oy, const real oz)
+inline grid_t make_grid(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
+                        const real oz)
 {
     grid_t g;
     g.nx = nx;
@@ -53,11 +53,11 @@ inline long grid_index(const grid_t *g, const int i, const int j, const int k)
 }
 
 /* Quadratic B-spline weights w[0..2] of one axis at f = xi - base (real or realv). */
-#define STENCIL_WEIGHTS(f, w)                                         \
-    do {                                                              \
-        (w)[0] = (real)0.5 * ((real)1.5 - (f)) * ((real)1.5 - (f));   \
-        (w)[1] = (real)0.75 - ((f) - 1) * ((f) - 1);                  \
-        (w)[2] = (real)0.5 * ((f) - (real)0.5) * ((f) - (real)0.5);   \
+#define STENCIL_WEIGHTS(f, w)                                                                                          \
+    do {                                                                                                               \
+        (w)[0] = (real)0.5 * ((real)1.5 - (f)) * ((real)1.5 - (f));                                                    \
+        (w)[1] = (real)0.75 - ((f)-1) * ((f)-1);                                                                       \
+        (w)[2] = (real)0.5 * ((f) - (real)0.5) * ((f) - (real)0.5);                                                    \
     } while (0)
 
 /* The 3x3x3 stencil of a particle: base node, and weights w[axis][0..2] of each axis. */
@@ -97,12 +97,12 @@ inline void store_row(__global real *a, const long i, const int width, const rea
 
 /* F_tr = (I + dt C) F, the trial deformation of the stress stage; step = I + dt C is
  * returned too (the adjoint needs it). For T = real, and realv with CLFLOW_SIMD_LANES. */
-#define CLFLOW_DEFINE_TRIAL_DEFORMATION(SFX, T)                                             \
-    inline void trial_deformation##SFX(const T *F, const T *C, const real dt, T *step, T *F_tr) \
-    {                                                                                       \
-        for (int k = 0; k < 9; ++k)                                                         \
-            step[k] = dt * C[k] + ((k % 4 == 0) ? (T)1 : (T)0);                             \
-        mat3_mul##SFX(step, F, F_tr);                                                       \
+#define CLFLOW_DEFINE_TRIAL_DEFORMATION(SFX, T)                                                                        \
+    inline void trial_deformation##SFX(const T *F, const T *C, const real dt, T *step, T *F_tr)                        \
+    {                                                                                                                  \
+        for (int k = 0; k < 9; ++k)                                                                                    \
+            step[k] = dt * C[k] + ((k % 4 == 0) ? (T)1 : (T)0);                                                        \
+        mat3_mul##SFX(step, F, F_tr);                                                                                  \
     }
 CLFLOW_DEFINE_TRIAL_DEFORMATION(, real)
 

@@ -14,10 +14,9 @@
 #include "mpm/mpm.h"
 #include "common/atomics.h"
 
-inline void p2g_particle(const grid_t *g, const int p, const real dt, __global const real *x,
-                         __global const real *v, __global const real *C, __global const real *tau,
-                         __global const real *mass, __global const real *volume,
-                         __global const int *group, __global const real *accel,
+inline void p2g_particle(const grid_t *g, const int p, const real dt, __global const real *x, __global const real *v,
+                         __global const real *C, __global const real *tau, __global const real *mass,
+                         __global const real *volume, __global const int *group, __global const real *accel,
                          __global real *grid, const int use_atomics)
 {
     real xp[3];
@@ -51,13 +50,12 @@ inline void p2g_particle(const grid_t *g, const int p, const real dt, __global c
             }
 }
 
-#define P2G_GRID_ARGS                                                                           \
-    const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,   \
-        const real oz
-#define P2G_PARTICLE_ARGS                                                                       \
-    const int n, const real dt, __global const real *x, __global const real *v,              \
-        __global const real *C, __global const real *tau, __global const real *mass,         \
-        __global const real *volume, __global const int *group, __global const real *accel
+#define P2G_GRID_ARGS                                                                                                  \
+    const int nx, const int ny, const int nz, const real dx, const real ox, const real oy, const real oz
+#define P2G_PARTICLE_ARGS                                                                                              \
+    const int n, const real dt, __global const real *x, __global const real *v, __global const real *C,                \
+        __global const real *tau, __global const real *mass, __global const real *volume, __global const int *group,   \
+        __global const real *accel
 
 /* Work-item k zeroes grid copy k and scatters particles [k*chunk, (k+1)*chunk) into it. */
 __kernel void p2g_private(P2G_GRID_ARGS, P2G_PARTICLE_ARGS, const int copies, const int chunk,
@@ -77,8 +75,7 @@ __kernel void p2g_private(P2G_GRID_ARGS, P2G_PARTICLE_ARGS, const int copies, co
 }
 
 /* grid[e] = sum over copies k = 0, 1, ... of grid_copies[k][e], in that order. */
-__kernel void p2g_reduce(const long size, const int copies, __global const real *grid_copies,
-                         __global real *grid)
+__kernel void p2g_reduce(const long size, const int copies, __global const real *grid_copies, __global real *grid)
 {
     const long e = get_global_id(0);
     if (e >= size)

@@ -21,11 +21,9 @@
 #include "mpm/materials/snow.h"
 #include "mpm/materials/viscoplastic.h"
 
-__kernel void update_stress(const int n, const real dt, __global const real *F_in,
-                            __global const real *C_in, __global const real *U_in,
-                            __global const real *s_in, __global const real *V_in,
-                            __global const real *plastic_in,
-                            __global const int *material, __global const real *param,
+__kernel void update_stress(const int n, const real dt, __global const real *F_in, __global const real *C_in,
+                            __global const real *U_in, __global const real *s_in, __global const real *V_in,
+                            __global const real *plastic_in, __global const int *material, __global const real *param,
                             __global real *F_out, __global real *plastic_out, __global real *tau_out)
 {
     const int p = get_global_id(0);
@@ -115,9 +113,8 @@ inline void load_trial_deformation_v(const int n, const int p0, const real dt, _
 }
 
 /* U, s, V = svd3(F_tr) for CLFLOW_SIMD_LANES particles per work-item. */
-__kernel void trial_svd_simd(const int n, const real dt, __global const real *F_in,
-                             __global const real *C_in, __global real *U_out, __global real *s_out,
-                             __global real *V_out)
+__kernel void trial_svd_simd(const int n, const real dt, __global const real *F_in, __global const real *C_in,
+                             __global real *U_out, __global real *s_out, __global real *V_out)
 {
     const int p0 = get_global_id(0) * CLFLOW_SIMD_LANES;
     if (p0 >= n)
@@ -134,8 +131,8 @@ __kernel void trial_svd_simd(const int n, const real dt, __global const real *F_
  * case), fused with the SVD: CLFLOW_SIMD_LANES particles per work-item. */
 __kernel void update_stress_elastic_simd(const int n, const real dt, __global const real *F_in,
                                          __global const real *C_in, __global const real *plastic_in,
-                                         __global const real *param, __global real *F_out,
-                                         __global real *plastic_out, __global real *tau_out)
+                                         __global const real *param, __global real *F_out, __global real *plastic_out,
+                                         __global real *tau_out)
 {
     const int p0 = get_global_id(0) * CLFLOW_SIMD_LANES;
     if (p0 >= n)

@@ -11,8 +11,8 @@
  * of one Gaussian are contiguous, so it sums them in a fixed order. */
 #include "splat/common.h"
 
-__kernel void depth_keys(__global const real *depths, __global const int *radii,
-                         __global uint *keys, __global int *values, const int n)
+__kernel void depth_keys(__global const real *depths, __global const int *radii, __global uint *keys,
+                         __global int *values, const int n)
 {
     const int i = get_global_id(0);
     if (i >= n)
@@ -22,8 +22,8 @@ __kernel void depth_keys(__global const real *depths, __global const int *radii,
 }
 
 /* counts[s] = tiles_touched[order[s]]: entry counts in depth order, to be scanned. */
-__kernel void gather_counts(__global const int *order, __global const int *tiles_touched,
-                            __global int *counts, const int n)
+__kernel void gather_counts(__global const int *order, __global const int *tiles_touched, __global int *counts,
+                            const int n)
 {
     const int s = get_global_id(0);
     if (s >= n)
@@ -31,11 +31,10 @@ __kernel void gather_counts(__global const int *order, __global const int *tiles
     counts[s] = tiles_touched[order[s]];
 }
 
-__kernel void emit_entries(__global const int *order, __global const int *offsets,
-                           __global const real *means2d, __global const int *radii,
-                           __global uint *tile_keys, __global int *slots,
-                           __global int *slot_gaussian, __global int *first_slot, const int n,
-                           const int tiles_x, const int tiles_y)
+__kernel void emit_entries(__global const int *order, __global const int *offsets, __global const real *means2d,
+                           __global const int *radii, __global uint *tile_keys, __global int *slots,
+                           __global int *slot_gaussian, __global int *first_slot, const int n, const int tiles_x,
+                           const int tiles_y)
 {
     const int s = get_global_id(0);
     if (s >= n)

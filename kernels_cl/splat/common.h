@@ -18,14 +18,15 @@
 
 #pragma OPENCL FP_CONTRACT OFF
 
-#if !defined(TILE_SIZE) || !defined(EPS2D) || !defined(ALPHA_MIN) || !defined(ALPHA_MAX) || !defined(T_MIN) || !defined(ROW_CULL_MARGIN)
+#if !defined(TILE_SIZE) || !defined(EPS2D) || !defined(ALPHA_MIN) || !defined(ALPHA_MAX) || !defined(T_MIN) ||         \
+    !defined(ROW_CULL_MARGIN)
 #error "build with the splat constants (clflow/splat/constants.py: SPLAT_DEFINES)"
 #endif
 
 /* Tiles [x0, x1) x [y0, y1) whose pixels [16k, 16k+16) meet the box mean2d +- radius.
  * Returns the number of tiles (0: the box lies outside the image). */
-inline int tile_rect(const real mx, const real my, const int radius, const int tiles_x,
-                     const int tiles_y, int *x0, int *y0, int *x1, int *y1)
+inline int tile_rect(const real mx, const real my, const int radius, const int tiles_x, const int tiles_y, int *x0,
+                     int *y0, int *x1, int *y1)
 {
     const real r = (real)radius;
     /* clamp in real first: converting an out-of-range real to int is undefined */

@@ -18,13 +18,13 @@
 #endif
 
 typedef struct {
-    real W[9], t[3];  /* world-to-camera rotation (row-major) and translation */
+    real W[9], t[3]; /* world-to-camera rotation (row-major) and translation */
     real fx, fy, cx, cy;
-    real lim_u_neg, lim_u_pos, lim_v_neg, lim_v_pos;  /* clamp of x/z and y/z for J */
+    real lim_u_neg, lim_u_pos, lim_v_neg, lim_v_pos; /* clamp of x/z and y/z for J */
 } camera_t;
 
-inline camera_t load_camera(__global const real *viewmat, __global const real *intrinsics,
-                            const int width, const int height)
+inline camera_t load_camera(__global const real *viewmat, __global const real *intrinsics, const int width,
+                            const int height)
 {
     camera_t cam;
     for (int r = 0; r < 3; ++r) {
@@ -50,50 +50,49 @@ inline camera_t load_camera(__global const real *viewmat, __global const real *i
  * mean [3] and covariance [9]: projection_t / project_one for T = real, projection_v_t /
  * project_one_v for CLFLOW_SIMD_LANES Gaussians in vector lanes (the same operations lane by
  * lane, so the same results). */
-#define CLFLOW_DEFINE_PROJECT_ONE(SFX, T)                                                          \
-    typedef struct {                                                                               \
-        T mc[3];         /* camera-space mean */                                                   \
-        T u, v;          /* x/z, y/z */                                                            \
-        T tu, tv;        /* clamped u, v used in J */                                              \
-        T J00, J02, J11, J12;                                                                      \
-        T Sc[9];         /* W Sigma W^T */                                                         \
-        T a, b, c;       /* Sigma_2D = [[a, b], [b, c]] */                                         \
-        T det;                                                                                     \
-    } projection##SFX##_t;                                                                         \
-                                                                                                   \
-    inline projection##SFX##_t project_one##SFX(const camera_t *cam, const T *mean, const T *covar) \
-    {                                                                                              \
-        projection##SFX##_t p;                                                                     \
-        for (int r = 0; r < 3; ++r)                                                                \
-            p.mc[r] = cam->W[3 * r] * mean[0] + cam->W[3 * r + 1] * mean[1] + cam->W[3 * r + 2] * mean[2] \
-                      + cam->t[r];                                                                 \
-        const T z = p.mc[2];                                                                       \
-        p.u = p.mc[0] / z;                                                                         \
-        p.v = p.mc[1] / z;                                                                         \
-        p.tu = clamp(p.u, -cam->lim_u_neg, cam->lim_u_pos);                                        \
-        p.tv = clamp(p.v, -cam->lim_v_neg, cam->lim_v_pos);                                        \
-        p.J00 = cam->fx / z;                                                                       \
-        p.J02 = -cam->fx * p.tu / z;                                                               \
-        p.J11 = cam->fy / z;                                                                       \
-        p.J12 = -cam->fy * p.tv / z;                                                               \
-        T S[9], WS[9];                                                                             \
-        for (int r = 0; r < 3; ++r)                                                                \
-            for (int c = 0; c < 3; ++c)                                                            \
-                S[3 * r + c] = (real)0.5 * (covar[3 * r + c] + covar[3 * c + r]);                  \
-        for (int r = 0; r < 3; ++r)                                                                \
-            for (int c = 0; c < 3; ++c)                                                            \
-                WS[3 * r + c] = cam->W[3 * r] * S[c] + cam->W[3 * r + 1] * S[3 + c] + cam->W[3 * r + 2] * S[6 + c]; \
-        for (int r = 0; r < 3; ++r)                                                                \
-            for (int c = 0; c < 3; ++c)                                                            \
-                p.Sc[3 * r + c] = WS[3 * r] * cam->W[3 * c] + WS[3 * r + 1] * cam->W[3 * c + 1]    \
-                                  + WS[3 * r + 2] * cam->W[3 * c + 2];                             \
-        /* rows of J: j0 = (J00, 0, J02), j1 = (0, J11, J12) */                                    \
-        const T *Sc = p.Sc;                                                                        \
-        p.a = p.J00 * (p.J00 * Sc[0] + p.J02 * Sc[2]) + p.J02 * (p.J00 * Sc[6] + p.J02 * Sc[8]) + (real)EPS2D; \
-        p.b = p.J00 * (p.J11 * Sc[1] + p.J12 * Sc[2]) + p.J02 * (p.J11 * Sc[7] + p.J12 * Sc[8]);  \
-        p.c = p.J11 * (p.J11 * Sc[4] + p.J12 * Sc[5]) + p.J12 * (p.J11 * Sc[7] + p.J12 * Sc[8]) + (real)EPS2D; \
-        p.det = p.a * p.c - p.b * p.b;                                                             \
-        return p;                                                                                  \
+#define CLFLOW_DEFINE_PROJECT_ONE(SFX, T)                                                                              \
+    typedef struct {                                                                                                   \
+        T mc[3];  /* camera-space mean */                                                                              \
+        T u, v;   /* x/z, y/z */                                                                                       \
+        T tu, tv; /* clamped u, v used in J */                                                                         \
+        T J00, J02, J11, J12;                                                                                          \
+        T Sc[9];   /* W Sigma W^T */                                                                                   \
+        T a, b, c; /* Sigma_2D = [[a, b], [b, c]] */                                                                   \
+        T det;                                                                                                         \
+    } projection##SFX##_t;                                                                                             \
+                                                                                                                       \
+    inline projection##SFX##_t project_one##SFX(const camera_t *cam, const T *mean, const T *covar)                    \
+    {                                                                                                                  \
+        projection##SFX##_t p;                                                                                         \
+        for (int r = 0; r < 3; ++r)                                                                                    \
+            p.mc[r] = cam->W[3 * r] * mean[0] + cam->W[3 * r + 1] * mean[1] + cam->W[3 * r + 2] * mean[2] + cam->t[r]; \
+        const T z = p.mc[2];                                                                                           \
+        p.u = p.mc[0] / z;                                                                                             \
+        p.v = p.mc[1] / z;                                                                                             \
+        p.tu = clamp(p.u, -cam->lim_u_neg, cam->lim_u_pos);                                                            \
+        p.tv = clamp(p.v, -cam->lim_v_neg, cam->lim_v_pos);                                                            \
+        p.J00 = cam->fx / z;                                                                                           \
+        p.J02 = -cam->fx * p.tu / z;                                                                                   \
+        p.J11 = cam->fy / z;                                                                                           \
+        p.J12 = -cam->fy * p.tv / z;                                                                                   \
+        T S[9], WS[9];                                                                                                 \
+        for (int r = 0; r < 3; ++r)                                                                                    \
+            for (int c = 0; c < 3; ++c)                                                                                \
+                S[3 * r + c] = (real)0.5 * (covar[3 * r + c] + covar[3 * c + r]);                                      \
+        for (int r = 0; r < 3; ++r)                                                                                    \
+            for (int c = 0; c < 3; ++c)                                                                                \
+                WS[3 * r + c] = cam->W[3 * r] * S[c] + cam->W[3 * r + 1] * S[3 + c] + cam->W[3 * r + 2] * S[6 + c];    \
+        for (int r = 0; r < 3; ++r)                                                                                    \
+            for (int c = 0; c < 3; ++c)                                                                                \
+                p.Sc[3 * r + c] =                                                                                      \
+                    WS[3 * r] * cam->W[3 * c] + WS[3 * r + 1] * cam->W[3 * c + 1] + WS[3 * r + 2] * cam->W[3 * c + 2]; \
+        /* rows of J: j0 = (J00, 0, J02), j1 = (0, J11, J12) */                                                        \
+        const T *Sc = p.Sc;                                                                                            \
+        p.a = p.J00 * (p.J00 * Sc[0] + p.J02 * Sc[2]) + p.J02 * (p.J00 * Sc[6] + p.J02 * Sc[8]) + (real)EPS2D;         \
+        p.b = p.J00 * (p.J11 * Sc[1] + p.J12 * Sc[2]) + p.J02 * (p.J11 * Sc[7] + p.J12 * Sc[8]);                       \
+        p.c = p.J11 * (p.J11 * Sc[4] + p.J12 * Sc[5]) + p.J12 * (p.J11 * Sc[7] + p.J12 * Sc[8]) + (real)EPS2D;         \
+        p.det = p.a * p.c - p.b * p.b;                                                                                 \
+        return p;                                                                                                      \
     }
 
 CLFLOW_DEFINE_PROJECT_ONE(, real)
@@ -102,10 +101,9 @@ CLFLOW_DEFINE_PROJECT_ONE(_v, realv)
 /* Forward, CLFLOW_SIMD_LANES Gaussians per work-item in vector lanes (PoCL does not vectorise
  * this kernel across work-items itself: its loads and stores are strided); the culling and
  * the tile box are per lane. */
-__kernel void project_forward(__global const real *means, __global const real *covars,
-                              __global const real *viewmat, __global const real *intrinsics,
-                              __global real *means2d, __global real *conics, __global real *depths,
-                              __global int *radii, __global int *tiles_touched, const int n,
+__kernel void project_forward(__global const real *means, __global const real *covars, __global const real *viewmat,
+                              __global const real *intrinsics, __global real *means2d, __global real *conics,
+                              __global real *depths, __global int *radii, __global int *tiles_touched, const int n,
                               const int width, const int height, const real near_plane)
 {
     const int i0 = get_global_id(0) * CLFLOW_SIMD_LANES;
@@ -144,12 +142,11 @@ __kernel void project_forward(__global const real *means, __global const real *c
 /* Adjoint of project_forward for the visible Gaussians (radius > 0; others get zeros).
  * In: dL/dmean2d [N,2], dL/dconic [N,3] (A, B, C as in sigma = 0.5 A dx^2 + B dx dy + ...),
  * dL/ddepth [N]. Out: dL/dmean [N,3], dL/dSigma [N,3,3] (symmetric). */
-__kernel void project_backward(__global const real *means, __global const real *covars,
-                               __global const real *viewmat, __global const real *intrinsics,
-                               __global const int *radii, __global const real *v_means2d,
-                               __global const real *v_conics, __global const real *v_depths,
-                               __global real *v_means, __global real *v_covars, const int n,
-                               const int width, const int height)
+__kernel void project_backward(__global const real *means, __global const real *covars, __global const real *viewmat,
+                               __global const real *intrinsics, __global const int *radii,
+                               __global const real *v_means2d, __global const real *v_conics,
+                               __global const real *v_depths, __global real *v_means, __global real *v_covars,
+                               const int n, const int width, const int height)
 {
     const int i = get_global_id(0);
     if (i >= n)
@@ -181,7 +178,7 @@ __kernel void project_backward(__global const real *means, __global const real *
     /* Sigma_2D = J Sc J^T: dL/dSc = J^T G2 J, dL/dJ = 2 G2 J Sc */
     const real J[6] = {p.J00, 0, p.J02, 0, p.J11, p.J12};
     const real G2[4] = {g2a, g2b, g2b, g2c};
-    real GJ[6];  /* G2 J, 2x3 */
+    real GJ[6]; /* G2 J, 2x3 */
     for (int r = 0; r < 2; ++r)
         for (int c = 0; c < 3; ++c)
             GJ[3 * r + c] = G2[2 * r] * J[c] + G2[2 * r + 1] * J[3 + c];
@@ -189,7 +186,7 @@ __kernel void project_backward(__global const real *means, __global const real *
     for (int r = 0; r < 3; ++r)
         for (int c = 0; c < 3; ++c)
             GSc[3 * r + c] = J[r] * GJ[c] + J[3 + r] * GJ[3 + c];
-    real vJ[6];  /* 2 (G2 J) Sc */
+    real vJ[6]; /* 2 (G2 J) Sc */
     for (int r = 0; r < 2; ++r)
         for (int c = 0; c < 3; ++c)
             vJ[3 * r + c] = 2 * (GJ[3 * r] * p.Sc[c] + GJ[3 * r + 1] * p.Sc[3 + c] + GJ[3 * r + 2] * p.Sc[6 + c]);
@@ -201,8 +198,8 @@ __kernel void project_backward(__global const real *means, __global const real *
             WtG[3 * r + c] = cam.W[r] * GSc[c] + cam.W[3 + r] * GSc[3 + c] + cam.W[6 + r] * GSc[6 + c];
     for (int r = 0; r < 3; ++r)
         for (int c = 0; c < 3; ++c)
-            v_covars[9 * i + 3 * r + c] = WtG[3 * r] * cam.W[c] + WtG[3 * r + 1] * cam.W[3 + c]
-                                          + WtG[3 * r + 2] * cam.W[6 + c];
+            v_covars[9 * i + 3 * r + c] =
+                WtG[3 * r] * cam.W[c] + WtG[3 * r + 1] * cam.W[3 + c] + WtG[3 * r + 2] * cam.W[6 + c];
 
     /* camera-space mean: through mean2d, depth and J (J00 = fx/z, J02 = -fx tu/z, ...;
      * a clamped tu = lim is constant, so J02 = -fx lim/z then depends on z alone) */

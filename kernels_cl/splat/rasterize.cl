@@ -61,11 +61,11 @@ inline rowv load_row(__global const real *p, const int stride, const int count)
 /* The falloff of Gaussian (mx, my, A, B, C, o) over a row at x = cx (lanes), y = cy; the
  * falloff exp(-sigma), sigma = 0.5 (A dx^2 + C dy^2) + B dx dy with d = mean2d - pixel
  * centre, and alpha = min(ALPHA_MAX, o falloff). */
-#define ROW_ALPHA(dx, dy, sigma, falloff, alpha)                                               \
-    const rowv dx = mx - cx;                                                                  \
-    const real dy = my - cy;                                                                   \
-    const rowv sigma = (real)0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy;                 \
-    const rowv falloff = exp(-sigma);                                                         \
+#define ROW_ALPHA(dx, dy, sigma, falloff, alpha)                                                                       \
+    const rowv dx = mx - cx;                                                                                           \
+    const real dy = my - cy;                                                                                           \
+    const rowv sigma = (real)0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy;                                          \
+    const rowv falloff = exp(-sigma);                                                                                  \
     const rowv alpha = fmin((rowv)(real)ALPHA_MAX, o * falloff)
 
 /* Which rows of a tile a Gaussian can reach, and the exact per-row test.
@@ -78,16 +78,16 @@ inline rowv load_row(__global const real *p, const int stride, const int count)
  * cut. Both tests keep a margin ROW_CULL_MARGIN (in sigma) far beyond rounding, so a skip
  * never changes a result. */
 typedef struct {
-    real mx, my, A, B, C, o, cut, slope;  /* slope = -B / A */
-    int r0, r1;                            /* rows [r0, r1) of the tile it can reach */
+    real mx, my, A, B, C, o, cut, slope; /* slope = -B / A */
+    int r0, r1;                          /* rows [r0, r1) of the tile it can reach */
 } entry_t;
 
 /* Per Gaussian, once per view (not per tile entry: the log, root and divisions would be
  * redone for every tile a Gaussian touches): records [N, ENTRY_FIELDS] = (mean2d x, y,
  * conic A, B, C, opacity, cut, slope, reach). Culled Gaussians get records no tile reads. */
 #define ENTRY_FIELDS 9
-__kernel void entry_records(__global const real *means2d, __global const real *conics,
-                            __global const real *opacities, __global real *records, const int n)
+__kernel void entry_records(__global const real *means2d, __global const real *conics, __global const real *opacities,
+                            __global real *records, const int n)
 {
     const int g = get_global_id(0);
     if (g >= n)
@@ -113,8 +113,8 @@ __kernel void entry_records(__global const real *means2d, __global const real *c
  * dependent reads per entry) left them waiting on memory for a third of their time. */
 #define ENTRY_STRIDE (ENTRY_FIELDS + CHANNELS)
 __kernel void sort_entry_records(__global const int *sorted_slots, __global const int *slot_gaussian,
-                                 __global const real *records, __global const real *features,
-                                 __global real *entries, const int m)
+                                 __global const real *records, __global const real *features, __global real *entries,
+                                 const int m)
 {
     const int i = get_global_id(0);
     if (i >= m)
@@ -159,11 +159,10 @@ inline bool row_culled(const entry_t *e, const real dy, const int px0)
  * back; each row a Gaussian can reach composites it until the row is done (T would fall
  * below T_MIN); the tile stops when all rows are done. Writes out [H,W,CHANNELS],
  * T_final [H,W] and n_contrib [H,W] (entries walked up to the pixel's last contributor). */
-__kernel void rasterize_forward(
-    __global const int *ranges, __global const real *entries, __global const real *background,
-    __global real *out,
-    __global real *T_final, __global int *n_contrib, const int width, const int height,
-    const int tiles_x, const int n_tiles)
+__kernel void rasterize_forward(__global const int *ranges, __global const real *entries,
+                                __global const real *background, __global real *out, __global real *T_final,
+                                __global int *n_contrib, const int width, const int height, const int tiles_x,
+                                const int n_tiles)
 {
     const int tile = get_global_id(0);
     if (tile >= n_tiles)
@@ -182,7 +181,7 @@ __kernel void rasterize_forward(
             acc[r][k] = 0;
         T[r] = 1;
         last[r] = 0;
-        done[r] = isgreaterequal(LANES, (rowv)n_px);  /* lanes beyond the image */
+        done[r] = isgreaterequal(LANES, (rowv)n_px); /* lanes beyond the image */
     }
     int rows_left = n_rows;
     for (int i = start; i < end && rows_left > 0; ++i) {
@@ -194,8 +193,7 @@ __kernel void rasterize_forward(
             if (all(done[r]) || row_culled(&e, my - cy, px0))
                 continue;
             ROW_ALPHA(dx, dy, sigma, falloff, alpha);
-            const maskv hit = !done[r] & isgreaterequal(sigma, (rowv)0)
-                              & isgreaterequal(alpha, (rowv)(real)ALPHA_MIN);
+            const maskv hit = !done[r] & isgreaterequal(sigma, (rowv)0) & isgreaterequal(alpha, (rowv)(real)ALPHA_MIN);
             /* no early exit when no lane is hit: the masked update is cheaper than the
              * mispredicted branch (and adds exact zeros) */
             const rowv T_next = T[r] * (1 - alpha);
@@ -243,12 +241,11 @@ __kernel void rasterize_forward(
  * slot_grads [M, 6 + CHANNELS] = (dmean2d x, y, dconic A, B, C, dopacity, dfeatures...).
  * Each slot row belongs to one (tile, Gaussian) pair, hence to this work-item only: no
  * atomics, deterministic sums. In: v_out [H,W,CHANNELS] = dL/dout, v_T [H,W] = dL/dT_final. */
-__kernel void rasterize_backward(
-    __global const int *ranges, __global const int *sorted_slots, __global const real *entries,
-    __global const real *background, __global const real *T_final,
-    __global const int *n_contrib, __global const real *v_out, __global const real *v_T,
-    __global real *slot_grads, const int width, const int height, const int tiles_x,
-    const int n_tiles)
+__kernel void rasterize_backward(__global const int *ranges, __global const int *sorted_slots,
+                                 __global const real *entries, __global const real *background,
+                                 __global const real *T_final, __global const int *n_contrib,
+                                 __global const real *v_out, __global const real *v_T, __global real *slot_grads,
+                                 const int width, const int height, const int tiles_x, const int n_tiles)
 {
     const int tile = get_global_id(0);
     if (tile >= n_tiles)
@@ -274,7 +271,7 @@ __kernel void rasterize_backward(
             S[r][k] = 0;
             bg_dot_g += background[k] * g[r][k];
         }
-        v_T_end[r] = load_row(v_T + p0, 1, n_px) + bg_dot_g;  /* background included */
+        v_T_end[r] = load_row(v_T + p0, 1, n_px) + bg_dot_g; /* background included */
         int tmp_n[16];
         for (int l = 0; l < 16; ++l) {
             tmp_n[l] = l < n_px ? n_contrib[p0 + l] : 0;
@@ -300,8 +297,8 @@ __kernel void rasterize_backward(
                 continue;
             ROW_ALPHA(dx, dy, sigma, falloff, alpha);
             const int16 active = (int16)(i - start) < n_row[r];
-            const maskv hit = isgreaterequal(sigma, (rowv)0) & isgreaterequal(alpha, (rowv)(real)ALPHA_MIN)
-                              & INT_TO_MASK(active);
+            const maskv hit =
+                isgreaterequal(sigma, (rowv)0) & isgreaterequal(alpha, (rowv)(real)ALPHA_MIN) & INT_TO_MASK(active);
             const rowv inv_one_minus = 1 / (1 - alpha);
             T[r] = select(T[r], T[r] * inv_one_minus, hit);
             const rowv w = select((rowv)0, alpha * T[r], hit);
@@ -337,9 +334,8 @@ __kernel void rasterize_backward(
  * in slot order, split into dL/dmean2d [N,2], dL/dconic [N,3], dL/dopacity [N] and
  * dL/dfeatures [N, CHANNELS]. */
 __kernel void reduce_slots(__global const real *slot_grads, __global const int *first_slot,
-                           __global const int *tiles_touched, __global real *v_means2d,
-                           __global real *v_conics, __global real *v_opacities,
-                           __global real *v_features, const int n)
+                           __global const int *tiles_touched, __global real *v_means2d, __global real *v_conics,
+                           __global real *v_opacities, __global real *v_features, const int n)
 {
     const int g = get_global_id(0);
     if (g >= n)

@@ -9,9 +9,8 @@
  * (equal keys keep their input order). Walking contiguous blocks suits CPU devices: each
  * work-item streams through its memory; no barriers, no atomics. */
 
-__kernel void radix_histogram(__global const uint *keys, const int n, const int shift,
-                              const uint mask, __global int *hist, const int nblocks,
-                              const int block_len)
+__kernel void radix_histogram(__global const uint *keys, const int n, const int shift, const uint mask,
+                              __global int *hist, const int nblocks, const int block_len)
 {
     const int b = get_global_id(0);
     if (b >= nblocks)
@@ -23,10 +22,9 @@ __kernel void radix_histogram(__global const uint *keys, const int n, const int 
         hist[((keys[i] >> shift) & mask) * nblocks + b] += 1;
 }
 
-__kernel void radix_scatter(__global const uint *keys_in, __global const int *values_in,
-                            __global uint *keys_out, __global int *values_out, const int n,
-                            const int shift, const uint mask, __global int *starts,
-                            const int nblocks, const int block_len)
+__kernel void radix_scatter(__global const uint *keys_in, __global const int *values_in, __global uint *keys_out,
+                            __global int *values_out, const int n, const int shift, const uint mask,
+                            __global int *starts, const int nblocks, const int block_len)
 {
     const int b = get_global_id(0);
     if (b >= nblocks)

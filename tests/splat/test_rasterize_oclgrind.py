@@ -18,7 +18,7 @@ pytestmark = [
 SCRIPT = textwrap.dedent(
     """
     import sys, torch
-    sys.path.insert(0, {tests!r})
+    sys.path.insert(0, {repo!r})
     from tests.splat._helpers import camera, random_scene
     from clflow.splat.ops import rasterize_gaussians
     scene = [t.requires_grad_() for t in random_scene(6, seed=0, dtype=torch.float32)]
@@ -34,7 +34,7 @@ SCRIPT = textwrap.dedent(
 
 def test_kernels_are_clean_under_oclgrind(tmp_path: Path):
     script = tmp_path / "render.py"
-    script.write_text(SCRIPT.format(tests=str(Path(__file__).parent)))
+    script.write_text(SCRIPT.format(repo=str(Path(__file__).parents[2])))  # tests is a package of the repository
     log = tmp_path / "oclgrind.log"
     env = dict(os.environ, CLFLOW_DEVICE="oclgrind", POCL_CACHE_DIR=str(tmp_path / "cache"))
     result = subprocess.run(

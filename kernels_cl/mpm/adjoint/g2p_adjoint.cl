@@ -11,12 +11,11 @@
  * Unreleased particles (t < release_time) do not move: xbar = xbar', nothing to the grid. */
 #include "mpm/adjoint/adjoint.h"
 
-inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, const real t,
-                                 __global const real *x_in, __global const real *v_out,
-                                 __global const real *release_time, __global const real *grid_v,
-                                 __global const real *x_bar_out, __global const real *v_bar_out,
-                                 __global const real *C_bar_out, __global real *grid_v_bar,
-                                 __global real *x_bar)
+inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, const real t, __global const real *x_in,
+                                 __global const real *v_out, __global const real *release_time,
+                                 __global const real *grid_v, __global const real *x_bar_out,
+                                 __global const real *v_bar_out, __global const real *C_bar_out,
+                                 __global real *grid_v_bar, __global real *x_bar)
 {
     const real dx = g->dx;
     real xp[3], vp[3], xb[3], u[3], B[9], vi[3];
@@ -68,13 +67,12 @@ inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, co
 
 /* Work-item k zeroes grid copy k ([nodes, 3]) and scatters particles [k*chunk, (k+1)*chunk)
  * into it; x_bar of those particles is written directly. */
-__kernel void g2p_adjoint_private(const int nx, const int ny, const int nz, const real dx, const real ox,
-                                  const real oy, const real oz, const int n, const real dt, const real t,
-                                  __global const real *x_in, __global const real *v_out,
-                                  __global const real *release_time, __global const real *grid_v,
-                                  __global const real *x_bar_out, __global const real *v_bar_out,
-                                  __global const real *C_bar_out, const int copies, const int chunk,
-                                  __global real *grid_v_bar_copies, __global real *x_bar)
+__kernel void g2p_adjoint_private(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
+                                  const real oz, const int n, const real dt, const real t, __global const real *x_in,
+                                  __global const real *v_out, __global const real *release_time,
+                                  __global const real *grid_v, __global const real *x_bar_out,
+                                  __global const real *v_bar_out, __global const real *C_bar_out, const int copies,
+                                  const int chunk, __global real *grid_v_bar_copies, __global real *x_bar)
 {
     const int k = get_global_id(0);
     if (k >= copies)

@@ -79,12 +79,11 @@ inline void apply_condition(__global const real *rec, const real *xi, real *v)
         apply_cylinder(rec, xi, v);
 }
 
-__kernel void grid_update_adjoint(const int nx, const int ny, const int nz, const real dx, const real ox,
-                                  const real oy, const real oz, const real dt, const real t, const real gx,
-                                  const real gy, const real gz, const real mass_eps,
-                                  __global const real *grid, __global const real *grid_v_bar_copies,
-                                  const int copies, __global const real *bc, const int n_bc,
-                                  __global real *grid_bar)
+__kernel void grid_update_adjoint(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
+                                  const real oz, const real dt, const real t, const real gx, const real gy,
+                                  const real gz, const real mass_eps, __global const real *grid,
+                                  __global const real *grid_v_bar_copies, const int copies, __global const real *bc,
+                                  const int n_bc, __global real *grid_bar)
 {
     const long node = get_global_id(0);
     const long nodes = (long)nx * ny * nz;

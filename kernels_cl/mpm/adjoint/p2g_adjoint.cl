@@ -14,13 +14,12 @@
  * with the axis-2 weights, the (i, j) level with the others. */
 #include "mpm/adjoint/adjoint.h"
 
-__kernel void p2g_adjoint(const int nx, const int ny, const int nz, const real dx, const real ox,
-                          const real oy, const real oz, const int n, const real dt, __global const real *x,
-                          __global const real *v, __global const real *C, __global const real *tau,
-                          __global const real *mass, __global const real *volume, __global const int *group,
-                          __global const real *accel, __global const real *grid_bar, __global real *x_bar,
-                          __global real *v_bar, __global real *C_bar, __global real *tau_bar,
-                          __global real *mass_bar)
+__kernel void p2g_adjoint(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
+                          const real oz, const int n, const real dt, __global const real *x, __global const real *v,
+                          __global const real *C, __global const real *tau, __global const real *mass,
+                          __global const real *volume, __global const int *group, __global const real *accel,
+                          __global const real *grid_bar, __global real *x_bar, __global real *v_bar,
+                          __global real *C_bar, __global real *tau_bar, __global real *mass_bar)
 {
     const int p0 = get_global_id(0) * CLFLOW_SIMD_LANES;
     if (p0 >= n)

@@ -14,14 +14,12 @@
 #include "mpm/materials/hencky_adjoint.h"
 #include "mpm/materials/newtonian_adjoint.h"
 
-__kernel void update_stress_adjoint(const int n, const real dt, __global const real *F_in,
-                                    __global const real *C_in, __global const real *U_in,
-                                    __global const real *s_in, __global const real *V_in,
-                                    __global const real *plastic_in,
-                                    __global const int *material, __global const real *param,
-                                    __global const real *tau_bar, __global const real *F_bar_out,
-                                    __global const real *plastic_bar_out, __global real *F_bar,
-                                    __global real *C_bar, __global real *plastic_bar,
+__kernel void update_stress_adjoint(const int n, const real dt, __global const real *F_in, __global const real *C_in,
+                                    __global const real *U_in, __global const real *s_in, __global const real *V_in,
+                                    __global const real *plastic_in, __global const int *material,
+                                    __global const real *param, __global const real *tau_bar,
+                                    __global const real *F_bar_out, __global const real *plastic_bar_out,
+                                    __global real *F_bar, __global real *C_bar, __global real *plastic_bar,
                                     __global real *param_bar)
 {
     const int p = get_global_id(0);
@@ -43,7 +41,7 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
     for (int k = 0; k < PARAM_COUNT; ++k)
         q_bar[k] = 0;
     real C_direct_bar[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}; /* models whose stress reads C */
-    real plastic_b = plastic_bar_out[p]; /* the plastic state passes through unchanged by default */
+    real plastic_b = plastic_bar_out[p];                /* the plastic state passes through unchanged by default */
     const int elastic = material[p] == MAT_ELASTIC || material[p] == MAT_NEO_HOOKEAN;
     for (int k = 0; k < 9; ++k) /* elastic models: F' = F_tr */
         F_tr_bar[k] = elastic ? F_new_bar[k] : (real)0;
@@ -82,8 +80,8 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_SAND_VOLUME_CORRECTED)
     case MAT_SAND_VOLUME_CORRECTED:
-        plastic_b = sand_stress_adjoint(F_tr, U, s, V, q[0], q[1], q[2], q[3], plastic_in[p], tb, F_new_bar,
-                                        plastic_b, F_tr_bar, q_bar);
+        plastic_b = sand_stress_adjoint(F_tr, U, s, V, q[0], q[1], q[2], q[3], plastic_in[p], tb, F_new_bar, plastic_b,
+                                        F_tr_bar, q_bar);
         break;
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_NEWTONIAN)
@@ -93,8 +91,8 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
 #endif
 #if MATERIALS_PRESENT & (1 << MAT_SNOW)
     case MAT_SNOW:
-        plastic_b = snow_stress_adjoint(U, s, V, q[0], q[1], q[2], q[3], q[4], plastic_in[p], tb, F_new_bar,
-                                        plastic_b, F_tr_bar, q_bar);
+        plastic_b = snow_stress_adjoint(U, s, V, q[0], q[1], q[2], q[3], q[4], plastic_in[p], tb, F_new_bar, plastic_b,
+                                        F_tr_bar, q_bar);
         break;
 #endif
     default: /* unreachable: the host refuses materials without an adjoint */
@@ -119,8 +117,7 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
  * per work-item. F' = F_tr and the plastic state passes through. */
 __kernel void update_stress_elastic_adjoint_simd(const int n, const real dt, __global const real *F_in,
                                                  __global const real *C_in, __global const real *param,
-                                                 __global const real *tau_bar,
-                                                 __global const real *F_bar_out,
+                                                 __global const real *tau_bar, __global const real *F_bar_out,
                                                  __global const real *plastic_bar_out, __global real *F_bar,
                                                  __global real *C_bar, __global real *plastic_bar,
                                                  __global real *param_bar)

@@ -9,22 +9,22 @@
 
 #include "common/svd3.h"
 
-#define CLFLOW_DEFINE_FIXED_COROTATED(SFX, T) \
-inline void fixed_corotated_tau##SFX(const T *F, const T *U, const T *s, const T *V, const T mu,  \
-                                    const T lambda, T *tau)                                       \
-{                                                                                                 \
-    const T ones[3] = {(T)1, (T)1, (T)1};                                                         \
-    T R[9], F_minus_R[9];                                                                         \
-    mat3_udvt##SFX(U, ones, V, R);                                                                \
-    for (int k = 0; k < 9; ++k)                                                                   \
-        F_minus_R[k] = F[k] - R[k];                                                               \
-    mat3_mul_bt##SFX(F_minus_R, F, tau);                                                          \
-    const T J = s[0] * s[1] * s[2];                                                               \
-    for (int k = 0; k < 9; ++k)                                                                   \
-        tau[k] *= 2 * mu;                                                                         \
-    for (int a = 0; a < 3; ++a)                                                                   \
-        tau[4 * a] += lambda * (J - 1) * J;                                                       \
-}
+#define CLFLOW_DEFINE_FIXED_COROTATED(SFX, T)                                                                          \
+    inline void fixed_corotated_tau##SFX(const T *F, const T *U, const T *s, const T *V, const T mu, const T lambda,   \
+                                         T *tau)                                                                       \
+    {                                                                                                                  \
+        const T ones[3] = {(T)1, (T)1, (T)1};                                                                          \
+        T R[9], F_minus_R[9];                                                                                          \
+        mat3_udvt##SFX(U, ones, V, R);                                                                                 \
+        for (int k = 0; k < 9; ++k)                                                                                    \
+            F_minus_R[k] = F[k] - R[k];                                                                                \
+        mat3_mul_bt##SFX(F_minus_R, F, tau);                                                                           \
+        const T J = s[0] * s[1] * s[2];                                                                                \
+        for (int k = 0; k < 9; ++k)                                                                                    \
+            tau[k] *= 2 * mu;                                                                                          \
+        for (int a = 0; a < 3; ++a)                                                                                    \
+            tau[4 * a] += lambda * (J - 1) * J;                                                                        \
+    }
 
 CLFLOW_DEFINE_FIXED_COROTATED(, real)
 #ifdef CLFLOW_SIMD_LANES

@@ -19,41 +19,40 @@
  * svd3_adjoint.h with p = (1, 1, 1)), with Rbar = -2 mu taubar F and G = U^T taubar F V:
  * Fhat_ij = -2 mu (G_ij - G_ji)/(s_i + s_j) for i != j (antisymmetric), Fhat_ii = 0,
  * Fbar += U Fhat V^T. */
-#define CLFLOW_DEFINE_FIXED_COROTATED_ADJOINT(SFX, T)                                                 \
-    inline void fixed_corotated_adjoint##SFX(const T *F, const T *U, const T *s, const T *V, const T mu, \
-                                             const T lambda, const T *tau_bar, T *F_bar, T *mu_bar,   \
-                                             T *lambda_bar)                                           \
-    {                                                                                                 \
-        const T ones[3] = {(T)1, (T)1, (T)1};                                                         \
-        T R[9], F_minus_R[9], tau_bar_F[9], Ut_X[9], G[9], U_F_hat[9], R_part[9], cof[9];            \
-        mat3_udvt##SFX(U, ones, V, R);                                                                \
-        for (int k = 0; k < 9; ++k)                                                                   \
-            F_minus_R[k] = F[k] - R[k];                                                               \
-        mat3_mul##SFX(tau_bar, F, tau_bar_F);                                                         \
-        mat3_mul_at##SFX(U, tau_bar_F, Ut_X);                                                         \
-        mat3_mul##SFX(Ut_X, V, G);                                                                               \
-        const T h01 = -2 * mu * (G[1] - G[3]) / (s[0] + s[1]);                                        \
-        const T h02 = -2 * mu * (G[2] - G[6]) / (s[0] + s[2]);                                        \
-        const T h12 = -2 * mu * (G[5] - G[7]) / (s[1] + s[2]);                                        \
-        const T F_hat[9] = {(T)0, h01, h02, -h01, (T)0, h12, -h02, -h12, (T)0};                      \
-        mat3_mul##SFX(U, F_hat, U_F_hat);                                                             \
-        mat3_mul_bt##SFX(U_F_hat, V, R_part);                                                         \
-        mat3_cofactor##SFX(F, cof);                                                                   \
-        const T J = s[0] * s[1] * s[2];                                                               \
-        const T trace_bar = trace3##SFX(tau_bar);                                                     \
-        const T volume_scale = lambda * (2 * J - 1) * trace_bar;                                      \
-        T energy = (T)0; /* <taubar, (F - R) F^T> = <taubar F, F - R> */                              \
-        for (int r = 0; r < 3; ++r)                                                                   \
-            for (int c = 0; c < 3; ++c) {                                                             \
-                const int rc = 3 * r + c;                                                             \
-                /* (taubar^T (F - R))_rc = sum_k taubar_kr (F - R)_kc */                              \
-                const T tbt_fr = tau_bar[r] * F_minus_R[c] + tau_bar[3 + r] * F_minus_R[3 + c] +      \
-                                 tau_bar[6 + r] * F_minus_R[6 + c];                                   \
-                F_bar[rc] += 2 * mu * (tau_bar_F[rc] + tbt_fr) + volume_scale * cof[rc] + R_part[rc]; \
-                energy += tau_bar_F[rc] * F_minus_R[rc];                                              \
-            }                                                                                         \
-        *mu_bar = 2 * energy;                                                                         \
-        *lambda_bar = trace_bar * (J - 1) * J;                                                        \
+#define CLFLOW_DEFINE_FIXED_COROTATED_ADJOINT(SFX, T)                                                                  \
+    inline void fixed_corotated_adjoint##SFX(const T *F, const T *U, const T *s, const T *V, const T mu,               \
+                                             const T lambda, const T *tau_bar, T *F_bar, T *mu_bar, T *lambda_bar)     \
+    {                                                                                                                  \
+        const T ones[3] = {(T)1, (T)1, (T)1};                                                                          \
+        T R[9], F_minus_R[9], tau_bar_F[9], Ut_X[9], G[9], U_F_hat[9], R_part[9], cof[9];                              \
+        mat3_udvt##SFX(U, ones, V, R);                                                                                 \
+        for (int k = 0; k < 9; ++k)                                                                                    \
+            F_minus_R[k] = F[k] - R[k];                                                                                \
+        mat3_mul##SFX(tau_bar, F, tau_bar_F);                                                                          \
+        mat3_mul_at##SFX(U, tau_bar_F, Ut_X);                                                                          \
+        mat3_mul##SFX(Ut_X, V, G);                                                                                     \
+        const T h01 = -2 * mu * (G[1] - G[3]) / (s[0] + s[1]);                                                         \
+        const T h02 = -2 * mu * (G[2] - G[6]) / (s[0] + s[2]);                                                         \
+        const T h12 = -2 * mu * (G[5] - G[7]) / (s[1] + s[2]);                                                         \
+        const T F_hat[9] = {(T)0, h01, h02, -h01, (T)0, h12, -h02, -h12, (T)0};                                        \
+        mat3_mul##SFX(U, F_hat, U_F_hat);                                                                              \
+        mat3_mul_bt##SFX(U_F_hat, V, R_part);                                                                          \
+        mat3_cofactor##SFX(F, cof);                                                                                    \
+        const T J = s[0] * s[1] * s[2];                                                                                \
+        const T trace_bar = trace3##SFX(tau_bar);                                                                      \
+        const T volume_scale = lambda * (2 * J - 1) * trace_bar;                                                       \
+        T energy = (T)0; /* <taubar, (F - R) F^T> = <taubar F, F - R> */                                               \
+        for (int r = 0; r < 3; ++r)                                                                                    \
+            for (int c = 0; c < 3; ++c) {                                                                              \
+                const int rc = 3 * r + c;                                                                              \
+                /* (taubar^T (F - R))_rc = sum_k taubar_kr (F - R)_kc */                                               \
+                const T tbt_fr =                                                                                       \
+                    tau_bar[r] * F_minus_R[c] + tau_bar[3 + r] * F_minus_R[3 + c] + tau_bar[6 + r] * F_minus_R[6 + c]; \
+                F_bar[rc] += 2 * mu * (tau_bar_F[rc] + tbt_fr) + volume_scale * cof[rc] + R_part[rc];                  \
+                energy += tau_bar_F[rc] * F_minus_R[rc];                                                               \
+            }                                                                                                          \
+        *mu_bar = 2 * energy;                                                                                          \
+        *lambda_bar = trace_bar * (J - 1) * J;                                                                         \
     }
 
 CLFLOW_DEFINE_FIXED_COROTATED_ADJOINT(, real)
@@ -91,10 +90,10 @@ inline void neo_hookean_stress_adjoint(const real *F, const real mu, const real 
  * s_E depends on theta_c or theta_s instead), and J_P' depends on s_k only where s_k is
  * clamped (dJ_P'/ds_k = J_P'/s_k). q_bar[0..4] = (mu0, lambda0, theta_c, theta_s, xi)
  * gradients; returns J_P bar of state n. */
-inline real snow_stress_adjoint(const real *U, const real *s, const real *V,
-                                const real mu0, const real lambda0, const real theta_c,
-                                const real theta_s, const real xi, const real J_P, const real *tau_bar,
-                                const real *F_new_bar, const real J_P_new_bar, real *F_tr_bar, real *q_bar)
+inline real snow_stress_adjoint(const real *U, const real *s, const real *V, const real mu0, const real lambda0,
+                                const real theta_c, const real theta_s, const real xi, const real J_P,
+                                const real *tau_bar, const real *F_new_bar, const real J_P_new_bar, real *F_tr_bar,
+                                real *q_bar)
 {
     real s_E[3], F_E[9], F_E_bar[9], G[9], F_hat[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
     const real lo = 1 - theta_c, hi = 1 + theta_s;

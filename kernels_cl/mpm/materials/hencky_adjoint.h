@@ -45,8 +45,7 @@ typedef struct {
     int absolute;
 } hencky_t;
 
-inline void hencky_begin(hencky_t *h, const real *U, const real *s, const real *V, const real s_min,
-                         const int absolute)
+inline void hencky_begin(hencky_t *h, const real *U, const real *s, const real *V, const real s_min, const int absolute)
 {
     mat3_copy(U, h->U);
     mat3_copy(V, h->V);
@@ -67,8 +66,8 @@ inline void hencky_begin(hencky_t *h, const real *U, const real *s, const real *
  * explicit parameter gradients of t = 2 mu eps' + lambda tr(eps'); F_tr_bar gets F'bar when
  * the return left F_tr unchanged. */
 inline void hencky_stress_adjoint(const hencky_t *h, const real mu, const real lambda, const real *tau_bar,
-                                  const real *F_new_bar, real *F_tr_bar, real *F_hat, real *eps_new_bar,
-                                  real *mu_bar, real *lambda_bar)
+                                  const real *F_new_bar, real *F_tr_bar, real *F_hat, real *eps_new_bar, real *mu_bar,
+                                  real *lambda_bar)
 {
     const real tr_new = h->eps_new[0] + h->eps_new[1] + h->eps_new[2];
     const real ones[3] = {1, 1, 1};
@@ -133,10 +132,10 @@ inline void hencky_end(const hencky_t *h, const real *eps_bar, const real *s_bar
  * eps' = mean(eps) + y n (yielded), y = sqrt(2/3) tau_Y/(2 mu), n = eps_hat/||eps_hat||,
  * J = d eps'/d eps = 1 1^T/3 + y (P_dev/||eps_hat|| - eps_hat eps_hat^T/||eps_hat||^3) (symmetric).
  * F_tr_bar is accumulated into; writes mu_bar, lambda_bar, *dgamma_out; returns tau_Y_bar. */
-inline real hencky_von_mises_adjoint(const real *U, const real *s, const real *V,
-                                     const real mu, const real lambda, const real tau_Y,
-                                     const real *tau_bar, const real *F_new_bar, const real dgamma_bar,
-                                     real *F_tr_bar, real *mu_bar, real *lambda_bar, real *dgamma_out)
+inline real hencky_von_mises_adjoint(const real *U, const real *s, const real *V, const real mu, const real lambda,
+                                     const real tau_Y, const real *tau_bar, const real *F_new_bar,
+                                     const real dgamma_bar, real *F_tr_bar, real *mu_bar, real *lambda_bar,
+                                     real *dgamma_out)
 {
     hencky_t h;
     hencky_begin(&h, U, s, V, (real)HENCKY_S_MIN, 0);
@@ -172,9 +171,8 @@ inline real hencky_von_mises_adjoint(const real *U, const real *s, const real *V
 }
 
 /* Plasticine (plasticine.h): q_bar[0..2] = (mu_bar, lambda_bar, tau_Y_bar). */
-inline void plasticine_stress_adjoint(const real *U, const real *s, const real *V,
-                                      const real mu, const real lambda, const real tau_Y,
-                                      const real *tau_bar, const real *F_new_bar, real *F_tr_bar,
+inline void plasticine_stress_adjoint(const real *U, const real *s, const real *V, const real mu, const real lambda,
+                                      const real tau_Y, const real *tau_bar, const real *F_new_bar, real *F_tr_bar,
                                       real *q_bar)
 {
     real dgamma;
@@ -184,11 +182,9 @@ inline void plasticine_stress_adjoint(const real *U, const real *s, const real *
 
 /* Metal (metal.h): yield stress tau_Y + h (h: hardening state), h' = h + 2 mu xi dgamma when
  * yielded. q_bar[0..3] = (mu_bar, lambda_bar, tau_Y_bar, xi_bar); returns hbar of state n. */
-inline real metal_stress_adjoint(const real *U, const real *s, const real *V,
-                                 const real mu, const real lambda, const real tau_Y,
-                                 const real xi, const real hardening, const real *tau_bar,
-                                 const real *F_new_bar, const real hardening_new_bar, real *F_tr_bar,
-                                 real *q_bar)
+inline real metal_stress_adjoint(const real *U, const real *s, const real *V, const real mu, const real lambda,
+                                 const real tau_Y, const real xi, const real hardening, const real *tau_bar,
+                                 const real *F_new_bar, const real hardening_new_bar, real *F_tr_bar, real *q_bar)
 {
     real dgamma;
     /* dgamma_bar of h': used only if yielded, where h' = h + 2 mu xi dgamma */
@@ -206,9 +202,8 @@ inline real metal_stress_adjoint(const real *U, const real *s, const real *V,
 /* Foam / non-Newtonian (viscoplastic.h): q_bar[0..3] = (mu, lambda, tau_Y, eta) gradients.
  * eps' = mean(eps) + r eps_hat, r = 1 - beta + beta sqrt(2/3) tau_Y/(2 mu ||eps_hat||),
  * beta = 1/(1 + eta/(2 mu_hat dt)), mu_hat = mu sum(s^2)/3 (a direct dependence on s). */
-inline void viscoplastic_stress_adjoint(const real *U, const real *s, const real *V,
-                                        const real mu, const real lambda, const real tau_Y,
-                                        const real eta, const real dt, const real *tau_bar,
+inline void viscoplastic_stress_adjoint(const real *U, const real *s, const real *V, const real mu, const real lambda,
+                                        const real tau_Y, const real eta, const real dt, const real *tau_bar,
                                         const real *F_new_bar, real *F_tr_bar, real *q_bar)
 {
     hencky_t h;
@@ -262,10 +257,9 @@ inline void viscoplastic_stress_adjoint(const real *U, const real *s, const real
  * v_c' = tr(eps) - 3c; cone: eps' = eps - dgamma eps_hat/||eps_hat||,
  * dgamma = ||eps_hat|| + K alpha (tr(eps) - 3c), K = (3 lambda + 2 mu)/(2 mu), v_c' = 0;
  * inside: eps' = eps, F' = exp(v_c/3) F_tr, v_c' = 0. Every eps_k depends on v_c by 1/3. */
-inline real sand_stress_adjoint(const real *F_tr, const real *U, const real *s, const real *V,
-                                const real mu, const real lambda, const real alpha, const real c,
-                                const real v_c, const real *tau_bar, const real *F_new_bar,
-                                const real v_c_new_bar, real *F_tr_bar, real *q_bar)
+inline real sand_stress_adjoint(const real *F_tr, const real *U, const real *s, const real *V, const real mu,
+                                const real lambda, const real alpha, const real c, const real v_c, const real *tau_bar,
+                                const real *F_new_bar, const real v_c_new_bar, real *F_tr_bar, real *q_bar)
 {
     hencky_t h;
     hencky_begin(&h, U, s, V, (real)SAND_S_MIN, 1);
@@ -299,8 +293,7 @@ inline real sand_stress_adjoint(const real *F_tr, const real *U, const real *s, 
     }
     real F_hat[9], eps_new_bar[3], eps_bar[3] = {0, 0, 0};
     const real zeros[3] = {0, 0, 0};
-    hencky_stress_adjoint(&h, mu, lambda, tau_bar, F_scaled_bar, F_tr_bar, F_hat, eps_new_bar, &q_bar[0],
-                          &q_bar[1]);
+    hencky_stress_adjoint(&h, mu, lambda, tau_bar, F_scaled_bar, F_tr_bar, F_hat, eps_new_bar, &q_bar[0], &q_bar[1]);
     if (tip) {
         q_bar[3] = eps_new_bar[0] + eps_new_bar[1] + eps_new_bar[2] - 3 * v_c_new_bar;
         for (int a = 0; a < 3; ++a)

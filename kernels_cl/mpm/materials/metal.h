@@ -7,10 +7,9 @@
 
 #include "mpm/materials/hencky.h"
 
-inline void metal_stress(const real *F_tr, const real *U, const real *s, const real *V,
-                              const real mu, const real lambda, const real tau_Y,
-                         const real xi, const real hardening, real *F_new, real *hardening_new,
-                         real *tau)
+inline void metal_stress(const real *F_tr, const real *U, const real *s, const real *V, const real mu,
+                         const real lambda, const real tau_Y, const real xi, const real hardening, real *F_new,
+                         real *hardening_new, real *tau)
 {
     real eps[3];
     hencky_strain(s, eps);

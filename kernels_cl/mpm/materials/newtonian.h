@@ -10,8 +10,7 @@
 
 #include "common/mat3.h"
 
-inline void newtonian_stress(const real *F_tr, const real *C, const real mu, const real kappa,
-                             real *F_new, real *tau)
+inline void newtonian_stress(const real *F_tr, const real *C, const real mu, const real kappa, real *F_new, real *tau)
 {
     const real J = fmax(mat3_det(F_tr), (real)NEWTONIAN_J_MIN);
     const real J2 = J * J, J7 = J2 * J2 * J2 * J;

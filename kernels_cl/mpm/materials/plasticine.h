@@ -5,9 +5,8 @@
 
 #include "mpm/materials/hencky.h"
 
-inline void plasticine_stress(const real *F_tr, const real *U, const real *s, const real *V,
-                              const real mu, const real lambda, const real tau_Y,
-                              real *F_new, real *tau)
+inline void plasticine_stress(const real *F_tr, const real *U, const real *s, const real *V, const real mu,
+                              const real lambda, const real tau_Y, real *F_new, real *tau)
 {
     real eps[3];
     hencky_strain(s, eps);

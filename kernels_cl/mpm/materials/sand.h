@@ -18,9 +18,8 @@
 
 #include "mpm/materials/hencky.h"
 
-inline void sand_stress(const real *F_tr, const real *U, const real *s, const real *V,
-                              const real mu, const real lambda, const real alpha,
-                        const real c, const real v_c, real *F_new, real *v_c_new, real *tau)
+inline void sand_stress(const real *F_tr, const real *U, const real *s, const real *V, const real mu, const real lambda,
+                        const real alpha, const real c, const real v_c, real *F_new, real *v_c_new, real *tau)
 {
     real eps[3], eps_hat[3];
     for (int a = 0; a < 3; ++a)

@@ -9,10 +9,9 @@
 
 #include "mpm/materials/elastic.h"
 
-inline void snow_stress(const real *F_tr, const real *U, const real *s, const real *V,
-                              const real mu0, const real lambda0, const real theta_c,
-                        const real theta_s, const real xi, const real J_P, real *F_new,
-                        real *J_P_new, real *tau)
+inline void snow_stress(const real *F_tr, const real *U, const real *s, const real *V, const real mu0,
+                        const real lambda0, const real theta_c, const real theta_s, const real xi, const real J_P,
+                        real *F_new, real *J_P_new, real *tau)
 {
     real s_E[3];
     for (int a = 0; a < 3; ++a)

@@ -11,9 +11,9 @@
 
 #include "mpm/materials/hencky.h"
 
-inline void viscoplastic_stress(const real *F_tr, const real *U, const real *s, const real *V,
-                              const real mu, const real lambda, const real tau_Y,
-                                const real eta, const real dt, real *F_new, real *tau)
+inline void viscoplastic_stress(const real *F_tr, const real *U, const real *s, const real *V, const real mu,
+                                const real lambda, const real tau_Y, const real eta, const real dt, real *F_new,
+                                real *tau)
 {
     real eps[3], eps_hat[3];
     hencky_strain(s, eps);
