@@ -85,6 +85,7 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
     from clflow.media import write_image, write_video
     from clflow.splat import load_ply
     from clflow.splat.render import rasterize, to_uint8
+    from clflow_cli.progress import progress
 
     if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:
         raise InputError(f"--video {video}: the file name must end in {' or '.join(VIDEO_SUFFIXES)}")
@@ -110,7 +111,7 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
     frames = []
     seconds = 0.0
     stems: set[str] = set()
-    with atomic_dir(output_dir) as tmp:  # all or nothing: a failure leaves the folder as it was
+    with atomic_dir(output_dir) as tmp, progress(len(cameras), "rendering") as advance:  # all or nothing
         for i, camera in enumerate(cameras):
             start = time.perf_counter()
             with torch.no_grad():
@@ -123,6 +124,7 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
             stems.add(stem)
             write_image(tmp / f"{stem}.png", frame)
             frames.append(frame)
+            advance(stem)
         if video is not None:
             write_video(video, np.stack(frames), fps)
     click.echo(

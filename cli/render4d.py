@@ -25,12 +25,14 @@ def render4d(simulation, out_dir, views, turns, video_format, max_output_gb):
     from pathlib import Path
 
     from clflow.limits import check_output
-    from clflow.pipeline.frames4d import load_frames, render_4d, render_4d_size
+    from clflow.pipeline.frames4d import load_frames, render_4d, render_4d_frames, render_4d_size
+    from clflow_cli.progress import progress
 
     frames = load_frames(simulation)
     out = Path(out_dir) if out_dir else Path(simulation) / "render4d"
     check_output(out, render_4d_size(frames, views), max_output_gb,
                  f"{views + 2:,} sequences of {frames.frame_count} frames", "render fewer --views")
-    videos = render_4d(frames, out, views=views, turns=turns, video_format=video_format)
+    with progress(render_4d_frames(frames, views), "rendering") as advance:
+        videos = render_4d(frames, out, views=views, turns=turns, video_format=video_format, advance=advance)
     for video in videos:
         click.echo(f"wrote {video} and {video.with_suffix('')}/*.png ({frames.frame_count} frames)")

@@ -184,3 +184,14 @@ def test_a_broken_plugin_is_listed_and_reports_its_error_when_run(monkeypatch):
     assert run.exit_code == 1
     assert "plugin command 'sparkle' (clflow_sparkle.cli:sparkle) failed to load: ImportError" in run.output
     assert "Traceback" not in run.output
+
+
+def test_progress_off_a_terminal_is_a_line_per_tenth(capsys):
+    from clflow_cli.progress import progress
+
+    with progress(25, "rendering") as advance:
+        for k in range(25):
+            advance(f"view_{k}")
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0] == "rendering: 2/25 view_1" and lines[-1] == "rendering: 25/25 view_24"
+    assert len(lines) == 13  # every 2nd of 25, and the last

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -173,13 +174,19 @@ def render_4d_size(frames: Frames4D, views: int) -> int:
     return 2 * (views + 2) * frames.frame_count * 3 * width * height
 
 
+def render_4d_frames(frames: Frames4D, views: int) -> int:
+    """Frames render_4d renders: the guidance and orbit sequences and ``views`` fixed ones."""
+    return (2 + views) * frames.frame_count
+
+
 def render_4d(frames: Frames4D, out: Path, *, views: int = 0, turns: float = 1.0, video_format: str = "mp4",
-              background=(1.0, 1.0, 1.0)) -> list[Path]:
+              background=(1.0, 1.0, 1.0), advance: Callable[[str], None] | None = None) -> list[Path]:
     """Render the sequence into ``out``: ``guidance/`` (the guidance camera), ``orbit/`` (a
     camera circling the object while time runs) and, for ``views`` > 0, ``view_k/`` from k
     fixed novel viewpoints on the same circle. Each folder gets PNG frames and a video
     (``<name>.mp4`` or ``.gif``), all written in a temporary folder and moved into ``out`` at
-    the end: a failure leaves ``out`` as it was. Returns the videos written."""
+    the end: a failure leaves ``out`` as it was; ``advance(name)`` is called after each frame
+    (render_4d_frames of them). Returns the videos written."""
     from clflow.fileio import atomic_dir
     from clflow.media import write_image, write_video
     from clflow.pipeline.forward import to_uint8
@@ -201,8 +208,10 @@ def render_4d(frames: Frames4D, out: Path, *, views: int = 0, turns: float = 1.0
                     image = to_uint8(render_rgb(frames.scene_at(t), cam, background))
                     write_image(tmp / name / f"{t:03d}.png", image)
                     images.append(image)
+                    if advance is not None:
+                        advance(name)
             write_video(tmp / f"{name}.{video_format}", np.stack(images), frames.fps)
     return [out / f"{name}.{video_format}" for name in sequences]
 
 
-__all__ = ["Frames4D", "export_gaussians", "export_size", "load_frames", "orbit_cameras", "render_4d", "render_4d_size"]
+__all__ = ["Frames4D", "export_gaussians", "export_size", "load_frames", "orbit_cameras", "render_4d", "render_4d_frames", "render_4d_size"]
