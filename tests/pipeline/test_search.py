@@ -126,7 +126,9 @@ def test_the_search_finds_the_birds_basin_from_a_300x_soft_guess(tmp_path):
     """The benchmark's bird (elastic sphere, E = 3e5 Pa, nu 0.3) at the quick resolution with
     guidance from a 2x finer simulation, from PAC-NeRF's guess E = 1e3 Pa, nu 0.1, where
     plain Adam walked E the wrong way (issue 12): the benchmark's 24-sample search lands
-    within a factor 2 of the truth (measured: E 1.68e5 Pa, loss 0.155 against 5.29 at the start)."""
+    within a factor 2 of the truth, its loss far below the typical sample's (measured
+    2026-11-24: loss 0.165 against a median of 2.1; the start itself, a sphere this soft,
+    breaks the CFL limit even after its retries and is rejected as unstable)."""
     from clflow.scene.config import load_config
     from clflow_datasets.synthetic import make_case
     from clflow_datasets.sysid import CASES, QUICK
@@ -136,5 +138,5 @@ def test_the_search_finds_the_birds_basin_from_a_300x_soft_guess(tmp_path):
     state = opt.global_search(opt.initial_state())
     found = opt.values(state.z)["youngs_modulus"]
     assert 3e5 / 2 < found < 3e5 * 2
-    start, best = state.search[0]["loss"], min(r["loss"] for r in state.search if r["loss"] is not None)
-    assert best < 0.2 * start
+    losses = sorted(r["loss"] for r in state.search if r["loss"] is not None)  # None: a rejected, unstable run
+    assert losses[0] < 0.2 * losses[len(losses) // 2]  # far below the typical sample: a basin, not luck
