@@ -144,9 +144,10 @@ def load_frames(folder: str | Path) -> Frames4D:
     return Frames4D(arrays)
 
 
-def orbit_cameras(frames: Frames4D, count: int, turns: float = 1.0) -> list:
+def orbit_cameras(frames: Frames4D, count: int, turns: float = 1.0, phase: float = 0.0) -> list:
     """``count`` cameras circling the object (about +y) at the guidance camera's distance and
-    elevation, starting at its azimuth and turning ``turns`` times over the sequence."""
+    elevation, ``turns`` times over the sequence, starting ``phase`` steps past its azimuth
+    (0.5: half a step, so that no camera repeats the guidance view)."""
     from clflow.splat.cameras import look_at
 
     guide = frames.guidance_camera()
@@ -160,7 +161,7 @@ def orbit_cameras(frames: Frames4D, count: int, turns: float = 1.0) -> list:
     fov_x = 2 * math.atan(guide.width / (2 * float(guide.K[0, 0])))
     cams = []
     for i in range(count):
-        phi = azimuth + 2 * math.pi * turns * i / max(1, count)
+        phi = azimuth + 2 * math.pi * turns * (i + phase) / max(1, count)
         direction = np.array([math.cos(elevation) * math.cos(phi), math.sin(elevation),
                               math.cos(elevation) * math.sin(phi)])
         cams.append(look_at(center + radius * direction, center, (0.0, 1.0, 0.0), fov_x=fov_x,
@@ -183,7 +184,8 @@ def render_4d(frames: Frames4D, out: Path, *, views: int = 0, turns: float = 1.0
               background=(1.0, 1.0, 1.0), advance: Callable[[str], None] | None = None) -> list[Path]:
     """Render the sequence into ``out``: ``guidance/`` (the guidance camera), ``orbit/`` (a
     camera circling the object while time runs) and, for ``views`` > 0, ``view_k/`` from k
-    fixed novel viewpoints on the same circle. Each folder gets PNG frames and a video
+    fixed novel viewpoints on the same circle, half a step off the guidance camera's azimuth
+    (none repeats it). Each folder gets PNG frames and a video
     (``<name>.mp4`` or ``.gif``), all written in a temporary folder and moved into ``out`` at
     the end: a failure leaves ``out`` as it was; ``advance(name)`` is called after each frame
     (render_4d_frames of them). Returns the videos written."""
@@ -198,7 +200,7 @@ def render_4d(frames: Frames4D, out: Path, *, views: int = 0, turns: float = 1.0
         raise InputError(f"turns of the orbiting camera must be a finite number, got {turns}")
     T = frames.frame_count
     sequences = {"guidance": [frames.guidance_camera()] * T, "orbit": orbit_cameras(frames, T, turns)}
-    for k, cam in enumerate(orbit_cameras(frames, views)):
+    for k, cam in enumerate(orbit_cameras(frames, views, phase=0.5)):  # between the guidance view's repeats
         sequences[f"view_{k}"] = [cam] * T
     with atomic_dir(out) as tmp:
         for name, cams in sequences.items():

@@ -62,6 +62,8 @@ def test_simulate_config_then_render4d(quick_demo, tmp_path):
     first = [cv2.imread(str(out / "render4d" / n / "000.png")).astype(float) for n in ("guidance", "orbit")]
     middle = [cv2.imread(str(out / "render4d" / n / "004.png")).astype(float) for n in ("guidance", "orbit")]
     assert np.abs(first[0] - first[1]).mean() < 1.0 < np.abs(middle[0] - middle[1]).mean()
+    view = cv2.imread(str(out / "render4d" / "view_0" / "000.png")).astype(float)
+    assert np.abs(view - first[0]).mean() > 1.0  # a novel view: the one fixed view looks from the other side
     assert not list(out.rglob("*.tmp*"))
 
 
