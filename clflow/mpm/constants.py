@@ -40,9 +40,22 @@ NEWTONIAN_J_MIN = 0.05  # floor of the fluid's volume ratio J
 CLAMP_MARGIN = 1  # particles are kept >= this many cells inside the grid
 MASS_EPS_REL = 1e-12  # grid nodes lighter than this x the lightest particle are empty (see docs/mpm.md)
 
-# Boundary-condition records (kernels_cl/mpm/grid.cl)
+# Boundary-condition records (kernels_cl/mpm/grid.cl): BC_STRIDE reals each, in these slots
 BC_STRIDE = 16
 BC_HALFSPACE, BC_BOX, BC_CYLINDER = 1, 2, 3
+BC_SLOTS: dict[str, int] = {
+    "BC_KIND": 0,  # BC_HALFSPACE, BC_BOX or BC_CYLINDER
+    "BC_T_START": 1,  # active during [t_start, t_end) s
+    "BC_T_END": 2,
+    "BC_A": 3,  # 3 reals: half-space point, box lower corner, cylinder centre (m)
+    "BC_B": 6,  # 3 reals: half-space outward unit normal, box upper corner (m), cylinder unit axis
+    "BC_C": 9,  # box: 3 reals, the velocity imposed inside (m/s)
+    "BC_MODE": 9,  # half-space: COLLIDE_* mode
+    "BC_FRICTION": 10,  # half-space: Coulomb coefficient
+    "BC_RADIUS": 9,  # cylinder: radius (m)
+    "BC_HALF_LENGTH": 10,  # cylinder: half length along the axis (m)
+    "BC_OMEGA": 11,  # cylinder: angular velocity about the axis (rad/s)
+}
 COLLIDER_MODES: dict[str, int] = {"sticky": 0, "slip": 1, "separate": 2}
 
 
@@ -62,6 +75,7 @@ def kernel_defines() -> dict[str, object]:
         BC_HALFSPACE=BC_HALFSPACE,
         BC_BOX=BC_BOX,
         BC_CYLINDER=BC_CYLINDER,
+        **BC_SLOTS,
         **{f"COLLIDE_{name.upper()}": i for name, i in COLLIDER_MODES.items()},
     )
     return defines

@@ -14,6 +14,7 @@ from clflow.mpm.constants import (
     BC_BOX,
     BC_CYLINDER,
     BC_HALFSPACE,
+    BC_SLOTS,
     CLAMP_MARGIN,
     COLLIDER_MODES,
     HENCKY_S_MIN,
@@ -175,20 +176,20 @@ def _apply_boundaries(grid: Grid, v, active, boundaries, t):
     idx = torch.stack(torch.meshgrid(torch.arange(nx), torch.arange(ny), torch.arange(nz), indexing="ij"), -1)
     xi = torch.tensor(grid.origin, dtype=v.dtype) + grid.dx * idx.reshape(-1, 3).to(v.dtype)
     for rec in boundaries.to(torch.float64).tolist():
-        kind, t0, t1 = int(rec[0]), rec[1], rec[2]
+        kind, t0, t1 = int(rec[BC_SLOTS["BC_KIND"]]), rec[BC_SLOTS["BC_T_START"]], rec[BC_SLOTS["BC_T_END"]]
         if not (t0 <= t < t1):
             continue
-        a, b, c = (torch.tensor(rec[3 + 3 * s : 6 + 3 * s], dtype=v.dtype) for s in range(3))
+        a, b, c = (torch.tensor(rec[BC_SLOTS[name] : BC_SLOTS[name] + 3], dtype=v.dtype) for name in ("BC_A", "BC_B", "BC_C"))
         if kind == BC_HALFSPACE:
             inside = active & (((xi - a) * b).sum(-1) < 0)
             vn = (v * b).sum(-1)
-            mode = int(rec[9])
+            mode = int(rec[BC_SLOTS["BC_MODE"]])
             if mode == COLLIDER_MODES["sticky"]:
                 new = torch.zeros_like(v)
             else:
                 vt = v - vn[:, None] * b
                 vt_norm = vt.norm(dim=-1)
-                friction = rec[10] * torch.clamp(-vn, min=0)  # Coulomb: only while moving into the surface
+                friction = rec[BC_SLOTS["BC_FRICTION"]] * torch.clamp(-vn, min=0)  # Coulomb: only while moving into the surface
                 keep = torch.where(vt_norm > friction, 1 - friction / torch.where(vt_norm > 0, vt_norm, 1.0),
                                    (friction == 0).to(v.dtype))
                 new = keep[:, None] * vt
@@ -201,8 +202,9 @@ def _apply_boundaries(grid: Grid, v, active, boundaries, t):
             r = xi - a
             along = (r * b).sum(-1)
             radial = r - along[:, None] * b
-            inside = active & (along.abs() <= rec[10]) & ((radial * radial).sum(-1) <= rec[9] ** 2)
-            new = rec[11] * torch.cross(b.expand_as(r), r, dim=-1)
+            inside = (active & (along.abs() <= rec[BC_SLOTS["BC_HALF_LENGTH"]])
+                      & ((radial * radial).sum(-1) <= rec[BC_SLOTS["BC_RADIUS"]] ** 2))
+            new = rec[BC_SLOTS["BC_OMEGA"]] * torch.cross(b.expand_as(r), r, dim=-1)
         else:
             raise ValueError(f"unknown boundary kind {kind}")
         v = torch.where(inside[:, None], new, v)

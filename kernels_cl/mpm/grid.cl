@@ -2,8 +2,8 @@
  *
  *   v_i = mv_i / m_i + dt g   where m_i > mass_eps, else 0
  * then every boundary record active at time t (t_start <= t < t_end) in table order.
- * Record layout (BC_STRIDE reals, slots named in clflow/mpm/constants.py):
- *   [kind, t_start, t_end, a0 a1 a2, b0 b1 b2, c0 c1 c2 ...]
+ * Record layout: BC_STRIDE reals, read through the slot names of clflow/mpm/constants.py
+ * (BC_SLOTS, passed as defines): [BC_KIND, BC_T_START, BC_T_END, BC_A (3), BC_B (3), BC_C (3) ...]
  *   BC_HALFSPACE: point a, outward normal b (unit), c0 = mode, c1 = friction mu_f. Nodes with
  *       (x_i - a).b < 0 are inside the collider: sticky v = 0; slip v -= (v.n) n; separate
  *       the same only when v.n < 0. While the node moves into the surface (v.n < 0), Coulomb
@@ -18,13 +18,13 @@ inline void apply_halfspace(__global const real *rec, const real *xi, real *v)
 {
     real n[3], rel = 0, vn = 0;
     for (int a = 0; a < 3; ++a) {
-        n[a] = rec[6 + a];
-        rel += (xi[a] - rec[3 + a]) * n[a];
+        n[a] = rec[BC_B + a];
+        rel += (xi[a] - rec[BC_A + a]) * n[a];
         vn += v[a] * n[a];
     }
     if (rel >= 0)
         return;
-    const int mode = (int)rec[9];
+    const int mode = (int)rec[BC_MODE];
     if (mode == COLLIDE_STICKY) {
         for (int a = 0; a < 3; ++a)
             v[a] = 0;
@@ -32,7 +32,7 @@ inline void apply_halfspace(__global const real *rec, const real *xi, real *v)
     }
     if (mode == COLLIDE_SEPARATE && vn >= 0)
         return;
-    const real friction = vn < 0 ? -rec[10] * vn : (real)0; /* tangential speed it removes */
+    const real friction = vn < 0 ? -rec[BC_FRICTION] * vn : (real)0; /* tangential speed it removes */
     real vt[3], vt2 = 0;
     for (int a = 0; a < 3; ++a) {
         vt[a] = v[a] - vn * n[a];
@@ -47,30 +47,30 @@ inline void apply_halfspace(__global const real *rec, const real *xi, real *v)
 inline void apply_box(__global const real *rec, const real *xi, real *v)
 {
     for (int a = 0; a < 3; ++a)
-        if (xi[a] < rec[3 + a] || xi[a] > rec[6 + a])
+        if (xi[a] < rec[BC_A + a] || xi[a] > rec[BC_B + a])
             return;
     for (int a = 0; a < 3; ++a)
-        v[a] = rec[9 + a];
+        v[a] = rec[BC_C + a];
 }
 
 inline void apply_cylinder(__global const real *rec, const real *xi, real *v)
 {
     real r[3], along = 0;
     for (int a = 0; a < 3; ++a) {
-        r[a] = xi[a] - rec[3 + a];
-        along += r[a] * rec[6 + a];
+        r[a] = xi[a] - rec[BC_A + a];
+        along += r[a] * rec[BC_B + a];
     }
     real radial2 = 0;
     for (int a = 0; a < 3; ++a) {
-        const real ra = r[a] - along * rec[6 + a];
+        const real ra = r[a] - along * rec[BC_B + a];
         radial2 += ra * ra;
     }
-    if (fabs(along) > rec[10] || radial2 > rec[9] * rec[9])
+    if (fabs(along) > rec[BC_HALF_LENGTH] || radial2 > rec[BC_RADIUS] * rec[BC_RADIUS])
         return;
-    const real omega = rec[11];
-    v[0] = omega * (rec[7] * r[2] - rec[8] * r[1]);
-    v[1] = omega * (rec[8] * r[0] - rec[6] * r[2]);
-    v[2] = omega * (rec[6] * r[1] - rec[7] * r[0]);
+    const real omega = rec[BC_OMEGA];
+    v[0] = omega * (rec[BC_B + 1] * r[2] - rec[BC_B + 2] * r[1]);
+    v[1] = omega * (rec[BC_B + 2] * r[0] - rec[BC_B] * r[2]);
+    v[2] = omega * (rec[BC_B] * r[1] - rec[BC_B + 1] * r[0]);
 }
 
 __kernel void grid_update(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
@@ -92,9 +92,9 @@ __kernel void grid_update(const int nx, const int ny, const int nz, const real d
         const real xi[3] = {ox + i * dx, oy + j * dx, oz + k * dx};
         for (int b = 0; b < n_bc; ++b) {
             __global const real *rec = bc + (long)b * BC_STRIDE;
-            if (t < rec[1] || t >= rec[2])
+            if (t < rec[BC_T_START] || t >= rec[BC_T_END])
                 continue;
-            const int kind = (int)rec[0];
+            const int kind = (int)rec[BC_KIND];
             if (kind == BC_HALFSPACE)
                 apply_halfspace(rec, xi, v);
             else if (kind == BC_BOX)

@@ -17,13 +17,13 @@ inline void halfspace_adjoint(__global const real *rec, const real *xi, const re
 {
     real n[3], rel = 0, vn = 0;
     for (int a = 0; a < 3; ++a) {
-        n[a] = rec[6 + a];
-        rel += (xi[a] - rec[3 + a]) * n[a];
+        n[a] = rec[BC_B + a];
+        rel += (xi[a] - rec[BC_A + a]) * n[a];
         vn += v[a] * n[a];
     }
     if (rel >= 0)
         return;
-    const int mode = (int)rec[9];
+    const int mode = (int)rec[BC_MODE];
     if (mode == COLLIDE_SEPARATE && vn >= 0)
         return;
     real vt[3], vt2 = 0, vt_dot = 0;
@@ -33,7 +33,7 @@ inline void halfspace_adjoint(__global const real *rec, const real *xi, const re
         vt_dot += vt[a] * v_bar[a];
     }
     const real vt_norm = sqrt(vt2);
-    const real friction = vn < 0 ? -rec[10] * vn : (real)0;
+    const real friction = vn < 0 ? -rec[BC_FRICTION] * vn : (real)0;
     if (mode == COLLIDE_STICKY || (friction > 0 && vt_norm <= friction)) {
         for (int a = 0; a < 3; ++a)
             v_bar[a] = 0;
@@ -42,7 +42,7 @@ inline void halfspace_adjoint(__global const real *rec, const real *xi, const re
     /* here |vt| > f > 0, or f = 0 (then |vt| may be 0) */
     const real ratio = friction > 0 ? friction / vt_norm : (real)0;
     const real along = friction > 0 ? ratio * vt_dot / vt2 : (real)0;
-    const real vn_bar = friction > 0 ? rec[10] * vt_dot / vt_norm : (real)0;
+    const real vn_bar = friction > 0 ? rec[BC_FRICTION] * vt_dot / vt_norm : (real)0;
     real vt_bar[3], vt_bar_n = 0;
     for (int a = 0; a < 3; ++a) {
         vt_bar[a] = (1 - ratio) * v_bar[a] + along * vt[a];
@@ -56,7 +56,7 @@ inline void halfspace_adjoint(__global const real *rec, const real *xi, const re
 inline int overrides(__global const real *rec, const real *xi)
 {
     real probe[3] = {NAN, NAN, NAN};
-    if ((int)rec[0] == BC_BOX)
+    if ((int)rec[BC_KIND] == BC_BOX)
         apply_box(rec, xi, probe);
     else
         apply_cylinder(rec, xi, probe);
@@ -65,12 +65,12 @@ inline int overrides(__global const real *rec, const real *xi)
 
 inline int bc_active(__global const real *rec, const real t)
 {
-    return t >= rec[1] && t < rec[2];
+    return t >= rec[BC_T_START] && t < rec[BC_T_END];
 }
 
 inline void apply_condition(__global const real *rec, const real *xi, real *v)
 {
-    const int kind = (int)rec[0];
+    const int kind = (int)rec[BC_KIND];
     if (kind == BC_HALFSPACE)
         apply_halfspace(rec, xi, v);
     else if (kind == BC_BOX)
@@ -108,7 +108,7 @@ __kernel void grid_update_adjoint(const int nx, const int ny, const int nz, cons
             __global const real *rec = bc + (long)b * BC_STRIDE;
             if (!bc_active(rec, t))
                 continue;
-            const int kind = (int)rec[0];
+            const int kind = (int)rec[BC_KIND];
             if (kind == BC_HALFSPACE) {
                 real v[3] = {v0[0], v0[1], v0[2]};
                 for (int e = 0; e < b; ++e)
