@@ -15,7 +15,7 @@ from clflow.errors import InputError
 
 #: Default of the commands' --max-output-gb (GB = 1e9 bytes).
 DEFAULT_MAX_OUTPUT_GB = 10.0
-#: Bytes one simulated particle-frame holds in memory: x, v (3), F (9), plastic (1) reals.
+#: Reals one simulated particle-frame holds in memory: x, v (3), F (9), plastic (1).
 TRAJECTORY_REALS = 16
 #: Free bytes below which a failed write is put down to a full disk.
 LOW_DISK_BYTES = 1 << 20

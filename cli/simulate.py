@@ -194,9 +194,10 @@ def simulate(ctx, particles, shape, size, center, material, params, model, densi
     less = "simulate fewer --frames"
     image = 0 if preview == "none" else 3 * PREVIEW_SIZE**2  # bytes of an uncompressed preview frame
     check_output(out, (frames + 1) * (12 * sim.n + image), max_output_gb, f"{frames + 1:,} frames of {sim.n:,} particles", less)
-    check_memory((frames + 1) * sim.n * TRAJECTORY_REALS * dtype.itemsize, f"simulating {frames + 1:,} frames", less)
+    check_memory((frames + 1) * (sim.n * TRAJECTORY_REALS * dtype.itemsize + image),  # the preview is encoded at once
+                 f"simulating {frames + 1:,} frames", less)
     click.echo(f"{sim.n:,} particles of {material}, {frames} frames x {sim.substeps} substeps (dt = {sim.dt:.3g} s, "
-               f"limited by {sim._limit_reason(sim.state.v)})")
+               f"limited by {sim.limit_reason(sim.state.v)})")
     limit = max_substeps or DEFAULT_MAX_SUBSTEPS
     if sim.substeps > limit:
         raise InputError(f"{sim.substeps} substeps per frame (dt = {sim.dt:.3g} s) is beyond the limit of {limit}; "

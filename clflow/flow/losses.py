@@ -82,14 +82,19 @@ def render_loss(rendered: torch.Tensor, target: torch.Tensor, ssim_weight: float
     SSIM is kornia's (11 px Gaussian window, sigma 1.5, max value 1); note that
     ``kornia.losses.ssim_loss`` would halve the D-SSIM term, so it is not used.
     """
-    import kornia
-
     if rendered.shape != target.shape or rendered.dim() < 3:
         raise InputError(f"render loss: images must have one [..., H, W, C] shape, got {tuple(rendered.shape)} and {tuple(target.shape)}")
     _finite(target, "render loss: target image")
     target = target.to(rendered.dtype)
     l1 = (rendered - target).abs().mean()
-    height, width, channels = rendered.shape[-3:]
+    return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - ssim(rendered, target))
+
+
+def ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean SSIM (kornia: SSIM_WINDOW px Gaussian window, sigma 1.5, max value 1) of images
+    [..., H, W, C] of one shape; differentiable."""
+    import kornia
+
+    height, width, channels = image.shape[-3:]
     as_batch = lambda x: x.reshape(-1, height, width, channels).permute(0, 3, 1, 2)  # noqa: E731
-    ssim = kornia.metrics.ssim(as_batch(rendered), as_batch(target), SSIM_WINDOW, max_val=1.0).mean()
-    return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - ssim)
+    return kornia.metrics.ssim(as_batch(image), as_batch(target), SSIM_WINDOW, max_val=1.0).mean()

@@ -22,15 +22,7 @@ import numpy as np
 import torch
 
 from clflow.mpm.constants import MATERIAL_IDS, SIMD_LANES, SVD_MATERIALS, kernel_defines
-from clflow.mpm.substep import (
-    GRID_COPY_BUDGET,
-    MAX_GRID_COPIES,
-    Grid,
-    Particles,
-    State,
-    SubstepKernels,
-    wanted_grid_copies,
-)
+from clflow.mpm.substep import Grid, Particles, State, SubstepKernels, grid_copies
 
 
 @dataclass
@@ -106,8 +98,7 @@ class SubstepAdjoint:
         self.k_p2g = k("mpm/adjoint/p2g_adjoint.cl", "p2g_adjoint")
         itemsize = torch.tensor([], dtype=dtype).element_size()
         copy_bytes = 3 * grid.nodes * itemsize
-        want = wanted_grid_copies(device)
-        self.copies = max(1, min(want, MAX_GRID_COPIES, GRID_COPY_BUDGET // copy_bytes, n))
+        self.copies = grid_copies(device, copy_bytes, n)
         self.chunk = -(-n // self.copies)
         self.grid_v_bar_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * copy_bytes)
         self.grid_bar = torch.empty(grid.nodes, 4, dtype=dtype)

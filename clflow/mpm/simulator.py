@@ -262,7 +262,7 @@ class Simulator:
         elif int(substeps) < auto:
             warnings.warn(
                 f"dt = {self.frame_dt / int(substeps):.3g} s exceeds the stable limit {self.frame_dt / auto:.3g} s "
-                f"({self._limit_reason(v)}); use substeps >= {auto} per frame (or substeps=None to choose it)",
+                f"({self.limit_reason(v)}); use substeps >= {auto} per frame (or substeps=None to choose it)",
                 StabilityWarning, stacklevel=2,
             )
         self.use_substeps(substeps)
@@ -323,7 +323,7 @@ class Simulator:
         self.substeps = int(substeps)
         self.dt = self.frame_dt / self.substeps
 
-    def _limit_reason(self, v: torch.Tensor) -> str:
+    def limit_reason(self, v: torch.Tensor) -> str:
         return min(self._dt_limits(v), default=(0.0, "no limit"))[1]
 
     # -- stepping ---------------------------------------------------------------------------
@@ -356,7 +356,7 @@ class Simulator:
         if not all(bool(torch.isfinite(t).all()) for t in (s.x, s.v, s.F)):
             raise SimulationError(
                 f"the simulation became NaN/inf during frame {self.frame} (t = {self.time:.4g} s); likely cause: "
-                f"dt = {self.dt:.3g} s is too large ({self._limit_reason(v_before)}; stable substeps per frame now: "
+                f"dt = {self.dt:.3g} s is too large ({self.limit_reason(v_before)}; stable substeps per frame now: "
                 f"{self.stable_substeps(v_before)}), or extreme material parameters / forces"
             )
         count = int(self._clamped.sum(dtype=torch.int64))

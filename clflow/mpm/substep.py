@@ -33,6 +33,13 @@ GRID_COPY_BUDGET = 1 << 30  # bytes all private grid copies may take together
 GRID_COPIES_ENV = "CLFLOW_P2G_COPIES"
 
 
+def grid_copies(device: Device, copy_bytes: int, n: int) -> int:
+    """Private grid copies (of ``copy_bytes`` each) for ``n`` particles, the same count for the
+    forward P2G and the adjoint G2P scatter (and so the same summation order): the wanted
+    count, at most MAX_GRID_COPIES, GRID_COPY_BUDGET bytes together and one per particle."""
+    return max(1, min(wanted_grid_copies(device), MAX_GRID_COPIES, GRID_COPY_BUDGET // copy_bytes, n))
+
+
 def wanted_grid_copies(device: Device) -> int:
     """Private P2G grid copies wanted on ``device``: $CLFLOW_P2G_COPIES, else 2 per compute unit."""
     import os
@@ -156,8 +163,7 @@ class SubstepKernels:
         if p2g == "private":
             self.k_p2g = k("mpm/p2g.cl", "p2g_private")
             self.k_reduce = k("mpm/p2g.cl", "p2g_reduce")
-            want = wanted_grid_copies(device)
-            self.copies = max(1, min(want, MAX_GRID_COPIES, GRID_COPY_BUDGET // grid_bytes, n))
+            self.copies = grid_copies(device, grid_bytes, n)
             self.chunk = -(-n // self.copies)
             self.grid_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * grid_bytes)
         elif p2g == "atomic":

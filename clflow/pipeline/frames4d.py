@@ -172,7 +172,7 @@ def orbit_cameras(frames: Frames4D, count: int, turns: float = 1.0, phase: float
 def render_4d_size(frames: Frames4D, views: int) -> int:
     """Upper bound of the bytes :func:`render_4d` writes: uncompressed PNG frames and video."""
     width, height = (int(v) for v in frames.arrays["camera_size"])
-    return 2 * (views + 2) * frames.frame_count * 3 * width * height
+    return 2 * 3 * width * height * render_4d_frames(frames, views)
 
 
 def render_4d_frames(frames: Frames4D, views: int) -> int:

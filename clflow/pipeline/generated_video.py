@@ -109,7 +109,9 @@ def check_settings(settings: GenerateSettings, simulation: SimulationSettings,
         raise fail("model", str(exc)) from None
     if settings.prompt_template is not None:
         _check_template(settings.prompt_template, fail)
-    request = _request(settings, simulation, info, settings.prompt or "a motion prompt")
+    # the motion prompt is made later, from the scene: a stand-in here (none for an image-only
+    # model, which would warn that it ignores a prompt)
+    request = _request(settings, simulation, info, (settings.prompt or "a motion prompt") if info.uses_prompt else "")
     duration = simulation.frames / simulation.fps
     if (request.frames - 1) / request.fps < duration - 1e-9:
         raise fail("frames", f"{request.frames} frames at {request.fps:g} fps last {(request.frames - 1) / request.fps:.3g}"

@@ -204,14 +204,9 @@ def loss_mask(cfg: SceneConfig, prepared: Prepared, camera=None, what: str = "th
     return torch.from_numpy(mask_from_image(setting, cam.width, cam.height))  # a path resolved by the config
 
 
-def simulated_flows(prepared: Prepared, x: torch.Tensor, F: torch.Tensor, frames: int) -> list[torch.Tensor]:
-    """Simulated flow [H, W, 2] of each frame step t -> t+1 for t < frames."""
-    return simulated_view_flows(prepared, x, F, frames, [prepared.camera])[0]
-
-
 def simulated_view_flows(prepared: Prepared, x: torch.Tensor, F: torch.Tensor, frames: int,
                          cameras: list) -> list[list[torch.Tensor]]:
-    """The simulated flows (as simulated_flows) seen by each of ``cameras``."""
+    """Simulated flows [H, W, 2] of each frame step t -> t+1 (t < frames) seen by each of ``cameras``."""
     scenes = [frame_gaussians(prepared.static, prepared.obj_rest, x[t], F[t]) for t in range(frames + 1)]
     return [[render_flow(scenes[t], scenes[t + 1], cam)[0] for t in range(frames)] for cam in cameras]
 
@@ -327,10 +322,9 @@ class Optimization:
     def preflight(self):
         """Force stages and the substeps at the initial parameters: the predicted time is
         logged, a run beyond ``simulation.max_substeps`` refused (SubstepLimitError)."""
-        from clflow.pipeline.preflight import check_forces, describe, plan_run
+        from clflow.pipeline.preflight import describe, plan_run
 
-        check_forces(self.cfg, self.prepared.setup.particles.positions)
-        z = self.initial_state().z
+        z = self.initial_state().z  # plan_run builds the simulator, which checks the force stages
         values = self.values(z)
         params, density = material_values(self.cfg, {n: values[n] for n in self.params})
         plan = plan_run(self.cfg, self.prepared.setup, params, density, velocity=torch.tensor(self.velocity(z)),
@@ -419,7 +413,7 @@ class Optimization:
         needed = sim.stable_substeps()
         if traj.substeps < needed:  # a fixed simulation.substep_dt too long for these parameters
             raise UnstableRun(f"dt = {sim.frame_dt / traj.substeps:.3g} s exceeds the stable step "
-                              f"{sim.frame_dt / needed:.3g} s of these parameters ({sim._limit_reason(sim.state.v)})")
+                              f"{sim.frame_dt / needed:.3g} s of these parameters ({sim.limit_reason(sim.state.v)})")
         if traj.unstable:  # finished, but not a run to learn from
             raise UnstableRun(traj.unstable)
         cameras = [v.camera for v in self.views]
@@ -710,9 +704,9 @@ class Optimization:
         metrics = {"flow_loss": loss, "epe_px": self.endpoint_error(flows, result.more_flows), "iterations": len(state.history),
                    "seconds_per_iteration": float(np.mean([h["seconds"] for h in state.history])) if state.history else 0.0}
         metrics["rollbacks"] = state.rollbacks  # every rejected iteration: its reason and parameters
-        if getattr(self, "guidance", None):
+        if self.guidance:
             metrics["guidance_checks"] = [check.record() for check in self.guidance]
-        if getattr(self, "guidance_warnings", None):  # forced past a failed guidance check (--force-video)
+        if self.guidance_warnings:  # forced past a failed guidance check (--force-video)
             metrics["warnings"] = list(self.guidance_warnings)
         metrics["identifiability"] = self.identifiability(state.z, state.substeps)
         if self.hypotheses:

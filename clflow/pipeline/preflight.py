@@ -50,17 +50,19 @@ def _fmt_point(values) -> str:
     return "(" + ", ".join(f"{float(v):.4g}" for v in values) + ")"
 
 
-def check_forces(cfg: SceneConfig, positions: torch.Tensor, dtype: torch.dtype = torch.float32) -> None:
-    """InputError for a force stage whose region holds no particle (tested in the
-    simulator's ``dtype``, as the simulator selects them) or whose time window lies outside
-    the simulated time (0 .. frames / fps)."""
+def check_forces(cfg: SceneConfig, positions: torch.Tensor, dtype: torch.dtype = torch.float32) -> list[torch.Tensor]:
+    """Each force stage's particles, [N] bool masks (selected in the simulator's ``dtype``,
+    as the simulator selects them); InputError for a stage whose region holds no particle or
+    whose time window lies outside the simulated time (0 .. frames / fps)."""
     from clflow.pipeline.scene import region_mask
 
     sim = cfg.simulation
     duration = sim.frames / sim.fps
     x = positions.to(dtype).double()  # as the simulator tests them (clflow.mpm.boundaries.DriverGroups)
+    masks = []
     for i, stage in enumerate(cfg.forces):
-        if not bool(region_mask(stage.region, x).any()):
+        masks.append(region_mask(stage.region, x))
+        if not bool(masks[-1].any()):
             raise InputError(f"{cfg.source}: forces[{i}].region holds no particle of the object (the object spans "
                              f"{_fmt_point(positions.min(0).values)} .. {_fmt_point(positions.max(0).values)} m "
                              f"in the simulation frame, +y up)")
@@ -68,6 +70,7 @@ def check_forces(cfg: SceneConfig, positions: torch.Tensor, dtype: torch.dtype =
             raise InputError(f"{cfg.source}: forces[{i}] starts at {stage.start:g} s, after the simulated "
                              f"{duration:.4g} s ({sim.frames} frames at {sim.fps:g} fps): it would never act; "
                              f"fix forces[{i}].start/end (seconds) or simulation.frames")
+    return masks
 
 
 @dataclass(frozen=True)
@@ -86,8 +89,8 @@ class RunPlan:
         return self.frames * self.substeps * self.seconds_per_substep
 
 
-# an iteration with gradients costs about this many forward runs (forward, the adjoint's
-# replay and the adjoint kernels; measured on the QUICK demo: docs/pipeline.md)
+# an iteration with gradients costs about this many forward runs: the forward, then the adjoint
+# with its replay at 2.0-2.6x a forward run (docs/benchmarks.md, "MPM adjoint")
 GRADIENT_COST = 3.0
 
 
@@ -110,7 +113,7 @@ def check_substeps(cfg: SceneConfig, sim, max_substeps: int | None) -> None:
     """SubstepLimitError when ``sim`` takes more than ``max_substeps`` substeps per frame (the
     optimiser's check of each iteration: build_simulator(max_substeps=...))."""
     if max_substeps is not None and sim.substeps > max_substeps:
-        raise SubstepLimitError(substep_limit_message(cfg, sim.substeps, sim.dt, sim._limit_reason(sim.state.v),
+        raise SubstepLimitError(substep_limit_message(cfg, sim.substeps, sim.dt, sim.limit_reason(sim.state.v),
                                                       max_substeps, optimizing=True))
 
 
@@ -124,7 +127,7 @@ def plan_run(cfg: SceneConfig, setup, params: dict[str, float], density: float, 
     from clflow.pipeline.simulation import build_simulator
 
     sim = build_simulator(cfg, setup, params, density, dtype=dtype, min_substeps=min_substeps, velocity=velocity)
-    stable = sim._limit_reason(sim.state.v)
+    stable = sim.limit_reason(sim.state.v)
     limit = stable if cfg.simulation.substep_dt is None else f"simulation.substep_dt; stable: {stable}"
     if max_substeps is not None and sim.substeps > max_substeps:
         sim.step()  # a timing for the message: the one substep is cheap next to the refused run

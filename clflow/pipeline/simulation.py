@@ -9,10 +9,12 @@ ground GROUND_OFFSET cells above a node row.
 
 Why the ground's place among the node rows matters: the boundary condition acts on the
 nodes behind the plane, so how strongly the object's bottom layer couples to them depends on
-where the plane cuts the cells. A 1 m elastic torus dropped 0.3 m rebounds 0.13 m higher at
-frame 8 with the ground 0.1 cells above a node row than at 0.9 (32-node grid). At 0.75
-cells the contact agrees best across resolutions: grids of 32 and 63 nodes differ by 0.026
-px of flow (0.068 at 0.5 cells), a plasticine block 0.021 (0.047) (docs/benchmarks.md).
+where the plane cuts the cells. A 1 m elastic torus dropped 0.3 m rebounds 0.15 m higher at
+frame 8 with the ground 0.1 cells above a node row than at 0.9 (32-node grid). Grids of 32
+and 63 nodes agree far better at 0.75-0.9 cells than at 0.5 (flow difference at the truth:
+torus 0.026-0.019 px against 0.068, plasticine block 0.021-0.017 against 0.047; a fluid
+drop, 0.040-0.045 against 0.033, prefers 0.5 slightly); 0.75 keeps away from the plane on a
+node row, where rounding decides (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import torch
 from clflow.errors import InputError
 from clflow.materials import get_material
 from clflow.mpm.substep import check_grid_memory
-from clflow.pipeline.scene import WALL_CELLS, SceneGaussians, region_mask
+from clflow.pipeline.scene import WALL_CELLS, SceneGaussians
 from clflow.runtime import get_device
 from clflow.scene.config import SceneConfig
 from clflow.scene.filling import ObjectParticles, fill_object
@@ -109,11 +111,8 @@ def build_simulator(cfg: SceneConfig, setup: ObjectSetup, params: dict[str, floa
     frame_dt = 1.0 / sim_cfg.fps
     substeps = None if sim_cfg.substep_dt is None else max(1, math.ceil(frame_dt / sim_cfg.substep_dt - 1e-9))
     x = setup.particles.positions
-    check_forces(cfg, x, dtype)
     forces = []
-    for stage in cfg.forces:
-        # the particles the simulator would select (float64 tests of its own dtype's coordinates), as a mask
-        where = region_mask(stage.region, x.to(dtype).double())
+    for stage, where in zip(cfg.forces, check_forces(cfg, x, dtype)):  # as the simulator would select them
         vec = list(stage.vector)
         forces.append(Force(where, stage.start, stage.end, force=vec if stage.kind == "force" else None,
                             acceleration=vec if stage.kind == "acceleration" else None))

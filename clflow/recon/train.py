@@ -186,13 +186,10 @@ def psnr(image: torch.Tensor, target: torch.Tensor) -> float:
 
 
 def ssim(image: torch.Tensor, target: torch.Tensor) -> float:
-    """Mean SSIM (kornia, 11 px Gaussian window) of [H, W, 3] images in [0, 1]."""
-    import kornia
+    """Mean SSIM (clflow.flow.losses.ssim) of [H, W, 3] images in [0, 1] (``image`` clamped)."""
+    from clflow.flow.losses import ssim as mean_ssim
 
-    from clflow.flow.losses import SSIM_WINDOW
-
-    batch = lambda x: x.detach().clamp(0, 1).permute(2, 0, 1)[None]  # noqa: E731
-    return kornia.metrics.ssim(batch(image), batch(target), SSIM_WINDOW, max_val=1.0).mean().item()
+    return mean_ssim(image.detach().clamp(0, 1), target).item()
 
 
 def evaluate(params: dict[str, torch.Tensor], views: list[View], sh_degree: int, background: torch.Tensor) -> dict:

@@ -169,3 +169,23 @@ def test_layer_release_rejects_bad_arguments():
 
     with pytest.raises(InputError, match="layers >= 1"):
         layer_release_times(cube(2, 0, 1), layers=0, interval=0.1)
+
+
+def test_boundary_records_put_each_value_in_its_named_slot():
+    """The kernels and the reference read records through BC_SLOTS; the records are written
+    by position in record(): each value must land in the slot of its name."""
+    from clflow.mpm.constants import BC_BOX, BC_CYLINDER, BC_HALFSPACE, BC_SLOTS, COLLIDER_MODES
+
+    def slot(record, name, width=1):
+        return record[BC_SLOTS[name]: BC_SLOTS[name] + width]
+
+    half = HalfSpace((1.0, 2.0, 3.0), (0.0, 0.0, 1.0), "separate", 0.25, 0.5, 1.5).record()
+    assert slot(half, "BC_KIND") == [BC_HALFSPACE] and slot(half, "BC_T_START") + slot(half, "BC_T_END") == [0.5, 1.5]
+    assert slot(half, "BC_A", 3) == [1.0, 2.0, 3.0] and slot(half, "BC_B", 3) == [0.0, 0.0, 1.0]
+    assert slot(half, "BC_MODE") == [COLLIDER_MODES["separate"]] and slot(half, "BC_FRICTION") == [0.25]
+    box = Box((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (4.0, 5.0, 6.0)).record()
+    assert slot(box, "BC_KIND") == [BC_BOX] and slot(box, "BC_B", 3) == [1.0, 1.0, 1.0]
+    assert slot(box, "BC_C", 3) == [4.0, 5.0, 6.0]
+    cylinder = RotatingCylinder((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 0.3, 0.7, 9.0).record()
+    assert slot(cylinder, "BC_KIND") == [BC_CYLINDER] and slot(cylinder, "BC_RADIUS") == [0.3]
+    assert slot(cylinder, "BC_HALF_LENGTH") == [0.7] and slot(cylinder, "BC_OMEGA") == [9.0]
