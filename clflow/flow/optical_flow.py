@@ -30,6 +30,10 @@ DEFAULT_PRESET = "fine"
 #: Per-pixel confidence of the observed flow (:func:`observed_confidence`).
 CONFIDENCES = ("none", "forward_backward")
 DEFAULT_CONFIDENCE = "forward_backward"
+#: What the optimiser does about the estimator's systematic error (clflow.pipeline.optimize):
+#: ``simulated`` measures it on the simulation's own rendered video and subtracts it.
+BIAS_CORRECTIONS = ("none", "simulated")
+DEFAULT_BIAS_CORRECTION = "simulated"
 
 
 def _grey(frame: np.ndarray) -> np.ndarray:

@@ -66,6 +66,10 @@ LM_TOLERANCE = 1e-3  # converged when an accepted step moves every variable less
 # 1.26 of a log-scale parameter), two trade off beyond this correlation
 WEAK_STD_Z = 0.1
 TRADE_OFF_CORRELATION = 0.95
+# flow.bias_correction renders the simulation at this many times the guidance camera's pixels
+# per side and area-averages them, since a camera's pixel integrates light over its area
+# (DIS's error depends on that blur: docs/flow.md)
+SUPERSAMPLE = 2
 
 
 @dataclass
@@ -93,6 +97,9 @@ class OptimizerState:
     # every iteration that failed or was unstable and was rolled back: {"iteration", "phase",
     # "reason", "params" (the rejected point), "back_to" (the last good parameters)}
     rollbacks: list[dict] = field(default_factory=list)
+    # flow.bias_correction: the point whose simulation measured the flow estimator's error
+    # (its z and frames; the error itself is saved beside the checkpoint), None before any
+    calibrated_at: dict | None = None
 
 
 class UnstableRun(ClflowError):
@@ -267,13 +274,22 @@ def config_digests(cfg: SceneConfig) -> dict[str, str]:
 @dataclass
 class View:
     """One guidance view: its camera (simulation frame), observed flow [T, H, W, 2], loss
-    weight [T, H, W] (mask x confidence), loss mask [H, W] and video frames [T+1, H, W, 3]."""
+    weight [T, H, W] (mask x confidence), loss mask [H, W], video frames [T+1, H, W, 3] and
+    the flow estimator's own error [T, H, W, 2] on the simulation's rendered video
+    (``flow.bias_correction``; zero until the first calibration)."""
 
     camera: object  # clflow.splat.cameras.Camera
     observed: torch.Tensor
     weight: torch.Tensor
     mask: torch.Tensor
     video_frames: np.ndarray
+    estimator_error: torch.Tensor | None = None
+
+    @property
+    def target(self) -> torch.Tensor:
+        """[T, H, W, 2] what the simulated flow is fitted to: the observed flow less the
+        estimator's error measured on the simulation (the observed flow itself before any)."""
+        return self.observed if self.estimator_error is None else self.observed - self.estimator_error
 
 
 class Optimization:
@@ -381,6 +397,8 @@ class Optimization:
             changed = sorted(k for k in saved.keys() | digests.keys() if saved.get(k) != digests.get(k))
             raise InputError(f"cannot resume from {self.checkpoint}: the config changed since it was saved "
                              f"({', '.join(changed)}); give another --output, or delete the checkpoint to start over")
+        if state.calibrated_at is not None:
+            self.restore_calibration(state)
         return state
 
     def save_state(self, state: OptimizerState) -> None:
@@ -418,9 +436,7 @@ class Optimization:
             raise UnstableRun(traj.unstable)
         cameras = [v.camera for v in self.views]
         flows, *more_flows = simulated_view_flows(self.prepared, traj.x, traj.F, frames, cameras)
-        # the mean over views of each view's loss
-        loss = sum(flow_loss(self.cfg, f, v.observed[:frames], v.weight[:frames])
-                   for f, v in zip([flows, *more_flows], self.views)) / len(self.views)
+        loss = self.loss_of([flows, *more_flows])
         if not bool(torch.isfinite(loss.detach())):
             raise FloatingPointError("the flow loss is not finite")
         grads = {}
@@ -431,6 +447,76 @@ class Optimization:
                 raise FloatingPointError("the gradient is not finite")
         return Evaluation(float(loss.detach()), grads, [f.detach() for f in flows], traj,
                           tuple([f.detach() for f in view] for view in more_flows))
+
+    # -- the flow estimator's bias ----------------------------------------------------------
+
+    def calibrate(self, state: OptimizerState, result: Evaluation, frames: int) -> OptimizerState:
+        """Measure the flow estimator's error on the simulation ``result`` (at state.z, its
+        first ``frames`` frames): render the simulated video from each guidance camera,
+        estimate its flow with the settings that made the observed flow, and keep estimated
+        minus simulated flow as each view's ``estimator_error`` (saved in
+        ``output/estimator_error.npz``). The loss then compares the simulated flow with the
+        observed flow less that error, so the estimator's systematic error (DIS blends a
+        moving object with its background, docs/flow.md) cancels instead of biasing the
+        parameters."""
+        import cv2
+
+        from clflow.flow.optical_flow import observed_flow
+
+        calibrated_at = {"z": dict(state.z), "frames": frames}
+        if state.calibrated_at == calibrated_at:  # back at the point measured last (a rejected step)
+            return state
+        traj = result.trajectory
+        simulated = SimulationResult(self.prepared, {}, 0.0, traj.x[: frames + 1].detach(), traj.F[: frames + 1].detach())
+        for view, flows in zip(self.views, [result.flows, *result.more_flows]):
+            size = (view.camera.width, view.camera.height)
+            video = np.stack([cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
+                              for frame in render_frames(simulated, view.camera.scaled(SUPERSAMPLE))])
+            estimated = observed_flow(video, self.cfg.flow.method, preset=self.cfg.flow.preset, source="the simulation")
+            error = torch.zeros_like(view.observed) if view.estimator_error is None else view.estimator_error.clone()
+            error[:frames] = torch.from_numpy(estimated).double() - torch.stack(flows[:frames]).double()
+            view.estimator_error = error
+        with atomic_path(self.estimator_error_file) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, key=np.array(json.dumps(calibrated_at, sort_keys=True)),
+                     **{f"view_{i}": view.estimator_error.numpy() for i, view in enumerate(self.views)})
+        if self._lm_cache is not None:  # its loss was against the old targets
+            key, cached, J = self._lm_cache
+            self._lm_cache = (key, self.rescored(cached), J)
+        return dataclasses.replace(state, calibrated_at=calibrated_at)
+
+    @property
+    def estimator_error_file(self) -> Path:
+        return self.cfg.output / "estimator_error.npz"
+
+    def restore_calibration(self, state: OptimizerState) -> None:
+        """Each view's estimator error as it was when ``state`` was saved (on --resume): from
+        output/estimator_error.npz, or measured again at ``state.calibrated_at``."""
+        key = json.dumps(state.calibrated_at, sort_keys=True)
+        try:
+            with np.load(self.estimator_error_file) as data:
+                if str(data["key"]) == key:
+                    for i, view in enumerate(self.views):
+                        view.estimator_error = torch.from_numpy(data[f"view_{i}"])
+                    return
+        except (OSError, KeyError, ValueError):
+            pass
+        log.info("measuring the flow estimator's error again at the checkpoint's calibration point")
+        z, frames = state.calibrated_at["z"], state.calibrated_at["frames"]
+        self.calibrate(state, self.evaluate(z, frames, with_grad=False, min_substeps=state.substeps), frames)
+
+    @property
+    def corrects_bias(self) -> bool:
+        return self.cfg.flow.bias_correction == "simulated"
+
+    def loss_of(self, view_flows: list[list[torch.Tensor]]) -> torch.Tensor:
+        """The flow loss of each view's simulated flows (T of [H, W, 2]) against its target, the
+        mean over views."""
+        return sum(flow_loss(self.cfg, flows, view.target[: len(flows)], view.weight[: len(flows)])
+                   for flows, view in zip(view_flows, self.views)) / len(self.views)
+
+    def rescored(self, result: Evaluation) -> Evaluation:
+        """``result`` with its loss against the current targets (after a calibration)."""
+        return dataclasses.replace(result, loss=float(self.loss_of([result.flows, *result.more_flows])))
 
     # -- the global phase ------------------------------------------------------------------
 
@@ -504,7 +590,8 @@ class Optimization:
         for view_flows, view in zip([flows, *more_flows], self.views):
             weight = view.weight[: len(view_flows)]  # [T, H, W]
             root = (weight / weight.sum() / len(self.views)).sqrt()[..., None]
-            parts += [((f.double() - view.observed[t]) * root[t])[weight[t] > 0].reshape(-1)
+            target = view.target
+            parts += [((f.double() - target[t]) * root[t])[weight[t] > 0].reshape(-1)
                       for t, f in enumerate(view_flows)]
         return torch.cat(parts)
 
@@ -528,10 +615,12 @@ class Optimization:
         return base, J
 
     def lm_step(self, state: OptimizerState, base: Evaluation, J: torch.Tensor, frames: int,
-                variables: tuple[str, ...]) -> OptimizerState:
+                variables: tuple[str, ...], calibrate: bool = False) -> OptimizerState:
         """Accept or reject the point just evaluated (its loss against the best so far at this
         horizon), then one damped Gauss-Newton step from the best point:
-        (J^T J + damping diag(J^T J)) dz = -J^T r, at most LM_MAX_STEP long."""
+        (J^T J + damping diag(J^T J)) dz = -J^T r, at most LM_MAX_STEP long. With
+        ``calibrate``, an accepted point first measures the flow estimator's error (the
+        residuals' Jacobian does not depend on it)."""
         best = state.best
         # back at the best point its loss may differ from the one recorded (a later iteration
         # raised the substeps): take the new value rather than reject the point against itself
@@ -540,6 +629,9 @@ class Optimization:
             return dataclasses.replace(state, iteration=state.iteration + 1, z=dict(best["z"]),
                                        damping=state.damping * 4.0)
         damping = state.damping / 3.0 if best is not None else state.damping
+        if calibrate:
+            state = self.calibrate(state, base, frames)
+            base = self.rescored(base)
         best = {"z": dict(state.z), "loss": base.loss, "frames": frames}
         r = self.residuals(base.flows, base.more_flows)
         A, g = J.T @ J, J.T @ r
@@ -628,7 +720,15 @@ class Optimization:
                    "z": dict(state.z), "params": self.values(state.z), "substeps": result.substeps,
                    "seconds": time.perf_counter() - start}
             previous = state
-            state = self.lm_step(state, result, J, frames, variables) if lm else self.adam_step(state, result.grads)
+            calibrate = self.corrects_bias and phase == "main"
+            if lm:
+                state = self.lm_step(state, result, J, frames, variables, calibrate=calibrate)
+            else:
+                if calibrate:  # the next iteration fits the error measured here
+                    state = self.calibrate(state, result, frames)
+                state = self.adam_step(state, result.grads)
+            if state.calibrated_at is not previous.calibrated_at:
+                row["calibrated"] = True
             state.substeps = max(state.substeps, result.substeps)
             if (lm and phase == "main" and state.best is not None and state.best is not previous.best
                     and max(abs(state.z[n] - state.best["z"][n]) for n in variables) < LM_TOLERANCE):

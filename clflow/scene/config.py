@@ -20,7 +20,14 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from clflow.errors import InputError
-from clflow.flow.optical_flow import CONFIDENCES, DEFAULT_CONFIDENCE, DEFAULT_PRESET, DIS_PRESETS
+from clflow.flow.optical_flow import (
+    BIAS_CORRECTIONS,
+    CONFIDENCES,
+    DEFAULT_BIAS_CORRECTION,
+    DEFAULT_CONFIDENCE,
+    DEFAULT_PRESET,
+    DIS_PRESETS,
+)
 from clflow.materials import DENSITY, get_material, validate_params
 from clflow.mpm.constants import ELASTIC_MODELS, SAND_MODELS
 
@@ -273,6 +280,7 @@ class FlowSettings:
     loss: str = "l2"
     mask: str = "alpha"  # "alpha" (rendered object alpha at frame 0), "none", or a file
     confidence: str = DEFAULT_CONFIDENCE  # per-pixel weight of the observed flow in the loss
+    bias_correction: str = DEFAULT_BIAS_CORRECTION  # the estimator's error on the simulation, subtracted
 
 
 OPTIMIZERS = ("adam", "levenberg_marquardt")
@@ -679,13 +687,15 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         per_axis=r.integer(fill_in, "per_axis", "object.fill", 1, low=1),
     )
     material = _material(r, top.get("material"))
-    flow_in = r.section(top.get("flow"), "flow", ("method", "preset", "loss", "mask", "confidence"))
+    flow_in = r.section(top.get("flow"), "flow", ("method", "preset", "loss", "mask", "confidence",
+                                                         "bias_correction"))
     flow = FlowSettings(
         method=r.choice(flow_in, "method", "flow", FLOW_METHODS, "dis"),
         preset=r.choice(flow_in, "preset", "flow", DIS_PRESETS, DEFAULT_PRESET),
         loss=r.choice(flow_in, "loss", "flow", FLOW_LOSSES, "l2"),
         mask=_flow_mask(r, flow_in),
         confidence=r.choice(flow_in, "confidence", "flow", CONFIDENCES, DEFAULT_CONFIDENCE),
+        bias_correction=r.choice(flow_in, "bias_correction", "flow", BIAS_CORRECTIONS, DEFAULT_BIAS_CORRECTION),
     )
     evaluation = r.section(top.get("evaluation"), "evaluation", ("ground_truth",))
     truth = dict(r.mapping(evaluation.get("ground_truth"), "evaluation.ground_truth"))

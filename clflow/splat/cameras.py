@@ -120,6 +120,13 @@ class Camera:
         """Vertical field of view, rad."""
         return 2 * math.atan(self.height / (2 * self.fy))
 
+    def scaled(self, factor: int) -> "Camera":
+        """The same view with ``factor`` times the pixels per side (pixel i of this camera
+        covers pixels factor i .. factor i + factor - 1 of the scaled one)."""
+        K = self.K.clone()
+        K[:2] *= factor
+        return Camera(self.viewmat, K, self.width * factor, self.height * factor, self.name)
+
     def camtoworld(self) -> torch.Tensor:
         """[4, 4] camera-to-world transform (OpenCV axes), the inverse of ``viewmat``."""
         out = torch.eye(4, dtype=torch.float64)

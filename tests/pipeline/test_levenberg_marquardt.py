@@ -22,7 +22,8 @@ def lm(demo_config, monkeypatch):
     def make(iterations=8, curvature=1.0):
         cfg = demo_config(iterations=iterations)
         cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, method="levenberg_marquardt",
-                                                                     horizon_start=0))
+                                                                     horizon_start=0),
+                                  flow=dataclasses.replace(cfg.flow, bias_correction="none"))  # flows without a simulation
         opt = Optimization(cfg)
         field = torch.randn(opt.observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
         calls = []

@@ -110,6 +110,7 @@ BAD = [
     ("material.model", "stvk", "material.model: must be one of fixed_corotated, neo_hookean, got 'stvk'"),
     ("flow", {"preset": "slow"}, "flow.preset: must be one of ultrafast, fast, medium, fine, got 'slow'"),
     ("flow", {"confidence": "fb"}, "flow.confidence: must be one of none, forward_backward, got 'fb'"),
+    ("flow", {"bias_correction": "yes"}, "flow.bias_correction: must be one of none, simulated, got 'yes'"),
     ("flow", {"mask": "nope.png"}, "flow.mask: file not found"),
     ("scene.up", None, None),  # null takes the default
     ("camera.file", "scene.ply", "camera: with a camera file, position, look_at.* come from the file"),

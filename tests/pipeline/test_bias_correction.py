@@ -1,0 +1,69 @@
+"""flow.bias_correction: the flow estimator's error measured on the simulation's own rendered
+video and subtracted from the observed flow (clflow.pipeline.optimize.Optimization.calibrate)."""
+
+import dataclasses
+import json
+
+import cv2
+import pytest
+
+from clflow.media import write_image
+from clflow.pipeline.forward import render_frames, simulate_config
+from clflow.pipeline.optimize import SUPERSAMPLE, Optimization
+from clflow_datasets.demo import TRUTH
+
+
+def test_calibrated_at_the_parameters_that_made_the_video_the_residual_vanishes(demo_config, tmp_path):
+    # guidance: the demo's simulation at the truth, rendered the way calibrate renders (pixels
+    # area-averaged from SUPERSAMPLE^2 samples), so the estimator errs on both alike
+    cfg = demo_config(iterations=1)
+    truth = simulate_config(cfg, TRUTH)
+    camera = truth.prepared.camera
+    frames = render_frames(truth, camera.scaled(SUPERSAMPLE))
+    (tmp_path / "video").mkdir()
+    for t, frame in enumerate(frames):
+        write_image(tmp_path / "video" / f"{t:03d}.png",
+                    cv2.resize(frame, (camera.width, camera.height), interpolation=cv2.INTER_AREA))
+    opt = Optimization(dataclasses.replace(cfg, video=tmp_path / "video"))
+    state = opt.initial_state()
+    state.z = {n: float(p.encode(TRUTH[n])) for n, p in opt.params.items()}
+    at_truth = opt.evaluate(state.z, opt.frames, with_grad=False)
+    raw = at_truth.loss
+    assert raw > 1e-3  # DIS's own error on this video, px^2
+
+    calibrated = opt.calibrate(state, at_truth, opt.frames)
+    assert calibrated.calibrated_at == {"z": state.z, "frames": opt.frames}
+    assert opt.rescored(at_truth).loss < 1e-3 * raw  # the estimator's error cancels
+    error = opt.views[0].estimator_error
+    assert error.shape == opt.observed.shape and float(error.abs().max()) > 0.05
+    # the loss of evaluate() itself fits the corrected target
+    assert opt.evaluate(state.z, opt.frames, with_grad=False).loss == pytest.approx(opt.rescored(at_truth).loss, abs=1e-9)
+
+
+def test_the_default_corrects_and_none_leaves_the_observed_flow(demo_config):
+    opt = Optimization(demo_config(iterations=2))
+    assert opt.cfg.flow.bias_correction == "simulated"
+    state = opt.run()
+    assert state.calibrated_at is not None and any(row.get("calibrated") for row in state.history)
+    assert (opt.cfg.output / "estimator_error.npz").exists()
+    assert not bool((opt.views[0].target == opt.views[0].observed).all())
+
+    cfg = demo_config(iterations=2, name="plain")
+    plain = Optimization(dataclasses.replace(cfg, flow=dataclasses.replace(cfg.flow, bias_correction="none")))
+    state = plain.run()
+    assert state.calibrated_at is None and plain.views[0].target is plain.views[0].observed
+    assert not (plain.cfg.output / "estimator_error.npz").exists()
+
+
+@pytest.mark.parametrize("lose_the_file", [False, True])
+def test_resume_restores_the_estimator_error(demo_config, lose_the_file):
+    whole = Optimization(demo_config(iterations=3, name="whole")).run()
+    cfg = demo_config(iterations=3, name="split")
+    Optimization(cfg).run(stop_after=2)
+    if lose_the_file:  # measured again at the checkpoint's calibration point
+        (cfg.output / "estimator_error.npz").unlink()
+    saved = json.loads((cfg.output / "checkpoint.json").read_text())["state"]
+    assert saved["calibrated_at"] is not None
+    resumed = Optimization(cfg).run(resume=True)
+    assert resumed.z == whole.z
+    assert [r["loss"] for r in resumed.history] == [r["loss"] for r in whole.history]
