@@ -45,13 +45,15 @@ PACNERF_DENSITY = 1000.0  # kg/m^3: PAC-NeRF's density without 'rho' (10 ** its 
 PACNERF_MATERIALS = {10: "elasticity", 11: "viscous_fluid", 12: "von_mises", 13: "drucker_prager"}  # MPMSimulator ids
 
 
-def read_pacnerf_config(path: str | os.PathLike) -> dict:
+def read_pacnerf_config(path: str | os.PathLike, _children: tuple[Path, ...] = ()) -> dict:
     """The ``cfg`` of a PAC-NeRF config: a ``.py`` file (``_base_`` files merged under it, as
     mmcv does; the file is parsed, never run: literals, arithmetic, ``dict(...)`` and
     ``MPMSimulator.NAME``, read as "NAME") or a ``.json`` object of the same keys."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: PAC-NeRF config not found")
+        raise InputError(f"{path}: PAC-NeRF config not found" + (f" (the _base_ of {_children[-1]})" if _children else ""))
+    if path.resolve() in _children:
+        raise InputError(f"{_children[-1]}: _base_ {path} is a cycle of base files")
     text = path.read_text(encoding="utf-8")
     if path.suffix.lower() == ".json":
         try:
@@ -77,7 +79,7 @@ def read_pacnerf_config(path: str | os.PathLike) -> dict:
         return values["cfg"]
     if not isinstance(base, str):
         raise InputError(f"{path}: _base_ must be a file name, got {base!r}")
-    return _merge(read_pacnerf_config(path.parent / base), values["cfg"])
+    return _merge(read_pacnerf_config(path.parent / base, (*_children, path.resolve())), values["cfg"])
 
 
 def _merge(base: dict, child: dict) -> dict:

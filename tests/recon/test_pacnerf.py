@@ -14,7 +14,7 @@ from clflow.pipeline.scene import guidance_camera
 from clflow.scene.config import load_config
 from clflow.splat.gaussians import Gaussians
 from clflow.splat.ply import save_ply
-from clflow_datasets.pacnerf import pacnerf_material, read_pacnerf_config
+from clflow_datasets.pacnerf import pacnerf_boundaries, pacnerf_material, read_pacnerf_config
 from tests.recon._helpers import colour, one_line_error, run, write_sequence
 from tests.recon.test_sequence import assert_round_trip
 
@@ -71,6 +71,12 @@ def test_read_config_merges_its_base_without_running_it(tmp_path):
     (tmp_path / "bad.py").write_text("import os\ncfg = dict(E=os.getcwd())\n")
     with pytest.raises(InputError, match="line 2: cannot read 'os.getcwd\\(\\)' without running the file"):
         read_pacnerf_config(tmp_path / "bad.py")
+    (tmp_path / "loop.py").write_text("_base_ = 'loop.py'\ncfg = dict(E=1)\n")
+    with pytest.raises(InputError, match="is a cycle of base files"):
+        read_pacnerf_config(tmp_path / "loop.py")
+    (tmp_path / "orphan.py").write_text("_base_ = 'gone.py'\ncfg = dict(E=1)\n")
+    with pytest.raises(InputError, match="gone.py: PAC-NeRF config not found \\(the _base_ of"):
+        read_pacnerf_config(tmp_path / "orphan.py")
     (tmp_path / "case.json").write_text(json.dumps({"material": "viscous_fluid", "mu": 1.0, "kappa": 1e3}))
     assert read_pacnerf_config(tmp_path / "case.json")["kappa"] == 1e3
 
@@ -96,6 +102,15 @@ def test_materials_in_clflow_conventions(cfg, material, params, fit):
     assert {k: section[k] for k in material} == material
     assert section["parameters"] == pytest.approx(params) and section["density"] == 1000.0
     assert names == fit
+
+
+def test_boundary_planes():
+    bc = {"ground": [[0, 0.1, 0], [0, 2, 0]], "wall": [[0.5, 0, 0], [-1, 0, 0]]}
+    assert pacnerf_boundaries({"BC": bc}, "case.py") == {
+        "ground": {"height": 0.1, "mode": "sticky"},
+        "colliders": [{"point": [0.5, 0.0, 0.0], "normal": [-1.0, 0.0, 0.0], "mode": "sticky"}]}
+    with pytest.raises(InputError, match="BC 'pole' is not a plane"):
+        pacnerf_boundaries({"BC": {"pole": [[0, 0, 0], [0, 1, 0], 0.1]}}, "case.py")
 
 
 def test_unmappable_configs_are_refused(tmp_path):
