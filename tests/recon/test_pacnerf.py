@@ -4,6 +4,7 @@
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -197,3 +198,37 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path):
     (tmp_path / "seq" / "data" / "r_2_1.png").unlink()
     pacnerf_error([tmp_path / "seq", tmp_path / "splats.ply", "-o", out, "--fps", "24", "--camera", "2"], "r_2_1.png")
     assert not out.exists()
+
+
+def test_guidance_frame_0_is_the_scene_as_the_optimiser_renders_it(tmp_path):
+    """A capture rendered from known splats: the converted video's frame 0 equals those
+    splats rendered by clflow's pipeline from the config's camera (pose, intrinsics, background)."""
+    from clflow.pipeline.render import render_rgb
+    from clflow.pipeline.scene import load_scene_gaussians
+    from clflow.recon.sequence import pacnerf_camera
+    from clflow.splat.render import rasterize
+
+    poses = write_sequence(tmp_path / "seq", cameras=3, frames=2, size=SIZE)
+    rng = np.random.default_rng(0)
+    splats = Gaussians.from_activated(torch.from_numpy(rng.uniform(-0.3, 0.3, (40, 3))).float(),
+                                      torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(40, 1), torch.full((40, 3), 0.06),
+                                      torch.full((40,), 0.9), colors=torch.from_numpy(rng.uniform(0, 1, (40, 3))).float())
+    save_ply(tmp_path / "splats.ply", splats)
+    for c, (c2w, K) in enumerate(poses):  # every frame: the splats, straight (not premultiplied) RGBA
+        with torch.no_grad():
+            render = rasterize(splats, pacnerf_camera(c2w, K, SIZE, SIZE), render_depth=False)
+        rgb = render.image / render.alpha.clamp_min(1e-6)
+        rgba = np.concatenate([np.clip(rgb.numpy(), 0, 1), render.alpha.numpy()], axis=2)
+        for f in range(2):
+            bgra = np.round(255 * rgba[..., [2, 1, 0, 3]]).astype(np.uint8)
+            assert cv2.imwrite(str(tmp_path / "seq" / "data" / f"r_{c}_{f}.png"), bgra)
+    code, output = run([tmp_path / "seq", tmp_path / "splats.ply", "-o", tmp_path / "scene", "--camera", "2",
+                        "--video", "mkv", "--box", "-1", "-1", "-1", "1", "1", "1"], "pacnerf")
+    assert code == 0, output
+    cfg = load_config(tmp_path / "scene" / "config.yaml")
+    scene, _ = load_scene_gaussians(cfg, torch.float32)
+    with torch.no_grad():
+        expected = (render_rgb(scene, guidance_camera(cfg)).clamp(0, 1) * 255).numpy()
+    frames, _, _ = decode_video(tmp_path / "scene" / "guidance.mkv")
+    assert np.abs(frames[0].astype(float) - expected).max() <= 2.5  # 8-bit rounding of colour and alpha
+    assert np.abs(frames[0].astype(float) - expected).mean() < 0.5
