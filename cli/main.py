@@ -33,6 +33,7 @@ BUILTIN_COMMANDS: dict[str, str] = {
     "optimize": "clflow_cli.optimize:optimize",
     "render4d": "clflow_cli.render4d:render4d",
     "reconstruct": "clflow_cli.reconstruct:reconstruct",
+    "pacnerf": "clflow_cli.pacnerf:pacnerf",
     "demo": "clflow_cli.demo:demo",
     "eval": "clflow_cli.eval:eval_group",
     "generate": "clflow_cli.generate:generate",

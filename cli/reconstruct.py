@@ -18,6 +18,9 @@ LOG_EVERY = 100  # iterations between progress lines when stderr is not a termin
 @click.option("--transforms", type=click.Path(dir_okay=False), help="NeRF-style transforms.json (OpenGL axes).")
 @click.option("--colmap", type=click.Path(file_okay=False), help="COLMAP sparse model folder (.bin or .txt), e.g. sparse/0.")
 @click.option("--cameras", "cameras_json", type=click.Path(dir_okay=False), help="3DGS cameras.json.")
+@click.option("--frame", type=int,
+              help="IMAGES is a PAC-NeRF-style multi-camera sequence (a folder with all_data.json): train on "
+                   "every camera's image of this frame.")
 @click.option("--masks", type=click.Path(file_okay=False),
               help="Folder of masks named like the images (white = object); default: the images' alpha channel, if any.")
 @click.option("--background", type=click.Choice(["black", "white"]), default="black", show_default=True,
@@ -47,13 +50,15 @@ LOG_EVERY = 100  # iterations between progress lines when stderr is not a termin
               help="With --depth: horizontal field of view of the photo, degrees.")
 @click.option("--shell", type=click.Choice(["mirror", "extrude", "none"]), default="mirror", show_default=True,
               help="With --depth: how the hidden side is closed.")
-def reconstruct(images, output_dir, transforms, colmap, cameras_json, masks, background, iterations, seed, sh_degree,
+def reconstruct(images, output_dir, transforms, colmap, cameras_json, frame, masks, background, iterations, seed, sh_degree,
                 sh_every, densify_from, densify_until, densify_every, reset_every, init_points, holdout_every,
                 preview_every, checkpoint_every, resume, depth, depth_scale, fov, shell) -> None:
     """Train 3D Gaussians on the posed IMAGES and write a standard 3DGS PLY.
 
     Cameras come from --transforms, --colmap or --cameras, or are found next to IMAGES
-    (transforms.json, cameras.json or sparse/0 in it or its parent). Every input is
+    (transforms.json, cameras.json or sparse/0 in it or its parent). With --frame N,
+    IMAGES is a multi-camera sequence laid out as PAC-NeRF's data (all_data.json and
+    r_CAMERA_FRAME.png images) and the views are frame N of every camera. Every input is
     checked before training: missing images, images whose size differs from their
     camera's, non-orthonormal rotations and empty masks end with a one-line error. The
     held-out views' PSNR and SSIM go to metrics.json. Units are the cameras' (m).
@@ -74,7 +79,7 @@ def reconstruct(images, output_dir, transforms, colmap, cameras_json, masks, bac
     settings = Settings(background=rgb, **{k: v for k, v in given.items() if v is not None})
     iterations = settings.iterations
     views = load_views(images, transforms=transforms, colmap=colmap, cameras_json=cameras_json, masks=masks,
-                       background=rgb)
+                       background=rgb, frame=frame)
     click.echo(f"{len(views.views)} views; training {iterations} iterations -> {output_dir}", err=True)
     show = lambda info: "" if info is None else f"PSNR {info['psnr']:.2f} dB, {info['gaussians']} Gaussians"  # noqa: E731
     with click.progressbar(length=iterations, label="reconstructing", show_pos=True, item_show_func=show,

@@ -13,7 +13,7 @@ does with NeRF synthetic's RGBA images. Positions are in the cameras file's unit
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Sequence
 
@@ -40,8 +40,8 @@ class View:
 
 @dataclass
 class ViewSet:
-    """All views (sorted by camera name) and, from a COLMAP model, its points xyz [P, 3]
-    (m) and colours rgb [P, 3] in [0, 1] (None otherwise)."""
+    """All views (sorted by camera name; a sequence's frame: by camera number) and, from a
+    COLMAP model, its points xyz [P, 3] (m) and colours rgb [P, 3] in [0, 1] (None otherwise)."""
 
     views: list[View]
     points_xyz: torch.Tensor | None = None
@@ -69,6 +69,10 @@ def find_cameras(images: Path) -> dict:
         for sub in COLMAP_FOLDERS:
             if any((folder / sub / f"cameras{ext}").is_file() for ext in (".bin", ".txt")):
                 return {"colmap": folder / sub}
+    from clflow.recon.sequence import INDEX_NAME
+
+    if (images / INDEX_NAME).is_file():
+        raise InputError(f"{images}: a multi-camera sequence ({INDEX_NAME}): pick the frame to train on with --frame N")
     raise InputError(
         f"{images}: no cameras found (transforms.json, cameras.json or a COLMAP sparse/0 model in it or its parent); "
         "name them with --transforms, --cameras or --colmap"
@@ -83,16 +87,31 @@ def load_views(
     cameras_json: str | os.PathLike | None = None,
     masks: str | os.PathLike | None = None,
     background: Sequence[float] = (0.0, 0.0, 0.0),
+    frame: int | None = None,
 ) -> ViewSet:
     """Cameras (at most one source; found next to ``images`` when none is given), their
     images and masks, checked: every named image exists and has its camera's size, every
-    mask covers something. Raises :class:`InputError` naming the file otherwise."""
+    mask covers something. Raises :class:`InputError` naming the file otherwise.
+
+    With ``frame``, ``images`` is a PAC-NeRF-style multi-camera sequence (its folder or
+    ``all_data.json``, :mod:`clflow.recon.sequence`) and the views are every camera's image
+    of that frame."""
     from clflow.recon.colmap import model_cameras, read_model
 
     images = Path(images)
+    given = {k: Path(v) for k, v in (("transforms", transforms), ("colmap", colmap), ("cameras_json", cameras_json)) if v}
+    bg = torch.as_tensor(background, dtype=torch.float32)
+    if frame is not None:
+        from clflow.recon.sequence import load_sequence
+
+        if given:
+            raise InputError(f"with a frame of a sequence the cameras come from its index: drop --{next(iter(given))}")
+        seq = load_sequence(images)
+        seq.check_frame(frame)
+        return ViewSet([load_view(replace(c, name=paths[frame].stem), paths[frame], seq.index, masks, bg)
+                        for c, paths in zip(seq.cameras, seq.images)])  # in camera order
     if not images.is_dir():
         raise InputError(f"{images}: the image folder does not exist")
-    given = {k: Path(v) for k, v in (("transforms", transforms), ("colmap", colmap), ("cameras_json", cameras_json)) if v}
     if len(given) > 1:
         raise InputError(f"give one cameras source, not {' and '.join(given)}")
     (kind, source), = (given or find_cameras(images)).items()
@@ -108,23 +127,28 @@ def load_views(
             xyz = torch.from_numpy(model.points_xyz).float()
             rgb = torch.from_numpy(model.points_rgb).float() / 255
     search = [images] + ([source.parent] if kind != "colmap" else [])
-    bg = torch.as_tensor(background, dtype=torch.float32)
-    views = []
-    for camera in sorted(cameras, key=lambda c: c.name):
-        path = _image_path(camera.name, search, source)
-        rgba = read_image(path)
-        if (rgba.shape[1], rgba.shape[0]) != (camera.width, camera.height):
-            raise InputError(
-                f"{path}: the image is {rgba.shape[1]}x{rgba.shape[0]} px but {source.name} gives its camera "
-                f"{camera.width}x{camera.height} px (one intrinsic for images of different sizes?)"
-            )
-        mask = _mask(path, masks, rgba)
-        image = torch.from_numpy(rgba[..., :3])
-        if mask is not None:
-            mask = torch.from_numpy(mask)[..., None]
-            image = image * mask + bg * (1 - mask)
-        views.append(View(camera, image.contiguous(), path))
+    views = [load_view(camera, _image_path(camera.name, search, source), source, masks, bg)
+             for camera in sorted(cameras, key=lambda c: c.name)]
     return ViewSet(views, xyz, rgb)
+
+
+def load_view(camera: Camera, path: Path, source: Path, masks: str | os.PathLike | None,
+              background: torch.Tensor) -> View:
+    """The view of ``camera`` from image ``path``, composited over ``background`` [3] where
+    its mask (in the folder ``masks``, else its alpha channel) says; :class:`InputError`
+    when the image's size is not the camera's (``source``: the cameras file, for the message)."""
+    rgba = read_image(path)
+    if (rgba.shape[1], rgba.shape[0]) != (camera.width, camera.height):
+        raise InputError(
+            f"{path}: the image is {rgba.shape[1]}x{rgba.shape[0]} px but {source.name} gives its camera "
+            f"{camera.width}x{camera.height} px (one intrinsic for images of different sizes?)"
+        )
+    mask = _mask(path, masks, rgba)
+    image = torch.from_numpy(rgba[..., :3])
+    if mask is not None:
+        mask = torch.from_numpy(mask)[..., None]
+        image = image * mask + background * (1 - mask)
+    return View(camera, image.contiguous(), path)
 
 
 def read_image(path: Path) -> np.ndarray:

@@ -19,6 +19,7 @@ from clflow.splat.cameras import (
     look_at,
     orbit,
     save_cameras_json,
+    save_transforms_json,
 )
 from clflow.splat.gaussians import Gaussians, rgb_to_sh0, sh0_to_rgb
 from clflow.splat.ply import load_ply, save_ply
@@ -39,5 +40,6 @@ __all__ = [
     "rgb_to_sh0",
     "save_cameras_json",
     "save_ply",
+    "save_transforms_json",
     "sh0_to_rgb",
 ]

@@ -313,6 +313,20 @@ def save_cameras_json(path: str | os.PathLike, cameras: Sequence[Camera]) -> Non
     atomic_write_text(path, json.dumps(entries) + "\n")
 
 
+def save_transforms_json(path: str | os.PathLike, cameras: Sequence[Camera]) -> None:
+    """Write ``cameras`` as a NeRF-style ``transforms.json`` (OpenGL camera-to-world, per-frame
+    ``w``, ``h``, ``fl_x``, ``fl_y``, ``cx``, ``cy``), atomically: unlike ``cameras.json`` it
+    keeps the principal point. :func:`load_transforms_json` reads it back."""
+    from clflow.fileio import atomic_write_text
+
+    frames = [
+        {"file_path": c.name, "transform_matrix": (c.camtoworld() @ OPENGL_TO_OPENCV).tolist(), "w": c.width,
+         "h": c.height, "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy}
+        for c in cameras
+    ]
+    atomic_write_text(path, json.dumps({"frames": frames}, indent=1) + "\n")
+
+
 def load_transforms_json(path: str | os.PathLike, *, width: int | None = None, height: int | None = None) -> list[Camera]:
     """Cameras from a NeRF-style ``transforms.json`` (NeRF synthetic, instant-ngp, nerfstudio).
 

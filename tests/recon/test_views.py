@@ -7,13 +7,11 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from click.testing import CliRunner
 
 from clflow.errors import InputError
 from clflow.recon.views import load_views
 from clflow.splat.cameras import OPENGL_TO_OPENCV, load_cameras_json, orbit, save_cameras_json
-from clflow_cli.main import cli
-from tests.recon._helpers import model_of, write_bin
+from tests.recon._helpers import model_of, one_line_error, run, write_bin
 
 W, H = 16, 12
 
@@ -101,18 +99,6 @@ def test_alpha_channel_and_mask_folder_composite_over_the_background(tmp_path):
     black = load_views(tmp_path / "images", masks=tmp_path / "masks").views[0].image
     assert bool((black[:, : W // 2] == 0).all())
     assert torch.allclose(black[:, W // 2:], torch.from_numpy(images[0, :, W // 2:]).float() / 255)
-
-
-def run(args):
-    result = CliRunner().invoke(cli, ["reconstruct", *map(str, args)])
-    return result.exit_code, result.output
-
-
-def one_line_error(args, match):
-    code, output = run(args)
-    assert code == 1, output
-    assert "Traceback" not in output and len(output.strip().splitlines()) == 1, output
-    assert match in output, output
 
 
 def test_images_of_different_sizes_with_one_intrinsic(tmp_path):

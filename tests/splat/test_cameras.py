@@ -16,6 +16,7 @@ from clflow.splat.cameras import (
     load_transforms_json,
     look_at,
     orbit,
+    save_transforms_json,
 )
 
 F64 = torch.float64
@@ -92,6 +93,19 @@ def test_cameras_json_round_trip(tmp_path):
     for a, b in zip(cams, loaded):
         assert torch.allclose(a.viewmat, b.viewmat, atol=1e-14) and torch.allclose(a.K, b.K)
         assert (a.width, a.height) == (b.width, b.height)
+
+
+def test_transforms_json_round_trip_keeps_the_principal_point(tmp_path):
+    cam = look_at((2, -3, 1), (0, 0, 0), fov_x=0.9, width=80, height=60, name="r_1_0")
+    K = cam.K.clone()
+    K[0, 2], K[1, 1] = 37.25, 1.1 * K[1, 1]  # off-centre, non-square pixels
+    cam = Camera(cam.viewmat, K, 80, 60, "r_1_0")
+    save_transforms_json(tmp_path / "camera.json", [cam])
+    frame = json.loads((tmp_path / "camera.json").read_text())["frames"][0]
+    assert (frame["cx"], frame["w"], frame["h"]) == (37.25, 80, 60)
+    loaded, = load_transforms_json(tmp_path / "camera.json")
+    assert torch.allclose(loaded.viewmat, cam.viewmat, atol=1e-14) and torch.equal(loaded.K, cam.K)
+    assert (loaded.width, loaded.height, loaded.name) == (80, 60, "r_1_0")
 
 
 def test_cameras_json_hand_written_entry(tmp_path):
