@@ -62,6 +62,7 @@ LM_STEP = 0.01  # finite-difference step in z (a 2.3 % change of a log-scale par
 LM_DAMPING = 1e-2  # initial damping (relative to the diagonal of J^T J)
 LM_MAX_STEP = 1.0  # longest step in z (a decade of a log-scale parameter)
 LM_TOLERANCE = 1e-3  # converged when an accepted step moves every variable less (0.23 % of a log-scale one)
+LM_GAIN_TOLERANCE = 1e-3  # ... or when the Gauss-Newton model promises less than this fraction of the loss
 # identifiability: a variable is weakly constrained beyond this standard error in z (a factor
 # 1.26 of a log-scale parameter), two trade off beyond this correlation
 WEAK_STD_Z = 0.1
@@ -100,6 +101,7 @@ class OptimizerState:
     # flow.bias_correction: the point whose simulation measured the flow estimator's error
     # (its z and frames; the error itself is saved beside the checkpoint), None before any
     calibrated_at: dict | None = None
+    converged: bool = False  # Levenberg-Marquardt: no step from the best point promises progress
 
 
 class UnstableRun(ClflowError):
@@ -313,7 +315,9 @@ class Optimization:
         self.views = self._views()
         self.guidance_warnings = self.check_guidance(force_video)
         self.checkpoint = cfg.output / "checkpoint.json"
-        self._lm_cache: tuple | None = None  # ((z, frames), Evaluation, J) of the last Jacobian
+        # (z, frames, variables, substeps) -> (Evaluation, J) of the last two Jacobians: the best
+        # point's and the last step's, so that a rejected step goes back without new runs
+        self._lm_cache: dict[tuple, tuple[Evaluation, torch.Tensor]] = {}
 
     def _views(self) -> list[View]:
         """Every guidance view, its videos and masks checked before any optical flow is computed."""
@@ -450,38 +454,44 @@ class Optimization:
 
     # -- the flow estimator's bias ----------------------------------------------------------
 
-    def calibrate(self, state: OptimizerState, result: Evaluation, frames: int) -> OptimizerState:
-        """Measure the flow estimator's error on the simulation ``result`` (at state.z, its
-        first ``frames`` frames): render the simulated video from each guidance camera,
-        estimate its flow with the settings that made the observed flow, and keep estimated
-        minus simulated flow as each view's ``estimator_error`` (saved in
-        ``output/estimator_error.npz``). The loss then compares the simulated flow with the
-        observed flow less that error, so the estimator's systematic error (DIS blends a
-        moving object with its background, docs/flow.md) cancels instead of biasing the
-        parameters."""
+    def estimator_errors(self, result: Evaluation, frames: int) -> list[torch.Tensor]:
+        """The flow estimator's error [frames, H, W, 2] in each guidance view on the simulation
+        ``result`` (its first ``frames`` frames): the simulation rendered from the view's camera
+        (SUPERSAMPLE^2 samples per pixel, area-averaged), its flow estimated with the settings
+        that made the observed flow, less the exact simulated flow."""
         import cv2
 
         from clflow.flow.optical_flow import observed_flow
 
-        calibrated_at = {"z": dict(state.z), "frames": frames}
-        if state.calibrated_at == calibrated_at:  # back at the point measured last (a rejected step)
-            return state
         traj = result.trajectory
         simulated = SimulationResult(self.prepared, {}, 0.0, traj.x[: frames + 1].detach(), traj.F[: frames + 1].detach())
+        errors = []
         for view, flows in zip(self.views, [result.flows, *result.more_flows]):
             size = (view.camera.width, view.camera.height)
             video = np.stack([cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
                               for frame in render_frames(simulated, view.camera.scaled(SUPERSAMPLE))])
             estimated = observed_flow(video, self.cfg.flow.method, preset=self.cfg.flow.preset, source="the simulation")
-            error = torch.zeros_like(view.observed) if view.estimator_error is None else view.estimator_error.clone()
-            error[:frames] = torch.from_numpy(estimated).double() - torch.stack(flows[:frames]).double()
-            view.estimator_error = error
+            errors.append(torch.from_numpy(estimated).double() - torch.stack(flows[:frames]).double())
+        return errors
+
+    def calibrate(self, state: OptimizerState, result: Evaluation, frames: int) -> OptimizerState:
+        """Keep the flow estimator's error on the simulation ``result`` (at state.z, its first
+        ``frames`` frames) as each view's ``estimator_error`` (saved in
+        ``output/estimator_error.npz``). The loss then compares the simulated flow with the
+        observed flow less that error, so the estimator's systematic error (DIS blends a
+        moving object with its background, docs/flow.md) cancels instead of biasing the
+        parameters."""
+        calibrated_at = {"z": dict(state.z), "frames": frames}
+        if state.calibrated_at == calibrated_at:  # back at the point measured last (a rejected step)
+            return state
+        for view, error in zip(self.views, self.estimator_errors(result, frames)):
+            full = torch.zeros_like(view.observed) if view.estimator_error is None else view.estimator_error.clone()
+            full[:frames] = error
+            view.estimator_error = full
         with atomic_path(self.estimator_error_file) as tmp, open(tmp, "wb") as fh:
             np.savez(fh, key=np.array(json.dumps(calibrated_at, sort_keys=True)),
                      **{f"view_{i}": view.estimator_error.numpy() for i, view in enumerate(self.views)})
-        if self._lm_cache is not None:  # its loss was against the old targets
-            key, cached, J = self._lm_cache
-            self._lm_cache = (key, self.rescored(cached), J)
+        self._lm_cache = {key: (self.rescored(cached), J) for key, (cached, J) in self._lm_cache.items()}
         return dataclasses.replace(state, calibrated_at=calibrated_at)
 
     @property
@@ -508,11 +518,16 @@ class Optimization:
     def corrects_bias(self) -> bool:
         return self.cfg.flow.bias_correction == "simulated"
 
-    def loss_of(self, view_flows: list[list[torch.Tensor]]) -> torch.Tensor:
-        """The flow loss of each view's simulated flows (T of [H, W, 2]) against its target, the
-        mean over views."""
-        return sum(flow_loss(self.cfg, flows, view.target[: len(flows)], view.weight[: len(flows)])
-                   for flows, view in zip(view_flows, self.views)) / len(self.views)
+    def loss_of(self, view_flows: list[list[torch.Tensor]], errors: list[torch.Tensor] | None = None) -> torch.Tensor:
+        """The flow loss of each view's simulated flows (T of [H, W, 2]) against its target (or
+        against its observed flow less ``errors``, the estimator's error per view), the mean
+        over views."""
+        if errors is None:
+            targets = [view.target for view in self.views]
+        else:
+            targets = [view.observed[: len(error)] - error for view, error in zip(self.views, errors)]
+        return sum(flow_loss(self.cfg, flows, target[: len(flows)], view.weight[: len(flows)])
+                   for flows, target, view in zip(view_flows, targets, self.views)) / len(self.views)
 
     def rescored(self, result: Evaluation) -> Evaluation:
         """``result`` with its loss against the current targets (after a calibration)."""
@@ -554,7 +569,10 @@ class Optimization:
 
     def global_search(self, state: OptimizerState) -> OptimizerState:
         """Forward-only losses at the search design (resuming after the samples already in
-        ``state.search``); returns the state with z at the best sample and ``searched``."""
+        ``state.search``); returns the state with z at the best sample and ``searched``. With
+        ``flow.bias_correction``, each sample's loss is against the observed flow less the
+        estimator's error on that sample's own simulation (the video's estimated flow against
+        the simulation's, estimated alike)."""
         settings = self.cfg.optimize.search
         frames = min(self.frames, settings.frames or self.frames)
         points = self.search_points(state.z)
@@ -562,7 +580,10 @@ class Optimization:
         for z in points[len(rows):]:
             start = time.perf_counter()
             try:
-                loss = self.evaluate(z, frames, with_grad=False).loss
+                sample = self.evaluate(z, frames, with_grad=False)
+                loss = sample.loss
+                if self.corrects_bias:  # the estimator's error at this very sample: its flow against the video's
+                    loss = float(self.loss_of([sample.flows, *sample.more_flows], self.estimator_errors(sample, frames)))
             except (FloatingPointError, ClflowError) as exc:
                 log.info("search sample %s failed: %s", self.values(z), exc)
                 loss = None
@@ -599,10 +620,11 @@ class Optimization:
                  variables: tuple[str, ...]) -> tuple[Evaluation, torch.Tensor]:
         """The evaluation at z and the Jacobian [R, P] of its residuals with respect to
         ``variables`` by backward differences of LM_STEP (softer neighbours need no more
-        substeps than z, so every run shares z's time step); cached for a rejected step's retry."""
+        substeps than z, so every run shares z's time step); the last two are cached."""
         key = (tuple(sorted(z.items())), frames, variables, min_substeps)
-        if self._lm_cache is not None and self._lm_cache[0] == key:
-            return self._lm_cache[1], self._lm_cache[2]
+        if key in self._lm_cache:
+            self._lm_cache[key] = self._lm_cache.pop(key)  # the most recent: kept by the next miss
+            return self._lm_cache[key]
         base = self.evaluate(z, frames, with_grad=False, min_substeps=min_substeps)
         r0 = self.residuals(base.flows, base.more_flows)
         columns = []
@@ -611,7 +633,7 @@ class Optimization:
                                    min_substeps=base.substeps)
             columns.append((r0 - self.residuals(nearby.flows, nearby.more_flows)) / LM_STEP)
         J = torch.stack(columns, 1)
-        self._lm_cache = (key, base, J)
+        self._lm_cache = {**dict(list(self._lm_cache.items())[-1:]), key: (base, J)}
         return base, J
 
     def lm_step(self, state: OptimizerState, base: Evaluation, J: torch.Tensor, frames: int,
@@ -637,6 +659,9 @@ class Optimization:
         A, g = J.T @ J, J.T @ r
         diagonal = torch.diag(torch.diag(A).clamp(min=1e-12 * float(torch.diag(A).max().clamp(min=1e-30))))
         step = -torch.linalg.solve(A + damping * diagonal, g)
+        promised = -float(2 * g @ step + step @ A @ step)  # the model's fall of the residuals' sum of squares
+        if promised <= LM_GAIN_TOLERANCE * float(r @ r):
+            return dataclasses.replace(state, iteration=state.iteration + 1, damping=damping, best=best, converged=True)
         length = float(step.norm())
         if length > LM_MAX_STEP:
             step *= LM_MAX_STEP / length
@@ -730,8 +755,9 @@ class Optimization:
             if state.calibrated_at is not previous.calibrated_at:
                 row["calibrated"] = True
             state.substeps = max(state.substeps, result.substeps)
-            if (lm and phase == "main" and state.best is not None and state.best is not previous.best
-                    and max(abs(state.z[n] - state.best["z"][n]) for n in variables) < LM_TOLERANCE):
+            if lm and phase == "main" and (state.converged or (
+                    state.best is not None and state.best is not previous.best
+                    and max(abs(state.z[n] - state.best["z"][n]) for n in variables) < LM_TOLERANCE)):
                 row["converged"] = True  # the step would change nothing that matters: stop here
                 state = dataclasses.replace(state, iteration=self.total_iterations)
             state.history.append(row)

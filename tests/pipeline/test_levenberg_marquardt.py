@@ -128,3 +128,25 @@ def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypat
         assert report["trade_offs"][0][2] < -0.95  # E up, nu down: the same flow
     if not weak:
         assert max(report["std_z"].values()) < 1e-3
+
+
+def test_a_rejected_step_goes_back_to_the_best_point_without_new_runs(lm):
+    opt, calls = lm(iterations=2)
+    variables = ("youngs_modulus",)
+    best_z, trial_z = {"youngs_modulus": Z_TRUE - 1.0}, {"youngs_modulus": Z_TRUE - 0.5}
+    opt.jacobian(best_z, opt.frames, 1, variables)
+    opt.jacobian(trial_z, opt.frames, 1, variables)
+    runs = len(calls)
+    opt.jacobian(best_z, opt.frames, 1, variables)  # back after a rejection
+    opt.jacobian({"youngs_modulus": Z_TRUE - 0.7}, opt.frames, 1, variables)  # a shorter step, rejected too
+    assert len(calls) == runs + 2
+    opt.jacobian(best_z, opt.frames, 1, variables)
+    assert len(calls) == runs + 2
+
+
+def test_it_stops_when_the_model_promises_no_progress(lm):
+    opt, calls = lm(iterations=12)
+    state = opt.initial_state()
+    state.z = {"youngs_modulus": Z_TRUE}  # at the minimiser: r = 0, nothing to gain
+    state = opt.run(start=state)
+    assert state.converged and state.history[-1].get("converged") and len(state.history) == 1
