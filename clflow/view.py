@@ -6,7 +6,7 @@ Everything is shown in the splat file's own units and axes ("scene units", the f
 frame through its ``scale`` and ``up_rotation``: ``x_file = up_rotation^T x_sim / scale``.
 
 The viewer has a frame slider and a play button (simulation folders), the guidance camera as
-a frustum (simulation folders), and a box (two corner gizmos and min / max fields) whose
+a frustum where browsers open (simulation folders), and a box (two corner gizmos and min / max fields) whose
 bounds it prints as the ``object.select.box`` YAML of a scene config. Colours are the SH
 degree-0 colours (``sh0_to_rgb``, clamped to [0, 1]): viser draws no view-dependent colour.
 
@@ -178,7 +178,7 @@ def rounded_box(low, high, decimals: int) -> tuple[np.ndarray, np.ndarray]:
 def box_yaml(low, high) -> str:
     """The ``object.select.box`` entry of a scene config (scene units)."""
     text = lambda v: "[" + ", ".join(np.format_float_positional(float(x), trim="-") for x in v) + "]"  # noqa: E731
-    return f"object:\n  select:\n    box: {{min: {text(low)}, max: {text(high)}}}"
+    return f"object:\n  select:\n    box:\n      min: {text(low)}\n      max: {text(high)}"
 
 
 def count_inside(means: np.ndarray, low, high) -> int:
@@ -235,6 +235,7 @@ class Viewer:
         self.server.gui.configure_theme(control_width="large")
         self.server.scene.set_up_direction(scene.up)
         self._add_splats()
+        self._set_initial_camera()
         self._add_camera()
         self._add_frame_controls()
         self._add_box()
@@ -259,15 +260,43 @@ class Viewer:
         c2w = cam.camtoworld()
         self.frustum = self.server.scene.add_camera_frustum(
             "/guidance_camera", fov=cam.fov_y, aspect=cam.width / cam.height, scale=0.1 * self.scene.extent(),
-            thickness=0.004 * self.scene.extent(), color=(230, 120, 20),
+            thickness=2.0, thickness_units="screen", color=(230, 120, 20),
             wxyz=rotmat_to_quat(c2w[None, :3, :3])[0].numpy(), position=c2w[:3, 3].numpy())
 
+    def _set_initial_camera(self) -> None:
+        """Browsers open behind the guidance camera (its frustum in view), looking where it looks,
+        else looking down at the box from a diagonal."""
+        low, high = self.scene.box
+        center, up = (low + high) / 2, np.asarray(self.scene.up, np.float64)
+        cam, initial = self.scene.camera, self.server.initial_camera
+        if cam is not None:
+            eye = cam.position.numpy()
+            target = eye + cam.forward.numpy() * np.linalg.norm(center - eye)
+            initial.position, initial.look_at, initial.fov = target + 1.6 * (eye - target), target, cam.fov_y
+        else:
+            side = next(a for a in np.eye(3) if abs(a @ up) < 0.5)  # a horizontal axis
+            direction = 0.6 * up + side + np.cross(up, side)
+            size = max(float(np.linalg.norm(high - low)), 1e-6)
+            initial.position = center + 1.2 * size * direction / np.linalg.norm(direction)
+            initial.look_at = center
+        initial.up = up
+
     def _add_frame_controls(self) -> None:
-        gui, count = self.server.gui, self.scene.frame_count
-        self.frame_slider = gui.add_slider("frame", min=0, max=max(count - 1, 1), step=1, initial_value=0,
-                                           disabled=count == 1)
-        self.play = gui.add_checkbox("play", initial_value=False, disabled=count == 1)
+        """A frame slider and a play / pause button, for more than one frame."""
+        self.frame_slider = self.play_button = None
+        self.playing = False
+        count = self.scene.frame_count
+        if count == 1:
+            return
+        gui = self.server.gui
+        self.frame_slider = gui.add_slider("frame", min=0, max=count - 1, step=1, initial_value=0)
+        self.play_button = gui.add_button("play")
         self.frame_slider.on_update(lambda _: self.show_frame(int(self.frame_slider.value)))
+        self.play_button.on_click(lambda _: self._toggle_play())
+
+    def _toggle_play(self) -> None:
+        self.playing = not self.playing
+        self.play_button.label = "pause" if self.playing else "play"
 
     def show_frame(self, t: int) -> None:
         """Move the moving Gaussians to frame t."""
@@ -279,7 +308,7 @@ class Viewer:
 
     def tick(self) -> None:
         """One step of playback: the next frame (wrapping) when play is on."""
-        if self.play.value and self.scene.frame_count > 1:
+        if self.playing:
             self.frame_slider.value = (int(self.frame_slider.value) + 1) % self.scene.frame_count
 
     # the box

@@ -11,14 +11,20 @@ import click
               help="Port to serve on (0: any free port).")
 @click.option("--up", type=click.Choice(["+x", "-x", "+y", "-y", "+z", "-z"]), default="+y", show_default=True,
               help="A PLY file's up axis (a simulation folder knows its own).")
-def view(path, host, port, up):
+@click.pass_obj
+def view(obj, path, host, port, up):
     """Show PATH in the browser: a 3DGS PLY file, or a simulation folder (`clflow simulate
     CONFIG`'s, or a results folder holding one) with a frame slider, play and the guidance
     camera. Drag the box's corner gizmos or type its min / max: its bounds are printed as
     the object.select.box YAML of a scene config (scene units). Ctrl-C stops."""
+    import logging
+
     from clflow.view import Viewer, check_port, import_viser, load_scene
 
-    import_viser()  # both before reading a large file
+    if obj.verbosity < 1:  # a line per browser connection only with -v
+        logging.getLogger("websockets").setLevel(logging.WARNING)
+
+    import_viser()  # the extra and the port first, before reading a large file
     check_port(host, port)
     scene = load_scene(path, up)
     viewer = Viewer(scene, host, port, report=click.echo)

@@ -68,12 +68,12 @@ def test_ply_viewer_serves_splats_slider_and_box(tmp_path):
             by_type.setdefault(m["type"], []).append(m)
         assert [m["name"] for m in by_type["GaussianSplatsMessage"]] == ["/gaussians"]
         assert "CameraFrustumMessage" not in by_type  # a PLY has no guidance camera
-        assert [m["props"]["label"] for m in by_type["GuiSliderMessage"]] == ["frame"]
+        assert "GuiSliderMessage" not in by_type and viewer.frame_slider is None  # one frame: no slider
         assert sorted(m["name"] for m in by_type["TransformControlsMessage"]) == ["/box/max", "/box/min"]
         assert viewer.splats.buffer.shape == (len(gaussians), 8)
         np.testing.assert_allclose(viewer.splats.centers, scene.means[0])
         # the first box: the centres' 1..99 % bounds; typing a corner reports the new YAML
-        assert reports and "box: {min: [" in reports[0]
+        assert reports and "    box:\n      min: [" in reports[0]
         viewer.box_min.value = (0.25, 0.25, 0.25)
         viewer.box_max.value = (0.75, 0.8, 0.7)
         box = yaml.safe_load(reports[-1])["object"]["select"]["box"]
@@ -113,13 +113,23 @@ def test_simulation_folder_in_scene_units_with_frames_and_camera(tmp_path):
         frustum = [m for m in messages if m["type"] == "CameraFrustumMessage"]
         assert len(frustum) == 1 and frustum[0]["props"]["aspect"] == pytest.approx(64 / 48)
         np.testing.assert_allclose(viewer.frustum.position, eye, atol=1e-6)
+        assert [m["props"]["label"] for m in messages if m["type"] == "GuiSliderMessage"] == ["frame"]
+        assert [m["props"]["label"] for m in messages if m["type"] == "GuiButtonMessage"] == ["play"]
         assert viewer.frame_slider.max == 3
         viewer.frame_slider.value = 2  # as a browser moving the slider
         np.testing.assert_allclose(viewer.splats.centers, means[2], atol=1e-6)
-        viewer.play.value = True
+        viewer.tick()  # not playing: stays
+        assert viewer.frame_shown == 2
+        viewer.play_button.value = True  # as a browser's click
+        assert viewer.playing and viewer.play_button.label == "pause"
         viewer.tick(), viewer.tick()  # plays on and wraps to the first frame
         assert viewer.frame_shown == 0
         np.testing.assert_allclose(viewer.splats.centers, means[0], atol=1e-6)
+        # browsers open behind the guidance camera, looking where it looks
+        initial = viewer.server.initial_camera
+        direction = (initial.look_at - initial.position) / np.linalg.norm(initial.look_at - initial.position)
+        np.testing.assert_allclose(direction, scene.camera.forward.numpy(), atol=1e-9)
+        assert np.linalg.norm(np.cross(eye - initial.position, direction)) < 1e-9  # on its line of sight
         # the first box is the object's at rest: it picks the object and no static Gaussian
         low, high = viewer.box
         assert count_inside(scene.rest_means(), low, high) == means.shape[1]
