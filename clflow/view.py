@@ -115,29 +115,25 @@ def _simulation_scene(folder: Path) -> ViewScene:
     import torch
 
     from clflow.pipeline.frames4d import load_frames
-    from clflow.splat.cameras import Camera
+    from clflow.pipeline.scene import to_file_camera, to_file_frame
 
     frames = load_frames(folder)
     a = frames.arrays
     if "scale" not in a or "up_rotation" not in a:
         raise InputError(f"{folder / 'gaussians.npz'}: no scale and up_rotation (written by an older clflow simulate?)")
     R_up, scale = np.asarray(a["up_rotation"], np.float64), float(a["scale"])
-    to_file = lambda x: (x @ R_up) / scale  # noqa: E731  rows: R_up^T x / scale
-    to_file_cov = lambda c: (R_up.T @ c @ R_up) / scale**2  # noqa: E731
+    f32 = lambda *arrays: (x.astype(np.float32) for x in arrays)  # noqa: E731
+    means, covariances = f32(*to_file_frame(a["object_means"].astype(np.float64),
+                                            a["object_covariances"].astype(np.float64), R_up, scale))
+    static_means, static_covariances = f32(*to_file_frame(a["static_means"].astype(np.float64),
+                                                          a["static_covariances"].astype(np.float64), R_up, scale))
     sh, colors = a.get("sh"), a.get("colors")
-    guide = frames.guidance_camera()
-    viewmat = guide.viewmat.clone()
-    viewmat[:3, :3] = guide.R @ torch.from_numpy(R_up)  # the same pixels: X_cam / scale = R R_up X_file + t / scale
-    viewmat[:3, 3] = guide.t / scale
-    means = to_file(a["object_means"].astype(np.float64)).astype(np.float32)
     return ViewScene(
-        means=means, covariances=to_file_cov(a["object_covariances"].astype(np.float64)).astype(np.float32),
-        static_means=to_file(a["static_means"].astype(np.float64)).astype(np.float32),
-        static_covariances=to_file_cov(a["static_covariances"].astype(np.float64)).astype(np.float32),
+        means=means, covariances=covariances, static_means=static_means, static_covariances=static_covariances,
         rgbs=_rgb(None if sh is None else torch.from_numpy(sh), None if colors is None else torch.from_numpy(colors),
                   str(folder)),
         opacities=np.asarray(a["opacities"], np.float32), fps=frames.fps,
-        camera=Camera(viewmat, guide.K, guide.width, guide.height, "guidance"),
+        camera=to_file_camera(frames.guidance_camera(), torch.from_numpy(R_up), scale),
         up=tuple(float(v) for v in R_up[1]),  # R_up^T e_y: the file axis that is up
         box=(means[0].min(0), means[0].max(0)), source=str(folder),
     )
@@ -224,7 +220,7 @@ class Viewer:
                  report: Callable[[str], None] = print):
         viser = import_viser()
         check_port(host, port)
-        self.scene, self.report = scene, report
+        self.scene, self.report, self._closed = scene, report, False
         self._lock = threading.RLock()
         with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner: the caller says where it is
             self.server = viser.ViserServer(host=host, port=port, verbose=False)
@@ -380,6 +376,10 @@ class Viewer:
             self.close()
 
     def close(self) -> None:
+        """Stop the server (again: nothing)."""
+        if self._closed:
+            return
+        self._closed = True
         with contextlib.redirect_stdout(io.StringIO()):  # "(viser) Server stopped"
             self.server.stop()
 

@@ -29,9 +29,10 @@ def view(obj, path, host, port, up):
     scene = load_scene(path, up)
     viewer = Viewer(scene, host, port, report=click.echo)
     frames = f", {scene.frame_count} frames" if scene.frame_count > 1 else ""
-    click.echo(f"viewing {scene.source} ({scene.rgbs.shape[0]:,} Gaussians{frames}) at {viewer.url()}; Ctrl-C stops",
-               err=True)
-    try:
+    try:  # from here on Ctrl-C is the way out, also while the line below is being written
+        click.echo(f"viewing {scene.source} ({scene.rgbs.shape[0]:,} Gaussians{frames}) at {viewer.url()}; "
+                   "Ctrl-C stops", err=True)
         viewer.serve_forever()
     except KeyboardInterrupt:
+        viewer.close()
         click.echo("stopped", err=True)

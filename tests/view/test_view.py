@@ -2,11 +2,12 @@
 over HTTP and its websocket; the box YAML; bad input (missing file, port in use, no extra)."""
 
 import os
+import queue
 import signal
 import socket
 import subprocess
 import sys
-import time
+import threading
 import urllib.request
 from pathlib import Path
 
@@ -173,21 +174,24 @@ def test_cli_serves_until_ctrl_c(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "clflow_cli", "view", str(tmp_path / "scene.ply"), "--port", str(port)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])})
+    lines = queue.Queue()
+    reader = threading.Thread(target=lambda: [lines.put(line) for line in proc.stderr], daemon=True)
+    reader.start()
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=1).read().decode()
-                break
-            except OSError:
-                assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
-                time.sleep(0.2)
+        err = ""
+        while "Ctrl-C stops" not in err:  # the viewer is up and serving
+            err += lines.get(timeout=60)
+        page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5).read().decode()
         assert "<html" in page
         # only 127.0.0.1 by default: another address of this machine (127.0.0.2 is loopback too) is not served
         with pytest.raises(OSError):
             urllib.request.urlopen(f"http://127.0.0.2:{port}/", timeout=2)
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=20)
+        proc.wait(timeout=20)
+        out = proc.stdout.read()
+        reader.join(timeout=5)
+        while not lines.empty():
+            err += lines.get()
     finally:
         proc.kill()
     assert proc.returncode == 0, err
