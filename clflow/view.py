@@ -6,8 +6,8 @@ Everything is shown in the splat file's own units and axes ("scene units", the f
 frame through its ``scale`` and ``up_rotation``: ``x_file = up_rotation^T x_sim / scale``.
 
 The viewer has a frame slider and a play button (simulation folders), the guidance camera as
-a frustum where browsers open (simulation folders), and a box (two corner gizmos and min / max fields) whose
-bounds it prints as the ``object.select.box`` YAML of a scene config. Colours are the SH
+a frustum that browsers open behind (simulation folders), and a box (two corner gizmos and
+min / max fields) whose bounds it prints as the ``object.select.box`` YAML of a scene config. Colours are the SH
 degree-0 colours (``sh0_to_rgb``, clamped to [0, 1]): viser draws no view-dependent colour.
 
 viser is the optional extra ``clflow[view]``; it is imported only when a viewer starts.
@@ -48,7 +48,7 @@ class ViewScene:
     those that do not; rgbs [n + S, 3] in [0, 1] and opacities [n + S] in [0, 1], moving
     ones first; fps (frames/s, None for one frame); camera: the guidance camera
     (:class:`clflow.splat.cameras.Camera`) or None; up [3]: the file's up direction;
-    box: (low [3], high [3]), the box the viewer starts with.
+    box: (low [3], high [3]), the box the viewer starts with; source: the file or folder shown.
     """
 
     means: np.ndarray
@@ -99,8 +99,8 @@ def _ply_scene(path: Path, up: tuple[float, float, float]) -> ViewScene:
     from clflow.splat.ply import load_ply
 
     g = load_ply(path)
-    if g.sh is None and g.colors.shape[1] != 3:
-        raise InputError(f"{path}: {g.colors.shape[1]} colour channels; the viewer shows RGB")
+    if len(g) == 0:
+        raise InputError(f"{path}: holds no Gaussians")
     low, high = g.bounds(PLY_BOX_QUANTILE)
     f32 = lambda t: t.detach().float().numpy()  # noqa: E731
     return ViewScene(
@@ -207,9 +207,14 @@ def check_port(host: str, port: int) -> None:
             try:
                 probe.bind(address)
             except OSError as exc:
-                why = "is in use (by another program or another clflow view); pick another with --port" \
-                    if exc.errno == errno.EADDRINUSE else f"cannot be bound ({exc.strerror})"
-                raise InputError(f"port {port} on {host} {why}") from None
+                if exc.errno == errno.EADDRINUSE:
+                    raise _port_in_use(host, port) from None
+                raise InputError(f"port {port} on {host} cannot be bound ({exc.strerror})") from None
+
+
+def _port_in_use(host: str, port: int) -> InputError:
+    return InputError(f"port {port} on {host} is in use (by another program or another clflow view); "
+                      "pick another with --port")
 
 
 class Viewer:
@@ -226,8 +231,8 @@ class Viewer:
             self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.port = self.server.get_port()
         if port and self.port != port:  # taken between the check and the bind
-            self.server.stop()
-            raise InputError(f"port {port} on {host} is in use; pick another with --port")
+            self.close()
+            raise _port_in_use(host, port)
         self.server.gui.configure_theme(control_width="large")
         self.server.scene.set_up_direction(scene.up)
         self._add_splats()
@@ -239,6 +244,7 @@ class Viewer:
     # scene nodes
     def _add_splats(self) -> None:
         s, n = self.scene, self.scene.means.shape[1]
+        self.frame_shown = 0
         self.splats = self.server.scene.add_gaussian_splats(
             "/gaussians", s.means[0], s.covariances[0], s.rgbs[:n], s.opacities[:n, None])
         self.static_splats = None

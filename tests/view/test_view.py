@@ -157,6 +157,19 @@ def test_missing_path_and_port_in_use_are_one_line(tmp_path):
         check_port("no-such-host.invalid", 0)
 
 
+def test_a_port_taken_after_the_check_is_refused_too(tmp_path, monkeypatch):
+    pytest.importorskip("viser")
+    import clflow.view
+
+    monkeypatch.setattr(clflow.view, "check_port", lambda host, port: None)  # taken between check and bind
+    write_ply(tmp_path / "scene.ply")
+    scene = load_scene(tmp_path / "scene.ply")
+    with busy_port() as sock:
+        port = sock.getsockname()[1]
+        with pytest.raises(InputError, match=f"port {port} on 127.0.0.1 is in use"):
+            clflow.view.Viewer(scene, port=port)  # viser alone would quietly serve on the next port
+
+
 def test_without_the_extra_it_names_it(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "viser", None)  # import viser raises ImportError
     write_ply(tmp_path / "scene.ply")
