@@ -62,6 +62,7 @@ def flow(obj, video, output, method, preset, raft_weights, fps, start, end, stri
     from clflow.flow.video import read_video
     from clflow.flow.visualize import comparison_panel
     from clflow.media import write_image, write_video
+    from clflow_cli.progress import progress
 
     if mask_image and box:
         raise InputError("give either --mask or --box, not both")
@@ -79,23 +80,26 @@ def flow(obj, video, output, method, preset, raft_weights, fps, start, end, stri
     elif box:
         object_mask = mask_from_box(box, clip.width, clip.height)
     frames = clip.frames
-    kwargs = dict(preset=preset, raft_weights=raft_weights, source=clip.source)
-    forward = observed_flow(frames, method, **kwargs)
-    backward = backward_flow(frames, method, **kwargs)
-    valid = forward_backward_mask(forward, backward) & object_mask
-
+    pairs = max(len(frames) - 1, 0)
     out = Path(output) if output else Path(Path(video).stem + "_flow")
-    with atomic_path(out / "flow.npz") as tmp:
-        np.savez_compressed(
-            tmp, flow=forward, valid=valid, times=np.asarray([] if clip.times is None else clip.times),
-            fps=np.float64(clip.fps or np.nan), method=method, preset=preset,
-        )
-    max_flow = max(float(np.linalg.norm(forward, axis=-1).max()), 1e-6)
-    panels = []
-    for t, f in enumerate(forward):
-        write_flo(out / "flo" / f"flow_{t:04d}.flo", f)
-        panels.append(comparison_panel(frames[t], f, max_flow=max_flow))
-        write_image(out / "png" / f"flow_{t:04d}.png", panels[-1])
+    # forward flows, backward flows, then the files of each flow field
+    with progress(3 * pairs, "optical flow") as advance:
+        kwargs = dict(preset=preset, raft_weights=raft_weights, source=clip.source, advance=advance)
+        forward = observed_flow(frames, method, **kwargs)
+        backward = backward_flow(frames, method, **kwargs)
+        valid = forward_backward_mask(forward, backward) & object_mask
+        with atomic_path(out / "flow.npz") as tmp:
+            np.savez_compressed(
+                tmp, flow=forward, valid=valid, times=np.asarray([] if clip.times is None else clip.times),
+                fps=np.float64(clip.fps or np.nan), method=method, preset=preset,
+            )
+        max_flow = max(float(np.linalg.norm(forward, axis=-1).max()), 1e-6)
+        panels = []
+        for t, f in enumerate(forward):
+            write_flo(out / "flo" / f"flow_{t:04d}.flo", f)
+            panels.append(comparison_panel(frames[t], f, max_flow=max_flow))
+            write_image(out / "png" / f"flow_{t:04d}.png", panels[-1])
+            advance(f"flow_{t:04d}")
     if write_panels_video:
         write_video(out / "flow.mp4", np.stack(panels), clip.fps or 24.0)
     speed = np.linalg.norm(forward, axis=-1)

@@ -38,6 +38,7 @@ BUILTIN_COMMANDS: dict[str, str] = {
     "eval": "clflow_cli.eval:eval_group",
     "generate": "clflow_cli.generate:generate",
     "sweep": "clflow_cli.sweep:sweep",
+    "view": "clflow_cli.view:view",
 }
 
 PLUGIN_GROUP = "clflow.commands"

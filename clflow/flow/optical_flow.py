@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
 
@@ -73,6 +73,7 @@ def observed_flow(
     preset: str = DEFAULT_PRESET,
     raft_weights: str | os.PathLike | None = None,
     source: str = "video",
+    advance: Callable[[str], None] | None = None,
 ) -> np.ndarray:
     """Forward optical flow between consecutive frames.
 
@@ -82,6 +83,7 @@ def observed_flow(
             only with ``raft_weights``, a state-dict file on disk).
         preset: DIS quality preset, one of :data:`DIS_PRESETS`.
         source: name of the video in error messages.
+        advance: called with the method's name after each of the T-1 flow fields (progress).
 
     Returns:
         [T-1, H, W, 2] float32 flow in pixels (see the module docstring).
@@ -91,21 +93,23 @@ def observed_flow(
     frames = np.asarray(frames)
     _check_frames(frames, source)
     if method == "raft":
-        return raft_flow(frames, raft_weights, source=source)
+        return raft_flow(frames, raft_weights, source=source, advance=advance)
     if raft_weights is not None:
         raise InputError(f"raft_weights given but method is {method!r}; use method='raft'")
     grey = [_grey(f) for f in frames]
     if method == "dis":
-        dis = _dis(preset)
-        flows = [dis.calc(a, b, None) for a, b in zip(grey[:-1], grey[1:])]
+        pair_flow = _dis(preset).calc
     elif method == "farneback":
         # Pyramid of 5 levels (scale 0.5) reaches ~30 px motion; 15 px windows, 3 iterations.
-        flows = [
-            cv2.calcOpticalFlowFarneback(a, b, None, 0.5, 5, 15, 3, 7, 1.5, cv2.OPTFLOW_FARNEBACK_GAUSSIAN)
-            for a, b in zip(grey[:-1], grey[1:])
-        ]
+        def pair_flow(a, b, _):
+            return cv2.calcOpticalFlowFarneback(a, b, None, 0.5, 5, 15, 3, 7, 1.5, cv2.OPTFLOW_FARNEBACK_GAUSSIAN)
     else:
         raise InputError(f"unknown optical flow method {method!r}; choose 'dis', 'farneback' or 'raft'")
+    flows = []
+    for a, b in zip(grey[:-1], grey[1:]):
+        flows.append(pair_flow(a, b, None))
+        if advance is not None:
+            advance(method)
     return np.stack(flows).astype(np.float32)
 
 
@@ -115,8 +119,10 @@ def backward_flow(frames: np.ndarray, method: FlowMethod = "dis", **kwargs) -> n
     return observed_flow(np.ascontiguousarray(np.asarray(frames)[::-1]), method, **kwargs)[::-1].copy()
 
 
-def raft_flow(frames: np.ndarray, weights: str | os.PathLike | None, *, source: str = "video") -> np.ndarray:
-    """Forward flow by torchvision's RAFT (large) from a state-dict file already on disk.
+def raft_flow(frames: np.ndarray, weights: str | os.PathLike | None, *, source: str = "video",
+              advance: Callable[[str], None] | None = None) -> np.ndarray:
+    """Forward flow by torchvision's RAFT (large) from a state-dict file already on disk;
+    ``advance("raft")`` after each flow field.
 
     torchvision is not a dependency of clflow and nothing is downloaded: a missing
     torchvision or weights file is a clear :class:`ClflowError`.
@@ -146,8 +152,12 @@ def raft_flow(frames: np.ndarray, weights: str | os.PathLike | None, *, source: 
     if height % 8 or width % 8:
         raise InputError(f"{source}: RAFT needs frame sizes divisible by 8, got {width}x{height}")
     images = torch.from_numpy(frames).permute(0, 3, 1, 2).float() / 127.5 - 1.0  # RAFT expects [-1, 1]
+    flows = []
     with torch.no_grad():
-        flows = [model(images[t : t + 1], images[t + 1 : t + 2])[-1][0] for t in range(len(frames) - 1)]
+        for t in range(len(frames) - 1):
+            flows.append(model(images[t : t + 1], images[t + 1 : t + 2])[-1][0])
+            if advance is not None:
+                advance("raft")
     return torch.stack(flows).permute(0, 2, 3, 1).numpy().astype(np.float32)
 
 

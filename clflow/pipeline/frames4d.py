@@ -29,7 +29,7 @@ import torch
 
 from clflow.errors import InputError
 from clflow.fileio import atomic_path, load_arrays
-from clflow.pipeline.scene import SceneGaussians, up_rotation
+from clflow.pipeline.scene import SceneGaussians, to_file_frame, up_rotation
 
 NPZ_NAME = "gaussians.npz"
 
@@ -117,8 +117,7 @@ def export_gaussians(result, folder: Path) -> None:
     R_up = up_rotation(cfg.up)
     for t, g in enumerate(frames):
         # back to the file's frame, then diagonalise each covariance into scales and a rotation
-        means = g.means.double() @ R_up / cfg.scale
-        covs = R_up.T @ g.covariances.double() @ R_up / cfg.scale**2
+        means, covs = to_file_frame(g.means.double(), g.covariances.double(), R_up, cfg.scale)
         variances, axes = torch.linalg.eigh(covs)
         axes = axes * torch.sign(torch.det(axes))[:, None, None]  # proper rotations
         save_ply(folder / f"frame_{t:03d}.ply", Gaussians.from_activated(

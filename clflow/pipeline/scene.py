@@ -139,6 +139,23 @@ def to_simulation_camera(camera, cfg: SceneConfig):
     return Camera(view, camera.K.clone(), camera.width, camera.height, camera.name)
 
 
+def to_file_frame(means, covariances, R_up, scale: float):
+    """The inverse of the load: simulation-frame means [..., 3] (m) and covariances [..., 3, 3]
+    (m^2) back in the splat file's frame (scene units); numpy or torch, R_up [3, 3]."""
+    return means @ R_up / scale, R_up.T @ covariances @ R_up / scale**2
+
+
+def to_file_camera(camera, R_up: torch.Tensor, scale: float):
+    """The inverse of :func:`to_simulation_camera`: the camera with its world frame back in the
+    splat file's axes and units (the same pixels)."""
+    from clflow.splat.cameras import Camera
+
+    view = camera.viewmat.clone()
+    view[:3, :3] = camera.viewmat[:3, :3] @ R_up.to(view.dtype)
+    view[:3, 3] = camera.viewmat[:3, 3] / scale
+    return Camera(view, camera.K.clone(), camera.width, camera.height, camera.name)
+
+
 def guidance_camera(cfg: SceneConfig, camera: CameraConfig | None = None):
     """The configured guidance camera (or ``camera``, another view's), in the simulation frame."""
     from clflow.splat import cameras

@@ -17,6 +17,10 @@ def test_flow_command_writes_fields_and_visualisation(tmp_path, translating):
     result = CliRunner().invoke(cli, ["flow", str(path), "-o", str(out), "--box", "8,8,72,56", "--stride", "1"])
     assert result.exit_code == 0, result.output
     assert "6 frames, 80x64, 10 fps" in result.output and "5 flow fields" in result.output
+    # progress off a terminal: a line per step (forward flows, backward flows, files)
+    steps = [line for line in result.output.splitlines() if line.startswith("optical flow: ")]
+    assert steps[0] == "optical flow: 1/15 dis" and steps[9] == "optical flow: 10/15 dis"
+    assert steps[-1] == "optical flow: 15/15 flow_0004" and len(steps) == 15
     data = np.load(out / "flow.npz")
     assert data["flow"].shape == (5, 64, 80, 2) and data["valid"].shape == (5, 64, 80)
     np.testing.assert_allclose(data["times"], np.arange(6) / 10.0)

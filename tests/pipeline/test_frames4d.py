@@ -50,6 +50,15 @@ def test_simulate_config_then_render4d(quick_demo, tmp_path):
     assert res.exit_code == 0, res.output
     T = 9  # QUICK: 8 frames + the initial state
     assert len(list(out.glob("frame_*.ply"))) == T and (out / "gaussians.npz").is_file()
+    # clflow view's reading of the folder: each frame where that frame's PLY has it (file frame)
+    from clflow.view import load_scene
+
+    scene = load_scene(out)
+    ply = load_ply(out / f"frame_{T - 1:03d}.ply")
+    np.testing.assert_allclose(np.concatenate([scene.means[-1], scene.static_means]), ply.means.numpy(), atol=1e-5)
+    np.testing.assert_allclose(np.concatenate([scene.covariances[-1], scene.static_covariances]),
+                               ply.covariances.numpy(), rtol=1e-3, atol=1e-8)
+    assert scene.frame_count == T and scene.camera is not None
     assert len(list((out / "guidance").glob("*.png"))) == T and (out / "guidance.mp4").stat().st_size > 0
     res = run("render4d", out, "--views", 1, "--format", "gif")
     assert res.exit_code == 0, res.output
