@@ -91,11 +91,47 @@ def select_object(cfg: SceneConfig, means_scene: torch.Tensor) -> torch.Tensor:
             mask[torch.from_numpy(raw.astype(np.int64))] = True
         else:
             raise InputError(f"{sel.mask}: expected {n} booleans or a list of indices, got {raw.dtype} {raw.shape}")
+    elif sel.ply is not None:
+        mask = part_mask(sel.ply, means_scene, sel.tolerance)
     else:
         mask = region_mask(sel.region, means_scene)
     if not bool(mask.any()):
         raise InputError(f"{cfg.source}: object.select selects no Gaussian of {cfg.splats.name}")
     return mask
+
+
+PART_TOLERANCE = 1e-5  # default match distance of a part's centres, as a fraction of the scene's diagonal
+
+
+def part_mask(part_file, means_scene: torch.Tensor, tolerance: float | None = None) -> torch.Tensor:
+    """Bool mask [N] of the Gaussians (centres means_scene [N, 3], scene units) that lie within
+    ``tolerance`` (scene units; None: PART_TOLERANCE of the scene's diagonal) of a Gaussian
+    centre of ``part_file``, a PLY of part of the same scene (as a splat editor exports it).
+    A part none of whose centres matches is an :class:`InputError`; one only some of whose
+    centres match is logged."""
+    import logging
+
+    from scipy.spatial import cKDTree
+
+    from clflow.splat.ply import load_ply
+
+    part = load_ply(part_file).means.double().numpy()
+    if not len(part):
+        raise InputError(f"{part_file}: holds no Gaussians")
+    scene = means_scene.double().numpy()
+    if tolerance is None:
+        tolerance = PART_TOLERANCE * float(np.linalg.norm(scene.max(0) - scene.min(0)))
+    mask = cKDTree(part).query(scene)[0] <= tolerance
+    if not mask.any():
+        nearest = cKDTree(scene).query(part)[0].min()
+        raise InputError(f"{part_file}: none of its {len(part)} Gaussian centres lies within {tolerance:.3g} scene units "
+                         f"of the scene's (nearest {nearest:.3g}): not a part of this splat file, or moved since "
+                         f"(raise object.select.tolerance if it was only rounded)")
+    unmatched = int((cKDTree(scene[mask]).query(part)[0] > tolerance).sum())
+    if unmatched:
+        logging.getLogger(__name__).warning("%s: %d of its %d Gaussian centres match no Gaussian of the scene within "
+                                            "%.3g scene units", part_file, unmatched, len(part), tolerance)
+    return torch.from_numpy(mask)
 
 
 def check_object_sizes(cfg: SceneConfig, means: torch.Tensor, scales: torch.Tensor, mask: torch.Tensor) -> None:

@@ -155,11 +155,14 @@ class Region:
 
 @dataclass(frozen=True)
 class Selection:
-    """Which Gaussians form the object: a region in scene units, or a mask file (.npy of N
-    booleans or of indices)."""
+    """Which Gaussians form the object: a region in scene units, a mask file (.npy of N
+    booleans or of indices), or a PLY of the part (its Gaussian centres matched to the
+    scene's within ``tolerance`` scene units; None: 1e-5 of the scene's diagonal)."""
 
     region: Region | None
     mask: Path | None
+    ply: Path | None = None
+    tolerance: float | None = None
 
 
 @dataclass(frozen=True)
@@ -660,13 +663,19 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         raise r.fail("", "the config is empty")
     scene = r.section(top.get("scene"), "scene", ("scale", "up"))
     obj = r.section(top.get("object"), "object", ("select", "fill", "velocity"))
-    select = r.section(obj.get("select"), "object.select", ("box", "sphere", "mask"))
+    select = r.section(obj.get("select"), "object.select", ("box", "sphere", "mask", "ply", "tolerance"))
     if not select:
-        raise r.fail("object.select", "is required: a box, a sphere or a mask file")
+        raise r.fail("object.select", "is required: a box, a sphere, a mask file or a PLY of the part")
+    if "tolerance" in select and "ply" not in select:
+        raise r.fail("object.select.tolerance", "applies to a ply selection only: drop it")
+    if len(set(select) & {"box", "sphere", "mask", "ply"}) > 1:
+        raise r.fail("object.select", "give exactly one of box, sphere, mask and ply")
     if "mask" in select:
-        if len(select) > 1:
-            raise r.fail("object.select", "give exactly one of box, sphere and mask")
         selection = Selection(None, r.file(select, "mask", "object.select"))
+    elif "ply" in select:
+        tolerance = select.get("tolerance")
+        selection = Selection(None, None, r.file(select, "ply", "object.select"), None if tolerance is None else
+                              r.number(select, "tolerance", "object.select", low=0.0, strict_low=True))
     else:
         selection = Selection(_region(r, select, "object.select", allow_all=False), None)
     fill_in = r.section(obj.get("fill"), "object.fill", ("enabled", "spacing", "per_axis"))

@@ -124,6 +124,16 @@ def garbage_mask(c: Case) -> str:
     return c.config("garbage_mask", **{"object.select": {"mask": "garbage.npy"}})
 
 
+def moved_part(c: Case) -> str:
+    """A config selecting the object by a PLY of the demo's Gaussians moved 0.3 scene units."""
+    from clflow.splat.gaussians import Gaussians
+    from clflow.splat.ply import load_ply, save_ply
+
+    g = load_ply(c.demo / "scene.ply")
+    save_ply(c.demo / "moved_part.ply", Gaussians(g.means + 0.3, g.quats, g.log_scales, g.opacity_logits, sh=g.sh))
+    return c.config("moved_part", **{"object.select": {"ply": "moved_part.ply"}})
+
+
 @dataclass
 class Probe:
     id: str
@@ -189,6 +199,8 @@ PROBES = [
           r"pickled.npy: the object mask holds Python objects, not plain arrays; refusing to unpickle", ("out",)),
     Probe("video-damaged-frames", lambda c: ["optimize", damaged_mp4(c)],
           r"damaged.mp4: damaged video: only the first \d of its 9 frames decode"),
+    Probe("select-ply-elsewhere", lambda c: ["simulate", moved_part(c), "-o", c.tmp / "s"],
+          r"moved_part.ply: none of its \d+ Gaussian centres lies within .* scene units of the scene's", ("s",)),
     Probe("huge-gaussians", lambda c: ["optimize", huge_splats(c)],
           r"huge.ply: 384 of the object's 384 Gaussians are larger than the whole scene", ("out",)),
     Probe("render4d-turns-nan", lambda c: ["render4d", c.sim, "-o", c.tmp / "r", "--turns", "nan"],
