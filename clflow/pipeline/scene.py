@@ -193,10 +193,30 @@ def guidance_camera(cfg: SceneConfig, camera: CameraConfig | None = None):
             raise InputError(f"{cfg.source}: camera.index {cam.index} is outside the {len(loaded)} cameras of "
                              f"{cam.cameras_file.name}")
         return to_simulation_camera(loaded[cam.index], cfg)
+    if cam.colmap is not None:
+        return to_simulation_camera(colmap_camera(cam.colmap, cam.image, cam.index, cfg.source), cfg)
     fov_x = 2 * math.atan(math.tan(math.radians(cam.fov_y_deg) / 2) * cam.width / cam.height)  # rad
     scene_cam = cameras.look_at(cam.position, cam.look_at, cam.up, fov_x=fov_x, width=cam.width, height=cam.height,
                                 name="guidance")
     return to_simulation_camera(scene_cam, cfg)
+
+
+def colmap_camera(folder, image: str | None, index: int, source):
+    """The camera of the COLMAP sparse model in ``folder`` that took ``image`` (a file name),
+    else its ``index``-th image in name order (scene units)."""
+    from clflow.recon.colmap import model_cameras, read_model
+
+    loaded = model_cameras(read_model(folder), str(folder))
+    names = [c.name for c in loaded]
+    if image is not None:
+        if image not in names:
+            listed = ", ".join(names[:5]) + (f" ... ({len(names)} images)" if len(names) > 5 else "")
+            raise InputError(f"{source}: camera.image {image!r} is not an image of the COLMAP model {folder} ({listed})")
+        return loaded[names.index(image)]
+    if not 0 <= index < len(loaded):
+        raise InputError(f"{source}: camera.index {index} is outside the {len(loaded)} images of the COLMAP model "
+                         f"{folder}")
+    return loaded[index]
 
 
 def deformed_object(rest: SceneGaussians, x: torch.Tensor, F: torch.Tensor) -> SceneGaussians:

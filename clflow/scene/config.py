@@ -226,10 +226,13 @@ class SimulationSettings:
 
 @dataclass(frozen=True)
 class CameraConfig:
-    """A camera from a 3DGS cameras.json / NeRF transforms.json entry, or explicit."""
+    """A camera from a 3DGS cameras.json / NeRF transforms.json entry, from an image of a
+    COLMAP sparse model (by name, or ``index`` in name order), or explicit."""
 
     cameras_file: Path | None = None
     index: int = 0
+    colmap: Path | None = None  # a sparse model folder (cameras, images as .bin or .txt)
+    image: str | None = None  # the COLMAP image's name
     position: tuple[float, float, float] | None = None  # scene units
     look_at: tuple[float, float, float] | None = None
     up: tuple[float, float, float] = (0.0, 1.0, 0.0)
@@ -465,18 +468,33 @@ def _simulation(r: _Reader, data: Any) -> SimulationSettings:
 
 
 def _camera(r: _Reader, data: Any, p: str = "camera") -> CameraConfig:
-    body = r.section(data, p, ("file", "index", "position", "look_at", "up", "fov_y_deg", "width", "height"))
-    if body.get("file") is None and body.get("position") is None:
-        raise r.fail(p, "give a camera file (cameras.json / transforms.json) or position and look_at")
-    explicit = body.get("file") is None
+    body = r.section(data, p, ("file", "colmap", "image", "index", "position", "look_at", "up", "fov_y_deg", "width",
+                               "height"))
+    sources = [k for k in ("file", "colmap") if body.get(k) is not None]
+    if not sources and body.get("position") is None:
+        raise r.fail(p, "give a camera file (cameras.json / transforms.json), a COLMAP model (colmap) or position "
+                        "and look_at")
+    if len(sources) > 1:
+        raise r.fail(p, "give file or colmap, not both")
+    explicit = not sources
     ignored = [k for k in ("position", "look_at", "up", "fov_y_deg", "width", "height") if k in body]
     if not explicit and ignored:
-        raise r.fail(p, f"with a camera file, {', '.join(ignored)} come from the file: drop them")
+        what = "file" if sources[0] == "file" else "model"
+        raise r.fail(p, f"with a camera {what}, {', '.join(ignored)} come from the {what}: drop them")
     if explicit and "index" in body:
-        raise r.fail(f"{p}.index", "picks an entry of a camera file: give file as well, or drop it")
+        raise r.fail(f"{p}.index", "picks an entry of a camera file or model: give file or colmap as well, or drop it")
+    if "image" in body and "colmap" not in body:
+        raise r.fail(f"{p}.image", "names an image of a COLMAP model: give colmap as well, or drop it")
+    if "image" in body and "index" in body:
+        raise r.fail(p, "give image or index, not both")
+    image = body.get("image")
+    if image is not None and (not isinstance(image, str) or not image):
+        raise r.fail(f"{p}.image", f"must be an image name of the COLMAP model, got {image!r}")
     return CameraConfig(
         cameras_file=r.file(body, "file", p, required=False),
         index=r.integer(body, "index", p, 0),
+        colmap=r.file(body, "colmap", p, required=False, folder_ok=True),
+        image=image,
         position=r.vec3(body, "position", p) if explicit else None,
         look_at=r.vec3(body, "look_at", p) if explicit else None,
         up=r.vec3(body, "up", p, (0.0, 1.0, 0.0)),
