@@ -13,7 +13,8 @@ and the static ones once::
 
 ``frame_000.ply ...`` are standard 3DGS PLY files in the splat file's own frame and units,
 so they overlay the input scene in any 3DGS viewer: the whole scene per frame, or (object
-only) the object per frame and ``static.ply`` once. A PLY cannot say that a Gaussian's SH
+only) the object per frame and ``static.ply`` once; or the same as ``.compressed.ply``
+(SuperSplat / PlayCanvas). A PLY cannot say that a Gaussian's SH
 turned with it, so the object's SH coefficients are written rotated into each frame
 (:func:`clflow.splat.sh.rotate_sh`): a viewer shows the view-dependent colours clflow's
 renders show.
@@ -34,7 +35,7 @@ from clflow.fileio import atomic_path, load_arrays
 from clflow.pipeline.scene import SceneGaussians, up_rotation
 
 NPZ_NAME = "gaussians.npz"
-STATIC_PLY = "static.ply"  # the static Gaussians, once, next to object-only frames
+STATIC_NAME = "static"  # static.ply: the static Gaussians, once, next to object-only frames
 
 
 @dataclass
@@ -90,12 +91,16 @@ def export_size(prepared, frames: int, preview: bool) -> tuple[int, int]:
     return (frames + 1) * per_frame, (frames + 1) * held
 
 
-def export_gaussians(result, folder: Path, object_only: bool = False) -> None:
+def export_gaussians(result, folder: Path, object_only: bool = False, compressed: bool = False) -> None:
     """Write ``folder/gaussians.npz`` and ``folder/frame_000.ply ...`` of a
     :class:`clflow.pipeline.forward.SimulationResult`, each file atomically. With
     ``object_only`` the PLY frames hold the object alone and ``folder/static.ply`` the
-    static Gaussians, once."""
+    static Gaussians, once; ``compressed``: the PLYs in the compressed layout
+    (``frame_000.compressed.ply``, :mod:`clflow.splat.compressed_ply`)."""
+    from clflow.splat.compressed_ply import save_compressed_ply
     from clflow.splat.ply import save_ply
+
+    save, suffix = (save_compressed_ply, ".compressed.ply") if compressed else (save_ply, ".ply")
 
     prepared = result.prepared
     cfg, static = prepared.cfg, prepared.static
@@ -119,10 +124,10 @@ def export_gaussians(result, folder: Path, object_only: bool = False) -> None:
     with atomic_path(folder / NPZ_NAME) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **arrays)
     if object_only:
-        save_ply(folder / STATIC_PLY, file_gaussians(static, cfg.scale, cfg.up, turned=0))
+        save(folder / f"{STATIC_NAME}{suffix}", file_gaussians(static, cfg.scale, cfg.up, turned=0))
     for t, g in enumerate(frames):
-        save_ply(folder / f"frame_{t:03d}.ply",
-                 file_gaussians(g.take(torch.arange(n)) if object_only else g, cfg.scale, cfg.up, turned=n))
+        save(folder / f"frame_{t:03d}{suffix}",
+             file_gaussians(g.take(torch.arange(n)) if object_only else g, cfg.scale, cfg.up, turned=n))
 
 
 def file_gaussians(g: SceneGaussians, scale: float, up: str, turned: int):

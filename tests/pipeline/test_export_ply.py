@@ -9,7 +9,7 @@ import torch
 from click.testing import CliRunner
 
 from clflow.pipeline.forward import Prepared, SimulationResult
-from clflow.pipeline.frames4d import STATIC_PLY, export_gaussians, file_gaussians
+from clflow.pipeline.frames4d import export_gaussians, file_gaussians
 from clflow.pipeline.render import render_rgb
 from clflow.pipeline.scene import SceneGaussians, up_rotation
 from clflow.scene.deform import rest_covariances
@@ -65,24 +65,35 @@ def test_exported_frame_renders_like_clflow(deformed, tmp_path):
         show = lambda g: rasterize(g, cam, background=(1.0, 1.0, 1.0), render_depth=False).image  # noqa: E731
         whole = show(load_ply(tmp_path / "all" / "frame_001.ply"))
         parts = show(Gaussians.cat([load_ply(tmp_path / "split" / "frame_001.ply"),
-                                    load_ply(tmp_path / "split" / STATIC_PLY)]))
+                                    load_ply(tmp_path / "split" / "static.ply")]))
         unturned = show(file_gaussians(result.scene_at(1), cfg.scale, cfg.up, turned=0).to(torch.float32))
     assert (want - 1).abs().mean() > 0.1  # the scene is in view
     torch.testing.assert_close(whole, want, rtol=0, atol=1e-4)
     torch.testing.assert_close(parts, want, rtol=0, atol=1e-4)
     assert (unturned - want).abs().max() > 0.1  # without the SH rotation the colours differ
     assert len(load_ply(tmp_path / "split" / "frame_000.ply")) == 60
-    assert len(load_ply(tmp_path / "split" / STATIC_PLY)) == 40 and not (tmp_path / "all" / STATIC_PLY).exists()
+    assert len(load_ply(tmp_path / "split" / "static.ply")) == 40 and not (tmp_path / "all" / "static.ply").exists()
 
 
-def test_simulate_object_only(quick_demo, tmp_path):
-    out = tmp_path / "sim"
-    res = CliRunner().invoke(cli, ["simulate", str(quick_demo / "config_truth.yaml"), "-o", str(out), "--preview",
-                                   "none", "--object-only"], catch_exceptions=False)
+def test_simulate_object_only_and_compressed(quick_demo, tmp_path):
+    simulate = lambda out, *flags: CliRunner().invoke(  # noqa: E731
+        cli, ["simulate", str(quick_demo / "config_truth.yaml"), "-o", str(out), "--preview", "none", *flags],
+        catch_exceptions=False)
+    res = simulate(tmp_path / "sim", "--object-only")
     assert res.exit_code == 0, res.output
     whole = load_ply(quick_demo / "scene.ply")
-    frames = sorted(out.glob("frame_*.ply"))
-    static, first = load_ply(out / STATIC_PLY), load_ply(frames[0])
-    assert len(frames) == 9 and len(static) + len(first) == len(whole) and len(static) and len(first)
-    res = CliRunner().invoke(cli, ["simulate", "--object-only", "-o", str(tmp_path / "p")])
-    assert res.exit_code == 2 and "--object-only needs a scene CONFIG" in res.output
+    frames = sorted((tmp_path / "sim").glob("frame_*.ply"))
+    static, last = load_ply(tmp_path / "sim" / "static.ply"), load_ply(frames[-1])
+    assert len(frames) == 9 and len(static) + len(last) == len(whole) and len(static) and len(last)
+    res = simulate(tmp_path / "small", "--object-only", "--compressed-ply")
+    assert res.exit_code == 0, res.output
+    packed = sorted((tmp_path / "small").glob("frame_*.compressed.ply"))
+    assert len(packed) == 9 and not list((tmp_path / "small").glob("frame_???.ply"))
+    for standard, small in ((last, load_ply(packed[-1])), (static, load_ply(tmp_path / "small" / "static.compressed.ply"))):
+        assert len(small) == len(standard)
+        extent = float((standard.means.max(0).values - standard.means.min(0).values).max())
+        distance = torch.cdist(small.means, standard.means).min(1).values  # the compressed file is in Morton order
+        assert float(distance.max()) < extent / 1000  # within a quantisation step (11 bits per chunk)
+    for flag in ("--object-only", "--compressed-ply"):
+        res = CliRunner().invoke(cli, ["simulate", flag, "-o", str(tmp_path / "p")])
+        assert res.exit_code == 2 and f"{flag} needs a scene CONFIG" in res.output
