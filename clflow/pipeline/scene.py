@@ -180,6 +180,21 @@ def guidance_camera(cfg: SceneConfig, camera: CameraConfig | None = None):
     from clflow.splat import cameras
 
     cam = cfg.camera if camera is None else camera
+    if cam.cameras_file is None and cam.colmap is None:
+        fov_x = 2 * math.atan(math.tan(math.radians(cam.fov_y_deg) / 2) * cam.width / cam.height)  # rad
+        scene_cam = cameras.look_at(cam.position, cam.look_at, cam.up, fov_x=fov_x, width=cam.width,
+                                    height=cam.height, name="guidance")
+        return to_simulation_camera(scene_cam, cfg)
+    loaded = file_camera(cfg, cam)
+    if cfg.dataparser_transforms is not None:  # capture frame -> the splat file's
+        loaded = cameras.transform_camera(loaded, *cameras.load_dataparser_transforms(cfg.dataparser_transforms))
+    return to_simulation_camera(loaded, cfg)
+
+
+def file_camera(cfg: SceneConfig, cam: CameraConfig):
+    """The camera ``cam`` names in a camera file or COLMAP model, in that file's frame."""
+    from clflow.splat import cameras
+
     if cam.cameras_file is not None:
         import json
 
@@ -192,13 +207,8 @@ def guidance_camera(cfg: SceneConfig, camera: CameraConfig | None = None):
         if not 0 <= cam.index < len(loaded):
             raise InputError(f"{cfg.source}: camera.index {cam.index} is outside the {len(loaded)} cameras of "
                              f"{cam.cameras_file.name}")
-        return to_simulation_camera(loaded[cam.index], cfg)
-    if cam.colmap is not None:
-        return to_simulation_camera(colmap_camera(cam.colmap, cam.image, cam.index, cfg.source), cfg)
-    fov_x = 2 * math.atan(math.tan(math.radians(cam.fov_y_deg) / 2) * cam.width / cam.height)  # rad
-    scene_cam = cameras.look_at(cam.position, cam.look_at, cam.up, fov_x=fov_x, width=cam.width, height=cam.height,
-                                name="guidance")
-    return to_simulation_camera(scene_cam, cfg)
+        return loaded[cam.index]
+    return colmap_camera(cam.colmap, cam.image, cam.index, cfg.source)
 
 
 def colmap_camera(folder, image: str | None, index: int, source):

@@ -332,6 +332,7 @@ class SceneConfig:
     velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the object's initial velocity, m/s, scene axes
     more_views: tuple[GuidanceView, ...] = ()  # views 1.. when camera and video are lists; view 0 is camera, video
     generate: GenerateSettings | None = None  # video: {generate: ...}; video is None until it is made
+    dataparser_transforms: Path | None = None  # nerfstudio's: camera files' frame -> the splat file's
 
 
 def _region(r: _Reader, data: Any, path: str, allow_all: bool) -> Region:
@@ -679,7 +680,7 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     top = r.section(data, "", TOP_KEYS)
     if not top:
         raise r.fail("", "the config is empty")
-    scene = r.section(top.get("scene"), "scene", ("scale", "up"))
+    scene = r.section(top.get("scene"), "scene", ("scale", "up", "dataparser_transforms"))
     obj = r.section(top.get("object"), "object", ("select", "fill", "velocity"))
     select = r.section(obj.get("select"), "object.select", ("box", "sphere", "mask", "ply", "tolerance"))
     if not select:
@@ -768,6 +769,7 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         ground_truth=dict(truth),
         velocity=r.vec3(obj, "velocity", "object", (0.0, 0.0, 0.0)),
         more_views=tuple(GuidanceView(c, v) for c, v in zip(cameras[1:], videos[1:])),
+        dataparser_transforms=r.file(scene, "dataparser_transforms", "scene", required=False),
         generate=_generate(r, top.get("video"), simulation),
     )
 
