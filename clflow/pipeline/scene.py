@@ -105,14 +105,15 @@ PART_TOLERANCE = 1e-5  # default match distance of a part's centres, as a fracti
 
 def part_mask(part_file, means_scene: torch.Tensor, tolerance: float | None = None) -> torch.Tensor:
     """Bool mask [N] of the Gaussians (centres means_scene [N, 3], scene units) that lie within
-    ``tolerance`` (scene units; None: PART_TOLERANCE of the scene's diagonal) of a Gaussian
-    centre of ``part_file``, a PLY of part of the same scene (as a splat editor exports it).
-    A part none of whose centres matches is an :class:`InputError`; one only some of whose
-    centres match is logged."""
+    ``tolerance`` (scene units; None: PART_TOLERANCE of the scene's diagonal, plus the
+    quantisation error of a compressed part) of a Gaussian centre of ``part_file``, a PLY
+    of part of the same scene (as a splat editor exports it). A part none of whose centres
+    matches is an :class:`InputError`; one only some of whose centres match is logged."""
     import logging
 
     from scipy.spatial import cKDTree
 
+    from clflow.splat.compressed_ply import is_compressed_ply, position_error
     from clflow.splat.ply import load_ply
 
     part = load_ply(part_file).means.double().numpy()
@@ -121,6 +122,8 @@ def part_mask(part_file, means_scene: torch.Tensor, tolerance: float | None = No
     scene = means_scene.double().numpy()
     if tolerance is None:
         tolerance = PART_TOLERANCE * float(np.linalg.norm(scene.max(0) - scene.min(0)))
+        if is_compressed_ply(part_file):
+            tolerance += position_error(part_file)
     mask = cKDTree(part).query(scene)[0] <= tolerance
     if not mask.any():
         nearest = cKDTree(scene).query(part)[0].min()

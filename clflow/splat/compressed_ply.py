@@ -166,6 +166,24 @@ def save_compressed_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
     write_ply_elements(path, elements, comment="clflow compressed 3DGS (PlayCanvas layout)")
 
 
+def is_compressed_ply(path: str | os.PathLike) -> bool:
+    """Whether the PLY file at ``path`` has the compressed layout (packed vertices)."""
+    from clflow.splat.ply import read_ply_vertices
+
+    return "packed_position" in read_ply_vertices(path).dtype.names
+
+
+def position_error(path: str | os.PathLike) -> float:
+    """The largest distance (file units) between a centre written to the compressed PLY at
+    ``path`` and the one it reads back: half a quantisation step on each axis of the
+    widest chunk."""
+    chunks = read_ply_elements(path, ("chunk",))["chunk"]
+    if not len(chunks):
+        return 0.0
+    span = np.stack([chunks[f"max_{a}"].astype(np.float64) - chunks[f"min_{a}"] for a in "xyz"], 1)
+    return float(np.linalg.norm(0.5 * span / (2.0 ** np.array(POSITION_BITS) - 1), axis=1).max())
+
+
 def load_compressed_ply(path: str | os.PathLike) -> Gaussians:
     """Read a compressed PLY (SuperSplat / PlayCanvas / :func:`save_compressed_ply`) as
     float32 :class:`Gaussians` in file order; opacities are kept inside (0, 1) by half a

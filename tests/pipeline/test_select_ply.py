@@ -8,8 +8,9 @@ import torch
 import yaml
 
 from clflow.errors import InputError
-from clflow.pipeline.scene import select_object
+from clflow.pipeline.scene import PART_TOLERANCE, select_object
 from clflow.scene.config import load_config
+from clflow.splat.compressed_ply import morton_order, save_compressed_ply
 from clflow.splat.gaussians import Gaussians
 from clflow.splat.ply import load_ply, save_ply
 
@@ -38,6 +39,15 @@ def test_a_part_selects_what_the_box_selects(quick_demo, tmp_path):
     save_part(tmp_path / "part.ply", scene, want, shift=1e-7)  # an editor's float rounding
     got = select_object(config_with(quick_demo, tmp_path, {"ply": "part.ply"}), scene.means.double())
     assert torch.equal(got, want)
+    # a compressed part (as SuperSplat exports it) matches within its quantisation error
+    part = load_ply(tmp_path / "part.ply")
+    save_compressed_ply(tmp_path / "part.compressed.ply", part)
+    moved = (load_ply(tmp_path / "part.compressed.ply").means - part.means[torch.from_numpy(
+        morton_order(part.means.numpy()))]).norm(dim=1).max()
+    diagonal = (scene.means.max(0).values - scene.means.min(0).values).norm()
+    assert moved > PART_TOLERANCE * diagonal  # farther than the default tolerance of a plain part
+    compressed = select_object(config_with(quick_demo, tmp_path, {"ply": "part.compressed.ply"}), scene.means.double())
+    assert torch.equal(compressed, want)
     # a loose tolerance takes neighbours too; an exact one nothing
     loose = select_object(config_with(quick_demo, tmp_path, {"ply": "part.ply", "tolerance": 0.05}), scene.means.double())
     assert int(loose.sum()) > int(want.sum()) and bool(loose[want].all())
