@@ -94,5 +94,5 @@ def rotate_sh(coeffs: torch.Tensor, rotations: torch.Tensor, chunk: int = 8192) 
         c = coeffs[start:start + chunk].double()
         turned = torch.einsum("nji,mj->nmi", R, dirs)  # R^T d for every Gaussian and direction
         values = sh_basis(degree, turned.reshape(-1, 3)).reshape(R.shape[0], dirs.shape[0], -1)  # [n, M, K]
-        out[start:start + chunk] = torch.einsum("km,nml,nlc->nkc", fit, values, c).to(coeffs.dtype)
+        out[start:start + chunk] = (fit @ (values @ c)).to(coeffs.dtype)  # values at dirs, then fitted
     return out
