@@ -224,7 +224,9 @@ def load_compressed_ply(path: str | os.PathLike) -> Gaussians:
             sh_degree_of(count // 3 + 1)
         except InputError as exc:
             raise InputError(f"{path}: {count} f_rest attributes: {exc}") from None
-        codes = np.stack([table[f"f_rest_{i}"].astype(np.float64) for i in range(count)], 1)
+        if any(table.dtype[name] != np.uint8 for name in table.dtype.names):
+            raise InputError(f"{path}: the sh element's properties must be uchar (one byte per coefficient)")
+        codes = np.stack([table[name].astype(np.float64) for name in table.dtype.names], 1)  # f_rest_0.. in file order
         unit = np.where(codes == 0, 0.0, np.where(codes == 255, 1.0, (codes + 0.5) / 256))
         rest = ((unit - 0.5) * 2 * SH_RANGE).reshape(n, 3, count // 3).transpose(0, 2, 1)
         sh = np.concatenate([sh, rest], 1)

@@ -116,4 +116,7 @@ def test_bad_compressed_files(tmp_path):
     (tmp_path / "chunks.ply").write_bytes(data.replace(b"element chunk 2", b"element chunk 1", 1))
     with pytest.raises(InputError, match=r"chunks.ply: 1 chunks for 300 Gaussians"):
         load_ply(tmp_path / "chunks.ply")
+    (tmp_path / "signed.ply").write_bytes(data.replace(b"property uchar f_rest_0\n", b"property char f_rest_0\n", 1))
+    with pytest.raises(InputError, match=r"signed.ply: the sh element's properties must be uchar"):
+        load_ply(tmp_path / "signed.ply")
     assert set(read_ply_elements(tmp_path / "g.ply", ("vertex",), optional=("sh", "nope"))) == {"vertex", "sh"}
