@@ -38,7 +38,8 @@ def simulate_scene(config_path: str, params_file: str | None, out_dir: str | Non
     """``clflow simulate CONFIG``: the config's scene (``settings``: ``--set KEY=VALUE``) with
     its material and initial velocity (or those of an optimisation's params.json), written as
     per-frame Gaussians (``object_only``: PLY frames of the object and static.ply once;
-    ``compressed``: as .compressed.ply) and a guidance-view video; ``max_substeps`` overrides the config's ``simulation.max_substeps``."""
+    ``compressed``: as .compressed.ply) and a guidance-view video; ``max_substeps``
+    overrides the config's ``simulation.max_substeps``."""
     import dataclasses
     import json
     import math

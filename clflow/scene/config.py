@@ -157,7 +157,8 @@ class Region:
 class Selection:
     """Which Gaussians form the object: a region in scene units, a mask file (.npy of N
     booleans or of indices), or a PLY of the part (its Gaussian centres matched to the
-    scene's within ``tolerance`` scene units; None: 1e-5 of the scene's diagonal)."""
+    scene's within ``tolerance`` scene units; None: 1e-5 of the scene's diagonal plus a
+    compressed part's quantisation error)."""
 
     region: Region | None
     mask: Path | None
