@@ -34,11 +34,12 @@ CONFIG_SUFFIXES = (".yaml", ".yml", ".json")
 
 def simulate_scene(config_path: str, params_file: str | None, out_dir: str | None, preview: str,
                    max_output_gb: float = DEFAULT_MAX_OUTPUT_GB, settings: tuple[str, ...] = (),
-                   max_substeps: int | None = None) -> None:
+                   max_substeps: int | None = None, object_only: bool = False, compressed: bool = False) -> None:
     """``clflow simulate CONFIG``: the config's scene (``settings``: ``--set KEY=VALUE``) with
     its material and initial velocity (or those of an optimisation's params.json), written as
-    per-frame Gaussians and a guidance-view video; ``max_substeps`` overrides the config's
-    ``simulation.max_substeps``."""
+    per-frame Gaussians (``object_only``: PLY frames of the object and static.ply once;
+    ``compressed``: as .compressed.ply) and a guidance-view video; ``max_substeps``
+    overrides the config's ``simulation.max_substeps``."""
     import dataclasses
     import json
     import math
@@ -77,10 +78,12 @@ def simulate_scene(config_path: str, params_file: str | None, out_dir: str | Non
     result = simulate_config(cfg, overrides, prepared, max_substeps=max_substeps or cfg.simulation.max_substeps)
     click.echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
     with atomic_dir(out) as tmp:  # all or nothing: a failure leaves OUT as it was
-        export_gaussians(result, tmp)
+        export_gaussians(result, tmp, object_only, compressed)
         if preview != "none":
             render_video(result, tmp / "guidance", video=tmp / "guidance.mp4" if preview == "mp4" else None)
-    click.echo(f"wrote {out / 'gaussians.npz'} and {result.x.shape[0]} PLY frames")
+    suffix = ".compressed.ply" if compressed else ".ply"
+    click.echo(f"wrote {out / 'gaussians.npz'} and {result.x.shape[0]} PLY frames ({out / ('frame_000' + suffix)} ...)"
+               + (f" of the object, the static scene in {out / ('static' + suffix)}" if object_only else ""))
     if preview != "none":
         click.echo(f"wrote {out / 'guidance.mp4' if preview == 'mp4' else out / 'guidance'}")
 
@@ -123,31 +126,40 @@ def simulate_scene(config_path: str, params_file: str | None, out_dir: str | Non
 @click.option("--max-substeps", type=click.IntRange(min=1), default=None,
               help="Refuse a run needing more substeps per frame [default: a config's simulation.max_substeps, "
                    "else 2000].")
+@click.option("--object-only", is_flag=True,
+              help="With a CONFIG: PLY frames of the object alone, the static Gaussians once in OUT/static.ply.")
+@click.option("--compressed-ply", "compressed", is_flag=True,
+              help="With a CONFIG: write the PLYs compressed (frame_000.compressed.ply ..., the format SuperSplat and "
+                   "PlayCanvas read), about a quarter of the size.")
 @click.pass_context
 def simulate(ctx, particles, shape, size, center, material, params, model, density, velocity, domain, resolution,
              particle_volume, frames, fps, substeps, gravity, walls, wall_friction, double, out_dir, params_file,
-             preview, max_output_gb, overrides, max_substeps):
+             preview, max_output_gb, overrides, max_substeps, object_only, compressed):
     """Simulate PARTICLES (.npz with 'positions' [N, 3] in m and optional 'volume' [N] in
     m^3, or a .ply point cloud) or a built-in shape, and write the per-frame positions
     (OUT/positions.npz: x [frames+1, N, 3], time [frames+1]) and a preview.
 
     Given a scene CONFIG (.yaml/.yml/.json) instead, simulate its object in its scene and
-    write per-frame Gaussians (OUT/gaussians.npz and OUT/frame_000.ply ...; see
-    `clflow render4d`) and the guidance camera's view."""
+    write per-frame Gaussians (OUT/gaussians.npz and OUT/frame_000.ply ..., the object's SH
+    rotated into each frame; see `clflow render4d`) and the guidance camera's view."""
     if particles and particles.lower().endswith(CONFIG_SUFFIXES):
         from click.core import ParameterSource
 
         particle_only = [p.opts[0] for p in ctx.command.params
                          if p.name not in ("particles", "out_dir", "params_file", "preview", "max_output_gb",
-                                           "overrides", "max_substeps")
+                                           "overrides", "max_substeps", "object_only", "compressed")
                          and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE]
         if particle_only:
             raise click.UsageError(f"with a scene config, the config sets the simulation; drop "
                                    f"{', '.join(particle_only)}")
-        simulate_scene(particles, params_file, out_dir, preview, max_output_gb, overrides, max_substeps)
+        simulate_scene(particles, params_file, out_dir, preview, max_output_gb, overrides, max_substeps, object_only,
+                       compressed)
         return
-    if params_file or overrides:
-        raise click.UsageError(f"{'--params' if params_file else '--set'} needs a scene CONFIG (.yaml/.yml/.json)")
+    config_only = [name for name, given in (("--params", params_file), ("--set", overrides),
+                                            ("--object-only", object_only), ("--compressed-ply", compressed))
+                   if given]
+    if config_only:
+        raise click.UsageError(f"{', '.join(config_only)} needs a scene CONFIG (.yaml/.yml/.json)")
     out_dir = out_dir or "simulation"
     import logging
     from pathlib import Path

@@ -12,9 +12,12 @@ and the static ones once::
     scale, up_rotation [3, 3]           x_sim = scale * up_rotation @ x_file
 
 ``frame_000.ply ...`` are standard 3DGS PLY files in the splat file's own frame and units,
-so they overlay the input scene in any 3DGS viewer. A PLY cannot say that a Gaussian's SH
-turned with it, so the view-dependent part (degree >= 1) of a deformed Gaussian's colour is
-exact only in the npz (whose renders apply ``sh_rotations``); degree 0 is exact in both.
+so they overlay the input scene in any 3DGS viewer: the whole scene per frame, or (object
+only) the object per frame and ``static.ply`` once; or the same as ``.compressed.ply``
+(SuperSplat / PlayCanvas). A PLY cannot say that a Gaussian's SH
+turned with it, so the object's SH coefficients are written rotated into each frame
+(:func:`clflow.splat.sh.rotate_sh`): a viewer shows the view-dependent colours clflow's
+renders show.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from clflow.fileio import atomic_path, load_arrays
 from clflow.pipeline.scene import SceneGaussians, to_file_frame, up_rotation
 
 NPZ_NAME = "gaussians.npz"
+STATIC_NAME = "static"  # static.ply: the static Gaussians, once, next to object-only frames
 
 
 @dataclass
@@ -87,11 +91,16 @@ def export_size(prepared, frames: int, preview: bool) -> tuple[int, int]:
     return (frames + 1) * per_frame, (frames + 1) * held
 
 
-def export_gaussians(result, folder: Path) -> None:
+def export_gaussians(result, folder: Path, object_only: bool = False, compressed: bool = False) -> None:
     """Write ``folder/gaussians.npz`` and ``folder/frame_000.ply ...`` of a
-    :class:`clflow.pipeline.forward.SimulationResult`, each file atomically."""
-    from clflow.splat.gaussians import Gaussians, rotmat_to_quat
+    :class:`clflow.pipeline.forward.SimulationResult`, each file atomically. With
+    ``object_only`` the PLY frames hold the object alone and ``folder/static.ply`` the
+    static Gaussians, once; ``compressed``: the PLYs in the compressed layout
+    (``frame_000.compressed.ply``, :mod:`clflow.splat.compressed_ply`)."""
+    from clflow.splat.compressed_ply import save_compressed_ply
     from clflow.splat.ply import save_ply
+
+    save, suffix = (save_compressed_ply, ".compressed.ply") if compressed else (save_ply, ".ply")
 
     prepared = result.prepared
     cfg, static = prepared.cfg, prepared.static
@@ -114,15 +123,32 @@ def export_gaussians(result, folder: Path) -> None:
     arrays["sh" if first.sh is not None else "colors"] = f32(first.sh if first.sh is not None else first.colors)
     with atomic_path(folder / NPZ_NAME) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **arrays)
-    R_up = up_rotation(cfg.up)
+    if object_only:
+        save(folder / f"{STATIC_NAME}{suffix}", file_gaussians(static, cfg.scale, cfg.up, turned=0))
     for t, g in enumerate(frames):
-        # back to the file's frame, then diagonalise each covariance into scales and a rotation
-        means, covs = to_file_frame(g.means.double(), g.covariances.double(), R_up, cfg.scale)
-        variances, axes = torch.linalg.eigh(covs)
-        axes = axes * torch.sign(torch.det(axes))[:, None, None]  # proper rotations
-        save_ply(folder / f"frame_{t:03d}.ply", Gaussians.from_activated(
-            means, rotmat_to_quat(axes), variances.clamp(min=1e-20).sqrt(), g.opacities.double().clamp(1e-6, 1 - 1e-6),
-            sh=None if g.sh is None else g.sh.double(), colors=None if g.colors is None else g.colors.double()))
+        save(folder / f"frame_{t:03d}{suffix}",
+             file_gaussians(g.take(torch.arange(n)) if object_only else g, cfg.scale, cfg.up, turned=n))
+
+
+def file_gaussians(g: SceneGaussians, scale: float, up: str, turned: int):
+    """Simulation-frame Gaussians as :class:`clflow.splat.gaussians.Gaussians` in the splat
+    file's frame and units (x_file = R_up^T x_sim / scale), each covariance diagonalised into
+    scales and a rotation. The SH of the first ``turned`` (the object's) are rotated by their
+    turn since rest, R_up^T sh_rotations, so that a renderer without ``sh_rotations`` shows
+    what clflow renders; the others' rotation is the frame change alone."""
+    from clflow.splat.gaussians import Gaussians, rotmat_to_quat
+    from clflow.splat.sh import rotate_sh
+
+    R_up = up_rotation(up)
+    means, covs = to_file_frame(g.means.double(), g.covariances.double(), R_up, scale)
+    variances, axes = torch.linalg.eigh(covs)
+    axes = axes * torch.sign(torch.det(axes))[:, None, None]  # proper rotations
+    sh = None if g.sh is None else g.sh.double()
+    if sh is not None and turned:
+        sh = torch.cat([rotate_sh(sh[:turned], R_up.T @ g.sh_rotations[:turned].double()), sh[turned:]])
+    return Gaussians.from_activated(
+        means, rotmat_to_quat(axes), variances.clamp(min=1e-20).sqrt(), g.opacities.double().clamp(1e-6, 1 - 1e-6),
+        sh=sh, colors=None if g.colors is None else g.colors.double())
 
 
 def load_frames(folder: str | Path) -> Frames4D:
@@ -215,4 +241,4 @@ def render_4d(frames: Frames4D, out: Path, *, views: int = 0, turns: float = 1.0
     return [out / f"{name}.{video_format}" for name in sequences]
 
 
-__all__ = ["Frames4D", "export_gaussians", "export_size", "load_frames", "orbit_cameras", "render_4d", "render_4d_frames", "render_4d_size"]
+__all__ = ["Frames4D", "export_gaussians", "export_size", "file_gaussians", "load_frames", "orbit_cameras", "render_4d", "render_4d_frames", "render_4d_size"]

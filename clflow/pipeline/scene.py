@@ -91,11 +91,50 @@ def select_object(cfg: SceneConfig, means_scene: torch.Tensor) -> torch.Tensor:
             mask[torch.from_numpy(raw.astype(np.int64))] = True
         else:
             raise InputError(f"{sel.mask}: expected {n} booleans or a list of indices, got {raw.dtype} {raw.shape}")
+    elif sel.ply is not None:
+        mask = part_mask(sel.ply, means_scene, sel.tolerance)
     else:
         mask = region_mask(sel.region, means_scene)
     if not bool(mask.any()):
         raise InputError(f"{cfg.source}: object.select selects no Gaussian of {cfg.splats.name}")
     return mask
+
+
+PART_TOLERANCE = 1e-5  # default match distance of a part's centres, as a fraction of the scene's diagonal
+
+
+def part_mask(part_file, means_scene: torch.Tensor, tolerance: float | None = None) -> torch.Tensor:
+    """Bool mask [N] of the Gaussians (centres means_scene [N, 3], scene units) that lie within
+    ``tolerance`` (scene units; None: PART_TOLERANCE of the scene's diagonal, plus the
+    quantisation error of a compressed part) of a Gaussian centre of ``part_file``, a PLY
+    of part of the same scene (as a splat editor exports it). A part none of whose centres
+    matches is an :class:`InputError`; one only some of whose centres match is logged."""
+    import logging
+
+    from scipy.spatial import cKDTree
+
+    from clflow.splat.compressed_ply import is_compressed_ply, position_error
+    from clflow.splat.ply import load_ply
+
+    part = load_ply(part_file).means.double().numpy()
+    if not len(part):
+        raise InputError(f"{part_file}: holds no Gaussians")
+    scene = means_scene.double().numpy()
+    if tolerance is None:
+        tolerance = PART_TOLERANCE * float(np.linalg.norm(scene.max(0) - scene.min(0)))
+        if is_compressed_ply(part_file):
+            tolerance += position_error(part_file)
+    mask = cKDTree(part).query(scene)[0] <= tolerance
+    if not mask.any():
+        nearest = cKDTree(scene).query(part)[0].min()
+        raise InputError(f"{part_file}: none of its {len(part)} Gaussian centres lies within {tolerance:.3g} scene units "
+                         f"of the scene's (nearest {nearest:.3g}): not a part of this splat file, or moved since "
+                         f"(raise object.select.tolerance if it was only rounded)")
+    unmatched = int((cKDTree(scene[mask]).query(part)[0] > tolerance).sum())
+    if unmatched:
+        logging.getLogger(__name__).warning("%s: %d of its %d Gaussian centres match no Gaussian of the scene within "
+                                            "%.3g scene units", part_file, unmatched, len(part), tolerance)
+    return torch.from_numpy(mask)
 
 
 def check_object_sizes(cfg: SceneConfig, means: torch.Tensor, scales: torch.Tensor, mask: torch.Tensor) -> None:
@@ -161,6 +200,21 @@ def guidance_camera(cfg: SceneConfig, camera: CameraConfig | None = None):
     from clflow.splat import cameras
 
     cam = cfg.camera if camera is None else camera
+    if cam.cameras_file is None and cam.colmap is None:
+        fov_x = 2 * math.atan(math.tan(math.radians(cam.fov_y_deg) / 2) * cam.width / cam.height)  # rad
+        scene_cam = cameras.look_at(cam.position, cam.look_at, cam.up, fov_x=fov_x, width=cam.width,
+                                    height=cam.height, name="guidance")
+        return to_simulation_camera(scene_cam, cfg)
+    loaded = file_camera(cfg, cam)
+    if cfg.dataparser_transforms is not None:  # capture frame -> the splat file's
+        loaded = cameras.transform_camera(loaded, *cameras.load_dataparser_transforms(cfg.dataparser_transforms))
+    return to_simulation_camera(loaded, cfg)
+
+
+def file_camera(cfg: SceneConfig, cam: CameraConfig):
+    """The camera ``cam`` names in a camera file or COLMAP model, in that file's frame."""
+    from clflow.splat import cameras
+
     if cam.cameras_file is not None:
         import json
 
@@ -173,11 +227,26 @@ def guidance_camera(cfg: SceneConfig, camera: CameraConfig | None = None):
         if not 0 <= cam.index < len(loaded):
             raise InputError(f"{cfg.source}: camera.index {cam.index} is outside the {len(loaded)} cameras of "
                              f"{cam.cameras_file.name}")
-        return to_simulation_camera(loaded[cam.index], cfg)
-    fov_x = 2 * math.atan(math.tan(math.radians(cam.fov_y_deg) / 2) * cam.width / cam.height)  # rad
-    scene_cam = cameras.look_at(cam.position, cam.look_at, cam.up, fov_x=fov_x, width=cam.width, height=cam.height,
-                                name="guidance")
-    return to_simulation_camera(scene_cam, cfg)
+        return loaded[cam.index]
+    return colmap_camera(cam.colmap, cam.image, cam.index, cfg.source)
+
+
+def colmap_camera(folder, image: str | None, index: int, source):
+    """The camera of the COLMAP sparse model in ``folder`` that took ``image`` (a file name),
+    else its ``index``-th image in name order (scene units)."""
+    from clflow.recon.colmap import model_cameras, read_model
+
+    loaded = model_cameras(read_model(folder), str(folder))
+    names = [c.name for c in loaded]
+    if image is not None:
+        if image not in names:
+            listed = ", ".join(names[:5]) + (f" ... ({len(names)} images)" if len(names) > 5 else "")
+            raise InputError(f"{source}: camera.image {image!r} is not an image of the COLMAP model {folder} ({listed})")
+        return loaded[names.index(image)]
+    if not 0 <= index < len(loaded):
+        raise InputError(f"{source}: camera.index {index} is outside the {len(loaded)} images of the COLMAP model "
+                         f"{folder}")
+    return loaded[index]
 
 
 def deformed_object(rest: SceneGaussians, x: torch.Tensor, F: torch.Tensor) -> SceneGaussians:

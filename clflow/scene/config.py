@@ -162,11 +162,15 @@ class Region:
 
 @dataclass(frozen=True)
 class Selection:
-    """Which Gaussians form the object: a region in scene units, or a mask file (.npy of N
-    booleans or of indices)."""
+    """Which Gaussians form the object: a region in scene units, a mask file (.npy of N
+    booleans or of indices), or a PLY of the part (its Gaussian centres matched to the
+    scene's within ``tolerance`` scene units; None: 1e-5 of the scene's diagonal plus a
+    compressed part's quantisation error)."""
 
     region: Region | None
     mask: Path | None
+    ply: Path | None = None
+    tolerance: float | None = None
 
 
 @dataclass(frozen=True)
@@ -230,10 +234,13 @@ class SimulationSettings:
 
 @dataclass(frozen=True)
 class CameraConfig:
-    """A camera from a 3DGS cameras.json / NeRF transforms.json entry, or explicit."""
+    """A camera from a 3DGS cameras.json / NeRF transforms.json entry, from an image of a
+    COLMAP sparse model (by name, or ``index`` in name order), or explicit."""
 
     cameras_file: Path | None = None
     index: int = 0
+    colmap: Path | None = None  # a sparse model folder (cameras, images as .bin or .txt)
+    image: str | None = None  # the COLMAP image's name
     position: tuple[float, float, float] | None = None  # scene units
     look_at: tuple[float, float, float] | None = None
     up: tuple[float, float, float] = (0.0, 1.0, 0.0)
@@ -334,6 +341,7 @@ class SceneConfig:
     velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the object's initial velocity, m/s, scene axes
     more_views: tuple[GuidanceView, ...] = ()  # views 1.. when camera and video are lists; view 0 is camera, video
     generate: GenerateSettings | None = None  # video: {generate: ...}; video is None until it is made
+    dataparser_transforms: Path | None = None  # nerfstudio's: camera files' frame -> the splat file's
 
 
 def _region(r: _Reader, data: Any, path: str, allow_all: bool) -> Region:
@@ -470,18 +478,33 @@ def _simulation(r: _Reader, data: Any) -> SimulationSettings:
 
 
 def _camera(r: _Reader, data: Any, p: str = "camera") -> CameraConfig:
-    body = r.section(data, p, ("file", "index", "position", "look_at", "up", "fov_y_deg", "width", "height"))
-    if body.get("file") is None and body.get("position") is None:
-        raise r.fail(p, "give a camera file (cameras.json / transforms.json) or position and look_at")
-    explicit = body.get("file") is None
+    body = r.section(data, p, ("file", "colmap", "image", "index", "position", "look_at", "up", "fov_y_deg", "width",
+                               "height"))
+    sources = [k for k in ("file", "colmap") if body.get(k) is not None]
+    if not sources and body.get("position") is None:
+        raise r.fail(p, "give a camera file (cameras.json / transforms.json), a COLMAP model (colmap) or position "
+                        "and look_at")
+    if len(sources) > 1:
+        raise r.fail(p, "give file or colmap, not both")
+    explicit = not sources
     ignored = [k for k in ("position", "look_at", "up", "fov_y_deg", "width", "height") if k in body]
     if not explicit and ignored:
-        raise r.fail(p, f"with a camera file, {', '.join(ignored)} come from the file: drop them")
+        what = "file" if sources[0] == "file" else "model"
+        raise r.fail(p, f"with a camera {what}, {', '.join(ignored)} come from the {what}: drop them")
     if explicit and "index" in body:
-        raise r.fail(f"{p}.index", "picks an entry of a camera file: give file as well, or drop it")
+        raise r.fail(f"{p}.index", "picks an entry of a camera file or model: give file or colmap as well, or drop it")
+    if "image" in body and "colmap" not in body:
+        raise r.fail(f"{p}.image", "names an image of a COLMAP model: give colmap as well, or drop it")
+    if "image" in body and "index" in body:
+        raise r.fail(p, "give image or index, not both")
+    image = body.get("image")
+    if image is not None and (not isinstance(image, str) or not image):
+        raise r.fail(f"{p}.image", f"must be an image name of the COLMAP model, got {image!r}")
     return CameraConfig(
         cameras_file=r.file(body, "file", p, required=False),
         index=r.integer(body, "index", p, 0),
+        colmap=r.file(body, "colmap", p, required=False, folder_ok=True),
+        image=image,
         position=r.vec3(body, "position", p) if explicit else None,
         look_at=r.vec3(body, "look_at", p) if explicit else None,
         up=r.vec3(body, "up", p, (0.0, 1.0, 0.0)),
@@ -666,15 +689,21 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     top = r.section(data, "", TOP_KEYS)
     if not top:
         raise r.fail("", "the config is empty")
-    scene = r.section(top.get("scene"), "scene", ("scale", "up"))
+    scene = r.section(top.get("scene"), "scene", ("scale", "up", "dataparser_transforms"))
     obj = r.section(top.get("object"), "object", ("select", "fill", "velocity"))
-    select = r.section(obj.get("select"), "object.select", ("box", "sphere", "mask"))
+    select = r.section(obj.get("select"), "object.select", ("box", "sphere", "mask", "ply", "tolerance"))
     if not select:
-        raise r.fail("object.select", "is required: a box, a sphere or a mask file")
+        raise r.fail("object.select", "is required: a box, a sphere, a mask file or a PLY of the part")
+    if "tolerance" in select and "ply" not in select:
+        raise r.fail("object.select.tolerance", "applies to a ply selection only: drop it")
+    if len(set(select) & {"box", "sphere", "mask", "ply"}) > 1:
+        raise r.fail("object.select", "give exactly one of box, sphere, mask and ply")
     if "mask" in select:
-        if len(select) > 1:
-            raise r.fail("object.select", "give exactly one of box, sphere and mask")
         selection = Selection(None, r.file(select, "mask", "object.select"))
+    elif "ply" in select:
+        tolerance = select.get("tolerance")
+        selection = Selection(None, None, r.file(select, "ply", "object.select"), None if tolerance is None else
+                              r.number(select, "tolerance", "object.select", low=0.0, strict_low=True))
     else:
         selection = Selection(_region(r, select, "object.select", allow_all=False), None)
     fill_in = r.section(obj.get("fill"), "object.fill", ("enabled", "spacing", "per_axis"))
@@ -751,6 +780,7 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         ground_truth=dict(truth),
         velocity=r.vec3(obj, "velocity", "object", (0.0, 0.0, 0.0)),
         more_views=tuple(GuidanceView(c, v) for c, v in zip(cameras[1:], videos[1:])),
+        dataparser_transforms=r.file(scene, "dataparser_transforms", "scene", required=False),
         generate=_generate(r, top.get("video"), simulation),
     )
 

@@ -369,6 +369,36 @@ def load_transforms_json(path: str | os.PathLike, *, width: int | None = None, h
     return cameras
 
 
+def load_dataparser_transforms(path: str | os.PathLike) -> tuple[torch.Tensor, float]:
+    """nerfstudio's ``dataparser_transforms.json``: ``transform`` [3, 4] = [R | t] (a proper
+    rotation and a translation) and ``scale`` s > 0, which took the capture's world frame to
+    the model's (a splatfacto PLY export's): x_model = s (R x + t)."""
+    data = _read_json(path)
+    if not isinstance(data, dict) or "transform" not in data or "scale" not in data:
+        raise InputError(f"{path}: expected nerfstudio's dataparser transforms: an object with 'transform' (3x4) "
+                         f"and 'scale'")
+    transform = _matrix(data["transform"], (3, 4), f"{path}: transform")
+    scale = _number(data, "scale", str(path))
+    if scale <= 0:
+        raise InputError(f"{path}: 'scale' must be > 0, got {scale:g}")
+    R = transform[:, :3]
+    error = (R @ R.T - torch.eye(3, dtype=torch.float64)).abs().max().item()
+    if error > ORTHONORMAL_TOLERANCE or torch.linalg.det(R) < 0:
+        raise InputError(f"{path}: the transform's 3x3 part is not a rotation (max |R R^T - I| = {error:.3g}, "
+                         f"det {torch.linalg.det(R).item():.3g})")
+    return transform, scale
+
+
+def transform_camera(camera: Camera, transform: torch.Tensor, scale: float) -> Camera:
+    """The camera seen in the frame x' = scale (R x + t), ``transform`` = [R | t] [3, 4]:
+    the same pixels; depths scale by ``scale``."""
+    R, t = transform[:, :3], transform[:, 3]
+    view = torch.eye(4, dtype=torch.float64)
+    view[:3, :3] = camera.viewmat[:3, :3] @ R.T
+    view[:3, 3] = scale * (camera.viewmat[:3, 3] - view[:3, :3] @ t)
+    return Camera(view, camera.K.clone(), camera.width, camera.height, camera.name)
+
+
 def _located(fn, where: str, *args) -> Camera:
     """Call ``fn``; prefix an :class:`InputError` with the file location ``where``."""
     try:

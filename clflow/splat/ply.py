@@ -36,7 +36,7 @@ PLY_TYPES = {
     "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }  # fmt: skip
-PLY_NAME_OF = {"f4": "float", "f8": "double", "u1": "uchar", "i4": "int"}  # types save writes
+PLY_NAME_OF = {"f4": "float", "f8": "double", "u1": "uchar", "i4": "int", "u4": "uint"}  # types save writes
 FORMATS = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": "ascii"}
 MAX_HEADER_BYTES = 1 << 20
 COLOR_NAMES = (("red", "green", "blue"), ("r", "g", "b"))
@@ -60,6 +60,15 @@ def read_ply_vertices(path: str | os.PathLike) -> np.ndarray:
     skipped. Raises :class:`InputError` naming the file for a malformed header, a missing
     vertex element or truncated data.
     """
+    return read_ply_elements(path, ("vertex",))["vertex"]
+
+
+def read_ply_elements(path: str | os.PathLike, wanted: tuple[str, ...],
+                      optional: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """The elements named ``wanted`` (and those of ``optional`` the file has) of a PLY file,
+    each a structured array in the file's types (native byte order); the others are
+    skipped. ASCII files give the vertex element only. Raises :class:`InputError` naming the file for a malformed header, a missing
+    element, list properties before or in a wanted element, or truncated data."""
     path = Path(path)
     try:
         data = path.read_bytes()
@@ -67,28 +76,34 @@ def read_ply_vertices(path: str | os.PathLike) -> np.ndarray:
         raise InputError(f"{path}: cannot read PLY file ({exc.strerror})") from None
     fmt, elements, body_start = _parse_header(data, path)
     names = [e.name for e in elements]
-    if "vertex" not in names:
-        raise InputError(f"{path}: no 'vertex' element (elements: {', '.join(names) or 'none'})")
-    before = elements[: names.index("vertex")]
-    vertex = elements[names.index("vertex")]
-    if vertex.has_list:
-        raise InputError(f"{path}: the vertex element has list properties, which clflow does not read")
+    wanted = tuple(wanted) + tuple(name for name in optional if name in names)
+    for name in wanted:
+        if name not in names:
+            raise InputError(f"{path}: no '{name}' element (elements: {', '.join(names) or 'none'})")
+        if elements[names.index(name)].has_list:
+            raise InputError(f"{path}: the {name} element has list properties, which clflow does not read")
     if fmt == "ascii":
-        return _read_ascii(data[body_start:], before, vertex, path)
-    offset = body_start
-    for element in before:
+        if tuple(wanted) != ("vertex",):
+            raise InputError(f"{path}: an ASCII PLY; clflow reads the {', '.join(wanted)} elements from binary files only")
+        return {"vertex": _read_ascii(data[body_start:], elements[: names.index("vertex")],
+                                      elements[names.index("vertex")], path)}
+    tables, offset = {}, body_start
+    for element in elements[: 1 + max(names.index(name) for name in wanted)]:
         if element.has_list:
-            raise InputError(f"{path}: element '{element.name}' before 'vertex' has list properties; not supported")
-        offset += element.count * _dtype(element, fmt).itemsize
-    dtype = _dtype(vertex, fmt)
-    available = len(data) - offset
-    if available < vertex.count * dtype.itemsize:
-        raise InputError(
-            f"{path}: truncated: the header declares {vertex.count} vertices of {dtype.itemsize} bytes "
-            f"({vertex.count * dtype.itemsize} bytes) but only {max(available, 0)} bytes follow"
-        )
-    table = np.frombuffer(data, dtype=dtype, count=vertex.count, offset=offset)
-    return table.astype(_dtype(vertex, "="), copy=False)  # read-only view when already native
+            raise InputError(f"{path}: element '{element.name}' before '{wanted[0]}' has list properties; not supported")
+        dtype = _dtype(element, fmt)
+        if element.name in wanted:
+            available = len(data) - offset
+            if available < element.count * dtype.itemsize:
+                plural = "vertices" if element.name == "vertex" else f"{element.name} entries"
+                raise InputError(
+                    f"{path}: truncated: the header declares {element.count} {plural} of {dtype.itemsize} bytes "
+                    f"({element.count * dtype.itemsize} bytes) but only {max(available, 0)} bytes follow"
+                )
+            table = np.frombuffer(data, dtype=dtype, count=element.count, offset=offset)
+            tables[element.name] = table.astype(_dtype(element, "="), copy=False)  # read-only view when already native
+        offset += element.count * dtype.itemsize
+    return tables
 
 
 def write_ply_vertices(path: str | os.PathLike, table: np.ndarray, *, ascii: bool = False) -> None:
@@ -97,25 +112,35 @@ def write_ply_vertices(path: str | os.PathLike, table: np.ndarray, *, ascii: boo
     Binary little-endian by default (as every 3DGS trainer writes it), or ASCII with
     float32 values in 9 significant digits (enough to read back the same bits).
     """
-    if table.dtype.names is None or table.ndim != 1:
-        raise InputError(f"write_ply_vertices takes a 1-D structured array, got {table.dtype} {table.shape}")
-    codes = [table.dtype[name].str[1:] for name in table.dtype.names]
-    unknown = [f"{name} ({code})" for name, code in zip(table.dtype.names, codes) if code not in PLY_NAME_OF]
-    if unknown:
-        raise InputError(f"cannot write PLY properties of these types: {', '.join(unknown)}")
-    header = ["ply", f"format {'ascii' if ascii else 'binary_little_endian'} 1.0", f"element vertex {len(table)}"]
-    header += [f"property {PLY_NAME_OF[code]} {name}" for name, code in zip(table.dtype.names, codes)]
+    write_ply_elements(path, {"vertex": table}, ascii=ascii)
+
+
+def write_ply_elements(path: str | os.PathLike, elements: dict[str, np.ndarray], *, ascii: bool = False,
+                       comment: str | None = None) -> None:
+    """Write structured arrays as PLY elements in the order given (one property per field),
+    atomically: binary little-endian, or ASCII (float32 in 9 significant digits)."""
+    header = ["ply", f"format {'ascii' if ascii else 'binary_little_endian'} 1.0"]
+    header += [f"comment {comment}"] if comment else []
+    bodies = []
+    for name, table in elements.items():
+        if table.dtype.names is None or table.ndim != 1:
+            raise InputError(f"write_ply_elements takes 1-D structured arrays, got {table.dtype} {table.shape}")
+        codes = [table.dtype[field].str[1:] for field in table.dtype.names]
+        unknown = [f"{field} ({code})" for field, code in zip(table.dtype.names, codes) if code not in PLY_NAME_OF]
+        if unknown:
+            raise InputError(f"cannot write PLY properties of these types: {', '.join(unknown)}")
+        header.append(f"element {name} {len(table)}")
+        header += [f"property {PLY_NAME_OF[code]} {field}" for field, code in zip(table.dtype.names, codes)]
+        if ascii:
+            formats = ["%.9g" if c == "f4" else "%.17g" if c == "f8" else "%d" for c in codes]
+            lines = [" ".join(f % v for f, v in zip(formats, row)) for row in table.tolist()]
+            bodies.append(("\n".join(lines) + ("\n" if lines else "")).encode("ascii"))
+        else:
+            little = np.dtype([(field, "<" + code) for field, code in zip(table.dtype.names, codes)])
+            bodies.append(table.astype(little, copy=False).tobytes())
     header.append("end_header")
-    head = ("\n".join(header) + "\n").encode("ascii")
-    if ascii:
-        formats = ["%.9g" if c == "f4" else "%.17g" if c == "f8" else "%d" for c in codes]
-        lines = [" ".join(f % v for f, v in zip(formats, row)) for row in table.tolist()]
-        body = ("\n".join(lines) + ("\n" if lines else "")).encode("ascii")
-    else:
-        little = np.dtype([(name, "<" + code) for name, code in zip(table.dtype.names, codes)])
-        body = table.astype(little, copy=False).tobytes()
     with atomic_path(path) as tmp:
-        tmp.write_bytes(head + body)
+        tmp.write_bytes(("\n".join(header) + "\n").encode("ascii") + b"".join(bodies))
 
 
 def _parse_header(data: bytes, path: Path) -> tuple[str, list[_Element], int]:
@@ -207,7 +232,8 @@ def gaussian_property_names(sh_degree: int, feature_names: tuple[str, ...] = ())
 
 
 def load_ply(path: str | os.PathLike, *, point_scale: float | None = None, point_opacity: float = 0.1) -> Gaussians:
-    """Read Gaussians from a 3DGS PLY file, or from a plain ``x y z [red green blue]`` point cloud.
+    """Read Gaussians from a 3DGS PLY file, a compressed one (SuperSplat / PlayCanvas,
+    :mod:`clflow.splat.compressed_ply`), or a plain ``x y z [red green blue]`` point cloud.
 
     Values are float32 (the file's precision). Vertex properties beyond the 3DGS set
     (other than normals) become ``features`` named after them. A point cloud becomes
@@ -220,6 +246,10 @@ def load_ply(path: str | os.PathLike, *, point_scale: float | None = None, point
     table = read_ply_vertices(path)
     where = str(path)
     names = list(table.dtype.names)
+    if "packed_position" in names:
+        from clflow.splat.compressed_ply import load_compressed_ply
+
+        return load_compressed_ply(path)
     values = _float32_matrix(table)  # [N, P], one column per property
     finite = np.isfinite(values)
     if not finite.all():
@@ -230,8 +260,6 @@ def load_ply(path: str | os.PathLike, *, point_scale: float | None = None, point
             f"(first: vertex {bad[0]}, {values[bad[0], j]})"
         )
     missing_xyz = [a for a in ("x", "y", "z") if a not in names]
-    if "packed_position" in names:
-        raise InputError(f"{where}: a compressed (SuperSplat/PlayCanvas) PLY; clflow reads uncompressed 3DGS PLY files")
     if missing_xyz:
         raise InputError(f"{where}: vertex element has no {', '.join(missing_xyz)} (properties: {', '.join(names)})")
     column = {name: j for j, name in enumerate(names)}

@@ -60,3 +60,39 @@ def sh_to_rgb(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Te
     basis = sh_basis(degree, dirs)  # [N, K]
     rgb = torch.einsum("nk,nkc->nc", basis, coeffs[:, : basis.shape[1]])
     return torch.clamp_min(rgb + 0.5, 0.0)
+
+
+def _sample_directions(count: int) -> torch.Tensor:
+    """``count`` unit directions [count, 3] (float64) spread over the sphere (Fibonacci
+    lattice): a set on which the degree <= 3 basis has full column rank."""
+    i = torch.arange(count, dtype=torch.float64) + 0.5
+    z = 1 - 2 * i / count
+    phi = torch.pi * (3 - 5**0.5) * i
+    r = (1 - z * z).sqrt()
+    return torch.stack([r * phi.cos(), r * phi.sin(), z], -1)
+
+
+def rotate_sh(coeffs: torch.Tensor, rotations: torch.Tensor, chunk: int = 8192) -> torch.Tensor:
+    """SH coefficients [N, K, 3] turned by rotations R [N, 3, 3]: the result seen along d
+    equals ``coeffs`` seen along R^T d (what the rasteriser's ``sh_rotations`` does), so a
+    file without rotations shows the same colours. Returned in coeffs' dtype, computed in
+    float64.
+
+    Exact: a rotated function of degree <= L is again one of degree <= L, so its coefficients
+    are the least-squares fit of its values at 2 (L + 1)^2 fixed directions, on which the
+    basis has full column rank (equivalent to the Wigner-D matrices of each band). Degree 0
+    does not change.
+    """
+    degree = round(coeffs.shape[1] ** 0.5) - 1
+    if degree == 0 or coeffs.shape[0] == 0:
+        return coeffs.clone()
+    dirs = _sample_directions(2 * coeffs.shape[1])  # [M, 3]
+    fit = torch.linalg.pinv(sh_basis(degree, dirs))  # [K, M]: values at dirs -> coefficients
+    out = torch.empty_like(coeffs)
+    for start in range(0, coeffs.shape[0], chunk):
+        R = rotations[start:start + chunk].double()
+        c = coeffs[start:start + chunk].double()
+        turned = torch.einsum("nji,mj->nmi", R, dirs)  # R^T d for every Gaussian and direction
+        values = sh_basis(degree, turned.reshape(-1, 3)).reshape(R.shape[0], dirs.shape[0], -1)  # [n, M, K]
+        out[start:start + chunk] = (fit @ (values @ c)).to(coeffs.dtype)  # values at dirs, then fitted
+    return out

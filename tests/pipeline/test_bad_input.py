@@ -124,6 +124,37 @@ def garbage_mask(c: Case) -> str:
     return c.config("garbage_mask", **{"object.select": {"mask": "garbage.npy"}})
 
 
+def moved_part(c: Case) -> str:
+    """A config selecting the object by a PLY of the demo's Gaussians moved 0.3 scene units."""
+    from clflow.splat.gaussians import Gaussians
+    from clflow.splat.ply import load_ply, save_ply
+
+    g = load_ply(c.demo / "scene.ply")
+    save_ply(c.demo / "moved_part.ply", Gaussians(g.means + 0.3, g.quats, g.log_scales, g.opacity_logits, sh=g.sh))
+    return c.config("moved_part", **{"object.select": {"ply": "moved_part.ply"}})
+
+
+def colmap_camera(c: Case) -> str:
+    """A config whose camera is an image the demo's COLMAP model (one image, a.png) lacks."""
+    from clflow.splat.cameras import look_at
+    from tests.recon._helpers import model_of, write_bin
+
+    write_bin(c.demo / "sparse", model_of([look_at((0, 0.3, 1), (0, 0, 0), (0, 1, 0), fov_x=1.0, width=64, height=48,
+                                                   name="a.png")]))
+    return c.config("colmap_camera", camera={"colmap": "sparse", "image": "b.png"})
+
+
+def stretching_dataparser(c: Case) -> str:
+    """A config with a camera file and a dataparser transform that stretches (no rotation)."""
+    import json
+
+    (c.demo / "cams.json").write_text(json.dumps({"fl_x": 50, "w": 64, "h": 48, "frames": [
+        {"transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2], [0, 0, 0, 1]]}]}))
+    (c.demo / "stretch.json").write_text(json.dumps({"transform": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]],
+                                                     "scale": 1.0}))
+    return c.config("stretch", camera={"file": "cams.json"}, **{"scene.dataparser_transforms": "stretch.json"})
+
+
 @dataclass
 class Probe:
     id: str
@@ -189,6 +220,12 @@ PROBES = [
           r"pickled.npy: the object mask holds Python objects, not plain arrays; refusing to unpickle", ("out",)),
     Probe("video-damaged-frames", lambda c: ["optimize", damaged_mp4(c)],
           r"damaged.mp4: damaged video: only the first \d of its 9 frames decode"),
+    Probe("select-ply-elsewhere", lambda c: ["simulate", moved_part(c), "-o", c.tmp / "s"],
+          r"moved_part.ply: none of its \d+ Gaussian centres lies within .* scene units of the scene's", ("s",)),
+    Probe("camera-colmap-unknown-image", lambda c: ["simulate", colmap_camera(c), "-o", c.tmp / "s"],
+          r"camera.image 'b.png' is not an image of the COLMAP model .*sparse \(a.png\)$", ("s",)),
+    Probe("dataparser-transforms-stretch", lambda c: ["simulate", stretching_dataparser(c), "-o", c.tmp / "s"],
+          r"stretch.json: the transform's 3x3 part is not a rotation", ("s",)),
     Probe("huge-gaussians", lambda c: ["optimize", huge_splats(c)],
           r"huge.ply: 384 of the object's 384 Gaussians are larger than the whole scene", ("out",)),
     Probe("render4d-turns-nan", lambda c: ["render4d", c.sim, "-o", c.tmp / "r", "--turns", "nan"],

@@ -209,3 +209,34 @@ def test_camera_validation():
         intrinsics(10, 10, math.pi)
     with pytest.raises(InputError, match="elevation"):
         orbit((0, 0, 0), 1, n_views=3, elevation=2.0, fov_x=1, width=4, height=4)
+
+
+def test_transform_camera_sees_transformed_points_at_the_same_pixels(tmp_path):
+    from clflow.splat.cameras import load_dataparser_transforms, transform_camera
+    from tests.splat._helpers import rotations
+
+    R, t, s = rotations(1, seed=4)[0], torch.tensor([0.3, -1.0, 2.0], dtype=F64), 0.25
+    (tmp_path / "dataparser_transforms.json").write_text(json.dumps({"transform": torch.cat([R, t[:, None]], 1).tolist(),
+                                                                     "scale": s}))
+    transform, scale = load_dataparser_transforms(tmp_path / "dataparser_transforms.json")
+    cam = look_at((3, 1, 2), (0, 0, 0.5), (0, 0, 1), fov_x=1.0, width=64, height=48)
+    moved = transform_camera(cam, transform, scale)
+    for point in ((0.0, 0.0, 0.5), (0.4, -0.2, 0.9), (-1.0, 0.5, 0.0)):
+        u, v, z = project(cam, point)
+        model = s * (R @ torch.tensor(point, dtype=F64) + t)  # the point in the model's frame
+        assert project(moved, model.tolist()) == pytest.approx((u, v, s * z), abs=1e-9)
+    assert transform_camera(cam, transform, 1.0).viewmat[:3, :3].det() == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("content, message", [
+    ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]}, "an object with 'transform' \\(3x4\\) and 'scale'"),
+    ({"transform": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "scale": 1}, "transform: expected shape \\[3, 4\\]"),
+    ({"transform": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 1}, "3x3 part is not a rotation"),
+    ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 0}, "'scale' must be > 0"),
+])
+def test_bad_dataparser_transforms(tmp_path, content, message):
+    from clflow.splat.cameras import load_dataparser_transforms
+
+    (tmp_path / "d.json").write_text(json.dumps(content))
+    with pytest.raises(InputError, match=f"d.json: .*{message}"):
+        load_dataparser_transforms(tmp_path / "d.json")
