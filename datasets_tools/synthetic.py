@@ -73,6 +73,7 @@ class SyntheticCase:
     learning_rate: float = 0.2  # per iteration, in the optimiser's z units (decades for moduli)
     horizon: tuple[int, int] = (4, 1)  # frames in the first iteration's loss, frames added per iteration
     search: int = 0  # samples of the optimiser's global phase (0: none)
+    starts: int = 1  # the best samples polished by the local phase before the best is kept
     method: str = "adam"  # the optimiser's local phase (optimize.method)
     forces: tuple[dict, ...] = ()
     ground: str = "sticky"
@@ -305,6 +306,8 @@ def case_config(case: SyntheticCase, resolution: Resolution, parameters: dict[st
                               "horizon": {"start": case.horizon[0], "step": case.horizon[1]}}
         if case.search:
             config["optimize"]["search"] = {"samples": case.search}
+            if case.starts > 1:
+                config["optimize"]["search"]["starts"] = case.starts
         if case.method != "adam":
             config["optimize"]["method"] = case.method
         config["evaluation"] = {"ground_truth": dict(case.truth)}

@@ -102,6 +102,10 @@ class OptimizerState:
     # (its z and frames; the error itself is saved beside the checkpoint), None before any
     calibrated_at: dict | None = None
     converged: bool = False  # Levenberg-Marquardt: no step from the best point promises progress
+    # optimize.search.starts: the best search samples' z, each polished by a few Levenberg-Marquardt
+    # iterations in turn, and per polished start its best point {"z", "loss", "params"}
+    starts: list[dict] = field(default_factory=list)
+    polished: list[dict] = field(default_factory=list)
 
 
 class UnstableRun(ClflowError):
@@ -307,7 +311,9 @@ class Optimization:
         estimated = VELOCITY_COMPONENTS if opt.estimate_velocity_iterations and not optimised else ()
         self.main_variables = tuple(self.params) + optimised  # z names the main phase optimises
         self.variables = self.main_variables + estimated  # every z name
-        self.total_iterations = opt.estimate_velocity_iterations + opt.iterations
+        # every start but the kept one spends search.start_iterations iterations of its own
+        self.extra_start_iterations = (opt.search.starts - 1) * opt.search.start_iterations if opt.search else 0
+        self.total_iterations = opt.estimate_velocity_iterations + opt.iterations + self.extra_start_iterations
         self.progress = progress or (lambda row: None)
         self.prepared = prepare(cfg)
         self.frames = cfg.simulation.frames
@@ -529,6 +535,14 @@ class Optimization:
         return sum(flow_loss(self.cfg, flows, target[: len(flows)], view.weight[: len(flows)])
                    for flows, target, view in zip(view_flows, targets, self.views)) / len(self.views)
 
+    def self_consistent_loss(self, result: Evaluation, frames: int) -> float:
+        """``result``'s loss against the observed flow less the estimator's error on ``result``'s
+        own simulation: the video's estimated flow against the simulation's, estimated alike
+        (with flow.bias_correction; else its loss)."""
+        if not self.corrects_bias:
+            return result.loss
+        return float(self.loss_of([result.flows, *result.more_flows], self.estimator_errors(result, frames)))
+
     def rescored(self, result: Evaluation) -> Evaluation:
         """``result`` with its loss against the current targets (after a calibration)."""
         return dataclasses.replace(result, loss=float(self.loss_of([result.flows, *result.more_flows])))
@@ -580,10 +594,7 @@ class Optimization:
         for z in points[len(rows):]:
             start = time.perf_counter()
             try:
-                sample = self.evaluate(z, frames, with_grad=False)
-                loss = sample.loss
-                if self.corrects_bias:  # the estimator's error at this very sample: its flow against the video's
-                    loss = float(self.loss_of([sample.flows, *sample.more_flows], self.estimator_errors(sample, frames)))
+                loss = self.self_consistent_loss(self.evaluate(z, frames, with_grad=False), frames)
             except (FloatingPointError, ClflowError) as exc:
                 log.info("search sample %s failed: %s", self.values(z), exc)
                 loss = None
@@ -595,11 +606,27 @@ class Optimization:
         finite = [r for r in rows if r["loss"] is not None]
         if not finite:
             raise ClflowError(f"the global search found no parameters whose simulation ran ({len(rows)} samples)")
-        best = min(finite, key=lambda r: r["loss"])
+        ranked = sorted(finite, key=lambda r: r["loss"])
+        best = ranked[0]
         log.info("global search: best of %d samples %s (loss %.4g)", len(rows), best["params"], best["loss"])
-        state = dataclasses.replace(state, z=dict(best["z"]), searched=True)
+        starts = [dict(r["z"]) for r in ranked[: settings.starts]] if settings.starts > 1 else []
+        state = dataclasses.replace(state, z=dict(best["z"]), searched=True, starts=starts)
         self.save_state(state)
         return state
+
+    def next_start(self, state: OptimizerState) -> OptimizerState:
+        """After the polish of start ``len(state.polished)`` (its best point recorded): the next
+        start, or once all are polished the best of them, with Levenberg-Marquardt's memory reset."""
+        polished = [*state.polished, {"z": dict(state.best["z"]), "loss": state.best["loss"],
+                                      "params": self.values(state.best["z"])}]
+        if len(polished) < len(state.starts):
+            z = dict(state.starts[len(polished)])
+        else:
+            kept = min(polished, key=lambda r: r["loss"])
+            log.info("kept start %d of %d: %s (loss %.4g; the others %s)", polished.index(kept), len(polished),
+                     kept["params"], kept["loss"], ", ".join(f"{r['loss']:.4g}" for r in polished if r is not kept))
+            z = dict(kept["z"])
+        return dataclasses.replace(state, z=z, polished=polished, best=None, damping=LM_DAMPING, converged=False)
 
     # -- Levenberg-Marquardt ----------------------------------------------------------------
 
@@ -650,7 +677,9 @@ class Optimization:
             # uphill: back to the best point with more damping (its J is recomputed or cached)
             return dataclasses.replace(state, iteration=state.iteration + 1, z=dict(best["z"]),
                                        damping=state.damping * 4.0)
-        damping = state.damping / 3.0 if best is not None else state.damping
+        # a new best point earns less damping; back at the best one after a rejection, the
+        # raised damping stands (dividing it again would retry nearly the same step)
+        damping = state.damping / 3.0 if best is not None and state.z != best["z"] else state.damping
         if calibrate:
             state = self.calibrate(state, base, frames)
             base = self.rescored(base)
@@ -754,10 +783,22 @@ class Optimization:
                 state = self.adam_step(state, result.grads)
             if state.calibrated_at is not previous.calibrated_at:
                 row["calibrated"] = True
+            if phase == "main" and opt.search is not None:  # the local phase stays in the search's box
+                box = self.search_box(self.initial_state().z)
+                state.z = {n: min(max(v, box[n][0]), box[n][1]) if n in box else v for n, v in state.z.items()}
             state.substeps = max(state.substeps, result.substeps)
-            if lm and phase == "main" and (state.converged or (
-                    state.best is not None and state.best is not previous.best
-                    and max(abs(state.z[n] - state.best["z"][n]) for n in variables) < LM_TOLERANCE)):
+            converged = lm and phase == "main" and (state.converged or (
+                state.best is not None and state.best is not previous.best
+                and max(abs(state.z[n] - state.best["z"][n]) for n in variables) < LM_TOLERANCE))
+            polishing = lm and phase == "main" and len(state.polished) < len(state.starts)
+            if polishing:  # a start's polish ends after its iterations or when it converges
+                row["start"] = len(state.polished)
+                done = 1 + sum(1 for r in state.history if r.get("start") == row["start"])
+                if converged or done >= opt.search.start_iterations:
+                    row["start_done"] = True
+                    # a start that converged early leaves its unspent iterations to the kept one
+                    state = self.next_start(dataclasses.replace(state, converged=False))
+            elif converged:
                 row["converged"] = True  # the step would change nothing that matters: stop here
                 state = dataclasses.replace(state, iteration=self.total_iterations)
             state.history.append(row)
@@ -823,6 +864,10 @@ class Optimization:
             state.z = dict(good)
             self.save_state(state)
             result, _ = self.jacobian(state.z, self.frames, state.substeps, self.main_variables)
+        if self.corrects_bias:  # the results' loss against the estimator's error at the final parameters
+            state.calibrated_at = self.calibrate(state, result, self.frames).calibrated_at
+            self.save_state(state)
+            result = self.rescored(result)
         final = self.values(state.z)
         params, density = material_values(self.cfg, {n: final[n] for n in self.params})
         velocity = self.velocity(state.z)

@@ -300,6 +300,8 @@ class SearchSettings:
     samples: int = 32  # forward-only runs over the parameter box
     decades: float = 3.0  # the box of a log-scale parameter: the start times 10^(+-decades)
     frames: int = 0  # frames in the search's loss (0: all)
+    starts: int = 1  # the best samples the local phase polishes (levenberg_marquardt) before keeping the best
+    start_iterations: int = 3  # Levenberg-Marquardt iterations per start before they are compared
 
 
 @dataclass(frozen=True)
@@ -627,10 +629,14 @@ def _optimize(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> O
     horizon = r.section(body.get("horizon"), f"{p}.horizon", ("start", "step"))
     search = SearchSettings() if hypotheses else None  # hypotheses are told apart by the search
     if body.get("search") is not None:
-        found = r.section(body["search"], f"{p}.search", ("samples", "decades", "frames"))
+        found = r.section(body["search"], f"{p}.search", ("samples", "decades", "frames", "starts", "start_iterations"))
         search = SearchSettings(samples=r.integer(found, "samples", f"{p}.search", 32, low=1),
                                 decades=r.number(found, "decades", f"{p}.search", 3.0, low=0.0, strict_low=True),
-                                frames=r.integer(found, "frames", f"{p}.search", 0))
+                                frames=r.integer(found, "frames", f"{p}.search", 0),
+                                starts=r.integer(found, "starts", f"{p}.search", 1, low=1),
+                                start_iterations=r.integer(found, "start_iterations", f"{p}.search", 3, low=1))
+        if search.starts > search.samples:
+            raise r.fail(f"{p}.search.starts", f"must not exceed search.samples ({search.samples}), got {search.starts}")
     bounds = {}
     for name, box in r.mapping(body.get("bounds"), f"{p}.bounds").items():
         where = f"{p}.bounds.{name}"
@@ -755,6 +761,9 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     if true_density is not None:
         truth["density"] = float(true_density)
     truth.update(zip(VELOCITY_COMPONENTS, true_velocity))
+    if optimize.search is not None and optimize.search.starts > 1 and optimize.method != "levenberg_marquardt":
+        raise r.fail("optimize.search.starts", "several starts are polished by levenberg_marquardt: set "
+                                               "optimize.method: levenberg_marquardt, or starts: 1")
     if optimize.method == "levenberg_marquardt" and flow.loss != "l2":
         raise r.fail("optimize.method", f"levenberg_marquardt minimises a sum of squares: it needs flow.loss l2, "
                                         f"not {flow.loss}")

@@ -114,7 +114,8 @@ def test_a_folder_with_other_files_is_refused_without_force(tmp_path):
 @pytest.fixture
 def tiny_cases(monkeypatch):
     """The torus case, shrunk to a few seconds."""
-    case = dataclasses.replace(sysid.CASES["torus"], guess={"youngs_modulus": 3e5}, optimize=("youngs_modulus",), search=3)
+    case = dataclasses.replace(sysid.CASES["torus"], guess={"youngs_modulus": 3e5}, optimize=("youngs_modulus",), search=3,
+                               starts=1)
     monkeypatch.setitem(sysid.CASES, "torus", case)
 
 
@@ -188,7 +189,8 @@ def test_parallel_cases_on_ray_give_the_serial_results(tmp_path, tiny_cases, mon
     pytest.importorskip("ray")
     from clflow.sweep import sysid_on_ray
 
-    bird = dataclasses.replace(sysid.CASES["bird"], guess={"youngs_modulus": 1e5}, optimize=("youngs_modulus",), search=3)
+    bird = dataclasses.replace(sysid.CASES["bird"], guess={"youngs_modulus": 1e5}, optimize=("youngs_modulus",), search=3,
+                               starts=1)
     monkeypatch.setitem(sysid.CASES, "bird", bird)  # the tasks get the driver's definitions
     settings = sysid.Settings(resolution=TINY)
     serial = sysid.evaluate(["torus", "bird"], tmp_path / "serial", settings)

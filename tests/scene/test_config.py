@@ -111,6 +111,8 @@ BAD = [
     ("flow", {"preset": "slow"}, "flow.preset: must be one of ultrafast, fast, medium, fine, got 'slow'"),
     ("flow", {"confidence": "fb"}, "flow.confidence: must be one of none, forward_backward, got 'fb'"),
     ("flow", {"bias_correction": "yes"}, "flow.bias_correction: must be one of none, simulated, got 'yes'"),
+    ("optimize.search", {"samples": 4, "starts": 5}, "optimize.search.starts: must not exceed search.samples"),
+    ("optimize.search", {"samples": 4, "starts": 2}, "optimize.search.starts: several starts are polished by levenberg"),
     ("flow", {"mask": "nope.png"}, "flow.mask: file not found"),
     ("scene.up", None, None),  # null takes the default
     ("camera.file", "scene.ply", "camera: with a camera file, position, look_at.* come from the file"),
