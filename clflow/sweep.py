@@ -405,9 +405,14 @@ def _deadline(seconds: float | None) -> Iterator[None]:
         signal.signal(signal.SIGALRM, previous)
 
 
+def _ended(run: Run, status: str, reason: str, seconds: float) -> dict:
+    """The record of a run that ended without a result (failed, killed, timeout)."""
+    return {"name": run.name, **run.params(), "status": status, "reason": reason, "result": None,
+            "seconds": round(seconds, 3)}
+
+
 def _timed_out(run: Run, limit: float, seconds: float) -> dict:
-    return {"name": run.name, **run.params(), "status": "timeout",
-            "reason": f"exceeded the time limit of {limit:g} s", "result": None, "seconds": round(seconds, 3)}
+    return _ended(run, "timeout", f"exceeded the time limit of {limit:g} s", seconds)
 
 
 def task_env(cpus_per_task: int, device: str | None, order: dict[str, str]) -> dict[str, str]:
@@ -521,13 +526,10 @@ def run_on_ray(runs: list[Run], folder_of: Callable[[Run], Path], timeout: float
                     record = ray.get(ref)
                 except ray.exceptions.RayTaskError as exc:  # raised past execute() (a task without it)
                     cause = exc.cause if exc.cause is not None else exc
-                    record = {"name": run.name, **run.params(), "status": "failed", "reason": _reason(cause),
-                              "result": None, "seconds": round(time.perf_counter() - start, 3)}
+                    record = _ended(run, "failed", _reason(cause), time.perf_counter() - start)
                 except ray.exceptions.RayError as exc:  # the worker died (killed, out of memory, node lost)
                     cause = " ".join(str(exc).split())[:300]
-                    record = {"name": run.name, **run.params(), "status": "killed",
-                              "reason": f"{type(exc).__name__}: {cause}", "result": None,
-                              "seconds": round(time.perf_counter() - start, 3)}
+                    record = _ended(run, "killed", f"{type(exc).__name__}: {cause}", time.perf_counter() - start)
                 on_done(record)
             now = time.perf_counter()
             for ref, (run, start) in list(running.items()):

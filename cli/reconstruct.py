@@ -111,7 +111,7 @@ def _from_depth(image_path, depth_path, depth_scale, fov, shell, output_dir) -> 
 
     from clflow.errors import InputError
     from clflow.recon.depth import backproject, read_depth
-    from clflow.recon.views import read_image
+    from clflow.media import read_image
     from clflow.splat.cameras import Camera, intrinsics, save_cameras_json
     from clflow.splat.ply import save_ply
 

@@ -82,9 +82,9 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
     from clflow.errors import InputError
     from clflow.fileio import atomic_dir
     from clflow.limits import check_output
-    from clflow.media import write_image, write_video
+    from clflow.media import to_uint8, write_image, write_video
     from clflow.splat import load_ply
-    from clflow.splat.render import rasterize, to_uint8
+    from clflow.splat.render import rasterize
     from clflow_cli.progress import progress
 
     if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:

@@ -11,7 +11,8 @@ from click.testing import CliRunner
 
 from clflow.errors import InputError
 from clflow.splat import Gaussians, look_at, rgb_to_sh0, save_ply
-from clflow.splat.render import rasterize, to_uint8
+from clflow.media import to_uint8
+from clflow.splat.render import rasterize
 from clflow_cli.main import cli
 
 F64 = torch.float64
