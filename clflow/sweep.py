@@ -29,6 +29,7 @@ import os
 import re
 import signal
 import socket
+import sys
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -352,11 +353,11 @@ def _reason(exc: BaseException) -> str:
 
 def _simulate(run: Run, folder: Path) -> dict:
     from clflow.limits import DEFAULT_MAX_OUTPUT_GB
-    from clflow_cli.simulate import simulate_scene
+    from clflow.pipeline.runs import simulate_scene
 
     o = run.options
-    simulate_scene(run.config, o.get("params"), str(folder / "simulation"), o.get("preview", "mp4"),
-                   o.get("max_output_gb", DEFAULT_MAX_OUTPUT_GB), run.overrides)
+    simulate_scene(run.config, o.get("params"), folder / "simulation", o.get("preview", "mp4"),
+                   o.get("max_output_gb", DEFAULT_MAX_OUTPUT_GB), run.overrides, echo=print)
     import numpy as np
 
     with np.load(folder / "simulation" / "gaussians.npz") as g:
@@ -365,11 +366,12 @@ def _simulate(run: Run, folder: Path) -> dict:
 
 
 def _optimize(run: Run, folder: Path) -> dict:
-    from clflow_cli.optimize import run_optimization
+    from clflow.pipeline.runs import run_optimization
 
     results = folder / "results"
     resume = (results / "checkpoint.json").exists()  # an interrupted or timed-out try continues
-    return run_optimization(run.config, resume, run.options.get("iterations"), str(results), run.overrides)
+    return run_optimization(run.config, resume, run.options.get("iterations"), results, run.overrides, echo=print,
+                            note=lambda line: print(line, file=sys.stderr))
 
 
 def _sysid(run: Run, folder: Path) -> dict:

@@ -7,6 +7,7 @@ import sys
 import click
 
 from clflow_cli.main import Interrupted
+from clflow_cli.options import out_option
 
 
 def parse_resources(items: tuple[str, ...]) -> dict[str, float]:
@@ -42,8 +43,8 @@ def with_ray_options(f):
 
 @click.command("sweep")
 @click.argument("spec", type=click.Path(dir_okay=False))
-@click.option("--output", "-o", "output", type=click.Path(file_okay=False), required=True,
-              help="Results folder: sweep.json, sweep.md and runs/NAME/ (result.json, run.log, outputs).")
+@out_option("output", "Results folder: sweep.json, sweep.md and runs/NAME/ (result.json, run.log, outputs).",
+            required=True)
 @click.option("--serial", is_flag=True, help="Run the spec here, one run after another, without Ray.")
 @with_ray_options
 @click.option("--timeout", type=click.FloatRange(min=0, min_open=True), default=None, metavar="SECONDS",
