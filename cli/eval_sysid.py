@@ -57,10 +57,10 @@ def sysid(ctx, output, cases, quick, iterations, truth_scale, noise, codec, seed
                         views=views)
 
     def progress(name: str, row: dict) -> None:
-        from clflow_cli.optimize import _format_row
+        from clflow.pipeline.runs import format_row
 
         step = "search sample" if row.get("phase") == "search" else "iteration"
-        click.echo(f"{name}: {step} {row['iteration'] + 1}: {_format_row(row)}", err=True)
+        click.echo(f"{name}: {step} {row['iteration'] + 1}: {format_row(row)}", err=True)
 
     run_cases = None
     if parallel:

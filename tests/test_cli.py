@@ -257,3 +257,16 @@ def test_numbers_are_one_word_with_commas_in_every_command():
         assert isinstance(param.type, Numbers), (path, option)
     up = next(p for p in _command(("render",)).params if p.name == "up")
     assert up.type.convert(up.default, up, None) == (0.0, 1.0, 0.0)  # +y, as scene configs (scene.up)
+
+
+def test_eval_sysid_progress_lines_use_the_pipelines_row_format(monkeypatch, tmp_path):
+    import clflow_datasets.sysid as sysid
+
+    def evaluate(names, out, settings, force, progress, run_cases):
+        progress("torus", {"iteration": 0, "loss": 1.5, "params": {"youngs_modulus": 2e4}, "seconds": 0.5})
+        return {"cases": {}}
+
+    monkeypatch.setattr(sysid, "evaluate", evaluate)
+    monkeypatch.setattr(sysid, "markdown", lambda summary: "")
+    res = CliRunner().invoke(cli, ["eval", "sysid", "-o", tmp_path, "--case", "torus"])
+    assert res.exit_code == 0 and res.output == "torus: iteration 1: loss 1.5  youngs_modulus=2e+04  0.5 s/it\n"
