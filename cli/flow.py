@@ -30,9 +30,9 @@ def flow(obj, video, output, method, preset, raft_weights, fps, start, end, stri
          write_panels_video):
     """Optical flow between consecutive frames of VIDEO (a video file or an image folder).
 
-    Writes OUTPUT/flow.npz (flow [T-1, H, W, 2] px, valid [T-1, H, W] = forward-backward
-    consistent and inside the object mask, times [T] s), OUTPUT/flo/flow_NNNN.flo, and
-    OUTPUT/png/flow_NNNN.png panels (frame | flow) plus OUTPUT/flow.mp4; every file atomically.
+    Writes OUT/flow.npz (flow [T-1, H, W, 2] px, valid [T-1, H, W] = forward-backward
+    consistent and inside the object mask, times [T] s), OUT/flo/flow_NNNN.flo, and
+    OUT/png/flow_NNNN.png panels (frame | flow) plus OUT/flow.mp4; every file atomically.
     """
     from pathlib import Path
 

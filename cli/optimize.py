@@ -9,7 +9,7 @@ from clflow_cli.options import max_substeps_option, out_option, set_option
 
 @click.command("optimize")
 @click.argument("config", type=click.Path(dir_okay=False))
-@click.option("--resume", is_flag=True, help="Continue from OUTPUT/checkpoint.json (after Ctrl-C or a kill).")
+@click.option("--resume", is_flag=True, help="Continue from OUT/checkpoint.json (after Ctrl-C or a kill).")
 @click.option("--iterations", type=click.IntRange(min=1), default=None,
               help="Override optimize.iterations of the config.")
 @out_option("output", "Results folder (default: the config's output).")

@@ -39,7 +39,7 @@ LOG_EVERY = 100  # iterations between progress lines when stderr is not a termin
 @click.option("--preview-every", type=click.IntRange(min=0), default=500, show_default=True,
               help="Write preview/iter_N.png (render | target of a held-out view) every N iterations (0: never).")
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=1000, show_default=True)
-@click.option("--resume", is_flag=True, help="Continue from OUTPUT_DIR/checkpoint.pt with the same options.")
+@click.option("--resume", is_flag=True, help="Continue from OUT/checkpoint.pt with the same options.")
 @click.option("--depth", type=click.Path(dir_okay=False),
               help="Single image + depth: IMAGES is one image, this its depth map (.npy in m, or 16-bit PNG); no training.")
 @click.option("--depth-scale", type=click.FloatRange(min=0, min_open=True),

@@ -53,8 +53,8 @@ def with_ray_options(f):
 @click.pass_context
 def sweep(ctx, spec, output, serial, address, cpus_per_task, resources, timeout, retry_failed):
     """Run every run of SPEC (YAML: scene configs, a base config with a grid or list of --set
-    overrides, sysid cases; docs/sweep.md), each in its own folder under OUTPUT, as Ray tasks
-    on this machine's cores (or a cluster: --address), and merge them into OUTPUT/sweep.json
+    overrides, sysid cases; docs/sweep.md), each in its own folder under OUT, as Ray tasks
+    on this machine's cores (or a cluster: --address), and merge them into OUT/sweep.json
     and sweep.md as they finish.
 
     A run that fails, is killed or times out is recorded with its reason and the others go
