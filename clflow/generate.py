@@ -24,7 +24,6 @@ import json
 import logging
 import math
 import os
-import platform
 import time
 import warnings
 from dataclasses import asdict, dataclass, replace
@@ -33,6 +32,7 @@ from typing import Callable
 
 import numpy as np
 
+from clflow.environment import environment
 from clflow.errors import ClflowError, InputError
 from clflow.limits import format_duration
 
@@ -317,24 +317,11 @@ def check_request(info: ModelInfo, request: GenerateRequest) -> Resolved:
 def load_image(path: str | os.PathLike) -> np.ndarray:
     """[H, W, 3] uint8 RGB of an image file; transparency is laid over white (the renderer's
     background). A file that is not an image, or is too small, raises an InputError."""
-    from PIL import Image, UnidentifiedImageError
+    from clflow.media import read_image, to_uint8
 
-    path = Path(path)
-    try:
-        with Image.open(path) as im:
-            im.load()
-            if im.mode in ("I;16", "I;16B", "I;16L", "I"):  # 16-bit greyscale: to 8 bits
-                im = Image.fromarray((np.asarray(im, np.float64) / max(1, np.asarray(im).max()) * 255).astype(np.uint8))
-            rgba = im.convert("RGBA")
-    except FileNotFoundError:
-        raise InputError(f"{path}: image not found") from None
-    except IsADirectoryError:
-        raise InputError(f"{path}: a folder, not an image") from None
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
-        raise InputError(f"{path}: not a readable image ({exc})") from None
-    array = np.asarray(rgba, np.float32)
-    alpha = array[..., 3:] / 255.0
-    image = (array[..., :3] * alpha + 255.0 * (1 - alpha) + 0.5).astype(np.uint8)
+    rgba = read_image(path)
+    alpha = rgba[..., 3:] if rgba.shape[2] == 4 else np.float32(1)
+    image = to_uint8(rgba[..., :3] * alpha + (1 - alpha))
     check_image(image, str(path))
     return image
 
@@ -420,20 +407,6 @@ def estimate_seconds(info: ModelInfo, resolved: Resolved, cores: int | None = No
     return flops / (CPU_FLOPS_PER_CORE * (cores or os.cpu_count() or 1))
 
 
-def versions() -> dict[str, str]:
-    from importlib.metadata import PackageNotFoundError, version
-
-    from clflow import __version__
-
-    out = {"clflow": __version__, "python": platform.python_version()}
-    for name in ("torch", "diffusers", "transformers", "accelerate"):
-        try:
-            out[name] = version(name)
-        except PackageNotFoundError:
-            pass
-    return out
-
-
 def generate_video(image: np.ndarray, info: ModelInfo, request: GenerateRequest, *,
                    progress: Callable[[int, int], None] | None = None,
                    device: str | None = None) -> tuple[np.ndarray, dict]:
@@ -507,7 +480,7 @@ def generate_video(image: np.ndarray, info: ModelInfo, request: GenerateRequest,
         "device": device, "dtype": str(dtype).removeprefix("torch."), "memory_options": options,
         "timings": {"load_s": round(load_s, 3), "generate_s": round(generate_s, 3),
                     "per_step_s": round(generate_s / resolved.steps, 3)},
-        "versions": versions(),
+        "versions": environment(("diffusers", "transformers", "accelerate"), opencl=False),
     }
     return frames, record
 

@@ -1,9 +1,11 @@
-"""Image and video files: the one writer of every image and video clflow writes, and the
-video decoder behind :func:`clflow.flow.video.read_video`.
+"""Image and video files: the one reader and writer of every image and the one writer of every
+video clflow writes, and the video decoder behind :func:`clflow.flow.video.read_video`.
 
     write_video("out.mp4", frames, 24.0)      # [T, H, W, 3] uint8 RGB -> H.264, yuv420p
     write_video("out.gif", frames, 12.5)      # GIF through Pillow, looping
     frames, times = decode_video("in.mp4")    # [T, H, W, 3] uint8 RGB, [T] s from the first frame
+    rgba = read_image("in.png")               # [H, W, 3 or 4] float32 RGB(A) in [0, 1]
+    write_image("out.png", to_uint8(rgba))    # values in [0, 1] -> uint8, rounded half up
 
 Videos go through PyAV (FFmpeg's libraries, libx264 included in its wheels): ``.mp4`` and
 ``.mov`` hold H.264 in yuv420p, which browsers, GitHub and editors play; odd frame sizes are
@@ -35,12 +37,45 @@ VIDEO_CODECS = {
 H264_CRF = 18
 
 
-def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
-    """Write a [H, W, 3] uint8 RGB image (PNG, JPEG, ... by suffix) atomically."""
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """[H, W, 3 or 4] float32 RGB(A) in [0, 1] of an 8- or 16-bit image file (grey as RGB;
+    any format OpenCV reads). A missing, unreadable or other-depth file raises InputError."""
     import cv2
 
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: a folder, not an image")
+    if not path.exists():
+        raise InputError(f"{path}: image not found")
+    data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if data is None or data.size == 0:
+        raise InputError(f"{path}: not a readable image (not a format OpenCV knows, or a damaged file)")
+    if data.dtype not in (np.uint8, np.uint16):
+        raise InputError(f"{path}: {data.dtype} pixels; clflow reads 8- and 16-bit images")
+    scale = np.float32(1 / np.iinfo(data.dtype).max)
+    if data.ndim == 2:
+        data = np.repeat(data[..., None], 3, axis=2)
+    order = [2, 1, 0, 3][: data.shape[2]]  # OpenCV's BGR(A) to RGB(A)
+    return np.ascontiguousarray(data[..., order]).astype(np.float32) * scale
+
+
+def to_uint8(values) -> np.ndarray:
+    """[..., C] values in [0, 1] (a numpy array or a torch tensor; clamped, NaN as 0) as a
+    uint8 array 0..255, rounded half up."""
+    if hasattr(values, "detach"):  # a torch tensor, on any device
+        values = values.detach().cpu().numpy()
+    values = np.clip(np.nan_to_num(np.asarray(values, np.float32)), 0, 1)
+    return (values * np.float32(255) + np.float32(0.5)).astype(np.uint8)
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Write a [H, W, 3] RGB or [H, W, 4] RGBA uint8 image (PNG, JPEG, ... by suffix) atomically."""
+    import cv2
+
+    image = np.asarray(image, np.uint8)
+    to_bgr = cv2.COLOR_RGBA2BGRA if image.ndim == 3 and image.shape[2] == 4 else cv2.COLOR_RGB2BGR
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(np.asarray(image, np.uint8), cv2.COLOR_RGB2BGR)):
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(image, to_bgr)):
             raise ClflowError(f"{path}: {why_not_written(path) or 'OpenCV cannot write an image of this type'}")
 
 

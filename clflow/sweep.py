@@ -29,6 +29,7 @@ import os
 import re
 import signal
 import socket
+import sys
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -352,11 +353,11 @@ def _reason(exc: BaseException) -> str:
 
 def _simulate(run: Run, folder: Path) -> dict:
     from clflow.limits import DEFAULT_MAX_OUTPUT_GB
-    from clflow_cli.simulate import simulate_scene
+    from clflow.pipeline.runs import simulate_scene
 
     o = run.options
-    simulate_scene(run.config, o.get("params"), str(folder / "simulation"), o.get("preview", "mp4"),
-                   o.get("max_output_gb", DEFAULT_MAX_OUTPUT_GB), run.overrides)
+    simulate_scene(run.config, o.get("params"), folder / "simulation", o.get("preview", "mp4"),
+                   o.get("max_output_gb", DEFAULT_MAX_OUTPUT_GB), run.overrides, echo=print)
     import numpy as np
 
     with np.load(folder / "simulation" / "gaussians.npz") as g:
@@ -365,11 +366,12 @@ def _simulate(run: Run, folder: Path) -> dict:
 
 
 def _optimize(run: Run, folder: Path) -> dict:
-    from clflow_cli.optimize import run_optimization
+    from clflow.pipeline.runs import run_optimization
 
     results = folder / "results"
     resume = (results / "checkpoint.json").exists()  # an interrupted or timed-out try continues
-    return run_optimization(run.config, resume, run.options.get("iterations"), str(results), run.overrides)
+    return run_optimization(run.config, resume, run.options.get("iterations"), results, run.overrides, echo=print,
+                            note=lambda line: print(line, file=sys.stderr))
 
 
 def _sysid(run: Run, folder: Path) -> dict:
@@ -405,9 +407,14 @@ def _deadline(seconds: float | None) -> Iterator[None]:
         signal.signal(signal.SIGALRM, previous)
 
 
+def _ended(run: Run, status: str, reason: str, seconds: float) -> dict:
+    """The record of a run that ended without a result (failed, killed, timeout)."""
+    return {"name": run.name, **run.params(), "status": status, "reason": reason, "result": None,
+            "seconds": round(seconds, 3)}
+
+
 def _timed_out(run: Run, limit: float, seconds: float) -> dict:
-    return {"name": run.name, **run.params(), "status": "timeout",
-            "reason": f"exceeded the time limit of {limit:g} s", "result": None, "seconds": round(seconds, 3)}
+    return _ended(run, "timeout", f"exceeded the time limit of {limit:g} s", seconds)
 
 
 def task_env(cpus_per_task: int, device: str | None, order: dict[str, str]) -> dict[str, str]:
@@ -521,13 +528,10 @@ def run_on_ray(runs: list[Run], folder_of: Callable[[Run], Path], timeout: float
                     record = ray.get(ref)
                 except ray.exceptions.RayTaskError as exc:  # raised past execute() (a task without it)
                     cause = exc.cause if exc.cause is not None else exc
-                    record = {"name": run.name, **run.params(), "status": "failed", "reason": _reason(cause),
-                              "result": None, "seconds": round(time.perf_counter() - start, 3)}
+                    record = _ended(run, "failed", _reason(cause), time.perf_counter() - start)
                 except ray.exceptions.RayError as exc:  # the worker died (killed, out of memory, node lost)
                     cause = " ".join(str(exc).split())[:300]
-                    record = {"name": run.name, **run.params(), "status": "killed",
-                              "reason": f"{type(exc).__name__}: {cause}", "result": None,
-                              "seconds": round(time.perf_counter() - start, 3)}
+                    record = _ended(run, "killed", f"{type(exc).__name__}: {cause}", time.perf_counter() - start)
                 on_done(record)
             now = time.perf_counter()
             for ref, (run, start) in list(running.items()):

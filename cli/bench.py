@@ -1,5 +1,7 @@
 """``clflow bench ...``: throughput benchmarks (figures recorded in docs/benchmarks.md)."""
 
+import functools
+
 import click
 
 from clflow_cli.main import LazyGroup
@@ -26,3 +28,25 @@ class BenchGroup(LazyGroup):
 @click.group(cls=BenchGroup)
 def bench() -> None:
     """Measure throughput of clflow's kernels on the selected device."""
+
+
+def bench_command(name: str):
+    """Make ``fn`` the command ``clflow bench NAME``. ``fn`` prints its figures and returns
+    them (a JSON-ready dict, timings from clflow.benchmark); ``--json PATH`` writes them with
+    the command's parameters and the environment (versions, device, load)."""
+
+    def wrap(fn):
+        @functools.wraps(fn)
+        def run(*args, json_path, **parameters):
+            results = fn(*args, **parameters)
+            if json_path:
+                from clflow.benchmark import write_record
+
+                write_record(json_path, name, parameters, results)
+                click.echo(f"wrote {json_path}")
+
+        option = click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None, metavar="PATH",
+                              help="Also write the figures, the parameters and the environment as JSON to PATH.")
+        return click.command(name)(option(run))
+
+    return wrap

@@ -2,19 +2,15 @@
 
 import click
 
-
-def _median_ms(times: list[float]) -> float:
-    import statistics
-
-    return 1e3 * statistics.median(times)
+from clflow_cli.bench import bench_command
 
 
-def bench_observed(frame_count: int, size: int) -> None:
-    """DIS presets and Farneback on a synthetic textured video with known motion."""
-    import time
-
+def bench_observed(frame_count: int, size: int) -> dict:
+    """DIS presets and Farneback on a synthetic textured video with known motion: per
+    method, its timing (one run after a warm-up on two frames) and EPE (px)."""
     import numpy as np
 
+    from clflow.benchmark import measure
     from clflow.flow.metrics import endpoint_error
     from clflow.flow.optical_flow import DIS_PRESETS, mask_from_box, observed_flow
     from clflow.flow.synthetic import Motion, moving_texture
@@ -22,25 +18,25 @@ def bench_observed(frame_count: int, size: int) -> None:
     frames, truth = moving_texture(frame_count, size, size, Motion(shift=(1.5, -0.8), angle=0.005, scale=1.004))
     inner = mask_from_box((size / 16, size / 16, size - size / 16, size - size / 16), size, size)
     click.echo(f"observed flow: {frame_count} frames {size}x{size} ({frame_count - 1} pairs), synthetic similarity motion")
+    results = {}
     for method, preset in [("dis", p) for p in DIS_PRESETS] + [("farneback", "")]:
         observed_flow(frames[:2], method, preset=preset or "medium")  # warm-up
-        t0 = time.perf_counter()
-        flow = observed_flow(frames, method, preset=preset or "medium")
-        elapsed = time.perf_counter() - t0
+        timing = measure(lambda: observed_flow(frames, method, preset=preset or "medium"), warmup=0)
+        flow, elapsed = timing.result, timing.median_wall
         name = f"{method} {preset}".strip()
-        click.echo(
-            f"  {name:14s} {elapsed:7.2f} s total, {1e3 * elapsed / (frame_count - 1):7.1f} ms/pair, "
-            f"EPE {endpoint_error(flow, truth, np.broadcast_to(inner, flow.shape[:-1])):.3f} px"
-        )
+        epe = endpoint_error(flow, truth, np.broadcast_to(inner, flow.shape[:-1]))
+        click.echo(f"  {name:14s} {elapsed:7.2f} s total, {1e3 * elapsed / (frame_count - 1):7.1f} ms/pair, "
+                   f"EPE {epe:.3f} px")
+        results[name] = {**timing.record(), "epe_px": float(epe)}
+    return results
 
 
-def bench_simulated(gaussians: int, frame_count: int, size: int, repeat: int) -> None:
+def bench_simulated(gaussians: int, frame_count: int, size: int, repeat: int) -> dict:
     """render_simulated_flow + masked L2 loss + backward over consecutive frame pairs of a
-    rotating cloud of Gaussians (float32)."""
-    import time
-
+    rotating cloud of Gaussians (float32): the timing of each flow model."""
     import torch
 
+    from clflow.benchmark import measure
     from clflow.flow.losses import masked_flow_loss
     from clflow.flow.simulated import render_simulated_flow
 
@@ -61,41 +57,44 @@ def bench_simulated(gaussians: int, frame_count: int, size: int, repeat: int) ->
     observed = torch.zeros(size, size, 2)
     mask = torch.ones(size, size, dtype=torch.bool)
     click.echo(f"simulated flow: {gaussians} Gaussians, {frame_count} frame pairs, {size}x{size}, float32")
-    for model in ("mean", "affine"):
-        runs = []
-        for i in range(repeat + 1):  # the first run builds the kernels and is not timed
-            positions = [p.clone().requires_grad_() for p in trajectory]
-            t0 = time.perf_counter()
-            total = 0.0
-            for t in range(frame_count):
-                flow, _ = render_simulated_flow(
-                    positions[t], positions[t + 1], covars, opacities, viewmat, K, size, size,
-                    model=model, covars_t1=covars if model == "affine" else None,
-                )
-                loss = masked_flow_loss(flow, observed, mask)
-                loss.backward()
-                total += float(loss.detach())
-            if i:
-                runs.append(time.perf_counter() - t0)
+    results = {}
+
+    def frames_loss(positions, model) -> float:
+        total = 0.0
+        for t in range(frame_count):
+            flow, _ = render_simulated_flow(
+                positions[t], positions[t + 1], covars, opacities, viewmat, K, size, size,
+                model=model, covars_t1=covars if model == "affine" else None,
+            )
+            loss = masked_flow_loss(flow, observed, mask)
+            loss.backward()
+            total += float(loss.detach())
+        return total
+
+    for model in ("mean", "affine"):  # a warm-up run builds the kernels
+        timing = measure(lambda positions: frames_loss(positions, model), repeat,
+                         setup=lambda: [p.clone().requires_grad_() for p in trajectory])
+        ms = 1e3 * timing.median_wall
         click.echo(
-            f"  {model:6s} render + loss + backward: {_median_ms(runs) / 1e3:7.2f} s for {frame_count} frames "
-            f"({_median_ms(runs) / frame_count:7.1f} ms/frame, median of {repeat}); loss sum {total:.3g} px^2"
+            f"  {model:6s} render + loss + backward: {ms / 1e3:7.2f} s for {frame_count} frames "
+            f"({ms / frame_count:7.1f} ms/frame, median of {repeat}); loss sum {timing.result:.3g} px^2"
         )
+        results[model] = {**timing.record(), "loss_sum_px2": timing.result}
+    return results
 
 
-@click.command()
+@bench_command("flow")
 @click.option("--frames", default=49, show_default=True, help="Frames of the observed-flow video.")
 @click.option("--size", default=512, show_default=True, help="Frame width and height (pixels).")
 @click.option("-n", "--gaussians", default=100_000, show_default=True, help="Gaussians of the simulated flow.")
 @click.option("--sim-frames", default=24, show_default=True, help="Frame pairs of the simulated flow.")
-@click.option("--repeat", default=1, show_default=True, help="Timed runs of the simulated flow (median printed).")
+@click.option("--repeat", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Timed runs of the simulated flow (median printed).")
 @click.option("--observed/--no-observed", default=True, help="Run the observed-flow part.")
 @click.option("--simulated/--no-simulated", default=True, help="Run the simulated-flow part.")
 @click.pass_obj
-def flow(obj, frames, size, gaussians, sim_frames, repeat, observed, simulated) -> None:
+def flow(obj, frames, size, gaussians, sim_frames, repeat, observed, simulated) -> dict:
     """Observed flow of a FRAMES-frame SIZE^2 video (DIS presets, Farneback) and the
     simulated-flow render + loss + backward of N Gaussians over SIM_FRAMES frames."""
-    if observed:
-        bench_observed(frames, size)
-    if simulated:
-        bench_simulated(gaussians, sim_frames, size, repeat)
+    return {"observed": bench_observed(frames, size) if observed else None,
+            "simulated": bench_simulated(gaussians, sim_frames, size, repeat) if simulated else None}

@@ -3,6 +3,8 @@ ground truth, and what that does to the recovered parameters (docs/flow.md)."""
 
 import click
 
+from clflow_cli.bench import bench_command
+
 CASES = ("cube", "torus", "plasticine")
 
 
@@ -48,7 +50,7 @@ def loss_minimum(opt, z_truth: dict[str, float], name: str, steps: int = 16) -> 
     return (lo + hi) / 2
 
 
-def measure(config, output, preset: str, confidence: str, iterations: int | None) -> dict:
+def measure_case(config, output, preset: str, confidence: str, iterations: int | None) -> dict:
     """Flow bias at the case's ground truth (slope of the observed on the simulated flow and
     EPE, px, both weighted as the loss weighs pixels: mask x confidence), the signed relative
     error of each parameter at the loss minimum near the truth (the bias the flow error puts
@@ -56,10 +58,10 @@ def measure(config, output, preset: str, confidence: str, iterations: int | None
     at the search's edge or further) and, unless ``iterations`` is 0, that of each parameter
     ``clflow optimize`` recovers from the case's guess."""
     import dataclasses
-    import time
 
     import torch
 
+    from clflow.benchmark import measure
     from clflow.flow.metrics import endpoint_error, flow_slope
     from clflow.pipeline.optimize import Optimization
     from clflow.scene.config import load_config
@@ -81,14 +83,14 @@ def measure(config, output, preset: str, confidence: str, iterations: int | None
            "beyond": {n for n, z in z_minimum.items() if abs(z - z_truth[n]) > 0.99 * SEARCH_HALF_WIDTH},
            "error": {}, "seconds": 0.0}
     if iterations != 0:
-        start = time.perf_counter()
-        final = opt.values(opt.run().z)
-        row["seconds"] = time.perf_counter() - start
+        timing = measure(opt.run, warmup=0)
+        final = opt.values(timing.result.z)
+        row["seconds"], row["cpu_seconds"] = timing.median_wall, timing.median_cpu
         row["error"] = {n: (final[n] - truth[n]) / truth[n] for n in final}
     return row
 
 
-@click.command("flow-bias")
+@bench_command("flow-bias")
 @click.option("--case", "cases", type=click.Choice(CASES), multiple=True, help="Only these cases (repeatable; default all).")
 @click.option("--preset", "presets", multiple=True, help="DIS presets to compare (repeatable; default all).")
 @click.option("--confidence", "confidences", multiple=True,
@@ -104,11 +106,11 @@ def flow_bias(cases, presets, confidences, size, iterations):
     weighs pixels; the signed relative error (RE) of each parameter at the minimum of the
     loss near the truth; the RE of the parameters `clflow optimize` recovers from the case's
     guess."""
-    import os
     import tempfile
     import warnings
     from pathlib import Path
 
+    from clflow.environment import load_average
     from clflow.flow.optical_flow import CONFIDENCES, DIS_PRESETS
     from clflow.mpm.simulator import StabilityWarning
     from clflow_datasets.demo import QUICK
@@ -117,7 +119,8 @@ def flow_bias(cases, presets, confidences, size, iterations):
     warnings.simplefilter("ignore", StabilityWarning)
     resolution = QUICK if size == "quick" else Resolution()
     known = synthetic_cases()
-    click.echo(f"load average {os.getloadavg()[0]:.2f}; {resolution.image} px, {resolution.frames} frames, "
+    rows = {}
+    click.echo(f"load average {load_average()}; {resolution.image} px, {resolution.frames} frames, "
                f"{resolution.iterations if iterations is None else iterations} iterations")
     click.echo(f"{'case':11s} {'preset':10s} {'confidence':17s} {'slope':>6s} {'EPE px':>7s} {'kept':>5s}  "
                f"RE at the loss minimum; RE recovered")
@@ -126,11 +129,14 @@ def flow_bias(cases, presets, confidences, size, iterations):
             config = make_case(Path(folder) / name, known[name], resolution)
             for preset in presets or DIS_PRESETS:
                 for confidence in confidences or CONFIDENCES:
-                    row = measure(config, Path(folder) / name / f"{preset}-{confidence}", preset, confidence, iterations)
+                    row = measure_case(config, Path(folder) / name / f"{preset}-{confidence}", preset, confidence,
+                                       iterations)
+                    rows[f"{name} {preset} {confidence}"] = {**row, "beyond": sorted(row["beyond"])}
                     at_minimum = ", ".join(f"{n} {'beyond ' if n in row['beyond'] else ''}{e:+.2%}"
                                            for n, e in row["minimum"].items())
                     recovered = ", ".join(f"{e:+.2%}" for e in row["error"].values())
                     timing = f" ({row['seconds']:.0f} s)" if row["error"] else ""
                     click.echo(f"{name:11s} {preset:10s} {confidence:17s} {row['slope']:6.3f} {row['epe']:7.3f} "
                                f"{row['kept']:5.2f}  {at_minimum}; {recovered or '-'}{timing}")
-    click.echo(f"load average {os.getloadavg()[0]:.2f}")
+    click.echo(f"load average {load_average()}")
+    return rows

@@ -2,16 +2,10 @@
 
 import click
 
+from clflow_cli.bench import bench_command
+
 PARTICLES_PER_AXIS = 64  # 64^3 = 262,144 particles: a cube of 32^3 cells at 2^3 per cell
 GRID = 64
-
-
-def _cpu_seconds() -> float:
-    """CPU time of this process and its threads (the OpenCL driver's workers included)."""
-    import resource
-
-    usage = resource.getrusage(resource.RUSAGE_SELF)
-    return usage.ru_utime + usage.ru_stime
 
 
 def _particle_bytes(sim) -> int:
@@ -25,7 +19,7 @@ def _particle_bytes(sim) -> int:
     return sum(t.numel() * t.element_size() for t in tensors)
 
 
-@click.command("mpm")
+@bench_command("mpm")
 @click.option("--substeps", default=10, show_default=True, help="Timed substeps per material.")
 @click.option("--particles-per-axis", default=PARTICLES_PER_AXIS, show_default=True,
               help="Particles per axis of the cube (total = cube of it).")
@@ -38,11 +32,11 @@ def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double):
     and the memory per particle. Also per CPU-second: on a machine shared with other jobs the
     wall-clock figure understates what the device does when it has its cores to itself."""
     import logging
-    import os
-    import time
 
     import torch
 
+    from clflow.benchmark import measure
+    from clflow.environment import load_average
     from clflow.materials import MATERIALS
     from clflow.mpm import Grid, MaterialSpec, Simulator
 
@@ -56,19 +50,19 @@ def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double):
     n = x.shape[0]
     names = list(materials) or list(MATERIALS)
     logging.getLogger("pyopencl").setLevel(logging.WARNING)  # no build chatter between rows
-    load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
-    click.echo(f"load average before the run: {load} (figures scale down on a shared machine)")
+    click.echo(f"load average before the run: {load_average()} (figures scale down on a shared machine)")
     p2g = "private grid copies" if (device.info.type if device else "CPU") == "CPU" else "atomics"
     click.echo(f"device: {device.info.label if device else 'default'} (P2G: {p2g}); {n:,} particles, grid {grid_res}^3, "
                f"{'float64' if double else 'float32'}, {substeps} timed substeps")
+    results = {"particles": n}
     for name in names:
         sim = Simulator(x, h**3, MaterialSpec(name), Grid((grid_res,) * 3, dx), frame_dt=1e-3,
                         dtype=dtype, device=device)
         sim.step()  # builds kernels and warms the caches
-        start, cpu_start = time.perf_counter(), _cpu_seconds()
-        for _ in range(substeps):
-            sim.step()
-        elapsed, cpu = time.perf_counter() - start, _cpu_seconds() - cpu_start
+        timing = measure(lambda: [sim.step() for _ in range(substeps)], warmup=0)
+        elapsed, cpu = timing.median_wall, timing.median_cpu
+        results[name] = {**timing.record(), "particle_substeps_per_s": n * substeps / elapsed,
+                         "bytes_per_particle": _particle_bytes(sim) // n}
         click.echo(f"{name:14s} {n * substeps / elapsed / 1e6:7.2f} M particle-substeps/s  "
                    f"({elapsed / substeps * 1e3:6.1f} ms/substep; {n * substeps / cpu / 1e6:5.2f} M per CPU-second; "
                    f"{_particle_bytes(sim) // n} B/particle)")
@@ -77,3 +71,4 @@ def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double):
     copies = getattr(sim.kernels, "copies", 0)
     click.echo(f"memory besides the particles: grid {grid_bytes / 2**20:.1f} MiB"
                + (f" + {copies} private P2G copies {copies * grid_bytes * 4 / 7 / 2**20:.1f} MiB" if copies else ""))
+    return results

@@ -3,8 +3,10 @@ differentiable MPM run, and its peak memory against the checkpointing formula.""
 
 import click
 
+from clflow_cli.bench import bench_command
 
-@click.command("mpm-adjoint")
+
+@bench_command("mpm-adjoint")
 @click.option("--particles", default=65536, show_default=True, help="Particles (a 2:1:1 block, 2 per cell and axis).")
 @click.option("--grid", "grid_res", default=64, show_default=True, help="Grid nodes per axis.")
 @click.option("--frames", default=10, show_default=True)
@@ -15,10 +17,10 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
     """Elastic block thrown against the floor: forward seconds, backward seconds (incl. replay),
     their ratio (target <= 3), and peak memory (measured RSS growth vs the formula)."""
     import resource
-    import time
 
     import torch
 
+    from clflow.benchmark import measure
     from clflow.mpm import Grid, MaterialSpec, Simulator
     from clflow.mpm.autograd import engine, memory_estimate, simulate
 
@@ -46,13 +48,11 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
 
     with open("/proc/self/statm") as statm:  # resident pages now (Linux)
         base = int(statm.read().split()[1]) * resource.getpagesize() / 2**20
-    start, cpu_start = time.perf_counter(), time.process_time()
-    out = simulate(sim, frames, params={"youngs_modulus": E})
-    forward, forward_cpu = time.perf_counter() - start, time.process_time() - cpu_start
+    timed_forward = measure(lambda: simulate(sim, frames, params={"youngs_modulus": E}), warmup=0)
+    out, forward, forward_cpu = timed_forward.result, timed_forward.median_wall, timed_forward.median_cpu
     loss = (out.x[-1] ** 2).sum() + (out.F[-1] ** 2).sum()
-    start, cpu_start = time.perf_counter(), time.process_time()
-    loss.backward()
-    backward, backward_cpu = time.perf_counter() - start, time.process_time() - cpu_start
+    timed_backward = measure(loss.backward, warmup=0)
+    backward, backward_cpu = timed_backward.median_wall, timed_backward.median_cpu
     peak = peak_mib() - base
     steps = frames * substeps
     click.echo(f"device: {device.info.label if device else 'default'}; {n:,} particles, grid {grid_res}^3, "
@@ -65,3 +65,5 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
     copies = engine(sim).adjoint.copies if sim.kernels.p2g == "private" else 0
     est = memory_estimate(n, sim.grid.nodes, frames, substeps, dtype, grid_copies=copies) / 2**20
     click.echo(f"peak memory growth {peak:8.1f} MiB (peak RSS - RSS before the run); formula {est:.1f} MiB")
+    return {"particles": n, "forward": timed_forward.record(), "backward": timed_backward.record(),
+            "backward_over_forward": backward / forward, "peak_memory_mib": peak, "formula_memory_mib": est}

@@ -2,8 +2,10 @@
 
 import click
 
+from clflow_cli.bench import bench_command
 
-@click.command("optimize")
+
+@bench_command("optimize")
 @click.option("--gaussians", type=click.IntRange(min=100), default=100_000, show_default=True,
               help="Gaussians in the scene (a fifth on the simulated object).")
 @click.option("--image", type=click.IntRange(min=16), default=256, show_default=True, help="Guidance image side, px.")
@@ -15,9 +17,9 @@ def optimize(gaussians, image, frames, grid, iterations):
     `clflow optimize`: simulate + adjoint, render simulated flow, loss and its backward."""
     import dataclasses
     import tempfile
-    import time
     import warnings
 
+    from clflow.benchmark import measure
     from clflow.mpm.simulator import StabilityWarning
     from clflow.pipeline.optimize import Optimization
     from clflow.scene.config import load_config
@@ -26,24 +28,25 @@ def optimize(gaussians, image, frames, grid, iterations):
     warnings.simplefilter("ignore", StabilityWarning)
     size = benchmark_size(gaussians, image, grid, frames)
     with tempfile.TemporaryDirectory(prefix="clflow-bench-") as folder:
-        t0 = time.perf_counter()
-        config = make_demo(folder, size)
-        t1 = time.perf_counter()
-        cfg = load_config(config)
+        make = measure(lambda: make_demo(folder, size), warmup=0)
+        cfg = load_config(make.result)
         cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=iterations,
                                                                      horizon_start=0))
-        opt = Optimization(cfg)
-        t2 = time.perf_counter()
+        load = measure(lambda: Optimization(cfg), warmup=0)
+        opt = load.result
         setup = opt.prepared.setup
         n_gauss = opt.prepared.obj_rest.means.shape[0] + opt.prepared.static.means.shape[0]
         click.echo(f"scene: {n_gauss:,} Gaussians ({setup.particles.n_gaussians:,} on the object, "
                    f"{setup.particles.n_fill:,} fill particles), grid {setup.grid.resolution}, {frames} frames, "
                    f"{image}x{image} px")
-        click.echo(f"  make scene + guidance video {t1 - t0:7.2f} s;  load, fill, video flow {t2 - t1:7.2f} s")
+        click.echo(f"  make scene + guidance video {make.median_wall:7.2f} s;  load, fill, video flow "
+                   f"{load.median_wall:7.2f} s")
         rows = []
-        opt.progress = rows.append
-        opt.run()
+        opt.progress = rows.append  # each row has the iteration's seconds, as the optimiser timed it
+        run = measure(opt.run, warmup=0)
         for row in rows:
             click.echo(f"  iteration {row['iteration']}: {row['seconds']:7.2f} s ({row['substeps']} substeps per frame)")
         best = min(r["seconds"] for r in rows)
         click.echo(f"  per iteration: {best:.2f} s best, {sum(r['seconds'] for r in rows) / len(rows):.2f} s mean")
+    return {"make_scene": make.record(), "load": load.record(), "run": run.record(),
+            "iterations": [{"seconds": r["seconds"], "substeps": r["substeps"]} for r in rows]}

@@ -2,23 +2,24 @@
 
 import click
 
+from clflow_cli.bench import bench_command
 
-@click.command()
+
+@bench_command("ply")
 @click.option("--gaussians", "count", type=click.IntRange(min=1), default=1_000_000, show_default=True,
               help="Number of Gaussians in the file.")
 @click.option("--sh-degree", type=click.IntRange(0, 3), default=3, show_default=True)
 @click.option("--points", type=click.IntRange(min=0), default=100_000, show_default=True,
               help="Points for Gaussians.from_points (3-NN scales); 0 skips it.")
 @click.option("--repeat", type=click.IntRange(min=1), default=3, show_default=True, help="Timed runs (median reported).")
-def ply(count: int, sh_degree: int, points: int, repeat: int) -> None:
+def ply(count: int, sh_degree: int, points: int, repeat: int) -> dict:
     """Median time of save_ply and load_ply (binary float32, INRIA layout) and of from_points."""
-    import statistics
     import tempfile
-    import time
     from pathlib import Path
 
     import torch
 
+    from clflow.benchmark import measure
     from clflow.splat import Gaussians, load_ply, save_ply
 
     gen = torch.Generator().manual_seed(0)
@@ -31,13 +32,7 @@ def ply(count: int, sh_degree: int, points: int, repeat: int) -> None:
     )
 
     def median_seconds(fn) -> float:
-        fn()  # warm-up: imports, page cache
-        times = []
-        for _ in range(repeat):
-            start = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - start)
-        return statistics.median(times)
+        return measure(fn, repeat).median_wall  # after a warm-up: imports, page cache
 
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "bench.ply"
@@ -51,3 +46,5 @@ def ply(count: int, sh_degree: int, points: int, repeat: int) -> None:
         cloud = torch.randn(points, 3, generator=gen)
         seconds = median_seconds(lambda: Gaussians.from_points(cloud))
         click.echo(f"  from_points ({points} points, exact 3-NN scales)  {seconds:6.2f} s")
+    return {"file_mib": mib, "save_s": save_seconds, "load_s": load_seconds,
+            "from_points_s": seconds if points else None}

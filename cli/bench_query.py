@@ -2,11 +2,13 @@
 
 import click
 
+from clflow_cli.bench import bench_command
 
-@click.command()
+
+@bench_command("query")
 @click.option("--repeat", type=click.IntRange(min=1), default=20, show_default=True,
               help="Timed repetitions of each measurement (the median is reported).")
-def query(repeat: int) -> None:
+def query(repeat: int) -> dict:
     """Offline knowledge-base lookups and image preparation for the model backend.
 
     Lookups: the median time of one offline query over texts of 2-12 words, with typos,
@@ -15,26 +17,20 @@ def query(repeat: int) -> None:
     Image: crop a 1920x1080 photo to a box,
     downscale to 1024 px and encode as base64 PNG / JPEG (what the openai backend sends).
     """
-    import statistics
     import tempfile
-    import time
     from importlib import resources
     from pathlib import Path
 
     import cv2
     import numpy as np
 
+    from clflow.benchmark import measure
     from clflow.query import crop_object, load_knowledge_base
 
     def median_ms(fn, setup=lambda: None) -> float:
-        fn(setup())  # warm-up
-        times = []
-        for _ in range(repeat):
-            arg = setup()
-            start = time.perf_counter()
-            fn(arg)
-            times.append(time.perf_counter() - start)
-        return 1e3 * statistics.median(times)
+        return 1e3 * measure(fn, repeat, setup=setup).median_wall
+
+    results = {}
 
     texts = ["rubber duck", "a jar of strawberry jam on a wooden kitchen table next to a spoon",
              "IMG_0042-RubberDucks", "alumnium foil", "xyzzy qwerty", "a glass of milk",
@@ -43,6 +39,7 @@ def query(repeat: int) -> None:
     kb = load_knowledge_base(kb_file)
     for label, setup in (("first", lambda: load_knowledge_base(kb_file)), ("repeat", lambda: kb)):
         ms = median_ms(lambda base: [base.match(prompt=t) for t in texts], setup) / len(texts)
+        results[f"lookup_{label}_ms"] = ms
         click.echo(f"offline lookup {label:<6}{ms:8.3f} ms/query   ({len(kb.entries)} entries, "
                    f"{sum(len(e.aliases) for e in kb.entries)} aliases)")
 
@@ -53,9 +50,10 @@ def query(repeat: int) -> None:
         cv2.imwrite(str(path), photo)
         crop = crop_object(path, box=(400, 100, 1800, 1000))
         for fmt in ("png", "jpeg"):
-            ms = median_ms(lambda _: crop.data_url(fmt))
+            ms = results[f"encode_{fmt}_ms"] = median_ms(lambda _: crop.data_url(fmt))
             size = len(crop.data_url(fmt)) / 1024
             click.echo(f"image {fmt:<4} encode   {ms:8.3f} ms         "
                        f"(1400x900 crop -> 1024 px, {size:.0f} KiB base64)")
-        ms = median_ms(lambda _: crop_object(path, box=(400, 100, 1800, 1000)))
+        ms = results["read_crop_ms"] = median_ms(lambda _: crop_object(path, box=(400, 100, 1800, 1000)))
         click.echo(f"image read + crop   {ms:8.3f} ms         (1920x1080 PNG)")
+    return results

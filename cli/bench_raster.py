@@ -2,6 +2,8 @@
 
 import click
 
+from clflow_cli.bench import bench_command
+
 
 def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=None):
     """A synthetic scene in front of an OpenCV camera at the origin looking down +z.
@@ -25,20 +27,20 @@ def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=None):
     return (means, quats, scales, opacities, colors, viewmat, K, width, height), {}
 
 
-@click.command()
+@bench_command("raster")
 @click.option("-n", "--gaussians", default=100_000, show_default=True, help="Number of Gaussians.")
 @click.option("--size", default=512, show_default=True, help="Image width and height (pixels).")
-@click.option("--repeat", default=10, show_default=True, help="Timed runs (the median is printed).")
+@click.option("--repeat", type=click.IntRange(min=1), default=10, show_default=True,
+              help="Timed runs (the median is printed).")
 @click.option("--double", is_flag=True, help="float64 instead of float32.")
 @click.pass_obj
-def raster(obj, gaussians: int, size: int, repeat: int, double: bool) -> None:
+def raster(obj, gaussians: int, size: int, repeat: int, double: bool) -> dict:
     """Forward and backward time for N Gaussians at SIZE x SIZE, RGB + depth."""
     import os
-    import statistics
-    import time
 
     import torch
 
+    from clflow.benchmark import Stopwatch
     from clflow.runtime import set_default_device
     from clflow.splat.ops import rasterize_gaussians
 
@@ -47,26 +49,24 @@ def raster(obj, gaussians: int, size: int, repeat: int, double: bool) -> None:
     dtype = torch.float64 if double else torch.float32
     args, kwargs = make_scene(gaussians, size, size, dtype=dtype)
     leaves = [a.requires_grad_() for a in args[:5]]
-    forward, backward = [], []  # (wall, CPU of all threads) seconds
-    for i in range(repeat + 1):  # the first run builds the kernels and is not timed
+    forward, backward = Stopwatch(), Stopwatch()
+    for _ in range(repeat + 1):  # the first run builds the kernels and is not timed
         for leaf in leaves:
             leaf.grad = None
-        t0, c0 = time.perf_counter(), time.process_time()
-        image, alpha, depth, meta = rasterize_gaussians(*args, **kwargs)
-        t1, c1 = time.perf_counter(), time.process_time()
+        with forward:
+            image, alpha, depth, meta = rasterize_gaussians(*args, **kwargs)
         loss = image.sum() + alpha.sum() + depth.sum()
-        t2, c2 = time.perf_counter(), time.process_time()
-        loss.backward()
-        t3, c3 = time.perf_counter(), time.process_time()
-        if i:
-            forward.append((t1 - t0, c1 - c0))
-            backward.append((t3 - t2, c3 - c2))
+        with backward:
+            loss.backward()
     visible = int((meta["radii"] > 0).sum())
     click.echo(f"raster: {gaussians} Gaussians ({visible} visible), {size}x{size}, RGB + depth, {dtype}")
     click.echo(f"  tile entries: {meta['num_tile_entries']} ({meta['tile_list_bytes'] / 2**20:.1f} MiB of tile lists, "
                f"{meta['entry_record_bytes'] / 2**20:.1f} MiB of compositing records)")
-    for name, runs in (("forward", forward), ("backward", backward)):
-        wall = 1e3 * statistics.median(t for t, _ in runs)
-        cpu = 1e3 * statistics.median(c for _, c in runs)
-        click.echo(f"  {name + ':':9} {wall:8.1f} ms wall, {cpu:8.1f} ms CPU (medians of {repeat})")
-    click.echo(f"  load average: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (wall times grow with it)")
+    results = {"visible": visible, "tile_entries": int(meta["num_tile_entries"])}
+    for name, watch in (("forward", forward), ("backward", backward)):
+        timing = watch.timing(skip=1)
+        results[name] = timing.record()
+        click.echo(f"  {name + ':':9} {1e3 * timing.median_wall:8.1f} ms wall, {1e3 * timing.median_cpu:8.1f} ms CPU "
+                   f"(medians of {repeat})")
+    click.echo(f"  load average: {timing.load_after} on {os.cpu_count()} cores (wall times grow with it)")
+    return results

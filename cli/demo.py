@@ -20,9 +20,9 @@ def demo(folder, quick, resume, views, force):
     import time
     from pathlib import Path
 
-    from clflow_cli.optimize import run_optimization
-    from clflow_cli.render4d import render4d
-    from clflow_cli.simulate import simulate_scene
+    from clflow.pipeline.report import write_report
+    from clflow.pipeline.runs import render_simulation_4d, run_optimization, simulate_scene
+    from clflow_cli.progress import iteration_bar, note, progress
     from clflow_datasets.demo import QUICK, make_demo
     from clflow_datasets.synthetic import CASE_FILES, Resolution
 
@@ -39,13 +39,9 @@ def demo(folder, quick, resume, views, force):
     else:
         click.echo(f"making the demo scene and its guidance video in {folder}")
         make_demo(folder, QUICK if quick else Resolution())
-    run_optimization(str(config), resume, None, None)
+    run_optimization(config, resume, echo=click.echo, note=note, bar=iteration_bar)
     results = folder / "results"
-    simulate_scene(str(config), str(results / "params.json"), str(results / "simulation"), "none")
-    ctx = click.get_current_context()
-    ctx.invoke(render4d, simulation=str(results / "simulation"), out_dir=None, views=views, turns=1.0,
-               video_format="mp4")
-    from clflow.pipeline.report import write_report
-
+    simulate_scene(config, results / "params.json", results / "simulation", "none", echo=click.echo)
+    render_simulation_4d(results / "simulation", views=views, progress=progress, echo=click.echo)
     report = write_report(results)  # again, now with the 4D renders
     click.echo(f"demo finished in {time.perf_counter() - start:.0f} s: open {report}")

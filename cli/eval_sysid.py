@@ -7,12 +7,13 @@ import sys
 import click
 
 from clflow_cli.main import Interrupted
+from clflow_cli.options import out_option
 from clflow_cli.sweep import parse_resources, with_ray_options
 
 
 @click.command("sysid")
-@click.option("--output", "-o", "output", type=click.Path(file_okay=False), required=True,
-              help="Results folder: sysid.json, sysid.md and cases/NAME/ (scene, guidance, results).")
+@out_option("output", "Results folder: sysid.json, sysid.md and cases/NAME/ (scene, guidance, results).",
+            required=True)
 @click.option("--case", "cases", multiple=True, metavar="NAME",
               help="Run only this case (repeatable). Default: all nine, or the three of --quick.")
 @click.option("--quick", is_flag=True,
@@ -56,10 +57,10 @@ def sysid(ctx, output, cases, quick, iterations, truth_scale, noise, codec, seed
                         views=views)
 
     def progress(name: str, row: dict) -> None:
-        from clflow_cli.optimize import _format_row
+        from clflow.pipeline.runs import format_row
 
         step = "search sample" if row.get("phase") == "search" else "iteration"
-        click.echo(f"{name}: {step} {row['iteration'] + 1}: {_format_row(row)}", err=True)
+        click.echo(f"{name}: {step} {row['iteration'] + 1}: {format_row(row)}", err=True)
 
     run_cases = None
     if parallel:

@@ -2,23 +2,12 @@
 
 import click
 
-
-def _box(ctx, param, value):
-    if value is None:
-        return None
-    try:
-        box = tuple(float(v) for v in value.split(","))
-    except ValueError:
-        box = ()
-    if len(box) != 4:
-        raise click.BadParameter(f"expected x0,y0,x1,y1 in pixels, got {value!r}")
-    return box
+from clflow_cli.options import out_option, pixel_box_option
 
 
 @click.command()
 @click.argument("video", type=click.Path(path_type=str))
-@click.option("-o", "--output", type=click.Path(file_okay=False, path_type=str), default=None,
-              help="Output folder. Default: VIDEO's name + '_flow' in the current folder.")
+@out_option("output", "Output folder. Default: VIDEO's name + '_flow' in the current folder.")
 @click.option("--method", type=click.Choice(["dis", "farneback", "raft"]), default="dis", show_default=True,
               help="Optical flow backend (raft only with --raft-weights).")
 @click.option("--preset", type=click.Choice(["ultrafast", "fast", "medium", "fine"]), default="fine", show_default=True,
@@ -33,7 +22,7 @@ def _box(ctx, param, value):
               help="Resample (nearest frame) to this rate, e.g. the simulation's frames per second.")
 @click.option("--mask", "mask_image", type=click.Path(dir_okay=False, path_type=str), default=None,
               help="Object mask image (object where grey > 127), the video's size.")
-@click.option("--box", callback=_box, default=None, metavar="X0,Y0,X1,Y1", help="Object box in pixels.")
+@pixel_box_option("Object box in pixels (x right, y down).")
 @click.option("--video/--no-video", "write_panels_video", default=True, show_default=True,
               help="Also write flow.mp4 (frame | colour-coded flow; played at 24 fps when the rate is unknown).")
 @click.pass_obj
@@ -41,9 +30,9 @@ def flow(obj, video, output, method, preset, raft_weights, fps, start, end, stri
          write_panels_video):
     """Optical flow between consecutive frames of VIDEO (a video file or an image folder).
 
-    Writes OUTPUT/flow.npz (flow [T-1, H, W, 2] px, valid [T-1, H, W] = forward-backward
-    consistent and inside the object mask, times [T] s), OUTPUT/flo/flow_NNNN.flo, and
-    OUTPUT/png/flow_NNNN.png panels (frame | flow) plus OUTPUT/flow.mp4; every file atomically.
+    Writes OUT/flow.npz (flow [T-1, H, W, 2] px, valid [T-1, H, W] = forward-backward
+    consistent and inside the object mask, times [T] s), OUT/flo/flow_NNNN.flo, and
+    OUT/png/flow_NNNN.png panels (frame | flow) plus OUT/flow.mp4; every file atomically.
     """
     from pathlib import Path
 

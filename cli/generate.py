@@ -5,7 +5,7 @@ from pathlib import Path
 
 import click
 
-from clflow_cli.main import FiniteFloat
+from clflow_cli.options import FiniteFloat, out_option
 
 # the same names as clflow.generate.FITS / OUTPUT_SIZES, written out so --help imports nothing heavy
 FIT_CHOICES = ("pad", "crop")
@@ -31,8 +31,8 @@ def _size(ctx, param, value):
               "Diffusion (image only), told apart by its model_index.json. Never downloaded.")
 @click.option("--prompt", default="", help="The motion to show (CogVideoX; SVD takes none).")
 @click.option("--negative-prompt", default="", help="What not to show (CogVideoX).")
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="The video (.mp4, .gif, ...); the run's record goes beside it as .json.")
+@out_option("output", "The video (.mp4, .gif, ...); the run's record goes beside it as .json.", required=True,
+            type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--frames", type=click.IntRange(min=2), default=None,
               help="Frames to generate [default: the model's, e.g. 49 for CogVideoX, 14 or 25 for SVD].")
 @click.option("--fps", type=FiniteFloat(min=0, min_open=True), default=None,

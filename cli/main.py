@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import importlib
 import logging
-import math
 import os
 import sys
 import warnings
@@ -13,7 +12,6 @@ from importlib.metadata import entry_points
 import click
 
 from clflow import __version__
-from clflow.limits import DEFAULT_MAX_OUTPUT_GB
 
 # torch's OpenMP threads spin for a while after every parallel torch op, taking the cores
 # from the OpenCL CPU device's worker threads (measured: 10-20 % of the rasteriser's forward
@@ -97,8 +95,8 @@ class LazyGroup(click.Group):
             if exc.errno not in FILE_SYSTEM_ERRNOS:
                 raise
             raise click.ClickException(describe_os_error(exc)) from None
-        except KeyboardInterrupt:
-            raise Interrupted("interrupted") from None
+        except KeyboardInterrupt as exc:  # its message, if any, says what was saved and how to resume
+            raise Interrupted(str(exc) or "interrupted") from None
 
 
 def broken_command(name: str, message: str) -> click.Command:
@@ -111,23 +109,6 @@ def broken_command(name: str, message: str) -> click.Command:
     return click.Command(name, callback=fail, help=message, short_help="(broken plugin: run it to see why)",
                          context_settings={"ignore_unknown_options": True, "allow_extra_args": True},
                          add_help_option=False)
-
-
-class FiniteFloat(click.FloatRange):
-    """A number option that refuses NaN and infinities (FloatRange lets NaN through)."""
-
-    name = "number"
-
-    def convert(self, value, param, ctx):
-        number = super().convert(value, param, ctx)
-        if not math.isfinite(number):
-            self.fail(f"{value!r} is not a finite number", param, ctx)
-        return number
-
-
-max_output_option = click.option(
-    "--max-output-gb", type=click.FloatRange(min=0, min_open=True), default=DEFAULT_MAX_OUTPUT_GB, show_default=True,
-    help="Refuse, before any work, a run whose predicted output (an uncompressed upper bound) exceeds this many GB.")
 
 
 class CliContext:

@@ -30,4 +30,27 @@ def progress(total: int, label: str) -> Iterator[Callable[[str], None]]:
     yield advance
 
 
-__all__ = ["progress"]
+def note(line: str) -> None:
+    """A progress line, on stderr (results go to stdout)."""
+    click.echo(line, err=True)
+
+
+def iteration_bar(total: int, done: int):
+    """The ``bar`` of :func:`clflow.pipeline.runs.run_optimization`: a click progress bar of
+    the iterations (each row shown beside it) on a terminal, else one line per iteration."""
+    from clflow.pipeline.runs import format_row, iteration_lines
+
+    if not sys.stderr.isatty():
+        return iteration_lines(total, done, note)
+    return _bar(total, done, format_row)
+
+
+@contextmanager
+def _bar(total: int, done: int, show: Callable[[dict], str]) -> Iterator[Callable[[dict], None]]:
+    with click.progressbar(length=total, label="optimising", show_pos=True, item_show_func=show,
+                           file=sys.stderr) as bar:
+        bar.update(done)
+        yield lambda row: bar.update(1, row)
+
+
+__all__ = ["iteration_bar", "note", "progress"]

@@ -4,6 +4,8 @@ from pathlib import Path
 
 import click
 
+from clflow_cli.options import out_option, pixel_box_option
+
 # The same names as clflow.query.BACKENDS (tests/query/test_cli.py checks); written out so
 # that --help does not import numpy and OpenCV.
 BACKEND_CHOICES = ("offline", "openai")
@@ -14,8 +16,7 @@ BACKEND_CHOICES = ("offline", "openai")
 @click.option("--prompt", default="", help="Text about the object or scene, sent with the image.")
 @click.option("--name", "object_name", default="", metavar="TEXT",
               help="What the object is ('rubber duck'): the strongest hint for the offline backend.")
-@click.option("--box", type=float, nargs=4, default=None, metavar="X0 Y0 X1 Y1",
-              help="Pixel box around the object (x right, y down, x1/y1 exclusive).")
+@pixel_box_option()
 @click.option("--mask", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Image of the same size whose nonzero pixels are the object.")
 @click.option("--backend", type=click.Choice(BACKEND_CHOICES), default="offline", show_default=True,
@@ -30,8 +31,8 @@ BACKEND_CHOICES = ("offline", "openai")
               help="Retries after a connection failure, timeout or HTTP 408/429/5xx.")
 @click.option("--image-format", type=click.Choice(["png", "jpeg"]), default="png", show_default=True,
               help="Encoding of the crop sent to the model.")
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Result JSON (default: IMAGE's name + .material.json in the current folder).")
+@out_option("output", "Result JSON (default: IMAGE's name + .material.json in the current folder).",
+            type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print the result record instead of a summary.")
 def query(image, prompt, object_name, box, mask, backend, llm_url, model, timeout, retries, image_format,
           output, as_json) -> None:

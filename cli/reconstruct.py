@@ -7,14 +7,15 @@ import sys
 import click
 
 from clflow_cli.main import Interrupted
+from clflow_cli.options import out_option
 
 LOG_EVERY = 100  # iterations between progress lines when stderr is not a terminal
 
 
 @click.command("reconstruct")
 @click.argument("images", type=click.Path())
-@click.option("-o", "--output-dir", required=True, type=click.Path(file_okay=False),
-              help="Folder for point_cloud.ply, cameras.json, metrics.json, checkpoint.pt and preview/.")
+@out_option("output_dir", "Folder for point_cloud.ply, cameras.json, metrics.json, checkpoint.pt and preview/.",
+            required=True)
 @click.option("--transforms", type=click.Path(dir_okay=False), help="NeRF-style transforms.json (OpenGL axes).")
 @click.option("--colmap", type=click.Path(file_okay=False), help="COLMAP sparse model folder (.bin or .txt), e.g. sparse/0.")
 @click.option("--cameras", "cameras_json", type=click.Path(dir_okay=False), help="3DGS cameras.json.")
@@ -41,7 +42,7 @@ LOG_EVERY = 100  # iterations between progress lines when stderr is not a termin
 @click.option("--preview-every", type=click.IntRange(min=0), default=500, show_default=True,
               help="Write preview/iter_N.png (render | target of a held-out view) every N iterations (0: never).")
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=1000, show_default=True)
-@click.option("--resume", is_flag=True, help="Continue from OUTPUT_DIR/checkpoint.pt with the same options.")
+@click.option("--resume", is_flag=True, help="Continue from OUT/checkpoint.pt with the same options.")
 @click.option("--depth", type=click.Path(dir_okay=False),
               help="Single image + depth: IMAGES is one image, this its depth map (.npy in m, or 16-bit PNG); no training.")
 @click.option("--depth-scale", type=click.FloatRange(min=0, min_open=True),
@@ -115,8 +116,8 @@ def _from_depth(image_path, depth_path, depth_scale, fov, shell, output_dir) -> 
     import torch
 
     from clflow.errors import InputError
+    from clflow.media import read_image
     from clflow.recon.depth import backproject, read_depth
-    from clflow.recon.views import read_image
     from clflow.splat.cameras import Camera, intrinsics, save_cameras_json
     from clflow.splat.ply import save_ply
 

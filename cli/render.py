@@ -7,34 +7,14 @@ import re
 
 import click
 
-from clflow_cli.main import FiniteFloat, max_output_option
+from clflow_cli.options import FiniteFloat, Numbers, max_output_option, out_option
 
 VIDEO_SUFFIXES = (".mp4", ".gif")
 
 
-class Numbers(click.ParamType):
-    """A comma-separated list of ``count`` numbers, e.g. ``0,0,1``."""
-
-    def __init__(self, count: int):
-        self.count = count
-        self.name = ",".join(["N"] * count)
-
-    def convert(self, value, param, ctx):
-        if isinstance(value, tuple):
-            return value
-        try:
-            numbers = tuple(float(v) for v in str(value).split(","))
-        except ValueError:
-            numbers = ()
-        if len(numbers) != self.count or not all(math.isfinite(v) for v in numbers):
-            self.fail(f"expected {self.count} comma-separated finite numbers, got {value!r}", param, ctx)
-        return numbers
-
-
 @click.command()
 @click.argument("splats", type=click.Path(dir_okay=False))
-@click.option("-o", "--output-dir", type=click.Path(file_okay=False), default="renders", show_default=True,
-              help="Folder for the PNG images (one per view).")
+@out_option("output_dir", "Folder for the PNG images (one per view).", default="renders", show_default=True)
 @click.option("--cameras", "cameras_json", type=click.Path(dir_okay=False),
               help="3DGS cameras.json; render its cameras (all, or those picked by --camera).")
 @click.option("--transforms", "transforms_json", type=click.Path(dir_okay=False),
@@ -47,7 +27,8 @@ class Numbers(click.ParamType):
               help="Render only the Gaussians whose centres lie within R m of X,Y,Z.")
 @click.option("--eye", type=Numbers(3), help="Look-at camera position X,Y,Z (m).")
 @click.option("--target", type=Numbers(3), help="Look-at target X,Y,Z (m); default: the scene centre.")
-@click.option("--up", type=Numbers(3), default="0,0,1", show_default=True, help="World up direction.")
+@click.option("--up", type=Numbers(3), default="0,1,0", show_default=True,
+              help="World up direction (+y, as scene configs; NeRF synthetic and Blender scenes: 0,0,1).")
 @click.option("--orbit", "n_orbit", type=click.IntRange(min=1), help="Render N views on a circle around the target.")
 @click.option("--elevation", type=FiniteFloat(), default=20.0, show_default=True,
               help="Orbit / default view elevation above the horizontal plane, degrees.")
@@ -82,9 +63,9 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
     from clflow.errors import InputError
     from clflow.fileio import atomic_dir
     from clflow.limits import check_output
-    from clflow.media import write_image, write_video
+    from clflow.media import to_uint8, write_image, write_video
     from clflow.splat import load_ply
-    from clflow.splat.render import rasterize, to_uint8
+    from clflow.splat.render import rasterize
     from clflow_cli.progress import progress
 
     if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:

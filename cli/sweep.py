@@ -7,6 +7,7 @@ import sys
 import click
 
 from clflow_cli.main import Interrupted
+from clflow_cli.options import out_option
 
 
 def parse_resources(items: tuple[str, ...]) -> dict[str, float]:
@@ -42,8 +43,8 @@ def with_ray_options(f):
 
 @click.command("sweep")
 @click.argument("spec", type=click.Path(dir_okay=False))
-@click.option("--output", "-o", "output", type=click.Path(file_okay=False), required=True,
-              help="Results folder: sweep.json, sweep.md and runs/NAME/ (result.json, run.log, outputs).")
+@out_option("output", "Results folder: sweep.json, sweep.md and runs/NAME/ (result.json, run.log, outputs).",
+            required=True)
 @click.option("--serial", is_flag=True, help="Run the spec here, one run after another, without Ray.")
 @with_ray_options
 @click.option("--timeout", type=click.FloatRange(min=0, min_open=True), default=None, metavar="SECONDS",
@@ -52,8 +53,8 @@ def with_ray_options(f):
 @click.pass_context
 def sweep(ctx, spec, output, serial, address, cpus_per_task, resources, timeout, retry_failed):
     """Run every run of SPEC (YAML: scene configs, a base config with a grid or list of --set
-    overrides, sysid cases; docs/sweep.md), each in its own folder under OUTPUT, as Ray tasks
-    on this machine's cores (or a cluster: --address), and merge them into OUTPUT/sweep.json
+    overrides, sysid cases; docs/sweep.md), each in its own folder under OUT, as Ray tasks
+    on this machine's cores (or a cluster: --address), and merge them into OUT/sweep.json
     and sweep.md as they finish.
 
     A run that fails, is killed or times out is recorded with its reason and the others go

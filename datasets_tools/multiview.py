@@ -55,9 +55,10 @@ def make_multiview(
         fill: fraction of the narrower field of view the bounding sphere spans.
     """
     from clflow.fileio import atomic_write_text
+    from clflow.media import to_uint8, write_image
     from clflow.splat.cameras import OPENGL_TO_OPENCV, framing_distance, look_at
     from clflow.splat.ply import save_ply
-    from clflow.splat.render import rasterize, to_uint8
+    from clflow.splat.render import rasterize
 
     folder = Path(folder)
     gaussians = surface_gaussians([SURFACES[shape](1.0, (0.0, 0.0, 0.0), detail, np.random.default_rng(seed))])
@@ -70,20 +71,9 @@ def make_multiview(
             render = rasterize(gaussians, camera, render_depth=False)
         name = f"images/r_{i:03d}"
         rgba = torch.cat([render.image, render.alpha], dim=-1)
-        _write_rgba(folder / f"{name}.png", to_uint8(rgba))
+        write_image(folder / f"{name}.png", to_uint8(rgba))
         frames.append({"file_path": name, "transform_matrix": (camera.camtoworld() @ OPENGL_TO_OPENCV).tolist()})
     save_ply(folder / "truth.ply", gaussians)
     path = folder / "transforms.json"
     atomic_write_text(path, json.dumps({"camera_angle_x": FOV_X, "w": size, "h": size, "frames": frames}, indent=1) + "\n")
     return path
-
-
-def _write_rgba(path: Path, rgba: np.ndarray) -> None:
-    """An [H, W, 4] uint8 RGBA image as PNG, atomically."""
-    import cv2
-
-    from clflow.fileio import atomic_path
-
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA)):
-            raise OSError(f"{path}: OpenCV could not write the PNG image")

@@ -243,13 +243,12 @@ def make_scene(
     import yaml
 
     from clflow.fileio import atomic_dir, atomic_path
-    from clflow.media import write_image, write_video
+    from clflow.media import to_uint8, write_image, write_video
     from clflow.recon.sequence import load_sequence
     from clflow.recon.views import load_view
     from clflow.scene.config import parse_config
     from clflow.splat.cameras import save_transforms_json
     from clflow.splat.ply import load_ply
-    from clflow.splat.render import to_uint8
 
     seq = load_sequence(data)
     seq.check_camera(camera)

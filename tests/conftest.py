@@ -1,7 +1,11 @@
 """Shared fixtures: every test runs on the device clflow selects ($CLFLOW_DEVICE or default,
 PoCL's CPU device on CI)."""
 
+from pathlib import Path
+
 import pytest
+
+REPO = str(Path(__file__).resolve().parents[1])  # the repository: scripts run under oclgrind import tests.*
 
 
 @pytest.fixture(scope="session")
@@ -13,8 +17,9 @@ def device():
 
 @pytest.fixture
 def oclgrind(tmp_path):
-    """Run a Python snippet under oclgrind (out-of-bounds, data-race and uninitialised-value
-    checks) and return ``(stdout, log)``; skips when oclgrind is not installed.
+    """Run a Python snippet under oclgrind (out-of-bounds, data-race and, unless
+    ``uninitialized=False``, uninitialised-value checks) and return ``(stdout, log)``; skips
+    when oclgrind is not installed. The snippet can import the ``tests`` package's helpers.
 
     Oclgrind replaces the OpenCL runtime for the child process, so inside it the only
     device is the Oclgrind simulator (a non-unified device: the bridge's copy path runs).
@@ -28,12 +33,14 @@ def oclgrind(tmp_path):
     if exe is None:
         pytest.skip("oclgrind is not installed (apt-get install oclgrind)")
 
-    def run(code: str, timeout: float = 300):
+    def run(code: str, timeout: float = 300, uninitialized: bool = True):
         script, log = tmp_path / "under_oclgrind.py", tmp_path / "oclgrind.log"
         script.write_text(code)
         env = {k: v for k, v in os.environ.items() if k != "CLFLOW_DEVICE"}
+        env["PYTHONPATH"] = os.pathsep.join([REPO, *filter(None, [env.get("PYTHONPATH")])])  # tests.* helpers
         res = subprocess.run(
-            [exe, "--data-races", "--uninitialized", "--log", str(log), sys.executable, str(script)],
+            [exe, "--data-races", *(["--uninitialized"] if uninitialized else []), "--log", str(log), sys.executable,
+             str(script)],
             capture_output=True, text=True, timeout=timeout, env=env,
         )
         assert res.returncode == 0, res.stderr

@@ -195,3 +195,78 @@ def test_progress_off_a_terminal_is_a_line_per_tenth(capsys):
     lines = capsys.readouterr().err.splitlines()
     assert lines[0] == "rendering: 2/25 view_1" and lines[-1] == "rendering: 25/25 view_24"
     assert len(lines) == 13  # every 2nd of 25, and the last
+
+
+# command path -> (its output parameter, the other arguments it needs to parse)
+OUT_PARAMETERS = {
+    ("render",): ("output_dir", ["s.ply"]),
+    ("render4d",): ("out_dir", ["sim"]),
+    ("simulate",): ("out_dir", []),
+    ("flow",): ("output", ["v.mp4"]),
+    ("generate",): ("output", ["i.png", "--model", "m"]),
+    ("optimize",): ("output", ["c.yaml"]),
+    ("eval", "sysid"): ("output", []),
+    ("query",): ("output", ["i.png"]),
+    ("reconstruct",): ("output_dir", ["images"]),
+    ("sweep",): ("output", ["spec.yaml"]),
+}
+
+
+def _command(path: tuple[str, ...]) -> click.Command:
+    command = cli
+    for name in path:
+        command = command.get_command(click.Context(command), name)
+    return command
+
+
+@pytest.mark.parametrize("path", list(OUT_PARAMETERS), ids=" ".join)
+def test_output_is_dash_o_or_out_and_the_old_spellings_still_work(path):
+    name, args = OUT_PARAMETERS[path]
+    command = _command(path)
+    help_text = CliRunner().invoke(cli, [*path, "--help"]).output
+    assert "-o, --out" in help_text and "--output-dir" not in help_text
+    assert "--output " not in help_text and "--output," not in help_text  # the aliases are not shown
+    for spelling in ("-o", "--out", "--output", "--output-dir"):
+        ctx = command.make_context(" ".join(path), [*args, spelling, "target"])
+        assert str(ctx.params[name]) == "target", spelling
+
+
+def test_simulate_param_and_params_from_are_distinct_and_params_still_works():
+    command = _command(("simulate",))
+    help_text = CliRunner().invoke(cli, ["simulate", "--help"]).output
+    assert "--params-from PARAMS.JSON" in help_text and "--params " not in help_text
+    for spelling in ("--params-from", "--params"):
+        ctx = command.make_context("simulate", ["c.yaml", spelling, "p.json", "-p", "youngs_modulus=2e4"])
+        assert ctx.params["params_file"] == "p.json" and ctx.params["params"] == {"youngs_modulus": 2e4}
+    res = CliRunner().invoke(cli, ["simulate", "--params-from", "p.json"])
+    assert res.exit_code == 2 and "--params-from needs a scene CONFIG" in res.output
+
+
+def test_numbers_are_one_word_with_commas_in_every_command():
+    from clflow_cli.options import Numbers
+
+    assert Numbers(3).convert("0,1,0", None, None) == (0.0, 1.0, 0.0)
+    assert Numbers(3).convert("0 1 0", None, None) == (0.0, 1.0, 0.0)  # quoted with spaces
+    with pytest.raises(click.BadParameter, match="write them as one word with commas"):
+        Numbers(4, "X0,Y0,X1,Y1").convert("8", None, None)
+    with pytest.raises(click.BadParameter, match="expected 3 comma-separated finite numbers, got '1,nan,2'"):
+        Numbers(3).convert("1,nan,2", None, None)
+    for path, option in ((("render",), "--box"), (("flow",), "--box"), (("query",), "--box"), (("render",), "--up"),
+                         (("simulate",), "--velocity"), (("simulate",), "--gravity"), (("simulate",), "--center")):
+        param = next(p for p in _command(path).params if option in p.opts)
+        assert isinstance(param.type, Numbers), (path, option)
+    up = next(p for p in _command(("render",)).params if p.name == "up")
+    assert up.type.convert(up.default, up, None) == (0.0, 1.0, 0.0)  # +y, as scene configs (scene.up)
+
+
+def test_eval_sysid_progress_lines_use_the_pipelines_row_format(monkeypatch, tmp_path):
+    import clflow_datasets.sysid as sysid
+
+    def evaluate(names, out, settings, force, progress, run_cases):
+        progress("torus", {"iteration": 0, "loss": 1.5, "params": {"youngs_modulus": 2e4}, "seconds": 0.5})
+        return {"cases": {}}
+
+    monkeypatch.setattr(sysid, "evaluate", evaluate)
+    monkeypatch.setattr(sysid, "markdown", lambda summary: "")
+    res = CliRunner().invoke(cli, ["eval", "sysid", "-o", tmp_path, "--case", "torus"])
+    assert res.exit_code == 0 and res.output == "torus: iteration 1: loss 1.5  youngs_modulus=2e+04  0.5 s/it\n"

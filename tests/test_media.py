@@ -89,3 +89,37 @@ def test_undecodable_video_is_one_clear_line(tmp_path):
     with pytest.raises(InputError, match=r"broken.mp4: not a readable video \(FFmpeg: .+\)") as error:
         read_video(bad)
     assert "\n" not in str(error.value)
+
+
+def test_images_round_trip_rgb_rgba_and_16_bit(tmp_path):
+    import cv2
+
+    from clflow.media import read_image, to_uint8, write_image
+
+    rgba = np.random.default_rng(0).integers(0, 256, (5, 7, 4), dtype=np.uint8)
+    write_image(tmp_path / "a.png", rgba)  # RGBA kept, in RGBA order
+    write_image(tmp_path / "b.png", rgba[..., :3])
+    np.testing.assert_array_equal(to_uint8(read_image(tmp_path / "a.png")), rgba)
+    np.testing.assert_array_equal(to_uint8(read_image(tmp_path / "b.png")), rgba[..., :3])
+    grey16 = np.array([[0, 65535], [32768, 257]], np.uint16)
+    cv2.imwrite(str(tmp_path / "g.png"), grey16)
+    image = read_image(tmp_path / "g.png")  # grey as RGB, 16 bits scaled to [0, 1]
+    assert image.shape == (2, 2, 3) and image.dtype == np.float32
+    np.testing.assert_allclose(image[..., 1], grey16 / 65535, rtol=1e-6)
+    for bad, message in ((tmp_path / "none.png", "image not found"), (tmp_path, "a folder, not an image")):
+        with pytest.raises(InputError, match=message):
+            read_image(bad)
+    (tmp_path / "text.png").write_text("hello")
+    with pytest.raises(InputError, match="not a readable image"):
+        read_image(tmp_path / "text.png")
+
+
+def test_to_uint8_clamps_rounds_half_up_and_takes_tensors():
+    import torch
+
+    from clflow.media import to_uint8
+
+    values = np.array([-1.0, 0.0, 0.5 / 255, 1.5 / 255, 254.49 / 255, 1.0, 7.0, np.nan], np.float32)
+    expected = [0, 0, 1, 2, 254, 255, 255, 0]
+    assert to_uint8(values).tolist() == expected
+    assert to_uint8(torch.from_numpy(values).requires_grad_()).tolist() == expected

@@ -139,22 +139,20 @@ def _natural_key(path: Path) -> tuple:
 
 
 def _read_image_folder(folder: Path, fps: float | None) -> Video:
-    import cv2
+    from clflow.media import read_image, to_uint8
 
     files = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=_natural_key)
     if not files:
         raise InputError(f"{folder}: the folder holds no image ({', '.join(IMAGE_SUFFIXES)})")
     frames = []
     for f in files:
-        image = cv2.imread(str(f), cv2.IMREAD_COLOR)
-        if image is None:
-            raise InputError(f"{f}: not a readable image")
+        image = to_uint8(read_image(f)[..., :3])
         if frames and image.shape != frames[0].shape:
             raise InputError(
                 f"{f}: image is {image.shape[1]}x{image.shape[0]} but {files[0].name} is "
                 f"{frames[0].shape[1]}x{frames[0].shape[0]}; all frames must have one size"
             )
-        frames.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
+        frames.append(image)
     return _make_video(np.stack(frames), fps, str(folder))
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from clflow.media import to_uint8
 from clflow.pipeline.render import frame_gaussians, render_rgb
 from clflow.pipeline.scene import SceneGaussians, guidance_camera, load_scene_gaussians
 from clflow.pipeline.simulation import ObjectSetup, build_simulator, setup_object
@@ -82,10 +83,6 @@ def simulate_config(cfg: SceneConfig, overrides: dict[str, float] | None = None,
     sim = build_simulator(cfg, prepared.setup, params, density)
     traj = sim.run(cfg.simulation.frames)
     return SimulationResult(prepared, params, density, traj.x, traj.F, traj.clamped, sim.substeps)
-
-
-def to_uint8(image: torch.Tensor) -> np.ndarray:
-    return (image.detach().clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
 
 
 def render_frames(result: SimulationResult, camera=None) -> np.ndarray:

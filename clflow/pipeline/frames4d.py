@@ -215,8 +215,7 @@ def render_4d(frames: Frames4D, out: Path, *, views: int = 0, turns: float = 1.0
     the end: a failure leaves ``out`` as it was; ``advance(name)`` is called after each frame
     (render_4d_frames of them). Returns the videos written."""
     from clflow.fileio import atomic_dir
-    from clflow.media import write_image, write_video
-    from clflow.pipeline.forward import to_uint8
+    from clflow.media import to_uint8, write_image, write_video
     from clflow.pipeline.render import render_rgb
 
     if video_format not in ("mp4", "gif"):

@@ -137,7 +137,7 @@ def guidance_image(cfg: SceneConfig) -> np.ndarray:
     import torch
 
     from clflow.generate import load_image
-    from clflow.pipeline.forward import to_uint8
+    from clflow.media import to_uint8
     from clflow.pipeline.render import render_rgb
     from clflow.pipeline.scene import guidance_camera, load_scene_gaussians
 

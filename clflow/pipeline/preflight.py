@@ -220,7 +220,7 @@ def measure_view(prepared, camera, mask: torch.Tensor, video_frames: np.ndarray,
                  confidence: np.ndarray) -> GuidanceCheck:
     """The numbers of :class:`GuidanceCheck` for one view: ``mask`` [H, W] the loss mask,
     ``video_frames`` [T+1, H, W, 3] uint8, ``flow`` [T, H, W, 2], ``confidence`` [T, H, W]."""
-    from clflow.pipeline.forward import to_uint8
+    from clflow.media import to_uint8
     from clflow.pipeline.render import render_object_alpha, render_rgb
     from clflow.pipeline.scene import SceneGaussians
 

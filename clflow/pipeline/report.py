@@ -15,48 +15,12 @@ import dataclasses
 import html
 import json
 import sys
-import time
 from pathlib import Path
 
+from clflow.environment import environment
 from clflow.fileio import atomic_write_text
 
 RENDERS = "simulation/render4d"  # where `clflow demo` / `clflow render4d` put the 4D renders
-
-
-def environment() -> dict:
-    """Versions, the OpenCL device, the git commit and the machine's load of this run."""
-    import os
-    import platform
-
-    import pyopencl
-    import torch
-
-    import clflow
-    from clflow.runtime import get_device
-
-    device = get_device()
-    info = getattr(device, "info", None)
-    try:
-        load = round(os.getloadavg()[0], 2)
-    except OSError:
-        load = None
-    return {"clflow": clflow.__version__, "commit": _commit(Path(clflow.__file__).parent),
-            "torch": torch.__version__, "pyopencl": pyopencl.VERSION_TEXT,
-            "device": str(getattr(device, "name", device)),
-            "opencl_platform": getattr(info, "platform", None), "opencl_driver": getattr(info, "driver_version", None), "python": platform.python_version(),
-            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load": load}
-
-
-def _commit(folder: Path) -> str | None:
-    """The git commit clflow runs from (an editable install in a checkout), else None."""
-    import subprocess
-
-    try:
-        done = subprocess.run(["git", "-C", str(folder), "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, timeout=10)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return done.stdout.strip() or None if done.returncode == 0 else None
 
 
 def write_run_record(cfg, output: Path, argv: list[str] | None = None) -> dict:
@@ -147,4 +111,4 @@ def write_report(output: Path) -> Path:
     return output / "index.html"
 
 
-__all__ = ["environment", "write_report", "write_run_record"]
+__all__ = ["environment", "write_report", "write_run_record"]  # environment: from clflow.environment

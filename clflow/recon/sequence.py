@@ -100,7 +100,7 @@ def load_sequence(path: str | os.PathLike) -> Sequence:
     file); see the module docstring. Reads one image per camera for its size."""
     import json
 
-    from clflow.recon.views import read_image
+    from clflow.media import read_image
 
     index = find_index(path)
     try:

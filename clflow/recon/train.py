@@ -341,8 +341,7 @@ def _load_checkpoint(path: Path, settings: Settings) -> dict:
 
 
 def _write_preview(path: Path, params, view: View, sh_degree: int, background: torch.Tensor) -> None:
-    from clflow.media import write_image
-    from clflow.splat.render import to_uint8
+    from clflow.media import to_uint8, write_image
 
     with torch.no_grad():
         image, _ = render_view(params, view.camera, sh_degree, background)

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
+from clflow.media import read_image
 from clflow.splat.cameras import Camera, load_cameras_json, load_transforms_json
 
 IMAGE_SUFFIXES = ("", ".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
@@ -149,22 +150,6 @@ def load_view(camera: Camera, path: Path, source: Path, masks: str | os.PathLike
         mask = torch.from_numpy(mask)[..., None]
         image = image * mask + background * (1 - mask)
     return View(camera, image.contiguous(), path)
-
-
-def read_image(path: Path) -> np.ndarray:
-    """[H, W, 3 or 4] float32 RGB(A) in [0, 1] of an 8- or 16-bit image file (grey as RGB)."""
-    import cv2
-
-    data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if data is None or data.size == 0:
-        raise InputError(f"{path}: cannot read the image (not a format OpenCV knows, or a damaged file)")
-    if data.dtype not in (np.uint8, np.uint16):
-        raise InputError(f"{path}: {data.dtype} pixels; clflow reads 8- and 16-bit images")
-    scale = np.float32(1 / np.iinfo(data.dtype).max)
-    if data.ndim == 2:
-        data = np.repeat(data[..., None], 3, axis=2)
-    order = [2, 1, 0, 3][: data.shape[2]]  # OpenCV's BGR(A) to RGB(A)
-    return np.ascontiguousarray(data[..., order]).astype(np.float32) * scale
 
 
 def _image_path(name: str, folders: list[Path], source: Path) -> Path:

@@ -29,10 +29,9 @@ from clflow.flow.optical_flow import (
     DIS_PRESETS,
 )
 from clflow.materials import DENSITY, get_material, validate_params
-from clflow.mpm.constants import ELASTIC_MODELS, SAND_MODELS
+from clflow.mpm.constants import COLLIDER_MODES, ELASTIC_MODELS, SAND_MODELS
 
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
-COLLIDER_MODES = ("sticky", "slip", "separate")
 FLOW_METHODS = ("dis", "farneback")
 FLOW_LOSSES = ("l2", "charbonnier")
 MATERIAL_MODELS = {"elastic": ELASTIC_MODELS, "sand": SAND_MODELS}  # material.model options

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 from typing import NamedTuple, Sequence
 
-import numpy as np
 import torch
 
 from clflow.errors import InputError
@@ -105,11 +104,6 @@ def rasterize(
         render_depth=render_depth,
     )
     return Render(image, alpha, depth, meta)
-
-
-def to_uint8(image: torch.Tensor) -> np.ndarray:
-    """[H, W, C] values in [0, 1] (clamped) as uint8 0..255, rounded to nearest."""
-    return (image.detach().clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
 
 
 def _background(value, n_colors: int, n_out: int, dtype: torch.dtype) -> torch.Tensor | None:

@@ -2,13 +2,13 @@
 with every material, colliders, velocity regions, a force stage and a clamped particle; and an
 elastic-only scene, which takes the fused SIMD stress adjoint)."""
 
-import os
-import shutil
-import subprocess
-import sys
 import textwrap
 
 import pytest
+
+from tests.mpm._helpers import assert_clean_under_oclgrind
+
+pytestmark = [pytest.mark.oclgrind, pytest.mark.slow]
 
 SCRIPT = textwrap.dedent(
     """
@@ -42,17 +42,7 @@ SCRIPT = textwrap.dedent(
     print("done on", sim.device.info.label)
     """
 )
-REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
-@pytest.mark.oclgrind
-@pytest.mark.slow
-@pytest.mark.skipif(shutil.which("oclgrind") is None, reason="oclgrind not installed")
-def test_adjoint_kernels_are_clean_under_oclgrind(tmp_path):
-    log = tmp_path / "oclgrind.log"
-    env = {**os.environ, "CLFLOW_DEVICE": "oclgrind", "POCL_CACHE_DIR": str(tmp_path / "cache")}
-    res = subprocess.run(["oclgrind", "--data-races", "--log", str(log), sys.executable, "-c",
-                          SCRIPT], capture_output=True, text=True, env=env, timeout=900, cwd=REPO)
-    assert res.returncode == 0 and "done on Oclgrind" in res.stdout, res.stdout[-500:] + res.stderr[-2000:]
-    report = log.read_text() if log.exists() else ""
-    assert report.strip() == "", report[:3000]
+def test_adjoint_kernels_are_clean_under_oclgrind(oclgrind):
+    assert_clean_under_oclgrind(oclgrind, SCRIPT)

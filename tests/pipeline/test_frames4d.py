@@ -80,13 +80,13 @@ def test_simulate_with_optimised_parameters_and_bad_params_file(quick_demo, tmp_
     params = tmp_path / "params.json"
     params.write_text(json.dumps({"material": "elastic", "parameters": {"youngs_modulus": 2e4, "poissons_ratio": 0.3},
                                   "density": 1000.0}))
-    res = run("simulate", quick_demo / "config.yaml", "--params", params, "-o", tmp_path / "a", "--preview", "none")
+    res = run("simulate", quick_demo / "config.yaml", "--params-from", params, "-o", tmp_path / "a", "--preview", "none")
     assert res.exit_code == 0, res.output
     truth = np.load(tmp_path / "a" / "gaussians.npz")["object_means"]
     run("simulate", quick_demo / "config_truth.yaml", "-o", tmp_path / "b", "--preview", "none")
     np.testing.assert_array_equal(truth, np.load(tmp_path / "b" / "gaussians.npz")["object_means"])
     params.write_text(json.dumps({"material": "sand", "parameters": {}, "density": 1.0}))
-    res = run("simulate", quick_demo / "config.yaml", "--params", params)
+    res = run("simulate", quick_demo / "config.yaml", "--params-from", params)
     assert res.exit_code == 1 and "is for 'sand', the config simulates 'elastic'" in res.output
     res = run("simulate", quick_demo / "config.yaml", "--grid", 32)
     assert res.exit_code == 2 and "drop --grid" in res.output

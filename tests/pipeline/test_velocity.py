@@ -82,12 +82,12 @@ def test_simulate_takes_the_velocity_of_a_params_file(quick_demo, tmp_path):
     record = {"material": "elastic", "parameters": {"youngs_modulus": 2e4, "poissons_ratio": 0.3}, "density": 1000.0,
               "velocity": [0.5, 0.0, 0.0]}
     params.write_text(json.dumps(record))
-    res = run_cli("simulate", quick_demo / "config.yaml", "--params", params, "-o", tmp_path / "b", "--preview", "none")
+    res = run_cli("simulate", quick_demo / "config.yaml", "--params-from", params, "-o", tmp_path / "b", "--preview", "none")
     assert res.exit_code == 0, res.output
     means = [np.load(tmp_path / name / "gaussians.npz")["object_means"] for name in ("a", "b")]
     np.testing.assert_array_equal(means[0], means[1])
     params.write_text(json.dumps({**record, "velocity": [0.5, "fast", 0.0]}))
-    res = run_cli("simulate", quick_demo / "config.yaml", "--params", params)
+    res = run_cli("simulate", quick_demo / "config.yaml", "--params-from", params)
     assert res.exit_code == 1
     assert "velocity must be a list of 3 finite numbers (m/s), got [0.5, 'fast', 0.0]" in res.output
 

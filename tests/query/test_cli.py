@@ -30,7 +30,7 @@ def test_backend_choices_match_the_library():
 
 
 def test_offline_summary_and_default_output(run, photo, tmp_path):
-    res = run(photo[0], "--box", 0, 0, 32, 24)
+    res = run(photo[0], "--box", "0,0,32,24")
     assert res.exit_code == 0, res.output
     lines = res.output.splitlines()
     assert lines[0].startswith("object      rubber duck  (knowledge-base entry 'rubber', confidence 0.70)")
@@ -77,7 +77,7 @@ def test_openai_backend_from_options_and_environment(run, photo, server, monkeyp
     "args, message",
     [
         (["missing.png"], "Error: image missing.png does not exist"),
-        (["{img}", "--box", "0", "0", "100", "10"], "Error: box (0, 0, 100, 10) is outside the 64x48 px image"),
+        (["{img}", "--box", "0,0,100,10"], "Error: box (0, 0, 100, 10) is outside the 64x48 px image"),
         (["{img}", "--mask", "nomask.png"], "Error: mask nomask.png does not exist"),
         (["{img}", "--backend", "openai"], "Error: the openai backend needs an endpoint"),
         (["{img}", "--backend", "openai", "--llm-url", "https://api.example.com/v1", "--model", "m"],
@@ -91,6 +91,12 @@ def test_errors_are_one_line(run, photo, refused_url, args, message):
     res = run(*args)
     assert res.exit_code == 1
     assert res.output.strip().splitlines()[-1].startswith(message) and "Traceback" not in res.output
+
+
+def test_box_is_one_word_with_commas_and_the_old_spaced_form_says_so(run, photo):
+    res = run(photo[0], "--box", 0, 0, 32, 24)  # the spelling before cli/options.py
+    assert res.exit_code == 2 and "write them as one word with commas, e.g. X0,Y0,X1,Y1" in res.output
+    assert run(photo[0], "--box", "0 0 32 24", "--json").exit_code == 0  # quoted, spaces are read too
 
 
 def test_unknown_backend_is_a_usage_error(run, photo):

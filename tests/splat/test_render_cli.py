@@ -10,8 +10,9 @@ import torch
 from click.testing import CliRunner
 
 from clflow.errors import InputError
+from clflow.media import to_uint8
 from clflow.splat import Gaussians, look_at, rgb_to_sh0, save_ply
-from clflow.splat.render import rasterize, to_uint8
+from clflow.splat.render import rasterize
 from clflow_cli.main import cli
 
 F64 = torch.float64
@@ -212,7 +213,7 @@ def test_cli_default_view_and_orbit_video(tmp_path, scene):
 def test_cli_look_at_and_transforms_frame(tmp_path, scene):
     cam = camera()
     result = run("render", scene, "-o", tmp_path / "a", "--eye", ",".join(map(str, cam.position.tolist())),
-                 "--target", "0,0,0.5", "--fov", 40, "--width", W, "--height", H)
+                 "--target", "0,0,0.5", "--up", "0,0,1", "--fov", 40, "--width", W, "--height", H)
     assert result.exit_code == 0, result.output
     look = read_png(tmp_path / "a" / "look_at.png")
 

@@ -1,0 +1,317 @@
+"""The pipeline's steps as whole runs: what ``clflow optimize``, ``clflow simulate`` (a scene
+config, or particles) and ``clflow render4d`` do, for the CLI, ``clflow demo`` and
+``clflow sweep`` alike.
+
+The CLI only parses options and says how to show progress: ``echo(line)`` for results
+(stdout), ``note(line)`` for progress lines (stderr) and ``bar(total, done)``, a context
+manager yielding ``advance(row)``; the defaults show nothing. Ctrl-C during an optimisation
+raises KeyboardInterrupt with a one-line message saying what was saved and how to resume.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import math
+from pathlib import Path
+from typing import Callable, ContextManager
+
+from clflow.errors import InputError
+from clflow.limits import DEFAULT_MAX_OUTPUT_GB
+
+
+def _silent(line: str) -> None:
+    """The default ``echo`` / ``note``: show nothing."""
+
+
+def read_params_record(path: str | Path, cfg):
+    """The material parameters, density and initial velocity of an optimisation's
+    ``params.json`` applied to ``cfg`` (a SceneConfig of the same material): returns the
+    config with that velocity (m/s) and the parameter overrides (SI; ``density`` in kg/m^3)."""
+    try:
+        record = json.loads(Path(path).read_text())
+        overrides = {**record["parameters"], "density": record["density"]}
+        velocity = record.get("velocity", list(cfg.velocity))  # older records have none
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{path}: not a params.json of clflow optimize ({exc})") from None
+    if record.get("material") != cfg.material.type:
+        raise InputError(f"{path} is for {record.get('material')!r}, the config simulates {cfg.material.type!r}")
+    if not (isinstance(velocity, list) and len(velocity) == 3
+            and all(isinstance(v, (int, float)) and math.isfinite(v) for v in velocity)):
+        raise InputError(f"{path}: velocity must be a list of 3 finite numbers (m/s), got {velocity!r}")
+    return dataclasses.replace(cfg, velocity=tuple(float(v) for v in velocity)), overrides
+
+
+def simulate_scene(config_path: str | Path, params_file: str | Path | None = None, out_dir: str | Path | None = None,
+                   preview: str = "mp4", max_output_gb: float = DEFAULT_MAX_OUTPUT_GB, settings: tuple[str, ...] = (),
+                   max_substeps: int | None = None, echo: Callable[[str], None] = _silent, object_only: bool = False,
+                   compressed: bool = False) -> Path:
+    """Simulate the config's scene (``settings``: ``KEY=VALUE`` overrides) with its material
+    and initial velocity, or those of an optimisation's ``params_file``; write per-frame
+    Gaussians (``object_only``: PLY frames of the object and static.ply once; ``compressed``:
+    as .compressed.ply) and, unless ``preview`` is "none", the guidance view ("mp4" or "png"
+    frames) into ``out_dir`` (default: the config's output/simulation), all or nothing.
+    ``max_substeps`` overrides ``simulation.max_substeps``. Returns the folder."""
+    from clflow.fileio import atomic_dir
+    from clflow.limits import check_memory, check_output
+    from clflow.pipeline.forward import prepare, render_video, simulate_config
+    from clflow.pipeline.frames4d import export_gaussians, export_size
+    from clflow.pipeline.material import resolve_material
+    from clflow.scene.config import load_config
+
+    cfg = resolve_material(load_config(config_path, settings))
+    overrides = {}
+    if params_file:
+        cfg, overrides = read_params_record(params_file, cfg)
+    out = Path(out_dir) if out_dir else cfg.output / "simulation"
+    prepared = prepare(cfg)
+    frames = cfg.simulation.frames
+    written, memory = export_size(prepared, frames, preview != "none")
+    less = "simulate fewer frames (simulation.frames)"
+    check_output(out, written, max_output_gb, f"{frames + 1:,} frames of Gaussians", less)
+    check_memory(memory, f"simulating {frames + 1:,} frames", less)
+    result = simulate_config(cfg, overrides, prepared, max_substeps=max_substeps or cfg.simulation.max_substeps)
+    echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
+    with atomic_dir(out) as tmp:  # all or nothing: a failure leaves OUT as it was
+        export_gaussians(result, tmp, object_only, compressed)
+        if preview != "none":
+            render_video(result, tmp / "guidance", video=tmp / "guidance.mp4" if preview == "mp4" else None)
+    suffix = ".compressed.ply" if compressed else ".ply"
+    echo(f"wrote {out / 'gaussians.npz'} and {result.x.shape[0]} PLY frames ({out / ('frame_000' + suffix)} ...)"
+         + (f" of the object, the static scene in {out / ('static' + suffix)}" if object_only else ""))
+    if preview != "none":
+        echo(f"wrote {out / 'guidance.mp4' if preview == 'mp4' else out / 'guidance'}")
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class ParticleRun:
+    """``clflow simulate`` without a scene config: particles (a file, or a built-in shape
+    filling a cube of side ``size`` m centred at ``center``, default the domain's middle) of
+    one material in a cubic domain of side ``domain`` m (origin at 0) with ``resolution``
+    grid nodes per axis. SI units throughout; ``walls``: a collider mode or "none"."""
+
+    particles: str | None = None
+    shape: str = "box"
+    size: float = 0.3
+    center: tuple[float, float, float] | None = None
+    material: str = "elastic"
+    params: dict = dataclasses.field(default_factory=dict)
+    model: str | None = None
+    density: float | None = None
+    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    domain: float = 1.0
+    resolution: int = 64
+    particle_volume: float | None = None
+    frames: int = 24
+    fps: float = 24.0
+    substeps: int | None = None
+    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
+    walls: str = "separate"
+    wall_friction: float = 0.0
+    double: bool = False
+
+
+def simulate_particles(run: ParticleRun, out_dir: str | Path = "simulation", preview: str = "mp4",
+                       max_output_gb: float = DEFAULT_MAX_OUTPUT_GB, max_substeps: int | None = None, device=None,
+                       echo: Callable[[str], None] = _silent) -> Path:
+    """Simulate ``run`` on ``device`` (default: the selected one) and write
+    OUT/positions.npz (x [frames+1, N, 3] m, time [frames+1] s) and a preview ("mp4",
+    "png" frames or "none"), all or nothing; refuses more than ``max_substeps`` substeps per
+    frame (default 2000). Returns the folder."""
+    import logging
+
+    import numpy as np
+    import torch
+
+    from clflow.fileio import atomic_dir
+    from clflow.limits import TRAJECTORY_REALS, check_memory, check_output
+    from clflow.mpm import Grid, MaterialSpec, Simulator
+    from clflow.mpm.preview import PREVIEW_SIZE, write_preview
+    from clflow.mpm.shapes import lattice_fill, load_particles
+    from clflow.mpm.substep import check_grid_memory
+    from clflow.runtime import get_device
+    from clflow.scene.config import DEFAULT_MAX_SUBSTEPS
+
+    log = logging.getLogger("clflow.simulate")
+    if run.resolution < 8 or not run.domain > 0:
+        raise InputError(f"--grid must be >= 8 and --domain > 0, got {run.resolution}, {run.domain}")
+    dx = run.domain / (run.resolution - 1)
+    grid = Grid((run.resolution,) * 3, dx)
+    dtype = torch.float64 if run.double else torch.float32
+    check_grid_memory((device or get_device()).info, grid, dtype.itemsize)  # before filling the shape at dx / 2
+    if run.particles:
+        x, volume = load_particles(run.particles)
+        if volume is None:
+            volume = run.particle_volume if run.particle_volume is not None else (dx / 2) ** 3
+            log.info("particle volume %.3g m^3 per particle (no 'volume' in %s)", volume, run.particles)
+    else:
+        spacing = dx / 2  # 2 particles per cell and axis
+        x = lattice_fill(run.shape, run.size, list(run.center or [run.domain / 2] * 3), spacing)
+        volume = spacing**3
+    sim = Simulator(
+        x, volume, MaterialSpec(run.material, dict(run.params), run.density, run.model), grid,
+        velocities=torch.tensor(run.velocity, dtype=torch.float64).expand(x.shape[0], 3),
+        frame_dt=1.0 / run.fps, substeps=run.substeps, gravity=list(run.gravity),
+        walls=None if run.walls == "none" else run.walls, wall_friction=run.wall_friction, dtype=dtype,
+        device=device,
+    )
+    out, frames = Path(out_dir), run.frames
+    less = "simulate fewer --frames"
+    image = 0 if preview == "none" else 3 * PREVIEW_SIZE**2  # bytes of an uncompressed preview frame
+    check_output(out, (frames + 1) * (12 * sim.n + image), max_output_gb, f"{frames + 1:,} frames of {sim.n:,} particles",
+                 less)
+    check_memory((frames + 1) * (sim.n * TRAJECTORY_REALS * dtype.itemsize + image),  # the preview is encoded at once
+                 f"simulating {frames + 1:,} frames", less)
+    echo(f"{sim.n:,} particles of {run.material}, {frames} frames x {sim.substeps} substeps (dt = {sim.dt:.3g} s, "
+         f"limited by {sim.limit_reason(sim.state.v)})")
+    limit = max_substeps or DEFAULT_MAX_SUBSTEPS
+    if sim.substeps > limit:
+        raise InputError(f"{sim.substeps} substeps per frame (dt = {sim.dt:.3g} s) is beyond the limit of {limit}; "
+                         f"ways out: a softer material, a coarser --grid, fewer --substeps, or raise the limit "
+                         f"with --max-substeps N")
+    traj = sim.run(frames)
+    target = out / ("preview.mp4" if preview == "mp4" else "preview")
+    with atomic_dir(out) as tmp:  # all or nothing: a failure leaves OUT as it was
+        np.savez(tmp / "positions.npz", x=traj.x.float().numpy(), time=traj.time.numpy())
+        if preview != "none":
+            write_preview(traj.x, grid.origin, grid.upper, tmp / target.name, run.fps, PREVIEW_SIZE)
+    echo(f"wrote {out / 'positions.npz'}")
+    if preview != "none":
+        echo(f"wrote {target}")
+    return out
+
+
+def render_simulation_4d(simulation: str | Path, out_dir: str | Path | None = None, views: int = 0, turns: float = 1.0,
+                         video_format: str = "mp4", max_output_gb: float = DEFAULT_MAX_OUTPUT_GB,
+                         progress: Callable[[int, str], ContextManager[Callable[[str], None]]] | None = None,
+                         echo: Callable[[str], None] = _silent) -> list[Path]:
+    """Render the per-frame Gaussians ``simulate_scene`` wrote in ``simulation`` from the
+    guidance camera, an orbiting camera and ``views`` fixed novel viewpoints into ``out_dir``
+    (default: SIMULATION/render4d); ``progress(total, label)`` yields ``advance(name)``,
+    called once per frame written. Returns the videos."""
+    from clflow.limits import check_output
+    from clflow.pipeline.frames4d import load_frames, render_4d, render_4d_frames, render_4d_size
+
+    frames = load_frames(simulation)
+    out = Path(out_dir) if out_dir else Path(simulation) / "render4d"
+    check_output(out, render_4d_size(frames, views), max_output_gb,
+                 f"{views + 2:,} sequences of {frames.frame_count} frames", "render fewer --views")
+    shown = progress(render_4d_frames(frames, views), "rendering") if progress else contextlib.nullcontext(None)
+    with shown as advance:
+        videos = render_4d(frames, out, views=views, turns=turns, video_format=video_format, advance=advance)
+    for video in videos:
+        echo(f"wrote {video} and {video.with_suffix('')}/*.png ({frames.frame_count} frames)")
+    return videos
+
+
+def format_row(row: dict | None) -> str:
+    """One optimisation progress row as text: loss, parameters and seconds per iteration."""
+    if not row:
+        return ""
+    params = " ".join(f"{name}={value:.4g}" for name, value in row["params"].items())
+    loss = "failed" if row["loss"] is None else f"{row['loss']:.4g}"
+    return f"loss {loss}  {params}  {row['seconds']:.1f} s/it"
+
+
+@contextlib.contextmanager
+def iteration_lines(total: int, done: int, note: Callable[[str], None]):
+    """A ``bar`` that notes one line per iteration (log files, CI): ``iteration k/total: row``."""
+    yield lambda row: note(f"iteration {row['iteration'] + 1}/{total}: {format_row(row)}")
+
+
+def _modified(path) -> int | None:
+    """``path``'s modification time in ns, None if it does not exist."""
+    try:
+        return path.stat().st_mtime_ns
+    except FileNotFoundError:
+        return None
+
+
+def run_optimization(config_path: str | Path, resume: bool = False, iterations: int | None = None,
+                     output: str | Path | None = None, overrides: tuple[str, ...] = (),
+                     max_substeps: int | None = None, force_video: bool = False, *,
+                     echo: Callable[[str], None] = _silent, note: Callable[[str], None] = _silent,
+                     bar: Callable[[int, int], ContextManager[Callable[[dict], None]]] | None = None) -> dict:
+    """Load the config (``overrides``: ``KEY=VALUE``), generate its guidance video if it asks
+    for one, choose among its material hypotheses, optimise (``bar(total, done)``: the
+    iterations' progress, default :func:`iteration_lines`), write the results, run.json and
+    the report; returns the metrics. ``resume`` continues from output/checkpoint.json."""
+    from clflow.limits import check_output
+    from clflow.pipeline.optimize import Optimization, parameter_unit
+    from clflow.scene.config import load_config
+
+    cfg = load_config(config_path, overrides)
+    if iterations is not None:
+        cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=iterations))
+    if output is not None:
+        cfg = dataclasses.replace(cfg, output=Path(output).resolve())
+    check_output(cfg.output)
+    if max_substeps is not None:
+        cfg = dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, max_substeps=max_substeps))
+    if getattr(cfg, "generate", None) is not None:  # video: {generate: ...}: the guidance video first
+        from clflow.pipeline.generated_video import ensure_guidance_video
+
+        cfg = ensure_guidance_video(cfg, progress=lambda step, total: note(
+            f"generating the guidance video: step {step}/{total}"))
+    start, hypotheses, search = None, None, cfg.optimize.search
+    if cfg.optimize.materials:  # material hypotheses: search each, optimise the best
+        from clflow.pipeline.hypotheses import choose_material
+
+        def searched(material: str, row: dict) -> None:
+            note(f"{material}: search {row['iteration'] + 1}/{search.samples}: {format_row(row)}")
+
+        try:
+            cfg, start, hypotheses = choose_material(cfg, resume=resume, progress=searched, force_video=force_video)
+        except KeyboardInterrupt:
+            raise KeyboardInterrupt(f"interrupted while searching the material hypotheses (each saves its samples "
+                                    f"in {cfg.output / 'hypotheses'}); continue with `clflow optimize "
+                                    f"{config_path} --resume`") from None
+        note(f"material: {hypotheses['chosen']} fits best (best search loss: " + ", ".join(
+            f"{m} {r['loss']:.4g}" if "loss" in r else f"{m} failed" for m, r in hypotheses["hypotheses"].items())
+            + ")")
+    opt = Optimization(cfg, hypotheses=hypotheses, force_video=force_video)  # loads the scene, runs the material query, computes the video's flow
+    total = opt.total_iterations  # the velocity phase's (optimize.estimate_velocity) and the main phase's
+    done = opt.load_state().iteration if resume and opt.checkpoint.exists() else 0
+    with (bar or (lambda t, d: iteration_lines(t, d, note)))(total, done) as advance:
+        def progress(row: dict) -> None:
+            if row.get("phase") == "search":  # the global phase: one line per sample
+                note(f"search {row['iteration'] + 1}/{search.samples}: {format_row(row)}")
+            else:
+                advance(row)
+
+        opt.progress = progress
+        earlier_checkpoint = _modified(opt.checkpoint)
+        try:
+            state = opt.run(resume=resume, start=start)
+        except KeyboardInterrupt:
+            # without --resume, a checkpoint.json untouched since the start is an earlier run's
+            if _modified(opt.checkpoint) is None or (not resume and _modified(opt.checkpoint) == earlier_checkpoint):
+                raise KeyboardInterrupt("interrupted before the first iteration finished; nothing was saved") from None
+            raise KeyboardInterrupt(
+                f"interrupted after {opt.load_state().iteration} iterations (saved in {opt.checkpoint}); "
+                f"continue with `clflow optimize {config_path} --resume`") from None
+    metrics = opt.write_results(state)
+    from clflow.pipeline.report import write_report, write_run_record
+
+    write_run_record(opt.cfg, cfg.output)
+    report = write_report(cfg.output)
+    final = opt.values(state.z)
+    echo("optimised: " + ", ".join(f"{n} = {v:.6g} {parameter_unit(opt.cfg, n)}" for n, v in final.items()))
+    if "relative_error" in metrics:
+        echo("relative error vs ground truth: " +
+             ", ".join(f"{n} {100 * e:.2f}%" for n, e in metrics["relative_error"].items()))
+    if "velocity_error_m_s" in metrics:
+        echo(f"initial velocity off by {metrics['velocity_error_m_s']:.3g} m/s")
+    if metrics.get("rollbacks"):
+        note(f"{len(metrics['rollbacks'])} unstable or failed iterations were rolled back (metrics.json: rollbacks)")
+    for warning in metrics.get("warnings", []):
+        note(f"WARNING: {warning}; the result is likely wrong")
+    echo(f"flow loss {metrics['flow_loss']:.4g}, end-point error {metrics['epe_px']:.3g} px, "
+         f"{metrics['seconds_per_iteration']:.2f} s per iteration; results in {cfg.output} (open {report.name})")
+    return metrics
+
+
+__all__ = ["ParticleRun", "format_row", "iteration_lines", "read_params_record", "render_simulation_4d", "run_optimization",
+           "simulate_particles", "simulate_scene"]

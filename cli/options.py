@@ -1,0 +1,118 @@
+"""Options shared by clflow's commands, spelled and parsed one way everywhere.
+
+- ``-o/--out``: every command's output (a folder, or a file where the command writes one);
+  the older ``--output`` and ``--output-dir`` still work but are not shown by --help.
+- Numbers in one option are one word with commas: ``--box 8,8,72,56``, ``--up 0,1,0``.
+- ``--set KEY.SUB=VALUE``, ``--max-substeps N``, ``--max-output-gb GB``: as the scene
+  config's keys and limits.
+
+Like every module here, this imports only click (and clflow.limits' constants): no numpy.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+import click
+
+from clflow.limits import DEFAULT_MAX_OUTPUT_GB
+
+#: Old spellings of ``--out`` that still work (hidden from --help).
+OUT_ALIASES = ("--output", "--output-dir")
+
+
+class FiniteFloat(click.FloatRange):
+    """A number option that refuses NaN and infinities (FloatRange lets NaN through)."""
+
+    name = "number"
+
+    def convert(self, value, param, ctx):
+        number = super().convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return number
+
+
+class Numbers(click.ParamType):
+    """``count`` finite numbers in one word, comma-separated (``0,0,1``; a quoted
+    space-separated ``"0 0 1"`` is read too). Converts to a tuple of floats."""
+
+    def __init__(self, count: int, names: str | None = None):
+        self.count, self.names = count, names
+        self.name = names or ",".join(["N"] * count)
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        words = [w for w in re.split(r"[,\s]+", str(value).strip()) if w]
+        try:
+            numbers = tuple(float(w) for w in words)
+        except ValueError:
+            numbers = ()
+        if len(numbers) != self.count or not all(math.isfinite(v) for v in numbers):
+            what = f"{self.count} comma-separated finite numbers"
+            what = f"{self.names.lower()} ({what})" if self.names else what
+            hint = f"; write them as one word with commas, e.g. {self.name}" if len(words) == 1 else ""
+            self.fail(f"expected {what}, got {value!r}{hint}", param, ctx)
+        return numbers
+
+
+class AliasedOption(click.Option):
+    """An option whose old spellings (``aliases``) still work but are left out of --help and
+    of its error messages."""
+
+    def __init__(self, *args, aliases: tuple[str, ...] = (), **kwargs):
+        super().__init__(*args, **kwargs)
+        self.aliases = tuple(aliases)
+
+    def _shown(self, method, *args):
+        opts = self.opts
+        self.opts = [o for o in opts if o not in self.aliases]
+        try:
+            return method(*args)
+        finally:
+            self.opts = opts
+
+    def get_help_record(self, ctx):
+        return self._shown(super().get_help_record, ctx)
+
+    def get_error_hint(self, ctx):
+        return self._shown(super().get_error_hint, ctx)
+
+
+def aliased_option(*decls: str, aliases: tuple[str, ...], **kwargs):
+    """``click.option(*decls, *aliases, ...)`` with the aliases hidden (:class:`AliasedOption`);
+    ``decls`` must name the parameter (its last, non-dash word)."""
+    return click.option(*decls[:-1], *aliases, decls[-1], cls=AliasedOption, aliases=aliases, **kwargs)
+
+
+def out_option(name: str, help: str, *, file: bool = False, aliases: tuple[str, ...] = OUT_ALIASES, **kwargs):
+    """``-o/--out`` into parameter ``name``: a folder, or a file with ``file``; the old spellings
+    ``aliases`` still work."""
+    path = click.Path(dir_okay=False) if file else click.Path(file_okay=False)
+    return aliased_option("-o", "--out", name, aliases=aliases, type=kwargs.pop("type", path), help=help, **kwargs)
+
+
+max_output_option = click.option(
+    "--max-output-gb", type=click.FloatRange(min=0, min_open=True), default=DEFAULT_MAX_OUTPUT_GB, show_default=True,
+    help="Refuse, before any work, a run whose predicted output (an uncompressed upper bound) exceeds this many GB.")
+
+
+def set_option(help: str):
+    """``--set KEY.SUB=VALUE`` (repeatable) into ``overrides``: config keys, values read as YAML."""
+    return click.option("--set", "overrides", multiple=True, metavar="KEY.SUB=VALUE", help=help)
+
+
+def max_substeps_option(help: str):
+    """``--max-substeps N``: refuse a run needing more substeps per frame."""
+    return click.option("--max-substeps", type=click.IntRange(min=1), default=None, help=help)
+
+
+def pixel_box_option(help: str = "Pixel box around the object (x right, y down, x1/y1 exclusive)."):
+    """``--box X0,Y0,X1,Y1`` in pixels, into ``box`` (a 4-tuple or None)."""
+    return click.option("--box", type=Numbers(4, "X0,Y0,X1,Y1"), default=None, help=help)
+
+
+__all__ = ["AliasedOption", "FiniteFloat", "Numbers", "OUT_ALIASES", "aliased_option", "max_output_option",
+           "max_substeps_option", "out_option", "pixel_box_option", "set_option"]

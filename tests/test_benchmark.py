@@ -1,0 +1,65 @@
+"""clflow.benchmark: the one timing helper of `clflow bench ...`, and `--json`."""
+
+import json
+import time
+
+import pytest
+from click.testing import CliRunner
+
+from clflow.benchmark import Stopwatch, measure
+from clflow_cli.bench import BENCHMARKS
+from clflow_cli.main import cli
+
+
+def test_measure_warms_up_then_times_each_call_with_its_setup():
+    calls = []
+    timing = measure(lambda arg: calls.append(arg) or len(calls), repeats=3, warmup=2, setup=lambda: "x")
+    assert calls == ["x"] * 5 and timing.result == 5  # 2 untimed, 3 timed; the last call's result
+    assert len(timing.wall) == len(timing.cpu) == 3 and all(w >= 0 for w in timing.wall)
+    assert timing.load_before is not None and timing.load_after is not None
+    with pytest.raises(ValueError, match="repeats must be >= 1"):
+        measure(lambda: None, repeats=0)
+
+
+def test_wall_time_counts_sleep_and_cpu_time_counts_work():
+    asleep = measure(lambda: time.sleep(0.05), repeats=2, warmup=0)
+    assert min(asleep.wall) >= 0.05 and asleep.median_cpu < asleep.median_wall / 2
+
+    def work():
+        deadline = time.process_time() + 0.05
+        while time.process_time() < deadline:
+            pass
+
+    busy = measure(work, warmup=0)
+    assert busy.median_cpu >= 0.05
+    record = busy.record()
+    assert record["runs"] == 1 and record["median_wall_s"] == busy.wall[0] and record["cores"] >= 1
+
+
+def test_stopwatch_skips_warm_ups_and_blocks_that_raise():
+    watch = Stopwatch()
+    for seconds in (0.03, 0.0, 0.0):
+        with watch:
+            time.sleep(seconds)
+    with pytest.raises(RuntimeError), watch:
+        raise RuntimeError
+    timing = watch.timing(skip=1)
+    assert len(timing.wall) == 2 and max(timing.wall) < 0.03
+
+
+def test_every_bench_has_json_and_ply_writes_figures_with_the_environment(tmp_path):
+    for name in BENCHMARKS:
+        assert "--json PATH" in CliRunner().invoke(cli, ["bench", name, "--help"]).output, name
+    out = tmp_path / "ply.json"
+    res = CliRunner().invoke(cli, ["bench", "ply", "--gaussians", "200", "--points", "50", "--repeat", "2",
+                                   "--json", str(out)], catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    record = json.loads(out.read_text())
+    assert record["benchmark"] == "ply" and record["parameters"] == {"count": 200, "sh_degree": 3, "points": 50,
+                                                                      "repeat": 2}
+    results = record["results"]
+    assert results["save_s"] > 0 and results["load_s"] > 0 and results["from_points_s"] > 0
+    assert f"{results['save_s']:6.2f} s" in res.output  # the printed figure is the recorded one
+    env = record["environment"]
+    assert env["torch"].startswith("2.13.0") and env["device"] and "load" in env
+    assert [p.name for p in tmp_path.iterdir()] == ["ply.json"]  # written atomically: no temporary left
