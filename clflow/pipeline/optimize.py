@@ -618,15 +618,16 @@ class Optimization:
         """After the polish of start ``len(state.polished)`` (its best point recorded): the next
         start, or once all are polished the best of them, with Levenberg-Marquardt's memory reset."""
         polished = [*state.polished, {"z": dict(state.best["z"]), "loss": state.best["loss"],
-                                      "params": self.values(state.best["z"])}]
-        if len(polished) < len(state.starts):
-            z = dict(state.starts[len(polished)])
+                                      "params": self.values(state.best["z"]), "substeps": state.substeps}]
+        if len(polished) < len(state.starts):  # its own time step: a stiff start must not slow the next
+            z, substeps = dict(state.starts[len(polished)]), 1
         else:
             kept = min(polished, key=lambda r: r["loss"])
             log.info("kept start %d of %d: %s (loss %.4g; the others %s)", polished.index(kept), len(polished),
                      kept["params"], kept["loss"], ", ".join(f"{r['loss']:.4g}" for r in polished if r is not kept))
-            z = dict(kept["z"])
-        return dataclasses.replace(state, z=z, polished=polished, best=None, damping=LM_DAMPING, converged=False)
+            z, substeps = dict(kept["z"]), kept["substeps"]
+        return dataclasses.replace(state, z=z, polished=polished, best=None, damping=LM_DAMPING, converged=False,
+                                   substeps=substeps)
 
     # -- Levenberg-Marquardt ----------------------------------------------------------------
 
