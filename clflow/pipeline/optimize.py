@@ -802,10 +802,14 @@ class Optimization:
             elif converged:
                 row["converged"] = True  # the step would change nothing that matters: stop here
                 state = dataclasses.replace(state, iteration=self.total_iterations)
+            elif lm and phase == "velocity" and state.converged:  # on to the main phase
+                row["converged"] = True
+                state = dataclasses.replace(state, iteration=opt.estimate_velocity_iterations)
             state.history.append(row)
             if phase_of(opt, state.iteration)[0] != phase:
                 state = dataclasses.replace(state, m={n: 0.0 for n in state.m}, v={n: 0.0 for n in state.v},
-                                            momentum_steps=0, step_scale=1.0, damping=LM_DAMPING, best=None)
+                                            momentum_steps=0, step_scale=1.0, damping=LM_DAMPING, best=None,
+                                            converged=False)
             self.save_state(state)
             self.progress(row)
             done_here += 1
