@@ -67,6 +67,10 @@ LM_GAIN_TOLERANCE = 1e-3  # ... or when the Gauss-Newton model promises less tha
 # 1.26 of a log-scale parameter), two trade off beyond this correlation
 WEAK_STD_Z = 0.1
 TRADE_OFF_CORRELATION = 0.95
+# ... or when such a step (the others refitted) raises the loss by less than this fraction: the
+# standard errors treat pixels as independent noise, but what remains at the optimum is mostly
+# model error (the grid, the estimator), which moves the minimum by more than that
+MIN_LOSS_RISE = 0.01
 # flow.bias_correction renders the simulation at this many times the guidance camera's pixels
 # per side and area-averages them, since a camera's pixel integrates light over its area
 # (DIS's error depends on that blur: docs/flow.md)
@@ -822,21 +826,27 @@ class Optimization:
         (one forward run per variable), the Gauss-Newton covariance s^2 (J^T J)^-1 with s^2
         the loss per residual degree of freedom. Its standard errors (z units: decades for
         log-scale parameters) treat pixels as independent, so they are lower bounds; the
-        correlations show which parameters trade off."""
+        correlations show which parameters trade off. ``loss_rise``: the fraction of the loss
+        that a step of WEAK_STD_Z costs with the others refitted; a variable is weakly
+        constrained when its standard error exceeds WEAK_STD_Z or that rise is below
+        MIN_LOSS_RISE."""
         variables = self.main_variables
         base, J = self.jacobian(z, self.frames, min_substeps, variables)
         residuals, count = self.residuals(base.flows, base.more_flows), len(variables)
         dof = max(1, residuals.numel() - count)
         curvature = J.T @ J
         ridge = 1e-12 * float(curvature.diagonal().max().clamp(min=1e-300))  # an unconstrained direction: huge
-        covariance = torch.linalg.inv(curvature + ridge * torch.eye(count, dtype=curvature.dtype)) * (
-            float((residuals ** 2).sum()) / dof)
+        inverse = torch.linalg.inv(curvature + ridge * torch.eye(count, dtype=curvature.dtype))
+        loss = float((residuals ** 2).sum())
+        covariance = inverse * (loss / dof)
         std = covariance.diagonal().clamp(min=0).sqrt()
         correlation = covariance / torch.outer(std, std).clamp(min=1e-300)
-        weak = [n for n, sd in zip(variables, std.tolist()) if not sd <= WEAK_STD_Z]
+        # the loss a step of WEAK_STD_Z costs, the other variables refitted, as a fraction of the loss
+        rise = (WEAK_STD_Z ** 2 / inverse.diagonal().clamp(min=1e-300) / max(loss, 1e-300)).tolist()
+        weak = [n for n, sd, r in zip(variables, std.tolist(), rise) if not (sd <= WEAK_STD_Z and r >= MIN_LOSS_RISE)]
         pairs = [[a, b, float(correlation[i, j])] for i, a in enumerate(variables) for j, b in enumerate(variables)
                  if i < j and abs(float(correlation[i, j])) > TRADE_OFF_CORRELATION]
-        return {"std_z": dict(zip(variables, std.tolist())),
+        return {"std_z": dict(zip(variables, std.tolist())), "loss_rise": dict(zip(variables, rise)),
                 "correlation": {a: dict(zip(variables, row)) for a, row in zip(variables, correlation.tolist())},
                 "weakly_constrained": weak, "trade_offs": pairs}
 
