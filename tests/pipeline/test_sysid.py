@@ -169,18 +169,21 @@ def test_a_changed_case_definition_is_made_and_run_again(tmp_path, tiny_cases, m
 
 
 @pytest.mark.slow
-def test_the_quick_torus_reaches_the_loss_of_the_ground_truth(tmp_path):
-    """End to end on an honest case (`clflow eval sysid --quick --case torus`, guidance from a
-    2x finer simulation and rendering): from the published guess, 10x and 3x off, the search
-    and the local phase reach a flow loss no higher than the ground truth's own at this
-    resolution, and mean RE <= 0.3 (measured 0.170; docs/benchmarks.md)."""
-    result = CliRunner().invoke(cli, ["eval", "sysid", "--quick", "--case", "torus", "-o", str(tmp_path / "out")])
+@pytest.mark.parametrize("name", ["torus", "playdoh"])
+def test_a_quick_case_reaches_the_loss_of_the_ground_truth(tmp_path, name):
+    """End to end on an honest case (`clflow eval sysid --quick --case NAME`, guidance from a
+    2x finer simulation and rendering): from the published guess, 1-1.3 decades off, the
+    search, its three polished starts and the local phase reach a loss no higher than the
+    ground truth's own at this resolution (each against the flow estimator's error at its own
+    parameters), a flow error near the truth's, and mean RE <= 0.3 (issue 12; measured torus
+    0.249, playdoh 0.220: docs/benchmarks.md). The quick droplet, 0.416, does not reach it."""
+    result = CliRunner().invoke(cli, ["eval", "sysid", "--quick", "--case", name, "-o", str(tmp_path / "out")])
     assert result.exit_code == 0, result.output
-    record = json.loads((tmp_path / "out" / "sysid.json").read_text())["cases"]["torus"]
+    record = json.loads((tmp_path / "out" / "sysid.json").read_text())["cases"][name]
     assert record["status"] == "ok"
-    history = json.loads((tmp_path / "out" / "cases" / "torus" / "results" / "history.json").read_text())
+    history = json.loads((tmp_path / "out" / "cases" / name / "results" / "history.json").read_text())
     assert record["final_loss"] <= 1.02 * record["truth_loss"] < history[0]["loss"]
-    assert record["epe_px"] <= 1.02 * record["floor_epe_px"]
+    assert record["epe_px"] <= 1.05 * record["floor_epe_px"]
     assert record["mean_re"] <= 0.3, record["parameters"]
 
 
