@@ -410,7 +410,7 @@ class Optimization:
         if isinstance(saved, dict) and saved != digests:
             changed = sorted(k for k in saved.keys() | digests.keys() if saved.get(k) != digests.get(k))
             raise InputError(f"cannot resume from {self.checkpoint}: the config changed since it was saved "
-                             f"({', '.join(changed)}); give another --output, or delete the checkpoint to start over")
+                             f"({', '.join(changed)}); give another -o/--out, or delete the checkpoint to start over")
         if state.calibrated_at is not None:
             self.restore_calibration(state)
         return state

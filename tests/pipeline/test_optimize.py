@@ -171,5 +171,5 @@ def test_resume_refuses_a_changed_config_and_names_what_changed(tmp_path):
     assert checkpointing(longer).load_state().iteration == 3  # --resume --iterations N extends a run
     changed = dataclasses.replace(cfg, scale=2.0, simulation=dataclasses.replace(cfg.simulation, frames=99))
     with pytest.raises(InputError, match=r"config changed since it was saved \(scale, simulation\); "
-                                         r"give another --output, or delete the checkpoint"):
+                                         r"give another -o/--out, or delete the checkpoint"):
         checkpointing(changed).load_state()
