@@ -692,7 +692,7 @@ class Optimization:
         r = self.residuals(base.flows, base.more_flows)
         A, g = J.T @ J, J.T @ r
         diagonal = torch.diag(torch.diag(A).clamp(min=1e-12 * float(torch.diag(A).max().clamp(min=1e-30))))
-        step = -torch.linalg.solve(A + damping * diagonal, g)
+        step = self.bounded_step(A + damping * diagonal, g, state.z, variables)
         promised = -float(2 * g @ step + step @ A @ step)  # the model's fall of the residuals' sum of squares
         if promised <= LM_GAIN_TOLERANCE * float(r @ r):
             return dataclasses.replace(state, iteration=state.iteration + 1, damping=damping, best=best, converged=True)
@@ -701,6 +701,31 @@ class Optimization:
             step *= LM_MAX_STEP / length
         z = {**state.z, **{n: state.z[n] + float(d) for n, d in zip(variables, step)}}
         return dataclasses.replace(state, iteration=state.iteration + 1, z=z, damping=damping, best=best)
+
+    def local_box(self) -> dict[str, tuple[float, float]]:
+        """(lower, upper) in z that the local phase stays in: the search's box (none without a search)."""
+        return self.search_box(self.initial_state().z) if self.cfg.optimize.search is not None else {}
+
+    def bounded_step(self, M: torch.Tensor, g: torch.Tensor, z: dict[str, float],
+                     variables: tuple[str, ...]) -> torch.Tensor:
+        """The step [P] solving M step = -g, with a variable that sits on its box edge while the
+        step would push it out held there and the rest solved again without it (the clipped
+        step would otherwise promise what it cannot deliver, and rejected steps repeat)."""
+        box = self.local_box()
+        free = torch.ones(len(variables), dtype=torch.bool)
+        step = torch.zeros_like(g)
+        while bool(free.any()):
+            index = free.nonzero().flatten()
+            step = torch.zeros_like(g)
+            step[index] = -torch.linalg.solve(M[index][:, index], g[index])
+            held = torch.tensor([bool(free[i]) and n in box and (z[n] <= box[n][0] and float(step[i]) < 0
+                                                                 or z[n] >= box[n][1] and float(step[i]) > 0)
+                                 for i, n in enumerate(variables)])
+            if not bool(held.any()):
+                break
+            free &= ~held
+            step = torch.zeros_like(g)
+        return step
 
     # -- the gradient phase -----------------------------------------------------------------
 
@@ -788,8 +813,8 @@ class Optimization:
                 state = self.adam_step(state, result.grads)
             if state.calibrated_at is not previous.calibrated_at:
                 row["calibrated"] = True
-            if phase == "main" and opt.search is not None:  # the local phase stays in the search's box
-                box = self.search_box(self.initial_state().z)
+            if phase == "main":  # the local phase stays in the search's box
+                box = self.local_box()
                 state.z = {n: min(max(v, box[n][0]), box[n][1]) if n in box else v for n, v in state.z.items()}
             state.substeps = max(state.substeps, result.substeps)
             converged = lm and phase == "main" and (state.converged or (

@@ -192,3 +192,18 @@ def test_several_starts_are_polished_and_the_best_is_kept(demo_config, monkeypat
         assert len(state.polished) == 2 and state.polished[1]["loss"] < state.polished[0]["loss"]
         assert {r.get("start") for r in state.history} == {0, 1, None}
         assert abs(state.z["youngs_modulus"] - Z_TRUE) < 0.05  # (the kinked model: FD steps of 0.01)
+
+
+def test_a_variable_on_its_box_edge_is_held_and_the_rest_solved_again(lm, monkeypatch):
+    opt, _ = lm()
+    monkeypatch.setattr(opt, "local_box", lambda: {"a": (0.0, 1.0), "b": (0.0, 1.0)})
+    M = torch.tensor([[2.0, 1.0], [1.0, 2.0]], dtype=torch.float64)
+    g = torch.tensor([1.0, -1.0], dtype=torch.float64)  # free step: (-1, 1)
+    inside = opt.bounded_step(M, g, {"a": 0.5, "b": 0.5}, ("a", "b"))
+    assert inside.tolist() == pytest.approx([-1.0, 1.0])
+    # a on its lower edge, pushed out: held, and b's step is that of b alone, -g_b / M_bb
+    assert opt.bounded_step(M, g, {"a": 0.0, "b": 0.5}, ("a", "b")).tolist() == pytest.approx([0.0, 0.5])
+    # then b on its upper edge, pushed out too: nothing moves (the model promises nothing: converged)
+    assert opt.bounded_step(M, g, {"a": 0.0, "b": 1.0}, ("a", "b")).tolist() == [0.0, 0.0]
+    # an edge the step points away from holds nothing
+    assert opt.bounded_step(M, g, {"a": 1.0, "b": 0.0}, ("a", "b")).tolist() == pytest.approx([-1.0, 1.0])
