@@ -84,6 +84,7 @@ def simulate(ctx, particles, out_dir, params_file, preview, max_output_gb, overr
         from click.core import ParameterSource
 
         from clflow.pipeline.runs import simulate_scene
+        from clflow_cli.progress import progress
 
         particle_only = [p.opts[0] for p in ctx.command.params if p.name not in SCENE_OPTIONS
                          and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE]
@@ -91,7 +92,7 @@ def simulate(ctx, particles, out_dir, params_file, preview, max_output_gb, overr
             raise click.UsageError(f"with a scene config, the config sets the simulation; drop "
                                    f"{', '.join(particle_only)}")
         simulate_scene(particles, params_file, out_dir, preview, max_output_gb, overrides, max_substeps,
-                       echo=click.echo, object_only=object_only, compressed=compressed)
+                       echo=click.echo, object_only=object_only, compressed=compressed, progress=progress)
         return
     config_only = [name for name, given in (("--params-from", params_file), ("--set", overrides),
                                             ("--object-only", object_only), ("--compressed-ply", compressed))
@@ -99,6 +100,6 @@ def simulate(ctx, particles, out_dir, params_file, preview, max_output_gb, overr
     if config_only:
         raise click.UsageError(f"{', '.join(config_only)} needs a scene CONFIG (.yaml/.yml/.json)")
     from clflow.pipeline.runs import ParticleRun, simulate_particles
-
+    from clflow_cli.progress import progress
     simulate_particles(ParticleRun(particles, **particle_run), out_dir or "simulation", preview, max_output_gb,
-                       max_substeps, device=ctx.obj.device() if ctx.obj else None, echo=click.echo)
+                       max_substeps, device=ctx.obj.device() if ctx.obj else None, echo=click.echo, progress=progress)

@@ -13,7 +13,7 @@ import math
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 
@@ -369,15 +369,18 @@ class Simulator:
                           f"use substeps >= {self.stable_substeps()}", StabilityWarning, stacklevel=2)
         return count
 
-    def run(self, frames: int) -> Trajectory:
-        """Simulate ``frames`` frames; returns the :class:`Trajectory` (frames + 1 states)."""
+    def run(self, frames: int, on_frame: Callable[[int], None] | None = None) -> Trajectory:
+        """Simulate ``frames`` frames, calling ``on_frame(k)`` after frame k (1-based); returns
+        the :class:`Trajectory` (frames + 1 states)."""
         if int(frames) < 0:
             raise InputError(f"frames must be >= 0, got {frames}")
         snaps = [self._snapshot(0)]
         self._progress = FrameProgress("simulation", int(frames), self.substeps, first=self.frame)
         try:
-            for _ in range(int(frames)):
+            for k in range(int(frames)):
                 snaps.append(self._snapshot(self.advance_frame()))
+                if on_frame is not None:
+                    on_frame(k + 1)
         finally:
             self._progress = None
         return Trajectory(

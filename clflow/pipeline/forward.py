@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -69,10 +70,11 @@ def material_values(cfg: SceneConfig, overrides: dict[str, float] | None = None)
 
 
 def simulate_config(cfg: SceneConfig, overrides: dict[str, float] | None = None,
-                    prepared: Prepared | None = None, max_substeps: int | None = None) -> SimulationResult:
-    """Run the config's simulation (no gradients) with its material or ``overrides``. With
-    ``max_substeps``, first log the substeps and the predicted time, and refuse
-    (SubstepLimitError) a run needing more substeps per frame."""
+                    prepared: Prepared | None = None, max_substeps: int | None = None,
+                    on_frame: Callable[[int], None] | None = None) -> SimulationResult:
+    """Run the config's simulation (no gradients) with its material or ``overrides``, calling
+    ``on_frame(k)`` after frame k. With ``max_substeps``, first log the substeps and the
+    predicted time, and refuse (SubstepLimitError) a run needing more substeps per frame."""
     prepared = prepared or prepare(cfg)
     params, density = material_values(cfg, overrides)
     if max_substeps is not None:
@@ -81,7 +83,7 @@ def simulate_config(cfg: SceneConfig, overrides: dict[str, float] | None = None,
         log.info("%s", describe(plan_run(cfg, prepared.setup, params, density, max_substeps=max_substeps),
                                 "simulation", gradient=False))
     sim = build_simulator(cfg, prepared.setup, params, density)
-    traj = sim.run(cfg.simulation.frames)
+    traj = sim.run(cfg.simulation.frames, on_frame)
     return SimulationResult(prepared, params, density, traj.x, traj.F, traj.clamped, sim.substeps)
 
 

@@ -46,13 +46,15 @@ def read_params_record(path: str | Path, cfg):
 def simulate_scene(config_path: str | Path, params_file: str | Path | None = None, out_dir: str | Path | None = None,
                    preview: str = "mp4", max_output_gb: float = DEFAULT_MAX_OUTPUT_GB, settings: tuple[str, ...] = (),
                    max_substeps: int | None = None, echo: Callable[[str], None] = _silent, object_only: bool = False,
-                   compressed: bool = False) -> Path:
+                   compressed: bool = False,
+                   progress: Callable[[int, str], ContextManager[Callable[[str], None]]] | None = None) -> Path:
     """Simulate the config's scene (``settings``: ``KEY=VALUE`` overrides) with its material
     and initial velocity, or those of an optimisation's ``params_file``; write per-frame
     Gaussians (``object_only``: PLY frames of the object and static.ply once; ``compressed``:
     as .compressed.ply) and, unless ``preview`` is "none", the guidance view ("mp4" or "png"
     frames) into ``out_dir`` (default: the config's output/simulation), all or nothing.
-    ``max_substeps`` overrides ``simulation.max_substeps``. Returns the folder."""
+    ``max_substeps`` overrides ``simulation.max_substeps``; ``progress(total, label)`` yields
+    ``advance(name)``, called once per frame simulated. Returns the folder."""
     from clflow.fileio import atomic_dir
     from clflow.limits import check_memory, check_output
     from clflow.pipeline.forward import prepare, render_video, simulate_config
@@ -71,7 +73,10 @@ def simulate_scene(config_path: str | Path, params_file: str | Path | None = Non
     less = "simulate fewer frames (simulation.frames)"
     check_output(out, written, max_output_gb, f"{frames + 1:,} frames of Gaussians", less)
     check_memory(memory, f"simulating {frames + 1:,} frames", less)
-    result = simulate_config(cfg, overrides, prepared, max_substeps=max_substeps or cfg.simulation.max_substeps)
+    shown = progress(frames, "simulating") if progress else contextlib.nullcontext(None)
+    with shown as advance:
+        result = simulate_config(cfg, overrides, prepared, max_substeps=max_substeps or cfg.simulation.max_substeps,
+                                 on_frame=(lambda k: advance(f"frame {k}")) if advance else None)
     echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
     with atomic_dir(out) as tmp:  # all or nothing: a failure leaves OUT as it was
         export_gaussians(result, tmp, object_only, compressed)
@@ -115,11 +120,12 @@ class ParticleRun:
 
 def simulate_particles(run: ParticleRun, out_dir: str | Path = "simulation", preview: str = "mp4",
                        max_output_gb: float = DEFAULT_MAX_OUTPUT_GB, max_substeps: int | None = None, device=None,
-                       echo: Callable[[str], None] = _silent) -> Path:
+                       echo: Callable[[str], None] = _silent,
+                       progress: Callable[[int, str], ContextManager[Callable[[str], None]]] | None = None) -> Path:
     """Simulate ``run`` on ``device`` (default: the selected one) and write
     OUT/positions.npz (x [frames+1, N, 3] m, time [frames+1] s) and a preview ("mp4",
     "png" frames or "none"), all or nothing; refuses more than ``max_substeps`` substeps per
-    frame (default 2000). Returns the folder."""
+    frame (default 2000); ``progress`` as :func:`simulate_scene`'s. Returns the folder."""
     import logging
 
     import numpy as np
@@ -171,7 +177,9 @@ def simulate_particles(run: ParticleRun, out_dir: str | Path = "simulation", pre
         raise InputError(f"{sim.substeps} substeps per frame (dt = {sim.dt:.3g} s) is beyond the limit of {limit}; "
                          f"ways out: a softer material, a coarser --grid, fewer --substeps, or raise the limit "
                          f"with --max-substeps N")
-    traj = sim.run(frames)
+    shown = progress(frames, "simulating") if progress else contextlib.nullcontext(None)
+    with shown as advance:
+        traj = sim.run(frames, (lambda k: advance(f"frame {k}")) if advance else None)
     target = out / ("preview.mp4" if preview == "mp4" else "preview")
     with atomic_dir(out) as tmp:  # all or nothing: a failure leaves OUT as it was
         np.savez(tmp / "positions.npz", x=traj.x.float().numpy(), time=traj.time.numpy())

@@ -21,6 +21,7 @@ def test_builtin_shape_writes_positions_and_png_preview(tmp_path, shape):
     assert data["x"].shape[0] == 3 and data["x"].shape[2] == 3
     assert data["time"].tolist() == pytest.approx([0, 1 / 24, 2 / 24])
     assert data["x"][-1, :, 1].mean() < data["x"][0, :, 1].mean()  # it falls
+    assert "simulating: 2/2 frame 2" in res.output  # progress, a line per frame off a terminal
     assert sorted(p.name for p in (tmp_path / "preview").iterdir()) == [f"frame_{k:04d}.png" for k in range(3)]
 
 

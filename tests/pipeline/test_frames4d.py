@@ -50,6 +50,9 @@ def test_simulate_config_then_render4d(quick_demo, tmp_path):
     assert res.exit_code == 0, res.output
     T = 9  # QUICK: 8 frames + the initial state
     assert len(list(out.glob("frame_*.ply"))) == T and (out / "gaussians.npz").is_file()
+    # progress off a terminal: a line per frame simulated (8 frames: a tenth is one)
+    steps = [line for line in res.output.splitlines() if line.startswith("simulating: ")]
+    assert steps == [f"simulating: {k}/8 frame {k}" for k in range(1, 9)]
     # clflow view's reading of the folder: each frame where that frame's PLY has it (file frame)
     from clflow.view import load_scene
 
