@@ -522,7 +522,8 @@ class Optimization:
             pass
         log.info("measuring the flow estimator's error again at the checkpoint's calibration point")
         z, frames = state.calibrated_at["z"], state.calibrated_at["frames"]
-        self.calibrate(state, self.evaluate(z, frames, with_grad=False, min_substeps=state.substeps), frames)
+        at = dataclasses.replace(state, z=dict(z), calibrated_at=None)  # measured there, whatever state.z is now
+        self.calibrate(at, self.evaluate(z, frames, with_grad=False, min_substeps=state.substeps), frames)
 
     @property
     def corrects_bias(self) -> bool:

@@ -5,6 +5,7 @@ import dataclasses
 import json
 
 import cv2
+import numpy as np
 import pytest
 
 from clflow.media import write_image
@@ -69,3 +70,17 @@ def test_resume_restores_the_estimator_error(demo_config, lose_the_file):
     resumed = Optimization(cfg).run(resume=True)
     assert resumed.z == whole.z
     assert [r["loss"] for r in resumed.history] == [r["loss"] for r in whole.history]
+
+
+def test_a_lost_error_file_is_measured_again_at_the_calibration_point(demo_config):
+    cfg = demo_config(iterations=2)
+    state = Optimization(cfg).run()
+    with np.load(cfg.output / "estimator_error.npz") as data:
+        saved = data["view_0"]
+    (cfg.output / "estimator_error.npz").unlink()
+    at_point = dataclasses.replace(state, z=dict(state.calibrated_at["z"]))  # as after a rejected step
+    fresh = Optimization(cfg)
+    fresh.restore_calibration(at_point)
+    np.testing.assert_allclose(fresh.views[0].estimator_error.numpy(), saved, atol=1e-6)
+    with np.load(cfg.output / "estimator_error.npz") as data:
+        assert json.loads(str(data["key"])) == state.calibrated_at
