@@ -418,6 +418,8 @@ def generate_video(image: np.ndarray, info: ModelInfo, request: GenerateRequest,
     require_extra()
     import torch
 
+    from clflow.media import to_uint8
+
     t0 = time.perf_counter()
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     if device == "cpu":
@@ -465,7 +467,7 @@ def generate_video(image: np.ndarray, info: ModelInfo, request: GenerateRequest,
     if video.shape[0] != resolved.frames:  # check_request's rule for this model is wrong: say so
         raise ClflowError(f"{info.path}: the model made {video.shape[0]} frames, not the {resolved.frames} asked for; "
                           f"please report this with the model's model_index.json")
-    frames = (np.clip(np.nan_to_num(video), 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
+    frames = to_uint8(video)
     if resolved.request.output_size == "image":
         frames = restore_frames(frames, placement)
     record = {

@@ -234,7 +234,7 @@ def evaluate(names: list[str], out: Path, settings: Settings, *, force: bool = F
     if force and summary["cases"] == {} and (out / "cases").exists():
         shutil.rmtree(out / "cases")
     out.mkdir(parents=True, exist_ok=True)
-    from clflow.pipeline.report import environment
+    from clflow.environment import environment
 
     summary["environment"] = environment()
     atomic_write_text(summary_path, json.dumps(summary, indent=2))  # settings first: an interrupted run resumes

@@ -87,11 +87,19 @@ def simulate_config(cfg: SceneConfig, overrides: dict[str, float] | None = None,
     return SimulationResult(prepared, params, density, traj.x, traj.F, traj.clamped, sim.substeps)
 
 
-def render_frames(result: SimulationResult, camera=None) -> np.ndarray:
-    """[T+1, H, W, 3] uint8 frames of the simulation seen by ``camera`` (default: guidance)."""
+def render_frames(result: SimulationResult, camera=None, supersample: int = 1) -> np.ndarray:
+    """[T+1, H, W, 3] uint8 frames of the simulation seen by ``camera`` (default: guidance);
+    ``supersample``: each pixel the area average of supersample^2 rendered ones, as a
+    camera's pixel integrates light over its area."""
+    import cv2
+
     camera = camera or result.prepared.camera
+    fine = camera.scaled(supersample) if supersample > 1 else camera
     with torch.no_grad():
-        return np.stack([to_uint8(render_rgb(result.scene_at(t), camera)) for t in range(result.x.shape[0])])
+        frames = [to_uint8(render_rgb(result.scene_at(t), fine)) for t in range(result.x.shape[0])]
+    if supersample > 1:
+        frames = [cv2.resize(f, (camera.width, camera.height), interpolation=cv2.INTER_AREA) for f in frames]
+    return np.stack(frames)
 
 
 def render_video(result: SimulationResult, frames_dir: Path, video: Path | None = None, camera=None) -> np.ndarray:

@@ -25,6 +25,7 @@ observed_flow.npz (the video's flow and its confidence, computed once).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import math
@@ -316,12 +317,12 @@ class Optimization:
         self.main_variables = tuple(self.params) + optimised  # z names the main phase optimises
         self.variables = self.main_variables + estimated  # every z name
         # every start but the kept one spends search.start_iterations iterations of its own
-        self.extra_start_iterations = (opt.search.starts - 1) * opt.search.start_iterations if opt.search else 0
-        self.total_iterations = opt.estimate_velocity_iterations + opt.iterations + self.extra_start_iterations
+        extra_start_iterations = (opt.search.starts - 1) * opt.search.start_iterations if opt.search else 0
+        self.total_iterations = opt.estimate_velocity_iterations + opt.iterations + extra_start_iterations
         self.progress = progress or (lambda row: None)
         self.prepared = prepare(cfg)
         self.frames = cfg.simulation.frames
-        self.plan = self.preflight()  # before the optical flow: refuse a run beyond the substep limit in seconds
+        self.preflight()  # before the optical flow: refuse a run beyond the substep limit in seconds
         self.views = self._views()
         self.guidance_warnings = self.check_guidance(force_video)
         self.checkpoint = cfg.output / "checkpoint.json"
@@ -469,17 +470,13 @@ class Optimization:
         ``result`` (its first ``frames`` frames): the simulation rendered from the view's camera
         (SUPERSAMPLE^2 samples per pixel, area-averaged), its flow estimated with the settings
         that made the observed flow, less the exact simulated flow."""
-        import cv2
-
         from clflow.flow.optical_flow import observed_flow
 
         traj = result.trajectory
         simulated = SimulationResult(self.prepared, {}, 0.0, traj.x[: frames + 1].detach(), traj.F[: frames + 1].detach())
         errors = []
         for view, flows in zip(self.views, [result.flows, *result.more_flows]):
-            size = (view.camera.width, view.camera.height)
-            video = np.stack([cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
-                              for frame in render_frames(simulated, view.camera.scaled(SUPERSAMPLE))])
+            video = render_frames(simulated, view.camera, supersample=SUPERSAMPLE)
             estimated = observed_flow(video, self.cfg.flow.method, preset=self.cfg.flow.preset, source="the simulation")
             errors.append(torch.from_numpy(estimated).double() - torch.stack(flows[:frames]).double())
         return errors
@@ -703,9 +700,13 @@ class Optimization:
         z = {**state.z, **{n: state.z[n] + float(d) for n, d in zip(variables, step)}}
         return dataclasses.replace(state, iteration=state.iteration + 1, z=z, damping=damping, best=best)
 
+    @functools.cached_property
+    def _local_box(self) -> dict[str, tuple[float, float]]:
+        return self.search_box(self.initial_state().z) if self.cfg.optimize.search is not None else {}
+
     def local_box(self) -> dict[str, tuple[float, float]]:
         """(lower, upper) in z that the local phase stays in: the search's box (none without a search)."""
-        return self.search_box(self.initial_state().z) if self.cfg.optimize.search is not None else {}
+        return self._local_box
 
     def bounded_step(self, M: torch.Tensor, g: torch.Tensor, z: dict[str, float],
                      variables: tuple[str, ...]) -> torch.Tensor:

@@ -169,13 +169,14 @@ def load_scene_gaussians(cfg: SceneConfig, dtype: torch.dtype) -> tuple[SceneGau
 
 def to_simulation_camera(camera, cfg: SceneConfig):
     """The camera with its world frame changed from scene units to the simulation frame."""
-    from clflow.splat.cameras import Camera
+    from clflow.splat.cameras import transform_camera
 
-    R_up = up_rotation(cfg.up).to(camera.viewmat.dtype)
-    view = camera.viewmat.clone()
-    view[:3, :3] = camera.viewmat[:3, :3] @ R_up.T
-    view[:3, 3] = cfg.scale * camera.viewmat[:3, 3]
-    return Camera(view, camera.K.clone(), camera.width, camera.height, camera.name)
+    return transform_camera(camera, _frame_change(up_rotation(cfg.up)), cfg.scale)
+
+
+def _frame_change(R: torch.Tensor) -> torch.Tensor:
+    """[3, 4] [R | 0] in float64."""
+    return torch.cat([R.double(), torch.zeros(3, 1, dtype=torch.float64)], 1)
 
 
 def to_file_frame(means, covariances, R_up, scale: float):
@@ -187,12 +188,9 @@ def to_file_frame(means, covariances, R_up, scale: float):
 def to_file_camera(camera, R_up: torch.Tensor, scale: float):
     """The inverse of :func:`to_simulation_camera`: the camera with its world frame back in the
     splat file's axes and units (the same pixels)."""
-    from clflow.splat.cameras import Camera
+    from clflow.splat.cameras import transform_camera
 
-    view = camera.viewmat.clone()
-    view[:3, :3] = camera.viewmat[:3, :3] @ R_up.to(view.dtype)
-    view[:3, 3] = camera.viewmat[:3, 3] / scale
-    return Camera(view, camera.K.clone(), camera.width, camera.height, camera.name)
+    return transform_camera(camera, _frame_change(R_up.T), 1.0 / scale)
 
 
 def guidance_camera(cfg: SceneConfig, camera: CameraConfig | None = None):

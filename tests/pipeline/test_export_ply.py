@@ -11,9 +11,9 @@ from click.testing import CliRunner
 from clflow.pipeline.forward import Prepared, SimulationResult
 from clflow.pipeline.frames4d import export_gaussians, file_gaussians
 from clflow.pipeline.render import render_rgb
-from clflow.pipeline.scene import SceneGaussians, up_rotation
+from clflow.pipeline.scene import SceneGaussians, to_file_camera, up_rotation
 from clflow.scene.deform import rest_covariances
-from clflow.splat.cameras import Camera, look_at
+from clflow.splat.cameras import look_at
 from clflow.splat.gaussians import Gaussians, quat_to_rotmat
 from clflow.splat.ply import load_ply
 from clflow.splat.render import rasterize
@@ -46,14 +46,6 @@ def deformed(demo_config):
     return SimulationResult(Prepared(cfg, static, obj, None, camera), {}, 1000.0, x, F), camera
 
 
-def file_camera(camera, scale, up):
-    """The simulation-frame camera in the splat file's frame (x_sim = scale R_up x_file)."""
-    view = camera.viewmat.clone()
-    view[:3, :3] = camera.viewmat[:3, :3] @ up_rotation(up).to(view.dtype)
-    view[:3, 3] = camera.viewmat[:3, 3] / scale
-    return Camera(view, camera.K.clone(), camera.width, camera.height, "file")
-
-
 def test_exported_frame_renders_like_clflow(deformed, tmp_path):
     result, camera = deformed
     cfg = result.prepared.cfg
@@ -61,7 +53,7 @@ def test_exported_frame_renders_like_clflow(deformed, tmp_path):
     export_gaussians(result, tmp_path / "split", object_only=True)
     with torch.no_grad():
         want = render_rgb(result.scene_at(1), camera)
-        cam = file_camera(camera, cfg.scale, cfg.up)
+        cam = to_file_camera(camera, up_rotation(cfg.up), cfg.scale)
         show = lambda g: rasterize(g, cam, background=(1.0, 1.0, 1.0), render_depth=False).image  # noqa: E731
         whole = show(load_ply(tmp_path / "all" / "frame_001.ply"))
         parts = show(Gaussians.cat([load_ply(tmp_path / "split" / "frame_001.ply"),
