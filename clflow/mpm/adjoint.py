@@ -4,9 +4,10 @@ The substep (clflow/mpm/substep.py) maps state n to state n+1 through tau, the g
 and the grid velocities. Its adjoint maps dL/d(state n+1) to dL/d(state n) and accumulates
 the gradients of the per-particle kernel parameters and masses, in reverse kernel order:
 
-    g2p_adjoint_private              : (xbar', vbar', Cbar', grid_v) -> grid_vbar copies, xbar (part)
-    grid_update_adjoint              : (grid_vbar copies, grid, boundaries) -> grid_bar (mbar_i, pbar_i)
+    g2p_adjoint_private              : (xbar', vbar', Cbar', grid_v[, grid_dv]) -> grid_vbar copies, xbar (part)
+    grid_update_adjoint              : (grid_vbar copies, grid, boundaries) -> grid_bar (mbar_i, pbar_i[, p0bar_i])
     p2g_adjoint                      : (grid_bar, x, v, C, tau)      -> xbar, vbar, Cbar (part), taubar, massbar
+    p2g_flip_adjoint (flip > 0)      : (grid_bar, vbar', x, v, C)    -> xbar, vbar, Cbar, massbar (parts)
     trial_svd_simd + update_stress_adjoint : (taubar, Fbar', F, C, param) -> Fbar, Cbar, parambar
       (update_stress_elastic_adjoint_simd when every particle is fixed-corotated elastic)
 
@@ -21,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from clflow.mpm.constants import MATERIAL_IDS, SIMD_LANES, SVD_MATERIALS, kernel_defines
+from clflow.mpm.constants import MATERIAL_IDS, SIMD_LANES, SVD_MATERIALS, grid_channels, kernel_defines
 from clflow.mpm.substep import Grid, Particles, State, SubstepKernels, grid_copies
 
 
@@ -44,40 +45,42 @@ class StateGrad:
 
 @dataclass
 class SubstepTape:
-    """What the adjoint of one substep reads from its forward run: tau [N, 3, 3] and the
-    grid [nodes, 4] (m, mv) and grid velocities [nodes, 3]."""
+    """What the adjoint of one substep reads from its forward run: tau [N, 3, 3], the grid
+    [nodes, GRID_CH] (m, mv[, mv0]), the grid velocities [nodes, 3] and, with a PIC/FLIP
+    blend, their change in the substep grid_dv [nodes, 3] (else [1, 3], unused)."""
 
     tau: torch.Tensor
     grid_mv: torch.Tensor
     grid_v: torch.Tensor
+    grid_dv: torch.Tensor
 
     @staticmethod
-    def empty(n: int, nodes: int, dtype: torch.dtype) -> "SubstepTape":
-        return SubstepTape(torch.empty(n, 3, 3, dtype=dtype), torch.empty(nodes, 4, dtype=dtype),
-                           torch.empty(nodes, 3, dtype=dtype))
+    def empty(n: int, nodes: int, dtype: torch.dtype, flip: float = 0.0) -> "SubstepTape":
+        return SubstepTape(torch.empty(n, 3, 3, dtype=dtype), torch.empty(nodes, grid_channels(flip), dtype=dtype),
+                           torch.empty(nodes, 3, dtype=dtype), torch.empty(nodes if flip > 0 else 1, 3, dtype=dtype))
 
 
 def run_recorded(kernels: SubstepKernels, tape: SubstepTape, state: State, out: State, *args) -> None:
     """``kernels.run(state, out, *args)`` with tau and the grids written into ``tape``."""
-    scratch = kernels.tau, kernels.grid_mv, kernels.grid_v
-    kernels.tau, kernels.grid_mv, kernels.grid_v = tape.tau, tape.grid_mv, tape.grid_v
+    scratch = kernels.tau, kernels.grid_mv, kernels.grid_v, kernels.grid_dv
+    kernels.tau, kernels.grid_mv, kernels.grid_v, kernels.grid_dv = tape.tau, tape.grid_mv, tape.grid_v, tape.grid_dv
     try:
         kernels.run(state, out, *args)
     finally:
-        kernels.tau, kernels.grid_mv, kernels.grid_v = scratch
+        kernels.tau, kernels.grid_mv, kernels.grid_v, kernels.grid_dv = scratch
 
 
 class SubstepAdjoint:
-    """The adjoint kernels of one device, precision, particle count, grid and material set,
-    with their scratch buffers (grid adjoint, taubar, U s V, private grid copies)."""
+    """The adjoint kernels of one device, precision, particle count, grid, material set and
+    PIC/FLIP blend, with their scratch buffers (grid adjoint, taubar, U s V, private grid copies)."""
 
-    def __init__(self, device, dtype: torch.dtype, n: int, grid: Grid, materials: torch.Tensor):
+    def __init__(self, device, dtype: torch.dtype, n: int, grid: Grid, materials: torch.Tensor, flip: float = 0.0):
         import pyopencl as cl
 
-        self.device, self.dtype, self.n, self.grid = device, dtype, n, grid
+        self.device, self.dtype, self.n, self.grid, self.flip = device, dtype, n, grid, float(flip)
         real = "double" if dtype == torch.float64 else "float"
         self.real_t = np.float64 if dtype == torch.float64 else np.float32
-        defines = kernel_defines()
+        defines = kernel_defines(self.flip)
         present = sum(1 << int(m) for m in torch.unique(materials))
         defines["MATERIALS_PRESENT"] = present
         k = lambda src, name: device.kernel(src, name, real, defines)  # noqa: E731
@@ -96,12 +99,13 @@ class SubstepAdjoint:
         self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_private")
         self.k_grid = k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
         self.k_p2g = k("mpm/adjoint/p2g_adjoint.cl", "p2g_adjoint")
+        self.k_flip = k("mpm/adjoint/p2g_adjoint.cl", "p2g_flip_adjoint") if self.flip > 0 else None
         itemsize = torch.tensor([], dtype=dtype).element_size()
-        copy_bytes = 3 * grid.nodes * itemsize
+        copy_bytes = (6 if self.flip > 0 else 3) * grid.nodes * itemsize  # vbar[, dvbar] per node
         self.copies = grid_copies(device, copy_bytes, n)
         self.chunk = -(-n // self.copies)
         self.grid_v_bar_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * copy_bytes)
-        self.grid_bar = torch.empty(grid.nodes, 4, dtype=dtype)
+        self.grid_bar = torch.empty(grid.nodes, grid_channels(self.flip), dtype=dtype)
         self.tau_bar = torch.empty(n, 3, 3, dtype=dtype)
 
     def run(
@@ -132,20 +136,26 @@ class SubstepAdjoint:
             C_bar = b.inout(grad.C, "C_bar")
             grid_bar = b.inout(self.grid_bar, "grid_bar")
             tau_bar = b.inout(self.tau_bar, "tau_bar")
+            release_time, v_bar_out = b.input(particles.release_time, "release_time"), b.input(grad_after.v, "v_bar_out")
             dev.launch(self.k_g2p, self.copies, grid_args + [
-                n, R(dt), R(t), x, b.input(after.v, "v_out"), b.input(particles.release_time, "release_time"),
-                b.input(tape.grid_v, "grid_v"), b.input(grad_after.x, "x_bar_out"),
-                b.input(grad_after.v, "v_bar_out"), b.input(grad_after.C, "C_bar_out"),
+                n, R(dt), R(t), R(self.flip), x, b.input(after.v, "v_out"), release_time,
+                b.input(tape.grid_v, "grid_v"), b.input(tape.grid_dv, "grid_dv"), b.input(grad_after.x, "x_bar_out"),
+                v_bar_out, b.input(grad_after.C, "C_bar_out"),
                 np.int32(self.copies), np.int32(self.chunk), self.grid_v_bar_copies, x_bar], local_size=1)
             dev.launch(self.k_grid, self.grid.nodes, grid_args + [
                 R(dt), R(t), *(R(g) for g in gravity), R(particles.mass_eps), b.input(tape.grid_mv, "grid"),
                 self.grid_v_bar_copies, np.int32(self.copies), b.input(boundaries, "boundaries"),
                 np.int32(boundaries.shape[0]), grid_bar])
+            v, mass, v_bar, mass_bar = (b.input(state.v, "v"), b.input(particles.mass, "mass"),
+                                        b.output(grad.v, "v_bar"), b.inout(mass_grad, "mass_bar"))
             dev.launch(self.k_p2g, -(-self.n // SIMD_LANES), grid_args + [
-                n, R(dt), x, b.input(state.v, "v"), C, b.input(tape.tau, "tau"),
-                b.input(particles.mass, "mass"), b.input(particles.volume, "volume"),
+                n, R(dt), x, v, C, b.input(tape.tau, "tau"), mass, b.input(particles.volume, "volume"),
                 b.input(particles.group, "group"), b.input(accel, "accel"), grid_bar, x_bar,
-                b.output(grad.v, "v_bar"), C_bar, tau_bar, b.inout(mass_grad, "mass_bar")])
+                v_bar, C_bar, tau_bar, mass_bar])
+            if self.k_flip is not None:
+                dev.launch(self.k_flip, self.n, grid_args + [
+                    n, R(t), R(self.flip), x, v, C, mass, release_time, v_bar_out, grid_bar, x_bar, v_bar, C_bar,
+                    mass_bar])
             self.launch_stress_adjoint(
                 b, dt, b.input(state.F, "F"), C, b.input(state.plastic, "plastic"),
                 b.input(particles.material, "material"), b.input(particles.param, "param"), tau_bar,

@@ -71,8 +71,8 @@ class _Engine:
 
     def __init__(self, sim: Simulator):
         n, materials = sim.n, sim.particles.material
-        self.forward = SubstepKernels(sim.device, sim.dtype, n, sim.grid, materials, sim.kernels.p2g)
-        self.adjoint = SubstepAdjoint(sim.device, sim.dtype, n, sim.grid, materials)
+        self.forward = SubstepKernels(sim.device, sim.dtype, n, sim.grid, materials, sim.kernels.p2g, sim.flip)
+        self.adjoint = SubstepAdjoint(sim.device, sim.dtype, n, sim.grid, materials, sim.flip)
 
 
 _ENGINES: "weakref.WeakKeyDictionary[Simulator, _Engine]" = weakref.WeakKeyDictionary()
@@ -177,7 +177,7 @@ class _Run:
         # m dt a to the momentum, so abar_p = dt vbar_p), reduced over its particles at the end
         stage_rows = torch.zeros(len(sim.drivers.forces), n, 3, dtype=dtype)
         states = [None] + [sim.state.empty_like() for _ in range(k)]
-        tapes = [SubstepTape.empty(n, sim.grid.nodes, dtype) for _ in range(k)]
+        tapes = [SubstepTape.empty(n, sim.grid.nodes, dtype, sim.flip) for _ in range(k)]
         starts = list(range(0, S, k))  # first substep of each segment
         # second level (only when a frame's replay exceeds the budget): segment start states
         segment_states = [sim.state.empty_like() for _ in starts[1:]]

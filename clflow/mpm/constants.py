@@ -59,9 +59,17 @@ BC_SLOTS: dict[str, int] = {
 COLLIDER_MODES: dict[str, int] = {"sticky": 0, "slip": 1, "separate": 2}
 
 
-def kernel_defines() -> dict[str, object]:
-    """The -D switches every MPM kernel is built with."""
+def grid_channels(flip: float) -> int:
+    """Reals per node of the P2G grid (kernels_cl/mpm/mpm.h GRID_CH): m and mv, and with a
+    PIC/FLIP blend (``flip`` > 0) also mv0, the momentum before the substep's forces."""
+    return 7 if flip > 0 else 4
+
+
+def kernel_defines(flip: float = 0.0) -> dict[str, object]:
+    """The -D switches every MPM kernel is built with; ``flip`` > 0 builds the PIC/FLIP
+    blend's transfers (CLFLOW_FLIP)."""
     defines: dict[str, object] = {f"MAT_{name.upper()}": i for name, i in MATERIAL_IDS.items()}
+    defines["CLFLOW_FLIP"] = int(flip > 0)
     defines.update(
         PARAM_COUNT=PARAM_COUNT,
         SVD_MATERIALS=SVD_MATERIALS,

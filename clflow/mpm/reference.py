@@ -220,8 +220,10 @@ def substep(
     gravity,
     boundaries: torch.Tensor,
     accel: torch.Tensor,
+    flip: float = 0.0,
 ) -> tuple[State, int]:
-    """One substep from state n at time t: (state n+1, number of clamped particles)."""
+    """One substep from state n at time t: (state n+1, number of clamped particles); ``flip``
+    is the PIC/FLIP blend (0: APIC)."""
     dtype = state.x.dtype
     n = state.x.shape[0]
     eye = torch.eye(3, dtype=dtype)
@@ -241,25 +243,32 @@ def substep(
     momentum = m[:, None] * (state.v + dt * a_p)
     grid_m = torch.zeros(grid.nodes, dtype=dtype)
     grid_mv = torch.zeros(grid.nodes, 3, dtype=dtype)
+    grid_mv0 = torch.zeros(grid.nodes, 3, dtype=dtype)  # momentum before the forces (FLIP)
     for node, w, d in _stencil_nodes(grid, state.x):
         grid_m.index_add_(0, node, w * m)
         grid_mv.index_add_(0, node, w[:, None] * (momentum + (affine @ d[:, :, None])[..., 0]))
+        grid_mv0.index_add_(0, node, (w * m)[:, None] * (state.v + (state.C @ d[:, :, None])[..., 0]))
 
     active = grid_m > particles.mass_eps
     g = torch.tensor(gravity, dtype=dtype)
-    grid_v = torch.where(active[:, None], grid_mv / torch.where(active, grid_m, 1.0)[:, None] + dt * g, 0.0)
+    mass = torch.where(active, grid_m, 1.0)[:, None]
+    grid_v = torch.where(active[:, None], grid_mv / mass + dt * g, 0.0)
     grid_v = _apply_boundaries(grid, grid_v, active, boundaries, t)
+    grid_dv = torch.where(active[:, None], grid_v - grid_mv0 / mass, 0.0)
 
-    v_new = torch.zeros(n, 3, dtype=dtype)
+    v_pic = torch.zeros(n, 3, dtype=dtype)
+    dv = torch.zeros(n, 3, dtype=dtype)
     C_new = torch.zeros(n, 3, 3, dtype=dtype)
     for node, w, d in _stencil_nodes(grid, state.x):
         vi = grid_v[node]
-        v_new += w[:, None] * vi
+        v_pic += w[:, None] * vi
+        dv += w[:, None] * grid_dv[node]
         C_new += (4 / grid.dx**2) * w[:, None, None] * vi[:, :, None] * d[:, None, :]
+    v_new = flip * (state.v + dv) + (1 - flip) * v_pic
     released = (t >= particles.release_time)
     v_new = torch.where(released[:, None], v_new, 0.0)
     C_new = torch.where(released[:, None, None], C_new, 0.0)
-    moved = state.x + dt * v_new
+    moved = state.x + dt * torch.where(released[:, None], v_pic, 0.0)
     lo = torch.tensor(grid.origin, dtype=dtype) + CLAMP_MARGIN * grid.dx
     hi = torch.tensor(grid.origin, dtype=dtype) + (torch.tensor(grid.resolution, dtype=dtype) - 1 - CLAMP_MARGIN) * grid.dx
     x_new = torch.minimum(torch.maximum(moved, lo), hi)

@@ -179,6 +179,10 @@ class Simulator:
         dtype: torch.float32 (default) or torch.float64.
         device: OpenCL device (default: clflow.runtime.get_device()).
         p2g: "auto" (private grid copies on CPUs, atomics elsewhere), "private" or "atomic".
+        flip: PIC/FLIP blend in [0, 1]: the share of each particle's velocity that keeps its
+            own value plus the grid's change (FLIP), the rest taken from the grid (APIC).
+            0 is plain APIC, whose numerical dissipation grows with the substeps per frame
+            (docs/mpm.md, "Transfers and time step").
     """
 
     def __init__(
@@ -202,7 +206,11 @@ class Simulator:
         dtype: torch.dtype = torch.float32,
         device: Device | None = None,
         p2g: P2GMode = "auto",
+        flip: float = 0.0,
     ):
+        if not (isinstance(flip, (int, float)) and 0.0 <= flip <= 1.0):
+            raise InputError(f"flip (the PIC/FLIP blend) must be a number in [0, 1], got {flip!r}")
+        self.flip = float(flip)
         if dtype not in (torch.float32, torch.float64):
             raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         self.device = device or get_device()
@@ -268,7 +276,7 @@ class Simulator:
         self.use_substeps(substeps)
         self.time = 0.0
         self.frame = 0
-        self.kernels = SubstepKernels(self.device, dtype, n, grid, self.particles.material, p2g)
+        self.kernels = SubstepKernels(self.device, dtype, n, grid, self.particles.material, p2g, self.flip)
         self._clamped = torch.zeros(n, dtype=torch.uint8)
         self._progress: FrameProgress | None = None  # set while run() runs
 

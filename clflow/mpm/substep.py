@@ -3,12 +3,13 @@
     trial_svd_simd: (F_n, C_n)                             -> U, s, V = svd3(F_tr)
     update_stress : (F_n, C_n, U, s, V, plastic_n, param)  -> F_n+1, plastic_n+1, tau
                     (update_stress_elastic_simd: both in one when all particles are elastic)
-    p2g           : (x_n, v_n, C_n, tau, mass, volume)     -> grid [nodes, 4] (m, mv)
-    grid_update   : (grid, boundary table, t)              -> grid_v [nodes, 3]
-    g2p           : (x_n, grid_v, release_time)            -> x_n+1, v_n+1, C_n+1
+    p2g           : (x_n, v_n, C_n, tau, mass, volume)     -> grid [nodes, GRID_CH] (m, mv[, mv0])
+    grid_update   : (grid, boundary table, t)              -> grid_v [nodes, 3][, grid_dv]
+    g2p           : (x_n[, v_n], grid_v[, grid_dv], release_time) -> x_n+1, v_n+1, C_n+1
 
+(bracketed: with the PIC/FLIP blend, ``flip`` > 0; GRID_CH = constants.grid_channels).
 State n is only read, so the adjoint can replay a substep from a checkpoint; U, s, V, tau,
-grid and grid_v of the last substep stay in :class:`SubstepKernels` for it.
+grid, grid_v and grid_dv of the last substep stay in :class:`SubstepKernels` for it.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
-from clflow.mpm.constants import MATERIAL_IDS, SIMD_LANES, SVD_MATERIALS, kernel_defines
+from clflow.mpm.constants import MATERIAL_IDS, SIMD_LANES, SVD_MATERIALS, grid_channels, kernel_defines
 from clflow.runtime.devices import Device
 
 P2GMode = Literal["auto", "private", "atomic"]
@@ -107,14 +108,15 @@ class Particles:
     mass_eps: float
 
 
-def check_grid_memory(info, grid: Grid, itemsize: int) -> None:
-    """Refuse a grid whose node arrays do not fit device ``info`` (a DeviceInfo): (m, mv) and
-    v per node, and on CPU devices at least one private P2G copy of (m, mv)."""
+def check_grid_memory(info, grid: Grid, itemsize: int, flip: float = 0.0) -> None:
+    """Refuse a grid whose node arrays do not fit device ``info`` (a DeviceInfo): (m, mv[, mv0])
+    and v[, dv] per node (bracketed: PIC/FLIP blend ``flip`` > 0), and on CPU devices at
+    least one private P2G copy of the first."""
     from clflow.limits import format_bytes
 
-    nodes = grid.nodes
-    total = nodes * itemsize * (7 + (4 if info.type == "CPU" else 0))
-    largest = nodes * itemsize * 4
+    nodes, channels = grid.nodes, grid_channels(flip)
+    total = nodes * itemsize * (channels + (6 if flip > 0 else 3) + (channels if info.type == "CPU" else 0))
+    largest = nodes * itemsize * channels
     if total > info.global_mem_size or largest > info.max_mem_alloc_size:
         size = "x".join(str(int(r)) for r in grid.resolution)
         raise InputError(
@@ -125,15 +127,17 @@ def check_grid_memory(info, grid: Grid, itemsize: int) -> None:
 
 
 class SubstepKernels:
-    """The substep kernels of one device, precision, particle count, grid and set of material
-    ids (``materials``: the kernel ids of the particles), with their scratch buffers (U, s, V
-    of F_tr, tau, grid, grid_v and the private P2G grid copies)."""
+    """The substep kernels of one device, precision, particle count, grid, set of material ids
+    (``materials``: the kernel ids of the particles) and PIC/FLIP blend ``flip`` (0: APIC),
+    with their scratch buffers (U, s, V of F_tr, tau, grid, grid_v, grid_dv and the private
+    P2G grid copies)."""
 
     def __init__(self, device: Device, dtype: torch.dtype, n: int, grid: Grid, materials: torch.Tensor,
-                 p2g: P2GMode = "auto"):
+                 p2g: P2GMode = "auto", flip: float = 0.0):
         import pyopencl as cl
 
-        self.device, self.dtype, self.n, self.grid = device, dtype, n, grid
+        self.device, self.dtype, self.n, self.grid, self.flip = device, dtype, n, grid, float(flip)
+        channels = grid_channels(self.flip)
         self.real = "double" if dtype == torch.float64 else "float"
         self.real_t = np.float64 if dtype == torch.float64 else np.float32
         if p2g == "auto":
@@ -141,7 +145,7 @@ class SubstepKernels:
         self.p2g = p2g
         present = [int(m) for m in torch.unique(materials)]
         # only the constitutive models of the materials present are compiled in
-        defines = {**kernel_defines(), "MATERIALS_PRESENT": sum(1 << m for m in present)}
+        defines = {**kernel_defines(self.flip), "MATERIALS_PRESENT": sum(1 << m for m in present)}
         k = lambda src, name: device.kernel(src, name, self.real, defines)  # noqa: E731
         # all fixed-corotated elastic: one fused SIMD kernel; otherwise the SVD in SIMD lanes
         # (if any model needs it), then one particle per work-item for the models
@@ -158,8 +162,8 @@ class SubstepKernels:
         self.k_grid = k("mpm/grid.cl", "grid_update")
         self.k_g2p = k("mpm/g2p.cl", "g2p")
         itemsize = torch.tensor([], dtype=dtype).element_size()
-        check_grid_memory(device.info, grid, itemsize)
-        grid_bytes = 4 * grid.nodes * itemsize
+        check_grid_memory(device.info, grid, itemsize, self.flip)
+        grid_bytes = channels * grid.nodes * itemsize
         if p2g == "private":
             self.k_p2g = k("mpm/p2g.cl", "p2g_private")
             self.k_reduce = k("mpm/p2g.cl", "p2g_reduce")
@@ -171,8 +175,9 @@ class SubstepKernels:
         else:
             raise ValueError(f"p2g must be 'auto', 'private' or 'atomic', not {p2g!r}")
         self.tau = torch.empty(n, 3, 3, dtype=dtype)
-        self.grid_mv = torch.empty(grid.nodes, 4, dtype=dtype)  # (m, mv) per node
+        self.grid_mv = torch.empty(grid.nodes, channels, dtype=dtype)  # (m, mv[, mv0]) per node
         self.grid_v = torch.empty(grid.nodes, 3, dtype=dtype)
+        self.grid_dv = torch.empty(grid.nodes if self.flip else 1, 3, dtype=dtype)  # FLIP: the substep's change
 
     def run(
         self,
@@ -195,6 +200,7 @@ class SubstepKernels:
             x, v, C = b.input(state.x, "x"), b.input(state.v, "v"), b.input(state.C, "C")
             tau = b.inout(self.tau, "tau")
             grid_mv, grid_v = b.inout(self.grid_mv, "grid"), b.inout(self.grid_v, "grid_v")
+            grid_dv = b.inout(self.grid_dv, "grid_dv")
             F, plastic = b.input(state.F, "F"), b.input(state.plastic, "plastic")
             param, F_out, plastic_out = b.input(particles.param, "param"), b.output(out.F, "F_out"), b.output(
                 out.plastic, "plastic_out")
@@ -214,7 +220,7 @@ class SubstepKernels:
             if self.p2g == "private":
                 dev.launch(self.k_p2g, self.copies, grid_args + p2g_args +
                            [np.int32(self.copies), np.int32(self.chunk), self.grid_copies], local_size=1)
-                size = 4 * self.grid.nodes
+                size = self.grid_mv.numel()
                 dev.launch(self.k_reduce, size, [np.int64(size), np.int32(self.copies), self.grid_copies, grid_mv])
             else:
                 self.grid_mv.zero_()
@@ -223,12 +229,13 @@ class SubstepKernels:
                 self.k_grid,
                 self.grid.nodes,
                 grid_args + [R(dt), R(t), *(R(g) for g in gravity), R(particles.mass_eps), grid_mv, grid_v,
-                             b.input(boundaries, "boundaries"), np.int32(boundaries.shape[0])],
+                             grid_dv, b.input(boundaries, "boundaries"), np.int32(boundaries.shape[0])],
             )
             dev.launch(
                 self.k_g2p,
                 self.n,
-                grid_args + [n, R(dt), R(t), x, grid_v, b.input(particles.release_time, "release_time"),
+                grid_args + [n, R(dt), R(t), R(self.flip), x, v, grid_v, grid_dv,
+                             b.input(particles.release_time, "release_time"),
                              b.output(out.x, "x_out"), b.output(out.v, "v_out"), b.output(out.C, "C_out"),
                              b.inout(clamped, "clamped", torch.uint8)],
             )

@@ -123,7 +123,7 @@ def build_simulator(cfg: SceneConfig, setup: ObjectSetup, params: dict[str, floa
     sim = Simulator(
         x, setup.particles.volume, MaterialSpec(material, dict(params), density, cfg.material.model), setup.grid,
         velocities=velocities, frame_dt=frame_dt, substeps=substeps, gravity=sim_cfg.gravity, boundaries=colliders,
-        forces=forces, dtype=dtype,
+        forces=forces, dtype=dtype, flip=sim_cfg.flip,
     )
     if substeps is None and sim.substeps < min_substeps:
         sim.use_substeps(min_substeps)

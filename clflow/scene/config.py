@@ -224,6 +224,7 @@ class SimulationSettings:
     domain_lower: tuple[float, float, float] | None = None  # m; None: around the object
     domain_upper: tuple[float, float, float] | None = None
     substep_dt: float | None = None  # s; None: automatic (CFL, elastic wave speed, viscosity)
+    flip: float = 0.0  # PIC/FLIP blend in [0, 1] (clflow.mpm.Simulator); 0: APIC
     fps: float = 24.0
     frames: int = 24
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)  # m/s^2
@@ -459,7 +460,8 @@ def _colliders(r: _Reader, data: Any) -> tuple[Collider, ...]:
 
 def _simulation(r: _Reader, data: Any) -> SimulationSettings:
     p = "simulation"
-    body = r.section(data, p, ("grid_resolution", "domain", "substep_dt", "fps", "frames", "gravity", "max_substeps"))
+    body = r.section(data, p, ("grid_resolution", "domain", "substep_dt", "flip", "fps", "frames", "gravity",
+                               "max_substeps"))
     lower = upper = None
     if body.get("domain") is not None:
         dom = r.section(body["domain"], f"{p}.domain", ("min", "max"))
@@ -471,6 +473,7 @@ def _simulation(r: _Reader, data: Any) -> SimulationSettings:
     return SimulationSettings(
         grid_resolution=r.integer(body, "grid_resolution", p, 32, low=11),  # walls: 4 cells a side
         domain_lower=lower, domain_upper=upper, substep_dt=substep_dt,
+        flip=r.number(body, "flip", p, SimulationSettings.flip, low=0.0, high=1.0),
         fps=r.number(body, "fps", p, 24.0, low=0.0, strict_low=True),
         frames=r.integer(body, "frames", p, 24, low=1),
         gravity=r.vec3(body, "gravity", p, (0.0, -9.81, 0.0)),

@@ -1,6 +1,10 @@
-/* Substep stage 4: grid to particle (APIC) and advection.
+/* Substep stage 4: grid to particle (APIC, or a PIC/FLIP blend) and advection.
  *
- *   v_p' = sum_i w v_i ;  C_p' = (4/dx^2) sum_i w v_i d^T ;  x_p' = x_p + dt v_p'
+ *   v_pic = sum_i w v_i ;  C_p' = (4/dx^2) sum_i w v_i d^T ;  x_p' = x_p + dt v_pic
+ *   v_p' = v_pic, or with CLFLOW_FLIP: v_p' = flip (v_p + sum_i w dv_i) + (1 - flip) v_pic
+ * (dv_i: the grid's velocity change in this substep, grid.cl). The FLIP part keeps what the
+ * grid cannot represent instead of filtering it out at every transfer, so the numerical
+ * dissipation no longer grows with the number of substeps (docs/mpm.md).
  * A particle not yet released (t < release_time[p], layer release) stays put: x' = x,
  * v' = 0, C' = 0. A particle leaving [CLAMP_MARGIN, n - 1 - CLAMP_MARGIN] cells is clamped
  * back in and flagged: clamped[p] = 1 (the host zeroes the flags and counts them per frame;
@@ -8,8 +12,9 @@
 #include "mpm/mpm.h"
 
 __kernel void g2p(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy, const real oz,
-                  const int n, const real dt, const real t, __global const real *restrict x_in,
-                  __global const real *restrict grid_v, __global const real *restrict release_time,
+                  const int n, const real dt, const real t, const real flip, __global const real *restrict x_in,
+                  __global const real *restrict v_in, __global const real *restrict grid_v,
+                  __global const real *restrict grid_dv, __global const real *restrict release_time,
                   __global real *restrict x_out, __global real *restrict v_out, __global real *restrict C_out,
                   __global uchar *restrict clamped)
 {
@@ -18,7 +23,10 @@ __kernel void g2p(const int nx, const int ny, const int nz, const real dx, const
         return;
     const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
     real xp[3];
-    vec3r v = 0, C0 = 0, C1 = 0, C2 = 0; /* v and the rows of C */
+    vec3r v = 0, C0 = 0, C1 = 0, C2 = 0; /* v_pic and the rows of C */
+#if CLFLOW_FLIP
+    vec3r dv = 0;
+#endif
     load_row(x_in, p, 3, xp);
     if (t >= release_time[p]) {
         const stencil_t st = make_stencil(&g, xp);
@@ -27,7 +35,11 @@ __kernel void g2p(const int nx, const int ny, const int nz, const real dx, const
                 for (int k = 0; k < 3; ++k) {
                     const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
                     const vec3r d = (vec3r)((i - st.fx[0]) * dx, (j - st.fx[1]) * dx, (k - st.fx[2]) * dx);
-                    const vec3r wv = w * vload3(grid_index(&g, st.base[0] + i, st.base[1] + j, st.base[2] + k), grid_v);
+                    const long node = grid_index(&g, st.base[0] + i, st.base[1] + j, st.base[2] + k);
+                    const vec3r wv = w * vload3(node, grid_v);
+#if CLFLOW_FLIP
+                    dv += w * vload3(node, grid_dv);
+#endif
                     v += wv;
                     C0 += wv.x * d;
                     C1 += wv.y * d;
@@ -47,6 +59,9 @@ __kernel void g2p(const int nx, const int ny, const int nz, const real dx, const
         }
         if (out)
             clamped[p] = 1;
+#if CLFLOW_FLIP
+        v = flip * (vload3(p, v_in) + dv) + (1 - flip) * v;
+#endif
     }
     store_row(x_out, p, 3, xp);
     vstore3(v, p, v_out);

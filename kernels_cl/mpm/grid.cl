@@ -1,7 +1,9 @@
 /* Substep stage 3: grid velocities and boundary conditions.
  *
  *   v_i = mv_i / m_i + dt g   where m_i > mass_eps, else 0
- * then every boundary record active at time t (t_start <= t < t_end) in table order.
+ * then every boundary record active at time t (t_start <= t < t_end) in table order. With the
+ * PIC/FLIP blend (CLFLOW_FLIP) also the substep's velocity change dv_i = v_i - mv0_i / m_i
+ * (forces, gravity and boundaries; 0 on empty nodes) into grid_dv.
  * Record layout: BC_STRIDE reals, read through the slot names of clflow/mpm/constants.py
  * (BC_SLOTS, passed as defines): [BC_KIND, BC_T_START, BC_T_END, BC_A (3), BC_B (3), BC_C (3) ...]
  *   BC_HALFSPACE: point a, outward normal b (unit), c0 = mode, c1 = friction mu_f. Nodes with
@@ -75,19 +77,19 @@ inline void apply_cylinder(__global const real *rec, const real *xi, real *v)
 
 __kernel void grid_update(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
                           const real oz, const real dt, const real t, const real gx, const real gy, const real gz,
-                          const real mass_eps, __global const real *grid, __global real *grid_v,
+                          const real mass_eps, __global const real *grid, __global real *grid_v, __global real *grid_dv,
                           __global const real *bc, const int n_bc)
 {
     const long node = get_global_id(0);
     const long nodes = (long)nx * ny * nz;
     if (node >= nodes)
         return;
-    const real m = grid[4 * node];
+    const real m = grid[GRID_CH * node];
     real v[3] = {0, 0, 0};
     if (m > mass_eps) {
         const real g[3] = {gx, gy, gz};
         for (int a = 0; a < 3; ++a)
-            v[a] = grid[4 * node + 1 + a] / m + dt * g[a];
+            v[a] = grid[GRID_CH * node + 1 + a] / m + dt * g[a];
         const int k = node % nz, j = (node / nz) % ny, i = node / ((long)nz * ny);
         const real xi[3] = {ox + i * dx, oy + j * dx, oz + k * dx};
         for (int b = 0; b < n_bc; ++b) {
@@ -104,4 +106,11 @@ __kernel void grid_update(const int nx, const int ny, const int nz, const real d
         }
     }
     store_row(grid_v, node, 3, v);
+#if CLFLOW_FLIP
+    real dv[3] = {0, 0, 0};
+    if (m > mass_eps)
+        for (int a = 0; a < 3; ++a)
+            dv[a] = v[a] - grid[GRID_CH * node + 4 + a] / m;
+    store_row(grid_dv, node, 3, dv);
+#endif
 }

@@ -10,9 +10,13 @@
 
 #include "common/mat3.h"
 
-#if !defined(PARAM_COUNT) || !defined(CLAMP_MARGIN)
-#error "build the MPM kernels through clflow.mpm (it passes PARAM_COUNT, CLAMP_MARGIN, ...)"
+#if !defined(PARAM_COUNT) || !defined(CLAMP_MARGIN) || !defined(CLFLOW_FLIP)
+#error "build the MPM kernels through clflow.mpm (it passes PARAM_COUNT, CLAMP_MARGIN, CLFLOW_FLIP, ...)"
 #endif
+
+/* Reals per node of the P2G grid: m, mv (3) and, with the PIC/FLIP blend (CLFLOW_FLIP),
+ * mv0 (3), the momentum before this substep's forces (clflow.mpm.constants.grid_channels). */
+#define GRID_CH (CLFLOW_FLIP ? 7 : 4)
 
 /* 3-vectors in registers for the transfer loops (private arrays indexed in loops may stay
  * in memory; vector accumulators do not). */

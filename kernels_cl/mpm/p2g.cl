@@ -3,8 +3,10 @@
  * For each of the 27 nodes i of particle p, with d = x_i - x_p:
  *   m_i  += w m_p
  *   mv_i += w [ m_p (v_p + dt a_p) + affine d ],  affine = m_p C_p - dt V_p (4/dx^2) tau_p
+ * and, with the PIC/FLIP blend (CLFLOW_FLIP), the momentum before the forces:
+ *   mv0_i += w m_p (v_p + C_p d)
  * a_p = accel[group[p]] is the particle's driver acceleration (group -1: none).
- * Grid layout: grid[4*node + (0: m, 1..3: mv)].
+ * Grid layout: grid[GRID_CH*node + (0: m, 1..3: mv, 4..6: mv0 with CLFLOW_FLIP)].
  *
  * Two ways to sum, chosen by the host from the device record:
  *  - p2g_private + p2g_reduce (CPU devices, no float atomics): work-item k scatters the
@@ -27,7 +29,11 @@ inline void p2g_particle(const grid_t *g, const int p, const real dt, __global c
     for (int r = 0; r < 3; ++r)
         affine[r] = stress_scale * vload3(3 * p + r, tau) + m * vload3(3 * p + r, C);
     const int gp = group[p];
-    const vec3r momentum = m * (vload3(p, v) + (gp >= 0 ? dt * vload3(gp, accel) : (vec3r)0));
+    const vec3r vp = vload3(p, v);
+    const vec3r momentum = m * (vp + (gp >= 0 ? dt * vload3(gp, accel) : (vec3r)0));
+#if CLFLOW_FLIP
+    const vec3r mC[3] = {m * vload3(3 * p, C), m * vload3(3 * p + 1, C), m * vload3(3 * p + 2, C)};
+#endif
     const stencil_t st = make_stencil(g, xp);
     for (int i = 0; i < 3; ++i)
         for (int j = 0; j < 3; ++j)
@@ -35,17 +41,30 @@ inline void p2g_particle(const grid_t *g, const int p, const real dt, __global c
                 const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
                 const vec3r d = (vec3r)((i - st.fx[0]) * g->dx, (j - st.fx[1]) * g->dx, (k - st.fx[2]) * g->dx);
                 const vec3r mv = w * (momentum + (vec3r)(dot(affine[0], d), dot(affine[1], d), dot(affine[2], d)));
-                __global real *node = grid + 4 * grid_index(g, st.base[0] + i, st.base[1] + j, st.base[2] + k);
+                __global real *node = grid + GRID_CH * grid_index(g, st.base[0] + i, st.base[1] + j, st.base[2] + k);
+#if CLFLOW_FLIP
+                const vec3r mv0 = w * (m * vp + (vec3r)(dot(mC[0], d), dot(mC[1], d), dot(mC[2], d)));
+#endif
                 if (use_atomics) {
                     atomic_add_real(node, w * m);
                     atomic_add_real(node + 1, mv.x);
                     atomic_add_real(node + 2, mv.y);
                     atomic_add_real(node + 3, mv.z);
+#if CLFLOW_FLIP
+                    atomic_add_real(node + 4, mv0.x);
+                    atomic_add_real(node + 5, mv0.y);
+                    atomic_add_real(node + 6, mv0.z);
+#endif
                 } else {
                     node[0] += w * m;
                     node[1] += mv.x;
                     node[2] += mv.y;
                     node[3] += mv.z;
+#if CLFLOW_FLIP
+                    node[4] += mv0.x;
+                    node[5] += mv0.y;
+                    node[6] += mv0.z;
+#endif
                 }
             }
 }
@@ -65,7 +84,7 @@ __kernel void p2g_private(P2G_GRID_ARGS, P2G_PARTICLE_ARGS, const int copies, co
     if (k >= copies)
         return;
     const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
-    const long size = 4L * nx * ny * nz;
+    const long size = (long)GRID_CH * nx * ny * nz;
     __global real *grid = grid_copies + k * size;
     for (long e = 0; e < size; ++e)
         grid[e] = 0;

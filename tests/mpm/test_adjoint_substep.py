@@ -24,12 +24,12 @@ def warmed_up(steps=5, materials=("elastic",), **kwargs):
 def kernel_vjp(sim, grad_after: StateGrad):
     """(dL/d state, dL/d param, dL/d mass) of L = <grad_after, substep(state)> by the kernels."""
     n, dtype = sim.n, sim.dtype
-    tape = SubstepTape.empty(n, sim.grid.nodes, dtype)
+    tape = SubstepTape.empty(n, sim.grid.nodes, dtype, sim.flip)
     after = sim.state.empty_like()
     accel = sim.drivers.accel(sim.time, dtype)
     run_recorded(sim.kernels, tape, sim.state, after, sim.particles, sim.time, sim.dt, sim.gravity,
                  sim.boundaries, accel, torch.zeros(n, dtype=torch.uint8))
-    adjoint = SubstepAdjoint(sim.device, dtype, n, sim.grid, sim.particles.material)
+    adjoint = SubstepAdjoint(sim.device, dtype, n, sim.grid, sim.particles.material, sim.flip)
     grad = StateGrad.zeros(n, dtype)
     param_grad = torch.zeros_like(sim.particles.param)
     mass_grad = torch.zeros_like(sim.particles.mass)
@@ -46,7 +46,7 @@ def reference_vjp(sim, grad_after: StateGrad):
     state = type(s)(*(leaves[f] for f in GRAD_FIELDS))
     particles = Particles(mass, p.volume, p.material, param, p.group, p.release_time, p.mass_eps)
     out, _ = reference.substep(state, particles, sim.grid, sim.time, sim.dt, sim.gravity, sim.boundaries,
-                               sim.drivers.accel(sim.time, sim.dtype))
+                               sim.drivers.accel(sim.time, sim.dtype), sim.flip)
     loss = sum((getattr(grad_after, f) * getattr(out, f)).sum() for f in GRAD_FIELDS)
     grads = torch.autograd.grad(loss, [leaves[f] for f in GRAD_FIELDS] + [param, mass])
     return StateGrad(*grads[:5]), grads[5], grads[6]
@@ -80,6 +80,16 @@ def assert_adjoint_matches_reference(sim, parameters=True):
 @pytest.mark.parametrize("walls,friction", [("separate", 0.0), ("slip", 0.3), ("sticky", 0.0)])
 def test_substep_adjoint_matches_autograd_of_reference(walls, friction):
     assert_adjoint_matches_reference(warmed_up(walls=walls, wall_friction=friction))
+
+
+@pytest.mark.parametrize("walls", ["separate", "sticky"])
+@pytest.mark.parametrize("materials", [("elastic",), ("plasticine", "newtonian")])
+def test_flip_blend_adjoint_matches_autograd_of_reference(walls, materials):
+    """The PIC/FLIP blend's adjoint (flip = 0.7: both the FLIP and the PIC part) with the
+    boundary conditions and the fused and per-particle stress adjoints."""
+    sim = warmed_up(materials=materials, walls=walls, flip=0.7)
+    assert sim.flip == 0.7
+    assert_adjoint_matches_reference(sim)
 
 
 @pytest.mark.parametrize("material", ["plasticine", "metal", "foam", "sand", "newtonian", "non_newtonian", "snow"])

@@ -22,7 +22,7 @@ def run_both(sim, substeps):
         t = sim.time
         sim.step()
         ref, _ = reference.substep(ref, sim.particles, sim.grid, t, sim.dt, sim.gravity, sim.boundaries,
-                                   sim.drivers.accel(t, sim.dtype))
+                                   sim.drivers.accel(t, sim.dtype), sim.flip)
         worst = max(worst, *(rel_diff(getattr(sim.state, f), getattr(ref, f)) for f in FIELDS))
     return worst
 
@@ -36,6 +36,37 @@ def test_matches_reference_float64(material, substeps):
     assert sim.kernels.elastic_only == (material == "elastic")
     assert sim.kernels.needs_svd == (material not in ("elastic", "newtonian"))
     assert run_both(sim, substeps) < 1e-9
+
+
+@pytest.mark.parametrize("flip", [0.5, 1.0])
+@pytest.mark.parametrize("p2g", ["private", "atomic"])
+def test_flip_blend_matches_reference(flip, p2g):
+    """The PIC/FLIP blend (every material, walls and a floor, 20 substeps) on both P2G paths."""
+    from clflow.mpm import HalfSpace
+
+    sim = random_scene(MATERIAL_CASES, n=400, flip=flip, p2g=p2g,
+                       boundaries=[HalfSpace((0, 0.4, 0), (0, 1, 0), "sticky")])
+    assert sim.kernels.grid_mv.shape[1] == 7
+    assert run_both(sim, 20) < 1e-9
+
+
+def test_flip_blend_keeps_the_particle_velocity():
+    """With flip = 1 and no forces a particle keeps its own velocity (plus the grid's change,
+    here none); APIC replaces it by the grid's smoothed field."""
+    from clflow.mpm import Grid, MaterialSpec, Simulator
+
+    gen = torch.Generator().manual_seed(3)
+    x = 0.4 + 0.2 * torch.rand(200, 3, generator=gen, dtype=torch.float64)
+    v = 0.1 * torch.randn(200, 3, generator=gen, dtype=torch.float64)
+    kept = {}
+    for flip in (0.0, 1.0):
+        sim = Simulator(x, 1e-5, MaterialSpec("newtonian", {"viscosity": 0.0, "bulk_modulus": 1.0}),
+                        Grid((16, 16, 16), 1 / 16), velocities=v, gravity=(0, 0, 0), walls=None, substeps=1,
+                        frame_dt=1e-4, dtype=torch.float64, flip=flip)
+        sim.step()
+        kept[flip] = rel_diff(sim.state.v, v)
+    assert kept[1.0] < 1e-12
+    assert kept[0.0] > 0.1
 
 
 def test_neo_hookean_matches_reference():

@@ -2,18 +2,25 @@
  * work-item k handles the contiguous particle chunk k into its own grid copy; the host then
  * sums the copies in a fixed order (p2g.cl: p2g_reduce).
  *
- * Forward: v' = sum_i w v_i,  C' = (4/dx^2) sum_i w v_i d^T,  x' = clamp(x + dt v').
- * Given xbar', vbar', Cbar' of state n+1, with u = vbar' + dt xbar' (xbar' zeroed on clamped
- * axes) and B = (4/dx^2) Cbar':
- *   vbar_i += w (u + B d)
- *   xbar   = xbar' (unclamped axes) + sum_i grad(w) (v_i . u + v_i . B d) - B^T v'
- * (sum_i w v_i = v', the forward's output, read back).
+ * Forward: v_pic = sum_i w v_i,  C' = (4/dx^2) sum_i w v_i d^T,  x' = clamp(x + dt v_pic),
+ * v' = v_pic, or with CLFLOW_FLIP v' = flip (v + sum_i w dv_i) + (1 - flip) v_pic.
+ * Given xbar', vbar', Cbar' of state n+1, with u = (1 - flip) vbar' + dt xbar' (flip = 0
+ * without CLFLOW_FLIP; xbar' zeroed on clamped axes) and B = (4/dx^2) Cbar':
+ *   vbar_i  += w (u + B d)
+ *   dvbar_i += w flip vbar'                                   (CLFLOW_FLIP)
+ *   xbar     = xbar' (unclamped axes) + sum_i grad(w) (v_i . (u + B d) + flip dv_i . vbar')
+ *              - B^T v_pic
+ * (v_pic: the forward's v' read back, or with CLFLOW_FLIP summed again; the flip vbar' that
+ * reaches the particle's own v is added by p2g_flip_adjoint). Grid copies hold GV_CH reals
+ * per node: vbar_i, and dvbar_i with CLFLOW_FLIP.
  * Unreleased particles (t < release_time) do not move: xbar = xbar', nothing to the grid. */
+#define GV_CH (CLFLOW_FLIP ? 6 : 3)
 #include "mpm/adjoint/adjoint.h"
 
-inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, const real t, __global const real *x_in,
-                                 __global const real *v_out, __global const real *release_time,
-                                 __global const real *grid_v, __global const real *x_bar_out,
+inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, const real t, const real flip,
+                                 __global const real *x_in, __global const real *v_out,
+                                 __global const real *release_time, __global const real *grid_v,
+                                 __global const real *grid_dv, __global const real *x_bar_out,
                                  __global const real *v_bar_out, __global const real *C_bar_out,
                                  __global real *grid_v_bar, __global real *x_bar)
 {
@@ -25,9 +32,29 @@ inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, co
         store_row(x_bar, p, 3, xb);
         return;
     }
-    load_row(v_out, p, 3, vp);
     load_row(v_bar_out, p, 3, u);
     load_row(C_bar_out, p, 9, B);
+#if CLFLOW_FLIP
+    real fv[3]; /* flip vbar' */
+    for (int a = 0; a < 3; ++a) {
+        fv[a] = flip * u[a];
+        u[a] -= fv[a];
+    }
+    const stencil_t st = make_stencil(g, xp);
+    for (int a = 0; a < 3; ++a)
+        vp[a] = 0;
+    for (int i = 0; i < 3; ++i) /* v_pic */
+        for (int j = 0; j < 3; ++j)
+            for (int k = 0; k < 3; ++k) {
+                const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
+                load_row(grid_v, grid_index(g, st.base[0] + i, st.base[1] + j, st.base[2] + k), 3, vi);
+                for (int a = 0; a < 3; ++a)
+                    vp[a] += w * vi[a];
+            }
+#else
+    load_row(v_out, p, 3, vp);
+    const stencil_t st = make_stencil(g, xp);
+#endif
     for (int a = 0; a < 3; ++a) {
         const real lo = g->origin[a] + CLAMP_MARGIN * dx;
         const real hi = g->origin[a] + (grid_extent(g, a) - 1 - CLAMP_MARGIN) * dx;
@@ -38,7 +65,6 @@ inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, co
     }
     for (int k = 0; k < 9; ++k)
         B[k] *= 4 / (dx * dx);
-    const stencil_t st = make_stencil(g, xp);
     const stencil_gradient_t sg = make_stencil_gradient(&st, dx);
 #pragma unroll
     for (int i = 0; i < 3; ++i)
@@ -54,9 +80,16 @@ inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, co
                 weight_gradient(&st, &sg, i, j, k, grad_w);
                 for (int a = 0; a < 3; ++a) {
                     const real Bd = B[3 * a] * d[0] + B[3 * a + 1] * d[1] + B[3 * a + 2] * d[2];
-                    grid_v_bar[3 * node + a] += w * (u[a] + Bd);
+                    grid_v_bar[GV_CH * node + a] += w * (u[a] + Bd);
                     s += vi[a] * (u[a] + Bd);
                 }
+#if CLFLOW_FLIP
+                load_row(grid_dv, node, 3, vi);
+                for (int a = 0; a < 3; ++a) {
+                    grid_v_bar[GV_CH * node + 3 + a] += w * fv[a];
+                    s += vi[a] * fv[a];
+                }
+#endif
                 for (int a = 0; a < 3; ++a)
                     xb[a] += grad_w[a] * s;
             }
@@ -65,12 +98,13 @@ inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, co
     store_row(x_bar, p, 3, xb);
 }
 
-/* Work-item k zeroes grid copy k ([nodes, 3]) and scatters particles [k*chunk, (k+1)*chunk)
+/* Work-item k zeroes grid copy k ([nodes, GV_CH]) and scatters particles [k*chunk, (k+1)*chunk)
  * into it; x_bar of those particles is written directly. */
 __kernel void g2p_adjoint_private(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
-                                  const real oz, const int n, const real dt, const real t, __global const real *x_in,
-                                  __global const real *v_out, __global const real *release_time,
-                                  __global const real *grid_v, __global const real *x_bar_out,
+                                  const real oz, const int n, const real dt, const real t, const real flip,
+                                  __global const real *x_in, __global const real *v_out,
+                                  __global const real *release_time, __global const real *grid_v,
+                                  __global const real *grid_dv, __global const real *x_bar_out,
                                   __global const real *v_bar_out, __global const real *C_bar_out, const int copies,
                                   const int chunk, __global real *grid_v_bar_copies, __global real *x_bar)
 {
@@ -78,12 +112,12 @@ __kernel void g2p_adjoint_private(const int nx, const int ny, const int nz, cons
     if (k >= copies)
         return;
     const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
-    const long size = 3L * nx * ny * nz;
+    const long size = (long)GV_CH * nx * ny * nz;
     __global real *grid_v_bar = grid_v_bar_copies + k * size;
     for (long e = 0; e < size; ++e)
         grid_v_bar[e] = 0;
     const int end = min(n, (k + 1) * chunk);
     for (int p = k * chunk; p < end; ++p)
-        g2p_adjoint_particle(&g, p, dt, t, x_in, v_out, release_time, grid_v, x_bar_out, v_bar_out, C_bar_out,
-                             grid_v_bar, x_bar);
+        g2p_adjoint_particle(&g, p, dt, t, flip, x_in, v_out, release_time, grid_v, grid_dv, x_bar_out, v_bar_out,
+                             C_bar_out, grid_v_bar, x_bar);
 }

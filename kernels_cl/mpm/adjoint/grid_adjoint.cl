@@ -1,6 +1,9 @@
 /* Adjoint of the grid update (grid.cl), reading vbar as the sum of the G2P adjoint's grid
  * copies (only on nodes with mass): boundary conditions in reverse table order, then
  * v = mv/m + dt g:  pbar = vbar/m,  mbar = -(mv . vbar)/m^2  (0 on empty nodes).
+ * With CLFLOW_FLIP the copies also hold dvbar of dv = v - mv0/m: vbar += dvbar before the
+ * boundary conditions' adjoint (dv reads v after them), p0bar = -dvbar/m and
+ * mbar += (mv0 . dvbar)/m^2; grid_bar holds (mbar, pbar[, p0bar]) in GRID_CH reals per node.
  *
  * The velocity before boundary b is recomputed from v0 = mv/m + dt g by replaying
  * conditions 0..b-1 (tables are short). Per condition:
@@ -89,19 +92,34 @@ __kernel void grid_update_adjoint(const int nx, const int ny, const int nz, cons
     const long nodes = (long)nx * ny * nz;
     if (node >= nodes)
         return;
-    const real m = grid[4 * node];
-    real out[4] = {0, 0, 0, 0};
+    const int gv_ch = CLFLOW_FLIP ? 6 : 3; /* reals per node of the G2P adjoint's copies */
+    const real m = grid[GRID_CH * node];
+    real out[GRID_CH];
+    for (int c = 0; c < GRID_CH; ++c)
+        out[c] = 0;
     if (m > mass_eps) {
         const real g[3] = {gx, gy, gz};
         real v0[3], v_bar[3], mv[3];
         for (int a = 0; a < 3; ++a) {
-            mv[a] = grid[4 * node + 1 + a];
+            mv[a] = grid[GRID_CH * node + 1 + a];
             v0[a] = mv[a] / m + dt * g[a];
             /* the G2P adjoint's private grid copies, summed in the fixed order k = 0, 1, ... */
-            v_bar[a] = grid_v_bar_copies[3 * node + a];
+            v_bar[a] = grid_v_bar_copies[gv_ch * node + a];
             for (int k = 1; k < copies; ++k)
-                v_bar[a] += grid_v_bar_copies[k * 3 * nodes + 3 * node + a];
+                v_bar[a] += grid_v_bar_copies[k * gv_ch * nodes + gv_ch * node + a];
         }
+#if CLFLOW_FLIP
+        real mv0_dot = 0;
+        for (int a = 0; a < 3; ++a) {
+            real dv_bar = grid_v_bar_copies[gv_ch * node + 3 + a];
+            for (int k = 1; k < copies; ++k)
+                dv_bar += grid_v_bar_copies[k * gv_ch * nodes + gv_ch * node + 3 + a];
+            v_bar[a] += dv_bar;
+            out[4 + a] = -dv_bar / m;
+            mv0_dot += grid[GRID_CH * node + 4 + a] * dv_bar;
+        }
+        out[0] = mv0_dot / (m * m);
+#endif
         const int k = node % nz, j = (node / nz) % ny, i = node / ((long)nz * ny);
         const real xi[3] = {ox + i * dx, oy + j * dx, oz + k * dx};
         for (int b = n_bc - 1; b >= 0; --b) {
@@ -125,7 +143,7 @@ __kernel void grid_update_adjoint(const int nx, const int ny, const int nz, cons
             out[1 + a] = v_bar[a] / m;
             mv_dot += mv[a] * v_bar[a];
         }
-        out[0] = -mv_dot / (m * m);
+        out[0] -= mv_dot / (m * m);
     }
-    store_row(grid_bar, node, 4, out);
+    store_row(grid_bar, node, GRID_CH, out);
 }

@@ -1,7 +1,7 @@
 /* Adjoint of P2G (p2g.cl), a gather: each particle reads the adjoint of its 27 nodes.
  *
  * Forward: m_i += w m,  mv_i += w [m (v + dt a) + A d],  A = m C - dt V (4/dx^2) tau.
- * Given grid_bar = (mbar_i, pbar_i) per node:
+ * Given grid_bar = (mbar_i, pbar_i) per node (GRID_CH reals; p2g_flip_adjoint reads the rest):
  *   vbar  = m sum_i w pbar_i
  *   Abar  = sum_i w pbar_i d^T;  Cbar = m Abar;  taubar = -dt V (4/dx^2) Abar
  *   mbar += sum_i w [mbar_i + pbar_i . (v + dt a)] + <Abar, C>
@@ -65,7 +65,7 @@ __kernel void p2g_adjoint(const int nx, const int ny, const int nz, const real d
                 realv gb[4];
                 for (int l = 0; l < CLFLOW_SIMD_LANES; ++l)
                     for (int c = 0; c < 4; ++c)
-                        ((real *)&gb[c])[l] = grid_bar[4 * (st.corner[l] + row + k) + c];
+                        ((real *)&gb[c])[l] = grid_bar[GRID_CH * (st.corner[l] + row + k) + c];
                 const realv w = st.w[2][k];
                 realv s = m * gb[0];
                 for (int a = 0; a < 3; ++a) {
@@ -110,3 +110,66 @@ __kernel void p2g_adjoint(const int nx, const int ny, const int nz, const real d
     for (int l = 0; l < CLFLOW_SIMD_LANES && p0 + l < n; ++l)
         mass_bar[p0 + l] += LANE(mb, l);
 }
+
+#if CLFLOW_FLIP
+/* The PIC/FLIP blend's part of the P2G adjoint, after p2g_adjoint, one particle per work-item.
+ *
+ * Forward: mv0_i += w m (v + C d); G2P: v' = flip v + ... for released particles (t >=
+ * release_time). Given p0bar_i = grid_bar[GRID_CH i + 4..6], S = sum_i w p0bar_i and
+ * M = sum_i w p0bar_i d^T:
+ *   vbar += m S + flip vbar' (released),   Cbar += m M,   mbar += S . v + <M, C>,
+ *   xbar += sum_i grad(w) m p0bar_i . (v + C d) - m C^T S
+ * all accumulated into. */
+__kernel void p2g_flip_adjoint(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
+                               const real oz, const int n, const real t, const real flip, __global const real *x,
+                               __global const real *v, __global const real *C, __global const real *mass,
+                               __global const real *release_time, __global const real *v_bar_out,
+                               __global const real *grid_bar, __global real *x_bar, __global real *v_bar,
+                               __global real *C_bar, __global real *mass_bar)
+{
+    const int p = get_global_id(0);
+    if (p >= n)
+        return;
+    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    real xp[3], vp[3], Cp[9], xb[3], S[3] = {0, 0, 0}, M[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+    load_row(x, p, 3, xp);
+    load_row(v, p, 3, vp);
+    load_row(C, p, 9, Cp);
+    load_row(x_bar, p, 3, xb);
+    const real m = mass[p];
+    const stencil_t st = make_stencil(&g, xp);
+    const stencil_gradient_t sg = make_stencil_gradient(&st, dx);
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            for (int k = 0; k < 3; ++k) {
+                const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
+                const real d[3] = {(i - st.fx[0]) * dx, (j - st.fx[1]) * dx, (k - st.fx[2]) * dx};
+                const long node = grid_index(&g, st.base[0] + i, st.base[1] + j, st.base[2] + k);
+                const real q[3] = {grid_bar[GRID_CH * node + 4], grid_bar[GRID_CH * node + 5],
+                                   grid_bar[GRID_CH * node + 6]};
+                real grad_w[3], s = 0;
+                for (int a = 0; a < 3; ++a) {
+                    s += q[a] * (vp[a] + Cp[3 * a] * d[0] + Cp[3 * a + 1] * d[1] + Cp[3 * a + 2] * d[2]);
+                    S[a] += w * q[a];
+                    for (int b = 0; b < 3; ++b)
+                        M[3 * a + b] += w * q[a] * d[b];
+                }
+                weight_gradient(&st, &sg, i, j, k, grad_w);
+                for (int a = 0; a < 3; ++a)
+                    xb[a] += grad_w[a] * m * s;
+            }
+    real mb = 0;
+    const real keep = t >= release_time[p] ? flip : (real)0;
+    for (int a = 0; a < 3; ++a) {
+        xb[a] -= m * (Cp[a] * S[0] + Cp[3 + a] * S[1] + Cp[6 + a] * S[2]);
+        v_bar[3 * p + a] += m * S[a] + keep * v_bar_out[3 * p + a];
+        mb += S[a] * vp[a];
+    }
+    for (int e = 0; e < 9; ++e) {
+        C_bar[9 * p + e] += m * M[e];
+        mb += M[e] * Cp[e];
+    }
+    store_row(x_bar, p, 3, xb);
+    mass_bar[p] += mb;
+}
+#endif
