@@ -34,7 +34,7 @@ import torch
 from clflow.errors import InputError
 from clflow.materials import get_material, lame_parameters
 from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, SubstepTape, run_recorded
-from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, REGISTRY_MATERIAL
+from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, REGISTRY_MATERIAL, grid_channels
 from clflow.mpm.simulator import CFL_NUMBER, FrameProgress, SimulationError, Simulator, StabilityWarning
 from clflow.mpm.substep import State, SubstepKernels
 from clflow.runtime.reduction import sum_rows
@@ -94,7 +94,7 @@ class _Run:
         self.sim, self.frames, self.engine, self.strict_cfl = sim, frames, engine(sim), strict_cfl
         self.t0, self.substeps = sim.time, substeps
         self.dt = sim.frame_dt / substeps
-        self.segment = replay_segment(sim.n, sim.grid.nodes, frames, substeps, sim.dtype, memory_budget)
+        self.segment = replay_segment(sim.n, sim.grid.nodes, frames, substeps, sim.dtype, memory_budget, sim.flip)
 
     def time(self, frame: int, substep: int) -> float:
         return self.t0 + (frame * self.substeps + substep) * self.dt
@@ -219,34 +219,36 @@ class _Run:
 
 
 def memory_estimate(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype,
-                    segment: int | None = None, grid_copies: int = 0) -> int:
+                    segment: int | None = None, grid_copies: int = 0, flip: float = 0.0) -> int:
     """Bytes a differentiable run of n particles on ``nodes`` grid nodes holds at its peak:
     per frame + 1, the checkpoint, the returned x, v, F and their gradients (25 + 15 + 15
     reals per particle); the replay of ``segment`` substeps at once (default: a whole frame),
-    each a state of 25 reals and tau of 9 per particle and grids of 7 reals per node, plus,
-    when segment < substeps, the first state of every later segment and a scratch state
-    (two-level checkpointing); the kernels' working buffers (two forward states, tau, grids;
-    two state gradients, taubar, U s V, parameter and mass gradients, grid adjoint); and
-    ``grid_copies`` private grid copies of 4 + 3 reals per node (CPU path: P2G and its adjoint)."""
+    each a state of 25 reals and tau of 9 per particle and grids of g = 7 reals per node
+    (13 with a PIC/FLIP blend ``flip`` > 0), plus, when segment < substeps, the first state
+    of every later segment and a scratch state (two-level checkpointing); the kernels'
+    working buffers (two forward states, tau, grids; two state gradients, taubar, U s V,
+    parameter and mass gradients, grid adjoint); and ``grid_copies`` private grid copies of
+    g reals per node (CPU path: P2G and its adjoint)."""
     itemsize = torch.tensor([], dtype=dtype).element_size()
     k = substeps if segment is None else segment
+    g = grid_channels(flip) + (6 if flip > 0 else 3)  # reals per node: P2G grid, grid_v[, grid_dv]
     checkpoints = (frames + 1) * n * (25 + 15 + 15)
-    replay = k * (n * (25 + 9) + 7 * nodes) + (n * 25 * (-(-substeps // k)) if k < substeps else 0)
-    working = n * (2 * 25 + 9) + 7 * nodes + n * (2 * 25 + 9 + 21 + PARAM_COUNT + 1) + 4 * nodes
-    return itemsize * (checkpoints + replay + working + grid_copies * 7 * nodes)
+    replay = k * (n * (25 + 9) + g * nodes) + (n * 25 * (-(-substeps // k)) if k < substeps else 0)
+    working = n * (2 * 25 + 9) + g * nodes + n * (2 * 25 + 9 + 21 + PARAM_COUNT + 1) + grid_channels(flip) * nodes
+    return itemsize * (checkpoints + replay + working + grid_copies * g * nodes)
 
 
 def replay_segment(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype,
-                   memory_budget: int | None) -> int:
+                   memory_budget: int | None, flip: float = 0.0) -> int:
     """Substeps replayed at once in backward: a whole frame when that fits ``memory_budget``
     (bytes; None: no limit), else the longest segment that does (two-level checkpointing).
     InputError when not even one substep at a time fits."""
-    if memory_budget is None or memory_estimate(n, nodes, frames, substeps, dtype) <= memory_budget:
+    if memory_budget is None or memory_estimate(n, nodes, frames, substeps, dtype, flip=flip) <= memory_budget:
         return substeps
     for k in range(substeps - 1, 0, -1):
-        if memory_estimate(n, nodes, frames, substeps, dtype, k) <= memory_budget:
+        if memory_estimate(n, nodes, frames, substeps, dtype, k, flip=flip) <= memory_budget:
             return k
-    need = memory_estimate(n, nodes, frames, substeps, dtype, 1)
+    need = memory_estimate(n, nodes, frames, substeps, dtype, 1, flip=flip)
     raise InputError(f"memory_budget {memory_budget / 2**20:.1f} MiB is too small for {frames} frames of {n} "
                      f"particles: the checkpoints and a one-substep replay need {need / 2**20:.1f} MiB")
 

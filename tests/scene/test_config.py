@@ -84,6 +84,8 @@ BAD = [
     ("simulation.frames", -3, "simulation.frames: must be an integer >= 1, got -3"),
     ("simulation.fps", "fast", "simulation.fps: must be a number, got 'fast'"),
     ("simulation.substep_dt", 0, "simulation.substep_dt: must be > 0"),
+    ("simulation.flip", 1.5, "simulation.flip: must be <= 1"),
+    ("simulation.flip", -0.1, "simulation.flip: must be >= 0"),
     ("simulation.gravity", [0, -9.81], "simulation.gravity: must be a list of 3 finite numbers"),
     ("simulation.domain", {"min": [0, 0, 0], "max": [1, -1, 1]}, "simulation.domain: min .* must be below max"),
     ("scene.up", "up", "scene.up: must be one of"),
