@@ -15,7 +15,7 @@ def _particle_bytes(sim) -> int:
 
     tensors = [getattr(st, f.name) for st in (sim.state, sim._next) for f in fields(st)]
     tensors += [getattr(sim.particles, f.name) for f in fields(sim.particles) if f.name != "mass_eps"]
-    tensors += [sim.kernels.tau, sim.kernels.U, sim.kernels.s, sim.kernels.V, sim._clamped]
+    tensors += [sim.kernels.scratch.tau, sim.kernels.U, sim.kernels.s, sim.kernels.V, sim._clamped]
     return sum(t.numel() * t.element_size() for t in tensors)
 
 

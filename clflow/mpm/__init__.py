@@ -15,7 +15,7 @@ from clflow.mpm.boundaries import (
     layer_release_times,
 )
 from clflow.mpm.simulator import MaterialSpec, SimulationError, Simulator, StabilityWarning, Trajectory
-from clflow.mpm.substep import Grid, Particles, State, SubstepKernels
+from clflow.mpm.substep import Grid, Particles, State, SubstepKernels, SubstepTape
 
 __all__ = [
     "Box",
@@ -32,6 +32,7 @@ __all__ = [
     "StabilityWarning",
     "State",
     "SubstepKernels",
+    "SubstepTape",
     "Trajectory",
     "layer_release_times",
 ]

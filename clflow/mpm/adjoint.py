@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from clflow.mpm.constants import MATERIAL_IDS, SIMD_LANES, SVD_MATERIALS, grid_channels, kernel_defines
-from clflow.mpm.substep import Grid, Particles, State, SubstepKernels, grid_copies
+from clflow.mpm.substep import Grid, Particles, State, SubstepTape, grid_copies
 
 
 @dataclass
@@ -41,33 +41,6 @@ class StateGrad:
         return StateGrad(torch.zeros(n, 3, dtype=dtype), torch.zeros(n, 3, dtype=dtype),
                          torch.zeros(n, 3, 3, dtype=dtype), torch.zeros(n, 3, 3, dtype=dtype),
                          torch.zeros(n, dtype=dtype))
-
-
-@dataclass
-class SubstepTape:
-    """What the adjoint of one substep reads from its forward run: tau [N, 3, 3], the grid
-    [nodes, GRID_CH] (m, mv[, mv0]), the grid velocities [nodes, 3] and, with a PIC/FLIP
-    blend, their change in the substep grid_dv [nodes, 3] (else [1, 3], unused)."""
-
-    tau: torch.Tensor
-    grid_mv: torch.Tensor
-    grid_v: torch.Tensor
-    grid_dv: torch.Tensor
-
-    @staticmethod
-    def empty(n: int, nodes: int, dtype: torch.dtype, flip: float = 0.0) -> "SubstepTape":
-        return SubstepTape(torch.empty(n, 3, 3, dtype=dtype), torch.empty(nodes, grid_channels(flip), dtype=dtype),
-                           torch.empty(nodes, 3, dtype=dtype), torch.empty(nodes if flip > 0 else 1, 3, dtype=dtype))
-
-
-def run_recorded(kernels: SubstepKernels, tape: SubstepTape, state: State, out: State, *args) -> None:
-    """``kernels.run(state, out, *args)`` with tau and the grids written into ``tape``."""
-    scratch = kernels.tau, kernels.grid_mv, kernels.grid_v, kernels.grid_dv
-    kernels.tau, kernels.grid_mv, kernels.grid_v, kernels.grid_dv = tape.tau, tape.grid_mv, tape.grid_v, tape.grid_dv
-    try:
-        kernels.run(state, out, *args)
-    finally:
-        kernels.tau, kernels.grid_mv, kernels.grid_v, kernels.grid_dv = scratch
 
 
 class SubstepAdjoint:
@@ -180,4 +153,4 @@ class SubstepAdjoint:
                                            plastic_bar_out, F_bar, C_bar, plastic_bar, param_bar])
 
 
-__all__ = ["StateGrad", "SubstepAdjoint", "SubstepTape", "run_recorded"]
+__all__ = ["StateGrad", "SubstepAdjoint"]

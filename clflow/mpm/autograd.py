@@ -33,10 +33,10 @@ import torch
 
 from clflow.errors import InputError
 from clflow.materials import get_material, lame_parameters
-from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, SubstepTape, run_recorded
+from clflow.mpm.adjoint import StateGrad, SubstepAdjoint
 from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, REGISTRY_MATERIAL, grid_channels
 from clflow.mpm.simulator import CFL_NUMBER, FrameProgress, SimulationError, Simulator, StabilityWarning
-from clflow.mpm.substep import State, SubstepKernels
+from clflow.mpm.substep import State, SubstepTape
 from clflow.runtime.reduction import sum_rows
 
 
@@ -67,12 +67,12 @@ class Frames:
 
 
 class _Engine:
-    """Forward and adjoint kernels of one simulator (built once, reused by every run)."""
+    """Forward and adjoint kernels of one simulator (built once, reused by every run): the
+    simulator's own substep kernels and their adjoint."""
 
     def __init__(self, sim: Simulator):
-        n, materials = sim.n, sim.particles.material
-        self.forward = SubstepKernels(sim.device, sim.dtype, n, sim.grid, materials, sim.kernels.p2g, sim.flip)
-        self.adjoint = SubstepAdjoint(sim.device, sim.dtype, n, sim.grid, materials, sim.flip)
+        self.forward = sim.kernels
+        self.adjoint = SubstepAdjoint(sim.device, sim.dtype, sim.n, sim.grid, sim.particles.material, sim.flip)
 
 
 _ENGINES: "weakref.WeakKeyDictionary[Simulator, _Engine]" = weakref.WeakKeyDictionary()
@@ -103,10 +103,7 @@ class _Run:
         sim, t = self.sim, self.time(frame, s)
         args = (self.particles, t, self.dt, sim.gravity, sim.boundaries, self.accel(t),
                 self.clamped)
-        if tape is None:
-            self.engine.forward.run(state, out, *args)
-        else:
-            run_recorded(self.engine.forward, tape, state, out, *args)
+        self.engine.forward.run(state, out, *args, tape=tape)
 
     def checkpoint(self, frame: int) -> State:
         return State(self.x[frame], self.v[frame], self.C[frame], self.F[frame], self.plastic[frame])

@@ -8,8 +8,9 @@
     g2p           : (x_n[, v_n], grid_v[, grid_dv], release_time) -> x_n+1, v_n+1, C_n+1
 
 (bracketed: with the PIC/FLIP blend, ``flip`` > 0; GRID_CH = constants.grid_channels).
-State n is only read, so the adjoint can replay a substep from a checkpoint; U, s, V, tau,
-grid, grid_v and grid_dv of the last substep stay in :class:`SubstepKernels` for it.
+State n is only read, so the adjoint can replay a substep from a checkpoint; tau and the
+grids go into a :class:`SubstepTape`, the caller's (to keep them for the adjoint) or the
+kernels' own scratch one.
 """
 
 from __future__ import annotations
@@ -108,6 +109,24 @@ class Particles:
     mass_eps: float
 
 
+@dataclass
+class SubstepTape:
+    """What a substep writes besides the next state, and its adjoint reads: tau [N, 3, 3]
+    (Kirchhoff stress, Pa), the grid [nodes, GRID_CH] (m, mv[, mv0]; kg, kg m/s), the grid
+    velocities [nodes, 3] (m/s) and, with a PIC/FLIP blend, their change in the substep
+    grid_dv [nodes, 3] (else [1, 3], unused)."""
+
+    tau: torch.Tensor
+    grid_mv: torch.Tensor
+    grid_v: torch.Tensor
+    grid_dv: torch.Tensor
+
+    @staticmethod
+    def empty(n: int, nodes: int, dtype: torch.dtype, flip: float = 0.0) -> "SubstepTape":
+        return SubstepTape(torch.empty(n, 3, 3, dtype=dtype), torch.empty(nodes, grid_channels(flip), dtype=dtype),
+                           torch.empty(nodes, 3, dtype=dtype), torch.empty(nodes if flip > 0 else 1, 3, dtype=dtype))
+
+
 def check_grid_memory(info, grid: Grid, itemsize: int, flip: float = 0.0) -> None:
     """Refuse a grid whose node arrays do not fit device ``info`` (a DeviceInfo): (m, mv[, mv0])
     and v[, dv] per node (bracketed: PIC/FLIP blend ``flip`` > 0), and on CPU devices at
@@ -129,8 +148,8 @@ def check_grid_memory(info, grid: Grid, itemsize: int, flip: float = 0.0) -> Non
 class SubstepKernels:
     """The substep kernels of one device, precision, particle count, grid, set of material ids
     (``materials``: the kernel ids of the particles) and PIC/FLIP blend ``flip`` (0: APIC),
-    with their scratch buffers (U, s, V of F_tr, tau, grid, grid_v, grid_dv and the private
-    P2G grid copies)."""
+    with their scratch buffers (U, s, V of F_tr, the private P2G grid copies and a
+    :class:`SubstepTape` for runs that keep none)."""
 
     def __init__(self, device: Device, dtype: torch.dtype, n: int, grid: Grid, materials: torch.Tensor,
                  p2g: P2GMode = "auto", flip: float = 0.0):
@@ -174,10 +193,7 @@ class SubstepKernels:
             self.k_p2g = k("mpm/p2g.cl", "p2g_atomic")
         else:
             raise ValueError(f"p2g must be 'auto', 'private' or 'atomic', not {p2g!r}")
-        self.tau = torch.empty(n, 3, 3, dtype=dtype)
-        self.grid_mv = torch.empty(grid.nodes, channels, dtype=dtype)  # (m, mv[, mv0]) per node
-        self.grid_v = torch.empty(grid.nodes, 3, dtype=dtype)
-        self.grid_dv = torch.empty(grid.nodes if self.flip else 1, 3, dtype=dtype)  # FLIP: the substep's change
+        self.scratch = SubstepTape.empty(n, grid.nodes, dtype, self.flip)
 
     def run(
         self,
@@ -190,17 +206,20 @@ class SubstepKernels:
         boundaries: torch.Tensor,
         accel: torch.Tensor,
         clamped: torch.Tensor,
+        tape: SubstepTape | None = None,
     ) -> None:
         """Advance ``state`` (time t) by ``dt`` into ``out``; ``boundaries`` [B, BC_STRIDE] is
         the boundary table, ``accel`` [groups, 3] the driver accelerations (m/s^2) of this
-        substep, ``clamped`` uint8 [N] flags that G2P sets to 1 for particles it clamps."""
+        substep, ``clamped`` uint8 [N] flags that G2P sets to 1 for particles it clamps; tau
+        and the grids go into ``tape`` (default: ``self.scratch``)."""
         dev, R, n = self.device, self.real_t, np.int32(self.n)
         grid_args = self.grid.kernel_args(R)
+        tape = tape or self.scratch
         with dev.bind() as b:
             x, v, C = b.input(state.x, "x"), b.input(state.v, "v"), b.input(state.C, "C")
-            tau = b.inout(self.tau, "tau")
-            grid_mv, grid_v = b.inout(self.grid_mv, "grid"), b.inout(self.grid_v, "grid_v")
-            grid_dv = b.inout(self.grid_dv, "grid_dv")
+            tau = b.inout(tape.tau, "tau")
+            grid_mv, grid_v = b.inout(tape.grid_mv, "grid"), b.inout(tape.grid_v, "grid_v")
+            grid_dv = b.inout(tape.grid_dv, "grid_dv")
             F, plastic = b.input(state.F, "F"), b.input(state.plastic, "plastic")
             param, F_out, plastic_out = b.input(particles.param, "param"), b.output(out.F, "F_out"), b.output(
                 out.plastic, "plastic_out")
@@ -220,10 +239,10 @@ class SubstepKernels:
             if self.p2g == "private":
                 dev.launch(self.k_p2g, self.copies, grid_args + p2g_args +
                            [np.int32(self.copies), np.int32(self.chunk), self.grid_copies], local_size=1)
-                size = self.grid_mv.numel()
+                size = tape.grid_mv.numel()
                 dev.launch(self.k_reduce, size, [np.int64(size), np.int32(self.copies), self.grid_copies, grid_mv])
             else:
-                self.grid_mv.zero_()
+                tape.grid_mv.zero_()
                 dev.launch(self.k_p2g, self.n, grid_args + p2g_args + [grid_mv])
             dev.launch(
                 self.k_grid,

@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from clflow.mpm import Grid, HalfSpace, MaterialSpec, Simulator, reference
-from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, SubstepTape, run_recorded
-from clflow.mpm.substep import Particles
+from clflow.mpm.adjoint import StateGrad, SubstepAdjoint
+from clflow.mpm.substep import Particles, SubstepTape
 from tests.mpm._helpers import MATERIAL_CASES, cube, random_scene
 
 GRAD_FIELDS = ("x", "v", "C", "F", "plastic")
@@ -27,8 +27,8 @@ def kernel_vjp(sim, grad_after: StateGrad):
     tape = SubstepTape.empty(n, sim.grid.nodes, dtype, sim.flip)
     after = sim.state.empty_like()
     accel = sim.drivers.accel(sim.time, dtype)
-    run_recorded(sim.kernels, tape, sim.state, after, sim.particles, sim.time, sim.dt, sim.gravity,
-                 sim.boundaries, accel, torch.zeros(n, dtype=torch.uint8))
+    sim.kernels.run(sim.state, after, sim.particles, sim.time, sim.dt, sim.gravity, sim.boundaries, accel,
+                    torch.zeros(n, dtype=torch.uint8), tape=tape)
     adjoint = SubstepAdjoint(sim.device, dtype, n, sim.grid, sim.particles.material, sim.flip)
     grad = StateGrad.zeros(n, dtype)
     param_grad = torch.zeros_like(sim.particles.param)
@@ -127,7 +127,7 @@ def floor_node_velocities(sim) -> torch.Tensor:
     boundary conditions."""
     sim.kernels.run(sim.state, sim.state.empty_like(), sim.particles, sim.time, sim.dt, sim.gravity,
                     sim.boundaries, sim.drivers.accel(sim.time, sim.dtype), torch.zeros(sim.n, dtype=torch.uint8))
-    m, mv = sim.kernels.grid_mv[:, 0], sim.kernels.grid_mv[:, 1:]
+    m, mv = sim.kernels.scratch.grid_mv[:, 0], sim.kernels.scratch.grid_mv[:, 1:]
     node_y = sim.grid.dx * (torch.arange(sim.grid.nodes) // sim.grid.resolution[2] % sim.grid.resolution[1])
     on_floor = (m > sim.particles.mass_eps) & (node_y.double() < FLOOR_Y)
     return mv[on_floor] / m[on_floor, None] + sim.dt * torch.tensor(sim.gravity, dtype=torch.float64)

@@ -75,13 +75,13 @@ def test_collider_friction_acts_only_while_moving_into_the_surface(mode, away_fl
     sim.step()
     idx = torch.arange(sim.grid.nodes)
     node_x, node_y = dx * (idx // 256).double(), dx * (idx // 16 % 16).double()
-    on_floor = (sim.kernels.grid_mv[:, 0] > 0) & (node_y < floor)
+    on_floor = (sim.kernels.scratch.grid_mv[:, 0] > 0) & (node_y < floor)
     into, away = on_floor & (node_x < 0.5), on_floor & (node_x > 0.5)
     assert int(into.sum()) > 0 and int(away.sum()) > 0
     expected_into = torch.tensor([1 - mu_f * 0.5, 0.0, 0.0], dtype=torch.float64)
-    assert torch.allclose(sim.kernels.grid_v[into], expected_into, rtol=0, atol=1e-12)
+    assert torch.allclose(sim.kernels.scratch.grid_v[into], expected_into, rtol=0, atol=1e-12)
     expected_away = torch.tensor(away_floor_velocity, dtype=torch.float64)
-    assert torch.allclose(sim.kernels.grid_v[away], expected_away, rtol=0, atol=1e-12)
+    assert torch.allclose(sim.kernels.scratch.grid_v[away], expected_away, rtol=0, atol=1e-12)
     ref, _ = reference.substep(before, sim.particles, sim.grid, 0.0, sim.dt, sim.gravity, sim.boundaries,
                                sim.drivers.accel(0.0, sim.dtype))
     for f in ("x", "v", "C", "F"):

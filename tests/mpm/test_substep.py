@@ -46,7 +46,7 @@ def test_flip_blend_matches_reference(flip, p2g):
 
     sim = random_scene(MATERIAL_CASES, n=400, flip=flip, p2g=p2g,
                        boundaries=[HalfSpace((0, 0.4, 0), (0, 1, 0), "sticky")])
-    assert sim.kernels.grid_mv.shape[1] == 7
+    assert sim.kernels.scratch.grid_mv.shape[1] == 7
     assert run_both(sim, 20) < 1e-9
 
 
