@@ -22,8 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from clflow.mpm.constants import MATERIAL_IDS, SIMD_LANES, SVD_MATERIALS, grid_channels, kernel_defines
-from clflow.mpm.substep import Grid, Particles, State, SubstepTape, grid_copies
+from clflow.mpm.constants import SIMD_LANES, grid_channels
+from clflow.mpm.substep import Grid, Particles, State, StressStage, SubstepTape, grid_copies
+from clflow.runtime.bridge import numpy_real, real_of
 
 
 @dataclass
@@ -51,24 +52,17 @@ class SubstepAdjoint:
         import pyopencl as cl
 
         self.device, self.dtype, self.n, self.grid, self.flip = device, dtype, n, grid, float(flip)
-        real = "double" if dtype == torch.float64 else "float"
-        self.real_t = np.float64 if dtype == torch.float64 else np.float32
-        defines = kernel_defines(self.flip)
-        present = sum(1 << int(m) for m in torch.unique(materials))
-        defines["MATERIALS_PRESENT"] = present
+        real, self.real_t = real_of(dtype, "simulation"), numpy_real(dtype, "simulation")
+        stage = StressStage.of(materials)  # as the forward: fused SIMD adjoint for all-elastic scenes
+        defines = stage.defines(self.flip)
         k = lambda src, name: device.kernel(src, name, real, defines)  # noqa: E731
-        # all fixed-corotated elastic: one fused SIMD kernel (SVD and adjoint, as the forward);
-        # otherwise svd3(F_tr) by the forward's SIMD kernel, then one particle per work-item
-        self.elastic_only = present == 1 << MATERIAL_IDS["elastic"]
+        self.elastic_only = stage.elastic_only
         if self.elastic_only:
             self.k_stress = k("mpm/adjoint/stress_adjoint.cl", "update_stress_elastic_adjoint_simd")
         else:
             self.k_stress = k("mpm/adjoint/stress_adjoint.cl", "update_stress_adjoint")
-        needs_svd = not self.elastic_only and present & SVD_MATERIALS
-        self.k_svd = k("mpm/stress.cl", "trial_svd_simd") if needs_svd else None
-        m = n if self.k_svd is not None else 0
-        self.U, self.s, self.V = (torch.empty(m, 3, 3, dtype=dtype), torch.empty(m, 3, dtype=dtype),
-                                  torch.empty(m, 3, 3, dtype=dtype))
+        self.k_svd = k("mpm/stress.cl", "trial_svd_simd") if stage.needs_svd else None
+        self.U, self.s, self.V = stage.svd_buffers(n, dtype)
         self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_private")
         self.k_grid = k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
         self.k_p2g = k("mpm/adjoint/p2g_adjoint.cl", "p2g_adjoint")

@@ -35,7 +35,7 @@ from clflow.errors import InputError
 from clflow.materials import get_material, lame_parameters
 from clflow.mpm.adjoint import StateGrad, SubstepAdjoint
 from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, REGISTRY_MATERIAL, grid_channels
-from clflow.mpm.simulator import CFL_NUMBER, FrameProgress, SimulationError, Simulator, StabilityWarning
+from clflow.mpm.simulator import FrameProgress, SimulationError, Simulator, StabilityWarning, cfl_breach, finite
 from clflow.mpm.substep import State, SubstepTape
 from clflow.runtime.reduction import sum_rows
 
@@ -140,13 +140,13 @@ class _Run:
                 self.substep(a, b, f, s)
                 a, b = b, a
                 progress.tick(f, s)
-            if not all(bool(torch.isfinite(t).all()) for t in (a.x, a.v, a.F)):
+            if not finite(a):
                 raise SimulationError(
                     f"the differentiable run became NaN/inf during frame {f + 1} "
                     f"(t = {self.time(f + 1, 0):.4g} s); reduce dt (substeps per frame now {self.substeps}) "
                     f"or the material stiffness / forces")
-            vmax = float(a.v.double().norm(dim=-1).max())
-            if vmax * self.dt > CFL_NUMBER * sim.grid.dx:
+            vmax = cfl_breach(a, self.dt, sim.grid.dx)
+            if vmax is not None:
                 message = (f"differentiable run, frame {f + 1}: max speed {vmax:.3g} m/s breaks the CFL limit "
                            f"at dt = {self.dt:.3g} s ({self.substeps} substeps per frame)")
                 if self.strict_cfl:

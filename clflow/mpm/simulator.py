@@ -158,6 +158,18 @@ def _material_arrays(materials, material_index, n: int, dtype: torch.dtype):
     )
 
 
+def finite(state: State) -> bool:
+    """Whether positions, velocities and deformation gradients are all finite."""
+    return all(bool(torch.isfinite(t).all()) for t in (state.x, state.v, state.F))
+
+
+def cfl_breach(state: State, dt: float, dx: float) -> float | None:
+    """The fastest particle's speed (m/s) when it moves more than CFL_NUMBER cells in ``dt``
+    (s) on a grid of spacing ``dx`` (m), else None."""
+    vmax = float(state.v.double().norm(dim=-1).max())
+    return vmax if vmax * dt > CFL_NUMBER * dx else None
+
+
 class Simulator:
     """MLS-MPM simulation of particles with per-particle materials on one OpenCL device.
 
@@ -360,8 +372,7 @@ class Simulator:
             if self._progress is not None:
                 self._progress.tick(self.frame, s)
         self.frame += 1
-        s = self.state
-        if not all(bool(torch.isfinite(t).all()) for t in (s.x, s.v, s.F)):
+        if not finite(self.state):
             raise SimulationError(
                 f"the simulation became NaN/inf during frame {self.frame} (t = {self.time:.4g} s); likely cause: "
                 f"dt = {self.dt:.3g} s is too large ({self.limit_reason(v_before)}; stable substeps per frame now: "
@@ -371,8 +382,8 @@ class Simulator:
         if count:
             warnings.warn(f"frame {self.frame}: {count} particles left the grid and were clamped to "
                           f"its boundary (enlarge the grid or add walls)", RuntimeWarning, stacklevel=2)
-        vmax = float(s.v.double().norm(dim=-1).max())
-        if vmax * self.dt > CFL_NUMBER * self.grid.dx:
+        vmax = cfl_breach(self.state, self.dt, self.grid.dx)
+        if vmax is not None:
             warnings.warn(f"frame {self.frame}: max speed {vmax:.3g} m/s breaks the CFL limit at dt = {self.dt:.3g} s; "
                           f"use substeps >= {self.stable_substeps()}", StabilityWarning, stacklevel=2)
         return count

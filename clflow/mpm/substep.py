@@ -23,6 +23,7 @@ import torch
 
 from clflow.errors import InputError
 from clflow.mpm.constants import MATERIAL_IDS, SIMD_LANES, SVD_MATERIALS, grid_channels, kernel_defines
+from clflow.runtime.bridge import numpy_real, real_of
 from clflow.runtime.devices import Device
 
 P2GMode = Literal["auto", "private", "atomic"]
@@ -109,6 +110,33 @@ class Particles:
     mass_eps: float
 
 
+@dataclass(frozen=True)
+class StressStage:
+    """How the stress stage runs for a set of kernel material ids, for the forward and the
+    adjoint alike: only the constitutive models present are compiled in (``mask``, the
+    MATERIALS_PRESENT define); all fixed-corotated elastic takes one fused SIMD kernel (SVD
+    included); otherwise the SVD of F_tr runs in SIMD lanes when a model needs it
+    (``needs_svd``), then the models one particle per work-item."""
+
+    mask: int
+    elastic_only: bool
+    needs_svd: bool
+
+    @staticmethod
+    def of(materials: torch.Tensor) -> "StressStage":
+        mask = sum(1 << int(m) for m in torch.unique(materials))
+        elastic_only = mask == 1 << MATERIAL_IDS["elastic"]
+        return StressStage(mask, elastic_only, not elastic_only and bool(mask & SVD_MATERIALS))
+
+    def defines(self, flip: float) -> dict[str, object]:
+        return {**kernel_defines(flip), "MATERIALS_PRESENT": self.mask}
+
+    def svd_buffers(self, n: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """U [n, 3, 3], s [n, 3], V [n, 3, 3] of svd3(F_tr) (empty when no model needs them)."""
+        m = n if self.needs_svd else 0
+        return torch.empty(m, 3, 3, dtype=dtype), torch.empty(m, 3, dtype=dtype), torch.empty(m, 3, 3, dtype=dtype)
+
+
 @dataclass
 class SubstepTape:
     """What a substep writes besides the next state, and its adjoint reads: tau [N, 3, 3]
@@ -157,27 +185,20 @@ class SubstepKernels:
 
         self.device, self.dtype, self.n, self.grid, self.flip = device, dtype, n, grid, float(flip)
         channels = grid_channels(self.flip)
-        self.real = "double" if dtype == torch.float64 else "float"
-        self.real_t = np.float64 if dtype == torch.float64 else np.float32
+        self.real, self.real_t = real_of(dtype, "simulation"), numpy_real(dtype, "simulation")
         if p2g == "auto":
             p2g = "private" if device.info.type == "CPU" else "atomic"
         self.p2g = p2g
-        present = [int(m) for m in torch.unique(materials)]
-        # only the constitutive models of the materials present are compiled in
-        defines = {**kernel_defines(self.flip), "MATERIALS_PRESENT": sum(1 << m for m in present)}
+        stage = StressStage.of(materials)
+        defines = stage.defines(self.flip)
         k = lambda src, name: device.kernel(src, name, self.real, defines)  # noqa: E731
-        # all fixed-corotated elastic: one fused SIMD kernel; otherwise the SVD in SIMD lanes
-        # (if any model needs it), then one particle per work-item for the models
-        self.elastic_only = present == [MATERIAL_IDS["elastic"]]
-        self.needs_svd = not self.elastic_only and any((1 << m) & SVD_MATERIALS for m in present)
+        self.elastic_only, self.needs_svd = stage.elastic_only, stage.needs_svd
         if self.elastic_only:
             self.k_stress = k("mpm/stress.cl", "update_stress_elastic_simd")
         else:
             self.k_stress = k("mpm/stress.cl", "update_stress")
         self.k_svd = k("mpm/stress.cl", "trial_svd_simd") if self.needs_svd else None
-        m = n if self.needs_svd else 0
-        self.U, self.s, self.V = (torch.empty(m, 3, 3, dtype=dtype), torch.empty(m, 3, dtype=dtype),
-                                  torch.empty(m, 3, 3, dtype=dtype))  # svd3(F_tr)
+        self.U, self.s, self.V = stage.svd_buffers(n, dtype)
         self.k_grid = k("mpm/grid.cl", "grid_update")
         self.k_g2p = k("mpm/g2p.cl", "g2p")
         itemsize = torch.tensor([], dtype=dtype).element_size()

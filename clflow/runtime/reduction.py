@@ -10,22 +10,12 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
-from clflow.runtime.bridge import check_tensor
+from clflow.runtime.bridge import check_tensor, real_of
 from clflow.runtime.devices import Device, get_device
 
 REDUCE_WG = 64  # work-group size of the reduction: part of its fixed summation order
 ROWS_PER_ITEM = 16  # rows each work-item adds before the in-group halving
 _REDUCE_DEFINES = {"REDUCE_WG": REDUCE_WG, "ROWS_PER_ITEM": ROWS_PER_ITEM}
-
-_REAL_OF = {torch.float32: "float", torch.float64: "double"}
-
-
-def real_of(dtype: torch.dtype, what: str) -> str:
-    """The kernels' REAL switch for a torch dtype."""
-    try:
-        return _REAL_OF[dtype]
-    except KeyError:
-        raise InputError(f"{what}: dtype {dtype} not supported; use float32 or float64") from None
 
 
 def sum_rows(x: torch.Tensor, device: Device | None = None) -> torch.Tensor:

@@ -33,9 +33,10 @@ def polar_rotations(F: torch.Tensor) -> torch.Tensor:
 
     from clflow.mpm.constants import SIMD_LANES
     from clflow.runtime import get_device
+    from clflow.runtime.bridge import real_of
 
     device = get_device()
-    real = "double" if F.dtype == torch.float64 else "float"
+    real = real_of(F.dtype, "deformation gradients")
     kernel = device.kernel("common/svd3.cl", "polar_rotation", real, {"CLFLOW_SIMD_LANES": SIMD_LANES})
     F = F.detach().contiguous()
     R = torch.empty_like(F)

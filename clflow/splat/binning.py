@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
+from clflow.runtime.bridge import real_of
 from clflow.runtime.devices import Device, get_device
 from clflow.splat.constants import SPLAT_DEFINES, TILE_SIZE
 
@@ -122,7 +123,7 @@ def build_tile_lists(
         width, height: image size (pixels).
     """
     device = device or get_device()
-    real = {torch.float32: "float", torch.float64: "double"}[means2d.dtype]
+    real = real_of(means2d.dtype, "means2d")
     n = means2d.shape[0]
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y

@@ -20,8 +20,8 @@ import torch
 from torch import Tensor
 
 from clflow.errors import InputError
+from clflow.runtime.bridge import real_of
 from clflow.runtime.devices import get_device
-from clflow.runtime.reduction import real_of
 from clflow.splat.binning import build_tile_lists, tile_grid
 from clflow.splat.constants import MIN_QUAT_NORM, SPLAT_DEFINES, SPLAT_LANES
 from clflow.splat.sh import num_sh_bases, sh_to_rgb
