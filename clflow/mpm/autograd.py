@@ -32,9 +32,16 @@ from dataclasses import dataclass
 import torch
 
 from clflow.errors import InputError
-from clflow.materials import get_material, lame_parameters
+from clflow.materials import get_material
 from clflow.mpm.adjoint import StateGrad, SubstepAdjoint
-from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, REGISTRY_MATERIAL, grid_channels
+from clflow.mpm.constants import (
+    KERNEL_PARAMETERS,
+    MATERIAL_IDS,
+    PARAM_COUNT,
+    REGISTRY_MATERIAL,
+    grid_channels,
+    kernel_columns,
+)
 from clflow.mpm.simulator import FrameProgress, SimulationError, Simulator, StabilityWarning, cfl_breach, finite
 from clflow.mpm.substep import State, SubstepTape
 from clflow.runtime.reduction import sum_rows
@@ -296,30 +303,15 @@ def per_particle(value, n: int, name: str, dtype: torch.dtype, device, trailing:
     return out
 
 
-_LAME = ("youngs_modulus", "poissons_ratio")
-# registry parameters of each kernel material, in kernel-column order where they map one to
-# one (clflow.mpm.constants.kernel_params): E, nu -> (mu, lambda); friction_angle -> alpha;
-# non-Newtonian (shear_modulus, bulk_modulus) -> (mu, kappa - 2 mu / 3)
-KERNEL_PARAMETERS: dict[str, tuple[str, ...]] = {
-    "elastic": _LAME,
-    "neo_hookean": _LAME,
-    "plasticine": _LAME + ("yield_stress",),
-    "metal": _LAME + ("yield_stress", "hardening"),
-    "foam": _LAME + ("yield_stress", "viscosity"),
-    "sand": _LAME + ("friction_angle", "cohesion"),
-    "sand_volume_corrected": _LAME + ("friction_angle", "cohesion"),  # the same kernel row
-    "snow": _LAME + ("critical_compression", "critical_stretch", "hardening"),
-    "newtonian": ("viscosity", "bulk_modulus"),
-    "non_newtonian": ("shear_modulus", "bulk_modulus", "yield_stress", "viscosity"),
-}
 _SQRT_2_3 = (2.0 / 3.0) ** 0.5
 
 
 def _registry_values(kernel_material: str, q: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Registry parameters (SI) of particles of one kernel material from their kernel rows q."""
+    """Registry parameters (SI) of particles of one kernel material from their kernel rows q
+    (the inverse of clflow.mpm.constants.kernel_columns)."""
     names = KERNEL_PARAMETERS[kernel_material]
     values = {name: q[:, k] for k, name in enumerate(names)}
-    if names[:2] == _LAME:
+    if names[:2] == KERNEL_PARAMETERS["elastic"]:
         mu, lam = q[:, 0], q[:, 1]
         values["youngs_modulus"] = mu * (3 * lam + 2 * mu) / (lam + mu)
         values["poissons_ratio"] = lam / (2 * (lam + mu))
@@ -328,21 +320,6 @@ def _registry_values(kernel_material: str, q: torch.Tensor) -> dict[str, torch.T
     if kernel_material == "non_newtonian":
         values["bulk_modulus"] = q[:, 1] + 2 * q[:, 0] / 3
     return values
-
-
-def _kernel_columns(kernel_material: str, values: dict[str, torch.Tensor]) -> list[torch.Tensor]:
-    """Kernel parameter columns (differentiable) from registry values: the inverse of
-    :func:`_registry_values`."""
-    names = KERNEL_PARAMETERS[kernel_material]
-    columns = [values[name] for name in names]
-    if names[:2] == _LAME:
-        columns[0], columns[1] = lame_parameters(values["youngs_modulus"], values["poissons_ratio"])
-    if "friction_angle" in names:  # sand
-        sin_phi = torch.sin(torch.deg2rad(values["friction_angle"]))
-        columns[2] = _SQRT_2_3 * 2 * sin_phi / (3 - sin_phi)
-    if kernel_material == "non_newtonian":
-        columns[1] = values["bulk_modulus"] - 2 * values["shear_modulus"] / 3
-    return columns
 
 
 def _material_param_rows(sim: Simulator, params: dict, dtype: torch.dtype) -> torch.Tensor:
@@ -370,7 +347,7 @@ def _material_param_rows(sim: Simulator, params: dict, dtype: torch.dtype) -> to
             lo, hi = float(values[name].detach().min()), float(values[name].detach().max())
             registry.param(name).check(lo, "params")
             registry.param(name).check(hi, "params")
-        for k, column in enumerate(_kernel_columns(kernel_material, values)):
+        for k, column in enumerate(kernel_columns(kernel_material, values)):
             columns[k] = columns[k].index_put((index,), column.to(dtype))
     return torch.stack(columns, 1)
 

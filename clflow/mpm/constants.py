@@ -89,10 +89,47 @@ def kernel_defines(flip: float = 0.0) -> dict[str, object]:
     return defines
 
 
-def drucker_prager_alpha(friction_angle_deg: float) -> float:
-    """alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi)) of the Drucker-Prager cone."""
-    sin_phi = math.sin(math.radians(friction_angle_deg))
+def drucker_prager_alpha(friction_angle_deg):
+    """alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi)) of the Drucker-Prager cone; a number or
+    a tensor (differentiable) of angles in degrees."""
+    if isinstance(friction_angle_deg, (int, float)):
+        sin_phi = math.sin(math.radians(friction_angle_deg))
+    else:
+        sin_phi = friction_angle_deg.deg2rad().sin()
     return math.sqrt(2.0 / 3.0) * 2.0 * sin_phi / (3.0 - sin_phi)
+
+
+_LAME = ("youngs_modulus", "poissons_ratio")
+# registry parameters of each kernel material, in kernel-column order where they map one to
+# one (kernel_columns): E, nu -> (mu, lambda); friction_angle -> alpha;
+# non-Newtonian (shear_modulus, bulk_modulus) -> (mu, kappa - 2 mu / 3)
+KERNEL_PARAMETERS: dict[str, tuple[str, ...]] = {
+    "elastic": _LAME,
+    "neo_hookean": _LAME,
+    "plasticine": _LAME + ("yield_stress",),
+    "metal": _LAME + ("yield_stress", "hardening"),
+    "foam": _LAME + ("yield_stress", "viscosity"),
+    "sand": _LAME + ("friction_angle", "cohesion"),
+    "sand_volume_corrected": _LAME + ("friction_angle", "cohesion"),  # the same kernel row
+    "snow": _LAME + ("critical_compression", "critical_stretch", "hardening"),
+    "newtonian": ("viscosity", "bulk_modulus"),
+    "non_newtonian": ("shear_modulus", "bulk_modulus", "yield_stress", "viscosity"),
+}
+
+
+def kernel_columns(kernel_material: str, values: dict) -> list:
+    """The kernel parameters (kernels_cl/mpm/materials/*.h) of a kernel material from its SI
+    registry parameters ``values`` (name -> number, or tensor for a differentiable map): one
+    per name of KERNEL_PARAMETERS[kernel_material], in that order."""
+    names = KERNEL_PARAMETERS[kernel_material]
+    columns = [values[name] for name in names]
+    if names[:2] == _LAME:
+        columns[0], columns[1] = lame_parameters(values["youngs_modulus"], values["poissons_ratio"])
+    if "friction_angle" in names:
+        columns[2] = drucker_prager_alpha(values["friction_angle"])
+    if kernel_material == "non_newtonian":  # lambda = kappa - 2 mu / 3
+        columns[1] = values["bulk_modulus"] - 2 * values["shear_modulus"] / 3
+    return columns
 
 
 def kernel_params(material: str, params: dict[str, float], model: str | None = None) -> tuple[int, list[float], float]:
@@ -113,34 +150,16 @@ def kernel_params(material: str, params: dict[str, float], model: str | None = N
         raise InputError(f"material {mat.name!r} has no model option (got model={model!r})")
     if mat.name == "sand" and (model or "drucker_prager") not in SAND_MODELS:
         raise InputError(f"sand model {model!r} unknown; choose one of {', '.join(SAND_MODELS)}")
+    name = mat.name
     if mat.name == "elastic":
         model = model or "fixed_corotated"
         if model not in ELASTIC_MODELS:
             raise InputError(f"elastic model {model!r} unknown; choose one of {', '.join(ELASTIC_MODELS)}")
-        mu, lam = lame_parameters(p["youngs_modulus"], p["poissons_ratio"])
         name = "neo_hookean" if model == "neo_hookean" else "elastic"
-        values, plastic = [mu, lam], 0.0
-    elif mat.name in ("plasticine", "metal", "foam", "sand", "snow"):
-        mu, lam = lame_parameters(p["youngs_modulus"], p["poissons_ratio"])
-        name, plastic = mat.name, 0.0
-        if mat.name == "plasticine":
-            values = [mu, lam, p["yield_stress"]]
-        elif mat.name == "metal":
-            values = [mu, lam, p["yield_stress"], p["hardening"]]
-        elif mat.name == "foam":
-            values = [mu, lam, p["yield_stress"], p["viscosity"]]
-        elif mat.name == "sand":
-            values = [mu, lam, drucker_prager_alpha(p["friction_angle"]), p["cohesion"]]
-            name = "sand_volume_corrected" if model == "volume_corrected" else "sand"
-        else:
-            values = [mu, lam, p["critical_compression"], p["critical_stretch"], p["hardening"]]
-            plastic = 1.0
-    elif mat.name == "newtonian":
-        name, values, plastic = "newtonian", [p["viscosity"], p["bulk_modulus"]], 0.0
-    else:  # non_newtonian: lambda = kappa - 2 mu / 3
-        mu = p["shear_modulus"]
-        name, plastic = "non_newtonian", 0.0
-        values = [mu, p["bulk_modulus"] - 2.0 * mu / 3.0, p["yield_stress"], p["viscosity"]]
+    elif mat.name == "sand" and model == "volume_corrected":
+        name = "sand_volume_corrected"
+    values = [float(v) for v in kernel_columns(name, p)]
+    plastic = 1.0 if name == "snow" else 0.0
     return MATERIAL_IDS[name], values + [0.0] * (PARAM_COUNT - len(values)), plastic
 
 
