@@ -90,6 +90,14 @@ def parameterization(material: str, name: str) -> Parameterization:
     return Parameterization(get_material(material).param(name))
 
 
+def clip_factor(norm: float, max_norm: float) -> float:
+    """The factor (<= 1) that brings a gradient of 2-norm ``norm`` to at most ``max_norm``; 0
+    for a NaN/inf norm (a diverged run), so that a step with it leaves the parameters be."""
+    if not math.isfinite(norm):
+        return 0.0
+    return max_norm / norm if norm > max_norm else 1.0
+
+
 def clip_gradients(parameters: Iterable[torch.Tensor], max_norm: float) -> float:
     """Scale the gradients of ``parameters`` so their joint 2-norm is at most ``max_norm``.
 
@@ -100,13 +108,11 @@ def clip_gradients(parameters: Iterable[torch.Tensor], max_norm: float) -> float
         raise InputError(f"clip_gradients: max_norm must be a positive number, got {max_norm}")
     grads = [p.grad for p in parameters if p.grad is not None]
     total = math.sqrt(sum(float((g.double() ** 2).sum()) for g in grads))
-    if not math.isfinite(total):
+    factor = clip_factor(total, max_norm)
+    if factor != 1.0:
         for g in grads:
-            g.zero_()
-    elif total > max_norm:
-        for g in grads:
-            g.mul_(max_norm / total)
+            g.mul_(factor) if factor else g.zero_()  # zero_ also clears NaN entries
     return total
 
 
-__all__ = ["Parameterization", "clip_gradients", "parameterization"]
+__all__ = ["Parameterization", "clip_factor", "clip_gradients", "parameterization"]

@@ -39,6 +39,7 @@ import torch
 
 from clflow.errors import ClflowError, InputError
 from clflow.fileio import atomic_path, atomic_write_text
+from clflow.mpm.parameterization import clip_factor
 from clflow.pipeline.forward import Prepared, SimulationResult, material_values, prepare, render_frames
 from clflow.pipeline.generated_video import ensure_guidance_video
 from clflow.pipeline.material import resolve_material
@@ -736,8 +737,7 @@ class Optimization:
         (O'Donoghue and Candes 2015): when the last step went uphill along the new gradient
         (g . dz > 0), the momentum is dropped, so an overshoot turns back at once instead
         of coasting on for several iterations."""
-        norm = math.sqrt(sum(g * g for g in grads.values()))
-        scale = min(1.0, CLIP_NORM / norm) if norm > 0 else 1.0
+        scale = clip_factor(math.sqrt(sum(g * g for g in grads.values())), CLIP_NORM)
         z, m, v = dict(state.z), dict(state.m), dict(state.v)
         k_m = state.momentum_steps + 1
         if state.history:

@@ -22,8 +22,6 @@ from clflow.fileio import load_arrays
 from clflow.scene.config import CameraConfig, Region, SceneConfig
 from clflow.scene.deform import deformed_covariances, polar_rotations
 
-WALL_CELLS = 3  # grid cells of the domain walls (clflow.mpm default)
-
 
 def up_rotation(up: str) -> torch.Tensor:
     """R_up [3, 3] (float64): the proper rotation taking the scene's ``up`` axis to +y."""

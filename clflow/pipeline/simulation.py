@@ -26,8 +26,9 @@ import torch
 
 from clflow.errors import InputError
 from clflow.materials import get_material
+from clflow.mpm.constants import WALL_CELLS
 from clflow.mpm.substep import check_grid_memory
-from clflow.pipeline.scene import WALL_CELLS, SceneGaussians
+from clflow.pipeline.scene import SceneGaussians
 from clflow.runtime import get_device
 from clflow.scene.config import SceneConfig
 from clflow.scene.filling import ObjectParticles, fill_object
