@@ -14,7 +14,14 @@ from clflow.mpm.boundaries import (
     SphereRegion,
     layer_release_times,
 )
-from clflow.mpm.simulator import MaterialSpec, SimulationError, Simulator, StabilityWarning, Trajectory
+from clflow.mpm.simulator import (
+    MaterialSpec,
+    SimulationError,
+    SimulationSpec,
+    Simulator,
+    StabilityWarning,
+    Trajectory,
+)
 from clflow.mpm.substep import Grid, Particles, State, SubstepKernels, SubstepTape
 
 __all__ = [
@@ -27,6 +34,7 @@ __all__ = [
     "Particles",
     "RotatingCylinder",
     "SimulationError",
+    "SimulationSpec",
     "Simulator",
     "SphereRegion",
     "StabilityWarning",

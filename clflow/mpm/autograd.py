@@ -42,7 +42,15 @@ from clflow.mpm.constants import (
     grid_channels,
     kernel_columns,
 )
-from clflow.mpm.simulator import FrameProgress, SimulationError, Simulator, StabilityWarning, cfl_breach, finite
+from clflow.mpm.simulator import (
+    FrameProgress,
+    SimulationError,
+    Simulator,
+    StabilityWarning,
+    cfl_breach,
+    check_inside,
+    finite,
+)
 from clflow.mpm.substep import State, SubstepTape
 from clflow.runtime.reduction import sum_rows
 
@@ -425,7 +433,7 @@ def simulate(
             raise InputError(f"{name}: expected shape [{n}, 3], got {list(value.shape)}")
         if not bool(torch.isfinite(value.detach()).all()):
             raise InputError(f"{name} contains NaN or inf")
-    sim._check_inside(x0.detach())
+    check_inside(x0.detach(), sim.grid)
     stages = sim.drivers.stage_accel.shape[0]
     stage_accel = sim.drivers.stage_accel if stage_accelerations is None else torch.as_tensor(stage_accelerations)
     if tuple(stage_accel.shape) != (stages, 3):

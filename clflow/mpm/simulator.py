@@ -12,7 +12,7 @@ import logging
 import math
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import torch
@@ -159,6 +159,43 @@ def _material_arrays(materials, material_index, n: int, dtype: torch.dtype):
     )
 
 
+@dataclass(frozen=True)
+class SimulationSpec:
+    """What a simulation is, apart from its evolving state; immutable (a changed substep
+    count is a new spec) and shared by the plain and the differentiable runs: the particles'
+    constant data, the grid, the boundary table [B, BC_STRIDE], the force drivers, gravity
+    (m/s^2), the time between frames (s), the substeps per frame, the PIC/FLIP blend, the
+    precision and each material's time-step limits."""
+
+    particles: Particles
+    grid: Grid
+    boundaries: torch.Tensor
+    drivers: DriverGroups
+    gravity: tuple[float, float, float]
+    frame_dt: float
+    substeps: int
+    flip: float
+    dtype: torch.dtype
+    material_limits: tuple[MaterialLimits, ...]
+
+    @property
+    def dt(self) -> float:
+        """The substep (s)."""
+        return self.frame_dt / self.substeps
+
+
+def check_inside(x: torch.Tensor, grid: Grid) -> None:
+    """InputError unless every position of ``x`` [N, 3] (m) lies inside ``grid`` by CLAMP_MARGIN cells."""
+    lo = torch.tensor(grid.origin, dtype=x.dtype) + CLAMP_MARGIN * grid.dx
+    hi = torch.tensor(grid.upper, dtype=x.dtype) - CLAMP_MARGIN * grid.dx
+    outside = int(((x < lo) | (x > hi)).any(-1).sum())
+    if outside:
+        raise InputError(
+            f"positions: {outside} of {x.shape[0]} particles lie outside the grid's interior "
+            f"[{lo.tolist()}, {hi.tolist()}] m; enlarge or move the grid"
+        )
+
+
 def finite(state: State) -> bool:
     """Whether positions, velocities and deformation gradients are all finite."""
     return all(bool(torch.isfinite(t).all()) for t in (state.x, state.v, state.F))
@@ -172,7 +209,9 @@ def cfl_breach(state: State, dt: float, dx: float) -> float | None:
 
 
 class Simulator:
-    """MLS-MPM simulation of particles with per-particle materials on one OpenCL device.
+    """MLS-MPM simulation of particles with per-particle materials on one OpenCL device: a
+    :class:`SimulationSpec` (``spec``), the state it advances, and the substep kernels with
+    their buffers (``kernels``, also used by the differentiable runs of clflow.mpm.autograd).
 
     Args:
         positions: [N, 3] initial positions (m), inside the grid.
@@ -223,11 +262,9 @@ class Simulator:
     ):
         if not (isinstance(flip, (int, float)) and 0.0 <= flip <= 1.0):
             raise InputError(f"flip (the PIC/FLIP blend) must be a number in [0, 1], got {flip!r}")
-        self.flip = float(flip)
         if dtype not in (torch.float32, torch.float64):
             raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         self.device = device or get_device()
-        self.dtype, self.grid = dtype, grid
         self._check_grid(grid)
         positions = torch.as_tensor(positions)
         if positions.dim() != 2 or positions.shape[1] != 3:
@@ -236,16 +273,16 @@ class Simulator:
         if n == 0:
             raise InputError("positions: the particle set is empty")
         x = _as_tensor(positions, (n, 3), "positions", dtype)
-        self._check_inside(x)
+        check_inside(x, grid)
         v = torch.zeros(n, 3, dtype=dtype) if velocities is None else _as_tensor(velocities, (n, 3), "velocities", dtype)
         vol = _as_tensor(volume, (n,), "volume", torch.float64)
         if not bool((vol > 0).all()):
             raise InputError("volume: every particle volume must be > 0 m^3")
 
-        material, param, density, plastic0, self.material_limits = _material_arrays(materials, material_index, n, dtype)
+        material, param, density, plastic0, material_limits = _material_arrays(materials, material_index, n, dtype)
         mass = vol * density
 
-        self.drivers = DriverGroups(forces, x.double(), mass)
+        drivers = DriverGroups(forces, x.double(), mass)
         if release_times is None:
             release = torch.full((n,), -math.inf, dtype=dtype)
         else:
@@ -253,9 +290,9 @@ class Simulator:
             if release.shape != (n,) or bool(torch.isnan(release).any()):
                 raise InputError(f"release_times: expected [{n}] numbers, got shape {list(release.shape)}")
             release = release.to(dtype).contiguous()
-        self.particles = Particles(
+        particles = Particles(
             mass=mass.to(dtype).contiguous(), volume=vol.to(dtype).contiguous(), material=material, param=param,
-            group=self.drivers.group.contiguous(), release_time=release,
+            group=drivers.group.contiguous(), release_time=release,
             mass_eps=MASS_EPS_REL * float(mass.min()),
         )
         eye = torch.eye(3, dtype=dtype).expand(n, 3, 3).contiguous()
@@ -267,14 +304,13 @@ class Simulator:
             if walls not in COLLIDER_MODES:
                 raise InputError(f"walls {walls!r} unknown; choose one of {', '.join(COLLIDER_MODES)} or None")
             conditions = wall_colliders(grid.origin, grid.upper, wall_cells, grid.dx, walls, wall_friction) + conditions
-        self.boundaries = boundary_table(conditions, dtype)
-        self.gravity = tuple(float(g) for g in gravity)
-        if len(self.gravity) != 3 or not all(math.isfinite(g) for g in self.gravity):
+        gravity_ = tuple(float(g) for g in gravity)
+        if len(gravity_) != 3 or not all(math.isfinite(g) for g in gravity_):
             raise InputError(f"gravity must be 3 finite numbers (m/s^2), got {gravity!r}")
-
         if not (frame_dt > 0 and math.isfinite(frame_dt)):
             raise InputError(f"frame_dt must be a positive number of seconds, got {frame_dt}")
-        self.frame_dt = float(frame_dt)
+        self.spec = SimulationSpec(particles, grid, boundary_table(conditions, dtype), drivers, gravity_,
+                                   float(frame_dt), 1, float(flip), dtype, tuple(material_limits))
         auto = self.stable_substeps(v)
         if substeps is None:
             substeps = auto
@@ -289,7 +325,7 @@ class Simulator:
         self.use_substeps(substeps)
         self.time = 0.0
         self.frame = 0
-        self.kernels = SubstepKernels(self.device, dtype, n, grid, self.particles.material, p2g, self.flip)
+        self.kernels = SubstepKernels(self.device, dtype, n, grid, particles.material, p2g, float(flip))
         self._clamped = torch.zeros(n, dtype=torch.uint8)
         self._progress: FrameProgress | None = None  # set while run() runs
 
@@ -301,16 +337,6 @@ class Simulator:
             raise InputError(f"grid resolution {grid.resolution} too small: need >= {2 * CLAMP_MARGIN + 3} per axis")
         if not (grid.dx > 0 and math.isfinite(grid.dx)):
             raise InputError(f"grid dx must be a positive length (m), got {grid.dx}")
-
-    def _check_inside(self, x: torch.Tensor) -> None:
-        lo = torch.tensor(self.grid.origin, dtype=x.dtype) + CLAMP_MARGIN * self.grid.dx
-        hi = torch.tensor(self.grid.upper, dtype=x.dtype) - CLAMP_MARGIN * self.grid.dx
-        outside = int(((x < lo) | (x > hi)).any(-1).sum())
-        if outside:
-            raise InputError(
-                f"positions: {outside} of {x.shape[0]} particles lie outside the grid's interior "
-                f"[{lo.tolist()}, {hi.tolist()}] m; enlarge or move the grid"
-            )
 
     def _dt_limits(self, v: torch.Tensor) -> list[tuple[float, str]]:
         dx = self.grid.dx
@@ -341,8 +367,20 @@ class Simulator:
         """Take ``substeps`` per frame from now on (>= 1; no stability check)."""
         if int(substeps) < 1:
             raise InputError(f"substeps must be >= 1, got {substeps}")
-        self.substeps = int(substeps)
-        self.dt = self.frame_dt / self.substeps
+        self.spec = replace(self.spec, substeps=int(substeps))
+
+    # the spec's fields, read through the simulator
+    particles = property(lambda self: self.spec.particles, doc="Particles: the constant per-particle data")
+    grid = property(lambda self: self.spec.grid, doc="Grid")
+    boundaries = property(lambda self: self.spec.boundaries, doc="[B, BC_STRIDE] boundary table")
+    drivers = property(lambda self: self.spec.drivers, doc="DriverGroups of the force stages")
+    gravity = property(lambda self: self.spec.gravity, doc="(m/s^2)")
+    frame_dt = property(lambda self: self.spec.frame_dt, doc="time between frames (s)")
+    substeps = property(lambda self: self.spec.substeps, doc="substeps per frame")
+    dt = property(lambda self: self.spec.dt, doc="the substep (s)")
+    flip = property(lambda self: self.spec.flip, doc="PIC/FLIP blend")
+    dtype = property(lambda self: self.spec.dtype, doc="torch.float32 or torch.float64")
+    material_limits = property(lambda self: self.spec.material_limits, doc="MaterialLimits per material spec")
 
     def limit_reason(self, v: torch.Tensor) -> str:
         return min(self._dt_limits(v), default=(0.0, "no limit"))[1]
