@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from clflow.mpm.constants import SIMD_LANES, grid_channels
-from clflow.mpm.substep import Grid, Particles, State, StressStage, SubstepTape, grid_copies
+from clflow.mpm.substep import Grid, State, StressStage, SubstepInputs, SubstepTape, grid_copies
 from clflow.runtime.bridge import numpy_real, real_of
 
 
@@ -57,11 +57,7 @@ class SubstepAdjoint:
         defines = stage.defines(self.flip)
         k = lambda src, name: device.kernel(src, name, real, defines)  # noqa: E731
         self.elastic_only = stage.elastic_only
-        if self.elastic_only:
-            self.k_stress = k("mpm/adjoint/stress_adjoint.cl", "update_stress_elastic_adjoint_simd")
-        else:
-            self.k_stress = k("mpm/adjoint/stress_adjoint.cl", "update_stress_adjoint")
-        self.k_svd = k("mpm/stress.cl", "trial_svd_simd") if stage.needs_svd else None
+        self.k_stress, self.k_svd = stage.kernels(k, adjoint=True)
         self.U, self.s, self.V = stage.svd_buffers(n, dtype)
         self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_private")
         self.k_grid = k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
@@ -80,22 +76,19 @@ class SubstepAdjoint:
         state: State,
         after: State,
         tape: SubstepTape,
-        particles: Particles,
-        t: float,
-        dt: float,
-        gravity: tuple[float, float, float],
-        boundaries: torch.Tensor,
-        accel: torch.Tensor,
+        inputs: SubstepInputs,
         grad_after: StateGrad,
         grad: StateGrad,
         param_grad: torch.Tensor,
         mass_grad: torch.Tensor,
     ) -> None:
-        """Pull ``grad_after`` = dL/d(after) back through the substep state -> after (time t,
-        step dt, recorded in ``tape``) into ``grad`` = dL/d(state) (overwritten); adds the
+        """Pull ``grad_after`` = dL/d(after) back through the substep state -> after (run with
+        ``inputs``, recorded in ``tape``) into ``grad`` = dL/d(state) (overwritten); adds the
         parameter and mass gradients into ``param_grad`` [N, PARAM_COUNT] and ``mass_grad`` [N]."""
         dev, R, n = self.device, self.real_t, np.int32(self.n)
         grid_args = self.grid.kernel_args(R)
+        particles, t, dt, gravity, boundaries, accel = (inputs.particles, inputs.t, inputs.dt, inputs.gravity,
+                                                        inputs.boundaries, inputs.accel)
         with dev.bind() as b:
             x = b.input(state.x, "x")
             C = b.input(state.C, "C")

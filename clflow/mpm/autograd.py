@@ -51,7 +51,7 @@ from clflow.mpm.simulator import (
     check_inside,
     finite,
 )
-from clflow.mpm.substep import State, SubstepTape
+from clflow.mpm.substep import State, SubstepInputs, SubstepTape
 from clflow.runtime.reduction import sum_rows
 
 
@@ -114,11 +114,13 @@ class _Run:
     def time(self, frame: int, substep: int) -> float:
         return self.t0 + (frame * self.substeps + substep) * self.dt
 
+    def inputs(self, frame: int, s: int) -> SubstepInputs:
+        """What substep ``s`` of frame ``frame`` reads besides the state (this run's particles)."""
+        t = self.time(frame, s)
+        return SubstepInputs(self.particles, t, self.dt, self.sim.gravity, self.sim.boundaries, self.accel(t))
+
     def substep(self, state: State, out: State, frame: int, s: int, tape: SubstepTape | None = None) -> None:
-        sim, t = self.sim, self.time(frame, s)
-        args = (self.particles, t, self.dt, sim.gravity, sim.boundaries, self.accel(t),
-                self.clamped)
-        self.engine.forward.run(state, out, *args, tape=tape)
+        self.engine.forward.run(state, out, self.inputs(frame, s), self.clamped, tape=tape)
 
     def checkpoint(self, frame: int) -> State:
         return State(self.x[frame], self.v[frame], self.C[frame], self.F[frame], self.plastic[frame])
@@ -215,11 +217,10 @@ class _Run:
                 for i, s in enumerate(steps):
                     self.substep(states[i], states[i + 1], f, s, tapes[i])
                 for i, s in reversed(list(enumerate(steps))):
-                    t = self.time(f, s)
-                    adjoint.run(states[i], states[i + 1], tapes[i], self.particles, t, self.dt, sim.gravity,
-                                sim.boundaries, self.accel(t), grad, spare, param_grad, mass_grad)
+                    inputs = self.inputs(f, s)
+                    adjoint.run(states[i], states[i + 1], tapes[i], inputs, grad, spare, param_grad, mass_grad)
                     grad, spare = spare, grad
-                    for stage in torch.nonzero(self.stages_active(t)).flatten().tolist():
+                    for stage in torch.nonzero(self.stages_active(inputs.t)).flatten().tolist():
                         stage_rows[stage] += self.dt * grad.v
                     progress.tick(self.frames - 1 - f, S - 1 - s)  # counted in the order the adjoint runs
         add_output_grads(0)

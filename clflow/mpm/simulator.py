@@ -29,7 +29,7 @@ from clflow.mpm.constants import (
     kernel_params,
     wave_speed,
 )
-from clflow.mpm.substep import Grid, P2GMode, Particles, State, SubstepKernels
+from clflow.mpm.substep import Grid, P2GMode, Particles, State, SubstepInputs, SubstepKernels
 from clflow.runtime import Device, get_device
 
 CFL_NUMBER = 0.3  # dt <= CFL_NUMBER dx / max|v|
@@ -391,11 +391,14 @@ class Simulator:
     def n(self) -> int:
         return self.state.x.shape[0]
 
+    def substep_inputs(self) -> SubstepInputs:
+        """What the next substep reads besides the state (at the current time)."""
+        return SubstepInputs(self.particles, self.time, self.dt, self.gravity, self.boundaries,
+                             self.drivers.accel(self.time, self.dtype))
+
     def step(self) -> None:
         """Advance one substep (dt seconds)."""
-        accel = self.drivers.accel(self.time, self.dtype)
-        self.kernels.run(self.state, self._next, self.particles, self.time, self.dt, self.gravity,
-                         self.boundaries, accel, self._clamped)
+        self.kernels.run(self.state, self._next, self.substep_inputs(), self._clamped)
         self.state, self._next = self._next, self.state
         self.time += self.dt
 

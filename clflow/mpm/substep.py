@@ -131,10 +131,33 @@ class StressStage:
     def defines(self, flip: float) -> dict[str, object]:
         return {**kernel_defines(flip), "MATERIALS_PRESENT": self.mask}
 
+    def kernels(self, build, adjoint: bool = False):
+        """(stress kernel, SVD kernel or None) of the forward or the ``adjoint`` stress stage,
+        each made by ``build(source, name)``."""
+        source = "mpm/adjoint/stress_adjoint.cl" if adjoint else "mpm/stress.cl"
+        name = {(False, False): "update_stress", (False, True): "update_stress_elastic_simd",
+                (True, False): "update_stress_adjoint", (True, True): "update_stress_elastic_adjoint_simd"}
+        svd = build("mpm/stress.cl", "trial_svd_simd") if self.needs_svd else None
+        return build(source, name[adjoint, self.elastic_only]), svd
+
     def svd_buffers(self, n: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """U [n, 3, 3], s [n, 3], V [n, 3, 3] of svd3(F_tr) (empty when no model needs them)."""
         m = n if self.needs_svd else 0
         return torch.empty(m, 3, 3, dtype=dtype), torch.empty(m, 3, dtype=dtype), torch.empty(m, 3, 3, dtype=dtype)
+
+
+@dataclass(frozen=True)
+class SubstepInputs:
+    """What one substep reads besides the state: the particles' constant data, the time at
+    its start ``t`` (s), its length ``dt`` (s), ``gravity`` (m/s^2), the boundary table
+    [B, BC_STRIDE] and the driver accelerations ``accel`` [groups, 3] (m/s^2) during it."""
+
+    particles: Particles
+    t: float
+    dt: float
+    gravity: tuple[float, float, float]
+    boundaries: torch.Tensor
+    accel: torch.Tensor
 
 
 @dataclass
@@ -193,11 +216,7 @@ class SubstepKernels:
         defines = stage.defines(self.flip)
         k = lambda src, name: device.kernel(src, name, self.real, defines)  # noqa: E731
         self.elastic_only, self.needs_svd = stage.elastic_only, stage.needs_svd
-        if self.elastic_only:
-            self.k_stress = k("mpm/stress.cl", "update_stress_elastic_simd")
-        else:
-            self.k_stress = k("mpm/stress.cl", "update_stress")
-        self.k_svd = k("mpm/stress.cl", "trial_svd_simd") if self.needs_svd else None
+        self.k_stress, self.k_svd = stage.kernels(k)
         self.U, self.s, self.V = stage.svd_buffers(n, dtype)
         self.k_grid = k("mpm/grid.cl", "grid_update")
         self.k_g2p = k("mpm/g2p.cl", "g2p")
@@ -220,22 +239,18 @@ class SubstepKernels:
         self,
         state: State,
         out: State,
-        particles: Particles,
-        t: float,
-        dt: float,
-        gravity: tuple[float, float, float],
-        boundaries: torch.Tensor,
-        accel: torch.Tensor,
+        inputs: SubstepInputs,
         clamped: torch.Tensor,
         tape: SubstepTape | None = None,
     ) -> None:
-        """Advance ``state`` (time t) by ``dt`` into ``out``; ``boundaries`` [B, BC_STRIDE] is
-        the boundary table, ``accel`` [groups, 3] the driver accelerations (m/s^2) of this
-        substep, ``clamped`` uint8 [N] flags that G2P sets to 1 for particles it clamps; tau
-        and the grids go into ``tape`` (default: ``self.scratch``)."""
+        """Advance ``state`` (time inputs.t) by inputs.dt into ``out``; ``clamped`` uint8 [N]
+        flags that G2P sets to 1 for particles it clamps; tau and the grids go into ``tape``
+        (default: ``self.scratch``)."""
         dev, R, n = self.device, self.real_t, np.int32(self.n)
         grid_args = self.grid.kernel_args(R)
         tape = tape or self.scratch
+        particles, t, dt, gravity, boundaries, accel = (inputs.particles, inputs.t, inputs.dt, inputs.gravity,
+                                                        inputs.boundaries, inputs.accel)
         with dev.bind() as b:
             x, v, C = b.input(state.x, "x"), b.input(state.v, "v"), b.input(state.C, "C")
             tau = b.inout(tape.tau, "tau")

@@ -1,5 +1,7 @@
 """The hand-written substep adjoint against torch autograd of the float64 reference substep."""
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -26,15 +28,13 @@ def kernel_vjp(sim, grad_after: StateGrad):
     n, dtype = sim.n, sim.dtype
     tape = SubstepTape.empty(n, sim.grid.nodes, dtype, sim.flip)
     after = sim.state.empty_like()
-    accel = sim.drivers.accel(sim.time, dtype)
-    sim.kernels.run(sim.state, after, sim.particles, sim.time, sim.dt, sim.gravity, sim.boundaries, accel,
-                    torch.zeros(n, dtype=torch.uint8), tape=tape)
+    inputs = sim.substep_inputs()
+    sim.kernels.run(sim.state, after, inputs, torch.zeros(n, dtype=torch.uint8), tape=tape)
     adjoint = SubstepAdjoint(sim.device, dtype, n, sim.grid, sim.particles.material, sim.flip)
     grad = StateGrad.zeros(n, dtype)
     param_grad = torch.zeros_like(sim.particles.param)
     mass_grad = torch.zeros_like(sim.particles.mass)
-    adjoint.run(sim.state, after, tape, sim.particles, sim.time, sim.dt, sim.gravity, sim.boundaries, accel,
-                grad_after, grad, param_grad, mass_grad)
+    adjoint.run(sim.state, after, tape, inputs, grad_after, grad, param_grad, mass_grad)
     return grad, param_grad, mass_grad
 
 
@@ -108,8 +108,8 @@ def test_elastic_stress_adjoint_fused_and_per_particle(materials, fused):
 
 def kernel_loss(sim, grad_after: StateGrad, state, particles) -> float:
     out = state.empty_like()
-    sim.kernels.run(state, out, particles, sim.time, sim.dt, sim.gravity, sim.boundaries,
-                    sim.drivers.accel(sim.time, sim.dtype), torch.zeros(sim.n, dtype=torch.uint8))
+    inputs = dataclasses.replace(sim.substep_inputs(), particles=particles)
+    sim.kernels.run(state, out, inputs, torch.zeros(sim.n, dtype=torch.uint8))
     return float(sum((getattr(grad_after, f) * getattr(out, f)).sum() for f in GRAD_FIELDS))
 
 
@@ -125,8 +125,7 @@ def over_a_floor(mode: str):
 def floor_node_velocities(sim) -> torch.Tensor:
     """[k, 3] velocities (m/s) of the next substep's grid nodes below FLOOR_Y, before the
     boundary conditions."""
-    sim.kernels.run(sim.state, sim.state.empty_like(), sim.particles, sim.time, sim.dt, sim.gravity,
-                    sim.boundaries, sim.drivers.accel(sim.time, sim.dtype), torch.zeros(sim.n, dtype=torch.uint8))
+    sim.kernels.run(sim.state, sim.state.empty_like(), sim.substep_inputs(), torch.zeros(sim.n, dtype=torch.uint8))
     m, mv = sim.kernels.scratch.grid_mv[:, 0], sim.kernels.scratch.grid_mv[:, 1:]
     node_y = sim.grid.dx * (torch.arange(sim.grid.nodes) // sim.grid.resolution[2] % sim.grid.resolution[1])
     on_floor = (m > sim.particles.mass_eps) & (node_y.double() < FLOOR_Y)
