@@ -117,7 +117,8 @@ class _Run:
     def inputs(self, frame: int, s: int) -> SubstepInputs:
         """What substep ``s`` of frame ``frame`` reads besides the state (this run's particles)."""
         t = self.time(frame, s)
-        return SubstepInputs(self.particles, t, self.dt, self.sim.gravity, self.sim.boundaries, self.accel(t))
+        accel = self.sim.drivers.accel(t, self.sim.dtype, self.stage_accel)  # this run's stage accelerations
+        return SubstepInputs(self.particles, t, self.dt, self.sim.gravity, self.sim.boundaries, accel)
 
     def substep(self, state: State, out: State, frame: int, s: int, tape: SubstepTape | None = None) -> None:
         self.engine.forward.run(state, out, self.inputs(frame, s), self.clamped, tape=tape)
@@ -125,14 +126,6 @@ class _Run:
     def checkpoint(self, frame: int) -> State:
         return State(self.x[frame], self.v[frame], self.C[frame], self.F[frame], self.plastic[frame])
 
-    def stages_active(self, t: float) -> torch.Tensor:
-        return torch.tensor([f.start <= t < f.end for f in self.sim.drivers.forces], dtype=torch.float64)
-
-    def accel(self, t: float) -> torch.Tensor:
-        """[groups, 3] driver accelerations (m/s^2) at time t from this run's stage accelerations
-        (the sum of the active stages each group belongs to; see boundaries.DriverGroups)."""
-        drivers = self.sim.drivers
-        return ((drivers.members.double() * self.stages_active(t)) @ self.stage_accel).to(self.sim.dtype).contiguous()
 
     def forward(self, param, mass, x0, v0, stage_accel) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         sim, T, n = self.sim, self.frames, self.sim.n
@@ -220,7 +213,7 @@ class _Run:
                     inputs = self.inputs(f, s)
                     adjoint.run(states[i], states[i + 1], tapes[i], inputs, grad, spare, param_grad, mass_grad)
                     grad, spare = spare, grad
-                    for stage in torch.nonzero(self.stages_active(inputs.t)).flatten().tolist():
+                    for stage in torch.nonzero(sim.drivers.active(inputs.t)).flatten().tolist():
                         stage_rows[stage] += self.dt * grad.v
                     progress.tick(self.frames - 1 - f, S - 1 - s)  # counted in the order the adjoint runs
         add_output_grads(0)

@@ -226,10 +226,15 @@ class DriverGroups:
         self.group = torch.where(inside[inverse], ids[inverse], -1).to(torch.int32)
         self.members = members[inside]
 
-    def accel(self, t: float, dtype: torch.dtype) -> torch.Tensor:
-        """[groups, 3] acceleration (m/s^2) at time t."""
-        active = torch.tensor([f.start <= t < f.end for f in self.forces], dtype=torch.float64)
-        return ((self.members.double() * active) @ self.stage_accel).to(dtype).contiguous()
+    def active(self, t: float) -> torch.Tensor:
+        """[stages] 1.0 for each force stage acting at time t (s), else 0.0."""
+        return torch.tensor([f.start <= t < f.end for f in self.forces], dtype=torch.float64)
+
+    def accel(self, t: float, dtype: torch.dtype, stage_accel: torch.Tensor | None = None) -> torch.Tensor:
+        """[groups, 3] acceleration (m/s^2) at time t: the sum of the active stages' accelerations
+        ``stage_accel`` [stages, 3] (default: the stages' own) over each group's stages."""
+        stage_accel = self.stage_accel if stage_accel is None else stage_accel.double()
+        return ((self.members.double() * self.active(t)) @ stage_accel).to(dtype).contiguous()
 
 
 def layer_release_times(x: torch.Tensor, layers: int, interval: float, axis: int = 1,
