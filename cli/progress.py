@@ -10,22 +10,27 @@ import click
 
 
 @contextmanager
-def progress(total: int, label: str) -> Iterator[Callable[[str], None]]:
-    """Yields ``advance(item="")``, to call once per unit of ``total``: a click progress bar
-    on stderr when it is a terminal, else a line ``label: k/total item`` after each tenth of
-    the work (log files and CI get a few lines, not a redrawn bar)."""
+def progress(total: int, label: str, show: Callable | None = None, done: int = 0,
+             every: int | None = None) -> Iterator[Callable[..., None]]:
+    """Yields ``advance(item=None, to=None)``, to call as the work goes: one unit more, or up
+    to unit ``to``. On a terminal a click progress bar on stderr (``show(item)`` beside it);
+    otherwise a line ``label: k/total shown`` on stderr after every ``every`` units (default
+    a tenth of the work) and at the end, so that log files and CI get a few lines, not a
+    redrawn bar. ``done``: units finished before (a resumed run)."""
+    show = show or (lambda item: "" if item is None else str(item))
     if sys.stderr.isatty():
         with click.progressbar(length=total, label=label, show_pos=True, file=sys.stderr,
-                               item_show_func=lambda item: item) as bar:
-            yield lambda item="": bar.update(1, item)
+                               item_show_func=lambda item: None if item is None else show(item)) as bar:
+            bar.update(done)
+            yield lambda item=None, to=None: bar.update(1 if to is None else to - bar.pos, item)
         return
-    done = [0]
-    step = max(1, total // 10)
+    position = [done]
+    step = every or max(1, total // 10)
 
-    def advance(item: str = "") -> None:
-        done[0] += 1
-        if done[0] % step == 0 or done[0] == total:
-            click.echo(f"{label}: {done[0]}/{total} {item}".rstrip(), err=True)
+    def advance(item=None, to: int | None = None) -> None:
+        position[0] = position[0] + 1 if to is None else to
+        if position[0] % step == 0 or position[0] == total:
+            click.echo(f"{label}: {position[0]}/{total} {show(item)}".rstrip(), err=True)
 
     yield advance
 
@@ -42,15 +47,7 @@ def iteration_bar(total: int, done: int):
 
     if not sys.stderr.isatty():
         return iteration_lines(total, done, note)
-    return _bar(total, done, format_row)
-
-
-@contextmanager
-def _bar(total: int, done: int, show: Callable[[dict], str]) -> Iterator[Callable[[dict], None]]:
-    with click.progressbar(length=total, label="optimising", show_pos=True, item_show_func=show,
-                           file=sys.stderr) as bar:
-        bar.update(done)
-        yield lambda row: bar.update(1, row)
+    return progress(total, "optimising", show=format_row, done=done)
 
 
 __all__ = ["iteration_bar", "note", "progress"]

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import sys
-
 import click
 
 from clflow_cli.main import Interrupted
 from clflow_cli.options import out_option
+from clflow_cli.progress import progress
 
 LOG_EVERY = 100  # iterations between progress lines when stderr is not a terminal
 
@@ -82,18 +81,11 @@ def reconstruct(images, output_dir, transforms, colmap, cameras_json, frame, mas
     views = load_views(images, transforms=transforms, colmap=colmap, cameras_json=cameras_json, masks=masks,
                        background=rgb, frame=frame)
     click.echo(f"{len(views.views)} views; training {iterations} iterations -> {output_dir}", err=True)
-    show = lambda info: "" if info is None else f"PSNR {info['psnr']:.2f} dB, {info['gaussians']} Gaussians"  # noqa: E731
-    with click.progressbar(length=iterations, label="reconstructing", show_pos=True, item_show_func=show,
-                           file=sys.stderr) as bar:
-        def progress(step: int, info: dict) -> None:
-            if sys.stderr.isatty():
-                bar.update(step - bar.pos, info)
-            elif step % LOG_EVERY == 0 or step == iterations:
-                click.echo(f"iteration {step}/{iterations}: {show(info)}", err=True)
-
+    show = lambda info: f"PSNR {info['psnr']:.2f} dB, {info['gaussians']} Gaussians"  # noqa: E731
+    with progress(iterations, "reconstructing", show=show, every=LOG_EVERY) as advance:
         try:
             result = train(views, output_dir, settings, resume=resume, checkpoint_every=checkpoint_every,
-                           preview_every=preview_every, progress=progress)
+                           preview_every=preview_every, progress=lambda step, info: advance(info, to=step))
         except KeyboardInterrupt:
             from pathlib import Path
 

@@ -197,6 +197,19 @@ def test_progress_off_a_terminal_is_a_line_per_tenth(capsys):
     assert len(lines) == 13  # every 2nd of 25, and the last
 
 
+def test_progress_jumps_to_a_unit_and_shows_items_its_way(capsys):
+    """reconstruct's use: the trainer reports its step (a resumed run starts late), a line
+    every 100 steps, items shown by the caller's function."""
+    from clflow_cli.progress import progress
+
+    with progress(250, "reconstructing", show=lambda info: f"PSNR {info:.1f} dB", every=100) as advance:
+        for step in range(51, 251):
+            advance(step / 10, to=step)
+    assert capsys.readouterr().err.splitlines() == ["reconstructing: 100/250 PSNR 10.0 dB",
+                                                    "reconstructing: 200/250 PSNR 20.0 dB",
+                                                    "reconstructing: 250/250 PSNR 25.0 dB"]
+
+
 # command path -> (its output parameter, the other arguments it needs to parse)
 OUT_PARAMETERS = {
     ("render",): ("output_dir", ["s.ply"]),
