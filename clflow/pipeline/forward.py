@@ -73,15 +73,16 @@ def simulate_config(cfg: SceneConfig, overrides: dict[str, float] | None = None,
                     prepared: Prepared | None = None, max_substeps: int | None = None,
                     on_frame: Callable[[int], None] | None = None) -> SimulationResult:
     """Run the config's simulation (no gradients) with its material or ``overrides``, calling
-    ``on_frame(k)`` after frame k. With ``max_substeps``, first log the substeps and the
-    predicted time, and refuse (SubstepLimitError) a run needing more substeps per frame."""
+    ``on_frame(k)`` after frame k. First log the substeps and the predicted time, and refuse
+    (SubstepLimitError) a run needing more substeps per frame than ``max_substeps`` (default
+    ``simulation.max_substeps``)."""
+    from clflow.pipeline.preflight import describe, plan_run
+
     prepared = prepared or prepare(cfg)
     params, density = material_values(cfg, overrides)
-    if max_substeps is not None:
-        from clflow.pipeline.preflight import describe, plan_run
-
-        log.info("%s", describe(plan_run(cfg, prepared.setup, params, density, max_substeps=max_substeps),
-                                "simulation", gradient=False))
+    max_substeps = cfg.simulation.max_substeps if max_substeps is None else max_substeps
+    log.info("%s", describe(plan_run(cfg, prepared.setup, params, density, max_substeps=max_substeps),
+                            "simulation", gradient=False))
     sim = build_simulator(cfg, prepared.setup, params, density)
     traj = sim.run(cfg.simulation.frames, on_frame)
     return SimulationResult(prepared, params, density, traj.x, traj.F, traj.clamped, sim.substeps)

@@ -75,7 +75,7 @@ def simulate_scene(config_path: str | Path, params_file: str | Path | None = Non
     check_memory(memory, f"simulating {frames + 1:,} frames", less)
     shown = progress(frames, "simulating") if progress else contextlib.nullcontext(None)
     with shown as advance:
-        result = simulate_config(cfg, overrides, prepared, max_substeps=max_substeps or cfg.simulation.max_substeps,
+        result = simulate_config(cfg, overrides, prepared, max_substeps=max_substeps,
                                  on_frame=(lambda k: advance(f"frame {k}")) if advance else None)
     echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
     with atomic_dir(out) as tmp:  # all or nothing: a failure leaves OUT as it was
