@@ -905,28 +905,44 @@ def load_config(path: str | Path, overrides: Sequence[str] = ()) -> SceneConfig:
 
 def _override(data: Any, item: str) -> str:
     """Set ``key.sub=value`` (value read as YAML) in the parsed config ``data``, making the
-    mappings on the way; returns the dotted key."""
+    mappings on the way; a number as a part indexes an existing list item (``forces.0.end``).
+    Returns the key as the config's messages write it (``forces[0].end``)."""
     import yaml
 
     key, sep, text = item.partition("=")
     parts = key.strip().split(".")
-    if not sep or not all(re.fullmatch(r"[A-Za-z0-9_]+", p) for p in parts):
-        raise InputError(f"--set {item}: expected KEY.SUB=VALUE with a dotted key of config names, "
-                         f"e.g. simulation.frames=24")
+    if not sep or not all(re.fullmatch(r"[A-Za-z0-9_]+", p) for p in parts) or parts[0].isdigit():
+        raise InputError(f"--set {item}: expected KEY.SUB=VALUE with a dotted key of config names (a number "
+                         f"for a list item), e.g. simulation.frames=24 or forces.0.end=0.5")
     try:
         value = _load_yaml(text)
     except (yaml.YAMLError, _DuplicateKey) as exc:
         raise InputError(f"--set {item}: the value is not valid YAML ({' '.join(str(exc).split())})") from None
-    node, walked = data, []
-    for part in parts[:-1]:
+    node, walked = data, ""
+    for k, part in enumerate(parts):
+        last = k == len(parts) - 1
+        if isinstance(node, list) and part.isdigit():
+            index = int(part)
+            if index >= len(node):
+                raise InputError(f"--set {item}: {walked} has {len(node)} item(s), so no item {index} "
+                                 f"(items count from 0; add new ones in the config file)")
+            if last:
+                node[index] = value
+            else:
+                node = node[index]
+            walked += f"[{index}]"
+            continue
         if not isinstance(node, dict):
-            break
-        if node.get(part) is None:
-            node[part] = {}
-        node = node[part]
-        walked.append(part)
-    if not isinstance(node, dict):
-        where = ".".join(walked) or "the config"
-        raise InputError(f"--set {item}: {where} is a {type(node).__name__} in the config, not a mapping of keys")
-    node[parts[-1]] = value
-    return ".".join(parts)
+            where = walked or "the config"
+            raise InputError(f"--set {item}: {where} is a {type(node).__name__} in the config, not a mapping of keys")
+        if last:
+            node[part] = value
+        else:
+            if node.get(part) is None:
+                if parts[k + 1].isdigit():
+                    raise InputError(f"--set {item}: {walked + '.' if walked else ''}{part} is not in the config: "
+                                     f"set the whole list ({walked + '.' if walked else ''}{part}=[...])")
+                node[part] = {}
+            node = node[part]
+        walked += f".{part}" if walked else part
+    return walked

@@ -249,7 +249,17 @@ def test_overrides_set_keys_before_validation(scene_yaml):
     assert load_config(scene_yaml).simulation.frames == 12
 
 
+def test_overrides_index_list_items(scene_yaml):
+    cfg = load_config(scene_yaml, ["forces.0.end=0.5", "forces.0.region.sphere.radius=0.2",
+                                   "object.velocity=[0, 1, 0]", "object.velocity.1=2.5"])
+    assert cfg.forces[0].end == 0.5 and cfg.forces[0].region.radius == 0.2
+    assert cfg.velocity[1] == 2.5
+
+
 @pytest.mark.parametrize("item, message", [
+    ("forces.3.end=1", r"^--set forces.3.end=1: forces has 1 item\(s\), so no item 3"),
+    ("forces.0.end=-1", r"^--set forces.0.end=-1: forces\[0\].end: must be after start"),
+    ("0.frames=1", r"^--set 0.frames=1: expected KEY.SUB=VALUE"),
     ("simulation.framez=3", r"^--set simulation.framez=3: simulation.framez: unknown key; known keys here: .*frames"),
     ("simulation.frames=many", r"^--set simulation.frames=many: simulation.frames: must be an integer >= 1, got 'many'$"),
     ("material.parameters.youngs_modulus=-5", r"^--set material.parameters.youngs_modulus=-5: .*youngs_modulus"),
