@@ -106,8 +106,9 @@ class SubstepAdjoint:
                 R(dt), R(t), *(R(g) for g in gravity), R(particles.mass_eps), b.input(tape.grid_mv, "grid"),
                 self.grid_v_bar_copies, np.int32(self.copies), b.input(boundaries, "boundaries"),
                 np.int32(boundaries.shape[0]), grid_bar])
-            v, mass, v_bar, mass_bar = (b.input(state.v, "v"), b.input(particles.mass, "mass"),
-                                        b.output(grad.v, "v_bar"), b.inout(mass_grad, "mass_bar"))
+            # p2g_adjoint writes v_bar, which p2g_flip_adjoint then reads and adds to
+            v_bar = (b.output if self.k_flip is None else b.inout)(grad.v, "v_bar")
+            v, mass, mass_bar = b.input(state.v, "v"), b.input(particles.mass, "mass"), b.inout(mass_grad, "mass_bar")
             dev.launch(self.k_p2g, -(-self.n // SIMD_LANES), grid_args + [
                 n, R(dt), x, v, C, b.input(tape.tau, "tau"), mass, b.input(particles.volume, "volume"),
                 b.input(particles.group, "group"), b.input(accel, "accel"), grid_bar, x_bar,

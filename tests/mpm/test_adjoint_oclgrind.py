@@ -1,6 +1,6 @@
 """Every MPM adjoint kernel under oclgrind: no out-of-bounds access, no data race (tiny scene
 with every material, colliders, velocity regions, a force stage and a clamped particle; and an
-elastic-only scene, which takes the fused SIMD stress adjoint)."""
+elastic-only scene, which takes the fused SIMD stress adjoint; a PIC/FLIP blend)."""
 
 import textwrap
 
@@ -39,6 +39,12 @@ SCRIPT = textwrap.dedent(
     E = torch.tensor(1e4, dtype=torch.float64, requires_grad=True)
     (simulate(solo, 1, params={"youngs_modulus": E}).x ** 2).sum().backward()
     assert bool(torch.isfinite(E.grad)) and float(E.grad) != 0
+    # the PIC/FLIP blend's kernels (7-channel grid, dv, p2g_flip_adjoint), forward and adjoint
+    blend = random_scene({"plasticine": MATERIAL_CASES["plasticine"]}, n=13, substeps=2, frame_dt=2e-4, walls=None,
+                         p2g="private", flip=0.9)
+    v0 = blend.state.v.clone().requires_grad_()
+    (simulate(blend, 1, velocities=v0).x ** 2).sum().backward()
+    assert bool(torch.isfinite(v0.grad).all()) and float(v0.grad.abs().sum()) > 0
     print("done on", sim.device.info.label)
     """
 )
