@@ -54,14 +54,12 @@ def check_forces(cfg: SceneConfig, positions: torch.Tensor, dtype: torch.dtype =
     """Each force stage's particles, [N] bool masks (selected in the simulator's ``dtype``,
     as the simulator selects them); InputError for a stage whose region holds no particle or
     whose time window lies outside the simulated time (0 .. frames / fps)."""
-    from clflow.pipeline.scene import region_mask
-
     sim = cfg.simulation
     duration = sim.frames / sim.fps
     x = positions.to(dtype).double()  # as the simulator tests them (clflow.mpm.boundaries.DriverGroups)
     masks = []
     for i, stage in enumerate(cfg.forces):
-        masks.append(region_mask(stage.region, x))
+        masks.append(stage.region.select(x))
         if not bool(masks[-1].any()):
             raise InputError(f"{cfg.source}: forces[{i}].region holds no particle of the object (the object spans "
                              f"{_fmt_point(positions.min(0).values)} .. {_fmt_point(positions.max(0).values)} m "

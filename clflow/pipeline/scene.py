@@ -19,7 +19,7 @@ import torch
 
 from clflow.errors import InputError
 from clflow.fileio import load_arrays
-from clflow.scene.config import CameraConfig, Region, SceneConfig
+from clflow.scene.config import CameraConfig, SceneConfig
 from clflow.scene.deform import deformed_covariances, polar_rotations
 
 WALL_CELLS = 3  # grid cells of the domain walls (clflow.mpm default)
@@ -65,17 +65,6 @@ class SceneGaussians:
                               torch.cat([a.sh_rotations, b.sh_rotations]))
 
 
-def region_mask(region: Region, points: torch.Tensor) -> torch.Tensor:
-    """Bool [N]: which points [N, 3] lie in the region (same units and frame)."""
-    if region.kind == "box":
-        lo, hi = torch.tensor(region.lower, dtype=points.dtype), torch.tensor(region.upper, dtype=points.dtype)
-        return ((points >= lo) & (points <= hi)).all(-1)
-    if region.kind == "sphere":
-        c = torch.tensor(region.center, dtype=points.dtype)
-        return ((points - c) ** 2).sum(-1) <= region.radius**2
-    return torch.ones(points.shape[0], dtype=torch.bool)
-
-
 def select_object(cfg: SceneConfig, means_scene: torch.Tensor) -> torch.Tensor:
     """Bool mask [N] of the object's Gaussians (selection in scene units)."""
     sel = cfg.selection
@@ -94,7 +83,7 @@ def select_object(cfg: SceneConfig, means_scene: torch.Tensor) -> torch.Tensor:
     elif sel.ply is not None:
         mask = part_mask(sel.ply, means_scene, sel.tolerance)
     else:
-        mask = region_mask(sel.region, means_scene)
+        mask = sel.region.select(means_scene)
     if not bool(mask.any()):
         raise InputError(f"{cfg.source}: object.select selects no Gaussian of {cfg.splats.name}")
     return mask

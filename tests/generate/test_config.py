@@ -78,7 +78,8 @@ def test_the_motion_prompt_comes_from_the_forces_and_can_be_overridden(scene, tm
     import dataclasses
 
     from clflow.pipeline.generated_video import motion_prompt
-    from clflow.scene.config import ForceStage, Region
+    from clflow.regions import Region
+    from clflow.scene.config import ForceStage
 
     cfg = load_config(write(scene, tmp_path, model=str(models["cog"]), object="jelly cube"))
     prompt = motion_prompt(cfg)  # the demo: a short push along +x
