@@ -221,7 +221,7 @@ def case_domain(case: SyntheticCase, resolution: Resolution, scale: int = 1) -> 
     ``resolution.grid`` nodes would have (2.5 sizes across), refined ``scale`` times. The
     ground lies GROUND_OFFSET cells above a node row at either spacing (the refined grid's
     domain is shifted down by a fraction of its cell for that), as in default domains."""
-    from clflow.pipeline.scene import WALL_CELLS
+    from clflow.mpm.constants import WALL_CELLS
     from clflow.pipeline.simulation import GROUND_OFFSET
 
     s, c = case.size, case.center
@@ -318,7 +318,7 @@ def wall_contacts(result) -> int:
     """Particle-frames of a simulation result (clflow.pipeline.forward.SimulationResult)
     inside the domain's wall cells or the cell next to them, where the walls, not the
     material, decide the motion."""
-    from clflow.pipeline.scene import WALL_CELLS
+    from clflow.mpm.constants import WALL_CELLS
 
     grid = result.prepared.setup.grid
     reach = (WALL_CELLS + 1) * grid.dx
@@ -361,8 +361,8 @@ def make_case(folder: str | Path, case: SyntheticCase, resolution: Resolution = 
     from clflow.fileio import atomic_write_text
     from clflow.media import write_image, write_video
     from clflow.pipeline.forward import render_frames, simulate_config
-    from clflow.pipeline.scene import guidance_camera
     from clflow.scene.config import parse_config
+    from clflow.scene.load import guidance_camera
 
     if int(truth_scale) < 1:
         raise ValueError(f"truth_scale must be an integer >= 1, got {truth_scale}")

@@ -38,6 +38,7 @@ SAND_S_MIN = 1e-4  # the same for Drucker-Prager (on |s|)
 SAFE_NORM_EPS2 = 1e-16  # ||x|| = sqrt(x.x + eps2) wherever a norm is divided by
 NEWTONIAN_J_MIN = 0.05  # floor of the fluid's volume ratio J
 CLAMP_MARGIN = 1  # particles are kept >= this many cells inside the grid
+WALL_CELLS = 3  # default thickness (grid cells) of the domain walls (Simulator wall_cells)
 MASS_EPS_REL = 1e-12  # grid nodes lighter than this x the lightest particle are empty (see docs/mpm.md)
 
 # Boundary-condition records (kernels_cl/mpm/grid.cl): BC_STRIDE reals each, in these slots

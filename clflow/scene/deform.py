@@ -8,7 +8,12 @@ polar decomposition F = R S (the rasteriser's ``sh_rotations``).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
+
+if TYPE_CHECKING:
+    from clflow.splat.gaussians import CovarianceGaussians
 
 
 def rest_covariances(scales: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
@@ -44,3 +49,11 @@ def polar_rotations(F: torch.Tensor) -> torch.Tensor:
         with device.bind() as b:
             device.launch(kernel, -(-n // SIMD_LANES), [np.int32(n), b.input(F, "F"), b.output(R, "R")])
     return R
+
+
+def deformed_object(rest: CovarianceGaussians, x: torch.Tensor, F: torch.Tensor) -> CovarianceGaussians:
+    """The object's Gaussians moved to particle positions x [N, 3] and deformed by F [N, 3, 3]."""
+    from clflow.splat.gaussians import CovarianceGaussians
+
+    return CovarianceGaussians(x, deformed_covariances(rest.covariances, F), rest.opacities, rest.sh, rest.colors,
+                               polar_rotations(F) @ rest.sh_rotations)

@@ -101,7 +101,7 @@ def test_optimize_makes_the_guidance_video_first_caches_it_and_takes_it(scene, t
     import clflow.generate
     from clflow.pipeline.generated_video import ensure_guidance_video
     from clflow.pipeline.optimize import guidance_video
-    from clflow.pipeline.scene import guidance_camera
+    from clflow.scene.load import guidance_camera
 
     cfg = load_config(write(scene, tmp_path, model=str(models["cog"]), steps=1, seed=2))
     made = ensure_guidance_video(cfg)

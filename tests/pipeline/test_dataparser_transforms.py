@@ -8,9 +8,9 @@ import torch
 import yaml
 
 from clflow.pipeline.render import render_rgb
-from clflow.pipeline.scene import guidance_camera, load_scene_gaussians
 from clflow.scene.config import load_config
 from clflow.scene.deform import rest_covariances
+from clflow.scene.load import guidance_camera, load_scene_gaussians
 from clflow.splat.gaussians import Gaussians, rotmat_to_quat
 from clflow.splat.ply import load_ply, save_ply
 from clflow.splat.sh import rotate_sh

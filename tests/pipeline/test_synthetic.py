@@ -56,7 +56,7 @@ def test_a_dropped_sphere_falls_freely_until_it_lands(tmp_path):
 def test_the_default_domain_puts_the_ground_a_fixed_fraction_of_a_cell_above_a_node_row(tmp_path, lift):
     """Where the ground plane cuts the cells changes the contact (clflow.pipeline.simulation):
     a default domain always puts it GROUND_OFFSET cells above a node row, above the walls."""
-    from clflow.pipeline.scene import WALL_CELLS
+    from clflow.mpm.constants import WALL_CELLS
     from clflow.pipeline.simulation import GROUND_OFFSET
 
     config = make_case(tmp_path, SyntheticCase(shape="sphere", lift=lift, forces=()), TINY)
