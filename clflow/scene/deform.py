@@ -16,13 +16,6 @@ if TYPE_CHECKING:
     from clflow.splat.gaussians import CovarianceGaussians
 
 
-def rest_covariances(scales: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
-    """Sigma = R diag(s)^2 R^T, [N, 3, 3] (m^2), from scales [N, 3] (m) and rotation
-    matrices [N, 3, 3]."""
-    rs = rotations * scales.unsqueeze(-2)  # R diag(s)
-    return rs @ rs.transpose(-1, -2)
-
-
 def deformed_covariances(rest: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
     """F Sigma F^T, [N, 3, 3], for rest covariances [N, 3, 3] and deformation gradients F."""
     return F @ rest @ F.transpose(-1, -2)

@@ -72,6 +72,13 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     ).reshape(quats.shape[:-1] + (3, 3))
 
 
+def covariances_of(scales: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
+    """Sigma = R diag(s)^2 R^T, [N, 3, 3] (m^2), from scales [N, 3] (m) and rotation
+    matrices [N, 3, 3]."""
+    rs = rotations * scales.unsqueeze(-2)  # R diag(s)
+    return rs @ rs.transpose(-1, -2)
+
+
 def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     """wxyz quaternions [N, 4] of proper rotation matrices [N, 3, 3] (Shepperd's method)."""
     m = R
@@ -273,8 +280,7 @@ class Gaussians:
     @property
     def covariances(self) -> torch.Tensor:
         """[N, 3, 3] world covariances R diag(s^2) R^T, m^2."""
-        rs = self.rotations * self.scales[:, None, :]
-        return rs @ rs.transpose(1, 2)
+        return covariances_of(self.scales, self.rotations)
 
     @property
     def sh_degree(self) -> int | None:
