@@ -115,7 +115,7 @@ def _simulation_scene(folder: Path) -> ViewScene:
     import torch
 
     from clflow.pipeline.frames4d import load_frames
-    from clflow.pipeline.scene import to_file_camera, to_file_frame
+    from clflow.scene.load import to_file_camera, to_file_frame
 
     frames = load_frames(folder)
     a = frames.arrays

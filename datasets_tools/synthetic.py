@@ -361,8 +361,8 @@ def make_case(folder: str | Path, case: SyntheticCase, resolution: Resolution = 
     from clflow.fileio import atomic_write_text
     from clflow.media import write_image, write_video
     from clflow.pipeline.forward import render_frames, simulate_config
-    from clflow.pipeline.scene import guidance_camera
     from clflow.scene.config import parse_config
+    from clflow.scene.load import guidance_camera
 
     if int(truth_scale) < 1:
         raise ValueError(f"truth_scale must be an integer >= 1, got {truth_scale}")

@@ -1,17 +1,16 @@
 """MLS-MPM forward simulation on OpenCL devices (kernels in kernels_cl/mpm/).
 
 Public API: :class:`Simulator`, :class:`MaterialSpec`, :class:`Grid`, the boundary
-conditions and drivers of :mod:`clflow.mpm.boundaries`; :mod:`clflow.mpm.substep` holds the
+conditions and drivers of :mod:`clflow.mpm.boundaries` (force stages act on a
+:class:`clflow.regions.Region`, re-exported here); :mod:`clflow.mpm.substep` holds the
 four substep kernels for the adjoint.
 """
 
 from clflow.mpm.boundaries import (
     Box,
-    BoxRegion,
     Force,
     HalfSpace,
     RotatingCylinder,
-    SphereRegion,
     layer_release_times,
 )
 from clflow.mpm.simulator import (
@@ -23,20 +22,20 @@ from clflow.mpm.simulator import (
     Trajectory,
 )
 from clflow.mpm.substep import Grid, Particles, State, SubstepKernels, SubstepTape
+from clflow.regions import Region
 
 __all__ = [
     "Box",
-    "BoxRegion",
     "Force",
     "Grid",
     "HalfSpace",
     "MaterialSpec",
     "Particles",
+    "Region",
     "RotatingCylinder",
     "SimulationError",
     "SimulationSpec",
     "Simulator",
-    "SphereRegion",
     "StabilityWarning",
     "State",
     "SubstepKernels",

@@ -4,8 +4,8 @@ Grid side, evaluated in table order each substep where a node has mass:
   :class:`HalfSpace` colliders (sticky / slip / separate, Coulomb friction, time window),
   :class:`Box` velocity regions (fixed: velocity 0; moving: any velocity),
   :class:`RotatingCylinder` (propeller-like driver), and the domain walls.
-Particle side: :class:`Force` stages on a region (:class:`BoxRegion`, :class:`SphereRegion`
-or a boolean mask) in newtons or m/s^2, and layer release (:func:`layer_release_times`).
+Particle side: :class:`Force` stages on a region (a :class:`clflow.regions.Region` or a
+boolean mask) in newtons or m/s^2, and layer release (:func:`layer_release_times`).
 """
 
 from __future__ import annotations
@@ -18,23 +18,14 @@ import torch
 
 from clflow.errors import InputError
 from clflow.mpm.constants import BC_BOX, BC_CYLINDER, BC_HALFSPACE, BC_STRIDE, COLLIDER_MODES
+from clflow.regions import Region, vec3
 
 Vec3 = Sequence[float]
 INF = math.inf
 
 
-def _vec3(value, what: str) -> list[float]:
-    try:
-        out = [float(c) for c in value]
-    except (TypeError, ValueError):
-        raise InputError(f"{what} must be 3 numbers, got {value!r}") from None
-    if len(out) != 3 or not all(math.isfinite(c) for c in out):
-        raise InputError(f"{what} must be 3 finite numbers, got {value!r}")
-    return out
-
-
 def _unit(value, what: str) -> list[float]:
-    v = _vec3(value, what)
+    v = vec3(value, what)
     norm = math.sqrt(sum(c * c for c in v))
     if norm == 0:
         raise InputError(f"{what} must not be the zero vector")
@@ -68,7 +59,7 @@ class HalfSpace:
             raise InputError(f"collider mode {self.mode!r} unknown; choose one of {', '.join(COLLIDER_MODES)}")
         if not (self.friction >= 0 and math.isfinite(self.friction)):
             raise InputError(f"collider friction must be a finite number >= 0, got {self.friction}")
-        return ([BC_HALFSPACE] + _window(self.start, self.end, "collider") + _vec3(self.point, "collider point")
+        return ([BC_HALFSPACE] + _window(self.start, self.end, "collider") + vec3(self.point, "collider point")
                 + _unit(self.normal, "collider normal") + [COLLIDER_MODES[self.mode], float(self.friction)])
 
 
@@ -84,10 +75,10 @@ class Box:
     end: float = INF
 
     def record(self) -> list[float]:
-        lo, hi = _vec3(self.lower, "box lower"), _vec3(self.upper, "box upper")
+        lo, hi = vec3(self.lower, "box lower"), vec3(self.upper, "box upper")
         if any(a > b for a, b in zip(lo, hi)):
             raise InputError(f"box lower {lo} is not below upper {hi}")
-        return [BC_BOX] + _window(self.start, self.end, "box") + lo + hi + _vec3(self.velocity, "box velocity")
+        return [BC_BOX] + _window(self.start, self.end, "box") + lo + hi + vec3(self.velocity, "box velocity")
 
 
 @dataclass(frozen=True)
@@ -109,7 +100,7 @@ class RotatingCylinder:
             raise InputError(f"cylinder radius and half_length must be > 0, got {self.radius}, {self.half_length}")
         if not math.isfinite(self.angular_velocity):
             raise InputError(f"cylinder angular_velocity must be finite, got {self.angular_velocity}")
-        return ([BC_CYLINDER] + _window(self.start, self.end, "cylinder") + _vec3(self.center, "cylinder center")
+        return ([BC_CYLINDER] + _window(self.start, self.end, "cylinder") + vec3(self.center, "cylinder center")
                 + _unit(self.axis, "cylinder axis") + [float(self.radius), float(self.half_length),
                                                         float(self.angular_velocity)])
 
@@ -140,40 +131,12 @@ def boundary_table(conditions: Sequence[GridCondition], dtype: torch.dtype) -> t
 
 
 @dataclass(frozen=True)
-class BoxRegion:
-    """Particles whose initial position lies in [lower, upper] (m)."""
-
-    lower: Vec3
-    upper: Vec3
-
-    def select(self, x: torch.Tensor) -> torch.Tensor:
-        lo = torch.tensor(_vec3(self.lower, "region lower"), dtype=x.dtype)
-        hi = torch.tensor(_vec3(self.upper, "region upper"), dtype=x.dtype)
-        return ((x >= lo) & (x <= hi)).all(-1)
-
-
-@dataclass(frozen=True)
-class SphereRegion:
-    """Particles whose initial position lies within ``radius`` (m) of ``center``."""
-
-    center: Vec3
-    radius: float
-
-    def select(self, x: torch.Tensor) -> torch.Tensor:
-        c = torch.tensor(_vec3(self.center, "region center"), dtype=x.dtype)
-        return ((x - c) ** 2).sum(-1) <= float(self.radius) ** 2
-
-
-Region = Union[BoxRegion, SphereRegion, torch.Tensor]
-
-
-@dataclass(frozen=True)
 class Force:
     """A driver stage: for start <= t < end (s) the particles of ``region`` are pushed by a
     total ``force`` (N, shared in proportion to mass: every particle gets F / M_region) or by
     an ``acceleration`` (m/s^2). Chain stages by giving consecutive time windows."""
 
-    region: Region
+    region: Region | torch.Tensor
     start: float
     end: float
     force: Vec3 | None = None
@@ -198,8 +161,8 @@ class Force:
         if (self.force is None) == (self.acceleration is None):
             raise InputError("a force stage needs exactly one of force (N) or acceleration (m/s^2)")
         if self.force is not None:
-            return [f / region_mass for f in _vec3(self.force, "force")]
-        return _vec3(self.acceleration, "acceleration")
+            return [f / region_mass for f in vec3(self.force, "force")]
+        return vec3(self.acceleration, "acceleration")
 
 
 class DriverGroups:

@@ -13,9 +13,10 @@ import torch
 
 from clflow.media import to_uint8
 from clflow.pipeline.render import frame_gaussians, render_rgb
-from clflow.pipeline.scene import SceneGaussians, guidance_camera, load_scene_gaussians
 from clflow.pipeline.simulation import ObjectSetup, build_simulator, setup_object
 from clflow.scene.config import SceneConfig
+from clflow.scene.load import guidance_camera, load_scene_gaussians
+from clflow.splat.gaussians import CovarianceGaussians
 
 log = logging.getLogger(__name__)
 
@@ -26,8 +27,8 @@ class Prepared:
     the object's particles and grid, and the guidance camera."""
 
     cfg: SceneConfig
-    static: SceneGaussians
-    obj_rest: SceneGaussians
+    static: CovarianceGaussians
+    obj_rest: CovarianceGaussians
     setup: ObjectSetup
     camera: object  # clflow.splat.cameras.Camera
 
@@ -42,15 +43,15 @@ class SimulationResult:
     clamped: torch.Tensor | None = None  # [T+1] particles clamped at the grid's edge per frame
     substeps: int = 0  # substeps per frame the run used
 
-    def scene_at(self, t: int) -> SceneGaussians:
+    def scene_at(self, t: int) -> CovarianceGaussians:
         p = self.prepared
         return frame_gaussians(p.static, p.obj_rest, self.x[t], self.F[t])
 
 
 def prepare(cfg: SceneConfig, dtype: torch.dtype = torch.float32) -> Prepared:
     gaussians, mask = load_scene_gaussians(cfg, dtype)
-    obj = gaussians.take(mask.nonzero().flatten())
-    static = gaussians.take((~mask).nonzero().flatten())
+    obj = gaussians.select(mask.nonzero().flatten())
+    static = gaussians.select((~mask).nonzero().flatten())
     setup = setup_object(cfg, obj)
     log.info("object: %d Gaussians + %d fill particles; grid %s, dx %.4g m", setup.particles.n_gaussians,
              setup.particles.n_fill, setup.grid.resolution, setup.grid.dx)

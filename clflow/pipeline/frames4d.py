@@ -32,7 +32,8 @@ import torch
 
 from clflow.errors import InputError
 from clflow.fileio import atomic_path, load_arrays
-from clflow.pipeline.scene import SceneGaussians, to_file_frame, up_rotation
+from clflow.scene.load import to_file_frame, up_rotation
+from clflow.splat.gaussians import CovarianceGaussians
 
 NPZ_NAME = "gaussians.npz"
 STATIC_NAME = "static"  # static.ply: the static Gaussians, once, next to object-only frames
@@ -52,11 +53,11 @@ class Frames4D:
     def fps(self) -> float:
         return float(self.arrays["fps"])
 
-    def scene_at(self, t: int, dtype: torch.dtype = torch.float32) -> SceneGaussians:
+    def scene_at(self, t: int, dtype: torch.dtype = torch.float32) -> CovarianceGaussians:
         """The whole scene at frame t (object Gaussians first)."""
         a = self.arrays
         get = lambda name, *index: None if name not in a else torch.from_numpy(a[name][index]).to(dtype)  # noqa: E731
-        return SceneGaussians(
+        return CovarianceGaussians(
             torch.cat([get("object_means", t), get("static_means")]),
             torch.cat([get("object_covariances", t), get("static_covariances")]),
             get("opacities"), get("sh"), get("colors"),
@@ -127,10 +128,10 @@ def export_gaussians(result, folder: Path, object_only: bool = False, compressed
         save(folder / f"{STATIC_NAME}{suffix}", file_gaussians(static, cfg.scale, cfg.up, turned=0))
     for t, g in enumerate(frames):
         save(folder / f"frame_{t:03d}{suffix}",
-             file_gaussians(g.take(torch.arange(n)) if object_only else g, cfg.scale, cfg.up, turned=n))
+             file_gaussians(g.select(torch.arange(n)) if object_only else g, cfg.scale, cfg.up, turned=n))
 
 
-def file_gaussians(g: SceneGaussians, scale: float, up: str, turned: int):
+def file_gaussians(g: CovarianceGaussians, scale: float, up: str, turned: int):
     """Simulation-frame Gaussians as :class:`clflow.splat.gaussians.Gaussians` in the splat
     file's frame and units (x_file = R_up^T x_sim / scale), each covariance diagonalised into
     scales and a rotation. The SH of the first ``turned`` (the object's) are rotated by their

@@ -139,7 +139,7 @@ def guidance_image(cfg: SceneConfig) -> np.ndarray:
     from clflow.generate import load_image
     from clflow.media import to_uint8
     from clflow.pipeline.render import render_rgb
-    from clflow.pipeline.scene import guidance_camera, load_scene_gaussians
+    from clflow.scene.load import guidance_camera, load_scene_gaussians
 
     camera = guidance_camera(cfg)
     if cfg.generate.image is not None:

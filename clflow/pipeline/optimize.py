@@ -45,9 +45,9 @@ from clflow.pipeline.generated_video import ensure_guidance_video
 from clflow.pipeline.material import resolve_material
 from clflow.pipeline.plots import write_history_plot
 from clflow.pipeline.render import frame_gaussians, render_flow, render_object_alpha
-from clflow.pipeline.scene import guidance_camera
 from clflow.pipeline.simulation import build_simulator, run
 from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, CameraConfig, SceneConfig
+from clflow.scene.load import guidance_camera
 
 log = logging.getLogger(__name__)
 

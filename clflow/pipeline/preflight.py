@@ -54,14 +54,12 @@ def check_forces(cfg: SceneConfig, positions: torch.Tensor, dtype: torch.dtype =
     """Each force stage's particles, [N] bool masks (selected in the simulator's ``dtype``,
     as the simulator selects them); InputError for a stage whose region holds no particle or
     whose time window lies outside the simulated time (0 .. frames / fps)."""
-    from clflow.pipeline.scene import region_mask
-
     sim = cfg.simulation
     duration = sim.frames / sim.fps
     x = positions.to(dtype).double()  # as the simulator tests them (clflow.mpm.boundaries.DriverGroups)
     masks = []
     for i, stage in enumerate(cfg.forces):
-        masks.append(region_mask(stage.region, x))
+        masks.append(stage.region.select(x))
         if not bool(masks[-1].any()):
             raise InputError(f"{cfg.source}: forces[{i}].region holds no particle of the object (the object spans "
                              f"{_fmt_point(positions.min(0).values)} .. {_fmt_point(positions.max(0).values)} m "
@@ -222,11 +220,11 @@ def measure_view(prepared, camera, mask: torch.Tensor, video_frames: np.ndarray,
     ``video_frames`` [T+1, H, W, 3] uint8, ``flow`` [T, H, W, 2], ``confidence`` [T, H, W]."""
     from clflow.media import to_uint8
     from clflow.pipeline.render import render_object_alpha, render_rgb
-    from clflow.pipeline.scene import SceneGaussians
+    from clflow.splat.gaussians import CovarianceGaussians
 
     with torch.no_grad():
         alpha = render_object_alpha(prepared.obj_rest, camera)
-        rendered = to_uint8(render_rgb(SceneGaussians.cat(prepared.obj_rest, prepared.static), camera))
+        rendered = to_uint8(render_rgb(CovarianceGaussians.cat([prepared.obj_rest, prepared.static]), camera))
     covered = int((alpha > 0.5).sum())
     m = mask.numpy().astype(bool)
     grey = lambda img: img.astype(np.float64).mean(-1)  # noqa: E731

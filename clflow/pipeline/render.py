@@ -5,25 +5,27 @@ from __future__ import annotations
 
 import torch
 
-from clflow.pipeline.scene import SceneGaussians, deformed_object
+from clflow.scene.deform import deformed_object
+from clflow.splat.gaussians import CovarianceGaussians
 
 
-def frame_gaussians(static: SceneGaussians, obj_rest: SceneGaussians, x: torch.Tensor, F: torch.Tensor) -> SceneGaussians:
+def frame_gaussians(static: CovarianceGaussians, obj_rest: CovarianceGaussians, x: torch.Tensor,
+                    F: torch.Tensor) -> CovarianceGaussians:
     """The scene at one frame: the object's n Gaussians at particle positions x [>= n, 3] with
     deformation gradients F [>= n, 3, 3] (fill particles beyond n are ignored), then the
     static Gaussians."""
     n = obj_rest.means.shape[0]
     moved = deformed_object(obj_rest, x[:n].to(obj_rest.means.dtype), F[:n].to(obj_rest.means.dtype))
-    return SceneGaussians.cat(moved, static)
+    return CovarianceGaussians.cat([moved, static])
 
 
-def render_rgb(g: SceneGaussians, camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
+def render_rgb(g: CovarianceGaussians, camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
     """[H, W, 3] colours in [0, 1] (values may exceed 1 before clipping)."""
     from clflow.splat.ops import rasterize_gaussians
 
     dtype = g.means.dtype
     colors = g.sh if g.sh is not None else g.colors
-    sh_degree = None if g.sh is None else int(round(g.sh.shape[1] ** 0.5)) - 1
+    sh_degree = g.sh_degree
     image, _, _, _ = rasterize_gaussians(
         g.means, None, None, g.opacities, colors, camera.viewmat.to(dtype), camera.K.to(dtype),
         camera.width, camera.height, covars=g.covariances, sh_degree=sh_degree,
@@ -33,7 +35,7 @@ def render_rgb(g: SceneGaussians, camera, background=(1.0, 1.0, 1.0)) -> torch.T
     return image
 
 
-def render_flow(g_t: SceneGaussians, g_t1: SceneGaussians, camera, normalize: bool = True):
+def render_flow(g_t: CovarianceGaussians, g_t1: CovarianceGaussians, camera, normalize: bool = True):
     """Simulated optical flow [H, W, 2] (px per frame) from frame t to t+1 rendered at frame
     t's geometry, and alpha [H, W, 1]; both scenes list the same Gaussians in the same order."""
     from clflow.flow.simulated import render_simulated_flow
@@ -45,7 +47,7 @@ def render_flow(g_t: SceneGaussians, g_t1: SceneGaussians, camera, normalize: bo
     )
 
 
-def render_object_alpha(g: SceneGaussians, camera) -> torch.Tensor:
+def render_object_alpha(g: CovarianceGaussians, camera) -> torch.Tensor:
     """[H, W] opacity of ``g`` alone (e.g. the object at frame 0)."""
     from clflow.splat.ops import rasterize_gaussians
 

@@ -30,6 +30,7 @@ from clflow.flow.optical_flow import (
 )
 from clflow.materials import DENSITY, get_material, validate_params
 from clflow.mpm.constants import COLLIDER_MODES, ELASTIC_MODELS, SAND_MODELS
+from clflow.regions import Region
 
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 FLOW_METHODS = ("dis", "farneback")
@@ -146,17 +147,6 @@ class _Reader:
 
 # ---------------------------------------------------------------------------------------
 # The configuration, section by section.
-
-
-@dataclass(frozen=True)
-class Region:
-    """A box (lower, upper corners), a sphere (centre, radius) or everything (kind "all")."""
-
-    kind: str  # "box" | "sphere" | "all"
-    lower: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    upper: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    radius: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -358,10 +348,10 @@ def _region(r: _Reader, data: Any, path: str, allow_all: bool) -> Region:
         lower, upper = r.vec3(box, "min", f"{path}.box"), r.vec3(box, "max", f"{path}.box")
         if not all(lo < hi for lo, hi in zip(lower, upper)):
             raise r.fail(f"{path}.box", f"min {list(lower)} must be below max {list(upper)} on every axis")
-        return Region("box", lower=lower, upper=upper)
+        return Region.box(lower, upper)
     sphere = r.section(body["sphere"], f"{path}.sphere", ("center", "radius"))
-    return Region("sphere", center=r.vec3(sphere, "center", f"{path}.sphere"),
-                  radius=r.number(sphere, "radius", f"{path}.sphere", low=0.0, strict_low=True))
+    return Region.sphere(r.vec3(sphere, "center", f"{path}.sphere"),
+                         r.number(sphere, "radius", f"{path}.sphere", low=0.0, strict_low=True))
 
 
 def _flow_mask(r: _Reader, flow_in: dict) -> str:

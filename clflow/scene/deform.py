@@ -8,14 +8,12 @@ polar decomposition F = R S (the rasteriser's ``sh_rotations``).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 
-
-def rest_covariances(scales: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
-    """Sigma = R diag(s)^2 R^T, [N, 3, 3] (m^2), from scales [N, 3] (m) and rotation
-    matrices [N, 3, 3]."""
-    rs = rotations * scales.unsqueeze(-2)  # R diag(s)
-    return rs @ rs.transpose(-1, -2)
+if TYPE_CHECKING:
+    from clflow.splat.gaussians import CovarianceGaussians
 
 
 def deformed_covariances(rest: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
@@ -45,3 +43,11 @@ def polar_rotations(F: torch.Tensor) -> torch.Tensor:
         with device.bind() as b:
             device.launch(kernel, -(-n // SIMD_LANES), [np.int32(n), b.input(F, "F"), b.output(R, "R")])
     return R
+
+
+def deformed_object(rest: CovarianceGaussians, x: torch.Tensor, F: torch.Tensor) -> CovarianceGaussians:
+    """The object's Gaussians moved to particle positions x [N, 3] and deformed by F [N, 3, 3]."""
+    from clflow.splat.gaussians import CovarianceGaussians
+
+    return CovarianceGaussians(x, deformed_covariances(rest.covariances, F), rest.opacities, rest.sh, rest.colors,
+                               polar_rotations(F) @ rest.sh_rotations)

@@ -12,6 +12,10 @@ and the simulator use are properties::
     g.sh             # [N, K, 3] SH coefficients, K = (sh_degree + 1)^2 (or None: g.colors)
     obj = g.select_sphere(center=(0, 0, 0.5), radius=0.3)
 
+:class:`CovarianceGaussians` is the same Gaussians with covariances instead of rotations
+and scales (``CovarianceGaussians.from_gaussians(g)``): the form the simulation deforms and
+the pipeline renders.
+
 Storing the raw values makes a PLY round trip bit-exact and lets an optimiser work on
 unconstrained parameters.
 """
@@ -66,6 +70,13 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
         ],
         dim=-1,
     ).reshape(quats.shape[:-1] + (3, 3))
+
+
+def covariances_of(scales: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
+    """Sigma = R diag(s)^2 R^T, [N, 3, 3] (m^2), from scales [N, 3] (m) and rotation
+    matrices [N, 3, 3]."""
+    rs = rotations * scales.unsqueeze(-2)  # R diag(s)
+    return rs @ rs.transpose(-1, -2)
 
 
 def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
@@ -269,8 +280,7 @@ class Gaussians:
     @property
     def covariances(self) -> torch.Tensor:
         """[N, 3, 3] world covariances R diag(s^2) R^T, m^2."""
-        rs = self.rotations * self.scales[:, None, :]
-        return rs @ rs.transpose(1, 2)
+        return covariances_of(self.scales, self.rotations)
 
     @property
     def sh_degree(self) -> int | None:
@@ -410,6 +420,66 @@ class Gaussians:
         if tuple(point.shape) != (3,):
             raise InputError(f"{what} must be 3 numbers (m), got shape {tuple(point.shape)}")
         return point
+
+
+@dataclass(eq=False)
+class CovarianceGaussians:
+    """N 3D Gaussians in their covariance form, the form a simulation moves and deforms
+    (x -> F x gives Sigma -> F Sigma F^T) and the rasteriser takes as ``covars``.
+
+    Attributes:
+        means: [N, 3] centres, m.
+        covariances: [N, 3, 3] world covariances, m^2.
+        opacities: [N] peak opacities in (0, 1).
+        sh: [N, K, 3] SH coefficients (K = (degree + 1)^2) or None when ``colors`` [N, C] are set.
+        colors: [N, C] view-independent colours, or None.
+        sh_rotations: [N, 3, 3] rotations of each Gaussian since its SH were fitted (the
+            rasteriser's ``sh_rotations``).
+    """
+
+    means: torch.Tensor
+    covariances: torch.Tensor
+    opacities: torch.Tensor
+    sh: torch.Tensor | None
+    colors: torch.Tensor | None
+    sh_rotations: torch.Tensor
+
+    @classmethod
+    def from_gaussians(cls, g: Gaussians, rotation: torch.Tensor | None = None,
+                       scale: float = 1.0) -> "CovarianceGaussians":
+        """``g`` in the frame x' = scale R x (``rotation`` R [3, 3] proper, default identity):
+        means and covariances computed in float64, the rest in ``g``'s dtype, sh_rotations R."""
+        R = torch.eye(3, dtype=torch.float64) if rotation is None else rotation.double()
+        means = scale * g.means.double() @ R.T
+        covariances = scale**2 * (R @ g.covariances.double() @ R.T)
+        return cls(means, covariances, g.opacities, g.sh, g.colors, R.expand(len(g), 3, 3).contiguous())
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def sh_degree(self) -> int | None:
+        """SH degree 0..3, or None when the Gaussians carry plain colours."""
+        return None if self.sh is None else sh_degree_of(self.sh.shape[1])
+
+    def to(self, dtype: torch.dtype) -> "CovarianceGaussians":
+        """A copy with every tensor in ``dtype``."""
+        return self._map(lambda t: t.to(dtype))
+
+    def select(self, index: torch.Tensor) -> "CovarianceGaussians":
+        """The Gaussians picked by a bool mask [N] or an index tensor."""
+        return self._map(lambda t: t[index])
+
+    @staticmethod
+    def cat(parts: Sequence["CovarianceGaussians"]) -> "CovarianceGaussians":
+        """The parts' Gaussians in order (all with sh or all with colors)."""
+        fields = {f.name: None if getattr(parts[0], f.name) is None else torch.cat([getattr(p, f.name) for p in parts])
+                  for f in dataclasses.fields(CovarianceGaussians)}
+        return CovarianceGaussians(**fields)
+
+    def _map(self, fn) -> "CovarianceGaussians":
+        return CovarianceGaussians(**{f.name: None if (v := getattr(self, f.name)) is None else fn(v)
+                                      for f in dataclasses.fields(self)})
 
 
 def nearest_neighbour_rms(points: torch.Tensor, k: int = 3) -> torch.Tensor:

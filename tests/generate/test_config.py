@@ -78,7 +78,8 @@ def test_the_motion_prompt_comes_from_the_forces_and_can_be_overridden(scene, tm
     import dataclasses
 
     from clflow.pipeline.generated_video import motion_prompt
-    from clflow.scene.config import ForceStage, Region
+    from clflow.regions import Region
+    from clflow.scene.config import ForceStage
 
     cfg = load_config(write(scene, tmp_path, model=str(models["cog"]), object="jelly cube"))
     prompt = motion_prompt(cfg)  # the demo: a short push along +x
@@ -100,7 +101,7 @@ def test_optimize_makes_the_guidance_video_first_caches_it_and_takes_it(scene, t
     import clflow.generate
     from clflow.pipeline.generated_video import ensure_guidance_video
     from clflow.pipeline.optimize import guidance_video
-    from clflow.pipeline.scene import guidance_camera
+    from clflow.scene.load import guidance_camera
 
     cfg = load_config(write(scene, tmp_path, model=str(models["cog"]), steps=1, seed=2))
     made = ensure_guidance_video(cfg)

@@ -6,14 +6,13 @@ import torch
 
 from clflow.mpm import (
     Box,
-    BoxRegion,
     Force,
     Grid,
     HalfSpace,
     MaterialSpec,
+    Region,
     RotatingCylinder,
     Simulator,
-    SphereRegion,
     layer_release_times,
     reference,
 )
@@ -128,7 +127,7 @@ def test_force_stages_add_exact_impulses():
     """Chained stages: the total momentum gained is F1 T1 + F2 T2 (no gravity, no walls)."""
     x = cube(6, 0.4, 0.6)
     n = x.shape[0]
-    upper = BoxRegion((0.0, 0.5, 0.0), (1.0, 1.0, 1.0))
+    upper = Region.box((0.0, 0.5, 0.0), (1.0, 1.0, 1.0))
     stages = [Force(upper, 0.0, 0.04, force=(0.5, 0.0, 0.0)), Force(upper, 0.04, 0.1, force=(0.0, 0.0, -0.25))]
     sim = Simulator(x, 1e-5, SOFT, GRID, forces=stages, gravity=(0, 0, 0), walls=None, frame_dt=0.02, substeps=20,
                     dtype=torch.float64)
@@ -142,7 +141,7 @@ def test_acceleration_on_sphere_region_and_mask():
     x = cube(6, 0.4, 0.6)
     mask = torch.zeros(x.shape[0], dtype=torch.bool)
     mask[:10] = True
-    stages = [Force(SphereRegion((0.5, 0.5, 0.5), 0.05), 0.0, 0.02, acceleration=(0, 3.0, 0)),
+    stages = [Force(Region.sphere((0.5, 0.5, 0.5), 0.05), 0.0, 0.02, acceleration=(0, 3.0, 0)),
               Force(mask, 0.0, 0.02, acceleration=(1.0, 0, 0))]
     sim = Simulator(x, 1e-5, SOFT, GRID, forces=stages, gravity=(0, 0, 0), walls=None, frame_dt=0.02, substeps=20,
                     dtype=torch.float64)

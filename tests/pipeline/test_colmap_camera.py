@@ -8,8 +8,8 @@ import torch
 import yaml
 
 from clflow.errors import InputError
-from clflow.pipeline.scene import guidance_camera, to_simulation_camera
 from clflow.scene.config import load_config
+from clflow.scene.load import guidance_camera, to_simulation_camera
 from clflow.splat.cameras import orbit
 from tests.recon._helpers import model_of, write_bin, write_txt
 

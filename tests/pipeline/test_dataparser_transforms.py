@@ -8,10 +8,9 @@ import torch
 import yaml
 
 from clflow.pipeline.render import render_rgb
-from clflow.pipeline.scene import guidance_camera, load_scene_gaussians
 from clflow.scene.config import load_config
-from clflow.scene.deform import rest_covariances
-from clflow.splat.gaussians import Gaussians, rotmat_to_quat
+from clflow.scene.load import guidance_camera, load_scene_gaussians
+from clflow.splat.gaussians import Gaussians, covariances_of, rotmat_to_quat
 from clflow.splat.ply import load_ply, save_ply
 from clflow.splat.sh import rotate_sh
 from tests.splat._helpers import rotations
@@ -37,7 +36,7 @@ def test_a_transformed_export_renders_like_the_capture(quick_demo, tmp_path):
     turned = R @ g.rotations
     save_ply(tmp_path / "export.ply", Gaussians.from_activated(
         s * (g.means @ R.T + t), rotmat_to_quat(turned), s * g.scales, g.opacities, sh=rotate_sh(g.sh, R.expand(len(g), 3, 3))))
-    torch.testing.assert_close(rest_covariances(s * g.scales, turned), s**2 * R @ g.covariances @ R.T)
+    torch.testing.assert_close(covariances_of(s * g.scales, turned), s**2 * R @ g.covariances @ R.T)
 
     data["splats"] = str(tmp_path / "export.ply")
     data["camera"] = {"file": "transforms.json"}

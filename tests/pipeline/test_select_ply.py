@@ -8,8 +8,8 @@ import torch
 import yaml
 
 from clflow.errors import InputError
-from clflow.pipeline.scene import PART_TOLERANCE, select_object
 from clflow.scene.config import load_config
+from clflow.scene.load import PART_TOLERANCE, select_object
 from clflow.splat.compressed_ply import morton_order, save_compressed_ply
 from clflow.splat.gaussians import Gaussians
 from clflow.splat.ply import load_ply, save_ply

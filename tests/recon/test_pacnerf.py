@@ -11,8 +11,8 @@ import torch
 
 from clflow.errors import InputError
 from clflow.media import decode_video
-from clflow.pipeline.scene import guidance_camera
 from clflow.scene.config import load_config
+from clflow.scene.load import guidance_camera
 from clflow.splat.gaussians import Gaussians
 from clflow.splat.ply import save_ply
 from clflow_datasets.pacnerf import pacnerf_boundaries, pacnerf_material, read_pacnerf_config
@@ -204,8 +204,8 @@ def test_guidance_frame_0_is_the_scene_as_the_optimiser_renders_it(tmp_path):
     """A capture rendered from known splats: the converted video's frame 0 equals those
     splats rendered by clflow's pipeline from the config's camera (pose, intrinsics, background)."""
     from clflow.pipeline.render import render_rgb
-    from clflow.pipeline.scene import load_scene_gaussians
     from clflow.recon.sequence import pacnerf_camera
+    from clflow.scene.load import load_scene_gaussians
     from clflow.splat.render import rasterize
 
     poses = write_sequence(tmp_path / "seq", cameras=3, frames=2, size=SIZE)

@@ -2,7 +2,8 @@
 
 import torch
 
-from clflow.scene.deform import deformed_covariances, polar_rotations, rest_covariances
+from clflow.scene.deform import deformed_covariances, polar_rotations
+from clflow.splat.gaussians import covariances_of
 
 
 def random_rotations(n, seed=0):
@@ -13,13 +14,13 @@ def random_rotations(n, seed=0):
 def test_rest_covariance_has_the_scales_as_principal_std():
     R = random_rotations(5)
     s = torch.rand(5, 3, dtype=torch.float64) + 0.1
-    cov = rest_covariances(s, R)
+    cov = covariances_of(s, R)
     eig = torch.linalg.eigvalsh(cov)
     torch.testing.assert_close(eig, (s**2).sort(dim=1).values)
 
 
 def test_a_stretch_scales_the_covariance_and_a_rotation_turns_it():
-    cov = rest_covariances(torch.tensor([[1.0, 2.0, 3.0]], dtype=torch.float64), torch.eye(3, dtype=torch.float64)[None])
+    cov = covariances_of(torch.tensor([[1.0, 2.0, 3.0]], dtype=torch.float64), torch.eye(3, dtype=torch.float64)[None])
     stretch = torch.diag(torch.tensor([2.0, 1.0, 0.5], dtype=torch.float64))[None]
     torch.testing.assert_close(deformed_covariances(cov, stretch)[0], torch.diag(torch.tensor([4.0, 4.0, 2.25], dtype=torch.float64)))
     R = random_rotations(1, seed=3)

@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from clflow.errors import InputError
-from clflow.splat.gaussians import Gaussians, nearest_neighbour_rms, quat_to_rotmat
+from clflow.splat.gaussians import CovarianceGaussians, Gaussians, nearest_neighbour_rms, quat_to_rotmat
+from tests.splat._helpers import rotations
 
 
 def make(n=6, degree=1, seed=0, dtype=torch.float64, **extra):
@@ -152,3 +153,28 @@ def test_bounds_with_outlier_quantile():
     assert low[0] == 0 and high[0] == 100
     low, high = g.bounds(0.1)
     assert low[0].item() == pytest.approx(10) and high[0].item() == pytest.approx(90)
+
+
+def test_the_covariance_form_moves_into_a_frame_and_keeps_the_rest():
+    """from_gaussians(g, R, s): means s R x, covariances s^2 R Sigma R^T, sh_rotations R;
+    select, cat and to(dtype) keep the fields together."""
+    g = make(n=5, degree=2, dtype=torch.float32)
+    R = rotations(1, seed=7)[0]
+    c = CovarianceGaussians.from_gaussians(g, R, 2.5)
+    torch.testing.assert_close(c.means, 2.5 * g.means.double() @ R.T)
+    torch.testing.assert_close(c.covariances, 6.25 * R @ g.covariances.double() @ R.T)
+    torch.testing.assert_close(c.sh_rotations, R.expand(5, 3, 3))
+    assert c.opacities is not None and torch.equal(c.opacities, g.opacities) and torch.equal(c.sh, g.sh)
+    assert c.colors is None and c.sh_degree == 2 and len(c) == 5
+    plain = CovarianceGaussians.from_gaussians(g)
+    torch.testing.assert_close(plain.covariances, g.covariances.double())
+    torch.testing.assert_close(plain.sh_rotations, torch.eye(3, dtype=torch.float64).expand(5, 3, 3))
+    parts = [c.select(torch.tensor([3, 0])), c.select(torch.tensor([False, True, False, False, True]))]
+    joined = CovarianceGaussians.cat(parts).to(torch.float32)
+    order = torch.tensor([3, 0, 1, 4])
+    for name in ("means", "covariances", "opacities", "sh", "sh_rotations"):
+        got = getattr(joined, name)
+        assert got.dtype == torch.float32
+        torch.testing.assert_close(got, getattr(c, name)[order].float())
+    assert joined.colors is None
+

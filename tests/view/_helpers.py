@@ -7,7 +7,7 @@ import time
 import numpy as np
 import torch
 
-from clflow.pipeline.scene import up_rotation
+from clflow.scene.load import up_rotation
 from clflow.splat.cameras import look_at
 from clflow.splat.gaussians import Gaussians
 from clflow.splat.ply import save_ply

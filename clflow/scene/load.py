@@ -1,5 +1,5 @@
-"""A scene config made concrete: splats in the simulation frame, the object's particles, the
-simulator and the guidance camera.
+"""A scene config made concrete: the splats in the simulation frame, the object's selection
+and the guidance camera.
 
 Frames: the splat file is in *scene units* with an arbitrary up axis; the simulation frame
 is metres with +y up: x_sim = scale * R_up x_scene. Gaussians are moved into the simulation
@@ -12,15 +12,17 @@ not change and depths come out in metres.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from clflow.errors import InputError
 from clflow.fileio import load_arrays
-from clflow.scene.config import CameraConfig, Region, SceneConfig
-from clflow.scene.deform import deformed_covariances, polar_rotations
+from clflow.scene.config import CameraConfig, SceneConfig
+
+if TYPE_CHECKING:
+    from clflow.splat.gaussians import CovarianceGaussians
 
 
 def up_rotation(up: str) -> torch.Tensor:
@@ -35,43 +37,6 @@ def up_rotation(up: str) -> torch.Tensor:
     else:  # +z -> +y, +y -> -z, x fixed (for -z: +z -> -y, +y -> +z)
         R[1, 2], R[2, 1], R[0, 0] = sign, -sign, 1.0
     return R
-
-
-@dataclass
-class SceneGaussians:
-    """Gaussians in the simulation frame. means [N, 3] m, covariances [N, 3, 3] m^2,
-    opacities [N], sh [N, K, 3] or colors [N, C], sh_rotations [N, 3, 3] (rotations since
-    the SH were fitted)."""
-
-    means: torch.Tensor
-    covariances: torch.Tensor
-    opacities: torch.Tensor
-    sh: torch.Tensor | None
-    colors: torch.Tensor | None
-    sh_rotations: torch.Tensor
-
-    def take(self, index: torch.Tensor) -> "SceneGaussians":
-        pick = lambda t: None if t is None else t[index]  # noqa: E731
-        return SceneGaussians(self.means[index], self.covariances[index], self.opacities[index],
-                              pick(self.sh), pick(self.colors), self.sh_rotations[index])
-
-    @staticmethod
-    def cat(a: "SceneGaussians", b: "SceneGaussians") -> "SceneGaussians":
-        join = lambda x, y: None if x is None else torch.cat([x, y])  # noqa: E731
-        return SceneGaussians(torch.cat([a.means, b.means]), torch.cat([a.covariances, b.covariances]),
-                              torch.cat([a.opacities, b.opacities]), join(a.sh, b.sh), join(a.colors, b.colors),
-                              torch.cat([a.sh_rotations, b.sh_rotations]))
-
-
-def region_mask(region: Region, points: torch.Tensor) -> torch.Tensor:
-    """Bool [N]: which points [N, 3] lie in the region (same units and frame)."""
-    if region.kind == "box":
-        lo, hi = torch.tensor(region.lower, dtype=points.dtype), torch.tensor(region.upper, dtype=points.dtype)
-        return ((points >= lo) & (points <= hi)).all(-1)
-    if region.kind == "sphere":
-        c = torch.tensor(region.center, dtype=points.dtype)
-        return ((points - c) ** 2).sum(-1) <= region.radius**2
-    return torch.ones(points.shape[0], dtype=torch.bool)
 
 
 def select_object(cfg: SceneConfig, means_scene: torch.Tensor) -> torch.Tensor:
@@ -92,7 +57,7 @@ def select_object(cfg: SceneConfig, means_scene: torch.Tensor) -> torch.Tensor:
     elif sel.ply is not None:
         mask = part_mask(sel.ply, means_scene, sel.tolerance)
     else:
-        mask = region_mask(sel.region, means_scene)
+        mask = sel.region.select(means_scene)
     if not bool(mask.any()):
         raise InputError(f"{cfg.source}: object.select selects no Gaussian of {cfg.splats.name}")
     return mask
@@ -147,22 +112,16 @@ def check_object_sizes(cfg: SceneConfig, means: torch.Tensor, scales: torch.Tens
                          f"scene units); check the file's scale_* values (log std devs in 3DGS files)")
 
 
-def load_scene_gaussians(cfg: SceneConfig, dtype: torch.dtype) -> tuple[SceneGaussians, torch.Tensor]:
-    """All Gaussians of the splat file in the simulation frame, and the object mask [N]."""
+def load_scene_gaussians(cfg: SceneConfig, dtype: torch.dtype) -> tuple[CovarianceGaussians, torch.Tensor]:
+    """All Gaussians of the splat file in the simulation frame (sh_rotations R_up), and the
+    object mask [N]."""
+    from clflow.splat.gaussians import CovarianceGaussians
     from clflow.splat.ply import load_ply
 
     g = load_ply(cfg.splats)
     mask = select_object(cfg, g.means.double())
     check_object_sizes(cfg, g.means.double(), g.scales.double(), mask)
-    R_up = up_rotation(cfg.up)
-    means = cfg.scale * g.means.double() @ R_up.T
-    covs = cfg.scale**2 * (R_up @ g.covariances.double() @ R_up.T)
-    n = means.shape[0]
-    return SceneGaussians(
-        means.to(dtype), covs.to(dtype), g.opacities.to(dtype),
-        None if g.sh is None else g.sh.to(dtype), None if g.colors is None else g.colors.to(dtype),
-        R_up.to(dtype).expand(n, 3, 3).contiguous(),
-    ), mask
+    return CovarianceGaussians.from_gaussians(g, up_rotation(cfg.up), cfg.scale).to(dtype), mask
 
 
 def to_simulation_camera(camera, cfg: SceneConfig):
@@ -243,9 +202,3 @@ def colmap_camera(folder, image: str | None, index: int, source):
         raise InputError(f"{source}: camera.index {index} is outside the {len(loaded)} images of the COLMAP model "
                          f"{folder}")
     return loaded[index]
-
-
-def deformed_object(rest: SceneGaussians, x: torch.Tensor, F: torch.Tensor) -> SceneGaussians:
-    """The object's Gaussians moved to particle positions x [N, 3] and deformed by F [N, 3, 3]."""
-    return SceneGaussians(x, deformed_covariances(rest.covariances, F), rest.opacities, rest.sh, rest.colors,
-                          polar_rotations(F) @ rest.sh_rotations)
