@@ -335,8 +335,8 @@ class Optimization:
         self._lm_cache: dict[tuple, tuple[Evaluation, torch.Tensor]] = {}
 
     def __getstate__(self) -> dict:
-        """What a Ray task gets (clflow.sweep): no progress callback, starts polished in place."""
-        return {**self.__dict__, "progress": _quiet, "map_starts": serial_starts}
+        """What a Ray task gets (clflow.sweep): no progress callback or cached runs, starts polished in place."""
+        return {**self.__dict__, "progress": _quiet, "map_starts": serial_starts, "_lm_cache": {}}
 
     def _views(self) -> list[View]:
         """Every guidance view, its videos and masks checked before any optical flow is computed."""

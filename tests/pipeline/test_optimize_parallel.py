@@ -84,10 +84,16 @@ def test_an_interrupted_polish_resumes_to_the_uninterrupted_result(demo_config):
     whole = Optimization(config("whole")).run()
     Optimization(config("parts")).run(stop_after=3)  # inside the second start's polish
     resumed = Optimization(config("parts"))
-    assert resumed.load_state().polished == []  # the starts' progress is in their own checkpoints
+    begin = resumed.load_state()
+    assert begin.searched and begin.polished == []  # the starts' progress is in their own checkpoints
     parts = resumed.run(resume=True)
     assert _untimed(dataclasses.asdict(parts)) == _untimed(dataclasses.asdict(whole))
     assert len(parts.polished) == 2 and parts.iteration == 5
+    # the second start polished alone, in a fresh optimiser (as a Ray task does), is the same polish
+    alone = Optimization(config("alone")).polish(begin, 1)
+    rows = [{k: v for k, v in r.items() if k != "iteration"} for r in _untimed(whole.history) if r.get("start") == 1]
+    assert [{k: v for k, v in r.items() if k != "iteration"} for r in _untimed(alone["state"]["history"])] == rows
+    assert alone["finished"] and alone["state"]["best"]["loss"] == whole.polished[1]["loss"]
 
 
 def test_parallel_without_ray_is_one_line(quick_demo, tmp_path, monkeypatch):
