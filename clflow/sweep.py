@@ -498,7 +498,8 @@ def start_ray(address: str | None, cpus: int | None = None, instead: str | None 
 
 def _remote(task: Callable, env: dict[str, str], cpus_per_task: int, resources: dict[str, float] | None):
     """``task`` as a Ray remote function of ``resources`` (CPU and GPU among them; CPU
-    default ``cpus_per_task``) with ``env``, never retried; and its CPUs, GPUs, other resources."""
+    default ``cpus_per_task``) with ``env``, never retried; and how many such tasks the
+    cluster runs at once (None: no limit); InputError when it has no room for one."""
     import ray
 
     resources = dict(resources or {})
@@ -506,7 +507,12 @@ def _remote(task: Callable, env: dict[str, str], cpus_per_task: int, resources: 
     cpus = resources.pop("CPU", cpus_per_task)
     remote = ray.remote(task).options(num_cpus=cpus, num_gpus=gpus, resources=resources or None, max_retries=0,
                                       runtime_env={"env_vars": env})
-    return remote, cpus, gpus, resources
+    total = ray.cluster_resources()
+    wanted = {k: v for k, v in {"CPU": cpus, "GPU": gpus, **resources}.items() if v}
+    room = [int(total.get(k, 0) // v) for k, v in wanted.items()]
+    if min(room, default=1) < 1:
+        raise InputError(f"the Ray cluster has no room for a task of {wanted} (it has {total})")
+    return remote, min(room, default=None)
 
 
 def run_on_ray(runs: list[Run], folder_of: Callable[[Run], Path], timeout: float | None,
@@ -519,13 +525,8 @@ def run_on_ray(runs: list[Run], folder_of: Callable[[Run], Path], timeout: float
     worker is killed) is recorded here; the others go on. Ctrl-C cancels the running tasks."""
     import ray
 
-    remote, cpus, gpus, resources = _remote(task, env, cpus_per_task, resources)
-    total = ray.cluster_resources()
-    wanted = {k: v for k, v in {"CPU": cpus, "GPU": gpus, **resources}.items() if v}
-    room = [int(total.get(k, 0) // v) for k, v in wanted.items() if v]
-    if min(room, default=1) < 1:
-        raise InputError(f"the Ray cluster has no room for a task of {wanted} (it has {total})")
-    slots = min(room, default=len(runs)) or 1
+    remote, room = _remote(task, env, cpus_per_task, resources)
+    slots = (len(runs) if room is None else room) or 1
     waiting = list(runs)
     running: dict[Any, tuple[Run, float]] = {}
     try:
@@ -618,6 +619,7 @@ def map_on_ray(task: Callable, args: list[tuple], *, address: str | None = None,
     with ray_session(address):
         import ray
 
+        # all submitted at once: Ray queues those the cluster has no room for yet
         remote = _remote(task, task_env(cpus_per_task, device, serial_order()), cpus_per_task, resources)[0]
         pending = {remote.remote(*a): i for i, a in enumerate(args)}
         results: dict[int, Any] = {}
@@ -630,7 +632,8 @@ def map_on_ray(task: Callable, args: list[tuple], *, address: str | None = None,
                 except ray.exceptions.RayTaskError as exc:  # the task's own exception, as the serial path raises it
                     raise (exc.cause if exc.cause is not None else exc) from None
                 except ray.exceptions.RayError as exc:  # the worker died (killed, out of memory, node lost)
-                    raise ClflowError(f"a Ray task died: {type(exc).__name__}: {' '.join(str(exc).split())[:300]}") from None
+                    cause = " ".join(str(exc).split())[:300]
+                    raise ClflowError(f"a Ray task died: {type(exc).__name__}: {cause}") from None
                 done(index, results[index])
         finally:
             for ref in pending:

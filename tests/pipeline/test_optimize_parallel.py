@@ -105,3 +105,25 @@ def test_parallel_without_ray_is_one_line(quick_demo, tmp_path, monkeypatch):
     assert not (tmp_path / "out").exists()
     result = CliRunner().invoke(cli, ["optimize", str(quick_demo / "config.yaml"), "--address", "auto"])
     assert result.exit_code == 2 and "go with --parallel" in result.output
+
+
+@pytest.mark.slow  # a local Ray's start
+def test_map_on_ray_keeps_the_order_raises_a_tasks_error_and_refuses_what_cannot_run():
+    pytest.importorskip("ray")
+    from clflow.errors import InputError
+    from clflow.sweep import map_on_ray, ray_session
+
+    def sub(a, b):
+        return a - b
+
+    def div(a, b):
+        return a / b
+
+    with ray_session():
+        seen = []
+        assert map_on_ray(sub, [(5, 1), (9, 1), (1, 1)], done=lambda i, r: seen.append(i)) == [4, 8, 0]
+        assert sorted(seen) == [0, 1, 2]
+        with pytest.raises(ZeroDivisionError):  # the task's own exception, as in this process
+            map_on_ray(div, [(1, 1), (1, 0)])
+        with pytest.raises(InputError, match="no room for a task"):
+            map_on_ray(sub, [(1, 1)], resources={"GPU": 1})
