@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
-from clflow.errors import InputError
+from clflow.errors import ClflowError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -467,14 +467,21 @@ def ray_missing(instead: str = "run the same spec in this process with --serial"
     return f"Ray is not installed: pip install 'clflow[sweep]' (or {instead})"
 
 
+def require_ray(instead: str | None = None) -> None:
+    """InputError (what to install, or ``instead``) when Ray cannot be imported."""
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        raise InputError(ray_missing(*([instead] if instead else []))) from None
+
+
 def start_ray(address: str | None, cpus: int | None = None, instead: str | None = None):
     """Join the cluster at ``address`` (``ray://host:port`` or ``auto``), or start an embedded
     local Ray with this machine's cores, no dashboard and a small object store. Returns
     True when it started one (so the caller shuts it down)."""
-    try:
-        import ray
-    except ImportError:
-        raise InputError(ray_missing(*([instead] if instead else []))) from None
+    require_ray(instead)
+    import ray
+
     if ray.is_initialized():
         return False
     quiet = {"log_to_driver": False, "configure_logging": True, "logging_level": logging.WARNING}
@@ -489,6 +496,25 @@ def start_ray(address: str | None, cpus: int | None = None, instead: str | None 
     return True
 
 
+def _remote(task: Callable, env: dict[str, str], cpus_per_task: int, resources: dict[str, float] | None):
+    """``task`` as a Ray remote function of ``resources`` (CPU and GPU among them; CPU
+    default ``cpus_per_task``) with ``env``, never retried; and how many such tasks the
+    cluster runs at once (None: no limit); InputError when it has no room for one."""
+    import ray
+
+    resources = dict(resources or {})
+    gpus = resources.pop("GPU", 0)
+    cpus = resources.pop("CPU", cpus_per_task)
+    remote = ray.remote(task).options(num_cpus=cpus, num_gpus=gpus, resources=resources or None, max_retries=0,
+                                      runtime_env={"env_vars": env})
+    total = ray.cluster_resources()
+    wanted = {k: v for k, v in {"CPU": cpus, "GPU": gpus, **resources}.items() if v}
+    room = [int(total.get(k, 0) // v) for k, v in wanted.items()]
+    if min(room, default=1) < 1:
+        raise InputError(f"the Ray cluster has no room for a task of {wanted} (it has {total})")
+    return remote, min(room, default=None)
+
+
 def run_on_ray(runs: list[Run], folder_of: Callable[[Run], Path], timeout: float | None,
                on_done: Callable[[dict], None], *, env: dict[str, str], cpus_per_task: int = 1,
                resources: dict[str, float] | None = None, task: Callable = _ray_task,
@@ -499,17 +525,8 @@ def run_on_ray(runs: list[Run], folder_of: Callable[[Run], Path], timeout: float
     worker is killed) is recorded here; the others go on. Ctrl-C cancels the running tasks."""
     import ray
 
-    resources = dict(resources or {})
-    gpus = resources.pop("GPU", 0)
-    cpus = resources.pop("CPU", cpus_per_task)
-    remote = ray.remote(task).options(num_cpus=cpus, num_gpus=gpus, resources=resources or None, max_retries=0,
-                                      runtime_env={"env_vars": env})
-    total = ray.cluster_resources()
-    wanted = {k: v for k, v in {"CPU": cpus, "GPU": gpus, **resources}.items() if v}
-    room = [int(total.get(k, 0) // v) for k, v in wanted.items() if v]
-    if min(room, default=1) < 1:
-        raise InputError(f"the Ray cluster has no room for a task of {wanted} (it has {total})")
-    slots = min(room, default=len(runs)) or 1
+    remote, room = _remote(task, env, cpus_per_task, resources)
+    slots = (len(runs) if room is None else room) or 1
     waiting = list(runs)
     running: dict[Any, tuple[Run, float]] = {}
     try:
@@ -589,6 +606,94 @@ def sysid_on_ray(*, address: str | None = None, cpus_per_task: int = 1, resource
                 ray.shutdown()
 
     return run_cases
+
+
+def map_on_ray(task: Callable, args: list[tuple], *, address: str | None = None, cpus_per_task: int = 1,
+               resources: dict[str, float] | None = None, device: str | None = None,
+               done: Callable[[int, Any], None] = lambda index, result: None) -> list:
+    """``task(*a)`` for each ``a`` of ``args`` as Ray tasks (a local Ray, or the cluster at
+    ``address``), each with the serial path's P2G sum order and torch threads
+    (:func:`serial_order`), so each gives the bits it gives in this process. Returns the
+    results in ``args``' order (``done(index, result)`` as each arrives); a task's exception
+    is raised here, the others cancelled."""
+    with ray_session(address):
+        import ray
+
+        # all submitted at once: Ray queues those the cluster has no room for yet
+        remote = _remote(task, task_env(cpus_per_task, device, serial_order()), cpus_per_task, resources)[0]
+        pending = {remote.remote(*a): i for i, a in enumerate(args)}
+        results: dict[int, Any] = {}
+        try:
+            while pending:
+                (ref,), _ = ray.wait(list(pending), num_returns=1)
+                index = pending.pop(ref)
+                try:
+                    results[index] = ray.get(ref)
+                except ray.exceptions.RayTaskError as exc:  # the task's own exception, as the serial path raises it
+                    raise (exc.cause if exc.cause is not None else exc) from None
+                except ray.exceptions.RayError as exc:  # the worker died (killed, out of memory, node lost)
+                    cause = " ".join(str(exc).split())[:300]
+                    raise ClflowError(f"a Ray task died: {type(exc).__name__}: {cause}") from None
+                done(index, results[index])
+        finally:
+            for ref in pending:
+                with contextlib.suppress(Exception):
+                    ray.cancel(ref, force=True)
+        return [results[i] for i in range(len(args))]
+
+
+@contextlib.contextmanager
+def ray_session(address: str | None = None) -> Iterator[None]:
+    """Ray for what runs inside (:func:`start_ray`; one already started is used), shut down
+    after when started here: one session for all of a run's task maps (their workers reused)."""
+    started = start_ray(address, instead="drop --parallel")
+    try:
+        yield
+    finally:
+        if started:
+            import ray
+
+            ray.shutdown()
+
+
+def _polish_task(opt, begin, start: int, resume: bool) -> dict:
+    return opt.polish(begin, start, resume=resume)
+
+
+def starts_on_ray(**ray_options) -> Callable:
+    """An Optimization.map_starts (``clflow optimize --parallel``): each search start's polish a
+    Ray task (:func:`map_on_ray`, ``ray_options`` its keywords), its rows shown as it finishes."""
+
+    def map_starts(opt, begin, starts, resume: bool = False, budget: int | None = None) -> list[dict]:
+        starts = list(starts)
+
+        def finished(index: int, record: dict) -> None:
+            for row in record["state"]["history"][len(begin.history):]:
+                opt.progress(row)
+
+        return map_on_ray(_polish_task, [(opt, begin, k, resume) for k in starts], done=finished, **ray_options)
+
+    return map_starts
+
+
+def hypotheses_on_ray(**ray_options) -> Callable:
+    """A ``search_all`` of clflow.pipeline.hypotheses.choose_material (``clflow optimize
+    --parallel``): each material hypothesis' search a Ray task (:func:`map_on_ray`), its
+    samples shown as it finishes."""
+    from clflow.pipeline.hypotheses import search_hypothesis
+
+    def search_all(cfg, resume: bool = False, progress: Callable[[str, dict], None] | None = None,
+                   force_video: bool = False) -> list[dict]:
+        materials = list(cfg.optimize.materials)
+
+        def finished(index: int, found: dict) -> None:
+            for i, row in enumerate(found["state"].search if found["state"] is not None and progress else []):
+                progress(materials[index], {**row, "phase": "search", "iteration": i})
+
+        return map_on_ray(search_hypothesis, [(cfg, m, resume, None, force_video) for m in materials], done=finished,
+                          **ray_options)
+
+    return search_all
 
 
 # ------------------------------------------------------------------------------- the sweep

@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from clflow_cli.options import max_substeps_option, out_option, set_option
+from clflow_cli.sweep import parse_resources, with_ray_options
 
 
 @click.command("optimize")
@@ -19,7 +20,14 @@ from clflow_cli.options import max_substeps_option, out_option, set_option
 @click.option("--force-video", is_flag=True,
               help="Optimise even when the guidance checks fail (no motion, noise, a camera that does not fit); "
                    "the failures are warned about and recorded in metrics.json.")
-def optimize(config, resume, iterations, output, overrides, max_substeps, force_video):
+@click.option("--parallel", is_flag=True,
+              help="Run the material hypotheses' searches and the search starts' polishes as Ray tasks "
+                   "(clflow[sweep]; a local Ray on this machine's cores, or --address); the results are the serial "
+                   "path's.")
+@with_ray_options
+@click.pass_context
+def optimize(ctx, config, resume, iterations, output, overrides, max_substeps, force_video, parallel, address,
+             cpus_per_task, resources):
     """Optimise the material parameters of CONFIG (YAML/JSON scene config) so that the
     simulated optical flow matches the guidance video's.
 
@@ -28,5 +36,11 @@ def optimize(config, resume, iterations, output, overrides, max_substeps, force_
     from clflow.pipeline.runs import run_optimization
     from clflow_cli.progress import iteration_bar, note
 
+    ray = None
+    if parallel:
+        ray = {"address": address, "cpus_per_task": cpus_per_task, "resources": parse_resources(resources),
+               "device": ctx.obj.device_spec if ctx.obj else None}
+    elif address or resources:
+        raise click.UsageError("--address and --resources go with --parallel")
     run_optimization(config, resume, iterations, output, overrides, max_substeps, force_video, echo=click.echo,
-                     note=note, bar=iteration_bar)
+                     note=note, bar=iteration_bar, parallel=ray)

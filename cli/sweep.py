@@ -61,8 +61,7 @@ def sweep(ctx, spec, output, serial, address, cpus_per_task, resources, timeout,
     on. Run the same command again to continue: finished runs are skipped."""
     from pathlib import Path
 
-    from clflow.errors import InputError
-    from clflow.sweep import load_spec, ray_missing
+    from clflow.sweep import load_spec, require_ray
     from clflow.sweep import sweep as run_sweep
 
     if serial and (address or resources):
@@ -70,10 +69,7 @@ def sweep(ctx, spec, output, serial, address, cpus_per_task, resources, timeout,
     needs = parse_resources(resources)
     parsed = load_spec(spec)  # all of it checked before any work
     if not serial:
-        try:
-            import ray  # noqa: F401
-        except ImportError:
-            raise InputError(ray_missing()) from None
+        require_ray()
     out = Path(output)
     click.echo(f"{len(parsed.runs)} runs{' (serial)' if serial else ''}; results in {out}", err=True)
     try:

@@ -20,7 +20,7 @@ import json
 import logging
 import shutil
 import time
-from typing import Callable
+from typing import Callable, Iterable, Iterator
 
 from clflow.errors import ClflowError, InputError
 from clflow.fileio import atomic_write_text
@@ -47,52 +47,75 @@ def hypothesis_config(cfg: SceneConfig, material: str) -> SceneConfig:
                                output=cfg.output / "hypotheses" / mat.name)
 
 
+def search_hypothesis(cfg: SceneConfig, material: str, resume: bool = False,
+                      progress: Callable[[str, dict], None] | None = None, force_video: bool = False) -> dict:
+    """The global search of hypothesis ``material`` of ``cfg`` (resolved; in its own folder,
+    the observed flow copied from ``cfg.output`` when it is there). Returns {"record": its
+    entry in hypotheses.json, "state": the optimiser state its search ended in (None when it
+    failed), "config": its config}; a failure other than the user's config is recorded."""
+    from clflow.pipeline.optimize import Optimization, observed_flow_cache
+    from clflow.pipeline.preflight import SubstepLimitError
+
+    hyp = hypothesis_config(cfg, material)
+    hyp.output.mkdir(parents=True, exist_ok=True)
+    for view in range(1 + len(cfg.more_views)):  # the observed flow is computed once for all
+        shared, own = observed_flow_cache(cfg, view), observed_flow_cache(hyp, view)
+        if shared.exists() and not own.exists():
+            shutil.copyfile(shared, own)
+    start = time.perf_counter()
+    try:
+        opt = Optimization(hyp, progress=(lambda row: progress(material, row)) if progress else None,
+                           force_video=force_video)
+        state = opt.load_state() if resume and opt.checkpoint.exists() else opt.initial_state()
+        if not state.searched:
+            state = opt.global_search(state)
+    except ClflowError as exc:  # no sample of this material ran: the others may
+        if isinstance(exc, InputError) and not isinstance(exc, SubstepLimitError):
+            raise  # the user's config: no hypothesis can fix that
+        log.warning("hypothesis %s failed: %s", material, exc)
+        return {"record": {"failed": str(exc), "seconds_this_run": time.perf_counter() - start}, "state": None,
+                "config": hyp}
+    finite = [r for r in state.search if r["loss"] is not None]
+    best = min(finite, key=lambda r: r["loss"])
+    log.info("hypothesis %s: best search loss %.4g at %s", material, best["loss"], best["params"])
+    record = {"loss": best["loss"], "parameters": best["params"], "samples": len(state.search),
+              "failed_samples": len(state.search) - len(finite), "seconds": sum(r["seconds"] for r in state.search),
+              "seconds_this_run": time.perf_counter() - start}
+    return {"record": record, "state": state, "config": hyp}
+
+
+def serial_hypotheses(cfg: SceneConfig, resume: bool = False, progress: Callable[[str, dict], None] | None = None,
+                      force_video: bool = False) -> Iterator[dict]:
+    """:func:`search_hypothesis` of each of ``optimize.material`` in turn, in this process."""
+    for material in cfg.optimize.materials:
+        yield search_hypothesis(cfg, material, resume, progress, force_video)
+
+
 def choose_material(cfg: SceneConfig, *, resume: bool = False,
-                    progress: Callable[[str, dict], None] | None = None, force_video: bool = False):
+                    progress: Callable[[str, dict], None] | None = None, force_video: bool = False,
+                    search_all: Callable[..., Iterable[dict]] = serial_hypotheses):
     """Search each of ``optimize.material``'s hypotheses and keep the best.
 
     Returns (the chosen hypothesis' config with output ``cfg.output``, the optimiser state
     its search ended in (the main run starts from it), the record written to
     ``output/hypotheses.json``: per material its best loss, parameters, samples and seconds,
     and the chosen one). ``progress(material, row)`` sees every search sample; a hypothesis
-    whose start needs more substeps than allowed is recorded as failed."""
-    from clflow.pipeline.optimize import Optimization, observed_flow_cache
-    from clflow.pipeline.preflight import SubstepLimitError
+    whose start needs more substeps than allowed is recorded as failed. ``search_all(cfg,
+    resume, progress, force_video)``: the results of :func:`search_hypothesis` for each
+    material in order (:func:`serial_hypotheses`, or as Ray tasks: clflow.sweep.hypotheses_on_ray)."""
+    from clflow.pipeline.optimize import observed_flow_cache
 
     cfg = resolve_material(cfg)
     cfg.output.mkdir(parents=True, exist_ok=True)
     record, states, configs = {}, {}, {}
-    for material in cfg.optimize.materials:
-        hyp = hypothesis_config(cfg, material)
-        hyp.output.mkdir(parents=True, exist_ok=True)
-        for view in range(1 + len(cfg.more_views)):  # the observed flow is computed once for all
-            shared, own = observed_flow_cache(cfg, view), observed_flow_cache(hyp, view)
-            if shared.exists() and not own.exists():
-                shutil.copyfile(shared, own)
-        start = time.perf_counter()
-        try:
-            opt = Optimization(hyp, progress=(lambda row, m=material: progress(m, row)) if progress else None,
-                               force_video=force_video)
-            state = opt.load_state() if resume and opt.checkpoint.exists() else opt.initial_state()
-            if not state.searched:
-                state = opt.global_search(state)
-        except ClflowError as exc:  # no sample of this material ran: the others may
-            if isinstance(exc, InputError) and not isinstance(exc, SubstepLimitError):
-                raise  # the user's config: no hypothesis can fix that
-            record[material] = {"failed": str(exc), "seconds_this_run": time.perf_counter() - start}
-            log.warning("hypothesis %s failed: %s", material, exc)
+    for material, found in zip(cfg.optimize.materials, search_all(cfg, resume, progress, force_video)):
+        record[material] = found["record"]
+        if found["state"] is None:
             continue
         for view in range(1 + len(cfg.more_views)):
             if not observed_flow_cache(cfg, view).exists():
-                shutil.copyfile(observed_flow_cache(hyp, view), observed_flow_cache(cfg, view))
-        finite = [r for r in state.search if r["loss"] is not None]
-        best = min(finite, key=lambda r: r["loss"])
-        record[material] = {"loss": best["loss"], "parameters": best["params"], "samples": len(state.search),
-                            "failed_samples": len(state.search) - len(finite),
-                            "seconds": sum(r["seconds"] for r in state.search),
-                            "seconds_this_run": time.perf_counter() - start}
-        states[material], configs[material] = state, hyp
-        log.info("hypothesis %s: best search loss %.4g at %s", material, best["loss"], best["params"])
+                shutil.copyfile(observed_flow_cache(found["config"], view), observed_flow_cache(cfg, view))
+        states[material], configs[material] = found["state"], found["config"]
     ran = [m for m in record if "loss" in record[m]]
     if not ran:
         raise ClflowError("no material hypothesis could be simulated: " +
@@ -104,4 +127,4 @@ def choose_material(cfg: SceneConfig, *, resume: bool = False,
     return dataclasses.replace(configs[chosen], output=cfg.output), states[chosen], summary
 
 
-__all__ = ["choose_material", "hypothesis_config"]
+__all__ = ["choose_material", "hypothesis_config", "search_hypothesis", "serial_hypotheses"]

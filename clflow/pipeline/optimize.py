@@ -327,9 +327,17 @@ class Optimization:
         self.views = self._views()
         self.guidance_warnings = self.check_guidance(force_video)
         self.checkpoint = cfg.output / "checkpoint.json"
+        self.estimator_error_file = cfg.output / "estimator_error.npz"  # a start's polish: its own
+        # polishes every search start (records of Optimization.polish, in start order): one after
+        # another here, or as Ray tasks (clflow.sweep.starts_on_ray: optimize --parallel)
+        self.map_starts: Callable[..., list[dict]] = serial_starts
         # (z, frames, variables, substeps) -> (Evaluation, J) of the last two Jacobians: the best
         # point's and the last step's, so that a rejected step goes back without new runs
         self._lm_cache: dict[tuple, tuple[Evaluation, torch.Tensor]] = {}
+
+    def __getstate__(self) -> dict:
+        """What a Ray task gets (clflow.sweep): no progress callback or cached runs, starts polished in place."""
+        return {**self.__dict__, "progress": _quiet, "map_starts": serial_starts, "_lm_cache": {}}
 
     def _views(self) -> list[View]:
         """Every guidance view, its videos and masks checked before any optical flow is computed."""
@@ -417,9 +425,10 @@ class Optimization:
             self.restore_calibration(state)
         return state
 
-    def save_state(self, state: OptimizerState) -> None:
-        atomic_write_text(self.checkpoint, json.dumps({"config": str(self.cfg.source), "state": asdict(state),
-                                                       "config_digests": config_digests(self.cfg)}))
+    def save_state(self, state: OptimizerState, path: Path | None = None, **extra) -> None:
+        """``state`` into the checkpoint (or ``path``, with ``extra`` entries)."""
+        atomic_write_text(path or self.checkpoint, json.dumps({"config": str(self.cfg.source), "state": asdict(state),
+                                                               "config_digests": config_digests(self.cfg), **extra}))
 
     def values(self, z: dict[str, float]) -> dict[str, float]:
         """The value of every variable in z: material parameters in SI, velocity components in m/s."""
@@ -492,19 +501,26 @@ class Optimization:
         calibrated_at = {"z": dict(state.z), "frames": frames}
         if state.calibrated_at == calibrated_at:  # back at the point measured last (a rejected step)
             return state
+        errors = []
         for view, error in zip(self.views, self.estimator_errors(result, frames)):
             full = torch.zeros_like(view.observed) if view.estimator_error is None else view.estimator_error.clone()
             full[:frames] = error
-            view.estimator_error = full
+            errors.append(full.numpy())
+        self.set_estimator_errors(errors)
+        self.save_calibration(calibrated_at)
+        return dataclasses.replace(state, calibrated_at=calibrated_at)
+
+    def set_estimator_errors(self, errors: list[np.ndarray] | None) -> None:
+        """Each view's estimator error [T, H, W, 2] (None: none), the cached evaluations rescored."""
+        for i, view in enumerate(self.views):
+            view.estimator_error = None if errors is None else torch.from_numpy(np.array(errors[i]))
+        self._lm_cache = {key: (self.rescored(cached), J) for key, (cached, J) in self._lm_cache.items()}
+
+    def save_calibration(self, calibrated_at: dict) -> None:
+        """The views' estimator errors, measured at ``calibrated_at``, into ``estimator_error_file``."""
         with atomic_path(self.estimator_error_file) as tmp, open(tmp, "wb") as fh:
             np.savez(fh, key=np.array(json.dumps(calibrated_at, sort_keys=True)),
                      **{f"view_{i}": view.estimator_error.numpy() for i, view in enumerate(self.views)})
-        self._lm_cache = {key: (self.rescored(cached), J) for key, (cached, J) in self._lm_cache.items()}
-        return dataclasses.replace(state, calibrated_at=calibrated_at)
-
-    @property
-    def estimator_error_file(self) -> Path:
-        return self.cfg.output / "estimator_error.npz"
 
     def restore_calibration(self, state: OptimizerState) -> None:
         """Each view's estimator error as it was when ``state`` was saved (on --resume): from
@@ -513,8 +529,7 @@ class Optimization:
         try:
             with np.load(self.estimator_error_file) as data:
                 if str(data["key"]) == key:
-                    for i, view in enumerate(self.views):
-                        view.estimator_error = torch.from_numpy(data[f"view_{i}"])
+                    self.set_estimator_errors([data[f"view_{i}"] for i in range(len(self.views))])
                     return
         except (OSError, KeyError, ValueError):
             pass
@@ -617,20 +632,83 @@ class Optimization:
         self.save_state(state)
         return state
 
-    def next_start(self, state: OptimizerState) -> OptimizerState:
-        """After the polish of start ``len(state.polished)`` (its best point recorded): the next
-        start, or once all are polished the best of them, with Levenberg-Marquardt's memory reset."""
-        polished = [*state.polished, {"z": dict(state.best["z"]), "loss": state.best["loss"],
-                                      "params": self.values(state.best["z"]), "substeps": state.substeps}]
-        if len(polished) < len(state.starts):  # its own time step: a stiff start must not slow the next
-            z, substeps = dict(state.starts[len(polished)]), 1
-        else:
-            kept = min(polished, key=lambda r: r["loss"])
-            log.info("kept start %d of %d: %s (loss %.4g; the others %s)", polished.index(kept), len(polished),
-                     kept["params"], kept["loss"], ", ".join(f"{r['loss']:.4g}" for r in polished if r is not kept))
-            z, substeps = dict(kept["z"]), kept["substeps"]
-        return dataclasses.replace(state, z=z, polished=polished, best=None, damping=LM_DAMPING, converged=False,
-                                   substeps=substeps)
+    def polish(self, begin: OptimizerState, start: int, resume: bool = False, budget: int | None = None) -> dict:
+        """Levenberg-Marquardt from search start ``start`` (``begin``: the state the search
+        ended in) for ``search.start_iterations`` iterations or until it converges, as if no
+        other start ran: its own time step (substeps from 1; the first start keeps begin's),
+        calibration, rollbacks and horizon schedule. Checkpointed in ``output/starts/<start>/``
+        (``resume`` goes on from there; ``budget``: at most this many iterations now).
+        Returns {"state": its end state (asdict), "errors": each view's estimator error
+        [T, H, W, 2] at its end (None without flow.bias_correction), "finished",
+        "iterations_here"}."""
+        folder = self.cfg.output / "starts" / str(start)
+        z0 = dict(begin.starts[start])
+        main_file, self.estimator_error_file = self.estimator_error_file, folder / "estimator_error.npz"
+        try:
+            self._lm_cache = {}
+            self.set_estimator_errors(None)  # nothing measured yet (a saved polish restores its own)
+            state = self.load_polish(folder / "checkpoint.json", z0) if resume else None
+            if state is None:
+                state = dataclasses.replace(begin, z=z0, substeps=begin.substeps if start == 0 else 1, best=None,
+                                            damping=LM_DAMPING, converged=False, calibrated_at=None,
+                                            history=list(begin.history), rollbacks=list(begin.rollbacks))
+            failures, done = 0, 0
+            last = state.history[-1] if state.history else {}
+            finished = last.get("start") == start and bool(last.get("start_done"))
+            while not finished and (budget is None or done < budget):
+                state, failures, row = self.step(state, failures, start)
+                if row is None:
+                    continue
+                finished, done = bool(row.get("start_done")), done + 1
+                self.save_state(state, folder / "checkpoint.json", start=z0)
+                self.progress(row)
+            errors = None if state.calibrated_at is None else [v.estimator_error.numpy() for v in self.views]
+        finally:
+            self.estimator_error_file = main_file
+        return {"state": asdict(state), "errors": errors, "finished": finished, "iterations_here": done}
+
+    def load_polish(self, checkpoint: Path, z0: dict[str, float]) -> OptimizerState | None:
+        """A start's polish as saved in ``checkpoint`` (its calibration restored), None when
+        there is none of this config and start point."""
+        try:
+            data = json.loads(checkpoint.read_text())
+            state = OptimizerState(**data["state"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+        if data.get("start") != z0 or data.get("config_digests") != config_digests(self.cfg):
+            return None
+        if state.calibrated_at is not None:
+            self.restore_calibration(state)
+        return state
+
+    def keep_best_start(self, begin: OptimizerState, records: list[dict]) -> OptimizerState:
+        """The state after every start's polish (``records`` of :meth:`polish`, in start
+        order, from ``begin``): their rows and rollbacks one after another, iterations
+        numbered on; each start's best point in ``polished``; z at the best of them, with its
+        substeps and calibration, and Levenberg-Marquardt's memory reset."""
+        history, rollbacks, polished, ends = list(begin.history), list(begin.rollbacks), [], []
+        iteration, step_scale = begin.iteration, begin.step_scale
+        for record in records:
+            end = OptimizerState(**record["state"])
+            shift = iteration - begin.iteration
+            history += [{**r, "iteration": r["iteration"] + shift} for r in end.history[len(begin.history):]]
+            rollbacks += [{**r, "iteration": r["iteration"] + shift} for r in end.rollbacks[len(begin.rollbacks):]]
+            iteration += end.iteration - begin.iteration
+            step_scale *= end.step_scale / begin.step_scale  # halved per failure: powers of two, exact
+            polished.append({"z": dict(end.best["z"]), "loss": end.best["loss"], "params": self.values(end.best["z"]),
+                             "substeps": end.substeps})
+            ends.append(end)
+        index = min(range(len(polished)), key=lambda i: polished[i]["loss"])
+        kept = polished[index]
+        log.info("kept start %d of %d: %s (loss %.4g; the others %s)", index, len(polished), kept["params"],
+                 kept["loss"], ", ".join(f"{r['loss']:.4g}" for r in polished if r is not kept))
+        state = dataclasses.replace(begin, iteration=iteration, history=history, rollbacks=rollbacks, polished=polished,
+                                    z=dict(kept["z"]), substeps=kept["substeps"], best=None, damping=LM_DAMPING,
+                                    converged=False, step_scale=step_scale, calibrated_at=ends[index].calibrated_at)
+        self.set_estimator_errors(records[index]["errors"])
+        if state.calibrated_at is not None:
+            self.save_calibration(state.calibrated_at)
+        return state
 
     # -- Levenberg-Marquardt ----------------------------------------------------------------
 
@@ -762,89 +840,108 @@ class Optimization:
         """Optimise for the velocity phase's and ``optimize.iterations`` iterations
         (``stop_after``: at most this many in this call, for tests of resuming), from the
         checkpoint (``resume``), else ``start``, else the initial state; returns the final
-        state. Each phase starts with fresh Adam moments and step scale."""
+        state. Each phase starts with fresh Adam moments and step scale. The starts'
+        polishes (``optimize.search.starts``) run through ``self.map_starts``."""
         opt = self.cfg.optimize
         self.cfg.output.mkdir(parents=True, exist_ok=True)
         if resume and self.checkpoint.exists():
             state = self.load_state()
         else:
             state = start or self.initial_state()
-        lm = self.cfg.optimize.method == "levenberg_marquardt"
         failures, done_here = 0, 0
         while state.iteration < self.total_iterations and (stop_after is None or done_here < stop_after):
-            phase, iteration, _ = phase_of(opt, state.iteration)
-            if phase == "main" and opt.search is not None and not state.searched:
+            if phase_of(opt, state.iteration)[0] == "main" and opt.search is not None and not state.searched:
                 state = self.global_search(state)  # after the velocity phase: from its estimate
-            if phase == "velocity":
-                frames, variables = opt.estimate_velocity_frames, VELOCITY_COMPONENTS
-            else:
-                frames, variables = horizon(self.cfg, iteration), self.main_variables
-            start = time.perf_counter()
-            try:
-                if lm:
-                    result, J = self.jacobian(state.z, frames, state.substeps, variables)
-                else:
-                    result = self.evaluate(state.z, frames, min_substeps=state.substeps, variables=variables)
-            except (FloatingPointError, ClflowError) as exc:
-                failures += 1
-                if failures > MAX_FAILURES or state.iteration == 0 and failures > 1:
-                    good = (f"last good parameters: {self.values(state.history[-1]['z'])}" if state.history else
-                            f"the initial parameters {self.values(state.z)} fail")
-                    raise ClflowError(f"optimisation stopped at iteration {state.iteration}: {exc} "
-                                      f"({failures} failed attempts); {good}")
-                previous = state.history[-1]["z"] if state.history else state.z
-                log.warning("iteration %d failed (%s): back to the last good parameters, half the step, "
-                            "momentum dropped", state.iteration, exc)
-                rollback = {"iteration": state.iteration, "phase": phase, "reason": str(exc),
-                            "params": self.values(state.z), "back_to": self.values(previous)}
-                state = dataclasses.replace(state, z=dict(previous), m={n: 0.0 for n in state.m},
-                                            step_scale=state.step_scale / 2, momentum_steps=0,
-                                            damping=state.damping * 4.0, rollbacks=[*state.rollbacks, rollback])
+            if len(state.polished) < len(state.starts):
+                budget = None if stop_after is None else stop_after - done_here
+                polish_all = self.map_starts if budget is None else serial_starts  # stop_after: tests, here
+                records = polish_all(self, state, range(len(state.starts)), resume, budget)
+                done_here += sum(r["iterations_here"] for r in records)
+                if not all(r["finished"] for r in records):  # stopped by stop_after
+                    return state
+                state = self.keep_best_start(state, records)
+                self.save_state(state)
                 continue
-            failures = 0
-            row = {"iteration": state.iteration, "phase": phase, "loss": result.loss, "frames": frames,
-                   "z": dict(state.z), "params": self.values(state.z), "substeps": result.substeps,
-                   "seconds": time.perf_counter() - start}
-            previous = state
-            calibrate = self.corrects_bias and phase == "main"
-            if lm:
-                state = self.lm_step(state, result, J, frames, variables, calibrate=calibrate)
-            else:
-                if calibrate:  # the next iteration fits the error measured here
-                    state = self.calibrate(state, result, frames)
-                state = self.adam_step(state, result.grads)
-            if state.calibrated_at is not previous.calibrated_at:
-                row["calibrated"] = True
-            if phase == "main":  # the local phase stays in the search's box
-                box = self.local_box()
-                state.z = {n: min(max(v, box[n][0]), box[n][1]) if n in box else v for n, v in state.z.items()}
-            state.substeps = max(state.substeps, result.substeps)
-            converged = lm and phase == "main" and (state.converged or (
-                state.best is not None and state.best is not previous.best
-                and max(abs(state.z[n] - state.best["z"][n]) for n in variables) < LM_TOLERANCE))
-            polishing = lm and phase == "main" and len(state.polished) < len(state.starts)
-            if polishing:  # a start's polish ends after its iterations or when it converges
-                row["start"] = len(state.polished)
-                done = 1 + sum(1 for r in state.history if r.get("start") == row["start"])
-                if converged or done >= opt.search.start_iterations:
-                    row["start_done"] = True
-                    # a start that converged early leaves its unspent iterations to the kept one
-                    state = self.next_start(dataclasses.replace(state, converged=False))
-            elif converged:
-                row["converged"] = True  # the step would change nothing that matters: stop here
-                state = dataclasses.replace(state, iteration=self.total_iterations)
-            elif lm and phase == "velocity" and state.converged:  # on to the main phase
-                row["converged"] = True
-                state = dataclasses.replace(state, iteration=opt.estimate_velocity_iterations)
-            state.history.append(row)
-            if phase_of(opt, state.iteration)[0] != phase:
-                state = dataclasses.replace(state, m={n: 0.0 for n in state.m}, v={n: 0.0 for n in state.v},
-                                            momentum_steps=0, step_scale=1.0, damping=LM_DAMPING, best=None,
-                                            converged=False)
-            self.save_state(state)
-            self.progress(row)
-            done_here += 1
+            state, failures, row = self.step(state, failures)
+            if row is not None:
+                self.save_state(state)
+                self.progress(row)
+                done_here += 1
         return state
+
+    def step(self, state: OptimizerState, failures: int, start: int | None = None
+             ) -> tuple[OptimizerState, int, dict | None]:
+        """One iteration from ``state`` (``start``: of that start's polish), ``failures`` the
+        consecutive failed ones before it. Returns the new state, the failures, and the
+        iteration's history row (None when it failed and was rolled back)."""
+        opt = self.cfg.optimize
+        lm = opt.method == "levenberg_marquardt"
+        phase, iteration, _ = phase_of(opt, state.iteration)
+        if phase == "velocity":
+            frames, variables = opt.estimate_velocity_frames, VELOCITY_COMPONENTS
+        else:
+            frames, variables = horizon(self.cfg, iteration), self.main_variables
+        began = time.perf_counter()
+        try:
+            if lm:
+                result, J = self.jacobian(state.z, frames, state.substeps, variables)
+            else:
+                result = self.evaluate(state.z, frames, min_substeps=state.substeps, variables=variables)
+        except (FloatingPointError, ClflowError) as exc:
+            failures += 1
+            # a start's polish goes back within its own rows only (else to its start point)
+            own = [r for r in state.history if start is None or r.get("start") == start]
+            if failures > MAX_FAILURES or state.iteration == 0 and not start and failures > 1:
+                good = (f"last good parameters: {self.values(own[-1]['z'])}" if own else
+                        f"the initial parameters {self.values(state.z)} fail")
+                raise ClflowError(f"optimisation stopped at iteration {state.iteration}: {exc} "
+                                  f"({failures} failed attempts); {good}")
+            previous = own[-1]["z"] if own else state.z
+            log.warning("iteration %d failed (%s): back to the last good parameters, half the step, "
+                        "momentum dropped", state.iteration, exc)
+            rollback = {"iteration": state.iteration, "phase": phase, "reason": str(exc),
+                        "params": self.values(state.z), "back_to": self.values(previous)}
+            state = dataclasses.replace(state, z=dict(previous), m={n: 0.0 for n in state.m},
+                                        step_scale=state.step_scale / 2, momentum_steps=0,
+                                        damping=state.damping * 4.0, rollbacks=[*state.rollbacks, rollback])
+            return state, failures, None
+        row = {"iteration": state.iteration, "phase": phase, "loss": result.loss, "frames": frames,
+               "z": dict(state.z), "params": self.values(state.z), "substeps": result.substeps,
+               "seconds": time.perf_counter() - began}
+        previous = state
+        calibrate = self.corrects_bias and phase == "main"
+        if lm:
+            state = self.lm_step(state, result, J, frames, variables, calibrate=calibrate)
+        else:
+            if calibrate:  # the next iteration fits the error measured here
+                state = self.calibrate(state, result, frames)
+            state = self.adam_step(state, result.grads)
+        if state.calibrated_at is not previous.calibrated_at:
+            row["calibrated"] = True
+        if phase == "main":  # the local phase stays in the search's box
+            box = self.local_box()
+            state.z = {n: min(max(v, box[n][0]), box[n][1]) if n in box else v for n, v in state.z.items()}
+        state.substeps = max(state.substeps, result.substeps)
+        converged = lm and phase == "main" and (state.converged or (
+            state.best is not None and state.best is not previous.best
+            and max(abs(state.z[n] - state.best["z"][n]) for n in variables) < LM_TOLERANCE))
+        if start is not None:  # a start's polish ends after its iterations or when it converges
+            row["start"] = start
+            done = 1 + sum(1 for r in state.history if r.get("start") == start)
+            if converged or done >= opt.search.start_iterations:
+                row["start_done"] = True
+        elif converged:
+            row["converged"] = True  # the step would change nothing that matters: stop here
+            state = dataclasses.replace(state, iteration=self.total_iterations)
+        elif lm and phase == "velocity" and state.converged:  # on to the main phase
+            row["converged"] = True
+            state = dataclasses.replace(state, iteration=opt.estimate_velocity_iterations)
+        state.history.append(row)
+        if phase_of(opt, state.iteration)[0] != phase:
+            state = dataclasses.replace(state, m={n: 0.0 for n in state.m}, v={n: 0.0 for n in state.v},
+                                        momentum_steps=0, step_scale=1.0, damping=LM_DAMPING, best=None,
+                                        converged=False)
+        return state, 0, row
 
     # -- results -------------------------------------------------------------------------
 
@@ -954,6 +1051,22 @@ class Optimization:
                                   sim_frames[t]], 1) for t in range(self.frames)]
         write_video(out / "comparison.mp4", np.stack(panels), self.cfg.simulation.fps)
         return metrics
+
+
+def _quiet(row: dict) -> None:
+    """No progress shown."""
+
+
+def serial_starts(opt: Optimization, begin: OptimizerState, starts, resume: bool = False,
+                  budget: int | None = None) -> list[dict]:
+    """Polish each of ``starts`` (indices into begin.starts) one after another in this process
+    (``budget``: at most this many iterations in all); records of Optimization.polish."""
+    records = []
+    for k in starts:
+        records.append(opt.polish(begin, k, resume=resume, budget=budget))
+        if budget is not None:
+            budget -= records[-1]["iterations_here"]
+    return records
 
 
 def learning_rate(cfg: SceneConfig, name: str) -> float:

@@ -220,7 +220,8 @@ def format_row(row: dict | None) -> str:
         return ""
     params = " ".join(f"{name}={value:.4g}" for name, value in row["params"].items())
     loss = "failed" if row["loss"] is None else f"{row['loss']:.4g}"
-    return f"loss {loss}  {params}  {row['seconds']:.1f} s/it"
+    start = f"start {row['start'] + 1}: " if "start" in row else ""  # a polish: iterations counted per start
+    return f"{start}loss {loss}  {params}  {row['seconds']:.1f} s/it"
 
 
 @contextlib.contextmanager
@@ -241,16 +242,38 @@ def run_optimization(config_path: str | Path, resume: bool = False, iterations: 
                      output: str | Path | None = None, overrides: tuple[str, ...] = (),
                      max_substeps: int | None = None, force_video: bool = False, *,
                      echo: Callable[[str], None] = _silent, note: Callable[[str], None] = _silent,
-                     bar: Callable[[int, int], ContextManager[Callable[[dict], None]]] | None = None) -> dict:
+                     bar: Callable[[int, int], ContextManager[Callable[[dict], None]]] | None = None,
+                     parallel: dict | None = None) -> dict:
     """Load the config (``overrides``: ``KEY=VALUE``), generate its guidance video if it asks
     for one, choose among its material hypotheses, optimise (``bar(total, done)``: the
     iterations' progress, default :func:`iteration_lines`), write the results, run.json and
-    the report; returns the metrics. ``resume`` continues from output/checkpoint.json."""
-    from clflow.limits import check_output
-    from clflow.pipeline.optimize import Optimization, parameter_unit
+    the report; returns the metrics. ``resume`` continues from output/checkpoint.json.
+    ``parallel``: the material hypotheses' searches and the search starts' polishes run as
+    Ray tasks (clflow.sweep.map_on_ray's keywords: address, cpus_per_task, resources,
+    device), with the serial path's results."""
     from clflow.scene.config import load_config
 
+    if parallel is not None:
+        from clflow.sweep import require_ray
+
+        require_ray("drop --parallel")
     cfg = load_config(config_path, overrides)
+    with contextlib.ExitStack() as stack:
+        search = cfg.optimize.search
+        if parallel is not None and (cfg.optimize.materials or search is not None and search.starts > 1):
+            from clflow.sweep import ray_session
+
+            stack.enter_context(ray_session(parallel.get("address")))  # one Ray for all of the run's tasks
+        return _optimize(cfg, config_path, resume, iterations, output, max_substeps, force_video, echo, note, bar,
+                         parallel)
+
+
+def _optimize(cfg, config_path, resume, iterations, output, max_substeps, force_video, echo, note, bar,
+              parallel) -> dict:
+    """run_optimization's work once its config is loaded."""
+    from clflow.limits import check_output
+    from clflow.pipeline.optimize import Optimization, parameter_unit
+
     if iterations is not None:
         cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=iterations))
     if output is not None:
@@ -270,8 +293,14 @@ def run_optimization(config_path: str | Path, resume: bool = False, iterations: 
         def searched(material: str, row: dict) -> None:
             note(f"{material}: search {row['iteration'] + 1}/{search.samples}: {format_row(row)}")
 
+        search_all = {}
+        if parallel is not None:
+            from clflow.sweep import hypotheses_on_ray
+
+            search_all = {"search_all": hypotheses_on_ray(**parallel)}
         try:
-            cfg, start, hypotheses = choose_material(cfg, resume=resume, progress=searched, force_video=force_video)
+            cfg, start, hypotheses = choose_material(cfg, resume=resume, progress=searched, force_video=force_video,
+                                                     **search_all)
         except KeyboardInterrupt:
             raise KeyboardInterrupt(f"interrupted while searching the material hypotheses (each saves its samples "
                                     f"in {cfg.output / 'hypotheses'}); continue with `clflow optimize "
@@ -280,6 +309,10 @@ def run_optimization(config_path: str | Path, resume: bool = False, iterations: 
             f"{m} {r['loss']:.4g}" if "loss" in r else f"{m} failed" for m, r in hypotheses["hypotheses"].items())
             + ")")
     opt = Optimization(cfg, hypotheses=hypotheses, force_video=force_video)  # loads the scene, runs the material query, computes the video's flow
+    if parallel is not None:
+        from clflow.sweep import starts_on_ray
+
+        opt.map_starts = starts_on_ray(**parallel)
     total = opt.total_iterations  # the velocity phase's (optimize.estimate_velocity) and the main phase's
     done = opt.load_state().iteration if resume and opt.checkpoint.exists() else 0
     with (bar or (lambda t, d: iteration_lines(t, d, note)))(total, done) as advance:
