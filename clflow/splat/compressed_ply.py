@@ -168,9 +168,9 @@ def save_compressed_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
 
 def is_compressed_ply(path: str | os.PathLike) -> bool:
     """Whether the PLY file at ``path`` has the compressed layout (packed vertices)."""
-    from clflow.splat.ply import read_ply_vertices
+    from clflow.splat.ply import ply_vertex_properties
 
-    return "packed_position" in read_ply_vertices(path).dtype.names
+    return "packed_position" in ply_vertex_properties(path)
 
 
 def position_error(path: str | os.PathLike) -> float:

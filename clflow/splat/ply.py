@@ -63,6 +63,22 @@ def read_ply_vertices(path: str | os.PathLike) -> np.ndarray:
     return read_ply_elements(path, ("vertex",))["vertex"]
 
 
+def ply_vertex_properties(path: str | os.PathLike) -> list[str]:
+    """The vertex element's property names, read from the header alone (the first
+    MAX_HEADER_BYTES of the file); InputError naming the file for a malformed header or no
+    vertex element."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(MAX_HEADER_BYTES)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read PLY file ({exc.strerror})") from None
+    elements = {e.name: e for e in _parse_header(head, path)[1]}
+    if "vertex" not in elements:
+        raise InputError(f"{path}: no 'vertex' element (elements: {', '.join(elements) or 'none'})")
+    return [name for name, _ in elements["vertex"].properties]
+
+
 def read_ply_elements(path: str | os.PathLike, wanted: tuple[str, ...],
                       optional: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
     """The elements named ``wanted`` (and those of ``optional`` the file has) of a PLY file,
@@ -243,13 +259,13 @@ def load_ply(path: str | os.PathLike, *, point_scale: float | None = None, point
     Raises :class:`InputError` naming the file for malformed or truncated files, missing
     attributes, non-finite values, degenerate quaternions and scales that are 0 after exp.
     """
-    table = read_ply_vertices(path)
-    where = str(path)
-    names = list(table.dtype.names)
-    if "packed_position" in names:
+    if "packed_position" in ply_vertex_properties(path):
         from clflow.splat.compressed_ply import load_compressed_ply
 
         return load_compressed_ply(path)
+    table = read_ply_vertices(path)
+    where = str(path)
+    names = list(table.dtype.names)
     values = _float32_matrix(table)  # [N, P], one column per property
     finite = np.isfinite(values)
     if not finite.all():
