@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import io
 import math
 import socket
@@ -36,7 +37,6 @@ if TYPE_CHECKING:
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8080
 PLY_BOX_QUANTILE = 0.01  # a PLY's first box ignores this fraction of outlying centres per side
-AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
 
 
 @dataclass
@@ -67,13 +67,15 @@ class ViewScene:
     def frame_count(self) -> int:
         return int(self.means.shape[0])
 
+    @functools.cached_property
     def rest_means(self) -> np.ndarray:
-        """[n + S, 3] every Gaussian's centre at frame 0 (what ``object.select`` picks from)."""
+        """[n + S, 3] every Gaussian's centre at frame 0 (what ``object.select`` picks from),
+        computed once (the box widget counts them on every drag)."""
         return np.concatenate([self.means[0], self.static_means])
 
     def extent(self) -> float:
         """Diagonal of the centres' bounding box at frame 0 (scene units, > 0)."""
-        means = self.rest_means()
+        means = self.rest_means
         return max(float(np.linalg.norm(means.max(0) - means.min(0))), 1e-6)
 
 
@@ -90,9 +92,12 @@ def load_scene(path: str | Path, up: str = "+y") -> ViewScene:
                          "give a PLY file or a folder written by `clflow simulate CONFIG`")
     if not path.is_file():
         raise InputError(f"{path}: no such file or folder")
-    if up not in AXES:
-        raise InputError(f"up axis must be one of {', '.join(AXES)}, got {up!r}")
-    return _ply_scene(path, AXES[up])
+    from clflow.scene.config import UP_AXES
+    from clflow.scene.load import up_rotation
+
+    if up not in UP_AXES:
+        raise InputError(f"up axis must be one of {', '.join(UP_AXES)}, got {up!r}")
+    return _ply_scene(path, tuple(float(v) for v in up_rotation(up)[1]))  # R_up^T e_y: the file axis that is up
 
 
 def _ply_scene(path: Path, up: tuple[float, float, float]) -> ViewScene:
@@ -359,7 +364,7 @@ class Viewer:
             self.box_node = self.server.scene.add_box(
                 "/box/outline", color=(230, 120, 20), dimensions=tuple(high - low), wireframe=True,
                 position=tuple((low + high) / 2))
-            means = self.scene.rest_means()
+            means = self.scene.rest_means
             inside = count_inside(means, low, high)
             self.yaml = box_yaml(low, high)
             self.box_text.content = (f"{inside:,} of {len(means):,} Gaussians inside (frame 0)\n\n"

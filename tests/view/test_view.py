@@ -53,6 +53,9 @@ def test_ply_viewer_serves_splats_slider_and_box(tmp_path):
 
     gaussians = write_ply(tmp_path / "scene.ply")
     scene = load_scene(tmp_path / "scene.ply", up="+z")
+    assert scene.up == (0.0, 0.0, 1.0) and load_scene(tmp_path / "scene.ply", up="-x").up == (-1.0, 0.0, 0.0)
+    with pytest.raises(InputError, match="up axis must be one of"):
+        load_scene(tmp_path / "scene.ply", up="up")
     # colours: the rasteriser's degree-0 colour, clamped for display
     want = sh0_to_rgb(gaussians.sh[:, 0].float()).clamp(0, 1).numpy()
     np.testing.assert_allclose(scene.rgbs, want, atol=1e-6)
@@ -133,7 +136,7 @@ def test_simulation_folder_in_scene_units_with_frames_and_camera(tmp_path):
         assert np.linalg.norm(np.cross(eye - initial.position, direction)) < 1e-9  # on its line of sight
         # the first box is the object's at rest: it picks the object and no static Gaussian
         low, high = viewer.box
-        assert count_inside(scene.rest_means(), low, high) == means.shape[1]
+        assert count_inside(scene.rest_means, low, high) == means.shape[1]
     finally:
         viewer.close()
 
