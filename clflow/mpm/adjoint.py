@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from clflow.mpm.constants import SIMD_LANES, grid_channels
+from clflow.mpm.constants import SIMD_LANES, grid_channels, velocity_channels
 from clflow.mpm.substep import Grid, State, StressStage, SubstepInputs, SubstepTape, grid_copies
 from clflow.runtime.bridge import numpy_real, real_of
 
@@ -57,14 +57,14 @@ class SubstepAdjoint:
         defines = stage.defines(self.flip)
         k = lambda src, name: device.kernel(src, name, real, defines)  # noqa: E731
         self.elastic_only = stage.elastic_only
-        self.k_stress, self.k_svd = stage.kernels(k, adjoint=True)
+        self.k_stress, self.k_svd = stage.kernels(device, real, adjoint=True)
         self.U, self.s, self.V = stage.svd_buffers(n, dtype)
         self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_private")
         self.k_grid = k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
         self.k_p2g = k("mpm/adjoint/p2g_adjoint.cl", "p2g_adjoint")
         self.k_flip = k("mpm/adjoint/p2g_adjoint.cl", "p2g_flip_adjoint") if self.flip > 0 else None
         itemsize = torch.tensor([], dtype=dtype).element_size()
-        copy_bytes = (6 if self.flip > 0 else 3) * grid.nodes * itemsize  # vbar[, dvbar] per node
+        copy_bytes = velocity_channels(self.flip) * grid.nodes * itemsize  # vbar[, dvbar] per node
         self.copies = grid_copies(device, copy_bytes, n)
         self.chunk = -(-n // self.copies)
         self.grid_v_bar_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * copy_bytes)
@@ -97,9 +97,12 @@ class SubstepAdjoint:
             grid_bar = b.inout(self.grid_bar, "grid_bar")
             tau_bar = b.inout(self.tau_bar, "tau_bar")
             release_time, v_bar_out = b.input(particles.release_time, "release_time"), b.input(grad_after.v, "v_bar_out")
+            grid_v = b.input(tape.grid_v, "grid_v")
+            # v' read back as v_pic; with FLIP the kernel sums v_pic itself (any buffer will do)
+            v_out = grid_v if self.flip > 0 else b.input(after.v, "v_out")
             dev.launch(self.k_g2p, self.copies, grid_args + [
-                n, R(dt), R(t), R(self.flip), x, b.input(after.v, "v_out"), release_time,
-                b.input(tape.grid_v, "grid_v"), b.input(tape.grid_dv, "grid_dv"), b.input(grad_after.x, "x_bar_out"),
+                n, R(dt), R(t), R(self.flip), x, v_out, release_time,
+                grid_v, b.input(tape.grid_dv, "grid_dv"), b.input(grad_after.x, "x_bar_out"),
                 v_bar_out, b.input(grad_after.C, "C_bar_out"),
                 np.int32(self.copies), np.int32(self.chunk), self.grid_v_bar_copies, x_bar], local_size=1)
             dev.launch(self.k_grid, self.grid.nodes, grid_args + [

@@ -41,6 +41,7 @@ from clflow.mpm.constants import (
     REGISTRY_MATERIAL,
     grid_channels,
     kernel_columns,
+    velocity_channels,
 )
 from clflow.mpm.simulator import (
     FrameProgress,
@@ -102,14 +103,15 @@ def engine(sim: Simulator) -> _Engine:
 
 
 class _Run:
-    """One differentiable run: its settings, and the checkpoints its forward leaves for backward."""
+    """One differentiable run: its spec (the simulator's at this run's substeps), and the
+    checkpoints its forward leaves for backward."""
 
     def __init__(self, sim: Simulator, frames: int, substeps: int, memory_budget: int | None = None,
                  strict_cfl: bool = False):
         self.sim, self.frames, self.engine, self.strict_cfl = sim, frames, engine(sim), strict_cfl
-        self.t0, self.substeps = sim.time, substeps
-        self.dt = sim.frame_dt / substeps
-        self.segment = replay_segment(sim.n, sim.grid.nodes, frames, substeps, sim.dtype, memory_budget, sim.flip)
+        self.spec = spec = dataclasses.replace(sim.spec, substeps=substeps)
+        self.t0, self.substeps, self.dt = sim.time, substeps, spec.dt
+        self.segment = replay_segment(sim.n, spec.grid.nodes, frames, substeps, spec.dtype, memory_budget, spec.flip)
 
     def time(self, frame: int, substep: int) -> float:
         return self.t0 + (frame * self.substeps + substep) * self.dt
@@ -117,8 +119,9 @@ class _Run:
     def inputs(self, frame: int, s: int) -> SubstepInputs:
         """What substep ``s`` of frame ``frame`` reads besides the state (this run's particles)."""
         t = self.time(frame, s)
-        accel = self.sim.drivers.accel(t, self.sim.dtype, self.stage_accel)  # this run's stage accelerations
-        return SubstepInputs(self.particles, t, self.dt, self.sim.gravity, self.sim.boundaries, accel)
+        spec = self.spec
+        accel = spec.drivers.accel(t, spec.dtype, self.stage_accel)  # this run's stage accelerations
+        return SubstepInputs(self.particles, t, self.dt, spec.gravity, spec.boundaries, accel)
 
     def substep(self, state: State, out: State, frame: int, s: int, tape: SubstepTape | None = None) -> None:
         self.engine.forward.run(state, out, self.inputs(frame, s), self.clamped, tape=tape)
@@ -130,10 +133,10 @@ class _Run:
     def forward(self, param, mass, x0, v0, stage_accel) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         sim, T, n = self.sim, self.frames, self.sim.n
         self.stage_accel = stage_accel.detach().double()
-        self.particles = dataclasses.replace(sim.particles, param=param.detach().contiguous(),
+        self.particles = dataclasses.replace(self.spec.particles, param=param.detach().contiguous(),
                                              mass=mass.detach().contiguous())
         self.clamped = torch.zeros(n, dtype=torch.uint8)
-        dtype = sim.dtype
+        dtype = self.spec.dtype
         self.x = torch.empty(T + 1, n, 3, dtype=dtype)
         self.v = torch.empty(T + 1, n, 3, dtype=dtype)
         self.C = torch.empty(T + 1, n, 3, 3, dtype=dtype)
@@ -155,7 +158,7 @@ class _Run:
                     f"the differentiable run became NaN/inf during frame {f + 1} "
                     f"(t = {self.time(f + 1, 0):.4g} s); reduce dt (substeps per frame now {self.substeps}) "
                     f"or the material stiffness / forces")
-            vmax = cfl_breach(a, self.dt, sim.grid.dx)
+            vmax = cfl_breach(a, self.dt, self.spec.grid.dx)
             if vmax is not None:
                 message = (f"differentiable run, frame {f + 1}: max speed {vmax:.3g} m/s breaks the CFL limit "
                            f"at dt = {self.dt:.3g} s ({self.substeps} substeps per frame)")
@@ -174,7 +177,7 @@ class _Run:
         return self.x, self.v, self.F
 
     def backward(self, grad_x, grad_v, grad_F):
-        sim, n, S, dtype = self.sim, self.sim.n, self.substeps, self.sim.dtype
+        sim, spec, n, S, dtype = self.sim, self.spec, self.sim.n, self.substeps, self.spec.dtype
         k = self.segment
         adjoint = self.engine.adjoint
         grad, spare = StateGrad.zeros(n, dtype), StateGrad.zeros(n, dtype)
@@ -182,9 +185,9 @@ class _Run:
         mass_grad = torch.zeros_like(self.particles.mass)
         # driver stages: dt vbar summed per stage over the substeps it is active (P2G adds
         # m dt a to the momentum, so abar_p = dt vbar_p), reduced over its particles at the end
-        stage_rows = torch.zeros(len(sim.drivers.forces), n, 3, dtype=dtype)
+        stage_rows = torch.zeros(len(spec.drivers.forces), n, 3, dtype=dtype)
         states = [None] + [sim.state.empty_like() for _ in range(k)]
-        tapes = [SubstepTape.empty(n, sim.grid.nodes, dtype, sim.flip) for _ in range(k)]
+        tapes = [SubstepTape.empty(n, spec.grid.nodes, dtype, spec.flip) for _ in range(k)]
         starts = list(range(0, S, k))  # first substep of each segment
         # second level (only when a frame's replay exceeds the budget): segment start states
         segment_states = [sim.state.empty_like() for _ in starts[1:]]
@@ -213,12 +216,12 @@ class _Run:
                     inputs = self.inputs(f, s)
                     adjoint.run(states[i], states[i + 1], tapes[i], inputs, grad, spare, param_grad, mass_grad)
                     grad, spare = spare, grad
-                    for stage in torch.nonzero(sim.drivers.active(inputs.t)).flatten().tolist():
+                    for stage in torch.nonzero(spec.drivers.active(inputs.t)).flatten().tolist():
                         stage_rows[stage] += self.dt * grad.v
                     progress.tick(self.frames - 1 - f, S - 1 - s)  # counted in the order the adjoint runs
         add_output_grads(0)
-        stage_grad = torch.zeros(len(sim.drivers.forces), 3, dtype=dtype)
-        for stage in range(len(sim.drivers.forces)):
+        stage_grad = torch.zeros(len(spec.drivers.forces), 3, dtype=dtype)
+        for stage in range(len(spec.drivers.forces)):
             rows = stage_rows[stage][_stage_members(sim, stage)].contiguous()
             stage_grad[stage] = sum_rows(rows, sim.device).to(dtype)
         return param_grad, mass_grad, grad.x, grad.v, stage_grad
@@ -237,7 +240,7 @@ def memory_estimate(n: int, nodes: int, frames: int, substeps: int, dtype: torch
     g reals per node (CPU path: P2G and its adjoint)."""
     itemsize = torch.tensor([], dtype=dtype).element_size()
     k = substeps if segment is None else segment
-    g = grid_channels(flip) + (6 if flip > 0 else 3)  # reals per node: P2G grid, grid_v[, grid_dv]
+    g = grid_channels(flip) + velocity_channels(flip)  # reals per node: P2G grid, grid_v[, grid_dv]
     checkpoints = (frames + 1) * n * (25 + 15 + 15)
     replay = k * (n * (25 + 9) + g * nodes) + (n * 25 * (-(-substeps // k)) if k < substeps else 0)
     working = n * (2 * 25 + 9) + g * nodes + n * (2 * 25 + 9 + 21 + PARAM_COUNT + 1) + grid_channels(flip) * nodes

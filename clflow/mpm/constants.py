@@ -66,6 +66,12 @@ def grid_channels(flip: float) -> int:
     return 7 if flip > 0 else 4
 
 
+def velocity_channels(flip: float) -> int:
+    """Reals per node of the grid velocities the adjoint scatters into (mpm.h GV_CH): vbar,
+    and with a PIC/FLIP blend also dvbar; as many as the forward's grid_v[, grid_dv]."""
+    return 6 if flip > 0 else 3
+
+
 def kernel_defines(flip: float = 0.0) -> dict[str, object]:
     """The -D switches every MPM kernel is built with; ``flip`` > 0 builds the PIC/FLIP
     blend's transfers (CLFLOW_FLIP)."""

@@ -22,7 +22,14 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
-from clflow.mpm.constants import MATERIAL_IDS, SIMD_LANES, SVD_MATERIALS, grid_channels, kernel_defines
+from clflow.mpm.constants import (
+    MATERIAL_IDS,
+    SIMD_LANES,
+    SVD_MATERIALS,
+    grid_channels,
+    kernel_defines,
+    velocity_channels,
+)
 from clflow.runtime.bridge import numpy_real, real_of
 from clflow.runtime.devices import Device
 
@@ -131,9 +138,12 @@ class StressStage:
     def defines(self, flip: float) -> dict[str, object]:
         return {**kernel_defines(flip), "MATERIALS_PRESENT": self.mask}
 
-    def kernels(self, build, adjoint: bool = False):
-        """(stress kernel, SVD kernel or None) of the forward or the ``adjoint`` stress stage,
-        each made by ``build(source, name)``."""
+    def kernels(self, device: Device, real: str, adjoint: bool = False):
+        """(stress kernel, SVD kernel or None) of the forward or the ``adjoint`` stress stage on
+        ``device`` in precision ``real``; built without the PIC/FLIP switch, which only the
+        transfer kernels read, so blended and plain simulators share these programs."""
+        defines = self.defines(0.0)
+        build = lambda source, name: device.kernel(source, name, real, defines)  # noqa: E731
         source = "mpm/adjoint/stress_adjoint.cl" if adjoint else "mpm/stress.cl"
         name = {(False, False): "update_stress", (False, True): "update_stress_elastic_simd",
                 (True, False): "update_stress_adjoint", (True, True): "update_stress_elastic_adjoint_simd"}
@@ -185,7 +195,7 @@ def check_grid_memory(info, grid: Grid, itemsize: int, flip: float = 0.0) -> Non
     from clflow.limits import format_bytes
 
     nodes, channels = grid.nodes, grid_channels(flip)
-    total = nodes * itemsize * (channels + (6 if flip > 0 else 3) + (channels if info.type == "CPU" else 0))
+    total = nodes * itemsize * (channels + velocity_channels(flip) + (channels if info.type == "CPU" else 0))
     largest = nodes * itemsize * channels
     if total > info.global_mem_size or largest > info.max_mem_alloc_size:
         size = "x".join(str(int(r)) for r in grid.resolution)
@@ -216,7 +226,7 @@ class SubstepKernels:
         defines = stage.defines(self.flip)
         k = lambda src, name: device.kernel(src, name, self.real, defines)  # noqa: E731
         self.elastic_only, self.needs_svd = stage.elastic_only, stage.needs_svd
-        self.k_stress, self.k_svd = stage.kernels(k)
+        self.k_stress, self.k_svd = stage.kernels(device, self.real)
         self.U, self.s, self.V = stage.svd_buffers(n, dtype)
         self.k_grid = k("mpm/grid.cl", "grid_update")
         self.k_g2p = k("mpm/g2p.cl", "g2p")

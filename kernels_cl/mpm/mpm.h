@@ -17,6 +17,9 @@
 /* Reals per node of the P2G grid: m, mv (3) and, with the PIC/FLIP blend (CLFLOW_FLIP),
  * mv0 (3), the momentum before this substep's forces (clflow.mpm.constants.grid_channels). */
 #define GRID_CH (CLFLOW_FLIP ? 7 : 4)
+/* Reals per node of the grid velocities (v[, dv]) and of their adjoint's grid copies
+ * (clflow.mpm.constants.velocity_channels). */
+#define GV_CH (CLFLOW_FLIP ? 6 : 3)
 
 /* 3-vectors in registers for the transfer loops (private arrays indexed in loops may stay
  * in memory; vector accumulators do not). */

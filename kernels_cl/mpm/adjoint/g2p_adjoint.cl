@@ -14,7 +14,6 @@
  * reaches the particle's own v is added by p2g_flip_adjoint). Grid copies hold GV_CH reals
  * per node: vbar_i, and dvbar_i with CLFLOW_FLIP.
  * Unreleased particles (t < release_time) do not move: xbar = xbar', nothing to the grid. */
-#define GV_CH (CLFLOW_FLIP ? 6 : 3)
 #include "mpm/adjoint/adjoint.h"
 
 inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, const real t, const real flip,

@@ -92,7 +92,6 @@ __kernel void grid_update_adjoint(const int nx, const int ny, const int nz, cons
     const long nodes = (long)nx * ny * nz;
     if (node >= nodes)
         return;
-    const int gv_ch = CLFLOW_FLIP ? 6 : 3; /* reals per node of the G2P adjoint's copies */
     const real m = grid[GRID_CH * node];
     real out[GRID_CH];
     for (int c = 0; c < GRID_CH; ++c)
@@ -104,16 +103,16 @@ __kernel void grid_update_adjoint(const int nx, const int ny, const int nz, cons
             mv[a] = grid[GRID_CH * node + 1 + a];
             v0[a] = mv[a] / m + dt * g[a];
             /* the G2P adjoint's private grid copies, summed in the fixed order k = 0, 1, ... */
-            v_bar[a] = grid_v_bar_copies[gv_ch * node + a];
+            v_bar[a] = grid_v_bar_copies[GV_CH * node + a];
             for (int k = 1; k < copies; ++k)
-                v_bar[a] += grid_v_bar_copies[k * gv_ch * nodes + gv_ch * node + a];
+                v_bar[a] += grid_v_bar_copies[k * GV_CH * nodes + GV_CH * node + a];
         }
 #if CLFLOW_FLIP
         real mv0_dot = 0;
         for (int a = 0; a < 3; ++a) {
-            real dv_bar = grid_v_bar_copies[gv_ch * node + 3 + a];
+            real dv_bar = grid_v_bar_copies[GV_CH * node + 3 + a];
             for (int k = 1; k < copies; ++k)
-                dv_bar += grid_v_bar_copies[k * gv_ch * nodes + gv_ch * node + 3 + a];
+                dv_bar += grid_v_bar_copies[k * GV_CH * nodes + GV_CH * node + 3 + a];
             v_bar[a] += dv_bar;
             out[4 + a] = -dv_bar / m;
             mv0_dot += grid[GRID_CH * node + 4 + a] * dv_bar;
