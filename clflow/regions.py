@@ -69,10 +69,10 @@ class Region:
     def select(self, points: torch.Tensor) -> torch.Tensor:
         """Bool [N]: which points [N, 3] lie in the region (the bounds cast to the points' dtype)."""
         if self.kind == "box":
-            lo = torch.tensor(self.lower, dtype=points.dtype)
-            hi = torch.tensor(self.upper, dtype=points.dtype)
+            lo = torch.tensor(self.lower, dtype=points.dtype, device=points.device)
+            hi = torch.tensor(self.upper, dtype=points.dtype, device=points.device)
             return ((points >= lo) & (points <= hi)).all(-1)
         if self.kind == "sphere":
-            c = torch.tensor(self.center, dtype=points.dtype)
+            c = torch.tensor(self.center, dtype=points.dtype, device=points.device)
             return ((points - c) ** 2).sum(-1) <= self.radius**2
-        return torch.ones(points.shape[0], dtype=torch.bool)
+        return torch.ones(points.shape[0], dtype=torch.bool, device=points.device)

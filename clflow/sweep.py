@@ -592,18 +592,12 @@ def sysid_on_ray(*, address: str | None = None, cpus_per_task: int = 1, resource
             echo(f"{name}: {record['status']} ({record.get('seconds', 0):.0f} s)")
             done(name, record)
 
-        started = start_ray(address, instead="drop --parallel")
-        try:
+        with ray_session(address):
             run_on_ray(runs, lambda run: out / "cases" / run.case, timeout, finished,
                        env=task_env(cpus_per_task, device, serial_order()), cpus_per_task=cpus_per_task,
                        resources=resources, task=_sysid_task,
                        args=lambda run: (run.case, str((out / "cases" / run.case).resolve()), settings,
                                          CASES[run.case]))
-        finally:
-            if started:
-                import ray
-
-                ray.shutdown()
 
     return run_cases
 
@@ -643,10 +637,11 @@ def map_on_ray(task: Callable, args: list[tuple], *, address: str | None = None,
 
 
 @contextlib.contextmanager
-def ray_session(address: str | None = None) -> Iterator[None]:
+def ray_session(address: str | None = None, instead: str | None = "drop --parallel") -> Iterator[None]:
     """Ray for what runs inside (:func:`start_ray`; one already started is used), shut down
-    after when started here: one session for all of a run's task maps (their workers reused)."""
-    started = start_ray(address, instead="drop --parallel")
+    after when started here: one session for all of a run's task maps (their workers reused).
+    ``instead``: what to do without Ray, for the message (None: start_ray's default)."""
+    started = start_ray(address, instead=instead)
     try:
         yield
     finally:
@@ -760,15 +755,9 @@ def sweep(spec: Spec, out: Path, *, serial: bool = False, address: str | None = 
         if serial:
             run_serial(todo, folder_of, timeout, done, env=order)  # (torch's threads are this process's already)
         else:
-            started = start_ray(address)
-            try:
+            with ray_session(address, instead=None):
                 run_on_ray(todo, folder_of, timeout, done, env=task_env(cpus_per_task, device, order),
                            cpus_per_task=cpus_per_task, resources=resources)
-            finally:
-                if started:
-                    import ray
-
-                    ray.shutdown()
     finally:
         write()
     return summary

@@ -687,14 +687,13 @@ class Optimization:
         numbered on; each start's best point in ``polished``; z at the best of them, with its
         substeps and calibration, and Levenberg-Marquardt's memory reset."""
         history, rollbacks, polished, ends = list(begin.history), list(begin.rollbacks), [], []
-        iteration, step_scale = begin.iteration, begin.step_scale
+        iteration = begin.iteration
         for record in records:
             end = OptimizerState(**record["state"])
             shift = iteration - begin.iteration
             history += [{**r, "iteration": r["iteration"] + shift} for r in end.history[len(begin.history):]]
             rollbacks += [{**r, "iteration": r["iteration"] + shift} for r in end.rollbacks[len(begin.rollbacks):]]
             iteration += end.iteration - begin.iteration
-            step_scale *= end.step_scale / begin.step_scale  # halved per failure: powers of two, exact
             polished.append({"z": dict(end.best["z"]), "loss": end.best["loss"], "params": self.values(end.best["z"]),
                              "substeps": end.substeps})
             ends.append(end)
@@ -704,7 +703,7 @@ class Optimization:
                  kept["loss"], ", ".join(f"{r['loss']:.4g}" for r in polished if r is not kept))
         state = dataclasses.replace(begin, iteration=iteration, history=history, rollbacks=rollbacks, polished=polished,
                                     z=dict(kept["z"]), substeps=kept["substeps"], best=None, damping=LM_DAMPING,
-                                    converged=False, step_scale=step_scale, calibrated_at=ends[index].calibrated_at)
+                                    converged=False, calibrated_at=ends[index].calibrated_at)
         self.set_estimator_errors(records[index]["errors"])
         if state.calibrated_at is not None:
             self.save_calibration(state.calibrated_at)
@@ -891,7 +890,7 @@ class Optimization:
             failures += 1
             # a start's polish goes back within its own rows only (else to its start point)
             own = [r for r in state.history if start is None or r.get("start") == start]
-            if failures > MAX_FAILURES or state.iteration == 0 and not start and failures > 1:
+            if failures > MAX_FAILURES or state.iteration == 0 and start is None and failures > 1:
                 good = (f"last good parameters: {self.values(own[-1]['z'])}" if own else
                         f"the initial parameters {self.values(state.z)} fail")
                 raise ClflowError(f"optimisation stopped at iteration {state.iteration}: {exc} "

@@ -259,9 +259,9 @@ def load_ply(path: str | os.PathLike, *, point_scale: float | None = None, point
     Raises :class:`InputError` naming the file for malformed or truncated files, missing
     attributes, non-finite values, degenerate quaternions and scales that are 0 after exp.
     """
-    if "packed_position" in ply_vertex_properties(path):
-        from clflow.splat.compressed_ply import load_compressed_ply
+    from clflow.splat.compressed_ply import is_compressed_ply, load_compressed_ply
 
+    if is_compressed_ply(path):
         return load_compressed_ply(path)
     table = read_ply_vertices(path)
     where = str(path)
