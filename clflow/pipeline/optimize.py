@@ -516,6 +516,13 @@ class Optimization:
             view.estimator_error = None if errors is None else torch.from_numpy(np.array(errors[i]))
         self._lm_cache = {key: (self.rescored(cached), J) for key, (cached, J) in self._lm_cache.items()}
 
+    def restore_estimator_errors(self, calibrated_at: dict | None, errors: list[torch.Tensor | None]) -> None:
+        """Each view's estimator error back to ``errors`` (as measured at ``calibrated_at``),
+        saved again as the calibration file's content."""
+        self.set_estimator_errors(None if errors[0] is None else [e.numpy() for e in errors])
+        if calibrated_at is not None:
+            self.save_calibration(calibrated_at)
+
     def save_calibration(self, calibrated_at: dict) -> None:
         """The views' estimator errors, measured at ``calibrated_at``, into ``estimator_error_file``."""
         with atomic_path(self.estimator_error_file) as tmp, open(tmp, "wb") as fh:
@@ -762,8 +769,18 @@ class Optimization:
         # raised damping stands (dividing it again would retry nearly the same step)
         damping = state.damping / 3.0 if best is not None and state.z != best["z"] else state.damping
         if calibrate:
+            before = state.calibrated_at, [view.estimator_error for view in self.views]
             state = self.calibrate(state, base, frames)
             base = self.rescored(base)
+            if best is not None and best["frames"] == frames and state.z != best["z"] and base.loss > best["loss"]:
+                # downhill only against the best point's calibration; against its own (each
+                # point's loss against the estimator's error on its own simulation, as the
+                # search scores) it is worse: the step chased the estimator's error, reject it
+                log.info("step to %s rejected: loss %.4g against the estimator's error there, %.4g at the best point",
+                         self.values(state.z), base.loss, best["loss"])
+                self.restore_estimator_errors(*before)
+                return dataclasses.replace(state, iteration=state.iteration + 1, z=dict(best["z"]),
+                                           damping=state.damping * 4.0, calibrated_at=before[0])
         best = {"z": dict(state.z), "loss": base.loss, "frames": frames}
         r = self.residuals(base.flows, base.more_flows)
         A, g = J.T @ J, J.T @ r

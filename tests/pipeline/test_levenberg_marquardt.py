@@ -86,6 +86,35 @@ def test_back_at_the_best_point_a_changed_loss_is_taken_not_rejected(lm):
     assert again.damping == back.damping  # back after a rejection: the raised damping stands
 
 
+@pytest.mark.parametrize("error_at_trial, accepted", [(0.0, True), (10.0, False)])
+def test_a_step_downhill_only_against_the_old_calibration_is_rejected(lm, monkeypatch, error_at_trial, accepted):
+    # the estimator's error measured at the new point makes its loss against that error
+    # (the search's criterion) higher than the best point's: the step is taken back
+    opt, _ = lm(iterations=4)
+    opt.cfg.output.mkdir(parents=True, exist_ok=True)
+    field = torch.randn(opt.observed.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    scale = {"now": 0.0}
+    monkeypatch.setattr(type(opt), "corrects_bias", property(lambda self: True))
+    monkeypatch.setattr(opt, "estimator_errors", lambda result, frames: [scale["now"] * field[:frames]])
+    variables = ("youngs_modulus",)
+    state = opt.initial_state()
+    base, J = opt.jacobian(state.z, opt.frames, 1, variables)
+    stepped = opt.lm_step(state, base, J, opt.frames, variables, calibrate=True)
+    assert stepped.calibrated_at["z"] == state.z and stepped.z != state.z
+    trial, J_trial = opt.jacobian(stepped.z, opt.frames, 1, variables)
+    assert trial.loss < stepped.best["loss"]  # downhill against the best point's calibration
+    scale["now"] = error_at_trial
+    after = opt.lm_step(stepped, trial, J_trial, opt.frames, variables, calibrate=True)
+    if accepted:
+        assert after.best["z"] == stepped.z and after.calibrated_at["z"] == stepped.z
+    else:
+        assert after.z == state.z and after.best == stepped.best and after.damping == pytest.approx(4 * stepped.damping)
+        assert after.calibrated_at == stepped.calibrated_at
+        assert float(opt.views[0].estimator_error.abs().max()) == 0.0  # the best point's error is back
+        again = opt.jacobian(after.z, opt.frames, 1, variables)[0]
+        assert again.loss == pytest.approx(stepped.best["loss"], rel=1e-12)
+
+
 def test_it_needs_the_l2_loss(tmp_path):
     import json
 
