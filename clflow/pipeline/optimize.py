@@ -90,9 +90,10 @@ class OptimizerState:
     step_scale: float = 1.0
     history: list[dict] = field(default_factory=list)
     momentum_steps: int = 0  # gradients in m since its last restart (for Adam's bias correction)
-    # substeps per frame at least (automatic substeps): never fewer than an earlier iteration
-    # needed, so the loss stays one smooth function of the parameters instead of jumping
-    # where a NaN/CFL retry would change dt
+    # substeps per frame at least (automatic substeps) of the next run: Adam's never fewer than
+    # an earlier iteration needed, so the loss stays one smooth function of the parameters
+    # instead of jumping where a NaN/CFL retry would change dt; Levenberg-Marquardt's those
+    # of its best point, from which each step is taken
     substeps: int = 1
     # the global phase's samples so far ({"z", "params", "loss", "seconds"}; loss None where
     # the simulation failed) and whether it is over (its best point is then z)
@@ -781,7 +782,7 @@ class Optimization:
                 self.restore_estimator_errors(*before)
                 return dataclasses.replace(state, iteration=state.iteration + 1, z=dict(best["z"]),
                                            damping=state.damping * 4.0, calibrated_at=before[0])
-        best = {"z": dict(state.z), "loss": base.loss, "frames": frames}
+        best = {"z": dict(state.z), "loss": base.loss, "frames": frames, "substeps": base.substeps}
         r = self.residuals(base.flows, base.more_flows)
         A, g = J.T @ J, J.T @ r
         diagonal = torch.diag(torch.diag(A).clamp(min=1e-12 * float(torch.diag(A).max().clamp(min=1e-30))))
@@ -883,6 +884,11 @@ class Optimization:
                 self.save_state(state)
                 self.progress(row)
                 done_here += 1
+        best = state.best
+        if opt.method == "levenberg_marquardt" and best is not None and state.iteration >= self.total_iterations \
+                and state.z != best["z"]:  # the last step was never run: the result is the best point found
+            state = dataclasses.replace(state, z=dict(best["z"]), substeps=best.get("substeps", state.substeps))
+            self.save_state(state)
         return state
 
     def step(self, state: OptimizerState, failures: int, start: int | None = None
@@ -937,7 +943,13 @@ class Optimization:
         if phase == "main":  # the local phase stays in the search's box
             box = self.local_box()
             state.z = {n: min(max(v, box[n][0]), box[n][1]) if n in box else v for n, v in state.z.items()}
-        state.substeps = max(state.substeps, result.substeps)
+        if lm and state.best is not None:
+            # the next run (the best point again, or a step from it) takes the best point's time
+            # step: a rejected trial that needed more substeps leaves no finer, more damped model
+            # behind for every later iteration (MPM's answer depends on the step, docs/mpm.md)
+            state.substeps = state.best.get("substeps", result.substeps)
+        else:
+            state.substeps = max(state.substeps, result.substeps)
         converged = lm and phase == "main" and (state.converged or (
             state.best is not None and state.best is not previous.best
             and max(abs(state.z[n] - state.best["z"][n]) for n in variables) < LM_TOLERANCE))

@@ -115,6 +115,30 @@ def test_a_step_downhill_only_against_the_old_calibration_is_rejected(lm, monkey
         assert again.loss == pytest.approx(stepped.best["loss"], rel=1e-12)
 
 
+def test_a_rejected_trial_leaves_the_best_points_time_step_and_the_result_is_the_best_point(lm, monkeypatch):
+    # the trial needs 7 substeps per frame and is uphill: the next run (the best point again)
+    # goes back to the best point's step, not to the most any run needed
+    opt, calls = lm(iterations=2)
+    fake = opt.evaluate
+    trial = {}
+
+    def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None):
+        ev = fake(z, frames, with_grad, min_substeps, variables)
+        if z == trial.get("z"):
+            return dataclasses.replace(ev, loss=10 * ev.loss + 1, trajectory=SimpleNamespace(substeps=7))
+        return dataclasses.replace(ev, trajectory=SimpleNamespace(substeps=max(2, min_substeps)))
+
+    monkeypatch.setattr(opt, "evaluate", evaluate)
+    state, _, _ = opt.step(opt.initial_state(), 0)
+    assert state.substeps == 2 and state.best["substeps"] == 2
+    trial["z"] = dict(state.z)
+    rejected, _, _ = opt.step(state, 0)
+    assert rejected.z == rejected.best["z"] and rejected.substeps == 2
+    # a run that ends by its count ends at its best point, not at a step it never ran
+    final = opt.run(start=dataclasses.replace(state, iteration=opt.total_iterations - 1))
+    assert final.z == final.best["z"] == state.best["z"] and final.iteration == opt.total_iterations
+
+
 def test_it_needs_the_l2_loss(tmp_path):
     import json
 

@@ -61,7 +61,7 @@ def test_polishes_and_hypotheses_on_ray_give_the_serial_results_and_resume(quick
     # the work the tasks did: two hypotheses searched, two starts polished, each calibrated
     assert set(serial[0]["hypotheses.json"]["hypotheses"]) == {"elastic", "plasticine"}
     assert len(state["polished"]) == 2 and [r.get("start") for r in state["history"]] == [0, 0, 1, 1, None]
-    assert all(r.get("calibrated") for r in state["history"][:4])
+    assert all(state["history"][i].get("calibrated") for i in (0, 2))  # each start's first point
     assert serial[0] == ray[0]
     assert serial[1].keys() == ray[1].keys()
     for name, value in serial[1].items():
