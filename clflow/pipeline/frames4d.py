@@ -115,7 +115,7 @@ def export_gaussians(result, folder: Path, object_only: bool = False, compressed
         "object_covariances": np.stack([f32(f.covariances[:n]) for f in frames]),
         "object_sh_rotations": np.stack([f32(f.sh_rotations[:n]) for f in frames]),
         "static_means": f32(static.means), "static_covariances": f32(static.covariances),
-        "static_sh_rotations": f32(static.sh_rotations), "opacities": f32(first.opacities),
+        "static_sh_rotations": f32(first.sh_rotations[n:]), "opacities": f32(first.opacities),
         "time": np.arange(len(frames)) / cfg.simulation.fps, "fps": np.float64(cfg.simulation.fps),
         "camera_viewmat": cam.viewmat.double().numpy(), "camera_K": cam.K.double().numpy(),
         "camera_size": np.array([cam.width, cam.height]), "scale": np.float64(cfg.scale),
