@@ -16,7 +16,7 @@ from clflow.pipeline.render import frame_gaussians, render_rgb
 from clflow.pipeline.simulation import ObjectSetup, build_simulator, setup_object
 from clflow.scene.config import SceneConfig
 from clflow.scene.load import guidance_camera, load_scene_gaussians
-from clflow.splat.gaussians import CovarianceGaussians
+from clflow.splat.gaussians import Gaussians
 
 log = logging.getLogger(__name__)
 
@@ -27,8 +27,8 @@ class Prepared:
     the object's particles and grid, and the guidance camera."""
 
     cfg: SceneConfig
-    static: CovarianceGaussians
-    obj_rest: CovarianceGaussians
+    static: Gaussians
+    obj_rest: Gaussians
     setup: ObjectSetup
     camera: object  # clflow.splat.cameras.Camera
 
@@ -43,7 +43,7 @@ class SimulationResult:
     clamped: torch.Tensor | None = None  # [T+1] particles clamped at the grid's edge per frame
     substeps: int = 0  # substeps per frame the run used
 
-    def scene_at(self, t: int) -> CovarianceGaussians:
+    def scene_at(self, t: int) -> Gaussians:
         p = self.prepared
         return frame_gaussians(p.static, p.obj_rest, self.x[t], self.F[t])
 

@@ -33,7 +33,7 @@ import torch
 from clflow.errors import InputError
 from clflow.fileio import atomic_path, load_arrays
 from clflow.scene.load import to_file_frame, up_rotation
-from clflow.splat.gaussians import CovarianceGaussians
+from clflow.splat.gaussians import Gaussians
 
 NPZ_NAME = "gaussians.npz"
 STATIC_NAME = "static"  # static.ply: the static Gaussians, once, next to object-only frames
@@ -53,15 +53,15 @@ class Frames4D:
     def fps(self) -> float:
         return float(self.arrays["fps"])
 
-    def scene_at(self, t: int, dtype: torch.dtype = torch.float32) -> CovarianceGaussians:
+    def scene_at(self, t: int, dtype: torch.dtype = torch.float32) -> Gaussians:
         """The whole scene at frame t (object Gaussians first)."""
         a = self.arrays
         get = lambda name, *index: None if name not in a else torch.from_numpy(a[name][index]).to(dtype)  # noqa: E731
-        return CovarianceGaussians(
+        return Gaussians.from_covariances(
             torch.cat([get("object_means", t), get("static_means")]),
             torch.cat([get("object_covariances", t), get("static_covariances")]),
-            get("opacities"), get("sh"), get("colors"),
-            torch.cat([get("object_sh_rotations", t), get("static_sh_rotations")]),
+            get("opacities"), sh=get("sh"), colors=get("colors"),
+            sh_rotations=torch.cat([get("object_sh_rotations", t), get("static_sh_rotations")]),
         )
 
     def guidance_camera(self):
@@ -115,7 +115,7 @@ def export_gaussians(result, folder: Path, object_only: bool = False, compressed
         "object_covariances": np.stack([f32(f.covariances[:n]) for f in frames]),
         "object_sh_rotations": np.stack([f32(f.sh_rotations[:n]) for f in frames]),
         "static_means": f32(static.means), "static_covariances": f32(static.covariances),
-        "static_sh_rotations": f32(static.sh_rotations), "opacities": f32(first.opacities),
+        "static_sh_rotations": f32(first.sh_rotations[n:]), "opacities": f32(first.opacities),
         "time": np.arange(len(frames)) / cfg.simulation.fps, "fps": np.float64(cfg.simulation.fps),
         "camera_viewmat": cam.viewmat.double().numpy(), "camera_K": cam.K.double().numpy(),
         "camera_size": np.array([cam.width, cam.height]), "scale": np.float64(cfg.scale),
@@ -131,13 +131,13 @@ def export_gaussians(result, folder: Path, object_only: bool = False, compressed
              file_gaussians(g.select(torch.arange(n)) if object_only else g, cfg.scale, cfg.up, turned=n))
 
 
-def file_gaussians(g: CovarianceGaussians, scale: float, up: str, turned: int):
-    """Simulation-frame Gaussians as :class:`clflow.splat.gaussians.Gaussians` in the splat
-    file's frame and units (x_file = R_up^T x_sim / scale), each covariance diagonalised into
-    scales and a rotation. The SH of the first ``turned`` (the object's) are rotated by their
-    turn since rest, R_up^T sh_rotations, so that a renderer without ``sh_rotations`` shows
-    what clflow renders; the others' rotation is the frame change alone."""
-    from clflow.splat.gaussians import Gaussians, rotmat_to_quat
+def file_gaussians(g: Gaussians, scale: float, up: str, turned: int) -> Gaussians:
+    """Simulation-frame Gaussians as undeformed Gaussians in the splat file's frame and units
+    (x_file = R_up^T x_sim / scale), each covariance diagonalised into scales and a rotation.
+    The SH of the first ``turned`` (the object's) are rotated by their turn since rest,
+    R_up^T sh_rotations, so that a renderer without ``sh_rotations`` shows what clflow
+    renders; the others' rotation is the frame change alone."""
+    from clflow.splat.gaussians import rotmat_to_quat
     from clflow.splat.sh import rotate_sh
 
     R_up = up_rotation(up)
@@ -146,7 +146,8 @@ def file_gaussians(g: CovarianceGaussians, scale: float, up: str, turned: int):
     axes = axes * torch.sign(torch.det(axes))[:, None, None]  # proper rotations
     sh = None if g.sh is None else g.sh.double()
     if sh is not None and turned:
-        sh = torch.cat([rotate_sh(sh[:turned], R_up.T @ g.sh_rotations[:turned].double()), sh[turned:]])
+        turns = R_up.T if g.sh_rotations is None else R_up.T @ g.sh_rotations[:turned].double()
+        sh = torch.cat([rotate_sh(sh[:turned], turns.expand(turned, 3, 3)), sh[turned:]])
     return Gaussians.from_activated(
         means, rotmat_to_quat(axes), variances.clamp(min=1e-20).sqrt(), g.opacities.double().clamp(1e-6, 1 - 1e-6),
         sh=sh, colors=None if g.colors is None else g.colors.double())

@@ -220,11 +220,11 @@ def measure_view(prepared, camera, mask: torch.Tensor, video_frames: np.ndarray,
     ``video_frames`` [T+1, H, W, 3] uint8, ``flow`` [T, H, W, 2], ``confidence`` [T, H, W]."""
     from clflow.media import to_uint8
     from clflow.pipeline.render import render_object_alpha, render_rgb
-    from clflow.splat.gaussians import CovarianceGaussians
+    from clflow.splat.gaussians import Gaussians
 
     with torch.no_grad():
         alpha = render_object_alpha(prepared.obj_rest, camera)
-        rendered = to_uint8(render_rgb(CovarianceGaussians.cat([prepared.obj_rest, prepared.static]), camera))
+        rendered = to_uint8(render_rgb(Gaussians.cat([prepared.obj_rest, prepared.static]), camera))
     covered = int((alpha > 0.5).sum())
     m = mask.numpy().astype(bool)
     grey = lambda img: img.astype(np.float64).mean(-1)  # noqa: E731

@@ -5,21 +5,21 @@ from __future__ import annotations
 
 import torch
 
-from clflow.scene.deform import deformed_object
-from clflow.splat.gaussians import CovarianceGaussians
+from clflow.scene.deform import polar_rotations
+from clflow.splat.gaussians import Gaussians
 
 
-def frame_gaussians(static: CovarianceGaussians, obj_rest: CovarianceGaussians, x: torch.Tensor,
-                    F: torch.Tensor) -> CovarianceGaussians:
+def frame_gaussians(static: Gaussians, obj_rest: Gaussians, x: torch.Tensor, F: torch.Tensor) -> Gaussians:
     """The scene at one frame: the object's n Gaussians at particle positions x [>= n, 3] with
     deformation gradients F [>= n, 3, 3] (fill particles beyond n are ignored), then the
     static Gaussians."""
     n = obj_rest.means.shape[0]
-    moved = deformed_object(obj_rest, x[:n].to(obj_rest.means.dtype), F[:n].to(obj_rest.means.dtype))
-    return CovarianceGaussians.cat([moved, static])
+    F = F[:n].to(obj_rest.means.dtype)
+    moved = obj_rest.deformed(x[:n].to(obj_rest.means.dtype), F, polar_rotations(F))
+    return Gaussians.cat([moved, static])
 
 
-def render_rgb(g: CovarianceGaussians, camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
+def render_rgb(g: Gaussians, camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
     """[H, W, 3] colours in [0, 1] (values may exceed 1 before clipping)."""
     from clflow.splat.ops import rasterize_gaussians
 
@@ -35,7 +35,7 @@ def render_rgb(g: CovarianceGaussians, camera, background=(1.0, 1.0, 1.0)) -> to
     return image
 
 
-def render_flow(g_t: CovarianceGaussians, g_t1: CovarianceGaussians, camera, normalize: bool = True):
+def render_flow(g_t: Gaussians, g_t1: Gaussians, camera, normalize: bool = True):
     """Simulated optical flow [H, W, 2] (px per frame) from frame t to t+1 rendered at frame
     t's geometry, and alpha [H, W, 1]; both scenes list the same Gaussians in the same order."""
     from clflow.flow.simulated import render_simulated_flow
@@ -47,7 +47,7 @@ def render_flow(g_t: CovarianceGaussians, g_t1: CovarianceGaussians, camera, nor
     )
 
 
-def render_object_alpha(g: CovarianceGaussians, camera) -> torch.Tensor:
+def render_object_alpha(g: Gaussians, camera) -> torch.Tensor:
     """[H, W] opacity of ``g`` alone (e.g. the object at frame 0)."""
     from clflow.splat.ops import rasterize_gaussians
 

@@ -31,7 +31,7 @@ from clflow.mpm.substep import check_grid_memory
 from clflow.runtime import get_device
 from clflow.scene.config import SceneConfig
 from clflow.scene.filling import ObjectParticles, fill_object
-from clflow.splat.gaussians import CovarianceGaussians
+from clflow.splat.gaussians import Gaussians
 
 GROUND_OFFSET = 0.75  # cells between the ground plane and the node row below it (default domains)
 
@@ -75,7 +75,7 @@ def simulation_grid(cfg: SceneConfig, lower: torch.Tensor, upper: torch.Tensor):
     return Grid(resolution, dx, tuple(float(v) for v in lo))
 
 
-def setup_object(cfg: SceneConfig, obj: CovarianceGaussians) -> ObjectSetup:
+def setup_object(cfg: SceneConfig, obj: Gaussians) -> ObjectSetup:
     """Particles of the object (Gaussians in the simulation frame) and the grid."""
     means = obj.means.detach().double()
     lower, upper = means.min(0).values, means.max(0).values

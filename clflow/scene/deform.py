@@ -3,22 +3,14 @@
 An object Gaussian i that is simulated as particle i moves with it and is deformed by its
 deformation gradient F_i: mean x_i, covariance F_i Sigma_i F_i^T. Its SH colours stay in
 the rest frame, so the view direction is rotated back by R_i^T, R_i the rotation of F_i's
-polar decomposition F = R S (the rasteriser's ``sh_rotations``).
+polar decomposition F = R S (the rasteriser's ``sh_rotations``)::
+
+    moved = rest.deformed(x, F, polar_rotations(F))   # clflow.splat.gaussians.Gaussians
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
-
-if TYPE_CHECKING:
-    from clflow.splat.gaussians import CovarianceGaussians
-
-
-def deformed_covariances(rest: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
-    """F Sigma F^T, [N, 3, 3], for rest covariances [N, 3, 3] and deformation gradients F."""
-    return F @ rest @ F.transpose(-1, -2)
 
 
 def polar_rotations(F: torch.Tensor) -> torch.Tensor:
@@ -43,11 +35,3 @@ def polar_rotations(F: torch.Tensor) -> torch.Tensor:
         with device.bind() as b:
             device.launch(kernel, -(-n // SIMD_LANES), [np.int32(n), b.input(F, "F"), b.output(R, "R")])
     return R
-
-
-def deformed_object(rest: CovarianceGaussians, x: torch.Tensor, F: torch.Tensor) -> CovarianceGaussians:
-    """The object's Gaussians moved to particle positions x [N, 3] and deformed by F [N, 3, 3]."""
-    from clflow.splat.gaussians import CovarianceGaussians
-
-    return CovarianceGaussians(x, deformed_covariances(rest.covariances, F), rest.opacities, rest.sh, rest.colors,
-                               polar_rotations(F) @ rest.sh_rotations)

@@ -22,7 +22,7 @@ from clflow.fileio import load_arrays
 from clflow.scene.config import CameraConfig, SceneConfig
 
 if TYPE_CHECKING:
-    from clflow.splat.gaussians import CovarianceGaussians
+    from clflow.splat.gaussians import Gaussians
 
 
 def up_rotation(up: str) -> torch.Tensor:
@@ -112,16 +112,15 @@ def check_object_sizes(cfg: SceneConfig, means: torch.Tensor, scales: torch.Tens
                          f"scene units); check the file's scale_* values (log std devs in 3DGS files)")
 
 
-def load_scene_gaussians(cfg: SceneConfig, dtype: torch.dtype) -> tuple[CovarianceGaussians, torch.Tensor]:
+def load_scene_gaussians(cfg: SceneConfig, dtype: torch.dtype) -> tuple[Gaussians, torch.Tensor]:
     """All Gaussians of the splat file in the simulation frame (sh_rotations R_up), and the
     object mask [N]."""
-    from clflow.splat.gaussians import CovarianceGaussians
     from clflow.splat.ply import load_ply
 
     g = load_ply(cfg.splats)
     mask = select_object(cfg, g.means.double())
     check_object_sizes(cfg, g.means.double(), g.scales.double(), mask)
-    return CovarianceGaussians.from_gaussians(g, up_rotation(cfg.up), cfg.scale).to(dtype), mask
+    return g.transformed(up_rotation(cfg.up), cfg.scale).to(dtype), mask
 
 
 def to_simulation_camera(camera, cfg: SceneConfig):

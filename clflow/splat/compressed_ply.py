@@ -133,7 +133,8 @@ def _store_bounds(chunks: np.ndarray, values: np.ndarray, first: int, limit: flo
 def save_compressed_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
     """Write ``gaussians`` as a compressed PLY (layout in the module docstring), sorted by
     :func:`morton_order` of their centres, atomically. Gaussians with plain RGB ``colors``
-    are written as degree 0."""
+    are written as degree 0; deformed or turned ones are refused."""
+    gaussians.check_undeformed(str(path))
     g = gaussians.detach().to(dtype=torch.float64, device="cpu")
     if g.sh is not None:
         sh = g.sh.numpy()

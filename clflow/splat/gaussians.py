@@ -12,9 +12,13 @@ and the simulator use are properties::
     g.sh             # [N, K, 3] SH coefficients, K = (sh_degree + 1)^2 (or None: g.colors)
     obj = g.select_sphere(center=(0, 0, 0.5), radius=0.3)
 
-:class:`CovarianceGaussians` is the same Gaussians with covariances instead of rotations
-and scales (``CovarianceGaussians.from_gaussians(g)``): the form the simulation deforms and
-the pipeline renders.
+The simulation moves and deforms them without touching the stored parameters: optional
+per-Gaussian deformation gradients F (covariance F Sigma F^T) and SH rotations (the turn of
+each Gaussian since its SH were fitted)::
+
+    sim = g.transformed(R_up, scale)     # x' = scale R_up x: deformations scale R_up
+    moved = sim.deformed(x, F, R)        # centres x, deformations F scale R_up, sh_rotations R R_up
+    moved.covariances                    # [N, 3, 3] m^2 = F Sigma F^T (computed once, by deformed)
 
 Storing the raw values makes a PLY round trip bit-exact and lets an optimiser work on
 unconstrained parameters.
@@ -79,6 +83,11 @@ def covariances_of(scales: torch.Tensor, rotations: torch.Tensor) -> torch.Tenso
     return rs @ rs.transpose(-1, -2)
 
 
+def deformed_covariances(rest: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
+    """F Sigma F^T, [N, 3, 3], for rest covariances [N, 3, 3] and deformation gradients F."""
+    return F @ rest @ F.transpose(-1, -2)
+
+
 def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     """wxyz quaternions [N, 4] of proper rotation matrices [N, 3, 3] (Shepperd's method)."""
     m = R
@@ -112,6 +121,13 @@ class Gaussians:
             one of ``sh`` and ``colors`` is set.
         features: [N, F] optional extra per-Gaussian channels (e.g. labels, flow), named by
             ``feature_names``; rendered as additional channels.
+        deformations: [N, 3, 3] deformation gradients F applied to the rest shape the
+            parameters describe (covariance F Sigma F^T); None: undeformed.
+        sh_rotations: [N, 3, 3] rotations of each Gaussian since its SH were fitted (the view
+            direction is turned back by their transpose); None: identity.
+        covariance_cache: [N, 3, 3] the covariances (m^2) when already computed (by
+            :meth:`deformed`, :meth:`from_covariances`), so that a deformed copy costs one
+            F Sigma F^T; None: computed from the parameters on each access.
     """
 
     means: torch.Tensor
@@ -122,6 +138,9 @@ class Gaussians:
     colors: torch.Tensor | None = None
     features: torch.Tensor | None = None
     feature_names: tuple[str, ...] = ()
+    deformations: torch.Tensor | None = None
+    sh_rotations: torch.Tensor | None = None
+    covariance_cache: torch.Tensor | None = dataclasses.field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         self.feature_names = tuple(self.feature_names)
@@ -136,10 +155,11 @@ class Gaussians:
             "sh": (n, None, 3),
             "colors": (n, None),
             "features": (n, None),
+            **{name: (n, 3, 3) for name in MATRIX_FIELDS},
         }
         for name, shape in expected.items():
             value = getattr(self, name)
-            if value is None and name in ("sh", "colors", "features"):
+            if value is None and name in ("sh", "colors", "features", *MATRIX_FIELDS):
                 continue
             if not isinstance(value, torch.Tensor) or not _shape_matches(value, shape):
                 got = list(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
@@ -206,6 +226,43 @@ class Gaussians:
         )
         gaussians.validate()
         return gaussians
+
+    @classmethod
+    def from_covariances(
+        cls,
+        means: torch.Tensor,
+        covariances: torch.Tensor,
+        opacities: torch.Tensor,
+        *,
+        sh: torch.Tensor | None = None,
+        colors: torch.Tensor | None = None,
+        sh_rotations: torch.Tensor | None = None,
+    ) -> "Gaussians":
+        """Gaussians of centres ``means`` [N, 3] m and ``covariances`` [N, 3, 3] m^2 (kept as
+        given in ``covariance_cache``): unit Gaussians (1 m, identity rotation) deformed by a
+        factor L of each covariance, L L^T = Sigma (Cholesky; the eigen-factor where Sigma is
+        singular). Cheap (no diagonalisation, no :meth:`validate`: 10 ms for 100,000), as a
+        per-frame render needs. ``opacities`` [N] clamped into [1e-6, 1 - 1e-6] (their
+        logits are stored)."""
+        n, dtype = means.shape[0], means.dtype
+        factors, failed = torch.linalg.cholesky_ex(covariances.detach())
+        singular = failed != 0
+        if bool(singular.any()):
+            variances, axes = torch.linalg.eigh(covariances.detach()[singular])
+            factors[singular] = axes * variances.clamp(min=0).sqrt().unsqueeze(-2)
+        quats = torch.zeros(n, 4, dtype=dtype, device=means.device)
+        quats[:, 0] = 1
+        return cls(
+            means=means,
+            quats=quats,
+            log_scales=torch.zeros(n, 3, dtype=dtype, device=means.device),
+            opacity_logits=torch.logit(opacities.clamp(1e-6, 1 - 1e-6)),
+            sh=sh,
+            colors=colors,
+            deformations=factors,
+            sh_rotations=sh_rotations,
+            covariance_cache=covariances,
+        )
 
     @classmethod
     def from_points(
@@ -279,8 +336,13 @@ class Gaussians:
 
     @property
     def covariances(self) -> torch.Tensor:
-        """[N, 3, 3] world covariances R diag(s^2) R^T, m^2."""
-        return covariances_of(self.scales, self.rotations)
+        """[N, 3, 3] world covariances, m^2: F R diag(s^2) R^T F^T (F = I when undeformed; in
+        F's dtype when set)."""
+        if self.covariance_cache is not None:
+            return self.covariance_cache
+        rest = covariances_of(self.scales, self.rotations)
+        F = self.deformations
+        return rest if F is None else deformed_covariances(rest.to(F.dtype), F)
 
     @property
     def sh_degree(self) -> int | None:
@@ -299,7 +361,7 @@ class Gaussians:
         Checks: every value finite, quaternions of norm >= MIN_QUAT_NORM (1e-8), scales > 0 after
         activation (a log scale below about -87 underflows to 0 in float32).
         """
-        for name in ("means", "quats", "log_scales", "opacity_logits", "sh", "colors", "features"):
+        for name in ("means", "quats", "log_scales", "opacity_logits", "sh", "colors", "features", *MATRIX_FIELDS):
             value = getattr(self, name)
             if value is not None:
                 _check_finite(name, value, where)
@@ -322,6 +384,37 @@ class Gaussians:
                     f"{math.log(torch.finfo(self.dtype).tiny):.1f}"
                 )
         return self
+
+    def check_undeformed(self, where: str) -> None:
+        """Raise :class:`InputError` when deformations or SH rotations are set: a 3DGS file
+        holds the parameters alone (frames4d's ``file_gaussians`` writes moved Gaussians)."""
+        if self.deformations is not None or self.sh_rotations is not None:
+            raise InputError(f"{where}: these Gaussians are deformed or turned (deformations / sh_rotations), "
+                             "which a splat file cannot hold (clflow.pipeline.frames4d.file_gaussians writes them)")
+
+    # -- deformation ------------------------------------------------------------------------
+
+    def deformed(self, means: torch.Tensor, F: torch.Tensor, rotations: torch.Tensor) -> "Gaussians":
+        """A copy centred at ``means`` [N, 3] m and deformed by ``F`` [N, 3, 3] on top of any
+        deformation so far: deformations F D, covariances F Sigma F^T (computed here, in F's
+        dtype), sh_rotations ``rotations`` [N, 3, 3] times the ones so far (``rotations``: the
+        turn of each Gaussian, R of F = R S: :func:`clflow.scene.deform.polar_rotations`).
+        Differentiable in ``means`` and ``F``."""
+        return dataclasses.replace(
+            self,
+            means=means,
+            deformations=F if self.deformations is None else F @ self.deformations.to(F.dtype),
+            sh_rotations=rotations if self.sh_rotations is None else rotations @ self.sh_rotations.to(rotations.dtype),
+            covariance_cache=deformed_covariances(self.covariances.to(F.dtype), F),
+        )
+
+    def transformed(self, rotation: torch.Tensor | None = None, scale: float = 1.0) -> "Gaussians":
+        """The Gaussians in the frame x' = scale R x (``rotation`` R [3, 3] proper, default
+        identity): a uniform deformation scale R with sh_rotations R; means and covariances
+        in float64, the other fields as they are."""
+        R = torch.eye(3, dtype=torch.float64) if rotation is None else rotation.double()
+        Rs = R.expand(len(self), 3, 3)
+        return self.deformed(scale * self.means.double() @ R.T, scale * Rs, Rs)
 
     # -- selection and assembly ------------------------------------------------------------
 
@@ -382,8 +475,12 @@ class Gaussians:
         fields = {
             f.name: (torch.cat([getattr(g, f.name) for g in parts]) if getattr(first, f.name) is not None else None)
             for f in dataclasses.fields(first)
-            if f.name != "feature_names"
+            if f.name not in ("feature_names", *MATRIX_FIELDS)
         }
+        for name in MATRIX_FIELDS:  # a part without them: identity, or its covariances
+            given = [getattr(g, name) for g in parts if getattr(g, name) is not None]
+            if given:
+                fields[name] = torch.cat([_matrices(g, name).to(given[0].dtype) for g in parts])
         return Gaussians(**fields, feature_names=first.feature_names)
 
     def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> "Gaussians":
@@ -422,64 +519,17 @@ class Gaussians:
         return point
 
 
-@dataclass(eq=False)
-class CovarianceGaussians:
-    """N 3D Gaussians in their covariance form, the form a simulation moves and deforms
-    (x -> F x gives Sigma -> F Sigma F^T) and the rasteriser takes as ``covars``.
+MATRIX_FIELDS = ("deformations", "sh_rotations", "covariance_cache")  # the optional [N, 3, 3] fields
 
-    Attributes:
-        means: [N, 3] centres, m.
-        covariances: [N, 3, 3] world covariances, m^2.
-        opacities: [N] peak opacities in (0, 1).
-        sh: [N, K, 3] SH coefficients (K = (degree + 1)^2) or None when ``colors`` [N, C] are set.
-        colors: [N, C] view-independent colours, or None.
-        sh_rotations: [N, 3, 3] rotations of each Gaussian since its SH were fitted (the
-            rasteriser's ``sh_rotations``).
-    """
 
-    means: torch.Tensor
-    covariances: torch.Tensor
-    opacities: torch.Tensor
-    sh: torch.Tensor | None
-    colors: torch.Tensor | None
-    sh_rotations: torch.Tensor
-
-    @classmethod
-    def from_gaussians(cls, g: Gaussians, rotation: torch.Tensor | None = None,
-                       scale: float = 1.0) -> "CovarianceGaussians":
-        """``g`` in the frame x' = scale R x (``rotation`` R [3, 3] proper, default identity):
-        means and covariances computed in float64, the rest in ``g``'s dtype, sh_rotations R."""
-        R = torch.eye(3, dtype=torch.float64) if rotation is None else rotation.double()
-        means = scale * g.means.double() @ R.T
-        covariances = scale**2 * (R @ g.covariances.double() @ R.T)
-        return cls(means, covariances, g.opacities, g.sh, g.colors, R.expand(len(g), 3, 3).contiguous())
-
-    def __len__(self) -> int:
-        return self.means.shape[0]
-
-    @property
-    def sh_degree(self) -> int | None:
-        """SH degree 0..3, or None when the Gaussians carry plain colours."""
-        return None if self.sh is None else sh_degree_of(self.sh.shape[1])
-
-    def to(self, dtype: torch.dtype) -> "CovarianceGaussians":
-        """A copy with every tensor in ``dtype``."""
-        return self._map(lambda t: t.to(dtype))
-
-    def select(self, index: torch.Tensor) -> "CovarianceGaussians":
-        """The Gaussians picked by a bool mask [N] or an index tensor."""
-        return self._map(lambda t: t[index])
-
-    @staticmethod
-    def cat(parts: Sequence["CovarianceGaussians"]) -> "CovarianceGaussians":
-        """The parts' Gaussians in order (all with sh or all with colors)."""
-        fields = {f.name: None if getattr(parts[0], f.name) is None else torch.cat([getattr(p, f.name) for p in parts])
-                  for f in dataclasses.fields(CovarianceGaussians)}
-        return CovarianceGaussians(**fields)
-
-    def _map(self, fn) -> "CovarianceGaussians":
-        return CovarianceGaussians(**{f.name: None if (v := getattr(self, f.name)) is None else fn(v)
-                                      for f in dataclasses.fields(self)})
+def _matrices(g: Gaussians, name: str) -> torch.Tensor:
+    """The [N, 3, 3] field ``name`` of ``g``, or what None stands for: identity, or the covariances."""
+    value = getattr(g, name)
+    if value is not None:
+        return value
+    if name == "covariance_cache":
+        return g.covariances
+    return torch.eye(3, dtype=g.dtype, device=g.means.device).expand(len(g), 3, 3)
 
 
 def nearest_neighbour_rms(points: torch.Tensor, k: int = 3) -> torch.Tensor:

@@ -318,8 +318,10 @@ def load_ply(path: str | os.PathLike, *, point_scale: float | None = None, point
 def save_ply(path: str | os.PathLike, gaussians: Gaussians, *, ascii: bool = False) -> None:
     """Write ``gaussians`` as a 3DGS PLY file (float32, the layout in the module docstring), atomically.
 
-    Gaussians with plain RGB ``colors`` [N, 3] (in [0, 1]) are written as degree-0 SH.
+    Gaussians with plain RGB ``colors`` [N, 3] (in [0, 1]) are written as degree-0 SH;
+    deformed or turned ones are refused (:meth:`Gaussians.check_undeformed`).
     """
+    gaussians.check_undeformed(str(path))
     g = gaussians.detach().to(dtype=torch.float32, device="cpu")
     if g.sh is not None:
         sh = g.sh

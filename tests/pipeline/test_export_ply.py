@@ -13,7 +13,7 @@ from clflow.pipeline.frames4d import export_gaussians, file_gaussians
 from clflow.pipeline.render import render_rgb
 from clflow.scene.load import to_file_camera, up_rotation
 from clflow.splat.cameras import look_at
-from clflow.splat.gaussians import CovarianceGaussians, Gaussians, covariances_of, quat_to_rotmat
+from clflow.splat.gaussians import Gaussians
 from clflow.splat.ply import load_ply
 from clflow.splat.render import rasterize
 from clflow_cli.main import cli
@@ -25,10 +25,10 @@ def random_gaussians(n, seed, center, up):
     g = torch.Generator().manual_seed(seed)
     means = torch.tensor(center) + 0.4 * (torch.rand(n, 3, generator=g) - 0.5)
     quats = torch.randn(n, 4, generator=g)
-    covs = covariances_of(0.03 + 0.04 * torch.rand(n, 3, generator=g), quat_to_rotmat(quats))
+    scales = 0.03 + 0.04 * torch.rand(n, 3, generator=g)
     sh = torch.randn(n, 16, 3, generator=g) * 0.6
-    return CovarianceGaussians(means, covs, 0.5 + 0.4 * torch.rand(n, generator=g), sh, None,
-                          up_rotation(up).float().expand(n, 3, 3).contiguous())
+    rest = Gaussians.from_activated(means, quats, scales, 0.5 + 0.4 * torch.rand(n, generator=g), sh=sh)
+    return dataclasses.replace(rest, sh_rotations=up_rotation(up).float().expand(n, 3, 3).contiguous())
 
 
 @pytest.fixture
