@@ -23,7 +23,7 @@ def _particle_bytes(sim) -> int:
 @bench_command("mpm")
 @click.option("--substeps", default=10, show_default=True, help="Timed substeps per material.")
 @click.option("--particles-per-axis", default=PARTICLES_PER_AXIS, show_default=True,
-              help="Particles per axis of the cube (total = cube of it).")
+              help="Particles per axis of the cube (total = cube of it).")  # fmt: skip
 @click.option("--grid", "grid_res", default=GRID, show_default=True, help="Grid nodes per axis.")
 @click.option("--material", "materials", multiple=True, help="Only these materials (repeatable).")
 @double_option
