@@ -126,8 +126,8 @@ def test_unmappable_configs_are_refused(tmp_path):
 def test_scene_from_config_is_optimize_ready(tmp_path):
     poses = write_sequence(tmp_path / "seq", cameras=4, frames=3, size=SIZE)
     write_splats(tmp_path / "splats.ply")
-    code, output = run([tmp_path / "seq", tmp_path / "splats.ply", "-o", tmp_path / "scene", "--camera", "1",
-                        "--config", write_config(tmp_path / "configs"), "--video", "mkv"], "pacnerf")
+    code, output = pacnerf(tmp_path, "splats.ply", "scene", "--camera", "1", "--config",
+                           write_config(tmp_path / "configs"), "--video", "mkv")
     assert code == 0, output
     assert "3 frames at 24 fps (from " in output and "frame_dt" in output
     cfg = load_config(tmp_path / "scene" / "config.yaml")
@@ -157,8 +157,8 @@ def test_scene_from_config_is_optimize_ready(tmp_path):
 def test_scene_without_config_leaves_the_material_to_the_query(tmp_path):
     write_sequence(tmp_path / "seq", cameras=3, frames=4, size=SIZE, fps=12.0)
     write_splats(tmp_path / "recon" / "point_cloud.ply")
-    code, output = run([tmp_path / "seq", tmp_path / "recon", "-o", tmp_path / "scene", "--prompt", "a jelly torus",
-                        "--background", "black", "--ground", "0.05"], "pacnerf")
+    code, output = pacnerf(tmp_path, "recon", "scene", "--prompt", "a jelly torus", "--background", "black",
+                           "--ground", "0.05")
     assert code == 0, output
     assert "--set optimize.parameters=" in output
     cfg = load_config(tmp_path / "scene" / "config.yaml")
@@ -169,11 +169,15 @@ def test_scene_without_config_leaves_the_material_to_the_query(tmp_path):
     frames, _, fps = decode_video(tmp_path / "scene" / "guidance.mp4")
     assert frames.shape[0] == 4 and fps == pytest.approx(12.0)
     assert (frames[:, 0, 0] <= 3).all()  # black behind the object (H.264)
-    code, output = run([tmp_path / "seq", tmp_path / "recon", "-o", tmp_path / "scene2", "--optimize", "youngs_modulus",
-                        "--fps", "30"], "pacnerf")
+    code, output = pacnerf(tmp_path, "recon", "scene2", "--optimize", "youngs_modulus", "--fps", "30")
     assert code == 0, output
     cfg = load_config(tmp_path / "scene2" / "config.yaml")
     assert cfg.optimize.parameters == ("youngs_modulus",) and cfg.simulation.fps == 30.0
+
+
+def pacnerf(tmp_path, splats, scene, *args):
+    """(exit code, output) of ``clflow pacnerf TMP/seq TMP/SPLATS -o TMP/SCENE ARGS...``."""
+    return run([tmp_path / "seq", tmp_path / splats, "-o", tmp_path / scene, *args], "pacnerf")
 
 
 def pacnerf_error(args, match):
@@ -222,8 +226,8 @@ def test_guidance_frame_0_is_the_scene_as_the_optimiser_renders_it(tmp_path):
         for f in range(2):
             bgra = np.round(255 * rgba[..., [2, 1, 0, 3]]).astype(np.uint8)
             assert cv2.imwrite(str(tmp_path / "seq" / "data" / f"r_{c}_{f}.png"), bgra)
-    code, output = run([tmp_path / "seq", tmp_path / "splats.ply", "-o", tmp_path / "scene", "--camera", "2",
-                        "--video", "mkv", "--box", "-1", "-1", "-1", "1", "1", "1"], "pacnerf")
+    code, output = pacnerf(tmp_path, "splats.ply", "scene", "--camera", "2", "--video", "mkv", "--box", "-1", "-1",
+                           "-1", "1", "1", "1")
     assert code == 0, output
     cfg = load_config(tmp_path / "scene" / "config.yaml")
     scene, _ = load_scene_gaussians(cfg, torch.float32)
