@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from clflow.mpm.constants import SIMD_LANES, grid_channels, velocity_channels
-from clflow.mpm.substep import Grid, State, StressStage, SubstepInputs, SubstepTape, grid_copies
+from clflow.mpm.substep import Grid, State, StressStage, SubstepInputs, SubstepTape, grid_copies, launch_stress
 from clflow.runtime.bridge import numpy_real, real_of
 
 
@@ -131,17 +131,8 @@ class SubstepAdjoint:
                               plastic_bar_out, F_bar, C_bar, plastic_bar, param_bar) -> None:
         """Enqueue the stress stage's adjoint on buffers of the binding ``b``: F_bar, plastic_bar
         written, C_bar and param_bar accumulated into (see kernels_cl/mpm/adjoint/stress_adjoint.cl)."""
-        dev, R, n = self.device, self.real_t, np.int32(self.n)
-        lanes = -(-self.n // SIMD_LANES)
-        if self.elastic_only:
-            dev.launch(self.k_stress, lanes, [n, R(dt), F, C, param, tau_bar, F_bar_out, plastic_bar_out,
-                                              F_bar, C_bar, plastic_bar, param_bar])
-            return
-        U, s, V = b.inout(self.U, "U"), b.inout(self.s, "s"), b.inout(self.V, "V")
-        if self.k_svd is not None:
-            dev.launch(self.k_svd, lanes, [n, R(dt), F, C, U, s, V])
-        dev.launch(self.k_stress, self.n, [n, R(dt), F, C, U, s, V, plastic, material, param, tau_bar, F_bar_out,
-                                           plastic_bar_out, F_bar, C_bar, plastic_bar, param_bar])
+        bars = [tau_bar, F_bar_out, plastic_bar_out, F_bar, C_bar, plastic_bar, param_bar]
+        launch_stress(self, b, dt, F, C, [param, *bars], [plastic, material, param, *bars])
 
 
 __all__ = ["StateGrad", "SubstepAdjoint"]

@@ -206,6 +206,22 @@ def check_grid_memory(info, grid: Grid, itemsize: int, flip: float = 0.0) -> Non
             f"--grid) or a smaller simulation.domain")
 
 
+def launch_stress(owner, b, dt: float, F, C, elastic_args: list, svd_args: list) -> None:
+    """Enqueue a stress stage, forward or adjoint, of ``owner`` (:class:`SubstepKernels` or its
+    adjoint: device, n, k_stress, k_svd, U/s/V) on buffers of the binding ``b``: an elastic-only
+    program takes ``[n, dt, F, C, *elastic_args]`` on SIMD lanes; the others take the SVD
+    of the trial F first (when k_svd), then ``[n, dt, F, C, U, s, V, *svd_args]`` per particle."""
+    dev, R, n = owner.device, owner.real_t, np.int32(owner.n)
+    lanes = -(-owner.n // SIMD_LANES)
+    if owner.elastic_only:
+        dev.launch(owner.k_stress, lanes, [n, R(dt), F, C, *elastic_args])
+        return
+    U, s, V = b.inout(owner.U, "U"), b.inout(owner.s, "s"), b.inout(owner.V, "V")
+    if owner.k_svd is not None:
+        dev.launch(owner.k_svd, lanes, [n, R(dt), F, C, U, s, V])
+    dev.launch(owner.k_stress, owner.n, [n, R(dt), F, C, U, s, V, *svd_args])
+
+
 class SubstepKernels:
     """The substep kernels of one device, precision, particle count, grid, set of material ids
     (``materials``: the kernel ids of the particles) and PIC/FLIP blend ``flip`` (0: APIC),
@@ -269,16 +285,8 @@ class SubstepKernels:
             F, plastic = b.input(state.F, "F"), b.input(state.plastic, "plastic")
             param, F_out, plastic_out = b.input(particles.param, "param"), b.output(out.F, "F_out"), b.output(
                 out.plastic, "plastic_out")
-            lanes = -(-self.n // SIMD_LANES)
-            if self.elastic_only:
-                dev.launch(self.k_stress, lanes, [n, R(dt), F, C, plastic, param, F_out, plastic_out, tau])
-            else:
-                U, s, V = b.inout(self.U, "U"), b.inout(self.s, "s"), b.inout(self.V, "V")
-                if self.needs_svd:
-                    dev.launch(self.k_svd, lanes, [n, R(dt), F, C, U, s, V])
-                dev.launch(self.k_stress, self.n, [n, R(dt), F, C, U, s, V, plastic,
-                                                   b.input(particles.material, "material"), param, F_out,
-                                                   plastic_out, tau])
+            launch_stress(self, b, dt, F, C, [plastic, param, F_out, plastic_out, tau],
+                          [plastic, b.input(particles.material, "material"), param, F_out, plastic_out, tau])
             p2g_args = [n, R(dt), x, v, C, tau, b.input(particles.mass, "mass"),
                         b.input(particles.volume, "volume"), b.input(particles.group, "group"),
                         b.input(accel, "accel")]
