@@ -169,6 +169,14 @@ class SubstepInputs:
     boundaries: torch.Tensor
     accel: torch.Tensor
 
+    def grid_update_args(self, real_t) -> list:
+        """The grid update's (and its adjoint's) scalars: dt, t (s), gravity (m/s^2), mass_eps (kg)."""
+        return [real_t(self.dt), real_t(self.t), *(real_t(g) for g in self.gravity), real_t(self.particles.mass_eps)]
+
+    def boundary_args(self, b) -> list:
+        """The boundary table bound in ``b`` and its row count, as the grid kernels take them."""
+        return [b.input(self.boundaries, "boundaries"), np.int32(self.boundaries.shape[0])]
+
 
 @dataclass
 class SubstepTape:
@@ -275,8 +283,7 @@ class SubstepKernels:
         dev, R, n = self.device, self.real_t, np.int32(self.n)
         grid_args = self.grid.kernel_args(R)
         tape = tape or self.scratch
-        particles, t, dt, gravity, boundaries, accel = (inputs.particles, inputs.t, inputs.dt, inputs.gravity,
-                                                        inputs.boundaries, inputs.accel)
+        particles, t, dt, accel = inputs.particles, inputs.t, inputs.dt, inputs.accel
         with dev.bind() as b:
             x, v, C = b.input(state.x, "x"), b.input(state.v, "v"), b.input(state.C, "C")
             tau = b.inout(tape.tau, "tau")
@@ -301,8 +308,7 @@ class SubstepKernels:
             dev.launch(
                 self.k_grid,
                 self.grid.nodes,
-                grid_args + [R(dt), R(t), *(R(g) for g in gravity), R(particles.mass_eps), grid_mv, grid_v,
-                             grid_dv, b.input(boundaries, "boundaries"), np.int32(boundaries.shape[0])],
+                grid_args + inputs.grid_update_args(R) + [grid_mv, grid_v, grid_dv] + inputs.boundary_args(b),
             )
             dev.launch(
                 self.k_g2p,
