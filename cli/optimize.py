@@ -26,8 +26,7 @@ from clflow_cli.sweep import parse_resources, with_ray_options
                    "path's.")  # fmt: skip
 @with_ray_options
 @click.pass_context
-def optimize(ctx, config, resume, iterations, output, overrides, max_substeps, force_video, parallel, address,
-             cpus_per_task, resources):
+def optimize(ctx, config, parallel, address, cpus_per_task, resources, **settings):
     """Optimise the material parameters of CONFIG (YAML/JSON scene config) so that the
     simulated optical flow matches the guidance video's.
 
@@ -42,5 +41,5 @@ def optimize(ctx, config, resume, iterations, output, overrides, max_substeps, f
                "device": ctx.obj.device_spec if ctx.obj else None}
     elif address or resources:
         raise click.UsageError("--address and --resources go with --parallel")
-    run_optimization(config, resume, iterations, output, overrides, max_substeps, force_video, echo=click.echo,
-                     note=note, bar=iteration_bar, parallel=ray)
+    # settings: resume, iterations, output, overrides, max_substeps, force_video (run_optimization's names)
+    run_optimization(config, **settings, echo=click.echo, note=note, bar=iteration_bar, parallel=ray)

@@ -44,8 +44,8 @@ VIDEO_SUFFIXES = (".mp4", ".gif")
 @click.option("--precision", type=click.Choice(["float32", "float64"]), default="float32", show_default=True,
               help="Compute precision of the rasteriser.")  # fmt: skip
 @max_output_option
-def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, sphere, eye, target, up, n_orbit,
-           elevation, azimuth, fov, width, height, background, sh_degree, video, fps, precision, max_output_gb) -> None:
+def render(splats, output_dir, box, sphere, background, sh_degree, video, fps, precision, max_output_gb,
+           **view_options) -> None:
     """Render SPLATS (a 3DGS PLY file, or a plain x y z [r g b] point cloud) to PNG images.
 
     The views are the cameras of --cameras or --transforms, a look-at camera (--eye,
@@ -78,8 +78,7 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
         gaussians = gaussians.select_sphere(sphere[:3], sphere[3])
     if (box or sphere) and len(gaussians) == 0:
         raise InputError(f"--box/--sphere select none of the {total} Gaussians of {splats}")
-    cameras = _views(gaussians, cameras_json, transforms_json, camera_keys, eye, target, up, n_orbit,
-                     math.radians(elevation), math.radians(azimuth), math.radians(fov), width, height)
+    cameras = _views(gaussians, **view_options)
     sizes = {(c.width, c.height) for c in cameras}
     if video is not None and len(sizes) > 1:
         raise InputError(f"--video: the views have different sizes {sorted(sizes)}; a video needs one size")
@@ -116,9 +115,10 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
         click.echo(f"video: {video}")
 
 
-def _views(gaussians, cameras_json, transforms_json, camera_keys, eye, target, up, n_orbit, elevation, azimuth,
-           fov_x, width, height):
-    """The cameras the options ask for (see the command's help)."""
+def _views(gaussians, *, cameras_json, transforms_json, camera_keys, eye, target, up, n_orbit, elevation, azimuth,
+           fov, width, height):
+    """The cameras the view options ask for (the command's options of those names; angles in
+    degrees, sizes in pixels; see the command's help)."""
     import torch
 
     from clflow.errors import InputError
@@ -133,7 +133,8 @@ def _views(gaussians, cameras_json, transforms_json, camera_keys, eye, target, u
         return [_pick(loaded, key, cameras_json or transforms_json) for key in camera_keys] or loaded
     if camera_keys:
         raise InputError("--camera picks from --cameras or --transforms; give one of them")
-    view = dict(fov_x=fov_x, width=width, height=height)
+    elevation, azimuth = math.radians(elevation), math.radians(azimuth)
+    view = dict(fov_x=math.radians(fov), width=width, height=height)
     if eye is None:
         if len(gaussians) == 0:
             raise InputError("the scene has no Gaussians to frame; give --eye (and --target) for the view")
