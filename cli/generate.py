@@ -55,8 +55,7 @@ def _size(ctx, param, value):
               "offload; needs accelerate; ignored on a CPU run).")  # fmt: skip
 @click.option("--vae-tiling", is_flag=True, help="Decode in tiles (less memory; CogVideoX).")
 @click.option("--vae-slicing", is_flag=True, help="Decode one video at a time (less memory; CogVideoX).")
-def generate(image, model_path, prompt, negative_prompt, output, frames, fps, seed, steps, guidance_scale, size,
-             fit, output_size, cpu_offload, vae_tiling, vae_slicing) -> None:
+def generate(image, model_path, output, **request_options) -> None:
     """Make a guidance video from IMAGE (the object as the guidance camera sees it) with an
     image-to-video diffusion model, for `clflow optimize`'s `video:`.
 
@@ -83,16 +82,13 @@ def generate(image, model_path, prompt, negative_prompt, output, frames, fps, se
                                  f"{', '.join(VIDEO_CODECS)}", param_hint="'-o'")
     # everything is checked before torch loads a weight: the folder, the request, the image, the output
     info = inspect_model(model_path)
-    request = GenerateRequest(prompt=prompt, negative_prompt=negative_prompt, frames=frames, fps=fps, seed=seed,
-                              steps=steps, guidance_scale=guidance_scale, size=size, fit=fit,
-                              output_size=output_size, cpu_offload=cpu_offload, vae_tiling=vae_tiling,
-                              vae_slicing=vae_slicing)
+    request = GenerateRequest(**request_options)  # the other options are its fields, by name
     resolved = check_request(info, request)
     pixels = load_image(image)
     check_output(output.resolve().parent)
     require_extra()
     click.echo(f"{info.family.name} ({model_path}): {resolved.frames} frames at {resolved.size[0]}x"
-               f"{resolved.size[1]}, {resolved.steps} steps, seed {seed}", err=True)
+               f"{resolved.size[1]}, {resolved.steps} steps, seed {request.seed}", err=True)
 
     def progress(step: int, total: int) -> None:
         click.echo(f"step {step}/{total}", err=True)

@@ -50,9 +50,8 @@ LOG_EVERY = 100  # iterations between progress lines when stderr is not a termin
               help="With --depth: horizontal field of view of the photo, degrees.")  # fmt: skip
 @click.option("--shell", type=click.Choice(["mirror", "extrude", "none"]), default="mirror", show_default=True,
               help="With --depth: how the hidden side is closed.")  # fmt: skip
-def reconstruct(images, output_dir, transforms, colmap, cameras_json, frame, masks, background, iterations, seed, sh_degree,
-                sh_every, densify_from, densify_until, densify_every, reset_every, init_points, holdout_every,
-                preview_every, checkpoint_every, resume, depth, depth_scale, fov, shell) -> None:
+def reconstruct(images, output_dir, transforms, colmap, cameras_json, frame, masks, background, preview_every,
+                checkpoint_every, resume, depth, depth_scale, fov, shell, **training) -> None:
     """Train 3D Gaussians on the posed IMAGES and write a standard 3DGS PLY.
 
     Cameras come from --transforms, --colmap or --cameras, or are found next to IMAGES
@@ -73,10 +72,8 @@ def reconstruct(images, output_dir, transforms, colmap, cameras_json, frame, mas
     from clflow.recon.train import reconstruct as train
 
     rgb = (1.0, 1.0, 1.0) if background == "white" else (0.0, 0.0, 0.0)
-    given = dict(iterations=iterations, seed=seed, sh_degree=sh_degree, sh_every=sh_every, densify_from=densify_from,
-                 densify_until=densify_until, densify_every=densify_every, reset_every=reset_every,
-                 init_points=init_points, holdout_every=holdout_every)
-    settings = Settings(background=rgb, **{k: v for k, v in given.items() if v is not None})
+    # training: --iterations, --seed, --sh-degree, ... --holdout-every, Settings' fields by name (None: its default)
+    settings = Settings(background=rgb, **{k: v for k, v in training.items() if v is not None})
     iterations = settings.iterations
     views = load_views(images, transforms=transforms, colmap=colmap, cameras_json=cameras_json, masks=masks,
                        background=rgb, frame=frame)
