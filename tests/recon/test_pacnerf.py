@@ -69,17 +69,19 @@ def test_read_config_merges_its_base_without_running_it(tmp_path):
     assert cfg["material"] == "elasticity" and cfg["E"] == 1e5 and cfg["dt"] == pytest.approx(1 / 4800)
     assert cfg["frame_dt"] == pytest.approx(1 / 24) and cfg["BC"] == {"ground": [[0, 0, 0], [0, 1, 0]]}
     assert cfg["physical_params"] == {"global_E": 0.1, "global_nu": 0.01}  # the case's, over the base's
-    (tmp_path / "bad.py").write_text("import os\ncfg = dict(E=os.getcwd())\n")
-    with pytest.raises(InputError, match="line 2: cannot read 'os.getcwd\\(\\)' without running the file"):
-        read_pacnerf_config(tmp_path / "bad.py")
-    (tmp_path / "loop.py").write_text("_base_ = 'loop.py'\ncfg = dict(E=1)\n")
-    with pytest.raises(InputError, match="is a cycle of base files"):
-        read_pacnerf_config(tmp_path / "loop.py")
-    (tmp_path / "orphan.py").write_text("_base_ = 'gone.py'\ncfg = dict(E=1)\n")
-    with pytest.raises(InputError, match="gone.py: PAC-NeRF config not found \\(the _base_ of"):
-        read_pacnerf_config(tmp_path / "orphan.py")
     (tmp_path / "case.json").write_text(json.dumps({"material": "viscous_fluid", "mu": 1.0, "kappa": 1e3}))
     assert read_pacnerf_config(tmp_path / "case.json")["kappa"] == 1e3
+
+
+@pytest.mark.parametrize("name, text, match", [
+    ("bad.py", "import os\ncfg = dict(E=os.getcwd())\n", "line 2: cannot read 'os.getcwd\\(\\)' without running the file"),
+    ("loop.py", "_base_ = 'loop.py'\ncfg = dict(E=1)\n", "is a cycle of base files"),
+    ("orphan.py", "_base_ = 'gone.py'\ncfg = dict(E=1)\n", "gone.py: PAC-NeRF config not found \\(the _base_ of"),
+])
+def test_read_config_refuses_what_it_cannot_read_without_running(tmp_path, name, text, match):
+    (tmp_path / name).write_text(text)
+    with pytest.raises(InputError, match=match):
+        read_pacnerf_config(tmp_path / name)
 
 
 @pytest.mark.parametrize("cfg, material, params, fit", [
