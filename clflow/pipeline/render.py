@@ -19,19 +19,22 @@ def frame_gaussians(static: CovarianceGaussians, obj_rest: CovarianceGaussians, 
     return CovarianceGaussians.cat([moved, static])
 
 
-def render_rgb(g: CovarianceGaussians, camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
-    """[H, W, 3] colours in [0, 1] (values may exceed 1 before clipping)."""
+def _rasterize(g: CovarianceGaussians, camera, colors: torch.Tensor, **kwargs):
+    """``rasterize_gaussians`` of ``g`` (its covariances) with ``colors`` [N, C] from ``camera``,
+    without depth; ``kwargs`` go to it (sh_degree, background, ...)."""
     from clflow.splat.ops import rasterize_gaussians
 
     dtype = g.means.dtype
-    colors = g.sh if g.sh is not None else g.colors
+    return rasterize_gaussians(g.means, None, None, g.opacities, colors, camera.viewmat.to(dtype), camera.K.to(dtype),
+                               camera.width, camera.height, covars=g.covariances, render_depth=False, **kwargs)
+
+
+def render_rgb(g: CovarianceGaussians, camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
+    """[H, W, 3] colours in [0, 1] (values may exceed 1 before clipping)."""
     sh_degree = g.sh_degree
-    image, _, _, _ = rasterize_gaussians(
-        g.means, None, None, g.opacities, colors, camera.viewmat.to(dtype), camera.K.to(dtype),
-        camera.width, camera.height, covars=g.covariances, sh_degree=sh_degree,
-        sh_rotations=g.sh_rotations if sh_degree else None,
-        background=torch.tensor(background, dtype=dtype), render_depth=False,
-    )
+    image, _, _, _ = _rasterize(g, camera, g.sh if g.sh is not None else g.colors, sh_degree=sh_degree,
+                                sh_rotations=g.sh_rotations if sh_degree else None,
+                                background=torch.tensor(background, dtype=g.means.dtype))
     return image
 
 
@@ -49,12 +52,5 @@ def render_flow(g_t: CovarianceGaussians, g_t1: CovarianceGaussians, camera, nor
 
 def render_object_alpha(g: CovarianceGaussians, camera) -> torch.Tensor:
     """[H, W] opacity of ``g`` alone (e.g. the object at frame 0)."""
-    from clflow.splat.ops import rasterize_gaussians
-
-    dtype = g.means.dtype
-    ones = torch.ones(g.means.shape[0], 1, dtype=dtype)
-    _, alpha, _, _ = rasterize_gaussians(
-        g.means, None, None, g.opacities, ones, camera.viewmat.to(dtype), camera.K.to(dtype),
-        camera.width, camera.height, covars=g.covariances, render_depth=False,
-    )
+    _, alpha, _, _ = _rasterize(g, camera, torch.ones(g.means.shape[0], 1, dtype=g.means.dtype))
     return alpha[..., 0]
