@@ -19,14 +19,19 @@ def frame_gaussians(static: CovarianceGaussians, obj_rest: CovarianceGaussians, 
     return CovarianceGaussians.cat([moved, static])
 
 
+def _view(camera, dtype: torch.dtype) -> tuple:
+    """viewmat [4, 4], K [3, 3] in ``dtype``, width, height (px): the rasteriser's view arguments."""
+    return camera.viewmat.to(dtype), camera.K.to(dtype), camera.width, camera.height
+
+
 def _rasterize(g: CovarianceGaussians, camera, colors: torch.Tensor, **kwargs):
     """``rasterize_gaussians`` of ``g`` (its covariances) with ``colors`` [N, C] from ``camera``,
     without depth; ``kwargs`` go to it (sh_degree, background, ...)."""
     from clflow.splat.ops import rasterize_gaussians
 
-    dtype = g.means.dtype
-    return rasterize_gaussians(g.means, None, None, g.opacities, colors, camera.viewmat.to(dtype), camera.K.to(dtype),
-                               camera.width, camera.height, covars=g.covariances, render_depth=False, **kwargs)
+    view = _view(camera, g.means.dtype)
+    return rasterize_gaussians(g.means, None, None, g.opacities, colors, *view, covars=g.covariances,
+                               render_depth=False, **kwargs)
 
 
 def render_rgb(g: CovarianceGaussians, camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
@@ -43,11 +48,8 @@ def render_flow(g_t: CovarianceGaussians, g_t1: CovarianceGaussians, camera, nor
     t's geometry, and alpha [H, W, 1]; both scenes list the same Gaussians in the same order."""
     from clflow.flow.simulated import render_simulated_flow
 
-    dtype = g_t.means.dtype
-    return render_simulated_flow(
-        g_t.means, g_t1.means, g_t.covariances, g_t.opacities, camera.viewmat.to(dtype), camera.K.to(dtype),
-        camera.width, camera.height, normalize=normalize,
-    )
+    view = _view(camera, g_t.means.dtype)
+    return render_simulated_flow(g_t.means, g_t1.means, g_t.covariances, g_t.opacities, *view, normalize=normalize)
 
 
 def render_object_alpha(g: CovarianceGaussians, camera) -> torch.Tensor:
