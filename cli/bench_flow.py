@@ -89,7 +89,7 @@ def bench_simulated(gaussians: int, frame_count: int, size: int, repeat: int) ->
 @click.option("-n", "--gaussians", default=100_000, show_default=True, help="Gaussians of the simulated flow.")
 @click.option("--sim-frames", default=24, show_default=True, help="Frame pairs of the simulated flow.")
 @click.option("--repeat", type=click.IntRange(min=1), default=1, show_default=True,
-              help="Timed runs of the simulated flow (median printed).")
+              help="Timed runs of the simulated flow (median printed).")  # fmt: skip
 @click.option("--observed/--no-observed", default=True, help="Run the observed-flow part.")
 @click.option("--simulated/--no-simulated", default=True, help="Run the simulated-flow part.")
 @click.pass_obj

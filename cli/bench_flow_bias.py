@@ -91,14 +91,14 @@ def measure_case(config, output, preset: str, confidence: str, iterations: int |
 
 
 @bench_command("flow-bias")
-@click.option("--case", "cases", type=click.Choice(CASES), multiple=True, help="Only these cases (repeatable; default all).")
+@click.option("--case", "cases", type=click.Choice(CASES), multiple=True, help="Only these cases (repeatable; default all).")  # fmt: skip
 @click.option("--preset", "presets", multiple=True, help="DIS presets to compare (repeatable; default all).")
 @click.option("--confidence", "confidences", multiple=True,
-              help="flow.confidence settings to compare (repeatable; default all).")
+              help="flow.confidence settings to compare (repeatable; default all).")  # fmt: skip
 @click.option("--size", type=click.Choice(["quick", "demo"]), default="quick", show_default=True,
-              help="quick: 96 px, 8 frames, 14 iterations (the QUICK demo); demo: 160 px, 12 frames, 20.")
+              help="quick: 96 px, 8 frames, 14 iterations (the QUICK demo); demo: 160 px, 12 frames, 20.")  # fmt: skip
 @click.option("--iterations", type=click.IntRange(min=0), default=None,
-              help="Optimisation iterations (0: the flow bias only). Default: the size's.")
+              help="Optimisation iterations (0: the flow bias only). Default: the size's.")  # fmt: skip
 def flow_bias(cases, presets, confidences, size, iterations):
     """Observed-flow bias of each DIS preset with and without the flow confidence, on
     synthetic cases with known parameters: at the truth, the least-squares slope of the

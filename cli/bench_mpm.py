@@ -3,6 +3,7 @@
 import click
 
 from clflow_cli.bench import bench_command
+from clflow_cli.options import double_option
 
 PARTICLES_PER_AXIS = 64  # 64^3 = 262,144 particles: a cube of 32^3 cells at 2^3 per cell
 GRID = 64
@@ -22,10 +23,10 @@ def _particle_bytes(sim) -> int:
 @bench_command("mpm")
 @click.option("--substeps", default=10, show_default=True, help="Timed substeps per material.")
 @click.option("--particles-per-axis", default=PARTICLES_PER_AXIS, show_default=True,
-              help="Particles per axis of the cube (total = cube of it).")
+              help="Particles per axis of the cube (total = cube of it).")  # fmt: skip
 @click.option("--grid", "grid_res", default=GRID, show_default=True, help="Grid nodes per axis.")
 @click.option("--material", "materials", multiple=True, help="Only these materials (repeatable).")
-@click.option("--double", is_flag=True, help="float64 instead of float32.")
+@double_option
 @click.pass_context
 def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double):
     """Particle-substeps per second of each material on a cube of particles under gravity,

@@ -4,6 +4,7 @@ differentiable MPM run, and its peak memory against the checkpointing formula.""
 import click
 
 from clflow_cli.bench import bench_command
+from clflow_cli.options import double_option
 
 
 @bench_command("mpm-adjoint")
@@ -11,7 +12,7 @@ from clflow_cli.bench import bench_command
 @click.option("--grid", "grid_res", default=64, show_default=True, help="Grid nodes per axis.")
 @click.option("--frames", default=10, show_default=True)
 @click.option("--substeps", default=20, show_default=True, help="Substeps per frame.")
-@click.option("--double", is_flag=True, help="float64 instead of float32.")
+@double_option
 @click.pass_context
 def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
     """Elastic block thrown against the floor: forward seconds, backward seconds (incl. replay),

@@ -7,10 +7,10 @@ from clflow_cli.bench import bench_command
 
 @bench_command("optimize")
 @click.option("--gaussians", type=click.IntRange(min=100), default=100_000, show_default=True,
-              help="Gaussians in the scene (a fifth on the simulated object).")
+              help="Gaussians in the scene (a fifth on the simulated object).")  # fmt: skip
 @click.option("--image", type=click.IntRange(min=16), default=256, show_default=True, help="Guidance image side, px.")
 @click.option("--frames", type=click.IntRange(min=2), default=12, show_default=True, help="Frames simulated.")
-@click.option("--grid", type=click.IntRange(min=8), default=24, show_default=True, help="Grid nodes along the longest side.")
+@click.option("--grid", type=click.IntRange(min=8), default=24, show_default=True, help="Grid nodes along the longest side.")  # fmt: skip
 @click.option("--iterations", type=click.IntRange(min=1), default=2, show_default=True, help="Iterations timed.")
 def optimize(gaussians, image, frames, grid, iterations):
     """Make a demo-like scene (datasets_tools), then time full-horizon iterations of

@@ -3,6 +3,7 @@
 import click
 
 from clflow_cli.bench import bench_command
+from clflow_cli.options import double_option
 
 
 def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=None):
@@ -31,8 +32,8 @@ def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=None):
 @click.option("-n", "--gaussians", default=100_000, show_default=True, help="Number of Gaussians.")
 @click.option("--size", default=512, show_default=True, help="Image width and height (pixels).")
 @click.option("--repeat", type=click.IntRange(min=1), default=10, show_default=True,
-              help="Timed runs (the median is printed).")
-@click.option("--double", is_flag=True, help="float64 instead of float32.")
+              help="Timed runs (the median is printed).")  # fmt: skip
+@double_option
 @click.pass_obj
 def raster(obj, gaussians: int, size: int, repeat: int, double: bool) -> dict:
     """Forward and backward time for N Gaussians at SIZE x SIZE, RGB + depth."""

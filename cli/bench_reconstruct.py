@@ -13,11 +13,11 @@ THRESHOLDS_DB = (25.0, 28.0)
 @click.option("--size", type=click.IntRange(min=16), default=128, show_default=True, help="Image side, pixels.")
 @click.option("--shape", type=click.Choice(["sphere", "cube", "torus"]), default="sphere", show_default=True)
 @click.option("--detail", type=click.IntRange(min=2), default=32, show_default=True,
-              help="Ground-truth Gaussians per face side (6 detail^2 in all).")
+              help="Ground-truth Gaussians per face side (6 detail^2 in all).")  # fmt: skip
 @click.option("--iterations", type=click.IntRange(min=1), default=3000, show_default=True)
 @click.option("--init-points", type=click.IntRange(min=1), default=5000, show_default=True)
 @click.option("--eval-every", type=click.IntRange(min=1), default=250, show_default=True,
-              help="Held-out PSNR every N iterations (not timed).")
+              help="Held-out PSNR every N iterations (not timed).")  # fmt: skip
 def reconstruct(views, size, shape, detail, iterations, init_points, eval_every) -> dict:
     """Iterations per second, held-out PSNR / SSIM and seconds to reach 25 and 28 dB.
 

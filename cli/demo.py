@@ -10,7 +10,7 @@ import click
 @click.option("--quick", is_flag=True, help="A smaller scene (for a first look or CI): about a minute.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted optimisation of an existing demo folder.")
 @click.option("--views", type=click.IntRange(min=0), default=2, show_default=True,
-              help="Fixed novel viewpoints of the 4D render.")
+              help="Fixed novel viewpoints of the 4D render.")  # fmt: skip
 @click.option("--force", is_flag=True, help="Overwrite the demo's files (config.yaml, results/, ...) in FOLDER.")
 def demo(folder, quick, resume, views, force):
     """Make the demo case in FOLDER (a jelly cube pushed sideways on a floor; its guidance

@@ -13,28 +13,28 @@ from clflow_cli.sweep import parse_resources, with_ray_options
 
 @click.command("sysid")
 @out_option("output", "Results folder: sysid.json, sysid.md and cases/NAME/ (scene, guidance, results).",
-            required=True)
+            required=True)  # fmt: skip
 @click.option("--case", "cases", multiple=True, metavar="NAME",
-              help="Run only this case (repeatable). Default: all nine, or the three of --quick.")
+              help="Run only this case (repeatable). Default: all nine, or the three of --quick.")  # fmt: skip
 @click.option("--quick", is_flag=True,
               help="Three cases (elastic torus, plasticine playdoh, Newtonian droplet) at a small grid and image: "
-                   "minutes, for CI.")
+                   "minutes, for CI.")  # fmt: skip
 @click.option("--iterations", type=click.IntRange(min=1), default=None, help="Override the iterations per case.")
 @click.option("--truth-scale", type=click.IntRange(min=1), default=2, show_default=True,
               help="Grid and image refinement of the ground truth (1 reproduces the optimiser's own forward: "
-                   "an inverse crime, for diagnosis only).")
+                   "an inverse crime, for diagnosis only).")  # fmt: skip
 @click.option("--noise", type=click.FloatRange(min=0.0), default=0.0, show_default=True,
-              help="Sensor noise added to the guidance frames, 8-bit grey levels (standard deviation).")
+              help="Sensor noise added to the guidance frames, 8-bit grey levels (standard deviation).")  # fmt: skip
 @click.option("--codec", type=click.Choice([".mp4", ".webm", ".avi"]), default=None,
-              help="Read the guidance through this lossy video encoding instead of lossless PNG frames.")
+              help="Read the guidance through this lossy video encoding instead of lossless PNG frames.")  # fmt: skip
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the scene's texture grain and the noise.")
 @click.option("--views", type=click.IntRange(1, 4), default=1, show_default=True,
               help="Guidance views of each case (the first, then cameras turned 90, -90 and 180 deg about the "
-                   "vertical); the loss is the mean over views.")
+                   "vertical); the loss is the mean over views.")  # fmt: skip
 @click.option("--force", is_flag=True, help="Replace sysid results of other settings in the output folder.")
 @click.option("--parallel", is_flag=True,
               help="Run the cases as Ray tasks (clflow[sweep]; a local Ray on this machine's cores, or --address); "
-                   "the results are the serial path's.")
+                   "the results are the serial path's.")  # fmt: skip
 @with_ray_options
 @click.pass_context
 def sysid(ctx, output, cases, quick, iterations, truth_scale, noise, codec, seed, views, force, parallel, address,

@@ -134,9 +134,9 @@ class CliContext:
     envvar="CLFLOW_DEVICE",
     help="OpenCL device: a case-insensitive substring of the device name, or "
     "'platform:device'. Default: $CLFLOW_DEVICE, else the first GPU, else PoCL's CPU device.",
-)
+)  # fmt: skip
 @click.option("-v", "--verbose", count=True,
-              help="More log output (repeatable; -vv adds pyopencl's per-kernel build messages).")
+              help="More log output (repeatable; -vv adds pyopencl's per-kernel build messages).")  # fmt: skip
 @click.option("-q", "--quiet", count=True, help="Less log output (repeatable).")
 @click.pass_context
 def cli(ctx: click.Context, device: str | None, verbose: int, quiet: int) -> None:

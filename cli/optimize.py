@@ -12,22 +12,21 @@ from clflow_cli.sweep import parse_resources, with_ray_options
 @click.argument("config", type=click.Path(dir_okay=False))
 @click.option("--resume", is_flag=True, help="Continue from OUT/checkpoint.json (after Ctrl-C or a kill).")
 @click.option("--iterations", type=click.IntRange(min=1), default=None,
-              help="Override optimize.iterations of the config.")
+              help="Override optimize.iterations of the config.")  # fmt: skip
 @out_option("output", "Results folder (default: the config's output).")
 @set_option("Set a config key, the value read as YAML, e.g. --set material.parameters.youngs_modulus=2e4 "
-            "(repeatable; checked like the file). --resume needs the same --set as the run it continues.")
+            "(repeatable; checked like the file). --resume needs the same --set as the run it continues.")  # fmt: skip
 @max_substeps_option("Refuse a run needing more substeps per frame (default: simulation.max_substeps, 2000).")
 @click.option("--force-video", is_flag=True,
               help="Optimise even when the guidance checks fail (no motion, noise, a camera that does not fit); "
-                   "the failures are warned about and recorded in metrics.json.")
+                   "the failures are warned about and recorded in metrics.json.")  # fmt: skip
 @click.option("--parallel", is_flag=True,
               help="Run the material hypotheses' searches and the search starts' polishes as Ray tasks "
                    "(clflow[sweep]; a local Ray on this machine's cores, or --address); the results are the serial "
-                   "path's.")
+                   "path's.")  # fmt: skip
 @with_ray_options
 @click.pass_context
-def optimize(ctx, config, resume, iterations, output, overrides, max_substeps, force_video, parallel, address,
-             cpus_per_task, resources):
+def optimize(ctx, config, parallel, address, cpus_per_task, resources, **settings):
     """Optimise the material parameters of CONFIG (YAML/JSON scene config) so that the
     simulated optical flow matches the guidance video's.
 
@@ -42,5 +41,5 @@ def optimize(ctx, config, resume, iterations, output, overrides, max_substeps, f
                "device": ctx.obj.device_spec if ctx.obj else None}
     elif address or resources:
         raise click.UsageError("--address and --resources go with --parallel")
-    run_optimization(config, resume, iterations, output, overrides, max_substeps, force_video, echo=click.echo,
-                     note=note, bar=iteration_bar, parallel=ray)
+    # settings: resume, iterations, output, overrides, max_substeps, force_video (run_optimization's names)
+    run_optimization(config, **settings, echo=click.echo, note=note, bar=iteration_bar, parallel=ray)

@@ -99,6 +99,10 @@ max_output_option = click.option(
     help="Refuse, before any work, a run whose predicted output (an uncompressed upper bound) exceeds this many GB.")
 
 
+#: ``--double``: compute in float64 instead of float32 (the benchmarks).
+double_option = click.option("--double", is_flag=True, help="float64 instead of float32.")
+
+
 def set_option(help: str):
     """``--set KEY.SUB=VALUE`` (repeatable) into ``overrides``: config keys, values read as YAML."""
     return click.option("--set", "overrides", multiple=True, metavar="KEY.SUB=VALUE", help=help)
@@ -114,5 +118,5 @@ def pixel_box_option(help: str = "Pixel box around the object (x right, y down, 
     return click.option("--box", type=Numbers(4, "X0,Y0,X1,Y1"), default=None, help=help)
 
 
-__all__ = ["AliasedOption", "FiniteFloat", "Numbers", "OUT_ALIASES", "aliased_option", "max_output_option",
-           "max_substeps_option", "out_option", "pixel_box_option", "set_option"]
+__all__ = ["AliasedOption", "FiniteFloat", "Numbers", "OUT_ALIASES", "aliased_option", "double_option",
+           "max_output_option", "max_substeps_option", "out_option", "pixel_box_option", "set_option"]

@@ -15,24 +15,24 @@ BACKEND_CHOICES = ("offline", "openai")
 @click.argument("image", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--prompt", default="", help="Text about the object or scene, sent with the image.")
 @click.option("--name", "object_name", default="", metavar="TEXT",
-              help="What the object is ('rubber duck'): the strongest hint for the offline backend.")
+              help="What the object is ('rubber duck'): the strongest hint for the offline backend.")  # fmt: skip
 @pixel_box_option()
 @click.option("--mask", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Image of the same size whose nonzero pixels are the object.")
+              help="Image of the same size whose nonzero pixels are the object.")  # fmt: skip
 @click.option("--backend", type=click.Choice(BACKEND_CHOICES), default="offline", show_default=True,
-              help="offline: the shipped knowledge base; openai: an OpenAI-compatible chat-completions server.")
+              help="offline: the shipped knowledge base; openai: an OpenAI-compatible chat-completions server.")  # fmt: skip
 @click.option("--llm-url", default=None, metavar="URL",
               help="Chat-completions endpoint or base URL (default $CLFLOW_LLM_URL, then $OPENAI_BASE_URL), "
-              "e.g. http://localhost:11434/v1. The key is read from $CLFLOW_LLM_API_KEY or $OPENAI_API_KEY.")
+              "e.g. http://localhost:11434/v1. The key is read from $CLFLOW_LLM_API_KEY or $OPENAI_API_KEY.")  # fmt: skip
 @click.option("--model", default=None, metavar="NAME", help="Vision model name (default $CLFLOW_LLM_MODEL).")
 @click.option("--timeout", type=click.FloatRange(min=0, min_open=True), default=60.0, show_default=True,
-              help="Seconds to wait for the connection and for each read.")
+              help="Seconds to wait for the connection and for each read.")  # fmt: skip
 @click.option("--retries", type=click.IntRange(min=0), default=2, show_default=True,
-              help="Retries after a connection failure, timeout or HTTP 408/429/5xx.")
+              help="Retries after a connection failure, timeout or HTTP 408/429/5xx.")  # fmt: skip
 @click.option("--image-format", type=click.Choice(["png", "jpeg"]), default="png", show_default=True,
-              help="Encoding of the crop sent to the model.")
+              help="Encoding of the crop sent to the model.")  # fmt: skip
 @out_option("output", "Result JSON (default: IMAGE's name + .material.json in the current folder).",
-            type=click.Path(dir_okay=False, path_type=Path))
+            type=click.Path(dir_okay=False, path_type=Path))  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print the result record instead of a summary.")
 def query(image, prompt, object_name, box, mask, backend, llm_url, model, timeout, retries, image_format,
           output, as_json) -> None:

@@ -14,45 +14,44 @@ LOG_EVERY = 100  # iterations between progress lines when stderr is not a termin
 @click.command("reconstruct")
 @click.argument("images", type=click.Path())
 @out_option("output_dir", "Folder for point_cloud.ply, cameras.json, metrics.json, checkpoint.pt and preview/.",
-            required=True)
+            required=True)  # fmt: skip
 @click.option("--transforms", type=click.Path(dir_okay=False), help="NeRF-style transforms.json (OpenGL axes).")
-@click.option("--colmap", type=click.Path(file_okay=False), help="COLMAP sparse model folder (.bin or .txt), e.g. sparse/0.")
+@click.option("--colmap", type=click.Path(file_okay=False), help="COLMAP sparse model folder (.bin or .txt), e.g. sparse/0.")  # fmt: skip
 @click.option("--cameras", "cameras_json", type=click.Path(dir_okay=False), help="3DGS cameras.json.")
 @click.option("--frame", type=int,
               help="IMAGES is a PAC-NeRF-style multi-camera sequence (a folder with all_data.json): train on "
-                   "every camera's image of this frame.")
+                   "every camera's image of this frame.")  # fmt: skip
 @click.option("--masks", type=click.Path(file_okay=False),
-              help="Folder of masks named like the images (white = object); default: the images' alpha channel, if any.")
+              help="Folder of masks named like the images (white = object); default: the images' alpha channel, if any.")  # fmt: skip
 @click.option("--background", type=click.Choice(["black", "white"]), default="black", show_default=True,
-              help="Colour behind the masked object, in the targets and the renders.")
+              help="Colour behind the masked object, in the targets and the renders.")  # fmt: skip
 @click.option("--iterations", type=click.IntRange(min=1), help="Training iterations (default 7000).")
 @click.option("--seed", type=int, help="Seeds the initial points, view order and splits (default 0).")
 @click.option("--sh-degree", type=click.IntRange(0, 3), help="Highest SH degree (default 3).")
-@click.option("--sh-every", type=click.IntRange(min=1), help="Raise the SH degree by one every N iterations (default 1000).")
-@click.option("--densify-from", type=click.IntRange(min=0), help="First densification after this iteration (default 500).")
-@click.option("--densify-until", type=click.IntRange(min=0), help="Last densification at this iteration (default 3500).")
+@click.option("--sh-every", type=click.IntRange(min=1), help="Raise the SH degree by one every N iterations (default 1000).")  # fmt: skip
+@click.option("--densify-from", type=click.IntRange(min=0), help="First densification after this iteration (default 500).")  # fmt: skip
+@click.option("--densify-until", type=click.IntRange(min=0), help="Last densification at this iteration (default 3500).")  # fmt: skip
 @click.option("--densify-every", type=click.IntRange(min=1), help="Densify every N iterations (default 100).")
 @click.option("--reset-every", type=click.IntRange(min=1),
-              help="Reset the opacities every N iterations while densifying (default 3000).")
+              help="Reset the opacities every N iterations while densifying (default 3000).")  # fmt: skip
 @click.option("--init-points", type=click.IntRange(min=1),
-              help="Random initial Gaussians when the cameras bring no point cloud (COLMAP's points3D; default 10000).")
+              help="Random initial Gaussians when the cameras bring no point cloud (COLMAP's points3D; default 10000).")  # fmt: skip
 @click.option("--holdout-every", type=click.IntRange(min=0),
-              help="Hold out views 0, N, 2N, ... for the metrics (0: none; default 8).")
+              help="Hold out views 0, N, 2N, ... for the metrics (0: none; default 8).")  # fmt: skip
 @click.option("--preview-every", type=click.IntRange(min=0), default=500, show_default=True,
-              help="Write preview/iter_N.png (render | target of a held-out view) every N iterations (0: never).")
+              help="Write preview/iter_N.png (render | target of a held-out view) every N iterations (0: never).")  # fmt: skip
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=1000, show_default=True)
 @click.option("--resume", is_flag=True, help="Continue from OUT/checkpoint.pt with the same options.")
 @click.option("--depth", type=click.Path(dir_okay=False),
-              help="Single image + depth: IMAGES is one image, this its depth map (.npy in m, or 16-bit PNG); no training.")
+              help="Single image + depth: IMAGES is one image, this its depth map (.npy in m, or 16-bit PNG); no training.")  # fmt: skip
 @click.option("--depth-scale", type=click.FloatRange(min=0, min_open=True),
-              help="Metres per depth unit (default: 1 for .npy, 0.001 for PNG).")
+              help="Metres per depth unit (default: 1 for .npy, 0.001 for PNG).")  # fmt: skip
 @click.option("--fov", type=click.FloatRange(1, 179), default=50.0, show_default=True,
-              help="With --depth: horizontal field of view of the photo, degrees.")
+              help="With --depth: horizontal field of view of the photo, degrees.")  # fmt: skip
 @click.option("--shell", type=click.Choice(["mirror", "extrude", "none"]), default="mirror", show_default=True,
-              help="With --depth: how the hidden side is closed.")
-def reconstruct(images, output_dir, transforms, colmap, cameras_json, frame, masks, background, iterations, seed, sh_degree,
-                sh_every, densify_from, densify_until, densify_every, reset_every, init_points, holdout_every,
-                preview_every, checkpoint_every, resume, depth, depth_scale, fov, shell) -> None:
+              help="With --depth: how the hidden side is closed.")  # fmt: skip
+def reconstruct(images, output_dir, transforms, colmap, cameras_json, frame, masks, background, preview_every,
+                checkpoint_every, resume, depth, depth_scale, fov, shell, **training) -> None:
     """Train 3D Gaussians on the posed IMAGES and write a standard 3DGS PLY.
 
     Cameras come from --transforms, --colmap or --cameras, or are found next to IMAGES
@@ -73,10 +72,8 @@ def reconstruct(images, output_dir, transforms, colmap, cameras_json, frame, mas
     from clflow.recon.train import reconstruct as train
 
     rgb = (1.0, 1.0, 1.0) if background == "white" else (0.0, 0.0, 0.0)
-    given = dict(iterations=iterations, seed=seed, sh_degree=sh_degree, sh_every=sh_every, densify_from=densify_from,
-                 densify_until=densify_until, densify_every=densify_every, reset_every=reset_every,
-                 init_points=init_points, holdout_every=holdout_every)
-    settings = Settings(background=rgb, **{k: v for k, v in given.items() if v is not None})
+    # training: --iterations, --seed, --sh-degree, ... --holdout-every, Settings' fields by name (None: its default)
+    settings = Settings(background=rgb, **{k: v for k, v in training.items() if v is not None})
     iterations = settings.iterations
     views = load_views(images, transforms=transforms, colmap=colmap, cameras_json=cameras_json, masks=masks,
                        background=rgb, frame=frame)

@@ -16,36 +16,36 @@ VIDEO_SUFFIXES = (".mp4", ".gif")
 @click.argument("splats", type=click.Path(dir_okay=False))
 @out_option("output_dir", "Folder for the PNG images (one per view).", default="renders", show_default=True)
 @click.option("--cameras", "cameras_json", type=click.Path(dir_okay=False),
-              help="3DGS cameras.json; render its cameras (all, or those picked by --camera).")
+              help="3DGS cameras.json; render its cameras (all, or those picked by --camera).")  # fmt: skip
 @click.option("--transforms", "transforms_json", type=click.Path(dir_okay=False),
-              help="NeRF-style transforms.json; render its frames (all, or those picked by --camera).")
+              help="NeRF-style transforms.json; render its frames (all, or those picked by --camera).")  # fmt: skip
 @click.option("--camera", "camera_keys", multiple=True, metavar="NAME|INDEX",
-              help="Pick a camera of --cameras/--transforms by image name, file_path or index (repeatable).")
+              help="Pick a camera of --cameras/--transforms by image name, file_path or index (repeatable).")  # fmt: skip
 @click.option("--box", type=Numbers(6), metavar="X0,Y0,Z0,X1,Y1,Z1",
-              help="Render only the Gaussians whose centres lie in this box (m).")
+              help="Render only the Gaussians whose centres lie in this box (m).")  # fmt: skip
 @click.option("--sphere", type=Numbers(4), metavar="X,Y,Z,R",
-              help="Render only the Gaussians whose centres lie within R m of X,Y,Z.")
+              help="Render only the Gaussians whose centres lie within R m of X,Y,Z.")  # fmt: skip
 @click.option("--eye", type=Numbers(3), help="Look-at camera position X,Y,Z (m).")
 @click.option("--target", type=Numbers(3), help="Look-at target X,Y,Z (m); default: the scene centre.")
 @click.option("--up", type=Numbers(3), default="0,1,0", show_default=True,
-              help="World up direction (+y, as scene configs; NeRF synthetic and Blender scenes: 0,0,1).")
+              help="World up direction (+y, as scene configs; NeRF synthetic and Blender scenes: 0,0,1).")  # fmt: skip
 @click.option("--orbit", "n_orbit", type=click.IntRange(min=1), help="Render N views on a circle around the target.")
 @click.option("--elevation", type=FiniteFloat(), default=20.0, show_default=True,
-              help="Orbit / default view elevation above the horizontal plane, degrees.")
-@click.option("--azimuth", type=FiniteFloat(), default=0.0, show_default=True, help="First orbit / default view azimuth, degrees.")
+              help="Orbit / default view elevation above the horizontal plane, degrees.")  # fmt: skip
+@click.option("--azimuth", type=FiniteFloat(), default=0.0, show_default=True, help="First orbit / default view azimuth, degrees.")  # fmt: skip
 @click.option("--fov", type=FiniteFloat(1, 179), default=50.0, show_default=True,
-              help="Horizontal field of view of generated views, degrees.")
-@click.option("--width", type=click.IntRange(min=1), default=512, show_default=True, help="Image width of generated views, pixels.")
-@click.option("--height", type=click.IntRange(min=1), default=512, show_default=True, help="Image height of generated views, pixels.")
-@click.option("--background", type=Numbers(3), default="0,0,0", show_default=True, help="Background colour R,G,B in [0, 1].")
+              help="Horizontal field of view of generated views, degrees.")  # fmt: skip
+@click.option("--width", type=click.IntRange(min=1), default=512, show_default=True, help="Image width of generated views, pixels.")  # fmt: skip
+@click.option("--height", type=click.IntRange(min=1), default=512, show_default=True, help="Image height of generated views, pixels.")  # fmt: skip
+@click.option("--background", type=Numbers(3), default="0,0,0", show_default=True, help="Background colour R,G,B in [0, 1].")  # fmt: skip
 @click.option("--sh-degree", type=click.IntRange(0, 3), help="Evaluate SH only up to this degree (default: all).")
 @click.option("--video", type=click.Path(dir_okay=False), help="Also write the views as a video (.mp4 or .gif).")
-@click.option("--fps", type=FiniteFloat(min=0, min_open=True), default=24.0, show_default=True, help="Video frame rate.")
+@click.option("--fps", type=FiniteFloat(min=0, min_open=True), default=24.0, show_default=True, help="Video frame rate.")  # fmt: skip
 @click.option("--precision", type=click.Choice(["float32", "float64"]), default="float32", show_default=True,
-              help="Compute precision of the rasteriser.")
+              help="Compute precision of the rasteriser.")  # fmt: skip
 @max_output_option
-def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, sphere, eye, target, up, n_orbit,
-           elevation, azimuth, fov, width, height, background, sh_degree, video, fps, precision, max_output_gb) -> None:
+def render(splats, output_dir, box, sphere, background, sh_degree, video, fps, precision, max_output_gb,
+           **view_options) -> None:
     """Render SPLATS (a 3DGS PLY file, or a plain x y z [r g b] point cloud) to PNG images.
 
     The views are the cameras of --cameras or --transforms, a look-at camera (--eye,
@@ -78,8 +78,7 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
         gaussians = gaussians.select_sphere(sphere[:3], sphere[3])
     if (box or sphere) and len(gaussians) == 0:
         raise InputError(f"--box/--sphere select none of the {total} Gaussians of {splats}")
-    cameras = _views(gaussians, cameras_json, transforms_json, camera_keys, eye, target, up, n_orbit,
-                     math.radians(elevation), math.radians(azimuth), math.radians(fov), width, height)
+    cameras = _views(gaussians, **view_options)
     sizes = {(c.width, c.height) for c in cameras}
     if video is not None and len(sizes) > 1:
         raise InputError(f"--video: the views have different sizes {sorted(sizes)}; a video needs one size")
@@ -116,9 +115,10 @@ def render(splats, output_dir, cameras_json, transforms_json, camera_keys, box, 
         click.echo(f"video: {video}")
 
 
-def _views(gaussians, cameras_json, transforms_json, camera_keys, eye, target, up, n_orbit, elevation, azimuth,
-           fov_x, width, height):
-    """The cameras the options ask for (see the command's help)."""
+def _views(gaussians, *, cameras_json, transforms_json, camera_keys, eye, target, up, n_orbit, elevation, azimuth,
+           fov, width, height):
+    """The cameras the view options ask for (the command's options of those names; angles in
+    degrees, sizes in pixels; see the command's help)."""
     import torch
 
     from clflow.errors import InputError
@@ -133,7 +133,8 @@ def _views(gaussians, cameras_json, transforms_json, camera_keys, eye, target, u
         return [_pick(loaded, key, cameras_json or transforms_json) for key in camera_keys] or loaded
     if camera_keys:
         raise InputError("--camera picks from --cameras or --transforms; give one of them")
-    view = dict(fov_x=fov_x, width=width, height=height)
+    elevation, azimuth = math.radians(elevation), math.radians(azimuth)
+    view = dict(fov_x=math.radians(fov), width=width, height=height)
     if eye is None:
         if len(gaussians) == 0:
             raise InputError("the scene has no Gaussians to frame; give --eye (and --target) for the view")

@@ -28,48 +28,48 @@ SCENE_OPTIONS = ("particles", "out_dir", "params_file", "preview", "max_output_g
 @click.command("simulate")
 @click.argument("particles", required=False, type=click.Path(dir_okay=False))
 @click.option("--shape", type=click.Choice(["box", "sphere", "torus"]), default="box", show_default=True,
-              help="Built-in shape when no particle file is given.")
+              help="Built-in shape when no particle file is given.")  # fmt: skip
 @click.option("--size", default=0.3, show_default=True, help="Shape size (m): cube side, sphere or torus diameter.")
 @click.option("--center", type=Numbers(3, "X,Y,Z"), default=None,
-              help="Shape centre (m); default: the middle of the domain.")
+              help="Shape centre (m); default: the middle of the domain.")  # fmt: skip
 @click.option("--material", "-m", default="elastic", show_default=True, help="Material name (clflow.materials).")
 @click.option("--param", "-p", "params", multiple=True, metavar="NAME=VALUE", callback=_params,
-              help="One material parameter in SI units, e.g. -p youngs_modulus=2e5 (repeatable).")
+              help="One material parameter in SI units, e.g. -p youngs_modulus=2e5 (repeatable).")  # fmt: skip
 @click.option("--model", default=None, help="Elastic model: fixed_corotated (default) or neo_hookean; sand: drucker_prager "
-                                           "(default) or volume_corrected.")
+                                           "(default) or volume_corrected.")  # fmt: skip
 @click.option("--density", type=float, default=None, help="Density (kg/m^3); default: the material's.")
 @click.option("--velocity", type=Numbers(3, "VX,VY,VZ"), default="0,0,0", show_default=True,
-              help="Initial velocity (m/s).")
+              help="Initial velocity (m/s).")  # fmt: skip
 @click.option("--domain", default=1.0, show_default=True, help="Side of the cubic domain (m), origin at 0.")
 @click.option("--grid", "resolution", default=64, show_default=True, help="Grid nodes per axis.")
 @click.option("--particle-volume", type=float, default=None,
-              help="Rest volume per particle (m^3) for particle files without one; default (dx/2)^3.")
+              help="Rest volume per particle (m^3) for particle files without one; default (dx/2)^3.")  # fmt: skip
 @click.option("--frames", default=24, show_default=True, help="Frames to simulate.")
 @click.option("--fps", default=24.0, show_default=True, help="Frames per second.")
 @click.option("--substeps", type=int, default=None, help="Substeps per frame (default: the stable count).")
 @click.option("--gravity", type=Numbers(3, "GX,GY,GZ"), default="0,-9.81,0", show_default=True,
-              help="Gravity (m/s^2).")
+              help="Gravity (m/s^2).")  # fmt: skip
 @click.option("--walls", type=click.Choice(["separate", "slip", "sticky", "none"]), default="separate",
-              show_default=True, help="Domain-wall condition.")
+              show_default=True, help="Domain-wall condition.")  # fmt: skip
 @click.option("--wall-friction", default=0.0, show_default=True, help="Coulomb friction of the walls.")
 @click.option("--double", is_flag=True, help="Simulate in float64.")
 @out_option("out_dir", "Output folder [default: simulation; for a config: its output/simulation].")
 @aliased_option("--params-from", "params_file", aliases=("--params",), type=click.Path(dir_okay=False),
                 metavar="PARAMS.JSON",
                 help="With a CONFIG: simulate with the material, density and velocity of this params.json "
-                     "(clflow optimize's result).")
+                     "(clflow optimize's result).")  # fmt: skip
 @click.option("--preview", type=click.Choice(["mp4", "png", "none"]), default="mp4", show_default=True,
-              help="Preview video, PNG frames, or none.")
+              help="Preview video, PNG frames, or none.")  # fmt: skip
 @max_output_option
 @set_option("With a CONFIG: set a config key, the value read as YAML, e.g. --set simulation.frames=48 "
-            "(repeatable; checked like the file).")
+            "(repeatable; checked like the file).")  # fmt: skip
 @max_substeps_option("Refuse a run needing more substeps per frame [default: a config's simulation.max_substeps, "
-                     "else 2000].")
+                     "else 2000].")  # fmt: skip
 @click.option("--object-only", is_flag=True,
-              help="With a CONFIG: PLY frames of the object alone, the static Gaussians once in OUT/static.ply.")
+              help="With a CONFIG: PLY frames of the object alone, the static Gaussians once in OUT/static.ply.")  # fmt: skip
 @click.option("--compressed-ply", "compressed", is_flag=True,
               help="With a CONFIG: write the PLYs compressed (frame_000.compressed.ply ..., the format SuperSplat and "
-                   "PlayCanvas read), about a quarter of the size.")
+                   "PlayCanvas read), about a quarter of the size.")  # fmt: skip
 @click.pass_context
 def simulate(ctx, particles, out_dir, params_file, preview, max_output_gb, overrides, max_substeps, object_only,
              compressed, **particle_run):

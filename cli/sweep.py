@@ -44,11 +44,11 @@ def with_ray_options(f):
 @click.command("sweep")
 @click.argument("spec", type=click.Path(dir_okay=False))
 @out_option("output", "Results folder: sweep.json, sweep.md and runs/NAME/ (result.json, run.log, outputs).",
-            required=True)
+            required=True)  # fmt: skip
 @click.option("--serial", is_flag=True, help="Run the spec here, one run after another, without Ray.")
 @with_ray_options
 @click.option("--timeout", type=click.FloatRange(min=0, min_open=True), default=None, metavar="SECONDS",
-              help="Stop a run that takes longer and record it as timed out (a spec's timeout: overrides).")
+              help="Stop a run that takes longer and record it as timed out (a spec's timeout: overrides).")  # fmt: skip
 @click.option("--retry-failed", is_flag=True, help="Run again the runs that failed, timed out or were killed earlier.")
 @click.pass_context
 def sweep(ctx, spec, output, serial, address, cpus_per_task, resources, timeout, retry_failed):

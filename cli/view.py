@@ -6,11 +6,11 @@ import click
 @click.command("view")
 @click.argument("path", type=click.Path(path_type=str))
 @click.option("--host", default="127.0.0.1", show_default=True,
-              help="Address to serve on; 0.0.0.0 lets other machines connect.")
+              help="Address to serve on; 0.0.0.0 lets other machines connect.")  # fmt: skip
 @click.option("--port", type=click.IntRange(0, 65535), default=8080, show_default=True,
-              help="Port to serve on (0: any free port).")
+              help="Port to serve on (0: any free port).")  # fmt: skip
 @click.option("--up", type=click.Choice(["+x", "-x", "+y", "-y", "+z", "-z"]), default="+y", show_default=True,
-              help="A PLY file's up axis (a simulation folder knows its own).")
+              help="A PLY file's up axis (a simulation folder knows its own).")  # fmt: skip
 @click.pass_obj
 def view(obj, path, host, port, up):
     """Show PATH in the browser: a 3DGS PLY file, or a simulation folder (`clflow simulate

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from clflow.mpm.constants import SIMD_LANES, grid_channels, velocity_channels
-from clflow.mpm.substep import Grid, State, StressStage, SubstepInputs, SubstepTape, grid_copies
+from clflow.mpm.substep import Grid, State, StressStage, SubstepInputs, SubstepTape, grid_copies, launch_stress
 from clflow.runtime.bridge import numpy_real, real_of
 
 
@@ -87,8 +87,7 @@ class SubstepAdjoint:
         parameter and mass gradients into ``param_grad`` [N, PARAM_COUNT] and ``mass_grad`` [N]."""
         dev, R, n = self.device, self.real_t, np.int32(self.n)
         grid_args = self.grid.kernel_args(R)
-        particles, t, dt, gravity, boundaries, accel = (inputs.particles, inputs.t, inputs.dt, inputs.gravity,
-                                                        inputs.boundaries, inputs.accel)
+        particles, t, dt, accel = inputs.particles, inputs.t, inputs.dt, inputs.accel
         with dev.bind() as b:
             x = b.input(state.x, "x")
             C = b.input(state.C, "C")
@@ -105,10 +104,9 @@ class SubstepAdjoint:
                 grid_v, b.input(tape.grid_dv, "grid_dv"), b.input(grad_after.x, "x_bar_out"),
                 v_bar_out, b.input(grad_after.C, "C_bar_out"),
                 np.int32(self.copies), np.int32(self.chunk), self.grid_v_bar_copies, x_bar], local_size=1)
-            dev.launch(self.k_grid, self.grid.nodes, grid_args + [
-                R(dt), R(t), *(R(g) for g in gravity), R(particles.mass_eps), b.input(tape.grid_mv, "grid"),
-                self.grid_v_bar_copies, np.int32(self.copies), b.input(boundaries, "boundaries"),
-                np.int32(boundaries.shape[0]), grid_bar])
+            dev.launch(self.k_grid, self.grid.nodes, grid_args + inputs.grid_update_args(R)
+                       + [b.input(tape.grid_mv, "grid"), self.grid_v_bar_copies, np.int32(self.copies)]
+                       + inputs.boundary_args(b) + [grid_bar])
             # p2g_adjoint writes v_bar, which p2g_flip_adjoint then reads and adds to
             v_bar = (b.output if self.k_flip is None else b.inout)(grad.v, "v_bar")
             v, mass, mass_bar = b.input(state.v, "v"), b.input(particles.mass, "mass"), b.inout(mass_grad, "mass_bar")
@@ -131,17 +129,8 @@ class SubstepAdjoint:
                               plastic_bar_out, F_bar, C_bar, plastic_bar, param_bar) -> None:
         """Enqueue the stress stage's adjoint on buffers of the binding ``b``: F_bar, plastic_bar
         written, C_bar and param_bar accumulated into (see kernels_cl/mpm/adjoint/stress_adjoint.cl)."""
-        dev, R, n = self.device, self.real_t, np.int32(self.n)
-        lanes = -(-self.n // SIMD_LANES)
-        if self.elastic_only:
-            dev.launch(self.k_stress, lanes, [n, R(dt), F, C, param, tau_bar, F_bar_out, plastic_bar_out,
-                                              F_bar, C_bar, plastic_bar, param_bar])
-            return
-        U, s, V = b.inout(self.U, "U"), b.inout(self.s, "s"), b.inout(self.V, "V")
-        if self.k_svd is not None:
-            dev.launch(self.k_svd, lanes, [n, R(dt), F, C, U, s, V])
-        dev.launch(self.k_stress, self.n, [n, R(dt), F, C, U, s, V, plastic, material, param, tau_bar, F_bar_out,
-                                           plastic_bar_out, F_bar, C_bar, plastic_bar, param_bar])
+        bars = [tau_bar, F_bar_out, plastic_bar_out, F_bar, C_bar, plastic_bar, param_bar]
+        launch_stress(self, b, dt, F, C, [param, *bars], [plastic, material, param, *bars])
 
 
 __all__ = ["StateGrad", "SubstepAdjoint"]

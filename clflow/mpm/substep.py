@@ -169,6 +169,14 @@ class SubstepInputs:
     boundaries: torch.Tensor
     accel: torch.Tensor
 
+    def grid_update_args(self, real_t) -> list:
+        """The grid update's (and its adjoint's) scalars: dt, t (s), gravity (m/s^2), mass_eps (kg)."""
+        return [real_t(self.dt), real_t(self.t), *(real_t(g) for g in self.gravity), real_t(self.particles.mass_eps)]
+
+    def boundary_args(self, b) -> list:
+        """The boundary table bound in ``b`` and its row count, as the grid kernels take them."""
+        return [b.input(self.boundaries, "boundaries"), np.int32(self.boundaries.shape[0])]
+
 
 @dataclass
 class SubstepTape:
@@ -204,6 +212,22 @@ def check_grid_memory(info, grid: Grid, itemsize: int, flip: float = 0.0) -> Non
             f"{format_bytes(largest)}; {info.name} has {format_bytes(info.global_mem_size)}, buffers up to "
             f"{format_bytes(info.max_mem_alloc_size)}: use a coarser grid (simulation.grid_resolution or "
             f"--grid) or a smaller simulation.domain")
+
+
+def launch_stress(owner, b, dt: float, F, C, elastic_args: list, svd_args: list) -> None:
+    """Enqueue a stress stage, forward or adjoint, of ``owner`` (:class:`SubstepKernels` or its
+    adjoint: device, n, k_stress, k_svd, U/s/V) on buffers of the binding ``b``: an elastic-only
+    program takes ``[n, dt, F, C, *elastic_args]`` on SIMD lanes; the others take the SVD
+    of the trial F first (when k_svd), then ``[n, dt, F, C, U, s, V, *svd_args]`` per particle."""
+    dev, R, n = owner.device, owner.real_t, np.int32(owner.n)
+    lanes = -(-owner.n // SIMD_LANES)
+    if owner.elastic_only:
+        dev.launch(owner.k_stress, lanes, [n, R(dt), F, C, *elastic_args])
+        return
+    U, s, V = b.inout(owner.U, "U"), b.inout(owner.s, "s"), b.inout(owner.V, "V")
+    if owner.k_svd is not None:
+        dev.launch(owner.k_svd, lanes, [n, R(dt), F, C, U, s, V])
+    dev.launch(owner.k_stress, owner.n, [n, R(dt), F, C, U, s, V, *svd_args])
 
 
 class SubstepKernels:
@@ -259,8 +283,7 @@ class SubstepKernels:
         dev, R, n = self.device, self.real_t, np.int32(self.n)
         grid_args = self.grid.kernel_args(R)
         tape = tape or self.scratch
-        particles, t, dt, gravity, boundaries, accel = (inputs.particles, inputs.t, inputs.dt, inputs.gravity,
-                                                        inputs.boundaries, inputs.accel)
+        particles, t, dt, accel = inputs.particles, inputs.t, inputs.dt, inputs.accel
         with dev.bind() as b:
             x, v, C = b.input(state.x, "x"), b.input(state.v, "v"), b.input(state.C, "C")
             tau = b.inout(tape.tau, "tau")
@@ -269,16 +292,8 @@ class SubstepKernels:
             F, plastic = b.input(state.F, "F"), b.input(state.plastic, "plastic")
             param, F_out, plastic_out = b.input(particles.param, "param"), b.output(out.F, "F_out"), b.output(
                 out.plastic, "plastic_out")
-            lanes = -(-self.n // SIMD_LANES)
-            if self.elastic_only:
-                dev.launch(self.k_stress, lanes, [n, R(dt), F, C, plastic, param, F_out, plastic_out, tau])
-            else:
-                U, s, V = b.inout(self.U, "U"), b.inout(self.s, "s"), b.inout(self.V, "V")
-                if self.needs_svd:
-                    dev.launch(self.k_svd, lanes, [n, R(dt), F, C, U, s, V])
-                dev.launch(self.k_stress, self.n, [n, R(dt), F, C, U, s, V, plastic,
-                                                   b.input(particles.material, "material"), param, F_out,
-                                                   plastic_out, tau])
+            launch_stress(self, b, dt, F, C, [plastic, param, F_out, plastic_out, tau],
+                          [plastic, b.input(particles.material, "material"), param, F_out, plastic_out, tau])
             p2g_args = [n, R(dt), x, v, C, tau, b.input(particles.mass, "mass"),
                         b.input(particles.volume, "volume"), b.input(particles.group, "group"),
                         b.input(accel, "accel")]
@@ -293,8 +308,7 @@ class SubstepKernels:
             dev.launch(
                 self.k_grid,
                 self.grid.nodes,
-                grid_args + [R(dt), R(t), *(R(g) for g in gravity), R(particles.mass_eps), grid_mv, grid_v,
-                             grid_dv, b.input(boundaries, "boundaries"), np.int32(boundaries.shape[0])],
+                grid_args + inputs.grid_update_args(R) + [grid_mv, grid_v, grid_dv] + inputs.boundary_args(b),
             )
             dev.launch(
                 self.k_g2p,

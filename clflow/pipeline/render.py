@@ -19,19 +19,27 @@ def frame_gaussians(static: Gaussians, obj_rest: Gaussians, x: torch.Tensor, F: 
     return Gaussians.cat([moved, static])
 
 
-def render_rgb(g: Gaussians, camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
-    """[H, W, 3] colours in [0, 1] (values may exceed 1 before clipping)."""
+def _view(camera, dtype: torch.dtype) -> tuple:
+    """viewmat [4, 4], K [3, 3] in ``dtype``, width, height (px): the rasteriser's view arguments."""
+    return camera.viewmat.to(dtype), camera.K.to(dtype), camera.width, camera.height
+
+
+def _rasterize(g: Gaussians, camera, colors: torch.Tensor, **kwargs):
+    """``rasterize_gaussians`` of ``g`` (its covariances) with ``colors`` [N, C] from ``camera``,
+    without depth; ``kwargs`` go to it (sh_degree, background, ...)."""
     from clflow.splat.ops import rasterize_gaussians
 
-    dtype = g.means.dtype
-    colors = g.sh if g.sh is not None else g.colors
+    view = _view(camera, g.means.dtype)
+    return rasterize_gaussians(g.means, None, None, g.opacities, colors, *view, covars=g.covariances,
+                               render_depth=False, **kwargs)
+
+
+def render_rgb(g: Gaussians, camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
+    """[H, W, 3] colours in [0, 1] (values may exceed 1 before clipping)."""
     sh_degree = g.sh_degree
-    image, _, _, _ = rasterize_gaussians(
-        g.means, None, None, g.opacities, colors, camera.viewmat.to(dtype), camera.K.to(dtype),
-        camera.width, camera.height, covars=g.covariances, sh_degree=sh_degree,
-        sh_rotations=g.sh_rotations if sh_degree else None,
-        background=torch.tensor(background, dtype=dtype), render_depth=False,
-    )
+    image, _, _, _ = _rasterize(g, camera, g.sh if g.sh is not None else g.colors, sh_degree=sh_degree,
+                                sh_rotations=g.sh_rotations if sh_degree else None,
+                                background=torch.tensor(background, dtype=g.means.dtype))
     return image
 
 
@@ -40,21 +48,11 @@ def render_flow(g_t: Gaussians, g_t1: Gaussians, camera, normalize: bool = True)
     t's geometry, and alpha [H, W, 1]; both scenes list the same Gaussians in the same order."""
     from clflow.flow.simulated import render_simulated_flow
 
-    dtype = g_t.means.dtype
-    return render_simulated_flow(
-        g_t.means, g_t1.means, g_t.covariances, g_t.opacities, camera.viewmat.to(dtype), camera.K.to(dtype),
-        camera.width, camera.height, normalize=normalize,
-    )
+    view = _view(camera, g_t.means.dtype)
+    return render_simulated_flow(g_t.means, g_t1.means, g_t.covariances, g_t.opacities, *view, normalize=normalize)
 
 
 def render_object_alpha(g: Gaussians, camera) -> torch.Tensor:
     """[H, W] opacity of ``g`` alone (e.g. the object at frame 0)."""
-    from clflow.splat.ops import rasterize_gaussians
-
-    dtype = g.means.dtype
-    ones = torch.ones(g.means.shape[0], 1, dtype=dtype)
-    _, alpha, _, _ = rasterize_gaussians(
-        g.means, None, None, g.opacities, ones, camera.viewmat.to(dtype), camera.K.to(dtype),
-        camera.width, camera.height, covars=g.covariances, render_depth=False,
-    )
+    _, alpha, _, _ = _rasterize(g, camera, torch.ones(g.means.shape[0], 1, dtype=g.means.dtype))
     return alpha[..., 0]

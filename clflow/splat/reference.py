@@ -22,23 +22,14 @@ from clflow.splat.constants import (
     T_MIN,
     TILE_SIZE,
 )
+from clflow.splat.gaussians import covariances_of, quat_to_rotmat
 from clflow.splat.ops import assemble_channels, split_outputs
 
 
 def covariances_from_quats_scales(quats: Tensor, scales: Tensor) -> Tensor:
     """Sigma = R(q) S S^T R(q)^T [N, 3, 3] (m^2) from quats [N, 4] (w, x, y, z; normalised
     here) and scales [N, 3] (standard deviations, m)."""
-    w, x, y, z = (quats / quats.norm(dim=-1, keepdim=True)).unbind(-1)
-    R = torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(-1, 3, 3)
-    M = R * scales.unsqueeze(-2)  # R S
-    return M @ M.transpose(-1, -2)
+    return covariances_of(scales, quat_to_rotmat(quats))
 
 
 def project_reference(means: Tensor, covars: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int,

@@ -16,15 +16,24 @@
  *       (rad/s, right-handed about b): nodes inside get v = omega b x (x_i - a). */
 #include "mpm/mpm.h"
 
-inline void apply_halfspace(__global const real *rec, const real *xi, real *v)
+/* The half-space record's unit normal n and the node's normal velocity *vn = v.n; 1 when node
+ * xi is inside the collider ((xi - point).n < 0), as apply_halfspace and its adjoint decide. */
+inline int halfspace_contact(__global const real *rec, const real *xi, const real *v, real *n, real *vn)
 {
-    real n[3], rel = 0, vn = 0;
+    real rel = 0, dot = 0;
     for (int a = 0; a < 3; ++a) {
         n[a] = rec[BC_B + a];
         rel += (xi[a] - rec[BC_A + a]) * n[a];
-        vn += v[a] * n[a];
+        dot += v[a] * n[a];
     }
-    if (rel >= 0)
+    *vn = dot;
+    return !(rel >= 0);
+}
+
+inline void apply_halfspace(__global const real *rec, const real *xi, real *v)
+{
+    real n[3], vn;
+    if (!halfspace_contact(rec, xi, v, n, &vn))
         return;
     const int mode = (int)rec[BC_MODE];
     if (mode == COLLIDE_STICKY) {
@@ -75,6 +84,24 @@ inline void apply_cylinder(__global const real *rec, const real *xi, real *v)
     v[2] = omega * (rec[BC_B] * r[1] - rec[BC_B + 1] * r[0]);
 }
 
+/* 1 while the record is in force: start <= t < end (s). */
+inline int bc_active(__global const real *rec, const real t)
+{
+    return t >= rec[BC_T_START] && t < rec[BC_T_END];
+}
+
+/* The record's condition on node xi's velocity v (unchanged where it does not apply). */
+inline void apply_condition(__global const real *rec, const real *xi, real *v)
+{
+    const int kind = (int)rec[BC_KIND];
+    if (kind == BC_HALFSPACE)
+        apply_halfspace(rec, xi, v);
+    else if (kind == BC_BOX)
+        apply_box(rec, xi, v);
+    else if (kind == BC_CYLINDER)
+        apply_cylinder(rec, xi, v);
+}
+
 __kernel void grid_update(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
                           const real oz, const real dt, const real t, const real gx, const real gy, const real gz,
                           const real mass_eps, __global const real *grid, __global real *grid_v, __global real *grid_dv,
@@ -94,15 +121,8 @@ __kernel void grid_update(const int nx, const int ny, const int nz, const real d
         const real xi[3] = {ox + i * dx, oy + j * dx, oz + k * dx};
         for (int b = 0; b < n_bc; ++b) {
             __global const real *rec = bc + (long)b * BC_STRIDE;
-            if (t < rec[BC_T_START] || t >= rec[BC_T_END])
-                continue;
-            const int kind = (int)rec[BC_KIND];
-            if (kind == BC_HALFSPACE)
-                apply_halfspace(rec, xi, v);
-            else if (kind == BC_BOX)
-                apply_box(rec, xi, v);
-            else if (kind == BC_CYLINDER)
-                apply_cylinder(rec, xi, v);
+            if (bc_active(rec, t))
+                apply_condition(rec, xi, v);
         }
     }
     store_row(grid_v, node, 3, v);

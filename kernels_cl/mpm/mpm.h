@@ -113,6 +113,23 @@ inline void store_row(__global real *a, const long i, const int width, const rea
     }
 CLFLOW_DEFINE_TRIAL_DEFORMATION(, real)
 
+/* The stress stage's inputs of particle p, forward and adjoint alike: F and C (rows p of F_in,
+ * C_in), step and F_tr (trial_deformation) and, when the scene has SVD materials, the SVD
+ * U, s, V of F_tr that trial_svd wrote (rows p of U_in, s_in, V_in; left unset otherwise). */
+inline void load_stress_inputs(const int p, const real dt, __global const real *F_in, __global const real *C_in,
+                               __global const real *U_in, __global const real *s_in, __global const real *V_in, real *F,
+                               real *C, real *step, real *F_tr, real *U, real *s, real *V)
+{
+    load_row(F_in, p, 9, F);
+    load_row(C_in, p, 9, C);
+    trial_deformation(F, C, dt, step, F_tr);
+#if MATERIALS_PRESENT & SVD_MATERIALS
+    load_row(U_in, p, 9, U);
+    load_row(s_in, p, 3, s);
+    load_row(V_in, p, 9, V);
+#endif
+}
+
 #ifdef CLFLOW_SIMD_LANES
 CLFLOW_DEFINE_TRIAL_DEFORMATION(_v, realv)
 

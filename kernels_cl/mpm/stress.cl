@@ -30,14 +30,7 @@ __kernel void update_stress(const int n, const real dt, __global const real *F_i
     if (p >= n)
         return;
     real F[9], C[9], step[9], F_tr[9], F_new[9], tau[9], U[9], s[3], V[9];
-    load_row(F_in, p, 9, F);
-    load_row(C_in, p, 9, C);
-    trial_deformation(F, C, dt, step, F_tr);
-#if MATERIALS_PRESENT & SVD_MATERIALS
-    load_row(U_in, p, 9, U);
-    load_row(s_in, p, 3, s);
-    load_row(V_in, p, 9, V);
-#endif
+    load_stress_inputs(p, dt, F_in, C_in, U_in, s_in, V_in, F, C, step, F_tr, U, s, V);
     __global const real *q = param + (long)p * PARAM_COUNT;
     const real plastic = plastic_in[p];
     real plastic_new = plastic;

@@ -17,6 +17,11 @@ def run(*args):
     return CliRunner().invoke(cli, ["generate", *map(str, args)])
 
 
+def prompted(model, image, out, *args, prompt="pushed"):
+    """``clflow generate IMAGE --model MODEL --prompt PROMPT -o OUT ARGS...`` (CogVideoX takes a prompt)."""
+    return run(image, "--model", model, "--prompt", prompt, "-o", out, *args)
+
+
 def read(path):
     frames, _, fps = decode_video(path)
     return frames, fps
@@ -24,8 +29,8 @@ def read(path):
 
 def test_cogvideox_makes_the_requested_frames_size_and_rate_and_records_the_run(models, object_png, tmp_path):
     out = tmp_path / "cog.mp4"
-    res = run(object_png, "--model", models["cog"], "--prompt", "the object is pushed to the left", "-o", out,
-              "--frames", 17, "--fps", 12, "--steps", 2, "--seed", 3)
+    res = prompted(models["cog"], object_png, out, "--frames", 17, "--fps", 12, "--steps", 2, "--seed", 3,
+                   prompt="the object is pushed to the left")
     assert res.exit_code == 0, res.output
     frames, fps = read(out)
     assert frames.shape == (17, 48, 40, 3) and fps == pytest.approx(12)  # the image's size (--output-size image)
@@ -36,8 +41,7 @@ def test_cogvideox_makes_the_requested_frames_size_and_rate_and_records_the_run(
     assert {"load_s", "generate_s", "write_s", "total_s"} <= set(record["timings"])
 
     model_size = tmp_path / "model.gif"
-    res = run(object_png, "--model", models["cog"], "--prompt", "pushed", "-o", model_size, "--steps", 1,
-              "--output-size", "model")
+    res = prompted(models["cog"], object_png, model_size, "--steps", 1, "--output-size", "model")
     assert res.exit_code == 0, res.output
     assert read(model_size)[0].shape == (9, 16, 32, 3)  # the model's default frames and size
 
@@ -45,8 +49,7 @@ def test_cogvideox_makes_the_requested_frames_size_and_rate_and_records_the_run(
 def test_the_same_seed_gives_the_same_frames(models, object_png, tmp_path):
     def frames(seed, name):
         # .mkv: lossless FFV1, so equal frames decode equal
-        res = run(object_png, "--model", models["cog"], "--prompt", "pushed", "-o", tmp_path / name, "--steps", 1,
-                  "--seed", seed)
+        res = prompted(models["cog"], object_png, tmp_path / name, "--steps", 1, "--seed", seed)
         assert res.exit_code == 0, res.output
         return read(tmp_path / name)[0]
 
@@ -75,7 +78,7 @@ def test_without_the_extra_it_names_the_extra_to_install(models, object_png, tmp
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", no_diffusers)
-    res = run(object_png, "--model", models["cog"], "--prompt", "pushed", "-o", tmp_path / "v.mp4")
+    res = prompted(models["cog"], object_png, tmp_path / "v.mp4")
     assert res.exit_code == 1
     assert "clflow[video]" in res.output and res.output.count("\n") == 1
     assert not (tmp_path / "v.mp4").exists()
@@ -121,7 +124,7 @@ def test_a_model_folder_of_the_wrong_kind_says_what_layout_it_expected(models, o
         folder = _partial(models, tmp_path, "transformer")
     else:
         folder = _partial(models, tmp_path, "vae/*.safetensors")
-    res = run(object_png, "--model", folder, "--prompt", "pushed", "-o", tmp_path / "v.mp4")
+    res = prompted(folder, object_png, tmp_path / "v.mp4")
     assert res.exit_code == 1 and expected in res.output and res.output.count("\n") == 1, res.output
     if case in ("missing", "no index", "wrong kind"):  # the layouts of both families
         assert "CogVideoXImageToVideoPipeline" in res.output and "StableVideoDiffusionPipeline" in res.output
@@ -155,7 +158,7 @@ def test_bad_input_is_one_clear_line_before_any_weight_loads(models, object_png,
     elif image == "missing":
         object_png = tmp_path / "nothing.png"
     args = [str(tmp_path / a) if a == "v.txt" else a for a in args]
-    res = run(object_png, "--model", models[kind], "--prompt", "pushed", "-o", tmp_path / "v.mp4", *args)
+    res = prompted(models[kind], object_png, tmp_path / "v.mp4", *args)
     assert res.exit_code in (1, 2) and expected in res.output, res.output
     if res.exit_code == 1:  # 2: click's usage errors, with their usage line
         assert res.output.count("\n") == 1, res.output

@@ -27,6 +27,13 @@ def cube(n_side: int, lower: float, upper: float, dtype=torch.float64) -> torch.
     return torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
 
 
+def free_body(x: torch.Tensor, material: MaterialSpec, grid: Grid, **kwargs) -> Simulator:
+    """Particles ``x`` (N, 3) m of 1e-5 m^3 each with no gravity and no walls (so momentum is
+    the forces' alone); float64, 20 substeps of 0.02 s frames unless ``kwargs`` say otherwise."""
+    kwargs = {"frame_dt": 0.02, "substeps": 20, "dtype": torch.float64, **kwargs}
+    return Simulator(x, 1e-5, material, grid, gravity=(0, 0, 0), walls=None, **kwargs)
+
+
 # sand with Tampubolon et al.'s volume correction (a model option of sand)
 VOLUME_CORRECTED_SAND = MaterialSpec("sand", MATERIAL_CASES["sand"], model="volume_corrected")
 

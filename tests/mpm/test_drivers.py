@@ -16,7 +16,7 @@ from clflow.mpm import (
     layer_release_times,
     reference,
 )
-from tests.mpm._helpers import cube
+from tests.mpm._helpers import cube, free_body
 
 GRID = Grid((32, 32, 32), 1 / 32)
 SOFT = MaterialSpec("elastic", {"youngs_modulus": 2e4, "poissons_ratio": 0.3})
@@ -129,8 +129,7 @@ def test_force_stages_add_exact_impulses():
     n = x.shape[0]
     upper = Region.box((0.0, 0.5, 0.0), (1.0, 1.0, 1.0))
     stages = [Force(upper, 0.0, 0.04, force=(0.5, 0.0, 0.0)), Force(upper, 0.04, 0.1, force=(0.0, 0.0, -0.25))]
-    sim = Simulator(x, 1e-5, SOFT, GRID, forces=stages, gravity=(0, 0, 0), walls=None, frame_dt=0.02, substeps=20,
-                    dtype=torch.float64)
+    sim = free_body(x, SOFT, GRID, forces=stages)
     traj = sim.run(5)
     p = (sim.particles.mass[:, None] * traj.v[-1]).sum(0)
     assert p.tolist() == pytest.approx([0.5 * 0.04, 0.0, -0.25 * 0.06], abs=1e-12)
@@ -143,8 +142,7 @@ def test_acceleration_on_sphere_region_and_mask():
     mask[:10] = True
     stages = [Force(Region.sphere((0.5, 0.5, 0.5), 0.05), 0.0, 0.02, acceleration=(0, 3.0, 0)),
               Force(mask, 0.0, 0.02, acceleration=(1.0, 0, 0))]
-    sim = Simulator(x, 1e-5, SOFT, GRID, forces=stages, gravity=(0, 0, 0), walls=None, frame_dt=0.02, substeps=20,
-                    dtype=torch.float64)
+    sim = free_body(x, SOFT, GRID, forces=stages)
     sphere_mass = float(sim.particles.mass[stages[0].mask(x)].sum())
     traj = sim.run(1)
     p = (sim.particles.mass[:, None] * traj.v[-1]).sum(0)

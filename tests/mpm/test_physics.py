@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from clflow.mpm import Grid, MaterialSpec, Simulator
-from tests.mpm._helpers import cube
+from tests.mpm._helpers import cube, free_body
 
 ELASTIC = MaterialSpec("elastic", {"youngs_modulus": 1e4, "poissons_ratio": 0.3})
 GRID = Grid((16, 16, 16), 1 / 16)
@@ -34,8 +34,7 @@ def test_translating_body_conserves_momentum():
     x0 = cube(8, 0.3, 0.6)
     v0 = torch.tensor([0.4, -0.3, 0.2], dtype=torch.float64) + 0.3 * torch.randn(x0.shape, generator=gen,
                                                                                  dtype=torch.float64)
-    sim = Simulator(x0, 1e-5, ELASTIC, GRID, velocities=v0, gravity=(0, 0, 0), walls=None,
-                    frame_dt=0.01, substeps=20, dtype=torch.float64)
+    sim = free_body(x0, ELASTIC, GRID, velocities=v0, frame_dt=0.01)
     p0 = (sim.particles.mass[:, None] * v0).sum(0)
     traj = sim.run(3)
     p = (sim.particles.mass[:, None] * traj.v[-1]).sum(0)

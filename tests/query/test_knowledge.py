@@ -11,6 +11,7 @@ from clflow.errors import InputError
 from clflow.materials import DENSITY, MATERIALS, get_material
 from clflow.query import load_knowledge_base, query_material
 from clflow.query.knowledge import tokenize
+from tests.query._helpers import assert_refuses_file
 
 KB = load_knowledge_base()
 
@@ -177,12 +178,12 @@ def test_bad_knowledge_base_files(tmp_path, raw_kb, edit, message):
         load_knowledge_base(_write(tmp_path, raw))
 
 
-def test_unreadable_knowledge_base(tmp_path):
-    with pytest.raises(InputError, match="cannot read knowledge base"):
-        load_knowledge_base(tmp_path / "missing.json")
-    (tmp_path / "bad.json").write_text("{")
-    with pytest.raises(InputError, match="bad.json: not valid JSON"):
-        load_knowledge_base(tmp_path / "bad.json")
+@pytest.mark.parametrize("name, text, match", [
+    ("missing.json", None, "cannot read knowledge base"),
+    ("bad.json", "{", "bad.json: not valid JSON"),
+])
+def test_unreadable_knowledge_base(tmp_path, name, text, match):
+    assert_refuses_file(load_knowledge_base, tmp_path / name, text, match)
 
 
 def test_a_container_is_not_the_object():

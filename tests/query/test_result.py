@@ -8,6 +8,7 @@ import pytest
 
 from clflow.errors import InputError
 from clflow.query import QueryResult, load_query_result, query_material
+from tests.query._helpers import assert_refuses_file
 
 
 def test_round_trip_uses_registry_names_and_units(tmp_path):
@@ -60,15 +61,13 @@ def test_loader_rejects_bad_records(tmp_path, record, message):
         load_query_result(path)
 
 
-def test_loader_rejects_unreadable_files(tmp_path):
-    with pytest.raises(InputError, match="cannot read query result"):
-        load_query_result(tmp_path / "none.json")
-    (tmp_path / "nan.json").write_text('{"density": NaN}')
-    with pytest.raises(InputError, match="nan.json: not valid JSON: NaN"):
-        load_query_result(tmp_path / "nan.json")
-    (tmp_path / "list.json").write_text("[]")
-    with pytest.raises(InputError, match="not a material query result"):
-        load_query_result(tmp_path / "list.json")
+@pytest.mark.parametrize("name, text, match", [
+    ("none.json", None, "cannot read query result"),
+    ("nan.json", '{"density": NaN}', "nan.json: not valid JSON: NaN"),
+    ("list.json", "[]", "not a material query result"),
+])
+def test_loader_rejects_unreadable_files(tmp_path, name, text, match):
+    assert_refuses_file(load_query_result, tmp_path / name, text, match)
 
 
 def test_save_refuses_non_finite_numbers(tmp_path):

@@ -69,17 +69,19 @@ def test_read_config_merges_its_base_without_running_it(tmp_path):
     assert cfg["material"] == "elasticity" and cfg["E"] == 1e5 and cfg["dt"] == pytest.approx(1 / 4800)
     assert cfg["frame_dt"] == pytest.approx(1 / 24) and cfg["BC"] == {"ground": [[0, 0, 0], [0, 1, 0]]}
     assert cfg["physical_params"] == {"global_E": 0.1, "global_nu": 0.01}  # the case's, over the base's
-    (tmp_path / "bad.py").write_text("import os\ncfg = dict(E=os.getcwd())\n")
-    with pytest.raises(InputError, match="line 2: cannot read 'os.getcwd\\(\\)' without running the file"):
-        read_pacnerf_config(tmp_path / "bad.py")
-    (tmp_path / "loop.py").write_text("_base_ = 'loop.py'\ncfg = dict(E=1)\n")
-    with pytest.raises(InputError, match="is a cycle of base files"):
-        read_pacnerf_config(tmp_path / "loop.py")
-    (tmp_path / "orphan.py").write_text("_base_ = 'gone.py'\ncfg = dict(E=1)\n")
-    with pytest.raises(InputError, match="gone.py: PAC-NeRF config not found \\(the _base_ of"):
-        read_pacnerf_config(tmp_path / "orphan.py")
     (tmp_path / "case.json").write_text(json.dumps({"material": "viscous_fluid", "mu": 1.0, "kappa": 1e3}))
     assert read_pacnerf_config(tmp_path / "case.json")["kappa"] == 1e3
+
+
+@pytest.mark.parametrize("name, text, match", [
+    ("bad.py", "import os\ncfg = dict(E=os.getcwd())\n", "line 2: cannot read 'os.getcwd\\(\\)' without running the file"),
+    ("loop.py", "_base_ = 'loop.py'\ncfg = dict(E=1)\n", "is a cycle of base files"),
+    ("orphan.py", "_base_ = 'gone.py'\ncfg = dict(E=1)\n", "gone.py: PAC-NeRF config not found \\(the _base_ of"),
+])
+def test_read_config_refuses_what_it_cannot_read_without_running(tmp_path, name, text, match):
+    (tmp_path / name).write_text(text)
+    with pytest.raises(InputError, match=match):
+        read_pacnerf_config(tmp_path / name)
 
 
 @pytest.mark.parametrize("cfg, material, params, fit", [
@@ -126,8 +128,8 @@ def test_unmappable_configs_are_refused(tmp_path):
 def test_scene_from_config_is_optimize_ready(tmp_path):
     poses = write_sequence(tmp_path / "seq", cameras=4, frames=3, size=SIZE)
     write_splats(tmp_path / "splats.ply")
-    code, output = run([tmp_path / "seq", tmp_path / "splats.ply", "-o", tmp_path / "scene", "--camera", "1",
-                        "--config", write_config(tmp_path / "configs"), "--video", "mkv"], "pacnerf")
+    code, output = pacnerf(tmp_path, "splats.ply", "scene", "--camera", "1", "--config",
+                           write_config(tmp_path / "configs"), "--video", "mkv")
     assert code == 0, output
     assert "3 frames at 24 fps (from " in output and "frame_dt" in output
     cfg = load_config(tmp_path / "scene" / "config.yaml")
@@ -157,8 +159,8 @@ def test_scene_from_config_is_optimize_ready(tmp_path):
 def test_scene_without_config_leaves_the_material_to_the_query(tmp_path):
     write_sequence(tmp_path / "seq", cameras=3, frames=4, size=SIZE, fps=12.0)
     write_splats(tmp_path / "recon" / "point_cloud.ply")
-    code, output = run([tmp_path / "seq", tmp_path / "recon", "-o", tmp_path / "scene", "--prompt", "a jelly torus",
-                        "--background", "black", "--ground", "0.05"], "pacnerf")
+    code, output = pacnerf(tmp_path, "recon", "scene", "--prompt", "a jelly torus", "--background", "black",
+                           "--ground", "0.05")
     assert code == 0, output
     assert "--set optimize.parameters=" in output
     cfg = load_config(tmp_path / "scene" / "config.yaml")
@@ -169,11 +171,15 @@ def test_scene_without_config_leaves_the_material_to_the_query(tmp_path):
     frames, _, fps = decode_video(tmp_path / "scene" / "guidance.mp4")
     assert frames.shape[0] == 4 and fps == pytest.approx(12.0)
     assert (frames[:, 0, 0] <= 3).all()  # black behind the object (H.264)
-    code, output = run([tmp_path / "seq", tmp_path / "recon", "-o", tmp_path / "scene2", "--optimize", "youngs_modulus",
-                        "--fps", "30"], "pacnerf")
+    code, output = pacnerf(tmp_path, "recon", "scene2", "--optimize", "youngs_modulus", "--fps", "30")
     assert code == 0, output
     cfg = load_config(tmp_path / "scene2" / "config.yaml")
     assert cfg.optimize.parameters == ("youngs_modulus",) and cfg.simulation.fps == 30.0
+
+
+def pacnerf(tmp_path, splats, scene, *args):
+    """(exit code, output) of ``clflow pacnerf TMP/seq TMP/SPLATS -o TMP/SCENE ARGS...``."""
+    return run([tmp_path / "seq", tmp_path / splats, "-o", tmp_path / scene, *args], "pacnerf")
 
 
 def pacnerf_error(args, match):
@@ -222,8 +228,8 @@ def test_guidance_frame_0_is_the_scene_as_the_optimiser_renders_it(tmp_path):
         for f in range(2):
             bgra = np.round(255 * rgba[..., [2, 1, 0, 3]]).astype(np.uint8)
             assert cv2.imwrite(str(tmp_path / "seq" / "data" / f"r_{c}_{f}.png"), bgra)
-    code, output = run([tmp_path / "seq", tmp_path / "splats.ply", "-o", tmp_path / "scene", "--camera", "2",
-                        "--video", "mkv", "--box", "-1", "-1", "-1", "1", "1", "1"], "pacnerf")
+    code, output = pacnerf(tmp_path, "splats.ply", "scene", "--camera", "2", "--video", "mkv", "--box", "-1", "-1",
+                           "-1", "1", "1", "1")
     assert code == 0, output
     cfg = load_config(tmp_path / "scene" / "config.yaml")
     scene, _ = load_scene_gaussians(cfg, torch.float32)

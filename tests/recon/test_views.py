@@ -151,3 +151,23 @@ def test_ctrl_c_says_whether_there_is_a_checkpoint_to_resume(tmp_path, monkeypat
     (tmp_path / "out" / "checkpoint.pt").write_bytes(b"")
     code, output = run([tmp_path / "images", "-o", tmp_path / "out"])
     assert code == 130 and "continue with the same command and --resume" in output
+
+
+def test_the_training_options_reach_the_settings(tmp_path, monkeypatch):
+    import clflow.recon.train
+
+    seen = {}
+
+    def record(views, out, settings, **kwargs):
+        seen["settings"] = settings
+        raise KeyboardInterrupt
+
+    capture(tmp_path)
+    monkeypatch.setattr(clflow.recon.train, "reconstruct", record)
+    code, output = run([tmp_path / "images", "-o", tmp_path / "out", "--iterations", "7", "--seed", "3",
+                        "--densify-every", "9", "--holdout-every", "4", "--background", "white"])
+    assert code == 130, output
+    s = seen["settings"]
+    assert (s.iterations, s.seed, s.densify_every, s.holdout_every) == (7, 3, 9, 4)
+    assert s.background == (1.0, 1.0, 1.0)
+    assert (s.sh_degree, s.init_points) == (3, 10_000)  # options not given keep Settings' defaults

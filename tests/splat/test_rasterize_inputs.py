@@ -15,17 +15,18 @@ from tests.splat._helpers import camera, random_scene
 W, H = 40, 36
 
 
+SCENE = ("means", "quats", "scales", "opacities", "colors")  # random_scene's tensors, in order
+
+
 def render(**change):
-    means, quats, scales, opacities, colors = random_scene(8, seed=0)
     viewmat, K = camera(W, H, 30.0)
-    args = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmat=viewmat, K=K,
-                width=W, height=H)
+    args = dict(zip(SCENE, random_scene(8, seed=0)), viewmat=viewmat, K=K, width=W, height=H)
     args.update(change)
     return rasterize_gaussians(**args)
 
 
 def with_value(name, index, value):
-    t = random_scene(8, seed=0)[("means", "quats", "scales", "opacities", "colors").index(name)].clone()
+    t = random_scene(8, seed=0)[SCENE.index(name)].clone()
     t[index] = value
     return {name: t}
 

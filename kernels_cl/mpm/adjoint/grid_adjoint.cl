@@ -18,13 +18,8 @@
 
 inline void halfspace_adjoint(__global const real *rec, const real *xi, const real *v, real *v_bar)
 {
-    real n[3], rel = 0, vn = 0;
-    for (int a = 0; a < 3; ++a) {
-        n[a] = rec[BC_B + a];
-        rel += (xi[a] - rec[BC_A + a]) * n[a];
-        vn += v[a] * n[a];
-    }
-    if (rel >= 0)
+    real n[3], vn;
+    if (!halfspace_contact(rec, xi, v, n, &vn))
         return;
     const int mode = (int)rec[BC_MODE];
     if (mode == COLLIDE_SEPARATE && vn >= 0)
@@ -64,22 +59,6 @@ inline int overrides(__global const real *rec, const real *xi)
     else
         apply_cylinder(rec, xi, probe);
     return !isnan(probe[0]);
-}
-
-inline int bc_active(__global const real *rec, const real t)
-{
-    return t >= rec[BC_T_START] && t < rec[BC_T_END];
-}
-
-inline void apply_condition(__global const real *rec, const real *xi, real *v)
-{
-    const int kind = (int)rec[BC_KIND];
-    if (kind == BC_HALFSPACE)
-        apply_halfspace(rec, xi, v);
-    else if (kind == BC_BOX)
-        apply_box(rec, xi, v);
-    else if (kind == BC_CYLINDER)
-        apply_cylinder(rec, xi, v);
 }
 
 __kernel void grid_update_adjoint(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,

@@ -26,16 +26,9 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
     if (p >= n)
         return;
     real F[9], C[9], step[9], F_tr[9], F_new_bar[9], F_tr_bar[9], tb[9], Cb[9], Fb[9], dCb[9], U[9], s[3], V[9];
-    load_row(F_in, p, 9, F);
-    load_row(C_in, p, 9, C);
+    load_stress_inputs(p, dt, F_in, C_in, U_in, s_in, V_in, F, C, step, F_tr, U, s, V);
     load_row(tau_bar, p, 9, tb);
     load_row(F_bar_out, p, 9, F_new_bar);
-    trial_deformation(F, C, dt, step, F_tr);
-#if MATERIALS_PRESENT & SVD_MATERIALS
-    load_row(U_in, p, 9, U);
-    load_row(s_in, p, 3, s);
-    load_row(V_in, p, 9, V);
-#endif
     __global const real *q = param + (long)p * PARAM_COUNT;
     real q_bar[PARAM_COUNT];
     for (int k = 0; k < PARAM_COUNT; ++k)
