@@ -50,9 +50,17 @@ class Timing:
 
     def record(self) -> dict:
         """The figures as JSON-ready numbers (seconds; ``cores``: the machine's CPU count)."""
-        return {"runs": len(self.wall), "median_wall_s": self.median_wall, "median_cpu_s": self.median_cpu,
-                "best_wall_s": self.best_wall, "wall_s": self.wall, "cpu_s": self.cpu,
-                "load_before": self.load_before, "load_after": self.load_after, "cores": os.cpu_count()}
+        return {
+            "runs": len(self.wall),
+            "median_wall_s": self.median_wall,
+            "median_cpu_s": self.median_cpu,
+            "best_wall_s": self.best_wall,
+            "wall_s": self.wall,
+            "cpu_s": self.cpu,
+            "load_before": self.load_before,
+            "load_after": self.load_after,
+            "cores": os.cpu_count(),
+        }
 
 
 class Stopwatch:
@@ -80,8 +88,9 @@ class Stopwatch:
         return Timing(t.wall[skip:], t.cpu[skip:], t.load_before, load_average(), t.result)
 
 
-def measure(fn: Callable[..., Any], repeats: int = 1, warmup: int = 1,
-            setup: Callable[[], Any] | None = None) -> Timing:
+def measure(
+    fn: Callable[..., Any], repeats: int = 1, warmup: int = 1, setup: Callable[[], Any] | None = None
+) -> Timing:
     """Call ``fn`` ``warmup`` times untimed (kernel builds, caches), then ``repeats`` times
     timed; with ``setup``, each call is ``fn(setup())`` and only ``fn`` is timed."""
     if repeats < 1:

@@ -27,8 +27,7 @@ def environment(packages: tuple[str, ...] = (), opencl: bool = True) -> dict:
 
     import clflow
 
-    record = {"clflow": clflow.__version__, "commit": _commit(Path(clflow.__file__).parent),
-              "torch": torch.__version__}
+    record = {"clflow": clflow.__version__, "commit": _commit(Path(clflow.__file__).parent), "torch": torch.__version__}
     if opencl:
         import pyopencl
 
@@ -36,16 +35,26 @@ def environment(packages: tuple[str, ...] = (), opencl: bool = True) -> dict:
 
         device = get_device()
         info = getattr(device, "info", None)
-        record.update({"pyopencl": pyopencl.VERSION_TEXT, "device": str(getattr(device, "name", device)),
-                       "opencl_platform": getattr(info, "platform", None),
-                       "opencl_driver": getattr(info, "driver_version", None)})
+        record.update(
+            {
+                "pyopencl": pyopencl.VERSION_TEXT,
+                "device": str(getattr(device, "name", device)),
+                "opencl_platform": getattr(info, "platform", None),
+                "opencl_driver": getattr(info, "driver_version", None),
+            }
+        )
     for name in packages:
         try:
             record[name] = version(name)
         except PackageNotFoundError:
             pass
-    record.update({"python": platform.python_version(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-                   "load": load_average()})
+    record.update(
+        {
+            "python": platform.python_version(),
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            "load": load_average(),
+        }
+    )
     return record
 
 
@@ -54,8 +63,9 @@ def _commit(folder: Path) -> str | None:
     import subprocess
 
     try:
-        done = subprocess.run(["git", "-C", str(folder), "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, timeout=10)
+        done = subprocess.run(
+            ["git", "-C", str(folder), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=10
+        )
     except (OSError, subprocess.SubprocessError):
         return None
     return done.stdout.strip() or None if done.returncode == 0 else None

@@ -54,8 +54,21 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 
 
 #: OSError numbers that mean "the file system refused", not a bug: one line at the CLI.
-FILE_SYSTEM_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOTDIR,
-                                errno.EEXIST, errno.EISDIR, errno.ENOENT, errno.ENAMETOOLONG, errno.EFBIG})
+FILE_SYSTEM_ERRNOS = frozenset(
+    {
+        errno.ENOSPC,
+        errno.EDQUOT,
+        errno.EROFS,
+        errno.EACCES,
+        errno.EPERM,
+        errno.ENOTDIR,
+        errno.EEXIST,
+        errno.EISDIR,
+        errno.ENOENT,
+        errno.ENAMETOOLONG,
+        errno.EFBIG,
+    }
+)
 
 
 def describe_os_error(exc: OSError) -> str:
@@ -122,7 +135,9 @@ def load_arrays(path: str | os.PathLike, what: str = "array file") -> dict[str, 
             return {k: data[k] for k in data.files}
     except ValueError as exc:
         if "pickle" in str(exc):  # npz: "pickled (object) data", npy: "allow_pickle=False"
-            raise InputError(f"{path}: the {what} holds Python objects, not plain arrays; refusing to unpickle") from None
+            raise InputError(
+                f"{path}: the {what} holds Python objects, not plain arrays; refusing to unpickle"
+            ) from None
         raise InputError(f"{path}: damaged or truncated {what} ({exc})") from None
     except (EOFError, OSError, zipfile.BadZipFile, zlib.error) as exc:
         raise InputError(f"{path}: damaged or truncated {what} ({type(exc).__name__}: {exc})") from None

@@ -63,26 +63,50 @@ class Family:
 FAMILIES: dict[str, Family] = {
     "CogVideoXImageToVideoPipeline": Family(
         "CogVideoX image-to-video",
-        {"tokenizer": "tokenizer", "text_encoder": "model", "vae": "model", "transformer": "model",
-         "scheduler": "scheduler"},
-        "transformer", uses_prompt=True, default_steps=50, default_guidance=6.0, default_fps=8.0),
+        {
+            "tokenizer": "tokenizer",
+            "text_encoder": "model",
+            "vae": "model",
+            "transformer": "model",
+            "scheduler": "scheduler",
+        },
+        "transformer",
+        uses_prompt=True,
+        default_steps=50,
+        default_guidance=6.0,
+        default_fps=8.0,
+    ),
     "StableVideoDiffusionPipeline": Family(
         "Stable Video Diffusion",
-        {"image_encoder": "model", "feature_extractor": "processor", "unet": "model", "vae": "model",
-         "scheduler": "scheduler"},
-        "unet", uses_prompt=False, default_steps=25, default_guidance=3.0, default_fps=7.0),
+        {
+            "image_encoder": "model",
+            "feature_extractor": "processor",
+            "unet": "model",
+            "vae": "model",
+            "scheduler": "scheduler",
+        },
+        "unet",
+        uses_prompt=False,
+        default_steps=25,
+        default_guidance=3.0,
+        default_fps=7.0,
+    ),
 }
 
 WEIGHT_SUFFIXES = (".safetensors", ".bin")
-_CONFIG_FILES = {"model": ("config.json",), "scheduler": ("scheduler_config.json",),
-                 "processor": ("preprocessor_config.json",),
-                 "tokenizer": ("tokenizer_config.json", "tokenizer.json", "spiece.model")}
+_CONFIG_FILES = {
+    "model": ("config.json",),
+    "scheduler": ("scheduler_config.json",),
+    "processor": ("preprocessor_config.json",),
+    "tokenizer": ("tokenizer_config.json", "tokenizer.json", "spiece.model"),
+}
 
 
 def expected_layout() -> str:
     """One line: the folder layouts clflow generate reads."""
-    return "; ".join(f"{cls} ({f.name}): model_index.json and folders {', '.join(f.components)}"
-                     for cls, f in FAMILIES.items())
+    return "; ".join(
+        f"{cls} ({f.name}): model_index.json and folders {', '.join(f.components)}" for cls, f in FAMILIES.items()
+    )
 
 
 @dataclass(frozen=True)
@@ -138,27 +162,35 @@ def inspect_model(path: str | os.PathLike) -> ModelInfo:
     :class:`InputError` that says what layout is expected."""
     path = Path(path).expanduser().resolve()
     if not path.exists():
-        raise InputError(f"{path}: model folder not found (a local diffusers folder; clflow never downloads "
-                         f"weights). Expected: {expected_layout()}")
+        raise InputError(
+            f"{path}: model folder not found (a local diffusers folder; clflow never downloads "
+            f"weights). Expected: {expected_layout()}"
+        )
     if not path.is_dir():
-        raise InputError(f"{path}: not a folder; --model takes a local diffusers model folder. "
-                         f"Expected: {expected_layout()}")
+        raise InputError(
+            f"{path}: not a folder; --model takes a local diffusers model folder. Expected: {expected_layout()}"
+        )
     index_path = path / "model_index.json"
     if not index_path.is_file():
-        raise InputError(f"{path}: no model_index.json, so not a diffusers pipeline folder. Expected: "
-                         f"{expected_layout()}")
+        raise InputError(
+            f"{path}: no model_index.json, so not a diffusers pipeline folder. Expected: {expected_layout()}"
+        )
     index = _read_json(index_path, str(path))
     cls = index.get("_class_name")
     family = FAMILIES.get(cls) if isinstance(cls, str) else None
     if family is None:
-        raise InputError(f"{path}: model_index.json names {cls!r}, which clflow generate does not run "
-                         f"(image-to-video only). Expected: {expected_layout()}")
+        raise InputError(
+            f"{path}: model_index.json names {cls!r}, which clflow generate does not run "
+            f"(image-to-video only). Expected: {expected_layout()}"
+        )
     for name, kind in family.components.items():
         try:
             _check_component(path, name, kind, index, family)
         except InputError as exc:
-            raise InputError(f"{exc}. Expected a {cls} folder: model_index.json and the folders "
-                             f"{', '.join(family.components)}, each with its config and weights") from None
+            raise InputError(
+                f"{exc}. Expected a {cls} folder: model_index.json and the folders "
+                f"{', '.join(family.components)}, each with its config and weights"
+            ) from None
     if family.name.startswith("CogVideoX"):
         return _cogvideox_info(path, cls, family)
     return _svd_info(path, cls, family)
@@ -181,8 +213,7 @@ def _check_component(root: Path, name: str, kind: str, index: dict, family: Fami
                 shards = set(_read_json(p, where).get("weight_map", {}).values())
                 missing = sorted(s for s in shards if not (folder / s).is_file())
                 if missing:
-                    raise InputError(f"{where}: weight shard {missing[0]} is missing "
-                                     f"({len(missing)} of {len(shards)})")
+                    raise InputError(f"{where}: weight shard {missing[0]} is missing ({len(missing)} of {len(shards)})")
 
 
 def _weight_bytes(folder: Path) -> int:
@@ -201,11 +232,17 @@ def _cogvideox_info(path: Path, cls: str, family: Family) -> ModelInfo:
     temporal = 2 * int(vae.get("temporal_compression_ratio", 4))
     patch = int(tr.get("patch_size", 2))
     return ModelInfo(
-        path, cls, family,
+        path,
+        cls,
+        family,
         default_size=(int(tr.get("sample_width", 90)) * spatial, int(tr.get("sample_height", 60)) * spatial),
-        size_multiple=spatial * patch, fixed_size=bool(tr.get("use_learned_positional_embeddings", False)),
-        default_frames=int(tr.get("sample_frames", 49)), frame_step=temporal,
-        max_text_tokens=int(tr.get("max_text_seq_length", 226)), weight_bytes=_weight_bytes(path / "transformer"))
+        size_multiple=spatial * patch,
+        fixed_size=bool(tr.get("use_learned_positional_embeddings", False)),
+        default_frames=int(tr.get("sample_frames", 49)),
+        frame_step=temporal,
+        max_text_tokens=int(tr.get("max_text_seq_length", 226)),
+        weight_bytes=_weight_bytes(path / "transformer"),
+    )
 
 
 def _svd_info(path: Path, cls: str, family: Family) -> ModelInfo:
@@ -215,9 +252,18 @@ def _svd_info(path: Path, cls: str, family: Family) -> ModelInfo:
     native = int(unet.get("sample_size", 96)) * spatial
     # the released SVD checkpoints (sample_size 96) were trained at 1024x576, the pipeline's default
     default = (1024, 576) if native >= 576 else (native, native)
-    return ModelInfo(path, cls, family, default_size=default, size_multiple=math.lcm(8, spatial), fixed_size=False,
-                     default_frames=int(unet.get("num_frames", 25)), frame_step=1, max_text_tokens=0,
-                     weight_bytes=_weight_bytes(path / "unet"))
+    return ModelInfo(
+        path,
+        cls,
+        family,
+        default_size=default,
+        size_multiple=math.lcm(8, spatial),
+        fixed_size=False,
+        default_frames=int(unet.get("num_frames", 25)),
+        frame_step=1,
+        max_text_tokens=0,
+        weight_bytes=_weight_bytes(path / "unet"),
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -276,29 +322,37 @@ def check_request(info: ModelInfo, request: GenerateRequest) -> Resolved:
         raise InputError(f"frames: {where} needs at least 2 frames, got {frames}")
     if step > 1 and (frames - 1) % step:
         below = 1 + (frames - 1) // step * step
-        raise InputError(f"frames: {where} makes 1 + k x {step} frames (what its VAE decodes): "
-                         f"got {frames}; use {max(below, 1 + step)} or {below + step}")
+        raise InputError(
+            f"frames: {where} makes 1 + k x {step} frames (what its VAE decodes): "
+            f"got {frames}; use {max(below, 1 + step)} or {below + step}"
+        )
     size = request.size or info.default_size
     w, h = size
     if info.fixed_size and size != info.default_size:
-        raise InputError(f"size: {where} makes only {info.default_size[0]}x{info.default_size[1]} videos (learned "
-                         f"positional embeddings), got {w}x{h}; the image is fitted to that size itself")
+        raise InputError(
+            f"size: {where} makes only {info.default_size[0]}x{info.default_size[1]} videos (learned "
+            f"positional embeddings), got {w}x{h}; the image is fitted to that size itself"
+        )
     m = info.size_multiple
     if w % m or h % m:
-        raise InputError(f"size: {where} needs width and height that are multiples of {m}, got {w}x{h}; "
-                         f"e.g. {max(m, w // m * m)}x{max(m, h // m * m)}")
+        raise InputError(
+            f"size: {where} needs width and height that are multiples of {m}, got {w}x{h}; "
+            f"e.g. {max(m, w // m * m)}x{max(m, h // m * m)}"
+        )
     if info.uses_prompt and not request.prompt.strip():
         raise InputError(f"prompt: {where} needs a prompt describing the motion (--prompt)")
     if not info.uses_prompt and (request.prompt.strip() or request.negative_prompt.strip()):
         log.warning("%s takes no prompt (image only): the prompt is ignored", info.family.name)
     guidance = info.family.default_guidance if request.guidance_scale is None else request.guidance_scale
     if not (math.isfinite(guidance) and guidance >= (1.0 if not info.uses_prompt else 0.0)):
-        raise InputError(f"guidance scale: {where} needs a finite value >= "
-                         f"{1 if not info.uses_prompt else 0}, got {guidance}")
+        raise InputError(
+            f"guidance scale: {where} needs a finite value >= {1 if not info.uses_prompt else 0}, got {guidance}"
+        )
     if not info.uses_prompt and (request.vae_tiling or request.vae_slicing):
         which = "tiling" if request.vae_tiling else "slicing"
-        raise InputError(f"VAE {which}: {where}'s temporal VAE does not offer it (it decodes a few frames at a "
-                         f"time already)")
+        raise InputError(
+            f"VAE {which}: {where}'s temporal VAE does not offer it (it decodes a few frames at a time already)"
+        )
     fps = info.family.default_fps if request.fps is None else request.fps
     if not (math.isfinite(fps) and fps > 0):
         raise InputError(f"fps must be positive, got {fps}")
@@ -333,8 +387,9 @@ def check_image(image: np.ndarray, where: str) -> None:
     if min(w, h) < 8:
         raise InputError(f"{where}: the image is {w}x{h} px; the model needs at least 8 px a side")
     if max(w, h) > 16 * min(w, h):
-        raise InputError(f"{where}: the image is {w}x{h} px, too thin to fit a video model's frame (aspect "
-                         f"ratio over 16)")
+        raise InputError(
+            f"{where}: the image is {w}x{h} px, too thin to fit a video model's frame (aspect ratio over 16)"
+        )
 
 
 @dataclass(frozen=True)
@@ -363,7 +418,7 @@ def fit_image(image: np.ndarray, size: tuple[int, int], fit: str = "pad") -> tup
         out = cv2.copyMakeBorder(scaled, y0, h - sh - y0, x0, w - sw - x0, cv2.BORDER_REPLICATE)
         return out, Placement((x0, y0, x0 + sw, y0 + sh), (W, H))
     x0, y0 = (sw - w) // 2, (sh - h) // 2
-    out = scaled[y0:y0 + h, x0:x0 + w]
+    out = scaled[y0 : y0 + h, x0 : x0 + w]
     return np.ascontiguousarray(out), Placement((0, 0, w, h), (max(1, round(w / scale)), max(1, round(h / scale))))
 
 
@@ -374,8 +429,9 @@ def restore_frames(frames: np.ndarray, placement: Placement) -> np.ndarray:
     x0, y0, x1, y1 = placement.box
     out_w, out_h = placement.restored
     interp = cv2.INTER_AREA if out_w < x1 - x0 else cv2.INTER_CUBIC
-    return np.stack([cv2.resize(np.ascontiguousarray(f[y0:y1, x0:x1]), (out_w, out_h), interpolation=interp)
-                     for f in frames])
+    return np.stack(
+        [cv2.resize(np.ascontiguousarray(f[y0:y1, x0:x1]), (out_w, out_h), interpolation=interp) for f in frames]
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -388,8 +444,10 @@ def require_extra():
         import diffusers  # noqa: F401
         import transformers  # noqa: F401
     except ImportError as exc:
-        raise InputError(f"clflow generate needs the optional extra '{EXTRA}' (diffusers, transformers, "
-                         f"accelerate), which is not installed ({exc.name or exc}): {INSTALL_HINT}") from None
+        raise InputError(
+            f"clflow generate needs the optional extra '{EXTRA}' (diffusers, transformers, "
+            f"accelerate), which is not installed ({exc.name or exc}): {INSTALL_HINT}"
+        ) from None
     return diffusers
 
 
@@ -407,9 +465,14 @@ def estimate_seconds(info: ModelInfo, resolved: Resolved, cores: int | None = No
     return flops / (CPU_FLOPS_PER_CORE * (cores or os.cpu_count() or 1))
 
 
-def generate_video(image: np.ndarray, info: ModelInfo, request: GenerateRequest, *,
-                   progress: Callable[[int, int], None] | None = None,
-                   device: str | None = None) -> tuple[np.ndarray, dict]:
+def generate_video(
+    image: np.ndarray,
+    info: ModelInfo,
+    request: GenerateRequest,
+    *,
+    progress: Callable[[int, int], None] | None = None,
+    device: str | None = None,
+) -> tuple[np.ndarray, dict]:
     """Run the model on ``image`` [H, W, 3] uint8: [T, H', W', 3] uint8 frames and the run's
     record (everything but the output path). ``device``: a torch device, default CUDA when
     torch sees one, else the CPU (with a warning giving the expected time)."""
@@ -423,10 +486,16 @@ def generate_video(image: np.ndarray, info: ModelInfo, request: GenerateRequest,
     t0 = time.perf_counter()
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     if device == "cpu":
-        log.warning("no CUDA device: generating on the CPU (%d cores) takes about %s for %s at %dx%d, %d frames, "
-                    "%d steps (a rough estimate from the weights' size; measured after the first step)",
-                    os.cpu_count() or 1, format_duration(estimate_seconds(info, resolved)), info.path.name,
-                    *resolved.size, resolved.frames, resolved.steps)
+        log.warning(
+            "no CUDA device: generating on the CPU (%d cores) takes about %s for %s at %dx%d, %d frames, "
+            "%d steps (a rough estimate from the weights' size; measured after the first step)",
+            os.cpu_count() or 1,
+            format_duration(estimate_seconds(info, resolved)),
+            info.path.name,
+            *resolved.size,
+            resolved.frames,
+            resolved.steps,
+        )
     dtype = torch.float32 if device == "cpu" else (torch.bfloat16 if info.uses_prompt else torch.float16)
     pipe = _load(info, dtype)
     options = _memory_options(pipe, resolved.request, device)
@@ -447,26 +516,47 @@ def generate_video(image: np.ndarray, info: ModelInfo, request: GenerateRequest,
             progress(i + 1, resolved.steps)
         if i == 0 and device == "cpu" and resolved.steps > 1:
             per_step = step_times[0] - start
-            log.info("first step took %.1f s: about %s to go", per_step, format_duration(per_step * (resolved.steps - 1)))
+            log.info(
+                "first step took %.1f s: about %s to go", per_step, format_duration(per_step * (resolved.steps - 1))
+            )
         return {}
 
     generator = torch.Generator(device="cpu").manual_seed(resolved.request.seed)
     w, h = resolved.size
-    common = dict(image=Image.fromarray(model_image), height=h, width=w, num_frames=resolved.frames,
-                  num_inference_steps=resolved.steps, generator=generator, output_type="np",
-                  callback_on_step_end=on_step, callback_on_step_end_tensor_inputs=[])
+    common = dict(
+        image=Image.fromarray(model_image),
+        height=h,
+        width=w,
+        num_frames=resolved.frames,
+        num_inference_steps=resolved.steps,
+        generator=generator,
+        output_type="np",
+        callback_on_step_end=on_step,
+        callback_on_step_end_tensor_inputs=[],
+    )
     with torch.inference_mode():
         if info.uses_prompt:
-            out = pipe(prompt=resolved.request.prompt, negative_prompt=resolved.request.negative_prompt or None,
-                       guidance_scale=resolved.guidance_scale, max_sequence_length=info.max_text_tokens, **common)
+            out = pipe(
+                prompt=resolved.request.prompt,
+                negative_prompt=resolved.request.negative_prompt or None,
+                guidance_scale=resolved.guidance_scale,
+                max_sequence_length=info.max_text_tokens,
+                **common,
+            )
         else:
-            out = pipe(min_guidance_scale=1.0, max_guidance_scale=resolved.guidance_scale,
-                       fps=max(1, round(resolved.fps)), **common)
+            out = pipe(
+                min_guidance_scale=1.0,
+                max_guidance_scale=resolved.guidance_scale,
+                fps=max(1, round(resolved.fps)),
+                **common,
+            )
     generate_s = time.perf_counter() - start
     video = np.asarray(out.frames[0], np.float32)  # [T, h, w, 3] in [0, 1]
     if video.shape[0] != resolved.frames:  # check_request's rule for this model is wrong: say so
-        raise ClflowError(f"{info.path}: the model made {video.shape[0]} frames, not the {resolved.frames} asked for; "
-                          f"please report this with the model's model_index.json")
+        raise ClflowError(
+            f"{info.path}: the model made {video.shape[0]} frames, not the {resolved.frames} asked for; "
+            f"please report this with the model's model_index.json"
+        )
     frames = to_uint8(video)
     if resolved.request.output_size == "image":
         frames = restore_frames(frames, placement)
@@ -474,14 +564,24 @@ def generate_video(image: np.ndarray, info: ModelInfo, request: GenerateRequest,
         "prompt": resolved.request.prompt if info.uses_prompt else None,
         "negative_prompt": resolved.request.negative_prompt or None,
         "model": {"path": str(info.path), "class": info.class_name, "family": info.family.name},
-        "seed": resolved.request.seed, "steps": resolved.steps, "guidance_scale": resolved.guidance_scale,
-        "frames": int(frames.shape[0]), "fps": resolved.fps,
-        "model_size": list(resolved.size), "size": [int(frames.shape[2]), int(frames.shape[1])],
-        "fit": resolved.request.fit, "output_size": resolved.request.output_size,
+        "seed": resolved.request.seed,
+        "steps": resolved.steps,
+        "guidance_scale": resolved.guidance_scale,
+        "frames": int(frames.shape[0]),
+        "fps": resolved.fps,
+        "model_size": list(resolved.size),
+        "size": [int(frames.shape[2]), int(frames.shape[1])],
+        "fit": resolved.request.fit,
+        "output_size": resolved.request.output_size,
         "placement": {"box": list(placement.box), "image_size": list(image.shape[1::-1])},
-        "device": device, "dtype": str(dtype).removeprefix("torch."), "memory_options": options,
-        "timings": {"load_s": round(load_s, 3), "generate_s": round(generate_s, 3),
-                    "per_step_s": round(generate_s / resolved.steps, 3)},
+        "device": device,
+        "dtype": str(dtype).removeprefix("torch."),
+        "memory_options": options,
+        "timings": {
+            "load_s": round(load_s, 3),
+            "generate_s": round(generate_s, 3),
+            "per_step_s": round(generate_s / resolved.steps, 3),
+        },
         "versions": environment(("diffusers", "transformers", "accelerate"), opencl=False),
     }
     return frames, record
@@ -501,8 +601,9 @@ def _load(info: ModelInfo, dtype):
             warnings.filterwarnings("ignore", message=".*torch_dtype.*", category=FutureWarning)
             return cls.from_pretrained(str(info.path), local_files_only=True, torch_dtype=dtype)
     except (OSError, ValueError, KeyError, TypeError) as exc:  # a damaged file the layout check could not see
-        raise InputError(f"{info.path}: diffusers could not load the {info.family.name} model: "
-                         f"{' '.join(str(exc).split())[:400]}") from None
+        raise InputError(
+            f"{info.path}: diffusers could not load the {info.family.name} model: {' '.join(str(exc).split())[:400]}"
+        ) from None
 
 
 def _memory_options(pipe, request: GenerateRequest, device: str) -> list[str]:
@@ -544,9 +645,17 @@ def request_digest(info: ModelInfo, resolved: Resolved, image: np.ndarray) -> st
     """A hash of everything that makes the frames: the model folder's fingerprint, the image's
     pixels and the resolved request (memory options excluded: they change how, not what)."""
     req = asdict(replace(resolved.request, cpu_offload=False, vae_tiling=False, vae_slicing=False))
-    payload = {"model": info.fingerprint(), "class": info.class_name, "request": req, "frames": resolved.frames,
-               "fps": resolved.fps, "steps": resolved.steps, "guidance": resolved.guidance_scale,
-               "size": list(resolved.size), "image": hashlib.sha256(np.ascontiguousarray(image).tobytes()).hexdigest(),
-               "image_shape": list(image.shape), "format": 1}
+    payload = {
+        "model": info.fingerprint(),
+        "class": info.class_name,
+        "request": req,
+        "frames": resolved.frames,
+        "fps": resolved.fps,
+        "steps": resolved.steps,
+        "guidance": resolved.guidance_scale,
+        "size": list(resolved.size),
+        "image": hashlib.sha256(np.ascontiguousarray(image).tobytes()).hexdigest(),
+        "image_shape": list(image.shape),
+        "format": 1,
+    }
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
-

@@ -46,8 +46,9 @@ def _nearest_existing(path: Path) -> Path:
     return path
 
 
-def check_output(path: str | os.PathLike, nbytes: int = 0, max_gb: float = DEFAULT_MAX_OUTPUT_GB,
-                 what: str = "", hint: str = "") -> None:
+def check_output(
+    path: str | os.PathLike, nbytes: int = 0, max_gb: float = DEFAULT_MAX_OUTPUT_GB, what: str = "", hint: str = ""
+) -> None:
     """Raise InputError unless folder ``path`` exists or can be made and is writable, and
     ``nbytes`` (the predicted output: ``what``) is within ``max_gb`` and the disk's free
     space; ``hint`` says how to write less. Creates nothing: call it before the work."""
@@ -63,7 +64,9 @@ def check_output(path: str | os.PathLike, nbytes: int = 0, max_gb: float = DEFAU
         raise InputError(f"{path}: {size}, more than --max-output-gb {max_gb:g}; raise it{hint and ' or '}{hint}")
     free = shutil.disk_usage(existing).free
     if nbytes > free:
-        raise InputError(f"{path}: {size}, the disk has {format_bytes(free)} free; free some space{hint and ' or '}{hint}")
+        raise InputError(
+            f"{path}: {size}, the disk has {format_bytes(free)} free; free some space{hint and ' or '}{hint}"
+        )
 
 
 def why_not_written(path: str | os.PathLike) -> str:
@@ -87,5 +90,6 @@ def check_memory(nbytes: int, what: str, hint: str) -> None:
     """Raise InputError if ``nbytes`` (held in memory for ``what``) exceed the machine's RAM."""
     ram = physical_memory()
     if nbytes > ram:
-        raise InputError(f"{what} would hold about {format_bytes(nbytes)} in memory, the machine has "
-                         f"{format_bytes(ram)}; {hint}")
+        raise InputError(
+            f"{what} would hold about {format_bytes(nbytes)} in memory, the machine has {format_bytes(ram)}; {hint}"
+        )

@@ -95,6 +95,8 @@ class Material:
 
 INF = math.inf
 
+# the registry is a table, one parameter or material a row: kept as written
+# fmt: off
 _E = Param("youngs_modulus", "E", "Pa", 1e6, (0.0, INF), (1e3, 2e11), doc="Young's modulus")
 _NU = Param(
     "poissons_ratio", "nu", "1", 0.3, (-1.0, 0.5), (0.0, 0.49), scale="bounded",
@@ -194,6 +196,7 @@ MATERIALS: dict[str, Material] = {
         ),
     )
 }
+# fmt: on
 
 DENSITY = Param("density", "rho", "kg/m^3", 1000.0, (0.0, INF), (10.0, 2.5e4), doc="mass density")
 

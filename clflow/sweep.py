@@ -45,8 +45,7 @@ SPEC_KEYS = ("command", "options", "set", "configs", "base", "grid", "overrides"
 RUN_KEYS = ("name", "command", "config", "set", "options", "case", "timeout")
 #: options of each command (as in its CLI), with a check of the value
 OPTIONS: dict[str, dict[str, str]] = {
-    "simulate": {"preview": "one of mp4, png, none", "params": "a params.json file",
-                 "max_output_gb": "a number > 0"},
+    "simulate": {"preview": "one of mp4, png, none", "params": "a params.json file", "max_output_gb": "a number > 0"},
     "optimize": {"iterations": "a whole number >= 1"},
     "sysid": {},
 }
@@ -167,10 +166,12 @@ def parse_spec(data: Any, path: Path) -> Spec:
     def options(command: str, value: Any, where: str) -> dict:
         given = mapping(value, where, OPTIONS[command])
         for key, v in given.items():
-            ok = {"preview": lambda: v in ("mp4", "png", "none"),
-                  "params": lambda: isinstance(v, str) and (path.parent / v).is_file(),
-                  "max_output_gb": lambda: isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0,
-                  "iterations": lambda: isinstance(v, int) and not isinstance(v, bool) and v >= 1}[key]()
+            ok = {
+                "preview": lambda: v in ("mp4", "png", "none"),
+                "params": lambda: isinstance(v, str) and (path.parent / v).is_file(),
+                "max_output_gb": lambda: isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0,
+                "iterations": lambda: isinstance(v, int) and not isinstance(v, bool) and v >= 1,
+            }[key]()
             if not ok:
                 raise fail(f"{where}.{key}", f"must be {OPTIONS[command][key]}, got {v!r}")
         if "params" in given:
@@ -194,15 +195,24 @@ def parse_spec(data: Any, path: Path) -> Spec:
     sysid = _sysid_settings(mapping(top.get("sysid"), "sysid", SYSID_KEYS), fail)
     runs: list[Run] = []
 
-    def config_run(config: str, sets: tuple[str, ...], cmd: str = command, opts: dict | None = None,
-                   limit: float | None = timeout, label: str | None = None, where: str = "") -> None:
+    def config_run(
+        config: str,
+        sets: tuple[str, ...],
+        cmd: str = command,
+        opts: dict | None = None,
+        limit: float | None = timeout,
+        label: str | None = None,
+        where: str = "",
+    ) -> None:
         if cmd == "sysid":
             raise fail(where, "a sysid run takes a case, not a config")
         if label is None:  # readable: the config's name and what this run sets besides the spec's set
-            label = "-".join([Path(config).stem] + [f"{o.split('=')[0].split('.')[-1]}={o.partition('=')[2]}"
-                                                     for o in sets])
-        runs.append(Run(cmd, config, common_set + sets, common_options if opts is None else opts, timeout=limit,
-                        label=label))
+            label = "-".join(
+                [Path(config).stem] + [f"{o.split('=')[0].split('.')[-1]}={o.partition('=')[2]}" for o in sets]
+            )
+        runs.append(
+            Run(cmd, config, common_set + sets, common_options if opts is None else opts, timeout=limit, label=label)
+        )
 
     for i, config in enumerate(items(top.get("configs"), "configs")):
         config_run(config_path(config, f"configs[{i}]"), (), where=f"configs[{i}]")
@@ -237,15 +247,29 @@ def parse_spec(data: Any, path: Path) -> Spec:
         if cmd == "sysid":
             if "config" in entry or "set" in entry:
                 raise fail(where, "a sysid run takes a case, not a config or set")
-            runs.append(Run("sysid", case=_case(entry.get("case"), f"{where}.case", fail), sysid=sysid, timeout=limit,
-                            label=label))
+            runs.append(
+                Run(
+                    "sysid",
+                    case=_case(entry.get("case"), f"{where}.case", fail),
+                    sysid=sysid,
+                    timeout=limit,
+                    label=label,
+                )
+            )
         else:
             if "case" in entry:
                 raise fail(f"{where}.case", f"only sysid runs take a case, this one is {cmd}")
             if "config" not in entry:
                 raise fail(where, f"a {cmd} run needs a config")
-            config_run(config_path(entry["config"], f"{where}.config"), overrides(entry.get("set"), f"{where}.set"),
-                       cmd, opts, limit, label, where)
+            config_run(
+                config_path(entry["config"], f"{where}.config"),
+                overrides(entry.get("set"), f"{where}.set"),
+                cmd,
+                opts,
+                limit,
+                label,
+                where,
+            )
     if not runs:
         raise fail("", "no runs: give configs, base (with grid or overrides), cases or runs")
     keys = [json.dumps(r.params(), sort_keys=True) for r in runs]
@@ -273,10 +297,15 @@ def _case(value: Any, where: str, fail: Callable[[str, str], InputError]) -> str
 
 def _sysid_settings(given: dict, fail: Callable[[str, str], InputError]) -> dict:
     """The ``sysid`` section as JSON data (checked when a run makes its Settings)."""
-    checks = {"quick": lambda v: isinstance(v, bool), "iterations": lambda v: _whole(v, 1),
-              "truth_scale": lambda v: _whole(v, 1), "seed": lambda v: _whole(v, None),
-              "views": lambda v: _whole(v, 1) and v <= 4, "codec": lambda v: v in (None, ".mp4", ".webm", ".avi"),
-              "noise": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0}
+    checks = {
+        "quick": lambda v: isinstance(v, bool),
+        "iterations": lambda v: _whole(v, 1),
+        "truth_scale": lambda v: _whole(v, 1),
+        "seed": lambda v: _whole(v, None),
+        "views": lambda v: _whole(v, 1) and v <= 4,
+        "codec": lambda v: v in (None, ".mp4", ".webm", ".avi"),
+        "noise": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0,
+    }
     for key, value in given.items():
         if not checks[key](value):
             raise fail(f"sysid.{key}", f"bad value {value!r}")
@@ -356,8 +385,15 @@ def _simulate(run: Run, folder: Path) -> dict:
     from clflow.pipeline.runs import simulate_scene
 
     o = run.options
-    simulate_scene(run.config, o.get("params"), folder / "simulation", o.get("preview", "mp4"),
-                   o.get("max_output_gb", DEFAULT_MAX_OUTPUT_GB), run.overrides, echo=print)
+    simulate_scene(
+        run.config,
+        o.get("params"),
+        folder / "simulation",
+        o.get("preview", "mp4"),
+        o.get("max_output_gb", DEFAULT_MAX_OUTPUT_GB),
+        run.overrides,
+        echo=print,
+    )
     import numpy as np
 
     with np.load(folder / "simulation" / "gaussians.npz") as g:
@@ -370,8 +406,15 @@ def _optimize(run: Run, folder: Path) -> dict:
 
     results = folder / "results"
     resume = (results / "checkpoint.json").exists()  # an interrupted or timed-out try continues
-    return run_optimization(run.config, resume, run.options.get("iterations"), results, run.overrides, echo=print,
-                            note=lambda line: print(line, file=sys.stderr))
+    return run_optimization(
+        run.config,
+        resume,
+        run.options.get("iterations"),
+        results,
+        run.overrides,
+        echo=print,
+        note=lambda line: print(line, file=sys.stderr),
+    )
 
 
 def _sysid(run: Run, folder: Path) -> dict:
@@ -409,8 +452,14 @@ def _deadline(seconds: float | None) -> Iterator[None]:
 
 def _ended(run: Run, status: str, reason: str, seconds: float) -> dict:
     """The record of a run that ended without a result (failed, killed, timeout)."""
-    return {"name": run.name, **run.params(), "status": status, "reason": reason, "result": None,
-            "seconds": round(seconds, 3)}
+    return {
+        "name": run.name,
+        **run.params(),
+        "status": status,
+        "reason": reason,
+        "result": None,
+        "seconds": round(seconds, 3),
+    }
 
 
 def _timed_out(run: Run, limit: float, seconds: float) -> dict:
@@ -421,9 +470,12 @@ def task_env(cpus_per_task: int, device: str | None, order: dict[str, str]) -> d
     """Environment of each task: its OpenCL CPU driver limited to its CPUs, the device chosen
     by the driver, and ``order`` (:func:`serial_order`: the serial path's last bits)."""
     threads = str(cpus_per_task)
-    env = {"POCL_MAX_PTHREAD_COUNT": threads,  # PoCL <= 4 (pthread driver)
-           "POCL_CPU_MAX_CU_COUNT": threads,  # PoCL >= 5
-           "OMP_WAIT_POLICY": "PASSIVE", **order}
+    env = {
+        "POCL_MAX_PTHREAD_COUNT": threads,  # PoCL <= 4 (pthread driver)
+        "POCL_CPU_MAX_CU_COUNT": threads,  # PoCL >= 5
+        "OMP_WAIT_POLICY": "PASSIVE",
+        **order,
+    }
     if device:
         env["CLFLOW_DEVICE"] = device
     return env
@@ -445,8 +497,13 @@ def serial_order() -> dict[str, str]:
 # -------------------------------------------------------------------------------- executors
 
 
-def run_serial(runs: list[Run], folder_of: Callable[[Run], Path], timeout: float | None,
-               on_done: Callable[[dict], None], env: dict[str, str] | None = None) -> None:
+def run_serial(
+    runs: list[Run],
+    folder_of: Callable[[Run], Path],
+    timeout: float | None,
+    on_done: Callable[[dict], None],
+    env: dict[str, str] | None = None,
+) -> None:
     """Run one after another in this process (a run's ``timeout`` enforced with SIGALRM)."""
     for run in runs:
         limit = run.timeout or timeout
@@ -489,10 +546,16 @@ def start_ray(address: str | None, cpus: int | None = None, instead: str | None 
         if address:
             ray.init(address=address, **quiet)
         else:
-            ray.init(num_cpus=cpus or os.cpu_count() or 1, include_dashboard=False,
-                     object_store_memory=OBJECT_STORE_BYTES, **quiet)
+            ray.init(
+                num_cpus=cpus or os.cpu_count() or 1,
+                include_dashboard=False,
+                object_store_memory=OBJECT_STORE_BYTES,
+                **quiet,
+            )
     except (ConnectionError, RuntimeError, ValueError) as exc:
-        raise InputError(f"cannot start Ray{' at ' + address if address else ''}: {' '.join(str(exc).split())}") from None
+        raise InputError(
+            f"cannot start Ray{' at ' + address if address else ''}: {' '.join(str(exc).split())}"
+        ) from None
     return True
 
 
@@ -505,8 +568,9 @@ def _remote(task: Callable, env: dict[str, str], cpus_per_task: int, resources: 
     resources = dict(resources or {})
     gpus = resources.pop("GPU", 0)
     cpus = resources.pop("CPU", cpus_per_task)
-    remote = ray.remote(task).options(num_cpus=cpus, num_gpus=gpus, resources=resources or None, max_retries=0,
-                                      runtime_env={"env_vars": env})
+    remote = ray.remote(task).options(
+        num_cpus=cpus, num_gpus=gpus, resources=resources or None, max_retries=0, runtime_env={"env_vars": env}
+    )
     total = ray.cluster_resources()
     wanted = {k: v for k, v in {"CPU": cpus, "GPU": gpus, **resources}.items() if v}
     room = [int(total.get(k, 0) // v) for k, v in wanted.items()]
@@ -515,10 +579,18 @@ def _remote(task: Callable, env: dict[str, str], cpus_per_task: int, resources: 
     return remote, min(room, default=None)
 
 
-def run_on_ray(runs: list[Run], folder_of: Callable[[Run], Path], timeout: float | None,
-               on_done: Callable[[dict], None], *, env: dict[str, str], cpus_per_task: int = 1,
-               resources: dict[str, float] | None = None, task: Callable = _ray_task,
-               args: Callable[[Run], tuple] | None = None) -> None:
+def run_on_ray(
+    runs: list[Run],
+    folder_of: Callable[[Run], Path],
+    timeout: float | None,
+    on_done: Callable[[dict], None],
+    *,
+    env: dict[str, str],
+    cpus_per_task: int = 1,
+    resources: dict[str, float] | None = None,
+    task: Callable = _ray_task,
+    args: Callable[[Run], tuple] | None = None,
+) -> None:
     """Run each run as a Ray task (Ray already started: :func:`start_ray`), at most as many at
     once as the cluster has room for, so a run's time limit counts from its start. A task that
     raises is recorded by :func:`execute`; one killed (worker died) or past its limit (its
@@ -571,9 +643,15 @@ def _sysid_task(name: str, folder: str, settings, case) -> dict:
     return sysid.run_case(name, Path(folder), settings)
 
 
-def sysid_on_ray(*, address: str | None = None, cpus_per_task: int = 1, resources: dict[str, float] | None = None,
-                 device: str | None = None, timeout: float | None = None,
-                 echo: Callable[[str], None] = lambda line: None) -> Callable:
+def sysid_on_ray(
+    *,
+    address: str | None = None,
+    cpus_per_task: int = 1,
+    resources: dict[str, float] | None = None,
+    device: str | None = None,
+    timeout: float | None = None,
+    echo: Callable[[str], None] = lambda line: None,
+) -> Callable:
     """A ``run_cases`` for clflow_datasets.sysid.evaluate (``clflow eval sysid --parallel``):
     each case a Ray task with the serial path's P2G sum order, so the records match it."""
 
@@ -587,24 +665,41 @@ def sysid_on_ray(*, address: str | None = None, cpus_per_task: int = 1, resource
         def finished(record: dict) -> None:
             name = record["case"]
             if record.get("status") in ("failed", "killed", "timeout"):  # recorded by run_on_ray, not run_case
-                record = {"case": name, "material": CASES[name].material, "seconds": record["seconds"],
-                          "status": f"failed: {record['status']}: {record['reason']}"}
+                record = {
+                    "case": name,
+                    "material": CASES[name].material,
+                    "seconds": record["seconds"],
+                    "status": f"failed: {record['status']}: {record['reason']}",
+                }
             echo(f"{name}: {record['status']} ({record.get('seconds', 0):.0f} s)")
             done(name, record)
 
         with ray_session(address):
-            run_on_ray(runs, lambda run: out / "cases" / run.case, timeout, finished,
-                       env=task_env(cpus_per_task, device, serial_order()), cpus_per_task=cpus_per_task,
-                       resources=resources, task=_sysid_task,
-                       args=lambda run: (run.case, str((out / "cases" / run.case).resolve()), settings,
-                                         CASES[run.case]))
+            run_on_ray(
+                runs,
+                lambda run: out / "cases" / run.case,
+                timeout,
+                finished,
+                env=task_env(cpus_per_task, device, serial_order()),
+                cpus_per_task=cpus_per_task,
+                resources=resources,
+                task=_sysid_task,
+                args=lambda run: (run.case, str((out / "cases" / run.case).resolve()), settings, CASES[run.case]),
+            )
 
     return run_cases
 
 
-def map_on_ray(task: Callable, args: list[tuple], *, address: str | None = None, cpus_per_task: int = 1,
-               resources: dict[str, float] | None = None, device: str | None = None,
-               done: Callable[[int, Any], None] = lambda index, result: None) -> list:
+def map_on_ray(
+    task: Callable,
+    args: list[tuple],
+    *,
+    address: str | None = None,
+    cpus_per_task: int = 1,
+    resources: dict[str, float] | None = None,
+    device: str | None = None,
+    done: Callable[[int, Any], None] = lambda index, result: None,
+) -> list:
     """``task(*a)`` for each ``a`` of ``args`` as Ray tasks (a local Ray, or the cluster at
     ``address``), each with the serial path's P2G sum order and torch threads
     (:func:`serial_order`), so each gives the bits it gives in this process. Returns the
@@ -663,7 +758,7 @@ def starts_on_ray(**ray_options) -> Callable:
         starts = list(starts)
 
         def finished(index: int, record: dict) -> None:
-            for row in record["state"]["history"][len(begin.history):]:
+            for row in record["state"]["history"][len(begin.history) :]:
                 opt.progress(row)
 
         return map_on_ray(_polish_task, [(opt, begin, k, resume) for k in starts], done=finished, **ray_options)
@@ -677,16 +772,18 @@ def hypotheses_on_ray(**ray_options) -> Callable:
     samples shown as it finishes."""
     from clflow.pipeline.hypotheses import search_hypothesis
 
-    def search_all(cfg, resume: bool = False, progress: Callable[[str, dict], None] | None = None,
-                   force_video: bool = False) -> list[dict]:
+    def search_all(
+        cfg, resume: bool = False, progress: Callable[[str, dict], None] | None = None, force_video: bool = False
+    ) -> list[dict]:
         materials = list(cfg.optimize.materials)
 
         def finished(index: int, found: dict) -> None:
             for i, row in enumerate(found["state"].search if found["state"] is not None and progress else []):
                 progress(materials[index], {**row, "phase": "search", "iteration": i})
 
-        return map_on_ray(search_hypothesis, [(cfg, m, resume, None, force_video) for m in materials], done=finished,
-                          **ray_options)
+        return map_on_ray(
+            search_hypothesis, [(cfg, m, resume, None, force_video) for m in materials], done=finished, **ray_options
+        )
 
     return search_all
 
@@ -702,9 +799,19 @@ def previous_record(folder: Path) -> dict | None:
     return record if isinstance(record, dict) and record.get("status") in FINISHED else None
 
 
-def sweep(spec: Spec, out: Path, *, serial: bool = False, address: str | None = None, cpus_per_task: int = 1,
-          resources: dict[str, float] | None = None, timeout: float | None = None, retry_failed: bool = False,
-          device: str | None = None, echo: Callable[[str], None] = lambda line: None) -> dict:
+def sweep(
+    spec: Spec,
+    out: Path,
+    *,
+    serial: bool = False,
+    address: str | None = None,
+    cpus_per_task: int = 1,
+    resources: dict[str, float] | None = None,
+    timeout: float | None = None,
+    retry_failed: bool = False,
+    device: str | None = None,
+    echo: Callable[[str], None] = lambda line: None,
+) -> dict:
     """Run the spec's runs into ``out`` (skipping those finished earlier: all but failed ones
     with ``retry_failed``), writing ``sweep.json`` and ``sweep.md`` as they finish; returns
     the summary. KeyboardInterrupt leaves the finished runs recorded."""
@@ -738,15 +845,19 @@ def sweep(spec: Spec, out: Path, *, serial: bool = False, address: str | None = 
         atomic_write_text(runs_dir / record["name"] / "result.json", json.dumps(record, indent=2))
         summary["runs"][record["name"]] = record
         write()
-        echo(f"{record['name']}: {record['status']}{': ' + record['reason'] if record.get('reason') else ''} "
-             f"({record['seconds']:.1f} s)")
+        echo(
+            f"{record['name']}: {record['status']}{': ' + record['reason'] if record.get('reason') else ''} "
+            f"({record['seconds']:.1f} s)"
+        )
 
     out.mkdir(parents=True, exist_ok=True)
     write()
     skipped = len(spec.runs) - len(todo)
     if skipped:
-        echo(f"{skipped} run(s) finished earlier, skipped" + ("" if retry_failed else
-                                                                " (--retry-failed reruns the failed ones)"))
+        echo(
+            f"{skipped} run(s) finished earlier, skipped"
+            + ("" if retry_failed else " (--retry-failed reruns the failed ones)")
+        )
     if not todo:
         return summary
     order = serial_order()
@@ -756,8 +867,15 @@ def sweep(spec: Spec, out: Path, *, serial: bool = False, address: str | None = 
             run_serial(todo, folder_of, timeout, done, env=order)  # (torch's threads are this process's already)
         else:
             with ray_session(address, instead=None):
-                run_on_ray(todo, folder_of, timeout, done, env=task_env(cpus_per_task, device, order),
-                           cpus_per_task=cpus_per_task, resources=resources)
+                run_on_ray(
+                    todo,
+                    folder_of,
+                    timeout,
+                    done,
+                    env=task_env(cpus_per_task, device, order),
+                    cpus_per_task=cpus_per_task,
+                    resources=resources,
+                )
     finally:
         write()
     return summary
@@ -767,16 +885,24 @@ def markdown(summary: dict) -> str:
     """The summary as a Markdown table, one row per run."""
     runs = summary["runs"].values()
     counts = {s: sum(r["status"] == s for r in runs) for s in ("ok", "failed", "timeout", "killed", "pending")}
-    lines = [f"# Sweep of {summary['spec']}", "",
-             ", ".join(f"{n} {s}" for s, n in counts.items() if n) + f" of {len(summary['runs'])} runs", "",
-             "| run | command | config / case | set | status | seconds | result or reason |", "|---" * 7 + "|"]
+    lines = [
+        f"# Sweep of {summary['spec']}",
+        "",
+        ", ".join(f"{n} {s}" for s, n in counts.items() if n) + f" of {len(summary['runs'])} runs",
+        "",
+        "| run | command | config / case | set | status | seconds | result or reason |",
+        "|---" * 7 + "|",
+    ]
     for r in runs:
         what = r.get("case") or Path(r.get("config", "")).name
         sets = "<br>".join(r.get("set", []))
         if r["status"] == "ok":
             result = r.get("result") or {}
-            detail = ", ".join(f"{k} {_short(v)}" for k, v in result.items() if isinstance(v, (int, float, str))
-                               and not isinstance(v, bool))[:200]
+            detail = ", ".join(
+                f"{k} {_short(v)}"
+                for k, v in result.items()
+                if isinstance(v, (int, float, str)) and not isinstance(v, bool)
+            )[:200]
         else:
             detail = (r.get("reason") or "").replace("|", "\\|")
         seconds = f"{r['seconds']:.1f}" if isinstance(r.get("seconds"), (int, float)) else "-"
@@ -788,5 +914,17 @@ def _short(v: Any) -> str:
     return f"{v:.4g}" if isinstance(v, float) else str(v)
 
 
-__all__ = ["COMMANDS", "Run", "Spec", "execute", "load_spec", "markdown", "parse_spec", "run_on_ray", "run_serial",
-           "start_ray", "sweep", "task_env"]
+__all__ = [
+    "COMMANDS",
+    "Run",
+    "Spec",
+    "execute",
+    "load_spec",
+    "markdown",
+    "parse_spec",
+    "run_on_ray",
+    "run_serial",
+    "start_ray",
+    "sweep",
+    "task_env",
+]

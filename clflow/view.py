@@ -88,8 +88,10 @@ def load_scene(path: str | Path, up: str = "+y") -> ViewScene:
         for folder in (path, path / "simulation", path.parent):
             if (folder / "gaussians.npz").is_file():
                 return _simulation_scene(folder)
-        raise InputError(f"{path}: no gaussians.npz here, in {path / 'simulation'} or in {path.parent}: "
-                         "give a PLY file or a folder written by `clflow simulate CONFIG`")
+        raise InputError(
+            f"{path}: no gaussians.npz here, in {path / 'simulation'} or in {path.parent}: "
+            "give a PLY file or a folder written by `clflow simulate CONFIG`"
+        )
     if not path.is_file():
         raise InputError(f"{path}: no such file or folder")
     from clflow.scene.config import UP_AXES
@@ -109,10 +111,17 @@ def _ply_scene(path: Path, up: tuple[float, float, float]) -> ViewScene:
     low, high = g.bounds(PLY_BOX_QUANTILE)
     f32 = lambda t: t.detach().float().numpy()  # noqa: E731
     return ViewScene(
-        means=f32(g.means)[None], covariances=f32(g.covariances)[None],
-        static_means=np.zeros((0, 3), np.float32), static_covariances=np.zeros((0, 3, 3), np.float32),
-        rgbs=_rgb(g.sh, g.colors, str(path)), opacities=f32(g.opacities), fps=None, camera=None, up=up,
-        box=(low.numpy(), high.numpy()), source=str(path),
+        means=f32(g.means)[None],
+        covariances=f32(g.covariances)[None],
+        static_means=np.zeros((0, 3), np.float32),
+        static_covariances=np.zeros((0, 3, 3), np.float32),
+        rgbs=_rgb(g.sh, g.colors, str(path)),
+        opacities=f32(g.opacities),
+        fps=None,
+        camera=None,
+        up=up,
+        box=(low.numpy(), high.numpy()),
+        source=str(path),
     )
 
 
@@ -128,19 +137,29 @@ def _simulation_scene(folder: Path) -> ViewScene:
         raise InputError(f"{folder / 'gaussians.npz'}: no scale and up_rotation (written by an older clflow simulate?)")
     R_up, scale = np.asarray(a["up_rotation"], np.float64), float(a["scale"])
     f32 = lambda *arrays: (x.astype(np.float32) for x in arrays)  # noqa: E731
-    means, covariances = f32(*to_file_frame(a["object_means"].astype(np.float64),
-                                            a["object_covariances"].astype(np.float64), R_up, scale))
-    static_means, static_covariances = f32(*to_file_frame(a["static_means"].astype(np.float64),
-                                                          a["static_covariances"].astype(np.float64), R_up, scale))
+    means, covariances = f32(
+        *to_file_frame(a["object_means"].astype(np.float64), a["object_covariances"].astype(np.float64), R_up, scale)
+    )
+    static_means, static_covariances = f32(
+        *to_file_frame(a["static_means"].astype(np.float64), a["static_covariances"].astype(np.float64), R_up, scale)
+    )
     sh, colors = a.get("sh"), a.get("colors")
     return ViewScene(
-        means=means, covariances=covariances, static_means=static_means, static_covariances=static_covariances,
-        rgbs=_rgb(None if sh is None else torch.from_numpy(sh), None if colors is None else torch.from_numpy(colors),
-                  str(folder)),
-        opacities=np.asarray(a["opacities"], np.float32), fps=frames.fps,
+        means=means,
+        covariances=covariances,
+        static_means=static_means,
+        static_covariances=static_covariances,
+        rgbs=_rgb(
+            None if sh is None else torch.from_numpy(sh),
+            None if colors is None else torch.from_numpy(colors),
+            str(folder),
+        ),
+        opacities=np.asarray(a["opacities"], np.float32),
+        fps=frames.fps,
         camera=to_file_camera(frames.guidance_camera(), torch.from_numpy(R_up), scale),
         up=tuple(float(v) for v in R_up[1]),  # R_up^T e_y: the file axis that is up
-        box=(means[0].min(0), means[0].max(0)), source=str(folder),
+        box=(means[0].min(0), means[0].max(0)),
+        source=str(folder),
     )
 
 
@@ -218,16 +237,22 @@ def check_port(host: str, port: int) -> None:
 
 
 def _port_in_use(host: str, port: int) -> InputError:
-    return InputError(f"port {port} on {host} is in use (by another program or another clflow view); "
-                      "pick another with --port")
+    return InputError(
+        f"port {port} on {host} is in use (by another program or another clflow view); pick another with --port"
+    )
 
 
 class Viewer:
     """A running viser server showing ``scene``; ``report(text)`` gets the box YAML each time
     the box is set (a field edited, a gizmo let go). ``port`` 0: any free port (``self.port``)."""
 
-    def __init__(self, scene: ViewScene, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT,
-                 report: Callable[[str], None] = print):
+    def __init__(
+        self,
+        scene: ViewScene,
+        host: str = DEFAULT_HOST,
+        port: int = DEFAULT_PORT,
+        report: Callable[[str], None] = print,
+    ):
         viser = import_viser()
         check_port(host, port)
         self.scene, self.report, self._closed = scene, report, False
@@ -251,11 +276,13 @@ class Viewer:
         s, n = self.scene, self.scene.means.shape[1]
         self.frame_shown = 0
         self.splats = self.server.scene.add_gaussian_splats(
-            "/gaussians", s.means[0], s.covariances[0], s.rgbs[:n], s.opacities[:n, None])
+            "/gaussians", s.means[0], s.covariances[0], s.rgbs[:n], s.opacities[:n, None]
+        )
         self.static_splats = None
         if len(s.static_means):
             self.static_splats = self.server.scene.add_gaussian_splats(
-                "/static", s.static_means, s.static_covariances, s.rgbs[n:], s.opacities[n:, None])
+                "/static", s.static_means, s.static_covariances, s.rgbs[n:], s.opacities[n:, None]
+            )
 
     def _add_camera(self) -> None:
         self.frustum = None
@@ -266,9 +293,16 @@ class Viewer:
 
         c2w = cam.camtoworld()
         self.frustum = self.server.scene.add_camera_frustum(
-            "/guidance_camera", fov=cam.fov_y, aspect=cam.width / cam.height, scale=0.1 * self.scene.extent(),
-            thickness=2.0, thickness_units="screen", color=(230, 120, 20),
-            wxyz=rotmat_to_quat(c2w[None, :3, :3])[0].numpy(), position=c2w[:3, 3].numpy())
+            "/guidance_camera",
+            fov=cam.fov_y,
+            aspect=cam.width / cam.height,
+            scale=0.1 * self.scene.extent(),
+            thickness=2.0,
+            thickness_units="screen",
+            color=(230, 120, 20),
+            wxyz=rotmat_to_quat(c2w[None, :3, :3])[0].numpy(),
+            position=c2w[:3, 3].numpy(),
+        )
 
     def _set_initial_camera(self) -> None:
         """Browsers open behind the guidance camera (its frustum in view), looking where it looks,
@@ -330,9 +364,12 @@ class Viewer:
             self.box_max = gui.add_vector3("max", initial_value=tuple(high), step=step)
             self.box_text = gui.add_markdown("")
         self.box_node = None
-        self.corners = [scene.add_transform_controls(f"/box/{name}", scale=0.15 * extent, disable_rotations=True,
-                                                     depth_test=False, position=tuple(p))
-                        for name, p in (("min", low), ("max", high))]
+        self.corners = [
+            scene.add_transform_controls(
+                f"/box/{name}", scale=0.15 * extent, disable_rotations=True, depth_test=False, position=tuple(p)
+            )
+            for name, p in (("min", low), ("max", high))
+        ]
         for corner in self.corners:
             corner.on_update(self._corner_moved)
         for field in (self.box_min, self.box_max):
@@ -362,13 +399,18 @@ class Viewer:
             if move_corners:
                 self.corners[0].position, self.corners[1].position = tuple(low), tuple(high)
             self.box_node = self.server.scene.add_box(
-                "/box/outline", color=(230, 120, 20), dimensions=tuple(high - low), wireframe=True,
-                position=tuple((low + high) / 2))
+                "/box/outline",
+                color=(230, 120, 20),
+                dimensions=tuple(high - low),
+                wireframe=True,
+                position=tuple((low + high) / 2),
+            )
             means = self.scene.rest_means
             inside = count_inside(means, low, high)
             self.yaml = box_yaml(low, high)
-            self.box_text.content = (f"{inside:,} of {len(means):,} Gaussians inside (frame 0)\n\n"
-                                     f"```yaml\n{self.yaml}\n```")
+            self.box_text.content = (
+                f"{inside:,} of {len(means):,} Gaussians inside (frame 0)\n\n```yaml\n{self.yaml}\n```"
+            )
             if report:
                 self.report(f"{self.yaml}\n# {inside:,} of {len(means):,} Gaussians inside")
 
@@ -395,5 +437,15 @@ class Viewer:
             self.server.stop()
 
 
-__all__ = ["DEFAULT_HOST", "DEFAULT_PORT", "ViewScene", "Viewer", "box_yaml", "check_port", "count_inside",
-           "import_viser", "load_scene", "rounded_box"]
+__all__ = [
+    "DEFAULT_HOST",
+    "DEFAULT_PORT",
+    "ViewScene",
+    "Viewer",
+    "box_yaml",
+    "check_port",
+    "count_inside",
+    "import_viser",
+    "load_scene",
+    "rounded_box",
+]

@@ -45,8 +45,14 @@ def bench_command(name: str):
                 write_record(json_path, name, parameters, results)
                 click.echo(f"wrote {json_path}")
 
-        option = click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None, metavar="PATH",
-                              help="Also write the figures, the parameters and the environment as JSON to PATH.")
+        option = click.option(
+            "--json",
+            "json_path",
+            type=click.Path(dir_okay=False),
+            default=None,
+            metavar="PATH",
+            help="Also write the figures, the parameters and the environment as JSON to PATH.",
+        )
         return click.command(name)(option(run))
 
     return wrap

@@ -17,7 +17,9 @@ def bench_observed(frame_count: int, size: int) -> dict:
 
     frames, truth = moving_texture(frame_count, size, size, Motion(shift=(1.5, -0.8), angle=0.005, scale=1.004))
     inner = mask_from_box((size / 16, size / 16, size - size / 16, size - size / 16), size, size)
-    click.echo(f"observed flow: {frame_count} frames {size}x{size} ({frame_count - 1} pairs), synthetic similarity motion")
+    click.echo(
+        f"observed flow: {frame_count} frames {size}x{size} ({frame_count - 1} pairs), synthetic similarity motion"
+    )
     results = {}
     for method, preset in [("dis", p) for p in DIS_PRESETS] + [("farneback", "")]:
         observed_flow(frames[:2], method, preset=preset or "medium")  # warm-up
@@ -25,8 +27,9 @@ def bench_observed(frame_count: int, size: int) -> dict:
         flow, elapsed = timing.result, timing.median_wall
         name = f"{method} {preset}".strip()
         epe = endpoint_error(flow, truth, np.broadcast_to(inner, flow.shape[:-1]))
-        click.echo(f"  {name:14s} {elapsed:7.2f} s total, {1e3 * elapsed / (frame_count - 1):7.1f} ms/pair, "
-                   f"EPE {epe:.3f} px")
+        click.echo(
+            f"  {name:14s} {elapsed:7.2f} s total, {1e3 * elapsed / (frame_count - 1):7.1f} ms/pair, EPE {epe:.3f} px"
+        )
         results[name] = {**timing.record(), "epe_px": float(epe)}
     return results
 
@@ -42,7 +45,11 @@ def bench_simulated(gaussians: int, frame_count: int, size: int, repeat: int) ->
 
     g = torch.Generator().manual_seed(0)
     means = (torch.rand(gaussians, 3, generator=g) * 2 - 1) + torch.tensor([0.0, 0.0, 4.0])
-    scales = torch.exp(torch.empty(gaussians).uniform_(float(torch.log(torch.tensor(0.005))), float(torch.log(torch.tensor(0.03))), generator=g))
+    scales = torch.exp(
+        torch.empty(gaussians).uniform_(
+            float(torch.log(torch.tensor(0.005))), float(torch.log(torch.tensor(0.03))), generator=g
+        )
+    )
     covars = scales[:, None, None] ** 2 * torch.eye(3)
     opacities = torch.rand(gaussians, generator=g) * 0.8 + 0.1
     viewmat = torch.eye(4)
@@ -63,8 +70,16 @@ def bench_simulated(gaussians: int, frame_count: int, size: int, repeat: int) ->
         total = 0.0
         for t in range(frame_count):
             flow, _ = render_simulated_flow(
-                positions[t], positions[t + 1], covars, opacities, viewmat, K, size, size,
-                model=model, covars_t1=covars if model == "affine" else None,
+                positions[t],
+                positions[t + 1],
+                covars,
+                opacities,
+                viewmat,
+                K,
+                size,
+                size,
+                model=model,
+                covars_t1=covars if model == "affine" else None,
             )
             loss = masked_flow_loss(flow, observed, mask)
             loss.backward()
@@ -72,8 +87,11 @@ def bench_simulated(gaussians: int, frame_count: int, size: int, repeat: int) ->
         return total
 
     for model in ("mean", "affine"):  # a warm-up run builds the kernels
-        timing = measure(lambda positions: frames_loss(positions, model), repeat,
-                         setup=lambda: [p.clone().requires_grad_() for p in trajectory])
+        timing = measure(
+            lambda positions: frames_loss(positions, model),
+            repeat,
+            setup=lambda: [p.clone().requires_grad_() for p in trajectory],
+        )
         ms = 1e3 * timing.median_wall
         click.echo(
             f"  {model:6s} render + loss + backward: {ms / 1e3:7.2f} s for {frame_count} frames "
@@ -96,5 +114,7 @@ def bench_simulated(gaussians: int, frame_count: int, size: int, repeat: int) ->
 def flow(obj, frames, size, gaussians, sim_frames, repeat, observed, simulated) -> dict:
     """Observed flow of a FRAMES-frame SIZE^2 video (DIS presets, Farneback) and the
     simulated-flow render + loss + backward of N Gaussians over SIM_FRAMES frames."""
-    return {"observed": bench_observed(frames, size) if observed else None,
-            "simulated": bench_simulated(gaussians, sim_frames, size, repeat) if simulated else None}
+    return {
+        "observed": bench_observed(frames, size) if observed else None,
+        "simulated": bench_simulated(gaussians, sim_frames, size, repeat) if simulated else None,
+    }

@@ -14,12 +14,21 @@ def synthetic_cases() -> dict:
     from clflow_datasets.demo import DEMO
     from clflow_datasets.synthetic import SyntheticCase, push_upper_part
 
-    torus = SyntheticCase(shape="torus", material="elastic", truth={"youngs_modulus": 5e4, "poissons_ratio": 0.3},
-                          guess={"youngs_modulus": 5e3}, forces=(push_upper_part(0.2),))
-    plasticine = SyntheticCase(shape="sphere", material="plasticine",
-                               truth={"youngs_modulus": 1e5, "poissons_ratio": 0.3, "yield_stress": 2e3},
-                               guess={"yield_stress": 2e2}, optimize=("yield_stress",),
-                               forces=(push_upper_part(0.2, acceleration=20.0),))
+    torus = SyntheticCase(
+        shape="torus",
+        material="elastic",
+        truth={"youngs_modulus": 5e4, "poissons_ratio": 0.3},
+        guess={"youngs_modulus": 5e3},
+        forces=(push_upper_part(0.2),),
+    )
+    plasticine = SyntheticCase(
+        shape="sphere",
+        material="plasticine",
+        truth={"youngs_modulus": 1e5, "poissons_ratio": 0.3, "yield_stress": 2e3},
+        guess={"yield_stress": 2e2},
+        optimize=("yield_stress",),
+        forces=(push_upper_part(0.2, acceleration=20.0),),
+    )
     return {"cube": DEMO, "torus": torus, "plasticine": plasticine}
 
 
@@ -67,7 +76,9 @@ def measure_case(config, output, preset: str, confidence: str, iterations: int |
     from clflow.scene.config import load_config
 
     cfg = load_config(config)
-    cfg = dataclasses.replace(cfg, output=output, flow=dataclasses.replace(cfg.flow, preset=preset, confidence=confidence))
+    cfg = dataclasses.replace(
+        cfg, output=output, flow=dataclasses.replace(cfg.flow, preset=preset, confidence=confidence)
+    )
     if iterations is not None:
         cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=max(iterations, 1)))
     opt = Optimization(cfg)
@@ -77,11 +88,15 @@ def measure_case(config, output, preset: str, confidence: str, iterations: int |
     simulated, observed, weight = torch.stack(at_truth.flows).numpy(), opt.observed.numpy(), opt.weight.numpy()
     z_minimum = {n: loss_minimum(opt, z_truth, n) for n in z_truth}
     at_minimum = opt.values(z_minimum)
-    row = {"slope": flow_slope(observed, simulated, weight), "epe": endpoint_error(observed, simulated, weight),
-           "kept": float(weight.sum() / opt.mask.sum() / opt.frames),
-           "minimum": {n: (at_minimum[n] - truth[n]) / truth[n] for n in at_minimum},
-           "beyond": {n for n, z in z_minimum.items() if abs(z - z_truth[n]) > 0.99 * SEARCH_HALF_WIDTH},
-           "error": {}, "seconds": 0.0}
+    row = {
+        "slope": flow_slope(observed, simulated, weight),
+        "epe": endpoint_error(observed, simulated, weight),
+        "kept": float(weight.sum() / opt.mask.sum() / opt.frames),
+        "minimum": {n: (at_minimum[n] - truth[n]) / truth[n] for n in at_minimum},
+        "beyond": {n for n, z in z_minimum.items() if abs(z - z_truth[n]) > 0.99 * SEARCH_HALF_WIDTH},
+        "error": {},
+        "seconds": 0.0,
+    }
     if iterations != 0:
         timing = measure(opt.run, warmup=0)
         final = opt.values(timing.result.z)
@@ -120,23 +135,31 @@ def flow_bias(cases, presets, confidences, size, iterations):
     resolution = QUICK if size == "quick" else Resolution()
     known = synthetic_cases()
     rows = {}
-    click.echo(f"load average {load_average()}; {resolution.image} px, {resolution.frames} frames, "
-               f"{resolution.iterations if iterations is None else iterations} iterations")
-    click.echo(f"{'case':11s} {'preset':10s} {'confidence':17s} {'slope':>6s} {'EPE px':>7s} {'kept':>5s}  "
-               f"RE at the loss minimum; RE recovered")
+    click.echo(
+        f"load average {load_average()}; {resolution.image} px, {resolution.frames} frames, "
+        f"{resolution.iterations if iterations is None else iterations} iterations"
+    )
+    click.echo(
+        f"{'case':11s} {'preset':10s} {'confidence':17s} {'slope':>6s} {'EPE px':>7s} {'kept':>5s}  "
+        f"RE at the loss minimum; RE recovered"
+    )
     with tempfile.TemporaryDirectory(prefix="clflow-flow-bias-") as folder:
         for name in cases or CASES:
             config = make_case(Path(folder) / name, known[name], resolution)
             for preset in presets or DIS_PRESETS:
                 for confidence in confidences or CONFIDENCES:
-                    row = measure_case(config, Path(folder) / name / f"{preset}-{confidence}", preset, confidence,
-                                       iterations)
+                    row = measure_case(
+                        config, Path(folder) / name / f"{preset}-{confidence}", preset, confidence, iterations
+                    )
                     rows[f"{name} {preset} {confidence}"] = {**row, "beyond": sorted(row["beyond"])}
-                    at_minimum = ", ".join(f"{n} {'beyond ' if n in row['beyond'] else ''}{e:+.2%}"
-                                           for n, e in row["minimum"].items())
+                    at_minimum = ", ".join(
+                        f"{n} {'beyond ' if n in row['beyond'] else ''}{e:+.2%}" for n, e in row["minimum"].items()
+                    )
                     recovered = ", ".join(f"{e:+.2%}" for e in row["error"].values())
                     timing = f" ({row['seconds']:.0f} s)" if row["error"] else ""
-                    click.echo(f"{name:11s} {preset:10s} {confidence:17s} {row['slope']:6.3f} {row['epe']:7.3f} "
-                               f"{row['kept']:5.2f}  {at_minimum}; {recovered or '-'}{timing}")
+                    click.echo(
+                        f"{name:11s} {preset:10s} {confidence:17s} {row['slope']:6.3f} {row['epe']:7.3f} "
+                        f"{row['kept']:5.2f}  {at_minimum}; {recovered or '-'}{timing}"
+                    )
     click.echo(f"load average {load_average()}")
     return rows

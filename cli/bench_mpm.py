@@ -53,23 +53,33 @@ def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double):
     logging.getLogger("pyopencl").setLevel(logging.WARNING)  # no build chatter between rows
     click.echo(f"load average before the run: {load_average()} (figures scale down on a shared machine)")
     p2g = "private grid copies" if (device.info.type if device else "CPU") == "CPU" else "atomics"
-    click.echo(f"device: {device.info.label if device else 'default'} (P2G: {p2g}); {n:,} particles, grid {grid_res}^3, "
-               f"{'float64' if double else 'float32'}, {substeps} timed substeps")
+    click.echo(
+        f"device: {device.info.label if device else 'default'} (P2G: {p2g}); {n:,} particles, grid {grid_res}^3, "
+        f"{'float64' if double else 'float32'}, {substeps} timed substeps"
+    )
     results = {"particles": n}
     for name in names:
-        sim = Simulator(x, h**3, MaterialSpec(name), Grid((grid_res,) * 3, dx), frame_dt=1e-3,
-                        dtype=dtype, device=device)
+        sim = Simulator(
+            x, h**3, MaterialSpec(name), Grid((grid_res,) * 3, dx), frame_dt=1e-3, dtype=dtype, device=device
+        )
         sim.step()  # builds kernels and warms the caches
         timing = measure(lambda: [sim.step() for _ in range(substeps)], warmup=0)
         elapsed, cpu = timing.median_wall, timing.median_cpu
-        results[name] = {**timing.record(), "particle_substeps_per_s": n * substeps / elapsed,
-                         "bytes_per_particle": _particle_bytes(sim) // n}
-        click.echo(f"{name:14s} {n * substeps / elapsed / 1e6:7.2f} M particle-substeps/s  "
-                   f"({elapsed / substeps * 1e3:6.1f} ms/substep; {n * substeps / cpu / 1e6:5.2f} M per CPU-second; "
-                   f"{_particle_bytes(sim) // n} B/particle)")
+        results[name] = {
+            **timing.record(),
+            "particle_substeps_per_s": n * substeps / elapsed,
+            "bytes_per_particle": _particle_bytes(sim) // n,
+        }
+        click.echo(
+            f"{name:14s} {n * substeps / elapsed / 1e6:7.2f} M particle-substeps/s  "
+            f"({elapsed / substeps * 1e3:6.1f} ms/substep; {n * substeps / cpu / 1e6:5.2f} M per CPU-second; "
+            f"{_particle_bytes(sim) // n} B/particle)"
+        )
     itemsize = torch.tensor([], dtype=dtype).element_size()
     grid_bytes = sim.grid.nodes * 7 * itemsize
     copies = getattr(sim.kernels, "copies", 0)
-    click.echo(f"memory besides the particles: grid {grid_bytes / 2**20:.1f} MiB"
-               + (f" + {copies} private P2G copies {copies * grid_bytes * 4 / 7 / 2**20:.1f} MiB" if copies else ""))
+    click.echo(
+        f"memory besides the particles: grid {grid_bytes / 2**20:.1f} MiB"
+        + (f" + {copies} private P2G copies {copies * grid_bytes * 4 / 7 / 2**20:.1f} MiB" if copies else "")
+    )
     return results

@@ -38,11 +38,28 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
     E = torch.tensor(1e5, dtype=dtype, requires_grad=True)
     # build every kernel once on a tiny copy of the scene (kernels do not depend on sizes), so
     # that the memory measured below is the run's own
-    tiny = Simulator(x[:: max(1, n // 64)] * 0.2 + 0.4, h**3, spec, Grid((16,) * 3, 1 / 16), frame_dt=2e-3,
-                     substeps=2, dtype=dtype, device=device)
+    tiny = Simulator(
+        x[:: max(1, n // 64)] * 0.2 + 0.4,
+        h**3,
+        spec,
+        Grid((16,) * 3, 1 / 16),
+        frame_dt=2e-3,
+        substeps=2,
+        dtype=dtype,
+        device=device,
+    )
     simulate(tiny, 1, params={"youngs_modulus": E}).x.sum().backward()
-    sim = Simulator(x, h**3, spec, Grid((grid_res,) * 3, dx), velocities=v, frame_dt=substeps * 2e-4,
-                    substeps=substeps, dtype=dtype, device=device)
+    sim = Simulator(
+        x,
+        h**3,
+        spec,
+        Grid((grid_res,) * 3, dx),
+        velocities=v,
+        frame_dt=substeps * 2e-4,
+        substeps=substeps,
+        dtype=dtype,
+        device=device,
+    )
 
     def peak_mib():
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -56,15 +73,26 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
     backward, backward_cpu = timed_backward.median_wall, timed_backward.median_cpu
     peak = peak_mib() - base
     steps = frames * substeps
-    click.echo(f"device: {device.info.label if device else 'default'}; {n:,} particles, grid {grid_res}^3, "
-               f"{frames} frames x {substeps} substeps, {'float64' if double else 'float32'}")
-    click.echo(f"forward  {forward:8.2f} s  ({n * steps / forward / 1e6:.2f} M particle-substeps/s); "
-               f"CPU {forward_cpu:.2f} s")
-    click.echo(f"backward {backward:8.2f} s  (replay + adjoint; {backward / forward:.2f}x forward, target <= 3x); "
-               f"CPU {backward_cpu:.2f} s ({backward_cpu / forward_cpu:.2f}x: all threads of this process, "
-               f"so other jobs on the machine barely change it)")
+    click.echo(
+        f"device: {device.info.label if device else 'default'}; {n:,} particles, grid {grid_res}^3, "
+        f"{frames} frames x {substeps} substeps, {'float64' if double else 'float32'}"
+    )
+    click.echo(
+        f"forward  {forward:8.2f} s  ({n * steps / forward / 1e6:.2f} M particle-substeps/s); CPU {forward_cpu:.2f} s"
+    )
+    click.echo(
+        f"backward {backward:8.2f} s  (replay + adjoint; {backward / forward:.2f}x forward, target <= 3x); "
+        f"CPU {backward_cpu:.2f} s ({backward_cpu / forward_cpu:.2f}x: all threads of this process, "
+        f"so other jobs on the machine barely change it)"
+    )
     copies = engine(sim).adjoint.copies if sim.kernels.p2g == "private" else 0
     est = memory_estimate(n, sim.grid.nodes, frames, substeps, dtype, grid_copies=copies) / 2**20
     click.echo(f"peak memory growth {peak:8.1f} MiB (peak RSS - RSS before the run); formula {est:.1f} MiB")
-    return {"particles": n, "forward": timed_forward.record(), "backward": timed_backward.record(),
-            "backward_over_forward": backward / forward, "peak_memory_mib": peak, "formula_memory_mib": est}
+    return {
+        "particles": n,
+        "forward": timed_forward.record(),
+        "backward": timed_backward.record(),
+        "backward_over_forward": backward / forward,
+        "peak_memory_mib": peak,
+        "formula_memory_mib": est,
+    }

@@ -30,23 +30,34 @@ def optimize(gaussians, image, frames, grid, iterations):
     with tempfile.TemporaryDirectory(prefix="clflow-bench-") as folder:
         make = measure(lambda: make_demo(folder, size), warmup=0)
         cfg = load_config(make.result)
-        cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=iterations,
-                                                                     horizon_start=0))
+        cfg = dataclasses.replace(
+            cfg, optimize=dataclasses.replace(cfg.optimize, iterations=iterations, horizon_start=0)
+        )
         load = measure(lambda: Optimization(cfg), warmup=0)
         opt = load.result
         setup = opt.prepared.setup
         n_gauss = opt.prepared.obj_rest.means.shape[0] + opt.prepared.static.means.shape[0]
-        click.echo(f"scene: {n_gauss:,} Gaussians ({setup.particles.n_gaussians:,} on the object, "
-                   f"{setup.particles.n_fill:,} fill particles), grid {setup.grid.resolution}, {frames} frames, "
-                   f"{image}x{image} px")
-        click.echo(f"  make scene + guidance video {make.median_wall:7.2f} s;  load, fill, video flow "
-                   f"{load.median_wall:7.2f} s")
+        click.echo(
+            f"scene: {n_gauss:,} Gaussians ({setup.particles.n_gaussians:,} on the object, "
+            f"{setup.particles.n_fill:,} fill particles), grid {setup.grid.resolution}, {frames} frames, "
+            f"{image}x{image} px"
+        )
+        click.echo(
+            f"  make scene + guidance video {make.median_wall:7.2f} s;  load, fill, video flow "
+            f"{load.median_wall:7.2f} s"
+        )
         rows = []
         opt.progress = rows.append  # each row has the iteration's seconds, as the optimiser timed it
         run = measure(opt.run, warmup=0)
         for row in rows:
-            click.echo(f"  iteration {row['iteration']}: {row['seconds']:7.2f} s ({row['substeps']} substeps per frame)")
+            click.echo(
+                f"  iteration {row['iteration']}: {row['seconds']:7.2f} s ({row['substeps']} substeps per frame)"
+            )
         best = min(r["seconds"] for r in rows)
         click.echo(f"  per iteration: {best:.2f} s best, {sum(r['seconds'] for r in rows) / len(rows):.2f} s mean")
-    return {"make_scene": make.record(), "load": load.record(), "run": run.record(),
-            "iterations": [{"seconds": r["seconds"], "substeps": r["substeps"]} for r in rows]}
+    return {
+        "make_scene": make.record(),
+        "load": load.record(),
+        "run": run.record(),
+        "iterations": [{"seconds": r["seconds"], "substeps": r["substeps"]} for r in rows],
+    }

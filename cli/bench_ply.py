@@ -46,5 +46,9 @@ def ply(count: int, sh_degree: int, points: int, repeat: int) -> dict:
         cloud = torch.randn(points, 3, generator=gen)
         seconds = median_seconds(lambda: Gaussians.from_points(cloud))
         click.echo(f"  from_points ({points} points, exact 3-NN scales)  {seconds:6.2f} s")
-    return {"file_mib": mib, "save_s": save_seconds, "load_s": load_seconds,
-            "from_points_s": seconds if points else None}
+    return {
+        "file_mib": mib,
+        "save_s": save_seconds,
+        "load_s": load_seconds,
+        "from_points_s": seconds if points else None,
+    }

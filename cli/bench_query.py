@@ -32,16 +32,25 @@ def query(repeat: int) -> dict:
 
     results = {}
 
-    texts = ["rubber duck", "a jar of strawberry jam on a wooden kitchen table next to a spoon",
-             "IMG_0042-RubberDucks", "alumnium foil", "xyzzy qwerty", "a glass of milk",
-             "a red carnation in a vase on the window sill", "sandcastle on the beach"]
+    texts = [
+        "rubber duck",
+        "a jar of strawberry jam on a wooden kitchen table next to a spoon",
+        "IMG_0042-RubberDucks",
+        "alumnium foil",
+        "xyzzy qwerty",
+        "a glass of milk",
+        "a red carnation in a vase on the window sill",
+        "sandcastle on the beach",
+    ]
     kb_file = resources.files("clflow") / "data" / "materials_kb.json"
     kb = load_knowledge_base(kb_file)
     for label, setup in (("first", lambda: load_knowledge_base(kb_file)), ("repeat", lambda: kb)):
         ms = median_ms(lambda base: [base.match(prompt=t) for t in texts], setup) / len(texts)
         results[f"lookup_{label}_ms"] = ms
-        click.echo(f"offline lookup {label:<6}{ms:8.3f} ms/query   ({len(kb.entries)} entries, "
-                   f"{sum(len(e.aliases) for e in kb.entries)} aliases)")
+        click.echo(
+            f"offline lookup {label:<6}{ms:8.3f} ms/query   ({len(kb.entries)} entries, "
+            f"{sum(len(e.aliases) for e in kb.entries)} aliases)"
+        )
 
     rng = np.random.default_rng(0)
     photo = cv2.GaussianBlur(rng.integers(0, 256, (1080, 1920, 3), dtype=np.uint8), (0, 0), 3)
@@ -52,8 +61,9 @@ def query(repeat: int) -> dict:
         for fmt in ("png", "jpeg"):
             ms = results[f"encode_{fmt}_ms"] = median_ms(lambda _: crop.data_url(fmt))
             size = len(crop.data_url(fmt)) / 1024
-            click.echo(f"image {fmt:<4} encode   {ms:8.3f} ms         "
-                       f"(1400x900 crop -> 1024 px, {size:.0f} KiB base64)")
+            click.echo(
+                f"image {fmt:<4} encode   {ms:8.3f} ms         (1400x900 crop -> 1024 px, {size:.0f} KiB base64)"
+            )
         ms = results["read_crop_ms"] = median_ms(lambda _: crop_object(path, box=(400, 100, 1800, 1000)))
         click.echo(f"image read + crop   {ms:8.3f} ms         (1920x1080 PNG)")
     return results

@@ -19,7 +19,11 @@ def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=None):
     g = torch.Generator().manual_seed(seed)
     means = (torch.rand(n, 3, generator=g, dtype=dtype) * 2 - 1) + torch.tensor([0.0, 0.0, 4.0], dtype=dtype)
     quats = torch.randn(n, 4, generator=g, dtype=dtype)
-    scales = torch.exp(torch.empty(n, 3, dtype=dtype).uniform_(float(torch.log(torch.tensor(0.005))), float(torch.log(torch.tensor(0.03))), generator=g))
+    scales = torch.exp(
+        torch.empty(n, 3, dtype=dtype).uniform_(
+            float(torch.log(torch.tensor(0.005))), float(torch.log(torch.tensor(0.03))), generator=g
+        )
+    )
     opacities = torch.rand(n, generator=g, dtype=dtype) * 0.8 + 0.1
     colors = torch.rand(n, 3, generator=g, dtype=dtype)
     viewmat = torch.eye(4, dtype=dtype)
@@ -61,13 +65,17 @@ def raster(obj, gaussians: int, size: int, repeat: int, double: bool) -> dict:
             loss.backward()
     visible = int((meta["radii"] > 0).sum())
     click.echo(f"raster: {gaussians} Gaussians ({visible} visible), {size}x{size}, RGB + depth, {dtype}")
-    click.echo(f"  tile entries: {meta['num_tile_entries']} ({meta['tile_list_bytes'] / 2**20:.1f} MiB of tile lists, "
-               f"{meta['entry_record_bytes'] / 2**20:.1f} MiB of compositing records)")
+    click.echo(
+        f"  tile entries: {meta['num_tile_entries']} ({meta['tile_list_bytes'] / 2**20:.1f} MiB of tile lists, "
+        f"{meta['entry_record_bytes'] / 2**20:.1f} MiB of compositing records)"
+    )
     results = {"visible": visible, "tile_entries": int(meta["num_tile_entries"])}
     for name, watch in (("forward", forward), ("backward", backward)):
         timing = watch.timing(skip=1)
         results[name] = timing.record()
-        click.echo(f"  {name + ':':9} {1e3 * timing.median_wall:8.1f} ms wall, {1e3 * timing.median_cpu:8.1f} ms CPU "
-                   f"(medians of {repeat})")
+        click.echo(
+            f"  {name + ':':9} {1e3 * timing.median_wall:8.1f} ms wall, {1e3 * timing.median_cpu:8.1f} ms CPU "
+            f"(medians of {repeat})"
+        )
     click.echo(f"  load average: {timing.load_after} on {os.cpu_count()} cores (wall times grow with it)")
     return results

@@ -32,23 +32,45 @@ def reconstruct(views, size, shape, detail, iterations, init_points, eval_every)
     from clflow.recon.train import reconstruct as train
     from clflow_datasets.multiview import make_multiview
 
-    settings = Settings(iterations=iterations, densify_from=iterations // 10, densify_until=6 * iterations // 10,
-                        reset_every=iterations + 1, sh_every=max(1, iterations // 3), init_points=init_points)
+    settings = Settings(
+        iterations=iterations,
+        densify_from=iterations // 10,
+        densify_until=6 * iterations // 10,
+        reset_every=iterations + 1,
+        sh_every=max(1, iterations // 3),
+        init_points=init_points,
+    )
     with tempfile.TemporaryDirectory() as folder:
         make_multiview(folder, shape=shape, views=views, size=size, detail=detail)
         data = load_views(os.path.join(folder, "images"))
-        timing = measure(lambda: train(data, os.path.join(folder, "out"), settings, checkpoint_every=iterations,
-                                       eval_every=eval_every), warmup=0)
+        timing = measure(
+            lambda: train(
+                data, os.path.join(folder, "out"), settings, checkpoint_every=iterations, eval_every=eval_every
+            ),
+            warmup=0,
+        )
     metrics = timing.result.metrics
     test = metrics["test"]
-    click.echo(f"{shape}, {views} views at {size}^2 ({test['views']} held out), {iterations} iterations, "
-               f"load {timing.load_before} -> {timing.load_after}")
-    click.echo(f"  {metrics['iterations_per_second']:.1f} it/s, {metrics['seconds']:.0f} s, {metrics['gaussians']} Gaussians")
+    click.echo(
+        f"{shape}, {views} views at {size}^2 ({test['views']} held out), {iterations} iterations, "
+        f"load {timing.load_before} -> {timing.load_after}"
+    )
+    click.echo(
+        f"  {metrics['iterations_per_second']:.1f} it/s, {metrics['seconds']:.0f} s, {metrics['gaussians']} Gaussians"
+    )
     click.echo(f"  held-out PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f}")
     reached_s = {}
     for threshold in THRESHOLDS_DB:
         reached = next((row for row in metrics["history"] if row[2] >= threshold), None)
         reached_s[f"{threshold:.0f}_db_s"] = reached[1] if reached else None
-        click.echo(f"  {threshold:.0f} dB: " + (f"{reached[1]:.0f} s (iteration {reached[0]})" if reached else "not reached"))
-    return {"run": timing.record(), "iterations_per_second": metrics["iterations_per_second"],
-            "gaussians": metrics["gaussians"], "psnr_db": test["psnr"], "ssim": test["ssim"], **reached_s}
+        click.echo(
+            f"  {threshold:.0f} dB: " + (f"{reached[1]:.0f} s (iteration {reached[0]})" if reached else "not reached")
+        )
+    return {
+        "run": timing.record(),
+        "iterations_per_second": metrics["iterations_per_second"],
+        "gaussians": metrics["gaussians"],
+        "psnr_db": test["psnr"],
+        "ssim": test["ssim"],
+        **reached_s,
+    }

@@ -32,8 +32,10 @@ def demo(folder, quick, resume, views, force):
     resuming = resume and config.is_file()
     existing = [name for name in (*CASE_FILES, "results") if (folder / name).exists()]
     if existing and not resuming and not force:
-        raise click.ClickException(f"{folder} already holds {', '.join(existing)}; the demo would overwrite "
-                                   f"them: give another folder, --resume an interrupted demo, or --force")
+        raise click.ClickException(
+            f"{folder} already holds {', '.join(existing)}; the demo would overwrite "
+            f"them: give another folder, --resume an interrupted demo, or --force"
+        )
     if resuming:
         click.echo(f"resuming the demo in {folder}")
     else:

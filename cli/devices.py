@@ -20,7 +20,11 @@ def devices(obj, as_json: bool) -> None:
     selected = get_device(obj.device_spec).info
     if as_json:
         rows = [dict(dataclasses.asdict(i), selected=(i == selected)) for i in infos]
-        click.echo(json.dumps({"devices": rows, "kernel_cache_dir": str(get_device(obj.device_spec).kernel_cache_dir)}, indent=2))
+        click.echo(
+            json.dumps(
+                {"devices": rows, "kernel_cache_dir": str(get_device(obj.device_spec).kernel_cache_dir)}, indent=2
+            )
+        )
         return
     yes = {True: "yes", False: "no"}
     for info in infos:

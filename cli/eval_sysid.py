@@ -37,8 +37,23 @@ from clflow_cli.sweep import parse_resources, with_ray_options
                    "the results are the serial path's.")  # fmt: skip
 @with_ray_options
 @click.pass_context
-def sysid(ctx, output, cases, quick, iterations, truth_scale, noise, codec, seed, views, force, parallel, address,
-          cpus_per_task, resources):
+def sysid(
+    ctx,
+    output,
+    cases,
+    quick,
+    iterations,
+    truth_scale,
+    noise,
+    codec,
+    seed,
+    views,
+    force,
+    parallel,
+    address,
+    cpus_per_task,
+    resources,
+):
     """Identify the material parameters of PAC-NeRF's nine synthetic cases (re-made with
     clflow's geometry; guidance from a finer simulation and rendering than the optimiser's)
     from the published initial guesses, and print a table like Table 3 of the PhysFlow paper.
@@ -53,8 +68,9 @@ def sysid(ctx, output, cases, quick, iterations, truth_scale, noise, codec, seed
     if iterations is not None:
         resolution = dataclasses.replace(resolution, iterations=iterations)
     names = list(dict.fromkeys(cases)) or list(QUICK_CASES if quick else CASES)
-    settings = Settings(resolution=resolution, truth_scale=truth_scale, noise=noise, codec=codec, seed=seed,
-                        views=views)
+    settings = Settings(
+        resolution=resolution, truth_scale=truth_scale, noise=noise, codec=codec, seed=seed, views=views
+    )
 
     def progress(name: str, row: dict) -> None:
         from clflow.pipeline.runs import format_row
@@ -66,16 +82,22 @@ def sysid(ctx, output, cases, quick, iterations, truth_scale, noise, codec, seed
     if parallel:
         from clflow.sweep import sysid_on_ray
 
-        run_cases = sysid_on_ray(address=address, cpus_per_task=cpus_per_task, resources=parse_resources(resources),
-                                 device=ctx.obj.device_spec if ctx.obj else None, echo=lambda line: click.echo(line, err=True))
+        run_cases = sysid_on_ray(
+            address=address,
+            cpus_per_task=cpus_per_task,
+            resources=parse_resources(resources),
+            device=ctx.obj.device_spec if ctx.obj else None,
+            echo=lambda line: click.echo(line, err=True),
+        )
     elif address or resources:
         raise click.UsageError("--address and --resources go with --parallel")
     out = Path(output)
     try:
         summary = evaluate(names, out, settings, force=force, progress=progress, run_cases=run_cases)
     except KeyboardInterrupt:
-        raise Interrupted(f"interrupted; finished cases are kept in {out / 'sysid.json'}; run the same "
-                                   f"command again to resume") from None
+        raise Interrupted(
+            f"interrupted; finished cases are kept in {out / 'sysid.json'}; run the same command again to resume"
+        ) from None
     click.echo(markdown(summary), nl=False)
     failed = [n for n, r in summary["cases"].items() if r.get("status") != "ok"]
     if failed:

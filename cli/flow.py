@@ -26,8 +26,22 @@ from clflow_cli.options import out_option, pixel_box_option
 @click.option("--video/--no-video", "write_panels_video", default=True, show_default=True,
               help="Also write flow.mp4 (frame | colour-coded flow; played at 24 fps when the rate is unknown).")  # fmt: skip
 @click.pass_obj
-def flow(obj, video, output, method, preset, raft_weights, fps, start, end, stride, sim_fps, mask_image, box,
-         write_panels_video):
+def flow(
+    obj,
+    video,
+    output,
+    method,
+    preset,
+    raft_weights,
+    fps,
+    start,
+    end,
+    stride,
+    sim_fps,
+    mask_image,
+    box,
+    write_panels_video,
+):
     """Optical flow between consecutive frames of VIDEO (a video file or an image folder).
 
     Writes OUT/flow.npz (flow [T-1, H, W, 2] px, valid [T-1, H, W] = forward-backward
@@ -79,8 +93,13 @@ def flow(obj, video, output, method, preset, raft_weights, fps, start, end, stri
         valid = forward_backward_mask(forward, backward) & object_mask
         with atomic_path(out / "flow.npz") as tmp:
             np.savez_compressed(
-                tmp, flow=forward, valid=valid, times=np.asarray([] if clip.times is None else clip.times),
-                fps=np.float64(clip.fps or np.nan), method=method, preset=preset,
+                tmp,
+                flow=forward,
+                valid=valid,
+                times=np.asarray([] if clip.times is None else clip.times),
+                fps=np.float64(clip.fps or np.nan),
+                method=method,
+                preset=preset,
             )
         max_flow = max(float(np.linalg.norm(forward, axis=-1).max()), 1e-6)
         panels = []

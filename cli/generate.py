@@ -78,8 +78,10 @@ def generate(image, model_path, output, **request_options) -> None:
 
     start = time.perf_counter()
     if output.suffix.lower() not in (*VIDEO_CODECS, ".gif"):
-        raise click.BadParameter(f"{output}: unsupported video suffix {output.suffix!r}; use .gif or one of "
-                                 f"{', '.join(VIDEO_CODECS)}", param_hint="'-o'")
+        raise click.BadParameter(
+            f"{output}: unsupported video suffix {output.suffix!r}; use .gif or one of {', '.join(VIDEO_CODECS)}",
+            param_hint="'-o'",
+        )
     # everything is checked before torch loads a weight: the folder, the request, the image, the output
     info = inspect_model(model_path)
     request = GenerateRequest(**request_options)  # the other options are its fields, by name
@@ -87,8 +89,11 @@ def generate(image, model_path, output, **request_options) -> None:
     pixels = load_image(image)
     check_output(output.resolve().parent)
     require_extra()
-    click.echo(f"{info.family.name} ({model_path}): {resolved.frames} frames at {resolved.size[0]}x"
-               f"{resolved.size[1]}, {resolved.steps} steps, seed {request.seed}", err=True)
+    click.echo(
+        f"{info.family.name} ({model_path}): {resolved.frames} frames at {resolved.size[0]}x"
+        f"{resolved.size[1]}, {resolved.steps} steps, seed {request.seed}",
+        err=True,
+    )
 
     def progress(step: int, total: int) -> None:
         click.echo(f"step {step}/{total}", err=True)
@@ -96,5 +101,6 @@ def generate(image, model_path, output, **request_options) -> None:
     video, record = generate_video(pixels, info, request, progress=progress)
     record["image"] = str(image.resolve())
     meta = write_generated(output, video, record, total_s=time.perf_counter() - start)
-    click.echo(f"wrote {output} ({video.shape[0]} frames, {video.shape[2]}x{video.shape[1]}, "
-               f"{record['fps']:g} fps) and {meta}")
+    click.echo(
+        f"wrote {output} ({video.shape[0]} frames, {video.shape[2]}x{video.shape[1]}, {record['fps']:g} fps) and {meta}"
+    )

@@ -76,8 +76,9 @@ class LazyGroup(click.Group):
             try:
                 return ep.load()
             except Exception as exc:  # a broken plugin must not break the whole CLI (nor --help)
-                return broken_command(name, f"plugin command {name!r} ({ep.value}) failed to load: "
-                                            f"{type(exc).__name__}: {exc}")
+                return broken_command(
+                    name, f"plugin command {name!r} ({ep.value}) failed to load: {type(exc).__name__}: {exc}"
+                )
         return super().get_command(ctx, name)
 
     def invoke(self, ctx: click.Context):
@@ -106,9 +107,14 @@ def broken_command(name: str, message: str) -> click.Command:
     def fail(**_):
         raise click.ClickException(message)
 
-    return click.Command(name, callback=fail, help=message, short_help="(broken plugin: run it to see why)",
-                         context_settings={"ignore_unknown_options": True, "allow_extra_args": True},
-                         add_help_option=False)
+    return click.Command(
+        name,
+        callback=fail,
+        help=message,
+        short_help="(broken plugin: run it to see why)",
+        context_settings={"ignore_unknown_options": True, "allow_extra_args": True},
+        add_help_option=False,
+    )
 
 
 class CliContext:
@@ -145,9 +151,7 @@ def cli(ctx: click.Context, device: str | None, verbose: int, quiet: int) -> Non
     OpenCL MLS-MPM and Gaussian-splat kernels (forward and adjoint) behind a PyTorch API.
     """
     verbosity = verbose - quiet
-    level = {-2: logging.ERROR, -1: logging.WARNING, 0: logging.INFO}.get(
-        max(-2, min(verbosity, 1)), logging.DEBUG
-    )
+    level = {-2: logging.ERROR, -1: logging.WARNING, 0: logging.INFO}.get(max(-2, min(verbosity, 1)), logging.DEBUG)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     _fold_kernel_builds(verbosity < 2)
     warnings.showwarning = _log_warning

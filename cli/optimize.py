@@ -37,8 +37,12 @@ def optimize(ctx, config, parallel, address, cpus_per_task, resources, **setting
 
     ray = None
     if parallel:
-        ray = {"address": address, "cpus_per_task": cpus_per_task, "resources": parse_resources(resources),
-               "device": ctx.obj.device_spec if ctx.obj else None}
+        ray = {
+            "address": address,
+            "cpus_per_task": cpus_per_task,
+            "resources": parse_resources(resources),
+            "device": ctx.obj.device_spec if ctx.obj else None,
+        }
     elif address or resources:
         raise click.UsageError("--address and --resources go with --parallel")
     # settings: resume, iterations, output, overrides, max_substeps, force_video (run_optimization's names)

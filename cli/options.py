@@ -95,8 +95,12 @@ def out_option(name: str, help: str, *, file: bool = False, aliases: tuple[str, 
 
 
 max_output_option = click.option(
-    "--max-output-gb", type=click.FloatRange(min=0, min_open=True), default=DEFAULT_MAX_OUTPUT_GB, show_default=True,
-    help="Refuse, before any work, a run whose predicted output (an uncompressed upper bound) exceeds this many GB.")
+    "--max-output-gb",
+    type=click.FloatRange(min=0, min_open=True),
+    default=DEFAULT_MAX_OUTPUT_GB,
+    show_default=True,
+    help="Refuse, before any work, a run whose predicted output (an uncompressed upper bound) exceeds this many GB.",
+)
 
 
 #: ``--double``: compute in float64 instead of float32 (the benchmarks).
@@ -118,5 +122,16 @@ def pixel_box_option(help: str = "Pixel box around the object (x right, y down, 
     return click.option("--box", type=Numbers(4, "X0,Y0,X1,Y1"), default=None, help=help)
 
 
-__all__ = ["AliasedOption", "FiniteFloat", "Numbers", "OUT_ALIASES", "aliased_option", "double_option",
-           "max_output_option", "max_substeps_option", "out_option", "pixel_box_option", "set_option"]
+__all__ = [
+    "AliasedOption",
+    "FiniteFloat",
+    "Numbers",
+    "OUT_ALIASES",
+    "aliased_option",
+    "double_option",
+    "max_output_option",
+    "max_substeps_option",
+    "out_option",
+    "pixel_box_option",
+    "set_option",
+]

@@ -38,12 +38,29 @@ def pacnerf(data, splats, output_dir, camera, pac_config, box, ground, backgroun
     from clflow_datasets.pacnerf import make_scene
 
     rgb = (0.0, 0.0, 0.0) if background == "black" else (1.0, 1.0, 1.0)
-    summary = make_scene(data, splats, output_dir, camera=camera, config=pac_config, box=box, ground=ground,
-                         background=rgb, masks=masks, fps=fps, prompt=prompt, optimize=fit, video=f"guidance.{video}")
-    click.echo(f"camera {camera}: {summary['frames']} frames at {summary['fps']:g} fps (from {summary['fps_from']}); "
-               f"material {summary['material']}; fitting {', '.join(summary['optimize']) or 'nothing yet'}")
+    summary = make_scene(
+        data,
+        splats,
+        output_dir,
+        camera=camera,
+        config=pac_config,
+        box=box,
+        ground=ground,
+        background=rgb,
+        masks=masks,
+        fps=fps,
+        prompt=prompt,
+        optimize=fit,
+        video=f"guidance.{video}",
+    )
+    click.echo(
+        f"camera {camera}: {summary['frames']} frames at {summary['fps']:g} fps (from {summary['fps_from']}); "
+        f"material {summary['material']}; fitting {', '.join(summary['optimize']) or 'nothing yet'}"
+    )
     if summary["optimize"]:
         click.echo(f"next: clflow optimize {summary['config']}")
     else:
-        click.echo(f"next: clflow optimize {summary['config']} --set optimize.parameters=[NAME,...] "
-                   f"(the parameters of the material the query picks)")
+        click.echo(
+            f"next: clflow optimize {summary['config']} --set optimize.parameters=[NAME,...] "
+            f"(the parameters of the material the query picks)"
+        )

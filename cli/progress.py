@@ -10,8 +10,9 @@ import click
 
 
 @contextmanager
-def progress(total: int, label: str, show: Callable | None = None, done: int = 0,
-             every: int | None = None) -> Iterator[Callable[..., None]]:
+def progress(
+    total: int, label: str, show: Callable | None = None, done: int = 0, every: int | None = None
+) -> Iterator[Callable[..., None]]:
     """Yields ``advance(item=None, to=None)``, to call as the work goes: one unit more, or up
     to unit ``to``. On a terminal a click progress bar on stderr (``show(item)`` beside it);
     otherwise a line ``label: k/total shown`` on stderr after every ``every`` units (default
@@ -19,8 +20,13 @@ def progress(total: int, label: str, show: Callable | None = None, done: int = 0
     redrawn bar. ``done``: units finished before (a resumed run)."""
     show = show or (lambda item: "" if item is None else str(item))
     if sys.stderr.isatty():
-        with click.progressbar(length=total, label=label, show_pos=True, file=sys.stderr,
-                               item_show_func=lambda item: None if item is None else show(item)) as bar:
+        with click.progressbar(
+            length=total,
+            label=label,
+            show_pos=True,
+            file=sys.stderr,
+            item_show_func=lambda item: None if item is None else show(item),
+        ) as bar:
             bar.update(done)
             yield lambda item=None, to=None: bar.update(1 if to is None else to - bar.pos, item)
         return

@@ -34,8 +34,9 @@ BACKEND_CHOICES = ("offline", "openai")
 @out_option("output", "Result JSON (default: IMAGE's name + .material.json in the current folder).",
             type=click.Path(dir_okay=False, path_type=Path))  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print the result record instead of a summary.")
-def query(image, prompt, object_name, box, mask, backend, llm_url, model, timeout, retries, image_format,
-          output, as_json) -> None:
+def query(
+    image, prompt, object_name, box, mask, backend, llm_url, model, timeout, retries, image_format, output, as_json
+) -> None:
     """Decide the material of the object in IMAGE: type, density and initial parameters (SI).
 
     Writes a JSON record that the optimisation stage reads as its initial guess
@@ -51,8 +52,9 @@ def query(image, prompt, object_name, box, mask, backend, llm_url, model, timeou
     config = None
     if backend == "openai":
         config = ModelConfig.resolve(llm_url, model, timeout=timeout, retries=retries, image_format=image_format)
-    result = query_material(image, prompt=prompt, object_name=object_name, box=box, mask=mask,
-                            backend=backend, model_config=config)
+    result = query_material(
+        image, prompt=prompt, object_name=object_name, box=box, mask=mask, backend=backend, model_config=config
+    )
     path = result.save(output)
     if as_json:
         click.echo(json.dumps(result.to_dict(), indent=2))
@@ -71,9 +73,11 @@ def summary(result) -> str:
         how.append(f"knowledge-base entry {result.matched!r}")
     if result.confidence is not None:
         how.append(f"confidence {result.confidence:.2f}")
-    lines = [f"object      {result.object or '(unknown)'}" + (f"  ({', '.join(how)})" if how else ""),
-             f"material    {mat.name}: {mat.model}",
-             f"density     {result.density:g} kg/m^3"]
+    lines = [
+        f"object      {result.object or '(unknown)'}" + (f"  ({', '.join(how)})" if how else ""),
+        f"material    {mat.name}: {mat.model}",
+        f"density     {result.density:g} kg/m^3",
+    ]
     width = max(len(f"{p.name} ({p.symbol})") for p in mat.params)
     for i, p in enumerate(mat.params):
         label = "parameters" if i == 0 else ""

@@ -50,8 +50,24 @@ LOG_EVERY = 100  # iterations between progress lines when stderr is not a termin
               help="With --depth: horizontal field of view of the photo, degrees.")  # fmt: skip
 @click.option("--shell", type=click.Choice(["mirror", "extrude", "none"]), default="mirror", show_default=True,
               help="With --depth: how the hidden side is closed.")  # fmt: skip
-def reconstruct(images, output_dir, transforms, colmap, cameras_json, frame, masks, background, preview_every,
-                checkpoint_every, resume, depth, depth_scale, fov, shell, **training) -> None:
+def reconstruct(
+    images,
+    output_dir,
+    transforms,
+    colmap,
+    cameras_json,
+    frame,
+    masks,
+    background,
+    preview_every,
+    checkpoint_every,
+    resume,
+    depth,
+    depth_scale,
+    fov,
+    shell,
+    **training,
+) -> None:
     """Train 3D Gaussians on the posed IMAGES and write a standard 3DGS PLY.
 
     Cameras come from --transforms, --colmap or --cameras, or are found next to IMAGES
@@ -75,26 +91,47 @@ def reconstruct(images, output_dir, transforms, colmap, cameras_json, frame, mas
     # training: --iterations, --seed, --sh-degree, ... --holdout-every, Settings' fields by name (None: its default)
     settings = Settings(background=rgb, **{k: v for k, v in training.items() if v is not None})
     iterations = settings.iterations
-    views = load_views(images, transforms=transforms, colmap=colmap, cameras_json=cameras_json, masks=masks,
-                       background=rgb, frame=frame)
+    views = load_views(
+        images,
+        transforms=transforms,
+        colmap=colmap,
+        cameras_json=cameras_json,
+        masks=masks,
+        background=rgb,
+        frame=frame,
+    )
     click.echo(f"{len(views.views)} views; training {iterations} iterations -> {output_dir}", err=True)
     show = lambda info: f"PSNR {info['psnr']:.2f} dB, {info['gaussians']} Gaussians"  # noqa: E731
     with progress(iterations, "reconstructing", show=show, every=LOG_EVERY) as advance:
         try:
-            result = train(views, output_dir, settings, resume=resume, checkpoint_every=checkpoint_every,
-                           preview_every=preview_every, progress=lambda step, info: advance(info, to=step))
+            result = train(
+                views,
+                output_dir,
+                settings,
+                resume=resume,
+                checkpoint_every=checkpoint_every,
+                preview_every=preview_every,
+                progress=lambda step, info: advance(info, to=step),
+            )
         except KeyboardInterrupt:
             from pathlib import Path
 
             if not (Path(output_dir) / "checkpoint.pt").is_file():
                 raise Interrupted("interrupted before the first checkpoint; nothing was saved") from None
-            raise Interrupted(f"interrupted; the last checkpoint (every {checkpoint_every} iterations) is in "
-                              f"{output_dir}/checkpoint.pt: continue with the same command and --resume") from None
+            raise Interrupted(
+                f"interrupted; the last checkpoint (every {checkpoint_every} iterations) is in "
+                f"{output_dir}/checkpoint.pt: continue with the same command and --resume"
+            ) from None
     test = result.metrics["test"]
-    held_out = (f"held-out PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f} ({test['views']} views)"
-                if test["views"] else "no held-out views")
-    click.echo(f"{result.metrics['gaussians']} Gaussians, {held_out}, "
-               f"{result.metrics['iterations_per_second'] or 0:.1f} it/s -> {output_dir}/point_cloud.ply")
+    held_out = (
+        f"held-out PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f} ({test['views']} views)"
+        if test["views"]
+        else "no held-out views"
+    )
+    click.echo(
+        f"{result.metrics['gaussians']} Gaussians, {held_out}, "
+        f"{result.metrics['iterations_per_second'] or 0:.1f} it/s -> {output_dir}/point_cloud.ply"
+    )
 
 
 def _from_depth(image_path, depth_path, depth_scale, fov, shell, output_dir) -> None:
@@ -114,8 +151,13 @@ def _from_depth(image_path, depth_path, depth_scale, fov, shell, output_dir) -> 
         raise InputError(f"{image_path}: with --depth, IMAGES must be one image file")
     rgba = torch.from_numpy(read_image(Path(image_path)))
     height, width = rgba.shape[:2]
-    camera = Camera(torch.eye(4, dtype=torch.float64), intrinsics(width, height, math.radians(fov)), width, height,
-                    Path(image_path).name)
+    camera = Camera(
+        torch.eye(4, dtype=torch.float64),
+        intrinsics(width, height, math.radians(fov)),
+        width,
+        height,
+        Path(image_path).name,
+    )
     mask = rgba[..., 3] > 0.5 if rgba.shape[2] == 4 else None
     gaussians = backproject(rgba[..., :3], read_depth(depth_path, depth_scale), camera, mask=mask, shell=shell)
     save_ply(Path(output_dir) / "point_cloud.ply", gaussians)

@@ -44,8 +44,9 @@ VIDEO_SUFFIXES = (".mp4", ".gif")
 @click.option("--precision", type=click.Choice(["float32", "float64"]), default="float32", show_default=True,
               help="Compute precision of the rasteriser.")  # fmt: skip
 @max_output_option
-def render(splats, output_dir, box, sphere, background, sh_degree, video, fps, precision, max_output_gb,
-           **view_options) -> None:
+def render(
+    splats, output_dir, box, sphere, background, sh_degree, video, fps, precision, max_output_gb, **view_options
+) -> None:
     """Render SPLATS (a 3DGS PLY file, or a plain x y z [r g b] point cloud) to PNG images.
 
     The views are the cameras of --cameras or --transforms, a look-at camera (--eye,
@@ -95,8 +96,9 @@ def render(splats, output_dir, box, sphere, background, sh_degree, video, fps, p
         for i, camera in enumerate(cameras):
             start = time.perf_counter()
             with torch.no_grad():
-                image = rasterize(gaussians, camera, background=background, sh_degree=sh_degree,
-                                  render_depth=False).image
+                image = rasterize(
+                    gaussians, camera, background=background, sh_degree=sh_degree, render_depth=False
+                ).image
             seconds += time.perf_counter() - start
             frame = to_uint8(image)
             stem = _file_stem(camera.name)
@@ -115,8 +117,22 @@ def render(splats, output_dir, box, sphere, background, sh_degree, video, fps, p
         click.echo(f"video: {video}")
 
 
-def _views(gaussians, *, cameras_json, transforms_json, camera_keys, eye, target, up, n_orbit, elevation, azimuth,
-           fov, width, height):
+def _views(
+    gaussians,
+    *,
+    cameras_json,
+    transforms_json,
+    camera_keys,
+    eye,
+    target,
+    up,
+    n_orbit,
+    elevation,
+    azimuth,
+    fov,
+    width,
+    height,
+):
     """The cameras the view options ask for (the command's options of those names; angles in
     degrees, sizes in pixels; see the command's help)."""
     import torch
@@ -128,7 +144,9 @@ def _views(gaussians, *, cameras_json, transforms_json, camera_keys, eye, target
         raise InputError("give --cameras or --transforms, not both")
     if cameras_json or transforms_json:
         if eye or target or n_orbit:
-            raise InputError("--eye, --target and --orbit make new views; they do not combine with --cameras/--transforms")
+            raise InputError(
+                "--eye, --target and --orbit make new views; they do not combine with --cameras/--transforms"
+            )
         loaded = cams.load_cameras_json(cameras_json) if cameras_json else cams.load_transforms_json(transforms_json)
         return [_pick(loaded, key, cameras_json or transforms_json) for key in camera_keys] or loaded
     if camera_keys:
@@ -156,8 +174,15 @@ def _views(gaussians, *, cameras_json, transforms_json, camera_keys, eye, target
     radius = offset.norm().item()
     if radius == 0:
         raise InputError("--eye and --target are the same point")
-    return cams.orbit(target, radius, n_views=n_orbit, elevation=math.asin((offset @ unit_up).item() / radius),
-                      up=up, azimuth=azimuth, **view)
+    return cams.orbit(
+        target,
+        radius,
+        n_views=n_orbit,
+        elevation=math.asin((offset @ unit_up).item() / radius),
+        up=up,
+        azimuth=azimuth,
+        **view,
+    )
 
 
 def _pick(cameras, key: str, source: str):
@@ -178,4 +203,3 @@ def _file_stem(name: str) -> str:
     stem = re.sub(r"[^A-Za-z0-9_.-]", "_", name.replace("\\", "/").rsplit("/", 1)[-1])
     stem = re.sub(r"\.(png|jpe?g)$", "", stem, flags=re.IGNORECASE)
     return stem.strip(".") or "view"
-

@@ -24,5 +24,6 @@ def render4d(simulation, out_dir, views, turns, video_format, max_output_gb):
     from clflow.pipeline.runs import render_simulation_4d
     from clflow_cli.progress import progress
 
-    render_simulation_4d(simulation, out_dir, views, turns, video_format, max_output_gb, progress=progress,
-                         echo=click.echo)
+    render_simulation_4d(
+        simulation, out_dir, views, turns, video_format, max_output_gb, progress=progress, echo=click.echo
+    )

@@ -21,8 +21,17 @@ def _params(ctx, param, items):
 
 CONFIG_SUFFIXES = (".yaml", ".yml", ".json")
 # what a scene CONFIG run takes; every other option describes particles and is refused with one
-SCENE_OPTIONS = ("particles", "out_dir", "params_file", "preview", "max_output_gb", "overrides", "max_substeps", "object_only",
-                 "compressed")
+SCENE_OPTIONS = (
+    "particles",
+    "out_dir",
+    "params_file",
+    "preview",
+    "max_output_gb",
+    "overrides",
+    "max_substeps",
+    "object_only",
+    "compressed",
+)
 
 
 @click.command("simulate")
@@ -71,8 +80,19 @@ SCENE_OPTIONS = ("particles", "out_dir", "params_file", "preview", "max_output_g
               help="With a CONFIG: write the PLYs compressed (frame_000.compressed.ply ..., the format SuperSplat and "
                    "PlayCanvas read), about a quarter of the size.")  # fmt: skip
 @click.pass_context
-def simulate(ctx, particles, out_dir, params_file, preview, max_output_gb, overrides, max_substeps, object_only,
-             compressed, **particle_run):
+def simulate(
+    ctx,
+    particles,
+    out_dir,
+    params_file,
+    preview,
+    max_output_gb,
+    overrides,
+    max_substeps,
+    object_only,
+    compressed,
+    **particle_run,
+):
     """Simulate PARTICLES (.npz with 'positions' [N, 3] in m and optional 'volume' [N] in
     m^3, or a .ply point cloud) or a built-in shape, and write the per-frame positions
     (OUT/positions.npz: x [frames+1, N, 3], time [frames+1]) and a preview.
@@ -86,20 +106,51 @@ def simulate(ctx, particles, out_dir, params_file, preview, max_output_gb, overr
         from clflow.pipeline.runs import simulate_scene
         from clflow_cli.progress import progress
 
-        particle_only = [p.opts[0] for p in ctx.command.params if p.name not in SCENE_OPTIONS
-                         and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE]
+        particle_only = [
+            p.opts[0]
+            for p in ctx.command.params
+            if p.name not in SCENE_OPTIONS and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE
+        ]
         if particle_only:
-            raise click.UsageError(f"with a scene config, the config sets the simulation; drop "
-                                   f"{', '.join(particle_only)}")
-        simulate_scene(particles, params_file, out_dir, preview, max_output_gb, overrides, max_substeps,
-                       echo=click.echo, object_only=object_only, compressed=compressed, progress=progress)
+            raise click.UsageError(
+                f"with a scene config, the config sets the simulation; drop {', '.join(particle_only)}"
+            )
+        simulate_scene(
+            particles,
+            params_file,
+            out_dir,
+            preview,
+            max_output_gb,
+            overrides,
+            max_substeps,
+            echo=click.echo,
+            object_only=object_only,
+            compressed=compressed,
+            progress=progress,
+        )
         return
-    config_only = [name for name, given in (("--params-from", params_file), ("--set", overrides),
-                                            ("--object-only", object_only), ("--compressed-ply", compressed))
-                   if given]
+    config_only = [
+        name
+        for name, given in (
+            ("--params-from", params_file),
+            ("--set", overrides),
+            ("--object-only", object_only),
+            ("--compressed-ply", compressed),
+        )
+        if given
+    ]
     if config_only:
         raise click.UsageError(f"{', '.join(config_only)} needs a scene CONFIG (.yaml/.yml/.json)")
     from clflow.pipeline.runs import ParticleRun, simulate_particles
     from clflow_cli.progress import progress
-    simulate_particles(ParticleRun(particles, **particle_run), out_dir or "simulation", preview, max_output_gb,
-                       max_substeps, device=ctx.obj.device() if ctx.obj else None, echo=click.echo, progress=progress)
+
+    simulate_particles(
+        ParticleRun(particles, **particle_run),
+        out_dir or "simulation",
+        preview,
+        max_output_gb,
+        max_substeps,
+        device=ctx.obj.device() if ctx.obj else None,
+        echo=click.echo,
+        progress=progress,
+    )

@@ -26,12 +26,26 @@ def parse_resources(items: tuple[str, ...]) -> dict[str, float]:
 
 
 ray_options = [
-    click.option("--address", default=None, metavar="ray://HOST:PORT|auto",
-                 help="Join this Ray cluster instead of starting a local one (auto: the one `ray start` runs here)."),
-    click.option("--cpus-per-task", type=click.IntRange(min=1), default=1, show_default=True,
-                 help="CPUs each task takes; its OpenCL CPU driver and torch get as many threads."),
-    click.option("--resources", "resources", multiple=True, metavar="NAME=AMOUNT",
-                 help="Ray resources each task needs, e.g. GPU=1 or memory_gb=4 (repeatable)."),
+    click.option(
+        "--address",
+        default=None,
+        metavar="ray://HOST:PORT|auto",
+        help="Join this Ray cluster instead of starting a local one (auto: the one `ray start` runs here).",
+    ),
+    click.option(
+        "--cpus-per-task",
+        type=click.IntRange(min=1),
+        default=1,
+        show_default=True,
+        help="CPUs each task takes; its OpenCL CPU driver and torch get as many threads.",
+    ),
+    click.option(
+        "--resources",
+        "resources",
+        multiple=True,
+        metavar="NAME=AMOUNT",
+        help="Ray resources each task needs, e.g. GPU=1 or memory_gb=4 (repeatable).",
+    ),
 ]
 
 
@@ -73,16 +87,27 @@ def sweep(ctx, spec, output, serial, address, cpus_per_task, resources, timeout,
     out = Path(output)
     click.echo(f"{len(parsed.runs)} runs{' (serial)' if serial else ''}; results in {out}", err=True)
     try:
-        summary = run_sweep(parsed, out, serial=serial, address=address, cpus_per_task=cpus_per_task, resources=needs,
-                            timeout=timeout, retry_failed=retry_failed, device=ctx.obj.device_spec if ctx.obj else None,
-                            echo=lambda line: click.echo(line, err=True))
+        summary = run_sweep(
+            parsed,
+            out,
+            serial=serial,
+            address=address,
+            cpus_per_task=cpus_per_task,
+            resources=needs,
+            timeout=timeout,
+            retry_failed=retry_failed,
+            device=ctx.obj.device_spec if ctx.obj else None,
+            echo=lambda line: click.echo(line, err=True),
+        )
     except KeyboardInterrupt:
-        raise Interrupted(f"interrupted; finished runs are kept in {out / 'sweep.json'}; run the same command "
-                          f"again to continue") from None
+        raise Interrupted(
+            f"interrupted; finished runs are kept in {out / 'sweep.json'}; run the same command again to continue"
+        ) from None
     runs = summary["runs"].values()
     bad = [r["name"] for r in runs if r["status"] != "ok"]
     click.echo(f"{len(runs) - len(bad)} of {len(runs)} runs ok; summary in {out / 'sweep.md'}")
     if bad:
-        click.echo(f"not ok: {', '.join(bad)} (reasons in {out / 'sweep.md'}; --retry-failed runs them again)",
-                   err=True)
+        click.echo(
+            f"not ok: {', '.join(bad)} (reasons in {out / 'sweep.md'}; --retry-failed runs them again)", err=True
+        )
         sys.exit(1)

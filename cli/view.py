@@ -30,8 +30,10 @@ def view(obj, path, host, port, up):
     viewer = Viewer(scene, host, port, report=click.echo)
     frames = f", {scene.frame_count} frames" if scene.frame_count > 1 else ""
     try:  # from here on Ctrl-C is the way out, also while the line below is being written
-        click.echo(f"viewing {scene.source} ({scene.rgbs.shape[0]:,} Gaussians{frames}) at {viewer.url()}; "
-                   "Ctrl-C stops", err=True)
+        click.echo(
+            f"viewing {scene.source} ({scene.rgbs.shape[0]:,} Gaussians{frames}) at {viewer.url()}; Ctrl-C stops",
+            err=True,
+        )
         viewer.serve_forever()
     except KeyboardInterrupt:
         viewer.close()

@@ -18,9 +18,18 @@ from clflow_datasets.synthetic import Resolution, SyntheticCase, make_case, push
 TRUTH = {"youngs_modulus": 2.0e4, "poissons_ratio": 0.3}  # a soft jelly, Pa
 
 DEMO = SyntheticCase(
-    shape="cube", size=0.2, material="elastic", truth=TRUTH,
-    guess={"youngs_modulus": TRUTH["youngs_modulus"] / 10.0}, density=1000.0, optimize=("youngs_modulus",),
-    learning_rate=0.2, horizon=(4, 1), forces=(push_upper_part(0.2),), ground="sticky", spread=1.0,
+    shape="cube",
+    size=0.2,
+    material="elastic",
+    truth=TRUTH,
+    guess={"youngs_modulus": TRUTH["youngs_modulus"] / 10.0},
+    density=1000.0,
+    optimize=("youngs_modulus",),
+    learning_rate=0.2,
+    horizon=(4, 1),
+    forces=(push_upper_part(0.2),),
+    ground="sticky",
+    spread=1.0,
 )
 
 QUICK = Resolution(object_detail=8, floor_side=24, image=96, grid=16, frames=8, iterations=14)

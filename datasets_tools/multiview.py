@@ -75,5 +75,7 @@ def make_multiview(
         frames.append({"file_path": name, "transform_matrix": (camera.camtoworld() @ OPENGL_TO_OPENCV).tolist()})
     save_ply(folder / "truth.ply", gaussians)
     path = folder / "transforms.json"
-    atomic_write_text(path, json.dumps({"camera_angle_x": FOV_X, "w": size, "h": size, "frames": frames}, indent=1) + "\n")
+    atomic_write_text(
+        path, json.dumps({"camera_angle_x": FOV_X, "w": size, "h": size, "frames": frames}, indent=1) + "\n"
+    )
     return path

@@ -51,7 +51,9 @@ def read_pacnerf_config(path: str | os.PathLike, _children: tuple[Path, ...] = (
     ``MPMSimulator.NAME``, read as "NAME") or a ``.json`` object of the same keys."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: PAC-NeRF config not found" + (f" (the _base_ of {_children[-1]})" if _children else ""))
+        raise InputError(
+            f"{path}: PAC-NeRF config not found" + (f" (the _base_ of {_children[-1]})" if _children else "")
+        )
     if path.resolve() in _children:
         raise InputError(f"{_children[-1]}: _base_ {path} is a cycle of base files")
     text = path.read_text(encoding="utf-8")
@@ -108,8 +110,13 @@ def _literal(node: ast.AST, path: Path) -> Any:
         value = _literal(node.operand, path)
         if isinstance(value, (int, float)):
             return -value if isinstance(node.op, ast.USub) else value
-    ops = {ast.Add: lambda a, b: a + b, ast.Sub: lambda a, b: a - b, ast.Mult: lambda a, b: a * b,
-           ast.Div: lambda a, b: a / b, ast.Pow: lambda a, b: a**b}
+    ops = {
+        ast.Add: lambda a, b: a + b,
+        ast.Sub: lambda a, b: a - b,
+        ast.Mult: lambda a, b: a * b,
+        ast.Div: lambda a, b: a / b,
+        ast.Pow: lambda a, b: a**b,
+    }
     if isinstance(node, ast.BinOp) and type(node.op) in ops:
         a, b = _literal(node.left, path), _literal(node.right, path)
         if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (a, b)):
@@ -117,8 +124,10 @@ def _literal(node: ast.AST, path: Path) -> Any:
                 return ops[type(node.op)](a, b)
             except (ZeroDivisionError, OverflowError) as exc:
                 raise InputError(f"{path}: line {node.lineno}: {exc}") from None
-    raise InputError(f"{path}: line {getattr(node, 'lineno', '?')}: cannot read {ast.unparse(node)!r} without running "
-                     f"the file (numbers, lists, dict(...) and MPMSimulator.NAME only)")
+    raise InputError(
+        f"{path}: line {getattr(node, 'lineno', '?')}: cannot read {ast.unparse(node)!r} without running "
+        f"the file (numbers, lists, dict(...) and MPMSimulator.NAME only)"
+    )
 
 
 def pacnerf_material(cfg: dict, where: str) -> tuple[dict, list[str]]:
@@ -136,16 +145,26 @@ def pacnerf_material(cfg: dict, where: str) -> tuple[dict, list[str]]:
             raise InputError(f"{where}: material {name} needs the number(s) {', '.join(absent)}")
         return [float(cfg[k]) for k in keys]
 
-    fit = {"global_E": "youngs_modulus", "global_nu": "poissons_ratio", "yield_stress": "yield_stress",
-           "friction_angle": "friction_angle", "global_kappa": "bulk_modulus", "global_rho": "density"}
+    fit = {
+        "global_E": "youngs_modulus",
+        "global_nu": "poissons_ratio",
+        "yield_stress": "yield_stress",
+        "friction_angle": "friction_angle",
+        "global_kappa": "bulk_modulus",
+        "global_rho": "density",
+    }
     model = None
     if name == "elasticity":
         kind, model = "elastic", "neo_hookean"
         params = dict(zip(("youngs_modulus", "poissons_ratio"), need("E", "nu")))
     elif name == "von_mises" and "mu" in cfg and "kappa" in cfg:
         kind = "non_newtonian"
-        params = dict(zip(("shear_modulus", "bulk_modulus", "yield_stress", "viscosity"),
-                          need("mu", "kappa", "yield_stress", "plastic_viscosity")))
+        params = dict(
+            zip(
+                ("shear_modulus", "bulk_modulus", "yield_stress", "viscosity"),
+                need("mu", "kappa", "yield_stress", "plastic_viscosity"),
+            )
+        )
         fit |= {"global_mu": "shear_modulus", "plastic_viscosity": "viscosity"}
     elif name == "von_mises":
         kind = "plasticine"
@@ -159,8 +178,9 @@ def pacnerf_material(cfg: dict, where: str) -> tuple[dict, list[str]]:
         kind, model = "sand", "drucker_prager"
         params = dict(zip(("friction_angle", "youngs_modulus", "poissons_ratio"), need("friction_angle", "E", "nu")))
     else:
-        raise InputError(f"{where}: unknown PAC-NeRF material {name!r} (elasticity, von_mises, viscous_fluid, "
-                         f"drucker_prager)")
+        raise InputError(
+            f"{where}: unknown PAC-NeRF material {name!r} (elasticity, von_mises, viscous_fluid, drucker_prager)"
+        )
     validate_params(kind, params, f"{where}: material {name}")
     density = need("rho")[0] if "rho" in cfg else PACNERF_DENSITY
     section = {"type": kind, **({"model": model} if model else {}), "parameters": params, "density": density}
@@ -268,14 +288,21 @@ def make_scene(
     frame_dt = pac.get("frame_dt")
     if frame_dt is not None and (isinstance(frame_dt, bool) or not isinstance(frame_dt, (int, float)) or frame_dt <= 0):
         raise InputError(f"{where}: frame_dt must be a positive number of seconds, got {frame_dt!r}")
-    candidates = ((fps, "--fps"), (frame_dt and 1 / frame_dt, f"{where} frame_dt"), (seq.fps, f"{seq.index.name} times"))
+    candidates = (
+        (fps, "--fps"),
+        (frame_dt and 1 / frame_dt, f"{where} frame_dt"),
+        (seq.fps, f"{seq.index.name} times"),
+    )
     fps, fps_from = next(((v, s) for v, s in candidates if v), (None, None))
     if fps is None:
         raise InputError(f"{seq.index}: no frame rate: the index has no times; give --fps (or a config with frame_dt)")
 
     gaussians = load_ply(ply)
-    select = ({"min": [float(v) for v in box[:3]], "max": [float(v) for v in box[3:]]} if box is not None
-              else object_box(gaussians.means, gaussians.opacities))
+    select = (
+        {"min": [float(v) for v in box[:3]], "max": [float(v) for v in box[3:]]}
+        if box is not None
+        else object_box(gaussians.means, gaussians.opacities)
+    )
     bg = torch.as_tensor(background, dtype=torch.float32)
     cam = seq.cameras[camera]
     images = [to_uint8(load_view(cam, seq.images[camera][t], seq.index, masks, bg).image) for t in range(frames)]
@@ -291,18 +318,33 @@ def make_scene(
     simulation = {"fps": fps, "frames": frames - 1}
     if "gravity" in pac:
         simulation["gravity"] = [float(g) for g in pac["gravity"]]
-    scene = {"splats": "scene.ply", "scene": {"scale": 1.0, "up": "+y"}, "object": {"select": {"box": select}},
-             "material": material, **({"boundaries": boundaries} if boundaries else {}), "simulation": simulation,
-             "camera": {"file": "camera.json", "index": 0}, "video": video,
-             "optimize": {"parameters": fit}, "output": "results"}
+    scene = {
+        "splats": "scene.ply",
+        "scene": {"scale": 1.0, "up": "+y"},
+        "object": {"select": {"box": select}},
+        "material": material,
+        **({"boundaries": boundaries} if boundaries else {}),
+        "simulation": simulation,
+        "camera": {"file": "camera.json", "index": 0},
+        "video": video,
+        "optimize": {"parameters": fit},
+        "output": "results",
+    }
     if isinstance(pac.get("hit_frame"), int) and pac["hit_frame"] >= 1:
-        scene["optimize"]["estimate_velocity"] = {"frames": min(pac["hit_frame"], frames - 1),
-                                                  "iterations": VELOCITY_ITERATIONS}
-    header = (f"# made by `clflow pacnerf` from {seq.index} (camera {camera}, frames 0-{frames - 1}) and {ply}"
-              + (f", material from {config}" if pac else ", material left to the query") + "\n")
+        scene["optimize"]["estimate_velocity"] = {
+            "frames": min(pac["hit_frame"], frames - 1),
+            "iterations": VELOCITY_ITERATIONS,
+        }
+    header = (
+        f"# made by `clflow pacnerf` from {seq.index} (camera {camera}, frames 0-{frames - 1}) and {ply}"
+        + (f", material from {config}" if pac else ", material left to the query")
+        + "\n"
+    )
     if not fit:
-        header += ("# optimize.parameters is empty: name what to fit once the query has chosen the material, e.g.\n"
-                   "#   clflow optimize config.yaml --set optimize.parameters=[youngs_modulus]\n")
+        header += (
+            "# optimize.parameters is empty: name what to fit once the query has chosen the material, e.g.\n"
+            "#   clflow optimize config.yaml --set optimize.parameters=[youngs_modulus]\n"
+        )
 
     out = Path(out)
     with atomic_dir(out) as tmp:
@@ -315,5 +357,13 @@ def make_scene(
         text = header + yaml.safe_dump(scene, sort_keys=False, default_flow_style=None)
         parse_config(yaml.safe_load(text), str(out / "config.yaml"), tmp)  # refuse a config clflow cannot read
         (tmp / "config.yaml").write_text(text, encoding="utf-8")
-    return {"config": out / "config.yaml", "frames": frames, "fps": fps, "fps_from": fps_from,
-            "material": material["type"], "optimize": fit, "box": select, "camera": camera}
+    return {
+        "config": out / "config.yaml",
+        "frames": frames,
+        "fps": fps,
+        "fps_from": fps_from,
+        "material": material["type"],
+        "optimize": fit,
+        "box": select,
+        "camera": camera,
+    }

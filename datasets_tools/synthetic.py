@@ -145,8 +145,7 @@ def sphere_surface(diameter: float, centre, n: int, rng: np.random.Generator):
     normals = np.stack([np.sin(polar) * np.cos(azimuth), np.cos(polar), np.sin(polar) * np.sin(azimuth)], 1)
     rgb = _checker((azimuth / (2 * math.pi)) % 1.0, polar / math.pi, 6, *OBJECT_COLOURS)
     rgb = rgb * (0.9 + 0.1 * rng.random((count, 1)))
-    return (np.asarray(centre) + r * normals, _flat_scales(count, 4 * math.pi * r * r),
-            _tangent_frames(normals), rgb)
+    return (np.asarray(centre) + r * normals, _flat_scales(count, 4 * math.pi * r * r), _tangent_frames(normals), rgb)
 
 
 def torus_surface(outer_diameter: float, centre, n: int, rng: np.random.Generator):
@@ -187,8 +186,13 @@ def surface_gaussians(parts: list[tuple], opacity: float = 0.95):
     from clflow.splat.gaussians import Gaussians, rgb_to_sh0, rotmat_to_quat
 
     means, scales, rotations, rgb = (torch.from_numpy(np.concatenate(arrays)) for arrays in zip(*parts))
-    return Gaussians.from_activated(means.float(), rotmat_to_quat(rotations).float(), scales.float(),
-                                    torch.full((means.shape[0],), opacity), sh=rgb_to_sh0(rgb.float())[:, None, :])
+    return Gaussians.from_activated(
+        means.float(),
+        rotmat_to_quat(rotations).float(),
+        scales.float(),
+        torch.full((means.shape[0],), opacity),
+        sh=rgb_to_sh0(rgb.float())[:, None, :],
+    )
 
 
 def write_scene(folder: Path, case: SyntheticCase, resolution: Resolution, seed: int = 0) -> None:
@@ -198,16 +202,22 @@ def write_scene(folder: Path, case: SyntheticCase, resolution: Resolution, seed:
     if case.shape not in SURFACES:
         raise ValueError(f"shape must be one of {', '.join(SHAPES)}, got {case.shape!r}")
     rng = np.random.default_rng(seed)
-    parts = [SURFACES[case.shape](case.size, case.center, resolution.object_detail, rng),
-             floor(6 * case.size, resolution.floor_side)]
+    parts = [
+        SURFACES[case.shape](case.size, case.center, resolution.object_detail, rng),
+        floor(6 * case.size, resolution.floor_side),
+    ]
     save_ply(folder / "scene.ply", surface_gaussians(parts))
 
 
 def push_upper_part(case_size: float = 0.2, acceleration: float = 12.0, duration: float = 0.12) -> dict:
     """A force stage that pushes the upper 40% of a shape resting on the floor along +x."""
     half = case_size
-    return {"region": {"box": {"min": [-half, 0.1 * case_size, -half], "max": [half, half, half]}},
-            "acceleration": [acceleration, 0.0, 0.0], "start": 0.0, "end": duration}
+    return {
+        "region": {"box": {"min": [-half, 0.1 * case_size, -half], "max": [half, half, half]}},
+        "acceleration": [acceleration, 0.0, 0.0],
+        "start": 0.0,
+        "end": duration,
+    }
 
 
 def _rounded(values) -> list[float]:
@@ -228,7 +238,7 @@ def case_domain(case: SyntheticCase, resolution: Resolution, scale: int = 1) -> 
     dx = 2.5 * s / (resolution.grid - 1)
     walls = (WALL_CELLS + 1) * dx  # the walls and the cell next to them are no room to move in
     room = case.spread * s + walls
-    height = (s / 4 if case.shape == "torus" else s / 2)
+    height = s / 4 if case.shape == "torus" else s / 2
     lower = [c[0] - s / 2 - room, -walls - GROUND_OFFSET * dx, c[2] - s / 2 - room]
     upper = [c[0] + s / 2 + room, c[1] + height + 0.5 * s + walls, c[2] + s / 2 + room]
     longest = max(u - lo for lo, u in zip(lower, upper))
@@ -250,8 +260,13 @@ def case_camera(case: SyntheticCase, image: int, view: int = 0) -> dict:
     a = math.radians(VIEW_AZIMUTHS_DEG[view])
     x, y, z = case.camera_offset
     offset = np.array([x * math.cos(a) + z * math.sin(a), y, -x * math.sin(a) + z * math.cos(a)])
-    return {"position": _rounded(c + s * offset), "look_at": _rounded(c), "fov_y_deg": case.fov_y_deg,
-            "width": image, "height": image}
+    return {
+        "position": _rounded(c + s * offset),
+        "look_at": _rounded(c),
+        "fov_y_deg": case.fov_y_deg,
+        "width": image,
+        "height": image,
+    }
 
 
 def guidance_name(view: int) -> str:
@@ -259,8 +274,14 @@ def guidance_name(view: int) -> str:
     return "guidance" if view == 0 else f"guidance_{view}"
 
 
-def case_config(case: SyntheticCase, resolution: Resolution, parameters: dict[str, float], optimize: bool,
-                scale: int = 1, views: int = 1) -> dict:
+def case_config(
+    case: SyntheticCase,
+    resolution: Resolution,
+    parameters: dict[str, float],
+    optimize: bool,
+    scale: int = 1,
+    views: int = 1,
+) -> dict:
     """The case's scene config (as a dict; see clflow.scene.config); ``scale`` multiplies
     the grid resolution (nodes - 1) and the image size; ``views`` guidance cameras (and
     videos) as lists when more than one."""
@@ -281,8 +302,14 @@ def case_config(case: SyntheticCase, resolution: Resolution, parameters: dict[st
     if case.spread is not None:
         lower, upper, nodes = case_domain(case, resolution, scale)
         simulation.update(grid_resolution=nodes, domain={"min": lower, "max": upper})
-    obj = {"select": {"box": {"min": _rounded([c[0] - half, case.lift - margin, c[2] - half]),
-                              "max": _rounded([c[0] + half, c[1] + height, c[2] + half])}}}
+    obj = {
+        "select": {
+            "box": {
+                "min": _rounded([c[0] - half, case.lift - margin, c[2] - half]),
+                "max": _rounded([c[0] + half, c[1] + height, c[2] + half]),
+            }
+        }
+    }
     if any(case.velocity):
         obj["velocity"] = _rounded(case.velocity)
     config = {
@@ -293,17 +320,20 @@ def case_config(case: SyntheticCase, resolution: Resolution, parameters: dict[st
         "forces": forces,
         "boundaries": {"ground": {"height": 0.0, "mode": case.ground}},
         "simulation": simulation,
-        "camera": [case_camera(case, resolution.image * scale, v) for v in range(views)] if views > 1 else
-        case_camera(case, resolution.image * scale),
+        "camera": [case_camera(case, resolution.image * scale, v) for v in range(views)]
+        if views > 1
+        else case_camera(case, resolution.image * scale),
         "flow": asdict(FlowSettings()),  # the defaults, spelled out
         "output": "results",
     }
     if optimize:
         config["video"] = [guidance_name(v) for v in range(views)] if views > 1 else guidance_name(0)
-        config["optimize"] = {"parameters": list(case.optimize),
-                              "learning_rates": {n: case.learning_rate for n in case.optimize},
-                              "iterations": resolution.iterations,
-                              "horizon": {"start": case.horizon[0], "step": case.horizon[1]}}
+        config["optimize"] = {
+            "parameters": list(case.optimize),
+            "learning_rates": {n: case.learning_rate for n in case.optimize},
+            "iterations": resolution.iterations,
+            "horizon": {"start": case.horizon[0], "step": case.horizon[1]},
+        }
         if case.search:
             config["optimize"]["search"] = {"samples": case.search}
             if case.starts > 1:
@@ -343,8 +373,17 @@ CASE_FILES = ("scene.ply", "config_truth.yaml", "guidance", "guidance.mp4", "con
 and ``guidance_K*`` for further views)."""
 
 
-def make_case(folder: str | Path, case: SyntheticCase, resolution: Resolution = Resolution(), seed: int = 0,
-              *, truth_scale: int = 1, noise: float = 0.0, codec: str | None = None, views: int = 1) -> Path:
+def make_case(
+    folder: str | Path,
+    case: SyntheticCase,
+    resolution: Resolution = Resolution(),
+    seed: int = 0,
+    *,
+    truth_scale: int = 1,
+    noise: float = 0.0,
+    codec: str | None = None,
+    views: int = 1,
+) -> Path:
     """Write the case into ``folder`` (see module docstring); returns its ``config.yaml``.
 
     ``truth_scale``: the ground truth's grid and image refinement (1: the optimiser's own
@@ -377,16 +416,19 @@ def make_case(folder: str | Path, case: SyntheticCase, resolution: Resolution = 
     result = simulate_config(truth_cfg)
     clamped, at_walls = int(result.clamped.sum()), wall_contacts(result)
     if clamped or at_walls:
-        raise ValueError(f"{folder}: the ground-truth run clamped {clamped} particle-frames at the grid's edge and "
-                         f"brought {at_walls} particle-frames into the domain walls; give the case more room "
-                         f"(SyntheticCase.spread)")
+        raise ValueError(
+            f"{folder}: the ground-truth run clamped {clamped} particle-frames at the grid's edge and "
+            f"brought {at_walls} particle-frames into the domain walls; give the case more room "
+            f"(SyntheticCase.spread)"
+        )
     fps = truth["simulation"]["fps"]
     config = case_config(case, resolution, {**case.truth, **case.guess}, optimize=True, views=views)
     cameras = [None] + [guidance_camera(truth_cfg, v.camera) for v in truth_cfg.more_views]
     coded = []
     for view, camera in enumerate(cameras):  # view 0's noise draws are those of a one-view case
-        frames = degrade(render_frames(result, camera), resolution.image, noise,
-                         np.random.default_rng(seed + 1 + 1000 * view))
+        frames = degrade(
+            render_frames(result, camera), resolution.image, noise, np.random.default_rng(seed + 1 + 1000 * view)
+        )
         name = guidance_name(view)
         (folder / name).mkdir(exist_ok=True)
         for t, frame in enumerate(frames):
@@ -398,16 +440,43 @@ def make_case(folder: str | Path, case: SyntheticCase, resolution: Resolution = 
     if coded:
         config["video"] = coded if views > 1 else coded[0]
     atomic_write_text(folder / "config.yaml", yaml.safe_dump(config, sort_keys=False))
-    record = {"truth_grid_resolution": truth["simulation"]["grid_resolution"],
-              "grid_resolution": config["simulation"]["grid_resolution"],
-              "truth_image": truth_cfg.camera.width, "image": resolution.image,
-              "truth_particles": int(result.x.shape[1]), "truth_substeps": result.substeps,
-              "clamped": clamped, "wall_contacts": at_walls, "noise": noise, "codec": codec, "seed": seed,
-              "views": views}
+    record = {
+        "truth_grid_resolution": truth["simulation"]["grid_resolution"],
+        "grid_resolution": config["simulation"]["grid_resolution"],
+        "truth_image": truth_cfg.camera.width,
+        "image": resolution.image,
+        "truth_particles": int(result.x.shape[1]),
+        "truth_substeps": result.substeps,
+        "clamped": clamped,
+        "wall_contacts": at_walls,
+        "noise": noise,
+        "codec": codec,
+        "seed": seed,
+        "views": views,
+    }
     atomic_write_text(folder / "case.json", json.dumps(record, indent=2))
     return folder / "config.yaml"
 
 
-__all__ = ["GENERATOR_VERSION", "Resolution", "SHAPES", "SyntheticCase", "VIEW_AZIMUTHS_DEG", "case_camera", "case_config", "guidance_name", "case_domain", "cube_surface", "degrade", "wall_contacts", "floor",
-           "make_case", "CASE_FILES",
-           "push_upper_part", "sphere_surface", "surface_gaussians", "torus_surface", "write_scene"]
+__all__ = [
+    "GENERATOR_VERSION",
+    "Resolution",
+    "SHAPES",
+    "SyntheticCase",
+    "VIEW_AZIMUTHS_DEG",
+    "case_camera",
+    "case_config",
+    "guidance_name",
+    "case_domain",
+    "cube_surface",
+    "degrade",
+    "wall_contacts",
+    "floor",
+    "make_case",
+    "CASE_FILES",
+    "push_upper_part",
+    "sphere_surface",
+    "surface_gaussians",
+    "torus_surface",
+    "write_scene",
+]

@@ -34,6 +34,8 @@ log = logging.getLogger(__name__)
 # Sizes make each case observable at 24 fps: the truth's slowest elastic period, about 4
 # size / shear wave speed, spans 2-5 frames (a 0.2 m torus with E = 1e6 Pa rings at 6 ms,
 # invisible between frames 42 ms apart); each shape falls about 0.3 of its size.
+# a table, one case a row: kept as written
+# fmt: off
 CASES: dict[str, SyntheticCase] = {
     "droplet": SyntheticCase(shape="sphere", size=0.3, lift=0.1, spread=1.75, material="newtonian",
                              truth={"viscosity": 100.0, "bulk_modulus": 7.0e5},
@@ -73,12 +75,15 @@ CASES: dict[str, SyntheticCase] = {
                             truth={"friction_angle": 40.0, "youngs_modulus": 1.0e6, "poissons_ratio": 0.3},
                             guess={"friction_angle": 10.0}, optimize=("friction_angle",)),
 }
+# fmt: on
 
 # every case, one policy: a global search of the parameter box first, then Levenberg-Marquardt
 # over all frames (a dropped object's first frames are free fall, where the material does nothing)
 # from each of the three best samples for 3 iterations, then on from the best of those
-CASES = {name: replace(case, search=24, starts=3, horizon=(0, 0), method="levenberg_marquardt")
-         for name, case in CASES.items()}
+CASES = {
+    name: replace(case, search=24, starts=3, horizon=(0, 0), method="levenberg_marquardt")
+    for name, case in CASES.items()
+}
 
 QUICK_CASES = ("torus", "playdoh", "droplet")  # elastic, plasticine, Newtonian: the CI subset
 
@@ -89,6 +94,8 @@ QUICK = Resolution(object_detail=8, floor_side=20, image=96, grid=24, frames=10,
 
 # Table 3 of the PhysFlow paper (CVPR 2025): (mean RE, EPE px) per case and method; their
 # images are 800 x 800 px, so their EPE is not comparable with ours in pixels.
+# a table, one case a row: kept as written
+# fmt: off
 PUBLISHED: dict[str, dict[str, tuple[float, float]]] = {
     "droplet": {"PAC-NeRF": (0.06, 0.28), "GIC": (0.41, 0.42), "PhysFlow": (0.02, 0.08)},
     "letter": {"PAC-NeRF": (0.26, 0.11), "GIC": (0.02, 0.07), "PhysFlow": (0.46, 0.13)},
@@ -100,6 +107,7 @@ PUBLISHED: dict[str, dict[str, tuple[float, float]]] = {
     "cat": {"PAC-NeRF": (0.31, 0.34), "GIC": (0.02, 0.08), "PhysFlow": (0.34, 0.24)},
     "trophy": {"PAC-NeRF": (0.10, 3.30), "GIC": (0.05, 1.85), "PhysFlow": (0.01, 1.33)},
 }
+# fmt: on
 PUBLISHED_MEAN = {"PAC-NeRF": (0.52, 0.72), "GIC": (0.11, 0.38), "PhysFlow": (0.29, 0.51)}
 METHODS = ("PAC-NeRF", "GIC", "PhysFlow")
 
@@ -149,8 +157,16 @@ def run_case(name: str, folder: Path, settings: Settings, *, progress: Callable[
     if made.exists() and json.loads(made.read_text()).get("definition") != definition:
         shutil.rmtree(folder)  # made from another definition of the case: make it anew
     if not made.exists():  # an interrupted generation leaves no case.json: make it again
-        make_case(folder, case, settings.resolution, settings.seed, truth_scale=settings.truth_scale,
-                  noise=settings.noise, codec=settings.codec, views=settings.views)
+        make_case(
+            folder,
+            case,
+            settings.resolution,
+            settings.seed,
+            truth_scale=settings.truth_scale,
+            noise=settings.noise,
+            codec=settings.codec,
+            views=settings.views,
+        )
         record = json.loads(made.read_text())
         record["definition"] = definition
         atomic_write_text(made, json.dumps(record, indent=2))
@@ -174,14 +190,25 @@ def run_case(name: str, folder: Path, settings: Settings, *, progress: Callable[
         record.update(status=f"failed: {exc}", seconds=time.perf_counter() - start)
         return record
     found = opt.values(state.z)
-    record["parameters"] = {n: {"found": found[n], "truth": case.truth[n], "guess": case.guess.get(n, case.truth[n]),
-                                "re": abs(found[n] - case.truth[n]) / abs(case.truth[n])} for n in case.optimize}
+    record["parameters"] = {
+        n: {
+            "found": found[n],
+            "truth": case.truth[n],
+            "guess": case.guess.get(n, case.truth[n]),
+            "re": abs(found[n] - case.truth[n]) / abs(case.truth[n]),
+        }
+        for n in case.optimize
+    }
     record.update(
         mean_re=float(np.mean([p["re"] for p in record["parameters"].values()])),
-        epe_px=metrics["epe_px"], floor_epe_px=floor_epe, final_loss=metrics["flow_loss"], truth_loss=truth_loss,
+        epe_px=metrics["epe_px"],
+        floor_epe_px=floor_epe,
+        final_loss=metrics["flow_loss"],
+        truth_loss=truth_loss,
         identifiability=metrics["identifiability"],
         iterations=len(state.history),
-        substeps=state.substeps, generation_seconds=generated - start,
+        substeps=state.substeps,
+        generation_seconds=generated - start,
         seconds=time.perf_counter() - start,
     )
     return record
@@ -197,8 +224,15 @@ def settings_record(settings: Settings) -> dict:
     return json.loads(json.dumps(asdict(settings)))
 
 
-def evaluate(names: list[str], out: Path, settings: Settings, *, force: bool = False,
-             progress: Callable[[str, dict], None] | None = None, run_cases: Callable | None = None) -> dict:
+def evaluate(
+    names: list[str],
+    out: Path,
+    settings: Settings,
+    *,
+    force: bool = False,
+    progress: Callable[[str, dict], None] | None = None,
+    run_cases: Callable | None = None,
+) -> dict:
     """Run the cases ``names`` into ``out`` (``out/cases/NAME``), writing ``sysid.json`` and
     ``sysid.md`` after each case. A rerun with the same settings skips finished cases and
     resumes an interrupted one; other results in ``out`` are refused unless ``force``.
@@ -223,12 +257,16 @@ def evaluate(names: list[str], out: Path, settings: Settings, *, force: bool = F
             previous = json.loads(summary_path.read_text())
             same = previous.get("settings") == wanted
         except (OSError, ValueError) as exc:
-            raise InputError(f"{summary_path} is not a clflow sysid result ({exc}); use --force to start over") from None
+            raise InputError(
+                f"{summary_path} is not a clflow sysid result ({exc}); use --force to start over"
+            ) from None
         if same:
             summary = previous
         elif not force:
-            raise InputError(f"{out} holds sysid results of other settings ({_difference(previous.get('settings'), wanted)}); "
-                             f"use another -o folder, or --force to replace them")
+            raise InputError(
+                f"{out} holds sysid results of other settings ({_difference(previous.get('settings'), wanted)}); "
+                f"use another -o folder, or --force to replace them"
+            )
     elif out.exists() and any(out.iterdir()) and not force:
         raise InputError(f"{out} exists and holds other files; use an empty or new -o folder, or --force")
     if force and summary["cases"] == {} and (out / "cases").exists():
@@ -257,8 +295,15 @@ def evaluate(names: list[str], out: Path, settings: Settings, *, force: bool = F
         run_cases(todo, out, settings, finished)
         return summary
     for name in todo:
-        finished(name, run_case(name, out / "cases" / name, settings,
-                                progress=(lambda row, n=name: progress(n, row)) if progress else None))
+        finished(
+            name,
+            run_case(
+                name,
+                out / "cases" / name,
+                settings,
+                progress=(lambda row, n=name: progress(n, row)) if progress else None,
+            ),
+        )
     return summary
 
 
@@ -277,43 +322,71 @@ def markdown(summary: dict) -> str:
     """The results as a Markdown table in the layout of the paper's Table 3, with the
     published rows (RE / EPE) beside ours."""
     cases = summary["cases"]
-    lines = ["| case | material | parameter: found (truth) | RE | EPE px (floor) | iterations | seconds | "
-             + " | ".join(f"{m} RE/EPE" for m in METHODS) + " |",
-             "|---" * (7 + len(METHODS)) + "|"]
+    lines = [
+        "| case | material | parameter: found (truth) | RE | EPE px (floor) | iterations | seconds | "
+        + " | ".join(f"{m} RE/EPE" for m in METHODS)
+        + " |",
+        "|---" * (7 + len(METHODS)) + "|",
+    ]
     ok = [r for r in cases.values() if r.get("status") == "ok"]
     for name, r in cases.items():
         published = " | ".join(f"{PUBLISHED[name][m][0]:.2f}/{PUBLISHED[name][m][1]:.2f}" for m in METHODS)
         if r.get("status") != "ok":
-            lines.append(f"| {name} | {r['material']} | {r['status']} | - | - | - | {r.get('seconds', 0):.0f} | {published} |")
+            lines.append(
+                f"| {name} | {r['material']} | {r['status']} | - | - | - | {r.get('seconds', 0):.0f} | {published} |"
+            )
             continue
         weak = set(r.get("identifiability", {}).get("weakly_constrained", []))
-        params = "<br>".join(f"{n}: {_fmt(p['found'])} ({_fmt(p['truth'])}), RE {p['re']:.3f}"
-                             + (" (weakly constrained)" if n in weak else "") for n, p in r["parameters"].items())
-        lines.append(f"| {name} | {r['material']} | {params} | {r['mean_re']:.3f} | {r['epe_px']:.3f} "
-                     f"({r['floor_epe_px']:.3f}) | {r['iterations']} | {r['seconds']:.0f} | {published} |")
+        params = "<br>".join(
+            f"{n}: {_fmt(p['found'])} ({_fmt(p['truth'])}), RE {p['re']:.3f}"
+            + (" (weakly constrained)" if n in weak else "")
+            for n, p in r["parameters"].items()
+        )
+        lines.append(
+            f"| {name} | {r['material']} | {params} | {r['mean_re']:.3f} | {r['epe_px']:.3f} "
+            f"({r['floor_epe_px']:.3f}) | {r['iterations']} | {r['seconds']:.0f} | {published} |"
+        )
     if ok:
         mean_re = sum(r["mean_re"] for r in ok) / len(ok)
         mean_epe = sum(r["epe_px"] for r in ok) / len(ok)
         published = " | ".join(f"{PUBLISHED_MEAN[m][0]:.2f}/{PUBLISHED_MEAN[m][1]:.2f}" for m in METHODS)
         total = sum(r.get("seconds", 0.0) for r in cases.values())
-        lines.append(f"| **mean** ({len(ok)} of {len(cases)}) | | | **{mean_re:.3f}** | **{mean_epe:.3f}** | | "
-                     f"{total:.0f} | {published} |")
-        lines.append(f"| median | | | {statistics.median(r['mean_re'] for r in ok):.3f} | "
-                     f"{statistics.median(r['epe_px'] for r in ok):.3f} | | | | | |")
+        lines.append(
+            f"| **mean** ({len(ok)} of {len(cases)}) | | | **{mean_re:.3f}** | **{mean_epe:.3f}** | | "
+            f"{total:.0f} | {published} |"
+        )
+        lines.append(
+            f"| median | | | {statistics.median(r['mean_re'] for r in ok):.3f} | "
+            f"{statistics.median(r['epe_px'] for r in ok):.3f} | | | | | |"
+        )
     s = summary["settings"]
     res = s["resolution"]
     env = summary.get("environment", {})
-    lines += ["", f"Settings: grid {res['grid']} nodes, image {res['image']} px, {res['frames']} frames, "
-              f"{res['iterations']} iterations; ground truth at {s['truth_scale']}x grid and image; noise "
-              f"{s['noise']} grey levels; codec {s['codec'] or 'none (PNG)'}; seed {s['seed']}; "
-              f"{s.get('views', 1)} guidance view{'s' if s.get('views', 1) > 1 else ''}.",
-              f"Made {env.get('date', '?')} with clflow {env.get('clflow', '?')} (commit {env.get('commit') or '?'}), "
-              f"torch {env.get('torch', '?')}, "
-              f"pyopencl {env.get('pyopencl', '?')} on {env.get('device', '?')} (load {env.get('load', '?')}). "
-              "Published rows: PhysFlow (CVPR 2025) Table 3, 800 x 800 px images."]
+    lines += [
+        "",
+        f"Settings: grid {res['grid']} nodes, image {res['image']} px, {res['frames']} frames, "
+        f"{res['iterations']} iterations; ground truth at {s['truth_scale']}x grid and image; noise "
+        f"{s['noise']} grey levels; codec {s['codec'] or 'none (PNG)'}; seed {s['seed']}; "
+        f"{s.get('views', 1)} guidance view{'s' if s.get('views', 1) > 1 else ''}.",
+        f"Made {env.get('date', '?')} with clflow {env.get('clflow', '?')} (commit {env.get('commit') or '?'}), "
+        f"torch {env.get('torch', '?')}, "
+        f"pyopencl {env.get('pyopencl', '?')} on {env.get('device', '?')} (load {env.get('load', '?')}). "
+        "Published rows: PhysFlow (CVPR 2025) Table 3, 800 x 800 px images.",
+    ]
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["CASES", "FULL", "METHODS", "PUBLISHED", "PUBLISHED_MEAN", "QUICK", "QUICK_CASES", "Settings",
-           "check_case", "evaluate", "markdown", "run_case"]
-
+__all__ = [
+    "CASES",
+    "FULL",
+    "METHODS",
+    "PUBLISHED",
+    "PUBLISHED_MEAN",
+    "QUICK",
+    "QUICK_CASES",
+    "Settings",
+    "check_case",
+    "evaluate",
+    "markdown",
+    "run_case",
+]

@@ -39,9 +39,19 @@ def oclgrind(tmp_path):
         env = {k: v for k, v in os.environ.items() if k != "CLFLOW_DEVICE"}
         env["PYTHONPATH"] = os.pathsep.join([REPO, *filter(None, [env.get("PYTHONPATH")])])  # tests.* helpers
         res = subprocess.run(
-            [exe, "--data-races", *(["--uninitialized"] if uninitialized else []), "--log", str(log), sys.executable,
-             str(script)],
-            capture_output=True, text=True, timeout=timeout, env=env,
+            [
+                exe,
+                "--data-races",
+                *(["--uninitialized"] if uninitialized else []),
+                "--log",
+                str(log),
+                sys.executable,
+                str(script),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            env=env,
         )
         assert res.returncode == 0, res.stderr
         return res.stdout, (log.read_text() if log.exists() else "")

@@ -52,12 +52,19 @@ def test_every_bench_has_json_and_ply_writes_figures_with_the_environment(tmp_pa
     for name in BENCHMARKS:
         assert "--json PATH" in CliRunner().invoke(cli, ["bench", name, "--help"]).output, name
     out = tmp_path / "ply.json"
-    res = CliRunner().invoke(cli, ["bench", "ply", "--gaussians", "200", "--points", "50", "--repeat", "2",
-                                   "--json", str(out)], catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli,
+        ["bench", "ply", "--gaussians", "200", "--points", "50", "--repeat", "2", "--json", str(out)],
+        catch_exceptions=False,
+    )
     assert res.exit_code == 0, res.output
     record = json.loads(out.read_text())
-    assert record["benchmark"] == "ply" and record["parameters"] == {"count": 200, "sh_degree": 3, "points": 50,
-                                                                      "repeat": 2}
+    assert record["benchmark"] == "ply" and record["parameters"] == {
+        "count": 200,
+        "sh_degree": 3,
+        "points": 50,
+        "repeat": 2,
+    }
     results = record["results"]
     assert results["save_s"] > 0 and results["load_s"] > 0 and results["from_points_s"] > 0
     assert f"{results['save_s']:6.2f} s" in res.output  # the printed figure is the recorded one

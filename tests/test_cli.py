@@ -109,8 +109,11 @@ def interrupt_optimize(monkeypatch, tmp_path, iterations_in_run, *args):
 
     cfg = SimpleNamespace(optimize=SimpleNamespace(search=None, materials=()), output=tmp_path)
     monkeypatch.setattr(clflow.scene.config, "load_config", lambda path, overrides=(): cfg)
-    monkeypatch.setattr(clflow.pipeline.optimize, "Optimization",
-                        lambda cfg, **options: _InterruptedOptimization(cfg, tmp_path / "checkpoint.json", iterations_in_run))
+    monkeypatch.setattr(
+        clflow.pipeline.optimize,
+        "Optimization",
+        lambda cfg, **options: _InterruptedOptimization(cfg, tmp_path / "checkpoint.json", iterations_in_run),
+    )
     return CliRunner().invoke(cli, ["optimize", "scene.yaml", *args])
 
 
@@ -155,16 +158,19 @@ def test_pyopencl_build_messages_fold_into_one_line_unless_vv(device, caplog, fl
         caplog.set_level(logging.DEBUG, logger=name)
     with caplog.at_level(logging.DEBUG):
         for kernel in ("p2g", "g2p"):  # what pyopencl logs after a slow uncached build
-            logging.getLogger("pyopencl").info("build program: kernel '%s' was part of a lengthy %s (%.2f s)",
-                                               kernel, "uncached source build", 1.5)
+            logging.getLogger("pyopencl").info(
+                "build program: kernel '%s' was part of a lengthy %s (%.2f s)", kernel, "uncached source build", 1.5
+            )
             logging.getLogger("pyopencl.cache").debug("build program: binary cache miss (key: %s)", kernel)
         logging.getLogger("pyopencl").info("another message")
     lines = [(r.name, r.getMessage()) for r in caplog.records]
     if folded:
         assert lines == [("clflow", "compiling kernels (first run only)"), ("pyopencl", "another message")]
     else:
-        assert len(lines) == 5 and lines[0] == ("pyopencl", "build program: kernel 'p2g' was part of a lengthy "
-                                                            "uncached source build (1.50 s)")
+        assert len(lines) == 5 and lines[0] == (
+            "pyopencl",
+            "build program: kernel 'p2g' was part of a lengthy uncached source build (1.50 s)",
+        )
 
 
 def test_a_broken_plugin_is_listed_and_reports_its_error_when_run(monkeypatch):
@@ -176,8 +182,11 @@ def test_a_broken_plugin_is_listed_and_reports_its_error_when_run(monkeypatch):
         def load(self):
             raise ImportError("No module named 'clflow_sparkle'")
 
-    monkeypatch.setattr(main, "entry_points", lambda group, **select: [
-        ep for ep in [BrokenEntryPoint()] if select.get("name", ep.name) == ep.name])
+    monkeypatch.setattr(
+        main,
+        "entry_points",
+        lambda group, **select: [ep for ep in [BrokenEntryPoint()] if select.get("name", ep.name) == ep.name],
+    )
     listing = CliRunner().invoke(cli, ["--help"])
     assert listing.exit_code == 0 and "sparkle" in listing.output and "broken plugin" in listing.output
     run = CliRunner().invoke(cli, ["sparkle", "--anything"])
@@ -205,9 +214,11 @@ def test_progress_jumps_to_a_unit_and_shows_items_its_way(capsys):
     with progress(250, "reconstructing", show=lambda info: f"PSNR {info:.1f} dB", every=100) as advance:
         for step in range(51, 251):
             advance(step / 10, to=step)
-    assert capsys.readouterr().err.splitlines() == ["reconstructing: 100/250 PSNR 10.0 dB",
-                                                    "reconstructing: 200/250 PSNR 20.0 dB",
-                                                    "reconstructing: 250/250 PSNR 25.0 dB"]
+    assert capsys.readouterr().err.splitlines() == [
+        "reconstructing: 100/250 PSNR 10.0 dB",
+        "reconstructing: 200/250 PSNR 20.0 dB",
+        "reconstructing: 250/250 PSNR 25.0 dB",
+    ]
 
 
 # command path -> (its output parameter, the other arguments it needs to parse)
@@ -264,8 +275,15 @@ def test_numbers_are_one_word_with_commas_in_every_command():
         Numbers(4, "X0,Y0,X1,Y1").convert("8", None, None)
     with pytest.raises(click.BadParameter, match="expected 3 comma-separated finite numbers, got '1,nan,2'"):
         Numbers(3).convert("1,nan,2", None, None)
-    for path, option in ((("render",), "--box"), (("flow",), "--box"), (("query",), "--box"), (("render",), "--up"),
-                         (("simulate",), "--velocity"), (("simulate",), "--gravity"), (("simulate",), "--center")):
+    for path, option in (
+        (("render",), "--box"),
+        (("flow",), "--box"),
+        (("query",), "--box"),
+        (("render",), "--up"),
+        (("simulate",), "--velocity"),
+        (("simulate",), "--gravity"),
+        (("simulate",), "--center"),
+    ):
         param = next(p for p in _command(path).params if option in p.opts)
         assert isinstance(param.type, Numbers), (path, option)
     up = next(p for p in _command(("render",)).params if p.name == "up")

@@ -19,8 +19,9 @@ def _ruff(*args: str) -> subprocess.CompletedProcess:
     ruff = shutil.which("ruff", path=str(Path(sys.executable).parent)) or shutil.which("ruff")
     if ruff is None:
         pytest.skip("ruff is not installed (the test extra installs it)")
-    return subprocess.run([ruff, *args, "--no-cache", *PYTHON_TREE], cwd=ROOT, capture_output=True, text=True,
-                          timeout=120)
+    return subprocess.run(
+        [ruff, *args, "--no-cache", *PYTHON_TREE], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
 
 
 def test_ruff_finds_nothing():
@@ -38,6 +39,11 @@ def test_the_kernels_are_clang_formatted():
     if clang_format is None:
         pytest.skip("clang-format is not installed (CI installs it)")
     sources = sorted(str(p) for p in (ROOT / "kernels_cl").rglob("*") if p.suffix in (".cl", ".h"))
-    done = subprocess.run([clang_format, "--style=file", "--dry-run", "-Werror", *sources], cwd=ROOT,
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [clang_format, "--style=file", "--dry-run", "-Werror", *sources],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr[-3000:]

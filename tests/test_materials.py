@@ -43,7 +43,9 @@ def test_bad_parameters_get_specific_messages(material, params, message):
 
 def test_defaults_fill_in_and_symbols_are_accepted():
     assert validate_params("plasticine", {"E": 2e6, "tau_Y": 1.54e4}) == {
-        "youngs_modulus": 2e6, "poissons_ratio": 0.3, "yield_stress": 1.54e4,
+        "youngs_modulus": 2e6,
+        "poissons_ratio": 0.3,
+        "yield_stress": 1.54e4,
     }
 
 

@@ -16,8 +16,14 @@ def ramp(count, height, width):
     x = np.linspace(0, 200, width, dtype=np.float64)
     frames = np.empty((count, height, width, 3), np.uint8)
     for k in range(count):
-        frames[k] = np.stack([np.broadcast_to(x, (height, width)), np.full((height, width), 20.0 * k),
-                              np.broadcast_to(x[::-1], (height, width))], axis=-1).astype(np.uint8)
+        frames[k] = np.stack(
+            [
+                np.broadcast_to(x, (height, width)),
+                np.full((height, width), 20.0 * k),
+                np.broadcast_to(x[::-1], (height, width)),
+            ],
+            axis=-1,
+        ).astype(np.uint8)
     return frames
 
 

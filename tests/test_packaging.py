@@ -32,7 +32,11 @@ def test_ci_runs_exactly_the_readme_test_command():
     readme = (ROOT / "README.md").read_text()
     commands = re.findall(r"^    (bash scripts/setup\.sh && .+)$", readme, flags=re.M)
     test_command = next(c for c in commands if "pytest" in c)
-    ci_lines = [line for line in (ROOT / ".ci" / "run").read_text().splitlines() if line and not line.startswith(("#", "set ", "cd "))]
+    ci_lines = [
+        line
+        for line in (ROOT / ".ci" / "run").read_text().splitlines()
+        if line and not line.startswith(("#", "set ", "cd "))
+    ]
     assert ci_lines == [test_command]
 
 
@@ -40,16 +44,33 @@ def test_ci_runs_exactly_the_readme_test_command():
 def test_installed_wheel_finds_its_kernels(tmp_path):
     """Build the wheel, install it (no deps) into a fresh target and run from /tmp."""
     subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp_path / "wheel"), str(ROOT)],
-        check=True, capture_output=True, timeout=300,
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "--no-deps",
+            "--no-build-isolation",
+            "-q",
+            "-w",
+            str(tmp_path / "wheel"),
+            str(ROOT),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=300,
     )
     (wheel,) = (tmp_path / "wheel").glob("clflow-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
     assert "clflow/kernels_cl/common/reduce.cl" in names and "clflow/kernels_cl/common/real.h" in names
     assert "clflow_cli/main.py" in names
     target = tmp_path / "site"
-    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(target), str(wheel)],
-                   check=True, capture_output=True, timeout=300)
+    subprocess.run(
+        [sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(target), str(wheel)],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
     code = (
         "import clflow, torch\n"
         "from clflow.runtime.programs import kernels_dir\n"
@@ -63,5 +84,12 @@ def test_installed_wheel_finds_its_kernels(tmp_path):
     module_file, kdir, total = res.stdout.split()
     assert module_file.startswith(str(target)) and kdir == str(target / "clflow" / "kernels_cl")
     assert float(total) == 10.0
-    res = subprocess.run([sys.executable, "-m", "clflow_cli", "devices"], cwd="/tmp", capture_output=True, text=True, env=env, timeout=300)
+    res = subprocess.run(
+        [sys.executable, "-m", "clflow_cli", "devices"],
+        cwd="/tmp",
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert res.returncode == 0 and "Portable Computing Language" in res.stdout, res.stderr

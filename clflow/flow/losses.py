@@ -32,7 +32,9 @@ def _masked_mean(per_pixel: torch.Tensor, mask: torch.Tensor | None, what: str) 
     try:
         weight = torch.broadcast_to(mask.to(per_pixel.dtype), per_pixel.shape)
     except RuntimeError:
-        raise InputError(f"{what}: mask shape {tuple(mask.shape)} does not match flows of shape {tuple(per_pixel.shape)} + (2,)") from None
+        raise InputError(
+            f"{what}: mask shape {tuple(mask.shape)} does not match flows of shape {tuple(per_pixel.shape)} + (2,)"
+        ) from None
     _finite(weight, f"{what}: mask")
     if bool((weight < 0).any()):
         raise InputError(f"{what}: the mask has negative weights")
@@ -83,7 +85,9 @@ def render_loss(rendered: torch.Tensor, target: torch.Tensor, ssim_weight: float
     ``kornia.losses.ssim_loss`` would halve the D-SSIM term, so it is not used.
     """
     if rendered.shape != target.shape or rendered.dim() < 3:
-        raise InputError(f"render loss: images must have one [..., H, W, C] shape, got {tuple(rendered.shape)} and {tuple(target.shape)}")
+        raise InputError(
+            f"render loss: images must have one [..., H, W, C] shape, got {tuple(rendered.shape)} and {tuple(target.shape)}"
+        )
     _finite(target, "render loss: target image")
     target = target.to(rendered.dtype)
     l1 = (rendered - target).abs().mean()

@@ -119,8 +119,13 @@ def backward_flow(frames: np.ndarray, method: FlowMethod = "dis", **kwargs) -> n
     return observed_flow(np.ascontiguousarray(np.asarray(frames)[::-1]), method, **kwargs)[::-1].copy()
 
 
-def raft_flow(frames: np.ndarray, weights: str | os.PathLike | None, *, source: str = "video",
-              advance: Callable[[str], None] | None = None) -> np.ndarray:
+def raft_flow(
+    frames: np.ndarray,
+    weights: str | os.PathLike | None,
+    *,
+    source: str = "video",
+    advance: Callable[[str], None] | None = None,
+) -> np.ndarray:
     """Forward flow by torchvision's RAFT (large) from a state-dict file already on disk;
     ``advance("raft")`` after each flow field.
 
@@ -168,8 +173,13 @@ def warp_flow(flow_b: np.ndarray, flow_f: np.ndarray) -> np.ndarray:
     height, width = flow_f.shape[:2]
     jj, ii = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
     map_x, map_y = jj + flow_f[..., 0], ii + flow_f[..., 1]
-    return cv2.remap(flow_b.astype(np.float32), map_x.astype(np.float32), map_y.astype(np.float32),
-                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return cv2.remap(
+        flow_b.astype(np.float32),
+        map_x.astype(np.float32),
+        map_y.astype(np.float32),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
 
 
 def _consistency(forward: np.ndarray, backward: np.ndarray, alpha1: float, alpha2: float):
@@ -178,7 +188,9 @@ def _consistency(forward: np.ndarray, backward: np.ndarray, alpha1: float, alpha
     whether x + w lies in the frame (bool [..., H, W])."""
     forward, backward = np.asarray(forward), np.asarray(backward)
     if forward.shape != backward.shape or forward.shape[-1] != 2:
-        raise InputError(f"forward and backward flows must have one [..., H, W, 2] shape, got {forward.shape} and {backward.shape}")
+        raise InputError(
+            f"forward and backward flows must have one [..., H, W, 2] shape, got {forward.shape} and {backward.shape}"
+        )
     lead = forward.shape[:-3]
     f = forward.reshape(-1, *forward.shape[-3:])
     b = backward.reshape(-1, *backward.shape[-3:])
@@ -215,9 +227,7 @@ def forward_backward_mask(
     return (ratio < 1.0) & inside
 
 
-def flow_confidence(
-    forward: np.ndarray, backward: np.ndarray, alpha1: float = 0.01, alpha2: float = 0.5
-) -> np.ndarray:
+def flow_confidence(forward: np.ndarray, backward: np.ndarray, alpha1: float = 0.01, alpha2: float = 0.5) -> np.ndarray:
     """Soft form of :func:`forward_backward_mask`: exp(-|w + w_b|^2 / (alpha1 (|w|^2 + |w_b|^2)
     + alpha2)), 1 where the two flows cancel exactly, e^-1 on the mask's threshold, and 0
     where x + w leaves the frame (occluded by the border).
@@ -228,8 +238,9 @@ def flow_confidence(
     return np.where(inside, np.exp(-ratio), 0.0).astype(np.float32)
 
 
-def observed_confidence(frames: np.ndarray, flow: np.ndarray, setting: str, method: FlowMethod = "dis",
-                        **kwargs) -> np.ndarray:
+def observed_confidence(
+    frames: np.ndarray, flow: np.ndarray, setting: str, method: FlowMethod = "dis", **kwargs
+) -> np.ndarray:
     """Confidence [T-1, H, W] float32 in [0, 1] of ``flow``, the forward flow of ``frames``.
 
     ``setting`` is one of :data:`CONFIDENCES`: ``none`` gives ones; ``forward_backward``

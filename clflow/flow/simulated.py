@@ -150,7 +150,9 @@ def flow_features(
         (a - 1, b, c - 1), then o = dmu - (A - I) mu (px).
     """
     if means_t.shape != means_t1.shape or means_t.shape[-1] != 3:
-        raise InputError(f"simulated flow: means at t and t+1 must both be [N, 3], got {tuple(means_t.shape)} and {tuple(means_t1.shape)}")
+        raise InputError(
+            f"simulated flow: means at t and t+1 must both be [N, 3], got {tuple(means_t.shape)} and {tuple(means_t1.shape)}"
+        )
     mu_t = project_means(means_t, viewmat, K)
     dmu = project_means(means_t1, viewmat, K) - mu_t
     if model == "mean":
@@ -160,7 +162,8 @@ def flow_features(
     if covars_t is None or covars_t1 is None:
         raise InputError("the 'affine' simulated-flow model needs covars_t and covars_t1 ([N, 3, 3] world covariances)")
     a, b, c = _transport_sym(
-        _sym(covariance_2d(means_t, covars_t, viewmat, K, eps2d)), _sym(covariance_2d(means_t1, covars_t1, viewmat, K, eps2d))
+        _sym(covariance_2d(means_t, covars_t, viewmat, K, eps2d)),
+        _sym(covariance_2d(means_t1, covars_t1, viewmat, K, eps2d)),
     )
     u, v = mu_t.unbind(-1)
     offset = dmu - torch.stack([(a - 1.0) * u + b * v, b * u + (c - 1.0) * v], -1)  # dmu - (A - I) mu
@@ -174,7 +177,9 @@ def pixel_centres(height: int, width: int, dtype=torch.float64, device=None) -> 
     return torch.stack(torch.meshgrid(u, v, indexing="xy"), -1)
 
 
-def flow_from_features(features: torch.Tensor, alpha: torch.Tensor | None = None, min_alpha: float = MIN_ALPHA) -> torch.Tensor:
+def flow_from_features(
+    features: torch.Tensor, alpha: torch.Tensor | None = None, min_alpha: float = MIN_ALPHA
+) -> torch.Tensor:
     """Per-pixel flow [H, W, 2] (px) from rendered flow features [H, W, 2 | 5].
 
     Two channels are the flow itself; five are an affine field M x + o with M symmetric,
@@ -238,7 +243,17 @@ def render_simulated_flow(
 
     features = flow_features(means_t, means_t1, viewmat, K, model=model, covars_t=covars_t, covars_t1=covars_t1)
     image, alpha, _, _ = rasterize_gaussians(
-        means_t, None, None, opacities, features, viewmat, K, width, height,
-        covars=covars_t, near=near, render_depth=False,
+        means_t,
+        None,
+        None,
+        opacities,
+        features,
+        viewmat,
+        K,
+        width,
+        height,
+        covars=covars_t,
+        near=near,
+        render_depth=False,
     )
     return flow_from_features(image, alpha if normalize else None), alpha

@@ -79,8 +79,7 @@ class Video:
         keep = (t >= start - 1e-9) & (t < (np.inf if end is None else end) - 1e-9)
         if not keep.any():
             raise InputError(
-                f"{self.source}: no frame in the window [{start:g}, {end}) s; the video spans "
-                f"[{t[0]:g}, {t[-1]:g}] s"
+                f"{self.source}: no frame in the window [{start:g}, {end}) s; the video spans [{t[0]:g}, {t[-1]:g}] s"
             )
         return self._subset(np.flatnonzero(keep), self.fps)
 
@@ -88,7 +87,9 @@ class Video:
         """Every ``stride``-th frame, starting with the first."""
         if int(stride) != stride or stride < 1:
             raise InputError(f"{self.source}: frame stride must be a positive integer, got {stride!r}")
-        return self._subset(np.arange(0, self.frame_count, int(stride)), fps=None if self.fps is None else self.fps / stride)
+        return self._subset(
+            np.arange(0, self.frame_count, int(stride)), fps=None if self.fps is None else self.fps / stride
+        )
 
     def resample(self, times: Sequence[float], mode: Literal["nearest", "linear"] = "nearest") -> "Video":
         """Frames at the given ``times`` (s), e.g. the simulation's frame times.
@@ -258,7 +259,9 @@ def fit_to_camera(
     Kv, Kc = np.asarray(K_video, np.float64), np.asarray(K_camera, np.float64)
     for name, K in (("video", Kv), ("camera", Kc)):
         if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0 or K[0, 1] != 0:
-            raise InputError(f"{video.source}: {name} intrinsics must be a finite [3, 3] pinhole matrix without skew, got {K.tolist()}")
+            raise InputError(
+                f"{video.source}: {name} intrinsics must be a finite [3, 3] pinhole matrix without skew, got {K.tolist()}"
+            )
     sx, sy = Kc[0, 0] / Kv[0, 0], Kc[1, 1] / Kv[1, 1]
     if abs(sx - sy) > 1e-6 * max(sx, sy):
         raise InputError(

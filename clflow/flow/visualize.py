@@ -20,7 +20,14 @@ def colour_wheel() -> np.ndarray:
     for segment, n in enumerate(WHEEL_SEGMENTS):
         ramp = np.floor(255.0 * np.arange(n) / n) / 255.0
         # Each segment holds one primary at 1 and ramps another up or down between primaries.
-        primary, ramped, rising = [(0, 1, True), (1, 0, False), (1, 2, True), (2, 1, False), (2, 0, True), (0, 2, False)][segment]
+        primary, ramped, rising = [
+            (0, 1, True),
+            (1, 0, False),
+            (1, 2, True),
+            (2, 1, False),
+            (2, 0, True),
+            (0, 2, False),
+        ][segment]
         colour = np.zeros((n, 3))
         colour[:, primary] = 1.0
         colour[:, ramped] = ramp if rising else 1.0 - ramp
@@ -93,7 +100,9 @@ def _label(image: np.ndarray, text: str) -> np.ndarray:
     out = image.copy()
     scale = max(0.35, image.shape[0] / 500.0)
     for colour, thickness in (((0, 0, 0), 3), ((255, 255, 255), 1)):
-        cv2.putText(out, text, (6, int(22 * scale) + 4), cv2.FONT_HERSHEY_SIMPLEX, scale, colour, thickness, cv2.LINE_AA)
+        cv2.putText(
+            out, text, (6, int(22 * scale) + 4), cv2.FONT_HERSHEY_SIMPLEX, scale, colour, thickness, cv2.LINE_AA
+        )
     return out
 
 
@@ -117,7 +126,10 @@ def comparison_panel(
     """
     if max_flow is None:
         max_flow = max(float(np.linalg.norm(observed, axis=-1).max()), 1e-6)
-    panels = [_label(np.asarray(frame, np.uint8), "guidance"), _label(_with_legend(flow_to_color(observed, max_flow), max_flow), "guidance flow")]
+    panels = [
+        _label(np.asarray(frame, np.uint8), "guidance"),
+        _label(_with_legend(flow_to_color(observed, max_flow), max_flow), "guidance flow"),
+    ]
     if simulated is not None:
         simulated = np.asarray(simulated)
         error = np.linalg.norm(simulated - observed, axis=-1)

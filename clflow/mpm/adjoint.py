@@ -39,9 +39,13 @@ class StateGrad:
 
     @staticmethod
     def zeros(n: int, dtype: torch.dtype) -> "StateGrad":
-        return StateGrad(torch.zeros(n, 3, dtype=dtype), torch.zeros(n, 3, dtype=dtype),
-                         torch.zeros(n, 3, 3, dtype=dtype), torch.zeros(n, 3, 3, dtype=dtype),
-                         torch.zeros(n, dtype=dtype))
+        return StateGrad(
+            torch.zeros(n, 3, dtype=dtype),
+            torch.zeros(n, 3, dtype=dtype),
+            torch.zeros(n, 3, 3, dtype=dtype),
+            torch.zeros(n, 3, 3, dtype=dtype),
+            torch.zeros(n, dtype=dtype),
+        )
 
 
 class SubstepAdjoint:
@@ -95,38 +99,128 @@ class SubstepAdjoint:
             C_bar = b.inout(grad.C, "C_bar")
             grid_bar = b.inout(self.grid_bar, "grid_bar")
             tau_bar = b.inout(self.tau_bar, "tau_bar")
-            release_time, v_bar_out = b.input(particles.release_time, "release_time"), b.input(grad_after.v, "v_bar_out")
+            release_time, v_bar_out = (
+                b.input(particles.release_time, "release_time"),
+                b.input(grad_after.v, "v_bar_out"),
+            )
             grid_v = b.input(tape.grid_v, "grid_v")
             # v' read back as v_pic; with FLIP the kernel sums v_pic itself (any buffer will do)
             v_out = grid_v if self.flip > 0 else b.input(after.v, "v_out")
-            dev.launch(self.k_g2p, self.copies, grid_args + [
-                n, R(dt), R(t), R(self.flip), x, v_out, release_time,
-                grid_v, b.input(tape.grid_dv, "grid_dv"), b.input(grad_after.x, "x_bar_out"),
-                v_bar_out, b.input(grad_after.C, "C_bar_out"),
-                np.int32(self.copies), np.int32(self.chunk), self.grid_v_bar_copies, x_bar], local_size=1)
-            dev.launch(self.k_grid, self.grid.nodes, grid_args + inputs.grid_update_args(R)
-                       + [b.input(tape.grid_mv, "grid"), self.grid_v_bar_copies, np.int32(self.copies)]
-                       + inputs.boundary_args(b) + [grid_bar])
+            dev.launch(
+                self.k_g2p,
+                self.copies,
+                grid_args
+                + [
+                    n,
+                    R(dt),
+                    R(t),
+                    R(self.flip),
+                    x,
+                    v_out,
+                    release_time,
+                    grid_v,
+                    b.input(tape.grid_dv, "grid_dv"),
+                    b.input(grad_after.x, "x_bar_out"),
+                    v_bar_out,
+                    b.input(grad_after.C, "C_bar_out"),
+                    np.int32(self.copies),
+                    np.int32(self.chunk),
+                    self.grid_v_bar_copies,
+                    x_bar,
+                ],
+                local_size=1,
+            )
+            dev.launch(
+                self.k_grid,
+                self.grid.nodes,
+                grid_args
+                + inputs.grid_update_args(R)
+                + [b.input(tape.grid_mv, "grid"), self.grid_v_bar_copies, np.int32(self.copies)]
+                + inputs.boundary_args(b)
+                + [grid_bar],
+            )
             # p2g_adjoint writes v_bar, which p2g_flip_adjoint then reads and adds to
             v_bar = (b.output if self.k_flip is None else b.inout)(grad.v, "v_bar")
             v, mass, mass_bar = b.input(state.v, "v"), b.input(particles.mass, "mass"), b.inout(mass_grad, "mass_bar")
-            dev.launch(self.k_p2g, -(-self.n // SIMD_LANES), grid_args + [
-                n, R(dt), x, v, C, b.input(tape.tau, "tau"), mass, b.input(particles.volume, "volume"),
-                b.input(particles.group, "group"), b.input(accel, "accel"), grid_bar, x_bar,
-                v_bar, C_bar, tau_bar, mass_bar])
+            dev.launch(
+                self.k_p2g,
+                -(-self.n // SIMD_LANES),
+                grid_args
+                + [
+                    n,
+                    R(dt),
+                    x,
+                    v,
+                    C,
+                    b.input(tape.tau, "tau"),
+                    mass,
+                    b.input(particles.volume, "volume"),
+                    b.input(particles.group, "group"),
+                    b.input(accel, "accel"),
+                    grid_bar,
+                    x_bar,
+                    v_bar,
+                    C_bar,
+                    tau_bar,
+                    mass_bar,
+                ],
+            )
             if self.k_flip is not None:
-                dev.launch(self.k_flip, self.n, grid_args + [
-                    n, R(t), R(self.flip), x, v, C, mass, release_time, v_bar_out, grid_bar, x_bar, v_bar, C_bar,
-                    mass_bar])
+                dev.launch(
+                    self.k_flip,
+                    self.n,
+                    grid_args
+                    + [
+                        n,
+                        R(t),
+                        R(self.flip),
+                        x,
+                        v,
+                        C,
+                        mass,
+                        release_time,
+                        v_bar_out,
+                        grid_bar,
+                        x_bar,
+                        v_bar,
+                        C_bar,
+                        mass_bar,
+                    ],
+                )
             self.launch_stress_adjoint(
-                b, dt, b.input(state.F, "F"), C, b.input(state.plastic, "plastic"),
-                b.input(particles.material, "material"), b.input(particles.param, "param"), tau_bar,
-                b.input(grad_after.F, "F_bar_out"), b.input(grad_after.plastic, "plastic_bar_out"),
-                b.output(grad.F, "F_bar"), C_bar, b.output(grad.plastic, "plastic_bar"),
-                b.inout(param_grad, "param_bar"))
+                b,
+                dt,
+                b.input(state.F, "F"),
+                C,
+                b.input(state.plastic, "plastic"),
+                b.input(particles.material, "material"),
+                b.input(particles.param, "param"),
+                tau_bar,
+                b.input(grad_after.F, "F_bar_out"),
+                b.input(grad_after.plastic, "plastic_bar_out"),
+                b.output(grad.F, "F_bar"),
+                C_bar,
+                b.output(grad.plastic, "plastic_bar"),
+                b.inout(param_grad, "param_bar"),
+            )
 
-    def launch_stress_adjoint(self, b, dt: float, F, C, plastic, material, param, tau_bar, F_bar_out,
-                              plastic_bar_out, F_bar, C_bar, plastic_bar, param_bar) -> None:
+    def launch_stress_adjoint(
+        self,
+        b,
+        dt: float,
+        F,
+        C,
+        plastic,
+        material,
+        param,
+        tau_bar,
+        F_bar_out,
+        plastic_bar_out,
+        F_bar,
+        C_bar,
+        plastic_bar,
+        param_bar,
+    ) -> None:
         """Enqueue the stress stage's adjoint on buffers of the binding ``b``: F_bar, plastic_bar
         written, C_bar and param_bar accumulated into (see kernels_cl/mpm/adjoint/stress_adjoint.cl)."""
         bars = [tau_bar, F_bar_out, plastic_bar_out, F_bar, C_bar, plastic_bar, param_bar]

@@ -106,8 +106,9 @@ class _Run:
     """One differentiable run: its spec (the simulator's at this run's substeps), and the
     checkpoints its forward leaves for backward."""
 
-    def __init__(self, sim: Simulator, frames: int, substeps: int, memory_budget: int | None = None,
-                 strict_cfl: bool = False):
+    def __init__(
+        self, sim: Simulator, frames: int, substeps: int, memory_budget: int | None = None, strict_cfl: bool = False
+    ):
         self.sim, self.frames, self.engine, self.strict_cfl = sim, frames, engine(sim), strict_cfl
         self.spec = spec = dataclasses.replace(sim.spec, substeps=substeps)
         self.t0, self.substeps, self.dt = sim.time, substeps, spec.dt
@@ -129,12 +130,12 @@ class _Run:
     def checkpoint(self, frame: int) -> State:
         return State(self.x[frame], self.v[frame], self.C[frame], self.F[frame], self.plastic[frame])
 
-
     def forward(self, param, mass, x0, v0, stage_accel) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         sim, T, n = self.sim, self.frames, self.sim.n
         self.stage_accel = stage_accel.detach().double()
-        self.particles = dataclasses.replace(self.spec.particles, param=param.detach().contiguous(),
-                                             mass=mass.detach().contiguous())
+        self.particles = dataclasses.replace(
+            self.spec.particles, param=param.detach().contiguous(), mass=mass.detach().contiguous()
+        )
         self.clamped = torch.zeros(n, dtype=torch.uint8)
         dtype = self.spec.dtype
         self.x = torch.empty(T + 1, n, 3, dtype=dtype)
@@ -157,23 +158,28 @@ class _Run:
                 raise SimulationError(
                     f"the differentiable run became NaN/inf during frame {f + 1} "
                     f"(t = {self.time(f + 1, 0):.4g} s); reduce dt (substeps per frame now {self.substeps}) "
-                    f"or the material stiffness / forces")
+                    f"or the material stiffness / forces"
+                )
             vmax = cfl_breach(a, self.dt, self.spec.grid.dx)
             if vmax is not None:
-                message = (f"differentiable run, frame {f + 1}: max speed {vmax:.3g} m/s breaks the CFL limit "
-                           f"at dt = {self.dt:.3g} s ({self.substeps} substeps per frame)")
+                message = (
+                    f"differentiable run, frame {f + 1}: max speed {vmax:.3g} m/s breaks the CFL limit "
+                    f"at dt = {self.dt:.3g} s ({self.substeps} substeps per frame)"
+                )
                 if self.strict_cfl:
                     raise SimulationError(message)
                 warnings.warn(message, StabilityWarning, stacklevel=4)
                 self.cfl_violation = self.cfl_violation or message
-            for buf, value in ((self.x, a.x), (self.v, a.v), (self.C, a.C), (self.F, a.F),
-                               (self.plastic, a.plastic)):
+            for buf, value in ((self.x, a.x), (self.v, a.v), (self.C, a.C), (self.F, a.F), (self.plastic, a.plastic)):
                 buf[f + 1] = value
         clamped = self.clamped_count = int(self.clamped.sum(dtype=torch.int64))
         if clamped:
-            warnings.warn(f"differentiable run: {clamped} particles left the grid and were clamped to its "
-                          f"boundary (no gradient flows along a clamped axis); enlarge the grid or add walls",
-                          RuntimeWarning, stacklevel=4)
+            warnings.warn(
+                f"differentiable run: {clamped} particles left the grid and were clamped to its "
+                f"boundary (no gradient flows along a clamped axis); enlarge the grid or add walls",
+                RuntimeWarning,
+                stacklevel=4,
+            )
         return self.x, self.v, self.F
 
     def backward(self, grad_x, grad_v, grad_F):
@@ -227,8 +233,16 @@ class _Run:
         return param_grad, mass_grad, grad.x, grad.v, stage_grad
 
 
-def memory_estimate(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype,
-                    segment: int | None = None, grid_copies: int = 0, flip: float = 0.0) -> int:
+def memory_estimate(
+    n: int,
+    nodes: int,
+    frames: int,
+    substeps: int,
+    dtype: torch.dtype,
+    segment: int | None = None,
+    grid_copies: int = 0,
+    flip: float = 0.0,
+) -> int:
     """Bytes a differentiable run of n particles on ``nodes`` grid nodes holds at its peak:
     per frame + 1, the checkpoint, the returned x, v, F and their gradients (25 + 15 + 15
     reals per particle); the replay of ``segment`` substeps at once (default: a whole frame),
@@ -247,8 +261,9 @@ def memory_estimate(n: int, nodes: int, frames: int, substeps: int, dtype: torch
     return itemsize * (checkpoints + replay + working + grid_copies * g * nodes)
 
 
-def replay_segment(n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype,
-                   memory_budget: int | None, flip: float = 0.0) -> int:
+def replay_segment(
+    n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype, memory_budget: int | None, flip: float = 0.0
+) -> int:
     """Substeps replayed at once in backward: a whole frame when that fits ``memory_budget``
     (bytes; None: no limit), else the longest segment that does (two-level checkpointing).
     InputError when not even one substep at a time fits."""
@@ -258,8 +273,10 @@ def replay_segment(n: int, nodes: int, frames: int, substeps: int, dtype: torch.
         if memory_estimate(n, nodes, frames, substeps, dtype, k, flip=flip) <= memory_budget:
             return k
     need = memory_estimate(n, nodes, frames, substeps, dtype, 1, flip=flip)
-    raise InputError(f"memory_budget {memory_budget / 2**20:.1f} MiB is too small for {frames} frames of {n} "
-                     f"particles: the checkpoints and a one-substep replay need {need / 2**20:.1f} MiB")
+    raise InputError(
+        f"memory_budget {memory_budget / 2**20:.1f} MiB is too small for {frames} frames of {n} "
+        f"particles: the checkpoints and a one-substep replay need {need / 2**20:.1f} MiB"
+    )
 
 
 class _Simulate(torch.autograd.Function):
@@ -301,8 +318,10 @@ def per_particle(value, n: int, name: str, dtype: torch.dtype, device, trailing:
     elif tuple(value.shape) == (n,) + trailing:
         out = value.to(dtype)
     else:
-        raise InputError(f"{name}: expected shape {list(trailing)} (global) or {[n, *trailing]} "
-                         f"(per particle), got {list(value.shape)}")
+        raise InputError(
+            f"{name}: expected shape {list(trailing)} (global) or {[n, *trailing]} "
+            f"(per particle), got {list(value.shape)}"
+        )
     if not bool(torch.isfinite(out.detach()).all()):
         raise InputError(f"{name} contains NaN or inf")
     return out
@@ -336,8 +355,10 @@ def _material_param_rows(sim: Simulator, params: dict, dtype: torch.dtype) -> to
     known = {name for m in present for name in KERNEL_PARAMETERS[m]}
     unknown = sorted(set(params) - known)
     if unknown:
-        raise InputError(f"params: {', '.join(unknown)} is not a parameter of the simulated material(s) "
-                         f"{', '.join(present)}; their parameters: {', '.join(sorted(known))}")
+        raise InputError(
+            f"params: {', '.join(unknown)} is not a parameter of the simulated material(s) "
+            f"{', '.join(present)}; their parameters: {', '.join(sorted(known))}"
+        )
     rows = {name: per_particle(value, n, name, dtype, sim.device) for name, value in params.items()}
     columns = [base.param[:, k] for k in range(base.param.shape[1])]
     for kernel_material in present:
@@ -434,21 +455,28 @@ def simulate(
     stages = sim.drivers.stage_accel.shape[0]
     stage_accel = sim.drivers.stage_accel if stage_accelerations is None else torch.as_tensor(stage_accelerations)
     if tuple(stage_accel.shape) != (stages, 3):
-        raise InputError(f"stage_accelerations: expected shape [{stages}, 3] (one row per force stage), "
-                         f"got {list(stage_accel.shape)}")
+        raise InputError(
+            f"stage_accelerations: expected shape [{stages}, 3] (one row per force stage), "
+            f"got {list(stage_accel.shape)}"
+        )
     stage_accel = stage_accel.to(dtype)
     substeps = sim.substeps
     for _ in range(int(retries)):
         try:
             run = _Run(sim, int(frames), substeps, memory_budget, strict_cfl=True)
-            return Frames(*_Simulate.apply(run, param, mass, x0, v0, stage_accel), substeps=substeps,
-                          clamped=run.clamped_count)
+            return Frames(
+                *_Simulate.apply(run, param, mass, x0, v0, stage_accel), substeps=substeps, clamped=run.clamped_count
+            )
         except SimulationError as err:
             warnings.warn(f"{err}; retrying with {2 * substeps} substeps per frame", StabilityWarning, stacklevel=2)
             substeps *= 2
     run = _Run(sim, int(frames), substeps, memory_budget)
-    return Frames(*_Simulate.apply(run, param, mass, x0, v0, stage_accel), substeps=substeps,
-                  clamped=run.clamped_count, cfl_violation=run.cfl_violation)
+    return Frames(
+        *_Simulate.apply(run, param, mass, x0, v0, stage_accel),
+        substeps=substeps,
+        clamped=run.clamped_count,
+        cfl_violation=run.cfl_violation,
+    )
 
 
 def _stage_members(simulator: Simulator, stage: int) -> torch.Tensor:
@@ -460,9 +488,20 @@ def _stage_members(simulator: Simulator, stage: int) -> torch.Tensor:
 def region_masses(simulator: Simulator) -> torch.Tensor:
     """[S] total mass (kg) of the particles each driver stage acts on (float64)."""
     mass = simulator.particles.mass.double()
-    return torch.stack([mass[_stage_members(simulator, s)].sum() for s in range(len(simulator.drivers.forces))]
-                       ) if simulator.drivers.forces else torch.zeros(0, dtype=torch.float64)
+    return (
+        torch.stack([mass[_stage_members(simulator, s)].sum() for s in range(len(simulator.drivers.forces))])
+        if simulator.drivers.forces
+        else torch.zeros(0, dtype=torch.float64)
+    )
 
 
-__all__ = ["KERNEL_PARAMETERS", "Frames", "engine", "memory_estimate", "per_particle", "region_masses",
-           "replay_segment", "simulate"]
+__all__ = [
+    "KERNEL_PARAMETERS",
+    "Frames",
+    "engine",
+    "memory_estimate",
+    "per_particle",
+    "region_masses",
+    "replay_segment",
+    "simulate",
+]

@@ -59,8 +59,13 @@ class HalfSpace:
             raise InputError(f"collider mode {self.mode!r} unknown; choose one of {', '.join(COLLIDER_MODES)}")
         if not (self.friction >= 0 and math.isfinite(self.friction)):
             raise InputError(f"collider friction must be a finite number >= 0, got {self.friction}")
-        return ([BC_HALFSPACE] + _window(self.start, self.end, "collider") + vec3(self.point, "collider point")
-                + _unit(self.normal, "collider normal") + [COLLIDER_MODES[self.mode], float(self.friction)])
+        return (
+            [BC_HALFSPACE]
+            + _window(self.start, self.end, "collider")
+            + vec3(self.point, "collider point")
+            + _unit(self.normal, "collider normal")
+            + [COLLIDER_MODES[self.mode], float(self.friction)]
+        )
 
 
 @dataclass(frozen=True)
@@ -100,9 +105,13 @@ class RotatingCylinder:
             raise InputError(f"cylinder radius and half_length must be > 0, got {self.radius}, {self.half_length}")
         if not math.isfinite(self.angular_velocity):
             raise InputError(f"cylinder angular_velocity must be finite, got {self.angular_velocity}")
-        return ([BC_CYLINDER] + _window(self.start, self.end, "cylinder") + vec3(self.center, "cylinder center")
-                + _unit(self.axis, "cylinder axis") + [float(self.radius), float(self.half_length),
-                                                        float(self.angular_velocity)])
+        return (
+            [BC_CYLINDER]
+            + _window(self.start, self.end, "cylinder")
+            + vec3(self.center, "cylinder center")
+            + _unit(self.axis, "cylinder axis")
+            + [float(self.radius), float(self.half_length), float(self.angular_velocity)]
+        )
 
 
 GridCondition = Union[HalfSpace, Box, RotatingCylinder]
@@ -146,8 +155,10 @@ class Force:
         region = self.region
         if isinstance(region, torch.Tensor):
             if region.dtype != torch.bool or region.shape != x0.shape[:1]:
-                raise InputError(f"force region mask must be a bool tensor of shape [{x0.shape[0]}], "
-                                 f"got {region.dtype} {tuple(region.shape)}")
+                raise InputError(
+                    f"force region mask must be a bool tensor of shape [{x0.shape[0]}], "
+                    f"got {region.dtype} {tuple(region.shape)}"
+                )
             mask = region
         else:
             mask = region.select(x0)
@@ -200,8 +211,9 @@ class DriverGroups:
         return ((self.members.double() * self.active(t)) @ stage_accel).to(dtype).contiguous()
 
 
-def layer_release_times(x: torch.Tensor, layers: int, interval: float, axis: int = 1,
-                        top_first: bool = True) -> torch.Tensor:
+def layer_release_times(
+    x: torch.Tensor, layers: int, interval: float, axis: int = 1, top_first: bool = True
+) -> torch.Tensor:
     """Release times [N] (s) that free the particles in ``layers`` equal slabs along ``axis``,
     one slab every ``interval`` seconds (the top slab at t = 0 when ``top_first``)."""
     if layers < 1 or not interval >= 0:

@@ -73,8 +73,10 @@ class Parameterization:
             if bool(outside.any()):
                 shown = f"{float(value):g}" if value.dim() == 0 else str(value[outside].tolist())
                 unit = "" if self.param.unit == "1" else f" {self.param.unit}"
-                raise InputError(f"{name} ({self.param.symbol}) = {shown}{unit} is outside the open range "
-                                 f"({lo:g}, {hi:g}) that its optimisation variable covers")
+                raise InputError(
+                    f"{name} ({self.param.symbol}) = {shown}{unit} is outside the open range "
+                    f"({lo:g}, {hi:g}) that its optimisation variable covers"
+                )
             a, b = self.logistic
             u = (value - lo) / (hi - lo)
             return (torch.log(u) - torch.log1p(-u) - b) / a

@@ -19,8 +19,9 @@ def _view_rotation(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
     return tilt @ turn
 
 
-def render_points(x: torch.Tensor, lower, upper, size: int = 512, azimuth: float = 30.0,
-                  elevation: float = 20.0) -> np.ndarray:
+def render_points(
+    x: torch.Tensor, lower, upper, size: int = 512, azimuth: float = 30.0, elevation: float = 20.0
+) -> np.ndarray:
     """[size, size, 3] uint8 RGB image of positions x [N, 3] (m) from an orthographic camera
     looking at the box [lower, upper] from ``azimuth`` / ``elevation`` (degrees, y up);
     nearer points are brighter and drawn over farther ones."""

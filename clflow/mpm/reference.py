@@ -90,7 +90,9 @@ def constitutive(material_id: int, F_tr, C, q, plastic, dt):
         return F_tr, plastic, fixed_corotated_tau(F_tr, U, s, V, q[:, 0], q[:, 1])
     if material_id == ids["neo_hookean"]:
         J = torch.clamp(torch.linalg.det(F_tr), min=HENCKY_S_MIN**3)
-        tau = q[:, 0, None, None] * (F_tr @ F_tr.transpose(-1, -2) - eye) + (q[:, 1] * torch.log(J))[:, None, None] * eye
+        tau = (
+            q[:, 0, None, None] * (F_tr @ F_tr.transpose(-1, -2) - eye) + (q[:, 1] * torch.log(J))[:, None, None] * eye
+        )
         return F_tr, plastic, tau
     if material_id == ids["newtonian"]:
         J = torch.clamp(torch.linalg.det(F_tr), min=NEWTONIAN_J_MIN)
@@ -179,7 +181,9 @@ def _apply_boundaries(grid: Grid, v, active, boundaries, t):
         kind, t0, t1 = int(rec[BC_SLOTS["BC_KIND"]]), rec[BC_SLOTS["BC_T_START"]], rec[BC_SLOTS["BC_T_END"]]
         if not (t0 <= t < t1):
             continue
-        a, b, c = (torch.tensor(rec[BC_SLOTS[name] : BC_SLOTS[name] + 3], dtype=v.dtype) for name in ("BC_A", "BC_B", "BC_C"))
+        a, b, c = (
+            torch.tensor(rec[BC_SLOTS[name] : BC_SLOTS[name] + 3], dtype=v.dtype) for name in ("BC_A", "BC_B", "BC_C")
+        )
         if kind == BC_HALFSPACE:
             inside = active & (((xi - a) * b).sum(-1) < 0)
             vn = (v * b).sum(-1)
@@ -189,9 +193,14 @@ def _apply_boundaries(grid: Grid, v, active, boundaries, t):
             else:
                 vt = v - vn[:, None] * b
                 vt_norm = vt.norm(dim=-1)
-                friction = rec[BC_SLOTS["BC_FRICTION"]] * torch.clamp(-vn, min=0)  # Coulomb: only while moving into the surface
-                keep = torch.where(vt_norm > friction, 1 - friction / torch.where(vt_norm > 0, vt_norm, 1.0),
-                                   (friction == 0).to(v.dtype))
+                friction = rec[BC_SLOTS["BC_FRICTION"]] * torch.clamp(
+                    -vn, min=0
+                )  # Coulomb: only while moving into the surface
+                keep = torch.where(
+                    vt_norm > friction,
+                    1 - friction / torch.where(vt_norm > 0, vt_norm, 1.0),
+                    (friction == 0).to(v.dtype),
+                )
                 new = keep[:, None] * vt
                 if mode == COLLIDER_MODES["separate"]:
                     inside = inside & (vn < 0)
@@ -202,8 +211,11 @@ def _apply_boundaries(grid: Grid, v, active, boundaries, t):
             r = xi - a
             along = (r * b).sum(-1)
             radial = r - along[:, None] * b
-            inside = (active & (along.abs() <= rec[BC_SLOTS["BC_HALF_LENGTH"]])
-                      & ((radial * radial).sum(-1) <= rec[BC_SLOTS["BC_RADIUS"]] ** 2))
+            inside = (
+                active
+                & (along.abs() <= rec[BC_SLOTS["BC_HALF_LENGTH"]])
+                & ((radial * radial).sum(-1) <= rec[BC_SLOTS["BC_RADIUS"]] ** 2)
+            )
             new = rec[BC_SLOTS["BC_OMEGA"]] * torch.cross(b.expand_as(r), r, dim=-1)
         else:
             raise ValueError(f"unknown boundary kind {kind}")
@@ -265,12 +277,15 @@ def substep(
         dv += w[:, None] * grid_dv[node]
         C_new += (4 / grid.dx**2) * w[:, None, None] * vi[:, :, None] * d[:, None, :]
     v_new = flip * (state.v + dv) + (1 - flip) * v_pic
-    released = (t >= particles.release_time)
+    released = t >= particles.release_time
     v_new = torch.where(released[:, None], v_new, 0.0)
     C_new = torch.where(released[:, None, None], C_new, 0.0)
     moved = state.x + dt * torch.where(released[:, None], v_pic, 0.0)
     lo = torch.tensor(grid.origin, dtype=dtype) + CLAMP_MARGIN * grid.dx
-    hi = torch.tensor(grid.origin, dtype=dtype) + (torch.tensor(grid.resolution, dtype=dtype) - 1 - CLAMP_MARGIN) * grid.dx
+    hi = (
+        torch.tensor(grid.origin, dtype=dtype)
+        + (torch.tensor(grid.resolution, dtype=dtype) - 1 - CLAMP_MARGIN) * grid.dx
+    )
     x_new = torch.minimum(torch.maximum(moved, lo), hi)
     clamped = int(((x_new != moved).any(-1) & released).sum())
     x_new = torch.where(released[:, None], x_new, state.x)

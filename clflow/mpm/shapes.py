@@ -42,9 +42,24 @@ def lattice_fill(shape: str, size: float, center, spacing: float) -> torch.Tenso
 
 def _read_ply_vertices(path: Path) -> np.ndarray:
     """x, y, z of the vertex element of an ASCII or binary little-endian PLY file."""
-    types = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",
-             "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
-             "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8"}
+    types = {
+        "char": "i1",
+        "uchar": "u1",
+        "short": "i2",
+        "ushort": "u2",
+        "int": "i4",
+        "uint": "u4",
+        "float": "f4",
+        "double": "f8",
+        "int8": "i1",
+        "uint8": "u1",
+        "int16": "i2",
+        "uint16": "u2",
+        "int32": "i4",
+        "uint32": "u4",
+        "float32": "f4",
+        "float64": "f8",
+    }
     with open(path, "rb") as f:
         if f.readline().strip() != b"ply":
             raise InputError(f"{path}: not a PLY file (no 'ply' magic line)")

@@ -1,9 +1,9 @@
 """The MLS-MPM simulator: particles, materials, boundaries and time settings -> trajectories.
 
-    from clflow.mpm import Simulator, MaterialSpec, Grid, HalfSpace
-    sim = Simulator(positions, volume=1e-6, materials=MaterialSpec("elastic", {"youngs_modulus": 1e5}),
-                    grid=Grid((64, 64, 64), dx=1 / 64), frame_dt=1 / 24)
-    traj = sim.run(frames=24)          # traj.x [25, N, 3] (m), frame 0 is the initial state
+from clflow.mpm import Simulator, MaterialSpec, Grid, HalfSpace
+sim = Simulator(positions, volume=1e-6, materials=MaterialSpec("elastic", {"youngs_modulus": 1e5}),
+                grid=Grid((64, 64, 64), dx=1 / 64), frame_dt=1 / 24)
+traj = sim.run(frames=24)          # traj.x [25, N, 3] (m), frame 0 is the initial state
 """
 
 from __future__ import annotations
@@ -59,9 +59,16 @@ class FrameProgress:
             self.last = now
             done = frame * self.substeps + substep + 1
             total = self.frames * self.substeps
-            log.info("%s: frame %d/%d, substep %d/%d, %.0f s so far, about %.0f s left", self.what, frame + 1,
-                     self.frames, substep + 1, self.substeps, now - self.start,
-                     (now - self.start) * (total - done) / done)
+            log.info(
+                "%s: frame %d/%d, substep %d/%d, %.0f s so far, about %.0f s left",
+                self.what,
+                frame + 1,
+                self.frames,
+                substep + 1,
+                self.substeps,
+                now - self.start,
+                (now - self.start) * (total - done) / done,
+            )
 
 
 class SimulationError(ClflowError):
@@ -137,8 +144,9 @@ def _material_arrays(materials, material_index, n: int, dtype: torch.dtype):
         if index.shape != (n,):
             raise InputError(f"material_index: expected shape [{n}], got {list(index.shape)}")
         if int(index.min()) < 0 or int(index.max()) >= len(specs):
-            raise InputError(f"material_index values must lie in [0, {len(specs)}), got "
-                             f"[{int(index.min())}, {int(index.max())}]")
+            raise InputError(
+                f"material_index values must lie in [0, {len(specs)}), got [{int(index.min())}, {int(index.max())}]"
+            )
     rows, densities, plastic0, limits = [], [], [], []
     for k, spec in enumerate(specs):
         mat = get_material(spec.name)
@@ -147,8 +155,11 @@ def _material_arrays(materials, material_index, n: int, dtype: torch.dtype):
         rows.append([mid] + values)
         densities.append(rho)
         plastic0.append(plastic)
-        limits.append(MaterialLimits(mat.name, wave_speed(mat.name, spec.params, rho),
-                                     explicit_viscosity(mat.name, spec.params), rho))
+        limits.append(
+            MaterialLimits(
+                mat.name, wave_speed(mat.name, spec.params, rho), explicit_viscosity(mat.name, spec.params), rho
+            )
+        )
     table = torch.tensor(rows, dtype=torch.float64)[index]
     return (
         table[:, 0].to(torch.int32).contiguous(),
@@ -274,7 +285,11 @@ class Simulator:
             raise InputError("positions: the particle set is empty")
         x = _as_tensor(positions, (n, 3), "positions", dtype)
         check_inside(x, grid)
-        v = torch.zeros(n, 3, dtype=dtype) if velocities is None else _as_tensor(velocities, (n, 3), "velocities", dtype)
+        v = (
+            torch.zeros(n, 3, dtype=dtype)
+            if velocities is None
+            else _as_tensor(velocities, (n, 3), "velocities", dtype)
+        )
         vol = _as_tensor(volume, (n,), "volume", torch.float64)
         if not bool((vol > 0).all()):
             raise InputError("volume: every particle volume must be > 0 m^3")
@@ -291,8 +306,12 @@ class Simulator:
                 raise InputError(f"release_times: expected [{n}] numbers, got shape {list(release.shape)}")
             release = release.to(dtype).contiguous()
         particles = Particles(
-            mass=mass.to(dtype).contiguous(), volume=vol.to(dtype).contiguous(), material=material, param=param,
-            group=drivers.group.contiguous(), release_time=release,
+            mass=mass.to(dtype).contiguous(),
+            volume=vol.to(dtype).contiguous(),
+            material=material,
+            param=param,
+            group=drivers.group.contiguous(),
+            release_time=release,
             mass_eps=MASS_EPS_REL * float(mass.min()),
         )
         eye = torch.eye(3, dtype=dtype).expand(n, 3, 3).contiguous()
@@ -309,8 +328,18 @@ class Simulator:
             raise InputError(f"gravity must be 3 finite numbers (m/s^2), got {gravity!r}")
         if not (frame_dt > 0 and math.isfinite(frame_dt)):
             raise InputError(f"frame_dt must be a positive number of seconds, got {frame_dt}")
-        self.spec = SimulationSpec(particles, grid, boundary_table(conditions, dtype), drivers, gravity_,
-                                   float(frame_dt), 1, float(flip), dtype, tuple(material_limits))
+        self.spec = SimulationSpec(
+            particles,
+            grid,
+            boundary_table(conditions, dtype),
+            drivers,
+            gravity_,
+            float(frame_dt),
+            1,
+            float(flip),
+            dtype,
+            tuple(material_limits),
+        )
         auto = self.stable_substeps(v)
         if substeps is None:
             substeps = auto
@@ -320,7 +349,8 @@ class Simulator:
             warnings.warn(
                 f"dt = {self.frame_dt / int(substeps):.3g} s exceeds the stable limit {self.frame_dt / auto:.3g} s "
                 f"({self.limit_reason(v)}); use substeps >= {auto} per frame (or substeps=None to choose it)",
-                StabilityWarning, stacklevel=2,
+                StabilityWarning,
+                stacklevel=2,
             )
         self.use_substeps(substeps)
         self.time = 0.0
@@ -343,12 +373,16 @@ class Simulator:
         limits = []
         for m in self.material_limits:
             if m.wave_speed > 0:
-                limits.append((WAVE_NUMBER * dx / m.wave_speed,
-                               f"elastic wave speed {m.wave_speed:.3g} m/s of {m.name}"))
+                limits.append(
+                    (WAVE_NUMBER * dx / m.wave_speed, f"elastic wave speed {m.wave_speed:.3g} m/s of {m.name}")
+                )
             if m.viscosity > 0:
-                limits.append((VISCOUS_NUMBER * m.density * dx**2 / m.viscosity,
-                               f"viscous diffusion of {m.name}, viscosity {m.viscosity:.3g} Pa s at "
-                               f"{m.density:.3g} kg/m^3"))
+                limits.append(
+                    (
+                        VISCOUS_NUMBER * m.density * dx**2 / m.viscosity,
+                        f"viscous diffusion of {m.name}, viscosity {m.viscosity:.3g} Pa s at {m.density:.3g} kg/m^3",
+                    )
+                )
         vmax = float(v.double().norm(dim=-1).max()) if v.numel() else 0.0
         if vmax > 0:
             limits.append((CFL_NUMBER * dx / vmax, f"CFL with max speed {vmax:.3g} m/s"))
@@ -359,8 +393,10 @@ class Simulator:
         limits = self._dt_limits(self.state.v if v is None else v)
         dt_max, reason = min(limits, default=(self.frame_dt, ""))
         if not dt_max > 0:  # a speed so large its square overflows: the run has blown up
-            raise SimulationError(f"no stable time step is left ({reason}): the simulation blew up; use smaller "
-                                  f"substeps (simulation.substep_dt) or check the material parameters and forces")
+            raise SimulationError(
+                f"no stable time step is left ({reason}): the simulation blew up; use smaller "
+                f"substeps (simulation.substep_dt) or check the material parameters and forces"
+            )
         return max(1, math.ceil(self.frame_dt / dt_max * (1 - 1e-12)))
 
     def use_substeps(self, substeps: int) -> None:
@@ -393,8 +429,9 @@ class Simulator:
 
     def substep_inputs(self) -> SubstepInputs:
         """What the next substep reads besides the state (at the current time)."""
-        return SubstepInputs(self.particles, self.time, self.dt, self.gravity, self.boundaries,
-                             self.drivers.accel(self.time, self.dtype))
+        return SubstepInputs(
+            self.particles, self.time, self.dt, self.gravity, self.boundaries, self.drivers.accel(self.time, self.dtype)
+        )
 
     def step(self) -> None:
         """Advance one substep (dt seconds)."""
@@ -422,12 +459,20 @@ class Simulator:
             )
         count = int(self._clamped.sum(dtype=torch.int64))
         if count:
-            warnings.warn(f"frame {self.frame}: {count} particles left the grid and were clamped to "
-                          f"its boundary (enlarge the grid or add walls)", RuntimeWarning, stacklevel=2)
+            warnings.warn(
+                f"frame {self.frame}: {count} particles left the grid and were clamped to "
+                f"its boundary (enlarge the grid or add walls)",
+                RuntimeWarning,
+                stacklevel=2,
+            )
         vmax = cfl_breach(self.state, self.dt, self.grid.dx)
         if vmax is not None:
-            warnings.warn(f"frame {self.frame}: max speed {vmax:.3g} m/s breaks the CFL limit at dt = {self.dt:.3g} s; "
-                          f"use substeps >= {self.stable_substeps()}", StabilityWarning, stacklevel=2)
+            warnings.warn(
+                f"frame {self.frame}: max speed {vmax:.3g} m/s breaks the CFL limit at dt = {self.dt:.3g} s; "
+                f"use substeps >= {self.stable_substeps()}",
+                StabilityWarning,
+                stacklevel=2,
+            )
         return count
 
     def run(self, frames: int, on_frame: Callable[[int], None] | None = None) -> Trajectory:
@@ -445,8 +490,10 @@ class Simulator:
         finally:
             self._progress = None
         return Trajectory(
-            x=torch.stack([s[0] for s in snaps]), v=torch.stack([s[1] for s in snaps]),
-            F=torch.stack([s[2] for s in snaps]), plastic=torch.stack([s[3] for s in snaps]),
+            x=torch.stack([s[0] for s in snaps]),
+            v=torch.stack([s[1] for s in snaps]),
+            F=torch.stack([s[2] for s in snaps]),
+            plastic=torch.stack([s[3] for s in snaps]),
             time=torch.tensor([s[4] for s in snaps], dtype=torch.float64),
             clamped=torch.tensor([s[5] for s in snaps], dtype=torch.int64),
         )

@@ -145,8 +145,12 @@ class StressStage:
         defines = self.defines(0.0)
         build = lambda source, name: device.kernel(source, name, real, defines)  # noqa: E731
         source = "mpm/adjoint/stress_adjoint.cl" if adjoint else "mpm/stress.cl"
-        name = {(False, False): "update_stress", (False, True): "update_stress_elastic_simd",
-                (True, False): "update_stress_adjoint", (True, True): "update_stress_elastic_adjoint_simd"}
+        name = {
+            (False, False): "update_stress",
+            (False, True): "update_stress_elastic_simd",
+            (True, False): "update_stress_adjoint",
+            (True, True): "update_stress_elastic_adjoint_simd",
+        }
         svd = build("mpm/stress.cl", "trial_svd_simd") if self.needs_svd else None
         return build(source, name[adjoint, self.elastic_only]), svd
 
@@ -192,8 +196,12 @@ class SubstepTape:
 
     @staticmethod
     def empty(n: int, nodes: int, dtype: torch.dtype, flip: float = 0.0) -> "SubstepTape":
-        return SubstepTape(torch.empty(n, 3, 3, dtype=dtype), torch.empty(nodes, grid_channels(flip), dtype=dtype),
-                           torch.empty(nodes, 3, dtype=dtype), torch.empty(nodes if flip > 0 else 1, 3, dtype=dtype))
+        return SubstepTape(
+            torch.empty(n, 3, 3, dtype=dtype),
+            torch.empty(nodes, grid_channels(flip), dtype=dtype),
+            torch.empty(nodes, 3, dtype=dtype),
+            torch.empty(nodes if flip > 0 else 1, 3, dtype=dtype),
+        )
 
 
 def check_grid_memory(info, grid: Grid, itemsize: int, flip: float = 0.0) -> None:
@@ -211,7 +219,8 @@ def check_grid_memory(info, grid: Grid, itemsize: int, flip: float = 0.0) -> Non
             f"a {size} grid ({nodes:,} nodes) needs {format_bytes(total)} of device memory, buffers up to "
             f"{format_bytes(largest)}; {info.name} has {format_bytes(info.global_mem_size)}, buffers up to "
             f"{format_bytes(info.max_mem_alloc_size)}: use a coarser grid (simulation.grid_resolution or "
-            f"--grid) or a smaller simulation.domain")
+            f"--grid) or a smaller simulation.domain"
+        )
 
 
 def launch_stress(owner, b, dt: float, F, C, elastic_args: list, svd_args: list) -> None:
@@ -236,8 +245,16 @@ class SubstepKernels:
     with their scratch buffers (U, s, V of F_tr, the private P2G grid copies and a
     :class:`SubstepTape` for runs that keep none)."""
 
-    def __init__(self, device: Device, dtype: torch.dtype, n: int, grid: Grid, materials: torch.Tensor,
-                 p2g: P2GMode = "auto", flip: float = 0.0):
+    def __init__(
+        self,
+        device: Device,
+        dtype: torch.dtype,
+        n: int,
+        grid: Grid,
+        materials: torch.Tensor,
+        p2g: P2GMode = "auto",
+        flip: float = 0.0,
+    ):
         import pyopencl as cl
 
         self.device, self.dtype, self.n, self.grid, self.flip = device, dtype, n, grid, float(flip)
@@ -290,16 +307,39 @@ class SubstepKernels:
             grid_mv, grid_v = b.inout(tape.grid_mv, "grid"), b.inout(tape.grid_v, "grid_v")
             grid_dv = b.inout(tape.grid_dv, "grid_dv")
             F, plastic = b.input(state.F, "F"), b.input(state.plastic, "plastic")
-            param, F_out, plastic_out = b.input(particles.param, "param"), b.output(out.F, "F_out"), b.output(
-                out.plastic, "plastic_out")
-            launch_stress(self, b, dt, F, C, [plastic, param, F_out, plastic_out, tau],
-                          [plastic, b.input(particles.material, "material"), param, F_out, plastic_out, tau])
-            p2g_args = [n, R(dt), x, v, C, tau, b.input(particles.mass, "mass"),
-                        b.input(particles.volume, "volume"), b.input(particles.group, "group"),
-                        b.input(accel, "accel")]
+            param, F_out, plastic_out = (
+                b.input(particles.param, "param"),
+                b.output(out.F, "F_out"),
+                b.output(out.plastic, "plastic_out"),
+            )
+            launch_stress(
+                self,
+                b,
+                dt,
+                F,
+                C,
+                [plastic, param, F_out, plastic_out, tau],
+                [plastic, b.input(particles.material, "material"), param, F_out, plastic_out, tau],
+            )
+            p2g_args = [
+                n,
+                R(dt),
+                x,
+                v,
+                C,
+                tau,
+                b.input(particles.mass, "mass"),
+                b.input(particles.volume, "volume"),
+                b.input(particles.group, "group"),
+                b.input(accel, "accel"),
+            ]
             if self.p2g == "private":
-                dev.launch(self.k_p2g, self.copies, grid_args + p2g_args +
-                           [np.int32(self.copies), np.int32(self.chunk), self.grid_copies], local_size=1)
+                dev.launch(
+                    self.k_p2g,
+                    self.copies,
+                    grid_args + p2g_args + [np.int32(self.copies), np.int32(self.chunk), self.grid_copies],
+                    local_size=1,
+                )
                 size = tape.grid_mv.numel()
                 dev.launch(self.k_reduce, size, [np.int64(size), np.int32(self.copies), self.grid_copies, grid_mv])
             else:
@@ -313,9 +353,20 @@ class SubstepKernels:
             dev.launch(
                 self.k_g2p,
                 self.n,
-                grid_args + [n, R(dt), R(t), R(self.flip), x, v, grid_v, grid_dv,
-                             b.input(particles.release_time, "release_time"),
-                             b.output(out.x, "x_out"), b.output(out.v, "v_out"), b.output(out.C, "C_out"),
-                             b.inout(clamped, "clamped", torch.uint8)],
+                grid_args
+                + [
+                    n,
+                    R(dt),
+                    R(t),
+                    R(self.flip),
+                    x,
+                    v,
+                    grid_v,
+                    grid_dv,
+                    b.input(particles.release_time, "release_time"),
+                    b.output(out.x, "x_out"),
+                    b.output(out.v, "v_out"),
+                    b.output(out.C, "C_out"),
+                    b.inout(clamped, "clamped", torch.uint8),
+                ],
             )
-

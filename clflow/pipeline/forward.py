@@ -53,8 +53,13 @@ def prepare(cfg: SceneConfig, dtype: torch.dtype = torch.float32) -> Prepared:
     obj = gaussians.select(mask.nonzero().flatten())
     static = gaussians.select((~mask).nonzero().flatten())
     setup = setup_object(cfg, obj)
-    log.info("object: %d Gaussians + %d fill particles; grid %s, dx %.4g m", setup.particles.n_gaussians,
-             setup.particles.n_fill, setup.grid.resolution, setup.grid.dx)
+    log.info(
+        "object: %d Gaussians + %d fill particles; grid %s, dx %.4g m",
+        setup.particles.n_gaussians,
+        setup.particles.n_fill,
+        setup.grid.resolution,
+        setup.grid.dx,
+    )
     return Prepared(cfg, static, obj, setup, guidance_camera(cfg))
 
 
@@ -70,9 +75,13 @@ def material_values(cfg: SceneConfig, overrides: dict[str, float] | None = None)
     return params, density
 
 
-def simulate_config(cfg: SceneConfig, overrides: dict[str, float] | None = None,
-                    prepared: Prepared | None = None, max_substeps: int | None = None,
-                    on_frame: Callable[[int], None] | None = None) -> SimulationResult:
+def simulate_config(
+    cfg: SceneConfig,
+    overrides: dict[str, float] | None = None,
+    prepared: Prepared | None = None,
+    max_substeps: int | None = None,
+    on_frame: Callable[[int], None] | None = None,
+) -> SimulationResult:
     """Run the config's simulation (no gradients) with its material or ``overrides``, calling
     ``on_frame(k)`` after frame k. First log the substeps and the predicted time, and refuse
     (SubstepLimitError) a run needing more substeps per frame than ``max_substeps`` (default
@@ -82,8 +91,12 @@ def simulate_config(cfg: SceneConfig, overrides: dict[str, float] | None = None,
     prepared = prepared or prepare(cfg)
     params, density = material_values(cfg, overrides)
     max_substeps = cfg.simulation.max_substeps if max_substeps is None else max_substeps
-    log.info("%s", describe(plan_run(cfg, prepared.setup, params, density, max_substeps=max_substeps),
-                            "simulation", gradient=False))
+    log.info(
+        "%s",
+        describe(
+            plan_run(cfg, prepared.setup, params, density, max_substeps=max_substeps), "simulation", gradient=False
+        ),
+    )
     sim = build_simulator(cfg, prepared.setup, params, density)
     traj = sim.run(cfg.simulation.frames, on_frame)
     return SimulationResult(prepared, params, density, traj.x, traj.F, traj.clamped, sim.substeps)

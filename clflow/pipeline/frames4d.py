@@ -60,7 +60,9 @@ class Frames4D:
         return Gaussians.from_covariances(
             torch.cat([get("object_means", t), get("static_means")]),
             torch.cat([get("object_covariances", t), get("static_covariances")]),
-            get("opacities"), sh=get("sh"), colors=get("colors"),
+            get("opacities"),
+            sh=get("sh"),
+            colors=get("colors"),
             sh_rotations=torch.cat([get("object_sh_rotations", t), get("static_sh_rotations")]),
         )
 
@@ -68,8 +70,13 @@ class Frames4D:
         from clflow.splat.cameras import Camera
 
         width, height = (int(v) for v in self.arrays["camera_size"])
-        return Camera(torch.from_numpy(self.arrays["camera_viewmat"]).double(),
-                      torch.from_numpy(self.arrays["camera_K"]).double(), width, height, "guidance")
+        return Camera(
+            torch.from_numpy(self.arrays["camera_viewmat"]).double(),
+            torch.from_numpy(self.arrays["camera_K"]).double(),
+            width,
+            height,
+            "guidance",
+        )
 
     def object_center(self) -> np.ndarray:
         """Centre (m) of the object's Gaussians at rest: the orbit's target."""
@@ -114,11 +121,16 @@ def export_gaussians(result, folder: Path, object_only: bool = False, compressed
         "object_means": np.stack([f32(f.means[:n]) for f in frames]),
         "object_covariances": np.stack([f32(f.covariances[:n]) for f in frames]),
         "object_sh_rotations": np.stack([f32(f.sh_rotations[:n]) for f in frames]),
-        "static_means": f32(static.means), "static_covariances": f32(static.covariances),
-        "static_sh_rotations": f32(first.sh_rotations[n:]), "opacities": f32(first.opacities),
-        "time": np.arange(len(frames)) / cfg.simulation.fps, "fps": np.float64(cfg.simulation.fps),
-        "camera_viewmat": cam.viewmat.double().numpy(), "camera_K": cam.K.double().numpy(),
-        "camera_size": np.array([cam.width, cam.height]), "scale": np.float64(cfg.scale),
+        "static_means": f32(static.means),
+        "static_covariances": f32(static.covariances),
+        "static_sh_rotations": f32(first.sh_rotations[n:]),
+        "opacities": f32(first.opacities),
+        "time": np.arange(len(frames)) / cfg.simulation.fps,
+        "fps": np.float64(cfg.simulation.fps),
+        "camera_viewmat": cam.viewmat.double().numpy(),
+        "camera_K": cam.K.double().numpy(),
+        "camera_size": np.array([cam.width, cam.height]),
+        "scale": np.float64(cfg.scale),
         "up_rotation": up_rotation(cfg.up).numpy(),
     }
     arrays["sh" if first.sh is not None else "colors"] = f32(first.sh if first.sh is not None else first.colors)
@@ -127,8 +139,10 @@ def export_gaussians(result, folder: Path, object_only: bool = False, compressed
     if object_only:
         save(folder / f"{STATIC_NAME}{suffix}", file_gaussians(static, cfg.scale, cfg.up, turned=0))
     for t, g in enumerate(frames):
-        save(folder / f"frame_{t:03d}{suffix}",
-             file_gaussians(g.select(torch.arange(n)) if object_only else g, cfg.scale, cfg.up, turned=n))
+        save(
+            folder / f"frame_{t:03d}{suffix}",
+            file_gaussians(g.select(torch.arange(n)) if object_only else g, cfg.scale, cfg.up, turned=n),
+        )
 
 
 def file_gaussians(g: Gaussians, scale: float, up: str, turned: int) -> Gaussians:
@@ -149,8 +163,13 @@ def file_gaussians(g: Gaussians, scale: float, up: str, turned: int) -> Gaussian
         turns = R_up.T if g.sh_rotations is None else R_up.T @ g.sh_rotations[:turned].double()
         sh = torch.cat([rotate_sh(sh[:turned], turns.expand(turned, 3, 3)), sh[turned:]])
     return Gaussians.from_activated(
-        means, rotmat_to_quat(axes), variances.clamp(min=1e-20).sqrt(), g.opacities.double().clamp(1e-6, 1 - 1e-6),
-        sh=sh, colors=None if g.colors is None else g.colors.double())
+        means,
+        rotmat_to_quat(axes),
+        variances.clamp(min=1e-20).sqrt(),
+        g.opacities.double().clamp(1e-6, 1 - 1e-6),
+        sh=sh,
+        colors=None if g.colors is None else g.colors.double(),
+    )
 
 
 def load_frames(folder: str | Path) -> Frames4D:
@@ -159,8 +178,17 @@ def load_frames(folder: str | Path) -> Frames4D:
     if not path.is_file():
         raise InputError(f"{path} not found: run `clflow simulate CONFIG -o {folder}` first")
     arrays = load_arrays(path, "gaussians file of clflow simulate")
-    required = ("object_means", "object_covariances", "object_sh_rotations", "static_means", "opacities",
-                "camera_viewmat", "camera_K", "camera_size", "fps")
+    required = (
+        "object_means",
+        "object_covariances",
+        "object_sh_rotations",
+        "static_means",
+        "opacities",
+        "camera_viewmat",
+        "camera_K",
+        "camera_size",
+        "fps",
+    )
     missing = [k for k in required if k not in arrays]
     if missing:
         raise InputError(f"{path}: missing arrays {', '.join(missing)} (not written by clflow simulate?)")
@@ -189,10 +217,20 @@ def orbit_cameras(frames: Frames4D, count: int, turns: float = 1.0, phase: float
     cams = []
     for i in range(count):
         phi = azimuth + 2 * math.pi * turns * (i + phase) / max(1, count)
-        direction = np.array([math.cos(elevation) * math.cos(phi), math.sin(elevation),
-                              math.cos(elevation) * math.sin(phi)])
-        cams.append(look_at(center + radius * direction, center, (0.0, 1.0, 0.0), fov_x=fov_x,
-                            width=guide.width, height=guide.height, name=f"orbit_{i:03d}"))
+        direction = np.array(
+            [math.cos(elevation) * math.cos(phi), math.sin(elevation), math.cos(elevation) * math.sin(phi)]
+        )
+        cams.append(
+            look_at(
+                center + radius * direction,
+                center,
+                (0.0, 1.0, 0.0),
+                fov_x=fov_x,
+                width=guide.width,
+                height=guide.height,
+                name=f"orbit_{i:03d}",
+            )
+        )
     return cams
 
 
@@ -207,8 +245,16 @@ def render_4d_frames(frames: Frames4D, views: int) -> int:
     return (2 + views) * frames.frame_count
 
 
-def render_4d(frames: Frames4D, out: Path, *, views: int = 0, turns: float = 1.0, video_format: str = "mp4",
-              background=(1.0, 1.0, 1.0), advance: Callable[[str], None] | None = None) -> list[Path]:
+def render_4d(
+    frames: Frames4D,
+    out: Path,
+    *,
+    views: int = 0,
+    turns: float = 1.0,
+    video_format: str = "mp4",
+    background=(1.0, 1.0, 1.0),
+    advance: Callable[[str], None] | None = None,
+) -> list[Path]:
     """Render the sequence into ``out``: ``guidance/`` (the guidance camera), ``orbit/`` (a
     camera circling the object while time runs) and, for ``views`` > 0, ``view_k/`` from k
     fixed novel viewpoints on the same circle, half a step off the guidance camera's azimuth
@@ -242,4 +288,14 @@ def render_4d(frames: Frames4D, out: Path, *, views: int = 0, turns: float = 1.0
     return [out / f"{name}.{video_format}" for name in sequences]
 
 
-__all__ = ["Frames4D", "export_gaussians", "export_size", "file_gaussians", "load_frames", "orbit_cameras", "render_4d", "render_4d_frames", "render_4d_size"]
+__all__ = [
+    "Frames4D",
+    "export_gaussians",
+    "export_size",
+    "file_gaussians",
+    "load_frames",
+    "orbit_cameras",
+    "render_4d",
+    "render_4d_frames",
+    "render_4d_size",
+]

@@ -29,8 +29,10 @@ log = logging.getLogger(__name__)
 #: The physical-motion prompt, in the style of the paper's prompts for its generated guidance
 #: videos ("the object ... is pushed ..."; a static camera, so that the video's optical flow
 #: is the object's motion). Placeholders: {object}, {motion}, {material}.
-PROMPT_TEMPLATE = ("A static camera shot. The {object} is {motion}, and moves and deforms like a real {material} "
-                   "object would. The camera and the background do not move.")
+PROMPT_TEMPLATE = (
+    "A static camera shot. The {object} is {motion}, and moves and deforms like a real {material} "
+    "object would. The camera and the background do not move."
+)
 PLACEHOLDERS = ("object", "motion", "material")
 CACHE_FOLDER = "generated"  # under the config's output folder
 
@@ -71,12 +73,16 @@ def _check_template(template: str, fail: Callable[[str, str], Exception]) -> Non
     try:
         names = [name for _, name, _, _ in string.Formatter().parse(template) if name is not None]
     except ValueError as exc:
-        raise fail("prompt_template", f"is not a valid template ({exc}); use {{object}}, {{motion}}, "
-                                      f"{{material}} and {{{{ }}}} for braces") from None
+        raise fail(
+            "prompt_template",
+            f"is not a valid template ({exc}); use {{object}}, {{motion}}, {{material}} and {{{{ }}}} for braces",
+        ) from None
     unknown = [n for n in names if n not in PLACEHOLDERS]
     if unknown:
-        raise fail("prompt_template", f"has the unknown placeholder {{{unknown[0]}}}; known: "
-                                      f"{', '.join('{' + p + '}' for p in PLACEHOLDERS)}")
+        raise fail(
+            "prompt_template",
+            f"has the unknown placeholder {{{unknown[0]}}}; known: {', '.join('{' + p + '}' for p in PLACEHOLDERS)}",
+        )
 
 
 def _request(settings: GenerateSettings, simulation: SimulationSettings, info, prompt: str):
@@ -90,15 +96,24 @@ def _request(settings: GenerateSettings, simulation: SimulationSettings, info, p
         needed = math.ceil(simulation.frames * fps / simulation.fps - 1e-9) + 1
         step = info.frame_step
         frames = 1 + math.ceil((needed - 1) / step) * step
-    return GenerateRequest(prompt=prompt, negative_prompt=settings.negative_prompt, frames=frames, fps=fps,
-                           seed=settings.seed, steps=settings.steps, guidance_scale=settings.guidance_scale,
-                           size=settings.size, fit=settings.fit, output_size="image",
-                           cpu_offload=settings.cpu_offload, vae_tiling=settings.vae_tiling,
-                           vae_slicing=settings.vae_slicing)
+    return GenerateRequest(
+        prompt=prompt,
+        negative_prompt=settings.negative_prompt,
+        frames=frames,
+        fps=fps,
+        seed=settings.seed,
+        steps=settings.steps,
+        guidance_scale=settings.guidance_scale,
+        size=settings.size,
+        fit=settings.fit,
+        output_size="image",
+        cpu_offload=settings.cpu_offload,
+        vae_tiling=settings.vae_tiling,
+        vae_slicing=settings.vae_slicing,
+    )
 
 
-def check_settings(settings: GenerateSettings, simulation: SimulationSettings,
-                   fail: Callable[[str, str], Exception]):
+def check_settings(settings: GenerateSettings, simulation: SimulationSettings, fail: Callable[[str, str], Exception]):
     """Check ``video.generate`` against its model folder (JSON files only) and the simulated
     time; ``fail(key, message)`` makes the error naming the key. Returns the model's info."""
     from clflow.generate import check_request, inspect_model
@@ -114,17 +129,27 @@ def check_settings(settings: GenerateSettings, simulation: SimulationSettings,
     request = _request(settings, simulation, info, (settings.prompt or "a motion prompt") if info.uses_prompt else "")
     duration = simulation.frames / simulation.fps
     if (request.frames - 1) / request.fps < duration - 1e-9:
-        raise fail("frames", f"{request.frames} frames at {request.fps:g} fps last {(request.frames - 1) / request.fps:.3g}"
-                             f" s, the simulation {duration:.3g} s: give at least "
-                             f"{math.ceil(duration * request.fps - 1e-9) + 1}")
+        raise fail(
+            "frames",
+            f"{request.frames} frames at {request.fps:g} fps last {(request.frames - 1) / request.fps:.3g}"
+            f" s, the simulation {duration:.3g} s: give at least "
+            f"{math.ceil(duration * request.fps - 1e-9) + 1}",
+        )
     if settings.prompt is not None and info.uses_prompt and not settings.prompt.strip():
         raise fail("prompt", "is empty: drop it for the motion prompt from the forces, or describe the motion")
     try:
         check_request(info, request)
     except InputError as exc:
         key, _, rest = str(exc).partition(": ")
-        known = {"frames": "frames", "size": "size", "prompt": "prompt", "guidance scale": "guidance_scale",
-                 "fps must be positive, got": "fps", "VAE tiling": "vae_tiling", "VAE slicing": "vae_slicing"}
+        known = {
+            "frames": "frames",
+            "size": "size",
+            "prompt": "prompt",
+            "guidance scale": "guidance_scale",
+            "fps must be positive, got": "fps",
+            "VAE tiling": "vae_tiling",
+            "VAE slicing": "vae_slicing",
+        }
         if key in known:
             raise fail(known[key], rest) from None
         raise fail("", str(exc)) from None
@@ -145,9 +170,11 @@ def guidance_image(cfg: SceneConfig) -> np.ndarray:
     if cfg.generate.image is not None:
         image = load_image(cfg.generate.image)
         if image.shape[1::-1] != (camera.width, camera.height):
-            raise InputError(f"{cfg.source}: video.generate.image: {cfg.generate.image} is {image.shape[1]}x"
-                             f"{image.shape[0]} px, the guidance camera {camera.width}x{camera.height}: give the "
-                             f"object as the guidance camera sees it (or drop image: the scene is rendered)")
+            raise InputError(
+                f"{cfg.source}: video.generate.image: {cfg.generate.image} is {image.shape[1]}x"
+                f"{image.shape[0]} px, the guidance camera {camera.width}x{camera.height}: give the "
+                f"object as the guidance camera sees it (or drop image: the scene is rendered)"
+            )
         return image
     gaussians, _ = load_scene_gaussians(cfg, torch.float32)
     with torch.no_grad():
@@ -187,8 +214,12 @@ def ensure_guidance_video(cfg: SceneConfig, progress: Callable[[int, int], None]
                 return dataclasses.replace(cfg, video=path)
         except (OSError, json.JSONDecodeError):
             pass  # a damaged record: make it again
-    log.info("generating the guidance video with %s (%s): %s", info.path.name, info.family.name,
-             prompt if info.uses_prompt else "image only")
+    log.info(
+        "generating the guidance video with %s (%s): %s",
+        info.path.name,
+        info.family.name,
+        prompt if info.uses_prompt else "image only",
+    )
     frames, record = generate_video(image, info, resolved.request, progress=progress)
     write_image(path.with_suffix(".input.png"), image)
     record.update(digest=digest, config=str(cfg.source), image=str(gen.image) if gen.image else "rendered scene")

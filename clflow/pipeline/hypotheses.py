@@ -39,16 +39,25 @@ def hypothesis_config(cfg: SceneConfig, material: str) -> SceneConfig:
     params = validate_params(mat.name, {k: v for k, v in cfg.material.parameters.items() if k in mat.param_names})
     names = tuple(n for n in cfg.optimize.parameters if n in ("density", VELOCITY) or n in mat.param_names)
     optimize = dataclasses.replace(
-        cfg.optimize, parameters=names, materials=(),
+        cfg.optimize,
+        parameters=names,
+        materials=(),
         learning_rates={k: v for k, v in cfg.optimize.learning_rates.items() if k in names or k == VELOCITY},
-        bounds={k: v for k, v in cfg.optimize.bounds.items() if k in names})
+        bounds={k: v for k, v in cfg.optimize.bounds.items() if k in names},
+    )
     material_cfg = MaterialConfig(mat.name, params, cfg.material.density, model=cfg.material.model if same else None)
-    return dataclasses.replace(cfg, material=material_cfg, optimize=optimize,
-                               output=cfg.output / "hypotheses" / mat.name)
+    return dataclasses.replace(
+        cfg, material=material_cfg, optimize=optimize, output=cfg.output / "hypotheses" / mat.name
+    )
 
 
-def search_hypothesis(cfg: SceneConfig, material: str, resume: bool = False,
-                      progress: Callable[[str, dict], None] | None = None, force_video: bool = False) -> dict:
+def search_hypothesis(
+    cfg: SceneConfig,
+    material: str,
+    resume: bool = False,
+    progress: Callable[[str, dict], None] | None = None,
+    force_video: bool = False,
+) -> dict:
     """The global search of hypothesis ``material`` of ``cfg`` (resolved; in its own folder,
     the observed flow copied from ``cfg.output`` when it is there). Returns {"record": its
     entry in hypotheses.json, "state": the optimiser state its search ended in (None when it
@@ -64,8 +73,9 @@ def search_hypothesis(cfg: SceneConfig, material: str, resume: bool = False,
             shutil.copyfile(shared, own)
     start = time.perf_counter()
     try:
-        opt = Optimization(hyp, progress=(lambda row: progress(material, row)) if progress else None,
-                           force_video=force_video)
+        opt = Optimization(
+            hyp, progress=(lambda row: progress(material, row)) if progress else None, force_video=force_video
+        )
         state = opt.load_state() if resume and opt.checkpoint.exists() else opt.initial_state()
         if not state.searched:
             state = opt.global_search(state)
@@ -73,27 +83,44 @@ def search_hypothesis(cfg: SceneConfig, material: str, resume: bool = False,
         if isinstance(exc, InputError) and not isinstance(exc, SubstepLimitError):
             raise  # the user's config: no hypothesis can fix that
         log.warning("hypothesis %s failed: %s", material, exc)
-        return {"record": {"failed": str(exc), "seconds_this_run": time.perf_counter() - start}, "state": None,
-                "config": hyp}
+        return {
+            "record": {"failed": str(exc), "seconds_this_run": time.perf_counter() - start},
+            "state": None,
+            "config": hyp,
+        }
     finite = [r for r in state.search if r["loss"] is not None]
     best = min(finite, key=lambda r: r["loss"])
     log.info("hypothesis %s: best search loss %.4g at %s", material, best["loss"], best["params"])
-    record = {"loss": best["loss"], "parameters": best["params"], "samples": len(state.search),
-              "failed_samples": len(state.search) - len(finite), "seconds": sum(r["seconds"] for r in state.search),
-              "seconds_this_run": time.perf_counter() - start}
+    record = {
+        "loss": best["loss"],
+        "parameters": best["params"],
+        "samples": len(state.search),
+        "failed_samples": len(state.search) - len(finite),
+        "seconds": sum(r["seconds"] for r in state.search),
+        "seconds_this_run": time.perf_counter() - start,
+    }
     return {"record": record, "state": state, "config": hyp}
 
 
-def serial_hypotheses(cfg: SceneConfig, resume: bool = False, progress: Callable[[str, dict], None] | None = None,
-                      force_video: bool = False) -> Iterator[dict]:
+def serial_hypotheses(
+    cfg: SceneConfig,
+    resume: bool = False,
+    progress: Callable[[str, dict], None] | None = None,
+    force_video: bool = False,
+) -> Iterator[dict]:
     """:func:`search_hypothesis` of each of ``optimize.material`` in turn, in this process."""
     for material in cfg.optimize.materials:
         yield search_hypothesis(cfg, material, resume, progress, force_video)
 
 
-def choose_material(cfg: SceneConfig, *, resume: bool = False,
-                    progress: Callable[[str, dict], None] | None = None, force_video: bool = False,
-                    search_all: Callable[..., Iterable[dict]] = serial_hypotheses):
+def choose_material(
+    cfg: SceneConfig,
+    *,
+    resume: bool = False,
+    progress: Callable[[str, dict], None] | None = None,
+    force_video: bool = False,
+    search_all: Callable[..., Iterable[dict]] = serial_hypotheses,
+):
     """Search each of ``optimize.material``'s hypotheses and keep the best.
 
     Returns (the chosen hypothesis' config with output ``cfg.output``, the optimiser state
@@ -118,8 +145,9 @@ def choose_material(cfg: SceneConfig, *, resume: bool = False,
         states[material], configs[material] = found["state"], found["config"]
     ran = [m for m in record if "loss" in record[m]]
     if not ran:
-        raise ClflowError("no material hypothesis could be simulated: " +
-                          "; ".join(f"{m}: {r['failed']}" for m, r in record.items()))
+        raise ClflowError(
+            "no material hypothesis could be simulated: " + "; ".join(f"{m}: {r['failed']}" for m, r in record.items())
+        )
     chosen = min(ran, key=lambda m: record[m]["loss"])
     summary = {"chosen": chosen, "hypotheses": record}
     atomic_write_text(cfg.output / "hypotheses.json", json.dumps(summary, indent=2))

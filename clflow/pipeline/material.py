@@ -41,8 +41,10 @@ def resolve_material(cfg: SceneConfig) -> SceneConfig:
     known = set(get_material(result.material).param_names) | {"density", VELOCITY, *VELOCITY_COMPONENTS}
     wrong = [n for n in (*cfg.optimize.parameters, *cfg.ground_truth) if n not in known]
     if wrong and not cfg.optimize.materials:  # hypotheses: checked against them (scene config)
-        raise InputError(f"{cfg.source}: the query chose {result.material}, which has no parameter "
-                         f"{', '.join(map(repr, wrong))} (optimize.parameters / evaluation.ground_truth)")
+        raise InputError(
+            f"{cfg.source}: the query chose {result.material}, which has no parameter "
+            f"{', '.join(map(repr, wrong))} (optimize.parameters / evaluation.ground_truth)"
+        )
     density = mat.density if mat.density is not None else result.density
     log.info("material query: %s, density %g kg/m^3, %s", result.material, density, params)
     material = dataclasses.replace(mat, type=result.material, parameters=params, density=density)

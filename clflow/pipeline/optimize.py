@@ -163,12 +163,16 @@ def guidance_video(cfg: SceneConfig, path: Path | None, cam, frames: int):
     video = read_video(path, fps=cfg.simulation.fps if path.is_dir() else None)
     times = np.arange(frames + 1) / cfg.simulation.fps
     if video.times is not None and video.times[-1] + 1e-9 < times[-1]:
-        raise InputError(f"{path}: the video lasts {video.times[-1]:.3g} s, the simulation "
-                         f"{times[-1]:.3g} s ({frames} frames at {cfg.simulation.fps:g} fps)")
+        raise InputError(
+            f"{path}: the video lasts {video.times[-1]:.3g} s, the simulation "
+            f"{times[-1]:.3g} s ({frames} frames at {cfg.simulation.fps:g} fps)"
+        )
     resampled = video.resample(times)
     if (resampled.width, resampled.height) != (cam.width, cam.height):
-        raise InputError(f"{path}: frames are {resampled.width}x{resampled.height} px, the guidance camera "
-                         f"{cam.width}x{cam.height}; crop/resize the video (clflow.flow.video.fit_to_camera)")
+        raise InputError(
+            f"{path}: frames are {resampled.width}x{resampled.height} px, the guidance camera "
+            f"{cam.width}x{cam.height}; crop/resize the video (clflow.flow.video.fit_to_camera)"
+        )
     return dataclasses.replace(resampled, fps=video.fps)  # fps: the source's, to compare views
 
 
@@ -224,8 +228,9 @@ def loss_mask(cfg: SceneConfig, prepared: Prepared, camera=None, what: str = "th
     return torch.from_numpy(mask_from_image(setting, cam.width, cam.height))  # a path resolved by the config
 
 
-def simulated_view_flows(prepared: Prepared, x: torch.Tensor, F: torch.Tensor, frames: int,
-                         cameras: list) -> list[list[torch.Tensor]]:
+def simulated_view_flows(
+    prepared: Prepared, x: torch.Tensor, F: torch.Tensor, frames: int, cameras: list
+) -> list[list[torch.Tensor]]:
     """Simulated flows [H, W, 2] of each frame step t -> t+1 (t < frames) seen by each of ``cameras``."""
     scenes = [frame_gaussians(prepared.static, prepared.obj_rest, x[t], F[t]) for t in range(frames + 1)]
     return [[render_flow(scenes[t], scenes[t + 1], cam)[0] for t in range(frames)] for cam in cameras]
@@ -280,8 +285,10 @@ def config_digests(cfg: SceneConfig) -> dict[str, str]:
         fields.pop("more_views")
     if fields.get("generate") is None:  # no generated video: the digests of checkpoints from before it
         fields.pop("generate", None)
-    return {name: hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()[:16]
-            for name, value in fields.items()}
+    return {
+        name: hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()[:16]
+        for name, value in fields.items()
+    }
 
 
 @dataclass
@@ -308,8 +315,14 @@ class View:
 class Optimization:
     """One optimisation run of a config (see module docstring)."""
 
-    def __init__(self, cfg: SceneConfig, *, progress: Callable[[dict], None] | None = None,
-                 hypotheses: dict | None = None, force_video: bool = False):
+    def __init__(
+        self,
+        cfg: SceneConfig,
+        *,
+        progress: Callable[[dict], None] | None = None,
+        hypotheses: dict | None = None,
+        force_video: bool = False,
+    ):
         self.cfg = cfg = ensure_guidance_video(resolve_material(cfg))  # video: {generate: ...} made first
         self.hypotheses = hypotheses  # how the material was chosen (clflow.pipeline.hypotheses), for metrics
         self.params = _parameterizations(cfg)
@@ -348,11 +361,15 @@ class Optimization:
         videos = [guidance_video(cfg, path, cam, self.frames) for path, cam in zip(paths, cameras)]
         rates = [video.fps for video in videos if video.fps]  # an image folder's is simulation.fps
         if rates and max(rates) > 1.001 * min(rates):
-            raise InputError(f"{cfg.source}: the guidance videos have different frame rates "
-                             f"({', '.join(f'{v.fps:g}' if v.fps else 'variable' for v in videos)} fps): give "
-                             f"views recorded at one rate")
-        masks = [loss_mask(cfg, self.prepared, cam, f"guidance camera {i}" if several else "the guidance camera")
-                 for i, cam in enumerate(cameras)]
+            raise InputError(
+                f"{cfg.source}: the guidance videos have different frame rates "
+                f"({', '.join(f'{v.fps:g}' if v.fps else 'variable' for v in videos)} fps): give "
+                f"views recorded at one rate"
+            )
+        masks = [
+            loss_mask(cfg, self.prepared, cam, f"guidance camera {i}" if several else "the guidance camera")
+            for i, cam in enumerate(cameras)
+        ]
         views = []
         for i, (cam, path, video, mask) in enumerate(zip(cameras, paths, videos, masks)):
             flow, confidence = _observed_flow(cfg, path, video.frames, observed_flow_cache(cfg, i))
@@ -368,8 +385,15 @@ class Optimization:
         z = self.initial_state().z  # plan_run builds the simulator, which checks the force stages
         values = self.values(z)
         params, density = material_values(self.cfg, {n: values[n] for n in self.params})
-        plan = plan_run(self.cfg, self.prepared.setup, params, density, velocity=torch.tensor(self.velocity(z)),
-                        max_substeps=self.cfg.simulation.max_substeps, optimizing=True)
+        plan = plan_run(
+            self.cfg,
+            self.prepared.setup,
+            params,
+            density,
+            velocity=torch.tensor(self.velocity(z)),
+            max_substeps=self.cfg.simulation.max_substeps,
+            optimizing=True,
+        )
         log.info("%s", describe(plan, "optimize", gradient=True))
         return plan
 
@@ -379,17 +403,22 @@ class Optimization:
         from clflow.pipeline.preflight import AGREEMENT_FRAMES, check_guidance, flow_agreement, measure_view
 
         # inside the mask the weight is the observed flow's confidence
-        self.guidance = [measure_view(self.prepared, view.camera, view.mask, view.video_frames, view.observed.numpy(),
-                                      view.weight.numpy()) for view in self.views]
+        self.guidance = [
+            measure_view(
+                self.prepared, view.camera, view.mask, view.video_frames, view.observed.numpy(), view.weight.numpy()
+            )
+            for view in self.views
+        ]
         if VELOCITY_COMPONENTS[0] not in self.variables:  # else the start's velocity may be anything
             try:
                 start = self.evaluate(self.initial_state().z, min(AGREEMENT_FRAMES, self.frames), with_grad=False)
             except (FloatingPointError, ClflowError) as exc:  # the first iteration will say so
                 log.info("no flow-direction check: the start's simulation fails (%s)", exc)
             else:
-                self.guidance = [dataclasses.replace(check, agreement=flow_agreement(flows, view.observed, view.weight))
-                                 for check, view, flows in zip(self.guidance, self.views,
-                                                               [start.flows, *start.more_flows])]
+                self.guidance = [
+                    dataclasses.replace(check, agreement=flow_agreement(flows, view.observed, view.weight))
+                    for check, view, flows in zip(self.guidance, self.views, [start.flows, *start.more_flows])
+                ]
         return check_guidance(self.cfg, self.guidance, force)
 
     # view 0's state (one view: the only one)
@@ -420,16 +449,27 @@ class Optimization:
         digests = config_digests(self.cfg)
         if isinstance(saved, dict) and saved != digests:
             changed = sorted(k for k in saved.keys() | digests.keys() if saved.get(k) != digests.get(k))
-            raise InputError(f"cannot resume from {self.checkpoint}: the config changed since it was saved "
-                             f"({', '.join(changed)}); give another -o/--out, or delete the checkpoint to start over")
+            raise InputError(
+                f"cannot resume from {self.checkpoint}: the config changed since it was saved "
+                f"({', '.join(changed)}); give another -o/--out, or delete the checkpoint to start over"
+            )
         if state.calibrated_at is not None:
             self.restore_calibration(state)
         return state
 
     def save_state(self, state: OptimizerState, path: Path | None = None, **extra) -> None:
         """``state`` into the checkpoint (or ``path``, with ``extra`` entries)."""
-        atomic_write_text(path or self.checkpoint, json.dumps({"config": str(self.cfg.source), "state": asdict(state),
-                                                               "config_digests": config_digests(self.cfg), **extra}))
+        atomic_write_text(
+            path or self.checkpoint,
+            json.dumps(
+                {
+                    "config": str(self.cfg.source),
+                    "state": asdict(state),
+                    "config_digests": config_digests(self.cfg),
+                    **extra,
+                }
+            ),
+        )
 
     def values(self, z: dict[str, float]) -> dict[str, float]:
         """The value of every variable in z: material parameters in SI, velocity components in m/s."""
@@ -443,21 +483,36 @@ class Optimization:
 
     # -- one iteration -------------------------------------------------------------------
 
-    def evaluate(self, z: dict[str, float], frames: int, with_grad: bool = True, min_substeps: int = 1,
-                 variables: tuple[str, ...] | None = None) -> Evaluation:
+    def evaluate(
+        self,
+        z: dict[str, float],
+        frames: int,
+        with_grad: bool = True,
+        min_substeps: int = 1,
+        variables: tuple[str, ...] | None = None,
+    ) -> Evaluation:
         """Loss (and dloss/dz of ``variables``, default every z name) at z over ``frames`` frames."""
         variables = self.variables if variables is None else variables
         zt = {n: torch.tensor(v, dtype=torch.float64, requires_grad=with_grad and n in variables) for n, v in z.items()}
         decoded = {n: p.decode(zt[n]) for n, p in self.params.items()}
         params, density = material_values(self.cfg, {n: float(v.detach()) for n, v in decoded.items()})
         velocity = torch.stack([zt[n] for n in VELOCITY_COMPONENTS]) if VELOCITY_COMPONENTS[0] in zt else None
-        sim = build_simulator(self.cfg, self.prepared.setup, params, density, min_substeps=min_substeps,
-                              velocity=velocity, max_substeps=self.cfg.simulation.max_substeps)
+        sim = build_simulator(
+            self.cfg,
+            self.prepared.setup,
+            params,
+            density,
+            min_substeps=min_substeps,
+            velocity=velocity,
+            max_substeps=self.cfg.simulation.max_substeps,
+        )
         traj = run(sim, frames, decoded, velocity)
         needed = sim.stable_substeps()
         if traj.substeps < needed:  # a fixed simulation.substep_dt too long for these parameters
-            raise UnstableRun(f"dt = {sim.frame_dt / traj.substeps:.3g} s exceeds the stable step "
-                              f"{sim.frame_dt / needed:.3g} s of these parameters ({sim.limit_reason(sim.state.v)})")
+            raise UnstableRun(
+                f"dt = {sim.frame_dt / traj.substeps:.3g} s exceeds the stable step "
+                f"{sim.frame_dt / needed:.3g} s of these parameters ({sim.limit_reason(sim.state.v)})"
+            )
         if traj.unstable:  # finished, but not a run to learn from
             raise UnstableRun(traj.unstable)
         cameras = [v.camera for v in self.views]
@@ -471,8 +526,13 @@ class Optimization:
             grads = {n: float(zt[n].grad) for n in variables}
             if not all(math.isfinite(g) for g in grads.values()):
                 raise FloatingPointError("the gradient is not finite")
-        return Evaluation(float(loss.detach()), grads, [f.detach() for f in flows], traj,
-                          tuple([f.detach() for f in view] for view in more_flows))
+        return Evaluation(
+            float(loss.detach()),
+            grads,
+            [f.detach() for f in flows],
+            traj,
+            tuple([f.detach() for f in view] for view in more_flows),
+        )
 
     # -- the flow estimator's bias ----------------------------------------------------------
 
@@ -484,7 +544,9 @@ class Optimization:
         from clflow.flow.optical_flow import observed_flow
 
         traj = result.trajectory
-        simulated = SimulationResult(self.prepared, {}, 0.0, traj.x[: frames + 1].detach(), traj.F[: frames + 1].detach())
+        simulated = SimulationResult(
+            self.prepared, {}, 0.0, traj.x[: frames + 1].detach(), traj.F[: frames + 1].detach()
+        )
         errors = []
         for view, flows in zip(self.views, [result.flows, *result.more_flows]):
             video = render_frames(simulated, view.camera, supersample=SUPERSAMPLE)
@@ -527,8 +589,11 @@ class Optimization:
     def save_calibration(self, calibrated_at: dict) -> None:
         """The views' estimator errors, measured at ``calibrated_at``, into ``estimator_error_file``."""
         with atomic_path(self.estimator_error_file) as tmp, open(tmp, "wb") as fh:
-            np.savez(fh, key=np.array(json.dumps(calibrated_at, sort_keys=True)),
-                     **{f"view_{i}": view.estimator_error.numpy() for i, view in enumerate(self.views)})
+            np.savez(
+                fh,
+                key=np.array(json.dumps(calibrated_at, sort_keys=True)),
+                **{f"view_{i}": view.estimator_error.numpy() for i, view in enumerate(self.views)},
+            )
 
     def restore_calibration(self, state: OptimizerState) -> None:
         """Each view's estimator error as it was when ``state`` was saved (on --resume): from
@@ -558,8 +623,10 @@ class Optimization:
             targets = [view.target for view in self.views]
         else:
             targets = [view.observed[: len(error)] - error for view, error in zip(self.views, errors)]
-        return sum(flow_loss(self.cfg, flows, target[: len(flows)], view.weight[: len(flows)])
-                   for flows, target, view in zip(view_flows, targets, self.views)) / len(self.views)
+        return sum(
+            flow_loss(self.cfg, flows, target[: len(flows)], view.weight[: len(flows)])
+            for flows, target, view in zip(view_flows, targets, self.views)
+        ) / len(self.views)
 
     def self_consistent_loss(self, result: Evaluation, frames: int) -> float:
         """``result``'s loss against the observed flow less the estimator's error on ``result``'s
@@ -585,8 +652,10 @@ class Optimization:
             if name in opt.bounds:
                 lo, hi = (float(p.encode(v)) for v in opt.bounds[name])
                 if not lo <= z0[name] <= hi:
-                    raise InputError(f"{self.cfg.source}: the start of {name} lies outside optimize.bounds.{name} "
-                                     f"{list(opt.bounds[name])}")
+                    raise InputError(
+                        f"{self.cfg.source}: the start of {name} lies outside optimize.bounds.{name} "
+                        f"{list(opt.bounds[name])}"
+                    )
             else:
                 lo, hi = (float(p.encode(v)) for v in p.param.typical) if p.param.scale != "linear" else p.param.typical
                 if p.param.scale == "log":
@@ -601,7 +670,9 @@ class Optimization:
         box = self.search_box(z0)
         names = list(self.params)
         count = self.cfg.optimize.search.samples
-        unit = torch.quasirandom.SobolEngine(len(names), scramble=True, seed=0).draw(max(0, count - 1), dtype=torch.float64)
+        unit = torch.quasirandom.SobolEngine(len(names), scramble=True, seed=0).draw(
+            max(0, count - 1), dtype=torch.float64
+        )
         points = [dict(z0)]
         for row in unit.tolist():
             points.append({**z0, **{n: box[n][0] + u * (box[n][1] - box[n][0]) for n, u in zip(names, row)}})
@@ -617,15 +688,22 @@ class Optimization:
         frames = min(self.frames, settings.frames or self.frames)
         points = self.search_points(state.z)
         rows = list(state.search)
-        for z in points[len(rows):]:
+        for z in points[len(rows) :]:
             start = time.perf_counter()
             try:
                 loss = self.self_consistent_loss(self.evaluate(z, frames, with_grad=False), frames)
             except (FloatingPointError, ClflowError) as exc:
                 log.info("search sample %s failed: %s", self.values(z), exc)
                 loss = None
-            rows.append({"z": z, "params": self.values(z), "loss": loss, "frames": frames,
-                         "seconds": time.perf_counter() - start})
+            rows.append(
+                {
+                    "z": z,
+                    "params": self.values(z),
+                    "loss": loss,
+                    "frames": frames,
+                    "seconds": time.perf_counter() - start,
+                }
+            )
             state = dataclasses.replace(state, search=list(rows))
             self.save_state(state)
             self.progress({**rows[-1], "phase": "search", "iteration": len(rows) - 1})
@@ -657,9 +735,17 @@ class Optimization:
             self.set_estimator_errors(None)  # nothing measured yet (a saved polish restores its own)
             state = self.load_polish(folder / "checkpoint.json", z0) if resume else None
             if state is None:
-                state = dataclasses.replace(begin, z=z0, substeps=begin.substeps if start == 0 else 1, best=None,
-                                            damping=LM_DAMPING, converged=False, calibrated_at=None,
-                                            history=list(begin.history), rollbacks=list(begin.rollbacks))
+                state = dataclasses.replace(
+                    begin,
+                    z=z0,
+                    substeps=begin.substeps if start == 0 else 1,
+                    best=None,
+                    damping=LM_DAMPING,
+                    converged=False,
+                    calibrated_at=None,
+                    history=list(begin.history),
+                    rollbacks=list(begin.rollbacks),
+                )
             failures, done = 0, 0
             last = state.history[-1] if state.history else {}
             finished = last.get("start") == start and bool(last.get("start_done"))
@@ -699,19 +785,41 @@ class Optimization:
         for record in records:
             end = OptimizerState(**record["state"])
             shift = iteration - begin.iteration
-            history += [{**r, "iteration": r["iteration"] + shift} for r in end.history[len(begin.history):]]
-            rollbacks += [{**r, "iteration": r["iteration"] + shift} for r in end.rollbacks[len(begin.rollbacks):]]
+            history += [{**r, "iteration": r["iteration"] + shift} for r in end.history[len(begin.history) :]]
+            rollbacks += [{**r, "iteration": r["iteration"] + shift} for r in end.rollbacks[len(begin.rollbacks) :]]
             iteration += end.iteration - begin.iteration
-            polished.append({"z": dict(end.best["z"]), "loss": end.best["loss"], "params": self.values(end.best["z"]),
-                             "substeps": end.substeps})
+            polished.append(
+                {
+                    "z": dict(end.best["z"]),
+                    "loss": end.best["loss"],
+                    "params": self.values(end.best["z"]),
+                    "substeps": end.substeps,
+                }
+            )
             ends.append(end)
         index = min(range(len(polished)), key=lambda i: polished[i]["loss"])
         kept = polished[index]
-        log.info("kept start %d of %d: %s (loss %.4g; the others %s)", index, len(polished), kept["params"],
-                 kept["loss"], ", ".join(f"{r['loss']:.4g}" for r in polished if r is not kept))
-        state = dataclasses.replace(begin, iteration=iteration, history=history, rollbacks=rollbacks, polished=polished,
-                                    z=dict(kept["z"]), substeps=kept["substeps"], best=None, damping=LM_DAMPING,
-                                    converged=False, calibrated_at=ends[index].calibrated_at)
+        log.info(
+            "kept start %d of %d: %s (loss %.4g; the others %s)",
+            index,
+            len(polished),
+            kept["params"],
+            kept["loss"],
+            ", ".join(f"{r['loss']:.4g}" for r in polished if r is not kept),
+        )
+        state = dataclasses.replace(
+            begin,
+            iteration=iteration,
+            history=history,
+            rollbacks=rollbacks,
+            polished=polished,
+            z=dict(kept["z"]),
+            substeps=kept["substeps"],
+            best=None,
+            damping=LM_DAMPING,
+            converged=False,
+            calibrated_at=ends[index].calibrated_at,
+        )
         self.set_estimator_errors(records[index]["errors"])
         if state.calibrated_at is not None:
             self.save_calibration(state.calibrated_at)
@@ -728,12 +836,12 @@ class Optimization:
             weight = view.weight[: len(view_flows)]  # [T, H, W]
             root = (weight / weight.sum() / len(self.views)).sqrt()[..., None]
             target = view.target
-            parts += [((f.double() - target[t]) * root[t])[weight[t] > 0].reshape(-1)
-                      for t, f in enumerate(view_flows)]
+            parts += [((f.double() - target[t]) * root[t])[weight[t] > 0].reshape(-1) for t, f in enumerate(view_flows)]
         return torch.cat(parts)
 
-    def jacobian(self, z: dict[str, float], frames: int, min_substeps: int,
-                 variables: tuple[str, ...]) -> tuple[Evaluation, torch.Tensor]:
+    def jacobian(
+        self, z: dict[str, float], frames: int, min_substeps: int, variables: tuple[str, ...]
+    ) -> tuple[Evaluation, torch.Tensor]:
         """The evaluation at z and the Jacobian [R, P] of its residuals with respect to
         ``variables`` by backward differences of LM_STEP (softer neighbours need no more
         substeps than z, so every run shares z's time step); the last two are cached."""
@@ -745,15 +853,21 @@ class Optimization:
         r0 = self.residuals(base.flows, base.more_flows)
         columns = []
         for name in variables:
-            nearby = self.evaluate({**z, name: z[name] - LM_STEP}, frames, with_grad=False,
-                                   min_substeps=base.substeps)
+            nearby = self.evaluate({**z, name: z[name] - LM_STEP}, frames, with_grad=False, min_substeps=base.substeps)
             columns.append((r0 - self.residuals(nearby.flows, nearby.more_flows)) / LM_STEP)
         J = torch.stack(columns, 1)
         self._lm_cache = {**dict(list(self._lm_cache.items())[-1:]), key: (base, J)}
         return base, J
 
-    def lm_step(self, state: OptimizerState, base: Evaluation, J: torch.Tensor, frames: int,
-                variables: tuple[str, ...], calibrate: bool = False) -> OptimizerState:
+    def lm_step(
+        self,
+        state: OptimizerState,
+        base: Evaluation,
+        J: torch.Tensor,
+        frames: int,
+        variables: tuple[str, ...],
+        calibrate: bool = False,
+    ) -> OptimizerState:
         """Accept or reject the point just evaluated (its loss against the best so far at this
         horizon), then one damped Gauss-Newton step from the best point:
         (J^T J + damping diag(J^T J)) dz = -J^T r, at most LM_MAX_STEP long. With
@@ -764,8 +878,9 @@ class Optimization:
         # raised the substeps): take the new value rather than reject the point against itself
         if best is not None and best["frames"] == frames and state.z != best["z"] and base.loss > best["loss"]:
             # uphill: back to the best point with more damping (its J is recomputed or cached)
-            return dataclasses.replace(state, iteration=state.iteration + 1, z=dict(best["z"]),
-                                       damping=state.damping * 4.0)
+            return dataclasses.replace(
+                state, iteration=state.iteration + 1, z=dict(best["z"]), damping=state.damping * 4.0
+            )
         # a new best point earns less damping; back at the best one after a rejection, the
         # raised damping stands (dividing it again would retry nearly the same step)
         damping = state.damping / 3.0 if best is not None and state.z != best["z"] else state.damping
@@ -777,11 +892,20 @@ class Optimization:
                 # downhill only against the best point's calibration; against its own (each
                 # point's loss against the estimator's error on its own simulation, as the
                 # search scores) it is worse: the step chased the estimator's error, reject it
-                log.info("step to %s rejected: loss %.4g against the estimator's error there, %.4g at the best point",
-                         self.values(state.z), base.loss, best["loss"])
+                log.info(
+                    "step to %s rejected: loss %.4g against the estimator's error there, %.4g at the best point",
+                    self.values(state.z),
+                    base.loss,
+                    best["loss"],
+                )
                 self.restore_estimator_errors(*before)
-                return dataclasses.replace(state, iteration=state.iteration + 1, z=dict(best["z"]),
-                                           damping=state.damping * 4.0, calibrated_at=before[0])
+                return dataclasses.replace(
+                    state,
+                    iteration=state.iteration + 1,
+                    z=dict(best["z"]),
+                    damping=state.damping * 4.0,
+                    calibrated_at=before[0],
+                )
         best = {"z": dict(state.z), "loss": base.loss, "frames": frames, "substeps": base.substeps}
         r = self.residuals(base.flows, base.more_flows)
         A, g = J.T @ J, J.T @ r
@@ -804,8 +928,9 @@ class Optimization:
         """(lower, upper) in z that the local phase stays in: the search's box (none without a search)."""
         return self._local_box
 
-    def bounded_step(self, M: torch.Tensor, g: torch.Tensor, z: dict[str, float],
-                     variables: tuple[str, ...]) -> torch.Tensor:
+    def bounded_step(
+        self, M: torch.Tensor, g: torch.Tensor, z: dict[str, float], variables: tuple[str, ...]
+    ) -> torch.Tensor:
         """The step [P] solving M step = -g, with a variable that sits on its box edge while the
         step would push it out held there and the rest solved again without it (the clipped
         step would otherwise promise what it cannot deliver, and rejected steps repeat)."""
@@ -816,9 +941,14 @@ class Optimization:
             index = free.nonzero().flatten()
             step = torch.zeros_like(g)
             step[index] = -torch.linalg.solve(M[index][:, index], g[index])
-            held = torch.tensor([bool(free[i]) and n in box and (z[n] <= box[n][0] and float(step[i]) < 0
-                                                                 or z[n] >= box[n][1] and float(step[i]) > 0)
-                                 for i, n in enumerate(variables)])
+            held = torch.tensor(
+                [
+                    bool(free[i])
+                    and n in box
+                    and (z[n] <= box[n][0] and float(step[i]) < 0 or z[n] >= box[n][1] and float(step[i]) > 0)
+                    for i, n in enumerate(variables)
+                ]
+            )
             if not bool(held.any()):
                 break
             free &= ~held
@@ -849,11 +979,13 @@ class Optimization:
             m_hat, v_hat = m[n] / (1 - BETAS[0] ** k_m), v[n] / (1 - BETAS[1] ** k)
             rate = learning_rate(self.cfg, n) * state.step_scale * schedule
             z[n] -= rate * m_hat / (math.sqrt(v_hat) + ADAM_EPS)
-        return dataclasses.replace(state, iteration=state.iteration + 1, z=z, m=m, v=v, history=list(state.history),
-                                   momentum_steps=k_m)
+        return dataclasses.replace(
+            state, iteration=state.iteration + 1, z=z, m=m, v=v, history=list(state.history), momentum_steps=k_m
+        )
 
-    def run(self, resume: bool = False, stop_after: int | None = None,
-            start: OptimizerState | None = None) -> OptimizerState:
+    def run(
+        self, resume: bool = False, stop_after: int | None = None, start: OptimizerState | None = None
+    ) -> OptimizerState:
         """Optimise for the velocity phase's and ``optimize.iterations`` iterations
         (``stop_after``: at most this many in this call, for tests of resuming), from the
         checkpoint (``resume``), else ``start``, else the initial state; returns the final
@@ -885,14 +1017,19 @@ class Optimization:
                 self.progress(row)
                 done_here += 1
         best = state.best
-        if opt.method == "levenberg_marquardt" and best is not None and state.iteration >= self.total_iterations \
-                and state.z != best["z"]:  # the last step was never run: the result is the best point found
+        if (
+            opt.method == "levenberg_marquardt"
+            and best is not None
+            and state.iteration >= self.total_iterations
+            and state.z != best["z"]
+        ):  # the last step was never run: the result is the best point found
             state = dataclasses.replace(state, z=dict(best["z"]), substeps=best.get("substeps", state.substeps))
             self.save_state(state)
         return state
 
-    def step(self, state: OptimizerState, failures: int, start: int | None = None
-             ) -> tuple[OptimizerState, int, dict | None]:
+    def step(
+        self, state: OptimizerState, failures: int, start: int | None = None
+    ) -> tuple[OptimizerState, int, dict | None]:
         """One iteration from ``state`` (``start``: of that start's polish), ``failures`` the
         consecutive failed ones before it. Returns the new state, the failures, and the
         iteration's history row (None when it failed and was rolled back)."""
@@ -914,22 +1051,47 @@ class Optimization:
             # a start's polish goes back within its own rows only (else to its start point)
             own = [r for r in state.history if start is None or r.get("start") == start]
             if failures > MAX_FAILURES or state.iteration == 0 and start is None and failures > 1:
-                good = (f"last good parameters: {self.values(own[-1]['z'])}" if own else
-                        f"the initial parameters {self.values(state.z)} fail")
-                raise ClflowError(f"optimisation stopped at iteration {state.iteration}: {exc} "
-                                  f"({failures} failed attempts); {good}")
+                good = (
+                    f"last good parameters: {self.values(own[-1]['z'])}"
+                    if own
+                    else f"the initial parameters {self.values(state.z)} fail"
+                )
+                raise ClflowError(
+                    f"optimisation stopped at iteration {state.iteration}: {exc} ({failures} failed attempts); {good}"
+                )
             previous = own[-1]["z"] if own else state.z
-            log.warning("iteration %d failed (%s): back to the last good parameters, half the step, "
-                        "momentum dropped", state.iteration, exc)
-            rollback = {"iteration": state.iteration, "phase": phase, "reason": str(exc),
-                        "params": self.values(state.z), "back_to": self.values(previous)}
-            state = dataclasses.replace(state, z=dict(previous), m={n: 0.0 for n in state.m},
-                                        step_scale=state.step_scale / 2, momentum_steps=0,
-                                        damping=state.damping * 4.0, rollbacks=[*state.rollbacks, rollback])
+            log.warning(
+                "iteration %d failed (%s): back to the last good parameters, half the step, momentum dropped",
+                state.iteration,
+                exc,
+            )
+            rollback = {
+                "iteration": state.iteration,
+                "phase": phase,
+                "reason": str(exc),
+                "params": self.values(state.z),
+                "back_to": self.values(previous),
+            }
+            state = dataclasses.replace(
+                state,
+                z=dict(previous),
+                m={n: 0.0 for n in state.m},
+                step_scale=state.step_scale / 2,
+                momentum_steps=0,
+                damping=state.damping * 4.0,
+                rollbacks=[*state.rollbacks, rollback],
+            )
             return state, failures, None
-        row = {"iteration": state.iteration, "phase": phase, "loss": result.loss, "frames": frames,
-               "z": dict(state.z), "params": self.values(state.z), "substeps": result.substeps,
-               "seconds": time.perf_counter() - began}
+        row = {
+            "iteration": state.iteration,
+            "phase": phase,
+            "loss": result.loss,
+            "frames": frames,
+            "z": dict(state.z),
+            "params": self.values(state.z),
+            "substeps": result.substeps,
+            "seconds": time.perf_counter() - began,
+        }
         previous = state
         calibrate = self.corrects_bias and phase == "main"
         if lm:
@@ -950,9 +1112,18 @@ class Optimization:
             state.substeps = state.best.get("substeps", result.substeps)
         else:
             state.substeps = max(state.substeps, result.substeps)
-        converged = lm and phase == "main" and (state.converged or (
-            state.best is not None and state.best is not previous.best
-            and max(abs(state.z[n] - state.best["z"][n]) for n in variables) < LM_TOLERANCE))
+        converged = (
+            lm
+            and phase == "main"
+            and (
+                state.converged
+                or (
+                    state.best is not None
+                    and state.best is not previous.best
+                    and max(abs(state.z[n] - state.best["z"][n]) for n in variables) < LM_TOLERANCE
+                )
+            )
+        )
         if start is not None:  # a start's polish ends after its iterations or when it converges
             row["start"] = start
             done = 1 + sum(1 for r in state.history if r.get("start") == start)
@@ -966,9 +1137,16 @@ class Optimization:
             state = dataclasses.replace(state, iteration=opt.estimate_velocity_iterations)
         state.history.append(row)
         if phase_of(opt, state.iteration)[0] != phase:
-            state = dataclasses.replace(state, m={n: 0.0 for n in state.m}, v={n: 0.0 for n in state.v},
-                                        momentum_steps=0, step_scale=1.0, damping=LM_DAMPING, best=None,
-                                        converged=False)
+            state = dataclasses.replace(
+                state,
+                m={n: 0.0 for n in state.m},
+                v={n: 0.0 for n in state.v},
+                momentum_steps=0,
+                step_scale=1.0,
+                damping=LM_DAMPING,
+                best=None,
+                converged=False,
+            )
         return state, 0, row
 
     # -- results -------------------------------------------------------------------------
@@ -989,27 +1167,45 @@ class Optimization:
         curvature = J.T @ J
         ridge = 1e-12 * float(curvature.diagonal().max().clamp(min=1e-300))  # an unconstrained direction: huge
         inverse = torch.linalg.inv(curvature + ridge * torch.eye(count, dtype=curvature.dtype))
-        loss = float((residuals ** 2).sum())
+        loss = float((residuals**2).sum())
         covariance = inverse * (loss / dof)
         std = covariance.diagonal().clamp(min=0).sqrt()
         correlation = covariance / torch.outer(std, std).clamp(min=1e-300)
         # the loss a step of WEAK_STD_Z costs, the other variables refitted, as a fraction of the loss
-        rise = (WEAK_STD_Z ** 2 / inverse.diagonal().clamp(min=1e-300) / max(loss, 1e-300)).tolist()
+        rise = (WEAK_STD_Z**2 / inverse.diagonal().clamp(min=1e-300) / max(loss, 1e-300)).tolist()
         weak = [n for n, sd, r in zip(variables, std.tolist(), rise) if not (sd <= WEAK_STD_Z and r >= MIN_LOSS_RISE)]
-        pairs = [[a, b, float(correlation[i, j])] for i, a in enumerate(variables) for j, b in enumerate(variables)
-                 if i < j and abs(float(correlation[i, j])) > TRADE_OFF_CORRELATION]
-        return {"std_z": dict(zip(variables, std.tolist())), "loss_rise": dict(zip(variables, rise)),
-                "correlation": {a: dict(zip(variables, row)) for a, row in zip(variables, correlation.tolist())},
-                "weakly_constrained": weak, "trade_offs": pairs}
+        pairs = [
+            [a, b, float(correlation[i, j])]
+            for i, a in enumerate(variables)
+            for j, b in enumerate(variables)
+            if i < j and abs(float(correlation[i, j])) > TRADE_OFF_CORRELATION
+        ]
+        return {
+            "std_z": dict(zip(variables, std.tolist())),
+            "loss_rise": dict(zip(variables, rise)),
+            "correlation": {a: dict(zip(variables, row)) for a, row in zip(variables, correlation.tolist())},
+            "weakly_constrained": weak,
+            "trade_offs": pairs,
+        }
 
     def endpoint_error(self, flows: list[torch.Tensor], more_flows: tuple[list[torch.Tensor], ...] = ()) -> float:
         """Mean flow endpoint error (px) of simulated flows [H, W, 2] per frame step against
         the observed flow, inside the loss mask (``more_flows``: views 1..; the mean over views)."""
         from clflow.flow.metrics import endpoint_error
 
-        return float(np.mean([np.mean([endpoint_error(f.numpy(), view.observed[t].numpy(), view.mask.numpy())
-                                       for t, f in enumerate(view_flows)])
-                              for view_flows, view in zip([flows, *more_flows], self.views)]))
+        return float(
+            np.mean(
+                [
+                    np.mean(
+                        [
+                            endpoint_error(f.numpy(), view.observed[t].numpy(), view.mask.numpy())
+                            for t, f in enumerate(view_flows)
+                        ]
+                    )
+                    for view_flows, view in zip([flows, *more_flows], self.views)
+                ]
+            )
+        )
 
     def write_results(self, state: OptimizerState) -> dict:
         """params.json, metrics.json, history.json, loss.png and comparison.mp4 in output/."""
@@ -1026,8 +1222,15 @@ class Optimization:
             # the last step's point is not a result: back to the last accepted one (state changes in place)
             good = state.history[-1]["z"]
             log.warning("the final parameters fail (%s): the results are those of the last good ones", exc)
-            state.rollbacks.append({"iteration": state.iteration, "phase": "final", "reason": str(exc),
-                                    "params": self.values(state.z), "back_to": self.values(good)})
+            state.rollbacks.append(
+                {
+                    "iteration": state.iteration,
+                    "phase": "final",
+                    "reason": str(exc),
+                    "params": self.values(state.z),
+                    "back_to": self.values(good),
+                }
+            )
             state.z = dict(good)
             self.save_state(state)
             result, _ = self.jacobian(state.z, self.frames, state.substeps, self.main_variables)
@@ -1039,8 +1242,12 @@ class Optimization:
         params, density = material_values(self.cfg, {n: final[n] for n in self.params})
         velocity = self.velocity(state.z)
         loss, flows = result.loss, result.flows
-        metrics = {"flow_loss": loss, "epe_px": self.endpoint_error(flows, result.more_flows), "iterations": len(state.history),
-                   "seconds_per_iteration": float(np.mean([h["seconds"] for h in state.history])) if state.history else 0.0}
+        metrics = {
+            "flow_loss": loss,
+            "epe_px": self.endpoint_error(flows, result.more_flows),
+            "iterations": len(state.history),
+            "seconds_per_iteration": float(np.mean([h["seconds"] for h in state.history])) if state.history else 0.0,
+        }
         metrics["rollbacks"] = state.rollbacks  # every rejected iteration: its reason and parameters
         if self.guidance:
             metrics["guidance_checks"] = [check.record() for check in self.guidance]
@@ -1050,8 +1257,12 @@ class Optimization:
         if self.hypotheses:
             metrics["material_hypotheses"] = self.hypotheses
         for name in metrics["identifiability"]["weakly_constrained"]:
-            log.warning("%s is weakly constrained by the video: standard error %.2g in the optimiser's units (a "
-                        "lower bound); its value is uncertain", name, metrics["identifiability"]["std_z"][name])
+            log.warning(
+                "%s is weakly constrained by the video: standard error %.2g in the optimiser's units (a "
+                "lower bound); its value is uncertain",
+                name,
+                metrics["identifiability"]["std_z"][name],
+            )
         for a, b, rho in metrics["identifiability"]["trade_offs"]:
             log.warning("%s and %s trade off (correlation %.3f): the video fixes a combination of them", a, b, rho)
         truth = self.cfg.ground_truth
@@ -1062,9 +1273,14 @@ class Optimization:
                 metrics["velocity_error_m_s"] = math.dist(velocity, true_velocity)  # |v - v_true|
                 if any(true_velocity):
                     metrics["relative_error"][VELOCITY] = metrics["velocity_error_m_s"] / math.hypot(*true_velocity)
-        record = {"material": self.cfg.material.type, "parameters": params, "density": density,
-                  "velocity": list(velocity), "optimized": final,
-                  "units": {n: parameter_unit(self.cfg, n) for n in final}}
+        record = {
+            "material": self.cfg.material.type,
+            "parameters": params,
+            "density": density,
+            "velocity": list(velocity),
+            "optimized": final,
+            "units": {n: parameter_unit(self.cfg, n) for n in final},
+        }
         atomic_write_text(out / "params.json", json.dumps(record, indent=2))
         atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2))
         atomic_write_text(out / "history.json", json.dumps(state.history, indent=1))
@@ -1075,8 +1291,16 @@ class Optimization:
         traj = result.trajectory
         sim_frames = render_frames(SimulationResult(self.prepared, params, density, traj.x.detach(), traj.F.detach()))
         max_flow = max(float(self.observed.norm(dim=-1).max()), 1e-6)
-        panels = [np.concatenate([comparison_panel(self.video_frames[t], self.observed[t].numpy(), flows[t].numpy(), max_flow),
-                                  sim_frames[t]], 1) for t in range(self.frames)]
+        panels = [
+            np.concatenate(
+                [
+                    comparison_panel(self.video_frames[t], self.observed[t].numpy(), flows[t].numpy(), max_flow),
+                    sim_frames[t],
+                ],
+                1,
+            )
+            for t in range(self.frames)
+        ]
         write_video(out / "comparison.mp4", np.stack(panels), self.cfg.simulation.fps)
         return metrics
 
@@ -1085,8 +1309,9 @@ def _quiet(row: dict) -> None:
     """No progress shown."""
 
 
-def serial_starts(opt: Optimization, begin: OptimizerState, starts, resume: bool = False,
-                  budget: int | None = None) -> list[dict]:
+def serial_starts(
+    opt: Optimization, begin: OptimizerState, starts, resume: bool = False, budget: int | None = None
+) -> list[dict]:
     """Polish each of ``starts`` (indices into begin.starts) one after another in this process
     (``budget``: at most this many iterations in all); records of Optimization.polish."""
     records = []
@@ -1115,5 +1340,13 @@ def parameter_unit(cfg: SceneConfig, name: str) -> str:
     return DENSITY.unit if name == "density" else get_material(cfg.material.type).param(name).unit
 
 
-__all__ = ["Optimization", "OptimizerState", "horizon", "learning_rate", "parameter_unit", "phase_of", "rate_schedule",
-           "write_history_plot"]
+__all__ = [
+    "Optimization",
+    "OptimizerState",
+    "horizon",
+    "learning_rate",
+    "parameter_unit",
+    "phase_of",
+    "rate_schedule",
+    "write_history_plot",
+]

@@ -60,16 +60,30 @@ def history_figure(history: list[dict], truth: dict[str, float]):
     for phase in phases:
         rows = [h for h in history if h["phase"] == phase]
         colour, marker = style[phase]
-        loss_axis.plot([h["iteration"] for h in rows], [h["loss"] for h in rows], color=colour, marker=marker,
-                       markersize=3, linewidth=1.2, label=f"{phase} phase")
+        loss_axis.plot(
+            [h["iteration"] for h in rows],
+            [h["loss"] for h in rows],
+            color=colour,
+            marker=marker,
+            markersize=3,
+            linewidth=1.2,
+            label=f"{phase} phase",
+        )
     handles = loss_axis.get_legend_handles_labels()[0]
     changes = [row for before, row in zip(history, history[1:]) if row["frames"] != before["frames"]]
     for row in history[:1] + changes:  # the first horizon labelled too, without a line
         x = row["iteration"] - 0.5
         for axis in axes if row is not history[0] else ():
             axis.axvline(x, color="grey", linestyle=":", linewidth=0.8)
-        loss_axis.annotate(f"{row['frames']}", (x, 1.0), xycoords=("data", "axes fraction"), fontsize=7,
-                           color="dimgrey", ha="center", va="bottom")
+        loss_axis.annotate(
+            f"{row['frames']}",
+            (x, 1.0),
+            xycoords=("data", "axes fraction"),
+            fontsize=7,
+            color="dimgrey",
+            ha="center",
+            va="bottom",
+        )
     if changes:
         handles.append(Line2D([], [], color="grey", linestyle=":", label="horizon grows to N frames"))
     if history:
@@ -83,8 +97,14 @@ def history_figure(history: list[dict], truth: dict[str, float]):
         for phase in phases:
             rows = [h for h in history if h["phase"] == phase]
             colour, marker = style[phase]
-            axis.plot([h["iteration"] for h in rows], [h["params"][name] for h in rows], color=colour, marker=marker,
-                      markersize=3, linewidth=1.2)
+            axis.plot(
+                [h["iteration"] for h in rows],
+                [h["params"][name] for h in rows],
+                color=colour,
+                marker=marker,
+                markersize=3,
+                linewidth=1.2,
+            )
         if name in truth:
             axis.axhline(truth[name], color="black", linestyle="--", linewidth=1.0, label=f"truth {truth[name]:.4g}")
         if log_scale:

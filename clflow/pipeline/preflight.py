@@ -61,13 +61,17 @@ def check_forces(cfg: SceneConfig, positions: torch.Tensor, dtype: torch.dtype =
     for i, stage in enumerate(cfg.forces):
         masks.append(stage.region.select(x))
         if not bool(masks[-1].any()):
-            raise InputError(f"{cfg.source}: forces[{i}].region holds no particle of the object (the object spans "
-                             f"{_fmt_point(positions.min(0).values)} .. {_fmt_point(positions.max(0).values)} m "
-                             f"in the simulation frame, +y up)")
+            raise InputError(
+                f"{cfg.source}: forces[{i}].region holds no particle of the object (the object spans "
+                f"{_fmt_point(positions.min(0).values)} .. {_fmt_point(positions.max(0).values)} m "
+                f"in the simulation frame, +y up)"
+            )
         if stage.start >= duration:
-            raise InputError(f"{cfg.source}: forces[{i}] starts at {stage.start:g} s, after the simulated "
-                             f"{duration:.4g} s ({sim.frames} frames at {sim.fps:g} fps): it would never act; "
-                             f"fix forces[{i}].start/end (seconds) or simulation.frames")
+            raise InputError(
+                f"{cfg.source}: forces[{i}] starts at {stage.start:g} s, after the simulated "
+                f"{duration:.4g} s ({sim.frames} frames at {sim.fps:g} fps): it would never act; "
+                f"fix forces[{i}].start/end (seconds) or simulation.frames"
+            )
     return masks
 
 
@@ -92,32 +96,54 @@ class RunPlan:
 GRADIENT_COST = 3.0
 
 
-def substep_limit_message(cfg: SceneConfig, substeps: int, dt: float, limit: str, max_substeps: int,
-                          seconds_per_substep: float | None = None, optimizing: bool = False) -> str:
+def substep_limit_message(
+    cfg: SceneConfig,
+    substeps: int,
+    dt: float,
+    limit: str,
+    max_substeps: int,
+    seconds_per_substep: float | None = None,
+    optimizing: bool = False,
+) -> str:
     cost = ""
     if seconds_per_substep:
         frame = substeps * seconds_per_substep
         cost = f", about {frame:.3g} s per frame"
     # a fixed substep beyond the stable one is no way out for the optimiser: it rejects such runs
     fixed = "" if optimizing else ("a fixed simulation.substep_dt (beyond the stable step the run may blow up), ")
-    return (f"{cfg.source}: the simulation needs {substeps} substeps per frame (dt = {dt:.3g} s, limited by "
-            f"{limit}{cost}), beyond the limit of {max_substeps}; ways out: a softer proxy material (a lower "
-            f"youngs_modulus or bulk_modulus, poissons_ratio <= 0.45), a coarser grid (a smaller "
-            f"simulation.grid_resolution: dt grows with the cell size), {fixed}or raise the limit "
-            f"(--max-substeps N or simulation.max_substeps)")
+    return (
+        f"{cfg.source}: the simulation needs {substeps} substeps per frame (dt = {dt:.3g} s, limited by "
+        f"{limit}{cost}), beyond the limit of {max_substeps}; ways out: a softer proxy material (a lower "
+        f"youngs_modulus or bulk_modulus, poissons_ratio <= 0.45), a coarser grid (a smaller "
+        f"simulation.grid_resolution: dt grows with the cell size), {fixed}or raise the limit "
+        f"(--max-substeps N or simulation.max_substeps)"
+    )
 
 
 def check_substeps(cfg: SceneConfig, sim, max_substeps: int | None) -> None:
     """SubstepLimitError when ``sim`` takes more than ``max_substeps`` substeps per frame (the
     optimiser's check of each iteration: build_simulator(max_substeps=...))."""
     if max_substeps is not None and sim.substeps > max_substeps:
-        raise SubstepLimitError(substep_limit_message(cfg, sim.substeps, sim.dt, sim.limit_reason(sim.state.v),
-                                                      max_substeps, optimizing=True))
+        raise SubstepLimitError(
+            substep_limit_message(
+                cfg, sim.substeps, sim.dt, sim.limit_reason(sim.state.v), max_substeps, optimizing=True
+            )
+        )
 
 
-def plan_run(cfg: SceneConfig, setup, params: dict[str, float], density: float, *, frames: int | None = None,
-             velocity=None, min_substeps: int = 1, max_substeps: int | None = None,
-             dtype: torch.dtype = torch.float32, optimizing: bool = False) -> RunPlan:
+def plan_run(
+    cfg: SceneConfig,
+    setup,
+    params: dict[str, float],
+    density: float,
+    *,
+    frames: int | None = None,
+    velocity=None,
+    min_substeps: int = 1,
+    max_substeps: int | None = None,
+    dtype: torch.dtype = torch.float32,
+    optimizing: bool = False,
+) -> RunPlan:
     """The substeps of a run of ``params`` and the seconds one substep takes (two substeps
     timed on a throwaway simulator); SubstepLimitError (the numbers and the ways out) beyond
     ``max_substeps``. ``optimizing``: also refuse a fixed ``simulation.substep_dt`` above the
@@ -131,13 +157,18 @@ def plan_run(cfg: SceneConfig, setup, params: dict[str, float], density: float, 
         sim.step()  # a timing for the message: the one substep is cheap next to the refused run
         start = time.perf_counter()
         sim.step()
-        raise SubstepLimitError(substep_limit_message(cfg, sim.substeps, sim.dt, limit, max_substeps,
-                                                      time.perf_counter() - start, optimizing))
+        raise SubstepLimitError(
+            substep_limit_message(
+                cfg, sim.substeps, sim.dt, limit, max_substeps, time.perf_counter() - start, optimizing
+            )
+        )
     needed = sim.stable_substeps()
     if optimizing and sim.substeps < needed:
-        raise InputError(f"{cfg.source}: simulation.substep_dt = {cfg.simulation.substep_dt:.3g} s is above the "
-                         f"stable step {sim.frame_dt / needed:.3g} s of the starting parameters ({stable}); the "
-                         f"optimiser rejects unstable runs: use substep_dt: auto or at most {sim.frame_dt / needed:.3g} s")
+        raise InputError(
+            f"{cfg.source}: simulation.substep_dt = {cfg.simulation.substep_dt:.3g} s is above the "
+            f"stable step {sim.frame_dt / needed:.3g} s of the starting parameters ({stable}); the "
+            f"optimiser rejects unstable runs: use substep_dt: auto or at most {sim.frame_dt / needed:.3g} s"
+        )
     sim.step()  # the first substep may build kernels
     start = time.perf_counter()
     sim.step()
@@ -149,9 +180,11 @@ def plan_run(cfg: SceneConfig, setup, params: dict[str, float], density: float, 
 def describe(plan: RunPlan, what: str, gradient: bool) -> str:
     """One line: substeps, dt and the predicted time of a run (``gradient``: per iteration)."""
     seconds = plan.forward_seconds * (GRADIENT_COST if gradient else 1.0)
-    return (f"{what}: {plan.substeps} substeps per frame (dt = {plan.dt:.3g} s, limited by {plan.limit}), "
-            f"{plan.particles:,} particles, {plan.frames} frames: about {format_duration(seconds)}"
-            f"{' per iteration' if gradient else ''} ({1e3 * plan.seconds_per_substep:.3g} ms per substep)")
+    return (
+        f"{what}: {plan.substeps} substeps per frame (dt = {plan.dt:.3g} s, limited by {plan.limit}), "
+        f"{plan.particles:,} particles, {plan.frames} frames: about {format_duration(seconds)}"
+        f"{' per iteration' if gradient else ''} ({1e3 * plan.seconds_per_substep:.3g} ms per substep)"
+    )
 
 
 # -- the guidance video -------------------------------------------------------------------------
@@ -172,30 +205,48 @@ class GuidanceCheck:
     def problems(self) -> list[str]:
         out = []
         if self.coverage < MIN_COVERAGE or self.coverage_px < MIN_COVERAGE_PX:
-            out.append(f"the object covers {100 * self.coverage:.2g} % of the image ({self.coverage_px} px; at "
-                       f"least {100 * MIN_COVERAGE:g} % and {MIN_COVERAGE_PX} px needed)")
+            out.append(
+                f"the object covers {100 * self.coverage:.2g} % of the image ({self.coverage_px} px; at "
+                f"least {100 * MIN_COVERAGE:g} % and {MIN_COVERAGE_PX} px needed)"
+            )
         if self.coverage > MAX_COVERAGE:
-            out.append(f"the object covers {100 * self.coverage:.3g} % of the image (more than "
-                       f"{100 * MAX_COVERAGE:g} %: is the camera inside the object?)")
+            out.append(
+                f"the object covers {100 * self.coverage:.3g} % of the image (more than "
+                f"{100 * MAX_COVERAGE:g} %: is the camera inside the object?)"
+            )
         if self.appearance < MIN_APPEARANCE:
-            out.append(f"the video's first frame does not look like the scene rendered from the camera inside the "
-                       f"loss mask (correlation {self.appearance:.2f}, at least {MIN_APPEARANCE:g} needed: a wrong "
-                       f"camera or video?)")
+            out.append(
+                f"the video's first frame does not look like the scene rendered from the camera inside the "
+                f"loss mask (correlation {self.appearance:.2f}, at least {MIN_APPEARANCE:g} needed: a wrong "
+                f"camera or video?)"
+            )
         if self.motion_px < MIN_MOTION_PX:
-            out.append(f"the video shows no motion inside the loss mask (95th percentile of the flow "
-                       f"{self.motion_px:.3g} px per frame, at least {MIN_MOTION_PX:g} needed)")
+            out.append(
+                f"the video shows no motion inside the loss mask (95th percentile of the flow "
+                f"{self.motion_px:.3g} px per frame, at least {MIN_MOTION_PX:g} needed)"
+            )
         if self.confident < MIN_CONFIDENT:
-            out.append(f"the observed flow is unreliable inside the loss mask ({100 * self.confident:.2g} % of its "
-                       f"pixels have confidence > 0.5, at least {100 * MIN_CONFIDENT:g} % needed: noise?)")
+            out.append(
+                f"the observed flow is unreliable inside the loss mask ({100 * self.confident:.2g} % of its "
+                f"pixels have confidence > 0.5, at least {100 * MIN_CONFIDENT:g} % needed: noise?)"
+            )
         if self.agreement is not None and self.agreement < MIN_AGREEMENT:
-            out.append(f"the simulated motion at the starting parameters points against the video's over the first "
-                       f"{AGREEMENT_FRAMES} frames (cosine {self.agreement:.2f}; is the camera on the other side of "
-                       f"the object, or the video mirrored?)")
+            out.append(
+                f"the simulated motion at the starting parameters points against the video's over the first "
+                f"{AGREEMENT_FRAMES} frames (cosine {self.agreement:.2f}; is the camera on the other side of "
+                f"the object, or the video mirrored?)"
+            )
         return out
 
     def record(self) -> dict:
-        return {"coverage": self.coverage, "coverage_px": self.coverage_px, "appearance": self.appearance,
-                "motion_px": self.motion_px, "confident": self.confident, "agreement": self.agreement}
+        return {
+            "coverage": self.coverage,
+            "coverage_px": self.coverage_px,
+            "appearance": self.appearance,
+            "motion_px": self.motion_px,
+            "confident": self.confident,
+            "agreement": self.agreement,
+        }
 
 
 def flow_agreement(simulated: list[torch.Tensor], observed: torch.Tensor, weight: torch.Tensor) -> float:
@@ -214,8 +265,9 @@ def _correlation(a: np.ndarray, b: np.ndarray) -> float:
     return float((a * b).sum()) / norm if norm > 1e-12 else 0.0
 
 
-def measure_view(prepared, camera, mask: torch.Tensor, video_frames: np.ndarray, flow: np.ndarray,
-                 confidence: np.ndarray) -> GuidanceCheck:
+def measure_view(
+    prepared, camera, mask: torch.Tensor, video_frames: np.ndarray, flow: np.ndarray, confidence: np.ndarray
+) -> GuidanceCheck:
     """The numbers of :class:`GuidanceCheck` for one view: ``mask`` [H, W] the loss mask,
     ``video_frames`` [T+1, H, W, 3] uint8, ``flow`` [T, H, W, 2], ``confidence`` [T, H, W]."""
     from clflow.media import to_uint8
@@ -243,12 +295,24 @@ def check_guidance(cfg: SceneConfig, checks: list[GuidanceCheck], force: bool) -
         where = f"guidance view {i}: " if len(checks) > 1 else ""
         problems += [where + p for p in check.problems()]
     if problems and not force:
-        raise InputError(f"{cfg.source}: the guidance video does not fit the scene: {'; '.join(problems)}; "
-                         f"check camera and video, or optimise anyway with --force-video")
+        raise InputError(
+            f"{cfg.source}: the guidance video does not fit the scene: {'; '.join(problems)}; "
+            f"check camera and video, or optimise anyway with --force-video"
+        )
     for p in problems:
         log.warning("guidance check failed (forced with --force-video): %s; the result is likely wrong", p)
     return problems
 
 
-__all__ = ["flow_agreement", "GuidanceCheck", "RunPlan", "SubstepLimitError", "check_forces",
-           "check_guidance", "check_substeps", "describe", "measure_view", "plan_run"]
+__all__ = [
+    "flow_agreement",
+    "GuidanceCheck",
+    "RunPlan",
+    "SubstepLimitError",
+    "check_forces",
+    "check_guidance",
+    "check_substeps",
+    "describe",
+    "measure_view",
+    "plan_run",
+]

@@ -30,16 +30,22 @@ def _rasterize(g: Gaussians, camera, colors: torch.Tensor, **kwargs):
     from clflow.splat.ops import rasterize_gaussians
 
     view = _view(camera, g.means.dtype)
-    return rasterize_gaussians(g.means, None, None, g.opacities, colors, *view, covars=g.covariances,
-                               render_depth=False, **kwargs)
+    return rasterize_gaussians(
+        g.means, None, None, g.opacities, colors, *view, covars=g.covariances, render_depth=False, **kwargs
+    )
 
 
 def render_rgb(g: Gaussians, camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
     """[H, W, 3] colours in [0, 1] (values may exceed 1 before clipping)."""
     sh_degree = g.sh_degree
-    image, _, _, _ = _rasterize(g, camera, g.sh if g.sh is not None else g.colors, sh_degree=sh_degree,
-                                sh_rotations=g.sh_rotations if sh_degree else None,
-                                background=torch.tensor(background, dtype=g.means.dtype))
+    image, _, _, _ = _rasterize(
+        g,
+        camera,
+        g.sh if g.sh is not None else g.colors,
+        sh_degree=sh_degree,
+        sh_rotations=g.sh_rotations if sh_degree else None,
+        background=torch.tensor(background, dtype=g.means.dtype),
+    )
     return image
 
 

@@ -26,8 +26,11 @@ RENDERS = "simulation/render4d"  # where `clflow demo` / `clflow render4d` put t
 def write_run_record(cfg, output: Path, argv: list[str] | None = None) -> dict:
     """``output/run.json``: environment(), the resolved config ``cfg`` (a SceneConfig) and
     the command line (default sys.argv)."""
-    record = {"environment": environment(), "command": list(sys.argv if argv is None else argv),
-              "config": json.loads(json.dumps(dataclasses.asdict(cfg), default=str))}
+    record = {
+        "environment": environment(),
+        "command": list(sys.argv if argv is None else argv),
+        "config": json.loads(json.dumps(dataclasses.asdict(cfg), default=str)),
+    }
     atomic_write_text(output / "run.json", json.dumps(record, indent=2))
     return record
 
@@ -41,15 +44,20 @@ def _read(path: Path) -> dict | None:
 
 def _table(rows: list[tuple[str, ...]], head: tuple[str, ...]) -> str:
     cells = lambda tag, row: "".join(f"<{tag}>{html.escape(str(c))}</{tag}>" for c in row)  # noqa: E731
-    return (f"<table><thead><tr>{cells('th', head)}</tr></thead><tbody>"
-            + "".join(f"<tr>{cells('td', r)}</tr>" for r in rows) + "</tbody></table>")
+    return (
+        f"<table><thead><tr>{cells('th', head)}</tr></thead><tbody>"
+        + "".join(f"<tr>{cells('td', r)}</tr>" for r in rows)
+        + "</tbody></table>"
+    )
 
 
 def _video(rel: str, caption: str) -> str:
-    return (f'<figure><video src="{html.escape(rel)}" controls loop muted playsinline preload="metadata" '
-            f'onloadedmetadata="this.parentNode.dataset.duration=this.duration.toFixed(3);'
-            f"this.nextElementSibling.textContent+=' (' + this.duration.toFixed(2) + ' s)'\"></video>"
-            f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+    return (
+        f'<figure><video src="{html.escape(rel)}" controls loop muted playsinline preload="metadata" '
+        f'onloadedmetadata="this.parentNode.dataset.duration=this.duration.toFixed(3);'
+        f"this.nextElementSibling.textContent+=' (' + this.duration.toFixed(2) + ' s)'\"></video>"
+        f"<figcaption>{html.escape(caption)}</figcaption></figure>"
+    )
 
 
 STYLE = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}
@@ -70,23 +78,29 @@ def write_report(output: Path) -> Path:
         rows = [(n, f"{v:.6g}", units.get(n, "")) for n, v in params.get("optimized", {}).items()]
         parts.append(f"<h2>Material: {html.escape(params.get('material', '?'))}</h2>")
         parts.append("<h3>Optimised</h3>" + _table(rows, ("parameter", "value", "unit")))
-        fixed = [(n, f"{v:.6g}") for n, v in params.get("parameters", {}).items() if n not in params.get("optimized", {})]
+        fixed = [
+            (n, f"{v:.6g}") for n, v in params.get("parameters", {}).items() if n not in params.get("optimized", {})
+        ]
         fixed.append(("density (kg/m^3)", f"{params.get('density', float('nan')):.6g}"))
         fixed.append(("initial velocity (m/s)", ", ".join(f"{v:.4g}" for v in params.get("velocity", []))))
         parts.append("<h3>All parameters (SI)</h3>" + _table(fixed, ("parameter", "value")))
     if metrics:
-        rows = [("flow loss (per frame and pixel)", f"{metrics.get('flow_loss', float('nan')):.4g}"),
-                ("flow end-point error (px)", f"{metrics.get('epe_px', float('nan')):.4g}"),
-                ("iterations", metrics.get("iterations", "")),
-                ("seconds per iteration", f"{metrics.get('seconds_per_iteration', float('nan')):.3g}")]
+        rows = [
+            ("flow loss (per frame and pixel)", f"{metrics.get('flow_loss', float('nan')):.4g}"),
+            ("flow end-point error (px)", f"{metrics.get('epe_px', float('nan')):.4g}"),
+            ("iterations", metrics.get("iterations", "")),
+            ("seconds per iteration", f"{metrics.get('seconds_per_iteration', float('nan')):.3g}"),
+        ]
         rows += [(f"relative error: {n}", f"{e:.3%}") for n, e in metrics.get("relative_error", {}).items()]
         ident = metrics.get("identifiability", {})
         rows += [(f"weakly constrained: {n}", "the video barely fixes it") for n in ident.get("weakly_constrained", [])]
         rows += [(f"trade-off: {a} / {b}", f"correlation {rho:.3f}") for a, b, rho in ident.get("trade_offs", [])]
         chosen = metrics.get("material_hypotheses")
         if chosen:
-            rows += [(f"hypothesis {m}", f"best search loss {r['loss']:.4g}" if "loss" in r else "failed")
-                     for m, r in chosen["hypotheses"].items()]
+            rows += [
+                (f"hypothesis {m}", f"best search loss {r['loss']:.4g}" if "loss" in r else "failed")
+                for m, r in chosen["hypotheses"].items()
+            ]
         parts.append("<h2>Metrics</h2>" + _table(rows, ("metric", "value")))
     if (output / "loss.png").exists():
         parts.append('<h2>Optimisation</h2><img src="loss.png" alt="loss and parameters per iteration">')
@@ -99,14 +113,21 @@ def write_report(output: Path) -> Path:
         env = run.get("environment", {})
         rows = [(k, v) for k, v in env.items() if v is not None]
         rows.append(("command", " ".join(run.get("command", []))))
-        parts.append('<h2>Made with</h2>' + _table(rows, ("", "")) + '<p>Resolved config and all versions: '
-                     '<a href="run.json">run.json</a></p>')
-    links = [n for n in ("params.json", "metrics.json", "history.json", "hypotheses.json", "search.json")
-             if (output / n).exists()]
+        parts.append(
+            "<h2>Made with</h2>" + _table(rows, ("", "")) + "<p>Resolved config and all versions: "
+            '<a href="run.json">run.json</a></p>'
+        )
+    links = [
+        n
+        for n in ("params.json", "metrics.json", "history.json", "hypotheses.json", "search.json")
+        if (output / n).exists()
+    ]
     if links:
         parts.append("<p>Data: " + ", ".join(f'<a href="{n}">{n}</a>' for n in links) + "</p>")
-    page = (f"<!doctype html><html lang=en><head><meta charset=utf-8><title>clflow results: "
-            f"{html.escape(output.name)}</title><style>{STYLE}</style></head><body>{''.join(parts)}</body></html>\n")
+    page = (
+        f"<!doctype html><html lang=en><head><meta charset=utf-8><title>clflow results: "
+        f"{html.escape(output.name)}</title><style>{STYLE}</style></head><body>{''.join(parts)}</body></html>\n"
+    )
     atomic_write_text(output / "index.html", page)
     return output / "index.html"
 

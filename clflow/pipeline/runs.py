@@ -37,17 +37,28 @@ def read_params_record(path: str | Path, cfg):
         raise InputError(f"{path}: not a params.json of clflow optimize ({exc})") from None
     if record.get("material") != cfg.material.type:
         raise InputError(f"{path} is for {record.get('material')!r}, the config simulates {cfg.material.type!r}")
-    if not (isinstance(velocity, list) and len(velocity) == 3
-            and all(isinstance(v, (int, float)) and math.isfinite(v) for v in velocity)):
+    if not (
+        isinstance(velocity, list)
+        and len(velocity) == 3
+        and all(isinstance(v, (int, float)) and math.isfinite(v) for v in velocity)
+    ):
         raise InputError(f"{path}: velocity must be a list of 3 finite numbers (m/s), got {velocity!r}")
     return dataclasses.replace(cfg, velocity=tuple(float(v) for v in velocity)), overrides
 
 
-def simulate_scene(config_path: str | Path, params_file: str | Path | None = None, out_dir: str | Path | None = None,
-                   preview: str = "mp4", max_output_gb: float = DEFAULT_MAX_OUTPUT_GB, settings: tuple[str, ...] = (),
-                   max_substeps: int | None = None, echo: Callable[[str], None] = _silent, object_only: bool = False,
-                   compressed: bool = False,
-                   progress: Callable[[int, str], ContextManager[Callable[[str], None]]] | None = None) -> Path:
+def simulate_scene(
+    config_path: str | Path,
+    params_file: str | Path | None = None,
+    out_dir: str | Path | None = None,
+    preview: str = "mp4",
+    max_output_gb: float = DEFAULT_MAX_OUTPUT_GB,
+    settings: tuple[str, ...] = (),
+    max_substeps: int | None = None,
+    echo: Callable[[str], None] = _silent,
+    object_only: bool = False,
+    compressed: bool = False,
+    progress: Callable[[int, str], ContextManager[Callable[[str], None]]] | None = None,
+) -> Path:
     """Simulate the config's scene (``settings``: ``KEY=VALUE`` overrides) with its material
     and initial velocity, or those of an optimisation's ``params_file``; write per-frame
     Gaussians (``object_only``: PLY frames of the object and static.ply once; ``compressed``:
@@ -75,16 +86,23 @@ def simulate_scene(config_path: str | Path, params_file: str | Path | None = Non
     check_memory(memory, f"simulating {frames + 1:,} frames", less)
     shown = progress(frames, "simulating") if progress else contextlib.nullcontext(None)
     with shown as advance:
-        result = simulate_config(cfg, overrides, prepared, max_substeps=max_substeps,
-                                 on_frame=(lambda k: advance(f"frame {k}")) if advance else None)
+        result = simulate_config(
+            cfg,
+            overrides,
+            prepared,
+            max_substeps=max_substeps,
+            on_frame=(lambda k: advance(f"frame {k}")) if advance else None,
+        )
     echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
     with atomic_dir(out) as tmp:  # all or nothing: a failure leaves OUT as it was
         export_gaussians(result, tmp, object_only, compressed)
         if preview != "none":
             render_video(result, tmp / "guidance", video=tmp / "guidance.mp4" if preview == "mp4" else None)
     suffix = ".compressed.ply" if compressed else ".ply"
-    echo(f"wrote {out / 'gaussians.npz'} and {result.x.shape[0]} PLY frames ({out / ('frame_000' + suffix)} ...)"
-         + (f" of the object, the static scene in {out / ('static' + suffix)}" if object_only else ""))
+    echo(
+        f"wrote {out / 'gaussians.npz'} and {result.x.shape[0]} PLY frames ({out / ('frame_000' + suffix)} ...)"
+        + (f" of the object, the static scene in {out / ('static' + suffix)}" if object_only else "")
+    )
     if preview != "none":
         echo(f"wrote {out / 'guidance.mp4' if preview == 'mp4' else out / 'guidance'}")
     return out
@@ -118,10 +136,16 @@ class ParticleRun:
     double: bool = False
 
 
-def simulate_particles(run: ParticleRun, out_dir: str | Path = "simulation", preview: str = "mp4",
-                       max_output_gb: float = DEFAULT_MAX_OUTPUT_GB, max_substeps: int | None = None, device=None,
-                       echo: Callable[[str], None] = _silent,
-                       progress: Callable[[int, str], ContextManager[Callable[[str], None]]] | None = None) -> Path:
+def simulate_particles(
+    run: ParticleRun,
+    out_dir: str | Path = "simulation",
+    preview: str = "mp4",
+    max_output_gb: float = DEFAULT_MAX_OUTPUT_GB,
+    max_substeps: int | None = None,
+    device=None,
+    echo: Callable[[str], None] = _silent,
+    progress: Callable[[int, str], ContextManager[Callable[[str], None]]] | None = None,
+) -> Path:
     """Simulate ``run`` on ``device`` (default: the selected one) and write
     OUT/positions.npz (x [frames+1, N, 3] m, time [frames+1] s) and a preview ("mp4",
     "png" frames or "none"), all or nothing; refuses more than ``max_substeps`` substeps per
@@ -157,26 +181,41 @@ def simulate_particles(run: ParticleRun, out_dir: str | Path = "simulation", pre
         x = lattice_fill(run.shape, run.size, list(run.center or [run.domain / 2] * 3), spacing)
         volume = spacing**3
     sim = Simulator(
-        x, volume, MaterialSpec(run.material, dict(run.params), run.density, run.model), grid,
+        x,
+        volume,
+        MaterialSpec(run.material, dict(run.params), run.density, run.model),
+        grid,
         velocities=torch.tensor(run.velocity, dtype=torch.float64).expand(x.shape[0], 3),
-        frame_dt=1.0 / run.fps, substeps=run.substeps, gravity=list(run.gravity),
-        walls=None if run.walls == "none" else run.walls, wall_friction=run.wall_friction, dtype=dtype,
+        frame_dt=1.0 / run.fps,
+        substeps=run.substeps,
+        gravity=list(run.gravity),
+        walls=None if run.walls == "none" else run.walls,
+        wall_friction=run.wall_friction,
+        dtype=dtype,
         device=device,
     )
     out, frames = Path(out_dir), run.frames
     less = "simulate fewer --frames"
     image = 0 if preview == "none" else 3 * PREVIEW_SIZE**2  # bytes of an uncompressed preview frame
-    check_output(out, (frames + 1) * (12 * sim.n + image), max_output_gb, f"{frames + 1:,} frames of {sim.n:,} particles",
-                 less)
-    check_memory((frames + 1) * (sim.n * TRAJECTORY_REALS * dtype.itemsize + image),  # the preview is encoded at once
-                 f"simulating {frames + 1:,} frames", less)
-    echo(f"{sim.n:,} particles of {run.material}, {frames} frames x {sim.substeps} substeps (dt = {sim.dt:.3g} s, "
-         f"limited by {sim.limit_reason(sim.state.v)})")
+    check_output(
+        out, (frames + 1) * (12 * sim.n + image), max_output_gb, f"{frames + 1:,} frames of {sim.n:,} particles", less
+    )
+    check_memory(
+        (frames + 1) * (sim.n * TRAJECTORY_REALS * dtype.itemsize + image),  # the preview is encoded at once
+        f"simulating {frames + 1:,} frames",
+        less,
+    )
+    echo(
+        f"{sim.n:,} particles of {run.material}, {frames} frames x {sim.substeps} substeps (dt = {sim.dt:.3g} s, "
+        f"limited by {sim.limit_reason(sim.state.v)})"
+    )
     limit = max_substeps or DEFAULT_MAX_SUBSTEPS
     if sim.substeps > limit:
-        raise InputError(f"{sim.substeps} substeps per frame (dt = {sim.dt:.3g} s) is beyond the limit of {limit}; "
-                         f"ways out: a softer material, a coarser --grid, fewer --substeps, or raise the limit "
-                         f"with --max-substeps N")
+        raise InputError(
+            f"{sim.substeps} substeps per frame (dt = {sim.dt:.3g} s) is beyond the limit of {limit}; "
+            f"ways out: a softer material, a coarser --grid, fewer --substeps, or raise the limit "
+            f"with --max-substeps N"
+        )
     shown = progress(frames, "simulating") if progress else contextlib.nullcontext(None)
     with shown as advance:
         traj = sim.run(frames, (lambda k: advance(f"frame {k}")) if advance else None)
@@ -191,10 +230,16 @@ def simulate_particles(run: ParticleRun, out_dir: str | Path = "simulation", pre
     return out
 
 
-def render_simulation_4d(simulation: str | Path, out_dir: str | Path | None = None, views: int = 0, turns: float = 1.0,
-                         video_format: str = "mp4", max_output_gb: float = DEFAULT_MAX_OUTPUT_GB,
-                         progress: Callable[[int, str], ContextManager[Callable[[str], None]]] | None = None,
-                         echo: Callable[[str], None] = _silent) -> list[Path]:
+def render_simulation_4d(
+    simulation: str | Path,
+    out_dir: str | Path | None = None,
+    views: int = 0,
+    turns: float = 1.0,
+    video_format: str = "mp4",
+    max_output_gb: float = DEFAULT_MAX_OUTPUT_GB,
+    progress: Callable[[int, str], ContextManager[Callable[[str], None]]] | None = None,
+    echo: Callable[[str], None] = _silent,
+) -> list[Path]:
     """Render the per-frame Gaussians ``simulate_scene`` wrote in ``simulation`` from the
     guidance camera, an orbiting camera and ``views`` fixed novel viewpoints into ``out_dir``
     (default: SIMULATION/render4d); ``progress(total, label)`` yields ``advance(name)``,
@@ -204,8 +249,13 @@ def render_simulation_4d(simulation: str | Path, out_dir: str | Path | None = No
 
     frames = load_frames(simulation)
     out = Path(out_dir) if out_dir else Path(simulation) / "render4d"
-    check_output(out, render_4d_size(frames, views), max_output_gb,
-                 f"{views + 2:,} sequences of {frames.frame_count} frames", "render fewer --views")
+    check_output(
+        out,
+        render_4d_size(frames, views),
+        max_output_gb,
+        f"{views + 2:,} sequences of {frames.frame_count} frames",
+        "render fewer --views",
+    )
     shown = progress(render_4d_frames(frames, views), "rendering") if progress else contextlib.nullcontext(None)
     with shown as advance:
         videos = render_4d(frames, out, views=views, turns=turns, video_format=video_format, advance=advance)
@@ -238,12 +288,20 @@ def _modified(path) -> int | None:
         return None
 
 
-def run_optimization(config_path: str | Path, resume: bool = False, iterations: int | None = None,
-                     output: str | Path | None = None, overrides: tuple[str, ...] = (),
-                     max_substeps: int | None = None, force_video: bool = False, *,
-                     echo: Callable[[str], None] = _silent, note: Callable[[str], None] = _silent,
-                     bar: Callable[[int, int], ContextManager[Callable[[dict], None]]] | None = None,
-                     parallel: dict | None = None) -> dict:
+def run_optimization(
+    config_path: str | Path,
+    resume: bool = False,
+    iterations: int | None = None,
+    output: str | Path | None = None,
+    overrides: tuple[str, ...] = (),
+    max_substeps: int | None = None,
+    force_video: bool = False,
+    *,
+    echo: Callable[[str], None] = _silent,
+    note: Callable[[str], None] = _silent,
+    bar: Callable[[int, int], ContextManager[Callable[[dict], None]]] | None = None,
+    parallel: dict | None = None,
+) -> dict:
     """Load the config (``overrides``: ``KEY=VALUE``), generate its guidance video if it asks
     for one, choose among its material hypotheses, optimise (``bar(total, done)``: the
     iterations' progress, default :func:`iteration_lines`), write the results, run.json and
@@ -264,12 +322,14 @@ def run_optimization(config_path: str | Path, resume: bool = False, iterations: 
             from clflow.sweep import ray_session
 
             stack.enter_context(ray_session(parallel.get("address")))  # one Ray for all of the run's tasks
-        return _optimize(cfg, config_path, resume, iterations, output, max_substeps, force_video, echo, note, bar,
-                         parallel)
+        return _optimize(
+            cfg, config_path, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel
+        )
 
 
-def _optimize(cfg, config_path, resume, iterations, output, max_substeps, force_video, echo, note, bar,
-              parallel) -> dict:
+def _optimize(
+    cfg, config_path, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel
+) -> dict:
     """run_optimization's work once its config is loaded."""
     from clflow.limits import check_output
     from clflow.pipeline.optimize import Optimization, parameter_unit
@@ -284,8 +344,9 @@ def _optimize(cfg, config_path, resume, iterations, output, max_substeps, force_
     if getattr(cfg, "generate", None) is not None:  # video: {generate: ...}: the guidance video first
         from clflow.pipeline.generated_video import ensure_guidance_video
 
-        cfg = ensure_guidance_video(cfg, progress=lambda step, total: note(
-            f"generating the guidance video: step {step}/{total}"))
+        cfg = ensure_guidance_video(
+            cfg, progress=lambda step, total: note(f"generating the guidance video: step {step}/{total}")
+        )
     start, hypotheses, search = None, None, cfg.optimize.search
     if cfg.optimize.materials:  # material hypotheses: search each, optimise the best
         from clflow.pipeline.hypotheses import choose_material
@@ -299,16 +360,25 @@ def _optimize(cfg, config_path, resume, iterations, output, max_substeps, force_
 
             search_all = {"search_all": hypotheses_on_ray(**parallel)}
         try:
-            cfg, start, hypotheses = choose_material(cfg, resume=resume, progress=searched, force_video=force_video,
-                                                     **search_all)
+            cfg, start, hypotheses = choose_material(
+                cfg, resume=resume, progress=searched, force_video=force_video, **search_all
+            )
         except KeyboardInterrupt:
-            raise KeyboardInterrupt(f"interrupted while searching the material hypotheses (each saves its samples "
-                                    f"in {cfg.output / 'hypotheses'}); continue with `clflow optimize "
-                                    f"{config_path} --resume`") from None
-        note(f"material: {hypotheses['chosen']} fits best (best search loss: " + ", ".join(
-            f"{m} {r['loss']:.4g}" if "loss" in r else f"{m} failed" for m, r in hypotheses["hypotheses"].items())
-            + ")")
-    opt = Optimization(cfg, hypotheses=hypotheses, force_video=force_video)  # loads the scene, runs the material query, computes the video's flow
+            raise KeyboardInterrupt(
+                f"interrupted while searching the material hypotheses (each saves its samples "
+                f"in {cfg.output / 'hypotheses'}); continue with `clflow optimize "
+                f"{config_path} --resume`"
+            ) from None
+        note(
+            f"material: {hypotheses['chosen']} fits best (best search loss: "
+            + ", ".join(
+                f"{m} {r['loss']:.4g}" if "loss" in r else f"{m} failed" for m, r in hypotheses["hypotheses"].items()
+            )
+            + ")"
+        )
+    opt = Optimization(
+        cfg, hypotheses=hypotheses, force_video=force_video
+    )  # loads the scene, runs the material query, computes the video's flow
     if parallel is not None:
         from clflow.sweep import starts_on_ray
 
@@ -316,6 +386,7 @@ def _optimize(cfg, config_path, resume, iterations, output, max_substeps, force_
     total = opt.total_iterations  # the velocity phase's (optimize.estimate_velocity) and the main phase's
     done = opt.load_state().iteration if resume and opt.checkpoint.exists() else 0
     with (bar or (lambda t, d: iteration_lines(t, d, note)))(total, done) as advance:
+
         def progress(row: dict) -> None:
             if row.get("phase") == "search":  # the global phase: one line per sample
                 note(f"search {row['iteration'] + 1}/{search.samples}: {format_row(row)}")
@@ -332,7 +403,8 @@ def _optimize(cfg, config_path, resume, iterations, output, max_substeps, force_
                 raise KeyboardInterrupt("interrupted before the first iteration finished; nothing was saved") from None
             raise KeyboardInterrupt(
                 f"interrupted after {opt.load_state().iteration} iterations (saved in {opt.checkpoint}); "
-                f"continue with `clflow optimize {config_path} --resume`") from None
+                f"continue with `clflow optimize {config_path} --resume`"
+            ) from None
     metrics = opt.write_results(state)
     from clflow.pipeline.report import write_report, write_run_record
 
@@ -341,18 +413,30 @@ def _optimize(cfg, config_path, resume, iterations, output, max_substeps, force_
     final = opt.values(state.z)
     echo("optimised: " + ", ".join(f"{n} = {v:.6g} {parameter_unit(opt.cfg, n)}" for n, v in final.items()))
     if "relative_error" in metrics:
-        echo("relative error vs ground truth: " +
-             ", ".join(f"{n} {100 * e:.2f}%" for n, e in metrics["relative_error"].items()))
+        echo(
+            "relative error vs ground truth: "
+            + ", ".join(f"{n} {100 * e:.2f}%" for n, e in metrics["relative_error"].items())
+        )
     if "velocity_error_m_s" in metrics:
         echo(f"initial velocity off by {metrics['velocity_error_m_s']:.3g} m/s")
     if metrics.get("rollbacks"):
         note(f"{len(metrics['rollbacks'])} unstable or failed iterations were rolled back (metrics.json: rollbacks)")
     for warning in metrics.get("warnings", []):
         note(f"WARNING: {warning}; the result is likely wrong")
-    echo(f"flow loss {metrics['flow_loss']:.4g}, end-point error {metrics['epe_px']:.3g} px, "
-         f"{metrics['seconds_per_iteration']:.2f} s per iteration; results in {cfg.output} (open {report.name})")
+    echo(
+        f"flow loss {metrics['flow_loss']:.4g}, end-point error {metrics['epe_px']:.3g} px, "
+        f"{metrics['seconds_per_iteration']:.2f} s per iteration; results in {cfg.output} (open {report.name})"
+    )
     return metrics
 
 
-__all__ = ["ParticleRun", "format_row", "iteration_lines", "read_params_record", "render_simulation_4d", "run_optimization",
-           "simulate_particles", "simulate_scene"]
+__all__ = [
+    "ParticleRun",
+    "format_row",
+    "iteration_lines",
+    "read_params_record",
+    "render_simulation_4d",
+    "run_optimization",
+    "simulate_particles",
+    "simulate_scene",
+]

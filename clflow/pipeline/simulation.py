@@ -59,8 +59,10 @@ def simulation_grid(cfg: SceneConfig, lower: torch.Tensor, upper: torch.Tensor):
         size = float((upper - lower).max())
         inner = res - 1 - 2 * (WALL_CELLS + 1)
         if inner < 2:
-            raise InputError(f"{cfg.source}: simulation.grid_resolution {res} is too small: the walls take "
-                             f"{2 * (WALL_CELLS + 1)} cells; use at least {2 * (WALL_CELLS + 1) + 3}")
+            raise InputError(
+                f"{cfg.source}: simulation.grid_resolution {res} is too small: the walls take "
+                f"{2 * (WALL_CELLS + 1)} cells; use at least {2 * (WALL_CELLS + 1) + 3}"
+            )
         dx = max(2.5 * size / (res - 1), size / inner)
         pad = max(0.75 * size, (WALL_CELLS + 1) * dx)
         lo, hi = lower - pad, upper + pad
@@ -91,14 +93,23 @@ def setup_object(cfg: SceneConfig, obj: Gaussians) -> ObjectSetup:
     inner_hi = torch.tensor(grid.upper, dtype=torch.float64) - (WALL_CELLS + 1) * grid.dx
     x = particles.positions.double()
     if bool(((x < inner_lo) | (x > inner_hi)).any()):
-        raise InputError(f"{cfg.source}: the object ({lower.tolist()} .. {upper.tolist()} m) does not fit inside "
-                         f"simulation.domain minus its walls ({inner_lo.tolist()} .. {inner_hi.tolist()} m)")
+        raise InputError(
+            f"{cfg.source}: the object ({lower.tolist()} .. {upper.tolist()} m) does not fit inside "
+            f"simulation.domain minus its walls ({inner_lo.tolist()} .. {inner_hi.tolist()} m)"
+        )
     return ObjectSetup(particles, grid)
 
 
-def build_simulator(cfg: SceneConfig, setup: ObjectSetup, params: dict[str, float], density: float,
-                    dtype: torch.dtype = torch.float32, min_substeps: int = 1,
-                    velocity: torch.Tensor | None = None, max_substeps: int | None = None):
+def build_simulator(
+    cfg: SceneConfig,
+    setup: ObjectSetup,
+    params: dict[str, float],
+    density: float,
+    dtype: torch.dtype = torch.float32,
+    min_substeps: int = 1,
+    velocity: torch.Tensor | None = None,
+    max_substeps: int | None = None,
+):
     """A :class:`clflow.mpm.Simulator` for material parameters ``params`` (SI), ``density``
     (kg/m^3) and initial velocity ``velocity`` ([3] m/s in the simulation frame, default
     ``object.velocity``); substeps from ``simulation.substep_dt``, else the stability limits
@@ -115,16 +126,32 @@ def build_simulator(cfg: SceneConfig, setup: ObjectSetup, params: dict[str, floa
     forces = []
     for stage, where in zip(cfg.forces, check_forces(cfg, x, dtype)):  # as the simulator would select them
         vec = list(stage.vector)
-        forces.append(Force(where, stage.start, stage.end, force=vec if stage.kind == "force" else None,
-                            acceleration=vec if stage.kind == "acceleration" else None))
+        forces.append(
+            Force(
+                where,
+                stage.start,
+                stage.end,
+                force=vec if stage.kind == "force" else None,
+                acceleration=vec if stage.kind == "acceleration" else None,
+            )
+        )
     colliders = [HalfSpace(c.point, c.normal, c.mode, c.friction, c.start, c.end) for c in cfg.colliders]
     material = get_material(cfg.material.type).name
     velocity = torch.as_tensor(cfg.velocity if velocity is None else velocity, dtype=torch.float64)
     velocities = velocity.detach().expand(x.shape[0], 3)
     sim = Simulator(
-        x, setup.particles.volume, MaterialSpec(material, dict(params), density, cfg.material.model), setup.grid,
-        velocities=velocities, frame_dt=frame_dt, substeps=substeps, gravity=sim_cfg.gravity, boundaries=colliders,
-        forces=forces, dtype=dtype, flip=sim_cfg.flip,
+        x,
+        setup.particles.volume,
+        MaterialSpec(material, dict(params), density, cfg.material.model),
+        setup.grid,
+        velocities=velocities,
+        frame_dt=frame_dt,
+        substeps=substeps,
+        gravity=sim_cfg.gravity,
+        boundaries=colliders,
+        forces=forces,
+        dtype=dtype,
+        flip=sim_cfg.flip,
     )
     if substeps is None and sim.substeps < min_substeps:
         sim.use_substeps(min_substeps)
@@ -140,7 +167,11 @@ def run(simulator, frames: int, values: dict[str, torch.Tensor], velocity: torch
     from clflow.mpm.autograd import per_particle, simulate
 
     params = {name: value for name, value in values.items() if name != "density"}
-    velocities = None if velocity is None else per_particle(velocity, simulator.n, "velocity", simulator.dtype,
-                                                            simulator.device, trailing=(3,))
-    return simulate(simulator, frames, params=params or None, density=values.get("density"), velocities=velocities,
-                    retries=2)
+    velocities = (
+        None
+        if velocity is None
+        else per_particle(velocity, simulator.n, "velocity", simulator.dtype, simulator.device, trailing=(3,))
+    )
+    return simulate(
+        simulator, frames, params=params or None, density=values.get("density"), velocities=velocities, retries=2
+    )

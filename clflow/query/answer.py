@@ -113,8 +113,9 @@ def _material(value: object, kb: KnowledgeBase, warnings: list[str]) -> str:
         pass
     entry = kb.identify(value)
     if entry is not None:
-        warnings.append(f"material {value!r} is not a type; the knowledge base files {entry.name!r} "
-                        f"under {entry.material}")
+        warnings.append(
+            f"material {value!r} is not a type; the knowledge base files {entry.name!r} under {entry.material}"
+        )
         return entry.material
     raise ModelAnswerError(f"the model answered an unknown material type {value!r}; clflow knows {_TYPES}")
 
@@ -147,8 +148,9 @@ def _quantity(raw: object, p: Param, default: float, where: str, warnings: list[
     lo, hi = p.typical
     if not lo <= value <= hi:
         clamped = min(max(value, lo), hi)
-        warnings.append(f"{where} = {value:g} {p.unit} is outside the typical range [{lo:g}, {hi:g}]; "
-                        f"clamped to {clamped:g}")
+        warnings.append(
+            f"{where} = {value:g} {p.unit} is outside the typical range [{lo:g}, {hi:g}]; clamped to {clamped:g}"
+        )
         value = clamped
     return value
 

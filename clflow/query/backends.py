@@ -16,9 +16,7 @@ Backend = Literal["offline", "openai"]
 BACKENDS = ("offline", "openai")
 
 
-def query_offline(
-    kb: KnowledgeBase, object_name: str = "", prompt: str = "", file_name: str = ""
-) -> QueryResult:
+def query_offline(kb: KnowledgeBase, object_name: str = "", prompt: str = "", file_name: str = "") -> QueryResult:
     """Look the texts up in the knowledge base.
 
     The best entry gives type, density and parameters (``matched`` and ``confidence`` say

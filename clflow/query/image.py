@@ -72,9 +72,7 @@ def read_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
 
     mask = _imread(path, "mask", cv2.IMREAD_GRAYSCALE)
     if mask.shape != tuple(shape):
-        raise InputError(
-            f"mask {path} is {mask.shape[1]}x{mask.shape[0]} px but the image is {shape[1]}x{shape[0]} px"
-        )
+        raise InputError(f"mask {path} is {mask.shape[1]}x{mask.shape[0]} px but the image is {shape[1]}x{shape[0]} px")
     if not mask.any():
         raise InputError(f"mask {path} is empty: no nonzero pixel marks the object")
     return mask > 0

@@ -180,8 +180,9 @@ class KnowledgeBase:
                     if all(scores) and (index not in best or score > best[index][0]):
                         best[index] = (score, i, end)
         for i, w in enumerate(words):
-            glued = [(1.0, w)] + [(COMPOUND_SCORE, part) for cut in range(COMPOUND_MIN_LENGTH, len(w))
-                                  for part in (w[:cut], w[-cut:])]
+            glued = [(1.0, w)] + [
+                (COMPOUND_SCORE, part) for cut in range(COMPOUND_MIN_LENGTH, len(w)) for part in (w[:cut], w[-cut:])
+            ]
             for score, part in glued:
                 for index in self._by_glued.get(part, ()):
                     best.setdefault(index, (score, i, i + 1))
@@ -285,9 +286,7 @@ def _entry(raw: dict, where: str, sources: dict[str, str]) -> Entry:
         raise InputError(f"{where}.material: write the registry name {mat.name!r}, not {raw['material']!r}")
     params = raw["parameters"]
     if not isinstance(params, dict) or set(params) != set(mat.param_names):
-        raise InputError(
-            f"{where}.parameters: {mat.name} needs exactly {list(mat.param_names)}, got {sorted(params)}"
-        )
+        raise InputError(f"{where}.parameters: {mat.name} needs exactly {list(mat.param_names)}, got {sorted(params)}")
     aliases = raw["aliases"]
     if not aliases or not all(isinstance(a, str) and tokenize(a) for a in aliases):
         raise InputError(f"{where}.aliases: expected a non-empty list of words, got {aliases!r}")

@@ -174,8 +174,9 @@ def answer_schema() -> dict:
     def quantity(p: Param) -> dict:
         lo, hi = p.typical
         about = f"{p.doc or p.name} ({p.symbol}), typically {lo:g} to {hi:g} {p.unit}"
-        return _closed({"value": {"type": "number", "description": about},
-                        "unit": {"type": "string", "enum": [p.unit]}})
+        return _closed(
+            {"value": {"type": "number", "description": about}, "unit": {"type": "string", "enum": [p.unit]}}
+        )
 
     variants = [
         {**_closed({p.name: quantity(p) for p in m.params}), "description": f"parameters of {m.name}: {m.model}"}
@@ -211,8 +212,7 @@ def question(prompt: str = "", object_name: str = "") -> str:
         f"- density [{DENSITY.unit}] ({DENSITY.typical[0]:g} to {DENSITY.typical[1]:g})",
     ]
     for m in MATERIALS.values():
-        params = "; ".join(f"{p.name} ({p.symbol}) [{p.unit}] ({p.typical[0]:g} to {p.typical[1]:g})"
-                           for p in m.params)
+        params = "; ".join(f"{p.name} ({p.symbol}) [{p.unit}] ({p.typical[0]:g} to {p.typical[1]:g})" for p in m.params)
         lines.append(f"- {m.name}: {m.model}. Parameters: {params}")
     lines.append(FLUID_CONVENTION)
     lines.append(
@@ -229,10 +229,13 @@ def request_body(config: ModelConfig, text: str, image: ObjectImage, structured:
         "temperature": 0,
         "messages": [
             {"role": "system", "content": SYSTEM_PROMPT},
-            {"role": "user", "content": [
-                {"type": "text", "text": text},
-                {"type": "image_url", "image_url": {"url": image.data_url(config.image_format)}},
-            ]},
+            {
+                "role": "user",
+                "content": [
+                    {"type": "text", "text": text},
+                    {"type": "image_url", "image_url": {"url": image.data_url(config.image_format)}},
+                ],
+            },
         ],
     }
     if structured:
@@ -259,8 +262,7 @@ class _Failure(Exception):
 
 
 def _post_once(config: ModelConfig, payload: bytes) -> bytes:
-    headers = {"Content-Type": "application/json", "Accept": "application/json",
-               "User-Agent": f"clflow/{__version__}"}
+    headers = {"Content-Type": "application/json", "Accept": "application/json", "User-Agent": f"clflow/{__version__}"}
     if config.api_key:
         headers["Authorization"] = f"Bearer {config.api_key}"
     req = urllib.request.Request(config.url, data=payload, headers=headers, method="POST")
@@ -322,8 +324,11 @@ def _post(config: ModelConfig, body: dict) -> bytes:
                 raise _service_error(config, failure, attempt) from None
             delay = config.backoff * 2 ** (attempt - 1) if failure.retry_after is None else failure.retry_after
             delay = min(config.max_backoff, delay)
-            log.warning(_redact(f"{config.url}: {failure.message}; retrying in {delay:.3g} s "
-                                f"({attempt + 1}/{attempts})", config))
+            log.warning(
+                _redact(
+                    f"{config.url}: {failure.message}; retrying in {delay:.3g} s ({attempt + 1}/{attempts})", config
+                )
+            )
             time.sleep(delay)
 
 
@@ -382,8 +387,13 @@ def query_model(
     try:
         raw = _post(config, request_body(config, text, image, structured))
     except _Failure as failure:
-        warnings.append(_redact(f"the server rejected the json_schema response format ({failure.message}); "
-                                "asked for JSON in the prompt instead", config))
+        warnings.append(
+            _redact(
+                f"the server rejected the json_schema response format ({failure.message}); "
+                "asked for JSON in the prompt instead",
+                config,
+            )
+        )
         log.warning(warnings[-1])
         structured = False
         raw = _post(config, request_body(config, text, image, structured))

@@ -87,7 +87,7 @@ def load_query_result(path: str | Path) -> QueryResult:
     except (json.JSONDecodeError, ValueError) as exc:
         raise InputError(f"{path}: not valid JSON: {exc}") from None
     if not isinstance(raw, dict) or raw.get("format") != RESULT_FORMAT:
-        raise InputError(f"{path}: not a material query result (expected \"format\": \"{RESULT_FORMAT}\")")
+        raise InputError(f'{path}: not a material query result (expected "format": "{RESULT_FORMAT}")')
     if raw.get("version") != RESULT_VERSION:
         raise InputError(f"{path}: version {raw.get('version')!r} is not supported (expected {RESULT_VERSION})")
     for key in ("material", "density", "parameters", "backend"):

@@ -26,9 +26,17 @@ from clflow.splat.gaussians import quat_to_rotmat
 
 # model id -> (name, number of parameters), COLMAP's camera models (sensor/models.h)
 CAMERA_MODELS = {
-    0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5), 4: ("OPENCV", 8),
-    5: ("OPENCV_FISHEYE", 8), 6: ("FULL_OPENCV", 12), 7: ("FOV", 5), 8: ("SIMPLE_RADIAL_FISHEYE", 4),
-    9: ("RADIAL_FISHEYE", 5), 10: ("THIN_PRISM_FISHEYE", 12),
+    0: ("SIMPLE_PINHOLE", 3),
+    1: ("PINHOLE", 4),
+    2: ("SIMPLE_RADIAL", 4),
+    3: ("RADIAL", 5),
+    4: ("OPENCV", 8),
+    5: ("OPENCV_FISHEYE", 8),
+    6: ("FULL_OPENCV", 12),
+    7: ("FOV", 5),
+    8: ("SIMPLE_RADIAL_FISHEYE", 4),
+    9: ("RADIAL_FISHEYE", 5),
+    10: ("THIN_PRISM_FISHEYE", 12),
 }
 MODEL_IDS = {name: (model_id, count) for model_id, (name, count) in CAMERA_MODELS.items()}
 # models whose first parameters are f, cx, cy (one focal length) or fx, fy, cx, cy
@@ -81,7 +89,9 @@ class _Reader:
     def read(self, fmt: str) -> tuple:
         size = struct.calcsize("<" + fmt)
         if self.offset + size > len(self.data):
-            raise InputError(f"{self.path}: file ends early (byte {self.offset} of {len(self.data)}); a truncated COLMAP model?")
+            raise InputError(
+                f"{self.path}: file ends early (byte {self.offset} of {len(self.data)}); a truncated COLMAP model?"
+            )
         values = struct.unpack_from("<" + fmt, self.data, self.offset)
         self.offset += size
         return values
@@ -90,7 +100,7 @@ class _Reader:
         end = self.data.find(b"\0", self.offset)
         if end < 0:
             raise InputError(f"{self.path}: an image name has no terminating NUL byte")
-        text = self.data[self.offset:end].decode("utf-8")
+        text = self.data[self.offset : end].decode("utf-8")
         self.offset = end + 1
         return text
 
@@ -154,7 +164,7 @@ def _fields(path: Path, n: int, line: str, types: tuple, what: str) -> list:
     try:
         if len(parts) < len(types):
             raise ValueError
-        return [t(p) for t, p in zip(types, parts)] + parts[len(types):]
+        return [t(p) for t, p in zip(types, parts)] + parts[len(types) :]
     except ValueError:
         raise InputError(f"{path}:{n}: expected {what}, got {line!r}") from None
 
@@ -166,7 +176,9 @@ def read_cameras_txt(path: str | Path) -> dict[int, ColmapCamera]:
     for n, line in _data_lines(path):
         if not line:
             continue
-        camera_id, model, width, height, *params = _fields(path, n, line, (int, str, int, int), "CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]")
+        camera_id, model, width, height, *params = _fields(
+            path, n, line, (int, str, int, int), "CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]"
+        )
         if model not in MODEL_IDS:
             raise InputError(f"{path}:{n}: unknown camera model {model!r}")
         if len(params) != MODEL_IDS[model][1]:
@@ -199,8 +211,11 @@ def read_images_txt(path: str | Path) -> dict[int, ColmapImage]:
 def read_points3d_txt(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """``points3D.txt``: ``POINT3D_ID X Y Z R G B ERROR TRACK[]`` per line; xyz [P, 3], rgb [P, 3] uint8."""
     path = Path(path)
-    rows = [_fields(path, n, line, (int,) + (float,) * 3 + (int,) * 3, "POINT3D_ID X Y Z R G B ERROR TRACK[]")
-            for n, line in _data_lines(path) if line]
+    rows = [
+        _fields(path, n, line, (int,) + (float,) * 3 + (int,) * 3, "POINT3D_ID X Y Z R G B ERROR TRACK[]")
+        for n, line in _data_lines(path)
+        if line
+    ]
     xyz = np.array([r[1:4] for r in rows], dtype=np.float64).reshape(-1, 3)
     return xyz, np.array([r[4:7] for r in rows], dtype=np.uint8).reshape(-1, 3)
 
@@ -213,8 +228,10 @@ def read_model(folder: str | Path) -> ColmapModel:
     ``cameras.bin`` exists, else the ``.txt`` files; ``points3D`` is optional."""
     folder = Path(folder)
     ext = ".bin" if (folder / "cameras.bin").is_file() else ".txt"
-    readers = {".bin": (read_cameras_bin, read_images_bin, read_points3d_bin),
-               ".txt": (read_cameras_txt, read_images_txt, read_points3d_txt)}[ext]
+    readers = {
+        ".bin": (read_cameras_bin, read_images_bin, read_points3d_bin),
+        ".txt": (read_cameras_txt, read_images_txt, read_points3d_txt),
+    }[ext]
     for stem in ("cameras", "images"):
         if not (folder / f"{stem}{ext}").is_file():
             raise InputError(f"{folder}: no COLMAP model here (cameras.bin/.txt and images.bin/.txt are needed)")
@@ -233,8 +250,13 @@ def intrinsic_matrix(camera: ColmapCamera, where: str) -> torch.Tensor:
     single = camera.model in SINGLE_FOCAL
     fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if single else tuple(p[:4])
     distortion = p[3:] if single else p[4:]
-    if camera.model in ("FOV", "OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE") \
-            or np.any(distortion != 0):
+    if camera.model in (
+        "FOV",
+        "OPENCV_FISHEYE",
+        "SIMPLE_RADIAL_FISHEYE",
+        "RADIAL_FISHEYE",
+        "THIN_PRISM_FISHEYE",
+    ) or np.any(distortion != 0):
         raise InputError(
             f"{where}: camera {camera.camera_id} is {camera.model} with distortion {distortion.tolist()}; "
             "clflow renders pinhole cameras: undistort the images first (colmap image_undistorter)"
@@ -257,7 +279,9 @@ def model_cameras(model: ColmapModel, where: str = "COLMAP model") -> list[Camer
         viewmat[:3, :3] = quat_to_rotmat(torch.from_numpy(image.qvec)[None])[0]
         viewmat[:3, 3] = torch.from_numpy(image.tvec)
         try:
-            cameras.append(Camera(viewmat, intrinsic_matrix(camera, label), int(camera.width), int(camera.height), image.name))
+            cameras.append(
+                Camera(viewmat, intrinsic_matrix(camera, label), int(camera.width), int(camera.height), image.name)
+            )
         except InputError as exc:
             raise InputError(f"{label}: {exc}") from None
     return cameras

@@ -37,7 +37,9 @@ class ViewSpaceStats:
 
     @classmethod
     def zeros(cls, n: int) -> "ViewSpaceStats":
-        return cls(torch.zeros(n, dtype=torch.float64), torch.zeros(n, dtype=torch.int64), torch.zeros(n, dtype=torch.int32))
+        return cls(
+            torch.zeros(n, dtype=torch.float64), torch.zeros(n, dtype=torch.int64), torch.zeros(n, dtype=torch.int32)
+        )
 
     def add(self, means2d_grad: torch.Tensor, radii: torch.Tensor, width: int, height: int) -> None:
         """Add one view: ``means2d_grad`` [N, 2] dL/d mean2d (1/pixel), ``radii`` [N] (0 = not seen)."""
@@ -63,7 +65,9 @@ class DensifySettings:
     max_world_scale: float = 0.1  # x extent; prune larger (only after the first opacity reset)
 
 
-def rebuild(optimizer: torch.optim.Adam, rows, new_rows: dict[str, torch.Tensor] | None = None) -> dict[str, torch.nn.Parameter]:
+def rebuild(
+    optimizer: torch.optim.Adam, rows, new_rows: dict[str, torch.Tensor] | None = None
+) -> dict[str, torch.nn.Parameter]:
     """Replace every parameter by ``param[rows]`` followed by ``new_rows[name]`` (if given),
     keeping Adam's moments of the kept rows and zero moments for the new ones. Returns the
     new parameters by name (each group of ``optimizer`` holds one, named ``group["name"]``)."""
@@ -82,7 +86,9 @@ def rebuild(optimizer: torch.optim.Adam, rows, new_rows: dict[str, torch.Tensor]
     return params
 
 
-def split_rows(params: dict[str, torch.Tensor], index: torch.Tensor, generator: torch.Generator) -> dict[str, torch.Tensor]:
+def split_rows(
+    params: dict[str, torch.Tensor], index: torch.Tensor, generator: torch.Generator
+) -> dict[str, torch.Tensor]:
     """The children of the Gaussians ``index``: SPLIT_CHILDREN each, means drawn from the
     parent's Gaussian (seeded by ``generator``), scales / SPLIT_SHRINK, the rest copied."""
     rows = {name: p.detach()[index].repeat_interleave(SPLIT_CHILDREN, dim=0) for name, p in params.items()}
@@ -122,8 +128,12 @@ def densify_and_prune(
             radius = torch.cat([kept_radius, torch.zeros(len(largest) - len(kept_radius), dtype=kept_radius.dtype)])
             prune |= (radius > settings.max_screen_radius) | (largest > settings.max_world_scale * extent)
         params = rebuild(optimizer, ~prune)
-    counts = {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int(prune.sum()),
-              "gaussians": params["means"].shape[0]}
+    counts = {
+        "cloned": int(clone.sum()),
+        "split": int(split.sum()),
+        "pruned": int(prune.sum()),
+        "gaussians": params["means"].shape[0],
+    }
     return params, counts
 
 

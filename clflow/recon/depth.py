@@ -102,5 +102,10 @@ def backproject(
     scales = torch.stack([width, width, FLATNESS * width], dim=1)
     quats = rotmat_to_quat(camera.R.T[None])[0].expand(len(z), 4)  # local z along the viewing axis
     colours = rgb[keep].double().repeat(copies, 1)
-    return Gaussians.from_activated(means.float(), quats.float().contiguous(), scales.float(),
-                                    torch.full((len(z),), opacity), sh=rgb_to_sh0(colours.float())[:, None, :])
+    return Gaussians.from_activated(
+        means.float(),
+        quats.float().contiguous(),
+        scales.float(),
+        torch.full((len(z),), opacity),
+        sh=rgb_to_sh0(colours.float())[:, None, :],
+    )

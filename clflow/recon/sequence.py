@@ -65,13 +65,16 @@ class Sequence:
     def check_frame(self, frame: int) -> None:
         """:class:`InputError` unless 0 <= ``frame`` < the frame count."""
         if not 0 <= frame < self.frames:
-            raise InputError(f"{self.index}: frame {frame} is out of range: the sequence has frames 0 to {self.frames - 1}")
+            raise InputError(
+                f"{self.index}: frame {frame} is out of range: the sequence has frames 0 to {self.frames - 1}"
+            )
 
     def check_camera(self, camera: int) -> None:
         """:class:`InputError` unless 0 <= ``camera`` < the camera count."""
         if not 0 <= camera < len(self.cameras):
-            raise InputError(f"{self.index}: camera {camera} is out of range: the sequence has cameras 0 to "
-                             f"{len(self.cameras) - 1}")
+            raise InputError(
+                f"{self.index}: camera {camera} is out of range: the sequence has cameras 0 to {len(self.cameras) - 1}"
+            )
 
 
 def find_index(path: str | os.PathLike) -> Path:
@@ -79,8 +82,10 @@ def find_index(path: str | os.PathLike) -> Path:
     path = Path(path)
     index = path if path.is_file() else path / INDEX_NAME
     if not index.is_file():
-        raise InputError(f"{path}: no {INDEX_NAME} (the index of a PAC-NeRF-style multi-camera sequence: one "
-                         f"entry per image with file_path, c2w, intrinsic and time)")
+        raise InputError(
+            f"{path}: no {INDEX_NAME} (the index of a PAC-NeRF-style multi-camera sequence: one "
+            f"entry per image with file_path, c2w, intrinsic and time)"
+        )
     return index
 
 
@@ -136,8 +141,10 @@ def load_sequence(path: str | os.PathLike) -> Sequence:
         absent = [f for f in range(n_frames) if (camera, f) not in table]
         if absent:
             seen = sorted({c for c, f in table if f == absent[0]})
-            raise InputError(f"{index}: camera {camera} has no image of frame {absent[0]} ({len(seen)} camera(s) do: "
-                             f"{', '.join(map(str, seen)) or 'none'}); every one of the {n_cameras} cameras must see all {n_frames} frames")
+            raise InputError(
+                f"{index}: camera {camera} has no image of frame {absent[0]} ({len(seen)} camera(s) do: "
+                f"{', '.join(map(str, seen)) or 'none'}); every one of the {n_cameras} cameras must see all {n_frames} frames"
+            )
     cameras, images = [], []
     for camera in range(n_cameras):
         first = table[camera, 0]
@@ -146,8 +153,10 @@ def load_sequence(path: str | os.PathLike) -> Sequence:
             other = table[camera, frame]
             for key, value in (("c2w", c2w), ("intrinsic", K)):
                 if (_matrix(other, key, (tuple(value.shape),)) - value).abs().max() > POSE_TOLERANCE:
-                    raise InputError(f"{other['where']}: camera {camera}'s {key} differs from its frame 0's; "
-                                     f"clflow reads captures from fixed cameras")
+                    raise InputError(
+                        f"{other['where']}: camera {camera}'s {key} differs from its frame 0's; "
+                        f"clflow reads captures from fixed cameras"
+                    )
         paths = [index.parent / table[camera, f]["file_path"] for f in range(n_frames)]
         if not paths[0].is_file():
             raise InputError(f"{first['where']}: the image {paths[0]} does not exist")
@@ -166,8 +175,10 @@ def _matrix(entry: dict, key: str, shapes: tuple[tuple[int, ...], ...]) -> torch
     except (TypeError, ValueError, RuntimeError):
         raise InputError(f"{entry['where']}: {key} must be a matrix of numbers, got {entry[key]!r}") from None
     if tuple(value.shape) not in shapes or not torch.isfinite(value).all():
-        raise InputError(f"{entry['where']}: {key} must be a finite {' or '.join('x'.join(map(str, s)) for s in shapes)} "
-                         f"matrix, got {entry[key]!r}")
+        raise InputError(
+            f"{entry['where']}: {key} must be a finite {' or '.join('x'.join(map(str, s)) for s in shapes)} "
+            f"matrix, got {entry[key]!r}"
+        )
     return value
 
 
@@ -190,8 +201,10 @@ def _times(table: dict, n_cameras: int, n_frames: int, index: Path) -> list[floa
                 raise InputError(f"{entry['where']}: time must be a finite number of seconds, got {value!r}")
             values.append(float(value))
         if max(values) - min(values) > TIME_TOLERANCE:
-            raise InputError(f"{index}: the cameras' times of frame {frame} differ ({min(values):g} to {max(values):g} "
-                             f"s); clflow needs synchronised cameras")
+            raise InputError(
+                f"{index}: the cameras' times of frame {frame} differ ({min(values):g} to {max(values):g} "
+                f"s); clflow needs synchronised cameras"
+            )
         times.append(values[0])
     steps = [b - a for a, b in zip(times, times[1:])]
     if steps and min(steps) <= 0:
@@ -199,4 +212,3 @@ def _times(table: dict, n_cameras: int, n_frames: int, index: Path) -> list[floa
     if steps and max(abs(s - sum(steps) / len(steps)) for s in steps) > SPACING_TOLERANCE * sum(steps) / len(steps):
         raise InputError(f"{index}: the frames are not evenly spaced in time ({times}); a video needs one frame rate")
     return times
-

@@ -115,7 +115,9 @@ def random_points(cameras: list[Camera], count: int, generator: torch.Generator)
     extent = scene_extent(cameras)
     centre = torch.stack([c.position for c in cameras]).mean(0)
     near = 1e-3 * extent
-    candidates = centre + extent * (2 * torch.rand(max(20 * count, 50_000), 3, generator=generator, dtype=torch.float64) - 1)
+    candidates = centre + extent * (
+        2 * torch.rand(max(20 * count, 50_000), 3, generator=generator, dtype=torch.float64) - 1
+    )
     seen = visible_count(candidates, cameras, near)
     need = min(len(cameras), int(seen.max()))
     if need == 0:
@@ -145,10 +147,18 @@ def initial_gaussians(views: ViewSet, train: list[View], settings: Settings) -> 
 
 
 def _optimizer(params: dict[str, torch.Tensor], settings: Settings, extent: float) -> torch.optim.Adam:
-    rates = {"means": settings.lr_means * extent, "quats": settings.lr_quats, "log_scales": settings.lr_log_scales,
-             "opacity_logits": settings.lr_opacity, "sh0": settings.lr_sh0, "shN": settings.lr_shN}
-    groups = [{"params": [torch.nn.Parameter(params[name].detach().clone())], "lr": rates[name], "name": name}
-              for name in PARAMETERS]
+    rates = {
+        "means": settings.lr_means * extent,
+        "quats": settings.lr_quats,
+        "log_scales": settings.lr_log_scales,
+        "opacity_logits": settings.lr_opacity,
+        "sh0": settings.lr_sh0,
+        "shN": settings.lr_shN,
+    }
+    groups = [
+        {"params": [torch.nn.Parameter(params[name].detach().clone())], "lr": rates[name], "name": name}
+        for name in PARAMETERS
+    ]
     return torch.optim.Adam(groups, eps=1e-15, foreach=False)
 
 
@@ -158,13 +168,24 @@ def _parameters(gaussians: Gaussians, sh_degree: int) -> dict[str, torch.Tensor]
     n = len(g)
     sh = torch.zeros(n, (sh_degree + 1) ** 2, 3)
     sh[:, : g.sh.shape[1]] = g.sh[:, : sh.shape[1]]
-    return {"means": g.means, "quats": g.quats, "log_scales": g.log_scales, "opacity_logits": g.opacity_logits,
-            "sh0": sh[:, :1], "shN": sh[:, 1:]}
+    return {
+        "means": g.means,
+        "quats": g.quats,
+        "log_scales": g.log_scales,
+        "opacity_logits": g.opacity_logits,
+        "sh0": sh[:, :1],
+        "shN": sh[:, 1:],
+    }
 
 
 def _gaussians(params: dict[str, torch.Tensor]) -> Gaussians:
-    return Gaussians(params["means"], params["quats"], params["log_scales"], params["opacity_logits"],
-                     sh=torch.cat([params["sh0"], params["shN"]], dim=1))
+    return Gaussians(
+        params["means"],
+        params["quats"],
+        params["log_scales"],
+        params["opacity_logits"],
+        sh=torch.cat([params["sh0"], params["shN"]], dim=1),
+    )
 
 
 def render_view(params: dict[str, torch.Tensor], camera: Camera, sh_degree: int, background: torch.Tensor):
@@ -172,9 +193,18 @@ def render_view(params: dict[str, torch.Tensor], camera: Camera, sh_degree: int,
     from clflow.splat.ops import rasterize_gaussians
 
     image, _, _, meta = rasterize_gaussians(
-        params["means"], params["quats"], params["log_scales"].exp(), torch.sigmoid(params["opacity_logits"]),
-        torch.cat([params["sh0"], params["shN"]], dim=1), camera.viewmat.float(), camera.K.float(),
-        camera.width, camera.height, sh_degree=sh_degree, background=background, render_depth=False,
+        params["means"],
+        params["quats"],
+        params["log_scales"].exp(),
+        torch.sigmoid(params["opacity_logits"]),
+        torch.cat([params["sh0"], params["shN"]], dim=1),
+        camera.viewmat.float(),
+        camera.K.float(),
+        camera.width,
+        camera.height,
+        sh_degree=sh_degree,
+        background=background,
+        render_depth=False,
     )
     return image, meta
 
@@ -200,8 +230,11 @@ def evaluate(params: dict[str, torch.Tensor], views: list[View], sh_degree: int,
             image, _ = render_view(params, view.camera, sh_degree, background)
             scores.append((psnr(image, view.image), ssim(image, view.image)))
     values = np.array(scores).reshape(-1, 2)
-    return {"views": len(views), "psnr": float(values[:, 0].mean()) if len(views) else None,
-            "ssim": float(values[:, 1].mean()) if len(views) else None}
+    return {
+        "views": len(views),
+        "psnr": float(values[:, 0].mean()) if len(views) else None,
+        "ssim": float(values[:, 1].mean()) if len(views) else None,
+    }
 
 
 def view_order(n: int, step: int, seed: int) -> int:
@@ -242,7 +275,9 @@ def reconstruct(
         optimizer.load_state_dict(state["optimizer"])
         start, stats, seconds, history = state["step"], state["stats"], state["seconds"], state["history"]
     else:
-        optimizer = _optimizer(_parameters(initial_gaussians(views, train, settings), settings.sh_degree), settings, extent)
+        optimizer = _optimizer(
+            _parameters(initial_gaussians(views, train, settings), settings.sh_degree), settings, extent
+        )
         start, seconds, history = 0, 0.0, []
         stats = ViewSpaceStats.zeros(optimizer.param_groups[0]["params"][0].shape[0])
     params = {g["name"]: g["params"][0] for g in optimizer.param_groups}
@@ -251,7 +286,8 @@ def reconstruct(
     for step in range(start + 1, settings.iterations + 1):
         fraction = (step - 1) / max(settings.iterations - 1, 1)
         optimizer.param_groups[0]["lr"] = extent * math.exp(  # group 0: the means
-            (1 - fraction) * math.log(settings.lr_means) + fraction * math.log(settings.lr_means_final))
+            (1 - fraction) * math.log(settings.lr_means) + fraction * math.log(settings.lr_means_final)
+        )
         sh_degree = settings.sh_degree_at(step)
         view = train[view_order(len(train), step, settings.seed)]
         image, meta = render_view(params, view.camera, sh_degree, background)
@@ -266,7 +302,11 @@ def reconstruct(
             stats.add(meta["means2d"].grad, meta["radii"], view.camera.width, view.camera.height)
             if step > settings.densify_from and step % settings.densify_every == 0:
                 params, _ = densify_and_prune(
-                    optimizer, stats, extent, settings.densify, prune_large=step > settings.reset_every,
+                    optimizer,
+                    stats,
+                    extent,
+                    settings.densify,
+                    prune_large=step > settings.reset_every,
                     generator=torch.Generator().manual_seed(settings.seed * 1_000_003 + step),
                 )
                 stats = ViewSpaceStats.zeros(params["means"].shape[0])
@@ -281,8 +321,9 @@ def reconstruct(
         if preview_every and step % preview_every == 0:
             _write_preview(out / "preview" / f"iter_{step:06d}.png", params, (test or train)[0], sh_degree, background)
         if step % checkpoint_every == 0 or step == settings.iterations:
-            _save_checkpoint(out / CHECKPOINT, optimizer, stats, step, seconds + time.perf_counter() - began, history,
-                             settings)
+            _save_checkpoint(
+                out / CHECKPOINT, optimizer, stats, step, seconds + time.perf_counter() - began, history, settings
+            )
     elapsed = time.perf_counter() - began
     seconds += elapsed
     done = settings.iterations - start
@@ -311,8 +352,9 @@ def _settings_record(settings: Settings) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(settings)))
 
 
-def _save_checkpoint(path: Path, optimizer, stats: ViewSpaceStats, step: int, seconds: float, history: list,
-                     settings: Settings) -> None:
+def _save_checkpoint(
+    path: Path, optimizer, stats: ViewSpaceStats, step: int, seconds: float, history: list, settings: Settings
+) -> None:
     state = {
         "step": step,
         "seconds": seconds,
@@ -335,7 +377,9 @@ def _load_checkpoint(path: Path, settings: Settings) -> dict:
         raise InputError(f"{path}: not a readable clflow checkpoint ({exc})") from None
     differ = [k for k, v in _settings_record(settings).items() if state["settings"].get(k) != v]
     if differ:
-        raise InputError(f"{path}: --resume continues the same run, but these settings differ from it: {', '.join(differ)}")
+        raise InputError(
+            f"{path}: --resume continues the same run, but these settings differ from it: {', '.join(differ)}"
+        )
     state["stats"] = ViewSpaceStats(**state["stats"])
     return state
 

@@ -100,7 +100,9 @@ def load_views(
     from clflow.recon.colmap import model_cameras, read_model
 
     images = Path(images)
-    given = {k: Path(v) for k, v in (("transforms", transforms), ("colmap", colmap), ("cameras_json", cameras_json)) if v}
+    given = {
+        k: Path(v) for k, v in (("transforms", transforms), ("colmap", colmap), ("cameras_json", cameras_json)) if v
+    }
     bg = torch.as_tensor(background, dtype=torch.float32)
     if frame is not None:
         from clflow.recon.sequence import load_sequence
@@ -109,13 +111,17 @@ def load_views(
             raise InputError(f"with a frame of a sequence the cameras come from its index: drop --{next(iter(given))}")
         seq = load_sequence(images)
         seq.check_frame(frame)
-        return ViewSet([load_view(replace(c, name=paths[frame].stem), paths[frame], seq.index, masks, bg)
-                        for c, paths in zip(seq.cameras, seq.images)])  # in camera order
+        return ViewSet(
+            [
+                load_view(replace(c, name=paths[frame].stem), paths[frame], seq.index, masks, bg)
+                for c, paths in zip(seq.cameras, seq.images)
+            ]
+        )  # in camera order
     if not images.is_dir():
         raise InputError(f"{images}: the image folder does not exist")
     if len(given) > 1:
         raise InputError(f"give one cameras source, not {' and '.join(given)}")
-    (kind, source), = (given or find_cameras(images)).items()
+    ((kind, source),) = (given or find_cameras(images)).items()
     xyz = rgb = None
     if kind == "transforms":
         cameras = load_transforms_json(source)
@@ -128,13 +134,16 @@ def load_views(
             xyz = torch.from_numpy(model.points_xyz).float()
             rgb = torch.from_numpy(model.points_rgb).float() / 255
     search = [images] + ([source.parent] if kind != "colmap" else [])
-    views = [load_view(camera, _image_path(camera.name, search, source), source, masks, bg)
-             for camera in sorted(cameras, key=lambda c: c.name)]
+    views = [
+        load_view(camera, _image_path(camera.name, search, source), source, masks, bg)
+        for camera in sorted(cameras, key=lambda c: c.name)
+    ]
     return ViewSet(views, xyz, rgb)
 
 
-def load_view(camera: Camera, path: Path, source: Path, masks: str | os.PathLike | None,
-              background: torch.Tensor) -> View:
+def load_view(
+    camera: Camera, path: Path, source: Path, masks: str | os.PathLike | None, background: torch.Tensor
+) -> View:
     """The view of ``camera`` from image ``path``, composited over ``background`` [3] where
     its mask (in the folder ``masks``, else its alpha channel) says; :class:`InputError`
     when the image's size is not the camera's (``source``: the cameras file, for the message)."""
@@ -175,7 +184,9 @@ def _mask(image_path: Path, masks: str | os.PathLike | None, rgba: np.ndarray) -
             raise InputError(f"{masks}: no mask for image {image_path.name} (expected {image_path.stem}.png)")
         mask = read_image(found)[..., 0]
         if mask.shape != rgba.shape[:2]:
-            raise InputError(f"{found}: the mask is {mask.shape[1]}x{mask.shape[0]} px, its image {rgba.shape[1]}x{rgba.shape[0]} px")
+            raise InputError(
+                f"{found}: the mask is {mask.shape[1]}x{mask.shape[0]} px, its image {rgba.shape[1]}x{rgba.shape[0]} px"
+            )
         where = found
     elif rgba.shape[2] == 4:
         mask, where = rgba[..., 3], image_path

@@ -119,7 +119,9 @@ class TensorBinding:
         if self.device.info.is_oclgrind:
             # oclgrind's uninitialised-value check keeps flagging a buffer the host never
             # wrote, even after a kernel wrote it: give it host-written contents there.
-            buf = self._cl.Buffer(self.device.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=np.zeros(size, np.uint8))
+            buf = self._cl.Buffer(
+                self.device.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=np.zeros(size, np.uint8)
+            )
             self._keep.append(buf)
         else:
             buf = self.device.take_scratch(size)

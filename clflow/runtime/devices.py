@@ -21,8 +21,7 @@ from typing import Any, Sequence
 from clflow.errors import DeviceError
 
 INSTALL_HINT = (
-    "install an OpenCL driver; on Debian/Ubuntu the CPU one is: "
-    "apt-get install pocl-opencl-icd ocl-icd-libopencl1"
+    "install an OpenCL driver; on Debian/Ubuntu the CPU one is: apt-get install pocl-opencl-icd ocl-icd-libopencl1"
 )
 ENV_DEVICE = "CLFLOW_DEVICE"
 
@@ -166,9 +165,7 @@ def _choose(found: list[tuple[DeviceInfo, Any]], spec: str | None) -> tuple[Devi
             raise DeviceError(f"no OpenCL device matches {spec!r}; available devices:\n{available}")
         if len(hits) > 1:
             names = "\n".join(f"  {info.label}" for info, _ in hits)
-            raise DeviceError(
-                f"{spec!r} matches several devices; use a longer name or 'platform:device':\n{names}"
-            )
+            raise DeviceError(f"{spec!r} matches several devices; use a longer name or 'platform:device':\n{names}")
         return hits[0]
     for want in (
         lambda i: i.type == "GPU",
@@ -232,9 +229,7 @@ class Device:
         if real not in ("float", "double"):
             raise ValueError(f"real must be 'float' or 'double', not {real!r}")
         if real == "double" and not self.info.fp64:
-            raise DeviceError(
-                f"double precision was requested but device {self.info.name!r} has no cl_khr_fp64"
-            )
+            raise DeviceError(f"double precision was requested but device {self.info.name!r} has no cl_khr_fp64")
 
     # -- programs and kernels -------------------------------------------------------------
 
@@ -264,8 +259,7 @@ class Device:
                     from clflow.errors import KernelBuildError
 
                     raise KernelBuildError(
-                        f"building kernels_cl/{source} ({' '.join(options)}) failed on "
-                        f"{self.info.name}:\n{exc}"
+                        f"building kernels_cl/{source} ({' '.join(options)}) failed on {self.info.name}:\n{exc}"
                     ) from None
                 self._programs[key] = prog
             return prog

@@ -57,8 +57,9 @@ class _Reader:
         data = self.mapping(data, path)
         unknown = [k for k in data if k not in known]
         if unknown:
-            raise self.fail(f"{path}.{unknown[0]}" if path else str(unknown[0]),
-                            f"unknown key; known keys here: {', '.join(known)}")
+            raise self.fail(
+                f"{path}.{unknown[0]}" if path else str(unknown[0]), f"unknown key; known keys here: {', '.join(known)}"
+            )
         return data
 
     def mapping(self, data: Any, path: str) -> dict:
@@ -78,8 +79,17 @@ class _Reader:
             return where, _DEFAULT
         return where, data[key]
 
-    def number(self, data: dict, key: str, path: str, default: float | None = None, *,
-               low: float | None = None, high: float | None = None, strict_low: bool = False) -> float:
+    def number(
+        self,
+        data: dict,
+        key: str,
+        path: str,
+        default: float | None = None,
+        *,
+        low: float | None = None,
+        high: float | None = None,
+        strict_low: bool = False,
+    ) -> float:
         where, value = self._get(data, key, path, default)
         if value is _DEFAULT:
             return default
@@ -106,8 +116,11 @@ class _Reader:
         where, value = self._get(data, key, path, default)
         if value is _DEFAULT:
             return default
-        if (not isinstance(value, (list, tuple)) or len(value) != 3
-                or not all(isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in value)):
+        if (
+            not isinstance(value, (list, tuple))
+            or len(value) != 3
+            or not all(isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in value)
+        ):
             raise self.fail(where, f"must be a list of 3 finite numbers, got {value!r}")
         return tuple(float(c) for c in value)
 
@@ -350,12 +363,14 @@ def _region(r: _Reader, data: Any, path: str, allow_all: bool) -> Region:
             raise r.fail(f"{path}.box", f"min {list(lower)} must be below max {list(upper)} on every axis")
         return Region.box(lower, upper)
     sphere = r.section(body["sphere"], f"{path}.sphere", ("center", "radius"))
-    return Region.sphere(r.vec3(sphere, "center", f"{path}.sphere"),
-                         r.number(sphere, "radius", f"{path}.sphere", low=0.0, strict_low=True))
+    return Region.sphere(
+        r.vec3(sphere, "center", f"{path}.sphere"),
+        r.number(sphere, "radius", f"{path}.sphere", low=0.0, strict_low=True),
+    )
 
 
 def _flow_mask(r: _Reader, flow_in: dict) -> str:
-    """"alpha", "none", or the resolved path of a mask image (checked to exist)."""
+    """ "alpha", "none", or the resolved path of a mask image (checked to exist)."""
     mask = flow_in.get("mask")
     if mask is None or mask in ("alpha", "none"):
         return mask or "alpha"
@@ -380,22 +395,32 @@ def _material(r: _Reader, data: Any) -> MaterialConfig:
     params_in = r.mapping(body.get("parameters"), "material.parameters")  # names: the registry checks
     for name, value in params_in.items():
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise r.fail(f"material.parameters.{name}", f"must be a number, got {value!r} "
-                                                        "(YAML reads 2e4 as text: write 2.0e+4 or 20000.0)")
+            raise r.fail(
+                f"material.parameters.{name}",
+                f"must be a number, got {value!r} (YAML reads 2e4 as text: write 2.0e+4 or 20000.0)",
+            )
     if kind == "query":
         if body.get("model") is not None:
             raise r.fail("material.model", "cannot be chosen before the query picks the material type")
         query = r.section(body.get("query"), "material.query", ("image", "prompt", "backend", "result"))
         if (query.get("image") is None) == (query.get("result") is None):
-            raise r.fail("material.query", "give exactly one of image (ask the query now) and result "
-                                           "(a record `clflow query` wrote)")
-        density = (r.number(body, "density", "material", low=0.0, strict_low=True)
-                   if body.get("density") is not None else None)  # None: the query's
+            raise r.fail(
+                "material.query",
+                "give exactly one of image (ask the query now) and result (a record `clflow query` wrote)",
+            )
+        density = (
+            r.number(body, "density", "material", low=0.0, strict_low=True) if body.get("density") is not None else None
+        )  # None: the query's
         backend = r.choice(query, "backend", "material.query", ("offline", "openai"), "offline")
-        return MaterialConfig("query", dict(params_in), density,
-                              query_image=r.file(query, "image", "material.query", required=False),
-                              query_result=r.file(query, "result", "material.query", required=False),
-                              query_prompt=str(query.get("prompt", "")), query_backend=backend)
+        return MaterialConfig(
+            "query",
+            dict(params_in),
+            density,
+            query_image=r.file(query, "image", "material.query", required=False),
+            query_result=r.file(query, "result", "material.query", required=False),
+            query_prompt=str(query.get("prompt", "")),
+            query_backend=backend,
+        )
     if body.get("query") is not None:
         raise r.fail("material.query", f"is only read with type: query (the type is {kind!r})")
     try:
@@ -408,8 +433,9 @@ def _material(r: _Reader, data: Any) -> MaterialConfig:
     model = None
     if body.get("model") is not None:
         if material.name not in MATERIAL_MODELS:
-            raise r.fail("material.model", f"{material.name} has no model option (only "
-                                           f"{', '.join(MATERIAL_MODELS)} have)")
+            raise r.fail(
+                "material.model", f"{material.name} has no model option (only {', '.join(MATERIAL_MODELS)} have)"
+            )
         model = r.choice(body, "model", "material", MATERIAL_MODELS[material.name])
     return MaterialConfig(material.name, params, density, model=model)
 
@@ -423,8 +449,15 @@ def _forces(r: _Reader, items: list) -> tuple[ForceStage, ...]:
         if len(kinds) != 1:
             raise r.fail(path, "give exactly one of force (N) and acceleration (m/s^2)")
         start, end = _window(r, body, path)
-        stages.append(ForceStage(_region(r, body.get("region", "all"), f"{path}.region", allow_all=True),
-                                 r.vec3(body, kinds[0], path), kinds[0], start, end))
+        stages.append(
+            ForceStage(
+                _region(r, body.get("region", "all"), f"{path}.region", allow_all=True),
+                r.vec3(body, kinds[0], path),
+                kinds[0],
+                start,
+                end,
+            )
+        )
     return tuple(stages)
 
 
@@ -433,9 +466,14 @@ def _colliders(r: _Reader, data: Any) -> tuple[Collider, ...]:
     out = []
     if body.get("ground") is not None:
         ground = r.section(body["ground"], "boundaries.ground", ("height", "mode", "friction"))
-        out.append(Collider((0.0, r.number(ground, "height", "boundaries.ground", 0.0), 0.0), (0.0, 1.0, 0.0),
-                            r.choice(ground, "mode", "boundaries.ground", COLLIDER_MODES, "slip"),
-                            r.number(ground, "friction", "boundaries.ground", 0.0, low=0.0)))
+        out.append(
+            Collider(
+                (0.0, r.number(ground, "height", "boundaries.ground", 0.0), 0.0),
+                (0.0, 1.0, 0.0),
+                r.choice(ground, "mode", "boundaries.ground", COLLIDER_MODES, "slip"),
+                r.number(ground, "friction", "boundaries.ground", 0.0, low=0.0),
+            )
+        )
     for i, item in enumerate(r.items(body, "colliders", "boundaries")):
         path = f"boundaries.colliders[{i}]"
         c = r.section(item, path, ("point", "normal", "mode", "friction", "start", "end"))
@@ -443,15 +481,24 @@ def _colliders(r: _Reader, data: Any) -> tuple[Collider, ...]:
         if not any(normal):
             raise r.fail(f"{path}.normal", "must not be the zero vector")
         start, end = _window(r, c, path)
-        out.append(Collider(r.vec3(c, "point", path), normal, r.choice(c, "mode", path, COLLIDER_MODES, "slip"),
-                            r.number(c, "friction", path, 0.0, low=0.0), start, end))
+        out.append(
+            Collider(
+                r.vec3(c, "point", path),
+                normal,
+                r.choice(c, "mode", path, COLLIDER_MODES, "slip"),
+                r.number(c, "friction", path, 0.0, low=0.0),
+                start,
+                end,
+            )
+        )
     return tuple(out)
 
 
 def _simulation(r: _Reader, data: Any) -> SimulationSettings:
     p = "simulation"
-    body = r.section(data, p, ("grid_resolution", "domain", "substep_dt", "flip", "fps", "frames", "gravity",
-                               "max_substeps"))
+    body = r.section(
+        data, p, ("grid_resolution", "domain", "substep_dt", "flip", "fps", "frames", "gravity", "max_substeps")
+    )
     lower = upper = None
     if body.get("domain") is not None:
         dom = r.section(body["domain"], f"{p}.domain", ("min", "max"))
@@ -462,7 +509,9 @@ def _simulation(r: _Reader, data: Any) -> SimulationSettings:
     substep_dt = None if dt == "auto" else r.number(body, "substep_dt", p, low=0.0, strict_low=True)
     return SimulationSettings(
         grid_resolution=r.integer(body, "grid_resolution", p, 32, low=11),  # walls: 4 cells a side
-        domain_lower=lower, domain_upper=upper, substep_dt=substep_dt,
+        domain_lower=lower,
+        domain_upper=upper,
+        substep_dt=substep_dt,
         flip=r.number(body, "flip", p, SimulationSettings.flip, low=0.0, high=1.0),
         fps=r.number(body, "fps", p, 24.0, low=0.0, strict_low=True),
         frames=r.integer(body, "frames", p, 24, low=1),
@@ -472,12 +521,14 @@ def _simulation(r: _Reader, data: Any) -> SimulationSettings:
 
 
 def _camera(r: _Reader, data: Any, p: str = "camera") -> CameraConfig:
-    body = r.section(data, p, ("file", "colmap", "image", "index", "position", "look_at", "up", "fov_y_deg", "width",
-                               "height"))
+    body = r.section(
+        data, p, ("file", "colmap", "image", "index", "position", "look_at", "up", "fov_y_deg", "width", "height")
+    )
     sources = [k for k in ("file", "colmap") if body.get(k) is not None]
     if not sources and body.get("position") is None:
-        raise r.fail(p, "give a camera file (cameras.json / transforms.json), a COLMAP model (colmap) or position "
-                        "and look_at")
+        raise r.fail(
+            p, "give a camera file (cameras.json / transforms.json), a COLMAP model (colmap) or position and look_at"
+        )
     if len(sources) > 1:
         raise r.fail(p, "give file or colmap, not both")
     explicit = not sources
@@ -513,8 +564,10 @@ def _views(r: _Reader, top: dict) -> tuple[list[CameraConfig], list[Path | None]
     cameras, videos = top.get("camera"), top.get("video")
     if isinstance(videos, dict):  # video: {generate: ...}: one view, its video made later
         if isinstance(cameras, list) and len(cameras) != 1:
-            raise r.fail("video.generate", f"makes one guidance view's video; with {len(cameras)} cameras give a "
-                                           f"list of video files")
+            raise r.fail(
+                "video.generate",
+                f"makes one guidance view's video; with {len(cameras)} cameras give a list of video files",
+            )
         return [_camera(r, cameras[0] if isinstance(cameras, list) else cameras)], [None]
     for key, value in (("camera", cameras), ("video", videos)):
         if isinstance(value, list) and not value:
@@ -526,11 +579,15 @@ def _views(r: _Reader, top: dict) -> tuple[list[CameraConfig], list[Path | None]
     if videos is not None and len(videos) != len(cameras):
         raise r.fail("video", f"has {len(videos)} entries, camera {len(cameras)}: give one video per camera")
     if len(cameras) == 1:  # one view: the keys read as always (error messages without an index)
-        return [_camera(r, cameras[0])], [r.file({"video": videos and videos[0]}, "video", "", required=False,
-                                                 folder_ok=True)]
-    return ([_camera(r, c, f"camera[{i}]") for i, c in enumerate(cameras)],
-            [None] * len(cameras) if videos is None else
-            [r.file({f"video[{i}]": v}, f"video[{i}]", "", folder_ok=True) for i, v in enumerate(videos)])
+        return [_camera(r, cameras[0])], [
+            r.file({"video": videos and videos[0]}, "video", "", required=False, folder_ok=True)
+        ]
+    return (
+        [_camera(r, c, f"camera[{i}]") for i, c in enumerate(cameras)],
+        [None] * len(cameras)
+        if videos is None
+        else [r.file({f"video[{i}]": v}, f"video[{i}]", "", folder_ok=True) for i, v in enumerate(videos)],
+    )
 
 
 def _generate(r: _Reader, data: Any, simulation: SimulationSettings) -> GenerateSettings | None:
@@ -540,9 +597,28 @@ def _generate(r: _Reader, data: Any, simulation: SimulationSettings) -> Generate
         return None
     p = "video.generate"
     outer = r.section(data, "video", ("generate",))
-    body = r.section(outer.get("generate"), p, ("model", "prompt", "prompt_template", "object", "negative_prompt",
-                                                "image", "seed", "frames", "fps", "steps", "guidance_scale", "size",
-                                                "fit", "cpu_offload", "vae_tiling", "vae_slicing"))
+    body = r.section(
+        outer.get("generate"),
+        p,
+        (
+            "model",
+            "prompt",
+            "prompt_template",
+            "object",
+            "negative_prompt",
+            "image",
+            "seed",
+            "frames",
+            "fps",
+            "steps",
+            "guidance_scale",
+            "size",
+            "fit",
+            "cpu_offload",
+            "vae_tiling",
+            "vae_slicing",
+        ),
+    )
     if not body:
         raise r.fail(p, "is required: at least the model folder (video: {generate: {model: ...}})")
     model = body.get("model")
@@ -562,8 +638,11 @@ def _generate(r: _Reader, data: Any, simulation: SimulationSettings) -> Generate
     size = None
     if body.get("size") is not None:
         value = body["size"]
-        if (isinstance(value, list) and len(value) == 2
-                and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)):
+        if (
+            isinstance(value, list)
+            and len(value) == 2
+            and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)
+        ):
             size = (value[0], value[1])
         elif isinstance(value, str):
             from clflow.generate import parse_size
@@ -575,14 +654,21 @@ def _generate(r: _Reader, data: Any, simulation: SimulationSettings) -> Generate
         else:
             raise r.fail(f"{p}.size", f"must be WIDTHxHEIGHT or [width, height] in pixels, got {value!r}")
     settings = GenerateSettings(
-        model=(r.base / model).resolve(), prompt=texts["prompt"], prompt_template=texts["prompt_template"],
-        object=texts["object"] or "object", negative_prompt=texts["negative_prompt"] or "",
-        image=r.file(body, "image", p, required=False), seed=r.integer(body, "seed", p, 0),
+        model=(r.base / model).resolve(),
+        prompt=texts["prompt"],
+        prompt_template=texts["prompt_template"],
+        object=texts["object"] or "object",
+        negative_prompt=texts["negative_prompt"] or "",
+        image=r.file(body, "image", p, required=False),
+        seed=r.integer(body, "seed", p, 0),
         frames=r.integer(body, "frames", p, low=2) if body.get("frames") is not None else None,
         fps=r.number(body, "fps", p, low=0.0, strict_low=True) if body.get("fps") is not None else None,
         steps=r.integer(body, "steps", p, low=1) if body.get("steps") is not None else None,
-        guidance_scale=r.number(body, "guidance_scale", p, low=0.0) if body.get("guidance_scale") is not None
-        else None, size=size, fit=r.choice(body, "fit", p, ("pad", "crop"), "pad"), **flags)
+        guidance_scale=r.number(body, "guidance_scale", p, low=0.0) if body.get("guidance_scale") is not None else None,
+        size=size,
+        fit=r.choice(body, "fit", p, ("pad", "crop"), "pad"),
+        **flags,
+    )
     from clflow.pipeline.generated_video import check_settings
 
     check_settings(settings, simulation, fail=lambda key, message: r.fail(f"{p}.{key}" if key else p, message))
@@ -591,8 +677,22 @@ def _generate(r: _Reader, data: Any, simulation: SimulationSettings) -> Generate
 
 def _optimize(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> OptimizeSettings:
     p = "optimize"
-    body = r.section(data, p, ("parameters", "learning_rates", "iterations", "horizon", "final_rate", "search",
-                               "bounds", "method", "estimate_velocity", "material"))
+    body = r.section(
+        data,
+        p,
+        (
+            "parameters",
+            "learning_rates",
+            "iterations",
+            "horizon",
+            "final_rate",
+            "search",
+            "bounds",
+            "method",
+            "estimate_velocity",
+            "material",
+        ),
+    )
     names = body.get("parameters", [])
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise r.fail(f"{p}.parameters", f"must be a list of parameter names, got {names!r}")
@@ -601,51 +701,70 @@ def _optimize(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> O
         mat = get_material(material.type)
         for name in names:
             if name not in ("density", VELOCITY) and name not in mat.param_names:
-                raise r.fail(f"{p}.parameters", f"{name!r} is not a parameter of {mat.name} "
-                                                f"(its parameters: {', '.join(mat.param_names)}, density, velocity)")
+                raise r.fail(
+                    f"{p}.parameters",
+                    f"{name!r} is not a parameter of {mat.name} "
+                    f"(its parameters: {', '.join(mat.param_names)}, density, velocity)",
+                )
     estimate = r.section(body.get("estimate_velocity"), f"{p}.estimate_velocity", ("frames", "iterations"))
     estimate_frames = estimate_iterations = 0
     if estimate:
         estimate_frames = r.integer(estimate, "frames", f"{p}.estimate_velocity", low=1)
         estimate_iterations = r.integer(estimate, "iterations", f"{p}.estimate_velocity", low=1)
         if estimate_frames > frames:
-            raise r.fail(f"{p}.estimate_velocity.frames", f"must be <= simulation.frames ({frames}), "
-                                                          f"got {estimate_frames}")
+            raise r.fail(
+                f"{p}.estimate_velocity.frames", f"must be <= simulation.frames ({frames}), got {estimate_frames}"
+            )
     rates_in = r.mapping(body.get("learning_rates"), f"{p}.learning_rates")
     for name in rates_in:
         if name not in names and not (name == VELOCITY and estimate):
-            raise r.fail(f"{p}.learning_rates.{name}", f"is not among optimize.parameters {names}"
-                                                       + (" (nor estimated: optimize.estimate_velocity)"
-                                                          if name == VELOCITY else ""))
+            raise r.fail(
+                f"{p}.learning_rates.{name}",
+                f"is not among optimize.parameters {names}"
+                + (" (nor estimated: optimize.estimate_velocity)" if name == VELOCITY else ""),
+            )
     rates = {n: r.number(rates_in, n, f"{p}.learning_rates", low=0.0, strict_low=True) for n in rates_in}
     horizon = r.section(body.get("horizon"), f"{p}.horizon", ("start", "step"))
     search = SearchSettings() if hypotheses else None  # hypotheses are told apart by the search
     if body.get("search") is not None:
         found = r.section(body["search"], f"{p}.search", ("samples", "decades", "frames", "starts", "start_iterations"))
-        search = SearchSettings(samples=r.integer(found, "samples", f"{p}.search", 32, low=1),
-                                decades=r.number(found, "decades", f"{p}.search", 3.0, low=0.0, strict_low=True),
-                                frames=r.integer(found, "frames", f"{p}.search", 0),
-                                starts=r.integer(found, "starts", f"{p}.search", 1, low=1),
-                                start_iterations=r.integer(found, "start_iterations", f"{p}.search", 3, low=1))
+        search = SearchSettings(
+            samples=r.integer(found, "samples", f"{p}.search", 32, low=1),
+            decades=r.number(found, "decades", f"{p}.search", 3.0, low=0.0, strict_low=True),
+            frames=r.integer(found, "frames", f"{p}.search", 0),
+            starts=r.integer(found, "starts", f"{p}.search", 1, low=1),
+            start_iterations=r.integer(found, "start_iterations", f"{p}.search", 3, low=1),
+        )
         if search.starts > search.samples:
-            raise r.fail(f"{p}.search.starts", f"must not exceed search.samples ({search.samples}), got {search.starts}")
+            raise r.fail(
+                f"{p}.search.starts", f"must not exceed search.samples ({search.samples}), got {search.starts}"
+            )
     bounds = {}
     for name, box in r.mapping(body.get("bounds"), f"{p}.bounds").items():
         where = f"{p}.bounds.{name}"
         if name not in names:
             raise r.fail(where, f"is not among optimize.parameters {names}")
-        if (not isinstance(box, list) or len(box) != 2
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in box)):
+        if (
+            not isinstance(box, list)
+            or len(box) != 2
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in box)
+        ):
             raise r.fail(where, f"must be [lower, upper] (SI), got {box!r}")
         if not box[0] < box[1]:
             raise r.fail(where, f"is empty or inverted: lower {box[0]:g} must be below upper {box[1]:g}")
         bounds[name] = (float(box[0]), float(box[1]))
     return OptimizeSettings(
-        parameters=tuple(names), learning_rates=rates, iterations=r.integer(body, "iterations", p, 30, low=1),
-        horizon_start=r.integer(horizon, "start", f"{p}.horizon", 0), horizon_step=r.integer(horizon, "step", f"{p}.horizon", 0),
-        final_rate=r.number(body, "final_rate", p, 0.1, low=0.0, high=1.0), search=search, bounds=bounds,
+        parameters=tuple(names),
+        learning_rates=rates,
+        iterations=r.integer(body, "iterations", p, 30, low=1),
+        horizon_start=r.integer(horizon, "start", f"{p}.horizon", 0),
+        horizon_step=r.integer(horizon, "step", f"{p}.horizon", 0),
+        final_rate=r.number(body, "final_rate", p, 0.1, low=0.0, high=1.0),
+        search=search,
+        bounds=bounds,
         method=r.choice(body, "method", p, OPTIMIZERS, "adam"),
-        estimate_velocity_frames=estimate_frames, estimate_velocity_iterations=estimate_iterations,
+        estimate_velocity_frames=estimate_frames,
+        estimate_velocity_iterations=estimate_iterations,
         materials=hypotheses,
     )
 
@@ -668,17 +787,34 @@ def _hypotheses(r: _Reader, data: Any, names: list[str]) -> tuple[str, ...]:
     common = ("density", VELOCITY)
     for m in materials:
         if not any(n in common or n in m.param_names for n in names):
-            raise r.fail(p, f"{m.name} has none of optimize.parameters {names} (its parameters: "
-                            f"{', '.join(m.param_names)}, density, velocity)")
+            raise r.fail(
+                p,
+                f"{m.name} has none of optimize.parameters {names} (its parameters: "
+                f"{', '.join(m.param_names)}, density, velocity)",
+            )
     for n in names:
         if n not in common and not any(n in m.param_names for m in materials):
-            raise r.fail("optimize.parameters", f"{n!r} is a parameter of none of the hypotheses "
-                                                f"{', '.join(canonical)}")
+            raise r.fail(
+                "optimize.parameters", f"{n!r} is a parameter of none of the hypotheses {', '.join(canonical)}"
+            )
     return tuple(canonical)
 
 
-TOP_KEYS = ("splats", "scene", "object", "material", "forces", "boundaries", "simulation", "camera",
-            "video", "flow", "optimize", "evaluation", "output")
+TOP_KEYS = (
+    "splats",
+    "scene",
+    "object",
+    "material",
+    "forces",
+    "boundaries",
+    "simulation",
+    "camera",
+    "video",
+    "flow",
+    "optimize",
+    "evaluation",
+    "output",
+)
 
 
 def parse_config(data: Any, source: str = "<config>", base: Path | None = None) -> SceneConfig:
@@ -700,8 +836,12 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         selection = Selection(None, r.file(select, "mask", "object.select"))
     elif "ply" in select:
         tolerance = select.get("tolerance")
-        selection = Selection(None, None, r.file(select, "ply", "object.select"), None if tolerance is None else
-                              r.number(select, "tolerance", "object.select", low=0.0, strict_low=True))
+        selection = Selection(
+            None,
+            None,
+            r.file(select, "ply", "object.select"),
+            None if tolerance is None else r.number(select, "tolerance", "object.select", low=0.0, strict_low=True),
+        )
     else:
         selection = Selection(_region(r, select, "object.select", allow_all=False), None)
     fill_in = r.section(obj.get("fill"), "object.fill", ("enabled", "spacing", "per_axis"))
@@ -710,12 +850,13 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         raise r.fail("object.fill.enabled", f"must be true or false, got {enabled!r}")
     fill = FillSettings(
         enabled=enabled,
-        spacing=r.number(fill_in, "spacing", "object.fill", low=0.0, strict_low=True) if fill_in.get("spacing") is not None else None,
+        spacing=r.number(fill_in, "spacing", "object.fill", low=0.0, strict_low=True)
+        if fill_in.get("spacing") is not None
+        else None,
         per_axis=r.integer(fill_in, "per_axis", "object.fill", 1, low=1),
     )
     material = _material(r, top.get("material"))
-    flow_in = r.section(top.get("flow"), "flow", ("method", "preset", "loss", "mask", "confidence",
-                                                         "bias_correction"))
+    flow_in = r.section(top.get("flow"), "flow", ("method", "preset", "loss", "mask", "confidence", "bias_correction"))
     flow = FlowSettings(
         method=r.choice(flow_in, "method", "flow", FLOW_METHODS, "dis"),
         preset=r.choice(flow_in, "preset", "flow", DIS_PRESETS, DEFAULT_PRESET),
@@ -754,11 +895,15 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         truth["density"] = float(true_density)
     truth.update(zip(VELOCITY_COMPONENTS, true_velocity))
     if optimize.search is not None and optimize.search.starts > 1 and optimize.method != "levenberg_marquardt":
-        raise r.fail("optimize.search.starts", "several starts are polished by levenberg_marquardt: set "
-                                               "optimize.method: levenberg_marquardt, or starts: 1")
+        raise r.fail(
+            "optimize.search.starts",
+            "several starts are polished by levenberg_marquardt: set "
+            "optimize.method: levenberg_marquardt, or starts: 1",
+        )
     if optimize.method == "levenberg_marquardt" and flow.loss != "l2":
-        raise r.fail("optimize.method", f"levenberg_marquardt minimises a sum of squares: it needs flow.loss l2, "
-                                        f"not {flow.loss}")
+        raise r.fail(
+            "optimize.method", f"levenberg_marquardt minimises a sum of squares: it needs flow.loss l2, not {flow.loss}"
+        )
     cameras, videos = _views(r, top)
     if len(cameras) > 1 and flow.mask not in ("alpha", "none"):
         raise r.fail("flow.mask", "a mask image fits one view: with several guidance views use alpha or none")
@@ -902,8 +1047,10 @@ def _override(data: Any, item: str) -> str:
     key, sep, text = item.partition("=")
     parts = key.strip().split(".")
     if not sep or not all(re.fullmatch(r"[A-Za-z0-9_]+", p) for p in parts) or parts[0].isdigit():
-        raise InputError(f"--set {item}: expected KEY.SUB=VALUE with a dotted key of config names (a number "
-                         f"for a list item), e.g. simulation.frames=24 or forces.0.end=0.5")
+        raise InputError(
+            f"--set {item}: expected KEY.SUB=VALUE with a dotted key of config names (a number "
+            f"for a list item), e.g. simulation.frames=24 or forces.0.end=0.5"
+        )
     try:
         value = _load_yaml(text)
     except (yaml.YAMLError, _DuplicateKey) as exc:
@@ -914,8 +1061,10 @@ def _override(data: Any, item: str) -> str:
         if isinstance(node, list) and part.isdigit():
             index = int(part)
             if index >= len(node):
-                raise InputError(f"--set {item}: {walked} has {len(node)} item(s), so no item {index} "
-                                 f"(items count from 0; add new ones in the config file)")
+                raise InputError(
+                    f"--set {item}: {walked} has {len(node)} item(s), so no item {index} "
+                    f"(items count from 0; add new ones in the config file)"
+                )
             if last:
                 node[index] = value
             else:
@@ -930,8 +1079,10 @@ def _override(data: Any, item: str) -> str:
         else:
             if node.get(part) is None:
                 if parts[k + 1].isdigit():
-                    raise InputError(f"--set {item}: {walked + '.' if walked else ''}{part} is not in the config: "
-                                     f"set the whole list ({walked + '.' if walked else ''}{part}=[...])")
+                    raise InputError(
+                        f"--set {item}: {walked + '.' if walked else ''}{part} is not in the config: "
+                        f"set the whole list ({walked + '.' if walked else ''}{part}=[...])"
+                    )
                 node[part] = {}
             node = node[part]
         walked += f".{part}" if walked else part

@@ -76,7 +76,9 @@ def _dilate(region: torch.Tensor, voxels: int) -> torch.Tensor:
     return nnf.max_pool3d(region[None, None].float(), k, stride=1, padding=voxels)[0, 0] > 0
 
 
-def _object_voxels(interior: torch.Tensor, outside: torch.Tensor, closed: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _object_voxels(
+    interior: torch.Tensor, outside: torch.Tensor, closed: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(inside, tie) bool [nx, ny, nz]: the object's voxels, the interior plus the
     closed-shell voxels nearer to the interior than to the outside (the surface runs through
     the middle of the shell), and the shell voxels as near to both (half inside). A shell

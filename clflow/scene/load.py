@@ -90,13 +90,20 @@ def part_mask(part_file, means_scene: torch.Tensor, tolerance: float | None = No
     mask = cKDTree(part).query(scene)[0] <= tolerance
     if not mask.any():
         nearest = cKDTree(scene).query(part)[0].min()
-        raise InputError(f"{part_file}: none of its {len(part)} Gaussian centres lies within {tolerance:.3g} scene units "
-                         f"of the scene's (nearest {nearest:.3g}): not a part of this splat file, or moved since "
-                         f"(raise object.select.tolerance if it was only rounded)")
+        raise InputError(
+            f"{part_file}: none of its {len(part)} Gaussian centres lies within {tolerance:.3g} scene units "
+            f"of the scene's (nearest {nearest:.3g}): not a part of this splat file, or moved since "
+            f"(raise object.select.tolerance if it was only rounded)"
+        )
     unmatched = int((cKDTree(scene[mask]).query(part)[0] > tolerance).sum())
     if unmatched:
-        logging.getLogger(__name__).warning("%s: %d of its %d Gaussian centres match no Gaussian of the scene within "
-                                            "%.3g scene units", part_file, unmatched, len(part), tolerance)
+        logging.getLogger(__name__).warning(
+            "%s: %d of its %d Gaussian centres match no Gaussian of the scene within %.3g scene units",
+            part_file,
+            unmatched,
+            len(part),
+            tolerance,
+        )
     return torch.from_numpy(mask)
 
 
@@ -107,9 +114,11 @@ def check_object_sizes(cfg: SceneConfig, means: torch.Tensor, scales: torch.Tens
     largest = scales[mask].max(-1).values
     huge = int((largest > max(extent, 1e-12)).sum())
     if huge:
-        raise InputError(f"{cfg.splats}: {huge} of the object's {int(mask.sum())} Gaussians are larger than the "
-                         f"whole scene (std dev up to {float(largest.max()):.3g}, the scene spans {extent:.3g} in "
-                         f"scene units); check the file's scale_* values (log std devs in 3DGS files)")
+        raise InputError(
+            f"{cfg.splats}: {huge} of the object's {int(mask.sum())} Gaussians are larger than the "
+            f"whole scene (std dev up to {float(largest.max()):.3g}, the scene spans {extent:.3g} in "
+            f"scene units); check the file's scale_* values (log std devs in 3DGS files)"
+        )
 
 
 def load_scene_gaussians(cfg: SceneConfig, dtype: torch.dtype) -> tuple[Gaussians, torch.Tensor]:
@@ -156,8 +165,9 @@ def guidance_camera(cfg: SceneConfig, camera: CameraConfig | None = None):
     cam = cfg.camera if camera is None else camera
     if cam.cameras_file is None and cam.colmap is None:
         fov_x = 2 * math.atan(math.tan(math.radians(cam.fov_y_deg) / 2) * cam.width / cam.height)  # rad
-        scene_cam = cameras.look_at(cam.position, cam.look_at, cam.up, fov_x=fov_x, width=cam.width,
-                                    height=cam.height, name="guidance")
+        scene_cam = cameras.look_at(
+            cam.position, cam.look_at, cam.up, fov_x=fov_x, width=cam.width, height=cam.height, name="guidance"
+        )
         return to_simulation_camera(scene_cam, cfg)
     loaded = file_camera(cfg, cam)
     if cfg.dataparser_transforms is not None:  # capture frame -> the splat file's
@@ -179,8 +189,10 @@ def file_camera(cfg: SceneConfig, cam: CameraConfig):
         load = cameras.load_cameras_json if is_list else cameras.load_transforms_json
         loaded = load(cam.cameras_file)
         if not 0 <= cam.index < len(loaded):
-            raise InputError(f"{cfg.source}: camera.index {cam.index} is outside the {len(loaded)} cameras of "
-                             f"{cam.cameras_file.name}")
+            raise InputError(
+                f"{cfg.source}: camera.index {cam.index} is outside the {len(loaded)} cameras of "
+                f"{cam.cameras_file.name}"
+            )
         return loaded[cam.index]
     return colmap_camera(cam.colmap, cam.image, cam.index, cfg.source)
 
@@ -195,9 +207,12 @@ def colmap_camera(folder, image: str | None, index: int, source):
     if image is not None:
         if image not in names:
             listed = ", ".join(names[:5]) + (f" ... ({len(names)} images)" if len(names) > 5 else "")
-            raise InputError(f"{source}: camera.image {image!r} is not an image of the COLMAP model {folder} ({listed})")
+            raise InputError(
+                f"{source}: camera.image {image!r} is not an image of the COLMAP model {folder} ({listed})"
+            )
         return loaded[names.index(image)]
     if not 0 <= index < len(loaded):
-        raise InputError(f"{source}: camera.index {index} is outside the {len(loaded)} images of the COLMAP model "
-                         f"{folder}")
+        raise InputError(
+            f"{source}: camera.index {index} is outside the {len(loaded)} images of the COLMAP model {folder}"
+        )
     return loaded[index]

@@ -164,8 +164,18 @@ def build_tile_lists(
         device.launch(
             kern("emit_entries"),
             n,
-            [b.input(order), b.input(offsets), b.input(means2d), b.input(radii), *bufs[:2],
-             b.output(slot_gaussian), b.inout(first_slot), np.int32(n), np.int32(tiles_x), np.int32(tiles_y)],
+            [
+                b.input(order),
+                b.input(offsets),
+                b.input(means2d),
+                b.input(radii),
+                *bufs[:2],
+                b.output(slot_gaussian),
+                b.inout(first_slot),
+                np.int32(n),
+                np.int32(tiles_x),
+                np.int32(tiles_y),
+            ],
         )
         tile_bits = max(1, (n_tiles - 1).bit_length())
         swapped = _radix_sort(device, b, bufs[:2], bufs[2:], m, tile_bits, TILE_DIGIT_BITS)

@@ -67,12 +67,16 @@ class Camera:
                 f"{ORTHONORMAL_TOLERANCE:g}); R = {R.tolist()}"
             )
         if torch.linalg.det(R) < 0:
-            raise InputError(f"{label}: the rotation of viewmat is a reflection (det R = -1); check the axis convention")
+            raise InputError(
+                f"{label}: the rotation of viewmat is a reflection (det R = -1); check the axis convention"
+            )
         K = self.K
         if K[0, 1] != 0 or K[1, 0] != 0 or not torch.equal(K[2], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)):
             raise InputError(f"{label}: K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}")
         if not (K[0, 0] > 0 and K[1, 1] > 0):
-            raise InputError(f"{label}: focal lengths must be > 0 pixels, got fx={K[0, 0].item():g}, fy={K[1, 1].item():g}")
+            raise InputError(
+                f"{label}: focal lengths must be > 0 pixels, got fx={K[0, 0].item():g}, fy={K[1, 1].item():g}"
+            )
 
     @property
     def R(self) -> torch.Tensor:
@@ -162,6 +166,7 @@ def from_camtoworld(camtoworld: torch.Tensor, K: torch.Tensor, width: int, heigh
 
 # -- novel views ---------------------------------------------------------------------------
 
+
 def look_at(
     eye: Vector,
     target: Vector,
@@ -228,7 +233,9 @@ def orbit(
         phi = azimuth + 2 * math.pi * i / n_views
         direction = math.cos(elevation) * (math.cos(phi) * e1 + math.sin(phi) * e2) + math.sin(elevation) * up
         cameras.append(
-            look_at(center + radius * direction, center, up, fov_x=fov_x, width=width, height=height, name=f"orbit_{i:04d}")
+            look_at(
+                center + radius * direction, center, up, fov_x=fov_x, width=width, height=height, name=f"orbit_{i:04d}"
+            )
         )
     return cameras
 
@@ -262,12 +269,20 @@ def frame_box(
     radius = max(0.5 * (high - low).norm().item(), 1e-6)  # a single point still gets a view
     distance = framing_distance(radius, fov_x, width, height)
     return orbit(
-        0.5 * (low + high), distance, n_views=n_views, elevation=elevation, up=up, azimuth=azimuth,
-        fov_x=fov_x, width=width, height=height,
+        0.5 * (low + high),
+        distance,
+        n_views=n_views,
+        elevation=elevation,
+        up=up,
+        azimuth=azimuth,
+        fov_x=fov_x,
+        width=width,
+        height=height,
     )
 
 
 # -- dataset files -------------------------------------------------------------------------
+
 
 def load_cameras_json(path: str | os.PathLike) -> list[Camera]:
     """Cameras from a 3DGS ``cameras.json`` (INRIA's trainer writes it next to the PLY).
@@ -306,8 +321,16 @@ def save_cameras_json(path: str | os.PathLike, cameras: Sequence[Camera]) -> Non
     from clflow.fileio import atomic_write_text
 
     entries = [
-        {"id": i, "img_name": c.name, "width": c.width, "height": c.height, "position": c.position.tolist(),
-         "rotation": c.R.T.tolist(), "fy": c.fy, "fx": c.fx}
+        {
+            "id": i,
+            "img_name": c.name,
+            "width": c.width,
+            "height": c.height,
+            "position": c.position.tolist(),
+            "rotation": c.R.T.tolist(),
+            "fy": c.fy,
+            "fx": c.fx,
+        }
         for i, c in enumerate(cameras)
     ]
     atomic_write_text(path, json.dumps(entries) + "\n")
@@ -320,14 +343,24 @@ def save_transforms_json(path: str | os.PathLike, cameras: Sequence[Camera]) -> 
     from clflow.fileio import atomic_write_text
 
     frames = [
-        {"file_path": c.name, "transform_matrix": (c.camtoworld() @ OPENGL_TO_OPENCV).tolist(), "w": c.width,
-         "h": c.height, "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy}
+        {
+            "file_path": c.name,
+            "transform_matrix": (c.camtoworld() @ OPENGL_TO_OPENCV).tolist(),
+            "w": c.width,
+            "h": c.height,
+            "fl_x": c.fx,
+            "fl_y": c.fy,
+            "cx": c.cx,
+            "cy": c.cy,
+        }
         for c in cameras
     ]
     atomic_write_text(path, json.dumps({"frames": frames}, indent=1) + "\n")
 
 
-def load_transforms_json(path: str | os.PathLike, *, width: int | None = None, height: int | None = None) -> list[Camera]:
+def load_transforms_json(
+    path: str | os.PathLike, *, width: int | None = None, height: int | None = None
+) -> list[Camera]:
     """Cameras from a NeRF-style ``transforms.json`` (NeRF synthetic, instant-ngp, nerfstudio).
 
     ``frames[].transform_matrix`` is camera-to-world in OpenGL axes (converted here).
@@ -375,8 +408,9 @@ def load_dataparser_transforms(path: str | os.PathLike) -> tuple[torch.Tensor, f
     the model's (a splatfacto PLY export's): x_model = s (R x + t)."""
     data = _read_json(path)
     if not isinstance(data, dict) or "transform" not in data or "scale" not in data:
-        raise InputError(f"{path}: expected nerfstudio's dataparser transforms: an object with 'transform' (3x4) "
-                         f"and 'scale'")
+        raise InputError(
+            f"{path}: expected nerfstudio's dataparser transforms: an object with 'transform' (3x4) and 'scale'"
+        )
     transform = _matrix(data["transform"], (3, 4), f"{path}: transform")
     scale = _number(data, "scale", str(path))
     if scale <= 0:
@@ -384,8 +418,10 @@ def load_dataparser_transforms(path: str | os.PathLike) -> tuple[torch.Tensor, f
     R = transform[:, :3]
     error = (R @ R.T - torch.eye(3, dtype=torch.float64)).abs().max().item()
     if error > ORTHONORMAL_TOLERANCE or torch.linalg.det(R) < 0:
-        raise InputError(f"{path}: the transform's 3x3 part is not a rotation (max |R R^T - I| = {error:.3g}, "
-                         f"det {torch.linalg.det(R).item():.3g})")
+        raise InputError(
+            f"{path}: the transform's 3x3 part is not a rotation (max |R R^T - I| = {error:.3g}, "
+            f"det {torch.linalg.det(R).item():.3g})"
+        )
     return transform, scale
 
 

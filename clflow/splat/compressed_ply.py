@@ -124,7 +124,7 @@ def _store_bounds(chunks: np.ndarray, values: np.ndarray, first: int, limit: flo
     lo, hi = _chunk_bounds(values)
     if limit is not None:
         lo, hi = np.clip(lo, -limit, limit), np.clip(hi, -limit, limit)
-    names = CHUNK_FIELDS[first:first + 6]
+    names = CHUNK_FIELDS[first : first + 6]
     for d in range(3):
         chunks[names[d]], chunks[names[3 + d]] = lo[:, d], hi[:, d]
     return tuple(np.stack([chunks[name] for name in part], 1).astype(np.float64) for part in (names[:3], names[3:]))
@@ -141,7 +141,9 @@ def save_compressed_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
     elif g.colors.shape[1] == 3:
         sh = rgb_to_sh0(g.colors).numpy()[:, None, :]
     else:
-        raise InputError(f"{path}: a compressed PLY stores RGB; these Gaussians have {g.colors.shape[1]} colour channels")
+        raise InputError(
+            f"{path}: a compressed PLY stores RGB; these Gaussians have {g.colors.shape[1]} colour channels"
+        )
     order = morton_order(g.means.numpy())
     means, log_scales, quats = g.means.numpy()[order], g.log_scales.numpy()[order], g.quats.numpy()[order]
     sh, opacities = sh[order], g.opacities.numpy()[order]
@@ -151,10 +153,12 @@ def save_compressed_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
     if n:
         rgb = SH_C0 * sh[:, 0] + 0.5
         vertex["packed_position"] = _pack_in_bounds(means, *_store_bounds(chunks, means, 0), POSITION_BITS)
-        vertex["packed_scale"] = _pack_in_bounds(log_scales, *_store_bounds(chunks, log_scales, 6, LOG_SCALE_LIMIT),
-                                                 POSITION_BITS)
-        vertex["packed_color"] = ((_pack_in_bounds(rgb, *_store_bounds(chunks, rgb, 12), (8, 8, 8)) << np.uint32(8))
-                                  | _unorm(opacities, 8))
+        vertex["packed_scale"] = _pack_in_bounds(
+            log_scales, *_store_bounds(chunks, log_scales, 6, LOG_SCALE_LIMIT), POSITION_BITS
+        )
+        vertex["packed_color"] = (
+            _pack_in_bounds(rgb, *_store_bounds(chunks, rgb, 12), (8, 8, 8)) << np.uint32(8)
+        ) | _unorm(opacities, 8)
         vertex["packed_rotation"] = _pack_rotations(quats)
     elements = {"chunk": chunks, "vertex": vertex}
     if sh.shape[1] > 1:
@@ -203,14 +207,17 @@ def load_compressed_ply(path: str | os.PathLike) -> Gaussians:
         raise InputError(f"{path}: {len(chunks)} chunks for {n} Gaussians; a compressed PLY has ceil(N / {CHUNK})")
     column = lambda names: np.stack([chunks[name].astype(np.float64) for name in names], 1)  # noqa: E731
     field = lambda name: vertex[name].astype(np.uint32)  # noqa: E731
-    means = _unpack_in_bounds(field("packed_position"), column(CHUNK_FIELDS[0:3]), column(CHUNK_FIELDS[3:6]),
-                              POSITION_BITS)
-    log_scales = _unpack_in_bounds(field("packed_scale"), column(CHUNK_FIELDS[6:9]), column(CHUNK_FIELDS[9:12]),
-                                   POSITION_BITS)
+    means = _unpack_in_bounds(
+        field("packed_position"), column(CHUNK_FIELDS[0:3]), column(CHUNK_FIELDS[3:6]), POSITION_BITS
+    )
+    log_scales = _unpack_in_bounds(
+        field("packed_scale"), column(CHUNK_FIELDS[6:9]), column(CHUNK_FIELDS[9:12]), POSITION_BITS
+    )
     color = field("packed_color")
     if "min_r" in chunks.dtype.names:
-        rgb = _unpack_in_bounds(color >> np.uint32(8), column(CHUNK_FIELDS[12:15]), column(CHUNK_FIELDS[15:18]),
-                                (8, 8, 8))
+        rgb = _unpack_in_bounds(
+            color >> np.uint32(8), column(CHUNK_FIELDS[12:15]), column(CHUNK_FIELDS[15:18]), (8, 8, 8)
+        )
     else:  # older files: colours over [0, 1]
         rgb = _unpack_in_bounds(color >> np.uint32(8), np.zeros((len(chunks), 3)), np.ones((len(chunks), 3)), (8, 8, 8))
     alpha = np.clip((color & np.uint32(255)) / 255.0, 0.5 / 255, 1 - 0.5 / 255)
@@ -219,8 +226,10 @@ def load_compressed_ply(path: str | os.PathLike) -> Gaussians:
         table = elements["sh"]
         count = len(table.dtype.names)
         if count % 3 or len(table) != n:
-            raise InputError(f"{path}: the sh element has {count} properties for {len(table)} Gaussians; expected a "
-                             f"multiple of 3 for each of the {n}")
+            raise InputError(
+                f"{path}: the sh element has {count} properties for {len(table)} Gaussians; expected a "
+                f"multiple of 3 for each of the {n}"
+            )
         try:
             sh_degree_of(count // 3 + 1)
         except InputError as exc:
@@ -232,6 +241,10 @@ def load_compressed_ply(path: str | os.PathLike) -> Gaussians:
         rest = ((unit - 0.5) * 2 * SH_RANGE).reshape(n, 3, count // 3).transpose(0, 2, 1)
         sh = np.concatenate([sh, rest], 1)
     f32 = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
-    return Gaussians(means=f32(means), quats=f32(_unpack_rotations(field("packed_rotation"))),
-                     log_scales=f32(log_scales), opacity_logits=f32(np.log(alpha / (1 - alpha))),
-                     sh=f32(sh)).validate(str(path))
+    return Gaussians(
+        means=f32(means),
+        quats=f32(_unpack_rotations(field("packed_rotation"))),
+        log_scales=f32(log_scales),
+        opacity_logits=f32(np.log(alpha / (1 - alpha))),
+        sh=f32(sh),
+    ).validate(str(path))

@@ -48,9 +48,7 @@ def sh_degree_of(num_coeffs: int) -> int:
     for degree in range(MAX_SH_DEGREE + 1):
         if (degree + 1) ** 2 == num_coeffs:
             return degree
-    raise InputError(
-        f"{num_coeffs} SH coefficients per channel is not (d+1)^2 for a degree d in 0..{MAX_SH_DEGREE}"
-    )
+    raise InputError(f"{num_coeffs} SH coefficients per channel is not (d+1)^2 for a degree d in 0..{MAX_SH_DEGREE}")
 
 
 def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
@@ -68,9 +66,15 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
     return torch.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         dim=-1,
     ).reshape(quats.shape[:-1] + (3, 3))
@@ -92,15 +96,39 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     """wxyz quaternions [N, 4] of proper rotation matrices [N, 3, 3] (Shepperd's method)."""
     m = R
     trace = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
-    cand = torch.stack([
-        torch.stack([1 + trace, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], -1),
-        torch.stack([m[:, 2, 1] - m[:, 1, 2], 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2], m[:, 0, 1] + m[:, 1, 0],
-                     m[:, 0, 2] + m[:, 2, 0]], -1),
-        torch.stack([m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0], 1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2],
-                     m[:, 1, 2] + m[:, 2, 1]], -1),
-        torch.stack([m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1],
-                     1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], -1),
-    ], 1)  # [N, 4 candidates, 4]; the one with the largest norm is the best conditioned
+    cand = torch.stack(
+        [
+            torch.stack([1 + trace, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], -1),
+            torch.stack(
+                [
+                    m[:, 2, 1] - m[:, 1, 2],
+                    1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
+                    m[:, 0, 1] + m[:, 1, 0],
+                    m[:, 0, 2] + m[:, 2, 0],
+                ],
+                -1,
+            ),
+            torch.stack(
+                [
+                    m[:, 0, 2] - m[:, 2, 0],
+                    m[:, 0, 1] + m[:, 1, 0],
+                    1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2],
+                    m[:, 1, 2] + m[:, 2, 1],
+                ],
+                -1,
+            ),
+            torch.stack(
+                [
+                    m[:, 1, 0] - m[:, 0, 1],
+                    m[:, 0, 2] + m[:, 2, 0],
+                    m[:, 1, 2] + m[:, 2, 1],
+                    1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2],
+                ],
+                -1,
+            ),
+        ],
+        1,
+    )  # [N, 4 candidates, 4]; the one with the largest norm is the best conditioned
     best = cand.norm(dim=-1).argmax(dim=1)
     q = cand[torch.arange(R.shape[0]), best]
     return q / q.norm(dim=-1, keepdim=True)
@@ -389,8 +417,10 @@ class Gaussians:
         """Raise :class:`InputError` when deformations or SH rotations are set: a 3DGS file
         holds the parameters alone (frames4d's ``file_gaussians`` writes moved Gaussians)."""
         if self.deformations is not None or self.sh_rotations is not None:
-            raise InputError(f"{where}: these Gaussians are deformed or turned (deformations / sh_rotations), "
-                             "which a splat file cannot hold (clflow.pipeline.frames4d.file_gaussians writes them)")
+            raise InputError(
+                f"{where}: these Gaussians are deformed or turned (deformations / sh_rotations), "
+                "which a splat file cannot hold (clflow.pipeline.frames4d.file_gaussians writes them)"
+            )
 
     # -- deformation ------------------------------------------------------------------------
 
@@ -556,8 +586,7 @@ def _check_finite(name: str, value: torch.Tensor, where: str = "") -> None:
         prefix = f"{where}: " if where else ""
         first = tuple(bad[0].tolist())
         raise InputError(
-            f"{prefix}{len(bad)} non-finite values in {name} (first at index {first}: "
-            f"{value[first].item()})"
+            f"{prefix}{len(bad)} non-finite values in {name} (first at index {first}: {value[first].item()})"
         )
 
 

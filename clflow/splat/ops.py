@@ -45,8 +45,11 @@ def covariances(quats: Tensor, scales: Tensor) -> Tensor:
     n = quats.shape[0]
     covars = quats.new_empty(n, 3, 3)
     with device.bind() as b:
-        device.launch(_kernel("covariance.cl", "covariance_forward", quats.dtype), -(-n // SPLAT_LANES),
-                      [b.input(quats), b.input(scales), b.output(covars), np.int32(n)])
+        device.launch(
+            _kernel("covariance.cl", "covariance_forward", quats.dtype),
+            -(-n // SPLAT_LANES),
+            [b.input(quats), b.input(scales), b.output(covars), np.int32(n)],
+        )
     return covars
 
 
@@ -62,9 +65,11 @@ def covariances_backward(quats: Tensor, scales: Tensor, v_covars: Tensor) -> tup
     n = quats.shape[0]
     v_quats, v_scales = torch.empty_like(quats), torch.empty_like(scales)
     with device.bind() as b:
-        device.launch(_kernel("covariance.cl", "covariance_backward", quats.dtype), n,
-                      [b.input(quats), b.input(scales), b.input(v_covars), b.output(v_quats), b.output(v_scales),
-                       np.int32(n)])
+        device.launch(
+            _kernel("covariance.cl", "covariance_backward", quats.dtype),
+            n,
+            [b.input(quats), b.input(scales), b.input(v_covars), b.output(v_quats), b.output(v_scales), np.int32(n)],
+        )
     return v_quats, v_scales
 
 
@@ -116,9 +121,21 @@ def project(
         device.launch(
             kern,
             -(-n // SPLAT_LANES),
-            [b.input(means), b.input(covars), b.input(viewmat), b.input(K), b.output(means2d), b.output(conics),
-             b.output(depths), b.output(radii), b.output(tiles_touched), np.int32(n), np.int32(width),
-             np.int32(height), near_real],
+            [
+                b.input(means),
+                b.input(covars),
+                b.input(viewmat),
+                b.input(K),
+                b.output(means2d),
+                b.output(conics),
+                b.output(depths),
+                b.output(radii),
+                b.output(tiles_touched),
+                np.int32(n),
+                np.int32(width),
+                np.int32(height),
+                near_real,
+            ],
         )
     return means2d, conics, depths, radii, tiles_touched
 
@@ -127,13 +144,27 @@ def project(
 def _project_fake(means, covars, viewmat, K, width, height, near):
     n = means.shape[0]
     i32 = dict(dtype=torch.int32)
-    return means.new_empty(n, 2), means.new_empty(n, 3), means.new_empty(n), means.new_empty(n, **i32), means.new_empty(n, **i32)
+    return (
+        means.new_empty(n, 2),
+        means.new_empty(n, 3),
+        means.new_empty(n),
+        means.new_empty(n, **i32),
+        means.new_empty(n, **i32),
+    )
 
 
 @torch.library.custom_op("clflow::splat_project_backward", mutates_args=())
 def project_backward(
-    means: Tensor, covars: Tensor, viewmat: Tensor, K: Tensor, radii: Tensor, v_means2d: Tensor,
-    v_conics: Tensor, v_depths: Tensor, width: int, height: int,
+    means: Tensor,
+    covars: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    radii: Tensor,
+    v_means2d: Tensor,
+    v_conics: Tensor,
+    v_depths: Tensor,
+    width: int,
+    height: int,
 ) -> tuple[Tensor, Tensor]:
     """Adjoint of :func:`project`: (dL/dmeans [N, 3], dL/dcovars [N, 3, 3])."""
     device = get_device()
@@ -145,9 +176,21 @@ def project_backward(
         device.launch(
             kern,
             n,
-            [b.input(means), b.input(covars), b.input(viewmat), b.input(K), b.input(radii), b.input(v_means2d),
-             b.input(v_conics), b.input(v_depths), b.output(v_means), b.output(v_covars), np.int32(n),
-             np.int32(width), np.int32(height)],
+            [
+                b.input(means),
+                b.input(covars),
+                b.input(viewmat),
+                b.input(K),
+                b.input(radii),
+                b.input(v_means2d),
+                b.input(v_conics),
+                b.input(v_depths),
+                b.output(v_means),
+                b.output(v_covars),
+                np.int32(n),
+                np.int32(width),
+                np.int32(height),
+            ],
         )
     return v_means, v_covars
 
@@ -204,17 +247,31 @@ def _sorted_entry_records(device, b, means2d, conics, opacities, features, sorte
     records = b.scratch(n * ENTRY_FIELDS * itemsize)
     entries = b.scratch(m * (ENTRY_FIELDS + channels) * itemsize)
     kernel = lambda name: _kernel("rasterize.cl", name, features.dtype, CHANNELS=channels)  # noqa: E731
-    device.launch(kernel("entry_records"), n,
-                  [b.input(means2d), b.input(conics), b.input(opacities), records, np.int32(n)])
-    device.launch(kernel("sort_entry_records"), m,
-                  [b.input(sorted_slots), b.input(slot_gaussian), records, b.input(features), entries, np.int32(m)])
+    device.launch(
+        kernel("entry_records"), n, [b.input(means2d), b.input(conics), b.input(opacities), records, np.int32(n)]
+    )
+    device.launch(
+        kernel("sort_entry_records"),
+        m,
+        [b.input(sorted_slots), b.input(slot_gaussian), records, b.input(features), entries, np.int32(m)],
+    )
     return entries
 
 
 @torch.library.custom_op("clflow::splat_composite", mutates_args=())
 def composite(
-    means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, background: Tensor, ranges: Tensor,
-    sorted_slots: Tensor, slot_gaussian: Tensor, first_slot: Tensor, tiles_touched: Tensor, width: int, height: int,
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    background: Tensor,
+    ranges: Tensor,
+    sorted_slots: Tensor,
+    slot_gaussian: Tensor,
+    first_slot: Tensor,
+    tiles_touched: Tensor,
+    width: int,
+    height: int,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Front-to-back compositing of sorted splats (OpenCL), one work-item per 16 x 16 tile.
 
@@ -239,26 +296,60 @@ def composite(
         device.launch(
             kern,
             tiles_x * tiles_y,
-            [b.input(ranges), entries, b.input(background),
-             b.output(out), b.output(T_final),
-             b.output(n_contrib), np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(tiles_x * tiles_y)],
+            [
+                b.input(ranges),
+                entries,
+                b.input(background),
+                b.output(out),
+                b.output(T_final),
+                b.output(n_contrib),
+                np.int32(width),
+                np.int32(height),
+                np.int32(tiles_x),
+                np.int32(tiles_x * tiles_y),
+            ],
             1,  # one work-item per tile, each its own work-group: busy tiles spread over the cores
         )
     return out, T_final, n_contrib
 
 
 @composite.register_fake
-def _composite_fake(means2d, conics, opacities, features, background, ranges, sorted_slots, slot_gaussian,
-                    first_slot, tiles_touched, width, height):
+def _composite_fake(
+    means2d,
+    conics,
+    opacities,
+    features,
+    background,
+    ranges,
+    sorted_slots,
+    slot_gaussian,
+    first_slot,
+    tiles_touched,
+    width,
+    height,
+):
     out = features.new_empty(height, width, features.shape[1])
     return out, features.new_empty(height, width), features.new_empty(height, width, dtype=torch.int32)
 
 
 @torch.library.custom_op("clflow::splat_composite_backward", mutates_args=())
 def composite_backward(
-    means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, background: Tensor, ranges: Tensor,
-    sorted_slots: Tensor, slot_gaussian: Tensor, first_slot: Tensor, tiles_touched: Tensor, T_final: Tensor,
-    n_contrib: Tensor, v_out: Tensor, v_T_final: Tensor, width: int, height: int,
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    background: Tensor,
+    ranges: Tensor,
+    sorted_slots: Tensor,
+    slot_gaussian: Tensor,
+    first_slot: Tensor,
+    tiles_touched: Tensor,
+    T_final: Tensor,
+    n_contrib: Tensor,
+    v_out: Tensor,
+    v_T_final: Tensor,
+    width: int,
+    height: int,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Adjoint of :func:`composite`: dL/d(means2d, conics, opacities, features)."""
     device = get_device()
@@ -277,17 +368,36 @@ def composite_backward(
         device.launch(
             backward,
             tiles_x * tiles_y,
-            [b.input(ranges), b.input(sorted_slots), entries, b.input(background),
-             b.input(T_final), b.input(n_contrib),
-             b.input(v_out), b.input(v_T_final), slots, np.int32(width), np.int32(height), np.int32(tiles_x),
-             np.int32(tiles_x * tiles_y)],
+            [
+                b.input(ranges),
+                b.input(sorted_slots),
+                entries,
+                b.input(background),
+                b.input(T_final),
+                b.input(n_contrib),
+                b.input(v_out),
+                b.input(v_T_final),
+                slots,
+                np.int32(width),
+                np.int32(height),
+                np.int32(tiles_x),
+                np.int32(tiles_x * tiles_y),
+            ],
             1,
         )
         device.launch(
             reduce,
             n,
-            [slots, b.input(first_slot), b.input(tiles_touched), b.output(v_means2d), b.output(v_conics),
-             b.output(v_opacities), b.output(v_features), np.int32(n)],
+            [
+                slots,
+                b.input(first_slot),
+                b.input(tiles_touched),
+                b.output(v_means2d),
+                b.output(v_conics),
+                b.output(v_opacities),
+                b.output(v_features),
+                np.int32(n),
+            ],
         )
     return v_means2d, v_conics, v_opacities, v_features
 
@@ -352,8 +462,8 @@ def _check(t: Tensor | None, name: str, shape: tuple, dtype: torch.dtype | None)
         raise InputError(f"rasterize: {name} has NaN or infinite values (first at index {bad})")
 
 
-def _validate(means, quats, scales, opacities, colors, viewmat, K, width, height, covars, sh_degree,
-              sh_rotations, features, background, near) -> None:
+def _validate_gaussians(means, quats, scales, opacities, colors, covars, sh_degree, sh_rotations, features) -> None:
+    """InputError unless the Gaussians' tensors have the shapes, dtype and values rasterize needs."""
     if not isinstance(means, Tensor) or means.dtype not in (torch.float32, torch.float64):
         raise InputError("rasterize: means must be a float32 or float64 tensor [N, 3]")
     dtype = means.dtype
@@ -371,7 +481,9 @@ def _validate(means, quats, scales, opacities, colors, viewmat, K, width, height
         short = torch.linalg.vector_norm(quats, dim=-1) < MIN_QUAT_NORM
         if n and bool(short.any()):
             i = torch.nonzero(short)[0].item()
-            raise InputError(f"rasterize: quats[{i}] is (nearly) zero (norm < {MIN_QUAT_NORM:g}): a degenerate rotation")
+            raise InputError(
+                f"rasterize: quats[{i}] is (nearly) zero (norm < {MIN_QUAT_NORM:g}): a degenerate rotation"
+            )
         if n and float(scales.min()) <= 0:
             i = torch.nonzero((scales <= 0).any(dim=-1))[0].item()
             raise InputError(f"rasterize: scales[{i}] = {scales[i].tolist()} has a zero or negative standard deviation")
@@ -398,6 +510,10 @@ def _validate(means, quats, scales, opacities, colors, viewmat, K, width, height
         _check(sh_rotations, "sh_rotations", (n, 3, 3), dtype)
     if features is not None:
         _check(features, "features", (n, -1), dtype)
+
+
+def _validate_view(viewmat, K, width, height, near) -> None:
+    """InputError unless the camera (world-to-camera viewmat, intrinsics K, image size, near plane) is valid."""
     _check(viewmat, "viewmat", (4, 4), None)
     _check(K, "K", (3, 3), None)
     W = viewmat[:3, :3].double()
@@ -411,6 +527,10 @@ def _validate(means, quats, scales, opacities, colors, viewmat, K, width, height
             raise InputError(f"rasterize: {name} must be a positive int, got {v!r}")
     if not near > 0:
         raise InputError(f"rasterize: near must be > 0 (m), got {near}")
+
+
+def _validate_background(background, colors, sh_degree, features, dtype) -> None:
+    """InputError unless ``background`` (or None) has one value per output channel."""
     if background is not None:
         c_out = (3 if sh_degree is not None else colors.shape[1]) + (0 if features is None else features.shape[1])
         _check(background, "background", (c_out,), dtype)
@@ -492,8 +612,9 @@ def rasterize_gaussians(
         features and background.
     """
     with torch.no_grad():
-        _validate(means, quats, scales, opacities, colors, viewmat, K, width, height, covars, sh_degree,
-                  sh_rotations, features, background, near)
+        _validate_gaussians(means, quats, scales, opacities, colors, covars, sh_degree, sh_rotations, features)
+        _validate_view(viewmat, K, width, height, near)
+        _validate_background(background, colors, sh_degree, features, means.dtype)
     dtype = means.dtype
     viewmat = viewmat.to(dtype).contiguous()
     K = K.to(dtype).contiguous()
@@ -507,9 +628,18 @@ def rasterize_gaussians(
     )
     lists = build_tile_lists(means2d.detach(), depths.detach(), radii, tiles_touched, int(width), int(height))
     out, T_final, _ = composite(
-        means2d, conics, opacities.contiguous(), channels, background,
-        lists.ranges, lists.sorted_slots, lists.slot_gaussian, lists.first_slot, lists.tiles_touched,
-        int(width), int(height),
+        means2d,
+        conics,
+        opacities.contiguous(),
+        channels,
+        background,
+        lists.ranges,
+        lists.sorted_slots,
+        lists.slot_gaussian,
+        lists.first_slot,
+        lists.tiles_touched,
+        int(width),
+        int(height),
     )
     image, alpha, depth = split_outputs(out, T_final, c_out, render_depth)
     meta = {

@@ -79,8 +79,9 @@ def ply_vertex_properties(path: str | os.PathLike) -> list[str]:
     return [name for name, _ in elements["vertex"].properties]
 
 
-def read_ply_elements(path: str | os.PathLike, wanted: tuple[str, ...],
-                      optional: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+def read_ply_elements(
+    path: str | os.PathLike, wanted: tuple[str, ...], optional: tuple[str, ...] = ()
+) -> dict[str, np.ndarray]:
     """The elements named ``wanted`` (and those of ``optional`` the file has) of a PLY file,
     each a structured array in the file's types (native byte order); the others are
     skipped. ASCII files give the vertex element only. Raises :class:`InputError` naming the file for a malformed header, a missing
@@ -100,13 +101,20 @@ def read_ply_elements(path: str | os.PathLike, wanted: tuple[str, ...],
             raise InputError(f"{path}: the {name} element has list properties, which clflow does not read")
     if fmt == "ascii":
         if tuple(wanted) != ("vertex",):
-            raise InputError(f"{path}: an ASCII PLY; clflow reads the {', '.join(wanted)} elements from binary files only")
-        return {"vertex": _read_ascii(data[body_start:], elements[: names.index("vertex")],
-                                      elements[names.index("vertex")], path)}
+            raise InputError(
+                f"{path}: an ASCII PLY; clflow reads the {', '.join(wanted)} elements from binary files only"
+            )
+        return {
+            "vertex": _read_ascii(
+                data[body_start:], elements[: names.index("vertex")], elements[names.index("vertex")], path
+            )
+        }
     tables, offset = {}, body_start
     for element in elements[: 1 + max(names.index(name) for name in wanted)]:
         if element.has_list:
-            raise InputError(f"{path}: element '{element.name}' before '{wanted[0]}' has list properties; not supported")
+            raise InputError(
+                f"{path}: element '{element.name}' before '{wanted[0]}' has list properties; not supported"
+            )
         dtype = _dtype(element, fmt)
         if element.name in wanted:
             available = len(data) - offset
@@ -131,8 +139,9 @@ def write_ply_vertices(path: str | os.PathLike, table: np.ndarray, *, ascii: boo
     write_ply_elements(path, {"vertex": table}, ascii=ascii)
 
 
-def write_ply_elements(path: str | os.PathLike, elements: dict[str, np.ndarray], *, ascii: bool = False,
-                       comment: str | None = None) -> None:
+def write_ply_elements(
+    path: str | os.PathLike, elements: dict[str, np.ndarray], *, ascii: bool = False, comment: str | None = None
+) -> None:
     """Write structured arrays as PLY elements in the order given (one property per field),
     atomically: binary little-endian, or ASCII (float32 in 9 significant digits)."""
     header = ["ply", f"format {'ascii' if ascii else 'binary_little_endian'} 1.0"]
@@ -216,9 +225,7 @@ def _read_ascii(body: bytes, before: list[_Element], vertex: _Element, path: Pat
         raise InputError(f"{path}: vertex {bad} has a value that is not a number: {lines[bad][:80]!r}") from None
     if values.size != vertex.count * width:
         bad = next(i for i, line in enumerate(lines) if len(line.split()) != width)
-        raise InputError(
-            f"{path}: vertex {bad} has {len(lines[bad].split())} values, the header declares {width}"
-        )
+        raise InputError(f"{path}: vertex {bad} has {len(lines[bad].split())} values, the header declares {width}")
     values = values.reshape(vertex.count, width)
     table = np.empty(vertex.count, dtype=_dtype(vertex, "="))
     for j, (name, _) in enumerate(vertex.properties):
@@ -235,6 +242,7 @@ def _all_numbers(line: bytes) -> bool:
 
 
 # -- Gaussians -----------------------------------------------------------------------------
+
 
 def gaussian_property_names(sh_degree: int, feature_names: tuple[str, ...] = ()) -> list[str]:
     """The 3DGS vertex properties in file order for SH degree ``sh_degree``, then the features."""
@@ -283,7 +291,19 @@ def load_ply(path: str | os.PathLike, *, point_scale: float | None = None, point
     def take(keys: list[str]) -> torch.Tensor:  # [N, len(keys)] float32
         return torch.from_numpy(values[:, [column[k] for k in keys]])
 
-    splat_keys = ["f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    splat_keys = [
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        "opacity",
+        "scale_0",
+        "scale_1",
+        "scale_2",
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+    ]
     if not any(key in column for key in splat_keys):
         return _points_to_gaussians(table, take, where, point_scale, point_opacity)
     missing = [key for key in splat_keys if key not in column]

@@ -32,8 +32,9 @@ def covariances_from_quats_scales(quats: Tensor, scales: Tensor) -> Tensor:
     return covariances_of(scales, quat_to_rotmat(quats))
 
 
-def project_reference(means: Tensor, covars: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int,
-                      near: float) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+def project_reference(
+    means: Tensor, covars: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int, near: float
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Torch version of ``clflow::splat_project``: means2d, conics, depths, radii, tiles_touched."""
     W, t = viewmat[:3, :3], viewmat[:3, 3]
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
@@ -80,8 +81,17 @@ def tile_rect_reference(means2d: Tensor, radii: Tensor, tiles_x: int, tiles_y: i
     return x0, y0, x1, y1
 
 
-def composite_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, background: Tensor,
-                        depths: Tensor, radii: Tensor, width: int, height: int) -> tuple[Tensor, Tensor]:
+def composite_reference(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    background: Tensor,
+    depths: Tensor,
+    radii: Tensor,
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
     """Dense front-to-back compositing: out [H, W, C] and T_final [H, W]."""
     dtype = means2d.dtype
     tiles_x, tiles_y = math.ceil(width / TILE_SIZE), math.ceil(height / TILE_SIZE)
@@ -112,9 +122,25 @@ def composite_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, feat
     return acc + T.unsqueeze(-1) * background, T
 
 
-def rasterize_reference(means, quats, scales, opacities, colors, viewmat, K, width, height, *, covars=None,
-                        sh_degree=None, sh_rotations=None, features=None, background=None, near=0.01,
-                        render_depth=True):
+def rasterize_reference(
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    viewmat,
+    K,
+    width,
+    height,
+    *,
+    covars=None,
+    sh_degree=None,
+    sh_rotations=None,
+    features=None,
+    background=None,
+    near=0.01,
+    render_depth=True,
+):
     """Same interface and outputs (image, alpha, depth, meta) as
     :func:`clflow.splat.ops.rasterize_gaussians`; meta holds means2d, conics, depths, radii."""
     dtype = means.dtype

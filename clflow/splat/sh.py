@@ -90,9 +90,9 @@ def rotate_sh(coeffs: torch.Tensor, rotations: torch.Tensor, chunk: int = 8192) 
     fit = torch.linalg.pinv(sh_basis(degree, dirs))  # [K, M]: values at dirs -> coefficients
     out = torch.empty_like(coeffs)
     for start in range(0, coeffs.shape[0], chunk):
-        R = rotations[start:start + chunk].double()
-        c = coeffs[start:start + chunk].double()
+        R = rotations[start : start + chunk].double()
+        c = coeffs[start : start + chunk].double()
         turned = torch.einsum("nji,mj->nmi", R, dirs)  # R^T d for every Gaussian and direction
         values = sh_basis(degree, turned.reshape(-1, 3)).reshape(R.shape[0], dirs.shape[0], -1)  # [n, M, K]
-        out[start:start + chunk] = (fit @ (values @ c)).to(coeffs.dtype)  # values at dirs, then fitted
+        out[start : start + chunk] = (fit @ (values @ c)).to(coeffs.dtype)  # values at dirs, then fitted
     return out

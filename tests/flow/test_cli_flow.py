@@ -40,7 +40,9 @@ def test_flow_command_window_and_errors(tmp_path, translating):
     path = tmp_path / "guide.mkv"
     write_video(path, translating[0], 10.0)
     runner = CliRunner()
-    result = runner.invoke(cli, ["flow", str(path), "-o", str(tmp_path / "w"), "--start", "0.1", "--end", "0.4", "--no-video"])
+    result = runner.invoke(
+        cli, ["flow", str(path), "-o", str(tmp_path / "w"), "--start", "0.1", "--end", "0.4", "--no-video"]
+    )
     assert result.exit_code == 0, result.output
     assert np.load(tmp_path / "w" / "flow.npz")["flow"].shape[0] == 2
     assert not (tmp_path / "w" / "flow.mp4").exists()
@@ -61,6 +63,8 @@ def test_flow_command_window_and_errors(tmp_path, translating):
 
 
 def test_bench_flow_runs_small():
-    result = CliRunner().invoke(cli, ["bench", "flow", "--frames", "3", "--size", "64", "-n", "300", "--sim-frames", "1"])
+    result = CliRunner().invoke(
+        cli, ["bench", "flow", "--frames", "3", "--size", "64", "-n", "300", "--sim-frames", "1"]
+    )
     assert result.exit_code == 0, result.output
     assert "dis medium" in result.output and "affine render + loss + backward" in result.output

@@ -176,7 +176,11 @@ def test_flo_round_trip_and_errors(tmp_path):
     flow[2, 3, 0] = np.nan
     with pytest.raises(InputError, match="b.flo: the flow contains NaN"):
         write_flo(tmp_path / "b.flo", flow)
-    assert not (tmp_path / "b.flo").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["a.flo", "png.flo", "short.flo"]
+    assert not (tmp_path / "b.flo").exists() and sorted(p.name for p in tmp_path.iterdir()) == [
+        "a.flo",
+        "png.flo",
+        "short.flo",
+    ]
 
 
 def test_middlebury_colours():

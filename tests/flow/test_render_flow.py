@@ -115,8 +115,9 @@ def test_flow_loss_gradcheck_wrt_positions(model):
     covars_t1_arg = covars_t1 if model == "affine" else None
 
     def loss(m0, m1):
-        flow, _ = render_simulated_flow(m0, m1, covars_t, opacities, viewmat, K, width, height,
-                                        model=model, covars_t1=covars_t1_arg)
+        flow, _ = render_simulated_flow(
+            m0, m1, covars_t, opacities, viewmat, K, width, height, model=model, covars_t1=covars_t1_arg
+        )
         return masked_flow_loss(flow, observed, mask)
 
     assert torch.autograd.gradcheck(loss, (means_t.requires_grad_(), means_t1.requires_grad_()), atol=1e-7, rtol=1e-5)

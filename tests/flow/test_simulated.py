@@ -23,7 +23,9 @@ D = torch.float64
 def camera():
     """A camera 4 m from the origin looking at it, rotated about all axes; 200x150 px."""
     angles = torch.tensor([0.3, -0.2, 0.1], dtype=D)
-    R = torch.linalg.matrix_exp(torch.tensor([[0, -angles[2], angles[1]], [angles[2], 0, -angles[0]], [-angles[1], angles[0], 0]], dtype=D))
+    R = torch.linalg.matrix_exp(
+        torch.tensor([[0, -angles[2], angles[1]], [angles[2], 0, -angles[0]], [-angles[1], angles[0], 0]], dtype=D)
+    )
     viewmat = torch.eye(4, dtype=D)
     viewmat[:3, :3] = R
     viewmat[:3, 3] = torch.tensor([0.1, -0.05, 4.0], dtype=D)
@@ -51,7 +53,10 @@ def test_covariance_2d_is_the_linearised_projection():
     covars = random_spd(4)
     h = 1e-6
     J = torch.stack(
-        [(project_means(means + h * e, viewmat, K) - project_means(means - h * e, viewmat, K)) / (2 * h) for e in torch.eye(3, dtype=D)],
+        [
+            (project_means(means + h * e, viewmat, K) - project_means(means - h * e, viewmat, K)) / (2 * h)
+            for e in torch.eye(3, dtype=D)
+        ],
         -1,
     )  # [N, 2, 3] d pixel / d world
     expected = J @ covars @ J.transpose(-1, -2)
@@ -120,7 +125,9 @@ def test_affine_flow_matches_point_motion(angle):
     moved = mean + shift + (points - mean) @ F.T
     true = project_means(moved, viewmat, K) - project_means(points, viewmat, K)
     x = project_means(points, viewmat, K)
-    feat = flow_features(mean, mean + shift, viewmat, K, model="affine", covars_t=covar, covars_t1=F @ covar @ F.T, eps2d=0.0)
+    feat = flow_features(
+        mean, mean + shift, viewmat, K, model="affine", covars_t=covar, covars_t1=F @ covar @ F.T, eps2d=0.0
+    )
     (m_xx, m_xy, m_yy), b = feat[0, :3], feat[0, 3:]
     M = torch.stack([torch.stack([m_xx, m_xy]), torch.stack([m_xy, m_yy])])
     affine = x @ M.T + b

@@ -49,7 +49,9 @@ def test_gif_reader_agrees_with_opencv_animation_decoder(tmp_path, translating):
 
 def clock(n=10, fps=10.0):
     """A video whose frame k is filled with the value 10 k."""
-    frames = np.repeat((10 * np.arange(n, dtype=np.uint8))[:, None, None, None], 3, axis=-1) * np.ones((1, 2, 3, 3), np.uint8)
+    frames = np.repeat((10 * np.arange(n, dtype=np.uint8))[:, None, None, None], 3, axis=-1) * np.ones(
+        (1, 2, 3, 3), np.uint8
+    )
     return Video(frames, np.arange(n) / fps, fps, "clock")
 
 

@@ -12,6 +12,8 @@ from pathlib import Path
 
 # CogVideoX: latent 2x4 (x8 VAE) -> 32x16 px, frames 1 + k*4; learned positional embeddings
 # as in CogVideoX-5b-I2V, so only that size
+# the tiny models' configs: a table, kept as written
+# fmt: off
 COG_TRANSFORMER = dict(num_attention_heads=2, attention_head_dim=16, in_channels=8, out_channels=4,
                        time_embed_dim=2, text_embed_dim=32, num_layers=1, sample_width=4, sample_height=2,
                        sample_frames=9, patch_size=2, temporal_compression_ratio=4, max_text_seq_length=16,
@@ -29,6 +31,7 @@ SVD_VAE = dict(block_out_channels=(32, 32), in_channels=3, out_channels=3, layer
                down_block_types=("DownEncoderBlock2D", "DownEncoderBlock2D"), latent_channels=4)
 CLIP_VISION = dict(hidden_size=16, projection_dim=16, num_hidden_layers=1, num_attention_heads=2, image_size=224,
                    intermediate_size=24, patch_size=32)  # SVD scales the image to 224 px for CLIP itself
+# fmt: on
 
 
 def tokenizer():
@@ -54,9 +57,12 @@ def cogvideox(folder: Path) -> Path:
     tok = tokenizer()
     torch.manual_seed(0)
     pipe = CogVideoXImageToVideoPipeline(
-        tokenizer=tok, text_encoder=T5EncoderModel(T5Config(vocab_size=len(tok), **T5)),
-        vae=AutoencoderKLCogVideoX(**COG_VAE), transformer=CogVideoXTransformer3DModel(**COG_TRANSFORMER),
-        scheduler=CogVideoXDDIMScheduler())
+        tokenizer=tok,
+        text_encoder=T5EncoderModel(T5Config(vocab_size=len(tok), **T5)),
+        vae=AutoencoderKLCogVideoX(**COG_VAE),
+        transformer=CogVideoXTransformer3DModel(**COG_TRANSFORMER),
+        scheduler=CogVideoXDDIMScheduler(),
+    )
     pipe.save_pretrained(folder)
     return folder
 
@@ -76,10 +82,19 @@ def svd(folder: Path) -> Path:
         vae=AutoencoderKLTemporalDecoder(**SVD_VAE),
         image_encoder=CLIPVisionModelWithProjection(CLIPVisionConfig(**CLIP_VISION)),
         unet=UNetSpatioTemporalConditionModel(**SVD_UNET),
-        scheduler=EulerDiscreteScheduler(beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear",
-                                         prediction_type="v_prediction", sigma_max=700.0, sigma_min=0.002,
-                                         steps_offset=1, timestep_spacing="leading", timestep_type="continuous",
-                                         use_karras_sigmas=True),
-        feature_extractor=CLIPImageProcessor(crop_size=16, size=16))
+        scheduler=EulerDiscreteScheduler(
+            beta_start=0.00085,
+            beta_end=0.012,
+            beta_schedule="scaled_linear",
+            prediction_type="v_prediction",
+            sigma_max=700.0,
+            sigma_min=0.002,
+            steps_offset=1,
+            timestep_spacing="leading",
+            timestep_type="continuous",
+            use_karras_sigmas=True,
+        ),
+        feature_extractor=CLIPImageProcessor(crop_size=16, size=16),
+    )
     pipe.save_pretrained(folder)
     return folder

@@ -35,28 +35,45 @@ def write(scene, tmp_path, **generate):
 
 
 def test_the_config_reads_generate_and_leaves_video_to_be_made(scene, tmp_path, models):
-    cfg = load_config(write(scene, tmp_path, model=str(models["cog"]), seed=4, steps=1, size="32x16",
-                            prompt="the cube is pushed", cpu_offload=False))
+    cfg = load_config(
+        write(
+            scene,
+            tmp_path,
+            model=str(models["cog"]),
+            seed=4,
+            steps=1,
+            size="32x16",
+            prompt="the cube is pushed",
+            cpu_offload=False,
+        )
+    )
     assert cfg.video is None and cfg.generate.model == models["cog"].resolve()
     assert (cfg.generate.seed, cfg.generate.steps, cfg.generate.size, cfg.generate.prompt) == (
-        4, 1, (32, 16), "the cube is pushed")
+        4,
+        1,
+        (32, 16),
+        "the cube is pushed",
+    )
 
 
-@pytest.mark.parametrize("generate, expected", [
-    ({}, "video.generate: is required"),
-    ({"model": "nowhere"}, "video.generate.model: "),
-    ({"frames": 9, "fps": 48}, "video.generate.frames: 9 frames at 48 fps last 0.167 s, the simulation 0.333 s"),
-    ({"frames": 10}, "video.generate.frames: "),
-    ({"size": [64, 64]}, "video.generate.size: "),
-    ({"size": "wide"}, "video.generate.size: "),
-    ({"seed": -1}, "video.generate.seed: "),
-    ({"prompt_template": "the {thing} moves"}, "video.generate.prompt_template: has the unknown placeholder"),
-    ({"prompt": ""}, "video.generate.prompt: is empty"),
-    ({"vae_tiling": "yes"}, "video.generate.vae_tiling: must be true or false"),
-    ({"fit": "stretch"}, "video.generate.fit: must be one of pad, crop"),
-    ({"image": "missing.png"}, "video.generate.image: file not found"),
-    ({"colour": 1}, "video.generate.colour: unknown key"),
-])
+@pytest.mark.parametrize(
+    "generate, expected",
+    [
+        ({}, "video.generate: is required"),
+        ({"model": "nowhere"}, "video.generate.model: "),
+        ({"frames": 9, "fps": 48}, "video.generate.frames: 9 frames at 48 fps last 0.167 s, the simulation 0.333 s"),
+        ({"frames": 10}, "video.generate.frames: "),
+        ({"size": [64, 64]}, "video.generate.size: "),
+        ({"size": "wide"}, "video.generate.size: "),
+        ({"seed": -1}, "video.generate.seed: "),
+        ({"prompt_template": "the {thing} moves"}, "video.generate.prompt_template: has the unknown placeholder"),
+        ({"prompt": ""}, "video.generate.prompt: is empty"),
+        ({"vae_tiling": "yes"}, "video.generate.vae_tiling: must be true or false"),
+        ({"fit": "stretch"}, "video.generate.fit: must be one of pad, crop"),
+        ({"image": "missing.png"}, "video.generate.image: file not found"),
+        ({"colour": 1}, "video.generate.colour: unknown key"),
+    ],
+)
 def test_bad_generate_keys_are_named(scene, tmp_path, models, generate, expected):
     if generate and "model" not in generate:
         generate = {"model": str(models["cog"]), **generate}
@@ -88,9 +105,12 @@ def test_the_motion_prompt_comes_from_the_forces_and_can_be_overridden(scene, tm
     assert "is pushed to the left after 0.2 s" in motion_prompt(dataclasses.replace(cfg, forces=(left,)))
     thrown = dataclasses.replace(cfg, forces=(), velocity=(0.0, 1.0, -1.0))
     assert "thrown upwards and away from the camera" in motion_prompt(thrown)
-    assert motion_prompt(dataclasses.replace(cfg, forces=()), "{object}: {motion}") == "jelly cube: falling under gravity"
-    cfg = load_config(write(scene, tmp_path, model=str(models["cog"]), prompt_template="A {material} {object} "
-                            "{motion}."))
+    assert (
+        motion_prompt(dataclasses.replace(cfg, forces=()), "{object}: {motion}") == "jelly cube: falling under gravity"
+    )
+    cfg = load_config(
+        write(scene, tmp_path, model=str(models["cog"]), prompt_template="A {material} {object} {motion}.")
+    )
     assert motion_prompt(cfg) == "A elastic object hit and pushed to the right."
 
 

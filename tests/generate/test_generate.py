@@ -29,8 +29,20 @@ def read(path):
 
 def test_cogvideox_makes_the_requested_frames_size_and_rate_and_records_the_run(models, object_png, tmp_path):
     out = tmp_path / "cog.mp4"
-    res = prompted(models["cog"], object_png, out, "--frames", 17, "--fps", 12, "--steps", 2, "--seed", 3,
-                   prompt="the object is pushed to the left")
+    res = prompted(
+        models["cog"],
+        object_png,
+        out,
+        "--frames",
+        17,
+        "--fps",
+        12,
+        "--steps",
+        2,
+        "--seed",
+        3,
+        prompt="the object is pushed to the left",
+    )
     assert res.exit_code == 0, res.output
     frames, fps = read(out)
     assert frames.shape == (17, 48, 40, 3) and fps == pytest.approx(12)  # the image's size (--output-size image)
@@ -60,8 +72,23 @@ def test_the_same_seed_gives_the_same_frames(models, object_png, tmp_path):
 
 def test_stable_video_diffusion_takes_the_image_only(models, object_png, tmp_path):
     out = tmp_path / "svd.mp4"
-    res = run(object_png, "--model", models["svd"], "-o", out, "--frames", 4, "--steps", 2, "--fps", 6,
-              "--fit", "crop", "--output-size", "model")
+    res = run(
+        object_png,
+        "--model",
+        models["svd"],
+        "-o",
+        out,
+        "--frames",
+        4,
+        "--steps",
+        2,
+        "--fps",
+        6,
+        "--fit",
+        "crop",
+        "--output-size",
+        "model",
+    )
     assert res.exit_code == 0, res.output
     frames, fps = read(out)
     assert frames.shape == (4, 32, 32, 3) and fps == pytest.approx(6)
@@ -103,15 +130,19 @@ def _partial(models, tmp_path, drop):
     return folder
 
 
-@pytest.mark.parametrize("case, expected", [
-    ("missing", "model folder not found"),
-    ("no index", "no model_index.json"),
-    ("wrong kind", "names 'StableDiffusionPipeline'"),
-    ("no transformer", "component 'transformer': folder"),
-    ("no weights", "holds no weights"),
-])
-def test_a_model_folder_of_the_wrong_kind_says_what_layout_it_expected(models, object_png, tmp_path, no_loading,
-                                                                      case, expected):
+@pytest.mark.parametrize(
+    "case, expected",
+    [
+        ("missing", "model folder not found"),
+        ("no index", "no model_index.json"),
+        ("wrong kind", "names 'StableDiffusionPipeline'"),
+        ("no transformer", "component 'transformer': folder"),
+        ("no weights", "holds no weights"),
+    ],
+)
+def test_a_model_folder_of_the_wrong_kind_says_what_layout_it_expected(
+    models, object_png, tmp_path, no_loading, case, expected
+):
     if case == "missing":
         folder = tmp_path / "nowhere"
     elif case == "no index":
@@ -132,21 +163,25 @@ def test_a_model_folder_of_the_wrong_kind_says_what_layout_it_expected(models, o
         assert "folders tokenizer, text_encoder, vae, transformer, scheduler" in res.output
 
 
-@pytest.mark.parametrize("kind, image, args, expected", [
-    ("cog", "object", ["--frames", "6"], "1 + k x 8 frames"),
-    ("cog", "object", ["--size", "64x64"], "makes only 32x16"),
-    ("cog", "object", ["--size", "big"], "expected WIDTHxHEIGHT"),
-    ("cog", "object", ["--prompt", " "], "needs a prompt"),
-    ("svd", "object", ["--vae-tiling"], "does not offer it"),
-    ("svd", "object", ["--size", "36x36"], "multiples of 8"),
-    ("svd", "object", ["--guidance-scale", "0.5"], "guidance scale"),
-    ("cog", "text", [], "not a readable image"),
-    ("cog", "thin", [], "too thin"),
-    ("cog", "missing", [], "image not found"),
-    ("cog", "object", ["-o", "v.txt"], "unsupported video suffix"),
-])
-def test_bad_input_is_one_clear_line_before_any_weight_loads(models, object_png, tmp_path, no_loading, kind, image,
-                                                            args, expected):
+@pytest.mark.parametrize(
+    "kind, image, args, expected",
+    [
+        ("cog", "object", ["--frames", "6"], "1 + k x 8 frames"),
+        ("cog", "object", ["--size", "64x64"], "makes only 32x16"),
+        ("cog", "object", ["--size", "big"], "expected WIDTHxHEIGHT"),
+        ("cog", "object", ["--prompt", " "], "needs a prompt"),
+        ("svd", "object", ["--vae-tiling"], "does not offer it"),
+        ("svd", "object", ["--size", "36x36"], "multiples of 8"),
+        ("svd", "object", ["--guidance-scale", "0.5"], "guidance scale"),
+        ("cog", "text", [], "not a readable image"),
+        ("cog", "thin", [], "too thin"),
+        ("cog", "missing", [], "image not found"),
+        ("cog", "object", ["-o", "v.txt"], "unsupported video suffix"),
+    ],
+)
+def test_bad_input_is_one_clear_line_before_any_weight_loads(
+    models, object_png, tmp_path, no_loading, kind, image, args, expected
+):
     from clflow.media import write_image
 
     if image == "text":
@@ -173,8 +208,15 @@ def test_cpu_run_warns_with_an_expected_time(models):
     assert (resolved.frames, resolved.size, resolved.steps) == (9, (32, 16), 50)
     assert 0 < estimate_seconds(info, resolved) < 1  # a tiny model: well under a second
     # a CogVideoX-5b-sized transformer (11 GB of bf16 weights), 49 frames at 720x480, 50 steps: many hours
-    big = type(info)(**{**info.__dict__, "weight_bytes": 11 * 2**30, "size_multiple": 16,
-                        "default_size": (720, 480), "default_frames": 49})
+    big = type(info)(
+        **{
+            **info.__dict__,
+            "weight_bytes": 11 * 2**30,
+            "size_multiple": 16,
+            "default_size": (720, 480),
+            "default_frames": 49,
+        }
+    )
     hours = estimate_seconds(big, check_request(big, GenerateRequest(prompt="pushed")), cores=2) / 3600
     assert hours > 10
 

@@ -51,8 +51,16 @@ def random_scene(materials, seed: int = 0, n: int = 300, dtype=torch.float64, **
         specs = list(materials)
     kwargs.setdefault("substeps", 10)
     kwargs.setdefault("frame_dt", 1e-2)
-    return Simulator(x, 1e-5, specs, Grid((16, 16, 16), 1 / 16), velocities=v, dtype=dtype,
-                     material_index=torch.arange(n) % len(specs), **kwargs)
+    return Simulator(
+        x,
+        1e-5,
+        specs,
+        Grid((16, 16, 16), 1 / 16),
+        velocities=v,
+        dtype=dtype,
+        material_index=torch.arange(n) % len(specs),
+        **kwargs,
+    )
 
 
 def assert_clean_under_oclgrind(oclgrind, script: str) -> None:

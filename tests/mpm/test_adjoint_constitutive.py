@@ -19,12 +19,19 @@ V_C = 0.02  # volume-corrected sand's plastic state: the log volume correction
 def plastic_state(material):
     """The plastic state the tests start from: snow's J_P, sand's v_c, else the metal's hardening."""
     return {"snow": 0.98, "sand_volume_corrected": V_C}.get(material, HARDENING)
+
+
 GRID = Grid((8, 8, 8), 0.1)
 # kernel parameter rows (clflow.mpm.constants.kernel_params) per material
 PARAMS = {
-    "elastic": (MU, LAMBDA), "neo_hookean": (MU, LAMBDA), "plasticine": (MU, LAMBDA, TAU_Y),
-    "metal": (MU, LAMBDA, TAU_Y, XI), "foam": (MU, LAMBDA, TAU_Y, 50.0), "non_newtonian": (MU, LAMBDA, TAU_Y, 50.0),
-    "sand": (MU, LAMBDA, 0.3, 0.01), "newtonian": (1.0, 1e4),  # sand: cohesion keeps F = I off the tip
+    "elastic": (MU, LAMBDA),
+    "neo_hookean": (MU, LAMBDA),
+    "plasticine": (MU, LAMBDA, TAU_Y),
+    "metal": (MU, LAMBDA, TAU_Y, XI),
+    "foam": (MU, LAMBDA, TAU_Y, 50.0),
+    "non_newtonian": (MU, LAMBDA, TAU_Y, 50.0),
+    "sand": (MU, LAMBDA, 0.3, 0.01),
+    "newtonian": (1.0, 1e4),  # sand: cohesion keeps F = I off the tip
     "sand_volume_corrected": (MU, LAMBDA, 0.3, 0.01),  # c > V_C/3: F = I stays inside the cone
     "snow": (MU, LAMBDA, 0.025, 0.0075, 10.0),
 }
@@ -78,26 +85,48 @@ def stress_vjp(device, material, F, tau_bar, F_new_bar, plastic, plastic_new_bar
     F_in, C_in = F.to(dtype).contiguous(), torch.zeros(n, 3, 3, dtype=dtype)
     with device.bind() as b:
         adjoint.launch_stress_adjoint(
-            b, 1e-3, b.input(F_in), b.input(C_in), b.input(plastic.to(dtype).contiguous()), b.input(mat),
-            b.input(param), b.input(tau_bar.to(dtype).contiguous()), b.input(F_new_bar.to(dtype).contiguous()),
-            b.input(plastic_new_bar.to(dtype).contiguous()), b.output(F_bar), b.inout(C_bar),
-            b.output(plastic_bar), b.inout(param_bar))
+            b,
+            1e-3,
+            b.input(F_in),
+            b.input(C_in),
+            b.input(plastic.to(dtype).contiguous()),
+            b.input(mat),
+            b.input(param),
+            b.input(tau_bar.to(dtype).contiguous()),
+            b.input(F_new_bar.to(dtype).contiguous()),
+            b.input(plastic_new_bar.to(dtype).contiguous()),
+            b.output(F_bar),
+            b.inout(C_bar),
+            b.output(plastic_bar),
+            b.inout(param_bar),
+        )
     return F_bar.double(), plastic_bar.double(), param_bar.double()
 
 
 def reference_loss(material, F, plastic, q, tau_bar, F_new_bar, plastic_new_bar) -> float:
     """<tau_bar, tau> + <F_new_bar, F'> + plastic_new_bar plastic' of the float64 reference for
     one F [3, 3] and plastic state (a number)."""
-    F_new, plastic_new, tau = reference.constitutive(MATERIAL_IDS[material], F[None],
-                                                     torch.zeros(1, 3, 3, dtype=F.dtype), q[None],
-                                                     torch.tensor([plastic], dtype=torch.float64), 1e-3)
+    F_new, plastic_new, tau = reference.constitutive(
+        MATERIAL_IDS[material],
+        F[None],
+        torch.zeros(1, 3, 3, dtype=F.dtype),
+        q[None],
+        torch.tensor([plastic], dtype=torch.float64),
+        1e-3,
+    )
     return float((tau_bar * tau[0]).sum() + (F_new_bar * F_new[0]).sum() + plastic_new_bar * plastic_new[0])
 
 
 def returned(material, F, plastic=HARDENING):
     """F' of the reference for F (C = 0)."""
-    F_new, _, _ = reference.constitutive(MATERIAL_IDS[material], F[None], torch.zeros(1, 3, 3, dtype=F.dtype),
-                                         kernel_params(1, material), torch.full((1,), plastic, dtype=F.dtype), 1e-3)
+    F_new, _, _ = reference.constitutive(
+        MATERIAL_IDS[material],
+        F[None],
+        torch.zeros(1, 3, 3, dtype=F.dtype),
+        kernel_params(1, material),
+        torch.full((1,), plastic, dtype=F.dtype),
+        1e-3,
+    )
     return F_new[0]
 
 
@@ -141,10 +170,12 @@ def test_stress_adjoint_matches_central_differences(device, material):
     F_new_bar = 1e4 * torch.randn(F.shape, generator=gen, dtype=torch.float64)
     plastic = torch.full(F.shape[:1], plastic_state(material), dtype=torch.float64)
     plastic_new_bar = torch.randn(F.shape[:1], generator=gen, dtype=torch.float64)
-    F_bar, plastic_bar, q_bar = stress_vjp(device, material, F, tau_bar, F_new_bar, plastic, plastic_new_bar,
-                                           torch.float64)
+    F_bar, plastic_bar, q_bar = stress_vjp(
+        device, material, F, tau_bar, F_new_bar, plastic, plastic_new_bar, torch.float64
+    )
     q = kernel_params(1, material)[0]
     for idx, name in enumerate(cases):
+
         def loss(Fi, qi, h=plastic_state(material)):
             return reference_loss(material, Fi, h, qi, tau_bar[idx], F_new_bar[idx], float(plastic_new_bar[idx]))
 

@@ -45,8 +45,17 @@ def reference_vjp(sim, grad_after: StateGrad):
     mass = p.mass.clone().requires_grad_()
     state = type(s)(*(leaves[f] for f in GRAD_FIELDS))
     particles = Particles(mass, p.volume, p.material, param, p.group, p.release_time, p.mass_eps)
-    out, _ = reference.substep(state, particles, sim.grid, sim.time, sim.dt, sim.gravity, sim.boundaries,
-                               sim.drivers.accel(sim.time, sim.dtype), sim.flip)
+    out, _ = reference.substep(
+        state,
+        particles,
+        sim.grid,
+        sim.time,
+        sim.dt,
+        sim.gravity,
+        sim.boundaries,
+        sim.drivers.accel(sim.time, sim.dtype),
+        sim.flip,
+    )
     loss = sum((getattr(grad_after, f) * getattr(out, f)).sum() for f in GRAD_FIELDS)
     grads = torch.autograd.grad(loss, [leaves[f] for f in GRAD_FIELDS] + [param, mass])
     return StateGrad(*grads[:5]), grads[5], grads[6]
@@ -54,8 +63,12 @@ def reference_vjp(sim, grad_after: StateGrad):
 
 def random_grad(n, seed=1):
     gen = torch.Generator().manual_seed(seed)
-    return StateGrad(*(torch.randn(shape, generator=gen, dtype=torch.float64)
-                       for shape in ((n, 3), (n, 3), (n, 3, 3), (n, 3, 3), (n,))))
+    return StateGrad(
+        *(
+            torch.randn(shape, generator=gen, dtype=torch.float64)
+            for shape in ((n, 3), (n, 3), (n, 3, 3), (n, 3, 3), (n,))
+        )
+    )
 
 
 def rel_err(a, b):
@@ -138,8 +151,11 @@ def floor_branches(sim) -> dict[str, int]:
     v = floor_node_velocities(sim)
     vn, vt = v[:, 1], v[:, [0, 2]].norm(dim=-1)
     friction = FLOOR_FRICTION * (-vn).clamp(min=0)
-    return {"slide": int(((vn < 0) & (vt > friction)).sum()), "stick": int(((vn < 0) & (vt <= friction)).sum()),
-            "away": int((vn >= 0).sum())}
+    return {
+        "slide": int(((vn < 0) & (vt > friction)).sum()),
+        "stick": int(((vn < 0) & (vt <= friction)).sum()),
+        "away": int((vn >= 0).sum()),
+    }
 
 
 @pytest.mark.parametrize("mode", ["slip", "separate"])
@@ -156,9 +172,18 @@ def falling_straight_onto_a_frictionless_floor():
     friction (the J-only fluid: the reference's SVD has no derivative at F = I)."""
     x = cube(6, 0.4, 0.6)
     v = torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64).expand(x.shape[0], 3)
-    return Simulator(x, 1e-5, MaterialSpec("newtonian", MATERIAL_CASES["newtonian"]), Grid((16, 16, 16), 1 / 16),
-                     velocities=v, walls=None, boundaries=[HalfSpace((0, FLOOR_Y, 0), (0, 1, 0), "slip", 0.0)],
-                     frame_dt=1e-2, substeps=10, dtype=torch.float64)
+    return Simulator(
+        x,
+        1e-5,
+        MaterialSpec("newtonian", MATERIAL_CASES["newtonian"]),
+        Grid((16, 16, 16), 1 / 16),
+        velocities=v,
+        walls=None,
+        boundaries=[HalfSpace((0, FLOOR_Y, 0), (0, 1, 0), "slip", 0.0)],
+        frame_dt=1e-2,
+        substeps=10,
+        dtype=torch.float64,
+    )
 
 
 def test_frictionless_slip_passes_tangential_adjoints_at_zero_tangential_velocity():
@@ -172,8 +197,11 @@ def test_frictionless_slip_passes_tangential_adjoints_at_zero_tangential_velocit
     assert_dot_product_matches_central_differences(sim)
 
 
-@pytest.mark.parametrize("sim", [lambda: warmed_up(walls="slip", wall_friction=0.2), lambda: over_a_floor("slip")],
-                         ids=["slip_walls", "slip_floor"])
+@pytest.mark.parametrize(
+    "sim",
+    [lambda: warmed_up(walls="slip", wall_friction=0.2), lambda: over_a_floor("slip")],
+    ids=["slip_walls", "slip_floor"],
+)
 def test_substep_adjoint_dot_product_with_central_differences(sim):
     assert_dot_product_matches_central_differences(sim())
 
@@ -191,13 +219,17 @@ def assert_dot_product_matches_central_differences(sim):
     dparam = torch.zeros_like(p.param)
     dparam[:, :2] = 1e-3 * p.param[:, :2] * torch.randn(sim.n, 2, generator=gen, dtype=torch.float64)
     dmass = 1e-3 * p.mass * torch.randn(sim.n, generator=gen, dtype=torch.float64)
-    predicted = float(sum((getattr(grad, f) * dirs[f]).sum() for f in GRAD_FIELDS)
-                      + (param_grad * dparam).sum() + (mass_grad * dmass).sum())
+    predicted = float(
+        sum((getattr(grad, f) * dirs[f]).sum() for f in GRAD_FIELDS)
+        + (param_grad * dparam).sum()
+        + (mass_grad * dmass).sum()
+    )
 
     def loss_at(h):
         state = type(s)(*(getattr(s, f) + h * dirs[f] for f in GRAD_FIELDS))
-        particles = Particles(p.mass + h * dmass, p.volume, p.material, p.param + h * dparam, p.group,
-                              p.release_time, p.mass_eps)
+        particles = Particles(
+            p.mass + h * dmass, p.volume, p.material, p.param + h * dparam, p.group, p.release_time, p.mass_eps
+        )
         return kernel_loss(sim, grad_after, state, particles)
 
     h = 1e-3

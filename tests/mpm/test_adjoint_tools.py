@@ -13,10 +13,17 @@ from clflow.mpm.parameterization import clip_gradients, parameterization
 from tests.mpm._helpers import cube
 
 
-@pytest.mark.parametrize("material,name,value", [
-    ("elastic", "youngs_modulus", 3e5), ("elastic", "poissons_ratio", 0.3), ("sand", "friction_angle", 35.0),
-    ("metal", "hardening", 2.0), ("newtonian", "viscosity", 0.5), ("plasticine", "density", 1500.0),
-])
+@pytest.mark.parametrize(
+    "material,name,value",
+    [
+        ("elastic", "youngs_modulus", 3e5),
+        ("elastic", "poissons_ratio", 0.3),
+        ("sand", "friction_angle", 35.0),
+        ("metal", "hardening", 2.0),
+        ("newtonian", "viscosity", 0.5),
+        ("plasticine", "density", 1500.0),
+    ],
+)
 def test_parameterization_round_trip_and_gradient(material, name, value):
     p = parameterization(material, name)
     z = p.encode(value).requires_grad_()
@@ -35,11 +42,14 @@ def test_bounded_parameters_stay_in_their_range():
     assert bool(((values > lo) & (values < hi)).all()) and lo == -1.0 and hi == 0.5
 
 
-@pytest.mark.parametrize("material,name,values", [
-    ("sand", "friction_angle", [10.0, 1e-6, 0.5, 15.0, 37.5, 60.0, 89.5, 90 - 1e-6]),
-    ("elastic", "poissons_ratio", [0.45, 0.1, -0.999, -0.5, 0.0, 0.3, 0.49, 0.4999]),
-    ("snow", "poissons_ratio", [0.45, 0.1, -0.5, 0.49]),
-])
+@pytest.mark.parametrize(
+    "material,name,values",
+    [
+        ("sand", "friction_angle", [10.0, 1e-6, 0.5, 15.0, 37.5, 60.0, 89.5, 90 - 1e-6]),
+        ("elastic", "poissons_ratio", [0.45, 0.1, -0.999, -0.5, 0.0, 0.3, 0.49, 0.4999]),
+        ("snow", "poissons_ratio", [0.45, 0.1, -0.5, 0.49]),
+    ],
+)
 def test_bounded_parameters_encode_their_whole_valid_range(material, name, values):
     """A start anywhere in the open valid range round-trips (PAC-NeRF's sand starts at
     phi = 10 deg, below the typical 15-60 deg), and z = 0 is the typical range's middle, where
@@ -58,8 +68,11 @@ def test_bounded_parameters_encode_their_whole_valid_range(material, name, value
 
 @pytest.mark.parametrize("value", [0.0, 90.0, -5.0, 95.0, math.nan])
 def test_friction_angle_outside_its_open_range_is_a_clear_error(value):
-    with pytest.raises(InputError, match=rf"friction_angle \(phi\) = {value:g} deg is outside the open range "
-                                         rf"\(0, 90\)"):
+    with pytest.raises(
+        InputError,
+        match=rf"friction_angle \(phi\) = {value:g} deg is outside the open range "
+        rf"\(0, 90\)",
+    ):
         parameterization("sand", "friction_angle").encode(value)
 
 
@@ -91,8 +104,16 @@ def stiff_scene(substeps):
     v = torch.zeros_like(x)
     v[:, 0] = torch.linspace(-1, 1, x.shape[0], dtype=torch.float64)
     with pytest.warns(StabilityWarning, match="exceeds the stable limit"):
-        return Simulator(x, 1e-5, MaterialSpec("elastic", {"youngs_modulus": 1e6}), Grid((16, 16, 16), 1 / 16),
-                         velocities=v, frame_dt=1e-2, substeps=substeps, dtype=torch.float64)
+        return Simulator(
+            x,
+            1e-5,
+            MaterialSpec("elastic", {"youngs_modulus": 1e6}),
+            Grid((16, 16, 16), 1 / 16),
+            velocities=v,
+            frame_dt=1e-2,
+            substeps=substeps,
+            dtype=torch.float64,
+        )
 
 
 def test_guard_retries_with_smaller_dt():
@@ -110,13 +131,19 @@ def test_guard_reports_when_out_of_retries():
         simulate(sim, 3, retries=1)
     messages = [str(w.message) for w in record]
     assert any("retrying with 2 substeps" in m for m in messages)
-    assert any("breaks the CFL limit" in m and "(2 substeps per frame)" in m and "retrying" not in m
-               for m in messages)
+    assert any("breaks the CFL limit" in m and "(2 substeps per frame)" in m and "retrying" not in m for m in messages)
 
 
 def test_bad_inputs_are_named():
-    sim = Simulator(cube(3, 0.4, 0.6), 1e-5, MaterialSpec("elastic"), Grid((16, 16, 16), 1 / 16), substeps=2,
-                    frame_dt=1e-3, dtype=torch.float64)
+    sim = Simulator(
+        cube(3, 0.4, 0.6),
+        1e-5,
+        MaterialSpec("elastic"),
+        Grid((16, 16, 16), 1 / 16),
+        substeps=2,
+        frame_dt=1e-3,
+        dtype=torch.float64,
+    )
     with pytest.raises(InputError, match="youngs_modulus: expected shape"):
         simulate(sim, 1, params={"youngs_modulus": torch.ones(5)})
     with pytest.raises(InputError, match="poissons_ratio .* outside the valid range"):
@@ -136,8 +163,17 @@ def test_clamped_particles_are_reported():
     x[0, 0] = 0.87  # at the upper end of the grid's interior (0.875 m), moving out
     v = torch.zeros_like(x)
     v[0, 0] = 5.0
-    sim = Simulator(x, 1e-5, MaterialSpec("elastic"), Grid((16, 16, 16), 1 / 16), velocities=v, walls=None,
-                    frame_dt=2e-3, substeps=2, dtype=torch.float64)
+    sim = Simulator(
+        x,
+        1e-5,
+        MaterialSpec("elastic"),
+        Grid((16, 16, 16), 1 / 16),
+        velocities=v,
+        walls=None,
+        frame_dt=2e-3,
+        substeps=2,
+        dtype=torch.float64,
+    )
     positions = sim.state.x.clone().requires_grad_()
     with pytest.warns(RuntimeWarning, match="1 particles left the grid"):
         out = simulate(sim, 1, positions=positions)

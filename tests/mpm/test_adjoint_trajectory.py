@@ -32,16 +32,27 @@ def scene(dtype=torch.float64, substeps=10, model=None, seed=0, material="elasti
     if material == "plasticine":
         params["yield_stress"] = TAU_Y_TRUE
     spec = MaterialSpec(material, params, density=RHO_TRUE, model=model)
-    return Simulator(x, (0.24 / 6) ** 3, spec, Grid((16, 16, 16), 1 / 16), velocities=v, frame_dt=1e-2,
-                     substeps=substeps, dtype=dtype, flip=flip)
+    return Simulator(
+        x,
+        (0.24 / 6) ** 3,
+        spec,
+        Grid((16, 16, 16), 1 / 16),
+        velocities=v,
+        frame_dt=1e-2,
+        substeps=substeps,
+        dtype=dtype,
+        flip=flip,
+    )
 
 
 def weights(sim, frames, seed=1):
     gen = torch.Generator().manual_seed(seed)
     n = sim.n
-    return (torch.randn(frames + 1, n, 3, generator=gen, dtype=torch.float64),
-            torch.randn(frames + 1, n, 3, generator=gen, dtype=torch.float64),
-            torch.randn(frames + 1, n, 3, 3, generator=gen, dtype=torch.float64))
+    return (
+        torch.randn(frames + 1, n, 3, generator=gen, dtype=torch.float64),
+        torch.randn(frames + 1, n, 3, generator=gen, dtype=torch.float64),
+        torch.randn(frames + 1, n, 3, 3, generator=gen, dtype=torch.float64),
+    )
 
 
 STATE_INPUTS = ("density", "positions", "velocities")
@@ -73,8 +84,15 @@ def make_inputs(sim, dtype, material="elastic"):
 FRAMES = 3
 
 
-@pytest.mark.parametrize("material,model,flip", [("elastic", "fixed_corotated", 0.0), ("elastic", "neo_hookean", 0.0),
-                                                 ("plasticine", None, 0.0), ("elastic", "neo_hookean", 0.95)])
+@pytest.mark.parametrize(
+    "material,model,flip",
+    [
+        ("elastic", "fixed_corotated", 0.0),
+        ("elastic", "neo_hookean", 0.0),
+        ("plasticine", None, 0.0),
+        ("elastic", "neo_hookean", 0.95),
+    ],
+)
 def test_trajectory_gradient_matches_central_differences(material, model, flip):
     sim = scene(model=model, material=material, flip=flip)
     w = weights(sim, FRAMES)
@@ -136,19 +154,30 @@ def test_per_particle_parameters_sum_to_the_global_gradient():
     assert float(E_rows.grad.abs().min()) > 0  # every particle's stiffness matters
 
 
-@pytest.mark.parametrize("material,name,true,start,params", [
-    ("elastic", "youngs_modulus", E_TRUE, 0.4, {"poissons_ratio": NU_TRUE}),
-    ("plasticine", "yield_stress", 300.0, 0.5, {"youngs_modulus": E_TRUE}),
-    ("foam", "viscosity", 50.0, 2.0, {"youngs_modulus": E_TRUE, "yield_stress": 300.0}),
-    ("newtonian", "viscosity", 1.0, 2.0, {"bulk_modulus": 1e4}),
-])
+@pytest.mark.parametrize(
+    "material,name,true,start,params",
+    [
+        ("elastic", "youngs_modulus", E_TRUE, 0.4, {"poissons_ratio": NU_TRUE}),
+        ("plasticine", "yield_stress", 300.0, 0.5, {"youngs_modulus": E_TRUE}),
+        ("foam", "viscosity", 50.0, 2.0, {"youngs_modulus": E_TRUE, "yield_stress": 300.0}),
+        ("newtonian", "viscosity", 1.0, 2.0, {"bulk_modulus": 1e4}),
+    ],
+)
 def test_identification_recovers_the_parameter(material, name, true, start, params):
     """Start from a wrong value; 25 Adam steps in the registry's log space on the mismatch of
     a simulated trajectory recover it within 5%. (A parameter the trajectory does not depend
     on cannot be identified: a yield stress above every stress reached has zero gradient.)"""
     x, v = swirling_block()
-    sim = Simulator(x, (0.24 / 6) ** 3, MaterialSpec(material, params | {name: true}, density=RHO_TRUE),
-                    Grid((16, 16, 16), 1 / 16), velocities=v, frame_dt=1e-2, substeps=10, dtype=torch.float64)
+    sim = Simulator(
+        x,
+        (0.24 / 6) ** 3,
+        MaterialSpec(material, params | {name: true}, density=RHO_TRUE),
+        Grid((16, 16, 16), 1 / 16),
+        velocities=v,
+        frame_dt=1e-2,
+        substeps=10,
+        dtype=torch.float64,
+    )
     frames = 2
     with torch.no_grad():
         target = simulate(sim, frames).x
@@ -191,8 +220,16 @@ def test_driver_force_gradient_matches_central_differences():
     x = cube(6, 0.38, 0.62)
     half = x[:, 0] < 0.5
     forces = [Force(half, 0.0, 0.015, force=(0.5, 0.2, 0.0)), Force(half, 0.015, 1.0, force=(0.0, 0.0, -0.3))]
-    sim = Simulator(x, (0.24 / 6) ** 3, MaterialSpec("elastic", {"youngs_modulus": E_TRUE}, density=RHO_TRUE),
-                    Grid((16, 16, 16), 1 / 16), frame_dt=1e-2, substeps=10, dtype=torch.float64, forces=forces)
+    sim = Simulator(
+        x,
+        (0.24 / 6) ** 3,
+        MaterialSpec("elastic", {"youngs_modulus": E_TRUE}, density=RHO_TRUE),
+        Grid((16, 16, 16), 1 / 16),
+        frame_dt=1e-2,
+        substeps=10,
+        dtype=torch.float64,
+        forces=forces,
+    )
     w = weights(sim, FRAMES)
     mass = region_masses(sim)
     assert torch.allclose(mass, sim.particles.mass[half].sum().expand(2), rtol=1e-12)
@@ -215,8 +252,16 @@ def test_every_material_parameter_matches_central_differences(material):
     """d loss / d p for every registry parameter p of each material (global), on the swirling
     block with the parameters of tests/mpm/_helpers.py (which make the return mappings active)."""
     x, v = swirling_block()
-    sim = Simulator(x, (0.24 / 6) ** 3, MaterialSpec(material, MATERIAL_CASES[material], density=RHO_TRUE),
-                    Grid((16, 16, 16), 1 / 16), velocities=v, frame_dt=1e-2, substeps=10, dtype=torch.float64)
+    sim = Simulator(
+        x,
+        (0.24 / 6) ** 3,
+        MaterialSpec(material, MATERIAL_CASES[material], density=RHO_TRUE),
+        Grid((16, 16, 16), 1 / 16),
+        velocities=v,
+        frame_dt=1e-2,
+        substeps=10,
+        dtype=torch.float64,
+    )
     kernel_material = {int(m) for m in sim.particles.material}.pop()
     names = KERNEL_PARAMETERS[next(k for k, i in MATERIAL_IDS.items() if i == kernel_material)]
     current = get_material(material).defaults() | MATERIAL_CASES[material]

@@ -36,7 +36,9 @@ def test_npz_particles_and_mp4_preview(tmp_path):
 
 def test_ply_particles(tmp_path):
     x = 0.4 + 0.2 * np.random.default_rng(1).random((50, 3))
-    header = "ply\nformat ascii 1.0\nelement vertex 50\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    header = (
+        "ply\nformat ascii 1.0\nelement vertex 50\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    )
     (tmp_path / "in.ply").write_text(header + "\n".join(" ".join(f"{c:.6f}" for c in p) for p in x) + "\n")
     res = run([str(tmp_path / "in.ply"), *FAST, "--preview", "none", "-o", str(tmp_path / "out")])
     assert res.exit_code == 0, res.output
@@ -68,8 +70,24 @@ def test_volume_corrected_sand(tmp_path):
 
 
 def test_bench_mpm_runs_on_a_small_scene():
-    res = CliRunner().invoke(cli, ["bench", "mpm", "--substeps", "1", "--particles-per-axis", "8", "--grid", "16",
-                                   "--material", "elastic", "--material", "sand"], catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli,
+        [
+            "bench",
+            "mpm",
+            "--substeps",
+            "1",
+            "--particles-per-axis",
+            "8",
+            "--grid",
+            "16",
+            "--material",
+            "elastic",
+            "--material",
+            "sand",
+        ],
+        catch_exceptions=False,
+    )
     assert res.exit_code == 0, res.output
     assert "512 particles" in res.output
     rows = [line for line in res.output.splitlines() if "M particle-substeps/s" in line]
@@ -84,8 +102,10 @@ def test_binary_ply_and_bad_particle_files(tmp_path):
     x = np.random.default_rng(2).random((7, 3))
     rows = np.zeros(7, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("opacity", "<f4")])
     rows["x"], rows["y"], rows["z"] = x.T
-    header = ("ply\nformat binary_little_endian 1.0\nelement vertex 7\nproperty float x\nproperty float y\n"
-              "property float z\nproperty float opacity\nend_header\n")
+    header = (
+        "ply\nformat binary_little_endian 1.0\nelement vertex 7\nproperty float x\nproperty float y\n"
+        "property float z\nproperty float opacity\nend_header\n"
+    )
     (tmp_path / "b.ply").write_bytes(header.encode() + rows.tobytes())
     loaded, volume = load_particles(tmp_path / "b.ply")
     assert volume is None and np.allclose(loaded.numpy(), x, atol=1e-6)

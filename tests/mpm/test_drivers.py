@@ -1,6 +1,5 @@
 """Boundary conditions and drivers: colliders, velocity regions, forces, release, rotation."""
 
-
 import pytest
 import torch
 
@@ -27,8 +26,15 @@ def sliding_block(mode: str, friction: float) -> tuple[torch.Tensor, torch.Tenso
     """Mean x-velocity of a block sliding at 1 m/s over a floor collider, and of its bottom
     layer, at frames 0..4 (0.05 s apart)."""
     x = cube(8, 0.0, 0.25) + torch.tensor([0.3, FLOOR_Y + 0.001, 0.3], dtype=torch.float64)
-    sim = Simulator(x, (0.25 / 8) ** 3, SOFT, GRID, velocities=torch.tensor([[1.0, 0, 0]]).expand(x.shape[0], 3),
-                    boundaries=[HalfSpace((0, FLOOR_Y, 0), (0, 1, 0), mode, friction)], frame_dt=0.05)
+    sim = Simulator(
+        x,
+        (0.25 / 8) ** 3,
+        SOFT,
+        GRID,
+        velocities=torch.tensor([[1.0, 0, 0]]).expand(x.shape[0], 3),
+        boundaries=[HalfSpace((0, FLOOR_Y, 0), (0, 1, 0), mode, friction)],
+        frame_dt=0.05,
+    )
     traj = sim.run(4)
     bottom = x[:, 1] < FLOOR_Y + 0.04
     return traj.v[:, :, 0].mean(1).double(), traj.v[:, bottom, 0].mean(1).double()
@@ -64,12 +70,26 @@ def test_collider_friction_acts_only_while_moving_into_the_surface(mode, away_fl
     reference substep."""
     dx, floor, mu_f = 1 / 16, 0.5 + 1 / 32, 0.5
     block = cube(4, 0.0, 2 * dx) + torch.tensor([0.0, floor - dx, 0.4], dtype=torch.float64)
-    x = torch.cat([block + torch.tensor([0.25, 0, 0], dtype=torch.float64),
-                   block + torch.tensor([0.625, 0, 0], dtype=torch.float64)])
+    x = torch.cat(
+        [
+            block + torch.tensor([0.25, 0, 0], dtype=torch.float64),
+            block + torch.tensor([0.625, 0, 0], dtype=torch.float64),
+        ]
+    )
     v = torch.tensor([[1.0, -0.5, 0.0]] * 64 + [[1.0, 0.5, 0.0]] * 64, dtype=torch.float64)
-    sim = Simulator(x, (dx / 2) ** 3, SOFT, Grid((16, 16, 16), dx), velocities=v, gravity=(0, 0, 0), walls=None,
-                    boundaries=[HalfSpace((0, floor, 0), (0, 1, 0), mode, mu_f)], frame_dt=1e-3, substeps=1,
-                    dtype=torch.float64)
+    sim = Simulator(
+        x,
+        (dx / 2) ** 3,
+        SOFT,
+        Grid((16, 16, 16), dx),
+        velocities=v,
+        gravity=(0, 0, 0),
+        walls=None,
+        boundaries=[HalfSpace((0, floor, 0), (0, 1, 0), mode, mu_f)],
+        frame_dt=1e-3,
+        substeps=1,
+        dtype=torch.float64,
+    )
     before = sim.state.clone()
     sim.step()
     idx = torch.arange(sim.grid.nodes)
@@ -81,8 +101,9 @@ def test_collider_friction_acts_only_while_moving_into_the_surface(mode, away_fl
     assert torch.allclose(sim.kernels.scratch.grid_v[into], expected_into, rtol=0, atol=1e-12)
     expected_away = torch.tensor(away_floor_velocity, dtype=torch.float64)
     assert torch.allclose(sim.kernels.scratch.grid_v[away], expected_away, rtol=0, atol=1e-12)
-    ref, _ = reference.substep(before, sim.particles, sim.grid, 0.0, sim.dt, sim.gravity, sim.boundaries,
-                               sim.drivers.accel(0.0, sim.dtype))
+    ref, _ = reference.substep(
+        before, sim.particles, sim.grid, 0.0, sim.dt, sim.gravity, sim.boundaries, sim.drivers.accel(0.0, sim.dtype)
+    )
     for f in ("x", "v", "C", "F"):
         assert torch.allclose(getattr(sim.state, f), getattr(ref, f), rtol=0, atol=1e-12), f
 
@@ -140,14 +161,17 @@ def test_acceleration_on_sphere_region_and_mask():
     x = cube(6, 0.4, 0.6)
     mask = torch.zeros(x.shape[0], dtype=torch.bool)
     mask[:10] = True
-    stages = [Force(Region.sphere((0.5, 0.5, 0.5), 0.05), 0.0, 0.02, acceleration=(0, 3.0, 0)),
-              Force(mask, 0.0, 0.02, acceleration=(1.0, 0, 0))]
+    stages = [
+        Force(Region.sphere((0.5, 0.5, 0.5), 0.05), 0.0, 0.02, acceleration=(0, 3.0, 0)),
+        Force(mask, 0.0, 0.02, acceleration=(1.0, 0, 0)),
+    ]
     sim = free_body(x, SOFT, GRID, forces=stages)
     sphere_mass = float(sim.particles.mass[stages[0].mask(x)].sum())
     traj = sim.run(1)
     p = (sim.particles.mass[:, None] * traj.v[-1]).sum(0)
-    assert p.tolist() == pytest.approx([float(sim.particles.mass[:10].sum()) * 0.02, sphere_mass * 3.0 * 0.02, 0.0],
-                                       abs=1e-12)
+    assert p.tolist() == pytest.approx(
+        [float(sim.particles.mass[:10].sum()) * 0.02, sphere_mass * 3.0 * 0.02, 0.0], abs=1e-12
+    )
 
 
 def test_layer_release_holds_layers_until_their_time():
@@ -174,7 +198,7 @@ def test_boundary_records_put_each_value_in_its_named_slot():
     from clflow.mpm.constants import BC_BOX, BC_CYLINDER, BC_HALFSPACE, BC_SLOTS, COLLIDER_MODES
 
     def slot(record, name, width=1):
-        return record[BC_SLOTS[name]: BC_SLOTS[name] + width]
+        return record[BC_SLOTS[name] : BC_SLOTS[name] + width]
 
     half = HalfSpace((1.0, 2.0, 3.0), (0.0, 0.0, 1.0), "separate", 0.25, 0.5, 1.5).record()
     assert slot(half, "BC_KIND") == [BC_HALFSPACE] and slot(half, "BC_T_START") + slot(half, "BC_T_END") == [0.5, 1.5]

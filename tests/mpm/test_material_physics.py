@@ -23,15 +23,24 @@ def test_stretched_bar_oscillates_at_its_longitudinal_frequency():
     s = (x[:, 0] - 8 * dx) / L
     v = torch.zeros_like(x)
     v[:, 0] = 0.05 * torch.cos(math.pi * s)  # the first mode's shape
-    sim = Simulator(x, h**3, MaterialSpec("elastic", {"youngs_modulus": E, "poissons_ratio": 0.0}, density=rho),
-                    Grid((48, 12, 12), dx), velocities=v, gravity=(0, 0, 0), walls=None, frame_dt=0.002)
+    sim = Simulator(
+        x,
+        h**3,
+        MaterialSpec("elastic", {"youngs_modulus": E, "poissons_ratio": 0.0}, density=rho),
+        Grid((48, 12, 12), dx),
+        velocities=v,
+        gravity=(0, 0, 0),
+        walls=None,
+        frame_dt=0.002,
+    )
     rel = []
     for _ in range(90):
         sim.advance_frame()
         rel.append(float(sim.state.v[s > 0.9, 0].mean() - sim.state.v[s < 0.1, 0].mean()))
     t = [0.002 * (k + 1) for k in range(len(rel))]
-    crossings = [t[k] + 0.002 * rel[k] / (rel[k] - rel[k + 1]) for k in range(len(rel) - 1)
-                 if (rel[k] > 0) != (rel[k + 1] > 0)]
+    crossings = [
+        t[k] + 0.002 * rel[k] / (rel[k] - rel[k + 1]) for k in range(len(rel) - 1) if (rel[k] > 0) != (rel[k + 1] > 0)
+    ]
     period = 2 * (crossings[-1] - crossings[0]) / (len(crossings) - 1)
     assert len(crossings) >= 3
     assert period == pytest.approx(2 * L / math.sqrt(E / rho), rel=0.03)
@@ -44,8 +53,9 @@ def stretch_and_release(material: MaterialSpec) -> tuple[float, float]:
     x = lattice((16, 8, 8), (0.25, 0.375, 0.375), dx / 2)
     v = torch.zeros_like(x)
     v[:, 0] = 2.0 * (x[:, 0] - 0.375)
-    sim = Simulator(x, (dx / 2) ** 3, material, Grid((32, 32, 32), dx), velocities=v, gravity=(0, 0, 0), walls=None,
-                    frame_dt=0.01)
+    sim = Simulator(
+        x, (dx / 2) ** 3, material, Grid((32, 32, 32), dx), velocities=v, gravity=(0, 0, 0), walls=None, frame_dt=0.01
+    )
     traj = sim.run(30)
     length = traj.x[..., 0].amax(-1) - traj.x[..., 0].amin(-1)
     return float(length[0]), float(length[-10:].mean())
@@ -68,9 +78,15 @@ def test_steep_sand_slope_relaxes_to_the_friction_angle():
     top = half * math.tan(math.radians(slope))
     x = lattice((int(2 * half / h), int(top / h) + 1, 8), (20 * dx - half, 3 * dx, 3 * dx), h)
     x = x[(x[:, 1] - 3 * dx) < top - (x[:, 0] - 20 * dx).abs() * math.tan(math.radians(slope))]
-    sim = Simulator(x, h**3, MaterialSpec("sand", {"friction_angle": phi, "youngs_modulus": 5e4}),
-                    Grid((40, 20, 10), dx), walls="slip", boundaries=[HalfSpace((0, 3 * dx, 0), (0, 1, 0), "sticky")],
-                    frame_dt=0.1)
+    sim = Simulator(
+        x,
+        h**3,
+        MaterialSpec("sand", {"friction_angle": phi, "youngs_modulus": 5e4}),
+        Grid((40, 20, 10), dx),
+        walls="slip",
+        boundaries=[HalfSpace((0, 3 * dx, 0), (0, 1, 0), "sticky")],
+        frame_dt=0.1,
+    )
     traj = sim.run(5)
 
     def surface_angle(p: torch.Tensor) -> float:
@@ -94,8 +110,13 @@ def test_steep_sand_slope_relaxes_to_the_friction_angle():
 def test_fluid_column_spreads():
     dx = 1 / 32
     x = lattice((8, 24, 8), (0.4, 3 * dx, 0.4), dx / 2)
-    sim = Simulator(x, (dx / 2) ** 3, MaterialSpec("newtonian", {"viscosity": 1e-3, "bulk_modulus": 2e4}),
-                    Grid((32, 32, 32), dx), frame_dt=0.05)
+    sim = Simulator(
+        x,
+        (dx / 2) ** 3,
+        MaterialSpec("newtonian", {"viscosity": 1e-3, "bulk_modulus": 2e4}),
+        Grid((32, 32, 32), dx),
+        frame_dt=0.05,
+    )
     traj = sim.run(6)
     width0 = float(traj.x[0][:, 0].amax() - traj.x[0][:, 0].amin())
     width = float(traj.x[-1][:, 0].amax() - traj.x[-1][:, 0].amin())

@@ -14,8 +14,18 @@ def test_free_fall_follows_the_parabola():
     x0 = cube(6, 0.3, 0.6)
     v0 = torch.tensor([0.3, 0.5, -0.2], dtype=torch.float64)
     g = (0.0, -9.81, 0.0)
-    sim = Simulator(x0, 1e-5, ELASTIC, GRID, velocities=v0.expand_as(x0), gravity=g, walls=None,
-                    frame_dt=0.01, substeps=20, dtype=torch.float64)
+    sim = Simulator(
+        x0,
+        1e-5,
+        ELASTIC,
+        GRID,
+        velocities=v0.expand_as(x0),
+        gravity=g,
+        walls=None,
+        frame_dt=0.01,
+        substeps=20,
+        dtype=torch.float64,
+    )
     traj = sim.run(2)
     k, dt = 2 * sim.substeps, sim.dt
     t = k * dt
@@ -32,8 +42,9 @@ def test_free_fall_follows_the_parabola():
 def test_translating_body_conserves_momentum():
     gen = torch.Generator().manual_seed(5)
     x0 = cube(8, 0.3, 0.6)
-    v0 = torch.tensor([0.4, -0.3, 0.2], dtype=torch.float64) + 0.3 * torch.randn(x0.shape, generator=gen,
-                                                                                 dtype=torch.float64)
+    v0 = torch.tensor([0.4, -0.3, 0.2], dtype=torch.float64) + 0.3 * torch.randn(
+        x0.shape, generator=gen, dtype=torch.float64
+    )
     sim = free_body(x0, ELASTIC, GRID, velocities=v0, frame_dt=0.01)
     p0 = (sim.particles.mass[:, None] * v0).sum(0)
     traj = sim.run(3)
@@ -52,8 +63,17 @@ def test_block_at_rest_stays_at_rest():
 
 def test_particles_leaving_the_domain_are_clamped_and_counted():
     x0 = cube(4, 0.7, 0.85)
-    sim = Simulator(x0, 1e-5, ELASTIC, GRID, velocities=torch.tensor([[20.0, 0, 0]]).expand(64, 3),
-                    gravity=(0, 0, 0), walls=None, frame_dt=0.02, dtype=torch.float32)
+    sim = Simulator(
+        x0,
+        1e-5,
+        ELASTIC,
+        GRID,
+        velocities=torch.tensor([[20.0, 0, 0]]).expand(64, 3),
+        gravity=(0, 0, 0),
+        walls=None,
+        frame_dt=0.02,
+        dtype=torch.float32,
+    )
     with pytest.warns(RuntimeWarning, match=r"\d+ particles left the grid and were clamped"):
         traj = sim.run(1)
     assert traj.clamped[1] > 0
@@ -80,9 +100,17 @@ def squeezed_torus_energy(flip: float, substep_factor: int, frames: int = 9) -> 
         psi = mu / 2 * ((s.F * s.F).sum((1, 2)) - 3) - mu * torch.log(J) + lam / 2 * torch.log(J) ** 2
         return float(0.5 * rho * V0 * (s.v * s.v).sum() + V0 * psi.sum())
 
-    sim = Simulator(x, V0, MaterialSpec("elastic", {"youngs_modulus": E, "poissons_ratio": nu}, rho, "neo_hookean"),
-                    Grid((res,) * 3, dx), velocities=v, gravity=(0, 0, 0), walls=None, dtype=torch.float64,
-                    flip=flip)
+    sim = Simulator(
+        x,
+        V0,
+        MaterialSpec("elastic", {"youngs_modulus": E, "poissons_ratio": nu}, rho, "neo_hookean"),
+        Grid((res,) * 3, dx),
+        velocities=v,
+        gravity=(0, 0, 0),
+        walls=None,
+        dtype=torch.float64,
+        flip=flip,
+    )
     sim.use_substeps(sim.substeps * substep_factor)
     start = energy(sim.state)
     sim.run(frames)

@@ -48,8 +48,7 @@ def branches(sim) -> list[int]:
     s, q = sim.state, sim.particles.param
     F_tr = (torch.eye(3, dtype=s.F.dtype) + sim.dt * s.C) @ s.F
     _, sv, _ = reference.signed_svd(F_tr)
-    F_new, v_c_new, _ = reference.constitutive(MATERIAL_IDS["sand_volume_corrected"], F_tr, s.C, q, s.plastic,
-                                               sim.dt)
+    F_new, v_c_new, _ = reference.constitutive(MATERIAL_IDS["sand_volume_corrected"], F_tr, s.C, q, s.plastic, sim.dt)
     assert float(sv.abs().min()) > 1e-3  # no strain floor in play: the counts mean what they say
     tip = v_c_new > 1e-12
     inside = ~tip & (F_new - torch.exp(s.plastic / 3)[:, None, None] * F_tr).abs().amax((1, 2)).le(1e-12)
@@ -93,8 +92,16 @@ def compressed_block() -> Simulator:
     back on the cone and inside it."""
     x, v = swirling_block()
     v[:, 0] -= 4.0 * (x[:, 0] - 0.5)
-    sim = Simulator(x, (0.24 / 6) ** 3, VOLUME_CORRECTED_SAND, Grid((16, 16, 16), 1 / 16), velocities=v,
-                    frame_dt=1e-2, substeps=10, dtype=torch.float64)
+    sim = Simulator(
+        x,
+        (0.24 / 6) ** 3,
+        VOLUME_CORRECTED_SAND,
+        Grid((16, 16, 16), 1 / 16),
+        velocities=v,
+        frame_dt=1e-2,
+        substeps=10,
+        dtype=torch.float64,
+    )
     sim.state.plastic.copy_(0.05 * torch.rand(sim.n, generator=torch.Generator().manual_seed(4), dtype=torch.float64))
     return sim
 
@@ -104,8 +111,10 @@ def test_trajectory_gradient_matches_central_differences():
     gradient crosses substeps through v_c."""
     assert min(branches_seen(compressed_block(), FRAMES * 10)) > 0
     sim = compressed_block()
-    inputs = {name: torch.tensor(value, dtype=torch.float64, requires_grad=True)
-              for name, value in MATERIAL_CASES["sand"].items()}
+    inputs = {
+        name: torch.tensor(value, dtype=torch.float64, requires_grad=True)
+        for name, value in MATERIAL_CASES["sand"].items()
+    }
     velocities = sim.state.v.clone().requires_grad_()
     w = weights(sim, FRAMES)
     loss = loss_of(simulate(sim, FRAMES, params=inputs, velocities=velocities), w)
@@ -137,8 +146,16 @@ def settled_height(model, throw: float) -> float:
     x = lattice((10, 20, 10), (wall * dx,) * 3, h)  # fills the 5 x 5 cells between the walls
     v = torch.zeros_like(x)
     v[:, 1] = throw * (x[:, 1] - wall * dx)
-    sim = Simulator(x, h**3, MaterialSpec("sand", {"youngs_modulus": 1e5}, density=1500, model=model),
-                    Grid((12, 48, 12), dx), velocities=v, walls="slip", wall_cells=wall, frame_dt=0.05)
+    sim = Simulator(
+        x,
+        h**3,
+        MaterialSpec("sand", {"youngs_modulus": 1e5}, density=1500, model=model),
+        Grid((12, 48, 12), dx),
+        velocities=v,
+        walls="slip",
+        wall_cells=wall,
+        frame_dt=0.05,
+    )
     y = sim.run(16).x[-6:, :, 1].double()
     return float((torch.quantile(y, 0.98, dim=1) - torch.quantile(y, 0.02, dim=1)).mean())
 

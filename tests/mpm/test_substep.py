@@ -21,8 +21,17 @@ def run_both(sim, substeps):
     for _ in range(substeps):
         t = sim.time
         sim.step()
-        ref, _ = reference.substep(ref, sim.particles, sim.grid, t, sim.dt, sim.gravity, sim.boundaries,
-                                   sim.drivers.accel(t, sim.dtype), sim.flip)
+        ref, _ = reference.substep(
+            ref,
+            sim.particles,
+            sim.grid,
+            t,
+            sim.dt,
+            sim.gravity,
+            sim.boundaries,
+            sim.drivers.accel(t, sim.dtype),
+            sim.flip,
+        )
         worst = max(worst, *(rel_diff(getattr(sim.state, f), getattr(ref, f)) for f in FIELDS))
     return worst
 
@@ -44,8 +53,9 @@ def test_flip_blend_matches_reference(flip, p2g):
     """The PIC/FLIP blend (every material, walls and a floor, 20 substeps) on both P2G paths."""
     from clflow.mpm import HalfSpace
 
-    sim = random_scene(MATERIAL_CASES, n=400, flip=flip, p2g=p2g,
-                       boundaries=[HalfSpace((0, 0.4, 0), (0, 1, 0), "sticky")])
+    sim = random_scene(
+        MATERIAL_CASES, n=400, flip=flip, p2g=p2g, boundaries=[HalfSpace((0, 0.4, 0), (0, 1, 0), "sticky")]
+    )
     assert sim.kernels.scratch.grid_mv.shape[1] == 7
     assert run_both(sim, 20) < 1e-9
 
@@ -60,9 +70,19 @@ def test_flip_blend_keeps_the_particle_velocity():
     v = 0.1 * torch.randn(200, 3, generator=gen, dtype=torch.float64)
     kept = {}
     for flip in (0.0, 1.0):
-        sim = Simulator(x, 1e-5, MaterialSpec("newtonian", {"viscosity": 0.0, "bulk_modulus": 1.0}),
-                        Grid((16, 16, 16), 1 / 16), velocities=v, gravity=(0, 0, 0), walls=None, substeps=1,
-                        frame_dt=1e-4, dtype=torch.float64, flip=flip)
+        sim = Simulator(
+            x,
+            1e-5,
+            MaterialSpec("newtonian", {"viscosity": 0.0, "bulk_modulus": 1.0}),
+            Grid((16, 16, 16), 1 / 16),
+            velocities=v,
+            gravity=(0, 0, 0),
+            walls=None,
+            substeps=1,
+            frame_dt=1e-4,
+            dtype=torch.float64,
+            flip=flip,
+        )
         sim.step()
         kept[flip] = rel_diff(sim.state.v, v)
     assert kept[1.0] < 1e-12
@@ -74,9 +94,16 @@ def test_neo_hookean_matches_reference():
 
     gen = torch.Generator().manual_seed(1)
     x = 0.3 + 0.4 * torch.rand(200, 3, generator=gen, dtype=torch.float64)
-    sim = Simulator(x, 1e-5, MaterialSpec("elastic", MATERIAL_CASES["elastic"], model="neo_hookean"),
-                    Grid((16, 16, 16), 1 / 16), velocities=0.6 * torch.randn(200, 3, generator=gen,
-                    dtype=torch.float64), dtype=torch.float64, substeps=10, frame_dt=1e-2)
+    sim = Simulator(
+        x,
+        1e-5,
+        MaterialSpec("elastic", MATERIAL_CASES["elastic"], model="neo_hookean"),
+        Grid((16, 16, 16), 1 / 16),
+        velocities=0.6 * torch.randn(200, 3, generator=gen, dtype=torch.float64),
+        dtype=torch.float64,
+        substeps=10,
+        frame_dt=1e-2,
+    )
     assert int(sim.particles.material[0]) == MATERIAL_IDS["neo_hookean"]
     assert run_both(sim, 20) < 1e-9
 

@@ -98,14 +98,22 @@ def test_cfl_limit_counts_initial_speed():
 def test_a_speed_beyond_any_time_step_is_a_clear_error():
     # finite float64 speeds whose CFL limit underflows to 0 (ZeroDivisionError before)
     sim = make(dtype=torch.float64, frame_dt=0.01)
-    with pytest.raises(SimulationError, match=r"no stable time step is left \(CFL with max speed .*\): the simulation blew up"):
+    with pytest.raises(
+        SimulationError, match=r"no stable time step is left \(CFL with max speed .*\): the simulation blew up"
+    ):
         sim.stable_substeps(torch.full((64, 3), 1e307, dtype=torch.float64))
 
 
 def test_nan_during_a_run_stops_with_frame_and_cause():
     with pytest.warns(StabilityWarning):
-        sim = make(MaterialSpec("elastic", {"youngs_modulus": 1e9}), frame_dt=0.01, substeps=1, walls=None,
-                   gravity=(0, 0, 0), velocities=0.1 * torch.randn(64, 3, generator=torch.Generator().manual_seed(0)))
+        sim = make(
+            MaterialSpec("elastic", {"youngs_modulus": 1e9}),
+            frame_dt=0.01,
+            substeps=1,
+            walls=None,
+            gravity=(0, 0, 0),
+            velocities=0.1 * torch.randn(64, 3, generator=torch.Generator().manual_seed(0)),
+        )
     with pytest.raises(SimulationError, match=r"NaN/inf during frame \d+ .* likely cause: dt = .* too large"):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -141,19 +149,25 @@ def test_viscous_fluid_takes_the_viscous_time_step_limit():
     auto = resting_block(thick, frame_dt)
     assert auto.substeps == math.ceil(frame_dt / (VISCOUS_NUMBER * rho * GRID.dx**2 / mu))
     assert wave_and_cfl_only < auto.substeps
-    with pytest.warns(StabilityWarning, match=rf"viscous diffusion of newtonian, viscosity 1e\+03 Pa s .* "
-                                              rf"use substeps >= {auto.substeps} per frame"):
+    with pytest.warns(
+        StabilityWarning,
+        match=rf"viscous diffusion of newtonian, viscosity 1e\+03 Pa s .* "
+        rf"use substeps >= {auto.substeps} per frame",
+    ):
         old = resting_block(thick, frame_dt, substeps=wave_and_cfl_only)
     assert max_speed_after(old, 4) > 100.0
     assert max_speed_after(auto, 4) < 0.5  # settling; free fall would reach g t = 1.6 m/s
 
 
-@pytest.mark.parametrize("material,params,eta", [
-    ("foam", {"youngs_modulus": 1e5, "poissons_ratio": 0.3}, 1e4),
-    ("foam", {"youngs_modulus": 1e5, "poissons_ratio": 0.3}, 1e6),
-    ("non_newtonian", {"shear_modulus": 1e4, "bulk_modulus": 1e5}, 1e4),
-    ("non_newtonian", {"shear_modulus": 1e4, "bulk_modulus": 1e5}, 1e6),
-])
+@pytest.mark.parametrize(
+    "material,params,eta",
+    [
+        ("foam", {"youngs_modulus": 1e5, "poissons_ratio": 0.3}, 1e4),
+        ("foam", {"youngs_modulus": 1e5, "poissons_ratio": 0.3}, 1e6),
+        ("non_newtonian", {"shear_modulus": 1e4, "bulk_modulus": 1e5}, 1e4),
+        ("non_newtonian", {"shear_modulus": 1e4, "bulk_modulus": 1e5}, 1e6),
+    ],
+)
 def test_viscoplastic_viscosity_needs_no_viscous_limit(material, params, eta):
     """The viscoplastic return relaxes the overstress implicitly in eta, so eta adds no time
     step limit: with tau_Y = 0 (always yielding) and eta = 1e4 or 1e6 Pa s, the automatic
@@ -163,8 +177,9 @@ def test_viscoplastic_viscosity_needs_no_viscous_limit(material, params, eta):
     v = 0.5 * torch.randn(216, 3, generator=gen, dtype=torch.float64)
     spec = MaterialSpec(material, {**params, "yield_stress": 0.0, "viscosity": eta})
     sim = resting_block(spec, 0.02, velocities=v)
-    inviscid = resting_block(MaterialSpec(material, {**params, "yield_stress": 0.0, "viscosity": 0.0}), 0.02,
-                             velocities=v)
+    inviscid = resting_block(
+        MaterialSpec(material, {**params, "yield_stress": 0.0, "viscosity": 0.0}), 0.02, velocities=v
+    )
     assert sim.substeps == inviscid.substeps
     rho = get_material(material).default_density
     assert sim.dt > 10 * VISCOUS_NUMBER * rho * GRID.dx**2 / eta

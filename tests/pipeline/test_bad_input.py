@@ -21,8 +21,9 @@ from clflow_cli.main import cli
 def simulation(quick_demo, tmp_path_factory):
     """A folder `clflow simulate CONFIG` wrote: gaussians.npz and PLY frames of the quick demo."""
     out = tmp_path_factory.mktemp("simulation")
-    res = CliRunner().invoke(cli, ["simulate", str(quick_demo / "config_truth.yaml"), "-o", str(out),
-                                   "--preview", "none"])
+    res = CliRunner().invoke(
+        cli, ["simulate", str(quick_demo / "config_truth.yaml"), "-o", str(out), "--preview", "none"]
+    )
     assert res.exit_code == 0, res.output
     return out
 
@@ -109,8 +110,10 @@ def huge_splats(c: Case) -> str:
     from clflow.splat.ply import load_ply, save_ply
 
     g = load_ply(c.demo / "scene.ply").to(torch.float64)
-    save_ply(c.demo / "huge.ply", Gaussians.from_activated(g.means, g.quats, 1000 * g.scales, g.opacities,
-                                                            sh=g.sh, colors=g.colors))
+    save_ply(
+        c.demo / "huge.ply",
+        Gaussians.from_activated(g.means, g.quats, 1000 * g.scales, g.opacities, sh=g.sh, colors=g.colors),
+    )
     return c.config("huge", splats="huge.ply")
 
 
@@ -139,8 +142,10 @@ def colmap_camera(c: Case) -> str:
     from clflow.splat.cameras import look_at
     from tests.recon._helpers import model_of, write_bin
 
-    write_bin(c.demo / "sparse", model_of([look_at((0, 0.3, 1), (0, 0, 0), (0, 1, 0), fov_x=1.0, width=64, height=48,
-                                                   name="a.png")]))
+    write_bin(
+        c.demo / "sparse",
+        model_of([look_at((0, 0.3, 1), (0, 0, 0), (0, 1, 0), fov_x=1.0, width=64, height=48, name="a.png")]),
+    )
     return c.config("colmap_camera", camera={"colmap": "sparse", "image": "b.png"})
 
 
@@ -148,10 +153,19 @@ def stretching_dataparser(c: Case) -> str:
     """A config with a camera file and a dataparser transform that stretches (no rotation)."""
     import json
 
-    (c.demo / "cams.json").write_text(json.dumps({"fl_x": 50, "w": 64, "h": 48, "frames": [
-        {"transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2], [0, 0, 0, 1]]}]}))
-    (c.demo / "stretch.json").write_text(json.dumps({"transform": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]],
-                                                     "scale": 1.0}))
+    (c.demo / "cams.json").write_text(
+        json.dumps(
+            {
+                "fl_x": 50,
+                "w": 64,
+                "h": 48,
+                "frames": [{"transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2], [0, 0, 0, 1]]}],
+            }
+        )
+    )
+    (c.demo / "stretch.json").write_text(
+        json.dumps({"transform": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 1.0})
+    )
     return c.config("stretch", camera={"file": "cams.json"}, **{"scene.dataparser_transforms": "stretch.json"})
 
 
@@ -167,91 +181,233 @@ class Probe:
 
 PROBES = [
     # output path problems: caught before any work
-    Probe("simulate-parent-is-a-file", lambda c: ["simulate", c.config("sim"), "-o", c.a_file() + "/sub"],
-          r"output folder .*afile/sub: .*afile is a file, not a folder"),
-    Probe("optimize-output-is-a-file", lambda c: ["optimize", c.config("out_file", output=c.a_file())],
-          r"output folder .*afile is a file, not a folder"),
-    Probe("render-parent-is-a-file", lambda c: ["render", c.demo / "scene.ply", "-o", c.a_file() + "/r"],
-          r"afile is a file, not a folder"),
-    Probe("render4d-parent-is-a-file", lambda c: ["render4d", c.sim, "-o", c.a_file() + "/r"],
-          r"afile is a file, not a folder"),
-    Probe("query-parent-is-a-file", lambda c: ["query", c.demo / "guidance" / "000.png", "-o", c.a_file() + "/q.json"],
-          r"afile is a file, not a folder"),
-    Probe("simulate-read-only", lambda c: ["simulate", "--frames", 2, "-o", c.tmp / "s"],
-          r"is not writable \(read-only file system or no permission\)", ("s",), Case.read_only),
-    Probe("optimize-read-only", lambda c: ["optimize", c.config("read_only")],
-          r"is not writable \(read-only file system or no permission\)", ("out",), Case.read_only),
-    Probe("render4d-read-only", lambda c: ["render4d", c.sim, "-o", c.tmp / "r"],
-          r"is not writable", ("r",), Case.read_only),
-    Probe("query-read-only", lambda c: ["query", c.demo / "guidance" / "000.png", "-o", c.tmp / "q" / "q.json"],
-          r"is not writable", ("q",), Case.read_only),
+    Probe(
+        "simulate-parent-is-a-file",
+        lambda c: ["simulate", c.config("sim"), "-o", c.a_file() + "/sub"],
+        r"output folder .*afile/sub: .*afile is a file, not a folder",
+    ),
+    Probe(
+        "optimize-output-is-a-file",
+        lambda c: ["optimize", c.config("out_file", output=c.a_file())],
+        r"output folder .*afile is a file, not a folder",
+    ),
+    Probe(
+        "render-parent-is-a-file",
+        lambda c: ["render", c.demo / "scene.ply", "-o", c.a_file() + "/r"],
+        r"afile is a file, not a folder",
+    ),
+    Probe(
+        "render4d-parent-is-a-file",
+        lambda c: ["render4d", c.sim, "-o", c.a_file() + "/r"],
+        r"afile is a file, not a folder",
+    ),
+    Probe(
+        "query-parent-is-a-file",
+        lambda c: ["query", c.demo / "guidance" / "000.png", "-o", c.a_file() + "/q.json"],
+        r"afile is a file, not a folder",
+    ),
+    Probe(
+        "simulate-read-only",
+        lambda c: ["simulate", "--frames", 2, "-o", c.tmp / "s"],
+        r"is not writable \(read-only file system or no permission\)",
+        ("s",),
+        Case.read_only,
+    ),
+    Probe(
+        "optimize-read-only",
+        lambda c: ["optimize", c.config("read_only")],
+        r"is not writable \(read-only file system or no permission\)",
+        ("out",),
+        Case.read_only,
+    ),
+    Probe(
+        "render4d-read-only",
+        lambda c: ["render4d", c.sim, "-o", c.tmp / "r"],
+        r"is not writable",
+        ("r",),
+        Case.read_only,
+    ),
+    Probe(
+        "query-read-only",
+        lambda c: ["query", c.demo / "guidance" / "000.png", "-o", c.tmp / "q" / "q.json"],
+        r"is not writable",
+        ("q",),
+        Case.read_only,
+    ),
     # a disk that fills up during the work: one line, nothing partial
-    Probe("simulate-disk-full", lambda c: ["simulate", c.config("disk_full"), "-o", c.tmp / "s"],
-          r"no space left on device \(free some space or write elsewhere\)", ("s",),
-          lambda c: c.disk_full_on_call("clflow.splat.ply", "save_ply", 3)),
-    Probe("render4d-disk-full", lambda c: ["render4d", c.sim, "-o", c.tmp / "r"],
-          r"no space left on device", ("r",),
-          lambda c: c.disk_full_on_call("clflow.media", "write_image", 12)),
-    Probe("render-disk-full", lambda c: ["render", c.demo / "scene.ply", "-o", c.tmp / "r", "--orbit", 3],
-          r"no space left on device", ("r",),
-          lambda c: c.disk_full_on_call("clflow.media", "write_image", 2)),
-    Probe("optimize-disk-full", lambda c: ["optimize", c.config("opt_disk_full")],
-          r"no space left on device", ("out/observed_flow.npz",),
-          lambda c: c.disk_full_on_call("numpy", "savez_compressed", 1)),
-    Probe("render4d-disk-has-no-room", lambda c: ["render4d", c.sim, "-o", c.tmp / "r"],
-          r"would write up to .* \(2 sequences of 9 frames\), the disk has 0 B free; free some space or render fewer", ("r",),
-          lambda c: c.monkeypatch.setattr("shutil.disk_usage", lambda p: SimpleNamespace(total=1, used=1, free=0))),
+    Probe(
+        "simulate-disk-full",
+        lambda c: ["simulate", c.config("disk_full"), "-o", c.tmp / "s"],
+        r"no space left on device \(free some space or write elsewhere\)",
+        ("s",),
+        lambda c: c.disk_full_on_call("clflow.splat.ply", "save_ply", 3),
+    ),
+    Probe(
+        "render4d-disk-full",
+        lambda c: ["render4d", c.sim, "-o", c.tmp / "r"],
+        r"no space left on device",
+        ("r",),
+        lambda c: c.disk_full_on_call("clflow.media", "write_image", 12),
+    ),
+    Probe(
+        "render-disk-full",
+        lambda c: ["render", c.demo / "scene.ply", "-o", c.tmp / "r", "--orbit", 3],
+        r"no space left on device",
+        ("r",),
+        lambda c: c.disk_full_on_call("clflow.media", "write_image", 2),
+    ),
+    Probe(
+        "optimize-disk-full",
+        lambda c: ["optimize", c.config("opt_disk_full")],
+        r"no space left on device",
+        ("out/observed_flow.npz",),
+        lambda c: c.disk_full_on_call("numpy", "savez_compressed", 1),
+    ),
+    Probe(
+        "render4d-disk-has-no-room",
+        lambda c: ["render4d", c.sim, "-o", c.tmp / "r"],
+        r"would write up to .* \(2 sequences of 9 frames\), the disk has 0 B free; free some space or render fewer",
+        ("r",),
+        lambda c: c.monkeypatch.setattr("shutil.disk_usage", lambda p: SimpleNamespace(total=1, used=1, free=0)),
+    ),
     # garbage input files
-    Probe("gaussians-npz-empty", lambda c: ["render4d", c.gaussians_file(b"")],
-          r"gaussians.npz: the gaussians file of clflow simulate is empty \(0 bytes\)", ("sim/render4d",)),
-    Probe("gaussians-npz-truncated",
-          lambda c: ["render4d", c.gaussians_file((c.sim / "gaussians.npz").read_bytes()[:5000])],
-          r"gaussians.npz: damaged or truncated gaussians file of clflow simulate \(BadZipFile", ("sim/render4d",)),
-    Probe("gaussians-npz-random-bytes",
-          lambda c: ["render4d", c.gaussians_file(np.random.default_rng(1).bytes(5000))],
-          r"gaussians.npz: not a numpy .npz/.npy gaussians file of clflow simulate$", ("sim/render4d",)),
-    Probe("gaussians-npz-nan-means",
-          lambda c: ["render4d", c.sim_copy(object_means=np.where(np.arange(9)[:, None, None] >= 3, np.nan,
-                                                                   np.load(c.sim / "gaussians.npz")["object_means"]))],
-          r"object_means holds NaN or infinite values \(first in frame 3\)", ("sim/render4d",)),
-    Probe("mask-npy-garbage", lambda c: ["optimize", garbage_mask(c)],
-          r"garbage.npy: not a numpy .npz/.npy object mask$", ("out",)),
-    Probe("mask-npy-pickled", lambda c: ["optimize", pickled_mask(c)],
-          r"pickled.npy: the object mask holds Python objects, not plain arrays; refusing to unpickle", ("out",)),
-    Probe("video-damaged-frames", lambda c: ["optimize", damaged_mp4(c)],
-          r"damaged.mp4: damaged video: only the first \d of its 9 frames decode"),
-    Probe("select-ply-elsewhere", lambda c: ["simulate", moved_part(c), "-o", c.tmp / "s"],
-          r"moved_part.ply: none of its \d+ Gaussian centres lies within .* scene units of the scene's", ("s",)),
-    Probe("camera-colmap-unknown-image", lambda c: ["simulate", colmap_camera(c), "-o", c.tmp / "s"],
-          r"camera.image 'b.png' is not an image of the COLMAP model .*sparse \(a.png\)$", ("s",)),
-    Probe("dataparser-transforms-stretch", lambda c: ["simulate", stretching_dataparser(c), "-o", c.tmp / "s"],
-          r"stretch.json: the transform's 3x3 part is not a rotation", ("s",)),
-    Probe("huge-gaussians", lambda c: ["optimize", huge_splats(c)],
-          r"huge.ply: 384 of the object's 384 Gaussians are larger than the whole scene", ("out",)),
-    Probe("render4d-turns-nan", lambda c: ["render4d", c.sim, "-o", c.tmp / "r", "--turns", "nan"],
-          r"Invalid value for '--turns': 'nan' is not a finite number", ("r",), exit_code=2),
-    Probe("render-azimuth-inf", lambda c: ["render", c.demo / "scene.ply", "-o", c.tmp / "r", "--azimuth", "inf"],
-          r"Invalid value for '--azimuth': 'inf' is not a finite number", ("r",), exit_code=2),
+    Probe(
+        "gaussians-npz-empty",
+        lambda c: ["render4d", c.gaussians_file(b"")],
+        r"gaussians.npz: the gaussians file of clflow simulate is empty \(0 bytes\)",
+        ("sim/render4d",),
+    ),
+    Probe(
+        "gaussians-npz-truncated",
+        lambda c: ["render4d", c.gaussians_file((c.sim / "gaussians.npz").read_bytes()[:5000])],
+        r"gaussians.npz: damaged or truncated gaussians file of clflow simulate \(BadZipFile",
+        ("sim/render4d",),
+    ),
+    Probe(
+        "gaussians-npz-random-bytes",
+        lambda c: ["render4d", c.gaussians_file(np.random.default_rng(1).bytes(5000))],
+        r"gaussians.npz: not a numpy .npz/.npy gaussians file of clflow simulate$",
+        ("sim/render4d",),
+    ),
+    Probe(
+        "gaussians-npz-nan-means",
+        lambda c: [
+            "render4d",
+            c.sim_copy(
+                object_means=np.where(
+                    np.arange(9)[:, None, None] >= 3, np.nan, np.load(c.sim / "gaussians.npz")["object_means"]
+                )
+            ),
+        ],
+        r"object_means holds NaN or infinite values \(first in frame 3\)",
+        ("sim/render4d",),
+    ),
+    Probe(
+        "mask-npy-garbage",
+        lambda c: ["optimize", garbage_mask(c)],
+        r"garbage.npy: not a numpy .npz/.npy object mask$",
+        ("out",),
+    ),
+    Probe(
+        "mask-npy-pickled",
+        lambda c: ["optimize", pickled_mask(c)],
+        r"pickled.npy: the object mask holds Python objects, not plain arrays; refusing to unpickle",
+        ("out",),
+    ),
+    Probe(
+        "video-damaged-frames",
+        lambda c: ["optimize", damaged_mp4(c)],
+        r"damaged.mp4: damaged video: only the first \d of its 9 frames decode",
+    ),
+    Probe(
+        "select-ply-elsewhere",
+        lambda c: ["simulate", moved_part(c), "-o", c.tmp / "s"],
+        r"moved_part.ply: none of its \d+ Gaussian centres lies within .* scene units of the scene's",
+        ("s",),
+    ),
+    Probe(
+        "camera-colmap-unknown-image",
+        lambda c: ["simulate", colmap_camera(c), "-o", c.tmp / "s"],
+        r"camera.image 'b.png' is not an image of the COLMAP model .*sparse \(a.png\)$",
+        ("s",),
+    ),
+    Probe(
+        "dataparser-transforms-stretch",
+        lambda c: ["simulate", stretching_dataparser(c), "-o", c.tmp / "s"],
+        r"stretch.json: the transform's 3x3 part is not a rotation",
+        ("s",),
+    ),
+    Probe(
+        "huge-gaussians",
+        lambda c: ["optimize", huge_splats(c)],
+        r"huge.ply: 384 of the object's 384 Gaussians are larger than the whole scene",
+        ("out",),
+    ),
+    Probe(
+        "render4d-turns-nan",
+        lambda c: ["render4d", c.sim, "-o", c.tmp / "r", "--turns", "nan"],
+        r"Invalid value for '--turns': 'nan' is not a finite number",
+        ("r",),
+        exit_code=2,
+    ),
+    Probe(
+        "render-azimuth-inf",
+        lambda c: ["render", c.demo / "scene.ply", "-o", c.tmp / "r", "--azimuth", "inf"],
+        r"Invalid value for '--azimuth': 'inf' is not a finite number",
+        ("r",),
+        exit_code=2,
+    ),
     # too large: refused with the predicted numbers and the way out, before any work
-    Probe("grid-1000-no-fill",
-          lambda c: ["simulate", c.config("grid", **{"simulation.grid_resolution": 1000, "object.fill": {"enabled": False}}),
-                     "-o", c.tmp / "s"],
-          r"a 1000x\d+x1000 grid \([\d,]+ nodes\) needs .* of device memory.*use a coarser grid", ("s",)),
-    Probe("grid-100000", lambda c: ["simulate", c.config("grid2", **{"simulation.grid_resolution": 100000}), "-o", c.tmp / "s"],
-          r"a 100000x\d+x100000 grid .*use a coarser grid", ("s",)),
-    Probe("simulate-1e9-frames", lambda c: ["simulate", c.config("frames", **{"simulation.frames": 10**9}), "-o", c.tmp / "s"],
-          r"would write up to .* TB \(1,000,000,001 frames of Gaussians\), more than --max-output-gb 10; raise it or "
-          r"simulate fewer frames", ("s",)),
-    Probe("simulate-plain-1e9-frames", lambda c: ["simulate", "--frames", 10**9, "-o", c.tmp / "s"],
-          r"more than --max-output-gb 10; raise it or simulate fewer --frames", ("s",)),
-    Probe("simulate-memory", lambda c: ["simulate", "--frames", 100, "-o", c.tmp / "s", "--preview", "none"],
-          r"simulating 101 frames would hold about .* in memory, the machine has 1 MB; simulate fewer --frames", ("s",),
-          lambda c: c.monkeypatch.setattr("clflow.limits.physical_memory", lambda: 10**6)),
-    Probe("render4d-100000-views", lambda c: ["render4d", c.sim, "-o", c.tmp / "r", "--views", 100000],
-          r"would write up to 49.8 GB \(100,002 sequences of 9 frames\), more than --max-output-gb 10; raise it or "
-          r"render fewer --views", ("r",)),
-    Probe("render-100000-views", lambda c: ["render", c.demo / "scene.ply", "-o", c.tmp / "r", "--orbit", 100000],
-          r"would write up to 78.6 GB \(100,000 views\), more than --max-output-gb 10", ("r",)),
+    Probe(
+        "grid-1000-no-fill",
+        lambda c: [
+            "simulate",
+            c.config("grid", **{"simulation.grid_resolution": 1000, "object.fill": {"enabled": False}}),
+            "-o",
+            c.tmp / "s",
+        ],
+        r"a 1000x\d+x1000 grid \([\d,]+ nodes\) needs .* of device memory.*use a coarser grid",
+        ("s",),
+    ),
+    Probe(
+        "grid-100000",
+        lambda c: ["simulate", c.config("grid2", **{"simulation.grid_resolution": 100000}), "-o", c.tmp / "s"],
+        r"a 100000x\d+x100000 grid .*use a coarser grid",
+        ("s",),
+    ),
+    Probe(
+        "simulate-1e9-frames",
+        lambda c: ["simulate", c.config("frames", **{"simulation.frames": 10**9}), "-o", c.tmp / "s"],
+        r"would write up to .* TB \(1,000,000,001 frames of Gaussians\), more than --max-output-gb 10; raise it or "
+        r"simulate fewer frames",
+        ("s",),
+    ),
+    Probe(
+        "simulate-plain-1e9-frames",
+        lambda c: ["simulate", "--frames", 10**9, "-o", c.tmp / "s"],
+        r"more than --max-output-gb 10; raise it or simulate fewer --frames",
+        ("s",),
+    ),
+    Probe(
+        "simulate-memory",
+        lambda c: ["simulate", "--frames", 100, "-o", c.tmp / "s", "--preview", "none"],
+        r"simulating 101 frames would hold about .* in memory, the machine has 1 MB; simulate fewer --frames",
+        ("s",),
+        lambda c: c.monkeypatch.setattr("clflow.limits.physical_memory", lambda: 10**6),
+    ),
+    Probe(
+        "render4d-100000-views",
+        lambda c: ["render4d", c.sim, "-o", c.tmp / "r", "--views", 100000],
+        r"would write up to 49.8 GB \(100,002 sequences of 9 frames\), more than --max-output-gb 10; raise it or "
+        r"render fewer --views",
+        ("r",),
+    ),
+    Probe(
+        "render-100000-views",
+        lambda c: ["render", c.demo / "scene.ply", "-o", c.tmp / "r", "--orbit", 100000],
+        r"would write up to 78.6 GB \(100,000 views\), more than --max-output-gb 10",
+        ("r",),
+    ),
 ]
 
 

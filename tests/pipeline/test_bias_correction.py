@@ -36,7 +36,9 @@ def test_calibrated_at_the_parameters_that_made_the_video_the_residual_vanishes(
     error = opt.views[0].estimator_error
     assert error.shape == opt.observed.shape and float(error.abs().max()) > 0.05
     # the loss of evaluate() itself fits the corrected target
-    assert opt.evaluate(state.z, opt.frames, with_grad=False).loss == pytest.approx(opt.rescored(at_truth).loss, abs=1e-9)
+    assert opt.evaluate(state.z, opt.frames, with_grad=False).loss == pytest.approx(
+        opt.rescored(at_truth).loss, abs=1e-9
+    )
 
 
 def test_the_default_corrects_and_none_leaves_the_observed_flow(demo_config):

@@ -25,25 +25,45 @@ def test_a_transformed_export_renders_like_the_capture(quick_demo, tmp_path):
     # the capture's transforms.json (OpenGL camera-to-world) and nerfstudio's transform of it
     c2w = torch.linalg.inv(camera.viewmat) @ torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
     K = camera.K
-    (tmp_path / "transforms.json").write_text(json.dumps({
-        "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
-        "w": camera.width, "h": camera.height, "frames": [{"file_path": "images/0.png", "transform_matrix": c2w.tolist()}]}))
+    (tmp_path / "transforms.json").write_text(
+        json.dumps(
+            {
+                "fl_x": float(K[0, 0]),
+                "fl_y": float(K[1, 1]),
+                "cx": float(K[0, 2]),
+                "cy": float(K[1, 2]),
+                "w": camera.width,
+                "h": camera.height,
+                "frames": [{"file_path": "images/0.png", "transform_matrix": c2w.tolist()}],
+            }
+        )
+    )
     R, t, s = rotations(1, seed=2)[0], torch.tensor([0.2, -0.4, 0.1], dtype=torch.float64), 0.6
-    (tmp_path / "dataparser_transforms.json").write_text(json.dumps({"transform": torch.cat([R, t[:, None]], 1).tolist(),
-                                                                     "scale": s}))
+    (tmp_path / "dataparser_transforms.json").write_text(
+        json.dumps({"transform": torch.cat([R, t[:, None]], 1).tolist(), "scale": s})
+    )
     # the splatfacto export: the scene in the model frame x' = s (R x + t)
     g = load_ply(quick_demo / "scene.ply").to(torch.float64)
     turned = R @ g.rotations
-    save_ply(tmp_path / "export.ply", Gaussians.from_activated(
-        s * (g.means @ R.T + t), rotmat_to_quat(turned), s * g.scales, g.opacities, sh=rotate_sh(g.sh, R.expand(len(g), 3, 3))))
+    save_ply(
+        tmp_path / "export.ply",
+        Gaussians.from_activated(
+            s * (g.means @ R.T + t),
+            rotmat_to_quat(turned),
+            s * g.scales,
+            g.opacities,
+            sh=rotate_sh(g.sh, R.expand(len(g), 3, 3)),
+        ),
+    )
     torch.testing.assert_close(covariances_of(s * g.scales, turned), s**2 * R @ g.covariances @ R.T)
 
     data["splats"] = str(tmp_path / "export.ply")
     data["camera"] = {"file": "transforms.json"}
     data["scene"]["dataparser_transforms"] = "dataparser_transforms.json"
     data["object"]["select"] = {"sphere": {"center": [0.0, 0.0, 0.0], "radius": 1e6}}  # every Gaussian
-    capture_data = dict(data, splats=str(quick_demo / "scene.ply"), scene={"scale": 1.0, "up": "+y"},
-                        camera={"file": "transforms.json"})
+    capture_data = dict(
+        data, splats=str(quick_demo / "scene.ply"), scene={"scale": 1.0, "up": "+y"}, camera={"file": "transforms.json"}
+    )
     images = []
     for name, content in (("export.yaml", data), ("plain.yaml", capture_data)):
         (tmp_path / name).write_text(yaml.safe_dump(content))

@@ -20,8 +20,15 @@ def test_quick_demo_end_to_end(tmp_path):
     assert (results / "simulation" / "frame_008.ply").is_file()
 
 
-EXISTING = ["config.yaml", "scene.ply", "config_truth.yaml", "guidance.mp4", "case.json", "guidance/000.png",
-            "results/params.json"]
+EXISTING = [
+    "config.yaml",
+    "scene.ply",
+    "config_truth.yaml",
+    "guidance.mp4",
+    "case.json",
+    "guidance/000.png",
+    "results/params.json",
+]
 
 
 @pytest.mark.parametrize("name", EXISTING)

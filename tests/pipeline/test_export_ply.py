@@ -55,8 +55,9 @@ def test_exported_frame_renders_like_clflow(deformed, tmp_path):
         cam = to_file_camera(camera, up_rotation(cfg.up), cfg.scale)
         show = lambda g: rasterize(g, cam, background=(1.0, 1.0, 1.0), render_depth=False).image  # noqa: E731
         whole = show(load_ply(tmp_path / "all" / "frame_001.ply"))
-        parts = show(Gaussians.cat([load_ply(tmp_path / "split" / "frame_001.ply"),
-                                    load_ply(tmp_path / "split" / "static.ply")]))
+        parts = show(
+            Gaussians.cat([load_ply(tmp_path / "split" / "frame_001.ply"), load_ply(tmp_path / "split" / "static.ply")])
+        )
         unturned = show(file_gaussians(result.scene_at(1), cfg.scale, cfg.up, turned=0).to(torch.float32))
     assert (want - 1).abs().mean() > 0.1  # the scene is in view
     torch.testing.assert_close(whole, want, rtol=0, atol=1e-4)
@@ -68,8 +69,10 @@ def test_exported_frame_renders_like_clflow(deformed, tmp_path):
 
 def test_simulate_object_only_and_compressed(quick_demo, tmp_path):
     simulate = lambda out, *flags: CliRunner().invoke(  # noqa: E731
-        cli, ["simulate", str(quick_demo / "config_truth.yaml"), "-o", str(out), "--preview", "none", *flags],
-        catch_exceptions=False)
+        cli,
+        ["simulate", str(quick_demo / "config_truth.yaml"), "-o", str(out), "--preview", "none", *flags],
+        catch_exceptions=False,
+    )
     res = simulate(tmp_path / "sim", "--object-only")
     assert res.exit_code == 0, res.output
     whole = load_ply(quick_demo / "scene.ply")
@@ -80,7 +83,10 @@ def test_simulate_object_only_and_compressed(quick_demo, tmp_path):
     assert res.exit_code == 0, res.output
     packed = sorted((tmp_path / "small").glob("frame_*.compressed.ply"))
     assert len(packed) == 9 and not list((tmp_path / "small").glob("frame_???.ply"))
-    for standard, small in ((last, load_ply(packed[-1])), (static, load_ply(tmp_path / "small" / "static.compressed.ply"))):
+    for standard, small in (
+        (last, load_ply(packed[-1])),
+        (static, load_ply(tmp_path / "small" / "static.compressed.ply")),
+    ):
         assert len(small) == len(standard)
         extent = float((standard.means.max(0).values - standard.means.min(0).values).max())
         distance = torch.cdist(small.means, standard.means).min(1).values  # the compressed file is in Morton order

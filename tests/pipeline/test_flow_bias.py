@@ -6,8 +6,24 @@ from clflow_cli.main import cli
 
 
 def test_the_full_resolution_preset_is_the_less_biased_on_the_quick_demo():
-    result = CliRunner().invoke(cli, ["bench", "flow-bias", "--case", "cube", "--preset", "medium", "--preset", "fine",
-                                      "--confidence", "forward_backward", "--iterations", "0"], catch_exceptions=False)
+    result = CliRunner().invoke(
+        cli,
+        [
+            "bench",
+            "flow-bias",
+            "--case",
+            "cube",
+            "--preset",
+            "medium",
+            "--preset",
+            "fine",
+            "--confidence",
+            "forward_backward",
+            "--iterations",
+            "0",
+        ],
+        catch_exceptions=False,
+    )
     assert result.exit_code == 0, result.output
     # case preset confidence slope EPE kept youngs_modulus RE-at-min; RE-recovered
     rows = {line.split()[1]: line.split() for line in result.output.splitlines() if line.startswith("cube ")}

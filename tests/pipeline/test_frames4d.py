@@ -25,7 +25,10 @@ def test_export_round_trip(demo_config, tmp_path):
     export_gaussians(result, tmp_path / "sim")
     frames = load_frames(tmp_path / "sim")
     T = result.x.shape[0]
-    assert frames.frame_count == T and sorted(p.name for p in (tmp_path / "sim").glob("*.ply"))[-1] == f"frame_{T - 1:03d}.ply"
+    assert (
+        frames.frame_count == T
+        and sorted(p.name for p in (tmp_path / "sim").glob("*.ply"))[-1] == f"frame_{T - 1:03d}.ply"
+    )
     for t in (0, T - 1):
         want, got = result.scene_at(t), frames.scene_at(t)
         torch.testing.assert_close(got.means, want.means.float(), rtol=0, atol=1e-6)
@@ -39,7 +42,9 @@ def test_export_round_trip(demo_config, tmp_path):
 
 
 def test_rotmat_to_quat_inverts_quat_to_rotmat():
-    q = torch.nn.functional.normalize(torch.randn(200, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(1)), dim=-1)
+    q = torch.nn.functional.normalize(
+        torch.randn(200, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(1)), dim=-1
+    )
     q2 = rotmat_to_quat(quat_to_rotmat(q))
     torch.testing.assert_close(quat_to_rotmat(q2), quat_to_rotmat(q), rtol=0, atol=1e-12)
 
@@ -59,8 +64,9 @@ def test_simulate_config_then_render4d(quick_demo, tmp_path):
     scene = load_scene(out)
     ply = load_ply(out / f"frame_{T - 1:03d}.ply")
     np.testing.assert_allclose(np.concatenate([scene.means[-1], scene.static_means]), ply.means.numpy(), atol=1e-5)
-    np.testing.assert_allclose(np.concatenate([scene.covariances[-1], scene.static_covariances]),
-                               ply.covariances.numpy(), rtol=1e-3, atol=1e-8)
+    np.testing.assert_allclose(
+        np.concatenate([scene.covariances[-1], scene.static_covariances]), ply.covariances.numpy(), rtol=1e-3, atol=1e-8
+    )
     assert scene.frame_count == T and scene.camera is not None
     assert len(list((out / "guidance").glob("*.png"))) == T and (out / "guidance.mp4").stat().st_size > 0
     res = run("render4d", out, "--views", 1, "--format", "gif")
@@ -81,9 +87,14 @@ def test_simulate_config_then_render4d(quick_demo, tmp_path):
 
 def test_simulate_with_optimised_parameters_and_bad_params_file(quick_demo, tmp_path):
     params = tmp_path / "params.json"
-    params.write_text(json.dumps({"material": "elastic", "parameters": {"youngs_modulus": 2e4, "poissons_ratio": 0.3},
-                                  "density": 1000.0}))
-    res = run("simulate", quick_demo / "config.yaml", "--params-from", params, "-o", tmp_path / "a", "--preview", "none")
+    params.write_text(
+        json.dumps(
+            {"material": "elastic", "parameters": {"youngs_modulus": 2e4, "poissons_ratio": 0.3}, "density": 1000.0}
+        )
+    )
+    res = run(
+        "simulate", quick_demo / "config.yaml", "--params-from", params, "-o", tmp_path / "a", "--preview", "none"
+    )
     assert res.exit_code == 0, res.output
     truth = np.load(tmp_path / "a" / "gaussians.npz")["object_means"]
     run("simulate", quick_demo / "config_truth.yaml", "-o", tmp_path / "b", "--preview", "none")
@@ -132,14 +143,23 @@ def test_optimize_cli_writes_results_and_resumes(quick_demo, tmp_path):
     assert len(json.loads((out / "history.json").read_text())) == 2
 
 
-@pytest.mark.parametrize("key, value, message", [
-    ("splats", "nope.ply", "splats: file not found"),
-    ("object", {"select": {"sphere": {"center": [5, 5, 5], "radius": 0.1}}}, "object.select selects no Gaussian"),
-    ("forces", [{"region": {"sphere": {"center": [3, 3, 3], "radius": 0.1}}, "acceleration": [1, 0, 0]}],
-     r"forces\[0\].region holds no particle of the object"),
-    ("camera", {"position": [0, 0.1, -3], "look_at": [0, 0.1, -4], "width": 96, "height": 96},
-     "the object is not visible from the guidance camera"),
-])
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        ("splats", "nope.ply", "splats: file not found"),
+        ("object", {"select": {"sphere": {"center": [5, 5, 5], "radius": 0.1}}}, "object.select selects no Gaussian"),
+        (
+            "forces",
+            [{"region": {"sphere": {"center": [3, 3, 3], "radius": 0.1}}, "acceleration": [1, 0, 0]}],
+            r"forces\[0\].region holds no particle of the object",
+        ),
+        (
+            "camera",
+            {"position": [0, 0.1, -3], "look_at": [0, 0.1, -4], "width": 96, "height": 96},
+            "the object is not visible from the guidance camera",
+        ),
+    ],
+)
 def test_optimize_cli_bad_config(quick_demo, tmp_path, key, value, message):
     import re
 
@@ -155,8 +175,18 @@ def test_optimize_cli_bad_config(quick_demo, tmp_path, key, value, message):
 
 def test_set_overrides_config_keys_on_simulate_and_optimize(quick_demo, tmp_path):
     out = tmp_path / "short"
-    res = run("simulate", quick_demo / "config_truth.yaml", "--set", "simulation.frames=2", "--set",
-              "material.parameters.youngs_modulus=3e4", "-o", out, "--preview", "none")
+    res = run(
+        "simulate",
+        quick_demo / "config_truth.yaml",
+        "--set",
+        "simulation.frames=2",
+        "--set",
+        "material.parameters.youngs_modulus=3e4",
+        "-o",
+        out,
+        "--preview",
+        "none",
+    )
     assert res.exit_code == 0, res.output
     assert len(list(out.glob("frame_*.ply"))) == 3  # 2 frames + the initial state, not the config's 8
     for command, item, message in [

@@ -11,11 +11,15 @@ from clflow_cli.main import cli
 def hypotheses_config(quick_demo, tmp_path, materials=("elastic", "newtonian")) -> str:
     """The quick demo (an elastic jelly, E = 2e4 Pa) asked to choose among ``materials``."""
     cfg = yaml.safe_load((quick_demo / "config.yaml").read_text())
-    cfg["material"]["parameters"]["youngs_modulus"] = 1.0e+4  # inside the box below
-    cfg["optimize"] = {"parameters": ["youngs_modulus", "viscosity"], "material": list(materials),
-                       # a narrow elastic well (the loss doubles at E / 2): a box the design can resolve
-                       "bounds": {"youngs_modulus": [5.0e+3, 8.0e+4], "viscosity": [1.0, 1.0e+4]},
-                       "search": {"samples": 10}, "iterations": 1}
+    cfg["material"]["parameters"]["youngs_modulus"] = 1.0e4  # inside the box below
+    cfg["optimize"] = {
+        "parameters": ["youngs_modulus", "viscosity"],
+        "material": list(materials),
+        # a narrow elastic well (the loss doubles at E / 2): a box the design can resolve
+        "bounds": {"youngs_modulus": [5.0e3, 8.0e4], "viscosity": [1.0, 1.0e4]},
+        "search": {"samples": 10},
+        "iterations": 1,
+    }
     path = quick_demo / f"hypotheses_{tmp_path.name}.yaml"  # beside the demo's scene and guidance
     path.write_text(yaml.safe_dump({**cfg, "output": str(tmp_path / "results")}))
     return str(path)

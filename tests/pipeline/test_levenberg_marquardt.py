@@ -21,9 +21,11 @@ def lm(demo_config, monkeypatch):
 
     def make(iterations=8, curvature=1.0):
         cfg = demo_config(iterations=iterations)
-        cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, method="levenberg_marquardt",
-                                                                     horizon_start=0),
-                                  flow=dataclasses.replace(cfg.flow, bias_correction="none"))  # flows without a simulation
+        cfg = dataclasses.replace(
+            cfg,
+            optimize=dataclasses.replace(cfg.optimize, method="levenberg_marquardt", horizon_start=0),
+            flow=dataclasses.replace(cfg.flow, bias_correction="none"),
+        )  # flows without a simulation
         opt = Optimization(cfg)
         field = torch.randn(opt.observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
         calls = []
@@ -153,16 +155,21 @@ def test_it_needs_the_l2_loss(tmp_path):
         parse_config(data, "scene.yaml", tmp_path)
 
 
-@pytest.mark.parametrize("model, weak, trade_off", [
-    ("independent", [], False),  # E and nu each move the flow their own way
-    ("nu_does_nothing", ["poissons_ratio"], False),
-    # a small standard error (many pixels) but a step of 0.1 costs 0.25 % of the loss: flagged
-    ("nu_barely_matters", ["poissons_ratio"], False),
-    ("only_the_sum_matters", ["youngs_modulus", "poissons_ratio"], True),
-])
+@pytest.mark.parametrize(
+    "model, weak, trade_off",
+    [
+        ("independent", [], False),  # E and nu each move the flow their own way
+        ("nu_does_nothing", ["poissons_ratio"], False),
+        # a small standard error (many pixels) but a step of 0.1 costs 0.25 % of the loss: flagged
+        ("nu_barely_matters", ["poissons_ratio"], False),
+        ("only_the_sum_matters", ["youngs_modulus", "poissons_ratio"], True),
+    ],
+)
 def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypatch, model, weak, trade_off):
     cfg = demo_config()
-    cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, parameters=("youngs_modulus", "poissons_ratio")))
+    cfg = dataclasses.replace(
+        cfg, optimize=dataclasses.replace(cfg.optimize, parameters=("youngs_modulus", "poissons_ratio"))
+    )
     opt = Optimization(cfg)
     g = torch.Generator().manual_seed(1)
     field_e, field_nu = (torch.randn(opt.observed.shape, generator=g, dtype=torch.float64) for _ in range(2))
@@ -170,12 +177,19 @@ def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypat
 
     def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None):
         e, nu = z["youngs_modulus"] - Z_TRUE, z["poissons_ratio"]
-        shift = {"independent": e * field_e + nu * field_nu, "nu_does_nothing": e * field_e,
-                 "nu_barely_matters": e * field_e + 0.005 * nu * field_nu,
-                 "only_the_sum_matters": (e + nu) * field_e}[model]
+        shift = {
+            "independent": e * field_e + nu * field_nu,
+            "nu_does_nothing": e * field_e,
+            "nu_barely_matters": e * field_e + 0.005 * nu * field_nu,
+            "only_the_sum_matters": (e + nu) * field_e,
+        }[model]
         flows = [opt.observed[t] + noise[t] + shift[t] for t in range(frames)]
-        return Evaluation(float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.weight[:frames])), {}, flows,
-                          SimpleNamespace(substeps=1))
+        return Evaluation(
+            float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.weight[:frames])),
+            {},
+            flows,
+            SimpleNamespace(substeps=1),
+        )
 
     monkeypatch.setattr(opt, "evaluate", evaluate)
     report = opt.identifiability({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0}, 1)
@@ -219,9 +233,16 @@ def test_several_starts_are_polished_and_the_best_is_kept(demo_config, monkeypat
     from clflow.scene.config import SearchSettings
 
     cfg = demo_config(iterations=6)
-    cfg = dataclasses.replace(cfg, flow=dataclasses.replace(cfg.flow, bias_correction="none"), optimize=dataclasses.replace(
-        cfg.optimize, method="levenberg_marquardt", horizon_start=0,
-        search=SearchSettings(samples=3, starts=starts, start_iterations=3)))
+    cfg = dataclasses.replace(
+        cfg,
+        flow=dataclasses.replace(cfg.flow, bias_correction="none"),
+        optimize=dataclasses.replace(
+            cfg.optimize,
+            method="levenberg_marquardt",
+            horizon_start=0,
+            search=SearchSettings(samples=3, starts=starts, start_iterations=3),
+        ),
+    )
     opt = Optimization(cfg)
     field = torch.randn(opt.observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
 
@@ -229,19 +250,29 @@ def test_several_starts_are_polished_and_the_best_is_kept(demo_config, monkeypat
         e = z["youngs_modulus"]  # two basins: the true one (residual 0) and a false one (0.5)
         shift = min(math.sqrt((e - Z_TRUE) ** 2 + 1e-8), math.sqrt((e - Z_FALSE) ** 2 + 1e-8) + 0.5)
         flows = [opt.observed[t] + shift * field[t] for t in range(frames)]
-        return Evaluation(float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.weight[:frames])), {}, flows,
-                          SimpleNamespace(substeps=1))
+        return Evaluation(
+            float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.weight[:frames])),
+            {},
+            flows,
+            SimpleNamespace(substeps=1),
+        )
 
     monkeypatch.setattr(opt, "evaluate", evaluate)
     # the search's best sample lies in the false basin, the runner-up in the true one
-    monkeypatch.setattr(opt, "search_points", lambda z0: [dict(z0), {"youngs_modulus": Z_FALSE + 0.05},
-                                                          {"youngs_modulus": Z_TRUE + 0.6}])
+    monkeypatch.setattr(
+        opt,
+        "search_points",
+        lambda z0: [dict(z0), {"youngs_modulus": Z_FALSE + 0.05}, {"youngs_modulus": Z_TRUE + 0.6}],
+    )
     assert opt.total_iterations == 6 + (starts - 1) * 3
     state = opt.run()
     if starts == 1:
         assert abs(state.z["youngs_modulus"] - Z_FALSE) < 0.1 and not state.polished  # stuck in the false basin
     else:
-        assert [round(s["youngs_modulus"], 6) for s in state.starts] == [round(Z_FALSE + 0.05, 6), round(Z_TRUE + 0.6, 6)]
+        assert [round(s["youngs_modulus"], 6) for s in state.starts] == [
+            round(Z_FALSE + 0.05, 6),
+            round(Z_TRUE + 0.6, 6),
+        ]
         assert len(state.polished) == 2 and state.polished[1]["loss"] < state.polished[0]["loss"]
         assert {r.get("start") for r in state.history} == {0, 1, None}
         assert abs(state.z["youngs_modulus"] - Z_TRUE) < 0.05  # (the kinked model: FD steps of 0.01)

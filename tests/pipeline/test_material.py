@@ -28,8 +28,9 @@ def query_config(quick_demo, tmp_path, material, optimize=("youngs_modulus",)):
 
 
 def test_query_fills_in_the_material_and_config_values_win(quick_demo, tmp_path):
-    cfg = query_config(quick_demo, tmp_path, {"type": "query", "query": {"image": "jelly.png"},
-                                              "parameters": {"poissons_ratio": 0.4}})
+    cfg = query_config(
+        quick_demo, tmp_path, {"type": "query", "query": {"image": "jelly.png"}, "parameters": {"poissons_ratio": 0.4}}
+    )
     assert cfg.material.density is None
     resolved = resolve_material(cfg)
     record = json.loads((tmp_path / "out" / "material_query.json").read_text())
@@ -43,8 +44,12 @@ def test_a_saved_query_record_is_the_initial_guess(quick_demo, tmp_path):
     from clflow.query.backends import query_material
 
     query_material(object_name="steel spoon").save(tmp_path / "spoon.material.json")
-    cfg = query_config(quick_demo, tmp_path, {"type": "query", "query": {"result": "spoon.material.json"}},
-                       optimize=("youngs_modulus",))
+    cfg = query_config(
+        quick_demo,
+        tmp_path,
+        {"type": "query", "query": {"result": "spoon.material.json"}},
+        optimize=("youngs_modulus",),
+    )
     resolved = resolve_material(cfg)
     assert resolved.material.type == "metal" and resolved.material.density > 7000
 
@@ -55,8 +60,12 @@ def test_query_needs_an_image_or_a_record(quick_demo, tmp_path):
 
 
 def test_query_result_without_the_optimised_parameter(quick_demo, tmp_path):
-    cfg = query_config(quick_demo, tmp_path, {"type": "query", "query": {"image": "jelly.png"}, "density": 900},
-                       optimize=("friction_angle",))
+    cfg = query_config(
+        quick_demo,
+        tmp_path,
+        {"type": "query", "query": {"image": "jelly.png"}, "density": 900},
+        optimize=("friction_angle",),
+    )
     with pytest.raises(InputError, match="the query chose elastic, which has no parameter 'friction_angle'"):
         resolve_material(cfg)
 
@@ -66,10 +75,15 @@ def test_concrete_material_is_unchanged(demo_config):
     assert resolve_material(cfg) is cfg
 
 
-@pytest.mark.parametrize("material, model, kernel_material", [
-    ("sand", "volume_corrected", "sand_volume_corrected"), ("sand", None, "sand"),
-    ("elastic", "neo_hookean", "neo_hookean"), ("elastic", None, "elastic"),
-])
+@pytest.mark.parametrize(
+    "material, model, kernel_material",
+    [
+        ("sand", "volume_corrected", "sand_volume_corrected"),
+        ("sand", None, "sand"),
+        ("elastic", "neo_hookean", "neo_hookean"),
+        ("elastic", None, "elastic"),
+    ],
+)
 def test_material_model_reaches_the_simulator(demo_config, material, model, kernel_material):
     import dataclasses
 
@@ -80,7 +94,8 @@ def test_material_model_reaches_the_simulator(demo_config, material, model, kern
 
     cfg = demo_config()
     params = validate_params(material, {})
-    cfg = dataclasses.replace(cfg, material=dataclasses.replace(cfg.material, type=material, parameters=params,
-                                                                model=model))
+    cfg = dataclasses.replace(
+        cfg, material=dataclasses.replace(cfg.material, type=material, parameters=params, model=model)
+    )
     sim = build_simulator(cfg, prepare(cfg).setup, params, 1500.0)
     assert set(sim.particles.material.tolist()) == {MATERIAL_IDS[kernel_material]}

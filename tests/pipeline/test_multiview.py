@@ -53,8 +53,9 @@ def test_two_views_give_the_mean_of_their_losses(quick_demo, tmp_path, side_view
     side_camera, side_video = side_view
     front = _optimization(quick_demo, tmp_path, "front")
     side = _optimization(quick_demo, tmp_path, "side", camera=side_camera, video=side_video)
-    both = _optimization(quick_demo, tmp_path, "both", camera=[data["camera"], side_camera],
-                         video=[data["video"], side_video])
+    both = _optimization(
+        quick_demo, tmp_path, "both", camera=[data["camera"], side_camera], video=[data["video"], side_video]
+    )
     z = front.initial_state().z  # the start, not the truth: each view's loss is > 0
     a, b, ab = _loss(front, z), _loss(side, z), _loss(both, z)
     assert a.loss > 0 and b.loss > 0 and abs(a.loss - b.loss) > 0.01 * a.loss  # the views differ
@@ -62,20 +63,28 @@ def test_two_views_give_the_mean_of_their_losses(quick_demo, tmp_path, side_view
     # Levenberg-Marquardt's residuals cover both views
     assert float((both.residuals(ab.flows, ab.more_flows) ** 2).sum()) == pytest.approx(ab.loss, rel=1e-9)
     assert both.endpoint_error(ab.flows, ab.more_flows) == pytest.approx(
-        (front.endpoint_error(a.flows) + side.endpoint_error(b.flows)) / 2, rel=1e-9)
+        (front.endpoint_error(a.flows) + side.endpoint_error(b.flows)) / 2, rel=1e-9
+    )
     assert (tmp_path / "both" / "observed_flow.npz").exists() and (tmp_path / "both" / "observed_flow_1.npz").exists()
 
 
-@pytest.mark.parametrize("keys, message", [
-    ({"camera": [], "video": []}, "camera: is an empty list"),
-    ({"video": ["guidance", "guidance"]}, "video: has 2 entries, camera 1"),
-    ({"camera": ["CAM", "CAM"]}, "video: has 1 entries, camera 2"),
-    ({"camera": ["CAM", "CAM"], "video": ["guidance", None]}, r"video\[1\]: is required"),
-    ({"camera": ["CAM", {"position": [0, 1, 2]}], "video": ["guidance", "guidance"]},
-     r"camera\[1\]\.look_at: is required"),
-    ({"camera": ["CAM", "CAM"], "video": ["guidance", "guidance"], "flow": {"mask": "guidance/000.png"}},
-     "flow.mask: a mask image fits one view"),
-])
+@pytest.mark.parametrize(
+    "keys, message",
+    [
+        ({"camera": [], "video": []}, "camera: is an empty list"),
+        ({"video": ["guidance", "guidance"]}, "video: has 2 entries, camera 1"),
+        ({"camera": ["CAM", "CAM"]}, "video: has 1 entries, camera 2"),
+        ({"camera": ["CAM", "CAM"], "video": ["guidance", None]}, r"video\[1\]: is required"),
+        (
+            {"camera": ["CAM", {"position": [0, 1, 2]}], "video": ["guidance", "guidance"]},
+            r"camera\[1\]\.look_at: is required",
+        ),
+        (
+            {"camera": ["CAM", "CAM"], "video": ["guidance", "guidance"], "flow": {"mask": "guidance/000.png"}},
+            "flow.mask: a mask image fits one view",
+        ),
+    ],
+)
 def test_bad_view_lists_are_config_errors(quick_demo, keys, message):
     data = yaml.safe_load((quick_demo / "config.yaml").read_text())
     keys = {k: [data["camera"] if c == "CAM" else c for c in v] if k == "camera" else v for k, v in keys.items()}
@@ -97,16 +106,22 @@ def test_a_short_or_faster_second_video_fails_before_any_flow(quick_demo, tmp_pa
     for f in frames[: len(frames) // 2]:
         shutil.copy(f, short / f.name)
     with pytest.raises(InputError, match="short: the video lasts"):
-        _optimization(quick_demo, tmp_path, "short", camera=[data["camera"], side_camera],
-                      video=[data["video"], str(short)])
+        _optimization(
+            quick_demo, tmp_path, "short", camera=[data["camera"], side_camera], video=[data["video"], str(short)]
+        )
     assert not (tmp_path / "short" / "observed_flow.npz").exists()  # view 0's flow was not computed
     from clflow.flow.video import read_video
 
     doubled = np.repeat(read_video(quick_demo / side_video, fps=1.0).frames, 2, axis=0)
     write_video(tmp_path / "fast.mp4", doubled, 2 * data["simulation"]["fps"])
     with pytest.raises(InputError, match="different frame rates"):
-        _optimization(quick_demo, tmp_path, "fast", camera=[data["camera"], side_camera],
-                      video=["guidance.mp4", str(tmp_path / "fast.mp4")])
+        _optimization(
+            quick_demo,
+            tmp_path,
+            "fast",
+            camera=[data["camera"], side_camera],
+            video=["guidance.mp4", str(tmp_path / "fast.mp4")],
+        )
 
 
 def test_a_second_view_narrows_what_one_view_leaves_open(tmp_path):
@@ -125,8 +140,9 @@ def test_a_second_view_narrows_what_one_view_leaves_open(tmp_path):
     cfg = load_config(tmp_path / "config.yaml")
     found = {}
     for views in (1, 2):
-        opt = Optimization(dataclasses.replace(cfg, more_views=cfg.more_views[:views - 1],
-                                               output=tmp_path / f"results_{views}"))
+        opt = Optimization(
+            dataclasses.replace(cfg, more_views=cfg.more_views[: views - 1], output=tmp_path / f"results_{views}")
+        )
         truth = {n: float(p.encode(case.truth[n])) for n, p in opt.params.items()}
         found[views] = opt.identifiability(truth, 1)
     one, two = found[1], found[2]

@@ -80,8 +80,14 @@ def test_repeated_failures_stop_with_the_reason_and_keep_the_checkpoint(demo_con
 def test_adam_restarts_its_momentum_after_an_overshoot(demo_config):
     opt = Optimization.__new__(Optimization)
     opt.cfg = demo_config()
-    state = OptimizerState(5, {"youngs_modulus": 4.5}, {"youngs_modulus": -0.3}, {"youngs_modulus": 1.0},
-                           history=[{"z": {"youngs_modulus": 4.3}}], momentum_steps=5)
+    state = OptimizerState(
+        5,
+        {"youngs_modulus": 4.5},
+        {"youngs_modulus": -0.3},
+        {"youngs_modulus": 1.0},
+        history=[{"z": {"youngs_modulus": 4.3}}],
+        momentum_steps=5,
+    )
     # the last step went up by 0.2 and the gradient is now positive: uphill, so restart
     after = opt.adam_step(state, {"youngs_modulus": 2.0})
     assert after.momentum_steps == 1 and after.z["youngs_modulus"] < 4.5
@@ -109,7 +115,9 @@ def test_a_video_file_keeps_its_own_frame_rate(demo_config, quick_demo, tmp_path
     from clflow.pipeline.forward import prepare
     from clflow.pipeline.optimize import observed_flow_of
 
-    frames = [cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB) for p in sorted((quick_demo / "guidance").glob("*.png"))]
+    frames = [
+        cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB) for p in sorted((quick_demo / "guidance").glob("*.png"))
+    ]
     write_video(tmp_path / "guidance48.mp4", np.stack([f for f in frames for _ in range(2)]), 48.0)
     folder_cfg = demo_config(name="folder")
     video_cfg = dataclasses.replace(demo_config(name="video"), video=tmp_path / "guidance48.mp4")
@@ -154,9 +162,13 @@ def test_resume_refuses_a_changed_config_and_names_what_changed(tmp_path):
     from clflow.scene.config import parse_config
 
     (tmp_path / "scene.ply").write_bytes(b"ply\n")
-    data = {"splats": "scene.ply", "object": {"select": {"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}},
-            "material": {"type": "elastic", "parameters": {"youngs_modulus": 1e4}},
-            "camera": {"position": [0, 1, 3], "look_at": [0, 0, 0]}, "optimize": {"parameters": ["youngs_modulus"]}}
+    data = {
+        "splats": "scene.ply",
+        "object": {"select": {"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}},
+        "material": {"type": "elastic", "parameters": {"youngs_modulus": 1e4}},
+        "camera": {"position": [0, 1, 3], "look_at": [0, 0, 0]},
+        "optimize": {"parameters": ["youngs_modulus"]},
+    }
     cfg = parse_config(data, "scene.yaml", tmp_path)
 
     def checkpointing(cfg):  # just what save_state/load_state use, without the scene's preparation
@@ -170,6 +182,9 @@ def test_resume_refuses_a_changed_config_and_names_what_changed(tmp_path):
     longer = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=60))
     assert checkpointing(longer).load_state().iteration == 3  # --resume --iterations N extends a run
     changed = dataclasses.replace(cfg, scale=2.0, simulation=dataclasses.replace(cfg.simulation, frames=99))
-    with pytest.raises(InputError, match=r"config changed since it was saved \(scale, simulation\); "
-                                         r"give another -o/--out, or delete the checkpoint"):
+    with pytest.raises(
+        InputError,
+        match=r"config changed since it was saved \(scale, simulation\); "
+        r"give another -o/--out, or delete the checkpoint",
+    ):
         checkpointing(changed).load_state()

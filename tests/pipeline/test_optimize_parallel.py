@@ -16,13 +16,29 @@ from clflow_cli.main import cli
 
 # a 2-sample search, both samples polished for 2 Levenberg-Marquardt iterations each (with
 # the estimator-bias calibration of the demo's config), then one more iteration from the best
-TINY = ("--set", "optimize.method=levenberg_marquardt",
-        "--set", "optimize.search={samples: 2, starts: 2, start_iterations: 2}",
-        "--set", "optimize.horizon={start: 0, step: 0}", "--set", "optimize.iterations=3",
-        "--set", "simulation.frames=4")
+TINY = (
+    "--set",
+    "optimize.method=levenberg_marquardt",
+    "--set",
+    "optimize.search={samples: 2, starts: 2, start_iterations: 2}",
+    "--set",
+    "optimize.horizon={start: 0, step: 0}",
+    "--set",
+    "optimize.iterations=3",
+    "--set",
+    "simulation.frames=4",
+)
 HYPOTHESES = ("--set", "optimize.material=[elastic, plasticine]")
-RESULTS = ("params.json", "metrics.json", "history.json", "checkpoint.json", "hypotheses.json", "search.json",
-           "starts/0/checkpoint.json", "starts/1/checkpoint.json")
+RESULTS = (
+    "params.json",
+    "metrics.json",
+    "history.json",
+    "checkpoint.json",
+    "hypotheses.json",
+    "search.json",
+    "starts/0/checkpoint.json",
+    "starts/1/checkpoint.json",
+)
 ARRAYS = ("estimator_error.npz", "starts/0/estimator_error.npz", "starts/1/estimator_error.npz")
 
 
@@ -77,9 +93,16 @@ def test_an_interrupted_polish_resumes_to_the_uninterrupted_result(demo_config):
     def config(name):
         cfg = demo_config(iterations=3, name=name)
         return dataclasses.replace(
-            cfg, simulation=dataclasses.replace(cfg.simulation, frames=4), optimize=dataclasses.replace(
-                cfg.optimize, method="levenberg_marquardt", horizon_start=0, horizon_step=0,
-                search=SearchSettings(samples=3, starts=2, start_iterations=2)))
+            cfg,
+            simulation=dataclasses.replace(cfg.simulation, frames=4),
+            optimize=dataclasses.replace(
+                cfg.optimize,
+                method="levenberg_marquardt",
+                horizon_start=0,
+                horizon_step=0,
+                search=SearchSettings(samples=3, starts=2, start_iterations=2),
+            ),
+        )
 
     whole = Optimization(config("whole")).run()
     Optimization(config("parts")).run(stop_after=3)  # inside the second start's polish
@@ -98,8 +121,9 @@ def test_an_interrupted_polish_resumes_to_the_uninterrupted_result(demo_config):
 
 def test_parallel_without_ray_is_one_line(quick_demo, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray fails
-    result = CliRunner().invoke(cli, ["optimize", str(quick_demo / "config.yaml"), "-o", str(tmp_path / "out"),
-                                      "--parallel"])
+    result = CliRunner().invoke(
+        cli, ["optimize", str(quick_demo / "config.yaml"), "-o", str(tmp_path / "out"), "--parallel"]
+    )
     assert result.exit_code == 1 and len(result.output.strip().splitlines()) == 1, result.output
     assert "pip install 'clflow[sweep]'" in result.output and "drop --parallel" in result.output
     assert not (tmp_path / "out").exists()

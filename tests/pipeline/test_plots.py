@@ -10,8 +10,15 @@ def history():
     for i in range(12):
         phase = "velocity" if i < 3 else "main"
         frames = 2 if i < 3 else 4 + 2 * ((i - 3) // 4)  # 4, 6, 8: the horizon grows twice
-        rows.append({"iteration": i, "phase": phase, "loss": 0.5 * 0.8**i, "frames": frames,
-                     "params": {"youngs_modulus": 1e4 * 1.3**i, "poissons_ratio": 0.3, "velocity_x": 0.01 * i}})
+        rows.append(
+            {
+                "iteration": i,
+                "phase": phase,
+                "loss": 0.5 * 0.8**i,
+                "frames": frames,
+                "params": {"youngs_modulus": 1e4 * 1.3**i, "poissons_ratio": 0.3, "velocity_x": 0.01 * i},
+            }
+        )
     return rows
 
 
@@ -19,7 +26,11 @@ def test_history_figure_panels_scales_truth_and_horizon():
     fig = history_figure(history(), {"youngs_modulus": 1e5, "velocity_x": 0.1})
     loss, *params = fig.axes
     assert [a.get_ylabel().split(" (")[0] for a in params] == ["poissons_ratio", "youngs_modulus", "velocity_x"]
-    assert [a.get_ylabel() for a in params] == ["poissons_ratio (dimensionless)", "youngs_modulus (Pa)", "velocity_x (m/s)"]
+    assert [a.get_ylabel() for a in params] == [
+        "poissons_ratio (dimensionless)",
+        "youngs_modulus (Pa)",
+        "velocity_x (m/s)",
+    ]
     assert loss.get_yscale() == "log" and [a.get_yscale() for a in params] == ["linear", "log", "linear"]
     assert params[-1].get_xlabel() == "iteration"
     legend = [t.get_text() for t in loss.get_legend().get_texts()]

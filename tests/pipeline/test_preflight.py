@@ -49,32 +49,60 @@ def one_line_error(res, pattern):
 @pytest.mark.parametrize("command", ["optimize", "simulate"])
 def test_a_stiff_material_is_refused_before_any_work(quick_demo, tmp_path, parameters, command):
     data = yaml.safe_load((quick_demo / "config.yaml").read_text())
-    path = bad_config(quick_demo, tmp_path, f"stiff_{command}",
-                      material={"parameters": {**data["material"]["parameters"], **parameters}})
+    path = bad_config(
+        quick_demo,
+        tmp_path,
+        f"stiff_{command}",
+        material={"parameters": {**data["material"]["parameters"], **parameters}},
+    )
     extra = ["--preview", "none"] if command == "simulate" else []
-    line = one_line_error(run(command, path, *extra), r"the simulation needs \d+ substeps per frame \(dt = .* s, "
-                          r"limited by elastic wave speed .* m/s of elastic, about .* s per frame\), beyond the "
-                          r"limit of 2000; ways out: a softer proxy material .*a coarser grid .*--max-substeps N")
+    line = one_line_error(
+        run(command, path, *extra),
+        r"the simulation needs \d+ substeps per frame \(dt = .* s, "
+        r"limited by elastic wave speed .* m/s of elastic, about .* s per frame\), beyond the "
+        r"limit of 2000; ways out: a softer proxy material .*a coarser grid .*--max-substeps N",
+    )
     assert ("simulation.substep_dt" in line) == (command == "simulate")  # the optimiser rejects unstable steps
 
 
 def test_the_substep_limit_is_the_users(quick_demo, tmp_path, caplog):
     path = bad_config(quick_demo, tmp_path, "limit")
-    one_line_error(run("simulate", path, "--max-substeps", 4, "--preview", "none"),
-                   r"needs 5 substeps per frame .* beyond the limit of 4")
-    one_line_error(run("optimize", bad_config(quick_demo, tmp_path, "limit_key", simulation={"max_substeps": 4})),
-                   r"needs 5 substeps per frame .* beyond the limit of 4")
+    one_line_error(
+        run("simulate", path, "--max-substeps", 4, "--preview", "none"),
+        r"needs 5 substeps per frame .* beyond the limit of 4",
+    )
+    one_line_error(
+        run("optimize", bad_config(quick_demo, tmp_path, "limit_key", simulation={"max_substeps": 4})),
+        r"needs 5 substeps per frame .* beyond the limit of 4",
+    )
     with caplog.at_level(logging.INFO):
         res = run("simulate", path, "--max-substeps", 5, "--preview", "none", "-o", tmp_path / "sim")
     assert res.exit_code == 0, res.output
-    assert re.search(r"simulation: 5 substeps per frame \(dt = 0.00833 s, limited by elastic wave speed .*\), "
-                     r"1,867 particles, 8 frames: about .* s", caplog.text), caplog.text
+    assert re.search(
+        r"simulation: 5 substeps per frame \(dt = 0.00833 s, limited by elastic wave speed .*\), "
+        r"1,867 particles, 8 frames: about .* s",
+        caplog.text,
+    ), caplog.text
 
 
 def test_the_particle_simulate_refuses_too_many_substeps(tmp_path):
-    one_line_error(run("simulate", "--grid", 16, "--frames", 1, "-p", "youngs_modulus=1e12", "--preview", "none",
-                       "-o", tmp_path / "sim"), r"\d+ substeps per frame .* beyond the limit of 2000; ways out: a "
-                                                 r"softer material, a coarser --grid, .*--max-substeps N")
+    one_line_error(
+        run(
+            "simulate",
+            "--grid",
+            16,
+            "--frames",
+            1,
+            "-p",
+            "youngs_modulus=1e12",
+            "--preview",
+            "none",
+            "-o",
+            tmp_path / "sim",
+        ),
+        r"\d+ substeps per frame .* beyond the limit of 2000; ways out: a "
+        r"softer material, a coarser --grid, .*--max-substeps N",
+    )
 
 
 def test_a_long_frame_logs_its_progress(monkeypatch, caplog):
@@ -84,8 +112,9 @@ def test_a_long_frame_logs_its_progress(monkeypatch, caplog):
 
     monkeypatch.setattr(simulator, "PROGRESS_SECONDS", 0.0)
     x = torch.rand(64, 3, dtype=torch.float64) * 0.2 + 0.4
-    sim = Simulator(x, 1e-5, MaterialSpec("elastic", {"youngs_modulus": 1e4}), Grid((16, 16, 16), 1 / 16),
-                    frame_dt=0.01, substeps=3)
+    sim = Simulator(
+        x, 1e-5, MaterialSpec("elastic", {"youngs_modulus": 1e4}), Grid((16, 16, 16), 1 / 16), frame_dt=0.01, substeps=3
+    )
     E = torch.tensor(1e4, dtype=torch.float64, requires_grad=True)
     with caplog.at_level(logging.INFO, logger="clflow.mpm"):
         sim.run(2)
@@ -104,9 +133,17 @@ def test_clamped_and_cfl_breaking_runs_are_flagged():
 
     grid = Grid((16, 16, 16), 1 / 16)
     x = torch.stack(torch.meshgrid(*[torch.linspace(0.7, 0.85, 4)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    sim = Simulator(x, 1e-5, MaterialSpec("elastic", {"youngs_modulus": 1e4}), grid,
-                    velocities=torch.tensor([[20.0, 0, 0]]).expand(64, 3), gravity=(0, 0, 0), walls=None,
-                    frame_dt=0.02, substeps=40)
+    sim = Simulator(
+        x,
+        1e-5,
+        MaterialSpec("elastic", {"youngs_modulus": 1e4}),
+        grid,
+        velocities=torch.tensor([[20.0, 0, 0]]).expand(64, 3),
+        gravity=(0, 0, 0),
+        walls=None,
+        frame_dt=0.02,
+        substeps=40,
+    )
     with pytest.warns(RuntimeWarning):
         frames = simulate(sim, 1)
     assert frames.clamped > 0 and frames.unstable.endswith("particles left the grid and were clamped to its boundary")
@@ -120,8 +157,11 @@ def probe_config(demo_config, iterations=8):
     """The issue's probe: a fixed substep_dt (stable up to E = 4.7e4 Pa) and a rate of 1.5
     decades per iteration from E = 2e3 Pa (truth 2e4)."""
     cfg = demo_config(iterations=iterations)
-    return dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, substep_dt=1 / 24 / 20),
-                               optimize=dataclasses.replace(cfg.optimize, learning_rates={"youngs_modulus": 1.5}))
+    return dataclasses.replace(
+        cfg,
+        simulation=dataclasses.replace(cfg.simulation, substep_dt=1 / 24 / 20),
+        optimize=dataclasses.replace(cfg.optimize, learning_rates={"youngs_modulus": 1.5}),
+    )
 
 
 def test_a_fixed_substep_and_a_large_rate_never_accept_an_unstable_iteration(demo_config):
@@ -167,8 +207,11 @@ def test_a_clamped_iteration_is_rolled_back(demo_config, monkeypatch):
 
 def test_an_iteration_beyond_the_substep_limit_is_rolled_back(demo_config):
     cfg = demo_config(iterations=2)
-    cfg = dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, max_substeps=22),
-                              optimize=dataclasses.replace(cfg.optimize, learning_rates={"youngs_modulus": 1.5}))
+    cfg = dataclasses.replace(
+        cfg,
+        simulation=dataclasses.replace(cfg.simulation, max_substeps=22),
+        optimize=dataclasses.replace(cfg.optimize, learning_rates={"youngs_modulus": 1.5}),
+    )
     state = Optimization(cfg).run()  # the start needs 5 (20 after its CFL retries), the step to 6.3e4 Pa 24
     assert state.iteration == 2 and len(state.rollbacks) == 1
     reason = state.rollbacks[0]["reason"]
@@ -177,9 +220,11 @@ def test_an_iteration_beyond_the_substep_limit_is_rolled_back(demo_config):
 
 
 def test_a_fixed_substep_too_long_for_the_start_is_refused(quick_demo, tmp_path):
-    one_line_error(run("optimize", bad_config(quick_demo, tmp_path, "long_dt", simulation={"substep_dt": 0.02})),
-                   r"simulation.substep_dt = 0.02 s is above the stable step 0.00833 s of the starting parameters "
-                   r"\(elastic wave speed .*\); the optimiser rejects unstable runs")
+    one_line_error(
+        run("optimize", bad_config(quick_demo, tmp_path, "long_dt", simulation={"substep_dt": 0.02})),
+        r"simulation.substep_dt = 0.02 s is above the stable step 0.00833 s of the starting parameters "
+        r"\(elastic wave speed .*\); the optimiser rejects unstable runs",
+    )
 
 
 # -- 3. guidance videos that do not fit the scene -----------------------------------------------
@@ -193,13 +238,19 @@ def video(tmp_path, name, frames):
     return str(folder)
 
 
-@pytest.mark.parametrize("case, pattern", [
-    ("grey", r"does not look like the scene .*correlation 0.00.*; the video shows no motion inside the loss mask"),
-    ("noise", r"does not look like the scene .*the observed flow is unreliable inside the loss mask \(\d+ % of"),
-    ("behind", r"the simulated motion at the starting parameters points against the video's over the first 3 "
-               r"frames \(cosine -0.\d+; is the camera on the other side"),
-    ("inside", r"the object covers 100 % of the image \(more than 90 %: is the camera inside the object\?\)"),
-])
+@pytest.mark.parametrize(
+    "case, pattern",
+    [
+        ("grey", r"does not look like the scene .*correlation 0.00.*; the video shows no motion inside the loss mask"),
+        ("noise", r"does not look like the scene .*the observed flow is unreliable inside the loss mask \(\d+ % of"),
+        (
+            "behind",
+            r"the simulated motion at the starting parameters points against the video's over the first 3 "
+            r"frames \(cosine -0.\d+; is the camera on the other side",
+        ),
+        ("inside", r"the object covers 100 % of the image \(more than 90 %: is the camera inside the object\?\)"),
+    ],
+)
 def test_a_video_that_does_not_fit_the_scene_is_refused(quick_demo, tmp_path, case, pattern):
     data = yaml.safe_load((quick_demo / "config.yaml").read_text())
     shape = (data["simulation"]["frames"] + 1, data["camera"]["height"], data["camera"]["width"], 3)
@@ -209,8 +260,10 @@ def test_a_video_that_does_not_fit_the_scene_is_refused(quick_demo, tmp_path, ca
         "behind": {"camera": {"position": [-0.25, 0.45, -0.75]}},  # the demo's camera mirrored through the cube
         "inside": {"camera": {"position": [0.0, 0.12, 0.01]}},
     }[case]
-    one_line_error(run("optimize", bad_config(quick_demo, tmp_path, case, **changes)),
-                   r"the guidance video does not fit the scene: .*" + pattern + r".*optimise anyway with --force-video")
+    one_line_error(
+        run("optimize", bad_config(quick_demo, tmp_path, case, **changes)),
+        r"the guidance video does not fit the scene: .*" + pattern + r".*optimise anyway with --force-video",
+    )
 
 
 def test_a_forced_bad_video_is_warned_about_and_recorded(quick_demo, tmp_path):
@@ -238,14 +291,18 @@ def test_a_force_stage_after_the_simulated_time_is_refused(quick_demo, tmp_path)
     data = yaml.safe_load((quick_demo / "config.yaml").read_text())
     late = [{**data["forces"][0], "start": 5.0, "end": 6.0}]
     for command in ("optimize", "simulate"):
-        one_line_error(run(command, bad_config(quick_demo, tmp_path, f"late_{command}", forces=late)),
-                       r"forces\[0\] starts at 5 s, after the simulated 0.3333 s \(8 frames at 24 fps\): it would "
-                       r"never act")
+        one_line_error(
+            run(command, bad_config(quick_demo, tmp_path, f"late_{command}", forces=late)),
+            r"forces\[0\] starts at 5 s, after the simulated 0.3333 s \(8 frames at 24 fps\): it would "
+            r"never act",
+        )
 
 
 def test_a_force_region_without_particles_is_one_setup_error(quick_demo, tmp_path):
     forces = [{"region": {"sphere": {"center": [3, 3, 3], "radius": 0.1}}, "acceleration": [1, 0, 0]}]
-    line = one_line_error(run("optimize", bad_config(quick_demo, tmp_path, "empty_region", forces=forces)),
-                          r"forces\[0\].region holds no particle of the object \(the object spans \(.*\) .. \(.*\) m")
+    line = one_line_error(
+        run("optimize", bad_config(quick_demo, tmp_path, "empty_region", forces=forces)),
+        r"forces\[0\].region holds no particle of the object \(the object spans \(.*\) .. \(.*\) m",
+    )
     assert "optimisation stopped" not in line and "failed" not in line
     assert not re.search(r"\d\.\d{6,}", line), "coordinates in float32 digits"

@@ -33,7 +33,9 @@ def results(quick_demo, tmp_path_factory):
 def test_run_json_says_what_made_the_results(results):
     run = json.loads((results / "run.json").read_text())
     env = run["environment"]
-    assert env["torch"].startswith("2.13") and env["pyopencl"] and "Portable Computing Language" in env["opencl_platform"]
+    assert (
+        env["torch"].startswith("2.13") and env["pyopencl"] and "Portable Computing Language" in env["opencl_platform"]
+    )
     assert run["config"]["material"]["type"] == "elastic" and run["config"]["optimize"]["iterations"] == 1
     assert run["command"][:2] == ["clflow", "optimize"]
 

@@ -23,9 +23,11 @@ def searching(demo_config, monkeypatch):
 
     def make(samples=16, decades=2.0, iterations=1, name="results"):
         cfg = demo_config(iterations=iterations, name=name)
-        cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(
-            cfg.optimize, search=SearchSettings(samples=samples, decades=decades)),
-            flow=dataclasses.replace(cfg.flow, bias_correction="none"))  # losses without a simulation
+        cfg = dataclasses.replace(
+            cfg,
+            optimize=dataclasses.replace(cfg.optimize, search=SearchSettings(samples=samples, decades=decades)),
+            flow=dataclasses.replace(cfg.flow, bias_correction="none"),
+        )  # losses without a simulation
         opt = Optimization(cfg)
         calls = []
 
@@ -100,13 +102,16 @@ def config_with(optimize: dict) -> dict:
     return data
 
 
-@pytest.mark.parametrize("bounds, message", [
-    ({"youngs_modulus": [1e6, 1e4]}, "empty or inverted"),
-    ({"youngs_modulus": [1e4, 1e4]}, "empty or inverted"),
-    ({"youngs_modulus": [1e4]}, r"must be \[lower, upper\]"),
-    ({"youngs_modulus": ["a", 1e6]}, r"must be \[lower, upper\]"),
-    ({"poissons_ratio": [0.1, 0.4]}, "not among optimize.parameters"),
-])
+@pytest.mark.parametrize(
+    "bounds, message",
+    [
+        ({"youngs_modulus": [1e6, 1e4]}, "empty or inverted"),
+        ({"youngs_modulus": [1e4, 1e4]}, "empty or inverted"),
+        ({"youngs_modulus": [1e4]}, r"must be \[lower, upper\]"),
+        ({"youngs_modulus": ["a", 1e6]}, r"must be \[lower, upper\]"),
+        ({"poissons_ratio": [0.1, 0.4]}, "not among optimize.parameters"),
+    ],
+)
 def test_a_bad_parameter_box_is_refused(tmp_path, bounds, message):
     (tmp_path / "scene.ply").write_bytes(b"ply\n")
     data = config_with({"bounds": bounds})

@@ -32,7 +32,9 @@ def save_part(path, g: Gaussians, index, shift=0.0):
 
 
 def test_a_part_selects_what_the_box_selects(quick_demo, tmp_path):
-    box = config_with(quick_demo, tmp_path, yaml.safe_load((quick_demo / "config.yaml").read_text())["object"]["select"])
+    box = config_with(
+        quick_demo, tmp_path, yaml.safe_load((quick_demo / "config.yaml").read_text())["object"]["select"]
+    )
     scene = load_ply(quick_demo / "scene.ply")
     want = select_object(box, scene.means.double())
     assert 0 < int(want.sum()) < len(scene)
@@ -42,14 +44,22 @@ def test_a_part_selects_what_the_box_selects(quick_demo, tmp_path):
     # a compressed part (as SuperSplat exports it) matches within its quantisation error
     part = load_ply(tmp_path / "part.ply")
     save_compressed_ply(tmp_path / "part.compressed.ply", part)
-    moved = (load_ply(tmp_path / "part.compressed.ply").means - part.means[torch.from_numpy(
-        morton_order(part.means.numpy()))]).norm(dim=1).max()
+    moved = (
+        (
+            load_ply(tmp_path / "part.compressed.ply").means
+            - part.means[torch.from_numpy(morton_order(part.means.numpy()))]
+        )
+        .norm(dim=1)
+        .max()
+    )
     diagonal = (scene.means.max(0).values - scene.means.min(0).values).norm()
     assert moved > PART_TOLERANCE * diagonal  # farther than the default tolerance of a plain part
     compressed = select_object(config_with(quick_demo, tmp_path, {"ply": "part.compressed.ply"}), scene.means.double())
     assert torch.equal(compressed, want)
     # a loose tolerance takes neighbours too; an exact one nothing
-    loose = select_object(config_with(quick_demo, tmp_path, {"ply": "part.ply", "tolerance": 0.05}), scene.means.double())
+    loose = select_object(
+        config_with(quick_demo, tmp_path, {"ply": "part.ply", "tolerance": 0.05}), scene.means.double()
+    )
     assert int(loose.sum()) > int(want.sum()) and bool(loose[want].all())
     with pytest.raises(InputError, match=r"part.ply: none of its \d+ Gaussian centres lies within 1e-09 scene units"):
         select_object(config_with(quick_demo, tmp_path, {"ply": "part.ply", "tolerance": 1e-9}), scene.means.double())
@@ -59,23 +69,37 @@ def test_a_part_of_another_scene_is_refused_and_a_partial_one_logged(quick_demo,
     scene = load_ply(quick_demo / "scene.ply")
     save_part(tmp_path / "moved.ply", scene, torch.arange(50), shift=0.3)
     cfg = config_with(quick_demo, tmp_path, {"ply": "moved.ply"})
-    with pytest.raises(InputError, match=r"moved.ply: none of its 50 Gaussian centres lies within .* not a part of "
-                                         r"this splat file, or moved since"):
+    with pytest.raises(
+        InputError,
+        match=r"moved.ply: none of its 50 Gaussian centres lies within .* not a part of "
+        r"this splat file, or moved since",
+    ):
         select_object(cfg, scene.means.double())
     part = scene.select(torch.arange(20))
-    extra = Gaussians.cat([part, Gaussians(part.means + 5.0, part.quats, part.log_scales, part.opacity_logits, sh=part.sh)])
+    extra = Gaussians.cat(
+        [part, Gaussians(part.means + 5.0, part.quats, part.log_scales, part.opacity_logits, sh=part.sh)]
+    )
     save_ply(tmp_path / "partial.ply", extra)
     with caplog.at_level(logging.WARNING):
         got = select_object(config_with(quick_demo, tmp_path, {"ply": "partial.ply"}), scene.means.double())
     assert int(got.sum()) == 20 and "partial.ply: 20 of its 40 Gaussian centres match no Gaussian" in caplog.text
 
 
-@pytest.mark.parametrize("select, message", [
-    ({"ply": "part.ply", "box": {"min": [0, 0, 0], "max": [1, 1, 1]}}, "object.select: give exactly one of box, sphere, mask and ply"),
-    ({"box": {"min": [0, 0, 0], "max": [1, 1, 1]}, "tolerance": 0.1}, "object.select.tolerance: applies to a ply selection only"),
-    ({"ply": "part.ply", "tolerance": 0}, "object.select.tolerance: must be > 0"),
-    ({"ply": "nope.ply"}, "object.select.ply: file not found"),
-])
+@pytest.mark.parametrize(
+    "select, message",
+    [
+        (
+            {"ply": "part.ply", "box": {"min": [0, 0, 0], "max": [1, 1, 1]}},
+            "object.select: give exactly one of box, sphere, mask and ply",
+        ),
+        (
+            {"box": {"min": [0, 0, 0], "max": [1, 1, 1]}, "tolerance": 0.1},
+            "object.select.tolerance: applies to a ply selection only",
+        ),
+        ({"ply": "part.ply", "tolerance": 0}, "object.select.tolerance: must be > 0"),
+        ({"ply": "nope.ply"}, "object.select.ply: file not found"),
+    ],
+)
 def test_bad_ply_selections(quick_demo, tmp_path, select, message):
     (tmp_path / "part.ply").write_bytes((quick_demo / "scene.ply").read_bytes())
     with pytest.raises(InputError, match=message):

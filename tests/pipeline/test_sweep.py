@@ -47,18 +47,21 @@ def _sweep(*args):
     return CliRunner().invoke(cli, ["sweep", *map(str, args)])
 
 
-@pytest.mark.parametrize("change, message", [
-    ({"colour": 1}, "unknown key 'colour'"),
-    ({"command": "render"}, "unknown command 'render'"),
-    ({"base": "demo/nowhere.yaml"}, "config demo/nowhere.yaml not found"),
-    ({"grid": {"simulation.framez": [1, 2]}}, "framez"),
-    ({"grid": {"material.parameters.youngs_modulus": [-1.0]}}, "youngs_modulus"),
-    ({"grid": {"simulation.frames": []}}, "non-empty list"),
-    ({"options": {"preview": "gif"}}, "options.preview: must be one of mp4, png, none"),
-    ({"options": {"iterations": 3}}, "unknown key 'iterations'"),
-    ({"runs": [{"name": "x", "config": "demo/config.yaml", "case": "torus"}]}, "only sysid runs take a case"),
-    ({"cases": ["torus"]}, "sysid cases need command: sysid"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"colour": 1}, "unknown key 'colour'"),
+        ({"command": "render"}, "unknown command 'render'"),
+        ({"base": "demo/nowhere.yaml"}, "config demo/nowhere.yaml not found"),
+        ({"grid": {"simulation.framez": [1, 2]}}, "framez"),
+        ({"grid": {"material.parameters.youngs_modulus": [-1.0]}}, "youngs_modulus"),
+        ({"grid": {"simulation.frames": []}}, "non-empty list"),
+        ({"options": {"preview": "gif"}}, "options.preview: must be one of mp4, png, none"),
+        ({"options": {"iterations": 3}}, "unknown key 'iterations'"),
+        ({"runs": [{"name": "x", "config": "demo/config.yaml", "case": "torus"}]}, "only sysid runs take a case"),
+        ({"cases": ["torus"]}, "sysid cases need command: sysid"),
+    ],
+)
 def test_a_bad_spec_is_one_line_before_any_work(spec_dir, change, message):
     folder, write = spec_dir
     spec = write({**FOUR_RUNS, **change})
@@ -131,7 +134,8 @@ def test_a_sweep_on_local_ray_records_failures_resumes_and_matches_the_serial_pa
     assert result.exit_code == 1, result.output
     serial_summary, serial_arrays = _outputs(serial)
     assert {n: r["status"] for n, r in serial_summary["runs"].items()} == {
-        n: r["status"] for n, r in summary["runs"].items()}
+        n: r["status"] for n, r in summary["runs"].items()
+    }
     assert serial_arrays.keys() == arrays.keys()
     for name in arrays:
         for key, value in arrays[name].items():
@@ -164,8 +168,14 @@ def test_a_killed_task_is_recorded_and_the_others_go_on(spec_dir):
     records = []
     start_ray(None)
     try:
-        run_on_ray(list(spec.runs), lambda run: folder / "out" / run.name, None, records.append,
-                   env=task_env(1, None, serial_order()), task=task)
+        run_on_ray(
+            list(spec.runs),
+            lambda run: folder / "out" / run.name,
+            None,
+            records.append,
+            env=task_env(1, None, serial_order()),
+            task=task,
+        )
     finally:
         ray.shutdown()
     status = {r["name"].split("-")[2]: (r["status"], r["reason"]) for r in records}
@@ -183,12 +193,19 @@ def test_ctrl_c_stops_the_sweep_and_keeps_what_finished(spec_dir):
     import time
 
     folder, write = spec_dir
-    spec = write({"command": "simulate", "base": "demo/config.yaml", "options": {"preview": "none"},
-                  "overrides": [{"simulation.frames": 2}, {"simulation.frames": 3000}]})
+    spec = write(
+        {
+            "command": "simulate",
+            "base": "demo/config.yaml",
+            "options": {"preview": "none"},
+            "overrides": [{"simulation.frames": 2}, {"simulation.frames": 3000}],
+        }
+    )
     out = folder / "out"
     clflow = os.path.join(os.path.dirname(sys.executable), "clflow")
-    proc = subprocess.Popen([clflow, "sweep", str(spec), "-o", str(out)], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        [clflow, "sweep", str(spec), "-o", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:  # until the short run is in
         summary = json.loads((out / "sweep.json").read_text()) if (out / "sweep.json").exists() else {}
@@ -228,8 +245,11 @@ def test_resources_and_modes_are_checked_as_usage(spec_dir):
     assert parse_resources(("GPU=1", "memory_gb=4.5")) == {"GPU": 1.0, "memory_gb": 4.5}
     folder, write = spec_dir
     spec = write(FOUR_RUNS)
-    for args, message in ((["--resources", "GPU"], "expected NAME=AMOUNT"), (["--resources", "GPU=0"], "amount > 0"),
-                          (["--serial", "--address", "auto"], "drop --address")):
+    for args, message in (
+        (["--resources", "GPU"], "expected NAME=AMOUNT"),
+        (["--resources", "GPU=0"], "amount > 0"),
+        (["--serial", "--address", "auto"], "drop --address"),
+    ):
         result = _sweep(spec, "-o", folder / "out", *args)
         assert result.exit_code == 2 and message in result.output, result.output
     assert not (folder / "out").exists()

@@ -20,8 +20,9 @@ def test_surface_gaussians_lie_flat_on_the_shape():
     np.testing.assert_allclose(np.linalg.norm(means - [0, 0.1, 0], axis=1), 0.1, rtol=1e-12)
     np.testing.assert_allclose(np.abs(np.einsum("ni,ni->n", rotations[:, :, 2], radial)), 1.0, rtol=1e-12)
     assert np.all(scales[:, 2] < 0.2 * scales[:, 0])  # thin along the normal
-    np.testing.assert_allclose(np.einsum("nij,nik->njk", rotations, rotations), np.broadcast_to(np.eye(3), rotations.shape),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        np.einsum("nij,nik->njk", rotations, rotations), np.broadcast_to(np.eye(3), rotations.shape), atol=1e-12
+    )
     means, _, rotations, _ = torus_surface(0.2, (0, 0.05, 0), 10, rng)
     ring = means.copy()
     ring[:, 1] -= 0.05
@@ -31,7 +32,9 @@ def test_surface_gaussians_lie_flat_on_the_shape():
     assert np.all(np.linalg.det(rotations) > 0.999)
 
 
-@pytest.mark.parametrize("shape, volume", [("sphere", math.pi * 0.2**3 / 6), ("torus", 2 * math.pi**2 * 0.05 * 0.05**2)])
+@pytest.mark.parametrize(
+    "shape, volume", [("sphere", math.pi * 0.2**3 / 6), ("torus", 2 * math.pi**2 * 0.05 * 0.05**2)]
+)
 def test_shapes_are_filled_with_their_volume(tmp_path, shape, volume):
     config = make_case(tmp_path, SyntheticCase(shape=shape, forces=()), TINY)
     cfg = load_config(config)
@@ -42,7 +45,9 @@ def test_shapes_are_filled_with_their_volume(tmp_path, shape, volume):
 
 
 def test_a_dropped_sphere_falls_freely_until_it_lands(tmp_path):
-    case = SyntheticCase(shape="sphere", lift=0.1, spread=0.5, forces=(), truth={"youngs_modulus": 1e5, "poissons_ratio": 0.3})
+    case = SyntheticCase(
+        shape="sphere", lift=0.1, spread=0.5, forces=(), truth={"youngs_modulus": 1e5, "poissons_ratio": 0.3}
+    )
     config = make_case(tmp_path, case, TINY)
     result = simulate_config(load_config(tmp_path / "config_truth.yaml"))
     drop = (result.x[:, :, 1].mean(1) - result.x[0, :, 1].mean()).double()

@@ -27,13 +27,17 @@ def test_the_guidance_is_not_the_optimisers_own_forward(tmp_path):
     config = make_case(tmp_path, case, TINY, truth_scale=2)
     truth, opt = (yaml.safe_load((tmp_path / name).read_text()) for name in ("config_truth.yaml", "config.yaml"))
     assert truth["simulation"]["grid_resolution"] - 1 == 2 * (opt["simulation"]["grid_resolution"] - 1)
-    (tlo, thi), (olo, ohi) = ((c["simulation"]["domain"]["min"], c["simulation"]["domain"]["max"]) for c in (truth, opt))
+    (tlo, thi), (olo, ohi) = (
+        (c["simulation"]["domain"]["min"], c["simulation"]["domain"]["max"]) for c in (truth, opt)
+    )
     assert tlo[0::2] == olo[0::2] and thi[0::2] == ohi[0::2]  # the same space, half the spacing,
     assert thi[1] - tlo[1] == pytest.approx(ohi[1] - olo[1])  # shifted up a fraction of a fine cell so that
     from clflow.pipeline.simulation import GROUND_OFFSET  # the ground meets either grid the same way:
 
-    for lo, hi, nodes in ((tlo, thi, truth["simulation"]["grid_resolution"]),
-                          (olo, ohi, opt["simulation"]["grid_resolution"])):
+    for lo, hi, nodes in (
+        (tlo, thi, truth["simulation"]["grid_resolution"]),
+        (olo, ohi, opt["simulation"]["grid_resolution"]),
+    ):
         cells = -lo[1] / (max(h - low for low, h in zip(lo, hi)) / (nodes - 1))  # ground height in cells
         assert cells % 1 == pytest.approx(GROUND_OFFSET) and cells > 4
     assert truth["camera"]["width"] == 2 * opt["camera"]["width"] == 2 * TINY.image
@@ -81,8 +85,15 @@ def test_a_case_with_several_views_films_one_motion_from_each_camera(tmp_path):
 
 def test_a_case_without_room_for_its_motion_fails(tmp_path):
     # a runny fluid dropped into a domain with no room to spread reaches the walls
-    case = SyntheticCase(shape="cube", lift=0.05, spread=0.0, material="newtonian",
-                         truth={"viscosity": 0.01, "bulk_modulus": 1e5}, guess={}, optimize=("viscosity",))
+    case = SyntheticCase(
+        shape="cube",
+        lift=0.05,
+        spread=0.0,
+        material="newtonian",
+        truth={"viscosity": 0.01, "bulk_modulus": 1e5},
+        guess={},
+        optimize=("viscosity",),
+    )
     with pytest.raises(ValueError, match="more room"):
         make_case(tmp_path, case, dataclasses.replace(TINY, frames=10), truth_scale=1)
 
@@ -114,8 +125,9 @@ def test_a_folder_with_other_files_is_refused_without_force(tmp_path):
 @pytest.fixture
 def tiny_cases(monkeypatch):
     """The torus case, shrunk to a few seconds."""
-    case = dataclasses.replace(sysid.CASES["torus"], guess={"youngs_modulus": 3e5}, optimize=("youngs_modulus",), search=3,
-                               starts=1)
+    case = dataclasses.replace(
+        sysid.CASES["torus"], guess={"youngs_modulus": 3e5}, optimize=("youngs_modulus",), search=3, starts=1
+    )
     monkeypatch.setitem(sysid.CASES, "torus", case)
 
 
@@ -165,7 +177,9 @@ def test_a_changed_case_definition_is_made_and_run_again(tmp_path, tiny_cases, m
     monkeypatch.setitem(sysid.CASES, "torus", changed)
     second = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))["cases"]["torus"]
     assert first["generation"]["definition"]["lift"] != second["generation"]["definition"]["lift"] == 0.25
-    assert yaml.safe_load((out / "cases" / "torus" / "config.yaml").read_text())["object"]["select"]["box"]["min"][1] > 0.2
+    assert (
+        yaml.safe_load((out / "cases" / "torus" / "config.yaml").read_text())["object"]["select"]["box"]["min"][1] > 0.2
+    )
 
 
 @pytest.mark.slow
@@ -192,8 +206,9 @@ def test_parallel_cases_on_ray_give_the_serial_results(tmp_path, tiny_cases, mon
     pytest.importorskip("ray")
     from clflow.sweep import sysid_on_ray
 
-    bird = dataclasses.replace(sysid.CASES["bird"], guess={"youngs_modulus": 1e5}, optimize=("youngs_modulus",), search=3,
-                               starts=1)
+    bird = dataclasses.replace(
+        sysid.CASES["bird"], guess={"youngs_modulus": 1e5}, optimize=("youngs_modulus",), search=3, starts=1
+    )
     monkeypatch.setitem(sysid.CASES, "bird", bird)  # the tasks get the driver's definitions
     settings = sysid.Settings(resolution=TINY)
     serial = sysid.evaluate(["torus", "bird"], tmp_path / "serial", settings)

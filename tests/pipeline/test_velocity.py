@@ -27,12 +27,21 @@ def test_gradient_of_the_initial_velocity_matches_central_differences():
     """A 3-vector broadcast to every particle, through the MPM adjoint: float64, 216
     particles of a block whose upper half is pushed (so it deforms), 3 frames."""
     x = cube(6, 0.38, 0.62)
-    sim = Simulator(x, (0.24 / 6) ** 3, MaterialSpec("elastic", {"youngs_modulus": 2e4, "poissons_ratio": 0.3}, 800.0),
-                    Grid((16, 16, 16), 1 / 16), forces=[Force(x[:, 1] > 0.5, 0.0, 0.03, acceleration=(20.0, 0.0, 0.0))],
-                    frame_dt=1e-2, substeps=10, dtype=torch.float64)
+    sim = Simulator(
+        x,
+        (0.24 / 6) ** 3,
+        MaterialSpec("elastic", {"youngs_modulus": 2e4, "poissons_ratio": 0.3}, 800.0),
+        Grid((16, 16, 16), 1 / 16),
+        forces=[Force(x[:, 1] > 0.5, 0.0, 0.03, acceleration=(20.0, 0.0, 0.0))],
+        frame_dt=1e-2,
+        substeps=10,
+        dtype=torch.float64,
+    )
     gen = torch.Generator().manual_seed(0)
-    w_x, w_v, w_F = (torch.randn(shape, generator=gen, dtype=torch.float64)
-                     for shape in ((4, sim.n, 3), (4, sim.n, 3), (4, sim.n, 3, 3)))
+    w_x, w_v, w_F = (
+        torch.randn(shape, generator=gen, dtype=torch.float64)
+        for shape in ((4, sim.n, 3), (4, sim.n, 3), (4, sim.n, 3, 3))
+    )
 
     def loss_at(velocity):
         out = run(sim, 3, {}, velocity=velocity)
@@ -79,10 +88,16 @@ def test_simulate_takes_the_velocity_of_a_params_file(quick_demo, tmp_path):
     moving.write_text(yaml.safe_dump(truth))
     assert run_cli("simulate", moving, "-o", tmp_path / "a", "--preview", "none").exit_code == 0
     params = tmp_path / "params.json"
-    record = {"material": "elastic", "parameters": {"youngs_modulus": 2e4, "poissons_ratio": 0.3}, "density": 1000.0,
-              "velocity": [0.5, 0.0, 0.0]}
+    record = {
+        "material": "elastic",
+        "parameters": {"youngs_modulus": 2e4, "poissons_ratio": 0.3},
+        "density": 1000.0,
+        "velocity": [0.5, 0.0, 0.0],
+    }
     params.write_text(json.dumps(record))
-    res = run_cli("simulate", quick_demo / "config.yaml", "--params-from", params, "-o", tmp_path / "b", "--preview", "none")
+    res = run_cli(
+        "simulate", quick_demo / "config.yaml", "--params-from", params, "-o", tmp_path / "b", "--preview", "none"
+    )
     assert res.exit_code == 0, res.output
     means = [np.load(tmp_path / name / "gaussians.npz")["object_means"] for name in ("a", "b")]
     np.testing.assert_array_equal(means[0], means[1])
@@ -113,9 +128,13 @@ def thrown_config(folder, output, **optimize):
     cfg = load_config(folder / "config.yaml")
     assert cfg.velocity == THROW  # written by the generator
     optimize = {"learning_rates": {}, "horizon_start": 0, **optimize}
-    return dataclasses.replace(cfg, velocity=(0.0, 0.0, 0.0), output=output,
-                               optimize=dataclasses.replace(cfg.optimize, **optimize),
-                               ground_truth={**cfg.ground_truth, **dict(zip(VELOCITY_COMPONENTS, THROW))})
+    return dataclasses.replace(
+        cfg,
+        velocity=(0.0, 0.0, 0.0),
+        output=output,
+        optimize=dataclasses.replace(cfg.optimize, **optimize),
+        ground_truth={**cfg.ground_truth, **dict(zip(VELOCITY_COMPONENTS, THROW))},
+    )
 
 
 def test_the_velocity_alone_is_recovered_from_the_video(thrown, tmp_path):
@@ -134,8 +153,13 @@ def test_the_velocity_alone_is_recovered_from_the_video(thrown, tmp_path):
 
 
 def test_the_velocity_phase_runs_first_and_resumes_across_the_phases(thrown, tmp_path):
-    settings = dict(parameters=("youngs_modulus",), learning_rates={"velocity": 0.25}, iterations=2,
-                    estimate_velocity_frames=3, estimate_velocity_iterations=12)
+    settings = dict(
+        parameters=("youngs_modulus",),
+        learning_rates={"velocity": 0.25},
+        iterations=2,
+        estimate_velocity_frames=3,
+        estimate_velocity_iterations=12,
+    )
     whole_opt = Optimization(thrown_config(thrown, tmp_path / "whole", **settings))
     whole = whole_opt.run()
     rows = whole.history

@@ -12,8 +12,19 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import numpy as np
 import pytest
 
-ENV_VARS = ("CLFLOW_LLM_URL", "OPENAI_BASE_URL", "CLFLOW_LLM_MODEL", "CLFLOW_LLM_API_KEY", "OPENAI_API_KEY",
-            "http_proxy", "https_proxy", "HTTP_PROXY", "HTTPS_PROXY", "all_proxy", "ALL_PROXY")
+ENV_VARS = (
+    "CLFLOW_LLM_URL",
+    "OPENAI_BASE_URL",
+    "CLFLOW_LLM_MODEL",
+    "CLFLOW_LLM_API_KEY",
+    "OPENAI_API_KEY",
+    "http_proxy",
+    "https_proxy",
+    "HTTP_PROXY",
+    "HTTPS_PROXY",
+    "all_proxy",
+    "ALL_PROXY",
+)
 API_KEY = "sk-test-0123456789-SECRET"
 
 
@@ -36,11 +47,21 @@ class Reply:
 def chat(content: str | dict, finish_reason: str = "stop", **message) -> Reply:
     """A 200 chat-completions reply whose assistant message is ``content`` (dicts as JSON)."""
     text = content if isinstance(content, str) else json.dumps(content)
-    return Reply(200, {
-        "id": "chatcmpl-test", "object": "chat.completion", "model": "test-vision",
-        "choices": [{"index": 0, "message": {"role": "assistant", "content": text, **message},
-                     "finish_reason": finish_reason}],
-    })
+    return Reply(
+        200,
+        {
+            "id": "chatcmpl-test",
+            "object": "chat.completion",
+            "model": "test-vision",
+            "choices": [
+                {
+                    "index": 0,
+                    "message": {"role": "assistant", "content": text, **message},
+                    "finish_reason": finish_reason,
+                }
+            ],
+        },
+    )
 
 
 def error(status: int, message: str, **headers) -> Reply:

@@ -55,13 +55,31 @@ def test_json_output_and_warnings(run, photo, tmp_path):
 
 def test_openai_backend_from_options_and_environment(run, photo, server, monkeypatch, tmp_path):
     monkeypatch.setenv("CLFLOW_LLM_API_KEY", API_KEY)
-    server.play(chat({"object": "jar of honey", "material": "newtonian",
-                      "density": {"value": 1.42, "unit": "g/cm^3"},
-                      "parameters": {"viscosity": {"value": 8, "unit": "Pa*s"},
-                                     "bulk_modulus": {"value": 1e5, "unit": "Pa"}},
-                      "confidence": 0.7, "reasoning": "golden, viscous"}))
-    res = run(photo[0], "--backend", "openai", "--llm-url", server.base_url, "--model", "llava",
-              "--prompt", "honey dripping", "--image-format", "jpeg")
+    server.play(
+        chat(
+            {
+                "object": "jar of honey",
+                "material": "newtonian",
+                "density": {"value": 1.42, "unit": "g/cm^3"},
+                "parameters": {"viscosity": {"value": 8, "unit": "Pa*s"}, "bulk_modulus": {"value": 1e5, "unit": "Pa"}},
+                "confidence": 0.7,
+                "reasoning": "golden, viscous",
+            }
+        )
+    )
+    res = run(
+        photo[0],
+        "--backend",
+        "openai",
+        "--llm-url",
+        server.base_url,
+        "--model",
+        "llava",
+        "--prompt",
+        "honey dripping",
+        "--image-format",
+        "jpeg",
+    )
     assert res.exit_code == 0, res.output
     assert "material    newtonian" in res.output and "viscosity (mu)        8 Pa*s" in res.output
     assert "backend     openai (model llava, json_schema)" in res.output
@@ -80,10 +98,14 @@ def test_openai_backend_from_options_and_environment(run, photo, server, monkeyp
         (["{img}", "--box", "0,0,100,10"], "Error: box (0, 0, 100, 10) is outside the 64x48 px image"),
         (["{img}", "--mask", "nomask.png"], "Error: mask nomask.png does not exist"),
         (["{img}", "--backend", "openai"], "Error: the openai backend needs an endpoint"),
-        (["{img}", "--backend", "openai", "--llm-url", "https://api.example.com/v1", "--model", "m"],
-         "Error: no API key for api.example.com"),
-        (["{img}", "--backend", "openai", "--llm-url", "{refused}", "--model", "m", "--retries", "0"],
-         "Error: model server http://127.0.0.1:"),
+        (
+            ["{img}", "--backend", "openai", "--llm-url", "https://api.example.com/v1", "--model", "m"],
+            "Error: no API key for api.example.com",
+        ),
+        (
+            ["{img}", "--backend", "openai", "--llm-url", "{refused}", "--model", "m", "--retries", "0"],
+            "Error: model server http://127.0.0.1:",
+        ),
     ],
 )
 def test_errors_are_one_line(run, photo, refused_url, args, message):

@@ -28,9 +28,37 @@ def test_every_number_is_in_range_with_a_source():
 
 
 def test_the_issue_objects_are_covered():
-    issue = ["rubber", "jelly", "sponge", "foam", "leaves", "plant", "flower", "fabric", "hat", "cable", "clay",
-             "plasticine", "dough", "lego", "plastic", "aluminium", "steel", "copper", "tin can", "sand", "soil",
-             "snow", "water", "honey", "oil", "jam", "toothpaste", "cream", "ketchup"]
+    issue = [
+        "rubber",
+        "jelly",
+        "sponge",
+        "foam",
+        "leaves",
+        "plant",
+        "flower",
+        "fabric",
+        "hat",
+        "cable",
+        "clay",
+        "plasticine",
+        "dough",
+        "lego",
+        "plastic",
+        "aluminium",
+        "steel",
+        "copper",
+        "tin can",
+        "sand",
+        "soil",
+        "snow",
+        "water",
+        "honey",
+        "oil",
+        "jam",
+        "toothpaste",
+        "cream",
+        "ketchup",
+    ]
     for name in issue:
         assert KB.match(object_name=name), name
     assert {e.material for e in KB.entries} == set(MATERIALS)
@@ -157,15 +185,19 @@ def _first(kb, *keys):
 @pytest.mark.parametrize(
     "edit, message",
     [
-        (lambda kb: _first(kb, "parameters").pop("poissons_ratio"),
-         r"needs exactly \['youngs_modulus', 'poissons_ratio'\]"),
+        (
+            lambda kb: _first(kb, "parameters").pop("poissons_ratio"),
+            r"needs exactly \['youngs_modulus', 'poissons_ratio'\]",
+        ),
         (lambda kb: _first(kb, "parameters", "youngs_modulus").update(value=-1.0), "outside the valid range"),
         (lambda kb: _first(kb, "parameters", "youngs_modulus").update(range=[1e6, 1e12]), "registry's typical range"),
         (lambda kb: _first(kb, "density").update(source="wikipedia"), "'wikipedia' is not a key of 'sources'"),
         (lambda kb: _first(kb).update(material="rubbery"), "unknown material 'rubbery'"),
         (lambda kb: _first(kb).update(material="jelly"), "write the registry name 'elastic'"),
-        (lambda kb: kb["entries"][1]["aliases"].append("Rubber Ducks"),
-         "alias 'Rubber Ducks' of 'silicone' already belongs to 'rubber'"),
+        (
+            lambda kb: kb["entries"][1]["aliases"].append("Rubber Ducks"),
+            "alias 'Rubber Ducks' of 'silicone' already belongs to 'rubber'",
+        ),
         (lambda kb: kb["type_defaults"].pop("snow"), "type_defaults must name one entry"),
         (lambda kb: kb["type_defaults"].update(snow="rubber"), "is not a snow entry"),
         (lambda kb: kb.update(version=2), "not a clflow-materials-kb file of version 1"),
@@ -178,10 +210,13 @@ def test_bad_knowledge_base_files(tmp_path, raw_kb, edit, message):
         load_knowledge_base(_write(tmp_path, raw))
 
 
-@pytest.mark.parametrize("name, text, match", [
-    ("missing.json", None, "cannot read knowledge base"),
-    ("bad.json", "{", "bad.json: not valid JSON"),
-])
+@pytest.mark.parametrize(
+    "name, text, match",
+    [
+        ("missing.json", None, "cannot read knowledge base"),
+        ("bad.json", "{", "bad.json: not valid JSON"),
+    ],
+)
 def test_unreadable_knowledge_base(tmp_path, name, text, match):
     assert_refuses_file(load_knowledge_base, tmp_path / name, text, match)
 

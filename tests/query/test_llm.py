@@ -76,7 +76,7 @@ def test_request_carries_image_schema_and_headers(server, photo):
     assert url.startswith(prefix)
     import cv2
 
-    sent = cv2.imdecode(np.frombuffer(base64.b64decode(url[len(prefix):]), np.uint8), cv2.IMREAD_COLOR)
+    sent = cv2.imdecode(np.frombuffer(base64.b64decode(url[len(prefix) :]), np.uint8), cv2.IMREAD_COLOR)
     x0, y0, x1, y1 = BOX
     np.testing.assert_array_equal(sent, photo[1][y0:y1, x0:x1])  # the crop, losslessly
 
@@ -258,10 +258,17 @@ def test_unknown_material_types(server, photo):
 
 def test_invalid_values_take_defaults_atypical_values_are_clamped(server, photo):
     rubber = load_knowledge_base().default_entry("elastic")
-    server.play(chat(answer(
-        density={"value": 0.001, "unit": "kg/m^3"},
-        parameters={"youngs_modulus": {"value": -5e6, "unit": "Pa"}, "poissons_ratio": {"value": 0.7, "unit": "1"}},
-    )))
+    server.play(
+        chat(
+            answer(
+                density={"value": 0.001, "unit": "kg/m^3"},
+                parameters={
+                    "youngs_modulus": {"value": -5e6, "unit": "Pa"},
+                    "poissons_ratio": {"value": 0.7, "unit": "1"},
+                },
+            )
+        )
+    )
     result = ask(server, photo)
     assert result.density == 10.0  # registry's typical minimum
     assert result.parameters == rubber.parameter_values()
@@ -269,9 +276,18 @@ def test_invalid_values_take_defaults_atypical_values_are_clamped(server, photo)
     assert any("youngs_modulus (E) = -5e+06 Pa is outside the valid range" in w for w in result.warnings)
     assert any("poissons_ratio (nu) = 0.7" in w for w in result.warnings)
 
-    server.play(chat(answer(parameters={"youngs_modulus": {"value": 1e13, "unit": "Pa"},
-                                        "poissons_ratio": {"value": "0.3", "unit": "1"},
-                                        "shear_modulus": {"value": 1.0, "unit": "Pa"}}, confidence=85)))
+    server.play(
+        chat(
+            answer(
+                parameters={
+                    "youngs_modulus": {"value": 1e13, "unit": "Pa"},
+                    "poissons_ratio": {"value": "0.3", "unit": "1"},
+                    "shear_modulus": {"value": 1.0, "unit": "Pa"},
+                },
+                confidence=85,
+            )
+        )
+    )
     result = ask(server, photo)
     assert result.parameters["youngs_modulus"] == 2e11
     assert result.parameters["poissons_ratio"] == rubber.parameters["poissons_ratio"].value
@@ -282,12 +298,20 @@ def test_invalid_values_take_defaults_atypical_values_are_clamped(server, photo)
 
 
 def test_units_are_converted_or_refused(server, photo):
-    server.play(chat(answer(
-        material="sand",
-        density={"value": 1.6, "unit": "g/cm³"},
-        parameters={"phi": {"value": 0.6, "unit": "rad"}, "cohesion": {"value": 0, "unit": ""},
-                    "youngs_modulus": {"value": 0.35, "unit": "MPa"}, "poissons_ratio": 0.3},
-    )))
+    server.play(
+        chat(
+            answer(
+                material="sand",
+                density={"value": 1.6, "unit": "g/cm³"},
+                parameters={
+                    "phi": {"value": 0.6, "unit": "rad"},
+                    "cohesion": {"value": 0, "unit": ""},
+                    "youngs_modulus": {"value": 0.35, "unit": "MPa"},
+                    "poissons_ratio": 0.3,
+                },
+            )
+        )
+    )
     result = ask(server, photo)
     assert result.density == pytest.approx(1600.0)
     assert result.parameters["friction_angle"] == pytest.approx(np.degrees(0.6))
@@ -297,12 +321,23 @@ def test_units_are_converted_or_refused(server, photo):
     assert "converted 1.6 g/cm³ to 1600 kg/m^3" in text and "converted 0.35 MPa" in text
     assert "poissons_ratio has no unit" in text
 
-    server.play(chat(answer(material="newtonian", parameters={
-        "viscosity": {"value": 1, "unit": "cP"}, "bulk_modulus": {"value": 2.2, "unit": "furlongs"}})))
+    server.play(
+        chat(
+            answer(
+                material="newtonian",
+                parameters={
+                    "viscosity": {"value": 1, "unit": "cP"},
+                    "bulk_modulus": {"value": 2.2, "unit": "furlongs"},
+                },
+            )
+        )
+    )
     result = ask(server, photo)
     water = load_knowledge_base().default_entry("newtonian")
-    assert result.parameters == {"viscosity": pytest.approx(1e-3),
-                                 "bulk_modulus": water.parameters["bulk_modulus"].value}
+    assert result.parameters == {
+        "viscosity": pytest.approx(1e-3),
+        "bulk_modulus": water.parameters["bulk_modulus"].value,
+    }
     assert any("unit 'furlongs' is not a unit of Pa" in w for w in result.warnings)
 
 
@@ -350,8 +385,10 @@ def test_connection_refused(refused_url, photo):
 
 
 def test_server_without_json_schema_gets_a_plain_prompt(server, photo, tmp_path):
-    server.play(error(400, "response_format json_schema is not supported"),
-                chat("Sure! " + json.dumps(answer()) + " Let me know."))
+    server.play(
+        error(400, "response_format json_schema is not supported"),
+        chat("Sure! " + json.dumps(answer()) + " Let me know."),
+    )
     result = ask(server, photo)
     first, second = (r.body for r in server.requests)
     assert "response_format" in first and "response_format" not in second
@@ -379,8 +416,21 @@ def test_protocol_violations(server, photo, reply, error_type, message):
 
 def test_content_parts_are_joined(server, photo):
     text = json.dumps(answer())
-    server.play(Reply(200, {"choices": [{"message": {"role": "assistant", "content": [
-        {"type": "text", "text": text[:20]}, {"type": "text", "text": text[20:]}]}}]}))
+    server.play(
+        Reply(
+            200,
+            {
+                "choices": [
+                    {
+                        "message": {
+                            "role": "assistant",
+                            "content": [{"type": "text", "text": text[:20]}, {"type": "text", "text": text[20:]}],
+                        }
+                    }
+                ]
+            },
+        )
+    )
     assert ask(server, photo).parameters["poissons_ratio"] == 0.45
 
 

@@ -16,8 +16,13 @@ def test_round_trip_uses_registry_names_and_units(tmp_path):
     path = result.save(tmp_path / "out" / "jam.json")
     raw = json.loads(path.read_text())
     assert raw["format"] == "clflow-material-query" and raw["material"] == "non_newtonian"
-    assert raw["units"] == {"density": "kg/m^3", "shear_modulus": "Pa", "bulk_modulus": "Pa",
-                            "yield_stress": "Pa", "viscosity": "Pa*s"}
+    assert raw["units"] == {
+        "density": "kg/m^3",
+        "shear_modulus": "Pa",
+        "bulk_modulus": "Pa",
+        "yield_stress": "Pa",
+        "viscosity": "Pa*s",
+    }
     assert {"backend", "model", "prompt", "raw_answer", "matched", "confidence", "warnings"} <= set(raw)
     assert load_query_result(path) == result
     assert [p.name for p in tmp_path.joinpath("out").iterdir()] == ["jam.json"]  # no temporary left
@@ -25,8 +30,18 @@ def test_round_trip_uses_registry_names_and_units(tmp_path):
 
 def test_loader_accepts_aliases_and_fills_defaults(tmp_path):
     path = tmp_path / "hand.json"
-    path.write_text(json.dumps({"format": "clflow-material-query", "version": 1, "material": "Jelly",
-                                "density": 1050, "parameters": {"E": 2e4}, "backend": "hand"}))
+    path.write_text(
+        json.dumps(
+            {
+                "format": "clflow-material-query",
+                "version": 1,
+                "material": "Jelly",
+                "density": 1050,
+                "parameters": {"E": 2e4},
+                "backend": "hand",
+            }
+        )
+    )
     loaded = load_query_result(path)
     assert loaded.material == "elastic"
     assert loaded.parameters == {"youngs_modulus": 2e4, "poissons_ratio": 0.3}
@@ -61,11 +76,14 @@ def test_loader_rejects_bad_records(tmp_path, record, message):
         load_query_result(path)
 
 
-@pytest.mark.parametrize("name, text, match", [
-    ("none.json", None, "cannot read query result"),
-    ("nan.json", '{"density": NaN}', "nan.json: not valid JSON: NaN"),
-    ("list.json", "[]", "not a material query result"),
-])
+@pytest.mark.parametrize(
+    "name, text, match",
+    [
+        ("none.json", None, "cannot read query result"),
+        ("nan.json", '{"density": NaN}', "nan.json: not valid JSON: NaN"),
+        ("list.json", "[]", "not a material query result"),
+    ],
+)
 def test_loader_rejects_unreadable_files(tmp_path, name, text, match):
     assert_refuses_file(load_query_result, tmp_path / name, text, match)
 

@@ -22,7 +22,9 @@ def model_of(cameras: list[Camera], points: np.ndarray | None = None):
         cam_rows.append((i, "PINHOLE", c.width, c.height, [c.fx, c.fy, c.cx, c.cy]))
         q = rotmat_to_quat(c.R[None])[0].numpy()
         image_rows.append((i, q, c.t.numpy(), i, c.name, [(10.5, 20.25, -1), (3.0, 4.0, 1)] if i % 2 else []))
-    pts = [] if points is None else [(j + 1, p, (j % 256, 100, 200), 0.5, [(1, 0), (2, 1)]) for j, p in enumerate(points)]
+    pts = (
+        [] if points is None else [(j + 1, p, (j % 256, 100, 200), 0.5, [(1, 0), (2, 1)]) for j, p in enumerate(points)]
+    )
     return cam_rows, image_rows, pts
 
 
@@ -57,8 +59,11 @@ def write_txt(folder: Path, model) -> None:
         lines.append(" ".join(f"{x} {y} {p}" for x, y, p in pts2d))  # empty when the image has no points
     (folder / "images.txt").write_text("\n".join(lines) + "\n")
     lines = ["# 3D point list with one line of data per point:"]
-    lines += [f"{pid} {float(xyz[0])!r} {float(xyz[1])!r} {float(xyz[2])!r} {rgb[0]} {rgb[1]} {rgb[2]} {err} " + " ".join(f"{a} {b}" for a, b in track)
-              for pid, xyz, rgb, err, track in points]
+    lines += [
+        f"{pid} {float(xyz[0])!r} {float(xyz[1])!r} {float(xyz[2])!r} {rgb[0]} {rgb[1]} {rgb[2]} {err} "
+        + " ".join(f"{a} {b}" for a, b in track)
+        for pid, xyz, rgb, err, track in points
+    ]
     (folder / "points3D.txt").write_text("\n".join(lines) + "\n")
 
 
@@ -67,8 +72,9 @@ def colour(camera: int, frame: int) -> tuple[int, int, int]:
     return 40 + 50 * camera, 30 + 50 * frame, 200
 
 
-def write_sequence(folder: Path, cameras: int = 4, frames: int = 3, size: int = 32, fps: float = 24.0,
-                   times: bool = True) -> list[tuple[np.ndarray, np.ndarray]]:
+def write_sequence(
+    folder: Path, cameras: int = 4, frames: int = 3, size: int = 32, fps: float = 24.0, times: bool = True
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """A multi-camera capture in PAC-NeRF's layout: ``folder/all_data.json`` and
     ``folder/data/r_{camera}_{frame}.png`` (RGBA, flat :func:`colour`, alpha a centred disc),
     each camera's backdrop as frame -1 (as PAC-NeRF ships it); cameras on a ring around the
@@ -91,8 +97,13 @@ def write_sequence(folder: Path, cameras: int = 4, frames: int = 3, size: int = 
         poses.append((c2w, K))
         for f in [-1, *range(frames)]:
             rgb = (90, 90, 90) if f < 0 else colour(c, f)
-            rgba = np.concatenate([np.broadcast_to(np.array(rgb, np.uint8), (size, size, 3)),
-                                   np.full((size, size, 1), 255, np.uint8) if f < 0 else disc[..., None]], axis=2)
+            rgba = np.concatenate(
+                [
+                    np.broadcast_to(np.array(rgb, np.uint8), (size, size, 3)),
+                    np.full((size, size, 1), 255, np.uint8) if f < 0 else disc[..., None],
+                ],
+                axis=2,
+            )
             name = f"./data/r_{c}_{f}.png"
             assert cv2.imwrite(str(folder / name), np.ascontiguousarray(rgba[..., [2, 1, 0, 3]]))
             entry = {"file_path": name, "c2w": c2w.tolist(), "intrinsic": K.tolist()}

@@ -15,7 +15,9 @@ from clflow.recon.densify import (
 )
 
 EXTENT = 10.0  # m; percent_dense 0.01 -> 0.1 m separates "small" from "large"
-SETTINGS = DensifySettings(grad_threshold=1e-3, percent_dense=0.01, min_opacity=0.01, max_screen_radius=20, max_world_scale=0.1)
+SETTINGS = DensifySettings(
+    grad_threshold=1e-3, percent_dense=0.01, min_opacity=0.01, max_screen_radius=20, max_world_scale=0.1
+)
 
 
 def table():
@@ -53,8 +55,9 @@ def test_view_space_gradient_is_the_mean_ndc_norm_over_the_views_that_saw_it():
 
 def test_clone_split_and_prune_counts_and_rows():
     optimizer, stats = table()
-    params, counts = densify_and_prune(optimizer, stats, EXTENT, SETTINGS, prune_large=False,
-                                       generator=torch.Generator().manual_seed(0))
+    params, counts = densify_and_prune(
+        optimizer, stats, EXTENT, SETTINGS, prune_large=False, generator=torch.Generator().manual_seed(0)
+    )
     assert counts == {"cloned": 1, "split": 1, "pruned": 1, "gaussians": 6}
     # kept originals 0, 3, 4 (2 pruned, 1 replaced), then the clone of 0, then 1's two children
     assert params["sh0"][:, 0, 0].tolist() == [0, 3, 4, 0, 1, 1]
@@ -71,13 +74,15 @@ def test_clone_split_and_prune_counts_and_rows():
 
 def test_large_gaussians_are_pruned_only_when_asked():
     optimizer, stats = table()
-    _, counts = densify_and_prune(optimizer, stats, EXTENT, SETTINGS, prune_large=True,
-                                  generator=torch.Generator().manual_seed(0))
+    _, counts = densify_and_prune(
+        optimizer, stats, EXTENT, SETTINGS, prune_large=True, generator=torch.Generator().manual_seed(0)
+    )
     # also pruned: Gaussian 4 (30 px > 20 px on screen) and 1's children (0.31 m < 1 m: kept)
     assert counts == {"cloned": 1, "split": 1, "pruned": 2, "gaussians": 5}
     optimizer, stats = table()
-    _, counts = densify_and_prune(optimizer, stats, 2.0, SETTINGS, prune_large=True,
-                                  generator=torch.Generator().manual_seed(0))
+    _, counts = densify_and_prune(
+        optimizer, stats, 2.0, SETTINGS, prune_large=True, generator=torch.Generator().manual_seed(0)
+    )
     # extent 2 m: 0.05 m > 0.02 m, all hot ones split; children 0.03 and 0.31 m vs 0.2 m world limit
     assert counts["split"] == 2 and counts["cloned"] == 0
     assert counts["pruned"] == 1 + 1 + 2  # transparent 2, wide 4, the two large children of 1
@@ -102,9 +107,13 @@ def test_retained_means2d_gradient_matches_the_torch_reference():
 
     g = torch.Generator().manual_seed(3)
     n = 25
-    scene = (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5, torch.randn(n, 4, generator=g, dtype=torch.float64),
-             0.05 + 0.1 * torch.rand(n, 3, generator=g, dtype=torch.float64), 0.2 + 0.7 * torch.rand(n, generator=g, dtype=torch.float64),
-             torch.rand(n, 3, generator=g, dtype=torch.float64))
+    scene = (
+        torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5,
+        torch.randn(n, 4, generator=g, dtype=torch.float64),
+        0.05 + 0.1 * torch.rand(n, 3, generator=g, dtype=torch.float64),
+        0.2 + 0.7 * torch.rand(n, generator=g, dtype=torch.float64),
+        torch.rand(n, 3, generator=g, dtype=torch.float64),
+    )
     cam = look_at((0.3, -2.5, 0.4), (0, 0, 0), fov_x=0.9, width=40, height=36)
     weights = torch.randn(36, 40, 3, generator=g, dtype=torch.float64)
     grads = []

@@ -23,14 +23,18 @@ def test_plane_lands_at_its_distance_and_fills_the_view():
     assert len(g) == W * H
     cam_z = (g.means.double() @ camera.R.T + camera.t)[:, 2]
     assert torch.allclose(cam_z, torch.full_like(cam_z, 2.5), atol=1e-5)
-    assert torch.allclose(g.means[:, 1].double(), torch.full((W * H,), -0.5, dtype=torch.float64), atol=1e-5)  # the plane y = -0.5
+    assert torch.allclose(
+        g.means[:, 1].double(), torch.full((W * H,), -0.5, dtype=torch.float64), atol=1e-5
+    )  # the plane y = -0.5
     # the corners of the plane are the pixel-centre rays of the corner pixels
     half_w = 2.5 * math.tan(math.radians(30)) * (W - 1) / W
     assert g.means[:, 0].min().item() == pytest.approx(1.0 - half_w, abs=1e-5)
     assert g.means[:, 0].max().item() == pytest.approx(1.0 + half_w, abs=1e-5)
     # flat Gaussians facing the camera, a pixel footprint wide
     normals = g.rotations[:, :, 2].double()
-    assert torch.allclose(normals.abs() @ torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), torch.ones(W * H, dtype=torch.float64))
+    assert torch.allclose(
+        normals.abs() @ torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), torch.ones(W * H, dtype=torch.float64)
+    )
     assert g.scales[0, 0].item() == pytest.approx(0.6 * 2.5 / camera.fx, rel=1e-5)
 
 
@@ -48,7 +52,9 @@ def test_shells_close_the_hidden_side():
     assert sorted({round(z, 4) for z in extruded.tolist()}) == [1.5, 1.75, 2.0, 2.25]
     mask = torch.zeros(H, W, dtype=torch.bool)
     mask[:, :12] = True
-    assert len(backproject(torch.rand(H, W, 3), depth, camera, mask=mask, shell="none")) == int((depth[:, :12] > 0).sum())
+    assert len(backproject(torch.rand(H, W, 3), depth, camera, mask=mask, shell="none")) == int(
+        (depth[:, :12] > 0).sum()
+    )
 
 
 def test_depth_files_and_bad_input(tmp_path):
@@ -71,15 +77,35 @@ def test_depth_files_and_bad_input(tmp_path):
 def test_cli_writes_splats_and_refuses_a_depth_map_of_the_wrong_size(tmp_path):
     cv2.imwrite(str(tmp_path / "photo.png"), np.full((H, W, 3), 128, np.uint8))
     np.save(tmp_path / "depth.npy", np.full((H, W), 2.0))
-    result = CliRunner().invoke(cli, ["reconstruct", str(tmp_path / "photo.png"), "--depth", str(tmp_path / "depth.npy"),
-                                      "-o", str(tmp_path / "out"), "--fov", "60"])
+    result = CliRunner().invoke(
+        cli,
+        [
+            "reconstruct",
+            str(tmp_path / "photo.png"),
+            "--depth",
+            str(tmp_path / "depth.npy"),
+            "-o",
+            str(tmp_path / "out"),
+            "--fov",
+            "60",
+        ],
+    )
     assert result.exit_code == 0, result.output
     g = load_ply(tmp_path / "out" / "point_cloud.ply")
     assert len(g) == 2 * W * H and g.means[:, 2].min().item() == pytest.approx(2.0, abs=1e-5)
     (camera,) = load_cameras_json(tmp_path / "out" / "cameras.json")
     assert camera.fov_x == pytest.approx(math.radians(60))
     np.save(tmp_path / "small.npy", np.full((H, W - 1), 2.0))
-    result = CliRunner().invoke(cli, ["reconstruct", str(tmp_path / "photo.png"), "--depth", str(tmp_path / "small.npy"),
-                                      "-o", str(tmp_path / "out2")])
+    result = CliRunner().invoke(
+        cli,
+        [
+            "reconstruct",
+            str(tmp_path / "photo.png"),
+            "--depth",
+            str(tmp_path / "small.npy"),
+            "-o",
+            str(tmp_path / "out2"),
+        ],
+    )
     assert result.exit_code == 1 and "Traceback" not in result.output
     assert "the depth map is 23x16 px and the image 24x16 px, but the camera is 24x16 px" in result.output

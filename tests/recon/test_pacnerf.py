@@ -60,8 +60,12 @@ def write_splats(path: Path) -> None:
     """Three opaque Gaussians in [-0.2, 0.3] and a faint one far away (outside the object box)."""
     means = torch.tensor([[-0.2, 0.1, 0.0], [0.3, 0.4, 0.1], [0.0, 0.2, -0.1], [5.0, 5.0, 5.0]])
     quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(4, 1)
-    save_ply(path, Gaussians.from_activated(means, quats, torch.full((4, 3), 0.05),
-                                            torch.tensor([0.9, 0.8, 0.7, 0.02]), colors=torch.full((4, 3), 0.5)))
+    save_ply(
+        path,
+        Gaussians.from_activated(
+            means, quats, torch.full((4, 3), 0.05), torch.tensor([0.9, 0.8, 0.7, 0.02]), colors=torch.full((4, 3), 0.5)
+        ),
+    )
 
 
 def test_read_config_merges_its_base_without_running_it(tmp_path):
@@ -73,33 +77,83 @@ def test_read_config_merges_its_base_without_running_it(tmp_path):
     assert read_pacnerf_config(tmp_path / "case.json")["kappa"] == 1e3
 
 
-@pytest.mark.parametrize("name, text, match", [
-    ("bad.py", "import os\ncfg = dict(E=os.getcwd())\n", "line 2: cannot read 'os.getcwd\\(\\)' without running the file"),
-    ("loop.py", "_base_ = 'loop.py'\ncfg = dict(E=1)\n", "is a cycle of base files"),
-    ("orphan.py", "_base_ = 'gone.py'\ncfg = dict(E=1)\n", "gone.py: PAC-NeRF config not found \\(the _base_ of"),
-])
+@pytest.mark.parametrize(
+    "name, text, match",
+    [
+        (
+            "bad.py",
+            "import os\ncfg = dict(E=os.getcwd())\n",
+            "line 2: cannot read 'os.getcwd\\(\\)' without running the file",
+        ),
+        ("loop.py", "_base_ = 'loop.py'\ncfg = dict(E=1)\n", "is a cycle of base files"),
+        ("orphan.py", "_base_ = 'gone.py'\ncfg = dict(E=1)\n", "gone.py: PAC-NeRF config not found \\(the _base_ of"),
+    ],
+)
 def test_read_config_refuses_what_it_cannot_read_without_running(tmp_path, name, text, match):
     (tmp_path / name).write_text(text)
     with pytest.raises(InputError, match=match):
         read_pacnerf_config(tmp_path / name)
 
 
-@pytest.mark.parametrize("cfg, material, params, fit", [
-    ({"material": "elasticity", "E": 1e5, "nu": 0.1, "physical_params": {"global_E": 0.1, "global_nu": 0.01}},
-     {"type": "elastic", "model": "neo_hookean"}, {"youngs_modulus": 1e5, "poissons_ratio": 0.1},
-     ["youngs_modulus", "poissons_ratio"]),
-    ({"material": "von_mises", "E": 1e5, "nu": 0.4, "yield_stress": 1e3, "physical_params": {"yield_stress": 0.1}},
-     {"type": "plasticine"}, {"youngs_modulus": 1e5, "poissons_ratio": 0.4, "yield_stress": 1e3}, ["yield_stress"]),
-    ({"material": "von_mises", "mu": 100, "kappa": 1e4, "yield_stress": 10, "plastic_viscosity": 0.1,
-      "physical_params": {"global_mu": 0.2, "global_kappa": 0.2, "yield_stress": 0.2, "plastic_viscosity": 0.1}},
-     {"type": "non_newtonian"}, {"shear_modulus": 100, "bulk_modulus": 1e4, "yield_stress": 10, "viscosity": 0.1},
-     ["shear_modulus", "bulk_modulus", "yield_stress", "viscosity"]),
-    ({"material": 11, "mu": 10, "kappa": 1e4, "physical_params": {"global_mu": 0.1, "global_kappa": 0.1}},
-     {"type": "newtonian"}, {"viscosity": 5.0, "bulk_modulus": 7e4}, ["viscosity", "bulk_modulus"]),
-    ({"material": "drucker_prager", "E": 1e6, "nu": 0.3, "friction_angle": 10, "physical_params": {"friction_angle": 1}},
-     {"type": "sand", "model": "drucker_prager"}, {"friction_angle": 10, "youngs_modulus": 1e6, "poissons_ratio": 0.3},
-     ["friction_angle"]),
-])
+@pytest.mark.parametrize(
+    "cfg, material, params, fit",
+    [
+        (
+            {"material": "elasticity", "E": 1e5, "nu": 0.1, "physical_params": {"global_E": 0.1, "global_nu": 0.01}},
+            {"type": "elastic", "model": "neo_hookean"},
+            {"youngs_modulus": 1e5, "poissons_ratio": 0.1},
+            ["youngs_modulus", "poissons_ratio"],
+        ),
+        (
+            {
+                "material": "von_mises",
+                "E": 1e5,
+                "nu": 0.4,
+                "yield_stress": 1e3,
+                "physical_params": {"yield_stress": 0.1},
+            },
+            {"type": "plasticine"},
+            {"youngs_modulus": 1e5, "poissons_ratio": 0.4, "yield_stress": 1e3},
+            ["yield_stress"],
+        ),
+        (
+            {
+                "material": "von_mises",
+                "mu": 100,
+                "kappa": 1e4,
+                "yield_stress": 10,
+                "plastic_viscosity": 0.1,
+                "physical_params": {
+                    "global_mu": 0.2,
+                    "global_kappa": 0.2,
+                    "yield_stress": 0.2,
+                    "plastic_viscosity": 0.1,
+                },
+            },
+            {"type": "non_newtonian"},
+            {"shear_modulus": 100, "bulk_modulus": 1e4, "yield_stress": 10, "viscosity": 0.1},
+            ["shear_modulus", "bulk_modulus", "yield_stress", "viscosity"],
+        ),
+        (
+            {"material": 11, "mu": 10, "kappa": 1e4, "physical_params": {"global_mu": 0.1, "global_kappa": 0.1}},
+            {"type": "newtonian"},
+            {"viscosity": 5.0, "bulk_modulus": 7e4},
+            ["viscosity", "bulk_modulus"],
+        ),
+        (
+            {
+                "material": "drucker_prager",
+                "E": 1e6,
+                "nu": 0.3,
+                "friction_angle": 10,
+                "physical_params": {"friction_angle": 1},
+            },
+            {"type": "sand", "model": "drucker_prager"},
+            {"friction_angle": 10, "youngs_modulus": 1e6, "poissons_ratio": 0.3},
+            ["friction_angle"],
+        ),
+    ],
+)
 def test_materials_in_clflow_conventions(cfg, material, params, fit):
     section, names = pacnerf_material(cfg, "case.py")
     assert {k: section[k] for k in material} == material
@@ -111,7 +165,8 @@ def test_boundary_planes():
     bc = {"ground": [[0, 0.1, 0], [0, 2, 0]], "wall": [[0.5, 0, 0], [-1, 0, 0]]}
     assert pacnerf_boundaries({"BC": bc}, "case.py") == {
         "ground": {"height": 0.1, "mode": "sticky"},
-        "colliders": [{"point": [0.5, 0.0, 0.0], "normal": [-1.0, 0.0, 0.0], "mode": "sticky"}]}
+        "colliders": [{"point": [0.5, 0.0, 0.0], "normal": [-1.0, 0.0, 0.0], "mode": "sticky"}],
+    }
     with pytest.raises(InputError, match="BC 'pole' is not a plane"):
         pacnerf_boundaries({"BC": {"pole": [[0, 0, 0], [0, 1, 0], 0.1]}}, "case.py")
 
@@ -128,15 +183,24 @@ def test_unmappable_configs_are_refused(tmp_path):
 def test_scene_from_config_is_optimize_ready(tmp_path):
     poses = write_sequence(tmp_path / "seq", cameras=4, frames=3, size=SIZE)
     write_splats(tmp_path / "splats.ply")
-    code, output = pacnerf(tmp_path, "splats.ply", "scene", "--camera", "1", "--config",
-                           write_config(tmp_path / "configs"), "--video", "mkv")
+    code, output = pacnerf(
+        tmp_path,
+        "splats.ply",
+        "scene",
+        "--camera",
+        "1",
+        "--config",
+        write_config(tmp_path / "configs"),
+        "--video",
+        "mkv",
+    )
     assert code == 0, output
     assert "3 frames at 24 fps (from " in output and "frame_dt" in output
     cfg = load_config(tmp_path / "scene" / "config.yaml")
     assert (cfg.material.type, cfg.material.model) == ("elastic", "neo_hookean")
     assert cfg.material.parameters == {"youngs_modulus": 1e5, "poissons_ratio": 0.1}
     assert cfg.material.density == 1000.0 and cfg.simulation.gravity == (0.0, -9.8, 0.0)
-    ground, = cfg.colliders
+    (ground,) = cfg.colliders
     assert (ground.point, ground.normal, ground.mode) == ((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), "sticky")
     assert (cfg.simulation.fps, cfg.simulation.frames) == (24.0, 2)
     assert cfg.optimize.parameters == ("youngs_modulus", "poissons_ratio")
@@ -159,8 +223,9 @@ def test_scene_from_config_is_optimize_ready(tmp_path):
 def test_scene_without_config_leaves_the_material_to_the_query(tmp_path):
     write_sequence(tmp_path / "seq", cameras=3, frames=4, size=SIZE, fps=12.0)
     write_splats(tmp_path / "recon" / "point_cloud.ply")
-    code, output = pacnerf(tmp_path, "recon", "scene", "--prompt", "a jelly torus", "--background", "black",
-                           "--ground", "0.05")
+    code, output = pacnerf(
+        tmp_path, "recon", "scene", "--prompt", "a jelly torus", "--background", "black", "--ground", "0.05"
+    )
     assert code == 0, output
     assert "--set optimize.parameters=" in output
     cfg = load_config(tmp_path / "scene" / "config.yaml")
@@ -192,15 +257,18 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path):
     pacnerf_error([tmp_path, tmp_path / "splats.ply", "-o", out], "no all_data.json")
     write_sequence(tmp_path / "seq", cameras=4, frames=3, size=SIZE, times=False)
     pacnerf_error([tmp_path / "seq", tmp_path / "splats.ply", "-o", out], "no frame rate: the index has no times")
-    pacnerf_error([tmp_path / "seq", tmp_path / "splats.ply", "-o", out, "--fps", "24", "--camera", "4"],
-                   "camera 4 is out of range: the sequence has cameras 0 to 3")
+    pacnerf_error(
+        [tmp_path / "seq", tmp_path / "splats.ply", "-o", out, "--fps", "24", "--camera", "4"],
+        "camera 4 is out of range: the sequence has cameras 0 to 3",
+    )
     pacnerf_error([tmp_path / "seq", tmp_path / "nothing", "-o", out, "--fps", "24"], "no splats")
     config = write_config(tmp_path / "configs", TORUS.replace("n_cameras = 4", "n_cameras = 11"))
-    pacnerf_error([tmp_path / "seq", tmp_path / "splats.ply", "-o", out, "--config", config],
-                   "n_cameras = 11 but")
+    pacnerf_error([tmp_path / "seq", tmp_path / "splats.ply", "-o", out, "--config", config], "n_cameras = 11 but")
     config = write_config(tmp_path / "configs", TORUS.replace("n_frames = 3", "n_frames = 1"))
-    pacnerf_error([tmp_path / "seq", tmp_path / "splats.ply", "-o", out, "--config", config],
-                   "1 frame(s); a guidance video needs at least 2")
+    pacnerf_error(
+        [tmp_path / "seq", tmp_path / "splats.ply", "-o", out, "--config", config],
+        "1 frame(s); a guidance video needs at least 2",
+    )
     (tmp_path / "seq" / "data" / "r_2_1.png").unlink()
     pacnerf_error([tmp_path / "seq", tmp_path / "splats.ply", "-o", out, "--fps", "24", "--camera", "2"], "r_2_1.png")
     assert not out.exists()
@@ -216,9 +284,13 @@ def test_guidance_frame_0_is_the_scene_as_the_optimiser_renders_it(tmp_path):
 
     poses = write_sequence(tmp_path / "seq", cameras=3, frames=2, size=SIZE)
     rng = np.random.default_rng(0)
-    splats = Gaussians.from_activated(torch.from_numpy(rng.uniform(-0.3, 0.3, (40, 3))).float(),
-                                      torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(40, 1), torch.full((40, 3), 0.06),
-                                      torch.full((40,), 0.9), colors=torch.from_numpy(rng.uniform(0, 1, (40, 3))).float())
+    splats = Gaussians.from_activated(
+        torch.from_numpy(rng.uniform(-0.3, 0.3, (40, 3))).float(),
+        torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(40, 1),
+        torch.full((40, 3), 0.06),
+        torch.full((40,), 0.9),
+        colors=torch.from_numpy(rng.uniform(0, 1, (40, 3))).float(),
+    )
     save_ply(tmp_path / "splats.ply", splats)
     for c, (c2w, K) in enumerate(poses):  # every frame: the splats, straight (not premultiplied) RGBA
         with torch.no_grad():
@@ -228,8 +300,9 @@ def test_guidance_frame_0_is_the_scene_as_the_optimiser_renders_it(tmp_path):
         for f in range(2):
             bgra = np.round(255 * rgba[..., [2, 1, 0, 3]]).astype(np.uint8)
             assert cv2.imwrite(str(tmp_path / "seq" / "data" / f"r_{c}_{f}.png"), bgra)
-    code, output = pacnerf(tmp_path, "splats.ply", "scene", "--camera", "2", "--video", "mkv", "--box", "-1", "-1",
-                           "-1", "1", "1", "1")
+    code, output = pacnerf(
+        tmp_path, "splats.ply", "scene", "--camera", "2", "--video", "mkv", "--box", "-1", "-1", "-1", "1", "1", "1"
+    )
     assert code == 0, output
     cfg = load_config(tmp_path / "scene" / "config.yaml")
     scene, _ = load_scene_gaussians(cfg, torch.float32)

@@ -92,16 +92,21 @@ def entry(entries, camera, frame):
     return next(e for e in entries if e["file_path"] == f"./data/r_{camera}_{frame}.png")
 
 
-@pytest.mark.parametrize("change, message", [
-    (lambda es: es.remove(entry(es, 2, 1)), "camera 2 has no image of frame 1 (3 camera(s) do: 0, 1, 3)"),
-    (lambda es: entry(es, 1, 2)["c2w"][0].__setitem__(3, 9.0), "camera 1's c2w differs from its frame 0's"),
-    (lambda es: entry(es, 3, 1).__setitem__("time", 0.5), "the cameras' times of frame 1 differ"),
-    (lambda es: [e.__setitem__("time", 0.1) for e in es if e["file_path"].endswith("_2.png")],
-     "the frames are not evenly spaced in time"),
-    (lambda es: entry(es, 0, 0).__setitem__("file_path", "./data/cam0.png"), "is not named r_CAMERA_FRAME.png"),
-    (lambda es: entry(es, 0, 0)["intrinsic"].pop(), "intrinsic must be a finite 3x3 matrix"),
-    (lambda es: entry(es, 0, 1).pop("c2w"), "missing c2w"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda es: es.remove(entry(es, 2, 1)), "camera 2 has no image of frame 1 (3 camera(s) do: 0, 1, 3)"),
+        (lambda es: entry(es, 1, 2)["c2w"][0].__setitem__(3, 9.0), "camera 1's c2w differs from its frame 0's"),
+        (lambda es: entry(es, 3, 1).__setitem__("time", 0.5), "the cameras' times of frame 1 differ"),
+        (
+            lambda es: [e.__setitem__("time", 0.1) for e in es if e["file_path"].endswith("_2.png")],
+            "the frames are not evenly spaced in time",
+        ),
+        (lambda es: entry(es, 0, 0).__setitem__("file_path", "./data/cam0.png"), "is not named r_CAMERA_FRAME.png"),
+        (lambda es: entry(es, 0, 0)["intrinsic"].pop(), "intrinsic must be a finite 3x3 matrix"),
+        (lambda es: entry(es, 0, 1).pop("c2w"), "missing c2w"),
+    ],
+)
 def test_bad_index_is_one_clear_error(tmp_path, change, message):
     write_sequence(tmp_path)
     edit(tmp_path, change)
@@ -113,11 +118,15 @@ def test_bad_index_is_one_clear_error(tmp_path, change, message):
 def test_cli_bad_input(tmp_path):
     one_line_error([tmp_path, "--frame", "0", "-o", tmp_path / "out"], "no all_data.json")
     write_sequence(tmp_path / "seq")
-    one_line_error([tmp_path / "seq", "--frame", "3", "-o", tmp_path / "out"],
-                   "frame 3 is out of range: the sequence has frames 0 to 2")
+    one_line_error(
+        [tmp_path / "seq", "--frame", "3", "-o", tmp_path / "out"],
+        "frame 3 is out of range: the sequence has frames 0 to 2",
+    )
     one_line_error([tmp_path / "seq", "-o", tmp_path / "out"], "pick the frame to train on with --frame N")
-    one_line_error([tmp_path / "seq", "--frame", "0", "--transforms", tmp_path / "seq" / "all_data.json", "-o",
-                    tmp_path / "out"], "drop --transforms")
+    one_line_error(
+        [tmp_path / "seq", "--frame", "0", "--transforms", tmp_path / "seq" / "all_data.json", "-o", tmp_path / "out"],
+        "drop --transforms",
+    )
     (tmp_path / "seq" / "data" / "r_1_2.png").unlink()
     one_line_error([tmp_path / "seq", "--frame", "2", "-o", tmp_path / "out"], "r_1_2.png")
     assert not (tmp_path / "out").exists()
@@ -125,8 +134,23 @@ def test_cli_bad_input(tmp_path):
 
 def test_reconstruct_frame_0(tmp_path):
     write_sequence(tmp_path / "seq", cameras=4, frames=2, size=SIZE)
-    code, output = run([tmp_path / "seq", "--frame", "0", "-o", tmp_path / "recon", "--iterations", "20",
-                        "--init-points", "200", "--holdout-every", "0", "--preview-every", "0"])
+    code, output = run(
+        [
+            tmp_path / "seq",
+            "--frame",
+            "0",
+            "-o",
+            tmp_path / "recon",
+            "--iterations",
+            "20",
+            "--init-points",
+            "200",
+            "--holdout-every",
+            "0",
+            "--preview-every",
+            "0",
+        ]
+    )
     assert code == 0, output
     assert [c.name for c in load_cameras_json(tmp_path / "recon" / "cameras.json")] == [f"r_{c}_0" for c in range(4)]
     assert len(load_ply(tmp_path / "recon" / "point_cloud.ply")) > 0

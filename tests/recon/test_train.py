@@ -15,8 +15,9 @@ from clflow.splat import load_cameras_json, load_ply
 from clflow_datasets.multiview import make_multiview
 
 # a short run that still densifies (at 20..50), resets opacities (at 40) and raises the SH degree
-SHORT = Settings(iterations=60, densify_from=19, densify_until=50, densify_every=10, reset_every=40, sh_every=20,
-                 init_points=300)
+SHORT = Settings(
+    iterations=60, densify_from=19, densify_until=50, densify_every=10, reset_every=40, sh_every=20, init_points=300
+)
 
 
 @pytest.fixture(scope="module")
@@ -77,9 +78,17 @@ def test_held_out_psnr_on_60_views_at_128px(tmp_path):
     6,144-Gaussian checkered sphere, not the trainer's initialisation."""
     make_multiview(tmp_path, shape="sphere", views=60, size=128, detail=32)
     iterations = 800
-    settings = Settings(iterations=iterations, densify_from=80, densify_until=480, reset_every=iterations + 1,
-                        sh_every=iterations // 3, init_points=5000)
-    metrics = reconstruct(load_views(tmp_path / "images"), tmp_path / "out", settings, checkpoint_every=iterations).metrics
+    settings = Settings(
+        iterations=iterations,
+        densify_from=80,
+        densify_until=480,
+        reset_every=iterations + 1,
+        sh_every=iterations // 3,
+        init_points=5000,
+    )
+    metrics = reconstruct(
+        load_views(tmp_path / "images"), tmp_path / "out", settings, checkpoint_every=iterations
+    ).metrics
     assert metrics["test"]["views"] == 8
     assert metrics["test"]["psnr"] >= 28.0 and metrics["test"]["ssim"] >= 0.93
 
@@ -89,8 +98,25 @@ def test_bench_reconstruct_reports_speed_and_quality():
 
     from clflow_cli.main import cli
 
-    result = CliRunner().invoke(cli, ["bench", "reconstruct", "--views", "8", "--size", "32", "--detail", "4",
-                                      "--iterations", "20", "--init-points", "200", "--eval-every", "10"])
+    result = CliRunner().invoke(
+        cli,
+        [
+            "bench",
+            "reconstruct",
+            "--views",
+            "8",
+            "--size",
+            "32",
+            "--detail",
+            "4",
+            "--iterations",
+            "20",
+            "--init-points",
+            "200",
+            "--eval-every",
+            "10",
+        ],
+    )
     assert result.exit_code == 0, result.output
     assert re.search(r"sphere, 8 views at 32\^2 \(1 held out\), 20 iterations", result.output)
     assert re.search(r"it/s, .* held-out PSNR [\d.]+ dB", result.output.replace("\n", " "))

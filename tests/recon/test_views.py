@@ -93,18 +93,21 @@ def test_alpha_channel_and_mask_folder_composite_over_the_background(tmp_path):
     images = capture(tmp_path, alpha=alpha)
     white = load_views(tmp_path / "images", background=(1, 1, 1)).views[0].image
     assert torch.allclose(white[:, : W // 2], torch.from_numpy(images[0, :, : W // 2]).float() / 255)
-    assert bool((white[:, W // 2:] == 1).all())
+    assert bool((white[:, W // 2 :] == 1).all())
     for i in range(4):  # a mask folder overrides the alpha channel
         write_png(tmp_path / "masks" / f"v{i}.png", np.repeat(255 - alpha[..., None], 3, axis=2))
     black = load_views(tmp_path / "images", masks=tmp_path / "masks").views[0].image
     assert bool((black[:, : W // 2] == 0).all())
-    assert torch.allclose(black[:, W // 2:], torch.from_numpy(images[0, :, W // 2:]).float() / 255)
+    assert torch.allclose(black[:, W // 2 :], torch.from_numpy(images[0, :, W // 2 :]).float() / 255)
 
 
 def test_images_of_different_sizes_with_one_intrinsic(tmp_path):
     capture(tmp_path)
     write_png(tmp_path / "images" / "v2.png", np.zeros((H + 4, W, 3), np.uint8))
-    one_line_error([tmp_path / "images", "-o", tmp_path / "out"], "v2.png: the image is 16x16 px but transforms.json gives its camera 16x12 px")
+    one_line_error(
+        [tmp_path / "images", "-o", tmp_path / "out"],
+        "v2.png: the image is 16x16 px but transforms.json gives its camera 16x12 px",
+    )
 
 
 def test_missing_image(tmp_path):
@@ -118,7 +121,10 @@ def test_non_orthonormal_rotation(tmp_path):
     data = json.loads((tmp_path / "transforms.json").read_text())
     data["frames"][1]["transform_matrix"][0][0] += 0.05
     (tmp_path / "transforms.json").write_text(json.dumps(data))
-    one_line_error([tmp_path / "images", "-o", tmp_path / "out"], "frames[1]: camera 'images/v1': the rotation of viewmat is not orthonormal")
+    one_line_error(
+        [tmp_path / "images", "-o", tmp_path / "out"],
+        "frames[1]: camera 'images/v1': the rotation of viewmat is not orthonormal",
+    )
 
 
 def test_empty_masks(tmp_path):
@@ -126,7 +132,9 @@ def test_empty_masks(tmp_path):
     write_png(tmp_path / "images" / "v1.png", np.zeros((H, W, 4), np.uint8))
     one_line_error([tmp_path / "images", "-o", tmp_path / "out"], "v1.png: the mask is empty")
     (tmp_path / "masks").mkdir()
-    one_line_error([tmp_path / "images", "-o", tmp_path / "out", "--masks", tmp_path / "masks"], "no mask for image v0.png")
+    one_line_error(
+        [tmp_path / "images", "-o", tmp_path / "out", "--masks", tmp_path / "masks"], "no mask for image v0.png"
+    )
 
 
 def test_no_cameras_and_two_camera_sources(tmp_path):
@@ -164,8 +172,23 @@ def test_the_training_options_reach_the_settings(tmp_path, monkeypatch):
 
     capture(tmp_path)
     monkeypatch.setattr(clflow.recon.train, "reconstruct", record)
-    code, output = run([tmp_path / "images", "-o", tmp_path / "out", "--iterations", "7", "--seed", "3",
-                        "--densify-every", "9", "--holdout-every", "4", "--background", "white"])
+    code, output = run(
+        [
+            tmp_path / "images",
+            "-o",
+            tmp_path / "out",
+            "--iterations",
+            "7",
+            "--seed",
+            "3",
+            "--densify-every",
+            "9",
+            "--holdout-every",
+            "4",
+            "--background",
+            "white",
+        ]
+    )
     assert code == 130, output
     s = seen["settings"]
     assert (s.iterations, s.seed, s.densify_every, s.holdout_every) == (7, 3, 9, 4)

@@ -29,9 +29,15 @@ def test_zero_copy_buffer_aliases_the_tensor_and_kernels_write_into_it(device):
         host = buf.get_host_array(out.shape, np.float32)
         assert host.__array_interface__["data"][0] == out.data_ptr()  # the buffer is the tensor
         device.launch(
-            scatter_kernel(device), 3,
-            [b.input(torch.tensor([1.5, 2.0, 4.0])), b.input(torch.tensor([3, 0, 3], dtype=torch.int32)),
-             buf, np.int32(3), np.int32(1)],
+            scatter_kernel(device),
+            3,
+            [
+                b.input(torch.tensor([1.5, 2.0, 4.0])),
+                b.input(torch.tensor([3, 0, 3], dtype=torch.int32)),
+                buf,
+                np.int32(3),
+                np.int32(1),
+            ],
         )
         device.finish()
         # PoCL's CPU device wrote straight into the tensor: visible before any copy or map.
@@ -43,7 +49,9 @@ def test_copy_path_for_discrete_devices(device):
     out = torch.zeros(3, dtype=torch.float64)
     with device.bind() as b:
         b.zero_copy = False  # what a discrete GPU gets: copy in, run, copy back
-        run_scatter(device, b, torch.tensor([1.0, 2.0], dtype=torch.float64), torch.tensor([2, 2], dtype=torch.int32), out)
+        run_scatter(
+            device, b, torch.tensor([1.0, 2.0], dtype=torch.float64), torch.tensor([2, 2], dtype=torch.int32), out
+        )
     assert out.tolist() == [0.0, 0.0, 3.0]
 
 

@@ -12,10 +12,20 @@ from clflow.runtime import devices as devmod
 from clflow.runtime import programs
 
 POCL_CPU = devmod.DeviceInfo(
-    platform="Portable Computing Language", name="pthread-skylake", type="CPU",
-    opencl_version="OpenCL 3.0 PoCL", opencl_c_version="OpenCL C 1.2 PoCL", driver_version="3.1",
-    fp64=True, float_atomics=False, host_unified_memory=True, compute_units=2,
-    max_work_group_size=4096, local_mem_size=2 << 20, global_mem_size=4 << 30, max_mem_alloc_size=1 << 30,
+    platform="Portable Computing Language",
+    name="pthread-skylake",
+    type="CPU",
+    opencl_version="OpenCL 3.0 PoCL",
+    opencl_c_version="OpenCL C 1.2 PoCL",
+    driver_version="3.1",
+    fp64=True,
+    float_atomics=False,
+    host_unified_memory=True,
+    compute_units=2,
+    max_work_group_size=4096,
+    local_mem_size=2 << 20,
+    global_mem_size=4 << 30,
+    max_mem_alloc_size=1 << 30,
 )
 INTEL_CPU = dataclasses.replace(POCL_CPU, platform="Intel(R) OpenCL", name="Intel(R) Xeon(R) CPU")
 NVIDIA_GPU = dataclasses.replace(

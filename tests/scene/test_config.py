@@ -15,9 +15,13 @@ GOOD = {
     "scene": {"scale": 0.5, "up": "+z"},
     "object": {"select": {"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}, "fill": {"spacing": 0.02}},
     "material": {"type": "elastic", "parameters": {"youngs_modulus": 1e4}, "density": 500},
-    "forces": [{"region": {"sphere": {"center": [0, 0.5, 0], "radius": 0.1}}, "force": [0, 0, 2], "start": 0, "end": 0.2}],
-    "boundaries": {"ground": {"height": 0.0, "mode": "slip", "friction": 0.3},
-                   "colliders": [{"point": [1, 0, 0], "normal": [-1, 0, 0], "mode": "sticky"}]},
+    "forces": [
+        {"region": {"sphere": {"center": [0, 0.5, 0], "radius": 0.1}}, "force": [0, 0, 2], "start": 0, "end": 0.2}
+    ],
+    "boundaries": {
+        "ground": {"height": 0.0, "mode": "slip", "friction": 0.3},
+        "colliders": [{"point": [1, 0, 0], "normal": [-1, 0, 0], "mode": "sticky"}],
+    },
     "simulation": {"grid_resolution": 32, "fps": 24, "frames": 12, "substep_dt": "auto"},
     "camera": {"position": [0, 1, 3], "look_at": [0, 0.5, 0], "width": 256, "height": 256},
     "optimize": {"parameters": ["youngs_modulus"], "learning_rates": {"youngs_modulus": 0.1}, "iterations": 5},
@@ -103,7 +107,11 @@ BAD = [
     ("forces.0.acceleration", [0, 0, 1], "forces\\[0\\]: give exactly one of force"),
     ("forces.0.region", {"cube": 1}, "forces\\[0\\].region.cube: unknown key"),
     ("boundaries.ground.mode", "bouncy", "boundaries.ground.mode: must be one of sticky, slip, separate"),
-    ("boundaries.colliders", [{"point": [0, 0, 0], "normal": [0, 0, 0]}], "boundaries.colliders\\[0\\].normal: must not be the zero"),
+    (
+        "boundaries.colliders",
+        [{"point": [0, 0, 0], "normal": [0, 0, 0]}],
+        "boundaries.colliders\\[0\\].normal: must not be the zero",
+    ),
     ("camera", {}, "camera: give a camera file"),
     ("camera.fov_y_deg", 200, "camera.fov_y_deg: must be <= 179"),
     ("optimize.parameters", ["yield_stress"], "'yield_stress' is not a parameter of elastic"),
@@ -114,32 +122,58 @@ BAD = [
     ("flow", {"confidence": "fb"}, "flow.confidence: must be one of none, forward_backward, got 'fb'"),
     ("flow", {"bias_correction": "yes"}, "flow.bias_correction: must be one of none, simulated, got 'yes'"),
     ("optimize.search", {"samples": 4, "starts": 5}, "optimize.search.starts: must not exceed search.samples"),
-    ("optimize.search", {"samples": 4, "starts": 2}, "optimize.search.starts: several starts are polished by levenberg"),
+    (
+        "optimize.search",
+        {"samples": 4, "starts": 2},
+        "optimize.search.starts: several starts are polished by levenberg",
+    ),
     ("flow", {"mask": "nope.png"}, "flow.mask: file not found"),
     ("scene.up", None, None),  # null takes the default
     ("camera.file", "scene.ply", "camera: with a camera file, position, look_at.* come from the file"),
     ("camera.index", 2, "camera.index: picks an entry of a camera file"),
     ("material.query", {"image": "x.png"}, "material.query: is only read with type: query"),
-    ("material.parameters", {"youngs_modulus": "2e4"}, "material.parameters.youngs_modulus: must be a number, got '2e4'"),
+    (
+        "material.parameters",
+        {"youngs_modulus": "2e4"},
+        "material.parameters.youngs_modulus: must be a number, got '2e4'",
+    ),
     ("material.parameters", {"youngs_modulus": True}, "material.parameters.youngs_modulus: must be a number"),
     ("evaluation", {"ground_truth": {"density": -5.0}}, "evaluation.ground_truth: .*density"),
     ("simulation.grid_resolution", 9, "simulation.grid_resolution: must be an integer >= 11"),
     ("optimize.final_rate", 2, "optimize.final_rate: must be <= 1, got 2"),
-    ("material", {"type": "query", "query": {"image": "scene.ply", "backend": "gpt"}},
-     "material.query.backend: must be one of offline, openai"),
+    (
+        "material",
+        {"type": "query", "query": {"image": "scene.ply", "backend": "gpt"}},
+        "material.query.backend: must be one of offline, openai",
+    ),
     ("object.velocity", [1.0, 2.0], r"object.velocity: must be a list of 3 finite numbers, got \[1.0, 2.0\]"),
     ("object.velocity", [float("nan"), 0, 0], "object.velocity: must be a list of 3 finite numbers, got \\[nan"),
     ("object.velocity", "fast", "object.velocity: must be a list of 3 finite numbers, got 'fast'"),
     ("object.velocity", ["1", "2", "3"], "object.velocity: must be a list of 3 finite numbers"),
     ("object.velocity", [True, 0, 0], "object.velocity: must be a list of 3 finite numbers"),
     ("optimize.parameters", ["speed"], "'speed' is not a parameter of elastic .*density, velocity"),
-    ("optimize.learning_rates", {"velocity": 0.1}, r"optimize.learning_rates.velocity: is not among optimize.parameters"
-                                                   r" \['youngs_modulus'\] \(nor estimated"),
-    ("optimize.estimate_velocity", {"frames": 13, "iterations": 5},
-     r"optimize.estimate_velocity.frames: must be <= simulation.frames \(12\), got 13"),
+    (
+        "optimize.learning_rates",
+        {"velocity": 0.1},
+        r"optimize.learning_rates.velocity: is not among optimize.parameters"
+        r" \['youngs_modulus'\] \(nor estimated",
+    ),
+    (
+        "optimize.estimate_velocity",
+        {"frames": 13, "iterations": 5},
+        r"optimize.estimate_velocity.frames: must be <= simulation.frames \(12\), got 13",
+    ),
     ("optimize.estimate_velocity", {"frames": 3}, "optimize.estimate_velocity.iterations: is required"),
-    ("optimize.estimate_velocity", {"frames": 0, "iterations": 5}, "optimize.estimate_velocity.frames: must be an integer >= 1"),
-    ("optimize.estimate_velocity", {"frames": 3, "iterations": 5, "lr": 1}, "optimize.estimate_velocity.lr: unknown key"),
+    (
+        "optimize.estimate_velocity",
+        {"frames": 0, "iterations": 5},
+        "optimize.estimate_velocity.frames: must be an integer >= 1",
+    ),
+    (
+        "optimize.estimate_velocity",
+        {"frames": 3, "iterations": 5, "lr": 1},
+        "optimize.estimate_velocity.lr: unknown key",
+    ),
     ("evaluation", {"ground_truth": {"velocity": 2.0}}, "evaluation.ground_truth.velocity: must be a list of 3 finite"),
     ("optimize.material", ["elastic", "lava"], "optimize.material: unknown material 'lava'"),
     ("optimize.material", "elastic", "optimize.material: must be a non-empty list of material names, got 'elastic'"),
@@ -161,8 +195,11 @@ def test_bad_configs_name_the_key_and_the_problem(folder, path, value, message):
 def test_velocity_keys(folder):
     assert parse(GOOD, folder).velocity == (0.0, 0.0, 0.0)  # at rest by default
     data = edit("object.velocity", [0.5, -1, 2])
-    data["optimize"] = {"parameters": ["youngs_modulus", "velocity"], "learning_rates": {"velocity": 0.2},
-                        "estimate_velocity": {"frames": 4, "iterations": 10}}
+    data["optimize"] = {
+        "parameters": ["youngs_modulus", "velocity"],
+        "learning_rates": {"velocity": 0.2},
+        "estimate_velocity": {"frames": 4, "iterations": 10},
+    }
     data["evaluation"] = {"ground_truth": {"youngs_modulus": 2e4, "velocity": [0.5, -1, 0]}}
     cfg = parse(data, folder)
     assert cfg.velocity == (0.5, -1.0, 2.0)  # as written: m/s in the simulation frame
@@ -171,8 +208,11 @@ def test_velocity_keys(folder):
     assert (opt.estimate_velocity_frames, opt.estimate_velocity_iterations) == (4, 10)
     assert cfg.ground_truth == {"youngs_modulus": 2e4, "velocity_x": 0.5, "velocity_y": -1.0, "velocity_z": 0.0}
     # a rate for the velocity phase alone
-    data["optimize"] = {"parameters": ["youngs_modulus"], "learning_rates": {"velocity": 0.2},
-                        "estimate_velocity": {"frames": 4, "iterations": 10}}
+    data["optimize"] = {
+        "parameters": ["youngs_modulus"],
+        "learning_rates": {"velocity": 0.2},
+        "estimate_velocity": {"frames": 4, "iterations": 10},
+    }
     assert parse(data, folder).optimize.learning_rates == {"velocity": 0.2}
     assert parse(GOOD, folder).optimize.estimate_velocity_iterations == 0  # no velocity phase by default
 
@@ -186,15 +226,27 @@ def test_not_a_mapping(folder):
 
 DUPLICATES = [
     ("scene.yaml", "splats: scene.ply\nsplats: other.ply\n", r"splats \(line 2\): duplicate key"),
-    ("scene.yaml", "splats: scene.ply\nsimulation:\n  fps: 24\n  frames: 3\n  fps: 30\n",
-     r"simulation.fps \(line 5\): duplicate key"),
-    ("scene.yaml", "splats: scene.ply\nforces:\n  - {force: [0, 0, 1], force: [0, 0, 2]}\n",
-     r"forces\[0\].force \(line 3\): duplicate key"),
+    (
+        "scene.yaml",
+        "splats: scene.ply\nsimulation:\n  fps: 24\n  frames: 3\n  fps: 30\n",
+        r"simulation.fps \(line 5\): duplicate key",
+    ),
+    (
+        "scene.yaml",
+        "splats: scene.ply\nforces:\n  - {force: [0, 0, 1], force: [0, 0, 2]}\n",
+        r"forces\[0\].force \(line 3\): duplicate key",
+    ),
     ("scene.json", '{"splats": "scene.ply", "splats": "other.ply"}', "splats: duplicate key"),
-    ("scene.json", '{"splats": "scene.ply", "scene": {"scale": 1, "up": "+y", "scale": 2}}',
-     "scene.scale: duplicate key"),
-    ("scene.json", '{"splats": "scene.ply", "forces": [{"start": 0, "start": 1}]}',
-     r"forces\[0\].start: duplicate key"),
+    (
+        "scene.json",
+        '{"splats": "scene.ply", "scene": {"scale": 1, "up": "+y", "scale": 2}}',
+        "scene.scale: duplicate key",
+    ),
+    (
+        "scene.json",
+        '{"splats": "scene.ply", "forces": [{"start": 0, "start": 1}]}',
+        r"forces\[0\].start: duplicate key",
+    ),
 ]
 
 
@@ -210,7 +262,9 @@ def test_material_hypotheses_check_parameters_against_all_of_them(folder):
     cfg = parse(data, folder)
     assert cfg.optimize.materials == ("elastic", "newtonian")  # registry names
     assert cfg.optimize.search is not None  # the search tells them apart: on by default
-    with pytest.raises(InputError, match="optimize.parameters: 'yield_stress' is a parameter of none of the hypotheses"):
+    with pytest.raises(
+        InputError, match="optimize.parameters: 'yield_stress' is a parameter of none of the hypotheses"
+    ):
         parse(edit("optimize", {"parameters": ["youngs_modulus", "yield_stress"], "material": ["elastic"]}), folder)
     # a ground truth may belong to any hypothesis
     truth = edit("evaluation", {"ground_truth": {"viscosity": 10.0}})
@@ -241,8 +295,16 @@ def scene_yaml(folder):
 
 
 def test_overrides_set_keys_before_validation(scene_yaml):
-    cfg = load_config(scene_yaml, ["simulation.frames=20", "material.parameters.youngs_modulus=3e5",
-                                   "object.velocity=[0, 1.5, 0]", "optimize.search.samples=4", "scene.up=+y"])
+    cfg = load_config(
+        scene_yaml,
+        [
+            "simulation.frames=20",
+            "material.parameters.youngs_modulus=3e5",
+            "object.velocity=[0, 1.5, 0]",
+            "optimize.search.samples=4",
+            "scene.up=+y",
+        ],
+    )
     assert cfg.simulation.frames == 20 and cfg.material.parameters["youngs_modulus"] == 3e5
     assert cfg.velocity == (0.0, 1.5, 0.0) and cfg.optimize.search.samples == 4 and cfg.up == "+y"
     assert load_config(scene_yaml, ["simulation.frames=20", "simulation.frames=8"]).simulation.frames == 8  # last wins
@@ -250,25 +312,36 @@ def test_overrides_set_keys_before_validation(scene_yaml):
 
 
 def test_overrides_index_list_items(scene_yaml):
-    cfg = load_config(scene_yaml, ["forces.0.end=0.5", "forces.0.region.sphere.radius=0.2",
-                                   "object.velocity=[0, 1, 0]", "object.velocity.1=2.5"])
+    cfg = load_config(
+        scene_yaml,
+        ["forces.0.end=0.5", "forces.0.region.sphere.radius=0.2", "object.velocity=[0, 1, 0]", "object.velocity.1=2.5"],
+    )
     assert cfg.forces[0].end == 0.5 and cfg.forces[0].region.radius == 0.2
     assert cfg.velocity[1] == 2.5
 
 
-@pytest.mark.parametrize("item, message", [
-    ("forces.3.end=1", r"^--set forces.3.end=1: forces has 1 item\(s\), so no item 3"),
-    ("forces.0.end=-1", r"^--set forces.0.end=-1: forces\[0\].end: must be after start"),
-    ("0.frames=1", r"^--set 0.frames=1: expected KEY.SUB=VALUE"),
-    ("simulation.framez=3", r"^--set simulation.framez=3: simulation.framez: unknown key; known keys here: .*frames"),
-    ("simulation.frames=many", r"^--set simulation.frames=many: simulation.frames: must be an integer >= 1, got 'many'$"),
-    ("material.parameters.youngs_modulus=-5", r"^--set material.parameters.youngs_modulus=-5: .*youngs_modulus"),
-    ("bogus.key=1", r"^--set bogus.key=1: bogus: unknown key"),
-    ("scene.scale.x=1", r"^--set scene.scale.x=1: scene.scale is a float in the config, not a mapping of keys$"),
-    ("simulation.frames", r"^--set simulation.frames: expected KEY.SUB=VALUE"),
-    ("simulation..frames=2", r"^--set simulation..frames=2: expected KEY.SUB=VALUE"),
-    ("object.velocity=[0, 1", r"^--set object.velocity=\[0, 1: the value is not valid YAML"),
-])
+@pytest.mark.parametrize(
+    "item, message",
+    [
+        ("forces.3.end=1", r"^--set forces.3.end=1: forces has 1 item\(s\), so no item 3"),
+        ("forces.0.end=-1", r"^--set forces.0.end=-1: forces\[0\].end: must be after start"),
+        ("0.frames=1", r"^--set 0.frames=1: expected KEY.SUB=VALUE"),
+        (
+            "simulation.framez=3",
+            r"^--set simulation.framez=3: simulation.framez: unknown key; known keys here: .*frames",
+        ),
+        (
+            "simulation.frames=many",
+            r"^--set simulation.frames=many: simulation.frames: must be an integer >= 1, got 'many'$",
+        ),
+        ("material.parameters.youngs_modulus=-5", r"^--set material.parameters.youngs_modulus=-5: .*youngs_modulus"),
+        ("bogus.key=1", r"^--set bogus.key=1: bogus: unknown key"),
+        ("scene.scale.x=1", r"^--set scene.scale.x=1: scene.scale is a float in the config, not a mapping of keys$"),
+        ("simulation.frames", r"^--set simulation.frames: expected KEY.SUB=VALUE"),
+        ("simulation..frames=2", r"^--set simulation..frames=2: expected KEY.SUB=VALUE"),
+        ("object.velocity=[0, 1", r"^--set object.velocity=\[0, 1: the value is not valid YAML"),
+    ],
+)
 def test_a_bad_override_is_one_line_naming_it(scene_yaml, item, message):
     with pytest.raises(InputError, match=message) as error:
         load_config(scene_yaml, [item])

@@ -75,7 +75,8 @@ def test_the_complete_example_loads_with_its_values(folder):
     assert cfg.ground_truth["youngs_modulus"] == 20000.0 and cfg.output == (folder / "results").resolve()
     # the same as JSON
     assert _load(folder, yaml.safe_load(BLOCKS[0]), "scene.json") == dataclasses.replace(
-        cfg, source=folder / "scene.json")
+        cfg, source=folder / "scene.json"
+    )
 
 
 def test_the_alternative_forms_load(folder):
@@ -102,10 +103,10 @@ def _section_keys(source: str) -> set[str]:
         while depth:  # the call's text, to its closing parenthesis
             depth += {"(": 1, ")": -1}.get(source[i], 0)
             i += 1
-        call = source[match.end():i - 1]
+        call = source[match.end() : i - 1]
         if call.rstrip().endswith("TOP_KEYS"):
             continue  # read below
-        known = re.findall(r"\(([^()]*)\)\s*$", call)  # the last argument: a tuple of strings
+        known = re.findall(r"\(([^()]*)\),?\s*$", call)  # the last argument: a tuple of strings
         assert known, f"r.section call without a literal tuple of keys: {call!r}"
         keys.update(re.findall(r'"(\w+)"', known[0]))
     keys.update(re.findall(r'"(\w+)"', re.search(r"TOP_KEYS = \(([^)]*)\)", source).group(1)))
@@ -118,7 +119,18 @@ def test_every_key_and_option_of_the_parser_is_documented():
     assert {"splats", "grid_resolution", "per_axis", "fov_y_deg", "result", "final_rate"} <= keys
     missing = sorted(k for k in keys if not re.search(rf"`[^`\n]*\b{k}\b[^`\n]*`|^\s*-?\s*{k}:", DOC, re.M))
     assert not missing, f"docs/scene_config.md does not mention the keys {missing}"
-    options = [*config_module.UP_AXES, *config_module.COLLIDER_MODES, *config_module.FLOW_METHODS,
-               *config_module.FLOW_LOSSES, *(m for ms in config_module.MATERIAL_MODELS.values() for m in ms),
-               "auto", "all", "query", "alpha", "none", "offline", "openai"]
+    options = [
+        *config_module.UP_AXES,
+        *config_module.COLLIDER_MODES,
+        *config_module.FLOW_METHODS,
+        *config_module.FLOW_LOSSES,
+        *(m for ms in config_module.MATERIAL_MODELS.values() for m in ms),
+        "auto",
+        "all",
+        "query",
+        "alpha",
+        "none",
+        "offline",
+        "openai",
+    ]
     assert not [o for o in options if o not in DOC], "an option value is missing from the doc"

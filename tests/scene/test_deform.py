@@ -23,7 +23,9 @@ def test_rest_covariance_has_the_scales_as_principal_std():
 def test_a_stretch_scales_the_covariance_and_a_rotation_turns_it():
     cov = covariances_of(torch.tensor([[1.0, 2.0, 3.0]], dtype=torch.float64), torch.eye(3, dtype=torch.float64)[None])
     stretch = torch.diag(torch.tensor([2.0, 1.0, 0.5], dtype=torch.float64))[None]
-    torch.testing.assert_close(deformed_covariances(cov, stretch)[0], torch.diag(torch.tensor([4.0, 4.0, 2.25], dtype=torch.float64)))
+    torch.testing.assert_close(
+        deformed_covariances(cov, stretch)[0], torch.diag(torch.tensor([4.0, 4.0, 2.25], dtype=torch.float64))
+    )
     R = random_rotations(1, seed=3)
     torch.testing.assert_close(deformed_covariances(cov, R), R @ cov @ R.transpose(1, 2))
 
@@ -37,7 +39,10 @@ def test_polar_rotation_is_proper_and_recovers_the_rotation():
     inverted = F.clone()
     inverted[:, :, 2] *= -1  # det F < 0: still a proper rotation out
     assert torch.allclose(torch.det(polar_rotations(inverted)), torch.ones(20, dtype=torch.float64))
-    torch.testing.assert_close(polar_rotations(torch.eye(3, dtype=torch.float64).repeat(4, 1, 1)), torch.eye(3, dtype=torch.float64).repeat(4, 1, 1))
+    torch.testing.assert_close(
+        polar_rotations(torch.eye(3, dtype=torch.float64).repeat(4, 1, 1)),
+        torch.eye(3, dtype=torch.float64).repeat(4, 1, 1),
+    )
 
 
 def test_polar_rotation_in_float32_and_of_singular_matrices():
@@ -60,9 +65,17 @@ def test_a_frame_moves_and_deforms_the_object_and_keeps_the_static_gaussians():
 
     gen = torch.Generator().manual_seed(5)
     up = random_rotations(1, seed=6)[0]
-    scene = Gaussians.from_activated(torch.randn(9, 3, generator=gen), torch.randn(9, 4, generator=gen),
-                                     0.1 + torch.rand(9, 3, generator=gen), 0.2 + 0.6 * torch.rand(9, generator=gen),
-                                     sh=torch.randn(9, 4, 3, generator=gen)).transformed(up, 2.0).to(torch.float32)
+    scene = (
+        Gaussians.from_activated(
+            torch.randn(9, 3, generator=gen),
+            torch.randn(9, 4, generator=gen),
+            0.1 + torch.rand(9, 3, generator=gen),
+            0.2 + 0.6 * torch.rand(9, generator=gen),
+            sh=torch.randn(9, 4, 3, generator=gen),
+        )
+        .transformed(up, 2.0)
+        .to(torch.float32)
+    )
     obj, static = scene.select(torch.arange(6)), scene.select(torch.arange(6, 9))
     x = torch.randn(8, 3, generator=gen)  # 6 Gaussians + 2 fill particles
     F = torch.eye(3) + 0.3 * torch.randn(8, 3, 3, generator=gen)

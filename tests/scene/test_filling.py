@@ -19,7 +19,7 @@ def test_a_sphere_shell_is_filled_with_the_sphere_volume():
     means, covs, opac = sphere_shell()
     obj = fill_object(means, covs, opac, spacing=0.01)
     assert torch.equal(obj.positions[: obj.n_gaussians], means)  # Gaussians first, unchanged
-    fill = obj.positions[obj.n_gaussians:]
+    fill = obj.positions[obj.n_gaussians :]
     assert obj.n_fill > 0 and fill.norm(dim=1).max() < 0.1 + 2 * 0.004 + 0.01 * math.sqrt(3) / 2
     assert fill.norm(dim=1).min() < 0.02  # the centre is filled
     total = obj.volume * obj.positions.shape[0]
@@ -67,7 +67,7 @@ def test_a_cube_of_flat_face_gaussians_is_filled_inside_only():
     means, covs = torch.tensor(means), torch.diag_embed(torch.tensor(scales) ** 2)
     for spacing in (0.0167, 0.01):
         obj = fill_object(means, covs, torch.full((len(means),), 0.95, dtype=torch.float64), spacing, per_axis=1)
-        fill = obj.positions[obj.n_gaussians:] - torch.tensor([0.0, 0.1, 0.0], dtype=torch.float64)
+        fill = obj.positions[obj.n_gaussians :] - torch.tensor([0.0, 0.1, 0.0], dtype=torch.float64)
         assert obj.n_fill > 0 and float(fill.abs().max()) < 0.1
         assert obj.volume * obj.positions.shape[0] == pytest.approx(0.2**3, rel=0.1)
 
@@ -84,7 +84,7 @@ def test_voxels_finer_than_the_surface_sampling_do_not_leave_the_object_hollow()
     means, covs = torch.tensor(means), torch.diag_embed(torch.tensor(scales) ** 2)
     assert surface_gap(means) == pytest.approx(0.025, rel=0.01)
     obj = fill_object(means, covs, torch.full((len(means),), 0.95, dtype=torch.float64), 0.004, per_axis=1)
-    fill = obj.positions[obj.n_gaussians:]
+    fill = obj.positions[obj.n_gaussians :]
     assert obj.volume * obj.positions.shape[0] == pytest.approx(0.2**3, rel=0.1)
     assert obj.n_fill == pytest.approx(0.2**3 / 0.004**3, rel=0.25)  # the requested particle spacing
     spacing = torch.cdist(fill[:500], fill).topk(2, largest=False).values[:, 1]

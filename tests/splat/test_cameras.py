@@ -77,16 +77,26 @@ def test_framing_distance_fits_the_sphere_in_the_narrow_fov():
 def write_cameras_json(path, cameras):
     """cameras.json as 3DGS's trainer writes it: camera-to-world rotation and the centre."""
     entries = [
-        dict(id=i, img_name=c.name, width=c.width, height=c.height, position=c.position.tolist(),
-             rotation=c.R.T.tolist(), fy=c.fy, fx=c.fx)
+        dict(
+            id=i,
+            img_name=c.name,
+            width=c.width,
+            height=c.height,
+            position=c.position.tolist(),
+            rotation=c.R.T.tolist(),
+            fy=c.fy,
+            fx=c.fx,
+        )
         for i, c in enumerate(cameras)
     ]
     path.write_text(json.dumps(entries))
 
 
 def test_cameras_json_round_trip(tmp_path):
-    cams = [look_at((2, -3, 1), (0, 0, 0), fov_x=0.9, width=80, height=60, name="img_0"),
-            look_at((-1, 0, 4), (0, 1, 0), fov_x=1.2, width=40, height=50, name="img_1")]
+    cams = [
+        look_at((2, -3, 1), (0, 0, 0), fov_x=0.9, width=80, height=60, name="img_0"),
+        look_at((-1, 0, 4), (0, 1, 0), fov_x=1.2, width=40, height=50, name="img_1"),
+    ]
     write_cameras_json(tmp_path / "cameras.json", cams)
     loaded = load_cameras_json(tmp_path / "cameras.json")
     assert [c.name for c in loaded] == ["img_0", "img_1"]
@@ -103,15 +113,16 @@ def test_transforms_json_round_trip_keeps_the_principal_point(tmp_path):
     save_transforms_json(tmp_path / "camera.json", [cam])
     frame = json.loads((tmp_path / "camera.json").read_text())["frames"][0]
     assert (frame["cx"], frame["w"], frame["h"]) == (37.25, 80, 60)
-    loaded, = load_transforms_json(tmp_path / "camera.json")
+    (loaded,) = load_transforms_json(tmp_path / "camera.json")
     assert torch.allclose(loaded.viewmat, cam.viewmat, atol=1e-14) and torch.equal(loaded.K, cam.K)
     assert (loaded.width, loaded.height, loaded.name) == (80, 60, "r_1_0")
 
 
 def test_cameras_json_hand_written_entry(tmp_path):
     # Identity camera-to-world rotation at z = -5: the camera looks along +z at the origin.
-    entry = dict(id=0, img_name="front", width=100, height=80, position=[0, 0, -5],
-                 rotation=np.eye(3).tolist(), fx=50.0, fy=60.0)
+    entry = dict(
+        id=0, img_name="front", width=100, height=80, position=[0, 0, -5], rotation=np.eye(3).tolist(), fx=50.0, fy=60.0
+    )
     (tmp_path / "cameras.json").write_text(json.dumps([entry]))
     (cam,) = load_cameras_json(tmp_path / "cameras.json")
     assert project(cam, (0, 0, 0)) == pytest.approx((50, 40, 5))
@@ -122,7 +133,9 @@ def test_transforms_json_converts_opengl_axes(tmp_path):
     # NeRF-synthetic style: camera at z = 4 (OpenGL: looks down -z, +y up), 2*atan(0.5) fov.
     c2w_gl = np.eye(4)
     c2w_gl[2, 3] = 4
-    data = dict(camera_angle_x=2 * math.atan(0.5), frames=[dict(file_path="./train/r_0", transform_matrix=c2w_gl.tolist())])
+    data = dict(
+        camera_angle_x=2 * math.atan(0.5), frames=[dict(file_path="./train/r_0", transform_matrix=c2w_gl.tolist())]
+    )
     (tmp_path / "transforms.json").write_text(json.dumps(data))
     (cam,) = load_transforms_json(tmp_path / "transforms.json", width=100, height=100)
     assert cam.fx == pytest.approx(100) and cam.name == "./train/r_0"
@@ -135,8 +148,15 @@ def test_transforms_json_intrinsics_and_size_from_keys_and_from_the_image(tmp_pa
     import cv2
 
     c2w = np.eye(4).tolist()
-    data = dict(fl_x=30.0, fl_y=40.0, cx=11.0, cy=7.0, w=22, h=14,
-                frames=[dict(file_path="a.png", transform_matrix=c2w), dict(file_path="b", transform_matrix=c2w, fl_x=33.0)])
+    data = dict(
+        fl_x=30.0,
+        fl_y=40.0,
+        cx=11.0,
+        cy=7.0,
+        w=22,
+        h=14,
+        frames=[dict(file_path="a.png", transform_matrix=c2w), dict(file_path="b", transform_matrix=c2w, fl_x=33.0)],
+    )
     (tmp_path / "t.json").write_text(json.dumps(data))
     a, b = load_transforms_json(tmp_path / "t.json")
     assert a.K.tolist() == [[30, 0, 11], [0, 40, 7], [0, 0, 1]] and (a.width, a.height) == (22, 14)
@@ -158,13 +178,30 @@ ROT = np.eye(3).tolist()
         ("{not json", "invalid JSON at line 1"),
         ("{}", "non-empty JSON list"),
         (json.dumps([dict(width=4, height=4, position=[0, 0, 0], rotation=ROT, fx=1)]), "camera 0: missing keys fy"),
-        (json.dumps([dict(width=4, height=4, position=[0, 0], rotation=ROT, fx=1, fy=1)]), "position: expected shape \\[3\\]"),
-        (json.dumps([dict(width=4.5, height=4, position=[0, 0, 0], rotation=ROT, fx=1, fy=1)]), "'width' must be a positive integer"),
-        (json.dumps([dict(width=4, height=4, position=[0, 0, 0], rotation=ROT, fx=-1, fy=1)]), "focal lengths must be > 0"),
-        (json.dumps([dict(width=4, height=4, position=[0, 0, 0], rotation=[[1, 0, 0], [0, 2, 0], [0, 0, 1]], fx=1, fy=1)]),
-         "camera 0: .*not orthonormal"),
-        (json.dumps([dict(width=4, height=4, position=[0, 0, 0], rotation=[[1, 0, 0], [0, 1, 0], [0, 0, -1]], fx=1, fy=1)]),
-         "reflection"),
+        (
+            json.dumps([dict(width=4, height=4, position=[0, 0], rotation=ROT, fx=1, fy=1)]),
+            "position: expected shape \\[3\\]",
+        ),
+        (
+            json.dumps([dict(width=4.5, height=4, position=[0, 0, 0], rotation=ROT, fx=1, fy=1)]),
+            "'width' must be a positive integer",
+        ),
+        (
+            json.dumps([dict(width=4, height=4, position=[0, 0, 0], rotation=ROT, fx=-1, fy=1)]),
+            "focal lengths must be > 0",
+        ),
+        (
+            json.dumps(
+                [dict(width=4, height=4, position=[0, 0, 0], rotation=[[1, 0, 0], [0, 2, 0], [0, 0, 1]], fx=1, fy=1)]
+            ),
+            "camera 0: .*not orthonormal",
+        ),
+        (
+            json.dumps(
+                [dict(width=4, height=4, position=[0, 0, 0], rotation=[[1, 0, 0], [0, 1, 0], [0, 0, -1]], fx=1, fy=1)]
+            ),
+            "reflection",
+        ),
         (json.dumps([dict(width=4, height=4, position=[0, "a", 0], rotation=ROT, fx=1, fy=1)]), "expected numbers"),
     ],
 )
@@ -181,7 +218,10 @@ def test_bad_cameras_json(tmp_path, content, message):
         (dict(frames=[]), "non-empty 'frames'"),
         (dict(w=4, h=4, frames=[dict(file_path="x")]), "frames\\[0\\]: missing 'transform_matrix'"),
         (dict(w=4, h=4, frames=[dict(transform_matrix=np.eye(4).tolist())]), "no intrinsics"),
-        (dict(camera_angle_x=1, frames=[dict(file_path="gone", transform_matrix=np.eye(4).tolist())]), "no readable image"),
+        (
+            dict(camera_angle_x=1, frames=[dict(file_path="gone", transform_matrix=np.eye(4).tolist())]),
+            "no readable image",
+        ),
         (dict(w=4, h=4, fl_x=2, frames=[dict(transform_matrix=(np.eye(4) * 1.1).tolist())]), "last row"),
         (dict(w=4, h=4, fl_x=2, frames=[dict(transform_matrix=np.eye(3).tolist())]), "expected shape \\[4, 4\\]"),
     ],
@@ -216,8 +256,9 @@ def test_transform_camera_sees_transformed_points_at_the_same_pixels(tmp_path):
     from tests.splat._helpers import rotations
 
     R, t, s = rotations(1, seed=4)[0], torch.tensor([0.3, -1.0, 2.0], dtype=F64), 0.25
-    (tmp_path / "dataparser_transforms.json").write_text(json.dumps({"transform": torch.cat([R, t[:, None]], 1).tolist(),
-                                                                     "scale": s}))
+    (tmp_path / "dataparser_transforms.json").write_text(
+        json.dumps({"transform": torch.cat([R, t[:, None]], 1).tolist(), "scale": s})
+    )
     transform, scale = load_dataparser_transforms(tmp_path / "dataparser_transforms.json")
     cam = look_at((3, 1, 2), (0, 0, 0.5), (0, 0, 1), fov_x=1.0, width=64, height=48)
     moved = transform_camera(cam, transform, scale)
@@ -228,12 +269,15 @@ def test_transform_camera_sees_transformed_points_at_the_same_pixels(tmp_path):
     assert transform_camera(cam, transform, 1.0).viewmat[:3, :3].det() == pytest.approx(1.0)
 
 
-@pytest.mark.parametrize("content, message", [
-    ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]}, "an object with 'transform' \\(3x4\\) and 'scale'"),
-    ({"transform": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "scale": 1}, "transform: expected shape \\[3, 4\\]"),
-    ({"transform": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 1}, "3x3 part is not a rotation"),
-    ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 0}, "'scale' must be > 0"),
-])
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]}, "an object with 'transform' \\(3x4\\) and 'scale'"),
+        ({"transform": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "scale": 1}, "transform: expected shape \\[3, 4\\]"),
+        ({"transform": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 1}, "3x3 part is not a rotation"),
+        ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 0}, "'scale' must be > 0"),
+    ],
+)
 def test_bad_dataparser_transforms(tmp_path, content, message):
     from clflow.splat.cameras import load_dataparser_transforms
 

@@ -60,19 +60,27 @@ def test_round_trip_within_the_quantisation_step(tmp_path, n, degree):
 
 def test_the_layout_matches_the_format(tmp_path):
     """Header, element order and the bits of known values, packed by hand from the format."""
-    g = Gaussians(torch.tensor([[0.0, 0.0, 0.0], [2.0, 1.0, 4.0]]), torch.tensor([[2.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]]),
-                  torch.tensor([[-1.0, -2.0, -3.0], [-1.0, -1.0, -1.0]]), torch.tensor([0.0, 50.0]),
-                  sh=torch.cat([torch.zeros(2, 1, 3), torch.full((2, 3, 3), 0.5)], 1))
+    g = Gaussians(
+        torch.tensor([[0.0, 0.0, 0.0], [2.0, 1.0, 4.0]]),
+        torch.tensor([[2.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]]),
+        torch.tensor([[-1.0, -2.0, -3.0], [-1.0, -1.0, -1.0]]),
+        torch.tensor([0.0, 50.0]),
+        sh=torch.cat([torch.zeros(2, 1, 3), torch.full((2, 3, 3), 0.5)], 1),
+    )
     path = tmp_path / "g.compressed.ply"
     save_compressed_ply(path, g)
     data = path.read_bytes()
     header = data[: data.index(b"end_header\n") + 11].decode()
     lines = [line for line in header.splitlines() if not line.startswith("comment")]
-    assert lines[:4] == ["ply", "format binary_little_endian 1.0", "element chunk 1"] + [f"property float {CHUNK_FIELDS[0]}"]
+    assert lines[:4] == ["ply", "format binary_little_endian 1.0", "element chunk 1"] + [
+        f"property float {CHUNK_FIELDS[0]}"
+    ]
     assert lines[3:21] == [f"property float {name}" for name in CHUNK_FIELDS]
-    assert lines[21:26] == ["element vertex 2"] + [f"property uint packed_{k}" for k in ("position", "rotation", "scale", "color")]
+    assert lines[21:26] == ["element vertex 2"] + [
+        f"property uint packed_{k}" for k in ("position", "rotation", "scale", "color")
+    ]
     assert lines[26:] == ["element sh 2"] + [f"property uchar f_rest_{i}" for i in range(9)] + ["end_header"]
-    body = data[len(header):]
+    body = data[len(header) :]
     bounds = struct.unpack("<18f", body[:72])
     assert bounds[:6] == (0, 0, 0, 2, 1, 4) and bounds[6:12] == (-1, -2, -3, -1, -1, -1)
     vertices = struct.unpack("<8I", body[72:104])  # in Morton order: the origin first
@@ -86,16 +94,25 @@ def test_the_layout_matches_the_format(tmp_path):
 
 def test_a_file_packed_by_hand_reads_back(tmp_path):
     """One Gaussian built from the format's description, not by clflow's writer."""
-    head = ["ply", "format binary_little_endian 1.0", "element chunk 1", *(f"property float {n}" for n in CHUNK_FIELDS),
-            "element vertex 1", *(f"property uint packed_{k}" for k in ("position", "rotation", "scale", "color")),
-            "end_header"]
+    head = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "element chunk 1",
+        *(f"property float {n}" for n in CHUNK_FIELDS),
+        "element vertex 1",
+        *(f"property uint packed_{k}" for k in ("position", "rotation", "scale", "color")),
+        "end_header",
+    ]
     bounds = [0, 0, 0, 1, 1, 1, -2, -2, -2, 0, 0, 0, 0, 0, 0, 1, 1, 1]
     third = round(1023 * (0.5 * math.sqrt(0.5) + 0.5))  # x = 0.5 in the smallest-three code
     position = (2047 << 21) | (0 << 11) | 1023  # x = 1, y = 0, z = 1023 / 2047
     rotation = (0 << 30) | (third << 20) | (512 << 10) | 512
     color = (255 << 24) | (0 << 16) | (51 << 8) | 204  # r = 1, g = 0, b = 0.2, alpha = 0.8
-    (tmp_path / "h.ply").write_bytes(("\n".join(head) + "\n").encode() + struct.pack("<18f", *bounds)
-                                     + struct.pack("<4I", position, rotation, 0xFFFFFFFF, color))
+    (tmp_path / "h.ply").write_bytes(
+        ("\n".join(head) + "\n").encode()
+        + struct.pack("<18f", *bounds)
+        + struct.pack("<4I", position, rotation, 0xFFFFFFFF, color)
+    )
     g = load_ply(tmp_path / "h.ply")
     torch.testing.assert_close(g.means[0], torch.tensor([1.0, 0.0, 1023 / 2047]))
     torch.testing.assert_close(g.log_scales[0], torch.zeros(3))

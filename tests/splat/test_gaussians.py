@@ -35,7 +35,9 @@ def test_activations_are_exp_sigmoid_and_normalise():
 def test_from_activated_inverts_the_activations():
     scales = torch.tensor([[0.01, 0.2, 3.0]], dtype=torch.float64)
     opacities = torch.tensor([0.37], dtype=torch.float64)
-    g = Gaussians.from_activated(torch.zeros(1, 3), torch.tensor([[2.0, 0, 0, 0]]), scales, opacities, colors=torch.ones(1, 3))
+    g = Gaussians.from_activated(
+        torch.zeros(1, 3), torch.tensor([[2.0, 0, 0, 0]]), scales, opacities, colors=torch.ones(1, 3)
+    )
     assert torch.allclose(g.scales, scales, rtol=1e-15) and torch.allclose(g.opacities, opacities, rtol=1e-15)
     assert g.sh_degree is None
 
@@ -45,8 +47,13 @@ def test_rotation_of_a_quarter_turn_about_z_and_covariance():
     q = torch.tensor([[2 * math.cos(math.pi / 4), 0, 0, 2 * math.sin(math.pi / 4)]], dtype=torch.float64)
     R = quat_to_rotmat(q)[0]
     assert torch.allclose(R, torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]], dtype=torch.float64), atol=1e-15)
-    g = Gaussians.from_activated(torch.zeros(1, 3, dtype=torch.float64), q, torch.tensor([[0.1, 0.2, 0.3]], dtype=torch.float64),
-                                 torch.tensor([0.5], dtype=torch.float64), colors=torch.zeros(1, 3, dtype=torch.float64))
+    g = Gaussians.from_activated(
+        torch.zeros(1, 3, dtype=torch.float64),
+        q,
+        torch.tensor([[0.1, 0.2, 0.3]], dtype=torch.float64),
+        torch.tensor([0.5], dtype=torch.float64),
+        colors=torch.zeros(1, 3, dtype=torch.float64),
+    )
     # The local x axis (sigma 0.1) now lies along world y.
     expected = torch.diag(torch.tensor([0.2**2, 0.1**2, 0.3**2], dtype=torch.float64))
     assert torch.allclose(g.covariances[0], expected, atol=1e-15)
@@ -99,7 +106,10 @@ def test_cat_and_dtype_conversion():
     assert len(c) == 5 and torch.equal(c.means, torch.cat([a.means, b.means]))
     assert c.features[:, 0].tolist() == [1, 1, 0, 0, 0] and c.feature_names == ("label",)
     f32 = c.to(torch.float32)
-    assert all(getattr(f32, k).dtype == torch.float32 for k in ("means", "quats", "log_scales", "opacity_logits", "sh", "features"))
+    assert all(
+        getattr(f32, k).dtype == torch.float32
+        for k in ("means", "quats", "log_scales", "opacity_logits", "sh", "features")
+    )
     with pytest.raises(InputError, match="SH degree"):
         Gaussians.cat([make(degree=0), make(degree=2)])
     with pytest.raises(InputError, match="dtype"):
@@ -120,7 +130,12 @@ def test_cat_and_dtype_conversion():
     ],
 )
 def test_from_activated_rejects_values_no_renderer_can_use(kwargs, message):
-    args = dict(means=torch.zeros(1, 3), quats=torch.tensor([[1.0, 0, 0, 0]]), scales=torch.ones(1, 3), opacities=torch.tensor([0.5]))
+    args = dict(
+        means=torch.zeros(1, 3),
+        quats=torch.tensor([[1.0, 0, 0, 0]]),
+        scales=torch.ones(1, 3),
+        opacities=torch.tensor([0.5]),
+    )
     args.update(kwargs)
     with pytest.raises(InputError, match=message):
         Gaussians.from_activated(**args, colors=torch.zeros(1, 3))
@@ -181,16 +196,18 @@ def test_the_covariance_form_moves_into_a_frame_and_keeps_the_rest():
     assert joined.colors is None
 
 
-
 def reference_covariances(g):
     """Sigma = R diag(s^2) R^T in float64 numpy, from the quaternions' own formula (not quat_to_rotmat)."""
     q = torch.nn.functional.normalize(g.quats.double(), dim=-1).numpy()
     w, x, y, z = q.T
-    R = np.stack([
-        np.stack([w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z], -1),
-    ], 1)
+    R = np.stack(
+        [
+            np.stack([w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z], -1),
+        ],
+        1,
+    )
     s2 = np.exp(2 * g.log_scales.double().numpy())
     return np.einsum("nij,nj,nkj->nik", R, s2, R)
 
@@ -240,7 +257,9 @@ def test_cat_of_deformed_and_plain_parts_fills_identity_and_keeps_covariances():
     joined = Gaussians.cat([plain, moved])
     eye = torch.eye(3, dtype=torch.float64).expand(3, 3, 3)
     assert torch.equal(joined.deformations, torch.cat([eye, F])) and torch.equal(joined.sh_rotations[:3], eye)
-    torch.testing.assert_close(joined.covariances, torch.cat([plain.covariances, F @ other.covariances @ F.transpose(1, 2)]))
+    torch.testing.assert_close(
+        joined.covariances, torch.cat([plain.covariances, F @ other.covariances @ F.transpose(1, 2)])
+    )
     torch.testing.assert_close(dataclasses.replace(joined, covariance_cache=None).covariances, joined.covariances)
     part = joined.select(torch.tensor([4, 0])).to(torch.float32).detach()
     for name in ("deformations", "sh_rotations", "covariance_cache"):
@@ -252,13 +271,19 @@ def test_cat_of_deformed_and_plain_parts_fills_identity_and_keeps_covariances():
 
 def test_from_covariances_keeps_them_as_unit_gaussians_deformed_by_a_factor():
     R = rotations(4, seed=8)
-    variances = torch.tensor([[1e-4, 4e-4, 9e-4], [1e-2, 1e-2, 1e-2], [2e-3, 1e-3, 0.0], [5e-3, 1e-5, 2e-4]], dtype=torch.float64)
+    variances = torch.tensor(
+        [[1e-4, 4e-4, 9e-4], [1e-2, 1e-2, 1e-2], [2e-3, 1e-3, 0.0], [5e-3, 1e-5, 2e-4]], dtype=torch.float64
+    )
     covs = R @ torch.diag_embed(variances) @ R.transpose(1, 2)
     covs[2] = torch.diag(variances[2])  # exactly singular: no Cholesky factor
     opacities = torch.tensor([0.3, 1.0, 0.9, 0.0], dtype=torch.float64)
-    g = Gaussians.from_covariances(torch.zeros(4, 3, dtype=torch.float64), covs, opacities, colors=torch.ones(4, 3, dtype=torch.float64))
+    g = Gaussians.from_covariances(
+        torch.zeros(4, 3, dtype=torch.float64), covs, opacities, colors=torch.ones(4, 3, dtype=torch.float64)
+    )
     assert g.covariances is covs and g.sh_rotations is None
-    assert torch.equal(g.scales, torch.ones(4, 3, dtype=torch.float64)) and torch.equal(g.rotations, torch.eye(3, dtype=torch.float64).expand(4, 3, 3))
+    assert torch.equal(g.scales, torch.ones(4, 3, dtype=torch.float64)) and torch.equal(
+        g.rotations, torch.eye(3, dtype=torch.float64).expand(4, 3, 3)
+    )
     # the factors alone give the same covariances, the singular one (a zero variance) too
     torch.testing.assert_close(g.deformations @ g.deformations.transpose(1, 2), covs, rtol=1e-12, atol=1e-15)
     torch.testing.assert_close(dataclasses.replace(g, covariance_cache=None).covariances, covs, rtol=1e-12, atol=1e-15)

@@ -104,7 +104,11 @@ def test_round_trip_is_bit_exact_binary_and_ascii_with_features(tmp_path):
 def test_rgb_colors_are_written_as_degree_zero_sh(tmp_path):
     rgb = torch.tensor([[1.0, 0.0, 0.25], [0.5, 0.5, 0.5]])
     g = Gaussians.from_activated(
-        torch.zeros(2, 3), torch.tensor([[1.0, 0, 0, 0]] * 2), torch.full((2, 3), 0.1), torch.full((2,), 0.5), colors=rgb
+        torch.zeros(2, 3),
+        torch.tensor([[1.0, 0, 0, 0]] * 2),
+        torch.full((2, 3), 0.1),
+        torch.full((2,), 0.5),
+        colors=rgb,
     )
     save_ply(tmp_path / "c.ply", g)
     back = load_ply(tmp_path / "c.ply")
@@ -218,14 +222,29 @@ def test_sh_count_that_is_no_degree_is_rejected(tmp_path):
         (b"ply\nformat binary_middle_endian 1.0\nend_header\n", "header line 2"),
         (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float128 x\nend_header\n1\n", "PLY scalar type"),
         (b"ply\nformat ascii 1.0\nelement face 0\nend_header\n", "no 'vertex' element"),
-        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float x\nend_header\n1 1\n", "appears twice"),
+        (
+            b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float x\nend_header\n1 1\n",
+            "appears twice",
+        ),
         (b"ply\nelement vertex 0\nend_header\n", "no 'format' line"),
-        (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n", "truncated"),
-        (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n4 5\n", "vertex 1 has 2 values"),
-        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 two 3\n", "not a number"),
+        (
+            b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n",
+            "truncated",
+        ),
+        (
+            b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n4 5\n",
+            "vertex 1 has 2 values",
+        ),
+        (
+            b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 two 3\n",
+            "not a number",
+        ),
         (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n", "no z"),
         (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty uint packed_position\nend_header\n1\n", "compressed"),
-        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nend_header\n1 2 3 4\n", "need all of red, green, blue"),
+        (
+            b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nend_header\n1 2 3 4\n",
+            "need all of red, green, blue",
+        ),
     ],
 )
 def test_malformed_files_raise_input_errors(tmp_path, data, message):
@@ -248,7 +267,13 @@ def test_missing_file_is_an_input_error(tmp_path):
 
 
 def test_failed_save_leaves_no_file(tmp_path):
-    g = Gaussians.from_activated(torch.zeros(1, 3), torch.tensor([[1.0, 0, 0, 0]]), torch.ones(1, 3), torch.full((1,), 0.5), colors=torch.zeros(1, 4))
+    g = Gaussians.from_activated(
+        torch.zeros(1, 3),
+        torch.tensor([[1.0, 0, 0, 0]]),
+        torch.ones(1, 3),
+        torch.full((1,), 0.5),
+        colors=torch.zeros(1, 4),
+    )
     with pytest.raises(InputError, match="4 colour channels"):
         save_ply(tmp_path / "x.ply", g)
     assert list(tmp_path.iterdir()) == []

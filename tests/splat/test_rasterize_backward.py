@@ -17,7 +17,9 @@ def weighted_sums(outputs, seed=0):
     """Fixed random projections of image, alpha and depth: a few scalars to gradcheck
     (one backward per scalar instead of one per pixel)."""
     g = torch.Generator().manual_seed(seed)
-    return tuple((o * torch.randn(o.shape, generator=g, dtype=torch.float64).to(o.dtype)).sum() for o in outputs if o is not None)
+    return tuple(
+        (o * torch.randn(o.shape, generator=g, dtype=torch.float64).to(o.dtype)).sum() for o in outputs if o is not None
+    )
 
 
 def small_scene(seed, n=6):
@@ -26,8 +28,9 @@ def small_scene(seed, n=6):
     # a rotated, translated camera looking back at the scene from the side
     angle = torch.tensor(0.3, dtype=torch.float64)
     c, s = torch.cos(angle), torch.sin(angle)
-    viewmat[:3, :3] = torch.stack([torch.stack([c, 0 * c, -s]), torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64),
-                                   torch.stack([s, 0 * c, c])])
+    viewmat[:3, :3] = torch.stack(
+        [torch.stack([c, 0 * c, -s]), torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), torch.stack([s, 0 * c, c])]
+    )
     viewmat[:3, 3] = torch.tensor([0.9, 0.05, -0.1], dtype=torch.float64)
     return means, quats, scales, opacities, colors, viewmat, K
 
@@ -38,8 +41,9 @@ def test_gradcheck_means_quats_scales_opacities_colours_and_flow_feature():
     background = torch.tensor([0.1, 0.2, 0.3, 0.0, 0.0], dtype=torch.float64)
 
     def f(means, quats, scales, opacities, colors, flow, background):
-        out = rasterize_gaussians(means, quats, scales, opacities, colors, viewmat, K, W, H,
-                                  features=flow, background=background)
+        out = rasterize_gaussians(
+            means, quats, scales, opacities, colors, viewmat, K, W, H, features=flow, background=background
+        )
         return weighted_sums(out[:3])
 
     inputs = [t.clone().requires_grad_() for t in (means, quats, scales, opacities, colors, flow, background)]
@@ -62,8 +66,9 @@ def test_gradcheck_and_opcheck_covariances_from_quats_and_scales():
     _, quats, scales, *_ = small_scene(10)
     quats, scales = quats.requires_grad_(), scales.requires_grad_()
     assert torch.autograd.gradcheck(covariances, (quats, scales), **GRADCHECK)
-    torch.library.opcheck(covariances, (quats, scales),
-                          test_utils=("test_schema", "test_autograd_registration", "test_faketensor"))
+    torch.library.opcheck(
+        covariances, (quats, scales), test_utils=("test_schema", "test_autograd_registration", "test_faketensor")
+    )
 
 
 def test_gradcheck_sh_coefficients_and_rotations():
@@ -135,8 +140,20 @@ def test_opcheck_project_and_composite():
     torch.library.opcheck(project, args, test_utils=("test_schema", "test_autograd_registration", "test_faketensor"))
     means2d, conics, depths, radii, touched = project(*args)
     lists = build_tile_lists(means2d.detach(), depths.detach(), radii, touched, W, H)
-    comp_args = (means2d.detach().requires_grad_(), conics.detach().requires_grad_(), opacities.requires_grad_(),
-                 colors.requires_grad_(), torch.zeros(3, dtype=torch.float64), lists.ranges, lists.sorted_slots,
-                 lists.slot_gaussian, lists.first_slot, lists.tiles_touched, W, H)
-    torch.library.opcheck(composite, comp_args,
-                          test_utils=("test_schema", "test_autograd_registration", "test_faketensor"))
+    comp_args = (
+        means2d.detach().requires_grad_(),
+        conics.detach().requires_grad_(),
+        opacities.requires_grad_(),
+        colors.requires_grad_(),
+        torch.zeros(3, dtype=torch.float64),
+        lists.ranges,
+        lists.sorted_slots,
+        lists.slot_gaussian,
+        lists.first_slot,
+        lists.tiles_touched,
+        W,
+        H,
+    )
+    torch.library.opcheck(
+        composite, comp_args, test_utils=("test_schema", "test_autograd_registration", "test_faketensor")
+    )

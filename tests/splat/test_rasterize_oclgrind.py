@@ -24,6 +24,8 @@ SCRIPT = textwrap.dedent(
 
 
 def test_kernels_are_clean_under_oclgrind(oclgrind):
-    out, report = oclgrind(SCRIPT, timeout=600, uninitialized=False)  # --uninitialized: Oclgrind 21.10 zeroes the gradient
+    out, report = oclgrind(
+        SCRIPT, timeout=600, uninitialized=False
+    )  # --uninitialized: Oclgrind 21.10 zeroes the gradient
     assert "done" in out
     assert report.strip() == "", report[:2000]

@@ -154,11 +154,21 @@ def read_png(path):
 
 def test_cli_cameras_json_view_matches_the_python_api(tmp_path, scene):
     cam = camera()
-    entry = dict(id=0, img_name="front.png", width=W, height=H, position=cam.position.tolist(),
-                 rotation=cam.R.T.tolist(), fx=cam.fx, fy=cam.fy)
+    entry = dict(
+        id=0,
+        img_name="front.png",
+        width=W,
+        height=H,
+        position=cam.position.tolist(),
+        rotation=cam.R.T.tolist(),
+        fx=cam.fx,
+        fy=cam.fy,
+    )
     (tmp_path / "cameras.json").write_text(json.dumps([entry]))
     out = tmp_path / "out"
-    result = run("render", scene, "-o", out, "--cameras", tmp_path / "cameras.json", "--camera", "front", "--background", "0,0,1")
+    result = run(
+        "render", scene, "-o", out, "--cameras", tmp_path / "cameras.json", "--camera", "front", "--background", "0,0,1"
+    )
     assert result.exit_code == 0, result.output
     from clflow.splat import load_ply
 
@@ -173,7 +183,9 @@ def test_cli_cameras_json_view_matches_the_python_api(tmp_path, scene):
 def test_cli_renders_a_selection(tmp_path, scene):
     cam = camera()
     means = three_gaussians(cam).means
-    entry = dict(img_name="v", width=W, height=H, position=cam.position.tolist(), rotation=cam.R.T.tolist(), fx=cam.fx, fy=cam.fy)
+    entry = dict(
+        img_name="v", width=W, height=H, position=cam.position.tolist(), rotation=cam.R.T.tolist(), fx=cam.fx, fy=cam.fy
+    )
     (tmp_path / "cameras.json").write_text(json.dumps([entry]))
     sphere = ",".join(map(str, means[0].tolist() + [0.05]))
     result = run("render", scene, "-o", tmp_path / "s", "--cameras", tmp_path / "cameras.json", "--sphere", sphere)
@@ -182,7 +194,16 @@ def test_cli_renders_a_selection(tmp_path, scene):
     (c0, r0), (c1, r1) = PIXELS[:2]
     assert png[r0, c0, 0] > 150 and png[r1, c1].max() == 0  # Gaussian 0 kept, Gaussian 1 not
     low, high = (means[1] - 0.01).tolist(), (means[1] + 0.01).tolist()
-    result = run("render", scene, "-o", tmp_path / "b", "--cameras", tmp_path / "cameras.json", "--box", ",".join(map(str, low + high)))
+    result = run(
+        "render",
+        scene,
+        "-o",
+        tmp_path / "b",
+        "--cameras",
+        tmp_path / "cameras.json",
+        "--box",
+        ",".join(map(str, low + high)),
+    )
     assert result.exit_code == 0, result.output
     png = read_png(tmp_path / "b" / "v.png")
     assert png[r1, c1, 1] > 100 and png[r0, c0].max() == 0
@@ -197,8 +218,22 @@ def test_cli_default_view_and_orbit_video(tmp_path, scene):
     assert png.shape == (30, 40, 3) and png.max() > 50  # the framed scene is visible
 
     for video in ("orbit.gif", "orbit.mp4"):
-        result = run("render", scene, "-o", tmp_path / "orbit", "--orbit", 4, "--width", 32, "--height", 32,
-                     "--video", tmp_path / video, "--fps", 8)
+        result = run(
+            "render",
+            scene,
+            "-o",
+            tmp_path / "orbit",
+            "--orbit",
+            4,
+            "--width",
+            32,
+            "--height",
+            32,
+            "--video",
+            tmp_path / video,
+            "--fps",
+            8,
+        )
         assert result.exit_code == 0, result.output
         assert sorted(p.name for p in (tmp_path / "orbit").iterdir()) == [f"orbit_{i:04d}.png" for i in range(4)]
     ok, animation = cv2.imreadanimation(str(tmp_path / "orbit.gif"))
@@ -212,14 +247,32 @@ def test_cli_default_view_and_orbit_video(tmp_path, scene):
 
 def test_cli_look_at_and_transforms_frame(tmp_path, scene):
     cam = camera()
-    result = run("render", scene, "-o", tmp_path / "a", "--eye", ",".join(map(str, cam.position.tolist())),
-                 "--target", "0,0,0.5", "--up", "0,0,1", "--fov", 40, "--width", W, "--height", H)
+    result = run(
+        "render",
+        scene,
+        "-o",
+        tmp_path / "a",
+        "--eye",
+        ",".join(map(str, cam.position.tolist())),
+        "--target",
+        "0,0,0.5",
+        "--up",
+        "0,0,1",
+        "--fov",
+        40,
+        "--width",
+        W,
+        "--height",
+        H,
+    )
     assert result.exit_code == 0, result.output
     look = read_png(tmp_path / "a" / "look_at.png")
 
     c2w_gl = cam.camtoworld() @ torch.diag(torch.tensor([1.0, -1, -1, 1], dtype=F64))
     frames = [dict(file_path="./train/r_7", transform_matrix=c2w_gl.tolist())]
-    (tmp_path / "transforms.json").write_text(json.dumps(dict(camera_angle_x=math.radians(40), w=W, h=H, frames=frames)))
+    (tmp_path / "transforms.json").write_text(
+        json.dumps(dict(camera_angle_x=math.radians(40), w=W, h=H, frames=frames))
+    )
     result = run("render", scene, "-o", tmp_path / "b", "--transforms", tmp_path / "transforms.json", "--camera", 0)
     assert result.exit_code == 0, result.output
     assert np.array_equal(read_png(tmp_path / "b" / "r_7.png"), look)
@@ -241,21 +294,32 @@ def test_cli_bad_options(tmp_path, scene, args, message):
 
 def test_cli_cameras_with_one_file_name_and_two_sizes(tmp_path, scene):
     cams = [look_at((0, -4, 1), (0, 0, 0.5), fov_x=0.7, width=w, height=16) for w in (16, 20)]
-    frames = [dict(file_path=f"./{split}/r_0", transform_matrix=(c.camtoworld() @ torch.diag(torch.tensor([1.0, -1, -1, 1], dtype=F64))).tolist(),
-                   w=c.width, h=c.height) for split, c in zip(("train", "test"), cams)]
+    frames = [
+        dict(
+            file_path=f"./{split}/r_0",
+            transform_matrix=(c.camtoworld() @ torch.diag(torch.tensor([1.0, -1, -1, 1], dtype=F64))).tolist(),
+            w=c.width,
+            h=c.height,
+        )
+        for split, c in zip(("train", "test"), cams)
+    ]
     (tmp_path / "t.json").write_text(json.dumps(dict(camera_angle_x=0.7, frames=frames)))
     result = run("render", scene, "-o", tmp_path / "o", "--transforms", tmp_path / "t.json")
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["r_0.png", "r_0_0001.png"]
     assert read_png(tmp_path / "o" / "r_0_0001.png").shape == (16, 20, 3)
-    result = run("render", scene, "-o", tmp_path / "o", "--transforms", tmp_path / "t.json", "--video", tmp_path / "v.mp4")
+    result = run(
+        "render", scene, "-o", tmp_path / "o", "--transforms", tmp_path / "t.json", "--video", tmp_path / "v.mp4"
+    )
     assert result.exit_code == 1 and "different sizes" in result.output
 
 
 def test_cli_bad_files(tmp_path, scene):
     result = run("render", tmp_path / "missing.ply")
     assert result.exit_code == 1 and "missing.ply: cannot read PLY file" in result.output
-    (tmp_path / "cameras.json").write_text(json.dumps([dict(width=4, height=4, position=[0, 0, 0], rotation=np.eye(3).tolist(), fx=1, fy=1)]))
+    (tmp_path / "cameras.json").write_text(
+        json.dumps([dict(width=4, height=4, position=[0, 0, 0], rotation=np.eye(3).tolist(), fx=1, fy=1)])
+    )
     result = run("render", scene, "--cameras", tmp_path / "cameras.json", "--camera", "nope")
     assert result.exit_code == 1 and "no camera named 'nope'" in result.output
     result = run("render", scene, "--cameras", tmp_path / "cameras.json", "--orbit", 3)

@@ -17,10 +17,13 @@ def write_ply(path, n=60, seed=0):
     """n random degree-1 Gaussians in [0, 1]^3 written to ``path``; returns them."""
     g = torch.Generator().manual_seed(seed)
     sh = torch.randn(n, 4, 3, generator=g, dtype=torch.float64)
-    gaussians = Gaussians.from_activated(torch.rand(n, 3, generator=g, dtype=torch.float64),
-                                         torch.randn(n, 4, generator=g, dtype=torch.float64),
-                                         torch.full((n, 3), 0.02, dtype=torch.float64),
-                                         torch.full((n,), 0.7, dtype=torch.float64), sh=sh)
+    gaussians = Gaussians.from_activated(
+        torch.rand(n, 3, generator=g, dtype=torch.float64),
+        torch.randn(n, 4, generator=g, dtype=torch.float64),
+        torch.full((n, 3), 0.02, dtype=torch.float64),
+        torch.full((n,), 0.7, dtype=torch.float64),
+        sh=sh,
+    )
     save_ply(path, gaussians)
     return gaussians
 
@@ -54,9 +57,15 @@ def write_simulation(folder, *, up="+z", scale=2.0, frames=4, n=20, static=10, s
         static_means=to_sim(static_means).astype(np.float32),
         static_covariances=np.broadcast_to(scale**2 * R_up @ cov @ R_up.T, (static, 3, 3)).astype(np.float32),
         static_sh_rotations=np.broadcast_to(np.eye(3), (static, 3, 3)).astype(np.float32),
-        opacities=np.full(n + static, 0.8, np.float32), sh=np.zeros((n + static, 1, 3), np.float32),
-        time=np.arange(frames) / 24.0, fps=np.float64(24.0), camera_viewmat=viewmat, camera_K=cam.K.numpy(),
-        camera_size=np.array([64, 48]), scale=np.float64(scale), up_rotation=R_up,
+        opacities=np.full(n + static, 0.8, np.float32),
+        sh=np.zeros((n + static, 1, 3), np.float32),
+        time=np.arange(frames) / 24.0,
+        fps=np.float64(24.0),
+        camera_viewmat=viewmat,
+        camera_K=cam.K.numpy(),
+        camera_size=np.array([64, 48]),
+        scale=np.float64(scale),
+        up_rotation=R_up,
     )
     return means, static_means, eye, cov
 

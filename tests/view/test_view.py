@@ -39,8 +39,9 @@ def test_box_rounds_outwards_and_reads_as_config_yaml():
     low, high = rounded_box([0.12345, -0.5, 2.0], [0.1, 0.30001, 1.0], 3)  # corners in any order
     np.testing.assert_allclose(low, [0.1, -0.5, 1.0])
     np.testing.assert_allclose(high, [0.124, 0.301, 2.0])
-    assert yaml.safe_load(box_yaml(low, high)) == {"object": {"select": {"box": {"min": [0.1, -0.5, 1],
-                                                                                 "max": [0.124, 0.301, 2]}}}}
+    assert yaml.safe_load(box_yaml(low, high)) == {
+        "object": {"select": {"box": {"min": [0.1, -0.5, 1], "max": [0.124, 0.301, 2]}}}
+    }
     low, high = rounded_box([0.5, 0.5, 0.5], [0.5, 0.5, 0.5], 2)  # a flat box still has min < max
     assert (high > low).all()
     means = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0001]])
@@ -152,8 +153,10 @@ def test_missing_path_and_port_in_use_are_one_line(tmp_path):
         port = sock.getsockname()[1]
         res = run("view", tmp_path / "scene.ply", "--port", port)
     assert res.exit_code == 1
-    assert res.output.strip() == f"Error: port {port} on 127.0.0.1 is in use (by another program or another clflow " \
-                                 "view); pick another with --port"
+    assert (
+        res.output.strip() == f"Error: port {port} on 127.0.0.1 is in use (by another program or another clflow "
+        "view); pick another with --port"
+    )
     with pytest.raises(InputError, match="cannot resolve"):
         from clflow.view import check_port
 
@@ -187,9 +190,13 @@ def test_cli_serves_until_ctrl_c(tmp_path):
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
-    proc = subprocess.Popen([sys.executable, "-m", "clflow_cli", "view", str(tmp_path / "scene.ply"), "--port", str(port)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])})
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "clflow_cli", "view", str(tmp_path / "scene.ply"), "--port", str(port)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])},
+    )
     lines = queue.Queue()
     reader = threading.Thread(target=lambda: [lines.put(line) for line in proc.stderr], daemon=True)
     reader.start()
