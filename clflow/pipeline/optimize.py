@@ -870,7 +870,9 @@ class Optimization:
     ) -> OptimizerState:
         """Accept or reject the point just evaluated (its loss against the best so far at this
         horizon), then one damped Gauss-Newton step from the best point:
-        (J^T J + damping diag(J^T J)) dz = -J^T r, at most LM_MAX_STEP long. With
+        (J^T J + damping diag(J^T J)) dz = -J^T r, at most LM_MAX_STEP x step_scale long (a
+        trust region: a rejection quarters it, an accepted point doubles it up to 1; the
+        damping alone hardly shortens a step along a direction the loss barely sees). With
         ``calibrate``, an accepted point first measures the flow estimator's error (the
         residuals' Jacobian does not depend on it)."""
         best = state.best
@@ -879,11 +881,17 @@ class Optimization:
         if best is not None and best["frames"] == frames and state.z != best["z"] and base.loss > best["loss"]:
             # uphill: back to the best point with more damping (its J is recomputed or cached)
             return dataclasses.replace(
-                state, iteration=state.iteration + 1, z=dict(best["z"]), damping=state.damping * 4.0
+                state,
+                iteration=state.iteration + 1,
+                z=dict(best["z"]),
+                damping=state.damping * 4.0,
+                step_scale=state.step_scale / 4.0,
             )
-        # a new best point earns less damping; back at the best one after a rejection, the
-        # raised damping stands (dividing it again would retry nearly the same step)
-        damping = state.damping / 3.0 if best is not None and state.z != best["z"] else state.damping
+        # a new best point earns less damping and a longer step; back at the best one after a
+        # rejection, the raised damping and shorter step stand (else it retries the same step)
+        moved = best is not None and state.z != best["z"]
+        damping = state.damping / 3.0 if moved else state.damping
+        step_scale = min(1.0, 2.0 * state.step_scale) if moved else state.step_scale
         if calibrate:
             before = state.calibrated_at, [view.estimator_error for view in self.views]
             state = self.calibrate(state, base, frames)
@@ -904,6 +912,7 @@ class Optimization:
                     iteration=state.iteration + 1,
                     z=dict(best["z"]),
                     damping=state.damping * 4.0,
+                    step_scale=state.step_scale / 4.0,
                     calibrated_at=before[0],
                 )
         best = {"z": dict(state.z), "loss": base.loss, "frames": frames, "substeps": base.substeps}
@@ -913,12 +922,16 @@ class Optimization:
         step = self.bounded_step(A + damping * diagonal, g, state.z, variables)
         promised = -float(2 * g @ step + step @ A @ step)  # the model's fall of the residuals' sum of squares
         if promised <= LM_GAIN_TOLERANCE * float(r @ r):
-            return dataclasses.replace(state, iteration=state.iteration + 1, damping=damping, best=best, converged=True)
-        length = float(step.norm())
-        if length > LM_MAX_STEP:
-            step *= LM_MAX_STEP / length
+            return dataclasses.replace(
+                state, iteration=state.iteration + 1, damping=damping, step_scale=step_scale, best=best, converged=True
+            )
+        length, radius = float(step.norm()), LM_MAX_STEP * step_scale
+        if length > radius:
+            step *= radius / length
         z = {**state.z, **{n: state.z[n] + float(d) for n, d in zip(variables, step)}}
-        return dataclasses.replace(state, iteration=state.iteration + 1, z=z, damping=damping, best=best)
+        return dataclasses.replace(
+            state, iteration=state.iteration + 1, z=z, damping=damping, step_scale=step_scale, best=best
+        )
 
     @functools.cached_property
     def _local_box(self) -> dict[str, tuple[float, float]]:

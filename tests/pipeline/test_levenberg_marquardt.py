@@ -73,6 +73,25 @@ def test_an_uphill_step_is_rejected_and_the_damping_grows(lm, monkeypatch):
     assert rejected.iteration == stepped.iteration + 1
 
 
+def test_a_rejection_quarters_the_trust_region_and_a_new_best_point_doubles_it(lm):
+    # along a direction the loss barely sees the damping hardly shortens the step, so a
+    # rejected step would come back nearly unchanged without the trust region
+    opt, _ = lm(iterations=4)
+    variables = ("youngs_modulus",)
+    state = opt.initial_state()
+    base, J = opt.jacobian(state.z, opt.frames, 1, variables)
+    stepped = opt.lm_step(state, base, J, opt.frames, variables)
+    first = abs(stepped.z["youngs_modulus"] - state.z["youngs_modulus"])
+    assert stepped.step_scale == 1.0 and first == pytest.approx(1.0)  # the full LM_MAX_STEP
+    rejected = opt.lm_step(stepped, dataclasses.replace(base, loss=2 * base.loss), J, opt.frames, variables)
+    assert rejected.step_scale == 0.25 and rejected.z == state.z
+    again = opt.lm_step(rejected, base, J, opt.frames, variables)  # back at the best point
+    assert again.step_scale == 0.25 and abs(again.z["youngs_modulus"] - state.z["youngs_modulus"]) <= 0.25 + 1e-12
+    trial, J_trial = opt.jacobian(again.z, opt.frames, 1, variables)
+    accepted = opt.lm_step(again, trial, J_trial, opt.frames, variables)
+    assert accepted.best["z"] == again.z and accepted.step_scale == 0.5
+
+
 def test_back_at_the_best_point_a_changed_loss_is_taken_not_rejected(lm):
     # a later iteration raised the substeps, so the best point's loss comes out a little
     # higher than recorded: rejecting it against itself would stall for good
