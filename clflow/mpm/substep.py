@@ -266,7 +266,7 @@ class SubstepKernels:
         stage = StressStage.of(materials)
         defines = stage.defines(self.flip)
         k = lambda src, name: device.kernel(src, name, self.real, defines)  # noqa: E731
-        self.elastic_only, self.needs_svd = stage.elastic_only, stage.needs_svd
+        self.elastic_only = stage.elastic_only
         self.k_stress, self.k_svd = stage.kernels(device, self.real)
         self.U, self.s, self.V = stage.svd_buffers(n, dtype)
         self.k_grid = k("mpm/grid.cl", "grid_update")

@@ -19,17 +19,12 @@ def frame_gaussians(static: Gaussians, obj_rest: Gaussians, x: torch.Tensor, F: 
     return Gaussians.cat([moved, static])
 
 
-def _view(camera, dtype: torch.dtype) -> tuple:
-    """viewmat [4, 4], K [3, 3] in ``dtype``, width, height (px): the rasteriser's view arguments."""
-    return camera.viewmat.to(dtype), camera.K.to(dtype), camera.width, camera.height
-
-
 def _rasterize(g: Gaussians, camera, colors: torch.Tensor, **kwargs):
     """``rasterize_gaussians`` of ``g`` (its covariances) with ``colors`` [N, C] from ``camera``,
     without depth; ``kwargs`` go to it (sh_degree, background, ...)."""
     from clflow.splat.ops import rasterize_gaussians
 
-    view = _view(camera, g.means.dtype)
+    view = camera.viewmat, camera.K, camera.width, camera.height
     return rasterize_gaussians(
         g.means, None, None, g.opacities, colors, *view, covars=g.covariances, render_depth=False, **kwargs
     )
@@ -54,7 +49,7 @@ def render_flow(g_t: Gaussians, g_t1: Gaussians, camera, normalize: bool = True)
     t's geometry, and alpha [H, W, 1]; both scenes list the same Gaussians in the same order."""
     from clflow.flow.simulated import render_simulated_flow
 
-    view = _view(camera, g_t.means.dtype)
+    view = camera.viewmat, camera.K, camera.width, camera.height
     return render_simulated_flow(g_t.means, g_t1.means, g_t.covariances, g_t.opacities, *view, normalize=normalize)
 
 
