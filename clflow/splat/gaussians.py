@@ -440,8 +440,9 @@ class Gaussians:
 
     def transformed(self, rotation: torch.Tensor | None = None, scale: float = 1.0) -> "Gaussians":
         """The Gaussians in the frame x' = scale R x (``rotation`` R [3, 3] proper, default
-        identity): a uniform deformation scale R with sh_rotations R; means and covariances
-        in float64, the other fields as they are."""
+        identity): a uniform deformation scale R with sh_rotations R; means, deformations,
+        sh_rotations and covariances in float64, the stored parameters as they are (call
+        ``.to(dtype)`` before rendering)."""
         R = torch.eye(3, dtype=torch.float64) if rotation is None else rotation.double()
         Rs = R.expand(len(self), 3, 3)
         return self.deformed(scale * self.means.double() @ R.T, scale * Rs, Rs)
