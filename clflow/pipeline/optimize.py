@@ -579,10 +579,10 @@ class Optimization:
             view.estimator_error = None if errors is None else torch.from_numpy(np.array(errors[i]))
         self._lm_cache = {key: (self.rescored(cached), J) for key, (cached, J) in self._lm_cache.items()}
 
-    def restore_estimator_errors(self, calibrated_at: dict | None, errors: list[torch.Tensor | None]) -> None:
+    def restore_estimator_errors(self, calibrated_at: dict | None, errors: list | None) -> None:
         """Each view's estimator error back to ``errors`` (as measured at ``calibrated_at``),
         saved again as the calibration file's content."""
-        self.set_estimator_errors(None if errors[0] is None else [e.numpy() for e in errors])
+        self.set_estimator_errors(None if errors is None or errors[0] is None else errors)
         if calibrated_at is not None:
             self.save_calibration(calibrated_at)
 
@@ -820,9 +820,7 @@ class Optimization:
             converged=False,
             calibrated_at=ends[index].calibrated_at,
         )
-        self.set_estimator_errors(records[index]["errors"])
-        if state.calibrated_at is not None:
-            self.save_calibration(state.calibrated_at)
+        self.restore_estimator_errors(state.calibrated_at, records[index]["errors"])
         return state
 
     # -- Levenberg-Marquardt ----------------------------------------------------------------
@@ -856,7 +854,10 @@ class Optimization:
             nearby = self.evaluate({**z, name: z[name] - LM_STEP}, frames, with_grad=False, min_substeps=base.substeps)
             columns.append((r0 - self.residuals(nearby.flows, nearby.more_flows)) / LM_STEP)
         J = torch.stack(columns, 1)
-        self._lm_cache = {**dict(list(self._lm_cache.items())[-1:]), key: (base, J)}
+        # kept under the substeps the run used: a revisit asks for those (a retried run restarts
+        # from frame 0 at the raised count, so it equals a run asked for that count)
+        used = (*key[:3], base.substeps)
+        self._lm_cache = {**dict(list(self._lm_cache.items())[-1:]), used: (base, J)}
         return base, J
 
     def lm_step(
@@ -876,27 +877,33 @@ class Optimization:
         ``calibrate``, an accepted point first measures the flow estimator's error (the
         residuals' Jacobian does not depend on it)."""
         best = state.best
-        # back at the best point its loss may differ from the one recorded (a later iteration
-        # raised the substeps): take the new value rather than reject the point against itself
-        if best is not None and best["frames"] == frames and state.z != best["z"] and base.loss > best["loss"]:
-            # uphill: back to the best point with more damping (its J is recomputed or cached)
+        moved = best is not None and state.z != best["z"]
+        # only a new point is judged against the best one: back at the best point (after a
+        # rejection) its loss is taken as it comes out, never rejected against itself (a
+        # checkpoint from before best recorded its substeps may re-run it at another step)
+        comparable = moved and best["frames"] == frames
+
+        def reject(**more) -> OptimizerState:  # back to the best point: more damping, a quarter of the step
             return dataclasses.replace(
                 state,
                 iteration=state.iteration + 1,
                 z=dict(best["z"]),
                 damping=state.damping * 4.0,
                 step_scale=state.step_scale / 4.0,
+                **more,
             )
+
+        if comparable and base.loss > best["loss"]:  # uphill (the best point's J is cached)
+            return reject()
         # a new best point earns less damping and a longer step; back at the best one after a
         # rejection, the raised damping and shorter step stand (else it retries the same step)
-        moved = best is not None and state.z != best["z"]
         damping = state.damping / 3.0 if moved else state.damping
         step_scale = min(1.0, 2.0 * state.step_scale) if moved else state.step_scale
         if calibrate:
             before = state.calibrated_at, [view.estimator_error for view in self.views]
             state = self.calibrate(state, base, frames)
             base = self.rescored(base)
-            if best is not None and best["frames"] == frames and state.z != best["z"] and base.loss > best["loss"]:
+            if comparable and base.loss > best["loss"]:
                 # downhill only against the best point's calibration; against its own (each
                 # point's loss against the estimator's error on its own simulation, as the
                 # search scores) it is worse: the step chased the estimator's error, reject it
@@ -907,14 +914,7 @@ class Optimization:
                     best["loss"],
                 )
                 self.restore_estimator_errors(*before)
-                return dataclasses.replace(
-                    state,
-                    iteration=state.iteration + 1,
-                    z=dict(best["z"]),
-                    damping=state.damping * 4.0,
-                    step_scale=state.step_scale / 4.0,
-                    calibrated_at=before[0],
-                )
+                return reject(calibrated_at=before[0])
         best = {"z": dict(state.z), "loss": base.loss, "frames": frames, "substeps": base.substeps}
         r = self.residuals(base.flows, base.more_flows)
         A, g = J.T @ J, J.T @ r
