@@ -871,9 +871,10 @@ class Optimization:
     ) -> OptimizerState:
         """Accept or reject the point just evaluated (its loss against the best so far at this
         horizon), then one damped Gauss-Newton step from the best point:
-        (J^T J + damping diag(J^T J)) dz = -J^T r, at most LM_MAX_STEP x step_scale long (a
-        trust region: a rejection quarters it, an accepted point doubles it up to 1; the
-        damping alone hardly shortens a step along a direction the loss barely sees). With
+        (J^T J + damping diag(J^T J)) dz = -J^T r, held at most LM_MAX_STEP x step_scale long
+        by :meth:`trust_region_step` (a rejection quarters the radius, an accepted point
+        doubles it up to 1; Marquardt's damping alone hardly shortens a step along a direction
+        the loss barely sees). With
         ``calibrate``, an accepted point first measures the flow estimator's error (the
         residuals' Jacobian does not depend on it)."""
         best = state.best
@@ -919,15 +920,12 @@ class Optimization:
         r = self.residuals(base.flows, base.more_flows)
         A, g = J.T @ J, J.T @ r
         diagonal = torch.diag(torch.diag(A).clamp(min=1e-12 * float(torch.diag(A).max().clamp(min=1e-30))))
-        step = self.bounded_step(A + damping * diagonal, g, state.z, variables)
+        step = self.trust_region_step(A + damping * diagonal, g, state.z, variables, LM_MAX_STEP * step_scale)
         promised = -float(2 * g @ step + step @ A @ step)  # the model's fall of the residuals' sum of squares
         if promised <= LM_GAIN_TOLERANCE * float(r @ r):
             return dataclasses.replace(
                 state, iteration=state.iteration + 1, damping=damping, step_scale=step_scale, best=best, converged=True
             )
-        length, radius = float(step.norm()), LM_MAX_STEP * step_scale
-        if length > radius:
-            step *= radius / length
         z = {**state.z, **{n: state.z[n] + float(d) for n, d in zip(variables, step)}}
         return dataclasses.replace(
             state, iteration=state.iteration + 1, z=z, damping=damping, step_scale=step_scale, best=best
@@ -967,6 +965,32 @@ class Optimization:
             free &= ~held
             step = torch.zeros_like(g)
         return step
+
+    def trust_region_step(
+        self, M: torch.Tensor, g: torch.Tensor, z: dict[str, float], variables: tuple[str, ...], radius: float
+    ) -> torch.Tensor:
+        """The step of :meth:`bounded_step` for M + lam I, with the least lam >= 0 that keeps it
+        at most ``radius`` long (z units; the trust-region Levenberg-Marquardt of More 1978).
+        lam shortens a step most along the directions the loss sees least: scaling the whole
+        step down instead shrinks a well-determined component (the cream's yield stress) as
+        much as the poorly determined one (its viscosity) that made the step long."""
+        step = self.bounded_step(M, g, z, variables)
+        if float(step.norm()) <= radius:
+            return step
+        eye = torch.eye(len(variables), dtype=M.dtype)
+        hi = float(torch.diag(M).max()) or 1.0
+        for _ in range(60):  # the step shrinks as g / lam for a large lam
+            if float(self.bounded_step(M + hi * eye, g, z, variables).norm()) <= radius:
+                break
+            hi *= 10.0
+        lo = hi * 1e-12
+        for _ in range(50):  # bisection in log lam: the step's length falls as lam grows
+            mid = math.sqrt(lo * hi)
+            if float(self.bounded_step(M + mid * eye, g, z, variables).norm()) > radius:
+                lo = mid
+            else:
+                hi = mid
+        return self.bounded_step(M + hi * eye, g, z, variables)
 
     # -- the gradient phase -----------------------------------------------------------------
 

@@ -92,6 +92,20 @@ def test_a_rejection_quarters_the_trust_region_and_a_new_best_point_doubles_it(l
     assert accepted.best["z"] == again.z and accepted.step_scale == 0.5
 
 
+def test_the_trust_region_cuts_the_poorly_determined_component_first(lm):
+    """A stiff direction (curvature 1) and one the loss barely sees (1e-4): the Gauss-Newton
+    step (0.1, 10) is ten times the radius of 1. Cut to the radius, the step keeps the stiff
+    component (scaling the whole step down would leave a tenth of it) and loses the flat one."""
+    opt, _ = lm()
+    M = torch.diag(torch.tensor([1.0, 1e-4], dtype=torch.float64))
+    g = torch.tensor([-0.1, -1e-3], dtype=torch.float64)
+    z, variables = {"a": 0.0, "b": 0.0}, ("a", "b")
+    assert opt.trust_region_step(M, g, z, variables, 100.0).tolist() == pytest.approx([0.1, 10.0])  # inside
+    step = opt.trust_region_step(M, g, z, variables, 1.0)
+    assert float(step.norm()) == pytest.approx(1.0, rel=1e-6)
+    assert float(step[0]) == pytest.approx(0.1, rel=2e-3) and 0.99 < float(step[1]) < 1.0
+
+
 def test_back_at_the_best_point_a_changed_loss_is_taken_not_rejected(lm):
     # back at the best point its loss may come out a little higher than recorded (a checkpoint
     # from before the best point recorded its substeps re-runs it at another step): rejecting
