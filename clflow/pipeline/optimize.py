@@ -678,42 +678,105 @@ class Optimization:
             points.append({**z0, **{n: box[n][0] + u * (box[n][1] - box[n][0]) for n, u in zip(names, row)}})
         return points
 
+    def neighbourhoods(
+        self, rows: list[dict], z0: dict[str, float]
+    ) -> list[tuple[int, dict[str, tuple[float, float]]]]:
+        """The second round's regions: (index into ``rows``, box in z) around each of the best
+        ``search.starts`` first-round samples (``rows``) that lie outside each other's box,
+        best first. A box spans one first-round spacing per parameter (the search box's width
+        / samples^(1/parameters)) centred on its sample, cut to the search box."""
+        box, names = self.search_box(z0), list(self.params)
+        spacing = {n: (box[n][1] - box[n][0]) * len(rows) ** (-1.0 / len(names)) for n in names}
+        ranked = sorted((i for i, r in enumerate(rows) if r["loss"] is not None), key=lambda i: rows[i]["loss"])
+        centres: list[int] = []
+        for i in ranked:
+            if len(centres) == self.cfg.optimize.search.starts:
+                break
+            z = rows[i]["z"]
+            if all(max(abs(z[n] - rows[c]["z"][n]) / spacing[n] for n in names) > 0.5 for c in centres):
+                centres.append(i)
+        return [
+            (
+                i,
+                {
+                    n: (
+                        max(box[n][0], rows[i]["z"][n] - spacing[n] / 2),
+                        min(box[n][1], rows[i]["z"][n] + spacing[n] / 2),
+                    )
+                    for n in names
+                },
+            )
+            for i in centres
+        ]
+
+    def refinement_points(self, rows: list[dict], z0: dict[str, float]) -> list[tuple[int, dict[str, float]]]:
+        """The second round's design: (centre's index into ``rows``, z) for ``search.refine``
+        samples shared among :meth:`neighbourhoods`, a scrambled Sobol sequence (seed 1) in each."""
+        regions = self.neighbourhoods(rows, z0)
+        if not regions:
+            return []
+        names = list(self.params)
+        per = self.cfg.optimize.search.refine // len(regions)
+        unit = torch.quasirandom.SobolEngine(len(names), scramble=True, seed=1).draw(per, dtype=torch.float64).tolist()
+        return [
+            (i, {**z0, **{n: region[n][0] + u * (region[n][1] - region[n][0]) for n, u in zip(names, row)}})
+            for i, region in regions
+            for row in unit
+        ]
+
     def global_search(self, state: OptimizerState) -> OptimizerState:
-        """Forward-only losses at the search design (resuming after the samples already in
-        ``state.search``); returns the state with z at the best sample and ``searched``. With
-        ``flow.bias_correction``, each sample's loss is against the observed flow less the
-        estimator's error on that sample's own simulation (the video's estimated flow against
-        the simulation's, estimated alike)."""
+        """Forward-only losses at the search design, then (``search.refine``) at a second
+        round around the best distinct samples (resuming after the samples already in
+        ``state.search``); returns the state with z at the best sample, ``searched`` and the
+        starts: the best sample of each neighbourhood with a second round, else the best
+        ``search.starts`` samples. With ``flow.bias_correction``, each sample's loss is
+        against the observed flow less the estimator's error on that sample's own simulation
+        (the video's estimated flow against the simulation's, estimated alike)."""
         settings = self.cfg.optimize.search
         frames = min(self.frames, settings.frames or self.frames)
-        points = self.search_points(state.z)
         rows = list(state.search)
-        for z in points[len(rows) :]:
+
+        def sample(z: dict[str, float], around: int | None = None) -> None:
+            nonlocal state
             start = time.perf_counter()
             try:
                 loss = self.self_consistent_loss(self.evaluate(z, frames, with_grad=False), frames)
             except (FloatingPointError, ClflowError) as exc:
                 log.info("search sample %s failed: %s", self.values(z), exc)
                 loss = None
+            row = {"z": z, "params": self.values(z), "loss": loss, "frames": frames}
             rows.append(
-                {
-                    "z": z,
-                    "params": self.values(z),
-                    "loss": loss,
-                    "frames": frames,
-                    "seconds": time.perf_counter() - start,
-                }
+                {**row, **({} if around is None else {"around": around}), "seconds": time.perf_counter() - start}
             )
             state = dataclasses.replace(state, search=list(rows))
             self.save_state(state)
             self.progress({**rows[-1], "phase": "search", "iteration": len(rows) - 1})
-        finite = [r for r in rows if r["loss"] is not None]
-        if not finite:
+
+        design = self.search_points(state.z)
+        for z in design[len(rows) :]:
+            sample(z)
+        first = rows[: len(design)]
+        if not any(r["loss"] is not None for r in first):
             raise ClflowError(f"the global search found no parameters whose simulation ran ({len(rows)} samples)")
+        second = self.refinement_points(first, state.z) if settings.refine else []
+        for around, z in second[len(rows) - len(design) :]:
+            sample(z, around)
+        finite = [r for r in rows if r["loss"] is not None]
         ranked = sorted(finite, key=lambda r: r["loss"])
         best = ranked[0]
         log.info("global search: best of %d samples %s (loss %.4g)", len(rows), best["params"], best["loss"])
-        starts = [dict(r["z"]) for r in ranked[: settings.starts]] if settings.starts > 1 else []
+        if second:  # each neighbourhood's best, its centre included
+            groups = [
+                [rows[i]] + [r for r in rows[len(design) :] if r.get("around") == i]
+                for i in dict.fromkeys(i for i, _ in second)
+            ]
+            picks = sorted(
+                (min(g, key=lambda r: r["loss"] if r["loss"] is not None else math.inf) for g in groups),
+                key=lambda r: r["loss"],
+            )
+        else:
+            picks = ranked[: settings.starts]
+        starts = [dict(r["z"]) for r in picks] if settings.starts > 1 else []
         state = dataclasses.replace(state, z=dict(best["z"]), searched=True, starts=starts)
         self.save_state(state)
         return state

@@ -305,6 +305,7 @@ class SearchSettings:
     frames: int = 0  # frames in the search's loss (0: all)
     starts: int = 1  # the best samples the local phase polishes (levenberg_marquardt) before keeping the best
     start_iterations: int = 3  # Levenberg-Marquardt iterations per start before they are compared
+    refine: int = 0  # second-round samples, shared among the neighbourhoods of the best distinct samples
 
 
 @dataclass(frozen=True)
@@ -727,13 +728,16 @@ def _optimize(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> O
     horizon = r.section(body.get("horizon"), f"{p}.horizon", ("start", "step"))
     search = SearchSettings() if hypotheses else None  # hypotheses are told apart by the search
     if body.get("search") is not None:
-        found = r.section(body["search"], f"{p}.search", ("samples", "decades", "frames", "starts", "start_iterations"))
+        found = r.section(
+            body["search"], f"{p}.search", ("samples", "decades", "frames", "starts", "start_iterations", "refine")
+        )
         search = SearchSettings(
             samples=r.integer(found, "samples", f"{p}.search", 32, low=1),
             decades=r.number(found, "decades", f"{p}.search", 3.0, low=0.0, strict_low=True),
             frames=r.integer(found, "frames", f"{p}.search", 0),
             starts=r.integer(found, "starts", f"{p}.search", 1, low=1),
             start_iterations=r.integer(found, "start_iterations", f"{p}.search", 3, low=1),
+            refine=r.integer(found, "refine", f"{p}.search", 0),
         )
         if search.starts > search.samples:
             raise r.fail(

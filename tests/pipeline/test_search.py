@@ -21,11 +21,12 @@ def two_basins(z: float) -> float:
 def searching(demo_config, monkeypatch):
     """The demo's optimiser with a search phase and a synthetic loss (no simulation)."""
 
-    def make(samples=16, decades=2.0, iterations=1, name="results"):
+    def make(samples=16, decades=2.0, iterations=1, name="results", refine=0, starts=1, loss=two_basins):
         cfg = demo_config(iterations=iterations, name=name)
+        search = SearchSettings(samples=samples, decades=decades, refine=refine, starts=starts)
         cfg = dataclasses.replace(
             cfg,
-            optimize=dataclasses.replace(cfg.optimize, search=SearchSettings(samples=samples, decades=decades)),
+            optimize=dataclasses.replace(cfg.optimize, search=search),
             flow=dataclasses.replace(cfg.flow, bias_correction="none"),
         )  # losses without a simulation
         opt = Optimization(cfg)
@@ -33,7 +34,7 @@ def searching(demo_config, monkeypatch):
 
         def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None):
             calls.append(dict(z))
-            value = two_basins(z["youngs_modulus"])
+            value = loss(z["youngs_modulus"])
             grads = {"youngs_modulus": 0.0} if with_grad else {}
             return Evaluation(value, grads, [], SimpleNamespace(substeps=1))
 
@@ -56,20 +57,24 @@ def test_the_search_finds_the_global_basin_from_the_local_one(searching):
     assert all(box[0] <= r["z"]["youngs_modulus"] <= box[1] for r in state.search)
 
 
+def interrupt_after(opt, samples: int) -> None:
+    """Make ``opt``'s progress callback raise, as a Ctrl-C would, once ``samples`` rows came."""
+    seen = []
+
+    def stop(row):
+        seen.append(row)
+        if len(seen) == samples:
+            raise KeyboardInterrupt
+
+    opt.progress = stop
+
+
 def test_the_design_is_reproducible_and_a_resumed_search_is_the_same(searching):
     whole, _ = searching(name="whole")
     done = whole.global_search(whole.initial_state())
     split, calls = searching(name="split")
     partial = dataclasses.replace(split.initial_state(), search=[])
-    # stop after 5 samples: the progress callback raises like a Ctrl-C would
-    seen = []
-
-    def stop(row):
-        seen.append(row)
-        if len(seen) == 5:
-            raise KeyboardInterrupt
-
-    split.progress = stop
+    interrupt_after(split, 5)
     with pytest.raises(KeyboardInterrupt):
         split.global_search(partial)
     saved = json.loads(split.checkpoint.read_text())["state"]
@@ -79,6 +84,63 @@ def test_the_design_is_reproducible_and_a_resumed_search_is_the_same(searching):
     assert len(calls) == 16 + 1  # 16 samples once each, then one gradient iteration
     assert [r["z"] for r in resumed.search] == [r["z"] for r in done.search]
     assert resumed.history[0]["z"] == done.z
+
+
+def test_a_second_round_finds_a_narrow_well_between_the_first_rounds_samples(searching):
+    """A broad funnel with a narrow, deeper well beside its best first-round sample, closer to
+    it than the design's spacing: the first round cannot see it, a second round around the
+    best sample does."""
+    design = searching(samples=8)[0].search_points(searching(samples=8, name="d")[0].initial_state().z)
+    nearest = min((z["youngs_modulus"] for z in design), key=lambda e: abs(e - 4.3))
+    well = (nearest + 0.05, nearest + 0.14)  # inside the neighbourhood (half a spacing: 2.3 / 8 / 2 = 0.144)
+
+    def funnel_and_well(e: float) -> float:
+        return 0.5 * (e - 4.3) ** 2 - (1.0 if well[0] <= e <= well[1] else 0.0)
+
+    once, _ = searching(samples=8, loss=funnel_and_well, name="once")
+    assert once.global_search(once.initial_state()).z["youngs_modulus"] == nearest
+    twice, calls = searching(samples=8, refine=4, loss=funnel_and_well, name="twice")
+    state = twice.global_search(twice.initial_state())
+    assert len(calls) == len(state.search) == 12
+    assert all(
+        r["around"] == [s["z"] for s in state.search[:8]].index({"youngs_modulus": nearest}) for r in state.search[8:]
+    )
+    assert well[0] <= state.z["youngs_modulus"] <= well[1]
+
+
+def test_each_start_is_the_best_of_its_own_neighbourhood(searching):
+    opt, _ = searching(samples=16, refine=8, starts=3)
+    state = opt.global_search(opt.initial_state())
+    first, second = state.search[:16], state.search[16:]
+    centres = list(dict.fromkeys(r["around"] for r in second))  # in rank order
+    assert len(centres) == 3 and len(second) == 8 // 3 * 3
+    spacing = opt.search_box(opt.initial_state().z)["youngs_modulus"]
+    spacing = (spacing[1] - spacing[0]) / 16
+    ranked = sorted(range(16), key=lambda i: first[i]["loss"])
+    assert centres[0] == ranked[0]  # the best sample always leads
+    for a in centres:  # distinct: no centre inside another's neighbourhood
+        assert all(
+            abs(first[a]["z"]["youngs_modulus"] - first[b]["z"]["youngs_modulus"]) > spacing / 2
+            for b in centres
+            if b != a
+        )
+    bests = [min([first[c]] + [r for r in second if r["around"] == c], key=lambda r: r["loss"]) for c in centres]
+    assert state.starts == [r["z"] for r in sorted(bests, key=lambda r: r["loss"])]
+    assert state.z == state.starts[0]
+
+
+def test_a_search_interrupted_in_its_second_round_resumes_the_same(searching):
+    whole, _ = searching(samples=8, refine=4, name="whole")
+    done = whole.global_search(whole.initial_state())
+    split, calls = searching(samples=8, refine=4, name="split")
+    interrupt_after(split, 10)
+    with pytest.raises(KeyboardInterrupt):
+        split.global_search(split.initial_state())
+    split.progress = lambda row: None
+    resumed = split.global_search(split.load_state())
+    assert len(calls) == 12  # each sample once
+    assert resumed.search == [{**r, "seconds": s["seconds"]} for r, s in zip(done.search, resumed.search)]
+    assert resumed.z == done.z
 
 
 def test_failed_samples_are_skipped_and_none_running_is_an_error(searching, monkeypatch):
@@ -121,9 +183,11 @@ def test_a_bad_parameter_box_is_refused(tmp_path, bounds, message):
 
 def test_search_settings_are_read(tmp_path):
     (tmp_path / "scene.ply").write_bytes(b"ply\n")
-    data = config_with({"search": {"samples": 8, "decades": 1.5}, "bounds": {"youngs_modulus": [1e3, 1e7]}})
+    data = config_with(
+        {"search": {"samples": 8, "decades": 1.5, "refine": 4}, "bounds": {"youngs_modulus": [1e3, 1e7]}}
+    )
     opt = parse_config(data, "scene.yaml", tmp_path).optimize
-    assert opt.search == SearchSettings(samples=8, decades=1.5, frames=0)
+    assert opt.search == SearchSettings(samples=8, decades=1.5, frames=0, refine=4)
     assert opt.bounds == {"youngs_modulus": (1e3, 1e7)}
 
 

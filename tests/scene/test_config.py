@@ -122,6 +122,7 @@ BAD = [
     ("flow", {"confidence": "fb"}, "flow.confidence: must be one of none, forward_backward, got 'fb'"),
     ("flow", {"bias_correction": "yes"}, "flow.bias_correction: must be one of none, simulated, got 'yes'"),
     ("optimize.search", {"samples": 4, "starts": 5}, "optimize.search.starts: must not exceed search.samples"),
+    ("optimize.search", {"samples": 4, "refine": -1}, "optimize.search.refine: must be an integer >= 0"),
     (
         "optimize.search",
         {"samples": 4, "starts": 2},
