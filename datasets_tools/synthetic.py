@@ -74,6 +74,7 @@ class SyntheticCase:
     horizon: tuple[int, int] = (4, 1)  # frames in the first iteration's loss, frames added per iteration
     search: int = 0  # samples of the optimiser's global phase (0: none)
     starts: int = 1  # the best samples polished by the local phase before the best is kept
+    refine: int = 0  # second-round search samples around the best distinct samples (optimize.search.refine)
     method: str = "adam"  # the optimiser's local phase (optimize.method)
     forces: tuple[dict, ...] = ()
     ground: str = "sticky"
@@ -338,6 +339,8 @@ def case_config(
             config["optimize"]["search"] = {"samples": case.search}
             if case.starts > 1:
                 config["optimize"]["search"]["starts"] = case.starts
+            if case.refine:
+                config["optimize"]["search"]["refine"] = case.refine
         if case.method != "adam":
             config["optimize"]["method"] = case.method
         config["evaluation"] = {"ground_truth": dict(case.truth)}

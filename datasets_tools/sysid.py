@@ -80,11 +80,20 @@ CASES: dict[str, SyntheticCase] = {
 # every case, one policy: a global search of the parameter box first (12 samples per free
 # parameter, at least 24: a space-filling design grows with the dimension, as the 10 d rule of
 # thumb for computer experiments; 24 samples in playdoh's 3-D box never came near its
-# truth's yield stress, 36 did), then Levenberg-Marquardt over all frames (a dropped object's
-# first frames are free fall, where the material does nothing) from each of the three best
-# samples for 3 iterations, then on from the best of those
+# truth's yield stress, 36 did), a second round of half as many around the three best
+# distinct samples (one design spacing wide: the cream's narrow yield-stress valley lies
+# between the first round's samples), then Levenberg-Marquardt over all frames (a dropped
+# object's first frames are free fall, where the material does nothing) from each
+# neighbourhood's best for 3 iterations, then on from the best of those
 CASES = {
-    name: replace(case, search=max(24, 12 * len(case.optimize)), starts=3, horizon=(0, 0), method="levenberg_marquardt")
+    name: replace(
+        case,
+        search=max(24, 12 * len(case.optimize)),
+        refine=max(24, 12 * len(case.optimize)) // 2,
+        starts=3,
+        horizon=(0, 0),
+        method="levenberg_marquardt",
+    )
     for name, case in CASES.items()
 }
 
