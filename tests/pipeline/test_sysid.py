@@ -140,6 +140,9 @@ def test_rerun_skips_finished_cases_and_other_settings_need_force(tmp_path, tiny
     table = (out / "sysid.md").read_text()
     assert "| torus | elastic |" in table and "PhysFlow RE/EPE" in table and "0.51/1.04" in table
     assert "| median |" in table  # beside the mean, which one unobservable parameter can swamp
+    assert f"| {record['final_loss']:.3g} / {record['truth_loss']:.3g} |" in table
+    rows = [line for line in table.splitlines() if line.startswith("|")]
+    assert len({row.count("|") for row in rows}) == 1  # every row as wide as the header
     again = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))
     assert again["cases"]["torus"] == record  # skipped, not rerun
     other = sysid.Settings(resolution=TINY, noise=2.0)
