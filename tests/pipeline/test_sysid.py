@@ -126,7 +126,7 @@ def test_a_folder_with_other_files_is_refused_without_force(tmp_path):
 def tiny_cases(monkeypatch):
     """The torus case, shrunk to a few seconds."""
     case = dataclasses.replace(
-        sysid.CASES["torus"], guess={"youngs_modulus": 3e5}, optimize=("youngs_modulus",), search=3, starts=1
+        sysid.CASES["torus"], guess={"youngs_modulus": 3e5}, optimize=("youngs_modulus",), search=3, starts=1, refine=0
     )
     monkeypatch.setitem(sysid.CASES, "torus", case)
 
@@ -156,6 +156,9 @@ def test_rerun_skips_finished_cases_and_other_settings_need_force(tmp_path, tiny
 def test_an_interrupted_case_resumes_its_optimisation(tmp_path, tiny_cases, monkeypatch):
     from clflow.pipeline import optimize
 
+    # Adam runs its count: the tiny torus' loss is so flat that Levenberg-Marquardt, within
+    # its trust region, may stop by progress after one iteration, leaving nothing to resume
+    monkeypatch.setitem(sysid.CASES, "torus", dataclasses.replace(sysid.CASES["torus"], method="adam"))
     out = tmp_path / "out"
     real_run = optimize.Optimization.run
 
@@ -218,7 +221,7 @@ def test_parallel_cases_on_ray_give_the_serial_results(tmp_path, tiny_cases, mon
     from clflow.sweep import sysid_on_ray
 
     bird = dataclasses.replace(
-        sysid.CASES["bird"], guess={"youngs_modulus": 1e5}, optimize=("youngs_modulus",), search=3, starts=1
+        sysid.CASES["bird"], guess={"youngs_modulus": 1e5}, optimize=("youngs_modulus",), search=3, starts=1, refine=0
     )
     monkeypatch.setitem(sysid.CASES, "bird", bird)  # the tasks get the driver's definitions
     settings = sysid.Settings(resolution=TINY)
