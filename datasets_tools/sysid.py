@@ -330,6 +330,15 @@ def _fmt(value: float) -> str:
     return f"{value:.3g}"
 
 
+def _caveat(name: str, record: dict) -> str:
+    """What a case's identifiability check says of a parameter, for the table."""
+    ident = record.get("identifiability", {})
+    if name in ident.get("unresolved", []):
+        values = ident["profile"][name]["values"]
+        return f" (loss flat from {_fmt(min(values))} to {_fmt(max(values))})"
+    return " (weakly constrained)" if name in ident.get("weakly_constrained", []) else ""
+
+
 def markdown(summary: dict) -> str:
     """The results as a Markdown table in the layout of the paper's Table 3, with the
     published rows (RE / EPE) beside ours, and each case's loss found against the loss at
@@ -349,10 +358,8 @@ def markdown(summary: dict) -> str:
                 f"| {name} | {r['material']} | {r['status']} | - | - | - | - | {r.get('seconds', 0):.0f} | {published} |"
             )
             continue
-        weak = set(r.get("identifiability", {}).get("weakly_constrained", []))
         params = "<br>".join(
-            f"{n}: {_fmt(p['found'])} ({_fmt(p['truth'])}), RE {p['re']:.3f}"
-            + (" (weakly constrained)" if n in weak else "")
+            f"{n}: {_fmt(p['found'])} ({_fmt(p['truth'])}), RE {p['re']:.3f}{_caveat(n, r)}"
             for n, p in r["parameters"].items()
         )
         lines.append(

@@ -73,6 +73,11 @@ TRADE_OFF_CORRELATION = 0.95
 # standard errors treat pixels as independent noise, but what remains at the optimum is mostly
 # model error (the grid, the estimator), which moves the minimum by more than that
 MIN_LOSS_RISE = 0.01
+# a weakly constrained variable is moved alone PROFILE_STEP either way in z (a decade of a
+# log-scale parameter, cut to its box); it is unresolved over that range when neither move
+# raises the loss by PROFILE_RISE of itself (the cream's viscosity: under 1 % from 1 to 10 Pa s)
+PROFILE_STEP = 1.0
+PROFILE_RISE = 0.1
 # flow.bias_correction renders the simulation at this many times the guidance camera's pixels
 # per side and area-averages them, since a camera's pixel integrates light over its area
 # (DIS's error depends on that blur: docs/flow.md)
@@ -657,7 +662,7 @@ class Optimization:
                         f"{list(opt.bounds[name])}"
                     )
             else:
-                lo, hi = (float(p.encode(v)) for v in p.param.typical) if p.param.scale != "linear" else p.param.typical
+                lo, hi = self.typical_box(name)
                 if p.param.scale == "log":
                     lo, hi = max(lo, z0[name] - opt.search.decades), min(hi, z0[name] + opt.search.decades)
                 lo, hi = min(lo, z0[name]), max(hi, z0[name])
@@ -1259,7 +1264,8 @@ class Optimization:
         correlations show which parameters trade off. ``loss_rise``: the fraction of the loss
         that a step of WEAK_STD_Z costs with the others refitted; a variable is weakly
         constrained when its standard error exceeds WEAK_STD_Z or that rise is below
-        MIN_LOSS_RISE."""
+        MIN_LOSS_RISE. Each weakly constrained variable is then profiled (:meth:`profile`, two
+        forward runs): ``unresolved`` lists those whose loss barely moves over the range."""
         variables = self.main_variables
         base, J = self.jacobian(z, self.frames, min_substeps, variables)
         residuals, count = self.residuals(base.flows, base.more_flows), len(variables)
@@ -1280,13 +1286,53 @@ class Optimization:
             for j, b in enumerate(variables)
             if i < j and abs(float(correlation[i, j])) > TRADE_OFF_CORRELATION
         ]
+        profile = self.profile(z, base.substeps, weak, loss)
         return {
             "std_z": dict(zip(variables, std.tolist())),
             "loss_rise": dict(zip(variables, rise)),
             "correlation": {a: dict(zip(variables, row)) for a, row in zip(variables, correlation.tolist())},
             "weakly_constrained": weak,
             "trade_offs": pairs,
+            "profile": profile,
+            "profile_rise": PROFILE_RISE,
+            "unresolved": [
+                n
+                for n, p in profile.items()
+                if p["loss_ratio"] and all(r is not None and r <= 1 + PROFILE_RISE for r in p["loss_ratio"])
+            ],
         }
+
+    def profile(self, z: dict[str, float], min_substeps: int, names: list[str], loss: float) -> dict:
+        """Per variable in ``names``: ``values`` (SI) PROFILE_STEP either way of z in z units,
+        cut to the local phase's box (else a parameter's typical range), and ``loss_ratio``,
+        the loss there with the others held over ``loss``, the loss at z (None where the run
+        failed). A variable on its box's edge has one side."""
+        out = {}
+        for name in names:
+            lo, hi = self.local_box().get(name) or self.typical_box(name)
+            row: dict[str, list] = {"values": [], "loss_ratio": []}
+            for target in (max(lo, z[name] - PROFILE_STEP), min(hi, z[name] + PROFILE_STEP)):
+                if target == z[name]:
+                    continue
+                moved = {**z, name: target}
+                try:
+                    ev = self.evaluate(moved, self.frames, with_grad=False, min_substeps=min_substeps)
+                    ratio = float((self.residuals(ev.flows, ev.more_flows) ** 2).sum()) / max(loss, 1e-300)
+                except (FloatingPointError, ClflowError) as exc:
+                    log.info("profile of %s at %s failed: %s", name, self.values(moved)[name], exc)
+                    ratio = None
+                row["values"].append(self.values(moved)[name])
+                row["loss_ratio"].append(ratio)
+            out[name] = row
+        return out
+
+    def typical_box(self, name: str) -> tuple[float, float]:
+        """(lower, upper) in z of a parameter's typical range; unbounded for a velocity component."""
+        if name not in self.params:
+            return -math.inf, math.inf
+        p = self.params[name]
+        lo, hi = (float(p.encode(v)) for v in p.param.typical) if p.param.scale != "linear" else p.param.typical
+        return lo, hi
 
     def endpoint_error(self, flows: list[torch.Tensor], more_flows: tuple[list[torch.Tensor], ...] = ()) -> float:
         """Mean flow endpoint error (px) of simulated flows [H, W, 2] per frame step against
@@ -1362,6 +1408,16 @@ class Optimization:
                 "lower bound); its value is uncertain",
                 name,
                 metrics["identifiability"]["std_z"][name],
+            )
+        for name in metrics["identifiability"]["unresolved"]:
+            values = metrics["identifiability"]["profile"][name]["values"]
+            log.warning(
+                "%s is not resolved by the video from %.3g to %.3g (SI): moved alone there, the loss rises by "
+                "less than %d %%",
+                name,
+                min(values),
+                max(values),
+                round(100 * PROFILE_RISE),
             )
         for a, b, rho in metrics["identifiability"]["trade_offs"]:
             log.warning("%s and %s trade off (correlation %.3f): the video fixes a combination of them", a, b, rho)

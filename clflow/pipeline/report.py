@@ -94,6 +94,10 @@ def write_report(output: Path) -> Path:
         rows += [(f"relative error: {n}", f"{e:.3%}") for n, e in metrics.get("relative_error", {}).items()]
         ident = metrics.get("identifiability", {})
         rows += [(f"weakly constrained: {n}", "the video barely fixes it") for n in ident.get("weakly_constrained", [])]
+        for name in ident.get("unresolved", []):
+            values = ident["profile"][name]["values"]
+            rise = f"loss within {100 * ident['profile_rise']:.0f} %"
+            rows.append((f"unresolved: {name}", f"{rise} from {min(values):.3g} to {max(values):.3g} (SI)"))
         rows += [(f"trade-off: {a} / {b}", f"correlation {rho:.3f}") for a, b, rho in ident.get("trade_offs", [])]
         chosen = metrics.get("material_hypotheses")
         if chosen:

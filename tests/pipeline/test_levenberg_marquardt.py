@@ -238,6 +238,22 @@ def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypat
         assert max(report["std_z"].values()) < 1e-3 and min(report["loss_rise"].values()) > 1.0
     if model == "nu_barely_matters":
         assert report["std_z"]["poissons_ratio"] < 0.1 and report["loss_rise"]["poissons_ratio"] < 0.01
+    # each weakly constrained variable profiled alone, a z unit either way (cut to nu's typical range)
+    assert sorted(report["profile"]) == sorted(weak)
+    for name, row in report["profile"].items():
+        assert len(row["values"]) == len(row["loss_ratio"]) == 2
+        assert (
+            min(row["values"])
+            < opt.values({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0})[name]
+            < max(row["values"])
+        )
+    # unresolved: a nu that does nothing; a nu that barely matters over 0.1 raises the loss by
+    # a quarter over a whole z unit; E or nu alone breaks a sum that fits
+    assert report["unresolved"] == (["poissons_ratio"] if model == "nu_does_nothing" else [])
+    if model == "nu_does_nothing":
+        assert report["profile"]["poissons_ratio"]["loss_ratio"] == pytest.approx([1.0, 1.0], rel=1e-12)
+    if model == "nu_barely_matters":
+        assert all(1.1 < r < 1.5 for r in report["profile"]["poissons_ratio"]["loss_ratio"])
 
 
 def test_a_rejected_step_goes_back_to_the_best_point_without_new_runs(lm):

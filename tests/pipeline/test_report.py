@@ -66,3 +66,19 @@ def test_the_page_shows_in_a_browser_and_its_videos_play(results, tmp_path):
     frames = json.loads((results / "run.json").read_text())["config"]["simulation"]["frames"]
     assert durations and durations[0] == pytest.approx(frames / 24, abs=0.05)  # comparison.mp4 decoded: H.264 plays
     assert np.all(np.array(durations) > 0)
+
+
+def test_the_page_says_which_parameters_the_video_does_not_resolve(tmp_path):
+    from clflow.pipeline.report import write_report
+
+    identifiability = {
+        "weakly_constrained": ["viscosity"],
+        "trade_offs": [],
+        "profile": {"viscosity": {"values": [0.188, 18.8], "loss_ratio": [1.001, 1.02]}},
+        "profile_rise": 0.1,
+        "unresolved": ["viscosity"],
+    }
+    (tmp_path / "metrics.json").write_text(json.dumps({"flow_loss": 0.02, "identifiability": identifiability}))
+    page = write_report(tmp_path).read_text()
+    assert "weakly constrained: viscosity" in page
+    assert "unresolved: viscosity" in page and "loss within 10 % from 0.188 to 18.8 (SI)" in page

@@ -233,3 +233,16 @@ def test_parallel_cases_on_ray_give_the_serial_results(tmp_path, tiny_cases, mon
         assert record["status"] == "ok"
         same = {k: v for k, v in record.items() if k not in timing}
         assert {k: v for k, v in parallel["cases"][name].items() if k not in timing} == same, name
+
+
+def test_the_table_says_what_the_check_found_of_each_parameter():
+    record = {
+        "identifiability": {
+            "weakly_constrained": ["bulk_modulus", "viscosity"],
+            "unresolved": ["viscosity"],
+            "profile": {"bulk_modulus": {"values": [1e4, 1e6]}, "viscosity": {"values": [18.8, 0.188]}},
+        }
+    }
+    assert sysid._caveat("viscosity", record) == " (loss flat from 0.188 to 18.8)"
+    assert sysid._caveat("bulk_modulus", record) == " (weakly constrained)"
+    assert sysid._caveat("shear_modulus", record) == ""
