@@ -73,9 +73,10 @@ TRADE_OFF_CORRELATION = 0.95
 # standard errors treat pixels as independent noise, but what remains at the optimum is mostly
 # model error (the grid, the estimator), which moves the minimum by more than that
 MIN_LOSS_RISE = 0.01
-# a weakly constrained variable is moved alone PROFILE_STEP either way in z (a decade of a
-# log-scale parameter, cut to its box); it is unresolved over that range when neither move
-# raises the loss by PROFILE_RISE of itself (the cream's viscosity: under 1 % from 1 to 10 Pa s)
+# a weakly constrained material parameter is moved alone PROFILE_STEP either way in z (a
+# decade of a log-scale parameter, cut to its box); it is unresolved over that range when
+# neither move changes the loss by PROFILE_RISE of itself (the cream's viscosity: under 1 %
+# from 1 to 10 Pa s)
 PROFILE_STEP = 1.0
 PROFILE_RISE = 0.1
 # flow.bias_correction renders the simulation at this many times the guidance camera's pixels
@@ -714,19 +715,21 @@ class Optimization:
             for i in centres
         ]
 
-    def refinement_points(self, rows: list[dict], z0: dict[str, float]) -> list[tuple[int, dict[str, float]]]:
-        """The second round's design: (centre's index into ``rows``, z) for ``search.refine``
-        samples shared among :meth:`neighbourhoods`, a scrambled Sobol sequence (seed 1) in each."""
-        regions = self.neighbourhoods(rows, z0)
+    def refinement_points(
+        self, regions: list[tuple[int, dict[str, tuple[float, float]]]], z0: dict[str, float]
+    ) -> list[tuple[int, dict[str, float]]]:
+        """The second round's design: (centre's index, z) for ``search.refine`` samples shared
+        among the :meth:`neighbourhoods` ``regions`` (the first refine % regions one more),
+        a scrambled Sobol sequence (seed 1) in each."""
         if not regions:
             return []
-        names = list(self.params)
-        per = self.cfg.optimize.search.refine // len(regions)
-        unit = torch.quasirandom.SobolEngine(len(names), scramble=True, seed=1).draw(per, dtype=torch.float64).tolist()
+        names, total = list(self.params), self.cfg.optimize.search.refine
+        counts = [total // len(regions) + (k < total % len(regions)) for k in range(len(regions))]
+        unit = torch.quasirandom.SobolEngine(len(names), scramble=True, seed=1).draw(max(counts), dtype=torch.float64)
         return [
             (i, {**z0, **{n: region[n][0] + u * (region[n][1] - region[n][0]) for n, u in zip(names, row)}})
-            for i, region in regions
-            for row in unit
+            for (i, region), count in zip(regions, counts)
+            for row in unit[:count].tolist()
         ]
 
     def global_search(self, state: OptimizerState) -> OptimizerState:
@@ -763,18 +766,16 @@ class Optimization:
         first = rows[: len(design)]
         if not any(r["loss"] is not None for r in first):
             raise ClflowError(f"the global search found no parameters whose simulation ran ({len(rows)} samples)")
-        second = self.refinement_points(first, state.z) if settings.refine else []
+        regions = self.neighbourhoods(first, state.z) if settings.refine else []
+        second = self.refinement_points(regions, state.z)
         for around, z in second[len(rows) - len(design) :]:
             sample(z, around)
         finite = [r for r in rows if r["loss"] is not None]
         ranked = sorted(finite, key=lambda r: r["loss"])
         best = ranked[0]
         log.info("global search: best of %d samples %s (loss %.4g)", len(rows), best["params"], best["loss"])
-        if second:  # each neighbourhood's best, its centre included
-            groups = [
-                [rows[i]] + [r for r in rows[len(design) :] if r.get("around") == i]
-                for i in dict.fromkeys(i for i, _ in second)
-            ]
+        if regions:  # each neighbourhood's best, its centre included
+            groups = [[rows[i]] + [r for r in rows[len(design) :] if r.get("around") == i] for i, _ in regions]
             picks = sorted(
                 (min(g, key=lambda r: r["loss"] if r["loss"] is not None else math.inf) for g in groups),
                 key=lambda r: r["loss"],
@@ -988,12 +989,15 @@ class Optimization:
         r = self.residuals(base.flows, base.more_flows)
         A, g = J.T @ J, J.T @ r
         diagonal = torch.diag(torch.diag(A).clamp(min=1e-12 * float(torch.diag(A).max().clamp(min=1e-30))))
-        step = self.trust_region_step(A + damping * diagonal, g, state.z, variables, LM_MAX_STEP * step_scale)
-        promised = -float(2 * g @ step + step @ A @ step)  # the model's fall of the residuals' sum of squares
-        if promised <= LM_GAIN_TOLERANCE * float(r @ r):
+        M = A + damping * diagonal
+        # the model's fall of the residuals' sum of squares along its own step: after a few
+        # rejections the trust region's step is short and promises little wherever it points
+        full = self.bounded_step(M, g, state.z, variables)
+        if -float(2 * g @ full + full @ A @ full) <= LM_GAIN_TOLERANCE * float(r @ r):
             return dataclasses.replace(
                 state, iteration=state.iteration + 1, damping=damping, step_scale=step_scale, best=best, converged=True
             )
+        step = self.trust_region_step(M, g, state.z, variables, LM_MAX_STEP * step_scale)
         z = {**state.z, **{n: state.z[n] + float(d) for n, d in zip(variables, step)}}
         return dataclasses.replace(
             state, iteration=state.iteration + 1, z=z, damping=damping, step_scale=step_scale, best=best
@@ -1041,17 +1045,19 @@ class Optimization:
         at most ``radius`` long (z units; the trust-region Levenberg-Marquardt of More 1978).
         lam shortens a step most along the directions the loss sees least: scaling the whole
         step down instead shrinks a well-determined component (the cream's yield stress) as
-        much as the poorly determined one (its viscosity) that made the step long."""
+        much as the poorly determined one (its viscosity) that made the step long. With a
+        variable held on its box's edge for some lam and not others the length need not fall
+        monotonically in lam: the step is then inside the radius but may be shorter."""
         step = self.bounded_step(M, g, z, variables)
         if float(step.norm()) <= radius:
             return step
         eye = torch.eye(len(variables), dtype=M.dtype)
         hi = float(torch.diag(M).max()) or 1.0
+        lo = hi * 1e-12
         for _ in range(60):  # the step shrinks as g / lam for a large lam
             if float(self.bounded_step(M + hi * eye, g, z, variables).norm()) <= radius:
                 break
-            hi *= 10.0
-        lo = hi * 1e-12
+            lo, hi = hi, hi * 10.0
         for _ in range(50):  # bisection in log lam: the step's length falls as lam grows
             mid = math.sqrt(lo * hi)
             if float(self.bounded_step(M + mid * eye, g, z, variables).norm()) > radius:
@@ -1298,29 +1304,30 @@ class Optimization:
             "unresolved": [
                 n
                 for n, p in profile.items()
-                if p["loss_ratio"] and all(r is not None and r <= 1 + PROFILE_RISE for r in p["loss_ratio"])
+                if len(p["values"]) > 1 and all(r is not None and abs(r - 1) <= PROFILE_RISE for r in p["loss_ratio"])
             ],
         }
 
     def profile(self, z: dict[str, float], min_substeps: int, names: list[str], loss: float) -> dict:
-        """Per variable in ``names``: ``values`` (SI) PROFILE_STEP either way of z in z units,
-        cut to the local phase's box (else a parameter's typical range), and ``loss_ratio``,
+        """Per material parameter in ``names``: ``values`` (SI) PROFILE_STEP below z, at z and
+        PROFILE_STEP above in z units, cut to the local phase's box (else the parameter's
+        typical range, widened to hold z; a side on its edge is left out), and ``loss_ratio``,
         the loss there with the others held over ``loss``, the loss at z (None where the run
-        failed). A variable on its box's edge has one side."""
+        failed)."""
         out = {}
-        for name in names:
+        for name in (n for n in names if n in self.params):
             lo, hi = self.local_box().get(name) or self.typical_box(name)
+            lo, hi = min(lo, z[name]), max(hi, z[name])
             row: dict[str, list] = {"values": [], "loss_ratio": []}
-            for target in (max(lo, z[name] - PROFILE_STEP), min(hi, z[name] + PROFILE_STEP)):
-                if target == z[name]:
-                    continue
-                moved = {**z, name: target}
-                try:
-                    ev = self.evaluate(moved, self.frames, with_grad=False, min_substeps=min_substeps)
-                    ratio = float((self.residuals(ev.flows, ev.more_flows) ** 2).sum()) / max(loss, 1e-300)
-                except (FloatingPointError, ClflowError) as exc:
-                    log.info("profile of %s at %s failed: %s", name, self.values(moved)[name], exc)
-                    ratio = None
+            for target in sorted({max(lo, z[name] - PROFILE_STEP), z[name], min(hi, z[name] + PROFILE_STEP)}):
+                moved, ratio = {**z, name: target}, 1.0
+                if target != z[name]:
+                    try:
+                        ev = self.evaluate(moved, self.frames, with_grad=False, min_substeps=min_substeps)
+                        ratio = float((self.residuals(ev.flows, ev.more_flows) ** 2).sum()) / max(loss, 1e-300)
+                    except (FloatingPointError, ClflowError) as exc:
+                        log.info("profile of %s at %s failed: %s", name, self.values(moved)[name], exc)
+                        ratio = None
                 row["values"].append(self.values(moved)[name])
                 row["loss_ratio"].append(ratio)
             out[name] = row
@@ -1412,7 +1419,7 @@ class Optimization:
         for name in metrics["identifiability"]["unresolved"]:
             values = metrics["identifiability"]["profile"][name]["values"]
             log.warning(
-                "%s is not resolved by the video from %.3g to %.3g (SI): moved alone there, the loss rises by "
+                "%s is not resolved by the video from %.3g to %.3g (SI): moved alone there, the loss changes by "
                 "less than %d %%",
                 name,
                 min(values),

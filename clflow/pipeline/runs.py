@@ -352,7 +352,7 @@ def _optimize(
         from clflow.pipeline.hypotheses import choose_material
 
         def searched(material: str, row: dict) -> None:
-            note(f"{material}: search {row['iteration'] + 1}/{search.samples}: {format_row(row)}")
+            note(f"{material}: search {row['iteration'] + 1}/{search.samples + search.refine}: {format_row(row)}")
 
         search_all = {}
         if parallel is not None:
@@ -389,7 +389,7 @@ def _optimize(
 
         def progress(row: dict) -> None:
             if row.get("phase") == "search":  # the global phase: one line per sample
-                note(f"search {row['iteration'] + 1}/{search.samples}: {format_row(row)}")
+                note(f"search {row['iteration'] + 1}/{search.samples + search.refine}: {format_row(row)}")
             else:
                 advance(row)
 

@@ -113,7 +113,7 @@ def test_each_start_is_the_best_of_its_own_neighbourhood(searching):
     state = opt.global_search(opt.initial_state())
     first, second = state.search[:16], state.search[16:]
     centres = list(dict.fromkeys(r["around"] for r in second))  # in rank order
-    assert len(centres) == 3 and len(second) == 8 // 3 * 3
+    assert len(centres) == 3 and [sum(r["around"] == c for r in second) for c in centres] == [3, 3, 2]
     spacing = opt.search_box(opt.initial_state().z)["youngs_modulus"]
     spacing = (spacing[1] - spacing[0]) / 16
     ranked = sorted(range(16), key=lambda i: first[i]["loss"])
@@ -127,6 +127,15 @@ def test_each_start_is_the_best_of_its_own_neighbourhood(searching):
     bests = [min([first[c]] + [r for r in second if r["around"] == c], key=lambda r: r["loss"]) for c in centres]
     assert state.starts == [r["z"] for r in sorted(bests, key=lambda r: r["loss"])]
     assert state.z == state.starts[0]
+
+
+def test_a_second_round_smaller_than_its_neighbourhoods_keeps_every_centre_a_start(searching):
+    opt, calls = searching(samples=16, refine=2, starts=3)
+    state = opt.global_search(opt.initial_state())
+    assert len(calls) == len(state.search) == 18
+    centres = [i for i, _ in opt.neighbourhoods(state.search[:16], opt.initial_state().z)]
+    assert len(centres) == 3 and [r["around"] for r in state.search[16:]] == centres[:2]
+    assert state.search[centres[2]]["z"] in state.starts and len(state.starts) == 3  # unsampled, still a start
 
 
 def test_a_search_interrupted_in_its_second_round_resumes_the_same(searching):
