@@ -1270,7 +1270,7 @@ class Optimization:
         correlations show which parameters trade off. ``loss_rise``: the fraction of the loss
         that a step of WEAK_STD_Z costs with the others refitted; a variable is weakly
         constrained when its standard error exceeds WEAK_STD_Z or that rise is below
-        MIN_LOSS_RISE. Each weakly constrained variable is then profiled (:meth:`profile`, two
+        MIN_LOSS_RISE. Each weakly constrained material parameter is then profiled (:meth:`profile`, two
         forward runs): ``unresolved`` lists those whose loss barely moves over the range."""
         variables = self.main_variables
         base, J = self.jacobian(z, self.frames, min_substeps, variables)
