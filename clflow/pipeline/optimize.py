@@ -318,6 +318,14 @@ class View:
         return self.observed if self.estimator_error is None else self.observed - self.estimator_error
 
 
+def flat(profile_row: dict) -> bool:
+    """Whether a :meth:`Optimization.profile` row shows a loss that, moved either way, changed
+    by at most PROFILE_RISE of itself (a fall is no flatter than a rise: the point is then
+    not a minimum along that parameter)."""
+    ratios = profile_row["loss_ratio"]
+    return len(ratios) > 1 and all(r is not None and abs(r - 1) <= PROFILE_RISE for r in ratios)
+
+
 class Optimization:
     """One optimisation run of a config (see module docstring)."""
 
@@ -1301,11 +1309,7 @@ class Optimization:
             "trade_offs": pairs,
             "profile": profile,
             "profile_rise": PROFILE_RISE,
-            "unresolved": [
-                n
-                for n, p in profile.items()
-                if len(p["values"]) > 1 and all(r is not None and abs(r - 1) <= PROFILE_RISE for r in p["loss_ratio"])
-            ],
+            "unresolved": [n for n, row in profile.items() if flat(row)],
         }
 
     def profile(self, z: dict[str, float], min_substeps: int, names: list[str], loss: float) -> dict:

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from clflow.errors import InputError
-from clflow.pipeline.optimize import LM_DAMPING, Evaluation, Optimization, flow_loss
+from clflow.pipeline.optimize import LM_DAMPING, Evaluation, Optimization, flat, flow_loss
 
 Z_TRUE = math.log10(2e4) + 0.37  # the model's minimiser, 1.37 decades above the demo's start
 
@@ -355,3 +355,21 @@ def test_a_variable_on_its_box_edge_is_held_and_the_rest_solved_again(lm, monkey
     assert opt.bounded_step(M, g, {"a": 0.0, "b": 1.0}, ("a", "b")).tolist() == [0.0, 0.0]
     # an edge the step points away from holds nothing
     assert opt.bounded_step(M, g, {"a": 1.0, "b": 0.0}, ("a", "b")).tolist() == pytest.approx([-1.0, 1.0])
+
+
+def test_the_profile_calls_flat_only_a_loss_that_neither_rises_nor_falls(lm):
+    """A decade below the minimiser of the tanh model, a decade up lowers the loss: not
+    flat (the point is no minimum along E). Above the typical range the box is widened to
+    hold the point, and only the side below is run."""
+    opt, _ = lm()
+    z = {"youngs_modulus": Z_TRUE - 1.0}
+    ev = opt.evaluate(z, opt.frames)
+    row = opt.profile(z, 1, ["youngs_modulus"], float((opt.residuals(ev.flows) ** 2).sum()))["youngs_modulus"]
+    low, at, high = row["loss_ratio"]
+    assert low > 1.1 and at == 1.0 and high < 0.9 and not flat(row)
+    assert flat({"loss_ratio": [1.05, 1.0, 0.95]}) and not flat({"loss_ratio": [1.05, 1.0, 0.5]})  # a fall
+    assert not flat({"loss_ratio": [1.0, 1.0, None]}) and not flat({"loss_ratio": [1.0]})  # a failed run; no side
+    above = {"youngs_modulus": opt.typical_box("youngs_modulus")[1] + 0.5}
+    row = opt.profile(above, 1, ["youngs_modulus"], 1.0)["youngs_modulus"]
+    assert len(row["values"]) == 2 and row["values"][1] == opt.values(above)["youngs_modulus"]
+    assert opt.profile(z, 1, ["velocity_x"], 1.0) == {}  # a velocity component is not profiled
