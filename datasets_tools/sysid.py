@@ -77,6 +77,7 @@ CASES: dict[str, SyntheticCase] = {
 }
 # fmt: on
 
+
 # every case, one policy: a global search of the parameter box first (12 samples per free
 # parameter, at least 24: a space-filling design grows with the dimension, as the 10 d rule of
 # thumb for computer experiments; 24 samples in playdoh's 3-D box never came near its
@@ -85,17 +86,12 @@ CASES: dict[str, SyntheticCase] = {
 # between the first round's samples), then Levenberg-Marquardt over all frames (a dropped
 # object's first frames are free fall, where the material does nothing) from each
 # neighbourhood's best for 3 iterations, then on from the best of those
-CASES = {
-    name: replace(
-        case,
-        search=max(24, 12 * len(case.optimize)),
-        refine=max(24, 12 * len(case.optimize)) // 2,
-        starts=3,
-        horizon=(0, 0),
-        method="levenberg_marquardt",
-    )
-    for name, case in CASES.items()
-}
+def _with_policy(case: SyntheticCase) -> SyntheticCase:
+    samples = max(24, 12 * len(case.optimize))
+    return replace(case, search=samples, refine=samples // 2, starts=3, horizon=(0, 0), method="levenberg_marquardt")
+
+
+CASES = {name: _with_policy(case) for name, case in CASES.items()}
 
 QUICK_CASES = ("torus", "playdoh", "droplet")  # elastic, plasticine, Newtonian: the CI subset
 

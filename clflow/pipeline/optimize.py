@@ -760,9 +760,10 @@ class Optimization:
             except (FloatingPointError, ClflowError) as exc:
                 log.info("search sample %s failed: %s", self.values(z), exc)
                 loss = None
-            row = {"z": z, "params": self.values(z), "loss": loss, "frames": frames}
+            neighbourhood = {} if around is None else {"around": around}
             rows.append(
-                {**row, **({} if around is None else {"around": around}), "seconds": time.perf_counter() - start}
+                {"z": z, "params": self.values(z), "loss": loss, "frames": frames, **neighbourhood}
+                | {"seconds": time.perf_counter() - start}
             )
             state = dataclasses.replace(state, search=list(rows))
             self.save_state(state)
@@ -951,9 +952,8 @@ class Optimization:
         (J^T J + damping diag(J^T J)) dz = -J^T r, held at most LM_MAX_STEP x step_scale long
         by :meth:`trust_region_step` (a rejection quarters the radius, an accepted point
         doubles it up to 1; Marquardt's damping alone hardly shortens a step along a direction
-        the loss barely sees). With
-        ``calibrate``, an accepted point first measures the flow estimator's error (the
-        residuals' Jacobian does not depend on it)."""
+        the loss barely sees). With ``calibrate``, an accepted point first measures the flow
+        estimator's error (the residuals' Jacobian does not depend on it)."""
         best = state.best
         moved = best is not None and state.z != best["z"]
         # only a new point is judged against the best one: back at the best point (after a
@@ -1278,8 +1278,9 @@ class Optimization:
         correlations show which parameters trade off. ``loss_rise``: the fraction of the loss
         that a step of WEAK_STD_Z costs with the others refitted; a variable is weakly
         constrained when its standard error exceeds WEAK_STD_Z or that rise is below
-        MIN_LOSS_RISE. Each weakly constrained material parameter is then profiled (:meth:`profile`, two
-        forward runs): ``unresolved`` lists those whose loss barely moves over the range."""
+        MIN_LOSS_RISE. Each weakly constrained material parameter is then profiled
+        (:meth:`profile`, two forward runs): ``unresolved`` lists those whose loss is
+        :func:`flat` over the range."""
         variables = self.main_variables
         base, J = self.jacobian(z, self.frames, min_substeps, variables)
         residuals, count = self.residuals(base.flows, base.more_flows), len(variables)
@@ -1338,9 +1339,7 @@ class Optimization:
         return out
 
     def typical_box(self, name: str) -> tuple[float, float]:
-        """(lower, upper) in z of a parameter's typical range; unbounded for a velocity component."""
-        if name not in self.params:
-            return -math.inf, math.inf
+        """(lower, upper) in z of material parameter ``name``'s typical range."""
         p = self.params[name]
         lo, hi = (float(p.encode(v)) for v in p.param.typical) if p.param.scale != "linear" else p.param.typical
         return lo, hi

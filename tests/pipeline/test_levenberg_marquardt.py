@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from clflow.errors import InputError
-from clflow.pipeline.optimize import LM_DAMPING, Evaluation, Optimization, flat, flow_loss
+from clflow.pipeline.optimize import LM_DAMPING, LM_GAIN_TOLERANCE, Evaluation, Optimization, flat, flow_loss
 
 Z_TRUE = math.log10(2e4) + 0.37  # the model's minimiser, 1.37 decades above the demo's start
 
@@ -108,8 +108,8 @@ def test_the_trust_region_cuts_the_poorly_determined_component_first(lm):
 
 def test_a_small_trust_region_does_not_stop_the_run_by_progress(lm):
     """After rejections the radius is a fraction of a decade and any step inside it promises
-    little: the stop by progress weighs the model's own step, not the radius' (a 1/1024
-    radius on this model promises about 0.2 % of what the full step does)."""
+    little: the stop by progress weighs the model's own step, not the radius' (the 1/1024
+    step taken here promises less than the tolerance, so weighing it would have stopped)."""
     opt, _ = lm(iterations=4)
     variables = ("youngs_modulus",)
     state = opt.initial_state()
@@ -117,6 +117,12 @@ def test_a_small_trust_region_does_not_stop_the_run_by_progress(lm):
     tiny = opt.lm_step(dataclasses.replace(state, step_scale=1 / 1024), base, J, opt.frames, variables)
     assert not tiny.converged
     assert abs(tiny.z["youngs_modulus"] - state.z["youngs_modulus"]) == pytest.approx(1 / 1024)
+    r, step = (
+        opt.residuals(base.flows),
+        torch.tensor([tiny.z["youngs_modulus"] - state.z["youngs_modulus"]], dtype=J.dtype),
+    )
+    promised = -float(2 * (J.T @ r) @ step + step @ (J.T @ J) @ step)
+    assert 0 < promised <= LM_GAIN_TOLERANCE * float(r @ r)
 
 
 def test_back_at_the_best_point_a_changed_loss_is_taken_not_rejected(lm):
