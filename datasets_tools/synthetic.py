@@ -36,15 +36,18 @@ from clflow.scene.config import FlowSettings
 SHAPES = ("cube", "sphere", "torus")
 # bumped whenever make_case makes a case differently from the same SyntheticCase, so that
 # results made before are not taken for results of the new cases (2: the ground GROUND_OFFSET
-# cells above a node row at both the optimiser's and the truth's spacing)
-GENERATOR_VERSION = 2
+# cells above a node row at both the optimiser's and the truth's spacing; 3: exactly so, placed
+# by clflow.pipeline.simulation for any grid over a configured domain)
+GENERATOR_VERSION = 3
 
 
 @dataclass(frozen=True)
 class Resolution:
     """Detail knobs: ``object_detail`` sets the shape's Gaussian count (about
     6 x object_detail^2), ``floor_side`` floor Gaussians per side, image side (px), grid
-    nodes along the domain's longest side, frames, optimisation iterations."""
+    nodes along the domain's longest side, frames, optimisation iterations;
+    ``main_grid_scale``: the optimiser's main phase runs on a grid this many times finer
+    than ``grid``, on which its global phase runs (optimize.search.grid_resolution)."""
 
     object_detail: int = 14
     floor_side: int = 40
@@ -52,6 +55,7 @@ class Resolution:
     grid: int = 24
     frames: int = 12
     iterations: int = 20
+    main_grid_scale: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -229,9 +233,9 @@ def case_domain(case: SyntheticCase, resolution: Resolution, scale: int = 1) -> 
     """(domain min, domain max (m), grid nodes along its longest side) of a case with
     ``spread``: ``spread`` sizes of room around the shape on every horizontal side and half
     a size above it, besides the domain walls, at the grid spacing the default domain of
-    ``resolution.grid`` nodes would have (2.5 sizes across), refined ``scale`` times. The
-    ground lies GROUND_OFFSET cells above a node row at either spacing (the refined grid's
-    domain is shifted down by a fraction of its cell for that), as in default domains."""
+    ``resolution.grid`` nodes would have (2.5 sizes across), refined ``scale`` times
+    (clflow.pipeline.simulation then moves it down by under a cell of whatever grid runs
+    on it, to put the ground GROUND_OFFSET cells above a node row)."""
     from clflow.mpm.constants import WALL_CELLS
     from clflow.pipeline.simulation import GROUND_OFFSET
 
@@ -244,9 +248,6 @@ def case_domain(case: SyntheticCase, resolution: Resolution, scale: int = 1) -> 
     upper = [c[0] + s / 2 + room, c[1] + height + 0.5 * s + walls, c[2] + s / 2 + room]
     longest = max(u - lo for lo, u in zip(lower, upper))
     nodes = int(math.ceil(longest / dx - 1e-9)) + 1
-    fine = dx / scale  # the ground is (WALL_CELLS + 1 + GROUND_OFFSET) scale fine cells up: shift to GROUND_OFFSET
-    shift = ((WALL_CELLS + 1 + GROUND_OFFSET) * scale - GROUND_OFFSET) % 1.0 * fine
-    lower[1], upper[1] = lower[1] + shift, upper[1] + shift
     return _rounded(lower), _rounded(upper), (nodes - 1) * scale + 1
 
 
@@ -327,6 +328,10 @@ def case_config(
         "flow": asdict(FlowSettings()),  # the defaults, spelled out
         "output": "results",
     }
+    coarse_search = optimize and bool(case.search) and resolution.main_grid_scale != 1
+    if coarse_search:  # the global phase on the coarser grid, the main phase on a finer one
+        search_grid = simulation["grid_resolution"]
+        simulation["grid_resolution"] = round((search_grid - 1) * resolution.main_grid_scale) + 1
     if optimize:
         config["video"] = [guidance_name(v) for v in range(views)] if views > 1 else guidance_name(0)
         config["optimize"] = {
@@ -341,6 +346,8 @@ def case_config(
                 config["optimize"]["search"]["starts"] = case.starts
             if case.refine:
                 config["optimize"]["search"]["refine"] = case.refine
+            if coarse_search:
+                config["optimize"]["search"]["grid_resolution"] = search_grid
         if case.method != "adam":
             config["optimize"]["method"] = case.method
         config["evaluation"] = {"ground_truth": dict(case.truth)}

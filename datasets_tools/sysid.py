@@ -6,11 +6,13 @@ dropped onto a sticky floor, seen by one guidance camera. Parameters are in clfl
 conventions; for the Newtonian cases that is viscosity = mu_PAC / 2 and bulk modulus =
 7 kappa_PAC (docs/pipeline.md), which leaves every relative error unchanged.
 
-Every case's guidance video comes from a finer simulation and rendering than the one the
-optimiser runs (``truth_scale``: grid and image refined 2x, its own particle sampling and
+Every case's guidance video comes from a finer simulation and rendering than any the
+optimiser runs (``truth_scale``: the grid and image refined 2x, its own particle sampling and
 substep, area-downsampled frames; optional noise and video compression), so the optimiser
-cannot reproduce it exactly. ``floor_epe_px`` in a result is the flow error of the ground
-truth parameters at the optimised resolution: the model error no optimiser can remove.
+cannot reproduce it exactly. The optimiser searches on the base grid and runs its main phase
+on one ``Resolution.main_grid_scale`` (1.5) times finer, still 1.33x coarser than the
+truth's. ``floor_epe_px`` in a result is the flow error of the ground truth parameters at
+the optimised resolution: the model error no optimiser can remove.
 
     results = evaluate(["torus"], Path("out"), QUICK, Settings())   # writes out/sysid.json, .md
 """
@@ -97,8 +99,8 @@ QUICK_CASES = ("torus", "playdoh", "droplet")  # elastic, plasticine, Newtonian:
 
 # PAC-NeRF's 14 frames at 24 fps; Levenberg-Marquardt iterations (each 1 + parameters forward
 # runs) after the search; QUICK is small enough for CI.
-FULL = Resolution(object_detail=12, floor_side=32, image=160, grid=24, frames=14, iterations=12)
-QUICK = Resolution(object_detail=8, floor_side=20, image=96, grid=24, frames=10, iterations=8)
+FULL = Resolution(object_detail=12, floor_side=32, image=160, grid=24, frames=14, iterations=12, main_grid_scale=1.5)
+QUICK = Resolution(object_detail=8, floor_side=20, image=96, grid=24, frames=10, iterations=8, main_grid_scale=1.5)
 
 # Table 3 of the PhysFlow paper (CVPR 2025): (mean RE, EPE px) per case and method; their
 # images are 800 x 800 px, so their EPE is not comparable with ours in pixels.
@@ -381,7 +383,8 @@ def markdown(summary: dict) -> str:
     env = summary.get("environment", {})
     lines += [
         "",
-        f"Settings: grid {res['grid']} nodes, image {res['image']} px, {res['frames']} frames, "
+        f"Settings: grid {res['grid']} nodes (search; main phase {res.get('main_grid_scale', 1.0):g}x), "
+        f"image {res['image']} px, {res['frames']} frames, "
         f"{res['iterations']} iterations; ground truth at {s['truth_scale']}x grid and image; noise "
         f"{s['noise']} grey levels; codec {s['codec'] or 'none (PNG)'}; seed {s['seed']}; "
         f"{s.get('views', 1)} guidance view{'s' if s.get('views', 1) > 1 else ''}.",

@@ -112,11 +112,12 @@ class OptimizerState:
     # "reason", "params" (the rejected point), "back_to" (the last good parameters)}
     rollbacks: list[dict] = field(default_factory=list)
     # flow.bias_correction: the point whose simulation measured the flow estimator's error
-    # (its z and frames; the error itself is saved beside the checkpoint), None before any
+    # (its z, frames and grid nodes; the error itself is saved beside the checkpoint), None before any
     calibrated_at: dict | None = None
     converged: bool = False  # Levenberg-Marquardt: no step from the best point promises progress
     # optimize.search.starts: the best search samples' z, each polished by a few Levenberg-Marquardt
-    # iterations in turn, and per polished start its best point {"z", "loss", "params"}
+    # iterations in turn, and per polished start its best point {"z", "loss", "params", "substeps"}
+    # and, with a coarser search grid, its "model_loss" on the main phase's grid
     starts: list[dict] = field(default_factory=list)
     polished: list[dict] = field(default_factory=list)
 
@@ -129,12 +130,14 @@ class UnstableRun(ClflowError):
 @dataclass
 class Evaluation:
     """The loss at one point: value, dloss/dz per parameter, simulated flows [H, W, 2] per
-    frame step, and the simulation (x [T+1, M, 3], F [T+1, M, 3, 3], substeps per frame)."""
+    frame step, the simulation (x [T+1, M, 3], F [T+1, M, 3, 3], substeps per frame) and the
+    grid it ran on (nodes along the domain's longest side)."""
 
     loss: float
     grads: dict[str, float]
     flows: list[torch.Tensor]
     trajectory: "Frames"  # noqa: F821  (clflow.mpm.autograd.Frames)
+    grid: int
     more_flows: tuple[list[torch.Tensor], ...] = ()  # the flows seen by views 1.. (several guidance views)
 
     @property
@@ -350,6 +353,13 @@ class Optimization:
         self.total_iterations = opt.estimate_velocity_iterations + opt.iterations + extra_start_iterations
         self.progress = progress or (lambda row: None)
         self.prepared = prepare(cfg)
+        # optimize.search.grid_resolution: the global phase's coarser grid over the same domain
+        self.model_grid = cfg.simulation.grid_resolution
+        self.search_grid = (opt.search.grid_resolution if opt.search else 0) or self.model_grid
+        self._prepared = {self.model_grid: self.prepared}
+        if self.search_grid != self.model_grid:
+            coarse = dataclasses.replace(cfg.simulation, grid_resolution=self.search_grid)
+            self._prepared[self.search_grid] = prepare(dataclasses.replace(cfg, simulation=coarse))
         self.frames = cfg.simulation.frames
         self.preflight()  # before the optical flow: refuse a run beyond the substep limit in seconds
         self.views = self._views()
@@ -504,16 +514,21 @@ class Optimization:
         with_grad: bool = True,
         min_substeps: int = 1,
         variables: tuple[str, ...] | None = None,
+        grid: int | None = None,
     ) -> Evaluation:
-        """Loss (and dloss/dz of ``variables``, default every z name) at z over ``frames`` frames."""
+        """Loss (and dloss/dz of ``variables``, default every z name) at z over ``frames``
+        frames, simulated on the grid of ``grid`` nodes (the model's or the search's; None:
+        the model's)."""
         variables = self.variables if variables is None else variables
+        grid = self.model_grid if grid is None else grid
+        prepared = self._prepared[grid]
         zt = {n: torch.tensor(v, dtype=torch.float64, requires_grad=with_grad and n in variables) for n, v in z.items()}
         decoded = {n: p.decode(zt[n]) for n, p in self.params.items()}
         params, density = material_values(self.cfg, {n: float(v.detach()) for n, v in decoded.items()})
         velocity = torch.stack([zt[n] for n in VELOCITY_COMPONENTS]) if VELOCITY_COMPONENTS[0] in zt else None
         sim = build_simulator(
             self.cfg,
-            self.prepared.setup,
+            prepared.setup,
             params,
             density,
             min_substeps=min_substeps,
@@ -530,7 +545,7 @@ class Optimization:
         if traj.unstable:  # finished, but not a run to learn from
             raise UnstableRun(traj.unstable)
         cameras = [v.camera for v in self.views]
-        flows, *more_flows = simulated_view_flows(self.prepared, traj.x, traj.F, frames, cameras)
+        flows, *more_flows = simulated_view_flows(prepared, traj.x, traj.F, frames, cameras)
         loss = self.loss_of([flows, *more_flows])
         if not bool(torch.isfinite(loss.detach())):
             raise FloatingPointError("the flow loss is not finite")
@@ -545,6 +560,7 @@ class Optimization:
             grads,
             [f.detach() for f in flows],
             traj,
+            grid,
             tuple([f.detach() for f in view] for view in more_flows),
         )
 
@@ -575,7 +591,7 @@ class Optimization:
         observed flow less that error, so the estimator's systematic error (DIS blends a
         moving object with its background, docs/flow.md) cancels instead of biasing the
         parameters."""
-        calibrated_at = {"z": dict(state.z), "frames": frames}
+        calibrated_at = {"z": dict(state.z), "frames": frames, "grid": result.grid}
         if state.calibrated_at == calibrated_at:  # back at the point measured last (a rejected step)
             return state
         errors = []
@@ -622,8 +638,9 @@ class Optimization:
             pass
         log.info("measuring the flow estimator's error again at the checkpoint's calibration point")
         z, frames = state.calibrated_at["z"], state.calibrated_at["frames"]
+        grid = state.calibrated_at.get("grid", self.model_grid)
         at = dataclasses.replace(state, z=dict(z), calibrated_at=None)  # measured there, whatever state.z is now
-        self.calibrate(at, self.evaluate(z, frames, with_grad=False, min_substeps=state.substeps), frames)
+        self.calibrate(at, self.evaluate(z, frames, with_grad=False, min_substeps=state.substeps, grid=grid), frames)
 
     @property
     def corrects_bias(self) -> bool:
@@ -756,14 +773,16 @@ class Optimization:
             nonlocal state
             start = time.perf_counter()
             try:
-                loss = self.self_consistent_loss(self.evaluate(z, frames, with_grad=False), frames)
+                loss = self.self_consistent_loss(
+                    self.evaluate(z, frames, with_grad=False, grid=self.search_grid), frames
+                )
             except (FloatingPointError, ClflowError) as exc:
                 log.info("search sample %s failed: %s", self.values(z), exc)
                 loss = None
             neighbourhood = {} if around is None else {"around": around}
             rows.append(
                 {"z": z, "params": self.values(z), "loss": loss, "frames": frames, **neighbourhood}
-                | {"seconds": time.perf_counter() - start}
+                | {"grid": self.search_grid, "seconds": time.perf_counter() - start}
             )
             state = dataclasses.replace(state, search=list(rows))
             self.save_state(state)
@@ -857,7 +876,9 @@ class Optimization:
         """The state after every start's polish (``records`` of :meth:`polish`, in start
         order, from ``begin``): their rows and rollbacks one after another, iterations
         numbered on; each start's best point in ``polished``; z at the best of them, with its
-        substeps and calibration, and Levenberg-Marquardt's memory reset."""
+        substeps and calibration, and Levenberg-Marquardt's memory reset. With a coarser
+        search grid the best is the one whose loss is least on the main phase's grid (each
+        against the estimator's error at its own point), where the result comes from."""
         history, rollbacks, polished, ends = list(begin.history), list(begin.rollbacks), [], []
         iteration = begin.iteration
         for record in records:
@@ -875,15 +896,26 @@ class Optimization:
                 }
             )
             ends.append(end)
-        index = min(range(len(polished)), key=lambda i: polished[i]["loss"])
+        ranking = "loss"
+        if self.search_grid != self.model_grid and len(polished) > 1:
+            ranking = "model_loss"
+            for record in polished:
+                try:
+                    result = self.evaluate(record["z"], self.frames, with_grad=False, min_substeps=record["substeps"])
+                    record["model_loss"] = self.self_consistent_loss(result, self.frames)
+                except (FloatingPointError, ClflowError) as exc:
+                    log.info("start %s fails on the main phase's grid: %s", record["params"], exc)
+                    record["model_loss"] = math.inf
+        index = min(range(len(polished)), key=lambda i: polished[i][ranking])
         kept = polished[index]
         log.info(
-            "kept start %d of %d: %s (loss %.4g; the others %s)",
+            "kept start %d of %d: %s (%s %.4g; the others %s)",
             index,
             len(polished),
             kept["params"],
-            kept["loss"],
-            ", ".join(f"{r['loss']:.4g}" for r in polished if r is not kept),
+            "loss on the main phase's grid" if ranking == "model_loss" else "loss",
+            kept[ranking],
+            ", ".join(f"{r[ranking]:.4g}" for r in polished if r is not kept),
         )
         state = dataclasses.replace(
             begin,
@@ -916,25 +948,28 @@ class Optimization:
         return torch.cat(parts)
 
     def jacobian(
-        self, z: dict[str, float], frames: int, min_substeps: int, variables: tuple[str, ...]
+        self, z: dict[str, float], frames: int, min_substeps: int, variables: tuple[str, ...], grid: int
     ) -> tuple[Evaluation, torch.Tensor]:
-        """The evaluation at z and the Jacobian [R, P] of its residuals with respect to
-        ``variables`` by backward differences of LM_STEP (softer neighbours need no more
-        substeps than z, so every run shares z's time step); the last two are cached."""
-        key = (tuple(sorted(z.items())), frames, variables, min_substeps)
+        """The evaluation at z on the grid of ``grid`` nodes and the Jacobian [R, P] of its
+        residuals with respect to ``variables`` by backward differences of LM_STEP (softer
+        neighbours need no more substeps than z, so every run shares z's time step); the last
+        two are cached."""
+        key = (tuple(sorted(z.items())), frames, variables, grid, min_substeps)
         if key in self._lm_cache:
             self._lm_cache[key] = self._lm_cache.pop(key)  # the most recent: kept by the next miss
             return self._lm_cache[key]
-        base = self.evaluate(z, frames, with_grad=False, min_substeps=min_substeps)
+        base = self.evaluate(z, frames, with_grad=False, min_substeps=min_substeps, grid=grid)
         r0 = self.residuals(base.flows, base.more_flows)
         columns = []
         for name in variables:
-            nearby = self.evaluate({**z, name: z[name] - LM_STEP}, frames, with_grad=False, min_substeps=base.substeps)
+            nearby = self.evaluate(
+                {**z, name: z[name] - LM_STEP}, frames, with_grad=False, min_substeps=base.substeps, grid=grid
+            )
             columns.append((r0 - self.residuals(nearby.flows, nearby.more_flows)) / LM_STEP)
         J = torch.stack(columns, 1)
         # kept under the substeps the run used: a revisit asks for those (a retried run restarts
         # from frame 0 at the raised count, so it equals a run asked for that count)
-        used = (*key[:3], base.substeps)
+        used = (*key[:4], base.substeps)
         self._lm_cache = {**dict(list(self._lm_cache.items())[-1:]), used: (base, J)}
         return base, J
 
@@ -1159,12 +1194,13 @@ class Optimization:
             frames, variables = opt.estimate_velocity_frames, VELOCITY_COMPONENTS
         else:
             frames, variables = horizon(self.cfg, iteration), self.main_variables
+        grid = self.model_grid if start is None else self.search_grid  # a start's polish: the global phase's
         began = time.perf_counter()
         try:
             if lm:
-                result, J = self.jacobian(state.z, frames, state.substeps, variables)
+                result, J = self.jacobian(state.z, frames, state.substeps, variables, grid)
             else:
-                result = self.evaluate(state.z, frames, min_substeps=state.substeps, variables=variables)
+                result = self.evaluate(state.z, frames, min_substeps=state.substeps, variables=variables, grid=grid)
         except (FloatingPointError, ClflowError) as exc:
             failures += 1
             # a start's polish goes back within its own rows only (else to its start point)
@@ -1209,6 +1245,7 @@ class Optimization:
             "z": dict(state.z),
             "params": self.values(state.z),
             "substeps": result.substeps,
+            "grid": grid,
             "seconds": time.perf_counter() - began,
         }
         previous = state
@@ -1282,7 +1319,7 @@ class Optimization:
         (:meth:`profile`, two forward runs): ``unresolved`` lists those whose loss is
         :func:`flat` over the range."""
         variables = self.main_variables
-        base, J = self.jacobian(z, self.frames, min_substeps, variables)
+        base, J = self.jacobian(z, self.frames, min_substeps, variables, self.model_grid)
         residuals, count = self.residuals(base.flows, base.more_flows), len(variables)
         dof = max(1, residuals.numel() - count)
         curvature = J.T @ J
@@ -1371,7 +1408,7 @@ class Optimization:
         out = self.cfg.output
         # the identifiability check below needs this evaluation as its Jacobian's base: run it once
         try:
-            result, _ = self.jacobian(state.z, self.frames, state.substeps, self.main_variables)
+            result, _ = self.jacobian(state.z, self.frames, state.substeps, self.main_variables, self.model_grid)
         except (FloatingPointError, ClflowError) as exc:
             if not state.history:
                 raise
@@ -1389,7 +1426,7 @@ class Optimization:
             )
             state.z = dict(good)
             self.save_state(state)
-            result, _ = self.jacobian(state.z, self.frames, state.substeps, self.main_variables)
+            result, _ = self.jacobian(state.z, self.frames, state.substeps, self.main_variables, self.model_grid)
         if self.corrects_bias:  # the results' loss against the estimator's error at the final parameters
             state.calibrated_at = self.calibrate(state, result, self.frames).calibrated_at
             self.save_state(state)

@@ -3,9 +3,10 @@
 The object's Gaussians are the first particles (their centres), followed by the particles
 that fill the inside (clflow.scene.filling). Grid: ``simulation.grid_resolution`` nodes
 along the longest side of the configured domain or, by default, of the object's box grown
-by 75% of its size (at least the wall cells + 1) on every side; the default domain also
-reaches down below the ground collider, with as many more nodes as that takes, and puts the
-ground GROUND_OFFSET cells above a node row.
+by 75% of its size (at least the wall cells + 1) on every side. Either puts a ground
+collider GROUND_OFFSET cells above a node row: the default domain reaches down below it,
+with as many more nodes as that takes; a configured domain keeps its size and moves down by
+less than one cell (so a grid of any resolution over it meets the ground alike).
 
 Why the ground's place among the node rows matters: the boundary condition acts on the
 nodes behind the plane, so how strongly the object's bottom layer couples to them depends on
@@ -33,7 +34,7 @@ from clflow.scene.config import SceneConfig
 from clflow.scene.filling import ObjectParticles, fill_object
 from clflow.splat.gaussians import Gaussians
 
-GROUND_OFFSET = 0.75  # cells between the ground plane and the node row below it (default domains)
+GROUND_OFFSET = 0.75  # cells between the ground plane and the node row below it
 
 
 @dataclass
@@ -66,14 +67,21 @@ def simulation_grid(cfg: SceneConfig, lower: torch.Tensor, upper: torch.Tensor):
         dx = max(2.5 * size / (res - 1), size / inner)
         pad = max(0.75 * size, (WALL_CELLS + 1) * dx)
         lo, hi = lower - pad, upper + pad
-        # a ground collider (normal +y) must lie inside the domain, above the wall cells, and
-        # GROUND_OFFSET cells above a node row
-        grounds = [c.point[1] for c in cfg.colliders if c.normal[0] == c.normal[2] == 0.0 and c.normal[1] > 0]
-        if grounds:
-            ground = min(grounds)
-            rows = max(WALL_CELLS + 1, math.ceil((ground - float(lo[1])) / dx - GROUND_OFFSET))
-            lo[1] = ground - (rows + GROUND_OFFSET) * dx
-    resolution = tuple(int(math.ceil(float(e) / dx)) + 1 for e in (hi - lo))
+    # a ground collider (normal +y) lies GROUND_OFFSET cells above a node row: the default
+    # domain reaches down to that row (at least the wall cells + 1 below the ground); a
+    # configured one keeps its size and is moved down by less than a cell
+    grounds = [c.point[1] for c in cfg.colliders if c.normal[0] == c.normal[2] == 0.0 and c.normal[1] > 0]
+    if grounds:
+        ground = min(grounds)
+        rows = math.ceil((ground - float(lo[1])) / dx - GROUND_OFFSET - 1e-6)
+        below = ground - (rows + GROUND_OFFSET) * dx
+        if sim.domain_lower is not None:
+            hi[1] -= float(lo[1]) - below
+        else:
+            rows = max(WALL_CELLS + 1, rows)
+            below = ground - (rows + GROUND_OFFSET) * dx
+        lo[1] = below
+    resolution = tuple(int(math.ceil(float(e) / dx - 1e-9)) + 1 for e in (hi - lo))
     return Grid(resolution, dx, tuple(float(v) for v in lo))
 
 

@@ -306,6 +306,9 @@ class SearchSettings:
     starts: int = 1  # the best samples the local phase polishes (levenberg_marquardt) before keeping the best
     start_iterations: int = 3  # Levenberg-Marquardt iterations per start before they are compared
     refine: int = 0  # second-round samples, shared among the neighbourhoods of the best distinct samples
+    # nodes along the domain's longest side for the search and the starts' polish (0: the
+    # simulation's): a coarser grid makes the global phase cheap, the main phase keeps the finer one
+    grid_resolution: int = 0
 
 
 @dataclass(frozen=True)
@@ -729,7 +732,9 @@ def _optimize(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> O
     search = SearchSettings() if hypotheses else None  # hypotheses are told apart by the search
     if body.get("search") is not None:
         found = r.section(
-            body["search"], f"{p}.search", ("samples", "decades", "frames", "starts", "start_iterations", "refine")
+            body["search"],
+            f"{p}.search",
+            ("samples", "decades", "frames", "starts", "start_iterations", "refine", "grid_resolution"),
         )
         search = SearchSettings(
             samples=r.integer(found, "samples", f"{p}.search", 32, low=1),
@@ -738,7 +743,12 @@ def _optimize(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> O
             starts=r.integer(found, "starts", f"{p}.search", 1, low=1),
             start_iterations=r.integer(found, "start_iterations", f"{p}.search", 3, low=1),
             refine=r.integer(found, "refine", f"{p}.search", 0),
+            grid_resolution=r.integer(found, "grid_resolution", f"{p}.search", 0),
         )
+        if 0 < search.grid_resolution < 11:  # as simulation.grid_resolution: walls take 4 cells a side
+            raise r.fail(
+                f"{p}.search.grid_resolution", f"must be 0 (the simulation's) or >= 11, got {search.grid_resolution}"
+            )
         if search.starts > search.samples:
             raise r.fail(
                 f"{p}.search.starts", f"must not exceed search.samples ({search.samples}), got {search.starts}"
@@ -903,6 +913,12 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
             "optimize.search.starts",
             "several starts are polished by levenberg_marquardt: set "
             "optimize.method: levenberg_marquardt, or starts: 1",
+        )
+    if optimize.search is not None and optimize.search.grid_resolution > simulation.grid_resolution:
+        raise r.fail(
+            "optimize.search.grid_resolution",
+            f"must not exceed simulation.grid_resolution ({simulation.grid_resolution}): the search's "
+            f"grid is the coarse one, got {optimize.search.grid_resolution}",
         )
     if optimize.method == "levenberg_marquardt" and flow.loss != "l2":
         raise r.fail(

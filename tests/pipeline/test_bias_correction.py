@@ -31,7 +31,7 @@ def test_calibrated_at_the_parameters_that_made_the_video_the_residual_vanishes(
     # the search's score of a sample: against the video's flow less the error at that sample
     assert float(opt.loss_of([at_truth.flows], opt.estimator_errors(at_truth, opt.frames))) < 1e-3 * raw
     calibrated = opt.calibrate(state, at_truth, opt.frames)
-    assert calibrated.calibrated_at == {"z": state.z, "frames": opt.frames}
+    assert calibrated.calibrated_at == {"z": state.z, "frames": opt.frames, "grid": opt.model_grid}
     assert opt.rescored(at_truth).loss < 1e-3 * raw  # the estimator's error cancels
     error = opt.views[0].estimator_error
     assert error.shape == opt.observed.shape and float(error.abs().max()) > 0.05

@@ -30,12 +30,12 @@ def lm(demo_config, monkeypatch):
         field = torch.randn(opt.observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
         calls = []
 
-        def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None):
+        def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
             calls.append(dict(z))
             shift = math.tanh(curvature * (z["youngs_modulus"] - Z_TRUE)) / curvature
             flows = [opt.observed[t] + shift * field[t] for t in range(frames)]
             loss = float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.weight[:frames]))
-            return Evaluation(loss, {}, flows, SimpleNamespace(substeps=1))
+            return Evaluation(loss, {}, flows, SimpleNamespace(substeps=1), grid or opt.model_grid)
 
         monkeypatch.setattr(opt, "evaluate", evaluate)
         return opt, calls
@@ -64,7 +64,7 @@ def test_an_uphill_step_is_rejected_and_the_damping_grows(lm, monkeypatch):
     opt, _ = lm(iterations=2, curvature=1.0)
     state = opt.initial_state()
     variables = ("youngs_modulus",)
-    base, J = opt.jacobian(state.z, opt.frames, 1, variables)
+    base, J = opt.jacobian(state.z, opt.frames, 1, variables, opt.model_grid)
     stepped = opt.lm_step(state, base, J, opt.frames, variables)
     assert stepped.best["z"] == state.z and stepped.damping == pytest.approx(LM_DAMPING)
     uphill = dataclasses.replace(base, loss=2 * base.loss)  # as if the new point were worse
@@ -79,7 +79,7 @@ def test_a_rejection_quarters_the_trust_region_and_a_new_best_point_doubles_it(l
     opt, _ = lm(iterations=4)
     variables = ("youngs_modulus",)
     state = opt.initial_state()
-    base, J = opt.jacobian(state.z, opt.frames, 1, variables)
+    base, J = opt.jacobian(state.z, opt.frames, 1, variables, opt.model_grid)
     stepped = opt.lm_step(state, base, J, opt.frames, variables)
     first = abs(stepped.z["youngs_modulus"] - state.z["youngs_modulus"])
     assert stepped.step_scale == 1.0 and first == pytest.approx(1.0)  # the full LM_MAX_STEP
@@ -87,7 +87,7 @@ def test_a_rejection_quarters_the_trust_region_and_a_new_best_point_doubles_it(l
     assert rejected.step_scale == 0.25 and rejected.z == state.z
     again = opt.lm_step(rejected, base, J, opt.frames, variables)  # back at the best point
     assert again.step_scale == 0.25 and abs(again.z["youngs_modulus"] - state.z["youngs_modulus"]) <= 0.25 + 1e-12
-    trial, J_trial = opt.jacobian(again.z, opt.frames, 1, variables)
+    trial, J_trial = opt.jacobian(again.z, opt.frames, 1, variables, opt.model_grid)
     accepted = opt.lm_step(again, trial, J_trial, opt.frames, variables)
     assert accepted.best["z"] == again.z and accepted.step_scale == 0.5
 
@@ -113,7 +113,7 @@ def test_a_small_trust_region_does_not_stop_the_run_by_progress(lm):
     opt, _ = lm(iterations=4)
     variables = ("youngs_modulus",)
     state = opt.initial_state()
-    base, J = opt.jacobian(state.z, opt.frames, 1, variables)
+    base, J = opt.jacobian(state.z, opt.frames, 1, variables, opt.model_grid)
     tiny = opt.lm_step(dataclasses.replace(state, step_scale=1 / 1024), base, J, opt.frames, variables)
     assert not tiny.converged
     assert abs(tiny.z["youngs_modulus"] - state.z["youngs_modulus"]) == pytest.approx(1 / 1024)
@@ -132,7 +132,7 @@ def test_back_at_the_best_point_a_changed_loss_is_taken_not_rejected(lm):
     opt, _ = lm(iterations=2)
     state = opt.initial_state()
     variables = ("youngs_modulus",)
-    base, J = opt.jacobian(state.z, opt.frames, 1, variables)
+    base, J = opt.jacobian(state.z, opt.frames, 1, variables, opt.model_grid)
     stepped = opt.lm_step(state, base, J, opt.frames, variables)
     back = dataclasses.replace(stepped, z=dict(stepped.best["z"]))
     higher = dataclasses.replace(base, loss=base.loss * 1.001)
@@ -153,10 +153,10 @@ def test_a_step_downhill_only_against_the_old_calibration_is_rejected(lm, monkey
     monkeypatch.setattr(opt, "estimator_errors", lambda result, frames: [scale["now"] * field[:frames]])
     variables = ("youngs_modulus",)
     state = opt.initial_state()
-    base, J = opt.jacobian(state.z, opt.frames, 1, variables)
+    base, J = opt.jacobian(state.z, opt.frames, 1, variables, opt.model_grid)
     stepped = opt.lm_step(state, base, J, opt.frames, variables, calibrate=True)
     assert stepped.calibrated_at["z"] == state.z and stepped.z != state.z
-    trial, J_trial = opt.jacobian(stepped.z, opt.frames, 1, variables)
+    trial, J_trial = opt.jacobian(stepped.z, opt.frames, 1, variables, opt.model_grid)
     assert trial.loss < stepped.best["loss"]  # downhill against the best point's calibration
     scale["now"] = error_at_trial
     after = opt.lm_step(stepped, trial, J_trial, opt.frames, variables, calibrate=True)
@@ -166,7 +166,7 @@ def test_a_step_downhill_only_against_the_old_calibration_is_rejected(lm, monkey
         assert after.z == state.z and after.best == stepped.best and after.damping == pytest.approx(4 * stepped.damping)
         assert after.calibrated_at == stepped.calibrated_at
         assert float(opt.views[0].estimator_error.abs().max()) == 0.0  # the best point's error is back
-        again = opt.jacobian(after.z, opt.frames, 1, variables)[0]
+        again = opt.jacobian(after.z, opt.frames, 1, variables, opt.model_grid)[0]
         assert again.loss == pytest.approx(stepped.best["loss"], rel=1e-12)
 
 
@@ -177,7 +177,7 @@ def test_a_rejected_trial_leaves_the_best_points_time_step_and_the_result_is_the
     fake = opt.evaluate
     trial = {}
 
-    def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None):
+    def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
         ev = fake(z, frames, with_grad, min_substeps, variables)
         if z == trial.get("z"):
             return dataclasses.replace(ev, loss=10 * ev.loss + 1, trajectory=SimpleNamespace(substeps=7))
@@ -231,7 +231,7 @@ def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypat
     field_e, field_nu = (torch.randn(opt.observed.shape, generator=g, dtype=torch.float64) for _ in range(2))
     noise = 0.01 * torch.randn(opt.observed.shape, generator=g, dtype=torch.float64)
 
-    def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None):
+    def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
         e, nu = z["youngs_modulus"] - Z_TRUE, z["poissons_ratio"]
         shift = {
             "independent": e * field_e + nu * field_nu,
@@ -245,6 +245,7 @@ def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypat
             {},
             flows,
             SimpleNamespace(substeps=1),
+            grid or opt.model_grid,
         )
 
     monkeypatch.setattr(opt, "evaluate", evaluate)
@@ -277,13 +278,15 @@ def test_a_rejected_step_goes_back_to_the_best_point_without_new_runs(lm):
     opt, calls = lm(iterations=2)
     variables = ("youngs_modulus",)
     best_z, trial_z = {"youngs_modulus": Z_TRUE - 1.0}, {"youngs_modulus": Z_TRUE - 0.5}
-    opt.jacobian(best_z, opt.frames, 1, variables)
-    opt.jacobian(trial_z, opt.frames, 1, variables)
+    opt.jacobian(best_z, opt.frames, 1, variables, opt.model_grid)
+    opt.jacobian(trial_z, opt.frames, 1, variables, opt.model_grid)
     runs = len(calls)
-    opt.jacobian(best_z, opt.frames, 1, variables)  # back after a rejection
-    opt.jacobian({"youngs_modulus": Z_TRUE - 0.7}, opt.frames, 1, variables)  # a shorter step, rejected too
+    opt.jacobian(best_z, opt.frames, 1, variables, opt.model_grid)  # back after a rejection
+    opt.jacobian(
+        {"youngs_modulus": Z_TRUE - 0.7}, opt.frames, 1, variables, opt.model_grid
+    )  # a shorter step, rejected too
     assert len(calls) == runs + 2
-    opt.jacobian(best_z, opt.frames, 1, variables)
+    opt.jacobian(best_z, opt.frames, 1, variables, opt.model_grid)
     assert len(calls) == runs + 2
 
 
@@ -298,25 +301,29 @@ def test_it_stops_when_the_model_promises_no_progress(lm):
 Z_FALSE = Z_TRUE - 1.2  # a local minimum whose residual stays 0.5 x the field
 
 
-@pytest.mark.parametrize("starts", [1, 2])
-def test_several_starts_are_polished_and_the_best_is_kept(demo_config, monkeypatch, starts):
+def with_starts(cfg, starts: int, **search):
+    """``cfg`` optimised by Levenberg-Marquardt after a 3-sample search polishing ``starts``
+    starts for 3 iterations each (``search``: more SearchSettings), without bias correction."""
     from clflow.scene.config import SearchSettings
 
-    cfg = demo_config(iterations=6)
-    cfg = dataclasses.replace(
+    return dataclasses.replace(
         cfg,
         flow=dataclasses.replace(cfg.flow, bias_correction="none"),
         optimize=dataclasses.replace(
             cfg.optimize,
             method="levenberg_marquardt",
             horizon_start=0,
-            search=SearchSettings(samples=3, starts=starts, start_iterations=3),
+            search=SearchSettings(samples=3, starts=starts, start_iterations=3, **search),
         ),
     )
-    opt = Optimization(cfg)
+
+
+@pytest.mark.parametrize("starts", [1, 2])
+def test_several_starts_are_polished_and_the_best_is_kept(demo_config, monkeypatch, starts):
+    opt = Optimization(with_starts(demo_config(iterations=6), starts))
     field = torch.randn(opt.observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
 
-    def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None):
+    def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
         e = z["youngs_modulus"]  # two basins: the true one (residual 0) and a false one (0.5)
         shift = min(math.sqrt((e - Z_TRUE) ** 2 + 1e-8), math.sqrt((e - Z_FALSE) ** 2 + 1e-8) + 0.5)
         flows = [opt.observed[t] + shift * field[t] for t in range(frames)]
@@ -325,6 +332,7 @@ def test_several_starts_are_polished_and_the_best_is_kept(demo_config, monkeypat
             {},
             flows,
             SimpleNamespace(substeps=1),
+            grid or opt.model_grid,
         )
 
     monkeypatch.setattr(opt, "evaluate", evaluate)
@@ -346,6 +354,46 @@ def test_several_starts_are_polished_and_the_best_is_kept(demo_config, monkeypat
         assert len(state.polished) == 2 and state.polished[1]["loss"] < state.polished[0]["loss"]
         assert {r.get("start") for r in state.history} == {0, 1, None}
         assert abs(state.z["youngs_modulus"] - Z_TRUE) < 0.05  # (the kinked model: FD steps of 0.01)
+
+
+def test_a_coarse_search_grid_runs_the_global_phase_and_the_main_grid_picks_the_start(demo_config, monkeypatch):
+    """optimize.search.grid_resolution: the search and the starts' polish run on the coarse
+    grid, the main phase on the simulation's; the start kept is the one whose loss is least
+    on the main grid, though another is deeper on the coarse one (a coarse model's bias)."""
+    cfg = demo_config(iterations=6)
+    fine = cfg.simulation.grid_resolution
+    coarse = fine - 3
+    opt = Optimization(with_starts(cfg, 2, grid_resolution=coarse))
+    assert (opt.search_grid, opt.model_grid) == (coarse, fine)
+    assert opt._prepared[coarse].setup.grid.dx > opt._prepared[fine].setup.grid.dx
+    field = torch.randn(opt.observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    grids = []
+
+    def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
+        grid = grid or opt.model_grid
+        grids.append(grid)
+        e = z["youngs_modulus"]  # two basins: on the coarse grid the false one is the deeper
+        to_true, to_false = math.sqrt((e - Z_TRUE) ** 2 + 1e-8), math.sqrt((e - Z_FALSE) ** 2 + 1e-8)
+        shift = min(to_true + 0.02, to_false) if grid == coarse else min(to_true, to_false + 0.5)
+        flows = [opt.observed[t] + shift * field[t] for t in range(frames)]
+        loss = float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.weight[:frames]))
+        return Evaluation(loss, {}, flows, SimpleNamespace(substeps=1), grid)
+
+    monkeypatch.setattr(opt, "evaluate", evaluate)
+    monkeypatch.setattr(
+        opt,
+        "search_points",
+        lambda z0: [dict(z0), {"youngs_modulus": Z_FALSE + 0.05}, {"youngs_modulus": Z_TRUE + 0.05}],
+    )
+    state = opt.run()
+    assert {r["grid"] for r in state.search} == {coarse}
+    assert {r["grid"] for r in state.history if "start" in r} == {coarse}
+    assert {r["grid"] for r in state.history if "start" not in r} == {fine}
+    first_main = next(i for i, r in enumerate(state.history) if "start" not in r)
+    assert set(grids[: grids.index(fine)]) == {coarse} and first_main > 0
+    false, true = state.polished  # the search ranks the false basin's sample first
+    assert false["loss"] < true["loss"] and true["model_loss"] < false["model_loss"]
+    assert abs(state.z["youngs_modulus"] - Z_TRUE) < 0.05
 
 
 def test_a_variable_on_its_box_edge_is_held_and_the_rest_solved_again(lm, monkeypatch):

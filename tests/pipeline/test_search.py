@@ -32,11 +32,11 @@ def searching(demo_config, monkeypatch):
         opt = Optimization(cfg)
         calls = []
 
-        def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None):
+        def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
             calls.append(dict(z))
             value = loss(z["youngs_modulus"])
             grads = {"youngs_modulus": 0.0} if with_grad else {}
-            return Evaluation(value, grads, [], SimpleNamespace(substeps=1))
+            return Evaluation(value, grads, [], SimpleNamespace(substeps=1), grid or opt.model_grid)
 
         monkeypatch.setattr(opt, "evaluate", evaluate)
         monkeypatch.setattr(opt, "write_results", lambda state: None)
@@ -155,7 +155,7 @@ def test_a_search_interrupted_in_its_second_round_resumes_the_same(searching):
 def test_failed_samples_are_skipped_and_none_running_is_an_error(searching, monkeypatch):
     opt, _ = searching(samples=6)
 
-    def failing(z, frames, with_grad=True, min_substeps=1, variables=None):
+    def failing(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
         raise FloatingPointError("the flow loss is not finite")
 
     monkeypatch.setattr(opt, "evaluate", failing)
@@ -190,13 +190,27 @@ def test_a_bad_parameter_box_is_refused(tmp_path, bounds, message):
         parse_config(data, "scene.yaml", tmp_path)
 
 
+@pytest.mark.parametrize(
+    "grid, message",
+    [(40, r"must not exceed simulation.grid_resolution \(32\)"), (8, r"must be 0 \(the simulation's\) or >= 11")],
+)
+def test_a_search_grid_finer_than_the_simulations_or_too_small_is_refused(tmp_path, grid, message):
+    (tmp_path / "scene.ply").write_bytes(b"ply\n")
+    data = config_with({"search": {"samples": 8, "grid_resolution": grid}})
+    with pytest.raises(InputError, match=f"optimize.search.grid_resolution: {message}"):
+        parse_config(data, "scene.yaml", tmp_path)
+
+
 def test_search_settings_are_read(tmp_path):
     (tmp_path / "scene.ply").write_bytes(b"ply\n")
     data = config_with(
-        {"search": {"samples": 8, "decades": 1.5, "refine": 4}, "bounds": {"youngs_modulus": [1e3, 1e7]}}
+        {
+            "search": {"samples": 8, "decades": 1.5, "refine": 4, "grid_resolution": 24},
+            "bounds": {"youngs_modulus": [1e3, 1e7]},
+        }
     )
     opt = parse_config(data, "scene.yaml", tmp_path).optimize
-    assert opt.search == SearchSettings(samples=8, decades=1.5, frames=0, refine=4)
+    assert opt.search == SearchSettings(samples=8, decades=1.5, frames=0, refine=4, grid_resolution=24)
     assert opt.bounds == {"youngs_modulus": (1e3, 1e7)}
 
 

@@ -68,3 +68,25 @@ def test_the_default_domain_puts_the_ground_a_fixed_fraction_of_a_cell_above_a_n
     grid = prepare(load_config(config)).setup.grid
     cells = (0.0 - grid.origin[1]) / grid.dx  # the ground is at y = 0
     assert cells % 1 == pytest.approx(GROUND_OFFSET) and cells > WALL_CELLS + 1
+
+
+@pytest.mark.parametrize("nodes", [16, 23, 37])
+def test_a_configured_domain_meets_the_ground_alike_at_every_resolution(tmp_path, nodes):
+    """A configured domain keeps its size and moves down by less than one cell, so that the
+    ground lies GROUND_OFFSET cells above a node row on any grid over it (a search grid
+    coarser than the main phase's meets the ground as that one does)."""
+    import dataclasses
+
+    from clflow.pipeline.simulation import GROUND_OFFSET
+
+    config = make_case(tmp_path, SyntheticCase(shape="sphere", lift=0.05, spread=0.75), TINY)
+    cfg = load_config(config)
+    cfg = dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, grid_resolution=nodes))
+    grid = prepare(cfg).setup.grid
+    lower, upper = cfg.simulation.domain_lower, cfg.simulation.domain_upper
+    cells = (0.0 - grid.origin[1]) / grid.dx
+    assert cells % 1 == pytest.approx(GROUND_OFFSET)
+    assert grid.dx == pytest.approx(max(u - lo for lo, u in zip(lower, upper)) / (nodes - 1))
+    assert lower[1] - grid.dx < grid.origin[1] <= lower[1] + 1e-12  # moved down by under a cell
+    assert grid.origin[0::2] == pytest.approx(lower[0::2])  # only vertically
+    assert max(grid.resolution) == nodes

@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 import yaml
 from click.testing import CliRunner
 
@@ -30,15 +31,14 @@ def test_the_guidance_is_not_the_optimisers_own_forward(tmp_path):
     (tlo, thi), (olo, ohi) = (
         (c["simulation"]["domain"]["min"], c["simulation"]["domain"]["max"]) for c in (truth, opt)
     )
-    assert tlo[0::2] == olo[0::2] and thi[0::2] == ohi[0::2]  # the same space, half the spacing,
-    assert thi[1] - tlo[1] == pytest.approx(ohi[1] - olo[1])  # shifted up a fraction of a fine cell so that
-    from clflow.pipeline.simulation import GROUND_OFFSET  # the ground meets either grid the same way:
+    assert tlo == olo and thi == ohi  # the same space at half the spacing, where the ground meets either grid alike
+    from clflow.pipeline.forward import prepare
+    from clflow.pipeline.simulation import GROUND_OFFSET
+    from clflow.scene.config import load_config
 
-    for lo, hi, nodes in (
-        (tlo, thi, truth["simulation"]["grid_resolution"]),
-        (olo, ohi, opt["simulation"]["grid_resolution"]),
-    ):
-        cells = -lo[1] / (max(h - low for low, h in zip(lo, hi)) / (nodes - 1))  # ground height in cells
+    for name in ("config_truth.yaml", "config.yaml"):
+        grid = prepare(load_config(tmp_path / name)).setup.grid
+        cells = -grid.origin[1] / grid.dx  # the ground (y = 0) in cells above the lowest node row
         assert cells % 1 == pytest.approx(GROUND_OFFSET) and cells > 4
     assert truth["camera"]["width"] == 2 * opt["camera"]["width"] == 2 * TINY.image
     record = json.loads((tmp_path / "case.json").read_text())
@@ -246,3 +246,21 @@ def test_the_table_says_what_the_check_found_of_each_parameter():
     assert sysid._caveat("viscosity", record) == " (loss flat from 0.188 to 18.8)"
     assert sysid._caveat("bulk_modulus", record) == " (weakly constrained)"
     assert sysid._caveat("shear_modulus", record) == ""
+
+
+def test_the_benchmark_searches_on_the_base_grid_and_refines_on_a_finer_one(tmp_path):
+    case = dataclasses.replace(sysid.CASES["torus"])
+    config = make_case(tmp_path, case, dataclasses.replace(TINY, main_grid_scale=1.5), truth_scale=2)
+    truth, opt = (yaml.safe_load((tmp_path / name).read_text()) for name in ("config_truth.yaml", "config.yaml"))
+    base = (truth["simulation"]["grid_resolution"] - 1) // 2 + 1
+    assert opt["optimize"]["search"]["grid_resolution"] == base
+    assert opt["simulation"]["grid_resolution"] == round((base - 1) * 1.5) + 1 < truth["simulation"]["grid_resolution"]
+    from clflow.pipeline.optimize import Optimization
+    from clflow.scene.config import load_config
+
+    optimization = Optimization(load_config(config))
+    (coarse, fine) = (optimization._prepared[n].setup for n in (base, opt["simulation"]["grid_resolution"]))
+    assert coarse.grid.dx == pytest.approx(1.5 * fine.grid.dx, rel=0.05)
+    assert coarse.particles.positions.shape[0] < fine.particles.positions.shape[0]  # each grid its own fill
+    n = optimization.prepared.obj_rest.means.shape[0]  # the Gaussians come first in either: one render
+    assert torch.equal(coarse.particles.positions[:n], fine.particles.positions[:n])
