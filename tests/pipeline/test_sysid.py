@@ -190,20 +190,22 @@ def test_a_changed_case_definition_is_made_and_run_again(tmp_path, tiny_cases, m
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "name, held, unsure",
-    [("torus", ("youngs_modulus",), ("poissons_ratio",)), ("playdoh", ("youngs_modulus", "poissons_ratio", "yield_stress"), ())],
+    "name, held, bound, unsure",
+    [("torus", ("youngs_modulus",), 0.3, ("poissons_ratio",)),
+     ("playdoh", ("youngs_modulus", "poissons_ratio", "yield_stress"), 0.3, ()),
+     ("droplet", ("viscosity", "bulk_modulus"), 0.15, ())],
 )  # fmt: skip
-def test_a_quick_case_reaches_the_loss_of_the_ground_truth(tmp_path, name, held, unsure):
+def test_a_quick_case_reaches_the_loss_of_the_ground_truth(tmp_path, name, held, bound, unsure):
     """End to end on an honest case (`clflow eval sysid --quick --case NAME`, guidance from a
-    2x finer simulation and rendering): from the published guess, 1-1.3 decades off, the
-    search, its three polished starts and the local phase reach a loss no higher than the
-    ground truth's own at this resolution (each against the flow estimator's error at its own
-    parameters), a flow error near the truth's, and a mean RE <= 0.3 over the ``held``
-    parameters (issue 12; measured playdoh 0.187, the torus' E 0.005: docs/benchmarks.md).
-    The quick torus' own loss minimum lies at nu ~ 0.12 (its 3-cell-thick tube's model
-    error: the loss at the truth's nu 0.3 is 4.6x the minimum's), so its nu is held only to
-    being reported as weakly constrained (``unsure``). The quick droplet, 0.440, reaches
-    neither."""
+    2x finer simulation and rendering): from the published guess, 1-2 decades off, the
+    search and its three polished starts on the base grid and the main phase on one 1.5x
+    finer reach a loss no higher than the ground truth's own on that grid (each against the
+    flow estimator's error at its own parameters), a flow error near the truth's, and a
+    mean RE <= ``bound`` over the ``held`` parameters: issue 12's 0.3, issue 13's 0.15 for
+    the droplet (measured 2026-11-24 at 0d53a4d: the torus' E 0.077, playdoh 0.170, the
+    droplet 0.111; docs/benchmarks.md). The quick torus' loss hardly changes from nu 0.21
+    to the truth's 0.3 (0.00180 against 0.00183), so its nu is held only to being reported
+    as weakly constrained (``unsure``)."""
     result = CliRunner().invoke(cli, ["eval", "sysid", "--quick", "--case", name, "-o", str(tmp_path / "out")])
     assert result.exit_code == 0, result.output
     record = json.loads((tmp_path / "out" / "sysid.json").read_text())["cases"][name]
@@ -211,7 +213,7 @@ def test_a_quick_case_reaches_the_loss_of_the_ground_truth(tmp_path, name, held,
     history = json.loads((tmp_path / "out" / "cases" / name / "results" / "history.json").read_text())
     assert record["final_loss"] <= 1.02 * record["truth_loss"] < history[0]["loss"]
     assert record["epe_px"] <= 1.05 * record["floor_epe_px"]
-    assert sum(record["parameters"][n]["re"] for n in held) / len(held) <= 0.3, record["parameters"]
+    assert sum(record["parameters"][n]["re"] for n in held) / len(held) <= bound, record["parameters"]
     assert set(unsure) <= set(record["identifiability"]["weakly_constrained"])
 
 
