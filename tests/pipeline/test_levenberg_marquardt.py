@@ -92,6 +92,22 @@ def test_a_rejection_quarters_the_trust_region_and_a_new_best_point_doubles_it(l
     assert accepted.best["z"] == again.z and accepted.step_scale == 0.5
 
 
+def test_a_rejected_short_step_is_not_tried_again(lm):
+    """The radius after a rejection is a quarter of the rejected step, not of a radius it lay
+    far inside: the next step from the best point is shorter (the full trophy retried one
+    0.06 degree step three times, each a 12 s run, as the radius shrank from 1 towards it)."""
+    opt, _ = lm(iterations=4)
+    variables = ("youngs_modulus",)
+    state = opt.initial_state()
+    base, J = opt.jacobian(state.z, opt.frames, 1, variables, opt.model_grid)
+    best = opt.lm_step(state, base, J, opt.frames, variables)
+    short = dataclasses.replace(best, z={"youngs_modulus": state.z["youngs_modulus"] + 0.05})  # inside radius 1
+    rejected = opt.lm_step(short, dataclasses.replace(base, loss=2 * base.loss), J, opt.frames, variables)
+    assert rejected.z == state.z and rejected.step_scale == pytest.approx(0.05 / 4)
+    again = opt.lm_step(rejected, base, J, opt.frames, variables)
+    assert abs(again.z["youngs_modulus"] - state.z["youngs_modulus"]) <= 0.05 / 4 + 1e-12
+
+
 def test_the_trust_region_cuts_the_poorly_determined_component_first(lm):
     """A stiff direction (curvature 1) and one the loss barely sees (1e-4): the Gauss-Newton
     step (0.1, 10) is ten times the radius of 1. Cut to the radius, the step keeps the stiff
