@@ -37,8 +37,8 @@ SHAPES = ("cube", "sphere", "torus")
 # bumped whenever make_case makes a case differently from the same SyntheticCase, so that
 # results made before are not taken for results of the new cases (2: the ground GROUND_OFFSET
 # cells above a node row at both the optimiser's and the truth's spacing; 3: exactly so, placed
-# by clflow.pipeline.simulation for any grid over a configured domain)
-GENERATOR_VERSION = 3
+# by clflow.pipeline.simulation for any grid over a configured domain; 4: Resolution.flip)
+GENERATOR_VERSION = 4
 
 
 @dataclass(frozen=True)
@@ -47,7 +47,9 @@ class Resolution:
     6 x object_detail^2), ``floor_side`` floor Gaussians per side, image side (px), grid
     nodes along the domain's longest side, frames, optimisation iterations;
     ``main_grid_scale``: the optimiser's main phase runs on a grid this many times finer
-    than ``grid``, on which its global phase runs (optimize.search.grid_resolution)."""
+    than ``grid``, on which its global phase runs (optimize.search.grid_resolution);
+    ``flip``: the PIC/FLIP blend of the truth's and the optimiser's simulations
+    (simulation.flip; 0 is APIC, whose damping grows with the substep count)."""
 
     object_detail: int = 14
     floor_side: int = 40
@@ -56,6 +58,7 @@ class Resolution:
     frames: int = 12
     iterations: int = 20
     main_grid_scale: float = 1.0
+    flip: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -301,6 +304,8 @@ def case_config(
             box["min"], box["max"] = _rounded(np.add(box["min"], c)), _rounded(np.add(box["max"], c))
         forces.append(stage)
     simulation = {"grid_resolution": (resolution.grid - 1) * scale + 1, "fps": 24, "frames": resolution.frames}
+    if resolution.flip:
+        simulation["flip"] = resolution.flip
     if case.spread is not None:
         lower, upper, nodes = case_domain(case, resolution, scale)
         simulation.update(grid_resolution=nodes, domain={"min": lower, "max": upper})

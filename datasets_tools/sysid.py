@@ -11,7 +11,9 @@ optimiser runs (``truth_scale``: the grid and image refined 2x, its own particle
 substep, area-downsampled frames; optional noise and video compression), so the optimiser
 cannot reproduce it exactly. The optimiser searches on the base grid and runs its main phase
 on one ``Resolution.main_grid_scale`` (1.5) times finer, still 1.33x coarser than the
-truth's. ``floor_epe_px`` in a result is the flow error of the ground truth parameters at
+truth's. Both the truth and the optimiser blend FLIP into APIC's transfer
+(``Resolution.flip`` 0.99) so that neither one's damping depends on its substep count.
+``floor_epe_px`` in a result is the flow error of the ground truth parameters at
 the optimised resolution: the model error no optimiser can remove.
 
     results = evaluate(["torus"], Path("out"), QUICK, Settings())   # writes out/sysid.json, .md
@@ -100,9 +102,16 @@ QUICK_CASES = ("torus", "playdoh", "droplet")  # elastic, plasticine, Newtonian:
 # PAC-NeRF's 14 frames at 24 fps; Levenberg-Marquardt iterations (each 1 + parameters forward
 # runs) after the search (16: on the 1.5x main grid the cat's 9 main iterations of 12 were
 # still climbing from its coarse start, loss 0.0079 against the truth's 0.0038); QUICK is
-# small enough for CI.
-FULL = Resolution(object_detail=12, floor_side=32, image=160, grid=24, frames=14, iterations=16, main_grid_scale=1.5)
-QUICK = Resolution(object_detail=8, floor_side=20, image=96, grid=24, frames=10, iterations=8, main_grid_scale=1.5)
+# small enough for CI. flip 0.99 for truth and optimiser: APIC's damping grows with the
+# substeps, which the stiffness sets, so under APIC a fluid's bulk modulus moved the loss
+# mostly through the substep count (quick droplet: bulk RE 0.72 with APIC, 0.17 with FLIP;
+# docs/mpm.md, "Transfers and time step").
+FULL = Resolution(
+    object_detail=12, floor_side=32, image=160, grid=24, frames=14, iterations=16, main_grid_scale=1.5, flip=0.99
+)
+QUICK = Resolution(
+    object_detail=8, floor_side=20, image=96, grid=24, frames=10, iterations=8, main_grid_scale=1.5, flip=0.99
+)
 
 # Table 3 of the PhysFlow paper (CVPR 2025): (mean RE, EPE px) per case and method; their
 # images are 800 x 800 px, so their EPE is not comparable with ours in pixels.
@@ -386,6 +395,7 @@ def markdown(summary: dict) -> str:
     lines += [
         "",
         f"Settings: grid {res['grid']} nodes (search; main phase {res.get('main_grid_scale', 1.0):g}x), "
+        f"PIC/FLIP blend {res.get('flip', 0.0):g}, "
         f"image {res['image']} px, {res['frames']} frames, "
         f"{res['iterations']} iterations; ground truth at {s['truth_scale']}x grid and image; noise "
         f"{s['noise']} grey levels; codec {s['codec'] or 'none (PNG)'}; seed {s['seed']}; "
