@@ -191,27 +191,29 @@ def test_a_changed_case_definition_is_made_and_run_again(tmp_path, tiny_cases, m
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "name, held, bound, unsure",
-    [("torus", ("youngs_modulus",), 0.3, ("poissons_ratio",)),
-     ("playdoh", ("youngs_modulus", "poissons_ratio", "yield_stress"), 0.3, ()),
-     ("droplet", ("viscosity", "bulk_modulus"), 0.15, ())],
+    [("torus", ("youngs_modulus",), 0.15, ("poissons_ratio",)),
+     ("playdoh", ("youngs_modulus", "poissons_ratio", "yield_stress"), 0.25, ()),
+     ("droplet", ("viscosity", "bulk_modulus"), 0.15, ("bulk_modulus",))],
 )  # fmt: skip
 def test_a_quick_case_reaches_the_loss_of_the_ground_truth(tmp_path, name, held, bound, unsure):
     """End to end on an honest case (`clflow eval sysid --quick --case NAME`, guidance from a
-    2x finer simulation and rendering): from the published guess, 1-2 decades off, the
-    search and its three polished starts on the base grid and the main phase on one 1.5x
-    finer reach a loss no higher than the ground truth's own on that grid (each against the
-    flow estimator's error at its own parameters), a flow error near the truth's, and a
-    mean RE <= ``bound`` over the ``held`` parameters: issue 12's 0.3, issue 13's 0.15 for
-    the droplet (measured 2026-11-24 at 0d53a4d: the torus' E 0.077, playdoh 0.170, the
-    droplet 0.111; docs/benchmarks.md). The quick torus' loss hardly changes from nu 0.21
-    to the truth's 0.3 (0.00180 against 0.00183), so its nu is held only to being reported
-    as weakly constrained (``unsure``)."""
+    2x finer simulation and rendering, both with FLIP 0.99): from the published guess, 1-2
+    decades off, the search and its three polished starts on the base grid and the main
+    phase on one 1.5x finer reach a loss within 20 % of the ground truth's own on that grid
+    (each against the flow estimator's error at its own parameters; near the truth the
+    quick droplet's loss varies by +-15 % between points 5 % apart), a flow error near the
+    truth's, and a mean RE <= ``bound`` over the ``held`` parameters: issue 13's 0.15 for
+    the torus' E and the droplet, 0.25 for playdoh (measured 2026-11-24 at 077ea03: the
+    torus' E 0.071, playdoh 0.176, the droplet 0.121; docs/benchmarks.md). Parameters the
+    loss hardly sees are held to being reported weakly constrained (``unsure``): the
+    torus' nu (the loss 2.3x higher at nu 0.06 and 0.33, the truth 0.3) and the droplet's
+    bulk modulus (2x at ten times the value)."""
     result = CliRunner().invoke(cli, ["eval", "sysid", "--quick", "--case", name, "-o", str(tmp_path / "out")])
     assert result.exit_code == 0, result.output
     record = json.loads((tmp_path / "out" / "sysid.json").read_text())["cases"][name]
     assert record["status"] == "ok"
     history = json.loads((tmp_path / "out" / "cases" / name / "results" / "history.json").read_text())
-    assert record["final_loss"] <= 1.02 * record["truth_loss"] < history[0]["loss"]
+    assert record["final_loss"] <= 1.2 * record["truth_loss"] < history[0]["loss"]
     assert record["epe_px"] <= 1.05 * record["floor_epe_px"]
     assert sum(record["parameters"][n]["re"] for n in held) / len(held) <= bound, record["parameters"]
     assert set(unsure) <= set(record["identifiability"]["weakly_constrained"])
@@ -252,8 +254,10 @@ def test_the_table_says_what_the_check_found_of_each_parameter():
 
 def test_the_benchmark_searches_on_the_base_grid_and_refines_on_a_finer_one(tmp_path):
     case = dataclasses.replace(sysid.CASES["torus"])
-    config = make_case(tmp_path, case, dataclasses.replace(TINY, main_grid_scale=1.5), truth_scale=2)
+    config = make_case(tmp_path, case, dataclasses.replace(TINY, main_grid_scale=1.5, flip=0.99), truth_scale=2)
     truth, opt = (yaml.safe_load((tmp_path / name).read_text()) for name in ("config_truth.yaml", "config.yaml"))
+    # truth and optimiser alike blend FLIP in, as the benchmark's resolutions ask
+    assert sysid.FULL.flip == sysid.QUICK.flip == truth["simulation"]["flip"] == opt["simulation"]["flip"] == 0.99
     base = (truth["simulation"]["grid_resolution"] - 1) // 2 + 1
     assert opt["optimize"]["search"]["grid_resolution"] == base
     assert opt["simulation"]["grid_resolution"] == round((base - 1) * 1.5) + 1 < truth["simulation"]["grid_resolution"]
@@ -261,6 +265,7 @@ def test_the_benchmark_searches_on_the_base_grid_and_refines_on_a_finer_one(tmp_
     from clflow.scene.config import load_config
 
     optimization = Optimization(load_config(config))
+    assert optimization.cfg.simulation.flip == 0.99
     (coarse, fine) = (optimization._prepared[n].setup for n in (base, opt["simulation"]["grid_resolution"]))
     assert coarse.grid.dx == pytest.approx(1.5 * fine.grid.dx, rel=0.05)
     assert coarse.particles.positions.shape[0] < fine.particles.positions.shape[0]  # each grid its own fill
