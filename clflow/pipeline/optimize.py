@@ -1266,10 +1266,12 @@ class Optimization:
             box = self.local_box()
             state.z = {n: min(max(v, box[n][0]), box[n][1]) if n in box else v for n, v in state.z.items()}
         if lm and state.best is not None:
-            # the next run (the best point again, or a step from it) takes the best point's time
-            # step: a rejected trial that needed more substeps leaves no finer, more damped model
-            # behind for every later iteration (MPM's answer depends on the step, docs/mpm.md)
-            state.substeps = state.best.get("substeps", result.substeps)
+            # back at the best point (after a rejection) the run takes its time step, as the
+            # cached Jacobian did; a step from it runs at its own stable step, as the search and
+            # the truth's loss do: neither a rejected trial that needed more substeps nor a stiff
+            # start leaves a finer, slower (and with APIC more damped, docs/mpm.md) model behind
+            # for every later point
+            state.substeps = state.best.get("substeps", result.substeps) if state.z == state.best["z"] else 1
         else:
             state.substeps = max(state.substeps, result.substeps)
         converged = (

@@ -187,24 +187,28 @@ def test_a_step_downhill_only_against_the_old_calibration_is_rejected(lm, monkey
 
 
 def test_a_rejected_trial_leaves_the_best_points_time_step_and_the_result_is_the_best_point(lm, monkeypatch):
-    # the trial needs 7 substeps per frame and is uphill: the next run (the best point again)
-    # goes back to the best point's step, not to the most any run needed
+    # the first point needs 5 substeps per frame; a step from it runs at its own stable step
+    # (asked for at least 1), not at the best point's; the trial needs 7 and is uphill: the
+    # next run (the best point again) goes back to the best point's 5, not to the most any
+    # run needed
     opt, calls = lm(iterations=2)
     fake = opt.evaluate
-    trial = {}
+    trial, asked = {}, []
 
     def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
         ev = fake(z, frames, with_grad, min_substeps, variables)
+        asked.append(min_substeps)
         if z == trial.get("z"):
             return dataclasses.replace(ev, loss=10 * ev.loss + 1, trajectory=SimpleNamespace(substeps=7))
-        return dataclasses.replace(ev, trajectory=SimpleNamespace(substeps=max(2, min_substeps)))
+        return dataclasses.replace(ev, trajectory=SimpleNamespace(substeps=max(5, min_substeps)))
 
     monkeypatch.setattr(opt, "evaluate", evaluate)
     state, _, _ = opt.step(opt.initial_state(), 0)
-    assert state.substeps == 2 and state.best["substeps"] == 2
-    trial["z"] = dict(state.z)
+    assert state.z != state.best["z"] and state.substeps == 1 and state.best["substeps"] == 5
+    trial["z"], asked[:] = dict(state.z), []
     rejected, _, _ = opt.step(state, 0)
-    assert rejected.z == rejected.best["z"] and rejected.substeps == 2
+    assert asked[0] == 1  # the trial's own run
+    assert rejected.z == rejected.best["z"] and rejected.substeps == 5
     # a run that ends by its count ends at its best point, not at a step it never ran: the
     # last iteration accepts the trial (now an ordinary point) and computes a step from it
     trial.clear()
