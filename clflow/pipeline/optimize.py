@@ -116,7 +116,8 @@ class OptimizerState:
     calibrated_at: dict | None = None
     converged: bool = False  # Levenberg-Marquardt: no step from the best point promises progress
     # optimize.search.starts: the best search samples' z, each polished by a few Levenberg-Marquardt
-    # iterations in turn, and per polished start its best point {"z", "loss", "params", "substeps"}
+    # iterations in turn, and per polished start its best point {"z", "loss", "params"}, the
+    # substeps its polish ended with ("substeps": the best point's, or 1 after a step from it)
     # and, with a coarser search grid, its "model_loss" on the main phase's grid
     starts: list[dict] = field(default_factory=list)
     polished: list[dict] = field(default_factory=list)
