@@ -345,7 +345,10 @@ def _caveat(name: str, record: dict) -> str:
     if name in ident.get("unresolved", []):
         values = ident["profile"][name]["values"]
         return f" (loss flat from {_fmt(min(values))} to {_fmt(max(values))})"
-    return " (weakly constrained)" if name in ident.get("weakly_constrained", []) else ""
+    notes = ["weakly constrained"] if name in ident.get("weakly_constrained", []) else []
+    if name in ident.get("grid_sensitive", []):
+        notes.append(f"grid-sensitive, {ident['grid_shift_z'][name]:+.2f} on {ident['grids'][0]} nodes")
+    return f" ({'; '.join(notes)})" if notes else ""
 
 
 def markdown(summary: dict) -> str:

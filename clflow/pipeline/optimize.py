@@ -79,6 +79,12 @@ MIN_LOSS_RISE = 0.01
 # from 1 to 10 Pa s)
 PROFILE_STEP = 1.0
 PROFILE_RISE = 0.1
+# the grid check reruns the final point on the search grid (without a coarser search grid, on
+# one GRID_CHECK_RATIO times coarser) and moves the best fit by the residuals' change: a
+# variable whose fit moves more than WEAK_STD_Z is grid-sensitive (the full droplet's bulk
+# modulus: 0.42 decades from 51 to 76 nodes, where it ended at 0.35 of its truth; the bird's
+# E: 0.001 decades, RE 0.05; docs/benchmarks.md, "The bulk modulus sits below the model error")
+GRID_CHECK_RATIO = 1.5
 # flow.bias_correction renders the simulation at this many times the guidance camera's pixels
 # per side and area-averages them, since a camera's pixel integrates light over its area
 # (DIS's error depends on that blur: docs/flow.md)
@@ -522,6 +528,9 @@ class Optimization:
         the model's)."""
         variables = self.variables if variables is None else variables
         grid = self.model_grid if grid is None else grid
+        if grid not in self._prepared:  # the grid check's coarser grid, prepared on first use
+            simulation = dataclasses.replace(self.cfg.simulation, grid_resolution=grid)
+            self._prepared[grid] = prepare(dataclasses.replace(self.cfg, simulation=simulation))
         prepared = self._prepared[grid]
         zt = {n: torch.tensor(v, dtype=torch.float64, requires_grad=with_grad and n in variables) for n, v in z.items()}
         decoded = {n: p.decode(zt[n]) for n, p in self.params.items()}
@@ -1324,7 +1333,9 @@ class Optimization:
         constrained when its standard error exceeds WEAK_STD_Z or that rise is below
         MIN_LOSS_RISE. Each weakly constrained material parameter is then profiled
         (:meth:`profile`, two forward runs): ``unresolved`` lists those whose loss is
-        :func:`flat` over the range."""
+        :func:`flat` over the range. ``grid_shift_z``: how far each variable's best fit moves
+        on a coarser grid (:meth:`grid_shift`); ``grid_sensitive`` those moved beyond
+        WEAK_STD_Z, whose value the discretisation sets as much as the video."""
         variables = self.main_variables
         base, J = self.jacobian(z, self.frames, min_substeps, variables, self.model_grid)
         residuals, count = self.residuals(base.flows, base.more_flows), len(variables)
@@ -1346,6 +1357,7 @@ class Optimization:
             if i < j and abs(float(correlation[i, j])) > TRADE_OFF_CORRELATION
         ]
         profile = self.profile(z, base.substeps, weak, loss)
+        coarse_grid, shift = self.grid_shift(z, base, J, inverse, variables)
         return {
             "std_z": dict(zip(variables, std.tolist())),
             "loss_rise": dict(zip(variables, rise)),
@@ -1355,7 +1367,33 @@ class Optimization:
             "profile": profile,
             "profile_rise": PROFILE_RISE,
             "unresolved": [n for n, row in profile.items() if flat(row)],
+            "grids": [coarse_grid, self.model_grid],
+            "grid_shift_z": shift,
+            "grid_sensitive": [n for n, moved in shift.items() if abs(moved) > WEAK_STD_Z],
         }
+
+    def grid_shift(
+        self, z: dict[str, float], base: Evaluation, J: torch.Tensor, inverse: torch.Tensor, variables: tuple[str, ...]
+    ) -> tuple[int, dict[str, float]]:
+        """(the coarser grid's nodes, per variable the move of the best fit in z units from
+        the model grid to that grid): the final point ``base`` (residual Jacobian ``J``
+        [R, P], ``inverse`` = (J^T J)^-1) run again, forward only, on the search grid, or one
+        GRID_CHECK_RATIO times coarser without a coarser search grid; to first order the fit
+        moves by -(J^T J)^-1 J^T (r_coarse - r_model), both against the same targets. The
+        discretisation's pull on each estimate at the scale of the grid refinement: the
+        model grid's own bias is of that order too (its sign and size depend on how fast the
+        estimate converges with the grid). Empty where the coarser run fails."""
+        coarse = self.search_grid
+        if coarse >= self.model_grid:
+            coarse = round((self.model_grid - 1) / GRID_CHECK_RATIO) + 1
+        try:
+            run = self.evaluate(z, self.frames, with_grad=False, grid=coarse)
+        except (FloatingPointError, ClflowError) as exc:
+            log.info("the grid check at %d nodes failed: %s", coarse, exc)
+            return coarse, {}
+        change = self.residuals(run.flows, run.more_flows) - self.residuals(base.flows, base.more_flows)
+        moved = -(inverse @ (J.T @ change))
+        return coarse, dict(zip(variables, moved.tolist()))
 
     def profile(self, z: dict[str, float], min_substeps: int, names: list[str], loss: float) -> dict:
         """Per material parameter in ``names``: ``values`` (SI) PROFILE_STEP below z, at z and
@@ -1472,6 +1510,16 @@ class Optimization:
                 min(values),
                 max(values),
                 round(100 * PROFILE_RISE),
+            )
+        coarse_grid = metrics["identifiability"]["grids"][0]
+        for name in metrics["identifiability"]["grid_sensitive"]:
+            log.warning(
+                "%s depends on the grid: on %d nodes instead of %d its best fit moves by %+.2g in the "
+                "optimiser's units; its value carries a discretisation error of about that size",
+                name,
+                coarse_grid,
+                self.model_grid,
+                metrics["identifiability"]["grid_shift_z"][name],
             )
         for a, b, rho in metrics["identifiability"]["trade_offs"]:
             log.warning("%s and %s trade off (correlation %.3f): the video fixes a combination of them", a, b, rho)

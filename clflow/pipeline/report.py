@@ -99,6 +99,13 @@ def write_report(output: Path) -> Path:
             rise = f"loss within {100 * ident['profile_rise']:.0f} %"
             rows.append((f"unresolved: {name}", f"{rise} from {min(values):.3g} to {max(values):.3g} (SI)"))
         rows += [(f"trade-off: {a} / {b}", f"correlation {rho:.3f}") for a, b, rho in ident.get("trade_offs", [])]
+        rows += [
+            (
+                f"grid-sensitive: {n}",
+                f"fit moves {ident['grid_shift_z'][n]:+.2g} (optimiser units) on {ident['grids'][0]} nodes",
+            )
+            for n in ident.get("grid_sensitive", [])
+        ]
         chosen = metrics.get("material_hypotheses")
         if chosen:
             rows += [

@@ -294,6 +294,36 @@ def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypat
         assert 1.1 < low < 1.5 and 1.1 < high < 1.5
 
 
+def test_the_grid_check_measures_how_far_a_coarser_grid_moves_the_fit(demo_config, monkeypatch):
+    """A coarser grid whose flows are the model grid's at E 0.3 higher and nu 0.02 lower (in z):
+    its best fit lies 0.3 lower in E and 0.02 higher in nu; E is grid-sensitive, nu not."""
+    cfg = demo_config()
+    cfg = dataclasses.replace(
+        cfg, optimize=dataclasses.replace(cfg.optimize, parameters=("youngs_modulus", "poissons_ratio"))
+    )
+    opt = Optimization(cfg)
+    g = torch.Generator().manual_seed(2)
+    field_e, field_nu, noise = (torch.randn(opt.observed.shape, generator=g, dtype=torch.float64) for _ in range(3))
+    grids = []
+
+    def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
+        grid = grid or opt.model_grid
+        grids.append(grid)
+        coarse = grid != opt.model_grid
+        e, nu = z["youngs_modulus"] - Z_TRUE + 0.3 * coarse, z["poissons_ratio"] - 0.02 * coarse
+        flows = [opt.observed[t] + 0.01 * noise[t] + e * field_e[t] + nu * field_nu[t] for t in range(frames)]
+        loss = float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.weight[:frames]))
+        return Evaluation(loss, {}, flows, SimpleNamespace(substeps=1), grid)
+
+    monkeypatch.setattr(opt, "evaluate", evaluate)
+    report = opt.identifiability({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0}, 1)
+    coarse = round((opt.model_grid - 1) / 1.5) + 1  # the demo has no search grid: 1.5x coarser
+    assert report["grids"] == [coarse, opt.model_grid] and grids[-1] == coarse and grids.count(coarse) == 1
+    assert report["grid_shift_z"]["youngs_modulus"] == pytest.approx(-0.3, abs=1e-9)
+    assert report["grid_shift_z"]["poissons_ratio"] == pytest.approx(0.02, abs=1e-9)
+    assert report["grid_sensitive"] == ["youngs_modulus"]
+
+
 def test_a_rejected_step_goes_back_to_the_best_point_without_new_runs(lm):
     opt, calls = lm(iterations=2)
     variables = ("youngs_modulus",)

@@ -77,8 +77,12 @@ def test_the_page_says_which_parameters_the_video_does_not_resolve(tmp_path):
         "profile": {"viscosity": {"values": [0.188, 18.8], "loss_ratio": [1.001, 1.02]}},
         "profile_rise": 0.1,
         "unresolved": ["viscosity"],
+        "grids": [51, 76],
+        "grid_shift_z": {"viscosity": 0.01, "bulk_modulus": -0.42},
+        "grid_sensitive": ["bulk_modulus"],
     }
     (tmp_path / "metrics.json").write_text(json.dumps({"flow_loss": 0.02, "identifiability": identifiability}))
     page = write_report(tmp_path).read_text()
     assert "weakly constrained: viscosity" in page
     assert "unresolved: viscosity" in page and "loss within 10 % from 0.188 to 18.8 (SI)" in page
+    assert "grid-sensitive: bulk_modulus" in page and "fit moves -0.42 (optimiser units) on 51 nodes" in page

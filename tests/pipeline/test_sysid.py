@@ -245,10 +245,14 @@ def test_the_table_says_what_the_check_found_of_each_parameter():
             "weakly_constrained": ["bulk_modulus", "viscosity"],
             "unresolved": ["viscosity"],
             "profile": {"bulk_modulus": {"values": [1e4, 1e6]}, "viscosity": {"values": [18.8, 0.188]}},
+            "grids": [51, 76],
+            "grid_shift_z": {"bulk_modulus": -0.05, "viscosity": 0.2, "yield_stress": -0.42},
+            "grid_sensitive": ["yield_stress"],
         }
     }
     assert sysid._caveat("viscosity", record) == " (loss flat from 0.188 to 18.8)"
     assert sysid._caveat("bulk_modulus", record) == " (weakly constrained)"
+    assert sysid._caveat("yield_stress", record) == " (grid-sensitive, -0.42 on 51 nodes)"
     assert sysid._caveat("shear_modulus", record) == ""
 
 
