@@ -364,9 +364,7 @@ class Optimization:
         self.model_grid = cfg.simulation.grid_resolution
         self.search_grid = (opt.search.grid_resolution if opt.search else 0) or self.model_grid
         self._prepared = {self.model_grid: self.prepared}
-        if self.search_grid != self.model_grid:
-            coarse = dataclasses.replace(cfg.simulation, grid_resolution=self.search_grid)
-            self._prepared[self.search_grid] = prepare(dataclasses.replace(cfg, simulation=coarse))
+        self.prepared_on(self.search_grid)
         self.frames = cfg.simulation.frames
         self.preflight()  # before the optical flow: refuse a run beyond the substep limit in seconds
         self.views = self._views()
@@ -502,6 +500,14 @@ class Optimization:
             ),
         )
 
+    def prepared_on(self, grid: int) -> Prepared:
+        """The scene prepared on a grid of ``grid`` nodes over the same domain (the model's,
+        the search's, the grid check's), made on first use."""
+        if grid not in self._prepared:
+            simulation = dataclasses.replace(self.cfg.simulation, grid_resolution=grid)
+            self._prepared[grid] = prepare(dataclasses.replace(self.cfg, simulation=simulation))
+        return self._prepared[grid]
+
     def values(self, z: dict[str, float]) -> dict[str, float]:
         """The value of every variable in z: material parameters in SI, velocity components in m/s."""
         out = {n: float(p.decode(torch.tensor(z[n], dtype=torch.float64))) for n, p in self.params.items()}
@@ -528,10 +534,7 @@ class Optimization:
         the model's)."""
         variables = self.variables if variables is None else variables
         grid = self.model_grid if grid is None else grid
-        if grid not in self._prepared:  # the grid check's coarser grid, prepared on first use
-            simulation = dataclasses.replace(self.cfg.simulation, grid_resolution=grid)
-            self._prepared[grid] = prepare(dataclasses.replace(self.cfg, simulation=simulation))
-        prepared = self._prepared[grid]
+        prepared = self.prepared_on(grid)
         zt = {n: torch.tensor(v, dtype=torch.float64, requires_grad=with_grad and n in variables) for n, v in z.items()}
         decoded = {n: p.decode(zt[n]) for n, p in self.params.items()}
         params, density = material_values(self.cfg, {n: float(v.detach()) for n, v in decoded.items()})
