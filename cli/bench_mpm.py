@@ -10,14 +10,20 @@ GRID = 64
 
 
 def _particle_bytes(sim) -> int:
-    """Bytes of every per-particle array of a simulator: two states, the constant particle
-    data, the kernels' per-particle scratch (tau, U, s, V) and the clamp flags."""
-    from dataclasses import fields
+    """Device bytes of every per-particle array of a simulator: two states, the constant
+    particle data, the kernels' per-particle scratch (tau, U, s, V) and the clamp flags."""
+    from clflow.runtime.arrays import arrays_of
 
-    tensors = [getattr(st, f.name) for st in (sim.state, sim._next) for f in fields(st)]
-    tensors += [getattr(sim.particles, f.name) for f in fields(sim.particles) if f.name != "mass_eps"]
-    tensors += [sim.kernels.scratch.tau, sim.kernels.U, sim.kernels.s, sim.kernels.V, sim._clamped]
-    return sum(t.numel() * t.element_size() for t in tensors)
+    arrays = arrays_of(sim.device_state) + arrays_of(sim._next) + arrays_of(sim.device_particles)
+    arrays += [sim.kernels.scratch.tau, sim.kernels.U, sim.kernels.s, sim.kernels.V, sim._clamped]
+    return sum(a.nbytes for a in arrays)
+
+
+def timed_substeps(sim, substeps: int) -> None:
+    """``substeps`` substeps of ``sim``, waited for (a substep only enqueues its kernels)."""
+    for _ in range(substeps):
+        sim.step()
+    sim.device.finish()
 
 
 @bench_command("mpm")
@@ -40,8 +46,9 @@ def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double):
     from clflow.environment import load_average
     from clflow.materials import MATERIALS
     from clflow.mpm import Grid, MaterialSpec, Simulator
+    from clflow.runtime import get_device
 
-    device = ctx.obj.device() if ctx.obj else None
+    device = ctx.obj.device() if ctx.obj else get_device()
     dtype = torch.float64 if double else torch.float32
     dx = 1.0 / grid_res
     side = (particles_per_axis / 2) * dx  # 2 particles per cell and axis
@@ -52,9 +59,12 @@ def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double):
     names = list(materials) or list(MATERIALS)
     logging.getLogger("pyopencl").setLevel(logging.WARNING)  # no build chatter between rows
     click.echo(f"load average before the run: {load_average()} (figures scale down on a shared machine)")
-    p2g = "private grid copies" if (device.info.type if device else "CPU") == "CPU" else "atomics"
+    from clflow.mpm.substep import p2g_path
+
+    p2g = {"private": "private grid copies", "atomic": "atomics"}[p2g_path(device)]
+    memory = "separate memory" if not device.zero_copy else "shared memory"
     click.echo(
-        f"device: {device.info.label if device else 'default'} (P2G: {p2g}); {n:,} particles, grid {grid_res}^3, "
+        f"device: {device.info.label} ({memory}; P2G: {p2g}); {n:,} particles, grid {grid_res}^3, "
         f"{'float64' if double else 'float32'}, {substeps} timed substeps"
     )
     results = {"particles": n}
@@ -62,18 +72,23 @@ def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double):
         sim = Simulator(
             x, h**3, MaterialSpec(name), Grid((grid_res,) * 3, dx), frame_dt=1e-3, dtype=dtype, device=device
         )
-        sim.step()  # builds kernels and warms the caches
-        timing = measure(lambda: [sim.step() for _ in range(substeps)], warmup=0)
+        timed_substeps(sim, 1)  # builds kernels and warms the caches
+        mark = device.transfers.mark()
+        timing = measure(lambda: timed_substeps(sim, substeps), warmup=0)
+        copied = device.transfers.since(mark)
         elapsed, cpu = timing.median_wall, timing.median_cpu
         results[name] = {
             **timing.record(),
             "particle_substeps_per_s": n * substeps / elapsed,
             "bytes_per_particle": _particle_bytes(sim) // n,
+            "bytes_to_device_per_substep": copied.to_device / substeps,
+            "bytes_to_host_per_substep": copied.to_host / substeps,
         }
         click.echo(
             f"{name:14s} {n * substeps / elapsed / 1e6:7.2f} M particle-substeps/s  "
             f"({elapsed / substeps * 1e3:6.1f} ms/substep; {n * substeps / cpu / 1e6:5.2f} M per CPU-second; "
-            f"{_particle_bytes(sim) // n} B/particle)"
+            f"{_particle_bytes(sim) // n} B/particle; copied per substep: {copied.to_device / substeps:.0f} B "
+            f"to the device, {copied.to_host / substeps:.0f} B to the host)"
         )
     itemsize = torch.tensor([], dtype=dtype).element_size()
     grid_bytes = sim.grid.nodes * 7 * itemsize

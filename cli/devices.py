@@ -10,20 +10,27 @@ def devices(obj, as_json: bool) -> None:
     """List OpenCL devices with the capabilities clflow uses.
 
     The device marked '*' is the one clflow selects (--device / CLFLOW_DEVICE / default).
+    An NVIDIA, AMD or Intel OpenCL driver that is installed but has no ICD entry is used for
+    the process and listed with the line that registers it for every program.
     """
     import dataclasses
     import json
 
     from clflow.runtime import get_device, list_devices
+    from clflow.runtime.drivers import adopt_unregistered
 
     infos = list_devices()
     selected = get_device(obj.device_spec).info
+    adoption = adopt_unregistered()
+    unregistered = [
+        {"vendor": d.vendor, "path": str(d.path), "used": adoption.used, "register": d.how_to_register()}
+        for d in adoption.drivers
+    ]
     if as_json:
         rows = [dict(dataclasses.asdict(i), selected=(i == selected)) for i in infos]
+        cache = str(get_device(obj.device_spec).kernel_cache_dir)
         click.echo(
-            json.dumps(
-                {"devices": rows, "kernel_cache_dir": str(get_device(obj.device_spec).kernel_cache_dir)}, indent=2
-            )
+            json.dumps({"devices": rows, "kernel_cache_dir": cache, "unregistered_drivers": unregistered}, indent=2)
         )
         return
     yes = {True: "yes", False: "no"}
@@ -40,3 +47,9 @@ def devices(obj, as_json: bool) -> None:
         click.echo(f"    local memory:       {info.local_mem_size // 1024} KiB")
         click.echo(f"    global memory:      {info.global_mem_size / 2**30:.1f} GiB")
     click.echo(f"kernel cache dir: {get_device(obj.device_spec).kernel_cache_dir}")
+    for d in unregistered:
+        how = "used for this process" if d["used"] else "not used (CLFLOW_ADOPT_DRIVERS=0 or a read-only cache)"
+        click.echo(
+            f"note: the {d['vendor']} OpenCL driver {d['path']} has no ICD entry; {how}. "
+            f"To register it for every program: {d['register']}"
+        )

@@ -141,11 +141,15 @@ class CliContext:
     help="OpenCL device: a case-insensitive substring of the device name, or "
     "'platform:device'. Default: $CLFLOW_DEVICE, else the first GPU, else PoCL's CPU device.",
 )  # fmt: skip
+@click.option("--bridge", type=click.Choice(["auto", "copy"]), default=None, envvar="CLFLOW_BRIDGE",
+              help="How tensors reach the device: 'auto' shares host memory where the device does (CPUs), "
+              "'copy' keeps separate device buffers and copies, as on a discrete GPU (to test that path on "
+              "a CPU). Default: $CLFLOW_BRIDGE, else auto.")  # fmt: skip
 @click.option("-v", "--verbose", count=True,
               help="More log output (repeatable; -vv adds pyopencl's per-kernel build messages).")  # fmt: skip
 @click.option("-q", "--quiet", count=True, help="Less log output (repeatable).")
 @click.pass_context
-def cli(ctx: click.Context, device: str | None, verbose: int, quiet: int) -> None:
+def cli(ctx: click.Context, device: str | None, bridge: str | None, verbose: int, quiet: int) -> None:
     """clflow: physically simulated 4D scenes from 3D Gaussian splats and a guidance video.
 
     OpenCL MLS-MPM and Gaussian-splat kernels (forward and adjoint) behind a PyTorch API.
@@ -160,6 +164,10 @@ def cli(ctx: click.Context, device: str | None, verbose: int, quiet: int) -> Non
         from clflow.runtime import set_default_device
 
         set_default_device(device)
+    if bridge:
+        from clflow.runtime import set_bridge_mode
+
+        set_bridge_mode(bridge)
 
 
 class _FoldKernelBuilds(logging.Filter):

@@ -16,6 +16,15 @@ def device():
 
 
 @pytest.fixture
+def copy_mode(monkeypatch):
+    """The bridge's copy mode for the test: separate device buffers and explicit, counted
+    copies on any device (what a discrete GPU does)."""
+    from clflow.runtime import devices
+
+    monkeypatch.setattr(devices, "_BRIDGE_MODE", "copy")
+
+
+@pytest.fixture
 def oclgrind(tmp_path):
     """Run a Python snippet under oclgrind (out-of-bounds, data-race and, unless
     ``uninitialized=False``, uninitialised-value checks) and return ``(stdout, log)``; skips

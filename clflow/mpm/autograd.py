@@ -13,6 +13,10 @@ reverse. Memory, in reals: (frames + 1) N 55 (checkpoints, outputs and their gra
 + substeps (34 N + 7 nodes) (one frame's replay) + adjoint scratch (memory_estimate,
 docs/mpm_adjoint.md).
 
+Checkpoints, replayed states, tapes and gradients stay on the device (DeviceArrays); the host
+sees each frame's x, v, F once (the op's outputs) and, in backward, each frame's output
+gradients once and the parameter, mass and initial-state gradients at the end.
+
 Parameter gradients are per particle; a global parameter (a 0-d tensor) is broadcast to
 the particles with a backward that sums the rows in a fixed order
 (clflow.runtime.reduction.sum_rows), so gradients are bit-identical across runs.
@@ -52,7 +56,8 @@ from clflow.mpm.simulator import (
     check_inside,
     finite,
 )
-from clflow.mpm.substep import State, SubstepInputs, SubstepTape
+from clflow.mpm.substep import DriverAccelerations, State, SubstepInputs, SubstepTape
+from clflow.runtime.arrays import DeviceArray, origin_device, to_cpu, to_origin
 from clflow.runtime.reduction import sum_rows
 
 
@@ -104,12 +109,13 @@ def engine(sim: Simulator) -> _Engine:
 
 class _Run:
     """One differentiable run: its spec (the simulator's at this run's substeps), and the
-    checkpoints its forward leaves for backward."""
+    checkpoints (on the device) its forward leaves for backward."""
 
     def __init__(
         self, sim: Simulator, frames: int, substeps: int, memory_budget: int | None = None, strict_cfl: bool = False
     ):
         self.sim, self.frames, self.engine, self.strict_cfl = sim, frames, engine(sim), strict_cfl
+        self.device = sim.device
         self.spec = spec = dataclasses.replace(sim.spec, substeps=substeps)
         self.t0, self.substeps, self.dt = sim.time, substeps, spec.dt
         self.segment = replay_segment(sim.n, spec.grid.nodes, frames, substeps, spec.dtype, memory_budget, spec.flip)
@@ -118,49 +124,53 @@ class _Run:
         return self.t0 + (frame * self.substeps + substep) * self.dt
 
     def inputs(self, frame: int, s: int) -> SubstepInputs:
-        """What substep ``s`` of frame ``frame`` reads besides the state (this run's particles)."""
+        """What substep ``s`` of frame ``frame`` reads besides the state (this run's particles
+        and stage accelerations)."""
         t = self.time(frame, s)
         spec = self.spec
-        accel = spec.drivers.accel(t, spec.dtype, self.stage_accel)  # this run's stage accelerations
-        return SubstepInputs(self.particles, t, self.dt, spec.gravity, spec.boundaries, accel)
+        return SubstepInputs(self.particles, t, self.dt, spec.gravity, self.sim.device_boundaries, self.accel.at(t))
 
     def substep(self, state: State, out: State, frame: int, s: int, tape: SubstepTape | None = None) -> None:
         self.engine.forward.run(state, out, self.inputs(frame, s), self.clamped, tape=tape)
 
-    def checkpoint(self, frame: int) -> State:
-        return State(self.x[frame], self.v[frame], self.C[frame], self.F[frame], self.plastic[frame])
-
     def forward(self, param, mass, x0, v0, stage_accel) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        sim, T, n = self.sim, self.frames, self.sim.n
-        self.stage_accel = stage_accel.detach().double()
+        sim, T, n, dev = self.sim, self.frames, self.sim.n, self.device
+        self.accel = DriverAccelerations(dev, self.spec.drivers, self.spec.dtype, stage_accel.detach().double())
         self.particles = dataclasses.replace(
-            self.spec.particles, param=param.detach().contiguous(), mass=mass.detach().contiguous()
+            sim.device_particles,
+            param=DeviceArray.of(dev, param.detach(), "material parameters"),
+            mass=DeviceArray.of(dev, mass.detach(), "masses"),
         )
-        self.clamped = torch.zeros(n, dtype=torch.uint8)
+        self.clamped = DeviceArray.zeros(dev, (n,), torch.uint8)
         dtype = self.spec.dtype
-        self.x = torch.empty(T + 1, n, 3, dtype=dtype)
-        self.v = torch.empty(T + 1, n, 3, dtype=dtype)
-        self.C = torch.empty(T + 1, n, 3, 3, dtype=dtype)
-        self.F = torch.empty(T + 1, n, 3, 3, dtype=dtype)
-        self.plastic = torch.empty(T + 1, n, dtype=dtype)
-        s0 = sim.state
-        for buf, value in ((self.x, x0), (self.v, v0), (self.C, s0.C), (self.F, s0.F), (self.plastic, s0.plastic)):
-            buf[0] = value.detach()
-        a, b = self.checkpoint(0).clone(), s0.empty_like()
+        x, v = torch.empty(T + 1, n, 3, dtype=dtype), torch.empty(T + 1, n, 3, dtype=dtype)
+        F = torch.empty(T + 1, n, 3, 3, dtype=dtype)
+        s0 = sim.device_state
+        first = State(
+            DeviceArray.of(dev, x0.detach(), "positions"),
+            DeviceArray.of(dev, v0.detach(), "velocities"),
+            s0.C.clone(),
+            s0.F.clone(),
+            s0.plastic.clone(),
+        )
+        self.checkpoints = [first]
+        x[0], v[0], F[0] = x0.detach(), v0.detach(), s0.F.read()
+        a, b = first.clone(), first.empty_like()
         self.cfl_violation = None
-        progress = FrameProgress("differentiable run", T, self.substeps)
+        progress = FrameProgress("differentiable run", T, self.substeps, device=dev)
         for f in range(T):
             for s in range(self.substeps):
                 self.substep(a, b, f, s)
                 a, b = b, a
                 progress.tick(f, s)
-            if not finite(a):
+            a.x.read(x[f + 1]), a.v.read(v[f + 1]), a.F.read(F[f + 1])
+            if not finite(x[f + 1], v[f + 1], F[f + 1]):
                 raise SimulationError(
                     f"the differentiable run became NaN/inf during frame {f + 1} "
                     f"(t = {self.time(f + 1, 0):.4g} s); reduce dt (substeps per frame now {self.substeps}) "
                     f"or the material stiffness / forces"
                 )
-            vmax = cfl_breach(a, self.dt, self.spec.grid.dx)
+            vmax = cfl_breach(v[f + 1], self.dt, self.spec.grid.dx)
             if vmax is not None:
                 message = (
                     f"differentiable run, frame {f + 1}: max speed {vmax:.3g} m/s breaks the CFL limit "
@@ -170,9 +180,9 @@ class _Run:
                     raise SimulationError(message)
                 warnings.warn(message, StabilityWarning, stacklevel=4)
                 self.cfl_violation = self.cfl_violation or message
-            for buf, value in ((self.x, a.x), (self.v, a.v), (self.C, a.C), (self.F, a.F), (self.plastic, a.plastic)):
-                buf[f + 1] = value
-        clamped = self.clamped_count = int(self.clamped.sum(dtype=torch.int64))
+            if f + 1 < T:  # the last frame's state is never replayed from
+                self.checkpoints.append(a.clone())
+        clamped = self.clamped_count = int(self.clamped.read().sum(dtype=torch.int64))
         if clamped:
             warnings.warn(
                 f"differentiable run: {clamped} particles left the grid and were clamped to its "
@@ -180,41 +190,42 @@ class _Run:
                 RuntimeWarning,
                 stacklevel=4,
             )
-        return self.x, self.v, self.F
+        return x, v, F
 
     def backward(self, grad_x, grad_v, grad_F):
-        sim, spec, n, S, dtype = self.sim, self.spec, self.sim.n, self.substeps, self.spec.dtype
+        sim, spec, n, S, dtype, dev = self.sim, self.spec, self.sim.n, self.substeps, self.spec.dtype, self.device
         k = self.segment
         adjoint = self.engine.adjoint
-        grad, spare = StateGrad.zeros(n, dtype), StateGrad.zeros(n, dtype)
-        param_grad = torch.zeros_like(self.particles.param)
-        mass_grad = torch.zeros_like(self.particles.mass)
+        grad, spare = StateGrad.zeros(dev, n, dtype), StateGrad.zeros(dev, n, dtype)
+        param_grad = DeviceArray.zeros(dev, self.particles.param.shape, dtype)
+        mass_grad = DeviceArray.zeros(dev, (n,), dtype)
         # driver stages: dt vbar summed per stage over the substeps it is active (P2G adds
         # m dt a to the momentum, so abar_p = dt vbar_p), reduced over its particles at the end
-        stage_rows = torch.zeros(len(spec.drivers.forces), n, 3, dtype=dtype)
-        states = [None] + [sim.state.empty_like() for _ in range(k)]
-        tapes = [SubstepTape.empty(n, spec.grid.nodes, dtype, spec.flip) for _ in range(k)]
+        stage_rows = [DeviceArray.zeros(dev, (n, 3), dtype) for _ in spec.drivers.forces]
+        first = self.checkpoints[0]
+        states = [None] + [first.empty_like() for _ in range(k)]
+        tapes = [SubstepTape.empty(dev, n, spec.grid.nodes, dtype, spec.flip) for _ in range(k)]
         starts = list(range(0, S, k))  # first substep of each segment
         # second level (only when a frame's replay exceeds the budget): segment start states
-        segment_states = [sim.state.empty_like() for _ in starts[1:]]
-        scratch = [states[1], sim.state.empty_like()] if segment_states else []
+        segment_states = [first.empty_like() for _ in starts[1:]]
+        scratch = [states[1], first.empty_like()] if segment_states else []
 
         def add_output_grads(frame: int) -> None:
             for g, acc in ((grad_x, grad.x), (grad_v, grad.v), (grad_F, grad.F)):
                 if g is not None:
-                    acc += g[frame]
+                    acc.add_(g[frame])
 
-        progress = FrameProgress("adjoint", self.frames, S)
+        progress = FrameProgress("adjoint", self.frames, S, device=dev)
         for f in reversed(range(self.frames)):
             add_output_grads(f + 1)
             if segment_states:  # replay the frame once, keeping each later segment's first state
-                src = self.checkpoint(f)
+                src = self.checkpoints[f]
                 for s in range(starts[-1]):
                     dst = segment_states[(s + 1) // k - 1] if (s + 1) % k == 0 else scratch[s % 2]
                     self.substep(src, dst, f, s)
                     src = dst
             for j in reversed(range(len(starts))):
-                states[0] = self.checkpoint(f) if j == 0 else segment_states[j - 1]
+                states[0] = self.checkpoints[f] if j == 0 else segment_states[j - 1]
                 steps = range(starts[j], min(starts[j] + k, S))
                 for i, s in enumerate(steps):
                     self.substep(states[i], states[i + 1], f, s, tapes[i])
@@ -223,14 +234,14 @@ class _Run:
                     adjoint.run(states[i], states[i + 1], tapes[i], inputs, grad, spare, param_grad, mass_grad)
                     grad, spare = spare, grad
                     for stage in torch.nonzero(spec.drivers.active(inputs.t)).flatten().tolist():
-                        stage_rows[stage] += self.dt * grad.v
+                        stage_rows[stage].add_(grad.v, alpha=self.dt)
                     progress.tick(self.frames - 1 - f, S - 1 - s)  # counted in the order the adjoint runs
         add_output_grads(0)
         stage_grad = torch.zeros(len(spec.drivers.forces), 3, dtype=dtype)
-        for stage in range(len(spec.drivers.forces)):
-            rows = stage_rows[stage][_stage_members(sim, stage)].contiguous()
-            stage_grad[stage] = sum_rows(rows, sim.device).to(dtype)
-        return param_grad, mass_grad, grad.x, grad.v, stage_grad
+        for stage, rows in enumerate(stage_rows):
+            members = rows.read()[_stage_members(sim, stage)].contiguous()
+            stage_grad[stage] = sum_rows(members, dev).to(dtype)
+        return param_grad.read(), mass_grad.read(), grad.x.read(), grad.v.read(), stage_grad
 
 
 def memory_estimate(
@@ -283,8 +294,7 @@ class _Simulate(torch.autograd.Function):
     @staticmethod
     def forward(ctx, run: _Run, param, mass, x0, v0, stage_accel):
         ctx.run = run
-        x, v, F = run.forward(param, mass, x0, v0, stage_accel)
-        return x.clone(), v.clone(), F.clone()  # the checkpoints stay private to the run
+        return run.forward(param, mass, x0, v0, stage_accel)
 
     @staticmethod
     def backward(ctx, grad_x, grad_v, grad_F):
@@ -420,11 +430,32 @@ def simulate(
             intermediate states (two-level checkpointing: one more forward pass per frame).
 
     Returns:
-        :class:`Frames` with x, v [frames + 1, N, 3] and F [frames + 1, N, 3, 3].
+        :class:`Frames` with x, v [frames + 1, N, 3] and F [frames + 1, N, 3, 3], on the torch
+        device of the tensors given (they may live on any one device: they are copied to the
+        host once and gradients flow back there; the copies are counted in
+        ``simulator.device.transfers``).
     """
     sim, n, dtype = simulator, simulator.n, simulator.dtype
     if int(frames) < 1:
         raise InputError(f"frames must be >= 1, got {frames}")
+    given = [*(params or {}).values(), density, positions, velocities, stage_accelerations, kernel_params]
+    origin = origin_device(*given, what="simulate: the tensors")
+    if origin.type != "cpu":
+        host = lambda t: to_cpu(t, sim.device)  # noqa: E731
+        frames_ = simulate(
+            sim,
+            frames,
+            params={name: host(value) for name, value in (params or {}).items()} or None,
+            density=host(density),
+            positions=host(positions),
+            velocities=host(velocities),
+            stage_accelerations=host(stage_accelerations),
+            kernel_params=host(kernel_params),
+            retries=retries,
+            memory_budget=memory_budget,
+        )
+        back = lambda t: to_origin(t, origin, sim.device)  # noqa: E731
+        return dataclasses.replace(frames_, x=back(frames_.x), v=back(frames_.v), F=back(frames_.F))
     base = sim.particles
     if kernel_params is not None and params:
         raise InputError("give kernel_params or params, not both")

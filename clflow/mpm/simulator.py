@@ -29,8 +29,17 @@ from clflow.mpm.constants import (
     kernel_params,
     wave_speed,
 )
-from clflow.mpm.substep import Grid, P2GMode, Particles, State, SubstepInputs, SubstepKernels
+from clflow.mpm.substep import (
+    DriverAccelerations,
+    Grid,
+    P2GMode,
+    Particles,
+    State,
+    SubstepInputs,
+    SubstepKernels,
+)
 from clflow.runtime import Device, get_device
+from clflow.runtime.arrays import DeviceArray, arrays_of, origin_device, to_cpu, to_device, to_origin
 
 CFL_NUMBER = 0.3  # dt <= CFL_NUMBER dx / max|v|
 WAVE_NUMBER = 0.5  # dt <= WAVE_NUMBER dx / c, c the fastest elastic wave speed
@@ -44,10 +53,19 @@ log = logging.getLogger("clflow.mpm")
 
 class FrameProgress:
     """Logs where a long run stands (frame, substep, seconds) at most every PROGRESS_SECONDS,
-    so a run of many substeps per frame does not look like a hang."""
+    so a run of many substeps per frame does not look like a hang. Substeps are only enqueued:
+    before it logs, it waits for ``device`` (when given) so that the figures are the device's."""
 
-    def __init__(self, what: str, frames: int, substeps: int, every: float | None = None, first: int = 0):
-        self.what, self.frames, self.substeps, self.first = what, frames, substeps, first
+    def __init__(
+        self,
+        what: str,
+        frames: int,
+        substeps: int,
+        every: float | None = None,
+        first: int = 0,
+        device: Device | None = None,
+    ):
+        self.what, self.frames, self.substeps, self.first, self.device = what, frames, substeps, first, device
         self.every = PROGRESS_SECONDS if every is None else every
         self.start = self.last = time.perf_counter()
 
@@ -56,6 +74,9 @@ class FrameProgress:
         frame -= self.first
         now = time.perf_counter()
         if now - self.last >= self.every:
+            if self.device is not None:
+                self.device.finish()
+                now = time.perf_counter()
             self.last = now
             done = frame * self.substeps + substep + 1
             total = self.frames * self.substeps
@@ -207,15 +228,15 @@ def check_inside(x: torch.Tensor, grid: Grid) -> None:
         )
 
 
-def finite(state: State) -> bool:
-    """Whether positions, velocities and deformation gradients are all finite."""
-    return all(bool(torch.isfinite(t).all()) for t in (state.x, state.v, state.F))
+def finite(*tensors: torch.Tensor) -> bool:
+    """Whether every value of ``tensors`` is finite."""
+    return all(bool(torch.isfinite(t).all()) for t in tensors)
 
 
-def cfl_breach(state: State, dt: float, dx: float) -> float | None:
-    """The fastest particle's speed (m/s) when it moves more than CFL_NUMBER cells in ``dt``
-    (s) on a grid of spacing ``dx`` (m), else None."""
-    vmax = float(state.v.double().norm(dim=-1).max())
+def cfl_breach(v: torch.Tensor, dt: float, dx: float) -> float | None:
+    """The fastest particle's speed (m/s) of velocities ``v`` [N, 3] (m/s) when it moves
+    more than CFL_NUMBER cells in ``dt`` (s) on a grid of spacing ``dx`` (m), else None."""
+    vmax = float(v.double().norm(dim=-1).max())
     return vmax if vmax * dt > CFL_NUMBER * dx else None
 
 
@@ -224,8 +245,15 @@ class Simulator:
     :class:`SimulationSpec` (``spec``), the state it advances, and the substep kernels with
     their buffers (``kernels``, also used by the differentiable runs of clflow.mpm.autograd).
 
+    The state, the particles' constant data and the boundary table live on the device
+    (``device_state``, ``device_particles``); ``state`` is the host's view of the state, read
+    when asked (in place on devices that share the host's memory), and in-place edits of
+    it reach the device before the next substep.
+
     Args:
-        positions: [N, 3] initial positions (m), inside the grid.
+        positions: [N, 3] initial positions (m), inside the grid. The tensors given may live
+            on any one torch device: they are copied to the host once, and run() returns
+            the trajectory on that device.
         volume: rest volume per particle (m^3), a number or [N].
         materials: one :class:`MaterialSpec` or a list of them (then ``material_index`` [N]
             picks each particle's entry).
@@ -277,7 +305,13 @@ class Simulator:
             raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         self.device = device or get_device()
         self._check_grid(grid)
-        positions = torch.as_tensor(positions)
+        #: the torch device of the tensors given: where run() returns its trajectory
+        self.origin = origin_device(
+            positions, volume, velocities, material_index, release_times, what="Simulator: the tensors"
+        )
+        host = lambda t: to_cpu(t, self.device)  # noqa: E731
+        positions, volume, velocities = host(torch.as_tensor(positions)), host(volume), host(velocities)
+        material_index, release_times = host(material_index), host(release_times)
         if positions.dim() != 2 or positions.shape[1] != 3:
             raise InputError(f"positions: expected shape [N, 3], got {list(positions.shape)}")
         n = positions.shape[0]
@@ -315,8 +349,7 @@ class Simulator:
             mass_eps=MASS_EPS_REL * float(mass.min()),
         )
         eye = torch.eye(3, dtype=dtype).expand(n, 3, 3).contiguous()
-        self.state = State(x, v, torch.zeros(n, 3, 3, dtype=dtype), eye, plastic0)
-        self._next = self.state.empty_like()
+        host_state = State(x, v, torch.zeros(n, 3, 3, dtype=dtype), eye, plastic0)
 
         conditions = list(boundaries)
         if walls is not None:
@@ -340,7 +373,7 @@ class Simulator:
             dtype,
             tuple(material_limits),
         )
-        auto = self.stable_substeps(v)
+        auto = self._stable_substeps(v)
         if substeps is None:
             substeps = auto
         elif int(substeps) < 1:
@@ -356,7 +389,12 @@ class Simulator:
         self.time = 0.0
         self.frame = 0
         self.kernels = SubstepKernels(self.device, dtype, n, grid, particles.material, p2g, float(flip))
-        self._clamped = torch.zeros(n, dtype=torch.uint8)
+        self.device_particles = to_device(particles, self.device)
+        self.device_boundaries = DeviceArray.of(self.device, self.spec.boundaries, "boundaries")
+        self.accelerations = DriverAccelerations(self.device, drivers, dtype)
+        self._state = to_device(host_state, self.device)
+        self._next = self._state.empty_like()
+        self._clamped = DeviceArray.zeros(self.device, (n,), torch.uint8)
         self._progress: FrameProgress | None = None  # set while run() runs
 
     # -- validation -------------------------------------------------------------------------
@@ -390,7 +428,10 @@ class Simulator:
 
     def stable_substeps(self, v: torch.Tensor | None = None) -> int:
         """Smallest substep count per frame meeting the CFL, elastic-wave and viscous limits."""
-        limits = self._dt_limits(self.state.v if v is None else v)
+        return self._stable_substeps(self.state.v if v is None else v)
+
+    def _stable_substeps(self, v: torch.Tensor) -> int:
+        limits = self._dt_limits(v)
         dt_max, reason = min(limits, default=(self.frame_dt, ""))
         if not dt_max > 0:  # a speed so large its square overflows: the run has blown up
             raise SimulationError(
@@ -425,18 +466,38 @@ class Simulator:
 
     @property
     def n(self) -> int:
-        return self.state.x.shape[0]
+        return self._state.x.shape[0]
+
+    @property
+    def state(self) -> State:
+        """The current state as host tensors (see the class docstring): edit it in place to
+        change what the next substep starts from."""
+        return State(*(a.host_view() for a in arrays_of(self._state)))
+
+    @property
+    def device_state(self) -> State:
+        """The current state as DeviceArrays, with the host view's edits sent to the device."""
+        for array in arrays_of(self._state):
+            array.push_host_edits()
+        return self._state
 
     def substep_inputs(self) -> SubstepInputs:
-        """What the next substep reads besides the state (at the current time)."""
+        """What the next substep reads besides the state (at the current time), on the device."""
         return SubstepInputs(
-            self.particles, self.time, self.dt, self.gravity, self.boundaries, self.drivers.accel(self.time, self.dtype)
+            self.device_particles,
+            self.time,
+            self.dt,
+            self.gravity,
+            self.device_boundaries,
+            self.accelerations.at(self.time),
         )
 
     def step(self) -> None:
-        """Advance one substep (dt seconds)."""
-        self.kernels.run(self.state, self._next, self.substep_inputs(), self._clamped)
-        self.state, self._next = self._next, self.state
+        """Advance one substep (dt seconds); the kernels are enqueued, not waited for."""
+        self.kernels.run(self.device_state, self._next, self.substep_inputs(), self._clamped)
+        for array in arrays_of(self._next):
+            array.device_wrote()
+        self._state, self._next = self._next, self._state
         self.time += self.dt
 
     def advance_frame(self) -> int:
@@ -445,19 +506,21 @@ class Simulator:
 
         Raises :class:`SimulationError` if the state became NaN/inf."""
         self._clamped.zero_()
-        v_before = self.state.v.clone()
+        v_before = self.device_state.v.clone()  # on the device; read only to explain a blow-up
         for s in range(self.substeps):
             self.step()
             if self._progress is not None:
                 self._progress.tick(self.frame, s)
         self.frame += 1
-        if not finite(self.state):
+        state = self.state
+        if not finite(state.x, state.v, state.F):
+            v_before = v_before.read()
             raise SimulationError(
                 f"the simulation became NaN/inf during frame {self.frame} (t = {self.time:.4g} s); likely cause: "
                 f"dt = {self.dt:.3g} s is too large ({self.limit_reason(v_before)}; stable substeps per frame now: "
                 f"{self.stable_substeps(v_before)}), or extreme material parameters / forces"
             )
-        count = int(self._clamped.sum(dtype=torch.int64))
+        count = int(self._clamped.read().sum(dtype=torch.int64))
         if count:
             warnings.warn(
                 f"frame {self.frame}: {count} particles left the grid and were clamped to "
@@ -465,7 +528,7 @@ class Simulator:
                 RuntimeWarning,
                 stacklevel=2,
             )
-        vmax = cfl_breach(self.state, self.dt, self.grid.dx)
+        vmax = cfl_breach(state.v, self.dt, self.grid.dx)
         if vmax is not None:
             warnings.warn(
                 f"frame {self.frame}: max speed {vmax:.3g} m/s breaks the CFL limit at dt = {self.dt:.3g} s; "
@@ -481,7 +544,7 @@ class Simulator:
         if int(frames) < 0:
             raise InputError(f"frames must be >= 0, got {frames}")
         snaps = [self._snapshot(0)]
-        self._progress = FrameProgress("simulation", int(frames), self.substeps, first=self.frame)
+        self._progress = FrameProgress("simulation", int(frames), self.substeps, first=self.frame, device=self.device)
         try:
             for k in range(int(frames)):
                 snaps.append(self._snapshot(self.advance_frame()))
@@ -489,13 +552,14 @@ class Simulator:
                     on_frame(k + 1)
         finally:
             self._progress = None
+        back = lambda t: to_origin(t, self.origin, self.device)  # noqa: E731
         return Trajectory(
-            x=torch.stack([s[0] for s in snaps]),
-            v=torch.stack([s[1] for s in snaps]),
-            F=torch.stack([s[2] for s in snaps]),
-            plastic=torch.stack([s[3] for s in snaps]),
-            time=torch.tensor([s[4] for s in snaps], dtype=torch.float64),
-            clamped=torch.tensor([s[5] for s in snaps], dtype=torch.int64),
+            x=back(torch.stack([s[0] for s in snaps])),
+            v=back(torch.stack([s[1] for s in snaps])),
+            F=back(torch.stack([s[2] for s in snaps])),
+            plastic=back(torch.stack([s[3] for s in snaps])),
+            time=back(torch.tensor([s[4] for s in snaps], dtype=torch.float64)),
+            clamped=back(torch.tensor([s[5] for s in snaps], dtype=torch.int64)),
         )
 
     def _snapshot(self, clamped: int):

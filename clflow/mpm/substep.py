@@ -11,10 +11,16 @@
 State n is only read, so the adjoint can replay a substep from a checkpoint; tau and the
 grids go into a :class:`SubstepTape`, the caller's (to keep them for the adjoint) or the
 kernels' own scratch one.
+
+Everything a substep touches lives in device memory (:class:`~clflow.runtime.arrays.DeviceArray`):
+the state, the particles' constant data, the boundary table, the driver accelerations and the
+tape. A substep only enqueues kernels; it copies nothing between host and device and does not
+wait for the device.
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, fields
 from typing import Literal
 
@@ -30,10 +36,15 @@ from clflow.mpm.constants import (
     kernel_defines,
     velocity_channels,
 )
+from clflow.runtime.arrays import DeviceArray
 from clflow.runtime.bridge import numpy_real, real_of
 from clflow.runtime.devices import Device
 
 P2GMode = Literal["auto", "private", "atomic"]
+P2G_MODES = ("auto", "private", "atomic")
+#: Forces the P2G path of every simulator whose caller asks for "auto" (the default):
+#: "private" or "atomic". CI runs the MPM suite with the atomic path on PoCL this way.
+P2G_ENV = "CLFLOW_P2G"
 MAX_GRID_COPIES = 16  # private P2G grids at most (memory: copies x nodes x 4 reals)
 GRID_COPY_BUDGET = 1 << 30  # bytes all private grid copies may take together
 #: Fixes the number of private P2G grid copies. The copies' sum order sets the last bits of a
@@ -52,8 +63,6 @@ def grid_copies(device: Device, copy_bytes: int, n: int) -> int:
 
 def wanted_grid_copies(device: Device) -> int:
     """Private P2G grid copies wanted on ``device``: $CLFLOW_P2G_COPIES, else 2 per compute unit."""
-    import os
-
     fixed = os.environ.get(GRID_COPIES_ENV, "").strip()
     if fixed:
         if not fixed.isdigit() or int(fixed) < 1:
@@ -83,22 +92,44 @@ class Grid:
         return [np.int32(n) for n in self.resolution] + [real_t(self.dx)] + [real_t(o) for o in self.origin]
 
 
+def p2g_path(device: Device, requested: P2GMode = "auto") -> str:
+    """The P2G path a simulator takes: ``requested`` unless "auto"; then $CLFLOW_P2G, else
+    private grid copies on CPU devices (deterministic, no atomics) and atomics elsewhere."""
+    if requested not in P2G_MODES:
+        raise InputError(f"p2g must be one of {', '.join(P2G_MODES)}, not {requested!r}")
+    if requested != "auto":
+        return requested
+    forced = os.environ.get(P2G_ENV, "").strip().lower()
+    if forced:
+        if forced not in P2G_MODES:
+            raise InputError(f"${P2G_ENV} must be one of {', '.join(P2G_MODES)}, got {forced!r}")
+        if forced != "auto":
+            return forced
+    return "private" if device.info.type == "CPU" else "atomic"
+
+
 @dataclass
 class State:
     """Particle state at one instant (SI): x, v [N, 3] (m, m/s), C, F [N, 3, 3] (affine velocity
-    1/s, deformation gradient), plastic [N] (metal: yield stress gained, Pa; snow: J_P)."""
+    1/s, deformation gradient), plastic [N] (metal: yield stress gained, Pa; snow: J_P).
+    Fields are torch tensors on the host, or DeviceArrays (``to_device(state, device)``) for
+    the kernels."""
 
-    x: torch.Tensor
-    v: torch.Tensor
-    C: torch.Tensor
-    F: torch.Tensor
-    plastic: torch.Tensor
+    x: torch.Tensor | DeviceArray
+    v: torch.Tensor | DeviceArray
+    C: torch.Tensor | DeviceArray
+    F: torch.Tensor | DeviceArray
+    plastic: torch.Tensor | DeviceArray
 
     def clone(self) -> "State":
         return State(*(getattr(self, f.name).clone() for f in fields(self)))
 
     def empty_like(self) -> "State":
-        return State(*(torch.empty_like(getattr(self, f.name)) for f in fields(self)))
+        return State(*(_empty_like(getattr(self, f.name)) for f in fields(self)))
+
+
+def _empty_like(t: torch.Tensor | DeviceArray) -> torch.Tensor | DeviceArray:
+    return t.empty_like() if isinstance(t, DeviceArray) else torch.empty_like(t)
 
 
 @dataclass
@@ -106,14 +137,15 @@ class Particles:
     """What stays constant during a run: mass, volume [N] (kg, m^3), material [N] int32
     (kernel ids), param [N, PARAM_COUNT] kernel parameters, group [N] int32 (driver group or
     -1), release_time [N] (s; a particle moves only from then on) and mass_eps (kg): grid
-    nodes lighter than this are empty (MASS_EPS_REL x the lightest particle)."""
+    nodes lighter than this are empty (MASS_EPS_REL x the lightest particle). Host tensors,
+    or DeviceArrays for the kernels."""
 
-    mass: torch.Tensor
-    volume: torch.Tensor
-    material: torch.Tensor
-    param: torch.Tensor
-    group: torch.Tensor
-    release_time: torch.Tensor
+    mass: torch.Tensor | DeviceArray
+    volume: torch.Tensor | DeviceArray
+    material: torch.Tensor | DeviceArray
+    param: torch.Tensor | DeviceArray
+    group: torch.Tensor | DeviceArray
+    release_time: torch.Tensor | DeviceArray
     mass_eps: float
 
 
@@ -154,54 +186,71 @@ class StressStage:
         svd = build("mpm/stress.cl", "trial_svd_simd") if self.needs_svd else None
         return build(source, name[adjoint, self.elastic_only]), svd
 
-    def svd_buffers(self, n: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """U [n, 3, 3], s [n, 3], V [n, 3, 3] of svd3(F_tr) (empty when no model needs them)."""
+    def svd_buffers(self, device: Device, n: int, dtype: torch.dtype) -> tuple[DeviceArray, DeviceArray, DeviceArray]:
+        """U [n, 3, 3], s [n, 3], V [n, 3, 3] of svd3(F_tr) on ``device`` (empty when no model needs them)."""
         m = n if self.needs_svd else 0
-        return torch.empty(m, 3, 3, dtype=dtype), torch.empty(m, 3, dtype=dtype), torch.empty(m, 3, 3, dtype=dtype)
+        return tuple(DeviceArray.empty(device, shape, dtype) for shape in ((m, 3, 3), (m, 3), (m, 3, 3)))
+
+
+class DriverAccelerations:
+    """The driver groups' accelerations [groups, 3] (m/s^2) on the device: one array per set of
+    active force stages, uploaded the first time that set is active, so that stepping copies
+    nothing. ``stage_accel`` [stages, 3] (default: the stages' own) is this run's."""
+
+    def __init__(self, device: Device, drivers, dtype: torch.dtype, stage_accel: torch.Tensor | None = None):
+        self.device, self.drivers, self.dtype = device, drivers, dtype
+        self.stage_accel = stage_accel
+        self._tables: dict[tuple[bool, ...], DeviceArray] = {}
+
+    def at(self, t: float) -> DeviceArray:
+        """The accelerations at time ``t`` (s)."""
+        key = tuple(bool(a) for a in self.drivers.active(t).tolist())
+        table = self._tables.get(key)
+        if table is None:
+            accel = self.drivers.accel(t, self.dtype, self.stage_accel)
+            table = self._tables[key] = DeviceArray.of(self.device, accel, "driver accelerations")
+        return table
 
 
 @dataclass(frozen=True)
 class SubstepInputs:
-    """What one substep reads besides the state: the particles' constant data, the time at
-    its start ``t`` (s), its length ``dt`` (s), ``gravity`` (m/s^2), the boundary table
-    [B, BC_STRIDE] and the driver accelerations ``accel`` [groups, 3] (m/s^2) during it."""
+    """What one substep reads besides the state, on the device: the particles' constant data
+    (DeviceArrays), the time at its start ``t`` (s), its length ``dt`` (s), ``gravity``
+    (m/s^2), the boundary table [B, BC_STRIDE] and the driver accelerations ``accel``
+    [groups, 3] (m/s^2) during it."""
 
     particles: Particles
     t: float
     dt: float
     gravity: tuple[float, float, float]
-    boundaries: torch.Tensor
-    accel: torch.Tensor
+    boundaries: DeviceArray
+    accel: DeviceArray
 
     def grid_update_args(self, real_t) -> list:
         """The grid update's (and its adjoint's) scalars: dt, t (s), gravity (m/s^2), mass_eps (kg)."""
         return [real_t(self.dt), real_t(self.t), *(real_t(g) for g in self.gravity), real_t(self.particles.mass_eps)]
 
-    def boundary_args(self, b) -> list:
-        """The boundary table bound in ``b`` and its row count, as the grid kernels take them."""
-        return [b.input(self.boundaries, "boundaries"), np.int32(self.boundaries.shape[0])]
+    def boundary_args(self) -> list:
+        """The boundary table and its row count, as the grid kernels take them."""
+        return [self.boundaries, np.int32(self.boundaries.shape[0])]
 
 
 @dataclass
 class SubstepTape:
-    """What a substep writes besides the next state, and its adjoint reads: tau [N, 3, 3]
-    (Kirchhoff stress, Pa), the grid [nodes, GRID_CH] (m, mv[, mv0]; kg, kg m/s), the grid
-    velocities [nodes, 3] (m/s) and, with a PIC/FLIP blend, their change in the substep
-    grid_dv [nodes, 3] (else [1, 3], unused)."""
+    """What a substep writes besides the next state, and its adjoint reads (DeviceArrays):
+    tau [N, 3, 3] (Kirchhoff stress, Pa), the grid [nodes, GRID_CH] (m, mv[, mv0]; kg,
+    kg m/s), the grid velocities [nodes, 3] (m/s) and, with a PIC/FLIP blend, their change in
+    the substep grid_dv [nodes, 3] (else [1, 3], unused)."""
 
-    tau: torch.Tensor
-    grid_mv: torch.Tensor
-    grid_v: torch.Tensor
-    grid_dv: torch.Tensor
+    tau: DeviceArray
+    grid_mv: DeviceArray
+    grid_v: DeviceArray
+    grid_dv: DeviceArray
 
     @staticmethod
-    def empty(n: int, nodes: int, dtype: torch.dtype, flip: float = 0.0) -> "SubstepTape":
-        return SubstepTape(
-            torch.empty(n, 3, 3, dtype=dtype),
-            torch.empty(nodes, grid_channels(flip), dtype=dtype),
-            torch.empty(nodes, 3, dtype=dtype),
-            torch.empty(nodes if flip > 0 else 1, 3, dtype=dtype),
-        )
+    def empty(device: Device, n: int, nodes: int, dtype: torch.dtype, flip: float = 0.0) -> "SubstepTape":
+        shapes = ((n, 3, 3), (nodes, grid_channels(flip)), (nodes, 3), (nodes if flip > 0 else 1, 3))
+        return SubstepTape(*(DeviceArray.empty(device, shape, dtype) for shape in shapes))
 
 
 def check_grid_memory(info, grid: Grid, itemsize: int, flip: float = 0.0) -> None:
@@ -223,27 +272,35 @@ def check_grid_memory(info, grid: Grid, itemsize: int, flip: float = 0.0) -> Non
         )
 
 
-def launch_stress(owner, b, dt: float, F, C, elastic_args: list, svd_args: list) -> None:
+def launch_stress(owner, dt: float, F, C, elastic_args: list, svd_args: list) -> None:
     """Enqueue a stress stage, forward or adjoint, of ``owner`` (:class:`SubstepKernels` or its
-    adjoint: device, n, k_stress, k_svd, U/s/V) on buffers of the binding ``b``: an elastic-only
-    program takes ``[n, dt, F, C, *elastic_args]`` on SIMD lanes; the others take the SVD
-    of the trial F first (when k_svd), then ``[n, dt, F, C, U, s, V, *svd_args]`` per particle."""
+    adjoint: device, n, k_stress, k_svd, U/s/V): an elastic-only program takes
+    ``[n, dt, F, C, *elastic_args]`` on SIMD lanes; the others take the SVD of the trial F
+    first (when k_svd), then ``[n, dt, F, C, U, s, V, *svd_args]`` per particle."""
     dev, R, n = owner.device, owner.real_t, np.int32(owner.n)
     lanes = -(-owner.n // SIMD_LANES)
     if owner.elastic_only:
         dev.launch(owner.k_stress, lanes, [n, R(dt), F, C, *elastic_args])
         return
-    U, s, V = b.inout(owner.U, "U"), b.inout(owner.s, "s"), b.inout(owner.V, "V")
+    U, s, V = owner.U, owner.s, owner.V
     if owner.k_svd is not None:
         dev.launch(owner.k_svd, lanes, [n, R(dt), F, C, U, s, V])
     dev.launch(owner.k_stress, owner.n, [n, R(dt), F, C, U, s, V, *svd_args])
 
 
+def p2g_particle_args(real_t, state: State, tape: SubstepTape, inputs: SubstepInputs) -> list:
+    """The particle arguments of the P2G kernels and of their adjoint (P2G_PARTICLE_ARGS of
+    kernels_cl/mpm/p2g.cl): n, dt, x, v, C, tau, mass, volume, group, accel."""
+    p = inputs.particles
+    n = np.int32(state.x.shape[0])
+    return [n, real_t(inputs.dt), state.x, state.v, state.C, tape.tau, p.mass, p.volume, p.group, inputs.accel]
+
+
 class SubstepKernels:
     """The substep kernels of one device, precision, particle count, grid, set of material ids
-    (``materials``: the kernel ids of the particles) and PIC/FLIP blend ``flip`` (0: APIC),
-    with their scratch buffers (U, s, V of F_tr, the private P2G grid copies and a
-    :class:`SubstepTape` for runs that keep none)."""
+    (``materials``: the kernel ids of the particles), P2G path (:func:`p2g_path`) and PIC/FLIP
+    blend ``flip`` (0: APIC), with their scratch buffers (U, s, V of F_tr, the private P2G
+    grid copies and a :class:`SubstepTape` for runs that keep none)."""
 
     def __init__(
         self,
@@ -260,15 +317,13 @@ class SubstepKernels:
         self.device, self.dtype, self.n, self.grid, self.flip = device, dtype, n, grid, float(flip)
         channels = grid_channels(self.flip)
         self.real, self.real_t = real_of(dtype, "simulation"), numpy_real(dtype, "simulation")
-        if p2g == "auto":
-            p2g = "private" if device.info.type == "CPU" else "atomic"
-        self.p2g = p2g
+        self.p2g = p2g = p2g_path(device, p2g)
         stage = StressStage.of(materials)
         defines = stage.defines(self.flip)
         k = lambda src, name: device.kernel(src, name, self.real, defines)  # noqa: E731
         self.elastic_only = stage.elastic_only
         self.k_stress, self.k_svd = stage.kernels(device, self.real)
-        self.U, self.s, self.V = stage.svd_buffers(n, dtype)
+        self.U, self.s, self.V = stage.svd_buffers(device, n, dtype)
         self.k_grid = k("mpm/grid.cl", "grid_update")
         self.k_g2p = k("mpm/g2p.cl", "g2p")
         itemsize = torch.tensor([], dtype=dtype).element_size()
@@ -280,93 +335,68 @@ class SubstepKernels:
             self.copies = grid_copies(device, grid_bytes, n)
             self.chunk = -(-n // self.copies)
             self.grid_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * grid_bytes)
-        elif p2g == "atomic":
-            self.k_p2g = k("mpm/p2g.cl", "p2g_atomic")
         else:
-            raise ValueError(f"p2g must be 'auto', 'private' or 'atomic', not {p2g!r}")
-        self.scratch = SubstepTape.empty(n, grid.nodes, dtype, self.flip)
+            self.k_p2g = k("mpm/p2g.cl", "p2g_atomic")
+        self.scratch = SubstepTape.empty(device, n, grid.nodes, dtype, self.flip)
 
     def run(
         self,
         state: State,
         out: State,
         inputs: SubstepInputs,
-        clamped: torch.Tensor,
+        clamped: DeviceArray,
         tape: SubstepTape | None = None,
     ) -> None:
-        """Advance ``state`` (time inputs.t) by inputs.dt into ``out``; ``clamped`` uint8 [N]
-        flags that G2P sets to 1 for particles it clamps; tau and the grids go into ``tape``
-        (default: ``self.scratch``)."""
+        """Enqueue the substep from ``state`` (time inputs.t) by inputs.dt into ``out`` (States
+        of DeviceArrays); ``clamped`` uint8 [N] flags that G2P sets to 1 for particles it
+        clamps; tau and the grids go into ``tape`` (default: ``self.scratch``)."""
         dev, R, n = self.device, self.real_t, np.int32(self.n)
         grid_args = self.grid.kernel_args(R)
         tape = tape or self.scratch
-        particles, t, dt, accel = inputs.particles, inputs.t, inputs.dt, inputs.accel
-        with dev.bind() as b:
-            x, v, C = b.input(state.x, "x"), b.input(state.v, "v"), b.input(state.C, "C")
-            tau = b.inout(tape.tau, "tau")
-            grid_mv, grid_v = b.inout(tape.grid_mv, "grid"), b.inout(tape.grid_v, "grid_v")
-            grid_dv = b.inout(tape.grid_dv, "grid_dv")
-            F, plastic = b.input(state.F, "F"), b.input(state.plastic, "plastic")
-            param, F_out, plastic_out = (
-                b.input(particles.param, "param"),
-                b.output(out.F, "F_out"),
-                b.output(out.plastic, "plastic_out"),
+        particles, dt = inputs.particles, inputs.dt
+        launch_stress(
+            self,
+            dt,
+            state.F,
+            state.C,
+            [state.plastic, particles.param, out.F, out.plastic, tape.tau],
+            [state.plastic, particles.material, particles.param, out.F, out.plastic, tape.tau],
+        )
+        p2g_args = p2g_particle_args(R, state, tape, inputs)
+        if self.p2g == "private":
+            dev.launch(
+                self.k_p2g,
+                self.copies,
+                grid_args + p2g_args + [np.int32(self.copies), np.int32(self.chunk), self.grid_copies],
+                local_size=1,
             )
-            launch_stress(
-                self,
-                b,
-                dt,
-                F,
-                C,
-                [plastic, param, F_out, plastic_out, tau],
-                [plastic, b.input(particles.material, "material"), param, F_out, plastic_out, tau],
-            )
-            p2g_args = [
+            size = tape.grid_mv.numel()
+            dev.launch(self.k_reduce, size, [np.int64(size), np.int32(self.copies), self.grid_copies, tape.grid_mv])
+        else:
+            tape.grid_mv.zero_()  # on the device, in queue order: the atomics add onto zeros
+            dev.launch(self.k_p2g, self.n, grid_args + p2g_args + [tape.grid_mv])
+        dev.launch(
+            self.k_grid,
+            self.grid.nodes,
+            grid_args + inputs.grid_update_args(R) + [tape.grid_mv, tape.grid_v, tape.grid_dv] + inputs.boundary_args(),
+        )
+        dev.launch(
+            self.k_g2p,
+            self.n,
+            grid_args
+            + [
                 n,
                 R(dt),
-                x,
-                v,
-                C,
-                tau,
-                b.input(particles.mass, "mass"),
-                b.input(particles.volume, "volume"),
-                b.input(particles.group, "group"),
-                b.input(accel, "accel"),
-            ]
-            if self.p2g == "private":
-                dev.launch(
-                    self.k_p2g,
-                    self.copies,
-                    grid_args + p2g_args + [np.int32(self.copies), np.int32(self.chunk), self.grid_copies],
-                    local_size=1,
-                )
-                size = tape.grid_mv.numel()
-                dev.launch(self.k_reduce, size, [np.int64(size), np.int32(self.copies), self.grid_copies, grid_mv])
-            else:
-                tape.grid_mv.zero_()
-                dev.launch(self.k_p2g, self.n, grid_args + p2g_args + [grid_mv])
-            dev.launch(
-                self.k_grid,
-                self.grid.nodes,
-                grid_args + inputs.grid_update_args(R) + [grid_mv, grid_v, grid_dv] + inputs.boundary_args(b),
-            )
-            dev.launch(
-                self.k_g2p,
-                self.n,
-                grid_args
-                + [
-                    n,
-                    R(dt),
-                    R(t),
-                    R(self.flip),
-                    x,
-                    v,
-                    grid_v,
-                    grid_dv,
-                    b.input(particles.release_time, "release_time"),
-                    b.output(out.x, "x_out"),
-                    b.output(out.v, "v_out"),
-                    b.output(out.C, "C_out"),
-                    b.inout(clamped, "clamped", torch.uint8),
-                ],
-            )
+                R(inputs.t),
+                R(self.flip),
+                state.x,
+                state.v,
+                tape.grid_v,
+                tape.grid_dv,
+                particles.release_time,
+                out.x,
+                out.v,
+                out.C,
+                clamped,
+            ],
+        )

@@ -5,6 +5,8 @@
     kern = dev.kernel("common/reduce.cl", "sum_rows_partial", real="double", defines=...)
     with dev.bind() as b:              # torch tensors as buffers (zero-copy on CPU devices)
         dev.launch(kern, global_size, [b.input(x), b.output(y), ...])
+    y = DeviceArray.of(dev, x)         # or state that stays on the device across launches
+    dev.launch(kern, global_size, [y, ...]); y.read()   # (clflow.runtime.arrays)
 
 This module imports neither torch nor pyopencl until a device is used.
 """
@@ -12,15 +14,19 @@ This module imports neither torch nor pyopencl until a device is used.
 from clflow.runtime.devices import (
     Device,
     DeviceInfo,
+    bridge_mode,
     default_kernel_cache_dir,
     get_device,
     list_devices,
     round_up,
+    set_bridge_mode,
     set_default_device,
 )
 
 __all__ = [
     "Device",
+    "bridge_mode",
+    "set_bridge_mode",
     "DeviceInfo",
     "default_kernel_cache_dir",
     "get_device",

@@ -1,9 +1,10 @@
-"""Torch CPU tensors as OpenCL buffers.
+"""Torch CPU tensors as OpenCL buffers for the kernels of one call.
 
-On devices that share memory with the host (CPU devices such as PoCL, integrated GPUs) a
-buffer is created with ``USE_HOST_PTR`` over the tensor's own storage: no copy, kernels read
-and write the tensor. On discrete GPUs inputs are copied in and outputs copied back.
-Either way the tensors stay referenced until the queue has finished::
+On devices that share memory with the host (``device.zero_copy``: CPU devices such as PoCL,
+integrated GPUs) a buffer is created with ``USE_HOST_PTR`` over the tensor's own storage: no
+copy, kernels read and write the tensor. On discrete GPUs (and in the bridge's copy mode)
+inputs are copied in and outputs copied back, and the bytes are counted in
+``device.transfers``. Either way the tensors stay referenced until the queue has finished::
 
     with device.bind() as b:
         x_buf = b.input(x)            # read by kernels
@@ -12,7 +13,9 @@ Either way the tensors stay referenced until the queue has finished::
     # here every kernel has finished and `out` holds the result
 
 Tensors must be contiguous CPU tensors of a supported dtype: anything else is an
-:class:`~clflow.errors.InputError`, never a silent copy or reinterpretation.
+:class:`~clflow.errors.InputError`, never a silent copy or reinterpretation. State that
+lives across calls (the simulator's) is a :class:`~clflow.runtime.arrays.DeviceArray`
+instead; ``input``/``output``/``inout`` pass one through as its buffer.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
+from clflow.runtime.arrays import DeviceArray
 
 if TYPE_CHECKING:
     from clflow.runtime.devices import Device
@@ -70,7 +74,7 @@ class TensorBinding:
 
         self._cl = cl
         self.device = device
-        self.zero_copy = device.info.host_unified_memory
+        self.zero_copy = device.zero_copy
         self._keep: list[object] = []  # tensors, arrays and buffers alive until finish
         self._readback: list[tuple[object, np.ndarray]] = []  # (buffer, host array) to sync
         self._scratch: list[object] = []  # the device's reusable scratch buffers, given back at finish
@@ -81,7 +85,13 @@ class TensorBinding:
     def __exit__(self, exc_type, exc, tb) -> None:
         self.finish()
 
-    def _buffer(self, t: torch.Tensor, what: str, dtype, readable: bool, writable: bool):
+    def _buffer(self, t: torch.Tensor | DeviceArray, what: str, dtype, readable: bool, writable: bool):
+        if isinstance(t, DeviceArray):
+            if dtype is not None and t.dtype != dtype:
+                raise InputError(f"{what}: dtype {t.dtype}, expected {dtype}")
+            if writable:
+                t.device_wrote()
+            return t.buffer
         check_tensor(t, what, dtype)
         cl, mf = self._cl, self._cl.mem_flags
         access = mf.READ_WRITE if (readable and writable) else (mf.READ_ONLY if readable else mf.WRITE_ONLY)
@@ -94,6 +104,7 @@ class TensorBinding:
             buf = cl.Buffer(self.device.context, access | mf.USE_HOST_PTR, hostbuf=host)
         elif readable:
             buf = cl.Buffer(self.device.context, access | mf.COPY_HOST_PTR, hostbuf=host)
+            self.device.transfers.count(to_device=host.nbytes)
         else:
             buf = cl.Buffer(self.device.context, access, host.nbytes)
         self._keep.extend((t, host, buf))
@@ -141,7 +152,8 @@ class TensorBinding:
                 mapped.base.release(queue)
             else:
                 cl.enqueue_copy(queue, host, buf)
-        queue.finish()
+                self.device.transfers.count(to_host=host.nbytes)
+        self.device.finish()
         self._keep.clear()
         self._readback.clear()
         for buf in self._scratch:

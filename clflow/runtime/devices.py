@@ -7,6 +7,11 @@ index:
 * ``spec`` (from ``--device`` or ``CLFLOW_DEVICE``) is a case-insensitive substring of the
   device name, or ``"platform:device"`` with a substring for each part;
 * without a spec: the first GPU, else PoCL's CPU device, else any CPU device.
+
+The bridge between torch and device memory (``Device.zero_copy``) aliases host memory on
+devices that share it; the copy mode (``CLFLOW_BRIDGE=copy``, ``clflow --bridge copy`` or
+:func:`set_bridge_mode`) makes every device keep separate buffers and copy explicitly, as a
+discrete GPU must, so the tests of that path run on a CPU device too.
 """
 
 from __future__ import annotations
@@ -24,9 +29,12 @@ INSTALL_HINT = (
     "install an OpenCL driver; on Debian/Ubuntu the CPU one is: apt-get install pocl-opencl-icd ocl-icd-libopencl1"
 )
 ENV_DEVICE = "CLFLOW_DEVICE"
+ENV_BRIDGE = "CLFLOW_BRIDGE"
+BRIDGE_MODES = ("auto", "copy")  # auto: alias host memory where the device shares it
 
 
 SPARE_SCRATCH_BYTES = 256 * 2**20  # scratch memory a device keeps for reuse (take_scratch)
+MAX_IN_FLIGHT = 256  # zero-copy arrays kept alive for pending commands before the device is waited for
 
 
 def default_kernel_cache_dir() -> Path:
@@ -125,8 +133,12 @@ def _describe(cl, platform, dev) -> DeviceInfo:
 
 
 def _discover() -> list[tuple[DeviceInfo, Any]]:
-    """All (info, pyopencl.Device) pairs of all platforms, in platform order."""
+    """All (info, pyopencl.Device) pairs of all platforms, in platform order (installed GPU
+    drivers without an ICD entry included: clflow.runtime.drivers)."""
+    from clflow.runtime.drivers import adopt_unregistered
+
     _configure_kernel_cache()
+    adoption = adopt_unregistered()
     cl = _import_pyopencl()
     try:
         platforms = cl.get_platforms()
@@ -140,7 +152,15 @@ def _discover() -> list[tuple[DeviceInfo, Any]]:
             continue
         found.extend((_describe(cl, platform, d), d) for d in devices)
     if not found:
-        raise DeviceError(f"no OpenCL platform or device found; {INSTALL_HINT}")
+        unused = (
+            ""
+            if adoption.used
+            else "".join(
+                f"; the {d.vendor} driver {d.path} is installed without an ICD entry: {d.how_to_register()}"
+                for d in adoption.drivers
+            )
+        )
+        raise DeviceError(f"no OpenCL platform or device found{unused}; {INSTALL_HINT}")
     return found
 
 
@@ -184,6 +204,27 @@ def round_up(n: int, multiple: int) -> int:
     return max(multiple, -(-n // multiple) * multiple)
 
 
+_BRIDGE_MODE: str | None = None
+
+
+def set_bridge_mode(mode: str | None) -> None:
+    """``"copy"``: separate device buffers and explicit copies on every device (what a
+    discrete GPU does); ``"auto"`` or None: ${ENV_BRIDGE}, else alias host memory where the
+    device shares it. Applies to buffers created from now on."""
+    global _BRIDGE_MODE
+    if mode is not None and mode not in BRIDGE_MODES:
+        raise DeviceError(f"bridge mode must be one of {', '.join(BRIDGE_MODES)}, got {mode!r}")
+    _BRIDGE_MODE = mode
+
+
+def bridge_mode() -> str:
+    """The bridge mode in force: set_bridge_mode's, else $CLFLOW_BRIDGE, else "auto"."""
+    mode = _BRIDGE_MODE or os.environ.get(ENV_BRIDGE, "").strip().lower() or "auto"
+    if mode not in BRIDGE_MODES:
+        raise DeviceError(f"${ENV_BRIDGE} must be one of {', '.join(BRIDGE_MODES)}, got {mode!r}")
+    return mode
+
+
 class Device:
     """One OpenCL device with its context, in-order queue and kernel cache.
 
@@ -199,6 +240,18 @@ class Device:
         self._programs: dict[tuple, Any] = {}
         self._kernels: dict[tuple, Any] = {}
         self._spare_scratch: list[Any] = []  # scratch buffers free for reuse (take_scratch)
+        from clflow.runtime.arrays import Transfers
+
+        self.transfers = Transfers()  # bytes the bridge copied between host and device
+        # host tensors of zero-copy arrays that enqueued commands use: kept alive until the
+        # queue has run them (OpenCL keeps its buffers alive, not the memory they alias)
+        self._in_flight: dict[int, Any] = {}
+
+    @property
+    def zero_copy(self) -> bool:
+        """Whether buffers alias torch tensors' host memory (a device sharing the host's
+        memory, outside the bridge's copy mode) instead of copying."""
+        return self.info.host_unified_memory and bridge_mode() != "copy"
 
     def __repr__(self) -> str:
         return f"Device({self.info.label!r})"
@@ -281,7 +334,8 @@ class Device:
         args: Sequence[Any],
         local_size: int | Sequence[int] | None = 64,
     ):
-        """Enqueue ``kernel(*args)`` with the global size padded to whole work-groups.
+        """Enqueue ``kernel(*args)`` with the global size padded to whole work-groups; a
+        :class:`~clflow.runtime.arrays.DeviceArray` argument is passed as its buffer.
 
         PoCL has no non-uniform work-groups, so every dimension of ``global_size`` is rounded
         up to a multiple of ``local_size``; kernels guard their tail work-items. ``local_size``
@@ -294,13 +348,34 @@ class Device:
             lsize = (local_size,) + (1,) * (len(gsize) - 1) if isinstance(local_size, int) else tuple(local_size)
             lsize = tuple(min(size, self.info.max_work_group_size) for size in lsize)
             gsize = tuple(round_up(g, size) for g, size in zip(gsize, lsize))
-        kernel.set_args(*args)
+        from clflow.runtime.arrays import DeviceArray
+
+        arrays = [a for a in args if isinstance(a, DeviceArray)]
+        self.keep_until_done(arrays)
+        kernel.set_args(*(a.buffer if isinstance(a, DeviceArray) else a for a in args))
         cl = _import_pyopencl()
         return cl.enqueue_nd_range_kernel(self.queue, kernel, gsize, lsize)
+
+    def keep_until_done(self, arrays) -> None:
+        """Keep the host memory of zero-copy DeviceArrays that enqueued commands use alive
+        until the queue has run them (the next :meth:`finish` or blocking transfer)."""
+        with self._lock:
+            for a in arrays:
+                if a.host is not None:
+                    self._in_flight[id(a.host)] = a.host
+            crowded = len(self._in_flight) > MAX_IN_FLIGHT
+        if crowded:
+            self.finish()
+
+    def queue_drained(self) -> None:
+        """Called after a blocking command: every earlier command of the in-order queue has run."""
+        with self._lock:
+            self._in_flight.clear()
 
     def finish(self) -> None:
         """Wait for every command enqueued on the device."""
         self.queue.finish()
+        self.queue_drained()
 
     def take_scratch(self, nbytes: int):
         """A device-only READ_WRITE buffer of at least ``nbytes``, reused when one is spare.

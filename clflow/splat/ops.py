@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from clflow.errors import InputError
+from clflow.runtime.arrays import origin_device, to_cpu, to_origin
 from clflow.runtime.bridge import real_of
 from clflow.runtime.devices import get_device
 from clflow.splat.binning import build_tile_lists, tile_grid
@@ -450,8 +451,6 @@ def _check(t: Tensor | None, name: str, shape: tuple, dtype: torch.dtype | None)
         raise InputError(f"rasterize: {name} has shape {list(t.shape)}, expected {want}")
     if dtype is not None and t.dtype != dtype:
         raise InputError(f"rasterize: {name} is {t.dtype} but means are {dtype}; use one float dtype")
-    if t.device.type != "cpu":
-        raise InputError(f"rasterize: {name} is on {t.device}; clflow takes CPU tensors")
     # one reduction in the common case: a sum is finite unless some value is NaN or inf
     # (or the values are so large that they overflow, which the exact check then clears)
     if t.numel() and not bool(torch.isfinite(t.sum())):
@@ -610,7 +609,30 @@ def rasterize_gaussians(
         the compositing kernels read, while they run).
         Differentiable w.r.t. means, quats, scales, covars, opacities, colors, sh_rotations,
         features and background.
+
+    Tensors may live on any torch device (all on one): they are copied to the host once, the
+    results come back on their device, and gradients flow back there (copies counted in
+    ``get_device().transfers``).
     """
+    tensors = (means, quats, scales, opacities, colors, viewmat, K, covars, sh_rotations, features, background)
+    origin = origin_device(*tensors, what="rasterize: the tensors")
+    if origin.type != "cpu":
+        device = get_device()
+        host = [to_cpu(t, device) for t in tensors]
+        image, alpha, depth, meta = rasterize_gaussians(
+            *host[:7],
+            width,
+            height,
+            covars=host[7],
+            sh_degree=sh_degree,
+            sh_rotations=host[8],
+            features=host[9],
+            background=host[10],
+            near=near,
+            render_depth=render_depth,
+        )
+        meta = {k: to_origin(v, origin, device) for k, v in meta.items()}
+        return (*(to_origin(t, origin, device) for t in (image, alpha, depth)), meta)
     with torch.no_grad():
         _validate_gaussians(means, quats, scales, opacities, colors, covars, sh_degree, sh_rotations, features)
         _validate_view(viewmat, K, width, height, near)

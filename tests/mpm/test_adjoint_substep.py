@@ -8,6 +8,7 @@ import torch
 from clflow.mpm import Grid, HalfSpace, MaterialSpec, Simulator, reference
 from clflow.mpm.adjoint import StateGrad, SubstepAdjoint
 from clflow.mpm.substep import Particles, SubstepTape
+from clflow.runtime.arrays import DeviceArray, to_device, to_host
 from tests.mpm._helpers import MATERIAL_CASES, cube, random_scene
 
 GRAD_FIELDS = ("x", "v", "C", "F", "plastic")
@@ -23,19 +24,24 @@ def warmed_up(steps=5, materials=("elastic",), **kwargs):
     return sim
 
 
+def clamp_flags(sim) -> DeviceArray:
+    return DeviceArray.zeros(sim.device, (sim.n,), torch.uint8)
+
+
 def kernel_vjp(sim, grad_after: StateGrad):
     """(dL/d state, dL/d param, dL/d mass) of L = <grad_after, substep(state)> by the kernels."""
-    n, dtype = sim.n, sim.dtype
-    tape = SubstepTape.empty(n, sim.grid.nodes, dtype, sim.flip)
-    after = sim.state.empty_like()
+    n, dtype, dev = sim.n, sim.dtype, sim.device
+    tape = SubstepTape.empty(dev, n, sim.grid.nodes, dtype, sim.flip)
+    state = sim.device_state
+    after = state.empty_like()
     inputs = sim.substep_inputs()
-    sim.kernels.run(sim.state, after, inputs, torch.zeros(n, dtype=torch.uint8), tape=tape)
-    adjoint = SubstepAdjoint(sim.device, dtype, n, sim.grid, sim.particles.material, sim.flip)
-    grad = StateGrad.zeros(n, dtype)
-    param_grad = torch.zeros_like(sim.particles.param)
-    mass_grad = torch.zeros_like(sim.particles.mass)
-    adjoint.run(sim.state, after, tape, inputs, grad_after, grad, param_grad, mass_grad)
-    return grad, param_grad, mass_grad
+    sim.kernels.run(state, after, inputs, clamp_flags(sim), tape=tape)
+    adjoint = SubstepAdjoint(dev, dtype, n, sim.grid, sim.particles.material, sim.flip)
+    grad = StateGrad.zeros(dev, n, dtype)
+    param_grad = DeviceArray.zeros(dev, sim.particles.param.shape, dtype)
+    mass_grad = DeviceArray.zeros(dev, (n,), dtype)
+    adjoint.run(state, after, tape, inputs, to_device(grad_after, dev), grad, param_grad, mass_grad)
+    return to_host(grad), param_grad.read(), mass_grad.read()
 
 
 def reference_vjp(sim, grad_after: StateGrad):
@@ -120,9 +126,12 @@ def test_elastic_stress_adjoint_fused_and_per_particle(materials, fused):
 
 
 def kernel_loss(sim, grad_after: StateGrad, state, particles) -> float:
+    """<grad_after, substep(state)> by the kernels, from a host ``state`` and ``particles``."""
+    state = to_device(state, sim.device)
     out = state.empty_like()
-    inputs = dataclasses.replace(sim.substep_inputs(), particles=particles)
-    sim.kernels.run(state, out, inputs, torch.zeros(sim.n, dtype=torch.uint8))
+    inputs = dataclasses.replace(sim.substep_inputs(), particles=to_device(particles, sim.device))
+    sim.kernels.run(state, out, inputs, clamp_flags(sim))
+    out = to_host(out)
     return float(sum((getattr(grad_after, f) * getattr(out, f)).sum() for f in GRAD_FIELDS))
 
 
@@ -138,8 +147,10 @@ def over_a_floor(mode: str):
 def floor_node_velocities(sim) -> torch.Tensor:
     """[k, 3] velocities (m/s) of the next substep's grid nodes below FLOOR_Y, before the
     boundary conditions."""
-    sim.kernels.run(sim.state, sim.state.empty_like(), sim.substep_inputs(), torch.zeros(sim.n, dtype=torch.uint8))
-    m, mv = sim.kernels.scratch.grid_mv[:, 0], sim.kernels.scratch.grid_mv[:, 1:]
+    state = sim.device_state
+    sim.kernels.run(state, state.empty_like(), sim.substep_inputs(), clamp_flags(sim))
+    grid = sim.kernels.scratch.grid_mv.read()
+    m, mv = grid[:, 0], grid[:, 1:]
     node_y = sim.grid.dx * (torch.arange(sim.grid.nodes) // sim.grid.resolution[2] % sim.grid.resolution[1])
     on_floor = (m > sim.particles.mass_eps) & (node_y.double() < FLOOR_Y)
     return mv[on_floor] / m[on_floor, None] + sim.dt * torch.tensor(sim.gravity, dtype=torch.float64)

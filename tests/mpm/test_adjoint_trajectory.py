@@ -10,7 +10,7 @@ from clflow.mpm import Force, Grid, MaterialSpec, Simulator
 from clflow.mpm.autograd import memory_estimate, region_masses, replay_segment, simulate
 from clflow.mpm.constants import KERNEL_PARAMETERS, MATERIAL_IDS
 from clflow.mpm.parameterization import parameterization
-from tests.mpm._helpers import MATERIAL_CASES, cube
+from tests.mpm._helpers import MATERIAL_CASES, assert_repeats, cube
 
 E_TRUE, NU_TRUE, RHO_TRUE, TAU_Y_TRUE = 2e4, 0.3, 800.0, 500.0
 
@@ -132,6 +132,7 @@ def test_float32_gradient_within_a_few_percent():
 
 
 def test_gradients_are_bit_identical_across_runs():
+    """(On the deterministic P2G path; to ATOMIC_REPEAT_TOL on the atomic one.)"""
     runs = []
     for _ in range(2):
         sim = scene(torch.float32)
@@ -140,7 +141,7 @@ def test_gradients_are_bit_identical_across_runs():
         loss_of(run(sim, FRAMES, inputs), w).backward()
         runs.append({k: v.grad for k, v in inputs.items()})
     for name in runs[0]:
-        assert torch.equal(runs[0][name], runs[1][name]), name
+        assert_repeats(runs[0][name], runs[1][name], sim, name)
 
 
 def test_per_particle_parameters_sum_to_the_global_gradient():
@@ -198,7 +199,8 @@ def test_identification_recovers_the_parameter(material, name, true, start, para
 
 def test_two_level_checkpointing_gives_identical_gradients():
     """A memory budget that only fits 3 of the 10 substeps of a frame: backward replays
-    segments from intermediate states, with bit-identical results."""
+    segments from intermediate states, with bit-identical results (on the deterministic P2G
+    path; to ATOMIC_REPEAT_TOL on the atomic one)."""
     sim = scene()
     w = weights(sim, FRAMES)
     full = memory_estimate(sim.n, sim.grid.nodes, FRAMES, sim.substeps, sim.dtype)
@@ -210,7 +212,7 @@ def test_two_level_checkpointing_gives_identical_gradients():
         loss_of(run(sim, FRAMES, inputs, memory_budget=memory_budget), w).backward()
         grads.append({k: v.grad for k, v in inputs.items()})
     for name in grads[0]:
-        assert torch.equal(grads[0][name], grads[1][name]), name
+        assert_repeats(grads[0][name], grads[1][name], sim, name)
     with pytest.raises(InputError, match="memory_budget .* is too small"):
         simulate(sim, FRAMES, memory_budget=budget // 4)
 

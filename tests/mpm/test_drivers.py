@@ -15,7 +15,7 @@ from clflow.mpm import (
     layer_release_times,
     reference,
 )
-from tests.mpm._helpers import cube, free_body
+from tests.mpm._helpers import assert_repeats, cube, free_body
 
 GRID = Grid((32, 32, 32), 1 / 32)
 SOFT = MaterialSpec("elastic", {"youngs_modulus": 2e4, "poissons_ratio": 0.3})
@@ -94,13 +94,14 @@ def test_collider_friction_acts_only_while_moving_into_the_surface(mode, away_fl
     sim.step()
     idx = torch.arange(sim.grid.nodes)
     node_x, node_y = dx * (idx // 256).double(), dx * (idx // 16 % 16).double()
-    on_floor = (sim.kernels.scratch.grid_mv[:, 0] > 0) & (node_y < floor)
+    grid_mv, grid_v = sim.kernels.scratch.grid_mv.read(), sim.kernels.scratch.grid_v.read()
+    on_floor = (grid_mv[:, 0] > 0) & (node_y < floor)
     into, away = on_floor & (node_x < 0.5), on_floor & (node_x > 0.5)
     assert int(into.sum()) > 0 and int(away.sum()) > 0
     expected_into = torch.tensor([1 - mu_f * 0.5, 0.0, 0.0], dtype=torch.float64)
-    assert torch.allclose(sim.kernels.scratch.grid_v[into], expected_into, rtol=0, atol=1e-12)
+    assert torch.allclose(grid_v[into], expected_into, rtol=0, atol=1e-12)
     expected_away = torch.tensor(away_floor_velocity, dtype=torch.float64)
-    assert torch.allclose(sim.kernels.scratch.grid_v[away], expected_away, rtol=0, atol=1e-12)
+    assert torch.allclose(grid_v[away], expected_away, rtol=0, atol=1e-12)
     ref, _ = reference.substep(
         before, sim.particles, sim.grid, 0.0, sim.dt, sim.gravity, sim.boundaries, sim.drivers.accel(0.0, sim.dtype)
     )
@@ -116,7 +117,7 @@ def test_collider_time_window():
         sim = Simulator(x, 1e-5, SOFT, GRID, boundaries=boundaries, walls=None, frame_dt=0.05)
         runs.append(sim.run(4))
     with_floor, free = runs
-    assert torch.equal(with_floor.x[2], free.x[2])  # identical up to t = 0.1 s
+    assert_repeats(with_floor.x[2], free.x[2], sim)  # identical up to t = 0.1 s
     assert float(with_floor.x[2][:, 1].min()) < 0.48  # by then the block reached into the floor
     assert float(with_floor.x[-1][:, 1].mean()) > float(free.x[-1][:, 1].mean()) + 0.05
 

@@ -82,14 +82,17 @@ def test_a_rejection_quarters_the_trust_region_and_a_new_best_point_doubles_it(l
     base, J = opt.jacobian(state.z, opt.frames, 1, variables, opt.model_grid)
     stepped = opt.lm_step(state, base, J, opt.frames, variables)
     first = abs(stepped.z["youngs_modulus"] - state.z["youngs_modulus"])
-    assert stepped.step_scale == 1.0 and first == pytest.approx(1.0)  # the full LM_MAX_STEP
+    assert stepped.step_scale == pytest.approx(1.0) and first == pytest.approx(1.0)  # the full LM_MAX_STEP
     rejected = opt.lm_step(stepped, dataclasses.replace(base, loss=2 * base.loss), J, opt.frames, variables)
-    assert rejected.step_scale == 0.25 and rejected.z == state.z
+    assert rejected.step_scale == pytest.approx(0.25) and rejected.z == state.z
     again = opt.lm_step(rejected, base, J, opt.frames, variables)  # back at the best point
-    assert again.step_scale == 0.25 and abs(again.z["youngs_modulus"] - state.z["youngs_modulus"]) <= 0.25 + 1e-12
+    assert (
+        again.step_scale == pytest.approx(0.25)
+        and abs(again.z["youngs_modulus"] - state.z["youngs_modulus"]) <= 0.25 + 1e-12
+    )
     trial, J_trial = opt.jacobian(again.z, opt.frames, 1, variables, opt.model_grid)
     accepted = opt.lm_step(again, trial, J_trial, opt.frames, variables)
-    assert accepted.best["z"] == again.z and accepted.step_scale == 0.5
+    assert accepted.best["z"] == again.z and accepted.step_scale == pytest.approx(0.5)
 
 
 def test_a_rejected_short_step_is_not_tried_again(lm):

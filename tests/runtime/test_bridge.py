@@ -21,7 +21,8 @@ def run_scatter(device, binding, values, index, out):
 
 
 def test_zero_copy_buffer_aliases_the_tensor_and_kernels_write_into_it(device):
-    assert device.info.host_unified_memory
+    if not device.zero_copy:
+        pytest.skip(f"{device.info.label} has its own memory here (a discrete device or the bridge's copy mode)")
     out = torch.zeros(4)
     with device.bind() as b:
         assert b.zero_copy

@@ -69,6 +69,9 @@ def test_ambiguous_name_is_an_error_not_a_silent_pick():
 
 
 def test_this_machine_has_the_pocl_cpu_device(device):
+    """What CI's set-up installs; elsewhere (a GPU selected) it says nothing about clflow."""
+    if not device.info.is_pocl:
+        pytest.skip(f"the selected device is {device.info.label}, not PoCL: CI's set-up is not under test here")
     assert any(info.is_pocl and info.type == "CPU" for info in devmod.list_devices())
     assert device.info.fp64 and device.info.compute_units >= 1
 

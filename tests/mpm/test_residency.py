@@ -1,0 +1,57 @@
+"""The simulator's state stays on the device: substeps copy nothing between host and device,
+in the bridge's copy mode (what a discrete GPU does) as on shared memory."""
+
+import torch
+
+from clflow.mpm import Force, Region
+from clflow.mpm.autograd import simulate
+from tests.mpm._helpers import MATERIAL_CASES, random_scene
+
+FORCE = Force(Region.box((0.3, 0.3, 0.3), (0.5, 0.7, 0.7)), start=0.0, end=0.015, acceleration=(2.0, 0.0, 0.0))
+
+
+def scene(**kwargs):
+    """Every material, a driver force stage that ends within the second frame (a new set of
+    active stages mid-run), float64."""
+    return random_scene(MATERIAL_CASES, n=400, forces=[FORCE], **kwargs)
+
+
+def test_substeps_copy_nothing_in_copy_mode(copy_mode):
+    sim = scene()
+    assert not sim.device.zero_copy
+    sim.advance_frame()  # uploads the driver accelerations of the first set of active stages
+    mark = sim.device.transfers.mark()
+    for _ in range(2 * sim.substeps):  # through the stage's end: the second table is uploaded once
+        sim.step()
+    stages_off = sim.device.transfers.since(mark)
+    assert stages_off.to_host == 0 and stages_off.to_device == sim.accelerations.at(1.0).nbytes
+    mark = sim.device.transfers.mark()
+    for _ in range(sim.substeps):
+        sim.step()
+    assert sim.device.transfers.since(mark).total == 0
+
+
+def test_host_edits_of_the_state_reach_the_device(copy_mode):
+    sim = scene()
+    sim.state.v.zero_()  # edited in place through the host view
+    sim.step()
+    moved = float((sim.state.x - scene().state.x).abs().max())
+    assert moved < 2 * 9.81 * sim.dt**2  # started at rest: gravity's reach in one substep (not 0.6 m/s x dt)
+
+
+def differentiable_run_copies(substeps: int) -> tuple[int, int]:
+    """(bytes to the device, bytes to the host) of a differentiable run of 3 frames and its
+    backward, at ``substeps`` substeps per frame, in copy mode."""
+    sim = scene(substeps=substeps)
+    E = torch.tensor(1e4, dtype=torch.float64, requires_grad=True)
+    mark = sim.device.transfers.mark()
+    frames = simulate(sim, 3, params={"youngs_modulus": E})
+    (frames.x[-1].sum() + frames.v.sum()).backward()
+    moved = sim.device.transfers.since(mark)
+    return moved.to_device, moved.to_host
+
+
+def test_a_differentiable_run_copies_per_frame_not_per_substep(copy_mode):
+    """The bytes a run and its adjoint copy do not depend on the substeps per frame: each
+    frame's outputs go to the host once, each frame's output gradients come back once."""
+    assert differentiable_run_copies(10) == differentiable_run_copies(20)

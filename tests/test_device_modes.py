@@ -1,0 +1,36 @@
+"""The device suites again as a discrete GPU runs them: the bridge's copy mode (separate
+device buffers, explicit copies) and the atomic P2G path, both of which a CPU device would
+otherwise never take. A bug of that class (a host write the device never sees, an atomic sum
+onto a stale grid) fails here, on PoCL, in CI."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+MODES = {
+    "copy": ({"CLFLOW_BRIDGE": "copy"}, ["tests/mpm", "tests/splat", "tests/flow", "tests/runtime"]),
+    "copy+atomic-p2g": ({"CLFLOW_BRIDGE": "copy", "CLFLOW_P2G": "atomic"}, ["tests/mpm"]),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", list(MODES))
+def test_device_suites_pass_in_the_discrete_gpu_modes(mode):
+    env_mode, suites = MODES[mode]
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST")}
+    env.update(env_mode)
+    res = subprocess.run(
+        # oclgrind's tests run their own simulated device, the same in every mode
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-k", "not oclgrind", *suites],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=1800,
+    )
+    assert res.returncode == 0, f"{mode}: {' '.join(suites)}\n{res.stdout[-6000:]}\n{res.stderr[-2000:]}"
