@@ -25,7 +25,9 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
     from clflow.mpm import Grid, MaterialSpec, Simulator
     from clflow.mpm.autograd import engine, memory_estimate, simulate
 
-    device = ctx.obj.device() if ctx.obj else None
+    from clflow.runtime import get_device
+
+    device = ctx.obj.device() if ctx.obj else get_device()
     dtype = torch.float64 if double else torch.float32
     dx = 1.0 / grid_res
     ny = max(1, round((particles / 2) ** (1 / 3)))  # block of (2 ny) x ny x ny particles
@@ -66,15 +68,19 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
 
     with open("/proc/self/statm") as statm:  # resident pages now (Linux)
         base = int(statm.read().split()[1]) * resource.getpagesize() / 2**20
+    mark = device.transfers.mark()
     timed_forward = measure(lambda: simulate(sim, frames, params={"youngs_modulus": E}), warmup=0)
+    between = device.transfers.mark()
     out, forward, forward_cpu = timed_forward.result, timed_forward.median_wall, timed_forward.median_cpu
     loss = (out.x[-1] ** 2).sum() + (out.F[-1] ** 2).sum()
     timed_backward = measure(loss.backward, warmup=0)
+    copied = {"forward": between.since(mark), "backward": device.transfers.since(between)}
     backward, backward_cpu = timed_backward.median_wall, timed_backward.median_cpu
     peak = peak_mib() - base
     steps = frames * substeps
+    memory = "separate memory" if not device.zero_copy else "shared memory"
     click.echo(
-        f"device: {device.info.label if device else 'default'}; {n:,} particles, grid {grid_res}^3, "
+        f"device: {device.info.label} ({memory}); {n:,} particles, grid {grid_res}^3, "
         f"{frames} frames x {substeps} substeps, {'float64' if double else 'float32'}"
     )
     click.echo(
@@ -88,10 +94,24 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
     copies = engine(sim).adjoint.copies if sim.kernels.p2g == "private" else 0
     est = memory_estimate(n, sim.grid.nodes, frames, substeps, dtype, grid_copies=copies) / 2**20
     click.echo(f"peak memory growth {peak:8.1f} MiB (peak RSS - RSS before the run); formula {est:.1f} MiB")
+    for name, moved in copied.items():
+        click.echo(
+            f"{name:8s} copied {moved.to_device / 2**20:8.2f} MiB to the device, {moved.to_host / 2**20:8.2f} MiB "
+            f"to the host: {moved.total / steps / 2**10:.1f} KiB per substep, {moved.total / frames / 2**20:.2f} MiB "
+            f"per frame (each frame's x, v, F or their gradients)"
+        )
     return {
         "particles": n,
-        "forward": timed_forward.record(),
-        "backward": timed_backward.record(),
+        "forward": {
+            **timed_forward.record(),
+            "bytes_to_device": copied["forward"].to_device,
+            "bytes_to_host": copied["forward"].to_host,
+        },
+        "backward": {
+            **timed_backward.record(),
+            "bytes_to_device": copied["backward"].to_device,
+            "bytes_to_host": copied["backward"].to_host,
+        },
         "backward_over_forward": backward / forward,
         "peak_memory_mib": peak,
         "formula_memory_mib": est,

@@ -22,6 +22,7 @@ def optimize(gaussians, image, frames, grid, iterations):
     from clflow.benchmark import measure
     from clflow.mpm.simulator import StabilityWarning
     from clflow.pipeline.optimize import Optimization
+    from clflow.runtime import get_device
     from clflow.scene.config import load_config
     from clflow_datasets.demo import benchmark_size, make_demo
 
@@ -46,18 +47,36 @@ def optimize(gaussians, image, frames, grid, iterations):
             f"  make scene + guidance video {make.median_wall:7.2f} s;  load, fill, video flow "
             f"{load.median_wall:7.2f} s"
         )
-        rows = []
-        opt.progress = rows.append  # each row has the iteration's seconds, as the optimiser timed it
+        rows, device = [], get_device()
+        copied = []  # bytes moved between host and device by each iteration
+
+        def record(row: dict) -> None:  # each row has the iteration's seconds, as the optimiser timed it
+            rows.append(row)
+            copied.append(device.transfers.since(marks[-1]))
+            marks.append(device.transfers.mark())
+
+        marks = [device.transfers.mark()]
+        opt.progress = record
         run = measure(opt.run, warmup=0)
-        for row in rows:
+        for row, moved in zip(rows, copied):
             click.echo(
-                f"  iteration {row['iteration']}: {row['seconds']:7.2f} s ({row['substeps']} substeps per frame)"
+                f"  iteration {row['iteration']}: {row['seconds']:7.2f} s ({row['substeps']} substeps per frame; "
+                f"copied {moved.to_device / 2**20:.1f} MiB to the device, {moved.to_host / 2**20:.1f} MiB to the host)"
             )
         best = min(r["seconds"] for r in rows)
         click.echo(f"  per iteration: {best:.2f} s best, {sum(r['seconds'] for r in rows) / len(rows):.2f} s mean")
+        click.echo(f"  device: {device.info.label} ({'shared' if device.zero_copy else 'separate'} memory)")
     return {
         "make_scene": make.record(),
         "load": load.record(),
         "run": run.record(),
-        "iterations": [{"seconds": r["seconds"], "substeps": r["substeps"]} for r in rows],
+        "iterations": [
+            {
+                "seconds": r["seconds"],
+                "substeps": r["substeps"],
+                "bytes_to_device": m.to_device,
+                "bytes_to_host": m.to_host,
+            }
+            for r, m in zip(rows, copied)
+        ],
     }

@@ -46,24 +46,34 @@ def raster(obj, gaussians: int, size: int, repeat: int, double: bool) -> dict:
     import torch
 
     from clflow.benchmark import Stopwatch
-    from clflow.runtime import set_default_device
+    from clflow.runtime import get_device, set_default_device
+    from clflow.runtime.arrays import Transfers
     from clflow.splat.ops import rasterize_gaussians
 
     if obj is not None and obj.device_spec:
         set_default_device(obj.device_spec)
+    device = get_device()
     dtype = torch.float64 if double else torch.float32
     args, kwargs = make_scene(gaussians, size, size, dtype=dtype)
     leaves = [a.requires_grad_() for a in args[:5]]
     forward, backward = Stopwatch(), Stopwatch()
-    for _ in range(repeat + 1):  # the first run builds the kernels and is not timed
+    copied = {"forward": Transfers(), "backward": Transfers()}  # over the timed calls
+    for run in range(repeat + 1):  # the first run builds the kernels and is not timed
         for leaf in leaves:
             leaf.grad = None
+        mark = device.transfers.mark()
         with forward:
             image, alpha, depth, meta = rasterize_gaussians(*args, **kwargs)
+        between = device.transfers.mark()
         loss = image.sum() + alpha.sum() + depth.sum()
         with backward:
             loss.backward()
+        if run:
+            for name, moved in (("forward", between.since(mark)), ("backward", device.transfers.since(between))):
+                copied[name].count(moved.to_device, moved.to_host)
     visible = int((meta["radii"] > 0).sum())
+    memory = "separate memory" if not device.zero_copy else "shared memory"
+    click.echo(f"device: {device.info.label} ({memory})")
     click.echo(f"raster: {gaussians} Gaussians ({visible} visible), {size}x{size}, RGB + depth, {dtype}")
     click.echo(
         f"  tile entries: {meta['num_tile_entries']} ({meta['tile_list_bytes'] / 2**20:.1f} MiB of tile lists, "
@@ -72,10 +82,12 @@ def raster(obj, gaussians: int, size: int, repeat: int, double: bool) -> dict:
     results = {"visible": visible, "tile_entries": int(meta["num_tile_entries"])}
     for name, watch in (("forward", forward), ("backward", backward)):
         timing = watch.timing(skip=1)
-        results[name] = timing.record()
+        to_device, to_host = copied[name].to_device / repeat, copied[name].to_host / repeat
+        results[name] = {**timing.record(), "bytes_to_device_per_call": to_device, "bytes_to_host_per_call": to_host}
         click.echo(
             f"  {name + ':':9} {1e3 * timing.median_wall:8.1f} ms wall, {1e3 * timing.median_cpu:8.1f} ms CPU "
-            f"(medians of {repeat})"
+            f"(medians of {repeat}); copied per call: {to_device / 2**20:.2f} MiB to the device, "
+            f"{to_host / 2**20:.2f} MiB to the host"
         )
     click.echo(f"  load average: {timing.load_after} on {os.cpu_count()} cores (wall times grow with it)")
     return results

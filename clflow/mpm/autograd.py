@@ -97,6 +97,9 @@ class _Engine:
 
 
 _ENGINES: "weakref.WeakKeyDictionary[Simulator, _Engine]" = weakref.WeakKeyDictionary()
+#: share of a discrete device's memory a differentiable run may plan for (the rest: the
+#: rasteriser's and the driver's own); beyond it backward replays frames in segments
+DEVICE_MEMORY_SHARE = 0.8
 
 
 def engine(sim: Simulator) -> _Engine:
@@ -118,7 +121,14 @@ class _Run:
         self.device = sim.device
         self.spec = spec = dataclasses.replace(sim.spec, substeps=substeps)
         self.t0, self.substeps, self.dt = sim.time, substeps, spec.dt
-        self.segment = replay_segment(sim.n, spec.grid.nodes, frames, substeps, spec.dtype, memory_budget, spec.flip)
+        info = sim.device.info
+        if memory_budget is None and not sim.device.zero_copy:  # a discrete device: its own memory bounds the run
+            memory_budget, what = int(DEVICE_MEMORY_SHARE * info.global_mem_size), f"{info.label}'s memory"
+        else:
+            what = "memory_budget"
+        self.segment = replay_segment(
+            sim.n, spec.grid.nodes, frames, substeps, spec.dtype, memory_budget, spec.flip, what=what
+        )
 
     def time(self, frame: int, substep: int) -> float:
         return self.t0 + (frame * self.substeps + substep) * self.dt
@@ -138,8 +148,8 @@ class _Run:
         self.accel = DriverAccelerations(dev, self.spec.drivers, self.spec.dtype, stage_accel.detach().double())
         self.particles = dataclasses.replace(
             sim.device_particles,
-            param=DeviceArray.of(dev, param.detach(), "material parameters"),
-            mass=DeviceArray.of(dev, mass.detach(), "masses"),
+            param=DeviceArray.alias(dev, param.detach(), "material parameters"),
+            mass=DeviceArray.alias(dev, mass.detach(), "masses"),
         )
         self.clamped = DeviceArray.zeros(dev, (n,), torch.uint8)
         dtype = self.spec.dtype
@@ -273,11 +283,18 @@ def memory_estimate(
 
 
 def replay_segment(
-    n: int, nodes: int, frames: int, substeps: int, dtype: torch.dtype, memory_budget: int | None, flip: float = 0.0
+    n: int,
+    nodes: int,
+    frames: int,
+    substeps: int,
+    dtype: torch.dtype,
+    memory_budget: int | None,
+    flip: float = 0.0,
+    what: str = "memory_budget",
 ) -> int:
     """Substeps replayed at once in backward: a whole frame when that fits ``memory_budget``
     (bytes; None: no limit), else the longest segment that does (two-level checkpointing).
-    InputError when not even one substep at a time fits."""
+    InputError when not even one substep at a time fits (``what`` names the budget)."""
     if memory_budget is None or memory_estimate(n, nodes, frames, substeps, dtype, flip=flip) <= memory_budget:
         return substeps
     for k in range(substeps - 1, 0, -1):
@@ -285,8 +302,9 @@ def replay_segment(
             return k
     need = memory_estimate(n, nodes, frames, substeps, dtype, 1, flip=flip)
     raise InputError(
-        f"memory_budget {memory_budget / 2**20:.1f} MiB is too small for {frames} frames of {n} "
-        f"particles: the checkpoints and a one-substep replay need {need / 2**20:.1f} MiB"
+        f"{what} {memory_budget / 2**20:.1f} MiB is too small for {frames} frames of {n} "
+        f"particles: the checkpoints and a one-substep replay need {need / 2**20:.1f} MiB; "
+        f"simulate fewer frames or particles"
     )
 
 

@@ -389,10 +389,11 @@ class Simulator:
         self.time = 0.0
         self.frame = 0
         self.kernels = SubstepKernels(self.device, dtype, n, grid, particles.material, p2g, float(flip))
-        self.device_particles = to_device(particles, self.device)
-        self.device_boundaries = DeviceArray.of(self.device, self.spec.boundaries, "boundaries")
+        # constant data: on zero-copy devices the host tensors' own memory
+        self.device_particles = to_device(particles, self.device, alias=True)
+        self.device_boundaries = DeviceArray.alias(self.device, self.spec.boundaries, "boundaries")
         self.accelerations = DriverAccelerations(self.device, drivers, dtype)
-        self._state = to_device(host_state, self.device)
+        self._state = to_device(host_state, self.device, alias=True)  # fresh tensors: their memory is the state's
         self._next = self._state.empty_like()
         self._clamped = DeviceArray.zeros(self.device, (n,), torch.uint8)
         self._progress: FrameProgress | None = None  # set while run() runs

@@ -27,7 +27,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from clflow.errors import InputError
+from clflow.errors import DeviceError, InputError
 from clflow.mpm.constants import (
     MATERIAL_IDS,
     SIMD_LANES,
@@ -106,6 +106,23 @@ def p2g_path(device: Device, requested: P2GMode = "auto") -> str:
         if forced != "auto":
             return forced
     return "private" if device.info.type == "CPU" else "atomic"
+
+
+def check_device(device: Device, dtype: torch.dtype, p2g: P2GMode = "auto", differentiable: bool = False) -> None:
+    """DeviceError, one line naming the device and what it lacks, unless ``device`` can run
+    the simulator in ``dtype`` on the P2G path ``p2g`` and, when ``differentiable``, the
+    adjoint (whose deterministic reductions accumulate in float64)."""
+    info = device.info
+    if not info.fp64 and (dtype == torch.float64 or differentiable):
+        needs = "float64 simulation (--double)" if dtype == torch.float64 else "the adjoint's float64 reductions"
+        raise DeviceError(
+            f"{info.label} has no double precision (cl_khr_fp64), which {needs} needs; choose another device (--device)"
+        )
+    if dtype == torch.float64 and p2g_path(device, p2g) == "atomic" and not info.int64_atomics:
+        raise DeviceError(
+            f"{info.label} has no 64-bit atomics (cl_khr_int64_base_atomics), which the atomic P2G path needs in "
+            f"float64; simulate in float32, or take the private path ({P2G_ENV}=private)"
+        )
 
 
 @dataclass
@@ -317,6 +334,7 @@ class SubstepKernels:
         self.device, self.dtype, self.n, self.grid, self.flip = device, dtype, n, grid, float(flip)
         channels = grid_channels(self.flip)
         self.real, self.real_t = real_of(dtype, "simulation"), numpy_real(dtype, "simulation")
+        check_device(device, dtype, p2g)
         self.p2g = p2g = p2g_path(device, p2g)
         stage = StressStage.of(materials)
         defines = stage.defines(self.flip)

@@ -160,7 +160,7 @@ def simulate_particles(
     from clflow.mpm import Grid, MaterialSpec, Simulator
     from clflow.mpm.preview import PREVIEW_SIZE, write_preview
     from clflow.mpm.shapes import lattice_fill, load_particles
-    from clflow.mpm.substep import check_grid_memory
+    from clflow.mpm.substep import check_device, check_grid_memory
     from clflow.runtime import get_device
     from clflow.scene.config import DEFAULT_MAX_SUBSTEPS
 
@@ -170,6 +170,7 @@ def simulate_particles(
     dx = run.domain / (run.resolution - 1)
     grid = Grid((run.resolution,) * 3, dx)
     dtype = torch.float64 if run.double else torch.float32
+    check_device(device or get_device(), dtype)
     check_grid_memory((device or get_device()).info, grid, dtype.itemsize)  # before filling the shape at dx / 2
     if run.particles:
         x, volume = load_particles(run.particles)
@@ -331,9 +332,14 @@ def _optimize(
     cfg, config_path, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel
 ) -> dict:
     """run_optimization's work once its config is loaded."""
-    from clflow.limits import check_output
-    from clflow.pipeline.optimize import Optimization, parameter_unit
+    import torch
 
+    from clflow.limits import check_output
+    from clflow.mpm.substep import check_device
+    from clflow.pipeline.optimize import Optimization, parameter_unit
+    from clflow.runtime import get_device
+
+    check_device(get_device(), torch.float32, differentiable=True)  # before any work
     if iterations is not None:
         cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=iterations))
     if output is not None:

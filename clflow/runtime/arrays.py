@@ -118,7 +118,7 @@ class DeviceArray:
 
     __slots__ = ("device", "shape", "dtype", "nbytes", "buffer", "host", "_mirror", "_mirror_version")
 
-    def __init__(self, device: "Device", shape: Sequence[int], dtype: torch.dtype):
+    def __init__(self, device: "Device", shape: Sequence[int], dtype: torch.dtype, host: torch.Tensor | None = None):
         import pyopencl as cl
 
         if dtype not in ARRAY_DTYPES:
@@ -132,7 +132,7 @@ class DeviceArray:
         if self.nbytes == 0:  # OpenCL has no empty buffers; kernels never touch this one
             self.buffer = cl.Buffer(device.context, mf.READ_WRITE, 16)
         elif device.zero_copy:
-            self.host = torch.empty(self.shape, dtype=dtype)
+            self.host = torch.empty(self.shape, dtype=dtype) if host is None else host
             self.buffer = cl.Buffer(device.context, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=self.host.numpy())
         elif device.info.is_oclgrind:
             # oclgrind's uninitialised-value check flags a buffer the host never wrote, even
@@ -160,6 +160,16 @@ class DeviceArray:
         array = cls(device, t.shape, t.dtype)
         array.write(t, what)
         return array
+
+    @classmethod
+    def alias(cls, device: "Device", t: torch.Tensor, what: str = "tensor") -> "DeviceArray":
+        """Tensor ``t``'s values for kernels that only read them: on a zero-copy device the
+        tensor's own memory (no copy; ``t`` must then not change while kernels use it), else
+        an upload as by :meth:`of`."""
+        t = host_tensor(t, device, what)
+        if not device.zero_copy or not t.numel() or t.dtype not in ARRAY_DTYPES:
+            return cls.of(device, t, what)
+        return cls(device, t.shape, t.dtype, host=t)
 
     def empty_like(self) -> "DeviceArray":
         return DeviceArray(self.device, self.shape, self.dtype)
@@ -315,13 +325,13 @@ def _map_arrays(obj: Any, fn) -> Any:
     return replace(obj, **changes)
 
 
-def to_device(obj: Any, device: "Device") -> Any:
+def to_device(obj: Any, device: "Device", alias: bool = False) -> Any:
     """Dataclass ``obj`` with every tensor field uploaded into a new :class:`DeviceArray`
-    (other fields kept), e.g. a host :class:`~clflow.mpm.substep.State` -> its device twin."""
+    (other fields kept), e.g. a host :class:`~clflow.mpm.substep.State` -> its device twin;
+    ``alias``: the tensors' own memory where the device shares it (:meth:`DeviceArray.alias`)."""
     assert is_dataclass(obj)
-    return _map_arrays(
-        obj, lambda v, name: v if isinstance(v, DeviceArray) else DeviceArray.of(device, v.detach(), name)
-    )
+    make = DeviceArray.alias if alias else DeviceArray.of
+    return _map_arrays(obj, lambda v, name: v if isinstance(v, DeviceArray) else make(device, v.detach(), name))
 
 
 def to_host(obj: Any) -> Any:

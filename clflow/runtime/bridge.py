@@ -78,6 +78,7 @@ class TensorBinding:
         self._keep: list[object] = []  # tensors, arrays and buffers alive until finish
         self._readback: list[tuple[object, np.ndarray]] = []  # (buffer, host array) to sync
         self._scratch: list[object] = []  # the device's reusable scratch buffers, given back at finish
+        self._copies: list[tuple[object, np.ndarray]] = []  # (device buffer, host array) to copy at finish
 
     def __enter__(self) -> "TensorBinding":
         return self
@@ -139,9 +140,32 @@ class TensorBinding:
             self._scratch.append(buf)
         return buf
 
+    def read_element(self, buf, index: int, dtype) -> int | float:
+        """Element ``index`` of device buffer ``buf`` read as numpy ``dtype`` (waits for the
+        queue; e.g. a count the host needs to size the next step)."""
+        out = np.empty(1, dtype)
+        self._cl.enqueue_copy(self.device.queue, out, buf, src_offset=index * out.itemsize, is_blocking=True)
+        self.device.queue_drained()
+        self.device.transfers.count(to_host=out.nbytes)
+        return out[0].item()
+
+    def copy_to(self, t: torch.Tensor, buf) -> None:
+        """Fill tensor ``t`` (contiguous, CPU) from the start of device buffer ``buf`` when the
+        binding finishes (a scratch buffer's result the host keeps)."""
+        check_tensor(t, "copy_to")
+        if t.numel() == 0:
+            return
+        host = t.numpy()
+        self._keep.extend((t, host))
+        self._copies.append((buf, host))
+
     def finish(self) -> None:
         """Bring written tensors up to date, wait for the queue, release the references."""
         cl, queue = self._cl, self.device.queue
+        for buf, host in self._copies:
+            cl.enqueue_copy(queue, host, buf, is_blocking=False)
+            self.device.transfers.count(to_host=host.nbytes)
+        self._copies.clear()
         for buf, host in self._readback:
             if self.zero_copy:
                 # Map/unmap is the OpenCL way to make a USE_HOST_PTR buffer's host view

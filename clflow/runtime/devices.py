@@ -84,6 +84,7 @@ class DeviceInfo:
     local_mem_size: int
     global_mem_size: int
     max_mem_alloc_size: int  # the largest single buffer
+    int64_atomics: bool = False  # cl_khr_int64_base_atomics (float64 compare-and-swap atomics)
 
     @property
     def is_pocl(self) -> bool:
@@ -129,6 +130,7 @@ def _describe(cl, platform, dev) -> DeviceInfo:
         local_mem_size=int(dev.local_mem_size),
         global_mem_size=int(dev.global_mem_size),
         max_mem_alloc_size=int(dev.max_mem_alloc_size),
+        int64_atomics="cl_khr_int64_base_atomics" in extensions,
     )
 
 

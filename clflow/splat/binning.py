@@ -141,45 +141,43 @@ def build_tile_lists(
             "render fewer or smaller Gaussians, or a smaller image"
         )
     scan = device.kernel("splat/sort.cl", "scan_exclusive")
-    # 1. Gaussians by depth; entry offsets in that order
-    depth_pairs = [torch.empty(n, dtype=torch.int32) for _ in range(4)]
-    offsets = torch.empty(n + 1, dtype=torch.int32)
+    # the sort's buffers live on the device for this call only; the host reads the entry
+    # count and the lists the compositing op takes
     with device.bind() as b:
-        bufs = [b.inout(t) for t in depth_pairs]
-        device.launch(kern("depth_keys"), n, [b.input(depths), b.input(radii), *bufs[:2], np.int32(n)])
-        swapped = _radix_sort(device, b, bufs[:2], bufs[2:], n, 32, DEPTH_DIGIT_BITS)
-        order = bufs[3] if swapped else bufs[1]
-        counts = b.scratch(4 * n)
+        # 1. Gaussians by depth; entry offsets in that order
+        depth_pairs = [b.scratch(4 * n) for _ in range(4)]
+        device.launch(kern("depth_keys"), n, [b.input(depths), b.input(radii), *depth_pairs[:2], np.int32(n)])
+        swapped = _radix_sort(device, b, depth_pairs[:2], depth_pairs[2:], n, 32, DEPTH_DIGIT_BITS)
+        order = depth_pairs[3] if swapped else depth_pairs[1]
+        counts, offsets = b.scratch(4 * n), b.scratch(4 * (n + 1))
         device.launch(kern("gather_counts"), n, [order, b.input(tiles_touched), counts, np.int32(n)])
-        device.launch(scan, 1, [counts, b.output(offsets), np.int32(n)], 1)
-    order = depth_pairs[3] if swapped else depth_pairs[1]
-    m = int(offsets[n])
-    # 2. entries in depth order, 3. stable sort by tile, 4. per-tile ranges
-    tile_pairs = [torch.empty(m, dtype=torch.int32) for _ in range(4)]
-    slot_gaussian = torch.empty(m, dtype=torch.int32)
-    first_slot = torch.zeros(n, dtype=torch.int32)
-    ranges = torch.zeros(n_tiles, 2, dtype=torch.int32)
-    with device.bind() as b:
-        bufs = [b.inout(t) for t in tile_pairs]
+        device.launch(scan, 1, [counts, offsets, np.int32(n)], 1)
+        m = b.read_element(offsets, n, np.int32)
+        # 2. entries in depth order, 3. stable sort by tile, 4. per-tile ranges
+        tile_pairs = [b.scratch(4 * m) for _ in range(4)]
+        slot_gaussian = torch.empty(m, dtype=torch.int32)
+        first_slot = torch.empty(n, dtype=torch.int32)  # every Gaussian's is written
+        ranges = torch.zeros(n_tiles, 2, dtype=torch.int32)  # empty tiles stay (0, 0)
         device.launch(
             kern("emit_entries"),
             n,
             [
-                b.input(order),
-                b.input(offsets),
+                order,
+                offsets,
                 b.input(means2d),
                 b.input(radii),
-                *bufs[:2],
+                *tile_pairs[:2],
                 b.output(slot_gaussian),
-                b.inout(first_slot),
+                b.output(first_slot),
                 np.int32(n),
                 np.int32(tiles_x),
                 np.int32(tiles_y),
             ],
         )
         tile_bits = max(1, (n_tiles - 1).bit_length())
-        swapped = _radix_sort(device, b, bufs[:2], bufs[2:], m, tile_bits, TILE_DIGIT_BITS)
-        keys = bufs[2] if swapped else bufs[0]
+        swapped = _radix_sort(device, b, tile_pairs[:2], tile_pairs[2:], m, tile_bits, TILE_DIGIT_BITS)
+        keys, slots = (tile_pairs[2], tile_pairs[3]) if swapped else (tile_pairs[0], tile_pairs[1])
         device.launch(kern("tile_ranges"), m, [keys, b.inout(ranges), np.int32(m)])
-    sorted_slots = tile_pairs[3] if swapped else tile_pairs[1]
+        sorted_slots = torch.empty(m, dtype=torch.int32)
+        b.copy_to(sorted_slots, slots)
     return TileLists(ranges, sorted_slots, slot_gaussian, first_slot, tiles_touched)

@@ -1,10 +1,15 @@
 """The simulator's state stays on the device: substeps copy nothing between host and device,
 in the bridge's copy mode (what a discrete GPU does) as on shared memory."""
 
+import dataclasses
+import re
+
+import pytest
 import torch
 
-from clflow.mpm import Force, Region
-from clflow.mpm.autograd import simulate
+from clflow.errors import InputError
+from clflow.mpm import Force, Region, autograd
+from clflow.mpm.autograd import memory_estimate, simulate
 from tests.mpm._helpers import MATERIAL_CASES, random_scene
 
 FORCE = Force(Region.box((0.3, 0.3, 0.3), (0.5, 0.7, 0.7)), start=0.0, end=0.015, acceleration=(2.0, 0.0, 0.0))
@@ -55,3 +60,16 @@ def test_a_differentiable_run_copies_per_frame_not_per_substep(copy_mode):
     """The bytes a run and its adjoint copy do not depend on the substeps per frame: each
     frame's outputs go to the host once, each frame's output gradients come back once."""
     assert differentiable_run_copies(10) == differentiable_run_copies(20)
+
+
+def test_a_discrete_devices_memory_bounds_the_replay(copy_mode, monkeypatch):
+    """With separate device memory and no memory_budget, backward replays frames in segments
+    that fit the device (here one made small), and refuses, naming the device, a run that
+    does not fit even one substep at a time."""
+    sim = scene()
+    need = memory_estimate(sim.n, sim.grid.nodes, 3, sim.substeps, sim.dtype, segment=3)
+    small = dataclasses.replace(sim.device.info, global_mem_size=int(need / autograd.DEVICE_MEMORY_SHARE) + 1)
+    monkeypatch.setattr(sim.device, "info", small)
+    assert autograd._Run(sim, 3, sim.substeps).segment == 3
+    with pytest.raises(InputError, match=f"{re.escape(small.label)}'s memory .* is too small for 30 frames"):
+        autograd._Run(sim, 30, sim.substeps)

@@ -184,3 +184,29 @@ def test_viscoplastic_viscosity_needs_no_viscous_limit(material, params, eta):
     rho = get_material(material).default_density
     assert sim.dt > 10 * VISCOUS_NUMBER * rho * GRID.dx**2 / eta
     assert max_speed_after(sim, 5) < float(v.norm(dim=-1).max())
+
+
+@pytest.mark.parametrize(
+    "lacks, dtype, p2g, differentiable, match",
+    [
+        ({"fp64": False}, torch.float64, "private", False, r"no double precision \(cl_khr_fp64\), which float64"),
+        ({"fp64": False}, torch.float32, "private", True, "which the adjoint's float64 reductions need"),
+        ({"int64_atomics": False}, torch.float64, "atomic", False, r"no 64-bit atomics .* float32, or .*=private"),
+    ],
+)
+def test_a_device_without_a_needed_capability_is_refused_in_one_line(device, lacks, dtype, p2g, differentiable, match):
+    """Before any kernel is built or run: the line names the device and what it lacks."""
+    import dataclasses
+
+    from clflow.errors import DeviceError
+    from clflow.mpm.substep import check_device
+    from clflow.runtime.devices import Device
+
+    lacking = Device(dataclasses.replace(device.info, **lacks), device.cl_device)
+    with pytest.raises(DeviceError, match=match) as err:
+        check_device(lacking, dtype, p2g, differentiable)
+    assert "\n" not in str(err.value) and device.info.label in str(err.value)
+    check_device(lacking, torch.float32, p2g)  # float32 forward needs neither
+    if not differentiable:  # the simulator refuses it as well, before it builds a kernel
+        with pytest.raises(DeviceError, match=match):
+            Simulator(X, 1e-5, ELASTIC, GRID, dtype=dtype, p2g=p2g, device=lacking)
