@@ -46,7 +46,7 @@ def test_host_edits_of_the_state_reach_the_device(copy_mode):
 
 def differentiable_run_copies(substeps: int) -> tuple[int, int]:
     """(bytes to the device, bytes to the host) of a differentiable run of 3 frames and its
-    backward, at ``substeps`` substeps per frame, in copy mode."""
+    backward, at ``substeps`` substeps per frame."""
     sim = scene(substeps=substeps)
     E = torch.tensor(1e4, dtype=torch.float64, requires_grad=True)
     mark = sim.device.transfers.mark()
@@ -73,3 +73,10 @@ def test_a_discrete_devices_memory_bounds_the_replay(copy_mode, monkeypatch):
     assert autograd._Run(sim, 3, sim.substeps).segment == 3
     with pytest.raises(InputError, match=f"{re.escape(small.label)}'s memory .* is too small for 30 frames"):
         autograd._Run(sim, 30, sim.substeps)
+
+
+def test_on_shared_memory_nothing_is_copied_at_all(device):
+    """A zero-copy device (PoCL outside copy mode): a whole run and its adjoint copy 0 bytes."""
+    if not device.zero_copy:
+        pytest.skip(f"{device.info.label} has its own memory here")
+    assert differentiable_run_copies(10) == (0, 0)
