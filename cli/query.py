@@ -4,7 +4,7 @@ from pathlib import Path
 
 import click
 
-from clflow_cli.options import out_option, pixel_box_option
+from clflow_cli.options import InputFile, OutputPath, out_option, pixel_box_option
 
 # The same names as clflow.query.BACKENDS (tests/query/test_cli.py checks); written out so
 # that --help does not import numpy and OpenCV.
@@ -12,12 +12,12 @@ BACKEND_CHOICES = ("offline", "openai")
 
 
 @click.command()
-@click.argument("image", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("image", type=InputFile(path_type=Path))
 @click.option("--prompt", default="", help="Text about the object or scene, sent with the image.")
 @click.option("--name", "object_name", default="", metavar="TEXT",
               help="What the object is ('rubber duck'): the strongest hint for the offline backend.")  # fmt: skip
 @pixel_box_option()
-@click.option("--mask", type=click.Path(dir_okay=False, path_type=Path), default=None,
+@click.option("--mask", type=InputFile(path_type=Path), default=None,
               help="Image of the same size whose nonzero pixels are the object.")  # fmt: skip
 @click.option("--backend", type=click.Choice(BACKEND_CHOICES), default="offline", show_default=True,
               help="offline: the shipped knowledge base; openai: an OpenAI-compatible chat-completions server.")  # fmt: skip
@@ -32,7 +32,7 @@ BACKEND_CHOICES = ("offline", "openai")
 @click.option("--image-format", type=click.Choice(["png", "jpeg"]), default="png", show_default=True,
               help="Encoding of the crop sent to the model.")  # fmt: skip
 @out_option("output", "Result JSON (default: IMAGE's name + .material.json in the current folder).",
-            type=click.Path(dir_okay=False, path_type=Path))  # fmt: skip
+            type=OutputPath(file=True, path_type=Path))  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print the result record instead of a summary.")
 def query(
     image, prompt, object_name, box, mask, backend, llm_url, model, timeout, retries, image_format, output, as_json
@@ -44,6 +44,7 @@ def query(
     """
     import json
 
+    from clflow.errors import InputError
     from clflow.limits import check_output
     from clflow.query import ModelConfig, query_material
 
@@ -55,6 +56,12 @@ def query(
     result = query_material(
         image, prompt=prompt, object_name=object_name, box=box, mask=mask, backend=backend, model_config=config
     )
+    if result.backend == "offline" and not result.confidence:  # a default entry is no answer: write nothing
+        raise InputError(
+            f"the offline backend cannot tell what {image.name} shows (no knowledge-base entry matches "
+            f"{result.prompt!r} and it names no material type); name the object (--name 'rubber duck') or "
+            f"ask a model (--backend openai)"
+        )
     path = result.save(output)
     if as_json:
         click.echo(json.dumps(result.to_dict(), indent=2))

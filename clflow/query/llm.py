@@ -10,6 +10,8 @@ answer is read by :mod:`clflow.query.answer`.
 
 from __future__ import annotations
 
+import base64
+import html
 import http.client
 import ipaddress
 import json
@@ -129,14 +131,19 @@ def _redact_parameter(parameter: str) -> str:
 
 
 def _url_secrets(url: str) -> list[str]:
-    """The credentials written into ``url`` (its userinfo, key/token query values)."""
+    """The credentials written into ``url`` (its userinfo and its password, as written and
+    decoded; key/token query values), longest first."""
     try:
         parts = urllib.parse.urlsplit(url)
     except ValueError:
         return [url]
-    secrets = [parts.netloc.rpartition("@")[0]] if "@" in parts.netloc else []
+    secrets = []
+    if "@" in parts.netloc:
+        userinfo = parts.netloc.rpartition("@")[0]
+        password = userinfo.partition(":")[2]
+        secrets += [userinfo, password, urllib.parse.unquote(password)]
     secrets += [p.partition("=")[2] for p in parts.query.split("&") if _redact_parameter(p) != p]
-    return [s for s in secrets if s]
+    return sorted({s for s in secrets if s}, key=len, reverse=True)
 
 
 def _env(names: tuple[str, ...]) -> str | None:
@@ -261,11 +268,26 @@ class _Failure(Exception):
         return self.status is None or self.status in RETRY_STATUS
 
 
+def _without_credentials(url: str) -> tuple[str, str | None]:
+    """(``url`` without its user:password@, the HTTP basic Authorization header they make or
+    None): urllib would take them for part of the host name."""
+    parts = urllib.parse.urlsplit(url)
+    if "@" not in parts.netloc:
+        return url, None
+    userinfo, _, host = parts.netloc.rpartition("@")
+    user, _, password = userinfo.partition(":")
+    token = base64.b64encode(f"{urllib.parse.unquote(user)}:{urllib.parse.unquote(password)}".encode()).decode()
+    return urllib.parse.urlunsplit(parts._replace(netloc=host)), f"Basic {token}"
+
+
 def _post_once(config: ModelConfig, payload: bytes) -> bytes:
     headers = {"Content-Type": "application/json", "Accept": "application/json", "User-Agent": f"clflow/{__version__}"}
+    url, basic = _without_credentials(config.url)
     if config.api_key:
         headers["Authorization"] = f"Bearer {config.api_key}"
-    req = urllib.request.Request(config.url, data=payload, headers=headers, method="POST")
+    elif basic:
+        headers["Authorization"] = basic
+    req = urllib.request.Request(url, data=payload, headers=headers, method="POST")
     # A server on this machine is never reached through a proxy ($http_proxy etc.).
     proxies = {} if is_loopback(config.url) else None
     opener = urllib.request.build_opener(urllib.request.ProxyHandler(proxies))
@@ -291,13 +313,21 @@ def _reason(reason: object, timeout: float) -> str:
     return str(reason) or type(reason).__name__
 
 
+ERROR_TEXT_CHARS = 200  # of an error body that is not the API's JSON (an HTML page, say)
+
+
 def _error_text(exc: urllib.error.HTTPError) -> str:
-    body = exc.read()[:2000].decode("utf-8", "replace")
+    """One line from an error response: the API's JSON message, else an HTML page's title
+    (or its text), else the body's first characters."""
+    body = exc.read()[:20000].decode("utf-8", "replace")
     try:
         err = json.loads(body)["error"]
-        return str(err.get("message", err)) if isinstance(err, dict) else str(err)
+        text = str(err.get("message", err)) if isinstance(err, dict) else str(err)
     except (ValueError, KeyError, TypeError):
-        return body.strip() or "(no message)"
+        title = re.search(r"<title[^>]*>(.*?)</title>", body, re.I | re.S)
+        text = title.group(1) if title else re.sub(r"<[^>]+>", " ", body)
+    text = " ".join(html.unescape(text).split())
+    return (text[: ERROR_TEXT_CHARS - 3] + "...") if len(text) > ERROR_TEXT_CHARS else (text or "(no message)")
 
 
 def _retry_after(headers) -> float | None:

@@ -44,13 +44,22 @@ def test_offline_summary_and_default_output(run, photo, tmp_path):
 
 def test_json_output_and_warnings(run, photo, tmp_path):
     image = photo[0].rename(tmp_path / "IMG_0001.png")  # a file name that names nothing
-    res = run(image, "--name", "xyzzy", "--json", "-o", tmp_path / "q" / "x.json")
+    res = run(image, "--name", "xyzzy newtonian", "--json", "-o", tmp_path / "q" / "x.json")  # a type, no entry
     assert res.exit_code == 0
     printed = json.loads(res.output)
     assert printed == json.loads((tmp_path / "q" / "x.json").read_text())
-    assert printed["matched"] is None and printed["warnings"]
-    res = run(image, "--name", "xyzzy")
-    assert "warning: no knowledge-base entry matches 'xyzzy" in res.output
+    assert printed["matched"] is None and printed["material"] == "newtonian" and printed["warnings"]
+    res = run(image, "--name", "xyzzy newtonian")
+    assert "warning: no knowledge-base entry matches 'xyzzy newtonian" in res.output
+
+
+def test_an_answer_the_offline_backend_cannot_give_is_refused_and_nothing_written(run, photo, tmp_path):
+    """No --name, a file name that names nothing: the knowledge base's default entry ('rubber')
+    is no answer; it used to be written into the current folder with exit 0."""
+    image = photo[0].rename(tmp_path / "000.png")
+    res = run(image, "-o", tmp_path / "q.json")
+    assert res.exit_code == 1 and "cannot tell what 000.png shows" in res.output and "--name" in res.output
+    assert not (tmp_path / "q.json").exists()
 
 
 def test_openai_backend_from_options_and_environment(run, photo, server, monkeypatch, tmp_path):

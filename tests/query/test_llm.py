@@ -475,3 +475,42 @@ def test_a_key_in_the_url_is_never_logged_or_shown(server, photo, caplog, creden
     with pytest.raises(InputError) as exc:
         chat_endpoint("ftp://" + credentials.rstrip("@").lstrip("?") + "@example.com/v1?api-key=sk-secret")
     assert "sk-secret" not in str(exc.value)
+
+
+HTML_PAGE = b"""<!DOCTYPE html>
+<html>
+<head>
+  <title>502 Bad Gateway</title>
+  <style>body { font-family: sans-serif; }</style>
+</head>
+<body>
+  <center><h1>502 Bad Gateway</h1></center>
+  <hr><center>nginx/1.25.3</center>
+  <p>The upstream server did not answer.</p>
+  <p>Please try again later.</p>
+</body>
+</html>
+"""
+
+
+def test_an_html_error_page_is_one_line_with_its_status(server, photo):
+    server.play(Reply(502, HTML_PAGE))
+    with pytest.raises(ModelServiceError) as err:
+        ask(server, photo, retries=0)
+    message = str(err.value)
+    assert "\n" not in message and "HTTP 502" in message and message.endswith("502 Bad Gateway")
+    assert "<" not in message and "font-family" not in message
+
+
+def test_credentials_in_the_endpoint_url_authenticate_and_stay_hidden(server, photo, caplog):
+    """http://user:key@host/... connects to host with HTTP basic authentication (it used to
+    fail as an unknown host "user:key@127.0.0.1")."""
+    server.play(chat(answer()))
+    url = server.base_url.replace("http://", "http://alice:s3cr%40t@")
+    result = query_material(
+        photo[0], box=BOX, backend="openai", model_config=ModelConfig(url=chat_endpoint(url), model="test-vision")
+    )
+    assert result.material == "elastic"
+    sent = server.requests[-1].headers["Authorization"]
+    assert sent == "Basic " + base64.b64encode(b"alice:s3cr@t").decode()
+    assert "s3cr" not in caplog.text
