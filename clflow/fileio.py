@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import os
 import shutil
 import tempfile
@@ -20,6 +21,40 @@ from typing import TYPE_CHECKING, Iterator
 
 if TYPE_CHECKING:
     import numpy as np
+
+
+def _temporary_prefix(path: Path, stem: str) -> str:
+    """The prefix of this process's temporaries for ``path`` (``.<stem>.<pid>.``); first
+    removes those a killed process left behind (their pid no longer runs), so a crash's
+    leftovers go with the next write of the same target."""
+    for leftover in path.parent.glob(f".{glob.escape(stem)}.*.tmp*"):
+        pid = leftover.name[len(stem) + 2 :].split(".", 1)[0]
+        if pid.isdigit() and not _running(int(pid)):
+            if leftover.is_dir() and not leftover.is_symlink():
+                shutil.rmtree(leftover, ignore_errors=True)
+            else:
+                with contextlib.suppress(OSError):
+                    leftover.unlink()
+    return f".{stem}.{os.getpid()}."
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def _creating(path: Path, make):
+    """``make()`` (a mkstemp/mkdtemp call next to ``path``), its OSError naming ``path``
+    itself rather than the temporary name it tried."""
+    try:
+        return make()
+    except OSError as exc:
+        raise OSError(exc.errno, f"cannot write here ({(exc.strerror or str(exc)).lower()})", str(path)) from None
 
 
 @contextlib.contextmanager
@@ -31,7 +66,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    prefix = _temporary_prefix(path, path.stem)
+    fd, tmp = _creating(path, lambda: tempfile.mkstemp(prefix=prefix, suffix=f".tmp{path.suffix}", dir=path.parent))
     os.close(fd)
     os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; outputs get the usual permissions
     try:
@@ -43,14 +79,64 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-
-
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+def read_text(path: str | os.PathLike, what: str = "file") -> str:
+    """The text of a user's file (UTF-8, a byte-order mark allowed); InputError, one line
+    naming ``what`` and the path, when it cannot be read or is not UTF-8 text."""
+    from clflow.errors import InputError
+
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except IsADirectoryError:
+        raise InputError(f"{what} {path} is a folder, not a file") from None
+    except FileNotFoundError:
+        raise InputError(f"{what} {path} not found") from None
+    except OSError as exc:
+        raise InputError(f"cannot read {what} {path}: {exc.strerror}") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise InputError(
+            f"{what} {path} is not UTF-8 text (byte 0x{data[exc.start]:02x} on line {line}); save it as UTF-8"
+        ) from None
+
+
+#: files larger than this are known by name and size, not read whole, in content digests
+DIGEST_READ_BYTES = 64 * 2**20
+_DIGESTS: dict[tuple, str] = {}  # (path, size, mtime) -> digest of a file already read
+
+
+def content_digest(path: str | os.PathLike) -> str:
+    """A SHA-256 of what ``path`` holds, not of where it lies: a file's bytes (a file over
+    DIGEST_READ_BYTES: its size), a folder's files by relative name and digest, "missing"
+    when there is nothing. Moving or copying a run's inputs keeps their digests."""
+    import hashlib
+
+    path = Path(path)
+    h = hashlib.sha256()
+    if path.is_file():
+        st = path.stat()
+        key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+        if key not in _DIGESTS:
+            if st.st_size > DIGEST_READ_BYTES:
+                h.update(f"size:{st.st_size}".encode())
+            else:
+                with open(path, "rb") as fh:
+                    for block in iter(lambda: fh.read(1 << 20), b""):
+                        h.update(block)
+            _DIGESTS[key] = h.hexdigest()
+        return _DIGESTS[key]
+    if path.is_dir():
+        for entry in sorted(p for p in path.rglob("*") if p.is_file()):
+            h.update(f"{entry.relative_to(path).as_posix()}={content_digest(entry)};".encode())
+        return h.hexdigest()
+    return "missing"
 
 
 #: OSError numbers that mean "the file system refused", not a bug: one line at the CLI.
@@ -81,19 +167,27 @@ def describe_os_error(exc: OSError) -> str:
 
 
 @contextlib.contextmanager
-def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_dir(path: str | os.PathLike, replaces: tuple[str, ...] = ()) -> Iterator[Path]:
     """Yield a temporary folder next to folder ``path``; if the block succeeds, move what it
-    holds into ``path`` (replacing entries of the same name), else delete it. A failure
-    leaves ``path`` as it was."""
+    holds into ``path`` (replacing entries of the same name) and delete the entries of
+    ``path`` that match a glob pattern of ``replaces`` but were not written now (the earlier
+    result's, e.g. its extra frames and what was derived from it), else delete it. A failure
+    leaves ``path`` as it was; a success leaves one result, never a mix."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    prefix = _temporary_prefix(path, path.name)
+    tmp = Path(_creating(path, lambda: tempfile.mkdtemp(prefix=prefix, suffix=".tmp", dir=path.parent)))
     try:
         yield tmp
         if not path.exists():
             tmp.chmod(0o777 & ~_umask())
             os.replace(tmp, path)
             return
+        written = {entry.name for entry in tmp.iterdir()}
+        for pattern in replaces:
+            for old in path.glob(pattern):
+                if old.name not in written:
+                    shutil.rmtree(old) if old.is_dir() and not old.is_symlink() else old.unlink()
         for entry in tmp.iterdir():
             target = path / entry.name
             if target.is_dir() and not target.is_symlink():

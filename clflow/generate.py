@@ -145,11 +145,12 @@ class ModelInfo:
 
 
 def _read_json(path: Path, where: str) -> dict:
+    from clflow.fileio import read_text
+
+    text = read_text(path, f"{where}: {path.name}")
     try:
-        data = json.loads(path.read_text())
-    except OSError as exc:
-        raise InputError(f"{where}: cannot read {path.name}: {exc.strerror}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
         raise InputError(f"{where}: {path.name} is not valid JSON ({exc})") from None
     if not isinstance(data, dict):
         raise InputError(f"{where}: {path.name} must hold a JSON object")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import tempfile
 from pathlib import Path
 
 from clflow.errors import InputError
@@ -46,19 +47,49 @@ def _nearest_existing(path: Path) -> Path:
     return path
 
 
+def _writable(folder: Path) -> str:
+    """Why files cannot be made in existing ``folder`` ('' when they can): a probe file is
+    made and removed, since permission bits say nothing of /proc, a full quota or a
+    read-only mount."""
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return "read-only file system or no permission"
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".clflow-probe-", dir=folder)
+    except OSError as exc:
+        return (exc.strerror or str(exc)).lower()
+    os.close(fd)
+    os.unlink(probe)
+    return ""
+
+
+def check_output_file(path: str | os.PathLike, what: str = "output file") -> None:
+    """Raise InputError unless file ``path`` can be written: not a folder, in a folder that
+    exists or can be made and is writable. Creates nothing lasting: call it before the work."""
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{what} {path} is a folder, not a file")
+    existing = _nearest_existing(path.parent)
+    if not existing.is_dir():
+        raise InputError(f"{what} {path}: {existing} is a file, not a folder")
+    reason = _writable(existing)
+    if reason:
+        raise InputError(f"{what} {path}: {existing} is not writable ({reason})")
+
+
 def check_output(
     path: str | os.PathLike, nbytes: int = 0, max_gb: float = DEFAULT_MAX_OUTPUT_GB, what: str = "", hint: str = ""
 ) -> None:
     """Raise InputError unless folder ``path`` exists or can be made and is writable, and
     ``nbytes`` (the predicted output: ``what``) is within ``max_gb`` and the disk's free
-    space; ``hint`` says how to write less. Creates nothing: call it before the work."""
+    space; ``hint`` says how to write less. Creates nothing lasting: call it before the work."""
     path = Path(path)
     existing = _nearest_existing(path)
     if not existing.is_dir():
         where = "" if existing == Path(os.path.abspath(path)) else f": {existing}"
         raise InputError(f"output folder {path}{where} is a file, not a folder")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise InputError(f"output folder {path}: {existing} is not writable (read-only file system or no permission)")
+    reason = _writable(existing)
+    if reason:
+        raise InputError(f"output folder {path}: {existing} is not writable ({reason})")
     size = f"would write up to {format_bytes(nbytes)} ({what})"
     if nbytes > max_gb * 1e9:
         raise InputError(f"{path}: {size}, more than --max-output-gb {max_gb:g}; raise it{hint and ' or '}{hint}")

@@ -198,7 +198,9 @@ MATERIALS: dict[str, Material] = {
 }
 # fmt: on
 
-DENSITY = Param("density", "rho", "kg/m^3", 1000.0, (0.0, INF), (10.0, 2.5e4), doc="mass density")
+#: up to 1e6 kg/m^3, 44 times osmium's 22,590: beyond it no material, and float32 masses and
+#: momenta overflow the kernels (a density of 1e40 used to fail later, blamed on the modulus)
+DENSITY = Param("density", "rho", "kg/m^3", 1000.0, (0.0, 1e6), (10.0, 2.5e4), high_inclusive=True, doc="mass density")
 
 
 def get_material(name: str) -> Material:

@@ -100,13 +100,11 @@ class Spec:
 
 def load_spec(path: str | os.PathLike) -> Spec:
     """Read and fully validate a sweep SPEC; any problem is one InputError line."""
+    from clflow.fileio import read_text
     from clflow.scene.config import _DuplicateKey, _load_yaml
 
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise InputError(f"cannot read sweep spec {path}: {exc.strerror}") from None
+    text = read_text(path, "sweep spec")
     import yaml
 
     try:

@@ -5,6 +5,7 @@ import functools
 import click
 
 from clflow_cli.main import LazyGroup
+from clflow_cli.options import OutputPath
 
 # name -> "module:command" of each benchmark; imported only when it runs.
 BENCHMARKS: dict[str, str] = {
@@ -48,7 +49,7 @@ def bench_command(name: str):
         option = click.option(
             "--json",
             "json_path",
-            type=click.Path(dir_okay=False),
+            type=OutputPath(file=True),
             default=None,
             metavar="PATH",
             help="Also write the figures, the parameters and the environment as JSON to PATH.",

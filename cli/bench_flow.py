@@ -102,10 +102,23 @@ def bench_simulated(gaussians: int, frame_count: int, size: int, repeat: int) ->
 
 
 @bench_command("flow")
-@click.option("--frames", default=49, show_default=True, help="Frames of the observed-flow video.")
-@click.option("--size", default=512, show_default=True, help="Frame width and height (pixels).")
-@click.option("-n", "--gaussians", default=100_000, show_default=True, help="Gaussians of the simulated flow.")
-@click.option("--sim-frames", default=24, show_default=True, help="Frame pairs of the simulated flow.")
+@click.option(
+    "--frames", type=click.IntRange(min=1), default=49, show_default=True, help="Frames of the observed-flow video."
+)
+@click.option(
+    "--size", type=click.IntRange(min=1), default=512, show_default=True, help="Frame width and height (pixels)."
+)
+@click.option(
+    "-n",
+    "--gaussians",
+    type=click.IntRange(min=1),
+    default=100_000,
+    show_default=True,
+    help="Gaussians of the simulated flow.",
+)
+@click.option(
+    "--sim-frames", type=click.IntRange(min=1), default=24, show_default=True, help="Frame pairs of the simulated flow."
+)
 @click.option("--repeat", type=click.IntRange(min=1), default=1, show_default=True,
               help="Timed runs of the simulated flow (median printed).")  # fmt: skip
 @click.option("--observed/--no-observed", default=True, help="Run the observed-flow part.")

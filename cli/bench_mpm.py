@@ -27,10 +27,14 @@ def timed_substeps(sim, substeps: int) -> None:
 
 
 @bench_command("mpm")
-@click.option("--substeps", default=10, show_default=True, help="Timed substeps per material.")
-@click.option("--particles-per-axis", default=PARTICLES_PER_AXIS, show_default=True,
+@click.option(
+    "--substeps", type=click.IntRange(min=1), default=10, show_default=True, help="Timed substeps per material."
+)
+@click.option("--particles-per-axis", type=click.IntRange(min=1), default=PARTICLES_PER_AXIS, show_default=True,
               help="Particles per axis of the cube (total = cube of it).")  # fmt: skip
-@click.option("--grid", "grid_res", default=GRID, show_default=True, help="Grid nodes per axis.")
+@click.option(
+    "--grid", "grid_res", type=click.IntRange(min=8), default=GRID, show_default=True, help="Grid nodes per axis."
+)
 @click.option("--material", "materials", multiple=True, help="Only these materials (repeatable).")
 @double_option
 @click.pass_context

@@ -8,10 +8,18 @@ from clflow_cli.options import double_option
 
 
 @bench_command("mpm-adjoint")
-@click.option("--particles", default=65536, show_default=True, help="Particles (a 2:1:1 block, 2 per cell and axis).")
-@click.option("--grid", "grid_res", default=64, show_default=True, help="Grid nodes per axis.")
-@click.option("--frames", default=10, show_default=True)
-@click.option("--substeps", default=20, show_default=True, help="Substeps per frame.")
+@click.option(
+    "--particles",
+    type=click.IntRange(min=1),
+    default=65536,
+    show_default=True,
+    help="Particles (a 2:1:1 block, 2 per cell and axis).",
+)
+@click.option(
+    "--grid", "grid_res", type=click.IntRange(min=1), default=64, show_default=True, help="Grid nodes per axis."
+)
+@click.option("--frames", type=click.IntRange(min=1), default=10, show_default=True)
+@click.option("--substeps", type=click.IntRange(min=1), default=20, show_default=True, help="Substeps per frame.")
 @double_option
 @click.pass_context
 def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
@@ -24,7 +32,6 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
     from clflow.benchmark import measure
     from clflow.mpm import Grid, MaterialSpec, Simulator
     from clflow.mpm.autograd import engine, memory_estimate, simulate
-
     from clflow.runtime import get_device
 
     device = ctx.obj.device() if ctx.obj else get_device()

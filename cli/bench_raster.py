@@ -33,8 +33,12 @@ def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=None):
 
 
 @bench_command("raster")
-@click.option("-n", "--gaussians", default=100_000, show_default=True, help="Number of Gaussians.")
-@click.option("--size", default=512, show_default=True, help="Image width and height (pixels).")
+@click.option(
+    "-n", "--gaussians", type=click.IntRange(min=1), default=100_000, show_default=True, help="Number of Gaussians."
+)
+@click.option(
+    "--size", type=click.IntRange(min=1), default=512, show_default=True, help="Image width and height (pixels)."
+)
 @click.option("--repeat", type=click.IntRange(min=1), default=10, show_default=True,
               help="Timed runs (the median is printed).")  # fmt: skip
 @double_option

@@ -7,15 +7,23 @@ import sys
 import click
 
 from clflow_cli.main import Interrupted
-from clflow_cli.options import out_option
+from clflow_cli.options import LazyHelpOption, out_option
 from clflow_cli.sweep import parse_resources, with_ray_options
+
+
+def _case_help() -> str:
+    from clflow_datasets.sysid import CASES, QUICK_CASES
+
+    return (
+        f"Run only this case (repeatable): {', '.join(CASES)}. Default: all {len(CASES)}, or the "
+        f"{len(QUICK_CASES)} of --quick ({', '.join(QUICK_CASES)})."
+    )
 
 
 @click.command("sysid")
 @out_option("output", "Results folder: sysid.json, sysid.md and cases/NAME/ (scene, guidance, results).",
             required=True)  # fmt: skip
-@click.option("--case", "cases", multiple=True, metavar="NAME",
-              help="Run only this case (repeatable). Default: all nine, or the three of --quick.")  # fmt: skip
+@click.option("--case", "cases", multiple=True, metavar="NAME", cls=LazyHelpOption, help_fn=lambda: _case_help())
 @click.option("--quick", is_flag=True,
               help="Three cases (elastic torus, plasticine playdoh, Newtonian droplet) at a small grid and image: "
                    "minutes, for CI.")  # fmt: skip

@@ -2,7 +2,7 @@
 
 import click
 
-from clflow_cli.options import out_option, pixel_box_option
+from clflow_cli.options import InputFile, out_option, pixel_box_option
 
 
 @click.command()
@@ -12,7 +12,7 @@ from clflow_cli.options import out_option, pixel_box_option
               help="Optical flow backend (raft only with --raft-weights).")  # fmt: skip
 @click.option("--preset", type=click.Choice(["ultrafast", "fast", "medium", "fine"]), default="fine", show_default=True,
               help="DIS quality preset (clflow.flow.optical_flow.DIS_PRESETS).")  # fmt: skip
-@click.option("--raft-weights", type=click.Path(dir_okay=False, path_type=str), default=None,
+@click.option("--raft-weights", type=InputFile(path_type=str), default=None,
               help="torchvision RAFT-large state dict already on disk (nothing is downloaded).")  # fmt: skip
 @click.option("--fps", type=float, default=None, help="Frame rate (frames/s); needed for an image folder's times.")
 @click.option("--start", type=float, default=0.0, show_default=True, help="First time to use (s).")
@@ -20,7 +20,7 @@ from clflow_cli.options import out_option, pixel_box_option
 @click.option("--stride", type=int, default=1, show_default=True, help="Use every N-th frame.")
 @click.option("--sim-fps", type=float, default=None,
               help="Resample (nearest frame) to this rate, e.g. the simulation's frames per second.")  # fmt: skip
-@click.option("--mask", "mask_image", type=click.Path(dir_okay=False, path_type=str), default=None,
+@click.option("--mask", "mask_image", type=InputFile(path_type=str), default=None,
               help="Object mask image (object where grey > 127), the video's size.")  # fmt: skip
 @pixel_box_option("Object box in pixels (x right, y down).")
 @click.option("--video/--no-video", "write_panels_video", default=True, show_default=True,

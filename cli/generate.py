@@ -5,7 +5,7 @@ from pathlib import Path
 
 import click
 
-from clflow_cli.options import FiniteFloat, out_option
+from clflow_cli.options import FiniteFloat, InputFile, OutputPath, out_option
 
 # the same names as clflow.generate.FITS / OUTPUT_SIZES, written out so --help imports nothing heavy
 FIT_CHOICES = ("pad", "crop")
@@ -25,14 +25,14 @@ def _size(ctx, param, value):
 
 
 @click.command()
-@click.argument("image", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("image", type=InputFile(path_type=Path))
 @click.option("--model", "model_path", required=True, type=click.Path(path_type=Path), metavar="FOLDER",
               help="A local diffusers model folder: CogVideoX image-to-video (prompt + image) or Stable Video "
               "Diffusion (image only), told apart by its model_index.json. Never downloaded.")  # fmt: skip
 @click.option("--prompt", default="", help="The motion to show (CogVideoX; SVD takes none).")
 @click.option("--negative-prompt", default="", help="What not to show (CogVideoX).")
 @out_option("output", "The video (.mp4, .gif, ...); the run's record goes beside it as .json.", required=True,
-            type=click.Path(dir_okay=False, path_type=Path))  # fmt: skip
+            type=OutputPath(file=True, path_type=Path))  # fmt: skip
 @click.option("--frames", type=click.IntRange(min=2), default=None,
               help="Frames to generate [default: the model's, e.g. 49 for CogVideoX, 14 or 25 for SVD].")  # fmt: skip
 @click.option("--fps", type=FiniteFloat(min=0, min_open=True), default=None,

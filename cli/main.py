@@ -90,6 +90,11 @@ class LazyGroup(click.Group):
 
         try:
             return super().invoke(ctx)
+        except click.UsageError as exc:  # a wrong command line: one line, exit 2, where help is
+            if exc.ctx is None:
+                raise
+            hint = f" (see '{exc.ctx.command_path} -h')"
+            raise click.UsageError(exc.format_message() + hint) from None
         except ClflowError as exc:
             raise click.ClickException(str(exc)) from None
         except OSError as exc:
@@ -171,21 +176,11 @@ def cli(ctx: click.Context, device: str | None, bridge: str | None, verbose: int
 
 
 class _FoldKernelBuilds(logging.Filter):
-    """pyopencl's "build program: ..." records (one per kernel of a slow uncached build) as a
-    single "compiling kernels (first run only)" line."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.said = False
+    """Drops pyopencl's "build program: ..." records (one per program, cached or not): a
+    build that really compiles says so itself (clflow.runtime.devices, "compiled kernels")."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if not str(record.msg).startswith("build program"):
-            return True
-        if self.said or record.levelno < logging.INFO:
-            return False
-        self.said = True
-        record.name, record.msg, record.args = "clflow", "compiling kernels (first run only)", ()
-        return True
+        return not str(record.msg).startswith("build program")
 
 
 def _fold_kernel_builds(fold: bool) -> None:
@@ -195,9 +190,8 @@ def _fold_kernel_builds(fold: bool) -> None:
         for old in [f for f in logger.filters if isinstance(f, _FoldKernelBuilds)]:
             logger.removeFilter(old)
     if fold:
-        folding = _FoldKernelBuilds()  # one for both loggers: the line comes once
         for logger in loggers:
-            logger.addFilter(folding)
+            logger.addFilter(_FoldKernelBuilds())
 
 
 def _log_warning(message, category, filename, lineno, file=None, line=None) -> None:

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import click
 
-from clflow_cli.options import max_substeps_option, out_option, set_option
+from clflow_cli.options import InputFile, max_substeps_option, out_option, set_option
 from clflow_cli.sweep import parse_resources, with_ray_options
 
 
 @click.command("optimize")
-@click.argument("config", type=click.Path(dir_okay=False))
+@click.argument("config", type=InputFile())
 @click.option("--resume", is_flag=True, help="Continue from OUT/checkpoint.json (after Ctrl-C or a kill).")
 @click.option("--iterations", type=click.IntRange(min=1), default=None,
               help="Override optimize.iterations of the config.")  # fmt: skip

@@ -22,6 +22,60 @@ from clflow.limits import DEFAULT_MAX_OUTPUT_GB
 OUT_ALIASES = ("--output", "--output-dir")
 
 
+class LazyHelpOption(click.Option):
+    """An option whose help is ``help_fn()``, called only when --help shows it (e.g. to list
+    names a heavy module defines)."""
+
+    def __init__(self, *args, help_fn, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.help_fn = help_fn
+
+    def get_help_record(self, ctx):
+        self.help = self.help_fn()
+        return super().get_help_record(ctx)
+
+
+def _name(param) -> str:
+    """How the command line spells ``param``: an option's longest flag, an argument's NAME."""
+    if isinstance(param, click.Option):
+        return next((o for o in param.opts if o.startswith("--")), param.opts[0])
+    return param.human_readable_name if param else "path"
+
+
+class InputFile(click.Path):
+    """An input file option or argument: a missing path or a folder is the one-line error of
+    a bad input (exit 1, clflow.errors.InputError), not a usage error."""
+
+    def __init__(self, **kwargs):
+        super().__init__(dir_okay=False, **kwargs)
+
+    def fail(self, message, param=None, ctx=None):
+        from clflow.errors import InputError
+
+        raise InputError(f"{_name(param)}: {message}")
+
+
+class OutputPath(click.Path):
+    """An output file (``file``) or folder, checked before any work: a folder where a file is
+    meant (or the reverse), or a place no file can be made (read-only, /proc, no permission),
+    is a one-line InputError (exit 1)."""
+
+    def __init__(self, file: bool = False, **kwargs):
+        super().__init__(dir_okay=not file, file_okay=file, **kwargs)
+        self.file = file
+
+    def convert(self, value, param, ctx):
+        from clflow.limits import check_output, check_output_file
+
+        check_output_file(value, _name(param)) if self.file else check_output(value)
+        return super().convert(value, param, ctx)
+
+    def fail(self, message, param=None, ctx=None):
+        from clflow.errors import InputError
+
+        raise InputError(f"{_name(param)}: {message}")
+
+
 class FiniteFloat(click.FloatRange):
     """A number option that refuses NaN and infinities (FloatRange lets NaN through)."""
 
@@ -32,6 +86,10 @@ class FiniteFloat(click.FloatRange):
         if not math.isfinite(number):
             self.fail(f"{value!r} is not a finite number", param, ctx)
         return number
+
+    def _describe_range(self) -> str:
+        """No "[x<=None]" in --help for an unbounded number."""
+        return "" if self.min is None and self.max is None else super()._describe_range()
 
 
 class Numbers(click.ParamType):
@@ -90,8 +148,9 @@ def aliased_option(*decls: str, aliases: tuple[str, ...], **kwargs):
 def out_option(name: str, help: str, *, file: bool = False, aliases: tuple[str, ...] = OUT_ALIASES, **kwargs):
     """``-o/--out`` into parameter ``name``: a folder, or a file with ``file``; the old spellings
     ``aliases`` still work."""
-    path = click.Path(dir_okay=False) if file else click.Path(file_okay=False)
-    return aliased_option("-o", "--out", name, aliases=aliases, type=kwargs.pop("type", path), help=help, **kwargs)
+    return aliased_option(
+        "-o", "--out", name, aliases=aliases, type=kwargs.pop("type", OutputPath(file)), help=help, **kwargs
+    )
 
 
 max_output_option = click.option(
@@ -125,6 +184,9 @@ def pixel_box_option(help: str = "Pixel box around the object (x right, y down, 
 __all__ = [
     "AliasedOption",
     "FiniteFloat",
+    "InputFile",
+    "LazyHelpOption",
+    "OutputPath",
     "Numbers",
     "OUT_ALIASES",
     "aliased_option",

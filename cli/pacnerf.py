@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import click
 
+from clflow_cli.options import InputFile
+
 
 @click.command("pacnerf")
 @click.argument("data", type=click.Path())
@@ -12,7 +14,7 @@ import click
               help="Scene folder: config.yaml, scene.ply, camera.json, the guidance video (and object.png).")  # fmt: skip
 @click.option("--camera", type=click.IntRange(min=0), default=0, show_default=True,
               help="The camera whose frames become the guidance video.")  # fmt: skip
-@click.option("--config", "pac_config", type=click.Path(dir_okay=False),
+@click.option("--config", "pac_config", type=InputFile(),
               help="PAC-NeRF config (.py, read without running it, or .json): material and its initial guess, ground, "
                    "gravity, frame_dt, the parameters to fit. Without it the material is left to the query.")  # fmt: skip
 @click.option("--box", type=float, nargs=6, metavar="X0 Y0 Z0 X1 Y1 Z1",

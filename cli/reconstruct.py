@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from clflow_cli.main import Interrupted
-from clflow_cli.options import out_option
+from clflow_cli.options import InputFile, out_option
 from clflow_cli.progress import progress
 
 LOG_EVERY = 100  # iterations between progress lines when stderr is not a terminal
@@ -15,9 +15,9 @@ LOG_EVERY = 100  # iterations between progress lines when stderr is not a termin
 @click.argument("images", type=click.Path())
 @out_option("output_dir", "Folder for point_cloud.ply, cameras.json, metrics.json, checkpoint.pt and preview/.",
             required=True)  # fmt: skip
-@click.option("--transforms", type=click.Path(dir_okay=False), help="NeRF-style transforms.json (OpenGL axes).")
+@click.option("--transforms", type=InputFile(), help="NeRF-style transforms.json (OpenGL axes).")
 @click.option("--colmap", type=click.Path(file_okay=False), help="COLMAP sparse model folder (.bin or .txt), e.g. sparse/0.")  # fmt: skip
-@click.option("--cameras", "cameras_json", type=click.Path(dir_okay=False), help="3DGS cameras.json.")
+@click.option("--cameras", "cameras_json", type=InputFile(), help="3DGS cameras.json.")
 @click.option("--frame", type=int,
               help="IMAGES is a PAC-NeRF-style multi-camera sequence (a folder with all_data.json): train on "
                    "every camera's image of this frame.")  # fmt: skip
@@ -42,7 +42,7 @@ LOG_EVERY = 100  # iterations between progress lines when stderr is not a termin
               help="Write preview/iter_N.png (render | target of a held-out view) every N iterations (0: never).")  # fmt: skip
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=1000, show_default=True)
 @click.option("--resume", is_flag=True, help="Continue from OUT/checkpoint.pt with the same options.")
-@click.option("--depth", type=click.Path(dir_okay=False),
+@click.option("--depth", type=InputFile(),
               help="Single image + depth: IMAGES is one image, this its depth map (.npy in m, or 16-bit PNG); no training.")  # fmt: skip
 @click.option("--depth-scale", type=click.FloatRange(min=0, min_open=True),
               help="Metres per depth unit (default: 1 for .npy, 0.001 for PNG).")  # fmt: skip

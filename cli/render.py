@@ -7,17 +7,17 @@ import re
 
 import click
 
-from clflow_cli.options import FiniteFloat, Numbers, max_output_option, out_option
+from clflow_cli.options import FiniteFloat, InputFile, Numbers, OutputPath, max_output_option, out_option
 
 VIDEO_SUFFIXES = (".mp4", ".gif")
 
 
 @click.command()
-@click.argument("splats", type=click.Path(dir_okay=False))
+@click.argument("splats", type=InputFile())
 @out_option("output_dir", "Folder for the PNG images (one per view).", default="renders", show_default=True)
-@click.option("--cameras", "cameras_json", type=click.Path(dir_okay=False),
+@click.option("--cameras", "cameras_json", type=InputFile(),
               help="3DGS cameras.json; render its cameras (all, or those picked by --camera).")  # fmt: skip
-@click.option("--transforms", "transforms_json", type=click.Path(dir_okay=False),
+@click.option("--transforms", "transforms_json", type=InputFile(),
               help="NeRF-style transforms.json; render its frames (all, or those picked by --camera).")  # fmt: skip
 @click.option("--camera", "camera_keys", multiple=True, metavar="NAME|INDEX",
               help="Pick a camera of --cameras/--transforms by image name, file_path or index (repeatable).")  # fmt: skip
@@ -39,7 +39,7 @@ VIDEO_SUFFIXES = (".mp4", ".gif")
 @click.option("--height", type=click.IntRange(min=1), default=512, show_default=True, help="Image height of generated views, pixels.")  # fmt: skip
 @click.option("--background", type=Numbers(3), default="0,0,0", show_default=True, help="Background colour R,G,B in [0, 1].")  # fmt: skip
 @click.option("--sh-degree", type=click.IntRange(0, 3), help="Evaluate SH only up to this degree (default: all).")
-@click.option("--video", type=click.Path(dir_okay=False), help="Also write the views as a video (.mp4 or .gif).")
+@click.option("--video", type=OutputPath(file=True), help="Also write the views as a video (.mp4 or .gif).")
 @click.option("--fps", type=FiniteFloat(min=0, min_open=True), default=24.0, show_default=True, help="Video frame rate.")  # fmt: skip
 @click.option("--precision", type=click.Choice(["float32", "float64"]), default="float32", show_default=True,
               help="Compute precision of the rasteriser.")  # fmt: skip

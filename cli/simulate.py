@@ -2,7 +2,15 @@
 
 import click
 
-from clflow_cli.options import Numbers, aliased_option, max_output_option, max_substeps_option, out_option, set_option
+from clflow_cli.options import (
+    InputFile,
+    Numbers,
+    aliased_option,
+    max_output_option,
+    max_substeps_option,
+    out_option,
+    set_option,
+)
 
 
 def _params(ctx, param, items):
@@ -35,10 +43,11 @@ SCENE_OPTIONS = (
 
 
 @click.command("simulate")
-@click.argument("particles", required=False, type=click.Path(dir_okay=False))
+@click.argument("particles", required=False, type=InputFile())
 @click.option("--shape", type=click.Choice(["box", "sphere", "torus"]), default="box", show_default=True,
               help="Built-in shape when no particle file is given.")  # fmt: skip
-@click.option("--size", default=0.3, show_default=True, help="Shape size (m): cube side, sphere or torus diameter.")
+@click.option("--size", type=click.FloatRange(0, min_open=True), default=0.3, show_default=True,
+              help="Shape size (m): cube side, sphere or torus diameter.")  # fmt: skip
 @click.option("--center", type=Numbers(3, "X,Y,Z"), default=None,
               help="Shape centre (m); default: the middle of the domain.")  # fmt: skip
 @click.option("--material", "-m", default="elastic", show_default=True, help="Material name (clflow.materials).")
@@ -46,24 +55,30 @@ SCENE_OPTIONS = (
               help="One material parameter in SI units, e.g. -p youngs_modulus=2e5 (repeatable).")  # fmt: skip
 @click.option("--model", default=None, help="Elastic model: fixed_corotated (default) or neo_hookean; sand: drucker_prager "
                                            "(default) or volume_corrected.")  # fmt: skip
-@click.option("--density", type=float, default=None, help="Density (kg/m^3); default: the material's.")
+@click.option("--density", type=click.FloatRange(0, min_open=True), default=None,
+              help="Density (kg/m^3); default: the material's.")  # fmt: skip
 @click.option("--velocity", type=Numbers(3, "VX,VY,VZ"), default="0,0,0", show_default=True,
               help="Initial velocity (m/s).")  # fmt: skip
-@click.option("--domain", default=1.0, show_default=True, help="Side of the cubic domain (m), origin at 0.")
-@click.option("--grid", "resolution", default=64, show_default=True, help="Grid nodes per axis.")
-@click.option("--particle-volume", type=float, default=None,
+@click.option("--domain", type=click.FloatRange(0, min_open=True), default=1.0, show_default=True,
+              help="Side of the cubic domain (m), origin at 0.")  # fmt: skip
+@click.option("--grid", "resolution", type=click.IntRange(min=8), default=64, show_default=True,
+              help="Grid nodes per axis.")  # fmt: skip
+@click.option("--particle-volume", type=click.FloatRange(0, min_open=True), default=None,
               help="Rest volume per particle (m^3) for particle files without one; default (dx/2)^3.")  # fmt: skip
-@click.option("--frames", default=24, show_default=True, help="Frames to simulate.")
-@click.option("--fps", default=24.0, show_default=True, help="Frames per second.")
-@click.option("--substeps", type=int, default=None, help="Substeps per frame (default: the stable count).")
+@click.option("--frames", type=click.IntRange(min=1), default=24, show_default=True, help="Frames to simulate.")
+@click.option("--fps", type=click.FloatRange(0, min_open=True), default=24.0, show_default=True,
+              help="Frames per second.")  # fmt: skip
+@click.option("--substeps", type=click.IntRange(min=1), default=None,
+              help="Substeps per frame (default: the stable count).")  # fmt: skip
 @click.option("--gravity", type=Numbers(3, "GX,GY,GZ"), default="0,-9.81,0", show_default=True,
               help="Gravity (m/s^2).")  # fmt: skip
 @click.option("--walls", type=click.Choice(["separate", "slip", "sticky", "none"]), default="separate",
               show_default=True, help="Domain-wall condition.")  # fmt: skip
-@click.option("--wall-friction", default=0.0, show_default=True, help="Coulomb friction of the walls.")
+@click.option("--wall-friction", type=click.FloatRange(min=0), default=0.0, show_default=True,
+              help="Coulomb friction of the walls.")  # fmt: skip
 @click.option("--double", is_flag=True, help="Simulate in float64.")
 @out_option("out_dir", "Output folder [default: simulation; for a config: its output/simulation].")
-@aliased_option("--params-from", "params_file", aliases=("--params",), type=click.Path(dir_okay=False),
+@aliased_option("--params-from", "params_file", aliases=("--params",), type=InputFile(),
                 metavar="PARAMS.JSON",
                 help="With a CONFIG: simulate with the material, density and velocity of this params.json "
                      "(clflow optimize's result).")  # fmt: skip

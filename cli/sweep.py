@@ -7,7 +7,7 @@ import sys
 import click
 
 from clflow_cli.main import Interrupted
-from clflow_cli.options import out_option
+from clflow_cli.options import InputFile, out_option
 
 
 def parse_resources(items: tuple[str, ...]) -> dict[str, float]:
@@ -56,7 +56,7 @@ def with_ray_options(f):
 
 
 @click.command("sweep")
-@click.argument("spec", type=click.Path(dir_okay=False))
+@click.argument("spec", type=InputFile())
 @out_option("output", "Results folder: sweep.json, sweep.md and runs/NAME/ (result.json, run.log, outputs).",
             required=True)  # fmt: skip
 @click.option("--serial", is_flag=True, help="Run the spec here, one run after another, without Ray.")

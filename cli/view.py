@@ -37,4 +37,4 @@ def view(obj, path, host, port, up):
         viewer.serve_forever()
     except KeyboardInterrupt:
         viewer.close()
-        click.echo("stopped", err=True)
+        raise KeyboardInterrupt("stopped (Ctrl-C)") from None  # one line and exit status 130, as every command

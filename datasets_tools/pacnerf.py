@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from clflow.errors import InputError
+from clflow.fileio import read_text
 
 OBJECT_OPACITY = 0.1  # Gaussians at least this opaque bound the default object box
 BOX_MARGIN = 0.01  # fraction of the box's diagonal added on every side (float rounding, thin objects)
@@ -56,7 +57,7 @@ def read_pacnerf_config(path: str | os.PathLike, _children: tuple[Path, ...] = (
         )
     if path.resolve() in _children:
         raise InputError(f"{_children[-1]}: _base_ {path} is a cycle of base files")
-    text = path.read_text(encoding="utf-8")
+    text = read_text(path, "PAC-NeRF config")
     if path.suffix.lower() == ".json":
         try:
             cfg = json.loads(text)

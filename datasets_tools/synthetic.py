@@ -428,7 +428,9 @@ def make_case(
     truth = case_config(case, resolution, case.truth, optimize=False, scale=int(truth_scale), views=views)
     atomic_write_text(folder / "config_truth.yaml", yaml.safe_dump(truth, sort_keys=False))
     truth_cfg = parse_config(truth, str(folder / "config_truth.yaml"), folder)
-    result = simulate_config(truth_cfg)
+    # the benchmark's truths are made as before (GENERATOR_VERSION); making them obey the
+    # CFL limit changes some truths, which is issue 34's to do with a new version
+    result = simulate_config(truth_cfg, strict_cfl=False)
     clamped, at_walls = int(result.clamped.sum()), wall_contacts(result)
     if clamped or at_walls:
         raise ValueError(

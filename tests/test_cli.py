@@ -107,7 +107,9 @@ def interrupt_optimize(monkeypatch, tmp_path, iterations_in_run, *args):
     import clflow.pipeline.optimize
     import clflow.scene.config
 
-    cfg = SimpleNamespace(optimize=SimpleNamespace(search=None, materials=()), output=tmp_path)
+    cfg = SimpleNamespace(
+        optimize=SimpleNamespace(search=None, materials=()), output=tmp_path, video=None, more_views=()
+    )
     monkeypatch.setattr(clflow.scene.config, "load_config", lambda path, overrides=(): cfg)
     monkeypatch.setattr(
         clflow.pipeline.optimize,
@@ -133,6 +135,22 @@ def test_ctrl_c_in_optimize_gives_the_resume_hint_and_exit_130(monkeypatch, tmp_
     assert "interrupted after 2 iterations" in res.output and "--resume" in res.output
 
 
+def test_the_resume_hint_repeats_the_options_the_run_was_started_with(monkeypatch, tmp_path):
+    """Run as printed, it resumes the same run: the same -o, --set, limits (it used to say
+    only `clflow optimize CONFIG --resume`, which fails for a run started with -o)."""
+    from clflow.pipeline.runs import resume_command
+
+    res = interrupt_optimize(monkeypatch, tmp_path, 2, "--set", "flow.preset=fast", "--set", "a.b=c d")
+    assert res.exit_code == 130, res.output
+    hint = res.output.split("continue with `")[1].split("`")[0]
+    assert hint == "clflow optimize scene.yaml --resume --set flow.preset=fast --set 'a.b=c d'"
+    again = resume_command("a b.yaml", "my results", ("x=1",), None, 64, True, {})
+    assert (
+        again
+        == "clflow optimize 'a b.yaml' --resume -o 'my results' --set x=1 --max-substeps 64 --force-video --parallel"
+    )
+
+
 def test_ctrl_c_before_the_first_iteration_says_nothing_was_saved(monkeypatch, tmp_path):
     for earlier_run in (False, True):  # an earlier run's checkpoint.json is not this run's
         if earlier_run:
@@ -149,7 +167,9 @@ def test_ctrl_c_right_after_resuming_keeps_the_resume_hint(monkeypatch, tmp_path
 
 
 @pytest.mark.parametrize("flags, folded", [([], True), (["-v"], True), (["-vv"], False)])
-def test_pyopencl_build_messages_fold_into_one_line_unless_vv(device, caplog, flags, folded):
+def test_pyopencl_build_messages_are_dropped_unless_vv(device, caplog, flags, folded):
+    """pyopencl logs a line per program even when the driver's cache answers: every run said
+    "compiling kernels". Only a build that takes long says so (the next test), once per program."""
     import logging
 
     assert CliRunner().invoke(cli, [*flags, "devices"]).exit_code == 0
@@ -165,12 +185,27 @@ def test_pyopencl_build_messages_fold_into_one_line_unless_vv(device, caplog, fl
         logging.getLogger("pyopencl").info("another message")
     lines = [(r.name, r.getMessage()) for r in caplog.records]
     if folded:
-        assert lines == [("clflow", "compiling kernels (first run only)"), ("pyopencl", "another message")]
+        assert lines == [("pyopencl", "another message")]
     else:
         assert len(lines) == 5 and lines[0] == (
             "pyopencl",
             "build program: kernel 'p2g' was part of a lengthy uncached source build (1.50 s)",
         )
+
+
+def test_only_a_slow_build_says_it_compiled(device, caplog, monkeypatch):
+    import logging
+
+    from clflow.runtime import devices
+
+    kernel_defines = {"REDUCE_WG": 64, "ROWS_PER_ITEM": 16}
+    device.program("common/reduce.cl", "float", kernel_defines)
+    with caplog.at_level(logging.INFO, logger="clflow.runtime"):
+        device.program("common/reduce.cl", "float", kernel_defines)  # built: nothing to say
+        monkeypatch.setattr(devices, "SLOW_BUILD_SECONDS", -1.0)  # every build counts as slow
+        device.program("common/reduce.cl", "float", {**kernel_defines, "PROBE_SLOW": 1})
+    said = [r.getMessage() for r in caplog.records if r.name == "clflow.runtime"]
+    assert len(said) == 1 and said[0].startswith("compiled kernels_cl/common/reduce.cl in ")
 
 
 def test_a_broken_plugin_is_listed_and_reports_its_error_when_run(monkeypatch):

@@ -238,10 +238,24 @@ def render_simulated_flow(
 
     Returns:
         flow [H, W, 2] (px per frame step) and alpha [H, W, 1].
+
+    A Gaussian that is not in front of the near plane at both frames (a camera inside or
+    passing through the object) has no projected motion: its features are 0 (finite, and
+    with a zero gradient) instead of the NaN of a projection through the camera centre.
     """
     from clflow.splat.ops import rasterize_gaussians
 
+    depth_t, depth_t1 = _camera_points(means_t, viewmat)[..., 2], _camera_points(means_t1, viewmat)[..., 2]
+    ahead = (depth_t > near) & (depth_t1 > near)
+    if not bool(ahead.all()):
+        # project a point in front of the camera instead, then drop those features
+        W, t = viewmat[:3, :3].to(means_t.dtype), viewmat[:3, 3].to(means_t.dtype)
+        in_front = (torch.tensor([0.0, 0.0, 1.0], dtype=means_t.dtype, device=means_t.device) - t) @ W
+        means_t = torch.where(ahead[:, None], means_t, in_front)
+        means_t1 = torch.where(ahead[:, None], means_t1, in_front)
     features = flow_features(means_t, means_t1, viewmat, K, model=model, covars_t=covars_t, covars_t1=covars_t1)
+    if not bool(ahead.all()):
+        features = torch.where(ahead[:, None], features, torch.zeros_like(features))
     image, alpha, _, _ = rasterize_gaussians(
         means_t,
         None,

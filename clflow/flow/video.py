@@ -108,6 +108,18 @@ class Video:
                 f"{self.source}: resampling times [{times.min():g}, {times.max():g}] s leave the "
                 f"video's span [{t[0]:g}, {t[-1]:g}] s"
             )
+        if len(t) > 1:  # a time in a gap would take a frame from the gap's edge: a false jump in the motion
+            period = float(np.median(np.diff(t)))
+            nearest = np.abs(t[None, :] - times[:, None]).min(axis=1)
+            far = nearest > GAP_TOLERANCE * period + tol
+            if far.any():
+                when = float(times[np.argmax(far)])
+                before, after = t[t < when].max(), t[t > when].min()
+                raise InputError(
+                    f"{self.source}: no frame near t = {when:.4g} s: the frames jump from {before:.4g} s to "
+                    f"{after:.4g} s (they are {period:.4g} s apart elsewhere), so frames are missing; restore "
+                    f"them or renumber / re-encode the video without the gap"
+                )
         if mode == "nearest":
             index = np.clip(np.searchsorted(t, times), 1, len(t) - 1) if len(t) > 1 else np.zeros(len(times), int)
             if len(t) > 1:
@@ -139,12 +151,36 @@ def _natural_key(path: Path) -> tuple:
     return tuple(int(p) if p.isdigit() else p for p in re.split(r"(\d+)", path.name))
 
 
+#: a resampling time farther than this many source frame periods from every frame lies in a
+#: gap of the video (a missing frame), not between two frames
+GAP_TOLERANCE = 0.5
+
+
+def _frame_positions(folder: Path, files: list[Path]) -> np.ndarray | None:
+    """Each frame's position in frame periods from the first, from the numbers in their names
+    (the last number of each, in steps of their greatest common step): a missing frame leaves
+    a gap instead of shifting every later frame's time. None for unnumbered names."""
+    numbers = []
+    for f in files:
+        found = re.findall(r"\d+", f.stem)
+        if not found:
+            return None  # unnumbered names: their natural order is all there is
+        numbers.append(int(found[-1]))
+    steps = np.diff(numbers)
+    if (steps <= 0).any():
+        k = int(np.argmax(steps <= 0))
+        raise InputError(f"{folder}: {files[k].name} and {files[k + 1].name} have the same frame number {numbers[k]}")
+    step = int(np.gcd.reduce(steps)) if len(steps) else 1
+    return (np.asarray(numbers) - numbers[0]) / step
+
+
 def _read_image_folder(folder: Path, fps: float | None) -> Video:
     from clflow.media import read_image, to_uint8
 
     files = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=_natural_key)
     if not files:
         raise InputError(f"{folder}: the folder holds no image ({', '.join(IMAGE_SUFFIXES)})")
+    positions = _frame_positions(folder, files)
     frames = []
     for f in files:
         image = to_uint8(read_image(f)[..., :3])
@@ -154,7 +190,11 @@ def _read_image_folder(folder: Path, fps: float | None) -> Video:
                 f"{frames[0].shape[1]}x{frames[0].shape[0]}; all frames must have one size"
             )
         frames.append(image)
-    return _make_video(np.stack(frames), fps, str(folder))
+    if positions is None or fps is None or np.array_equal(positions, np.arange(len(files))):
+        return _make_video(np.stack(frames), fps, str(folder))
+    if not (np.isfinite(fps) and fps > 0):
+        raise InputError(f"{folder}: frame rate must be a positive number, got {fps!r}")
+    return Video(np.stack(frames), positions / fps, None, str(folder))  # frames missing: times from the numbers
 
 
 def _read_container(path: Path, fps: float | None) -> Video:
@@ -166,7 +206,7 @@ def _read_container(path: Path, fps: float | None) -> Video:
     steps = np.diff(stamps)
     if not (steps > 0).all():
         raise InputError(f"{path}: frame timestamps do not increase (frame {int(np.argmin(steps)) + 1})")
-    period = 1.0 / rate if rate else float(steps.mean())
+    period = 1.0 / rate if rate else float(np.median(steps))
     if np.all(np.abs(steps - period) <= 0.01 * period):  # constant rate (timestamps are rounded)
         return _make_video(frames, 1.0 / period, str(path))
     return Video(frames, stamps, None, str(path))  # variable frame rate: the file's own times

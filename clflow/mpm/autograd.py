@@ -29,6 +29,7 @@ a tensor.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import warnings
 import weakref
 from dataclasses import dataclass
@@ -96,6 +97,7 @@ class _Engine:
         self.adjoint = SubstepAdjoint(sim.device, sim.dtype, sim.n, sim.grid, sim.particles.material, sim.flip)
 
 
+log = logging.getLogger("clflow.mpm")
 _ENGINES: "weakref.WeakKeyDictionary[Simulator, _Engine]" = weakref.WeakKeyDictionary()
 #: share of a discrete device's memory a differentiable run may plan for (the rest: the
 #: rasteriser's and the driver's own); beyond it backward replays frames in segments
@@ -439,8 +441,8 @@ def simulate(
         kernel_params: [N, PARAM_COUNT] kernel parameters (clflow.mpm.constants.kernel_params),
             an alternative to params.
         retries: NaN/CFL guard: when a frame turns NaN/inf or breaks the CFL limit, halve dt
-            (double the substeps per frame) and run again, at most this many times (a
-            StabilityWarning says so). The last attempt raises :class:`SimulationError` on
+            (double the substeps per frame) and run again, at most this many times (logged
+            at INFO: routine). The last attempt raises :class:`SimulationError` on
             NaN/inf and only warns on a CFL violation; Frames.cfl_violation and Frames.clamped
             (particles clamped at the grid's edge) record what it warned about.
         memory_budget: bytes the run may hold (see :func:`memory_estimate`); when a whole
@@ -517,7 +519,7 @@ def simulate(
                 *_Simulate.apply(run, param, mass, x0, v0, stage_accel), substeps=substeps, clamped=run.clamped_count
             )
         except SimulationError as err:
-            warnings.warn(f"{err}; retrying with {2 * substeps} substeps per frame", StabilityWarning, stacklevel=2)
+            log.info("%s; retrying with %d substeps per frame", err, 2 * substeps)  # routine: the guard at work
             substeps *= 2
     run = _Run(sim, int(frames), substeps, memory_budget)
     return Frames(

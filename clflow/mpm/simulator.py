@@ -501,11 +501,12 @@ class Simulator:
         self._state, self._next = self._next, self._state
         self.time += self.dt
 
-    def advance_frame(self) -> int:
+    def advance_frame(self, strict_cfl: bool = False) -> int:
         """Run one frame of substeps; returns how many particles were clamped into the domain
         at least once.
 
-        Raises :class:`SimulationError` if the state became NaN/inf."""
+        Raises :class:`SimulationError` if the state became NaN/inf, or (``strict_cfl``) when
+        it ends faster than the CFL limit allows (otherwise a StabilityWarning)."""
         self._clamped.zero_()
         v_before = self.device_state.v.clone()  # on the device; read only to explain a blow-up
         for s in range(self.substeps):
@@ -531,24 +532,26 @@ class Simulator:
             )
         vmax = cfl_breach(state.v, self.dt, self.grid.dx)
         if vmax is not None:
-            warnings.warn(
+            message = (
                 f"frame {self.frame}: max speed {vmax:.3g} m/s breaks the CFL limit at dt = {self.dt:.3g} s; "
-                f"use substeps >= {self.stable_substeps()}",
-                StabilityWarning,
-                stacklevel=2,
+                f"use substeps >= {self.stable_substeps()}"
             )
+            if strict_cfl:
+                raise SimulationError(message)
+            warnings.warn(message, StabilityWarning, stacklevel=2)
         return count
 
-    def run(self, frames: int, on_frame: Callable[[int], None] | None = None) -> Trajectory:
+    def run(self, frames: int, on_frame: Callable[[int], None] | None = None, strict_cfl: bool = False) -> Trajectory:
         """Simulate ``frames`` frames, calling ``on_frame(k)`` after frame k (1-based); returns
-        the :class:`Trajectory` (frames + 1 states)."""
+        the :class:`Trajectory` (frames + 1 states). ``strict_cfl``: a frame that ends
+        breaking the CFL limit raises SimulationError instead of warning."""
         if int(frames) < 0:
             raise InputError(f"frames must be >= 0, got {frames}")
         snaps = [self._snapshot(0)]
         self._progress = FrameProgress("simulation", int(frames), self.substeps, first=self.frame, device=self.device)
         try:
             for k in range(int(frames)):
-                snaps.append(self._snapshot(self.advance_frame()))
+                snaps.append(self._snapshot(self.advance_frame(strict_cfl)))
                 if on_frame is not None:
                     on_frame(k + 1)
         finally:

@@ -81,11 +81,17 @@ def simulate_config(
     prepared: Prepared | None = None,
     max_substeps: int | None = None,
     on_frame: Callable[[int], None] | None = None,
+    min_substeps: int = 1,
+    strict_cfl: bool = True,
 ) -> SimulationResult:
-    """Run the config's simulation (no gradients) with its material or ``overrides``, calling
-    ``on_frame(k)`` after frame k. First log the substeps and the predicted time, and refuse
+    """Run the config's simulation (no gradients) with its material or ``overrides``, at
+    least ``min_substeps`` per frame (an optimised result's own), calling ``on_frame(k)``
+    after frame k. First log the substeps and the predicted time, and refuse
     (SubstepLimitError) a run needing more substeps per frame than ``max_substeps`` (default
-    ``simulation.max_substeps``)."""
+    ``simulation.max_substeps``). A run that breaks the CFL limit is run again at twice the
+    substeps, as the optimiser does, and is an error (SimulationError) at the limit;
+    ``strict_cfl=False`` only warns."""
+    from clflow.mpm import SimulationError
     from clflow.pipeline.preflight import describe, plan_run
 
     prepared = prepared or prepare(cfg)
@@ -97,8 +103,19 @@ def simulate_config(
             plan_run(cfg, prepared.setup, params, density, max_substeps=max_substeps), "simulation", gradient=False
         ),
     )
-    sim = build_simulator(cfg, prepared.setup, params, density)
-    traj = sim.run(cfg.simulation.frames, on_frame)
+    while True:
+        sim = build_simulator(
+            cfg, prepared.setup, params, density, min_substeps=min_substeps, max_substeps=max_substeps
+        )
+        try:
+            traj = sim.run(cfg.simulation.frames, on_frame, strict_cfl=strict_cfl)
+            break
+        except SimulationError as exc:
+            if "CFL" not in str(exc) or 2 * sim.substeps > max_substeps:
+                hint = f" (the limit is {max_substeps} substeps per frame: --max-substeps)" if "CFL" in str(exc) else ""
+                raise SimulationError(f"{exc}{hint}") from None
+            log.info("%s: simulating again at %d substeps per frame", exc, 2 * sim.substeps)
+            min_substeps = 2 * sim.substeps
     return SimulationResult(prepared, params, density, traj.x, traj.F, traj.clamped, sim.substeps)
 
 

@@ -274,7 +274,8 @@ def render_4d(
     sequences = {"guidance": [frames.guidance_camera()] * T, "orbit": orbit_cameras(frames, T, turns)}
     for k, cam in enumerate(orbit_cameras(frames, views, phase=0.5)):  # between the guidance view's repeats
         sequences[f"view_{k}"] = [cam] * T
-    with atomic_dir(out) as tmp:
+    # one result: the earlier sequences (their videos, frames and extra views) go
+    with atomic_dir(out, replaces=("guidance*", "orbit*", "view_*")) as tmp:
         for name, cams in sequences.items():
             images = []
             with torch.no_grad():

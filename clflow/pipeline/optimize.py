@@ -171,6 +171,18 @@ def guidance_views(cfg: SceneConfig) -> list[tuple[CameraConfig, Path | None]]:
 def guidance_video(cfg: SceneConfig, path: Path | None, cam, frames: int):
     """The guidance video at ``path`` (a clflow.flow.video.Video) resampled to the simulation's
     frame times, checked against the simulated time and the camera ``cam``'s image size."""
+    video, resampled = resampled_guidance(cfg, path, frames)
+    if (resampled.width, resampled.height) != (cam.width, cam.height):
+        raise InputError(
+            f"{path}: frames are {resampled.width}x{resampled.height} px, the guidance camera "
+            f"{cam.width}x{cam.height}; crop/resize the video (clflow.flow.video.fit_to_camera)"
+        )
+    return dataclasses.replace(resampled, fps=video.fps)  # fps: the source's, to compare views
+
+
+def resampled_guidance(cfg: SceneConfig, path: Path | None, frames: int):
+    """(the guidance video at ``path`` as read, the same at the simulation's ``frames`` + 1
+    frame times); InputError when it is unreadable, too short or has a gap there."""
     from clflow.flow.video import read_video
 
     if path is None:
@@ -183,13 +195,7 @@ def guidance_video(cfg: SceneConfig, path: Path | None, cam, frames: int):
             f"{path}: the video lasts {video.times[-1]:.3g} s, the simulation "
             f"{times[-1]:.3g} s ({frames} frames at {cfg.simulation.fps:g} fps)"
         )
-    resampled = video.resample(times)
-    if (resampled.width, resampled.height) != (cam.width, cam.height):
-        raise InputError(
-            f"{path}: frames are {resampled.width}x{resampled.height} px, the guidance camera "
-            f"{cam.width}x{cam.height}; crop/resize the video (clflow.flow.video.fit_to_camera)"
-        )
-    return dataclasses.replace(resampled, fps=video.fps)  # fps: the source's, to compare views
+    return video, video.resample(times)
 
 
 def _observed_flow(cfg: SceneConfig, path: Path, frames: np.ndarray, cache: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -287,10 +293,26 @@ def rate_schedule(opt, iteration: int, iterations: int | None = None) -> float:
     return opt.final_rate + (1.0 - opt.final_rate) * 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
-def config_digests(cfg: SceneConfig) -> dict[str, str]:
-    """A SHA-256 of each top-level field of the resolved config (canonical JSON, paths as
-    strings), except ``output`` and ``optimize.iterations`` (``--resume --iterations N``
-    extends a run): what a resumed run must share with its checkpoint."""
+def _by_content(value):
+    """``value`` (a config field as asdict gives it) with every path replaced by the digest
+    of what it holds (clflow.fileio.content_digest)."""
+    from clflow.fileio import content_digest
+
+    if isinstance(value, Path):
+        return content_digest(value)
+    if isinstance(value, dict):
+        return {k: _by_content(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_by_content(v) for v in value]
+    return value
+
+
+def config_digests(cfg: SceneConfig, by_path: bool = False) -> dict[str, str]:
+    """A SHA-256 of each top-level field of the resolved config (canonical JSON; files and
+    folders by their contents, so a moved run resumes; ``by_path``: by their paths, as
+    checkpoints before that were saved), except ``output`` and ``optimize.iterations``
+    (``--resume --iterations N`` extends a run): what a resumed run must share with its
+    checkpoint."""
     import hashlib
 
     fields = asdict(cfg)
@@ -301,6 +323,8 @@ def config_digests(cfg: SceneConfig) -> dict[str, str]:
         fields.pop("more_views")
     if fields.get("generate") is None:  # no generated video: the digests of checkpoints from before it
         fields.pop("generate", None)
+    if not by_path:
+        fields = _by_content(fields)
     return {
         name: hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()[:16]
         for name, value in fields.items()
@@ -423,8 +447,24 @@ class Optimization:
             max_substeps=self.cfg.simulation.max_substeps,
             optimizing=True,
         )
+        plan = dataclasses.replace(plan, render_seconds_per_frame=self.render_seconds())
         log.info("%s", describe(plan, "optimize", gradient=True))
         return plan
+
+    def render_seconds(self) -> float:
+        """Seconds one frame step's flow takes in every view, rendered and its gradient back
+        (timed once in the guidance view on the scene at rest: what an iteration adds to the
+        simulation's time)."""
+        p = self.prepared
+        x = p.setup.particles.positions.to(p.obj_rest.means.dtype).clone().requires_grad_()
+        F = torch.eye(3, dtype=x.dtype).expand(x.shape[0], 3, 3)
+        seconds = []
+        for _ in range(2):  # the first builds the rasteriser's kernels
+            started = time.perf_counter()
+            scene = frame_gaussians(p.static, p.obj_rest, x, F)
+            render_flow(scene, scene, p.camera)[0].sum().backward()
+            seconds.append(time.perf_counter() - started)
+        return seconds[-1] * (1 + len(self.cfg.more_views))
 
     def check_guidance(self, force: bool) -> list[str]:
         """The guidance checks of every view (clflow.pipeline.preflight.check_guidance): their
@@ -476,7 +516,7 @@ class Optimization:
             raise InputError(f"{self.checkpoint} optimises {sorted(state.z)}, the config {sorted(self.variables)}")
         saved = data.get("config_digests")  # absent in checkpoints of older versions
         digests = config_digests(self.cfg)
-        if isinstance(saved, dict) and saved != digests:
+        if isinstance(saved, dict) and saved != digests and saved != config_digests(self.cfg, by_path=True):
             changed = sorted(k for k in saved.keys() | digests.keys() if saved.get(k) != digests.get(k))
             raise InputError(
                 f"cannot resume from {self.checkpoint}: the config changed since it was saved "
@@ -879,7 +919,8 @@ class Optimization:
             state = OptimizerState(**data["state"])
         except (OSError, ValueError, KeyError, TypeError):
             return None
-        if data.get("start") != z0 or data.get("config_digests") != config_digests(self.cfg):
+        ours = (config_digests(self.cfg), config_digests(self.cfg, by_path=True))
+        if data.get("start") != z0 or data.get("config_digests") not in ours:
             return None
         if state.calibrated_at is not None:
             self.restore_calibration(state)
@@ -1385,10 +1426,18 @@ class Optimization:
         moves by -(J^T J)^-1 J^T (r_coarse - r_model), both against the same targets. The
         discretisation's pull on each estimate at the scale of the grid refinement: the
         model grid's own bias is of that order too (its sign and size depend on how fast the
-        estimate converges with the grid). Empty where the coarser run fails."""
+        estimate converges with the grid). Where the coarser grid's thicker walls leave the
+        object no room in the domain, a GRID_CHECK_RATIO times finer grid instead. Empty
+        where the run fails."""
         coarse = self.search_grid
         if coarse >= self.model_grid:
             coarse = round((self.model_grid - 1) / GRID_CHECK_RATIO) + 1
+        finer = round((self.model_grid - 1) * GRID_CHECK_RATIO) + 1
+        try:
+            self.prepared_on(coarse)
+        except InputError:
+            log.info("the grid check takes %d nodes: on %d the thicker walls leave the object no room", finer, coarse)
+            coarse = finer
         try:
             run = self.evaluate(z, self.frames, with_grad=False, grid=coarse)
         except (FloatingPointError, ClflowError) as exc:
@@ -1541,6 +1590,10 @@ class Optimization:
             "velocity": list(velocity),
             "optimized": final,
             "units": {n: parameter_unit(self.cfg, n) for n in final},
+            # the substeps per frame the final evaluation needed (after any CFL retry): a
+            # re-simulation of this result (clflow simulate --params-from) takes at least these
+            "substeps": result.substeps,
+            "fps": self.cfg.simulation.fps,
         }
         atomic_write_text(out / "params.json", json.dumps(record, indent=2))
         atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2))

@@ -85,10 +85,17 @@ class RunPlan:
     particles: int
     frames: int
     seconds_per_substep: float
+    render_seconds_per_frame: float = 0.0  # the flow's rendering and loss, forward and backward, every view
 
     @property
     def forward_seconds(self) -> float:
         return self.frames * self.substeps * self.seconds_per_substep
+
+    def seconds(self, gradient: bool) -> float:
+        """The predicted seconds of a run (``gradient``: an iteration, adjoint and rendering included)."""
+        if not gradient:
+            return self.forward_seconds
+        return self.forward_seconds * GRADIENT_COST + self.frames * self.render_seconds_per_frame
 
 
 # an iteration with gradients costs about this many forward runs: the forward, then the adjoint
@@ -155,8 +162,10 @@ def plan_run(
     limit = stable if cfg.simulation.substep_dt is None else f"simulation.substep_dt; stable: {stable}"
     if max_substeps is not None and sim.substeps > max_substeps:
         sim.step()  # a timing for the message: the one substep is cheap next to the refused run
+        sim.device.finish()
         start = time.perf_counter()
         sim.step()
+        sim.device.finish()  # a substep only enqueues its kernels
         raise SubstepLimitError(
             substep_limit_message(
                 cfg, sim.substeps, sim.dt, limit, max_substeps, time.perf_counter() - start, optimizing
@@ -170,16 +179,18 @@ def plan_run(
             f"optimiser rejects unstable runs: use substep_dt: auto or at most {sim.frame_dt / needed:.3g} s"
         )
     sim.step()  # the first substep may build kernels
+    sim.device.finish()
     start = time.perf_counter()
     sim.step()
     sim.step()
+    sim.device.finish()  # a substep only enqueues its kernels
     seconds = (time.perf_counter() - start) / 2
     return RunPlan(sim.substeps, sim.dt, limit, sim.n, cfg.simulation.frames if frames is None else frames, seconds)
 
 
 def describe(plan: RunPlan, what: str, gradient: bool) -> str:
     """One line: substeps, dt and the predicted time of a run (``gradient``: per iteration)."""
-    seconds = plan.forward_seconds * (GRADIENT_COST if gradient else 1.0)
+    seconds = plan.seconds(gradient)
     return (
         f"{what}: {plan.substeps} substeps per frame (dt = {plan.dt:.3g} s, limited by {plan.limit}), "
         f"{plan.particles:,} particles, {plan.frames} frames: about {format_duration(seconds)}"

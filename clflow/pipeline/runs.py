@@ -14,11 +14,36 @@ import contextlib
 import dataclasses
 import json
 import math
+import shutil
 from pathlib import Path
 from typing import Callable, ContextManager
 
 from clflow.errors import InputError
 from clflow.limits import DEFAULT_MAX_OUTPUT_GB
+
+#: what an interrupted optimisation leaves in its output folder for --resume: the main
+#: checkpoint, the search starts' polishes, the material hypotheses' searches
+RESUMABLE = ("checkpoint.json", "starts", "hypotheses")
+#: a run's own entries in its output folder (glob patterns), which a new run (no --resume)
+#: removes before it writes anything: the folder never mixes two runs. Caches that are
+#: checked against the config (the observed flow, the estimator error, the material query)
+#: stay.
+RUN_ENTRIES = (
+    *RESUMABLE,
+    "hypotheses.json",
+    "params.json",
+    "metrics.json",
+    "history.json",
+    "search.json",
+    "loss.png",
+    "comparison*.mp4",
+    "run.json",
+    "index.html",
+)
+
+
+#: a scene simulation's entries in its folder, and what clflow render4d derives from them
+SIMULATION_ENTRIES = ("gaussians.npz", "frame_*.ply", "static*.ply", "guidance", "guidance.mp4", "render4d")
 
 
 def _silent(line: str) -> None:
@@ -28,13 +53,27 @@ def _silent(line: str) -> None:
 def read_params_record(path: str | Path, cfg):
     """The material parameters, density and initial velocity of an optimisation's
     ``params.json`` applied to ``cfg`` (a SceneConfig of the same material): returns the
-    config with that velocity (m/s) and the parameter overrides (SI; ``density`` in kg/m^3)."""
+    config with that velocity (m/s), the parameter overrides (SI; ``density`` in kg/m^3) and
+    the substeps per frame the optimiser's final evaluation needed (1 where the record,
+    older or of another frame rate, does not say)."""
+    from clflow.fileio import read_text
+
+    text = read_text(path, "params file")
     try:
-        record = json.loads(Path(path).read_text())
+        record = json.loads(text)
+    except ValueError as exc:
+        raise InputError(f"{path}: not valid JSON ({exc}); expected the params.json clflow optimize writes") from None
+    missing = [key for key in ("parameters", "density") if not isinstance(record, dict) or key not in record]
+    if missing:
+        raise InputError(
+            f"{path} lacks {' and '.join(repr(k) for k in missing)}: not a params.json of clflow optimize "
+            f"(it writes parameters, density and velocity)"
+        )
+    try:
         overrides = {**record["parameters"], "density": record["density"]}
         velocity = record.get("velocity", list(cfg.velocity))  # older records have none
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"{path}: not a params.json of clflow optimize ({exc})") from None
+    except TypeError as exc:
+        raise InputError(f"{path}: 'parameters' is not a table of numbers ({exc})") from None
     if record.get("material") != cfg.material.type:
         raise InputError(f"{path} is for {record.get('material')!r}, the config simulates {cfg.material.type!r}")
     if not (
@@ -43,7 +82,12 @@ def read_params_record(path: str | Path, cfg):
         and all(isinstance(v, (int, float)) and math.isfinite(v) for v in velocity)
     ):
         raise InputError(f"{path}: velocity must be a list of 3 finite numbers (m/s), got {velocity!r}")
-    return dataclasses.replace(cfg, velocity=tuple(float(v) for v in velocity)), overrides
+    substeps = record.get("substeps", 1)
+    if not (isinstance(substeps, int) and substeps >= 1):
+        raise InputError(f"{path}: substeps must be a whole number >= 1, got {substeps!r}")
+    if record.get("fps", cfg.simulation.fps) != cfg.simulation.fps:  # the same time step at another frame rate
+        substeps = max(1, math.ceil(substeps * record["fps"] / cfg.simulation.fps - 1e-9))
+    return dataclasses.replace(cfg, velocity=tuple(float(v) for v in velocity)), overrides, substeps
 
 
 def simulate_scene(
@@ -74,9 +118,9 @@ def simulate_scene(
     from clflow.scene.config import load_config
 
     cfg = resolve_material(load_config(config_path, settings))
-    overrides = {}
+    overrides, min_substeps = {}, 1
     if params_file:
-        cfg, overrides = read_params_record(params_file, cfg)
+        cfg, overrides, min_substeps = read_params_record(params_file, cfg)
     out = Path(out_dir) if out_dir else cfg.output / "simulation"
     prepared = prepare(cfg)
     frames = cfg.simulation.frames
@@ -92,9 +136,12 @@ def simulate_scene(
             prepared,
             max_substeps=max_substeps,
             on_frame=(lambda k: advance(f"frame {k}")) if advance else None,
+            min_substeps=min_substeps,
         )
     echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
-    with atomic_dir(out) as tmp:  # all or nothing: a failure leaves OUT as it was
+    # all or nothing: a failure leaves OUT as it was; a success replaces the earlier
+    # simulation's frames (all of them) and what was rendered from it
+    with atomic_dir(out, replaces=SIMULATION_ENTRIES) as tmp:
         export_gaussians(result, tmp, object_only, compressed)
         if preview != "none":
             render_video(result, tmp / "guidance", video=tmp / "guidance.mp4" if preview == "mp4" else None)
@@ -157,7 +204,7 @@ def simulate_particles(
 
     from clflow.fileio import atomic_dir
     from clflow.limits import TRAJECTORY_REALS, check_memory, check_output
-    from clflow.mpm import Grid, MaterialSpec, Simulator
+    from clflow.mpm import Grid, MaterialSpec, SimulationError, Simulator
     from clflow.mpm.preview import PREVIEW_SIZE, write_preview
     from clflow.mpm.shapes import lattice_fill, load_particles
     from clflow.mpm.substep import check_device, check_grid_memory
@@ -181,20 +228,24 @@ def simulate_particles(
         spacing = dx / 2  # 2 particles per cell and axis
         x = lattice_fill(run.shape, run.size, list(run.center or [run.domain / 2] * 3), spacing)
         volume = spacing**3
-    sim = Simulator(
-        x,
-        volume,
-        MaterialSpec(run.material, dict(run.params), run.density, run.model),
-        grid,
-        velocities=torch.tensor(run.velocity, dtype=torch.float64).expand(x.shape[0], 3),
-        frame_dt=1.0 / run.fps,
-        substeps=run.substeps,
-        gravity=list(run.gravity),
-        walls=None if run.walls == "none" else run.walls,
-        wall_friction=run.wall_friction,
-        dtype=dtype,
-        device=device,
-    )
+
+    def simulator(substeps: int | None):
+        return Simulator(
+            x,
+            volume,
+            MaterialSpec(run.material, dict(run.params), run.density, run.model),
+            grid,
+            velocities=torch.tensor(run.velocity, dtype=torch.float64).expand(x.shape[0], 3),
+            frame_dt=1.0 / run.fps,
+            substeps=substeps,
+            gravity=list(run.gravity),
+            walls=None if run.walls == "none" else run.walls,
+            wall_friction=run.wall_friction,
+            dtype=dtype,
+            device=device,
+        )
+
+    sim = simulator(run.substeps)
     out, frames = Path(out_dir), run.frames
     less = "simulate fewer --frames"
     image = 0 if preview == "none" else 3 * PREVIEW_SIZE**2  # bytes of an uncompressed preview frame
@@ -219,9 +270,18 @@ def simulate_particles(
         )
     shown = progress(frames, "simulating") if progress else contextlib.nullcontext(None)
     with shown as advance:
-        traj = sim.run(frames, (lambda k: advance(f"frame {k}")) if advance else None)
+        while True:  # a CFL breach: again at twice the substeps (unless --substeps chose them), never exit 0
+            try:
+                traj = sim.run(frames, (lambda k: advance(f"frame {k}")) if advance else None, strict_cfl=True)
+                break
+            except SimulationError as exc:
+                if "CFL" not in str(exc) or run.substeps is not None or 2 * sim.substeps > limit:
+                    way_out = "more --substeps" if run.substeps is not None else f"--max-substeps above {limit}"
+                    raise SimulationError(f"{exc}" + (f" ({way_out})" if "CFL" in str(exc) else "")) from None
+                log.info("%s: simulating again at %d substeps per frame", exc, 2 * sim.substeps)
+                sim = simulator(2 * sim.substeps)
     target = out / ("preview.mp4" if preview == "mp4" else "preview")
-    with atomic_dir(out) as tmp:  # all or nothing: a failure leaves OUT as it was
+    with atomic_dir(out, replaces=("positions.npz", "preview", "preview.mp4")) as tmp:  # all or nothing, one result
         np.savez(tmp / "positions.npz", x=traj.x.float().numpy(), time=traj.time.numpy())
         if preview != "none":
             write_preview(traj.x, grid.origin, grid.upper, tmp / target.name, run.fps, PREVIEW_SIZE)
@@ -281,14 +341,6 @@ def iteration_lines(total: int, done: int, note: Callable[[str], None]):
     yield lambda row: note(f"iteration {row['iteration'] + 1}/{total}: {format_row(row)}")
 
 
-def _modified(path) -> int | None:
-    """``path``'s modification time in ns, None if it does not exist."""
-    try:
-        return path.stat().st_mtime_ns
-    except FileNotFoundError:
-        return None
-
-
 def run_optimization(
     config_path: str | Path,
     resume: bool = False,
@@ -323,20 +375,33 @@ def run_optimization(
             from clflow.sweep import ray_session
 
             stack.enter_context(ray_session(parallel.get("address")))  # one Ray for all of the run's tasks
-        return _optimize(
-            cfg, config_path, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel
-        )
+        again = resume_command(config_path, output, overrides, iterations, max_substeps, force_video, parallel)
+        return _optimize(cfg, again, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel)
 
 
-def _optimize(
-    cfg, config_path, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel
-) -> dict:
-    """run_optimization's work once its config is loaded."""
+def resume_command(config_path, output, overrides, iterations, max_substeps, force_video, parallel) -> str:
+    """The command line that continues an interrupted ``clflow optimize`` with the options it
+    was started with (shell-quoted)."""
+    import shlex
+
+    words = ["clflow", "optimize", str(config_path), "--resume"]
+    words += ["-o", str(output)] if output is not None else []
+    for item in overrides:
+        words += ["--set", item]
+    words += ["--iterations", str(iterations)] if iterations is not None else []
+    words += ["--max-substeps", str(max_substeps)] if max_substeps is not None else []
+    words += ["--force-video"] if force_video else []
+    words += ["--parallel"] if parallel is not None else []
+    return shlex.join(words)
+
+
+def _optimize(cfg, again, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel) -> dict:
+    """run_optimization's work once its config is loaded (``again``: the command that resumes it)."""
     import torch
 
     from clflow.limits import check_output
     from clflow.mpm.substep import check_device
-    from clflow.pipeline.optimize import Optimization, parameter_unit
+    from clflow.pipeline.optimize import resampled_guidance
     from clflow.runtime import get_device
 
     check_device(get_device(), torch.float32, differentiable=True)  # before any work
@@ -345,8 +410,36 @@ def _optimize(
     if output is not None:
         cfg = dataclasses.replace(cfg, output=Path(output).resolve())
     check_output(cfg.output)
+    if resume and not any((cfg.output / saved).exists() for saved in RESUMABLE):
+        raise InputError(
+            f"--resume: {cfg.output} holds no interrupted run to continue (no checkpoint.json); "
+            f"run without --resume to start one"
+        )
     if max_substeps is not None:
         cfg = dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, max_substeps=max_substeps))
+    for video in [cfg.video, *(view.video for view in cfg.more_views)]:
+        if video is not None:  # an unreadable, short or gapped video is found before the scene and the kernels
+            resampled_guidance(cfg, video, cfg.simulation.frames)
+    created = not cfg.output.exists()
+    if not resume:
+        earlier = sorted({entry for pattern in RUN_ENTRIES for entry in cfg.output.glob(pattern)})
+        if earlier:
+            note(f"a new run in {cfg.output}: removing the earlier run's {', '.join(e.name for e in earlier)}")
+            for entry in earlier:
+                shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
+    try:
+        return _optimize_in(cfg, again, resume, force_video, echo, note, bar, parallel)
+    except BaseException:  # a first run that fails before it saved anything leaves no folder behind
+        kept = (*RESUMABLE, "generated")  # what a rerun continues from, or an expensive generated video
+        if created and not any((cfg.output / saved).exists() for saved in kept):
+            shutil.rmtree(cfg.output, ignore_errors=True)
+        raise
+
+
+def _optimize_in(cfg, again, resume, force_video, echo, note, bar, parallel) -> dict:
+    """_optimize's work once the output folder is checked and cleared of an earlier run."""
+    from clflow.pipeline.optimize import Optimization, parameter_unit
+
     if getattr(cfg, "generate", None) is not None:  # video: {generate: ...}: the guidance video first
         from clflow.pipeline.generated_video import ensure_guidance_video
 
@@ -372,8 +465,7 @@ def _optimize(
         except KeyboardInterrupt:
             raise KeyboardInterrupt(
                 f"interrupted while searching the material hypotheses (each saves its samples "
-                f"in {cfg.output / 'hypotheses'}); continue with `clflow optimize "
-                f"{config_path} --resume`"
+                f"in {cfg.output / 'hypotheses'}); continue with `{again}`"
             ) from None
         note(
             f"material: {hypotheses['chosen']} fits best (best search loss: "
@@ -400,16 +492,14 @@ def _optimize(
                 advance(row)
 
         opt.progress = progress
-        earlier_checkpoint = _modified(opt.checkpoint)
         try:
             state = opt.run(resume=resume, start=start)
-        except KeyboardInterrupt:
-            # without --resume, a checkpoint.json untouched since the start is an earlier run's
-            if _modified(opt.checkpoint) is None or (not resume and _modified(opt.checkpoint) == earlier_checkpoint):
+        except KeyboardInterrupt:  # (a new run cleared the earlier run's checkpoint before it began)
+            if not opt.checkpoint.exists():
                 raise KeyboardInterrupt("interrupted before the first iteration finished; nothing was saved") from None
             raise KeyboardInterrupt(
                 f"interrupted after {opt.load_state().iteration} iterations (saved in {opt.checkpoint}); "
-                f"continue with `clflow optimize {config_path} --resume`"
+                f"continue with `{again}`"
             ) from None
     metrics = opt.write_results(state)
     from clflow.pipeline.report import write_report, write_run_record

@@ -309,11 +309,12 @@ def load_knowledge_base(path: str | Path | None = None) -> KnowledgeBase:
     """
     if path is None:
         return _shipped_knowledge_base()
+    from clflow.fileio import read_text
+
     path = Path(path)
+    text = read_text(path, "knowledge base")
     try:
-        raw = json.loads(path.read_text())
-    except OSError as exc:
-        raise InputError(f"cannot read knowledge base {path}: {exc.strerror}") from None
+        raw = json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputError(f"{path}: not valid JSON: {exc}") from None
     return _parse(raw, str(path))

@@ -79,11 +79,12 @@ def load_query_result(path: str | Path) -> QueryResult:
     give the registry's unit of every quantity. Parameters the file leaves out take the
     registry's defaults. Problems raise :class:`InputError` naming the file and key.
     """
+    from clflow.fileio import read_text
+
     path = Path(path)
+    text = read_text(path, "query result")
     try:
-        raw = loads_strict(path.read_text())
-    except OSError as exc:
-        raise InputError(f"cannot read query result {path}: {exc.strerror}") from None
+        raw = loads_strict(text)
     except (json.JSONDecodeError, ValueError) as exc:
         raise InputError(f"{path}: not valid JSON: {exc}") from None
     if not isinstance(raw, dict) or raw.get("format") != RESULT_FORMAT:

@@ -151,10 +151,9 @@ def read_points3d_bin(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 def _data_lines(path: Path) -> list[tuple[int, str]]:
     """(line number, text) of every line that is not a comment; blank lines are kept."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    from clflow.fileio import read_text
+
+    text = read_text(path, "COLMAP text file")
     return [(n, line.strip()) for n, line in enumerate(text.splitlines(), 1) if not line.lstrip().startswith("#")]
 
 

@@ -108,11 +108,12 @@ def load_sequence(path: str | os.PathLike) -> Sequence:
     from clflow.media import read_image
 
     index = find_index(path)
+    from clflow.fileio import read_text
+
+    text = read_text(index, "sequence index")
     try:
-        entries = json.loads(index.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise InputError(f"{index}: cannot read the index ({exc.strerror})") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        entries = json.loads(text)
+    except json.JSONDecodeError as exc:
         raise InputError(f"{index}: not valid JSON ({exc})") from None
     if not isinstance(entries, list) or not entries:
         raise InputError(f"{index}: expected a non-empty JSON list of image entries")

@@ -16,8 +16,10 @@ discrete GPU must, so the tests of that path run on a CPU device too.
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
+import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,12 +30,14 @@ from clflow.errors import DeviceError
 INSTALL_HINT = (
     "install an OpenCL driver; on Debian/Ubuntu the CPU one is: apt-get install pocl-opencl-icd ocl-icd-libopencl1"
 )
+log = logging.getLogger("clflow.runtime")
 ENV_DEVICE = "CLFLOW_DEVICE"
 ENV_BRIDGE = "CLFLOW_BRIDGE"
 BRIDGE_MODES = ("auto", "copy")  # auto: alias host memory where the device shares it
 
 
 SPARE_SCRATCH_BYTES = 256 * 2**20  # scratch memory a device keeps for reuse (take_scratch)
+SLOW_BUILD_SECONDS = 1.0  # a program build longer than this compiled (PoCL's cache answers in ms)
 MAX_IN_FLIGHT = 256  # zero-copy arrays kept alive for pending commands before the device is waited for
 
 
@@ -306,6 +310,7 @@ class Device:
                 cl = _import_pyopencl()
                 text = load_source(source)
                 options = build_options(self.info, real, defines)
+                started = time.perf_counter()
                 try:
                     with warnings.catch_warnings():
                         warnings.simplefilter("ignore", cl.CompilerWarning)
@@ -317,6 +322,9 @@ class Device:
                         f"building kernels_cl/{source} ({' '.join(options)}) failed on {self.info.name}:\n{exc}"
                     ) from None
                 self._programs[key] = prog
+                seconds = time.perf_counter() - started
+                if seconds > SLOW_BUILD_SECONDS:  # a real compile, not the driver's cache: say why it waits
+                    log.info("compiled kernels_cl/%s in %.1f s (cached for later runs)", source, seconds)
             return prog
 
     def kernel(self, source: str, name: str, real: str = "float", defines: dict[str, Any] | None = None):

@@ -1024,11 +1024,10 @@ def load_config(path: str | Path, overrides: Sequence[str] = ()) -> SceneConfig:
     ``overrides``: ``key.sub=value`` strings (the CLI's ``--set``), each value read as YAML
     (``2e4``, ``[0, 1, 0]``, ``auto``), set over the file's before the whole is validated.
     """
+    from clflow.fileio import read_text
+
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise InputError(f"cannot read config {path}: {exc.strerror}") from None
+    text = read_text(path, "config")
     loader: Callable[[str], Any]
     if path.suffix.lower() == ".json":
         loader = _load_json

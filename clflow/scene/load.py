@@ -182,9 +182,12 @@ def file_camera(cfg: SceneConfig, cam: CameraConfig):
     if cam.cameras_file is not None:
         import json
 
+        from clflow.fileio import read_text
+
+        text = read_text(cam.cameras_file, "camera file")
         try:  # 3DGS cameras.json is a list; NeRF transforms.json an object with "frames"
-            is_list = isinstance(json.loads(cam.cameras_file.read_text()), list)
-        except (OSError, ValueError) as exc:
+            is_list = isinstance(json.loads(text), list)
+        except ValueError as exc:
             raise InputError(f"{cam.cameras_file}: not a readable JSON camera file ({exc})") from None
         load = cameras.load_cameras_json if is_list else cameras.load_transforms_json
         loaded = load(cam.cameras_file)

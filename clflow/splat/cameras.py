@@ -444,11 +444,11 @@ def _located(fn, where: str, *args) -> Camera:
 
 
 def _read_json(path: str | os.PathLike) -> Any:
+    from clflow.fileio import read_text
+
+    text = read_text(path, "camera file")
     try:
-        with open(path, encoding="utf-8") as f:
-            return json.load(f)
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read camera file ({exc.strerror})") from None
+        return json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputError(f"{path}: invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}") from None
 

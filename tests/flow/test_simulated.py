@@ -174,3 +174,29 @@ def test_bad_input():
         flow_features(means, means[:1], viewmat, K)
     with pytest.raises(InputError, match=r"\[H, W, 2\]"):
         flow_from_features(torch.zeros(4, 4, 6))
+
+
+@pytest.mark.parametrize("model", ["mean", "affine"])
+def test_a_gaussian_at_or_behind_the_camera_has_finite_flow_and_gradient(model):
+    """A camera inside the object: one Gaussian exactly at the camera centre, one behind it,
+    one crossing the near plane. Their features are 0 (the rasteriser culls them at frame t
+    anyway) instead of NaN, which used to end the run as "rasterize: colors has NaN"."""
+    from clflow.flow.simulated import render_simulated_flow
+
+    viewmat, K = camera()
+    W, t = viewmat[:3, :3], viewmat[:3, 3]
+    centre = -W.T @ t  # the camera centre in world coordinates
+    to_world = lambda p: (torch.tensor(p, dtype=D) - t) @ W  # noqa: E731 (camera -> world)
+    means = torch.stack([centre, to_world([0.0, 0.0, -1.0]), to_world([0.1, 0.0, 0.5]), to_world([0.0, 0.0, 4.0])])
+    moved = means.clone()
+    moved[2] = to_world([0.1, 0.0, -0.2])  # in front at t, behind the camera at t+1
+    moved[3] = to_world([0.05, 0.0, 4.0])  # an ordinary Gaussian: flow
+    means, moved = means.clone().requires_grad_(), moved.clone().requires_grad_()
+    covars = random_spd(4)
+    flow, alpha = render_simulated_flow(
+        means, moved, covars, torch.full((4,), 0.9, dtype=D), viewmat, K, 200, 150, model=model, covars_t1=covars
+    )
+    flow.sum().backward()
+    assert bool(torch.isfinite(flow).all()) and float(flow.abs().max()) > 0  # the ordinary one moves
+    assert bool(torch.isfinite(means.grad).all()) and bool(torch.isfinite(moved.grad).all())
+    assert float(moved.grad[:3].abs().max()) == 0.0  # the dropped ones carry no gradient

@@ -411,20 +411,26 @@ PROBES = [
 ]
 
 
-@pytest.mark.parametrize("probe", PROBES, ids=[p.id for p in PROBES])
-def test_bad_input_is_one_line_and_leaves_nothing(probe, quick_demo, simulation, tmp_path, monkeypatch):
-    case = Case(quick_demo, simulation, tmp_path, monkeypatch)
+def assert_probe(probe: Probe, case: Case) -> str:
+    """Run ``probe``'s command line: its exit code, one error line matching its message, no
+    traceback, none of its ``left`` paths and no temporary file; returns the whole output."""
     args = [str(a) for a in probe.args(case)]
     probe.setup(case)
     res = CliRunner().invoke(cli, args)
-    monkeypatch.undo()
+    case.monkeypatch.undo()
     errors = [line for line in res.output.splitlines() if line.startswith("Error")]
     assert res.exit_code == probe.exit_code and len(errors) == 1, res.output
     assert re.search(probe.message, errors[0]), errors[0]
     assert "Traceback" not in res.output
     for path in probe.left:
-        assert not (tmp_path / path).exists(), path
-    assert not [p for p in tmp_path.rglob("*") if ".tmp" in p.name], "temporary files left behind"
+        assert not (case.tmp / path).exists(), path
+    assert not [p for p in case.tmp.rglob("*") if ".tmp" in p.name], "temporary files left behind"
+    return res.output
+
+
+@pytest.mark.parametrize("probe", PROBES, ids=[p.id for p in PROBES])
+def test_bad_input_is_one_line_and_leaves_nothing(probe, quick_demo, simulation, tmp_path, monkeypatch):
+    assert_probe(probe, Case(quick_demo, simulation, tmp_path, monkeypatch))
 
 
 def test_a_full_disk_is_named_not_the_codec(tmp_path, monkeypatch):

@@ -298,7 +298,7 @@ def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypat
 
 
 def test_the_grid_check_measures_how_far_a_coarser_grid_moves_the_fit(demo_config, monkeypatch):
-    """A coarser grid whose flows are the model grid's at E 0.3 higher and nu 0.02 lower (in z):
+    """A check grid whose flows are the model grid's at E 0.3 higher and nu 0.02 lower (in z):
     its best fit lies 0.3 lower in E and 0.02 higher in nu; E is grid-sensitive, nu not."""
     cfg = demo_config()
     cfg = dataclasses.replace(
@@ -320,8 +320,11 @@ def test_the_grid_check_measures_how_far_a_coarser_grid_moves_the_fit(demo_confi
 
     monkeypatch.setattr(opt, "evaluate", evaluate)
     report = opt.identifiability({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0}, 1)
-    coarse = round((opt.model_grid - 1) / 1.5) + 1  # the demo has no search grid: 1.5x coarser
-    assert report["grids"] == [coarse, opt.model_grid] and grids[-1] == coarse and grids.count(coarse) == 1
+    # the demo has no search grid, and 1.5x coarser its walls leave the object no room: 1.5x finer
+    with pytest.raises(InputError, match="does not fit inside simulation.domain"):
+        opt.prepared_on(round((opt.model_grid - 1) / 1.5) + 1)
+    check = round((opt.model_grid - 1) * 1.5) + 1
+    assert report["grids"] == [check, opt.model_grid] and grids[-1] == check and grids.count(check) == 1
     assert report["grid_shift_z"]["youngs_modulus"] == pytest.approx(-0.3, abs=1e-9)
     assert report["grid_shift_z"]["poissons_ratio"] == pytest.approx(0.02, abs=1e-9)
     assert report["grid_sensitive"] == ["youngs_modulus"]

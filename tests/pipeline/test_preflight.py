@@ -77,12 +77,14 @@ def test_the_substep_limit_is_the_users(quick_demo, tmp_path, caplog):
     )
     with caplog.at_level(logging.INFO):
         res = run("simulate", path, "--max-substeps", 5, "--preview", "none", "-o", tmp_path / "sim")
-    assert res.exit_code == 0, res.output
     assert re.search(
         r"simulation: 5 substeps per frame \(dt = 0.00833 s, limited by elastic wave speed .*\), "
         r"1,867 particles, 8 frames: about .* s",
         caplog.text,
     ), caplog.text
+    # at 5 the push breaks the CFL limit, and 10 is beyond the limit: an error, not exit 0; it runs at 20
+    one_line_error(res, r"breaks the CFL limit .* \(the limit is 5 substeps per frame: --max-substeps\)")
+    assert run("simulate", path, "--max-substeps", 20, "--preview", "none", "-o", tmp_path / "sim").exit_code == 0
 
 
 def test_the_particle_simulate_refuses_too_many_substeps(tmp_path):

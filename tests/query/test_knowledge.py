@@ -213,7 +213,7 @@ def test_bad_knowledge_base_files(tmp_path, raw_kb, edit, message):
 @pytest.mark.parametrize(
     "name, text, match",
     [
-        ("missing.json", None, "cannot read knowledge base"),
+        ("missing.json", None, "knowledge base .*missing.json not found"),
         ("bad.json", "{", "bad.json: not valid JSON"),
     ],
 )

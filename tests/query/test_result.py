@@ -79,7 +79,7 @@ def test_loader_rejects_bad_records(tmp_path, record, message):
 @pytest.mark.parametrize(
     "name, text, match",
     [
-        ("none.json", None, "cannot read query result"),
+        ("none.json", None, "query result .*none.json not found"),
         ("nan.json", '{"density": NaN}', "nan.json: not valid JSON: NaN"),
         ("list.json", "[]", "not a material query result"),
     ],
