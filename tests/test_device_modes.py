@@ -15,6 +15,7 @@ REPO = Path(__file__).resolve().parents[1]
 MODES = {
     "copy": ({"CLFLOW_BRIDGE": "copy"}, ["tests/mpm", "tests/splat", "tests/flow", "tests/runtime"]),
     "copy+atomic-p2g": ({"CLFLOW_BRIDGE": "copy", "CLFLOW_P2G": "atomic"}, ["tests/mpm"]),
+    "copy+gather-p2g": ({"CLFLOW_BRIDGE": "copy", "CLFLOW_P2G": "gather"}, ["tests/mpm"]),
 }
 
 

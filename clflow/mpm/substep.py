@@ -4,6 +4,7 @@
     update_stress : (F_n, C_n, U, s, V, plastic_n, param)  -> F_n+1, plastic_n+1, tau
                     (update_stress_elastic_simd: both in one when all particles are elastic)
     p2g           : (x_n, v_n, C_n, tau, mass, volume)     -> grid [nodes, GRID_CH] (m, mv[, mv0])
+                    (private grid copies, a gather per node over particles sorted by cell, or atomics)
     grid_update   : (grid, boundary table, t)              -> grid_v [nodes, 3][, grid_dv]
     g2p           : (x_n[, v_n], grid_v[, grid_dv], release_time) -> x_n+1, v_n+1, C_n+1
 
@@ -39,11 +40,12 @@ from clflow.mpm.constants import (
 from clflow.runtime.arrays import DeviceArray
 from clflow.runtime.bridge import numpy_real, real_of
 from clflow.runtime.devices import Device
+from clflow.runtime.sort import DIGIT_BITS, histogram_bytes, radix_sort
 
-P2GMode = Literal["auto", "private", "atomic"]
-P2G_MODES = ("auto", "private", "atomic")
+P2GMode = Literal["auto", "private", "atomic", "gather"]
+P2G_MODES = ("auto", "private", "atomic", "gather")
 #: Forces the P2G path of every simulator whose caller asks for "auto" (the default):
-#: "private" or "atomic". CI runs the MPM suite with the atomic path on PoCL this way.
+#: "private", "atomic" or "gather". CI runs the MPM suite with the GPUs' paths on PoCL this way.
 P2G_ENV = "CLFLOW_P2G"
 MAX_GRID_COPIES = 16  # private P2G grids at most (memory: copies x nodes x 4 reals)
 GRID_COPY_BUDGET = 1 << 30  # bytes all private grid copies may take together
@@ -94,7 +96,10 @@ class Grid:
 
 def p2g_path(device: Device, requested: P2GMode = "auto") -> str:
     """The P2G path a simulator takes: ``requested`` unless "auto"; then $CLFLOW_P2G, else
-    private grid copies on CPU devices (deterministic, no atomics) and atomics elsewhere."""
+    private grid copies on CPU devices (a few work-items, each its own grid) and the gather
+    per node elsewhere (a work-item per node over particles sorted by cell). Both sum in a
+    fixed order, so runs repeat to the bit; "atomic" (a work-item per particle, atomic adds
+    in no fixed order) is there to ask for."""
     if requested not in P2G_MODES:
         raise InputError(f"p2g must be one of {', '.join(P2G_MODES)}, not {requested!r}")
     if requested != "auto":
@@ -105,7 +110,7 @@ def p2g_path(device: Device, requested: P2GMode = "auto") -> str:
             raise InputError(f"${P2G_ENV} must be one of {', '.join(P2G_MODES)}, got {forced!r}")
         if forced != "auto":
             return forced
-    return "private" if device.info.type == "CPU" else "atomic"
+    return "private" if device.info.type == "CPU" else "gather"
 
 
 def check_device(device: Device, dtype: torch.dtype, p2g: P2GMode = "auto", differentiable: bool = False) -> None:
@@ -353,6 +358,17 @@ class SubstepKernels:
             self.copies = grid_copies(device, grid_bytes, n)
             self.chunk = -(-n // self.copies)
             self.grid_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * grid_bytes)
+        elif p2g == "gather":
+            self.k_cells = k("mpm/p2g_gather.cl", "particle_cells")
+            self.k_ranges = k("mpm/p2g_gather.cl", "cell_ranges")
+            self.k_p2g = k("mpm/p2g_gather.cl", "p2g_gather")
+            self.cell_key_bits = max(1, (grid.nodes - 1).bit_length())
+            # (key, particle) pairs and their sort's spares, each cell's [start, end) of them
+            self.cell_pairs = [DeviceArray.empty(device, (n,), torch.int32) for _ in range(4)]
+            self.cell_ranges = DeviceArray.empty(device, (grid.nodes, 2), torch.int32)
+            self.sort_hist = DeviceArray.empty(
+                device, (histogram_bytes(self.cell_key_bits, DIGIT_BITS) // 4,), torch.int32
+            )
         else:
             self.k_p2g = k("mpm/p2g.cl", "p2g_atomic")
         self.scratch = SubstepTape.empty(device, n, grid.nodes, dtype, self.flip)
@@ -390,6 +406,16 @@ class SubstepKernels:
             )
             size = tape.grid_mv.numel()
             dev.launch(self.k_reduce, size, [np.int64(size), np.int32(self.copies), self.grid_copies, tape.grid_mv])
+        elif self.p2g == "gather":
+            keys, ids, spare_keys, spare_ids = self.cell_pairs
+            dev.launch(self.k_cells, self.n, grid_args + [n, state.x, keys, ids])
+            if radix_sort(
+                dev, (keys, ids), (spare_keys, spare_ids), self.n, self.cell_key_bits, DIGIT_BITS, self.sort_hist
+            ):
+                keys, ids = spare_keys, spare_ids
+            self.cell_ranges.zero_()  # empty cells: [0, 0)
+            dev.launch(self.k_ranges, self.n, [keys, self.cell_ranges, n])
+            dev.launch(self.k_p2g, self.grid.nodes, grid_args + p2g_args + [ids, self.cell_ranges, tape.grid_mv])
         else:
             tape.grid_mv.zero_()  # on the device, in queue order: the atomics add onto zeros
             dev.launch(self.k_p2g, self.n, grid_args + p2g_args + [tape.grid_mv])

@@ -71,9 +71,9 @@ ATOMIC_REPEAT_TOL = {torch.float32: 1e-4, torch.float64: 1e-9}
 
 def assert_repeats(a: torch.Tensor, b: torch.Tensor, sim: Simulator, what: str = "") -> None:
     """``a`` and ``b`` from two runs of the same computation on ``sim``'s kernels: bit-identical
-    on the deterministic P2G path (private grid copies summed in a fixed order), within
-    ATOMIC_REPEAT_TOL on the atomic one."""
-    if sim.kernels.p2g == "private":
+    on the deterministic P2G paths (private grid copies, the gather per node: fixed orders),
+    within ATOMIC_REPEAT_TOL on the atomic one."""
+    if sim.kernels.p2g in ("private", "gather"):
         assert torch.equal(a, b), what
     else:
         scale = b.abs().max().clamp(min=1e-30)

@@ -47,16 +47,16 @@ def test_matches_reference_float64(material, substeps):
     assert run_both(sim, substeps) < 1e-9
 
 
-@pytest.mark.parametrize("flip", [0.5, 1.0])
-@pytest.mark.parametrize("p2g", ["private", "atomic"])
+@pytest.mark.parametrize("flip", [0.0, 0.5, 1.0])
+@pytest.mark.parametrize("p2g", ["private", "atomic", "gather"])
 def test_flip_blend_matches_reference(flip, p2g):
-    """The PIC/FLIP blend (every material, walls and a floor, 20 substeps) on both P2G paths."""
+    """APIC and the PIC/FLIP blend (every material, walls and a floor, 20 substeps) on every P2G path."""
     from clflow.mpm import HalfSpace
 
     sim = random_scene(
         MATERIAL_CASES, n=400, flip=flip, p2g=p2g, boundaries=[HalfSpace((0, 0.4, 0), (0, 1, 0), "sticky")]
     )
-    assert sim.kernels.scratch.grid_mv.shape[1] == 7
+    assert sim.kernels.scratch.grid_mv.shape[1] == (7 if flip else 4) and sim.kernels.p2g == p2g
     assert run_both(sim, 20) < 1e-9
 
 
@@ -127,12 +127,12 @@ def test_scene_exercises_the_return_mapping(material):
     assert 0 < int(changed.sum()) < sim.n
 
 
-@pytest.mark.parametrize("p2g", ["private", "atomic"])
+@pytest.mark.parametrize("p2g", ["private", "atomic", "gather"])
 @pytest.mark.parametrize("materials", [MATERIAL_CASES, {"elastic": MATERIAL_CASES["elastic"]}])
 def test_repeated_runs_float32(materials, p2g):
-    """Private grid copies sum in a fixed order: two runs are bit-identical. Atomic adds sum
-    in the order the work-items happen to run, so the last bits differ between runs; they
-    agree to ATOMIC_REPEAT_TOL."""
+    """Private grid copies and the gather per node sum in fixed orders: two runs are
+    bit-identical. Atomic adds sum in the order the work-items happen to run, so the last
+    bits differ between runs; they agree to ATOMIC_REPEAT_TOL."""
     runs = []
     for _ in range(2):
         sim = random_scene(materials, dtype=torch.float32, n=500, p2g=p2g)
@@ -155,7 +155,7 @@ def test_the_p2g_path_follows_the_device_unless_forced(device, monkeypatch):
     from clflow.mpm.substep import P2G_ENV, p2g_path
 
     monkeypatch.delenv(P2G_ENV, raising=False)
-    assert p2g_path(device) == ("private" if device.info.type == "CPU" else "atomic")
+    assert p2g_path(device) == ("private" if device.info.type == "CPU" else "gather")
     assert p2g_path(device, "atomic") == "atomic"
     monkeypatch.setenv(P2G_ENV, "atomic")
     assert p2g_path(device) == "atomic"
@@ -166,10 +166,37 @@ def test_the_p2g_path_follows_the_device_unless_forced(device, monkeypatch):
 
 
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-9), (torch.float32, 1e-4)])
-def test_atomic_p2g_path_agrees(dtype, tol):
-    sims = [random_scene(MATERIAL_CASES, dtype=dtype, p2g=mode) for mode in ("private", "atomic")]
+def test_the_p2g_paths_agree(dtype, tol):
+    sims = [random_scene(MATERIAL_CASES, dtype=dtype, p2g=mode) for mode in ("private", "atomic", "gather")]
     for sim in sims:
         for _ in range(10):
             sim.step()
-    for f in FIELDS:
-        assert rel_diff(getattr(sims[1].state, f), getattr(sims[0].state, f)) < tol, f
+    for other in sims[1:]:
+        for f in FIELDS:
+            assert rel_diff(getattr(other.state, f), getattr(sims[0].state, f)) < tol, (other.kernels.p2g, f)
+
+
+def test_the_gather_sorts_particles_by_cell_and_sums_each_node_in_that_order():
+    """Particles crossing cells between substeps (random velocities): the cell lists are
+    rebuilt every substep, every particle in exactly one list, and the gather's grid equals
+    the private copies' to round-off."""
+    from clflow.mpm.substep import SubstepTape
+    from clflow.runtime.arrays import DeviceArray
+
+    sims = [random_scene(MATERIAL_CASES, n=700, p2g=mode) for mode in ("private", "gather")]
+    for sim in sims:
+        for _ in range(5):
+            sim.step()
+    gather = sims[1]
+    ranges = gather.kernels.cell_ranges.read()
+    counts = (ranges[:, 1] - ranges[:, 0]).long()
+    assert int(counts.sum()) == gather.n and int(counts.max()) > 1  # each particle once; cells shared
+    grids = []
+    for sim in sims:
+        tape = SubstepTape.empty(sim.device, sim.n, sim.grid.nodes, sim.dtype)
+        state = sim.device_state
+        sim.kernels.run(
+            state, state.empty_like(), sim.substep_inputs(), DeviceArray.zeros(sim.device, (sim.n,), torch.uint8), tape
+        )
+        grids.append(tape.grid_mv.read())
+    assert rel_diff(grids[1], grids[0]) < 1e-12

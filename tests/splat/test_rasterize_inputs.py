@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from clflow.errors import InputError
-from clflow.splat.binning import build_tile_lists, sort_pairs, tile_grid
+from clflow.runtime.sort import sort_pairs
+from clflow.splat.binning import build_tile_lists, tile_grid
 from clflow.splat.constants import TILE_SIZE
 from clflow.splat.ops import covariances, project, rasterize_gaussians
 from clflow.splat.reference import tile_rect_reference
