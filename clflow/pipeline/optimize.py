@@ -83,7 +83,7 @@ PROFILE_RISE = 0.1
 # one GRID_CHECK_RATIO times coarser) and moves the best fit by the residuals' change: a
 # variable whose fit moves more than WEAK_STD_Z is grid-sensitive (the full droplet's bulk
 # modulus: 0.42 decades from 51 to 76 nodes, where it ended at 0.35 of its truth; the bird's
-# E: 0.001 decades, RE 0.05; docs/benchmarks.md, "The bulk modulus sits below the model error")
+# E: 0.001 decades, RE 0.05; docs/history/benchmarks-2026-11.md, "The bulk modulus sits below the model error")
 GRID_CHECK_RATIO = 1.5
 # flow.bias_correction renders the simulation at this many times the guidance camera's pixels
 # per side and area-averages them, since a camera's pixel integrates light over its area

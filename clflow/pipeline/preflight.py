@@ -99,7 +99,7 @@ class RunPlan:
 
 
 # an iteration with gradients costs about this many forward runs: the forward, then the adjoint
-# with its replay at 2.0-2.6x a forward run (docs/benchmarks.md, "MPM adjoint")
+# with its replay at 2.0-2.6x a forward run (docs/history/benchmarks-2026-11.md, "MPM adjoint")
 GRADIENT_COST = 3.0
 
 

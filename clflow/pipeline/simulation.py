@@ -15,7 +15,7 @@ frame 8 with the ground 0.1 cells above a node row than at 0.9 (32-node grid). G
 and 63 nodes agree far better at 0.75-0.9 cells than at 0.5 (flow difference at the truth:
 torus 0.026-0.019 px against 0.068, plasticine block 0.021-0.017 against 0.047; a fluid
 drop, 0.040-0.045 against 0.033, prefers 0.5 slightly); 0.75 keeps away from the plane on a
-node row, where rounding decides (docs/benchmarks.md).
+node row, where rounding decides (docs/history/benchmarks-2026-11.md, "Where the ground cuts the cells").
 """
 
 from __future__ import annotations
