@@ -396,7 +396,7 @@ class Optimization:
         self.checkpoint = cfg.output / "checkpoint.json"
         self.estimator_error_file = cfg.output / "estimator_error.npz"  # a start's polish: its own
         # polishes every search start (records of Optimization.polish, in start order): one after
-        # another here, or as Ray tasks (clflow.sweep.starts_on_ray: optimize --parallel)
+        # another here, or as Ray tasks (starts_on_ray: optimize --parallel)
         self.map_starts: Callable[..., list[dict]] = serial_starts
         # (z, frames, variables, substeps) -> (Evaluation, J) of the last two Jacobians: the best
         # point's and the last step's, so that a rejected step goes back without new runs
@@ -1634,6 +1634,28 @@ def serial_starts(
         if budget is not None:
             budget -= records[-1]["iterations_here"]
     return records
+
+
+def _polish_task(opt, begin, start: int, resume: bool) -> dict:
+    return opt.polish(begin, start, resume=resume)
+
+
+def starts_on_ray(**ray_options) -> Callable:
+    """An Optimization.map_starts (``clflow optimize --parallel``): each search start's polish a
+    Ray task (clflow.parallel.map_on_ray, ``ray_options`` its keywords), its rows shown as it finishes."""
+
+    def map_starts(opt, begin, starts, resume: bool = False, budget: int | None = None) -> list[dict]:
+        starts = list(starts)
+
+        def finished(index: int, record: dict) -> None:
+            for row in record["state"]["history"][len(begin.history) :]:
+                opt.progress(row)
+
+        from clflow.parallel import map_on_ray
+
+        return map_on_ray(_polish_task, [(opt, begin, k, resume) for k in starts], done=finished, **ray_options)
+
+    return map_starts
 
 
 def learning_rate(cfg: SceneConfig, name: str) -> float:

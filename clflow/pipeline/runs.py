@@ -360,19 +360,19 @@ def run_optimization(
     iterations' progress, default :func:`iteration_lines`), write the results, run.json and
     the report; returns the metrics. ``resume`` continues from output/checkpoint.json.
     ``parallel``: the material hypotheses' searches and the search starts' polishes run as
-    Ray tasks (clflow.sweep.map_on_ray's keywords: address, cpus_per_task, resources,
+    Ray tasks (clflow.parallel.map_on_ray's keywords: address, cpus_per_task, resources,
     device), with the serial path's results."""
     from clflow.scene.config import load_config
 
     if parallel is not None:
-        from clflow.sweep import require_ray
+        from clflow.parallel import require_ray
 
         require_ray("drop --parallel")
     cfg = load_config(config_path, overrides)
     with contextlib.ExitStack() as stack:
         search = cfg.optimize.search
         if parallel is not None and (cfg.optimize.materials or search is not None and search.starts > 1):
-            from clflow.sweep import ray_session
+            from clflow.parallel import ray_session
 
             stack.enter_context(ray_session(parallel.get("address")))  # one Ray for all of the run's tasks
         again = resume_command(config_path, output, overrides, iterations, max_substeps, force_video, parallel)
@@ -455,7 +455,7 @@ def _optimize_in(cfg, again, resume, force_video, echo, note, bar, parallel) -> 
 
         search_all = {}
         if parallel is not None:
-            from clflow.sweep import hypotheses_on_ray
+            from clflow.pipeline.hypotheses import hypotheses_on_ray
 
             search_all = {"search_all": hypotheses_on_ray(**parallel)}
         try:
@@ -478,7 +478,7 @@ def _optimize_in(cfg, again, resume, force_video, echo, note, bar, parallel) -> 
         cfg, hypotheses=hypotheses, force_video=force_video
     )  # loads the scene, runs the material query, computes the video's flow
     if parallel is not None:
-        from clflow.sweep import starts_on_ray
+        from clflow.pipeline.optimize import starts_on_ray
 
         opt.map_starts = starts_on_ray(**parallel)
     total = opt.total_iterations  # the velocity phase's (optimize.estimate_velocity) and the main phase's

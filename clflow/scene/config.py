@@ -267,7 +267,7 @@ class GenerateSettings:
 
     model: Path  # a local diffusers folder (clflow.generate.inspect_model)
     prompt: str | None = None  # None: the motion prompt filled from the forces (prompt_template)
-    prompt_template: str | None = None  # None: clflow.pipeline.generated_video.PROMPT_TEMPLATE
+    prompt_template: str | None = None  # None: clflow.scene.video_settings.PROMPT_TEMPLATE
     object: str = "object"  # what the object is, for the template
     negative_prompt: str = ""
     image: Path | None = None  # None: the scene rendered from the guidance camera
@@ -673,7 +673,7 @@ def _generate(r: _Reader, data: Any, simulation: SimulationSettings) -> Generate
         fit=r.choice(body, "fit", p, ("pad", "crop"), "pad"),
         **flags,
     )
-    from clflow.pipeline.generated_video import check_settings
+    from clflow.scene.video_settings import check_settings
 
     check_settings(settings, simulation, fail=lambda key, message: r.fail(f"{p}.{key}" if key else p, message))
     return settings

@@ -135,7 +135,7 @@ def test_parallel_without_ray_is_one_line(quick_demo, tmp_path, monkeypatch):
 def test_map_on_ray_keeps_the_order_raises_a_tasks_error_and_refuses_what_cannot_run():
     pytest.importorskip("ray")
     from clflow.errors import InputError
-    from clflow.sweep import map_on_ray, ray_session
+    from clflow.parallel import map_on_ray, ray_session
 
     def sub(a, b):
         return a - b
