@@ -376,7 +376,7 @@ def _reason(exc: BaseException) -> str:
     return text if isinstance(exc, (ClflowError, click.ClickException)) else f"{type(exc).__name__}: {text}"
 
 
-def _simulate(run: Run, folder: Path) -> dict:
+def _run_simulate(run: Run, folder: Path) -> dict:
     from clflow.limits import DEFAULT_MAX_OUTPUT_GB
     from clflow.pipeline.runs import simulate_scene
 
@@ -397,7 +397,7 @@ def _simulate(run: Run, folder: Path) -> dict:
     return {"gaussians": moving, "frames": frames, "output": "simulation/"}
 
 
-def _optimize(run: Run, folder: Path) -> dict:
+def _run_optimize(run: Run, folder: Path) -> dict:
     from clflow.pipeline.runs import run_optimization
 
     results = folder / "results"
@@ -413,7 +413,7 @@ def _optimize(run: Run, folder: Path) -> dict:
     )
 
 
-def _sysid(run: Run, folder: Path) -> dict:
+def _run_sysid(run: Run, folder: Path) -> dict:
     from clflow_datasets.sysid import run_case
 
     record = run_case(run.case, folder / "case", sysid_settings(run.sysid or {}))
@@ -422,7 +422,11 @@ def _sysid(run: Run, folder: Path) -> dict:
     return record
 
 
-_COMMANDS: dict[str, Callable[[Run, Path], dict]] = {"simulate": _simulate, "optimize": _optimize, "sysid": _sysid}
+_COMMANDS: dict[str, Callable[[Run, Path], dict]] = {
+    "simulate": _run_simulate,
+    "optimize": _run_optimize,
+    "sysid": _run_sysid,
+}
 
 
 @contextlib.contextmanager

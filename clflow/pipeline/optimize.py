@@ -198,7 +198,9 @@ def resampled_guidance(cfg: SceneConfig, path: Path | None, frames: int):
     return video, video.resample(times)
 
 
-def _observed_flow(cfg: SceneConfig, path: Path, frames: np.ndarray, cache: Path) -> tuple[np.ndarray, np.ndarray]:
+def cached_observed_flow(
+    cfg: SceneConfig, path: Path, frames: np.ndarray, cache: Path
+) -> tuple[np.ndarray, np.ndarray]:
     """Optical flow [T, H, W, 2] of ``frames`` [T+1, H, W, 3] (the video at ``path``) and its
     confidence [T, H, W], cached in ``cache``."""
     from clflow.flow.optical_flow import observed_confidence, observed_flow
@@ -219,14 +221,6 @@ def _observed_flow(cfg: SceneConfig, path: Path, frames: np.ndarray, cache: Path
 def observed_flow_cache(cfg: SceneConfig, view: int) -> Path:
     """Where the observed flow of guidance view ``view`` is cached."""
     return cfg.output / ("observed_flow.npz" if view == 0 else f"observed_flow_{view}.npz")
-
-
-def observed_flow_of(cfg: SceneConfig, prepared: Prepared, frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The guidance video's frames [T+1, H, W, 3] at the simulation's frame times, their
-    optical flow [T, H, W, 2] (px per frame) and its confidence [T, H, W] in [0, 1]
-    (``flow.confidence``), cached in ``output/observed_flow.npz`` (view 0)."""
-    video = guidance_video(cfg, cfg.video, prepared.camera, frames)
-    return (video.frames, *_observed_flow(cfg, cfg.video, video.frames, observed_flow_cache(cfg, 0)))
 
 
 def loss_mask(cfg: SceneConfig, prepared: Prepared, camera=None, what: str = "the guidance camera") -> torch.Tensor:
@@ -425,7 +419,7 @@ class Optimization:
         ]
         views = []
         for i, (cam, path, video, mask) in enumerate(zip(cameras, paths, videos, masks)):
-            flow, confidence = _observed_flow(cfg, path, video.frames, observed_flow_cache(cfg, i))
+            flow, confidence = cached_observed_flow(cfg, path, video.frames, observed_flow_cache(cfg, i))
             weight = mask * torch.from_numpy(confidence).double()  # [T, H, W] in [0, 1]
             views.append(View(cam, torch.from_numpy(flow).double(), weight, mask, video.frames))
         return views
@@ -489,12 +483,6 @@ class Optimization:
                     for check, view, flows in zip(self.guidance, self.views, [start.flows, *start.more_flows])
                 ]
         return check_guidance(self.cfg, self.guidance, force)
-
-    # view 0's state (one view: the only one)
-    observed = property(lambda self: self.views[0].observed)
-    weight = property(lambda self: self.views[0].weight)
-    mask = property(lambda self: self.views[0].mask)
-    video_frames = property(lambda self: self.views[0].video_frames)
 
     # -- state ---------------------------------------------------------------------------
 
@@ -1601,22 +1589,31 @@ class Optimization:
         if state.search:
             atomic_write_text(out / "search.json", json.dumps(state.search, indent=1))
         write_history_plot(out / "loss.png", state.history, truth)
-        # side by side: guidance | guidance flow | simulated flow | error, plus the simulated frames
+        # per view, side by side: guidance | guidance flow | simulated flow | error, plus the simulated frames
         traj = result.trajectory
-        sim_frames = render_frames(SimulationResult(self.prepared, params, density, traj.x.detach(), traj.F.detach()))
-        max_flow = max(float(self.observed.norm(dim=-1).max()), 1e-6)
-        panels = [
-            np.concatenate(
-                [
-                    comparison_panel(self.video_frames[t], self.observed[t].numpy(), flows[t].numpy(), max_flow),
-                    sim_frames[t],
-                ],
-                1,
-            )
-            for t in range(self.frames)
-        ]
-        write_video(out / "comparison.mp4", np.stack(panels), self.cfg.simulation.fps)
+        simulated = SimulationResult(self.prepared, params, density, traj.x.detach(), traj.F.detach())
+        for k, (view, view_flows) in enumerate(zip(self.views, [flows, *result.more_flows])):
+            sim_frames = render_frames(simulated, camera=view.camera)
+            max_flow = max(float(view.observed.norm(dim=-1).max()), 1e-6)
+            panels = [
+                np.concatenate(
+                    [
+                        comparison_panel(
+                            view.video_frames[t], view.observed[t].numpy(), view_flows[t].numpy(), max_flow
+                        ),
+                        sim_frames[t],
+                    ],
+                    1,
+                )
+                for t in range(self.frames)
+            ]
+            write_video(out / comparison_video(k), np.stack(panels), self.cfg.simulation.fps)
         return metrics
+
+
+def comparison_video(view: int) -> str:
+    """The results' comparison video of guidance view ``view`` (0: the config's camera)."""
+    return "comparison.mp4" if view == 0 else f"comparison_view{view}.mp4"
 
 
 def _quiet(row: dict) -> None:

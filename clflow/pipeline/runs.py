@@ -376,7 +376,9 @@ def run_optimization(
 
             stack.enter_context(ray_session(parallel.get("address")))  # one Ray for all of the run's tasks
         again = resume_command(config_path, output, overrides, iterations, max_substeps, force_video, parallel)
-        return _optimize(cfg, again, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel)
+        return _optimize_config(
+            cfg, again, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel
+        )
 
 
 def resume_command(config_path, output, overrides, iterations, max_substeps, force_video, parallel) -> str:
@@ -395,7 +397,9 @@ def resume_command(config_path, output, overrides, iterations, max_substeps, for
     return shlex.join(words)
 
 
-def _optimize(cfg, again, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel) -> dict:
+def _optimize_config(
+    cfg, again, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel
+) -> dict:
     """run_optimization's work once its config is loaded (``again``: the command that resumes it)."""
     import torch
 
@@ -428,7 +432,7 @@ def _optimize(cfg, again, resume, iterations, output, max_substeps, force_video,
             for entry in earlier:
                 shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
     try:
-        return _optimize_in(cfg, again, resume, force_video, echo, note, bar, parallel)
+        return _optimize_prepared(cfg, again, resume, force_video, echo, note, bar, parallel)
     except BaseException:  # a first run that fails before it saved anything leaves no folder behind
         kept = (*RESUMABLE, "generated")  # what a rerun continues from, or an expensive generated video
         if created and not any((cfg.output / saved).exists() for saved in kept):
@@ -436,8 +440,8 @@ def _optimize(cfg, again, resume, iterations, output, max_substeps, force_video,
         raise
 
 
-def _optimize_in(cfg, again, resume, force_video, echo, note, bar, parallel) -> dict:
-    """_optimize's work once the output folder is checked and cleared of an earlier run."""
+def _optimize_prepared(cfg, again, resume, force_video, echo, note, bar, parallel) -> dict:
+    """_optimize_config's work once the output folder is checked and cleared of an earlier run."""
     from clflow.pipeline.optimize import Optimization, parameter_unit
 
     if getattr(cfg, "generate", None) is not None:  # video: {generate: ...}: the guidance video first

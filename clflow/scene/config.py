@@ -679,7 +679,7 @@ def _generate(r: _Reader, data: Any, simulation: SimulationSettings) -> Generate
     return settings
 
 
-def _optimize(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> OptimizeSettings:
+def _optimize_settings(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> OptimizeSettings:
     p = "optimize"
     body = r.section(
         data,
@@ -896,7 +896,7 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     output = top.get("output", "results")
     if not isinstance(output, str) or not output:
         raise r.fail("output", f"must be a folder path, got {output!r}")
-    optimize = _optimize(r, top.get("optimize"), material, simulation.frames)
+    optimize = _optimize_settings(r, top.get("optimize"), material, simulation.frames)
     if truth and (optimize.materials or material.type != "query"):
         # with hypotheses, the truth's material is one of them: the first that has all its names
         candidates = optimize.materials or (material.type,)

@@ -34,7 +34,7 @@ def test_calibrated_at_the_parameters_that_made_the_video_the_residual_vanishes(
     assert calibrated.calibrated_at == {"z": state.z, "frames": opt.frames, "grid": opt.model_grid}
     assert opt.rescored(at_truth).loss < 1e-3 * raw  # the estimator's error cancels
     error = opt.views[0].estimator_error
-    assert error.shape == opt.observed.shape and float(error.abs().max()) > 0.05
+    assert error.shape == opt.views[0].observed.shape and float(error.abs().max()) > 0.05
     # the loss of evaluate() itself fits the corrected target
     assert opt.evaluate(state.z, opt.frames, with_grad=False).loss == pytest.approx(
         opt.rescored(at_truth).loss, abs=1e-9
