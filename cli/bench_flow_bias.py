@@ -72,7 +72,7 @@ def measure_case(config, output, preset: str, confidence: str, iterations: int |
 
     from clflow.benchmark import measure
     from clflow.flow.metrics import endpoint_error, flow_slope
-    from clflow.pipeline.optimize import Optimization
+    from clflow.pipeline.fit import Optimization
     from clflow.scene.config import load_config
 
     cfg = load_config(config)

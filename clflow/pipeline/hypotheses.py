@@ -62,7 +62,8 @@ def search_hypothesis(
     the observed flow copied from ``cfg.output`` when it is there). Returns {"record": its
     entry in hypotheses.json, "state": the optimiser state its search ended in (None when it
     failed), "config": its config}; a failure other than the user's config is recorded."""
-    from clflow.pipeline.optimize import Optimization, observed_flow_cache
+    from clflow.pipeline.fit import Optimization
+    from clflow.pipeline.fit.guidance import observed_flow_cache
     from clflow.pipeline.simulation import SubstepLimitError
 
     hyp = hypothesis_config(cfg, material)
@@ -130,7 +131,7 @@ def choose_material(
     whose start needs more substeps than allowed is recorded as failed. ``search_all(cfg,
     resume, progress, force_video)``: the results of :func:`search_hypothesis` for each
     material in order (:func:`serial_hypotheses`, or as Ray tasks: :func:`hypotheses_on_ray`)."""
-    from clflow.pipeline.optimize import observed_flow_cache
+    from clflow.pipeline.fit.guidance import observed_flow_cache
 
     cfg = resolve_material(cfg)
     cfg.output.mkdir(parents=True, exist_ok=True)

@@ -405,7 +405,7 @@ def _optimize_config(
 
     from clflow.limits import check_output
     from clflow.mpm.substep import check_device
-    from clflow.pipeline.optimize import resampled_guidance
+    from clflow.pipeline.fit import resampled_guidance
     from clflow.runtime import get_device
 
     check_device(get_device(), torch.float32, differentiable=True)  # before any work
@@ -442,7 +442,7 @@ def _optimize_config(
 
 def _optimize_prepared(cfg, again, resume, force_video, echo, note, bar, parallel) -> dict:
     """_optimize_config's work once the output folder is checked and cleared of an earlier run."""
-    from clflow.pipeline.optimize import Optimization, parameter_unit
+    from clflow.pipeline.fit import Optimization, parameter_unit
 
     if getattr(cfg, "generate", None) is not None:  # video: {generate: ...}: the guidance video first
         from clflow.pipeline.generated_video import ensure_guidance_video
@@ -482,7 +482,7 @@ def _optimize_prepared(cfg, again, resume, force_video, echo, note, bar, paralle
         cfg, hypotheses=hypotheses, force_video=force_video
     )  # loads the scene, runs the material query, computes the video's flow
     if parallel is not None:
-        from clflow.pipeline.optimize import starts_on_ray
+        from clflow.pipeline.fit import starts_on_ray
 
         opt.map_starts = starts_on_ray(**parallel)
     total = opt.total_iterations  # the velocity phase's (optimize.estimate_velocity) and the main phase's

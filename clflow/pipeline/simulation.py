@@ -28,7 +28,7 @@ import torch
 from clflow.errors import InputError
 from clflow.materials import get_material
 from clflow.mpm.constants import WALL_CELLS
-from clflow.mpm.substep import check_grid_memory
+from clflow.mpm.substep import Grid, check_grid_memory
 from clflow.runtime import get_device
 from clflow.scene.config import SceneConfig
 from clflow.scene.filling import ObjectParticles, fill_object
@@ -110,7 +110,7 @@ class ObjectSetup:
     """Everything about the simulated object that does not change between iterations."""
 
     particles: ObjectParticles  # positions [M, 3] m (Gaussian centres first), rest volume
-    grid: "Grid"  # noqa: F821  (clflow.mpm.Grid)
+    grid: Grid
 
 
 def simulation_grid(cfg: SceneConfig, lower: torch.Tensor, upper: torch.Tensor):

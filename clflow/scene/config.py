@@ -298,7 +298,7 @@ OPTIMIZERS = ("adam", "levenberg_marquardt")
 
 @dataclass(frozen=True)
 class SearchSettings:
-    """The global phase before the gradient iterations (clflow.pipeline.optimize)."""
+    """The global phase before the gradient iterations (clflow.pipeline.fit.search)."""
 
     samples: int = 32  # forward-only runs over the parameter box
     decades: float = 3.0  # the box of a log-scale parameter: the start times 10^(+-decades)

@@ -1,5 +1,5 @@
 """flow.bias_correction: the flow estimator's error measured on the simulation's own rendered
-video and subtracted from the observed flow (clflow.pipeline.optimize.Optimization.calibrate)."""
+video and subtracted from the observed flow (clflow.pipeline.fit.objective.Objective.calibrate)."""
 
 import dataclasses
 import json
@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from clflow.media import write_image
+from clflow.pipeline.fit import Optimization
+from clflow.pipeline.fit.objective import SUPERSAMPLE
 from clflow.pipeline.forward import render_frames, simulate_config
-from clflow.pipeline.optimize import SUPERSAMPLE, Optimization
 from clflow_datasets.demo import TRUTH
 
 

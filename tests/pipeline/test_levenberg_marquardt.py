@@ -9,7 +9,11 @@ import pytest
 import torch
 
 from clflow.errors import InputError
-from clflow.pipeline.optimize import LM_DAMPING, LM_GAIN_TOLERANCE, Evaluation, Optimization, flat, flow_loss
+from clflow.pipeline.fit import Evaluation, Optimization
+from clflow.pipeline.fit.diagnostics import flat
+from clflow.pipeline.fit.objective import flow_loss
+from clflow.pipeline.fit.state import LM_DAMPING
+from clflow.pipeline.fit.steps import LM_GAIN_TOLERANCE
 
 Z_TRUE = math.log10(2e4) + 0.37  # the model's minimiser, 1.37 decades above the demo's start
 

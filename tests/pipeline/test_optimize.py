@@ -7,7 +7,8 @@ import math
 import pytest
 
 from clflow.errors import ClflowError
-from clflow.pipeline.optimize import Optimization, OptimizerState, horizon, rate_schedule
+from clflow.pipeline.fit import Optimization, OptimizerState
+from clflow.pipeline.fit.steps import horizon, rate_schedule
 from clflow_datasets.demo import TRUTH
 
 
@@ -156,7 +157,7 @@ def test_resume_refuses_a_changed_config_and_names_what_changed(tmp_path):
     import dataclasses
 
     from clflow.errors import InputError
-    from clflow.pipeline.optimize import OptimizerState
+    from clflow.pipeline.fit import OptimizerState
     from clflow.scene.config import parse_config
 
     (tmp_path / "scene.ply").write_bytes(b"ply\n")
@@ -191,7 +192,7 @@ def test_resume_refuses_a_changed_config_and_names_what_changed(tmp_path):
 def observed_flow_of(cfg, prepared, frames):
     """View 0's guidance frames at the simulation's frame times, their flow and its confidence,
     cached in output/observed_flow.npz, as the optimiser reads them."""
-    from clflow.pipeline.optimize import cached_observed_flow, guidance_video, observed_flow_cache
+    from clflow.pipeline.fit.guidance import cached_observed_flow, guidance_video, observed_flow_cache
 
     video = guidance_video(cfg, cfg.video, prepared.camera, frames)
     return (video.frames, *cached_observed_flow(cfg, cfg.video, video.frames, observed_flow_cache(cfg, 0)))

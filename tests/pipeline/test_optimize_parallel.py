@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from clflow.pipeline.optimize import Optimization
+from clflow.pipeline.fit import Optimization
 from clflow.scene.config import SearchSettings
 from clflow_cli.main import cli
 
