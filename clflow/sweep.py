@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
 from clflow.errors import ClflowError, InputError
+from clflow.parallel import ray_session, remote_task, serial_order, task_env
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +52,6 @@ OPTIONS: dict[str, dict[str, str]] = {
 }
 SYSID_KEYS = ("quick", "iterations", "truth_scale", "noise", "codec", "seed", "views")
 FINISHED = ("ok", "failed", "timeout", "killed")  # statuses a run ends with
-OBJECT_STORE_BYTES = 80 * 1024**2  # the embedded Ray's object store: tasks return small records only
 
 
 @dataclass(frozen=True)
@@ -371,14 +371,12 @@ def execute(run: Run, folder: str, env: dict[str, str] | None = None) -> dict:
 def _reason(exc: BaseException) -> str:
     import click
 
-    from clflow.errors import ClflowError
-
     text = exc.format_message() if isinstance(exc, click.ClickException) else str(exc)
     text = " ".join(text.split())
     return text if isinstance(exc, (ClflowError, click.ClickException)) else f"{type(exc).__name__}: {text}"
 
 
-def _simulate(run: Run, folder: Path) -> dict:
+def _run_simulate(run: Run, folder: Path) -> dict:
     from clflow.limits import DEFAULT_MAX_OUTPUT_GB
     from clflow.pipeline.runs import simulate_scene
 
@@ -399,7 +397,7 @@ def _simulate(run: Run, folder: Path) -> dict:
     return {"gaussians": moving, "frames": frames, "output": "simulation/"}
 
 
-def _optimize(run: Run, folder: Path) -> dict:
+def _run_optimize(run: Run, folder: Path) -> dict:
     from clflow.pipeline.runs import run_optimization
 
     results = folder / "results"
@@ -415,7 +413,7 @@ def _optimize(run: Run, folder: Path) -> dict:
     )
 
 
-def _sysid(run: Run, folder: Path) -> dict:
+def _run_sysid(run: Run, folder: Path) -> dict:
     from clflow_datasets.sysid import run_case
 
     record = run_case(run.case, folder / "case", sysid_settings(run.sysid or {}))
@@ -424,7 +422,11 @@ def _sysid(run: Run, folder: Path) -> dict:
     return record
 
 
-_COMMANDS: dict[str, Callable[[Run, Path], dict]] = {"simulate": _simulate, "optimize": _optimize, "sysid": _sysid}
+_COMMANDS: dict[str, Callable[[Run, Path], dict]] = {
+    "simulate": _run_simulate,
+    "optimize": _run_optimize,
+    "sysid": _run_sysid,
+}
 
 
 @contextlib.contextmanager
@@ -464,34 +466,6 @@ def _timed_out(run: Run, limit: float, seconds: float) -> dict:
     return _ended(run, "timeout", f"exceeded the time limit of {limit:g} s", seconds)
 
 
-def task_env(cpus_per_task: int, device: str | None, order: dict[str, str]) -> dict[str, str]:
-    """Environment of each task: its OpenCL CPU driver limited to its CPUs, the device chosen
-    by the driver, and ``order`` (:func:`serial_order`: the serial path's last bits)."""
-    threads = str(cpus_per_task)
-    env = {
-        "POCL_MAX_PTHREAD_COUNT": threads,  # PoCL <= 4 (pthread driver)
-        "POCL_CPU_MAX_CU_COUNT": threads,  # PoCL >= 5
-        "OMP_WAIT_POLICY": "PASSIVE",
-        **order,
-    }
-    if device:
-        env["CLFLOW_DEVICE"] = device
-    return env
-
-
-def serial_order() -> dict[str, str]:
-    """What sets a run's last bits in this process besides its inputs: the MPM's P2G grid
-    copies (follows PoCL's threads unless fixed) and torch's threads (its reductions split
-    their sums by thread). A task given these gives the serial path's bits whatever its own
-    thread count; torch's threads sleep between its (short) ops, OMP_WAIT_POLICY=PASSIVE."""
-    import torch
-
-    from clflow.mpm.substep import GRID_COPIES_ENV, wanted_grid_copies
-    from clflow.runtime import get_device
-
-    return {GRID_COPIES_ENV: str(wanted_grid_copies(get_device())), "OMP_NUM_THREADS": str(torch.get_num_threads())}
-
-
 # -------------------------------------------------------------------------------- executors
 
 
@@ -518,65 +492,6 @@ def _ray_task(run: Run, folder: str) -> dict:
     return execute(run, folder)  # the env came with the task's runtime_env, before OpenCL started
 
 
-def ray_missing(instead: str = "run the same spec in this process with --serial") -> str:
-    return f"Ray is not installed: pip install 'clflow[sweep]' (or {instead})"
-
-
-def require_ray(instead: str | None = None) -> None:
-    """InputError (what to install, or ``instead``) when Ray cannot be imported."""
-    try:
-        import ray  # noqa: F401
-    except ImportError:
-        raise InputError(ray_missing(*([instead] if instead else []))) from None
-
-
-def start_ray(address: str | None, cpus: int | None = None, instead: str | None = None):
-    """Join the cluster at ``address`` (``ray://host:port`` or ``auto``), or start an embedded
-    local Ray with this machine's cores, no dashboard and a small object store. Returns
-    True when it started one (so the caller shuts it down)."""
-    require_ray(instead)
-    import ray
-
-    if ray.is_initialized():
-        return False
-    quiet = {"log_to_driver": False, "configure_logging": True, "logging_level": logging.WARNING}
-    try:
-        if address:
-            ray.init(address=address, **quiet)
-        else:
-            ray.init(
-                num_cpus=cpus or os.cpu_count() or 1,
-                include_dashboard=False,
-                object_store_memory=OBJECT_STORE_BYTES,
-                **quiet,
-            )
-    except (ConnectionError, RuntimeError, ValueError) as exc:
-        raise InputError(
-            f"cannot start Ray{' at ' + address if address else ''}: {' '.join(str(exc).split())}"
-        ) from None
-    return True
-
-
-def _remote(task: Callable, env: dict[str, str], cpus_per_task: int, resources: dict[str, float] | None):
-    """``task`` as a Ray remote function of ``resources`` (CPU and GPU among them; CPU
-    default ``cpus_per_task``) with ``env``, never retried; and how many such tasks the
-    cluster runs at once (None: no limit); InputError when it has no room for one."""
-    import ray
-
-    resources = dict(resources or {})
-    gpus = resources.pop("GPU", 0)
-    cpus = resources.pop("CPU", cpus_per_task)
-    remote = ray.remote(task).options(
-        num_cpus=cpus, num_gpus=gpus, resources=resources or None, max_retries=0, runtime_env={"env_vars": env}
-    )
-    total = ray.cluster_resources()
-    wanted = {k: v for k, v in {"CPU": cpus, "GPU": gpus, **resources}.items() if v}
-    room = [int(total.get(k, 0) // v) for k, v in wanted.items()]
-    if min(room, default=1) < 1:
-        raise InputError(f"the Ray cluster has no room for a task of {wanted} (it has {total})")
-    return remote, min(room, default=None)
-
-
 def run_on_ray(
     runs: list[Run],
     folder_of: Callable[[Run], Path],
@@ -595,7 +510,7 @@ def run_on_ray(
     worker is killed) is recorded here; the others go on. Ctrl-C cancels the running tasks."""
     import ray
 
-    remote, room = _remote(task, env, cpus_per_task, resources)
+    remote, room = remote_task(task, env, cpus_per_task, resources)
     slots = (len(runs) if room is None else room) or 1
     waiting = list(runs)
     running: dict[Any, tuple[Run, float]] = {}
@@ -686,104 +601,6 @@ def sysid_on_ray(
             )
 
     return run_cases
-
-
-def map_on_ray(
-    task: Callable,
-    args: list[tuple],
-    *,
-    address: str | None = None,
-    cpus_per_task: int = 1,
-    resources: dict[str, float] | None = None,
-    device: str | None = None,
-    done: Callable[[int, Any], None] = lambda index, result: None,
-) -> list:
-    """``task(*a)`` for each ``a`` of ``args`` as Ray tasks (a local Ray, or the cluster at
-    ``address``), each with the serial path's P2G sum order and torch threads
-    (:func:`serial_order`), so each gives the bits it gives in this process. Returns the
-    results in ``args``' order (``done(index, result)`` as each arrives); a task's exception
-    is raised here, the others cancelled."""
-    with ray_session(address):
-        import ray
-
-        # all submitted at once: Ray queues those the cluster has no room for yet
-        remote = _remote(task, task_env(cpus_per_task, device, serial_order()), cpus_per_task, resources)[0]
-        pending = {remote.remote(*a): i for i, a in enumerate(args)}
-        results: dict[int, Any] = {}
-        try:
-            while pending:
-                (ref,), _ = ray.wait(list(pending), num_returns=1)
-                index = pending.pop(ref)
-                try:
-                    results[index] = ray.get(ref)
-                except ray.exceptions.RayTaskError as exc:  # the task's own exception, as the serial path raises it
-                    raise (exc.cause if exc.cause is not None else exc) from None
-                except ray.exceptions.RayError as exc:  # the worker died (killed, out of memory, node lost)
-                    cause = " ".join(str(exc).split())[:300]
-                    raise ClflowError(f"a Ray task died: {type(exc).__name__}: {cause}") from None
-                done(index, results[index])
-        finally:
-            for ref in pending:
-                with contextlib.suppress(Exception):
-                    ray.cancel(ref, force=True)
-        return [results[i] for i in range(len(args))]
-
-
-@contextlib.contextmanager
-def ray_session(address: str | None = None, instead: str | None = "drop --parallel") -> Iterator[None]:
-    """Ray for what runs inside (:func:`start_ray`; one already started is used), shut down
-    after when started here: one session for all of a run's task maps (their workers reused).
-    ``instead``: what to do without Ray, for the message (None: start_ray's default)."""
-    started = start_ray(address, instead=instead)
-    try:
-        yield
-    finally:
-        if started:
-            import ray
-
-            ray.shutdown()
-
-
-def _polish_task(opt, begin, start: int, resume: bool) -> dict:
-    return opt.polish(begin, start, resume=resume)
-
-
-def starts_on_ray(**ray_options) -> Callable:
-    """An Optimization.map_starts (``clflow optimize --parallel``): each search start's polish a
-    Ray task (:func:`map_on_ray`, ``ray_options`` its keywords), its rows shown as it finishes."""
-
-    def map_starts(opt, begin, starts, resume: bool = False, budget: int | None = None) -> list[dict]:
-        starts = list(starts)
-
-        def finished(index: int, record: dict) -> None:
-            for row in record["state"]["history"][len(begin.history) :]:
-                opt.progress(row)
-
-        return map_on_ray(_polish_task, [(opt, begin, k, resume) for k in starts], done=finished, **ray_options)
-
-    return map_starts
-
-
-def hypotheses_on_ray(**ray_options) -> Callable:
-    """A ``search_all`` of clflow.pipeline.hypotheses.choose_material (``clflow optimize
-    --parallel``): each material hypothesis' search a Ray task (:func:`map_on_ray`), its
-    samples shown as it finishes."""
-    from clflow.pipeline.hypotheses import search_hypothesis
-
-    def search_all(
-        cfg, resume: bool = False, progress: Callable[[str, dict], None] | None = None, force_video: bool = False
-    ) -> list[dict]:
-        materials = list(cfg.optimize.materials)
-
-        def finished(index: int, found: dict) -> None:
-            for i, row in enumerate(found["state"].search if found["state"] is not None and progress else []):
-                progress(materials[index], {**row, "phase": "search", "iteration": i})
-
-        return map_on_ray(
-            search_hypothesis, [(cfg, m, resume, None, force_video) for m in materials], done=finished, **ray_options
-        )
-
-    return search_all
 
 
 # ------------------------------------------------------------------------------- the sweep
@@ -922,7 +739,5 @@ __all__ = [
     "parse_spec",
     "run_on_ray",
     "run_serial",
-    "start_ray",
     "sweep",
-    "task_env",
 ]

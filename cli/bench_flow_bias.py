@@ -72,7 +72,7 @@ def measure_case(config, output, preset: str, confidence: str, iterations: int |
 
     from clflow.benchmark import measure
     from clflow.flow.metrics import endpoint_error, flow_slope
-    from clflow.pipeline.optimize import Optimization
+    from clflow.pipeline.fit import Optimization
     from clflow.scene.config import load_config
 
     cfg = load_config(config)
@@ -85,13 +85,17 @@ def measure_case(config, output, preset: str, confidence: str, iterations: int |
     truth = cfg.ground_truth
     z_truth = {n: float(p.encode(truth[n])) for n, p in opt.params.items()}
     at_truth = opt.evaluate(z_truth, opt.frames, with_grad=False)
-    simulated, observed, weight = torch.stack(at_truth.flows).numpy(), opt.observed.numpy(), opt.weight.numpy()
+    simulated, observed, weight = (
+        torch.stack(at_truth.flows).numpy(),
+        opt.views[0].observed.numpy(),
+        opt.views[0].weight.numpy(),
+    )
     z_minimum = {n: loss_minimum(opt, z_truth, n) for n in z_truth}
     at_minimum = opt.values(z_minimum)
     row = {
         "slope": flow_slope(observed, simulated, weight),
         "epe": endpoint_error(observed, simulated, weight),
-        "kept": float(weight.sum() / opt.mask.sum() / opt.frames),
+        "kept": float(weight.sum() / opt.views[0].mask.sum() / opt.frames),
         "minimum": {n: (at_minimum[n] - truth[n]) / truth[n] for n in at_minimum},
         "beyond": {n for n, z in z_minimum.items() if abs(z - z_truth[n]) > 0.99 * SEARCH_HALF_WIDTH},
         "error": {},

@@ -21,7 +21,7 @@ def optimize(gaussians, image, frames, grid, iterations):
 
     from clflow.benchmark import measure
     from clflow.mpm.simulator import StabilityWarning
-    from clflow.pipeline.optimize import Optimization
+    from clflow.pipeline.fit import Optimization
     from clflow.runtime import get_device
     from clflow.scene.config import load_config
     from clflow_datasets.demo import benchmark_size, make_demo

@@ -21,7 +21,7 @@ def devices(obj, as_json: bool) -> None:
 
     infos = list_devices()
     selected = get_device(obj.device_spec).info
-    adoption = adopt_unregistered()
+    adoption = adopt_unregistered(get_device(obj.device_spec).kernel_cache_dir.parent)
     unregistered = [
         {"vendor": d.vendor, "path": str(d.path), "used": adoption.used, "register": d.how_to_register()}
         for d in adoption.drivers

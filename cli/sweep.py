@@ -75,7 +75,8 @@ def sweep(ctx, spec, output, serial, address, cpus_per_task, resources, timeout,
     on. Run the same command again to continue: finished runs are skipped."""
     from pathlib import Path
 
-    from clflow.sweep import load_spec, require_ray
+    from clflow.parallel import require_ray
+    from clflow.sweep import load_spec
     from clflow.sweep import sweep as run_sweep
 
     if serial and (address or resources):

@@ -167,7 +167,7 @@ def run_case(name: str, folder: Path, settings: Settings, *, progress: Callable[
 
     from clflow.errors import ClflowError
     from clflow.fileio import atomic_write_text
-    from clflow.pipeline.optimize import Optimization
+    from clflow.pipeline.fit import Optimization
     from clflow.scene.config import load_config
 
     case = CASES[name]

@@ -80,7 +80,7 @@ def test_unknown_device_is_a_clear_error(monkeypatch):
 
 
 class _InterruptedOptimization:
-    """Stands in for clflow.pipeline.optimize.Optimization: Ctrl-C during run()."""
+    """Stands in for clflow.pipeline.fit.Optimization: Ctrl-C during run()."""
 
     total_iterations = 3
 
@@ -104,7 +104,7 @@ def interrupt_optimize(monkeypatch, tmp_path, iterations_in_run, *args):
     ``iterations_in_run`` checkpointed iterations (0: before the first finished)."""
     from types import SimpleNamespace
 
-    import clflow.pipeline.optimize
+    import clflow.pipeline.fit
     import clflow.scene.config
 
     cfg = SimpleNamespace(
@@ -112,7 +112,7 @@ def interrupt_optimize(monkeypatch, tmp_path, iterations_in_run, *args):
     )
     monkeypatch.setattr(clflow.scene.config, "load_config", lambda path, overrides=(): cfg)
     monkeypatch.setattr(
-        clflow.pipeline.optimize,
+        clflow.pipeline.fit,
         "Optimization",
         lambda cfg, **options: _InterruptedOptimization(cfg, tmp_path / "checkpoint.json", iterations_in_run),
     )

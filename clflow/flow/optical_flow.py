@@ -30,7 +30,7 @@ DEFAULT_PRESET = "fine"
 #: Per-pixel confidence of the observed flow (:func:`observed_confidence`).
 CONFIDENCES = ("none", "forward_backward")
 DEFAULT_CONFIDENCE = "forward_backward"
-#: What the optimiser does about the estimator's systematic error (clflow.pipeline.optimize):
+#: What the optimiser does about the estimator's systematic error (clflow.pipeline.fit):
 #: ``simulated`` measures it on the simulation's own rendered video and subtracts it.
 BIAS_CORRECTIONS = ("none", "simulated")
 DEFAULT_BIAS_CORRECTION = "simulated"

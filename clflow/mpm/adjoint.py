@@ -34,8 +34,7 @@ from clflow.mpm.substep import (
     launch_stress,
     p2g_particle_args,
 )
-from clflow.runtime.arrays import DeviceArray
-from clflow.runtime.bridge import numpy_real, real_of
+from clflow.runtime.arrays import DeviceArray, numpy_real, real_of
 
 
 @dataclass

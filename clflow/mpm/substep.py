@@ -37,8 +37,7 @@ from clflow.mpm.constants import (
     kernel_defines,
     velocity_channels,
 )
-from clflow.runtime.arrays import DeviceArray
-from clflow.runtime.bridge import numpy_real, real_of
+from clflow.runtime.arrays import DeviceArray, numpy_real, real_of
 from clflow.runtime.devices import Device
 from clflow.runtime.sort import DIGIT_BITS, histogram_bytes, radix_sort
 

@@ -62,8 +62,9 @@ def search_hypothesis(
     the observed flow copied from ``cfg.output`` when it is there). Returns {"record": its
     entry in hypotheses.json, "state": the optimiser state its search ended in (None when it
     failed), "config": its config}; a failure other than the user's config is recorded."""
-    from clflow.pipeline.optimize import Optimization, observed_flow_cache
-    from clflow.pipeline.preflight import SubstepLimitError
+    from clflow.pipeline.fit import Optimization
+    from clflow.pipeline.fit.guidance import observed_flow_cache
+    from clflow.pipeline.simulation import SubstepLimitError
 
     hyp = hypothesis_config(cfg, material)
     hyp.output.mkdir(parents=True, exist_ok=True)
@@ -129,8 +130,8 @@ def choose_material(
     and the chosen one). ``progress(material, row)`` sees every search sample; a hypothesis
     whose start needs more substeps than allowed is recorded as failed. ``search_all(cfg,
     resume, progress, force_video)``: the results of :func:`search_hypothesis` for each
-    material in order (:func:`serial_hypotheses`, or as Ray tasks: clflow.sweep.hypotheses_on_ray)."""
-    from clflow.pipeline.optimize import observed_flow_cache
+    material in order (:func:`serial_hypotheses`, or as Ray tasks: :func:`hypotheses_on_ray`)."""
+    from clflow.pipeline.fit.guidance import observed_flow_cache
 
     cfg = resolve_material(cfg)
     cfg.output.mkdir(parents=True, exist_ok=True)
@@ -156,3 +157,25 @@ def choose_material(
 
 
 __all__ = ["choose_material", "hypothesis_config", "search_hypothesis", "serial_hypotheses"]
+
+
+def hypotheses_on_ray(**ray_options) -> Callable:
+    """A ``search_all`` of clflow.pipeline.hypotheses.choose_material (``clflow optimize
+    --parallel``): each material hypothesis' search a Ray task (clflow.parallel.map_on_ray), its
+    samples shown as it finishes."""
+    from clflow.parallel import map_on_ray
+
+    def search_all(
+        cfg, resume: bool = False, progress: Callable[[str, dict], None] | None = None, force_video: bool = False
+    ) -> list[dict]:
+        materials = list(cfg.optimize.materials)
+
+        def finished(index: int, found: dict) -> None:
+            for i, row in enumerate(found["state"].search if found["state"] is not None and progress else []):
+                progress(materials[index], {**row, "phase": "search", "iteration": i})
+
+        return map_on_ray(
+            search_hypothesis, [(cfg, m, resume, None, force_video) for m in materials], done=finished, **ray_options
+        )
+
+    return search_all

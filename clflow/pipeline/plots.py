@@ -4,7 +4,7 @@
     fig = history_figure(history, truth)      # to inspect or save elsewhere
 
 ``history`` holds the optimiser's rows (``iteration``, ``phase``, ``loss``, ``frames`` and
-``params``: see clflow.pipeline.optimize); ``truth`` the ground-truth values when known.
+``params``: see clflow.pipeline.fit); ``truth`` the ground-truth values when known.
 """
 
 from __future__ import annotations

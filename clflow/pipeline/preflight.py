@@ -1,7 +1,6 @@
 """Checks before a long run starts, so a bad input fails in seconds with its numbers instead
 of running for hours or ending with a wrong result (issue 14).
 
-- :func:`check_forces`: every force stage holds particles and acts inside the simulated time.
 - :func:`plan_run`: the substeps per frame the material needs, a timing of one substep, the
   predicted time, and the refusal of a run beyond ``simulation.max_substeps``
   (``--max-substeps``) with the ways out.
@@ -25,6 +24,7 @@ import torch
 
 from clflow.errors import InputError
 from clflow.limits import format_duration
+from clflow.pipeline.simulation import SubstepLimitError, build_simulator, substep_limit_message
 from clflow.scene.config import SceneConfig
 
 log = logging.getLogger(__name__)
@@ -40,39 +40,6 @@ MIN_CONFIDENT = 0.2  # fraction of mask pixels whose flow confidence is above 0.
 # steps (weighted cosine): below this it points against it (a camera on the other side, a mirrored video)
 MIN_AGREEMENT = 0.0
 AGREEMENT_FRAMES = 3
-
-
-class SubstepLimitError(InputError):
-    """A run would need more substeps per frame than ``simulation.max_substeps`` allows."""
-
-
-def _fmt_point(values) -> str:
-    return "(" + ", ".join(f"{float(v):.4g}" for v in values) + ")"
-
-
-def check_forces(cfg: SceneConfig, positions: torch.Tensor, dtype: torch.dtype = torch.float32) -> list[torch.Tensor]:
-    """Each force stage's particles, [N] bool masks (selected in the simulator's ``dtype``,
-    as the simulator selects them); InputError for a stage whose region holds no particle or
-    whose time window lies outside the simulated time (0 .. frames / fps)."""
-    sim = cfg.simulation
-    duration = sim.frames / sim.fps
-    x = positions.to(dtype).double()  # as the simulator tests them (clflow.mpm.boundaries.DriverGroups)
-    masks = []
-    for i, stage in enumerate(cfg.forces):
-        masks.append(stage.region.select(x))
-        if not bool(masks[-1].any()):
-            raise InputError(
-                f"{cfg.source}: forces[{i}].region holds no particle of the object (the object spans "
-                f"{_fmt_point(positions.min(0).values)} .. {_fmt_point(positions.max(0).values)} m "
-                f"in the simulation frame, +y up)"
-            )
-        if stage.start >= duration:
-            raise InputError(
-                f"{cfg.source}: forces[{i}] starts at {stage.start:g} s, after the simulated "
-                f"{duration:.4g} s ({sim.frames} frames at {sim.fps:g} fps): it would never act; "
-                f"fix forces[{i}].start/end (seconds) or simulation.frames"
-            )
-    return masks
 
 
 @dataclass(frozen=True)
@@ -103,41 +70,6 @@ class RunPlan:
 GRADIENT_COST = 3.0
 
 
-def substep_limit_message(
-    cfg: SceneConfig,
-    substeps: int,
-    dt: float,
-    limit: str,
-    max_substeps: int,
-    seconds_per_substep: float | None = None,
-    optimizing: bool = False,
-) -> str:
-    cost = ""
-    if seconds_per_substep:
-        frame = substeps * seconds_per_substep
-        cost = f", about {frame:.3g} s per frame"
-    # a fixed substep beyond the stable one is no way out for the optimiser: it rejects such runs
-    fixed = "" if optimizing else ("a fixed simulation.substep_dt (beyond the stable step the run may blow up), ")
-    return (
-        f"{cfg.source}: the simulation needs {substeps} substeps per frame (dt = {dt:.3g} s, limited by "
-        f"{limit}{cost}), beyond the limit of {max_substeps}; ways out: a softer proxy material (a lower "
-        f"youngs_modulus or bulk_modulus, poissons_ratio <= 0.45), a coarser grid (a smaller "
-        f"simulation.grid_resolution: dt grows with the cell size), {fixed}or raise the limit "
-        f"(--max-substeps N or simulation.max_substeps)"
-    )
-
-
-def check_substeps(cfg: SceneConfig, sim, max_substeps: int | None) -> None:
-    """SubstepLimitError when ``sim`` takes more than ``max_substeps`` substeps per frame (the
-    optimiser's check of each iteration: build_simulator(max_substeps=...))."""
-    if max_substeps is not None and sim.substeps > max_substeps:
-        raise SubstepLimitError(
-            substep_limit_message(
-                cfg, sim.substeps, sim.dt, sim.limit_reason(sim.state.v), max_substeps, optimizing=True
-            )
-        )
-
-
 def plan_run(
     cfg: SceneConfig,
     setup,
@@ -155,8 +87,6 @@ def plan_run(
     timed on a throwaway simulator); SubstepLimitError (the numbers and the ways out) beyond
     ``max_substeps``. ``optimizing``: also refuse a fixed ``simulation.substep_dt`` above the
     stable step of ``params`` (the optimiser would reject every such run)."""
-    from clflow.pipeline.simulation import build_simulator
-
     sim = build_simulator(cfg, setup, params, density, dtype=dtype, min_substeps=min_substeps, velocity=velocity)
     stable = sim.limit_reason(sim.state.v)
     limit = stable if cfg.simulation.substep_dt is None else f"simulation.substep_dt; stable: {stable}"
@@ -319,10 +249,7 @@ __all__ = [
     "flow_agreement",
     "GuidanceCheck",
     "RunPlan",
-    "SubstepLimitError",
-    "check_forces",
     "check_guidance",
-    "check_substeps",
     "describe",
     "measure_view",
     "plan_run",

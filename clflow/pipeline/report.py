@@ -115,7 +115,9 @@ def write_report(output: Path) -> Path:
         parts.append("<h2>Metrics</h2>" + _table(rows, ("metric", "value")))
     if (output / "loss.png").exists():
         parts.append('<h2>Optimisation</h2><img src="loss.png" alt="loss and parameters per iteration">')
-    videos = [("comparison.mp4", "guidance | guidance flow | simulated flow | error | simulation")]
+    comparisons = ["comparison.mp4", *sorted(p.name for p in output.glob("comparison_view*.mp4"))]
+    videos = [(name, f"{name.removesuffix('.mp4').replace('_', ' ')}: guidance | guidance flow | "
+               "simulated flow | error | simulation") for name in comparisons]  # fmt: skip
     videos += [(f"{RENDERS}/{p.name}", f"4D render: {p.stem}") for p in sorted((output / RENDERS).glob("*.mp4"))]
     shown = [_video(rel, caption) for rel, caption in videos if (output / rel).exists()]
     if shown:

@@ -360,23 +360,25 @@ def run_optimization(
     iterations' progress, default :func:`iteration_lines`), write the results, run.json and
     the report; returns the metrics. ``resume`` continues from output/checkpoint.json.
     ``parallel``: the material hypotheses' searches and the search starts' polishes run as
-    Ray tasks (clflow.sweep.map_on_ray's keywords: address, cpus_per_task, resources,
+    Ray tasks (clflow.parallel.map_on_ray's keywords: address, cpus_per_task, resources,
     device), with the serial path's results."""
     from clflow.scene.config import load_config
 
     if parallel is not None:
-        from clflow.sweep import require_ray
+        from clflow.parallel import require_ray
 
         require_ray("drop --parallel")
     cfg = load_config(config_path, overrides)
     with contextlib.ExitStack() as stack:
         search = cfg.optimize.search
         if parallel is not None and (cfg.optimize.materials or search is not None and search.starts > 1):
-            from clflow.sweep import ray_session
+            from clflow.parallel import ray_session
 
             stack.enter_context(ray_session(parallel.get("address")))  # one Ray for all of the run's tasks
         again = resume_command(config_path, output, overrides, iterations, max_substeps, force_video, parallel)
-        return _optimize(cfg, again, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel)
+        return _optimize_config(
+            cfg, again, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel
+        )
 
 
 def resume_command(config_path, output, overrides, iterations, max_substeps, force_video, parallel) -> str:
@@ -395,13 +397,15 @@ def resume_command(config_path, output, overrides, iterations, max_substeps, for
     return shlex.join(words)
 
 
-def _optimize(cfg, again, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel) -> dict:
+def _optimize_config(
+    cfg, again, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel
+) -> dict:
     """run_optimization's work once its config is loaded (``again``: the command that resumes it)."""
     import torch
 
     from clflow.limits import check_output
     from clflow.mpm.substep import check_device
-    from clflow.pipeline.optimize import resampled_guidance
+    from clflow.pipeline.fit import resampled_guidance
     from clflow.runtime import get_device
 
     check_device(get_device(), torch.float32, differentiable=True)  # before any work
@@ -428,7 +432,7 @@ def _optimize(cfg, again, resume, iterations, output, max_substeps, force_video,
             for entry in earlier:
                 shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
     try:
-        return _optimize_in(cfg, again, resume, force_video, echo, note, bar, parallel)
+        return _optimize_prepared(cfg, again, resume, force_video, echo, note, bar, parallel)
     except BaseException:  # a first run that fails before it saved anything leaves no folder behind
         kept = (*RESUMABLE, "generated")  # what a rerun continues from, or an expensive generated video
         if created and not any((cfg.output / saved).exists() for saved in kept):
@@ -436,9 +440,9 @@ def _optimize(cfg, again, resume, iterations, output, max_substeps, force_video,
         raise
 
 
-def _optimize_in(cfg, again, resume, force_video, echo, note, bar, parallel) -> dict:
-    """_optimize's work once the output folder is checked and cleared of an earlier run."""
-    from clflow.pipeline.optimize import Optimization, parameter_unit
+def _optimize_prepared(cfg, again, resume, force_video, echo, note, bar, parallel) -> dict:
+    """_optimize_config's work once the output folder is checked and cleared of an earlier run."""
+    from clflow.pipeline.fit import Optimization, parameter_unit
 
     if getattr(cfg, "generate", None) is not None:  # video: {generate: ...}: the guidance video first
         from clflow.pipeline.generated_video import ensure_guidance_video
@@ -455,7 +459,7 @@ def _optimize_in(cfg, again, resume, force_video, echo, note, bar, parallel) -> 
 
         search_all = {}
         if parallel is not None:
-            from clflow.sweep import hypotheses_on_ray
+            from clflow.pipeline.hypotheses import hypotheses_on_ray
 
             search_all = {"search_all": hypotheses_on_ray(**parallel)}
         try:
@@ -478,7 +482,7 @@ def _optimize_in(cfg, again, resume, force_video, echo, note, bar, parallel) -> 
         cfg, hypotheses=hypotheses, force_video=force_video
     )  # loads the scene, runs the material query, computes the video's flow
     if parallel is not None:
-        from clflow.sweep import starts_on_ray
+        from clflow.pipeline.fit import starts_on_ray
 
         opt.map_starts = starts_on_ray(**parallel)
     total = opt.total_iterations  # the velocity phase's (optimize.estimate_velocity) and the main phase's

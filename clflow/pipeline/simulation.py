@@ -28,7 +28,7 @@ import torch
 from clflow.errors import InputError
 from clflow.materials import get_material
 from clflow.mpm.constants import WALL_CELLS
-from clflow.mpm.substep import check_grid_memory
+from clflow.mpm.substep import Grid, check_grid_memory
 from clflow.runtime import get_device
 from clflow.scene.config import SceneConfig
 from clflow.scene.filling import ObjectParticles, fill_object
@@ -37,12 +37,80 @@ from clflow.splat.gaussians import Gaussians
 GROUND_OFFSET = 0.75  # cells between the ground plane and the node row below it
 
 
+class SubstepLimitError(InputError):
+    """A run would need more substeps per frame than ``simulation.max_substeps`` allows."""
+
+
+def _fmt_point(values) -> str:
+    return "(" + ", ".join(f"{float(v):.4g}" for v in values) + ")"
+
+
+def check_forces(cfg: SceneConfig, positions: torch.Tensor, dtype: torch.dtype = torch.float32) -> list[torch.Tensor]:
+    """Each force stage's particles, [N] bool masks (selected in the simulator's ``dtype``,
+    as the simulator selects them); InputError for a stage whose region holds no particle or
+    whose time window lies outside the simulated time (0 .. frames / fps)."""
+    sim = cfg.simulation
+    duration = sim.frames / sim.fps
+    x = positions.to(dtype).double()  # as the simulator tests them (clflow.mpm.boundaries.DriverGroups)
+    masks = []
+    for i, stage in enumerate(cfg.forces):
+        masks.append(stage.region.select(x))
+        if not bool(masks[-1].any()):
+            raise InputError(
+                f"{cfg.source}: forces[{i}].region holds no particle of the object (the object spans "
+                f"{_fmt_point(positions.min(0).values)} .. {_fmt_point(positions.max(0).values)} m "
+                f"in the simulation frame, +y up)"
+            )
+        if stage.start >= duration:
+            raise InputError(
+                f"{cfg.source}: forces[{i}] starts at {stage.start:g} s, after the simulated "
+                f"{duration:.4g} s ({sim.frames} frames at {sim.fps:g} fps): it would never act; "
+                f"fix forces[{i}].start/end (seconds) or simulation.frames"
+            )
+    return masks
+
+
+def substep_limit_message(
+    cfg: SceneConfig,
+    substeps: int,
+    dt: float,
+    limit: str,
+    max_substeps: int,
+    seconds_per_substep: float | None = None,
+    optimizing: bool = False,
+) -> str:
+    cost = ""
+    if seconds_per_substep:
+        frame = substeps * seconds_per_substep
+        cost = f", about {frame:.3g} s per frame"
+    # a fixed substep beyond the stable one is no way out for the optimiser: it rejects such runs
+    fixed = "" if optimizing else ("a fixed simulation.substep_dt (beyond the stable step the run may blow up), ")
+    return (
+        f"{cfg.source}: the simulation needs {substeps} substeps per frame (dt = {dt:.3g} s, limited by "
+        f"{limit}{cost}), beyond the limit of {max_substeps}; ways out: a softer proxy material (a lower "
+        f"youngs_modulus or bulk_modulus, poissons_ratio <= 0.45), a coarser grid (a smaller "
+        f"simulation.grid_resolution: dt grows with the cell size), {fixed}or raise the limit "
+        f"(--max-substeps N or simulation.max_substeps)"
+    )
+
+
+def check_substeps(cfg: SceneConfig, sim, max_substeps: int | None) -> None:
+    """SubstepLimitError when ``sim`` takes more than ``max_substeps`` substeps per frame (the
+    optimiser's check of each iteration: build_simulator(max_substeps=...))."""
+    if max_substeps is not None and sim.substeps > max_substeps:
+        raise SubstepLimitError(
+            substep_limit_message(
+                cfg, sim.substeps, sim.dt, sim.limit_reason(sim.state.v), max_substeps, optimizing=True
+            )
+        )
+
+
 @dataclass
 class ObjectSetup:
     """Everything about the simulated object that does not change between iterations."""
 
     particles: ObjectParticles  # positions [M, 3] m (Gaussian centres first), rest volume
-    grid: "Grid"  # noqa: F821  (clflow.mpm.Grid)
+    grid: Grid
 
 
 def simulation_grid(cfg: SceneConfig, lower: torch.Tensor, upper: torch.Tensor):
@@ -125,7 +193,6 @@ def build_simulator(
     (clflow.pipeline.preflight) beyond ``max_substeps`` per frame (None: no limit); InputError
     for a force stage that holds no particle or never acts."""
     from clflow.mpm import Force, HalfSpace, MaterialSpec, Simulator
-    from clflow.pipeline.preflight import check_forces, check_substeps
 
     sim_cfg = cfg.simulation
     frame_dt = 1.0 / sim_cfg.fps

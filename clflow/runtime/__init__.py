@@ -3,10 +3,10 @@
     from clflow.runtime import get_device
     dev = get_device()                 # $CLFLOW_DEVICE, else first GPU, else PoCL's CPU
     kern = dev.kernel("common/reduce.cl", "sum_rows_partial", real="double", defines=...)
-    with dev.bind() as b:              # torch tensors as buffers (zero-copy on CPU devices)
+    with bind(dev) as b:               # one call's torch tensors as buffers (clflow.runtime.bridge)
         dev.launch(kern, global_size, [b.input(x), b.output(y), ...])
-    y = DeviceArray.of(dev, x)         # or state that stays on the device across launches
-    dev.launch(kern, global_size, [y, ...]); y.read()   # (clflow.runtime.arrays)
+    y = DeviceArray.of(dev, x)         # state that stays on the device (clflow.runtime.arrays)
+    dev.launch(kern, global_size, [y, ...]); y.read()
 
 This module imports neither torch nor pyopencl until a device is used.
 """

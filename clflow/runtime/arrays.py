@@ -14,7 +14,7 @@ tensor to inspect or edit). How that costs depends on the device's memory:
   sends back (torch's version counter tells whether the mirror was edited).
 
 Every copy between host and device memory, here and in :class:`~clflow.runtime.bridge.TensorBinding`,
-is counted in the device's :class:`Transfers`::
+is counted in the device's :class:`~clflow.runtime.devices.Transfers`::
 
     mark = device.transfers.mark()
     ...                                  # kernels, reads, writes
@@ -26,8 +26,7 @@ the host (counted too, as bytes to the host): OpenCL and torch share no memory.
 
 from __future__ import annotations
 
-import threading
-from dataclasses import dataclass, fields, is_dataclass, replace
+from dataclasses import fields, is_dataclass, replace
 from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
@@ -39,36 +38,24 @@ if TYPE_CHECKING:
     from clflow.runtime.devices import Device
 
 ARRAY_DTYPES = (torch.float32, torch.float64, torch.int32, torch.int64, torch.uint8, torch.int8)
+_REALS = {torch.float32: ("float", np.float32), torch.float64: ("double", np.float64)}
 
 
-@dataclass
-class Transfers:
-    """Bytes copied between host memory and a device's memory: ``to_device`` and ``to_host``."""
+def real_of(dtype: torch.dtype, what: str = "tensor") -> str:
+    """The kernels' ``real`` type ("float"/"double", Device.kernel) of a torch dtype."""
+    return _real(dtype, what)[0]
 
-    to_device: int = 0
-    to_host: int = 0
 
-    def __post_init__(self) -> None:
-        self._lock = threading.Lock()
+def numpy_real(dtype: torch.dtype, what: str = "tensor") -> type:
+    """The numpy scalar type (np.float32/np.float64) of the kernels' ``real`` kernel arguments."""
+    return _real(dtype, what)[1]
 
-    def count(self, to_device: int = 0, to_host: int = 0) -> None:
-        with self._lock:
-            self.to_device += int(to_device)
-            self.to_host += int(to_host)
 
-    def mark(self) -> "Transfers":
-        """The counts now, to subtract later with :meth:`since`."""
-        with self._lock:
-            return Transfers(self.to_device, self.to_host)
-
-    def since(self, mark: "Transfers") -> "Transfers":
-        """Bytes copied each way since ``mark``."""
-        with self._lock:
-            return Transfers(self.to_device - mark.to_device, self.to_host - mark.to_host)
-
-    @property
-    def total(self) -> int:
-        return self.to_device + self.to_host
+def _real(dtype: torch.dtype, what: str):
+    try:
+        return _REALS[dtype]
+    except KeyError:
+        raise InputError(f"{what}: dtype {dtype} not supported; use float32 or float64") from None
 
 
 def origin_device(*tensors, what: str = "inputs") -> torch.device:
@@ -215,8 +202,6 @@ class DeviceArray:
     def add_(self, other: "DeviceArray | torch.Tensor", alpha: float = 1.0) -> "DeviceArray":
         """``self += alpha * other`` on the device (float arrays); a tensor ``other`` (same
         element count) is uploaded first."""
-        from clflow.runtime.bridge import numpy_real, real_of
-
         if isinstance(other, torch.Tensor):
             other = DeviceArray.of(self.device, other.to(self.dtype), "addend")
         if other.dtype != self.dtype or other.numel() != self.numel():

@@ -6,7 +6,7 @@ copy, kernels read and write the tensor. On discrete GPUs (and in the bridge's c
 inputs are copied in and outputs copied back, and the bytes are counted in
 ``device.transfers``. Either way the tensors stay referenced until the queue has finished::
 
-    with device.bind() as b:
+    with bind(device) as b:
         x_buf = b.input(x)            # read by kernels
         out_buf = b.output(out)       # written by kernels
         device.launch(kernel, n, [x_buf, out_buf, np.int32(n)])
@@ -32,24 +32,6 @@ if TYPE_CHECKING:
     from clflow.runtime.devices import Device
 
 SUPPORTED_DTYPES = (torch.float32, torch.float64, torch.int32, torch.int64, torch.uint8, torch.int8)
-_REALS = {torch.float32: ("float", np.float32), torch.float64: ("double", np.float64)}
-
-
-def real_of(dtype: torch.dtype, what: str = "tensor") -> str:
-    """The kernels' ``real`` type ("float"/"double", Device.kernel) of a torch dtype."""
-    return _real(dtype, what)[0]
-
-
-def numpy_real(dtype: torch.dtype, what: str = "tensor") -> type:
-    """The numpy scalar type (np.float32/np.float64) of the kernels' ``real`` kernel arguments."""
-    return _real(dtype, what)[1]
-
-
-def _real(dtype: torch.dtype, what: str):
-    try:
-        return _REALS[dtype]
-    except KeyError:
-        raise InputError(f"{what}: dtype {dtype} not supported; use float32 or float64") from None
 
 
 def check_tensor(t: torch.Tensor, what: str, dtype: torch.dtype | None = None) -> None:
@@ -183,3 +165,8 @@ class TensorBinding:
         for buf in self._scratch:
             self.device.give_back_scratch(buf)
         self._scratch.clear()
+
+
+def bind(device: "Device") -> TensorBinding:
+    """A :class:`TensorBinding` for torch tensors on ``device`` (``with bind(device) as b:``)."""
+    return TensorBinding(device)

@@ -143,8 +143,8 @@ def _discover() -> list[tuple[DeviceInfo, Any]]:
     drivers without an ICD entry included: clflow.runtime.drivers)."""
     from clflow.runtime.drivers import adopt_unregistered
 
-    _configure_kernel_cache()
-    adoption = adopt_unregistered()
+    cache = _configure_kernel_cache()
+    adoption = adopt_unregistered(cache.parent)
     cl = _import_pyopencl()
     try:
         platforms = cl.get_platforms()
@@ -231,6 +231,36 @@ def bridge_mode() -> str:
     return mode
 
 
+@dataclass
+class Transfers:
+    """Bytes copied between host memory and a device's memory: ``to_device`` and ``to_host``."""
+
+    to_device: int = 0
+    to_host: int = 0
+
+    def __post_init__(self) -> None:
+        self._lock = threading.Lock()
+
+    def count(self, to_device: int = 0, to_host: int = 0) -> None:
+        with self._lock:
+            self.to_device += int(to_device)
+            self.to_host += int(to_host)
+
+    def mark(self) -> "Transfers":
+        """The counts now, to subtract later with :meth:`since`."""
+        with self._lock:
+            return Transfers(self.to_device, self.to_host)
+
+    def since(self, mark: "Transfers") -> "Transfers":
+        """Bytes copied each way since ``mark``."""
+        with self._lock:
+            return Transfers(self.to_device - mark.to_device, self.to_host - mark.to_host)
+
+    @property
+    def total(self) -> int:
+        return self.to_device + self.to_host
+
+
 class Device:
     """One OpenCL device with its context, in-order queue and kernel cache.
 
@@ -246,8 +276,6 @@ class Device:
         self._programs: dict[tuple, Any] = {}
         self._kernels: dict[tuple, Any] = {}
         self._spare_scratch: list[Any] = []  # scratch buffers free for reuse (take_scratch)
-        from clflow.runtime.arrays import Transfers
-
         self.transfers = Transfers()  # bytes the bridge copied between host and device
         # host tensors of zero-copy arrays that enqueued commands use: kept alive until the
         # queue has run them (OpenCL keeps its buffers alive, not the memory they alias)
@@ -358,11 +386,9 @@ class Device:
             lsize = (local_size,) + (1,) * (len(gsize) - 1) if isinstance(local_size, int) else tuple(local_size)
             lsize = tuple(min(size, self.info.max_work_group_size) for size in lsize)
             gsize = tuple(round_up(g, size) for g, size in zip(gsize, lsize))
-        from clflow.runtime.arrays import DeviceArray
-
-        arrays = [a for a in args if isinstance(a, DeviceArray)]
+        arrays = [a for a in args if hasattr(a, "buffer")]  # clflow.runtime.arrays.DeviceArray
         self.keep_until_done(arrays)
-        kernel.set_args(*(a.buffer if isinstance(a, DeviceArray) else a for a in args))
+        kernel.set_args(*(a.buffer if hasattr(a, "buffer") else a for a in args))
         cl = _import_pyopencl()
         return cl.enqueue_nd_range_kernel(self.queue, kernel, gsize, lsize)
 
@@ -415,12 +441,6 @@ class Device:
                     kept.append(spare)
                     total += spare.size
             self._spare_scratch = kept
-
-    def bind(self):
-        """A :class:`~clflow.runtime.bridge.TensorBinding` for torch tensors on this device."""
-        from clflow.runtime.bridge import TensorBinding
-
-        return TensorBinding(self)
 
 
 _DEVICES: dict[str, Device] = {}

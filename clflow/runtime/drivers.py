@@ -109,10 +109,11 @@ class Adoption:
 _ADOPTION: Adoption | None = None
 
 
-def adopt_unregistered() -> Adoption:
+def adopt_unregistered(cache: Path) -> Adoption:
     """Make this process's ICD loader see the unregistered drivers (call before it starts;
-    runs once): a folder under the user's cache with the registered entries and one per
-    driver becomes ``$OCL_ICD_VENDORS``; not with CLFLOW_ADOPT_DRIVERS=0 or a read-only cache."""
+    runs once): a folder in ``cache`` (clflow's cache folder) with the registered entries and
+    one per driver becomes ``$OCL_ICD_VENDORS``; not with CLFLOW_ADOPT_DRIVERS=0 or a
+    read-only cache."""
     global _ADOPTION
     if _ADOPTION is not None:
         return _ADOPTION
@@ -125,9 +126,7 @@ def adopt_unregistered() -> Adoption:
     # loaded from where it really lies, not through a link elsewhere
     entries.update({d.icd_name: str(d.path.resolve()) for d in drivers})
     digest = hashlib.sha256(repr(sorted(entries.items())).encode()).hexdigest()[:12]
-    from clflow.runtime.devices import default_kernel_cache_dir
-
-    folder = default_kernel_cache_dir().parent / f"icd-{digest}"
+    folder = Path(cache) / f"icd-{digest}"
     try:
         folder.mkdir(parents=True, exist_ok=True)
         for name, library in entries.items():

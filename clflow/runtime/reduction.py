@@ -10,7 +10,8 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
-from clflow.runtime.bridge import check_tensor, real_of
+from clflow.runtime.arrays import real_of
+from clflow.runtime.bridge import bind, check_tensor
 from clflow.runtime.devices import Device, get_device
 
 REDUCE_WG = 64  # work-group size of the reduction: part of its fixed summation order
@@ -36,7 +37,7 @@ def sum_rows(x: torch.Tensor, device: Device | None = None) -> torch.Tensor:
     chunk = REDUCE_WG * ROWS_PER_ITEM
     first = device.kernel("common/reduce.cl", "sum_rows_partial", real, _REDUCE_DEFINES)
     rest = device.kernel("common/reduce.cl", "sum_rows_partial_acc", real, _REDUCE_DEFINES)
-    with device.bind() as b:
+    with bind(device) as b:
         src, kernel, rows = b.input(x), first, n
         while True:
             groups = -(-rows // chunk)
@@ -68,7 +69,7 @@ def scatter_add(values: torch.Tensor, index: torch.Tensor, size: int, device: De
     if n == 0:
         return out
     kernel = device.kernel("common/scatter_add.cl", "scatter_add", real)
-    with device.bind() as b:
+    with bind(device) as b:
         device.launch(kernel, n, [b.input(values), b.input(idx), b.inout(out), np.int32(n), np.int32(width)])
     return out
 

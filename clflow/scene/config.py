@@ -267,7 +267,7 @@ class GenerateSettings:
 
     model: Path  # a local diffusers folder (clflow.generate.inspect_model)
     prompt: str | None = None  # None: the motion prompt filled from the forces (prompt_template)
-    prompt_template: str | None = None  # None: clflow.pipeline.generated_video.PROMPT_TEMPLATE
+    prompt_template: str | None = None  # None: clflow.scene.video_settings.PROMPT_TEMPLATE
     object: str = "object"  # what the object is, for the template
     negative_prompt: str = ""
     image: Path | None = None  # None: the scene rendered from the guidance camera
@@ -298,7 +298,7 @@ OPTIMIZERS = ("adam", "levenberg_marquardt")
 
 @dataclass(frozen=True)
 class SearchSettings:
-    """The global phase before the gradient iterations (clflow.pipeline.optimize)."""
+    """The global phase before the gradient iterations (clflow.pipeline.fit.search)."""
 
     samples: int = 32  # forward-only runs over the parameter box
     decades: float = 3.0  # the box of a log-scale parameter: the start times 10^(+-decades)
@@ -673,13 +673,13 @@ def _generate(r: _Reader, data: Any, simulation: SimulationSettings) -> Generate
         fit=r.choice(body, "fit", p, ("pad", "crop"), "pad"),
         **flags,
     )
-    from clflow.pipeline.generated_video import check_settings
+    from clflow.scene.video_settings import check_settings
 
     check_settings(settings, simulation, fail=lambda key, message: r.fail(f"{p}.{key}" if key else p, message))
     return settings
 
 
-def _optimize(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> OptimizeSettings:
+def _optimize_settings(r: _Reader, data: Any, material: MaterialConfig, frames: int) -> OptimizeSettings:
     p = "optimize"
     body = r.section(
         data,
@@ -896,7 +896,7 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     output = top.get("output", "results")
     if not isinstance(output, str) or not output:
         raise r.fail("output", f"must be a folder path, got {output!r}")
-    optimize = _optimize(r, top.get("optimize"), material, simulation.frames)
+    optimize = _optimize_settings(r, top.get("optimize"), material, simulation.frames)
     if truth and (optimize.materials or material.type != "query"):
         # with hypotheses, the truth's material is one of them: the first that has all its names
         candidates = optimize.materials or (material.type,)

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import torch
 
+from clflow.runtime.bridge import bind
+
 
 def polar_rotations(F: torch.Tensor) -> torch.Tensor:
     """R of the polar decomposition F = R S, [N, 3, 3] for F [N, 3, 3] (float32 or float64):
@@ -23,7 +25,7 @@ def polar_rotations(F: torch.Tensor) -> torch.Tensor:
 
     from clflow.mpm.constants import SIMD_LANES
     from clflow.runtime import get_device
-    from clflow.runtime.bridge import real_of
+    from clflow.runtime.arrays import real_of
 
     device = get_device()
     real = real_of(F.dtype, "deformation gradients")
@@ -32,6 +34,6 @@ def polar_rotations(F: torch.Tensor) -> torch.Tensor:
     R = torch.empty_like(F)
     n = F.shape[0]
     if n:
-        with device.bind() as b:
+        with bind(device) as b:
             device.launch(kernel, -(-n // SIMD_LANES), [np.int32(n), b.input(F, "F"), b.output(R, "R")])
     return R

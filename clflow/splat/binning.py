@@ -13,7 +13,8 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
-from clflow.runtime.bridge import real_of
+from clflow.runtime.arrays import real_of
+from clflow.runtime.bridge import bind
 from clflow.runtime.devices import Device, get_device
 from clflow.runtime.sort import histogram_bytes, radix_sort, scan_exclusive
 from clflow.splat.constants import SPLAT_DEFINES, TILE_SIZE
@@ -94,7 +95,7 @@ def build_tile_lists(
         )
     # the sort's buffers live on the device for this call only; the host reads the entry
     # count and the lists the compositing op takes
-    with device.bind() as b:
+    with bind(device) as b:
         # 1. Gaussians by depth; entry offsets in that order
         depth_pairs = [b.scratch(4 * n) for _ in range(4)]
         device.launch(kern("depth_keys"), n, [b.input(depths), b.input(radii), *depth_pairs[:2], np.int32(n)])

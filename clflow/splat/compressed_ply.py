@@ -30,7 +30,7 @@ import torch
 
 from clflow.errors import InputError
 from clflow.splat.gaussians import SH_C0, Gaussians, rgb_to_sh0, sh_degree_of
-from clflow.splat.ply import read_ply_elements, write_ply_elements
+from clflow.splat.ply_format import ply_vertex_properties, read_ply_elements, write_ply_elements
 
 CHUNK = 256  # Gaussians per chunk
 POSITION_BITS = (11, 10, 11)  # x, y, z (also the log scales)
@@ -173,7 +173,6 @@ def save_compressed_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
 
 def is_compressed_ply(path: str | os.PathLike) -> bool:
     """Whether the PLY file at ``path`` has the compressed layout (packed vertices)."""
-    from clflow.splat.ply import ply_vertex_properties
 
     return "packed_position" in ply_vertex_properties(path)
 

@@ -20,8 +20,8 @@ import torch
 from torch import Tensor
 
 from clflow.errors import InputError
-from clflow.runtime.arrays import origin_device, to_cpu, to_origin
-from clflow.runtime.bridge import real_of
+from clflow.runtime.arrays import origin_device, real_of, to_cpu, to_origin
+from clflow.runtime.bridge import bind
 from clflow.runtime.devices import get_device
 from clflow.splat.binning import build_tile_lists, tile_grid
 from clflow.splat.constants import MIN_QUAT_NORM, SPLAT_DEFINES, SPLAT_LANES
@@ -45,7 +45,7 @@ def covariances(quats: Tensor, scales: Tensor) -> Tensor:
     device = get_device()
     n = quats.shape[0]
     covars = quats.new_empty(n, 3, 3)
-    with device.bind() as b:
+    with bind(device) as b:
         device.launch(
             _kernel("covariance.cl", "covariance_forward", quats.dtype),
             -(-n // SPLAT_LANES),
@@ -65,7 +65,7 @@ def covariances_backward(quats: Tensor, scales: Tensor, v_covars: Tensor) -> tup
     device = get_device()
     n = quats.shape[0]
     v_quats, v_scales = torch.empty_like(quats), torch.empty_like(scales)
-    with device.bind() as b:
+    with bind(device) as b:
         device.launch(
             _kernel("covariance.cl", "covariance_backward", quats.dtype),
             n,
@@ -118,7 +118,7 @@ def project(
     tiles_touched = torch.empty(n, dtype=torch.int32)
     kern = _kernel("project.cl", "project_forward", means.dtype)
     near_real = np.float64(near) if means.dtype == torch.float64 else np.float32(near)
-    with device.bind() as b:
+    with bind(device) as b:
         device.launch(
             kern,
             -(-n // SPLAT_LANES),
@@ -173,7 +173,7 @@ def project_backward(
     v_means = torch.empty_like(means)
     v_covars = torch.empty_like(covars)
     kern = _kernel("project.cl", "project_backward", means.dtype)
-    with device.bind() as b:
+    with bind(device) as b:
         device.launch(
             kern,
             n,
@@ -292,7 +292,7 @@ def composite(
     n_contrib = torch.empty(height, width, dtype=torch.int32)
     tiles_x, tiles_y = tile_grid(width, height)
     kern = _kernel("rasterize.cl", "rasterize_forward", features.dtype, CHANNELS=channels)
-    with device.bind() as b:
+    with bind(device) as b:
         entries = _sorted_entry_records(device, b, means2d, conics, opacities, features, sorted_slots, slot_gaussian)
         device.launch(
             kern,
@@ -361,7 +361,7 @@ def composite_backward(
     v_opacities, v_features = torch.empty_like(opacities), torch.empty_like(features)
     backward = _kernel("rasterize.cl", "rasterize_backward", features.dtype, CHANNELS=channels)
     reduce = _kernel("rasterize.cl", "reduce_slots", features.dtype, CHANNELS=channels)
-    with device.bind() as b:
+    with bind(device) as b:
         entries = _sorted_entry_records(device, b, means2d, conics, opacities, features, sorted_slots, slot_gaussian)
         # [M, 6 + C]: one gradient row per (tile, Gaussian) pair, written once by its tile
         slots = b.scratch(m * (6 + channels) * features.dtype.itemsize)

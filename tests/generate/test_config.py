@@ -119,8 +119,8 @@ def test_optimize_makes_the_guidance_video_first_caches_it_and_takes_it(scene, t
     camera's size and covers the simulated time (guidance_video, what `clflow optimize`
     reads first), and the same inputs reuse it."""
     import clflow.generate
+    from clflow.pipeline.fit.guidance import guidance_video
     from clflow.pipeline.generated_video import ensure_guidance_video
-    from clflow.pipeline.optimize import guidance_video
     from clflow.scene.load import guidance_camera
 
     cfg = load_config(write(scene, tmp_path, model=str(models["cog"]), steps=1, seed=2))

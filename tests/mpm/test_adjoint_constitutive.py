@@ -10,6 +10,7 @@ from clflow.mpm import reference
 from clflow.mpm.adjoint import SubstepAdjoint
 from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT
 from clflow.mpm.substep import Grid
+from clflow.runtime.bridge import bind
 
 MU, LAMBDA, TAU_Y, XI = 3.0e4, 5.0e4, 300.0, 2.0
 HARDENING = 40.0  # metal's plastic state: the yield stress gained so far (Pa)
@@ -83,7 +84,7 @@ def stress_vjp(device, material, F, tau_bar, F_new_bar, plastic, plastic_new_bar
     C_bar = torch.zeros(n, 3, 3, dtype=dtype)
     param_bar = torch.zeros(n, PARAM_COUNT, dtype=dtype)
     F_in, C_in = F.to(dtype).contiguous(), torch.zeros(n, 3, 3, dtype=dtype)
-    with device.bind() as b:
+    with bind(device) as b:
         adjoint.launch_stress_adjoint(
             1e-3,
             b.input(F_in),

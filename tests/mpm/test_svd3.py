@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 import torch
 
+from clflow.runtime.bridge import bind
+
 
 def svd3(device, F: torch.Tensor):
     n = F.shape[0]
@@ -13,7 +15,7 @@ def svd3(device, F: torch.Tensor):
     kern = device.kernel("common/svd3.cl", "svd3_batch", real)
     U, V = torch.empty(n, 3, 3, dtype=F.dtype), torch.empty(n, 3, 3, dtype=F.dtype)
     s = torch.empty(n, 3, dtype=F.dtype)
-    with device.bind() as b:
+    with bind(device) as b:
         device.launch(kern, n, [np.int32(n), b.input(F.contiguous()), b.output(U), b.output(s), b.output(V)])
     return U, s, V
 

@@ -1,5 +1,5 @@
 """flow.bias_correction: the flow estimator's error measured on the simulation's own rendered
-video and subtracted from the observed flow (clflow.pipeline.optimize.Optimization.calibrate)."""
+video and subtracted from the observed flow (clflow.pipeline.fit.objective.Objective.calibrate)."""
 
 import dataclasses
 import json
@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from clflow.media import write_image
+from clflow.pipeline.fit import Optimization
+from clflow.pipeline.fit.objective import SUPERSAMPLE
 from clflow.pipeline.forward import render_frames, simulate_config
-from clflow.pipeline.optimize import SUPERSAMPLE, Optimization
 from clflow_datasets.demo import TRUTH
 
 
@@ -34,7 +35,7 @@ def test_calibrated_at_the_parameters_that_made_the_video_the_residual_vanishes(
     assert calibrated.calibrated_at == {"z": state.z, "frames": opt.frames, "grid": opt.model_grid}
     assert opt.rescored(at_truth).loss < 1e-3 * raw  # the estimator's error cancels
     error = opt.views[0].estimator_error
-    assert error.shape == opt.observed.shape and float(error.abs().max()) > 0.05
+    assert error.shape == opt.views[0].observed.shape and float(error.abs().max()) > 0.05
     # the loss of evaluate() itself fits the corrected target
     assert opt.evaluate(state.z, opt.frames, with_grad=False).loss == pytest.approx(
         opt.rescored(at_truth).loss, abs=1e-9

@@ -9,7 +9,11 @@ import pytest
 import torch
 
 from clflow.errors import InputError
-from clflow.pipeline.optimize import LM_DAMPING, LM_GAIN_TOLERANCE, Evaluation, Optimization, flat, flow_loss
+from clflow.pipeline.fit import Evaluation, Optimization
+from clflow.pipeline.fit.diagnostics import flat
+from clflow.pipeline.fit.objective import flow_loss
+from clflow.pipeline.fit.state import LM_DAMPING
+from clflow.pipeline.fit.steps import LM_GAIN_TOLERANCE
 
 Z_TRUE = math.log10(2e4) + 0.37  # the model's minimiser, 1.37 decades above the demo's start
 
@@ -27,14 +31,16 @@ def lm(demo_config, monkeypatch):
             flow=dataclasses.replace(cfg.flow, bias_correction="none"),
         )  # flows without a simulation
         opt = Optimization(cfg)
-        field = torch.randn(opt.observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+        field = torch.randn(
+            opt.views[0].observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64
+        )
         calls = []
 
         def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
             calls.append(dict(z))
             shift = math.tanh(curvature * (z["youngs_modulus"] - Z_TRUE)) / curvature
-            flows = [opt.observed[t] + shift * field[t] for t in range(frames)]
-            loss = float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.weight[:frames]))
+            flows = [opt.views[0].observed[t] + shift * field[t] for t in range(frames)]
+            loss = float(flow_loss(opt.cfg, flows, opt.views[0].observed[:frames], opt.views[0].weight[:frames]))
             return Evaluation(loss, {}, flows, SimpleNamespace(substeps=1), grid or opt.model_grid)
 
         monkeypatch.setattr(opt, "evaluate", evaluate)
@@ -166,7 +172,7 @@ def test_a_step_downhill_only_against_the_old_calibration_is_rejected(lm, monkey
     # (the search's criterion) higher than the best point's: the step is taken back
     opt, _ = lm(iterations=4)
     opt.cfg.output.mkdir(parents=True, exist_ok=True)
-    field = torch.randn(opt.observed.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    field = torch.randn(opt.views[0].observed.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     scale = {"now": 0.0}
     monkeypatch.setattr(type(opt), "corrects_bias", property(lambda self: True))
     monkeypatch.setattr(opt, "estimator_errors", lambda result, frames: [scale["now"] * field[:frames]])
@@ -251,8 +257,8 @@ def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypat
     )
     opt = Optimization(cfg)
     g = torch.Generator().manual_seed(1)
-    field_e, field_nu = (torch.randn(opt.observed.shape, generator=g, dtype=torch.float64) for _ in range(2))
-    noise = 0.01 * torch.randn(opt.observed.shape, generator=g, dtype=torch.float64)
+    field_e, field_nu = (torch.randn(opt.views[0].observed.shape, generator=g, dtype=torch.float64) for _ in range(2))
+    noise = 0.01 * torch.randn(opt.views[0].observed.shape, generator=g, dtype=torch.float64)
 
     def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
         e, nu = z["youngs_modulus"] - Z_TRUE, z["poissons_ratio"]
@@ -262,9 +268,9 @@ def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypat
             "nu_barely_matters": e * field_e + 0.005 * nu * field_nu,
             "only_the_sum_matters": (e + nu) * field_e,
         }[model]
-        flows = [opt.observed[t] + noise[t] + shift[t] for t in range(frames)]
+        flows = [opt.views[0].observed[t] + noise[t] + shift[t] for t in range(frames)]
         return Evaluation(
-            float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.weight[:frames])),
+            float(flow_loss(opt.cfg, flows, opt.views[0].observed[:frames], opt.views[0].weight[:frames])),
             {},
             flows,
             SimpleNamespace(substeps=1),
@@ -306,7 +312,9 @@ def test_the_grid_check_measures_how_far_a_coarser_grid_moves_the_fit(demo_confi
     )
     opt = Optimization(cfg)
     g = torch.Generator().manual_seed(2)
-    field_e, field_nu, noise = (torch.randn(opt.observed.shape, generator=g, dtype=torch.float64) for _ in range(3))
+    field_e, field_nu, noise = (
+        torch.randn(opt.views[0].observed.shape, generator=g, dtype=torch.float64) for _ in range(3)
+    )
     grids = []
 
     def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
@@ -314,8 +322,8 @@ def test_the_grid_check_measures_how_far_a_coarser_grid_moves_the_fit(demo_confi
         grids.append(grid)
         coarse = grid != opt.model_grid
         e, nu = z["youngs_modulus"] - Z_TRUE + 0.3 * coarse, z["poissons_ratio"] - 0.02 * coarse
-        flows = [opt.observed[t] + 0.01 * noise[t] + e * field_e[t] + nu * field_nu[t] for t in range(frames)]
-        loss = float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.weight[:frames]))
+        flows = [opt.views[0].observed[t] + 0.01 * noise[t] + e * field_e[t] + nu * field_nu[t] for t in range(frames)]
+        loss = float(flow_loss(opt.cfg, flows, opt.views[0].observed[:frames], opt.views[0].weight[:frames]))
         return Evaluation(loss, {}, flows, SimpleNamespace(substeps=1), grid)
 
     monkeypatch.setattr(opt, "evaluate", evaluate)
@@ -377,14 +385,14 @@ def with_starts(cfg, starts: int, **search):
 @pytest.mark.parametrize("starts", [1, 2])
 def test_several_starts_are_polished_and_the_best_is_kept(demo_config, monkeypatch, starts):
     opt = Optimization(with_starts(demo_config(iterations=6), starts))
-    field = torch.randn(opt.observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    field = torch.randn(opt.views[0].observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
 
     def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
         e = z["youngs_modulus"]  # two basins: the true one (residual 0) and a false one (0.5)
         shift = min(math.sqrt((e - Z_TRUE) ** 2 + 1e-8), math.sqrt((e - Z_FALSE) ** 2 + 1e-8) + 0.5)
-        flows = [opt.observed[t] + shift * field[t] for t in range(frames)]
+        flows = [opt.views[0].observed[t] + shift * field[t] for t in range(frames)]
         return Evaluation(
-            float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.weight[:frames])),
+            float(flow_loss(opt.cfg, flows, opt.views[0].observed[:frames], opt.views[0].weight[:frames])),
             {},
             flows,
             SimpleNamespace(substeps=1),
@@ -422,7 +430,7 @@ def test_a_coarse_search_grid_runs_the_global_phase_and_the_main_grid_picks_the_
     opt = Optimization(with_starts(cfg, 2, grid_resolution=coarse))
     assert (opt.search_grid, opt.model_grid) == (coarse, fine)
     assert opt._prepared[coarse].setup.grid.dx > opt._prepared[fine].setup.grid.dx
-    field = torch.randn(opt.observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    field = torch.randn(opt.views[0].observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     grids = []
 
     def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
@@ -431,8 +439,8 @@ def test_a_coarse_search_grid_runs_the_global_phase_and_the_main_grid_picks_the_
         e = z["youngs_modulus"]  # two basins: on the coarse grid the false one is the deeper
         to_true, to_false = math.sqrt((e - Z_TRUE) ** 2 + 1e-8), math.sqrt((e - Z_FALSE) ** 2 + 1e-8)
         shift = min(to_true + 0.02, to_false) if grid == coarse else min(to_true, to_false + 0.5)
-        flows = [opt.observed[t] + shift * field[t] for t in range(frames)]
-        loss = float(flow_loss(opt.cfg, flows, opt.observed[:frames], opt.weight[:frames]))
+        flows = [opt.views[0].observed[t] + shift * field[t] for t in range(frames)]
+        loss = float(flow_loss(opt.cfg, flows, opt.views[0].observed[:frames], opt.views[0].weight[:frames]))
         return Evaluation(loss, {}, flows, SimpleNamespace(substeps=1), grid)
 
     monkeypatch.setattr(opt, "evaluate", evaluate)

@@ -27,7 +27,7 @@ def side_view(quick_demo):
 
 
 def _optimization(quick_demo, tmp_path, name, **keys):
-    from clflow.pipeline.optimize import Optimization
+    from clflow.pipeline.fit import Optimization
 
     data = {**yaml.safe_load((quick_demo / "config.yaml").read_text()), **keys}
     cfg = parse_config(data, f"{name}.yaml", quick_demo)
@@ -129,7 +129,7 @@ def test_a_second_view_narrows_what_one_view_leaves_open(tmp_path):
     (correlation beyond 0.9) and nu is weakly constrained; a second camera turned 90 degrees
     about the vertical sees the sideways bulge that the first sees in depth, and every
     standard error at the truth shrinks (measured: nu 0.33 -> 0.23, E 0.024 -> 0.017)."""
-    from clflow.pipeline.optimize import Optimization
+    from clflow.pipeline.fit import Optimization
     from clflow.scene.config import load_config
     from clflow_datasets.synthetic import Resolution, make_case
     from clflow_datasets.sysid import CASES

@@ -7,7 +7,8 @@ import math
 import pytest
 
 from clflow.errors import ClflowError
-from clflow.pipeline.optimize import Optimization, OptimizerState, horizon, rate_schedule
+from clflow.pipeline.fit import Optimization, OptimizerState
+from clflow.pipeline.fit.steps import horizon, rate_schedule
 from clflow_datasets.demo import TRUTH
 
 
@@ -113,7 +114,6 @@ def test_a_video_file_keeps_its_own_frame_rate(demo_config, quick_demo, tmp_path
 
     from clflow.media import write_video
     from clflow.pipeline.forward import prepare
-    from clflow.pipeline.optimize import observed_flow_of
 
     frames = [
         cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB) for p in sorted((quick_demo / "guidance").glob("*.png"))
@@ -133,7 +133,6 @@ def test_the_cached_observed_flow_is_reused_only_with_the_same_confidence_settin
 
     import clflow.flow.optical_flow
     from clflow.pipeline.forward import prepare
-    from clflow.pipeline.optimize import observed_flow_of
 
     cfg = demo_config()
     with_confidence = dataclasses.replace(cfg, flow=dataclasses.replace(cfg.flow, confidence="forward_backward"))
@@ -158,7 +157,7 @@ def test_resume_refuses_a_changed_config_and_names_what_changed(tmp_path):
     import dataclasses
 
     from clflow.errors import InputError
-    from clflow.pipeline.optimize import OptimizerState
+    from clflow.pipeline.fit import OptimizerState
     from clflow.scene.config import parse_config
 
     (tmp_path / "scene.ply").write_bytes(b"ply\n")
@@ -188,3 +187,12 @@ def test_resume_refuses_a_changed_config_and_names_what_changed(tmp_path):
         r"give another -o/--out, or delete the checkpoint",
     ):
         checkpointing(changed).load_state()
+
+
+def observed_flow_of(cfg, prepared, frames):
+    """View 0's guidance frames at the simulation's frame times, their flow and its confidence,
+    cached in output/observed_flow.npz, as the optimiser reads them."""
+    from clflow.pipeline.fit.guidance import cached_observed_flow, guidance_video, observed_flow_cache
+
+    video = guidance_video(cfg, cfg.video, prepared.camera, frames)
+    return (video.frames, *cached_observed_flow(cfg, cfg.video, video.frames, observed_flow_cache(cfg, 0)))

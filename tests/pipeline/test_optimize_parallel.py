@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from clflow.pipeline.optimize import Optimization
+from clflow.pipeline.fit import Optimization
 from clflow.scene.config import SearchSettings
 from clflow_cli.main import cli
 
@@ -135,7 +135,7 @@ def test_parallel_without_ray_is_one_line(quick_demo, tmp_path, monkeypatch):
 def test_map_on_ray_keeps_the_order_raises_a_tasks_error_and_refuses_what_cannot_run():
     pytest.importorskip("ray")
     from clflow.errors import InputError
-    from clflow.sweep import map_on_ray, ray_session
+    from clflow.parallel import map_on_ray, ray_session
 
     def sub(a, b):
         return a - b

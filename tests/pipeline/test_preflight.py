@@ -14,7 +14,7 @@ import yaml
 from click.testing import CliRunner
 
 from clflow.media import write_image
-from clflow.pipeline.optimize import Optimization
+from clflow.pipeline.fit import Optimization
 from clflow_cli.main import cli
 
 
@@ -190,16 +190,16 @@ def test_a_fixed_substep_and_a_large_rate_never_accept_an_unstable_iteration(dem
 
 
 def test_a_clamped_iteration_is_rolled_back(demo_config, monkeypatch):
-    import clflow.pipeline.optimize as optimize
+    from clflow.pipeline.fit import objective
 
-    real, calls = optimize.run, []
+    real, calls = objective.run, []
 
     def clamping(*args, **kwargs):
         frames = real(*args, **kwargs)
         calls.append(1)
         return dataclasses.replace(frames, clamped=7) if len(calls) == 2 else frames
 
-    monkeypatch.setattr(optimize, "run", clamping)
+    monkeypatch.setattr(objective, "run", clamping)
     opt = Optimization(demo_config(iterations=2))
     calls.clear()  # the pre-flight's runs
     state = opt.run()

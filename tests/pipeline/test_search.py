@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import pytest
 
 from clflow.errors import InputError
-from clflow.pipeline.optimize import Evaluation, Optimization
+from clflow.pipeline.fit import Evaluation, Optimization
 from clflow.scene.config import SearchSettings, parse_config
 
 

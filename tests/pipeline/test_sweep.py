@@ -153,7 +153,8 @@ def test_a_killed_task_is_recorded_and_the_others_go_on(spec_dir):
     pytest.importorskip("ray")
     import ray
 
-    from clflow.sweep import execute, run_on_ray, serial_order, start_ray, task_env
+    from clflow.parallel import serial_order, start_ray, task_env
+    from clflow.sweep import execute, run_on_ray
 
     folder, write = spec_dir
     spec = load_spec(write({key: FOUR_RUNS[key] for key in ("command", "base", "options", "set", "grid")}))
@@ -224,7 +225,7 @@ def test_ctrl_c_stops_the_sweep_and_keeps_what_finished(spec_dir):
 
 @pytest.mark.slow
 def test_an_optimisation_on_ray_gives_the_serial_bits(spec_dir):
-    """A one-thread task with the driver's P2G copies and torch threads (clflow.sweep.serial_order)
+    """A one-thread task with the driver's P2G copies and torch threads (clflow.parallel.serial_order)
     ends where the serial path does, to the last bit of the loss and the parameters."""
     pytest.importorskip("ray")
     folder, write = spec_dir

@@ -64,7 +64,7 @@ def test_noise_and_codec_reach_the_optimisers_input(tmp_path):
 
 
 def test_a_case_with_several_views_films_one_motion_from_each_camera(tmp_path):
-    from clflow.pipeline.optimize import Optimization
+    from clflow.pipeline.fit import Optimization
     from clflow.scene.config import load_config
 
     case = SyntheticCase(shape="sphere", lift=0.02, spread=0.75)
@@ -154,24 +154,24 @@ def test_rerun_skips_finished_cases_and_other_settings_need_force(tmp_path, tiny
 
 
 def test_an_interrupted_case_resumes_its_optimisation(tmp_path, tiny_cases, monkeypatch):
-    from clflow.pipeline import optimize
+    from clflow.pipeline import fit
 
     # Adam runs its count: the tiny torus' loss is so flat that Levenberg-Marquardt, within
     # its trust region, may stop by progress after one iteration, leaving nothing to resume
     monkeypatch.setitem(sysid.CASES, "torus", dataclasses.replace(sysid.CASES["torus"], method="adam"))
     out = tmp_path / "out"
-    real_run = optimize.Optimization.run
+    real_run = fit.Optimization.run
 
     def interrupted(self, resume=False, stop_after=None):
         real_run(self, resume=resume, stop_after=1)
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(optimize.Optimization, "run", interrupted)
+    monkeypatch.setattr(fit.Optimization, "run", interrupted)
     with pytest.raises(KeyboardInterrupt):
         sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))
     checkpoint = json.loads((out / "cases" / "torus" / "results" / "checkpoint.json").read_text())
     assert checkpoint["state"]["iteration"] == 1
-    monkeypatch.setattr(optimize.Optimization, "run", real_run)
+    monkeypatch.setattr(fit.Optimization, "run", real_run)
     resumed = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))["cases"]["torus"]
     assert resumed["status"] == "ok" and 1 <= resumed["iterations"] <= TINY.iterations
 
@@ -267,7 +267,7 @@ def test_the_benchmark_searches_on_the_base_grid_and_refines_on_a_finer_one(tmp_
     base = (truth["simulation"]["grid_resolution"] - 1) // 2 + 1
     assert opt["optimize"]["search"]["grid_resolution"] == base
     assert opt["simulation"]["grid_resolution"] == round((base - 1) * 1.5) + 1 < truth["simulation"]["grid_resolution"]
-    from clflow.pipeline.optimize import Optimization
+    from clflow.pipeline.fit import Optimization
     from clflow.scene.config import load_config
 
     optimization = Optimization(load_config(config))

@@ -11,8 +11,8 @@ import torch
 import yaml
 
 from clflow.mpm import Force, Grid, MaterialSpec, Simulator
+from clflow.pipeline.fit import Optimization
 from clflow.pipeline.forward import material_values, prepare
-from clflow.pipeline.optimize import Optimization
 from clflow.pipeline.simulation import build_simulator, run
 from clflow.scene.config import VELOCITY_COMPONENTS, load_config
 from tests.mpm._helpers import cube

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from clflow.errors import InputError
+from clflow.runtime.bridge import bind
 
 
 def scatter_kernel(device, real="float"):
@@ -24,7 +25,7 @@ def test_zero_copy_buffer_aliases_the_tensor_and_kernels_write_into_it(device):
     if not device.zero_copy:
         pytest.skip(f"{device.info.label} has its own memory here (a discrete device or the bridge's copy mode)")
     out = torch.zeros(4)
-    with device.bind() as b:
+    with bind(device) as b:
         assert b.zero_copy
         buf = b.inout(out)
         host = buf.get_host_array(out.shape, np.float32)
@@ -48,7 +49,7 @@ def test_zero_copy_buffer_aliases_the_tensor_and_kernels_write_into_it(device):
 
 def test_copy_path_for_discrete_devices(device):
     out = torch.zeros(3, dtype=torch.float64)
-    with device.bind() as b:
+    with bind(device) as b:
         b.zero_copy = False  # what a discrete GPU gets: copy in, run, copy back
         run_scatter(
             device, b, torch.tensor([1.0, 2.0], dtype=torch.float64), torch.tensor([2, 2], dtype=torch.int32), out
@@ -60,13 +61,13 @@ def test_outputs_are_current_when_the_block_ends(device):
     out = torch.zeros(1000)
     values = torch.ones(100000)
     index = torch.randint(0, 1000, (100000,), dtype=torch.int32)
-    with device.bind() as b:
+    with bind(device) as b:
         run_scatter(device, b, values, index, out)
     assert torch.equal(out, torch.bincount(index, minlength=1000).float())
 
 
 def test_empty_tensors_are_fine(device):
-    with device.bind() as b:
+    with bind(device) as b:
         b.input(torch.empty(0))
         b.output(torch.empty(0, 3, dtype=torch.float64))
 
@@ -82,12 +83,12 @@ def test_empty_tensors_are_fine(device):
     ],
 )
 def test_bad_tensors_are_refused(device, tensor, message):
-    with device.bind() as b, pytest.raises(InputError, match=message):
+    with bind(device) as b, pytest.raises(InputError, match=message):
         b.input(tensor)
 
 
 def test_dtype_is_checked_when_asked(device):
-    with device.bind() as b, pytest.raises(InputError, match="expected torch.float64"):
+    with bind(device) as b, pytest.raises(InputError, match="expected torch.float64"):
         b.input(torch.zeros(3), "positions", dtype=torch.float64)
 
 
@@ -95,11 +96,11 @@ def test_scratch_buffers_are_reused_once_given_back_and_the_spare_memory_is_boun
     from clflow.runtime import devices
 
     monkeypatch.setattr(device, "_spare_scratch", [])  # the session's device: start with no spares
-    with device.bind() as b:
+    with bind(device) as b:
         first = b.scratch(3000)
         second = b.scratch(3000)  # in use at the same time: a different buffer
         assert first.int_ptr != second.int_ptr
-    with device.bind() as b:
+    with bind(device) as b:
         again = b.scratch(2000)  # fits a spare one (2000 <= 3000 <= 2 x 2000): reused
         assert again.int_ptr in (first.int_ptr, second.int_ptr)
         bigger = b.scratch(7000)  # no spare is large enough: a new one

@@ -331,7 +331,7 @@ def test_cli_renders_a_plain_point_cloud(tmp_path):
     table["x"] = [0, 0.1, 0, 0.1]
     table["y"] = [0, 0, 0.1, 0.1]
     table["red"] = 255
-    from clflow.splat.ply import write_ply_vertices
+    from clflow.splat.ply_format import write_ply_vertices
 
     write_ply_vertices(tmp_path / "points.ply", table)
     result = run("render", tmp_path / "points.ply", "-o", tmp_path / "o", "--width", 16, "--height", 16)

@@ -1,0 +1,350 @@
+"""The objective of an optimisation: the flow loss at a point of the parameters."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import time
+
+import numpy as np
+import torch
+
+from clflow.errors import ClflowError
+from clflow.fileio import atomic_path
+from clflow.pipeline.fit.state import Evaluation, OptimizerState, UnstableRun
+from clflow.pipeline.forward import Prepared, SimulationResult, material_values, prepare, render_frames
+from clflow.pipeline.render import frame_gaussians, render_flow
+from clflow.pipeline.simulation import build_simulator, run
+from clflow.scene.config import VELOCITY_COMPONENTS, SceneConfig
+
+log = logging.getLogger(__name__)
+
+LM_STEP = 0.01  # Levenberg-Marquardt's finite-difference step in z (a 2.3 % change of a log-scale parameter)
+
+# flow.bias_correction renders the simulation at this many times the guidance camera's pixels
+# per side and area-averages them, since a camera's pixel integrates light over its area
+# (DIS's error depends on that blur: docs/flow.md)
+SUPERSAMPLE = 2
+
+
+def simulated_view_flows(
+    prepared: Prepared, x: torch.Tensor, F: torch.Tensor, frames: int, cameras: list
+) -> list[list[torch.Tensor]]:
+    """Simulated flows [H, W, 2] of each frame step t -> t+1 (t < frames) seen by each of ``cameras``."""
+    scenes = [frame_gaussians(prepared.static, prepared.obj_rest, x[t], F[t]) for t in range(frames + 1)]
+    return [[render_flow(scenes[t], scenes[t + 1], cam)[0] for t in range(frames)] for cam in cameras]
+
+
+def flow_loss(cfg: SceneConfig, flows, observed: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """The ``flow.loss`` of the simulated flows (T of [H, W, 2]) against ``observed``
+    [T, H, W, 2], weighted per pixel by ``weight`` [T, H, W] (the loss mask times the observed
+    flow's confidence) and divided by the weight's sum: a weighted per-pixel mean."""
+    from clflow.flow.losses import charbonnier_flow_loss, masked_flow_loss
+
+    fn = masked_flow_loss if cfg.flow.loss == "l2" else charbonnier_flow_loss
+    return fn(torch.stack(flows).double(), observed, weight)
+
+
+class Objective:
+    """The loss and its gradient at a point: simulate, render each view's flow, compare with the
+    observed flow less the estimator's own error (bias calibration); the residuals and their
+    Jacobian for Levenberg-Marquardt (needs cfg, params, views, frames, model and search grids)."""
+
+    def preflight(self):
+        """Force stages and the substeps at the initial parameters: the predicted time is
+        logged, a run beyond ``simulation.max_substeps`` refused (SubstepLimitError)."""
+        from clflow.pipeline.preflight import describe, plan_run
+
+        z = self.initial_state().z  # plan_run builds the simulator, which checks the force stages
+        values = self.values(z)
+        params, density = material_values(self.cfg, {n: values[n] for n in self.params})
+        plan = plan_run(
+            self.cfg,
+            self.prepared.setup,
+            params,
+            density,
+            velocity=torch.tensor(self.velocity(z)),
+            max_substeps=self.cfg.simulation.max_substeps,
+            optimizing=True,
+        )
+        plan = dataclasses.replace(plan, render_seconds_per_frame=self.render_seconds())
+        log.info("%s", describe(plan, "optimize", gradient=True))
+        return plan
+
+    def render_seconds(self) -> float:
+        """Seconds one frame step's flow takes in every view, rendered and its gradient back
+        (timed once in the guidance view on the scene at rest: what an iteration adds to the
+        simulation's time)."""
+        p = self.prepared
+        x = p.setup.particles.positions.to(p.obj_rest.means.dtype).clone().requires_grad_()
+        F = torch.eye(3, dtype=x.dtype).expand(x.shape[0], 3, 3)
+        seconds = []
+        for _ in range(2):  # the first builds the rasteriser's kernels
+            started = time.perf_counter()
+            scene = frame_gaussians(p.static, p.obj_rest, x, F)
+            render_flow(scene, scene, p.camera)[0].sum().backward()
+            seconds.append(time.perf_counter() - started)
+        return seconds[-1] * (1 + len(self.cfg.more_views))
+
+    def check_guidance(self, force: bool) -> list[str]:
+        """The guidance checks of every view (clflow.pipeline.preflight.check_guidance): their
+        problems when forced, else InputError on any."""
+        from clflow.pipeline.preflight import AGREEMENT_FRAMES, check_guidance, flow_agreement, measure_view
+
+        # inside the mask the weight is the observed flow's confidence
+        self.guidance = [
+            measure_view(
+                self.prepared, view.camera, view.mask, view.video_frames, view.observed.numpy(), view.weight.numpy()
+            )
+            for view in self.views
+        ]
+        if VELOCITY_COMPONENTS[0] not in self.variables:  # else the start's velocity may be anything
+            try:
+                start = self.evaluate(self.initial_state().z, min(AGREEMENT_FRAMES, self.frames), with_grad=False)
+            except (FloatingPointError, ClflowError) as exc:  # the first iteration will say so
+                log.info("no flow-direction check: the start's simulation fails (%s)", exc)
+            else:
+                self.guidance = [
+                    dataclasses.replace(check, agreement=flow_agreement(flows, view.observed, view.weight))
+                    for check, view, flows in zip(self.guidance, self.views, [start.flows, *start.more_flows])
+                ]
+        return check_guidance(self.cfg, self.guidance, force)
+
+    def prepared_on(self, grid: int) -> Prepared:
+        """The scene prepared on a grid of ``grid`` nodes over the same domain (the model's,
+        the search's, the grid check's), made on first use."""
+        if grid not in self._prepared:
+            simulation = dataclasses.replace(self.cfg.simulation, grid_resolution=grid)
+            self._prepared[grid] = prepare(dataclasses.replace(self.cfg, simulation=simulation))
+        return self._prepared[grid]
+
+    def values(self, z: dict[str, float]) -> dict[str, float]:
+        """The value of every variable in z: material parameters in SI, velocity components in m/s."""
+        out = {n: float(p.decode(torch.tensor(z[n], dtype=torch.float64))) for n, p in self.params.items()}
+        out.update((n, z[n]) for n in VELOCITY_COMPONENTS if n in z)
+        return out
+
+    def velocity(self, z: dict[str, float]) -> tuple[float, float, float]:
+        """The object's initial velocity (m/s, simulation frame) at z."""
+        return tuple(z[n] for n in VELOCITY_COMPONENTS) if VELOCITY_COMPONENTS[0] in z else self.cfg.velocity
+
+    def evaluate(
+        self,
+        z: dict[str, float],
+        frames: int,
+        with_grad: bool = True,
+        min_substeps: int = 1,
+        variables: tuple[str, ...] | None = None,
+        grid: int | None = None,
+    ) -> Evaluation:
+        """Loss (and dloss/dz of ``variables``, default every z name) at z over ``frames``
+        frames, simulated on the grid of ``grid`` nodes (the model's or the search's; None:
+        the model's)."""
+        variables = self.variables if variables is None else variables
+        grid = self.model_grid if grid is None else grid
+        prepared = self.prepared_on(grid)
+        zt = {n: torch.tensor(v, dtype=torch.float64, requires_grad=with_grad and n in variables) for n, v in z.items()}
+        decoded = {n: p.decode(zt[n]) for n, p in self.params.items()}
+        params, density = material_values(self.cfg, {n: float(v.detach()) for n, v in decoded.items()})
+        velocity = torch.stack([zt[n] for n in VELOCITY_COMPONENTS]) if VELOCITY_COMPONENTS[0] in zt else None
+        sim = build_simulator(
+            self.cfg,
+            prepared.setup,
+            params,
+            density,
+            min_substeps=min_substeps,
+            velocity=velocity,
+            max_substeps=self.cfg.simulation.max_substeps,
+        )
+        traj = run(sim, frames, decoded, velocity)
+        needed = sim.stable_substeps()
+        if traj.substeps < needed:  # a fixed simulation.substep_dt too long for these parameters
+            raise UnstableRun(
+                f"dt = {sim.frame_dt / traj.substeps:.3g} s exceeds the stable step "
+                f"{sim.frame_dt / needed:.3g} s of these parameters ({sim.limit_reason(sim.state.v)})"
+            )
+        if traj.unstable:  # finished, but not a run to learn from
+            raise UnstableRun(traj.unstable)
+        cameras = [v.camera for v in self.views]
+        flows, *more_flows = simulated_view_flows(prepared, traj.x, traj.F, frames, cameras)
+        loss = self.loss_of([flows, *more_flows])
+        if not bool(torch.isfinite(loss.detach())):
+            raise FloatingPointError("the flow loss is not finite")
+        grads = {}
+        if with_grad:
+            loss.backward()
+            grads = {n: float(zt[n].grad) for n in variables}
+            if not all(math.isfinite(g) for g in grads.values()):
+                raise FloatingPointError("the gradient is not finite")
+        return Evaluation(
+            float(loss.detach()),
+            grads,
+            [f.detach() for f in flows],
+            traj,
+            grid,
+            tuple([f.detach() for f in view] for view in more_flows),
+        )
+
+    def estimator_errors(self, result: Evaluation, frames: int) -> list[torch.Tensor]:
+        """The flow estimator's error [frames, H, W, 2] in each guidance view on the simulation
+        ``result`` (its first ``frames`` frames): the simulation rendered from the view's camera
+        (SUPERSAMPLE^2 samples per pixel, area-averaged), its flow estimated with the settings
+        that made the observed flow, less the exact simulated flow."""
+        from clflow.flow.optical_flow import observed_flow
+
+        traj = result.trajectory
+        simulated = SimulationResult(
+            self.prepared, {}, 0.0, traj.x[: frames + 1].detach(), traj.F[: frames + 1].detach()
+        )
+        errors = []
+        for view, flows in zip(self.views, [result.flows, *result.more_flows]):
+            video = render_frames(simulated, view.camera, supersample=SUPERSAMPLE)
+            estimated = observed_flow(video, self.cfg.flow.method, preset=self.cfg.flow.preset, source="the simulation")
+            errors.append(torch.from_numpy(estimated).double() - torch.stack(flows[:frames]).double())
+        return errors
+
+    def calibrate(self, state: OptimizerState, result: Evaluation, frames: int) -> OptimizerState:
+        """Keep the flow estimator's error on the simulation ``result`` (at state.z, its first
+        ``frames`` frames) as each view's ``estimator_error`` (saved in
+        ``output/estimator_error.npz``). The loss then compares the simulated flow with the
+        observed flow less that error, so the estimator's systematic error (DIS blends a
+        moving object with its background, docs/flow.md) cancels instead of biasing the
+        parameters."""
+        calibrated_at = {"z": dict(state.z), "frames": frames, "grid": result.grid}
+        if state.calibrated_at == calibrated_at:  # back at the point measured last (a rejected step)
+            return state
+        errors = []
+        for view, error in zip(self.views, self.estimator_errors(result, frames)):
+            full = torch.zeros_like(view.observed) if view.estimator_error is None else view.estimator_error.clone()
+            full[:frames] = error
+            errors.append(full.numpy())
+        self.set_estimator_errors(errors)
+        self.save_calibration(calibrated_at)
+        return dataclasses.replace(state, calibrated_at=calibrated_at)
+
+    def set_estimator_errors(self, errors: list[np.ndarray] | None) -> None:
+        """Each view's estimator error [T, H, W, 2] (None: none), the cached evaluations rescored."""
+        for i, view in enumerate(self.views):
+            view.estimator_error = None if errors is None else torch.from_numpy(np.array(errors[i]))
+        self._lm_cache = {key: (self.rescored(cached), J) for key, (cached, J) in self._lm_cache.items()}
+
+    def restore_estimator_errors(self, calibrated_at: dict | None, errors: list | None) -> None:
+        """Each view's estimator error back to ``errors`` (as measured at ``calibrated_at``),
+        saved again as the calibration file's content."""
+        self.set_estimator_errors(None if errors is None or errors[0] is None else errors)
+        if calibrated_at is not None:
+            self.save_calibration(calibrated_at)
+
+    def save_calibration(self, calibrated_at: dict) -> None:
+        """The views' estimator errors, measured at ``calibrated_at``, into ``estimator_error_file``."""
+        with atomic_path(self.estimator_error_file) as tmp, open(tmp, "wb") as fh:
+            np.savez(
+                fh,
+                key=np.array(json.dumps(calibrated_at, sort_keys=True)),
+                **{f"view_{i}": view.estimator_error.numpy() for i, view in enumerate(self.views)},
+            )
+
+    def restore_calibration(self, state: OptimizerState) -> None:
+        """Each view's estimator error as it was when ``state`` was saved (on --resume): from
+        output/estimator_error.npz, or measured again at ``state.calibrated_at``."""
+        key = json.dumps(state.calibrated_at, sort_keys=True)
+        try:
+            with np.load(self.estimator_error_file) as data:
+                if str(data["key"]) == key:
+                    self.set_estimator_errors([data[f"view_{i}"] for i in range(len(self.views))])
+                    return
+        except (OSError, KeyError, ValueError):
+            pass
+        log.info("measuring the flow estimator's error again at the checkpoint's calibration point")
+        z, frames = state.calibrated_at["z"], state.calibrated_at["frames"]
+        grid = state.calibrated_at.get("grid", self.model_grid)
+        at = dataclasses.replace(state, z=dict(z), calibrated_at=None)  # measured there, whatever state.z is now
+        self.calibrate(at, self.evaluate(z, frames, with_grad=False, min_substeps=state.substeps, grid=grid), frames)
+
+    @property
+    def corrects_bias(self) -> bool:
+        return self.cfg.flow.bias_correction == "simulated"
+
+    def loss_of(self, view_flows: list[list[torch.Tensor]], errors: list[torch.Tensor] | None = None) -> torch.Tensor:
+        """The flow loss of each view's simulated flows (T of [H, W, 2]) against its target (or
+        against its observed flow less ``errors``, the estimator's error per view), the mean
+        over views."""
+        if errors is None:
+            targets = [view.target for view in self.views]
+        else:
+            targets = [view.observed[: len(error)] - error for view, error in zip(self.views, errors)]
+        return sum(
+            flow_loss(self.cfg, flows, target[: len(flows)], view.weight[: len(flows)])
+            for flows, target, view in zip(view_flows, targets, self.views)
+        ) / len(self.views)
+
+    def self_consistent_loss(self, result: Evaluation, frames: int) -> float:
+        """``result``'s loss against the observed flow less the estimator's error on ``result``'s
+        own simulation: the video's estimated flow against the simulation's, estimated alike
+        (with flow.bias_correction; else its loss)."""
+        if not self.corrects_bias:
+            return result.loss
+        return float(self.loss_of([result.flows, *result.more_flows], self.estimator_errors(result, frames)))
+
+    def rescored(self, result: Evaluation) -> Evaluation:
+        """``result`` with its loss against the current targets (after a calibration)."""
+        return dataclasses.replace(result, loss=float(self.loss_of([result.flows, *result.more_flows])))
+
+    def residuals(self, flows: list[torch.Tensor], more_flows: tuple[list[torch.Tensor], ...] = ()) -> torch.Tensor:
+        """[R] float64 flow residuals whose sum of squares is the l2 flow loss of ``flows``
+        (simulated [H, W, 2] per frame step; ``more_flows`` those of views 1..), weighted by
+        mask x confidence like the loss."""
+        parts = []
+        for view_flows, view in zip([flows, *more_flows], self.views):
+            weight = view.weight[: len(view_flows)]  # [T, H, W]
+            root = (weight / weight.sum() / len(self.views)).sqrt()[..., None]
+            target = view.target
+            parts += [((f.double() - target[t]) * root[t])[weight[t] > 0].reshape(-1) for t, f in enumerate(view_flows)]
+        return torch.cat(parts)
+
+    def jacobian(
+        self, z: dict[str, float], frames: int, min_substeps: int, variables: tuple[str, ...], grid: int
+    ) -> tuple[Evaluation, torch.Tensor]:
+        """The evaluation at z on the grid of ``grid`` nodes and the Jacobian [R, P] of its
+        residuals with respect to ``variables`` by backward differences of LM_STEP (softer
+        neighbours need no more substeps than z, so every run shares z's time step); the last
+        two are cached."""
+        key = (tuple(sorted(z.items())), frames, variables, grid, min_substeps)
+        if key in self._lm_cache:
+            self._lm_cache[key] = self._lm_cache.pop(key)  # the most recent: kept by the next miss
+            return self._lm_cache[key]
+        base = self.evaluate(z, frames, with_grad=False, min_substeps=min_substeps, grid=grid)
+        r0 = self.residuals(base.flows, base.more_flows)
+        columns = []
+        for name in variables:
+            nearby = self.evaluate(
+                {**z, name: z[name] - LM_STEP}, frames, with_grad=False, min_substeps=base.substeps, grid=grid
+            )
+            columns.append((r0 - self.residuals(nearby.flows, nearby.more_flows)) / LM_STEP)
+        J = torch.stack(columns, 1)
+        # kept under the substeps the run used: a revisit asks for those (a retried run restarts
+        # from frame 0 at the raised count, so it equals a run asked for that count)
+        used = (*key[:4], base.substeps)
+        self._lm_cache = {**dict(list(self._lm_cache.items())[-1:]), used: (base, J)}
+        return base, J
+
+    def endpoint_error(self, flows: list[torch.Tensor], more_flows: tuple[list[torch.Tensor], ...] = ()) -> float:
+        """Mean flow endpoint error (px) of simulated flows [H, W, 2] per frame step against
+        the observed flow, inside the loss mask (``more_flows``: views 1..; the mean over views)."""
+        from clflow.flow.metrics import endpoint_error
+
+        return float(
+            np.mean(
+                [
+                    np.mean(
+                        [
+                            endpoint_error(f.numpy(), view.observed[t].numpy(), view.mask.numpy())
+                            for t, f in enumerate(view_flows)
+                        ]
+                    )
+                    for view_flows, view in zip([flows, *more_flows], self.views)
+                ]
+            )
+        )

@@ -1,0 +1,184 @@
+"""The results of an optimisation: params.json, metrics.json, history.json, loss.png and a
+comparison video per guidance view."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+
+import numpy as np
+
+from clflow.errors import ClflowError
+from clflow.fileio import atomic_write_text
+from clflow.pipeline.fit.diagnostics import PROFILE_RISE
+from clflow.pipeline.fit.state import OptimizerState
+from clflow.pipeline.forward import SimulationResult, material_values, render_frames
+from clflow.pipeline.plots import write_history_plot
+from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig
+
+log = logging.getLogger(__name__)
+
+
+def comparison_video(view: int) -> str:
+    """The results' comparison video of guidance view ``view`` (0: the config's camera)."""
+    return "comparison.mp4" if view == 0 else f"comparison_view{view}.mp4"
+
+
+def parameter_unit(cfg: SceneConfig, name: str) -> str:
+    """SI unit of an optimised variable (of a config with a concrete material)."""
+    from clflow.materials import DENSITY, get_material
+
+    if name in VELOCITY_COMPONENTS:
+        return "m/s"
+    return DENSITY.unit if name == "density" else get_material(cfg.material.type).param(name).unit
+
+
+class Results:
+    """The results folder of a finished optimisation (needs everything above)."""
+
+    def write_results(self, state: OptimizerState) -> dict:
+        """params.json, metrics.json, history.json (search.json), loss.png and a comparison
+        video per guidance view in output/; returns the metrics."""
+        out = self.cfg.output
+        result = self.final_evaluation(state)
+        final = self.values(state.z)
+        params, density = material_values(self.cfg, {n: final[n] for n in self.params})
+        metrics = self.result_metrics(state, result)
+        record = {
+            "material": self.cfg.material.type,
+            "parameters": params,
+            "density": density,
+            "velocity": list(self.velocity(state.z)),
+            "optimized": final,
+            "units": {n: parameter_unit(self.cfg, n) for n in final},
+            # the substeps per frame the final evaluation needed (after any CFL retry): a
+            # re-simulation of this result (clflow simulate --params-from) takes at least these
+            "substeps": result.substeps,
+            "fps": self.cfg.simulation.fps,
+        }
+        atomic_write_text(out / "params.json", json.dumps(record, indent=2))
+        atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2))
+        atomic_write_text(out / "history.json", json.dumps(state.history, indent=1))
+        if state.search:
+            atomic_write_text(out / "search.json", json.dumps(state.search, indent=1))
+        write_history_plot(out / "loss.png", state.history, self.cfg.ground_truth)
+        self.write_comparison_videos(result, params, density)
+        return metrics
+
+    def final_evaluation(self, state: OptimizerState):
+        """The evaluation (with its Jacobian's base for the identifiability check) at the final
+        parameters, or at the last accepted ones when those fail (``state`` changes in place and
+        is saved); scored against the estimator's error there when the bias is corrected."""
+        try:
+            result, _ = self.jacobian(state.z, self.frames, state.substeps, self.main_variables, self.model_grid)
+        except (FloatingPointError, ClflowError) as exc:
+            if not state.history:
+                raise
+            good = state.history[-1]["z"]
+            log.warning("the final parameters fail (%s): the results are those of the last good ones", exc)
+            state.rollbacks.append(
+                {
+                    "iteration": state.iteration,
+                    "phase": "final",
+                    "reason": str(exc),
+                    "params": self.values(state.z),
+                    "back_to": self.values(good),
+                }
+            )
+            state.z = dict(good)
+            self.save_state(state)
+            result, _ = self.jacobian(state.z, self.frames, state.substeps, self.main_variables, self.model_grid)
+        if self.corrects_bias:
+            state.calibrated_at = self.calibrate(state, result, self.frames).calibrated_at
+            self.save_state(state)
+            result = self.rescored(result)
+        return result
+
+    def result_metrics(self, state: OptimizerState, result) -> dict:
+        """metrics.json: the loss and end-point error at the final parameters, the iterations,
+        the rollbacks, the guidance checks, the identifiability (its warnings logged) and the
+        relative error against the config's ground truth when it has one."""
+        final = self.values(state.z)
+        metrics = {
+            "flow_loss": result.loss,
+            "epe_px": self.endpoint_error(result.flows, result.more_flows),
+            "iterations": len(state.history),
+            "seconds_per_iteration": float(np.mean([h["seconds"] for h in state.history])) if state.history else 0.0,
+        }
+        metrics["rollbacks"] = state.rollbacks  # every rejected iteration: its reason and parameters
+        if self.guidance:
+            metrics["guidance_checks"] = [check.record() for check in self.guidance]
+        if self.guidance_warnings:  # forced past a failed guidance check (--force-video)
+            metrics["warnings"] = list(self.guidance_warnings)
+        metrics["identifiability"] = self.identifiability(state.z, state.substeps)
+        self.warn_identifiability(metrics["identifiability"])
+        if self.hypotheses:
+            metrics["material_hypotheses"] = self.hypotheses
+        truth = self.cfg.ground_truth
+        if truth:
+            metrics["relative_error"] = {n: abs(final[n] - truth[n]) / abs(truth[n]) for n in self.params if n in truth}
+            if VELOCITY_COMPONENTS[0] in final and VELOCITY_COMPONENTS[0] in truth:
+                true_velocity = [truth[n] for n in VELOCITY_COMPONENTS]
+                metrics["velocity_error_m_s"] = math.dist(self.velocity(state.z), true_velocity)  # |v - v_true|
+                if any(true_velocity):
+                    metrics["relative_error"][VELOCITY] = metrics["velocity_error_m_s"] / math.hypot(*true_velocity)
+        return metrics
+
+    def warn_identifiability(self, identifiability: dict) -> None:
+        """A warning per parameter the video constrains weakly, does not resolve, or that
+        depends on the grid, and per pair that trades off (Diagnostics.identifiability)."""
+        for name in identifiability["weakly_constrained"]:
+            log.warning(
+                "%s is weakly constrained by the video: standard error %.2g in the optimiser's units (a "
+                "lower bound); its value is uncertain",
+                name,
+                identifiability["std_z"][name],
+            )
+        for name in identifiability["unresolved"]:
+            values = identifiability["profile"][name]["values"]
+            log.warning(
+                "%s is not resolved by the video from %.3g to %.3g (SI): moved alone there, the loss changes by "
+                "less than %d %%",
+                name,
+                min(values),
+                max(values),
+                round(100 * PROFILE_RISE),
+            )
+        coarse_grid = identifiability["grids"][0]
+        for name in identifiability["grid_sensitive"]:
+            log.warning(
+                "%s depends on the grid: on %d nodes instead of %d its best fit moves by %+.2g in the "
+                "optimiser's units; its value carries a discretisation error of about that size",
+                name,
+                coarse_grid,
+                self.model_grid,
+                identifiability["grid_shift_z"][name],
+            )
+        for a, b, rho in identifiability["trade_offs"]:
+            log.warning("%s and %s trade off (correlation %.3f): the video fixes a combination of them", a, b, rho)
+
+    def write_comparison_videos(self, result, params: dict, density: float) -> None:
+        """Per guidance view, side by side: guidance | guidance flow | simulated flow | error,
+        and the simulated frames from that view (comparison.mp4, comparison_view1.mp4, ...)."""
+        from clflow.flow.visualize import comparison_panel
+        from clflow.media import write_video
+
+        traj = result.trajectory
+        simulated = SimulationResult(self.prepared, params, density, traj.x.detach(), traj.F.detach())
+        for k, (view, view_flows) in enumerate(zip(self.views, [result.flows, *result.more_flows])):
+            sim_frames = render_frames(simulated, camera=view.camera)
+            max_flow = max(float(view.observed.norm(dim=-1).max()), 1e-6)
+            panels = [
+                np.concatenate(
+                    [
+                        comparison_panel(
+                            view.video_frames[t], view.observed[t].numpy(), view_flows[t].numpy(), max_flow
+                        ),
+                        sim_frames[t],
+                    ],
+                    1,
+                )
+                for t in range(self.frames)
+            ]
+            write_video(self.cfg.output / comparison_video(k), np.stack(panels), self.cfg.simulation.fps)

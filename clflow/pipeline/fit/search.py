@@ -1,0 +1,328 @@
+"""The global search of an optimisation and the polish of its best starts."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable
+
+import torch
+
+from clflow.errors import ClflowError, InputError
+from clflow.pipeline.fit.state import LM_DAMPING, OptimizerState, config_digests
+
+if TYPE_CHECKING:
+    from clflow.pipeline.fit.driver import Optimization
+
+log = logging.getLogger(__name__)
+
+
+def _quiet(row: dict) -> None:
+    """No progress shown."""
+
+
+def serial_starts(
+    opt: Optimization, begin: OptimizerState, starts, resume: bool = False, budget: int | None = None
+) -> list[dict]:
+    """Polish each of ``starts`` (indices into begin.starts) one after another in this process
+    (``budget``: at most this many iterations in all); records of Optimization.polish."""
+    records = []
+    for k in starts:
+        records.append(opt.polish(begin, k, resume=resume, budget=budget))
+        if budget is not None:
+            budget -= records[-1]["iterations_here"]
+    return records
+
+
+def _polish_task(opt, begin, start: int, resume: bool) -> dict:
+    return opt.polish(begin, start, resume=resume)
+
+
+def starts_on_ray(**ray_options) -> Callable:
+    """An Optimization.map_starts (``clflow optimize --parallel``): each search start's polish a
+    Ray task (clflow.parallel.map_on_ray, ``ray_options`` its keywords), its rows shown as it finishes."""
+
+    def map_starts(opt, begin, starts, resume: bool = False, budget: int | None = None) -> list[dict]:
+        starts = list(starts)
+
+        def finished(index: int, record: dict) -> None:
+            for row in record["state"]["history"][len(begin.history) :]:
+                opt.progress(row)
+
+        from clflow.parallel import map_on_ray
+
+        return map_on_ray(_polish_task, [(opt, begin, k, resume) for k in starts], done=finished, **ray_options)
+
+    return map_starts
+
+
+class Search:
+    """The global phase (optimize.search): samples of a box around the start, a second round
+    around the best, each of the best polished by a few Levenberg-Marquardt iterations, the
+    best polish kept on the main grid (needs evaluate, lm_step, jacobian, save_state)."""
+
+    def search_box(self, z0: dict[str, float]) -> dict[str, tuple[float, float]]:
+        """(lower, upper) in z of each parameter's search box: ``optimize.bounds`` when
+        given; else a log parameter's start times 10^(+-decades) within its typical range,
+        and a bounded or linear one's typical range; each widened to hold the start."""
+        opt = self.cfg.optimize
+        box = {}
+        for name, p in self.params.items():
+            if name in opt.bounds:
+                lo, hi = (float(p.encode(v)) for v in opt.bounds[name])
+                if not lo <= z0[name] <= hi:
+                    raise InputError(
+                        f"{self.cfg.source}: the start of {name} lies outside optimize.bounds.{name} "
+                        f"{list(opt.bounds[name])}"
+                    )
+            else:
+                lo, hi = self.typical_box(name)
+                if p.param.scale == "log":
+                    lo, hi = max(lo, z0[name] - opt.search.decades), min(hi, z0[name] + opt.search.decades)
+                lo, hi = min(lo, z0[name]), max(hi, z0[name])
+            box[name] = (lo, hi)
+        return box
+
+    def search_points(self, z0: dict[str, float]) -> list[dict[str, float]]:
+        """The global phase's design: the start, then a scrambled Sobol sequence (seed 0,
+        reproducible) over the search box."""
+        box = self.search_box(z0)
+        names = list(self.params)
+        count = self.cfg.optimize.search.samples
+        unit = torch.quasirandom.SobolEngine(len(names), scramble=True, seed=0).draw(
+            max(0, count - 1), dtype=torch.float64
+        )
+        points = [dict(z0)]
+        for row in unit.tolist():
+            points.append({**z0, **{n: box[n][0] + u * (box[n][1] - box[n][0]) for n, u in zip(names, row)}})
+        return points
+
+    def neighbourhoods(
+        self, rows: list[dict], z0: dict[str, float]
+    ) -> list[tuple[int, dict[str, tuple[float, float]]]]:
+        """The second round's regions: (index into ``rows``, box in z) around each of the best
+        ``search.starts`` first-round samples (``rows``) that lie outside each other's box,
+        best first. A box spans one first-round spacing per parameter (the search box's width
+        / samples^(1/parameters)) centred on its sample, cut to the search box."""
+        box, names = self.search_box(z0), list(self.params)
+        spacing = {n: (box[n][1] - box[n][0]) * len(rows) ** (-1.0 / len(names)) for n in names}
+        ranked = sorted((i for i, r in enumerate(rows) if r["loss"] is not None), key=lambda i: rows[i]["loss"])
+        centres: list[int] = []
+        for i in ranked:
+            if len(centres) == self.cfg.optimize.search.starts:
+                break
+            z = rows[i]["z"]
+            if all(max(abs(z[n] - rows[c]["z"][n]) / spacing[n] for n in names) > 0.5 for c in centres):
+                centres.append(i)
+        return [
+            (
+                i,
+                {
+                    n: (
+                        max(box[n][0], rows[i]["z"][n] - spacing[n] / 2),
+                        min(box[n][1], rows[i]["z"][n] + spacing[n] / 2),
+                    )
+                    for n in names
+                },
+            )
+            for i in centres
+        ]
+
+    def refinement_points(
+        self, regions: list[tuple[int, dict[str, tuple[float, float]]]], z0: dict[str, float]
+    ) -> list[tuple[int, dict[str, float]]]:
+        """The second round's design: (centre's index, z) for ``search.refine`` samples shared
+        among the :meth:`neighbourhoods` ``regions`` (the first refine % regions one more),
+        a scrambled Sobol sequence (seed 1) in each."""
+        if not regions:
+            return []
+        names, total = list(self.params), self.cfg.optimize.search.refine
+        counts = [total // len(regions) + (k < total % len(regions)) for k in range(len(regions))]
+        unit = torch.quasirandom.SobolEngine(len(names), scramble=True, seed=1).draw(max(counts), dtype=torch.float64)
+        return [
+            (i, {**z0, **{n: region[n][0] + u * (region[n][1] - region[n][0]) for n, u in zip(names, row)}})
+            for (i, region), count in zip(regions, counts)
+            for row in unit[:count].tolist()
+        ]
+
+    def global_search(self, state: OptimizerState) -> OptimizerState:
+        """Forward-only losses at the search design, then (``search.refine``) at a second
+        round around the best distinct samples (resuming after the samples already in
+        ``state.search``); returns the state with z at the best sample, ``searched`` and the
+        starts: the best sample of each neighbourhood with a second round, else the best
+        ``search.starts`` samples. With ``flow.bias_correction``, each sample's loss is
+        against the observed flow less the estimator's error on that sample's own simulation
+        (the video's estimated flow against the simulation's, estimated alike)."""
+        settings = self.cfg.optimize.search
+        frames = min(self.frames, settings.frames or self.frames)
+        rows = list(state.search)
+
+        def sample(z: dict[str, float], around: int | None = None) -> None:
+            nonlocal state
+            start = time.perf_counter()
+            try:
+                loss = self.self_consistent_loss(
+                    self.evaluate(z, frames, with_grad=False, grid=self.search_grid), frames
+                )
+            except (FloatingPointError, ClflowError) as exc:
+                log.info("search sample %s failed: %s", self.values(z), exc)
+                loss = None
+            neighbourhood = {} if around is None else {"around": around}
+            rows.append(
+                {"z": z, "params": self.values(z), "loss": loss, "frames": frames, **neighbourhood}
+                | {"grid": self.search_grid, "seconds": time.perf_counter() - start}
+            )
+            state = dataclasses.replace(state, search=list(rows))
+            self.save_state(state)
+            self.progress({**rows[-1], "phase": "search", "iteration": len(rows) - 1})
+
+        design = self.search_points(state.z)
+        for z in design[len(rows) :]:
+            sample(z)
+        first = rows[: len(design)]
+        if not any(r["loss"] is not None for r in first):
+            raise ClflowError(f"the global search found no parameters whose simulation ran ({len(rows)} samples)")
+        regions = self.neighbourhoods(first, state.z) if settings.refine else []
+        second = self.refinement_points(regions, state.z)
+        for around, z in second[len(rows) - len(design) :]:
+            sample(z, around)
+        finite = [r for r in rows if r["loss"] is not None]
+        ranked = sorted(finite, key=lambda r: r["loss"])
+        best = ranked[0]
+        log.info("global search: best of %d samples %s (loss %.4g)", len(rows), best["params"], best["loss"])
+        if regions:  # each neighbourhood's best, its centre included
+            groups = [[rows[i]] + [r for r in rows[len(design) :] if r.get("around") == i] for i, _ in regions]
+            picks = sorted(
+                (min(g, key=lambda r: r["loss"] if r["loss"] is not None else math.inf) for g in groups),
+                key=lambda r: r["loss"],
+            )
+        else:
+            picks = ranked[: settings.starts]
+        starts = [dict(r["z"]) for r in picks] if settings.starts > 1 else []
+        state = dataclasses.replace(state, z=dict(best["z"]), searched=True, starts=starts)
+        self.save_state(state)
+        return state
+
+    def polish(self, begin: OptimizerState, start: int, resume: bool = False, budget: int | None = None) -> dict:
+        """Levenberg-Marquardt from search start ``start`` (``begin``: the state the search
+        ended in) for ``search.start_iterations`` iterations or until it converges, as if no
+        other start ran: its own time step (substeps from 1; the first start keeps begin's),
+        calibration, rollbacks and horizon schedule. Checkpointed in ``output/starts/<start>/``
+        (``resume`` goes on from there; ``budget``: at most this many iterations now).
+        Returns {"state": its end state (asdict), "errors": each view's estimator error
+        [T, H, W, 2] at its end (None without flow.bias_correction), "finished",
+        "iterations_here"}."""
+        folder = self.cfg.output / "starts" / str(start)
+        z0 = dict(begin.starts[start])
+        main_file, self.estimator_error_file = self.estimator_error_file, folder / "estimator_error.npz"
+        try:
+            self._lm_cache = {}
+            self.set_estimator_errors(None)  # nothing measured yet (a saved polish restores its own)
+            state = self.load_polish(folder / "checkpoint.json", z0) if resume else None
+            if state is None:
+                state = dataclasses.replace(
+                    begin,
+                    z=z0,
+                    substeps=begin.substeps if start == 0 else 1,
+                    best=None,
+                    damping=LM_DAMPING,
+                    converged=False,
+                    calibrated_at=None,
+                    history=list(begin.history),
+                    rollbacks=list(begin.rollbacks),
+                )
+            failures, done = 0, 0
+            last = state.history[-1] if state.history else {}
+            finished = last.get("start") == start and bool(last.get("start_done"))
+            while not finished and (budget is None or done < budget):
+                state, failures, row = self.step(state, failures, start)
+                if row is None:
+                    continue
+                finished, done = bool(row.get("start_done")), done + 1
+                self.save_state(state, folder / "checkpoint.json", start=z0)
+                self.progress(row)
+            errors = None if state.calibrated_at is None else [v.estimator_error.numpy() for v in self.views]
+        finally:
+            self.estimator_error_file = main_file
+        return {"state": asdict(state), "errors": errors, "finished": finished, "iterations_here": done}
+
+    def load_polish(self, checkpoint: Path, z0: dict[str, float]) -> OptimizerState | None:
+        """A start's polish as saved in ``checkpoint`` (its calibration restored), None when
+        there is none of this config and start point."""
+        try:
+            data = json.loads(checkpoint.read_text())
+            state = OptimizerState(**data["state"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+        ours = (config_digests(self.cfg), config_digests(self.cfg, by_path=True))
+        if data.get("start") != z0 or data.get("config_digests") not in ours:
+            return None
+        if state.calibrated_at is not None:
+            self.restore_calibration(state)
+        return state
+
+    def keep_best_start(self, begin: OptimizerState, records: list[dict]) -> OptimizerState:
+        """The state after every start's polish (``records`` of :meth:`polish`, in start
+        order, from ``begin``): their rows and rollbacks one after another, iterations
+        numbered on; each start's best point in ``polished``; z at the best of them, with its
+        substeps and calibration, and Levenberg-Marquardt's memory reset. With a coarser
+        search grid the best is the one whose loss is least on the main phase's grid (each
+        against the estimator's error at its own point), where the result comes from."""
+        history, rollbacks, polished, ends = list(begin.history), list(begin.rollbacks), [], []
+        iteration = begin.iteration
+        for record in records:
+            end = OptimizerState(**record["state"])
+            shift = iteration - begin.iteration
+            history += [{**r, "iteration": r["iteration"] + shift} for r in end.history[len(begin.history) :]]
+            rollbacks += [{**r, "iteration": r["iteration"] + shift} for r in end.rollbacks[len(begin.rollbacks) :]]
+            iteration += end.iteration - begin.iteration
+            polished.append(
+                {
+                    "z": dict(end.best["z"]),
+                    "loss": end.best["loss"],
+                    "params": self.values(end.best["z"]),
+                    "substeps": end.substeps,
+                }
+            )
+            ends.append(end)
+        ranking = "loss"
+        if self.search_grid != self.model_grid and len(polished) > 1:
+            ranking = "model_loss"
+            for record in polished:
+                try:
+                    result = self.evaluate(record["z"], self.frames, with_grad=False, min_substeps=record["substeps"])
+                    record["model_loss"] = self.self_consistent_loss(result, self.frames)
+                except (FloatingPointError, ClflowError) as exc:
+                    log.info("start %s fails on the main phase's grid: %s", record["params"], exc)
+                    record["model_loss"] = math.inf
+        index = min(range(len(polished)), key=lambda i: polished[i][ranking])
+        kept = polished[index]
+        log.info(
+            "kept start %d of %d: %s (%s %.4g; the others %s)",
+            index,
+            len(polished),
+            kept["params"],
+            "loss on the main phase's grid" if ranking == "model_loss" else "loss",
+            kept[ranking],
+            ", ".join(f"{r[ranking]:.4g}" for r in polished if r is not kept),
+        )
+        state = dataclasses.replace(
+            begin,
+            iteration=iteration,
+            history=history,
+            rollbacks=rollbacks,
+            polished=polished,
+            z=dict(kept["z"]),
+            substeps=kept["substeps"],
+            best=None,
+            damping=LM_DAMPING,
+            converged=False,
+            calibrated_at=ends[index].calibrated_at,
+        )
+        self.restore_estimator_errors(state.calibrated_at, records[index]["errors"])
+        return state

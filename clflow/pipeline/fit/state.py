@@ -1,0 +1,170 @@
+"""The state of an optimisation: what it holds between iterations and its checkpoint; what one
+evaluation of the loss returns; the digests that tie a checkpoint to its config."""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+
+from clflow.errors import ClflowError, InputError
+from clflow.fileio import atomic_write_text
+from clflow.pipeline.forward import material_values
+from clflow.scene.config import VELOCITY_COMPONENTS, SceneConfig
+
+if TYPE_CHECKING:
+    from clflow.mpm.autograd import Frames
+
+log = logging.getLogger(__name__)
+
+LM_DAMPING = 1e-2  # initial damping (relative to the diagonal of J^T J)
+
+
+@dataclass
+class OptimizerState:
+    """Everything needed to continue an optimisation exactly (saved as JSON, exact floats)."""
+
+    iteration: int
+    z: dict[str, float]
+    m: dict[str, float]
+    v: dict[str, float]
+    step_scale: float = 1.0
+    history: list[dict] = field(default_factory=list)
+    momentum_steps: int = 0  # gradients in m since its last restart (for Adam's bias correction)
+    # substeps per frame at least (automatic substeps) of the next run: Adam's never fewer than
+    # an earlier iteration needed, so the loss stays one smooth function of the parameters
+    # instead of jumping where a NaN/CFL retry would change dt; Levenberg-Marquardt's those
+    # of its best point, from which each step is taken
+    substeps: int = 1
+    # the global phase's samples so far ({"z", "params", "loss", "seconds"}; loss None where
+    # the simulation failed) and whether it is over (its best point is then z)
+    search: list[dict] = field(default_factory=list)
+    searched: bool = False
+    # Levenberg-Marquardt: damping, and the best point so far (its z, loss and horizon)
+    damping: float = LM_DAMPING
+    best: dict | None = None
+    # every iteration that failed or was unstable and was rolled back: {"iteration", "phase",
+    # "reason", "params" (the rejected point), "back_to" (the last good parameters)}
+    rollbacks: list[dict] = field(default_factory=list)
+    # flow.bias_correction: the point whose simulation measured the flow estimator's error
+    # (its z, frames and grid nodes; the error itself is saved beside the checkpoint), None before any
+    calibrated_at: dict | None = None
+    converged: bool = False  # Levenberg-Marquardt: no step from the best point promises progress
+    # optimize.search.starts: the best search samples' z, each polished by a few Levenberg-Marquardt
+    # iterations in turn, and per polished start its best point {"z", "loss", "params"}, the
+    # substeps its polish ended with ("substeps": the best point's, or 1 after a step from it)
+    # and, with a coarser search grid, its "model_loss" on the main phase's grid
+    starts: list[dict] = field(default_factory=list)
+    polished: list[dict] = field(default_factory=list)
+
+
+class UnstableRun(ClflowError):
+    """A simulation finished but is not to be trusted (CFL broken, particles clamped at the
+    grid's edge): the optimiser rejects it like a NaN."""
+
+
+@dataclass
+class Evaluation:
+    """The loss at one point: value, dloss/dz per parameter, simulated flows [H, W, 2] per
+    frame step, the simulation (x [T+1, M, 3], F [T+1, M, 3, 3], substeps per frame) and the
+    grid it ran on (nodes along the domain's longest side)."""
+
+    loss: float
+    grads: dict[str, float]
+    flows: list[torch.Tensor]
+    trajectory: Frames
+    grid: int
+    more_flows: tuple[list[torch.Tensor], ...] = ()  # the flows seen by views 1.. (several guidance views)
+
+    @property
+    def substeps(self) -> int:
+        return self.trajectory.substeps
+
+
+def _by_content(value):
+    """``value`` (a config field as asdict gives it) with every path replaced by the digest
+    of what it holds (clflow.fileio.content_digest)."""
+    from clflow.fileio import content_digest
+
+    if isinstance(value, Path):
+        return content_digest(value)
+    if isinstance(value, dict):
+        return {k: _by_content(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_by_content(v) for v in value]
+    return value
+
+
+def config_digests(cfg: SceneConfig, by_path: bool = False) -> dict[str, str]:
+    """A SHA-256 of each top-level field of the resolved config (canonical JSON; files and
+    folders by their contents, so a moved run resumes; ``by_path``: by their paths, as
+    checkpoints before that were saved), except ``output`` and ``optimize.iterations``
+    (``--resume --iterations N`` extends a run): what a resumed run must share with its
+    checkpoint."""
+    import hashlib
+
+    fields = asdict(cfg)
+    fields.pop("output", None)
+    fields["optimize"].pop("iterations", None)
+    fields["simulation"].pop("max_substeps", None)  # a run stopped by the limit may resume with a higher one
+    if not fields["more_views"]:  # one view: the digests of checkpoints from before several views
+        fields.pop("more_views")
+    if fields.get("generate") is None:  # no generated video: the digests of checkpoints from before it
+        fields.pop("generate", None)
+    if not by_path:
+        fields = _by_content(fields)
+    return {
+        name: hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()[:16]
+        for name, value in fields.items()
+    }
+
+
+class Checkpoints:
+    """The optimiser's state: the initial one, and the checkpoint it is saved in after every iteration
+    and read from on --resume (needs cfg, params, variables, checkpoint, restore_calibration)."""
+
+    def initial_state(self) -> OptimizerState:
+        values, density = material_values(self.cfg)
+        values["density"] = density
+        z = {n: float(p.encode(values[n])) for n, p in self.params.items()}
+        if VELOCITY_COMPONENTS[0] in self.variables:
+            z.update(zip(VELOCITY_COMPONENTS, self.cfg.velocity))
+        return OptimizerState(0, z, {n: 0.0 for n in z}, {n: 0.0 for n in z})
+
+    def load_state(self) -> OptimizerState:
+        try:
+            data = json.loads(self.checkpoint.read_text())
+            state = OptimizerState(**data["state"])
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise InputError(f"cannot resume from {self.checkpoint}: {exc}") from None
+        if set(state.z) != set(self.variables):
+            raise InputError(f"{self.checkpoint} optimises {sorted(state.z)}, the config {sorted(self.variables)}")
+        saved = data.get("config_digests")  # absent in checkpoints of older versions
+        digests = config_digests(self.cfg)
+        if isinstance(saved, dict) and saved != digests and saved != config_digests(self.cfg, by_path=True):
+            changed = sorted(k for k in saved.keys() | digests.keys() if saved.get(k) != digests.get(k))
+            raise InputError(
+                f"cannot resume from {self.checkpoint}: the config changed since it was saved "
+                f"({', '.join(changed)}); give another -o/--out, or delete the checkpoint to start over"
+            )
+        if state.calibrated_at is not None:
+            self.restore_calibration(state)
+        return state
+
+    def save_state(self, state: OptimizerState, path: Path | None = None, **extra) -> None:
+        """``state`` into the checkpoint (or ``path``, with ``extra`` entries)."""
+        atomic_write_text(
+            path or self.checkpoint,
+            json.dumps(
+                {
+                    "config": str(self.cfg.source),
+                    "state": asdict(state),
+                    "config_digests": config_digests(self.cfg),
+                    **extra,
+                }
+            ),
+        )

@@ -1,0 +1,234 @@
+"""Steps of an optimisation: Levenberg-Marquardt with a trust region, Adam, the boxes they stay
+in, the horizon curriculum and the learning-rate schedule."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+import math
+
+import torch
+
+from clflow.mpm.parameterization import clip_factor
+from clflow.pipeline.fit.state import Evaluation, OptimizerState
+from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig
+
+log = logging.getLogger(__name__)
+
+BETAS = (0.9, 0.999)
+ADAM_EPS = 1e-8
+# per iteration, in z units: a decade per 10 steps for log parameters, a fortieth of the
+# typical range (nu 0.012, phi 1.1 deg) near its middle for bounded ones
+DEFAULT_RATE = 0.1
+DEFAULT_VELOCITY_RATE = 0.1  # m/s per iteration for each velocity component
+CLIP_NORM = 10.0  # gradient clipping in z space
+# Levenberg-Marquardt (optimize.method: levenberg_marquardt)
+LM_MAX_STEP = 1.0  # longest step in z (a decade of a log-scale parameter)
+LM_TOLERANCE = 1e-3  # converged when an accepted step moves every variable less (0.23 % of a log-scale one)
+LM_GAIN_TOLERANCE = 1e-3  # ... or when the Gauss-Newton model promises less than this fraction of the loss
+
+
+def phase_of(opt, iteration: int) -> tuple[str, int, int]:
+    """(phase, iteration within it, its iterations) of overall ``iteration``: "velocity"
+    (``optimize.estimate_velocity``) comes first, then "main"."""
+    if iteration < opt.estimate_velocity_iterations:
+        return "velocity", iteration, opt.estimate_velocity_iterations
+    return "main", iteration - opt.estimate_velocity_iterations, opt.iterations
+
+
+def horizon(cfg: SceneConfig, iteration: int) -> int:
+    """Frames in the loss at ``iteration`` of the main phase (the horizon curriculum: first
+    frames first)."""
+    total, opt = cfg.simulation.frames, cfg.optimize
+    if opt.horizon_start <= 0:
+        return total
+    return min(total, opt.horizon_start + opt.horizon_step * iteration)
+
+
+def rate_schedule(opt, iteration: int, iterations: int | None = None) -> float:
+    """Factor on the learning rates at ``iteration`` of a phase of ``iterations`` (default
+    ``optimize.iterations``): cosine from 1 down to ``optimize.final_rate`` at its last
+    iteration (large steps far from the optimum, small ones to settle in it)."""
+    progress = iteration / max(1, (opt.iterations if iterations is None else iterations) - 1)
+    return opt.final_rate + (1.0 - opt.final_rate) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+
+def learning_rate(cfg: SceneConfig, name: str) -> float:
+    """Learning rate of the z variable ``name`` per iteration (before the schedule): the
+    config's, else DEFAULT_VELOCITY_RATE (m/s) for a velocity component and DEFAULT_RATE."""
+    rates = cfg.optimize.learning_rates
+    if name in VELOCITY_COMPONENTS:
+        return rates.get(VELOCITY, DEFAULT_VELOCITY_RATE)
+    return rates.get(name, DEFAULT_RATE)
+
+
+class Steps:
+    """One step from a point: Levenberg-Marquardt in a trust region (Moré), cut to the local
+    phase's box, or Adam (needs cfg, params, variables, jacobian, save_state)."""
+
+    def lm_step(
+        self,
+        state: OptimizerState,
+        base: Evaluation,
+        J: torch.Tensor,
+        frames: int,
+        variables: tuple[str, ...],
+        calibrate: bool = False,
+    ) -> OptimizerState:
+        """Accept or reject the point just evaluated (its loss against the best so far at this
+        horizon), then one damped Gauss-Newton step from the best point:
+        (J^T J + damping diag(J^T J)) dz = -J^T r, held at most LM_MAX_STEP x step_scale long
+        by :meth:`trust_region_step` (a rejection quarters the radius, an accepted point
+        doubles it up to 1; Marquardt's damping alone hardly shortens a step along a direction
+        the loss barely sees). With ``calibrate``, an accepted point first measures the flow
+        estimator's error (the residuals' Jacobian does not depend on it)."""
+        best = state.best
+        moved = best is not None and state.z != best["z"]
+        # only a new point is judged against the best one: back at the best point (after a
+        # rejection) its loss is taken as it comes out, never rejected against itself (a
+        # checkpoint from before best recorded its substeps may re-run it at another step)
+        comparable = moved and best["frames"] == frames
+
+        def reject(**more) -> OptimizerState:
+            # back to the best point with more damping and a radius of a quarter of the step
+            # just rejected (More's rule): a quarter of the radius alone, when the step lay far
+            # inside it, returns the same step (the trophy tried one 0.06 degree step 3 times)
+            taken = math.sqrt(sum((state.z[n] - best["z"][n]) ** 2 for n in variables))
+            return dataclasses.replace(
+                state,
+                iteration=state.iteration + 1,
+                z=dict(best["z"]),
+                damping=state.damping * 4.0,
+                step_scale=min(state.step_scale, taken / LM_MAX_STEP) / 4.0,
+                **more,
+            )
+
+        if comparable and base.loss > best["loss"]:  # uphill (the best point's J is cached)
+            return reject()
+        # a new best point earns less damping and a longer step; back at the best one after a
+        # rejection, the raised damping and shorter step stand (else it retries the same step)
+        damping = state.damping / 3.0 if moved else state.damping
+        step_scale = min(1.0, 2.0 * state.step_scale) if moved else state.step_scale
+        if calibrate:
+            before = state.calibrated_at, [view.estimator_error for view in self.views]
+            state = self.calibrate(state, base, frames)
+            base = self.rescored(base)
+            if comparable and base.loss > best["loss"]:
+                # downhill only against the best point's calibration; against its own (each
+                # point's loss against the estimator's error on its own simulation, as the
+                # search scores) it is worse: the step chased the estimator's error, reject it
+                log.info(
+                    "step to %s rejected: loss %.4g against the estimator's error there, %.4g at the best point",
+                    self.values(state.z),
+                    base.loss,
+                    best["loss"],
+                )
+                self.restore_estimator_errors(*before)
+                return reject(calibrated_at=before[0])
+        best = {"z": dict(state.z), "loss": base.loss, "frames": frames, "substeps": base.substeps}
+        r = self.residuals(base.flows, base.more_flows)
+        A, g = J.T @ J, J.T @ r
+        diagonal = torch.diag(torch.diag(A).clamp(min=1e-12 * float(torch.diag(A).max().clamp(min=1e-30))))
+        M = A + damping * diagonal
+        # the model's fall of the residuals' sum of squares along its own step: after a few
+        # rejections the trust region's step is short and promises little wherever it points
+        full = self.bounded_step(M, g, state.z, variables)
+        if -float(2 * g @ full + full @ A @ full) <= LM_GAIN_TOLERANCE * float(r @ r):
+            return dataclasses.replace(
+                state, iteration=state.iteration + 1, damping=damping, step_scale=step_scale, best=best, converged=True
+            )
+        step = self.trust_region_step(M, g, state.z, variables, LM_MAX_STEP * step_scale)
+        z = {**state.z, **{n: state.z[n] + float(d) for n, d in zip(variables, step)}}
+        return dataclasses.replace(
+            state, iteration=state.iteration + 1, z=z, damping=damping, step_scale=step_scale, best=best
+        )
+
+    @functools.cached_property
+    def _local_box(self) -> dict[str, tuple[float, float]]:
+        return self.search_box(self.initial_state().z) if self.cfg.optimize.search is not None else {}
+
+    def local_box(self) -> dict[str, tuple[float, float]]:
+        """(lower, upper) in z that the local phase stays in: the search's box (none without a search)."""
+        return self._local_box
+
+    def bounded_step(
+        self, M: torch.Tensor, g: torch.Tensor, z: dict[str, float], variables: tuple[str, ...]
+    ) -> torch.Tensor:
+        """The step [P] solving M step = -g, with a variable that sits on its box edge while the
+        step would push it out held there and the rest solved again without it (the clipped
+        step would otherwise promise what it cannot deliver, and rejected steps repeat)."""
+        box = self.local_box()
+        free = torch.ones(len(variables), dtype=torch.bool)
+        step = torch.zeros_like(g)
+        while bool(free.any()):
+            index = free.nonzero().flatten()
+            step = torch.zeros_like(g)
+            step[index] = -torch.linalg.solve(M[index][:, index], g[index])
+            held = torch.tensor(
+                [
+                    bool(free[i])
+                    and n in box
+                    and (z[n] <= box[n][0] and float(step[i]) < 0 or z[n] >= box[n][1] and float(step[i]) > 0)
+                    for i, n in enumerate(variables)
+                ]
+            )
+            if not bool(held.any()):
+                break
+            free &= ~held
+            step = torch.zeros_like(g)
+        return step
+
+    def trust_region_step(
+        self, M: torch.Tensor, g: torch.Tensor, z: dict[str, float], variables: tuple[str, ...], radius: float
+    ) -> torch.Tensor:
+        """The step of :meth:`bounded_step` for M + lam I, with the least lam >= 0 that keeps it
+        at most ``radius`` long (z units; the trust-region Levenberg-Marquardt of More 1978).
+        lam shortens a step most along the directions the loss sees least: scaling the whole
+        step down instead shrinks a well-determined component (the cream's yield stress) as
+        much as the poorly determined one (its viscosity) that made the step long. With a
+        variable held on its box's edge for some lam and not others the length need not fall
+        monotonically in lam: the step is then inside the radius but may be shorter."""
+        step = self.bounded_step(M, g, z, variables)
+        if float(step.norm()) <= radius:
+            return step
+        eye = torch.eye(len(variables), dtype=M.dtype)
+        hi = float(torch.diag(M).max()) or 1.0
+        lo = hi * 1e-12
+        for _ in range(60):  # the step shrinks as g / lam for a large lam
+            if float(self.bounded_step(M + hi * eye, g, z, variables).norm()) <= radius:
+                break
+            lo, hi = hi, hi * 10.0
+        for _ in range(50):  # bisection in log lam: the step's length falls as lam grows
+            mid = math.sqrt(lo * hi)
+            if float(self.bounded_step(M + mid * eye, g, z, variables).norm()) > radius:
+                lo = mid
+            else:
+                hi = mid
+        return self.bounded_step(M + hi * eye, g, z, variables)
+
+    def adam_step(self, state: OptimizerState, grads: dict[str, float]) -> OptimizerState:
+        """One Adam step in z, gradient clipped to CLIP_NORM, with adaptive restart
+        (O'Donoghue and Candes 2015): when the last step went uphill along the new gradient
+        (g . dz > 0), the momentum is dropped, so an overshoot turns back at once instead
+        of coasting on for several iterations."""
+        scale = clip_factor(math.sqrt(sum(g * g for g in grads.values())), CLIP_NORM)
+        z, m, v = dict(state.z), dict(state.m), dict(state.v)
+        k_m = state.momentum_steps + 1
+        if state.history:
+            last = state.history[-1]["z"]
+            if sum(grads[n] * (z[n] - last[n]) for n in grads) > 0:
+                m, k_m = {n: 0.0 for n in m}, 1
+        _, iteration, iterations = phase_of(self.cfg.optimize, state.iteration)
+        k = iteration + 1  # gradients in v since the phase began (for Adam's bias correction)
+        schedule = rate_schedule(self.cfg.optimize, iteration, iterations)
+        for n, g in grads.items():
+            g *= scale
+            m[n] = BETAS[0] * m[n] + (1 - BETAS[0]) * g
+            v[n] = BETAS[1] * v[n] + (1 - BETAS[1]) * g * g
+            m_hat, v_hat = m[n] / (1 - BETAS[0] ** k_m), v[n] / (1 - BETAS[1] ** k)
+            rate = learning_rate(self.cfg, n) * state.step_scale * schedule
+            z[n] -= rate * m_hat / (math.sqrt(v_hat) + ADAM_EPS)
+        return dataclasses.replace(
+            state, iteration=state.iteration + 1, z=z, m=m, v=v, history=list(state.history), momentum_steps=k_m
+        )
