@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 import yaml
 
-from clflow.scene import config as config_module
+from clflow.mpm.constants import COLLIDER_MODES
 from clflow.scene.config import load_config
+from clflow.scene.config import parse as config_parse
+from clflow.scene.config import settings as config_settings
 
 ROOT = Path(__file__).resolve().parents[2]
 DOC = (ROOT / "docs" / "scene_config.md").read_text()
@@ -114,17 +116,17 @@ def _section_keys(source: str) -> set[str]:
 
 
 def test_every_key_and_option_of_the_parser_is_documented():
-    source = Path(config_module.__file__).read_text()
+    source = Path(config_parse.__file__).read_text()
     keys = _section_keys(source)
     assert {"splats", "grid_resolution", "per_axis", "fov_y_deg", "result", "final_rate"} <= keys
     missing = sorted(k for k in keys if not re.search(rf"`[^`\n]*\b{k}\b[^`\n]*`|^\s*-?\s*{k}:", DOC, re.M))
     assert not missing, f"docs/scene_config.md does not mention the keys {missing}"
     options = [
-        *config_module.UP_AXES,
-        *config_module.COLLIDER_MODES,
-        *config_module.FLOW_METHODS,
-        *config_module.FLOW_LOSSES,
-        *(m for ms in config_module.MATERIAL_MODELS.values() for m in ms),
+        *config_settings.UP_AXES,
+        *COLLIDER_MODES,
+        *config_settings.FLOW_METHODS,
+        *config_settings.FLOW_LOSSES,
+        *(m for ms in config_settings.MATERIAL_MODELS.values() for m in ms),
         "auto",
         "all",
         "query",

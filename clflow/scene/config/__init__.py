@@ -1,0 +1,67 @@
+"""Scene configuration files (YAML or JSON) for `clflow optimize` and `clflow simulate CONFIG`.
+
+Every key is checked: unknown keys (typos), wrong types and out-of-range values raise an
+:class:`~clflow.errors.InputError` that names the file and the dotted key, e.g.
+``scene.yaml: simulation.frames: must be an integer >= 1, got -3``. Paths are relative to
+the config file. Lengths in the ``simulation``/``forces``/``boundaries`` sections are metres
+in the simulation frame (+y up), and so is ``object.velocity`` (m/s); ``object.select`` is in
+scene units of the splat file.
+
+A complete example with every default spelled out: ``docs/scene_config.md``.
+
+The package's modules: ``settings`` (the types, section by section), ``reader`` (a key's type
+and range checked, errors naming file and key), ``parse`` (a parsed config checked into a
+SceneConfig) and ``files`` (strict YAML/JSON, ``--set`` overrides, load_config).
+"""
+
+from clflow.scene.config.files import load_config
+from clflow.scene.config.parse import parse_config
+from clflow.scene.config.settings import (
+    DEFAULT_MAX_SUBSTEPS,
+    FLOW_LOSSES,
+    FLOW_METHODS,
+    MATERIAL_MODELS,
+    OPTIMIZERS,
+    UP_AXES,
+    VELOCITY,
+    VELOCITY_COMPONENTS,
+    CameraConfig,
+    Collider,
+    FillSettings,
+    FlowSettings,
+    ForceStage,
+    GenerateSettings,
+    GuidanceView,
+    MaterialConfig,
+    OptimizeSettings,
+    SceneConfig,
+    SearchSettings,
+    Selection,
+    SimulationSettings,
+)
+
+__all__ = [
+    "CameraConfig",
+    "Collider",
+    "DEFAULT_MAX_SUBSTEPS",
+    "FLOW_LOSSES",
+    "FLOW_METHODS",
+    "FillSettings",
+    "FlowSettings",
+    "ForceStage",
+    "GenerateSettings",
+    "GuidanceView",
+    "MATERIAL_MODELS",
+    "MaterialConfig",
+    "OPTIMIZERS",
+    "OptimizeSettings",
+    "SceneConfig",
+    "SearchSettings",
+    "Selection",
+    "SimulationSettings",
+    "UP_AXES",
+    "VELOCITY",
+    "VELOCITY_COMPONENTS",
+    "load_config",
+    "parse_config",
+]

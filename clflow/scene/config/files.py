@@ -1,0 +1,170 @@
+"""Config files: strict YAML and JSON (a key given twice refused, ``2e4`` a number), the
+CLI's ``--set`` overrides, and load_config."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+from clflow.errors import InputError
+from clflow.scene.config.parse import parse_config
+from clflow.scene.config.settings import SceneConfig
+
+
+def _dotted(path: str, key: object) -> str:
+    """``path`` extended by a mapping key (``a.b``) or a list index (``a[0]``)."""
+    if isinstance(key, int):
+        return f"{path}[{key}]"
+    return f"{path}.{key}" if path else str(key)
+
+
+class _JsonPairs(list):
+    """A JSON object as its (key, value) pairs, so duplicate keys survive parsing."""
+
+
+def _json_without_duplicates(value: Any, path: str = "") -> Any:
+    """Turn parsed :class:`_JsonPairs` into dicts; a key given twice raises with its dotted path."""
+    if isinstance(value, _JsonPairs):
+        out: dict[str, Any] = {}
+        for key, item in value:
+            if key in out:
+                raise DuplicateKeyError(_dotted(path, key))
+            out[key] = _json_without_duplicates(item, _dotted(path, key))
+        return out
+    if isinstance(value, list):
+        return [_json_without_duplicates(item, _dotted(path, i)) for i, item in enumerate(value)]
+    return value
+
+
+class DuplicateKeyError(Exception):
+    """A mapping key given twice; the argument is its dotted path (and YAML line)."""
+
+
+def read_json(text: str) -> Any:
+    return _json_without_duplicates(json.loads(text, object_pairs_hook=_JsonPairs))
+
+
+#: A number with an exponent that YAML 1.1 (PyYAML) reads as a string: no dot (``2e4``) or
+#: no sign in the exponent (``2.0e4``). YAML 1.2 and JSON read them as numbers, and so do we.
+_EXPONENT_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$")
+
+
+def read_yaml(text: str) -> Any:
+    """``yaml.safe_load`` that reads ``2e4`` as a float and rejects a mapping key given twice
+    (PyYAML keeps the last)."""
+    import yaml
+
+    class StrictLoader(yaml.SafeLoader):
+        def construct_document(self, node):
+            self._check_duplicates(node, "")
+            return super().construct_document(node)
+
+        def _check_duplicates(self, node, path: str) -> None:
+            if isinstance(node, yaml.MappingNode):
+                seen = set()
+                for key_node, value_node in node.value:
+                    key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+                    if key is not None and key != "<<":
+                        if key in seen:
+                            line = key_node.start_mark.line + 1
+                            raise DuplicateKeyError(f"{_dotted(path, key)} (line {line})")
+                        seen.add(key)
+                    self._check_duplicates(value_node, _dotted(path, key))
+            elif isinstance(node, yaml.SequenceNode):
+                for i, item in enumerate(node.value):
+                    self._check_duplicates(item, _dotted(path, i))
+
+    StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _EXPONENT_FLOAT, list("-+0123456789."))
+    return yaml.load(text, Loader=StrictLoader)
+
+
+def load_config(path: str | Path, overrides: Sequence[str] = ()) -> SceneConfig:
+    """Read and validate a YAML (.yaml/.yml) or JSON (.json) scene config.
+
+    ``overrides``: ``key.sub=value`` strings (the CLI's ``--set``), each value read as YAML
+    (``2e4``, ``[0, 1, 0]``, ``auto``), set over the file's before the whole is validated.
+    """
+    from clflow.fileio import read_text
+
+    path = Path(path)
+    text = read_text(path, "config")
+    loader: Callable[[str], Any]
+    if path.suffix.lower() == ".json":
+        loader = read_json
+        errors: tuple[type[Exception], ...] = (json.JSONDecodeError,)
+    else:
+        import yaml
+
+        loader, errors = read_yaml, (yaml.YAMLError,)
+    try:
+        data = loader(text)
+    except errors as exc:
+        raise InputError(f"{path}: not valid {'JSON' if path.suffix.lower() == '.json' else 'YAML'}: {exc}") from None
+    except DuplicateKeyError as exc:
+        raise InputError(f"{path}: {exc}: duplicate key (each key may appear only once)") from None
+    data = {} if data is None else data
+    keys = {}
+    for item in overrides:
+        keys[_override(data, item)] = item
+    try:
+        return parse_config(data, str(path), path.parent.resolve())
+    except InputError as exc:
+        # name the --set that brought in the bad key or value, not only the file
+        where = str(exc).removeprefix(f"{path}: ").split(":")[0]
+        for key, item in keys.items():
+            if key == where or key.startswith((where + ".", where + "[")) or where.startswith(key + "."):
+                raise InputError(f"--set {item}: {str(exc).removeprefix(f'{path}: ')}") from None
+        raise
+
+
+def _override(data: Any, item: str) -> str:
+    """Set ``key.sub=value`` (value read as YAML) in the parsed config ``data``, making the
+    mappings on the way; a number as a part indexes an existing list item (``forces.0.end``).
+    Returns the key as the config's messages write it (``forces[0].end``)."""
+    import yaml
+
+    key, sep, text = item.partition("=")
+    parts = key.strip().split(".")
+    if not sep or not all(re.fullmatch(r"[A-Za-z0-9_]+", p) for p in parts) or parts[0].isdigit():
+        raise InputError(
+            f"--set {item}: expected KEY.SUB=VALUE with a dotted key of config names (a number "
+            f"for a list item), e.g. simulation.frames=24 or forces.0.end=0.5"
+        )
+    try:
+        value = read_yaml(text)
+    except (yaml.YAMLError, DuplicateKeyError) as exc:
+        raise InputError(f"--set {item}: the value is not valid YAML ({' '.join(str(exc).split())})") from None
+    node, walked = data, ""
+    for k, part in enumerate(parts):
+        last = k == len(parts) - 1
+        if isinstance(node, list) and part.isdigit():
+            index = int(part)
+            if index >= len(node):
+                raise InputError(
+                    f"--set {item}: {walked} has {len(node)} item(s), so no item {index} "
+                    f"(items count from 0; add new ones in the config file)"
+                )
+            if last:
+                node[index] = value
+            else:
+                node = node[index]
+            walked += f"[{index}]"
+            continue
+        if not isinstance(node, dict):
+            where = walked or "the config"
+            raise InputError(f"--set {item}: {where} is a {type(node).__name__} in the config, not a mapping of keys")
+        if last:
+            node[part] = value
+        else:
+            if node.get(part) is None:
+                if parts[k + 1].isdigit():
+                    raise InputError(
+                        f"--set {item}: {walked + '.' if walked else ''}{part} is not in the config: "
+                        f"set the whole list ({walked + '.' if walked else ''}{part}=[...])"
+                    )
+                node[part] = {}
+            node = node[part]
+        walked += f".{part}" if walked else part
+    return walked

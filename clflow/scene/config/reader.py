@@ -1,0 +1,127 @@
+"""Reading a parsed config: each key checked for its type and range, errors naming the file
+and the dotted key."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+from clflow.errors import InputError
+
+_DEFAULT = object()
+
+
+class Reader:
+    """Walks a parsed config with the dotted path of each key for error messages."""
+
+    def __init__(self, source: str, base: Path):
+        self.source = source
+        self.base = base
+
+    def fail(self, path: str, message: str) -> InputError:
+        return InputError(f"{self.source}: {path}: {message}" if path else f"{self.source}: {message}")
+
+    def section(self, data: Any, path: str, known: tuple[str, ...]) -> dict:
+        data = self.mapping(data, path)
+        unknown = [k for k in data if k not in known]
+        if unknown:
+            raise self.fail(
+                f"{path}.{unknown[0]}" if path else str(unknown[0]), f"unknown key; known keys here: {', '.join(known)}"
+            )
+        return data
+
+    def mapping(self, data: Any, path: str) -> dict:
+        """A mapping whose keys are checked elsewhere."""
+        if data is None:
+            return {}
+        if not isinstance(data, dict):
+            raise self.fail(path, f"must be a mapping of keys to values, got {type(data).__name__}")
+        return data
+
+    def _get(self, data: dict, key: str, path: str, default: Any) -> tuple[str, Any]:
+        """(dotted key, value), value _DEFAULT when absent and a default exists."""
+        where = f"{path}.{key}" if path else key
+        if key not in data or data[key] is None:
+            if default is None:
+                raise self.fail(where, "is required")
+            return where, _DEFAULT
+        return where, data[key]
+
+    def number(
+        self,
+        data: dict,
+        key: str,
+        path: str,
+        default: float | None = None,
+        *,
+        low: float | None = None,
+        high: float | None = None,
+        strict_low: bool = False,
+    ) -> float:
+        where, value = self._get(data, key, path, default)
+        if value is _DEFAULT:
+            return default
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(where, f"must be a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise self.fail(where, f"must be finite, got {value}")
+        if low is not None and (value < low or (strict_low and value == low)):
+            raise self.fail(where, f"must be {'>' if strict_low else '>='} {low:g}, got {value:g}")
+        if high is not None and value > high:
+            raise self.fail(where, f"must be <= {high:g}, got {value:g}")
+        return value
+
+    def integer(self, data: dict, key: str, path: str, default: int | None = None, *, low: int = 0) -> int:
+        where, value = self._get(data, key, path, default)
+        if value is _DEFAULT:
+            return default
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise self.fail(where, f"must be an integer >= {low}, got {value!r}")
+        return value
+
+    def vec3(self, data: dict, key: str, path: str, default: tuple | None = None) -> tuple[float, float, float]:
+        where, value = self._get(data, key, path, default)
+        if value is _DEFAULT:
+            return default
+        if (
+            not isinstance(value, (list, tuple))
+            or len(value) != 3
+            or not all(isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in value)
+        ):
+            raise self.fail(where, f"must be a list of 3 finite numbers, got {value!r}")
+        return tuple(float(c) for c in value)
+
+    def choice(self, data: dict, key: str, path: str, options: tuple[str, ...], default: str | None = None) -> str:
+        where = f"{path}.{key}" if path else key
+        value = data.get(key)
+        if value is None:
+            value = default
+        if value is None:
+            raise self.fail(where, "is required")
+        if value not in options:
+            raise self.fail(where, f"must be one of {', '.join(options)}, got {value!r}")
+        return value
+
+    def file(self, data: dict, key: str, path: str, required: bool = True, folder_ok: bool = False) -> Path | None:
+        where = f"{path}.{key}" if path else key
+        value = data.get(key)
+        if value is None:
+            if required:
+                raise self.fail(where, "is required (a file path, relative to the config file)")
+            return None
+        if not isinstance(value, str) or not value:
+            raise self.fail(where, f"must be a file path, got {value!r}")
+        resolved = (self.base / value).resolve()
+        if not (resolved.is_file() or (folder_ok and resolved.is_dir())):
+            raise self.fail(where, f"{'file or folder' if folder_ok else 'file'} not found: {resolved}")
+        return resolved
+
+    def items(self, data: dict, key: str, path: str) -> list:
+        value = data.get(key, [])
+        if value is None:
+            return []
+        if not isinstance(value, list):
+            raise self.fail(f"{path}.{key}" if path else key, f"must be a list, got {type(value).__name__}")
+        return value

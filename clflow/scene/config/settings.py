@@ -1,0 +1,214 @@
+"""The scene config's types, section by section, and the names and choices its keys take
+(read and checked by clflow.scene.config.parse)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from clflow.flow.optical_flow import (
+    DEFAULT_BIAS_CORRECTION,
+    DEFAULT_CONFIDENCE,
+    DEFAULT_PRESET,
+)
+from clflow.mpm.constants import ELASTIC_MODELS, SAND_MODELS
+from clflow.regions import Region
+
+UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
+FLOW_METHODS = ("dis", "farneback")
+FLOW_LOSSES = ("l2", "charbonnier")
+MATERIAL_MODELS = {"elastic": ELASTIC_MODELS, "sand": SAND_MODELS}  # material.model options
+VELOCITY = "velocity"  # the name of the object's initial velocity in optimize.parameters, evaluation.ground_truth
+VELOCITY_COMPONENTS = ("velocity_x", "velocity_y", "velocity_z")  # its components: m/s, scene axes
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Which Gaussians form the object: a region in scene units, a mask file (.npy of N
+    booleans or of indices), or a PLY of the part (its Gaussian centres matched to the
+    scene's within ``tolerance`` scene units; None: 1e-5 of the scene's diagonal plus a
+    compressed part's quantisation error)."""
+
+    region: Region | None
+    mask: Path | None
+    ply: Path | None = None
+    tolerance: float | None = None
+
+
+@dataclass(frozen=True)
+class FillSettings:
+    enabled: bool = True
+    spacing: float | None = None  # m; None: half the grid spacing (8 particles per cell)
+    per_axis: int = 1
+
+
+@dataclass(frozen=True)
+class MaterialConfig:
+    """``type`` is a registry material, or "query" to ask the material query first."""
+
+    type: str
+    parameters: dict[str, float]
+    density: float | None  # kg/m^3; None only for "query" without a given density
+    model: str | None = None  # elastic: fixed_corotated/neo_hookean; sand: drucker_prager/volume_corrected
+    query_image: Path | None = None
+    query_result: Path | None = None  # a record of `clflow query`, read instead of asking
+    query_prompt: str = ""
+    query_backend: str = "offline"
+
+
+@dataclass(frozen=True)
+class ForceStage:
+    """A force (N, spread over the region's particles by mass) or an acceleration (m/s^2)
+    on a region of particles during [start, end) s."""
+
+    region: Region
+    vector: tuple[float, float, float]
+    kind: str  # "force" | "acceleration"
+    start: float
+    end: float
+
+
+@dataclass(frozen=True)
+class Collider:
+    point: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    mode: str
+    friction: float
+    start: float = 0.0
+    end: float = math.inf
+
+
+DEFAULT_MAX_SUBSTEPS = 2000  # substeps per frame: beyond, a run is refused (docs/pipeline.md, pre-flight)
+
+
+@dataclass(frozen=True)
+class SimulationSettings:
+    grid_resolution: int = 32  # nodes along the longest side of the domain
+    domain_lower: tuple[float, float, float] | None = None  # m; None: around the object
+    domain_upper: tuple[float, float, float] | None = None
+    substep_dt: float | None = None  # s; None: automatic (CFL, elastic wave speed, viscosity)
+    flip: float = 0.0  # PIC/FLIP blend in [0, 1] (clflow.mpm.Simulator); 0: APIC
+    fps: float = 24.0
+    frames: int = 24
+    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)  # m/s^2
+    # refuse a run (optimize, simulate) needing more substeps per frame (--max-substeps overrides)
+    max_substeps: int = DEFAULT_MAX_SUBSTEPS
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """A camera from a 3DGS cameras.json / NeRF transforms.json entry, from an image of a
+    COLMAP sparse model (by name, or ``index`` in name order), or explicit."""
+
+    cameras_file: Path | None = None
+    index: int = 0
+    colmap: Path | None = None  # a sparse model folder (cameras, images as .bin or .txt)
+    image: str | None = None  # the COLMAP image's name
+    position: tuple[float, float, float] | None = None  # scene units
+    look_at: tuple[float, float, float] | None = None
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    fov_y_deg: float = 50.0
+    width: int = 512
+    height: int = 512
+
+
+@dataclass(frozen=True)
+class GuidanceView:
+    """A further guidance view (``camera`` and ``video`` given as lists): its camera and video."""
+
+    camera: CameraConfig
+    video: Path | None
+
+
+@dataclass(frozen=True)
+class GenerateSettings:
+    """``video: {generate: ...}``: make the guidance video with an image-to-video model first
+    (clflow.pipeline.generated_video; None values: the model's or the scene's defaults)."""
+
+    model: Path  # a local diffusers folder (clflow.generate.inspect_model)
+    prompt: str | None = None  # None: the motion prompt filled from the forces (prompt_template)
+    prompt_template: str | None = None  # None: clflow.scene.video_settings.PROMPT_TEMPLATE
+    object: str = "object"  # what the object is, for the template
+    negative_prompt: str = ""
+    image: Path | None = None  # None: the scene rendered from the guidance camera
+    seed: int = 0
+    frames: int | None = None  # None: enough for the simulated time, as the model makes them
+    fps: float | None = None  # None: simulation.fps
+    steps: int | None = None
+    guidance_scale: float | None = None
+    size: tuple[int, int] | None = None  # (width, height) the model generates at
+    fit: str = "pad"
+    cpu_offload: bool = False
+    vae_tiling: bool = False
+    vae_slicing: bool = False
+
+
+@dataclass(frozen=True)
+class FlowSettings:
+    method: str = "dis"
+    preset: str = DEFAULT_PRESET
+    loss: str = "l2"
+    mask: str = "alpha"  # "alpha" (rendered object alpha at frame 0), "none", or a file
+    confidence: str = DEFAULT_CONFIDENCE  # per-pixel weight of the observed flow in the loss
+    bias_correction: str = DEFAULT_BIAS_CORRECTION  # the estimator's error on the simulation, subtracted
+
+
+OPTIMIZERS = ("adam", "levenberg_marquardt")
+
+
+@dataclass(frozen=True)
+class SearchSettings:
+    """The global phase before the gradient iterations (clflow.pipeline.fit.search)."""
+
+    samples: int = 32  # forward-only runs over the parameter box
+    decades: float = 3.0  # the box of a log-scale parameter: the start times 10^(+-decades)
+    frames: int = 0  # frames in the search's loss (0: all)
+    starts: int = 1  # the best samples the local phase polishes (levenberg_marquardt) before keeping the best
+    start_iterations: int = 3  # Levenberg-Marquardt iterations per start before they are compared
+    refine: int = 0  # second-round samples, shared among the neighbourhoods of the best distinct samples
+    # nodes along the domain's longest side for the search and the starts' polish (0: the
+    # simulation's): a coarser grid makes the global phase cheap, the main phase keeps the finer one
+    grid_resolution: int = 0
+
+
+@dataclass(frozen=True)
+class OptimizeSettings:
+    parameters: tuple[str, ...] = ()
+    learning_rates: dict[str, float] = field(default_factory=dict)  # in the optimiser's space
+    iterations: int = 30
+    horizon_start: int = 0  # frames in the first iteration's loss (0: all)
+    horizon_step: int = 0  # frames added per iteration
+    final_rate: float = 0.1  # the rate falls (cosine) to this fraction of itself by the last iteration
+    search: SearchSettings | None = None  # None: no global phase
+    method: str = "adam"  # the local phase: "adam" or "levenberg_marquardt" (flow loss l2 only)
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)  # SI; the search box of a parameter
+    # material hypotheses: registry names, each searched before the one that fits best is
+    # optimised (clflow.pipeline.hypotheses); () for the config's own material only
+    materials: tuple[str, ...] = ()
+    estimate_velocity_frames: int = 0  # frames in the loss of the velocity phase
+    estimate_velocity_iterations: int = 0  # iterations of the velocity phase before the main one (0: none)
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    source: Path
+    splats: Path
+    scale: float
+    up: str
+    selection: Selection
+    fill: FillSettings
+    material: MaterialConfig
+    forces: tuple[ForceStage, ...]
+    colliders: tuple[Collider, ...]
+    simulation: SimulationSettings
+    camera: CameraConfig
+    video: Path | None
+    flow: FlowSettings
+    optimize: OptimizeSettings
+    output: Path
+    ground_truth: dict[str, float] = field(default_factory=dict)  # for metrics (RE) only; velocity as components
+    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the object's initial velocity, m/s, scene axes
+    more_views: tuple[GuidanceView, ...] = ()  # views 1.. when camera and video are lists; view 0 is camera, video
+    generate: GenerateSettings | None = None  # video: {generate: ...}; video is None until it is made
+    dataparser_transforms: Path | None = None  # nerfstudio's: camera files' frame -> the splat file's
