@@ -1,4 +1,4 @@
-"""``clflow sweep``: many simulate / optimize / sysid runs of a SPEC, on Ray or in-process (clflow/sweep.py)."""
+"""``clflow sweep``: many simulate / optimize / sysid runs of a SPEC, on Ray or in-process (clflow.sweep)."""
 
 from __future__ import annotations
 
