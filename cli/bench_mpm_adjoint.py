@@ -22,6 +22,37 @@ from clflow_cli.options import double_option
 @click.option("--substeps", type=click.IntRange(min=1), default=20, show_default=True, help="Substeps per frame.")
 @double_option
 @click.pass_context
+def _block(particles: int, h: float):
+    """About ``particles`` positions [N, 3] m, (2 ny) x ny x ny at spacing ``h`` around (0.5, 0.5, 0.5)."""
+    import torch
+
+    ny = max(1, round((particles / 2) ** (1 / 3)))
+    axes = [0.5 - (m * h) / 2 + h * (0.5 + torch.arange(m, dtype=torch.float64)) for m in (2 * ny, ny, ny)]
+    return torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def _echo_times(forward: float, forward_cpu: float, backward: float, backward_cpu: float, work: int) -> None:
+    """The forward's and backward's wall and CPU seconds (``work``: particle-substeps)."""
+    click.echo(
+        f"forward  {forward:8.2f} s  ({work / forward / 1e6:.2f} M particle-substeps/s); CPU {forward_cpu:.2f} s"
+    )
+    click.echo(
+        f"backward {backward:8.2f} s  (replay + adjoint; {backward / forward:.2f}x forward, target <= 3x); "
+        f"CPU {backward_cpu:.2f} s ({backward_cpu / forward_cpu:.2f}x: all threads of this process, "
+        f"so other jobs on the machine barely change it)"
+    )
+
+
+def _echo_copies(copied: dict, steps: int, frames: int) -> None:
+    """Bytes each pass copied between host and device, per substep and per frame."""
+    for name, moved in copied.items():
+        click.echo(
+            f"{name:8s} copied {moved.to_device / 2**20:8.2f} MiB to the device, {moved.to_host / 2**20:8.2f} MiB "
+            f"to the host: {moved.total / steps / 2**10:.1f} KiB per substep, {moved.total / frames / 2**20:.2f} MiB "
+            f"per frame (each frame's x, v, F or their gradients)"
+        )
+
+
 def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
     """Elastic block thrown against the floor: forward seconds, backward seconds (incl. replay),
     their ratio (target <= 3), and peak memory (measured RSS growth vs the formula)."""
@@ -37,10 +68,8 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
     device = ctx.obj.device() if ctx.obj else get_device()
     dtype = torch.float64 if double else torch.float32
     dx = 1.0 / grid_res
-    ny = max(1, round((particles / 2) ** (1 / 3)))  # block of (2 ny) x ny x ny particles
     h = dx / 2
-    axes = [0.5 - (m * h) / 2 + h * (0.5 + torch.arange(m, dtype=torch.float64)) for m in (2 * ny, ny, ny)]
-    x = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    x = _block(particles, h)
     n = x.shape[0]
     v = torch.tensor([0.5, -1.0, 0.3], dtype=torch.float64).expand(n, 3)
     spec = MaterialSpec("elastic", {"youngs_modulus": 1e5, "poissons_ratio": 0.3})
@@ -70,9 +99,6 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
         device=device,
     )
 
-    def peak_mib():
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
     with open("/proc/self/statm") as statm:  # resident pages now (Linux)
         base = int(statm.read().split()[1]) * resource.getpagesize() / 2**20
     mark = device.transfers.mark()
@@ -83,41 +109,23 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
     timed_backward = measure(loss.backward, warmup=0)
     copied = {"forward": between.since(mark), "backward": device.transfers.since(between)}
     backward, backward_cpu = timed_backward.median_wall, timed_backward.median_cpu
-    peak = peak_mib() - base
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 - base  # MiB
     steps = frames * substeps
     memory = "separate memory" if not device.zero_copy else "shared memory"
     click.echo(
         f"device: {device.info.label} ({memory}); {n:,} particles, grid {grid_res}^3, "
         f"{frames} frames x {substeps} substeps, {'float64' if double else 'float32'}"
     )
-    click.echo(
-        f"forward  {forward:8.2f} s  ({n * steps / forward / 1e6:.2f} M particle-substeps/s); CPU {forward_cpu:.2f} s"
-    )
-    click.echo(
-        f"backward {backward:8.2f} s  (replay + adjoint; {backward / forward:.2f}x forward, target <= 3x); "
-        f"CPU {backward_cpu:.2f} s ({backward_cpu / forward_cpu:.2f}x: all threads of this process, "
-        f"so other jobs on the machine barely change it)"
-    )
+    _echo_times(forward, forward_cpu, backward, backward_cpu, n * steps)
     copies = engine(sim).adjoint.copies if sim.kernels.p2g == "private" else 0
     est = memory_estimate(n, sim.grid.nodes, frames, substeps, dtype, grid_copies=copies) / 2**20
     click.echo(f"peak memory growth {peak:8.1f} MiB (peak RSS - RSS before the run); formula {est:.1f} MiB")
-    for name, moved in copied.items():
-        click.echo(
-            f"{name:8s} copied {moved.to_device / 2**20:8.2f} MiB to the device, {moved.to_host / 2**20:8.2f} MiB "
-            f"to the host: {moved.total / steps / 2**10:.1f} KiB per substep, {moved.total / frames / 2**20:.2f} MiB "
-            f"per frame (each frame's x, v, F or their gradients)"
-        )
+    _echo_copies(copied, steps, frames)
     return {
         "particles": n,
-        "forward": {
-            **timed_forward.record(),
-            "bytes_to_device": copied["forward"].to_device,
-            "bytes_to_host": copied["forward"].to_host,
-        },
-        "backward": {
-            **timed_backward.record(),
-            "bytes_to_device": copied["backward"].to_device,
-            "bytes_to_host": copied["backward"].to_host,
+        **{
+            name: {**timed.record(), "bytes_to_device": copied[name].to_device, "bytes_to_host": copied[name].to_host}
+            for name, timed in (("forward", timed_forward), ("backward", timed_backward))
         },
         "backward_over_forward": backward / forward,
         "peak_memory_mib": peak,

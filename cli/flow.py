@@ -53,18 +53,9 @@ def flow(
     import numpy as np
 
     from clflow.errors import InputError
-    from clflow.fileio import atomic_path
-    from clflow.flow.flo import write_flo
-    from clflow.flow.optical_flow import (
-        backward_flow,
-        forward_backward_mask,
-        mask_from_box,
-        mask_from_image,
-        observed_flow,
-    )
+    from clflow.flow.export import write_flow_folder
+    from clflow.flow.optical_flow import mask_from_box, mask_from_image
     from clflow.flow.video import read_video
-    from clflow.flow.visualize import comparison_panel
-    from clflow.media import write_image, write_video
     from clflow_cli.progress import progress
 
     if mask_image and box:
@@ -82,36 +73,14 @@ def flow(
         object_mask = mask_from_image(mask_image, clip.width, clip.height)
     elif box:
         object_mask = mask_from_box(box, clip.width, clip.height)
-    frames = clip.frames
-    pairs = max(len(frames) - 1, 0)
     out = Path(output) if output else Path(Path(video).stem + "_flow")
-    # forward flows, backward flows, then the files of each flow field
-    with progress(3 * pairs, "optical flow") as advance:
-        kwargs = dict(preset=preset, raft_weights=raft_weights, source=clip.source, advance=advance)
-        forward = observed_flow(frames, method, **kwargs)
-        backward = backward_flow(frames, method, **kwargs)
-        valid = forward_backward_mask(forward, backward) & object_mask
-        with atomic_path(out / "flow.npz") as tmp:
-            np.savez_compressed(
-                tmp,
-                flow=forward,
-                valid=valid,
-                times=np.asarray([] if clip.times is None else clip.times),
-                fps=np.float64(clip.fps or np.nan),
-                method=method,
-                preset=preset,
-            )
-        max_flow = max(float(np.linalg.norm(forward, axis=-1).max()), 1e-6)
-        panels = []
-        for t, f in enumerate(forward):
-            write_flo(out / "flo" / f"flow_{t:04d}.flo", f)
-            panels.append(comparison_panel(frames[t], f, max_flow=max_flow))
-            write_image(out / "png" / f"flow_{t:04d}.png", panels[-1])
-            advance(f"flow_{t:04d}")
-    if write_panels_video:
-        write_video(out / "flow.mp4", np.stack(panels), clip.fps or 24.0)
+    with progress(3 * max(len(clip.frames) - 1, 0), "optical flow") as advance:  # forward, backward, files
+        forward, valid = write_flow_folder(
+            clip, out, method, preset, object_mask, raft_weights, write_panels_video, advance
+        )
     speed = np.linalg.norm(forward, axis=-1)
     click.echo(
         f"{method}{'/' + preset if method == 'dis' else ''}: {len(forward)} flow fields {clip.width}x{clip.height}, "
-        f"mean speed {speed.mean():.3f} px/frame, max {max_flow:.2f}, consistent {valid.mean():.1%} -> {out}"
+        f"mean speed {speed.mean():.3f} px/frame, max {max(float(speed.max()), 1e-6):.2f}, "
+        f"consistent {valid.mean():.1%} -> {out}"
     )

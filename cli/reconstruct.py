@@ -122,15 +122,20 @@ def reconstruct(
                 f"interrupted; the last checkpoint (every {checkpoint_every} iterations) is in "
                 f"{output_dir}/checkpoint.pt: continue with the same command and --resume"
             ) from None
-    test = result.metrics["test"]
+    _echo_result(result.metrics, output_dir)
+
+
+def _echo_result(metrics: dict, output_dir) -> None:
+    """One line: the Gaussians, the held-out views' PSNR and SSIM, the speed and the PLY."""
+    test = metrics["test"]
     held_out = (
         f"held-out PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f} ({test['views']} views)"
         if test["views"]
         else "no held-out views"
     )
     click.echo(
-        f"{result.metrics['gaussians']} Gaussians, {held_out}, "
-        f"{result.metrics['iterations_per_second'] or 0:.1f} it/s -> {output_dir}/point_cloud.ply"
+        f"{metrics['gaussians']} Gaussians, {held_out}, "
+        f"{metrics['iterations_per_second'] or 0:.1f} it/s -> {output_dir}/point_cloud.ply"
     )
 
 

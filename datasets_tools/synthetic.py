@@ -388,6 +388,28 @@ CASE_FILES = ("scene.ply", "config_truth.yaml", "guidance", "guidance.mp4", "con
 and ``guidance_K*`` for further views)."""
 
 
+def _write_guidance(folder: Path, result, truth_cfg, image: int, fps: float, noise: float, codec, seed: int):
+    """Each view of the truth's ``result`` rendered, degraded to ``image`` px with ``noise``,
+    as PNG frames and an MP4 (and coded with ``codec``); returns the coded videos' names."""
+    from clflow.media import write_image, write_video
+    from clflow.pipeline.forward import render_frames
+    from clflow.scene.load import guidance_camera
+
+    cameras = [None] + [guidance_camera(truth_cfg, v.camera) for v in truth_cfg.more_views]
+    coded = []
+    for view, camera in enumerate(cameras):  # view 0's noise draws are those of a one-view case
+        frames = degrade(render_frames(result, camera), image, noise, np.random.default_rng(seed + 1 + 1000 * view))
+        name = guidance_name(view)
+        (folder / name).mkdir(exist_ok=True)
+        for t, frame in enumerate(frames):
+            write_image(folder / name / f"{t:03d}.png", frame)
+        write_video(folder / f"{name}.mp4", frames, fps)
+        if codec is not None:
+            write_video(folder / f"{name}_coded{codec}", frames, fps)
+            coded.append(f"{name}_coded{codec}")
+    return coded
+
+
 def make_case(
     folder: str | Path,
     case: SyntheticCase,
@@ -413,10 +435,8 @@ def make_case(
     import yaml
 
     from clflow.fileio import atomic_write_text
-    from clflow.media import write_image, write_video
-    from clflow.pipeline.forward import render_frames, simulate_config
+    from clflow.pipeline.forward import simulate_config
     from clflow.scene.config import parse_config
-    from clflow.scene.load import guidance_camera
 
     if int(truth_scale) < 1:
         raise ValueError(f"truth_scale must be an integer >= 1, got {truth_scale}")
@@ -440,20 +460,7 @@ def make_case(
         )
     fps = truth["simulation"]["fps"]
     config = case_config(case, resolution, {**case.truth, **case.guess}, optimize=True, views=views)
-    cameras = [None] + [guidance_camera(truth_cfg, v.camera) for v in truth_cfg.more_views]
-    coded = []
-    for view, camera in enumerate(cameras):  # view 0's noise draws are those of a one-view case
-        frames = degrade(
-            render_frames(result, camera), resolution.image, noise, np.random.default_rng(seed + 1 + 1000 * view)
-        )
-        name = guidance_name(view)
-        (folder / name).mkdir(exist_ok=True)
-        for t, frame in enumerate(frames):
-            write_image(folder / name / f"{t:03d}.png", frame)
-        write_video(folder / f"{name}.mp4", frames, fps)
-        if codec is not None:
-            write_video(folder / f"{name}_coded{codec}", frames, fps)
-            coded.append(f"{name}_coded{codec}")
+    coded = _write_guidance(folder, result, truth_cfg, resolution.image, fps, noise, codec, seed)
     if coded:
         config["video"] = coded if views > 1 else coded[0]
     atomic_write_text(folder / "config.yaml", yaml.safe_dump(config, sort_keys=False))

@@ -245,6 +245,37 @@ def settings_record(settings: Settings) -> dict:
     return json.loads(json.dumps(asdict(settings)))
 
 
+def _earlier_summary(out: Path, settings: Settings, force: bool) -> dict:
+    """The summary to continue in ``out``: the earlier one when its settings are these, else a
+    new one; results of other settings, or other files, are refused unless ``force`` (which
+    clears the earlier cases)."""
+    from clflow.errors import InputError
+
+    summary_path = out / "sysid.json"
+    wanted = settings_record(settings)
+    summary = {"settings": wanted, "cases": {}}
+    if summary_path.exists():
+        try:
+            previous = json.loads(summary_path.read_text())
+            same = previous.get("settings") == wanted
+        except (OSError, ValueError) as exc:
+            raise InputError(
+                f"{summary_path} is not a clflow sysid result ({exc}); use --force to start over"
+            ) from None
+        if same:
+            summary = previous
+        elif not force:
+            raise InputError(
+                f"{out} holds sysid results of other settings ({_difference(previous.get('settings'), wanted)}); "
+                f"use another -o folder, or --force to replace them"
+            )
+    elif out.exists() and any(out.iterdir()) and not force:
+        raise InputError(f"{out} exists and holds other files; use an empty or new -o folder, or --force")
+    if force and summary["cases"] == {} and (out / "cases").exists():
+        shutil.rmtree(out / "cases")
+    return summary
+
+
 def evaluate(
     names: list[str],
     out: Path,
@@ -271,27 +302,7 @@ def evaluate(
         except ValueError as exc:
             raise InputError(str(exc)) from None
     summary_path = out / "sysid.json"
-    wanted = settings_record(settings)
-    summary = {"settings": wanted, "cases": {}}
-    if summary_path.exists():
-        try:
-            previous = json.loads(summary_path.read_text())
-            same = previous.get("settings") == wanted
-        except (OSError, ValueError) as exc:
-            raise InputError(
-                f"{summary_path} is not a clflow sysid result ({exc}); use --force to start over"
-            ) from None
-        if same:
-            summary = previous
-        elif not force:
-            raise InputError(
-                f"{out} holds sysid results of other settings ({_difference(previous.get('settings'), wanted)}); "
-                f"use another -o folder, or --force to replace them"
-            )
-    elif out.exists() and any(out.iterdir()) and not force:
-        raise InputError(f"{out} exists and holds other files; use an empty or new -o folder, or --force")
-    if force and summary["cases"] == {} and (out / "cases").exists():
-        shutil.rmtree(out / "cases")
+    summary = _earlier_summary(out, settings, force)
     out.mkdir(parents=True, exist_ok=True)
     from clflow.environment import environment
 

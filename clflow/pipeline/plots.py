@@ -38,6 +38,42 @@ def write_history_plot(path: Path, history: list[dict], truth: dict[str, float])
         history_figure(history, truth).savefig(tmp, format="png", dpi=110)
 
 
+def _plot_by_phase(axis, history: list[dict], phases: list[str], style: dict, value, labelled: bool = False):
+    """``value(row)`` against iteration, a line per phase in its colour and marker."""
+    for phase in phases:
+        rows = [h for h in history if h["phase"] == phase]
+        colour, marker = style[phase]
+        axis.plot(
+            [h["iteration"] for h in rows],
+            [value(h) for h in rows],
+            color=colour,
+            marker=marker,
+            markersize=3,
+            linewidth=1.2,
+            label=f"{phase} phase" if labelled else None,
+        )
+
+
+def _mark_horizons(axes, history: list[dict]) -> bool:
+    """Each change of the loss horizon as a dotted line in every panel and its frame count
+    over the first (the first horizon labelled too, without a line); True if it changed."""
+    changes = [row for before, row in zip(history, history[1:]) if row["frames"] != before["frames"]]
+    for row in history[:1] + changes:
+        x = row["iteration"] - 0.5
+        for axis in axes if row is not history[0] else ():
+            axis.axvline(x, color="grey", linestyle=":", linewidth=0.8)
+        axes[0].annotate(
+            f"{row['frames']}",
+            (x, 1.0),
+            xycoords=("data", "axes fraction"),
+            fontsize=7,
+            color="dimgrey",
+            ha="center",
+            va="bottom",
+        )
+    return bool(changes)
+
+
 def history_figure(history: list[dict], truth: dict[str, float]):
     """A matplotlib Figure: the loss per frame and pixel against iteration (log scale;
     phases in their own colours, legend in this panel only; each change of the loss
@@ -57,34 +93,9 @@ def history_figure(history: list[dict], truth: dict[str, float]):
     style = {p: PHASE_STYLE.get(p) or (next(colours), "o") for p in phases}
 
     loss_axis = axes[0]
-    for phase in phases:
-        rows = [h for h in history if h["phase"] == phase]
-        colour, marker = style[phase]
-        loss_axis.plot(
-            [h["iteration"] for h in rows],
-            [h["loss"] for h in rows],
-            color=colour,
-            marker=marker,
-            markersize=3,
-            linewidth=1.2,
-            label=f"{phase} phase",
-        )
+    _plot_by_phase(loss_axis, history, phases, style, lambda h: h["loss"], labelled=True)
     handles = loss_axis.get_legend_handles_labels()[0]
-    changes = [row for before, row in zip(history, history[1:]) if row["frames"] != before["frames"]]
-    for row in history[:1] + changes:  # the first horizon labelled too, without a line
-        x = row["iteration"] - 0.5
-        for axis in axes if row is not history[0] else ():
-            axis.axvline(x, color="grey", linestyle=":", linewidth=0.8)
-        loss_axis.annotate(
-            f"{row['frames']}",
-            (x, 1.0),
-            xycoords=("data", "axes fraction"),
-            fontsize=7,
-            color="dimgrey",
-            ha="center",
-            va="bottom",
-        )
-    if changes:
+    if _mark_horizons(axes, history):
         handles.append(Line2D([], [], color="grey", linestyle=":", label="horizon grows to N frames"))
     if history:
         loss_axis.set_yscale("log")
@@ -94,17 +105,7 @@ def history_figure(history: list[dict], truth: dict[str, float]):
 
     for axis, name in zip(axes[1:], names):
         label, log_scale = _parameter_axis(name)
-        for phase in phases:
-            rows = [h for h in history if h["phase"] == phase]
-            colour, marker = style[phase]
-            axis.plot(
-                [h["iteration"] for h in rows],
-                [h["params"][name] for h in rows],
-                color=colour,
-                marker=marker,
-                markersize=3,
-                linewidth=1.2,
-            )
+        _plot_by_phase(axis, history, phases, style, lambda h, name=name: h["params"][name])
         if name in truth:
             axis.axhline(truth[name], color="black", linestyle="--", linewidth=1.0, label=f"truth {truth[name]:.4g}")
         if log_scale:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import logging
 import math
 import shutil
 from pathlib import Path
@@ -44,6 +45,8 @@ RUN_ENTRIES = (
 
 #: a scene simulation's entries in its folder, and what clflow render4d derives from them
 SIMULATION_ENTRIES = ("gaussians.npz", "frame_*.ply", "static*.ply", "guidance", "guidance.mp4", "render4d")
+
+log = logging.getLogger("clflow.simulate")  # the log lines of `clflow simulate PARTICLES`
 
 
 def _silent(line: str) -> None:
@@ -183,6 +186,53 @@ class ParticleRun:
     double: bool = False
 
 
+def _particles_of(run: ParticleRun, dx: float):
+    """The run's particles: x [N, 3] m and the volume per particle (m^3), from its file (volume:
+    the file's, else ``particle_volume``, else (dx/2)^3) or its shape at 2 per cell and axis."""
+    from clflow.mpm.shapes import lattice_fill, load_particles
+
+    if run.particles:
+        x, volume = load_particles(run.particles)
+        if volume is None:
+            volume = run.particle_volume if run.particle_volume is not None else (dx / 2) ** 3
+            log.info("particle volume %.3g m^3 per particle (no 'volume' in %s)", volume, run.particles)
+        return x, volume
+    spacing = dx / 2  # 2 particles per cell and axis
+    return lattice_fill(run.shape, run.size, list(run.center or [run.domain / 2] * 3), spacing), spacing**3
+
+
+def _check_particle_outputs(out: Path, frames: int, n: int, itemsize: int, preview: str, max_output_gb: float):
+    """Refuse a run whose trajectory (and preview) would not fit the disk or the memory."""
+    from clflow.limits import TRAJECTORY_REALS, check_memory, check_output
+    from clflow.mpm.preview import PREVIEW_SIZE
+
+    less = "simulate fewer --frames"
+    image = 0 if preview == "none" else 3 * PREVIEW_SIZE**2  # bytes of an uncompressed preview frame
+    check_output(out, (frames + 1) * (12 * n + image), max_output_gb, f"{frames + 1:,} frames of {n:,} particles", less)
+    check_memory(
+        (frames + 1) * (n * TRAJECTORY_REALS * itemsize + image),  # the preview is encoded at once
+        f"simulating {frames + 1:,} frames",
+        less,
+    )
+
+
+def _run_with_cfl_retries(sim, simulator: Callable, frames: int, advance, chosen: bool, limit: int):
+    """``sim.run(frames)``; on a CFL breach again at twice the substeps (``simulator(substeps)``
+    makes the new one) up to ``limit``, unless the substeps were ``chosen`` by the user: then,
+    and on any other failure, SimulationError with the way out (never a wrong result)."""
+    from clflow.mpm import SimulationError
+
+    while True:
+        try:
+            return sim.run(frames, (lambda k: advance(f"frame {k}")) if advance else None, strict_cfl=True)
+        except SimulationError as exc:
+            if "CFL" not in str(exc) or chosen or 2 * sim.substeps > limit:
+                way_out = "more --substeps" if chosen else f"--max-substeps above {limit}"
+                raise SimulationError(f"{exc}" + (f" ({way_out})" if "CFL" in str(exc) else "")) from None
+            log.info("%s: simulating again at %d substeps per frame", exc, 2 * sim.substeps)
+            sim = simulator(2 * sim.substeps)
+
+
 def simulate_particles(
     run: ParticleRun,
     out_dir: str | Path = "simulation",
@@ -197,21 +247,16 @@ def simulate_particles(
     OUT/positions.npz (x [frames+1, N, 3] m, time [frames+1] s) and a preview ("mp4",
     "png" frames or "none"), all or nothing; refuses more than ``max_substeps`` substeps per
     frame (default 2000); ``progress`` as :func:`simulate_scene`'s. Returns the folder."""
-    import logging
-
     import numpy as np
     import torch
 
     from clflow.fileio import atomic_dir
-    from clflow.limits import TRAJECTORY_REALS, check_memory, check_output
-    from clflow.mpm import Grid, MaterialSpec, SimulationError, Simulator
+    from clflow.mpm import Grid, MaterialSpec, Simulator
     from clflow.mpm.preview import PREVIEW_SIZE, write_preview
-    from clflow.mpm.shapes import lattice_fill, load_particles
     from clflow.mpm.substep import check_device, check_grid_memory
     from clflow.runtime import get_device
     from clflow.scene.config import DEFAULT_MAX_SUBSTEPS
 
-    log = logging.getLogger("clflow.simulate")
     if run.resolution < 8 or not run.domain > 0:
         raise InputError(f"--grid must be >= 8 and --domain > 0, got {run.resolution}, {run.domain}")
     dx = run.domain / (run.resolution - 1)
@@ -219,15 +264,7 @@ def simulate_particles(
     dtype = torch.float64 if run.double else torch.float32
     check_device(device or get_device(), dtype)
     check_grid_memory((device or get_device()).info, grid, dtype.itemsize)  # before filling the shape at dx / 2
-    if run.particles:
-        x, volume = load_particles(run.particles)
-        if volume is None:
-            volume = run.particle_volume if run.particle_volume is not None else (dx / 2) ** 3
-            log.info("particle volume %.3g m^3 per particle (no 'volume' in %s)", volume, run.particles)
-    else:
-        spacing = dx / 2  # 2 particles per cell and axis
-        x = lattice_fill(run.shape, run.size, list(run.center or [run.domain / 2] * 3), spacing)
-        volume = spacing**3
+    x, volume = _particles_of(run, dx)
 
     def simulator(substeps: int | None):
         return Simulator(
@@ -247,16 +284,7 @@ def simulate_particles(
 
     sim = simulator(run.substeps)
     out, frames = Path(out_dir), run.frames
-    less = "simulate fewer --frames"
-    image = 0 if preview == "none" else 3 * PREVIEW_SIZE**2  # bytes of an uncompressed preview frame
-    check_output(
-        out, (frames + 1) * (12 * sim.n + image), max_output_gb, f"{frames + 1:,} frames of {sim.n:,} particles", less
-    )
-    check_memory(
-        (frames + 1) * (sim.n * TRAJECTORY_REALS * dtype.itemsize + image),  # the preview is encoded at once
-        f"simulating {frames + 1:,} frames",
-        less,
-    )
+    _check_particle_outputs(out, frames, sim.n, dtype.itemsize, preview, max_output_gb)
     echo(
         f"{sim.n:,} particles of {run.material}, {frames} frames x {sim.substeps} substeps (dt = {sim.dt:.3g} s, "
         f"limited by {sim.limit_reason(sim.state.v)})"
@@ -270,16 +298,7 @@ def simulate_particles(
         )
     shown = progress(frames, "simulating") if progress else contextlib.nullcontext(None)
     with shown as advance:
-        while True:  # a CFL breach: again at twice the substeps (unless --substeps chose them), never exit 0
-            try:
-                traj = sim.run(frames, (lambda k: advance(f"frame {k}")) if advance else None, strict_cfl=True)
-                break
-            except SimulationError as exc:
-                if "CFL" not in str(exc) or run.substeps is not None or 2 * sim.substeps > limit:
-                    way_out = "more --substeps" if run.substeps is not None else f"--max-substeps above {limit}"
-                    raise SimulationError(f"{exc}" + (f" ({way_out})" if "CFL" in str(exc) else "")) from None
-                log.info("%s: simulating again at %d substeps per frame", exc, 2 * sim.substeps)
-                sim = simulator(2 * sim.substeps)
+        traj = _run_with_cfl_retries(sim, simulator, frames, advance, chosen=run.substeps is not None, limit=limit)
     target = out / ("preview.mp4" if preview == "mp4" else "preview")
     with atomic_dir(out, replaces=("positions.npz", "preview", "preview.mp4")) as tmp:  # all or nothing, one result
         np.savez(tmp / "positions.npz", x=traj.x.float().numpy(), time=traj.time.numpy())
@@ -440,9 +459,67 @@ def _optimize_config(
         raise
 
 
+def _chosen_material(cfg, again: str, resume: bool, force_video: bool, note, parallel):
+    """optimize.material's hypotheses searched (serially or on Ray), the best chosen: its
+    config, its start and the hypotheses' record (clflow.pipeline.hypotheses)."""
+    from clflow.pipeline.hypotheses import choose_material
+
+    search = cfg.optimize.search
+
+    def searched(material: str, row: dict) -> None:
+        note(f"{material}: search {row['iteration'] + 1}/{search.samples + search.refine}: {format_row(row)}")
+
+    search_all = {}
+    if parallel is not None:
+        from clflow.pipeline.hypotheses import hypotheses_on_ray
+
+        search_all = {"search_all": hypotheses_on_ray(**parallel)}
+    try:
+        cfg, start, hypotheses = choose_material(
+            cfg, resume=resume, progress=searched, force_video=force_video, **search_all
+        )
+    except KeyboardInterrupt:
+        raise KeyboardInterrupt(
+            f"interrupted while searching the material hypotheses (each saves its samples "
+            f"in {cfg.output / 'hypotheses'}); continue with `{again}`"
+        ) from None
+    note(
+        f"material: {hypotheses['chosen']} fits best (best search loss: "
+        + ", ".join(
+            f"{m} {r['loss']:.4g}" if "loss" in r else f"{m} failed" for m, r in hypotheses["hypotheses"].items()
+        )
+        + ")"
+    )
+    return cfg, start, hypotheses
+
+
+def _echo_results(opt, state, metrics: dict, report: Path, echo, note) -> None:
+    """The optimised values, the errors against the ground truth, rollbacks, warnings and where the results are."""
+    from clflow.pipeline.fit import parameter_unit
+
+    cfg = opt.cfg
+    final = opt.values(state.z)
+    echo("optimised: " + ", ".join(f"{n} = {v:.6g} {parameter_unit(cfg, n)}" for n, v in final.items()))
+    if "relative_error" in metrics:
+        echo(
+            "relative error vs ground truth: "
+            + ", ".join(f"{n} {100 * e:.2f}%" for n, e in metrics["relative_error"].items())
+        )
+    if "velocity_error_m_s" in metrics:
+        echo(f"initial velocity off by {metrics['velocity_error_m_s']:.3g} m/s")
+    if metrics.get("rollbacks"):
+        note(f"{len(metrics['rollbacks'])} unstable or failed iterations were rolled back (metrics.json: rollbacks)")
+    for warning in metrics.get("warnings", []):
+        note(f"WARNING: {warning}; the result is likely wrong")
+    echo(
+        f"flow loss {metrics['flow_loss']:.4g}, end-point error {metrics['epe_px']:.3g} px, "
+        f"{metrics['seconds_per_iteration']:.2f} s per iteration; results in {cfg.output} (open {report.name})"
+    )
+
+
 def _optimize_prepared(cfg, again, resume, force_video, echo, note, bar, parallel) -> dict:
     """_optimize_config's work once the output folder is checked and cleared of an earlier run."""
-    from clflow.pipeline.fit import Optimization, parameter_unit
+    from clflow.pipeline.fit import Optimization
 
     if getattr(cfg, "generate", None) is not None:  # video: {generate: ...}: the guidance video first
         from clflow.pipeline.generated_video import ensure_guidance_video
@@ -452,32 +529,7 @@ def _optimize_prepared(cfg, again, resume, force_video, echo, note, bar, paralle
         )
     start, hypotheses, search = None, None, cfg.optimize.search
     if cfg.optimize.materials:  # material hypotheses: search each, optimise the best
-        from clflow.pipeline.hypotheses import choose_material
-
-        def searched(material: str, row: dict) -> None:
-            note(f"{material}: search {row['iteration'] + 1}/{search.samples + search.refine}: {format_row(row)}")
-
-        search_all = {}
-        if parallel is not None:
-            from clflow.pipeline.hypotheses import hypotheses_on_ray
-
-            search_all = {"search_all": hypotheses_on_ray(**parallel)}
-        try:
-            cfg, start, hypotheses = choose_material(
-                cfg, resume=resume, progress=searched, force_video=force_video, **search_all
-            )
-        except KeyboardInterrupt:
-            raise KeyboardInterrupt(
-                f"interrupted while searching the material hypotheses (each saves its samples "
-                f"in {cfg.output / 'hypotheses'}); continue with `{again}`"
-            ) from None
-        note(
-            f"material: {hypotheses['chosen']} fits best (best search loss: "
-            + ", ".join(
-                f"{m} {r['loss']:.4g}" if "loss" in r else f"{m} failed" for m, r in hypotheses["hypotheses"].items()
-            )
-            + ")"
-        )
+        cfg, start, hypotheses = _chosen_material(cfg, again, resume, force_video, note, parallel)
     opt = Optimization(
         cfg, hypotheses=hypotheses, force_video=force_video
     )  # loads the scene, runs the material query, computes the video's flow
@@ -510,23 +562,7 @@ def _optimize_prepared(cfg, again, resume, force_video, echo, note, bar, paralle
 
     write_run_record(opt.cfg, cfg.output)
     report = write_report(cfg.output)
-    final = opt.values(state.z)
-    echo("optimised: " + ", ".join(f"{n} = {v:.6g} {parameter_unit(opt.cfg, n)}" for n, v in final.items()))
-    if "relative_error" in metrics:
-        echo(
-            "relative error vs ground truth: "
-            + ", ".join(f"{n} {100 * e:.2f}%" for n, e in metrics["relative_error"].items())
-        )
-    if "velocity_error_m_s" in metrics:
-        echo(f"initial velocity off by {metrics['velocity_error_m_s']:.3g} m/s")
-    if metrics.get("rollbacks"):
-        note(f"{len(metrics['rollbacks'])} unstable or failed iterations were rolled back (metrics.json: rollbacks)")
-    for warning in metrics.get("warnings", []):
-        note(f"WARNING: {warning}; the result is likely wrong")
-    echo(
-        f"flow loss {metrics['flow_loss']:.4g}, end-point error {metrics['epe_px']:.3g} px, "
-        f"{metrics['seconds_per_iteration']:.2f} s per iteration; results in {cfg.output} (open {report.name})"
-    )
+    _echo_results(opt, state, metrics, report, echo, note)
     return metrics
 
 
