@@ -107,6 +107,25 @@ def read_text(path: str | os.PathLike, what: str = "file") -> str:
         ) from None
 
 
+def read_json(path: str | os.PathLike, what: str = "file", expected: str = ""):
+    """The parsed JSON of a user's file (:func:`read_text`; NaN and Infinity refused, as JSON
+    does); InputError, one line with the path, line and column, when it is not JSON
+    (``expected``: what the file should have been, added to the message)."""
+    import json
+
+    from clflow.errors import InputError
+
+    def not_a_number(name: str):
+        raise json.JSONDecodeError(f"{name} is not a number JSON allows", name, 0)
+
+    text = read_text(path, what)
+    try:
+        return json.loads(text, parse_constant=not_a_number)
+    except json.JSONDecodeError as exc:
+        where = f"line {exc.lineno}, column {exc.colno}: " if exc.doc is text else ""
+        raise InputError(f"{path}: not valid JSON: {where}{exc.msg}{'; ' + expected if expected else ''}") from None
+
+
 #: files larger than this are known by name and size, not read whole, in content digests
 DIGEST_READ_BYTES = 64 * 2**20
 _DIGESTS: dict[tuple, str] = {}  # (path, size, mtime) -> digest of a file already read

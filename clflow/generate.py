@@ -145,13 +145,9 @@ class ModelInfo:
 
 
 def _read_json(path: Path, where: str) -> dict:
-    from clflow.fileio import read_text
+    from clflow.fileio import read_json
 
-    text = read_text(path, f"{where}: {path.name}")
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{where}: {path.name} is not valid JSON ({exc})") from None
+    data = read_json(path, f"{where}: {path.name}")
     if not isinstance(data, dict):
         raise InputError(f"{where}: {path.name} must hold a JSON object")
     return data

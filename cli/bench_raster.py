@@ -51,7 +51,7 @@ def raster(obj, gaussians: int, size: int, repeat: int, double: bool) -> dict:
 
     from clflow.benchmark import Stopwatch
     from clflow.runtime import get_device, set_default_device
-    from clflow.runtime.arrays import Transfers
+    from clflow.runtime.devices import Transfers
     from clflow.splat.ops import rasterize_gaussians
 
     if obj is not None and obj.device_spec:

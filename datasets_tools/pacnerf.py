@@ -30,14 +30,13 @@ config the material is left to the material query (``material: {type: query}``).
 from __future__ import annotations
 
 import ast
-import json
 import math
 import os
 from pathlib import Path
 from typing import Any, Sequence
 
 from clflow.errors import InputError
-from clflow.fileio import read_text
+from clflow.fileio import read_json, read_text
 
 OBJECT_OPACITY = 0.1  # Gaussians at least this opaque bound the default object box
 BOX_MARGIN = 0.01  # fraction of the box's diagonal added on every side (float rounding, thin objects)
@@ -57,15 +56,12 @@ def read_pacnerf_config(path: str | os.PathLike, _children: tuple[Path, ...] = (
         )
     if path.resolve() in _children:
         raise InputError(f"{_children[-1]}: _base_ {path} is a cycle of base files")
-    text = read_text(path, "PAC-NeRF config")
     if path.suffix.lower() == ".json":
-        try:
-            cfg = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise InputError(f"{path}: invalid JSON at line {exc.lineno}: {exc.msg}") from None
+        cfg = read_json(path, "PAC-NeRF config")
         if not isinstance(cfg, dict):
             raise InputError(f"{path}: expected a JSON object of PAC-NeRF's config keys")
         return cfg
+    text = read_text(path, "PAC-NeRF config")
     try:
         tree = ast.parse(text, str(path))
     except SyntaxError as exc:

@@ -39,7 +39,7 @@ from clflow.mpm.constants import (
 )
 from clflow.runtime.arrays import DeviceArray, numpy_real, real_of
 from clflow.runtime.devices import Device
-from clflow.runtime.sort import DIGIT_BITS, histogram_bytes, radix_sort
+from clflow.runtime.sort import DIGIT_BITS, histogram_bytes, key_ranges, radix_sort
 
 P2GMode = Literal["auto", "private", "atomic", "gather"]
 P2G_MODES = ("auto", "private", "atomic", "gather")
@@ -359,7 +359,6 @@ class SubstepKernels:
             self.grid_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * grid_bytes)
         elif p2g == "gather":
             self.k_cells = k("mpm/p2g_gather.cl", "particle_cells")
-            self.k_ranges = k("mpm/p2g_gather.cl", "cell_ranges")
             self.k_p2g = k("mpm/p2g_gather.cl", "p2g_gather")
             self.cell_key_bits = max(1, (grid.nodes - 1).bit_length())
             # (key, particle) pairs and their sort's spares, each cell's [start, end) of them
@@ -413,7 +412,7 @@ class SubstepKernels:
             ):
                 keys, ids = spare_keys, spare_ids
             self.cell_ranges.zero_()  # empty cells: [0, 0)
-            dev.launch(self.k_ranges, self.n, [keys, self.cell_ranges, n])
+            key_ranges(dev, keys, self.cell_ranges, self.n)
             dev.launch(self.k_p2g, self.grid.nodes, grid_args + p2g_args + [ids, self.cell_ranges, tape.grid_mv])
         else:
             tape.grid_mv.zero_()  # on the device, in queue order: the atomics add onto zeros

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import logging
 import math
 import shutil
@@ -59,13 +58,9 @@ def read_params_record(path: str | Path, cfg):
     config with that velocity (m/s), the parameter overrides (SI; ``density`` in kg/m^3) and
     the substeps per frame the optimiser's final evaluation needed (1 where the record,
     older or of another frame rate, does not say)."""
-    from clflow.fileio import read_text
+    from clflow.fileio import read_json
 
-    text = read_text(path, "params file")
-    try:
-        record = json.loads(text)
-    except ValueError as exc:
-        raise InputError(f"{path}: not valid JSON ({exc}); expected the params.json clflow optimize writes") from None
+    record = read_json(path, "params file", "expected the params.json clflow optimize writes")
     missing = [key for key in ("parameters", "density") if not isinstance(record, dict) or key not in record]
     if missing:
         raise InputError(

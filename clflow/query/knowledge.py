@@ -309,15 +309,9 @@ def load_knowledge_base(path: str | Path | None = None) -> KnowledgeBase:
     """
     if path is None:
         return _shipped_knowledge_base()
-    from clflow.fileio import read_text
+    from clflow.fileio import read_json
 
-    path = Path(path)
-    text = read_text(path, "knowledge base")
-    try:
-        raw = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid JSON: {exc}") from None
-    return _parse(raw, str(path))
+    return _parse(read_json(path, "knowledge base"), str(path))
 
 
 @functools.cache

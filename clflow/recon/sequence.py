@@ -103,18 +103,13 @@ def pacnerf_camera(c2w, intrinsic, width: int, height: int, name: str = "") -> C
 def load_sequence(path: str | os.PathLike) -> Sequence:
     """Read and check a PAC-NeRF-style index (the folder holding ``all_data.json``, or the
     file); see the module docstring. Reads one image per camera for its size."""
-    import json
 
     from clflow.media import read_image
 
     index = find_index(path)
-    from clflow.fileio import read_text
+    from clflow.fileio import read_json
 
-    text = read_text(index, "sequence index")
-    try:
-        entries = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{index}: not valid JSON ({exc})") from None
+    entries = read_json(index, "sequence index")
     if not isinstance(entries, list) or not entries:
         raise InputError(f"{index}: expected a non-empty JSON list of image entries")
     table: dict[tuple[int, int], dict] = {}

@@ -1,5 +1,5 @@
 """A stable radix sort of (uint32 key, int32 value) pairs on the device, and an exclusive
-prefix sum (kernels_cl/common/sort.cl): every position depends on the keys alone, so the
+prefix sum and each key's range in the sorted keys (kernels_cl/common/sort.cl): every position depends on the keys alone, so the
 result is deterministic and equal keys keep their order. The rasteriser sorts its tile
 entries with it, the simulator its particles by grid cell.
 
@@ -60,6 +60,12 @@ def radix_sort(device: Device, pair, spare, n: int, key_bits: int, digit_bits: i
 def scan_exclusive(device: Device, src, dst, n: int) -> None:
     """dst[i] = sum of src[:i] for i = 0..n (dst holds n + 1 int32; dst[n] the total)."""
     device.launch(device.kernel("common/sort.cl", "scan_exclusive"), 1, [src, dst, np.int32(n)], 1)
+
+
+def key_ranges(device: Device, keys, ranges, n: int) -> None:
+    """ranges[k] = [start, end) of key k in the first ``n`` sorted ``keys`` (ranges [K, 2]
+    int32, filled with zeros beforehand for the keys that do not occur)."""
+    device.launch(device.kernel("common/sort.cl", "key_ranges"), n, [keys, ranges, np.int32(n)])
 
 
 def sort_pairs(keys: torch.Tensor, values: torch.Tensor, key_bits: int = 32, device: Device | None = None):

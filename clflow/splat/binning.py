@@ -16,7 +16,7 @@ from clflow.errors import InputError
 from clflow.runtime.arrays import real_of
 from clflow.runtime.bridge import bind
 from clflow.runtime.devices import Device, get_device
-from clflow.runtime.sort import histogram_bytes, radix_sort, scan_exclusive
+from clflow.runtime.sort import histogram_bytes, key_ranges, radix_sort, scan_exclusive
 from clflow.splat.constants import SPLAT_DEFINES, TILE_SIZE
 
 DEPTH_DIGIT_BITS = 8  # 32-bit depth keys: 4 passes of 8 bits
@@ -130,7 +130,7 @@ def build_tile_lists(
         )
         swapped = radix_sort(device, tile_pairs[:2], tile_pairs[2:], m, tile_bits, TILE_DIGIT_BITS, hist)
         keys, slots = (tile_pairs[2], tile_pairs[3]) if swapped else (tile_pairs[0], tile_pairs[1])
-        device.launch(kern("tile_ranges"), m, [keys, b.inout(ranges), np.int32(m)])
+        key_ranges(device, keys, b.inout(ranges), m)
         sorted_slots = torch.empty(m, dtype=torch.int32)
         b.copy_to(sorted_slots, slots)
     return TileLists(ranges, sorted_slots, slot_gaussian, first_slot, tiles_touched)

@@ -444,13 +444,9 @@ def _located(fn, where: str, *args) -> Camera:
 
 
 def _read_json(path: str | os.PathLike) -> Any:
-    from clflow.fileio import read_text
+    from clflow.fileio import read_json
 
-    text = read_text(path, "camera file")
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}") from None
+    return read_json(path, "camera file")
 
 
 def _image_size(folder: Path, frame: dict, where: str) -> tuple[int, int]:

@@ -1,4 +1,5 @@
-/* Stable LSD radix sort of (uint key, int value) pairs and an exclusive prefix sum.
+/* Stable LSD radix sort of (uint key, int value) pairs, an exclusive prefix sum, and where
+ * each key's run lies in sorted keys.
  *
  * One pass sorts by the digit (key >> shift) & mask. The n pairs are cut into nblocks
  * contiguous blocks of block_len; work-item b walks block b in order:
@@ -53,4 +54,18 @@ __kernel void scan_exclusive(__global const int *in, __global int *out, const in
         total += x;
     }
     out[n] = total;
+}
+
+/* ranges[2 k] = first position of key k in the sorted keys, ranges[2 k + 1] = one past its
+ * last; keys absent from them keep what the host filled in (zeros: empty). */
+__kernel void key_ranges(__global const uint *keys, __global int *ranges, const int n)
+{
+    const int i = get_global_id(0);
+    if (i >= n)
+        return;
+    const uint k = keys[i];
+    if (i == 0 || keys[i - 1] != k)
+        ranges[2 * k] = i;
+    if (i == n - 1 || keys[i + 1] != k)
+        ranges[2 * k + 1] = i + 1;
 }

@@ -10,7 +10,8 @@
  *
  *   particle_cells : x -> key[p] = flat index of p's base node, id[p] = p
  *   (radix sort of (key, id), clflow.runtime.sort)
- *   cell_ranges    : sorted keys -> ranges[2 cell] = [start, end) of the cell (zero-filled)
+ *   key_ranges     : sorted keys -> ranges[2 cell] = [start, end) of the cell (zero-filled;
+ *                    common/sort.cl, clflow.runtime.sort)
  *   p2g_gather     : one work-item per node */
 #include "mpm/mpm.h"
 
@@ -28,19 +29,6 @@ __kernel void particle_cells(P2G_GRID_ARGS, const int n, __global const real *x,
     const stencil_t st = make_stencil(&g, xp);
     key[p] = (uint)grid_index(&g, st.base[0], st.base[1], st.base[2]);
     id[p] = p;
-}
-
-/* ranges[2 c] = first sorted position of cell c, ranges[2 c + 1] = one past its last. */
-__kernel void cell_ranges(__global const uint *key, __global int *ranges, const int n)
-{
-    const int s = get_global_id(0);
-    if (s >= n)
-        return;
-    const uint c = key[s];
-    if (s == 0 || key[s - 1] != c)
-        ranges[2 * c] = s;
-    if (s == n - 1 || key[s + 1] != c)
-        ranges[2 * c + 1] = s + 1;
 }
 
 __kernel void p2g_gather(P2G_GRID_ARGS, const int n, const real dt, __global const real *x, __global const real *v,

@@ -6,7 +6,7 @@
  * 2. emit_entries: in depth order, Gaussian g writes its entries at slots
  *    [first_slot[g], first_slot[g] + tiles_touched[g]); key = tile id, value = slot.
  * 3. a stable radix sort by tile keeps the depth order inside each tile.
- * 4. tile_ranges: [start, end) of each tile in the sorted list.
+ * 4. key_ranges (common/sort.cl): [start, end) of each tile in the sorted list.
  * A slot is the row of the backward pass's per-(tile, Gaussian) gradient buffer; the slots
  * of one Gaussian are contiguous, so it sums them in a fixed order. */
 #include "splat/common.h"
@@ -54,18 +54,4 @@ __kernel void emit_entries(__global const int *order, __global const int *offset
             ++slot;
         }
     }
-}
-
-/* ranges[t] = (start, end) of tile t in the sorted keys (zeros for an empty tile, set by
- * the host). */
-__kernel void tile_ranges(__global const uint *tile_keys, __global int *ranges, const int m)
-{
-    const int i = get_global_id(0);
-    if (i >= m)
-        return;
-    const uint t = tile_keys[i];
-    if (i == 0 || tile_keys[i - 1] != t)
-        ranges[2 * t] = i;
-    if (i == m - 1 || tile_keys[i + 1] != t)
-        ranges[2 * t + 1] = i + 1;
 }

@@ -175,7 +175,7 @@ ROT = np.eye(3).tolist()
 @pytest.mark.parametrize(
     "content, message",
     [
-        ("{not json", "invalid JSON at line 1"),
+        ("{not json", "not valid JSON: line 1"),
         ("{}", "non-empty JSON list"),
         (json.dumps([dict(width=4, height=4, position=[0, 0, 0], rotation=ROT, fx=1)]), "camera 0: missing keys fy"),
         (

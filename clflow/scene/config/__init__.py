@@ -14,54 +14,9 @@ and range checked, errors naming file and key), ``parse`` (a parsed config check
 SceneConfig) and ``files`` (strict YAML/JSON, ``--set`` overrides, load_config).
 """
 
+from clflow.scene.config import settings
 from clflow.scene.config.files import load_config
 from clflow.scene.config.parse import parse_config
-from clflow.scene.config.settings import (
-    DEFAULT_MAX_SUBSTEPS,
-    FLOW_LOSSES,
-    FLOW_METHODS,
-    MATERIAL_MODELS,
-    OPTIMIZERS,
-    UP_AXES,
-    VELOCITY,
-    VELOCITY_COMPONENTS,
-    CameraConfig,
-    Collider,
-    FillSettings,
-    FlowSettings,
-    ForceStage,
-    GenerateSettings,
-    GuidanceView,
-    MaterialConfig,
-    OptimizeSettings,
-    SceneConfig,
-    SearchSettings,
-    Selection,
-    SimulationSettings,
-)
+from clflow.scene.config.settings import *  # noqa: F403  (the config's types and names: settings.__all__)
 
-__all__ = [
-    "CameraConfig",
-    "Collider",
-    "DEFAULT_MAX_SUBSTEPS",
-    "FLOW_LOSSES",
-    "FLOW_METHODS",
-    "FillSettings",
-    "FlowSettings",
-    "ForceStage",
-    "GenerateSettings",
-    "GuidanceView",
-    "MATERIAL_MODELS",
-    "MaterialConfig",
-    "OPTIMIZERS",
-    "OptimizeSettings",
-    "SceneConfig",
-    "SearchSettings",
-    "Selection",
-    "SimulationSettings",
-    "UP_AXES",
-    "VELOCITY",
-    "VELOCITY_COMPONENTS",
-    "load_config",
-    "parse_config",
-]
+__all__ = [*settings.__all__, "load_config", "parse_config"]

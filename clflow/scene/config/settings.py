@@ -212,3 +212,28 @@ class SceneConfig:
     more_views: tuple[GuidanceView, ...] = ()  # views 1.. when camera and video are lists; view 0 is camera, video
     generate: GenerateSettings | None = None  # video: {generate: ...}; video is None until it is made
     dataparser_transforms: Path | None = None  # nerfstudio's: camera files' frame -> the splat file's
+
+
+__all__ = [
+    "CameraConfig",
+    "Collider",
+    "DEFAULT_MAX_SUBSTEPS",
+    "FLOW_LOSSES",
+    "FLOW_METHODS",
+    "FillSettings",
+    "FlowSettings",
+    "ForceStage",
+    "GenerateSettings",
+    "GuidanceView",
+    "MATERIAL_MODELS",
+    "MaterialConfig",
+    "OPTIMIZERS",
+    "OptimizeSettings",
+    "SceneConfig",
+    "SearchSettings",
+    "Selection",
+    "SimulationSettings",
+    "UP_AXES",
+    "VELOCITY",
+    "VELOCITY_COMPONENTS",
+]
