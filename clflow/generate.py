@@ -483,16 +483,7 @@ def generate_video(
     t0 = time.perf_counter()
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     if device == "cpu":
-        log.warning(
-            "no CUDA device: generating on the CPU (%d cores) takes about %s for %s at %dx%d, %d frames, "
-            "%d steps (a rough estimate from the weights' size; measured after the first step)",
-            os.cpu_count() or 1,
-            format_duration(estimate_seconds(info, resolved)),
-            info.path.name,
-            *resolved.size,
-            resolved.frames,
-            resolved.steps,
-        )
+        _warn_cpu_time(info, resolved)
     dtype = torch.float32 if device == "cpu" else (torch.bfloat16 if info.uses_prompt else torch.float16)
     pipe = _load(info, dtype)
     options = _memory_options(pipe, resolved.request, device)
@@ -502,6 +493,69 @@ def generate_video(
     load_s = time.perf_counter() - t0
 
     model_image, placement = fit_image(image, resolved.size, resolved.request.fit)
+    start = time.perf_counter()
+    out = _run_pipeline(pipe, info, resolved, model_image, device, progress)
+    generate_s = time.perf_counter() - start
+    video = np.asarray(out.frames[0], np.float32)  # [T, h, w, 3] in [0, 1]
+    if video.shape[0] != resolved.frames:  # check_request's rule for this model is wrong: say so
+        raise ClflowError(
+            f"{info.path}: the model made {video.shape[0]} frames, not the {resolved.frames} asked for; "
+            f"please report this with the model's model_index.json"
+        )
+    frames = to_uint8(video)
+    if resolved.request.output_size == "image":
+        frames = restore_frames(frames, placement)
+    timings = {"load_s": load_s, "generate_s": generate_s}
+    return frames, _record(info, resolved, frames, placement, image, device, dtype, options, timings)
+
+
+def _record(info, resolved, frames, placement, image, device, dtype, options, timings) -> dict:
+    """The run's record: request, model, sizes, placement, device, timings (s), versions."""
+    load_s, generate_s = timings["load_s"], timings["generate_s"]
+    return {
+        "prompt": resolved.request.prompt if info.uses_prompt else None,
+        "negative_prompt": resolved.request.negative_prompt or None,
+        "model": {"path": str(info.path), "class": info.class_name, "family": info.family.name},
+        "seed": resolved.request.seed,
+        "steps": resolved.steps,
+        "guidance_scale": resolved.guidance_scale,
+        "frames": int(frames.shape[0]),
+        "fps": resolved.fps,
+        "model_size": list(resolved.size),
+        "size": [int(frames.shape[2]), int(frames.shape[1])],
+        "fit": resolved.request.fit,
+        "output_size": resolved.request.output_size,
+        "placement": {"box": list(placement.box), "image_size": list(image.shape[1::-1])},
+        "device": device,
+        "dtype": str(dtype).removeprefix("torch."),
+        "memory_options": options,
+        "timings": {
+            "load_s": round(load_s, 3),
+            "generate_s": round(generate_s, 3),
+            "per_step_s": round(generate_s / resolved.steps, 3),
+        },
+        "versions": environment(("diffusers", "transformers", "accelerate"), opencl=False),
+    }
+
+
+def _warn_cpu_time(info: ModelInfo, resolved) -> None:
+    """Warn that generating on the CPU is slow, with a rough estimate of how slow."""
+    log.warning(
+        "no CUDA device: generating on the CPU (%d cores) takes about %s for %s at %dx%d, %d frames, "
+        "%d steps (a rough estimate from the weights' size; measured after the first step)",
+        os.cpu_count() or 1,
+        format_duration(estimate_seconds(info, resolved)),
+        info.path.name,
+        *resolved.size,
+        resolved.frames,
+        resolved.steps,
+    )
+
+
+def _run_pipeline(pipe, info: ModelInfo, resolved, model_image: np.ndarray, device: str, progress):
+    """The diffusers pipeline's output for ``model_image`` [h, w, 3] uint8 (frames in [0, 1]);
+    ``progress(step, steps)`` after each denoising step."""
+    import torch
     from PIL import Image
 
     step_times: list[float] = []
@@ -533,55 +587,19 @@ def generate_video(
     )
     with torch.inference_mode():
         if info.uses_prompt:
-            out = pipe(
+            return pipe(
                 prompt=resolved.request.prompt,
                 negative_prompt=resolved.request.negative_prompt or None,
                 guidance_scale=resolved.guidance_scale,
                 max_sequence_length=info.max_text_tokens,
                 **common,
             )
-        else:
-            out = pipe(
-                min_guidance_scale=1.0,
-                max_guidance_scale=resolved.guidance_scale,
-                fps=max(1, round(resolved.fps)),
-                **common,
-            )
-    generate_s = time.perf_counter() - start
-    video = np.asarray(out.frames[0], np.float32)  # [T, h, w, 3] in [0, 1]
-    if video.shape[0] != resolved.frames:  # check_request's rule for this model is wrong: say so
-        raise ClflowError(
-            f"{info.path}: the model made {video.shape[0]} frames, not the {resolved.frames} asked for; "
-            f"please report this with the model's model_index.json"
+        return pipe(
+            min_guidance_scale=1.0,
+            max_guidance_scale=resolved.guidance_scale,
+            fps=max(1, round(resolved.fps)),
+            **common,
         )
-    frames = to_uint8(video)
-    if resolved.request.output_size == "image":
-        frames = restore_frames(frames, placement)
-    record = {
-        "prompt": resolved.request.prompt if info.uses_prompt else None,
-        "negative_prompt": resolved.request.negative_prompt or None,
-        "model": {"path": str(info.path), "class": info.class_name, "family": info.family.name},
-        "seed": resolved.request.seed,
-        "steps": resolved.steps,
-        "guidance_scale": resolved.guidance_scale,
-        "frames": int(frames.shape[0]),
-        "fps": resolved.fps,
-        "model_size": list(resolved.size),
-        "size": [int(frames.shape[2]), int(frames.shape[1])],
-        "fit": resolved.request.fit,
-        "output_size": resolved.request.output_size,
-        "placement": {"box": list(placement.box), "image_size": list(image.shape[1::-1])},
-        "device": device,
-        "dtype": str(dtype).removeprefix("torch."),
-        "memory_options": options,
-        "timings": {
-            "load_s": round(load_s, 3),
-            "generate_s": round(generate_s, 3),
-            "per_step_s": round(generate_s / resolved.steps, 3),
-        },
-        "versions": environment(("diffusers", "transformers", "accelerate"), opencl=False),
-    }
-    return frames, record
 
 
 def _load(info: ModelInfo, dtype):

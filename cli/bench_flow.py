@@ -3,6 +3,7 @@
 import click
 
 from clflow_cli.bench import bench_command
+from clflow_cli.options import count_option
 
 
 def bench_observed(frame_count: int, size: int) -> dict:
@@ -102,25 +103,11 @@ def bench_simulated(gaussians: int, frame_count: int, size: int, repeat: int) ->
 
 
 @bench_command("flow")
-@click.option(
-    "--frames", type=click.IntRange(min=1), default=49, show_default=True, help="Frames of the observed-flow video."
-)
-@click.option(
-    "--size", type=click.IntRange(min=1), default=512, show_default=True, help="Frame width and height (pixels)."
-)
-@click.option(
-    "-n",
-    "--gaussians",
-    type=click.IntRange(min=1),
-    default=100_000,
-    show_default=True,
-    help="Gaussians of the simulated flow.",
-)
-@click.option(
-    "--sim-frames", type=click.IntRange(min=1), default=24, show_default=True, help="Frame pairs of the simulated flow."
-)
-@click.option("--repeat", type=click.IntRange(min=1), default=1, show_default=True,
-              help="Timed runs of the simulated flow (median printed).")  # fmt: skip
+@count_option("--frames", default=49, help="Frames of the observed-flow video.")
+@count_option("--size", default=512, help="Frame width and height (pixels).")
+@count_option("-n", "--gaussians", default=100_000, help="Gaussians of the simulated flow.")
+@count_option("--sim-frames", default=24, help="Frame pairs of the simulated flow.")
+@count_option('--repeat', default=1, help="Timed runs of the simulated flow (median printed).")  # fmt: skip
 @click.option("--observed/--no-observed", default=True, help="Run the observed-flow part.")
 @click.option("--simulated/--no-simulated", default=True, help="Run the simulated-flow part.")
 @click.pass_obj

@@ -3,7 +3,7 @@
 import click
 
 from clflow_cli.bench import bench_command
-from clflow_cli.options import double_option
+from clflow_cli.options import count_option, double_option
 
 PARTICLES_PER_AXIS = 64  # 64^3 = 262,144 particles: a cube of 32^3 cells at 2^3 per cell
 GRID = 64
@@ -27,11 +27,8 @@ def timed_substeps(sim, substeps: int) -> None:
 
 
 @bench_command("mpm")
-@click.option(
-    "--substeps", type=click.IntRange(min=1), default=10, show_default=True, help="Timed substeps per material."
-)
-@click.option("--particles-per-axis", type=click.IntRange(min=1), default=PARTICLES_PER_AXIS, show_default=True,
-              help="Particles per axis of the cube (total = cube of it).")  # fmt: skip
+@count_option("--substeps", default=10, help="Timed substeps per material.")
+@count_option('--particles-per-axis', default=PARTICLES_PER_AXIS, help="Particles per axis of the cube (total = cube of it).")  # fmt: skip
 @click.option(
     "--grid", "grid_res", type=click.IntRange(min=8), default=GRID, show_default=True, help="Grid nodes per axis."
 )

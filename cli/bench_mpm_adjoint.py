@@ -4,24 +4,9 @@ differentiable MPM run, and its peak memory against the checkpointing formula.""
 import click
 
 from clflow_cli.bench import bench_command
-from clflow_cli.options import double_option
+from clflow_cli.options import count_option, double_option
 
 
-@bench_command("mpm-adjoint")
-@click.option(
-    "--particles",
-    type=click.IntRange(min=1),
-    default=65536,
-    show_default=True,
-    help="Particles (a 2:1:1 block, 2 per cell and axis).",
-)
-@click.option(
-    "--grid", "grid_res", type=click.IntRange(min=1), default=64, show_default=True, help="Grid nodes per axis."
-)
-@click.option("--frames", type=click.IntRange(min=1), default=10, show_default=True)
-@click.option("--substeps", type=click.IntRange(min=1), default=20, show_default=True, help="Substeps per frame.")
-@double_option
-@click.pass_context
 def _block(particles: int, h: float):
     """About ``particles`` positions [N, 3] m, (2 ny) x ny x ny at spacing ``h`` around (0.5, 0.5, 0.5)."""
     import torch
@@ -53,6 +38,13 @@ def _echo_copies(copied: dict, steps: int, frames: int) -> None:
         )
 
 
+@bench_command("mpm-adjoint")
+@count_option("--particles", default=65536, help="Particles (a 2:1:1 block, 2 per cell and axis).")
+@count_option("--grid", "grid_res", default=64, help="Grid nodes per axis.")
+@count_option("--frames", default=10)
+@count_option("--substeps", default=20, help="Substeps per frame.")
+@double_option
+@click.pass_context
 def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
     """Elastic block thrown against the floor: forward seconds, backward seconds (incl. replay),
     their ratio (target <= 3), and peak memory (measured RSS growth vs the formula)."""

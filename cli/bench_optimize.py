@@ -3,6 +3,7 @@
 import click
 
 from clflow_cli.bench import bench_command
+from clflow_cli.options import count_option
 
 
 @bench_command("optimize")
@@ -11,7 +12,7 @@ from clflow_cli.bench import bench_command
 @click.option("--image", type=click.IntRange(min=16), default=256, show_default=True, help="Guidance image side, px.")
 @click.option("--frames", type=click.IntRange(min=2), default=12, show_default=True, help="Frames simulated.")
 @click.option("--grid", type=click.IntRange(min=8), default=24, show_default=True, help="Grid nodes along the longest side.")  # fmt: skip
-@click.option("--iterations", type=click.IntRange(min=1), default=2, show_default=True, help="Iterations timed.")
+@count_option("--iterations", default=2, help="Iterations timed.")
 def optimize(gaussians, image, frames, grid, iterations):
     """Make a demo-like scene (datasets_tools), then time full-horizon iterations of
     `clflow optimize`: simulate + adjoint, render simulated flow, loss and its backward."""

@@ -3,15 +3,15 @@
 import click
 
 from clflow_cli.bench import bench_command
+from clflow_cli.options import count_option
 
 
 @bench_command("ply")
-@click.option("--gaussians", "count", type=click.IntRange(min=1), default=1_000_000, show_default=True,
-              help="Number of Gaussians in the file.")  # fmt: skip
+@count_option('--gaussians', 'count', default=1_000_000, help="Number of Gaussians in the file.")  # fmt: skip
 @click.option("--sh-degree", type=click.IntRange(0, 3), default=3, show_default=True)
 @click.option("--points", type=click.IntRange(min=0), default=100_000, show_default=True,
               help="Points for Gaussians.from_points (3-NN scales); 0 skips it.")  # fmt: skip
-@click.option("--repeat", type=click.IntRange(min=1), default=3, show_default=True, help="Timed runs (median reported).")  # fmt: skip
+@count_option('--repeat', default=3, help="Timed runs (median reported).")  # fmt: skip
 def ply(count: int, sh_degree: int, points: int, repeat: int) -> dict:
     """Median time of save_ply and load_ply (binary float32, INRIA layout) and of from_points."""
     import tempfile

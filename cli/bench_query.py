@@ -3,11 +3,11 @@
 import click
 
 from clflow_cli.bench import bench_command
+from clflow_cli.options import count_option
 
 
 @bench_command("query")
-@click.option("--repeat", type=click.IntRange(min=1), default=20, show_default=True,
-              help="Timed repetitions of each measurement (the median is reported).")  # fmt: skip
+@count_option('--repeat', default=20, help="Timed repetitions of each measurement (the median is reported).")  # fmt: skip
 def query(repeat: int) -> dict:
     """Offline knowledge-base lookups and image preparation for the model backend.
 

@@ -3,7 +3,7 @@
 import click
 
 from clflow_cli.bench import bench_command
-from clflow_cli.options import double_option
+from clflow_cli.options import count_option, double_option
 
 
 def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=None):
@@ -33,14 +33,9 @@ def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=None):
 
 
 @bench_command("raster")
-@click.option(
-    "-n", "--gaussians", type=click.IntRange(min=1), default=100_000, show_default=True, help="Number of Gaussians."
-)
-@click.option(
-    "--size", type=click.IntRange(min=1), default=512, show_default=True, help="Image width and height (pixels)."
-)
-@click.option("--repeat", type=click.IntRange(min=1), default=10, show_default=True,
-              help="Timed runs (the median is printed).")  # fmt: skip
+@count_option("-n", "--gaussians", default=100_000, help="Number of Gaussians.")
+@count_option("--size", default=512, help="Image width and height (pixels).")
+@count_option('--repeat', default=10, help="Timed runs (the median is printed).")  # fmt: skip
 @double_option
 @click.pass_obj
 def raster(obj, gaussians: int, size: int, repeat: int, double: bool) -> dict:

@@ -4,6 +4,7 @@ on a procedural capture (datasets_tools.multiview)."""
 import click
 
 from clflow_cli.bench import bench_command
+from clflow_cli.options import count_option
 
 THRESHOLDS_DB = (25.0, 28.0)
 
@@ -14,10 +15,9 @@ THRESHOLDS_DB = (25.0, 28.0)
 @click.option("--shape", type=click.Choice(["sphere", "cube", "torus"]), default="sphere", show_default=True)
 @click.option("--detail", type=click.IntRange(min=2), default=32, show_default=True,
               help="Ground-truth Gaussians per face side (6 detail^2 in all).")  # fmt: skip
-@click.option("--iterations", type=click.IntRange(min=1), default=3000, show_default=True)
-@click.option("--init-points", type=click.IntRange(min=1), default=5000, show_default=True)
-@click.option("--eval-every", type=click.IntRange(min=1), default=250, show_default=True,
-              help="Held-out PSNR every N iterations (not timed).")  # fmt: skip
+@count_option("--iterations", default=3000)
+@count_option("--init-points", default=5000)
+@count_option('--eval-every', default=250, help="Held-out PSNR every N iterations (not timed).")  # fmt: skip
 def reconstruct(views, size, shape, detail, iterations, init_points, eval_every) -> dict:
     """Iterations per second, held-out PSNR / SSIM and seconds to reach 25 and 28 dB.
 

@@ -7,7 +7,7 @@ import sys
 import click
 
 from clflow_cli.main import Interrupted
-from clflow_cli.options import LazyHelpOption, out_option
+from clflow_cli.options import LazyHelpOption, count_option, out_option
 from clflow_cli.sweep import parse_resources, with_ray_options
 
 
@@ -28,8 +28,7 @@ def _case_help() -> str:
               help="Three cases (elastic torus, plasticine playdoh, Newtonian droplet) at a small grid and image: "
                    "minutes, for CI.")  # fmt: skip
 @click.option("--iterations", type=click.IntRange(min=1), default=None, help="Override the iterations per case.")
-@click.option("--truth-scale", type=click.IntRange(min=1), default=2, show_default=True,
-              help="Grid and image refinement of the ground truth (1 reproduces the optimiser's own forward: "
+@count_option('--truth-scale', default=2, help="Grid and image refinement of the ground truth (1 reproduces the optimiser's own forward: "
                    "an inverse crime, for diagnosis only).")  # fmt: skip
 @click.option("--noise", type=click.FloatRange(min=0.0), default=0.0, show_default=True,
               help="Sensor noise added to the guidance frames, 8-bit grey levels (standard deviation).")  # fmt: skip

@@ -166,6 +166,13 @@ max_output_option = click.option(
 double_option = click.option("--double", is_flag=True, help="float64 instead of float32.")
 
 
+def count_option(*decls: str, default: int | None = None, help: str | None = None):
+    """A whole-number option of at least 1 (particles, frames, repeats), its default shown."""
+    return click.option(
+        *decls, type=click.IntRange(min=1), default=default, show_default=default is not None, help=help
+    )
+
+
 def set_option(help: str):
     """``--set KEY.SUB=VALUE`` (repeatable) into ``overrides``: config keys, values read as YAML."""
     return click.option("--set", "overrides", multiple=True, metavar="KEY.SUB=VALUE", help=help)

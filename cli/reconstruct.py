@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from clflow_cli.main import Interrupted
-from clflow_cli.options import InputFile, out_option
+from clflow_cli.options import InputFile, count_option, out_option
 from clflow_cli.progress import progress
 
 LOG_EVERY = 100  # iterations between progress lines when stderr is not a terminal
@@ -25,22 +25,20 @@ LOG_EVERY = 100  # iterations between progress lines when stderr is not a termin
               help="Folder of masks named like the images (white = object); default: the images' alpha channel, if any.")  # fmt: skip
 @click.option("--background", type=click.Choice(["black", "white"]), default="black", show_default=True,
               help="Colour behind the masked object, in the targets and the renders.")  # fmt: skip
-@click.option("--iterations", type=click.IntRange(min=1), help="Training iterations (default 7000).")
+@count_option("--iterations", help="Training iterations (default 7000).")
 @click.option("--seed", type=int, help="Seeds the initial points, view order and splits (default 0).")
 @click.option("--sh-degree", type=click.IntRange(0, 3), help="Highest SH degree (default 3).")
-@click.option("--sh-every", type=click.IntRange(min=1), help="Raise the SH degree by one every N iterations (default 1000).")  # fmt: skip
+@count_option('--sh-every', help="Raise the SH degree by one every N iterations (default 1000).")  # fmt: skip
 @click.option("--densify-from", type=click.IntRange(min=0), help="First densification after this iteration (default 500).")  # fmt: skip
 @click.option("--densify-until", type=click.IntRange(min=0), help="Last densification at this iteration (default 3500).")  # fmt: skip
-@click.option("--densify-every", type=click.IntRange(min=1), help="Densify every N iterations (default 100).")
-@click.option("--reset-every", type=click.IntRange(min=1),
-              help="Reset the opacities every N iterations while densifying (default 3000).")  # fmt: skip
-@click.option("--init-points", type=click.IntRange(min=1),
-              help="Random initial Gaussians when the cameras bring no point cloud (COLMAP's points3D; default 10000).")  # fmt: skip
+@count_option("--densify-every", help="Densify every N iterations (default 100).")
+@count_option('--reset-every', help="Reset the opacities every N iterations while densifying (default 3000).")  # fmt: skip
+@count_option('--init-points', help="Random initial Gaussians when the cameras bring no point cloud (COLMAP's points3D; default 10000).")  # fmt: skip
 @click.option("--holdout-every", type=click.IntRange(min=0),
               help="Hold out views 0, N, 2N, ... for the metrics (0: none; default 8).")  # fmt: skip
 @click.option("--preview-every", type=click.IntRange(min=0), default=500, show_default=True,
               help="Write preview/iter_N.png (render | target of a held-out view) every N iterations (0: never).")  # fmt: skip
-@click.option("--checkpoint-every", type=click.IntRange(min=1), default=1000, show_default=True)
+@count_option("--checkpoint-every", default=1000)
 @click.option("--resume", is_flag=True, help="Continue from OUT/checkpoint.pt with the same options.")
 @click.option("--depth", type=InputFile(),
               help="Single image + depth: IMAGES is one image, this its depth map (.npy in m, or 16-bit PNG); no training.")  # fmt: skip

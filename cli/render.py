@@ -7,7 +7,7 @@ import re
 
 import click
 
-from clflow_cli.options import FiniteFloat, InputFile, Numbers, OutputPath, max_output_option, out_option
+from clflow_cli.options import FiniteFloat, InputFile, Numbers, OutputPath, count_option, max_output_option, out_option
 
 VIDEO_SUFFIXES = (".mp4", ".gif")
 
@@ -29,14 +29,14 @@ VIDEO_SUFFIXES = (".mp4", ".gif")
 @click.option("--target", type=Numbers(3), help="Look-at target X,Y,Z (m); default: the scene centre.")
 @click.option("--up", type=Numbers(3), default="0,1,0", show_default=True,
               help="World up direction (+y, as scene configs; NeRF synthetic and Blender scenes: 0,0,1).")  # fmt: skip
-@click.option("--orbit", "n_orbit", type=click.IntRange(min=1), help="Render N views on a circle around the target.")
+@count_option("--orbit", "n_orbit", help="Render N views on a circle around the target.")
 @click.option("--elevation", type=FiniteFloat(), default=20.0, show_default=True,
               help="Orbit / default view elevation above the horizontal plane, degrees.")  # fmt: skip
 @click.option("--azimuth", type=FiniteFloat(), default=0.0, show_default=True, help="First orbit / default view azimuth, degrees.")  # fmt: skip
 @click.option("--fov", type=FiniteFloat(1, 179), default=50.0, show_default=True,
               help="Horizontal field of view of generated views, degrees.")  # fmt: skip
-@click.option("--width", type=click.IntRange(min=1), default=512, show_default=True, help="Image width of generated views, pixels.")  # fmt: skip
-@click.option("--height", type=click.IntRange(min=1), default=512, show_default=True, help="Image height of generated views, pixels.")  # fmt: skip
+@count_option('--width', default=512, help="Image width of generated views, pixels.")  # fmt: skip
+@count_option('--height', default=512, help="Image height of generated views, pixels.")  # fmt: skip
 @click.option("--background", type=Numbers(3), default="0,0,0", show_default=True, help="Background colour R,G,B in [0, 1].")  # fmt: skip
 @click.option("--sh-degree", type=click.IntRange(0, 3), help="Evaluate SH only up to this degree (default: all).")
 @click.option("--video", type=OutputPath(file=True), help="Also write the views as a video (.mp4 or .gif).")

@@ -6,6 +6,7 @@ from clflow_cli.options import (
     InputFile,
     Numbers,
     aliased_option,
+    count_option,
     max_output_option,
     max_substeps_option,
     out_option,
@@ -65,7 +66,7 @@ SCENE_OPTIONS = (
               help="Grid nodes per axis.")  # fmt: skip
 @click.option("--particle-volume", type=click.FloatRange(0, min_open=True), default=None,
               help="Rest volume per particle (m^3) for particle files without one; default (dx/2)^3.")  # fmt: skip
-@click.option("--frames", type=click.IntRange(min=1), default=24, show_default=True, help="Frames to simulate.")
+@count_option("--frames", default=24, help="Frames to simulate.")
 @click.option("--fps", type=click.FloatRange(0, min_open=True), default=24.0, show_default=True,
               help="Frames per second.")  # fmt: skip
 @click.option("--substeps", type=click.IntRange(min=1), default=None,

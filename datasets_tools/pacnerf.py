@@ -243,40 +243,103 @@ def make_scene(
             camera and frame counts, parameters to fit.
         box: object box (min xyz, max xyz, m); default: around the opaque Gaussians.
         ground: ground height (m, y up), over the config's.
-        background: RGB in [0, 1] behind the masked object in the video (white: clflow's
-            optimiser renders the scene over white, clflow.pipeline.render.render_rgb).
+        background: RGB in [0, 1] behind the masked object (white: what the optimiser renders over).
         fps: frame rate over the config's frame_dt and the index's times.
         prompt: text for the material query (without a config).
         optimize: parameter names to fit, over the config's physical_params.
         video: the guidance video's file name (suffix: a format of clflow.media.write_video).
 
-    Returns a summary: frames, fps and where it came from, material, parameters to fit, the
-    object box and the written files.
+    Returns a summary: config path, frames, fps and its source, camera, material, fit, box.
     """
     import shutil
 
     import numpy as np
-    import torch
-    import yaml
 
     from clflow.fileio import atomic_dir, atomic_path
-    from clflow.media import to_uint8, write_image, write_video
+    from clflow.media import write_image, write_video
     from clflow.recon.sequence import load_sequence
-    from clflow.recon.views import load_view
-    from clflow.scene.config import parse_config
     from clflow.splat.cameras import save_transforms_json
     from clflow.splat.ply import load_ply
 
     seq = load_sequence(data)
     seq.check_camera(camera)
-    splats = Path(splats)
-    ply = splats / "point_cloud.ply" if splats.is_dir() else splats
-    if not ply.is_file():
-        raise InputError(f"{splats}: no splats (a PLY file, or the folder clflow reconstruct wrote point_cloud.ply in)")
+    ply = _splat_file(Path(splats))
     pac = read_pacnerf_config(config) if config is not None else {}
     where = str(config)
     if "n_cameras" in pac and pac["n_cameras"] != len(seq.cameras):
         raise InputError(f"{where}: n_cameras = {pac['n_cameras']} but {seq.index} has {len(seq.cameras)} cameras")
+    frames, fps, fps_from = _frames_and_rate(seq, pac, where, fps)
+
+    gaussians = load_ply(ply)  # read even with a box: a bad PLY is refused before any work
+    if box is not None:
+        select = {"min": [float(v) for v in box[:3]], "max": [float(v) for v in box[3:]]}
+    else:
+        select = object_box(gaussians.means, gaussians.opacities)
+    cam = seq.cameras[camera]
+    images = _masked_frames(seq, camera, frames, masks, background)
+
+    scene = _scene(pac, where, prompt, ground, optimize, fps, frames, select, video)
+    made_from = f"{seq.index} (camera {camera}, frames 0-{frames - 1}) and {ply}"
+    made_from += f", material from {config}" if pac else ", material left to the query"
+    out = Path(out)
+    with atomic_dir(out) as tmp:
+        with atomic_path(tmp / "scene.ply") as part:
+            shutil.copyfile(ply, part)
+        save_transforms_json(tmp / "camera.json", [cam])
+        write_video(tmp / video, np.stack(images), fps)
+        if not pac:
+            write_image(tmp / "object.png", images[0])
+        _write_config(tmp, out / "config.yaml", scene, made_from)
+    summary = dict(config=out / "config.yaml", frames=frames, fps=fps, fps_from=fps_from, camera=camera)
+    return {
+        **summary,
+        "material": scene["material"]["type"],
+        "optimize": scene["optimize"]["parameters"],
+        "box": select,
+    }
+
+
+def _masked_frames(seq, camera: int, frames: int, masks, background: Sequence[float]) -> list:
+    """Frames 0..frames-1 of camera ``camera`` [H, W, 3] uint8, the object over ``background``."""
+    import torch
+
+    from clflow.media import to_uint8
+    from clflow.recon.views import load_view
+
+    bg = torch.as_tensor(background, dtype=torch.float32)
+    cam, images = seq.cameras[camera], seq.images[camera]
+    return [to_uint8(load_view(cam, images[t], seq.index, masks, bg).image) for t in range(frames)]
+
+
+def _write_config(folder: Path, final: Path, scene: dict, made_from: str) -> None:
+    """``folder``/config.yaml (to become ``final``) with a header saying what it was made
+    from; refused when clflow cannot read it."""
+    import yaml
+
+    from clflow.scene.config import parse_config
+
+    header = f"# made by `clflow pacnerf` from {made_from}\n"
+    if not scene["optimize"]["parameters"]:
+        header += (
+            "# optimize.parameters is empty: name what to fit once the query has chosen the material, e.g.\n"
+            "#   clflow optimize config.yaml --set optimize.parameters=[youngs_modulus]\n"
+        )
+    text = header + yaml.safe_dump(scene, sort_keys=False, default_flow_style=None)
+    parse_config(yaml.safe_load(text), str(final), folder)
+    (folder / "config.yaml").write_text(text, encoding="utf-8")
+
+
+def _splat_file(splats: Path) -> Path:
+    """The PLY of ``splats``: the file itself, or point_cloud.ply in clflow reconstruct's folder."""
+    ply = splats / "point_cloud.ply" if splats.is_dir() else splats
+    if not ply.is_file():
+        raise InputError(f"{splats}: no splats (a PLY file, or the folder clflow reconstruct wrote point_cloud.ply in)")
+    return ply
+
+
+def _frames_and_rate(seq, pac: dict, where: str, fps: float | None) -> tuple[int, float, str]:
+    """Frames to use (>= 2), the frame rate (Hz) and where it came from: --fps, the config's
+    frame_dt or the index's times, in that order."""
     frames = seq.frames
     if isinstance(pac.get("n_frames"), int):
         frames = min(frames, pac["n_frames"])
@@ -293,17 +356,12 @@ def make_scene(
     fps, fps_from = next(((v, s) for v, s in candidates if v), (None, None))
     if fps is None:
         raise InputError(f"{seq.index}: no frame rate: the index has no times; give --fps (or a config with frame_dt)")
+    return frames, fps, fps_from
 
-    gaussians = load_ply(ply)
-    select = (
-        {"min": [float(v) for v in box[:3]], "max": [float(v) for v in box[3:]]}
-        if box is not None
-        else object_box(gaussians.means, gaussians.opacities)
-    )
-    bg = torch.as_tensor(background, dtype=torch.float32)
-    cam = seq.cameras[camera]
-    images = [to_uint8(load_view(cam, seq.images[camera][t], seq.index, masks, bg).image) for t in range(frames)]
 
+def _scene(pac: dict, where: str, prompt: str, ground, optimize, fps: float, frames: int, select: dict, video: str):
+    """The scene config (a dict for config.yaml): material and boundaries from the PAC-NeRF
+    config ``pac`` (or left to the query), the object box, the camera and the video."""
     if pac:
         material, fit = pacnerf_material(pac, where)
         boundaries = pacnerf_boundaries(pac, where)
@@ -332,35 +390,4 @@ def make_scene(
             "frames": min(pac["hit_frame"], frames - 1),
             "iterations": VELOCITY_ITERATIONS,
         }
-    header = (
-        f"# made by `clflow pacnerf` from {seq.index} (camera {camera}, frames 0-{frames - 1}) and {ply}"
-        + (f", material from {config}" if pac else ", material left to the query")
-        + "\n"
-    )
-    if not fit:
-        header += (
-            "# optimize.parameters is empty: name what to fit once the query has chosen the material, e.g.\n"
-            "#   clflow optimize config.yaml --set optimize.parameters=[youngs_modulus]\n"
-        )
-
-    out = Path(out)
-    with atomic_dir(out) as tmp:
-        with atomic_path(tmp / "scene.ply") as part:
-            shutil.copyfile(ply, part)
-        save_transforms_json(tmp / "camera.json", [cam])
-        write_video(tmp / video, np.stack(images), fps)
-        if not pac:
-            write_image(tmp / "object.png", images[0])
-        text = header + yaml.safe_dump(scene, sort_keys=False, default_flow_style=None)
-        parse_config(yaml.safe_load(text), str(out / "config.yaml"), tmp)  # refuse a config clflow cannot read
-        (tmp / "config.yaml").write_text(text, encoding="utf-8")
-    return {
-        "config": out / "config.yaml",
-        "frames": frames,
-        "fps": fps,
-        "fps_from": fps_from,
-        "material": material["type"],
-        "optimize": fit,
-        "box": select,
-        "camera": camera,
-    }
+    return scene

@@ -71,3 +71,13 @@ def test_every_bench_has_json_and_ply_writes_figures_with_the_environment(tmp_pa
     env = record["environment"]
     assert env["torch"] == torch.__version__ and env["device"] and "load" in env
     assert [p.name for p in tmp_path.iterdir()] == ["ply.json"]  # written atomically: no temporary left
+
+
+def test_bench_mpm_adjoint_runs_a_small_block_and_records_both_passes(tmp_path):
+    out = tmp_path / "adjoint.json"
+    args = ["bench", "mpm-adjoint", "--particles", "128", "--grid", "16", "--frames", "1", "--substeps", "2"]
+    res = CliRunner().invoke(cli, [*args, "--json", str(out)], catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    results = json.loads(out.read_text())["results"]
+    assert results["particles"] == 128 and results["forward"]["median_wall_s"] > 0
+    assert results["backward_over_forward"] > 0 and "backward" in res.output

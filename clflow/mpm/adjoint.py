@@ -97,35 +97,10 @@ class SubstepAdjoint:
         ``inputs``, recorded in ``tape``) into ``grad`` = dL/d(state) (overwritten); adds the
         parameter and mass gradients into ``param_grad`` [N, PARAM_COUNT] and ``mass_grad`` [N].
         Every argument but ``inputs``' scalars is a DeviceArray (or a dataclass of them)."""
-        dev, R, n = self.device, self.real_t, np.int32(self.n)
+        dev, R = self.device, self.real_t
         grid_args = self.grid.kernel_args(R)
-        particles, t, dt = inputs.particles, inputs.t, inputs.dt
-        # v' read back as v_pic; with FLIP the kernel sums v_pic itself (any buffer will do)
-        v_out = tape.grid_v if self.flip > 0 else after.v
-        dev.launch(
-            self.k_g2p,
-            self.copies,
-            grid_args
-            + [
-                n,
-                R(dt),
-                R(t),
-                R(self.flip),
-                state.x,
-                v_out,
-                particles.release_time,
-                tape.grid_v,
-                tape.grid_dv,
-                grad_after.x,
-                grad_after.v,
-                grad_after.C,
-                np.int32(self.copies),
-                np.int32(self.chunk),
-                self.grid_v_bar_copies,
-                grad.x,
-            ],
-            local_size=1,
-        )
+        particles = inputs.particles
+        self._launch_g2p_adjoint(state, after, tape, inputs, grad_after, grad)
         dev.launch(
             self.k_grid,
             self.grid.nodes,
@@ -144,29 +119,9 @@ class SubstepAdjoint:
             + [self.grid_bar, grad.x, grad.v, grad.C, self.tau_bar, mass_grad],
         )
         if self.k_flip is not None:
-            dev.launch(
-                self.k_flip,
-                self.n,
-                grid_args
-                + [
-                    n,
-                    R(t),
-                    R(self.flip),
-                    state.x,
-                    state.v,
-                    state.C,
-                    particles.mass,
-                    particles.release_time,
-                    grad_after.v,
-                    self.grid_bar,
-                    grad.x,
-                    grad.v,
-                    grad.C,
-                    mass_grad,
-                ],
-            )
+            self._launch_flip_adjoint(state, inputs, grad_after, grad, mass_grad)
         self.launch_stress_adjoint(
-            dt,
+            inputs.dt,
             state.F,
             state.C,
             state.plastic,
@@ -180,6 +135,30 @@ class SubstepAdjoint:
             grad.plastic,
             param_grad,
         )
+
+    def _launch_g2p_adjoint(self, state, after, tape, inputs, grad_after, grad) -> None:
+        """G2P's adjoint: dL/dx into ``grad.x``, dL/d(grid v) into the private grid copies."""
+        R = self.real_t
+        # v' read back as v_pic; with FLIP the kernel sums v_pic itself (any buffer will do)
+        v_out = tape.grid_v if self.flip > 0 else after.v
+        particle_args = [np.int32(self.n), R(inputs.dt), R(inputs.t), R(self.flip), state.x, v_out]
+        tape_args = [inputs.particles.release_time, tape.grid_v, tape.grid_dv]
+        grad_args = [grad_after.x, grad_after.v, grad_after.C]
+        copies_args = [np.int32(self.copies), np.int32(self.chunk), self.grid_v_bar_copies, grad.x]
+        self.device.launch(
+            self.k_g2p,
+            self.copies,
+            self.grid.kernel_args(R) + particle_args + tape_args + grad_args + copies_args,
+            local_size=1,
+        )
+
+    def _launch_flip_adjoint(self, state, inputs, grad_after, grad, mass_grad) -> None:
+        """The PIC/FLIP blend's P2G adjoint: adds to ``grad``'s x, v, C and ``mass_grad``."""
+        R, particles = self.real_t, inputs.particles
+        particle_args = [np.int32(self.n), R(inputs.t), R(self.flip), state.x, state.v, state.C]
+        particle_args += [particles.mass, particles.release_time]
+        grad_args = [grad_after.v, self.grid_bar, grad.x, grad.v, grad.C, mass_grad]
+        self.device.launch(self.k_flip, self.n, self.grid.kernel_args(R) + particle_args + grad_args)
 
     def launch_stress_adjoint(
         self,

@@ -451,66 +451,26 @@ def simulate(
 
     Returns:
         :class:`Frames` with x, v [frames + 1, N, 3] and F [frames + 1, N, 3, 3], on the torch
-        device of the tensors given (they may live on any one device: they are copied to the
-        host once and gradients flow back there; the copies are counted in
-        ``simulator.device.transfers``).
+        device of the tensors given (any one device: copied to the host once, gradients flow
+        back, the copies counted in ``simulator.device.transfers``).
     """
-    sim, n, dtype = simulator, simulator.n, simulator.dtype
+    sim = simulator
     if int(frames) < 1:
         raise InputError(f"frames must be >= 1, got {frames}")
-    given = [*(params or {}).values(), density, positions, velocities, stage_accelerations, kernel_params]
-    origin = origin_device(*given, what="simulate: the tensors")
+    tensors = dict(
+        density=density,
+        positions=positions,
+        velocities=velocities,
+        stage_accelerations=stage_accelerations,
+        kernel_params=kernel_params,
+    )
+    origin = origin_device(*(params or {}).values(), *tensors.values(), what="simulate: the tensors")
     if origin.type != "cpu":
-        host = lambda t: to_cpu(t, sim.device)  # noqa: E731
-        frames_ = simulate(
-            sim,
-            frames,
-            params={name: host(value) for name, value in (params or {}).items()} or None,
-            density=host(density),
-            positions=host(positions),
-            velocities=host(velocities),
-            stage_accelerations=host(stage_accelerations),
-            kernel_params=host(kernel_params),
-            retries=retries,
-            memory_budget=memory_budget,
-        )
-        back = lambda t: to_origin(t, origin, sim.device)  # noqa: E731
-        return dataclasses.replace(frames_, x=back(frames_.x), v=back(frames_.v), F=back(frames_.F))
-    base = sim.particles
-    if kernel_params is not None and params:
-        raise InputError("give kernel_params or params, not both")
-    if kernel_params is not None:
-        param = torch.as_tensor(kernel_params)
-        if tuple(param.shape) != tuple(base.param.shape):
-            raise InputError(f"kernel_params: expected shape {list(base.param.shape)}, got {list(param.shape)}")
-        param = param.to(dtype)
-    elif params:
-        param = _material_param_rows(sim, dict(params), dtype)
-    else:
-        param = base.param
-    if density is not None:
-        rho = per_particle(density, n, "density", dtype, sim.device)
-        if bool((rho.detach() <= 0).any()):
-            raise InputError("density must be > 0 kg/m^3")
-        mass = rho * base.volume
-    else:
-        mass = base.mass
-    x0 = sim.state.x if positions is None else torch.as_tensor(positions).to(dtype)
-    v0 = sim.state.v if velocities is None else torch.as_tensor(velocities).to(dtype)
-    for name, value in (("positions", x0), ("velocities", v0)):
-        if tuple(value.shape) != (n, 3):
-            raise InputError(f"{name}: expected shape [{n}, 3], got {list(value.shape)}")
-        if not bool(torch.isfinite(value.detach()).all()):
-            raise InputError(f"{name} contains NaN or inf")
-    check_inside(x0.detach(), sim.grid)
-    stages = sim.drivers.stage_accel.shape[0]
-    stage_accel = sim.drivers.stage_accel if stage_accelerations is None else torch.as_tensor(stage_accelerations)
-    if tuple(stage_accel.shape) != (stages, 3):
-        raise InputError(
-            f"stage_accelerations: expected shape [{stages}, 3] (one row per force stage), "
-            f"got {list(stage_accel.shape)}"
-        )
-    stage_accel = stage_accel.to(dtype)
+        return _simulate_via_host(sim, frames, origin, params, tensors, retries=retries, memory_budget=memory_budget)
+    param = _parameter_rows(sim, params, kernel_params)
+    mass = sim.particles.mass if density is None else _masses(sim, density)
+    x0, v0 = _initial_state(sim, positions, velocities)
+    stage_accel = _stage_accelerations(sim, stage_accelerations)
     substeps = sim.substeps
     for _ in range(int(retries)):
         try:
@@ -528,6 +488,63 @@ def simulate(
         clamped=run.clamped_count,
         cfl_violation=run.cfl_violation,
     )
+
+
+def _simulate_via_host(sim: Simulator, frames: int, origin: torch.device, params, tensors: dict, **options) -> Frames:
+    """:func:`simulate` of tensors on torch device ``origin`` (not the CPU): run on their host
+    copies, frames back on ``origin``; gradients flow back through the copies."""
+    on_host = {name: to_cpu(t, sim.device) for name, t in tensors.items()}
+    host_params = {name: to_cpu(value, sim.device) for name, value in (params or {}).items()} or None
+    out = simulate(sim, frames, params=host_params, **on_host, **options)
+    back = lambda t: to_origin(t, origin, sim.device)  # noqa: E731
+    return dataclasses.replace(out, x=back(out.x), v=back(out.v), F=back(out.F))
+
+
+def _parameter_rows(sim: Simulator, params: dict | None, kernel_params) -> torch.Tensor:
+    """[N, PARAM_COUNT] kernel parameters of :func:`simulate`: ``kernel_params`` as given,
+    or the simulator's with ``params`` (SI, by registry name) put in, or the simulator's."""
+    base = sim.particles.param
+    if kernel_params is not None and params:
+        raise InputError("give kernel_params or params, not both")
+    if kernel_params is not None:
+        param = torch.as_tensor(kernel_params)
+        if tuple(param.shape) != tuple(base.shape):
+            raise InputError(f"kernel_params: expected shape {list(base.shape)}, got {list(param.shape)}")
+        return param.to(sim.dtype)
+    return _material_param_rows(sim, dict(params), sim.dtype) if params else base
+
+
+def _masses(sim: Simulator, density) -> torch.Tensor:
+    """[N] particle masses (kg): ``density`` (kg/m^3, global or [N]) x rest volume."""
+    rho = per_particle(density, sim.n, "density", sim.dtype, sim.device)
+    if bool((rho.detach() <= 0).any()):
+        raise InputError("density must be > 0 kg/m^3")
+    return rho * sim.particles.volume
+
+
+def _initial_state(sim: Simulator, positions, velocities) -> tuple[torch.Tensor, torch.Tensor]:
+    """x0 [N, 3] (m) and v0 [N, 3] (m/s): as given (checked), else the simulator's."""
+    x0 = sim.state.x if positions is None else torch.as_tensor(positions).to(sim.dtype)
+    v0 = sim.state.v if velocities is None else torch.as_tensor(velocities).to(sim.dtype)
+    for name, value in (("positions", x0), ("velocities", v0)):
+        if tuple(value.shape) != (sim.n, 3):
+            raise InputError(f"{name}: expected shape [{sim.n}, 3], got {list(value.shape)}")
+        if not bool(torch.isfinite(value.detach()).all()):
+            raise InputError(f"{name} contains NaN or inf")
+    check_inside(x0.detach(), sim.grid)
+    return x0, v0
+
+
+def _stage_accelerations(sim: Simulator, given) -> torch.Tensor:
+    """[S, 3] acceleration (m/s^2) of each driver stage: as given (checked), else the simulator's."""
+    stages = sim.drivers.stage_accel.shape[0]
+    stage_accel = sim.drivers.stage_accel if given is None else torch.as_tensor(given)
+    if tuple(stage_accel.shape) != (stages, 3):
+        raise InputError(
+            f"stage_accelerations: expected shape [{stages}, 3] (one row per force stage), "
+            f"got {list(stage_accel.shape)}"
+        )
+    return stage_accel.to(sim.dtype)
 
 
 def _stage_members(simulator: Simulator, stage: int) -> torch.Tensor:

@@ -149,6 +149,62 @@ def _as_tensor(value, shape: tuple[int, ...], what: str, dtype: torch.dtype) -> 
     return t.to(dtype, copy=True).contiguous()  # never alias the caller's tensor
 
 
+def _particle_inputs(positions: torch.Tensor, volume, velocities, grid: Grid, dtype: torch.dtype):
+    """Checked copies: x [N, 3] (m, inside ``grid``), v [N, 3] (m/s, zero when None) in
+    ``dtype``; rest volumes [N] (m^3, > 0) in float64."""
+    if positions.dim() != 2 or positions.shape[1] != 3:
+        raise InputError(f"positions: expected shape [N, 3], got {list(positions.shape)}")
+    n = positions.shape[0]
+    if n == 0:
+        raise InputError("positions: the particle set is empty")
+    x = _as_tensor(positions, (n, 3), "positions", dtype)
+    check_inside(x, grid)
+    v = torch.zeros(n, 3, dtype=dtype) if velocities is None else _as_tensor(velocities, (n, 3), "velocities", dtype)
+    vol = _as_tensor(volume, (n,), "volume", torch.float64)
+    if not bool((vol > 0).all()):
+        raise InputError("volume: every particle volume must be > 0 m^3")
+    return x, v, vol
+
+
+def _release_times(release_times, n: int, dtype: torch.dtype) -> torch.Tensor:
+    """[N] time (s) each particle is released (-inf: from the start)."""
+    if release_times is None:
+        return torch.full((n,), -math.inf, dtype=dtype)
+    release = torch.as_tensor(release_times, dtype=torch.float64)
+    if release.shape != (n,) or bool(torch.isnan(release).any()):
+        raise InputError(f"release_times: expected [{n}] numbers, got shape {list(release.shape)}")
+    return release.to(dtype).contiguous()
+
+
+def _walls(grid: Grid, walls: str, wall_cells: int, wall_friction: float) -> list[GridCondition]:
+    """The domain's six walls as colliders, ``wall_cells`` cells in from the grid's faces."""
+    if walls not in COLLIDER_MODES:
+        raise InputError(f"walls {walls!r} unknown; choose one of {', '.join(COLLIDER_MODES)} or None")
+    return wall_colliders(grid.origin, grid.upper, wall_cells, grid.dx, walls, wall_friction)
+
+
+def _check_flip_and_dtype(flip: float, dtype: torch.dtype) -> None:
+    if not (isinstance(flip, (int, float)) and 0.0 <= flip <= 1.0):
+        raise InputError(f"flip (the PIC/FLIP blend) must be a number in [0, 1], got {flip!r}")
+    if dtype not in (torch.float32, torch.float64):
+        raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+
+
+def _frame_dt(frame_dt: float) -> float:
+    """The frame interval (s), checked positive and finite."""
+    if not (frame_dt > 0 and math.isfinite(frame_dt)):
+        raise InputError(f"frame_dt must be a positive number of seconds, got {frame_dt}")
+    return float(frame_dt)
+
+
+def _gravity(gravity: Sequence[float]) -> tuple[float, float, float]:
+    """Gravity (m/s^2) as 3 finite floats."""
+    g = tuple(float(c) for c in gravity)
+    if len(g) != 3 or not all(math.isfinite(c) for c in g):
+        raise InputError(f"gravity must be 3 finite numbers (m/s^2), got {gravity!r}")
+    return g
+
+
 def _material_arrays(materials, material_index, n: int, dtype: torch.dtype):
     """Per-particle kernel material ids [N] int32, kernel parameters [N, PARAM_COUNT],
     densities [N] (kg/m^3, float64), initial plastic state [N], and the
@@ -299,10 +355,7 @@ class Simulator:
         p2g: P2GMode = "auto",
         flip: float = 0.0,
     ):
-        if not (isinstance(flip, (int, float)) and 0.0 <= flip <= 1.0):
-            raise InputError(f"flip (the PIC/FLIP blend) must be a number in [0, 1], got {flip!r}")
-        if dtype not in (torch.float32, torch.float64):
-            raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        _check_flip_and_dtype(flip, dtype)
         self.device = device or get_device()
         self._check_grid(grid)
         #: the torch device of the tensors given: where run() returns its trajectory
@@ -312,80 +365,38 @@ class Simulator:
         host = lambda t: to_cpu(t, self.device)  # noqa: E731
         positions, volume, velocities = host(torch.as_tensor(positions)), host(volume), host(velocities)
         material_index, release_times = host(material_index), host(release_times)
-        if positions.dim() != 2 or positions.shape[1] != 3:
-            raise InputError(f"positions: expected shape [N, 3], got {list(positions.shape)}")
-        n = positions.shape[0]
-        if n == 0:
-            raise InputError("positions: the particle set is empty")
-        x = _as_tensor(positions, (n, 3), "positions", dtype)
-        check_inside(x, grid)
-        v = (
-            torch.zeros(n, 3, dtype=dtype)
-            if velocities is None
-            else _as_tensor(velocities, (n, 3), "velocities", dtype)
-        )
-        vol = _as_tensor(volume, (n,), "volume", torch.float64)
-        if not bool((vol > 0).all()):
-            raise InputError("volume: every particle volume must be > 0 m^3")
-
+        x, v, vol = _particle_inputs(positions, volume, velocities, grid, dtype)
+        n = x.shape[0]
         material, param, density, plastic0, material_limits = _material_arrays(materials, material_index, n, dtype)
         mass = vol * density
 
         drivers = DriverGroups(forces, x.double(), mass)
-        if release_times is None:
-            release = torch.full((n,), -math.inf, dtype=dtype)
-        else:
-            release = torch.as_tensor(release_times, dtype=torch.float64)
-            if release.shape != (n,) or bool(torch.isnan(release).any()):
-                raise InputError(f"release_times: expected [{n}] numbers, got shape {list(release.shape)}")
-            release = release.to(dtype).contiguous()
         particles = Particles(
             mass=mass.to(dtype).contiguous(),
             volume=vol.to(dtype).contiguous(),
             material=material,
             param=param,
             group=drivers.group.contiguous(),
-            release_time=release,
+            release_time=_release_times(release_times, n, dtype),
             mass_eps=MASS_EPS_REL * float(mass.min()),
         )
         eye = torch.eye(3, dtype=dtype).expand(n, 3, 3).contiguous()
         host_state = State(x, v, torch.zeros(n, 3, 3, dtype=dtype), eye, plastic0)
 
-        conditions = list(boundaries)
-        if walls is not None:
-            if walls not in COLLIDER_MODES:
-                raise InputError(f"walls {walls!r} unknown; choose one of {', '.join(COLLIDER_MODES)} or None")
-            conditions = wall_colliders(grid.origin, grid.upper, wall_cells, grid.dx, walls, wall_friction) + conditions
-        gravity_ = tuple(float(g) for g in gravity)
-        if len(gravity_) != 3 or not all(math.isfinite(g) for g in gravity_):
-            raise InputError(f"gravity must be 3 finite numbers (m/s^2), got {gravity!r}")
-        if not (frame_dt > 0 and math.isfinite(frame_dt)):
-            raise InputError(f"frame_dt must be a positive number of seconds, got {frame_dt}")
+        walls_ = [] if walls is None else _walls(grid, walls, wall_cells, wall_friction)
         self.spec = SimulationSpec(
             particles,
             grid,
-            boundary_table(conditions, dtype),
+            boundary_table(walls_ + list(boundaries), dtype),
             drivers,
-            gravity_,
-            float(frame_dt),
+            _gravity(gravity),
+            _frame_dt(frame_dt),
             1,
             float(flip),
             dtype,
             tuple(material_limits),
         )
-        auto = self._stable_substeps(v)
-        if substeps is None:
-            substeps = auto
-        elif int(substeps) < 1:
-            raise InputError(f"substeps must be >= 1, got {substeps}")
-        elif int(substeps) < auto:
-            warnings.warn(
-                f"dt = {self.frame_dt / int(substeps):.3g} s exceeds the stable limit {self.frame_dt / auto:.3g} s "
-                f"({self.limit_reason(v)}); use substeps >= {auto} per frame (or substeps=None to choose it)",
-                StabilityWarning,
-                stacklevel=2,
-            )
-        self.use_substeps(substeps)
+        self.use_substeps(self._checked_substeps(substeps, v))
         self.time = 0.0
         self.frame = 0
         self.kernels = SubstepKernels(self.device, dtype, n, grid, particles.material, p2g, float(flip))
@@ -399,6 +410,22 @@ class Simulator:
         self._progress: FrameProgress | None = None  # set while run() runs
 
     # -- validation -------------------------------------------------------------------------
+
+    def _checked_substeps(self, substeps: int | None, v: torch.Tensor) -> int:
+        """``substeps`` per frame (None: the stable number), warning when fewer than stable."""
+        auto = self._stable_substeps(v)
+        if substeps is None:
+            return auto
+        if int(substeps) < 1:
+            raise InputError(f"substeps must be >= 1, got {substeps}")
+        if int(substeps) < auto:
+            warnings.warn(
+                f"dt = {self.frame_dt / int(substeps):.3g} s exceeds the stable limit {self.frame_dt / auto:.3g} s "
+                f"({self.limit_reason(v)}); use substeps >= {auto} per frame (or substeps=None to choose it)",
+                StabilityWarning,
+                stacklevel=3,
+            )
+        return int(substeps)
 
     @staticmethod
     def _check_grid(grid: Grid) -> None:

@@ -269,17 +269,7 @@ def reconstruct(
     train, test = views.split(settings.holdout_every)
     extent = scene_extent([v.camera for v in views.views])
     background = torch.tensor(settings.background, dtype=torch.float32)
-    if resume:
-        state = _load_checkpoint(out / CHECKPOINT, settings)
-        optimizer = _optimizer(state["params"], settings, extent)
-        optimizer.load_state_dict(state["optimizer"])
-        start, stats, seconds, history = state["step"], state["stats"], state["seconds"], state["history"]
-    else:
-        optimizer = _optimizer(
-            _parameters(initial_gaussians(views, train, settings), settings.sh_degree), settings, extent
-        )
-        start, seconds, history = 0, 0.0, []
-        stats = ViewSpaceStats.zeros(optimizer.param_groups[0]["params"][0].shape[0])
+    optimizer, start, stats, seconds, history = _begin(views, train, out, settings, extent, resume)
     params = {g["name"]: g["params"][0] for g in optimizer.param_groups}
     running = None
     began = time.perf_counter()
@@ -300,18 +290,7 @@ def reconstruct(
         running = value if running is None else 0.9 * running + 0.1 * value
         if step <= settings.densify_until:
             stats.add(meta["means2d"].grad, meta["radii"], view.camera.width, view.camera.height)
-            if step > settings.densify_from and step % settings.densify_every == 0:
-                params, _ = densify_and_prune(
-                    optimizer,
-                    stats,
-                    extent,
-                    settings.densify,
-                    prune_large=step > settings.reset_every,
-                    generator=torch.Generator().manual_seed(settings.seed * 1_000_003 + step),
-                )
-                stats = ViewSpaceStats.zeros(params["means"].shape[0])
-            if step % settings.reset_every == 0:
-                reset_opacities(optimizer)
+            params, stats = _densify(step, optimizer, stats, params, extent, settings)
         if progress is not None:
             progress(step, {"psnr": running, "gaussians": params["means"].shape[0]})
         if eval_every and test and step % eval_every == 0:
@@ -339,9 +318,46 @@ def reconstruct(
         "history": history,
         "settings": _settings_record(settings),
     }
-    gaussians = _gaussians({k: v.detach() for k, v in params.items()})
+    return _write_result(out, views, params, metrics)
+
+
+def _begin(views: ViewSet, train: list, out: Path, settings: Settings, extent: float, resume: bool):
+    """Where training starts: the optimiser, the step done, densification statistics,
+    training seconds so far and the PSNR history; from the checkpoint with ``resume``."""
+    if resume:
+        state = _load_checkpoint(out / CHECKPOINT, settings)
+        optimizer = _optimizer(state["params"], settings, extent)
+        optimizer.load_state_dict(state["optimizer"])
+        return optimizer, state["step"], state["stats"], state["seconds"], state["history"]
+    gaussians = initial_gaussians(views, train, settings)
+    optimizer = _optimizer(_parameters(gaussians, settings.sh_degree), settings, extent)
+    stats = ViewSpaceStats.zeros(optimizer.param_groups[0]["params"][0].shape[0])
+    return optimizer, 0, stats, 0.0, []
+
+
+def _densify(step: int, optimizer, stats: ViewSpaceStats, params: dict, extent: float, settings: Settings):
+    """At step ``step``: densify and prune on schedule (fresh statistics after), reset the
+    opacities on schedule; the parameters and statistics to go on with."""
+    if step > settings.densify_from and step % settings.densify_every == 0:
+        params, _ = densify_and_prune(
+            optimizer,
+            stats,
+            extent,
+            settings.densify,
+            prune_large=step > settings.reset_every,
+            generator=torch.Generator().manual_seed(settings.seed * 1_000_003 + step),
+        )
+        stats = ViewSpaceStats.zeros(params["means"].shape[0])
+    if step % settings.reset_every == 0:
+        reset_opacities(optimizer)
+    return params, stats
+
+
+def _write_result(out: Path, views: ViewSet, params: dict, metrics: dict) -> Result:
+    """Write point_cloud.ply, cameras.json and metrics.json into ``out``."""
     from clflow.splat.ply import save_ply
 
+    gaussians = _gaussians({k: v.detach() for k, v in params.items()})
     save_ply(out / "point_cloud.ply", gaussians)
     save_cameras_json(out / "cameras.json", [v.camera for v in views.views])
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Callable
 from clflow.errors import InputError
 
 if TYPE_CHECKING:
-    from clflow.scene.config import GenerateSettings, SimulationSettings
+    from clflow.scene.config.settings import GenerateSettings, SimulationSettings
 
 #: The physical-motion prompt, in the style of the paper's prompts for its generated guidance
 #: videos ("the object ... is pushed ..."; a static camera, so that the video's optical flow

@@ -561,6 +561,26 @@ def split_outputs(out: Tensor, T_final: Tensor, c_out: int, render_depth: bool):
     return out[..., :c_out], alpha, depth
 
 
+def _validate(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, near, **optional):
+    """Every input of :func:`rasterize_gaussians` checked: InputError on the first bad one."""
+    with torch.no_grad():
+        covars, sh_rotations, features = optional["covars"], optional["sh_rotations"], optional["features"]
+        _validate_gaussians(means, quats, scales, opacities, colors, covars, sh_degree, sh_rotations, features)
+        _validate_view(viewmat, K, width, height, near)
+        _validate_background(optional["background"], colors, sh_degree, features, means.dtype)
+
+
+def _rasterize_via_host(origin: torch.device, given: tuple, size: tuple, optional: dict, options: dict):
+    """:func:`rasterize_gaussians` of tensors on torch device ``origin`` (not the CPU): drawn
+    from their host copies, results on ``origin``; gradients flow back through the copies."""
+    device = get_device()
+    host = [to_cpu(t, device) for t in given]
+    host_optional = {name: to_cpu(t, device) for name, t in optional.items()}
+    *images, meta = rasterize_gaussians(*host, *size, **host_optional, **options)
+    meta = {k: to_origin(v, origin, device) for k, v in meta.items()}
+    return (*(to_origin(t, origin, device) for t in images), meta)
+
+
 def rasterize_gaussians(
     means: Tensor,
     quats: Tensor | None,
@@ -614,29 +634,13 @@ def rasterize_gaussians(
     results come back on their device, and gradients flow back there (copies counted in
     ``get_device().transfers``).
     """
-    tensors = (means, quats, scales, opacities, colors, viewmat, K, covars, sh_rotations, features, background)
-    origin = origin_device(*tensors, what="rasterize: the tensors")
+    given = (means, quats, scales, opacities, colors, viewmat, K)
+    optional = dict(covars=covars, sh_rotations=sh_rotations, features=features, background=background)
+    origin = origin_device(*given, *optional.values(), what="rasterize: the tensors")
     if origin.type != "cpu":
-        device = get_device()
-        host = [to_cpu(t, device) for t in tensors]
-        image, alpha, depth, meta = rasterize_gaussians(
-            *host[:7],
-            width,
-            height,
-            covars=host[7],
-            sh_degree=sh_degree,
-            sh_rotations=host[8],
-            features=host[9],
-            background=host[10],
-            near=near,
-            render_depth=render_depth,
-        )
-        meta = {k: to_origin(v, origin, device) for k, v in meta.items()}
-        return (*(to_origin(t, origin, device) for t in (image, alpha, depth)), meta)
-    with torch.no_grad():
-        _validate_gaussians(means, quats, scales, opacities, colors, covars, sh_degree, sh_rotations, features)
-        _validate_view(viewmat, K, width, height, near)
-        _validate_background(background, colors, sh_degree, features, means.dtype)
+        options = dict(sh_degree=sh_degree, near=near, render_depth=render_depth)
+        return _rasterize_via_host(origin, given, (width, height), optional, options)
+    _validate(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, near, **optional)
     dtype = means.dtype
     viewmat = viewmat.to(dtype).contiguous()
     K = K.to(dtype).contiguous()
@@ -649,29 +653,11 @@ def rasterize_gaussians(
         means, colors, viewmat, depths, sh_degree, sh_rotations, features, background, render_depth
     )
     lists = build_tile_lists(means2d.detach(), depths.detach(), radii, tiles_touched, int(width), int(height))
-    out, T_final, _ = composite(
-        means2d,
-        conics,
-        opacities.contiguous(),
-        channels,
-        background,
-        lists.ranges,
-        lists.sorted_slots,
-        lists.slot_gaussian,
-        lists.first_slot,
-        lists.tiles_touched,
-        int(width),
-        int(height),
-    )
+    splats = (means2d, conics, opacities.contiguous(), channels, background)
+    tiles = (lists.ranges, lists.sorted_slots, lists.slot_gaussian, lists.first_slot, lists.tiles_touched)
+    out, T_final, _ = composite(*splats, *tiles, int(width), int(height))
     image, alpha, depth = split_outputs(out, T_final, c_out, render_depth)
-    meta = {
-        "means2d": means2d,
-        "conics": conics,
-        "depths": depths,
-        "radii": radii,
-        "tiles_touched": tiles_touched,
-        "num_tile_entries": lists.num_entries,
-        "tile_list_bytes": lists.nbytes,
-        "entry_record_bytes": entry_record_bytes(means.shape[0], lists.num_entries, channels.shape[1], dtype),
-    }
+    meta = dict(means2d=means2d, conics=conics, depths=depths, radii=radii, tiles_touched=tiles_touched)
+    meta.update(num_tile_entries=lists.num_entries, tile_list_bytes=lists.nbytes)
+    meta["entry_record_bytes"] = entry_record_bytes(means.shape[0], lists.num_entries, channels.shape[1], dtype)
     return image, alpha, depth, meta

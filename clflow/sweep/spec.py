@@ -223,14 +223,14 @@ def _whole(v: Any, low: int | None) -> bool:
 
 @dataclass(frozen=True)
 class _Defaults:
-    """What the spec's top level gives every run: command, ``set``, options, time limit, sysid settings."""
+    """What the spec's top level gives every run."""
 
-    reader: _SpecReader
-    command: str
-    overrides: tuple[str, ...]
-    options: dict
-    timeout: float | None
-    sysid: dict
+    reader: _SpecReader  # reads the rest of the spec, naming the key at fault
+    command: str  # the clflow command each run is
+    overrides: tuple[str, ...]  # --set KEY=VALUE, before each run's own
+    options: dict  # the command's options, before each run's own
+    timeout: float | None  # s a run may take; None: no limit
+    sysid: dict  # the sysid settings of cases' runs
 
     def config_run(
         self,

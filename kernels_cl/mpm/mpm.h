@@ -49,6 +49,16 @@ inline grid_t make_grid(const int nx, const int ny, const int nz, const real dx,
     return g;
 }
 
+/* Copy k of `copies` consecutive arrays of `size` reals, zeroed: one work-item's private grid in
+ * the private-copy scatters (p2g_private, g2p_adjoint_private); a column sum adds them after. */
+inline __global real *zeroed_copy(__global real *copies, const int k, const long size)
+{
+    __global real *copy = copies + k * size;
+    for (long e = 0; e < size; ++e)
+        copy[e] = 0;
+    return copy;
+}
+
 inline int grid_extent(const grid_t *g, const int axis)
 {
     return axis == 0 ? g->nx : (axis == 1 ? g->ny : g->nz);

@@ -84,10 +84,7 @@ __kernel void p2g_private(P2G_GRID_ARGS, P2G_PARTICLE_ARGS, const int copies, co
     if (k >= copies)
         return;
     const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
-    const long size = (long)GRID_CH * nx * ny * nz;
-    __global real *grid = grid_copies + k * size;
-    for (long e = 0; e < size; ++e)
-        grid[e] = 0;
+    __global real *grid = zeroed_copy(grid_copies, k, (long)GRID_CH * nx * ny * nz);
     const int end = min(n, (k + 1) * chunk);
     for (int p = k * chunk; p < end; ++p)
         p2g_particle(&g, p, dt, x, v, C, tau, mass, volume, group, accel, grid, 0);

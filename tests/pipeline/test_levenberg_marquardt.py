@@ -18,6 +18,23 @@ from clflow.pipeline.fit.steps import LM_GAIN_TOLERANCE
 Z_TRUE = math.log10(2e4) + 0.37  # the model's minimiser, 1.37 decades above the demo's start
 
 
+def evaluation_of(opt, flows, frames, grid=None) -> Evaluation:
+    """What ``opt.evaluate`` returns for made-up ``flows`` of the first ``frames`` frames."""
+    view = opt.views[0]
+    loss = float(flow_loss(opt.cfg, flows, view.observed[:frames], view.weight[:frames]))
+    return Evaluation(loss, {}, flows, SimpleNamespace(substeps=1), grid or opt.model_grid)
+
+
+def fixed_field(opt) -> torch.Tensor:
+    """A seeded random field the shape of the observed flows (float64)."""
+    return torch.randn(opt.views[0].observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+
+
+def search_finds(opt, monkeypatch, *youngs_moduli: float) -> None:
+    """The global search samples the start, then these log10 Young's moduli, in order."""
+    monkeypatch.setattr(opt, "search_points", lambda z0: [dict(z0), *({"youngs_modulus": z} for z in youngs_moduli)])
+
+
 @pytest.fixture
 def lm(demo_config, monkeypatch):
     """The demo's optimiser with simulated flows observed + tanh(z - z_true) x a fixed field:
@@ -31,17 +48,14 @@ def lm(demo_config, monkeypatch):
             flow=dataclasses.replace(cfg.flow, bias_correction="none"),
         )  # flows without a simulation
         opt = Optimization(cfg)
-        field = torch.randn(
-            opt.views[0].observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64
-        )
+        field = fixed_field(opt)
         calls = []
 
         def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
             calls.append(dict(z))
             shift = math.tanh(curvature * (z["youngs_modulus"] - Z_TRUE)) / curvature
             flows = [opt.views[0].observed[t] + shift * field[t] for t in range(frames)]
-            loss = float(flow_loss(opt.cfg, flows, opt.views[0].observed[:frames], opt.views[0].weight[:frames]))
-            return Evaluation(loss, {}, flows, SimpleNamespace(substeps=1), grid or opt.model_grid)
+            return evaluation_of(opt, flows, frames, grid)
 
         monkeypatch.setattr(opt, "evaluate", evaluate)
         return opt, calls
@@ -269,13 +283,7 @@ def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypat
             "only_the_sum_matters": (e + nu) * field_e,
         }[model]
         flows = [opt.views[0].observed[t] + noise[t] + shift[t] for t in range(frames)]
-        return Evaluation(
-            float(flow_loss(opt.cfg, flows, opt.views[0].observed[:frames], opt.views[0].weight[:frames])),
-            {},
-            flows,
-            SimpleNamespace(substeps=1),
-            grid or opt.model_grid,
-        )
+        return evaluation_of(opt, flows, frames, grid)
 
     monkeypatch.setattr(opt, "evaluate", evaluate)
     report = opt.identifiability({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0}, 1)
@@ -323,8 +331,7 @@ def test_the_grid_check_measures_how_far_a_coarser_grid_moves_the_fit(demo_confi
         coarse = grid != opt.model_grid
         e, nu = z["youngs_modulus"] - Z_TRUE + 0.3 * coarse, z["poissons_ratio"] - 0.02 * coarse
         flows = [opt.views[0].observed[t] + 0.01 * noise[t] + e * field_e[t] + nu * field_nu[t] for t in range(frames)]
-        loss = float(flow_loss(opt.cfg, flows, opt.views[0].observed[:frames], opt.views[0].weight[:frames]))
-        return Evaluation(loss, {}, flows, SimpleNamespace(substeps=1), grid)
+        return evaluation_of(opt, flows, frames, grid)
 
     monkeypatch.setattr(opt, "evaluate", evaluate)
     report = opt.identifiability({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0}, 1)
@@ -385,27 +392,17 @@ def with_starts(cfg, starts: int, **search):
 @pytest.mark.parametrize("starts", [1, 2])
 def test_several_starts_are_polished_and_the_best_is_kept(demo_config, monkeypatch, starts):
     opt = Optimization(with_starts(demo_config(iterations=6), starts))
-    field = torch.randn(opt.views[0].observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    field = fixed_field(opt)
 
     def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
         e = z["youngs_modulus"]  # two basins: the true one (residual 0) and a false one (0.5)
         shift = min(math.sqrt((e - Z_TRUE) ** 2 + 1e-8), math.sqrt((e - Z_FALSE) ** 2 + 1e-8) + 0.5)
         flows = [opt.views[0].observed[t] + shift * field[t] for t in range(frames)]
-        return Evaluation(
-            float(flow_loss(opt.cfg, flows, opt.views[0].observed[:frames], opt.views[0].weight[:frames])),
-            {},
-            flows,
-            SimpleNamespace(substeps=1),
-            grid or opt.model_grid,
-        )
+        return evaluation_of(opt, flows, frames, grid)
 
     monkeypatch.setattr(opt, "evaluate", evaluate)
     # the search's best sample lies in the false basin, the runner-up in the true one
-    monkeypatch.setattr(
-        opt,
-        "search_points",
-        lambda z0: [dict(z0), {"youngs_modulus": Z_FALSE + 0.05}, {"youngs_modulus": Z_TRUE + 0.6}],
-    )
+    search_finds(opt, monkeypatch, Z_FALSE + 0.05, Z_TRUE + 0.6)
     assert opt.total_iterations == 6 + (starts - 1) * 3
     state = opt.run()
     if starts == 1:
@@ -430,7 +427,7 @@ def test_a_coarse_search_grid_runs_the_global_phase_and_the_main_grid_picks_the_
     opt = Optimization(with_starts(cfg, 2, grid_resolution=coarse))
     assert (opt.search_grid, opt.model_grid) == (coarse, fine)
     assert opt._prepared[coarse].setup.grid.dx > opt._prepared[fine].setup.grid.dx
-    field = torch.randn(opt.views[0].observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    field = fixed_field(opt)
     grids = []
 
     def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
@@ -440,15 +437,10 @@ def test_a_coarse_search_grid_runs_the_global_phase_and_the_main_grid_picks_the_
         to_true, to_false = math.sqrt((e - Z_TRUE) ** 2 + 1e-8), math.sqrt((e - Z_FALSE) ** 2 + 1e-8)
         shift = min(to_true + 0.02, to_false) if grid == coarse else min(to_true, to_false + 0.5)
         flows = [opt.views[0].observed[t] + shift * field[t] for t in range(frames)]
-        loss = float(flow_loss(opt.cfg, flows, opt.views[0].observed[:frames], opt.views[0].weight[:frames]))
-        return Evaluation(loss, {}, flows, SimpleNamespace(substeps=1), grid)
+        return evaluation_of(opt, flows, frames, grid)
 
     monkeypatch.setattr(opt, "evaluate", evaluate)
-    monkeypatch.setattr(
-        opt,
-        "search_points",
-        lambda z0: [dict(z0), {"youngs_modulus": Z_FALSE + 0.05}, {"youngs_modulus": Z_TRUE + 0.05}],
-    )
+    search_finds(opt, monkeypatch, Z_FALSE + 0.05, Z_TRUE + 0.05)
     state = opt.run()
     assert {r["grid"] for r in state.search} == {coarse}
     assert {r["grid"] for r in state.history if "start" in r} == {coarse}

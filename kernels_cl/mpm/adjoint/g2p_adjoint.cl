@@ -111,10 +111,7 @@ __kernel void g2p_adjoint_private(const int nx, const int ny, const int nz, cons
     if (k >= copies)
         return;
     const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
-    const long size = (long)GV_CH * nx * ny * nz;
-    __global real *grid_v_bar = grid_v_bar_copies + k * size;
-    for (long e = 0; e < size; ++e)
-        grid_v_bar[e] = 0;
+    __global real *grid_v_bar = zeroed_copy(grid_v_bar_copies, k, (long)GV_CH * nx * ny * nz);
     const int end = min(n, (k + 1) * chunk);
     for (int p = k * chunk; p < end; ++p)
         g2p_adjoint_particle(&g, p, dt, t, flip, x_in, v_out, release_time, grid_v, grid_dv, x_bar_out, v_bar_out,
