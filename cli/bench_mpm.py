@@ -19,6 +19,48 @@ def _particle_bytes(sim) -> int:
     return sum(a.nbytes for a in arrays)
 
 
+def _run_peer(x, h: float, dx: float, grid_res: int, substeps: int, device, elastic: dict | None) -> dict:
+    """taichi's MLS-MPM on the benchmark's lattice (clflow.peers.taichi_mpm), elastic at the
+    registry's defaults and clflow's stable step; its figures and clflow's elastic against it."""
+    from clflow.materials import get_material
+    from clflow.mpm import Grid, MaterialSpec, Simulator
+    from clflow.peers.taichi_mpm import run_taichi_mpm, taichi_version
+
+    elastic_material = get_material("elastic")
+    spec = MaterialSpec("elastic")
+    dt = Simulator(x, h**3, spec, Grid((grid_res,) * 3, dx), frame_dt=1e-3, device=device).dt
+    arch = "cpu" if device.info.type == "CPU" else ("cuda" if "nvidia" in device.info.platform.lower() else "vulkan")
+    timing = run_taichi_mpm(
+        x.numpy(),
+        grid_res,
+        dx,
+        dt,
+        substeps,
+        youngs_modulus=elastic_material.param("youngs_modulus").default,
+        poissons_ratio=elastic_material.param("poissons_ratio").default,
+        density=elastic_material.default_density,
+        particle_volume=h**3,
+        arch=arch,
+    )
+    rate = timing.particle_substeps_per_s
+    ratio = elastic["particle_substeps_per_s"] / rate if elastic else None
+    click.echo(
+        f"{'taichi ' + arch:14s} {rate / 1e6:7.2f} M particle-substeps/s  ({timing.seconds / substeps * 1e3:6.1f} "
+        f"ms/substep; taichi {taichi_version()}, elastic, float32, dt {dt:.3g} s; centre fell "
+        f"{timing.centre_drop * 1e3:.3f} mm)" + (f"; clflow elastic / taichi: {ratio:.2f}x" if ratio else "")
+    )
+    return {
+        "name": "taichi",
+        "version": taichi_version(),
+        "arch": arch,
+        "particle_substeps_per_s": rate,
+        "seconds": timing.seconds,
+        "dt_s": dt,
+        "centre_drop_m": timing.centre_drop,
+        "clflow_elastic_over_peer": ratio,
+    }
+
+
 def timed_substeps(sim, substeps: int) -> None:
     """``substeps`` substeps of ``sim``, waited for (a substep only enqueues its kernels)."""
     for _ in range(substeps):
@@ -34,8 +76,14 @@ def timed_substeps(sim, substeps: int) -> None:
 )
 @click.option("--material", "materials", multiple=True, help="Only these materials (repeatable).")
 @double_option
+@click.option(
+    "--peer",
+    type=click.Choice(["taichi"]),
+    help="Also run this peer's MLS-MPM (elastic, float32) on the same lattice, grid and step "
+    "(taichi: the peers extra; its cpu backend on a CPU device, cuda on a GPU).",
+)
 @click.pass_context
-def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double):
+def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double, peer):
     """Particle-substeps per second of each material on a cube of particles under gravity,
     and the memory per particle. Also per CPU-second: on a machine shared with other jobs the
     wall-clock figure understates what the device does when it has its cores to itself."""
@@ -91,6 +139,8 @@ def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double):
             f"{_particle_bytes(sim) // n} B/particle; copied per substep: {copied.to_device / substeps:.0f} B "
             f"to the device, {copied.to_host / substeps:.0f} B to the host)"
         )
+    if peer:
+        results["peer"] = _run_peer(x, h, dx, grid_res, substeps, device, results.get("elastic"))
     itemsize = torch.tensor([], dtype=dtype).element_size()
     grid_bytes = sim.grid.nodes * 7 * itemsize
     copies = getattr(sim.kernels, "copies", 0)

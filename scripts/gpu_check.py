@@ -12,6 +12,7 @@ carried wheels first (docs/gpu.md). Exit status 0 only when every step passed.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import re
@@ -27,10 +28,12 @@ SUITES = {
     "all": ["tests"],
     "none": [],
 }
+#: taichi's MLS-MPM in the same run where the peers extra is installed (the GPU yardstick)
+PEER = ["--peer", "taichi"] if importlib.util.find_spec("taichi") else []
 #: name -> clflow bench arguments, at GPU scale (issue 35's sizes) and for a dry run (--small)
 BENCHES = {
     "mpm-262k": (
-        ["mpm", "--material", "elastic", "--substeps", "50"],
+        ["mpm", "--material", "elastic", "--substeps", "50", *PEER],
         ["mpm", "--material", "elastic", "--particles-per-axis", "16", "--grid", "16"],
     ),
     "mpm-all-materials": (
@@ -38,7 +41,7 @@ BENCHES = {
         ["mpm", "--particles-per-axis", "8", "--grid", "16", "--substeps", "2"],
     ),
     "mpm-2.1M": (
-        ["mpm", "--material", "elastic", "--particles-per-axis", "128", "--grid", "128", "--substeps", "20"],
+        ["mpm", "--material", "elastic", "--particles-per-axis", "128", "--grid", "128", "--substeps", "20", *PEER],
         ["mpm", "--material", "elastic", "--particles-per-axis", "20", "--grid", "24", "--substeps", "2"],
     ),
     "mpm-adjoint": (

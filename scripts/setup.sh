@@ -5,7 +5,8 @@
 #   3. torch 2.13.0 first (a CPU build; any other torch request pulls a multi-GB CUDA build),
 #   4. then clflow itself (editable) with its test, video, sweep and view extras (diffusers,
 #      transformers, accelerate: `clflow generate`, whose tests build tiny models; Ray: the
-#      tests of `clflow sweep`; viser: `clflow view`; no torch in any); pip brings the dependencies that
+#      tests of `clflow sweep`; viser: `clflow view`; taichi: the peer of `clflow bench mpm --peer`;
+#      no torch in any); pip brings the dependencies that
 #      pyproject.toml declares (PyAV with its own FFmpeg and libx264 for H.264 video, Pillow,
 #      matplotlib, ...), none of which asks for another torch.
 set -euo pipefail
@@ -26,5 +27,5 @@ fi
 pip=(.venv/bin/python -m pip install --quiet --disable-pip-version-check)
 .venv/bin/python -c 'import torch, sys; sys.exit(torch.__version__.split("+")[0] != "2.13.0")' 2>/dev/null \
     || "${pip[@]}" torch==2.13.0
-"${pip[@]}" -e ".[test,video,sweep,view]"
+"${pip[@]}" -e ".[test,video,sweep,view,peers]"
 echo "clflow is set up in $(pwd)/.venv"

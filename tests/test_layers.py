@@ -15,7 +15,7 @@ LAYERS = [
     ("clflow", "clflow.errors"),
     ("clflow.fileio", "clflow.limits", "clflow.materials", "clflow.regions", "clflow.runtime"),
     ("clflow.media", "clflow.environment", "clflow.splat", "clflow.query"),
-    ("clflow.benchmark", "clflow.generate", "clflow.mpm", "clflow.flow"),
+    ("clflow.benchmark", "clflow.generate", "clflow.mpm", "clflow.flow", "clflow.peers"),
     ("clflow.parallel", "clflow.recon"),
     ("clflow.scene",),
     ("clflow.pipeline",),
