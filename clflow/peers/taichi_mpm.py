@@ -66,11 +66,29 @@ def run_taichi_mpm(
     except ImportError as err:
         raise ClflowError("the taichi peer needs the peers extra: pip install 'clflow[peers]'") from err
     ti.init(arch=getattr(ti, arch), default_fp=ti.f32, log_level=ti.WARN, offline_cache=False)
-    n = positions.shape[0]
     mu = youngs_modulus / (2 * (1 + poissons_ratio))
     lam = youngs_modulus * poissons_ratio / ((1 + poissons_ratio) * (1 - 2 * poissons_ratio))
-    mass, inv_dx = density * particle_volume, 1.0 / dx
+    substep, x = _elastic_substep(ti, positions, grid_nodes, dx, dt, mu, lam, density, particle_volume, gravity)
+    substep()  # compiles
+    ti.sync()
+    t0 = time.perf_counter()
+    for _ in range(substeps):
+        substep()
+    ti.sync()
+    seconds = time.perf_counter() - t0
+    end = x.to_numpy().astype(np.float64)  # float32 sums of 10^5 rows lose millimetres
+    ti.reset()
+    if not np.isfinite(end).all():
+        raise ClflowError("the taichi peer's run became NaN/inf")
+    drop = float(positions.mean(0)[1] - end.mean(0)[1])
+    return PeerTiming(arch, positions.shape[0], substeps, seconds, drop)
 
+
+def _elastic_substep(ti, positions, grid_nodes, dx, dt, mu, lam, density, particle_volume, gravity):
+    """(the substep kernel, the positions field) of an elastic body at rest at ``positions``:
+    Lame parameters mu, lam (Pa), density (kg/m^3), gravity (m/s^2) along -y."""
+    n = positions.shape[0]
+    mass, inv_dx = density * particle_volume, 1.0 / dx
     x = ti.Vector.field(3, ti.f32, n)
     v = ti.Vector.field(3, ti.f32, n)
     C = ti.Matrix.field(3, 3, ti.f32, n)
@@ -126,17 +144,4 @@ def run_taichi_mpm(
 
     x.from_numpy(positions.astype(np.float32))
     F.from_numpy(np.broadcast_to(np.eye(3, dtype=np.float32), (n, 3, 3)).copy())
-    start_centre = positions.mean(0)
-    substep()  # compiles
-    ti.sync()
-    t0 = time.perf_counter()
-    for _ in range(substeps):
-        substep()
-    ti.sync()
-    seconds = time.perf_counter() - t0
-    end = x.to_numpy().astype(np.float64)  # float32 sums of 10^5 rows lose millimetres
-    if not np.isfinite(end).all():
-        raise ClflowError("the taichi peer's run became NaN/inf")
-    drop = float(start_centre[1] - end.mean(0)[1])
-    ti.reset()
-    return PeerTiming(arch, n, substeps, seconds, drop)
+    return substep, x
