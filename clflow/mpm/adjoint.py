@@ -101,23 +101,13 @@ class SubstepAdjoint:
         grid_args = self.grid.kernel_args(R)
         particles = inputs.particles
         self._launch_g2p_adjoint(state, after, tape, inputs, grad_after, grad)
-        dev.launch(
-            self.k_grid,
-            self.grid.nodes,
-            grid_args
-            + inputs.grid_update_args(R)
-            + [tape.grid_mv, self.grid_v_bar_copies, np.int32(self.copies)]
-            + inputs.boundary_args()
-            + [self.grid_bar],
-        )
+        copies = dict(grid_v_bar_copies=self.grid_v_bar_copies, copies=np.int32(self.copies))
+        grids = dict(grid=tape.grid_mv, grid_bar=self.grid_bar) | copies
+        dev.launch(self.k_grid, self.grid.nodes, grid_args | inputs.grid_update_args(R) | grids)
         # p2g_adjoint writes v_bar, which p2g_flip_adjoint then reads and adds to
-        dev.launch(
-            self.k_p2g,
-            -(-self.n // SIMD_LANES),
-            grid_args
-            + p2g_particle_args(R, state, tape, inputs)
-            + [self.grid_bar, grad.x, grad.v, grad.C, self.tau_bar, mass_grad],
-        )
+        bars = dict(grid_bar=self.grid_bar, x_bar=grad.x, v_bar=grad.v, C_bar=grad.C, tau_bar=self.tau_bar)
+        particle_args = p2g_particle_args(R, state, tape, inputs)
+        dev.launch(self.k_p2g, -(-self.n // SIMD_LANES), grid_args | particle_args | bars | dict(mass_bar=mass_grad))
         if self.k_flip is not None:
             self._launch_flip_adjoint(state, inputs, grad_after, grad, mass_grad)
         self.launch_stress_adjoint(
@@ -141,24 +131,20 @@ class SubstepAdjoint:
         R = self.real_t
         # v' read back as v_pic; with FLIP the kernel sums v_pic itself (any buffer will do)
         v_out = tape.grid_v if self.flip > 0 else after.v
-        particle_args = [np.int32(self.n), R(inputs.dt), R(inputs.t), R(self.flip), state.x, v_out]
-        tape_args = [inputs.particles.release_time, tape.grid_v, tape.grid_dv]
-        grad_args = [grad_after.x, grad_after.v, grad_after.C]
-        copies_args = [np.int32(self.copies), np.int32(self.chunk), self.grid_v_bar_copies, grad.x]
-        self.device.launch(
-            self.k_g2p,
-            self.copies,
-            self.grid.kernel_args(R) + particle_args + tape_args + grad_args + copies_args,
-            local_size=1,
-        )
+        args = dict(n=np.int32(self.n), dt=R(inputs.dt), t=R(inputs.t), flip=R(self.flip), x_in=state.x, v_out=v_out)
+        args |= dict(release_time=inputs.particles.release_time, grid_v=tape.grid_v, grid_dv=tape.grid_dv)
+        args |= dict(x_bar_out=grad_after.x, v_bar_out=grad_after.v, C_bar_out=grad_after.C)
+        args |= dict(copies=np.int32(self.copies), chunk=np.int32(self.chunk))
+        args |= dict(grid_v_bar_copies=self.grid_v_bar_copies, x_bar=grad.x)
+        self.device.launch(self.k_g2p, self.copies, self.grid.kernel_args(R) | args, local_size=1)
 
     def _launch_flip_adjoint(self, state, inputs, grad_after, grad, mass_grad) -> None:
         """The PIC/FLIP blend's P2G adjoint: adds to ``grad``'s x, v, C and ``mass_grad``."""
         R, particles = self.real_t, inputs.particles
-        particle_args = [np.int32(self.n), R(inputs.t), R(self.flip), state.x, state.v, state.C]
-        particle_args += [particles.mass, particles.release_time]
-        grad_args = [grad_after.v, self.grid_bar, grad.x, grad.v, grad.C, mass_grad]
-        self.device.launch(self.k_flip, self.n, self.grid.kernel_args(R) + particle_args + grad_args)
+        args = dict(n=np.int32(self.n), t=R(inputs.t), flip=R(self.flip), x=state.x, v=state.v, C=state.C)
+        args |= dict(mass=particles.mass, release_time=particles.release_time)
+        args |= dict(v_bar_out=grad_after.v, grid_bar=self.grid_bar, x_bar=grad.x, v_bar=grad.v, C_bar=grad.C)
+        self.device.launch(self.k_flip, self.n, self.grid.kernel_args(R) | args | dict(mass_bar=mass_grad))
 
     def launch_stress_adjoint(
         self,
@@ -178,8 +164,11 @@ class SubstepAdjoint:
     ) -> None:
         """Enqueue the stress stage's adjoint on device arrays (or buffers): F_bar, plastic_bar
         written, C_bar and param_bar accumulated into (see kernels_cl/mpm/adjoint/stress_adjoint.cl)."""
-        bars = [tau_bar, F_bar_out, plastic_bar_out, F_bar, C_bar, plastic_bar, param_bar]
-        launch_stress(self, dt, F, C, [param, *bars], [plastic, material, param, *bars])
+        bars = dict(tau_bar=tau_bar, F_bar_out=F_bar_out, plastic_bar_out=plastic_bar_out, F_bar=F_bar, C_bar=C_bar)
+        args = dict(plastic_in=plastic, material=material, param=param) | bars
+        launch_stress(
+            self, dt, F, C, args | dict(plastic_bar=plastic_bar, param_bar=param_bar), ("plastic_in", "material")
+        )
 
 
 __all__ = ["StateGrad", "SubstepAdjoint"]

@@ -89,8 +89,10 @@ class Grid:
     def upper(self) -> tuple[float, float, float]:
         return tuple(o + (n - 1) * self.dx for o, n in zip(self.origin, self.resolution))
 
-    def kernel_args(self, real_t) -> list:
-        return [np.int32(n) for n in self.resolution] + [real_t(self.dx)] + [real_t(o) for o in self.origin]
+    def kernel_args(self, real_t) -> dict:
+        """The grid's arguments of every MPM kernel (GRID_ARGS): nodes per axis, dx, origin (m)."""
+        (nx, ny, nz), (ox, oy, oz) = (np.int32(n) for n in self.resolution), (real_t(o) for o in self.origin)
+        return dict(nx=nx, ny=ny, nz=nz, dx=real_t(self.dx), ox=ox, oy=oy, oz=oz)
 
 
 def p2g_path(device: Device, requested: P2GMode = "auto") -> str:
@@ -247,13 +249,14 @@ class SubstepInputs:
     boundaries: DeviceArray
     accel: DeviceArray
 
-    def grid_update_args(self, real_t) -> list:
-        """The grid update's (and its adjoint's) scalars: dt, t (s), gravity (m/s^2), mass_eps (kg)."""
-        return [real_t(self.dt), real_t(self.t), *(real_t(g) for g in self.gravity), real_t(self.particles.mass_eps)]
-
-    def boundary_args(self) -> list:
-        """The boundary table and its row count, as the grid kernels take them."""
-        return [self.boundaries, np.int32(self.boundaries.shape[0])]
+    def grid_update_args(self, real_t) -> dict:
+        """The grid update's (and its adjoint's) scalars: dt, t (s), gravity (m/s^2), mass_eps
+        (kg), and the boundary table with its row count."""
+        gx, gy, gz = (real_t(g) for g in self.gravity)
+        scalars = dict(
+            dt=real_t(self.dt), t=real_t(self.t), gx=gx, gy=gy, gz=gz, mass_eps=real_t(self.particles.mass_eps)
+        )
+        return scalars | dict(bc=self.boundaries, n_bc=np.int32(self.boundaries.shape[0]))
 
 
 @dataclass
@@ -293,28 +296,28 @@ def check_grid_memory(info, grid: Grid, itemsize: int, flip: float = 0.0) -> Non
         )
 
 
-def launch_stress(owner, dt: float, F, C, elastic_args: list, svd_args: list) -> None:
+def launch_stress(owner, dt: float, F, C, args: dict, elastic_omits: tuple[str, ...]) -> None:
     """Enqueue a stress stage, forward or adjoint, of ``owner`` (:class:`SubstepKernels` or its
-    adjoint: device, n, k_stress, k_svd, U/s/V): an elastic-only program takes
-    ``[n, dt, F, C, *elastic_args]`` on SIMD lanes; the others take the SVD of the trial F
-    first (when k_svd), then ``[n, dt, F, C, U, s, V, *svd_args]`` per particle."""
-    dev, R, n = owner.device, owner.real_t, np.int32(owner.n)
-    lanes = -(-owner.n // SIMD_LANES)
+    adjoint: device, n, k_stress, k_svd, U/s/V) from F and C: the per-particle kernel takes
+    ``args`` after the SVD of the trial F (when k_svd); an elastic-only program runs on SIMD
+    lanes and takes ``args`` less ``elastic_omits``."""
+    dev, n = owner.device, owner.n
+    common = dict(n=np.int32(n), dt=owner.real_t(dt), F_in=F, C_in=C)
+    lanes = -(-n // SIMD_LANES)
     if owner.elastic_only:
-        dev.launch(owner.k_stress, lanes, [n, R(dt), F, C, *elastic_args])
+        dev.launch(owner.k_stress, lanes, common | {k: v for k, v in args.items() if k not in elastic_omits})
         return
-    U, s, V = owner.U, owner.s, owner.V
     if owner.k_svd is not None:
-        dev.launch(owner.k_svd, lanes, [n, R(dt), F, C, U, s, V])
-    dev.launch(owner.k_stress, owner.n, [n, R(dt), F, C, U, s, V, *svd_args])
+        dev.launch(owner.k_svd, lanes, common | dict(U_out=owner.U, s_out=owner.s, V_out=owner.V))
+    dev.launch(owner.k_stress, n, common | dict(U_in=owner.U, s_in=owner.s, V_in=owner.V) | args)
 
 
-def p2g_particle_args(real_t, state: State, tape: SubstepTape, inputs: SubstepInputs) -> list:
+def p2g_particle_args(real_t, state: State, tape: SubstepTape, inputs: SubstepInputs) -> dict:
     """The particle arguments of the P2G kernels and of their adjoint (P2G_PARTICLE_ARGS of
     kernels_cl/mpm/p2g.cl): n, dt, x, v, C, tau, mass, volume, group, accel."""
-    p = inputs.particles
-    n = np.int32(state.x.shape[0])
-    return [n, real_t(inputs.dt), state.x, state.v, state.C, tape.tau, p.mass, p.volume, p.group, inputs.accel]
+    p, n = inputs.particles, np.int32(state.x.shape[0])
+    arrays = dict(x=state.x, v=state.v, C=state.C, tau=tape.tau, mass=p.mass, volume=p.volume, group=p.group)
+    return dict(n=n, dt=real_t(inputs.dt)) | arrays | dict(accel=inputs.accel)
 
 
 class SubstepKernels:
@@ -385,60 +388,34 @@ class SubstepKernels:
         dev, R, n = self.device, self.real_t, np.int32(self.n)
         grid_args = self.grid.kernel_args(R)
         tape = tape or self.scratch
-        particles, dt = inputs.particles, inputs.dt
-        launch_stress(
-            self,
-            dt,
-            state.F,
-            state.C,
-            [state.plastic, particles.param, out.F, out.plastic, tape.tau],
-            [state.plastic, particles.material, particles.param, out.F, out.plastic, tape.tau],
-        )
-        p2g_args = p2g_particle_args(R, state, tape, inputs)
+        particles = inputs.particles
+        outputs = dict(F_out=out.F, plastic_out=out.plastic, tau_out=tape.tau)
+        stress_args = dict(plastic_in=state.plastic, material=particles.material, param=particles.param) | outputs
+        launch_stress(self, inputs.dt, state.F, state.C, stress_args, elastic_omits=("material",))
+        p2g_args = grid_args | p2g_particle_args(R, state, tape, inputs)
         if self.p2g == "private":
-            dev.launch(
-                self.k_p2g,
-                self.copies,
-                grid_args + p2g_args + [np.int32(self.copies), np.int32(self.chunk), self.grid_copies],
-                local_size=1,
-            )
+            copies = dict(copies=np.int32(self.copies), chunk=np.int32(self.chunk), grid_copies=self.grid_copies)
+            dev.launch(self.k_p2g, self.copies, p2g_args | copies, local_size=1)
             size = tape.grid_mv.numel()
-            dev.launch(self.k_reduce, size, [np.int64(size), np.int32(self.copies), self.grid_copies, tape.grid_mv])
+            sums = dict(size=np.int64(size), copies=np.int32(self.copies), grid_copies=self.grid_copies)
+            dev.launch(self.k_reduce, size, sums | dict(grid=tape.grid_mv))
         elif self.p2g == "gather":
             keys, ids, spare_keys, spare_ids = self.cell_pairs
-            dev.launch(self.k_cells, self.n, grid_args + [n, state.x, keys, ids])
+            dev.launch(self.k_cells, self.n, grid_args | dict(n=n, x=state.x, key=keys, id=ids))
             if radix_sort(
                 dev, (keys, ids), (spare_keys, spare_ids), self.n, self.cell_key_bits, DIGIT_BITS, self.sort_hist
             ):
                 keys, ids = spare_keys, spare_ids
             self.cell_ranges.zero_()  # empty cells: [0, 0)
             key_ranges(dev, keys, self.cell_ranges, self.n)
-            dev.launch(self.k_p2g, self.grid.nodes, grid_args + p2g_args + [ids, self.cell_ranges, tape.grid_mv])
+            cells = dict(sorted_id=ids, ranges=self.cell_ranges, grid=tape.grid_mv)
+            dev.launch(self.k_p2g, self.grid.nodes, p2g_args | cells)
         else:
             tape.grid_mv.zero_()  # on the device, in queue order: the atomics add onto zeros
-            dev.launch(self.k_p2g, self.n, grid_args + p2g_args + [tape.grid_mv])
-        dev.launch(
-            self.k_grid,
-            self.grid.nodes,
-            grid_args + inputs.grid_update_args(R) + [tape.grid_mv, tape.grid_v, tape.grid_dv] + inputs.boundary_args(),
-        )
-        dev.launch(
-            self.k_g2p,
-            self.n,
-            grid_args
-            + [
-                n,
-                R(dt),
-                R(inputs.t),
-                R(self.flip),
-                state.x,
-                state.v,
-                tape.grid_v,
-                tape.grid_dv,
-                particles.release_time,
-                out.x,
-                out.v,
-                out.C,
-                clamped,
-            ],
-        )
+            dev.launch(self.k_p2g, self.n, p2g_args | dict(grid=tape.grid_mv))
+        grids = dict(grid=tape.grid_mv, grid_v=tape.grid_v, grid_dv=tape.grid_dv)
+        dev.launch(self.k_grid, self.grid.nodes, grid_args | inputs.grid_update_args(R) | grids)
+        g2p = dict(n=n, dt=R(inputs.dt), t=R(inputs.t), flip=R(self.flip), x_in=state.x, v_in=state.v)
+        g2p |= dict(grid_v=tape.grid_v, grid_dv=tape.grid_dv, release_time=particles.release_time)
+        g2p |= dict(x_out=out.x, v_out=out.v, C_out=out.C, clamped=clamped)
+        dev.launch(self.k_g2p, self.n, grid_args | g2p)

@@ -4,9 +4,9 @@
     dev = get_device()                 # $CLFLOW_DEVICE, else first GPU, else PoCL's CPU
     kern = dev.kernel("common/reduce.cl", "sum_rows_partial", real="double", defines=...)
     with bind(dev) as b:               # one call's torch tensors as buffers (clflow.runtime.bridge)
-        dev.launch(kern, global_size, [b.input(x), b.output(y), ...])
+        dev.launch(kern, global_size, {"x": b.input(x), "partial": b.output(y), ...})  # by name
     y = DeviceArray.of(dev, x)         # state that stays on the device (clflow.runtime.arrays)
-    dev.launch(kern, global_size, [y, ...]); y.read()
+    dev.launch(kern, global_size, {"x": y, ...}); y.read()
 
 This module imports neither torch nor pyopencl until a device is used.
 """

@@ -209,7 +209,7 @@ class DeviceArray:
         n = self.numel()
         if n:
             kernel = self.device.kernel("common/axpy.cl", "axpy", real_of(self.dtype, "add_"))
-            self.device.launch(kernel, n, [np.int64(n), numpy_real(self.dtype)(alpha), other, self])
+            self.device.launch(kernel, n, dict(n=np.int64(n), a=numpy_real(self.dtype)(alpha), x=other, y=self))
             self._mirror = None
         return self
 

@@ -9,7 +9,7 @@ inputs are copied in and outputs copied back, and the bytes are counted in
     with bind(device) as b:
         x_buf = b.input(x)            # read by kernels
         out_buf = b.output(out)       # written by kernels
-        device.launch(kernel, n, [x_buf, out_buf, np.int32(n)])
+        device.launch(kernel, n, {"x": x_buf, "out": out_buf, "n": np.int32(n)})
     # here every kernel has finished and `out` holds the result
 
 Tensors must be contiguous CPU tensors of a supported dtype: anything else is an

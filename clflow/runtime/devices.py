@@ -23,9 +23,10 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 from clflow.errors import DeviceError
+from clflow.runtime.signatures import KernelCallError, KernelSignature
 
 INSTALL_HINT = (
     "install an OpenCL driver; on Debian/Ubuntu the CPU one is: apt-get install pocl-opencl-icd ocl-icd-libopencl1"
@@ -275,6 +276,7 @@ class Device:
         self._queue = None
         self._programs: dict[tuple, Any] = {}
         self._kernels: dict[tuple, Any] = {}
+        self._signatures: dict[int, KernelSignature] = {}  # id(cached kernel) -> its arguments
         self._spare_scratch: list[Any] = []  # scratch buffers free for reuse (take_scratch)
         self.transfers = Transfers()  # bytes the bridge copied between host and device
         # host tensors of zero-copy arrays that enqueued commands use: kept alive until the
@@ -363,17 +365,26 @@ class Device:
             if kern is None:
                 kern = getattr(self.program(source, real, defines), name)
                 self._kernels[key] = kern
+                self._signatures[id(kern)] = KernelSignature.of(kern, real)  # cached kernels live on
             return kern
+
+    def signature(self, kernel) -> KernelSignature:
+        """The argument table of a kernel from :meth:`kernel`."""
+        try:
+            return self._signatures[id(kernel)]
+        except KeyError:
+            raise KernelCallError(f"kernel {kernel.function_name}: not one of Device.kernel's") from None
 
     def launch(
         self,
         kernel,
         global_size: int | Sequence[int],
-        args: Sequence[Any],
+        args: Mapping[str, Any],
         local_size: int | Sequence[int] | None = 64,
     ):
-        """Enqueue ``kernel(*args)`` with the global size padded to whole work-groups; a
-        :class:`~clflow.runtime.arrays.DeviceArray` argument is passed as its buffer.
+        """Enqueue ``kernel`` on ``args``, by name (put in the kernel's order and checked
+        against its signature: clflow.runtime.signatures), with the global size padded to
+        whole work-groups; a :class:`~clflow.runtime.arrays.DeviceArray` is passed as its buffer.
 
         PoCL has no non-uniform work-groups, so every dimension of ``global_size`` is rounded
         up to a multiple of ``local_size``; kernels guard their tail work-items. ``local_size``
@@ -386,6 +397,9 @@ class Device:
             lsize = (local_size,) + (1,) * (len(gsize) - 1) if isinstance(local_size, int) else tuple(local_size)
             lsize = tuple(min(size, self.info.max_work_group_size) for size in lsize)
             gsize = tuple(round_up(g, size) for g, size in zip(gsize, lsize))
+        if not isinstance(args, Mapping):
+            raise KernelCallError(f"kernel {kernel.function_name}: pass its arguments by name (a mapping)")
+        args = self.signature(kernel).ordered(args)
         arrays = [a for a in args if hasattr(a, "buffer")]  # clflow.runtime.arrays.DeviceArray
         self.keep_until_done(arrays)
         kernel.set_args(*(a.buffer if hasattr(a, "buffer") else a for a in args))

@@ -60,13 +60,15 @@ def load_source(relpath: str) -> str:
 
 
 def build_options(info, real: str, defines: dict[str, Any] | None = None) -> list[str]:
-    """Compiler options: the ``REAL`` switch, the feature defines and any extra ``-D``.
+    """Compiler options: kernel argument info, the ``REAL`` switch, the feature defines and
+    any extra ``-D``.
 
     Defines every kernel can rely on:
       REAL (float|double), REAL_IS_DOUBLE (0|1), CLFLOW_FLOAT_ATOMICS (0|1: the device
       announces cl_ext_float_atomics), CLFLOW_OCLGRIND (0|1: running under oclgrind).
     """
     opts = [
+        "-cl-kernel-arg-info",  # argument names and types: launches by name are checked against them
         f"-DREAL={real}",
         f"-DREAL_IS_DOUBLE={int(real == 'double')}",
         f"-DCLFLOW_FLOAT_ATOMICS={int(info.float_atomics)}",

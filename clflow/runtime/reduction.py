@@ -42,7 +42,12 @@ def sum_rows(x: torch.Tensor, device: Device | None = None) -> torch.Tensor:
         while True:
             groups = -(-rows // chunk)
             dst = b.output(out) if groups == 1 else b.scratch(groups * k * 8)
-            device.launch(kernel, (groups * REDUCE_WG, k), [src, dst, np.int32(rows), np.int32(k)], (REDUCE_WG, 1))
+            device.launch(
+                kernel,
+                (groups * REDUCE_WG, k),
+                dict(x=src, partial=dst, n=np.int32(rows), k=np.int32(k)),
+                (REDUCE_WG, 1),
+            )
             if groups == 1:
                 break
             src, kernel, rows = dst, rest, groups
@@ -70,7 +75,8 @@ def scatter_add(values: torch.Tensor, index: torch.Tensor, size: int, device: De
         return out
     kernel = device.kernel("common/scatter_add.cl", "scatter_add", real)
     with bind(device) as b:
-        device.launch(kernel, n, [b.input(values), b.input(idx), b.inout(out), np.int32(n), np.int32(width)])
+        args = dict(values=b.input(values), index=b.input(idx), out=b.inout(out), n=np.int32(n), width=np.int32(width))
+        device.launch(kernel, n, args)
     return out
 
 

@@ -50,22 +50,24 @@ def radix_sort(device: Device, pair, spare, n: int, key_bits: int, digit_bits: i
         mask = np.uint32((1 << min(width, key_bits - p * width)) - 1)
         n_hist = np.int32((int(mask) + 1) * SORT_BLOCKS)
         # local size 1: the blocks are independent work-groups, spread over all cores
-        device.launch(histogram, SORT_BLOCKS, [src[0], np.int32(n), shift, mask, hist, blocks, block_len], 1)
-        device.launch(scan, 1, [hist, hist, n_hist], 1)
-        device.launch(scatter, SORT_BLOCKS, [*src, *dst, np.int32(n), shift, mask, hist, blocks, block_len], 1)
+        digit = dict(n=np.int32(n), shift=shift, mask=mask, nblocks=blocks, block_len=block_len)
+        device.launch(histogram, SORT_BLOCKS, digit | dict(keys=src[0], hist=hist), 1)
+        device.launch(scan, 1, {"in": hist, "out": hist, "n": n_hist}, 1)
+        pairs = dict(keys_in=src[0], values_in=src[1], keys_out=dst[0], values_out=dst[1])
+        device.launch(scatter, SORT_BLOCKS, digit | pairs | dict(starts=hist), 1)
         src, dst = dst, src
     return passes % 2 == 1
 
 
 def scan_exclusive(device: Device, src, dst, n: int) -> None:
     """dst[i] = sum of src[:i] for i = 0..n (dst holds n + 1 int32; dst[n] the total)."""
-    device.launch(device.kernel("common/sort.cl", "scan_exclusive"), 1, [src, dst, np.int32(n)], 1)
+    device.launch(device.kernel("common/sort.cl", "scan_exclusive"), 1, {"in": src, "out": dst, "n": np.int32(n)}, 1)
 
 
 def key_ranges(device: Device, keys, ranges, n: int) -> None:
     """ranges[k] = [start, end) of key k in the first ``n`` sorted ``keys`` (ranges [K, 2]
     int32, filled with zeros beforehand for the keys that do not occur)."""
-    device.launch(device.kernel("common/sort.cl", "key_ranges"), n, [keys, ranges, np.int32(n)])
+    device.launch(device.kernel("common/sort.cl", "key_ranges"), n, dict(keys=keys, ranges=ranges, n=np.int32(n)))
 
 
 def sort_pairs(keys: torch.Tensor, values: torch.Tensor, key_bits: int = 32, device: Device | None = None):

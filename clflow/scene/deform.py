@@ -35,5 +35,5 @@ def polar_rotations(F: torch.Tensor) -> torch.Tensor:
     n = F.shape[0]
     if n:
         with bind(device) as b:
-            device.launch(kernel, -(-n // SIMD_LANES), [np.int32(n), b.input(F, "F"), b.output(R, "R")])
+            device.launch(kernel, -(-n // SIMD_LANES), dict(n=np.int32(n), F=b.input(F, "F"), R=b.output(R, "R")))
     return R

@@ -98,13 +98,16 @@ def build_tile_lists(
     with bind(device) as b:
         # 1. Gaussians by depth; entry offsets in that order
         depth_pairs = [b.scratch(4 * n) for _ in range(4)]
-        device.launch(kern("depth_keys"), n, [b.input(depths), b.input(radii), *depth_pairs[:2], np.int32(n)])
+        keys, values = depth_pairs[:2]
+        gaussians = dict(depths=b.input(depths), radii=b.input(radii), n=np.int32(n))
+        device.launch(kern("depth_keys"), n, gaussians | dict(keys=keys, values=values))
         tile_bits = max(1, (n_tiles - 1).bit_length())
         hist = b.scratch(max(histogram_bytes(32, DEPTH_DIGIT_BITS), histogram_bytes(tile_bits, TILE_DIGIT_BITS)))
         swapped = radix_sort(device, depth_pairs[:2], depth_pairs[2:], n, 32, DEPTH_DIGIT_BITS, hist)
         order = depth_pairs[3] if swapped else depth_pairs[1]
         counts, offsets = b.scratch(4 * n), b.scratch(4 * (n + 1))
-        device.launch(kern("gather_counts"), n, [order, b.input(tiles_touched), counts, np.int32(n)])
+        touched = dict(order=order, tiles_touched=b.input(tiles_touched), counts=counts, n=np.int32(n))
+        device.launch(kern("gather_counts"), n, touched)
         scan_exclusive(device, counts, offsets, n)
         m = b.read_element(offsets, n, np.int32)
         # 2. entries in depth order, 3. stable sort by tile, 4. per-tile ranges
@@ -112,22 +115,11 @@ def build_tile_lists(
         slot_gaussian = torch.empty(m, dtype=torch.int32)
         first_slot = torch.empty(n, dtype=torch.int32)  # every Gaussian's is written
         ranges = torch.zeros(n_tiles, 2, dtype=torch.int32)  # empty tiles stay (0, 0)
-        device.launch(
-            kern("emit_entries"),
-            n,
-            [
-                order,
-                offsets,
-                b.input(means2d),
-                b.input(radii),
-                *tile_pairs[:2],
-                b.output(slot_gaussian),
-                b.output(first_slot),
-                np.int32(n),
-                np.int32(tiles_x),
-                np.int32(tiles_y),
-            ],
-        )
+        entries = dict(order=order, offsets=offsets, means2d=b.input(means2d), radii=b.input(radii))
+        entries |= dict(tile_keys=tile_pairs[0], slots=tile_pairs[1])
+        entries |= dict(slot_gaussian=b.output(slot_gaussian), first_slot=b.output(first_slot))
+        tiles = dict(n=np.int32(n), tiles_x=np.int32(tiles_x), tiles_y=np.int32(tiles_y))
+        device.launch(kern("emit_entries"), n, entries | tiles)
         swapped = radix_sort(device, tile_pairs[:2], tile_pairs[2:], m, tile_bits, TILE_DIGIT_BITS, hist)
         keys, slots = (tile_pairs[2], tile_pairs[3]) if swapped else (tile_pairs[0], tile_pairs[1])
         key_ranges(device, keys, b.inout(ranges), m)

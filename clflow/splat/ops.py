@@ -49,7 +49,7 @@ def covariances(quats: Tensor, scales: Tensor) -> Tensor:
         device.launch(
             _kernel("covariance.cl", "covariance_forward", quats.dtype),
             -(-n // SPLAT_LANES),
-            [b.input(quats), b.input(scales), b.output(covars), np.int32(n)],
+            dict(quats=b.input(quats), scales=b.input(scales), covars=b.output(covars), n=np.int32(n)),
         )
     return covars
 
@@ -66,11 +66,9 @@ def covariances_backward(quats: Tensor, scales: Tensor, v_covars: Tensor) -> tup
     n = quats.shape[0]
     v_quats, v_scales = torch.empty_like(quats), torch.empty_like(scales)
     with bind(device) as b:
-        device.launch(
-            _kernel("covariance.cl", "covariance_backward", quats.dtype),
-            n,
-            [b.input(quats), b.input(scales), b.input(v_covars), b.output(v_quats), b.output(v_scales), np.int32(n)],
-        )
+        grads = dict(v_covars=b.input(v_covars), v_quats=b.output(v_quats), v_scales=b.output(v_scales))
+        gaussians = dict(quats=b.input(quats), scales=b.input(scales), n=np.int32(n))
+        device.launch(_kernel("covariance.cl", "covariance_backward", quats.dtype), n, gaussians | grads)
     return v_quats, v_scales
 
 
@@ -91,6 +89,14 @@ covariances.register_autograd(_covariances_grad, setup_context=_covariances_setu
 
 
 # -- projection op ----------------------------------------------------------------------
+
+
+def _projection_args(b, means, covars, viewmat, K, width: int, height: int) -> dict:
+    """The projection kernels' inputs (bound by ``b``), the count and the image size."""
+    gaussians = dict(means=b.input(means), covars=b.input(covars), n=np.int32(means.shape[0]))
+    return gaussians | dict(
+        viewmat=b.input(viewmat), intrinsics=b.input(K), width=np.int32(width), height=np.int32(height)
+    )
 
 
 @torch.library.custom_op("clflow::splat_project", mutates_args=())
@@ -119,25 +125,10 @@ def project(
     kern = _kernel("project.cl", "project_forward", means.dtype)
     near_real = np.float64(near) if means.dtype == torch.float64 else np.float32(near)
     with bind(device) as b:
-        device.launch(
-            kern,
-            -(-n // SPLAT_LANES),
-            [
-                b.input(means),
-                b.input(covars),
-                b.input(viewmat),
-                b.input(K),
-                b.output(means2d),
-                b.output(conics),
-                b.output(depths),
-                b.output(radii),
-                b.output(tiles_touched),
-                np.int32(n),
-                np.int32(width),
-                np.int32(height),
-                near_real,
-            ],
-        )
+        splats = _projection_args(b, means, covars, viewmat, K, width, height) | dict(near_plane=near_real)
+        outputs = dict(means2d=b.output(means2d), conics=b.output(conics), depths=b.output(depths))
+        outputs |= dict(radii=b.output(radii), tiles_touched=b.output(tiles_touched))
+        device.launch(kern, -(-n // SPLAT_LANES), splats | outputs)
     return means2d, conics, depths, radii, tiles_touched
 
 
@@ -174,25 +165,10 @@ def project_backward(
     v_covars = torch.empty_like(covars)
     kern = _kernel("project.cl", "project_backward", means.dtype)
     with bind(device) as b:
-        device.launch(
-            kern,
-            n,
-            [
-                b.input(means),
-                b.input(covars),
-                b.input(viewmat),
-                b.input(K),
-                b.input(radii),
-                b.input(v_means2d),
-                b.input(v_conics),
-                b.input(v_depths),
-                b.output(v_means),
-                b.output(v_covars),
-                np.int32(n),
-                np.int32(width),
-                np.int32(height),
-            ],
-        )
+        splats = _projection_args(b, means, covars, viewmat, K, width, height) | dict(radii=b.input(radii))
+        grads = dict(v_means2d=b.input(v_means2d), v_conics=b.input(v_conics), v_depths=b.input(v_depths))
+        grads |= dict(v_means=b.output(v_means), v_covars=b.output(v_covars))
+        device.launch(kern, n, splats | grads)
     return v_means, v_covars
 
 
@@ -249,14 +225,31 @@ def _sorted_entry_records(device, b, means2d, conics, opacities, features, sorte
     entries = b.scratch(m * (ENTRY_FIELDS + channels) * itemsize)
     kernel = lambda name: _kernel("rasterize.cl", name, features.dtype, CHANNELS=channels)  # noqa: E731
     device.launch(
-        kernel("entry_records"), n, [b.input(means2d), b.input(conics), b.input(opacities), records, np.int32(n)]
+        kernel("entry_records"),
+        n,
+        dict(
+            means2d=b.input(means2d),
+            conics=b.input(conics),
+            opacities=b.input(opacities),
+            records=records,
+            n=np.int32(n),
+        ),
     )
     device.launch(
         kernel("sort_entry_records"),
         m,
-        [b.input(sorted_slots), b.input(slot_gaussian), records, b.input(features), entries, np.int32(m)],
+        dict(sorted_slots=b.input(sorted_slots), slot_gaussian=b.input(slot_gaussian), records=records)
+        | dict(features=b.input(features), entries=entries, m=np.int32(m)),
     )
     return entries
+
+
+def _tile_args(width: int, height: int) -> dict:
+    """The compositing kernels' image size (pixels) and 16 x 16 tile counts."""
+    tiles_x, tiles_y = tile_grid(width, height)
+    return dict(
+        width=np.int32(width), height=np.int32(height), tiles_x=np.int32(tiles_x), n_tiles=np.int32(tiles_x * tiles_y)
+    )
 
 
 @torch.library.custom_op("clflow::splat_composite", mutates_args=())
@@ -294,23 +287,10 @@ def composite(
     kern = _kernel("rasterize.cl", "rasterize_forward", features.dtype, CHANNELS=channels)
     with bind(device) as b:
         entries = _sorted_entry_records(device, b, means2d, conics, opacities, features, sorted_slots, slot_gaussian)
-        device.launch(
-            kern,
-            tiles_x * tiles_y,
-            [
-                b.input(ranges),
-                entries,
-                b.input(background),
-                b.output(out),
-                b.output(T_final),
-                b.output(n_contrib),
-                np.int32(width),
-                np.int32(height),
-                np.int32(tiles_x),
-                np.int32(tiles_x * tiles_y),
-            ],
-            1,  # one work-item per tile, each its own work-group: busy tiles spread over the cores
-        )
+        image = dict(ranges=b.input(ranges), entries=entries, background=b.input(background))
+        image |= dict(out=b.output(out), T_final=b.output(T_final), n_contrib=b.output(n_contrib))
+        # one work-item per tile, each its own work-group: busy tiles spread over the cores
+        device.launch(kern, tiles_x * tiles_y, image | _tile_args(width, height), 1)
     return out, T_final, n_contrib
 
 
@@ -366,39 +346,16 @@ def composite_backward(
         # [M, 6 + C]: one gradient row per (tile, Gaussian) pair, written once by its tile
         slots = b.scratch(m * (6 + channels) * features.dtype.itemsize)
         # local size 1: each tile is a work-group of its own, so the busy tiles spread over the cores
-        device.launch(
-            backward,
-            tiles_x * tiles_y,
-            [
-                b.input(ranges),
-                b.input(sorted_slots),
-                entries,
-                b.input(background),
-                b.input(T_final),
-                b.input(n_contrib),
-                b.input(v_out),
-                b.input(v_T_final),
-                slots,
-                np.int32(width),
-                np.int32(height),
-                np.int32(tiles_x),
-                np.int32(tiles_x * tiles_y),
-            ],
-            1,
-        )
+        image = dict(ranges=b.input(ranges), sorted_slots=b.input(sorted_slots), entries=entries)
+        image |= dict(background=b.input(background), T_final=b.input(T_final), n_contrib=b.input(n_contrib))
+        grads = dict(v_out=b.input(v_out), v_T=b.input(v_T_final), slot_grads=slots)
+        device.launch(backward, tiles_x * tiles_y, image | grads | _tile_args(width, height), 1)
         device.launch(
             reduce,
             n,
-            [
-                slots,
-                b.input(first_slot),
-                b.input(tiles_touched),
-                b.output(v_means2d),
-                b.output(v_conics),
-                b.output(v_opacities),
-                b.output(v_features),
-                np.int32(n),
-            ],
+            dict(slot_grads=slots, first_slot=b.input(first_slot), tiles_touched=b.input(tiles_touched), n=np.int32(n))
+            | dict(v_means2d=b.output(v_means2d), v_conics=b.output(v_conics))
+            | dict(v_opacities=b.output(v_opacities), v_features=b.output(v_features)),
         )
     return v_means2d, v_conics, v_opacities, v_features
 

@@ -16,7 +16,9 @@ def svd3(device, F: torch.Tensor):
     U, V = torch.empty(n, 3, 3, dtype=F.dtype), torch.empty(n, 3, 3, dtype=F.dtype)
     s = torch.empty(n, 3, dtype=F.dtype)
     with bind(device) as b:
-        device.launch(kern, n, [np.int32(n), b.input(F.contiguous()), b.output(U), b.output(s), b.output(V)])
+        device.launch(
+            kern, n, dict(n=np.int32(n), F=b.input(F.contiguous()), U=b.output(U), s=b.output(s), V=b.output(V))
+        )
     return U, s, V
 
 

@@ -17,7 +17,13 @@ def run_scatter(device, binding, values, index, out):
     device.launch(
         scatter_kernel(device, "double" if values.dtype == torch.float64 else "float"),
         n,
-        [binding.input(values), binding.input(index), binding.inout(out), np.int32(n), np.int32(1)],
+        dict(
+            values=binding.input(values),
+            index=binding.input(index),
+            out=binding.inout(out),
+            n=np.int32(n),
+            width=np.int32(1),
+        ),
     )
 
 
@@ -33,13 +39,13 @@ def test_zero_copy_buffer_aliases_the_tensor_and_kernels_write_into_it(device):
         device.launch(
             scatter_kernel(device),
             3,
-            [
-                b.input(torch.tensor([1.5, 2.0, 4.0])),
-                b.input(torch.tensor([3, 0, 3], dtype=torch.int32)),
-                buf,
-                np.int32(3),
-                np.int32(1),
-            ],
+            dict(
+                values=b.input(torch.tensor([1.5, 2.0, 4.0])),
+                index=b.input(torch.tensor([3, 0, 3], dtype=torch.int32)),
+                out=buf,
+                n=np.int32(3),
+                width=np.int32(1),
+            ),
         )
         device.finish()
         # PoCL's CPU device wrote straight into the tensor: visible before any copy or map.

@@ -1,0 +1,102 @@
+"""Kernel calls by name.
+
+Each kernel's argument table is its own OpenCL C signature, read back from the driver
+(every program is built with ``-cl-kernel-arg-info``), so the ``.cl`` file stays the one
+place that says what a kernel takes. A host call names every argument
+(``device.launch(kernel, n, {"n": np.int32(n), "x": x, ...})``); a name missing or unknown,
+a pointer given a scalar (or the reverse), or an array or scalar of the wrong kind or width
+is refused before anything is enqueued, naming the kernel and the argument.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+
+#: OpenCL C scalar type -> numpy type of the same kind and width
+SCALAR_TYPES = {
+    "char": np.int8,
+    "uchar": np.uint8,
+    "short": np.int16,
+    "ushort": np.uint16,
+    "int": np.int32,
+    "uint": np.uint32,
+    "long": np.int64,
+    "ulong": np.uint64,
+    "float": np.float32,
+    "double": np.float64,
+}
+
+# clGetKernelArgInfo parameters (OpenCL 1.2): the argument's declared type name and its name
+_ARG_TYPE_NAME, _ARG_NAME = 0x1198, 0x119A
+
+
+class KernelCallError(TypeError):
+    """A kernel called with arguments its signature does not take: a bug in clflow, not in
+    the user's input, so it keeps its traceback."""
+
+
+@dataclass(frozen=True)
+class KernelArgument:
+    """One argument of a kernel: its name and declared type ("int", "real", "real*", ...)."""
+
+    name: str
+    type_name: str  # a pointer's ends in "*"
+
+
+@dataclass(frozen=True)
+class KernelSignature:
+    """A kernel's name, what ``real`` means in its program, and its arguments in order."""
+
+    kernel: str
+    real: str
+    arguments: tuple[KernelArgument, ...]
+
+    @staticmethod
+    def of(kernel, real: str) -> "KernelSignature":
+        """The signature of a built ``cl.Kernel`` whose program was built with ``REAL=real``."""
+        arguments = tuple(
+            KernelArgument(kernel.get_arg_info(i, _ARG_NAME), kernel.get_arg_info(i, _ARG_TYPE_NAME).replace(" ", ""))
+            for i in range(kernel.num_args)
+        )
+        return KernelSignature(kernel.function_name, real, arguments)
+
+    def ordered(self, args: Mapping[str, Any]) -> list:
+        """``args`` (name -> value) in the kernel's argument order, each checked against its type."""
+        names = [a.name for a in self.arguments]
+        missing, unknown = [n for n in names if n not in args], sorted(set(args) - set(names))
+        problems = ([f"missing {', '.join(missing)}"] if missing else []) + (
+            [f"unknown {', '.join(unknown)}"] if unknown else []
+        )
+        if problems:
+            raise KernelCallError(f"kernel {self.kernel}: {'; '.join(problems)} (it takes {', '.join(names)})")
+        for argument in self.arguments:
+            self._check(argument, args[argument.name])
+        return [args[n] for n in names]
+
+    def _kind(self, type_name: str) -> tuple[str, int]:
+        """("f" or "i", bytes) of an OpenCL scalar type name (``real`` resolved)."""
+        base = type_name.rstrip("*")
+        dtype = np.dtype(SCALAR_TYPES[self.real if base == "real" else base])
+        return ("f" if dtype.kind == "f" else "i"), dtype.itemsize
+
+    def _check(self, argument: KernelArgument, value: Any) -> None:
+        where = f"kernel {self.kernel}: argument {argument.name} ({argument.type_name})"
+        if argument.type_name.rstrip("*") not in (*SCALAR_TYPES, "real"):
+            return  # a struct or an image: not checked here
+        if argument.type_name.endswith("*"):
+            if isinstance(value, (np.generic, int, float)):
+                raise KernelCallError(f"{where} is a pointer, given the number {value}")
+            dtype = getattr(value, "dtype", None)  # a DeviceArray's torch dtype; a bare cl.Buffer has none
+            if dtype is not None:
+                given = ("f" if dtype.is_floating_point else "i", dtype.itemsize)
+                if given != self._kind(argument.type_name):
+                    raise KernelCallError(f"{where} given an array of {dtype}")
+            return
+        if not isinstance(value, np.generic):
+            raise KernelCallError(f"{where} needs a sized numpy scalar, given {value!r}")
+        given = ("f" if value.dtype.kind == "f" else "i", value.dtype.itemsize)
+        if given != self._kind(argument.type_name):
+            raise KernelCallError(f"{where} given a {value.dtype} scalar")
