@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from clflow.mpm.constants import SIMD_LANES, grid_channels, velocity_channels
+from clflow.mpm.constants import SIMD_LANES, grid_channels, uses_flip, velocity_channels
 from clflow.mpm.substep import (
     Grid,
     State,
@@ -73,7 +73,7 @@ class SubstepAdjoint:
         self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_private")
         self.k_grid = k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
         self.k_p2g = k("mpm/adjoint/p2g_adjoint.cl", "p2g_adjoint")
-        self.k_flip = k("mpm/adjoint/p2g_adjoint.cl", "p2g_flip_adjoint") if self.flip > 0 else None
+        self.k_flip = k("mpm/adjoint/p2g_adjoint.cl", "p2g_flip_adjoint") if uses_flip(self.flip) else None
         itemsize = torch.tensor([], dtype=dtype).element_size()
         copy_bytes = velocity_channels(self.flip) * grid.nodes * itemsize  # vbar[, dvbar] per node
         self.copies = grid_copies(device, copy_bytes, n)
@@ -130,7 +130,7 @@ class SubstepAdjoint:
         """G2P's adjoint: dL/dx into ``grad.x``, dL/d(grid v) into the private grid copies."""
         R = self.real_t
         # v' read back as v_pic; with FLIP the kernel sums v_pic itself (any buffer will do)
-        v_out = tape.grid_v if self.flip > 0 else after.v
+        v_out = tape.grid_v if uses_flip(self.flip) else after.v
         args = dict(n=np.int32(self.n), dt=R(inputs.dt), t=R(inputs.t), flip=R(self.flip), x_in=state.x, v_out=v_out)
         args |= dict(release_time=inputs.particles.release_time, grid_v=tape.grid_v, grid_dv=tape.grid_dv)
         args |= dict(x_bar_out=grad_after.x, v_bar_out=grad_after.v, C_bar_out=grad_after.C)

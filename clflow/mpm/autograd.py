@@ -39,15 +39,8 @@ import torch
 from clflow.errors import InputError
 from clflow.materials import get_material
 from clflow.mpm.adjoint import StateGrad, SubstepAdjoint
-from clflow.mpm.constants import (
-    KERNEL_PARAMETERS,
-    MATERIAL_IDS,
-    PARAM_COUNT,
-    REGISTRY_MATERIAL,
-    grid_channels,
-    kernel_columns,
-    velocity_channels,
-)
+from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, grid_channels, velocity_channels
+from clflow.mpm.material_model import KERNEL_PARAMETERS, REGISTRY_MATERIAL, kernel_columns
 from clflow.mpm.simulator import (
     FrameProgress,
     SimulationError,
@@ -357,28 +350,10 @@ def per_particle(value, n: int, name: str, dtype: torch.dtype, device, trailing:
     return out
 
 
-_SQRT_2_3 = (2.0 / 3.0) ** 0.5
-
-
-def _registry_values(kernel_material: str, q: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Registry parameters (SI) of particles of one kernel material from their kernel rows q
-    (the inverse of clflow.mpm.constants.kernel_columns)."""
-    names = KERNEL_PARAMETERS[kernel_material]
-    values = {name: q[:, k] for k, name in enumerate(names)}
-    if names[:2] == KERNEL_PARAMETERS["elastic"]:
-        mu, lam = q[:, 0], q[:, 1]
-        values["youngs_modulus"] = mu * (3 * lam + 2 * mu) / (lam + mu)
-        values["poissons_ratio"] = lam / (2 * (lam + mu))
-    if "friction_angle" in names:  # sand: alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi))
-        values["friction_angle"] = torch.rad2deg(torch.asin(3 * q[:, 2] / (2 * _SQRT_2_3 + q[:, 2])))
-    if kernel_material == "non_newtonian":
-        values["bulk_modulus"] = q[:, 1] + 2 * q[:, 0] / 3
-    return values
-
-
 def _material_param_rows(sim: Simulator, params: dict, dtype: torch.dtype) -> torch.Tensor:
     """[N, PARAM_COUNT] kernel rows with the registry parameters ``params`` (name -> global or
-    per-particle tensor) replacing the simulator's, for every particle whose material has them."""
+    per-particle tensor, SI) replacing the simulator's SI values for every particle whose
+    material has them, mapped to kernel columns as when the simulator was built."""
     base, n = sim.particles, sim.n
     names = {i: name for name, i in MATERIAL_IDS.items()}
     present = [names[int(m)] for m in torch.unique(base.material)]
@@ -396,7 +371,8 @@ def _material_param_rows(sim: Simulator, params: dict, dtype: torch.dtype) -> to
         if not given:
             continue
         index = torch.nonzero(base.material == MATERIAL_IDS[kernel_material]).flatten()
-        values = _registry_values(kernel_material, base.param[index].double())
+        si = sim.spec.material_values[index]  # the SI values the simulator was built with
+        values = {name: si[:, k] for k, name in enumerate(KERNEL_PARAMETERS[kernel_material])}
         registry = get_material(REGISTRY_MATERIAL.get(kernel_material, kernel_material))
         for name in given:
             values[name] = rows[name][index].to(torch.float64)
@@ -438,7 +414,7 @@ def simulate(
             ``forces``, in order). A stage given as a force F (N) on a region of mass M
             accelerates it by F / M: pass ``force / region_masses(simulator)[s]`` to
             differentiate with respect to the force.
-        kernel_params: [N, PARAM_COUNT] kernel parameters (clflow.mpm.constants.kernel_params),
+        kernel_params: [N, PARAM_COUNT] kernel parameters (clflow.mpm.material_model.kernel_params),
             an alternative to params.
         retries: NaN/CFL guard: when a frame turns NaN/inf or breaks the CFL limit, halve dt
             (double the substeps per frame) and run again, at most this many times (logged

@@ -20,15 +20,8 @@ import torch
 from clflow.errors import ClflowError, InputError
 from clflow.materials import DENSITY, get_material
 from clflow.mpm.boundaries import DriverGroups, Force, GridCondition, boundary_table, wall_colliders
-from clflow.mpm.constants import (
-    CLAMP_MARGIN,
-    COLLIDER_MODES,
-    MASS_EPS_REL,
-    WALL_CELLS,
-    explicit_viscosity,
-    kernel_params,
-    wave_speed,
-)
+from clflow.mpm.constants import CLAMP_MARGIN, COLLIDER_MODES, MASS_EPS_REL, WALL_CELLS
+from clflow.mpm.material_model import explicit_viscosity, kernel_params, wave_speed
 from clflow.mpm.substep import (
     DriverAccelerations,
     Grid,
@@ -43,7 +36,7 @@ from clflow.runtime.arrays import DeviceArray, arrays_of, origin_device, to_cpu,
 
 CFL_NUMBER = 0.3  # dt <= CFL_NUMBER dx / max|v|
 WAVE_NUMBER = 0.5  # dt <= WAVE_NUMBER dx / c, c the fastest elastic wave speed
-# dt <= VISCOUS_NUMBER rho dx^2 / mu, mu the explicit viscosity (constants.explicit_viscosity);
+# dt <= VISCOUS_NUMBER rho dx^2 / mu, mu the explicit viscosity (material_model.explicit_viscosity);
 # a Newtonian block blows up above 0.34-0.46 (measured, docs/mpm.md "Safety")
 VISCOUS_NUMBER = 0.2
 PROGRESS_SECONDS = 5.0  # a frame that takes longer logs its progress this often
@@ -206,9 +199,9 @@ def _gravity(gravity: Sequence[float]) -> tuple[float, float, float]:
 
 
 def _material_arrays(materials, material_index, n: int, dtype: torch.dtype):
-    """Per-particle kernel material ids [N] int32, kernel parameters [N, PARAM_COUNT],
-    densities [N] (kg/m^3, float64), initial plastic state [N], and the
-    :class:`MaterialLimits` of each material spec."""
+    """Per-particle kernel material ids [N] int32, kernel parameters [N, PARAM_COUNT], their
+    SI values [N, PARAM_COUNT] (float64, material_model.KernelMaterial), densities [N]
+    (kg/m^3, float64), initial plastic state [N], and each spec's :class:`MaterialLimits`."""
     specs = [materials] if isinstance(materials, MaterialSpec) else list(materials)
     if not specs:
         raise InputError("materials: give at least one MaterialSpec")
@@ -224,14 +217,15 @@ def _material_arrays(materials, material_index, n: int, dtype: torch.dtype):
             raise InputError(
                 f"material_index values must lie in [0, {len(specs)}), got [{int(index.min())}, {int(index.max())}]"
             )
-    rows, densities, plastic0, limits = [], [], [], []
+    rows, si_rows, densities, plastic0, limits = [], [], [], [], []
     for k, spec in enumerate(specs):
         mat = get_material(spec.name)
         rho = DENSITY.check(mat.default_density if spec.density is None else spec.density, f"materials[{k}]")
-        mid, values, plastic = kernel_params(mat.name, spec.params, spec.model)
-        rows.append([mid] + values)
+        kernel = kernel_params(mat.name, spec.params, spec.model)
+        rows.append([kernel.id, *kernel.columns])
+        si_rows.append(kernel.si_values)
         densities.append(rho)
-        plastic0.append(plastic)
+        plastic0.append(kernel.plastic)
         limits.append(
             MaterialLimits(
                 mat.name, wave_speed(mat.name, spec.params, rho), explicit_viscosity(mat.name, spec.params), rho
@@ -241,6 +235,7 @@ def _material_arrays(materials, material_index, n: int, dtype: torch.dtype):
     return (
         table[:, 0].to(torch.int32).contiguous(),
         table[:, 1:].to(dtype).contiguous(),
+        torch.tensor(si_rows, dtype=torch.float64)[index],
         torch.tensor(densities, dtype=torch.float64)[index],
         torch.tensor(plastic0, dtype=dtype)[index].contiguous(),
         limits,
@@ -253,7 +248,9 @@ class SimulationSpec:
     count is a new spec) and shared by the plain and the differentiable runs: the particles'
     constant data, the grid, the boundary table [B, BC_STRIDE], the force drivers, gravity
     (m/s^2), the time between frames (s), the substeps per frame, the PIC/FLIP blend, the
-    precision and each material's time-step limits."""
+    precision, each material's time-step limits and each particle's SI material values
+    [N, PARAM_COUNT] (float64, in KERNEL_PARAMETERS order of its kernel material: what the
+    kernel parameters were made from, and what a differentiable run's parameters replace)."""
 
     particles: Particles
     grid: Grid
@@ -265,6 +262,7 @@ class SimulationSpec:
     flip: float
     dtype: torch.dtype
     material_limits: tuple[MaterialLimits, ...]
+    material_values: torch.Tensor
 
     @property
     def dt(self) -> float:
@@ -367,7 +365,9 @@ class Simulator:
         material_index, release_times = host(material_index), host(release_times)
         x, v, vol = _particle_inputs(positions, volume, velocities, grid, dtype)
         n = x.shape[0]
-        material, param, density, plastic0, material_limits = _material_arrays(materials, material_index, n, dtype)
+        material, param, si_values, density, plastic0, material_limits = _material_arrays(
+            materials, material_index, n, dtype
+        )
         mass = vol * density
 
         drivers = DriverGroups(forces, x.double(), mass)
@@ -395,6 +395,7 @@ class Simulator:
             float(flip),
             dtype,
             tuple(material_limits),
+            si_values,
         )
         self.use_substeps(self._checked_substeps(substeps, v))
         self.time = 0.0

@@ -35,6 +35,7 @@ from clflow.mpm.constants import (
     SVD_MATERIALS,
     grid_channels,
     kernel_defines,
+    uses_flip,
     velocity_channels,
 )
 from clflow.runtime.arrays import DeviceArray, numpy_real, real_of
@@ -273,7 +274,7 @@ class SubstepTape:
 
     @staticmethod
     def empty(device: Device, n: int, nodes: int, dtype: torch.dtype, flip: float = 0.0) -> "SubstepTape":
-        shapes = ((n, 3, 3), (nodes, grid_channels(flip)), (nodes, 3), (nodes if flip > 0 else 1, 3))
+        shapes = ((n, 3, 3), (nodes, grid_channels(flip)), (nodes, 3), (nodes if uses_flip(flip) else 1, 3))
         return SubstepTape(*(DeviceArray.empty(device, shape, dtype) for shape in shapes))
 
 

@@ -23,7 +23,7 @@ def plastic_state(material):
 
 
 GRID = Grid((8, 8, 8), 0.1)
-# kernel parameter rows (clflow.mpm.constants.kernel_params) per material
+# kernel parameter rows (clflow.mpm.material_model.kernel_params) per material
 PARAMS = {
     "elastic": (MU, LAMBDA),
     "neo_hookean": (MU, LAMBDA),

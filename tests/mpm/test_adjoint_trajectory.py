@@ -8,7 +8,8 @@ from clflow.errors import InputError
 from clflow.materials import get_material
 from clflow.mpm import Force, Grid, MaterialSpec, Simulator
 from clflow.mpm.autograd import memory_estimate, region_masses, replay_segment, simulate
-from clflow.mpm.constants import KERNEL_PARAMETERS, MATERIAL_IDS
+from clflow.mpm.constants import MATERIAL_IDS
+from clflow.mpm.material_model import KERNEL_PARAMETERS
 from clflow.mpm.parameterization import parameterization
 from tests.mpm._helpers import MATERIAL_CASES, assert_repeats, cube
 

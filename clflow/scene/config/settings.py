@@ -12,7 +12,7 @@ from clflow.flow.optical_flow import (
     DEFAULT_CONFIDENCE,
     DEFAULT_PRESET,
 )
-from clflow.mpm.constants import ELASTIC_MODELS, SAND_MODELS
+from clflow.mpm.material_model import ELASTIC_MODELS, SAND_MODELS
 from clflow.regions import Region
 
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
