@@ -7,7 +7,7 @@ import sys
 import click
 
 from clflow_cli.main import Interrupted
-from clflow_cli.options import LazyHelpOption, count_option, out_option
+from clflow_cli.options import InputFile, LazyHelpOption, count_option, out_option
 from clflow_cli.sweep import parse_resources, with_ray_options
 
 
@@ -24,6 +24,9 @@ def _case_help() -> str:
 @out_option("output", "Results folder: sysid.json, sysid.md and cases/NAME/ (scene, guidance, results).",
             required=True)  # fmt: skip
 @click.option("--case", "cases", multiple=True, metavar="NAME", cls=LazyHelpOption, help_fn=lambda: _case_help())
+@click.option("--cases", "case_file", type=InputFile(), default=None, metavar="FILE",
+              help="Your own cases (YAML or JSON: name -> shape, size, lift, spread, material, density, truth, guess, "
+                   "optimize, velocity; docs/pipeline.md) instead of the built-in nine; --case picks among them.")  # fmt: skip
 @click.option("--quick", is_flag=True,
               help="Three cases (elastic torus, plasticine playdoh, Newtonian droplet) at a small grid and image: "
                    "minutes, for CI.")  # fmt: skip
@@ -48,6 +51,7 @@ def sysid(
     ctx,
     output,
     cases,
+    case_file,
     quick,
     iterations,
     truth_scale,
@@ -69,12 +73,13 @@ def sysid(
     import dataclasses
     from pathlib import Path
 
-    from clflow_datasets.sysid import CASES, FULL, QUICK, QUICK_CASES, Settings, evaluate, markdown
+    from clflow_datasets.sysid import CASES, FULL, QUICK, QUICK_CASES, Settings, evaluate, load_cases, markdown
 
     resolution = QUICK if quick else FULL
     if iterations is not None:
         resolution = dataclasses.replace(resolution, iterations=iterations)
-    names = list(dict.fromkeys(cases)) or list(QUICK_CASES if quick else CASES)
+    catalogue = load_cases(Path(case_file)) if case_file else CASES
+    names = list(dict.fromkeys(cases)) or list(catalogue if case_file else QUICK_CASES if quick else CASES)
     settings = Settings(
         resolution=resolution, truth_scale=truth_scale, noise=noise, codec=codec, seed=seed, views=views
     )
@@ -100,7 +105,7 @@ def sysid(
         raise click.UsageError("--address and --resources go with --parallel")
     out = Path(output)
     try:
-        summary = evaluate(names, out, settings, force=force, progress=progress, run_cases=run_cases)
+        summary = evaluate(names, out, settings, force=force, progress=progress, run_cases=run_cases, cases=catalogue)
     except KeyboardInterrupt:
         raise Interrupted(
             f"interrupted; finished cases are kept in {out / 'sysid.json'}; run the same command again to resume"

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import shutil
 import statistics
 import time
@@ -160,9 +161,83 @@ def check_case(name: str, case: SyntheticCase) -> None:
             raise ValueError(f"case {name!r}: its {label} is out of range: {exc}") from None
 
 
-def run_case(name: str, folder: Path, settings: Settings, *, progress: Callable[[dict], None] | None = None) -> dict:
-    """Make case ``name`` in ``folder`` (unless a finished copy is there), optimise it (resuming
-    an interrupted optimisation) and return its result record (see module docstring)."""
+#: what a case file may say of a case (clflow eval sysid --cases FILE), in the table's terms
+CASE_KEYS = ("shape", "size", "lift", "spread", "material", "density", "truth", "guess", "optimize", "velocity")
+
+
+def load_cases(path: Path) -> dict[str, SyntheticCase]:
+    """The cases of a YAML or JSON file: a mapping of name -> {shape, size (m), lift (m),
+    spread (sizes), material, density (kg/m^3), truth and guess (SI, by registry name),
+    optimize (names; default: the truth's; guess gives each a start), velocity (m/s, 3
+    numbers)}, each run with the
+    benchmark's policy (search, starts, Levenberg-Marquardt). InputError, one line naming the
+    file and the case, for anything clflow cannot run."""
+    from clflow.errors import InputError
+    from clflow.fileio import read_text
+    from clflow.scene.config.files import DuplicateKeyError, read_yaml
+
+    try:
+        data = read_yaml(read_text(path, "case file"))
+    except DuplicateKeyError as exc:
+        raise InputError(f"{path}: {exc} is given twice") from None
+    except ValueError as exc:  # yaml.YAMLError is one
+        raise InputError(f"{path}: not YAML or JSON: {str(exc).splitlines()[0]}") from None
+    if not isinstance(data, dict) or not data:
+        raise InputError(f"{path}: expected a mapping of case names to cases")
+    cases = {}
+    for name, body in data.items():
+        if not isinstance(name, str) or not name.isidentifier() or name in CASES:
+            raise InputError(f"{path}: case name {name!r}: use a new identifier (not one of the built-in cases)")
+        cases[name] = _with_policy(_case_of(body, f"{path}: case {name}"))
+        try:
+            check_case(name, cases[name])
+        except ValueError as exc:
+            raise InputError(f"{path}: {exc}") from None
+    return cases
+
+
+def _case_of(body, where: str) -> SyntheticCase:
+    """A :class:`SyntheticCase` of one case file entry (parameter names made canonical)."""
+    from clflow.errors import InputError
+    from clflow.materials import get_material
+    from clflow_datasets.synthetic import SHAPES
+
+    if not isinstance(body, dict) or set(body) - set(CASE_KEYS) or not {"material", "truth", "guess"} <= set(body):
+        raise InputError(f"{where}: give material, truth and guess, and only {', '.join(CASE_KEYS)}")
+    if not (isinstance(body["truth"], dict) and isinstance(body["guess"], dict)):
+        raise InputError(f"{where}: truth and guess are mappings of parameter names to values (SI)")
+    material = get_material(str(body["material"]))
+    name_of = lambda n: material.param(str(n)).name  # noqa: E731  (InputError for an unknown name)
+    truth = {name_of(n): v for n, v in body["truth"].items()}
+    guess = {name_of(n): v for n, v in body["guess"].items()}
+    optimize = tuple(name_of(n) for n in body.get("optimize", list(truth)))
+    if not optimize or set(optimize) - set(truth) or set(guess) != set(optimize):
+        raise InputError(f"{where}: optimize names parameters of the truth, and guess gives each a start")
+    if body.get("shape", "cube") not in SHAPES:
+        raise InputError(f"{where}: shape must be one of {', '.join(SHAPES)}")
+    numbers = {k: body[k] for k in ("size", "lift", "spread", "density") if k in body}
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0 for v in numbers.values()):
+        raise InputError(f"{where}: size, lift, spread and density are numbers >= 0 (m, m, sizes, kg/m^3)")
+    try:
+        velocity = tuple(float(v) for v in body.get("velocity", (0.0, 0.0, 0.0)))
+    except (TypeError, ValueError):
+        velocity = ()
+    if len(velocity) != 3 or not all(math.isfinite(v) for v in velocity):
+        raise InputError(f"{where}: velocity is 3 finite numbers (m/s)")
+    fields = dict(shape=body.get("shape", "cube"), material=material.name, truth=truth, velocity=velocity)
+    return SyntheticCase(**fields, guess=guess, optimize=optimize, **numbers)
+
+
+def run_case(
+    name: str,
+    folder: Path,
+    settings: Settings,
+    *,
+    case: SyntheticCase | None = None,
+    progress: Callable[[dict], None] | None = None,
+) -> dict:
+    """Make case ``name`` (``case``; default: the built-in one) in ``folder`` unless made, optimise
+    it (resuming an interrupted optimisation) and return its result record (module docstring)."""
     import numpy as np
 
     from clflow.errors import ClflowError
@@ -170,7 +245,7 @@ def run_case(name: str, folder: Path, settings: Settings, *, progress: Callable[
     from clflow.pipeline.fit import Optimization
     from clflow.scene.config import load_config
 
-    case = CASES[name]
+    case = case or CASES[name]
     check_case(name, case)
     start = time.perf_counter()
     made = folder / "case.json"
@@ -284,21 +359,24 @@ def evaluate(
     force: bool = False,
     progress: Callable[[str, dict], None] | None = None,
     run_cases: Callable | None = None,
+    cases: dict[str, SyntheticCase] | None = None,
 ) -> dict:
     """Run the cases ``names`` into ``out`` (``out/cases/NAME``), writing ``sysid.json`` and
     ``sysid.md`` after each case. A rerun with the same settings skips finished cases and
     resumes an interrupted one; other results in ``out`` are refused unless ``force``.
-    ``run_cases(names, out, settings, done)`` runs the cases elsewhere (``clflow.sweep``: Ray),
-    calling ``done(name, record)`` as each finishes; the summary is the serial path's."""
+    ``run_cases(names, out, settings, done, cases)`` runs the cases elsewhere
+    (``clflow.sweep``: Ray), calling ``done(name, record)`` as each finishes; the summary is
+    the serial path's. ``cases``: name -> case (default: the built-in CASES; load_cases)."""
     from clflow.errors import InputError
     from clflow.fileio import atomic_write_text
 
-    unknown = [n for n in names if n not in CASES]
+    cases = cases or CASES
+    unknown = [n for n in names if n not in cases]
     if unknown:
-        raise InputError(f"unknown case(s) {', '.join(unknown)}; the cases are {', '.join(CASES)}")
+        raise InputError(f"unknown case(s) {', '.join(unknown)}; the cases are {', '.join(cases)}")
     for n in names:
         try:
-            check_case(n, CASES[n])
+            check_case(n, cases[n])
         except ValueError as exc:
             raise InputError(str(exc)) from None
     summary_path = out / "sysid.json"
@@ -311,7 +389,7 @@ def evaluate(
     todo = []
     for name in names:
         done = summary["cases"].get(name, {})
-        if done.get("status") == "ok" and done["generation"].get("definition") == case_definition(CASES[name]):
+        if done.get("status") == "ok" and done["generation"].get("definition") == case_definition(cases[name]):
             log.info("%s: done earlier, skipped", name)
             continue
         todo.append(name)
@@ -324,7 +402,7 @@ def evaluate(
         atomic_write_text(out / "sysid.md", markdown(summary))
 
     if run_cases is not None:
-        run_cases(todo, out, settings, finished)
+        run_cases(todo, out, settings, finished, cases)
         return summary
     for name in todo:
         finished(
@@ -333,6 +411,7 @@ def evaluate(
                 name,
                 out / "cases" / name,
                 settings,
+                case=cases[name],
                 progress=(lambda row, n=name: progress(n, row)) if progress else None,
             ),
         )
@@ -364,21 +443,21 @@ def _caveat(name: str, record: dict) -> str:
 
 def markdown(summary: dict) -> str:
     """The results as a Markdown table in the layout of the paper's Table 3, with the
-    published rows (RE / EPE) beside ours, and each case's loss found against the loss at
-    its ground truth (below it: the model's own minimum lies elsewhere; above: the optimiser
-    stopped short)."""
+    published rows (RE / EPE) beside ours where the paper has the case, and each case's loss
+    found against the loss at its ground truth (below it: the model's own minimum lies
+    elsewhere; above: the optimiser stopped short)."""
     cases = summary["cases"]
+    methods = METHODS if any(name in PUBLISHED for name in cases) else ()
     lines = [
         "| case | material | parameter: found (truth) | RE | EPE px (floor) | loss found / at truth | iterations "
-        "| seconds | " + " | ".join(f"{m} RE/EPE" for m in METHODS) + " |",
-        "|---" * (8 + len(METHODS)) + "|",
+        "| seconds |" + "".join(f" {m} RE/EPE |" for m in methods),
+        "|---" * (8 + len(methods)) + "|",
     ]
-    ok = [r for r in cases.values() if r.get("status") == "ok"]
     for name, r in cases.items():
-        published = " | ".join(f"{PUBLISHED[name][m][0]:.2f}/{PUBLISHED[name][m][1]:.2f}" for m in METHODS)
+        published = "".join(f" {_published(PUBLISHED.get(name, {}).get(m))} |" for m in methods)
         if r.get("status") != "ok":
             lines.append(
-                f"| {name} | {r['material']} | {r['status']} | - | - | - | - | {r.get('seconds', 0):.0f} | {published} |"
+                f"| {name} | {r['material']} | {r['status']} | - | - | - | - | {r.get('seconds', 0):.0f} |{published}"
             )
             continue
         params = "<br>".join(
@@ -388,25 +467,51 @@ def markdown(summary: dict) -> str:
         lines.append(
             f"| {name} | {r['material']} | {params} | {r['mean_re']:.3f} | {r['epe_px']:.3f} "
             f"({r['floor_epe_px']:.3f}) | {r['final_loss']:.3g} / {r['truth_loss']:.3g} | {r['iterations']} "
-            f"| {r['seconds']:.0f} | {published} |"
+            f"| {r['seconds']:.0f} |{published}"
         )
-    if ok:
-        mean_re = sum(r["mean_re"] for r in ok) / len(ok)
-        mean_epe = sum(r["epe_px"] for r in ok) / len(ok)
-        published = " | ".join(f"{PUBLISHED_MEAN[m][0]:.2f}/{PUBLISHED_MEAN[m][1]:.2f}" for m in METHODS)
-        total = sum(r.get("seconds", 0.0) for r in cases.values())
-        lines.append(
-            f"| **mean** ({len(ok)} of {len(cases)}) | | | **{mean_re:.3f}** | **{mean_epe:.3f}** | | | "
-            f"{total:.0f} | {published} |"
-        )
-        lines.append(
-            f"| median | | | {statistics.median(r['mean_re'] for r in ok):.3f} | "
-            f"{statistics.median(r['epe_px'] for r in ok):.3f} | | | | | | |"
-        )
+    lines += _summary_rows(cases, methods)
+    return "\n".join(lines + _closing(summary, methods)) + "\n"
+
+
+def _published(row: tuple[float, float] | None) -> str:
+    return "-" if row is None else f"{row[0]:.2f}/{row[1]:.2f}"
+
+
+def _summary_rows(cases: dict, methods: tuple[str, ...]) -> list[str]:
+    """The mean and median rows over the finished cases; the published means are the paper's
+    for its nine, else the means of the rows shown (cases the paper lacks left out)."""
+    ok = [r for r in cases.values() if r.get("status") == "ok"]
+    if not ok:
+        return []
+    if set(cases) == set(PUBLISHED):
+        means = {m: PUBLISHED_MEAN[m] for m in methods}
+    else:
+        rows = [PUBLISHED[name] for name in cases if name in PUBLISHED]
+        means = {m: tuple(statistics.fmean(row[m][k] for row in rows) for k in (0, 1)) for m in methods}
+    total = sum(r.get("seconds", 0.0) for r in cases.values())
+    mean_re, mean_epe = sum(r["mean_re"] for r in ok) / len(ok), sum(r["epe_px"] for r in ok) / len(ok)
+    return [
+        f"| **mean** ({len(ok)} of {len(cases)}) | | | **{mean_re:.3f}** | **{mean_epe:.3f}** | | | {total:.0f} |"
+        + "".join(f" {_published(means[m])} |" for m in methods),
+        f"| median | | | {statistics.median(r['mean_re'] for r in ok):.3f} | "
+        f"{statistics.median(r['epe_px'] for r in ok):.3f} | | | |" + " |" * len(methods),
+    ]
+
+
+def _closing(summary: dict, methods: tuple[str, ...]) -> list[str]:
+    """The settings and provenance lines under the table."""
     s = summary["settings"]
     res = s["resolution"]
     env = summary.get("environment", {})
-    lines += [
+    if not methods:
+        published = "No published rows: the paper has none of these cases."
+    elif set(summary["cases"]) == set(PUBLISHED):
+        published = "Published rows: PhysFlow (CVPR 2025) Table 3, 800 x 800 px images."
+    else:
+        published = (
+            "Published rows: PhysFlow (CVPR 2025) Table 3, 800 x 800 px images; their means over the cases shown."
+        )
+    return [
         "",
         f"Settings: grid {res['grid']} nodes (search; main phase {res.get('main_grid_scale', 1.0):g}x), "
         f"PIC/FLIP blend {res.get('flip', 0.0):g}, "
@@ -416,10 +521,8 @@ def markdown(summary: dict) -> str:
         f"{s.get('views', 1)} guidance view{'s' if s.get('views', 1) > 1 else ''}.",
         f"Made {env.get('date', '?')} with clflow {env.get('clflow', '?')} (commit {env.get('commit') or '?'}), "
         f"torch {env.get('torch', '?')}, "
-        f"pyopencl {env.get('pyopencl', '?')} on {env.get('device', '?')} (load {env.get('load', '?')}). "
-        "Published rows: PhysFlow (CVPR 2025) Table 3, 800 x 800 px images.",
+        f"pyopencl {env.get('pyopencl', '?')} on {env.get('device', '?')} (load {env.get('load', '?')}). " + published,
     ]
-    return "\n".join(lines) + "\n"
 
 
 __all__ = [
@@ -433,6 +536,7 @@ __all__ = [
     "Settings",
     "check_case",
     "evaluate",
+    "load_cases",
     "markdown",
     "run_case",
 ]

@@ -328,7 +328,7 @@ def test_numbers_are_one_word_with_commas_in_every_command():
 def test_eval_sysid_progress_lines_use_the_pipelines_row_format(monkeypatch, tmp_path):
     import clflow_datasets.sysid as sysid
 
-    def evaluate(names, out, settings, force, progress, run_cases):
+    def evaluate(names, out, settings, force, progress, run_cases, cases):
         progress("torus", {"iteration": 0, "loss": 1.5, "params": {"youngs_modulus": 2e4}, "seconds": 0.5})
         return {"cases": {}}
 

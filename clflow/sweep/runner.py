@@ -239,8 +239,7 @@ def run_on_ray(
 def _sysid_task(name: str, folder: str, settings, case) -> dict:
     from clflow_datasets import sysid
 
-    sysid.CASES[name] = case  # the driver's definition of the case, whatever this worker's copy says
-    return sysid.run_case(name, Path(folder), settings)
+    return sysid.run_case(name, Path(folder), settings, case=case)  # the driver's definition of the case
 
 
 def sysid_on_ray(
@@ -255,9 +254,7 @@ def sysid_on_ray(
     """A ``run_cases`` for clflow_datasets.sysid.evaluate (``clflow eval sysid --parallel``):
     each case a Ray task with the serial path's P2G sum order, so the records match it."""
 
-    def run_cases(names: list[str], out: Path, settings, done: Callable[[str, dict], None]) -> None:
-        from clflow_datasets.sysid import CASES
-
+    def run_cases(names: list[str], out: Path, settings, done: Callable[[str, dict], None], cases: dict) -> None:
         if not names:
             return
         runs = [Run("sysid", case=n, sysid={}, label=n) for n in names]
@@ -267,7 +264,7 @@ def sysid_on_ray(
             if record.get("status") in ("failed", "killed", "timeout"):  # recorded by run_on_ray, not run_case
                 record = {
                     "case": name,
-                    "material": CASES[name].material,
+                    "material": cases[name].material,
                     "seconds": record["seconds"],
                     "status": f"failed: {record['status']}: {record['reason']}",
                 }
@@ -284,7 +281,7 @@ def sysid_on_ray(
                 cpus_per_task=cpus_per_task,
                 resources=resources,
                 task=_sysid_task,
-                args=lambda run: (run.case, str((out / "cases" / run.case).resolve()), settings, CASES[run.case]),
+                args=lambda run: (run.case, str((out / "cases" / run.case).resolve()), settings, cases[run.case]),
             )
 
     return run_cases

@@ -1,0 +1,101 @@
+"""``clflow eval sysid --cases FILE``: a benchmark users extend with cases of their own, in
+the table's terms, without registering them in the code."""
+
+import dataclasses
+import json
+
+import pytest
+from click.testing import CliRunner
+
+from clflow.errors import InputError
+from clflow_cli.main import cli
+from clflow_datasets import sysid
+from tests.pipeline.test_sysid import TINY
+
+CASE_FILE = """
+jelly:
+  shape: sphere
+  size: 0.3
+  lift: 0.1
+  spread: 1.0
+  material: elastic
+  truth: {E: 4.0e4, poissons_ratio: 0.25}
+  guess: {E: 2.0e5}
+  optimize: [E]
+  velocity: [0.5, 0.0, 0.0]
+dough:
+  material: plasticine
+  truth: {youngs_modulus: 1.0e5, poissons_ratio: 0.3, yield_stress: 2.0e3}
+  guess: {youngs_modulus: 1.0e4, poissons_ratio: 0.3, yield_stress: 5.0e3}
+"""
+
+
+def test_a_case_file_gives_cases_in_the_tables_terms_run_with_the_benchmarks_policy(tmp_path):
+    path = tmp_path / "cases.yaml"
+    path.write_text(CASE_FILE)
+    cases = sysid.load_cases(path)
+    jelly = cases["jelly"]
+    assert (jelly.shape, jelly.size, jelly.lift, jelly.material, jelly.velocity) == (
+        "sphere",
+        0.3,
+        0.1,
+        "elastic",
+        (0.5, 0.0, 0.0),
+    )
+    assert jelly.truth == {"youngs_modulus": 4.0e4, "poissons_ratio": 0.25}  # the alias E made canonical
+    assert jelly.optimize == ("youngs_modulus",) and jelly.guess == {"youngs_modulus": 2.0e5}
+    assert cases["dough"].optimize == ("youngs_modulus", "poissons_ratio", "yield_stress")  # default: the truth's
+    assert jelly.method == "levenberg_marquardt" and jelly.starts == 3 and jelly.search == 24  # the policy
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("a: {material: slime, truth: {E: 1.0}, guess: {E: 2.0}}", "slime"),
+        ("a: {material: elastic, truth: {stickiness: 1.0}, guess: {stickiness: 2.0}}", "stickiness"),
+        ("a: {material: elastic, truth: {E: -5.0}, guess: {E: 2.0}}", "truth is out of range"),
+        ("a: {material: elastic, truth: {E: 1.0e4, nu: 0.3}, guess: {E: 2.0e4}}", "guess gives each a start"),
+        ("a: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}, colour: red}", "only shape, size"),
+        ("a: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}, shape: teapot}", "shape must be one of"),
+        ("a: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}, velocity: [1, 2]}", "velocity is 3 finite"),
+        ("torus: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}}", "not one of the built-in cases"),
+        ("a: {material: elastic}\na: {material: sand}", "given twice"),
+        ("- just a list", "a mapping of case names"),
+    ],
+)
+def test_a_bad_case_file_is_one_line_before_any_work(tmp_path, text, message):
+    path = tmp_path / "cases.yaml"
+    path.write_text(text)
+    with pytest.raises(InputError, match=message):
+        sysid.load_cases(path)
+    result = CliRunner().invoke(cli, ["eval", "sysid", "--cases", str(path), "-o", str(tmp_path / "out")])
+    assert result.exit_code == 1 and message in result.output and "Traceback" not in result.output
+    assert len(result.output.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
+
+
+def test_cases_of_a_file_run_and_the_table_leaves_the_published_columns_out(tmp_path):
+    path = tmp_path / "cases.yaml"
+    path.write_text(CASE_FILE)
+    jelly = sysid.load_cases(path)["jelly"]
+    cases = {"jelly": dataclasses.replace(jelly, search=3, refine=0, starts=1)}  # seconds, not minutes
+    summary = sysid.evaluate(["jelly"], tmp_path / "out", sysid.Settings(resolution=TINY), cases=cases)
+    record = summary["cases"]["jelly"]
+    assert record["status"] == "ok" and set(record["parameters"]) == {"youngs_modulus"}
+    assert record["parameters"]["youngs_modulus"]["truth"] == 4.0e4
+    assert record["generation"]["definition"]["velocity"] == [0.5, 0.0, 0.0]  # the file's case was made
+    table = (tmp_path / "out" / "sysid.md").read_text()
+    assert "| jelly | elastic |" in table and "RE/EPE" not in table and "nan" not in table.lower()
+    assert "No published rows: the paper has none of these cases." in table
+    rows = [line for line in table.splitlines() if line.startswith("|")]
+    assert len({row.count("|") for row in rows}) == 1  # every row as wide as the header
+    assert json.loads((tmp_path / "out" / "sysid.json").read_text())["cases"]["jelly"] == record
+
+
+def test_a_table_of_some_published_cases_averages_the_published_rows_it_shows():
+    ok = {"status": "ok", "material": "elastic", "parameters": {}, "mean_re": 0.1, "epe_px": 0.2, "floor_epe_px": 0.2,
+          "final_loss": 1.0, "truth_loss": 1.0, "iterations": 1, "seconds": 1.0}  # fmt: skip
+    settings = sysid.settings_record(sysid.Settings())
+    table = sysid.markdown({"settings": settings, "cases": {"torus": ok, "bird": ok}})
+    mean_row = next(line for line in table.splitlines() if line.startswith("| **mean**"))
+    assert "0.07/0.57" in mean_row  # PAC-NeRF: torus 0.06/0.52, bird 0.08/0.62
+    assert "their means over the cases shown" in table
