@@ -345,6 +345,8 @@ def format_row(row: dict | None) -> str:
         return ""
     params = " ".join(f"{name}={value:.4g}" for name, value in row["params"].items())
     loss = "failed" if row["loss"] is None else f"{row['loss']:.4g}"
+    if row.get("rejected"):
+        loss = f"rejected (trial {loss})"
     start = f"start {row['start'] + 1}: " if "start" in row else ""  # a polish: iterations counted per start
     return f"{start}loss {loss}  {params}  {row['seconds']:.1f} s/it"
 

@@ -483,3 +483,37 @@ def test_the_profile_calls_flat_only_a_loss_that_neither_rises_nor_falls(lm):
     row = opt.profile(above, 1, ["youngs_modulus"], 1.0)["youngs_modulus"]
     assert len(row["values"]) == 2 and row["values"][1] == opt.values(above)["youngs_modulus"]
     assert opt.profile(z, 1, ["velocity_x"], 1.0) == {}  # a velocity component is not profiled
+
+
+def test_a_rejected_trial_says_so_and_the_run_says_why_it_stopped(lm, monkeypatch, caplog):
+    """An overshooting model: the first step lands uphill. Its row is marked rejected (its
+    loss is the trial's, not a point the run moved to) and the run logs why it ended."""
+    from clflow.pipeline.runs import format_row
+
+    opt, _ = lm(iterations=4)
+    z0, field = opt.initial_state().z["youngs_modulus"], fixed_field(opt)
+
+    def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
+        d = z["youngs_modulus"] - z0
+        flows = [opt.views[0].observed[t] + (1 + d + 10 * d * d) * field[t] for t in range(frames)]
+        return evaluation_of(opt, flows, frames, grid)
+
+    monkeypatch.setattr(opt, "evaluate", evaluate)
+    with caplog.at_level("INFO", logger="clflow.pipeline.fit.driver"):
+        state = opt.run()
+    rejected = [row for row in state.history if row.get("rejected")]
+    assert rejected and all(row["loss"] > state.history[0]["loss"] for row in rejected)
+    assert "rejected (trial " in format_row(rejected[0])
+    assert not state.history[0].get("rejected")
+    stops = [r.getMessage() for r in caplog.records if "stopped" in r.getMessage()]
+    assert len(stops) == 1 and ("converged" in stops[0] or "ran its 4 iteration(s)" in stops[0])
+
+
+def test_a_weakly_constrained_parameter_is_told_by_the_reason_that_flagged_it():
+    from clflow.pipeline.fit.results import weak_reason
+
+    assert weak_reason(0.35, 0.5) == "standard error 0.35 in the optimiser's units, above 0.1 (a lower bound)"
+    small_rise = weak_reason(0.009, 0.004)  # a tiny standard error, yet the loss barely moves: say that
+    assert (
+        small_rise == "a step of 0.1 in the optimiser's units, the others refitted, raises the loss by 0.4 %, under 1 %"
+    )

@@ -17,7 +17,7 @@ from clflow.pipeline.fit.objective import Objective
 from clflow.pipeline.fit.results import Results
 from clflow.pipeline.fit.search import Search, _quiet, serial_starts
 from clflow.pipeline.fit.state import LM_DAMPING, Checkpoints, Evaluation, OptimizerState
-from clflow.pipeline.fit.steps import LM_TOLERANCE, Steps, horizon, phase_of
+from clflow.pipeline.fit.steps import LM_GAIN_TOLERANCE, LM_TOLERANCE, Steps, horizon, phase_of
 from clflow.pipeline.forward import prepare
 from clflow.pipeline.generated_video import ensure_guidance_video
 from clflow.pipeline.material import resolve_material
@@ -119,6 +119,9 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
                 self.save_state(state)
                 self.progress(row)
                 done_here += 1
+        last = state.history[-1] if state.history else {}
+        if state.iteration >= self.total_iterations and not last.get("converged") and done_here:
+            log.info("stopped: ran its %d iteration(s)", self.total_iterations)
         best = state.best
         if (
             opt.method == "levenberg_marquardt"
@@ -167,6 +170,8 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         moved = self.moved(state, result, J, frames, variables, phase)
         if moved.calibrated_at is not state.calibrated_at:
             row["calibrated"] = True
+        if lm and state.best is not None and moved.best is state.best and state.z != state.best["z"]:
+            row["rejected"] = True  # the trial's loss, lower or not, did not beat the best point's
         return self.iteration_done(moved, state, row, variables, phase, start), 0, row
 
     def rolled_back(
@@ -243,6 +248,16 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
             state.substeps = max(state.substeps, result.substeps)
         return state
 
+    @staticmethod
+    def stop_reason(state: OptimizerState, previous: OptimizerState, variables: tuple[str, ...]) -> str | None:
+        """Why Levenberg-Marquardt stops after moving ``previous`` to ``state``, or None."""
+        if state.converged:
+            return f"converged: the model promises a fall of under {LM_GAIN_TOLERANCE:g} of the loss"
+        if state.best is not None and state.best is not previous.best:
+            if max(abs(state.z[n] - state.best["z"][n]) for n in variables) < LM_TOLERANCE:
+                return f"converged: the next step moves every variable by under {LM_TOLERANCE:g} (optimiser units)"
+        return None
+
     def iteration_done(
         self,
         state: OptimizerState,
@@ -257,25 +272,17 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         moments, step scale and damping when the next iteration is in another phase."""
         opt = self.cfg.optimize
         lm = opt.method == "levenberg_marquardt"
-        converged = (
-            lm
-            and phase == "main"
-            and (
-                state.converged
-                or (
-                    state.best is not None
-                    and state.best is not previous.best
-                    and max(abs(state.z[n] - state.best["z"][n]) for n in variables) < LM_TOLERANCE
-                )
-            )
-        )
+        stop = self.stop_reason(state, previous, variables) if lm and phase == "main" else None
         if start is not None:  # a start's polish ends after its iterations or when it converges
             row["start"] = start
             done = 1 + sum(1 for r in state.history if r.get("start") == start)
-            if converged or done >= opt.search.start_iterations:
+            if stop or done >= opt.search.start_iterations:
                 row["start_done"] = True
-        elif converged:
+                reason = stop or f"ran its {opt.search.start_iterations} iteration(s)"
+                log.info("start %d stopped after %d iteration(s): %s", start + 1, done, reason)
+        elif stop:
             row["converged"] = True  # the step would change nothing that matters: stop here
+            log.info("stopped after iteration %d of %d: %s", state.iteration, self.total_iterations, stop)
             state = dataclasses.replace(state, iteration=self.total_iterations)
         elif lm and phase == "velocity" and state.converged:  # on to the main phase
             row["converged"] = True

@@ -227,7 +227,7 @@ class Objective:
     def set_estimator_errors(self, errors: list[np.ndarray] | None) -> None:
         """Each view's estimator error [T, H, W, 2] (None: none), the cached evaluations rescored."""
         for i, view in enumerate(self.views):
-            view.estimator_error = None if errors is None else torch.from_numpy(np.array(errors[i]))
+            view.estimator_error = None if errors is None else torch.as_tensor(errors[i]).clone()
         self._lm_cache = {key: (self.rescored(cached), J) for key, (cached, J) in self._lm_cache.items()}
 
     def restore_estimator_errors(self, calibrated_at: dict | None, errors: list | None) -> None:

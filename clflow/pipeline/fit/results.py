@@ -11,7 +11,7 @@ import numpy as np
 
 from clflow.errors import ClflowError
 from clflow.fileio import atomic_write_text
-from clflow.pipeline.fit.diagnostics import PROFILE_RISE
+from clflow.pipeline.fit.diagnostics import MIN_LOSS_RISE, PROFILE_RISE, WEAK_STD_Z
 from clflow.pipeline.fit.state import OptimizerState
 from clflow.pipeline.forward import SimulationResult, material_values, render_frames
 from clflow.pipeline.plots import write_history_plot
@@ -32,6 +32,17 @@ def parameter_unit(cfg: SceneConfig, name: str) -> str:
     if name in VELOCITY_COMPONENTS:
         return "m/s"
     return DENSITY.unit if name == "density" else get_material(cfg.material.type).param(name).unit
+
+
+def weak_reason(std_z: float, loss_rise: float) -> str:
+    """Why Diagnostics.identifiability called a parameter weakly constrained, in words: its
+    standard error (optimiser units, a lower bound) or the small loss a step costs."""
+    if std_z > WEAK_STD_Z:
+        return f"standard error {std_z:.2g} in the optimiser's units, above {WEAK_STD_Z:g} (a lower bound)"
+    return (
+        f"a step of {WEAK_STD_Z:g} in the optimiser's units, the others refitted, raises the loss by "
+        f"{100 * loss_rise:.2g} %, under {100 * MIN_LOSS_RISE:g} %"
+    )
 
 
 class Results:
@@ -129,12 +140,8 @@ class Results:
         """A warning per parameter the video constrains weakly, does not resolve, or that
         depends on the grid, and per pair that trades off (Diagnostics.identifiability)."""
         for name in identifiability["weakly_constrained"]:
-            log.warning(
-                "%s is weakly constrained by the video: standard error %.2g in the optimiser's units (a "
-                "lower bound); its value is uncertain",
-                name,
-                identifiability["std_z"][name],
-            )
+            reason = weak_reason(identifiability["std_z"][name], identifiability["loss_rise"][name])
+            log.warning("%s is weakly constrained by the video: %s; its value is uncertain", name, reason)
         for name in identifiability["unresolved"]:
             values = identifiability["profile"][name]["values"]
             log.warning(
