@@ -23,10 +23,12 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 from clflow.errors import DeviceError
-from clflow.runtime.signatures import KernelCallError, KernelSignature
+
+if TYPE_CHECKING:
+    from clflow.runtime.signatures import KernelSignature
 
 INSTALL_HINT = (
     "install an OpenCL driver; on Debian/Ubuntu the CPU one is: apt-get install pocl-opencl-icd ocl-icd-libopencl1"
@@ -365,11 +367,15 @@ class Device:
             if kern is None:
                 kern = getattr(self.program(source, real, defines), name)
                 self._kernels[key] = kern
+                from clflow.runtime.signatures import KernelSignature  # numpy: not at import (CLI --help)
+
                 self._signatures[id(kern)] = KernelSignature.of(kern, real)  # cached kernels live on
             return kern
 
     def signature(self, kernel) -> KernelSignature:
         """The argument table of a kernel from :meth:`kernel`."""
+        from clflow.runtime.signatures import KernelCallError
+
         try:
             return self._signatures[id(kernel)]
         except KeyError:
@@ -398,6 +404,8 @@ class Device:
             lsize = tuple(min(size, self.info.max_work_group_size) for size in lsize)
             gsize = tuple(round_up(g, size) for g, size in zip(gsize, lsize))
         if not isinstance(args, Mapping):
+            from clflow.runtime.signatures import KernelCallError
+
             raise KernelCallError(f"kernel {kernel.function_name}: pass its arguments by name (a mapping)")
         args = self.signature(kernel).ordered(args)
         arrays = [a for a in args if hasattr(a, "buffer")]  # clflow.runtime.arrays.DeviceArray
