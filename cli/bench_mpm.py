@@ -27,8 +27,10 @@ def _run_peer(x, h: float, dx: float, grid_res: int, substeps: int, device, elas
     from clflow.peers.taichi_mpm import run_taichi_mpm, taichi_version
 
     elastic_material = get_material("elastic")
-    spec = MaterialSpec("elastic")
-    dt = Simulator(x, h**3, spec, Grid((grid_res,) * 3, dx), frame_dt=1e-3, device=device).dt
+    if elastic is not None:  # the step clflow's elastic run took
+        dt = elastic["dt_s"]
+    else:
+        dt = Simulator(x, h**3, MaterialSpec("elastic"), Grid((grid_res,) * 3, dx), frame_dt=1e-3, device=device).dt
     arch = "cpu" if device.info.type == "CPU" else ("cuda" if "nvidia" in device.info.platform.lower() else "vulkan")
     timing = run_taichi_mpm(
         x.numpy(),
@@ -129,6 +131,7 @@ def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double, peer):
         results[name] = {
             **timing.record(),
             "particle_substeps_per_s": n * substeps / elapsed,
+            "dt_s": sim.dt,
             "bytes_per_particle": _particle_bytes(sim) // n,
             "bytes_to_device_per_substep": copied.to_device / substeps,
             "bytes_to_host_per_substep": copied.to_host / substeps,
