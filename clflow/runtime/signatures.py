@@ -65,7 +65,7 @@ class KernelSignature:
 
     def __post_init__(self):
         # the kinds of argument values already checked against this signature: a call site
-        # repeats its kinds, so only its first call pays for the checks (a substep: ~10 us, not ~250)
+        # repeats its kinds, so only its first call pays for the checks (G2P: ~6 us a call, not ~55)
         object.__setattr__(self, "_checked", set())
 
     def ordered(self, args: Mapping[str, Any]) -> list:
