@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import glob
 import hashlib
+import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +42,7 @@ SEARCH_DIRS = (
 ENV_SEARCH_PATH = "CLFLOW_OPENCL_SEARCH_PATH"  # replaces SEARCH_DIRS (os.pathsep-separated)
 ENV_ADOPT = "CLFLOW_ADOPT_DRIVERS"
 DEFAULT_VENDORS_DIR = "/etc/OpenCL/vendors"
+log = logging.getLogger("clflow.runtime")
 
 
 @dataclass(frozen=True)
@@ -109,6 +111,25 @@ class Adoption:
 _ADOPTION: Adoption | None = None
 
 
+def _write_entries(folder: Path, entries: dict[str, str]) -> bool:
+    """Write one ``.icd`` file per entry into ``folder``; True when the folder then names
+    them all. Processes starting together (pytest-xdist workers, Ray tasks) write the same
+    folder: each writes its own temporary file, and an entry another process has already
+    written counts as written."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, library in entries.items():
+            target = folder / name
+            if target.is_file() and target.read_text().strip() == library:
+                continue
+            tmp = folder / f".{name}.{os.getpid()}.tmp"
+            tmp.write_text(library + "\n")
+            os.replace(tmp, target)
+        return all((folder / n).read_text().strip() == lib for n, lib in entries.items())
+    except OSError:
+        return False
+
+
 def adopt_unregistered(cache: Path) -> Adoption:
     """Make this process's ICD loader see the unregistered drivers (call before it starts;
     runs once): a folder in ``cache`` (clflow's cache folder) with the registered entries and
@@ -127,13 +148,14 @@ def adopt_unregistered(cache: Path) -> Adoption:
     entries.update({d.icd_name: str(d.path.resolve()) for d in drivers})
     digest = hashlib.sha256(repr(sorted(entries.items())).encode()).hexdigest()[:12]
     folder = Path(cache) / f"icd-{digest}"
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        for name, library in entries.items():
-            tmp = folder / f".{name}.tmp"
-            tmp.write_text(library + "\n")
-            os.replace(tmp, folder / name)
-    except OSError:
+    if not _write_entries(folder, entries):
+        log.warning(
+            "cannot write %s, so this process does not see %s; register %s for every program: %s",
+            folder,
+            ", ".join(str(d.path) for d in drivers),
+            "it" if len(drivers) == 1 else "them",
+            "; ".join(d.how_to_register() for d in drivers),
+        )
         return _ADOPTION
     os.environ["OCL_ICD_VENDORS"] = str(folder)
     _ADOPTION = Adoption(drivers, True)

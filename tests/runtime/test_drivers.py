@@ -54,6 +54,29 @@ def test_an_unregistered_driver_is_used_and_named(unregistered):
     assert f"echo {library} | sudo tee /etc/OpenCL/vendors/nvidia.icd" in res.stdout
 
 
+def test_processes_starting_together_all_adopt_the_driver(unregistered):
+    """pytest-xdist workers and Ray tasks start at once and write the same entries folder:
+    each must see the driver (on the first GPU, three of eight workers saw only PoCL)."""
+    env, _ = unregistered
+    code = (
+        "from clflow.runtime import drivers, devices\n"
+        "a = drivers.adopt_unregistered(devices._configure_kernel_cache().parent)\n"
+        "print(a.used)"
+    )
+    procs = [
+        subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, text=True) for _ in range(12)
+    ]
+    assert [p.communicate(timeout=120)[0].strip() for p in procs] == ["True"] * 12
+
+
+def test_an_unwritable_cache_is_said_with_the_line_that_registers_the_driver(unregistered, tmp_path):
+    env, library = unregistered
+    (tmp_path / "cache").mkdir()
+    (tmp_path / "cache" / "clflow").write_text("a file where the cache folder should be")
+    res = clflow(env, "devices")
+    assert "cannot write" in res.stderr and f"echo {library} | sudo tee" in res.stderr
+
+
 def test_without_adoption_the_error_says_which_file_to_add(unregistered):
     env, library = unregistered
     res = clflow({**env, "CLFLOW_ADOPT_DRIVERS": "0"}, "devices")
