@@ -161,7 +161,7 @@ class _Run:
         self.checkpoints = [first]
         x[0], v[0], F[0] = x0.detach(), v0.detach(), s0.F.read()
         a, b = first.clone(), first.empty_like()
-        self.cfl_violation = None
+        self.cfl_violation, breaches = None, []
         progress = FrameProgress("differentiable run", T, self.substeps, device=dev)
         for f in range(T):
             for s in range(self.substeps):
@@ -183,10 +183,19 @@ class _Run:
                 )
                 if self.strict_cfl:
                     raise SimulationError(message)
-                warnings.warn(message, StabilityWarning, stacklevel=4)
+                breaches.append((f + 1, vmax))
                 self.cfl_violation = self.cfl_violation or message
             if f + 1 < T:  # the last frame's state is never replayed from
                 self.checkpoints.append(a.clone())
+        if breaches:  # one warning a run, not one a frame
+            frames_text = (
+                f"frame {breaches[0][0]}" if len(breaches) == 1 else f"{len(breaches)} frames from {breaches[0][0]}"
+            )
+            warnings.warn(
+                f"{self.cfl_violation}; {frames_text} break it, at most {max(v for _, v in breaches):.3g} m/s",
+                StabilityWarning,
+                stacklevel=4,
+            )
         clamped = self.clamped_count = int(self.clamped.read().sum(dtype=torch.int64))
         if clamped:
             warnings.warn(

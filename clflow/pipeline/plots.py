@@ -32,10 +32,12 @@ def _parameter_axis(name: str) -> tuple[str, bool]:
     return f"{p.name} ({'dimensionless' if p.unit == '1' else p.unit})", p.scale == "log"
 
 
-def write_history_plot(path: Path, history: list[dict], truth: dict[str, float]) -> None:
+def write_history_plot(
+    path: Path, history: list[dict], truth: dict[str, float], ranges: dict[str, dict] | None = None
+) -> None:
     """:func:`history_figure` as a PNG, written atomically."""
     with atomic_path(path) as tmp:
-        history_figure(history, truth).savefig(tmp, format="png", dpi=110)
+        history_figure(history, truth, ranges).savefig(tmp, format="png", dpi=110)
 
 
 def _plot_by_phase(axis, history: list[dict], phases: list[str], style: dict, value, labelled: bool = False):
@@ -74,12 +76,34 @@ def _mark_horizons(axes, history: list[dict]) -> bool:
     return bool(changes)
 
 
-def history_figure(history: list[dict], truth: dict[str, float]):
+def range_text(entry: dict, unit: str = "") -> str:
+    """A range in words: "1.2e+05 - 3.4e+05 Pa", ">= 2.1e+05 Pa", "<= 40", or "not bounded"."""
+    low, high, unit = entry["low"], entry["high"], f" {unit}" if unit and unit != "1" else ""
+    if low is None and high is None:
+        return "not bounded"
+    if low is None:
+        return f"<= {high:.3g}{unit}"
+    return f">= {low:.3g}{unit}" if high is None else f"{low:.3g} - {high:.3g}{unit}"
+
+
+def _range_band(axis, entry: dict) -> None:
+    """The range as a shaded band over the whole panel, an open end running to its edge."""
+    axis.autoscale_view()
+    bottom, top = axis.get_ylim()
+    low = bottom if entry["low"] is None else entry["low"]
+    high = top if entry["high"] is None else entry["high"]
+    label = f"{100 * entry['level']:.0f} % range: {range_text(entry)}"
+    axis.axhspan(low, high, color="tab:green", alpha=0.15, linewidth=0, label=label)
+    axis.set_ylim(min(bottom, low), max(top, high))
+
+
+def history_figure(history: list[dict], truth: dict[str, float], ranges: dict[str, dict] | None = None):
     """A matplotlib Figure: the loss per frame and pixel against iteration (log scale;
     phases in their own colours, legend in this panel only; each change of the loss
     horizon marked in every panel), then each
     parameter against iteration (log scale for log-scale parameters) with the ground truth
-    as a dashed line when ``truth`` has it."""
+    as a dashed line when ``truth`` has it and the result's range (``ranges``: name ->
+    {low, high, level}, SI, None for an open end; Diagnostics.ranges) as a band."""
     import matplotlib
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
@@ -110,8 +134,10 @@ def history_figure(history: list[dict], truth: dict[str, float]):
             axis.axhline(truth[name], color="black", linestyle="--", linewidth=1.0, label=f"truth {truth[name]:.4g}")
         if log_scale:
             axis.set_yscale("log")
+        if ranges and name in ranges:
+            _range_band(axis, ranges[name])
         axis.set_ylabel(label, fontsize=8)
-        if name in truth:
+        if name in truth or (ranges and name in ranges):
             axis.legend(fontsize=8, loc="best")
     for axis in axes:
         axis.grid(True, which="major", alpha=0.3)

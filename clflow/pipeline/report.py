@@ -19,6 +19,7 @@ from pathlib import Path
 
 from clflow.environment import environment
 from clflow.fileio import atomic_write_text
+from clflow.pipeline.plots import range_text
 
 RENDERS = "simulation/render4d"  # where `clflow demo` / `clflow render4d` put the 4D renders
 
@@ -75,9 +76,13 @@ def write_report(output: Path) -> Path:
     parts = [f"<h1>clflow results: {html.escape(output.name)}</h1>"]
     if params:
         units = params.get("units", {})
-        rows = [(n, f"{v:.6g}", units.get(n, "")) for n, v in params.get("optimized", {}).items()]
+        ranges = params.get("ranges", {})
+        rows = [
+            (n, f"{v:.6g}", range_text(ranges[n]) if n in ranges else "", units.get(n, ""))
+            for n, v in params.get("optimized", {}).items()
+        ]
         parts.append(f"<h2>Material: {html.escape(params.get('material', '?'))}</h2>")
-        parts.append("<h3>Optimised</h3>" + _table(rows, ("parameter", "value", "unit")))
+        parts.append("<h3>Optimised</h3>" + _table(rows, ("parameter", "value", "90 % range", "unit")))
         fixed = [
             (n, f"{v:.6g}") for n, v in params.get("parameters", {}).items() if n not in params.get("optimized", {})
         ]

@@ -6,7 +6,15 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from clflow.pipeline.fit.diagnostics import PROFILE_RISE, flat
+from clflow.pipeline.fit.diagnostics import (
+    PROFILE_RISE,
+    RANGE_Z,
+    fit_shift,
+    flat,
+    frame_robust_covariance,
+    parameter_range,
+    widen_by_search,
+)
 from clflow.pipeline.fit.search import Search
 from clflow.pipeline.fit.steps import Steps, phase_of, rate_schedule
 
@@ -85,3 +93,63 @@ def test_second_round_regions_are_the_best_distinct_samples_cut_to_the_box():
     assert [i for i, _ in points] == [0, 0, 0, 2, 2]  # 5 shared, the first region one more
     for i, z in points:
         assert all(lo <= z[n] <= hi for n, (lo, hi) in dict(regions)[i].items())
+
+
+def test_the_frame_robust_covariance_is_the_spread_of_refits_under_frame_correlated_errors():
+    """A linear model y = A p + e whose errors share one draw per frame: the plain
+    Gauss-Newton covariance s^2 (J^T J)^-1 treats the 400 pixels as independent and is far too
+    narrow; the frame-robust one matches the spread of the least-squares fits over draws."""
+    frames_n, pixels = 20, 20
+    gen = torch.Generator().manual_seed(1)
+    frames = torch.arange(frames_n).repeat_interleave(pixels)
+    # a parameter moves a frame's pixels together, as a modulus moves a frame's flow
+    A = torch.randn(frames_n, 2, generator=gen, dtype=torch.float64)[frames]
+    A = A + 0.1 * torch.randn(frames_n * pixels, 2, generator=gen, dtype=torch.float64)
+    inverse = torch.linalg.inv(A.T @ A)
+
+    def draw():
+        per_frame = torch.randn(frames_n, generator=gen, dtype=torch.float64)[frames]
+        return per_frame * (1 + A[:, 0].abs()) + 0.01 * torch.randn(len(frames), generator=gen, dtype=torch.float64)
+
+    fits = torch.stack([inverse @ (A.T @ draw()) for _ in range(2000)])
+    spread = fits.std(0)
+    robust = torch.stack([frame_robust_covariance(A, draw(), frames, inverse).diagonal().sqrt() for _ in range(200)])
+    plain = torch.stack([(inverse * float((e := draw()) @ e) / (len(e) - 2)).diagonal().sqrt() for _ in range(200)])
+    assert torch.allclose(robust.mean(0), spread, rtol=0.2)
+    assert bool((plain.mean(0) < 0.5 * spread).all())  # independent-pixel errors: too narrow
+
+
+def test_a_fit_shift_is_the_least_squares_move_of_a_linear_model():
+    A = torch.tensor([[1.0, 0.0], [0.0, 2.0], [1.0, 1.0]], dtype=torch.float64)
+    base = SimpleNamespace(flows=torch.zeros(3), more_flows=())
+    objective = SimpleNamespace(residuals=lambda flows, more: flows)  # residuals are the "flows"
+    change = torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64)
+    moved = fit_shift(change, base, A, torch.linalg.inv(A.T @ A), objective, ("a", "b"))
+    expected = torch.linalg.lstsq(A, -change[:, None]).solution.flatten()
+    assert [moved["a"], moved["b"]] == pytest.approx(expected.tolist())
+
+
+@pytest.mark.parametrize(
+    "z, sigma, floor, expected",
+    [(0.0, 0.1, 0.0, (-RANGE_Z * 0.1, RANGE_Z * 0.1)), (0.0, 0.1, 1.0, (-1.0, 1.0)), (0.9, 0.2, 0.0, (0.9 - RANGE_Z * 0.2, None)),
+     (-0.9, 0.2, 0.0, (None, -0.9 + RANGE_Z * 0.2)), (0.0, 5.0, 0.0, (None, None))],
+)  # fmt: skip
+def test_a_range_is_open_where_it_leaves_the_searched_box(z, sigma, floor, expected):
+    low, high = parameter_range(z, sigma, (-1.0, 1.0), floor)
+    for got, want in zip((low, high), expected):
+        assert got is None if want is None else got == pytest.approx(want)
+
+
+def test_search_samples_within_the_tolerance_widen_a_range_and_the_extreme_one_opens_it():
+    """Samples (z, loss) of a search: those within the tolerance of the best loss stretch the
+    range; where the most extreme sample examined is among them, that side is open."""
+    search = [{"z": {"a": a, "b": b}, "loss": loss} for a, b, loss in
+              [(0.0, -2.0, 1.0), (0.5, -1.0, 1.3), (2.0, 0.0, 1.9), (-1.0, 1.0, 5.0), (3.0, 2.0, 9.0)]] + [
+              {"z": {"a": 9.0, "b": 9.0}, "loss": None}]  # fmt: skip
+    ranges = {"a": {"low": 9.5, "high": 10.5}, "b": {"low": -0.5, "high": 0.5}, "v": {"low": 0.0, "high": 1.0}}
+    values = lambda z: {n: 10**v for n, v in z.items()}  # noqa: E731  (log-scale parameters)
+    widen_by_search(ranges, {"a": 1.0, "b": 0.0, "v": 0.5}, search, 1.0, values)
+    assert ranges["a"]["low"] == 1.0 and ranges["a"]["high"] == 100.0  # kept: a in 0 .. 2, losses <= 2
+    assert ranges["b"]["low"] is None and ranges["b"]["high"] == 0.5  # b's lowest sample (-2) is kept
+    assert ranges["v"] == {"low": 0.0, "high": 1.0}  # not searched: as it was
+    assert ranges["a"]["search_kept"] == 3

@@ -53,3 +53,29 @@ def test_write_history_plot_writes_a_png(tmp_path):
     with Image.open(tmp_path / "loss.png") as image:
         assert image.format == "PNG" and image.height > image.width > 500
     assert [p.name for p in tmp_path.iterdir()] == ["loss.png"]
+
+
+def test_each_parameters_range_is_a_band_an_open_end_running_to_the_panels_edge():
+    ranges = {
+        "youngs_modulus": {"low": 2e4, "high": 9e4, "level": 0.9},
+        "poissons_ratio": {"low": 0.25, "high": None, "level": 0.9},
+    }
+    fig = history_figure(history(), {"youngs_modulus": 1e5}, ranges)
+    poisson, young, velocity = fig.axes[1:]
+    (band,) = young.patches
+    assert band.get_y() == 2e4 and band.get_y() + band.get_height() == 9e4
+    legend = [t.get_text() for t in young.get_legend().get_texts()]
+    assert legend == ["truth 1e+05", "90 % range: 2e+04 - 9e+04"]
+    (open_band,) = poisson.patches
+    assert open_band.get_y() == 0.25 and open_band.get_y() + open_band.get_height() == poisson.get_ylim()[1]
+    assert [t.get_text() for t in poisson.get_legend().get_texts()] == ["90 % range: >= 0.25"]
+    assert not velocity.patches and velocity.get_legend() is None
+
+
+def test_a_range_in_words():
+    from clflow.pipeline.plots import range_text
+
+    assert range_text({"low": 1.2e5, "high": 3.4e5}, "Pa") == "1.2e+05 - 3.4e+05 Pa"
+    assert range_text({"low": 2.1e5, "high": None}, "Pa") == ">= 2.1e+05 Pa"
+    assert range_text({"low": None, "high": 40.0}, "1") == "<= 40"
+    assert range_text({"low": None, "high": None}) == "not bounded"

@@ -86,3 +86,34 @@ def test_the_page_says_which_parameters_the_video_does_not_resolve(tmp_path):
     assert "weakly constrained: viscosity" in page
     assert "unresolved: viscosity" in page and "loss within 10 % from 0.188 to 18.8 (SI)" in page
     assert "grid-sensitive: bulk_modulus" in page and "fit moves -0.42 (optimiser units) on 51 nodes" in page
+
+
+def test_the_page_gives_each_optimised_parameter_its_range(tmp_path):
+    from clflow.pipeline.report import write_report
+
+    params = {
+        "material": "newtonian",
+        "optimized": {"viscosity": 107.6, "bulk_modulus": 5.3e5},
+        "units": {"viscosity": "Pa s", "bulk_modulus": "Pa"},
+        "ranges": {
+            "viscosity": {"low": 71.5, "high": 162.0, "level": 0.9},
+            "bulk_modulus": {"low": 2.1e5, "high": None, "level": 0.9},
+        },
+        "parameters": {},
+        "density": 1000.0,
+        "velocity": [0, 0, 0],
+    }
+    (tmp_path / "params.json").write_text(json.dumps(params))
+    page = write_report(tmp_path).read_text()
+    assert "<th>90 % range</th>" in page
+    assert "<td>71.5 - 162</td>" in page and "<td>&gt;= 2.1e+05</td>" in page
+
+
+def test_the_results_hold_each_range_in_params_json_and_draw_it(results):
+    params = json.loads((results / "params.json").read_text())
+    ranges = json.loads((results / "metrics.json").read_text())["identifiability"]["ranges"]
+    assert set(params["ranges"]) == set(params["optimized"]) == set(ranges)
+    for name, value in params["optimized"].items():
+        low, high = params["ranges"][name]["low"], params["ranges"][name]["high"]
+        assert (low is None or low < value) and (high is None or value < high)
+        assert ranges[name]["sigma_z"] >= ranges[name]["frames_z"] >= 0

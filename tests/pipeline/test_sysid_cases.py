@@ -99,3 +99,45 @@ def test_a_table_of_some_published_cases_averages_the_published_rows_it_shows():
     mean_row = next(line for line in table.splitlines() if line.startswith("| **mean**"))
     assert "0.07/0.57" in mean_row  # PAC-NeRF: torus 0.06/0.52, bird 0.08/0.62
     assert "their means over the cases shown" in table
+
+
+def test_the_table_gives_each_range_marks_a_miss_and_counts_the_ranges_that_hold():
+    def param(found, low, high, truth):
+        entry = {"low": low, "high": high}
+        return {"found": found, "truth": truth, "guess": 1.0, "re": abs(found - truth) / truth,
+                "range": [low, high], "holds_truth": sysid.holds(entry, truth)}  # fmt: skip
+
+    record = {"status": "ok", "material": "plasticine", "mean_re": 0.2, "epe_px": 0.2, "floor_epe_px": 0.2,
+              "final_loss": 1.0, "truth_loss": 1.0, "iterations": 1, "seconds": 1.0,
+              "parameters": {"youngs_modulus": param(1.0e6, 8.5e5, 1.2e6, 2.0e6),
+                             "yield_stress": param(1.5e4, 1.3e4, None, 1.54e4)}}  # fmt: skip
+    summary = {"settings": sysid.settings_record(sysid.Settings()), "cases": {"clay": record}}
+    assert sysid.coverage(summary["cases"]) == (1, 2)
+    table = sysid.markdown(summary)
+    assert "youngs_modulus: 1e+06 [8.5e+05, 1.2e+06] **misses** (2e+06)" in table
+    assert "yield_stress: 1.5e+04 [1.3e+04, -] (1.54e+04)" in table
+    assert "| 90 % ranges holding the truth | | 1 of 2 (50 %) |" in table
+    rows = [line for line in table.splitlines() if line.startswith("|")]
+    assert len({row.count("|") for row in rows}) == 1
+
+
+def test_the_extra_set_covers_every_material_with_guesses_either_side_and_a_thrown_case():
+    from clflow.materials import MATERIALS
+
+    extra = sysid.load_cases(sysid.EXTRA_CASES_FILE)
+    assert len(extra) >= 9 and not set(extra) & set(sysid.CASES)
+    assert {c.material for c in extra.values()} == set(MATERIALS)
+    sides = {(c.guess[n] > c.truth[n]) for c in extra.values() for n in c.optimize}
+    assert sides == {True, False}
+    assert any(any(c.velocity) for c in extra.values())
+    paper = {(c.material, tuple(sorted(c.truth.items()))) for c in sysid.CASES.values()}
+    assert not {(c.material, tuple(sorted(c.truth.items()))) for c in extra.values()} & paper
+
+
+def test_set_extra_runs_clflows_own_cases_and_refuses_a_case_file_beside_it(tmp_path):
+    res = CliRunner().invoke(cli, ["eval", "sysid", "--set", "extra", "--case", "torus", "-o", str(tmp_path / "o")])
+    assert res.exit_code != 0 and "unknown case(s) torus; the cases are soft_ball" in res.output
+    path = tmp_path / "cases.yaml"
+    path.write_text(CASE_FILE)
+    res = CliRunner().invoke(cli, ["eval", "sysid", "--set", "extra", "--cases", str(path), "-o", str(tmp_path / "o")])
+    assert res.exit_code == 2 and "--cases and --set extra both choose the cases" in res.output

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 
 import torch
 
@@ -31,6 +32,76 @@ PROFILE_RISE = 0.1
 # modulus: 0.42 decades from 51 to 76 nodes, where it ended at 0.35 of its truth; the bird's
 # E: 0.001 decades, RE 0.05; docs/history/benchmarks-2026-11.md, "The bulk modulus sits below the model error")
 GRID_CHECK_RATIO = 1.5
+# the reported range: a two-sided 90 % normal range, z +- RANGE_Z * sigma, where sigma^2 adds
+# the frame-robust (sandwich) variance and the model grid's own discretisation error, which
+# Richardson's rule for a first-order method puts at the grid check's shift times
+# h / (H - h) (h the model grid's spacing, H the check's: twice the shift for H = 1.5 h), and
+# the time-step check's shift (substeps doubled); at least as wide as the Gauss-Newton profile
+# (the others refitted) where the loss rises by the model's own loss tolerance, the relative
+# change of the loss that those checks make at the same point (quick playdoh: 54 % on the
+# 1.5x coarser grid), which a weakly constrained nu can cross only far away; an end beyond
+# the box the search looked in is open (the data only bound that side)
+RANGE_LEVEL = 0.9
+RANGE_Z = 1.6449
+
+
+def frame_robust_covariance(
+    J: torch.Tensor, residuals: torch.Tensor, frames: torch.Tensor, inverse: torch.Tensor
+) -> torch.Tensor:
+    """[P, P] covariance in z of a least-squares fit whose errors are correlated within a
+    frame step and independent across steps (the cluster-robust sandwich (J^T J)^-1 M
+    (J^T J)^-1, M = sum over steps of g_t g_t^T, g_t = J_t^T r_t centred, times n/(n-1)).
+    ``J`` [R, P] and ``residuals`` [R] at the fit, ``frames`` [R] each residual's step,
+    ``inverse`` (J^T J)^-1. Where the residuals are model error rather than noise, a step
+    whose misfit pulls the parameters its own way widens it: it is how far the estimate
+    moves when the frames are weighed differently (a linearised bootstrap over frames)."""
+    steps = int(frames.max()) + 1
+    g = torch.zeros(steps, J.shape[1], dtype=J.dtype).index_add_(0, frames, J * residuals[:, None])
+    g = g - g.mean(0)
+    meat = g.T @ g * (steps / max(steps - 1, 1))
+    return inverse @ meat @ inverse
+
+
+def fit_shift(residuals, base: Evaluation, J, inverse, objective, variables: tuple[str, ...]) -> dict[str, float]:
+    """Per variable, how far the best fit at ``base`` (Jacobian ``J`` [R, P], ``inverse`` =
+    (J^T J)^-1) moves, to first order, when its residuals become ``residuals`` [R] (the same
+    point run another way, against the same targets): -(J^T J)^-1 J^T (r_new - r_base)."""
+    change = residuals - objective.residuals(base.flows, base.more_flows)
+    return dict(zip(variables, (-(inverse @ (J.T @ change))).tolist()))
+
+
+def parameter_range(z: float, sigma: float, box: tuple[float, float], floor: float = 0.0) -> tuple:
+    """(low, high) in z of a parameter at ``z`` with standard deviation ``sigma`` (z units): z
+    +- RANGE_Z * sigma, at least +- ``floor``; an end beyond ``box`` (lower, upper), where the
+    search looked, is None (open: the data only bound the other side)."""
+    half = max(RANGE_Z * sigma, floor)
+    low, high = z - half, z + half
+    return (None if low < box[0] else low), (None if high > box[1] else high)
+
+
+def widen_by_search(ranges: dict[str, dict], z: dict[str, float], search: list[dict], tolerance: float, values) -> None:
+    """Widen each range (Diagnostics.ranges, in place) to the search samples whose loss is
+    within ``tolerance`` of the search's best (state.search rows: z, loss): the non-local
+    profile the search's own runs give for free (quick playdoh's E: the best samples lie
+    from 2e6 to 2.2e7 Pa within 1.4x of the best loss, where the final point's curvature
+    alone would allow 0.1 decade). A side reached by the search's most extreme sample in that
+    direction is open: the data do not bound it. ``values(z)``: SI values of a point."""
+    rows = [r for r in search if r.get("loss") is not None]
+    if not rows:
+        return
+    best = min(r["loss"] for r in rows)
+    kept = [r for r in rows if r["loss"] <= (1 + tolerance) * best]
+    for name, entry in ranges.items():
+        if name not in rows[0]["z"]:
+            continue
+        seen = [r["z"][name] for r in rows]
+        near = [r["z"][name] for r in kept]
+        low, high = min(near), max(near)
+        if entry["low"] is not None and low < z[name]:
+            entry["low"] = None if low <= min(seen) else min(entry["low"], values({**z, name: low})[name])
+        if entry["high"] is not None and high > z[name]:
+            entry["high"] = None if high >= max(seen) else max(entry["high"], values({**z, name: high})[name])
+        entry["search_kept"] = len(kept)
 
 
 def flat(profile_row: dict) -> bool:
@@ -46,7 +117,7 @@ class Diagnostics:
     Jacobian, profiles of weakly constrained parameters, the grid check (needs evaluate,
     jacobian, residuals, local_box)."""
 
-    def identifiability(self, z: dict[str, float], min_substeps: int) -> dict:
+    def identifiability(self, z: dict[str, float], min_substeps: int, search: list[dict] | None = None) -> dict:
         """How well the video pins down each variable at z: from the residuals' Jacobian J
         (one forward run per variable), the Gauss-Newton covariance s^2 (J^T J)^-1 with s^2
         the loss per residual degree of freedom. Its standard errors (z units: decades for
@@ -80,8 +151,22 @@ class Diagnostics:
             if i < j and abs(float(correlation[i, j])) > TRADE_OFF_CORRELATION
         ]
         profile = self.profile(z, base.substeps, weak, loss)
-        coarse_grid, shift = self.grid_shift(z, base, J, inverse, variables)
+        coarse_grid, shift, grid_change = self.grid_shift(z, base, J, inverse, variables)
+        check_substeps, dt_shift, dt_change = self.substep_shift(z, base, J, inverse, variables)
+        robust = frame_robust_covariance(J, residuals, self.residual_frames(len(base.flows)), inverse)
+        unresolved = [n for n, row in profile.items() if flat(row)]
+        # Richardson for both: the grid's error h / (H - h) times its check's; the time step's, halved, once its own
+        richardson = 1 / max(abs((self.model_grid - 1) / (coarse_grid - 1) - 1), 1e-6)
+        discretisation = {n: math.hypot(richardson * shift.get(n, 0.0), dt_shift.get(n, 0.0)) for n in variables}
+        tolerance = math.hypot(richardson * grid_change, dt_change)
+        # where the loss, the others refitted, rises by under that tolerance (Gauss-Newton profile)
+        profile_z = [WEAK_STD_Z * math.sqrt(tolerance / max(r, 1e-300)) for r in rise]
+        frame_std = robust.diagonal().clamp(min=0).sqrt().tolist()
+        ranges = self.ranges(z, variables, frame_std, discretisation, profile_z, unresolved)
+        widen_by_search(ranges, z, search or [], tolerance, self.values)
         return {
+            "ranges": ranges,
+            "loss_tolerance": tolerance,
             "std_z": dict(zip(variables, std.tolist())),
             "loss_rise": dict(zip(variables, rise)),
             "correlation": {a: dict(zip(variables, row)) for a, row in zip(variables, correlation.tolist())},
@@ -89,17 +174,59 @@ class Diagnostics:
             "trade_offs": pairs,
             "profile": profile,
             "profile_rise": PROFILE_RISE,
-            "unresolved": [n for n, row in profile.items() if flat(row)],
+            "unresolved": unresolved,
             "grids": [coarse_grid, self.model_grid],
             "grid_shift_z": shift,
             "grid_sensitive": [n for n, moved in shift.items() if abs(moved) > WEAK_STD_Z],
+            "substep_check": check_substeps,
+            "substep_shift_z": dt_shift,
         }
+
+    def ranges(
+        self,
+        z: dict[str, float],
+        variables: tuple[str, ...],
+        frame_std: list[float],
+        discretisation: dict[str, float],
+        profile_z: list[float],
+        unresolved: list[str],
+    ) -> dict[str, dict]:
+        """Per variable its RANGE_LEVEL range: ``low`` and ``high`` (SI; None where open),
+        ``sigma_z`` and its parts (``frames_z``: the frame-robust standard deviation;
+        ``grid_z``: the model grid's discretisation error from the grid check, 0 where it
+        failed; ``profile_z``: the half-width where the loss, the others refitted, rises by
+        the model's loss tolerance). The range is the widest of RANGE_Z sigma, the profile's
+        and, for a parameter whose profile is flat (``unresolved``), PROFILE_STEP, either way.
+        Open ends lie beyond the local phase's box (else the parameter's typical range;
+        velocities: none)."""
+        out = {}
+        for name, frames_z, half_profile in zip(variables, frame_std, profile_z):
+            grid_z = discretisation.get(name, 0.0)
+            sigma = (frames_z**2 + grid_z**2) ** 0.5
+            if name in self.params:
+                lo, hi = self.local_box().get(name) or self.typical_box(name)
+                box = (min(lo, z[name]), max(hi, z[name]))
+            else:
+                box = (-float("inf"), float("inf"))
+            floor = max(half_profile, PROFILE_STEP if name in unresolved else 0.0)
+            low, high = parameter_range(z[name], sigma, box, floor)
+            out[name] = {
+                "value": self.values(z)[name],
+                "low": None if low is None else self.values({**z, name: low})[name],
+                "high": None if high is None else self.values({**z, name: high})[name],
+                "level": RANGE_LEVEL,
+                "sigma_z": sigma,
+                "frames_z": frames_z,
+                "grid_z": grid_z,
+                "profile_z": half_profile,
+            }
+        return out
 
     def grid_shift(
         self, z: dict[str, float], base: Evaluation, J: torch.Tensor, inverse: torch.Tensor, variables: tuple[str, ...]
-    ) -> tuple[int, dict[str, float]]:
+    ) -> tuple[int, dict[str, float], float]:
         """(the coarser grid's nodes, per variable the move of the best fit in z units from
-        the model grid to that grid): the final point ``base`` (residual Jacobian ``J``
+        the model grid to that grid, the loss's relative change there): the final point ``base`` (residual Jacobian ``J``
         [R, P], ``inverse`` = (J^T J)^-1) run again, forward only, on the search grid, or one
         GRID_CHECK_RATIO times coarser without a coarser search grid; to first order the fit
         moves by -(J^T J)^-1 J^T (r_coarse - r_model), both against the same targets. The
@@ -107,7 +234,7 @@ class Diagnostics:
         model grid's own bias is of that order too (its sign and size depend on how fast the
         estimate converges with the grid). Where the coarser grid's thicker walls leave the
         object no room in the domain, a GRID_CHECK_RATIO times finer grid instead. Empty
-        where the run fails."""
+        (and 0) where the run fails."""
         coarse = self.search_grid
         if coarse >= self.model_grid:
             coarse = round((self.model_grid - 1) / GRID_CHECK_RATIO) + 1
@@ -117,14 +244,48 @@ class Diagnostics:
         except InputError:
             log.info("the grid check takes %d nodes: on %d the thicker walls leave the object no room", finer, coarse)
             coarse = finer
+        shift, change = self.rerun_shift(
+            z, base, J, inverse, variables, f"the grid check at {coarse} nodes", grid=coarse
+        )
+        return coarse, shift, change
+
+    def substep_shift(
+        self, z: dict[str, float], base: Evaluation, J: torch.Tensor, inverse: torch.Tensor, variables: tuple[str, ...]
+    ) -> tuple[int, dict[str, float], float]:
+        """(the substeps per frame of the check, per variable the move of the best fit in z
+        units when the final point ``base`` runs at twice its substeps, the loss's relative
+        change): the time step's pull
+        on each estimate, as :meth:`grid_shift` is the grid's (quick playdoh's loss at its
+        truth: 0.0057 at 40 substeps per frame, 0.028 at 254). Empty where the run fails."""
+        substeps = 2 * base.substeps
+        what = f"the time-step check at {substeps} substeps per frame"
+        shift, change = self.rerun_shift(
+            z, base, J, inverse, variables, what, min_substeps=substeps, grid=self.model_grid
+        )
+        return substeps, shift, change
+
+    def rerun_shift(
+        self,
+        z: dict[str, float],
+        base: Evaluation,
+        J: torch.Tensor,
+        inverse: torch.Tensor,
+        variables: tuple[str, ...],
+        what: str,
+        **how,
+    ) -> tuple[dict[str, float], float]:
+        """The final point ``base`` run again, forward only, another way (``how``: evaluate's
+        grid or min_substeps): (the fit's move per variable, :func:`fit_shift`; the loss's
+        relative change |L_new / L - 1|). ({}, 0.0) where that run fails."""
         try:
-            run = self.evaluate(z, self.frames, with_grad=False, grid=coarse)
+            run = self.evaluate(z, self.frames, with_grad=False, **how)
         except (FloatingPointError, ClflowError) as exc:
-            log.info("the grid check at %d nodes failed: %s", coarse, exc)
-            return coarse, {}
-        change = self.residuals(run.flows, run.more_flows) - self.residuals(base.flows, base.more_flows)
-        moved = -(inverse @ (J.T @ change))
-        return coarse, dict(zip(variables, moved.tolist()))
+            log.info("%s failed: %s", what, exc)
+            return {}, 0.0
+        residuals = self.residuals(run.flows, run.more_flows)
+        loss = float((self.residuals(base.flows, base.more_flows) ** 2).sum())
+        change = abs(float((residuals**2).sum()) / max(loss, 1e-300) - 1)
+        return fit_shift(residuals, base, J, inverse, self, variables), change
 
     def profile(self, z: dict[str, float], min_substeps: int, names: list[str], loss: float) -> dict:
         """Per material parameter in ``names``: ``values`` (SI) PROFILE_STEP below z, at z and

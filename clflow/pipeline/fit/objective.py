@@ -7,12 +7,14 @@ import json
 import logging
 import math
 import time
+import warnings
 
 import numpy as np
 import torch
 
 from clflow.errors import ClflowError
 from clflow.fileio import atomic_path
+from clflow.mpm import StabilityWarning
 from clflow.pipeline.fit.state import Evaluation, OptimizerState, UnstableRun
 from clflow.pipeline.forward import Prepared, SimulationResult, material_values, prepare, render_frames
 from clflow.pipeline.render import frame_gaussians, render_flow
@@ -149,16 +151,18 @@ class Objective:
         decoded = {n: p.decode(zt[n]) for n, p in self.params.items()}
         params, density = material_values(self.cfg, {n: float(v.detach()) for n, v in decoded.items()})
         velocity = torch.stack([zt[n] for n in VELOCITY_COMPONENTS]) if VELOCITY_COMPONENTS[0] in zt else None
-        sim = build_simulator(
-            self.cfg,
-            prepared.setup,
-            params,
-            density,
-            min_substeps=min_substeps,
-            velocity=velocity,
-            max_substeps=self.cfg.simulation.max_substeps,
-        )
-        traj = run(sim, frames, decoded, velocity)
+        with warnings.catch_warnings():  # an unstable step or run fails below, saying why (UnstableRun)
+            warnings.simplefilter("ignore", StabilityWarning)
+            sim = build_simulator(
+                self.cfg,
+                prepared.setup,
+                params,
+                density,
+                min_substeps=min_substeps,
+                velocity=velocity,
+                max_substeps=self.cfg.simulation.max_substeps,
+            )
+            traj = run(sim, frames, decoded, velocity)
         needed = sim.stable_substeps()
         if traj.substeps < needed:  # a fixed simulation.substep_dt too long for these parameters
             raise UnstableRun(
@@ -302,6 +306,15 @@ class Objective:
             root = (weight / weight.sum() / len(self.views)).sqrt()[..., None]
             target = view.target
             parts += [((f.double() - target[t]) * root[t])[weight[t] > 0].reshape(-1) for t, f in enumerate(view_flows)]
+        return torch.cat(parts)
+
+    def residual_frames(self, steps: int) -> torch.Tensor:
+        """[R] int64: the frame step (0..steps-1) of each entry of :meth:`residuals` for
+        ``steps`` simulated frame steps per view; a step's residuals in every view share it."""
+        parts = []
+        for view in self.views:
+            inside = (view.weight[:steps] > 0).reshape(steps, -1).sum(1)  # pixels, each (u, v)
+            parts += [torch.full((2 * int(n),), t, dtype=torch.int64) for t, n in enumerate(inside)]
         return torch.cat(parts)
 
     def jacobian(

@@ -14,7 +14,7 @@ from clflow.fileio import atomic_write_text
 from clflow.pipeline.fit.diagnostics import MIN_LOSS_RISE, PROFILE_RISE, WEAK_STD_Z
 from clflow.pipeline.fit.state import OptimizerState
 from clflow.pipeline.forward import SimulationResult, material_values, render_frames
-from clflow.pipeline.plots import write_history_plot
+from clflow.pipeline.plots import range_text, write_history_plot
 from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig
 
 log = logging.getLogger(__name__)
@@ -56,6 +56,7 @@ class Results:
         final = self.values(state.z)
         params, density = material_values(self.cfg, {n: final[n] for n in self.params})
         metrics = self.result_metrics(state, result)
+        ranges = metrics["identifiability"]["ranges"]
         record = {
             "material": self.cfg.material.type,
             "parameters": params,
@@ -63,6 +64,8 @@ class Results:
             "velocity": list(self.velocity(state.z)),
             "optimized": final,
             "units": {n: parameter_unit(self.cfg, n) for n in final},
+            # each optimised value's range (SI; None: open, the video only bounds the other side)
+            "ranges": {n: {k: ranges[n][k] for k in ("low", "high", "level")} for n in final if n in ranges},
             # the substeps per frame the final evaluation needed (after any CFL retry): a
             # re-simulation of this result (clflow simulate --params-from) takes at least these
             "substeps": result.substeps,
@@ -73,7 +76,7 @@ class Results:
         atomic_write_text(out / "history.json", json.dumps(state.history, indent=1))
         if state.search:
             atomic_write_text(out / "search.json", json.dumps(state.search, indent=1))
-        write_history_plot(out / "loss.png", state.history, self.cfg.ground_truth)
+        write_history_plot(out / "loss.png", state.history, self.cfg.ground_truth, ranges)
         self.write_comparison_videos(result, params, density)
         return metrics
 
@@ -122,7 +125,7 @@ class Results:
             metrics["guidance_checks"] = [check.record() for check in self.guidance]
         if self.guidance_warnings:  # forced past a failed guidance check (--force-video)
             metrics["warnings"] = list(self.guidance_warnings)
-        metrics["identifiability"] = self.identifiability(state.z, state.substeps)
+        metrics["identifiability"] = self.identifiability(state.z, state.substeps, state.search)
         self.warn_identifiability(metrics["identifiability"])
         if self.hypotheses:
             metrics["material_hypotheses"] = self.hypotheses
@@ -137,8 +140,17 @@ class Results:
         return metrics
 
     def warn_identifiability(self, identifiability: dict) -> None:
-        """A warning per parameter the video constrains weakly, does not resolve, or that
-        depends on the grid, and per pair that trades off (Diagnostics.identifiability)."""
+        """Each variable's range (INFO), and a warning per parameter the video constrains
+        weakly, does not resolve, or that depends on the grid, and per pair that trades off
+        (Diagnostics.identifiability)."""
+        for name, entry in identifiability["ranges"].items():
+            log.info(
+                "%s = %.4g, %d %% range %s",
+                name,
+                entry["value"],
+                round(100 * entry["level"]),
+                range_text(entry, parameter_unit(self.cfg, name)),
+            )
         for name in identifiability["weakly_constrained"]:
             reason = weak_reason(identifiability["std_z"][name], identifiability["loss_rise"][name])
             log.warning("%s is weakly constrained by the video: %s; its value is uncertain", name, reason)
