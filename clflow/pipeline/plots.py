@@ -94,7 +94,13 @@ def _range_band(axis, entry: dict) -> None:
     high = top if entry["high"] is None else entry["high"]
     label = f"{100 * entry['level']:.0f} % range: {range_text(entry)}"
     axis.axhspan(low, high, color="tab:green", alpha=0.15, linewidth=0, label=label)
-    axis.set_ylim(min(bottom, low), max(top, high))
+    # a closed end stays in view with a margin; an open one runs to the panel's edge
+    logarithmic = axis.get_yscale() == "log"
+    pad = (lambda v, k: v * (high / low) ** (0.05 * k)) if logarithmic else (lambda v, k: v + 0.05 * k * (high - low))
+    axis.set_ylim(
+        min(bottom, low if entry["low"] is None else pad(low, -1)),
+        max(top, high if entry["high"] is None else pad(high, 1)),
+    )
 
 
 def history_figure(history: list[dict], truth: dict[str, float], ranges: dict[str, dict] | None = None):
