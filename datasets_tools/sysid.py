@@ -330,6 +330,15 @@ def coverage(cases: dict) -> tuple[int, int]:
     return sum(bool(p.get("holds_truth")) for p in params), sum("holds_truth" in p for p in params)
 
 
+def range_shapes(cases: dict) -> tuple[int, int]:
+    """(ranges bounded on both sides, ranges open on both) over the finished cases: an open
+    range holds any truth, so coverage is read beside these."""
+    ranges = [
+        p["range"] for r in cases.values() if r.get("status") == "ok" for p in r["parameters"].values() if "range" in p
+    ]
+    return sum(None not in r for r in ranges), sum(r == [None, None] for r in ranges)
+
+
 def case_definition(case: SyntheticCase) -> dict:
     """A case's definition as JSON data, with the generator's version (a finished result
     counts only for an equal one)."""
@@ -522,9 +531,10 @@ def _summary_rows(cases: dict, methods: tuple[str, ...]) -> list[str]:
     from clflow.pipeline.fit.diagnostics import RANGE_LEVEL
 
     held, counted = coverage(cases)
+    bounded, unbounded = range_shapes(cases)
     ranges = [
-        f"| {100 * RANGE_LEVEL:.0f} % ranges holding the truth | | {held} of {counted} ({100 * held / max(counted, 1):.0f} %) | | | | | |"
-        + " |" * len(methods)
+        f"| {100 * RANGE_LEVEL:.0f} % ranges holding the truth | | {held} of {counted} ({100 * held / max(counted, 1):.0f} %; "
+        f"{bounded} bounded on both sides, {unbounded} on neither) | | | | | |" + " |" * len(methods)
     ]
     return (ranges if counted else []) + [
         f"| **mean** ({len(ok)} of {len(cases)}) | | | **{mean_re:.3f}** | **{mean_epe:.3f}** | | | {total:.0f} |"

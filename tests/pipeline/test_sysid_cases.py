@@ -116,7 +116,7 @@ def test_the_table_gives_each_range_marks_a_miss_and_counts_the_ranges_that_hold
     table = sysid.markdown(summary)
     assert "youngs_modulus: 1e+06 [8.5e+05, 1.2e+06] **misses** (2e+06)" in table
     assert "yield_stress: 1.5e+04 [1.3e+04, -] (1.54e+04)" in table
-    assert "| 90 % ranges holding the truth | | 1 of 2 (50 %) |" in table
+    assert "| 90 % ranges holding the truth | | 1 of 2 (50 %; 1 bounded on both sides, 0 on neither) |" in table
     rows = [line for line in table.splitlines() if line.startswith("|")]
     assert len({row.count("|") for row in rows}) == 1
 
