@@ -51,6 +51,9 @@ def _catalogue(case_file: str | None, case_set: str, quick: bool) -> tuple[dict,
 @click.option("--iterations", type=click.IntRange(min=1), default=None, help="Override the iterations per case.")
 @count_option('--truth-scale', default=2, help="Grid and image refinement of the ground truth (1 reproduces the optimiser's own forward: "
                    "an inverse crime, for diagnosis only).")  # fmt: skip
+@click.option("--truth-transfer", type=click.Choice(["flip", "apic"]), default="flip", show_default=True,
+              help="The ground truth's particle-grid transfer: flip, the optimiser's own blend (FLIP 0.99), or apic, "
+                   "a model mismatch the optimiser does not share (nature is neither).")  # fmt: skip
 @click.option("--noise", type=click.FloatRange(min=0.0), default=0.0, show_default=True,
               help="Sensor noise added to the guidance frames, 8-bit grey levels (standard deviation).")  # fmt: skip
 @click.option("--codec", type=click.Choice([".mp4", ".webm", ".avi"]), default=None,
@@ -74,6 +77,7 @@ def sysid(
     quick,
     iterations,
     truth_scale,
+    truth_transfer,
     noise,
     codec,
     seed,
@@ -100,7 +104,13 @@ def sysid(
     catalogue, default_names = _catalogue(case_file, case_set, quick)
     names = list(dict.fromkeys(cases)) or default_names
     settings = Settings(
-        resolution=resolution, truth_scale=truth_scale, noise=noise, codec=codec, seed=seed, views=views
+        resolution=resolution,
+        truth_scale=truth_scale,
+        noise=noise,
+        codec=codec,
+        seed=seed,
+        views=views,
+        truth_transfer=truth_transfer,
     )
 
     def progress(name: str, row: dict) -> None:

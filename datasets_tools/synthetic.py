@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -420,11 +420,13 @@ def make_case(
     noise: float = 0.0,
     codec: str | None = None,
     views: int = 1,
+    truth_flip: float | None = None,
 ) -> Path:
     """Write the case into ``folder`` (see module docstring); returns its ``config.yaml``.
 
     ``truth_scale``: the ground truth's grid and image refinement (1: the optimiser's own
-    resolution, an inverse crime; 2 for benchmarks); ``noise``: sensor noise (8-bit grey
+    resolution, an inverse crime; 2 for benchmarks); ``truth_flip``: the ground truth's PIC/FLIP
+    blend (0: APIC; default the resolution's, the optimiser's own); ``noise``: sensor noise (8-bit grey
     levels); ``codec``: a video suffix (".mp4", ".webm", ...) whose lossy encoding the
     optimiser then reads instead of the PNG frames; ``views``: guidance views of the same
     motion (``guidance/``, ``guidance_1/`` ..., cameras at VIEW_AZIMUTHS_DEG). Raises
@@ -445,7 +447,9 @@ def make_case(
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     write_scene(folder, case, resolution, seed)
-    truth = case_config(case, resolution, case.truth, optimize=False, scale=int(truth_scale), views=views)
+    # the truth's own transfer (truth_flip; default the optimiser's): nature is neither APIC nor FLIP
+    truth_resolution = resolution if truth_flip is None else replace(resolution, flip=float(truth_flip))
+    truth = case_config(case, truth_resolution, case.truth, optimize=False, scale=int(truth_scale), views=views)
     atomic_write_text(folder / "config_truth.yaml", yaml.safe_dump(truth, sort_keys=False))
     truth_cfg = parse_config(truth, str(folder / "config_truth.yaml"), folder)
     # the benchmark's truths are made as before (GENERATOR_VERSION); making them obey the
@@ -471,6 +475,7 @@ def make_case(
         "image": resolution.image,
         "truth_particles": int(result.x.shape[1]),
         "truth_substeps": result.substeps,
+        "truth_flip": truth_resolution.flip,
         "clamped": clamped,
         "wall_contacts": at_walls,
         "noise": noise,

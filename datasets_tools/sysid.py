@@ -136,6 +136,10 @@ PUBLISHED_MEAN = {"PAC-NeRF": (0.52, 0.72), "GIC": (0.11, 0.38), "PhysFlow": (0.
 METHODS = ("PAC-NeRF", "GIC", "PhysFlow")
 
 
+#: --truth-transfer: the ground truth's PIC/FLIP blend (None: the optimiser's own)
+TRUTH_FLIP = {"flip": None, "apic": 0.0}
+
+
 @dataclass(frozen=True)
 class Settings:
     """What a benchmark run depends on besides its cases (a rerun resumes only with equal settings)."""
@@ -146,6 +150,7 @@ class Settings:
     codec: str | None = None  # video suffix of a lossy guidance video, e.g. ".mp4"
     seed: int = 0
     views: int = 1  # guidance views (clflow_datasets.synthetic.VIEW_AZIMUTHS_DEG)
+    truth_transfer: str = "flip"  # the truth's transfer: "flip" (the optimiser's blend) or "apic" (a mismatch)
 
 
 def check_case(name: str, case: SyntheticCase) -> None:
@@ -264,6 +269,7 @@ def run_case(
             noise=settings.noise,
             codec=settings.codec,
             views=settings.views,
+            truth_flip=TRUTH_FLIP[settings.truth_transfer],
         )
         record = json.loads(made.read_text())
         record["definition"] = definition
@@ -361,7 +367,10 @@ def _earlier_summary(out: Path, settings: Settings, force: bool) -> dict:
     if summary_path.exists():
         try:
             previous = json.loads(summary_path.read_text())
-            same = previous.get("settings") == wanted
+            earlier = previous.get("settings") if isinstance(previous, dict) else None
+            if isinstance(earlier, dict):  # a setting added since those results were made takes its default there
+                earlier = {**settings_record(Settings()), **earlier}
+            same = earlier == wanted
         except (OSError, ValueError) as exc:
             raise InputError(
                 f"{summary_path} is not a clflow sysid result ({exc}); use --force to start over"
@@ -370,7 +379,7 @@ def _earlier_summary(out: Path, settings: Settings, force: bool) -> dict:
             summary = previous
         elif not force:
             raise InputError(
-                f"{out} holds sysid results of other settings ({_difference(previous.get('settings'), wanted)}); "
+                f"{out} holds sysid results of other settings ({_difference(earlier, wanted)}); "
                 f"use another -o folder, or --force to replace them"
             )
     elif out.exists() and any(out.iterdir()) and not force:
@@ -564,7 +573,12 @@ def _closing(summary: dict, methods: tuple[str, ...]) -> list[str]:
         f"image {res['image']} px, {res['frames']} frames, "
         f"{res['iterations']} iterations; ground truth at {s['truth_scale']}x grid and image; noise "
         f"{s['noise']} grey levels; codec {s['codec'] or 'none (PNG)'}; seed {s['seed']}; "
-        f"{s.get('views', 1)} guidance view{'s' if s.get('views', 1) > 1 else ''}.",
+        f"{s.get('views', 1)} guidance view{'s' if s.get('views', 1) > 1 else ''}"
+        + (
+            "; ground truth under APIC, a transfer the optimiser does not share."
+            if s.get("truth_transfer") == "apic"
+            else "."
+        ),
         f"Made {env.get('date', '?')} with clflow {env.get('clflow', '?')} (commit {env.get('commit') or '?'}), "
         f"torch {env.get('torch', '?')}, "
         f"pyopencl {env.get('pyopencl', '?')} on {env.get('device', '?')} (load {env.get('load', '?')}). " + published,

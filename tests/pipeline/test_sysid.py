@@ -51,6 +51,25 @@ def test_the_guidance_is_not_the_optimisers_own_forward(tmp_path):
     assert config.name == "config.yaml"
 
 
+def test_a_truth_under_apic_is_a_transfer_the_optimiser_does_not_share(tmp_path):
+    """--truth-transfer apic: the ground truth runs APIC (flip 0) while the optimiser keeps its
+    FLIP blend; the table says so, and results of the matched truth are other settings."""
+    case = SyntheticCase(shape="sphere", lift=0.02, spread=0.75)
+    flip = dataclasses.replace(TINY, flip=0.99)
+    make_case(tmp_path, case, flip, truth_scale=2, truth_flip=sysid.TRUTH_FLIP["apic"])
+    truth, opt = (yaml.safe_load((tmp_path / name).read_text()) for name in ("config_truth.yaml", "config.yaml"))
+    assert truth["simulation"].get("flip", 0.0) == 0.0 and opt["simulation"]["flip"] == 0.99
+    assert json.loads((tmp_path / "case.json").read_text())["truth_flip"] == 0.0
+    apic = sysid.settings_record(sysid.Settings(truth_transfer="apic"))
+    assert "ground truth under APIC" in sysid.markdown({"settings": apic, "cases": {}})
+    older = {k: v for k, v in sysid.settings_record(sysid.Settings()).items() if k != "truth_transfer"}
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "sysid.json").write_text(json.dumps({"settings": older, "cases": {}}))
+    assert sysid._earlier_summary(tmp_path / "out", sysid.Settings(), force=False)["settings"] == older
+    with pytest.raises(InputError, match="truth_transfer: flip -> apic"):
+        sysid._earlier_summary(tmp_path / "out", sysid.Settings(truth_transfer="apic"), force=False)
+
+
 def test_noise_and_codec_reach_the_optimisers_input(tmp_path):
     case = SyntheticCase(spread=0.5)
     make_case(tmp_path / "clean", case, TINY, truth_scale=1)
