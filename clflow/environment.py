@@ -59,12 +59,17 @@ def environment(packages: tuple[str, ...] = (), opencl: bool = True) -> dict:
 
 
 def _commit(folder: Path) -> str | None:
-    """The git commit clflow runs from (an editable install in a checkout), else None."""
+    """The git commit clflow runs from (an editable install in a checkout), "-dirty" added when
+    the checkout's tracked files differ from it (a copied tree whose git metadata lags, local
+    edits), else None."""
     import subprocess
 
     try:
         done = subprocess.run(
-            ["git", "-C", str(folder), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=10
+            ["git", "-C", str(folder), "describe", "--always", "--dirty", "--abbrev=7", "--exclude=*"],
+            capture_output=True,
+            text=True,
+            timeout=10,
         )
     except (OSError, subprocess.SubprocessError):
         return None
