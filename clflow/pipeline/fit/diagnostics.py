@@ -62,11 +62,10 @@ def frame_robust_covariance(
     return inverse @ meat @ inverse
 
 
-def fit_shift(residuals, base: Evaluation, J, inverse, objective, variables: tuple[str, ...]) -> dict[str, float]:
-    """Per variable, how far the best fit at ``base`` (Jacobian ``J`` [R, P], ``inverse`` =
-    (J^T J)^-1) moves, to first order, when its residuals become ``residuals`` [R] (the same
-    point run another way, against the same targets): -(J^T J)^-1 J^T (r_new - r_base)."""
-    change = residuals - objective.residuals(base.flows, base.more_flows)
+def fit_shift(change: torch.Tensor, J: torch.Tensor, inverse: torch.Tensor, variables: tuple[str, ...]) -> dict:
+    """Per variable, how far a least-squares fit (Jacobian ``J`` [R, P], ``inverse`` =
+    (J^T J)^-1) moves, to first order, when its residuals change by ``change`` [R] (the same
+    point run another way, against the same targets): -(J^T J)^-1 J^T change."""
     return dict(zip(variables, (-(inverse @ (J.T @ change))).tolist()))
 
 
@@ -226,10 +225,10 @@ class Diagnostics:
         self, z: dict[str, float], base: Evaluation, J: torch.Tensor, inverse: torch.Tensor, variables: tuple[str, ...]
     ) -> tuple[int, dict[str, float], float]:
         """(the coarser grid's nodes, per variable the move of the best fit in z units from
-        the model grid to that grid, the loss's relative change there): the final point ``base`` (residual Jacobian ``J``
-        [R, P], ``inverse`` = (J^T J)^-1) run again, forward only, on the search grid, or one
-        GRID_CHECK_RATIO times coarser without a coarser search grid; to first order the fit
-        moves by -(J^T J)^-1 J^T (r_coarse - r_model), both against the same targets. The
+        the model grid to that grid, the loss's relative change there): the final point
+        ``base`` (residual Jacobian ``J`` [R, P], ``inverse`` = (J^T J)^-1) run again, forward
+        only, on the search grid, or one GRID_CHECK_RATIO times coarser without a coarser
+        search grid; to first order the fit moves by -(J^T J)^-1 J^T (r_coarse - r_model), both against the same targets. The
         discretisation's pull on each estimate at the scale of the grid refinement: the
         model grid's own bias is of that order too (its sign and size depend on how fast the
         estimate converges with the grid). Where the coarser grid's thicker walls leave the
@@ -254,8 +253,7 @@ class Diagnostics:
     ) -> tuple[int, dict[str, float], float]:
         """(the substeps per frame of the check, per variable the move of the best fit in z
         units when the final point ``base`` runs at twice its substeps, the loss's relative
-        change): the time step's pull
-        on each estimate, as :meth:`grid_shift` is the grid's (quick playdoh's loss at its
+        change): the time step's pull on each estimate, as :meth:`grid_shift` is the grid's (quick playdoh's loss at its
         truth: 0.0057 at 40 substeps per frame, 0.028 at 254). Empty where the run fails."""
         substeps = 2 * base.substeps
         what = f"the time-step check at {substeps} substeps per frame"
@@ -282,10 +280,9 @@ class Diagnostics:
         except (FloatingPointError, ClflowError) as exc:
             log.info("%s failed: %s", what, exc)
             return {}, 0.0
-        residuals = self.residuals(run.flows, run.more_flows)
-        loss = float((self.residuals(base.flows, base.more_flows) ** 2).sum())
-        change = abs(float((residuals**2).sum()) / max(loss, 1e-300) - 1)
-        return fit_shift(residuals, base, J, inverse, self, variables), change
+        before, after = self.residuals(base.flows, base.more_flows), self.residuals(run.flows, run.more_flows)
+        loss_change = abs(float((after**2).sum()) / max(float((before**2).sum()), 1e-300) - 1)
+        return fit_shift(after - before, J, inverse, variables), loss_change
 
     def profile(self, z: dict[str, float], min_substeps: int, names: list[str], loss: float) -> dict:
         """Per material parameter in ``names``: ``values`` (SI) PROFILE_STEP below z, at z and
