@@ -11,7 +11,7 @@ from clflow.mpm.autograd import memory_estimate, region_masses, replay_segment, 
 from clflow.mpm.constants import MATERIAL_IDS
 from clflow.mpm.material_model import KERNEL_PARAMETERS
 from clflow.mpm.parameterization import parameterization
-from tests.mpm._helpers import MATERIAL_CASES, assert_repeats, cube
+from tests.mpm._helpers import MATERIAL_CASES, assert_repeats, cube, loss_rounding
 
 E_TRUE, NU_TRUE, RHO_TRUE, TAU_Y_TRUE = 2e4, 0.3, 800.0, 500.0
 
@@ -275,7 +275,7 @@ def test_every_material_parameter_matches_central_differences(material):
     for name, value in inputs.items():
         step = 1e-5 * max(abs(float(value)), 1e-3)  # small: the return mappings have kinks
         # rounding of the loss (a sum of ~5,000 terms) limits what a difference quotient resolves
-        resolution = 1e-14 * float(abs(loss)) / step
+        resolution = loss_rounding(sim) * float(abs(loss)) / step
 
         def loss_at(h):
             shifted = {k: v.detach() + (h if k == name else 0.0) for k, v in inputs.items()}
