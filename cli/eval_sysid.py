@@ -7,7 +7,7 @@ import sys
 import click
 
 from clflow_cli.main import Interrupted
-from clflow_cli.options import InputFile, LazyHelpOption, count_option, out_option
+from clflow_cli.options import InputFile, LazyHelpOption, budget_option, count_option, out_option
 from clflow_cli.sweep import parse_resources, with_ray_options
 
 
@@ -62,6 +62,9 @@ def _catalogue(case_file: str | None, case_set: str, quick: bool) -> tuple[dict,
 @click.option("--views", type=click.IntRange(1, 4), default=1, show_default=True,
               help="Guidance views of each case (the first, then cameras turned 90, -90 and 180 deg about the "
                    "vertical); the loss is the mean over views.")  # fmt: skip
+@budget_option("The cases' optimisation time (600, 10min, 1.5h), shared equally: each case's main grid is the finest "
+               "whose predicted run fits its share, timed on this device, and at least 4/3 coarser than the ground "
+               "truth's (raise --truth-scale for finer). The truths' making is not counted.")  # fmt: skip
 @click.option("--force", is_flag=True, help="Replace sysid results of other settings in the output folder.")
 @click.option("--parallel", is_flag=True,
               help="Run the cases as Ray tasks (clflow[sweep]; a local Ray on this machine's cores, or --address); "
@@ -82,6 +85,7 @@ def sysid(
     codec,
     seed,
     views,
+    budget,
     force,
     parallel,
     address,
@@ -111,6 +115,7 @@ def sysid(
         seed=seed,
         views=views,
         truth_transfer=truth_transfer,
+        case_budget=None if budget is None else budget / len(names),
     )
 
     def progress(name: str, row: dict) -> None:

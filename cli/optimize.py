@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from clflow_cli.options import InputFile, max_substeps_option, out_option, set_option
+from clflow_cli.options import InputFile, budget_option, max_substeps_option, out_option, set_option
 from clflow_cli.sweep import parse_resources, with_ray_options
 
 
@@ -17,6 +17,8 @@ from clflow_cli.sweep import parse_resources, with_ray_options
 @set_option("Set a config key, the value read as YAML, e.g. --set material.parameters.youngs_modulus=2e4 "
             "(repeatable; checked like the file). --resume needs the same --set as the run it continues.")  # fmt: skip
 @max_substeps_option("Refuse a run needing more substeps per frame (default: simulation.max_substeps, 2000).")
+@budget_option("The optimisation's wall time (600, 10min, 1.5h): the main grid is the finest whose predicted run fits, "
+               "timed on this device from the search's grid up (optimize.budget; docs/pipeline.md).")  # fmt: skip
 @click.option("--force-video", is_flag=True,
               help="Optimise even when the guidance checks fail (no motion, noise, a camera that does not fit); "
                    "the failures are warned about and recorded in metrics.json.")  # fmt: skip
@@ -26,7 +28,7 @@ from clflow_cli.sweep import parse_resources, with_ray_options
                    "path's.")  # fmt: skip
 @with_ray_options
 @click.pass_context
-def optimize(ctx, config, parallel, address, cpus_per_task, resources, **settings):
+def optimize(ctx, config, parallel, address, cpus_per_task, resources, budget, **settings):
     """Optimise the material parameters of CONFIG (YAML/JSON scene config) so that the
     simulated optical flow matches the guidance video's.
 
@@ -45,5 +47,7 @@ def optimize(ctx, config, parallel, address, cpus_per_task, resources, **setting
         }
     elif address or resources:
         raise click.UsageError("--address and --resources go with --parallel")
+    if budget is not None:  # as the config key, so that the resume command carries it
+        settings["overrides"] = (*settings["overrides"], f"optimize.budget.seconds={budget:g}")
     # settings: resume, iterations, output, overrides, max_substeps, force_video (run_optimization's names)
     run_optimization(config, **settings, echo=click.echo, note=note, bar=iteration_bar, parallel=ray)

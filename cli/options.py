@@ -116,6 +116,30 @@ class Numbers(click.ParamType):
         return numbers
 
 
+class Duration(click.ParamType):
+    """A wall time: seconds (``600``, ``600s``), minutes (``10min``) or hours (``1.5h``), into
+    seconds."""
+
+    name = "duration"
+    UNITS = {"": 1.0, "s": 1.0, "min": 60.0, "h": 3600.0}
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, (int, float)):
+            return float(value)
+        found = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)\s*(s|min|h|)\s*", str(value))
+        seconds = float(found.group(1)) * self.UNITS[found.group(2)] if found else math.nan
+        if not math.isfinite(seconds) or seconds <= 0:
+            self.fail(
+                f"{value!r} is not a positive duration (seconds, or with s, min or h: 600, 10min, 1.5h)", param, ctx
+            )
+        return seconds
+
+
+def budget_option(help: str):
+    """``--budget DURATION``: the wall time that chooses the main grid, in seconds."""
+    return click.option("--budget", type=Duration(), default=None, metavar="DURATION", help=help)
+
+
 class AliasedOption(click.Option):
     """An option whose old spellings (``aliases``) still work but are left out of --help and
     of its error messages."""
@@ -190,6 +214,7 @@ def pixel_box_option(help: str = "Pixel box around the object (x right, y down, 
 
 __all__ = [
     "AliasedOption",
+    "Duration",
     "FiniteFloat",
     "InputFile",
     "LazyHelpOption",
@@ -197,6 +222,7 @@ __all__ = [
     "Numbers",
     "OUT_ALIASES",
     "aliased_option",
+    "budget_option",
     "double_option",
     "max_output_option",
     "max_substeps_option",

@@ -151,6 +151,22 @@ class Settings:
     seed: int = 0
     views: int = 1  # guidance views (clflow_datasets.synthetic.VIEW_AZIMUTHS_DEG)
     truth_transfer: str = "flip"  # the truth's transfer: "flip" (the optimiser's blend) or "apic" (a mismatch)
+    # s of each case's optimisation (optimize.budget: the main grid from the device's speed; None: the resolution's)
+    case_budget: float | None = None
+
+
+#: the ground truth's grid stays this many times finer (in cells) than any main grid a budget chooses
+TRUTH_MARGIN = 4 / 3
+
+
+def with_budget(cfg, seconds: float, truth_grid: int):
+    """``cfg`` with ``optimize.budget`` of ``seconds``, its main grid at most 1 / TRUTH_MARGIN
+    of the truth's ``truth_grid`` nodes (in cells): a budget refines the model, never to the
+    truth's own grid."""
+    from clflow.scene.config import BudgetSettings
+
+    finest = math.floor((truth_grid - 1) / TRUTH_MARGIN) + 1
+    return replace(cfg, optimize=replace(cfg.optimize, budget=BudgetSettings(seconds, finest)))
 
 
 def check_case(name: str, case: SyntheticCase) -> None:
@@ -277,11 +293,14 @@ def run_case(
     generation = json.loads(made.read_text())
     generated = time.perf_counter()
     cfg = load_config(folder / "config.yaml")
+    if settings.case_budget is not None:
+        cfg = with_budget(cfg, settings.case_budget, generation["truth_grid_resolution"])
     record = {"case": name, "material": case.material, "generation": generation, "status": "ok"}
     try:
         opt = Optimization(cfg, progress=progress)
         state = opt.run(resume=True)
         metrics = opt.write_results(state)
+        record.update(grid=metrics["grid"], optimise_seconds=metrics["seconds"], budget=metrics.get("budget"))
         truth_z = {n: float(opt.params[n].encode(case.truth[n])) for n in opt.params}
         # at the truth's own stable time step: MPM's answer depends on dt (quick playdoh at the
         # truth: 0.0057 at its 40 substeps per frame, 0.028 at 254), and the final run's may be finer
@@ -487,8 +506,8 @@ def markdown(summary: dict) -> str:
     cases = summary["cases"]
     methods = METHODS if any(name in PUBLISHED for name in cases) else ()
     lines = [
-        "| case | material | parameter: found (truth) | RE | EPE px (floor) | loss found / at truth | iterations "
-        "| seconds |" + "".join(f" {m} RE/EPE |" for m in methods),
+        "| case | material | parameter: found (truth) | RE | EPE px (floor) | loss found / at truth | iterations, "
+        "main grid | seconds |" + "".join(f" {m} RE/EPE |" for m in methods),
         "|---" * (8 + len(methods)) + "|",
     ]
     for name, r in cases.items():
@@ -504,11 +523,17 @@ def markdown(summary: dict) -> str:
         )
         lines.append(
             f"| {name} | {r['material']} | {params} | {r['mean_re']:.3f} | {r['epe_px']:.3f} "
-            f"({r['floor_epe_px']:.3f}) | {r['final_loss']:.3g} / {r['truth_loss']:.3g} | {r['iterations']} "
-            f"| {r['seconds']:.0f} |{published}"
+            f"({r['floor_epe_px']:.3f}) | {r['final_loss']:.3g} / {r['truth_loss']:.3g} | {r['iterations']}"
+            f"{_grid(r)} | {r['seconds']:.0f} |{published}"
         )
     lines += _summary_rows(cases, methods)
     return "\n".join(lines + _closing(summary, methods)) + "\n"
+
+
+def _grid(r: dict) -> str:
+    """A case's main grid for the table's iterations column, " on N nodes" (empty for results
+    made before it was recorded)."""
+    return f" on {r['grid']['main']} nodes" if "grid" in r else ""
 
 
 def _range(p: dict) -> str:
@@ -553,6 +578,13 @@ def _summary_rows(cases: dict, methods: tuple[str, ...]) -> list[str]:
     ]
 
 
+def _main_phase(settings: dict) -> str:
+    """The main phase's grid in the settings line: its scale, or the budget that chose it."""
+    if settings.get("case_budget") is None:
+        return f"{settings['resolution'].get('main_grid_scale', 1.0):g}x"
+    return f"the finest a budget of {settings['case_budget']:g} s per case affords, timed on the device"
+
+
 def _closing(summary: dict, methods: tuple[str, ...]) -> list[str]:
     """The settings and provenance lines under the table."""
     s = summary["settings"]
@@ -568,7 +600,7 @@ def _closing(summary: dict, methods: tuple[str, ...]) -> list[str]:
         )
     return [
         "",
-        f"Settings: grid {res['grid']} nodes (search; main phase {res.get('main_grid_scale', 1.0):g}x), "
+        f"Settings: grid {res['grid']} nodes (search; main phase {_main_phase(s)}), "
         f"PIC/FLIP blend {res.get('flip', 0.0):g}, "
         f"image {res['image']} px, {res['frames']} frames, "
         f"{res['iterations']} iterations; ground truth at {s['truth_scale']}x grid and image; noise "
@@ -595,6 +627,7 @@ __all__ = [
     "QUICK",
     "QUICK_CASES",
     "Settings",
+    "TRUTH_MARGIN",
     "check_case",
     "coverage",
     "evaluate",
@@ -602,4 +635,5 @@ __all__ = [
     "load_cases",
     "markdown",
     "run_case",
+    "with_budget",
 ]

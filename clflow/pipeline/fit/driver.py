@@ -11,17 +11,18 @@ from typing import Callable
 import torch
 
 from clflow.errors import ClflowError, InputError
+from clflow.pipeline.fit.budget import GridChoice, choose_grid, load_choice, save_choice
 from clflow.pipeline.fit.diagnostics import Diagnostics
 from clflow.pipeline.fit.guidance import guidance_views_of
 from clflow.pipeline.fit.objective import Objective
 from clflow.pipeline.fit.results import Results
 from clflow.pipeline.fit.search import Search, _quiet, serial_starts
-from clflow.pipeline.fit.state import LM_DAMPING, Checkpoints, Evaluation, OptimizerState
+from clflow.pipeline.fit.state import LM_DAMPING, Checkpoints, Evaluation, OptimizerState, config_digests
 from clflow.pipeline.fit.steps import LM_GAIN_TOLERANCE, LM_TOLERANCE, Steps, horizon, phase_of
 from clflow.pipeline.forward import prepare
 from clflow.pipeline.generated_video import ensure_guidance_video
 from clflow.pipeline.material import resolve_material
-from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig
+from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig, main_grid_range
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +52,7 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         hypotheses: dict | None = None,
         force_video: bool = False,
     ):
+        self.started = time.perf_counter()
         self.cfg = cfg = ensure_guidance_video(resolve_material(cfg))  # video: {generate: ...} made first
         self.hypotheses = hypotheses  # how the material was chosen (clflow.pipeline.hypotheses), for metrics
         self.params = _parameterizations(cfg)
@@ -70,6 +72,7 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         self._prepared = {self.model_grid: self.prepared}
         self.prepared_on(self.search_grid)
         self.frames = cfg.simulation.frames
+        self.grid_choice = self.choose_main_grid() if opt.budget is not None else None
         self.preflight()  # before the optical flow: refuse a run beyond the substep limit in seconds
         self.views = guidance_views_of(cfg, self.prepared, self.frames)
         self.guidance_warnings = self.check_guidance(force_video)
@@ -81,6 +84,29 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         # (z, frames, variables, substeps) -> (Evaluation, J) of the last two Jacobians: the best
         # point's and the last step's, so that a rejected step goes back without new runs
         self._lm_cache: dict[tuple, tuple[Evaluation, torch.Tensor]] = {}
+
+    def choose_main_grid(self) -> GridChoice:
+        """The main grid ``optimize.budget`` affords on this device (clflow.pipeline.fit.budget),
+        or the one chosen before for this config and device (output/budget.json); the config,
+        the model grid and the prepared scene move to it."""
+        from clflow.environment import environment
+
+        cfg, path = self.cfg, self.cfg.output / "budget.json"
+        key = {"device": environment()["device"], "config": config_digests(cfg)}
+        choice = load_choice(path, key)
+        if choice is None:
+            grids = main_grid_range(cfg.optimize, cfg.simulation)
+            moving = self.start_substeps(self.search_grid)
+            choice = choose_grid(
+                cfg.optimize, grids, self.frames, len(self.main_variables), (self.search_grid, moving), self.plan_on
+            )
+            save_choice(path, key, choice)
+        log.info("%s", choice.describe())
+        self.model_grid = choice.grid
+        self.prepared = self.prepared_on(choice.grid)
+        self.cfg = self.prepared.cfg
+        self._prepared = {g: p for g, p in self._prepared.items() if g in (self.search_grid, self.model_grid)}
+        return choice
 
     def __getstate__(self) -> dict:
         """What a Ray task gets (clflow.sweep): no progress callback or cached runs, starts polished in place."""

@@ -57,29 +57,49 @@ class Objective:
     def preflight(self):
         """Force stages and the substeps at the initial parameters: the predicted time is
         logged, a run beyond ``simulation.max_substeps`` refused (SubstepLimitError)."""
-        from clflow.pipeline.preflight import describe, plan_run
+        from clflow.pipeline.preflight import describe
+
+        plan = self.plan_on(self.model_grid)
+        log.info("%s", describe(plan, "optimize", gradient=True))
+        return plan
+
+    def plan_on(self, grid: int):
+        """The RunPlan of the initial parameters on a grid of ``grid`` nodes: substeps, the
+        seconds of a substep and of a frame's flow rendered (timed there); SubstepLimitError
+        beyond ``simulation.max_substeps``."""
+        from clflow.pipeline.preflight import plan_run
 
         z = self.initial_state().z  # plan_run builds the simulator, which checks the force stages
         values = self.values(z)
         params, density = material_values(self.cfg, {n: values[n] for n in self.params})
+        prepared = self.prepared_on(grid)
         plan = plan_run(
-            self.cfg,
-            self.prepared.setup,
+            prepared.cfg,
+            prepared.setup,
             params,
             density,
             velocity=torch.tensor(self.velocity(z)),
             max_substeps=self.cfg.simulation.max_substeps,
             optimizing=True,
         )
-        plan = dataclasses.replace(plan, render_seconds_per_frame=self.render_seconds())
-        log.info("%s", describe(plan, "optimize", gradient=True))
-        return plan
+        return dataclasses.replace(plan, render_seconds_per_frame=self.render_seconds(prepared))
 
-    def render_seconds(self) -> float:
+    def start_substeps(self, grid: int) -> int:
+        """Substeps per frame the start's run takes on a grid of ``grid`` nodes over every
+        frame, the CFL retries its motion makes included (forward only, no flow rendered)."""
+        z = self.initial_state().z
+        values = self.values(z)
+        params, density = material_values(self.cfg, {n: values[n] for n in self.params})
+        sim = build_simulator(self.cfg, self.prepared_on(grid).setup, params, density, velocity=self.velocity(z))
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore", StabilityWarning)  # the optimiser's runs retry the same way
+            return run(sim, self.frames, {}).substeps
+
+    def render_seconds(self, prepared: Prepared) -> float:
         """Seconds one frame step's flow takes in every view, rendered and its gradient back
-        (timed once in the guidance view on the scene at rest: what an iteration adds to the
-        simulation's time)."""
-        p = self.prepared
+        (timed once in the guidance view on ``prepared``'s scene at rest: what an iteration
+        adds to the simulation's time)."""
+        p = prepared
         x = p.setup.particles.positions.to(p.obj_rest.means.dtype).clone().requires_grad_()
         F = torch.eye(3, dtype=x.dtype).expand(x.shape[0], 3, 3)
         seconds = []

@@ -3,9 +3,11 @@ comparison video per guidance view."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
+import time
 
 import numpy as np
 
@@ -111,8 +113,9 @@ class Results:
 
     def result_metrics(self, state: OptimizerState, result) -> dict:
         """metrics.json: the loss and end-point error at the final parameters, the iterations,
-        the rollbacks, the guidance checks, the identifiability (its warnings logged) and the
-        relative error against the config's ground truth when it has one."""
+        the grids (and the budget's choice), the seconds, the rollbacks, the guidance checks,
+        the identifiability (its warnings logged) and the relative error against the config's
+        ground truth when it has one."""
         final = self.values(state.z)
         metrics = {
             "flow_loss": result.loss,
@@ -120,12 +123,17 @@ class Results:
             "iterations": len(state.history),
             "seconds_per_iteration": float(np.mean([h["seconds"] for h in state.history])) if state.history else 0.0,
         }
+        metrics["grid"] = {"main": self.model_grid, "search": self.search_grid}  # nodes along the longest side
+        metrics["identifiability"] = self.identifiability(state.z, state.substeps, state.search)
+        # in this process: setup, the guidance's flow, search, iterations and the diagnostics above
+        metrics["seconds"] = time.perf_counter() - self.started
+        if self.grid_choice is not None:  # optimize.budget chose the main grid
+            metrics["budget"] = dataclasses.asdict(self.grid_choice)
         metrics["rollbacks"] = state.rollbacks  # every rejected iteration: its reason and parameters
         if self.guidance:
             metrics["guidance_checks"] = [check.record() for check in self.guidance]
         if self.guidance_warnings:  # forced past a failed guidance check (--force-video)
             metrics["warnings"] = list(self.guidance_warnings)
-        metrics["identifiability"] = self.identifiability(state.z, state.substeps, state.search)
         self.warn_identifiability(metrics["identifiability"])
         if self.hypotheses:
             metrics["material_hypotheses"] = self.hypotheses

@@ -28,6 +28,7 @@ from clflow.scene.config.settings import (
     UP_AXES,
     VELOCITY,
     VELOCITY_COMPONENTS,
+    BudgetSettings,
     CameraConfig,
     Collider,
     FillSettings,
@@ -41,6 +42,7 @@ from clflow.scene.config.settings import (
     SearchSettings,
     Selection,
     SimulationSettings,
+    main_grid_range,
 )
 
 
@@ -389,6 +391,7 @@ def _optimize_settings(r: Reader, data: Any, material: MaterialConfig, frames: i
             "method",
             "estimate_velocity",
             "material",
+            "budget",
         ),
     )
     names = body.get("parameters", [])
@@ -439,6 +442,17 @@ def _optimize_settings(r: Reader, data: Any, material: MaterialConfig, frames: i
         estimate_velocity_frames=estimate_frames,
         estimate_velocity_iterations=estimate_iterations,
         materials=hypotheses,
+        budget=_budget(r, body["budget"]) if body.get("budget") is not None else None,
+    )
+
+
+def _budget(r: Reader, data: Any) -> BudgetSettings:
+    """``optimize.budget``: seconds, and the finest main grid to consider."""
+    p = "optimize.budget"
+    found = r.section(data, p, ("seconds", "max_grid_resolution"))
+    return BudgetSettings(
+        seconds=r.number(found, "seconds", p, low=0.0, strict_low=True),
+        max_grid_resolution=r.integer(found, "max_grid_resolution", p, 0),
     )
 
 
@@ -684,6 +698,13 @@ def _check_optimize_fits(r: Reader, optimize: OptimizeSettings, simulation: Simu
             "optimize.search.grid_resolution",
             f"must not exceed simulation.grid_resolution ({simulation.grid_resolution}): the search's "
             f"grid is the coarse one, got {optimize.search.grid_resolution}",
+        )
+    budget = optimize.budget
+    if budget is not None and 0 < budget.max_grid_resolution < main_grid_range(optimize, simulation)[0]:
+        raise r.fail(
+            "optimize.budget.max_grid_resolution",
+            f"must be 0 or at least the search's grid ({main_grid_range(optimize, simulation)[0]}), the coarsest "
+            f"the budget chooses from, got {budget.max_grid_resolution}",
         )
     if optimize.method == "levenberg_marquardt" and flow.loss != "l2":
         raise r.fail(

@@ -173,6 +173,16 @@ class SearchSettings:
 
 
 @dataclass(frozen=True)
+class BudgetSettings:
+    """``optimize.budget``: the run's wall time, which chooses the main phase's grid from the
+    device's measured speed (clflow.pipeline.fit.budget)."""
+
+    seconds: float  # the whole optimisation: search, polishes, iterations, diagnostics
+    # the finest main grid to consider (0: twice the simulation's); the coarsest is the search's
+    max_grid_resolution: int = 0
+
+
+@dataclass(frozen=True)
 class OptimizeSettings:
     parameters: tuple[str, ...] = ()
     learning_rates: dict[str, float] = field(default_factory=dict)  # in the optimiser's space
@@ -188,6 +198,17 @@ class OptimizeSettings:
     materials: tuple[str, ...] = ()
     estimate_velocity_frames: int = 0  # frames in the loss of the velocity phase
     estimate_velocity_iterations: int = 0  # iterations of the velocity phase before the main one (0: none)
+    budget: BudgetSettings | None = None  # None: the main phase runs on simulation.grid_resolution
+
+
+def main_grid_range(optimize: OptimizeSettings, simulation: SimulationSettings) -> tuple[int, int]:
+    """The coarsest and finest main grid (nodes) a budget chooses from: the search's grid
+    (the simulation's without one) up to ``budget.max_grid_resolution`` (0: twice the
+    simulation's grid, in cells)."""
+    search = optimize.search.grid_resolution if optimize.search is not None else 0
+    lowest = search or simulation.grid_resolution
+    finest = optimize.budget.max_grid_resolution if optimize.budget is not None else 0
+    return lowest, max(lowest, finest or 2 * (simulation.grid_resolution - 1) + 1)
 
 
 @dataclass(frozen=True)
@@ -215,6 +236,7 @@ class SceneConfig:
 
 
 __all__ = [
+    "BudgetSettings",
     "CameraConfig",
     "Collider",
     "DEFAULT_MAX_SUBSTEPS",
@@ -236,4 +258,5 @@ __all__ = [
     "UP_AXES",
     "VELOCITY",
     "VELOCITY_COMPONENTS",
+    "main_grid_range",
 ]

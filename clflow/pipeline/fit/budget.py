@@ -1,0 +1,170 @@
+"""The main grid a time budget affords (``optimize.budget``, ``clflow optimize --budget``).
+
+An optimisation's time is counted in simulations: the search's forward runs and the starts'
+polishes on the search grid; the velocity phase, the main iterations (each over its loss
+horizon) and the diagnostics on the main grid. A run on a grid costs frames x substeps x the
+seconds of one substep (timed on that grid, at the starting parameters) plus the flow's
+rendering per frame; a gradient iteration costs GRADIENT_COST forward runs (Adam), or one
+run per variable and the point itself (Levenberg-Marquardt's Jacobian). The candidates go
+from the coarsest grid up, each timed; the finest whose predicted run fits the budget is
+chosen. A run whose parameters stiffen, or whose LM steps are rejected, takes longer than
+predicted: the prediction's error on the benchmark is measured in docs/benchmarks.md.
+
+The choice is kept in ``output/budget.json`` with the device and the config it was made for:
+a rerun of that config on that device (``--resume``, an interrupted sysid case) keeps its
+grid instead of timing again.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Callable
+
+from clflow.errors import InputError
+from clflow.fileio import atomic_write_text
+from clflow.limits import format_duration
+from clflow.pipeline.preflight import GRADIENT_COST, RunPlan
+from clflow.pipeline.simulation import SubstepLimitError
+from clflow.scene.config import OptimizeSettings
+
+log = logging.getLogger(__name__)
+
+# the candidates' cells per side as multiples of the coarsest grid's
+GRID_SCALES = (1.0, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 3.5, 4.0)
+
+
+@dataclass(frozen=True)
+class GridChoice:
+    """The main grid (nodes along the domain's longest side) a budget (s) affords, the run's
+    predicted seconds on it, and every candidate timed: (nodes, predicted seconds)."""
+
+    grid: int
+    predicted_seconds: float
+    budget_seconds: float
+    candidates: tuple[tuple[int, float], ...]
+
+    def describe(self) -> str:
+        timed = ", ".join(f"{g} nodes {format_duration(s)}" for g, s in self.candidates)
+        return (
+            f"budget {format_duration(self.budget_seconds)}: main grid {self.grid} nodes, predicted "
+            f"{format_duration(self.predicted_seconds)} (timed: {timed})"
+        )
+
+
+def candidate_grids(lowest: int, highest: int) -> list[int]:
+    """Grids (nodes) from ``lowest`` to ``highest``, by GRID_SCALES of the coarsest's cells."""
+    return sorted({min(highest, round((lowest - 1) * s) + 1) for s in GRID_SCALES})
+
+
+def run_seconds(plan: RunPlan, frames: int, gradient: bool = False) -> float:
+    """Seconds of one run over ``frames`` frames on ``plan``'s grid, the flow rendered each
+    frame (``gradient``: with the adjoint)."""
+    per_frame = plan.substeps * plan.seconds_per_substep * (GRADIENT_COST if gradient else 1.0)
+    return frames * (per_frame + plan.render_seconds_per_frame)
+
+
+def iteration_seconds(opt: OptimizeSettings, plan: RunPlan, frames: int, variables: int) -> float:
+    """One local-phase iteration: Adam's gradient run, or LM's point and Jacobian columns."""
+    if opt.method == "levenberg_marquardt":
+        return (1 + variables) * run_seconds(plan, frames)
+    return run_seconds(plan, frames, gradient=True)
+
+
+def diagnostic_runs(variables: int) -> int:
+    """Forward runs after the last iteration: the Jacobian (1 + P), a profile of each weak
+    parameter (2 P at most), the grid check, the time-step check at twice the substeps (2),
+    the final evaluation."""
+    return 1 + variables + 2 * variables + 1 + 2 + 1
+
+
+def predicted_seconds(opt: OptimizeSettings, frames: int, variables: int, main: RunPlan, search: RunPlan) -> float:
+    """The whole optimisation's seconds with ``main`` the main grid's plan, ``search`` the
+    search grid's (the same plan where the search has no grid of its own). Several starts
+    are each polished for ``start_iterations`` on the search grid, compared on the main one,
+    and the kept one's polish counts among ``optimize.iterations``."""
+    s = opt.search
+    polished = s.start_iterations if s is not None and s.starts > 1 else 0
+    seconds = opt.estimate_velocity_iterations * iteration_seconds(opt, main, opt.estimate_velocity_frames, variables)
+    for i in range(polished, opt.iterations):
+        horizon = min(frames, opt.horizon_start + i * opt.horizon_step) if opt.horizon_start else frames
+        seconds += iteration_seconds(opt, main, horizon, variables)
+    seconds += diagnostic_runs(variables) * run_seconds(main, frames)
+    if s is not None:
+        seconds += (s.samples + s.refine) * run_seconds(search, s.frames or frames)
+    if polished:
+        seconds += s.starts * (polished * iteration_seconds(opt, search, frames, variables) + run_seconds(main, frames))
+    return seconds
+
+
+def moving_plan(plan: RunPlan, grid: int, search: tuple[int, int]) -> RunPlan:
+    """``plan`` (on ``grid`` nodes, its substeps those of the start at rest) with at least the
+    substeps the start's motion took on the search's grid, ``search`` = (nodes, substeps),
+    scaled by the cells (the CFL step is proportional to the cell size)."""
+    nodes, substeps = search
+    moving = math.ceil(substeps * (grid - 1) / (nodes - 1))
+    return plan if plan.substeps >= moving else replace(plan, substeps=moving)
+
+
+def choose_grid(
+    opt: OptimizeSettings,
+    grids: tuple[int, int],
+    frames: int,
+    variables: int,
+    search: tuple[int, int],
+    plan_on: Callable[[int], RunPlan],
+) -> GridChoice:
+    """The finest of the candidate grids between ``grids`` (lowest, highest nodes) whose
+    predicted run fits ``opt.budget``, ``plan_on(nodes)`` timing each from the coarsest up
+    until one does not fit (or needs more than the substep limit); ``search``: the search's
+    grid (nodes) and the substeps per frame the start's run took on it. InputError when even
+    the coarsest does not fit, with its prediction."""
+    budget = opt.budget.seconds
+    search_plan = moving_plan(plan_on(search[0]), search[0], search)
+    timed: list[tuple[int, float]] = []
+    for grid in candidate_grids(*grids):
+        try:
+            plan = search_plan if grid == search[0] else moving_plan(plan_on(grid), grid, search)
+        except SubstepLimitError:
+            if not timed:
+                raise
+            break
+        timed.append((grid, predicted_seconds(opt, frames, variables, plan, search_plan)))
+        if timed[-1][1] > budget:
+            break
+    fitting = [(g, s) for g, s in timed if s <= budget]
+    if not fitting:
+        grid, seconds = timed[0]
+        raise InputError(
+            f"optimize.budget: {format_duration(budget)} is too small: on the coarsest main grid it may choose "
+            f"({grid} nodes) the optimisation is predicted to take {format_duration(seconds)}; raise the budget "
+            f"to at least {format_duration(math.ceil(seconds))}, or lower optimize.iterations or the search's samples"
+        )
+    grid, seconds = fitting[-1]
+    return GridChoice(grid, seconds, budget, tuple(timed))
+
+
+def load_choice(path: Path, key: dict) -> GridChoice | None:
+    """The choice saved in ``path`` for ``key`` (the budget, device and config), else None."""
+    try:
+        data = json.loads(path.read_text())
+        if data.get("key") != key:
+            return None
+        choice = data["choice"]
+        return GridChoice(
+            int(choice["grid"]),
+            float(choice["predicted_seconds"]),
+            float(choice["budget_seconds"]),
+            tuple((int(g), float(s)) for g, s in choice["candidates"]),
+        )
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def save_choice(path: Path, key: dict, choice: GridChoice) -> None:
+    """``choice`` into ``path`` for ``key``, atomically."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps({"key": key, "choice": asdict(choice)}, indent=1))

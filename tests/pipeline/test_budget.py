@@ -1,0 +1,153 @@
+"""optimize.budget (issue 34 item 4): the main grid a wall time affords, from the device's
+timing; the choice kept for a rerun; a budget too small refused before any work."""
+
+import dataclasses
+import json
+
+import pytest
+
+from clflow.errors import InputError
+from clflow.pipeline.fit import Optimization
+from clflow.pipeline.fit.budget import (
+    candidate_grids,
+    choose_grid,
+    diagnostic_runs,
+    moving_plan,
+    predicted_seconds,
+    run_seconds,
+)
+from clflow.pipeline.preflight import GRADIENT_COST, RunPlan
+from clflow.pipeline.simulation import SubstepLimitError
+from clflow.scene.config import BudgetSettings, OptimizeSettings, SearchSettings
+from clflow_datasets.sysid import TRUTH_MARGIN, with_budget
+from tests.pipeline.test_preflight import bad_config, one_line_error, run
+
+FRAMES = 10
+
+
+def cubic_plan(grid: int) -> RunPlan:
+    """A device on which a substep costs the cells (1 us per cell) and the stable substeps
+    grow with the cells per side, as MPM's do."""
+    cells = grid - 1
+    return RunPlan(substeps=cells // 4, dt=1e-3, limit="test", particles=8 * cells**3, frames=FRAMES,
+                   seconds_per_substep=1e-6 * cells**3)  # fmt: skip
+
+
+def budgeted(seconds: float, **changes) -> OptimizeSettings:
+    return OptimizeSettings(parameters=("youngs_modulus",), iterations=8, budget=BudgetSettings(seconds), **changes)
+
+
+def test_candidates_climb_from_the_coarsest_to_the_finest_allowed():
+    grids = candidate_grids(24, 47)
+    assert grids[0] == 24 and grids[-1] == 47 and grids == sorted(set(grids))
+    assert candidate_grids(24, 24) == [24]
+    assert max(candidate_grids(11, 1000)) == 41  # at most 4x the coarsest's cells
+
+
+def test_a_run_costs_its_substeps_and_its_flows():
+    plan = dataclasses.replace(cubic_plan(25), render_seconds_per_frame=0.5)
+    forward = FRAMES * (plan.substeps * plan.seconds_per_substep + 0.5)
+    assert run_seconds(plan, FRAMES) == pytest.approx(forward)
+    adam = predicted_seconds(budgeted(1.0), FRAMES, 1, plan, plan)
+    gradient = FRAMES * (GRADIENT_COST * plan.substeps * plan.seconds_per_substep + 0.5)
+    assert adam == pytest.approx(8 * gradient + diagnostic_runs(1) * forward)
+    lm = predicted_seconds(budgeted(1.0, method="levenberg_marquardt"), FRAMES, 2, plan, plan)
+    assert lm == pytest.approx(8 * 3 * forward + diagnostic_runs(2) * forward)  # point and two Jacobian columns
+    coarse = cubic_plan(13)
+    searched = budgeted(1.0, search=SearchSettings(samples=32, grid_resolution=13))
+    extra = predicted_seconds(searched, FRAMES, 1, plan, coarse) - adam
+    assert extra == pytest.approx(32 * run_seconds(coarse, FRAMES))
+    # three starts polished for 3 LM iterations on the search grid, compared on the main one,
+    # the kept one's 3 among the 8
+    starts = dataclasses.replace(searched.search, starts=3, start_iterations=3)
+    polishing = budgeted(1.0, method="levenberg_marquardt", search=starts)
+    polish = 3 * (3 * 2 * run_seconds(coarse, FRAMES) + forward)
+    assert predicted_seconds(polishing, FRAMES, 1, plan, coarse) == pytest.approx(
+        32 * run_seconds(coarse, FRAMES) + polish + 5 * 2 * forward + diagnostic_runs(1) * forward
+    )
+
+
+def test_the_motion_s_substeps_scale_with_the_cells():
+    plan = cubic_plan(49)  # 12 substeps at rest
+    assert moving_plan(plan, 49, (25, 30)).substeps == 60  # twice the cells: twice the CFL substeps
+    assert moving_plan(plan, 49, (25, 2)) is plan  # the rest's limit is the larger
+
+
+def test_the_finest_grid_that_fits_is_chosen_and_finer_ones_are_not_built():
+    built = []
+
+    def plan_on(grid):
+        built.append(grid)
+        return cubic_plan(grid)
+
+    opt = budgeted(200.0)
+    choice = choose_grid(opt, (25, 97), FRAMES, 1, (25, 6), plan_on)
+    timed = dict(choice.candidates)
+    assert choice.predicted_seconds <= 200.0 < max(timed.values())
+    assert all(s <= 200.0 for g, s in timed.items() if g <= choice.grid)
+    assert [g for g in timed if g > choice.grid] == [max(timed)]  # the first that does not fit ends the climb
+    assert built == [25, *[g for g in timed if g != 25]]
+    assert choice.grid == max(g for g, s in timed.items() if s <= 200.0) > 25
+    assert choose_grid(budgeted(1e6), (25, 49), FRAMES, 1, (25, 6), cubic_plan).grid == 49  # the cap holds
+
+
+def test_a_budget_below_the_coarsest_grid_is_refused_with_what_it_needs():
+    with pytest.raises(InputError, match=r"optimize.budget: 1 s is too small: .* may choose \(25 nodes\) .* predicted"):
+        choose_grid(budgeted(1.0), (25, 49), FRAMES, 1, (25, 6), cubic_plan)
+
+
+def test_a_grid_beyond_the_substep_limit_ends_the_climb():
+    def plan_on(grid):
+        if grid > 31:
+            raise SubstepLimitError("too many substeps")
+        return cubic_plan(grid)
+
+    assert choose_grid(budgeted(1e6), (25, 49), FRAMES, 1, (25, 6), plan_on).grid == 31
+    with pytest.raises(SubstepLimitError):
+        choose_grid(budgeted(1e6), (37, 49), FRAMES, 1, (37, 6), plan_on)
+
+
+def test_sysid_keeps_the_truth_finer_than_any_main_grid(demo_config):
+    cfg = with_budget(demo_config(), 100.0, truth_grid=47)
+    assert cfg.optimize.budget == BudgetSettings(100.0, 35)
+    assert (47 - 1) / (35 - 1) >= TRUTH_MARGIN
+
+
+def test_the_config_s_budget_is_checked(quick_demo, tmp_path):
+    one_line_error(
+        run("optimize", bad_config(quick_demo, tmp_path, "zero", optimize={"budget": {"seconds": 0}})),
+        r"optimize.budget.seconds: must be > 0",
+    )
+    one_line_error(
+        run("optimize", bad_config(quick_demo, tmp_path, "cap", optimize={"budget": {"seconds": 60, "max_grid_resolution": 20}})),
+        r"optimize.budget.max_grid_resolution: must be 0 or at least the search's grid \(27\)",
+    )  # fmt: skip
+    res = run("optimize", bad_config(quick_demo, tmp_path, "flag"), "--budget", "soon")
+    assert res.exit_code == 2 and "'soon' is not a positive duration" in res.output
+
+
+def test_a_budget_too_small_is_one_line_before_any_work(quick_demo, tmp_path):
+    path = bad_config(quick_demo, tmp_path, "small")
+    one_line_error(run("optimize", path, "--budget", "0.01s"), r"optimize.budget: 0.01 s is too small: .* predicted")
+    assert not (tmp_path / "out" / "observed_flow.npz").exists()  # the video's flow was never computed
+
+
+def test_a_budget_chooses_the_grid_records_it_and_a_rerun_keeps_it(demo_config, monkeypatch):
+    budget = BudgetSettings(seconds=1e5, max_grid_resolution=33)  # the demo's 27 nodes up to 33
+    cfg = demo_config(iterations=1)
+    cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, budget=budget))
+    opt = Optimization(cfg)
+    assert opt.grid_choice.grid == opt.model_grid == opt.cfg.simulation.grid_resolution == 33
+    assert opt.search_grid == 27 and [g for g, _ in opt.grid_choice.candidates] == candidate_grids(27, 33)
+    metrics = opt.write_results(opt.run())
+    assert metrics["grid"] == {"main": 33, "search": 27} and metrics["budget"]["grid"] == 33
+    assert metrics["seconds"] > 0
+    saved = json.loads((cfg.output / "budget.json").read_text())
+    assert saved["choice"]["grid"] == 33 and saved["key"]["device"]
+
+    def untimed(self, grid):
+        raise AssertionError("a rerun of the same config on the same device times nothing")
+
+    monkeypatch.setattr(Optimization, "start_substeps", untimed)
+    again = Optimization(cfg)
+    assert again.grid_choice == opt.grid_choice and again.run(resume=True).iteration == 1
