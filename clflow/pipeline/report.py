@@ -19,6 +19,7 @@ from pathlib import Path
 
 from clflow.environment import environment
 from clflow.fileio import atomic_write_text
+from clflow.limits import format_duration
 from clflow.pipeline.plots import range_text
 
 RENDERS = "simulation/render4d"  # where `clflow demo` / `clflow render4d` put the 4D renders
@@ -96,6 +97,18 @@ def write_report(output: Path) -> Path:
             ("iterations", metrics.get("iterations", "")),
             ("seconds per iteration", f"{metrics.get('seconds_per_iteration', float('nan')):.3g}"),
         ]
+        if "grid" in metrics:  # nodes along the domain's longest side
+            rows.append(("grid: main phase, search (nodes)", f"{metrics['grid']['main']}, {metrics['grid']['search']}"))
+        if "budget" in metrics:
+            budget = metrics["budget"]
+            took = f"; took {format_duration(metrics['seconds'])}" if "seconds" in metrics else ""
+            rows.append(
+                (
+                    "budget",
+                    f"{format_duration(budget['budget_seconds'])}: main grid predicted "
+                    f"{format_duration(budget['predicted_seconds'])}{took}",
+                )
+            )
         rows += [(f"relative error: {n}", f"{e:.3%}") for n, e in metrics.get("relative_error", {}).items()]
         ident = metrics.get("identifiability", {})
         rows += [(f"weakly constrained: {n}", "the video barely fixes it") for n in ident.get("weakly_constrained", [])]

@@ -22,8 +22,9 @@ from clflow.errors import InputError
 from clflow.limits import DEFAULT_MAX_OUTPUT_GB
 
 #: what an interrupted optimisation leaves in its output folder for --resume: the main
-#: checkpoint, the search starts' polishes, the material hypotheses' searches
-RESUMABLE = ("checkpoint.json", "starts", "hypotheses")
+#: checkpoint, the search starts' polishes, the material hypotheses' searches, the main grid
+#: a budget chose (a new run times the device again)
+RESUMABLE = ("checkpoint.json", "starts", "hypotheses", "budget.json")
 #: a run's own entries in its output folder (glob patterns), which a new run (no --resume)
 #: removes before it writes anything: the folder never mixes two runs. Caches that are
 #: checked against the config (the observed flow, the estimator error, the material query)

@@ -17,6 +17,7 @@ from clflow.pipeline.fit.budget import (
     run_seconds,
 )
 from clflow.pipeline.preflight import GRADIENT_COST, RunPlan
+from clflow.pipeline.report import write_report
 from clflow.pipeline.simulation import SubstepLimitError
 from clflow.scene.config import BudgetSettings, OptimizeSettings, SearchSettings
 from clflow_datasets.sysid import TRUTH_MARGIN, with_budget
@@ -142,6 +143,8 @@ def test_a_budget_chooses_the_grid_records_it_and_a_rerun_keeps_it(demo_config, 
     metrics = opt.write_results(opt.run())
     assert metrics["grid"] == {"main": 33, "search": 27} and metrics["budget"]["grid"] == 33
     assert metrics["seconds"] > 0
+    page = write_report(cfg.output).read_text()
+    assert "<td>grid: main phase, search (nodes)</td><td>33, 27</td>" in page and "main grid predicted" in page
     saved = json.loads((cfg.output / "budget.json").read_text())
     assert saved["choice"]["grid"] == 33 and saved["key"]["device"]
 
