@@ -3,10 +3,10 @@ timing; the choice kept for a rerun; a budget too small refused before any work.
 
 import dataclasses
 import json
+import re
 
 import pytest
 
-from clflow.errors import InputError
 from clflow.pipeline.fit import Optimization
 from clflow.pipeline.fit.budget import (
     candidate_grids,
@@ -82,19 +82,26 @@ def test_the_finest_grid_that_fits_is_chosen_and_finer_ones_are_not_built():
         return cubic_plan(grid)
 
     opt = budgeted(200.0)
-    choice = choose_grid(opt, (25, 97), FRAMES, 1, (25, 6), plan_on)
+    choice = choose_grid(opt, (25, 97), FRAMES, 1, (25, 6), plan_on, 200.0)
     timed = dict(choice.candidates)
     assert choice.predicted_seconds <= 200.0 < max(timed.values())
     assert all(s <= 200.0 for g, s in timed.items() if g <= choice.grid)
     assert [g for g in timed if g > choice.grid] == [max(timed)]  # the first that does not fit ends the climb
     assert built == [25, *[g for g in timed if g != 25]]
     assert choice.grid == max(g for g, s in timed.items() if s <= 200.0) > 25
-    assert choose_grid(budgeted(1e6), (25, 49), FRAMES, 1, (25, 6), cubic_plan).grid == 49  # the cap holds
+    assert choose_grid(budgeted(1e6), (25, 49), FRAMES, 1, (25, 6), cubic_plan, 1e6).grid == 49  # the cap holds
+    # when the main phase begins the search is spent: what is left costs less
+    searching = budgeted(200.0, search=SearchSettings(samples=32))
+    whole = choose_grid(searching, (25, 97), FRAMES, 1, (25, 6), plan_on, 150.0)
+    left = choose_grid(searching, (25, 97), FRAMES, 1, (25, 6), plan_on, 150.0, searched=True)
+    assert dict(left.candidates)[25] == pytest.approx(timed[25]) and timed[25] < dict(whole.candidates)[25]
+    assert left.grid > whole.grid
 
 
-def test_a_budget_below_the_coarsest_grid_is_refused_with_what_it_needs():
-    with pytest.raises(InputError, match=r"optimize.budget: 1 s is too small: .* may choose \(25 nodes\) .* predicted"):
-        choose_grid(budgeted(1.0), (25, 49), FRAMES, 1, (25, 6), cubic_plan)
+def test_below_the_coarsest_grid_the_coarsest_is_kept_and_the_error_says_what_it_needs():
+    choice = choose_grid(budgeted(1.0), (25, 49), FRAMES, 1, (25, 6), cubic_plan, 1.0)
+    assert choice.grid == 25 and choice.predicted_seconds > 1.0 and len(choice.candidates) == 1
+    assert re.match(r"optimize.budget: 1 s is too small: .* may choose \(25 nodes\) the optimisation is predicted to take .*; raise the budget to at least", choice.too_small())  # fmt: skip
 
 
 def test_a_grid_beyond_the_substep_limit_ends_the_climb():
@@ -103,9 +110,9 @@ def test_a_grid_beyond_the_substep_limit_ends_the_climb():
             raise SubstepLimitError("too many substeps")
         return cubic_plan(grid)
 
-    assert choose_grid(budgeted(1e6), (25, 49), FRAMES, 1, (25, 6), plan_on).grid == 31
+    assert choose_grid(budgeted(1e6), (25, 49), FRAMES, 1, (25, 6), plan_on, 1e6).grid == 31
     with pytest.raises(SubstepLimitError):
-        choose_grid(budgeted(1e6), (37, 49), FRAMES, 1, (37, 6), plan_on)
+        choose_grid(budgeted(1e6), (37, 49), FRAMES, 1, (37, 6), plan_on, 1e6)
 
 
 def test_sysid_keeps_the_truth_finer_than_any_main_grid(demo_config):
@@ -133,14 +140,17 @@ def test_a_budget_too_small_is_one_line_before_any_work(quick_demo, tmp_path):
     assert not (tmp_path / "out" / "observed_flow.npz").exists()  # the video's flow was never computed
 
 
-def test_a_budget_chooses_the_grid_records_it_and_a_rerun_keeps_it(demo_config, monkeypatch):
+def test_a_budget_chooses_the_grid_when_the_main_phase_begins_and_a_rerun_keeps_it(demo_config, monkeypatch):
     budget = BudgetSettings(seconds=1e5, max_grid_resolution=33)  # the demo's 27 nodes up to 33
     cfg = demo_config(iterations=1)
     cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, budget=budget))
     opt = Optimization(cfg)
+    assert opt.grid_choice is None and opt.model_grid == 27  # the run on the coarsest grid fits
+    state = opt.run()
     assert opt.grid_choice.grid == opt.model_grid == opt.cfg.simulation.grid_resolution == 33
     assert opt.search_grid == 27 and [g for g, _ in opt.grid_choice.candidates] == candidate_grids(27, 33)
-    metrics = opt.write_results(opt.run())
+    assert 0 < opt.grid_choice.spent_seconds and opt.grid_choice.budget_seconds < 1e5
+    metrics = opt.write_results(state)
     assert metrics["grid"] == {"main": 33, "search": 27} and metrics["budget"]["grid"] == 33
     assert metrics["seconds"] > 0
     page = write_report(cfg.output).read_text()
@@ -148,9 +158,10 @@ def test_a_budget_chooses_the_grid_records_it_and_a_rerun_keeps_it(demo_config, 
     saved = json.loads((cfg.output / "budget.json").read_text())
     assert saved["choice"]["grid"] == 33 and saved["key"]["device"]
 
-    def untimed(self, grid):
+    def untimed(self, grid, z):
         raise AssertionError("a rerun of the same config on the same device times nothing")
 
     monkeypatch.setattr(Optimization, "start_substeps", untimed)
-    again = Optimization(cfg)
-    assert again.grid_choice == opt.grid_choice and again.run(resume=True).iteration == 1
+    again = Optimization(cfg)  # its checkpoint, saved on 33 nodes, fits the config of 27
+    assert again.grid_choice == opt.grid_choice and again.model_grid == 33
+    assert again.run(resume=True).iteration == 1

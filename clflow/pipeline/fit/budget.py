@@ -3,12 +3,17 @@
 An optimisation's time is counted in simulations: the search's forward runs and the starts'
 polishes on the search grid; the velocity phase, the main iterations (each over its loss
 horizon) and the diagnostics on the main grid. A run on a grid costs frames x substeps x the
-seconds of one substep (timed on that grid, at the starting parameters) plus the flow's
-rendering per frame; a gradient iteration costs GRADIENT_COST forward runs (Adam), or one
-run per variable and the point itself (Levenberg-Marquardt's Jacobian). The candidates go
-from the coarsest grid up, each timed; the finest whose predicted run fits the budget is
-chosen. A run whose parameters stiffen, or whose LM steps are rejected, takes longer than
-predicted: the prediction's error on the benchmark is measured in docs/benchmarks.md.
+seconds of one substep (timed on that grid) plus the flow's rendering per frame; a gradient
+iteration costs GRADIENT_COST forward runs (Adam), or one run per variable and the point
+itself (Levenberg-Marquardt's Jacobian).
+
+Two moments use it. Before any work, the whole run on the coarsest grid, at the starting
+parameters, must fit the budget, else the run is refused with its prediction. When the main
+phase begins (after the search, where the parameters are near their fit and the search's
+time is spent), the candidates go from the coarsest grid up, each timed at the current
+parameters, and the finest whose remaining work fits the budget left is chosen. Parameters
+that stiffen later, or rejected LM steps, take longer than predicted: the prediction's error
+is measured in docs/pipeline.md.
 
 The choice is kept in ``output/budget.json`` with the device and the config it was made for:
 a rerun of that config on that device (``--resume``, an interrupted sysid case) keeps its
@@ -24,7 +29,6 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
-from clflow.errors import InputError
 from clflow.fileio import atomic_write_text
 from clflow.limits import format_duration
 from clflow.pipeline.preflight import GRADIENT_COST, RunPlan
@@ -43,15 +47,26 @@ class GridChoice:
     predicted seconds on it, and every candidate timed: (nodes, predicted seconds)."""
 
     grid: int
-    predicted_seconds: float
-    budget_seconds: float
+    predicted_seconds: float  # what is left of the run on ``grid``
+    budget_seconds: float  # what was left of the budget
     candidates: tuple[tuple[int, float], ...]
+    spent_seconds: float = 0.0  # before the choice: setup, velocity phase, search
 
     def describe(self) -> str:
         timed = ", ".join(f"{g} nodes {format_duration(s)}" for g, s in self.candidates)
         return (
-            f"budget {format_duration(self.budget_seconds)}: main grid {self.grid} nodes, predicted "
-            f"{format_duration(self.predicted_seconds)} (timed: {timed})"
+            f"budget: {format_duration(self.spent_seconds)} spent, {format_duration(self.budget_seconds)} left: "
+            f"main grid {self.grid} nodes, predicted {format_duration(self.predicted_seconds)} (timed: {timed})"
+        )
+
+    def too_small(self) -> str:
+        """The error of a budget below the coarsest candidate's prediction."""
+        grid, seconds = self.candidates[0]
+        return (
+            f"optimize.budget: {format_duration(self.budget_seconds)} is too small: on the coarsest main grid it "
+            f"may choose ({grid} nodes) the optimisation is predicted to take {format_duration(seconds)}; raise "
+            f"the budget to at least {format_duration(math.ceil(seconds))}, or lower optimize.iterations or the "
+            f"search's samples"
         )
 
 
@@ -81,20 +96,27 @@ def diagnostic_runs(variables: int) -> int:
     return 1 + variables + 2 * variables + 1 + 2 + 1
 
 
-def predicted_seconds(opt: OptimizeSettings, frames: int, variables: int, main: RunPlan, search: RunPlan) -> float:
-    """The whole optimisation's seconds with ``main`` the main grid's plan, ``search`` the
-    search grid's (the same plan where the search has no grid of its own). Several starts
-    are each polished for ``start_iterations`` on the search grid, compared on the main one,
-    and the kept one's polish counts among ``optimize.iterations``."""
+def predicted_seconds(
+    opt: OptimizeSettings, frames: int, variables: int, main: RunPlan, search: RunPlan, searched: bool = False
+) -> float:
+    """The optimisation's seconds with ``main`` the main grid's plan, ``search`` the search
+    grid's (the same plan where the search has no grid of its own); ``searched``: what is left
+    when the main phase begins (the velocity phase and the search done). Several starts are
+    each polished for ``start_iterations`` on the search grid, compared on the main one, and
+    the kept one's polish counts among ``optimize.iterations``."""
     s = opt.search
     polished = s.start_iterations if s is not None and s.starts > 1 else 0
-    seconds = opt.estimate_velocity_iterations * iteration_seconds(opt, main, opt.estimate_velocity_frames, variables)
+    seconds = 0.0
+    if not searched:
+        seconds += opt.estimate_velocity_iterations * iteration_seconds(
+            opt, main, opt.estimate_velocity_frames, variables
+        )
+        if s is not None:
+            seconds += (s.samples + s.refine) * run_seconds(search, s.frames or frames)
     for i in range(polished, opt.iterations):
         horizon = min(frames, opt.horizon_start + i * opt.horizon_step) if opt.horizon_start else frames
         seconds += iteration_seconds(opt, main, horizon, variables)
     seconds += diagnostic_runs(variables) * run_seconds(main, frames)
-    if s is not None:
-        seconds += (s.samples + s.refine) * run_seconds(search, s.frames or frames)
     if polished:
         seconds += s.starts * (polished * iteration_seconds(opt, search, frames, variables) + run_seconds(main, frames))
     return seconds
@@ -116,13 +138,14 @@ def choose_grid(
     variables: int,
     search: tuple[int, int],
     plan_on: Callable[[int], RunPlan],
+    budget: float,
+    searched: bool = False,
 ) -> GridChoice:
     """The finest of the candidate grids between ``grids`` (lowest, highest nodes) whose
-    predicted run fits ``opt.budget``, ``plan_on(nodes)`` timing each from the coarsest up
-    until one does not fit (or needs more than the substep limit); ``search``: the search's
-    grid (nodes) and the substeps per frame the start's run took on it. InputError when even
-    the coarsest does not fit, with its prediction."""
-    budget = opt.budget.seconds
+    predicted run (``searched``: what is left of it) fits ``budget`` seconds, ``plan_on(nodes)``
+    timing each from the coarsest up until one does not fit (or needs more than the substep
+    limit); ``search``: the search's grid (nodes) and the substeps per frame the current
+    parameters' run took on it. The coarsest when none fits (its prediction above the budget)."""
     search_plan = moving_plan(plan_on(search[0]), search[0], search)
     timed: list[tuple[int, float]] = []
     for grid in candidate_grids(*grids):
@@ -132,18 +155,11 @@ def choose_grid(
             if not timed:
                 raise
             break
-        timed.append((grid, predicted_seconds(opt, frames, variables, plan, search_plan)))
+        timed.append((grid, predicted_seconds(opt, frames, variables, plan, search_plan, searched)))
         if timed[-1][1] > budget:
             break
     fitting = [(g, s) for g, s in timed if s <= budget]
-    if not fitting:
-        grid, seconds = timed[0]
-        raise InputError(
-            f"optimize.budget: {format_duration(budget)} is too small: on the coarsest main grid it may choose "
-            f"({grid} nodes) the optimisation is predicted to take {format_duration(seconds)}; raise the budget "
-            f"to at least {format_duration(math.ceil(seconds))}, or lower optimize.iterations or the search's samples"
-        )
-    grid, seconds = fitting[-1]
+    grid, seconds = fitting[-1] if fitting else timed[0]
     return GridChoice(grid, seconds, budget, tuple(timed))
 
 
@@ -154,12 +170,7 @@ def load_choice(path: Path, key: dict) -> GridChoice | None:
         if data.get("key") != key:
             return None
         choice = data["choice"]
-        return GridChoice(
-            int(choice["grid"]),
-            float(choice["predicted_seconds"]),
-            float(choice["budget_seconds"]),
-            tuple((int(g), float(s)) for g, s in choice["candidates"]),
-        )
+        return GridChoice(**{**choice, "candidates": tuple((int(g), float(t)) for g, t in choice["candidates"])})
     except (OSError, ValueError, KeyError, TypeError):
         return None
 

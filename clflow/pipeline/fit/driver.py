@@ -4,6 +4,7 @@ from the parts in the other modules of clflow.pipeline.fit."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import time
 from typing import Callable
@@ -72,7 +73,7 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         self._prepared = {self.model_grid: self.prepared}
         self.prepared_on(self.search_grid)
         self.frames = cfg.simulation.frames
-        self.grid_choice = self.choose_main_grid() if opt.budget is not None else None
+        self.grid_choice = self.check_budget() if opt.budget is not None else None
         self.preflight()  # before the optical flow: refuse a run beyond the substep limit in seconds
         self.views = guidance_views_of(cfg, self.prepared, self.frames)
         self.guidance_warnings = self.check_guidance(force_video)
@@ -85,28 +86,57 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         # point's and the last step's, so that a rejected step goes back without new runs
         self._lm_cache: dict[tuple, tuple[Evaluation, torch.Tensor]] = {}
 
-    def choose_main_grid(self) -> GridChoice:
-        """The main grid ``optimize.budget`` affords on this device (clflow.pipeline.fit.budget),
-        or the one chosen before for this config and device (output/budget.json); the config,
-        the model grid and the prepared scene move to it."""
+    def budget_key(self) -> dict:
+        """What a saved grid choice must match: the device and the config (budget.json)."""
         from clflow.environment import environment
 
-        cfg, path = self.cfg, self.cfg.output / "budget.json"
-        key = {"device": environment()["device"], "config": config_digests(cfg)}
-        choice = load_choice(path, key)
-        if choice is None:
-            grids = main_grid_range(cfg.optimize, cfg.simulation)
-            moving = self.start_substeps(self.search_grid)
-            choice = choose_grid(
-                cfg.optimize, grids, self.frames, len(self.main_variables), (self.search_grid, moving), self.plan_on
-            )
-            save_choice(path, key, choice)
+        return {"device": environment()["device"], "config": config_digests(self.cfg)}
+
+    def check_budget(self) -> GridChoice | None:
+        """Before any work: the choice made before for this config and device (a resumed run
+        goes on on its grid), else None once the whole run on the coarsest grid, at the
+        starting parameters, is predicted to fit ``optimize.budget`` (InputError if not)."""
+        choice = load_choice(self.cfg.output / "budget.json", self.budget_key())
+        if choice is not None:
+            self.move_to_grid(choice)
+            return choice
+        lowest = main_grid_range(self.cfg.optimize, self.cfg.simulation)[0]
+        coarsest = self.grid_options((lowest, lowest), self.initial_state().z, self.cfg.optimize.budget.seconds)
+        if coarsest.predicted_seconds > coarsest.budget_seconds:
+            raise InputError(coarsest.too_small())
+        return None
+
+    def choose_main_grid(self, z: dict[str, float]) -> GridChoice:
+        """When the main phase begins at z: the finest main grid whose remaining work fits what
+        is left of ``optimize.budget`` (the coarsest, with a warning, when none does); saved
+        in output/budget.json, and the run moves to it."""
+        spent = time.perf_counter() - self.started
+        grids = main_grid_range(self.cfg.optimize, self.cfg.simulation)
+        key = self.budget_key()
+        choice = self.grid_options(grids, z, self.cfg.optimize.budget.seconds - spent, searched=True)
+        choice = dataclasses.replace(choice, spent_seconds=spent)
+        if choice.predicted_seconds > choice.budget_seconds:
+            log.warning("%s: the budget is overrun, the main phase runs on the coarsest grid", choice.describe())
+        save_choice(self.cfg.output / "budget.json", key, choice)
+        self.move_to_grid(choice)
+        return choice
+
+    def grid_options(self, grids: tuple[int, int], z: dict[str, float], budget: float, searched: bool = False):
+        """clflow.pipeline.fit.budget.choose_grid at z: candidates timed there, the substeps of
+        z's motion from its run on the search grid."""
+        moving = (self.search_grid, self.start_substeps(self.search_grid, z))
+        plan_on = functools.partial(self.plan_on, z=z)
+        return choose_grid(
+            self.cfg.optimize, grids, self.frames, len(self.main_variables), moving, plan_on, budget, searched
+        )
+
+    def move_to_grid(self, choice: GridChoice) -> None:
+        """The main phase's grid, config and prepared scene become ``choice``'s (logged)."""
         log.info("%s", choice.describe())
         self.model_grid = choice.grid
         self.prepared = self.prepared_on(choice.grid)
         self.cfg = self.prepared.cfg
         self._prepared = {g: p for g, p in self._prepared.items() if g in (self.search_grid, self.model_grid)}
-        return choice
 
     def __getstate__(self) -> dict:
         """What a Ray task gets (clflow.sweep): no progress callback or cached runs, starts polished in place."""
@@ -130,6 +160,8 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         while state.iteration < self.total_iterations and (stop_after is None or done_here < stop_after):
             if phase_of(opt, state.iteration)[0] == "main" and opt.search is not None and not state.searched:
                 state = self.global_search(state)  # after the velocity phase: from its estimate
+            if phase_of(opt, state.iteration)[0] == "main" and opt.budget is not None and self.grid_choice is None:
+                self.grid_choice = self.choose_main_grid(state.z)
             if len(state.polished) < len(state.starts):
                 budget = None if stop_after is None else stop_after - done_here
                 polish_all = self.map_starts if budget is None else serial_starts  # stop_after: tests, here

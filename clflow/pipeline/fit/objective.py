@@ -63,13 +63,13 @@ class Objective:
         log.info("%s", describe(plan, "optimize", gradient=True))
         return plan
 
-    def plan_on(self, grid: int):
-        """The RunPlan of the initial parameters on a grid of ``grid`` nodes: substeps, the
-        seconds of a substep and of a frame's flow rendered (timed there); SubstepLimitError
-        beyond ``simulation.max_substeps``."""
+    def plan_on(self, grid: int, z: dict[str, float] | None = None):
+        """The RunPlan of z (default: the initial parameters) on a grid of ``grid`` nodes:
+        substeps, the seconds of a substep and of a frame's flow rendered (timed there);
+        SubstepLimitError beyond ``simulation.max_substeps``."""
         from clflow.pipeline.preflight import plan_run
 
-        z = self.initial_state().z  # plan_run builds the simulator, which checks the force stages
+        z = self.initial_state().z if z is None else z  # plan_run builds the simulator: it checks the forces
         values = self.values(z)
         params, density = material_values(self.cfg, {n: values[n] for n in self.params})
         prepared = self.prepared_on(grid)
@@ -84,10 +84,9 @@ class Objective:
         )
         return dataclasses.replace(plan, render_seconds_per_frame=self.render_seconds(prepared))
 
-    def start_substeps(self, grid: int) -> int:
-        """Substeps per frame the start's run takes on a grid of ``grid`` nodes over every
-        frame, the CFL retries its motion makes included (forward only, no flow rendered)."""
-        z = self.initial_state().z
+    def start_substeps(self, grid: int, z: dict[str, float]) -> int:
+        """Substeps per frame the run of z takes on a grid of ``grid`` nodes over every frame,
+        the CFL retries its motion makes included (forward only, no flow rendered)."""
         values = self.values(z)
         params, density = material_values(self.cfg, {n: values[n] for n in self.params})
         sim = build_simulator(self.cfg, self.prepared_on(grid).setup, params, density, velocity=self.velocity(z))

@@ -102,15 +102,18 @@ def _by_content(value):
 def config_digests(cfg: SceneConfig, by_path: bool = False) -> dict[str, str]:
     """A SHA-256 of each top-level field of the resolved config (canonical JSON; files and
     folders by their contents, so a moved run resumes; ``by_path``: by their paths, as
-    checkpoints before that were saved), except ``output`` and ``optimize.iterations``
-    (``--resume --iterations N`` extends a run): what a resumed run must share with its
-    checkpoint."""
+    checkpoints before that were saved), except ``output``, ``optimize.iterations``
+    (``--resume --iterations N`` extends a run), ``simulation.max_substeps`` and, under a
+    budget, ``simulation.grid_resolution`` (the budget's to choose): what a resumed run must
+    share with its checkpoint."""
     import hashlib
 
     fields = asdict(cfg)
     fields.pop("output", None)
     fields["optimize"].pop("iterations", None)
     fields["simulation"].pop("max_substeps", None)  # a run stopped by the limit may resume with a higher one
+    if fields["optimize"].get("budget") is not None:  # the main grid is the budget's choice (budget.json)
+        fields["simulation"].pop("grid_resolution", None)
     if not fields["more_views"]:  # one view: the digests of checkpoints from before several views
         fields.pop("more_views")
     if fields.get("generate") is None:  # no generated video: the digests of checkpoints from before it
