@@ -266,6 +266,7 @@ def run_case(
     from clflow.errors import ClflowError
     from clflow.fileio import atomic_write_text
     from clflow.pipeline.fit import Optimization
+    from clflow.pipeline.fit.budget import BudgetTooSmall
     from clflow.scene.config import load_config
 
     case = case or CASES[name]
@@ -309,6 +310,8 @@ def run_case(
         # both losses against the estimator's error measured at their own parameters (the final
         # point's targets hold its own): comparable, the truth's the floor of the optimiser's loss
         truth_loss = opt.self_consistent_loss(floor, opt.frames)
+    except BudgetTooSmall:  # the settings', not the case's: every case would fail alike
+        raise
     except ClflowError as exc:
         record.update(status=f"failed: {exc}", seconds=time.perf_counter() - start)
         return record

@@ -172,6 +172,18 @@ def test_rerun_skips_finished_cases_and_other_settings_need_force(tmp_path, tiny
     assert replaced["settings"]["noise"] == 2.0 and replaced["cases"]["torus"]["generation"]["noise"] == 2.0
 
 
+def test_a_budget_chooses_each_case_s_grid_and_the_table_names_it(tmp_path, tiny_cases):
+    with pytest.raises(InputError, match=r"optimize.budget: .* is too small"):  # the first case ends the run
+        sysid.evaluate(["torus"], tmp_path / "small", sysid.Settings(resolution=TINY, case_budget=0.01))
+    summary = sysid.evaluate(["torus"], tmp_path / "out", sysid.Settings(resolution=TINY, case_budget=1e4))
+    record = summary["cases"]["torus"]
+    truth_grid = record["generation"]["truth_grid_resolution"]
+    assert record["budget"]["grid"] == record["grid"]["main"] <= (truth_grid - 1) / sysid.TRUTH_MARGIN + 1
+    assert record["grid"]["main"] > record["grid"]["search"]  # a generous budget refines
+    table = (tmp_path / "out" / "sysid.md").read_text()
+    assert f" on {record['grid']['main']} nodes |" in table and "a budget of 10000 s per case" in table
+
+
 def test_an_interrupted_case_resumes_its_optimisation(tmp_path, tiny_cases, monkeypatch):
     from clflow.pipeline import fit
 

@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
+from clflow.errors import InputError
 from clflow.fileio import atomic_write_text
 from clflow.limits import format_duration
 from clflow.pipeline.preflight import GRADIENT_COST, RunPlan
@@ -36,6 +37,11 @@ from clflow.pipeline.simulation import SubstepLimitError
 from clflow.scene.config import OptimizeSettings
 
 log = logging.getLogger(__name__)
+
+
+class BudgetTooSmall(InputError):
+    """optimize.budget is below the prediction of the whole run on the coarsest grid."""
+
 
 # the candidates' cells per side as multiples of the coarsest grid's
 GRID_SCALES = (1.0, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 3.5, 4.0)

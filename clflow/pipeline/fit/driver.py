@@ -12,7 +12,7 @@ from typing import Callable
 import torch
 
 from clflow.errors import ClflowError, InputError
-from clflow.pipeline.fit.budget import GridChoice, choose_grid, load_choice, save_choice
+from clflow.pipeline.fit.budget import BudgetTooSmall, GridChoice, choose_grid, load_choice, save_choice
 from clflow.pipeline.fit.diagnostics import Diagnostics
 from clflow.pipeline.fit.guidance import guidance_views_of
 from clflow.pipeline.fit.objective import Objective
@@ -103,7 +103,7 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         lowest = main_grid_range(self.cfg.optimize, self.cfg.simulation)[0]
         coarsest = self.grid_options((lowest, lowest), self.initial_state().z, self.cfg.optimize.budget.seconds)
         if coarsest.predicted_seconds > coarsest.budget_seconds:
-            raise InputError(coarsest.too_small())
+            raise BudgetTooSmall(coarsest.too_small())
         return None
 
     def choose_main_grid(self, z: dict[str, float]) -> GridChoice:
