@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ import yaml
 from click.testing import CliRunner
 
 from clflow.errors import InputError
+from clflow.mpm import StabilityWarning
 from clflow_cli.main import cli
 from clflow_datasets import sysid
 from clflow_datasets.synthetic import Resolution, SyntheticCase, make_case
@@ -115,6 +117,21 @@ def test_a_case_without_room_for_its_motion_fails(tmp_path):
     )
     with pytest.raises(ValueError, match="more room"):
         make_case(tmp_path, case, dataclasses.replace(TINY, frames=10), truth_scale=1)
+
+
+def test_a_truth_obeys_its_cfl_limit(tmp_path):
+    # a soft block dropped 0.4 m: its wave speed asks for few substeps, its fall for more
+    case = SyntheticCase(lift=0.4, spread=1.0, truth={"youngs_modulus": 2e3, "poissons_ratio": 0.3})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", StabilityWarning)  # no frame of the truth breaks the limit
+        make_case(tmp_path, case, dataclasses.replace(TINY, frames=9), truth_scale=1)
+    from clflow.pipeline.forward import material_values, prepare
+    from clflow.pipeline.simulation import build_simulator
+    from clflow.scene.config import load_config
+
+    cfg = load_config(tmp_path / "config_truth.yaml")
+    at_rest = build_simulator(cfg, prepare(cfg).setup, *material_values(cfg)).substeps
+    assert json.loads((tmp_path / "case.json").read_text())["truth_substeps"] >= 2 * at_rest  # run again
 
 
 def test_unknown_case_is_one_clear_line(tmp_path):
