@@ -34,7 +34,7 @@ def format_bytes(n: float) -> str:
 def format_duration(seconds: float) -> str:
     """``seconds`` as s, min or h, to 2-3 significant digits."""
     if seconds < 120:
-        return f"{seconds:.2g} s"
+        return f"{seconds:.2g} s" if seconds < 100 else f"{seconds:.0f} s"  # not 1.1e+02 s
     if seconds < 7200:
         return f"{seconds / 60:.3g} min"
     return f"{seconds / 3600:.3g} h"

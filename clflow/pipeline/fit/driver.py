@@ -115,8 +115,6 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         key = self.budget_key()
         choice = self.grid_options(grids, z, self.cfg.optimize.budget.seconds - spent, searched=True)
         choice = dataclasses.replace(choice, spent_seconds=spent)
-        if choice.predicted_seconds > choice.budget_seconds:
-            log.warning("%s: the budget is overrun, the main phase runs on the coarsest grid", choice.describe())
         save_choice(self.cfg.output / "budget.json", key, choice)
         self.move_to_grid(choice)
         return choice
@@ -131,8 +129,12 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         )
 
     def move_to_grid(self, choice: GridChoice) -> None:
-        """The main phase's grid, config and prepared scene become ``choice``'s (logged)."""
-        log.info("%s", choice.describe())
+        """The main phase's grid, config and prepared scene become ``choice``'s (logged; a
+        warning when even the coarsest overruns what is left of the budget)."""
+        if choice.predicted_seconds > choice.budget_seconds:
+            log.warning("%s: the budget is overrun, the main phase runs on the coarsest grid", choice.describe())
+        else:
+            log.info("%s", choice.describe())
         self.model_grid = choice.grid
         self.prepared = self.prepared_on(choice.grid)
         self.cfg = self.prepared.cfg
