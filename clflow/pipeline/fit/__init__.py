@@ -34,6 +34,7 @@ variables, main_variables, prepared, views, frames, model_grid, search_grid, ...
 - steps: Levenberg-Marquardt, Adam, their boxes and schedules (Steps)
 - search: the global search and the polish of its starts (Search; starts_on_ray)
 - diagnostics: identifiability, profiles and the grid check (Diagnostics)
+- budget: the main grid a time budget affords (optimize.budget), predicted from timed runs
 - results: params.json, metrics.json and the comparison videos (Results)
 - driver: Optimization.run and one iteration
 """
