@@ -284,7 +284,7 @@ def test_parallel_cases_on_ray_give_the_serial_results(tmp_path, tiny_cases, mon
     settings = sysid.Settings(resolution=TINY)
     serial = sysid.evaluate(["torus", "bird"], tmp_path / "serial", settings)
     parallel = sysid.evaluate(["torus", "bird"], tmp_path / "parallel", settings, run_cases=sysid_on_ray())
-    timing = {"seconds", "optimise_seconds", "generation_seconds", "generation"}  # (generation: its own times and paths)
+    timing = {"seconds", "optimise_seconds", "generation_seconds", "generation"}  # generation: times, paths
     assert list(parallel["cases"]) == ["torus", "bird"]
     for name, record in serial["cases"].items():
         assert record["status"] == "ok"
