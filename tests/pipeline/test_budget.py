@@ -15,6 +15,7 @@ from clflow.pipeline.fit.budget import (
     moving_plan,
     predicted_seconds,
     run_seconds,
+    search_seconds,
 )
 from clflow.pipeline.preflight import GRADIENT_COST, RunPlan
 from clflow.pipeline.report import write_report
@@ -66,6 +67,24 @@ def test_a_run_costs_its_substeps_and_its_flows():
     assert predicted_seconds(polishing, FRAMES, 1, plan, coarse) == pytest.approx(
         32 * run_seconds(coarse, FRAMES) + polish + 5 * 2 * forward + diagnostic_runs(1) * forward
     )
+
+
+def test_the_search_costs_each_sample_at_its_own_substeps():
+    """A stiffer sample needs more substeps: the search's prediction counts each (playdoh's
+    search under a 15-min sysid budget ran 255 s where the start's substeps predicted far less)."""
+    coarse = cubic_plan(13)  # 3 substeps at rest
+    opt = budgeted(1.0, search=SearchSettings(samples=4, refine=2, grid_resolution=13))
+    one = run_seconds(coarse, FRAMES)
+    assert search_seconds(opt, FRAMES, coarse, ()) == pytest.approx(6 * one)  # no design: the start's
+    design = (3, 6, 12, 1)  # substeps of each sample; one below the start's keeps the start's
+    first = one * (1 + 2 + 4 + 1)
+    assert search_seconds(opt, FRAMES, coarse, design) == pytest.approx(first + 2 * first / 4)
+    plan = cubic_plan(25)
+    rest = predicted_seconds(opt, FRAMES, 1, plan, coarse) - search_seconds(opt, FRAMES, coarse, ())
+    assert predicted_seconds(opt, FRAMES, 1, plan, coarse, design_substeps=design) == pytest.approx(rest + first * 1.5)
+    assert predicted_seconds(opt, FRAMES, 1, plan, coarse, searched=True, design_substeps=design) == pytest.approx(
+        predicted_seconds(opt, FRAMES, 1, plan, coarse, searched=True)
+    )  # once searched, the design costs nothing more
 
 
 def test_the_motion_s_substeps_scale_with_the_cells():

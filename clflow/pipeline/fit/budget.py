@@ -27,7 +27,7 @@ import logging
 import math
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 from clflow.errors import InputError
 from clflow.fileio import atomic_write_text
@@ -102,14 +102,31 @@ def diagnostic_runs(variables: int) -> int:
     return 1 + variables + 2 * variables + 1 + 2 + 1
 
 
+def search_seconds(opt: OptimizeSettings, frames: int, search: RunPlan, design_substeps: Sequence[int]) -> float:
+    """The global phase's forward runs on the search grid: each first-round sample at the
+    substeps per frame its parameters need there (``design_substeps``, at least ``search``'s:
+    a stiffer sample takes proportionally longer), the second round's at their mean."""
+    s = opt.search
+    runs = [run_seconds(replace(search, substeps=max(search.substeps, n)), s.frames or frames) for n in design_substeps]
+    runs += [run_seconds(search, s.frames or frames)] * (s.samples - len(runs))
+    return sum(runs) + s.refine * sum(runs) / max(1, len(runs))
+
+
 def predicted_seconds(
-    opt: OptimizeSettings, frames: int, variables: int, main: RunPlan, search: RunPlan, searched: bool = False
+    opt: OptimizeSettings,
+    frames: int,
+    variables: int,
+    main: RunPlan,
+    search: RunPlan,
+    searched: bool = False,
+    design_substeps: Sequence[int] = (),
 ) -> float:
     """The optimisation's seconds with ``main`` the main grid's plan, ``search`` the search
     grid's (the same plan where the search has no grid of its own); ``searched``: what is left
-    when the main phase begins (the velocity phase and the search done). Several starts are
-    each polished for ``start_iterations`` on the search grid, compared on the main one, and
-    the kept one's polish counts among ``optimize.iterations``."""
+    when the main phase begins (the velocity phase and the search done); ``design_substeps``:
+    the search samples' substeps per frame on the search grid (search_seconds). Several starts
+    are each polished for ``start_iterations`` on the search grid, compared on the main one,
+    and the kept one's polish counts among ``optimize.iterations``."""
     s = opt.search
     polished = s.start_iterations if s is not None and s.starts > 1 else 0
     seconds = 0.0
@@ -118,7 +135,7 @@ def predicted_seconds(
             opt, main, opt.estimate_velocity_frames, variables
         )
         if s is not None:
-            seconds += (s.samples + s.refine) * run_seconds(search, s.frames or frames)
+            seconds += search_seconds(opt, frames, search, design_substeps)
     for i in range(polished, opt.iterations):
         horizon = min(frames, opt.horizon_start + i * opt.horizon_step) if opt.horizon_start else frames
         seconds += iteration_seconds(opt, main, horizon, variables)
@@ -146,12 +163,14 @@ def choose_grid(
     plan_on: Callable[[int], RunPlan],
     budget: float,
     searched: bool = False,
+    design_substeps: Sequence[int] = (),
 ) -> GridChoice:
     """The finest of the candidate grids between ``grids`` (lowest, highest nodes) whose
     predicted run (``searched``: what is left of it) fits ``budget`` seconds, ``plan_on(nodes)``
     timing each from the coarsest up until one does not fit (or needs more than the substep
     limit); ``search``: the search's grid (nodes) and the substeps per frame the current
-    parameters' run took on it. The coarsest when none fits (its prediction above the budget)."""
+    parameters' run took on it; ``design_substeps``: predicted_seconds'. The coarsest when none
+    fits (its prediction above the budget)."""
     search_plan = moving_plan(plan_on(search[0]), search[0], search)
     timed: list[tuple[int, float]] = []
     for grid in candidate_grids(*grids):
@@ -161,7 +180,7 @@ def choose_grid(
             if not timed:
                 raise
             break
-        timed.append((grid, predicted_seconds(opt, frames, variables, plan, search_plan, searched)))
+        timed.append((grid, predicted_seconds(opt, frames, variables, plan, search_plan, searched, design_substeps)))
         if timed[-1][1] > budget:
             break
     fitting = [(g, s) for g, s in timed if s <= budget]

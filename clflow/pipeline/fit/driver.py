@@ -7,7 +7,7 @@ import dataclasses
 import functools
 import logging
 import time
-from typing import Callable
+from typing import Callable, Sequence
 
 import torch
 
@@ -101,7 +101,13 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
             self.move_to_grid(choice)
             return choice
         lowest = main_grid_range(self.cfg.optimize, self.cfg.simulation)[0]
-        coarsest = self.grid_options((lowest, lowest), self.initial_state().z, self.cfg.optimize.budget.seconds)
+        z0 = self.initial_state().z
+        design = (
+            [self.rest_substeps(self.search_grid, z) for z in self.search_points(z0)]
+            if self.cfg.optimize.search
+            else []
+        )
+        coarsest = self.grid_options((lowest, lowest), z0, self.cfg.optimize.budget.seconds, design_substeps=design)
         if coarsest.predicted_seconds > coarsest.budget_seconds:
             raise BudgetTooSmall(coarsest.too_small())
         return None
@@ -119,13 +125,21 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         self.move_to_grid(choice)
         return choice
 
-    def grid_options(self, grids: tuple[int, int], z: dict[str, float], budget: float, searched: bool = False):
+    def grid_options(
+        self,
+        grids: tuple[int, int],
+        z: dict[str, float],
+        budget: float,
+        searched: bool = False,
+        design_substeps: Sequence[int] = (),
+    ) -> GridChoice:
         """clflow.pipeline.fit.budget.choose_grid at z: candidates timed there, the substeps of
         z's motion from its run on the search grid."""
         moving = (self.search_grid, self.start_substeps(self.search_grid, z))
         plan_on = functools.partial(self.plan_on, z=z)
+        variables = len(self.main_variables)
         return choose_grid(
-            self.cfg.optimize, grids, self.frames, len(self.main_variables), moving, plan_on, budget, searched
+            self.cfg.optimize, grids, self.frames, variables, moving, plan_on, budget, searched, design_substeps
         )
 
     def move_to_grid(self, choice: GridChoice) -> None:

@@ -94,6 +94,15 @@ class Objective:
             warnings.simplefilter("ignore", StabilityWarning)  # the optimiser's runs retry the same way
             return run(sim, self.frames, {}).substeps
 
+    def rest_substeps(self, grid: int, z: dict[str, float]) -> int:
+        """Substeps per frame the stability limits of z ask at its start on a grid of ``grid``
+        nodes (no run: the substeps a search sample of z begins with)."""
+        values = self.values(z)
+        params, density = material_values(self.cfg, {n: values[n] for n in self.params})
+        return build_simulator(
+            self.cfg, self.prepared_on(grid).setup, params, density, velocity=self.velocity(z)
+        ).substeps
+
     def render_seconds(self, prepared: Prepared) -> float:
         """Seconds one frame step's flow takes in every view, rendered and its gradient back
         (timed once in the guidance view on ``prepared``'s scene at rest: what an iteration
