@@ -12,6 +12,7 @@ from typing import Callable, Sequence
 import torch
 
 from clflow.errors import ClflowError, InputError
+from clflow.limits import format_duration
 from clflow.pipeline.fit.budget import BudgetTooSmall, GridChoice, choose_grid, load_choice, save_choice
 from clflow.pipeline.fit.diagnostics import Diagnostics
 from clflow.pipeline.fit.guidance import guidance_views_of
@@ -110,6 +111,12 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         coarsest = self.grid_options((lowest, lowest), z0, self.cfg.optimize.budget.seconds, design_substeps=design)
         if coarsest.predicted_seconds > coarsest.budget_seconds:
             raise BudgetTooSmall(coarsest.too_small())
+        log.info(
+            "budget: the whole run on the coarsest main grid (%d nodes) is predicted to take %s of %s",
+            coarsest.grid,
+            format_duration(coarsest.predicted_seconds),
+            format_duration(coarsest.budget_seconds),
+        )
         return None
 
     def choose_main_grid(self, z: dict[str, float]) -> GridChoice:
