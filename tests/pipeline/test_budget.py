@@ -16,6 +16,7 @@ from clflow.pipeline.fit.budget import (
     predicted_seconds,
     run_seconds,
     search_seconds,
+    typical_sample,
 )
 from clflow.pipeline.preflight import GRADIENT_COST, RunPlan
 from clflow.pipeline.report import write_report
@@ -78,10 +79,21 @@ def test_the_search_costs_each_sample_at_its_own_substeps():
     assert search_seconds(opt, FRAMES, coarse, ()) == pytest.approx(6 * one)  # no design: the start's
     design = (3, 6, 12, 1)  # substeps of each sample; one below the start's keeps the start's
     first = one * (1 + 2 + 4 + 1)
-    assert search_seconds(opt, FRAMES, coarse, design) == pytest.approx(first + 2 * first / 4)
+    typical = run_seconds(typical_sample(coarse, design), FRAMES)
+    assert typical_sample(coarse, design).substeps == 4  # the median, 4.5, rounded down
+    assert search_seconds(opt, FRAMES, coarse, design) == pytest.approx(first + 2 * typical)
     plan = cubic_plan(25)
     rest = predicted_seconds(opt, FRAMES, 1, plan, coarse) - search_seconds(opt, FRAMES, coarse, ())
-    assert predicted_seconds(opt, FRAMES, 1, plan, coarse, design_substeps=design) == pytest.approx(rest + first * 1.5)
+    assert predicted_seconds(opt, FRAMES, 1, plan, coarse, design_substeps=design) == pytest.approx(
+        rest + first + 2 * typical
+    )
+    # the starts' polishes run at parameters the search picks: at the typical sample's substeps
+    starts = dataclasses.replace(opt.search, starts=2, start_iterations=3)
+    polishing = budgeted(1.0, method="levenberg_marquardt", search=starts)
+    extra = predicted_seconds(polishing, FRAMES, 1, plan, coarse, design_substeps=design) - predicted_seconds(
+        polishing, FRAMES, 1, plan, coarse
+    )
+    assert extra == pytest.approx(first + 2 * typical - 6 * one + 2 * 3 * 2 * (typical - one))
     assert predicted_seconds(opt, FRAMES, 1, plan, coarse, searched=True, design_substeps=design) == pytest.approx(
         predicted_seconds(opt, FRAMES, 1, plan, coarse, searched=True)
     )  # once searched, the design costs nothing more

@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import statistics
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable, Sequence
@@ -102,14 +103,22 @@ def diagnostic_runs(variables: int) -> int:
     return 1 + variables + 2 * variables + 1 + 2 + 1
 
 
+def typical_sample(search: RunPlan, design_substeps: Sequence[int]) -> RunPlan:
+    """``search`` at the median of the design's substeps per frame (at least its own): the
+    cost of a run whose parameters the search picks (a second-round sample, a start's polish)."""
+    if not design_substeps:
+        return search
+    return replace(search, substeps=max(search.substeps, int(statistics.median(design_substeps))))
+
+
 def search_seconds(opt: OptimizeSettings, frames: int, search: RunPlan, design_substeps: Sequence[int]) -> float:
     """The global phase's forward runs on the search grid: each first-round sample at the
     substeps per frame its parameters need there (``design_substeps``, at least ``search``'s:
-    a stiffer sample takes proportionally longer), the second round's at their mean."""
-    s = opt.search
-    runs = [run_seconds(replace(search, substeps=max(search.substeps, n)), s.frames or frames) for n in design_substeps]
-    runs += [run_seconds(search, s.frames or frames)] * (s.samples - len(runs))
-    return sum(runs) + s.refine * sum(runs) / max(1, len(runs))
+    a stiffer sample takes proportionally longer), the second round's at typical_sample."""
+    s, sample_frames = opt.search, opt.search.frames or frames
+    runs = [run_seconds(replace(search, substeps=max(search.substeps, n)), sample_frames) for n in design_substeps]
+    runs += [run_seconds(search, sample_frames)] * (s.samples - len(runs))
+    return sum(runs) + s.refine * run_seconds(typical_sample(search, design_substeps), sample_frames)
 
 
 def predicted_seconds(
@@ -125,8 +134,8 @@ def predicted_seconds(
     grid's (the same plan where the search has no grid of its own); ``searched``: what is left
     when the main phase begins (the velocity phase and the search done); ``design_substeps``:
     the search samples' substeps per frame on the search grid (search_seconds). Several starts
-    are each polished for ``start_iterations`` on the search grid, compared on the main one,
-    and the kept one's polish counts among ``optimize.iterations``."""
+    are each polished for ``start_iterations`` on the search grid (at typical_sample), compared
+    on the main one, and the kept one's polish counts among ``optimize.iterations``."""
     s = opt.search
     polished = s.start_iterations if s is not None and s.starts > 1 else 0
     seconds = 0.0
@@ -141,7 +150,8 @@ def predicted_seconds(
         seconds += iteration_seconds(opt, main, horizon, variables)
     seconds += diagnostic_runs(variables) * run_seconds(main, frames)
     if polished:
-        seconds += s.starts * (polished * iteration_seconds(opt, search, frames, variables) + run_seconds(main, frames))
+        polish = polished * iteration_seconds(opt, typical_sample(search, design_substeps), frames, variables)
+        seconds += s.starts * (polish + run_seconds(main, frames))
     return seconds
 
 
