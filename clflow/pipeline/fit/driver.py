@@ -103,11 +103,13 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
             return choice
         lowest = main_grid_range(self.cfg.optimize, self.cfg.simulation)[0]
         z0 = self.initial_state().z
+        # each search sample's substeps; one beyond simulation.max_substeps is refused unrun
         design = (
             [self.rest_substeps(self.search_grid, z) for z in self.search_points(z0)]
             if self.cfg.optimize.search
             else []
         )
+        design = [n for n in design if n <= self.cfg.simulation.max_substeps]
         coarsest = self.grid_options((lowest, lowest), z0, self.cfg.optimize.budget.seconds, design_substeps=design)
         if coarsest.predicted_seconds > coarsest.budget_seconds:
             raise BudgetTooSmall(coarsest.too_small())
