@@ -7,11 +7,12 @@ seconds of one substep (timed on that grid) plus the flow's rendering per frame;
 iteration costs GRADIENT_COST forward runs (Adam), or one run per variable and the point
 itself (Levenberg-Marquardt's Jacobian).
 
-Two moments use it. Before any work, the whole run on the coarsest grid, at the starting
-parameters, must fit the budget, else the run is refused with its prediction. When the main
-phase begins (after the search, where the parameters are near their fit and the search's
-time is spent), the candidates go from the coarsest grid up, each timed at the current
-parameters, and the finest whose remaining work fits the budget left is chosen. Parameters
+Two moments use it. Before any work, the whole run on the coarsest grid (the search's
+samples at their own parameters' substeps, the rest at the starting parameters') must fit
+the budget, else the run is refused with its prediction. When the main phase begins (after
+the search, where the parameters are near their fit and the search's time is spent), the
+candidates go from the coarsest grid up, each timed at the current parameters, and the
+finest whose remaining work fits the budget left is chosen. Parameters
 that stiffen later, or rejected LM steps, take longer than predicted: the prediction's error
 is measured in docs/pipeline.md.
 
