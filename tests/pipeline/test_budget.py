@@ -196,3 +196,25 @@ def test_a_budget_chooses_the_grid_when_the_main_phase_begins_and_a_rerun_keeps_
     again = Optimization(cfg)  # its checkpoint, saved on 33 nodes, fits the config of 27
     assert again.grid_choice == opt.grid_choice and again.model_grid == 33
     assert again.run(resume=True).iteration == 1
+
+
+def test_the_pre_flight_check_costs_each_search_sample_at_its_parameters(demo_config, monkeypatch):
+    """The check before any work times the coarsest grid with every first-round sample's own
+    substeps: a search box a decade and a half either side of the start reaches stiffer moduli."""
+    cfg = demo_config(iterations=1)
+    search = SearchSettings(samples=8, decades=1.5)
+    cfg = dataclasses.replace(
+        cfg, optimize=dataclasses.replace(cfg.optimize, search=search, budget=BudgetSettings(1e5))
+    )
+    seen = {}
+
+    def recording(*args, **kwargs):
+        seen["design"] = args[-1]
+        return choose_grid(*args, **kwargs)
+
+    monkeypatch.setattr("clflow.pipeline.fit.driver.choose_grid", recording)
+    opt = Optimization(cfg)
+    start = opt.rest_substeps(opt.search_grid, opt.initial_state().z)
+    design = seen["design"]
+    assert len(design) == 8 and design[0] == start  # the design begins at the start
+    assert max(design) > 2 * start  # the stiffest samples need several times the start's substeps
