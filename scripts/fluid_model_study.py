@@ -86,6 +86,21 @@ def averaged_J(grid: Grid, x: torch.Tensor, mass: torch.Tensor, J: torch.Tensor)
     return sum(w * node_J[node] for node, w, _ in reference._stencil_nodes(grid, x))
 
 
+def averaged_before_stress(grid: Grid, state: State, mass: torch.Tensor, dt: float, averaged: str) -> State:
+    """The fluid's F_n = s I rescaled so that the substep's trial J = det((I + dt C_n) F_n),
+    which sets its pressure and becomes J_n+1, is the averaged one: "J" the cell average of
+    the trial J, "rate" J_n (1 + dt avg tr C_n). Averaging after the substep instead would
+    leave each particle's own rate in that substep's pressure, a bulk viscosity K dt."""
+    step = torch.linalg.det(torch.eye(3) + dt * state.C)
+    J = torch.linalg.det(state.F)
+    if averaged == "rate":
+        target = J * (1 + dt * averaged_J(grid, state.x, mass, torch.diagonal(state.C, dim1=-2, dim2=-1).sum(-1)))
+    else:
+        target = averaged_J(grid, state.x, mass, J * step)
+    F = (target / step).pow(1 / 3)[:, None, None] * torch.eye(3)
+    return State(state.x, state.v, state.C, F, state.plastic)
+
+
 def voxel_field(x: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
     """[X, Y, Z, C] trilinear splat of ``value`` [N, C] per m^3 on the common voxels, blurred."""
     shape = (int(WIDTH / VOXEL), int(HEIGHT / VOXEL), int(WIDTH / VOXEL))
@@ -136,17 +151,11 @@ def simulate(cells: int, K: float, averaged: str | None, offset: float, ramp: bo
     for frame in range(FRAMES):
         if frame:
             for _ in range(substeps):
-                x_before, C_before, J_before = state.x, state.C, torch.linalg.det(state.F)
+                if averaged:
+                    state = averaged_before_stress(grid, state, mass, dt, averaged)
                 state, _ = reference.substep(
                     state, particles, grid, t, dt, (0, -9.8, 0), table, torch.zeros(0, 3), 0.99
                 )
-                if averaged == "rate":
-                    rate = torch.diagonal(C_before, dim1=-2, dim2=-1).sum(-1)  # div v = tr C (1/s)
-                    J = J_before * (1 + dt * averaged_J(grid, x_before, mass, rate))
-                    state = State(state.x, state.v, state.C, J.pow(1 / 3)[:, None, None] * torch.eye(3), state.plastic)
-                elif averaged:
-                    J = averaged_J(grid, x_before, mass, torch.linalg.det(state.F))
-                    state = State(state.x, state.v, state.C, J.pow(1 / 3)[:, None, None] * torch.eye(3), state.plastic)
                 t += dt
         centroid = float((mass[:, None] * state.x).sum(0)[1] / mass.sum()) - FLOOR_Y
         frames.append((voxel_field(state.x, mass[:, None] * state.v), voxel_field(state.x, mass[:, None]), centroid))

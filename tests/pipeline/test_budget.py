@@ -82,6 +82,8 @@ def test_the_search_costs_each_sample_at_its_own_substeps():
     typical = run_seconds(typical_sample(coarse, design), FRAMES)
     assert typical_sample(coarse, design).substeps == 4  # the median, 4.5, rounded down
     assert search_seconds(opt, FRAMES, coarse, design) == pytest.approx(first + 2 * typical)
+    refused = design[:2]  # the other two beyond the substep limit: refused unrun
+    assert search_seconds(opt, FRAMES, coarse, refused) == pytest.approx(one * (1 + 2) + 2 * one * 4 / 3)
     plan = cubic_plan(25)
     rest = predicted_seconds(opt, FRAMES, 1, plan, coarse) - search_seconds(opt, FRAMES, coarse, ())
     assert predicted_seconds(opt, FRAMES, 1, plan, coarse, design_substeps=design) == pytest.approx(
@@ -96,7 +98,7 @@ def test_the_search_costs_each_sample_at_its_own_substeps():
     assert extra == pytest.approx(first + 2 * typical - 6 * one + 2 * 3 * 2 * (typical - one))
     assert predicted_seconds(opt, FRAMES, 1, plan, coarse, searched=True, design_substeps=design) == pytest.approx(
         predicted_seconds(opt, FRAMES, 1, plan, coarse, searched=True)
-    )  # once searched, the design costs nothing more
+    )  # once searched, the first round's design costs nothing more (no starts to polish here)
 
 
 def test_the_motion_s_substeps_scale_with_the_cells():

@@ -115,10 +115,13 @@ def typical_sample(search: RunPlan, design_substeps: Sequence[int]) -> RunPlan:
 def search_seconds(opt: OptimizeSettings, frames: int, search: RunPlan, design_substeps: Sequence[int]) -> float:
     """The global phase's forward runs on the search grid: each first-round sample at the
     substeps per frame its parameters need there (``design_substeps``, at least ``search``'s:
-    a stiffer sample takes proportionally longer), the second round's at typical_sample."""
+    a stiffer sample takes proportionally longer; a sample left out, refused beyond the
+    substep limit, costs nothing), the second round's at typical_sample. Without a design,
+    every sample at ``search``'s substeps."""
     s, sample_frames = opt.search, opt.search.frames or frames
+    if not design_substeps:
+        return (s.samples + s.refine) * run_seconds(search, sample_frames)
     runs = [run_seconds(replace(search, substeps=max(search.substeps, n)), sample_frames) for n in design_substeps]
-    runs += [run_seconds(search, sample_frames)] * (s.samples - len(runs))
     return sum(runs) + s.refine * run_seconds(typical_sample(search, design_substeps), sample_frames)
 
 

@@ -95,8 +95,9 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
 
     def check_budget(self) -> GridChoice | None:
         """Before any work: the choice made before for this config and device (a resumed run
-        goes on on its grid), else None once the whole run on the coarsest grid, at the
-        starting parameters, is predicted to fit ``optimize.budget`` (InputError if not)."""
+        goes on on its grid), else None once the whole run on the coarsest grid (the search's
+        samples at their own substeps, the rest at the start's) is predicted to fit
+        ``optimize.budget`` (InputError if not)."""
         choice = load_choice(self.cfg.output / "budget.json", self.budget_key())
         if choice is not None:
             self.move_to_grid(choice)
