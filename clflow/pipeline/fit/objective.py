@@ -84,12 +84,17 @@ class Objective:
         )
         return dataclasses.replace(plan, render_seconds_per_frame=self.render_seconds(prepared))
 
+    def simulator_on(self, grid: int, z: dict[str, float]):
+        """A forward simulator of z on a grid of ``grid`` nodes (its substeps those of z's
+        stability limits at the start)."""
+        values = self.values(z)
+        params, density = material_values(self.cfg, {n: values[n] for n in self.params})
+        return build_simulator(self.cfg, self.prepared_on(grid).setup, params, density, velocity=self.velocity(z))
+
     def start_substeps(self, grid: int, z: dict[str, float]) -> int:
         """Substeps per frame the run of z takes on a grid of ``grid`` nodes over every frame,
         the CFL retries its motion makes included (forward only, no flow rendered)."""
-        values = self.values(z)
-        params, density = material_values(self.cfg, {n: values[n] for n in self.params})
-        sim = build_simulator(self.cfg, self.prepared_on(grid).setup, params, density, velocity=self.velocity(z))
+        sim = self.simulator_on(grid, z)
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore", StabilityWarning)  # the optimiser's runs retry the same way
             return run(sim, self.frames, {}).substeps
@@ -97,11 +102,7 @@ class Objective:
     def rest_substeps(self, grid: int, z: dict[str, float]) -> int:
         """Substeps per frame the stability limits of z ask at its start on a grid of ``grid``
         nodes (no run: the substeps a search sample of z begins with)."""
-        values = self.values(z)
-        params, density = material_values(self.cfg, {n: values[n] for n in self.params})
-        return build_simulator(
-            self.cfg, self.prepared_on(grid).setup, params, density, velocity=self.velocity(z)
-        ).substeps
+        return self.simulator_on(grid, z).substeps
 
     def render_seconds(self, prepared: Prepared) -> float:
         """Seconds one frame step's flow takes in every view, rendered and its gradient back
