@@ -84,6 +84,11 @@ def test_the_search_costs_each_sample_at_its_own_substeps():
     assert search_seconds(opt, FRAMES, coarse, design) == pytest.approx(first + 2 * typical)
     refused = design[:2]  # the other two beyond the substep limit: refused unrun
     assert search_seconds(opt, FRAMES, coarse, refused) == pytest.approx(one * (1 + 2) + 2 * one * 4 / 3)
+    # samples run the search's frames, never more than the run's (as the search does)
+    shorter = dataclasses.replace(opt, search=dataclasses.replace(opt.search, frames=FRAMES // 2))
+    assert search_seconds(shorter, FRAMES, coarse, ()) == pytest.approx(6 * run_seconds(coarse, FRAMES // 2))
+    longer = dataclasses.replace(opt, search=dataclasses.replace(opt.search, frames=3 * FRAMES))
+    assert search_seconds(longer, FRAMES, coarse, ()) == pytest.approx(6 * one)
     plan = cubic_plan(25)
     rest = predicted_seconds(opt, FRAMES, 1, plan, coarse) - search_seconds(opt, FRAMES, coarse, ())
     assert predicted_seconds(opt, FRAMES, 1, plan, coarse, design_substeps=design) == pytest.approx(
@@ -96,6 +101,14 @@ def test_the_search_costs_each_sample_at_its_own_substeps():
         polishing, FRAMES, 1, plan, coarse
     )
     assert extra == pytest.approx(first + 2 * typical - 6 * one + 2 * 3 * 2 * (typical - one))
+    # once the search has picked the starts, each polish at its own parameters' substeps
+    picked = (3, 12)  # a start at the start's stiffness and one four times stiffer
+    after = predicted_seconds(polishing, FRAMES, 1, plan, coarse, searched=True, polish_substeps=picked)
+    before = predicted_seconds(polishing, FRAMES, 1, plan, coarse, searched=True)
+    assert after - before == pytest.approx(3 * 2 * (run_seconds(cubic_plan(13), FRAMES) * (4 - 1)))
+    assert predicted_seconds(polishing, FRAMES, 1, plan, coarse, searched=True, polish_substeps=(3,)) == pytest.approx(
+        before - 3 * 2 * one - run_seconds(plan, FRAMES)
+    )  # one start left, not search.starts
     assert predicted_seconds(opt, FRAMES, 1, plan, coarse, searched=True, design_substeps=design) == pytest.approx(
         predicted_seconds(opt, FRAMES, 1, plan, coarse, searched=True)
     )  # once searched, the first round's design costs nothing more (no starts to polish here)
@@ -211,7 +224,7 @@ def test_the_pre_flight_check_costs_each_search_sample_at_its_parameters(demo_co
     seen = {}
 
     def recording(*args, **kwargs):
-        seen["design"] = args[-1]
+        seen["design"] = kwargs["design_substeps"]
         return choose_grid(*args, **kwargs)
 
     monkeypatch.setattr("clflow.pipeline.fit.driver.choose_grid", recording)
@@ -220,3 +233,24 @@ def test_the_pre_flight_check_costs_each_search_sample_at_its_parameters(demo_co
     design = seen["design"]
     assert len(design) == 8 and design[0] == start  # the design begins at the start
     assert max(design) > 2 * start  # the stiffest samples need several times the start's substeps
+
+
+def test_the_main_grid_choice_costs_each_start_s_polish_at_its_parameters(demo_config, monkeypatch):
+    """When the main phase begins, the starts the search picked are known: each start's polish
+    is costed at the substeps its own parameters ask on the search grid."""
+    cfg = demo_config(iterations=2)
+    search = SearchSettings(samples=4, starts=2, start_iterations=1, decades=1.5)
+    budget = BudgetSettings(1e5, max_grid_resolution=33)
+    cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, search=search, budget=budget))
+    seen = []
+
+    def recording(*args, **kwargs):
+        seen.append(kwargs["polish_substeps"])
+        return choose_grid(*args, **kwargs)
+
+    monkeypatch.setattr("clflow.pipeline.fit.driver.choose_grid", recording)
+    opt = Optimization(cfg)
+    state = opt.run(stop_after=1)
+    assert seen[0] == () and len(state.starts) == 2  # before any work the starts are unknown
+    own = [opt.rest_substeps(opt.search_grid, z) for z in state.starts]
+    assert list(seen[1]) == own, own

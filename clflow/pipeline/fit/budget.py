@@ -117,8 +117,10 @@ def search_seconds(opt: OptimizeSettings, frames: int, search: RunPlan, design_s
     substeps per frame its parameters need there (``design_substeps``, at least ``search``'s:
     a stiffer sample takes proportionally longer; a sample left out, refused beyond the
     substep limit, costs nothing), the second round's at typical_sample. Without a design,
-    every sample at ``search``'s substeps."""
-    s, sample_frames = opt.search, opt.search.frames or frames
+    every sample at ``search``'s substeps. A sample runs the search's frames, at most
+    ``frames`` (as the search does)."""
+    s = opt.search
+    sample_frames = min(frames, s.frames or frames)
     if not design_substeps:
         return (s.samples + s.refine) * run_seconds(search, sample_frames)
     runs = [run_seconds(replace(search, substeps=max(search.substeps, n)), sample_frames) for n in design_substeps]
@@ -133,13 +135,16 @@ def predicted_seconds(
     search: RunPlan,
     searched: bool = False,
     design_substeps: Sequence[int] = (),
+    polish_substeps: Sequence[int] = (),
 ) -> float:
     """The optimisation's seconds with ``main`` the main grid's plan, ``search`` the search
     grid's (the same plan where the search has no grid of its own); ``searched``: what is left
     when the main phase begins (the velocity phase and the search done); ``design_substeps``:
     the search samples' substeps per frame on the search grid (search_seconds). Several starts
-    are each polished for ``start_iterations`` on the search grid (at typical_sample), compared
-    on the main one, and the kept one's polish counts among ``optimize.iterations``."""
+    are each polished for ``start_iterations`` on the search grid, compared on the main one,
+    and the kept one's polish counts among ``optimize.iterations``: ``polish_substeps``, once
+    the search has picked them, each start's substeps per frame on the search grid (at least
+    ``search``'s), else ``search.starts`` of them at typical_sample."""
     s = opt.search
     polished = s.start_iterations if s is not None and s.starts > 1 else 0
     seconds = 0.0
@@ -154,8 +159,9 @@ def predicted_seconds(
         seconds += iteration_seconds(opt, main, horizon, variables)
     seconds += diagnostic_runs(variables) * run_seconds(main, frames)
     if polished:
-        polish = polished * iteration_seconds(opt, typical_sample(search, design_substeps), frames, variables)
-        seconds += s.starts * (polish + run_seconds(main, frames))
+        plans = [replace(search, substeps=max(search.substeps, n)) for n in polish_substeps]
+        for plan in plans or [typical_sample(search, design_substeps)] * s.starts:
+            seconds += polished * iteration_seconds(opt, plan, frames, variables) + run_seconds(main, frames)
     return seconds
 
 
@@ -178,13 +184,14 @@ def choose_grid(
     budget: float,
     searched: bool = False,
     design_substeps: Sequence[int] = (),
+    polish_substeps: Sequence[int] = (),
 ) -> GridChoice:
     """The finest of the candidate grids between ``grids`` (lowest, highest nodes) whose
     predicted run (``searched``: what is left of it) fits ``budget`` seconds, ``plan_on(nodes)``
     timing each from the coarsest up until one does not fit (or needs more than the substep
     limit); ``search``: the search's grid (nodes) and the substeps per frame the current
-    parameters' run took on it; ``design_substeps``: predicted_seconds'. The coarsest when none
-    fits (its prediction above the budget)."""
+    parameters' run took on it; ``design_substeps``, ``polish_substeps``: predicted_seconds'.
+    The coarsest when none fits (its prediction above the budget)."""
     search_plan = moving_plan(plan_on(search[0]), search[0], search)
     timed: list[tuple[int, float]] = []
     for grid in candidate_grids(*grids):
@@ -194,7 +201,14 @@ def choose_grid(
             if not timed:
                 raise
             break
-        timed.append((grid, predicted_seconds(opt, frames, variables, plan, search_plan, searched, design_substeps)))
+        timed.append(
+            (
+                grid,
+                predicted_seconds(
+                    opt, frames, variables, plan, search_plan, searched, design_substeps, polish_substeps
+                ),
+            )
+        )
         if timed[-1][1] > budget:
             break
     fitting = [(g, s) for g, s in timed if s <= budget]

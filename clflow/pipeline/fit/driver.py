@@ -122,14 +122,17 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         )
         return None
 
-    def choose_main_grid(self, z: dict[str, float]) -> GridChoice:
-        """When the main phase begins at z: the finest main grid whose remaining work fits what
-        is left of ``optimize.budget`` (the coarsest, with a warning, when none does); saved
-        in output/budget.json, and the run moves to it."""
+    def choose_main_grid(self, state: OptimizerState) -> GridChoice:
+        """When the main phase begins at state.z: the finest main grid whose remaining work
+        fits what is left of ``optimize.budget`` (the coarsest, with a warning, when none does),
+        the search's starts' polishes each costed at the substeps its parameters ask; saved in
+        output/budget.json, and the run moves to it."""
         spent = time.perf_counter() - self.started
         grids = main_grid_range(self.cfg.optimize, self.cfg.simulation)
         key = self.budget_key()
-        choice = self.grid_options(grids, z, self.cfg.optimize.budget.seconds - spent, searched=True)
+        polish = [self.rest_substeps(self.search_grid, z) for z in state.starts]
+        left = self.cfg.optimize.budget.seconds - spent
+        choice = self.grid_options(grids, state.z, left, searched=True, polish_substeps=polish)
         choice = dataclasses.replace(choice, spent_seconds=spent)
         save_choice(self.cfg.output / "budget.json", key, choice)
         self.move_to_grid(choice)
@@ -142,6 +145,7 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         budget: float,
         searched: bool = False,
         design_substeps: Sequence[int] = (),
+        polish_substeps: Sequence[int] = (),
     ) -> GridChoice:
         """clflow.pipeline.fit.budget.choose_grid at z: candidates timed there, the substeps of
         z's motion from its run on the search grid."""
@@ -149,7 +153,16 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         plan_on = functools.partial(self.plan_on, z=z)
         variables = len(self.main_variables)
         return choose_grid(
-            self.cfg.optimize, grids, self.frames, variables, moving, plan_on, budget, searched, design_substeps
+            self.cfg.optimize,
+            grids,
+            self.frames,
+            variables,
+            moving,
+            plan_on,
+            budget,
+            searched=searched,
+            design_substeps=design_substeps,
+            polish_substeps=polish_substeps,
         )
 
     def move_to_grid(self, choice: GridChoice) -> None:
@@ -187,7 +200,7 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
             if phase_of(opt, state.iteration)[0] == "main" and opt.search is not None and not state.searched:
                 state = self.global_search(state)  # after the velocity phase: from its estimate
             if phase_of(opt, state.iteration)[0] == "main" and opt.budget is not None and self.grid_choice is None:
-                self.grid_choice = self.choose_main_grid(state.z)
+                self.grid_choice = self.choose_main_grid(state)
             if len(state.polished) < len(state.starts):
                 budget = None if stop_after is None else stop_after - done_here
                 polish_all = self.map_starts if budget is None else serial_starts  # stop_after: tests, here
