@@ -3,6 +3,7 @@ timing; the choice kept for a rerun; a budget too small refused before any work.
 
 import dataclasses
 import json
+import logging
 import re
 
 import pytest
@@ -254,3 +255,20 @@ def test_the_main_grid_choice_costs_each_start_s_polish_at_its_parameters(demo_c
     assert seen[0] == () and len(state.starts) == 2  # before any work the starts are unknown
     own = [opt.rest_substeps(opt.search_grid, z) for z in state.starts]
     assert list(seen[1]) == own, own
+
+
+def test_a_search_past_its_deadline_ends_with_the_samples_it_has(demo_config, caplog):
+    """The search ends once it has used the time the rest of the run needs: here at once,
+    after the one sample that must run (the design's first, the start)."""
+    cfg = demo_config(iterations=1)
+    search = SearchSettings(samples=6, refine=2, decades=1.5)
+    cfg = dataclasses.replace(
+        cfg, optimize=dataclasses.replace(cfg.optimize, search=search, budget=BudgetSettings(1e5))
+    )
+    opt = Optimization(cfg)
+    assert 9e4 < opt.search_deadline < 1e5  # the budget less the rest's predicted seconds
+    opt.search_deadline = 0.0  # as if the samples had taken the budget
+    with caplog.at_level(logging.WARNING):
+        state = opt.run(stop_after=1)
+    assert state.searched and len(state.search) == 1 and state.iteration == 1
+    assert "budget: the search stopped after 1 of 8 samples" in caplog.text

@@ -59,6 +59,9 @@ class GridChoice:
     budget_seconds: float  # what was left of the budget
     candidates: tuple[tuple[int, float], ...]
     spent_seconds: float = 0.0  # before the choice: setup, velocity phase, search
+    # of predicted_seconds, what the main phase and the diagnostics take on ``grid`` (the
+    # velocity phase and the search left out): the search must end by budget - this
+    rest_seconds: float = 0.0
 
     def describe(self) -> str:
         timed = ", ".join(f"{g} nodes {format_duration(s)}" for g, s in self.candidates)
@@ -194,26 +197,24 @@ def choose_grid(
     The coarsest when none fits (its prediction above the budget)."""
     search_plan = moving_plan(plan_on(search[0]), search[0], search)
     timed: list[tuple[int, float]] = []
+    plans: dict[int, RunPlan] = {}
     for grid in candidate_grids(*grids):
         try:
-            plan = search_plan if grid == search[0] else moving_plan(plan_on(grid), grid, search)
+            plans[grid] = search_plan if grid == search[0] else moving_plan(plan_on(grid), grid, search)
         except SubstepLimitError:
             if not timed:
                 raise
             break
-        timed.append(
-            (
-                grid,
-                predicted_seconds(
-                    opt, frames, variables, plan, search_plan, searched, design_substeps, polish_substeps
-                ),
-            )
+        seconds = predicted_seconds(
+            opt, frames, variables, plans[grid], search_plan, searched, design_substeps, polish_substeps
         )
-        if timed[-1][1] > budget:
+        timed.append((grid, seconds))
+        if seconds > budget:
             break
     fitting = [(g, s) for g, s in timed if s <= budget]
     grid, seconds = fitting[-1] if fitting else timed[0]
-    return GridChoice(grid, seconds, budget, tuple(timed))
+    rest = predicted_seconds(opt, frames, variables, plans[grid], search_plan, True, design_substeps, polish_substeps)
+    return GridChoice(grid, seconds, budget, tuple(timed), rest_seconds=rest)
 
 
 def load_choice(path: Path, key: dict) -> GridChoice | None:

@@ -74,6 +74,8 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         self._prepared = {self.model_grid: self.prepared}
         self.prepared_on(self.search_grid)
         self.frames = cfg.simulation.frames
+        # optimize.budget: seconds after ``started`` by which the search must end (check_budget)
+        self.search_deadline: float | None = None
         self.grid_choice = self.check_budget() if opt.budget is not None else None
         self.preflight()  # before the optical flow: refuse a run beyond the substep limit in seconds
         self.views = guidance_views_of(cfg, self.prepared, self.frames)
@@ -97,7 +99,8 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         """Before any work: the choice made before for this config and device (a resumed run
         goes on on its grid), else None once the whole run on the coarsest grid (the search's
         samples at their own substeps, the rest at the start's) is predicted to fit
-        ``optimize.budget`` (InputError if not)."""
+        ``optimize.budget`` (InputError if not); the search is then to end by the budget less
+        the rest's predicted seconds (``search_deadline``)."""
         choice = load_choice(self.cfg.output / "budget.json", self.budget_key())
         if choice is not None:
             self.move_to_grid(choice)
@@ -114,6 +117,7 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         coarsest = self.grid_options((lowest, lowest), z0, self.cfg.optimize.budget.seconds, design_substeps=design)
         if coarsest.predicted_seconds > coarsest.budget_seconds:
             raise BudgetTooSmall(coarsest.too_small())
+        self.search_deadline = coarsest.budget_seconds - coarsest.rest_seconds
         log.info(
             "budget: the whole run on the coarsest main grid (%d nodes) is predicted to take %s of %s",
             coarsest.grid,

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Callable
 import torch
 
 from clflow.errors import ClflowError, InputError
+from clflow.limits import format_duration
 from clflow.pipeline.fit.state import LM_DAMPING, OptimizerState, config_digests
 
 if TYPE_CHECKING:
@@ -183,13 +184,18 @@ class Search:
 
         design = self.search_points(state.z)
         for z in design[len(rows) :]:
+            if self.search_overran(rows, len(design) + settings.refine):
+                break
             sample(z)
         first = rows[: len(design)]
         if not any(r["loss"] is not None for r in first):
             raise ClflowError(f"the global search found no parameters whose simulation ran ({len(rows)} samples)")
-        regions = self.neighbourhoods(first, state.z) if settings.refine else []
+        complete = len(first) == len(design)  # not cut short by the budget
+        regions = self.neighbourhoods(first, state.z) if settings.refine and complete else []
         second = self.refinement_points(regions, state.z)
         for around, z in second[len(rows) - len(design) :]:
+            if self.search_overran(rows, len(design) + len(second)):
+                break
             sample(z, around)
         finite = [r for r in rows if r["loss"] is not None]
         ranked = sorted(finite, key=lambda r: r["loss"])
@@ -207,6 +213,27 @@ class Search:
         state = dataclasses.replace(state, z=dict(best["z"]), searched=True, starts=starts)
         self.save_state(state)
         return state
+
+    def search_overran(self, rows: list[dict], planned: int) -> bool:
+        """With ``optimize.budget``: True (and a warning) once a sample has run and the search
+        has passed ``search_deadline``, the moment that leaves the rest of the run its
+        predicted time on the coarsest main grid; the search then ends with the samples it has
+        (``planned``: how many it meant to run)."""
+        if self.search_deadline is None or not any(r["loss"] is not None for r in rows):
+            return False
+        spent = time.perf_counter() - self.started
+        if spent <= self.search_deadline:
+            return False
+        log.warning(
+            "budget: the search stopped after %d of %d samples, %s into the run: the rest is predicted to take "
+            "%s of the budget's %s",
+            len(rows),
+            planned,
+            format_duration(spent),
+            format_duration(self.cfg.optimize.budget.seconds - self.search_deadline),
+            format_duration(self.cfg.optimize.budget.seconds),
+        )
+        return True
 
     def polish(self, begin: OptimizerState, start: int, resume: bool = False, budget: int | None = None) -> dict:
         """Levenberg-Marquardt from search start ``start`` (``begin``: the state the search
