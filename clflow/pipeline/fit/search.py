@@ -158,7 +158,9 @@ class Search:
         starts: the best sample of each neighbourhood with a second round, else the best
         ``search.starts`` samples. With ``flow.bias_correction``, each sample's loss is
         against the observed flow less the estimator's error on that sample's own simulation
-        (the video's estimated flow against the simulation's, estimated alike)."""
+        (the video's estimated flow against the simulation's, estimated alike). Under
+        ``optimize.budget`` it ends early, without its second round, once past its deadline
+        (search_overran)."""
         settings = self.cfg.optimize.search
         frames = min(self.frames, settings.frames or self.frames)
         rows = list(state.search)
