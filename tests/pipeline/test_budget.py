@@ -107,9 +107,11 @@ def test_the_search_costs_each_sample_at_its_own_substeps():
     after = predicted_seconds(polishing, FRAMES, 1, plan, coarse, searched=True, polish_substeps=picked)
     before = predicted_seconds(polishing, FRAMES, 1, plan, coarse, searched=True)
     assert after - before == pytest.approx(3 * 2 * (run_seconds(cubic_plan(13), FRAMES) * (4 - 1)))
+    # the search found one start, not search.starts: the other's polish is not run and its 3
+    # iterations go to the main phase (LM, one variable: 2 runs an iteration there)
     assert predicted_seconds(polishing, FRAMES, 1, plan, coarse, searched=True, polish_substeps=(3,)) == pytest.approx(
-        before - 3 * 2 * one - run_seconds(plan, FRAMES)
-    )  # one start left, not search.starts
+        before - 3 * 2 * one - run_seconds(plan, FRAMES) + 3 * 2 * run_seconds(plan, FRAMES)
+    )
     assert predicted_seconds(opt, FRAMES, 1, plan, coarse, searched=True, design_substeps=design) == pytest.approx(
         predicted_seconds(opt, FRAMES, 1, plan, coarse, searched=True)
     )  # once searched, the first round's design costs nothing more (no starts to polish here)
@@ -272,3 +274,32 @@ def test_a_search_past_its_deadline_ends_with_the_samples_it_has(demo_config, ca
         state = opt.run(stop_after=1)
     assert state.searched and len(state.search) == 1 and state.iteration == 1
     assert "budget: the search stopped after 1 of 8 samples" in caplog.text
+
+
+def test_a_search_past_its_deadline_in_its_second_round_keeps_what_it_ran(demo_config, caplog, monkeypatch):
+    """The deadline passes while the second round runs: the first round's samples and the one
+    second-round sample already run are kept, the rest of that round skipped."""
+    cfg = demo_config(iterations=1)
+    search = SearchSettings(samples=4, refine=4, starts=2, start_iterations=1, decades=1.5)
+    cfg = dataclasses.replace(
+        cfg, optimize=dataclasses.replace(cfg.optimize, search=search, budget=BudgetSettings(1e5))
+    )
+    opt = Optimization(cfg)
+    first_round_done = Optimization.refinement_points
+
+    def deadline_after_one_more(self, regions, z):
+        points = first_round_done(self, regions, z)
+        real_sample = self.self_consistent_loss
+
+        def then_late(*args, **kwargs):
+            self.search_deadline = 0.0  # the sample now running is the last
+            return real_sample(*args, **kwargs)
+
+        monkeypatch.setattr(self, "self_consistent_loss", then_late)
+        return points
+
+    monkeypatch.setattr(Optimization, "refinement_points", deadline_after_one_more)
+    with caplog.at_level(logging.WARNING):
+        state = opt.run(stop_after=1)
+    assert state.searched and len(state.search) == 4 + 1 and state.search[-1].get("around") is not None
+    assert "budget: the search stopped after 5 of" in caplog.text

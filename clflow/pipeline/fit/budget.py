@@ -7,9 +7,10 @@ seconds of one substep (timed on that grid) plus the flow's rendering per frame;
 iteration costs GRADIENT_COST forward runs (Adam), or one run per variable and the point
 itself (Levenberg-Marquardt's Jacobian).
 
-Two moments use it. Before any work, the whole run on the coarsest grid (the search's
+Three moments use it. Before any work, the whole run on the coarsest grid (the search's
 samples at their own parameters' substeps, the rest at the starting parameters') must fit
-the budget, else the run is refused with its prediction. When the main phase begins (after
+the budget, else the run is refused with its prediction. The search ends once it has used
+the time that leaves the rest its predicted seconds (GridChoice.rest_seconds). When the main phase begins (after
 the search, where the parameters are near their fit and the search's time is spent), the
 candidates go from the coarsest grid up, each timed at the current parameters, and the
 finest whose remaining work fits the budget left is chosen. Parameters
@@ -59,8 +60,8 @@ class GridChoice:
     budget_seconds: float  # what was left of the budget
     candidates: tuple[tuple[int, float], ...]
     spent_seconds: float = 0.0  # before the choice: setup, velocity phase, search
-    # of predicted_seconds, what the main phase and the diagnostics take on ``grid`` (the
-    # velocity phase and the search left out): the search must end by budget - this
+    # of predicted_seconds, what comes after the search on ``grid`` (the starts' polishes and
+    # their comparison, the main phase, the diagnostics): the search must end by budget - this
     rest_seconds: float = 0.0
 
     def describe(self) -> str:
@@ -147,9 +148,16 @@ def predicted_seconds(
     are each polished for ``start_iterations`` on the search grid, compared on the main one,
     and the kept one's polish counts among ``optimize.iterations``: ``polish_substeps``, once
     the search has picked them, each start's substeps per frame on the search grid (at least
-    ``search``'s), else ``search.starts`` of them at typical_sample."""
+    ``search``'s), else ``search.starts`` of them at typical_sample. The iterations of starts
+    the search did not find (fewer distinct good samples, or a search the budget cut short)
+    go to the main phase: the run's iteration count is fixed."""
     s = opt.search
     polished = s.start_iterations if s is not None and s.starts > 1 else 0
+    plans: list[RunPlan] = []  # each start's polish on the search grid
+    if polished:
+        plans = [replace(search, substeps=max(search.substeps, n)) for n in polish_substeps]
+        plans = plans or [typical_sample(search, design_substeps)] * s.starts
+    main_iterations = opt.iterations + ((s.starts - len(plans)) * polished if polished else 0)
     seconds = 0.0
     if not searched:
         seconds += opt.estimate_velocity_iterations * iteration_seconds(
@@ -157,14 +165,12 @@ def predicted_seconds(
         )
         if s is not None:
             seconds += search_seconds(opt, frames, search, design_substeps)
-    for i in range(polished, opt.iterations):
+    for i in range(polished, main_iterations):
         horizon = min(frames, opt.horizon_start + i * opt.horizon_step) if opt.horizon_start else frames
         seconds += iteration_seconds(opt, main, horizon, variables)
     seconds += diagnostic_runs(variables) * run_seconds(main, frames)
-    if polished:
-        plans = [replace(search, substeps=max(search.substeps, n)) for n in polish_substeps]
-        for plan in plans or [typical_sample(search, design_substeps)] * s.starts:
-            seconds += polished * iteration_seconds(opt, plan, frames, variables) + run_seconds(main, frames)
+    for plan in plans:
+        seconds += polished * iteration_seconds(opt, plan, frames, variables) + run_seconds(main, frames)
     return seconds
 
 

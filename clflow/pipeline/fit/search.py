@@ -159,8 +159,8 @@ class Search:
         ``search.starts`` samples. With ``flow.bias_correction``, each sample's loss is
         against the observed flow less the estimator's error on that sample's own simulation
         (the video's estimated flow against the simulation's, estimated alike). Under
-        ``optimize.budget`` it ends early, without its second round, once past its deadline
-        (search_overran)."""
+        ``optimize.budget`` it ends early once past its deadline, skipping what is left of its
+        design and second round (search_overran)."""
         settings = self.cfg.optimize.search
         frames = min(self.frames, settings.frames or self.frames)
         rows = list(state.search)
@@ -217,10 +217,11 @@ class Search:
         return state
 
     def search_overran(self, rows: list[dict], planned: int) -> bool:
-        """With ``optimize.budget``: True (and a warning) once a sample has run and the search
-        has passed ``search_deadline``, the moment that leaves the rest of the run its
+        """With ``optimize.budget``: True (and a warning) once a sample has succeeded and the
+        search has passed ``search_deadline``, the moment that leaves the rest of the run its
         predicted time on the coarsest main grid; the search then ends with the samples it has
-        (``planned``: how many it meant to run)."""
+        (``planned``: how many it meant to run). The deadline counts from this process's
+        start: a resumed search gets its full share again."""
         if self.search_deadline is None or not any(r["loss"] is not None for r in rows):
             return False
         spent = time.perf_counter() - self.started
