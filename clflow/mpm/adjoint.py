@@ -5,7 +5,8 @@ and the grid velocities. Its adjoint maps dL/d(state n+1) to dL/d(state n) and a
 the gradients of the per-particle kernel parameters and masses, in reverse kernel order:
 
     g2p_adjoint_private              : (xbar', vbar', Cbar', grid_v[, grid_dv]) -> grid_vbar copies, xbar (part)
-    grid_update_adjoint              : (grid_vbar copies, grid, boundaries) -> grid_bar (mbar_i, pbar_i[, p0bar_i])
+    sum_grid_copies                  : (grid_vbar copies)            -> grid_vbar (vbar_i[, dvbar_i])
+    grid_update_adjoint              : (grid_vbar, grid, boundaries) -> grid_bar (mbar_i, pbar_i[, p0bar_i])
     p2g_adjoint                      : (grid_bar, x, v, C, tau)      -> xbar, vbar, Cbar (part), taubar, massbar
     p2g_flip_adjoint (flip > 0)      : (grid_bar, vbar', x, v, C)    -> xbar, vbar, Cbar, massbar (parts)
     trial_svd_simd + update_stress_adjoint : (taubar, Fbar', F, C, param) -> Fbar, Cbar, parambar
@@ -33,6 +34,7 @@ from clflow.mpm.substep import (
     grid_copies,
     launch_stress,
     p2g_particle_args,
+    sum_grid_copies,
 )
 from clflow.runtime.arrays import DeviceArray, numpy_real, real_of
 
@@ -72,6 +74,7 @@ class SubstepAdjoint:
         self.U, self.s, self.V = stage.svd_buffers(device, n, dtype)
         self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_private")
         self.k_grid = k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
+        self.k_sum = k("mpm/p2g.cl", "sum_grid_copies")
         self.k_p2g = k("mpm/adjoint/p2g_adjoint.cl", "p2g_adjoint")
         self.k_flip = k("mpm/adjoint/p2g_adjoint.cl", "p2g_flip_adjoint") if uses_flip(self.flip) else None
         itemsize = torch.tensor([], dtype=dtype).element_size()
@@ -79,6 +82,8 @@ class SubstepAdjoint:
         self.copies = grid_copies(device, copy_bytes, n)
         self.chunk = -(-n // self.copies)
         self.grid_v_bar_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * copy_bytes)
+        self.copy_boxes = DeviceArray.empty(device, (self.copies, 6), torch.int32)  # each copy's node box
+        self.grid_v_bar = DeviceArray.empty(device, (grid.nodes, velocity_channels(self.flip)), dtype)  # their sum
         self.grid_bar = DeviceArray.empty(device, (grid.nodes, grid_channels(self.flip)), dtype)
         self.tau_bar = DeviceArray.empty(device, (n, 3, 3), dtype)
 
@@ -101,8 +106,9 @@ class SubstepAdjoint:
         grid_args = self.grid.kernel_args(R)
         particles = inputs.particles
         self._launch_g2p_adjoint(state, after, tape, inputs, grad_after, grad)
-        copies = dict(grid_v_bar_copies=self.grid_v_bar_copies, copies=np.int32(self.copies))
-        grids = dict(grid=tape.grid_mv, grid_bar=self.grid_bar) | copies
+        copies = dict(copies=np.int32(self.copies), boxes=self.copy_boxes, grid_copies=self.grid_v_bar_copies)
+        sum_grid_copies(self, copies, velocity_channels(self.flip), self.grid_v_bar)
+        grids = dict(grid=tape.grid_mv, grid_v_bar=self.grid_v_bar, grid_bar=self.grid_bar)
         dev.launch(self.k_grid, self.grid.nodes, grid_args | inputs.grid_update_args(R) | grids)
         # p2g_adjoint writes v_bar, which p2g_flip_adjoint then reads and adds to
         bars = dict(grid_bar=self.grid_bar, x_bar=grad.x, v_bar=grad.v, C_bar=grad.C, tau_bar=self.tau_bar)
@@ -135,7 +141,7 @@ class SubstepAdjoint:
         args |= dict(release_time=inputs.particles.release_time, grid_v=tape.grid_v, grid_dv=tape.grid_dv)
         args |= dict(x_bar_out=grad_after.x, v_bar_out=grad_after.v, C_bar_out=grad_after.C)
         args |= dict(copies=np.int32(self.copies), chunk=np.int32(self.chunk))
-        args |= dict(grid_v_bar_copies=self.grid_v_bar_copies, x_bar=grad.x)
+        args |= dict(grid_v_bar_copies=self.grid_v_bar_copies, boxes=self.copy_boxes, x_bar=grad.x)
         self.device.launch(self.k_g2p, self.copies, self.grid.kernel_args(R) | args, local_size=1)
 
     def _launch_flip_adjoint(self, state, inputs, grad_after, grad, mass_grad) -> None:

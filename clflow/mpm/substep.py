@@ -4,7 +4,8 @@
     update_stress : (F_n, C_n, U, s, V, plastic_n, param)  -> F_n+1, plastic_n+1, tau
                     (update_stress_elastic_simd: both in one when all particles are elastic)
     p2g           : (x_n, v_n, C_n, tau, mass, volume)     -> grid [nodes, GRID_CH] (m, mv[, mv0])
-                    (private grid copies, a gather per node over particles sorted by cell, or atomics)
+                    (private grid copies, each zeroed and summed only in the box of nodes
+                    its particles touch; a gather per node over particles sorted by cell; or atomics)
     grid_update   : (grid, boundary table, t)              -> grid_v [nodes, 3][, grid_dv]
     g2p           : (x_n[, v_n], grid_v[, grid_dv], release_time) -> x_n+1, v_n+1, C_n+1
 
@@ -321,6 +322,15 @@ def p2g_particle_args(real_t, state: State, tape: SubstepTape, inputs: SubstepIn
     return dict(n=n, dt=real_t(inputs.dt)) | arrays | dict(accel=inputs.accel)
 
 
+def sum_grid_copies(kernels, copies: dict, channels: int, grid: DeviceArray) -> None:
+    """Enqueue the column sum of ``kernels``' private grid copies (copies: their buffer
+    ``grid_copies``, ``boxes`` and count, as the scatter wrote them) into ``grid`` [nodes,
+    channels]: a work-item per row of nodes, each copy read only inside its box."""
+    nx, ny, nz = kernels.grid.resolution
+    rows = dict(nx=np.int32(nx), ny=np.int32(ny), nz=np.int32(nz), channels=np.int32(channels))
+    kernels.device.launch(kernels.k_sum, nx * ny, rows | copies | dict(grid=grid))
+
+
 class SubstepKernels:
     """The substep kernels of one device, precision, particle count, grid, set of material ids
     (``materials``: the kernel ids of the particles), P2G path (:func:`p2g_path`) and PIC/FLIP
@@ -357,10 +367,11 @@ class SubstepKernels:
         grid_bytes = channels * grid.nodes * itemsize
         if p2g == "private":
             self.k_p2g = k("mpm/p2g.cl", "p2g_private")
-            self.k_reduce = k("mpm/p2g.cl", "p2g_reduce")
+            self.k_sum = k("mpm/p2g.cl", "sum_grid_copies")
             self.copies = grid_copies(device, grid_bytes, n)
             self.chunk = -(-n // self.copies)
             self.grid_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * grid_bytes)
+            self.copy_boxes = DeviceArray.empty(device, (self.copies, 6), torch.int32)  # each copy's node box
         elif p2g == "gather":
             self.k_cells = k("mpm/p2g_gather.cl", "particle_cells")
             self.k_p2g = k("mpm/p2g_gather.cl", "p2g_gather")
@@ -395,11 +406,9 @@ class SubstepKernels:
         launch_stress(self, inputs.dt, state.F, state.C, stress_args, elastic_omits=("material",))
         p2g_args = grid_args | p2g_particle_args(R, state, tape, inputs)
         if self.p2g == "private":
-            copies = dict(copies=np.int32(self.copies), chunk=np.int32(self.chunk), grid_copies=self.grid_copies)
-            dev.launch(self.k_p2g, self.copies, p2g_args | copies, local_size=1)
-            size = tape.grid_mv.numel()
-            sums = dict(size=np.int64(size), copies=np.int32(self.copies), grid_copies=self.grid_copies)
-            dev.launch(self.k_reduce, size, sums | dict(grid=tape.grid_mv))
+            copies = dict(copies=np.int32(self.copies), grid_copies=self.grid_copies, boxes=self.copy_boxes)
+            dev.launch(self.k_p2g, self.copies, p2g_args | copies | dict(chunk=np.int32(self.chunk)), local_size=1)
+            sum_grid_copies(self, copies, grid_channels(self.flip), tape.grid_mv)
         elif self.p2g == "gather":
             keys, ids, spare_keys, spare_ids = self.cell_pairs
             dev.launch(self.k_cells, self.n, grid_args | dict(n=n, x=state.x, key=keys, id=ids))

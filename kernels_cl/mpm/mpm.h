@@ -49,16 +49,6 @@ inline grid_t make_grid(const int nx, const int ny, const int nz, const real dx,
     return g;
 }
 
-/* Copy k of `copies` consecutive arrays of `size` reals, zeroed: one work-item's private grid in
- * the private-copy scatters (p2g_private, g2p_adjoint_private); a column sum adds them after. */
-inline __global real *zeroed_copy(__global real *copies, const int k, const long size)
-{
-    __global real *copy = copies + k * size;
-    for (long e = 0; e < size; ++e)
-        copy[e] = 0;
-    return copy;
-}
-
 inline int grid_extent(const grid_t *g, const int axis)
 {
     return axis == 0 ? g->nx : (axis == 1 ? g->ny : g->nz);
@@ -67,6 +57,58 @@ inline int grid_extent(const grid_t *g, const int axis)
 inline long grid_index(const grid_t *g, const int i, const int j, const int k)
 {
     return ((long)i * g->ny + j) * g->nz + k;
+}
+
+/* The base node of a particle's 3x3x3 stencil along ``axis`` at coordinate xa (m): floor(xi -
+ * 1/2), clamped so that even a position G2P has not clamped (the initial state) stays in memory. */
+inline int stencil_base(const grid_t *g, const real xa, const int axis)
+{
+    const real xi = (xa - g->origin[axis]) / g->dx;
+    return clamp((int)floor(xi - (real)0.5), 0, grid_extent(g, axis) - 3);
+}
+
+/* Private grid copies (p2g_private, g2p_adjoint_private): work-item k scatters the contiguous
+ * particle chunk [begin, end) into copy k of `copies` consecutive [nodes, channels] arrays.
+ * It zeroes and records only the box of nodes its particles' stencils touch, box[0..2] (lower)
+ * to box[3..5] (upper, exclusive), in nodes; a column sum reads copy k only inside box k, so
+ * nodes no particle of the chunk reaches cost neither a write nor a read (a small object in a
+ * large domain: most of them). An empty chunk has an empty box. */
+inline void chunk_box(const grid_t *g, __global const real *x, const int begin, const int end, int *box)
+{
+    if (begin >= end) {
+        for (int a = 0; a < 6; ++a)
+            box[a] = 0;
+        return;
+    }
+    real lo[3], hi[3];
+    for (int a = 0; a < 3; ++a)
+        lo[a] = hi[a] = x[3 * begin + a];
+    for (int p = begin + 1; p < end; ++p)
+        for (int a = 0; a < 3; ++a) {
+            lo[a] = fmin(lo[a], x[3 * p + a]);
+            hi[a] = fmax(hi[a], x[3 * p + a]);
+        }
+    for (int a = 0; a < 3; ++a) { /* stencil_base is monotonic: the extremes' stencils bound the box */
+        box[a] = stencil_base(g, lo[a], a);
+        box[3 + a] = stencil_base(g, hi[a], a) + 3;
+    }
+}
+
+/* Copy k of `copies` [nodes, channels] arrays, zeroed inside ``box`` (chunk_box), the box saved
+ * as boxes[6k .. 6k+5] for the column sum. */
+inline __global real *boxed_copy(const grid_t *g, __global real *copies, const int k, const int channels,
+                                 const int *box, __global int *boxes)
+{
+    __global real *copy = copies + (long)k * channels * g->nx * g->ny * g->nz;
+    for (int i = box[0]; i < box[3]; ++i)
+        for (int j = box[1]; j < box[4]; ++j) {
+            const long row = channels * grid_index(g, i, j, 0);
+            for (int e = channels * box[2]; e < channels * box[5]; ++e)
+                copy[row + e] = 0;
+        }
+    for (int a = 0; a < 6; ++a)
+        boxes[6 * k + a] = box[a];
+    return copy;
 }
 
 /* Quadratic B-spline weights w[0..2] of one axis at f = xi - base (real or realv). */
@@ -88,10 +130,8 @@ inline stencil_t make_stencil(const grid_t *g, const real *x)
 {
     stencil_t st;
     for (int a = 0; a < 3; ++a) {
-        const real xi = (x[a] - g->origin[a]) / g->dx;
-        /* clamp keeps memory safe even for a position G2P has not clamped (initial state) */
-        const int base = clamp((int)floor(xi - (real)0.5), 0, grid_extent(g, a) - 3);
-        const real f = xi - base;
+        const int base = stencil_base(g, x[a], a);
+        const real f = (x[a] - g->origin[a]) / g->dx - base;
         st.base[a] = base;
         st.fx[a] = f;
         STENCIL_WEIGHTS(f, st.w[a]);
@@ -165,9 +205,8 @@ inline stencil_v_t make_stencil_v(const grid_t *g, const realv *x)
     for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) {
         int base[3];
         for (int a = 0; a < 3; ++a) {
-            const real xi = (LANE(x[a], l) - g->origin[a]) / g->dx;
-            base[a] = clamp((int)floor(xi - (real)0.5), 0, grid_extent(g, a) - 3);
-            ((real *)&st.fx[a])[l] = xi - base[a];
+            base[a] = stencil_base(g, LANE(x[a], l), a);
+            ((real *)&st.fx[a])[l] = (LANE(x[a], l) - g->origin[a]) / g->dx - base[a];
         }
         st.corner[l] = grid_index(g, base[0], base[1], base[2]);
     }

@@ -9,9 +9,10 @@
  * Grid layout: grid[GRID_CH*node + (0: m, 1..3: mv, 4..6: mv0 with CLFLOW_FLIP)].
  *
  * Two ways to sum, chosen by the host from the device record:
- *  - p2g_private + p2g_reduce (CPU devices, no float atomics): work-item k scatters the
+ *  - p2g_private + sum_grid_copies (CPU devices, no float atomics): work-item k scatters the
  *    contiguous particle chunk k into its own grid copy with plain adds, then the copies
  *    are summed node by node in the fixed order k = 0, 1, ...: deterministic, bit-identical.
+ *    Each copy is zeroed and summed only in the box of nodes its chunk touches (chunk_box).
  *  - p2g_atomic (GPUs): one work-item per particle, atomic_add_real into one grid. */
 #include "mpm/mpm.h"
 #include "common/atomics.h"
@@ -76,30 +77,47 @@ inline void p2g_particle(const grid_t *g, const int p, const real dt, __global c
         __global const real *tau, __global const real *mass, __global const real *volume, __global const int *group,   \
         __global const real *accel
 
-/* Work-item k zeroes grid copy k and scatters particles [k*chunk, (k+1)*chunk) into it. */
+/* Work-item k zeroes grid copy k in the box its particles [k*chunk, (k+1)*chunk) touch (saved
+ * in boxes[6k .. 6k+5]) and scatters them into it. */
 __kernel void p2g_private(P2G_GRID_ARGS, P2G_PARTICLE_ARGS, const int copies, const int chunk,
-                          __global real *grid_copies)
+                          __global real *grid_copies, __global int *boxes)
 {
     const int k = get_global_id(0);
     if (k >= copies)
         return;
     const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
-    __global real *grid = zeroed_copy(grid_copies, k, (long)GRID_CH * nx * ny * nz);
-    const int end = min(n, (k + 1) * chunk);
-    for (int p = k * chunk; p < end; ++p)
+    const int begin = min(n, k * chunk), end = min(n, (k + 1) * chunk);
+    int box[6];
+    chunk_box(&g, x, begin, end, box);
+    __global real *grid = boxed_copy(&g, grid_copies, k, GRID_CH, box, boxes);
+    for (int p = begin; p < end; ++p)
         p2g_particle(&g, p, dt, x, v, C, tau, mass, volume, group, accel, grid, 0);
 }
 
-/* grid[e] = sum over copies k = 0, 1, ... of grid_copies[k][e], in that order. */
-__kernel void p2g_reduce(const long size, const int copies, __global const real *grid_copies, __global real *grid)
+/* grid[node] = the sum over copies k = 0, 1, ..., in that order, of copies[k][node] ([nodes,
+ * channels] each), each copy counted as zero outside its box (chunk_box): the column sum of the
+ * private-copy scatters (p2g_private here, g2p_adjoint_private in the adjoint). A work-item per
+ * row of nodes (i, j, 0..nz-1), channels * nz contiguous reals: it adds each copy's part of the
+ * row that lies in its box. */
+__kernel void sum_grid_copies(const int nx, const int ny, const int nz, const int channels, const int copies,
+                              __global const int *boxes, __global const real *grid_copies, __global real *grid)
 {
-    const long e = get_global_id(0);
-    if (e >= size)
+    const int row = get_global_id(0);
+    if (row >= nx * ny)
         return;
-    real sum = grid_copies[e];
-    for (int k = 1; k < copies; ++k)
-        sum += grid_copies[k * size + e];
-    grid[e] = sum;
+    const int i = row / ny, j = row % ny;
+    const long width = (long)channels * nz, size = width * nx * ny;
+    __global real *out = grid + row * width;
+    for (long e = 0; e < width; ++e)
+        out[e] = 0;
+    for (int k = 0; k < copies; ++k) {
+        __global const int *box = boxes + 6 * k;
+        if (i < box[0] || i >= box[3] || j < box[1] || j >= box[4])
+            continue;
+        __global const real *in = grid_copies + k * size + row * width;
+        for (long e = (long)channels * box[2]; e < (long)channels * box[5]; ++e)
+            out[e] += in[e];
+    }
 }
 
 /* One work-item per particle, atomic adds into `grid` (zeroed by the host). */

@@ -38,29 +38,48 @@ def free_body(x: torch.Tensor, material: MaterialSpec, grid: Grid, **kwargs) -> 
 VOLUME_CORRECTED_SAND = MaterialSpec("sand", MATERIAL_CASES["sand"], model="volume_corrected")
 
 
-def random_scene(materials, seed: int = 0, n: int = 300, dtype=torch.float64, **kwargs) -> Simulator:
-    """Particles at random in [0.3, 0.7]^3 m on a 16^3 grid of 1/16 m, with random velocities
-    (so stresses and yield are exercised), one material per particle cycling through
-    ``materials`` ({name: params}, or a list of MaterialSpec)."""
-    gen = torch.Generator().manual_seed(seed)
-    x = 0.3 + 0.4 * torch.rand(n, 3, generator=gen, dtype=torch.float64)
-    v = 0.6 * torch.randn(n, 3, generator=gen, dtype=torch.float64)
+def moving_scene(x: torch.Tensor, v: torch.Tensor, materials, grid: Grid, dtype=torch.float64, **kwargs) -> Simulator:
+    """Particles ``x`` [N, 3] m of 1e-5 m^3 each with velocities ``v`` [N, 3] m/s on ``grid``,
+    one material per particle cycling through ``materials`` ({name: params}, or a list of
+    MaterialSpec); 10 substeps of 0.01 s frames unless ``kwargs`` say otherwise."""
     if isinstance(materials, dict):
         specs = [MaterialSpec(name, params) for name, params in materials.items()]
     else:
         specs = list(materials)
-    kwargs.setdefault("substeps", 10)
-    kwargs.setdefault("frame_dt", 1e-2)
-    return Simulator(
-        x,
-        1e-5,
-        specs,
-        Grid((16, 16, 16), 1 / 16),
-        velocities=v,
-        dtype=dtype,
-        material_index=torch.arange(n) % len(specs),
-        **kwargs,
-    )
+    kwargs = {"substeps": 10, "frame_dt": 1e-2, **kwargs}
+    index = torch.arange(x.shape[0]) % len(specs)
+    return Simulator(x, 1e-5, specs, grid, velocities=v, dtype=dtype, material_index=index, **kwargs)
+
+
+def random_scene(materials, seed: int = 0, n: int = 300, dtype=torch.float64, **kwargs) -> Simulator:
+    """Particles at random in [0.3, 0.7]^3 m on a 16^3 grid of 1/16 m, with random velocities
+    (so stresses and yield are exercised): :func:`moving_scene`."""
+    gen = torch.Generator().manual_seed(seed)
+    x = 0.3 + 0.4 * torch.rand(n, 3, generator=gen, dtype=torch.float64)
+    v = 0.6 * torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    return moving_scene(x, v, materials, Grid((16, 16, 16), 1 / 16), dtype, **kwargs)
+
+
+def two_blocks(materials=("newtonian",), n_side: int = 5, dtype=torch.float64, **kwargs) -> Simulator:
+    """Two blocks of n_side^3 particles each, 0.45 m apart in a 32^3 grid of 1/32 m, moving
+    towards each other (the private P2G path unless ``kwargs`` say otherwise): each private
+    grid copy's particle chunk lies mostly in one block, so its box of touched nodes
+    (chunk_box) is a small part of the grid and moves between substeps."""
+    gen = torch.Generator().manual_seed(0)
+    x = torch.cat([cube(n_side, 0.2, 0.3), cube(n_side, 0.65, 0.75)])
+    v = torch.ones_like(x) * torch.sign(0.5 - x[:, :1]) + 0.3 * torch.randn(x.shape, generator=gen, dtype=x.dtype)
+    specs = {name: MATERIAL_CASES[name] for name in materials}
+    return moving_scene(x, v, specs, Grid((32, 32, 32), 1 / 32), dtype, **{"p2g": "private", **kwargs})
+
+
+def poison(device, buffer) -> None:
+    """Fill an OpenCL buffer with all bits set, a NaN in float32 and float64 alike: stale memory
+    that no sum may read."""
+    import numpy as np
+    import pyopencl as cl
+
+    cl.enqueue_fill_buffer(device.queue, buffer, np.full(1, 255, np.uint8), 0, buffer.size)
+    device.finish()
 
 
 #: relative agreement of two runs on the atomic P2G path, whose sums take the order the

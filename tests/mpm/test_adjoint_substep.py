@@ -9,7 +9,7 @@ from clflow.mpm import Grid, HalfSpace, MaterialSpec, Simulator, reference
 from clflow.mpm.adjoint import StateGrad, SubstepAdjoint
 from clflow.mpm.substep import Particles, SubstepTape
 from clflow.runtime.arrays import DeviceArray, to_device, to_host
-from tests.mpm._helpers import MATERIAL_CASES, cube, random_scene
+from tests.mpm._helpers import MATERIAL_CASES, cube, poison, random_scene, two_blocks
 
 GRAD_FIELDS = ("x", "v", "C", "F", "plastic")
 
@@ -28,8 +28,9 @@ def clamp_flags(sim) -> DeviceArray:
     return DeviceArray.zeros(sim.device, (sim.n,), torch.uint8)
 
 
-def kernel_vjp(sim, grad_after: StateGrad):
-    """(dL/d state, dL/d param, dL/d mass) of L = <grad_after, substep(state)> by the kernels."""
+def kernel_vjp(sim, grad_after: StateGrad, stale_copies: bool = False):
+    """(dL/d state, dL/d param, dL/d mass) of L = <grad_after, substep(state)> by the kernels
+    (``stale_copies``: the adjoint's private grid copies full of NaN beforehand)."""
     n, dtype, dev = sim.n, sim.dtype, sim.device
     tape = SubstepTape.empty(dev, n, sim.grid.nodes, dtype, sim.flip)
     state = sim.device_state
@@ -37,6 +38,8 @@ def kernel_vjp(sim, grad_after: StateGrad):
     inputs = sim.substep_inputs()
     sim.kernels.run(state, after, inputs, clamp_flags(sim), tape=tape)
     adjoint = SubstepAdjoint(dev, dtype, n, sim.grid, sim.particles.material, sim.flip)
+    if stale_copies:
+        poison(dev, adjoint.grid_v_bar_copies)
     grad = StateGrad.zeros(dev, n, dtype)
     param_grad = DeviceArray.zeros(dev, sim.particles.param.shape, dtype)
     mass_grad = DeviceArray.zeros(dev, (n,), dtype)
@@ -81,11 +84,11 @@ def rel_err(a, b):
     return float((a - b).abs().max() / b.abs().max().clamp(min=1e-300))
 
 
-def assert_adjoint_matches_reference(sim, parameters=True):
+def assert_adjoint_matches_reference(sim, parameters=True, stale_copies=False):
     """The kernel's state gradients and (``parameters``: where they are not round-off) the
     parameter and mass gradients agree with the reference's to 1e-9."""
     grad_after = random_grad(sim.n)
-    grad, param_grad, mass_grad = kernel_vjp(sim, grad_after)
+    grad, param_grad, mass_grad = kernel_vjp(sim, grad_after, stale_copies)
     ref, ref_param, ref_mass = reference_vjp(sim, grad_after)
     for f in GRAD_FIELDS:
         assert rel_err(getattr(grad, f), getattr(ref, f)) < 1e-9, f
@@ -109,6 +112,17 @@ def test_flip_blend_adjoint_matches_autograd_of_reference(walls, materials):
     sim = warmed_up(materials=materials, walls=walls, flip=0.7)
     assert sim.flip == 0.7
     assert_adjoint_matches_reference(sim)
+
+
+@pytest.mark.parametrize("flip", [0.0, 0.99])
+def test_adjoint_copies_are_zeroed_and_summed_only_in_their_boxes(flip):
+    """The G2P adjoint's private grid copies, like P2G's, are zeroed and summed only in the box
+    of nodes each particle chunk touches: copies full of NaN beforehand leave the adjoint of two
+    separate moving blocks equal to the reference's."""
+    sim = two_blocks(("newtonian", "elastic"), flip=flip)
+    for _ in range(5):
+        sim.step()
+    assert_adjoint_matches_reference(sim, stale_copies=True)
 
 
 @pytest.mark.parametrize("material", ["plasticine", "metal", "foam", "sand", "newtonian", "non_newtonian", "snow"])

@@ -1,7 +1,7 @@
-/* Adjoint of the grid update (grid.cl), reading vbar as the sum of the G2P adjoint's grid
- * copies (only on nodes with mass): boundary conditions in reverse table order, then
+/* Adjoint of the grid update (grid.cl), reading vbar from grid_v_bar, the column sum of the
+ * G2P adjoint's private grid copies (sum_grid_copies; only on nodes with mass): boundary conditions in reverse table order, then
  * v = mv/m + dt g:  pbar = vbar/m,  mbar = -(mv . vbar)/m^2  (0 on empty nodes).
- * With CLFLOW_FLIP the copies also hold dvbar of dv = v - mv0/m: vbar += dvbar before the
+ * With CLFLOW_FLIP grid_v_bar also holds dvbar of dv = v - mv0/m: vbar += dvbar before the
  * boundary conditions' adjoint (dv reads v after them), p0bar = -dvbar/m and
  * mbar += (mv0 . dvbar)/m^2; grid_bar holds (mbar, pbar[, p0bar]) in GRID_CH reals per node.
  *
@@ -64,8 +64,8 @@ inline int overrides(__global const real *rec, const real *xi)
 __kernel void grid_update_adjoint(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
                                   const real oz, const real dt, const real t, const real gx, const real gy,
                                   const real gz, const real mass_eps, __global const real *grid,
-                                  __global const real *grid_v_bar_copies, const int copies, __global const real *bc,
-                                  const int n_bc, __global real *grid_bar)
+                                  __global const real *grid_v_bar, __global const real *bc, const int n_bc,
+                                  __global real *grid_bar)
 {
     const long node = get_global_id(0);
     const long nodes = (long)nx * ny * nz;
@@ -81,17 +81,12 @@ __kernel void grid_update_adjoint(const int nx, const int ny, const int nz, cons
         for (int a = 0; a < 3; ++a) {
             mv[a] = grid[GRID_CH * node + 1 + a];
             v0[a] = mv[a] / m + dt * g[a];
-            /* the G2P adjoint's private grid copies, summed in the fixed order k = 0, 1, ... */
-            v_bar[a] = grid_v_bar_copies[GV_CH * node + a];
-            for (int k = 1; k < copies; ++k)
-                v_bar[a] += grid_v_bar_copies[k * GV_CH * nodes + GV_CH * node + a];
+            v_bar[a] = grid_v_bar[GV_CH * node + a];
         }
 #if CLFLOW_FLIP
         real mv0_dot = 0;
         for (int a = 0; a < 3; ++a) {
-            real dv_bar = grid_v_bar_copies[GV_CH * node + 3 + a];
-            for (int k = 1; k < copies; ++k)
-                dv_bar += grid_v_bar_copies[k * GV_CH * nodes + GV_CH * node + 3 + a];
+            const real dv_bar = grid_v_bar[GV_CH * node + 3 + a];
             v_bar[a] += dv_bar;
             out[4 + a] = -dv_bar / m;
             mv0_dot += grid[GRID_CH * node + 4 + a] * dv_bar;
