@@ -59,7 +59,8 @@ class StateGrad:
 
 class SubstepAdjoint:
     """The adjoint kernels of one device, precision, particle count, grid, material set and
-    PIC/FLIP blend, with their scratch buffers (grid adjoint, taubar, U s V, private grid copies)."""
+    PIC/FLIP blend, with their scratch buffers (grid adjoint, taubar, U s V, private grid copies,
+    their boxes and their sum grid_v_bar)."""
 
     def __init__(self, device, dtype: torch.dtype, n: int, grid: Grid, materials: torch.Tensor, flip: float = 0.0):
         import pyopencl as cl

@@ -72,7 +72,8 @@ inline int stencil_base(const grid_t *g, const real xa, const int axis)
  * It zeroes and records only the box of nodes its particles' stencils touch, box[0..2] (lower)
  * to box[3..5] (upper, exclusive), in nodes; a column sum reads copy k only inside box k, so
  * nodes no particle of the chunk reaches cost neither a write nor a read (a small object in a
- * large domain: most of them). An empty chunk has an empty box. */
+ * large domain: most of them). An empty chunk has an empty box; one with a position that is not
+ * finite (whose stencil make_stencil clamps somewhere) the whole grid. */
 inline void chunk_box(const grid_t *g, __global const real *x, const int begin, const int end, int *box)
 {
     if (begin >= end) {
@@ -80,17 +81,19 @@ inline void chunk_box(const grid_t *g, __global const real *x, const int begin, 
             box[a] = 0;
         return;
     }
-    real lo[3], hi[3];
+    real lo[3], hi[3], finite = 0; /* finite: 0 while every coordinate is (inf * 0, NaN * 0: NaN) */
     for (int a = 0; a < 3; ++a)
-        lo[a] = hi[a] = x[3 * begin + a];
-    for (int p = begin + 1; p < end; ++p)
+        lo[a] = hi[a] = x[3 * (long)begin + a];
+    for (long p = begin; p < end; ++p)
         for (int a = 0; a < 3; ++a) {
-            lo[a] = fmin(lo[a], x[3 * p + a]);
-            hi[a] = fmax(hi[a], x[3 * p + a]);
+            const real xa = x[3 * p + a];
+            lo[a] = fmin(lo[a], xa);
+            hi[a] = fmax(hi[a], xa);
+            finite += xa * 0;
         }
     for (int a = 0; a < 3; ++a) { /* stencil_base is monotonic: the extremes' stencils bound the box */
-        box[a] = stencil_base(g, lo[a], a);
-        box[3 + a] = stencil_base(g, hi[a], a) + 3;
+        box[a] = finite == 0 ? stencil_base(g, lo[a], a) : 0;
+        box[3 + a] = finite == 0 ? stencil_base(g, hi[a], a) + 3 : grid_extent(g, a);
     }
 }
 

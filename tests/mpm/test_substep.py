@@ -11,7 +11,9 @@ FIELDS = ("x", "v", "C", "F", "plastic")
 
 
 def rel_diff(a, b) -> float:
-    return float((a - b).abs().max() / b.abs().max().clamp(min=1e-30))
+    """max |a - b| / max |b|; inf where either holds a NaN (max() would pass over it)."""
+    diff = float((a - b).abs().max() / b.abs().max().clamp(min=1e-30))
+    return diff if diff == diff else float("inf")
 
 
 def run_both(sim, substeps):

@@ -1,6 +1,6 @@
 /* Adjoint of G2P (g2p.cl), a scatter onto the grid, deterministic without float atomics:
  * work-item k handles the contiguous particle chunk k into its own grid copy; the host then
- * sums the copies in a fixed order, each only inside its box (p2g.cl: p2g_reduce).
+ * sums the copies in a fixed order, each only inside its box (p2g.cl: sum_grid_copies).
  *
  * Forward: v_pic = sum_i w v_i,  C' = (4/dx^2) sum_i w v_i d^T,  x' = clamp(x + dt v_pic),
  * v' = v_pic, or with CLFLOW_FLIP v' = flip (v + sum_i w dv_i) + (1 - flip) v_pic.

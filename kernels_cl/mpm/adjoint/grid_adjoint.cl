@@ -1,5 +1,6 @@
 /* Adjoint of the grid update (grid.cl), reading vbar from grid_v_bar, the column sum of the
- * G2P adjoint's private grid copies (sum_grid_copies; only on nodes with mass): boundary conditions in reverse table order, then
+ * G2P adjoint's private grid copies (sum_grid_copies; only on nodes with mass): boundary
+ * conditions in reverse table order, then
  * v = mv/m + dt g:  pbar = vbar/m,  mbar = -(mv . vbar)/m^2  (0 on empty nodes).
  * With CLFLOW_FLIP grid_v_bar also holds dvbar of dv = v - mv0/m: vbar += dvbar before the
  * boundary conditions' adjoint (dv reads v after them), p0bar = -dvbar/m and
