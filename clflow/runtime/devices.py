@@ -369,7 +369,8 @@ class Device:
                 self._kernels[key] = kern
                 from clflow.runtime.signatures import KernelSignature  # numpy: not at import (CLI --help)
 
-                self._signatures[id(kern)] = KernelSignature.of(kern, real)  # cached kernels live on
+                signature = self._signatures[id(kern)] = KernelSignature.of(kern, real)  # cached kernels live on
+                kern.set_scalar_arg_dtypes(signature.scalar_dtypes())
             return kern
 
     def signature(self, kernel) -> KernelSignature:
