@@ -275,15 +275,14 @@ def memory_estimate(
     (13 with a PIC/FLIP blend ``flip`` > 0), plus, when segment < substeps, the first state
     of every later segment and a scratch state (two-level checkpointing); the kernels'
     working buffers (two forward states, tau, grids; two state gradients, taubar, U s V,
-    parameter and mass gradients, grid adjoint and the sum of its copies); and ``grid_copies`` private grid copies of
-    g reals per node (CPU path: P2G and its adjoint)."""
+    parameter and mass gradients, the grid adjoint and the sum of its copies: g per node); and
+    ``grid_copies`` private grid copies of g reals per node (CPU path: P2G and its adjoint)."""
     itemsize = torch.tensor([], dtype=dtype).element_size()
     k = substeps if segment is None else segment
     g = grid_channels(flip) + velocity_channels(flip)  # reals per node: P2G grid, grid_v[, grid_dv]
     checkpoints = (frames + 1) * n * (25 + 15 + 15)
     replay = k * (n * (25 + 9) + g * nodes) + (n * 25 * (-(-substeps // k)) if k < substeps else 0)
-    adjoint_grids = (grid_channels(flip) + velocity_channels(flip)) * nodes
-    working = n * (2 * 25 + 9) + g * nodes + n * (2 * 25 + 9 + 21 + PARAM_COUNT + 1) + adjoint_grids
+    working = n * (2 * 25 + 9) + g * nodes + n * (2 * 25 + 9 + 21 + PARAM_COUNT + 1) + g * nodes
     return itemsize * (checkpoints + replay + working + grid_copies * g * nodes)
 
 

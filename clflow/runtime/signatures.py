@@ -73,12 +73,12 @@ class KernelSignature:
         struct or image): what ``cl.Kernel.set_scalar_arg_dtypes`` takes. Declared, pyopencl
         packs the scalars itself (about 1 us a call) instead of inspecting each (10-20 us
         each on PoCL: 0.6 ms of host time a substep, a quarter of a small scene's)."""
-        dtypes = []
-        for argument in self.arguments:
-            base = argument.type_name.rstrip("*")
-            scalar = not argument.type_name.endswith("*") and base in (*SCALAR_TYPES, "real")
-            dtypes.append(np.dtype(SCALAR_TYPES[self.real if base == "real" else base]) if scalar else None)
-        return dtypes
+        return [self._dtype(a.type_name) if a.type_name in (*SCALAR_TYPES, "real") else None for a in self.arguments]
+
+    def _dtype(self, type_name: str) -> np.dtype:
+        """The numpy dtype of an OpenCL scalar type name or of a pointer's target (``real`` resolved)."""
+        base = type_name.rstrip("*")
+        return np.dtype(SCALAR_TYPES[self.real if base == "real" else base])
 
     def ordered(self, args: Mapping[str, Any]) -> list:
         """``args`` (name -> value) in the kernel's argument order, each checked against its type."""
@@ -101,8 +101,7 @@ class KernelSignature:
 
     def _kind(self, type_name: str) -> tuple[str, int]:
         """("f" or "i", bytes) of an OpenCL scalar type name (``real`` resolved)."""
-        base = type_name.rstrip("*")
-        dtype = np.dtype(SCALAR_TYPES[self.real if base == "real" else base])
+        dtype = self._dtype(type_name)
         return ("f" if dtype.kind == "f" else "i"), dtype.itemsize
 
     def _check(self, argument: KernelArgument, value: Any) -> None:

@@ -42,6 +42,9 @@ def test_the_scalars_are_declared_to_pyopencl_so_it_packs_them_itself(device):
     dtypes = dict(zip((a.name for a in device.signature(grid).arguments), device.signature(grid).scalar_dtypes()))
     assert dtypes["dt"] == np.float64 and dtypes["nx"] == np.int32 and dtypes["grid"] is None
     assert KernelSignature("k", "float", (KernelArgument("x", "real"),)).scalar_dtypes() == [np.dtype(np.float32)]
+    # declared: pyopencl packs a plain Python number itself (undeclared, PoCL refuses it)
+    ranges, args = key_ranges_call(device, [0, 0, 2])
+    kernel.set_args(args["keys"].buffer, ranges.buffer, 3)
 
 
 def test_a_call_by_name_runs_in_the_kernels_order(device):
