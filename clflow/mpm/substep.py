@@ -229,7 +229,7 @@ class DriverAccelerations:
 
     def at(self, t: float) -> DeviceArray:
         """The accelerations at time ``t`` (s)."""
-        key = tuple(bool(a) for a in self.drivers.active(t).tolist())
+        key = tuple(f.start <= t < f.end for f in self.drivers.forces)  # the stages active (DriverGroups.active)
         table = self._tables.get(key)
         if table is None:
             accel = self.drivers.accel(t, self.dtype, self.stage_accel)
@@ -352,6 +352,7 @@ class SubstepKernels:
         self.device, self.dtype, self.n, self.grid, self.flip = device, dtype, n, grid, float(flip)
         channels = grid_channels(self.flip)
         self.real, self.real_t = real_of(dtype, "simulation"), numpy_real(dtype, "simulation")
+        self.grid_args = grid.kernel_args(self.real_t)
         check_device(device, dtype, p2g)
         self.p2g = p2g = p2g_path(device, p2g)
         stage = StressStage.of(materials)
@@ -398,7 +399,7 @@ class SubstepKernels:
         of DeviceArrays); ``clamped`` uint8 [N] flags that G2P sets to 1 for particles it
         clamps; tau and the grids go into ``tape`` (default: ``self.scratch``)."""
         dev, R, n = self.device, self.real_t, np.int32(self.n)
-        grid_args = self.grid.kernel_args(R)
+        grid_args = self.grid_args
         tape = tape or self.scratch
         particles = inputs.particles
         outputs = dict(F_out=out.F, plastic_out=out.plastic, tau_out=tape.tau)

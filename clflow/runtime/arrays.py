@@ -182,7 +182,7 @@ class DeviceArray:
         import pyopencl as cl
 
         if self.nbytes:
-            self.device.keep_until_done([self])
+            self.device.keep_until_done([a.host for a in (self,) if a.host is not None])
             cl.enqueue_fill_buffer(self.device.queue, self.buffer, np.zeros(1, np.uint8), 0, self.nbytes)
             self._mirror = None
         return self
@@ -194,7 +194,7 @@ class DeviceArray:
         if other.shape != self.shape or other.dtype != self.dtype:
             raise InputError(f"copy_: {other!r} into {self!r}: shapes or dtypes differ")
         if self.nbytes:
-            self.device.keep_until_done([self, other])
+            self.device.keep_until_done([a.host for a in (self, other) if a.host is not None])
             cl.enqueue_copy(self.device.queue, self.buffer, other.buffer, byte_count=self.nbytes)
             self._mirror = None
         return self

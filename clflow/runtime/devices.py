@@ -21,9 +21,10 @@ import os
 import threading
 import time
 import warnings
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 from clflow.errors import DeviceError
 
@@ -284,6 +285,7 @@ class Device:
         # host tensors of zero-copy arrays that enqueued commands use: kept alive until the
         # queue has run them (OpenCL keeps its buffers alive, not the memory they alias)
         self._in_flight: dict[int, Any] = {}
+        self._sizes: dict[tuple, tuple] = {}  # (global, local) size asked -> what launch enqueues
 
     @property
     def zero_copy(self) -> bool:
@@ -397,6 +399,33 @@ class Device:
         up to a multiple of ``local_size``; kernels guard their tail work-items. ``local_size``
         None leaves the choice to the driver (no padding).
         """
+        gsize, lsize = self._work_sizes(global_size, local_size)
+        if not isinstance(args, Mapping):
+            from clflow.runtime.signatures import KernelCallError
+
+            raise KernelCallError(f"kernel {kernel.function_name}: pass its arguments by name (a mapping)")
+        values = self.signature(kernel).ordered(args)
+        raw, hosts = [], []
+        for value in values:
+            buffer = getattr(value, "buffer", None)  # a clflow.runtime.arrays.DeviceArray
+            if buffer is None:
+                raw.append(value)
+            else:
+                raw.append(buffer)
+                if value.host is not None:
+                    hosts.append(value.host)
+        if hosts:
+            self.keep_until_done(hosts)
+        kernel.set_args(*raw)
+        return _import_pyopencl().enqueue_nd_range_kernel(self._queue or self.queue, kernel, gsize, lsize)
+
+    def _work_sizes(self, global_size, local_size) -> tuple[tuple, tuple | None]:
+        """(global, local) work sizes of :meth:`launch`, the global padded to whole work-groups
+        (cached: a substep asks for the same few again and again)."""
+        key = (global_size, local_size)
+        sizes = self._sizes.get(key) if isinstance(global_size, int) else None
+        if sizes is not None:
+            return sizes
         gsize = (global_size,) if isinstance(global_size, int) else tuple(global_size)
         if local_size is None:
             lsize = None
@@ -404,24 +433,16 @@ class Device:
             lsize = (local_size,) + (1,) * (len(gsize) - 1) if isinstance(local_size, int) else tuple(local_size)
             lsize = tuple(min(size, self.info.max_work_group_size) for size in lsize)
             gsize = tuple(round_up(g, size) for g, size in zip(gsize, lsize))
-        if not isinstance(args, Mapping):
-            from clflow.runtime.signatures import KernelCallError
+        if isinstance(global_size, int) and len(self._sizes) < 4096:
+            self._sizes[key] = (gsize, lsize)
+        return gsize, lsize
 
-            raise KernelCallError(f"kernel {kernel.function_name}: pass its arguments by name (a mapping)")
-        args = self.signature(kernel).ordered(args)
-        arrays = [a for a in args if hasattr(a, "buffer")]  # clflow.runtime.arrays.DeviceArray
-        self.keep_until_done(arrays)
-        kernel.set_args(*(a.buffer if hasattr(a, "buffer") else a for a in args))
-        cl = _import_pyopencl()
-        return cl.enqueue_nd_range_kernel(self.queue, kernel, gsize, lsize)
-
-    def keep_until_done(self, arrays) -> None:
-        """Keep the host memory of zero-copy DeviceArrays that enqueued commands use alive
-        until the queue has run them (the next :meth:`finish` or blocking transfer)."""
+    def keep_until_done(self, hosts) -> None:
+        """Keep the host memory of zero-copy DeviceArrays (``hosts``: their ``host`` tensors)
+        that enqueued commands use alive until the queue has run them (the next
+        :meth:`finish` or blocking transfer)."""
         with self._lock:
-            for a in arrays:
-                if a.host is not None:
-                    self._in_flight[id(a.host)] = a.host
+            self._in_flight.update((id(h), h) for h in hosts)
             crowded = len(self._in_flight) > MAX_IN_FLIGHT
         if crowded:
             self.finish()

@@ -67,6 +67,7 @@ class KernelSignature:
         # the kinds of argument values already checked against this signature: a call site
         # repeats its kinds, so only its first call pays for the checks (G2P: ~6 us a call, not ~55)
         object.__setattr__(self, "_checked", set())
+        object.__setattr__(self, "_names", tuple(a.name for a in self.arguments))
 
     def scalar_dtypes(self) -> list:
         """Per argument, the numpy dtype of a scalar (``real`` resolved) or None (a pointer,
@@ -82,12 +83,16 @@ class KernelSignature:
 
     def ordered(self, args: Mapping[str, Any]) -> list:
         """``args`` (name -> value) in the kernel's argument order, each checked against its type."""
-        names = [a.name for a in self.arguments]
-        if len(args) == len(names) and all(n in args for n in names):
-            values = [args[n] for n in names]
-            kinds = tuple((type(v), getattr(v, "dtype", None)) for v in values)
-            if kinds in self._checked:
-                return values
+        names = self._names
+        if len(args) == len(names):
+            try:
+                values = [args[n] for n in names]
+            except KeyError:
+                values = None
+            if values is not None:
+                kinds = tuple([(type(v), getattr(v, "dtype", None)) for v in values])
+                if kinds in self._checked:
+                    return values
         missing, unknown = [n for n in names if n not in args], sorted(set(args) - set(names))
         problems = ([f"missing {', '.join(missing)}"] if missing else []) + (
             [f"unknown {', '.join(unknown)}"] if unknown else []
