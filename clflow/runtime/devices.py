@@ -422,8 +422,9 @@ class Device:
     def _work_sizes(self, global_size, local_size) -> tuple[tuple, tuple | None]:
         """(global, local) work sizes of :meth:`launch`, the global padded to whole work-groups
         (cached: a substep asks for the same few again and again)."""
-        key = (global_size, local_size)
-        sizes = self._sizes.get(key) if isinstance(global_size, int) else None
+        plain = isinstance(global_size, int) and (local_size is None or isinstance(local_size, int))
+        key = (global_size, local_size) if plain else None
+        sizes = None if key is None else self._sizes.get(key)
         if sizes is not None:
             return sizes
         gsize = (global_size,) if isinstance(global_size, int) else tuple(global_size)
@@ -433,7 +434,7 @@ class Device:
             lsize = (local_size,) + (1,) * (len(gsize) - 1) if isinstance(local_size, int) else tuple(local_size)
             lsize = tuple(min(size, self.info.max_work_group_size) for size in lsize)
             gsize = tuple(round_up(g, size) for g, size in zip(gsize, lsize))
-        if isinstance(global_size, int) and len(self._sizes) < 4096:
+        if key is not None and len(self._sizes) < 4096:
             self._sizes[key] = (gsize, lsize)
         return gsize, lsize
 
