@@ -356,7 +356,7 @@ class SubstepKernels:
         check_device(device, dtype, p2g)
         self.p2g = p2g = p2g_path(device, p2g)
         stage = StressStage.of(materials)
-        defines = stage.defines(self.flip)
+        self.defines = defines = stage.defines(self.flip)  # the -D switches of its programs
         k = lambda src, name: device.kernel(src, name, self.real, defines)  # noqa: E731
         self.elastic_only = stage.elastic_only
         self.k_stress, self.k_svd = stage.kernels(device, self.real)
@@ -368,7 +368,7 @@ class SubstepKernels:
         grid_bytes = channels * grid.nodes * itemsize
         if p2g == "private":
             self.k_p2g = k("mpm/p2g.cl", "p2g_private")
-            self.k_sum = k("mpm/p2g.cl", "sum_grid_copies")
+            self.k_grid = k("mpm/grid.cl", "sum_copies_update_grid")  # sums the copies, then updates
             self.copies = grid_copies(device, grid_bytes, n)
             self.chunk = -(-n // self.copies)
             self.grid_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * grid_bytes)
@@ -406,10 +406,13 @@ class SubstepKernels:
         stress_args = dict(plastic_in=state.plastic, material=particles.material, param=particles.param) | outputs
         launch_stress(self, inputs.dt, state.F, state.C, stress_args, elastic_omits=("material",))
         p2g_args = grid_args | p2g_particle_args(R, state, tape, inputs)
-        if self.p2g == "private":
+        grids = dict(grid=tape.grid_mv, grid_v=tape.grid_v, grid_dv=tape.grid_dv)
+        grid_update_args = grid_args | inputs.grid_update_args(R) | grids
+        if self.p2g == "private":  # the grid update sums the copies itself, a row of nodes a work-item
             copies = dict(copies=np.int32(self.copies), grid_copies=self.grid_copies, boxes=self.copy_boxes)
             dev.launch(self.k_p2g, self.copies, p2g_args | copies | dict(chunk=np.int32(self.chunk)), local_size=1)
-            sum_grid_copies(self, copies, grid_channels(self.flip), tape.grid_mv)
+            nx, ny, _ = self.grid.resolution
+            dev.launch(self.k_grid, nx * ny, grid_update_args | copies)
         elif self.p2g == "gather":
             keys, ids, spare_keys, spare_ids = self.cell_pairs
             dev.launch(self.k_cells, self.n, grid_args | dict(n=n, x=state.x, key=keys, id=ids))
@@ -424,8 +427,8 @@ class SubstepKernels:
         else:
             tape.grid_mv.zero_()  # on the device, in queue order: the atomics add onto zeros
             dev.launch(self.k_p2g, self.n, p2g_args | dict(grid=tape.grid_mv))
-        grids = dict(grid=tape.grid_mv, grid_v=tape.grid_v, grid_dv=tape.grid_dv)
-        dev.launch(self.k_grid, self.grid.nodes, grid_args | inputs.grid_update_args(R) | grids)
+        if self.p2g != "private":
+            dev.launch(self.k_grid, self.grid.nodes, grid_update_args)
         g2p = dict(n=n, dt=R(inputs.dt), t=R(inputs.t), flip=R(self.flip), x_in=state.x, v_in=state.v)
         g2p |= dict(grid_v=tape.grid_v, grid_dv=tape.grid_dv, release_time=particles.release_time)
         g2p |= dict(x_out=out.x, v_out=out.v, C_out=out.C, clamped=clamped)

@@ -102,23 +102,17 @@ inline void apply_condition(__global const real *rec, const real *xi, real *v)
         apply_cylinder(rec, xi, v);
 }
 
-__kernel void grid_update(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
-                          const real oz, const real dt, const real t, const real gx, const real gy, const real gz,
-                          const real mass_eps, __global const real *grid, __global real *grid_v, __global real *grid_dv,
-                          __global const real *bc, const int n_bc)
+/* grid_update of node (i, j, k), flat index `node`. */
+inline void update_node(const grid_t *g, const long node, const int i, const int j, const int k, const real dt,
+                        const real t, const real *gravity, const real mass_eps, __global const real *grid,
+                        __global real *grid_v, __global real *grid_dv, __global const real *bc, const int n_bc)
 {
-    const long node = get_global_id(0);
-    const long nodes = (long)nx * ny * nz;
-    if (node >= nodes)
-        return;
     const real m = grid[GRID_CH * node];
     real v[3] = {0, 0, 0};
     if (m > mass_eps) {
-        const real g[3] = {gx, gy, gz};
         for (int a = 0; a < 3; ++a)
-            v[a] = grid[GRID_CH * node + 1 + a] / m + dt * g[a];
-        const int k = node % nz, j = (node / nz) % ny, i = node / ((long)nz * ny);
-        const real xi[3] = {ox + i * dx, oy + j * dx, oz + k * dx};
+            v[a] = grid[GRID_CH * node + 1 + a] / m + dt * gravity[a];
+        const real xi[3] = {g->origin[0] + i * g->dx, g->origin[1] + j * g->dx, g->origin[2] + k * g->dx};
         for (int b = 0; b < n_bc; ++b) {
             __global const real *rec = bc + (long)b * BC_STRIDE;
             if (bc_active(rec, t))
@@ -133,4 +127,57 @@ __kernel void grid_update(const int nx, const int ny, const int nz, const real d
             dv[a] = v[a] - grid[GRID_CH * node + 4 + a] / m;
     store_row(grid_dv, node, 3, dv);
 #endif
+}
+
+#define GRID_UPDATE_ARGS                                                                                               \
+    const int nx, const int ny, const int nz, const real dx, const real ox, const real oy, const real oz,              \
+        const real dt, const real t, const real gx, const real gy, const real gz, const real mass_eps
+
+/* A work-item per node (the gather and atomic P2G paths). */
+__kernel void grid_update(GRID_UPDATE_ARGS, __global const real *grid, __global real *grid_v, __global real *grid_dv,
+                          __global const real *bc, const int n_bc)
+{
+    const long node = get_global_id(0);
+    const long nodes = (long)nx * ny * nz;
+    if (node >= nodes)
+        return;
+    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const real gravity[3] = {gx, gy, gz};
+    const int k = node % nz, j = (node / nz) % ny, i = node / ((long)nz * ny);
+    update_node(&g, node, i, j, k, dt, t, gravity, mass_eps, grid, grid_v, grid_dv, bc, n_bc);
+}
+
+/* The private P2G path's grid stage, a work-item per row of nodes (i, j): the row of the
+ * column sum of p2g_private's grid copies into `grid` (sum_copies_row), then grid_update of
+ * the row's nodes that a copy's box holds; the others have no mass (with mass_eps >= 0:
+ * velocity and change 0, as grid_update gives them). The same values as a sum kernel and
+ * grid_update, in one launch, with the grid update only where the particles are. */
+__kernel void sum_copies_update_grid(GRID_UPDATE_ARGS, const int copies, __global const int *boxes,
+                                     __global const real *grid_copies, __global real *grid, __global real *grid_v,
+                                     __global real *grid_dv, __global const real *bc, const int n_bc)
+{
+    const int row = get_global_id(0);
+    if (row >= nx * ny)
+        return;
+    int lo, hi;
+    sum_copies_row(nx, ny, nz, GRID_CH, copies, boxes, grid_copies, grid, row, &lo, &hi);
+    if (!(mass_eps >= 0)) { /* an empty node is not simply at rest: update them all */
+        lo = 0;
+        hi = nz;
+    }
+    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const real gravity[3] = {gx, gy, gz};
+    for (int k = 0; k < nz; ++k) {
+        const long node = (long)row * nz + k;
+        if (k >= lo && k < hi) {
+            update_node(&g, node, row / ny, row % ny, k, dt, t, gravity, mass_eps, grid, grid_v, grid_dv, bc, n_bc);
+            continue;
+        }
+        for (int a = 0; a < 3; ++a) {
+            grid_v[3 * node + a] = 0;
+#if CLFLOW_FLIP
+            grid_dv[3 * node + a] = 0;
+#endif
+        }
+    }
 }

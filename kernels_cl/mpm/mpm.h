@@ -114,6 +114,34 @@ inline __global real *boxed_copy(const grid_t *g, __global real *copies, const i
     return copy;
 }
 
+/* Row (i, j) = (row / ny, row % ny) of the column sum of `copies` private grid copies
+ * ([nodes, channels] each, consecutive in grid_copies): the row's channels * nz contiguous
+ * reals of grid = the sum over copies k = 0, 1, ..., in that order, of copy k's part of the
+ * row that lies in box k (boxed_copy; zero elsewhere). Returns the nodes [*lo, *hi) of the row
+ * that some box holds (lo = nz, hi = 0 when none): outside them the row is zero. */
+inline void sum_copies_row(const int nx, const int ny, const int nz, const int channels, const int copies,
+                           __global const int *boxes, __global const real *grid_copies, __global real *grid,
+                           const int row, int *lo, int *hi)
+{
+    *lo = nz;
+    *hi = 0;
+    const int i = row / ny, j = row % ny;
+    const long width = (long)channels * nz, size = width * nx * ny;
+    __global real *out = grid + row * width;
+    for (long e = 0; e < width; ++e)
+        out[e] = 0;
+    for (int k = 0; k < copies; ++k) {
+        __global const int *box = boxes + 6 * k;
+        if (i < box[0] || i >= box[3] || j < box[1] || j >= box[4])
+            continue;
+        __global const real *in = grid_copies + k * size + row * width;
+        for (long e = (long)channels * box[2]; e < (long)channels * box[5]; ++e)
+            out[e] += in[e];
+        *lo = min(*lo, box[2]);
+        *hi = max(*hi, box[5]);
+    }
+}
+
 /* Quadratic B-spline weights w[0..2] of one axis at f = xi - base (real or realv). */
 #define STENCIL_WEIGHTS(f, w)                                                                                          \
     do {                                                                                                               \

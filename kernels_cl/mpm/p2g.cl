@@ -9,7 +9,7 @@
  * Grid layout: grid[GRID_CH*node + (0: m, 1..3: mv, 4..6: mv0 with CLFLOW_FLIP)].
  *
  * Two ways to sum, chosen by the host from the device record:
- *  - p2g_private + sum_grid_copies (CPU devices, no float atomics): work-item k scatters the
+ *  - p2g_private + sum_copies_update_grid (grid.cl; CPU devices, no float atomics): work-item k scatters the
  *    contiguous particle chunk k into its own grid copy with plain adds, then the copies
  *    are summed node by node in the fixed order k = 0, 1, ...: deterministic, bit-identical.
  *    Each copy is zeroed and summed only in the box of nodes its chunk touches (chunk_box).
@@ -70,6 +70,98 @@ inline void p2g_particle(const grid_t *g, const int p, const real dt, __global c
             }
 }
 
+#ifdef CLFLOW_SIMD_LANES
+/* dot(a, b) of 3-vectors in lanes, as the dot builtin rounds it: (a0 b0 + a1 b1) + a2 b2, each
+ * product and sum rounded on its own (separate statements: no fused multiply-add). */
+inline realv dot3_v(const realv *a, const realv *b)
+{
+    const realv xx = a[0] * b[0];
+    const realv yy = a[1] * b[1];
+    const realv zz = a[2] * b[2];
+    const realv xy = xx + yy;
+    return xy + zz;
+}
+
+/* p2g_particle (plain adds) of particles p0 .. min(p0 + CLFLOW_SIMD_LANES, end) - 1: their node
+ * values computed in vector lanes, lane by lane the operations of p2g_particle, then added
+ * particle after particle, each one's 27 nodes in p2g_particle's order: the same sums to the
+ * bit, for a fraction of the arithmetic (CPU compilers do not vectorise p2g_private's loop). */
+inline void p2g_lanes(const grid_t *g, const int p0, const int end, const real dt, __global const real *x,
+                      __global const real *v, __global const real *C, __global const real *tau,
+                      __global const real *mass, __global const real *volume, __global const int *group,
+                      __global const real *accel, __global real *grid)
+{
+    realv xv[3], m, momentum[3], affine[3][3];
+#if CLFLOW_FLIP
+    realv vel[3], mC[3][3];
+#endif
+    for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) { /* p2g_particle's per-particle values */
+        const int p = min(p0 + l, end - 1);
+        const real mp = mass[p];
+        const real stress_scale = -dt * volume[p] * 4 / (g->dx * g->dx);
+        const int gp = group[p];
+        const vec3r vp = vload3(p, v);
+        const vec3r mom = mp * (vp + (gp >= 0 ? dt * vload3(gp, accel) : (vec3r)0));
+        ((real *)&m)[l] = mp;
+        for (int a = 0; a < 3; ++a) {
+            ((real *)&xv[a])[l] = x[3 * (long)p + a];
+            ((real *)&momentum[a])[l] = a == 0 ? mom.x : (a == 1 ? mom.y : mom.z);
+        }
+        for (int r = 0; r < 3; ++r) {
+            const vec3r row = stress_scale * vload3(3 * p + r, tau) + mp * vload3(3 * p + r, C);
+            ((real *)&affine[r][0])[l] = row.x;
+            ((real *)&affine[r][1])[l] = row.y;
+            ((real *)&affine[r][2])[l] = row.z;
+#if CLFLOW_FLIP
+            const vec3r mCr = mp * vload3(3 * p + r, C);
+            ((real *)&mC[r][0])[l] = mCr.x;
+            ((real *)&mC[r][1])[l] = mCr.y;
+            ((real *)&mC[r][2])[l] = mCr.z;
+            ((real *)&vel[r])[l] = r == 0 ? vp.x : (r == 1 ? vp.y : vp.z);
+#endif
+        }
+    }
+    const stencil_v_t st = make_stencil_v(g, xv);
+    realv node_w[27], node_mv[27][3];
+#if CLFLOW_FLIP
+    realv node_mv0[27][3];
+#endif
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            for (int k = 0; k < 3; ++k) {
+                const int o = 9 * i + 3 * j + k;
+                const realv w = st.w[0][i] * st.w[1][j] * st.w[2][k];
+                const realv d[3] = {((real)i - st.fx[0]) * g->dx, ((real)j - st.fx[1]) * g->dx,
+                                    ((real)k - st.fx[2]) * g->dx};
+                node_w[o] = w;
+                for (int r = 0; r < 3; ++r) {
+                    node_mv[o][r] = w * (momentum[r] + dot3_v(affine[r], d));
+#if CLFLOW_FLIP
+                    node_mv0[o][r] = w * (m * vel[r] + dot3_v(mC[r], d));
+#endif
+                }
+            }
+    for (int l = 0; l < min(CLFLOW_SIMD_LANES, end - p0); ++l) {
+        const real mp = LANE(m, l);
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                for (int k = 0; k < 3; ++k) {
+                    const int o = 9 * i + 3 * j + k;
+                    __global real *node = grid + GRID_CH * (st.corner[l] + grid_index(g, i, j, k));
+                    node[0] += LANE(node_w[o], l) * mp;
+                    node[1] += LANE(node_mv[o][0], l);
+                    node[2] += LANE(node_mv[o][1], l);
+                    node[3] += LANE(node_mv[o][2], l);
+#if CLFLOW_FLIP
+                    node[4] += LANE(node_mv0[o][0], l);
+                    node[5] += LANE(node_mv0[o][1], l);
+                    node[6] += LANE(node_mv0[o][2], l);
+#endif
+                }
+    }
+}
+#endif
+
 #define P2G_GRID_ARGS                                                                                                  \
     const int nx, const int ny, const int nz, const real dx, const real ox, const real oy, const real oz
 #define P2G_PARTICLE_ARGS                                                                                              \
@@ -90,34 +182,27 @@ __kernel void p2g_private(P2G_GRID_ARGS, P2G_PARTICLE_ARGS, const int copies, co
     int box[6];
     chunk_box(&g, x, begin, end, box);
     __global real *grid = boxed_copy(&g, grid_copies, k, GRID_CH, box, boxes);
+#ifdef CLFLOW_SIMD_LANES
+    for (int p0 = begin; p0 < end; p0 += CLFLOW_SIMD_LANES)
+        p2g_lanes(&g, p0, end, dt, x, v, C, tau, mass, volume, group, accel, grid);
+#else
     for (int p = begin; p < end; ++p)
         p2g_particle(&g, p, dt, x, v, C, tau, mass, volume, group, accel, grid, 0);
+#endif
 }
 
 /* grid[node] = the sum over copies k = 0, 1, ..., in that order, of copies[k][node] ([nodes,
  * channels] each), each copy counted as zero outside its box (chunk_box): the column sum of the
- * private-copy scatters (p2g_private here, g2p_adjoint_private in the adjoint). A work-item per
- * row of nodes (i, j, 0..nz-1), channels * nz contiguous reals: it adds each copy's part of the
- * row that lies in its box. */
+ * private-copy scatters (g2p_adjoint_private's here; p2g_private's in grid.cl's
+ * sum_copies_update_grid). A work-item per row of nodes (sum_copies_row). */
 __kernel void sum_grid_copies(const int nx, const int ny, const int nz, const int channels, const int copies,
                               __global const int *boxes, __global const real *grid_copies, __global real *grid)
 {
     const int row = get_global_id(0);
     if (row >= nx * ny)
         return;
-    const int i = row / ny, j = row % ny;
-    const long width = (long)channels * nz, size = width * nx * ny;
-    __global real *out = grid + row * width;
-    for (long e = 0; e < width; ++e)
-        out[e] = 0;
-    for (int k = 0; k < copies; ++k) {
-        __global const int *box = boxes + 6 * k;
-        if (i < box[0] || i >= box[3] || j < box[1] || j >= box[4])
-            continue;
-        __global const real *in = grid_copies + k * size + row * width;
-        for (long e = (long)channels * box[2]; e < (long)channels * box[5]; ++e)
-            out[e] += in[e];
-    }
+    int lo, hi;
+    sum_copies_row(nx, ny, nz, channels, copies, boxes, grid_copies, grid, row, &lo, &hi);
 }
 
 /* One work-item per particle, atomic adds into `grid` (zeroed by the host). */

@@ -165,6 +165,31 @@ def test_private_copies_are_zeroed_and_summed_only_in_their_boxes(flip):
     assert sim.kernels.copies >= 2 and int(volumes.max()) <= sim.grid.nodes // 4, boxes
 
 
+@pytest.mark.parametrize("flip", [0.0, 0.99])
+def test_the_private_paths_grid_update_equals_grid_update_on_every_node(flip):
+    """sum_copies_update_grid updates only the nodes inside a copy's box and writes zero
+    elsewhere: with the grid velocities full of NaN beforehand, each substep's velocities (and
+    their change) equal to the bit what grid_update makes of the same summed grid, on every node."""
+    import numpy as np
+
+    sim = two_blocks(("newtonian", "elastic"), flip=flip)
+    kernels, tape = sim.kernels, sim.kernels.scratch
+    update = sim.device.kernel("mpm/grid.cl", "grid_update", kernels.real, kernels.defines)
+    for _ in range(5):
+        poison(sim.device, tape.grid_v.buffer)
+        poison(sim.device, tape.grid_dv.buffer)
+        inputs = sim.substep_inputs()
+        sim.step()
+        fields = (tape.grid_v, tape.grid_dv) if flip else (tape.grid_v,)  # APIC: grid_dv is [1, 3], unused
+        got = tuple(f.read() for f in fields)
+        grids = dict(grid=tape.grid_mv, grid_v=tape.grid_v, grid_dv=tape.grid_dv)
+        sim.device.launch(update, sim.grid.nodes, kernels.grid_args | inputs.grid_update_args(kernels.real_t) | grids)
+        want = tuple(f.read() for f in fields)
+        for g, w in zip(got, want):
+            assert torch.isfinite(w).all() and torch.equal(g, w)
+    assert (got[0][tape.grid_mv.read()[:, 0] == 0] == 0).all() and np.any(got[0].numpy() != 0)
+
+
 def test_the_p2g_path_follows_the_device_unless_forced(device, monkeypatch):
     from clflow.errors import InputError
     from clflow.mpm.substep import P2G_ENV, p2g_path
