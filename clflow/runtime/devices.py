@@ -417,7 +417,7 @@ class Device:
         if hosts:
             self.keep_until_done(hosts)
         kernel.set_args(*raw)
-        return _import_pyopencl().enqueue_nd_range_kernel(self._queue or self.queue, kernel, gsize, lsize)
+        return _import_pyopencl().enqueue_nd_range_kernel(self.queue, kernel, gsize, lsize)
 
     def _work_sizes(self, global_size, local_size) -> tuple[tuple, tuple | None]:
         """(global, local) work sizes of :meth:`launch`, the global padded to whole work-groups
