@@ -17,10 +17,11 @@
 #include "mpm/mpm.h"
 #include "common/atomics.h"
 
-inline void p2g_particle(const grid_t *g, const int p, const real dt, __global const real *x, __global const real *v,
-                         __global const real *C, __global const real *tau, __global const real *mass,
-                         __global const real *volume, __global const int *group, __global const real *accel,
-                         __global real *grid, const int use_atomics)
+/* Particle p's 27 nodes, atomic adds (p2g_atomic). */
+inline void p2g_particle_atomic(const grid_t *g, const int p, const real dt, __global const real *x,
+                                __global const real *v, __global const real *C, __global const real *tau,
+                                __global const real *mass, __global const real *volume, __global const int *group,
+                                __global const real *accel, __global real *grid)
 {
     real xp[3];
     load_row(x, p, 3, xp);
@@ -46,31 +47,18 @@ inline void p2g_particle(const grid_t *g, const int p, const real dt, __global c
 #if CLFLOW_FLIP
                 const vec3r mv0 = w * (m * vp + (vec3r)(dot(mC[0], d), dot(mC[1], d), dot(mC[2], d)));
 #endif
-                if (use_atomics) {
-                    atomic_add_real(node, w * m);
-                    atomic_add_real(node + 1, mv.x);
-                    atomic_add_real(node + 2, mv.y);
-                    atomic_add_real(node + 3, mv.z);
+                atomic_add_real(node, w * m);
+                atomic_add_real(node + 1, mv.x);
+                atomic_add_real(node + 2, mv.y);
+                atomic_add_real(node + 3, mv.z);
 #if CLFLOW_FLIP
-                    atomic_add_real(node + 4, mv0.x);
-                    atomic_add_real(node + 5, mv0.y);
-                    atomic_add_real(node + 6, mv0.z);
+                atomic_add_real(node + 4, mv0.x);
+                atomic_add_real(node + 5, mv0.y);
+                atomic_add_real(node + 6, mv0.z);
 #endif
-                } else {
-                    node[0] += w * m;
-                    node[1] += mv.x;
-                    node[2] += mv.y;
-                    node[3] += mv.z;
-#if CLFLOW_FLIP
-                    node[4] += mv0.x;
-                    node[5] += mv0.y;
-                    node[6] += mv0.z;
-#endif
-                }
             }
 }
 
-#ifdef CLFLOW_SIMD_LANES
 /* dot(a, b) of 3-vectors in lanes, as the dot builtin rounds it: (a0 b0 + a1 b1) + a2 b2, each
  * product and sum rounded on its own (separate statements: no fused multiply-add). */
 inline realv dot3_v(const realv *a, const realv *b)
@@ -82,10 +70,11 @@ inline realv dot3_v(const realv *a, const realv *b)
     return xy + zz;
 }
 
-/* p2g_particle (plain adds) of particles p0 .. min(p0 + CLFLOW_SIMD_LANES, end) - 1: their node
- * values computed in vector lanes, lane by lane the operations of p2g_particle, then added
- * particle after particle, each one's 27 nodes in p2g_particle's order: the same sums to the
- * bit, for a fraction of the arithmetic (CPU compilers do not vectorise p2g_private's loop). */
+/* Particles p0 .. min(p0 + CLFLOW_SIMD_LANES, end) - 1 into a grid copy with plain adds: their
+ * node values computed in vector lanes, lane by lane the operations of p2g_particle_atomic,
+ * then added particle after particle, each one's 27 nodes in order: the sums of a scalar loop
+ * over the particles to the bit, for a fraction of the arithmetic (CPU compilers do not
+ * vectorise p2g_private's loop). */
 inline void p2g_lanes(const grid_t *g, const int p0, const int end, const real dt, __global const real *x,
                       __global const real *v, __global const real *C, __global const real *tau,
                       __global const real *mass, __global const real *volume, __global const int *group,
@@ -95,7 +84,7 @@ inline void p2g_lanes(const grid_t *g, const int p0, const int end, const real d
 #if CLFLOW_FLIP
     realv vel[3], mC[3][3];
 #endif
-    for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) { /* p2g_particle's per-particle values */
+    for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) { /* the per-particle values */
         const int p = min(p0 + l, end - 1);
         const real mp = mass[p];
         const real stress_scale = -dt * volume[p] * 4 / (g->dx * g->dx);
@@ -160,7 +149,6 @@ inline void p2g_lanes(const grid_t *g, const int p0, const int end, const real d
                 }
     }
 }
-#endif
 
 #define P2G_GRID_ARGS                                                                                                  \
     const int nx, const int ny, const int nz, const real dx, const real ox, const real oy, const real oz
@@ -182,13 +170,8 @@ __kernel void p2g_private(P2G_GRID_ARGS, P2G_PARTICLE_ARGS, const int copies, co
     int box[6];
     chunk_box(&g, x, begin, end, box);
     __global real *grid = boxed_copy(&g, grid_copies, k, GRID_CH, box, boxes);
-#ifdef CLFLOW_SIMD_LANES
     for (int p0 = begin; p0 < end; p0 += CLFLOW_SIMD_LANES)
         p2g_lanes(&g, p0, end, dt, x, v, C, tau, mass, volume, group, accel, grid);
-#else
-    for (int p = begin; p < end; ++p)
-        p2g_particle(&g, p, dt, x, v, C, tau, mass, volume, group, accel, grid, 0);
-#endif
 }
 
 /* grid[node] = the sum over copies k = 0, 1, ..., in that order, of copies[k][node] ([nodes,
@@ -212,5 +195,5 @@ __kernel void p2g_atomic(P2G_GRID_ARGS, P2G_PARTICLE_ARGS, __global real *grid)
     if (p >= n)
         return;
     const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
-    p2g_particle(&g, p, dt, x, v, C, tau, mass, volume, group, accel, grid, 1);
+    p2g_particle_atomic(&g, p, dt, x, v, C, tau, mass, volume, group, accel, grid);
 }
