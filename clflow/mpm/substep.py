@@ -229,7 +229,7 @@ class DriverAccelerations:
 
     def at(self, t: float) -> DeviceArray:
         """The accelerations at time ``t`` (s)."""
-        key = tuple(f.start <= t < f.end for f in self.drivers.forces)  # the stages active (DriverGroups.active)
+        key = tuple(bool(f.start <= t < f.end) for f in self.drivers.forces)  # the stages active (DriverGroups.active)
         table = self._tables.get(key)
         if table is None:
             accel = self.drivers.accel(t, self.dtype, self.stage_accel)
@@ -361,14 +361,14 @@ class SubstepKernels:
         self.elastic_only = stage.elastic_only
         self.k_stress, self.k_svd = stage.kernels(device, self.real)
         self.U, self.s, self.V = stage.svd_buffers(device, n, dtype)
-        self.k_grid = k("mpm/grid.cl", "grid_update")
+        # the private path's grid update sums the P2G copies too, a row of nodes a work-item
+        self.k_grid = k("mpm/grid.cl", "sum_copies_update_grid" if p2g == "private" else "grid_update")
         self.k_g2p = k("mpm/g2p.cl", "g2p")
         itemsize = torch.tensor([], dtype=dtype).element_size()
         check_grid_memory(device.info, grid, itemsize, self.flip)
         grid_bytes = channels * grid.nodes * itemsize
         if p2g == "private":
             self.k_p2g = k("mpm/p2g.cl", "p2g_private")
-            self.k_grid = k("mpm/grid.cl", "sum_copies_update_grid")  # sums the copies, then updates
             self.copies = grid_copies(device, grid_bytes, n)
             self.chunk = -(-n // self.copies)
             self.grid_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * grid_bytes)
@@ -408,7 +408,7 @@ class SubstepKernels:
         p2g_args = grid_args | p2g_particle_args(R, state, tape, inputs)
         grids = dict(grid=tape.grid_mv, grid_v=tape.grid_v, grid_dv=tape.grid_dv)
         grid_update_args = grid_args | inputs.grid_update_args(R) | grids
-        if self.p2g == "private":  # the grid update sums the copies itself, a row of nodes a work-item
+        if self.p2g == "private":
             copies = dict(copies=np.int32(self.copies), grid_copies=self.grid_copies, boxes=self.copy_boxes)
             dev.launch(self.k_p2g, self.copies, p2g_args | copies | dict(chunk=np.int32(self.chunk)), local_size=1)
             nx, ny, _ = self.grid.resolution

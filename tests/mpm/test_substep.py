@@ -3,9 +3,17 @@
 import pytest
 import torch
 
-from clflow.mpm import reference
+from clflow.mpm import Grid, reference
 from clflow.mpm.constants import MATERIAL_IDS
-from tests.mpm._helpers import MATERIAL_CASES, assert_repeats, poison, random_scene, two_blocks
+from tests.mpm._helpers import (
+    MATERIAL_CASES,
+    assert_repeats,
+    cube,
+    moving_scene,
+    poison,
+    random_scene,
+    two_blocks,
+)
 
 FIELDS = ("x", "v", "C", "F", "plastic")
 
@@ -165,14 +173,32 @@ def test_private_copies_are_zeroed_and_summed_only_in_their_boxes(flip):
     assert sim.kernels.copies >= 2 and int(volumes.max()) <= sim.grid.nodes // 4, boxes
 
 
+def stacked_blocks(flip: float):
+    """Two blocks one above the other along z (the grid's rows), moving towards each other:
+    the copies of the lower block's chunks and those of the upper one's share rows of nodes
+    with different ranges of k."""
+    gen = torch.Generator().manual_seed(1)
+    block = cube(5, 0.2, 0.3)
+    x = torch.cat([block, block + torch.tensor([0.05, 0.0, 0.45], dtype=block.dtype)])
+    v = torch.zeros_like(x)
+    v[:, 2] = torch.sign(0.5 - x[:, 2]) + 0.3 * torch.randn(x.shape[0], generator=gen, dtype=x.dtype)
+    specs = {"newtonian": MATERIAL_CASES["newtonian"]}
+    return moving_scene(x, v, specs, Grid((32, 32, 32), 1 / 32), torch.float64, flip=flip, p2g="private")
+
+
 @pytest.mark.parametrize("flip", [0.0, 0.99])
-def test_the_private_paths_grid_update_equals_grid_update_on_every_node(flip):
+@pytest.mark.parametrize("scene", ["two_blocks", "stacked_blocks"])
+def test_the_private_paths_grid_update_equals_grid_update_on_every_node(flip, scene):
     """sum_copies_update_grid updates only the nodes inside a copy's box and writes zero
     elsewhere: with the grid velocities full of NaN beforehand, each substep's velocities (and
-    their change) equal to the bit what grid_update makes of the same summed grid, on every node."""
+    their change) equal to the bit what grid_update makes of the same summed grid, on every node
+    (stacked_blocks: rows that boxes with different ranges of k share)."""
     import numpy as np
 
-    sim = two_blocks(("newtonian", "elastic"), flip=flip)
+    if scene == "two_blocks":
+        sim = two_blocks(("newtonian", "elastic"), flip=flip)
+    else:
+        sim = stacked_blocks(flip)
     kernels, tape = sim.kernels, sim.kernels.scratch
     update = sim.device.kernel("mpm/grid.cl", "grid_update", kernels.real, kernels.defines)
     for _ in range(5):
