@@ -34,7 +34,6 @@ from clflow.mpm.substep import (
     grid_copies,
     launch_stress,
     p2g_particle_args,
-    sum_grid_copies,
 )
 from clflow.runtime.arrays import DeviceArray, numpy_real, real_of
 
@@ -107,8 +106,12 @@ class SubstepAdjoint:
         grid_args = self.grid.kernel_args(R)
         particles = inputs.particles
         self._launch_g2p_adjoint(state, after, tape, inputs, grad_after, grad)
+        # the column sum of the copies into grid_v_bar, a row of nodes a work-item, each copy inside its box
+        nx, ny, nz = self.grid.resolution
+        channels = velocity_channels(self.flip)
+        rows = dict(nx=np.int32(nx), ny=np.int32(ny), nz=np.int32(nz), channels=np.int32(channels))
         copies = dict(copies=np.int32(self.copies), boxes=self.copy_boxes, grid_copies=self.grid_v_bar_copies)
-        sum_grid_copies(self, copies, velocity_channels(self.flip), self.grid_v_bar)
+        dev.launch(self.k_sum, nx * ny, rows | copies | dict(grid=self.grid_v_bar))
         grids = dict(grid=tape.grid_mv, grid_v_bar=self.grid_v_bar, grid_bar=self.grid_bar)
         dev.launch(self.k_grid, self.grid.nodes, grid_args | inputs.grid_update_args(R) | grids)
         # p2g_adjoint writes v_bar, which p2g_flip_adjoint then reads and adds to

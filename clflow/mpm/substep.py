@@ -322,15 +322,6 @@ def p2g_particle_args(real_t, state: State, tape: SubstepTape, inputs: SubstepIn
     return dict(n=n, dt=real_t(inputs.dt)) | arrays | dict(accel=inputs.accel)
 
 
-def sum_grid_copies(kernels, copies: dict, channels: int, grid: DeviceArray) -> None:
-    """Enqueue the column sum of ``kernels``' private grid copies (copies: their buffer
-    ``grid_copies``, ``boxes`` and count, as the scatter wrote them) into ``grid`` [nodes,
-    channels]: a work-item per row of nodes, each copy read only inside its box."""
-    nx, ny, nz = kernels.grid.resolution
-    rows = dict(nx=np.int32(nx), ny=np.int32(ny), nz=np.int32(nz), channels=np.int32(channels))
-    kernels.device.launch(kernels.k_sum, nx * ny, rows | copies | dict(grid=grid))
-
-
 class SubstepKernels:
     """The substep kernels of one device, precision, particle count, grid, set of material ids
     (``materials``: the kernel ids of the particles), P2G path (:func:`p2g_path`) and PIC/FLIP
