@@ -9,10 +9,12 @@ import torch
 from clflow.pipeline.fit.diagnostics import (
     PROFILE_RISE,
     RANGE_Z,
+    WALK_RUNS,
     fit_shift,
     flat,
     frame_robust_covariance,
     parameter_range,
+    walk_end,
     widen_by_search,
 )
 from clflow.pipeline.fit.search import Search
@@ -136,6 +138,57 @@ def test_a_range_is_open_where_it_leaves_the_searched_box(z, sigma, floor, expec
     low, high = parameter_range(z, sigma, (-1.0, 1.0), floor)
     for got, want in zip((low, high), expected):
         assert got is None if want is None else got == pytest.approx(want)
+
+
+def test_measured_ends_widen_a_range_and_open_it_only_where_the_box_edge_stays_inside():
+    low, high = parameter_range(0.0, 0.1, (-1.0, 1.0), walked=(0.5, None))
+    assert low == pytest.approx(-0.5) and high is None
+    low, high = parameter_range(0.0, 0.1, (-1.0, 1.0), walked=(0.01, 0.9))  # never narrower
+    assert low == pytest.approx(-RANGE_Z * 0.1) and high == pytest.approx(0.9)
+
+
+LOSS, LIMIT = 2.0, 3.0  # the fit's loss and the tolerance's: a rise of 50 %
+
+
+def walked(rise, start=0.1, edge=10.0):
+    """walk_end on a loss LOSS * (1 + rise(step)), and the steps it ran."""
+    half, runs = walk_end(lambda step: LOSS * (1 + rise(step)), start, edge, LIMIT, LOSS)
+    return half, [step for step, _ in runs]
+
+
+def test_a_quadratic_loss_keeps_the_gauss_newton_end():
+    """A quadratic rise that reaches the tolerance at the start: the walk confirms it."""
+    half, steps = walked(lambda s: 0.5 * (s / 0.1) ** 2)
+    assert half == pytest.approx(0.1, rel=1e-6) and len(steps) <= 2
+
+
+def test_a_flatter_loss_moves_the_end_out_to_where_it_crosses_the_tolerance():
+    """A rise linear in the step crossing the tolerance (0.5) at 0.7, from a start of 0.1 (a
+    rise of 1/14): the next step is 4x (the secant's 7x, capped), and from 0.4 the secant
+    lands on 0.7. A quadratic rise crossing at 0.7: the secant from 0.1 to 0.4 reaches beyond
+    it, and the chord from 0.4 puts the end inside the crossing."""
+    half, steps = walked(lambda s: 0.5 * s / 0.7)
+    assert steps == pytest.approx([0.1, 0.4, 0.7]) and half == pytest.approx(0.7)
+    rise = lambda s: 0.5 * (s / 0.7) ** 2  # noqa: E731
+    half, steps = walked(rise)
+    step = 0.4 + (0.5 - rise(0.4)) / ((rise(0.4) - rise(0.1)) / 0.3)
+    assert steps == pytest.approx([0.1, 0.4, step])
+    assert half == pytest.approx(0.4 + (step - 0.4) * (0.5 - rise(0.4)) / (rise(step) - rise(0.4)))
+    assert 0.4 < half < 0.7
+
+
+def test_a_loss_still_inside_after_the_last_run_ends_there_and_one_inside_at_the_edge_is_open():
+    half, steps = walked(lambda s: 0.01 * s)
+    assert len(steps) == WALK_RUNS and half == pytest.approx(steps[-1])  # an inner bound
+    half, steps = walked(lambda s: 0.01 * s, edge=0.3)
+    assert half is None and steps == pytest.approx([0.1, 0.3])
+
+
+def test_a_steeper_loss_or_a_failed_run_keeps_the_start():
+    assert walked(lambda s: 100 * s)[0] == 0.1  # beyond at once: interpolation would narrow it
+    half, runs = walk_end(lambda step: None, 0.1, 1.0, LIMIT, LOSS)
+    assert half == 0.1 and runs == []
+    assert walk_end(lambda step: LOSS, 0.0, 1.0, LIMIT, LOSS) == (0.0, [])  # no width to walk from
 
 
 def test_search_samples_within_the_tolerance_widen_a_range_and_the_extreme_one_opens_it():

@@ -350,6 +350,45 @@ def test_the_grid_check_measures_how_far_a_coarser_grid_moves_the_fit(demo_confi
     assert report["substep_shift_z"]["youngs_modulus"] == pytest.approx(0.0, abs=1e-12)
 
 
+def test_a_range_reaches_out_to_where_a_flattening_loss_crosses_the_tolerance(demo_config, monkeypatch):
+    """E's flow saturates (tanh) away from the fit, so the loss rises slower than its curvature
+    there says: the measured upper end lies beyond the Gauss-Newton one, and the loss there is
+    the tolerance's; nu's flow is linear, and its range stays the Gauss-Newton one."""
+    cfg = demo_config()
+    cfg = dataclasses.replace(
+        cfg, optimize=dataclasses.replace(cfg.optimize, parameters=("youngs_modulus", "poissons_ratio"))
+    )
+    opt = Optimization(cfg)
+    g = torch.Generator().manual_seed(3)
+    field_e, field_nu, noise, coarse_noise = (
+        torch.randn(opt.views[0].observed.shape, generator=g, dtype=torch.float64) for _ in range(4)
+    )
+
+    def flows_at(z, grid=None):
+        dz = z["youngs_modulus"] - Z_TRUE
+        e, nu = 0.02 * math.tanh(dz / 0.02) + 0.15 * dz, z["poissons_ratio"]
+        coarse = (grid or opt.model_grid) != opt.model_grid  # model error: the loss moves by ~10 %
+        return [opt.views[0].observed[t] + 0.05 * (noise[t] + 0.3 * coarse * coarse_noise[t]) + e * field_e[t]
+                + nu * field_nu[t] for t in range(opt.frames)]  # fmt: skip
+
+    def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
+        return evaluation_of(opt, flows_at(z, grid)[:frames], frames, grid)
+
+    monkeypatch.setattr(opt, "evaluate", evaluate)
+    z = {"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0}
+    report = opt.identifiability(z, 1)
+    limit = 1 + report["loss_tolerance"]
+    e, nu = report["ranges"]["youngs_modulus"], report["ranges"]["poissons_ratio"]
+    high = math.log10(e["high"]) - Z_TRUE
+    assert 0.05 < report["loss_tolerance"] < 1.0
+    assert high > 1.5 * e["profile_z"] and e["walked_z"][1] == pytest.approx(high)
+    steps, ratios = zip(*e["walk_loss_ratio"][1])
+    assert ratios[-1] > limit and steps[-1] > high and all(r <= limit for r in ratios[:-1])
+    loss = lambda dz: float(evaluate({**z, "youngs_modulus": Z_TRUE + dz}, opt.frames).loss)  # noqa: E731
+    assert loss(high) == pytest.approx(limit * loss(0.0), rel=0.01)  # nu held here, refitted in the walk
+    assert nu["walked_z"] == pytest.approx([nu["profile_z"], nu["profile_z"]], rel=0.01)
+
+
 def test_a_rejected_step_goes_back_to_the_best_point_without_new_runs(lm):
     opt, calls = lm(iterations=2)
     variables = ("youngs_modulus",)

@@ -104,8 +104,9 @@ def iteration_seconds(opt: OptimizeSettings, plan: RunPlan, frames: int, variabl
 def diagnostic_runs(variables: int) -> int:
     """Forward runs after the last iteration: the Jacobian (1 + P), a profile of each weak
     parameter (2 P at most), the grid check, the time-step check at twice the substeps (2),
-    the final evaluation."""
-    return 1 + variables + 2 * variables + 1 + 2 + 1
+    the walks of the ranges' ends (one run an end, as most take: the first already leaves the
+    loss tolerance; a flat loss takes up to WALK_RUNS), the final evaluation."""
+    return 1 + variables + 2 * variables + 1 + 2 + 2 * variables + 1
 
 
 def typical_sample(search: RunPlan, design_substeps: Sequence[int]) -> RunPlan:
