@@ -104,8 +104,8 @@ def iteration_seconds(opt: OptimizeSettings, plan: RunPlan, frames: int, variabl
 def diagnostic_runs(variables: int) -> int:
     """Forward runs after the last iteration: the Jacobian (1 + P), a profile of each weak
     parameter (2 P at most), the grid check, the time-step check at twice the substeps (2),
-    the walks of the ranges' ends (one run an end, as most take: the first already leaves the
-    loss tolerance; a flat loss takes up to WALK_RUNS), the final evaluation."""
+    the walks of the ranges' ends (one run an end, as most take: the first reaches the loss
+    tolerance; a loss that flattens takes up to three), the final evaluation."""
     return 1 + variables + 2 * variables + 1 + 2 + 2 * variables + 1
 
 

@@ -50,9 +50,12 @@ RANGE_Z = 1.6449
 # loss is measured along the profile's direction (the others refitted to first order) at the
 # end, and further out while it stays within the tolerance: at most WALK_RUNS forward runs an
 # end, each step out to the secant's crossing, WALK_GROWTH times the last at least and at most;
-# never narrowing the range
+# never narrowing the range. A run whose rise is WALK_REACHED of the tolerance's confirms the
+# end where it is (a quadratic rise crosses within 5 % further out): where the Gauss-Newton
+# profile sets the end, the first run lands on the tolerance, and one run decides
 WALK_RUNS = 3
 WALK_GROWTH = (1.5, 4.0)
+WALK_REACHED = 0.9
 
 
 def frame_robust_covariance(
@@ -97,22 +100,26 @@ def walk_end(loss_at, start: float, edge: float, limit: float, loss: float) -> t
     (the half-width so far) outwards while ``loss_at(step)`` (the loss ``step`` z units out;
     None where the run failed) stays within ``limit``, at most WALK_RUNS runs, each step out
     to where the secant from the last run inside reaches ``limit``, WALK_GROWTH[0] to
-    WALK_GROWTH[1] times the last step (a loss that flattens goes out fast); the crossing is interpolated linearly between the last run inside and the first
-    beyond (an inner bound of a convex rise). None (open) where the run at ``edge``, the
-    searched box's edge, stays inside. Never below ``start``: a loss steeper than the
-    quadratic keeps the range it had. ``loss``: the loss at the fit."""
+    WALK_GROWTH[1] times the last step (a loss that flattens goes out fast). The end is
+    where a run beyond ``limit`` crosses it, interpolated linearly from the last run inside
+    (an inner bound of a convex rise), or a run that rose WALK_REACHED of the way to it, or
+    the last run inside; None (open) where the run at ``edge``, the searched box's edge,
+    stays inside. Never below ``start``: a loss steeper than the quadratic keeps the range
+    it had. ``loss``: the loss at the fit."""
     inside, step, runs = (0.0, loss), start, []
-    if not 0 < start < edge:  # nothing measured to walk from, or open
-        return (None if start >= edge else start), runs
+    if not (0 < start <= edge and math.isfinite(start) and math.isfinite(limit)):  # nothing to walk from
+        return (None if start > edge else start), runs
     for _ in range(WALK_RUNS):
         step = min(step, edge)
         value = loss_at(step)
-        if value is None:
+        if value is None or not math.isfinite(value):
             break
         runs.append((step, value))
         if value > limit:
             (before, below), rise = inside, value - inside[1]
             return max(start, before + (step - before) * (limit - below) / rise), runs
+        if value - loss >= WALK_REACHED * (limit - loss):
+            return max(start, step), runs
         if step >= edge:
             return None, runs
         slope = (value - inside[1]) / (step - inside[0])  # the secant from the last run inside
@@ -129,22 +136,32 @@ def widen_by_search(ranges: dict[str, dict], z: dict[str, float], search: list[d
     from 2e6 to 2.2e7 Pa within 1.4x of the best loss, where the final point's curvature
     alone would allow 0.1 decade). A side reached by the search's most extreme sample in that
     direction is open: the data do not bound it. ``values(z)``: SI values of a point."""
+    extent = search_extent(search, tolerance)
+    for name, entry in ranges.items():
+        if name not in extent:
+            continue
+        (low, high), (low_open, high_open), kept = extent[name]
+        if entry["low"] is not None and low < z[name]:
+            entry["low"] = None if low_open else min(entry["low"], values({**z, name: low})[name])
+        if entry["high"] is not None and high > z[name]:
+            entry["high"] = None if high_open else max(entry["high"], values({**z, name: high})[name])
+        entry["search_kept"] = kept
+
+
+def search_extent(search: list[dict], tolerance: float) -> dict[str, tuple]:
+    """Per searched variable ((lowest, highest) z of the search samples whose loss is within
+    ``tolerance`` of the best, (whether that lowest is the lowest sample run, whether that
+    highest is the highest), how many samples that is); {} without samples."""
     rows = [r for r in search if r.get("loss") is not None]
     if not rows:
-        return
+        return {}
     best = min(r["loss"] for r in rows)
     kept = [r for r in rows if r["loss"] <= (1 + tolerance) * best]
-    for name, entry in ranges.items():
-        if name not in rows[0]["z"]:
-            continue
-        seen = [r["z"][name] for r in rows]
-        near = [r["z"][name] for r in kept]
-        low, high = min(near), max(near)
-        if entry["low"] is not None and low < z[name]:
-            entry["low"] = None if low <= min(seen) else min(entry["low"], values({**z, name: low})[name])
-        if entry["high"] is not None and high > z[name]:
-            entry["high"] = None if high >= max(seen) else max(entry["high"], values({**z, name: high})[name])
-        entry["search_kept"] = len(kept)
+    out = {}
+    for name in rows[0]["z"]:
+        seen, near = [r["z"][name] for r in rows], [r["z"][name] for r in kept]
+        out[name] = (min(near), max(near)), (min(near) <= min(seen), max(near) >= max(seen)), len(kept)
+    return out
 
 
 def flat(profile_row: dict) -> bool:
@@ -209,8 +226,19 @@ class Diagnostics:
         directions = {
             n: dict(zip(variables, (inverse[:, i] / inverse[i, i]).tolist())) for i, n in enumerate(variables)
         }
-        walk = dict(directions=directions, limit=loss * (1 + tolerance), loss=loss, substeps=base.substeps)
-        ranges = self.ranges(z, variables, frame_std, discretisation, profile_z, unresolved, walk)
+        # the search's samples open a side where its most extreme one fits within the tolerance: not walked
+        search_open = {
+            n: (low_open and low < z[n], high_open and high > z[n])
+            for n, ((low, high), (low_open, high_open), _) in search_extent(search or [], tolerance).items()
+        }
+        walk_args = dict(
+            directions=directions,
+            limit=loss * (1 + tolerance),
+            loss=loss,
+            substeps=base.substeps,
+            open_sides=search_open,
+        )
+        ranges = self.ranges(z, variables, frame_std, discretisation, profile_z, unresolved, walk_args)
         widen_by_search(ranges, z, search or [], tolerance, self.values)
         return {
             "ranges": ranges,
@@ -238,7 +266,7 @@ class Diagnostics:
         discretisation: dict[str, float],
         profile_z: list[float],
         unresolved: list[str],
-        walk: dict,
+        walk_args: dict,
     ) -> dict[str, dict]:
         """Per variable its RANGE_LEVEL range: ``low`` and ``high`` (SI; None where open),
         ``sigma_z`` and its parts (``frames_z``: the frame-robust standard deviation;
@@ -247,7 +275,8 @@ class Diagnostics:
         the model's loss tolerance). The range is the widest of RANGE_Z sigma, the profile's
         and, for a parameter whose profile is flat (``unresolved``), PROFILE_STEP, either way;
         each end not open is then walked (:meth:`walk`; ``walked_z``: the half-widths below
-        and above, None where open; ``walk_loss_ratio``: each run's loss over the fit's).
+        and above, None where open; ``walk_loss_ratio``: below and above, [step in z, loss
+        over the fit's] of each run).
         Open ends lie beyond the local phase's box (else the parameter's typical range;
         velocities: none)."""
         out = {}
@@ -256,7 +285,7 @@ class Diagnostics:
             sigma = (frames_z**2 + grid_z**2) ** 0.5
             box = self.box_of(name, z)
             floor = max(half_profile, PROFILE_STEP if name in unresolved else 0.0)
-            walked, ratios = self.walk(z, name, max(RANGE_Z * sigma, floor), box, **walk)
+            walked, ratios = self.walk(z, name, max(RANGE_Z * sigma, floor), box, **walk_args)
             low, high = parameter_range(z[name], sigma, box, floor, walked)
             out[name] = {
                 "value": self.values(z)[name],
@@ -291,15 +320,18 @@ class Diagnostics:
         limit: float,
         loss: float,
         substeps: int,
+        open_sides: dict[str, tuple[bool, bool]],
     ) -> tuple[tuple, list]:
         """((below, above) half-widths in z of ``name``'s range that forward runs measured, the
         runs' loss ratios [[step, ratio], ...] per side): :func:`walk_end` from ``start`` along
         ``directions[name]`` (the others refitted to first order, each kept in its own box)
         while the loss stays within ``limit``; ``loss`` the fit's, runs at ``substeps``. A
-        side whose ``start`` already leaves ``box`` is not walked (it is open)."""
+        side whose ``start`` already leaves ``box``, or that ``open_sides[name]`` (below,
+        above) opens, is not walked (it is open)."""
         halves, ratios = [], []
-        for sign, edge in ((-1, z[name] - box[0]), (1, box[1] - z[name])):
-            if start > edge:
+        opened = open_sides.get(name, (False, False))
+        for sign, edge, is_open in ((-1, z[name] - box[0], opened[0]), (1, box[1] - z[name], opened[1])):
+            if start > edge or is_open:
                 halves.append(None)
                 ratios.append([])
                 continue
