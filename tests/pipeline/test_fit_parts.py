@@ -159,28 +159,39 @@ def walked(rise, start=0.1, edge=10.0):
 
 def test_a_quadratic_loss_keeps_the_gauss_newton_end():
     """A quadratic rise that reaches the tolerance at the start, or 95 % of it: one run
-    confirms it; at 80 % the walk goes on to the crossing."""
+    confirms it; at 80 % the walk brackets the crossing."""
     half, steps = walked(lambda s: 0.5 * (s / 0.1) ** 2)
     assert half == 0.1 and steps == [0.1]
     half, steps = walked(lambda s: (1 + WALK_REACHED) / 2 * 0.5 * (s / 0.1) ** 2)
     assert half == 0.1 and steps == [0.1]
     half, steps = walked(lambda s: 0.8 * 0.5 * (s / 0.1) ** 2)
-    assert len(steps) == 2 and 0.1 < half < 0.1 / 0.8**0.5
+    assert len(steps) == WALK_RUNS and 0.1 < half < 0.1 / 0.8**0.5  # 0.15 beyond, then halving
 
 
 def test_a_flatter_loss_moves_the_end_out_to_where_it_crosses_the_tolerance():
     """A rise linear in the step crossing the tolerance (0.5) at 0.7, from a start of 0.1 (a
     rise of 1/14): the next step is 4x (the secant's 7x, capped), and from 0.4 the secant
     lands on 0.7. A quadratic rise crossing at 0.7: the secant from 0.1 to 0.4 reaches beyond
-    it, and the chord from 0.4 puts the end inside the crossing."""
+    it, the last run halves that bracket, and the chord across the half still beyond puts
+    the end inside the crossing."""
     half, steps = walked(lambda s: 0.5 * s / 0.7)
     assert steps == pytest.approx([0.1, 0.4, 0.7]) and half == pytest.approx(0.7)
     rise = lambda s: 0.5 * (s / 0.7) ** 2  # noqa: E731
     half, steps = walked(rise)
     step = 0.4 + (0.5 - rise(0.4)) / ((rise(0.4) - rise(0.1)) / 0.3)
-    assert steps == pytest.approx([0.1, 0.4, step])
-    assert half == pytest.approx(0.4 + (step - 0.4) * (0.5 - rise(0.4)) / (rise(step) - rise(0.4)))
+    middle = (0.4 + step) / 2
+    assert WALK_RUNS == 4 and steps == pytest.approx([0.1, 0.4, step, middle]) and rise(middle) > 0.5
+    assert half == pytest.approx(0.4 + (middle - 0.4) * (0.5 - rise(0.4)) / (rise(middle) - rise(0.4)))
     assert 0.4 < half < 0.7
+
+
+def test_halving_the_bracket_finds_a_crossing_behind_a_wall():
+    """A flat rise (0.2 per z unit) up to a wall at 1.5 (the sponge's foam collapsing): the
+    step beyond lands far up the wall, where a chord across it would end the range at 1.004;
+    halving the bracket twice ends it at 1.39, inside the crossing at 1.54."""
+    half, steps = walked(lambda s: 0.2 * s + 100 * max(0.0, s - 1.5) ** 2, start=1.0)
+    assert steps == pytest.approx([1.0, 2.5, 1.75, 1.375])
+    assert 1.38 < half < 1.54
 
 
 def test_a_loss_still_inside_after_the_last_run_ends_there_and_one_inside_at_the_edge_is_open():

@@ -49,11 +49,13 @@ RANGE_Z = 1.6449
 # above, where the quadratic puts 4.1x; the sponge's E 1.66 decades below at 1.2x), so the
 # loss is measured along the profile's direction (the others refitted to first order) at the
 # end, and further out while it stays within the tolerance: at most WALK_RUNS forward runs an
-# end, each step out to the secant's crossing, WALK_GROWTH times the last at least and at most;
+# end, each step out to the secant's crossing, WALK_GROWTH times the last at least and at most,
+# then halving the bracket once a run lies beyond (the sponge's first step beyond went from a
+# loss 1.7x the fit's to 600x: interpolating across that alone moved the end by 0.01 decade);
 # never narrowing the range. A run whose rise is WALK_REACHED of the tolerance's confirms the
 # end where it is (a quadratic rise crosses within 5 % further out): where the Gauss-Newton
 # profile sets the end, the first run lands on the tolerance, and one run decides
-WALK_RUNS = 3
+WALK_RUNS = 4
 WALK_GROWTH = (1.5, 4.0)
 WALK_REACHED = 0.9
 
@@ -98,35 +100,40 @@ def parameter_range(
 def walk_end(loss_at, start: float, edge: float, limit: float, loss: float) -> tuple[float | None, list]:
     """(the half-width in z of one side of a range, the (step, loss) runs made): from ``start``
     (the half-width so far) outwards while ``loss_at(step)`` (the loss ``step`` z units out;
-    None where the run failed) stays within ``limit``, at most WALK_RUNS runs, each step out
-    to where the secant from the last run inside reaches ``limit``, WALK_GROWTH[0] to
-    WALK_GROWTH[1] times the last step (a loss that flattens goes out fast). The end is
-    where a run beyond ``limit`` crosses it, interpolated linearly from the last run inside
-    (an inner bound of a convex rise), or a run that rose WALK_REACHED of the way to it, or
-    the last run inside; None (open) where the run at ``edge``, the searched box's edge,
-    stays inside. Never below ``start``: a loss steeper than the quadratic keeps the range
-    it had. ``loss``: the loss at the fit."""
-    inside, step, runs = (0.0, loss), start, []
+    None where the run failed) stays within ``limit``, each step out to where the secant from
+    the last run inside reaches ``limit``, WALK_GROWTH[0] to WALK_GROWTH[1] times the last
+    step (a loss that flattens goes out fast); once a run lies beyond, the rest of the
+    WALK_RUNS runs halve the bracket. The end is the crossing interpolated linearly in the
+    last bracket (an inner bound of a convex rise), a run that rose WALK_REACHED of the way
+    to ``limit``, or the last run inside; None (open) where the run at ``edge``, the searched
+    box's edge, stays inside. Never below ``start``: a loss steeper than the quadratic (the
+    first run beyond) keeps the range it had. ``loss``: the loss at the fit."""
+    inside, beyond, step, runs = (0.0, loss), None, start, []
     if not (0 < start <= edge and math.isfinite(start) and math.isfinite(limit)):  # nothing to walk from
         return (None if start > edge else start), runs
     for _ in range(WALK_RUNS):
-        step = min(step, edge)
+        step = min(step, edge) if beyond is None else (inside[0] + beyond[0]) / 2
         value = loss_at(step)
         if value is None or not math.isfinite(value):
             break
         runs.append((step, value))
         if value > limit:
-            (before, below), rise = inside, value - inside[1]
-            return max(start, before + (step - before) * (limit - below) / rise), runs
+            if step == start:
+                return start, runs
+            beyond = (step, value)
+            continue
         if value - loss >= WALK_REACHED * (limit - loss):
-            return max(start, step), runs
-        if step >= edge:
+            return step, runs
+        if beyond is None and step >= edge:
             return None, runs
         slope = (value - inside[1]) / (step - inside[0])  # the secant from the last run inside
         inside = (step, value)
         growth = 1 + (limit - value) / max(slope * step, 1e-300)
         step *= min(max(growth, WALK_GROWTH[0]), WALK_GROWTH[1])
-    return max(start, inside[0]), runs
+    if beyond is None:
+        return max(start, inside[0]), runs
+    (before, below), (after, above) = inside, beyond
+    return max(start, before + (after - before) * (limit - below) / (above - below)), runs
 
 
 def widen_by_search(ranges: dict[str, dict], z: dict[str, float], search: list[dict], tolerance: float, values) -> None:
