@@ -9,6 +9,7 @@ import torch
 from clflow.pipeline.fit.diagnostics import (
     PROFILE_RISE,
     RANGE_Z,
+    WALK_BRACKET,
     WALK_REACHED,
     WALK_RUNS,
     fit_shift,
@@ -165,37 +166,39 @@ def test_a_quadratic_loss_keeps_the_gauss_newton_end():
     half, steps = walked(lambda s: (1 + WALK_REACHED) / 2 * 0.5 * (s / 0.1) ** 2)
     assert half == 0.1 and steps == [0.1]
     half, steps = walked(lambda s: 0.8 * 0.5 * (s / 0.1) ** 2)
-    assert len(steps) == WALK_RUNS and 0.1 < half < 0.1 / 0.8**0.5  # 0.15 beyond, then halving
+    assert steps == pytest.approx([0.1, 0.15, 0.125]) and 0.1 < half < 0.1 / 0.8**0.5  # halved to 25 %
 
 
 def test_a_flatter_loss_moves_the_end_out_to_where_it_crosses_the_tolerance():
     """A rise linear in the step crossing the tolerance (0.5) at 0.7, from a start of 0.1 (a
     rise of 1/14): the next step is 4x (the secant's 7x, capped), and from 0.4 the secant
     lands on 0.7. A quadratic rise crossing at 0.7: the secant from 0.1 to 0.4 reaches beyond
-    it, the last run halves that bracket, and the chord across the half still beyond puts
-    the end inside the crossing."""
+    it, and halving the bracket until it spans at most a quarter of its inner end, then the
+    chord across it, ends the range inside the crossing."""
     half, steps = walked(lambda s: 0.5 * s / 0.7)
     assert steps == pytest.approx([0.1, 0.4, 0.7]) and half == pytest.approx(0.7)
     rise = lambda s: 0.5 * (s / 0.7) ** 2  # noqa: E731
     half, steps = walked(rise)
-    step = 0.4 + (0.5 - rise(0.4)) / ((rise(0.4) - rise(0.1)) / 0.3)
-    middle = (0.4 + step) / 2
-    assert WALK_RUNS == 4 and steps == pytest.approx([0.1, 0.4, step, middle]) and rise(middle) > 0.5
-    assert half == pytest.approx(0.4 + (middle - 0.4) * (0.5 - rise(0.4)) / (rise(middle) - rise(0.4)))
-    assert 0.4 < half < 0.7
+    beyond = 0.4 + (0.5 - rise(0.4)) / ((rise(0.4) - rise(0.1)) / 0.3)
+    assert steps[:3] == pytest.approx([0.1, 0.4, beyond]) and len(steps) <= WALK_RUNS
+    inside = max(s for s in steps if rise(s) <= 0.5)
+    outside = min(s for s in steps if rise(s) > 0.5)
+    assert outside - inside <= WALK_BRACKET * inside < outside - max(s for s in steps[:-1] if rise(s) <= 0.5)
+    assert half == pytest.approx(inside + (outside - inside) * (0.5 - rise(inside)) / (rise(outside) - rise(inside)))
+    assert 0.6 < half < 0.7
 
 
 def test_halving_the_bracket_finds_a_crossing_behind_a_wall():
     """A flat rise (0.2 per z unit) up to a wall at 1.5 (the sponge's foam collapsing): the
     step beyond lands far up the wall, where a chord across it would end the range at 1.004;
-    halving the bracket twice ends it at 1.39, inside the crossing at 1.54."""
+    halving the bracket three times ends it at 1.47, inside the crossing at 1.54."""
     half, steps = walked(lambda s: 0.2 * s + 100 * max(0.0, s - 1.5) ** 2, start=1.0)
-    assert steps == pytest.approx([1.0, 2.5, 1.75, 1.375])
-    assert 1.38 < half < 1.54
+    assert steps == pytest.approx([1.0, 2.5, 1.75, 1.375, 1.5625])
+    assert 1.45 < half < 1.54
 
 
 def test_a_loss_still_inside_after_the_last_run_ends_there_and_one_inside_at_the_edge_is_open():
-    half, steps = walked(lambda s: 0.01 * s)
+    half, steps = walked(lambda s: 0.01 * s, edge=1e3)
     assert len(steps) == WALK_RUNS and half == pytest.approx(steps[-1])  # an inner bound
     half, steps = walked(lambda s: 0.01 * s, edge=0.3)
     assert half is None and steps == pytest.approx([0.1, 0.3])

@@ -50,12 +50,14 @@ RANGE_Z = 1.6449
 # loss is measured along the profile's direction (the others refitted to first order) at the
 # end, and further out while it stays within the tolerance: at most WALK_RUNS forward runs an
 # end, each step out to the secant's crossing, WALK_GROWTH times the last at least and at most,
-# then halving the bracket once a run lies beyond (the sponge's first step beyond went from a
-# loss 1.7x the fit's to 600x: interpolating across that alone moved the end by 0.01 decade);
-# never narrowing the range. A run whose rise is WALK_REACHED of the tolerance's confirms the
+# then halving the bracket once a run lies beyond until it spans at most WALK_BRACKET of its
+# inner end (the sponge's first step beyond went from a loss 1.7x the fit's to 600x: a chord
+# across that moved the end by 0.01 decade, three halvings by 0.46, where its truth lies 0.33
+# beyond); never narrowing the range. A run whose rise is WALK_REACHED of the tolerance's confirms the
 # end where it is (a quadratic rise crosses within 5 % further out): where the Gauss-Newton
 # profile sets the end, the first run lands on the tolerance, and one run decides
-WALK_RUNS = 4
+WALK_RUNS = 6
+WALK_BRACKET = 0.25
 WALK_GROWTH = (1.5, 4.0)
 WALK_REACHED = 0.9
 
@@ -103,7 +105,7 @@ def walk_end(loss_at, start: float, edge: float, limit: float, loss: float) -> t
     None where the run failed) stays within ``limit``, each step out to where the secant from
     the last run inside reaches ``limit``, WALK_GROWTH[0] to WALK_GROWTH[1] times the last
     step (a loss that flattens goes out fast); once a run lies beyond, the rest of the
-    WALK_RUNS runs halve the bracket. The end is the crossing interpolated linearly in the
+    WALK_RUNS runs halve the bracket until it spans at most WALK_BRACKET of its inner end. The end is the crossing interpolated linearly in the
     last bracket (an inner bound of a convex rise), a run that rose WALK_REACHED of the way
     to ``limit``, or the last run inside; None (open) where the run at ``edge``, the searched
     box's edge, stays inside. Never below ``start``: a loss steeper than the quadratic (the
@@ -112,6 +114,8 @@ def walk_end(loss_at, start: float, edge: float, limit: float, loss: float) -> t
     if not (0 < start <= edge and math.isfinite(start) and math.isfinite(limit)):  # nothing to walk from
         return (None if start > edge else start), runs
     for _ in range(WALK_RUNS):
+        if beyond is not None and beyond[0] - inside[0] <= WALK_BRACKET * inside[0]:
+            break
         step = min(step, edge) if beyond is None else (inside[0] + beyond[0]) / 2
         value = loss_at(step)
         if value is None or not math.isfinite(value):
