@@ -198,7 +198,7 @@ def test_halving_the_bracket_finds_a_crossing_behind_a_wall():
 
 
 def test_a_loss_still_inside_after_the_last_run_ends_there_and_one_inside_at_the_edge_is_open():
-    half, steps = walked(lambda s: 0.01 * s, edge=1e3)
+    half, steps = walked(lambda s: 0.001 * s, edge=1e3)
     assert len(steps) == WALK_RUNS and half == pytest.approx(steps[-1])  # an inner bound
     half, steps = walked(lambda s: 0.01 * s, edge=0.3)
     assert half is None and steps == pytest.approx([0.1, 0.3])
@@ -209,6 +209,10 @@ def test_a_steeper_loss_or_a_failed_run_keeps_the_start():
     half, runs = walk_end(lambda step: None, 0.1, 1.0, LIMIT, LOSS)
     assert half == 0.1 and runs == []
     assert walk_end(lambda step: LOSS, 0.0, 1.0, LIMIT, LOSS) == (0.0, [])  # no width to walk from
+    # a run that fails while halving a bracket: the chord across the bracket it had
+    values = {1.0: 2.5, 2.0: 400.0}
+    half, runs = walk_end(values.get, 1.0, 10.0, LIMIT, LOSS)  # the run at 1.5 fails
+    assert [s for s, _ in runs] == [1.0, 2.0] and half == pytest.approx(1.0 + (3.0 - 2.5) / (400 - 2.5))
 
 
 def test_search_samples_within_the_tolerance_widen_a_range_and_the_extreme_one_opens_it():
