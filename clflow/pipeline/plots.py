@@ -58,14 +58,15 @@ def _plot_by_phase(axis, history: list[dict], phases: list[str], style: dict, va
 
 def _mark_horizons(axes, history: list[dict]) -> bool:
     """Each change of the loss horizon as a dotted line in every panel and its frame count
-    over the first (the first horizon labelled too, without a line); True if it changed."""
+    over the first (the first horizon labelled too, "N frames", without a line); True if it
+    changed."""
     changes = [row for before, row in zip(history, history[1:]) if row["frames"] != before["frames"]]
     for row in history[:1] + changes:
         x = row["iteration"] - 0.5
         for axis in axes if row is not history[0] else ():
             axis.axvline(x, color="grey", linestyle=":", linewidth=0.8)
         axes[0].annotate(
-            f"{row['frames']}",
+            f"{row['frames']} frames" if row is history[0] else f"{row['frames']}",
             (x, 1.0),
             xycoords=("data", "axes fraction"),
             fontsize=7,

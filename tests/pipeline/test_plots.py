@@ -40,7 +40,7 @@ def test_history_figure_panels_scales_truth_and_horizon():
     np.testing.assert_array_equal(phase_lines[1].get_xdata(), np.arange(3, 12))
     horizon = [line.get_xdata()[0] for line in loss.get_lines()[2:]]
     assert horizon == [2.5, 6.5, 10.5]  # where frames goes 2 -> 4 -> 6 -> 8
-    assert [t.get_text() for t in loss.texts] == ["2", "4", "6", "8"]  # the first horizon, then each growth
+    assert [t.get_text() for t in loss.texts] == ["2 frames", "4", "6", "8"]  # the first horizon, then each growth
     truth = [line for line in params[1].get_lines() if line.get_linestyle() == "--"]
     assert len(truth) == 1 and truth[0].get_ydata()[0] == 1e5
     assert params[0].get_legend() is None  # no truth for poissons_ratio
