@@ -128,7 +128,10 @@ def walk_end(loss_at, start: float, edge: float, limit: float, loss: float) -> t
             continue
         if value - loss >= WALK_REACHED * (limit - loss):
             return step, runs
-        if beyond is None and step >= edge:
+        if beyond is not None:  # halving: the next step is the bracket's middle
+            inside = (step, value)
+            continue
+        if step >= edge:
             return None, runs
         slope = (value - inside[1]) / (step - inside[0])  # the secant from the last run inside
         inside = (step, value)
