@@ -141,8 +141,8 @@ def test_the_finest_grid_that_fits_is_chosen_and_finer_ones_are_not_built():
     assert choose_grid(budgeted(1e6), (25, 49), FRAMES, 1, (25, 6), cubic_plan, 1e6).grid == 49  # the cap holds
     # when the main phase begins the search is spent: what is left costs less
     searching = budgeted(200.0, search=SearchSettings(samples=32))
-    whole = choose_grid(searching, (25, 97), FRAMES, 1, (25, 6), plan_on, 160.0)
-    left = choose_grid(searching, (25, 97), FRAMES, 1, (25, 6), plan_on, 160.0, searched=True)
+    whole = choose_grid(searching, (25, 97), FRAMES, 1, (25, 6), plan_on, 190.0)
+    left = choose_grid(searching, (25, 97), FRAMES, 1, (25, 6), plan_on, 190.0, searched=True)
     assert dict(left.candidates)[25] == pytest.approx(timed[25]) and timed[25] < dict(whole.candidates)[25]
     assert left.grid > whole.grid
 

@@ -350,6 +350,66 @@ def test_the_grid_check_measures_how_far_a_coarser_grid_moves_the_fit(demo_confi
     assert report["substep_shift_z"]["youngs_modulus"] == pytest.approx(0.0, abs=1e-12)
 
 
+def test_a_finer_grid_check_widens_the_ranges_where_it_moves_more_than_the_coarser_one(demo_config, monkeypatch):
+    """With a coarser search grid the final point also runs on a 1.5x finer grid; each check's
+    loss change and fit shift are scaled by its Richardson factor h / |H - h| (2 coarser, 3
+    finer), and the larger sets the tolerance and the grid's error: a model whose convergence
+    is not monotone (the finer grid moves E and the loss more than the coarser one) gets
+    wider ranges than the coarser check alone would give."""
+    cfg = demo_config()
+    cfg = dataclasses.replace(
+        cfg, optimize=dataclasses.replace(cfg.optimize, parameters=("youngs_modulus", "poissons_ratio"))
+    )
+    opt = Optimization(cfg)
+    opt.search_grid = round((opt.model_grid - 1) / 1.5) + 1
+    monkeypatch.setattr(opt, "prepared_on", lambda grid: None)  # room for the object on the coarser grid
+    finer = round((opt.model_grid - 1) * 1.5) + 1
+    g = torch.Generator().manual_seed(4)
+    field_e, field_nu, noise, error = (
+        torch.randn(opt.views[0].observed.shape, generator=g, dtype=torch.float64) for _ in range(4)
+    )
+    grids = []
+
+    def report_with(finer_error):
+        # E's best fit lies 0.01 higher on the coarser grid and finer_error higher on the finer one;
+        # the finer grid's model error grows with it
+        def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
+            grid = grid or opt.model_grid
+            grids.append(grid)
+            moved = {opt.search_grid: 0.01, finer: finer_error}.get(grid, 0.0)
+            model_error = 0.05 * (grid != opt.model_grid) * (1 + 10 * (grid == finer) * finer_error)
+            e, nu = z["youngs_modulus"] - Z_TRUE - moved, z["poissons_ratio"]
+            flows = [opt.views[0].observed[t] + 0.05 * noise[t] + model_error * error[t] + e * field_e[t]
+                     + nu * field_nu[t] for t in range(frames)]  # fmt: skip
+            return evaluation_of(opt, flows, frames, grid)
+
+        monkeypatch.setattr(opt, "evaluate", evaluate)
+        grids.clear()
+        return opt.identifiability({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0}, 1)
+
+    quiet, loud = report_with(0.0), report_with(0.1)
+    assert grids.count(opt.search_grid) == grids.count(finer) == 1  # one run on each check grid
+    for report in (quiet, loud):
+        coarse_check, finer_check = report["grid_checks"]
+        assert [coarse_check["nodes"], finer_check["nodes"]] == [opt.search_grid, finer]
+        assert report["grids"] == [opt.search_grid, opt.model_grid]  # the table's grid-sensitive note: the coarser
+        assert coarse_check["richardson"] == pytest.approx(1 / ((opt.model_grid - 1) / (opt.search_grid - 1) - 1))
+        assert finer_check["richardson"] == pytest.approx(1 / (1 - (opt.model_grid - 1) / (finer - 1)))
+        scaled = [c["richardson"] * c["loss_change"] for c in (coarse_check, finer_check)]
+        assert report["loss_tolerance"] == pytest.approx(max(scaled), rel=1e-9)  # the time step moves nothing here
+        e_moves = [c["richardson"] * abs(c["shift_z"]["youngs_modulus"]) for c in (coarse_check, finer_check)]
+        assert report["ranges"]["youngs_modulus"]["grid_z"] == pytest.approx(max(e_moves), rel=1e-9)
+        assert coarse_check["shift_z"]["youngs_modulus"] == pytest.approx(0.01, abs=1e-3)
+    # the quiet finer grid agrees with the model: the coarser check decides; the loud one widens
+    assert quiet["grid_checks"][1]["shift_z"]["youngs_modulus"] == pytest.approx(0.0, abs=1e-3)
+    assert loud["grid_checks"][1]["shift_z"]["youngs_modulus"] == pytest.approx(0.1, abs=1e-3)
+    assert loud["loss_tolerance"] > 2 * quiet["loss_tolerance"]
+    assert loud["ranges"]["youngs_modulus"]["grid_z"] == pytest.approx(3 * 0.1, rel=0.02)
+    for name in ("youngs_modulus", "poissons_ratio"):
+        q, w = quiet["ranges"][name], loud["ranges"][name]
+        assert w["high"] > q["high"] and w["low"] < q["low"]
+
+
 def test_a_range_reaches_out_to_where_a_flattening_loss_crosses_the_tolerance(demo_config, monkeypatch):
     """E's flow saturates (tanh) away from the fit, so the loss rises slower than its curvature
     there says: the measured upper end lies beyond the Gauss-Newton one, and the loss there is

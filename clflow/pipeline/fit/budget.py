@@ -35,6 +35,7 @@ from typing import Callable, Sequence
 from clflow.errors import InputError
 from clflow.fileio import atomic_write_text
 from clflow.limits import format_duration
+from clflow.pipeline.fit.diagnostics import GRID_CHECK_RATIO
 from clflow.pipeline.preflight import GRADIENT_COST, RunPlan
 from clflow.pipeline.simulation import SubstepLimitError
 from clflow.scene.config import OptimizeSettings
@@ -102,12 +103,14 @@ def iteration_seconds(opt: OptimizeSettings, plan: RunPlan, frames: int, variabl
 
 
 def diagnostic_runs(variables: int) -> int:
-    """Forward runs after the last iteration: the Jacobian (1 + P), a profile of each weak
-    parameter (2 P at most), the grid check, the time-step check at twice the substeps (2),
+    """Forward runs after the last iteration, in runs on the main grid: the Jacobian (1 + P),
+    a profile of each weak parameter (2 P at most), the grid checks (one on a coarser grid,
+    one on a GRID_CHECK_RATIO times finer grid: its cells and substeps make it
+    GRID_CHECK_RATIO^4 runs), the time-step check at twice the substeps (2),
     the walks of the ranges' ends (three runs an end: one where the Gauss-Newton end holds, up
     to six where the loss flattens; 2.6 on average over the 69 ends the paper's nine, the
     extra set and the quick set walked), the final evaluation."""
-    return 1 + variables + 2 * variables + 1 + 2 + 6 * variables + 1
+    return 1 + variables + 2 * variables + 1 + round(GRID_CHECK_RATIO**4) + 2 + 6 * variables + 1
 
 
 def typical_sample(search: RunPlan, design_substeps: Sequence[int]) -> RunPlan:
