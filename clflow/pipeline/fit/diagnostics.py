@@ -207,8 +207,8 @@ class Diagnostics:
         (:meth:`profile`, two forward runs): ``unresolved`` lists those whose loss is
         :func:`flat` over the range. ``grid_checks``: the final point on a coarser and a finer
         grid (:meth:`grid_checks`); ``grid_shift_z``: how far each variable's best fit moves
-        on the coarser one, ``grid_sensitive`` those moved beyond WEAK_STD_Z, whose value the
-        discretisation sets as much as the video."""
+        on the coarser one (the finer one where only it ran), ``grid_sensitive`` those moved
+        beyond WEAK_STD_Z, whose value the discretisation sets as much as the video."""
         variables = self.main_variables
         base, J = self.jacobian(z, self.frames, min_substeps, variables, self.model_grid)
         residuals, count = self.residuals(base.flows, base.more_flows), len(variables)
@@ -380,7 +380,7 @@ class Diagnostics:
         """The final point ``base`` (residual Jacobian ``J`` [R, P], ``inverse`` = (J^T J)^-1)
         run again, forward only, on a coarser grid (the search grid, or one GRID_CHECK_RATIO
         times coarser without a coarser search grid) and on one GRID_CHECK_RATIO times finer.
-        Per check: ``nodes``; ``shift_z``, per variable the move of the best fit in z units
+        Per check: ``nodes``; ``ran``, False where the run failed; ``shift_z``, per variable the move of the best fit in z units
         from the model grid to that grid (to first order -(J^T J)^-1 J^T (r_check - r_model),
         both against the same targets; empty where the run failed); ``loss_change``, the
         loss's relative change (0 where it failed); ``richardson``, the factor h / |H - h|
@@ -405,7 +405,9 @@ class Diagnostics:
             what = f"the grid check at {nodes} nodes"
             shift, change = self.rerun_shift(z, base, J, inverse, variables, what, grid=nodes)
             richardson = 1 / max(abs((self.model_grid - 1) / (nodes - 1) - 1), 1e-6)
-            checks.append({"nodes": nodes, "shift_z": shift, "loss_change": change, "richardson": richardson})
+            checks.append(
+                {"nodes": nodes, "ran": bool(shift), "shift_z": shift, "loss_change": change, "richardson": richardson}
+            )
         return checks
 
     def substep_shift(
@@ -437,8 +439,8 @@ class Diagnostics:
         relative change |L_new / L - 1|). ({}, 0.0) where that run fails."""
         try:
             run = self.evaluate(z, self.frames, with_grad=False, **how)
-        except (FloatingPointError, ClflowError) as exc:
-            log.info("%s failed: %s", what, exc)
+        except (FloatingPointError, MemoryError, ClflowError) as exc:
+            log.warning("%s failed (%s): the ranges leave its error out", what, exc)
             return {}, 0.0
         before, after = self.residuals(base.flows, base.more_flows), self.residuals(run.flows, run.more_flows)
         loss_change = abs(float((after**2).sum()) / max(float((before**2).sum()), 1e-300) - 1)
