@@ -380,9 +380,10 @@ class Diagnostics:
         """The final point ``base`` (residual Jacobian ``J`` [R, P], ``inverse`` = (J^T J)^-1)
         run again, forward only, on a coarser grid (the search grid, or one GRID_CHECK_RATIO
         times coarser without a coarser search grid) and on one GRID_CHECK_RATIO times finer.
-        Per check: ``nodes``; ``ran``, False where the run failed; ``shift_z``, per variable the move of the best fit in z units
-        from the model grid to that grid (to first order -(J^T J)^-1 J^T (r_check - r_model),
-        both against the same targets; empty where the run failed); ``loss_change``, the
+        Per check: ``nodes``; ``ran``, False where the run failed; ``shift_z``, per variable
+        the move of the best fit in z units from the model grid to that grid (to first order
+        -(J^T J)^-1 J^T (r_check - r_model), both against the same targets; empty where the
+        run failed); ``loss_change``, the
         loss's relative change (0 where it failed); ``richardson``, the factor h / |H - h|
         (h the model grid's spacing, H the check's) that turns both into the model grid's own
         error for a first-order method: 2 for a 1.5x coarser check, 3 for a 1.5x finer one.
