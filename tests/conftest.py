@@ -66,3 +66,13 @@ def oclgrind(tmp_path):
         return res.stdout, (log.read_text() if log.exists() else "")
 
     return run
+
+
+@pytest.fixture(params=["cpu", "gpu"])
+def plan_kind(request, monkeypatch):
+    """Each parallel stage in the CPU and in the GPU shape (clflow.runtime.plan), on the
+    test's device: CLFLOW_KERNELS forced for the test."""
+    from clflow.runtime.plan import KERNELS_ENV
+
+    monkeypatch.setenv(KERNELS_ENV, request.param)
+    return request.param

@@ -1,7 +1,9 @@
 """The device suites again as a discrete GPU runs them: the bridge's copy mode (separate
-device buffers, explicit copies) and the atomic P2G path, both of which a CPU device would
-otherwise never take. A bug of that class (a host write the device never sees, an atomic sum
-onto a stale grid) fails here, on PoCL, in CI."""
+device buffers, explicit copies), the GPU plan's kernel shapes (work-group scans and sorts,
+the cell-sorted gather P2G and adjoint, the rasteriser's work-group per tile) and the atomic
+P2G path, none of which a CPU device would otherwise take. A bug of that class (a host write
+the device never sees, an atomic sum onto a stale grid, a barrier or local-memory slip in a
+work-group kernel) fails here, on PoCL, in CI."""
 
 import os
 import subprocess
@@ -15,7 +17,10 @@ REPO = Path(__file__).resolve().parents[1]
 MODES = {
     "copy": ({"CLFLOW_BRIDGE": "copy"}, ["tests/mpm", "tests/splat", "tests/flow", "tests/runtime"]),
     "copy+atomic-p2g": ({"CLFLOW_BRIDGE": "copy", "CLFLOW_P2G": "atomic"}, ["tests/mpm"]),
-    "copy+gather-p2g": ({"CLFLOW_BRIDGE": "copy", "CLFLOW_P2G": "gather"}, ["tests/mpm"]),
+    "copy+gpu-kernels": (
+        {"CLFLOW_BRIDGE": "copy", "CLFLOW_KERNELS": "gpu"},
+        ["tests/mpm", "tests/splat", "tests/flow", "tests/runtime"],
+    ),
 }
 
 

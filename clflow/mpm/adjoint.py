@@ -6,6 +6,9 @@ the gradients of the per-particle kernel parameters and masses, in reverse kerne
 
     g2p_adjoint_private              : (xbar', vbar', Cbar', grid_v[, grid_dv]) -> grid_vbar copies, xbar (part)
     sum_grid_copies                  : (grid_vbar copies)            -> grid_vbar (vbar_i[, dvbar_i])
+      or, in the GPU plan (clflow.runtime.plan), with the particles sorted by cell (CellSort):
+    g2p_adjoint_records              : (xbar', vbar', Cbar', grid_v[, grid_dv]) -> slot records, xbar (part)
+    g2p_adjoint_gather               : (slot records)                -> grid_vbar, a work-item per node
     grid_update_adjoint              : (grid_vbar, grid, boundaries) -> grid_bar (mbar_i, pbar_i[, p0bar_i])
     p2g_adjoint                      : (grid_bar, x, v, C, tau)      -> xbar, vbar, Cbar (part), taubar, massbar
     p2g_flip_adjoint (flip > 0)      : (grid_bar, vbar', x, v, C)    -> xbar, vbar, Cbar, massbar (parts)
@@ -26,6 +29,7 @@ import torch
 
 from clflow.mpm.constants import SIMD_LANES, grid_channels, uses_flip, velocity_channels
 from clflow.mpm.substep import (
+    CellSort,
     Grid,
     State,
     StressStage,
@@ -36,6 +40,8 @@ from clflow.mpm.substep import (
     p2g_particle_args,
 )
 from clflow.runtime.arrays import DeviceArray, numpy_real, real_of
+from clflow.runtime.plan import kernel_plan
+from clflow.runtime.profile import profiled_step
 
 
 @dataclass
@@ -56,10 +62,15 @@ class StateGrad:
         return StateGrad(*(DeviceArray.zeros(device, shape, dtype) for shape in shapes))
 
 
+def g2p_adjoint_record_reals(flip: float) -> int:
+    """Reals per particle slot of the gather adjoint's records (g2p_adjoint.cl G2P_ADJ_REC)."""
+    return 18 if uses_flip(flip) else 15
+
+
 class SubstepAdjoint:
     """The adjoint kernels of one device, precision, particle count, grid, material set and
-    PIC/FLIP blend, with their scratch buffers (grid adjoint, taubar, U s V, private grid copies,
-    their boxes and their sum grid_v_bar)."""
+    PIC/FLIP blend, with their scratch buffers (grid adjoint, taubar, U s V, grid_v_bar, and the
+    private grid copies with their boxes, or in the GPU plan the cell sort and slot records)."""
 
     def __init__(self, device, dtype: torch.dtype, n: int, grid: Grid, materials: torch.Tensor, flip: float = 0.0):
         import pyopencl as cl
@@ -72,18 +83,25 @@ class SubstepAdjoint:
         self.elastic_only = stage.elastic_only
         self.k_stress, self.k_svd = stage.kernels(device, real, adjoint=True)
         self.U, self.s, self.V = stage.svd_buffers(device, n, dtype)
-        self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_private")
         self.k_grid = k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
-        self.k_sum = k("mpm/p2g.cl", "sum_grid_copies")
         self.k_p2g = k("mpm/adjoint/p2g_adjoint.cl", "p2g_adjoint")
         self.k_flip = k("mpm/adjoint/p2g_adjoint.cl", "p2g_flip_adjoint") if uses_flip(self.flip) else None
-        itemsize = torch.tensor([], dtype=dtype).element_size()
-        copy_bytes = velocity_channels(self.flip) * grid.nodes * itemsize  # vbar[, dvbar] per node
-        self.copies = grid_copies(device, copy_bytes, n)
-        self.chunk = -(-n // self.copies)
-        self.grid_v_bar_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * copy_bytes)
-        self.copy_boxes = DeviceArray.empty(device, (self.copies, 6), torch.int32)  # each copy's node box
-        self.grid_v_bar = DeviceArray.empty(device, (grid.nodes, velocity_channels(self.flip)), dtype)  # their sum
+        self.gather = kernel_plan(device).adjoint_scatter == "gather"
+        if self.gather:
+            self.cells = CellSort(device, n, grid, real, defines)
+            self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_records")
+            self.k_gather = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_gather")
+            self.records = DeviceArray.empty(device, (n, g2p_adjoint_record_reals(self.flip)), dtype)
+        else:
+            self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_private")
+            self.k_sum = k("mpm/p2g.cl", "sum_grid_copies")
+            itemsize = torch.tensor([], dtype=dtype).element_size()
+            copy_bytes = velocity_channels(self.flip) * grid.nodes * itemsize  # vbar[, dvbar] per node
+            self.copies = grid_copies(device, copy_bytes, n)
+            self.chunk = -(-n // self.copies)
+            self.grid_v_bar_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * copy_bytes)
+            self.copy_boxes = DeviceArray.empty(device, (self.copies, 6), torch.int32)  # each copy's node box
+        self.grid_v_bar = DeviceArray.empty(device, (grid.nodes, velocity_channels(self.flip)), dtype)
         self.grid_bar = DeviceArray.empty(device, (grid.nodes, grid_channels(self.flip)), dtype)
         self.tau_bar = DeviceArray.empty(device, (n, 3, 3), dtype)
 
@@ -102,51 +120,60 @@ class SubstepAdjoint:
         ``inputs``, recorded in ``tape``) into ``grad`` = dL/d(state) (overwritten); adds the
         parameter and mass gradients into ``param_grad`` [N, PARAM_COUNT] and ``mass_grad`` [N].
         Every argument but ``inputs``' scalars is a DeviceArray (or a dataclass of them)."""
-        dev, R = self.device, self.real_t
-        grid_args = self.grid.kernel_args(R)
-        particles = inputs.particles
-        self._launch_g2p_adjoint(state, after, tape, inputs, grad_after, grad)
-        # the column sum of the copies into grid_v_bar, a row of nodes a work-item, each copy inside its box
-        nx, ny, nz = self.grid.resolution
-        channels = velocity_channels(self.flip)
-        rows = dict(nx=np.int32(nx), ny=np.int32(ny), nz=np.int32(nz), channels=np.int32(channels))
-        copies = dict(copies=np.int32(self.copies), boxes=self.copy_boxes, grid_copies=self.grid_v_bar_copies)
-        dev.launch(self.k_sum, nx * ny, rows | copies | dict(grid=self.grid_v_bar))
-        grids = dict(grid=tape.grid_mv, grid_v_bar=self.grid_v_bar, grid_bar=self.grid_bar)
-        dev.launch(self.k_grid, self.grid.nodes, grid_args | inputs.grid_update_args(R) | grids)
-        # p2g_adjoint writes v_bar, which p2g_flip_adjoint then reads and adds to
-        bars = dict(grid_bar=self.grid_bar, x_bar=grad.x, v_bar=grad.v, C_bar=grad.C, tau_bar=self.tau_bar)
-        particle_args = p2g_particle_args(R, state, tape, inputs)
-        dev.launch(self.k_p2g, -(-self.n // SIMD_LANES), grid_args | particle_args | bars | dict(mass_bar=mass_grad))
-        if self.k_flip is not None:
-            self._launch_flip_adjoint(state, inputs, grad_after, grad, mass_grad)
-        self.launch_stress_adjoint(
-            inputs.dt,
-            state.F,
-            state.C,
-            state.plastic,
-            particles.material,
-            particles.param,
-            self.tau_bar,
-            grad_after.F,
-            grad_after.plastic,
-            grad.F,
-            grad.C,
-            grad.plastic,
-            param_grad,
-        )
+        with profiled_step(self.device, "adjoint substep"):
+            dev, R = self.device, self.real_t
+            grid_args = self.grid.kernel_args(R)
+            particles = inputs.particles
+            self._launch_g2p_adjoint(state, after, tape, inputs, grad_after, grad)
+            grids = dict(grid=tape.grid_mv, grid_v_bar=self.grid_v_bar, grid_bar=self.grid_bar)
+            dev.launch(self.k_grid, self.grid.nodes, grid_args | inputs.grid_update_args(R) | grids)
+            # p2g_adjoint writes v_bar, which p2g_flip_adjoint then reads and adds to
+            bars = dict(grid_bar=self.grid_bar, x_bar=grad.x, v_bar=grad.v, C_bar=grad.C, tau_bar=self.tau_bar)
+            particle_args = p2g_particle_args(R, state, tape, inputs)
+            dev.launch(
+                self.k_p2g, -(-self.n // SIMD_LANES), grid_args | particle_args | bars | dict(mass_bar=mass_grad)
+            )
+            if self.k_flip is not None:
+                self._launch_flip_adjoint(state, inputs, grad_after, grad, mass_grad)
+            self.launch_stress_adjoint(
+                inputs.dt,
+                state.F,
+                state.C,
+                state.plastic,
+                particles.material,
+                particles.param,
+                self.tau_bar,
+                grad_after.F,
+                grad_after.plastic,
+                grad.F,
+                grad.C,
+                grad.plastic,
+                param_grad,
+            )
 
     def _launch_g2p_adjoint(self, state, after, tape, inputs, grad_after, grad) -> None:
-        """G2P's adjoint: dL/dx into ``grad.x``, dL/d(grid v) into the private grid copies."""
-        R = self.real_t
+        """G2P's adjoint: dL/dx into ``grad.x``, dL/d(grid v) into ``grid_v_bar`` (through the
+        private grid copies and their column sum, or the slot records and a gather per node)."""
+        R, grid_args = self.real_t, self.grid.kernel_args(self.real_t)
         # v' read back as v_pic; with FLIP the kernel sums v_pic itself (any buffer will do)
         v_out = tape.grid_v if uses_flip(self.flip) else after.v
         args = dict(n=np.int32(self.n), dt=R(inputs.dt), t=R(inputs.t), flip=R(self.flip), x_in=state.x, v_out=v_out)
         args |= dict(release_time=inputs.particles.release_time, grid_v=tape.grid_v, grid_dv=tape.grid_dv)
-        args |= dict(x_bar_out=grad_after.x, v_bar_out=grad_after.v, C_bar_out=grad_after.C)
+        args |= dict(x_bar_out=grad_after.x, v_bar_out=grad_after.v, C_bar_out=grad_after.C, x_bar=grad.x)
+        if self.gather:
+            order, starts = self.cells.sort(state.x, grid_args)
+            self.device.launch(self.k_g2p, self.n, grid_args | args | dict(order=order, records=self.records))
+            gather = dict(records=self.records, starts=starts, grid_v_bar=self.grid_v_bar)
+            self.device.launch(self.k_gather, self.grid.nodes, grid_args | gather)
+            return
         args |= dict(copies=np.int32(self.copies), chunk=np.int32(self.chunk))
-        args |= dict(grid_v_bar_copies=self.grid_v_bar_copies, boxes=self.copy_boxes, x_bar=grad.x)
-        self.device.launch(self.k_g2p, self.copies, self.grid.kernel_args(R) | args, local_size=1)
+        args |= dict(grid_v_bar_copies=self.grid_v_bar_copies, boxes=self.copy_boxes)
+        self.device.launch(self.k_g2p, self.copies, grid_args | args, local_size=1)
+        # the column sum of the copies into grid_v_bar, a row of nodes a work-item, each copy inside its box
+        nx, ny, nz = self.grid.resolution
+        rows = dict(nx=np.int32(nx), ny=np.int32(ny), nz=np.int32(nz), channels=np.int32(velocity_channels(self.flip)))
+        copies = dict(copies=np.int32(self.copies), boxes=self.copy_boxes, grid_copies=self.grid_v_bar_copies)
+        self.device.launch(self.k_sum, nx * ny, rows | copies | dict(grid=self.grid_v_bar))
 
     def _launch_flip_adjoint(self, state, inputs, grad_after, grad, mass_grad) -> None:
         """The PIC/FLIP blend's P2G adjoint: adds to ``grad``'s x, v, C and ``mass_grad``."""

@@ -41,7 +41,9 @@ from clflow.mpm.constants import (
 )
 from clflow.runtime.arrays import DeviceArray, numpy_real, real_of
 from clflow.runtime.devices import Device
-from clflow.runtime.sort import DIGIT_BITS, histogram_bytes, key_ranges, radix_sort
+from clflow.runtime.plan import kernel_plan
+from clflow.runtime.profile import profiled_step
+from clflow.runtime.sort import counting_sort
 
 P2GMode = Literal["auto", "private", "atomic", "gather"]
 P2G_MODES = ("auto", "private", "atomic", "gather")
@@ -98,11 +100,11 @@ class Grid:
 
 
 def p2g_path(device: Device, requested: P2GMode = "auto") -> str:
-    """The P2G path a simulator takes: ``requested`` unless "auto"; then $CLFLOW_P2G, else
-    private grid copies on CPU devices (a few work-items, each its own grid) and the gather
-    per node elsewhere (a work-item per node over particles sorted by cell). Both sum in a
-    fixed order, so runs repeat to the bit; "atomic" (a work-item per particle, atomic adds
-    in no fixed order) is there to ask for."""
+    """The P2G path a simulator takes: ``requested`` unless "auto"; then $CLFLOW_P2G, else the
+    device's plan (clflow.runtime.plan): private grid copies on CPU devices (a few
+    work-items, each its own grid), the gather per node on GPUs (a work-item per node over
+    particles sorted by cell). Both sum in a fixed order, so runs repeat to the bit; "atomic"
+    (a work-item per particle, atomic adds in no fixed order) is there to ask for."""
     if requested not in P2G_MODES:
         raise InputError(f"p2g must be one of {', '.join(P2G_MODES)}, not {requested!r}")
     if requested != "auto":
@@ -113,7 +115,7 @@ def p2g_path(device: Device, requested: P2GMode = "auto") -> str:
             raise InputError(f"${P2G_ENV} must be one of {', '.join(P2G_MODES)}, got {forced!r}")
         if forced != "auto":
             return forced
-    return "private" if device.info.type == "CPU" else "gather"
+    return kernel_plan(device).p2g
 
 
 def check_device(device: Device, dtype: torch.dtype, p2g: P2GMode = "auto", differentiable: bool = False) -> None:
@@ -279,14 +281,15 @@ class SubstepTape:
         return SubstepTape(*(DeviceArray.empty(device, shape, dtype) for shape in shapes))
 
 
-def check_grid_memory(info, grid: Grid, itemsize: int, flip: float = 0.0) -> None:
-    """Refuse a grid whose node arrays do not fit device ``info`` (a DeviceInfo): (m, mv[, mv0])
-    and v[, dv] per node (bracketed: PIC/FLIP blend ``flip`` > 0), and on CPU devices at
-    least one private P2G copy of the first."""
+def check_grid_memory(device: Device, grid: Grid, itemsize: int, flip: float = 0.0) -> None:
+    """Refuse a grid whose node arrays do not fit ``device``: (m, mv[, mv0]) and v[, dv] per
+    node (bracketed: PIC/FLIP blend ``flip`` > 0), and where the plan takes private P2G copies
+    at least one copy of the first."""
     from clflow.limits import format_bytes
 
-    nodes, channels = grid.nodes, grid_channels(flip)
-    total = nodes * itemsize * (channels + velocity_channels(flip) + (channels if info.type == "CPU" else 0))
+    info, nodes, channels = device.info, grid.nodes, grid_channels(flip)
+    private = kernel_plan(device).p2g == "private"
+    total = nodes * itemsize * (channels + velocity_channels(flip) + (channels if private else 0))
     largest = nodes * itemsize * channels
     if total > info.global_mem_size or largest > info.max_mem_alloc_size:
         size = "x".join(str(int(r)) for r in grid.resolution)
@@ -322,6 +325,33 @@ def p2g_particle_args(real_t, state: State, tape: SubstepTape, inputs: SubstepIn
     return dict(n=n, dt=real_t(inputs.dt)) | arrays | dict(accel=inputs.accel)
 
 
+def p2g_record_reals(flip: float) -> int:
+    """Reals per particle of the gather's P2G records (mpm/p2g_gather.cl P2G_REC)."""
+    return 28 if uses_flip(flip) else 16
+
+
+class CellSort:
+    """The particles of a substep sorted by the cell of their stencil's base node, on the
+    device, by counting sort (one pass; clflow.runtime.sort): ``order`` [n] int32, the
+    particles cell by cell, each cell's in index order; ``starts`` [nodes + 1] int32, the
+    first slot of each cell (mpm/cells.h). The gather P2G and the gather adjoint take it."""
+
+    def __init__(self, device: Device, n: int, grid: Grid, real: str, defines: dict):
+        self.device, self.n, self.cells = device, n, grid.nodes
+        self.k_cells = device.kernel("mpm/p2g_gather.cl", "particle_cells", real, defines)
+        self.keys, self.rank, self.order = (DeviceArray.empty(device, (max(n, 1),), torch.int32) for _ in range(3))
+        self.starts = DeviceArray.empty(device, (grid.nodes + 1,), torch.int32)
+
+    def sort(self, x: DeviceArray, grid_args: dict) -> tuple[DeviceArray, DeviceArray]:
+        """Enqueue the sort of the particles at ``x`` [n, 3] (m); returns (order, starts)."""
+        dev, n = self.device, np.int32(self.n)
+        self.starts.zero_()  # the counts particle_cells adds to
+        cells = dict(n=n, x=x, key=self.keys, counts=self.starts, rank=self.rank)
+        dev.launch(self.k_cells, self.n, grid_args | cells)
+        counting_sort(dev, self.keys, self.n, self.cells, self.starts, self.rank, self.order, counted=True)
+        return self.order, self.starts
+
+
 class SubstepKernels:
     """The substep kernels of one device, precision, particle count, grid, set of material ids
     (``materials``: the kernel ids of the particles), P2G path (:func:`p2g_path`) and PIC/FLIP
@@ -354,9 +384,10 @@ class SubstepKernels:
         self.U, self.s, self.V = stage.svd_buffers(device, n, dtype)
         # the private path's grid update sums the P2G copies too, a row of nodes a work-item
         self.k_grid = k("mpm/grid.cl", "sum_copies_update_grid" if p2g == "private" else "grid_update")
-        self.k_g2p = k("mpm/g2p.cl", "g2p")
+        # the gather path runs G2P in slot order: neighbouring work-items read neighbouring nodes
+        self.k_g2p = k("mpm/g2p.cl", "g2p_sorted" if p2g == "gather" else "g2p")
         itemsize = torch.tensor([], dtype=dtype).element_size()
-        check_grid_memory(device.info, grid, itemsize, self.flip)
+        check_grid_memory(device, grid, itemsize, self.flip)
         grid_bytes = channels * grid.nodes * itemsize
         if p2g == "private":
             self.k_p2g = k("mpm/p2g.cl", "p2g_private")
@@ -365,15 +396,10 @@ class SubstepKernels:
             self.grid_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * grid_bytes)
             self.copy_boxes = DeviceArray.empty(device, (self.copies, 6), torch.int32)  # each copy's node box
         elif p2g == "gather":
-            self.k_cells = k("mpm/p2g_gather.cl", "particle_cells")
+            self.cells = CellSort(device, n, grid, self.real, defines)
+            self.k_pack = k("mpm/p2g_gather.cl", "p2g_pack")
             self.k_p2g = k("mpm/p2g_gather.cl", "p2g_gather")
-            self.cell_key_bits = max(1, (grid.nodes - 1).bit_length())
-            # (key, particle) pairs and their sort's spares, each cell's [start, end) of them
-            self.cell_pairs = [DeviceArray.empty(device, (n,), torch.int32) for _ in range(4)]
-            self.cell_ranges = DeviceArray.empty(device, (grid.nodes, 2), torch.int32)
-            self.sort_hist = DeviceArray.empty(
-                device, (histogram_bytes(self.cell_key_bits, DIGIT_BITS) // 4,), torch.int32
-            )
+            self.p2g_records = DeviceArray.empty(device, (n, p2g_record_reals(self.flip)), dtype)
         else:
             self.k_p2g = k("mpm/p2g.cl", "p2g_atomic")
         self.scratch = SubstepTape.empty(device, n, grid.nodes, dtype, self.flip)
@@ -389,38 +415,36 @@ class SubstepKernels:
         """Enqueue the substep from ``state`` (time inputs.t) by inputs.dt into ``out`` (States
         of DeviceArrays); ``clamped`` uint8 [N] flags that G2P sets to 1 for particles it
         clamps; tau and the grids go into ``tape`` (default: ``self.scratch``)."""
-        dev, R, n = self.device, self.real_t, np.int32(self.n)
-        grid_args = self.grid_args
-        tape = tape or self.scratch
-        particles = inputs.particles
-        outputs = dict(F_out=out.F, plastic_out=out.plastic, tau_out=tape.tau)
-        stress_args = dict(plastic_in=state.plastic, material=particles.material, param=particles.param) | outputs
-        launch_stress(self, inputs.dt, state.F, state.C, stress_args, elastic_omits=("material",))
-        p2g_args = grid_args | p2g_particle_args(R, state, tape, inputs)
-        grids = dict(grid=tape.grid_mv, grid_v=tape.grid_v, grid_dv=tape.grid_dv)
-        grid_update_args = grid_args | inputs.grid_update_args(R) | grids
-        if self.p2g == "private":
-            copies = dict(copies=np.int32(self.copies), grid_copies=self.grid_copies, boxes=self.copy_boxes)
-            dev.launch(self.k_p2g, self.copies, p2g_args | copies | dict(chunk=np.int32(self.chunk)), local_size=1)
-            nx, ny, _ = self.grid.resolution
-            dev.launch(self.k_grid, nx * ny, grid_update_args | copies)
-        elif self.p2g == "gather":
-            keys, ids, spare_keys, spare_ids = self.cell_pairs
-            dev.launch(self.k_cells, self.n, grid_args | dict(n=n, x=state.x, key=keys, id=ids))
-            if radix_sort(
-                dev, (keys, ids), (spare_keys, spare_ids), self.n, self.cell_key_bits, DIGIT_BITS, self.sort_hist
-            ):
-                keys, ids = spare_keys, spare_ids
-            self.cell_ranges.zero_()  # empty cells: [0, 0)
-            key_ranges(dev, keys, self.cell_ranges, self.n)
-            cells = dict(sorted_id=ids, ranges=self.cell_ranges, grid=tape.grid_mv)
-            dev.launch(self.k_p2g, self.grid.nodes, p2g_args | cells)
-        else:
-            tape.grid_mv.zero_()  # on the device, in queue order: the atomics add onto zeros
-            dev.launch(self.k_p2g, self.n, p2g_args | dict(grid=tape.grid_mv))
-        if self.p2g != "private":
-            dev.launch(self.k_grid, self.grid.nodes, grid_update_args)
-        g2p = dict(n=n, dt=R(inputs.dt), t=R(inputs.t), flip=R(self.flip), x_in=state.x, v_in=state.v)
-        g2p |= dict(grid_v=tape.grid_v, grid_dv=tape.grid_dv, release_time=particles.release_time)
-        g2p |= dict(x_out=out.x, v_out=out.v, C_out=out.C, clamped=clamped)
-        dev.launch(self.k_g2p, self.n, grid_args | g2p)
+        with profiled_step(self.device, "substep"):
+            dev, R, n = self.device, self.real_t, np.int32(self.n)
+            grid_args = self.grid_args
+            tape = tape or self.scratch
+            particles = inputs.particles
+            outputs = dict(F_out=out.F, plastic_out=out.plastic, tau_out=tape.tau)
+            stress_args = dict(plastic_in=state.plastic, material=particles.material, param=particles.param) | outputs
+            launch_stress(self, inputs.dt, state.F, state.C, stress_args, elastic_omits=("material",))
+            p2g_args = grid_args | p2g_particle_args(R, state, tape, inputs)
+            grids = dict(grid=tape.grid_mv, grid_v=tape.grid_v, grid_dv=tape.grid_dv)
+            grid_update_args = grid_args | inputs.grid_update_args(R) | grids
+            if self.p2g == "private":
+                copies = dict(copies=np.int32(self.copies), grid_copies=self.grid_copies, boxes=self.copy_boxes)
+                dev.launch(self.k_p2g, self.copies, p2g_args | copies | dict(chunk=np.int32(self.chunk)), local_size=1)
+                nx, ny, _ = self.grid.resolution
+                dev.launch(self.k_grid, nx * ny, grid_update_args | copies)
+            elif self.p2g == "gather":
+                order, starts = self.cells.sort(state.x, grid_args)
+                pack = dict(dx=grid_args["dx"], order=order, records=self.p2g_records)
+                dev.launch(self.k_pack, self.n, p2g_particle_args(R, state, tape, inputs) | pack)
+                cells = dict(records=self.p2g_records, starts=starts, grid=tape.grid_mv)
+                dev.launch(self.k_p2g, self.grid.nodes, grid_args | cells)
+            else:
+                tape.grid_mv.zero_()  # on the device, in queue order: the atomics add onto zeros
+                dev.launch(self.k_p2g, self.n, p2g_args | dict(grid=tape.grid_mv))
+            if self.p2g != "private":
+                dev.launch(self.k_grid, self.grid.nodes, grid_update_args)
+            g2p = dict(n=n, dt=R(inputs.dt), t=R(inputs.t), flip=R(self.flip), x_in=state.x, v_in=state.v)
+            if self.p2g == "gather":
+                g2p["order"] = self.cells.order
+            g2p |= dict(grid_v=tape.grid_v, grid_dv=tape.grid_dv, release_time=particles.release_time)
+            g2p |= dict(x_out=out.x, v_out=out.v, C_out=out.C, clamped=clamped)
+            dev.launch(self.k_g2p, self.n, grid_args | g2p)

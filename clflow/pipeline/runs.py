@@ -259,7 +259,7 @@ def simulate_particles(
     grid = Grid((run.resolution,) * 3, dx)
     dtype = torch.float64 if run.double else torch.float32
     check_device(device or get_device(), dtype)
-    check_grid_memory((device or get_device()).info, grid, dtype.itemsize)  # before filling the shape at dx / 2
+    check_grid_memory(device or get_device(), grid, dtype.itemsize)  # before filling the shape at dx / 2
     x, volume = _particles_of(run, dx)
 
     def simulator(substeps: int | None):

@@ -158,7 +158,7 @@ def setup_object(cfg: SceneConfig, obj: Gaussians) -> ObjectSetup:
     means = obj.means.detach().double()
     lower, upper = means.min(0).values, means.max(0).values
     grid = simulation_grid(cfg, lower, upper)
-    check_grid_memory(get_device().info, grid, itemsize=4)  # before the fill, whose own limit would blame its spacing
+    check_grid_memory(get_device(), grid, itemsize=4)  # before the fill, whose own limit would blame its spacing
     if cfg.fill.enabled:
         spacing = cfg.fill.spacing or grid.dx / 2  # default: 8 particles per grid cell (per_axis 1)
         particles = fill_object(means, obj.covariances.double(), obj.opacities, spacing, per_axis=cfg.fill.per_axis)

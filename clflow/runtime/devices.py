@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any
 from clflow.errors import DeviceError
 
 if TYPE_CHECKING:
+    from clflow.runtime.profile import KernelProfile
     from clflow.runtime.signatures import KernelSignature
 
 INSTALL_HINT = (
@@ -286,6 +287,7 @@ class Device:
         # queue has run them (OpenCL keeps its buffers alive, not the memory they alias)
         self._in_flight: dict[int, Any] = {}
         self._sizes: dict[tuple, tuple] = {}  # (global, local) size asked -> what launch enqueues
+        self.profile: KernelProfile | None = None  # launches recorded while a profile runs
 
     @property
     def zero_copy(self) -> bool:
@@ -312,6 +314,27 @@ class Device:
                 cl = _import_pyopencl()
                 self._queue = cl.CommandQueue(self.context)
             return self._queue
+
+    def start_profile(self) -> KernelProfile:
+        """Record every launch from now on (clflow.runtime.profile): the queue is replaced by one
+        with profiling enabled, after the commands already enqueued have run."""
+        from clflow.runtime.profile import KernelProfile
+
+        cl = _import_pyopencl()
+        with self._lock:
+            if self._queue is not None:
+                self.finish()
+            self._queue = cl.CommandQueue(self.context, properties=cl.command_queue_properties.PROFILING_ENABLE)
+            self.profile = KernelProfile()
+            return self.profile
+
+    def stop_profile(self) -> dict:
+        """Stop recording; the profile's summary (KernelProfile.summary) once the device is done."""
+        profile, self.profile = self.profile, None
+        if profile is None:
+            raise RuntimeError("stop_profile: no profile was started")
+        self.finish()
+        return profile.summary()
 
     @property
     def kernel_cache_dir(self) -> Path:
@@ -417,7 +440,10 @@ class Device:
         if hosts:
             self.keep_until_done(hosts)
         kernel.set_args(*raw)
-        return _import_pyopencl().enqueue_nd_range_kernel(self.queue, kernel, gsize, lsize)
+        event = _import_pyopencl().enqueue_nd_range_kernel(self.queue, kernel, gsize, lsize)
+        if self.profile is not None:
+            self.profile.record(kernel.function_name, event)
+        return event
 
     def _work_sizes(self, global_size, local_size) -> tuple[tuple, tuple | None]:
         """(global, local) work sizes of :meth:`launch`, the global padded to whole work-groups

@@ -68,9 +68,15 @@ def forced_kind() -> str:
 
 
 def kernel_plan(device) -> KernelPlan:
-    """The plan of ``device`` (a clflow Device): $CLFLOW_KERNELS when it is "cpu" or "gpu",
-    else "cpu" on CPU devices and "gpu" on every other kind."""
+    """The plan of ``device`` (a clflow Device): see :func:`plan_for_type`."""
+    return plan_for_type(device.info.type)
+
+
+def plan_for_type(device_type: str) -> KernelPlan:
+    """The plan of a device of OpenCL type ``device_type`` ("CPU", "GPU", ...):
+    $CLFLOW_KERNELS when it is "cpu" or "gpu", else "cpu" on CPU devices and "gpu" on every
+    other kind."""
     kind = forced_kind()
     if kind == "auto":
-        kind = "cpu" if device.info.type == "CPU" else "gpu"
+        kind = "cpu" if device_type == "CPU" else "gpu"
     return KernelPlan.of(kind)

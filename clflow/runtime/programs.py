@@ -15,6 +15,8 @@ from typing import Any
 
 from clflow.errors import KernelBuildError
 
+# AMD chips whose global memory has a float atomic add (__builtin_amdgcn_global_atomic_fadd_*)
+AMD_GLOBAL_FADD_CHIPS = ("gfx90a", "gfx940", "gfx941", "gfx942", "gfx950")
 _INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$')
 
 
@@ -65,13 +67,15 @@ def build_options(info, real: str, defines: dict[str, Any] | None = None) -> lis
 
     Defines every kernel can rely on:
       REAL (float|double), REAL_IS_DOUBLE (0|1), CLFLOW_FLOAT_ATOMICS (0|1: the device
-      announces cl_ext_float_atomics), CLFLOW_OCLGRIND (0|1: running under oclgrind).
+      announces cl_ext_float_atomics), CLFLOW_AMD_GLOBAL_FADD (0|1: an AMD chip with global
+      float atomic add), CLFLOW_OCLGRIND (0|1: running under oclgrind).
     """
     opts = [
         "-cl-kernel-arg-info",  # argument names and types: launches by name are checked against them
         f"-DREAL={real}",
         f"-DREAL_IS_DOUBLE={int(real == 'double')}",
         f"-DCLFLOW_FLOAT_ATOMICS={int(info.float_atomics)}",
+        f"-DCLFLOW_AMD_GLOBAL_FADD={int(info.name.lower().startswith(AMD_GLOBAL_FADD_CHIPS))}",
         f"-DCLFLOW_OCLGRIND={int(info.is_oclgrind)}",
     ]
     if info.float_atomics and "3." in info.opencl_c_version:

@@ -1,10 +1,19 @@
-"""A stable radix sort of (uint32 key, int32 value) pairs on the device, and an exclusive
-prefix sum and each key's range in the sorted keys (kernels_cl/common/sort.cl): every position depends on the keys alone, so the
-result is deterministic and equal keys keep their order. The rasteriser sorts its tile
-entries with it, the simulator its particles by grid cell.
+"""Scans and sorts on the device (kernels_cl/common/scan.cl, sort.cl), each in the shape the
+device's plan asks for (clflow.runtime.plan): one work-item or a few contiguous blocks on CPU
+devices, work-groups cooperating in local memory on GPUs. Every result depends on the input
+alone, so it repeats to the bit; the sorts are stable.
 
-    swapped = radix_sort(device, (keys, values), (keys2, values2), n, key_bits, digit_bits, hist)
+    scan_exclusive(device, counts, offsets, n)          # offsets[i] = sum(counts[:i]), offsets[n] the total
+    swapped = radix_sort(device, (keys, values), (keys2, values2), n, key_bits, digit_bits)
     # the sorted pairs are in (keys2, values2) when swapped, else in (keys, values)
+    counting_sort(device, keys, n, n_keys, starts, rank, order)   # keys < n_keys, one pass
+
+The rasteriser sorts its tile entries by radix sort, the simulator its particles by grid cell
+by counting sort. pyopencl's own scan and radix sort (``pyopencl.scan``,
+``pyopencl.algorithm.RadixSort``) are not used: they need Mako at run time, generate their
+kernels per call signature, and their radix sort scans every key once per bit (n x 2^bits
+scan work per pass); these kernels take clflow's DeviceArrays and scratch, are checked by its
+launch signatures, and count into its kernel profile.
 """
 
 from __future__ import annotations
@@ -15,9 +24,12 @@ import torch
 from clflow.errors import InputError
 from clflow.runtime.arrays import DeviceArray
 from clflow.runtime.devices import Device, get_device
+from clflow.runtime.plan import kernel_plan
 
-SORT_BLOCKS = 64  # contiguous blocks walked by one work-item each
-DIGIT_BITS = 8  # bits per pass of 32-bit keys: 4 passes
+SORT_BLOCKS = 64  # blocks shape: contiguous blocks walked by one work-item each
+DIGIT_BITS = 8  # blocks shape: bits per pass of 32-bit keys (4 passes)
+SCAN_WG, SCAN_BLOCK = 256, 2048  # kernels_cl/common/scan.h: work-group size, elements per work-group
+RADIX_BITS, RADIX_BLOCK = 4, 1024  # sort.cl: the work-group shape's digit bits and pairs per work-group
 
 
 def digit_width(key_bits: int, digit_bits: int) -> int:
@@ -26,42 +38,97 @@ def digit_width(key_bits: int, digit_bits: int) -> int:
     return -(-key_bits // passes)
 
 
-def histogram_bytes(key_bits: int, digit_bits: int) -> int:
-    """Bytes of the histogram buffer :func:`radix_sort` needs."""
-    return 4 * ((1 << digit_width(key_bits, digit_bits)) * SORT_BLOCKS + 1)
+def _blocks(n: int, per_block: int) -> int:
+    return max(1, -(-n // per_block))
 
 
-def radix_sort(device: Device, pair, spare, n: int, key_bits: int, digit_bits: int, hist) -> bool:
-    """Sort the first ``n`` (key, value) pairs of device buffers ``pair`` by the low
-    ``key_bits`` of the key, ping-ponging with ``spare``; ``hist`` holds at least
-    :func:`histogram_bytes`. Returns True when the result ends in ``spare``."""
+def scan_exclusive(device: Device, src, dst, n: int) -> None:
+    """dst[i] = sum of src[:i] for i = 0..n (int32; dst holds n + 1, dst[n] the total). ``src``
+    and ``dst`` may be the same buffer."""
+    if kernel_plan(device).scan == "serial" or n <= 0:
+        scan = device.kernel("common/scan.cl", "scan_serial")
+        device.launch(scan, 1, {"in": src, "out": dst, "n": np.int32(n)}, 1)
+        return
+    _scan_workgroups(device, src, dst, n)
+
+
+def _scan_workgroups(device: Device, src, dst, n: int) -> None:
+    """Reduce-then-scan: the block sums, scanned the same way (recursively), then each block."""
+    blocks = _blocks(n, SCAN_BLOCK)
+    scan_blocks = device.kernel("common/scan.cl", "scan_blocks")
+    args = {"in": src, "out": dst, "n": np.int32(n)}
+    if blocks == 1:
+        device.launch(scan_blocks, SCAN_WG, args | dict(offsets=dst, has_offsets=np.int32(0)), SCAN_WG)
+        return
+    sums = device.take_scratch(4 * blocks)
+    offsets = device.take_scratch(4 * (blocks + 1))
+    device.launch(
+        device.kernel("common/scan.cl", "scan_block_sums"),
+        blocks * SCAN_WG,
+        {"in": src, "n": np.int32(n), "sums": sums},
+        SCAN_WG,
+    )
+    _scan_workgroups(device, sums, offsets, blocks)
+    device.launch(scan_blocks, blocks * SCAN_WG, args | dict(offsets=offsets, has_offsets=np.int32(1)), SCAN_WG)
+    # the in-order queue runs every later use of these buffers after the commands above
+    device.give_back_scratch(sums)
+    device.give_back_scratch(offsets)
+
+
+def radix_sort(device: Device, pair, spare, n: int, key_bits: int, digit_bits: int = DIGIT_BITS) -> bool:
+    """Stable sort of the first ``n`` (uint32 key, int32 value) pairs of device buffers
+    ``pair`` by the low ``key_bits`` of the key, ping-ponging with ``spare``. ``digit_bits``
+    is the blocks shape's digit (a CPU's cache holds its 2^digit_bits x 64 counters); the
+    work-group shape takes RADIX_BITS, what its local memory holds. Returns True when the
+    result ends in ``spare``."""
     if n == 0:
         return False
-    passes = -(-key_bits // digit_bits)
-    width = digit_width(key_bits, digit_bits)
-    block_len = np.int32(-(-n // SORT_BLOCKS))
-    histogram = device.kernel("common/sort.cl", "radix_histogram")
-    scan = device.kernel("common/sort.cl", "scan_exclusive")
-    scatter = device.kernel("common/sort.cl", "radix_scatter")
-    blocks = np.int32(SORT_BLOCKS)
+    workgroups = kernel_plan(device).sort == "workgroup"
+    width = digit_width(key_bits, RADIX_BITS if workgroups else digit_bits)
+    passes = -(-key_bits // width)
+    blocks = _blocks(n, RADIX_BLOCK) if workgroups else SORT_BLOCKS
+    hist = device.take_scratch(4 * ((1 << width) * blocks + 1))
+    suffix = "_wg" if workgroups else ""
+    histogram = device.kernel("common/sort.cl", "radix_histogram" + suffix)
+    scatter = device.kernel("common/sort.cl", "radix_scatter" + suffix)
     src, dst = pair, spare
     for p in range(passes):
         shift = np.int32(p * width)
         mask = np.uint32((1 << min(width, key_bits - p * width)) - 1)
-        n_hist = np.int32((int(mask) + 1) * SORT_BLOCKS)
-        # local size 1: the blocks are independent work-groups, spread over all cores
-        digit = dict(n=np.int32(n), shift=shift, mask=mask, nblocks=blocks, block_len=block_len)
-        device.launch(histogram, SORT_BLOCKS, digit | dict(keys=src[0], hist=hist), 1)
-        device.launch(scan, 1, {"in": hist, "out": hist, "n": n_hist}, 1)
+        digit = dict(n=np.int32(n), shift=shift, mask=mask, nblocks=np.int32(blocks))
         pairs = dict(keys_in=src[0], values_in=src[1], keys_out=dst[0], values_out=dst[1])
-        device.launch(scatter, SORT_BLOCKS, digit | pairs | dict(starts=hist), 1)
+        if workgroups:
+            device.launch(histogram, blocks * SCAN_WG, digit | dict(keys=src[0], hist=hist), SCAN_WG)
+            scan_exclusive(device, hist, hist, (int(mask) + 1) * blocks)
+            device.launch(scatter, blocks * SCAN_WG, digit | pairs | dict(starts=hist), SCAN_WG)
+        else:
+            # local size 1: the blocks are independent work-groups, spread over all cores
+            block_len = dict(block_len=np.int32(-(-n // SORT_BLOCKS)))
+            device.launch(histogram, SORT_BLOCKS, digit | block_len | dict(keys=src[0], hist=hist), 1)
+            scan_exclusive(device, hist, hist, (int(mask) + 1) * SORT_BLOCKS)
+            device.launch(scatter, SORT_BLOCKS, digit | block_len | pairs | dict(starts=hist), 1)
         src, dst = dst, src
+    device.give_back_scratch(hist)
     return passes % 2 == 1
 
 
-def scan_exclusive(device: Device, src, dst, n: int) -> None:
-    """dst[i] = sum of src[:i] for i = 0..n (dst holds n + 1 int32; dst[n] the total)."""
-    device.launch(device.kernel("common/sort.cl", "scan_exclusive"), 1, {"in": src, "out": dst, "n": np.int32(n)}, 1)
+def counting_sort(device: Device, keys, n: int, n_keys: int, starts, rank, order, counted: bool = False) -> None:
+    """``order`` [n] int32: the indices 0..n-1 sorted by ``keys`` [n] (uint32, each < n_keys),
+    equal keys in index order; ``starts`` [n_keys + 1] int32 (a DeviceArray): where each key's run begins
+    (starts[n_keys] = n); ``rank`` [n] int32 scratch. ``counted``: the caller has already
+    zeroed ``starts``, counted the keys into it and written each one's ``rank``
+    (common/sort.cl count_keys, or a kernel that computes the keys and counts them at once)."""
+    if not counted:
+        starts.zero_()
+        device.launch(
+            device.kernel("common/sort.cl", "count_keys"), n, dict(keys=keys, n=np.int32(n), counts=starts, rank=rank)
+        )
+    scan_exclusive(device, starts, starts, n_keys)
+    placed = dict(keys=keys, rank=rank, starts=starts, n=np.int32(n), order=order)
+    device.launch(device.kernel("common/sort.cl", "place_keys"), n, placed)
+    device.launch(
+        device.kernel("common/sort.cl", "order_runs"), n_keys, dict(starts=starts, n_keys=np.int32(n_keys), order=order)
+    )
 
 
 def key_ranges(device: Device, keys, ranges, n: int) -> None:
@@ -83,7 +150,22 @@ def sort_pairs(keys: torch.Tensor, values: torch.Tensor, key_bits: int = 32, dev
     n = keys.shape[0]
     arrays = [DeviceArray.of(device, keys.to(torch.int32)), DeviceArray.of(device, values.to(torch.int32))]
     arrays += [DeviceArray.empty(device, (n,), torch.int32) for _ in range(2)]
-    hist = DeviceArray.empty(device, (histogram_bytes(key_bits, DIGIT_BITS) // 4,), torch.int32)
-    swapped = radix_sort(device, arrays[:2], arrays[2:], n, key_bits, DIGIT_BITS, hist)
+    swapped = radix_sort(device, arrays[:2], arrays[2:], n, key_bits)
     result = arrays[2:] if swapped else arrays[:2]
     return result[0].read(), result[1].read()
+
+
+def sort_by_key(keys: torch.Tensor, n_keys: int, device: Device | None = None):
+    """The counting sort of int ``keys`` [n] (each in [0, n_keys)): returns (order [n], the
+    indices by key, equal keys in index order; starts [n_keys + 1], each key's first position)."""
+    device = device or get_device()
+    if keys.dim() != 1:
+        raise InputError(f"sort_by_key: keys must be 1-D, got {tuple(keys.shape)}")
+    n = keys.shape[0]
+    if n and (int(keys.min()) < 0 or int(keys.max()) >= n_keys):
+        raise InputError(f"sort_by_key: keys must lie in [0, {n_keys})")
+    key_array = DeviceArray.of(device, keys.to(torch.int32))
+    starts = DeviceArray.empty(device, (n_keys + 1,), torch.int32)
+    rank, order = (DeviceArray.empty(device, (max(n, 1),), torch.int32) for _ in range(2))
+    counting_sort(device, key_array, n, n_keys, starts, rank, order)
+    return order.read()[:n], starts.read()

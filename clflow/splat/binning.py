@@ -16,11 +16,11 @@ from clflow.errors import InputError
 from clflow.runtime.arrays import real_of
 from clflow.runtime.bridge import bind
 from clflow.runtime.devices import Device, get_device
-from clflow.runtime.sort import histogram_bytes, key_ranges, radix_sort, scan_exclusive
+from clflow.runtime.sort import key_ranges, radix_sort, scan_exclusive
 from clflow.splat.constants import SPLAT_DEFINES, TILE_SIZE
 
-DEPTH_DIGIT_BITS = 8  # 32-bit depth keys: 4 passes of 8 bits
-TILE_DIGIT_BITS = 12  # tile keys: ceil(bits / 12) passes (one pass up to 4096 tiles)
+DEPTH_DIGIT_BITS = 8  # CPU devices (the sort's blocks shape): 32-bit depth keys in 4 passes of 8 bits
+TILE_DIGIT_BITS = 12  # and tile keys in ceil(bits / 12) passes (one pass up to 4096 tiles)
 MAX_TILE_ENTRIES = 1 << 26  # bound on (tile, Gaussian) entries: 1.3 GB of lists, + (9 + C) reals of records each
 BYTES_PER_ENTRY = 20  # tile key + slot, double-buffered for the sort, + slot's Gaussian id
 
@@ -102,8 +102,7 @@ def build_tile_lists(
         gaussians = dict(depths=b.input(depths), radii=b.input(radii), n=np.int32(n))
         device.launch(kern("depth_keys"), n, gaussians | dict(keys=keys, values=values))
         tile_bits = max(1, (n_tiles - 1).bit_length())
-        hist = b.scratch(max(histogram_bytes(32, DEPTH_DIGIT_BITS), histogram_bytes(tile_bits, TILE_DIGIT_BITS)))
-        swapped = radix_sort(device, depth_pairs[:2], depth_pairs[2:], n, 32, DEPTH_DIGIT_BITS, hist)
+        swapped = radix_sort(device, depth_pairs[:2], depth_pairs[2:], n, 32, DEPTH_DIGIT_BITS)
         order = depth_pairs[3] if swapped else depth_pairs[1]
         counts, offsets = b.scratch(4 * n), b.scratch(4 * (n + 1))
         touched = dict(order=order, tiles_touched=b.input(tiles_touched), counts=counts, n=np.int32(n))
@@ -120,7 +119,7 @@ def build_tile_lists(
         entries |= dict(slot_gaussian=b.output(slot_gaussian), first_slot=b.output(first_slot))
         tiles = dict(n=np.int32(n), tiles_x=np.int32(tiles_x), tiles_y=np.int32(tiles_y))
         device.launch(kern("emit_entries"), n, entries | tiles)
-        swapped = radix_sort(device, tile_pairs[:2], tile_pairs[2:], m, tile_bits, TILE_DIGIT_BITS, hist)
+        swapped = radix_sort(device, tile_pairs[:2], tile_pairs[2:], m, tile_bits, TILE_DIGIT_BITS)
         keys, slots = (tile_pairs[2], tile_pairs[3]) if swapped else (tile_pairs[0], tile_pairs[1])
         key_ranges(device, keys, b.inout(ranges), m)
         sorted_slots = torch.empty(m, dtype=torch.int32)

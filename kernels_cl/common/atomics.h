@@ -1,8 +1,13 @@
-/* atomic_add_real(p, v): *p += v atomically for a __global real.
- *
- * Uses cl_ext_float_atomics when the host announced it (CLFLOW_FLOAT_ATOMICS) and the
- * compiler confirms the matching feature macro; otherwise a compare-and-swap loop on the
- * value's bit pattern (32-bit for float, 64-bit for double via cl_khr_int64_base_atomics).
+/* atomic_add_real(p, v): *p += v atomically for a __global real, in the fastest way the
+ * device has, first found first:
+ *  1. NVIDIA's OpenCL (it defines cl_nv_pragma_unroll; it announces no float atomics, but its
+ *     compiler takes inline PTX): red.global.add.f32 / .f64, the hardware's reduction;
+ *  2. AMD's global float add (__builtin_amdgcn_global_atomic_fadd_f32/_f64) where the host
+ *     found a chip that has it (CLFLOW_AMD_GLOBAL_FADD: gfx90a and the gfx94x/gfx950 series);
+ *  3. cl_ext_float_atomics where the host announced it (CLFLOW_FLOAT_ATOMICS) and the
+ *     compiler confirms the matching feature macro;
+ *  4. else a compare-and-swap loop on the value's bit pattern (32-bit for float, 64-bit for
+ *     double via cl_khr_int64_base_atomics), slow under contention.
  * Comparing bit patterns, not values, keeps the loop finite when *p is NaN. The first
  * attempt guesses *p == 0 instead of reading it with a plain load, which would race with
  * the other work-items' compare-and-swaps (oclgrind reports it).
@@ -16,6 +21,14 @@
 
 #ifndef CLFLOW_FLOAT_ATOMICS
 #define CLFLOW_FLOAT_ATOMICS 0
+#endif
+#ifndef CLFLOW_AMD_GLOBAL_FADD
+#define CLFLOW_AMD_GLOBAL_FADD 0
+#endif
+#if defined(cl_nv_pragma_unroll)
+#define CLFLOW_PTX_ATOMIC_ADD 1
+#else
+#define CLFLOW_PTX_ATOMIC_ADD 0
 #endif
 
 #if REAL_IS_DOUBLE
@@ -35,7 +48,19 @@
 
 inline void atomic_add_real(volatile __global real *p, real v)
 {
-#if CLFLOW_NATIVE_ATOMIC_ADD
+#if CLFLOW_PTX_ATOMIC_ADD
+#if REAL_IS_DOUBLE
+    asm volatile("red.global.add.f64 [%0], %1;" ::"l"(p), "d"(v) : "memory");
+#else
+    asm volatile("red.global.add.f32 [%0], %1;" ::"l"(p), "f"(v) : "memory");
+#endif
+#elif CLFLOW_AMD_GLOBAL_FADD
+#if REAL_IS_DOUBLE
+    __builtin_amdgcn_global_atomic_fadd_f64((__global double *)p, v);
+#else
+    __builtin_amdgcn_global_atomic_fadd_f32((__global float *)p, v);
+#endif
+#elif CLFLOW_NATIVE_ATOMIC_ADD
 #if REAL_IS_DOUBLE
     atomic_fetch_add_explicit((volatile __global atomic_double *)p, v, memory_order_relaxed, memory_scope_device);
 #else

@@ -11,17 +11,17 @@
  * an atomic counter would keep PoCL from vectorising the kernel). */
 #include "mpm/mpm.h"
 
-__kernel void g2p(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy, const real oz,
-                  const int n, const real dt, const real t, const real flip, __global const real *restrict x_in,
-                  __global const real *restrict v_in, __global const real *restrict grid_v,
-                  __global const real *restrict grid_dv, __global const real *restrict release_time,
-                  __global real *restrict x_out, __global real *restrict v_out, __global real *restrict C_out,
-                  __global uchar *restrict clamped)
+#define G2P_ARGS                                                                                                       \
+    const real dt, const real t, const real flip, __global const real *restrict x_in,                                  \
+        __global const real *restrict v_in, __global const real *restrict grid_v,                                      \
+        __global const real *restrict grid_dv, __global const real *restrict release_time,                             \
+        __global real *restrict x_out, __global real *restrict v_out, __global real *restrict C_out,                   \
+        __global uchar *restrict clamped
+
+/* Particle p's G2P and advection. */
+inline void g2p_particle(const grid_t g, const int p, G2P_ARGS)
 {
-    const int p = get_global_id(0);
-    if (p >= n)
-        return;
-    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const real dx = g.dx;
     real xp[3];
     vec3r v = 0, C0 = 0, C1 = 0, C2 = 0; /* v_pic and the rows of C */
 #if CLFLOW_FLIP
@@ -68,4 +68,25 @@ __kernel void g2p(const int nx, const int ny, const int nz, const real dx, const
     vstore3(C0, 3 * p, C_out);
     vstore3(C1, 3 * p + 1, C_out);
     vstore3(C2, 3 * p + 2, C_out);
+}
+
+#define G2P_GRID_ARGS                                                                                                  \
+    const int nx, const int ny, const int nz, const real dx, const real ox, const real oy, const real oz
+#define G2P_PASS dt, t, flip, x_in, v_in, grid_v, grid_dv, release_time, x_out, v_out, C_out, clamped
+
+/* A work-item per particle, in index order (CPU devices: the state streams in order). */
+__kernel void g2p(G2P_GRID_ARGS, const int n, G2P_ARGS)
+{
+    const int p = get_global_id(0);
+    if (p < n)
+        g2p_particle(make_grid(nx, ny, nz, dx, ox, oy, oz), p, G2P_PASS);
+}
+
+/* A work-item per slot of the particles sorted by cell (p = order[slot], mpm/p2g_gather.cl):
+ * neighbouring work-items read neighbouring grid nodes (GPUs). */
+__kernel void g2p_sorted(G2P_GRID_ARGS, const int n, __global const int *order, G2P_ARGS)
+{
+    const int s = get_global_id(0);
+    if (s < n)
+        g2p_particle(make_grid(nx, ny, nz, dx, ox, oy, oz), order[s], G2P_PASS);
 }

@@ -114,10 +114,11 @@ def test_flip_blend_adjoint_matches_autograd_of_reference(walls, materials):
 
 
 @pytest.mark.parametrize("flip", [0.0, 0.99])
-def test_adjoint_copies_are_zeroed_and_summed_only_in_their_boxes(flip):
-    """The G2P adjoint's private grid copies, like P2G's, are zeroed and summed only in the box
-    of nodes each particle chunk touches: copies full of NaN beforehand leave the adjoint of two
-    separate moving blocks equal to the reference's."""
+def test_adjoint_copies_are_zeroed_and_summed_only_in_their_boxes(flip, monkeypatch):
+    """The G2P adjoint's private grid copies (the CPU plan), like P2G's, are zeroed and summed
+    only in the box of nodes each particle chunk touches: copies full of NaN beforehand leave
+    the adjoint of two separate moving blocks equal to the reference's."""
+    monkeypatch.setenv("CLFLOW_KERNELS", "cpu")
     sim = two_blocks(("newtonian", "elastic"), flip=flip)
     for _ in range(5):
         sim.step()
@@ -127,6 +128,22 @@ def test_adjoint_copies_are_zeroed_and_summed_only_in_their_boxes(flip):
     boxes = adjoint.copy_boxes.read()
     volumes = (boxes[:, 3:] - boxes[:, :3]).prod(1)
     assert adjoint.copies >= 2 and int(volumes.max()) <= sim.grid.nodes // 4, boxes
+
+
+@pytest.mark.parametrize("flip", [0.0, 0.99])
+def test_the_gather_adjoint_writes_every_node_and_record(flip, monkeypatch):
+    """The G2P adjoint as a gather per node (the GPU plan): with its records and grid_v_bar
+    full of NaN beforehand, every node is written (empty ones with zeros), so the adjoint of
+    two separate moving blocks equals the reference's; no private copies exist."""
+    monkeypatch.setenv("CLFLOW_KERNELS", "gpu")
+    sim = two_blocks(("newtonian", "elastic"), flip=flip)
+    for _ in range(5):
+        sim.step()
+    adjoint = SubstepAdjoint(sim.device, sim.dtype, sim.n, sim.grid, sim.particles.material, sim.flip)
+    poison(sim.device, adjoint.records.buffer)
+    poison(sim.device, adjoint.grid_v_bar.buffer)
+    assert_adjoint_matches_reference(sim, adjoint=adjoint)
+    assert adjoint.gather and not hasattr(adjoint, "grid_v_bar_copies")
 
 
 @pytest.mark.parametrize("material", ["plasticine", "metal", "foam", "sand", "newtonian", "non_newtonian", "snow"])

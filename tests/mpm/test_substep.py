@@ -216,12 +216,15 @@ def test_the_private_paths_grid_update_equals_grid_update_on_every_node(flip, sc
     assert (got[0][tape.grid_mv.read()[:, 0] == 0] == 0).all() and np.any(got[0].numpy() != 0)
 
 
-def test_the_p2g_path_follows_the_device_unless_forced(device, monkeypatch):
+def test_the_p2g_path_follows_the_plan_unless_forced(device, monkeypatch):
     from clflow.errors import InputError
     from clflow.mpm.substep import P2G_ENV, p2g_path
+    from clflow.runtime.plan import KERNELS_ENV
 
     monkeypatch.delenv(P2G_ENV, raising=False)
-    assert p2g_path(device) == ("private" if device.info.type == "CPU" else "gather")
+    for kind, path in (("cpu", "private"), ("gpu", "gather")):
+        monkeypatch.setenv(KERNELS_ENV, kind)
+        assert p2g_path(device) == path
     assert p2g_path(device, "atomic") == "atomic"
     monkeypatch.setenv(P2G_ENV, "atomic")
     assert p2g_path(device) == "atomic"
@@ -244,8 +247,8 @@ def test_the_p2g_paths_agree(dtype, tol):
 
 def test_the_gather_sorts_particles_by_cell_and_sums_each_node_in_that_order():
     """Particles crossing cells between substeps (random velocities): the cell lists are
-    rebuilt every substep, every particle in exactly one list, and the gather's grid equals
-    the private copies' to round-off."""
+    rebuilt every substep, every particle in exactly one list, in index order within its cell,
+    the cell its position says, and the gather's grid equals the private copies' to round-off."""
     from clflow.mpm.substep import SubstepTape
     from clflow.runtime.arrays import DeviceArray
 
@@ -253,10 +256,6 @@ def test_the_gather_sorts_particles_by_cell_and_sums_each_node_in_that_order():
     for sim in sims:
         for _ in range(5):
             sim.step()
-    gather = sims[1]
-    ranges = gather.kernels.cell_ranges.read()
-    counts = (ranges[:, 1] - ranges[:, 0]).long()
-    assert int(counts.sum()) == gather.n and int(counts.max()) > 1  # each particle once; cells shared
     grids = []
     for sim in sims:
         tape = SubstepTape.empty(sim.device, sim.n, sim.grid.nodes, sim.dtype)
@@ -266,3 +265,14 @@ def test_the_gather_sorts_particles_by_cell_and_sums_each_node_in_that_order():
         )
         grids.append(tape.grid_mv.read())
     assert rel_diff(grids[1], grids[0]) < 1e-12
+    gather = sims[1]  # sorted last at its current state
+    cells = gather.kernels.cells
+    starts, order = cells.starts.read().long(), cells.order.read().long()
+    counts = starts.diff()
+    assert int(counts.sum()) == gather.n and int(counts.max()) > 1  # each particle once; cells shared
+    xi = (gather.state.x.double() - torch.tensor(gather.grid.origin, dtype=torch.float64)) / gather.grid.dx
+    upper = torch.tensor(gather.grid.resolution) - 3
+    base = torch.minimum(torch.floor(xi - 0.5).long().clamp(min=0), upper)
+    nx, ny, nz = gather.grid.resolution
+    cell = (base[:, 0] * ny + base[:, 1]) * nz + base[:, 2]
+    assert torch.equal(order, torch.sort(cell, stable=True).indices)  # by cell, then index

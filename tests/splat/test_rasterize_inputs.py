@@ -6,7 +6,6 @@ import pytest
 import torch
 
 from clflow.errors import InputError
-from clflow.runtime.sort import sort_pairs
 from clflow.splat.binning import build_tile_lists, tile_grid
 from clflow.splat.constants import TILE_SIZE
 from clflow.splat.ops import covariances, project, rasterize_gaussians
@@ -58,18 +57,6 @@ def test_bad_input_raises_clear_error(change, message):
     with pytest.raises(InputError) as info:
         render(**change)
     assert message in str(info.value)
-
-
-def test_device_radix_sort_is_stable_and_matches_torch():
-    g = torch.Generator().manual_seed(0)
-    for bits, n in ((32, 5000), (10, 3000), (3, 1000), (32, 0)):
-        keys = torch.randint(0, 2**bits if bits < 31 else 2**31 - 1, (n,), generator=g, dtype=torch.int64)
-        keys = keys.to(torch.int32)
-        values = torch.arange(n, dtype=torch.int32)
-        sorted_keys, sorted_values = sort_pairs(keys, values, key_bits=bits)
-        expected = torch.sort(keys.to(torch.int64), stable=True)
-        assert torch.equal(sorted_keys.to(torch.int64), expected.values)
-        assert torch.equal(sorted_values.to(torch.int64), expected.indices)
 
 
 def test_tile_lists_hold_each_tiles_gaussians_front_to_back():

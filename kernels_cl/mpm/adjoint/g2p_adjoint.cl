@@ -1,6 +1,12 @@
-/* Adjoint of G2P (g2p.cl), a scatter onto the grid, deterministic without float atomics:
- * work-item k handles the contiguous particle chunk k into its own grid copy; the host then
- * sums the copies in a fixed order, each only inside its box (p2g.cl: sum_grid_copies).
+/* Adjoint of G2P (g2p.cl): a scatter onto the grid, deterministic without float atomics in
+ * either of two shapes (clflow.runtime.plan):
+ *  - private grid copies (CPU devices): work-item k handles the contiguous particle chunk k
+ *    into its own grid copy; the host then sums the copies in a fixed order, each only inside
+ *    its box (p2g.cl: sum_grid_copies);
+ *  - a gather per node (GPUs): a work-item per particle slot (particles sorted by cell,
+ *    mpm/p2g_gather.cl) computes xbar and writes what the grid needs of the particle into its
+ *    slot's record; then a work-item per node sums the records of the particles whose stencil
+ *    reaches it, cell by cell in a fixed order (g2p_adjoint_gather).
  *
  * Forward: v_pic = sum_i w v_i,  C' = (4/dx^2) sum_i w v_i d^T,  x' = clamp(x + dt v_pic),
  * v' = v_pic, or with CLFLOW_FLIP v' = flip (v + sum_i w dv_i) + (1 - flip) v_pic.
@@ -15,13 +21,19 @@
  * per node: vbar_i, and dvbar_i with CLFLOW_FLIP.
  * Unreleased particles (t < release_time) do not move: xbar = xbar', nothing to the grid. */
 #include "mpm/adjoint/adjoint.h"
+#include "mpm/cells.h"
 
+/* record of a slot in the gather shape: x (3), u (3), B (3 x 3)[, flip vbar' (3)] */
+#define G2P_ADJ_REC (CLFLOW_FLIP ? 18 : 15)
+
+/* Particle p's G2P adjoint: x_bar[p] written; its grid terms added into grid_v_bar (a private
+ * copy) or, when grid_v_bar is 0, written to `record` (G2P_ADJ_REC reals) for the gather. */
 inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, const real t, const real flip,
                                  __global const real *x_in, __global const real *v_out,
                                  __global const real *release_time, __global const real *grid_v,
                                  __global const real *grid_dv, __global const real *x_bar_out,
                                  __global const real *v_bar_out, __global const real *C_bar_out,
-                                 __global real *grid_v_bar, __global real *x_bar)
+                                 __global real *grid_v_bar, __global real *x_bar, __global real *record)
 {
     const real dx = g->dx;
     real xp[3], vp[3], xb[3], u[3], B[9], vi[3];
@@ -29,6 +41,9 @@ inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, co
     load_row(x_bar_out, p, 3, xb);
     if (t < release_time[p]) {
         store_row(x_bar, p, 3, xb);
+        if (record != 0) /* weight 0: a record that adds nothing */
+            for (int q = 0; q < G2P_ADJ_REC; ++q)
+                record[q] = q < 3 ? xp[q] : 0;
         return;
     }
     load_row(v_bar_out, p, 3, u);
@@ -64,6 +79,18 @@ inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, co
     }
     for (int k = 0; k < 9; ++k)
         B[k] *= 4 / (dx * dx);
+    if (record != 0) {
+        for (int a = 0; a < 3; ++a) {
+            record[a] = xp[a];
+            record[3 + a] = u[a];
+        }
+        for (int k = 0; k < 9; ++k)
+            record[6 + k] = B[k];
+#if CLFLOW_FLIP
+        for (int a = 0; a < 3; ++a)
+            record[15 + a] = fv[a];
+#endif
+    }
     const stencil_gradient_t sg = make_stencil_gradient(&st, dx);
 #pragma unroll
     for (int i = 0; i < 3; ++i)
@@ -79,13 +106,15 @@ inline void g2p_adjoint_particle(const grid_t *g, const int p, const real dt, co
                 weight_gradient(&st, &sg, i, j, k, grad_w);
                 for (int a = 0; a < 3; ++a) {
                     const real Bd = B[3 * a] * d[0] + B[3 * a + 1] * d[1] + B[3 * a + 2] * d[2];
-                    grid_v_bar[GV_CH * node + a] += w * (u[a] + Bd);
+                    if (grid_v_bar != 0)
+                        grid_v_bar[GV_CH * node + a] += w * (u[a] + Bd);
                     s += vi[a] * (u[a] + Bd);
                 }
 #if CLFLOW_FLIP
                 load_row(grid_dv, node, 3, vi);
                 for (int a = 0; a < 3; ++a) {
-                    grid_v_bar[GV_CH * node + 3 + a] += w * fv[a];
+                    if (grid_v_bar != 0)
+                        grid_v_bar[GV_CH * node + 3 + a] += w * fv[a];
                     s += vi[a] * fv[a];
                 }
 #endif
@@ -119,5 +148,62 @@ __kernel void g2p_adjoint_private(const int nx, const int ny, const int nz, cons
     __global real *grid_v_bar = boxed_copy(&g, grid_v_bar_copies, k, GV_CH, box, boxes);
     for (int p = begin; p < end; ++p)
         g2p_adjoint_particle(&g, p, dt, t, flip, x_in, v_out, release_time, grid_v, grid_dv, x_bar_out, v_bar_out,
-                             C_bar_out, grid_v_bar, x_bar);
+                             C_bar_out, grid_v_bar, x_bar, 0);
+}
+
+/* A work-item per slot of the particles sorted by cell (p = order[slot]): x_bar[p], and the
+ * slot's record for g2p_adjoint_gather. */
+__kernel void g2p_adjoint_records(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
+                                  const real oz, const int n, const real dt, const real t, const real flip,
+                                  __global const real *x_in, __global const real *v_out,
+                                  __global const real *release_time, __global const real *grid_v,
+                                  __global const real *grid_dv, __global const real *x_bar_out,
+                                  __global const real *v_bar_out, __global const real *C_bar_out,
+                                  __global const int *order, __global real *records, __global real *x_bar)
+{
+    const int s = get_global_id(0);
+    if (s >= n)
+        return;
+    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    g2p_adjoint_particle(&g, order[s], dt, t, flip, x_in, v_out, release_time, grid_v, grid_dv, x_bar_out, v_bar_out,
+                         C_bar_out, 0, x_bar, records + (long)G2P_ADJ_REC * s);
+}
+
+/* A work-item per node: grid_v_bar[node] = sum over the particles whose stencil reaches it (27
+ * base cells in the order (a, b, c), each cell's slots in order) of w (u + B d)[, w flip vbar']. */
+__kernel void g2p_adjoint_gather(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
+                                 const real oz, __global const real *records, __global const int *starts,
+                                 __global real *grid_v_bar)
+{
+    const long node = get_global_id(0);
+    if (node >= (long)nx * ny * nz)
+        return;
+    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const int ni = node / ((long)ny * nz), nj = (node / nz) % ny, nk = node % nz;
+    real sum[GV_CH];
+    for (int q = 0; q < GV_CH; ++q)
+        sum[q] = 0;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            for (int k = 0; k < 3; ++k) {
+                const int2 run = cell_run(&g, starts, ni - i, nj - j, nk - k);
+                for (int s = run.x; s < run.y; ++s) {
+                    __global const real *rec = records + (long)G2P_ADJ_REC * s;
+                    const real xp[3] = {rec[0], rec[1], rec[2]};
+                    const stencil_t st = make_stencil(&g, xp);
+                    const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
+                    const real d[3] = {(i - st.fx[0]) * dx, (j - st.fx[1]) * dx, (k - st.fx[2]) * dx};
+                    __global const real *u = rec + 3, *B = rec + 6;
+                    for (int a = 0; a < 3; ++a) {
+                        const real Bd = B[3 * a] * d[0] + B[3 * a + 1] * d[1] + B[3 * a + 2] * d[2];
+                        sum[a] += w * (u[a] + Bd);
+                    }
+#if CLFLOW_FLIP
+                    for (int a = 0; a < 3; ++a)
+                        sum[3 + a] += w * rec[15 + a];
+#endif
+                }
+            }
+    for (int q = 0; q < GV_CH; ++q)
+        grid_v_bar[GV_CH * node + q] = sum[q];
 }

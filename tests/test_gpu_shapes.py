@@ -1,0 +1,132 @@
+"""The GPU plan's kernels are GPU-shaped, checked without a GPU.
+
+In the bridge's copy mode with the GPU plan forced (CLFLOW_KERNELS=gpu), every launch of a
+262k-particle substep, of its adjoint and of a 100k-Gaussian rasteriser call is recorded;
+a launch fails the test when one work-item is given more than MAX_ELEMENTS_PER_WORK_ITEM
+elements of its largest buffer (a one-work-item scan, a sort over 64 blocks, private grid
+copies: the CPU shapes that took 77-88 % of an H200's time), and a substep when it makes
+more launches than the design below. The profile of a real GPU (clflow bench --profile)
+says the rest.
+"""
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import torch
+
+MAX_ELEMENTS_PER_WORK_ITEM = 256
+MAX_LOCAL_MEMORY = 32 * 1024  # bytes a work-group may take: what every full-profile OpenCL device has
+# The GPU plan's forward substep: [SVD of F_tr], stress, particle_cells (keys and counts),
+# the counts' scan (3 launches beyond 2048 cells), place_keys, order_runs, p2g_pack,
+# p2g_gather, grid_update, g2p_sorted.
+SUBSTEP_LAUNCHES = {"elastic": 11, "sand": 12}
+# Its adjoint: the cell sort again (6), g2p_adjoint_records, g2p_adjoint_gather,
+# grid_update_adjoint, p2g_adjoint, [SVD], stress adjoint.
+ADJOINT_LAUNCHES = {"elastic": 11, "sand": 12}
+ITEMSIZE = {"char": 1, "uchar": 1, "short": 2, "ushort": 2, "int": 4, "uint": 4, "float": 4, "double": 8}
+
+
+@dataclass
+class Launch:
+    kernel: str
+    work_items: int
+    elements: int  # of the launch's largest buffer argument
+    local_memory: int  # bytes of local memory a work-group takes (the driver's count)
+
+    @property
+    def per_work_item(self) -> float:
+        return self.elements / self.work_items
+
+
+def buffer_elements(value, type_name: str, real: str) -> int:
+    buffer = getattr(value, "buffer", value)  # a DeviceArray, or a pyopencl Buffer
+    base = type_name.rstrip("*").split()[-1]
+    return buffer.size // ITEMSIZE[real if base == "real" else base]
+
+
+@pytest.fixture
+def launches(device, monkeypatch, copy_mode):
+    """The GPU plan in copy mode; returns the list every Device.launch is appended to."""
+    import pyopencl as cl
+
+    monkeypatch.setenv("CLFLOW_KERNELS", "gpu")
+    recorded: list[Launch] = []
+    launch = device.launch
+
+    def recording(kernel, global_size, args, local_size=64):
+        signature = device.signature(kernel)
+        pointers = [a for a in signature.arguments if a.type_name.endswith("*")]
+        elements = max((buffer_elements(args[a.name], a.type_name, signature.real) for a in pointers), default=0)
+        work_items = math.prod([global_size] if isinstance(global_size, int) else global_size)
+        local_memory = kernel.get_work_group_info(cl.kernel_work_group_info.LOCAL_MEM_SIZE, device.cl_device)
+        recorded.append(Launch(kernel.function_name, work_items, elements, local_memory))
+        return launch(kernel, global_size, args, local_size)
+
+    monkeypatch.setattr(device, "launch", recording)
+    return recorded
+
+
+def assert_gpu_shaped(recorded: list[Launch]) -> None:
+    walkers = [f"{x.kernel}: {x.elements:,} elements on {x.work_items:,} work-items" for x in recorded]
+    too_long = [w for w, x in zip(walkers, recorded) if x.per_work_item > MAX_ELEMENTS_PER_WORK_ITEM]
+    assert not too_long, "CPU-shaped launches in the GPU plan:\n" + "\n".join(too_long)
+    greedy = {x.kernel: x.local_memory for x in recorded if x.local_memory > MAX_LOCAL_MEMORY}
+    assert not greedy, f"work-groups over {MAX_LOCAL_MEMORY} B of local memory: {greedy}"
+
+
+def cube_simulator(device, material: str):
+    """bench mpm's scene: 64^3 = 262,144 particles, 2 per cell and axis, in a 64^3 grid."""
+    from clflow.mpm import Grid, MaterialSpec, Simulator
+
+    h = 0.5 / 64  # a cube of side 0.5 m
+    axis = 0.25 + h * (0.5 + torch.arange(64, dtype=torch.float64))
+    x = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    return Simulator(x, h**3, MaterialSpec(material), Grid((64,) * 3, 1 / 64), frame_dt=1e-3, device=device)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("material", ["elastic", "sand"])
+def test_a_262k_substep_and_its_adjoint_are_gpu_shaped(device, launches, material):
+    from clflow.mpm.adjoint import StateGrad, SubstepAdjoint
+    from clflow.mpm.substep import SubstepTape
+    from clflow.runtime.arrays import DeviceArray
+
+    sim = cube_simulator(device, material)
+    assert sim.kernels.p2g == "gather"
+    sim.step()
+    launches.clear()
+    sim.step()
+    forward = list(launches)
+    assert_gpu_shaped(forward)
+    assert len(forward) == SUBSTEP_LAUNCHES[material], [x.kernel for x in forward]
+    assert not {"p2g_private", "scan_serial", "radix_histogram", "radix_scatter"} & {x.kernel for x in forward}
+
+    n, dtype = sim.n, sim.dtype
+    tape = SubstepTape.empty(device, n, sim.grid.nodes, dtype, sim.flip)
+    state, inputs = sim.device_state, sim.substep_inputs()
+    after = state.empty_like()
+    sim.kernels.run(state, after, inputs, DeviceArray.zeros(device, (n,), torch.uint8), tape=tape)
+    adjoint = SubstepAdjoint(device, dtype, n, sim.grid, sim.particles.material, sim.flip)
+    grads = [StateGrad.zeros(device, n, dtype) for _ in range(2)]
+    param_grad = DeviceArray.zeros(device, sim.particles.param.shape, dtype)
+    mass_grad = DeviceArray.zeros(device, (n,), dtype)
+    launches.clear()
+    adjoint.run(state, after, tape, inputs, grads[0], grads[1], param_grad, mass_grad)
+    backward = list(launches)
+    assert_gpu_shaped(backward)
+    assert len(backward) == ADJOINT_LAUNCHES[material], [x.kernel for x in backward]
+    assert "g2p_adjoint_private" not in {x.kernel for x in backward}
+    assert np.isfinite(param_grad.read().numpy()).all()
+
+
+def test_the_check_sees_a_cpu_shape(device, launches, monkeypatch):
+    """The same recording in the CPU plan flags its one-work-item scan and block sort: the
+    check can fail."""
+    from clflow.runtime.sort import sort_pairs
+
+    monkeypatch.setenv("CLFLOW_KERNELS", "cpu")
+    sort_pairs(torch.arange(100_000, dtype=torch.int32).flip(0), torch.arange(100_000, dtype=torch.int32), 17)
+    with pytest.raises(AssertionError, match="scan_serial|radix_histogram"):
+        assert_gpu_shaped(launches)
