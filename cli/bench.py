@@ -34,12 +34,26 @@ def bench() -> None:
 def bench_command(name: str):
     """Make ``fn`` the command ``clflow bench NAME``. ``fn`` prints its figures and returns
     them (a JSON-ready dict, timings from clflow.benchmark); ``--json PATH`` writes them with
-    the command's parameters and the environment (versions, device, load)."""
+    the command's parameters and the environment (versions, device, load); ``--profile``
+    adds the kernel profile of the whole run (clflow.runtime.profile)."""
 
     def wrap(fn):
         @functools.wraps(fn)
-        def run(*args, json_path, **parameters):
+        def run(*args, json_path, profile, **parameters):
+            device = None
+            if profile:
+                from clflow.runtime import get_device
+
+                obj = click.get_current_context().find_root().obj
+                device = obj.device() if obj else get_device()
+                device.start_profile()
             results = fn(*args, **parameters)
+            if device is not None:
+                from clflow.runtime.profile import format_profile
+
+                results["profile"] = device.stop_profile()
+                click.echo(format_profile(results["profile"]))
+            parameters["profile"] = profile
             if json_path:
                 from clflow.benchmark import write_record
 
@@ -54,6 +68,12 @@ def bench_command(name: str):
             metavar="PATH",
             help="Also write the figures, the parameters and the environment as JSON to PATH.",
         )
-        return click.command(name)(option(run))
+        profile = click.option(
+            "--profile",
+            is_flag=True,
+            help="Also record every kernel launch's device time (OpenCL profiling events): launches, "
+            "seconds and share per kernel, host time and launches per substep; printed, and in --json.",
+        )
+        return click.command(name)(profile(option(run)))
 
     return wrap

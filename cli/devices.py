@@ -18,6 +18,7 @@ def devices(obj, as_json: bool) -> None:
 
     from clflow.runtime import get_device, list_devices
     from clflow.runtime.drivers import adopt_unregistered
+    from clflow.runtime.plan import plan_for_type
 
     infos = list_devices()
     selected = get_device(obj.device_spec).info
@@ -27,7 +28,10 @@ def devices(obj, as_json: bool) -> None:
         for d in adoption.drivers
     ]
     if as_json:
-        rows = [dict(dataclasses.asdict(i), selected=(i == selected)) for i in infos]
+        rows = [
+            dict(dataclasses.asdict(i), selected=(i == selected), kernel_plan=dataclasses.asdict(plan_for_type(i.type)))
+            for i in infos
+        ]
         cache = str(get_device(obj.device_spec).kernel_cache_dir)
         click.echo(
             json.dumps({"devices": rows, "kernel_cache_dir": cache, "unregistered_drivers": unregistered}, indent=2)
@@ -46,6 +50,7 @@ def devices(obj, as_json: bool) -> None:
         click.echo(f"    max work-group:     {info.max_work_group_size}")
         click.echo(f"    local memory:       {info.local_mem_size // 1024} KiB")
         click.echo(f"    global memory:      {info.global_mem_size / 2**30:.1f} GiB")
+        click.echo(f"    kernel plan:        {plan_for_type(info.type).describe()}")
     click.echo(f"kernel cache dir: {get_device(obj.device_spec).kernel_cache_dir}")
     for d in unregistered:
         how = "used for this process" if d["used"] else "not used (CLFLOW_ADOPT_DRIVERS=0 or a read-only cache)"

@@ -150,11 +150,26 @@ class CliContext:
               help="How tensors reach the device: 'auto' shares host memory where the device does (CPUs), "
               "'copy' keeps separate device buffers and copies, as on a discrete GPU (to test that path on "
               "a CPU). Default: $CLFLOW_BRIDGE, else auto.")  # fmt: skip
+@click.option("--kernels", type=click.Choice(["auto", "cpu", "gpu"]), default=None, envvar="CLFLOW_KERNELS",
+              help="The kernels' shapes (docs/gpu.md): 'cpu' (a few work-items streaming through blocks), 'gpu' "
+              "(work-groups cooperating in local memory), 'auto' by the device's type. Default: $CLFLOW_KERNELS, "
+              "else auto.")  # fmt: skip
+@click.option("--profile", "profile_path", type=click.Path(dir_okay=False), default=None, metavar="PATH",
+              help="Record every kernel launch of the command (OpenCL profiling events): a table of device time "
+              "per kernel on stderr at the end, and as JSON at PATH.")  # fmt: skip
 @click.option("-v", "--verbose", count=True,
               help="More log output (repeatable; -vv adds pyopencl's per-kernel build messages).")  # fmt: skip
 @click.option("-q", "--quiet", count=True, help="Less log output (repeatable).")
 @click.pass_context
-def cli(ctx: click.Context, device: str | None, bridge: str | None, verbose: int, quiet: int) -> None:
+def cli(
+    ctx: click.Context,
+    device: str | None,
+    bridge: str | None,
+    kernels: str | None,
+    profile_path: str | None,
+    verbose: int,
+    quiet: int,
+) -> None:
     """clflow: physically simulated 4D scenes from 3D Gaussian splats and a guidance video.
 
     OpenCL MLS-MPM and Gaussian-splat kernels (forward and adjoint) behind a PyTorch API.
@@ -173,6 +188,29 @@ def cli(ctx: click.Context, device: str | None, bridge: str | None, verbose: int
         from clflow.runtime import set_bridge_mode
 
         set_bridge_mode(bridge)
+    if kernels:
+        from clflow.runtime.plan import KERNELS_ENV
+
+        os.environ[KERNELS_ENV] = kernels  # read by clflow.runtime.plan, here and in worker processes
+    if profile_path and ctx.invoked_subcommand:
+        _profile_command(ctx, profile_path)
+
+
+def _profile_command(ctx: click.Context, path: str) -> None:
+    """Profile the device's kernels from here to the end of the command; then print the
+    table to stderr and write the summary, with the environment, as JSON at ``path``."""
+    device = ctx.obj.device()
+    device.start_profile()
+
+    def report() -> None:
+        from clflow.benchmark import write_record
+        from clflow.runtime.profile import format_profile
+
+        summary = device.stop_profile()
+        click.echo(format_profile(summary), err=True)
+        write_record(path, "profile", {"command": " ".join(sys.argv[1:])}, summary)
+
+    ctx.call_on_close(report)
 
 
 class _FoldKernelBuilds(logging.Filter):

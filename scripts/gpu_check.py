@@ -1,9 +1,12 @@
 """Check clflow on a GPU in one command: the test suite with the GPU selected, then the
-benchmarks at GPU scale, all figures in one JSON (device, versions, tests, benchmarks).
+benchmarks at GPU scale and the demo, each with its kernel profile (OpenCL profiling events:
+launches and device time per kernel, host time and launches per substep), all figures in one
+JSON (device, versions, kernel plan, tests, benchmarks, profiles).
 
     python scripts/gpu_check.py                      # first GPU, device suites, full-size benches
     python scripts/gpu_check.py --suite all          # the whole test suite
     python scripts/gpu_check.py --device pocl --small --suite none   # a dry run on PoCL
+    python scripts/gpu_check.py --bench sysid-quick  # also `clflow eval sysid --quick` (minutes)
 
 Run from the repository root (the tests are read from tests/); scripts/gpu_check.sh installs
 carried wheels first (docs/gpu.md). Exit status 0 only when every step passed.
@@ -30,7 +33,8 @@ SUITES = {
 }
 #: taichi's MLS-MPM in the same run where the peers extra is installed (the GPU yardstick)
 PEER = ["--peer", "taichi"] if importlib.util.find_spec("taichi") else []
-#: name -> clflow bench arguments, at GPU scale (issue 35's sizes) and for a dry run (--small)
+#: name -> clflow bench arguments, at GPU scale (issue 35's sizes) and for a dry run (--small);
+#: each runs with --profile
 BENCHES = {
     "mpm-262k": (
         ["mpm", "--material", "elastic", "--substeps", "50", *PEER],
@@ -55,6 +59,12 @@ BENCHES = {
     ),
     "optimize": (["optimize"], ["optimize", "--gaussians", "2000", "--image", "64", "--frames", "3", "--grid", "12"]),
 }
+#: name -> whole clflow commands ({work}: a fresh folder), timed, with `clflow --profile`
+COMMANDS = {
+    "demo": (["demo", "{work}/demo"], ["demo", "--quick", "{work}/demo"]),
+    "sysid-quick": (["eval", "sysid", "--quick", "-o", "{work}/sysid"], None),
+}
+DEFAULT_STEPS = [*BENCHES, "demo"]  # sysid-quick when asked for (--bench)
 
 
 def run(cmd: list[str], log: Path, timeout: float, env: dict) -> tuple[int, float, str]:
@@ -97,12 +107,29 @@ def test_summary(output: str) -> dict:
     return counts
 
 
+def run_command(name: str, args, logs: Path, env: dict) -> dict:
+    """One of COMMANDS, timed, with its kernel profile; a fresh work folder each time."""
+    full, small = COMMANDS[name]
+    words = small if args.small and small else full
+    work = Path(tempfile.mkdtemp(prefix=f"clflow-{name}-", dir=logs))
+    profile = logs / f"{name}-profile.json"
+    words = [w.format(work=work) for w in words]
+    cmd = [sys.executable, "-m", "clflow_cli", "--profile", str(profile), *words]
+    code, seconds, tail = run(cmd, logs / f"{name}.log", args.timeout, env)
+    entry = {"exit": code, "seconds": round(seconds, 1), "command": " ".join(["clflow", *words]), "output": tail[-2500:]}
+    if profile.exists():
+        entry["profile"] = json.loads(profile.read_text())["results"]
+    return entry
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", help="device name substring (default: the first GPU)")
     parser.add_argument("--suite", choices=list(SUITES), default="device", help="tests to run (default: device)")
     parser.add_argument("--small", action="store_true", help="small benchmark sizes (a dry run on a CPU)")
-    parser.add_argument("--bench", action="append", choices=list(BENCHES), help="only these benchmarks")
+    parser.add_argument(
+        "--bench", action="append", choices=[*BENCHES, *COMMANDS], help="only these benchmarks and commands"
+    )
     parser.add_argument("--out", default="gpu_check.json", help="the JSON written (default gpu_check.json)")
     parser.add_argument("--logs", help="folder for each step's full output (default: a temporary folder)")
     parser.add_argument("--timeout", type=float, default=540, help="seconds each step may take")
@@ -121,10 +148,14 @@ def main(argv: list[str] | None = None) -> int:
         code, seconds, tail = run(cmd, logs / "tests.log", args.timeout, env)
         record["tests"] = {"exit": code, "seconds": round(seconds, 1), **test_summary(tail), "tail": tail[-1500:]}
 
-    for name in args.bench or list(BENCHES):
+    for name in args.bench or DEFAULT_STEPS:
+        if name in COMMANDS:
+            record["benchmarks"][name] = run_command(name, args, logs, env)
+            continue
         full, small = BENCHES[name]
         out_json = logs / f"bench-{name}.json"
-        cmd = [sys.executable, "-m", "clflow_cli", "bench", *(small if args.small else full), "--json", str(out_json)]
+        bench_args = [*(small if args.small else full), "--profile", "--json", str(out_json)]
+        cmd = [sys.executable, "-m", "clflow_cli", "bench", *bench_args]
         code, seconds, tail = run(cmd, logs / f"bench-{name}.log", args.timeout, env)
         entry = {"exit": code, "seconds": round(seconds, 1), "output": tail[-2500:]}
         if code == 0 and out_json.exists():
