@@ -204,7 +204,7 @@ project.register_autograd(_project_backward, setup_context=_project_setup)
 # -- compositing op ---------------------------------------------------------------------
 
 
-ENTRY_FIELDS = 9  # per-Gaussian record of the compositing kernels (rasterize.cl: entry_records)
+ENTRY_FIELDS = 9  # per-Gaussian record of the compositing kernels (splat/composite.h, entries.cl: entry_records)
 
 
 def entry_record_bytes(n: int, m: int, channels: int, dtype: torch.dtype) -> int:
@@ -217,13 +217,13 @@ def entry_record_bytes(n: int, m: int, channels: int, dtype: torch.dtype) -> int
 def _sorted_entry_records(device, b, means2d, conics, opacities, features, sorted_slots, slot_gaussian):
     """Scratch buffer [M, ENTRY_FIELDS + C] of binding ``b``: per sorted tile entry, what the
     compositing kernels read (mean2d, conic, opacity, the row cull's cut, slope and reach,
-    then the features), in entry order (rasterize.cl: entry_records, sort_entry_records)."""
+    then the features), in entry order (entries.cl: entry_records, sort_entry_records)."""
     n, channels = features.shape
     m = sorted_slots.shape[0]
     itemsize = features.dtype.itemsize
     records = b.scratch(n * ENTRY_FIELDS * itemsize)
     entries = b.scratch(m * (ENTRY_FIELDS + channels) * itemsize)
-    kernel = lambda name: _kernel("rasterize.cl", name, features.dtype, CHANNELS=channels)  # noqa: E731
+    kernel = lambda name: _kernel("entries.cl", name, features.dtype, CHANNELS=channels)  # noqa: E731
     device.launch(
         kernel("entry_records"),
         n,
@@ -340,7 +340,7 @@ def composite_backward(
     v_means2d, v_conics = torch.empty_like(means2d), torch.empty_like(conics)
     v_opacities, v_features = torch.empty_like(opacities), torch.empty_like(features)
     backward = _kernel("rasterize.cl", "rasterize_backward", features.dtype, CHANNELS=channels)
-    reduce = _kernel("rasterize.cl", "reduce_slots", features.dtype, CHANNELS=channels)
+    reduce = _kernel("entries.cl", "reduce_slots", features.dtype, CHANNELS=channels)
     with bind(device) as b:
         entries = _sorted_entry_records(device, b, means2d, conics, opacities, features, sorted_slots, slot_gaussian)
         # [M, 6 + C]: one gradient row per (tile, Gaussian) pair, written once by its tile
