@@ -7,7 +7,8 @@ Pipeline of :func:`rasterize_gaussians`, one view:
 2. ``clflow::splat_project``: EWA projection, culling, radii (project.cl);
 3. tile lists sorted by (tile, depth) on the device (binning.py, binning.cl, sort.cl);
 4. ``clflow::splat_composite``: per-tile front-to-back compositing of every channel
-   (colours, extra features, depth) with early termination (rasterize.cl).
+   (colours, extra features, depth) with early termination, in the shape the device's
+   kernel plan picks (clflow.runtime.plan: rasterize.cl for CPUs, rasterize_tiles.cl for GPUs).
 
 Both ops have OpenCL adjoints (back to front for compositing); per-Gaussian gradients are
 summed from per-(tile, Gaussian) slots in a fixed order, so they are deterministic.
@@ -19,12 +20,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from clflow.errors import InputError
+from clflow.errors import DeviceError, InputError
 from clflow.runtime.arrays import origin_device, real_of, to_cpu, to_origin
 from clflow.runtime.bridge import bind
 from clflow.runtime.devices import get_device
+from clflow.runtime.plan import kernel_plan
 from clflow.splat.binning import build_tile_lists, tile_grid
-from clflow.splat.constants import MIN_QUAT_NORM, SPLAT_DEFINES, SPLAT_LANES
+from clflow.splat.constants import MIN_QUAT_NORM, SPLAT_DEFINES, SPLAT_LANES, TILE_SIZE
 from clflow.splat.sh import num_sh_bases, sh_to_rgb
 
 ORTHONORMAL_TOL = 1e-4  # |W W^T - I| allowed in the viewmat's rotation
@@ -204,7 +206,7 @@ project.register_autograd(_project_backward, setup_context=_project_setup)
 # -- compositing op ---------------------------------------------------------------------
 
 
-ENTRY_FIELDS = 9  # per-Gaussian record of the compositing kernels (rasterize.cl: entry_records)
+ENTRY_FIELDS = 9  # per-Gaussian record of the compositing kernels (splat/composite.h, entries.cl: entry_records)
 
 
 def entry_record_bytes(n: int, m: int, channels: int, dtype: torch.dtype) -> int:
@@ -217,13 +219,13 @@ def entry_record_bytes(n: int, m: int, channels: int, dtype: torch.dtype) -> int
 def _sorted_entry_records(device, b, means2d, conics, opacities, features, sorted_slots, slot_gaussian):
     """Scratch buffer [M, ENTRY_FIELDS + C] of binding ``b``: per sorted tile entry, what the
     compositing kernels read (mean2d, conic, opacity, the row cull's cut, slope and reach,
-    then the features), in entry order (rasterize.cl: entry_records, sort_entry_records)."""
+    then the features), in entry order (entries.cl: entry_records, sort_entry_records)."""
     n, channels = features.shape
     m = sorted_slots.shape[0]
     itemsize = features.dtype.itemsize
     records = b.scratch(n * ENTRY_FIELDS * itemsize)
     entries = b.scratch(m * (ENTRY_FIELDS + channels) * itemsize)
-    kernel = lambda name: _kernel("rasterize.cl", name, features.dtype, CHANNELS=channels)  # noqa: E731
+    kernel = lambda name: _kernel("entries.cl", name, features.dtype, CHANNELS=channels)  # noqa: E731
     device.launch(
         kernel("entry_records"),
         n,
@@ -244,12 +246,36 @@ def _sorted_entry_records(device, b, means2d, conics, opacities, features, sorte
     return entries
 
 
-def _tile_args(width: int, height: int) -> dict:
-    """The compositing kernels' image size (pixels) and 16 x 16 tile counts."""
+TILE_PIXELS = TILE_SIZE * TILE_SIZE  # work-items of a tile's work-group in the "workgroup" shape
+MAX_RASTER_LOCAL_BYTES = 48 * 1024  # local memory the "workgroup" kernels may take (sizes their batches)
+
+
+def _composite_launch(device, direction: str, dtype: torch.dtype, channels: int, width: int, height: int):
+    """(kernel, global size, image-size args, local size) of the compositing kernel of
+    ``direction`` ("forward" or "backward") in the shape the device's plan picks
+    (clflow.runtime.plan):
+
+    - "tile_rows" (rasterize.cl): a work-item per 16 x 16 tile, each its own work-group, so
+      the busy tiles spread over the cores;
+    - "workgroup" (rasterize_tiles.cl): a work-group of TILE_PIXELS work-items per tile, one
+      per pixel, entries staged in local memory in batches sized to LOCAL_MEM_BYTES.
+    """
     tiles_x, tiles_y = tile_grid(width, height)
-    return dict(
-        width=np.int32(width), height=np.int32(height), tiles_x=np.int32(tiles_x), n_tiles=np.int32(tiles_x * tiles_y)
+    n_tiles = tiles_x * tiles_y
+    image = dict(width=np.int32(width), height=np.int32(height), tiles_x=np.int32(tiles_x))
+    if kernel_plan(device).raster == "tile_rows":
+        kern = _kernel("rasterize.cl", f"rasterize_{direction}", dtype, CHANNELS=channels)
+        return kern, n_tiles, image | dict(n_tiles=np.int32(n_tiles)), 1
+    if device.info.max_work_group_size < TILE_PIXELS:
+        raise DeviceError(
+            f"{device.info.name}: work-groups of at most {device.info.max_work_group_size} work-items, the tiled "
+            f"compositing kernels need {TILE_PIXELS}; run the CPU shape (CLFLOW_KERNELS=cpu)"
+        )
+    local_bytes = min(device.info.local_mem_size, MAX_RASTER_LOCAL_BYTES)
+    kern = _kernel(
+        "rasterize_tiles.cl", f"rasterize_tiles_{direction}", dtype, CHANNELS=channels, LOCAL_MEM_BYTES=local_bytes
     )
+    return kern, n_tiles * TILE_PIXELS, image, TILE_PIXELS
 
 
 @torch.library.custom_op("clflow::splat_composite", mutates_args=())
@@ -267,7 +293,7 @@ def composite(
     width: int,
     height: int,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Front-to-back compositing of sorted splats (OpenCL), one work-item per 16 x 16 tile.
+    """Front-to-back compositing of sorted splats (OpenCL), per 16 x 16 tile.
 
     Args:
         means2d [N, 2], conics [N, 3], opacities [N], features [N, C], background [C];
@@ -283,14 +309,14 @@ def composite(
     out = features.new_empty(height, width, channels)
     T_final = features.new_empty(height, width)
     n_contrib = torch.empty(height, width, dtype=torch.int32)
-    tiles_x, tiles_y = tile_grid(width, height)
-    kern = _kernel("rasterize.cl", "rasterize_forward", features.dtype, CHANNELS=channels)
+    kern, global_size, size_args, local_size = _composite_launch(
+        device, "forward", features.dtype, channels, width, height
+    )
     with bind(device) as b:
         entries = _sorted_entry_records(device, b, means2d, conics, opacities, features, sorted_slots, slot_gaussian)
         image = dict(ranges=b.input(ranges), entries=entries, background=b.input(background))
         image |= dict(out=b.output(out), T_final=b.output(T_final), n_contrib=b.output(n_contrib))
-        # one work-item per tile, each its own work-group: busy tiles spread over the cores
-        device.launch(kern, tiles_x * tiles_y, image | _tile_args(width, height), 1)
+        device.launch(kern, global_size, image | size_args, local_size)
     return out, T_final, n_contrib
 
 
@@ -336,20 +362,20 @@ def composite_backward(
     device = get_device()
     n, channels = features.shape
     m = sorted_slots.shape[0]
-    tiles_x, tiles_y = tile_grid(width, height)
     v_means2d, v_conics = torch.empty_like(means2d), torch.empty_like(conics)
     v_opacities, v_features = torch.empty_like(opacities), torch.empty_like(features)
-    backward = _kernel("rasterize.cl", "rasterize_backward", features.dtype, CHANNELS=channels)
-    reduce = _kernel("rasterize.cl", "reduce_slots", features.dtype, CHANNELS=channels)
+    backward, global_size, size_args, local_size = _composite_launch(
+        device, "backward", features.dtype, channels, width, height
+    )
+    reduce = _kernel("entries.cl", "reduce_slots", features.dtype, CHANNELS=channels)
     with bind(device) as b:
         entries = _sorted_entry_records(device, b, means2d, conics, opacities, features, sorted_slots, slot_gaussian)
         # [M, 6 + C]: one gradient row per (tile, Gaussian) pair, written once by its tile
         slots = b.scratch(m * (6 + channels) * features.dtype.itemsize)
-        # local size 1: each tile is a work-group of its own, so the busy tiles spread over the cores
         image = dict(ranges=b.input(ranges), sorted_slots=b.input(sorted_slots), entries=entries)
         image |= dict(background=b.input(background), T_final=b.input(T_final), n_contrib=b.input(n_contrib))
         grads = dict(v_out=b.input(v_out), v_T=b.input(v_T_final), slot_grads=slots)
-        device.launch(backward, tiles_x * tiles_y, image | grads | _tile_args(width, height), 1)
+        device.launch(backward, global_size, image | grads | size_args, local_size)
         device.launch(
             reduce,
             n,

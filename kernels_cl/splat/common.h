@@ -2,7 +2,7 @@
  *
  * The constants come from the host as -D defines (clflow/splat/constants.py, one Python
  * constant each) so forward, backward and the torch reference use the same numbers:
- *   TILE_SIZE      pixels per tile side (a work-item composites one tile)
+ *   TILE_SIZE      pixels per tile side (a work-item or a work-group composites one tile)
  *   EPS2D          low-pass dilation added to the 2D covariance (pixel^2)
  *   ALPHA_MIN      a Gaussian with alpha below this is skipped at a pixel
  *   ALPHA_MAX      alpha is clamped to at most this

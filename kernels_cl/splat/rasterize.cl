@@ -1,18 +1,14 @@
-/* Per-tile compositing of sorted splats: forward (front to back) and adjoint (back to front).
+/* Per-tile compositing of sorted splats for CPU devices (plan raster "tile_rows",
+ * clflow/runtime/plan.py): forward (front to back) and adjoint (back to front).
+ * rasterize_tiles.cl is the GPU shape of the same kernels; splat/composite.h holds the maths
+ * both share.
  *
- * Inputs per Gaussian g: mean2d [N,2] (pixels), conic [N,3] (A, B, C), opacity [N],
- * features [N, CHANNELS]; per tile t: ranges[t] = [start, end) into the (tile, depth)
- * sorted list, whose entry i names slot sorted_slots[i] of Gaussian slot_gaussian[slot].
- * entry_records and sort_entry_records first copy what the compositing loops read into
- * entry order (entries [M, ENTRY_STRIDE]).
- * Pixel p (centre at i + 0.5) composites, front to back,
+ * Inputs per tile t: ranges[t] = [start, end) into the (tile, depth) sorted list, whose entry
+ * i names slot sorted_slots[i], and entries [M, ENTRY_STRIDE]: the records of the sorted
+ * entries (entries.cl). Pixel p (centre at i + 0.5) composites, front to back,
  *   out_p = sum_i f_i alpha_i T_i + T_final background,  T_{i+1} = T_i (1 - alpha_i)
  * skipping alpha < ALPHA_MIN and stopping before T would fall below T_MIN. */
-#include "splat/common.h"
-
-#ifndef CHANNELS
-#error "build with -DCHANNELS=<feature channels>"
-#endif
+#include "splat/composite.h"
 
 /* Layout for CPU devices: a work-item owns one 16 x 16 tile and holds each of its rows in a
  * 16-wide vector (rowv), so every step runs on 16 pixels at once in SIMD registers (PoCL
@@ -58,15 +54,12 @@ inline rowv load_row(__global const real *p, const int stride, const int count)
     return vload16(0, tmp);
 }
 
-/* The falloff of Gaussian (mx, my, A, B, C, o) over a row at x = cx (lanes), y = cy; the
- * falloff exp(-sigma), sigma = 0.5 (A dx^2 + C dy^2) + B dx dy with d = mean2d - pixel
- * centre, and alpha = min(ALPHA_MAX, o falloff). */
+/* The falloff and alpha of Gaussian (mx, my, A, B, C, o) over a row at x = cx (lanes),
+ * y = cy (SPLAT_ALPHA). */
 #define ROW_ALPHA(dx, dy, sigma, falloff, alpha)                                                                       \
     const rowv dx = mx - cx;                                                                                           \
     const real dy = my - cy;                                                                                           \
-    const rowv sigma = (real)0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy;                                          \
-    const rowv falloff = exp(-sigma);                                                                                  \
-    const rowv alpha = fmin((rowv)(real)ALPHA_MAX, o * falloff)
+    SPLAT_ALPHA(rowv, dx, dy, sigma, falloff, alpha)
 
 /* Which rows of a tile a Gaussian can reach, and the exact per-row test.
  *
@@ -81,51 +74,6 @@ typedef struct {
     real mx, my, A, B, C, o, cut, slope; /* slope = -B / A */
     int r0, r1;                          /* rows [r0, r1) of the tile it can reach */
 } entry_t;
-
-/* Per Gaussian, once per view (not per tile entry: the log, root and divisions would be
- * redone for every tile a Gaussian touches): records [N, ENTRY_FIELDS] = (mean2d x, y,
- * conic A, B, C, opacity, cut, slope, reach). Culled Gaussians get records no tile reads. */
-#define ENTRY_FIELDS 9
-__kernel void entry_records(__global const real *means2d, __global const real *conics, __global const real *opacities,
-                            __global real *records, const int n)
-{
-    const int g = get_global_id(0);
-    if (g >= n)
-        return;
-    const real A = conics[3 * g], B = conics[3 * g + 1], C = conics[3 * g + 2], o = opacities[g];
-    const real cut = log(o / (real)ALPHA_MIN) + (real)ROW_CULL_MARGIN;
-    const real det = A * C - B * B;
-    __global real *rec = records + (size_t)g * ENTRY_FIELDS;
-    rec[0] = means2d[2 * g];
-    rec[1] = means2d[2 * g + 1];
-    rec[2] = A;
-    rec[3] = B;
-    rec[4] = C;
-    rec[5] = o;
-    rec[6] = cut;
-    rec[7] = -B / A;
-    rec[8] = cut > 0 ? sqrt(2 * cut * A / det) + (real)ROW_CULL_MARGIN : -1;
-}
-
-/* The records of the sorted tile entries, in entry order: entries [M, ENTRY_STRIDE] = (the
- * record of the entry's Gaussian, its CHANNELS features). The compositing loops then read
- * memory in order: chasing entry -> slot -> Gaussian -> record instead (two scattered,
- * dependent reads per entry) left them waiting on memory for a third of their time. */
-#define ENTRY_STRIDE (ENTRY_FIELDS + CHANNELS)
-__kernel void sort_entry_records(__global const int *sorted_slots, __global const int *slot_gaussian,
-                                 __global const real *records, __global const real *features, __global real *entries,
-                                 const int m)
-{
-    const int i = get_global_id(0);
-    if (i >= m)
-        return;
-    const int g = slot_gaussian[sorted_slots[i]];
-    __global real *out = entries + (size_t)i * ENTRY_STRIDE;
-    for (int k = 0; k < ENTRY_FIELDS; ++k)
-        out[k] = records[(size_t)g * ENTRY_FIELDS + k];
-    for (int k = 0; k < CHANNELS; ++k)
-        out[ENTRY_FIELDS + k] = features[(size_t)g * CHANNELS + k];
-}
 
 /* Entry i of the sorted list, with the rows [r0, r1) of the tile at py0 it can reach. */
 inline entry_t load_entry(const int i, __global const real *entries, const int py0, const int n_rows)
@@ -238,7 +186,7 @@ __kernel void rasterize_forward(__global const int *ranges, __global const real 
  * contributor, and at each entry every row that it reaches steps back
  * (T_i = T_{i+1} / (1 - alpha_i)). The entry's gradient is summed over the rows lane-wise,
  * then over the lanes in a fixed order, and written to row sorted_slots[i] of
- * slot_grads [M, 6 + CHANNELS] = (dmean2d x, y, dconic A, B, C, dopacity, dfeatures...).
+ * slot_grads [M, GRAD_FIELDS] = (dmean2d x, y, dconic A, B, C, dopacity, dfeatures...).
  * Each slot row belongs to one (tile, Gaussian) pair, hence to this work-item only: no
  * atomics, deterministic sums. In: v_out [H,W,CHANNELS] = dL/dout, v_T [H,W] = dL/dT_final. */
 __kernel void rasterize_backward(__global const int *ranges, __global const int *sorted_slots,
@@ -281,8 +229,8 @@ __kernel void rasterize_backward(__global const int *ranges, __global const int 
     }
     /* entries behind every pixel's last contributor get no gradient */
     for (int i = start + n_max; i < end; ++i)
-        for (int k = 0; k < 6 + CHANNELS; ++k)
-            slot_grads[(size_t)sorted_slots[i] * (6 + CHANNELS) + k] = 0;
+        for (int k = 0; k < GRAD_FIELDS; ++k)
+            slot_grads[(size_t)sorted_slots[i] * GRAD_FIELDS + k] = 0;
 
     for (int i = start + n_max - 1; i >= start; --i) {
         const entry_t e = load_entry(i, entries, py0, n_rows);
@@ -302,23 +250,15 @@ __kernel void rasterize_backward(__global const int *ranges, __global const int 
             const rowv inv_one_minus = 1 / (1 - alpha);
             T[r] = select(T[r], T[r] * inv_one_minus, hit);
             const rowv w = select((rowv)0, alpha * T[r], hit);
-            rowv v_alpha = -T_end[r] * inv_one_minus * v_T_end[r];
-            for (int k = 0; k < CHANNELS; ++k) {
+            for (int k = 0; k < CHANNELS; ++k)
                 v_f[k] += w * g[r][k];
-                v_alpha += (f[k] * T[r] - S[r][k] * inv_one_minus) * g[r][k];
-                S[r][k] += f[k] * w;
-            }
+            ALPHA_ADJOINT(rowv, f, g[r], S[r], T[r], w, inv_one_minus, T_end[r], v_T_end[r], v_alpha);
             /* clamped alpha (o exp(-sigma) > ALPHA_MAX): no gradient to opacity or shape */
             const maskv free = hit & islessequal(o * falloff, (rowv)(real)ALPHA_MAX);
-            const rowv v_sigma = select((rowv)0, -o * falloff * v_alpha, free);
-            v_mean_x += v_sigma * (A * dx + B * dy);
-            v_mean_y += v_sigma * (B * dx + C * dy);
-            v_A += v_sigma * (real)0.5 * dx * dx;
-            v_B += v_sigma * dx * dy;
-            v_C += v_sigma * (real)0.5 * dy * dy;
-            v_o += select((rowv)0, falloff * v_alpha, free);
+            const rowv a = select((rowv)0, falloff * v_alpha, free);
+            ADD_SIGMA_ADJOINT(rowv, a, dx, dy, v_mean_x, v_mean_y, v_A, v_B, v_C, v_o);
         }
-        __global real *row = slot_grads + (size_t)sorted_slots[i] * (6 + CHANNELS);
+        __global real *row = slot_grads + (size_t)sorted_slots[i] * GRAD_FIELDS;
         row[0] = hsum(v_mean_x);
         row[1] = hsum(v_mean_y);
         row[2] = hsum(v_A);
@@ -328,30 +268,4 @@ __kernel void rasterize_backward(__global const int *ranges, __global const int 
         for (int k = 0; k < CHANNELS; ++k)
             row[6 + k] = hsum(v_f[k]);
     }
-}
-
-/* Per Gaussian g: the sum of its slot rows [first_slot[g], first_slot[g] + tiles_touched[g])
- * in slot order, split into dL/dmean2d [N,2], dL/dconic [N,3], dL/dopacity [N] and
- * dL/dfeatures [N, CHANNELS]. */
-__kernel void reduce_slots(__global const real *slot_grads, __global const int *first_slot,
-                           __global const int *tiles_touched, __global real *v_means2d, __global real *v_conics,
-                           __global real *v_opacities, __global real *v_features, const int n)
-{
-    const int g = get_global_id(0);
-    if (g >= n)
-        return;
-    real sum[6 + CHANNELS];
-    for (int k = 0; k < 6 + CHANNELS; ++k)
-        sum[k] = 0;
-    const int first = first_slot[g];
-    for (int s = first; s < first + tiles_touched[g]; ++s)
-        for (int k = 0; k < 6 + CHANNELS; ++k)
-            sum[k] += slot_grads[(size_t)s * (6 + CHANNELS) + k];
-    v_means2d[2 * g] = sum[0];
-    v_means2d[2 * g + 1] = sum[1];
-    for (int k = 0; k < 3; ++k)
-        v_conics[3 * g + k] = sum[2 + k];
-    v_opacities[g] = sum[5];
-    for (int k = 0; k < CHANNELS; ++k)
-        v_features[(size_t)g * CHANNELS + k] = sum[6 + k];
 }

@@ -23,7 +23,9 @@ SCRIPT = textwrap.dedent(
 )
 
 
-def test_kernels_are_clean_under_oclgrind(oclgrind):
+@pytest.mark.parametrize("plan", ["cpu", "gpu"])  # both shapes of the compositing kernels
+def test_kernels_are_clean_under_oclgrind(oclgrind, monkeypatch, plan):
+    monkeypatch.setenv("CLFLOW_KERNELS", plan)
     out, report = oclgrind(
         SCRIPT, timeout=600, uninitialized=False
     )  # --uninitialized: Oclgrind 21.10 zeroes the gradient
