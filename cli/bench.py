@@ -53,7 +53,7 @@ def bench_command(name: str):
 
                 results["profile"] = device.stop_profile()
                 click.echo(format_profile(results["profile"]))
-            parameters["profile"] = profile
+                parameters["profile"] = True
             if json_path:
                 from clflow.benchmark import write_record
 

@@ -116,7 +116,12 @@ def run_command(name: str, args, logs: Path, env: dict) -> dict:
     words = [w.format(work=work) for w in words]
     cmd = [sys.executable, "-m", "clflow_cli", "--profile", str(profile), *words]
     code, seconds, tail = run(cmd, logs / f"{name}.log", args.timeout, env)
-    entry = {"exit": code, "seconds": round(seconds, 1), "command": " ".join(["clflow", *words]), "output": tail[-2500:]}
+    entry = {
+        "exit": code,
+        "seconds": round(seconds, 1),
+        "command": " ".join(["clflow", *words]),
+        "output": tail[-2500:],
+    }
     if profile.exists():
         entry["profile"] = json.loads(profile.read_text())["results"]
     return entry

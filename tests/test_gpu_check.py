@@ -20,6 +20,15 @@ def test_the_gpu_check_writes_one_record_of_device_tests_and_benchmarks(device, 
     assert record["passed"] and record["device"]["name"] == device.info.name
     mpm = record["benchmarks"]["mpm-262k"]["results"]["elastic"]
     assert mpm["particle_substeps_per_s"] > 0 and mpm["bytes_to_device_per_substep"] == 0
+    # every bench runs with its kernel profile: per kernel launches and device time, per substep launches
+    profile = record["benchmarks"]["mpm-262k"]["results"]["profile"]
+    kernels = {row["kernel"]: row for row in profile["kernels"]}
+    assert "g2p" in kernels or "g2p_sorted" in kernels
+    assert all(row["launches"] > 0 and row["device_s"] > 0 for row in kernels.values())
+    assert abs(sum(row["share"] for row in kernels.values()) - 1) < 1e-9
+    substep = profile["steps"]["substep"]
+    assert substep["count"] > 1 and 3 <= substep["launches_per_step"] <= 12 and substep["host_s_per_step"] > 0
+    assert "kernel profile:" in record["benchmarks"]["mpm-262k"]["output"]
     raster = record["benchmarks"]["raster-100k-512"]["results"]
     assert raster["forward"]["median_wall_s"] > 0 and "bytes_to_host_per_call" in raster["forward"]
     assert record["environment"]["torch"] and record["environment"]["pyopencl"]
