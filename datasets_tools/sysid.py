@@ -31,6 +31,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
+from clflow_datasets import per_class
 from clflow_datasets.synthetic import GENERATOR_VERSION, Resolution, SyntheticCase, make_case
 
 log = logging.getLogger(__name__)
@@ -458,6 +459,8 @@ def evaluate(
     def finished(name: str, record: dict) -> None:
         summary["cases"][name] = record
         summary["cases"] = {n: summary["cases"][n] for n in order if n in summary["cases"]}
+        summary["per_class"] = per_class.per_class(summary["cases"])
+        summary["bounded_ranges"] = per_class.bounded_ranges(summary["cases"])
         atomic_write_text(summary_path, json.dumps(summary, indent=2))
         atomic_write_text(out / "sysid.md", markdown(summary))
 
@@ -530,7 +533,7 @@ def markdown(summary: dict) -> str:
             f"{_grid(r)} | {r['seconds']:.0f} |{published}"
         )
     lines += _summary_rows(cases, methods)
-    return "\n".join(lines + _closing(summary, methods)) + "\n"
+    return "\n".join(lines + per_class.markdown(cases) + _closing(summary, methods)) + "\n"
 
 
 def _grid(r: dict) -> str:
@@ -565,6 +568,15 @@ def _summary_rows(cases: dict, methods: tuple[str, ...]) -> list[str]:
         means = {m: tuple(statistics.fmean(row[m][k] for row in rows) for k in (0, 1)) for m in methods}
     total = sum(r.get("seconds", 0.0) for r in cases.values())
     mean_re, mean_epe = sum(r["mean_re"] for r in ok) / len(ok), sum(r["epe_px"] for r in ok) / len(ok)
+    bounded = per_class.bounded_ranges(cases)
+    bounded_row = (
+        [
+            f"| mean over the {bounded['parameters']} ranges bounded on both sides | | median width "
+            f"{bounded['median_width_decades']:.2f} decades | {bounded['mean_re']:.3f} | | | | |" + " |" * len(methods)
+        ]
+        if bounded["parameters"] and bounded["median_width_decades"] is not None
+        else []
+    )
     from clflow.pipeline.fit.diagnostics import RANGE_LEVEL
 
     held, counted = coverage(cases)
@@ -578,6 +590,7 @@ def _summary_rows(cases: dict, methods: tuple[str, ...]) -> list[str]:
         + "".join(f" {_published(means[m])} |" for m in methods),
         f"| median | | | {statistics.median(r['mean_re'] for r in ok):.3f} | "
         f"{statistics.median(r['epe_px'] for r in ok):.3f} | | | |" + " |" * len(methods),
+        *bounded_row,
     ]
 
 

@@ -38,7 +38,7 @@ import torch
 
 from clflow.errors import InputError
 from clflow.materials import get_material
-from clflow.mpm.adjoint import StateGrad, SubstepAdjoint
+from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, g2p_adjoint_record_reals
 from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, grid_channels, velocity_channels
 from clflow.mpm.material_model import KERNEL_PARAMETERS, REGISTRY_MATERIAL, kernel_columns
 from clflow.mpm.simulator import (
@@ -50,7 +50,7 @@ from clflow.mpm.simulator import (
     check_inside,
     finite,
 )
-from clflow.mpm.substep import DriverAccelerations, State, SubstepInputs, SubstepTape
+from clflow.mpm.substep import DriverAccelerations, State, SubstepInputs, SubstepTape, p2g_record_reals
 from clflow.runtime.arrays import DeviceArray, origin_device, to_cpu, to_origin
 from clflow.runtime.reduction import sum_rows
 
@@ -275,15 +275,19 @@ def memory_estimate(
     (13 with a PIC/FLIP blend ``flip`` > 0), plus, when segment < substeps, the first state
     of every later segment and a scratch state (two-level checkpointing); the kernels'
     working buffers (two forward states, tau, grids; two state gradients, taubar, U s V,
-    parameter and mass gradients, the grid adjoint and the sum of its copies: g per node); and
-    ``grid_copies`` private grid copies of g reals per node (CPU path: P2G and its adjoint)."""
+    parameter and mass gradients, the grid adjoint and the sum of its copies: g per node; the
+    GPU plan's two cell sorts, 3 ints per particle and 1 per node each, and its P2G and
+    adjoint records, counted in either plan); and ``grid_copies`` private grid copies of g
+    reals per node (CPU path: P2G and its adjoint)."""
     itemsize = torch.tensor([], dtype=dtype).element_size()
     k = substeps if segment is None else segment
     g = grid_channels(flip) + velocity_channels(flip)  # reals per node: P2G grid, grid_v[, grid_dv]
     checkpoints = (frames + 1) * n * (25 + 15 + 15)
     replay = k * (n * (25 + 9) + g * nodes) + (n * 25 * (-(-substeps // k)) if k < substeps else 0)
     working = n * (2 * 25 + 9) + g * nodes + n * (2 * 25 + 9 + 21 + PARAM_COUNT + 1) + g * nodes
-    return itemsize * (checkpoints + replay + working + grid_copies * g * nodes)
+    records = n * (p2g_record_reals(flip) + g2p_adjoint_record_reals(flip))
+    cell_sorts = 2 * 4 * (3 * n + nodes + 1)  # bytes: int32 keys, ranks and order, each cell's start
+    return itemsize * (checkpoints + replay + working + records + grid_copies * g * nodes) + cell_sorts
 
 
 def replay_segment(

@@ -20,6 +20,11 @@ TINY = Resolution(object_detail=6, floor_side=8, image=48, grid=14, frames=3, it
 
 
 @pytest.mark.parametrize("name", list(sysid.CASES))
+def main_table_rows(table: str) -> list[str]:
+    """The rows of sysid.md's first table (the cases)."""
+    return [line for line in table.split("\n\n")[0].splitlines() if line.startswith("|")]
+
+
 def test_every_case_starts_from_a_valid_guess(name):
     sysid.check_case(name, sysid.CASES[name])  # e.g. the trophy's 10 degree friction angle (PAC-NeRF's start)
     assert set(sysid.PUBLISHED[name]) == set(sysid.METHODS)
@@ -177,7 +182,7 @@ def test_rerun_skips_finished_cases_and_other_settings_need_force(tmp_path, tiny
     assert "| torus | elastic |" in table and "PhysFlow RE/EPE" in table and "0.51/1.04" in table
     assert "| median |" in table  # beside the mean, which one unobservable parameter can swamp
     assert f"| {record['final_loss']:.3g} / {record['truth_loss']:.3g} |" in table
-    rows = [line for line in table.splitlines() if line.startswith("|")]
+    rows = main_table_rows(table)
     assert len({row.count("|") for row in rows}) == 1  # every row as wide as the header
     again = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))
     assert again["cases"]["torus"] == record  # skipped, not rerun

@@ -9,8 +9,8 @@ from click.testing import CliRunner
 
 from clflow.errors import InputError
 from clflow_cli.main import cli
-from clflow_datasets import sysid
-from tests.pipeline.test_sysid import TINY
+from clflow_datasets import per_class, sysid
+from tests.pipeline.test_sysid import TINY, main_table_rows
 
 CASE_FILE = """
 jelly:
@@ -86,7 +86,7 @@ def test_cases_of_a_file_run_and_the_table_leaves_the_published_columns_out(tmp_
     table = (tmp_path / "out" / "sysid.md").read_text()
     assert "| jelly | elastic |" in table and "RE/EPE" not in table and "nan" not in table.lower()
     assert "No published rows: the paper has none of these cases." in table
-    rows = [line for line in table.splitlines() if line.startswith("|")]
+    rows = main_table_rows(table)
     assert len({row.count("|") for row in rows}) == 1  # every row as wide as the header
     assert json.loads((tmp_path / "out" / "sysid.json").read_text())["cases"]["jelly"] == record
 
@@ -117,8 +117,47 @@ def test_the_table_gives_each_range_marks_a_miss_and_counts_the_ranges_that_hold
     assert "youngs_modulus: 1e+06 [8.5e+05, 1.2e+06] **misses** (2e+06)" in table
     assert "yield_stress: 1.5e+04 [1.3e+04, -] (1.54e+04)" in table
     assert "| 90 % ranges holding the truth | | 1 of 2 (50 %; 1 bounded on both sides, 0 on neither) |" in table
-    rows = [line for line in table.splitlines() if line.startswith("|")]
+    rows = main_table_rows(table)
     assert len({row.count("|") for row in rows}) == 1
+
+
+def test_the_table_gives_per_class_errors_as_the_peers_do_and_the_bounded_ranges_mean():
+    """log10 errors for moduli, plain ones for Poisson's ratio, degrees for the friction angle,
+    averaged per class, beside GIC's and ProJo4D's figures; the mean RE over the ranges bounded
+    on both sides and their median width in decades."""
+
+    def param(found, truth, low, high):
+        return {"found": found, "truth": truth, "guess": 1.0, "re": abs(found - truth) / truth,
+                "range": [low, high], "holds_truth": sysid.holds({"low": low, "high": high}, truth)}  # fmt: skip
+
+    def case(material, **params):
+        return {"status": "ok", "material": material, "mean_re": 0.1, "epe_px": 0.2, "floor_epe_px": 0.2,
+                "final_loss": 1.0, "truth_loss": 1.0, "iterations": 1, "seconds": 1.0, "parameters": params}  # fmt: skip
+
+    cases = {
+        "a": case("elastic", youngs_modulus=param(1e6, 1e5, 1e5, 1e7), poissons_ratio=param(0.35, 0.3, None, 0.4)),
+        "b": case("elastic", youngs_modulus=param(1e5, 1e5, 1e4, 1e5), poissons_ratio=param(0.2, 0.3, 0.1, 0.4)),
+        "c": case("sand", friction_angle=param(37.5, 40.0, 30.0, 45.0)),
+    }
+    table = per_class.per_class(cases)
+    assert table["elastic"]["youngs_modulus"] == {
+        "kind": "log10",
+        "error": 0.5,
+        "cases": 2,
+        "GIC": 0.189,
+        "ProJo4D": 0.087,
+    }
+    assert table["elastic"]["poissons_ratio"]["kind"] == "abs"
+    assert abs(table["elastic"]["poissons_ratio"]["error"] - 0.075) < 1e-12
+    assert table["sand"]["friction_angle"] == {"kind": "deg", "error": 2.5, "cases": 1, "GIC": 6.785, "ProJo4D": 0.903}
+    bounded = per_class.bounded_ranges(cases)
+    assert bounded["parameters"] == 4  # poissons_ratio of "a" is open below
+    assert abs(bounded["mean_re"] - (9.0 + 0.0 + 1 / 3 + 0.0625) / 4) < 1e-12
+    assert abs(bounded["median_width_decades"] - (1.0 + 0.6020599913) / 2) < 1e-9  # widths 2, 1, 0.602, 0.176
+    text = sysid.markdown({"settings": sysid.settings_record(sysid.Settings()), "cases": cases})
+    assert "| sand | friction_angle (deg) | 2.5 | 1 | 6.79 | 0.903 |" in text
+    assert "| mean over the 4 ranges bounded on both sides | | median width 0.80 decades | 2.349 |" in text
+    assert "a guide to the scale, not a same-data comparison" in text
 
 
 def test_the_extra_set_covers_every_material_with_guesses_either_side_and_a_thrown_case():
