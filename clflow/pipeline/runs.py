@@ -15,6 +15,7 @@ import dataclasses
 import logging
 import math
 import shutil
+import warnings
 from pathlib import Path
 from typing import Callable, ContextManager
 
@@ -89,6 +90,12 @@ def read_params_record(path: str | Path, cfg):
     return dataclasses.replace(cfg, velocity=tuple(float(v) for v in velocity)), overrides, substeps
 
 
+def _frame_progress(advance) -> Callable[[int], None] | None:
+    """A simulator's ``on_frame(k)`` that moves the progress to frame k: a run again after a
+    CFL breach counts from its first frame, never past the total."""
+    return (lambda k: advance(f"frame {k}", to=k)) if advance else None
+
+
 def simulate_scene(
     config_path: str | Path,
     params_file: str | Path | None = None,
@@ -108,7 +115,7 @@ def simulate_scene(
     as .compressed.ply) and, unless ``preview`` is "none", the guidance view ("mp4" or "png"
     frames) into ``out_dir`` (default: the config's output/simulation), all or nothing.
     ``max_substeps`` overrides ``simulation.max_substeps``; ``progress(total, label)`` yields
-    ``advance(name)``, called once per frame simulated. Returns the folder."""
+    ``advance(name, to=k)``, called after frame k (a CFL retry starts again at 1). Returns the folder."""
     from clflow.fileio import atomic_dir
     from clflow.limits import check_memory, check_output
     from clflow.pipeline.forward import prepare, render_video, simulate_config
@@ -134,7 +141,7 @@ def simulate_scene(
             overrides,
             prepared,
             max_substeps=max_substeps,
-            on_frame=(lambda k: advance(f"frame {k}")) if advance else None,
+            on_frame=_frame_progress(advance),
             min_substeps=min_substeps,
         )
     echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
@@ -220,7 +227,7 @@ def _run_with_cfl_retries(sim, simulator: Callable, frames: int, advance, chosen
 
     while True:
         try:
-            return sim.run(frames, (lambda k: advance(f"frame {k}")) if advance else None, strict_cfl=True)
+            return sim.run(frames, _frame_progress(advance), strict_cfl=True)
         except SimulationError as exc:
             if "CFL" not in str(exc) or chosen or 2 * sim.substeps > limit:
                 way_out = "more --substeps" if chosen else f"--max-substeps above {limit}"
@@ -247,9 +254,10 @@ def simulate_particles(
     import torch
 
     from clflow.fileio import atomic_dir
-    from clflow.mpm import Grid, MaterialSpec, Simulator
+    from clflow.mpm import Grid, MaterialSpec, Simulator, StabilityWarning
     from clflow.mpm.preview import PREVIEW_SIZE, write_preview
     from clflow.mpm.substep import check_device, check_grid_memory
+    from clflow.pipeline.simulation import unstable_start
     from clflow.runtime import get_device
     from clflow.scene.config import DEFAULT_MAX_SUBSTEPS
 
@@ -278,7 +286,15 @@ def simulate_particles(
             device=device,
         )
 
-    sim = simulator(run.substeps)
+    with warnings.catch_warnings():  # an unstable --substeps is refused below, with the option's name
+        warnings.simplefilter("ignore", StabilityWarning)
+        sim = simulator(run.substeps)
+    unstable = run.substeps is not None and unstable_start(sim)
+    if unstable:
+        raise InputError(
+            f"--substeps {run.substeps} (dt = {sim.dt:.3g} s) is {unstable}; the run would blow up or break the "
+            f"CFL limit: use more --substeps, or leave the option out to take the stable count"
+        )
     out, frames = Path(out_dir), run.frames
     _check_particle_outputs(out, frames, sim.n, dtype.itemsize, preview, max_output_gb)
     echo(
