@@ -97,7 +97,7 @@ def simulate_config(
     prepared = prepared or prepare(cfg)
     params, density = material_values(cfg, overrides)
     max_substeps = cfg.simulation.max_substeps if max_substeps is None else max_substeps
-    plan = plan_run(cfg, prepared.setup, params, density, max_substeps=max_substeps)
+    plan = plan_run(cfg, prepared.setup, params, density, min_substeps=min_substeps, max_substeps=max_substeps)
     log.info("%s", describe(plan, "simulation", gradient=False))
     while True:
         sim = build_simulator(

@@ -76,3 +76,18 @@ def test_the_progress_never_runs_past_its_total_after_a_cfl_retry(quick_demo, tm
     assert not progress_past_total(res.stderr)
     assert res.stderr.count("simulating: 8/8") == 1
 
+
+# -- 2. the plan printed is the plan run; checks before the work ------------------------------
+
+
+def test_the_plan_printed_is_the_substeps_of_the_params_record(quick_demo, tmp_path):
+    import json
+
+    record = {"material": "elastic", "parameters": {"youngs_modulus": 2e4}, "density": 1000.0, "substeps": 20}
+    (tmp_path / "params.json").write_text(json.dumps({**record, "fps": 24.0, "velocity": [0, 0, 0]}))
+    res = run(
+        "simulate", quick_demo / "config.yaml", "--params-from", tmp_path / "params.json", "-o", tmp_path / "s",
+        "--preview", "none",
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert re.search(r"simulation: 20 substeps per frame", res.stderr), res.stderr
