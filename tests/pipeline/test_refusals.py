@@ -2,10 +2,12 @@
 nothing (a hang), no check that comes after the work it could have spared, no plan printed
 that is not the plan run, and one error line that names the file or key and the problem."""
 
+import json
 import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from tests.pipeline.test_bad_input import Case, Probe, assert_probe, simulation  # noqa: F401 (a fixture)
@@ -81,8 +83,6 @@ def test_the_progress_never_runs_past_its_total_after_a_cfl_retry(quick_demo, tm
 
 
 def test_the_plan_printed_is_the_substeps_of_the_params_record(quick_demo, tmp_path):
-    import json
-
     record = {"material": "elastic", "parameters": {"youngs_modulus": 2e4}, "density": 1000.0, "substeps": 20}
     (tmp_path / "params.json").write_text(json.dumps({**record, "fps": 24.0, "velocity": [0, 0, 0]}))
     res = run(
@@ -91,3 +91,116 @@ def test_the_plan_printed_is_the_substeps_of_the_params_record(quick_demo, tmp_p
     )  # fmt: skip
     assert res.returncode == 0, res.stderr
     assert re.search(r"simulation: 20 substeps per frame", res.stderr), res.stderr
+
+
+def no_scene(c: Case) -> None:
+    """Loading the scene fails the probe: the refusal must come before it."""
+
+    def loaded(*args, **kwargs):
+        raise AssertionError("the scene was loaded before the refusal")
+
+    c.monkeypatch.setattr("clflow.pipeline.forward.load_scene_gaussians", loaded)
+
+
+def no_ply(c: Case) -> None:
+    """Reading a PLY fails the probe: the refusal must come before it."""
+
+    def read(*args, **kwargs):
+        raise AssertionError("the PLY was read before the refusal")
+
+    c.monkeypatch.setattr("clflow.splat.load_ply", read)
+
+
+def particles(c: Case, **arrays) -> str:
+    path = c.tmp / "parts.npz"
+    np.savez(path, positions=np.random.default_rng(0).random((50, 3)) * 0.2 + 0.4, **arrays)
+    return str(path)
+
+
+def changed_resume(c: Case) -> str:
+    """A config whose output holds the checkpoint of a run of it (its config digests)."""
+    from clflow.pipeline.fit.state import config_digests
+    from clflow.scene.config import load_config
+
+    path = c.config("resume_changed")
+    (c.tmp / "out").mkdir()
+    (c.tmp / "out" / "checkpoint.json").write_text(json.dumps({"config_digests": config_digests(load_config(path))}))
+    return path
+
+
+def params_json(c: Case, **parameters) -> str:
+    path = c.tmp / "params.json"
+    path.write_text(json.dumps({"material": "elastic", "parameters": parameters, "density": 1000.0}))
+    return str(path)
+
+
+def case_file(c: Case, name: str, text: str) -> str:
+    (c.tmp / name).write_text(text)
+    return str(c.tmp / name)
+
+
+BEFORE_WORK = [
+    # files that do not parse, or hold nothing: one line saying so
+    Probe(
+        "config-empty-with-a-set",
+        lambda c: ["simulate", case_file(c, "empty.yaml", "# nothing yet\n"), "--set", "simulation.frames=2"],
+        r"empty.yaml: the config file is empty$",
+    ),
+    Probe(
+        "config-yaml-syntax",
+        lambda c: ["simulate", case_file(c, "broken.yaml", "splats: [scene.ply\n")],
+        r"broken.yaml: not valid YAML: line 2, column 1: expected ',' or '\]', but got '<stream end>'$",
+    ),
+    Probe(
+        "sysid-cases-yaml-syntax",
+        lambda c: ["eval", "sysid", "--cases", case_file(c, "c.yaml", "jelly:\n  size: [0.5\n"), "-o", c.tmp / "o"],
+        r"c.yaml: not valid YAML: line 3, column 1",
+        ("o",),
+    ),
+    Probe(
+        "sysid-cases-truncated-json",
+        lambda c: ["eval", "sysid", "--cases", case_file(c, "c.json", '{"jelly": {"size": 0.5, '), "-o", c.tmp / "o"],
+        r"c.json: not valid JSON: line 1, column 25: Expecting property name",
+        ("o",),
+    ),
+    Probe(
+        "sysid-cases-size-0",
+        lambda c: [
+            "eval",
+            "sysid",
+            "-o",
+            c.tmp / "o",
+            "--cases",
+            case_file(c, "c.yaml", "jelly: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}, size: 0}"),
+        ],
+        r"c.yaml: jelly.size: must be > 0, got 0$",
+        ("o",),
+    ),
+    Probe(
+        "sysid-cases-missing",
+        lambda c: ["eval", "sysid", "--cases", c.tmp / "missing.yaml", "-o", c.tmp / "o"],
+        r"^Error: case file \S*missing.yaml not found$",  # not "not YAML or JSON"
+        ("o",),
+    ),
+]
+
+
+def empty_ply(c: Case) -> str:
+    import torch
+
+    from clflow.splat.ply import load_ply, save_ply
+
+    save_ply(c.tmp / "empty.ply", load_ply(c.demo / "scene.ply").select(torch.zeros(0, dtype=torch.long)))
+    return str(c.tmp / "empty.ply")
+
+
+def missing_image_transforms(c: Case) -> str:
+    frame = {"file_path": "gone", "transform_matrix": np.eye(4).tolist()}
+    (c.tmp / "transforms.json").write_text(json.dumps({"camera_angle_x": 1.0, "frames": [frame]}))
+    return str(c.tmp / "transforms.json")
+
+
+@pytest.mark.parametrize("probe", BEFORE_WORK, ids=[p.id for p in BEFORE_WORK])
+def test_refused_in_one_line_before_the_work(probe, quick_demo, simulation, tmp_path, monkeypatch):  # noqa: F811
+    output = assert_probe(probe, Case(quick_demo, simulation, tmp_path, monkeypatch))
+    assert len(output.strip().splitlines()) == 1, output  # the error line alone: nothing ran before it
