@@ -94,10 +94,11 @@ class FiniteFloat(click.FloatRange):
 
 class Numbers(click.ParamType):
     """``count`` finite numbers in one word, comma-separated (``0,0,1``; a quoted
-    space-separated ``"0 0 1"`` is read too). Converts to a tuple of floats."""
+    space-separated ``"0 0 1"`` is read too), each in [low, high] of ``within`` when given.
+    Converts to a tuple of floats."""
 
-    def __init__(self, count: int, names: str | None = None):
-        self.count, self.names = count, names
+    def __init__(self, count: int, names: str | None = None, within: tuple[float, float] | None = None):
+        self.count, self.names, self.within = count, names, within
         self.name = names or ",".join(["N"] * count)
 
     def convert(self, value, param, ctx):
@@ -113,6 +114,8 @@ class Numbers(click.ParamType):
             what = f"{self.names.lower()} ({what})" if self.names else what
             hint = f"; write them as one word with commas, e.g. {self.name}" if len(words) == 1 else ""
             self.fail(f"expected {what}, got {value!r}{hint}", param, ctx)
+        if self.within and not all(self.within[0] <= v <= self.within[1] for v in numbers):
+            self.fail(f"{value!r}: each number must be in [{self.within[0]:g}, {self.within[1]:g}]", param, ctx)
         return numbers
 
 

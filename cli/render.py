@@ -37,7 +37,8 @@ VIDEO_SUFFIXES = (".mp4", ".gif")
               help="Horizontal field of view of generated views, degrees.")  # fmt: skip
 @count_option('--width', default=512, help="Image width of generated views, pixels.")  # fmt: skip
 @count_option('--height', default=512, help="Image height of generated views, pixels.")  # fmt: skip
-@click.option("--background", type=Numbers(3), default="0,0,0", show_default=True, help="Background colour R,G,B in [0, 1].")  # fmt: skip
+@click.option("--background", type=Numbers(3, within=(0, 1)), metavar="R,G,B", default="0,0,0", show_default=True,
+              help="Background colour R,G,B in [0, 1].")  # fmt: skip
 @click.option("--sh-degree", type=click.IntRange(0, 3), help="Evaluate SH only up to this degree (default: all).")
 @click.option("--video", type=OutputPath(file=True), help="Also write the views as a video (.mp4 or .gif).")
 @click.option("--fps", type=FiniteFloat(min=0, min_open=True), default=24.0, show_default=True, help="Video frame rate.")  # fmt: skip
@@ -63,7 +64,6 @@ def render(
 
     from clflow.errors import InputError
     from clflow.fileio import atomic_dir
-    from clflow.limits import check_output
     from clflow.media import to_uint8, write_image, write_video
     from clflow.splat import load_ply
     from clflow.splat.render import rasterize
@@ -71,6 +71,11 @@ def render(
 
     if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:
         raise InputError(f"--video {video}: the file name must end in {' or '.join(VIDEO_SUFFIXES)}")
+    output_dir = Path(output_dir)
+    generated = not (view_options["cameras_json"] or view_options["transforms_json"])
+    if generated:  # the views' number and size are the options': checked before the scene is read
+        count, pixels = view_options["n_orbit"] or 1, view_options["width"] * view_options["height"]
+        _check_room(output_dir, video, count, 3 * pixels * count, max_output_gb)
     gaussians = load_ply(splats).to(getattr(torch, precision))
     total = len(gaussians)
     if box is not None:
@@ -83,12 +88,8 @@ def render(
     sizes = {(c.width, c.height) for c in cameras}
     if video is not None and len(sizes) > 1:
         raise InputError(f"--video: the views have different sizes {sorted(sizes)}; a video needs one size")
-    output_dir = Path(output_dir)
-    image_bytes = sum(3 * c.width * c.height for c in cameras)
-    what, less = f"{len(cameras):,} views", "render fewer views"
-    check_output(output_dir, image_bytes, max_output_gb, what, less)
-    if video is not None:
-        check_output(Path(video).parent, image_bytes, max_output_gb, what, less)
+    if not generated:
+        _check_room(output_dir, video, len(cameras), sum(3 * c.width * c.height for c in cameras), max_output_gb)
     frames = []
     seconds = 0.0
     stems: set[str] = set()
@@ -115,6 +116,19 @@ def render(
     )
     if video is not None:
         click.echo(f"video: {video}")
+
+
+def _check_room(output_dir, video: str | None, count: int, image_bytes: int, max_output_gb: float) -> None:
+    """Refuse ``count`` views of ``image_bytes`` in all when they (and their video) would not
+    fit the disk or --max-output-gb."""
+    from pathlib import Path
+
+    from clflow.limits import check_output
+
+    what, less = f"{count:,} views", "render fewer views"
+    check_output(output_dir, image_bytes, max_output_gb, what, less)
+    if video is not None:
+        check_output(Path(video).parent, image_bytes, max_output_gb, what, less)
 
 
 def _views(

@@ -61,6 +61,7 @@ def read_params_record(path: str | Path, cfg):
     the substeps per frame the optimiser's final evaluation needed (1 where the record,
     older or of another frame rate, does not say)."""
     from clflow.fileio import read_json
+    from clflow.materials import DENSITY, validate_params
 
     record = read_json(path, "params file", "expected the params.json clflow optimize writes")
     missing = [key for key in ("parameters", "density") if not isinstance(record, dict) or key not in record]
@@ -76,6 +77,8 @@ def read_params_record(path: str | Path, cfg):
         raise InputError(f"{path}: 'parameters' is not a table of numbers ({exc})") from None
     if record.get("material") != cfg.material.type:
         raise InputError(f"{path} is for {record.get('material')!r}, the config simulates {cfg.material.type!r}")
+    validate_params(cfg.material.type, record["parameters"], str(path))  # as the config's, before any work
+    DENSITY.check(record["density"], str(path))
     if not (
         isinstance(velocity, list)
         and len(velocity) == 3
@@ -196,6 +199,8 @@ def _particles_of(run: ParticleRun, dx: float):
 
     if run.particles:
         x, volume = load_particles(run.particles)
+        if volume is not None and run.particle_volume is not None:
+            raise InputError(f"{run.particles} gives each particle's 'volume': drop --particle-volume")
         if volume is None:
             volume = run.particle_volume if run.particle_volume is not None else (dx / 2) ** 3
             log.info("particle volume %.3g m^3 per particle (no 'volume' in %s)", volume, run.particles)
@@ -439,6 +444,7 @@ def _optimize_config(
     from clflow.limits import check_output
     from clflow.mpm.substep import check_device
     from clflow.pipeline.fit import resampled_guidance
+    from clflow.pipeline.fit.state import check_resume
     from clflow.runtime import get_device
 
     check_device(get_device(), torch.float32, differentiable=True)  # before any work
@@ -454,9 +460,13 @@ def _optimize_config(
         )
     if max_substeps is not None:
         cfg = dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, max_substeps=max_substeps))
+    generated = getattr(cfg, "generate", None) is not None  # video: {generate: ...}, made in the run
     for video in [cfg.video, *(view.video for view in cfg.more_views)]:
-        if video is not None:  # an unreadable, short or gapped video is found before the scene and the kernels
+        if video is not None or not generated:  # none, unreadable, short or gapped: before the scene and kernels
             resampled_guidance(cfg, video, cfg.simulation.frames)
+    rewritten = cfg.material.type == "query" or cfg.optimize.materials or generated  # by the run's first steps
+    if resume and not rewritten and (cfg.output / "checkpoint.json").exists():
+        check_resume(cfg.output / "checkpoint.json", cfg)  # a changed --set or video: before the scene is loaded
     created = not cfg.output.exists()
     if not resume:
         earlier = sorted({entry for pattern in RUN_ENTRIES for entry in cfg.output.glob(pattern)})

@@ -140,6 +140,63 @@ def case_file(c: Case, name: str, text: str) -> str:
 
 
 BEFORE_WORK = [
+    # options that do not apply to the input kind, values out of the documented range
+    Probe(
+        "simulate-particle-file-with-shape-options",
+        lambda c: ["simulate", particles(c), "--shape", "torus", "--size", 0.1, "-o", c.tmp / "s"],
+        r"parts.npz has its own particles, not a built-in shape: drop --shape, --size",
+        ("s",),
+        exit_code=2,
+    ),
+    Probe(
+        "simulate-shape-with-particle-volume",
+        lambda c: ["simulate", "--particle-volume", 1e-6, "-o", c.tmp / "s"],
+        r"--particle-volume applies to a PARTICLES file, not to a built-in shape",
+        ("s",),
+        exit_code=2,
+    ),
+    Probe(
+        "simulate-volumes-given-twice",
+        lambda c: ["simulate", particles(c, volume=np.full(50, 1e-6)), "--particle-volume", 1e-6, "-o", c.tmp / "s"],
+        r"parts.npz gives each particle's 'volume': drop --particle-volume",
+        ("s",),
+    ),
+    Probe(
+        "render-background-out-of-range",
+        lambda c: ["render", c.demo / "scene.ply", "--background", "2,2,2", "-o", c.tmp / "r"],
+        r"Invalid value for '--background': '2,2,2': each number must be in \[0, 1\]",
+        ("r",),
+        no_ply,
+        exit_code=2,
+    ),
+    # checks that came after the scene was read, prepared or run
+    Probe(
+        "render-too-much-output-before-the-ply",
+        lambda c: ["render", c.demo / "scene.ply", "--orbit", 100000, "--width", 4096, "-o", c.tmp / "r"],
+        r"would write up to 629 GB \(100,000 views\), more than --max-output-gb 10",
+        ("r",),
+        no_ply,
+    ),
+    Probe(
+        "optimize-resume-with-a-changed-set",
+        lambda c: ["optimize", changed_resume(c), "--resume", "--set", "material.parameters.poissons_ratio=0.35"],
+        r"cannot resume from .*checkpoint.json: the config changed since it was saved \(material\)",
+        setup=no_scene,
+    ),
+    Probe(
+        "optimize-without-video",
+        lambda c: ["optimize", c.config("novideo", video=None)],
+        r"novideo.yaml: video is required to optimise",
+        ("out",),
+        no_scene,
+    ),
+    Probe(
+        "params-json-negative-modulus",
+        lambda c: ["simulate", c.config("p"), "--params-from", params_json(c, youngs_modulus=-5), "-o", c.tmp / "s"],
+        r"params.json: youngs_modulus \(E\) = -5 Pa is outside the valid range",
+        ("s",),
+        no_scene,
+    ),
     # files that do not parse, or hold nothing: one line saying so
     Probe(
         "config-empty-with-a-set",

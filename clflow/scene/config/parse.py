@@ -126,7 +126,7 @@ def _material(r: Reader, data: Any) -> MaterialConfig:
     except InputError as exc:
         raise r.fail("material", str(exc)) from None
     density = r.number(body, "density", "material", material.default_density, low=0.0, strict_low=True)
-    DENSITY.check(density)
+    DENSITY.check(density, f"{r.source}: material.density")
     model = None
     if body.get("model") is not None:
         if material.name not in MATERIAL_MODELS:
