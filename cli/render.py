@@ -66,6 +66,7 @@ def render(
     from clflow.fileio import atomic_dir
     from clflow.media import to_uint8, write_image, write_video
     from clflow.splat import load_ply
+    from clflow.splat.ply import require_gaussians
     from clflow.splat.render import rasterize
     from clflow_cli.progress import progress
 
@@ -76,7 +77,7 @@ def render(
     if generated:  # the views' number and size are the options': checked before the scene is read
         count, pixels = view_options["n_orbit"] or 1, view_options["width"] * view_options["height"]
         _check_room(output_dir, video, count, 3 * pixels * count, max_output_gb)
-    gaussians = load_ply(splats).to(getattr(torch, precision))
+    gaussians = require_gaussians(load_ply(splats), splats).to(getattr(torch, precision))
     total = len(gaussians)
     if box is not None:
         gaussians = gaussians.select_box(box[:3], box[3:])
@@ -168,20 +169,16 @@ def _views(
     elevation, azimuth = math.radians(elevation), math.radians(azimuth)
     view = dict(fov_x=math.radians(fov), width=width, height=height)
     if eye is None:
-        if len(gaussians) == 0:
-            raise InputError("the scene has no Gaussians to frame; give --eye (and --target) for the view")
         low, high = gaussians.bounds(quantile=0.01)
         if target is not None:  # keep the framing distance, centre the given target
             shift = torch.tensor(target, dtype=low.dtype) - 0.5 * (low + high)
             low, high = low + shift, high + shift
         return cams.frame_box(low, high, n_views=n_orbit or 1, elevation=elevation, azimuth=azimuth, up=up, **view)
     if target is None:
-        if len(gaussians) == 0:
-            raise InputError("the scene has no Gaussians to aim at; give --target")
         low, high = gaussians.bounds(quantile=0.01)
         target = (0.5 * (low + high)).tolist()
     if not n_orbit:
-        return [cams.look_at(eye, target, up, **view)]
+        return [cams.look_at(eye, target, up, keys=("--eye", "--target", "--up"), **view)]
     # An orbit through the eye: its distance to the target and its elevation about up.
     offset = torch.tensor(eye, dtype=torch.float64) - torch.tensor(target, dtype=torch.float64)
     unit_up = torch.tensor(up, dtype=torch.float64) / torch.tensor(up, dtype=torch.float64).norm()

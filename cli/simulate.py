@@ -165,6 +165,12 @@ def simulate(
     ]
     if config_only:
         raise click.UsageError(f"{', '.join(config_only)} needs a scene CONFIG (.yaml/.yml/.json)")
+    from clflow.errors import InputError
+    from clflow.mpm.shapes import PARTICLE_SUFFIXES
+
+    if particles and not particles.lower().endswith(PARTICLE_SUFFIXES):
+        kinds = ", ".join(PARTICLE_SUFFIXES + CONFIG_SUFFIXES)
+        raise InputError(f"{particles}: not a particle file or a scene config (the file name must end in {kinds})")
     unused = _given(ctx, lambda name: name in (SHAPE_OPTIONS if particles else FILE_OPTIONS))
     if unused and particles:
         raise click.UsageError(f"{particles} has its own particles, not a built-in shape: drop {', '.join(unused)}")

@@ -197,6 +197,13 @@ BEFORE_WORK = [
         ("s",),
         no_scene,
     ),
+    Probe(
+        "camera-position-is-look-at",
+        lambda c: ["simulate", c.config("eye", **{"camera.position": [0.0, 0.1, 0.0]}), "-o", c.tmp / "s"],
+        r"eye.yaml: camera.position and camera.look_at are the same point \[0.0, 0.1, 0.0\]$",
+        ("s",),
+        no_scene,
+    ),
     # files that do not parse, or hold nothing: one line saying so
     Probe(
         "config-empty-with-a-set",
@@ -238,6 +245,24 @@ BEFORE_WORK = [
         lambda c: ["eval", "sysid", "--cases", c.tmp / "missing.yaml", "-o", c.tmp / "o"],
         r"^Error: case file \S*missing.yaml not found$",  # not "not YAML or JSON"
         ("o",),
+    ),
+    Probe(
+        "simulate-a-txt",
+        lambda c: ["simulate", case_file(c, "cfg.txt", "splats: scene.ply\n"), "-o", c.tmp / "s"],
+        r"cfg.txt: not a particle file or a scene config \(the file name must end in .npz, .ply, .yaml, .yml, .json\)",
+        ("s",),
+    ),
+    Probe(
+        "render-empty-ply",
+        lambda c: ["render", empty_ply(c), "-o", c.tmp / "r"],
+        r"empty.ply: holds no Gaussians$",
+        ("r",),
+    ),
+    Probe(
+        "render-transforms-missing-image",
+        lambda c: ["render", c.demo / "scene.ply", "--transforms", missing_image_transforms(c), "-o", c.tmp / "r"],
+        r"transforms.json: frames\[0\]: image .*gone\[.png\] not found \(no 'w', 'h': its size is needed\)$",
+        ("r",),
     ),
 ]
 
