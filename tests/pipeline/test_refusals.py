@@ -264,6 +264,40 @@ BEFORE_WORK = [
         r"transforms.json: frames\[0\]: image .*gone\[.png\] not found \(no 'w', 'h': its size is needed\)$",
         ("r",),
     ),
+    # the words: what is wrong, named as the user gave it
+    Probe(
+        "query-port-out-of-range",
+        lambda c: [
+            "query",
+            c.demo / "guidance" / "000.png",
+            "--backend",
+            "openai",
+            "--llm-url",
+            "http://127.0.0.1:99999",
+            "--model",
+            "m",
+            "-o",
+            c.tmp / "q.json",
+        ],
+        r"--llm-url 'http://127.0.0.1:99999': the port must be a number from 1 to 65535$",
+        ("q.json",),
+    ),
+    Probe(
+        "simulate-query-openai-without-url",
+        lambda c: [
+            "simulate",
+            "-o",
+            c.tmp / "s",
+            c.config(
+                "query",
+                material={"type": "query", "query": {"image": "guidance/000.png", "backend": "openai"}},
+                evaluation=None,
+            ),
+        ],
+        r"query.yaml: material.query.backend: openai needs an endpoint: set \$CLFLOW_LLM_URL$",
+        ("s",),
+        lambda c: [c.monkeypatch.delenv(n, raising=False) for n in ("CLFLOW_LLM_URL", "OPENAI_BASE_URL")],
+    ),
 ]
 
 
