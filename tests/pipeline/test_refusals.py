@@ -320,3 +320,24 @@ def missing_image_transforms(c: Case) -> str:
 def test_refused_in_one_line_before_the_work(probe, quick_demo, simulation, tmp_path, monkeypatch):  # noqa: F811
     output = assert_probe(probe, Case(quick_demo, simulation, tmp_path, monkeypatch))
     assert len(output.strip().splitlines()) == 1, output  # the error line alone: nothing ran before it
+
+
+# -- 3. no stray lines ------------------------------------------------------------------------
+
+
+def test_torchs_info_lines_stay_out_of_a_commands_output():
+    """torch logs "FakeTensor cache stats" at exit, at INFO, when a Ctrl-C cut its import short
+    (before it set its loggers' levels): three lines after the error."""
+    code = (
+        "import logging\n"
+        "from clflow_cli.main import cli\n"
+        "try:\n"
+        "    cli(['devices', '--help'])\n"  # the root command set the logging up
+        "except SystemExit:\n"
+        "    pass\n"
+        "logging.getLogger('torch._subclasses.fake_tensor').info('FakeTensor cache stats:')\n"
+        "logging.getLogger('clflow').info('a line of clflow')\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert "FakeTensor" not in res.stderr and "a line of clflow" in res.stderr
