@@ -264,7 +264,21 @@ BEFORE_WORK = [
         r"transforms.json: frames\[0\]: image .*gone\[.png\] not found \(no 'w', 'h': its size is needed\)$",
         ("r",),
     ),
+    Probe(
+        "flow-stride-0",
+        lambda c: ["flow", c.demo / "guidance", "--stride", 0, "-o", c.tmp / "f"],
+        r"Invalid value for '--stride': 0 is not in the range x>=1",  # exit 1 after reading the frames before
+        ("f",),
+        exit_code=2,
+    ),
     # the words: what is wrong, named as the user gave it
+    Probe(
+        "flow-window-of-an-image-folder",
+        lambda c: ["flow", c.demo / "guidance", "--end", 0.2, "-o", c.tmp / "f"],
+        r"guidance is an image folder, which has no frame rate: --end needs --fps",  # not "pass fps= ..."
+        ("f",),
+        exit_code=2,
+    ),
     Probe(
         "query-port-out-of-range",
         lambda c: [
