@@ -138,6 +138,18 @@ class Duration(click.ParamType):
         return seconds
 
 
+def given_options(ctx: click.Context, which) -> list[str]:
+    """The options given on the command line whose parameter names ``which(name)`` picks, as
+    spelled there (to refuse those that do not apply)."""
+    from click.core import ParameterSource
+
+    return [
+        p.opts[0]
+        for p in ctx.command.params
+        if which(p.name) and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE
+    ]
+
+
 def budget_option(help: str):
     """``--budget DURATION``: the wall time that chooses the main grid, in seconds."""
     return click.option("--budget", type=Duration(), default=None, metavar="DURATION", help=help)
@@ -226,6 +238,7 @@ __all__ = [
     "OUT_ALIASES",
     "aliased_option",
     "budget_option",
+    "given_options",
     "double_option",
     "max_output_option",
     "max_substeps_option",

@@ -7,9 +7,20 @@ import re
 
 import click
 
-from clflow_cli.options import FiniteFloat, InputFile, Numbers, OutputPath, count_option, max_output_option, out_option
+from clflow_cli.options import (
+    FiniteFloat,
+    InputFile,
+    Numbers,
+    OutputPath,
+    count_option,
+    given_options,
+    max_output_option,
+    out_option,
+)
 
 VIDEO_SUFFIXES = (".mp4", ".gif")
+#: what only makes new views; a camera file's views are the file's
+NEW_VIEW_OPTIONS = ("eye", "target", "up", "n_orbit", "elevation", "azimuth", "fov", "width", "height")
 
 
 @click.command()
@@ -45,8 +56,9 @@ VIDEO_SUFFIXES = (".mp4", ".gif")
 @click.option("--precision", type=click.Choice(["float32", "float64"]), default="float32", show_default=True,
               help="Compute precision of the rasteriser.")  # fmt: skip
 @max_output_option
+@click.pass_context
 def render(
-    splats, output_dir, box, sphere, background, sh_degree, video, fps, precision, max_output_gb, **view_options
+    ctx, splats, output_dir, box, sphere, background, sh_degree, video, fps, precision, max_output_gb, **view_options
 ) -> None:
     """Render SPLATS (a 3DGS PLY file, or a plain x y z [r g b] point cloud) to PNG images.
 
@@ -70,11 +82,14 @@ def render(
     from clflow.splat.render import rasterize
     from clflow_cli.progress import progress
 
+    from_file = view_options["cameras_json"] or view_options["transforms_json"]
+    unused = given_options(ctx, lambda name: name in NEW_VIEW_OPTIONS) if from_file else []
+    if unused:
+        raise click.UsageError(f"{', '.join(unused)} make new views, --cameras/--transforms give theirs: drop them")
     if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:
         raise InputError(f"--video {video}: the file name must end in {' or '.join(VIDEO_SUFFIXES)}")
     output_dir = Path(output_dir)
-    generated = not (view_options["cameras_json"] or view_options["transforms_json"])
-    if generated:  # the views' number and size are the options': checked before the scene is read
+    if not from_file:  # the views' number and size are the options': checked before the scene is read
         count, pixels = view_options["n_orbit"] or 1, view_options["width"] * view_options["height"]
         _check_room(output_dir, video, count, 3 * pixels * count, max_output_gb)
     gaussians = require_gaussians(load_ply(splats), splats).to(getattr(torch, precision))
@@ -89,7 +104,7 @@ def render(
     sizes = {(c.width, c.height) for c in cameras}
     if video is not None and len(sizes) > 1:
         raise InputError(f"--video: the views have different sizes {sorted(sizes)}; a video needs one size")
-    if not generated:
+    if from_file:
         _check_room(output_dir, video, len(cameras), sum(3 * c.width * c.height for c in cameras), max_output_gb)
     frames = []
     seconds = 0.0
@@ -158,10 +173,6 @@ def _views(
     if cameras_json and transforms_json:
         raise InputError("give --cameras or --transforms, not both")
     if cameras_json or transforms_json:
-        if eye or target or n_orbit:
-            raise InputError(
-                "--eye, --target and --orbit make new views; they do not combine with --cameras/--transforms"
-            )
         loaded = cams.load_cameras_json(cameras_json) if cameras_json else cams.load_transforms_json(transforms_json)
         return [_pick(loaded, key, cameras_json or transforms_json) for key in camera_keys] or loaded
     if camera_keys:

@@ -7,6 +7,7 @@ from clflow_cli.options import (
     Numbers,
     aliased_option,
     count_option,
+    given_options,
     max_output_option,
     max_substeps_option,
     out_option,
@@ -44,17 +45,6 @@ SCENE_OPTIONS = (
     "object_only",
     "compressed",
 )
-
-
-def _given(ctx, which) -> list[str]:
-    """The options given on the command line whose parameter names ``which(name)`` picks."""
-    from click.core import ParameterSource
-
-    return [
-        p.opts[0]
-        for p in ctx.command.params
-        if which(p.name) and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE
-    ]
 
 
 @click.command("simulate")
@@ -134,7 +124,7 @@ def simulate(
         from clflow.pipeline.runs import simulate_scene
         from clflow_cli.progress import progress
 
-        particle_only = _given(ctx, lambda name: name not in SCENE_OPTIONS)
+        particle_only = given_options(ctx, lambda name: name not in SCENE_OPTIONS)
         if particle_only:
             raise click.UsageError(
                 f"with a scene config, the config sets the simulation; drop {', '.join(particle_only)}"
@@ -171,7 +161,7 @@ def simulate(
     if particles and not particles.lower().endswith(PARTICLE_SUFFIXES):
         kinds = ", ".join(PARTICLE_SUFFIXES + CONFIG_SUFFIXES)
         raise InputError(f"{particles}: not a particle file or a scene config (the file name must end in {kinds})")
-    unused = _given(ctx, lambda name: name in (SHAPE_OPTIONS if particles else FILE_OPTIONS))
+    unused = given_options(ctx, lambda name: name in (SHAPE_OPTIONS if particles else FILE_OPTIONS))
     if unused and particles:
         raise click.UsageError(f"{particles} has its own particles, not a built-in shape: drop {', '.join(unused)}")
     if unused:

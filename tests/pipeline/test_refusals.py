@@ -162,6 +162,13 @@ BEFORE_WORK = [
         ("s",),
     ),
     Probe(
+        "render-camera-file-with-new-view-options",
+        lambda c: ["render", c.demo / "scene.ply", "--transforms", c.tmp / "t.json", "--width", 1024, "--fov", 10],
+        r"--fov, --width make new views, --cameras/--transforms give theirs: drop them",  # ignored before
+        setup=no_ply,
+        exit_code=2,
+    ),
+    Probe(
         "render-background-out-of-range",
         lambda c: ["render", c.demo / "scene.ply", "--background", "2,2,2", "-o", c.tmp / "r"],
         r"Invalid value for '--background': '2,2,2': each number must be in \[0, 1\]",
