@@ -169,6 +169,19 @@ BEFORE_WORK = [
         exit_code=2,
     ),
     Probe(
+        "reconstruct-a-photo-with-training-options",
+        lambda c: ["reconstruct", c.demo / "guidance" / "000.png", "--depth", "d.npy", "--iterations", 5, "-o", c.tmp],
+        r"with --depth nothing is trained: drop --iterations",  # ignored before
+        exit_code=2,
+    ),
+    Probe(
+        "reconstruct-training-with-photo-options",
+        lambda c: ["reconstruct", c.demo / "guidance", "--fov", 30, "-o", c.tmp / "r"],
+        r"they go with --depth \(a photo and its depth map\): drop --fov",
+        ("r",),
+        exit_code=2,
+    ),
+    Probe(
         "render-background-out-of-range",
         lambda c: ["render", c.demo / "scene.ply", "--background", "2,2,2", "-o", c.tmp / "r"],
         r"Invalid value for '--background': '2,2,2': each number must be in \[0, 1\]",
