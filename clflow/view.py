@@ -103,11 +103,9 @@ def load_scene(path: str | Path, up: str = "+y") -> ViewScene:
 
 
 def _ply_scene(path: Path, up: tuple[float, float, float]) -> ViewScene:
-    from clflow.splat.ply import load_ply
+    from clflow.splat.ply import load_ply, require_gaussians
 
-    g = load_ply(path)
-    if len(g) == 0:
-        raise InputError(f"{path}: holds no Gaussians")
+    g = require_gaussians(load_ply(path), path)
     low, high = g.bounds(PLY_BOX_QUANTILE)
     f32 = lambda t: t.detach().float().numpy()  # noqa: E731
     return ViewScene(

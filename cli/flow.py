@@ -2,7 +2,7 @@
 
 import click
 
-from clflow_cli.options import InputFile, out_option, pixel_box_option
+from clflow_cli.options import FiniteFloat, InputFile, out_option, pixel_box_option
 
 
 @click.command()
@@ -14,11 +14,13 @@ from clflow_cli.options import InputFile, out_option, pixel_box_option
               help="DIS quality preset (clflow.flow.optical_flow.DIS_PRESETS).")  # fmt: skip
 @click.option("--raft-weights", type=InputFile(path_type=str), default=None,
               help="torchvision RAFT-large state dict already on disk (nothing is downloaded).")  # fmt: skip
-@click.option("--fps", type=float, default=None, help="Frame rate (frames/s); needed for an image folder's times.")
-@click.option("--start", type=float, default=0.0, show_default=True, help="First time to use (s).")
-@click.option("--end", type=float, default=None, help="End of the time window (s, exclusive).")
-@click.option("--stride", type=int, default=1, show_default=True, help="Use every N-th frame.")
-@click.option("--sim-fps", type=float, default=None,
+@click.option("--fps", type=FiniteFloat(min=0, min_open=True), default=None,
+              help="Frame rate (frames/s); needed for an image folder's times.")  # fmt: skip
+@click.option("--start", type=FiniteFloat(min=0), default=0.0, show_default=True, help="First time to use (s).")
+@click.option("--end", type=FiniteFloat(min=0, min_open=True), default=None,
+              help="End of the time window (s, exclusive).")  # fmt: skip
+@click.option("--stride", type=click.IntRange(min=1), default=1, show_default=True, help="Use every N-th frame.")
+@click.option("--sim-fps", type=FiniteFloat(min=0, min_open=True), default=None,
               help="Resample (nearest frame) to this rate, e.g. the simulation's frames per second.")  # fmt: skip
 @click.option("--mask", "mask_image", type=InputFile(path_type=str), default=None,
               help="Object mask image (object where grey > 127), the video's size.")  # fmt: skip
@@ -60,6 +62,9 @@ def flow(
 
     if mask_image and box:
         raise InputError("give either --mask or --box, not both")
+    timed = [name for name, given in (("--start", start), ("--end", end), ("--sim-fps", sim_fps)) if given]
+    if timed and fps is None and Path(video).is_dir():  # known before its frames are read
+        raise click.UsageError(f"{video} is an image folder, which has no frame rate: {', '.join(timed)} needs --fps")
     clip = read_video(video, fps=fps)
     click.echo(clip.describe())
     if start > 0 or end is not None:

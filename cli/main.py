@@ -177,6 +177,9 @@ def cli(
     verbosity = verbose - quiet
     level = {-2: logging.ERROR, -1: logging.WARNING, 0: logging.INFO}.get(max(-2, min(verbosity, 1)), logging.DEBUG)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    # torch's own INFO lines (e.g. "FakeTensor cache stats" at exit after a Ctrl-C during its
+    # import, before torch set its loggers' levels) are not clflow's progress
+    logging.getLogger("torch").setLevel(max(level, logging.WARNING))
     _fold_kernel_builds(verbosity < 2)
     warnings.showwarning = _log_warning
     ctx.obj = CliContext(device, verbosity)

@@ -94,10 +94,11 @@ class FiniteFloat(click.FloatRange):
 
 class Numbers(click.ParamType):
     """``count`` finite numbers in one word, comma-separated (``0,0,1``; a quoted
-    space-separated ``"0 0 1"`` is read too). Converts to a tuple of floats."""
+    space-separated ``"0 0 1"`` is read too), each in [low, high] of ``within`` when given.
+    Converts to a tuple of floats."""
 
-    def __init__(self, count: int, names: str | None = None):
-        self.count, self.names = count, names
+    def __init__(self, count: int, names: str | None = None, within: tuple[float, float] | None = None):
+        self.count, self.names, self.within = count, names, within
         self.name = names or ",".join(["N"] * count)
 
     def convert(self, value, param, ctx):
@@ -113,6 +114,8 @@ class Numbers(click.ParamType):
             what = f"{self.names.lower()} ({what})" if self.names else what
             hint = f"; write them as one word with commas, e.g. {self.name}" if len(words) == 1 else ""
             self.fail(f"expected {what}, got {value!r}{hint}", param, ctx)
+        if self.within and not all(self.within[0] <= v <= self.within[1] for v in numbers):
+            self.fail(f"{value!r}: each number must be in [{self.within[0]:g}, {self.within[1]:g}]", param, ctx)
         return numbers
 
 
@@ -133,6 +136,18 @@ class Duration(click.ParamType):
                 f"{value!r} is not a positive duration (seconds, or with s, min or h: 600, 10min, 1.5h)", param, ctx
             )
         return seconds
+
+
+def given_options(ctx: click.Context, which) -> list[str]:
+    """The options given on the command line whose parameter names ``which(name)`` picks, as
+    spelled there (to refuse those that do not apply)."""
+    from click.core import ParameterSource
+
+    return [
+        p.opts[0]
+        for p in ctx.command.params
+        if which(p.name) and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE
+    ]
 
 
 def budget_option(help: str):
@@ -223,6 +238,7 @@ __all__ = [
     "OUT_ALIASES",
     "aliased_option",
     "budget_option",
+    "given_options",
     "double_option",
     "max_output_option",
     "max_substeps_option",

@@ -5,10 +5,13 @@ from __future__ import annotations
 import click
 
 from clflow_cli.main import Interrupted
-from clflow_cli.options import InputFile, count_option, out_option
+from clflow_cli.options import InputFile, count_option, given_options, out_option
 from clflow_cli.progress import progress
 
 LOG_EVERY = 100  # iterations between progress lines when stderr is not a terminal
+#: what only a photo and its depth map take (no training), and what every reconstruction takes
+DEPTH_OPTIONS = ("depth_scale", "fov", "shell")
+COMMON_OPTIONS = ("images", "output_dir", "depth")
 
 
 @click.command("reconstruct")
@@ -48,7 +51,9 @@ LOG_EVERY = 100  # iterations between progress lines when stderr is not a termin
               help="With --depth: horizontal field of view of the photo, degrees.")  # fmt: skip
 @click.option("--shell", type=click.Choice(["mirror", "extrude", "none"]), default="mirror", show_default=True,
               help="With --depth: how the hidden side is closed.")  # fmt: skip
+@click.pass_context
 def reconstruct(
+    ctx,
     images,
     output_dir,
     transforms,
@@ -80,6 +85,13 @@ def reconstruct(
     the origin (OpenCV axes, --fov) into Gaussians, the hidden side closed by --shell, and
     point_cloud.ply and cameras.json are written without training.
     """
+    photo = depth is not None
+    unused = given_options(
+        ctx, lambda name: name not in DEPTH_OPTIONS + COMMON_OPTIONS if photo else name in DEPTH_OPTIONS
+    )
+    if unused:
+        why = "with --depth nothing is trained" if photo else "they go with --depth (a photo and its depth map)"
+        raise click.UsageError(f"{why}: drop {', '.join(unused)}")
     if depth is not None:
         return _from_depth(images, depth, depth_scale, fov, shell, output_dir)
     from clflow.recon import Settings, load_views

@@ -7,9 +7,20 @@ import re
 
 import click
 
-from clflow_cli.options import FiniteFloat, InputFile, Numbers, OutputPath, count_option, max_output_option, out_option
+from clflow_cli.options import (
+    FiniteFloat,
+    InputFile,
+    Numbers,
+    OutputPath,
+    count_option,
+    given_options,
+    max_output_option,
+    out_option,
+)
 
 VIDEO_SUFFIXES = (".mp4", ".gif")
+#: what only makes new views; a camera file's views are the file's
+NEW_VIEW_OPTIONS = ("eye", "target", "up", "n_orbit", "elevation", "azimuth", "fov", "width", "height")
 
 
 @click.command()
@@ -37,15 +48,17 @@ VIDEO_SUFFIXES = (".mp4", ".gif")
               help="Horizontal field of view of generated views, degrees.")  # fmt: skip
 @count_option('--width', default=512, help="Image width of generated views, pixels.")  # fmt: skip
 @count_option('--height', default=512, help="Image height of generated views, pixels.")  # fmt: skip
-@click.option("--background", type=Numbers(3), default="0,0,0", show_default=True, help="Background colour R,G,B in [0, 1].")  # fmt: skip
+@click.option("--background", type=Numbers(3, within=(0, 1)), metavar="R,G,B", default="0,0,0", show_default=True,
+              help="Background colour R,G,B in [0, 1].")  # fmt: skip
 @click.option("--sh-degree", type=click.IntRange(0, 3), help="Evaluate SH only up to this degree (default: all).")
 @click.option("--video", type=OutputPath(file=True), help="Also write the views as a video (.mp4 or .gif).")
 @click.option("--fps", type=FiniteFloat(min=0, min_open=True), default=24.0, show_default=True, help="Video frame rate.")  # fmt: skip
 @click.option("--precision", type=click.Choice(["float32", "float64"]), default="float32", show_default=True,
               help="Compute precision of the rasteriser.")  # fmt: skip
 @max_output_option
+@click.pass_context
 def render(
-    splats, output_dir, box, sphere, background, sh_degree, video, fps, precision, max_output_gb, **view_options
+    ctx, splats, output_dir, box, sphere, background, sh_degree, video, fps, precision, max_output_gb, **view_options
 ) -> None:
     """Render SPLATS (a 3DGS PLY file, or a plain x y z [r g b] point cloud) to PNG images.
 
@@ -63,15 +76,23 @@ def render(
 
     from clflow.errors import InputError
     from clflow.fileio import atomic_dir
-    from clflow.limits import check_output
     from clflow.media import to_uint8, write_image, write_video
     from clflow.splat import load_ply
+    from clflow.splat.ply import require_gaussians
     from clflow.splat.render import rasterize
     from clflow_cli.progress import progress
 
+    from_file = view_options["cameras_json"] or view_options["transforms_json"]
+    unused = given_options(ctx, lambda name: name in NEW_VIEW_OPTIONS) if from_file else []
+    if unused:
+        raise click.UsageError(f"{', '.join(unused)} make new views, --cameras/--transforms give theirs: drop them")
     if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:
         raise InputError(f"--video {video}: the file name must end in {' or '.join(VIDEO_SUFFIXES)}")
-    gaussians = load_ply(splats).to(getattr(torch, precision))
+    output_dir = Path(output_dir)
+    if not from_file:  # the views' number and size are the options': checked before the scene is read
+        count, pixels = view_options["n_orbit"] or 1, view_options["width"] * view_options["height"]
+        _check_room(output_dir, video, count, 3 * pixels * count, max_output_gb)
+    gaussians = require_gaussians(load_ply(splats), splats).to(getattr(torch, precision))
     total = len(gaussians)
     if box is not None:
         gaussians = gaussians.select_box(box[:3], box[3:])
@@ -83,12 +104,8 @@ def render(
     sizes = {(c.width, c.height) for c in cameras}
     if video is not None and len(sizes) > 1:
         raise InputError(f"--video: the views have different sizes {sorted(sizes)}; a video needs one size")
-    output_dir = Path(output_dir)
-    image_bytes = sum(3 * c.width * c.height for c in cameras)
-    what, less = f"{len(cameras):,} views", "render fewer views"
-    check_output(output_dir, image_bytes, max_output_gb, what, less)
-    if video is not None:
-        check_output(Path(video).parent, image_bytes, max_output_gb, what, less)
+    if from_file:
+        _check_room(output_dir, video, len(cameras), sum(3 * c.width * c.height for c in cameras), max_output_gb)
     frames = []
     seconds = 0.0
     stems: set[str] = set()
@@ -117,6 +134,19 @@ def render(
         click.echo(f"video: {video}")
 
 
+def _check_room(output_dir, video: str | None, count: int, image_bytes: int, max_output_gb: float) -> None:
+    """Refuse ``count`` views of ``image_bytes`` in all when they (and their video) would not
+    fit the disk or --max-output-gb."""
+    from pathlib import Path
+
+    from clflow.limits import check_output
+
+    what, less = f"{count:,} views", "render fewer views"
+    check_output(output_dir, image_bytes, max_output_gb, what, less)
+    if video is not None:
+        check_output(Path(video).parent, image_bytes, max_output_gb, what, less)
+
+
 def _views(
     gaussians,
     *,
@@ -143,10 +173,6 @@ def _views(
     if cameras_json and transforms_json:
         raise InputError("give --cameras or --transforms, not both")
     if cameras_json or transforms_json:
-        if eye or target or n_orbit:
-            raise InputError(
-                "--eye, --target and --orbit make new views; they do not combine with --cameras/--transforms"
-            )
         loaded = cams.load_cameras_json(cameras_json) if cameras_json else cams.load_transforms_json(transforms_json)
         return [_pick(loaded, key, cameras_json or transforms_json) for key in camera_keys] or loaded
     if camera_keys:
@@ -154,20 +180,16 @@ def _views(
     elevation, azimuth = math.radians(elevation), math.radians(azimuth)
     view = dict(fov_x=math.radians(fov), width=width, height=height)
     if eye is None:
-        if len(gaussians) == 0:
-            raise InputError("the scene has no Gaussians to frame; give --eye (and --target) for the view")
         low, high = gaussians.bounds(quantile=0.01)
         if target is not None:  # keep the framing distance, centre the given target
             shift = torch.tensor(target, dtype=low.dtype) - 0.5 * (low + high)
             low, high = low + shift, high + shift
         return cams.frame_box(low, high, n_views=n_orbit or 1, elevation=elevation, azimuth=azimuth, up=up, **view)
     if target is None:
-        if len(gaussians) == 0:
-            raise InputError("the scene has no Gaussians to aim at; give --target")
         low, high = gaussians.bounds(quantile=0.01)
         target = (0.5 * (low + high)).tolist()
     if not n_orbit:
-        return [cams.look_at(eye, target, up, **view)]
+        return [cams.look_at(eye, target, up, keys=("--eye", "--target", "--up"), **view)]
     # An orbit through the eye: its distance to the target and its elevation about up.
     offset = torch.tensor(eye, dtype=torch.float64) - torch.tensor(target, dtype=torch.float64)
     unit_up = torch.tensor(up, dtype=torch.float64) / torch.tensor(up, dtype=torch.float64).norm()

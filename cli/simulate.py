@@ -7,6 +7,7 @@ from clflow_cli.options import (
     Numbers,
     aliased_option,
     count_option,
+    given_options,
     max_output_option,
     max_substeps_option,
     out_option,
@@ -29,6 +30,9 @@ def _params(ctx, param, items):
 
 
 CONFIG_SUFFIXES = (".yaml", ".yml", ".json")
+#: what only a built-in shape takes (a particle file brings its own), and only a particle file
+SHAPE_OPTIONS = ("shape", "size", "center")
+FILE_OPTIONS = ("particle_volume",)
 # what a scene CONFIG run takes; every other option describes particles and is refused with one
 SCENE_OPTIONS = (
     "particles",
@@ -117,16 +121,10 @@ def simulate(
     write per-frame Gaussians (OUT/gaussians.npz and OUT/frame_000.ply ..., the object's SH
     rotated into each frame; see `clflow render4d`) and the guidance camera's view."""
     if particles and particles.lower().endswith(CONFIG_SUFFIXES):
-        from click.core import ParameterSource
-
         from clflow.pipeline.runs import simulate_scene
         from clflow_cli.progress import progress
 
-        particle_only = [
-            p.opts[0]
-            for p in ctx.command.params
-            if p.name not in SCENE_OPTIONS and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE
-        ]
+        particle_only = given_options(ctx, lambda name: name not in SCENE_OPTIONS)
         if particle_only:
             raise click.UsageError(
                 f"with a scene config, the config sets the simulation; drop {', '.join(particle_only)}"
@@ -157,6 +155,17 @@ def simulate(
     ]
     if config_only:
         raise click.UsageError(f"{', '.join(config_only)} needs a scene CONFIG (.yaml/.yml/.json)")
+    from clflow.errors import InputError
+    from clflow.mpm.shapes import PARTICLE_SUFFIXES
+
+    if particles and not particles.lower().endswith(PARTICLE_SUFFIXES):
+        kinds = ", ".join(PARTICLE_SUFFIXES + CONFIG_SUFFIXES)
+        raise InputError(f"{particles}: not a particle file or a scene config (the file name must end in {kinds})")
+    unused = given_options(ctx, lambda name: name in (SHAPE_OPTIONS if particles else FILE_OPTIONS))
+    if unused and particles:
+        raise click.UsageError(f"{particles} has its own particles, not a built-in shape: drop {', '.join(unused)}")
+    if unused:
+        raise click.UsageError(f"{', '.join(unused)} applies to a PARTICLES file, not to a built-in shape: drop it")
     from clflow.pipeline.runs import ParticleRun, simulate_particles
     from clflow_cli.progress import progress
 

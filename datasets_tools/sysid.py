@@ -193,26 +193,22 @@ def load_cases(path: Path) -> dict[str, SyntheticCase]:
     """The cases of a YAML or JSON file: a mapping of name -> {shape, size (m), lift (m),
     spread (sizes), material, density (kg/m^3), truth and guess (SI, by registry name),
     optimize (names; default: the truth's; guess gives each a start), velocity (m/s, 3
-    numbers)}, each run with the
-    benchmark's policy (search, starts, Levenberg-Marquardt). InputError, one line naming the
-    file and the case, for anything clflow cannot run."""
+    numbers)}, each run with the benchmark's policy (search, starts, Levenberg-Marquardt).
+    Values are checked as a scene config checks its own; InputError, one line naming the file
+    and the case's key, for anything clflow cannot run."""
     from clflow.errors import InputError
-    from clflow.fileio import read_text
-    from clflow.scene.config.files import DuplicateKeyError, read_yaml
+    from clflow.scene.config.files import read_data_file
+    from clflow.scene.config.reader import Reader
 
-    try:
-        data = read_yaml(read_text(path, "case file"))
-    except DuplicateKeyError as exc:
-        raise InputError(f"{path}: {exc} is given twice") from None
-    except ValueError as exc:  # yaml.YAMLError is one
-        raise InputError(f"{path}: not YAML or JSON: {str(exc).splitlines()[0]}") from None
+    data = read_data_file(path, "case file")
     if not isinstance(data, dict) or not data:
         raise InputError(f"{path}: expected a mapping of case names to cases")
+    r = Reader(str(path), path.parent)
     cases = {}
     for name, body in data.items():
         if not isinstance(name, str) or not name.isidentifier() or name in CASES:
             raise InputError(f"{path}: case name {name!r}: use a new identifier (not one of the built-in cases)")
-        cases[name] = _with_policy(_case_of(body, f"{path}: case {name}"))
+        cases[name] = _with_policy(_case_of(r, body, name))
         try:
             check_case(name, cases[name])
         except ValueError as exc:
@@ -220,36 +216,44 @@ def load_cases(path: Path) -> dict[str, SyntheticCase]:
     return cases
 
 
-def _case_of(body, where: str) -> SyntheticCase:
-    """A :class:`SyntheticCase` of one case file entry (parameter names made canonical)."""
+def _case_of(r, body, name: str) -> SyntheticCase:
+    """A :class:`SyntheticCase` of case file entry ``name`` (parameter names made canonical),
+    its values read by ``r`` (a clflow.scene.config Reader, errors naming ``name.key``)."""
     from clflow.errors import InputError
-    from clflow.materials import get_material
+    from clflow.materials import DENSITY, get_material
     from clflow_datasets.synthetic import SHAPES
 
-    if not isinstance(body, dict) or set(body) - set(CASE_KEYS) or not {"material", "truth", "guess"} <= set(body):
-        raise InputError(f"{where}: give material, truth and guess, and only {', '.join(CASE_KEYS)}")
-    if not (isinstance(body["truth"], dict) and isinstance(body["guess"], dict)):
-        raise InputError(f"{where}: truth and guess are mappings of parameter names to values (SI)")
-    material = get_material(str(body["material"]))
-    name_of = lambda n: material.param(str(n)).name  # noqa: E731  (InputError for an unknown name)
-    truth = {name_of(n): v for n, v in body["truth"].items()}
-    guess = {name_of(n): v for n, v in body["guess"].items()}
-    optimize = tuple(name_of(n) for n in body.get("optimize", list(truth)))
-    if not optimize or set(optimize) - set(truth) or set(guess) != set(optimize):
-        raise InputError(f"{where}: optimize names parameters of the truth, and guess gives each a start")
-    if body.get("shape", "cube") not in SHAPES:
-        raise InputError(f"{where}: shape must be one of {', '.join(SHAPES)}")
-    numbers = {k: body[k] for k in ("size", "lift", "spread", "density") if k in body}
-    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0 for v in numbers.values()):
-        raise InputError(f"{where}: size, lift, spread and density are numbers >= 0 (m, m, sizes, kg/m^3)")
+    body = r.section(body, name, CASE_KEYS)
+    missing = [key for key in ("material", "truth", "guess") if body.get(key) is None]
+    if missing:
+        raise r.fail(f"{name}.{missing[0]}", "is required (a case gives material, truth and guess)")
+    truth_in, guess_in = r.mapping(body["truth"], f"{name}.truth"), r.mapping(body["guess"], f"{name}.guess")
+    optimize_in = r.items(body, "optimize", name) if body.get("optimize") is not None else list(truth_in)
     try:
-        velocity = tuple(float(v) for v in body.get("velocity", (0.0, 0.0, 0.0)))
-    except (TypeError, ValueError):
-        velocity = ()
-    if len(velocity) != 3 or not all(math.isfinite(v) for v in velocity):
-        raise InputError(f"{where}: velocity is 3 finite numbers (m/s)")
-    fields = dict(shape=body.get("shape", "cube"), material=material.name, truth=truth, velocity=velocity)
-    return SyntheticCase(**fields, guess=guess, optimize=optimize, **numbers)
+        material = get_material(str(body["material"]))
+        name_of = lambda n: material.param(str(n)).name  # noqa: E731  (InputError for an unknown name)
+        truth = {name_of(n): v for n, v in truth_in.items()}
+        guess = {name_of(n): v for n, v in guess_in.items()}
+        optimize = tuple(name_of(n) for n in optimize_in)
+    except InputError as exc:
+        raise r.fail(name, str(exc)) from None
+    if not optimize or set(optimize) - set(truth) or set(guess) != set(optimize):
+        raise r.fail(name, "optimize names parameters of the truth, and guess gives each a start")
+    density = r.number(body, "density", name, SyntheticCase.density, low=0.0, strict_low=True)
+    DENSITY.check(density, f"{r.source}: {name}.density")
+    spread = body.get("spread")
+    return SyntheticCase(
+        shape=r.choice(body, "shape", name, SHAPES, "cube"),
+        size=r.number(body, "size", name, SyntheticCase.size, low=0.0, strict_low=True),
+        lift=r.number(body, "lift", name, SyntheticCase.lift, low=0.0),
+        spread=None if spread is None else r.number(body, "spread", name, low=0.0),
+        material=material.name,
+        truth=truth,
+        guess=guess,
+        optimize=optimize,
+        density=density,
+        velocity=r.vec3(body, "velocity", name, (0.0, 0.0, 0.0)),
+    )
 
 
 def run_case(

@@ -108,9 +108,15 @@ def interrupt_optimize(monkeypatch, tmp_path, iterations_in_run, *args):
     import clflow.scene.config
 
     cfg = SimpleNamespace(
-        optimize=SimpleNamespace(search=None, materials=()), output=tmp_path, video=None, more_views=()
+        optimize=SimpleNamespace(search=None, materials=()),
+        output=tmp_path,
+        video=tmp_path / "guidance.mp4",
+        more_views=(),
+        material=SimpleNamespace(type="elastic"),
+        simulation=SimpleNamespace(frames=8),
     )
     monkeypatch.setattr(clflow.scene.config, "load_config", lambda path, overrides=(): cfg)
+    monkeypatch.setattr(clflow.pipeline.fit, "resampled_guidance", lambda cfg, video, frames: None)
     monkeypatch.setattr(
         clflow.pipeline.fit,
         "Optimization",

@@ -107,6 +107,10 @@ def _read_ply_vertices(path: Path) -> np.ndarray:
     return np.stack(cols, 1).astype(np.float64)
 
 
+#: the particle files load_particles reads
+PARTICLE_SUFFIXES = (".npz", ".ply")
+
+
 def load_particles(path: str | Path) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Positions [N, 3] (m) and, if the file has them, volumes [N] (m^3) from an .npz
     ('positions' or 'x', optional 'volume') or a .ply (vertex x, y, z)."""
@@ -125,7 +129,7 @@ def load_particles(path: str | Path) -> tuple[torch.Tensor, torch.Tensor | None]
     elif path.suffix.lower() == ".ply":
         x = _read_ply_vertices(path)
     else:
-        raise InputError(f"{path}: particle files must be .npz or .ply")
+        raise InputError(f"{path}: particle files must be {' or '.join(PARTICLE_SUFFIXES)}")
     if x.ndim != 2 or x.shape[1] != 3:
         raise InputError(f"{path}: positions must have shape [N, 3], got {list(x.shape)}")
     if x.shape[0] == 0:

@@ -89,20 +89,16 @@ def simulate_config(
     after frame k. First log the substeps and the predicted time, and refuse
     (SubstepLimitError) a run needing more substeps per frame than ``max_substeps`` (default
     ``simulation.max_substeps``). A run that breaks the CFL limit is run again at twice the
-    substeps, as the optimiser does, and is an error (SimulationError) at the limit;
-    ``strict_cfl=False`` only warns."""
+    substeps, as the optimiser does, and is an error (SimulationError) at the limit or with a
+    fixed ``simulation.substep_dt``; ``strict_cfl=False`` only warns."""
     from clflow.mpm import SimulationError
     from clflow.pipeline.preflight import describe, plan_run
 
     prepared = prepared or prepare(cfg)
     params, density = material_values(cfg, overrides)
     max_substeps = cfg.simulation.max_substeps if max_substeps is None else max_substeps
-    log.info(
-        "%s",
-        describe(
-            plan_run(cfg, prepared.setup, params, density, max_substeps=max_substeps), "simulation", gradient=False
-        ),
-    )
+    plan = plan_run(cfg, prepared.setup, params, density, min_substeps=min_substeps, max_substeps=max_substeps)
+    log.info("%s", describe(plan, "simulation", gradient=False))
     while True:
         sim = build_simulator(
             cfg, prepared.setup, params, density, min_substeps=min_substeps, max_substeps=max_substeps
@@ -111,9 +107,17 @@ def simulate_config(
             traj = sim.run(cfg.simulation.frames, on_frame, strict_cfl=strict_cfl)
             break
         except SimulationError as exc:
-            if "CFL" not in str(exc) or 2 * sim.substeps > max_substeps:
-                hint = f" (the limit is {max_substeps} substeps per frame: --max-substeps)" if "CFL" in str(exc) else ""
-                raise SimulationError(f"{exc}{hint}") from None
+            if "CFL" not in str(exc):
+                raise
+            dt = cfg.simulation.substep_dt
+            if dt is not None:  # a retry would run the same substeps again
+                raise SimulationError(
+                    f"{exc} (simulation.substep_dt = {dt:.3g} s is fixed: a shorter one, or auto)"
+                ) from None
+            if 2 * sim.substeps > max_substeps:
+                raise SimulationError(
+                    f"{exc} (the limit is {max_substeps} substeps per frame: --max-substeps)"
+                ) from None
             log.info("%s: simulating again at %d substeps per frame", exc, 2 * sim.substeps)
             min_substeps = 2 * sim.substeps
     return SimulationResult(prepared, params, density, traj.x, traj.F, traj.clamped, sim.substeps)

@@ -29,9 +29,14 @@ def resolve_material(cfg: SceneConfig) -> SceneConfig:
 
         result = load_query_result(mat.query_result)
     else:
+        from clflow.query import ModelConfig
         from clflow.query.backends import query_material
 
-        result = query_material(mat.query_image, prompt=mat.query_prompt, backend=mat.query_backend)
+        asked_by = f"{cfg.source}: material.query.backend: openai"  # the config has no --llm-url and --model
+        model_config = ModelConfig.resolve(asked_by=asked_by) if mat.query_backend == "openai" else None
+        result = query_material(
+            mat.query_image, prompt=mat.query_prompt, backend=mat.query_backend, model_config=model_config
+        )
     for warning in result.warnings:
         log.warning("material query: %s", warning)
     cfg.output.mkdir(parents=True, exist_ok=True)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +25,8 @@ import torch
 
 from clflow.errors import InputError
 from clflow.limits import format_duration
-from clflow.pipeline.simulation import SubstepLimitError, build_simulator, substep_limit_message
+from clflow.mpm import StabilityWarning
+from clflow.pipeline.simulation import SubstepLimitError, build_simulator, substep_limit_message, unstable_start
 from clflow.scene.config import SceneConfig
 
 log = logging.getLogger(__name__)
@@ -85,9 +87,11 @@ def plan_run(
 ) -> RunPlan:
     """The substeps of a run of ``params`` and the seconds one substep takes (two substeps
     timed on a throwaway simulator); SubstepLimitError (the numbers and the ways out) beyond
-    ``max_substeps``. ``optimizing``: also refuse a fixed ``simulation.substep_dt`` above the
-    stable step of ``params`` (the optimiser would reject every such run)."""
-    sim = build_simulator(cfg, setup, params, density, dtype=dtype, min_substeps=min_substeps, velocity=velocity)
+    ``max_substeps``, InputError for a fixed ``simulation.substep_dt`` above the stable step of
+    ``params`` (``optimizing``: the message says the optimiser would reject every such run)."""
+    with warnings.catch_warnings():  # an unstable fixed step is refused below, with the config key
+        warnings.simplefilter("ignore", StabilityWarning)
+        sim = build_simulator(cfg, setup, params, density, dtype=dtype, min_substeps=min_substeps, velocity=velocity)
     stable = sim.limit_reason(sim.state.v)
     limit = stable if cfg.simulation.substep_dt is None else f"simulation.substep_dt; stable: {stable}"
     if max_substeps is not None and sim.substeps > max_substeps:
@@ -97,16 +101,14 @@ def plan_run(
         sim.step()
         sim.device.finish()  # a substep only enqueues its kernels
         raise SubstepLimitError(
-            substep_limit_message(
-                cfg, sim.substeps, sim.dt, limit, max_substeps, time.perf_counter() - start, optimizing
-            )
+            substep_limit_message(cfg, sim.substeps, sim.dt, limit, max_substeps, time.perf_counter() - start)
         )
-    needed = sim.stable_substeps()
-    if optimizing and sim.substeps < needed:
+    unstable = unstable_start(sim)  # only a fixed substep_dt can be
+    if unstable:
+        why = "the optimiser rejects unstable runs" if optimizing else "the run would blow up or break the CFL limit"
         raise InputError(
-            f"{cfg.source}: simulation.substep_dt = {cfg.simulation.substep_dt:.3g} s is above the "
-            f"stable step {sim.frame_dt / needed:.3g} s of the starting parameters ({stable}); the "
-            f"optimiser rejects unstable runs: use substep_dt: auto or at most {sim.frame_dt / needed:.3g} s"
+            f"{cfg.source}: simulation.substep_dt = {cfg.simulation.substep_dt:.3g} s is {unstable}; {why}: "
+            f"use substep_dt: auto or a shorter one"
         )
     sim.step()  # the first substep may build kernels
     sim.device.finish()

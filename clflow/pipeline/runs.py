@@ -15,6 +15,7 @@ import dataclasses
 import logging
 import math
 import shutil
+import warnings
 from pathlib import Path
 from typing import Callable, ContextManager
 
@@ -60,6 +61,7 @@ def read_params_record(path: str | Path, cfg):
     the substeps per frame the optimiser's final evaluation needed (1 where the record,
     older or of another frame rate, does not say)."""
     from clflow.fileio import read_json
+    from clflow.materials import DENSITY, validate_params
 
     record = read_json(path, "params file", "expected the params.json clflow optimize writes")
     missing = [key for key in ("parameters", "density") if not isinstance(record, dict) or key not in record]
@@ -75,6 +77,8 @@ def read_params_record(path: str | Path, cfg):
         raise InputError(f"{path}: 'parameters' is not a table of numbers ({exc})") from None
     if record.get("material") != cfg.material.type:
         raise InputError(f"{path} is for {record.get('material')!r}, the config simulates {cfg.material.type!r}")
+    validate_params(cfg.material.type, record["parameters"], str(path))  # as the config's, before any work
+    DENSITY.check(record["density"], str(path))
     if not (
         isinstance(velocity, list)
         and len(velocity) == 3
@@ -87,6 +91,12 @@ def read_params_record(path: str | Path, cfg):
     if record.get("fps", cfg.simulation.fps) != cfg.simulation.fps:  # the same time step at another frame rate
         substeps = max(1, math.ceil(substeps * record["fps"] / cfg.simulation.fps - 1e-9))
     return dataclasses.replace(cfg, velocity=tuple(float(v) for v in velocity)), overrides, substeps
+
+
+def _frame_progress(advance) -> Callable[[int], None] | None:
+    """A simulator's ``on_frame(k)`` that moves the progress to frame k: a run again after a
+    CFL breach counts from its first frame, never past the total."""
+    return (lambda k: advance(f"frame {k}", to=k)) if advance else None
 
 
 def simulate_scene(
@@ -108,7 +118,7 @@ def simulate_scene(
     as .compressed.ply) and, unless ``preview`` is "none", the guidance view ("mp4" or "png"
     frames) into ``out_dir`` (default: the config's output/simulation), all or nothing.
     ``max_substeps`` overrides ``simulation.max_substeps``; ``progress(total, label)`` yields
-    ``advance(name)``, called once per frame simulated. Returns the folder."""
+    ``advance(name, to=k)``, called after frame k (a CFL retry starts again at 1). Returns the folder."""
     from clflow.fileio import atomic_dir
     from clflow.limits import check_memory, check_output
     from clflow.pipeline.forward import prepare, render_video, simulate_config
@@ -134,7 +144,7 @@ def simulate_scene(
             overrides,
             prepared,
             max_substeps=max_substeps,
-            on_frame=(lambda k: advance(f"frame {k}")) if advance else None,
+            on_frame=_frame_progress(advance),
             min_substeps=min_substeps,
         )
     echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
@@ -189,6 +199,8 @@ def _particles_of(run: ParticleRun, dx: float):
 
     if run.particles:
         x, volume = load_particles(run.particles)
+        if volume is not None and run.particle_volume is not None:
+            raise InputError(f"{run.particles} gives each particle's 'volume': drop --particle-volume")
         if volume is None:
             volume = run.particle_volume if run.particle_volume is not None else (dx / 2) ** 3
             log.info("particle volume %.3g m^3 per particle (no 'volume' in %s)", volume, run.particles)
@@ -220,7 +232,7 @@ def _run_with_cfl_retries(sim, simulator: Callable, frames: int, advance, chosen
 
     while True:
         try:
-            return sim.run(frames, (lambda k: advance(f"frame {k}")) if advance else None, strict_cfl=True)
+            return sim.run(frames, _frame_progress(advance), strict_cfl=True)
         except SimulationError as exc:
             if "CFL" not in str(exc) or chosen or 2 * sim.substeps > limit:
                 way_out = "more --substeps" if chosen else f"--max-substeps above {limit}"
@@ -247,9 +259,10 @@ def simulate_particles(
     import torch
 
     from clflow.fileio import atomic_dir
-    from clflow.mpm import Grid, MaterialSpec, Simulator
+    from clflow.mpm import Grid, MaterialSpec, Simulator, StabilityWarning
     from clflow.mpm.preview import PREVIEW_SIZE, write_preview
     from clflow.mpm.substep import check_device, check_grid_memory
+    from clflow.pipeline.simulation import unstable_start
     from clflow.runtime import get_device
     from clflow.scene.config import DEFAULT_MAX_SUBSTEPS
 
@@ -278,7 +291,15 @@ def simulate_particles(
             device=device,
         )
 
-    sim = simulator(run.substeps)
+    with warnings.catch_warnings():  # an unstable --substeps is refused below, with the option's name
+        warnings.simplefilter("ignore", StabilityWarning)
+        sim = simulator(run.substeps)
+    unstable = run.substeps is not None and unstable_start(sim)
+    if unstable:
+        raise InputError(
+            f"--substeps {run.substeps} (dt = {sim.dt:.3g} s) is {unstable}; the run would blow up or break the "
+            f"CFL limit: use more --substeps, or leave the option out to take the stable count"
+        )
     out, frames = Path(out_dir), run.frames
     _check_particle_outputs(out, frames, sim.n, dtype.itemsize, preview, max_output_gb)
     echo(
@@ -423,6 +444,7 @@ def _optimize_config(
     from clflow.limits import check_output
     from clflow.mpm.substep import check_device
     from clflow.pipeline.fit import resampled_guidance
+    from clflow.pipeline.fit.state import check_resume
     from clflow.runtime import get_device
 
     check_device(get_device(), torch.float32, differentiable=True)  # before any work
@@ -438,9 +460,13 @@ def _optimize_config(
         )
     if max_substeps is not None:
         cfg = dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, max_substeps=max_substeps))
+    generated = getattr(cfg, "generate", None) is not None  # video: {generate: ...}, made in the run
     for video in [cfg.video, *(view.video for view in cfg.more_views)]:
-        if video is not None:  # an unreadable, short or gapped video is found before the scene and the kernels
+        if video is not None or not generated:  # none, unreadable, short or gapped: before the scene and kernels
             resampled_guidance(cfg, video, cfg.simulation.frames)
+    rewritten = cfg.material.type == "query" or cfg.optimize.materials or generated  # by the run's first steps
+    if resume and not rewritten and (cfg.output / "checkpoint.json").exists():
+        check_resume(cfg.output / "checkpoint.json", cfg)  # a changed --set or video: before the scene is loaded
     created = not cfg.output.exists()
     if not resume:
         earlier = sorted({entry for pattern in RUN_ENTRIES for entry in cfg.output.glob(pattern)})

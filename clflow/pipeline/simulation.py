@@ -77,19 +77,18 @@ def substep_limit_message(
     limit: str,
     max_substeps: int,
     seconds_per_substep: float | None = None,
-    optimizing: bool = False,
 ) -> str:
+    """Why a run of ``substeps`` per frame is refused, and the ways out (a fixed substep beyond
+    the stable one is none: plan_run refuses it)."""
     cost = ""
     if seconds_per_substep:
         frame = substeps * seconds_per_substep
         cost = f", about {frame:.3g} s per frame"
-    # a fixed substep beyond the stable one is no way out for the optimiser: it rejects such runs
-    fixed = "" if optimizing else ("a fixed simulation.substep_dt (beyond the stable step the run may blow up), ")
     return (
         f"{cfg.source}: the simulation needs {substeps} substeps per frame (dt = {dt:.3g} s, limited by "
         f"{limit}{cost}), beyond the limit of {max_substeps}; ways out: a softer proxy material (a lower "
         f"youngs_modulus or bulk_modulus, poissons_ratio <= 0.45), a coarser grid (a smaller "
-        f"simulation.grid_resolution: dt grows with the cell size), {fixed}or raise the limit "
+        f"simulation.grid_resolution: dt grows with the cell size), or raise the limit "
         f"(--max-substeps N or simulation.max_substeps)"
     )
 
@@ -99,10 +98,20 @@ def check_substeps(cfg: SceneConfig, sim, max_substeps: int | None) -> None:
     optimiser's check of each iteration: build_simulator(max_substeps=...))."""
     if max_substeps is not None and sim.substeps > max_substeps:
         raise SubstepLimitError(
-            substep_limit_message(
-                cfg, sim.substeps, sim.dt, sim.limit_reason(sim.state.v), max_substeps, optimizing=True
-            )
+            substep_limit_message(cfg, sim.substeps, sim.dt, sim.limit_reason(sim.state.v), max_substeps)
         )
+
+
+def unstable_start(sim) -> str | None:
+    """Why the substep of ``sim`` (a fixed one) is too long for its start: the stable step and
+    what limits it; None when it is not (a run of such a step blows up or breaks the CFL limit)."""
+    needed = sim.stable_substeps()
+    if sim.substeps >= needed:
+        return None
+    return (
+        f"above the stable step {sim.frame_dt / needed:.3g} s of the starting parameters "
+        f"({sim.limit_reason(sim.state.v)}: {needed} substeps per frame)"
+    )
 
 
 @dataclass

@@ -86,19 +86,30 @@ class ModelConfig:
             raise InputError(f"image format {self.image_format!r} is not 'png' or 'jpeg'")
 
     @classmethod
-    def resolve(cls, url: str | None = None, model: str | None = None, **options) -> "ModelConfig":
+    def resolve(
+        cls, url: str | None = None, model: str | None = None, *, asked_by: str | None = None, **options
+    ) -> "ModelConfig":
         """A config from arguments, else environment variables: the endpoint from
         ``--llm-url`` / $CLFLOW_LLM_URL / $OPENAI_BASE_URL (a base URL such as
         http://localhost:11434/v1 gets /chat/completions appended), the model from
         ``--model`` / $CLFLOW_LLM_MODEL, the key from $CLFLOW_LLM_API_KEY / $OPENAI_API_KEY.
-        The key may be absent only for a server on this machine (loopback address)."""
-        url = url or _env(URL_ENV)
+        The key may be absent only for a server on this machine (loopback address).
+        ``asked_by``: the config key that chose the backend, for a command without the options
+        (the errors then name it and the environment variables only)."""
+
+        def missing(what: str, option: str, env: str) -> InputError:
+            way = f"set ${env}" if asked_by else f"pass {option} or set ${env}"
+            return InputError(f"{asked_by or 'the openai backend'} needs {what}: {way}")
+
+        given_by = "--llm-url"
         if not url:
-            raise InputError(f"the openai backend needs an endpoint: pass --llm-url or set ${URL_ENV[0]}")
+            given_by, url = next(((f"${n}", os.environ[n]) for n in URL_ENV if os.environ.get(n)), (None, None))
+        if not url:
+            raise missing("an endpoint", "--llm-url", URL_ENV[0])
         model = model or _env(MODEL_ENV)
         if not model:
-            raise InputError(f"the openai backend needs a model name: pass --model or set ${MODEL_ENV[0]}")
-        endpoint = chat_endpoint(url)
+            raise missing("a model name", "--model", MODEL_ENV[0])
+        endpoint = chat_endpoint(url, given_by)
         key = _env(KEY_ENV)
         if not key and not is_loopback(endpoint):
             raise InputError(
@@ -150,11 +161,18 @@ def _env(names: tuple[str, ...]) -> str | None:
     return next((os.environ[n] for n in names if os.environ.get(n)), None)
 
 
-def chat_endpoint(url: str) -> str:
-    """The chat-completions URL of ``url`` (an endpoint or an OpenAI-style base URL)."""
+def chat_endpoint(url: str, given_by: str = "--llm-url") -> str:
+    """The chat-completions URL of ``url`` (an endpoint or an OpenAI-style base URL;
+    ``given_by``: the option or environment variable that gave it, for the errors)."""
     parts = urllib.parse.urlsplit(url.strip())
     if parts.scheme not in ("http", "https") or not parts.hostname:
-        raise InputError(f"--llm-url {redact_url(url)!r} is not an http(s) URL such as http://localhost:11434/v1")
+        raise InputError(f"{given_by} {redact_url(url)!r} is not an http(s) URL such as http://localhost:11434/v1")
+    try:
+        port = parts.port  # None when not given
+    except ValueError:  # out of range or not a number: a wrong URL, not a server that refuses the connection
+        port = 0
+    if port == 0:
+        raise InputError(f"{given_by} {redact_url(url)!r}: the port must be a number from 1 to 65535")
     path = parts.path.rstrip("/")
     if not path.endswith("/chat/completions"):
         path += "/chat/completions"
@@ -424,7 +442,6 @@ def query_model(
                 config,
             )
         )
-        log.warning(warnings[-1])
         structured = False
         raw = _post(config, request_body(config, text, image, structured))
     content = _redact(_message_text(raw, config), config)
@@ -433,9 +450,7 @@ def query_model(
         warnings.append("text around the JSON answer was ignored")
     fields = interpret_answer(answer, kb)
     matched = cross_check(fields, kb)
-    for warning in fields["warnings"]:
-        log.warning("%s", warning)
-    fields["warnings"] = warnings + fields["warnings"]
+    fields["warnings"] = warnings + fields["warnings"]  # the caller shows them, once
     return QueryResult(
         **fields,
         backend="openai",

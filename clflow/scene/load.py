@@ -77,11 +77,9 @@ def part_mask(part_file, means_scene: torch.Tensor, tolerance: float | None = No
     from scipy.spatial import cKDTree
 
     from clflow.splat.compressed_ply import is_compressed_ply, position_error
-    from clflow.splat.ply import load_ply
+    from clflow.splat.ply import load_ply, require_gaussians
 
-    part = load_ply(part_file).means.double().numpy()
-    if not len(part):
-        raise InputError(f"{part_file}: holds no Gaussians")
+    part = require_gaussians(load_ply(part_file), part_file).means.double().numpy()
     scene = means_scene.double().numpy()
     if tolerance is None:
         tolerance = PART_TOLERANCE * float(np.linalg.norm(scene.max(0) - scene.min(0)))
@@ -124,9 +122,9 @@ def check_object_sizes(cfg: SceneConfig, means: torch.Tensor, scales: torch.Tens
 def load_scene_gaussians(cfg: SceneConfig, dtype: torch.dtype) -> tuple[Gaussians, torch.Tensor]:
     """All Gaussians of the splat file in the simulation frame (sh_rotations R_up), and the
     object mask [N]."""
-    from clflow.splat.ply import load_ply
+    from clflow.splat.ply import load_ply, require_gaussians
 
-    g = load_ply(cfg.splats)
+    g = require_gaussians(load_ply(cfg.splats), cfg.splats)  # else "object.select selects none of them"
     mask = select_object(cfg, g.means.double())
     check_object_sizes(cfg, g.means.double(), g.scales.double(), mask)
     return g.transformed(up_rotation(cfg.up), cfg.scale).to(dtype), mask

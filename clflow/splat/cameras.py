@@ -176,16 +176,21 @@ def look_at(
     width: int,
     height: int,
     name: str = "look_at",
+    keys: tuple[str, str, str] = ("eye", "target", "up"),
 ) -> Camera:
-    """A camera at ``eye`` (m) looking at ``target`` (m) with world direction ``up`` upward in the image."""
-    eye, target, up = (_vector(v, what) for v, what in ((eye, "eye"), (target, "target"), (up, "up")))
+    """A camera at ``eye`` (m) looking at ``target`` (m) with world direction ``up`` upward in
+    the image; ``keys``: how the errors name the three (the options or config keys that gave them)."""
+    eye, target, up = (_vector(v, what) for v, what in zip((eye, target, up), keys))
     forward = target - eye
     if forward.norm() == 0:
-        raise InputError(f"look_at: eye and target are the same point {eye.tolist()}")
+        raise InputError(f"{keys[0]} and {keys[1]} are the same point {eye.tolist()}")
     forward = forward / forward.norm()
     right = torch.linalg.cross(forward, up)
     if right.norm() < 1e-9 * up.norm() or up.norm() == 0:
-        raise InputError(f"look_at: up {up.tolist()} is zero or parallel to the viewing direction {forward.tolist()}")
+        raise InputError(
+            f"{keys[2]} {up.tolist()} is zero or parallel to the viewing direction {forward.tolist()} "
+            f"({keys[0]} to {keys[1]})"
+        )
     right = right / right.norm()
     down = torch.linalg.cross(forward, right)
     camtoworld = torch.eye(4, dtype=torch.float64)
@@ -454,16 +459,15 @@ def _image_size(folder: Path, frame: dict, where: str) -> tuple[int, int]:
 
     file_path = frame.get("file_path")
     if not isinstance(file_path, str):
-        raise InputError(f"{where}: no image size ('w', 'h') and no 'file_path' to read it from; pass width and height")
+        raise InputError(f"{where}: no image size ('w', 'h') and no 'file_path' to read it from; give 'w' and 'h'")
     candidates = [folder / file_path, folder / (file_path + ".png")]
     for candidate in candidates:
         if candidate.is_file():
             image = cv2.imread(str(candidate), cv2.IMREAD_UNCHANGED)
-            if image is not None:
-                return int(image.shape[1]), int(image.shape[0])
-    raise InputError(
-        f"{where}: no image size ('w', 'h') and no readable image at {candidates[0]}[.png]; pass width and height"
-    )
+            if image is None:
+                raise InputError(f"{where}: {candidate} is not a readable image (no 'w', 'h': its size is needed)")
+            return int(image.shape[1]), int(image.shape[0])
+    raise InputError(f"{where}: image {candidates[0]}[.png] not found (no 'w', 'h': its size is needed)")
 
 
 def _matrix(value: Any, shape: tuple[int, ...], what: str) -> torch.Tensor:

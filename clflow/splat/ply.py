@@ -39,6 +39,14 @@ def gaussian_property_names(sh_degree: int, feature_names: tuple[str, ...] = ())
     )
 
 
+def require_gaussians(gaussians: Gaussians, path: str | os.PathLike) -> Gaussians:
+    """``gaussians`` read from ``path``; InputError when there are none (an empty PLY: nothing
+    to render, select or simulate)."""
+    if len(gaussians) == 0:
+        raise InputError(f"{path}: holds no Gaussians")
+    return gaussians
+
+
 def load_ply(path: str | os.PathLike, *, point_scale: float | None = None, point_opacity: float = 0.1) -> Gaussians:
     """Read Gaussians from a 3DGS PLY file, a compressed one (SuperSplat / PlayCanvas,
     :mod:`clflow.splat.compressed_ply`), or a plain ``x y z [red green blue]`` point cloud.

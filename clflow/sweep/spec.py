@@ -70,20 +70,10 @@ class Spec:
 
 def load_spec(path: str | os.PathLike) -> Spec:
     """Read and fully validate a sweep SPEC; any problem is one InputError line."""
-    from clflow.fileio import read_text
-    from clflow.scene.config.files import DuplicateKeyError, read_yaml
+    from clflow.scene.config.files import read_data_file
 
     path = Path(path)
-    text = read_text(path, "sweep spec")
-    import yaml
-
-    try:
-        data = read_yaml(text)
-    except yaml.YAMLError as exc:
-        raise InputError(f"{path}: not valid YAML: {' '.join(str(exc).split())}") from None
-    except DuplicateKeyError as exc:
-        raise InputError(f"{path}: {exc}: duplicate key (each key may appear only once)") from None
-    return parse_spec(data, path)
+    return parse_spec(read_data_file(path, "sweep spec"), path)
 
 
 def parse_spec(data: Any, path: Path) -> Spec:

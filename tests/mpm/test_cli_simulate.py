@@ -6,7 +6,8 @@ from click.testing import CliRunner
 
 from clflow_cli.main import cli
 
-FAST = ["--grid", "16", "--frames", "2", "--size", "0.3", "-p", "youngs_modulus=1e4"]
+GRID = ["--grid", "16", "--frames", "2", "-p", "youngs_modulus=1e4"]
+FAST = [*GRID, "--size", "0.3"]  # a built-in shape's (a particle file's --size is refused)
 
 
 def run(args):
@@ -28,7 +29,7 @@ def test_builtin_shape_writes_positions_and_png_preview(tmp_path, shape):
 def test_npz_particles_and_mp4_preview(tmp_path):
     x = 0.4 + 0.2 * np.random.default_rng(0).random((100, 3))
     np.savez(tmp_path / "in.npz", positions=x, volume=np.full(100, 1e-5))
-    res = run([str(tmp_path / "in.npz"), *FAST, "-m", "plasticine", "-o", str(tmp_path / "out")])
+    res = run([str(tmp_path / "in.npz"), *GRID, "-m", "plasticine", "-o", str(tmp_path / "out")])
     assert res.exit_code == 0, res.output
     assert np.load(tmp_path / "out" / "positions.npz")["x"].shape == (3, 100, 3)
     assert (tmp_path / "out" / "preview.mp4").stat().st_size > 0
@@ -40,7 +41,7 @@ def test_ply_particles(tmp_path):
         "ply\nformat ascii 1.0\nelement vertex 50\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
     )
     (tmp_path / "in.ply").write_text(header + "\n".join(" ".join(f"{c:.6f}" for c in p) for p in x) + "\n")
-    res = run([str(tmp_path / "in.ply"), *FAST, "--preview", "none", "-o", str(tmp_path / "out")])
+    res = run([str(tmp_path / "in.ply"), *GRID, "--preview", "none", "-o", str(tmp_path / "out")])
     assert res.exit_code == 0, res.output
     assert np.allclose(np.load(tmp_path / "out" / "positions.npz")["x"][0], x, atol=1e-6)
 
@@ -56,7 +57,7 @@ def test_ply_particles(tmp_path):
     ],
 )
 def test_bad_input_is_one_clear_line(tmp_path, args, message):
-    res = CliRunner().invoke(cli, ["simulate", *FAST, "--preview", "none", "-o", str(tmp_path), *args])
+    res = CliRunner().invoke(cli, ["simulate", *GRID, "--preview", "none", "-o", str(tmp_path), *args])
     assert res.exit_code != 0
     assert message in res.output
     assert not (tmp_path / "positions.npz").exists()

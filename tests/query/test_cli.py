@@ -139,3 +139,28 @@ def test_benchmark_runs():
     res = CliRunner().invoke(cli, ["bench", "query", "--repeat", "1"], catch_exceptions=False)
     assert res.exit_code == 0
     assert res.output.startswith("offline lookup first") and "image jpeg encode" in res.output
+
+
+def test_each_warning_of_a_model_answer_is_shown_once(photo, server, tmp_path):
+    """The unit conversion was logged by the query and printed again in the summary."""
+    import subprocess
+    import sys
+
+    server.play(
+        chat(
+            {
+                "object": "jar of honey",
+                "material": "newtonian",
+                "density": {"value": 1.42, "unit": "g/cm^3"},
+                "parameters": {"viscosity": {"value": 8, "unit": "Pa*s"}, "bulk_modulus": {"value": 1e5, "unit": "Pa"}},
+                "confidence": 0.7,
+            }
+        )
+    )
+    res = subprocess.run(
+        [sys.executable, "-m", "clflow_cli", "query", str(photo[0]), "--backend", "openai",
+         "--llm-url", server.base_url, "--model", "llava", "-o", str(tmp_path / "q.json")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert (res.stdout + res.stderr).count("converted 1.42 g/cm^3 to 1420 kg/m^3") == 1, res.stdout + res.stderr

@@ -220,7 +220,11 @@ def test_bad_cameras_json(tmp_path, content, message):
         (dict(w=4, h=4, frames=[dict(transform_matrix=np.eye(4).tolist())]), "no intrinsics"),
         (
             dict(camera_angle_x=1, frames=[dict(file_path="gone", transform_matrix=np.eye(4).tolist())]),
-            "no readable image",
+            r"image .*gone\[.png\] not found \(no 'w', 'h': its size is needed\)$",  # not "pass width and height"
+        ),
+        (
+            dict(camera_angle_x=1, frames=[dict(file_path="transforms.json", transform_matrix=np.eye(4).tolist())]),
+            r"transforms.json is not a readable image",
         ),
         (dict(w=4, h=4, fl_x=2, frames=[dict(transform_matrix=(np.eye(4) * 1.1).tolist())]), "last row"),
         (dict(w=4, h=4, fl_x=2, frames=[dict(transform_matrix=np.eye(3).tolist())]), "expected shape \\[4, 4\\]"),

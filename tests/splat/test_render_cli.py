@@ -323,7 +323,7 @@ def test_cli_bad_files(tmp_path, scene):
     result = run("render", scene, "--cameras", tmp_path / "cameras.json", "--camera", "nope")
     assert result.exit_code == 1 and "no camera named 'nope'" in result.output
     result = run("render", scene, "--cameras", tmp_path / "cameras.json", "--orbit", 3)
-    assert result.exit_code == 1 and "do not combine" in result.output
+    assert result.exit_code == 2 and "--orbit make new views, --cameras/--transforms give theirs" in result.output
 
 
 def test_cli_renders_a_plain_point_cloud(tmp_path):

@@ -126,6 +126,31 @@ def config_digests(cfg: SceneConfig, by_path: bool = False) -> dict[str, str]:
     }
 
 
+def check_same_config(checkpoint: Path, saved, cfg: SceneConfig) -> None:
+    """InputError when the config digests ``saved`` in ``checkpoint`` (None: an older
+    checkpoint, which has none) are not those of ``cfg``: a resumed run goes on with the config
+    it was started with."""
+    if not isinstance(saved, dict):
+        return
+    digests = config_digests(cfg)
+    if saved != digests and saved != config_digests(cfg, by_path=True):
+        changed = sorted(k for k in saved.keys() | digests.keys() if saved.get(k) != digests.get(k))
+        raise InputError(
+            f"cannot resume from {checkpoint}: the config changed since it was saved "
+            f"({', '.join(changed)}); give another -o/--out, or delete the checkpoint to start over"
+        )
+
+
+def check_resume(checkpoint: Path, cfg: SceneConfig) -> None:
+    """:func:`check_same_config` of a checkpoint file, before any work (one that cannot be
+    read is the optimiser's to refuse when it loads it)."""
+    try:
+        saved = json.loads(checkpoint.read_text()).get("config_digests")
+    except (OSError, ValueError, AttributeError):
+        return
+    check_same_config(checkpoint, saved, cfg)
+
+
 class Checkpoints:
     """The optimiser's state: the initial one, and the checkpoint it is saved in after every iteration
     and read from on --resume (needs cfg, params, variables, checkpoint, restore_calibration)."""
@@ -146,14 +171,7 @@ class Checkpoints:
             raise InputError(f"cannot resume from {self.checkpoint}: {exc}") from None
         if set(state.z) != set(self.variables):
             raise InputError(f"{self.checkpoint} optimises {sorted(state.z)}, the config {sorted(self.variables)}")
-        saved = data.get("config_digests")  # absent in checkpoints of older versions
-        digests = config_digests(self.cfg)
-        if isinstance(saved, dict) and saved != digests and saved != config_digests(self.cfg, by_path=True):
-            changed = sorted(k for k in saved.keys() | digests.keys() if saved.get(k) != digests.get(k))
-            raise InputError(
-                f"cannot resume from {self.checkpoint}: the config changed since it was saved "
-                f"({', '.join(changed)}); give another -o/--out, or delete the checkpoint to start over"
-            )
+        check_same_config(self.checkpoint, data.get("config_digests"), self.cfg)
         if state.calibrated_at is not None:
             self.restore_calibration(state)
         return state

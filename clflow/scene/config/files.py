@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 from clflow.errors import InputError
 from clflow.scene.config.parse import parse_config
@@ -80,31 +80,44 @@ def read_yaml(text: str) -> Any:
     return yaml.load(text, Loader=StrictLoader)
 
 
+def read_data_file(path: str | Path, what: str) -> Any:
+    """The parsed JSON (a .json file) or YAML of the user's ``what`` file at ``path`` (None
+    when it holds nothing); InputError, one line naming the file, where and what is wrong,
+    when it cannot be read, does not parse or gives a key twice."""
+    import yaml
+
+    from clflow.fileio import read_text
+
+    path = Path(path)
+    text = read_text(path, what)
+    try:
+        return read_json(text) if path.suffix.lower() == ".json" else read_yaml(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path}: not valid JSON: line {exc.lineno}, column {exc.colno}: {exc.msg}") from None
+    except yaml.YAMLError as exc:
+        raise InputError(f"{path}: not valid YAML: {_yaml_problem(exc)}") from None
+    except DuplicateKeyError as exc:
+        raise InputError(f"{path}: {exc}: duplicate key (each key may appear only once)") from None
+
+
+def _yaml_problem(exc: Exception) -> str:
+    """A YAML parser's error as one line: where (line, column) and what."""
+    mark, problem = getattr(exc, "problem_mark", None), getattr(exc, "problem", None)
+    if mark is None or not problem:
+        return " ".join(str(exc).split())
+    return f"line {mark.line + 1}, column {mark.column + 1}: {problem}"
+
+
 def load_config(path: str | Path, overrides: Sequence[str] = ()) -> SceneConfig:
     """Read and validate a YAML (.yaml/.yml) or JSON (.json) scene config.
 
     ``overrides``: ``key.sub=value`` strings (the CLI's ``--set``), each value read as YAML
     (``2e4``, ``[0, 1, 0]``, ``auto``), set over the file's before the whole is validated.
     """
-    from clflow.fileio import read_text
-
     path = Path(path)
-    text = read_text(path, "config")
-    loader: Callable[[str], Any]
-    if path.suffix.lower() == ".json":
-        loader = read_json
-        errors: tuple[type[Exception], ...] = (json.JSONDecodeError,)
-    else:
-        import yaml
-
-        loader, errors = read_yaml, (yaml.YAMLError,)
-    try:
-        data = loader(text)
-    except errors as exc:
-        raise InputError(f"{path}: not valid {'JSON' if path.suffix.lower() == '.json' else 'YAML'}: {exc}") from None
-    except DuplicateKeyError as exc:
-        raise InputError(f"{path}: {exc}: duplicate key (each key may appear only once)") from None
-    data = {} if data is None else data
+    data = read_data_file(path, "config")
+    if data is None or data == {}:  # before the --set keys make it look like a config lacking keys
+        raise InputError(f"{path}: the config file is empty")
     keys = {}
     for item in overrides:
         keys[_override(data, item)] = item

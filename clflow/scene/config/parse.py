@@ -126,7 +126,7 @@ def _material(r: Reader, data: Any) -> MaterialConfig:
     except InputError as exc:
         raise r.fail("material", str(exc)) from None
     density = r.number(body, "density", "material", material.default_density, low=0.0, strict_low=True)
-    DENSITY.check(density)
+    DENSITY.check(density, f"{r.source}: material.density")
     model = None
     if body.get("model") is not None:
         if material.name not in MATERIAL_MODELS:
@@ -217,6 +217,9 @@ def _simulation(r: Reader, data: Any) -> SimulationSettings:
     )
 
 
+CAMERA_UP = (0.0, 1.0, 0.0)  # camera.up by default
+
+
 def _camera(r: Reader, data: Any, p: str = "camera") -> CameraConfig:
     body = r.section(
         data, p, ("file", "colmap", "image", "index", "position", "look_at", "up", "fov_y_deg", "width", "height")
@@ -242,6 +245,8 @@ def _camera(r: Reader, data: Any, p: str = "camera") -> CameraConfig:
     image = body.get("image")
     if image is not None and (not isinstance(image, str) or not image):
         raise r.fail(f"{p}.image", f"must be an image name of the COLMAP model, got {image!r}")
+    if explicit:  # the camera's own checks (the same point, up along the view), naming the config's keys
+        _check_look_at(r, r.vec3(body, "position", p), r.vec3(body, "look_at", p), r.vec3(body, "up", p, CAMERA_UP), p)
     return CameraConfig(
         cameras_file=r.file(body, "file", p, required=False),
         index=r.integer(body, "index", p, 0),
@@ -249,11 +254,21 @@ def _camera(r: Reader, data: Any, p: str = "camera") -> CameraConfig:
         image=image,
         position=r.vec3(body, "position", p) if explicit else None,
         look_at=r.vec3(body, "look_at", p) if explicit else None,
-        up=r.vec3(body, "up", p, (0.0, 1.0, 0.0)),
+        up=r.vec3(body, "up", p, CAMERA_UP),
         fov_y_deg=r.number(body, "fov_y_deg", p, 50.0, low=1.0, high=179.0),
         width=r.integer(body, "width", p, 512, low=8),
         height=r.integer(body, "height", p, 512, low=8),
     )
+
+
+def _check_look_at(r: Reader, position, look_at, up, p: str) -> None:
+    """The look-at camera's own checks of ``p``'s position, look_at and up, errors naming the keys."""
+    from clflow.splat.cameras import look_at as camera
+
+    try:
+        camera(position, look_at, up, fov_x=1.0, width=8, height=8, keys=(f"{p}.position", f"{p}.look_at", f"{p}.up"))
+    except InputError as exc:
+        raise r.fail("", str(exc)) from None
 
 
 def _views(r: Reader, top: dict) -> tuple[list[CameraConfig], list[Path | None]]:
