@@ -19,12 +19,12 @@ from clflow_datasets.synthetic import Resolution, SyntheticCase, make_case
 TINY = Resolution(object_detail=6, floor_side=8, image=48, grid=14, frames=3, iterations=2)
 
 
-@pytest.mark.parametrize("name", list(sysid.CASES))
 def main_table_rows(table: str) -> list[str]:
     """The rows of sysid.md's first table (the cases)."""
     return [line for line in table.split("\n\n")[0].splitlines() if line.startswith("|")]
 
 
+@pytest.mark.parametrize("name", list(sysid.CASES))
 def test_every_case_starts_from_a_valid_guess(name):
     sysid.check_case(name, sysid.CASES[name])  # e.g. the trophy's 10 degree friction angle (PAC-NeRF's start)
     assert set(sysid.PUBLISHED[name]) == set(sysid.METHODS)
@@ -333,3 +333,28 @@ def test_the_benchmark_searches_on_the_base_grid_and_refines_on_a_finer_one(tmp_
     assert coarse.particles.positions.shape[0] < fine.particles.positions.shape[0]  # each grid its own fill
     n = optimization.prepared.obj_rest.means.shape[0]  # the Gaussians come first in either: one render
     assert torch.equal(coarse.particles.positions[:n], fine.particles.positions[:n])
+
+
+@pytest.mark.slow
+def test_the_loss_scan_gives_the_loss_and_both_gradients_along_a_parameter(tmp_path, tiny_cases):
+    """scripts/loss_scan.py on a finished case: per value the loss at the final point's
+    calibration, the adjoint's dloss/dz and the optimiser's backward difference, which agree
+    where the loss is smooth, and the loss against the estimator's error at the value itself."""
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    landing = dataclasses.replace(TINY, frames=10)  # the torus lands at frame 6: E shows
+    sysid.evaluate(["torus"], tmp_path / "out", sysid.Settings(resolution=landing))
+    config, scan = tmp_path / "out" / "cases" / "torus" / "config.yaml", tmp_path / "scan.json"
+    cmd = [sys.executable, "scripts/loss_scan.py", str(config), "youngs_modulus", "1e4", "3e5", "--points", "3"]
+    res = subprocess.run([*cmd, "--json", str(scan)], cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    rows = json.loads(scan.read_text())["rows"]
+    assert [r["value"] for r in rows] == [1e4, 1.55e5, 3e5]
+    assert rows[0]["loss"] > rows[1]["loss"] > rows[2]["loss"] > 0  # towards the truth, 1e6
+    for row in rows:
+        assert row["self_consistent_loss"] > 0 and row["adjoint_dz"] < 0
+        assert abs(row["adjoint_dz"] - row["lm_backward_difference_dz"]) < 0.1 * abs(row["adjoint_dz"])
+    assert "scan_central_difference_dz" in rows[1]

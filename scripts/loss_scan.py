@@ -1,0 +1,89 @@
+"""Scan an identification's loss along one parameter, with the gradients the optimiser sees.
+
+For a finished `clflow eval sysid` case (or any `clflow optimize` folder's config): from its
+final point, each value of PARAM on the scan is run on the model's grid at the final point's
+substeps and gives
+  - loss: against the targets calibrated at the final point (what Levenberg-Marquardt
+    compares its trial steps with),
+  - self-consistent loss: against the estimator's error measured at the value itself (what
+    the search and the benchmark's "loss at truth" use), with flow.bias_correction,
+  - dloss/dz by the adjoint, and the backward difference of LM_STEP that the optimiser's
+    Jacobian takes, and the central difference across the scan's neighbours.
+
+    python scripts/loss_scan.py OUT/cases/trophy/config.yaml friction_angle 36 41 --points 21 --json scan.json
+
+Results also as JSON (--json). docs/pipeline.md records what the scans showed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("config", type=Path, help="the case's config.yaml (its optimisation finished)")
+    parser.add_argument("param", help="the parameter to scan, e.g. friction_angle")
+    parser.add_argument("low", type=float, help="first value (SI units; degrees for an angle)")
+    parser.add_argument("high", type=float, help="last value")
+    parser.add_argument("--points", type=int, default=11, help="values on the scan, evenly spaced (default 11)")
+    parser.add_argument("--no-self-consistent", action="store_true", help="skip the self-consistent loss")
+    parser.add_argument("--json", type=Path, help="write the scan here")
+    args = parser.parse_args(argv)
+
+    import numpy as np
+
+    from clflow.pipeline.fit import Optimization
+    from clflow.pipeline.fit.objective import LM_STEP
+    from clflow.scene.config import load_config
+
+    opt = Optimization(load_config(args.config))
+    state = opt.run(resume=True)
+    if args.param not in opt.params:
+        raise SystemExit(f"{args.param} is not optimised here; the parameters are {', '.join(opt.params)}")
+    encode = opt.params[args.param].encode
+    frames, substeps = opt.frames, state.substeps
+    print(f"final point {opt.values(state.z)} at {substeps} substeps per frame, loss {state.best['loss']:.5g}")
+    rows = []
+    for value in np.linspace(args.low, args.high, args.points):
+        started = time.perf_counter()
+        z = {**state.z, args.param: float(encode(float(value)))}
+        at = opt.evaluate(z, frames, min_substeps=substeps, variables=(args.param,))
+        nearby = opt.evaluate(
+            {**z, args.param: z[args.param] - LM_STEP}, frames, with_grad=False, min_substeps=at.substeps
+        )
+        row = {
+            "value": float(value),
+            "z": z[args.param],
+            "loss": at.loss,
+            "substeps": at.substeps,
+            "adjoint_dz": at.grads[args.param],
+            "lm_backward_difference_dz": (at.loss - nearby.loss) / LM_STEP,
+        }
+        if not args.no_self_consistent:
+            row["self_consistent_loss"] = opt.self_consistent_loss(at, frames)
+        row["seconds"] = time.perf_counter() - started
+        rows.append(row)
+        print(
+            f"{value:9.4g}  loss {row['loss']:.5g}"
+            + (f"  self-consistent {row['self_consistent_loss']:.5g}" if "self_consistent_loss" in row else "")
+            + f"  dL/dz adjoint {row['adjoint_dz']:+.4g}  LM difference {row['lm_backward_difference_dz']:+.4g}"
+            f"  ({row['substeps']} substeps, {row['seconds']:.0f} s)",
+            flush=True,
+        )
+    for before, row, after in zip(rows, rows[1:], rows[2:]):
+        row["scan_central_difference_dz"] = (after["loss"] - before["loss"]) / (after["z"] - before["z"])
+    record = {"config": str(args.config), "param": args.param, "final": opt.values(state.z), "rows": rows}
+    if args.json:
+        tmp = args.json.with_name(f".{args.json.name}.tmp")
+        tmp.write_text(json.dumps(record, indent=2) + "\n")
+        tmp.replace(args.json)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
