@@ -81,3 +81,19 @@ def test_bench_mpm_adjoint_runs_a_small_block_and_records_both_passes(tmp_path):
     results = json.loads(out.read_text())["results"]
     assert results["particles"] == 128 and results["forward"]["median_wall_s"] > 0
     assert results["backward_over_forward"] > 0 and "backward" in res.output
+
+
+def test_clflow_profile_records_every_kernel_of_any_command(tmp_path, device):
+    """`clflow --profile PATH COMMAND`: the table of device time per kernel at the end and the
+    summary as JSON (with the environment), whatever the command; here a small raster bench."""
+    path = tmp_path / "profile.json"
+    args = ["--profile", str(path), "bench", "raster", "-n", "300", "--size", "64", "--repeat", "1"]
+    res = CliRunner().invoke(cli, args)
+    assert res.exit_code == 0, res.output
+    assert "kernel profile:" in res.output
+    record = json.loads(path.read_text())
+    assert record["parameters"]["command"] and record["environment"]["device"]
+    kernels = {row["kernel"]: row for row in record["results"]["kernels"]}
+    assert {"project_forward", "reduce_slots"} <= set(kernels)  # the rasteriser's first and last
+    assert record["results"]["launches"] == sum(row["launches"] for row in kernels.values())
+    assert all(row["device_s"] > 0 for row in kernels.values())

@@ -323,7 +323,8 @@ class Simulator:
         release_times: [N] time (s) each particle is released (see layer_release_times).
         dtype: torch.float32 (default) or torch.float64.
         device: OpenCL device (default: clflow.runtime.get_device()).
-        p2g: "auto" (private grid copies on CPUs, atomics elsewhere), "private" or "atomic".
+        p2g: "auto" (the device's kernel plan: private grid copies on CPUs, the gather per
+            node on GPUs; $CLFLOW_P2G overrides), "private", "gather" or "atomic".
         flip: PIC/FLIP blend in [0, 1]: the share of each particle's velocity that keeps its
             own value plus the grid's change (FLIP), the rest taken from the grid (APIC).
             0 is plain APIC, whose numerical dissipation grows with the substeps per frame
