@@ -4,7 +4,7 @@ For a finished `clflow eval sysid` case (or any `clflow optimize` folder's confi
 final point, each value of PARAM on the scan is run on the model's grid at the final point's
 substeps and gives
   - loss: against the targets calibrated at the final point (what Levenberg-Marquardt
-    compares its trial steps with),
+    compares its trial steps with), or at --calibrate-at,
   - self-consistent loss: against the estimator's error measured at the value itself (what
     the search and the benchmark's "loss at truth" use), with flow.bias_correction,
   - dloss/dz by the adjoint, and the backward difference of LM_STEP that the optimiser's
@@ -18,8 +18,10 @@ Results also as JSON (--json). docs/pipeline.md records what the scans showed.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -32,6 +34,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("high", type=float, help="last value")
     parser.add_argument("--points", type=int, default=11, help="values on the scan, evenly spaced (default 11)")
     parser.add_argument("--no-self-consistent", action="store_true", help="skip the self-consistent loss")
+    parser.add_argument(
+        "--calibrate-at",
+        type=float,
+        metavar="VALUE",
+        help="measure the flow estimator's error at this value of PARAM first (default: keep the final point's)",
+    )
     parser.add_argument("--json", type=Path, help="write the scan here")
     args = parser.parse_args(argv)
 
@@ -48,6 +56,13 @@ def main(argv: list[str] | None = None) -> int:
     encode = opt.params[args.param].encode
     frames, substeps = opt.frames, state.substeps
     print(f"final point {opt.values(state.z)} at {substeps} substeps per frame, loss {state.best['loss']:.5g}")
+    if args.calibrate_at is not None and opt.corrects_bias:
+        # the run's own calibration file stays as the run left it: this one goes elsewhere
+        opt.estimator_error_file = Path(tempfile.mkdtemp(prefix="loss-scan-")) / "estimator_error.npz"
+        z = {**state.z, args.param: float(encode(args.calibrate_at))}
+        at = dataclasses.replace(state, z=z, calibrated_at=None)
+        opt.calibrate(at, opt.evaluate(z, frames, with_grad=False, min_substeps=substeps), frames)
+        print(f"targets calibrated at {args.param} = {args.calibrate_at:g}")
     rows = []
     for value in np.linspace(args.low, args.high, args.points):
         started = time.perf_counter()
@@ -78,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     for before, row, after in zip(rows, rows[1:], rows[2:]):
         row["scan_central_difference_dz"] = (after["loss"] - before["loss"]) / (after["z"] - before["z"])
     record = {"config": str(args.config), "param": args.param, "final": opt.values(state.z), "rows": rows}
+    record["calibrated_at"] = args.calibrate_at
     if args.json:
         tmp = args.json.with_name(f".{args.json.name}.tmp")
         tmp.write_text(json.dumps(record, indent=2) + "\n")
