@@ -113,7 +113,7 @@ def markdown(cases: dict) -> list[str]:
     for material, params in table.items():
         for name, row in params.items():
             unit = UNITS[row["kind"]]
-            peers = " | ".join(f"{row[p]:.3g}" if p in row else "-" for p in PEERS)
+            peers = " | ".join(f"{row[p]:.3f}" if p in row else "-" for p in PEERS)  # as published
             lines.append(f"| {material} | {name} ({unit or 'abs'}) | {row['error']:.3g} | {row['cases']} | {peers} |")
     lines += ["", PEER_SOURCE]
     return lines
