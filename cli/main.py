@@ -43,12 +43,40 @@ PLUGIN_GROUP = "clflow.commands"
 
 
 INTERRUPTED_EXIT_CODE = 130  # 128 + SIGINT, what shells report for a command ended by Ctrl-C
+TERMINATED_EXIT_CODE = 143  # 128 + SIGTERM, what schedulers, Ray and `kill` send
 
 
 class Interrupted(click.ClickException):
     """Ctrl-C: a one-line message (e.g. how to resume) and exit code 130."""
 
     exit_code = INTERRUPTED_EXIT_CODE
+
+
+class Terminated(Interrupted):
+    """SIGTERM, handled as Ctrl-C is (the same cleanup and message), with exit code 143."""
+
+    exit_code = TERMINATED_EXIT_CODE
+
+
+class _SigtermAsInterrupt:
+    """While installed, SIGTERM raises KeyboardInterrupt in the main thread, so a terminated
+    command cleans up and says how to resume exactly as after Ctrl-C; ``received`` tells the
+    two apart for the exit code."""
+
+    received = False
+
+    @classmethod
+    def install(cls) -> None:
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, cls._handle)
+
+    @classmethod
+    def _handle(cls, signum, frame) -> None:
+        cls.received = True
+        raise KeyboardInterrupt
 
 
 class LazyGroup(click.Group):
@@ -102,7 +130,7 @@ class LazyGroup(click.Group):
                 raise
             raise click.ClickException(describe_os_error(exc)) from None
         except KeyboardInterrupt as exc:  # its message, if any, says what was saved and how to resume
-            raise Interrupted(str(exc) or "interrupted") from None
+            raise (Terminated if _SigtermAsInterrupt.received else Interrupted)(str(exc) or "interrupted") from None
 
 
 def broken_command(name: str, message: str) -> click.Command:
@@ -183,6 +211,7 @@ def cli(
     _fold_kernel_builds(verbosity < 2)
     warnings.showwarning = _log_warning
     ctx.obj = CliContext(device, verbosity)
+    _SigtermAsInterrupt.install()
     if device:
         from clflow.runtime import set_default_device
 

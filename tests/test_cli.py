@@ -342,3 +342,30 @@ def test_eval_sysid_progress_lines_use_the_pipelines_row_format(monkeypatch, tmp
     monkeypatch.setattr(sysid, "markdown", lambda summary: "")
     res = CliRunner().invoke(cli, ["eval", "sysid", "-o", tmp_path, "--case", "torus"])
     assert res.exit_code == 0 and res.output == "torus: iteration 1: loss 1.5  youngs_modulus=2e+04  0.5 s/it\n"
+
+
+@pytest.mark.slow
+def test_sigterm_ends_a_command_as_ctrl_c_does_with_exit_143(tmp_path):
+    """SIGTERM (what schedulers, Ray and `kill` send) mid-optimisation: the same one line as
+    Ctrl-C, exit status 143, no temporary file left in the output folder."""
+    import signal
+
+    folder = tmp_path / "demo"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "clflow_cli", "demo", "--quick", str(folder)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    seen = []
+    for line in proc.stdout:  # progress lines until the optimisation runs
+        seen.append(line)
+        if line.startswith("iteration 2/"):
+            break
+    proc.send_signal(signal.SIGTERM)
+    rest, _ = proc.communicate(timeout=300)
+    output = "".join(seen) + rest
+    assert proc.returncode == 143, output[-3000:]
+    errors = [line for line in output.splitlines() if line.startswith("Error:")]
+    assert len(errors) == 1 and "Traceback" not in output, output[-3000:]
+    assert not [p for p in folder.rglob("*") if ".tmp" in p.name], sorted(folder.rglob("*"))
