@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import glob
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -23,13 +23,17 @@ if TYPE_CHECKING:
     import numpy as np
 
 
+# a temporary of atomic_path / atomic_dir: ".<stem>.<pid>.<mkstemp's random part>.tmp<suffix>"
+_TEMPORARY = re.compile(r"^\..+\.(?P<pid>\d+)\.[A-Za-z0-9_]+\.tmp")
+
+
 def _temporary_prefix(path: Path, stem: str) -> str:
     """The prefix of this process's temporaries for ``path`` (``.<stem>.<pid>.``); first
-    removes those a killed process left behind (their pid no longer runs), so a crash's
-    leftovers go with the next write of the same target."""
-    for leftover in path.parent.glob(f".{glob.escape(stem)}.*.tmp*"):
-        pid = leftover.name[len(stem) + 2 :].split(".", 1)[0]
-        if pid.isdigit() and not _running(int(pid)):
+    removes the temporaries that killed processes left in the same folder (any target's, their
+    pid no longer running), so a crash's leftovers go with clflow's next write there."""
+    for leftover in path.parent.glob(".*.tmp*"):
+        match = _TEMPORARY.match(leftover.name)
+        if match and not _running(int(match["pid"])):
             if leftover.is_dir() and not leftover.is_symlink():
                 shutil.rmtree(leftover, ignore_errors=True)
             else:
