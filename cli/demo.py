@@ -17,6 +17,7 @@ def demo(folder, quick, resume, views, force):
     video rendered from a ground-truth simulation, E = 20 kPa), then recover Young's
     modulus from a 10x too low guess (`clflow optimize`), simulate with the result
     (`clflow simulate`) and render it in 4D (`clflow render4d`)."""
+    import shlex
     import time
     from pathlib import Path
 
@@ -31,18 +32,30 @@ def demo(folder, quick, resume, views, force):
     config = folder / "config.yaml"
     resuming = resume and config.is_file()
     existing = [name for name in (*CASE_FILES, "results") if (folder / name).exists()]
-    if existing and not resuming and not force:
+    again = shlex.join(["clflow", "demo", "--resume", *(["--quick"] if quick else []), str(folder)])
+    again += f" --views {views}" if views != 2 else ""
+    if resume and not existing:
+        raise click.ClickException(
+            f"{folder} holds no demo to resume; make one with `clflow demo {shlex.quote(str(folder))}`"
+        )
+    if existing and not resume and not force:
         raise click.ClickException(
             f"{folder} already holds {', '.join(existing)}; the demo would overwrite "
             f"them: give another folder, --resume an interrupted demo, or --force"
         )
     if resuming:
         click.echo(f"resuming the demo in {folder}")
-    else:
+    else:  # a new demo, or one interrupted while its scene was made: (again) from scratch
         click.echo(f"making the demo scene and its guidance video in {folder}")
-        make_demo(folder, QUICK if quick else Resolution())
-    run_optimization(config, resume, echo=click.echo, note=note, bar=iteration_bar)
+        try:
+            make_demo(folder, QUICK if quick else Resolution())
+        except KeyboardInterrupt:
+            raise KeyboardInterrupt(
+                f"interrupted while making the demo's scene; make it again with `{again}`"
+            ) from None
     results = folder / "results"
+    checkpointed = resuming and (results / "checkpoint.json").is_file()  # else the optimisation had not begun
+    run_optimization(config, checkpointed, echo=click.echo, note=note, bar=iteration_bar, resume_with=again)
     simulate_scene(config, results / "params.json", results / "simulation", "none", echo=click.echo)
     render_simulation_4d(results / "simulation", views=views, progress=progress, echo=click.echo)
     report = write_report(results)  # again, now with the 4D renders

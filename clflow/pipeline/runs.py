@@ -392,6 +392,7 @@ def run_optimization(
     note: Callable[[str], None] = _silent,
     bar: Callable[[int, int], ContextManager[Callable[[dict], None]]] | None = None,
     parallel: dict | None = None,
+    resume_with: str | None = None,
 ) -> dict:
     """Load the config (``overrides``: ``KEY=VALUE``), generate its guidance video if it asks
     for one, choose among its material hypotheses, optimise (``bar(total, done)``: the
@@ -399,7 +400,9 @@ def run_optimization(
     the report; returns the metrics. ``resume`` continues from output/checkpoint.json.
     ``parallel``: the material hypotheses' searches and the search starts' polishes run as
     Ray tasks (clflow.parallel.map_on_ray's keywords: address, cpus_per_task, resources,
-    device), with the serial path's results."""
+    device), with the serial path's results. ``resume_with``: the command an interruption
+    says continues the run (default: the ``clflow optimize ... --resume`` that does; the
+    demo's is ``clflow demo --resume``)."""
     from clflow.scene.config import load_config
 
     if parallel is not None:
@@ -413,7 +416,9 @@ def run_optimization(
             from clflow.parallel import ray_session
 
             stack.enter_context(ray_session(parallel.get("address")))  # one Ray for all of the run's tasks
-        again = resume_command(config_path, output, overrides, iterations, max_substeps, force_video, parallel)
+        again = resume_with or resume_command(
+            config_path, output, overrides, iterations, max_substeps, force_video, parallel
+        )
         return _optimize_config(
             cfg, again, resume, iterations, output, max_substeps, force_video, echo, note, bar, parallel
         )

@@ -47,3 +47,46 @@ def test_demo_never_overwrites_a_file_in_folder_without_force(tmp_path, monkeypa
     assert sorted(tmp_path.rglob("*")) == before  # nothing written
     res = CliRunner().invoke(cli, ["demo", str(tmp_path), "--quick", "--force"])
     assert made and isinstance(res.exception, ZeroDivisionError)  # past the check, into making the demo
+
+
+def test_an_interrupted_demo_says_and_takes_its_own_resume_command(tmp_path, monkeypatch):
+    """Ctrl-C while the scene is made, or during the optimisation: one line naming
+    `clflow demo --resume ...` (not the optimize command, which would skip the demo's
+    simulation and 4D render), which then finishes the demo; --resume of a folder with no
+    demo is refused before anything is made."""
+    import clflow.pipeline.fit.driver as driver
+    import clflow_datasets.demo
+
+    folder = tmp_path / "demo"
+    res = CliRunner().invoke(cli, ["demo", "--resume", str(folder)])
+    assert res.exit_code == 1 and "holds no demo to resume" in res.output and not folder.exists()
+
+    make_demo = clflow_datasets.demo.make_demo
+
+    def interrupted_making(target, resolution):
+        make_demo(target, resolution)
+        raise KeyboardInterrupt  # the scene's files written, the demo not finished
+
+    monkeypatch.setattr(clflow_datasets.demo, "make_demo", interrupted_making)
+    res = CliRunner().invoke(cli, ["demo", "--quick", "--views", "0", str(folder)])
+    assert res.exit_code == 130, res.output
+    assert f"make it again with `clflow demo --resume --quick {folder} --views 0`" in res.output
+    monkeypatch.setattr(clflow_datasets.demo, "make_demo", make_demo)
+
+    step = driver.Optimization.step
+    calls = []
+
+    def interrupted_step(self, state, failures, start=None):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return step(self, state, failures, start)
+
+    monkeypatch.setattr(driver.Optimization, "step", interrupted_step)
+    res = CliRunner().invoke(cli, ["demo", "--resume", "--quick", "--views", "0", str(folder)])
+    assert res.exit_code == 130, res.output
+    assert f"continue with `clflow demo --resume --quick {folder} --views 0`" in res.output
+    monkeypatch.setattr(driver.Optimization, "step", step)
+    res = CliRunner().invoke(cli, ["demo", "--resume", "--quick", "--views", "0", str(folder)])
+    assert res.exit_code == 0, res.output
+    assert "resuming the demo" in res.output and (folder / "results" / "simulation" / "frame_008.ply").is_file()
