@@ -24,6 +24,16 @@ def run(tmp_path, monkeypatch):
     return invoke
 
 
+# a model's answer for a jar of honey, in units it has to convert (g/cm^3)
+HONEY = {
+    "object": "jar of honey",
+    "material": "newtonian",
+    "density": {"value": 1.42, "unit": "g/cm^3"},
+    "parameters": {"viscosity": {"value": 8, "unit": "Pa*s"}, "bulk_modulus": {"value": 1e5, "unit": "Pa"}},
+    "confidence": 0.7,
+}
+
+
 def test_backend_choices_match_the_library():
     assert BACKEND_CHOICES == BACKENDS
     assert "query" in CliRunner().invoke(cli, ["--help"]).output
@@ -64,18 +74,7 @@ def test_an_answer_the_offline_backend_cannot_give_is_refused_and_nothing_writte
 
 def test_openai_backend_from_options_and_environment(run, photo, server, monkeypatch, tmp_path):
     monkeypatch.setenv("CLFLOW_LLM_API_KEY", API_KEY)
-    server.play(
-        chat(
-            {
-                "object": "jar of honey",
-                "material": "newtonian",
-                "density": {"value": 1.42, "unit": "g/cm^3"},
-                "parameters": {"viscosity": {"value": 8, "unit": "Pa*s"}, "bulk_modulus": {"value": 1e5, "unit": "Pa"}},
-                "confidence": 0.7,
-                "reasoning": "golden, viscous",
-            }
-        )
-    )
+    server.play(chat({**HONEY, "reasoning": "golden, viscous"}))
     res = run(
         photo[0],
         "--backend",
@@ -146,17 +145,7 @@ def test_each_warning_of_a_model_answer_is_shown_once(photo, server, tmp_path):
     import subprocess
     import sys
 
-    server.play(
-        chat(
-            {
-                "object": "jar of honey",
-                "material": "newtonian",
-                "density": {"value": 1.42, "unit": "g/cm^3"},
-                "parameters": {"viscosity": {"value": 8, "unit": "Pa*s"}, "bulk_modulus": {"value": 1e5, "unit": "Pa"}},
-                "confidence": 0.7,
-            }
-        )
-    )
+    server.play(chat(HONEY))
     res = subprocess.run(
         [sys.executable, "-m", "clflow_cli", "query", str(photo[0]), "--backend", "openai",
          "--llm-url", server.base_url, "--model", "llava", "-o", str(tmp_path / "q.json")],
