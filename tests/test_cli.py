@@ -347,10 +347,16 @@ def test_eval_sysid_progress_lines_use_the_pipelines_row_format(monkeypatch, tmp
 @pytest.mark.slow
 def test_sigterm_ends_a_command_as_ctrl_c_does_with_exit_143(tmp_path):
     """SIGTERM (what schedulers, Ray and `kill` send) mid-optimisation: the same one line as
-    Ctrl-C, exit status 143, no temporary file left in the output folder."""
+    Ctrl-C, exit status 143, no temporary file left in the output folder, the user's own
+    file there byte for byte as it was."""
+    import hashlib
     import signal
 
     folder = tmp_path / "demo"
+    folder.mkdir()
+    notes = folder / "notes.txt"
+    notes.write_bytes(b"my notes\n" * 100)
+    digest = hashlib.sha256(notes.read_bytes()).hexdigest()
     proc = subprocess.Popen(
         [sys.executable, "-m", "clflow_cli", "demo", "--quick", str(folder)],
         stdout=subprocess.PIPE,
@@ -369,3 +375,4 @@ def test_sigterm_ends_a_command_as_ctrl_c_does_with_exit_143(tmp_path):
     errors = [line for line in output.splitlines() if line.startswith("Error:")]
     assert len(errors) == 1 and "Traceback" not in output, output[-3000:]
     assert not [p for p in folder.rglob("*") if ".tmp" in p.name], sorted(folder.rglob("*"))
+    assert hashlib.sha256(notes.read_bytes()).hexdigest() == digest
