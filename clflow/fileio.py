@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import os
 import re
 import shutil
@@ -63,7 +64,8 @@ def _creating(path: Path, make):
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; move it onto ``path`` if the block succeeds.
+    """Yield a temporary path next to ``path``; move it onto ``path`` if the block succeeds
+    and list it in its folder's written-record (:data:`WRITTEN_RECORD`).
 
     The temporary name keeps ``path``'s suffix so writers that choose a format by the
     extension (numpy, OpenCV) behave as they would with ``path`` itself.
@@ -76,7 +78,12 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; outputs get the usual permissions
     try:
         yield Path(tmp)
-        os.replace(tmp, path)
+        digest = content_digest(tmp)
+        with _record_lock(path.parent):
+            os.replace(tmp, path)
+            record = _written_record(path.parent)
+            record["files"][path.name] = digest
+            _write_record(path.parent, record)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -189,35 +196,185 @@ def describe_os_error(exc: OSError) -> str:
     return where + reason
 
 
-@contextlib.contextmanager
-def atomic_dir(path: str | os.PathLike, replaces: tuple[str, ...] = ()) -> Iterator[Path]:
-    """Yield a temporary folder next to folder ``path``; if the block succeeds, move what it
-    holds into ``path`` (replacing entries of the same name) and delete the entries of
-    ``path`` that match a glob pattern of ``replaces`` but were not written now (the earlier
-    result's, e.g. its extra frames and what was derived from it), else delete it. A failure
-    leaves ``path`` as it was; a success leaves one result, never a mix."""
+#: each output folder's record of the files clflow wrote there: {"files": {relative path:
+#: content digest}, "source": the folder it was derived from, relative (render4d's)}. A
+#: command replaces or removes an entry only when this record proves clflow wrote all of it.
+WRITTEN_RECORD = ".clflow-written.json"
+
+
+def _written_record(folder: Path) -> dict:
+    import json
+
+    try:
+        record = json.loads((folder / WRITTEN_RECORD).read_text())
+    except (OSError, ValueError):
+        return {"files": {}}
+    ok = isinstance(record, dict) and isinstance(record.get("files"), dict)
+    return record if ok else {"files": {}}
+
+
+def _unowned_files(folder: Path, entry: Path) -> list[Path]:
+    """The files of ``entry`` (a file, or a folder's files at any depth) in ``folder`` that
+    no written-record (``folder``'s or one between it and the file) lists with its content."""
+    files = (
+        [entry] if not entry.is_dir() or entry.is_symlink() else sorted(p for p in entry.rglob("*") if not p.is_dir())
+    )
+    records: dict[Path, dict] = {}
+    unowned = []
+    for file in files:
+        if file.name == WRITTEN_RECORD:
+            continue
+        place, owned = file.parent, False
+        while not owned:
+            listed = records.setdefault(place, _written_record(place))["files"]
+            name = file.relative_to(place).as_posix()
+            owned = name in listed and not file.is_symlink() and listed[name] == content_digest(file)
+            if place == folder:
+                break
+            place = place.parent
+        if not owned:
+            unowned.append(file)
+    return unowned
+
+
+def derived_folders(path: Path) -> list[Path]:
+    """The folders in ``path`` that clflow derived from what ``path`` holds (their written-record
+    names ``path`` as its source, e.g. ``clflow render4d SIM -o SIM/mine``)."""
+    if not path.is_dir():
+        return []
+    return [
+        child
+        for child in sorted(path.iterdir())
+        if child.is_dir()
+        and isinstance(source := _written_record(child).get("source"), str)
+        and (child / source).resolve() == path.resolve()
+    ]
+
+
+def check_output_folder(path: str | os.PathLike, entries: tuple[str, ...], inputs=(), *, derived: bool = False) -> None:
+    """Refuse (InputError, one line) before any work a write into folder ``path`` that would
+    replace or remove what clflow did not write: ``entries`` are glob patterns of every entry
+    the command writes or replaces there (``derived``: also the folders clflow derived from
+    the earlier result); an entry's files must all be listed, with their content, in a
+    written-record, and none of ``inputs`` (the run's input files) may lie in one."""
+    from clflow.errors import InputError
+
     path = Path(path)
+    if not path.is_dir():
+        return
+    targets = {entry for pattern in entries for entry in path.glob(pattern)}
+    targets = sorted(targets | set(derived_folders(path) if derived else []))
+    for given in inputs:
+        source = Path(given).resolve()
+        for target in targets:
+            if source == target.resolve():
+                raise InputError(f"{given} is an input of this run and one of its outputs: write elsewhere (-o)")
+            if target.resolve() in source.parents:
+                raise InputError(
+                    f"{given} is an input of this run and lies in {target}, which this run replaces: write "
+                    f"elsewhere (-o) or move the input"
+                )
+    unowned = [file for target in targets for file in _unowned_files(path, target)]
+    if unowned:
+        names = ", ".join(str(f.relative_to(path)) for f in unowned[:3]) + (
+            f" and {len(unowned) - 3} more" if len(unowned) > 3 else ""
+        )
+        raise InputError(
+            f"{path} holds {names}, which clflow did not write (or which changed since) and this run would replace "
+            f"or remove: move {'them' if len(unowned) > 1 else 'it'} or write elsewhere (-o)"
+        )
+
+
+def _remove_written(entry: Path) -> None:
+    """Remove ``entry`` (checked by check_output_folder: clflow wrote all of it)."""
+    if entry.is_dir() and not entry.is_symlink():
+        shutil.rmtree(entry)
+    else:
+        entry.unlink()
+
+
+@contextlib.contextmanager
+def atomic_dir(
+    path: str | os.PathLike,
+    replaces: tuple[str, ...] = (),
+    inputs=(),
+    *,
+    derived: bool = False,
+    source: str | os.PathLike | None = None,
+) -> Iterator[Path]:
+    """Yield a temporary folder next to folder ``path``; if the block succeeds, move what it
+    holds into ``path`` (replacing entries of the same name), delete the entries of ``path``
+    that match a glob pattern of ``replaces`` but were not written now (the earlier result's,
+    e.g. its extra frames), with ``derived`` the folders derived from the earlier result, and record what
+    was written in ``path``'s written-record (``source``: the folder this result derives from);
+    else delete it. A failure leaves ``path`` as it was; a success leaves one result, never a
+    mix. What clflow did not write, and ``inputs``, are never replaced or removed: refused
+    on entering (call :func:`check_output_folder` before long work to refuse before it)."""
+    path = Path(path)
+    check_output_folder(path, replaces, inputs, derived=derived)
     path.parent.mkdir(parents=True, exist_ok=True)
     prefix = _temporary_prefix(path, path.name)
     tmp = Path(_creating(path, lambda: tempfile.mkdtemp(prefix=prefix, suffix=".tmp", dir=path.parent)))
     try:
         yield tmp
+        written = sorted(entry.name for entry in tmp.iterdir())
+        check_output_folder(path, tuple(glob.escape(name) for name in written), inputs)  # names outside ``replaces``
+        for inner in tmp.rglob(WRITTEN_RECORD):  # its files' own records (atomic_path's): one for the whole
+            inner.unlink()
+        new_files = {
+            file.relative_to(tmp).as_posix(): content_digest(file) for file in tmp.rglob("*") if not file.is_dir()
+        }
+        record = _written_record(path) if path.exists() else {"files": {}}
+        if path.exists():
+            stale = [old for pattern in replaces for old in path.glob(pattern) if old.name not in written]
+            for old in {*stale, *(derived_folders(path) if derived else [])}:
+                _remove_written(old)
+            for name in written:
+                target = path / name
+                if target.is_dir() and not target.is_symlink():
+                    shutil.rmtree(target)
+        kept = {
+            name: digest
+            for name, digest in record["files"].items()
+            if name.split("/")[0] not in written and (path / name).is_file()
+        }
+        record = {"files": {**kept, **new_files}}
+        if source is not None:
+            record["source"] = os.path.relpath(Path(source).resolve(), path.resolve())
+        _write_record(tmp, record)
         if not path.exists():
             tmp.chmod(0o777 & ~_umask())
             os.replace(tmp, path)
             return
-        written = {entry.name for entry in tmp.iterdir()}
-        for pattern in replaces:
-            for old in path.glob(pattern):
-                if old.name not in written:
-                    shutil.rmtree(old) if old.is_dir() and not old.is_symlink() else old.unlink()
         for entry in tmp.iterdir():
-            target = path / entry.name
-            if target.is_dir() and not target.is_symlink():
-                shutil.rmtree(target)
-            os.replace(entry, target)
+            os.replace(entry, path / entry.name)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _write_record(folder: Path, record: dict) -> None:
+    """``folder``'s written-record, replaced atomically (a reader sees the old or the new)."""
+    import json
+
+    fd, tmp = tempfile.mkstemp(prefix=f".record.{os.getpid()}.", suffix=".tmp", dir=folder)
+    with os.fdopen(fd, "w") as fh:
+        json.dump(record, fh, indent=1, sort_keys=True)
+    os.chmod(tmp, 0o666 & ~_umask())
+    os.replace(tmp, folder / WRITTEN_RECORD)
+
+
+@contextlib.contextmanager
+def _record_lock(folder: Path) -> Iterator[None]:
+    """Hold ``folder``'s written-record for a read-modify-write (processes writing into one
+    folder at once, e.g. parallel starts, each add their files)."""
+    import fcntl
+
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def _umask() -> int:

@@ -68,6 +68,7 @@ def render(
     --box and --sphere render a selection (both: the intersection), e.g. to check the
     object region before simulating it. Positions are in the PLY's world units (m).
     """
+    import glob
     import time
     from pathlib import Path
 
@@ -75,7 +76,7 @@ def render(
     import torch
 
     from clflow.errors import InputError
-    from clflow.fileio import atomic_dir
+    from clflow.fileio import atomic_dir, check_output_folder
     from clflow.media import to_uint8, write_image, write_video
     from clflow.splat import load_ply
     from clflow.splat.ply import require_gaussians
@@ -106,11 +107,16 @@ def render(
         raise InputError(f"--video: the views have different sizes {sorted(sizes)}; a video needs one size")
     if from_file:
         _check_room(output_dir, video, len(cameras), sum(3 * c.width * c.height for c in cameras), max_output_gb)
+    stems: list[str] = []
+    for i, camera in enumerate(cameras):
+        stem = _file_stem(camera.name)
+        stems.append(stem if stem not in stems else f"{stem}_{i:04d}")  # e.g. train/r_0 and test/r_0
+    names = tuple(glob.escape(f"{stem}.png") for stem in stems)
+    check_output_folder(output_dir, names, [splats])  # replaces only clflow's images: before the work
     frames = []
     seconds = 0.0
-    stems: set[str] = set()
-    with atomic_dir(output_dir) as tmp, progress(len(cameras), "rendering") as advance:  # all or nothing
-        for i, camera in enumerate(cameras):
+    with atomic_dir(output_dir, names, [splats]) as tmp, progress(len(cameras), "rendering") as advance:
+        for camera, stem in zip(cameras, stems):  # all or nothing
             start = time.perf_counter()
             with torch.no_grad():
                 image = rasterize(
@@ -118,9 +124,6 @@ def render(
                 ).image
             seconds += time.perf_counter() - start
             frame = to_uint8(image)
-            stem = _file_stem(camera.name)
-            stem = stem if stem not in stems else f"{stem}_{i:04d}"  # e.g. train/r_0 and test/r_0
-            stems.add(stem)
             write_image(tmp / f"{stem}.png", frame)
             frames.append(frame)
             advance(stem)

@@ -282,7 +282,7 @@ def make_scene(
     made_from = f"{seq.index} (camera {camera}, frames 0-{frames - 1}) and {ply}"
     made_from += f", material from {config}" if pac else ", material left to the query"
     out = Path(out)
-    with atomic_dir(out) as tmp:
+    with atomic_dir(out, inputs=[data, ply, *([config] if config is not None else [])]) as tmp:
         with atomic_path(tmp / "scene.ply") as part:
             shutil.copyfile(ply, part)
         save_transforms_json(tmp / "camera.json", [cam])

@@ -10,6 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 from clflow import __version__
+from clflow.fileio import atomic_write_text
 from clflow_cli.main import BUILTIN_COMMANDS, cli
 
 
@@ -95,7 +96,7 @@ class _InterruptedOptimization:
 
     def run(self, resume, start=None):
         if self.iterations_in_run:
-            self.checkpoint.write_text(json.dumps({"state": {"iteration": self.iterations_in_run}}))
+            atomic_write_text(self.checkpoint, json.dumps({"state": {"iteration": self.iterations_in_run}}))
         raise KeyboardInterrupt
 
 
@@ -160,14 +161,14 @@ def test_the_resume_hint_repeats_the_options_the_run_was_started_with(monkeypatc
 def test_ctrl_c_before_the_first_iteration_says_nothing_was_saved(monkeypatch, tmp_path):
     for earlier_run in (False, True):  # an earlier run's checkpoint.json is not this run's
         if earlier_run:
-            (tmp_path / "checkpoint.json").write_text(json.dumps({"state": {"iteration": 7}}))
+            atomic_write_text(tmp_path / "checkpoint.json", json.dumps({"state": {"iteration": 7}}))
         res = interrupt_optimize(monkeypatch, tmp_path, 0)
         assert res.exit_code == 130, res.output
         assert "nothing was saved" in res.output and "saved in" not in res.output and "--resume" not in res.output
 
 
 def test_ctrl_c_right_after_resuming_keeps_the_resume_hint(monkeypatch, tmp_path):
-    (tmp_path / "checkpoint.json").write_text(json.dumps({"state": {"iteration": 7}}))
+    atomic_write_text(tmp_path / "checkpoint.json", json.dumps({"state": {"iteration": 7}}))
     res = interrupt_optimize(monkeypatch, tmp_path, 0, "--resume")
     assert res.exit_code == 130 and "interrupted after 7 iterations" in res.output and "--resume" in res.output
 

@@ -36,6 +36,8 @@ from clflow.scene.load import to_file_frame, up_rotation
 from clflow.splat.gaussians import Gaussians
 
 NPZ_NAME = "gaussians.npz"
+#: render4d's entries in its folder: a sequence's PNG folder and video
+RENDER_4D_ENTRIES = ("guidance*", "orbit*", "view_*")
 STATIC_NAME = "static"  # static.ply: the static Gaussians, once, next to object-only frames
 
 
@@ -254,8 +256,10 @@ def render_4d(
     video_format: str = "mp4",
     background=(1.0, 1.0, 1.0),
     advance: Callable[[str], None] | None = None,
+    source: Path | None = None,
 ) -> list[Path]:
-    """Render the sequence into ``out``: ``guidance/`` (the guidance camera), ``orbit/`` (a
+    """Render the sequence (of the simulation folder ``source``, recorded so that a new
+    simulation there removes this stale rendering) into ``out``: ``guidance/`` (the guidance camera), ``orbit/`` (a
     camera circling the object while time runs) and, for ``views`` > 0, ``view_k/`` from k
     fixed novel viewpoints on the same circle, half a step off the guidance camera's azimuth
     (none repeats it). Each folder gets PNG frames and a video
@@ -274,8 +278,10 @@ def render_4d(
     sequences = {"guidance": [frames.guidance_camera()] * T, "orbit": orbit_cameras(frames, T, turns)}
     for k, cam in enumerate(orbit_cameras(frames, views, phase=0.5)):  # between the guidance view's repeats
         sequences[f"view_{k}"] = [cam] * T
-    # one result: the earlier sequences (their videos, frames and extra views) go
-    with atomic_dir(out, replaces=("guidance*", "orbit*", "view_*")) as tmp:
+    # one result: the earlier sequences (their videos, frames and extra views) go; the record
+    # names the simulation it shows, so that simulating there again removes it (stale)
+    inputs = [source / NPZ_NAME] if source is not None else []
+    with atomic_dir(out, replaces=RENDER_4D_ENTRIES, inputs=inputs, source=source) as tmp:
         for name, cams in sequences.items():
             images = []
             with torch.no_grad():
@@ -296,6 +302,7 @@ __all__ = [
     "file_gaussians",
     "load_frames",
     "orbit_cameras",
+    "RENDER_4D_ENTRIES",
     "render_4d",
     "render_4d_frames",
     "render_4d_size",

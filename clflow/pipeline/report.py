@@ -69,11 +69,18 @@ video,img{max-width:100%;border:1px solid #ddd}figcaption{font-size:0.9em;color:
 .bad{color:#a00}code{background:#f3f3f3;padding:1px 4px}"""
 
 
-def write_report(output: Path) -> Path:
-    """``output/index.html`` from the results in ``output`` (see module docstring)."""
+def write_report(output: Path, staged: Path | None = None) -> Path:
+    """``output/index.html`` from the results in ``output`` (see module docstring); with
+    ``staged`` (a folder of new results that will move into ``output``, clflow.fileio.atomic_dir),
+    those read from and the page written there. Returns where the page is."""
     output = Path(output).resolve()
-    params, metrics = _read(output / "params.json"), _read(output / "metrics.json")
-    run = _read(output / "run.json")
+    staged = output if staged is None else Path(staged)
+
+    def at(name: str) -> Path:  # a result: the staged one, else the folder's
+        return staged / name if (staged / name).exists() else output / name
+
+    params, metrics = _read(at("params.json")), _read(at("metrics.json"))
+    run = _read(at("run.json"))
     parts = [f"<h1>clflow results: {html.escape(output.name)}</h1>"]
     if params:
         units = params.get("units", {})
@@ -131,13 +138,13 @@ def write_report(output: Path) -> Path:
                 for m, r in chosen["hypotheses"].items()
             ]
         parts.append("<h2>Metrics</h2>" + _table(rows, ("metric", "value")))
-    if (output / "loss.png").exists():
+    if at("loss.png").exists():
         parts.append('<h2>Optimisation</h2><img src="loss.png" alt="loss and parameters per iteration">')
-    comparisons = ["comparison.mp4", *sorted(p.name for p in output.glob("comparison_view*.mp4"))]
+    comparisons = ["comparison.mp4", *sorted(p.name for p in staged.glob("comparison_view*.mp4"))]
     videos = [(name, f"{name.removesuffix('.mp4').replace('_', ' ')}: guidance | guidance flow | "
                "simulated flow | error | simulation") for name in comparisons]  # fmt: skip
     videos += [(f"{RENDERS}/{p.name}", f"4D render: {p.stem}") for p in sorted((output / RENDERS).glob("*.mp4"))]
-    shown = [_video(rel, caption) for rel, caption in videos if (output / rel).exists()]
+    shown = [_video(rel, caption) for rel, caption in videos if at(rel).exists()]
     if shown:
         parts.append("<h2>Videos</h2>" + "".join(shown))
     if run:
@@ -149,9 +156,7 @@ def write_report(output: Path) -> Path:
             '<a href="run.json">run.json</a></p>'
         )
     links = [
-        n
-        for n in ("params.json", "metrics.json", "history.json", "hypotheses.json", "search.json")
-        if (output / n).exists()
+        n for n in ("params.json", "metrics.json", "history.json", "hypotheses.json", "search.json") if at(n).exists()
     ]
     if links:
         parts.append("<p>Data: " + ", ".join(f'<a href="{n}">{n}</a>' for n in links) + "</p>")
@@ -159,8 +164,8 @@ def write_report(output: Path) -> Path:
         f"<!doctype html><html lang=en><head><meta charset=utf-8><title>clflow results: "
         f"{html.escape(output.name)}</title><style>{STYLE}</style></head><body>{''.join(parts)}</body></html>\n"
     )
-    atomic_write_text(output / "index.html", page)
-    return output / "index.html"
+    atomic_write_text(staged / "index.html", page)
+    return staged / "index.html"
 
 
 __all__ = ["environment", "write_report", "write_run_record"]  # environment: from clflow.environment

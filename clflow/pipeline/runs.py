@@ -30,9 +30,8 @@ RESUMABLE = ("checkpoint.json", "starts", "hypotheses", "budget.json")
 #: removes before it writes anything: the folder never mixes two runs. Caches that are
 #: checked against the config (the observed flow, the estimator error, the material query)
 #: stay.
-RUN_ENTRIES = (
-    *RESUMABLE,
-    "hypotheses.json",
+#: an optimisation's results, written at its end as one step (all of them or none)
+RESULTS = (
     "params.json",
     "metrics.json",
     "history.json",
@@ -42,10 +41,13 @@ RUN_ENTRIES = (
     "run.json",
     "index.html",
 )
+RUN_ENTRIES = (*RESUMABLE, "hypotheses.json", *RESULTS)
 
 
 #: a scene simulation's entries in its folder, and what clflow render4d derives from them
 SIMULATION_ENTRIES = ("gaussians.npz", "frame_*.ply", "static*.ply", "guidance", "guidance.mp4", "render4d")
+#: a particle simulation's entries in its folder
+PARTICLE_ENTRIES = ("positions.npz", "preview", "preview.mp4")
 
 log = logging.getLogger("clflow.simulate")  # the log lines of `clflow simulate PARTICLES`
 
@@ -93,6 +95,26 @@ def read_params_record(path: str | Path, cfg):
     return dataclasses.replace(cfg, velocity=tuple(float(v) for v in velocity)), overrides, substeps
 
 
+def input_files(cfg) -> list[Path]:
+    """Every file or folder a scene config ``cfg`` reads (the config itself, the splats, the
+    videos, masks, camera files ...): the Path values of its settings, at any depth, but its
+    output folder."""
+    found: list[Path] = []
+
+    def visit(value, name: str = "") -> None:
+        if isinstance(value, Path) and name != "output":
+            found.append(value)
+        elif dataclasses.is_dataclass(value):
+            for field in dataclasses.fields(value):
+                visit(getattr(value, field.name), field.name)
+        elif isinstance(value, (list, tuple)):
+            for item in value:
+                visit(item, name)
+
+    visit(cfg)
+    return found
+
+
 def _frame_progress(advance) -> Callable[[int], None] | None:
     """A simulator's ``on_frame(k)`` that moves the progress to frame k: a run again after a
     CFL breach counts from its first frame, never past the total."""
@@ -119,7 +141,7 @@ def simulate_scene(
     frames) into ``out_dir`` (default: the config's output/simulation), all or nothing.
     ``max_substeps`` overrides ``simulation.max_substeps``; ``progress(total, label)`` yields
     ``advance(name, to=k)``, called after frame k (a CFL retry starts again at 1). Returns the folder."""
-    from clflow.fileio import atomic_dir
+    from clflow.fileio import atomic_dir, check_output_folder
     from clflow.limits import check_memory, check_output
     from clflow.pipeline.forward import prepare, render_video, simulate_config
     from clflow.pipeline.frames4d import export_gaussians, export_size
@@ -131,6 +153,8 @@ def simulate_scene(
     if params_file:
         cfg, overrides, min_substeps = read_params_record(params_file, cfg)
     out = Path(out_dir) if out_dir else cfg.output / "simulation"
+    inputs = [*input_files(cfg), *([params_file] if params_file else [])]
+    check_output_folder(out, SIMULATION_ENTRIES, inputs, derived=True)  # before any work
     prepared = prepare(cfg)
     frames = cfg.simulation.frames
     written, memory = export_size(prepared, frames, preview != "none")
@@ -150,7 +174,7 @@ def simulate_scene(
     echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
     # all or nothing: a failure leaves OUT as it was; a success replaces the earlier
     # simulation's frames (all of them) and what was rendered from it
-    with atomic_dir(out, replaces=SIMULATION_ENTRIES) as tmp:
+    with atomic_dir(out, replaces=SIMULATION_ENTRIES, inputs=inputs, derived=True) as tmp:
         export_gaussians(result, tmp, object_only, compressed)
         if preview != "none":
             render_video(result, tmp / "guidance", video=tmp / "guidance.mp4" if preview == "mp4" else None)
@@ -258,7 +282,7 @@ def simulate_particles(
     import numpy as np
     import torch
 
-    from clflow.fileio import atomic_dir
+    from clflow.fileio import atomic_dir, check_output_folder
     from clflow.mpm import Grid, MaterialSpec, Simulator, StabilityWarning
     from clflow.mpm.preview import PREVIEW_SIZE, write_preview
     from clflow.mpm.substep import check_device, check_grid_memory
@@ -268,6 +292,8 @@ def simulate_particles(
 
     if run.resolution < 8 or not run.domain > 0:
         raise InputError(f"--grid must be >= 8 and --domain > 0, got {run.resolution}, {run.domain}")
+    inputs = [run.particles] if run.particles else []
+    check_output_folder(out_dir, PARTICLE_ENTRIES, inputs)  # before any work
     dx = run.domain / (run.resolution - 1)
     grid = Grid((run.resolution,) * 3, dx)
     dtype = torch.float64 if run.double else torch.float32
@@ -317,7 +343,7 @@ def simulate_particles(
     with shown as advance:
         traj = _run_with_cfl_retries(sim, simulator, frames, advance, chosen=run.substeps is not None, limit=limit)
     target = out / ("preview.mp4" if preview == "mp4" else "preview")
-    with atomic_dir(out, replaces=("positions.npz", "preview", "preview.mp4")) as tmp:  # all or nothing, one result
+    with atomic_dir(out, replaces=PARTICLE_ENTRIES, inputs=inputs) as tmp:  # all or nothing, one result
         np.savez(tmp / "positions.npz", x=traj.x.float().numpy(), time=traj.time.numpy())
         if preview != "none":
             write_preview(traj.x, grid.origin, grid.upper, tmp / target.name, run.fps, PREVIEW_SIZE)
@@ -341,11 +367,20 @@ def render_simulation_4d(
     guidance camera, an orbiting camera and ``views`` fixed novel viewpoints into ``out_dir``
     (default: SIMULATION/render4d); ``progress(total, label)`` yields ``advance(name)``,
     called once per frame written. Returns the videos."""
+    from clflow.fileio import check_output_folder
     from clflow.limits import check_output
-    from clflow.pipeline.frames4d import load_frames, render_4d, render_4d_frames, render_4d_size
+    from clflow.pipeline.frames4d import (
+        NPZ_NAME,
+        RENDER_4D_ENTRIES,
+        load_frames,
+        render_4d,
+        render_4d_frames,
+        render_4d_size,
+    )
 
     frames = load_frames(simulation)
     out = Path(out_dir) if out_dir else Path(simulation) / "render4d"
+    check_output_folder(out, RENDER_4D_ENTRIES, [Path(simulation) / NPZ_NAME])  # before any work
     check_output(
         out,
         render_4d_size(frames, views),
@@ -355,7 +390,9 @@ def render_simulation_4d(
     )
     shown = progress(render_4d_frames(frames, views), "rendering") if progress else contextlib.nullcontext(None)
     with shown as advance:
-        videos = render_4d(frames, out, views=views, turns=turns, video_format=video_format, advance=advance)
+        videos = render_4d(
+            frames, out, views=views, turns=turns, video_format=video_format, advance=advance, source=Path(simulation)
+        )
     for video in videos:
         echo(f"wrote {video} and {video.with_suffix('')}/*.png ({frames.frame_count} frames)")
     return videos
@@ -446,6 +483,7 @@ def _optimize_config(
     """run_optimization's work once its config is loaded (``again``: the command that resumes it)."""
     import torch
 
+    from clflow.fileio import check_output_folder
     from clflow.limits import check_output
     from clflow.mpm.substep import check_device
     from clflow.pipeline.fit import resampled_guidance
@@ -473,6 +511,8 @@ def _optimize_config(
     if resume and not rewritten and (cfg.output / "checkpoint.json").exists():
         check_resume(cfg.output / "checkpoint.json", cfg)  # a changed --set or video: before the scene is loaded
     created = not cfg.output.exists()
+    # what it removes (a new run: the earlier one) or replaces at the end is clflow's: before any work
+    check_output_folder(cfg.output, RESULTS if resume else RUN_ENTRIES, input_files(cfg))
     if not resume:
         earlier = sorted({entry for pattern in RUN_ENTRIES for entry in cfg.output.glob(pattern)})
         if earlier:
@@ -586,12 +626,30 @@ def _optimize_prepared(cfg, again, resume, force_video, echo, note, bar, paralle
                 f"interrupted after {opt.load_state().iteration} iterations (saved in {opt.checkpoint}); "
                 f"continue with `{again}`"
             ) from None
-    metrics = opt.write_results(state)
+    metrics = _write_results(opt, state, again, note)
+    _echo_results(opt, state, metrics, cfg.output / "index.html", echo, note)
+    return metrics
+
+
+def _write_results(opt, state, again: str, note) -> dict:
+    """The final evaluation (grid check, identifiability) and every result of RESULTS, as
+    one step: an interruption or failure leaves the folder as it was (the checkpoint holds
+    every iteration, so ``again`` only writes them)."""
+    from clflow.fileio import atomic_dir
     from clflow.pipeline.report import write_report, write_run_record
 
-    write_run_record(opt.cfg, cfg.output)
-    report = write_report(cfg.output)
-    _echo_results(opt, state, metrics, report, echo, note)
+    output = opt.cfg.output
+    try:
+        note("checking the result and writing it")
+        with atomic_dir(output, replaces=RESULTS, inputs=input_files(opt.cfg)) as staged:
+            metrics = opt.write_results(state, staged)
+            write_run_record(opt.cfg, staged)
+            write_report(output, staged)
+    except KeyboardInterrupt:
+        raise KeyboardInterrupt(
+            f"interrupted while checking and writing the results, none of which were written; the "
+            f"{state.iteration} iterations are saved in {opt.checkpoint}: write them with `{again}`"
+        ) from None
     return metrics
 
 

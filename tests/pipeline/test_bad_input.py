@@ -452,7 +452,7 @@ def test_a_full_disk_is_named_not_the_codec(tmp_path, monkeypatch):
 
 
 def test_atomic_dir_moves_its_entries_in_or_leaves_the_folder_as_it_was(tmp_path):
-    from clflow.fileio import atomic_dir
+    from clflow.fileio import WRITTEN_RECORD, atomic_dir
 
     out = tmp_path / "out"
     with atomic_dir(out) as tmp:
@@ -468,7 +468,7 @@ def test_atomic_dir_moves_its_entries_in_or_leaves_the_folder_as_it_was(tmp_path
     with atomic_dir(out) as tmp:
         (tmp / "frames").mkdir()
         (tmp / "frames" / "001.png").write_text("b")
-    assert sorted(p.name for p in out.rglob("*")) == ["001.png", "frames", "mine.txt", "video.mp4"]
+    assert sorted(p.name for p in out.rglob("*")) == [WRITTEN_RECORD, "001.png", "frames", "mine.txt", "video.mp4"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 

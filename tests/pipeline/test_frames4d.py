@@ -9,6 +9,7 @@ import torch
 import yaml
 from click.testing import CliRunner
 
+from clflow.fileio import WRITTEN_RECORD
 from clflow.pipeline.forward import simulate_config
 from clflow.pipeline.frames4d import export_gaussians, load_frames
 from clflow.splat.gaussians import quat_to_rotmat, rotmat_to_quat
@@ -122,8 +123,9 @@ def test_failed_export_leaves_no_partial_file(demo_config, tmp_path, monkeypatch
     with pytest.raises(OSError, match="disk full"):
         export_gaussians(result, tmp_path / "sim")
     names = sorted(p.name for p in (tmp_path / "sim").iterdir())
-    assert names == ["frame_000.ply", "frame_001.ply", "gaussians.npz"]  # complete files only
-    for name in names[:2]:
+    assert names == [WRITTEN_RECORD, "frame_000.ply", "frame_001.ply", "gaussians.npz"]  # complete files only
+    assert sorted(json.loads((tmp_path / "sim" / WRITTEN_RECORD).read_text())["files"]) == names[1:]
+    for name in names[1:3]:
         load_ply(tmp_path / "sim" / name)
 
 

@@ -50,10 +50,11 @@ def weak_reason(std_z: float, loss_rise: float) -> str:
 class Results:
     """The results folder of a finished optimisation (needs everything above)."""
 
-    def write_results(self, state: OptimizerState) -> dict:
+    def write_results(self, state: OptimizerState, out=None) -> dict:
         """params.json, metrics.json, history.json (search.json), loss.png and a comparison
-        video per guidance view in output/; returns the metrics."""
-        out = self.cfg.output
+        video per guidance view in ``out`` (default: the config's output folder); returns the
+        metrics."""
+        out = self.cfg.output if out is None else out
         result = self.final_evaluation(state)
         final = self.values(state.z)
         params, density = material_values(self.cfg, {n: final[n] for n in self.params})
@@ -79,7 +80,7 @@ class Results:
         if state.search:
             atomic_write_text(out / "search.json", json.dumps(state.search, indent=1))
         write_history_plot(out / "loss.png", state.history, self.cfg.ground_truth, ranges)
-        self.write_comparison_videos(result, params, density)
+        self.write_comparison_videos(result, params, density, out)
         return metrics
 
     def final_evaluation(self, state: OptimizerState):
@@ -185,9 +186,9 @@ class Results:
         for a, b, rho in identifiability["trade_offs"]:
             log.warning("%s and %s trade off (correlation %.3f): the video fixes a combination of them", a, b, rho)
 
-    def write_comparison_videos(self, result, params: dict, density: float) -> None:
+    def write_comparison_videos(self, result, params: dict, density: float, out) -> None:
         """Per guidance view, side by side: guidance | guidance flow | simulated flow | error,
-        and the simulated frames from that view (comparison.mp4, comparison_view1.mp4, ...)."""
+        and the simulated frames from that view (out/comparison.mp4, comparison_view1.mp4, ...)."""
         from clflow.flow.visualize import comparison_panel
         from clflow.media import write_video
 
@@ -208,4 +209,4 @@ class Results:
                 )
                 for t in range(self.frames)
             ]
-            write_video(self.cfg.output / comparison_video(k), np.stack(panels), self.cfg.simulation.fps)
+            write_video(out / comparison_video(k), np.stack(panels), self.cfg.simulation.fps)

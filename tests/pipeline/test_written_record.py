@@ -1,0 +1,169 @@
+"""Issue 46: a command replaces or removes only what clflow wrote (each output folder's
+written-record, clflow.fileio.WRITTEN_RECORD, lists it with its content), never an input of
+the same run, and refuses in one line before any work when it would. Driven through the CLI
+as a user would; the user's files are hashed before and after."""
+
+import hashlib
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from clflow.fileio import WRITTEN_RECORD, atomic_dir, atomic_write_text, check_output_folder
+from clflow.pipeline.runs import RESULTS
+from tests.pipeline.test_refusals import one_error, run
+
+SIMULATE = ("--set", "simulation.frames=1", "--preview", "none")
+
+
+def digests(folder: Path) -> dict[str, str]:
+    """Every file under ``folder`` (its relative path) and the SHA-256 of its bytes."""
+    return {
+        p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
+
+
+def user_folder(folder: Path, files: dict[str, str]) -> dict[str, str]:
+    for name, text in files.items():
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / name).write_text(text)
+    return digests(folder)
+
+
+def test_simulate_refuses_to_write_over_its_own_guidance_video(quick_demo, tmp_path):
+    """`cp -r demo S; clflow simulate S/config.yaml -o S`: the preview would replace the
+    config's guidance frames (S/guidance/), and without one the run would remove them as
+    an earlier preview; into S/sim it writes."""
+    copy = tmp_path / "S"
+    shutil.copytree(quick_demo, copy)
+    before = digests(copy)
+    for preview in ("mp4", "none"):
+        res = run("simulate", copy / "config.yaml", "--set", "simulation.frames=1", "--preview", preview, "-o", copy)
+        one_error(res, r"S/guidance is an input of this run and one of its outputs: write elsewhere \(-o\)")
+        assert "simulating" not in res.stderr and digests(copy) == before
+    res = run("simulate", copy / "config.yaml", *SIMULATE, "-o", copy / "sim")
+    assert res.returncode == 0, res.stderr
+    after = digests(copy)
+    assert {name: after[name] for name in before} == before and "sim/frame_001.ply" in after
+
+
+def test_simulate_leaves_a_users_frames_and_folders_and_says_so_before_the_work(quick_demo, tmp_path):
+    folder = tmp_path / "mine"
+    before = user_folder(
+        folder,
+        {"notes.txt": "n", "frame_999.ply": "a", "frame_2.ply": "b", "render4d/mine.txt": "m"},
+    )
+    res = run("simulate", quick_demo / "config.yaml", *SIMULATE, "-o", folder)
+    one_error(
+        res,
+        r"mine holds frame_2.ply, frame_999.ply, render4d/mine.txt, which clflow did not write \(or which changed "
+        r"since\) and this run would replace or remove: move them or write elsewhere \(-o\)",
+    )
+    assert "simulating" not in res.stderr and digests(folder) == before
+    for name in ("frame_999.ply", "frame_2.ply", "render4d/mine.txt"):
+        (folder / name).unlink()
+    res = run("simulate", quick_demo / "config.yaml", *SIMULATE, "-o", folder)
+    assert res.returncode == 0, res.stderr
+    assert (folder / "notes.txt").read_text() == "n" and (folder / "frame_001.ply").is_file()
+
+
+def test_simulating_again_replaces_its_frames_and_renders_but_not_what_the_user_changed(quick_demo, tmp_path):
+    """The earlier result and what clflow rendered from it (render4d's default folder and one
+    of its own, `-o SIM/mine`) go; a frame the user edited since, or a file they added to a
+    render folder, is refused."""
+    sim = tmp_path / "sim"
+    assert run("simulate", quick_demo / "config.yaml", "--set", "simulation.frames=2", "--preview", "none",
+               "-o", sim).returncode == 0  # fmt: skip
+    for out in ([], ["-o", sim / "mine"]):
+        res = run("render4d", sim, *out)
+        assert res.returncode == 0, res.stderr
+    (sim / "mine" / "notes.txt").write_text("mine")
+    before = digests(sim)
+    one_error(run("simulate", quick_demo / "config.yaml", *SIMULATE, "-o", sim), r"sim holds mine/notes.txt, which")
+    (sim / "mine" / "notes.txt").unlink()
+    (sim / "frame_002.ply").write_bytes(b"edited")
+    one_error(run("simulate", quick_demo / "config.yaml", *SIMULATE, "-o", sim), r"sim holds frame_002.ply, which")
+    assert digests(sim) == {**{k: v for k, v in before.items() if k != "mine/notes.txt"},
+                            "frame_002.ply": hashlib.sha256(b"edited").hexdigest()}  # fmt: skip
+    (sim / "frame_002.ply").unlink()
+    res = run("simulate", quick_demo / "config.yaml", *SIMULATE, "-o", sim)
+    assert res.returncode == 0, res.stderr
+    assert sorted(p.name for p in sim.iterdir()) == [WRITTEN_RECORD, "frame_000.ply", "frame_001.ply", "gaussians.npz"]
+
+
+def test_a_particle_simulation_never_overwrites_its_own_particles(tmp_path):
+    out = tmp_path / "pp"
+    assert run("simulate", "--grid", 16, "--frames", 1, "--preview", "none", "-o", out).returncode == 0
+    before = digests(out)
+    res = run("simulate", out / "positions.npz", "--grid", 16, "--frames", 1, "--preview", "none", "-o", out)
+    one_error(res, r"pp/positions.npz is an input of this run and one of its outputs: write elsewhere \(-o\)")
+    assert digests(out) == before
+
+
+def test_optimize_leaves_a_users_page_in_its_output_folder(quick_demo, tmp_path):
+    before = user_folder(tmp_path / "o", {"index.html": "<p>my page</p>", "notes.txt": "n"})
+    res = run("optimize", quick_demo / "config.yaml", "-o", tmp_path / "o", "--iterations", 1)
+    one_error(res, r"o holds index.html, which clflow did not write")
+    assert "iteration" not in res.stderr and digests(tmp_path / "o") == before
+
+
+def _interrupt_the_writing(config: Path, out: Path, sig: int) -> subprocess.CompletedProcess:
+    """`clflow optimize` of 2 iterations, sent ``sig`` once it checks and writes its results."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "clflow_cli", "optimize", str(config), "-o", str(out), "--iterations", "2"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    seen = []
+    for line in proc.stdout:
+        seen.append(line)
+        if line.startswith("checking the result and writing it"):
+            break
+    proc.send_signal(sig)
+    rest, _ = proc.communicate(timeout=300)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, "", "".join(seen) + rest)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL], ids=["INT", "TERM", "KILL"])
+def test_an_interruption_while_optimize_writes_its_results_leaves_none_of_them(quick_demo, tmp_path, sig):
+    """The grid check and the writing are one step: interrupted there, no result is written
+    (the checkpoint holds every iteration) and the command printed writes them all."""
+    out = tmp_path / "o"
+    res = _interrupt_the_writing(quick_demo / "config.yaml", out, sig)
+    assert not [name for pattern in RESULTS for name in out.glob(pattern)], sorted(out.iterdir())
+    assert (out / "checkpoint.json").is_file()
+    again = f"clflow optimize {quick_demo / 'config.yaml'} --resume -o {out} --iterations 2"
+    if sig != signal.SIGKILL:
+        one_error(res, rf"interrupted while checking and writing the results, none of which were written; the 2 "
+                       rf"iterations are saved in .*checkpoint.json: write them with `{again}`",
+                  exit_code=130 if sig == signal.SIGINT else 143)  # fmt: skip
+    res = run(*again.split()[1:])
+    assert res.returncode == 0, res.stderr
+    assert all(list(out.glob(pattern)) for pattern in RESULTS if pattern != "search.json")
+    assert not [p for p in tmp_path.rglob("*") if ".tmp" in p.name], sorted(tmp_path.rglob("*"))
+
+
+def test_the_record_lists_what_atomic_writes_put_there_and_nothing_else(tmp_path):
+    out = tmp_path / "out"
+    atomic_write_text(out / "params.json", "{}")
+    with atomic_dir(out, replaces=("frames", "video.mp4")) as tmp:
+        (tmp / "frames").mkdir()
+        atomic_write_text(tmp / "frames" / "000.png", "a")
+        (tmp / "video.mp4").write_text("v")
+    (out / "notes.txt").write_text("mine")
+    check_output_folder(out, ("params.json", "frames", "video.mp4"))  # all clflow's
+    with pytest.raises(Exception, match=r"out holds notes.txt, which clflow did not write"):
+        check_output_folder(out, ("*.txt",))
+    (out / "video.mp4").write_text("edited")
+    with pytest.raises(Exception, match=r"out holds video.mp4, which clflow did not write \(or which changed since\)"):
+        with atomic_dir(out, replaces=("frames", "video.mp4")):
+            raise AssertionError("refused on entering")
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == [
+        WRITTEN_RECORD, "frames", "frames/000.png", "notes.txt", "params.json", "video.mp4"
+    ]  # fmt: skip
