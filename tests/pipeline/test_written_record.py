@@ -167,3 +167,41 @@ def test_the_record_lists_what_atomic_writes_put_there_and_nothing_else(tmp_path
     assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == [
         WRITTEN_RECORD, "frames", "frames/000.png", "notes.txt", "params.json", "video.mp4"
     ]  # fmt: skip
+
+
+def _interrupted(args: list, when: str, sig: int) -> subprocess.CompletedProcess:
+    """``clflow *args``, sent ``sig`` at its first output line that starts with ``when``."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "clflow_cli", *map(str, args)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    seen = []
+    for line in proc.stdout:
+        seen.append(line)
+        if line.startswith(when):
+            break
+    proc.send_signal(sig)
+    rest, _ = proc.communicate(timeout=300)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, "", "".join(seen) + rest)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL], ids=["INT", "TERM", "KILL"])
+def test_an_interrupted_simulate_or_render4d_leaves_the_earlier_result_as_it_was(quick_demo, tmp_path, sig):
+    sim = tmp_path / "sim"
+    assert run("simulate", quick_demo / "config.yaml", *SIMULATE, "-o", sim).returncode == 0
+    assert run("render4d", sim).returncode == 0
+    before = digests(tmp_path)
+    exit_code = {signal.SIGINT: 130, signal.SIGTERM: 143, signal.SIGKILL: -9}[sig]
+    again = ["simulate", quick_demo / "config.yaml", "--set", "simulation.frames=3", "-o", sim]
+    res = _interrupted(again, "simulating:", sig)
+    assert res.returncode == exit_code and "Traceback" not in res.stderr, res.stderr
+    res = _interrupted(["render4d", sim, "--views", 2], "rendering:", sig)
+    assert res.returncode == exit_code and "Traceback" not in res.stderr, res.stderr
+    leftovers = [p for p in tmp_path.rglob("*") if ".tmp" in p.name]
+    assert not leftovers or sig == signal.SIGKILL, leftovers  # Ctrl-C and SIGTERM clean up
+    assert {name: digest for name, digest in digests(tmp_path).items() if ".tmp" not in name} == before
+    assert run(*again).returncode == 0 and run("render4d", sim).returncode == 0
+    assert not [p for p in tmp_path.rglob("*") if ".tmp" in p.name]  # a killed run's temporaries went with it
+    assert (sim / "frame_003.ply").is_file() and (sim / "render4d" / "orbit.mp4").is_file()
