@@ -112,10 +112,10 @@ def test_optimize_leaves_a_users_page_in_its_output_folder(quick_demo, tmp_path)
     assert "iteration" not in res.stderr and digests(tmp_path / "o") == before
 
 
-def _interrupt_the_writing(config: Path, out: Path, sig: int) -> subprocess.CompletedProcess:
-    """`clflow optimize` of 2 iterations, sent ``sig`` once it checks and writes its results."""
+def _interrupted(args: list, when: str, sig: int) -> subprocess.CompletedProcess:
+    """``clflow *args``, sent ``sig`` at its first output line that starts with ``when``."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "clflow_cli", "optimize", str(config), "-o", str(out), "--iterations", "2"],
+        [sys.executable, "-m", "clflow_cli", *map(str, args)],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -123,7 +123,7 @@ def _interrupt_the_writing(config: Path, out: Path, sig: int) -> subprocess.Comp
     seen = []
     for line in proc.stdout:
         seen.append(line)
-        if line.startswith("checking the result and writing it"):
+        if line.startswith(when):
             break
     proc.send_signal(sig)
     rest, _ = proc.communicate(timeout=300)
@@ -135,7 +135,11 @@ def test_an_interruption_while_optimize_writes_its_results_leaves_none_of_them(q
     """The grid check and the writing are one step: interrupted there, no result is written
     (the checkpoint holds every iteration) and the command printed writes them all."""
     out = tmp_path / "o"
-    res = _interrupt_the_writing(quick_demo / "config.yaml", out, sig)
+    res = _interrupted(
+        ["optimize", quick_demo / "config.yaml", "-o", out, "--iterations", 2],
+        "checking the result and writing it",
+        sig,
+    )
     assert not [name for pattern in RESULTS for name in out.glob(pattern)], sorted(out.iterdir())
     assert (out / "checkpoint.json").is_file()
     again = f"clflow optimize {quick_demo / 'config.yaml'} --resume -o {out} --iterations 2"
@@ -167,24 +171,6 @@ def test_the_record_lists_what_atomic_writes_put_there_and_nothing_else(tmp_path
     assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == [
         WRITTEN_RECORD, "frames", "frames/000.png", "notes.txt", "params.json", "video.mp4"
     ]  # fmt: skip
-
-
-def _interrupted(args: list, when: str, sig: int) -> subprocess.CompletedProcess:
-    """``clflow *args``, sent ``sig`` at its first output line that starts with ``when``."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "clflow_cli", *map(str, args)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
-    seen = []
-    for line in proc.stdout:
-        seen.append(line)
-        if line.startswith(when):
-            break
-    proc.send_signal(sig)
-    rest, _ = proc.communicate(timeout=300)
-    return subprocess.CompletedProcess(proc.args, proc.returncode, "", "".join(seen) + rest)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL], ids=["INT", "TERM", "KILL"])
