@@ -55,7 +55,8 @@ def flow(
     import numpy as np
 
     from clflow.errors import InputError
-    from clflow.flow.export import write_flow_folder
+    from clflow.fileio import check_output_folder
+    from clflow.flow.export import FLOW_ENTRIES, write_flow_folder
     from clflow.flow.optical_flow import mask_from_box, mask_from_image
     from clflow.flow.video import read_video
     from clflow_cli.progress import progress
@@ -65,6 +66,9 @@ def flow(
     timed = [name for name, given in (("--start", start), ("--end", end), ("--sim-fps", sim_fps)) if given]
     if timed and fps is None and Path(video).is_dir():  # known before its frames are read
         raise click.UsageError(f"{video} is an image folder, which has no frame rate: {', '.join(timed)} needs --fps")
+    out = Path(output) if output else Path(Path(video).stem + "_flow")
+    inputs = [path for path in (video, mask_image, raft_weights) if path is not None]
+    check_output_folder(out, FLOW_ENTRIES, inputs)  # replaces only clflow's: before the work
     clip = read_video(video, fps=fps)
     click.echo(clip.describe())
     if start > 0 or end is not None:
@@ -78,7 +82,6 @@ def flow(
         object_mask = mask_from_image(mask_image, clip.width, clip.height)
     elif box:
         object_mask = mask_from_box(box, clip.width, clip.height)
-    out = Path(output) if output else Path(Path(video).stem + "_flow")
     with progress(3 * max(len(clip.frames) - 1, 0), "optical flow") as advance:  # forward, backward, files
         forward, valid = write_flow_folder(
             clip, out, method, preset, object_mask, raft_weights, write_panels_video, advance

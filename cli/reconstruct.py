@@ -12,6 +12,8 @@ LOG_EVERY = 100  # iterations between progress lines when stderr is not a termin
 #: what only a photo and its depth map take (no training), and what every reconstruction takes
 DEPTH_OPTIONS = ("depth_scale", "fov", "shell")
 COMMON_OPTIONS = ("images", "output_dir", "depth")
+#: what reconstruct writes into its folder
+RECONSTRUCTION_ENTRIES = ("point_cloud.ply", "cameras.json", "metrics.json", "checkpoint.pt", "preview")
 
 
 @click.command("reconstruct")
@@ -92,6 +94,10 @@ def reconstruct(
     if unused:
         why = "with --depth nothing is trained" if photo else "they go with --depth (a photo and its depth map)"
         raise click.UsageError(f"{why}: drop {', '.join(unused)}")
+    from clflow.fileio import check_output_folder
+
+    inputs = [path for path in (images, depth, transforms, colmap, cameras_json, masks) if path is not None]
+    check_output_folder(output_dir, RECONSTRUCTION_ENTRIES, inputs)  # replaces only clflow's: before the work
     if depth is not None:
         return _from_depth(images, depth, depth_scale, fov, shell, output_dir)
     from clflow.recon import Settings, load_views

@@ -10,6 +10,9 @@ import numpy as np
 
 from clflow.flow.video import Video
 
+#: what write_flow_folder writes into its folder
+FLOW_ENTRIES = ("flow.npz", "flo", "png", "flow.mp4")
+
 
 def write_flow_folder(
     clip: Video,

@@ -3,6 +3,7 @@
 import numpy as np
 from click.testing import CliRunner
 
+from clflow.fileio import WRITTEN_RECORD
 from clflow.flow.flo import read_flo
 from clflow.flow.video import read_video
 from clflow.media import write_video
@@ -33,7 +34,7 @@ def test_flow_command_writes_fields_and_visualisation(tmp_path, translating):
     assert len(list((out / "png").glob("flow_*.png"))) == 5
     panels = read_video(out / "flow.mp4")
     assert panels.frames.shape == (5, 64, 160, 3)
-    assert not [p for p in out.rglob(".*")]  # no temporary file left behind
+    assert [p.name for p in out.rglob(".*")] == [WRITTEN_RECORD] * 3  # no temporary file left behind
 
 
 def test_flow_command_window_and_errors(tmp_path, translating):

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from clflow.errors import InputError
+from clflow.fileio import WRITTEN_RECORD
 from clflow.flow.flo import read_flo, write_flo
 from clflow.flow.losses import charbonnier_flow_loss, masked_flow_loss, render_loss
 from clflow.flow.metrics import ECMS_ALPHA, ecms, endpoint_error, flow_slope
@@ -177,6 +178,7 @@ def test_flo_round_trip_and_errors(tmp_path):
     with pytest.raises(InputError, match="b.flo: the flow contains NaN"):
         write_flo(tmp_path / "b.flo", flow)
     assert not (tmp_path / "b.flo").exists() and sorted(p.name for p in tmp_path.iterdir()) == [
+        WRITTEN_RECORD,
         "a.flo",
         "png.flo",
         "short.flo",

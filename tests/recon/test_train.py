@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from clflow.errors import InputError
+from clflow.fileio import WRITTEN_RECORD
 from clflow.recon import Settings, load_views, reconstruct
 from clflow.recon.train import random_points, visible_count
 from clflow.splat import load_cameras_json, load_ply
@@ -46,7 +47,11 @@ def test_outputs_are_standard_files_and_a_resumed_run_is_identical(small_capture
     assert torch.allclose(cameras[5].viewmat, views.views[5].camera.viewmat, atol=1e-12)
     metrics = json.loads((tmp_path / "a" / "metrics.json").read_text())
     assert metrics["test"]["views"] == 2 and metrics["train"]["views"] == 10 and metrics["iterations"] == 60
-    assert sorted(p.name for p in (tmp_path / "a" / "preview").iterdir()) == ["iter_000030.png", "iter_000060.png"]
+    assert sorted(p.name for p in (tmp_path / "a" / "preview").iterdir()) == [
+        WRITTEN_RECORD,
+        "iter_000030.png",
+        "iter_000060.png",
+    ]
 
     def interrupt(step, info):
         if step == 35:

@@ -10,6 +10,7 @@ import torch
 from click.testing import CliRunner
 
 from clflow.errors import InputError
+from clflow.fileio import WRITTEN_RECORD
 from clflow.media import to_uint8
 from clflow.splat import Gaussians, look_at, rgb_to_sh0, save_ply
 from clflow.splat.render import rasterize
@@ -235,7 +236,10 @@ def test_cli_default_view_and_orbit_video(tmp_path, scene):
             8,
         )
         assert result.exit_code == 0, result.output
-        assert sorted(p.name for p in (tmp_path / "orbit").iterdir()) == [f"orbit_{i:04d}.png" for i in range(4)]
+        assert sorted(p.name for p in (tmp_path / "orbit").iterdir()) == [
+            WRITTEN_RECORD,
+            *(f"orbit_{i:04d}.png" for i in range(4)),
+        ]
     ok, animation = cv2.imreadanimation(str(tmp_path / "orbit.gif"))
     assert ok and len(animation.frames) == 4
     capture = cv2.VideoCapture(str(tmp_path / "orbit.mp4"))
@@ -306,7 +310,7 @@ def test_cli_cameras_with_one_file_name_and_two_sizes(tmp_path, scene):
     (tmp_path / "t.json").write_text(json.dumps(dict(camera_angle_x=0.7, frames=frames)))
     result = run("render", scene, "-o", tmp_path / "o", "--transforms", tmp_path / "t.json")
     assert result.exit_code == 0, result.output
-    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["r_0.png", "r_0_0001.png"]
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == [WRITTEN_RECORD, "r_0.png", "r_0_0001.png"]
     assert read_png(tmp_path / "o" / "r_0_0001.png").shape == (16, 20, 3)
     result = run(
         "render", scene, "-o", tmp_path / "o", "--transforms", tmp_path / "t.json", "--video", tmp_path / "v.mp4"
