@@ -4,6 +4,7 @@ another, or as Ray tasks with the serial path's sum order."""
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import signal
@@ -23,11 +24,14 @@ class RunTimeout(BaseException):
     """A serial run went past its time limit (a BaseException: no ``except Exception`` eats it)."""
 
 
-def execute(run: Run, folder: str, env: dict[str, str] | None = None) -> dict:
+def execute(run: Run, folder: str, env: dict[str, str] | None = None, inputs: dict | None = None) -> dict:
     """Run ``run`` in this process with its outputs in ``folder`` and its output lines in
-    ``folder/run.log``; returns its record (status ok or failed, with the reason)."""
+    ``folder/run.log``; returns its record (status ok or failed, with the reason).
+    ``inputs`` (clflow.sweep.spec.inputs_of) go to ``folder/inputs.json`` first: a run whose
+    folder was last started with other inputs starts over (an optimisation does not resume)."""
     folder_path = Path(folder)
     folder_path.mkdir(parents=True, exist_ok=True)
+    fresh = inputs is not None and _started_with(folder_path, inputs)
     record: dict[str, Any] = {"name": run.name, **run.params(), "host": socket.gethostname()}
     start = time.perf_counter()
     saved = {k: os.environ.get(k) for k in (env or {})}
@@ -40,7 +44,7 @@ def execute(run: Run, folder: str, env: dict[str, str] | None = None) -> dict:
         level = root.level
         root.setLevel(min(level, logging.INFO) if level else logging.INFO)
         try:
-            record.update(status="ok", reason=None, result=_COMMANDS[run.command](run, folder_path))
+            record.update(status="ok", reason=None, result=_COMMANDS[run.command](run, folder_path, fresh))
         except RunTimeout:
             raise
         except Exception as exc:  # recorded, and the sweep goes on
@@ -58,6 +62,21 @@ def execute(run: Run, folder: str, env: dict[str, str] | None = None) -> dict:
     return record
 
 
+def _started_with(folder: Path, inputs: dict) -> bool:
+    """Whether ``folder``'s last start had other inputs than ``inputs`` (then its outputs are
+    not to be continued), and ``inputs`` noted as its latest start's. A folder with a record
+    and no inputs.json is an earlier clflow's: other inputs."""
+    from clflow.fileio import atomic_write_text
+
+    noted = folder / "inputs.json"
+    try:
+        other = json.loads(noted.read_text()) != inputs
+    except (OSError, ValueError):
+        other = (folder / "result.json").exists()
+    atomic_write_text(noted, json.dumps(inputs, indent=2))
+    return other
+
+
 def _reason(exc: BaseException) -> str:
     import click
 
@@ -66,7 +85,7 @@ def _reason(exc: BaseException) -> str:
     return text if isinstance(exc, (ClflowError, click.ClickException)) else f"{type(exc).__name__}: {text}"
 
 
-def _run_simulate(run: Run, folder: Path) -> dict:
+def _run_simulate(run: Run, folder: Path, fresh: bool) -> dict:
     from clflow.limits import DEFAULT_MAX_OUTPUT_GB
     from clflow.pipeline.runs import simulate_scene
 
@@ -87,11 +106,12 @@ def _run_simulate(run: Run, folder: Path) -> dict:
     return {"gaussians": moving, "frames": frames, "output": "simulation/"}
 
 
-def _run_optimize(run: Run, folder: Path) -> dict:
+def _run_optimize(run: Run, folder: Path, fresh: bool) -> dict:
     from clflow.pipeline.runs import run_optimization
 
     results = folder / "results"
-    resume = (results / "checkpoint.json").exists()  # an interrupted or timed-out try continues
+    # an interrupted or timed-out try of the same inputs continues; of other inputs, starts over
+    resume = not fresh and (results / "checkpoint.json").exists()
     return run_optimization(
         run.config,
         resume,
@@ -103,7 +123,7 @@ def _run_optimize(run: Run, folder: Path) -> dict:
     )
 
 
-def _run_sysid(run: Run, folder: Path) -> dict:
+def _run_sysid(run: Run, folder: Path, fresh: bool) -> dict:  # its inputs are its parameters (its folder)
     from clflow_datasets.sysid import run_case
 
     record = run_case(run.case, folder / "case", sysid_settings(run.sysid or {}))
@@ -112,7 +132,7 @@ def _run_sysid(run: Run, folder: Path) -> dict:
     return record
 
 
-_COMMANDS: dict[str, Callable[[Run, Path], dict]] = {
+_COMMANDS: dict[str, Callable[[Run, Path, bool], dict]] = {
     "simulate": _run_simulate,
     "optimize": _run_optimize,
     "sysid": _run_sysid,
@@ -162,21 +182,23 @@ def run_serial(
     timeout: float | None,
     on_done: Callable[[dict], None],
     env: dict[str, str] | None = None,
+    inputs: dict[str, dict] | None = None,
 ) -> None:
-    """Run one after another in this process (a run's ``timeout`` enforced with SIGALRM)."""
+    """Run one after another in this process (a run's ``timeout`` enforced with SIGALRM;
+    ``inputs``: each run's by name, for :func:`execute`)."""
     for run in runs:
         limit = run.timeout or timeout
         start = time.perf_counter()
         try:
             with _deadline(limit):
-                record = execute(run, str(folder_of(run)), env)
+                record = execute(run, str(folder_of(run)), env, (inputs or {}).get(run.name))
         except RunTimeout:
             record = _timed_out(run, limit, time.perf_counter() - start)
         on_done(record)
 
 
-def _ray_task(run: Run, folder: str) -> dict:
-    return execute(run, folder)  # the env came with the task's runtime_env, before OpenCL started
+def _ray_task(run: Run, folder: str, inputs: dict | None = None) -> dict:
+    return execute(run, folder, inputs=inputs)  # the env came with the task's runtime_env, before OpenCL started
 
 
 def run_on_ray(
