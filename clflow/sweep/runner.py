@@ -201,6 +201,10 @@ def _ray_task(run: Run, folder: str, inputs: dict | None = None) -> dict:
     return execute(run, folder, inputs=inputs)  # the env came with the task's runtime_env, before OpenCL started
 
 
+#: how long a sweep waits for a node that can run its tasks when none is left (a node died)
+NO_ROOM_GRACE_S = 10.0
+
+
 def run_on_ray(
     runs: list[Run],
     folder_of: Callable[[Run], Path],
@@ -214,36 +218,38 @@ def run_on_ray(
     args: Callable[[Run], tuple] | None = None,
 ) -> None:
     """Run each run as a Ray task (Ray already started: :func:`start_ray`), at most as many at
-    once as the cluster has room for, so a run's time limit counts from its start. A task that
-    raises is recorded by :func:`execute`; one killed (worker died) or past its limit (its
-    worker is killed) is recorded here; the others go on. Ctrl-C cancels the running tasks."""
+    once as the cluster has room for (its nodes now: fewer when one dies), so a run's time
+    limit counts from its start. A task that raises is recorded by :func:`execute`; one killed
+    (its worker or node died) or past its limit (its worker is killed) is recorded here; the
+    others go on. When no node is left that can run a task (for NO_ROOM_GRACE_S), the runs
+    not finished are recorded as failed. Ctrl-C cancels the running tasks."""
     import ray
 
     remote, room = remote_task(task, env, cpus_per_task, resources)
-    slots = (len(runs) if room is None else room) or 1
     waiting = list(runs)
     running: dict[Any, tuple[Run, float]] = {}
+    no_room_since = None
     try:
         while waiting or running:
-            while waiting and len(running) < slots:
+            slots = room()
+            now = time.perf_counter()
+            no_room_since = (no_room_since or now) if slots == 0 else None
+            if no_room_since is not None and now - no_room_since > NO_ROOM_GRACE_S:
+                _no_room(waiting, running, now, on_done)
+                break
+            while waiting and (slots is None or len(running) < slots):
                 run = waiting.pop(0)
                 ref = remote.remote(run, str(folder_of(run))) if args is None else remote.remote(*args(run))
                 running[ref] = (run, time.perf_counter())
-            now = time.perf_counter()
             deadlines = [start + (r.timeout or timeout) for r, start in running.values() if r.timeout or timeout]
             wait = max(0.05, min([d - now for d in deadlines] + [1.0]))
+            if not running:  # no room for one yet
+                time.sleep(wait)
+                continue
             ready, _ = ray.wait(list(running), num_returns=1, timeout=wait)
             for ref in ready:
                 run, start = running.pop(ref)
-                try:
-                    record = ray.get(ref)
-                except ray.exceptions.RayTaskError as exc:  # raised past execute() (a task without it)
-                    cause = exc.cause if exc.cause is not None else exc
-                    record = _ended(run, "failed", _reason(cause), time.perf_counter() - start)
-                except ray.exceptions.RayError as exc:  # the worker died (killed, out of memory, node lost)
-                    cause = " ".join(str(exc).split())[:300]
-                    record = _ended(run, "killed", f"{type(exc).__name__}: {cause}", time.perf_counter() - start)
-                on_done(record)
+                on_done(_result(ref, run, start))
             now = time.perf_counter()
             for ref, (run, start) in list(running.items()):
                 limit = run.timeout or timeout
@@ -256,6 +262,35 @@ def run_on_ray(
             with contextlib.suppress(Exception):
                 ray.cancel(ref, force=True)
         raise
+
+
+def _result(ref, run: Run, start: float) -> dict:
+    """The record of a finished task: its own, or failed or killed with Ray's reason."""
+    import ray
+
+    try:
+        return ray.get(ref)
+    except ray.exceptions.RayTaskError as exc:  # raised past execute() (a task without it)
+        cause = exc.cause if exc.cause is not None else exc
+        return _ended(run, "failed", _reason(cause), time.perf_counter() - start)
+    except ray.exceptions.RayError as exc:  # the worker died (killed, out of memory, its node lost)
+        cause = " ".join(str(exc).split())[:300]
+        return _ended(run, "killed", f"{type(exc).__name__}: {cause}", time.perf_counter() - start)
+
+
+def _no_room(waiting: list[Run], running: dict, now: float, on_done: Callable[[dict], None]) -> None:
+    """Record the runs not finished as failed: no node of the cluster can run them any more."""
+    import ray
+
+    reason = f"no node of the Ray cluster can run its task any more (for {NO_ROOM_GRACE_S:g} s; a node left)"
+    for ref, (run, start) in list(running.items()):
+        with contextlib.suppress(Exception):
+            ray.cancel(ref, force=True)
+        del running[ref]
+        on_done(_ended(run, "failed", reason, now - start))
+    for run in waiting:
+        on_done(_ended(run, "failed", reason, 0.0))
+    waiting.clear()
 
 
 def _sysid_task(name: str, folder: str, settings, case) -> dict:

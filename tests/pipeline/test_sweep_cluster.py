@@ -213,3 +213,21 @@ def test_a_node_that_dies_mid_sweep_loses_no_run_and_retry_failed_completes_them
         assert on_cluster[name] == record, name
         for key, value in arrays.items():
             np.testing.assert_array_equal(other[key], value, err_msg=f"{name}: {key}")
+
+
+@pytest.mark.slow
+def test_runs_that_no_node_left_can_run_are_recorded_as_failed_not_waited_for(cluster, quick_demo, tmp_path):
+    """The only node with the resource the runs ask for dies: its run is killed, the next is
+    recorded as failed once no node has come back for NO_ROOM_GRACE_S (Ray would queue it forever)."""
+    spec = _spec(tmp_path, quick_demo, [2.0e3, 4.0e3])
+    cluster.start({}, head=True)
+    only = cluster.start({"far": 1})
+    out = tmp_path / "out"
+    code, output = _kill_mid_sweep(
+        cluster, only, "sweep", spec, "-o", out, "--address", cluster.address, "--resources", "far=1"
+    )
+    assert code == 1 and "0 of 2 runs ok" in output, output
+    records = sorted(json.loads((out / "sweep.json").read_text())["runs"].values(), key=lambda r: r["status"])
+    assert [r["status"] for r in records] == ["failed", "killed"], records
+    assert records[0]["reason"].startswith("no node of the Ray cluster can run its task any more"), records[0]
+    assert "NodeDiedError" in records[1]["reason"], records[1]
