@@ -85,8 +85,9 @@ def start_ray(address: str | None, cpus: int | None = None, instead: str | None 
 
 def remote_task(task: Callable, env: dict[str, str], cpus_per_task: int, resources: dict[str, float] | None):
     """``task`` as a Ray remote function of ``resources`` (CPU and GPU among them; CPU
-    default ``cpus_per_task``) with ``env``, never retried; and how many such tasks the
-    cluster runs at once (None: no limit); InputError when it has no room for one."""
+    default ``cpus_per_task``) with ``env``, never retried; and ``room()``: how many such
+    tasks the cluster runs at once now, its nodes as they are then (None: no limit; 0: no
+    node left that can run one). InputError when it has no room for one now."""
     import ray
 
     resources = dict(resources or {})
@@ -95,12 +96,15 @@ def remote_task(task: Callable, env: dict[str, str], cpus_per_task: int, resourc
     remote = ray.remote(task).options(
         num_cpus=cpus, num_gpus=gpus, resources=resources or None, max_retries=0, runtime_env={"env_vars": env}
     )
-    total = ray.cluster_resources()
     wanted = {k: v for k, v in {"CPU": cpus, "GPU": gpus, **resources}.items() if v}
-    room = [int(total.get(k, 0) // v) for k, v in wanted.items()]
-    if min(room, default=1) < 1:
-        raise InputError(f"the Ray cluster has no room for a task of {wanted} (it has {total})")
-    return remote, min(room, default=None)
+
+    def room() -> int | None:
+        total = ray.cluster_resources()  # of the nodes alive
+        return min((int(total.get(k, 0) // v) for k, v in wanted.items()), default=None)
+
+    if room() == 0:
+        raise InputError(f"the Ray cluster has no room for a task of {wanted} (it has {ray.cluster_resources()})")
+    return remote, room
 
 
 def map_on_ray(

@@ -72,7 +72,8 @@ def sweep(ctx, spec, output, serial, address, cpus_per_task, resources, timeout,
     and sweep.md as they finish.
 
     A run that fails, is killed or times out is recorded with its reason and the others go
-    on. Run the same command again to continue: finished runs are skipped."""
+    on. Run the same command again to continue: finished runs are skipped unless their
+    inputs (config, the files it names) changed since."""
     from pathlib import Path
 
     from clflow.parallel import require_ray

@@ -4,6 +4,7 @@ another, or as Ray tasks with the serial path's sum order."""
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import signal
@@ -23,11 +24,14 @@ class RunTimeout(BaseException):
     """A serial run went past its time limit (a BaseException: no ``except Exception`` eats it)."""
 
 
-def execute(run: Run, folder: str, env: dict[str, str] | None = None) -> dict:
+def execute(run: Run, folder: str, env: dict[str, str] | None = None, inputs: dict | None = None) -> dict:
     """Run ``run`` in this process with its outputs in ``folder`` and its output lines in
-    ``folder/run.log``; returns its record (status ok or failed, with the reason)."""
+    ``folder/run.log``; returns its record (status ok or failed, with the reason).
+    ``inputs`` (clflow.sweep.spec.inputs_of) go to ``folder/inputs.json`` first: a run whose
+    folder was last started with other inputs starts over (an optimisation does not resume)."""
     folder_path = Path(folder)
     folder_path.mkdir(parents=True, exist_ok=True)
+    fresh = inputs is not None and _started_with(folder_path, inputs)
     record: dict[str, Any] = {"name": run.name, **run.params(), "host": socket.gethostname()}
     start = time.perf_counter()
     saved = {k: os.environ.get(k) for k in (env or {})}
@@ -40,7 +44,7 @@ def execute(run: Run, folder: str, env: dict[str, str] | None = None) -> dict:
         level = root.level
         root.setLevel(min(level, logging.INFO) if level else logging.INFO)
         try:
-            record.update(status="ok", reason=None, result=_COMMANDS[run.command](run, folder_path))
+            record.update(status="ok", reason=None, result=_COMMANDS[run.command](run, folder_path, fresh))
         except RunTimeout:
             raise
         except Exception as exc:  # recorded, and the sweep goes on
@@ -58,6 +62,21 @@ def execute(run: Run, folder: str, env: dict[str, str] | None = None) -> dict:
     return record
 
 
+def _started_with(folder: Path, inputs: dict) -> bool:
+    """Whether ``folder``'s last start had other inputs than ``inputs`` (then its outputs are
+    not to be continued), and ``inputs`` noted as its latest start's. A folder with a record
+    and no inputs.json is an earlier clflow's: other inputs."""
+    from clflow.fileio import atomic_write_text
+
+    noted = folder / "inputs.json"
+    try:
+        other = json.loads(noted.read_text()) != inputs
+    except (OSError, ValueError):
+        other = (folder / "result.json").exists()
+    atomic_write_text(noted, json.dumps(inputs, indent=2))
+    return other
+
+
 def _reason(exc: BaseException) -> str:
     import click
 
@@ -66,7 +85,7 @@ def _reason(exc: BaseException) -> str:
     return text if isinstance(exc, (ClflowError, click.ClickException)) else f"{type(exc).__name__}: {text}"
 
 
-def _run_simulate(run: Run, folder: Path) -> dict:
+def _run_simulate(run: Run, folder: Path, fresh: bool) -> dict:
     from clflow.limits import DEFAULT_MAX_OUTPUT_GB
     from clflow.pipeline.runs import simulate_scene
 
@@ -87,11 +106,12 @@ def _run_simulate(run: Run, folder: Path) -> dict:
     return {"gaussians": moving, "frames": frames, "output": "simulation/"}
 
 
-def _run_optimize(run: Run, folder: Path) -> dict:
+def _run_optimize(run: Run, folder: Path, fresh: bool) -> dict:
     from clflow.pipeline.runs import run_optimization
 
     results = folder / "results"
-    resume = (results / "checkpoint.json").exists()  # an interrupted or timed-out try continues
+    # an interrupted or timed-out try of the same inputs continues; of other inputs, starts over
+    resume = not fresh and (results / "checkpoint.json").exists()
     return run_optimization(
         run.config,
         resume,
@@ -103,7 +123,7 @@ def _run_optimize(run: Run, folder: Path) -> dict:
     )
 
 
-def _run_sysid(run: Run, folder: Path) -> dict:
+def _run_sysid(run: Run, folder: Path, fresh: bool) -> dict:  # its inputs are its parameters (its folder)
     from clflow_datasets.sysid import run_case
 
     record = run_case(run.case, folder / "case", sysid_settings(run.sysid or {}))
@@ -112,7 +132,7 @@ def _run_sysid(run: Run, folder: Path) -> dict:
     return record
 
 
-_COMMANDS: dict[str, Callable[[Run, Path], dict]] = {
+_COMMANDS: dict[str, Callable[[Run, Path, bool], dict]] = {
     "simulate": _run_simulate,
     "optimize": _run_optimize,
     "sysid": _run_sysid,
@@ -162,21 +182,27 @@ def run_serial(
     timeout: float | None,
     on_done: Callable[[dict], None],
     env: dict[str, str] | None = None,
+    inputs: dict[str, dict] | None = None,
 ) -> None:
-    """Run one after another in this process (a run's ``timeout`` enforced with SIGALRM)."""
+    """Run one after another in this process (a run's ``timeout`` enforced with SIGALRM;
+    ``inputs``: each run's by name, for :func:`execute`)."""
     for run in runs:
         limit = run.timeout or timeout
         start = time.perf_counter()
         try:
             with _deadline(limit):
-                record = execute(run, str(folder_of(run)), env)
+                record = execute(run, str(folder_of(run)), env, (inputs or {}).get(run.name))
         except RunTimeout:
             record = _timed_out(run, limit, time.perf_counter() - start)
         on_done(record)
 
 
-def _ray_task(run: Run, folder: str) -> dict:
-    return execute(run, folder)  # the env came with the task's runtime_env, before OpenCL started
+def _ray_task(run: Run, folder: str, inputs: dict | None = None) -> dict:
+    return execute(run, folder, inputs=inputs)  # the env came with the task's runtime_env, before OpenCL started
+
+
+#: how long a sweep waits for a node that can run its tasks when none is left (a node died)
+NO_ROOM_GRACE_S = 10.0
 
 
 def run_on_ray(
@@ -192,36 +218,38 @@ def run_on_ray(
     args: Callable[[Run], tuple] | None = None,
 ) -> None:
     """Run each run as a Ray task (Ray already started: :func:`start_ray`), at most as many at
-    once as the cluster has room for, so a run's time limit counts from its start. A task that
-    raises is recorded by :func:`execute`; one killed (worker died) or past its limit (its
-    worker is killed) is recorded here; the others go on. Ctrl-C cancels the running tasks."""
+    once as the cluster has room for (its nodes now: fewer when one dies), so a run's time
+    limit counts from its start. A task that raises is recorded by :func:`execute`; one killed
+    (its worker or node died) or past its limit (its worker is killed) is recorded here; the
+    others go on. When no node is left that can run a task (for NO_ROOM_GRACE_S), the runs
+    not finished are recorded as failed. Ctrl-C cancels the running tasks."""
     import ray
 
     remote, room = remote_task(task, env, cpus_per_task, resources)
-    slots = (len(runs) if room is None else room) or 1
     waiting = list(runs)
     running: dict[Any, tuple[Run, float]] = {}
+    no_room_since = None
     try:
         while waiting or running:
-            while waiting and len(running) < slots:
+            slots = room()
+            now = time.perf_counter()
+            no_room_since = (no_room_since or now) if slots == 0 else None
+            if no_room_since is not None and now - no_room_since > NO_ROOM_GRACE_S:
+                _no_room(waiting, running, now, on_done)
+                break
+            while waiting and (slots is None or len(running) < slots):
                 run = waiting.pop(0)
                 ref = remote.remote(run, str(folder_of(run))) if args is None else remote.remote(*args(run))
                 running[ref] = (run, time.perf_counter())
-            now = time.perf_counter()
             deadlines = [start + (r.timeout or timeout) for r, start in running.values() if r.timeout or timeout]
             wait = max(0.05, min([d - now for d in deadlines] + [1.0]))
+            if not running:  # no room for one yet
+                time.sleep(wait)
+                continue
             ready, _ = ray.wait(list(running), num_returns=1, timeout=wait)
             for ref in ready:
                 run, start = running.pop(ref)
-                try:
-                    record = ray.get(ref)
-                except ray.exceptions.RayTaskError as exc:  # raised past execute() (a task without it)
-                    cause = exc.cause if exc.cause is not None else exc
-                    record = _ended(run, "failed", _reason(cause), time.perf_counter() - start)
-                except ray.exceptions.RayError as exc:  # the worker died (killed, out of memory, node lost)
-                    cause = " ".join(str(exc).split())[:300]
-                    record = _ended(run, "killed", f"{type(exc).__name__}: {cause}", time.perf_counter() - start)
-                on_done(record)
+                on_done(_result(ref, run, start))
             now = time.perf_counter()
             for ref, (run, start) in list(running.items()):
                 limit = run.timeout or timeout
@@ -234,6 +262,35 @@ def run_on_ray(
             with contextlib.suppress(Exception):
                 ray.cancel(ref, force=True)
         raise
+
+
+def _result(ref, run: Run, start: float) -> dict:
+    """The record of a finished task: its own, or failed or killed with Ray's reason."""
+    import ray
+
+    try:
+        return ray.get(ref)
+    except ray.exceptions.RayTaskError as exc:  # raised past execute() (a task without it)
+        cause = exc.cause if exc.cause is not None else exc
+        return _ended(run, "failed", _reason(cause), time.perf_counter() - start)
+    except ray.exceptions.RayError as exc:  # the worker died (killed, out of memory, its node lost)
+        cause = " ".join(str(exc).split())[:300]
+        return _ended(run, "killed", f"{type(exc).__name__}: {cause}", time.perf_counter() - start)
+
+
+def _no_room(waiting: list[Run], running: dict, now: float, on_done: Callable[[dict], None]) -> None:
+    """Record the runs not finished as failed: no node of the cluster can run them any more."""
+    import ray
+
+    reason = f"no node of the Ray cluster can run its task any more (for {NO_ROOM_GRACE_S:g} s; a node left)"
+    for ref, (run, start) in list(running.items()):
+        with contextlib.suppress(Exception):
+            ray.cancel(ref, force=True)
+        del running[ref]
+        on_done(_ended(run, "failed", reason, now - start))
+    for run in waiting:
+        on_done(_ended(run, "failed", reason, 0.0))
+    waiting.clear()
 
 
 def _sysid_task(name: str, folder: str, settings, case) -> dict:

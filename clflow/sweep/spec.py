@@ -56,10 +56,52 @@ class Run:
     @property
     def name(self) -> str:
         """A stable folder name: readable parts of the parameters and a hash of all of them."""
-        digest = hashlib.sha256(json.dumps(self.params(), sort_keys=True).encode()).hexdigest()[:8]
         parts = [self.command, self.label or self.case or Path(self.config or "run").stem]
         slug = re.sub(r"[^A-Za-z0-9._=+-]+", "_", "-".join(parts)).strip("_")[:80]
-        return f"{slug}-{digest}"
+        return f"{slug}-{_digest(self.params())[:8]}"
+
+
+def inputs_of(run: Run) -> dict[str, str]:
+    """What ``run`` reads, each by 16 hex digits of a SHA-256 of its content: its parameters
+    (``run``), its config as loaded with its overrides (under the config file's name: the
+    resolved values, paths as they are written, ``output`` left out: the sweep chooses it),
+    and each file or folder that config or a ``params`` option names, by what it holds
+    (clflow.fileio.content_digest; under its path from the config's folder). A run whose
+    earlier record has other inputs is run again (clflow.sweep.study)."""
+    from dataclasses import asdict
+
+    from clflow.fileio import content_digest
+    from clflow.scene.config import load_config
+
+    parts = {"run": _digest(run.params())}
+    files, home = [], None
+    if run.config is not None:
+        config = Path(run.config)
+        fields = asdict(load_config(config, run.overrides))
+        fields.pop("output", None)
+        parts[config.name] = _digest(fields)
+        files, home = [p for p in _paths(fields) if p != config], config.parent
+    if "params" in run.options:
+        files.append(Path(run.options["params"]))
+    for path in sorted(set(files)):
+        inside = home is not None and path.is_relative_to(home)
+        parts[path.relative_to(home).as_posix() if inside else str(path)] = content_digest(path)[:16]
+    return parts
+
+
+def _digest(value: Any) -> str:
+    return hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _paths(value: Any) -> list[Path]:
+    """Every Path in ``value`` (dicts, lists and tuples of them: a config as asdict gives it)."""
+    if isinstance(value, Path):
+        return [value]
+    if isinstance(value, dict):
+        value = list(value.values())
+    if isinstance(value, (list, tuple)):
+        return [p for v in value for p in _paths(v)]
+    return []
 
 
 @dataclass(frozen=True)

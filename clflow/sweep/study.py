@@ -1,5 +1,5 @@
-"""The sweep: each run into its own folder (finished ones skipped), its record in
-``result.json``, all of them in ``sweep.json`` and ``sweep.md`` as they finish."""
+"""The sweep: each run into its own folder (finished ones of the same inputs skipped), its
+record in ``result.json``, all of them in ``sweep.json`` and ``sweep.md`` as they finish."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import Any, Callable
 
 from clflow.parallel import ray_session, serial_order, task_env
 from clflow.sweep.runner import run_on_ray, run_serial
-from clflow.sweep.spec import FINISHED, Run, Spec
+from clflow.sweep.spec import FINISHED, Run, Spec, inputs_of
 
 
 def previous_record(folder: Path) -> dict | None:
@@ -34,9 +34,9 @@ def sweep(
     device: str | None = None,
     echo: Callable[[str], None] = lambda line: None,
 ) -> dict:
-    """Run the spec's runs into ``out`` (skipping those finished earlier: all but failed ones
-    with ``retry_failed``), writing ``sweep.json`` and ``sweep.md`` as they finish; returns
-    the summary. KeyboardInterrupt leaves the finished runs recorded."""
+    """Run the spec's runs into ``out`` (skipping those finished earlier with the same inputs:
+    all but failed ones with ``retry_failed``), writing ``sweep.json`` and ``sweep.md`` as they
+    finish; returns the summary. KeyboardInterrupt leaves the finished runs recorded."""
     from clflow.fileio import atomic_write_text
     from clflow.limits import check_output
 
@@ -48,10 +48,14 @@ def sweep(
         return runs_dir / run.name
 
     summary: dict[str, Any] = {"spec": str(spec.source.resolve()), "runs": {}}
+    inputs = {run.name: inputs_of(run) for run in spec.runs}  # a run's identity: its name and these
     todo = []
     for run in spec.runs:
         earlier = previous_record(folder_of(run))
-        if earlier and (earlier["status"] == "ok" or not retry_failed):
+        changed = earlier is not None and _changed(earlier, inputs[run.name])
+        if changed:
+            echo(f"run {run.name}: {changed}, running it again")
+        if earlier and not changed and (earlier["status"] == "ok" or not retry_failed):
             summary["runs"][run.name] = {**earlier, "skipped": True}
         else:
             summary["runs"][run.name] = {"name": run.name, **run.params(), "status": "pending"}
@@ -63,6 +67,7 @@ def sweep(
         atomic_write_text(out / "sweep.md", markdown(summary))
 
     def done(record: dict) -> None:
+        record["inputs"] = inputs[record["name"]]
         record["date"] = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
         atomic_write_text(runs_dir / record["name"] / "result.json", json.dumps(record, indent=2))
         summary["runs"][record["name"]] = record
@@ -86,7 +91,7 @@ def sweep(
     summary["mode"] = "serial" if serial else f"ray ({address or 'local'}, {cpus_per_task} CPU per task)"
     try:
         if serial:
-            run_serial(todo, folder_of, timeout, done, env=order)  # (torch's threads are this process's already)
+            run_serial(todo, folder_of, timeout, done, env=order, inputs=inputs)  # (torch's threads: this process's)
         else:
             with ray_session(address, instead=None):
                 run_on_ray(
@@ -97,10 +102,20 @@ def sweep(
                     env=task_env(cpus_per_task, device, order),
                     cpus_per_task=cpus_per_task,
                     resources=resources,
+                    args=lambda run: (run, str(folder_of(run)), inputs[run.name]),
                 )
     finally:
         write()
     return summary
+
+
+def _changed(record: dict, inputs: dict[str, str]) -> str | None:
+    """How ``record``'s inputs differ from ``inputs`` (None: they do not)."""
+    earlier = record.get("inputs")
+    if not isinstance(earlier, dict):
+        return "its result has no digest of its inputs (an earlier clflow's)"
+    parts = sorted(k for k in earlier.keys() | inputs.keys() if earlier.get(k) != inputs.get(k))
+    return f"its inputs changed since its result ({', '.join(parts)})" if parts else None
 
 
 def markdown(summary: dict) -> str:

@@ -254,3 +254,91 @@ def test_resources_and_modes_are_checked_as_usage(spec_dir):
         result = _sweep(spec, "-o", folder / "out", *args)
         assert result.exit_code == 2 and message in result.output, result.output
     assert not (folder / "out").exists()
+
+
+@pytest.fixture
+def own_scene(quick_demo, tmp_path):
+    """tmp_path with a copy of the quick demo in scene/ (the test edits it) and ``write(spec) -> path``."""
+    shutil.copytree(quick_demo, tmp_path / "scene")
+
+    def write(spec):
+        path = tmp_path / "spec.yaml"
+        path.write_text(yaml.safe_dump(spec))
+        return path
+
+    return tmp_path, write
+
+
+def _records(out):
+    return {name.split("-")[1]: record for name, record in json.loads((out / "sweep.json").read_text())["runs"].items()}
+
+
+def test_a_run_whose_inputs_changed_runs_again_and_the_others_are_skipped(own_scene):
+    folder, write = own_scene
+    spec = write(
+        {
+            "command": "simulate",
+            "configs": ["scene/config.yaml", "scene/config_truth.yaml"],  # config_truth names no guidance
+            "options": {"preview": "none"},
+            "set": {"simulation.frames": 2},
+        }
+    )
+    out = folder / "out"
+    assert _sweep(spec, "-o", out, "--serial").exit_code == 0
+    first = _records(out)
+    assert set(first["config"]["inputs"]) == {"run", "config.yaml", "guidance", "scene.ply"}
+    name = first["config"]["name"]
+    saved = out / "runs" / name / "simulation" / "gaussians.npz"
+
+    def again(*changes):
+        result = _sweep(spec, "-o", out, "--serial")
+        assert result.exit_code == 0, result.output
+        lines = [line for line in result.output.splitlines() if "running it again" in line]
+        assert lines == [f"run {name}: {change}, running it again" for change in changes], result.output
+        return result.output
+
+    assert "2 run(s) finished earlier, skipped" in again()  # nothing changed: nothing runs
+    written = saved.stat().st_mtime_ns
+
+    config = folder / "scene" / "config.yaml"
+    config.write_text(config.read_text().replace("density: 1000.0", "density: 1100.0"))
+    assert "1 run(s) finished earlier, skipped" in again("its inputs changed since its result (config.yaml)")
+    second = _records(out)
+    assert second["config"]["inputs"]["config.yaml"] != first["config"]["inputs"]["config.yaml"]
+    assert second["config"]["date"] >= first["config"]["date"] and saved.stat().st_mtime_ns != written
+    assert json.loads((out / "runs" / name / "result.json").read_text()) == second["config"]
+    assert second["config_truth"] == {**first["config_truth"], "skipped": True}  # its inputs are the same
+
+    frame = sorted((folder / "scene" / "guidance").iterdir())[0]  # a file the config points at
+    frame.write_bytes(frame.read_bytes() + b"\0")
+    again("its inputs changed since its result (guidance)")
+
+    record = json.loads((out / "runs" / name / "result.json").read_text())  # as an earlier clflow wrote it
+    (out / "runs" / name / "result.json").write_text(json.dumps({k: v for k, v in record.items() if k != "inputs"}))
+    again("its result has no digest of its inputs (an earlier clflow's)")
+    assert "2 run(s) finished earlier, skipped" in again()
+
+
+def test_an_optimisation_whose_config_changed_starts_over_instead_of_resuming(own_scene):
+    """Its checkpoint is of the other inputs: it runs from the start (and does not fail to resume)."""
+    folder, write = own_scene
+    spec = write(
+        {
+            "command": "optimize",
+            "configs": ["scene/config.yaml"],
+            "options": {"iterations": 1},
+            "set": {"simulation.frames": 3, "optimize.horizon.start": 2},
+        }
+    )
+    out = folder / "out"
+    assert _sweep(spec, "-o", out, "--serial").exit_code == 0
+    config = folder / "scene" / "config.yaml"
+    config.write_text(config.read_text().replace("density: 1000.0", "density: 1100.0"))
+    result = _sweep(spec, "-o", out, "--serial")
+    assert result.exit_code == 0 and "(config.yaml), running it again" in result.output, result.output
+    (record,) = _records(out).values()
+    assert record["status"] == "ok" and "skipped" not in record
+    log = (out / "runs" / record["name"] / "run.log").read_text()
+    assert "removing the earlier run's" in log  # a new run, not a resumed one
+    inputs = json.loads((out / "runs" / record["name"] / "inputs.json").read_text())
+    assert inputs == record["inputs"]
