@@ -16,6 +16,7 @@ import glob
 import os
 import re
 import shutil
+import signal
 import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
@@ -25,6 +26,8 @@ if TYPE_CHECKING:
 
 
 # a temporary of atomic_path / atomic_dir: ".<stem>.<pid>.<mkstemp's random part>.tmp<suffix>"
+#: the signals a result's last moves hold back (Ctrl-C, and what schedulers send)
+HELD_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 _TEMPORARY = re.compile(r"^\..+\.(?P<pid>\d+)\.[A-Za-z0-9_]+\.tmp")
 
 
@@ -342,14 +345,39 @@ def atomic_dir(
         if source is not None:
             record["source"] = os.path.relpath(Path(source).resolve(), path.resolve())
         _write_record(tmp, record)
-        if not path.exists():
-            tmp.chmod(0o777 & ~_umask())
-            os.replace(tmp, path)
-            return
-        for entry in tmp.iterdir():
-            os.replace(entry, path / entry.name)
+        with _signals_held():  # Ctrl-C or SIGTERM now would leave a mix: they land after the moves
+            if not path.exists():
+                tmp.chmod(0o777 & ~_umask())
+                os.replace(tmp, path)
+                return
+            for entry in tmp.iterdir():
+                os.replace(entry, path / entry.name)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM held back until the block ends, then handled as they would have
+    been (in the main thread, where Python handles signals; elsewhere a no-op)."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+    before = {sig: signal.signal(sig, lambda signum, frame: received.append(signum)) for sig in HELD_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+        for sig in received[:1]:
+            handler = before[sig]
+            if callable(handler):
+                handler(sig, None)
+            elif handler == signal.SIG_DFL:
+                os.kill(os.getpid(), sig)
 
 
 def _write_record(folder: Path, record: dict) -> None:

@@ -191,3 +191,31 @@ def test_an_interrupted_simulate_or_render4d_leaves_the_earlier_result_as_it_was
     assert run(*again).returncode == 0 and run("render4d", sim).returncode == 0
     assert not [p for p in tmp_path.rglob("*") if ".tmp" in p.name]  # a killed run's temporaries went with it
     assert (sim / "frame_003.ply").is_file() and (sim / "render4d" / "orbit.mp4").is_file()
+
+
+def test_ctrl_c_while_a_result_moves_in_lands_after_the_whole_result(tmp_path, monkeypatch):
+    """The entries of atomic_dir move in one by one: Ctrl-C (or SIGTERM) at the first move
+    is held until the last, so the folder holds the whole new result, never a mix."""
+    import os
+
+    import clflow.fileio as fileio
+
+    out = tmp_path / "out"
+    with atomic_dir(out, replaces=("a", "b")) as tmp:
+        for name in "ab":
+            (tmp / name).write_text("old")
+    real, moves = os.replace, []
+
+    def replace(src, dst):
+        if Path(dst).parent == out:  # a move into the folder (not the record's write)
+            moves.append(dst)
+            if len(moves) == 1:
+                os.kill(os.getpid(), signal.SIGINT)
+        real(src, dst)
+
+    monkeypatch.setattr(fileio.os, "replace", replace)
+    with pytest.raises(KeyboardInterrupt):
+        with atomic_dir(out, replaces=("a", "b")) as tmp:
+            for name in "ab":
+                (tmp / name).write_text("new")
+    assert len(moves) == 3 and [(out / name).read_text() for name in "ab"] == ["new", "new"]
