@@ -90,7 +90,7 @@ def read_params_record(path: str | Path, cfg):
         raise InputError(f"{path}: substeps must be a whole number >= 1, got {substeps!r}")
     if record.get("fps", cfg.simulation.fps) != cfg.simulation.fps:  # the same time step at another frame rate
         substeps = max(1, math.ceil(substeps * record["fps"] / cfg.simulation.fps - 1e-9))
-    return dataclasses.replace(cfg, velocity=tuple(float(v) for v in velocity)), overrides, substeps
+    return cfg.with_object(velocity=tuple(float(v) for v in velocity)), overrides, substeps
 
 
 def _frame_progress(advance) -> Callable[[int], None] | None:
