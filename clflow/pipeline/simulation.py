@@ -55,11 +55,12 @@ def check_forces(cfg: SceneConfig, positions: torch.Tensor, dtype: torch.dtype =
     duration = sim.frames / sim.fps
     x = positions.to(dtype).double()  # as the simulator tests them (clflow.mpm.boundaries.DriverGroups)
     masks = []
+    what = "object" if len(cfg.objects) == 1 else "objects"
     for i, stage in enumerate(cfg.forces):
         masks.append(stage.region.select(x))
         if not bool(masks[-1].any()):
             raise InputError(
-                f"{cfg.source}: forces[{i}].region holds no particle of the object (the object spans "
+                f"{cfg.source}: forces[{i}].region holds no particle of the {what} (the {what} spans "
                 f"{_fmt_point(positions.min(0).values)} .. {_fmt_point(positions.max(0).values)} m "
                 f"in the simulation frame, +y up)"
             )

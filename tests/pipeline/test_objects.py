@@ -179,3 +179,18 @@ def test_bad_input_is_one_line_before_any_work(tmp_path):
     refused(good, r"several objects \(jelly, heap\): identification is not built yet", command="optimize")
     single = cube_config(tmp_path)
     refused(single, r"the config gives one object .* no object 'jelly'", "--set", "objects.jelly.velocity=[0,1,0]")
+
+
+def test_an_object_of_several_asks_the_material_query_for_itself(tmp_path):
+    from clflow.pipeline.material import resolve_material
+    from clflow.query.result import QueryResult
+
+    QueryResult("sand", 1550.0, {"friction_angle": 32.0}, "offline").save(tmp_path / "heap.material.json")
+    data = two_objects_config(tmp_path)
+    data["objects"][1]["material"] = {"type": "query", "query": {"result": "heap.material.json"}, "density": 1500.0}
+    cfg = resolve_material(load_config(write_config(tmp_path, data)))
+    jelly, heap = cfg.objects
+    assert jelly.material.type == "elastic" and jelly.material.parameters == ELASTIC["parameters"]  # as given
+    assert heap.material.type == "sand" and heap.material.parameters["friction_angle"] == 32.0
+    assert heap.material.density == 1500.0  # the config's, over the query's
+    assert (cfg.output / "material_query.heap.json").is_file() and not (cfg.output / "material_query.json").exists()
