@@ -172,9 +172,10 @@ def simulate_scene(
         if preview != "none":
             render_video(result, tmp / "guidance", video=tmp / "guidance.mp4" if preview == "mp4" else None)
     suffix = ".compressed.ply" if compressed else ".ply"
+    objects = "object" if len(cfg.objects) == 1 else "objects"
     echo(
         f"wrote {out / 'gaussians.npz'} and {result.x.shape[0]} PLY frames ({out / ('frame_000' + suffix)} ...)"
-        + (f" of the object, the static scene in {out / ('static' + suffix)}" if object_only else "")
+        + (f" of the {objects}, the static scene in {out / ('static' + suffix)}" if object_only else "")
     )
     if preview != "none":
         echo(f"wrote {out / 'guidance.mp4' if preview == 'mp4' else out / 'guidance'}")

@@ -134,8 +134,13 @@ def test_an_elastic_cube_dropped_on_a_sand_heap(tmp_path):
         "objects.heap.material.type=elastic",
         "--set",
         f"objects.heap.material.parameters={elastic}",
+        "--object-only",
     )
     assert np.abs(other["object_means"][-1][sand] - means[-1][sand]).max() > 1e-3
+    # object-only PLYs keep the objects too: the frames' Gaussians theirs, static.ply's -1
+    frame, static = (load_ply(tmp_path / "elastic_heap" / name) for name in ("frame_003.ply", "static.ply"))
+    assert frame.features[:, frame.feature_names.index("object")].tolist() == a["object"].tolist()
+    assert static.feature_names == ("object",) and bool((static.features == -1).all()) and len(static) == 8
 
 
 SAND_STIFFNESS = 3.5e5  # the sand's Young's modulus (its default), for the heap made elastic
