@@ -1,9 +1,10 @@
-"""Forward runs of a scene config: simulate the object (no gradients), render its frames
+"""Forward runs of a scene config: simulate the objects (no gradients), render its frames
 and videos (``clflow simulate CONFIG``; per-frame Gaussians: clflow.pipeline.frames4d)."""
 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -13,9 +14,9 @@ import torch
 
 from clflow.media import to_uint8
 from clflow.pipeline.render import frame_gaussians, render_rgb
-from clflow.pipeline.simulation import ObjectSetup, build_simulator, setup_object
+from clflow.pipeline.simulation import ObjectSetup, ObjectValues, build_scene_simulator, setup_object
 from clflow.scene.config import SceneConfig
-from clflow.scene.load import guidance_camera, load_scene_gaussians
+from clflow.scene.load import guidance_camera, load_scene_objects
 from clflow.splat.gaussians import Gaussians
 
 log = logging.getLogger(__name__)
@@ -23,14 +24,21 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Prepared:
-    """A config's scene, loaded once: static and object Gaussians (simulation frame),
-    the object's particles and grid, and the guidance camera."""
+    """A config's scene, loaded once: static and object Gaussians (simulation frame; the
+    objects' object by object), the objects' particles and grid, and the guidance camera."""
 
     cfg: SceneConfig
     static: Gaussians
     obj_rest: Gaussians
     setup: ObjectSetup
     camera: object  # clflow.splat.cameras.Camera
+
+    @property
+    def gaussian_objects(self) -> torch.Tensor:
+        """[n] int64: the object (an index into ``cfg.objects``) of each of ``obj_rest``'s Gaussians."""
+        index = self.setup.object_index if self.setup is not None else None
+        n = self.obj_rest.means.shape[0]
+        return torch.zeros(n, dtype=torch.long) if index is None else index[:n]
 
 
 @dataclass
@@ -42,19 +50,26 @@ class SimulationResult:
     F: torch.Tensor  # [T+1, M, 3, 3] deformation gradients
     clamped: torch.Tensor | None = None  # [T+1] particles clamped at the grid's edge per frame
     substeps: int = 0  # substeps per frame the run used
+    # each object's values (clflow.pipeline.simulation.ObjectValues); params and density are
+    # the one object's ({} and NaN for several)
+    values: tuple = ()
 
     def scene_at(self, t: int) -> Gaussians:
         p = self.prepared
         return frame_gaussians(p.static, p.obj_rest, self.x[t], self.F[t])
 
 
-def prepare(cfg: SceneConfig, dtype: torch.dtype = torch.float32) -> Prepared:
-    gaussians, mask = load_scene_gaussians(cfg, dtype)
-    obj = gaussians.select(mask.nonzero().flatten())
-    static = gaussians.select((~mask).nonzero().flatten())
-    setup = setup_object(cfg, obj)
+def prepare(cfg: SceneConfig, dtype: torch.dtype = torch.float32, scene=None) -> Prepared:
+    """The config's scene loaded (``scene``: what :func:`load_scene_objects` returned for it,
+    else loaded here) and its particles made."""
+    gaussians, labels = scene if scene is not None else load_scene_objects(cfg, dtype)
+    order = torch.cat([(labels == k).nonzero().flatten() for k in range(len(cfg.objects))])  # object by object
+    obj = gaussians.select(order)
+    static = gaussians.select((labels < 0).nonzero().flatten())
+    setup = setup_object(cfg, obj, labels[order])
     log.info(
-        "object: %d Gaussians + %d fill particles; grid %s, dx %.4g m",
+        "%s: %d Gaussians + %d fill particles; grid %s, dx %.4g m",
+        "object" if len(cfg.objects) == 1 else f"{len(cfg.objects)} objects ({', '.join(cfg.object_names)})",
         setup.particles.n_gaussians,
         setup.particles.n_fill,
         setup.grid.resolution,
@@ -64,7 +79,7 @@ def prepare(cfg: SceneConfig, dtype: torch.dtype = torch.float32) -> Prepared:
 
 
 def material_values(cfg: SceneConfig, overrides: dict[str, float] | None = None) -> tuple[dict[str, float], float]:
-    """(material parameters, density) of the config, with ``overrides`` (SI) applied."""
+    """(material parameters, density) of the config's one object, with ``overrides`` (SI) applied."""
     params = dict(cfg.material.parameters)
     density = cfg.material.density
     for name, value in (overrides or {}).items():
@@ -73,6 +88,17 @@ def material_values(cfg: SceneConfig, overrides: dict[str, float] | None = None)
         else:
             params[name] = float(value)
     return params, density
+
+
+def scene_values(cfg: SceneConfig, overrides: dict[str, float] | None = None) -> tuple[ObjectValues, ...]:
+    """Each object's ObjectValues as the config gives them; ``overrides`` (SI; ``density``
+    too) apply to a config of one object (an optimisation's result)."""
+    if len(cfg.objects) == 1:
+        params, density = material_values(cfg, overrides)
+        return (ObjectValues(params, density, cfg.velocity),)
+    if overrides:
+        raise ValueError("material overrides name no object: a config of several objects takes none")
+    return tuple(ObjectValues(dict(o.material.parameters), o.material.density, o.velocity) for o in cfg.objects)
 
 
 def simulate_config(
@@ -92,17 +118,15 @@ def simulate_config(
     substeps, as the optimiser does, and is an error (SimulationError) at the limit or with a
     fixed ``simulation.substep_dt``; ``strict_cfl=False`` only warns."""
     from clflow.mpm import SimulationError
-    from clflow.pipeline.preflight import describe, plan_run
+    from clflow.pipeline.preflight import describe, plan_scene_run
 
     prepared = prepared or prepare(cfg)
-    params, density = material_values(cfg, overrides)
+    values = scene_values(cfg, overrides)
     max_substeps = cfg.simulation.max_substeps if max_substeps is None else max_substeps
-    plan = plan_run(cfg, prepared.setup, params, density, min_substeps=min_substeps, max_substeps=max_substeps)
+    plan = plan_scene_run(cfg, prepared.setup, values, min_substeps=min_substeps, max_substeps=max_substeps)
     log.info("%s", describe(plan, "simulation", gradient=False))
     while True:
-        sim = build_simulator(
-            cfg, prepared.setup, params, density, min_substeps=min_substeps, max_substeps=max_substeps
-        )
+        sim = build_scene_simulator(cfg, prepared.setup, values, min_substeps=min_substeps, max_substeps=max_substeps)
         try:
             traj = sim.run(cfg.simulation.frames, on_frame, strict_cfl=strict_cfl)
             break
@@ -120,7 +144,8 @@ def simulate_config(
                 ) from None
             log.info("%s: simulating again at %d substeps per frame", exc, 2 * sim.substeps)
             min_substeps = 2 * sim.substeps
-    return SimulationResult(prepared, params, density, traj.x, traj.F, traj.clamped, sim.substeps)
+    params, density = (values[0].params, values[0].density) if len(values) == 1 else ({}, math.nan)
+    return SimulationResult(prepared, params, density, traj.x, traj.F, traj.clamped, sim.substeps, values)
 
 
 def render_frames(result: SimulationResult, camera=None, supersample: int = 1) -> np.ndarray:

@@ -10,12 +10,18 @@ and the static ones once::
     opacities [n + S], sh [n + S, K, 3] (or colors [n + S, C]), object first
     time [T+1] s, fps, camera_viewmat [4, 4], camera_K [3, 3], camera_size [2] (guidance camera)
     scale, up_rotation [3, 3]           x_sim = scale * up_rotation @ x_file
+    object [n] int32                    each object Gaussian's object: an index into object_names
+    object_names [K] str                the config's objects (``object`` for the single-object form)
+
+(files of clflow before scenes of several objects lack the last two: one object).
 
 ``frame_000.ply ...`` are standard 3DGS PLY files in the splat file's own frame and units,
 so they overlay the input scene in any 3DGS viewer: the whole scene per frame, or (object
 only) the object per frame and ``static.ply`` once; or the same as ``.compressed.ply``
-(SuperSplat / PlayCanvas). A PLY cannot say that a Gaussian's SH
-turned with it, so the object's SH coefficients are written rotated into each frame
+(SuperSplat / PlayCanvas). With several objects a plain PLY has one more float property,
+``object``: the Gaussian's object (an index into the npz's object_names), -1 for a static
+one (the compressed layout has no room for it: the npz holds it). A PLY cannot say that a
+Gaussian's SH turned with it, so the object's SH coefficients are written rotated into each frame
 (:func:`clflow.splat.sh.rotate_sh`): a viewer shows the view-dependent colours clflow's
 renders show.
 """
@@ -96,7 +102,8 @@ def export_size(prepared, frames: int, preview: bool) -> tuple[int, int]:
     colours = g.sh[0].numel() if g.sh is not None else g.colors.shape[1]
     particles = prepared.setup.particles.positions.shape[0]
     cam = prepared.camera
-    per_frame = 4 * (21 * n + (n + s) * (14 + colours)) + (6 * cam.width * cam.height if preview else 0)
+    ply = 14 + colours + (len(prepared.cfg.objects) > 1)  # floats per PLY Gaussian; several objects: + object
+    per_frame = 4 * (21 * n + (n + s) * ply) + (6 * cam.width * cam.height if preview else 0)
     held = 4 * (TRAJECTORY_REALS * particles + 21 * n + (n + s) * (22 + colours))  # trajectory, frames, stacks
     return (frames + 1) * per_frame, (frames + 1) * held
 
@@ -136,23 +143,30 @@ def export_gaussians(result, folder: Path, object_only: bool = False, compressed
         "up_rotation": up_rotation(cfg.up).numpy(),
     }
     arrays["sh" if first.sh is not None else "colors"] = f32(first.sh if first.sh is not None else first.colors)
+    objects = prepared.gaussian_objects
+    arrays["object"] = objects.numpy().astype(np.int32)
+    arrays["object_names"] = np.array(cfg.object_names)
+    # several objects: each PLY Gaussian's object (-1 static), which the compressed layout cannot hold
+    several = len(cfg.objects) > 1 and not compressed
+    labels = torch.cat([objects, torch.full((static.means.shape[0],), -1, dtype=torch.long)]) if several else None
     with atomic_path(folder / NPZ_NAME) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **arrays)
     if object_only:
-        save(folder / f"{STATIC_NAME}{suffix}", file_gaussians(static, cfg.scale, cfg.up, turned=0))
+        static_labels = None if labels is None else labels[n:]
+        save(folder / f"{STATIC_NAME}{suffix}", file_gaussians(static, cfg.scale, cfg.up, 0, static_labels))
     for t, g in enumerate(frames):
-        save(
-            folder / f"frame_{t:03d}{suffix}",
-            file_gaussians(g.select(torch.arange(n)) if object_only else g, cfg.scale, cfg.up, turned=n),
-        )
+        part = g.select(torch.arange(n)) if object_only else g
+        shown = None if labels is None else labels[:n] if object_only else labels
+        save(folder / f"frame_{t:03d}{suffix}", file_gaussians(part, cfg.scale, cfg.up, turned=n, objects=shown))
 
 
-def file_gaussians(g: Gaussians, scale: float, up: str, turned: int) -> Gaussians:
+def file_gaussians(g: Gaussians, scale: float, up: str, turned: int, objects: torch.Tensor | None = None) -> Gaussians:
     """Simulation-frame Gaussians as undeformed Gaussians in the splat file's frame and units
     (x_file = R_up^T x_sim / scale), each covariance diagonalised into scales and a rotation.
     The SH of the first ``turned`` (the object's) are rotated by their turn since rest,
     R_up^T sh_rotations, so that a renderer without ``sh_rotations`` shows what clflow
-    renders; the others' rotation is the frame change alone."""
+    renders; the others' rotation is the frame change alone. ``objects`` [N]: each one's
+    object (-1 static), kept as the float feature ``object`` (a PLY property)."""
     from clflow.splat.gaussians import rotmat_to_quat
     from clflow.splat.sh import rotate_sh
 
@@ -171,6 +185,8 @@ def file_gaussians(g: Gaussians, scale: float, up: str, turned: int) -> Gaussian
         g.opacities.double().clamp(1e-6, 1 - 1e-6),
         sh=sh,
         colors=None if g.colors is None else g.colors.double(),
+        features=None if objects is None else objects.double()[:, None],
+        feature_names=() if objects is None else ("object",),
     )
 
 
@@ -194,6 +210,10 @@ def load_frames(folder: str | Path) -> Frames4D:
     missing = [k for k in required if k not in arrays]
     if missing:
         raise InputError(f"{path}: missing arrays {', '.join(missing)} (not written by clflow simulate?)")
+    n = arrays["object_means"].shape[1] if arrays["object_means"].ndim == 3 else -1
+    if "object" in arrays and (arrays["object"].shape != (n,) or arrays["object"].dtype.kind not in "iu"):
+        got = f"{arrays['object'].dtype} {arrays['object'].shape}"
+        raise InputError(f"{path}: object must be {n} integers (each object Gaussian's object), got {got}")
     for name, a in arrays.items():
         if a.dtype.kind == "f" and not np.isfinite(a).all():
             where = f" (first in frame {int(np.argwhere(~np.isfinite(a))[0, 0])})" if name.startswith("object_") else ""

@@ -47,7 +47,7 @@ def hypothesis_config(cfg: SceneConfig, material: str) -> SceneConfig:
     )
     material_cfg = MaterialConfig(mat.name, params, cfg.material.density, model=cfg.material.model if same else None)
     return dataclasses.replace(
-        cfg, material=material_cfg, optimize=optimize, output=cfg.output / "hypotheses" / mat.name
+        cfg.with_object(material=material_cfg), optimize=optimize, output=cfg.output / "hypotheses" / mat.name
     )
 
 

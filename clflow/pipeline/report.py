@@ -11,7 +11,6 @@ has read it, is written under it (``data-duration``), which the tests read back.
 
 from __future__ import annotations
 
-import dataclasses
 import html
 import json
 import sys
@@ -21,6 +20,7 @@ from clflow.environment import environment
 from clflow.fileio import atomic_write_text
 from clflow.limits import format_duration
 from clflow.pipeline.plots import range_text
+from clflow.scene.config import config_record
 
 RENDERS = "simulation/render4d"  # where `clflow demo` / `clflow render4d` put the 4D renders
 
@@ -31,7 +31,7 @@ def write_run_record(cfg, output: Path, argv: list[str] | None = None) -> dict:
     record = {
         "environment": environment(),
         "command": list(sys.argv if argv is None else argv),
-        "config": json.loads(json.dumps(dataclasses.asdict(cfg), default=str)),
+        "config": json.loads(json.dumps(config_record(cfg), default=str)),
     }
     atomic_write_text(output / "run.json", json.dumps(record, indent=2))
     return record

@@ -92,7 +92,7 @@ def read_params_record(path: str | Path, cfg):
         raise InputError(f"{path}: substeps must be a whole number >= 1, got {substeps!r}")
     if record.get("fps", cfg.simulation.fps) != cfg.simulation.fps:  # the same time step at another frame rate
         substeps = max(1, math.ceil(substeps * record["fps"] / cfg.simulation.fps - 1e-9))
-    return dataclasses.replace(cfg, velocity=tuple(float(v) for v in velocity)), overrides, substeps
+    return cfg.with_object(velocity=tuple(float(v) for v in velocity)), overrides, substeps
 
 
 def input_files(cfg) -> list[Path]:
@@ -141,21 +141,33 @@ def simulate_scene(
     frames) into ``out_dir`` (default: the config's output/simulation), all or nothing.
     ``max_substeps`` overrides ``simulation.max_substeps``; ``progress(total, label)`` yields
     ``advance(name, to=k)``, called after frame k (a CFL retry starts again at 1). Returns the folder."""
+    import torch
+
     from clflow.fileio import atomic_dir, check_output_folder
     from clflow.limits import check_memory, check_output
     from clflow.pipeline.forward import prepare, render_video, simulate_config
     from clflow.pipeline.frames4d import export_gaussians, export_size
     from clflow.pipeline.material import resolve_material
     from clflow.scene.config import load_config
+    from clflow.scene.load import load_scene_objects
 
-    cfg = resolve_material(load_config(config_path, settings))
+    cfg = load_config(config_path, settings)
+    scene = None
+    if len(cfg.objects) > 1:
+        if params_file:
+            raise InputError(
+                f"--params-from {params_file}: an optimisation's result is one object's material; "
+                f"{cfg.source} has several objects ({', '.join(cfg.object_names)})"
+            )
+        scene = load_scene_objects(cfg, torch.float32)  # selections checked (empty, overlapping) before a query
+    cfg = resolve_material(cfg)
     overrides, min_substeps = {}, 1
     if params_file:
         cfg, overrides, min_substeps = read_params_record(params_file, cfg)
     out = Path(out_dir) if out_dir else cfg.output / "simulation"
     inputs = [*input_files(cfg), *([params_file] if params_file else [])]
     check_output_folder(out, SIMULATION_ENTRIES, inputs, derived=True)  # before any work
-    prepared = prepare(cfg)
+    prepared = prepare(cfg, scene=scene)
     frames = cfg.simulation.frames
     written, memory = export_size(prepared, frames, preview != "none")
     less = "simulate fewer frames (simulation.frames)"
@@ -171,7 +183,12 @@ def simulate_scene(
             on_frame=_frame_progress(advance),
             min_substeps=min_substeps,
         )
-    echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
+    if len(cfg.objects) == 1:
+        echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
+    else:
+        counts = torch.bincount(prepared.setup.object_index, minlength=len(cfg.objects)).tolist()
+        each = ", ".join(f"{o.name} {c:,} of {o.material.type}" for o, c in zip(cfg.objects, counts))
+        echo(f"{result.x.shape[1]:,} particles ({each}), {frames} frames")
     # all or nothing: a failure leaves OUT as it was; a success replaces the earlier
     # simulation's frames (all of them) and what was rendered from it
     with atomic_dir(out, replaces=SIMULATION_ENTRIES, inputs=inputs, derived=True) as tmp:
@@ -179,9 +196,10 @@ def simulate_scene(
         if preview != "none":
             render_video(result, tmp / "guidance", video=tmp / "guidance.mp4" if preview == "mp4" else None)
     suffix = ".compressed.ply" if compressed else ".ply"
+    objects = "object" if len(cfg.objects) == 1 else "objects"
     echo(
         f"wrote {out / 'gaussians.npz'} and {result.x.shape[0]} PLY frames ({out / ('frame_000' + suffix)} ...)"
-        + (f" of the object, the static scene in {out / ('static' + suffix)}" if object_only else "")
+        + (f" of the {objects}, the static scene in {out / ('static' + suffix)}" if object_only else "")
     )
     if preview != "none":
         echo(f"wrote {out / 'guidance.mp4' if preview == 'mp4' else out / 'guidance'}")
@@ -447,6 +465,11 @@ def run_optimization(
 
         require_ray("drop --parallel")
     cfg = load_config(config_path, overrides)
+    if len(cfg.objects) > 1:
+        raise InputError(
+            f"{cfg.source}: several objects ({', '.join(cfg.object_names)}): identification is not built yet "
+            f"(one object per config for clflow optimize; clflow simulate runs the scene)"
+        )
     with contextlib.ExitStack() as stack:
         search = cfg.optimize.search
         if parallel is not None and (cfg.optimize.materials or search is not None and search.starts > 1):

@@ -1,12 +1,14 @@
-"""The object's particles and the MPM simulator of a scene config, and differentiable runs.
+"""The objects' particles and the MPM simulator of a scene config, and differentiable runs.
 
-The object's Gaussians are the first particles (their centres), followed by the particles
-that fill the inside (clflow.scene.filling). Grid: ``simulation.grid_resolution`` nodes
-along the longest side of the configured domain or, by default, of the object's box grown
-by 75% of its size (at least the wall cells + 1) on every side. Either puts a ground
-collider GROUND_OFFSET cells above a node row: the default domain reaches down below it,
-with as many more nodes as that takes; a configured domain keeps its size and moves down by
-less than one cell (so a grid of any resolution over it meets the ground alike).
+The objects' Gaussians are the first particles (their centres, object by object), followed
+by the particles that fill the inside (clflow.scene.filling), object by object; several
+objects share one grid, where they collide, each particle with its object's material. Grid:
+``simulation.grid_resolution`` nodes along the longest side of the configured domain or, by
+default, of the box of all objects grown by 75% of its size (at least the wall cells + 1) on
+every side. Either puts a ground collider GROUND_OFFSET cells above a node row: the default
+domain reaches down below it, with as many more nodes as that takes; a configured domain
+keeps its size and moves down by less than one cell (so a grid of any resolution over it
+meets the ground alike).
 
 Why the ground's place among the node rows matters: the boundary condition acts on the
 nodes behind the plane, so how strongly the object's bottom layer couples to them depends on
@@ -53,11 +55,12 @@ def check_forces(cfg: SceneConfig, positions: torch.Tensor, dtype: torch.dtype =
     duration = sim.frames / sim.fps
     x = positions.to(dtype).double()  # as the simulator tests them (clflow.mpm.boundaries.DriverGroups)
     masks = []
+    what = "object" if len(cfg.objects) == 1 else "objects"
     for i, stage in enumerate(cfg.forces):
         masks.append(stage.region.select(x))
         if not bool(masks[-1].any()):
             raise InputError(
-                f"{cfg.source}: forces[{i}].region holds no particle of the object (the object spans "
+                f"{cfg.source}: forces[{i}].region holds no particle of the {what} (the {what} spans "
                 f"{_fmt_point(positions.min(0).values)} .. {_fmt_point(positions.max(0).values)} m "
                 f"in the simulation frame, +y up)"
             )
@@ -116,10 +119,27 @@ def unstable_start(sim) -> str | None:
 
 @dataclass
 class ObjectSetup:
-    """Everything about the simulated object that does not change between iterations."""
+    """Everything about the simulated objects that does not change between iterations.
 
-    particles: ObjectParticles  # positions [M, 3] m (Gaussian centres first), rest volume
+    ``particles``: positions [M, 3] m, the objects' Gaussian centres first (object by object,
+    in the config's order), then their fill particles (object by object); rest volume per
+    particle, one number for one object, else [M] m^3 (each object its own).
+    ``object_index``: [M] int64, each particle's object (an index into ``cfg.objects``);
+    None for a config of one object."""
+
+    particles: ObjectParticles
     grid: Grid
+    object_index: torch.Tensor | None = None
+
+
+@dataclass(frozen=True)
+class ObjectValues:
+    """What a run gives one object: material parameters (SI, registry names), density
+    (kg/m^3) and initial velocity ([3] m/s, simulation frame; a tuple or a tensor)."""
+
+    params: dict[str, float]
+    density: float
+    velocity: tuple[float, float, float] | torch.Tensor
 
 
 def simulation_grid(cfg: SceneConfig, lower: torch.Tensor, upper: torch.Tensor):
@@ -162,27 +182,51 @@ def simulation_grid(cfg: SceneConfig, lower: torch.Tensor, upper: torch.Tensor):
     return Grid(resolution, dx, tuple(float(v) for v in lo))
 
 
-def setup_object(cfg: SceneConfig, obj: Gaussians) -> ObjectSetup:
-    """Particles of the object (Gaussians in the simulation frame) and the grid."""
+def setup_object(cfg: SceneConfig, obj: Gaussians, gaussian_objects: torch.Tensor | None = None) -> ObjectSetup:
+    """Particles of the objects (their Gaussians ``obj`` in the simulation frame, object by
+    object; ``gaussian_objects`` [n] each one's object, needed for several) and the grid,
+    which holds all of them."""
     means = obj.means.detach().double()
     lower, upper = means.min(0).values, means.max(0).values
     grid = simulation_grid(cfg, lower, upper)
     check_grid_memory(get_device(), grid, itemsize=4)  # before the fill, whose own limit would blame its spacing
-    if cfg.fill.enabled:
-        spacing = cfg.fill.spacing or grid.dx / 2  # default: 8 particles per grid cell (per_axis 1)
-        particles = fill_object(means, obj.covariances.double(), obj.opacities, spacing, per_axis=cfg.fill.per_axis)
+    covariances = obj.covariances.double()
+    object_index = None
+    if len(cfg.objects) == 1:
+        particles = _particles(cfg.objects[0].fill, grid, means, covariances, obj.opacities)
     else:
-        volume = float(torch.prod(upper - lower)) / means.shape[0]
-        particles = ObjectParticles(means, means.shape[0], volume)
+        parts = []
+        for k, o in enumerate(cfg.objects):
+            mine = gaussian_objects == k
+            parts.append(_particles(o.fill, grid, means[mine], covariances[mine], obj.opacities[mine]))
+        # (object, rows): every object's Gaussian centres, then every object's fill particles
+        pieces = [(k, p.positions[: p.n_gaussians]) for k, p in enumerate(parts)]
+        pieces += [(k, p.positions[p.n_gaussians :]) for k, p in enumerate(parts)]
+        particles = ObjectParticles(
+            torch.cat([x for _, x in pieces]),
+            sum(p.n_gaussians for p in parts),
+            torch.cat([torch.full((len(x),), float(parts[k].volume), dtype=torch.float64) for k, x in pieces]),
+        )
+        object_index = torch.cat([torch.full((len(x),), k, dtype=torch.long) for k, x in pieces])
     inner_lo = torch.tensor(grid.origin, dtype=torch.float64) + (WALL_CELLS + 1) * grid.dx
     inner_hi = torch.tensor(grid.upper, dtype=torch.float64) - (WALL_CELLS + 1) * grid.dx
     x = particles.positions.double()
     if bool(((x < inner_lo) | (x > inner_hi)).any()):
+        what = "object" if len(cfg.objects) == 1 else "objects"
         raise InputError(
-            f"{cfg.source}: the object ({lower.tolist()} .. {upper.tolist()} m) does not fit inside "
+            f"{cfg.source}: the {what} ({lower.tolist()} .. {upper.tolist()} m) does not fit inside "
             f"simulation.domain minus its walls ({inner_lo.tolist()} .. {inner_hi.tolist()} m)"
         )
-    return ObjectSetup(particles, grid)
+    return ObjectSetup(particles, grid, object_index)
+
+
+def _particles(fill, grid, means: torch.Tensor, covariances: torch.Tensor, opacities: torch.Tensor) -> ObjectParticles:
+    """One object's particles: its Gaussians' centres, then (``fill`` enabled) the fill's."""
+    if fill.enabled:
+        spacing = fill.spacing or grid.dx / 2  # default: 8 particles per grid cell (per_axis 1)
+        return fill_object(means, covariances, opacities, spacing, per_axis=fill.per_axis)
+    lower, upper = means.min(0).values, means.max(0).values
+    return ObjectParticles(means, means.shape[0], float(torch.prod(upper - lower)) / means.shape[0])
 
 
 def build_simulator(
@@ -195,14 +239,34 @@ def build_simulator(
     velocity: torch.Tensor | None = None,
     max_substeps: int | None = None,
 ):
-    """A :class:`clflow.mpm.Simulator` for material parameters ``params`` (SI), ``density``
-    (kg/m^3) and initial velocity ``velocity`` ([3] m/s in the simulation frame, default
-    ``object.velocity``); substeps from ``simulation.substep_dt``, else the stability limits
-    of these parameters and this speed but at least ``min_substeps``. SubstepLimitError
-    (clflow.pipeline.preflight) beyond ``max_substeps`` per frame (None: no limit); InputError
-    for a force stage that holds no particle or never acts."""
+    """A :class:`clflow.mpm.Simulator` of the config's one object with material parameters
+    ``params`` (SI), ``density`` (kg/m^3) and initial velocity ``velocity`` ([3] m/s in the
+    simulation frame, default ``object.velocity``): :func:`build_scene_simulator`'s."""
+    values = ObjectValues(params, density, cfg.velocity if velocity is None else velocity)
+    return build_scene_simulator(
+        cfg, setup, (values,), dtype=dtype, min_substeps=min_substeps, max_substeps=max_substeps
+    )
+
+
+def build_scene_simulator(
+    cfg: SceneConfig,
+    setup: ObjectSetup,
+    values,
+    *,
+    dtype: torch.dtype = torch.float32,
+    min_substeps: int = 1,
+    max_substeps: int | None = None,
+):
+    """A :class:`clflow.mpm.Simulator` of the config's objects in one grid, each with its
+    :class:`ObjectValues` (``values``, one per object in ``cfg.objects``' order); substeps from
+    ``simulation.substep_dt``, else the stability limits of these values (the stiffest
+    material and the fastest object decide) but at least ``min_substeps``. SubstepLimitError
+    beyond ``max_substeps`` per frame (None: no limit); InputError for a force stage that
+    holds no particle or never acts."""
     from clflow.mpm import Force, HalfSpace, MaterialSpec, Simulator
 
+    if len(values) != len(cfg.objects):
+        raise ValueError(f"{len(values)} objects' values for the config's {len(cfg.objects)} objects")
     sim_cfg = cfg.simulation
     frame_dt = 1.0 / sim_cfg.fps
     substeps = None if sim_cfg.substep_dt is None else max(1, math.ceil(frame_dt / sim_cfg.substep_dt - 1e-9))
@@ -220,14 +284,21 @@ def build_simulator(
             )
         )
     colliders = [HalfSpace(c.point, c.normal, c.mode, c.friction, c.start, c.end) for c in cfg.colliders]
-    material = get_material(cfg.material.type).name
-    velocity = torch.as_tensor(cfg.velocity if velocity is None else velocity, dtype=torch.float64)
-    velocities = velocity.detach().expand(x.shape[0], 3)
+    materials = [
+        MaterialSpec(get_material(o.material.type).name, dict(v.params), v.density, o.material.model)
+        for o, v in zip(cfg.objects, values)
+    ]
+    speeds = [torch.as_tensor(v.velocity, dtype=torch.float64).detach() for v in values]
+    if setup.object_index is None:  # one object
+        velocities = speeds[0].expand(x.shape[0], 3)
+    else:
+        velocities = torch.stack(speeds)[setup.object_index]
     sim = Simulator(
         x,
         setup.particles.volume,
-        MaterialSpec(material, dict(params), density, cfg.material.model),
+        materials[0] if setup.object_index is None else materials,
         setup.grid,
+        material_index=setup.object_index,
         velocities=velocities,
         frame_dt=frame_dt,
         substeps=substeps,

@@ -44,12 +44,13 @@ CLOSED_GAP = 2.5
 
 @dataclass
 class ObjectParticles:
-    """Particles of an object. positions [M, 3] (m): rows 0..n_gaussians-1 are the
-    Gaussians' centres, the rest fill particles; volume: rest volume of each particle (m^3)."""
+    """Particles of an object (or of several: clflow.pipeline.simulation.setup_object).
+    positions [M, 3] (m): rows 0..n_gaussians-1 are the Gaussians' centres, the rest fill
+    particles; volume: rest volume of each particle (m^3), a number or [M]."""
 
     positions: torch.Tensor
     n_gaussians: int
-    volume: float
+    volume: float | torch.Tensor
 
     @property
     def n_fill(self) -> int:

@@ -40,27 +40,48 @@ def up_rotation(up: str) -> torch.Tensor:
 
 
 def select_object(cfg: SceneConfig, means_scene: torch.Tensor) -> torch.Tensor:
-    """Bool mask [N] of the object's Gaussians (selection in scene units)."""
-    sel = cfg.selection
+    """Bool mask [N] of the objects' Gaussians (selections in scene units): all objects'."""
+    return select_objects(cfg, means_scene) >= 0
+
+
+def select_objects(cfg: SceneConfig, means_scene: torch.Tensor) -> torch.Tensor:
+    """[N] int64: the object (its index in ``cfg.objects``) each Gaussian belongs to, -1 for
+    the static ones; InputError for an object that selects no Gaussian, and for two objects
+    that select the same ones (naming both and how many they share)."""
+    labels = torch.full((means_scene.shape[0],), -1, dtype=torch.long)
+    for k, obj in enumerate(cfg.objects):
+        mask = _selection_mask(obj.selection, means_scene)
+        if not bool(mask.any()):
+            raise InputError(f"{cfg.source}: {obj.key}.select selects no Gaussian of {cfg.splats.name}")
+        taken = mask & (labels >= 0)
+        if bool(taken.any()):
+            j = int(labels[taken][0])
+            other, shared = cfg.objects[j], int((mask & (labels == j)).sum())
+            raise InputError(
+                f"{cfg.source}: objects {other.name} and {obj.name} share {shared} Gaussian(s) of "
+                f"{cfg.splats.name}: each Gaussian belongs to one object; shrink {other.key}.select or {obj.key}.select"
+            )
+        labels[mask] = k
+    return labels
+
+
+def _selection_mask(sel, means_scene: torch.Tensor) -> torch.Tensor:
+    """Bool mask [N] of the Gaussians a :class:`~clflow.scene.config.Selection` picks."""
     if sel.mask is not None:
         raw = next(iter(load_arrays(sel.mask, "object mask").values()), np.zeros(0))
         n = means_scene.shape[0]
         if raw.dtype == bool and raw.shape == (n,):
-            mask = torch.from_numpy(raw)
-        elif np.issubdtype(raw.dtype, np.integer) and raw.ndim == 1:
+            return torch.from_numpy(raw)
+        if np.issubdtype(raw.dtype, np.integer) and raw.ndim == 1:
             if raw.size and (raw.min() < 0 or raw.max() >= n):
                 raise InputError(f"{sel.mask}: Gaussian indices must lie in [0, {n})")
             mask = torch.zeros(n, dtype=torch.bool)
             mask[torch.from_numpy(raw.astype(np.int64))] = True
-        else:
-            raise InputError(f"{sel.mask}: expected {n} booleans or a list of indices, got {raw.dtype} {raw.shape}")
-    elif sel.ply is not None:
-        mask = part_mask(sel.ply, means_scene, sel.tolerance)
-    else:
-        mask = sel.region.select(means_scene)
-    if not bool(mask.any()):
-        raise InputError(f"{cfg.source}: object.select selects no Gaussian of {cfg.splats.name}")
-    return mask
+            return mask
+        raise InputError(f"{sel.mask}: expected {n} booleans or a list of indices, got {raw.dtype} {raw.shape}")
+    if sel.ply is not None:
+        return part_mask(sel.ply, means_scene, sel.tolerance)
+    return sel.region.select(means_scene)
 
 
 PART_TOLERANCE = 1e-5  # default match distance of a part's centres, as a fraction of the scene's diagonal
@@ -121,13 +142,20 @@ def check_object_sizes(cfg: SceneConfig, means: torch.Tensor, scales: torch.Tens
 
 def load_scene_gaussians(cfg: SceneConfig, dtype: torch.dtype) -> tuple[Gaussians, torch.Tensor]:
     """All Gaussians of the splat file in the simulation frame (sh_rotations R_up), and the
-    object mask [N]."""
+    mask [N] of the objects' Gaussians."""
+    gaussians, labels = load_scene_objects(cfg, dtype)
+    return gaussians, labels >= 0
+
+
+def load_scene_objects(cfg: SceneConfig, dtype: torch.dtype) -> tuple[Gaussians, torch.Tensor]:
+    """All Gaussians of the splat file in the simulation frame (sh_rotations R_up), and each
+    one's object [N] (an index into ``cfg.objects``, -1 static): :func:`select_objects`."""
     from clflow.splat.ply import load_ply, require_gaussians
 
     g = require_gaussians(load_ply(cfg.splats), cfg.splats)  # else "object.select selects none of them"
-    mask = select_object(cfg, g.means.double())
-    check_object_sizes(cfg, g.means.double(), g.scales.double(), mask)
-    return g.transformed(up_rotation(cfg.up), cfg.scale).to(dtype), mask
+    labels = select_objects(cfg, g.means.double())
+    check_object_sizes(cfg, g.means.double(), g.scales.double(), labels >= 0)
+    return g.transformed(up_rotation(cfg.up), cfg.scale).to(dtype), labels
 
 
 def to_simulation_camera(camera, cfg: SceneConfig):

@@ -94,8 +94,6 @@ def test_material_model_reaches_the_simulator(demo_config, material, model, kern
 
     cfg = demo_config()
     params = validate_params(material, {})
-    cfg = dataclasses.replace(
-        cfg, material=dataclasses.replace(cfg.material, type=material, parameters=params, model=model)
-    )
+    cfg = cfg.with_object(material=dataclasses.replace(cfg.material, type=material, parameters=params, model=model))
     sim = build_simulator(cfg, prepare(cfg).setup, params, 1500.0)
     assert set(sim.particles.material.tolist()) == {MATERIAL_IDS[kernel_material]}

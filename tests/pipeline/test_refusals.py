@@ -99,7 +99,7 @@ def no_scene(c: Case) -> None:
     def loaded(*args, **kwargs):
         raise AssertionError("the scene was loaded before the refusal")
 
-    c.monkeypatch.setattr("clflow.pipeline.forward.load_scene_gaussians", loaded)
+    c.monkeypatch.setattr("clflow.pipeline.forward.load_scene_objects", loaded)
 
 
 def no_ply(c: Case) -> None:

@@ -60,7 +60,7 @@ def test_gradient_of_the_initial_velocity_matches_central_differences():
 @pytest.mark.parametrize("up", ["+x", "-x", "+y", "-y", "+z", "-z"])
 def test_object_velocity_is_in_the_simulation_frame_whatever_the_files_up_axis(demo_config, up):
     """Like forces and gravity, the velocity is not turned by scene.up: (0, 2, 0) is up."""
-    cfg = dataclasses.replace(demo_config(), up=up, velocity=(0.5, 2.0, -1.0))
+    cfg = dataclasses.replace(demo_config(), up=up).with_object(velocity=(0.5, 2.0, -1.0))
     setup = prepare(demo_config()).setup
     params, density = material_values(cfg)
     sim = build_simulator(cfg, setup, params, density)
@@ -72,7 +72,7 @@ def test_the_simulator_starts_at_the_velocity_and_takes_substeps_for_it(demo_con
     setup = prepare(cfg).setup
     params, density = material_values(cfg)
     at_rest = build_simulator(cfg, setup, params, density)
-    thrown = build_simulator(dataclasses.replace(cfg, velocity=(0.0, 0.0, 3.0)), setup, params, density)
+    thrown = build_simulator(cfg.with_object(velocity=(0.0, 0.0, 3.0)), setup, params, density)
     assert bool((at_rest.state.v == 0).all())
     assert thrown.state.v.tolist() == [[0.0, 0.0, 3.0]] * thrown.n
     assert thrown.substeps > at_rest.substeps  # CFL: 3 m/s crosses a cell of 3.3 cm in 11 ms
@@ -129,8 +129,7 @@ def thrown_config(folder, output, **optimize):
     assert cfg.velocity == THROW  # written by the generator
     optimize = {"learning_rates": {}, "horizon_start": 0, **optimize}
     return dataclasses.replace(
-        cfg,
-        velocity=(0.0, 0.0, 0.0),
+        cfg.with_object(velocity=(0.0, 0.0, 0.0)),
         output=output,
         optimize=dataclasses.replace(cfg.optimize, **optimize),
         ground_truth={**cfg.ground_truth, **dict(zip(VELOCITY_COMPONENTS, THROW))},

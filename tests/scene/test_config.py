@@ -347,3 +347,114 @@ def test_a_bad_override_is_one_line_naming_it(scene_yaml, item, message):
     with pytest.raises(InputError, match=message) as error:
         load_config(scene_yaml, [item])
     assert "\n" not in str(error.value)
+
+
+def several(**changes):
+    """GOOD with two objects (a list of entries with names) instead of object + material,
+    and no identification (not built for several objects yet)."""
+    data = copy.deepcopy(GOOD)
+    obj, material = data.pop("object"), data.pop("material")
+    data["optimize"] = {"iterations": 5}
+    data["objects"] = [
+        {"name": "jelly", **obj, "velocity": [0, -1, 0], "material": material},
+        {"name": "heap", "select": {"sphere": {"center": [0, 2, 0], "radius": 0.5}}, "material": {"type": "sand"}},
+    ]
+    data.update(changes)
+    return data
+
+
+def test_objects_as_a_list_or_a_mapping_and_one_object_in_either_form(folder):
+    from clflow.scene.config import SeveralObjectsError
+
+    cfg = parse(several(), folder)
+    jelly, heap = cfg.objects
+    assert cfg.object_names == ("jelly", "heap") and (jelly.key, heap.material_key) == (
+        "objects.jelly",
+        "objects.heap.material",
+    )
+    assert jelly.material.parameters == {"youngs_modulus": 1e4, "poissons_ratio": 0.3} and jelly.fill.spacing == 0.02
+    assert jelly.velocity == (0.0, -1.0, 0.0) and heap.velocity == (0.0, 0.0, 0.0)
+    assert heap.material.type == "sand" and heap.material.density == 1600.0 and heap.selection.region.kind == "sphere"
+    mapping = several(objects={o["name"]: {k: v for k, v in o.items() if k != "name"} for o in several()["objects"]})
+    assert parse(mapping, folder) == cfg
+    with pytest.raises(SeveralObjectsError, match="several objects \\(jelly, heap\\)"):
+        cfg.material  # noqa: B018  (a step built for one object asks)
+    # the single-object form is one SceneObject named object, its material under material
+    single = parse(GOOD, folder)
+    (obj,) = single.objects
+    assert (obj.name, obj.key, obj.material_key) == ("object", "object", "material")
+    assert single.material is obj.material and single.selection is obj.selection and single.velocity == obj.velocity
+    listed = parse(several(objects=[several()["objects"][0]], optimize=GOOD["optimize"]), folder)
+    assert listed.objects[0].material == obj.material and listed.objects[0].selection == obj.selection
+    assert single.with_object(velocity=(1.0, 0.0, 0.0)).velocity == (1.0, 0.0, 0.0)
+
+
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"objects": []}, "objects: is empty"),
+        ({"objects": "jelly"}, "objects: must be a list of objects .* or a mapping"),
+        ({"material": {"type": "elastic"}}, "material: give the scene's objects under objects .* not both"),
+        ({"objects": [{"select": {"sphere": {"center": [0, 0, 0], "radius": 1}}}]}, r"objects\[0\].name: is required"),
+        ({"objects": {"9lives": {}}}, "objects.9lives: an object's name is letters, digits and _"),
+        ({"objects": [{"name": "a.b"}]}, r"objects\[0\].name: an object's name"),
+        ({"objects": [{"name": "a", "colour": 1}]}, r"objects\[0\].colour: unknown key"),
+        ({"objects": [{"name": "a", "select": {}}]}, "objects.a.select: is required"),
+        (
+            {"objects": [{"name": "a", "select": {"box": {"min": [0, 0, 0], "max": [1, 1, 1]}}}]},
+            "objects.a.material.type: is required",
+        ),
+        ({"objects": {"a": {"name": "a"}}}, "objects.a.name: unknown key"),
+        (
+            {"evaluation": {"ground_truth": {"youngs_modulus": 1e4}}},
+            "evaluation.ground_truth: several objects: identification is not built yet",
+        ),
+        ({"optimize": {"material": ["sand"]}}, "optimize.material: several objects: identification is not built yet"),
+    ],
+)
+def test_bad_objects(folder, changes, message):
+    data = several(**changes)
+    if "material" in changes:
+        data["material"] = changes["material"]
+    with pytest.raises(InputError, match=message):
+        parse(data, folder)
+
+
+def test_two_objects_of_one_name(folder):
+    data = several()
+    data["objects"][1]["name"] = "jelly"
+    with pytest.raises(InputError, match=r"^scene.yaml: objects\[1\].name: 'jelly' names objects\[0\] too"):
+        parse(data, folder)
+
+
+def test_overrides_of_one_object_by_its_name(folder):
+    import yaml
+
+    for form, data in (
+        ("list", several()),
+        ("mapping", several(objects={"jelly": several()["objects"][0], "heap": several()["objects"][1]})),
+    ):
+        if form == "mapping":
+            for o in data["objects"].values():
+                o.pop("name")
+        path = folder / f"{form}.yaml"
+        path.write_text(yaml.safe_dump(data))
+        cfg = load_config(
+            path, ["objects.jelly.material.parameters.youngs_modulus=3e4", "objects.heap.velocity=[0, 1, 0]"]
+        )
+        named = {o.name: o for o in cfg.objects}  # a mapping keeps its order: safe_dump sorted it
+        assert named["jelly"].material.parameters["youngs_modulus"] == 3e4 and named["heap"].velocity == (0, 1, 0)
+        with pytest.raises(
+            InputError,
+            match=r"^--set objects.rock.velocity=\[0,1,0\]: the config has no object named 'rock' \(its objects: (jelly, heap|heap, jelly)\)$",
+        ):
+            load_config(path, ["objects.rock.velocity=[0,1,0]"])
+        with pytest.raises(
+            InputError, match=r"^--set objects.heap.material.density=-1: objects.heap.material.density: must be > 0"
+        ):
+            load_config(path, ["objects.heap.material.density=-1"])
+        with pytest.raises(InputError, match=r"^--set objects.heap=1: set a key of the object"):
+            load_config(path, ["objects.heap=1"])
+    (folder / "one.yaml").write_text(yaml.safe_dump(GOOD))
+    with pytest.raises(InputError, match="the config gives one object .*no object 'jelly' to set: set object"):
+        load_config(folder / "one.yaml", ["objects.jelly.velocity=[0,1,0]"])

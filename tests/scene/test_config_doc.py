@@ -58,7 +58,7 @@ def _merge(base: dict, alt: dict) -> dict:
 
 
 def test_the_doc_has_the_complete_example_and_the_alternatives():
-    assert len(BLOCKS) == 3
+    assert len(BLOCKS) == 4  # the complete example, two of alternatives, several objects
 
 
 def test_the_complete_example_loads_with_its_values(folder):
@@ -95,6 +95,21 @@ def test_the_alternative_forms_load(folder):
     assert cfg.selection.mask == (folder / "object.npy").resolve()
     assert cfg.material.query_result == (folder / "object.material.json").resolve()
     assert cfg.material.query_image is None and cfg.material.density is None
+
+
+def test_the_objects_example_loads(folder):
+    base = yaml.safe_load(BLOCKS[0])
+    for key in ("object", "material", "evaluation"):  # objects replace them; identification is not built yet
+        base.pop(key)
+    base["optimize"].pop("parameters")
+    base["optimize"].pop("learning_rates")
+    base["optimize"].pop("bounds")
+    cfg = _load(folder, {**base, **yaml.safe_load(BLOCKS[3])})
+    jelly, heap = cfg.objects
+    assert cfg.object_names == ("jelly", "heap") and jelly.key == "objects.jelly"
+    assert jelly.velocity == (0.0, -0.5, 0.0) and jelly.material.density == 800.0
+    assert heap.material.type == "sand" and heap.material.parameters["friction_angle"] == 35.0
+    assert heap.fill.spacing == 0.01 and jelly.fill.spacing is None
 
 
 def _section_keys(source: str) -> set[str]:

@@ -14,7 +14,7 @@ import torch
 from clflow.errors import ClflowError, InputError
 from clflow.fileio import atomic_write_text
 from clflow.pipeline.forward import material_values
-from clflow.scene.config import VELOCITY_COMPONENTS, SceneConfig
+from clflow.scene.config import VELOCITY_COMPONENTS, SceneConfig, config_record
 
 if TYPE_CHECKING:
     from clflow.mpm.autograd import Frames
@@ -108,7 +108,7 @@ def config_digests(cfg: SceneConfig, by_path: bool = False) -> dict[str, str]:
     share with its checkpoint."""
     import hashlib
 
-    fields = asdict(cfg)
+    fields = config_record(cfg)
     fields.pop("output", None)
     fields["optimize"].pop("iterations", None)
     fields["simulation"].pop("max_substeps", None)  # a run stopped by the limit may resume with a higher one

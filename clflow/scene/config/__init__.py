@@ -5,7 +5,9 @@ Every key is checked: unknown keys (typos), wrong types and out-of-range values 
 ``scene.yaml: simulation.frames: must be an integer >= 1, got -3``. Paths are relative to
 the config file. Lengths in the ``simulation``/``forces``/``boundaries`` sections are metres
 in the simulation frame (+y up), and so is ``object.velocity`` (m/s); ``object.select`` is in
-scene units of the splat file.
+scene units of the splat file. A scene of several objects lists them under ``objects`` (each
+its select, fill, velocity and material, and a name); either form is read into
+``SceneConfig.objects``, a tuple of :class:`SceneObject`.
 
 A complete example with every default spelled out: ``docs/scene_config.md``.
 

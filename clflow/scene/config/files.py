@@ -132,10 +132,26 @@ def load_config(path: str | Path, overrides: Sequence[str] = ()) -> SceneConfig:
         raise
 
 
+def _named_object(objects: Any, name: str, item: str) -> dict:
+    """The entry of ``objects`` (a list of entries with names, or a mapping of names to
+    entries) named ``name``; InputError naming the objects there are when none is."""
+    if isinstance(objects, dict):
+        names, entry = list(objects), objects.get(name)
+    else:
+        named = [o for o in objects if isinstance(o, dict)]
+        names = [o.get("name") for o in named]
+        entry = next((o for o in named if o.get("name") == name), None)
+    if not isinstance(entry, dict):
+        listed = ", ".join(str(n) for n in names) or "none"
+        raise InputError(f"--set {item}: the config has no object named {name!r} (its objects: {listed})")
+    return entry
+
+
 def _override(data: Any, item: str) -> str:
     """Set ``key.sub=value`` (value read as YAML) in the parsed config ``data``, making the
-    mappings on the way; a number as a part indexes an existing list item (``forces.0.end``).
-    Returns the key as the config's messages write it (``forces[0].end``)."""
+    mappings on the way; a number as a part indexes an existing list item (``forces.0.end``),
+    a name after ``objects`` an existing object (``objects.jelly.velocity``). Returns the key
+    as the config's messages write it (``forces[0].end``)."""
     import yaml
 
     key, sep, text = item.partition("=")
@@ -152,6 +168,18 @@ def _override(data: Any, item: str) -> str:
     node, walked = data, ""
     for k, part in enumerate(parts):
         last = k == len(parts) - 1
+        if walked == "objects" and not (isinstance(node, list) and part.isdigit()):  # an object by its name
+            node = _named_object(node, part, item)
+            walked += f".{part}"
+            if last:
+                raise InputError(f"--set {item}: set a key of the object (objects.{part}.material...), not all of it")
+            continue
+        if part == "objects" and not walked and not last and isinstance(data, dict) and data.get("objects") is None:
+            given = "one object (object and material)" if "object" in data or "material" in data else "no objects"
+            raise InputError(
+                f"--set {item}: the config gives {given}, so there is no object {parts[1]!r} to set"
+                + (": set object.* and material.* keys" if "object" in data or "material" in data else "")
+            )
         if isinstance(node, list) and part.isdigit():
             index = int(part)
             if index >= len(node):

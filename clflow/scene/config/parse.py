@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,7 @@ from clflow.scene.config.settings import (
     FLOW_METHODS,
     MATERIAL_MODELS,
     OPTIMIZERS,
+    SINGLE_OBJECT,
     UP_AXES,
     VELOCITY,
     VELOCITY_COMPONENTS,
@@ -39,6 +41,7 @@ from clflow.scene.config.settings import (
     MaterialConfig,
     OptimizeSettings,
     SceneConfig,
+    SceneObject,
     SearchSettings,
     Selection,
     SimulationSettings,
@@ -84,56 +87,55 @@ def _window(r: Reader, data: dict, path: str) -> tuple[float, float]:
     return start, end
 
 
-def _material(r: Reader, data: Any) -> MaterialConfig:
-    body = r.section(data, "material", ("type", "parameters", "density", "model", "query"))
+def _material(r: Reader, data: Any, p: str = "material") -> MaterialConfig:
+    """``p``: the material of one object (``material``, or ``objects.NAME.material``)."""
+    body = r.section(data, p, ("type", "parameters", "density", "model", "query"))
     kind = body.get("type")
     if not isinstance(kind, str):
-        raise r.fail("material.type", "is required: a material name or 'query'")
-    params_in = r.mapping(body.get("parameters"), "material.parameters")  # names: the registry checks
+        raise r.fail(f"{p}.type", "is required: a material name or 'query'")
+    params_in = r.mapping(body.get("parameters"), f"{p}.parameters")  # names: the registry checks
     for name, value in params_in.items():
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise r.fail(
-                f"material.parameters.{name}",
+                f"{p}.parameters.{name}",
                 f"must be a number, got {value!r} (YAML reads 2e4 as text: write 2.0e+4 or 20000.0)",
             )
     if kind == "query":
         if body.get("model") is not None:
-            raise r.fail("material.model", "cannot be chosen before the query picks the material type")
-        query = r.section(body.get("query"), "material.query", ("image", "prompt", "backend", "result"))
+            raise r.fail(f"{p}.model", "cannot be chosen before the query picks the material type")
+        query = r.section(body.get("query"), f"{p}.query", ("image", "prompt", "backend", "result"))
         if (query.get("image") is None) == (query.get("result") is None):
             raise r.fail(
-                "material.query",
+                f"{p}.query",
                 "give exactly one of image (ask the query now) and result (a record `clflow query` wrote)",
             )
         density = (
-            r.number(body, "density", "material", low=0.0, strict_low=True) if body.get("density") is not None else None
+            r.number(body, "density", p, low=0.0, strict_low=True) if body.get("density") is not None else None
         )  # None: the query's
-        backend = r.choice(query, "backend", "material.query", ("offline", "openai"), "offline")
+        backend = r.choice(query, "backend", f"{p}.query", ("offline", "openai"), "offline")
         return MaterialConfig(
             "query",
             dict(params_in),
             density,
-            query_image=r.file(query, "image", "material.query", required=False),
-            query_result=r.file(query, "result", "material.query", required=False),
+            query_image=r.file(query, "image", f"{p}.query", required=False),
+            query_result=r.file(query, "result", f"{p}.query", required=False),
             query_prompt=str(query.get("prompt", "")),
             query_backend=backend,
         )
     if body.get("query") is not None:
-        raise r.fail("material.query", f"is only read with type: query (the type is {kind!r})")
+        raise r.fail(f"{p}.query", f"is only read with type: query (the type is {kind!r})")
     try:
         material = get_material(kind)
         params = validate_params(material.name, params_in)
     except InputError as exc:
-        raise r.fail("material", str(exc)) from None
-    density = r.number(body, "density", "material", material.default_density, low=0.0, strict_low=True)
-    DENSITY.check(density, f"{r.source}: material.density")
+        raise r.fail(p, str(exc)) from None
+    density = r.number(body, "density", p, material.default_density, low=0.0, strict_low=True)
+    DENSITY.check(density, f"{r.source}: {p}.density")
     model = None
     if body.get("model") is not None:
         if material.name not in MATERIAL_MODELS:
-            raise r.fail(
-                "material.model", f"{material.name} has no model option (only {', '.join(MATERIAL_MODELS)} have)"
-            )
-        model = r.choice(body, "model", "material", MATERIAL_MODELS[material.name])
+            raise r.fail(f"{p}.model", f"{material.name} has no model option (only {', '.join(MATERIAL_MODELS)} have)")
+        model = r.choice(body, "model", p, MATERIAL_MODELS[material.name])
     return MaterialConfig(material.name, params, density, model=model)
 
 
@@ -548,6 +550,7 @@ TOP_KEYS = (
     "scene",
     "object",
     "material",
+    "objects",
     "forces",
     "boundaries",
     "simulation",
@@ -567,10 +570,10 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     if not top:
         raise r.fail("", "the config is empty")
     scene = r.section(top.get("scene"), "scene", ("scale", "up", "dataparser_transforms"))
-    obj = r.section(top.get("object"), "object", ("select", "fill", "velocity"))
-    selection = _selection(r, obj.get("select"))
-    fill = _fill(r, obj.get("fill"))
-    material = _material(r, top.get("material"))
+    objects = _objects(r, top)
+    if len(objects) > 1:
+        _refuse_identification(r, top)
+    material = objects[0].material
     flow = _flow(r, top.get("flow"))
     truth, true_density, true_velocity = _given_truth(r, top.get("evaluation"))
     simulation = _simulation(r, top.get("simulation"))
@@ -588,9 +591,7 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         splats=r.file(top, "splats", ""),
         scale=r.number(scene, "scale", "scene", 1.0, low=0.0, strict_low=True),
         up=r.choice(scene, "up", "scene", UP_AXES, "+y"),
-        selection=selection,
-        fill=fill,
-        material=material,
+        objects=objects,
         forces=_forces(r, r.items(top, "forces", "")),
         colliders=_colliders(r, top.get("boundaries")),
         simulation=simulation,
@@ -600,48 +601,147 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         optimize=optimize,
         output=(r.base / output).resolve(),
         ground_truth=truth,
-        velocity=r.vec3(obj, "velocity", "object", (0.0, 0.0, 0.0)),
         more_views=tuple(GuidanceView(c, v) for c, v in zip(cameras[1:], videos[1:])),
         dataparser_transforms=r.file(scene, "dataparser_transforms", "scene", required=False),
         generate=_generate(r, top.get("video"), simulation),
     )
 
 
-def _selection(r: Reader, data: Any) -> Selection:
-    """``object.select``: exactly one of a region (box, sphere), a mask file or a PLY of the part."""
-    select = r.section(data, "object.select", ("box", "sphere", "mask", "ply", "tolerance"))
+def _refuse_identification(r: Reader, top: dict) -> None:
+    """A config of several objects simulates; what identifies a material (optimize.parameters,
+    optimize.material, evaluation.ground_truth) names no object yet, so it is refused."""
+    optimize = top.get("optimize") if isinstance(top.get("optimize"), dict) else {}
+    evaluation = top.get("evaluation") if isinstance(top.get("evaluation"), dict) else {}
+    given = [
+        key
+        for key, value in (
+            ("optimize.parameters", optimize.get("parameters")),
+            ("optimize.material", optimize.get("material")),
+            ("evaluation.ground_truth", evaluation.get("ground_truth")),
+        )
+        if value
+    ]
+    if given:
+        raise r.fail(
+            given[0],
+            "several objects: identification is not built yet (it will name each object's parameters); "
+            "drop it to simulate the scene",
+        )
+
+
+def _selection(r: Reader, data: Any, p: str = "object.select") -> Selection:
+    """``p`` (an object's ``select``): exactly one of a region (box, sphere), a mask file or a PLY of the part."""
+    select = r.section(data, p, ("box", "sphere", "mask", "ply", "tolerance"))
     if not select:
-        raise r.fail("object.select", "is required: a box, a sphere, a mask file or a PLY of the part")
+        raise r.fail(p, "is required: a box, a sphere, a mask file or a PLY of the part")
     if "tolerance" in select and "ply" not in select:
-        raise r.fail("object.select.tolerance", "applies to a ply selection only: drop it")
+        raise r.fail(f"{p}.tolerance", "applies to a ply selection only: drop it")
     if len(set(select) & {"box", "sphere", "mask", "ply"}) > 1:
-        raise r.fail("object.select", "give exactly one of box, sphere, mask and ply")
+        raise r.fail(p, "give exactly one of box, sphere, mask and ply")
     if "mask" in select:
-        return Selection(None, r.file(select, "mask", "object.select"))
+        return Selection(None, r.file(select, "mask", p))
     if "ply" in select:
         tolerance = select.get("tolerance")
         return Selection(
             None,
             None,
-            r.file(select, "ply", "object.select"),
-            None if tolerance is None else r.number(select, "tolerance", "object.select", low=0.0, strict_low=True),
+            r.file(select, "ply", p),
+            None if tolerance is None else r.number(select, "tolerance", p, low=0.0, strict_low=True),
         )
-    return Selection(_region(r, select, "object.select", allow_all=False), None)
+    return Selection(_region(r, select, p, allow_all=False), None)
 
 
-def _fill(r: Reader, data: Any) -> FillSettings:
-    """``object.fill``: particles inside the object besides the Gaussian centres."""
-    fill_in = r.section(data, "object.fill", ("enabled", "spacing", "per_axis"))
+def _fill(r: Reader, data: Any, p: str = "object.fill") -> FillSettings:
+    """``p`` (an object's ``fill``): particles inside the object besides the Gaussian centres."""
+    fill_in = r.section(data, p, ("enabled", "spacing", "per_axis"))
     enabled = fill_in.get("enabled", True)
     if not isinstance(enabled, bool):
-        raise r.fail("object.fill.enabled", f"must be true or false, got {enabled!r}")
+        raise r.fail(f"{p}.enabled", f"must be true or false, got {enabled!r}")
     return FillSettings(
         enabled=enabled,
-        spacing=r.number(fill_in, "spacing", "object.fill", low=0.0, strict_low=True)
+        spacing=r.number(fill_in, "spacing", p, low=0.0, strict_low=True)
         if fill_in.get("spacing") is not None
         else None,
-        per_axis=r.integer(fill_in, "per_axis", "object.fill", 1, low=1),
+        per_axis=r.integer(fill_in, "per_axis", p, 1, low=1),
     )
+
+
+OBJECT_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")  # a name fits a --set key: objects.NAME.material...
+
+
+def _objects(r: Reader, top: dict) -> tuple[SceneObject, ...]:
+    """``objects`` (a list of entries with a name, or a mapping of names to entries), or the
+    single-object form ``object`` + ``material``, read into the same SceneObject tuple."""
+    if top.get("objects") is None:
+        obj = r.section(top.get("object"), "object", ("select", "fill", "velocity"))
+        return (
+            SceneObject(
+                SINGLE_OBJECT,
+                _selection(r, obj.get("select")),
+                _fill(r, obj.get("fill")),
+                _material(r, top.get("material")),
+                r.vec3(obj, "velocity", "object", (0.0, 0.0, 0.0)),
+            ),
+        )
+    single = [k for k in ("object", "material") if top.get(k) is not None]
+    if single:
+        raise r.fail(
+            single[0],
+            "give the scene's objects under objects (each with its own material), or one object "
+            "as object and material, not both",
+        )
+    data = top["objects"]
+    if isinstance(data, dict):  # a mapping of names to objects: the key names each
+        entries = []
+        for name, body in data.items():
+            _check_name(r, name, f"objects.{name}")
+            where = f"objects.{name}"
+            body = r.section(body, where, ("select", "fill", "velocity", "material"))
+            entries.append((name, body, where))
+    elif isinstance(data, list):
+        entries, first = [], {}
+        for i, item in enumerate(data):
+            body = r.section(item, f"objects[{i}]", ("name", "select", "fill", "velocity", "material"))
+            name = body.get("name")
+            if name is None:
+                raise r.fail(
+                    f"objects[{i}].name", "is required: a name for the object (its --set keys and outputs use it)"
+                )
+            _check_name(r, name, f"objects[{i}].name")
+            if name in first:
+                raise r.fail(
+                    f"objects[{i}].name",
+                    f"{name!r} names objects[{first[name]}] too: each object needs a name of its own",
+                )
+            first[name] = i
+            entries.append((name, body, f"objects.{name}"))
+    else:
+        raise r.fail(
+            "objects",
+            f"must be a list of objects (each with a name) or a mapping of names to objects, got {type(data).__name__}",
+        )
+    if not entries:
+        raise r.fail("objects", "is empty: give at least one object (its select and material)")
+    return tuple(
+        SceneObject(
+            name,
+            _selection(r, body.get("select"), f"{where}.select"),
+            _fill(r, body.get("fill"), f"{where}.fill"),
+            _material(r, body.get("material"), f"{where}.material"),
+            r.vec3(body, "velocity", where, (0.0, 0.0, 0.0)),
+            key=where,
+        )
+        for name, body, where in entries
+    )
+
+
+def _check_name(r: Reader, name: Any, where: str) -> None:
+    if not isinstance(name, str) or not OBJECT_NAME.fullmatch(name):
+        raise r.fail(
+            where,
+            f"an object's name is letters, digits and _ (not starting with a digit), as --set keys "
+            f"take it (objects.NAME.material...), got {name!r}",
+        )
 
 
 def _flow(r: Reader, data: Any) -> FlowSettings:

@@ -4,9 +4,10 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from clflow.errors import InputError
 from clflow.flow.optical_flow import (
     DEFAULT_BIAS_CORRECTION,
     DEFAULT_CONFIDENCE,
@@ -55,6 +56,34 @@ class MaterialConfig:
     query_result: Path | None = None  # a record of `clflow query`, read instead of asking
     query_prompt: str = ""
     query_backend: str = "offline"
+
+
+SINGLE_OBJECT = "object"  # the name of the one object of the single-object form (object + material)
+
+
+@dataclass(frozen=True)
+class SceneObject:
+    """One simulated object: which Gaussians (``selection``), the particles filling it, its
+    initial velocity (m/s, simulation frame) and its material. ``name`` names it in ``--set``
+    keys (``objects.NAME.material.parameters.youngs_modulus``), in messages and in the
+    outputs; ``key`` is where the config gives it: ``object`` (the single-object form, its
+    material under ``material``) or ``objects.NAME``."""
+
+    name: str
+    selection: Selection
+    fill: FillSettings
+    material: MaterialConfig
+    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    key: str = SINGLE_OBJECT
+
+    @property
+    def material_key(self) -> str:
+        """The config key of its material: ``material`` or ``objects.NAME.material``."""
+        return "material" if self.key == SINGLE_OBJECT else f"{self.key}.material"
+
+
+class SeveralObjectsError(InputError):
+    """A step built for one object only asked a config of several for its object."""
 
 
 @dataclass(frozen=True)
@@ -217,9 +246,7 @@ class SceneConfig:
     splats: Path
     scale: float
     up: str
-    selection: Selection
-    fill: FillSettings
-    material: MaterialConfig
+    objects: tuple[SceneObject, ...]  # one or more, in the config's order; their Gaussians do not overlap
     forces: tuple[ForceStage, ...]
     colliders: tuple[Collider, ...]
     simulation: SimulationSettings
@@ -229,10 +256,54 @@ class SceneConfig:
     optimize: OptimizeSettings
     output: Path
     ground_truth: dict[str, float] = field(default_factory=dict)  # for metrics (RE) only; velocity as components
-    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the object's initial velocity, m/s, scene axes
     more_views: tuple[GuidanceView, ...] = ()  # views 1.. when camera and video are lists; view 0 is camera, video
     generate: GenerateSettings | None = None  # video: {generate: ...}; video is None until it is made
     dataparser_transforms: Path | None = None  # nerfstudio's: camera files' frame -> the splat file's
+
+    @property
+    def object(self) -> SceneObject:
+        """The config's one object, for the steps built for one (optimisation, the guidance
+        video's generation); SeveralObjectsError (one line) for a config of several."""
+        if len(self.objects) != 1:
+            names = ", ".join(o.name for o in self.objects)
+            raise SeveralObjectsError(
+                f"{self.source}: several objects ({names}): this step works on one object only for now"
+            )
+        return self.objects[0]
+
+    # the one object's parts, as the single-object form gives them
+    selection = property(lambda self: self.object.selection, doc="the one object's Selection")
+    fill = property(lambda self: self.object.fill, doc="the one object's FillSettings")
+    material = property(lambda self: self.object.material, doc="the one object's MaterialConfig")
+    velocity = property(lambda self: self.object.velocity, doc="the one object's initial velocity, m/s")
+
+    @property
+    def object_names(self) -> tuple[str, ...]:
+        return tuple(o.name for o in self.objects)
+
+    def with_object(self, **changes) -> SceneConfig:
+        """The config with the one object's fields changed (``material=``, ``velocity=``, ...)."""
+        return replace(self, objects=(replace(self.object, **changes),))
+
+    def with_objects(self, objects) -> SceneConfig:
+        """The config with ``objects`` (a sequence of SceneObject) instead of its own."""
+        return replace(self, objects=tuple(objects))
+
+
+def config_record(cfg: SceneConfig) -> dict:
+    """``dataclasses.asdict`` of ``cfg`` for the records (run.json, a checkpoint's config
+    digests): a config of one object keeps the keys it had before configs held several
+    (selection, fill, material, velocity at the top), so older records still compare; one of
+    several has ``objects``."""
+    from dataclasses import asdict
+
+    fields = asdict(cfg)
+    objects = fields.pop("objects")
+    if len(objects) == 1:
+        fields.update({key: objects[0][key] for key in ("selection", "fill", "material", "velocity")})
+    else:
+        fields["objects"] = objects
+    return fields
 
 
 __all__ = [
@@ -251,12 +322,16 @@ __all__ = [
     "MaterialConfig",
     "OPTIMIZERS",
     "OptimizeSettings",
+    "SINGLE_OBJECT",
     "SceneConfig",
+    "SceneObject",
     "SearchSettings",
+    "SeveralObjectsError",
     "Selection",
     "SimulationSettings",
     "UP_AXES",
     "VELOCITY",
     "VELOCITY_COMPONENTS",
+    "config_record",
     "main_grid_range",
 ]
