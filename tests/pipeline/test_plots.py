@@ -2,6 +2,7 @@
 
 import numpy as np
 
+from clflow.fileio import WRITTEN_RECORD
 from clflow.pipeline.plots import history_figure, write_history_plot
 
 
@@ -52,7 +53,7 @@ def test_write_history_plot_writes_a_png(tmp_path):
     write_history_plot(tmp_path / "loss.png", history(), {})
     with Image.open(tmp_path / "loss.png") as image:
         assert image.format == "PNG" and image.height > image.width > 500
-    assert [p.name for p in tmp_path.iterdir()] == ["loss.png"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [WRITTEN_RECORD, "loss.png"]
 
 
 def test_each_parameters_range_is_a_band_an_open_end_running_to_the_panels_edge():

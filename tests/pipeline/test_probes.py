@@ -17,6 +17,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
+from clflow.fileio import WRITTEN_RECORD, atomic_write_text
 from clflow_cli.main import cli
 from tests.pipeline.test_bad_input import Case, Probe, assert_probe, simulation  # noqa: F401 (a fixture)
 
@@ -228,13 +229,14 @@ def test_a_failed_first_run_leaves_no_folder_and_a_new_run_never_mixes_with_an_e
     assert not (tmp_path / "new").exists()  # it held only observed_flow.npz
     earlier = tmp_path / "earlier"
     earlier.mkdir()
-    for name in ("params.json", "metrics.json", "checkpoint.json", "index.html", "mine.txt"):
-        (earlier / name).write_text("{}")
-    (earlier / "starts").mkdir()
+    for name in ("params.json", "metrics.json", "checkpoint.json", "index.html", "starts/0/checkpoint.json"):
+        atomic_write_text(earlier / name, "{}")  # as an earlier run wrote them
+    (earlier / "mine.txt").write_text("{}")
     res = run("optimize", config, "-o", earlier)
     assert res.returncode == 1
     assert sorted(p.name for p in earlier.iterdir() if not p.name.startswith(("observed_flow", "estimator"))) == [
-        "mine.txt"  # not the run's: kept
+        WRITTEN_RECORD,
+        "mine.txt",  # not the run's: kept
     ]
 
 
