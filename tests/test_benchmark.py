@@ -8,6 +8,7 @@ import torch
 from click.testing import CliRunner
 
 from clflow.benchmark import Stopwatch, measure
+from clflow.fileio import WRITTEN_RECORD
 from clflow_cli.bench import BENCHMARKS
 from clflow_cli.main import cli
 
@@ -70,7 +71,7 @@ def test_every_bench_has_json_and_ply_writes_figures_with_the_environment(tmp_pa
     assert f"{results['save_s']:6.2f} s" in res.output  # the printed figure is the recorded one
     env = record["environment"]
     assert env["torch"] == torch.__version__ and env["device"] and "load" in env
-    assert [p.name for p in tmp_path.iterdir()] == ["ply.json"]  # written atomically: no temporary left
+    assert sorted(p.name for p in tmp_path.iterdir()) == [WRITTEN_RECORD, "ply.json"]  # no temporary left
 
 
 def test_bench_mpm_adjoint_runs_a_small_block_and_records_both_passes(tmp_path):
