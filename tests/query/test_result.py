@@ -7,6 +7,7 @@ import json
 import pytest
 
 from clflow.errors import InputError
+from clflow.fileio import WRITTEN_RECORD
 from clflow.query import QueryResult, load_query_result, query_material
 from tests.query._helpers import assert_refuses_file
 
@@ -25,7 +26,7 @@ def test_round_trip_uses_registry_names_and_units(tmp_path):
     }
     assert {"backend", "model", "prompt", "raw_answer", "matched", "confidence", "warnings"} <= set(raw)
     assert load_query_result(path) == result
-    assert [p.name for p in tmp_path.joinpath("out").iterdir()] == ["jam.json"]  # no temporary left
+    assert sorted(p.name for p in tmp_path.joinpath("out").iterdir()) == [WRITTEN_RECORD, "jam.json"]  # no temporary
 
 
 def test_loader_accepts_aliases_and_fills_defaults(tmp_path):

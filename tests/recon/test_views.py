@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from clflow.errors import InputError
+from clflow.fileio import atomic_write_text
 from clflow.recon.views import load_views
 from clflow.splat.cameras import OPENGL_TO_OPENCV, load_cameras_json, orbit, save_cameras_json
 from tests.recon._helpers import model_of, one_line_error, run, write_bin
@@ -155,8 +156,7 @@ def test_ctrl_c_says_whether_there_is_a_checkpoint_to_resume(tmp_path, monkeypat
     monkeypatch.setattr(clflow.recon.train, "reconstruct", interrupted)
     code, output = run([tmp_path / "images", "-o", tmp_path / "out"])
     assert code == 130 and "interrupted before the first checkpoint; nothing was saved" in output
-    (tmp_path / "out").mkdir()
-    (tmp_path / "out" / "checkpoint.pt").write_bytes(b"")
+    atomic_write_text(tmp_path / "out" / "checkpoint.pt", "")  # as an earlier run wrote it
     code, output = run([tmp_path / "images", "-o", tmp_path / "out"])
     assert code == 130 and "continue with the same command and --resume" in output
 
