@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from clflow.errors import InputError
+from clflow.fileio import WRITTEN_RECORD
 from clflow.flow.video import read_video
 from clflow.media import write_video
 
@@ -31,7 +32,7 @@ def test_mp4_is_h264_in_yuv420p_with_odd_sizes_padded(tmp_path):
     frames = ramp(9, 33, 47)
     path = tmp_path / "clip.mp4"
     write_video(path, frames, 24.0)
-    assert [p.name for p in tmp_path.iterdir()] == ["clip.mp4"]  # no temporary file left
+    assert sorted(p.name for p in tmp_path.iterdir()) == [WRITTEN_RECORD, "clip.mp4"]  # no temporary file left
     with av.open(str(path)) as container:
         stream = container.streams.video[0]
         assert stream.codec_context.name == "h264"
