@@ -99,11 +99,12 @@ def test_the_alternative_forms_load(folder):
 
 def test_the_objects_example_loads(folder):
     base = yaml.safe_load(BLOCKS[0])
-    for key in ("object", "material", "evaluation"):  # objects replace them; identification is not built yet
+    for key in ("object", "material", "evaluation"):  # objects replace them; their parameters are OBJECT.PARAM
         base.pop(key)
     base["optimize"].pop("parameters")
     base["optimize"].pop("learning_rates")
     base["optimize"].pop("bounds")
+    base["optimize"].pop("estimate_velocity", None)
     cfg = _load(folder, {**base, **yaml.safe_load(BLOCKS[3])})
     jelly, heap = cfg.objects
     assert cfg.object_names == ("jelly", "heap") and jelly.key == "objects.jelly"
