@@ -156,8 +156,8 @@ def simulate_scene(
     if len(cfg.objects) > 1:
         if params_file:
             raise InputError(
-                f"--params-from {params_file}: an optimisation's result is one object's material; "
-                f"{cfg.source} has several objects ({', '.join(cfg.object_names)})"
+                f"--params-from {params_file}: not built yet for a config of several objects; "
+                f"{cfg.source} has several ({', '.join(cfg.object_names)})"
             )
         scene = load_scene_objects(cfg, torch.float32)  # selections checked (empty, overlapping) before a query
     cfg = resolve_material(cfg)
