@@ -60,8 +60,9 @@ def per_class(cases: dict) -> dict:
     for record in cases.values():
         if record.get("status") != "ok":
             continue
-        material = record["material"]
         for name, p in record["parameters"].items():
+            # a case of several objects: each parameter of its object's material, by its own name
+            material, name = p.get("material", record["material"]), p.get("parameter", name)
             kind = error_kind(material, name)
             row = table.setdefault(material, {}).setdefault(name, {"kind": kind, "errors": []})
             row["errors"].append(parameter_error(kind, p["found"], p["truth"]))

@@ -438,7 +438,6 @@ def make_case(
     import yaml
 
     from clflow.fileio import atomic_write_text
-    from clflow.pipeline.forward import simulate_config
     from clflow.scene.config import parse_config
 
     if int(truth_scale) < 1:
@@ -453,39 +452,51 @@ def make_case(
     truth = case_config(case, truth_resolution, case.truth, optimize=False, scale=int(truth_scale), views=views)
     atomic_write_text(folder / "config_truth.yaml", yaml.safe_dump(truth, sort_keys=False))
     truth_cfg = parse_config(truth, str(folder / "config_truth.yaml"), folder)
-    # a truth that breaks the CFL limit runs again at twice the substeps (as the optimiser's
-    # runs do), and is an error at simulation.max_substeps: never a truth from an unstable step
-    result = simulate_config(truth_cfg)
-    clamped, at_walls = int(result.clamped.sum()), wall_contacts(result)
-    if clamped or at_walls:
-        raise ValueError(
-            f"{folder}: the ground-truth run clamped {clamped} particle-frames at the grid's edge and "
-            f"brought {at_walls} particle-frames into the domain walls; give the case more room "
-            f"(SyntheticCase.spread)"
-        )
+    result = truth_run(folder, truth_cfg, "SyntheticCase.spread")
     fps = truth["simulation"]["fps"]
     config = case_config(case, resolution, {**case.truth, **case.guess}, optimize=True, views=views)
     coded = _write_guidance(folder, result, truth_cfg, resolution.image, fps, noise, codec, seed)
     if coded:
         config["video"] = coded if views > 1 else coded[0]
     atomic_write_text(folder / "config.yaml", yaml.safe_dump(config, sort_keys=False))
-    record = {
+    extra = {"noise": noise, "codec": codec, "seed": seed, "views": views}
+    record = case_record(truth, config, truth_cfg, result, resolution.image, truth_resolution.flip, extra)
+    atomic_write_text(folder / "case.json", json.dumps(record, indent=2))
+    return folder / "config.yaml"
+
+
+def truth_run(folder: Path, truth_cfg, room: str):
+    """The ground truth's simulation (clflow.pipeline.forward.SimulationResult) of
+    ``truth_cfg``: ValueError if it clamps particles at the grid's edge or brings them into
+    the domain's walls (``room``: what gives a case more room). A truth that breaks the CFL
+    limit runs again at twice the substeps (as the optimiser's runs do), and is an error at
+    simulation.max_substeps: never a truth from an unstable step."""
+    from clflow.pipeline.forward import simulate_config
+
+    result = simulate_config(truth_cfg)
+    clamped, at_walls = int(result.clamped.sum()), wall_contacts(result)
+    if clamped or at_walls:
+        raise ValueError(
+            f"{folder}: the ground-truth run clamped {clamped} particle-frames at the grid's edge and "
+            f"brought {at_walls} particle-frames into the domain walls; give the case more room ({room})"
+        )
+    return result
+
+
+def case_record(truth: dict, config: dict, truth_cfg, result, image: int, truth_flip: float, extra: dict) -> dict:
+    """case.json: the truth's and the optimiser's grids, images, particles and substeps, and ``extra``."""
+    return {
         "truth_grid_resolution": truth["simulation"]["grid_resolution"],
         "grid_resolution": config["simulation"]["grid_resolution"],
         "truth_image": truth_cfg.camera.width,
-        "image": resolution.image,
+        "image": image,
         "truth_particles": int(result.x.shape[1]),
         "truth_substeps": result.substeps,
-        "truth_flip": truth_resolution.flip,
-        "clamped": clamped,
-        "wall_contacts": at_walls,
-        "noise": noise,
-        "codec": codec,
-        "seed": seed,
-        "views": views,
+        "truth_flip": truth_flip,
+        "clamped": int(result.clamped.sum()),
+        "wall_contacts": 0,  # truth_run refuses any
+        **extra,
     }
-    atomic_write_text(folder / "case.json", json.dumps(record, indent=2))
-    return folder / "config.yaml"
 
 
 __all__ = [
@@ -504,6 +515,8 @@ __all__ = [
     "floor",
     "make_case",
     "CASE_FILES",
+    "case_record",
+    "truth_run",
     "push_upper_part",
     "sphere_surface",
     "surface_gaussians",

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Callable
 
 from clflow_datasets import per_class
+from clflow_datasets.scene_cases import CaseObject, SceneCase, make_scene_case
 from clflow_datasets.synthetic import GENERATOR_VERSION, Resolution, SyntheticCase, make_case
 
 log = logging.getLogger(__name__)
@@ -170,12 +171,17 @@ def with_budget(cfg, seconds: float, truth_grid: int):
     return replace(cfg, optimize=replace(cfg.optimize, budget=BudgetSettings(seconds, finest)))
 
 
-def check_case(name: str, case: SyntheticCase) -> None:
-    """ValueError if a case's truth or guess is not a valid start for its material."""
+def check_case(name: str, case: SyntheticCase | SceneCase) -> None:
+    """ValueError if a case's truth or guess is not a valid start for its material (a
+    case of several objects: each object's for its own)."""
     from clflow.errors import InputError
     from clflow.materials import validate_params
     from clflow.mpm.parameterization import parameterization
 
+    if isinstance(case, SceneCase):
+        for obj in case.objects:
+            check_case(f"{name}.{obj.name}", obj)
+        return
     for label, values in (("truth", case.truth), ("guess", {**case.truth, **case.guess})):
         try:
             validate_params(case.material, values)
@@ -187,6 +193,9 @@ def check_case(name: str, case: SyntheticCase) -> None:
 
 #: what a case file may say of a case (clflow eval sysid --cases FILE), in the table's terms
 CASE_KEYS = ("shape", "size", "lift", "spread", "material", "density", "truth", "guess", "optimize", "velocity")
+#: a case of several objects: its objects (a list, each of OBJECT_KEYS) and the room beside them
+SCENE_CASE_KEYS = ("objects", "spread")
+OBJECT_KEYS = ("name", "shape", "size", "position", "material", "density", "truth", "guess", "optimize", "velocity")
 
 
 def load_cases(path: Path) -> dict[str, SyntheticCase]:
@@ -208,12 +217,48 @@ def load_cases(path: Path) -> dict[str, SyntheticCase]:
     for name, body in data.items():
         if not isinstance(name, str) or not name.isidentifier() or name in CASES:
             raise InputError(f"{path}: case name {name!r}: use a new identifier (not one of the built-in cases)")
-        cases[name] = _with_policy(_case_of(r, body, name))
+        several = isinstance(body, dict) and "objects" in body
+        cases[name] = _with_policy(_scene_case_of(r, body, name) if several else _case_of(r, body, name))
         try:
             check_case(name, cases[name])
         except ValueError as exc:
             raise InputError(f"{path}: {exc}") from None
     return cases
+
+
+def _scene_case_of(r, body, name: str) -> SceneCase:
+    """A :class:`SceneCase` of case file entry ``name``: ``objects``, a list of shapes each
+    with a name, shape, size (m), position (its centre, m, +y up), material, density, truth,
+    guess, optimize and velocity as a single case's; ``spread``: room beside them (in their
+    box's longest side)."""
+
+    body = r.section(body, name, SCENE_CASE_KEYS)
+    entries = body.get("objects")
+    if not isinstance(entries, list) or len(entries) < 2:
+        raise r.fail(f"{name}.objects", "must be a list of two or more shapes, each with a name")
+    objects, names = [], set()
+    for k, entry in enumerate(entries):
+        where = f"{name}.objects[{k}]"
+        entry = r.section(entry, where, OBJECT_KEYS)
+        label = entry.get("name")
+        if not isinstance(label, str) or not label.isidentifier() or label in names:
+            raise r.fail(f"{where}.name", f"must be a new identifier for the object, got {label!r}")
+        names.add(label)
+        one = _case_of(r, {k: v for k, v in entry.items() if k not in ("name", "position")}, where)
+        position = r.vec3(entry, "position", where, None)
+        if position is None:
+            raise r.fail(f"{where}.position", "is required: the shape's centre (m, +y up; the floor is y = 0)")
+        obj = CaseObject(
+            label, one.shape, one.size, position, one.material, one.truth, one.guess, one.optimize, one.density,
+            one.velocity,
+        )  # fmt: skip
+        if obj.bounds()[0][1] < 0:
+            raise r.fail(
+                f"{where}.position", f"puts the shape below the floor (its lowest point y = {obj.bounds()[0][1]:g} m)"
+            )
+        objects.append(obj)
+    spread = r.number(body, "spread", name, SceneCase.spread, low=0.0)
+    return SceneCase(objects=tuple(objects), spread=spread)
 
 
 def _case_of(r, body, name: str) -> SyntheticCase:
@@ -276,13 +321,14 @@ def run_case(
 
     case = case or CASES[name]
     check_case(name, case)
+    make = make_scene_case if isinstance(case, SceneCase) else make_case
     start = time.perf_counter()
     made = folder / "case.json"
     definition = case_definition(case)
     if made.exists() and json.loads(made.read_text()).get("definition") != definition:
         shutil.rmtree(folder)  # made from another definition of the case: make it anew
     if not made.exists():  # an interrupted generation leaves no case.json: make it again
-        make_case(
+        make(
             folder,
             case,
             settings.resolution,
@@ -338,8 +384,9 @@ def run_case(
 
 def parameter_records(case: SyntheticCase, found: dict[str, float], ranges: dict[str, dict]) -> dict[str, dict]:
     """Per optimised parameter: found, truth, guess, RE, its range [low, high] (None: open)
-    and whether that holds the truth."""
-    return {
+    and whether that holds the truth; a case of several objects' (OBJECT.PARAM) also its
+    object's material and the parameter's own name (the per-class table's)."""
+    records = {
         n: {
             "found": found[n],
             "truth": case.truth[n],
@@ -350,6 +397,11 @@ def parameter_records(case: SyntheticCase, found: dict[str, float], ranges: dict
         }
         for n in case.optimize
     }
+    if isinstance(case, SceneCase):
+        for n, record in records.items():
+            obj, param = case.object_of(n)
+            record.update(object=obj.name, material=obj.material, parameter=param)
+    return records
 
 
 def holds(entry: dict, truth: float) -> bool:

@@ -15,7 +15,7 @@ import torch
 from clflow.media import to_uint8
 from clflow.pipeline.render import frame_gaussians, render_rgb
 from clflow.pipeline.simulation import ObjectSetup, ObjectValues, build_scene_simulator, setup_object
-from clflow.scene.config import SceneConfig
+from clflow.scene.config import SceneConfig, split_parameter
 from clflow.scene.load import guidance_camera, load_scene_objects
 from clflow.splat.gaussians import Gaussians
 
@@ -91,14 +91,21 @@ def material_values(cfg: SceneConfig, overrides: dict[str, float] | None = None)
 
 
 def scene_values(cfg: SceneConfig, overrides: dict[str, float] | None = None) -> tuple[ObjectValues, ...]:
-    """Each object's ObjectValues as the config gives them; ``overrides`` (SI; ``density``
-    too) apply to a config of one object (an optimisation's result)."""
+    """Each object's ObjectValues as the config gives them, with ``overrides`` (SI; density
+    too) applied: the one object's by bare name, else by OBJECT.PARAM (an optimisation's
+    values; ValueError for a name of no object)."""
     if len(cfg.objects) == 1:
         params, density = material_values(cfg, overrides)
         return (ObjectValues(params, density, cfg.velocity),)
-    if overrides:
-        raise ValueError("material overrides name no object: a config of several objects takes none")
-    return tuple(ObjectValues(dict(o.material.parameters), o.material.density, o.velocity) for o in cfg.objects)
+    params = [dict(o.material.parameters) for o in cfg.objects]
+    densities = [o.material.density for o in cfg.objects]
+    for name, value in (overrides or {}).items():
+        k, param = split_parameter(cfg.objects, name)
+        if param == "density":
+            densities[k] = float(value)
+        else:
+            params[k][param] = float(value)
+    return tuple(ObjectValues(p, d, o.velocity) for p, d, o in zip(params, densities, cfg.objects))
 
 
 def simulate_config(

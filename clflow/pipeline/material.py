@@ -58,7 +58,12 @@ def _resolved(cfg: SceneConfig, obj, record: str):
     where = f"{cfg.source}: {key}.parameters (material {result.material} from the query)"
     params = validate_params(result.material, {**result.parameters, **mat.parameters}, where)
     known = set(get_material(result.material).param_names) | {"density", VELOCITY, *VELOCITY_COMPONENTS}
-    wrong = [n for n in (*cfg.optimize.parameters, *cfg.ground_truth) if n not in known]
+    if len(cfg.objects) == 1:
+        named = [*cfg.optimize.parameters, *cfg.ground_truth]
+    else:  # this object's: OBJECT.PARAM
+        prefix = f"{obj.name}."
+        named = [n[len(prefix) :] for n in (*cfg.optimize.parameters, *cfg.ground_truth) if n.startswith(prefix)]
+    wrong = [n for n in named if n not in known]
     if wrong and not cfg.optimize.materials:  # hypotheses: checked against them (scene config)
         raise InputError(
             f"{cfg.source}: the query chose {result.material}, which has no parameter "

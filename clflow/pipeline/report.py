@@ -89,14 +89,24 @@ def write_report(output: Path, staged: Path | None = None) -> Path:
             (n, f"{v:.6g}", range_text(ranges[n]) if n in ranges else "", units.get(n, ""))
             for n, v in params.get("optimized", {}).items()
         ]
-        parts.append(f"<h2>Material: {html.escape(params.get('material', '?'))}</h2>")
+        objects = params.get("objects")
+        if objects:  # several: each object's material, its parameters named OBJECT.PARAM
+            each = ", ".join(f"{name} {entry.get('material', '?')}" for name, entry in objects.items())
+            parts.append(f"<h2>Materials: {html.escape(each)}</h2>")
+        else:
+            parts.append(f"<h2>Material: {html.escape(params.get('material', '?'))}</h2>")
         parts.append("<h3>Optimised</h3>" + _table(rows, ("parameter", "value", "90 % range", "unit")))
-        fixed = [
-            (n, f"{v:.6g}") for n, v in params.get("parameters", {}).items() if n not in params.get("optimized", {})
-        ]
-        fixed.append(("density (kg/m^3)", f"{params.get('density', float('nan')):.6g}"))
-        fixed.append(("initial velocity (m/s)", ", ".join(f"{v:.4g}" for v in params.get("velocity", []))))
-        parts.append("<h3>All parameters (SI)</h3>" + _table(fixed, ("parameter", "value")))
+        for name, entry in objects.items() if objects else [(None, params)]:
+            prefix = "" if name is None else f"{name}."
+            fixed = [
+                (prefix + n, f"{v:.6g}")
+                for n, v in entry.get("parameters", {}).items()
+                if prefix + n not in params.get("optimized", {})
+            ]
+            fixed.append((f"{prefix}density (kg/m^3)", f"{entry.get('density', float('nan')):.6g}"))
+            fixed.append((f"{prefix}initial velocity (m/s)", ", ".join(f"{v:.4g}" for v in entry.get("velocity", []))))
+            title = "All parameters (SI)" if name is None else f"{name}: all parameters (SI)"
+            parts.append(f"<h3>{html.escape(title)}</h3>" + _table(fixed, ("parameter", "value")))
     if metrics:
         rows = [
             ("flow loss (per frame and pixel)", f"{metrics.get('flow_loss', float('nan')):.4g}"),

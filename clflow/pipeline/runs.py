@@ -156,8 +156,8 @@ def simulate_scene(
     if len(cfg.objects) > 1:
         if params_file:
             raise InputError(
-                f"--params-from {params_file}: an optimisation's result is one object's material; "
-                f"{cfg.source} has several objects ({', '.join(cfg.object_names)})"
+                f"--params-from {params_file}: not built yet for a config of several objects; "
+                f"{cfg.source} has several ({', '.join(cfg.object_names)})"
             )
         scene = load_scene_objects(cfg, torch.float32)  # selections checked (empty, overlapping) before a query
     cfg = resolve_material(cfg)
@@ -465,11 +465,6 @@ def run_optimization(
 
         require_ray("drop --parallel")
     cfg = load_config(config_path, overrides)
-    if len(cfg.objects) > 1:
-        raise InputError(
-            f"{cfg.source}: several objects ({', '.join(cfg.object_names)}): identification is not built yet "
-            f"(one object per config for clflow optimize; clflow simulate runs the scene)"
-        )
     with contextlib.ExitStack() as stack:
         search = cfg.optimize.search
         if parallel is not None and (cfg.optimize.materials or search is not None and search.starts > 1):
@@ -530,7 +525,8 @@ def _optimize_config(
     for video in [cfg.video, *(view.video for view in cfg.more_views)]:
         if video is not None or not generated:  # none, unreadable, short or gapped: before the scene and kernels
             resampled_guidance(cfg, video, cfg.simulation.frames)
-    rewritten = cfg.material.type == "query" or cfg.optimize.materials or generated  # by the run's first steps
+    query = any(o.material.type == "query" for o in cfg.objects)
+    rewritten = query or cfg.optimize.materials or generated  # by the run's first steps
     if resume and not rewritten and (cfg.output / "checkpoint.json").exists():
         check_resume(cfg.output / "checkpoint.json", cfg)  # a changed --set or video: before the scene is loaded
     created = not cfg.output.exists()

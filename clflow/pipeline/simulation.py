@@ -32,7 +32,7 @@ from clflow.materials import get_material
 from clflow.mpm.constants import WALL_CELLS
 from clflow.mpm.substep import Grid, check_grid_memory
 from clflow.runtime import get_device
-from clflow.scene.config import SceneConfig
+from clflow.scene.config import SceneConfig, split_parameter
 from clflow.scene.filling import ObjectParticles, fill_object
 from clflow.splat.gaussians import Gaussians
 
@@ -330,3 +330,34 @@ def run(simulator, frames: int, values: dict[str, torch.Tensor], velocity: torch
     return simulate(
         simulator, frames, params=params or None, density=values.get("density"), velocities=velocities, retries=2
     )
+
+
+def scene_run_values(
+    cfg: SceneConfig, setup: ObjectSetup, values, decoded: dict[str, torch.Tensor]
+) -> dict[str, torch.Tensor]:
+    """The inputs of :func:`run` for ``decoded`` (optimised name -> 0-d tensor, SI): the one
+    object's as they are; with several objects (OBJECT.PARAM) each parameter per particle
+    [M] (float64), every object's particles with its own value (``values``: the objects'
+    ObjectValues for those not optimised), so that an object's parameter reaches only its
+    own particles and its gradient comes from them alone (a masked sum: a fixed-order
+    backward)."""
+    if len(cfg.objects) == 1 or not decoded:
+        return decoded
+    by_param: dict[str, dict[int, torch.Tensor]] = {}
+    for name, value in decoded.items():
+        k, param = split_parameter(cfg.objects, name)
+        by_param.setdefault(param, {})[k] = value
+    count = len(cfg.objects)
+    masks = (setup.object_index[None, :] == torch.arange(count)[:, None]).double()  # [K, M]
+    out = {}
+    for param, given in by_param.items():
+        fallback = float(next(iter(given.values())).detach())  # particles without the parameter ignore it
+        fixed = [v.density if param == "density" else v.params.get(param, fallback) for v in values]
+        per_object = torch.stack(
+            [
+                given[k].double() if k in given else torch.tensor(float(fixed[k]), dtype=torch.float64)
+                for k in range(count)
+            ]
+        )
+        out[param] = (per_object[:, None] * masks).sum(0)
+    return out

@@ -178,10 +178,10 @@ def test_bad_input_is_one_line_before_any_work(tmp_path):
     )
     refused({**good, "material": ELASTIC}, r"bad.yaml: material: give the scene's objects under objects")
     refused(
-        {**good, "optimize": {"parameters": ["youngs_modulus"]}},
-        r"optimize.parameters: several objects: identification is not built yet",
+        {**good, "optimize": {"parameters": ["ghost.youngs_modulus"]}},
+        r"bad.yaml: optimize.parameters: 'ghost.youngs_modulus': there is no object 'ghost' \(the objects: jelly, heap\)",
+        command="optimize",
     )
-    refused(good, r"several objects \(jelly, heap\): identification is not built yet", command="optimize")
     single = cube_config(tmp_path)
     refused(single, r"the config gives one object .* no object 'jelly'", "--set", "objects.jelly.velocity=[0,1,0]")
 

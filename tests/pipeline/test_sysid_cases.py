@@ -11,6 +11,7 @@ from click.testing import CliRunner
 from clflow.errors import InputError
 from clflow_cli.main import cli
 from clflow_datasets import per_class, sysid
+from clflow_datasets.scene_cases import scene_case_config
 from tests.pipeline.test_sysid import TINY, main_table_rows
 
 CASE_FILE = """
@@ -174,13 +175,90 @@ def test_the_extra_set_covers_every_material_with_guesses_either_side_and_a_thro
     from clflow.materials import MATERIALS
 
     extra = sysid.load_cases(sysid.EXTRA_CASES_FILE)
-    assert len(extra) >= 9 and not set(extra) & set(sysid.CASES)
-    assert {c.material for c in extra.values()} == set(MATERIALS)
+    single = {n: c for n, c in extra.items() if not isinstance(c, sysid.SceneCase)}
+    assert len(single) >= 9 and not set(extra) & set(sysid.CASES)
+    assert {c.material for c in single.values()} == set(MATERIALS)
     sides = {(c.guess[n] > c.truth[n]) for c in extra.values() for n in c.optimize}
     assert sides == {True, False}
-    assert any(any(c.velocity) for c in extra.values())
+    assert any(any(c.velocity) for c in single.values())
     paper = {(c.material, tuple(sorted(c.truth.items()))) for c in sysid.CASES.values()}
-    assert not {(c.material, tuple(sorted(c.truth.items()))) for c in extra.values()} & paper
+    assert not {(c.material, tuple(sorted(c.truth.items()))) for c in single.values()} & paper
+    # and two scenes of several objects (issue 48): a cube dropped on a heap, a ball thrown at a block
+    scenes = {n: c for n, c in extra.items() if isinstance(c, sysid.SceneCase)}
+    assert {n: [(o.name, o.material) for o in c.objects] for n, c in scenes.items()} == {
+        "cube_on_heap": [("heap", "sand"), ("jelly", "elastic")],
+        "ball_at_block": [("block", "elastic"), ("ball", "plasticine")],
+    }
+    assert scenes["ball_at_block"].objects[1].velocity[0] > 0  # thrown at the block
+
+
+SCENE_FILE = """
+pair:
+  spread: 0.3
+  objects:
+    - name: block
+      shape: cube
+      size: 0.3
+      position: [0.15, 0.15, 0.0]
+      material: elastic
+      truth: {E: 1.0e5, nu: 0.3}
+      guess: {E: 1.0e4}
+      optimize: [E]
+    - name: ball
+      shape: sphere
+      size: 0.2
+      position: [-0.25, 0.2, 0.0]
+      velocity: [2.0, 0.0, 0.0]
+      material: plasticine
+      truth: {youngs_modulus: 2.0e5, poissons_ratio: 0.3, yield_stress: 2.0e3}
+      guess: {yield_stress: 2.0e4}
+      optimize: [yield_stress]
+"""
+
+
+def test_a_case_of_several_objects_names_each_objects_parameters(tmp_path):
+    path = tmp_path / "cases.yaml"
+    path.write_text(SCENE_FILE)
+    pair = sysid.load_cases(path)["pair"]
+    block, ball = pair.objects
+    assert (block.name, block.shape, block.size, block.position, block.material) == (
+        "block",
+        "cube",
+        0.3,
+        (0.15, 0.15, 0.0),
+        "elastic",
+    )
+    assert ball.velocity == (2.0, 0.0, 0.0) and ball.optimize == ("yield_stress",)
+    assert pair.optimize == ("block.youngs_modulus", "ball.yield_stress")  # the alias E made canonical
+    assert pair.truth["block.youngs_modulus"] == 1.0e5 and pair.guess == {
+        "block.youngs_modulus": 1.0e4,
+        "ball.yield_stress": 2.0e4,
+    }
+    assert pair.material == "elastic + plasticine" and pair.spread == 0.3
+    assert pair.method == "levenberg_marquardt" and pair.starts == 3 and pair.search == 24  # the policy
+    config = scene_case_config(pair, TINY, pair.guess, optimize=True)
+    assert [o["name"] for o in config["objects"]] == ["block", "ball"]
+    assert config["optimize"]["parameters"] == ["block.youngs_modulus", "ball.yield_stress"]
+    assert config["objects"][0]["material"]["parameters"] == {"youngs_modulus": 1.0e4, "poissons_ratio": 0.3}
+    assert config["evaluation"]["ground_truth"] == pair.truth
+
+
+@pytest.mark.parametrize(
+    "old, new, message",
+    [
+        ("  spread: 0.3\n", "  spread: 0.3\n  colour: red\n", "pair.colour: unknown key"),
+        ("      position: [0.15, 0.15, 0.0]\n", "", "pair.objects[0].position: is required"),
+        ("name: ball", "name: block", "pair.objects[1].name: must be a new identifier for the object, got 'block'"),
+        ("[-0.25, 0.2, 0.0]", "[-0.25, 0.05, 0.0]", "pair.objects[1].position: puts the shape below the floor"),
+        ("guess: {yield_stress: 2.0e4}", "guess: {yield_stress: -1.0}", "case 'pair.ball': its guess is out of range"),
+        ("material: plasticine", "material: slime", "slime"),
+    ],
+)
+def test_a_bad_case_of_several_objects_is_one_line(tmp_path, old, new, message):
+    path = tmp_path / "cases.yaml"
+    path.write_text(SCENE_FILE.replace(old, new))
+    with pytest.raises(InputError, match=re.escape(message)):
+        sysid.load_cases(path)
 
 
 def test_set_extra_runs_clflows_own_cases_and_refuses_a_case_file_beside_it(tmp_path):
@@ -190,3 +268,26 @@ def test_set_extra_runs_clflows_own_cases_and_refuses_a_case_file_beside_it(tmp_
     path.write_text(CASE_FILE)
     res = CliRunner().invoke(cli, ["eval", "sysid", "--set", "extra", "--cases", str(path), "-o", str(tmp_path / "o")])
     assert res.exit_code == 2 and "--cases and --set extra both choose the cases" in res.output
+
+
+def test_a_case_of_several_objects_runs_and_reports_each_objects_parameters(tmp_path):
+    path = tmp_path / "cases.yaml"
+    path.write_text(SCENE_FILE)
+    pair = dataclasses.replace(sysid.load_cases(path)["pair"], search=3, refine=0, starts=1)  # seconds
+    summary = sysid.evaluate(["pair"], tmp_path / "out", sysid.Settings(resolution=TINY), cases={"pair": pair})
+    record = summary["cases"]["pair"]
+    assert record["status"] == "ok", record["status"]
+    assert record["material"] == "elastic + plasticine"
+    params = record["parameters"]
+    assert set(params) == {"block.youngs_modulus", "ball.yield_stress"}
+    assert (params["ball.yield_stress"]["object"], params["ball.yield_stress"]["material"]) == ("ball", "plasticine")
+    assert params["block.youngs_modulus"]["truth"] == 1.0e5 and "holds_truth" in params["block.youngs_modulus"]
+    generation = record["generation"]  # the truth twice as fine as the optimiser's model
+    assert generation["truth_grid_resolution"] - 1 == 2 * (generation["grid_resolution"] - 1)
+    assert generation["truth_image"] == 2 * generation["image"]
+    case = tmp_path / "out" / "cases" / "pair"
+    results = json.loads((case / "results" / "params.json").read_text())
+    assert set(results["objects"]) == {"block", "ball"}
+    # the per-class table counts each parameter under its object's material
+    assert set(summary["per_class"]) == {"elastic", "plasticine"}
+    assert "block.youngs_modulus" in (tmp_path / "out" / "sysid.md").read_text()

@@ -407,9 +407,28 @@ def test_objects_as_a_list_or_a_mapping_and_one_object_in_either_form(folder):
         ({"objects": {"a": {"name": "a"}}}, "objects.a.name: unknown key"),
         (
             {"evaluation": {"ground_truth": {"youngs_modulus": 1e4}}},
-            "evaluation.ground_truth: several objects: identification is not built yet",
+            r"evaluation.ground_truth: 'youngs_modulus': with several objects name each parameter's object, "
+            r"OBJECT.PARAM \(e.g. jelly.",
         ),
-        ({"optimize": {"material": ["sand"]}}, "optimize.material: several objects: identification is not built yet"),
+        (
+            {"evaluation": {"ground_truth": {"ghost.youngs_modulus": 1e4}}},
+            r"evaluation.ground_truth: 'ghost.youngs_modulus': there is no object 'ghost' \(the objects: jelly, heap\)",
+        ),
+        ({"optimize": {"material": ["sand"]}}, "optimize.material: not built yet for several objects"),
+        ({"optimize": {"parameters": ["youngs_modulus"]}}, r"optimize.parameters: 'youngs_modulus': with several"),
+        (
+            {"optimize": {"parameters": ["ghost.youngs_modulus"]}},
+            r"^scene.yaml: optimize.parameters: 'ghost.youngs_modulus': there is no object 'ghost'",
+        ),
+        (
+            {"optimize": {"parameters": ["heap.yield_stress"]}},
+            r"'heap.yield_stress': 'yield_stress' is not a parameter of heap's material sand",
+        ),
+        ({"optimize": {"parameters": ["jelly.velocity"]}}, "an object's initial velocity is not identified yet"),
+        (
+            {"optimize": {"parameters": ["jelly.youngs_modulus"], "estimate_velocity": {"frames": 1, "iterations": 1}}},
+            "optimize.estimate_velocity: not built yet for several objects",
+        ),
     ],
 )
 def test_bad_objects(folder, changes, message):
@@ -418,6 +437,23 @@ def test_bad_objects(folder, changes, message):
         data["material"] = changes["material"]
     with pytest.raises(InputError, match=message):
         parse(data, folder)
+
+
+def test_each_objects_parameters_by_object_name(folder):
+    """Several objects: optimize.parameters, bounds, learning rates and the ground truth name
+    OBJECT.PARAM, each checked against that object's material (issue 48)."""
+    optimize = {
+        "parameters": ["jelly.youngs_modulus", "heap.friction_angle", "heap.density"],
+        "bounds": {"heap.friction_angle": [20, 45]},
+        "learning_rates": {"jelly.youngs_modulus": 0.1},
+    }
+    truth = {"jelly.youngs_modulus": 2e4, "heap.friction_angle": 30, "heap.density": 1500}
+    cfg = parse(several(optimize=optimize, evaluation={"ground_truth": truth}), folder)
+    assert cfg.optimize.parameters == ("jelly.youngs_modulus", "heap.friction_angle", "heap.density")
+    assert cfg.optimize.bounds == {"heap.friction_angle": (20.0, 45.0)}
+    assert cfg.ground_truth == {"jelly.youngs_modulus": 2e4, "heap.friction_angle": 30.0, "heap.density": 1500.0}
+    with pytest.raises(InputError, match=r"ground_truth: heap: .*friction_angle"):
+        parse(several(evaluation={"ground_truth": {"heap.friction_angle": 95}}), folder)
 
 
 def test_two_objects_of_one_name(folder):

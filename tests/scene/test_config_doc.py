@@ -58,7 +58,7 @@ def _merge(base: dict, alt: dict) -> dict:
 
 
 def test_the_doc_has_the_complete_example_and_the_alternatives():
-    assert len(BLOCKS) == 4  # the complete example, two of alternatives, several objects
+    assert len(BLOCKS) == 5  # the complete example, two of alternatives, several objects and their identification
 
 
 def test_the_complete_example_loads_with_its_values(folder):
@@ -99,17 +99,23 @@ def test_the_alternative_forms_load(folder):
 
 def test_the_objects_example_loads(folder):
     base = yaml.safe_load(BLOCKS[0])
-    for key in ("object", "material", "evaluation"):  # objects replace them; identification is not built yet
+    for key in ("object", "material", "evaluation"):  # objects replace them; their parameters are OBJECT.PARAM
         base.pop(key)
     base["optimize"].pop("parameters")
     base["optimize"].pop("learning_rates")
     base["optimize"].pop("bounds")
+    base["optimize"].pop("estimate_velocity", None)
     cfg = _load(folder, {**base, **yaml.safe_load(BLOCKS[3])})
     jelly, heap = cfg.objects
     assert cfg.object_names == ("jelly", "heap") and jelly.key == "objects.jelly"
     assert jelly.velocity == (0.0, -0.5, 0.0) and jelly.material.density == 800.0
     assert heap.material.type == "sand" and heap.material.parameters["friction_angle"] == 35.0
     assert heap.fill.spacing == 0.01 and jelly.fill.spacing is None
+    identify = yaml.safe_load(BLOCKS[4])  # each object's parameters, OBJECT.PARAM
+    cfg = _load(folder, {**base, **yaml.safe_load(BLOCKS[3]), **identify})
+    assert cfg.optimize.parameters == ("jelly.youngs_modulus", "heap.friction_angle")
+    assert cfg.optimize.bounds == {"heap.friction_angle": (20.0, 45.0)}
+    assert cfg.ground_truth == {"jelly.youngs_modulus": 6.0e4, "heap.friction_angle": 35.0}
 
 
 def _section_keys(source: str) -> set[str]:

@@ -24,7 +24,7 @@ from clflow.pipeline.fit.steps import LM_GAIN_TOLERANCE, LM_TOLERANCE, Steps, ho
 from clflow.pipeline.forward import prepare
 from clflow.pipeline.generated_video import ensure_guidance_video
 from clflow.pipeline.material import resolve_material
-from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig, main_grid_range
+from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig, main_grid_range, split_parameter
 
 log = logging.getLogger(__name__)
 
@@ -33,13 +33,18 @@ MAX_FAILURES = 4  # consecutive failed iterations before giving up
 
 def _parameterizations(cfg: SceneConfig):
     """Material parameter name -> its parameterisation, for each of optimize.parameters
-    but velocity."""
+    but velocity (with several objects OBJECT.PARAM, of that object's material)."""
     from clflow.mpm.parameterization import parameterization
 
     names = cfg.optimize.parameters
     if not names:
         raise InputError(f"{cfg.source}: optimize.parameters is empty: name the parameters to optimise")
-    return {name: parameterization(cfg.material.type, name) for name in names if name != VELOCITY}
+    out = {}
+    for name in names:
+        if name != VELOCITY:
+            k, param = split_parameter(cfg.objects, name)
+            out[name] = parameterization(cfg.objects[k].material.type, param)
+    return out
 
 
 class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):

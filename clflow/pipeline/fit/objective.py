@@ -16,9 +16,16 @@ from clflow.errors import ClflowError
 from clflow.fileio import atomic_path
 from clflow.mpm import StabilityWarning
 from clflow.pipeline.fit.state import Evaluation, OptimizerState, UnstableRun
-from clflow.pipeline.forward import Prepared, SimulationResult, material_values, prepare, render_frames
+from clflow.pipeline.forward import (
+    Prepared,
+    SimulationResult,
+    material_values,
+    prepare,
+    render_frames,
+    scene_values,
+)
 from clflow.pipeline.render import frame_gaussians, render_flow
-from clflow.pipeline.simulation import build_simulator, run
+from clflow.pipeline.simulation import ObjectValues, build_scene_simulator, run, scene_run_values
 from clflow.scene.config import VELOCITY_COMPONENTS, SceneConfig
 
 log = logging.getLogger(__name__)
@@ -67,18 +74,16 @@ class Objective:
         """The RunPlan of z (default: the initial parameters) on a grid of ``grid`` nodes:
         substeps, the seconds of a substep and of a frame's flow rendered (timed there);
         SubstepLimitError beyond ``simulation.max_substeps``."""
-        from clflow.pipeline.preflight import plan_run
+        from clflow.pipeline.preflight import plan_scene_run
 
         z = self.initial_state().z if z is None else z  # plan_run builds the simulator: it checks the forces
-        values = self.values(z)
-        params, density = material_values(self.cfg, {n: values[n] for n in self.params})
+        several = len(self.cfg.objects) > 1
+        objects = self.object_values(self.values(z), None if several else torch.tensor(self.velocity(z)))
         prepared = self.prepared_on(grid)
-        plan = plan_run(
+        plan = plan_scene_run(
             prepared.cfg,
             prepared.setup,
-            params,
-            density,
-            velocity=torch.tensor(self.velocity(z)),
+            objects,
             max_substeps=self.cfg.simulation.max_substeps,
             optimizing=True,
         )
@@ -87,9 +92,19 @@ class Objective:
     def simulator_on(self, grid: int, z: dict[str, float]):
         """A forward simulator of z on a grid of ``grid`` nodes (its substeps those of z's
         stability limits at the start)."""
-        values = self.values(z)
-        params, density = material_values(self.cfg, {n: values[n] for n in self.params})
-        return build_simulator(self.cfg, self.prepared_on(grid).setup, params, density, velocity=self.velocity(z))
+        velocity = self.velocity(z) if len(self.cfg.objects) == 1 else None
+        return build_scene_simulator(
+            self.cfg, self.prepared_on(grid).setup, self.object_values(self.values(z), velocity)
+        )
+
+    def object_values(self, values: dict[str, float], velocity=None) -> tuple[ObjectValues, ...]:
+        """Each object's ObjectValues with the optimised ``values`` (SI, by z name; the one
+        object's initial ``velocity``, default its config's)."""
+        overrides = {n: values[n] for n in self.params}
+        if len(self.cfg.objects) == 1:
+            params, density = material_values(self.cfg, overrides)
+            return (ObjectValues(params, density, self.cfg.velocity if velocity is None else velocity),)
+        return scene_values(self.cfg, overrides)
 
     def start_substeps(self, grid: int, z: dict[str, float]) -> int:
         """Substeps per frame the run of z takes on a grid of ``grid`` nodes over every frame,
@@ -158,7 +173,7 @@ class Objective:
         return out
 
     def velocity(self, z: dict[str, float]) -> tuple[float, float, float]:
-        """The object's initial velocity (m/s, simulation frame) at z."""
+        """The one object's initial velocity (m/s, simulation frame) at z."""
         return tuple(z[n] for n in VELOCITY_COMPONENTS) if VELOCITY_COMPONENTS[0] in z else self.cfg.velocity
 
     def evaluate(
@@ -178,20 +193,19 @@ class Objective:
         prepared = self.prepared_on(grid)
         zt = {n: torch.tensor(v, dtype=torch.float64, requires_grad=with_grad and n in variables) for n, v in z.items()}
         decoded = {n: p.decode(zt[n]) for n, p in self.params.items()}
-        params, density = material_values(self.cfg, {n: float(v.detach()) for n, v in decoded.items()})
         velocity = torch.stack([zt[n] for n in VELOCITY_COMPONENTS]) if VELOCITY_COMPONENTS[0] in zt else None
+        objects = self.object_values({n: float(v.detach()) for n, v in decoded.items()}, velocity)
         with warnings.catch_warnings():  # an unstable step or run fails below, saying why (UnstableRun)
             warnings.simplefilter("ignore", StabilityWarning)
-            sim = build_simulator(
+            sim = build_scene_simulator(
                 self.cfg,
                 prepared.setup,
-                params,
-                density,
+                objects,
                 min_substeps=min_substeps,
-                velocity=velocity,
                 max_substeps=self.cfg.simulation.max_substeps,
             )
-            traj = run(sim, frames, decoded, velocity)
+            # several objects: each parameter per particle, its object's particles alone
+            traj = run(sim, frames, scene_run_values(self.cfg, prepared.setup, objects, decoded), velocity)
         needed = sim.stable_substeps()
         if traj.substeps < needed:  # a fixed simulation.substep_dt too long for these parameters
             raise UnstableRun(

@@ -17,7 +17,7 @@ from clflow.pipeline.fit.diagnostics import MIN_LOSS_RISE, PROFILE_RISE, WEAK_ST
 from clflow.pipeline.fit.state import OptimizerState
 from clflow.pipeline.forward import SimulationResult, material_values, render_frames
 from clflow.pipeline.plots import range_text, write_history_plot
-from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig
+from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig, split_parameter
 
 log = logging.getLogger(__name__)
 
@@ -28,12 +28,14 @@ def comparison_video(view: int) -> str:
 
 
 def parameter_unit(cfg: SceneConfig, name: str) -> str:
-    """SI unit of an optimised variable (of a config with a concrete material)."""
+    """SI unit of an optimised variable (of a config with a concrete material; with several
+    objects OBJECT.PARAM, of that object's)."""
     from clflow.materials import DENSITY, get_material
 
     if name in VELOCITY_COMPONENTS:
         return "m/s"
-    return DENSITY.unit if name == "density" else get_material(cfg.material.type).param(name).unit
+    k, param = split_parameter(cfg.objects, name)
+    return DENSITY.unit if param == "density" else get_material(cfg.objects[k].material.type).param(param).unit
 
 
 def weak_reason(std_z: float, loss_rise: float) -> str:
@@ -57,14 +59,31 @@ class Results:
         out = self.cfg.output if out is None else out
         result = self.final_evaluation(state)
         final = self.values(state.z)
-        params, density = material_values(self.cfg, {n: final[n] for n in self.params})
         metrics = self.result_metrics(state, result)
         ranges = metrics["identifiability"]["ranges"]
+        if len(self.cfg.objects) == 1:
+            params, density = material_values(self.cfg, {n: final[n] for n in self.params})
+            materials = {
+                "material": self.cfg.material.type,
+                "parameters": params,
+                "density": density,
+                "velocity": list(self.velocity(state.z)),
+            }
+        else:  # each object's material with its optimised values (OBJECT.PARAM in optimized)
+            params, density = {}, math.nan
+            materials = {
+                "objects": {
+                    o.name: {
+                        "material": o.material.type,
+                        "parameters": v.params,
+                        "density": v.density,
+                        "velocity": list(o.velocity),
+                    }
+                    for o, v in zip(self.cfg.objects, self.object_values(final))
+                }
+            }
         record = {
-            "material": self.cfg.material.type,
-            "parameters": params,
-            "density": density,
-            "velocity": list(self.velocity(state.z)),
+            **materials,
             "optimized": final,
             "units": {n: parameter_unit(self.cfg, n) for n in final},
             # each optimised value's range (SI; None: open, the video only bounds the other side)

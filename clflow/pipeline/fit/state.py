@@ -13,8 +13,8 @@ import torch
 
 from clflow.errors import ClflowError, InputError
 from clflow.fileio import atomic_write_text
-from clflow.pipeline.forward import material_values
-from clflow.scene.config import VELOCITY_COMPONENTS, SceneConfig, config_record
+from clflow.pipeline.forward import material_values, scene_values
+from clflow.scene.config import VELOCITY_COMPONENTS, SceneConfig, config_record, split_parameter
 
 if TYPE_CHECKING:
     from clflow.mpm.autograd import Frames
@@ -156,8 +156,15 @@ class Checkpoints:
     and read from on --resume (needs cfg, params, variables, checkpoint, restore_calibration)."""
 
     def initial_state(self) -> OptimizerState:
-        values, density = material_values(self.cfg)
-        values["density"] = density
+        if len(self.cfg.objects) == 1:
+            values, density = material_values(self.cfg)
+            values["density"] = density
+        else:  # OBJECT.PARAM: that object's
+            objects = scene_values(self.cfg)
+            values = {}
+            for n in self.params:
+                k, param = split_parameter(self.cfg.objects, n)
+                values[n] = objects[k].density if param == "density" else objects[k].params[param]
         z = {n: float(p.encode(values[n])) for n, p in self.params.items()}
         if VELOCITY_COMPONENTS[0] in self.variables:
             z.update(zip(VELOCITY_COMPONENTS, self.cfg.velocity))

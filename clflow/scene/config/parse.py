@@ -392,7 +392,8 @@ def _video_size(r: Reader, value: Any, where: str) -> tuple[int, int] | None:
     raise r.fail(where, f"must be WIDTHxHEIGHT or [width, height] in pixels, got {value!r}")
 
 
-def _optimize_settings(r: Reader, data: Any, material: MaterialConfig, frames: int) -> OptimizeSettings:
+def _optimize_settings(r: Reader, data: Any, objects: tuple[SceneObject, ...], frames: int) -> OptimizeSettings:
+    """``optimize``; with several objects each parameter is named OBJECT.PARAM."""
     p = "optimize"
     body = r.section(
         data,
@@ -415,7 +416,11 @@ def _optimize_settings(r: Reader, data: Any, material: MaterialConfig, frames: i
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise r.fail(f"{p}.parameters", f"must be a list of parameter names, got {names!r}")
     hypotheses = _hypotheses(r, body.get("material"), names)
-    if material.type != "query" and not hypotheses:
+    material = objects[0].material
+    if len(objects) > 1:
+        for name in names:
+            _object_parameter(r, f"{p}.parameters", name, objects)
+    elif material.type != "query" and not hypotheses:
         mat = get_material(material.type)
         for name in names:
             if name not in ("density", VELOCITY) and name not in mat.param_names:
@@ -575,13 +580,17 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         _refuse_identification(r, top)
     material = objects[0].material
     flow = _flow(r, top.get("flow"))
-    truth, true_density, true_velocity = _given_truth(r, top.get("evaluation"))
+    if len(objects) == 1:
+        truth, true_density, true_velocity = _given_truth(r, top.get("evaluation"))
     simulation = _simulation(r, top.get("simulation"))
     output = top.get("output", "results")
     if not isinstance(output, str) or not output:
         raise r.fail("output", f"must be a folder path, got {output!r}")
-    optimize = _optimize_settings(r, top.get("optimize"), material, simulation.frames)
-    truth = _ground_truth(r, truth, true_density, true_velocity, material, optimize)
+    optimize = _optimize_settings(r, top.get("optimize"), objects, simulation.frames)
+    if len(objects) == 1:
+        truth = _ground_truth(r, truth, true_density, true_velocity, material, optimize)
+    else:
+        truth = _objects_truth(r, top.get("evaluation"), objects)
     _check_optimize_fits(r, optimize, simulation, flow)
     cameras, videos = _views(r, top)
     if len(cameras) > 1 and flow.mask not in ("alpha", "none"):
@@ -608,25 +617,81 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
 
 
 def _refuse_identification(r: Reader, top: dict) -> None:
-    """A config of several objects simulates; what identifies a material (optimize.parameters,
-    optimize.material, evaluation.ground_truth) names no object yet, so it is refused."""
+    """A config of several objects identifies each object's material parameters
+    (OBJECT.PARAM); material hypotheses and the velocity phase name no object yet, so they
+    are refused."""
     optimize = top.get("optimize") if isinstance(top.get("optimize"), dict) else {}
-    evaluation = top.get("evaluation") if isinstance(top.get("evaluation"), dict) else {}
     given = [
         key
         for key, value in (
-            ("optimize.parameters", optimize.get("parameters")),
             ("optimize.material", optimize.get("material")),
-            ("evaluation.ground_truth", evaluation.get("ground_truth")),
+            ("optimize.estimate_velocity", optimize.get("estimate_velocity")),
         )
         if value
     ]
     if given:
         raise r.fail(
             given[0],
-            "several objects: identification is not built yet (it will name each object's parameters); "
-            "drop it to simulate the scene",
+            "not built yet for several objects (optimize.parameters names each "
+            "object's parameters, OBJECT.PARAM, of the material its config gives); drop it",
         )
+
+
+def _object_parameter(r: Reader, where: str, name: str, objects: tuple[SceneObject, ...]) -> tuple[SceneObject, str]:
+    """(object, parameter) of ``name`` (OBJECT.PARAM) of a config of several objects: the
+    object is one of them and the parameter its material's, or density."""
+    names = ", ".join(o.name for o in objects)
+    obj_name, dot, param = name.partition(".")
+    example = f"{objects[0].name}.{next(iter(objects[0].material.parameters), 'density')}"
+    if not dot or not param:
+        raise r.fail(
+            where, f"{name!r}: with several objects name each parameter's object, OBJECT.PARAM (e.g. {example})"
+        )
+    obj = next((o for o in objects if o.name == obj_name), None)
+    if obj is None:
+        raise r.fail(where, f"{name!r}: there is no object {obj_name!r} (the objects: {names})")
+    if param == VELOCITY:
+        raise r.fail(
+            where, f"{name!r}: an object's initial velocity is not identified yet in a scene of several objects"
+        )
+    if obj.material.type != "query" and param != "density":
+        mat = get_material(obj.material.type)
+        if param not in mat.param_names:
+            raise r.fail(
+                where,
+                f"{name!r}: {param!r} is not a parameter of {obj.name}'s material {mat.name} "
+                f"(its parameters: {', '.join(mat.param_names)}, density)",
+            )
+    return obj, param
+
+
+def _objects_truth(r: Reader, data: Any, objects: tuple[SceneObject, ...]) -> dict[str, float]:
+    """``evaluation.ground_truth`` of a config of several objects: OBJECT.PARAM -> SI value,
+    each checked against its object's material (density: kg/m^3)."""
+    p = "evaluation.ground_truth"
+    evaluation = r.section(data, "evaluation", ("ground_truth",))
+    given = dict(r.mapping(evaluation.get("ground_truth"), p))
+    per_object: dict[str, dict] = {}
+    for name, value in given.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise r.fail(f"{p}.{name}", f"must be a number, got {value!r}")
+        obj, param = _object_parameter(r, p, name, objects)
+        per_object.setdefault(obj.name, {})[param] = value
+    truth = {}
+    for obj in objects:
+        values = per_object.get(obj.name, {})
+        density = values.pop("density", None)
+        try:
+            if density is not None:
+                DENSITY.check(density)
+            if values and obj.material.type != "query":
+                values = {k: v for k, v in validate_params(obj.material.type, values).items() if k in values}
+        except InputError as exc:
+            raise r.fail(p, f"{obj.name}: {exc}") from None
+        truth.update({f"{obj.name}.{k}": float(v) for k, v in values.items()})
+        if density is not None:
+            truth[f"{obj.name}.density"] = float(density)
+    return truth
 
 
 def _selection(r: Reader, data: Any, p: str = "object.select") -> Selection:

@@ -290,6 +290,19 @@ class SceneConfig:
         return replace(self, objects=tuple(objects))
 
 
+def split_parameter(objects, name: str) -> tuple[int, str]:
+    """(index into ``objects``, parameter) of a name of ``optimize.parameters`` or
+    ``evaluation.ground_truth``: the bare parameter of the one object, ``OBJECT.PARAM`` with
+    several (``jelly.youngs_modulus``); ValueError for an object that is not there."""
+    if len(objects) == 1:
+        return 0, name
+    obj, _, param = name.partition(".")
+    names = [o.name for o in objects]
+    if obj not in names or not param:
+        raise ValueError(f"{name!r} names none of the objects {', '.join(names)} (OBJECT.PARAM)")
+    return names.index(obj), param
+
+
 def config_record(cfg: SceneConfig) -> dict:
     """``dataclasses.asdict`` of ``cfg`` for the records (run.json, a checkpoint's config
     digests): a config of one object keeps the keys it had before configs held several
@@ -334,4 +347,5 @@ __all__ = [
     "VELOCITY_COMPONENTS",
     "config_record",
     "main_grid_range",
+    "split_parameter",
 ]
