@@ -114,7 +114,7 @@ def interrupt_optimize(monkeypatch, tmp_path, iterations_in_run, *args):
         video=tmp_path / "guidance.mp4",
         more_views=(),
         material=SimpleNamespace(type="elastic"),
-        objects=(SimpleNamespace(),),  # one object
+        objects=(SimpleNamespace(material=SimpleNamespace(type="elastic")),),  # one object
         simulation=SimpleNamespace(frames=8),
     )
     monkeypatch.setattr(clflow.scene.config, "load_config", lambda path, overrides=(): cfg)
