@@ -193,6 +193,8 @@ def test_ctrl_c_stops_the_sweep_and_keeps_what_finished(spec_dir):
     import subprocess
     import time
 
+    from tests.pipeline.test_written_record import sigint_as_a_terminal_sends_it
+
     folder, write = spec_dir
     spec = write(
         {
@@ -205,7 +207,11 @@ def test_ctrl_c_stops_the_sweep_and_keeps_what_finished(spec_dir):
     out = folder / "out"
     clflow = os.path.join(os.path.dirname(sys.executable), "clflow")
     proc = subprocess.Popen(
-        [clflow, "sweep", str(spec), "-o", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        [clflow, "sweep", str(spec), "-o", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        preexec_fn=sigint_as_a_terminal_sends_it,
     )
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:  # until the short run is in

@@ -112,6 +112,12 @@ def test_optimize_leaves_a_users_page_in_its_output_folder(quick_demo, tmp_path)
     assert "iteration" not in res.stderr and digests(tmp_path / "o") == before
 
 
+def sigint_as_a_terminal_sends_it() -> None:
+    """In the child: SIGINT's default action, which Python turns into KeyboardInterrupt (a
+    shell ignores SIGINT in the background jobs it starts, and children inherit that)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _interrupted(args: list, when: str, sig: int) -> subprocess.CompletedProcess:
     """``clflow *args``, sent ``sig`` at its first output line that starts with ``when``."""
     proc = subprocess.Popen(
@@ -119,6 +125,7 @@ def _interrupted(args: list, when: str, sig: int) -> subprocess.CompletedProcess
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
+        preexec_fn=sigint_as_a_terminal_sends_it,
     )
     seen = []
     for line in proc.stdout:
@@ -214,8 +221,12 @@ def test_ctrl_c_while_a_result_moves_in_lands_after_the_whole_result(tmp_path, m
         real(src, dst)
 
     monkeypatch.setattr(fileio.os, "replace", replace)
-    with pytest.raises(KeyboardInterrupt):
-        with atomic_dir(out, replaces=("a", "b")) as tmp:
-            for name in "ab":
-                (tmp / name).write_text("new")
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal (a background job ignores it)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with atomic_dir(out, replaces=("a", "b")) as tmp:
+                for name in "ab":
+                    (tmp / name).write_text("new")
+    finally:
+        signal.signal(signal.SIGINT, before)
     assert len(moves) == 3 and [(out / name).read_text() for name in "ab"] == ["new", "new"]
