@@ -20,6 +20,7 @@ from clflow.errors import InputError
 from clflow.splat.gaussians import sh0_to_rgb
 from clflow.view import box_yaml, count_inside, load_scene, rounded_box
 from clflow_cli.main import cli
+from tests.pipeline.test_written_record import sigint_as_a_terminal_sends_it
 from tests.view._helpers import scene_messages, write_ply, write_simulation
 
 
@@ -196,6 +197,7 @@ def test_cli_serves_until_ctrl_c(tmp_path):
         stderr=subprocess.PIPE,
         text=True,
         env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])},
+        preexec_fn=sigint_as_a_terminal_sends_it,
     )
     lines = queue.Queue()
     reader = threading.Thread(target=lambda: [lines.put(line) for line in proc.stderr], daemon=True)
