@@ -127,6 +127,18 @@ def run_command(name: str, args, logs: Path, env: dict) -> dict:
     return entry
 
 
+def write_record(record: dict, out: Path, *, finished: bool) -> bool:
+    """Write ``record`` to ``out`` atomically after every step, so a lease cut short keeps the
+    figures of the steps it finished; returns whether every step so far passed."""
+    tests_ok = record["tests"] is None or record["tests"]["exit"] == 0
+    passed = tests_ok and all(b["exit"] == 0 for b in record["benchmarks"].values())
+    record.update(passed=passed, finished=finished)
+    tmp = out.with_name(f".{out.name}.tmp")
+    tmp.write_text(json.dumps(record, indent=2, default=str) + "\n")
+    os.replace(tmp, out)
+    return passed
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", help="device name substring (default: the first GPU)")
@@ -152,10 +164,12 @@ def main(argv: list[str] | None = None) -> int:
         cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *SUITES[args.suite]]
         code, seconds, tail = run(cmd, logs / "tests.log", args.timeout, env)
         record["tests"] = {"exit": code, "seconds": round(seconds, 1), **test_summary(tail), "tail": tail[-1500:]}
+        write_record(record, Path(args.out), finished=False)
 
     for name in args.bench or DEFAULT_STEPS:
         if name in COMMANDS:
             record["benchmarks"][name] = run_command(name, args, logs, env)
+            write_record(record, Path(args.out), finished=False)
             continue
         full, small = BENCHES[name]
         out_json = logs / f"bench-{name}.json"
@@ -168,14 +182,10 @@ def main(argv: list[str] | None = None) -> int:
             entry.update(parameters=bench["parameters"], results=bench["results"])
             record.setdefault("environment", bench["environment"])
         record["benchmarks"][name] = entry
+        write_record(record, Path(args.out), finished=False)
 
-    tests_ok = record["tests"] is None or record["tests"]["exit"] == 0
-    record["passed"] = tests_ok and all(b["exit"] == 0 for b in record["benchmarks"].values())
-    out = Path(args.out)
-    tmp = out.with_name(f".{out.name}.tmp")
-    tmp.write_text(json.dumps(record, indent=2, default=str) + "\n")
-    os.replace(tmp, out)
-    print(f"{'passed' if record['passed'] else 'FAILED'}; wrote {out}", flush=True)
+    record["passed"] = write_record(record, Path(args.out), finished=True)
+    print(f"{'passed' if record['passed'] else 'FAILED'}; wrote {args.out}", flush=True)
     return 0 if record["passed"] else 1
 
 

@@ -17,7 +17,7 @@ def test_the_gpu_check_writes_one_record_of_device_tests_and_benchmarks(device, 
     res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stdout + res.stderr
     record = json.loads(out.read_text())
-    assert record["passed"] and record["device"]["name"] == device.info.name
+    assert record["passed"] and record["finished"] and record["device"]["name"] == device.info.name
     mpm = record["benchmarks"]["mpm-262k"]["results"]["elastic"]
     assert mpm["particle_substeps_per_s"] > 0 and mpm["bytes_to_device_per_substep"] == 0
     # every bench runs with its kernel profile: per kernel launches and device time, per substep launches
