@@ -16,6 +16,7 @@ BENCHMARKS: dict[str, str] = {
     "raster": "clflow_cli.bench_raster:raster",
     "mpm": "clflow_cli.bench_mpm:mpm",
     "mpm-adjoint": "clflow_cli.bench_mpm_adjoint:mpm_adjoint",
+    "launch": "clflow_cli.bench_launch:launch",
     "optimize": "clflow_cli.bench_optimize:optimize",
     "reconstruct": "clflow_cli.bench_reconstruct:reconstruct",
 }

@@ -98,3 +98,15 @@ def test_clflow_profile_records_every_kernel_of_any_command(tmp_path, device):
     assert {"project_forward", "reduce_slots"} <= set(kernels)  # the rasteriser's first and last
     assert record["results"]["launches"] == sum(row["launches"] for row in kernels.values())
     assert all(row["device_s"] > 0 for row in kernels.values())
+
+
+def test_bench_launch_times_the_substep_loop_and_each_launch_phase(tmp_path, device):
+    out = tmp_path / "launch.json"
+    res = CliRunner().invoke(cli, ["bench", "launch", "--substeps", "2", "--calls", "3", "--json", str(out)])
+    assert res.exit_code == 0, res.output
+    results = json.loads(out.read_text())["results"]
+    assert set(results["sizes"]) == {"512", "4096", "32768"}
+    assert all(0 < s["host_us_per_substep"] <= s["wall_us_per_substep"] for s in results["sizes"].values())
+    assert len(results["phases"]) == 2 and any(name.startswith("g2p") for name in results["phases"])
+    assert all(p["enqueue_us"] > 0 and p["arguments"] > 5 for p in results["phases"].values())
+    assert "launch" not in vars(device)  # the recording stand-in is gone: launches enqueue again

@@ -1,0 +1,118 @@
+"""``clflow bench launch``: the host's side of a substep, where a GPU waits for its host.
+
+A small scene's substep is bound by the host's time to enqueue it, not by the device: this
+times the substep loop (host time and wall time per substep) at a few particle counts, and
+one launch's phases on two of the substep's kernels: the argument table
+(``KernelSignature.ordered``), pyopencl's ``set_args`` and the driver's enqueue alone.
+"""
+
+import time
+
+import click
+
+from clflow_cli.bench import bench_command
+from clflow_cli.options import count_option
+
+SIZES = ((8, 16), (16, 32), (32, 48))  # (particles per axis, grid nodes per axis)
+#: kernels whose launches can repeat without changing what they read (grid update, G2P):
+#: the phases are timed on them
+REPEATABLE = ("grid_update", "sum_copies_update_grid", "g2p_sorted", "g2p")
+
+
+def _cube(particles_per_axis: int, grid_res: int):
+    """(x [n, 3] m, particle volume m^3, material, grid): a cube of elastic particles, 2 per
+    cell and axis, in the middle of a unit domain."""
+    import torch
+
+    from clflow.mpm import Grid, MaterialSpec
+
+    dx = 1.0 / grid_res
+    h = dx / 2
+    axis = 0.5 - particles_per_axis * h / 2 + h * (0.5 + torch.arange(particles_per_axis, dtype=torch.float64))
+    x = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    return x, h**3, MaterialSpec("elastic"), Grid((grid_res,) * 3, dx)
+
+
+def _per_call_us(fn, calls: int) -> float:
+    started = time.perf_counter()
+    for _ in range(calls):
+        fn()
+    return (time.perf_counter() - started) / calls * 1e6
+
+
+def _launch_phases(device, sim, calls: int) -> dict:
+    """Microseconds per call of each phase of a launch, on the REPEATABLE kernels of one substep."""
+    import pyopencl as cl
+
+    launches = []
+    device.launch = lambda kernel, size, args, local_size=64: launches.append((kernel, size, args, local_size))
+    try:
+        sim.step()  # recorded, not enqueued
+    finally:
+        del device.launch  # the class's method again
+    phases = {}
+    for kernel, size, args, local_size in launches:
+        if kernel.function_name not in REPEATABLE:
+            continue
+        signature = device.signature(kernel)
+        values = signature.ordered(args)
+        raw = [v if getattr(v, "buffer", None) is None else v.buffer for v in values]
+        gsize, lsize = device._work_sizes(size, local_size)
+        ordered = _per_call_us(lambda: signature.ordered(args), calls)
+        set_args = _per_call_us(lambda: kernel.set_args(*raw), calls)
+        device.finish()
+        enqueue = _per_call_us(lambda: cl.enqueue_nd_range_kernel(device.queue, kernel, gsize, lsize), calls)
+        device.finish()
+        launch = _per_call_us(lambda: device.launch(kernel, size, args, local_size), calls)
+        device.finish()
+        phases[kernel.function_name] = {
+            "arguments": len(raw),
+            "ordered_us": ordered,
+            "set_args_us": set_args,
+            "enqueue_us": enqueue,
+            "launch_us": launch,
+        }
+        click.echo(
+            f"  {kernel.function_name:12s} {len(raw):2d} arguments: table {ordered:5.1f} us, set_args {set_args:5.1f} "
+            f"us, enqueue {enqueue:5.1f} us; a whole launch {launch:5.1f} us"
+        )
+    return phases
+
+
+@bench_command("launch")
+@count_option("--substeps", default=300, help="Timed substeps per size.")
+@count_option("--calls", default=500, help="Timed calls of each launch phase.")
+@click.pass_context
+def launch(ctx, substeps, calls):
+    """Host time per substep (no profile: its events cost time too) at 512, 4,096 and 32,768
+    particles, and per launch: the argument table, set_args and the driver's enqueue. Where
+    a substep's wall time equals its host time, the device waits for the host."""
+    from clflow.environment import load_average
+    from clflow.mpm import Simulator
+    from clflow.runtime import get_device
+
+    device = ctx.obj.device() if ctx.obj else get_device()
+    click.echo(f"device: {device.info.label}; load average before the run: {load_average()}")
+    results = {"sizes": {}}
+    for particles_per_axis, grid_res in SIZES:
+        x, volume, material, grid = _cube(particles_per_axis, grid_res)
+        sim = Simulator(x, volume, material, grid, frame_dt=1e-3, device=device)
+        for _ in range(10):  # builds and warms
+            sim.step()
+        device.finish()
+        started = time.perf_counter()
+        for _ in range(substeps):
+            sim.step()
+        host = time.perf_counter() - started
+        device.finish()
+        wall = time.perf_counter() - started
+        n = x.shape[0]
+        results["sizes"][str(n)] = {"grid": grid_res, "host_us_per_substep": host / substeps * 1e6}
+        results["sizes"][str(n)]["wall_us_per_substep"] = wall / substeps * 1e6
+        click.echo(
+            f"{n:7,d} particles, grid {grid_res}^3: {host / substeps * 1e6:7.1f} us of host time a substep, "
+            f"{wall / substeps * 1e6:7.1f} us of wall time"
+        )
+    click.echo("one launch, by phase:")
+    results["phases"] = _launch_phases(device, sim, calls)
+    return results
