@@ -8,15 +8,19 @@ import click
 @click.command("demo")
 @click.argument("folder", type=click.Path(file_okay=False), default="clflow-demo")
 @click.option("--quick", is_flag=True, help="A smaller scene (for a first look or CI): about a minute.")
+@click.option("--scene", type=click.Choice(["jelly", "pair"]), default="jelly", show_default=True,
+              help="jelly: one cube pushed sideways; pair: two cubes of two stiffnesses dropped side by side, "
+              "each one's E identified from the one video.")  # fmt: skip
 @click.option("--resume", is_flag=True, help="Continue an interrupted optimisation of an existing demo folder.")
 @click.option("--views", type=click.IntRange(min=0), default=2, show_default=True,
               help="Fixed novel viewpoints of the 4D render.")  # fmt: skip
 @click.option("--force", is_flag=True, help="Overwrite the demo's files (config.yaml, results/, ...) in FOLDER.")
-def demo(folder, quick, resume, views, force):
+def demo(folder, quick, scene, resume, views, force):
     """Make the demo case in FOLDER (a jelly cube pushed sideways on a floor; its guidance
     video rendered from a ground-truth simulation, E = 20 kPa), then recover Young's
     modulus from a 10x too low guess (`clflow optimize`), simulate with the result
-    (`clflow simulate`) and render it in 4D (`clflow render4d`)."""
+    (`clflow simulate`) and render it in 4D (`clflow render4d`). `--scene pair`: two cubes
+    (E = 20 and 100 kPa) dropped side by side, both moduli recovered from one video."""
     import shlex
     import time
     from pathlib import Path
@@ -24,7 +28,7 @@ def demo(folder, quick, resume, views, force):
     from clflow.pipeline.report import write_report
     from clflow.pipeline.runs import render_simulation_4d, run_optimization, simulate_scene
     from clflow_cli.progress import iteration_bar, note, progress
-    from clflow_datasets.demo import QUICK, make_demo
+    from clflow_datasets import demo as demos
     from clflow_datasets.synthetic import CASE_FILES, Resolution
 
     start = time.perf_counter()
@@ -32,7 +36,8 @@ def demo(folder, quick, resume, views, force):
     config = folder / "config.yaml"
     resuming = resume and config.is_file()
     existing = [name for name in (*CASE_FILES, "results") if (folder / name).exists()]
-    again = shlex.join(["clflow", "demo", "--resume", *(["--quick"] if quick else []), str(folder)])
+    options = [*(["--quick"] if quick else []), *(["--scene", scene] if scene != "jelly" else [])]
+    again = shlex.join(["clflow", "demo", "--resume", *options, str(folder)])
     again += f" --views {views}" if views != 2 else ""
     if resume and not existing:
         raise click.ClickException(
@@ -48,7 +53,8 @@ def demo(folder, quick, resume, views, force):
     else:  # a new demo, or one interrupted while its scene was made: (again) from scratch
         click.echo(f"making the demo scene and its guidance video in {folder}")
         try:
-            make_demo(folder, QUICK if quick else Resolution())
+            make = demos.make_pair_demo if scene == "pair" else demos.make_demo
+            make(folder, demos.QUICK if quick else Resolution())
         except KeyboardInterrupt:
             raise KeyboardInterrupt(
                 f"interrupted while making the demo's scene; make it again with `{again}`"

@@ -199,3 +199,58 @@ def test_an_object_of_several_asks_the_material_query_for_itself(tmp_path):
     assert heap.material.type == "sand" and heap.material.parameters["friction_angle"] == 32.0
     assert heap.material.density == 1500.0  # the config's, over the query's
     assert (cfg.output / "material_query.heap.json").is_file() and not (cfg.output / "material_query.json").exists()
+
+
+def test_simulate_params_from_a_record_of_several_objects(tmp_path):
+    """`simulate --params-from params.json` of an optimisation of several objects: each
+    object's parameters, density and velocity from its entry, the same bits as a config
+    that gives them; a record that does not fit the config is one line before any work."""
+    import json
+
+    path = write_config(tmp_path, two_objects_config(tmp_path))
+    jelly = {
+        "material": "elastic",
+        "parameters": {"youngs_modulus": 4.0e4},
+        "density": 900.0,
+        "velocity": [0.3, -0.5, 0.0],
+    }
+    heap = {
+        "material": "sand",
+        "parameters": {"friction_angle": 25.0},
+        "density": SAND["density"],
+        "velocity": [0, 0, 0],
+    }
+    record = {"objects": {"jelly": jelly, "heap": heap}, "substeps": 1, "fps": 24.0}
+    params = tmp_path / "params.json"
+    params.write_text(json.dumps(record))
+    from_record = simulate(path, tmp_path / "from_record", "--params-from", params)
+    given = [
+        "--set",
+        "objects.jelly.material.parameters.youngs_modulus=4e4",
+        "--set",
+        "objects.jelly.material.density=900",
+    ]
+    given += [
+        "--set",
+        "objects.jelly.velocity=[0.3,-0.5,0.0]",
+        "--set",
+        "objects.heap.material.parameters.friction_angle=25",
+    ]
+    from_config = simulate(path, tmp_path / "from_config", *given)
+    np.testing.assert_array_equal(from_record["object_means"], from_config["object_means"])
+    plain = simulate(path, tmp_path / "plain")
+    assert np.abs(plain["object_means"][-1] - from_record["object_means"][-1]).max() > 1e-3  # the record acts
+
+    def refused(data, message):
+        params.write_text(json.dumps(data))
+        res = run("simulate", path, "-o", tmp_path / "out", "--preview", "none", "--params-from", params)
+        lines = res.output.strip().splitlines()
+        assert res.exit_code == 1 and len(lines) == 1 and re.search(message, lines[0]), res.output
+        assert not (tmp_path / "out").exists()
+
+    refused({**record, "objects": {"jelly": jelly}}, r"params.json lacks the object 'heap' of the config")
+    refused(
+        {**record, "objects": {"jelly": jelly, "heap": {**heap, "material": "elastic"}}},
+        r"object 'heap' is for 'elastic'",
+    )
+    refused({"material": "elastic", **jelly}, r"params.json holds the parameters of one object; .* simulates 2")
