@@ -18,6 +18,7 @@ import re
 import shutil
 import signal
 import tempfile
+import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
 
@@ -34,8 +35,10 @@ _TEMPORARY = re.compile(r"^\..+\.(?P<pid>\d+)\.[A-Za-z0-9_]+\.tmp")
 def _temporary_prefix(path: Path, stem: str) -> str:
     """The prefix of this process's temporaries for ``path`` (``.<stem>.<pid>.``); first
     removes the temporaries that killed processes left in the same folder (any target's, their
-    pid no longer running), so a crash's leftovers go with clflow's next write there."""
-    for leftover in path.parent.glob(".*.tmp*"):
+    pid no longer running), so a crash's leftovers go with clflow's next write there. A staging
+    folder of this process's :func:`atomic_dir` holds none: not searched (one listing per
+    file would make n frames O(n^2))."""
+    for leftover in () if _staged(path.parent) else path.parent.glob(".*.tmp*"):
         match = _TEMPORARY.match(leftover.name)
         if match and not _running(int(match["pid"])):
             if leftover.is_dir() and not leftover.is_symlink():
@@ -81,6 +84,9 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; outputs get the usual permissions
     try:
         yield Path(tmp)
+        if _staged(path.parent):  # atomic_dir records its whole result at once
+            os.replace(tmp, path)
+            return
         digest = content_digest(tmp)
         with _record_lock(path.parent):
             os.replace(tmp, path)
@@ -318,6 +324,8 @@ def atomic_dir(
     path.parent.mkdir(parents=True, exist_ok=True)
     prefix = _temporary_prefix(path, path.name)
     tmp = Path(_creating(path, lambda: tempfile.mkdtemp(prefix=prefix, suffix=".tmp", dir=path.parent)))
+    with _STAGING_LOCK:
+        _STAGING.add(tmp.resolve())
     try:
         yield tmp
         written = sorted(entry.name for entry in tmp.iterdir())
@@ -353,14 +361,31 @@ def atomic_dir(
             for entry in tmp.iterdir():
                 os.replace(entry, path / entry.name)
     finally:
+        with _STAGING_LOCK:
+            _STAGING.discard(tmp.resolve())
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+#: the staging folders of this process's atomic_dir blocks: the files atomic_path writes
+#: inside them skip their folder's written-record (one read and rewrite per file, O(n^2)
+#: for n frames), since atomic_dir records the whole result when it moves it in
+_STAGING: set[Path] = set()
+_STAGING_LOCK = threading.Lock()
+
+
+def _staged(folder: Path) -> bool:
+    """Whether ``folder`` lies in a staging folder of an :func:`atomic_dir` of this process."""
+    if not _STAGING:
+        return False
+    folder = folder.resolve()
+    with _STAGING_LOCK:
+        return any(stage == folder or stage in folder.parents for stage in _STAGING)
 
 
 @contextlib.contextmanager
 def _signals_held() -> Iterator[None]:
     """SIGINT and SIGTERM held back until the block ends, then handled as they would have
     been (in the main thread, where Python handles signals; elsewhere a no-op)."""
-    import threading
 
     if threading.current_thread() is not threading.main_thread():
         yield

@@ -230,3 +230,28 @@ def test_ctrl_c_while_a_result_moves_in_lands_after_the_whole_result(tmp_path, m
     finally:
         signal.signal(signal.SIGINT, before)
     assert len(moves) == 3 and [(out / name).read_text() for name in "ab"] == ["new", "new"]
+
+
+def test_files_written_inside_a_staged_result_are_recorded_once_with_it(tmp_path):
+    """atomic_path inside an atomic_dir's staging folder neither rewrites a record per file
+    nor lists the folder for dead processes' temporaries (each was O(n) per file: n frames
+    O(n^2)); the result's one record lists every file with its digest."""
+    import json
+    import os
+
+    from clflow.fileio import content_digest
+
+    out = tmp_path / "render"
+    with atomic_dir(out) as stage:
+        planted = stage / "frames" / f".old.{os.getpid() + 10**7}.abcdefgh.tmp.png"  # a pid no process has
+        planted.parent.mkdir()
+        planted.write_bytes(b"x")
+        for i in range(5):
+            atomic_write_text(stage / "frames" / f"{i:03d}.png", f"frame {i}")
+        assert not list(stage.rglob(WRITTEN_RECORD))  # nothing recorded yet
+        assert planted.exists()  # not searched for: a staging folder is this process's own
+        planted.unlink()
+    files = json.loads((out / WRITTEN_RECORD).read_text())["files"]
+    assert files == {f"frames/{i:03d}.png": content_digest(out / "frames" / f"{i:03d}.png") for i in range(5)}
+    atomic_write_text(out / "frames" / "005.png", "frame 5")  # outside a staging folder: recorded at once
+    assert "005.png" in json.loads((out / "frames" / WRITTEN_RECORD).read_text())["files"]
