@@ -8,7 +8,7 @@ config_truth.yaml, guidance/ and guidance.mp4, config.yaml, case.json).
 
 The pair: a :class:`~clflow_datasets.scene_cases.SceneCase`, a soft jelly (E = 20 kPa) and
 a stiffer block (E = 100 kPa), 0.2 m cubes 0.1 m apart, falling at 1 m/s onto a sticky
-ground from 0.1 m; each E starts 10x low and is identified from the one video
+ground from 0.02 m; each E starts 10x low and is identified from the one video
 (``jelly.youngs_modulus``, ``block.youngs_modulus``). ``make_pair_demo(folder)`` writes it.
 
 Each optimisation starts with a 4-frame horizon: that loss falls monotonically towards the
@@ -41,12 +41,13 @@ DEMO = SyntheticCase(
 
 
 def _falling_cube(name: str, x: float, youngs_modulus: float) -> CaseObject:
-    """A 0.2 m elastic cube centred at (x, 0.2, 0) m falling at 1 m/s, its E guessed 10x low."""
+    """A 0.2 m elastic cube centred at (x, 0.12, 0) m (0.02 m above the ground) falling at
+    1 m/s, its E guessed 10x low."""
     return CaseObject(
         name,
         "cube",
         0.2,
-        (x, 0.2, 0.0),
+        (x, 0.12, 0.0),
         "elastic",
         truth={"youngs_modulus": youngs_modulus, "poissons_ratio": 0.3},
         guess={"youngs_modulus": youngs_modulus / 10.0},
