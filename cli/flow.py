@@ -48,14 +48,15 @@ def flow(
 
     Writes OUT/flow.npz (flow [T-1, H, W, 2] px, valid [T-1, H, W] = forward-backward
     consistent and inside the object mask, times [T] s), OUT/flo/flow_NNNN.flo, and
-    OUT/png/flow_NNNN.png panels (frame | flow) plus OUT/flow.mp4; every file atomically.
+    OUT/png/flow_NNNN.png panels (frame | flow) plus OUT/flow.mp4; all or nothing, an earlier
+    run's files (its extra frames too) replaced as a whole.
     """
     from pathlib import Path
 
     import numpy as np
 
     from clflow.errors import InputError
-    from clflow.fileio import check_output_folder
+    from clflow.fileio import atomic_dir, check_output_folder
     from clflow.flow.export import FLOW_ENTRIES, write_flow_folder
     from clflow.flow.optical_flow import mask_from_box, mask_from_image
     from clflow.flow.video import read_video
@@ -82,9 +83,12 @@ def flow(
         object_mask = mask_from_image(mask_image, clip.width, clip.height)
     elif box:
         object_mask = mask_from_box(box, clip.width, clip.height)
-    with progress(3 * max(len(clip.frames) - 1, 0), "optical flow") as advance:  # forward, backward, files
+    with (
+        progress(3 * max(len(clip.frames) - 1, 0), "optical flow") as advance,  # forward, backward, files
+        atomic_dir(out, FLOW_ENTRIES, inputs) as staged,  # all or nothing: no earlier run's extra frames stay
+    ):
         forward, valid = write_flow_folder(
-            clip, out, method, preset, object_mask, raft_weights, write_panels_video, advance
+            clip, staged, method, preset, object_mask, raft_weights, write_panels_video, advance
         )
     speed = np.linalg.norm(forward, axis=-1)
     click.echo(
