@@ -264,18 +264,21 @@ class Objective:
             errors.append(torch.from_numpy(estimated).double() - torch.stack(flows[:frames]).double())
         return errors
 
-    def calibrate(self, state: OptimizerState, result: Evaluation, frames: int) -> OptimizerState:
+    def calibrate(
+        self, state: OptimizerState, result: Evaluation, frames: int, errors: list[torch.Tensor] | None = None
+    ) -> OptimizerState:
         """Keep the flow estimator's error on the simulation ``result`` (at state.z, its first
         ``frames`` frames) as each view's ``estimator_error`` (saved in
         ``output/estimator_error.npz``). The loss then compares the simulated flow with the
         observed flow less that error, so the estimator's systematic error (DIS blends a
         moving object with its background, docs/flow.md) cancels instead of biasing the
-        parameters."""
+        parameters. ``errors``: the error already measured on ``result`` (estimator_errors)."""
         calibrated_at = {"z": dict(state.z), "frames": frames, "grid": result.grid}
         if state.calibrated_at == calibrated_at:  # back at the point measured last (a rejected step)
             return state
+        measured = self.estimator_errors(result, frames) if errors is None else errors
         errors = []
-        for view, error in zip(self.views, self.estimator_errors(result, frames)):
+        for view, error in zip(self.views, measured):
             full = torch.zeros_like(view.observed) if view.estimator_error is None else view.estimator_error.clone()
             full[:frames] = error
             errors.append(full.numpy())
