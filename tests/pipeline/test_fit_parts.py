@@ -318,3 +318,25 @@ def test_the_line_search_refuses_a_gain_under_its_tolerance(gain, moves):
 def test_a_failed_probe_leaves_the_line_search_where_it_was():
     found = search_line(lambda z: math.inf, f0=1.0)
     assert not found["moved"] and found["direction"] is None and len(found["points"]) == 1
+
+
+def test_the_line_search_starts_no_nearer_than_its_difference_width():
+    # J^T J sees 20x the curvature the loss has (it holds the estimator's error fixed): the
+    # Gauss-Newton step is a twentieth of the way; the first point lies LINE_STEP out, the
+    # probe itself in one variable (not run again), and the points grow from there
+    loss, calls = bowl(0.6, depth=1 / 20)
+    steps = BoxedSteps({})
+    z0 = {"a": 0.0}
+    found = line_search(
+        loss,
+        z0,
+        loss(z0),
+        torch.ones(1, 1, dtype=torch.float64),
+        LM_DAMPING,
+        ("a",),
+        lambda M, g, at: steps.bounded_step(M, g, at, ("a",)),
+    )
+    assert found["direction"][0] == pytest.approx(0.6 / 20, rel=0.1) and found["direction"][0] < LINE_STEP
+    line = [c["a"] for c in calls[2:]]  # after f0's run and the probe's
+    assert line[:3] == pytest.approx([2 * LINE_STEP, 4 * LINE_STEP, 8 * LINE_STEP])
+    assert found["moved"] and found["z"]["a"] == pytest.approx(0.6, abs=0.1)

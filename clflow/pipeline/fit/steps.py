@@ -92,9 +92,9 @@ def line_search(
     that LM's own J^T r0 (``g_lm``; None: +h) calls downhill, unless that leaves ``box``
     ({name: (lower, upper)} in z). ``step_of(M, g, z)`` solves M dz = -g (the box's edges
     held: Steps.bounded_step). Points go out along the direction, LINE_GROWTH times farther
-    each, while the loss falls (never beyond ``max_step`` from z0, at most LINE_MAX_GROWTH;
-    cut to the box), then two go inside the bracket around the best: the best of every
-    point run is taken if it lowers f0 by at least LINE_GAIN.
+    each from LINE_STEP at least, while the loss falls (never beyond ``max_step`` from z0, at
+    most LINE_MAX_GROWTH; cut to the box), then two go inside the bracket around the best:
+    the best of every point run is taken if it lowers f0 by at least LINE_GAIN.
 
     Returns {"slope": g, "direction": dz, "points": [{"z", "loss"}, ...] in the order run,
     "z": the point taken (z0 when none lowers the loss enough), "loss", "moved"}."""
@@ -102,9 +102,13 @@ def line_search(
     box = box or {}
 
     def run(z: dict[str, float]) -> float:
+        for point in points:  # in one variable the first point along the line is the probe
+            if all(abs(point["z"][n] - z[n]) < 1e-12 for n in z):
+                return point["loss"]
         value = float(loss(z))
+        value = value if math.isfinite(value) else math.inf
         points.append({"z": dict(z), "loss": value})
-        return value if math.isfinite(value) else math.inf
+        return value
 
     record = {"slope": None, "direction": None, "points": points, "z": dict(z0), "loss": f0, "moved": False}
     slope = []
@@ -132,7 +136,10 @@ def line_search(
         return {n: min(max(v, box[n][0]), box[n][1]) if n in box else v for n, v in z.items()}
 
     line = [(0.0, f0)]  # (t, loss) in the order of t
-    t = 1.0
+    # the first point no nearer than the differences' width: nearer, the estimator's noise
+    # swamps the loss's change (and J^T J, which holds the error fixed, sees more curvature
+    # than the own-calibration loss has: the trophy's step was a third of LINE_STEP)
+    t = min(max(1.0, LINE_STEP / length), max_step / length)
     for _ in range(LINE_MAX_GROWTH):
         f = run(at(t))
         line.append((t, f))
