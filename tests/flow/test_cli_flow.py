@@ -35,8 +35,11 @@ def test_flow_command_writes_fields_and_visualisation(tmp_path, translating):
     panels = read_video(out / "flow.mp4")
     assert panels.frames.shape == (5, 64, 160, 3)
     assert [p.name for p in out.rglob(".*")] == [WRITTEN_RECORD]  # one record, no temporary file left behind
-    # again on the first 3 frames: the earlier run's frames 2-4 go with it, none left to mix in
+    # again on the first 3 frames: the earlier run's frames 2-4 go with it, none left to mix in;
+    # a file of the user's beside them stays as it was, byte for byte
+    (out / "notes.txt").write_text("mine")
     result = CliRunner().invoke(cli, ["flow", str(path), "-o", str(out), "--end", "0.25"])
+    assert (out / "notes.txt").read_bytes() == b"mine" and path.is_file()
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in (out / "flo").iterdir()) == ["flow_0000.flo", "flow_0001.flo"]
     assert len(list((out / "png").iterdir())) == 2 and np.load(out / "flow.npz")["flow"].shape[0] == 2
