@@ -29,14 +29,11 @@ def test_calibrated_at_the_parameters_that_made_the_video_the_residual_vanishes(
     raw = at_truth.loss
     assert raw > 1e-3  # DIS's own error on this video, px^2
 
-    # the search's score of a sample: against the video's flow less the error at that sample.
-    # The error is the mean over the camera's whole-pixel shifts (JITTER_SHIFTS), the video's
-    # flow one estimate: what is left is that estimate's own jitter, 0.6 % of the raw loss
-    own = float(opt.loss_of([at_truth.flows], opt.estimator_errors(at_truth, opt.frames)))
-    assert 1e-5 * raw < own < 0.02 * raw
+    # the search's score of a sample: against the video's flow less the error at that sample
+    assert float(opt.loss_of([at_truth.flows], opt.estimator_errors(at_truth, opt.frames))) < 1e-3 * raw
     calibrated = opt.calibrate(state, at_truth, opt.frames)
     assert calibrated.calibrated_at == {"z": state.z, "frames": opt.frames, "grid": opt.model_grid}
-    assert opt.rescored(at_truth).loss == pytest.approx(own, rel=1e-9)  # the estimator's error cancels
+    assert opt.rescored(at_truth).loss < 1e-3 * raw  # the estimator's error cancels
     error = opt.views[0].estimator_error
     assert error.shape == opt.views[0].observed.shape and float(error.abs().max()) > 0.05
     # the loss of evaluate() itself fits the corrected target

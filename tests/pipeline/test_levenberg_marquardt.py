@@ -653,37 +653,3 @@ def test_a_weakly_constrained_parameter_is_told_by_the_reason_that_flagged_it():
     assert (
         small_rise == "a step of 0.1 in the optimiser's units, the others refitted, raises the loss by 0.4 %, under 1 %"
     )
-
-
-def test_after_lm_stops_a_line_search_of_the_own_calibration_loss_goes_on(lm, monkeypatch, caplog):
-    # the estimator errs by -0.9 x the simulated motion: calibrated at C, LM's model has its
-    # minimum where tanh(z - z_true) = 0.9 tanh(C - z_true), so each calibration gains only
-    # a tenth; the own-calibration loss (0.1 tanh(z - z_true))^2 |field|^2 falls all the way
-    # to z_true, and the line search after LM's last iteration follows it
-    opt, calls = lm(iterations=4)
-    observed, fake = opt.views[0].observed, opt.evaluate
-    monkeypatch.setattr(opt, "evaluate", lambda *args, **kwargs: opt.rescored(fake(*args, **kwargs)))  # the targets'
-    monkeypatch.setattr(type(opt), "corrects_bias", property(lambda self: True))
-    monkeypatch.setattr(
-        opt,
-        "estimator_errors",
-        lambda result, frames: [-0.9 * (torch.stack(result.flows[:frames]) - observed[:frames])],
-    )
-    with caplog.at_level("INFO", logger="clflow.pipeline.fit.steps"):
-        state = opt.run()
-    searched = state.line_search
-    assert searched is not None and searched["moved"]
-    lm_end = searched["from"]["youngs_modulus"]
-    assert lm_end < 10 ** (Z_TRUE - 0.3)  # LM stopped well short of the truth
-    assert abs(state.z["youngs_modulus"] - Z_TRUE) < abs(math.log10(lm_end) - Z_TRUE)  # nearer the truth
-    assert searched["loss"] <= searched["loss_from"] * (1 - 1e-3)
-    assert state.best["z"] == state.z and state.best["loss"] == searched["loss"]
-    assert state.calibrated_at["z"] == state.z  # the final point's own calibration
-    final = opt.jacobian(state.z, opt.frames, state.substeps, ("youngs_modulus",), opt.model_grid)[0]
-    assert opt.rescored(final).loss == pytest.approx(searched["loss"], rel=1e-9)
-    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("line search of the own")]
-    assert len(lines) == 1 and " to {" in lines[0]
-    # done once: a resumed finished run does not search again
-    before = len(calls)
-    again = opt.run(resume=True)
-    assert again.z == state.z and len(calls) == before

@@ -36,13 +36,6 @@ LM_STEP = 0.01  # Levenberg-Marquardt's finite-difference step in z (a 2.3 % cha
 # per side and area-averages them, since a camera's pixel integrates light over its area
 # (DIS's error depends on that blur: docs/flow.md)
 SUPERSAMPLE = 2
-# ... and as the mean of the estimator's answers over these whole-pixel shifts (dx, dy) of the
-# camera, from one rendering JITTER_MARGIN px wider on each side (no resampling): one answer
-# jumps by 20-40 % of the loss between points 0.5 deg apart on the sand (DIS's patch grid is
-# fixed to the image corner; docs/pipeline.md, issue 47), the mean is smooth. Every residue
-# mod 4 twice per axis, each parity pair (dx, dy mod 2) twice, the mean shift zero.
-JITTER_SHIFTS = ((0, 0), (0, -3), (1, 2), (-3, -1), (-2, -2), (2, 3), (-1, 0), (3, 1))
-JITTER_MARGIN = max(max(abs(dx), abs(dy)) for dx, dy in JITTER_SHIFTS)
 
 
 def simulated_view_flows(
@@ -244,14 +237,9 @@ class Objective:
     def estimator_errors(self, result: Evaluation, frames: int) -> list[torch.Tensor]:
         """The flow estimator's error [frames, H, W, 2] in each guidance view on the simulation
         ``result`` (its first ``frames`` frames): the simulation rendered from the view's camera
-        JITTER_MARGIN px wider on each side (SUPERSAMPLE^2 samples per pixel, area-averaged),
-        its flow estimated with the settings that made the observed flow on the crops of
-        JITTER_SHIFTS and averaged (clflow.flow.optical_flow.shift_mean_flow), less the exact
-        simulated flow."""
-        from clflow.flow.optical_flow import observed_flow, shift_mean_flow
-
-        def estimate(video):
-            return observed_flow(video, self.cfg.flow.method, preset=self.cfg.flow.preset, source="the simulation")
+        (SUPERSAMPLE^2 samples per pixel, area-averaged), its flow estimated with the settings
+        that made the observed flow, less the exact simulated flow."""
+        from clflow.flow.optical_flow import observed_flow
 
         traj = result.trajectory
         simulated = SimulationResult(
@@ -259,26 +247,23 @@ class Objective:
         )
         errors = []
         for view, flows in zip(self.views, [result.flows, *result.more_flows]):
-            wide = render_frames(simulated, view.camera.widened(JITTER_MARGIN), supersample=SUPERSAMPLE)
-            estimated = shift_mean_flow(wide, JITTER_MARGIN, JITTER_SHIFTS, estimate)
+            video = render_frames(simulated, view.camera, supersample=SUPERSAMPLE)
+            estimated = observed_flow(video, self.cfg.flow.method, preset=self.cfg.flow.preset, source="the simulation")
             errors.append(torch.from_numpy(estimated).double() - torch.stack(flows[:frames]).double())
         return errors
 
-    def calibrate(
-        self, state: OptimizerState, result: Evaluation, frames: int, errors: list[torch.Tensor] | None = None
-    ) -> OptimizerState:
+    def calibrate(self, state: OptimizerState, result: Evaluation, frames: int) -> OptimizerState:
         """Keep the flow estimator's error on the simulation ``result`` (at state.z, its first
         ``frames`` frames) as each view's ``estimator_error`` (saved in
         ``output/estimator_error.npz``). The loss then compares the simulated flow with the
         observed flow less that error, so the estimator's systematic error (DIS blends a
         moving object with its background, docs/flow.md) cancels instead of biasing the
-        parameters. ``errors``: the error already measured on ``result`` (estimator_errors)."""
+        parameters."""
         calibrated_at = {"z": dict(state.z), "frames": frames, "grid": result.grid}
         if state.calibrated_at == calibrated_at:  # back at the point measured last (a rejected step)
             return state
-        measured = self.estimator_errors(result, frames) if errors is None else errors
         errors = []
-        for view, error in zip(self.views, measured):
+        for view, error in zip(self.views, self.estimator_errors(result, frames)):
             full = torch.zeros_like(view.observed) if view.estimator_error is None else view.estimator_error.clone()
             full[:frames] = error
             errors.append(full.numpy())

@@ -150,8 +150,6 @@ class Results:
         if self.grid_choice is not None:  # optimize.budget chose the main grid
             metrics["budget"] = dataclasses.asdict(self.grid_choice)
         metrics["rollbacks"] = state.rollbacks  # every rejected iteration: its reason and parameters
-        if state.line_search is not None:  # the line search of the own-calibration loss after LM
-            metrics["line_search"] = state.line_search
         if self.guidance:
             metrics["guidance_checks"] = [check.record() for check in self.guidance]
         if self.guidance_warnings:  # forced past a failed guidance check (--force-video)

@@ -7,13 +7,11 @@ import dataclasses
 import functools
 import logging
 import math
-from typing import Callable
 
 import torch
 
-from clflow.errors import ClflowError
 from clflow.mpm.parameterization import clip_factor
-from clflow.pipeline.fit.state import LM_DAMPING, Evaluation, OptimizerState
+from clflow.pipeline.fit.state import Evaluation, OptimizerState
 from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig
 
 log = logging.getLogger(__name__)
@@ -29,11 +27,6 @@ CLIP_NORM = 10.0  # gradient clipping in z space
 LM_MAX_STEP = 1.0  # longest step in z (a decade of a log-scale parameter)
 LM_TOLERANCE = 1e-3  # converged when an accepted step moves every variable less (0.23 % of a log-scale one)
 LM_GAIN_TOLERANCE = 1e-3  # ... or when the Gauss-Newton model promises less than this fraction of the loss
-# the line search of the own-calibration loss after Levenberg-Marquardt stops (line_search):
-LINE_STEP = 0.05  # z: the width of its difference quotients (over LM_STEP's 0.01 the estimator's noise swamps them)
-LINE_GAIN = 1e-3  # it moves only to a point that lowers the loss by at least this fraction
-LINE_GROWTH = 2.0  # each point along the direction this many times as far as the last
-LINE_MAX_GROWTH = 6  # points along the direction at most, before the two inside the bracket
 
 
 def phase_of(opt, iteration: int) -> tuple[str, int, int]:
@@ -68,98 +61,6 @@ def learning_rate(cfg: SceneConfig, name: str) -> float:
     if name in VELOCITY_COMPONENTS:
         return rates.get(VELOCITY, DEFAULT_VELOCITY_RATE)
     return rates.get(name, DEFAULT_RATE)
-
-
-def line_search(
-    loss: Callable[[dict[str, float]], float],
-    z0: dict[str, float],
-    f0: float,
-    A: torch.Tensor,
-    damping: float,
-    variables: tuple[str, ...],
-    step_of: Callable[[torch.Tensor, torch.Tensor, dict[str, float]], torch.Tensor],
-    max_step: float = LM_MAX_STEP,
-    g_lm: torch.Tensor | None = None,
-    box: dict[str, tuple[float, float]] | None = None,
-) -> dict:
-    """A line search of ``loss`` (z -> float, inf where the run fails) from z0 (its loss f0)
-    along the damped Gauss-Newton direction (A + damping diag A) dz = -g, A = J^T J.
-
-    g (J^T r of the residuals whose sum of squares is the loss) comes from difference
-    quotients LINE_STEP wide, (f1 - f0) / 2h per variable, not from J^T r0: with the bias
-    correction each point's residuals carry the estimator's noise, which J holds too, so
-    J^T r0 points back towards LM's last neighbour. Each difference is taken on the side
-    that LM's own J^T r0 (``g_lm``; None: +h) calls downhill, unless that leaves ``box``
-    ({name: (lower, upper)} in z). ``step_of(M, g, z)`` solves M dz = -g (the box's edges
-    held: Steps.bounded_step). Points go out along the direction, LINE_GROWTH times farther
-    each from LINE_STEP at least, while the loss falls (never beyond ``max_step`` from z0, at
-    most LINE_MAX_GROWTH; cut to the box), then two go inside the bracket around the best:
-    the best of every point run is taken if it lowers f0 by at least LINE_GAIN.
-
-    Returns {"slope": g, "direction": dz, "points": [{"z", "loss"}, ...] in the order run,
-    "z": the point taken (z0 when none lowers the loss enough), "loss", "moved"}."""
-    points: list[dict] = []
-    box = box or {}
-
-    def run(z: dict[str, float]) -> float:
-        for point in points:  # in one variable the first point along the line is the probe
-            if all(abs(point["z"][n] - z[n]) < 1e-12 for n in z):
-                return point["loss"]
-        value = float(loss(z))
-        value = value if math.isfinite(value) else math.inf
-        points.append({"z": dict(z), "loss": value})
-        return value
-
-    record = {"slope": None, "direction": None, "points": points, "z": dict(z0), "loss": f0, "moved": False}
-    slope = []
-    for i, n in enumerate(variables):
-        h = LINE_STEP * (-1.0 if g_lm is not None and float(g_lm[i]) > 0 else 1.0)
-        if n in box and not box[n][0] <= z0[n] + h <= box[n][1]:
-            h = -h
-        f1 = run({**z0, n: z0[n] + h})
-        slope.append((f1 - f0) / (2 * h))
-    g = torch.tensor(slope, dtype=A.dtype)
-    record["slope"] = [float(v) for v in g]
-    if not bool(torch.isfinite(g).all()) or not bool(g.abs().max() > 0):
-        return record
-    diagonal = torch.diag(torch.diag(A).clamp(min=1e-12 * float(torch.diag(A).max().clamp(min=1e-30))))
-    d = step_of(A + damping * diagonal, g, z0)
-    length = float(d.norm())
-    if not math.isfinite(length) or length == 0.0:
-        return record
-    if length > max_step:
-        d, length = d * (max_step / length), max_step
-    record["direction"] = [float(v) for v in d]
-
-    def at(t: float) -> dict[str, float]:
-        z = {**z0, **{n: z0[n] + t * float(d[i]) for i, n in enumerate(variables)}}
-        return {n: min(max(v, box[n][0]), box[n][1]) if n in box else v for n, v in z.items()}
-
-    line = [(0.0, f0)]  # (t, loss) in the order of t
-    # the first point no nearer than the differences' width: nearer, the estimator's noise
-    # swamps the loss's change (and J^T J, which holds the error fixed, sees more curvature
-    # than the own-calibration loss has: the trophy's step was a third of LINE_STEP)
-    t = min(max(1.0, LINE_STEP / length), max_step / length)
-    for _ in range(LINE_MAX_GROWTH):
-        f = run(at(t))
-        line.append((t, f))
-        if f >= line[-2][1] or t * length >= max_step * (1 - 1e-9):
-            break
-        t = min(t * LINE_GROWTH, max_step / length)
-    best = min(range(len(line)), key=lambda k: line[k][1])
-    if best == 0:  # the first point is already worse: the bracket is [0, t1]
-        inside = [line[1][0] / 3, 2 * line[1][0] / 3]
-    elif best == len(line) - 1:  # still falling at the longest step: inside its last interval
-        lo, hi = line[best - 1][0], line[best][0]
-        inside = [lo + (hi - lo) / 3, lo + 2 * (hi - lo) / 3]
-    else:
-        inside = [(line[best - 1][0] + line[best][0]) / 2, (line[best][0] + line[best + 1][0]) / 2]
-    for t in inside:
-        run(at(t))
-    lowest = min(points, key=lambda p: p["loss"])
-    if lowest["loss"] <= f0 * (1 - LINE_GAIN):
-        record.update(z=dict(lowest["z"]), loss=lowest["loss"], moved=True)
-    return record
 
 
 class Steps:
@@ -242,85 +143,6 @@ class Steps:
         return dataclasses.replace(
             state, iteration=state.iteration + 1, z=z, damping=damping, step_scale=step_scale, best=best
         )
-
-    def own_loss_line_search(self, state: OptimizerState) -> OptimizerState:
-        """After Levenberg-Marquardt stopped at its best point: :func:`line_search` of the
-        own-calibration loss (each point's loss against the estimator's error measured on its
-        own simulation, as the search and the step rejection score) along the lightly damped
-        (LM_DAMPING) Gauss-Newton direction of LM's Jacobian there. LM's Jacobian holds the
-        error fixed: calibrated at C the model's minimum can lie at C itself for a range of C
-        (the trophy: every C from 38.5 to 39.5 deg) while the own-calibration loss still falls
-        (issue 47, docs/pipeline.md). The state moves to the point found (calibrated there),
-        or stays; ``line_search`` records what it did."""
-        best, frames, variables, grid = state.best, self.frames, self.main_variables, self.model_grid
-        base, J = self.jacobian(best["z"], frames, best.get("substeps", state.substeps), variables, grid)
-        r = self.residuals(base.flows, base.more_flows)
-        kept: dict = {}  # the lowest point so far: its loss, evaluation and estimator's error
-
-        def own_loss(z: dict[str, float]) -> float:
-            try:
-                result = self.evaluate(z, frames, with_grad=False, grid=grid)
-                errors = self.estimator_errors(result, frames)
-            except (FloatingPointError, ClflowError) as exc:
-                log.info("line search: %s fails (%s)", self.values(z), exc)
-                return math.inf
-            loss = float(self.loss_of([result.flows, *result.more_flows], errors))
-            if loss < kept.get("loss", math.inf):
-                kept.update(loss=loss, z=dict(z), result=result, errors=errors)
-            return loss
-
-        f0 = best["loss"]
-        found = line_search(
-            own_loss,
-            best["z"],
-            f0,
-            J.T @ J,
-            LM_DAMPING,
-            variables,
-            lambda M, g, z: self.bounded_step(M, g, z, variables),
-            g_lm=J.T @ r,
-            box=self.local_box(),
-        )
-        record = {
-            "from": self.values(best["z"]),
-            "loss_from": f0,
-            "slope": found["slope"],
-            "direction": found["direction"],
-            "points": [{"params": self.values(p["z"]), "loss": p["loss"]} for p in found["points"]],
-            "moved": found["moved"],
-            "to": self.values(found["z"]),
-            "loss": found["loss"],
-        }
-        losses = ", ".join(f"{p['loss']:.4g}" for p in found["points"])
-        if not found["moved"]:
-            lowest = min([p["loss"] for p in found["points"]], default=math.inf)
-            log.info(
-                "line search of the own-calibration loss from %s (loss %.4g): stays; its %d points (%s) "
-                "lower it by %.2g %% at most (under %g %%)",
-                record["from"],
-                f0,
-                len(found["points"]),
-                losses,
-                max(0.0, 100 * (1 - lowest / f0)),
-                100 * LINE_GAIN,
-            )
-            return dataclasses.replace(state, line_search=record)
-        log.info(
-            "line search of the own-calibration loss from %s (loss %.4g): to %s, loss %.4g (%.2g %% lower; "
-            "its %d points: %s)",
-            record["from"],
-            f0,
-            record["to"],
-            found["loss"],
-            100 * (1 - found["loss"] / f0),
-            len(found["points"]),
-            losses,
-        )
-        result = kept["result"]
-        moved = dataclasses.replace(state, z=dict(kept["z"]), substeps=result.substeps, line_search=record)
-        moved = self.calibrate(moved, result, frames, errors=kept["errors"])
-        best = {"z": dict(kept["z"]), "loss": kept["loss"], "frames": frames, "substeps": result.substeps}
-        return dataclasses.replace(moved, best=best)
 
     @functools.cached_property
     def _local_box(self) -> dict[str, tuple[float, float]]:
