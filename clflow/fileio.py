@@ -386,7 +386,6 @@ def _staged(folder: Path) -> bool:
 def _signals_held() -> Iterator[None]:
     """SIGINT and SIGTERM held back until the block ends, then handled as they would have
     been (in the main thread, where Python handles signals; elsewhere a no-op)."""
-
     if threading.current_thread() is not threading.main_thread():
         yield
         return
