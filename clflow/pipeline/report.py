@@ -81,7 +81,9 @@ def write_report(output: Path, staged: Path | None = None) -> Path:
 
     params, metrics = _read(at("params.json")), _read(at("metrics.json"))
     run = _read(at("run.json"))
-    parts = [f"<h1>clflow results: {html.escape(output.name)}</h1>"]
+    # the folder with its parent: the default output folder is a scene's "results"
+    title = html.escape(f"{output.parent.name}/{output.name}" if output.parent.name else output.name)
+    parts = [f"<h1>clflow results: {title}</h1>"]
     if params:
         units = params.get("units", {})
         ranges = params.get("ranges", {})
@@ -171,8 +173,8 @@ def write_report(output: Path, staged: Path | None = None) -> Path:
     if links:
         parts.append("<p>Data: " + ", ".join(f'<a href="{n}">{n}</a>' for n in links) + "</p>")
     page = (
-        f"<!doctype html><html lang=en><head><meta charset=utf-8><title>clflow results: "
-        f"{html.escape(output.name)}</title><style>{STYLE}</style></head><body>{''.join(parts)}</body></html>\n"
+        f"<!doctype html><html lang=en><head><meta charset=utf-8><title>clflow results: {title}</title>"
+        f"<style>{STYLE}</style></head><body>{''.join(parts)}</body></html>\n"
     )
     atomic_write_text(staged / "index.html", page)
     return staged / "index.html"

@@ -117,3 +117,14 @@ def test_the_results_hold_each_range_in_params_json_and_draw_it(results):
         low, high = params["ranges"][name]["low"], params["ranges"][name]["high"]
         assert (low is None or low < value) and (high is None or value < high)
         assert ranges[name]["sigma_z"] >= ranges[name]["frames_z"] >= 0
+
+
+def test_the_page_is_titled_by_the_scene_folder_and_its_results_folder(tmp_path):
+    from clflow.pipeline.report import write_report
+
+    results = tmp_path / "jelly" / "results"  # a scene's default output folder
+    results.mkdir(parents=True)
+    (results / "metrics.json").write_text(json.dumps({"flow_loss": 0.02}))
+    page = write_report(results).read_text()
+    assert "<title>clflow results: jelly/results</title>" in page
+    assert "<h1>clflow results: jelly/results</h1>" in page
