@@ -360,7 +360,7 @@ def run_case(
         floor_epe = opt.endpoint_error(floor.flows, floor.more_flows)
         # both losses against the estimator's error measured at their own parameters (the final
         # point's targets hold its own): comparable, the truth's the floor of the optimiser's loss
-        truth_loss = opt.self_consistent_loss(floor, opt.frames)
+        truth_loss = opt.self_consistent_loss(floor, opt.frames, opt.final_shifts)
     except BudgetTooSmall:  # the settings', not the case's: every case would fail alike
         raise
     except ClflowError as exc:

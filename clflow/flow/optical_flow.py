@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Callable, Literal, Sequence
 
 import numpy as np
 
@@ -111,6 +111,38 @@ def observed_flow(
         if advance is not None:
             advance(method)
     return np.stack(flows).astype(np.float32)
+
+
+def shift_mean_flow(
+    wide: np.ndarray, margin: int, shifts: Sequence[tuple[int, int]], estimate: Callable[[np.ndarray], np.ndarray]
+) -> np.ndarray:
+    """The mean of a flow estimator's answers [T-1, H, W, 2] (px) over whole-pixel shifts of
+    the camera: an estimate smoother in the motion than one (DIS's patch grid is fixed to the
+    image corner, so its answer jumps as the content moves across it).
+
+    ``wide``: [T, H + 2 margin, W + 2 margin(, 3)] frames, ``margin`` pixels more on each side
+    than the images estimated. For each (dx, dy) of ``shifts`` (|dx|, |dy| <= margin) the
+    estimator runs on the crop whose pixel (i, j) is pixel (i + dy, j + dx) of the central
+    crop (the view moved by whole pixels: no resampling); its answer is moved back onto the
+    central crop's pixels, and each pixel's mean is over the shifts that saw it, (0, 0)
+    being one so that every pixel is seen. ``estimate``: frames -> [T-1, h, w, 2] flow."""
+    wide = np.asarray(wide)
+    height, width = wide.shape[1] - 2 * margin, wide.shape[2] - 2 * margin
+    if height <= 0 or width <= 0:
+        raise InputError(f"frames of {wide.shape[1]}x{wide.shape[2]} px have no room for a {margin} px margin")
+    if (0, 0) not in shifts or any(max(abs(dx), abs(dy)) > margin for dx, dy in shifts):
+        raise InputError(f"shifts {list(shifts)} must hold (0, 0) and stay within the {margin} px margin")
+    total = np.zeros((wide.shape[0] - 1, height, width, 2))
+    seen = np.zeros((height, width))
+    for dx, dy in shifts:
+        crop = wide[:, margin + dy : margin + dy + height, margin + dx : margin + dx + width]
+        flow = estimate(np.ascontiguousarray(crop))
+        # the crop's pixel (i, j) is the central crop's (i + dy, j + dx)
+        rows = slice(max(0, dy), height + min(0, dy))
+        cols = slice(max(0, dx), width + min(0, dx))
+        total[:, rows, cols] += flow[:, max(0, -dy) : height - max(0, dy), max(0, -dx) : width - max(0, dx)]
+        seen[rows, cols] += 1
+    return total / seen[None, :, :, None]
 
 
 def backward_flow(frames: np.ndarray, method: FlowMethod = "dis", **kwargs) -> np.ndarray:

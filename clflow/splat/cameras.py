@@ -131,6 +131,14 @@ class Camera:
         K[:2] *= factor
         return Camera(self.viewmat, K, self.width * factor, self.height * factor, self.name)
 
+    def widened(self, margin: int) -> "Camera":
+        """The same view with ``margin`` more pixels on each side (pixel (i, j) of this camera
+        is pixel (i + margin, j + margin) of the wider one): a larger image of the same
+        pixels, no resampling."""
+        K = self.K.clone()
+        K[:2, 2] += margin
+        return Camera(self.viewmat, K, self.width + 2 * margin, self.height + 2 * margin, self.name)
+
     def camtoworld(self) -> torch.Tensor:
         """[4, 4] camera-to-world transform (OpenCV axes), the inverse of ``viewmat``."""
         out = torch.eye(4, dtype=torch.float64)

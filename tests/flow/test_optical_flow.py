@@ -15,6 +15,7 @@ from clflow.flow.optical_flow import (
     mask_from_image,
     observed_confidence,
     observed_flow,
+    shift_mean_flow,
 )
 from clflow.flow.synthetic import Motion, moving_texture, textured_image
 from clflow.media import write_image
@@ -156,3 +157,45 @@ def test_flow_errors(tmp_path, translating):
     else:
         with pytest.raises(InputError, match="raft.pth: not a torchvision RAFT-large state dict"):
             observed_flow(frames, "raft", raft_weights=tmp_path / "raft.pth")
+
+
+MARGIN = 3
+SHIFTS = ((0, 0), (0, -3), (1, 2), (-3, -1), (-2, -2), (2, 3), (-1, 0), (3, 1))
+
+
+def pointwise(frames: np.ndarray) -> np.ndarray:
+    """A made-up 'estimator' [T-1, H, W, 2] that answers each pixel from that pixel alone:
+    the same wherever the camera stands, so the shift-mean must give it back exactly."""
+    grey = frames.mean(axis=-1)
+    return np.stack([grey[:-1], 2.0 * grey[1:] - grey[:-1]], axis=-1)
+
+
+def test_the_shift_mean_puts_each_shifted_answer_back_on_its_own_pixel():
+    wide = np.stack([textured_image(HEIGHT + 2 * MARGIN, WIDTH + 2 * MARGIN, seed=s) for s in (5, 6, 7)])
+    central = wide[:, MARGIN:-MARGIN, MARGIN:-MARGIN]
+    mean = shift_mean_flow(wide, MARGIN, SHIFTS, pointwise)
+    assert mean.shape == (2, HEIGHT, WIDTH, 2)
+    np.testing.assert_allclose(mean, pointwise(central), atol=1e-9)
+    # the crops really differ: one estimate of a shifted crop, not moved back, does not match
+    moved = pointwise(wide[:, MARGIN + 2 : MARGIN + 2 + HEIGHT, MARGIN - 2 : MARGIN - 2 + WIDTH])
+    assert np.abs(moved - pointwise(central)).mean() > 1.0
+
+
+def test_the_shift_mean_of_dis_on_a_whole_pixel_translation_agrees_with_one_estimate():
+    # the texture moves (2, -1) px per frame: DIS at every shift of the camera finds it, so the
+    # mean over the shifts is the one estimate's answer (px, u right and v down) within noise
+    frames, truth = moving_texture(2, HEIGHT + 2 * MARGIN, WIDTH + 2 * MARGIN, Motion(shift=(2.0, -1.0)), seed=8)
+    mean = shift_mean_flow(frames, MARGIN, SHIFTS, observed_flow)
+    one = observed_flow(np.ascontiguousarray(frames[:, MARGIN:-MARGIN, MARGIN:-MARGIN]))
+    assert mean.shape == one.shape == (1, HEIGHT, WIDTH, 2)
+    inside = mask_from_box(OBJECT_BOX, WIDTH, HEIGHT)
+    assert endpoint_error(mean, truth[:, MARGIN:-MARGIN, MARGIN:-MARGIN], inside) < 0.2
+    assert endpoint_error(mean, one, inside) < 0.1
+    np.testing.assert_allclose(mean[0][inside].mean(axis=0), (2.0, -1.0), atol=0.05)
+
+
+@pytest.mark.parametrize("shifts", [((0, 0), (4, 0)), ((1, 1), (-1, -1))], ids=["beyond the margin", "no (0, 0)"])
+def test_the_shift_mean_refuses_shifts_it_cannot_take(shifts):
+    wide = np.zeros((2, 20, 20), np.uint8)
+    with pytest.raises(InputError, match="shifts"):
+        shift_mean_flow(wide, MARGIN, shifts, pointwise)

@@ -1,6 +1,7 @@
 """The optimiser's parts (clflow.pipeline.fit) on their own, with small inputs: no scene, no
 simulation, no Optimization; each part is given only the attributes it reads."""
 
+import math
 from types import SimpleNamespace
 
 import pytest
@@ -20,7 +21,17 @@ from clflow.pipeline.fit.diagnostics import (
     widen_by_search,
 )
 from clflow.pipeline.fit.search import Search
-from clflow.pipeline.fit.steps import Steps, phase_of, rate_schedule
+from clflow.pipeline.fit.state import LM_DAMPING
+from clflow.pipeline.fit.steps import (
+    LINE_GAIN,
+    LINE_MAX_GROWTH,
+    LINE_STEP,
+    LM_MAX_STEP,
+    Steps,
+    line_search,
+    phase_of,
+    rate_schedule,
+)
 
 
 class BoxedSteps(Steps):
@@ -228,3 +239,104 @@ def test_search_samples_within_the_tolerance_widen_a_range_and_the_extreme_one_o
     assert ranges["b"]["low"] is None and ranges["b"]["high"] == 0.5  # b's lowest sample (-2) is kept
     assert ranges["v"] == {"low": 0.0, "high": 1.0}  # not searched: as it was
     assert ranges["a"]["search_kept"] == 3
+
+
+def bowl(bottom: float, depth: float = 1.0, floor: float = 0.01):
+    """A 1-D own-calibration loss in z with its minimum ``floor`` at ``bottom``; runs counted."""
+    calls = []
+
+    def loss(z):
+        calls.append(dict(z))
+        return floor + depth * (z["a"] - bottom) ** 2
+
+    return loss, calls
+
+
+def search_line(loss, f0=None, z0=0.0, max_step=LM_MAX_STEP, g_lm=None, box=None):
+    steps = BoxedSteps(box or {})
+    z = {"a": z0}
+    return line_search(
+        loss,
+        z,
+        loss(z) if f0 is None else f0,
+        torch.ones(1, 1, dtype=torch.float64),  # J = 1: the loss is r^2 + floor, r = z - bottom
+        LM_DAMPING,
+        ("a",),
+        lambda M, g, at: steps.bounded_step(M, g, at, ("a",)),
+        max_step=max_step,
+        g_lm=g_lm,
+        box=box,
+    )
+
+
+def test_the_line_search_moves_to_a_lower_loss_along_the_direction():
+    loss, calls = bowl(0.3)
+    found = search_line(loss)
+    runs = len(calls) - 1  # f0's own
+    assert found["moved"] and found["z"]["a"] == pytest.approx(0.3, abs=0.03)
+    assert found["loss"] < 0.01 + 0.03**2 < loss({"a": 0.0})
+    # the slope from its difference quotient LINE_STEP wide: (f1 - f0) / 2h = J^T r + h / 2
+    assert found["slope"] == [pytest.approx(-0.3 + LINE_STEP / 2)]
+    assert found["direction"][0] > 0
+    assert runs == len(found["points"]) <= 1 + LINE_MAX_GROWTH + 2  # one probe, the line, two inside
+
+
+def test_the_line_search_takes_its_slope_from_the_loss_not_from_lms_gradient():
+    # LM's J^T r0 says uphill along +z (the estimator's noise); the loss itself falls there
+    loss, _ = bowl(0.3)
+    found = search_line(loss, g_lm=torch.tensor([1.0], dtype=torch.float64))
+    assert found["points"][0]["z"]["a"] == pytest.approx(-LINE_STEP)  # the probe on LM's downhill side
+    assert found["moved"] and found["z"]["a"] == pytest.approx(0.3, abs=0.03)
+
+
+def test_the_line_search_goes_no_farther_than_lms_longest_step():
+    loss, calls = bowl(5.0, depth=0.01)
+    found = search_line(loss, max_step=0.4)
+    assert max(abs(c["a"]) for c in calls) <= 0.4 + 1e-12
+    assert found["moved"] and found["z"]["a"] == pytest.approx(0.4)
+
+
+def test_the_line_search_stays_in_the_box():
+    loss, calls = bowl(5.0, depth=0.01)
+    found = search_line(loss, box={"a": (-1.0, 0.25)})
+    assert max(c["a"] for c in calls) <= 0.25 and found["z"]["a"] == pytest.approx(0.25)
+
+
+@pytest.mark.parametrize("gain, moves", [(0.5 * LINE_GAIN, False), (2 * LINE_GAIN, True)])
+def test_the_line_search_refuses_a_gain_under_its_tolerance(gain, moves):
+    # the loss 1 at the bottom, 1 + gain at the start: a fall of the fraction gain / (1 + gain)
+    loss, _ = bowl(0.3, depth=gain / 0.09, floor=1.0)
+    found = search_line(loss)
+    assert found["moved"] is moves
+    if moves:
+        assert found["loss"] < loss({"a": 0.0}) * (1 - LINE_GAIN)
+    else:
+        assert found["z"] == {"a": 0.0} and found["loss"] == loss({"a": 0.0})
+        assert min(p["loss"] for p in found["points"]) < found["loss"]  # lower, but not by enough
+
+
+def test_a_failed_probe_leaves_the_line_search_where_it_was():
+    found = search_line(lambda z: math.inf, f0=1.0)
+    assert not found["moved"] and found["direction"] is None and len(found["points"]) == 1
+
+
+def test_the_line_search_starts_no_nearer_than_its_difference_width():
+    # J^T J sees 20x the curvature the loss has (it holds the estimator's error fixed): the
+    # Gauss-Newton step is a twentieth of the way; the first point lies LINE_STEP out, the
+    # probe itself in one variable (not run again), and the points grow from there
+    loss, calls = bowl(0.6, depth=1 / 20)
+    steps = BoxedSteps({})
+    z0 = {"a": 0.0}
+    found = line_search(
+        loss,
+        z0,
+        loss(z0),
+        torch.ones(1, 1, dtype=torch.float64),
+        LM_DAMPING,
+        ("a",),
+        lambda M, g, at: steps.bounded_step(M, g, at, ("a",)),
+    )
+    assert found["direction"][0] == pytest.approx(0.6 / 20, rel=0.1) and found["direction"][0] < LINE_STEP
+    line = [c["a"] for c in calls[2:]]  # after f0's run and the probe's
+    assert line[:3] == pytest.approx([2 * LINE_STEP, 4 * LINE_STEP, 8 * LINE_STEP])
+    assert found["moved"] and found["z"]["a"] == pytest.approx(0.6, abs=0.1)

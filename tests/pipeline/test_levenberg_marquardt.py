@@ -11,9 +11,9 @@ import torch
 from clflow.errors import InputError
 from clflow.pipeline.fit import Evaluation, Optimization
 from clflow.pipeline.fit.diagnostics import WALK_REACHED, flat
-from clflow.pipeline.fit.objective import flow_loss
+from clflow.pipeline.fit.objective import JITTER_SHIFTS, flow_loss
 from clflow.pipeline.fit.state import LM_DAMPING
-from clflow.pipeline.fit.steps import LM_GAIN_TOLERANCE
+from clflow.pipeline.fit.steps import LINE_ROUNDS, LM_GAIN_TOLERANCE
 
 Z_TRUE = math.log10(2e4) + 0.37  # the model's minimiser, 1.37 decades above the demo's start
 
@@ -189,7 +189,7 @@ def test_a_step_downhill_only_against_the_old_calibration_is_rejected(lm, monkey
     field = torch.randn(opt.views[0].observed.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     scale = {"now": 0.0}
     monkeypatch.setattr(type(opt), "corrects_bias", property(lambda self: True))
-    monkeypatch.setattr(opt, "estimator_errors", lambda result, frames: [scale["now"] * field[:frames]])
+    monkeypatch.setattr(opt, "estimator_errors", lambda result, frames, shifts=None: [scale["now"] * field[:frames]])
     variables = ("youngs_modulus",)
     state = opt.initial_state()
     base, J = opt.jacobian(state.z, opt.frames, 1, variables, opt.model_grid)
@@ -653,3 +653,69 @@ def test_a_weakly_constrained_parameter_is_told_by_the_reason_that_flagged_it():
     assert (
         small_rise == "a step of 0.1 in the optimiser's units, the others refitted, raises the loss by 0.4 %, under 1 %"
     )
+
+
+def test_after_lm_stops_a_line_search_of_the_own_calibration_loss_goes_on(lm, monkeypatch, caplog):
+    # the estimator errs by -0.9 x the simulated motion: calibrated at C, LM's model has its
+    # minimum where tanh(z - z_true) = 0.9 tanh(C - z_true), so each calibration gains only
+    # a tenth; the own-calibration loss (0.1 tanh(z - z_true))^2 |field|^2 falls all the way
+    # to z_true, and the line search after LM's last iteration follows it
+    opt, calls = lm(iterations=4)
+    observed, fake = opt.views[0].observed, opt.evaluate
+    monkeypatch.setattr(opt, "evaluate", lambda *args, **kwargs: opt.rescored(fake(*args, **kwargs)))  # the targets'
+    monkeypatch.setattr(type(opt), "corrects_bias", property(lambda self: True))
+    monkeypatch.setattr(
+        opt,
+        "estimator_errors",
+        lambda result, frames, shifts=None: [-0.9 * (torch.stack(result.flows[:frames]) - observed[:frames])],
+    )
+    with caplog.at_level("INFO", logger="clflow.pipeline.fit.steps"):
+        state = opt.run()
+    searched = state.line_search
+    assert searched is not None and searched["moved"]
+    lm_end = searched["from"]["youngs_modulus"]
+    assert lm_end < 10 ** (Z_TRUE - 0.3)  # LM stopped well short of the truth
+    assert abs(state.z["youngs_modulus"] - Z_TRUE) < abs(math.log10(lm_end) - Z_TRUE)  # nearer the truth
+    assert searched["loss"] <= searched["loss_from"] * (1 - 1e-3)
+    # it searched again from each point it moved to, until a round stayed (or its rounds ran out)
+    rounds = searched["rounds"]
+    assert rounds[0]["moved"] and all(r["moved"] for r in rounds[:-1])
+    assert not rounds[-1]["moved"] or len(rounds) == LINE_ROUNDS
+    assert state.best["z"] == state.z and state.best["loss"] == searched["loss"]
+    assert state.calibrated_at["z"] == state.z  # the final point's own calibration, over the shifts
+    assert state.calibrated_at["shifts"] == [list(shift) for shift in JITTER_SHIFTS]
+    final = opt.jacobian(state.z, opt.frames, state.substeps, ("youngs_modulus",), opt.model_grid)[0]
+    assert opt.rescored(final).loss == pytest.approx(searched["loss"], rel=1e-9)
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("line search of the own")]
+    assert len(lines) == 1 and " to {" in lines[0]
+    # done once: a resumed finished run does not search again
+    before = len(calls)
+    again = opt.run(resume=True)
+    assert again.z == state.z and len(calls) == before
+
+
+def test_the_line_search_holds_a_variable_the_video_does_not_pin_down(lm, monkeypatch, caplog):
+    # as above, but the estimator's error carries a large offset that no parameter explains
+    # (model error): a step of 0.1 in z raises the loss by far under 1 %, so Young's modulus
+    # is weakly constrained and the line search leaves it where LM stopped
+    opt, calls = lm(iterations=4)
+    observed, fake = opt.views[0].observed, opt.evaluate
+    offset = 40.0 * torch.ones_like(observed)
+    monkeypatch.setattr(opt, "evaluate", lambda *args, **kwargs: opt.rescored(fake(*args, **kwargs)))
+    monkeypatch.setattr(type(opt), "corrects_bias", property(lambda self: True))
+    monkeypatch.setattr(
+        opt,
+        "estimator_errors",
+        lambda result, frames, shifts=None: [
+            -0.9 * (torch.stack(result.flows[:frames]) - observed[:frames]) - offset[:frames]
+        ],
+    )
+    with caplog.at_level("INFO", logger="clflow.pipeline.fit.steps"):
+        state = opt.run()
+    searched = state.line_search
+    assert searched["held"] == ["youngs_modulus"] and not searched["moved"]
+    assert state.z == state.best["z"] and opt.values(state.z) == searched["from"]
+    assert state.best["loss"] == searched["loss_from"]  # scored against the shift-mean error
+    assert state.calibrated_at["shifts"] == [list(shift) for shift in JITTER_SHIFTS]
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("line search of the own")]
+    assert lines == ["line search of the own-calibration loss: none of ['youngs_modulus'] is pinned down, all stay"]

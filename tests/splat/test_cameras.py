@@ -43,6 +43,15 @@ def test_look_at_puts_target_at_the_principal_point_and_up_upward():
     assert torch.allclose(cam.camtoworld() @ cam.viewmat, torch.eye(4, dtype=F64), atol=1e-15)
 
 
+def test_a_widened_camera_sees_the_same_pixels_with_a_margin_around_them():
+    cam = look_at((3, 1, 2), (0, 0, 0.5), (0, 0, 1), fov_x=math.radians(60), width=64, height=48)
+    wide = cam.widened(3)
+    assert (wide.width, wide.height) == (70, 54) and torch.equal(wide.viewmat, cam.viewmat)
+    for point in [(0, 0, 0.5), (-0.1, 0.3, 0.7)]:
+        u, v, z = project(cam, point)
+        assert project(wide, point) == pytest.approx((u + 3, v + 3, z), abs=1e-12)
+
+
 def test_focal_length_from_field_of_view():
     K = intrinsics(200, 100, 2 * math.atan(0.5))  # half-width 100 px at tan = 0.5
     assert K[0, 0].item() == pytest.approx(200) and K[1, 1].item() == pytest.approx(200)

@@ -173,3 +173,16 @@ def test_meta_reports_tile_lists():
     assert meta["tile_list_bytes"] >= 20 * meta["num_tile_entries"]
     # float64 records: 9 per Gaussian, 9 + 3 colour channels per entry (no depth channel)
     assert meta["entry_record_bytes"] == 8 * (9 * 30 + 12 * meta["num_tile_entries"])
+
+
+def test_a_camera_widened_by_whole_pixels_renders_the_same_pixels_inside():
+    # the bias correction's shifted crops (clflow.pipeline.fit.objective.JITTER_SHIFTS) are
+    # cut from one wider rendering: its central crop must be the plain rendering
+    means, quats, scales, opacities, colors = random_scene(30, seed=6)
+    viewmat, K = camera(W, H, 30.0)
+    wide_K = K.clone()
+    wide_K[:2, 2] += 3
+    img = rasterize_gaussians(means, quats, scales, opacities, colors, viewmat, K, W, H)[0]
+    wide = rasterize_gaussians(means, quats, scales, opacities, colors, viewmat, wide_K, W + 6, H + 6)[0]
+    assert wide.shape == (H + 6, W + 6, 3) and float(img.max()) > 0.1
+    assert_close(wide[3:-3, 3:-3], img, 1e-6)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 
@@ -64,6 +65,44 @@ WALK_RUNS = 6
 WALK_BRACKET = 0.25
 WALK_GROWTH = (1.5, 4.0)
 WALK_REACHED = 0.9
+
+
+@dataclasses.dataclass(frozen=True)
+class GaussNewtonSpread:
+    """How well residuals pin each variable down, in the Gauss-Newton picture (pixels as
+    independent noise): ``inverse`` (J^T J)^-1 [n, n], ``covariance`` s^2 (J^T J)^-1 with s^2
+    the loss per residual degree of freedom, ``std`` [n] its standard errors (z units:
+    decades for log-scale parameters; lower bounds), ``rise`` the fraction of the ``loss``
+    that a step of WEAK_STD_Z costs with the other variables refitted."""
+
+    inverse: torch.Tensor
+    covariance: torch.Tensor
+    std: torch.Tensor
+    rise: list[float]
+    loss: float
+
+    def weak(self, variables: tuple[str, ...]) -> list[str]:
+        """The weakly constrained ``variables`` (named in J's column order): a standard error
+        beyond WEAK_STD_Z or a rise under MIN_LOSS_RISE."""
+        return [
+            n
+            for n, sd, r in zip(variables, self.std.tolist(), self.rise)
+            if not (sd <= WEAK_STD_Z and r >= MIN_LOSS_RISE)
+        ]
+
+
+def gauss_newton_spread(J: torch.Tensor, residuals: torch.Tensor) -> GaussNewtonSpread:
+    """The :class:`GaussNewtonSpread` of ``residuals`` [R] with Jacobian ``J`` [R, n]."""
+    count = J.shape[1]
+    dof = max(1, residuals.numel() - count)
+    curvature = J.T @ J
+    ridge = 1e-12 * float(curvature.diagonal().max().clamp(min=1e-300))  # an unconstrained direction: huge
+    inverse = torch.linalg.inv(curvature + ridge * torch.eye(count, dtype=curvature.dtype))
+    loss = float((residuals**2).sum())
+    covariance = inverse * (loss / dof)
+    std = covariance.diagonal().clamp(min=0).sqrt()
+    rise = (WEAK_STD_Z**2 / inverse.diagonal().clamp(min=1e-300) / max(loss, 1e-300)).tolist()
+    return GaussNewtonSpread(inverse, covariance, std, rise, loss)
 
 
 def frame_robust_covariance(
@@ -211,18 +250,11 @@ class Diagnostics:
         beyond WEAK_STD_Z, whose value the discretisation sets as much as the video."""
         variables = self.main_variables
         base, J = self.jacobian(z, self.frames, min_substeps, variables, self.model_grid)
-        residuals, count = self.residuals(base.flows, base.more_flows), len(variables)
-        dof = max(1, residuals.numel() - count)
-        curvature = J.T @ J
-        ridge = 1e-12 * float(curvature.diagonal().max().clamp(min=1e-300))  # an unconstrained direction: huge
-        inverse = torch.linalg.inv(curvature + ridge * torch.eye(count, dtype=curvature.dtype))
-        loss = float((residuals**2).sum())
-        covariance = inverse * (loss / dof)
-        std = covariance.diagonal().clamp(min=0).sqrt()
-        correlation = covariance / torch.outer(std, std).clamp(min=1e-300)
-        # the loss a step of WEAK_STD_Z costs, the other variables refitted, as a fraction of the loss
-        rise = (WEAK_STD_Z**2 / inverse.diagonal().clamp(min=1e-300) / max(loss, 1e-300)).tolist()
-        weak = [n for n, sd, r in zip(variables, std.tolist(), rise) if not (sd <= WEAK_STD_Z and r >= MIN_LOSS_RISE)]
+        residuals = self.residuals(base.flows, base.more_flows)
+        spread = gauss_newton_spread(J, residuals)
+        inverse, std, rise, loss = spread.inverse, spread.std, spread.rise, spread.loss
+        correlation = spread.covariance / torch.outer(std, std).clamp(min=1e-300)
+        weak = spread.weak(variables)
         pairs = [
             [a, b, float(correlation[i, j])]
             for i, a in enumerate(variables)

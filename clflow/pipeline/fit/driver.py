@@ -237,6 +237,16 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         ):  # the last step was never run: the result is the best point found
             state = dataclasses.replace(state, z=dict(best["z"]), substeps=best.get("substeps", state.substeps))
             self.save_state(state)
+        if (
+            opt.method == "levenberg_marquardt"
+            and self.corrects_bias
+            and best is not None
+            and best["frames"] == self.frames
+            and state.iteration >= self.total_iterations
+            and state.line_search is None
+        ):  # LM stopped where its Jacobian, which holds the estimator's error fixed, sees no progress
+            state = self.own_loss_line_search(state)
+            self.save_state(state)
         return state
 
     def step(

@@ -36,6 +36,15 @@ LM_STEP = 0.01  # Levenberg-Marquardt's finite-difference step in z (a 2.3 % cha
 # per side and area-averages them, since a camera's pixel integrates light over its area
 # (DIS's error depends on that blur: docs/flow.md)
 SUPERSAMPLE = 2
+# Levenberg-Marquardt's last word (Steps.own_loss_line_search) and the result's own loss take
+# the estimator's error as the mean of its answers over these whole-pixel shifts (dx, dy) of
+# the camera, from one rendering JITTER_MARGIN px wider on each side (no resampling): one
+# answer jumps by 20-40 % of the loss between points 0.5 deg apart on the sand (DIS's patch
+# grid is fixed to the image corner; docs/pipeline.md, issue 47), the mean is smooth. Every
+# residue mod 4 twice per axis, each parity pair (dx, dy mod 2) twice, the mean shift zero.
+# The iterations before keep one answer (ONE_SHIFT), at an eighth of the estimator's cost.
+JITTER_SHIFTS = ((0, 0), (0, -3), (1, 2), (-3, -1), (-2, -2), (2, 3), (-1, 0), (3, 1))
+ONE_SHIFT = ((0, 0),)
 
 
 def simulated_view_flows(
@@ -234,40 +243,58 @@ class Objective:
             tuple([f.detach() for f in view] for view in more_flows),
         )
 
-    def estimator_errors(self, result: Evaluation, frames: int) -> list[torch.Tensor]:
+    def estimator_errors(
+        self, result: Evaluation, frames: int, shifts: tuple[tuple[int, int], ...] = ONE_SHIFT
+    ) -> list[torch.Tensor]:
         """The flow estimator's error [frames, H, W, 2] in each guidance view on the simulation
         ``result`` (its first ``frames`` frames): the simulation rendered from the view's camera
         (SUPERSAMPLE^2 samples per pixel, area-averaged), its flow estimated with the settings
-        that made the observed flow, less the exact simulated flow."""
-        from clflow.flow.optical_flow import observed_flow
+        that made the observed flow, less the exact simulated flow. ``shifts``: the estimate
+        is the mean over these whole-pixel shifts of the camera (JITTER_SHIFTS; one rendering
+        that much wider, clflow.flow.optical_flow.shift_mean_flow)."""
+        from clflow.flow.optical_flow import observed_flow, shift_mean_flow
 
+        def estimate(video: np.ndarray) -> np.ndarray:
+            return observed_flow(video, self.cfg.flow.method, preset=self.cfg.flow.preset, source="the simulation")
+
+        margin = max(max(abs(dx), abs(dy)) for dx, dy in shifts)
         traj = result.trajectory
         simulated = SimulationResult(
             self.prepared, {}, 0.0, traj.x[: frames + 1].detach(), traj.F[: frames + 1].detach()
         )
         errors = []
         for view, flows in zip(self.views, [result.flows, *result.more_flows]):
-            video = render_frames(simulated, view.camera, supersample=SUPERSAMPLE)
-            estimated = observed_flow(video, self.cfg.flow.method, preset=self.cfg.flow.preset, source="the simulation")
+            wide = render_frames(simulated, view.camera.widened(margin), supersample=SUPERSAMPLE)
+            estimated = shift_mean_flow(wide, margin, shifts, estimate)
             errors.append(torch.from_numpy(estimated).double() - torch.stack(flows[:frames]).double())
         return errors
 
-    def calibrate(self, state: OptimizerState, result: Evaluation, frames: int) -> OptimizerState:
+    def calibrate(
+        self,
+        state: OptimizerState,
+        result: Evaluation,
+        frames: int,
+        shifts: tuple[tuple[int, int], ...] = ONE_SHIFT,
+        errors: list[torch.Tensor] | None = None,
+    ) -> OptimizerState:
         """Keep the flow estimator's error on the simulation ``result`` (at state.z, its first
-        ``frames`` frames) as each view's ``estimator_error`` (saved in
-        ``output/estimator_error.npz``). The loss then compares the simulated flow with the
-        observed flow less that error, so the estimator's systematic error (DIS blends a
-        moving object with its background, docs/flow.md) cancels instead of biasing the
-        parameters."""
+        ``frames`` frames; over ``shifts`` as :meth:`estimator_errors`) as each view's
+        ``estimator_error`` (saved in ``output/estimator_error.npz``). The loss then compares
+        the simulated flow with the observed flow less that error, so the estimator's
+        systematic error (DIS blends a moving object with its background, docs/flow.md)
+        cancels instead of biasing the parameters. ``errors``: that error, already measured."""
         calibrated_at = {"z": dict(state.z), "frames": frames, "grid": result.grid}
+        if shifts != ONE_SHIFT:
+            calibrated_at["shifts"] = [list(shift) for shift in shifts]
         if state.calibrated_at == calibrated_at:  # back at the point measured last (a rejected step)
             return state
-        errors = []
-        for view, error in zip(self.views, self.estimator_errors(result, frames)):
+        measured = self.estimator_errors(result, frames, shifts) if errors is None else errors
+        full_errors = []
+        for view, error in zip(self.views, measured):
             full = torch.zeros_like(view.observed) if view.estimator_error is None else view.estimator_error.clone()
             full[:frames] = error
-            errors.append(full.numpy())
-        self.set_estimator_errors(errors)
+            full_errors.append(full.numpy())
+        self.set_estimator_errors(full_errors)
         self.save_calibration(calibrated_at)
         return dataclasses.replace(state, calibrated_at=calibrated_at)
 
@@ -307,8 +334,10 @@ class Objective:
         log.info("measuring the flow estimator's error again at the checkpoint's calibration point")
         z, frames = state.calibrated_at["z"], state.calibrated_at["frames"]
         grid = state.calibrated_at.get("grid", self.model_grid)
+        shifts = tuple(tuple(shift) for shift in state.calibrated_at.get("shifts", ONE_SHIFT))
         at = dataclasses.replace(state, z=dict(z), calibrated_at=None)  # measured there, whatever state.z is now
-        self.calibrate(at, self.evaluate(z, frames, with_grad=False, min_substeps=state.substeps, grid=grid), frames)
+        result = self.evaluate(z, frames, with_grad=False, min_substeps=state.substeps, grid=grid)
+        self.calibrate(at, result, frames, shifts)
 
     @property
     def corrects_bias(self) -> bool:
@@ -327,13 +356,23 @@ class Objective:
             for flows, target, view in zip(view_flows, targets, self.views)
         ) / len(self.views)
 
-    def self_consistent_loss(self, result: Evaluation, frames: int) -> float:
+    def self_consistent_loss(
+        self, result: Evaluation, frames: int, shifts: tuple[tuple[int, int], ...] = ONE_SHIFT
+    ) -> float:
         """``result``'s loss against the observed flow less the estimator's error on ``result``'s
-        own simulation: the video's estimated flow against the simulation's, estimated alike
-        (with flow.bias_correction; else its loss)."""
+        own simulation (over ``shifts``, :meth:`estimator_errors`): the video's estimated flow
+        against the simulation's, estimated alike (with flow.bias_correction; else its loss)."""
         if not self.corrects_bias:
             return result.loss
-        return float(self.loss_of([result.flows, *result.more_flows], self.estimator_errors(result, frames)))
+        errors = self.estimator_errors(result, frames, shifts)
+        return float(self.loss_of([result.flows, *result.more_flows], errors))
+
+    @property
+    def final_shifts(self) -> tuple[tuple[int, int], ...]:
+        """The camera shifts of the estimator's error that scores the result (its final point's
+        calibration): JITTER_SHIFTS after Levenberg-Marquardt, whose last word is the line
+        search of that smooth own-calibration loss; else ONE_SHIFT, as every iteration's."""
+        return JITTER_SHIFTS if self.cfg.optimize.method == "levenberg_marquardt" else ONE_SHIFT
 
     def rescored(self, result: Evaluation) -> Evaluation:
         """``result`` with its loss against the current targets (after a calibration)."""

@@ -126,7 +126,7 @@ class Results:
             self.save_state(state)
             result, _ = self.jacobian(state.z, self.frames, state.substeps, self.main_variables, self.model_grid)
         if self.corrects_bias:
-            state.calibrated_at = self.calibrate(state, result, self.frames).calibrated_at
+            state.calibrated_at = self.calibrate(state, result, self.frames, self.final_shifts).calibrated_at
             self.save_state(state)
             result = self.rescored(result)
         return result
@@ -150,6 +150,8 @@ class Results:
         if self.grid_choice is not None:  # optimize.budget chose the main grid
             metrics["budget"] = dataclasses.asdict(self.grid_choice)
         metrics["rollbacks"] = state.rollbacks  # every rejected iteration: its reason and parameters
+        if state.line_search is not None:  # the line search of the own-calibration loss after LM
+            metrics["line_search"] = state.line_search
         if self.guidance:
             metrics["guidance_checks"] = [check.record() for check in self.guidance]
         if self.guidance_warnings:  # forced past a failed guidance check (--force-video)

@@ -60,6 +60,9 @@ class OptimizerState:
     # and, with a coarser search grid, its "model_loss" on the main phase's grid
     starts: list[dict] = field(default_factory=list)
     polished: list[dict] = field(default_factory=list)
+    # flow.bias_correction with Levenberg-Marquardt: what the line search of the own-calibration
+    # loss did after LM stopped (Steps.own_loss_line_search), None before it ran
+    line_search: dict | None = None
 
 
 class UnstableRun(ClflowError):
