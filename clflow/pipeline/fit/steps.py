@@ -325,10 +325,10 @@ class Steps:
         if moved:
             z, loss = kept["z"], kept["loss"]
         record.update(rounds=rounds, moved=moved, to=self.values(z), loss=loss)
-        points = sum(len(r["points"]) for r in rounds)
+        points = sum(len(each["points"]) for each in rounds)
         held = f", {list(weak)} held" if weak else ""
         if not moved:
-            lowest = min([p["loss"] for r in rounds for p in r["points"]], default=math.inf)
+            lowest = min([p["loss"] for each in rounds for p in each["points"]], default=math.inf)
             log.info(
                 "line search of the own-calibration loss from %s (loss %.4g%s): stays; its %d points "
                 "lower it by %.2g %% at most (under %g %%)",
