@@ -339,7 +339,8 @@ def test_the_benchmark_searches_on_the_base_grid_and_refines_on_a_finer_one(tmp_
 def test_the_loss_scan_gives_the_loss_and_both_gradients_along_a_parameter(tmp_path, tiny_cases):
     """scripts/loss_scan.py on a finished case: per value the loss at the final point's
     calibration, the adjoint's dloss/dz and the optimiser's backward difference, which agree
-    where the loss is smooth, and the loss against the estimator's error at the value itself."""
+    where the loss is smooth, and the loss against the estimator's error at the value itself;
+    with --grid the same on another grid over the same domain."""
     import subprocess
     import sys
 
@@ -358,3 +359,13 @@ def test_the_loss_scan_gives_the_loss_and_both_gradients_along_a_parameter(tmp_p
         assert row["self_consistent_loss"] > 0 and row["adjoint_dz"] < 0
         assert abs(row["adjoint_dz"] - row["lm_backward_difference_dz"]) < 0.1 * abs(row["adjoint_dz"])
     assert "scan_central_difference_dz" in rows[1]
+    # --grid: the same scan on a finer grid over the same domain, at that grid's own substeps
+    finer = rows[0]["grid"] + 6
+    res = subprocess.run(
+        [*cmd, "--grid", str(finer), "--json", str(scan)], cwd=REPO, capture_output=True, text=True, timeout=600
+    )
+    assert res.returncode == 0, res.stderr[-3000:]
+    on_finer = json.loads(scan.read_text())["rows"]
+    assert {r["grid"] for r in on_finer} == {finer}
+    assert on_finer[0]["loss"] > on_finer[1]["loss"] > on_finer[2]["loss"] > 0
+    assert [r["loss"] for r in on_finer] != [r["loss"] for r in rows]
