@@ -83,6 +83,14 @@ def test_the_search_costs_each_sample_at_its_own_substeps():
     typical = run_seconds(typical_sample(coarse, design), FRAMES)
     assert typical_sample(coarse, design).substeps == 4  # the median, 4.5, rounded down
     assert search_seconds(opt, FRAMES, coarse, design) == pytest.approx(first + 2 * typical)
+    # parameters of two objects: a round per object, 3 samples per parameter, costed as the second round's
+    two = dataclasses.replace(
+        opt,
+        parameters=("jelly.youngs_modulus", "jelly.poissons_ratio", "heap.friction_angle"),
+        search=dataclasses.replace(opt.search, object_samples=3),
+    )
+    assert two.parameters_by_object() == {"jelly": two.parameters[:2], "heap": two.parameters[2:]}
+    assert search_seconds(two, FRAMES, coarse, design) == pytest.approx(first + (2 + 9) * typical)
     refused = design[:2]  # the other two beyond the substep limit: refused unrun
     assert search_seconds(opt, FRAMES, coarse, refused) == pytest.approx(one * (1 + 2) + 2 * one * 4 / 3)
     # samples run the search's frames, never more than the run's (as the search does)

@@ -1,6 +1,7 @@
 """The optimiser's parts (clflow.pipeline.fit) on their own, with small inputs: no scene, no
 simulation, no Optimization; each part is given only the attributes it reads."""
 
+import dataclasses
 import math
 from types import SimpleNamespace
 
@@ -84,8 +85,9 @@ def test_a_profile_is_flat_only_when_both_moves_change_the_loss_little(ratios, i
 class GridSearch(Search):
     """Search with a fixed box, parameters and counts (what neighbourhoods and refinement read)."""
 
-    def __init__(self, starts: int, refine: int):
-        self.cfg = SimpleNamespace(optimize=SimpleNamespace(search=SimpleNamespace(starts=starts, refine=refine)))
+    def __init__(self, starts: int, refine: int, samples: int = 4):
+        search = SimpleNamespace(starts=starts, refine=refine, samples=samples)
+        self.cfg = SimpleNamespace(optimize=SimpleNamespace(search=search))
         self.params = {"e": None, "nu": None}
 
     def search_box(self, z0):
@@ -101,13 +103,71 @@ def test_second_round_regions_are_the_best_distinct_samples_cut_to_the_box():
     ]
     regions = GridSearch(starts=2, refine=5).neighbourhoods(rows, {"e": 0.0, "nu": 0.0})
     assert [i for i, _ in regions] == [0, 2]
-    spacing = 4.0 * len(rows) ** -0.5  # the box's width / samples^(1/parameters)
+    spacing = 4.0 * 4**-0.5  # the box's width / first-round samples^(1/parameters)
     assert regions[0][1]["e"] == pytest.approx((1.0 - spacing / 2, 1.0 + spacing / 2))
     assert regions[1][1]["e"][1] == 4.0 and regions[1][1]["nu"][1] == 1.0  # cut to the search box
     points = GridSearch(starts=2, refine=5).refinement_points(regions, {"e": 0.0, "nu": 0.0})
     assert [i for i, _ in points] == [0, 0, 0, 2, 2]  # 5 shared, the first region one more
     for i, z in points:
         assert all(lo <= z[n] <= hi for n, (lo, hi) in dict(regions)[i].items())
+
+
+class SeparableSearch(Search):
+    """Search over two objects' parameters (jelly's log10 E in [2, 6], heap's friction angle in
+    [20, 50]) whose loss is one narrow well per object: 2 - exp(-(d/w)^2) - exp(-(e/w')^2)."""
+
+    def __init__(self, object_samples: int):
+        from clflow.scene.config import OptimizeSettings, SearchSettings
+
+        search = SearchSettings(samples=8, refine=0, starts=1, object_samples=object_samples)
+        optimize = OptimizeSettings(parameters=("jelly.youngs_modulus", "heap.friction_angle"), search=search)
+        self.cfg = SimpleNamespace(optimize=optimize)
+        self.params = {"jelly.youngs_modulus": None, "heap.friction_angle": None}
+        self.frames, self.search_grid, self.search_deadline = 4, 24, None
+        self.saved = []
+
+    def search_box(self, z0):
+        return {"jelly.youngs_modulus": (2.0, 6.0), "heap.friction_angle": (20.0, 50.0)}
+
+    def evaluate(self, z, frames, with_grad=True, grid=None):
+        jelly = math.exp(-(((z["jelly.youngs_modulus"] - 4.7) / 0.25) ** 2))
+        heap = math.exp(-(((z["heap.friction_angle"] - 37.0) / 2.5) ** 2))
+        return SimpleNamespace(loss=2.0 - jelly - heap)
+
+    def self_consistent_loss(self, result, frames):
+        return result.loss
+
+    def values(self, z):
+        return dict(z)
+
+    def save_state(self, state):
+        self.saved.append(len(state.search))
+
+    def progress(self, row):
+        pass
+
+
+def test_object_rounds_find_each_objects_narrow_well_that_the_joint_design_misses():
+    from clflow.pipeline.fit.state import OptimizerState
+
+    z0 = {"jelly.youngs_modulus": 3.0, "heap.friction_angle": 25.0}
+    begin = OptimizerState(z=z0, iteration=0, m={}, v={})
+    joint = SeparableSearch(object_samples=0).global_search(begin)
+    assert len(joint.search) == 8
+    assert min(r["loss"] for r in joint.search) > 1.0  # 8 samples land in neither well at once
+
+    state = SeparableSearch(object_samples=8).global_search(begin)
+    rows = state.search
+    assert len(rows) == 8 + 8 + 8 and [r.get("object") for r in rows[8:]] == ["jelly"] * 8 + ["heap"] * 8
+    held = min(rows[:8], key=lambda r: r["loss"])["z"]
+    assert all(r["z"]["heap.friction_angle"] == held["heap.friction_angle"] for r in rows[8:16])
+    jelly_best = min(rows[:16], key=lambda r: r["loss"])["z"]
+    assert all(r["z"]["jelly.youngs_modulus"] == jelly_best["jelly.youngs_modulus"] for r in rows[16:])
+    # each within its well's width (an object round spaces its 8 samples 0.5 decade, 3.75 deg apart)
+    assert abs(state.z["jelly.youngs_modulus"] - 4.7) < 0.25 and abs(state.z["heap.friction_angle"] - 37.0) < 2.5
+    for cut in (11, 19):  # interrupted in either object's round, a resumed search is the same
+        resumed = SeparableSearch(object_samples=8).global_search(dataclasses.replace(begin, search=rows[:cut]))
+        assert [r["z"] for r in resumed.search] == [r["z"] for r in rows] and resumed.z == state.z
 
 
 def test_the_frame_robust_covariance_is_the_spread_of_refits_under_frame_correlated_errors():

@@ -205,12 +205,14 @@ def test_search_settings_are_read(tmp_path):
     (tmp_path / "scene.ply").write_bytes(b"ply\n")
     data = config_with(
         {
-            "search": {"samples": 8, "decades": 1.5, "refine": 4, "grid_resolution": 24},
+            "search": {"samples": 8, "decades": 1.5, "refine": 4, "object_samples": 5, "grid_resolution": 24},
             "bounds": {"youngs_modulus": [1e3, 1e7]},
         }
     )
     opt = parse_config(data, "scene.yaml", tmp_path).optimize
-    assert opt.search == SearchSettings(samples=8, decades=1.5, frames=0, refine=4, grid_resolution=24)
+    assert opt.search == SearchSettings(
+        samples=8, decades=1.5, frames=0, refine=4, object_samples=5, grid_resolution=24
+    )
     assert opt.bounds == {"youngs_modulus": (1e3, 1e7)}
 
 

@@ -125,15 +125,16 @@ def search_seconds(opt: OptimizeSettings, frames: int, search: RunPlan, design_s
     """The global phase's forward runs on the search grid: each first-round sample at the
     substeps per frame its parameters need there (``design_substeps``, at least ``search``'s:
     a stiffer sample takes proportionally longer; a sample left out, refused beyond the
-    substep limit, costs nothing), the second round's at typical_sample. Without a design,
+    substep limit, costs nothing), the later rounds' at typical_sample. Without a design,
     every sample at ``search``'s substeps. A sample runs the search's frames, at most
     ``frames`` (as the search does)."""
     s = opt.search
     sample_frames = min(frames, s.frames or frames)
+    later = s.refine + opt.object_round_samples()
     if not design_substeps:
-        return (s.samples + s.refine) * run_seconds(search, sample_frames)
+        return (s.samples + later) * run_seconds(search, sample_frames)
     runs = [run_seconds(replace(search, substeps=max(search.substeps, n)), sample_frames) for n in design_substeps]
-    return sum(runs) + s.refine * run_seconds(typical_sample(search, design_substeps), sample_frames)
+    return sum(runs) + later * run_seconds(typical_sample(search, design_substeps), sample_frames)
 
 
 def predicted_seconds(

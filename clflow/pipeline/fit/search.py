@@ -103,15 +103,30 @@ class Search:
             points.append({**z0, **{n: box[n][0] + u * (box[n][1] - box[n][0]) for n, u in zip(names, row)}})
         return points
 
+    def object_points(self, names: tuple[str, ...], held: dict[str, float], z0: dict[str, float], seed: int):
+        """An object round's design: ``search.object_samples`` per parameter of the object
+        (``names``) over its own part of the search box, a scrambled Sobol sequence (``seed``),
+        every other parameter at ``held``. Objects meet only through contact, so one object's
+        best parameters hardly move with another's: a joint design of n samples resolves each
+        of d parameters at n^(1/d) values, an object's round at its own count."""
+        box = self.search_box(z0)
+        count = self.cfg.optimize.search.object_samples * len(names)
+        unit = torch.quasirandom.SobolEngine(len(names), scramble=True, seed=seed).draw(count, dtype=torch.float64)
+        return [
+            {**held, **{n: box[n][0] + u * (box[n][1] - box[n][0]) for n, u in zip(names, row)}}
+            for row in unit.tolist()
+        ]
+
     def neighbourhoods(
         self, rows: list[dict], z0: dict[str, float]
     ) -> list[tuple[int, dict[str, tuple[float, float]]]]:
         """The second round's regions: (index into ``rows``, box in z) around each of the best
-        ``search.starts`` first-round samples (``rows``) that lie outside each other's box,
-        best first. A box spans one first-round spacing per parameter (the search box's width
-        / samples^(1/parameters)) centred on its sample, cut to the search box."""
+        ``search.starts`` samples of the rounds before (``rows``) that lie outside each other's
+        box, best first. A box spans one first-round spacing per parameter (the search box's
+        width / samples^(1/parameters)) centred on its sample, cut to the search box."""
         box, names = self.search_box(z0), list(self.params)
-        spacing = {n: (box[n][1] - box[n][0]) * len(rows) ** (-1.0 / len(names)) for n in names}
+        count = self.cfg.optimize.search.samples
+        spacing = {n: (box[n][1] - box[n][0]) * count ** (-1.0 / len(names)) for n in names}
         ranked = sorted((i for i, r in enumerate(rows) if r["loss"] is not None), key=lambda i: rows[i]["loss"])
         centres: list[int] = []
         for i in ranked:
@@ -152,20 +167,24 @@ class Search:
         ]
 
     def global_search(self, state: OptimizerState) -> OptimizerState:
-        """Forward-only losses at the search design, then (``search.refine``) at a second
-        round around the best distinct samples (resuming after the samples already in
-        ``state.search``); returns the state with z at the best sample, ``searched`` and the
-        starts: the best sample of each neighbourhood with a second round, else the best
-        ``search.starts`` samples. With ``flow.bias_correction``, each sample's loss is
-        against the observed flow less the estimator's error on that sample's own simulation
-        (the video's estimated flow against the simulation's, estimated alike). Under
-        ``optimize.budget`` it ends early once past its deadline, skipping what is left of its
-        design and second round (search_overran)."""
+        """Forward-only losses at the search design; with parameters of several objects, a
+        round per object (:meth:`object_points`, in the config's order, each holding the
+        others at the best sample so far); then (``search.refine``) a second round around the
+        best distinct samples (resuming after the samples already in ``state.search``);
+        returns the state with z at the best sample, ``searched`` and the starts: the best
+        sample of each neighbourhood with a second round, else the best ``search.starts``
+        samples. With ``flow.bias_correction``, each sample's loss is against the observed
+        flow less the estimator's error on that sample's own simulation (the video's
+        estimated flow against the simulation's, estimated alike). Under ``optimize.budget``
+        it ends early once past its deadline, skipping what is left of its rounds
+        (search_overran)."""
         settings = self.cfg.optimize.search
         frames = min(self.frames, settings.frames or self.frames)
         rows = list(state.search)
+        objects = self.cfg.optimize.parameters_by_object() if settings.object_samples else {}
+        planned = settings.samples + self.cfg.optimize.object_round_samples() + settings.refine
 
-        def sample(z: dict[str, float], around: int | None = None) -> None:
+        def sample(z: dict[str, float], **round_of) -> None:
             nonlocal state
             start = time.perf_counter()
             try:
@@ -175,36 +194,45 @@ class Search:
             except (FloatingPointError, ClflowError) as exc:
                 log.info("search sample %s failed: %s", self.values(z), exc)
                 loss = None
-            neighbourhood = {} if around is None else {"around": around}
             rows.append(
-                {"z": z, "params": self.values(z), "loss": loss, "frames": frames, **neighbourhood}
+                {"z": z, "params": self.values(z), "loss": loss, "frames": frames, **round_of}
                 | {"grid": self.search_grid, "seconds": time.perf_counter() - start}
             )
             state = dataclasses.replace(state, search=list(rows))
             self.save_state(state)
             self.progress({**rows[-1], "phase": "search", "iteration": len(rows) - 1})
 
+        def run_round(points: list[dict[str, float]], done: int, **round_of) -> bool:
+            """Sample ``points`` after the ``done`` rows of the rounds before; False once the
+            budget cut it short."""
+            for z in points[len(rows) - done :]:
+                if self.search_overran(rows, planned):
+                    return False
+                sample(z, **round_of)
+            return True
+
         design = self.search_points(state.z)
-        for z in design[len(rows) :]:
-            if self.search_overran(rows, len(design) + settings.refine):
-                break
-            sample(z)
-        first = rows[: len(design)]
-        if not any(r["loss"] is not None for r in first):
+        complete = run_round(design, 0)  # not cut short by the budget
+        if not any(r["loss"] is not None for r in rows):
             raise ClflowError(f"the global search found no parameters whose simulation ran ({len(rows)} samples)")
-        complete = len(first) == len(design)  # not cut short by the budget
-        regions = self.neighbourhoods(first, state.z) if settings.refine and complete else []
-        second = self.refinement_points(regions, state.z)
-        for around, z in second[len(rows) - len(design) :]:
-            if self.search_overran(rows, len(design) + len(second)):
+        done = len(design)
+        for seed, (name, names) in enumerate(objects.items() if complete else (), start=2):
+            held = min((r for r in rows[:done] if r["loss"] is not None), key=lambda r: r["loss"])
+            points = self.object_points(names, held["z"], state.z, seed)
+            complete = run_round(points, done, object=name)
+            if not complete:
                 break
-            sample(z, around)
-        finite = [r for r in rows if r["loss"] is not None]
-        ranked = sorted(finite, key=lambda r: r["loss"])
+            done += len(points)
+        regions = self.neighbourhoods(rows[:done], state.z) if settings.refine and complete else []
+        for around, z in self.refinement_points(regions, state.z)[len(rows) - done :]:
+            if self.search_overran(rows, planned):
+                break
+            sample(z, around=around)
+        ranked = sorted((r for r in rows if r["loss"] is not None), key=lambda r: r["loss"])
         best = ranked[0]
         log.info("global search: best of %d samples %s (loss %.4g)", len(rows), best["params"], best["loss"])
         if regions:  # each neighbourhood's best, its centre included
-            groups = [[rows[i]] + [r for r in rows[len(design) :] if r.get("around") == i] for i, _ in regions]
+            groups = [[rows[i]] + [r for r in rows[done:] if r.get("around") == i] for i, _ in regions]
             picks = sorted(
                 (min(g, key=lambda r: r["loss"] if r["loss"] is not None else math.inf) for g in groups),
                 key=lambda r: r["loss"],

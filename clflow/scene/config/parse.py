@@ -482,7 +482,18 @@ def _search(r: Reader, data: Any) -> SearchSettings:
     """``optimize.search``: the global phase's samples, starts and grid."""
     p = "optimize.search"
     found = r.section(
-        data, p, ("samples", "decades", "frames", "starts", "start_iterations", "refine", "grid_resolution")
+        data,
+        p,
+        (
+            "samples",
+            "decades",
+            "frames",
+            "starts",
+            "start_iterations",
+            "refine",
+            "object_samples",
+            "grid_resolution",
+        ),
     )
     search = SearchSettings(
         samples=r.integer(found, "samples", p, 32, low=1),
@@ -491,6 +502,7 @@ def _search(r: Reader, data: Any) -> SearchSettings:
         starts=r.integer(found, "starts", p, 1, low=1),
         start_iterations=r.integer(found, "start_iterations", p, 3, low=1),
         refine=r.integer(found, "refine", p, 0),
+        object_samples=r.integer(found, "object_samples", p, 12, low=0),
         grid_resolution=r.integer(found, "grid_resolution", p, 0),
     )
     if 0 < search.grid_resolution < 11:  # as simulation.grid_resolution: walls take 4 cells a side

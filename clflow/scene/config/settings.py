@@ -196,6 +196,9 @@ class SearchSettings:
     starts: int = 1  # the best samples the local phase polishes (levenberg_marquardt) before keeping the best
     start_iterations: int = 3  # Levenberg-Marquardt iterations per start before they are compared
     refine: int = 0  # second-round samples, shared among the neighbourhoods of the best distinct samples
+    # with parameters of several objects, a round per object after the first: this many
+    # samples per parameter of the object over its own box, the others held at the best so far
+    object_samples: int = 12
     # nodes along the domain's longest side for the search and the starts' polish (0: the
     # simulation's): a coarser grid makes the global phase cheap, the main phase keeps the finer one
     grid_resolution: int = 0
@@ -228,6 +231,23 @@ class OptimizeSettings:
     estimate_velocity_frames: int = 0  # frames in the loss of the velocity phase
     estimate_velocity_iterations: int = 0  # iterations of the velocity phase before the main one (0: none)
     budget: BudgetSettings | None = None  # None: the main phase runs on simulation.grid_resolution
+
+    def parameters_by_object(self) -> dict[str, tuple[str, ...]]:
+        """Object name -> its optimised parameters (OBJECT.PARAM), in the config's order, where
+        the parameters belong to two objects or more; else {} (the search's object rounds)."""
+        if not all("." in name for name in self.parameters):
+            return {}
+        groups: dict[str, tuple[str, ...]] = {}
+        for name in self.parameters:
+            obj = name.partition(".")[0]
+            groups[obj] = groups.get(obj, ()) + (name,)
+        return groups if len(groups) > 1 else {}
+
+    def object_round_samples(self) -> int:
+        """The samples of the search's object rounds, all objects together (0: none)."""
+        if self.search is None:
+            return 0
+        return self.search.object_samples * sum(map(len, self.parameters_by_object().values()))
 
 
 def main_grid_range(optimize: OptimizeSettings, simulation: SimulationSettings) -> tuple[int, int]:
