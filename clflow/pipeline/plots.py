@@ -13,7 +13,7 @@ from pathlib import Path
 
 from clflow.fileio import atomic_path
 from clflow.materials import DENSITY, MATERIALS
-from clflow.scene.config import VELOCITY_COMPONENTS
+from clflow.scene.config import is_velocity_component
 
 #: Colour and marker of each optimiser phase (another phase gets the next default colour).
 PHASE_STYLE = {"velocity": ("tab:orange", "s"), "search": ("tab:green", "^"), "main": ("tab:blue", "o")}
@@ -22,14 +22,16 @@ LOSS_LABEL = "flow loss per frame and pixel\n(px² for l2, px for Charbonnier)"
 
 
 def _parameter_axis(name: str) -> tuple[str, bool]:
-    """(axis label with unit, whether the axis is logarithmic) of an optimised variable."""
-    if name in VELOCITY_COMPONENTS:
+    """(axis label with unit, whether the axis is logarithmic) of an optimised variable (with
+    several objects OBJECT.PARAM)."""
+    if is_velocity_component(name):
         return f"{name} (m/s)", False
     params = {p.name: p for material in MATERIALS.values() for p in material.params} | {DENSITY.name: DENSITY}
-    if name not in params:
+    param = name.rpartition(".")[2]
+    if param not in params:
         return name, False
-    p = params[name]
-    return f"{p.name} ({'dimensionless' if p.unit == '1' else p.unit})", p.scale == "log"
+    p = params[param]
+    return f"{name} ({'dimensionless' if p.unit == '1' else p.unit})", p.scale == "log"
 
 
 def write_history_plot(
@@ -116,7 +118,7 @@ def history_figure(history: list[dict], truth: dict[str, float], ranges: dict[st
     from matplotlib.lines import Line2D
     from matplotlib.ticker import MaxNLocator
 
-    names = sorted(history[0]["params"], key=lambda n: (n in VELOCITY_COMPONENTS, n)) if history else []
+    names = sorted(history[0]["params"], key=lambda n: (is_velocity_component(n), n)) if history else []
     fig = Figure(figsize=(7.0, 2.6 * (1 + len(names))))
     axes = fig.subplots(1 + len(names), 1, sharex=True, squeeze=False)[:, 0]
     phases = list(dict.fromkeys(h["phase"] for h in history))

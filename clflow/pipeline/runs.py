@@ -623,8 +623,10 @@ def _echo_results(opt, state, metrics: dict, report: Path, echo, note) -> None:
             "relative error vs ground truth: "
             + ", ".join(f"{n} {100 * e:.2f}%" for n, e in metrics["relative_error"].items())
         )
-    if "velocity_error_m_s" in metrics:
-        echo(f"initial velocity off by {metrics['velocity_error_m_s']:.3g} m/s")
+    errors = metrics.get("velocity_error_m_s")  # m/s: a number, or one per OBJECT.velocity
+    if errors is not None:
+        for name, error in (errors if isinstance(errors, dict) else {"initial velocity": errors}).items():
+            echo(f"{name} off by {error:.3g} m/s")
     if metrics.get("rollbacks"):
         note(f"{len(metrics['rollbacks'])} unstable or failed iterations were rolled back (metrics.json: rollbacks)")
     for warning in metrics.get("warnings", []):

@@ -2,6 +2,8 @@
 parameters, named OBJECT.PARAM, reach only its own particles in the one simulation, and
 their gradients match finite differences."""
 
+import math
+
 import pytest
 import torch
 
@@ -84,25 +86,34 @@ def test_optimize_identifies_each_objects_parameters_through_the_cli(tmp_path):
     data["video"] = str(tmp_path / "truth" / "guidance")
     data["flow"] = {"bias_correction": "none"}
     data["optimize"] = {
-        "parameters": ["jelly.youngs_modulus", "heap.friction_angle"],
+        "parameters": ["jelly.youngs_modulus", "heap.friction_angle", "jelly.velocity"],
         "iterations": 3,
-        "learning_rates": {"jelly.youngs_modulus": 0.15},
+        "learning_rates": {"jelly.youngs_modulus": 0.15, "jelly.velocity": 0.05},
     }
-    data["evaluation"] = {"ground_truth": {"jelly.youngs_modulus": 6.0e4, "heap.friction_angle": 35.0}}
+    truth_values = {"jelly.youngs_modulus": 6.0e4, "heap.friction_angle": 35.0, "jelly.velocity": [0.0, -2.0, 0.0]}
+    data["evaluation"] = {"ground_truth": truth_values}
     res = run_cli("optimize", write_config(tmp_path, data), "-o", tmp_path / "fit")
     assert res.exit_code == 0, res.output
     assert "jelly.youngs_modulus = " in res.output and "heap.friction_angle = " in res.output
     params = json.loads((tmp_path / "fit" / "params.json").read_text())
-    assert set(params["optimized"]) == {"jelly.youngs_modulus", "heap.friction_angle"}
+    velocity = [params["optimized"][f"jelly.velocity_{c}"] for c in "xyz"]
+    assert set(params["optimized"]) == {"jelly.youngs_modulus", "heap.friction_angle"} | {
+        f"jelly.velocity_{c}" for c in "xyz"
+    }
     assert set(params["objects"]) == {"jelly", "heap"} and "parameters" not in params
     jelly, heap = params["objects"]["jelly"], params["objects"]["heap"]
     assert jelly["material"] == "elastic" and heap["material"] == "sand"
     assert jelly["parameters"]["youngs_modulus"] == params["optimized"]["jelly.youngs_modulus"]
     assert heap["parameters"]["friction_angle"] == params["optimized"]["heap.friction_angle"]
-    assert params["units"] == {"jelly.youngs_modulus": "Pa", "heap.friction_angle": "deg"}
+    assert jelly["velocity"] == velocity and heap["velocity"] == [0.0, 0.0, 0.0]  # the heap's is not optimised
+    assert params["units"] == {"jelly.youngs_modulus": "Pa", "heap.friction_angle": "deg"} | {
+        f"jelly.velocity_{c}": "m/s" for c in "xyz"
+    }
     metrics = json.loads((tmp_path / "fit" / "metrics.json").read_text())
-    assert set(metrics["relative_error"]) == {"jelly.youngs_modulus", "heap.friction_angle"}
-    assert set(metrics["identifiability"]["ranges"]) == {"jelly.youngs_modulus", "heap.friction_angle"}
+    assert set(metrics["relative_error"]) == {"jelly.youngs_modulus", "heap.friction_angle", "jelly.velocity"}
+    assert metrics["velocity_error_m_s"] == {"jelly.velocity": pytest.approx(math.dist(velocity, [0.0, -2.0, 0.0]))}
+    assert "jelly.velocity off by" in res.output
+    assert set(metrics["identifiability"]["ranges"]) == set(params["optimized"])
     history = json.loads((tmp_path / "fit" / "history.json").read_text())
     # the cube's stiffness moves toward the truth, and the loss falls
     assert history[-1]["params"]["jelly.youngs_modulus"] > 2.0e4
@@ -124,11 +135,17 @@ def test_the_flow_losss_gradient_per_object_matches_finite_differences(tmp_path)
     data = fit_config(tmp_path)
     data["video"] = str(tmp_path / "truth" / "guidance")
     data["flow"] = {"bias_correction": "none"}
-    data["optimize"] = {"parameters": ["jelly.youngs_modulus", "heap.friction_angle"]}
+    data["optimize"] = {"parameters": ["jelly.youngs_modulus", "heap.friction_angle", "jelly.velocity"]}
     opt = Optimization(load_config(write_config(tmp_path, data)))
     z = opt.initial_state().z
+    assert [z[f"jelly.velocity_{c}"] for c in "xyz"] == [0.0, -2.0, 0.0] and "heap.velocity_x" not in z
+    zt = {n: torch.tensor(v, dtype=torch.float64) for n, v in z.items()}
+    velocity = opt.velocity_input(zt, opt.prepared)  # [M, 3]: the jelly's particles its own, the heap's at rest
+    jelly = opt.prepared.setup.object_index == 0
+    assert torch.equal(velocity[jelly], torch.tensor([0.0, -2.0, 0.0], dtype=torch.float64).expand(int(jelly.sum()), 3))
+    assert not velocity[~jelly].any()
     base = opt.evaluate(z, opt.frames, min_substeps=8)
-    for name, h in (("jelly.youngs_modulus", 0.01), ("heap.friction_angle", 0.01)):
+    for name, h in (("jelly.youngs_modulus", 0.01), ("heap.friction_angle", 0.01), ("jelly.velocity_y", 0.05)):
         up = opt.evaluate({**z, name: z[name] + h}, opt.frames, with_grad=False, min_substeps=8).loss
         down = opt.evaluate({**z, name: z[name] - h}, opt.frames, with_grad=False, min_substeps=8).loss
         numeric = (up - down) / (2 * h)

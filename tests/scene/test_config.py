@@ -424,7 +424,10 @@ def test_objects_as_a_list_or_a_mapping_and_one_object_in_either_form(folder):
             {"optimize": {"parameters": ["heap.yield_stress"]}},
             r"'heap.yield_stress': 'yield_stress' is not a parameter of heap's material sand",
         ),
-        ({"optimize": {"parameters": ["jelly.velocity"]}}, "an object's initial velocity is not identified yet"),
+        (
+            {"evaluation": {"ground_truth": {"jelly.velocity": 2.0}}},
+            r"evaluation.ground_truth.jelly.velocity: must be a list of 3 finite numbers, got 2.0",
+        ),
         (
             {"optimize": {"parameters": ["jelly.youngs_modulus"], "estimate_velocity": {"frames": 1, "iterations": 1}}},
             "optimize.estimate_velocity: not built yet for several objects",
@@ -443,15 +446,27 @@ def test_each_objects_parameters_by_object_name(folder):
     """Several objects: optimize.parameters, bounds, learning rates and the ground truth name
     OBJECT.PARAM, each checked against that object's material (issue 48)."""
     optimize = {
-        "parameters": ["jelly.youngs_modulus", "heap.friction_angle", "heap.density"],
+        "parameters": ["jelly.youngs_modulus", "jelly.velocity", "heap.friction_angle", "heap.density"],
         "bounds": {"heap.friction_angle": [20, 45]},
-        "learning_rates": {"jelly.youngs_modulus": 0.1},
+        "learning_rates": {"jelly.youngs_modulus": 0.1, "jelly.velocity": 0.3},
     }
-    truth = {"jelly.youngs_modulus": 2e4, "heap.friction_angle": 30, "heap.density": 1500}
+    truth = {"jelly.youngs_modulus": 2e4, "heap.friction_angle": 30, "heap.density": 1500, "jelly.velocity": [1, -2, 0]}
     cfg = parse(several(optimize=optimize, evaluation={"ground_truth": truth}), folder)
-    assert cfg.optimize.parameters == ("jelly.youngs_modulus", "heap.friction_angle", "heap.density")
+    assert cfg.optimize.parameters == ("jelly.youngs_modulus", "jelly.velocity", "heap.friction_angle", "heap.density")
     assert cfg.optimize.bounds == {"heap.friction_angle": (20.0, 45.0)}
-    assert cfg.ground_truth == {"jelly.youngs_modulus": 2e4, "heap.friction_angle": 30.0, "heap.density": 1500.0}
+    assert cfg.ground_truth == {
+        "jelly.velocity_x": 1.0,
+        "jelly.velocity_y": -2.0,
+        "jelly.velocity_z": 0.0,
+        "jelly.youngs_modulus": 2e4,
+        "heap.friction_angle": 30.0,
+        "heap.density": 1500.0,
+    }
+    # the search's object rounds look at material parameters: velocity is not searched
+    assert cfg.optimize.parameters_by_object() == {
+        "jelly": ("jelly.youngs_modulus",),
+        "heap": ("heap.friction_angle", "heap.density"),
+    }
     with pytest.raises(InputError, match=r"ground_truth: heap: .*friction_angle"):
         parse(several(evaluation={"ground_truth": {"heap.friction_angle": 95}}), folder)
 

@@ -24,7 +24,14 @@ from clflow.pipeline.fit.steps import LM_GAIN_TOLERANCE, LM_TOLERANCE, Steps, ho
 from clflow.pipeline.forward import prepare
 from clflow.pipeline.generated_video import ensure_guidance_video
 from clflow.pipeline.material import resolve_material
-from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig, main_grid_range, split_parameter
+from clflow.scene.config import (
+    VELOCITY,
+    VELOCITY_COMPONENTS,
+    SceneConfig,
+    main_grid_range,
+    split_parameter,
+    velocity_names,
+)
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +40,7 @@ MAX_FAILURES = 4  # consecutive failed iterations before giving up
 
 def _parameterizations(cfg: SceneConfig):
     """Material parameter name -> its parameterisation, for each of optimize.parameters
-    but velocity (with several objects OBJECT.PARAM, of that object's material)."""
+    but a velocity (with several objects OBJECT.PARAM, of that object's material)."""
     from clflow.mpm.parameterization import parameterization
 
     names = cfg.optimize.parameters
@@ -41,8 +48,8 @@ def _parameterizations(cfg: SceneConfig):
         raise InputError(f"{cfg.source}: optimize.parameters is empty: name the parameters to optimise")
     out = {}
     for name in names:
-        if name != VELOCITY:
-            k, param = split_parameter(cfg.objects, name)
+        k, param = split_parameter(cfg.objects, name)
+        if param != VELOCITY:
             out[name] = parameterization(cfg.objects[k].material.type, param)
     return out
 
@@ -64,7 +71,9 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         self.hypotheses = hypotheses  # how the material was chosen (clflow.pipeline.hypotheses), for metrics
         self.params = _parameterizations(cfg)
         opt = cfg.optimize
-        optimised = VELOCITY_COMPONENTS if VELOCITY in opt.parameters else ()
+        # each object's velocity components where optimize.parameters names its velocity
+        velocities = [velocity_names(cfg.objects, k) for k in range(len(cfg.objects))]
+        optimised = tuple(c for name, components in velocities if name in opt.parameters for c in components)
         estimated = VELOCITY_COMPONENTS if opt.estimate_velocity_iterations and not optimised else ()
         self.main_variables = tuple(self.params) + optimised  # z names the main phase optimises
         self.variables = self.main_variables + estimated  # every z name

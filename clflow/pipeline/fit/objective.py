@@ -26,7 +26,7 @@ from clflow.pipeline.forward import (
 )
 from clflow.pipeline.render import frame_gaussians, render_flow
 from clflow.pipeline.simulation import ObjectValues, build_scene_simulator, run, scene_run_values
-from clflow.scene.config import VELOCITY_COMPONENTS, SceneConfig
+from clflow.scene.config import SceneConfig, is_velocity_component, velocity_names
 
 log = logging.getLogger(__name__)
 
@@ -86,8 +86,7 @@ class Objective:
         from clflow.pipeline.preflight import plan_scene_run
 
         z = self.initial_state().z if z is None else z  # plan_run builds the simulator: it checks the forces
-        several = len(self.cfg.objects) > 1
-        objects = self.object_values(self.values(z), None if several else torch.tensor(self.velocity(z)))
+        objects = self.object_values(self.values(z), self.velocities(z))
         prepared = self.prepared_on(grid)
         plan = plan_scene_run(
             prepared.cfg,
@@ -101,19 +100,21 @@ class Objective:
     def simulator_on(self, grid: int, z: dict[str, float]):
         """A forward simulator of z on a grid of ``grid`` nodes (its substeps those of z's
         stability limits at the start)."""
-        velocity = self.velocity(z) if len(self.cfg.objects) == 1 else None
         return build_scene_simulator(
-            self.cfg, self.prepared_on(grid).setup, self.object_values(self.values(z), velocity)
+            self.cfg, self.prepared_on(grid).setup, self.object_values(self.values(z), self.velocities(z))
         )
 
-    def object_values(self, values: dict[str, float], velocity=None) -> tuple[ObjectValues, ...]:
-        """Each object's ObjectValues with the optimised ``values`` (SI, by z name; the one
-        object's initial ``velocity``, default its config's)."""
+    def object_values(self, values: dict[str, float], velocities) -> tuple[ObjectValues, ...]:
+        """Each object's ObjectValues with the optimised ``values`` (SI, by z name) and initial
+        ``velocities`` (one [3] tuple or tensor per object, m/s)."""
         overrides = {n: values[n] for n in self.params}
         if len(self.cfg.objects) == 1:
             params, density = material_values(self.cfg, overrides)
-            return (ObjectValues(params, density, self.cfg.velocity if velocity is None else velocity),)
-        return scene_values(self.cfg, overrides)
+            return (ObjectValues(params, density, velocities[0]),)
+        return tuple(
+            dataclasses.replace(v, velocity=velocity)
+            for v, velocity in zip(scene_values(self.cfg, overrides), velocities)
+        )
 
     def start_substeps(self, grid: int, z: dict[str, float]) -> int:
         """Substeps per frame the run of z takes on a grid of ``grid`` nodes over every frame,
@@ -155,7 +156,7 @@ class Objective:
             )
             for view in self.views
         ]
-        if VELOCITY_COMPONENTS[0] not in self.variables:  # else the start's velocity may be anything
+        if not any(map(is_velocity_component, self.variables)):  # else the start's velocity may be anything
             try:
                 start = self.evaluate(self.initial_state().z, min(AGREEMENT_FRAMES, self.frames), with_grad=False)
             except (FloatingPointError, ClflowError) as exc:  # the first iteration will say so
@@ -178,12 +179,39 @@ class Objective:
     def values(self, z: dict[str, float]) -> dict[str, float]:
         """The value of every variable in z: material parameters in SI, velocity components in m/s."""
         out = {n: float(p.decode(torch.tensor(z[n], dtype=torch.float64))) for n, p in self.params.items()}
-        out.update((n, z[n]) for n in VELOCITY_COMPONENTS if n in z)
+        out.update((n, v) for n, v in z.items() if is_velocity_component(n))
         return out
 
-    def velocity(self, z: dict[str, float]) -> tuple[float, float, float]:
-        """The one object's initial velocity (m/s, simulation frame) at z."""
-        return tuple(z[n] for n in VELOCITY_COMPONENTS) if VELOCITY_COMPONENTS[0] in z else self.cfg.velocity
+    def velocities(self, z: dict[str, float]) -> tuple[tuple[float, float, float], ...]:
+        """Each object's initial velocity (m/s, simulation frame) at z: its components in z
+        where they are optimised, else its config's."""
+        out = []
+        for k, obj in enumerate(self.cfg.objects):
+            names = velocity_names(self.cfg.objects, k)[1]
+            out.append(tuple(z[n] for n in names) if names[0] in z else obj.velocity)
+        return tuple(out)
+
+    def velocity_input(self, zt: dict[str, torch.Tensor], prepared: Prepared) -> torch.Tensor | None:
+        """The initial velocity :func:`run` takes from the z tensors ``zt``: None where no
+        object's velocity is optimised; the one object's [3]; with several objects per
+        particle [M, 3], each object's particles its own (a masked sum, as
+        scene_run_values: an object's components reach only its particles)."""
+        names = [velocity_names(self.cfg.objects, k)[1] for k in range(len(self.cfg.objects))]
+        if not any(n[0] in zt for n in names):
+            return None
+        if len(names) == 1:
+            return torch.stack([zt[n] for n in names[0]])
+        per_object = torch.stack(
+            [
+                torch.stack([zt[c].double() for c in n])
+                if n[0] in zt
+                else torch.tensor(obj.velocity, dtype=torch.float64)
+                for n, obj in zip(names, self.cfg.objects)
+            ]
+        )  # [K, 3]
+        index = prepared.setup.object_index
+        masks = (index[None, :] == torch.arange(len(names))[:, None]).double()  # [K, M]
+        return (per_object[:, None, :] * masks[:, :, None]).sum(0)
 
     def evaluate(
         self,
@@ -202,8 +230,10 @@ class Objective:
         prepared = self.prepared_on(grid)
         zt = {n: torch.tensor(v, dtype=torch.float64, requires_grad=with_grad and n in variables) for n, v in z.items()}
         decoded = {n: p.decode(zt[n]) for n, p in self.params.items()}
-        velocity = torch.stack([zt[n] for n in VELOCITY_COMPONENTS]) if VELOCITY_COMPONENTS[0] in zt else None
-        objects = self.object_values({n: float(v.detach()) for n, v in decoded.items()}, velocity)
+        velocity = self.velocity_input(zt, prepared)
+        one_object = velocity is not None and velocity.dim() == 1  # the one object's velocity, a tensor
+        speeds = (velocity,) if one_object else self.velocities(z)
+        objects = self.object_values({n: float(v.detach()) for n, v in decoded.items()}, speeds)
         with warnings.catch_warnings():  # an unstable step or run fails below, saying why (UnstableRun)
             warnings.simplefilter("ignore", StabilityWarning)
             sim = build_scene_simulator(

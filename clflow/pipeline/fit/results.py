@@ -17,7 +17,7 @@ from clflow.pipeline.fit.diagnostics import MIN_LOSS_RISE, PROFILE_RISE, WEAK_ST
 from clflow.pipeline.fit.state import OptimizerState
 from clflow.pipeline.forward import SimulationResult, material_values, render_frames
 from clflow.pipeline.plots import range_text, write_history_plot
-from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig, split_parameter
+from clflow.scene.config import SceneConfig, is_velocity_component, split_parameter, velocity_names
 
 log = logging.getLogger(__name__)
 
@@ -32,7 +32,7 @@ def parameter_unit(cfg: SceneConfig, name: str) -> str:
     objects OBJECT.PARAM, of that object's)."""
     from clflow.materials import DENSITY, get_material
 
-    if name in VELOCITY_COMPONENTS:
+    if is_velocity_component(name):
         return "m/s"
     k, param = split_parameter(cfg.objects, name)
     return DENSITY.unit if param == "density" else get_material(cfg.objects[k].material.type).param(param).unit
@@ -67,7 +67,7 @@ class Results:
                 "material": self.cfg.material.type,
                 "parameters": params,
                 "density": density,
-                "velocity": list(self.velocity(state.z)),
+                "velocity": list(self.velocities(state.z)[0]),
             }
         else:  # each object's material with its optimised values (OBJECT.PARAM in optimized)
             params, density = {}, math.nan
@@ -77,9 +77,9 @@ class Results:
                         "material": o.material.type,
                         "parameters": v.params,
                         "density": v.density,
-                        "velocity": list(o.velocity),
+                        "velocity": list(v.velocity),
                     }
-                    for o, v in zip(self.cfg.objects, self.object_values(final))
+                    for o, v in zip(self.cfg.objects, self.object_values(final, self.velocities(state.z)))
                 }
             }
         record = {
@@ -162,11 +162,18 @@ class Results:
         truth = self.cfg.ground_truth
         if truth:
             metrics["relative_error"] = {n: abs(final[n] - truth[n]) / abs(truth[n]) for n in self.params if n in truth}
-            if VELOCITY_COMPONENTS[0] in final and VELOCITY_COMPONENTS[0] in truth:
-                true_velocity = [truth[n] for n in VELOCITY_COMPONENTS]
-                metrics["velocity_error_m_s"] = math.dist(self.velocity(state.z), true_velocity)  # |v - v_true|
+            for k, velocity in enumerate(self.velocities(state.z)):
+                name, components = velocity_names(self.cfg.objects, k)
+                if components[0] not in final or components[0] not in truth:
+                    continue
+                true_velocity = [truth[n] for n in components]
+                error = math.dist(velocity, true_velocity)  # |v - v_true|, m/s
+                if len(self.cfg.objects) == 1:
+                    metrics["velocity_error_m_s"] = error
+                else:  # by OBJECT.velocity
+                    metrics.setdefault("velocity_error_m_s", {})[name] = error
                 if any(true_velocity):
-                    metrics["relative_error"][VELOCITY] = metrics["velocity_error_m_s"] / math.hypot(*true_velocity)
+                    metrics["relative_error"][name] = error / math.hypot(*true_velocity)
         return metrics
 
     def warn_identifiability(self, identifiability: dict) -> None:

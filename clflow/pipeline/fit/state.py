@@ -14,7 +14,7 @@ import torch
 from clflow.errors import ClflowError, InputError
 from clflow.fileio import atomic_write_text
 from clflow.pipeline.forward import material_values, scene_values
-from clflow.scene.config import VELOCITY_COMPONENTS, SceneConfig, config_record, split_parameter
+from clflow.scene.config import SceneConfig, config_record, split_parameter, velocity_names
 
 if TYPE_CHECKING:
     from clflow.mpm.autograd import Frames
@@ -169,8 +169,10 @@ class Checkpoints:
                 k, param = split_parameter(self.cfg.objects, n)
                 values[n] = objects[k].density if param == "density" else objects[k].params[param]
         z = {n: float(p.encode(values[n])) for n, p in self.params.items()}
-        if VELOCITY_COMPONENTS[0] in self.variables:
-            z.update(zip(VELOCITY_COMPONENTS, self.cfg.velocity))
+        for k, obj in enumerate(self.cfg.objects):  # an optimised velocity starts at its config's
+            components = velocity_names(self.cfg.objects, k)[1]
+            if components[0] in self.variables:
+                z.update(zip(components, obj.velocity))
         return OptimizerState(0, z, {n: 0.0 for n in z}, {n: 0.0 for n in z})
 
     def load_state(self) -> OptimizerState:

@@ -14,7 +14,7 @@ import torch
 from clflow.errors import ClflowError
 from clflow.mpm.parameterization import clip_factor
 from clflow.pipeline.fit.state import LM_DAMPING, Evaluation, OptimizerState
-from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig
+from clflow.scene.config import SceneConfig, is_velocity_component
 
 log = logging.getLogger(__name__)
 
@@ -69,8 +69,8 @@ def learning_rate(cfg: SceneConfig, name: str) -> float:
     """Learning rate of the z variable ``name`` per iteration (before the schedule): the
     config's, else DEFAULT_VELOCITY_RATE (m/s) for a velocity component and DEFAULT_RATE."""
     rates = cfg.optimize.learning_rates
-    if name in VELOCITY_COMPONENTS:
-        return rates.get(VELOCITY, DEFAULT_VELOCITY_RATE)
+    if is_velocity_component(name):  # the rate of velocity (OBJECT.velocity) serves each component
+        return rates.get(name.rpartition("_")[0], DEFAULT_VELOCITY_RATE)
     return rates.get(name, DEFAULT_RATE)
 
 

@@ -46,6 +46,7 @@ from clflow.scene.config.settings import (
     Selection,
     SimulationSettings,
     main_grid_range,
+    velocity_names,
 )
 
 
@@ -651,7 +652,7 @@ def _refuse_identification(r: Reader, top: dict) -> None:
 
 def _object_parameter(r: Reader, where: str, name: str, objects: tuple[SceneObject, ...]) -> tuple[SceneObject, str]:
     """(object, parameter) of ``name`` (OBJECT.PARAM) of a config of several objects: the
-    object is one of them and the parameter its material's, or density."""
+    object is one of them and the parameter its material's, density or velocity."""
     names = ", ".join(o.name for o in objects)
     obj_name, dot, param = name.partition(".")
     example = f"{objects[0].name}.{next(iter(objects[0].material.parameters), 'density')}"
@@ -662,36 +663,36 @@ def _object_parameter(r: Reader, where: str, name: str, objects: tuple[SceneObje
     obj = next((o for o in objects if o.name == obj_name), None)
     if obj is None:
         raise r.fail(where, f"{name!r}: there is no object {obj_name!r} (the objects: {names})")
-    if param == VELOCITY:
-        raise r.fail(
-            where, f"{name!r}: an object's initial velocity is not identified yet in a scene of several objects"
-        )
-    if obj.material.type != "query" and param != "density":
+    if obj.material.type != "query" and param not in ("density", VELOCITY):
         mat = get_material(obj.material.type)
         if param not in mat.param_names:
             raise r.fail(
                 where,
                 f"{name!r}: {param!r} is not a parameter of {obj.name}'s material {mat.name} "
-                f"(its parameters: {', '.join(mat.param_names)}, density)",
+                f"(its parameters: {', '.join(mat.param_names)}, density, velocity)",
             )
     return obj, param
 
 
 def _objects_truth(r: Reader, data: Any, objects: tuple[SceneObject, ...]) -> dict[str, float]:
     """``evaluation.ground_truth`` of a config of several objects: OBJECT.PARAM -> SI value,
-    each checked against its object's material (density: kg/m^3)."""
+    each checked against its object's material (density: kg/m^3; OBJECT.velocity: [3] m/s, as
+    its components OBJECT.velocity_x, ...)."""
     p = "evaluation.ground_truth"
     evaluation = r.section(data, "evaluation", ("ground_truth",))
     given = dict(r.mapping(evaluation.get("ground_truth"), p))
     per_object: dict[str, dict] = {}
     for name, value in given.items():
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise r.fail(f"{p}.{name}", f"must be a number, got {value!r}")
         obj, param = _object_parameter(r, p, name, objects)
+        if param == VELOCITY:
+            value = r.vec3(given, name, p)
+        elif isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise r.fail(f"{p}.{name}", f"must be a number, got {value!r}")
         per_object.setdefault(obj.name, {})[param] = value
     truth = {}
-    for obj in objects:
+    for k, obj in enumerate(objects):
         values = per_object.get(obj.name, {})
+        truth.update(zip(velocity_names(objects, k)[1], values.pop(VELOCITY, ())))
         density = values.pop("density", None)
         try:
             if density is not None:

@@ -233,14 +233,15 @@ class OptimizeSettings:
     budget: BudgetSettings | None = None  # None: the main phase runs on simulation.grid_resolution
 
     def parameters_by_object(self) -> dict[str, tuple[str, ...]]:
-        """Object name -> its optimised parameters (OBJECT.PARAM), in the config's order, where
-        the parameters belong to two objects or more; else {} (the search's object rounds)."""
+        """Object name -> its optimised material parameters (OBJECT.PARAM), in the config's
+        order, where they belong to two objects or more; else {} (the search's object rounds)."""
         if not all("." in name for name in self.parameters):
             return {}
         groups: dict[str, tuple[str, ...]] = {}
         for name in self.parameters:
-            obj = name.partition(".")[0]
-            groups[obj] = groups.get(obj, ()) + (name,)
+            obj, _, param = name.partition(".")
+            if param != VELOCITY:  # the search looks at material parameters only
+                groups[obj] = groups.get(obj, ()) + (name,)
         return groups if len(groups) > 1 else {}
 
     def object_round_samples(self) -> int:
@@ -310,6 +311,21 @@ class SceneConfig:
         return replace(self, objects=tuple(objects))
 
 
+def velocity_names(objects, k: int) -> tuple[str, tuple[str, str, str]]:
+    """Object ``k``'s initial velocity as ``optimize.parameters`` and ``evaluation.ground_truth``
+    name it, and its z components (m/s, scene axes): velocity and VELOCITY_COMPONENTS for the
+    one object, OBJECT.velocity and OBJECT.velocity_x, ... with several."""
+    if len(objects) == 1:
+        return VELOCITY, VELOCITY_COMPONENTS
+    prefix = f"{objects[k].name}."
+    return prefix + VELOCITY, tuple(prefix + c for c in VELOCITY_COMPONENTS)
+
+
+def is_velocity_component(name: str) -> bool:
+    """Whether the z name ``name`` is a velocity component (velocity_x, jelly.velocity_x)."""
+    return name.rpartition(".")[2] in VELOCITY_COMPONENTS
+
+
 def split_parameter(objects, name: str) -> tuple[int, str]:
     """(index into ``objects``, parameter) of a name of ``optimize.parameters`` or
     ``evaluation.ground_truth``: the bare parameter of the one object, ``OBJECT.PARAM`` with
@@ -366,6 +382,8 @@ __all__ = [
     "VELOCITY",
     "VELOCITY_COMPONENTS",
     "config_record",
+    "is_velocity_component",
     "main_grid_range",
     "split_parameter",
+    "velocity_names",
 ]
