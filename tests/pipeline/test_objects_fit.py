@@ -122,6 +122,37 @@ def test_optimize_identifies_each_objects_parameters_through_the_cli(tmp_path):
     assert "jelly.youngs_modulus" in page and "heap: all parameters" in page
 
 
+def test_the_velocity_phase_estimates_the_named_objects_velocities(tmp_path):
+    """optimize.estimate_velocity with several objects: the phase moves the velocity of each
+    object it names (the jelly's, from 1 m/s down towards its truth's 2 m/s) and no other's
+    (the resting heap keeps its own), and the main phase keeps the estimate."""
+    import json
+
+    truth = fit_config(tmp_path)  # the jelly thrown down at 2 m/s
+    res = run_cli("simulate", write_config(tmp_path, truth, "truth.yaml"), "-o", tmp_path / "truth", "--preview", "png")
+    assert res.exit_code == 0, res.output
+    data = fit_config(tmp_path)
+    data["objects"][0]["velocity"] = [0.0, -1.0, 0.0]
+    data["video"] = str(tmp_path / "truth" / "guidance")
+    data["flow"] = {"bias_correction": "none"}
+    data["optimize"] = {
+        "parameters": ["jelly.youngs_modulus"],
+        "iterations": 1,
+        "estimate_velocity": {"frames": 2, "iterations": 3, "objects": ["jelly"]},
+        "learning_rates": {"jelly.velocity": 0.3},
+    }
+    res = run_cli("optimize", write_config(tmp_path, data), "-o", tmp_path / "fit")
+    assert res.exit_code == 0, res.output
+    history = json.loads((tmp_path / "fit" / "history.json").read_text())
+    assert [h["phase"] for h in history] == ["velocity"] * 3 + ["main"]
+    assert not any(n.startswith("heap.velocity") for n in history[0]["params"])
+    estimate = [history[2]["params"][f"jelly.velocity_{c}"] for c in "xyz"]
+    assert estimate[1] < -1.3  # from -1 towards -2
+    params = json.loads((tmp_path / "fit" / "params.json").read_text())
+    assert params["objects"]["jelly"]["velocity"] == [params["optimized"][f"jelly.velocity_{c}"] for c in "xyz"]
+    assert params["objects"]["heap"]["velocity"] == [0.0, 0.0, 0.0]
+
+
 def test_the_flow_losss_gradient_per_object_matches_finite_differences(tmp_path):
     """The optimiser's own objective (simulation, flow rendering, flow loss against the
     guidance; float32 as it runs): d loss / d z of each object's parameter against central

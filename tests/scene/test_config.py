@@ -175,6 +175,11 @@ BAD = [
         {"frames": 3, "iterations": 5, "lr": 1},
         "optimize.estimate_velocity.lr: unknown key",
     ),
+    (
+        "optimize.estimate_velocity",
+        {"frames": 3, "iterations": 5, "objects": ["jelly"]},
+        "optimize.estimate_velocity.objects: names objects of a config of several: drop it",
+    ),
     ("evaluation", {"ground_truth": {"velocity": 2.0}}, "evaluation.ground_truth.velocity: must be a list of 3 finite"),
     ("optimize.material", ["elastic", "lava"], "optimize.material: unknown material 'lava'"),
     ("optimize.material", "elastic", "optimize.material: must be a non-empty list of material names, got 'elastic'"),
@@ -430,7 +435,26 @@ def test_objects_as_a_list_or_a_mapping_and_one_object_in_either_form(folder):
         ),
         (
             {"optimize": {"parameters": ["jelly.youngs_modulus"], "estimate_velocity": {"frames": 1, "iterations": 1}}},
-            "optimize.estimate_velocity: not built yet for several objects",
+            "optimize.estimate_velocity.objects: is required with several objects: a list of object names",
+        ),
+        (
+            {
+                "optimize": {
+                    "parameters": ["jelly.youngs_modulus"],
+                    "estimate_velocity": {"frames": 1, "iterations": 1, "objects": ["ghost"]},
+                }
+            },
+            r"estimate_velocity.objects: 'ghost': there is no object 'ghost' \(the objects: jelly, heap\)",
+        ),
+        (
+            {
+                "optimize": {
+                    "parameters": ["jelly.youngs_modulus"],
+                    "estimate_velocity": {"frames": 1, "iterations": 1, "objects": ["jelly"]},
+                    "learning_rates": {"heap.velocity": 0.2},  # the heap's velocity is not estimated
+                }
+            },
+            r"optimize.learning_rates.heap.velocity: is not among optimize.parameters .* \(nor estimated",
         ),
     ],
 )

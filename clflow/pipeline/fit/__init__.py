@@ -7,8 +7,8 @@ clflow.mpm.parameterization): Adam with a cosine-decaying rate, or Levenberg-Mar
 trust region (``optimize.method``). The loss may cover only the first
 frames at first (``optimize.horizon``): a short horizon keeps the loss monotone far from the
 optimum, where a long one has local minima (docs/pipeline.md). With
-``optimize.estimate_velocity`` a velocity phase comes first: only the object's initial
-velocity is optimised, over the first frames, with the material at its initial guess; the
+``optimize.estimate_velocity`` a velocity phase comes first: only the initial velocity (of
+the one object, or of the objects it names) is optimised, over the first frames, with the material at its initial guess; the
 main phase starts from that estimate. The steps are written out here in float64 so that the
 optimiser's whole state (Adam's moments, the damping) goes into ``checkpoint.json`` after every
 iteration; ``resume`` continues from it and

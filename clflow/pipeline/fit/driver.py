@@ -26,7 +26,6 @@ from clflow.pipeline.generated_video import ensure_guidance_video
 from clflow.pipeline.material import resolve_material
 from clflow.scene.config import (
     VELOCITY,
-    VELOCITY_COMPONENTS,
     SceneConfig,
     main_grid_range,
     split_parameter,
@@ -71,10 +70,17 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         self.hypotheses = hypotheses  # how the material was chosen (clflow.pipeline.hypotheses), for metrics
         self.params = _parameterizations(cfg)
         opt = cfg.optimize
-        # each object's velocity components where optimize.parameters names its velocity
+        # each object's velocity components where optimize.parameters names its velocity; the
+        # velocity phase's: the one object's, or those of estimate_velocity.objects
         velocities = [velocity_names(cfg.objects, k) for k in range(len(cfg.objects))]
         optimised = tuple(c for name, components in velocities if name in opt.parameters for c in components)
-        estimated = VELOCITY_COMPONENTS if opt.estimate_velocity_iterations and not optimised else ()
+        self.velocity_variables = tuple(
+            c
+            for o, (_, components) in zip(cfg.objects, velocities)
+            if opt.estimate_velocity_iterations and (len(cfg.objects) == 1 or o.name in opt.estimate_velocity_objects)
+            for c in components
+        )
+        estimated = tuple(c for c in self.velocity_variables if c not in optimised)
         self.main_variables = tuple(self.params) + optimised  # z names the main phase optimises
         self.variables = self.main_variables + estimated  # every z name
         # every start but the kept one spends search.start_iterations iterations of its own
@@ -268,7 +274,7 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         lm = opt.method == "levenberg_marquardt"
         phase, iteration, _ = phase_of(opt, state.iteration)
         if phase == "velocity":
-            frames, variables = opt.estimate_velocity_frames, VELOCITY_COMPONENTS
+            frames, variables = opt.estimate_velocity_frames, self.velocity_variables
         else:
             frames, variables = horizon(self.cfg, iteration), self.main_variables
         grid = self.model_grid if start is None else self.search_grid  # a start's polish: the global phase's

@@ -430,8 +430,11 @@ def _optimize_settings(r: Reader, data: Any, objects: tuple[SceneObject, ...], f
                     f"{name!r} is not a parameter of {mat.name} "
                     f"(its parameters: {', '.join(mat.param_names)}, density, velocity)",
                 )
-    estimate = r.section(body.get("estimate_velocity"), f"{p}.estimate_velocity", ("frames", "iterations"))
+    estimate = r.section(body.get("estimate_velocity"), f"{p}.estimate_velocity", ("frames", "iterations", "objects"))
+    if "objects" in estimate and len(objects) == 1:
+        raise r.fail(f"{p}.estimate_velocity.objects", "names objects of a config of several: drop it")
     estimate_frames = estimate_iterations = 0
+    estimated: tuple[str, ...] = ()  # velocity, or OBJECT.velocity of each object the phase estimates
     if estimate:
         estimate_frames = r.integer(estimate, "frames", f"{p}.estimate_velocity", low=1)
         estimate_iterations = r.integer(estimate, "iterations", f"{p}.estimate_velocity", low=1)
@@ -439,13 +442,15 @@ def _optimize_settings(r: Reader, data: Any, objects: tuple[SceneObject, ...], f
             raise r.fail(
                 f"{p}.estimate_velocity.frames", f"must be <= simulation.frames ({frames}), got {estimate_frames}"
             )
+        estimated = (VELOCITY,) if len(objects) == 1 else _estimated_objects(r, estimate.get("objects"), objects)
     rates_in = r.mapping(body.get("learning_rates"), f"{p}.learning_rates")
     for name in rates_in:
-        if name not in names and not (name == VELOCITY and estimate):
+        if name not in names and name not in estimated:
+            velocity = name.rpartition(".")[2] == VELOCITY
             raise r.fail(
                 f"{p}.learning_rates.{name}",
                 f"is not among optimize.parameters {names}"
-                + (" (nor estimated: optimize.estimate_velocity)" if name == VELOCITY else ""),
+                + (" (nor estimated: optimize.estimate_velocity)" if velocity else ""),
             )
     rates = {n: r.number(rates_in, n, f"{p}.learning_rates", low=0.0, strict_low=True) for n in rates_in}
     horizon = r.section(body.get("horizon"), f"{p}.horizon", ("start", "step"))
@@ -464,6 +469,7 @@ def _optimize_settings(r: Reader, data: Any, objects: tuple[SceneObject, ...], f
         method=r.choice(body, "method", p, OPTIMIZERS, "adam"),
         estimate_velocity_frames=estimate_frames,
         estimate_velocity_iterations=estimate_iterations,
+        estimate_velocity_objects=tuple(n.partition(".")[0] for n in estimated if len(objects) > 1),
         materials=hypotheses,
         budget=_budget(r, body["budget"]) if body.get("budget") is not None else None,
     )
@@ -477,6 +483,22 @@ def _budget(r: Reader, data: Any) -> BudgetSettings:
         seconds=r.number(found, "seconds", p, low=0.0, strict_low=True),
         max_grid_resolution=r.integer(found, "max_grid_resolution", p, 0),
     )
+
+
+def _estimated_objects(r: Reader, data: Any, objects: tuple[SceneObject, ...]) -> tuple[str, ...]:
+    """``optimize.estimate_velocity.objects`` of a config of several objects: the objects whose
+    velocities the velocity phase estimates, as OBJECT.velocity (required: an object at rest
+    has no velocity to estimate, and Adam's steps would move its weakly observed ones)."""
+    where = "optimize.estimate_velocity.objects"
+    names = [o.name for o in objects]
+    if not isinstance(data, list) or not data or not all(isinstance(n, str) for n in data):
+        raise r.fail(where, f"is required with several objects: a list of object names ({', '.join(names)})")
+    for name in data:
+        if name not in names:
+            raise r.fail(where, f"{name!r}: there is no object {name!r} (the objects: {', '.join(names)})")
+    if len(set(data)) < len(data):
+        raise r.fail(where, f"names an object twice: {data!r}")
+    return tuple(f"{n}.{VELOCITY}" for n in data)
 
 
 def _search(r: Reader, data: Any) -> SearchSettings:
@@ -631,20 +653,11 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
 
 def _refuse_identification(r: Reader, top: dict) -> None:
     """A config of several objects identifies each object's material parameters
-    (OBJECT.PARAM); material hypotheses and the velocity phase name no object yet, so they
-    are refused."""
+    (OBJECT.PARAM); material hypotheses name no object yet, so they are refused."""
     optimize = top.get("optimize") if isinstance(top.get("optimize"), dict) else {}
-    given = [
-        key
-        for key, value in (
-            ("optimize.material", optimize.get("material")),
-            ("optimize.estimate_velocity", optimize.get("estimate_velocity")),
-        )
-        if value
-    ]
-    if given:
+    if optimize.get("material"):
         raise r.fail(
-            given[0],
+            "optimize.material",
             "not built yet for several objects (optimize.parameters names each "
             "object's parameters, OBJECT.PARAM, of the material its config gives); drop it",
         )

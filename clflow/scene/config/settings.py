@@ -230,6 +230,8 @@ class OptimizeSettings:
     materials: tuple[str, ...] = ()
     estimate_velocity_frames: int = 0  # frames in the loss of the velocity phase
     estimate_velocity_iterations: int = 0  # iterations of the velocity phase before the main one (0: none)
+    # several objects: the objects whose velocities the velocity phase estimates, by name
+    estimate_velocity_objects: tuple[str, ...] = ()
     budget: BudgetSettings | None = None  # None: the main phase runs on simulation.grid_resolution
 
     def parameters_by_object(self) -> dict[str, tuple[str, ...]]:
