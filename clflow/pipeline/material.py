@@ -5,12 +5,16 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from pathlib import Path
 
 from clflow.errors import InputError
+from clflow.fileio import atomic_path
 from clflow.materials import get_material, validate_params
 from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig
 
 log = logging.getLogger(__name__)
+
+QUERY_MARGIN = 0.1  # the object's screen box grows by this fraction of its size on each side
 
 
 def resolve_material(cfg: SceneConfig) -> SceneConfig:
@@ -48,8 +52,9 @@ def _resolved(cfg: SceneConfig, obj, record: str):
 
         asked_by = f"{cfg.source}: {key}.query.backend: openai"  # the config has no --llm-url and --model
         model_config = ModelConfig.resolve(asked_by=asked_by) if mat.query_backend == "openai" else None
+        image, box = (mat.query_image, None) if mat.query_image is not None else guidance_view_crop(cfg, obj)
         result = query_material(
-            mat.query_image, prompt=mat.query_prompt, backend=mat.query_backend, model_config=model_config
+            image, prompt=mat.query_prompt, box=box, backend=mat.query_backend, model_config=model_config
         )
     for warning in result.warnings:
         log.warning("material query%s: %s", "" if len(cfg.objects) == 1 else f" of {obj.name}", warning)
@@ -81,3 +86,49 @@ def _resolved(cfg: SceneConfig, obj, record: str):
 
 
 __all__ = ["resolve_material"]
+
+
+def guidance_view_crop(cfg: SceneConfig, obj) -> tuple[Path, tuple[float, float, float, float]]:
+    """Where the query looks at ``obj`` (a SceneObject of ``cfg``) without an image of its
+    own: the guidance video's first frame (written as ``output/guidance_frame0.png``) and
+    the pixel box (x0, y0, x1, y1) of the object's Gaussian centres seen by the guidance
+    camera, widened by QUERY_MARGIN of its size on each side and cut to the frame. So each of
+    several objects is asked about its own part of one picture."""
+    import cv2
+    import torch
+
+    from clflow.flow.simulated import project_means
+    from clflow.flow.video import read_video
+    from clflow.scene.load import guidance_camera, load_scene_objects
+
+    where = f"{cfg.source}: {obj.material_key}.query"
+    if cfg.video is None or cfg.generate is not None:
+        raise InputError(
+            f"{where}: without an image the query looks at the guidance video's first frame, and this "
+            "config has no video yet (give query.image)"
+        )
+    frame = read_video(cfg.video, fps=cfg.simulation.fps if cfg.video.is_dir() else None).frames[0]
+    camera = guidance_camera(cfg)
+    if frame.shape[:2] != (camera.height, camera.width):
+        raise InputError(
+            f"{cfg.video}: frames are {frame.shape[1]}x{frame.shape[0]} px, the guidance camera "
+            f"{camera.width}x{camera.height}: the object's place in the frame is unknown (give {where}.image)"
+        )
+    gaussians, labels = load_scene_objects(cfg, torch.float64)
+    means = gaussians.means[labels == cfg.objects.index(obj)]
+    depth = means @ camera.viewmat[2, :3] + camera.viewmat[2, 3]
+    pixels = project_means(means[depth > 0], camera.viewmat, camera.K)
+    inside = (pixels >= 0).all(1) & (pixels[:, 0] < camera.width) & (pixels[:, 1] < camera.height)
+    if not bool(inside.any()):
+        raise InputError(f"{where}: the guidance camera does not see {obj.name} (give query.image)")
+    low, high = pixels[inside].min(0).values, pixels[inside].max(0).values
+    pad = QUERY_MARGIN * (high - low) + 1.0
+    x0, y0 = (low - pad).clamp(min=0).tolist()
+    x1, y1 = (high + pad).tolist()
+    box = (x0, y0, min(x1, camera.width), min(y1, camera.height))
+    path = cfg.output / "guidance_frame0.png"
+    cfg.output.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR)):
+            raise InputError(f"cannot write {path}")
+    return path, box

@@ -54,9 +54,21 @@ def test_a_saved_query_record_is_the_initial_guess(quick_demo, tmp_path):
     assert resolved.material.type == "metal" and resolved.material.density > 7000
 
 
-def test_query_needs_an_image_or_a_record(quick_demo, tmp_path):
-    with pytest.raises(InputError, match="material.query: give exactly one of image"):
-        query_config(quick_demo, tmp_path, {"type": "query", "query": {"prompt": "jelly"}})
+def test_query_takes_an_image_or_a_record_not_both(quick_demo, tmp_path):
+    with pytest.raises(InputError, match="material.query: give at most one of image"):
+        query_config(quick_demo, tmp_path, {"type": "query", "query": {"image": "jelly.png", "result": "a.json"}})
+
+
+def test_query_without_an_image_looks_at_the_object_in_the_guidance_view(quick_demo, tmp_path):
+    """No image: the guidance video's first frame, cut to the object's screen box."""
+    cfg = query_config(quick_demo, tmp_path, {"type": "query", "query": {"prompt": "a jelly cube"}})
+    resolve_material(cfg)
+    record = json.loads((tmp_path / "out" / "material_query.json").read_text())
+    assert record["image"] == str(tmp_path / "out" / "guidance_frame0.png")
+    x0, y0, x1, y1 = record["crop_box"]
+    width, height = cfg.camera.width, cfg.camera.height
+    assert 0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height
+    assert (x1 - x0) * (y1 - y0) < 0.5 * width * height  # the cube, not the whole frame with its floor
 
 
 def test_query_result_without_the_optimised_parameter(quick_demo, tmp_path):

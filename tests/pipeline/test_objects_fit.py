@@ -153,6 +153,31 @@ def test_the_velocity_phase_estimates_the_named_objects_velocities(tmp_path):
     assert params["objects"]["heap"]["velocity"] == [0.0, 0.0, 0.0]
 
 
+def test_each_object_asks_the_query_about_its_own_part_of_the_guidance_view(tmp_path):
+    """Two objects of type query without an image: each is asked about its own screen box in
+    the guidance video's first frame (the jelly above the heap), and records its own answer."""
+    import json
+
+    from clflow.pipeline.material import resolve_material
+
+    res = run_cli("simulate", write_config(tmp_path, fit_config(tmp_path), "truth.yaml"), "-o", tmp_path / "truth")
+    assert res.exit_code == 0, res.output
+    data = fit_config(tmp_path)
+    data["video"] = str(tmp_path / "truth" / "guidance")
+    data["objects"][0]["material"] = {"type": "query", "query": {"prompt": "a jelly cube"}}
+    data["objects"][1]["material"] = {"type": "query", "query": {"prompt": "a heap of dry sand"}}
+    cfg = resolve_material(load_config(write_config(tmp_path, data)))
+    assert [o.material.type for o in cfg.objects] == ["elastic", "sand"]
+    boxes = {}
+    for name in ("jelly", "heap"):
+        record = json.loads((cfg.output / f"material_query.{name}.json").read_text())
+        assert record["image"].endswith("guidance_frame0.png")
+        boxes[name] = record["crop_box"]
+    jelly, heap = boxes["jelly"], boxes["heap"]
+    assert (jelly[1] + jelly[3]) / 2 < (heap[1] + heap[3]) / 2  # the jelly's box centre lies above the heap's
+    assert jelly != heap
+
+
 def test_the_flow_losss_gradient_per_object_matches_finite_differences(tmp_path):
     """The optimiser's own objective (simulation, flow rendering, flow loss against the
     guidance; float32 as it runs): d loss / d z of each object's parameter against central

@@ -105,10 +105,11 @@ def _material(r: Reader, data: Any, p: str = "material") -> MaterialConfig:
         if body.get("model") is not None:
             raise r.fail(f"{p}.model", "cannot be chosen before the query picks the material type")
         query = r.section(body.get("query"), f"{p}.query", ("image", "prompt", "backend", "result"))
-        if (query.get("image") is None) == (query.get("result") is None):
+        if query.get("image") is not None and query.get("result") is not None:
             raise r.fail(
                 f"{p}.query",
-                "give exactly one of image (ask the query now) and result (a record `clflow query` wrote)",
+                "give at most one of image (ask the query now) and result (a record `clflow query` wrote); "
+                "with neither the query looks at the object in the guidance video's first frame",
             )
         density = (
             r.number(body, "density", p, low=0.0, strict_low=True) if body.get("density") is not None else None
