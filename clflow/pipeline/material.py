@@ -15,6 +15,7 @@ from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig
 log = logging.getLogger(__name__)
 
 QUERY_MARGIN = 0.1  # the object's screen box grows by this fraction of its size on each side
+GUIDANCE_FRAME = "guidance_frame0.png"  # in the output folder: what the query looks at without an image
 
 
 def resolve_material(cfg: SceneConfig) -> SceneConfig:
@@ -41,7 +42,14 @@ def resolve_material(cfg: SceneConfig) -> SceneConfig:
 def _resolved(cfg: SceneConfig, obj, record: str):
     """The MaterialConfig the query gives ``obj`` (a SceneObject of ``type: query``), its
     record saved as ``output/record``."""
+    from clflow.fileio import check_output_folder
+
     mat, key = obj.material, obj.material_key
+    # before the query is asked: it replaces only what clflow wrote (a record read back in place stays)
+    rereads = mat.query_result is not None and mat.query_result.resolve() == (cfg.output / record).resolve()
+    written = () if rereads else (record,)
+    written += (GUIDANCE_FRAME,) if mat.query_image is None and mat.query_result is None else ()
+    check_output_folder(cfg.output, written, [v for v in (cfg.video,) if v is not None])
     if mat.query_result is not None:
         from clflow.query.result import load_query_result
 
@@ -126,7 +134,7 @@ def guidance_view_crop(cfg: SceneConfig, obj) -> tuple[Path, tuple[float, float,
     x0, y0 = (low - pad).clamp(min=0).tolist()
     x1, y1 = (high + pad).tolist()
     box = (x0, y0, min(x1, camera.width), min(y1, camera.height))
-    path = cfg.output / "guidance_frame0.png"
+    path = cfg.output / GUIDANCE_FRAME
     cfg.output.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR)):

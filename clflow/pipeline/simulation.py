@@ -332,6 +332,12 @@ def run(simulator, frames: int, values: dict[str, torch.Tensor], velocity: torch
     )
 
 
+def object_masks(setup: ObjectSetup, count: int) -> torch.Tensor:
+    """[K, M] float64: 1 where particle m belongs to object k of ``count`` (a per-object value
+    [K] times it, summed over k, is that value per particle with a fixed-order backward)."""
+    return (setup.object_index[None, :] == torch.arange(count)[:, None]).double()
+
+
 def scene_run_values(
     cfg: SceneConfig, setup: ObjectSetup, values, decoded: dict[str, torch.Tensor]
 ) -> dict[str, torch.Tensor]:
@@ -348,7 +354,7 @@ def scene_run_values(
         k, param = split_parameter(cfg.objects, name)
         by_param.setdefault(param, {})[k] = value
     count = len(cfg.objects)
-    masks = (setup.object_index[None, :] == torch.arange(count)[:, None]).double()  # [K, M]
+    masks = object_masks(setup, count)
     out = {}
     for param, given in by_param.items():
         fallback = float(next(iter(given.values())).detach())  # particles without the parameter ignore it

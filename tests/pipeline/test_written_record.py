@@ -255,3 +255,77 @@ def test_files_written_inside_a_staged_result_are_recorded_once_with_it(tmp_path
     assert files == {f"frames/{i:03d}.png": content_digest(out / "frames" / f"{i:03d}.png") for i in range(5)}
     atomic_write_text(out / "frames" / "005.png", "frame 5")  # outside a staging folder: recorded at once
     assert "005.png" in json.loads((out / "frames" / WRITTEN_RECORD).read_text())["files"]
+
+
+def test_the_material_query_writes_its_guidance_frame_beside_a_users_files_never_over_them(quick_demo, tmp_path):
+    """A query without an image writes the guidance video's first frame into the output
+    folder (and its record); a user's files there stay, and a user's file of that name is
+    refused in one line before the query is asked."""
+    from clflow.errors import InputError
+    from clflow.pipeline.material import GUIDANCE_FRAME, resolve_material
+    from tests.pipeline.test_material import query_config
+
+    out = tmp_path / "out"
+    mine = user_folder(out, {"notes.txt": "mine", "plots/a.txt": "a"})
+    cfg = query_config(quick_demo, tmp_path, {"type": "query", "query": {"prompt": "a jelly cube"}})
+    resolve_material(cfg)
+    after = digests(out)
+    assert {n: d for n, d in after.items() if n in mine} == mine
+    assert {GUIDANCE_FRAME, "material_query.json", WRITTEN_RECORD} == set(after) - set(mine)
+    resolve_material(cfg)  # again: it replaces what it wrote
+    assert digests(out) == after
+
+    (out / GUIDANCE_FRAME).write_bytes(b"my own picture")
+    before = digests(out)
+    with pytest.raises(InputError, match=rf"out holds {GUIDANCE_FRAME}, which clflow did not write"):
+        resolve_material(cfg)
+    assert digests(out) == before
+
+
+# the query's frame is written (imwrite into atomic_path's temporary) and then the run is
+# stopped by ``sig`` before the file moves in, its signal handling a command's: the earlier
+# frame must stay as it was
+_STOPPED_WHILE_WRITING = """
+import os, signal, sys, time
+import cv2
+from clflow.pipeline.material import resolve_material
+from clflow.scene.config import load_config
+
+imwrite = cv2.imwrite
+def stalled(path, image):
+    ok = imwrite(path, image[::2])  # other bytes than the earlier frame's: a write in place would show
+    print("written", flush=True)
+    time.sleep(60)
+    return ok
+cv2.imwrite = stalled
+from clflow_cli.main import _SigtermAsInterrupt
+
+signal.signal(signal.SIGINT, signal.default_int_handler)
+_SigtermAsInterrupt.install()  # as every clflow command has it
+resolve_material(load_config(sys.argv[1]))
+"""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL], ids=["INT", "TERM", "KILL"])
+def test_a_query_stopped_while_it_writes_its_frame_leaves_the_earlier_one(quick_demo, tmp_path, sig):
+    from clflow.pipeline.material import GUIDANCE_FRAME, resolve_material
+    from tests.pipeline.test_material import query_config
+
+    cfg = query_config(quick_demo, tmp_path, {"type": "query", "query": {"prompt": "a jelly cube"}})
+    resolve_material(cfg)
+    (cfg.output / "notes.txt").write_text("mine")
+    before = digests(tmp_path)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _STOPPED_WHILE_WRITING, str(cfg.source)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    assert proc.stdout.readline().strip() == "written"
+    proc.send_signal(sig)
+    proc.communicate(timeout=60)
+    assert proc.returncode != 0
+    leftovers = [p for p in tmp_path.rglob("*") if ".tmp" in p.name]
+    assert not leftovers or sig == signal.SIGKILL, leftovers  # Ctrl-C and SIGTERM clean up
+    assert {n: d for n, d in digests(tmp_path).items() if ".tmp" not in n} == before
+    assert (cfg.output / GUIDANCE_FRAME).is_file()

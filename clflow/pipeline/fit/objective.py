@@ -25,7 +25,7 @@ from clflow.pipeline.forward import (
     scene_values,
 )
 from clflow.pipeline.render import frame_gaussians, render_flow
-from clflow.pipeline.simulation import ObjectValues, build_scene_simulator, run, scene_run_values
+from clflow.pipeline.simulation import ObjectValues, build_scene_simulator, object_masks, run, scene_run_values
 from clflow.scene.config import SceneConfig, is_velocity_component, velocity_names
 
 log = logging.getLogger(__name__)
@@ -209,8 +209,7 @@ class Objective:
                 for n, obj in zip(names, self.cfg.objects)
             ]
         )  # [K, 3]
-        index = prepared.setup.object_index
-        masks = (index[None, :] == torch.arange(len(names))[:, None]).double()  # [K, M]
+        masks = object_masks(prepared.setup, len(names))  # [K, M]
         return (per_object[:, None, :] * masks[:, :, None]).sum(0)
 
     def evaluate(
