@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -369,3 +370,37 @@ def test_the_loss_scan_gives_the_loss_and_both_gradients_along_a_parameter(tmp_p
     assert {r["grid"] for r in on_finer} == {finer}
     assert on_finer[0]["loss"] > on_finer[1]["loss"] > on_finer[2]["loss"] > 0
     assert [r["loss"] for r in on_finer] != [r["loss"] for r in rows]
+
+
+def test_case_variant_losses_scores_a_case_made_with_other_truth_values(tmp_path, tiny_cases):
+    """scripts/case_variant_losses.py: a case made with a truth value changed scores lowest
+    near that value; the folder remembers how it was made and refuses another making; a
+    name outside the case's truth is refused."""
+    import importlib.util
+
+    from tests.conftest import REPO
+
+    spec = importlib.util.spec_from_file_location(
+        "case_variant_losses", Path(REPO) / "scripts" / "case_variant_losses.py"
+    )
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    landing = dataclasses.replace(TINY, frames=10)  # the torus lands at frame 6: E shows
+    values = [1e4, 1e5, 1e6]
+    losses = {}
+    for truth in (1e6, 1e4):
+        out = tmp_path / f"truth_{truth:g}"
+        case = script.make_variant("torus", out, landing, {"youngs_modulus": truth}, truth_scale=2)
+        assert (
+            yaml.safe_load((out / "config_truth.yaml").read_text())["material"]["parameters"]["youngs_modulus"] == truth
+        )
+        rows = script.losses_along(out / "config.yaml", case.truth, "youngs_modulus", values)
+        assert [r["value"] for r in rows] == values and all(r["loss"] > 0 for r in rows)
+        losses[truth] = [r["loss"] for r in rows]
+    assert losses[1e6][0] > losses[1e6][1] > losses[1e6][2]  # towards each truth
+    assert losses[1e4][0] < losses[1e4][1] < losses[1e4][2]
+    with pytest.raises(SystemExit, match="made otherwise"):
+        script.make_variant("torus", tmp_path / "truth_1e+06", landing, {"youngs_modulus": 2e6}, truth_scale=2)
+    with pytest.raises(SystemExit, match="not among torus's truth values"):
+        script.make_variant("torus", tmp_path / "other", landing, {"friction_angle": 30.0}, truth_scale=2)
+    assert not (tmp_path / "other").exists()
