@@ -93,9 +93,6 @@ def _resolved(cfg: SceneConfig, obj, record: str):
     return dataclasses.replace(mat, type=result.material, parameters=params, density=density)
 
 
-__all__ = ["resolve_material"]
-
-
 def guidance_view_crop(cfg: SceneConfig, obj) -> tuple[Path, tuple[float, float, float, float]]:
     """Where the query looks at ``obj`` (a SceneObject of ``cfg``) without an image of its
     own: the guidance video's first frame (written as ``output/guidance_frame0.png``) and
@@ -135,8 +132,10 @@ def guidance_view_crop(cfg: SceneConfig, obj) -> tuple[Path, tuple[float, float,
     x1, y1 = (high + pad).tolist()
     box = (x0, y0, min(x1, camera.width), min(y1, camera.height))
     path = cfg.output / GUIDANCE_FRAME
-    cfg.output.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR)):
             raise InputError(f"cannot write {path}")
     return path, box
+
+
+__all__ = ["resolve_material"]
