@@ -4,6 +4,7 @@ Gaussians off to the side (scene units = metres, +y up)."""
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import torch
@@ -60,23 +61,34 @@ def base_config(folder: Path, frames: int = 3) -> dict:
 
 
 def cube_config(folder: Path, frames: int = 3) -> dict:
-    """The cube alone, in the single-object form (object + material)."""
-    return {
-        **base_config(folder, frames),
-        "object": {"select": box(*CUBE), "fill": FILL, "velocity": [0.0, -0.5, 0.0]},
-        "material": ELASTIC,
-    }
+    """The cube alone, in the single-object form (object + material). A copy each time: a
+    test may change it without changing ELASTIC for the tests after it."""
+    return copy.deepcopy(
+        {
+            **base_config(folder, frames),
+            "object": {"select": box(*CUBE), "fill": FILL, "velocity": [0.0, -0.5, 0.0]},
+            "material": ELASTIC,
+        }
+    )
 
 
 def two_objects_config(folder: Path, frames: int = 3) -> dict:
-    """The cube dropped on the heap, in the ``objects:`` form."""
-    return {
-        **base_config(folder, frames),
-        "objects": [
-            {"name": "jelly", "select": box(*CUBE), "fill": FILL, "velocity": [0.0, -0.5, 0.0], "material": ELASTIC},
-            {"name": "heap", "select": box(*HEAP), "fill": FILL, "material": SAND},
-        ],
-    }
+    """The cube dropped on the heap, in the ``objects:`` form (a copy each time, as above)."""
+    return copy.deepcopy(
+        {
+            **base_config(folder, frames),
+            "objects": [
+                {
+                    "name": "jelly",
+                    "select": box(*CUBE),
+                    "fill": FILL,
+                    "velocity": [0.0, -0.5, 0.0],
+                    "material": ELASTIC,
+                },
+                {"name": "heap", "select": box(*HEAP), "fill": FILL, "material": SAND},
+            ],
+        }
+    )
 
 
 def write_config(folder: Path, data: dict, name: str = "scene.yaml") -> Path:

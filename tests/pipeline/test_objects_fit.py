@@ -201,10 +201,12 @@ def test_the_flow_losss_gradient_per_object_matches_finite_differences(tmp_path)
     assert torch.equal(velocity[jelly], torch.tensor([0.0, -2.0, 0.0], dtype=torch.float64).expand(int(jelly.sum()), 3))
     assert not velocity[~jelly].any()
     base = opt.evaluate(z, opt.frames, min_substeps=8)
-    for name, h in (("jelly.youngs_modulus", 0.01), ("heap.friction_angle", 0.01), ("jelly.velocity_y", 0.05)):
+    for name in ("jelly.youngs_modulus", "heap.friction_angle", "jelly.velocity_y"):
+        h = 0.01  # in z; 0.05 m/s of velocity is past the loss's linear range (12 % off the adjoint)
         up = opt.evaluate({**z, name: z[name] + h}, opt.frames, with_grad=False, min_substeps=8).loss
         down = opt.evaluate({**z, name: z[name] - h}, opt.frames, with_grad=False, min_substeps=8).loss
         numeric = (up - down) / (2 * h)
-        # float32 runs and the rasteriser: a few per cent (measured: 6 % for E, 0.7 % for the angle);
-        # the float64 test above holds the simulation to 0.2 %
+        # float32 runs and the rasteriser: a few per cent (measured at the guess, E 2e4: 0.8 % for
+        # E, 6 % for the angle, 0.5 % for the velocity); the float64 test above holds the
+        # simulation to 0.2 %
         assert base.grads[name] == pytest.approx(numeric, rel=0.1), (name, base.grads, numeric)
