@@ -205,7 +205,7 @@ def test_ctrl_c_while_a_result_moves_in_lands_after_the_whole_result(tmp_path, m
     is held until the last, so the folder holds the whole new result, never a mix."""
     import os
 
-    import clflow.fileio as fileio
+    import clflow.fileio.writing as fileio
 
     out = tmp_path / "out"
     with atomic_dir(out, replaces=("a", "b")) as tmp:

@@ -1,5 +1,5 @@
-"""File I/O: atomic output (a file or folder is either complete or not there), user arrays
-read with clear errors, file-system errors in one line (checks before the work: clflow.limits).
+"""Writing outputs: atomically (a file or folder is either complete or not there), and only
+over what clflow wrote (each folder's written-record).
 
     with atomic_path("out/frames.npz") as tmp:   # tmp is in the same folder
         np.savez(tmp, x=x)                       # write however you like
@@ -11,7 +11,6 @@ read with clear errors, file-system errors in one line (checks before the work: 
 from __future__ import annotations
 
 import contextlib
-import errno
 import glob
 import os
 import re
@@ -20,11 +19,7 @@ import signal
 import tempfile
 import threading
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator
-
-if TYPE_CHECKING:
-    import numpy as np
-
+from typing import Iterator
 
 # a temporary of atomic_path / atomic_dir: ".<stem>.<pid>.<mkstemp's random part>.tmp<suffix>"
 #: the signals a result's last moves hold back (Ctrl-C, and what schedulers send)
@@ -104,48 +99,6 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
         tmp.write_text(text)
 
 
-def read_text(path: str | os.PathLike, what: str = "file") -> str:
-    """The text of a user's file (UTF-8, a byte-order mark allowed); InputError, one line
-    naming ``what`` and the path, when it cannot be read or is not UTF-8 text."""
-    from clflow.errors import InputError
-
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except IsADirectoryError:
-        raise InputError(f"{what} {path} is a folder, not a file") from None
-    except FileNotFoundError:
-        raise InputError(f"{what} {path} not found") from None
-    except OSError as exc:
-        raise InputError(f"cannot read {what} {path}: {exc.strerror}") from None
-    try:
-        return data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise InputError(
-            f"{what} {path} is not UTF-8 text (byte 0x{data[exc.start]:02x} on line {line}); save it as UTF-8"
-        ) from None
-
-
-def read_json(path: str | os.PathLike, what: str = "file", expected: str = ""):
-    """The parsed JSON of a user's file (:func:`read_text`; NaN and Infinity refused, as JSON
-    does); InputError, one line with the path, line and column, when it is not JSON
-    (``expected``: what the file should have been, added to the message)."""
-    import json
-
-    from clflow.errors import InputError
-
-    def not_a_number(name: str):
-        raise json.JSONDecodeError(f"{name} is not a number JSON allows", name, 0)
-
-    text = read_text(path, what)
-    try:
-        return json.loads(text, parse_constant=not_a_number)
-    except json.JSONDecodeError as exc:
-        where = f"line {exc.lineno}, column {exc.colno}: " if exc.doc is text else ""
-        raise InputError(f"{path}: not valid JSON: {where}{exc.msg}{'; ' + expected if expected else ''}") from None
-
-
 #: files larger than this are known by name and size, not read whole, in content digests
 DIGEST_READ_BYTES = 64 * 2**20
 _DIGESTS: dict[tuple, str] = {}  # (path, size, mtime) -> digest of a file already read
@@ -176,33 +129,6 @@ def content_digest(path: str | os.PathLike) -> str:
             h.update(f"{entry.relative_to(path).as_posix()}={content_digest(entry)};".encode())
         return h.hexdigest()
     return "missing"
-
-
-#: OSError numbers that mean "the file system refused", not a bug: one line at the CLI.
-FILE_SYSTEM_ERRNOS = frozenset(
-    {
-        errno.ENOSPC,
-        errno.EDQUOT,
-        errno.EROFS,
-        errno.EACCES,
-        errno.EPERM,
-        errno.ENOTDIR,
-        errno.EEXIST,
-        errno.EISDIR,
-        errno.ENOENT,
-        errno.ENAMETOOLONG,
-        errno.EFBIG,
-    }
-)
-
-
-def describe_os_error(exc: OSError) -> str:
-    """One line for a file-system OSError: the path, what went wrong, and for a full disk what to do."""
-    where = f"{exc.filename}: " if exc.filename is not None else ""
-    reason = (exc.strerror or str(exc)).lower()
-    if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
-        reason += " (free some space or write elsewhere)"
-    return where + reason
 
 
 #: each output folder's record of the files clflow wrote there: {"files": {relative path:
@@ -433,37 +359,3 @@ def _umask() -> int:
     umask = os.umask(0)
     os.umask(umask)
     return umask
-
-
-def load_arrays(path: str | os.PathLike, what: str = "array file") -> dict[str, np.ndarray]:
-    """The arrays of an .npz (by name) or an .npy (as ``{"array": a}``), read in full; a file
-    that is empty, truncated, not numpy's or holds Python objects is an InputError."""
-    import zipfile
-    import zlib
-
-    import numpy as np
-
-    from clflow.errors import InputError
-
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: {what} not found")
-    with open(path, "rb") as fh:
-        head = fh.read(6)
-    if not head:
-        raise InputError(f"{path}: the {what} is empty (0 bytes)")
-    if head[:2] != b"PK" and head != b"\x93NUMPY":
-        raise InputError(f"{path}: not a numpy .npz/.npy {what}")
-    try:
-        if head == b"\x93NUMPY":
-            return {"array": np.load(path, allow_pickle=False)}
-        with np.load(path, allow_pickle=False) as data:
-            return {k: data[k] for k in data.files}
-    except ValueError as exc:
-        if "pickle" in str(exc):  # npz: "pickled (object) data", npy: "allow_pickle=False"
-            raise InputError(
-                f"{path}: the {what} holds Python objects, not plain arrays; refusing to unpickle"
-            ) from None
-        raise InputError(f"{path}: damaged or truncated {what} ({exc})") from None
-    except (EOFError, OSError, zipfile.BadZipFile, zlib.error) as exc:
-        raise InputError(f"{path}: damaged or truncated {what} ({type(exc).__name__}: {exc})") from None

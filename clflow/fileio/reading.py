@@ -1,0 +1,87 @@
+"""Reading users' files: text, JSON and numpy arrays, each refused in one line (InputError
+naming the file and the problem) when it cannot be read as what it should be."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import numpy as np
+
+
+def read_text(path: str | os.PathLike, what: str = "file") -> str:
+    """The text of a user's file (UTF-8, a byte-order mark allowed); InputError, one line
+    naming ``what`` and the path, when it cannot be read or is not UTF-8 text."""
+    from clflow.errors import InputError
+
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except IsADirectoryError:
+        raise InputError(f"{what} {path} is a folder, not a file") from None
+    except FileNotFoundError:
+        raise InputError(f"{what} {path} not found") from None
+    except OSError as exc:
+        raise InputError(f"cannot read {what} {path}: {exc.strerror}") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise InputError(
+            f"{what} {path} is not UTF-8 text (byte 0x{data[exc.start]:02x} on line {line}); save it as UTF-8"
+        ) from None
+
+
+def read_json(path: str | os.PathLike, what: str = "file", expected: str = ""):
+    """The parsed JSON of a user's file (:func:`read_text`; NaN and Infinity refused, as JSON
+    does); InputError, one line with the path, line and column, when it is not JSON
+    (``expected``: what the file should have been, added to the message)."""
+    import json
+
+    from clflow.errors import InputError
+
+    def not_a_number(name: str):
+        raise json.JSONDecodeError(f"{name} is not a number JSON allows", name, 0)
+
+    text = read_text(path, what)
+    try:
+        return json.loads(text, parse_constant=not_a_number)
+    except json.JSONDecodeError as exc:
+        where = f"line {exc.lineno}, column {exc.colno}: " if exc.doc is text else ""
+        raise InputError(f"{path}: not valid JSON: {where}{exc.msg}{'; ' + expected if expected else ''}") from None
+
+
+def load_arrays(path: str | os.PathLike, what: str = "array file") -> dict[str, np.ndarray]:
+    """The arrays of an .npz (by name) or an .npy (as ``{"array": a}``), read in full; a file
+    that is empty, truncated, not numpy's or holds Python objects is an InputError."""
+    import zipfile
+    import zlib
+
+    import numpy as np
+
+    from clflow.errors import InputError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: {what} not found")
+    with open(path, "rb") as fh:
+        head = fh.read(6)
+    if not head:
+        raise InputError(f"{path}: the {what} is empty (0 bytes)")
+    if head[:2] != b"PK" and head != b"\x93NUMPY":
+        raise InputError(f"{path}: not a numpy .npz/.npy {what}")
+    try:
+        if head == b"\x93NUMPY":
+            return {"array": np.load(path, allow_pickle=False)}
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except ValueError as exc:
+        if "pickle" in str(exc):  # npz: "pickled (object) data", npy: "allow_pickle=False"
+            raise InputError(
+                f"{path}: the {what} holds Python objects, not plain arrays; refusing to unpickle"
+            ) from None
+        raise InputError(f"{path}: damaged or truncated {what} ({exc})") from None
+    except (EOFError, OSError, zipfile.BadZipFile, zlib.error) as exc:
+        raise InputError(f"{path}: damaged or truncated {what} ({type(exc).__name__}: {exc})") from None
