@@ -41,10 +41,19 @@ def format_duration(seconds: float) -> str:
 
 
 def _nearest_existing(path: Path) -> Path:
+    """The nearest of ``path`` and its parents that exists; InputError for a link to nothing
+    on the way (a write there would fail after the work)."""
     path = Path(os.path.abspath(path))
     while not path.exists():
+        if path.is_symlink():
+            raise InputError(dangling_link(path))
         path = path.parent
     return path
+
+
+def dangling_link(path: Path) -> str:
+    """The message for ``path``, a symbolic link to something that does not exist."""
+    return f"{path} is a symbolic link to {os.readlink(path)}, which does not exist: make it, or write elsewhere (-o)"
 
 
 def _writable(folder: Path) -> str:

@@ -185,6 +185,9 @@ class CliContext:
 @click.option("--profile", "profile_path", type=click.Path(dir_okay=False), default=None, metavar="PATH",
               help="Record every kernel launch of the command (OpenCL profiling events): a table of device time "
               "per kernel on stderr at the end, and as JSON at PATH.")  # fmt: skip
+@click.option("--wait", is_flag=True, envvar="CLFLOW_WAIT",
+              help="When another clflow run is writing the output folder, wait for it to finish instead of "
+              "refusing. Default: $CLFLOW_WAIT, else refuse.")  # fmt: skip
 @click.option("-v", "--verbose", count=True,
               help="More log output (repeatable; -vv adds pyopencl's per-kernel build messages).")  # fmt: skip
 @click.option("-q", "--quiet", count=True, help="Less log output (repeatable).")
@@ -195,6 +198,7 @@ def cli(
     bridge: str | None,
     kernels: str | None,
     profile_path: str | None,
+    wait: bool,
     verbose: int,
     quiet: int,
 ) -> None:
@@ -220,6 +224,10 @@ def cli(
         from clflow.runtime import set_bridge_mode
 
         set_bridge_mode(bridge)
+    if wait:
+        from clflow.fileio import wait_for_writers
+
+        wait_for_writers(True)
     if kernels:
         from clflow.runtime.plan import KERNELS_ENV
 

@@ -1,231 +1,312 @@
-"""Writing outputs: atomically (a file or folder is either complete or not there), and only
-over what clflow wrote (each folder's written-record).
+"""Writing outputs: all or nothing, over nothing clflow did not write, one writer a folder.
 
-    with atomic_path("out/frames.npz") as tmp:   # tmp is in the same folder
-        np.savez(tmp, x=x)                       # write however you like
-    # now out/frames.npz exists, complete; on an exception nothing is left behind
-    with atomic_dir("out/render") as tmp:        # a temporary folder next to out/render
-        ...                                      # its entries move into out/render at the end
+    with output_folder("out"):                   # locked for this run; a dead run's leftovers finished
+        check_output_folder("out", ENTRIES)      # refuse before the work
+        ...
+        with atomic_dir("out", ENTRIES) as new:  # stage the whole result
+            ...                                  # write into new/
+        # now out holds the whole new result, or (on an exception) the earlier one
+    with atomic_path("out/params.json") as tmp:  # one file, the same way
+        tmp.write_text(text)
+
+Every temporary lives in a staging folder ``.clflow-staging.<token>`` inside the folder it
+is for, never beside it. The staging folder holds ``claim.json`` with the token its name
+has, flock(2)-ed by its writer while it lives: a staging folder is clflow's when its claim
+names its token, and its writer is gone when its claim can be locked (whatever machine or
+process namespace the writer ran in). Only those are ever removed.
+
+A result moves in as a journaled transaction (:class:`_Transaction`): the journal in the
+staging folder lists the earlier entries to move aside and the new ones to move in; from
+its being written (synced) the move is committed, and whoever holds the folder next
+(:func:`output_folder`) finishes it from the journal, or, where the writer itself failed
+mid-move and wrote that it was undoing it, undoes it. So at any instant the folder plus
+its journal is the earlier result or the whole new one, kill -9 and power loss included.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import glob
+import json
 import os
 import re
+import secrets
 import shutil
 import signal
-import tempfile
 import threading
 from pathlib import Path
 from typing import Iterator
 
-# a temporary of atomic_path / atomic_dir: ".<stem>.<pid>.<mkstemp's random part>.tmp<suffix>"
+from clflow.errors import InputError
+from clflow.fileio import record
+from clflow.fileio.digest import content_digest, fingerprint
+from clflow.fileio.lock import folder_lock
+from clflow.fileio.record import (
+    FOLDER,
+    WRITTEN_RECORD,
+    Record,
+    is_bookkeeping,
+    read_record,
+    targets,
+    unowned_files,
+    write_record,
+)
+
 #: the signals a result's last moves hold back (Ctrl-C, and what schedulers send)
 HELD_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-_TEMPORARY = re.compile(r"^\..+\.(?P<pid>\d+)\.[A-Za-z0-9_]+\.tmp")
-
-
-def _temporary_prefix(path: Path, stem: str) -> str:
-    """The prefix of this process's temporaries for ``path`` (``.<stem>.<pid>.``); first
-    removes the temporaries that killed processes left in the same folder (any target's, their
-    pid no longer running), so a crash's leftovers go with clflow's next write there. A staging
-    folder of this process's :func:`atomic_dir` holds none: not searched (one listing per
-    file would make n frames O(n^2))."""
-    for leftover in () if _staged(path.parent) else path.parent.glob(".*.tmp*"):
-        match = _TEMPORARY.match(leftover.name)
-        if match and not _running(int(match["pid"])):
-            if leftover.is_dir() and not leftover.is_symlink():
-                shutil.rmtree(leftover, ignore_errors=True)
-            else:
-                with contextlib.suppress(OSError):
-                    leftover.unlink()
-    return f".{stem}.{os.getpid()}."
-
-
-def _running(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process
-        return True
-    return True
-
-
-def _creating(path: Path, make):
-    """``make()`` (a mkstemp/mkdtemp call next to ``path``), its OSError naming ``path``
-    itself rather than the temporary name it tried."""
-    try:
-        return make()
-    except OSError as exc:
-        raise OSError(exc.errno, f"cannot write here ({(exc.strerror or str(exc)).lower()})", str(path)) from None
+STAGING = re.compile(r"\.clflow-staging\.(?P<token>[0-9a-f]{32})")
+CLAIM, JOURNAL = "claim.json", "journal.json"
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; move it onto ``path`` if the block succeeds
-    and list it in its folder's written-record (:data:`WRITTEN_RECORD`).
-
-    The temporary name keeps ``path``'s suffix so writers that choose a format by the
-    extension (numpy, OpenCV) behave as they would with ``path`` itself.
-    """
+def output_folder(path: str | os.PathLike, *, shared: bool = False) -> Iterator[Path]:
+    """Hold folder ``path`` while the block runs: made if missing, locked against other
+    clflow runs (clflow.fileio.lock; ``shared``: a reader's hold), an interrupted write there
+    finished or undone and dead writers' staging folders removed. A folder this call made
+    is removed again if it is left empty."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    prefix = _temporary_prefix(path, path.stem)
-    fd, tmp = _creating(path, lambda: tempfile.mkstemp(prefix=prefix, suffix=f".tmp{path.suffix}", dir=path.parent))
-    os.close(fd)
-    os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; outputs get the usual permissions
+    if path.is_symlink() and not path.exists():
+        raise InputError(
+            f"{path} is a symbolic link to {os.readlink(path)}, which does not exist: make it, or write elsewhere (-o)"
+        )
+    if path.exists() and not path.is_dir():
+        raise InputError(f"output folder {path} is a file, not a folder")
+    made = not path.exists()
+    if made:
+        path.mkdir(parents=True, exist_ok=True)
     try:
-        yield Path(tmp)
-        if _staged(path.parent):  # atomic_dir records its whole result at once
-            os.replace(tmp, path)
-            return
-        digest = content_digest(tmp)
-        with _record_lock(path.parent):
-            os.replace(tmp, path)
-            record = _written_record(path.parent)
-            record["files"][path.name] = digest
-            _write_record(path.parent, record)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-
-
-def atomic_write_text(path: str | os.PathLike, text: str) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
-
-
-#: files larger than this are known by name and size, not read whole, in content digests
-DIGEST_READ_BYTES = 64 * 2**20
-_DIGESTS: dict[tuple, str] = {}  # (path, size, mtime) -> digest of a file already read
-
-
-def content_digest(path: str | os.PathLike) -> str:
-    """A SHA-256 of what ``path`` holds, not of where it lies: a file's bytes (a file over
-    DIGEST_READ_BYTES: its size), a folder's files by relative name and digest, "missing"
-    when there is nothing. Moving or copying a run's inputs keeps their digests."""
-    import hashlib
-
-    path = Path(path)
-    h = hashlib.sha256()
-    if path.is_file():
-        st = path.stat()
-        key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
-        if key not in _DIGESTS:
-            if st.st_size > DIGEST_READ_BYTES:
-                h.update(f"size:{st.st_size}".encode())
-            else:
-                with open(path, "rb") as fh:
-                    for block in iter(lambda: fh.read(1 << 20), b""):
-                        h.update(block)
-            _DIGESTS[key] = h.hexdigest()
-        return _DIGESTS[key]
-    if path.is_dir():
-        for entry in sorted(p for p in path.rglob("*") if p.is_file()):
-            h.update(f"{entry.relative_to(path).as_posix()}={content_digest(entry)};".encode())
-        return h.hexdigest()
-    return "missing"
-
-
-#: each output folder's record of the files clflow wrote there: {"files": {relative path:
-#: content digest}, "source": the folder it was derived from, relative (render4d's)}. A
-#: command replaces or removes an entry only when this record proves clflow wrote all of it.
-WRITTEN_RECORD = ".clflow-written.json"
-
-
-def _written_record(folder: Path) -> dict:
-    import json
-
-    try:
-        record = json.loads((folder / WRITTEN_RECORD).read_text())
-    except (OSError, ValueError):
-        return {"files": {}}
-    ok = isinstance(record, dict) and isinstance(record.get("files"), dict)
-    return record if ok else {"files": {}}
-
-
-def _unowned_files(folder: Path, entry: Path) -> list[Path]:
-    """The files of ``entry`` (a file, or a folder's files at any depth) in ``folder`` that
-    no written-record (``folder``'s or one between it and the file) lists with its content."""
-    files = (
-        [entry] if not entry.is_dir() or entry.is_symlink() else sorted(p for p in entry.rglob("*") if not p.is_dir())
-    )
-    records: dict[Path, dict] = {}
-    unowned = []
-    for file in files:
-        if file.name == WRITTEN_RECORD:
-            continue
-        place, owned = file.parent, False
-        while not owned:
-            listed = records.setdefault(place, _written_record(place))["files"]
-            name = file.relative_to(place).as_posix()
-            owned = name in listed and not file.is_symlink() and listed[name] == content_digest(file)
-            if place == folder:
-                break
-            place = place.parent
-        if not owned:
-            unowned.append(file)
-    return unowned
-
-
-def derived_folders(path: Path) -> list[Path]:
-    """The folders in ``path`` that clflow derived from what ``path`` holds (their written-record
-    names ``path`` as its source, e.g. ``clflow render4d SIM -o SIM/mine``)."""
-    if not path.is_dir():
-        return []
-    return [
-        child
-        for child in sorted(path.iterdir())
-        if child.is_dir()
-        and isinstance(source := _written_record(child).get("source"), str)
-        and (child / source).resolve() == path.resolve()
-    ]
+        if shared and any(STAGING.fullmatch(entry) for entry in os.listdir(path)):
+            with folder_lock(path), contextlib.suppress(OSError):  # a reader first settles a dead writer's move
+                _settle(path)
+        with folder_lock(path, shared=shared) as first:
+            if first and not shared:
+                _settle(path)
+            yield path
+    finally:
+        if made:
+            with contextlib.suppress(OSError):
+                path.rmdir()
 
 
 def check_output_folder(path: str | os.PathLike, entries: tuple[str, ...], inputs=(), *, derived: bool = False) -> None:
-    """Refuse (InputError, one line) before any work a write into folder ``path`` that would
-    replace or remove what clflow did not write: ``entries`` are glob patterns of every entry
-    the command writes or replaces there (``derived``: also the folders clflow derived from
-    the earlier result); an entry's files must all be listed, with their content, in a
-    written-record, and none of ``inputs`` (the run's input files) may lie in one."""
-    from clflow.errors import InputError
-
+    """clflow.fileio.record.check_output_folder, once the folders among what it would replace
+    are settled (a dead writer's move there finished or undone; refused while a live one
+    writes there): their staging folders are clflow's to remove then, and another's not."""
     path = Path(path)
-    if not path.is_dir():
+    if path.is_dir():
+        for target in record.targets(path, entries, derived=derived):
+            for root, dirs, _ in os.walk(target) if target.is_dir() and not target.is_symlink() else ():
+                if any(STAGING.fullmatch(d) for d in dirs):
+                    with output_folder(root):
+                        pass
+                dirs[:] = [d for d in dirs if not is_bookkeeping(d)]
+    record.check_output_folder(path, entries, inputs, derived=derived)
+
+
+def _settle(folder: Path) -> None:
+    """Finish (or undo) the moves of dead writers' transactions in ``folder`` and remove
+    their staging folders (the caller holds the folder's lock)."""
+    for name in sorted(os.listdir(folder)):
+        match = STAGING.fullmatch(name)
+        stage = folder / name
+        if match is None or stage.is_symlink() or not stage.is_dir():
+            continue
+        with _dead_claim(stage, match["token"]) as dead:
+            if dead:
+                journal = _read_journal(stage)
+                if journal is not None:
+                    _Transaction(folder, stage, journal).finish(verify=True)
+                shutil.rmtree(stage)
+
+
+@contextlib.contextmanager
+def _dead_claim(stage: Path, token: str) -> Iterator[bool]:
+    """Whether staging folder ``stage`` is clflow's and its writer gone (its claim names
+    its token and can be locked; held locked through the block). A claim that cannot be read
+    proves nothing: only an empty staging folder goes then."""
+    import fcntl
+
+    try:
+        fd = os.open(stage / CLAIM, os.O_RDWR | os.O_CLOEXEC)
+    except OSError:
+        with contextlib.suppress(OSError):
+            stage.rmdir()  # empty: a writer stopped between making it and claiming it
+        yield False
         return
-    targets = {entry for pattern in entries for entry in path.glob(pattern)}
-    targets = sorted(targets | set(derived_folders(path) if derived else []))
-    for given in inputs:
-        source = Path(given).resolve()
-        for target in targets:
-            if source == target.resolve():
-                raise InputError(f"{given} is an input of this run and one of its outputs: write elsewhere (-o)")
-            if target.resolve() in source.parents:
-                raise InputError(
-                    f"{given} is an input of this run and lies in {target}, which this run replaces: write "
-                    f"elsewhere (-o) or move the input"
-                )
-    unowned = [file for target in targets for file in _unowned_files(path, target)]
-    if unowned:
-        names = ", ".join(str(f.relative_to(path)) for f in unowned[:3]) + (
-            f" and {len(unowned) - 3} more" if len(unowned) > 3 else ""
-        )
-        raise InputError(
-            f"{path} holds {names}, which clflow did not write (or which changed since) and this run would replace "
-            f"or remove: move {'them' if len(unowned) > 1 else 'it'} or write elsewhere (-o)"
-        )
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:  # alive (held), or no locks on this file system: unknown
+            yield False
+            return
+        try:
+            ours = json.loads(os.pread(fd, 4096, 0)).get("token") == token
+        except (OSError, ValueError, AttributeError):
+            ours = False
+        if not ours and os.listdir(stage) == [CLAIM]:
+            ours = True  # stopped while claiming: nothing but its claim to lose
+        yield ours
+    finally:
+        os.close(fd)
 
 
-def _remove_written(entry: Path) -> None:
-    """Remove ``entry`` (checked by check_output_folder: clflow wrote all of it)."""
-    if entry.is_dir() and not entry.is_symlink():
-        shutil.rmtree(entry)
-    else:
-        entry.unlink()
+class _Claim:
+    """A staging folder ``.clflow-staging.<token>`` in ``folder``, claimed (locked) for this
+    writer's life and removed with all it holds when it ends."""
+
+    def __init__(self, folder: Path):
+        import fcntl
+
+        self.token = secrets.token_hex(16)
+        self.path = folder / f".clflow-staging.{self.token}"
+        try:
+            self.path.mkdir()
+        except OSError as exc:
+            raise OSError(exc.errno, f"cannot write here ({(exc.strerror or str(exc)).lower()})", str(folder)) from None
+        self.fd = os.open(self.path / CLAIM, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
+        with contextlib.suppress(OSError):
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        os.pwrite(self.fd, json.dumps({"token": self.token, "pid": os.getpid()}).encode(), 0)
+        with _STAGING_LOCK:
+            _STAGING.add(self.path.resolve())
+
+    def close(self) -> None:
+        with _STAGING_LOCK:
+            _STAGING.discard(self.path.resolve())
+        shutil.rmtree(self.path, ignore_errors=True)
+        os.close(self.fd)
+
+
+#: the staging folders of this process: what atomic_path writes inside one is part of that
+#: result (recorded, and made atomic, with it), so it is written in place
+_STAGING: set[Path] = set()
+_STAGING_LOCK = threading.Lock()
+
+
+def _staged(folder: Path) -> bool:
+    """Whether ``folder`` lies in a staging folder of this process."""
+    if not _STAGING:
+        return False
+    folder = folder.resolve()
+    with _STAGING_LOCK:
+        return any(stage in folder.parents or stage == folder for stage in _STAGING)
+
+
+class _Transaction:
+    """The move of a staged result into ``folder`` (see the module's docstring): the earlier
+    entries ``old`` go aside into ``stage/old``, the new ``new`` come in from ``stage/new``,
+    then the record. Each step can be taken again: a step found done is skipped."""
+
+    def __init__(self, folder: Path, stage: Path, journal: dict):
+        self.folder, self.stage, self.journal = folder, stage, journal
+        self.old, self.new = journal["old"], journal["new"]
+
+    def commit(self) -> None:
+        """Journal the move (the commit point), then make it; a move that fails is undone."""
+        _write_synced(self.stage / JOURNAL, self.journal)
+        _sync(self.stage)
+        try:
+            self.finish()
+        except OSError as exc:
+            self.journal["undo"] = True
+            try:
+                _write_synced(self.stage / JOURNAL, self.journal)
+                self.undo()
+            except OSError:
+                raise OSError(
+                    exc.errno,
+                    f"{(exc.strerror or str(exc)).lower()}; the move of the new result stopped half-way and could "
+                    f"not be undone: clflow's next write to {self.folder} finishes it",
+                    exc.filename,
+                ) from None
+            raise OSError(
+                exc.errno, f"{(exc.strerror or str(exc)).lower()}; the earlier result is kept", exc.filename
+            ) from None
+
+    def finish(self, verify: bool = False) -> None:
+        """Make the journaled move (or, if the journal says so, undo it); ``verify``: a dead
+        writer's, whose new files are fingerprinted only where they still hold what it wrote."""
+        if self.journal.get("undo"):
+            self.undo()
+            return
+        aside = self.stage / "old"
+        aside.mkdir(exist_ok=True)
+        for name in self.old:
+            here, new = self.folder / name, self.stage / "new" / name
+            if (
+                not os.path.lexists(aside / name)
+                and os.path.lexists(here)
+                and (name not in self.new or os.path.lexists(new))
+            ):
+                os.rename(here, aside / name)
+        for name in self.new:
+            if os.path.lexists(self.stage / "new" / name):
+                if os.path.lexists(self.folder / name):
+                    raise FileExistsError(errno.EEXIST, "appeared while the result moved in", str(self.folder / name))
+                os.rename(self.stage / "new" / name, self.folder / name)
+        record = Record(**self.journal["record"])
+        for name, digest in record.files.items():  # the new files' fingerprints, as they lie now
+            if name.split("/")[0] in self.new and digest != FOLDER:
+                here = self.folder / name
+                if not verify or (here.is_file() and content_digest(here) == digest):
+                    record.stats[name] = fingerprint(here)
+        write_record(self.folder, record, self.stage)
+        _sync(self.folder)
+        (self.stage / JOURNAL).unlink()
+
+    def undo(self) -> None:
+        """Put the earlier result back (each new entry out, each earlier one in) and its record."""
+        staged, aside = self.stage / "new", self.stage / "old"
+        for name in self.new:
+            here = self.folder / name
+            moved_in = not os.path.lexists(staged / name) and os.path.lexists(here)
+            if moved_in and (name not in self.old or os.path.lexists(aside / name)):
+                os.rename(here, staged / name)
+        for name in self.old:
+            if os.path.lexists(aside / name):
+                os.rename(aside / name, self.folder / name)
+        earlier = self.journal.get("earlier_record")
+        if earlier is not None and read_record(self.folder).to_json() != earlier:  # replaced before the stop
+            write_record(self.folder, Record(**earlier), self.stage)
+        _sync(self.folder)
+        (self.stage / JOURNAL).unlink()
+
+
+def _read_journal(stage: Path) -> dict | None:
+    try:
+        journal = json.loads((stage / JOURNAL).read_text())
+    except (OSError, ValueError):
+        return None  # none (not committed: the folder was not touched) or not yet synced
+    return journal if isinstance(journal, dict) and {"old", "new", "record"} <= journal.keys() else None
+
+
+def _write_synced(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as fh:
+        json.dump(data, fh)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _sync(path: Path) -> None:
+    """fsync ``path`` (a file's data, a folder's entries; for a folder, everything under it)."""
+    if path.is_dir() and not path.is_symlink():
+        for root, _, files in os.walk(path):
+            for name in files:
+                _sync(Path(root, name))
+    flags = os.O_RDONLY | (os.O_DIRECTORY if path.is_dir() else 0)
+    try:
+        fd = os.open(path, flags | os.O_NOFOLLOW)
+    except OSError:
+        return  # a link: nothing of its own to sync
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass  # file systems that cannot sync (some FUSE, /proc)
+    finally:
+        os.close(fd)
 
 
 @contextlib.contextmanager
@@ -237,75 +318,154 @@ def atomic_dir(
     derived: bool = False,
     source: str | os.PathLike | None = None,
 ) -> Iterator[Path]:
-    """Yield a temporary folder next to folder ``path``; if the block succeeds, move what it
-    holds into ``path`` (replacing entries of the same name), delete the entries of ``path``
-    that match a glob pattern of ``replaces`` but were not written now (the earlier result's,
-    e.g. its extra frames), with ``derived`` the folders derived from the earlier result, and record what
-    was written in ``path``'s written-record (``source``: the folder this result derives from);
-    else delete it. A failure leaves ``path`` as it was; a success leaves one result, never a
-    mix. What clflow did not write, and ``inputs``, are never replaced or removed: refused
-    on entering (call :func:`check_output_folder` before long work to refuse before it)."""
+    """Yield a staging folder for a result in folder ``path``; if the block succeeds, move
+    what it holds into ``path`` as one step (replacing entries of the same name), together
+    with removing the entries of ``path`` that match a glob pattern of ``replaces`` but were
+    not written now (the earlier result's, e.g. its extra frames) and, with ``derived``, the
+    folders derived from the earlier result; ``source``: the folder this result derives from,
+    recorded. A failure leaves ``path`` as it was. What clflow did not write, and
+    ``inputs``, are never replaced or removed: refused on entering and again before the move
+    (call :func:`check_output_folder` before long work to refuse before it)."""
     path = Path(path)
-    check_output_folder(path, replaces, inputs, derived=derived)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    prefix = _temporary_prefix(path, path.name)
-    tmp = Path(_creating(path, lambda: tempfile.mkdtemp(prefix=prefix, suffix=".tmp", dir=path.parent)))
-    with _STAGING_LOCK:
-        _STAGING.add(tmp.resolve())
+    with output_folder(path):
+        check_output_folder(path, replaces, inputs, derived=derived)
+        claim = _Claim(path)
+        try:
+            new = claim.path / "new"
+            new.mkdir()
+            yield new
+            written = sorted(os.listdir(new))
+            escaped = tuple(glob.escape(name) for name in written)
+            check_output_folder(path, (*replaces, *escaped), inputs, derived=derived)  # as the folder is now
+            earlier = read_record(path)
+            old = sorted({e.name for e in targets(path, (*replaces, *escaped), derived=derived)})
+            files = {**_recorded(earlier, path, {*old, *written}), **_digests(new)}
+            kept = {n: earlier.stats[n] for n in files if n in earlier.stats and n.split("/")[0] not in written}
+            record = Record(files=files, stats=kept)
+            if source is not None:
+                record.source = os.path.relpath(Path(source).resolve(), path.resolve())
+            _sync(new)
+            journal = {
+                "old": old,
+                "new": written,
+                "record": {"files": record.files, "stats": record.stats, "source": record.source},
+                "earlier_record": None if earlier.problem else earlier.to_json(),
+            }
+            with _signals_held():  # Ctrl-C or SIGTERM now lands after the move, not inside it
+                _Transaction(path, claim.path, journal).commit()
+        finally:
+            claim.close()
+
+
+def _recorded(record: Record, folder: Path, replaced: set[str]) -> dict[str, str]:
+    """``record``'s files that stay: not under a replaced entry, and still there."""
+    return {
+        name: digest
+        for name, digest in record.files.items()
+        if name.split("/")[0] not in replaced and os.path.lexists(folder / name.rstrip("/"))
+    }
+
+
+def _digests(new: Path) -> dict[str, str]:
+    """The record's files of staged result ``new``: each file's digest, each empty folder."""
+    files = {}
+    for root, dirs, names in os.walk(new):
+        rel = Path(root).relative_to(new).as_posix()
+        for name in names:
+            files[f"{name}" if rel == "." else f"{rel}/{name}"] = content_digest(Path(root, name))
+        if not dirs and not names and rel != ".":
+            files[f"{rel}/"] = FOLDER
+    return files
+
+
+def remove_entries(path: str | os.PathLike, entries: tuple[str, ...]) -> list[str]:
+    """Remove the entries of folder ``path`` that glob patterns ``entries`` match, as one
+    step (refused, InputError, if clflow did not write all of them); returns their names."""
+    path = Path(path)
+    if not path.is_dir():
+        return []
+    gone = [e.name for e in targets(path, entries)]
+    if gone:
+        with atomic_dir(path, replaces=entries):
+            pass
+    return gone
+
+
+def discard_written(path: str | os.PathLike) -> None:
+    """Remove, as one step, what clflow wrote in folder ``path`` (a first run's, on its
+    failure) and the folder if nothing else is left in it; the rest stays."""
+    path = Path(path)
+    if not path.is_dir():
+        return
+    ours = [e for e in path.iterdir() if not is_bookkeeping(e.name) and not unowned_files(path, e)]
+    remove_entries(path, tuple(glob.escape(e.name) for e in ours))
+    if all(is_bookkeeping(name) for name in os.listdir(path)):  # the lock goes with its holder
+        (path / WRITTEN_RECORD).unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            path.rmdir()
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path for file ``path`` (its suffix kept, so writers that choose a
+    format by the extension behave); if the block succeeds, move it onto ``path`` and list
+    it in the folder's record; else nothing is left. Refuses (InputError) to replace a file
+    clflow did not write. Inside a staging folder of :func:`atomic_dir` the file is written in
+    place: the result it belongs to is moved and recorded as a whole."""
+    path = Path(path)
+    if _staged(path.parent):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.touch()
+        try:
+            yield path
+        except BaseException:
+            path.unlink(missing_ok=True)
+            raise
+        return
+    folder = path.parent
+    folder.mkdir(parents=True, exist_ok=True)
+    name = (glob.escape(path.name),)
+    check_output_folder(folder, name)
+    claim = _Claim(folder)
     try:
+        tmp = claim.path / path.name
+        tmp.touch()
         yield tmp
-        written = sorted(entry.name for entry in tmp.iterdir())
-        check_output_folder(path, tuple(glob.escape(name) for name in written), inputs)  # names outside ``replaces``
-        for inner in tmp.rglob(WRITTEN_RECORD):  # its files' own records (atomic_path's): one for the whole
-            inner.unlink()
-        new_files = {
-            file.relative_to(tmp).as_posix(): content_digest(file) for file in tmp.rglob("*") if not file.is_dir()
-        }
-        record = _written_record(path) if path.exists() else {"files": {}}
-        if path.exists():
-            stale = [old for pattern in replaces for old in path.glob(pattern) if old.name not in written]
-            for old in {*stale, *(derived_folders(path) if derived else [])}:
-                _remove_written(old)
-            for name in written:
-                target = path / name
-                if target.is_dir() and not target.is_symlink():
-                    shutil.rmtree(target)
-        kept = {
-            name: digest
-            for name, digest in record["files"].items()
-            if name.split("/")[0] not in written and (path / name).is_file()
-        }
-        record = {"files": {**kept, **new_files}}
-        if source is not None:
-            record["source"] = os.path.relpath(Path(source).resolve(), path.resolve())
-        _write_record(tmp, record)
-        with _signals_held():  # Ctrl-C or SIGTERM now would leave a mix: they land after the moves
-            if not path.exists():
-                tmp.chmod(0o777 & ~_umask())
-                os.replace(tmp, path)
-                return
-            for entry in tmp.iterdir():
-                os.replace(entry, path / entry.name)
+        digest = content_digest(tmp)
+        _sync(tmp)
+        with output_folder(folder), _signals_held():
+            check_output_folder(folder, name)  # as the folder is now
+            record = _settled(folder, read_record(folder))
+            record.moving[path.name] = digest  # stopped mid-move: either content is clflow's
+            write_record(folder, record, claim.path)
+            os.replace(tmp, path)
+            del record.moving[path.name]
+            record.files[path.name], record.stats[path.name] = digest, fingerprint(path)
+            write_record(folder, record, claim.path)
     finally:
-        with _STAGING_LOCK:
-            _STAGING.discard(tmp.resolve())
-        shutil.rmtree(tmp, ignore_errors=True)
+        claim.close()
 
 
-#: the staging folders of this process's atomic_dir blocks: the files atomic_path writes
-#: inside them skip their folder's written-record (one read and rewrite per file, O(n^2)
-#: for n frames), since atomic_dir records the whole result when it moves it in
-_STAGING: set[Path] = set()
-_STAGING_LOCK = threading.Lock()
+def _settled(folder: Path, record: Record) -> Record:
+    """``record`` with the files that writers stopped moving in settled: kept as clflow's
+    where the file holds the moved content, dropped where it holds neither."""
+    for name, digest in list(record.moving.items()):
+        if (folder / name).is_file() and content_digest(folder / name) == digest:
+            record.files[name] = digest
+            record.stats.pop(name, None)
+        del record.moving[name]
+    return record
 
 
-def _staged(folder: Path) -> bool:
-    """Whether ``folder`` lies in a staging folder of an :func:`atomic_dir` of this process."""
-    if not _STAGING:
-        return False
-    folder = folder.resolve()
-    with _STAGING_LOCK:
-        return any(stage == folder or stage in folder.parents for stage in _STAGING)
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+def copy_file(source: str | os.PathLike, path: str | os.PathLike) -> None:
+    """Copy file ``source`` to ``path`` as :func:`atomic_path` writes it."""
+    with atomic_path(path) as tmp:
+        shutil.copyfile(source, tmp)
 
 
 @contextlib.contextmanager
@@ -330,32 +490,13 @@ def _signals_held() -> Iterator[None]:
                 os.kill(os.getpid(), sig)
 
 
-def _write_record(folder: Path, record: dict) -> None:
-    """``folder``'s written-record, replaced atomically (a reader sees the old or the new)."""
-    import json
-
-    fd, tmp = tempfile.mkstemp(prefix=f".record.{os.getpid()}.", suffix=".tmp", dir=folder)
-    with os.fdopen(fd, "w") as fh:
-        json.dump(record, fh, indent=1, sort_keys=True)
-    os.chmod(tmp, 0o666 & ~_umask())
-    os.replace(tmp, folder / WRITTEN_RECORD)
-
-
-@contextlib.contextmanager
-def _record_lock(folder: Path) -> Iterator[None]:
-    """Hold ``folder``'s written-record for a read-modify-write (processes writing into one
-    folder at once, e.g. parallel starts, each add their files)."""
-    import fcntl
-
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
-    finally:
-        os.close(fd)  # releases the lock
-
-
-def _umask() -> int:
-    umask = os.umask(0)
-    os.umask(umask)
-    return umask
+__all__ = [
+    "HELD_SIGNALS",
+    "atomic_dir",
+    "atomic_path",
+    "atomic_write_text",
+    "copy_file",
+    "discard_written",
+    "output_folder",
+    "remove_entries",
+]

@@ -18,12 +18,11 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import shutil
 import time
 from typing import Callable, Iterable, Iterator
 
 from clflow.errors import ClflowError, InputError
-from clflow.fileio import atomic_write_text
+from clflow.fileio import atomic_write_text, copy_file
 from clflow.materials import get_material, validate_params
 from clflow.pipeline.material import resolve_material
 from clflow.scene.config import VELOCITY, MaterialConfig, SceneConfig
@@ -71,7 +70,7 @@ def search_hypothesis(
     for view in range(1 + len(cfg.more_views)):  # the observed flow is computed once for all
         shared, own = observed_flow_cache(cfg, view), observed_flow_cache(hyp, view)
         if shared.exists() and not own.exists():
-            shutil.copyfile(shared, own)
+            copy_file(shared, own)
     start = time.perf_counter()
     try:
         opt = Optimization(
@@ -142,7 +141,7 @@ def choose_material(
             continue
         for view in range(1 + len(cfg.more_views)):
             if not observed_flow_cache(cfg, view).exists():
-                shutil.copyfile(observed_flow_cache(found["config"], view), observed_flow_cache(cfg, view))
+                copy_file(observed_flow_cache(found["config"], view), observed_flow_cache(cfg, view))
         states[material], configs[material] = found["state"], found["config"]
     ran = [m for m in record if "loss" in record[m]]
     if not ran:

@@ -14,7 +14,6 @@ import contextlib
 import dataclasses
 import logging
 import math
-import shutil
 import warnings
 from pathlib import Path
 from typing import Callable, ContextManager
@@ -26,10 +25,6 @@ from clflow.limits import DEFAULT_MAX_OUTPUT_GB
 #: checkpoint, the search starts' polishes, the material hypotheses' searches, the main grid
 #: a budget chose (a new run times the device again)
 RESUMABLE = ("checkpoint.json", "starts", "hypotheses", "budget.json")
-#: a run's own entries in its output folder (glob patterns), which a new run (no --resume)
-#: removes before it writes anything: the folder never mixes two runs. Caches that are
-#: checked against the config (the observed flow, the estimator error, the material query)
-#: stay.
 #: an optimisation's results, written at its end as one step (all of them or none)
 RESULTS = (
     "params.json",
@@ -41,7 +36,13 @@ RESULTS = (
     "run.json",
     "index.html",
 )
+#: a run's own entries in its output folder (glob patterns), which a new run (no --resume)
+#: removes as one step before it writes anything: the folder never mixes two runs
 RUN_ENTRIES = (*RESUMABLE, "hypotheses.json", *RESULTS)
+#: what an optimisation keeps in its folder across runs, each checked against the config
+#: where it is read: the observed flow, the estimator's error, the material query's record
+#: and the guidance frame it was asked about
+CACHES = ("observed_flow*.npz", "estimator_error.npz", "material_query*.json", "guidance_frame0.png")
 
 
 #: a scene simulation's entries in its folder, and what clflow render4d derives from them
@@ -178,7 +179,7 @@ def simulate_scene(
     ``advance(name, to=k)``, called after frame k (a CFL retry starts again at 1). Returns the folder."""
     import torch
 
-    from clflow.fileio import atomic_dir, check_output_folder
+    from clflow.fileio import atomic_dir, check_output_folder, output_folder
     from clflow.limits import check_memory, check_output
     from clflow.pipeline.forward import prepare, render_video, simulate_config
     from clflow.pipeline.frames4d import export_gaussians, export_size
@@ -190,50 +191,52 @@ def simulate_scene(
     scene = None
     if len(cfg.objects) > 1:
         scene = load_scene_objects(cfg, torch.float32)  # selections checked (empty, overlapping) before a query
-    cfg = resolve_material(cfg)
-    overrides, min_substeps = {}, 1
-    if params_file:
-        cfg, overrides, min_substeps = read_params_record(params_file, cfg)
     out = Path(out_dir) if out_dir else cfg.output / "simulation"
-    inputs = [*input_files(cfg), *([params_file] if params_file else [])]
-    check_output_folder(out, SIMULATION_ENTRIES, inputs, derived=True)  # before any work
-    prepared = prepare(cfg, scene=scene)
-    frames = cfg.simulation.frames
-    written, memory = export_size(prepared, frames, preview != "none")
-    less = "simulate fewer frames (simulation.frames)"
-    check_output(out, written, max_output_gb, f"{frames + 1:,} frames of Gaussians", less)
-    check_memory(memory, f"simulating {frames + 1:,} frames", less)
-    shown = progress(frames, "simulating") if progress else contextlib.nullcontext(None)
-    with shown as advance:
-        result = simulate_config(
-            cfg,
-            overrides,
-            prepared,
-            max_substeps=max_substeps,
-            on_frame=_frame_progress(advance),
-            min_substeps=min_substeps,
+    check_output(out)
+    with output_folder(out):  # this run's: other runs are refused, before any work
+        cfg = resolve_material(cfg)
+        overrides, min_substeps = {}, 1
+        if params_file:
+            cfg, overrides, min_substeps = read_params_record(params_file, cfg)
+        inputs = [*input_files(cfg), *([params_file] if params_file else [])]
+        check_output_folder(out, SIMULATION_ENTRIES, inputs, derived=True)
+        prepared = prepare(cfg, scene=scene)
+        frames = cfg.simulation.frames
+        written, memory = export_size(prepared, frames, preview != "none")
+        less = "simulate fewer frames (simulation.frames)"
+        check_output(out, written, max_output_gb, f"{frames + 1:,} frames of Gaussians", less)
+        check_memory(memory, f"simulating {frames + 1:,} frames", less)
+        shown = progress(frames, "simulating") if progress else contextlib.nullcontext(None)
+        with shown as advance:
+            result = simulate_config(
+                cfg,
+                overrides,
+                prepared,
+                max_substeps=max_substeps,
+                on_frame=_frame_progress(advance),
+                min_substeps=min_substeps,
+            )
+        if len(cfg.objects) == 1:
+            echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
+        else:
+            counts = torch.bincount(prepared.setup.object_index, minlength=len(cfg.objects)).tolist()
+            each = ", ".join(f"{o.name} {c:,} of {o.material.type}" for o, c in zip(cfg.objects, counts))
+            echo(f"{result.x.shape[1]:,} particles ({each}), {frames} frames")
+        # all or nothing: a failure leaves OUT as it was; a success replaces the earlier
+        # simulation's frames (all of them) and what was rendered from it
+        with atomic_dir(out, replaces=SIMULATION_ENTRIES, inputs=inputs, derived=True) as tmp:
+            export_gaussians(result, tmp, object_only, compressed)
+            if preview != "none":
+                render_video(result, tmp / "guidance", video=tmp / "guidance.mp4" if preview == "mp4" else None)
+        suffix = ".compressed.ply" if compressed else ".ply"
+        objects = "object" if len(cfg.objects) == 1 else "objects"
+        echo(
+            f"wrote {out / 'gaussians.npz'} and {result.x.shape[0]} PLY frames ({out / ('frame_000' + suffix)} ...)"
+            + (f" of the {objects}, the static scene in {out / ('static' + suffix)}" if object_only else "")
         )
-    if len(cfg.objects) == 1:
-        echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
-    else:
-        counts = torch.bincount(prepared.setup.object_index, minlength=len(cfg.objects)).tolist()
-        each = ", ".join(f"{o.name} {c:,} of {o.material.type}" for o, c in zip(cfg.objects, counts))
-        echo(f"{result.x.shape[1]:,} particles ({each}), {frames} frames")
-    # all or nothing: a failure leaves OUT as it was; a success replaces the earlier
-    # simulation's frames (all of them) and what was rendered from it
-    with atomic_dir(out, replaces=SIMULATION_ENTRIES, inputs=inputs, derived=True) as tmp:
-        export_gaussians(result, tmp, object_only, compressed)
         if preview != "none":
-            render_video(result, tmp / "guidance", video=tmp / "guidance.mp4" if preview == "mp4" else None)
-    suffix = ".compressed.ply" if compressed else ".ply"
-    objects = "object" if len(cfg.objects) == 1 else "objects"
-    echo(
-        f"wrote {out / 'gaussians.npz'} and {result.x.shape[0]} PLY frames ({out / ('frame_000' + suffix)} ...)"
-        + (f" of the {objects}, the static scene in {out / ('static' + suffix)}" if object_only else "")
-    )
-    if preview != "none":
-        echo(f"wrote {out / 'guidance.mp4' if preview == 'mp4' else out / 'guidance'}")
-    return out
+            echo(f"wrote {out / 'guidance.mp4' if preview == 'mp4' else out / 'guidance'}")
+        return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -330,7 +333,8 @@ def simulate_particles(
     import numpy as np
     import torch
 
-    from clflow.fileio import atomic_dir, check_output_folder
+    from clflow.fileio import atomic_dir, check_output_folder, output_folder
+    from clflow.limits import check_output
     from clflow.mpm import Grid, MaterialSpec, Simulator, StabilityWarning
     from clflow.mpm.preview import PREVIEW_SIZE, write_preview
     from clflow.mpm.substep import check_device, check_grid_memory
@@ -341,64 +345,66 @@ def simulate_particles(
     if run.resolution < 8 or not run.domain > 0:
         raise InputError(f"--grid must be >= 8 and --domain > 0, got {run.resolution}, {run.domain}")
     inputs = [run.particles] if run.particles else []
-    check_output_folder(out_dir, PARTICLE_ENTRIES, inputs)  # before any work
-    dx = run.domain / (run.resolution - 1)
-    grid = Grid((run.resolution,) * 3, dx)
-    dtype = torch.float64 if run.double else torch.float32
-    check_device(device or get_device(), dtype)
-    check_grid_memory(device or get_device(), grid, dtype.itemsize)  # before filling the shape at dx / 2
-    x, volume = _particles_of(run, dx)
+    check_output(out_dir)
+    with output_folder(out_dir):  # this run's: other runs are refused, before any work
+        check_output_folder(out_dir, PARTICLE_ENTRIES, inputs)
+        dx = run.domain / (run.resolution - 1)
+        grid = Grid((run.resolution,) * 3, dx)
+        dtype = torch.float64 if run.double else torch.float32
+        check_device(device or get_device(), dtype)
+        check_grid_memory(device or get_device(), grid, dtype.itemsize)  # before filling the shape at dx / 2
+        x, volume = _particles_of(run, dx)
 
-    def simulator(substeps: int | None):
-        return Simulator(
-            x,
-            volume,
-            MaterialSpec(run.material, dict(run.params), run.density, run.model),
-            grid,
-            velocities=torch.tensor(run.velocity, dtype=torch.float64).expand(x.shape[0], 3),
-            frame_dt=1.0 / run.fps,
-            substeps=substeps,
-            gravity=list(run.gravity),
-            walls=None if run.walls == "none" else run.walls,
-            wall_friction=run.wall_friction,
-            dtype=dtype,
-            device=device,
-        )
+        def simulator(substeps: int | None):
+            return Simulator(
+                x,
+                volume,
+                MaterialSpec(run.material, dict(run.params), run.density, run.model),
+                grid,
+                velocities=torch.tensor(run.velocity, dtype=torch.float64).expand(x.shape[0], 3),
+                frame_dt=1.0 / run.fps,
+                substeps=substeps,
+                gravity=list(run.gravity),
+                walls=None if run.walls == "none" else run.walls,
+                wall_friction=run.wall_friction,
+                dtype=dtype,
+                device=device,
+            )
 
-    with warnings.catch_warnings():  # an unstable --substeps is refused below, with the option's name
-        warnings.simplefilter("ignore", StabilityWarning)
-        sim = simulator(run.substeps)
-    unstable = run.substeps is not None and unstable_start(sim)
-    if unstable:
-        raise InputError(
-            f"--substeps {run.substeps} (dt = {sim.dt:.3g} s) is {unstable}; the run would blow up or break the "
-            f"CFL limit: use more --substeps, or leave the option out to take the stable count"
+        with warnings.catch_warnings():  # an unstable --substeps is refused below, with the option's name
+            warnings.simplefilter("ignore", StabilityWarning)
+            sim = simulator(run.substeps)
+        unstable = run.substeps is not None and unstable_start(sim)
+        if unstable:
+            raise InputError(
+                f"--substeps {run.substeps} (dt = {sim.dt:.3g} s) is {unstable}; the run would blow up or break the "
+                f"CFL limit: use more --substeps, or leave the option out to take the stable count"
+            )
+        out, frames = Path(out_dir), run.frames
+        _check_particle_outputs(out, frames, sim.n, dtype.itemsize, preview, max_output_gb)
+        echo(
+            f"{sim.n:,} particles of {run.material}, {frames} frames x {sim.substeps} substeps (dt = {sim.dt:.3g} s, "
+            f"limited by {sim.limit_reason(sim.state.v)})"
         )
-    out, frames = Path(out_dir), run.frames
-    _check_particle_outputs(out, frames, sim.n, dtype.itemsize, preview, max_output_gb)
-    echo(
-        f"{sim.n:,} particles of {run.material}, {frames} frames x {sim.substeps} substeps (dt = {sim.dt:.3g} s, "
-        f"limited by {sim.limit_reason(sim.state.v)})"
-    )
-    limit = max_substeps or DEFAULT_MAX_SUBSTEPS
-    if sim.substeps > limit:
-        raise InputError(
-            f"{sim.substeps} substeps per frame (dt = {sim.dt:.3g} s) is beyond the limit of {limit}; "
-            f"ways out: a softer material, a coarser --grid, fewer --substeps, or raise the limit "
-            f"with --max-substeps N"
-        )
-    shown = progress(frames, "simulating") if progress else contextlib.nullcontext(None)
-    with shown as advance:
-        traj = _run_with_cfl_retries(sim, simulator, frames, advance, chosen=run.substeps is not None, limit=limit)
-    target = out / ("preview.mp4" if preview == "mp4" else "preview")
-    with atomic_dir(out, replaces=PARTICLE_ENTRIES, inputs=inputs) as tmp:  # all or nothing, one result
-        np.savez(tmp / "positions.npz", x=traj.x.float().numpy(), time=traj.time.numpy())
+        limit = max_substeps or DEFAULT_MAX_SUBSTEPS
+        if sim.substeps > limit:
+            raise InputError(
+                f"{sim.substeps} substeps per frame (dt = {sim.dt:.3g} s) is beyond the limit of {limit}; "
+                f"ways out: a softer material, a coarser --grid, fewer --substeps, or raise the limit "
+                f"with --max-substeps N"
+            )
+        shown = progress(frames, "simulating") if progress else contextlib.nullcontext(None)
+        with shown as advance:
+            traj = _run_with_cfl_retries(sim, simulator, frames, advance, chosen=run.substeps is not None, limit=limit)
+        target = out / ("preview.mp4" if preview == "mp4" else "preview")
+        with atomic_dir(out, replaces=PARTICLE_ENTRIES, inputs=inputs) as tmp:  # all or nothing, one result
+            np.savez(tmp / "positions.npz", x=traj.x.float().numpy(), time=traj.time.numpy())
+            if preview != "none":
+                write_preview(traj.x, grid.origin, grid.upper, tmp / target.name, run.fps, PREVIEW_SIZE)
+        echo(f"wrote {out / 'positions.npz'}")
         if preview != "none":
-            write_preview(traj.x, grid.origin, grid.upper, tmp / target.name, run.fps, PREVIEW_SIZE)
-    echo(f"wrote {out / 'positions.npz'}")
-    if preview != "none":
-        echo(f"wrote {target}")
-    return out
+            echo(f"wrote {target}")
+        return out
 
 
 def render_simulation_4d(
@@ -415,7 +421,7 @@ def render_simulation_4d(
     guidance camera, an orbiting camera and ``views`` fixed novel viewpoints into ``out_dir``
     (default: SIMULATION/render4d); ``progress(total, label)`` yields ``advance(name)``,
     called once per frame written. Returns the videos."""
-    from clflow.fileio import check_output_folder
+    from clflow.fileio import check_output_folder, output_folder
     from clflow.limits import check_output
     from clflow.pipeline.frames4d import (
         NPZ_NAME,
@@ -426,21 +432,27 @@ def render_simulation_4d(
         render_4d_size,
     )
 
-    frames = load_frames(simulation)
-    out = Path(out_dir) if out_dir else Path(simulation) / "render4d"
-    check_output_folder(out, RENDER_4D_ENTRIES, [Path(simulation) / NPZ_NAME])  # before any work
-    check_output(
-        out,
-        render_4d_size(frames, views),
-        max_output_gb,
-        f"{views + 2:,} sequences of {frames.frame_count} frames",
-        "render fewer --views",
-    )
-    shown = progress(render_4d_frames(frames, views), "rendering") if progress else contextlib.nullcontext(None)
-    with shown as advance:
-        videos = render_4d(
-            frames, out, views=views, turns=turns, video_format=video_format, advance=advance, source=Path(simulation)
+    simulation = Path(simulation)
+    out = Path(out_dir) if out_dir else simulation / "render4d"
+    with contextlib.ExitStack() as held:
+        if simulation.is_dir():  # read while no run writes it
+            held.enter_context(output_folder(simulation, shared=True))
+        frames = load_frames(simulation)
+        check_output(out)
+        held.enter_context(output_folder(out))  # this run's: other runs are refused, before any work
+        check_output_folder(out, RENDER_4D_ENTRIES, [simulation / NPZ_NAME])
+        check_output(
+            out,
+            render_4d_size(frames, views),
+            max_output_gb,
+            f"{views + 2:,} sequences of {frames.frame_count} frames",
+            "render fewer --views",
         )
+        shown = progress(render_4d_frames(frames, views), "rendering") if progress else contextlib.nullcontext(None)
+        with shown as advance:
+            videos = render_4d(
+                frames, out, views=views, turns=turns, video_format=video_format, advance=advance, source=simulation
+            )
     for video in videos:
         echo(f"wrote {video} and {video.with_suffix('')}/*.png ({frames.frame_count} frames)")
     return videos
@@ -531,11 +543,9 @@ def _optimize_config(
     """run_optimization's work once its config is loaded (``again``: the command that resumes it)."""
     import torch
 
-    from clflow.fileio import check_output_folder
+    from clflow.fileio import output_folder
     from clflow.limits import check_output
     from clflow.mpm.substep import check_device
-    from clflow.pipeline.fit import resampled_guidance
-    from clflow.pipeline.fit.state import check_resume
     from clflow.runtime import get_device
 
     check_device(get_device(), torch.float32, differentiable=True)  # before any work
@@ -544,6 +554,17 @@ def _optimize_config(
     if output is not None:
         cfg = dataclasses.replace(cfg, output=Path(output).resolve())
     check_output(cfg.output)
+    created = not cfg.output.exists()
+    with output_folder(cfg.output):  # this run's: other runs are refused, before any work
+        return _optimize_held(cfg, again, resume, max_substeps, force_video, created, echo, note, bar, parallel)
+
+
+def _optimize_held(cfg, again, resume, max_substeps, force_video, created, echo, note, bar, parallel) -> dict:
+    """_optimize_config's work once this run holds the output folder (``created``: by this run)."""
+    from clflow.fileio import check_output_folder, discard_written, remove_entries
+    from clflow.pipeline.fit import resampled_guidance
+    from clflow.pipeline.fit.state import check_resume
+
     if resume and not any((cfg.output / saved).exists() for saved in RESUMABLE):
         raise InputError(
             f"--resume: {cfg.output} holds no interrupted run to continue (no checkpoint.json); "
@@ -559,21 +580,18 @@ def _optimize_config(
     rewritten = query or cfg.optimize.materials or generated  # by the run's first steps
     if resume and not rewritten and (cfg.output / "checkpoint.json").exists():
         check_resume(cfg.output / "checkpoint.json", cfg)  # a changed --set or video: before the scene is loaded
-    created = not cfg.output.exists()
-    # what it removes (a new run: the earlier one) or replaces at the end is clflow's: before any work
-    check_output_folder(cfg.output, RESULTS if resume else RUN_ENTRIES, input_files(cfg))
+    # what it removes (a new run: the earlier one), replaces at the end or keeps as a cache is clflow's
+    check_output_folder(cfg.output, (*(RESULTS if resume else RUN_ENTRIES), *CACHES), input_files(cfg))
     if not resume:
-        earlier = sorted({entry for pattern in RUN_ENTRIES for entry in cfg.output.glob(pattern)})
+        earlier = remove_entries(cfg.output, RUN_ENTRIES)  # as one step
         if earlier:
-            note(f"a new run in {cfg.output}: removing the earlier run's {', '.join(e.name for e in earlier)}")
-            for entry in earlier:
-                shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
+            note(f"a new run in {cfg.output}: removing the earlier run's {', '.join(earlier)}")
     try:
         return _optimize_prepared(cfg, again, resume, force_video, echo, note, bar, parallel)
     except BaseException:  # a first run that fails before it saved anything leaves no folder behind
         kept = (*RESUMABLE, "generated")  # what a rerun continues from, or an expensive generated video
         if created and not any((cfg.output / saved).exists() for saved in kept):
-            shutil.rmtree(cfg.output, ignore_errors=True)
+            discard_written(cfg.output)
         raise
 
 

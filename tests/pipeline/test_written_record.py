@@ -28,6 +28,17 @@ def digests(folder: Path) -> dict[str, str]:
     }
 
 
+def leftovers_name(name: str) -> bool:
+    """Whether relative path ``name`` is a temporary of clflow's: in a staging folder, or a
+    lock that a killed run left (the next writer there takes it over)."""
+    return ".clflow-staging." in name or name.endswith(".clflow-lock")
+
+
+def leftovers(folder: Path) -> list[Path]:
+    """clflow's temporaries under ``folder``."""
+    return [p for p in folder.rglob(".clflow-*") if leftovers_name(p.as_posix())]
+
+
 def user_folder(folder: Path, files: dict[str, str]) -> dict[str, str]:
     for name, text in files.items():
         (folder / name).parent.mkdir(parents=True, exist_ok=True)
@@ -61,12 +72,16 @@ def test_simulate_leaves_a_users_frames_and_folders_and_says_so_before_the_work(
     res = run("simulate", quick_demo / "config.yaml", *SIMULATE, "-o", folder)
     one_error(
         res,
-        r"mine holds frame_2.ply, frame_999.ply, render4d/mine.txt, which clflow did not write \(or which changed "
-        r"since\) and this run would replace or remove: move them or write elsewhere \(-o\)",
+        r"mine holds frame_2.ply, frame_999.ply, render4d/mine.txt, which clflow did not write \(the folder has no "
+        r"\.clflow-written\.json, the record of clflow's files\) and this run would replace or remove: move them or "
+        r"write elsewhere \(-o\)",
     )
     assert "simulating" not in res.stderr and digests(folder) == before
     for name in ("frame_999.ply", "frame_2.ply", "render4d/mine.txt"):
         (folder / name).unlink()
+    res = run("simulate", quick_demo / "config.yaml", *SIMULATE, "-o", folder)
+    one_error(res, r"mine holds render4d/, which clflow did not write")  # an empty folder is the user's too
+    (folder / "render4d").rmdir()
     res = run("simulate", quick_demo / "config.yaml", *SIMULATE, "-o", folder)
     assert res.returncode == 0, res.stderr
     assert (folder / "notes.txt").read_text() == "n" and (folder / "frame_001.ply").is_file()
@@ -157,7 +172,7 @@ def test_an_interruption_while_optimize_writes_its_results_leaves_none_of_them(q
     res = run(*again.split()[1:])
     assert res.returncode == 0, res.stderr
     assert all(list(out.glob(pattern)) for pattern in RESULTS if pattern != "search.json")
-    assert not [p for p in tmp_path.rglob("*") if ".tmp" in p.name], sorted(tmp_path.rglob("*"))
+    assert not leftovers(tmp_path), sorted(tmp_path.rglob("*"))
 
 
 def test_the_record_lists_what_atomic_writes_put_there_and_nothing_else(tmp_path):
@@ -192,11 +207,11 @@ def test_an_interrupted_simulate_or_render4d_leaves_the_earlier_result_as_it_was
     assert res.returncode == exit_code and "Traceback" not in res.stderr, res.stderr
     res = _interrupted(["render4d", sim, "--views", 2], "rendering:", sig)
     assert res.returncode == exit_code and "Traceback" not in res.stderr, res.stderr
-    leftovers = [p for p in tmp_path.rglob("*") if ".tmp" in p.name]
-    assert not leftovers or sig == signal.SIGKILL, leftovers  # Ctrl-C and SIGTERM clean up
-    assert {name: digest for name, digest in digests(tmp_path).items() if ".tmp" not in name} == before
+    left = leftovers(tmp_path)
+    assert not left or sig == signal.SIGKILL, left  # Ctrl-C and SIGTERM clean up
+    assert {name: digest for name, digest in digests(tmp_path).items() if not leftovers_name(name)} == before
     assert run(*again).returncode == 0 and run("render4d", sim).returncode == 0
-    assert not [p for p in tmp_path.rglob("*") if ".tmp" in p.name]  # a killed run's temporaries went with it
+    assert not leftovers(tmp_path)  # a killed run's staging folders went with its folders' next write
     assert (sim / "frame_003.ply").is_file() and (sim / "render4d" / "orbit.mp4").is_file()
 
 
@@ -211,16 +226,16 @@ def test_ctrl_c_while_a_result_moves_in_lands_after_the_whole_result(tmp_path, m
     with atomic_dir(out, replaces=("a", "b")) as tmp:
         for name in "ab":
             (tmp / name).write_text("old")
-    real, moves = os.replace, []
+    real, moves = os.rename, []
 
-    def replace(src, dst):
-        if Path(dst).parent == out:  # a move into the folder (not the record's write)
+    def rename(src, dst):
+        if Path(dst).parent == out:  # a move into the folder
             moves.append(dst)
             if len(moves) == 1:
                 os.kill(os.getpid(), signal.SIGINT)
         real(src, dst)
 
-    monkeypatch.setattr(fileio.os, "replace", replace)
+    monkeypatch.setattr(fileio.os, "rename", rename)
     before = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal (a background job ignores it)
     try:
         with pytest.raises(KeyboardInterrupt):
@@ -229,28 +244,26 @@ def test_ctrl_c_while_a_result_moves_in_lands_after_the_whole_result(tmp_path, m
                     (tmp / name).write_text("new")
     finally:
         signal.signal(signal.SIGINT, before)
-    assert len(moves) == 3 and [(out / name).read_text() for name in "ab"] == ["new", "new"]
+    assert len(moves) == 2 and [(out / name).read_text() for name in "ab"] == ["new", "new"]
 
 
-def test_files_written_inside_a_staged_result_are_recorded_once_with_it(tmp_path):
-    """atomic_path inside an atomic_dir's staging folder neither rewrites a record per file
-    nor lists the folder for dead processes' temporaries (each was O(n) per file: n frames
-    O(n^2)); the result's one record lists every file with its digest."""
+def test_files_written_inside_a_staged_result_are_recorded_once_with_it(tmp_path, monkeypatch):
+    """atomic_path inside an atomic_dir's staging folder writes in place and records nothing
+    itself (a record per file would make n frames O(n^2)); the result's one record lists
+    every file with its digest."""
     import json
-    import os
 
+    import clflow.fileio.writing as fileio
     from clflow.fileio import content_digest
 
     out = tmp_path / "render"
+    records = []
+    monkeypatch.setattr(fileio, "write_record", lambda *a, real=fileio.write_record: records.append(a) or real(*a))
     with atomic_dir(out) as stage:
-        planted = stage / "frames" / f".old.{os.getpid() + 10**7}.abcdefgh.tmp.png"  # a pid no process has
-        planted.parent.mkdir()
-        planted.write_bytes(b"x")
         for i in range(5):
             atomic_write_text(stage / "frames" / f"{i:03d}.png", f"frame {i}")
-        assert not list(stage.rglob(WRITTEN_RECORD))  # nothing recorded yet
-        assert planted.exists()  # not searched for: a staging folder is this process's own
-        planted.unlink()
+        assert not list(stage.rglob(WRITTEN_RECORD)) and not records  # nothing recorded yet
+    assert len(records) == 1
     files = json.loads((out / WRITTEN_RECORD).read_text())["files"]
     assert files == {f"frames/{i:03d}.png": content_digest(out / "frames" / f"{i:03d}.png") for i in range(5)}
     atomic_write_text(out / "frames" / "005.png", "frame 5")  # outside a staging folder: recorded at once
@@ -272,8 +285,10 @@ def test_the_material_query_writes_its_guidance_frame_beside_a_users_files_never
     after = digests(out)
     assert {n: d for n, d in after.items() if n in mine} == mine
     assert {GUIDANCE_FRAME, "material_query.json", WRITTEN_RECORD} == set(after) - set(mine)
-    resolve_material(cfg)  # again: it replaces what it wrote
-    assert digests(out) == after
+    resolve_material(cfg)  # again: it replaces what it wrote (the record: with the new files' fingerprints)
+    assert {n: d for n, d in digests(out).items() if n != WRITTEN_RECORD} == {
+        n: d for n, d in after.items() if n != WRITTEN_RECORD
+    }
 
     (out / GUIDANCE_FRAME).write_bytes(b"my own picture")
     before = digests(out)
@@ -325,7 +340,7 @@ def test_a_query_stopped_while_it_writes_its_frame_leaves_the_earlier_one(quick_
     proc.send_signal(sig)
     proc.communicate(timeout=60)
     assert proc.returncode != 0
-    leftovers = [p for p in tmp_path.rglob("*") if ".tmp" in p.name]
-    assert not leftovers or sig == signal.SIGKILL, leftovers  # Ctrl-C and SIGTERM clean up
-    assert {n: d for n, d in digests(tmp_path).items() if ".tmp" not in n} == before
+    left = leftovers(tmp_path)
+    assert not left or sig == signal.SIGKILL, left  # Ctrl-C and SIGTERM clean up
+    assert {n: d for n, d in digests(tmp_path).items() if not leftovers_name(n)} == before
     assert (cfg.output / GUIDANCE_FRAME).is_file()

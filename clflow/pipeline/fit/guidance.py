@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,10 +66,12 @@ def cached_observed_flow(
     from clflow.flow.optical_flow import observed_confidence, observed_flow
 
     key = np.array([cfg.flow.method, cfg.flow.preset, cfg.flow.confidence, str(path), str(len(frames) - 1)])
-    if cache.exists():
-        with np.load(cache) as data:
+    try:  # the folder's check proved it clflow's; one of an older clflow, or damaged, is made again
+        with np.load(cache, allow_pickle=False) as data:
             if data["key"].tolist() == key.tolist():
                 return data["flow"], data["confidence"]
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        pass
     estimator = dict(preset=cfg.flow.preset, source=str(path))
     flow = observed_flow(frames, cfg.flow.method, **estimator)
     confidence = observed_confidence(frames, flow, cfg.flow.confidence, cfg.flow.method, **estimator)

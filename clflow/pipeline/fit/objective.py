@@ -8,6 +8,7 @@ import logging
 import math
 import time
 import warnings
+import zipfile
 
 import numpy as np
 import torch
@@ -354,11 +355,11 @@ class Objective:
         output/estimator_error.npz, or measured again at ``state.calibrated_at``."""
         key = json.dumps(state.calibrated_at, sort_keys=True)
         try:
-            with np.load(self.estimator_error_file) as data:
+            with np.load(self.estimator_error_file, allow_pickle=False) as data:
                 if str(data["key"]) == key:
                     self.set_estimator_errors([data[f"view_{i}"] for i in range(len(self.views))])
                     return
-        except (OSError, KeyError, ValueError):
+        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):  # none, an older one, or damaged
             pass
         log.info("measuring the flow estimator's error again at the checkpoint's calibration point")
         z, frames = state.calibrated_at["z"], state.calibrated_at["frames"]
