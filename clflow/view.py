@@ -9,6 +9,8 @@ The viewer has a frame slider and a play button (simulation folders), the guidan
 a frustum that browsers open behind (simulation folders), and a box (two corner gizmos and
 min / max fields) whose bounds it prints as the ``object.select.box`` YAML of a scene config. Colours are the SH
 degree-0 colours (``sh0_to_rgb``, clamped to [0, 1]): viser draws no view-dependent colour.
+Only the viewer's own page reads it: requests need its Host, its Origin and the token of the
+address it prints (:class:`Access`), so other web pages in the browser cannot.
 
 viser is the optional extra ``clflow[view]``; it is imported only when a viewer starts.
 """
@@ -18,11 +20,15 @@ from __future__ import annotations
 import contextlib
 import errno
 import functools
+import http
+import http.cookies
 import io
 import math
+import secrets
 import socket
 import threading
 import time
+import urllib.parse
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
@@ -37,6 +43,7 @@ if TYPE_CHECKING:
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8080
 PLY_BOX_QUANTILE = 0.01  # a PLY's first box ignores this fraction of outlying centres per side
+LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")  # as they stand in a Host header
 
 
 @dataclass
@@ -240,9 +247,99 @@ def _port_in_use(host: str, port: int) -> InputError:
     )
 
 
+def _url_host(host: str) -> str:
+    """``host`` as it stands in a URL or a Host header (an IPv6 address in brackets)."""
+    return f"[{host}]" if ":" in host else host
+
+
+class Access:
+    """Who may read the viewer, checked on each HTTP request and WebSocket handshake; any other
+    gets 403. Its Host must be the viewer's own (a loopback name, ``host`` or the address the
+    request came in on, with the port): a DNS-rebinding page sends its own name. Its Origin,
+    if sent, must be ``http://`` one of those: another page's WebSocket sends that page's. And
+    it must carry ``token``, as ``?token=`` or as the cookie every page served sets (viser's
+    client opens its WebSocket without the page's query string; the browser adds the cookie)."""
+
+    def __init__(self, host: str, token: str):
+        self.token = token.encode()
+        self.names = {*LOOPBACK_NAMES, _url_host(host)} - {"0.0.0.0", "[::]", ""}
+
+    def hosts(self, connection) -> set[str]:
+        """The Host headers accepted on ``connection`` (a websockets ``ServerConnection``)."""
+        address, port = connection.local_address[:2]
+        names = self.names | {_url_host(address)}
+        return {f"{name}:{port}" for name in names} | (names if port == 80 else set())
+
+    def cookie(self, connection) -> str:
+        """The cookie's name: one per port, as browsers send a host's cookies to all its ports."""
+        return f"clflow-view-{connection.local_address[1]}"
+
+    def refusal(self, connection, request) -> str | None:
+        """Why ``request`` (a websockets ``Request``) is refused, or None."""
+        hosts = self.hosts(connection)
+        host, origin = request.headers.get_all("Host"), request.headers.get_all("Origin")
+        if len(host) != 1 or host[0].lower() not in hosts:
+            return "this viewer answers to its own address only"
+        if origin and (len(origin) != 1 or origin[0].lower() not in {f"http://{h}" for h in hosts}):
+            return "this viewer answers to its own page only"
+        tokens = urllib.parse.parse_qs(urllib.parse.urlsplit(request.path).query).get("token", [])
+        cookies = http.cookies.SimpleCookie()
+        with contextlib.suppress(http.cookies.CookieError):
+            cookies.load("; ".join(request.headers.get_all("Cookie")))
+        if self.cookie(connection) in cookies:
+            tokens.append(cookies[self.cookie(connection)].value)
+        if not any(secrets.compare_digest(t.encode(), self.token) for t in tokens):
+            return "no token or a wrong one: open the address clflow view printed"
+        return None
+
+    def guard(self, serve_files):
+        """A websockets ``process_request``: 403 for what :meth:`refusal` refuses, else
+        ``serve_files`` (viser's: a file, or None to go on with a WebSocket handshake), the
+        files with the token's cookie."""
+
+        def process_request(connection, request):
+            reason = self.refusal(connection, request)
+            if reason is not None:
+                return connection.respond(http.HTTPStatus.FORBIDDEN, f"{reason}\n")
+            response = serve_files(connection, request)
+            if response is not None:
+                response.headers["Set-Cookie"] = (
+                    f"{self.cookie(connection)}={self.token.decode()}; Path=/; HttpOnly; SameSite=Strict"
+                )
+            return response
+
+        return process_request
+
+
+_serve_lock = threading.Lock()
+
+
+@contextlib.contextmanager
+def _guarded_serve(access: Access):
+    """While viser starts its server: websockets' ``serve`` with viser's ``process_request``
+    (its file server, which sees every HTTP request and WebSocket handshake) behind
+    ``access.guard``. viser 1.1 has no hook of its own for this. Yields a list that gets an
+    entry each time viser serves through it: empty, viser serves some other way unguarded."""
+    import websockets.asyncio.server as ws
+
+    serve, used = ws.serve, []
+
+    def guarded(*args, process_request, **kwargs):
+        used.append(True)
+        return serve(*args, process_request=access.guard(process_request), **kwargs)
+
+    with _serve_lock:
+        ws.serve = guarded
+        try:
+            yield used
+        finally:
+            ws.serve = serve
+
+
 class Viewer:
     """A running viser server showing ``scene``; ``report(text)`` gets the box YAML each time
-    the box is set (a field edited, a gizmo let go). ``port`` 0: any free port (``self.port``)."""
+    the box is set (a field edited, a gizmo let go). ``port`` 0: any free port (``self.port``).
+    Only requests that :class:`Access` lets through with this run's ``token`` are answered."""
 
     def __init__(
         self,
@@ -255,8 +352,15 @@ class Viewer:
         check_port(host, port)
         self.scene, self.report, self._closed = scene, report, False
         self._lock = threading.RLock()
-        with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner: the caller says where it is
-            self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.token = secrets.token_urlsafe(32)
+        with _guarded_serve(Access(host, self.token)) as guarded, contextlib.redirect_stdout(io.StringIO()):
+            self.server = viser.ViserServer(host=host, port=port, verbose=False)  # its banner: the caller says where
+        if not guarded:  # a viser that no longer serves through websockets' serve(): fail closed
+            self.close()
+            raise ClflowError(
+                f"viser {viser.__version__} serves in a way clflow view cannot check who connects; "
+                "install the viser that clflow[view] names: pip install 'clflow[view]'"
+            )
         self.port = self.server.get_port()
         if port and self.port != port:  # taken between the check and the bind
             self.close()
@@ -414,8 +518,10 @@ class Viewer:
 
     # life cycle
     def url(self) -> str:
+        """The address to open: this viewer's, with its token."""
         host = self.server.get_host()
-        return f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{self.port}"
+        host = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host  # a wildcard: this machine
+        return f"http://{_url_host(host)}:{self.port}/?token={self.token}"
 
     def serve_forever(self) -> None:
         """Play until interrupted (Ctrl-C: KeyboardInterrupt), then stop."""
@@ -438,6 +544,7 @@ class Viewer:
 __all__ = [
     "DEFAULT_HOST",
     "DEFAULT_PORT",
+    "Access",
     "ViewScene",
     "Viewer",
     "box_yaml",

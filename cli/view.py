@@ -6,7 +6,7 @@ import click
 @click.command("view")
 @click.argument("path", type=click.Path(path_type=str))
 @click.option("--host", default="127.0.0.1", show_default=True,
-              help="Address to serve on; 0.0.0.0 lets other machines connect.")  # fmt: skip
+              help="Address to serve on; 0.0.0.0 lets other machines connect (given the printed address).")  # fmt: skip
 @click.option("--port", type=click.IntRange(0, 65535), default=8080, show_default=True,
               help="Port to serve on (0: any free port).")  # fmt: skip
 @click.option("--up", type=click.Choice(["+x", "-x", "+y", "-y", "+z", "-z"]), default="+y", show_default=True,
@@ -16,7 +16,8 @@ def view(obj, path, host, port, up):
     """Show PATH in the browser: a 3DGS PLY file, or a simulation folder (`clflow simulate
     CONFIG`'s, or a results folder holding one) with a frame slider, play and the guidance
     camera. Drag the box's corner gizmos or type its min / max: its bounds are printed as
-    the object.select.box YAML of a scene config (scene units). Ctrl-C stops."""
+    the object.select.box YAML of a scene config (scene units). Open the address it prints:
+    it carries this run's token, without which the viewer refuses every request. Ctrl-C stops."""
     import logging
 
     from clflow.view import Viewer, check_port, import_viser, load_scene

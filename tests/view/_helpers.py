@@ -70,9 +70,11 @@ def write_simulation(folder, *, up="+z", scale=2.0, frames=4, n=20, static=10, s
     return means, static_means, eye, cov
 
 
-def scene_messages(port, timeout=5.0):
-    """The messages the viewer sends a new browser on ws://127.0.0.1:PORT until its replay is
-    done: dicts with 'type' (GaussianSplatsMessage, GuiSliderMessage, ...) and their props."""
+def scene_messages(url, timeout=5.0, **options):
+    """The messages the viewer at ``url`` (the address it prints, token included) sends a new
+    browser on its websocket until its replay is done: dicts with 'type'
+    (GaussianSplatsMessage, GuiSliderMessage, ...) and their props. ``options``: more
+    arguments of websockets' ``connect`` (origin=, additional_headers=)."""
     import msgspec
     import viser
     import zstandard
@@ -80,7 +82,8 @@ def scene_messages(port, timeout=5.0):
 
     messages = []
     deadline = time.monotonic() + timeout
-    with connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None) as ws:
+    ws_url = url.replace("http://", "ws://", 1)
+    with connect(ws_url, subprotocols=[f"viser-v{viser.__version__}"], max_size=None, **options) as ws:
         while time.monotonic() < deadline:
             data = ws.recv(timeout=deadline - time.monotonic())
             size = int.from_bytes(data[8:16], "little")  # wire format: viser/infra/_infra.py

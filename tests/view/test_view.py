@@ -3,6 +3,7 @@ over HTTP and its websocket; the box YAML; bad input (missing file, port in use,
 
 import os
 import queue
+import re
 import signal
 import socket
 import subprocess
@@ -67,8 +68,8 @@ def test_ply_viewer_serves_splats_slider_and_box(tmp_path):
     viewer = Viewer(scene, port=0, report=reports.append)
     try:
         page = urllib.request.urlopen(viewer.url(), timeout=5).read().decode()
-        assert "<html" in page and viewer.url() == f"http://127.0.0.1:{viewer.port}"
-        messages = scene_messages(viewer.port)
+        assert "<html" in page and viewer.url() == f"http://127.0.0.1:{viewer.port}/?token={viewer.token}"
+        messages = scene_messages(viewer.url())
         by_type = {}
         for m in messages:
             by_type.setdefault(m["type"], []).append(m)
@@ -113,7 +114,7 @@ def test_simulation_folder_in_scene_units_with_frames_and_camera(tmp_path):
     assert load_scene(results).frame_count == 4  # a results folder holding simulation/
     viewer = Viewer(scene, port=0, report=lambda text: None)
     try:
-        messages = scene_messages(viewer.port)
+        messages = scene_messages(viewer.url())
         names = [m.get("name") for m in messages if m["type"] == "GaussianSplatsMessage"]
         assert names == ["/gaussians", "/static"]
         frustum = [m for m in messages if m["type"] == "CameraFrustumMessage"]
@@ -206,11 +207,13 @@ def test_cli_serves_until_ctrl_c(tmp_path):
         err = ""
         while "Ctrl-C stops" not in err:  # the viewer is up and serving
             err += lines.get(timeout=60)
-        page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5).read().decode()
+        url = re.search(r"at (http://\S+); Ctrl-C stops", err)[1]
+        assert re.fullmatch(rf"http://127\.0\.0\.1:{port}/\?token=[\w-]{{43}}", url)  # the token in the printed address
+        page = urllib.request.urlopen(url, timeout=5).read().decode()
         assert "<html" in page
         # only 127.0.0.1 by default: another address of this machine (127.0.0.2 is loopback too) is not served
         with pytest.raises(OSError):
-            urllib.request.urlopen(f"http://127.0.0.2:{port}/", timeout=2)
+            urllib.request.urlopen(url.replace("127.0.0.1", "127.0.0.2"), timeout=2)
         proc.send_signal(signal.SIGINT)
         proc.wait(timeout=20)
         out = proc.stdout.read()
@@ -221,4 +224,4 @@ def test_cli_serves_until_ctrl_c(tmp_path):
         proc.kill()
     assert proc.returncode == 130, err  # Ctrl-C: 130, as every command (README)
     assert yaml.safe_load(out.split("\n#")[0])["object"]["select"]["box"]["min"]  # stdout: the box YAML
-    assert f"at http://127.0.0.1:{port}; Ctrl-C stops" in err and err.rstrip().endswith("stopped (Ctrl-C)")
+    assert f"at {url}; Ctrl-C stops" in err and err.rstrip().endswith("stopped (Ctrl-C)")
