@@ -64,6 +64,7 @@ def generate(image, model_path, output, **request_options) -> None:
     """
     import time
 
+    from clflow.fileio import check_output_file
     from clflow.generate import (
         GenerateRequest,
         check_request,
@@ -88,6 +89,7 @@ def generate(image, model_path, output, **request_options) -> None:
     resolved = check_request(info, request)
     pixels = load_image(image)
     check_output(output.resolve().parent)
+    check_output_file(output.with_suffix(".json"))  # the record beside it: not over a user's file
     require_extra()
     click.echo(
         f"{info.family.name} ({model_path}): {resolved.frames} frames at {resolved.size[0]}x"

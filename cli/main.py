@@ -12,6 +12,7 @@ from importlib.metadata import entry_points
 import click
 
 from clflow import __version__
+from clflow_cli.options import OutputPath
 
 # torch's OpenMP threads spin for a while after every parallel torch op, taking the cores
 # from the OpenCL CPU device's worker threads (measured: 10-20 % of the rasteriser's forward
@@ -109,6 +110,15 @@ class LazyGroup(click.Group):
                 )
         return super().get_command(ctx, name)
 
+    def make_context(self, info_name, args, parent=None, **extra) -> click.Context:
+        # the root's own options (--profile PATH) are checked as they are parsed: one line too
+        from clflow.errors import ClflowError
+
+        try:
+            return super().make_context(info_name, args, parent=parent, **extra)
+        except ClflowError as exc:
+            raise click.ClickException(str(exc)) from None
+
     def invoke(self, ctx: click.Context):
         # User-fixable problems (bad input, missing device, ...) end with one clear line and
         # exit code 1, and so do file-system refusals (disk full, read-only, a file where a
@@ -182,7 +192,7 @@ class CliContext:
               help="The kernels' shapes (docs/gpu.md): 'cpu' (a few work-items streaming through blocks), 'gpu' "
               "(work-groups cooperating in local memory), 'auto' by the device's type. Default: $CLFLOW_KERNELS, "
               "else auto.")  # fmt: skip
-@click.option("--profile", "profile_path", type=click.Path(dir_okay=False), default=None, metavar="PATH",
+@click.option("--profile", "profile_path", type=OutputPath(file=True), default=None, metavar="PATH",
               help="Record every kernel launch of the command (OpenCL profiling events): a table of device time "
               "per kernel on stderr at the end, and as JSON at PATH.")  # fmt: skip
 @click.option("--wait", is_flag=True, envvar="CLFLOW_WAIT",

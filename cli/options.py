@@ -57,17 +57,22 @@ class InputFile(click.Path):
 
 class OutputPath(click.Path):
     """An output file (``file``) or folder, checked before any work: a folder where a file is
-    meant (or the reverse), or a place no file can be made (read-only, /proc, no permission),
-    is a one-line InputError (exit 1)."""
+    meant (or the reverse), a place no file can be made (read-only, /proc, no permission), or
+    a file there that clflow did not write, is a one-line InputError (exit 1)."""
 
     def __init__(self, file: bool = False, **kwargs):
         super().__init__(dir_okay=not file, file_okay=file, **kwargs)
         self.file = file
 
     def convert(self, value, param, ctx):
+        from clflow.fileio import check_output_file as replaces_only_clflows
         from clflow.limits import check_output, check_output_file
 
-        check_output_file(value, _name(param)) if self.file else check_output(value)
+        if self.file:
+            check_output_file(value, _name(param))
+            replaces_only_clflows(value)  # a file of the user's there is not written over
+        else:
+            check_output(value)
         return super().convert(value, param, ctx)
 
     def fail(self, message, param=None, ctx=None):

@@ -94,12 +94,20 @@ def reconstruct(
     if unused:
         why = "with --depth nothing is trained" if photo else "they go with --depth (a photo and its depth map)"
         raise click.UsageError(f"{why}: drop {', '.join(unused)}")
-    from clflow.fileio import check_output_folder
+    from clflow.fileio import check_output_folder, output_folder
 
     inputs = [path for path in (images, depth, transforms, colmap, cameras_json, masks) if path is not None]
-    check_output_folder(output_dir, RECONSTRUCTION_ENTRIES, inputs)  # replaces only clflow's: before the work
-    if depth is not None:
-        return _from_depth(images, depth, depth_scale, fov, shell, output_dir)
+    with output_folder(output_dir):  # this run's: other runs are refused, before any work
+        check_output_folder(output_dir, RECONSTRUCTION_ENTRIES, inputs)  # replaces only clflow's
+        if depth is not None:
+            return _from_depth(images, depth, depth_scale, fov, shell, output_dir)
+        _train(images, output_dir, background, training, transforms, colmap, cameras_json, masks, frame, resume,
+               checkpoint_every, preview_every)  # fmt: skip
+
+
+def _train(images, output_dir, background, training, transforms, colmap, cameras_json, masks, frame, resume,
+           checkpoint_every, preview_every) -> None:  # fmt: skip
+    """reconstruct's training, once the output folder is held and checked."""
     from clflow.recon import Settings, load_views
     from clflow.recon.train import reconstruct as train
 

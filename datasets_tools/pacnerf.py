@@ -30,6 +30,7 @@ config the material is left to the material query (``material: {type: query}``).
 from __future__ import annotations
 
 import ast
+import glob
 import math
 import os
 from pathlib import Path
@@ -255,12 +256,14 @@ def make_scene(
 
     import numpy as np
 
-    from clflow.fileio import atomic_dir, atomic_path
+    from clflow.fileio import atomic_dir, atomic_path, check_output_folder
     from clflow.media import write_image, write_video
     from clflow.recon.sequence import load_sequence
     from clflow.splat.cameras import save_transforms_json
     from clflow.splat.ply import load_ply
 
+    written = ("scene.ply", "camera.json", glob.escape(video), "object.png", "config.yaml")
+    check_output_folder(out, written, [data, splats, *([config] if config is not None else [])])  # before the work
     seq = load_sequence(data)
     seq.check_camera(camera)
     ply = _splat_file(Path(splats))
@@ -282,7 +285,7 @@ def make_scene(
     made_from = f"{seq.index} (camera {camera}, frames 0-{frames - 1}) and {ply}"
     made_from += f", material from {config}" if pac else ", material left to the query"
     out = Path(out)
-    with atomic_dir(out, inputs=[data, ply, *([config] if config is not None else [])]) as tmp:
+    with atomic_dir(out, written, inputs=[data, ply, *([config] if config is not None else [])]) as tmp:
         with atomic_path(tmp / "scene.ply") as part:
             shutil.copyfile(ply, part)
         save_transforms_json(tmp / "camera.json", [cam])

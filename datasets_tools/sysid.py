@@ -21,10 +21,10 @@ the optimised resolution: the model error no optimiser can remove.
 
 from __future__ import annotations
 
+import glob
 import json
 import logging
 import math
-import shutil
 import statistics
 import time
 from dataclasses import asdict, dataclass, replace
@@ -314,7 +314,7 @@ def run_case(
     import numpy as np
 
     from clflow.errors import ClflowError
-    from clflow.fileio import atomic_write_text
+    from clflow.fileio import atomic_write_text, remove_entries
     from clflow.pipeline.fit import Optimization
     from clflow.pipeline.fit.budget import BudgetTooSmall
     from clflow.scene.config import load_config
@@ -326,7 +326,7 @@ def run_case(
     made = folder / "case.json"
     definition = case_definition(case)
     if made.exists() and json.loads(made.read_text()).get("definition") != definition:
-        shutil.rmtree(folder)  # made from another definition of the case: make it anew
+        remove_entries(folder.parent, (glob.escape(folder.name),))  # made from another definition: make it anew
     if not made.exists():  # an interrupted generation leaves no case.json: make it again
         make(
             folder,
@@ -439,6 +439,7 @@ def _earlier_summary(out: Path, settings: Settings, force: bool) -> dict:
     new one; results of other settings, or other files, are refused unless ``force`` (which
     clears the earlier cases)."""
     from clflow.errors import InputError
+    from clflow.fileio import is_bookkeeping
 
     summary_path = out / "sysid.json"
     wanted = settings_record(settings)
@@ -461,10 +462,12 @@ def _earlier_summary(out: Path, settings: Settings, force: bool) -> dict:
                 f"{out} holds sysid results of other settings ({_difference(earlier, wanted)}); "
                 f"use another -o folder, or --force to replace them"
             )
-    elif out.exists() and any(out.iterdir()) and not force:
+    elif out.exists() and any(not is_bookkeeping(p.name) for p in out.iterdir()) and not force:
         raise InputError(f"{out} exists and holds other files; use an empty or new -o folder, or --force")
-    if force and summary["cases"] == {} and (out / "cases").exists():
-        shutil.rmtree(out / "cases")
+    if force and summary["cases"] == {}:
+        from clflow.fileio import remove_entries
+
+        remove_entries(out, ("cases",))  # what clflow wrote there, as one step
     return summary
 
 
@@ -485,7 +488,7 @@ def evaluate(
     (``clflow.sweep``: Ray), calling ``done(name, record)`` as each finishes; the summary is
     the serial path's. ``cases``: name -> case (default: the built-in CASES; load_cases)."""
     from clflow.errors import InputError
-    from clflow.fileio import atomic_write_text
+    from clflow.fileio import output_folder
 
     cases = cases or CASES
     unknown = [n for n in names if n not in cases]
@@ -496,6 +499,14 @@ def evaluate(
             check_case(n, cases[n])
         except ValueError as exc:
             raise InputError(str(exc)) from None
+    with output_folder(out):  # this benchmark's: other runs are refused
+        return _evaluate(names, out, settings, force, progress, run_cases, cases)
+
+
+def _evaluate(names, out: Path, settings: Settings, force: bool, progress, run_cases, cases) -> dict:
+    """evaluate's work once ``out`` is held."""
+    from clflow.fileio import atomic_write_text
+
     summary_path = out / "sysid.json"
     summary = _earlier_summary(out, settings, force)
     out.mkdir(parents=True, exist_ok=True)

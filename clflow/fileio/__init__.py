@@ -14,13 +14,14 @@ work are clflow.limits'; what each guarantee covers is docs/architecture.md, "Ou
 from clflow.fileio.digest import content_digest, fingerprint
 from clflow.fileio.lock import LOCK_NAME, FolderBusy, folder_lock, wait_for_writers
 from clflow.fileio.reading import load_arrays, read_json, read_text
-from clflow.fileio.record import WRITTEN_RECORD, derived_folders, read_record
+from clflow.fileio.record import WRITTEN_RECORD, derived_folders, is_bookkeeping, read_record
 from clflow.fileio.system_errors import FILE_SYSTEM_ERRNOS, describe_os_error
 from clflow.fileio.writing import (
     HELD_SIGNALS,
     atomic_dir,
     atomic_path,
     atomic_write_text,
+    check_output_file,
     check_output_folder,
     copy_file,
     discard_written,
@@ -37,6 +38,7 @@ __all__ = [
     "atomic_dir",
     "atomic_path",
     "atomic_write_text",
+    "check_output_file",
     "check_output_folder",
     "content_digest",
     "copy_file",
@@ -45,6 +47,7 @@ __all__ = [
     "discard_written",
     "fingerprint",
     "folder_lock",
+    "is_bookkeeping",
     "load_arrays",
     "output_folder",
     "read_json",

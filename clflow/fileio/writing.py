@@ -104,6 +104,12 @@ def check_output_folder(path: str | os.PathLike, entries: tuple[str, ...], input
     record.check_output_folder(path, entries, inputs, derived=derived)
 
 
+def check_output_file(path: str | os.PathLike) -> None:
+    """Refuse (InputError, one line) a write of file ``path`` over one clflow did not write."""
+    path = Path(path)
+    check_output_folder(path.parent, (glob.escape(path.name),))
+
+
 def _settle(folder: Path) -> None:
     """Finish (or undo) the moves of dead writers' transactions in ``folder`` and remove
     their staging folders (the caller holds the folder's lock)."""
@@ -495,6 +501,8 @@ __all__ = [
     "atomic_dir",
     "atomic_path",
     "atomic_write_text",
+    "check_output_file",
+    "check_output_folder",
     "copy_file",
     "discard_written",
     "output_folder",

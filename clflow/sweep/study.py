@@ -37,7 +37,7 @@ def sweep(
     """Run the spec's runs into ``out`` (skipping those finished earlier with the same inputs:
     all but failed ones with ``retry_failed``), writing ``sweep.json`` and ``sweep.md`` as they
     finish; returns the summary. KeyboardInterrupt leaves the finished runs recorded."""
-    from clflow.fileio import atomic_write_text
+    from clflow.fileio import atomic_write_text, output_folder
     from clflow.limits import check_output
 
     out = Path(out).resolve()  # tasks run in other working folders
@@ -77,36 +77,36 @@ def sweep(
             f"({record['seconds']:.1f} s)"
         )
 
-    out.mkdir(parents=True, exist_ok=True)
-    write()
-    skipped = len(spec.runs) - len(todo)
-    if skipped:
-        echo(
-            f"{skipped} run(s) finished earlier, skipped"
-            + ("" if retry_failed else " (--retry-failed reruns the failed ones)")
-        )
-    if not todo:
-        return summary
-    order = serial_order()
-    summary["mode"] = "serial" if serial else f"ray ({address or 'local'}, {cpus_per_task} CPU per task)"
-    try:
-        if serial:
-            run_serial(todo, folder_of, timeout, done, env=order, inputs=inputs)  # (torch's threads: this process's)
-        else:
-            with ray_session(address, instead=None):
-                run_on_ray(
-                    todo,
-                    folder_of,
-                    timeout,
-                    done,
-                    env=task_env(cpus_per_task, device, order),
-                    cpus_per_task=cpus_per_task,
-                    resources=resources,
-                    args=lambda run: (run, str(folder_of(run)), inputs[run.name]),
-                )
-    finally:
+    with output_folder(out):  # this sweep's: other runs are refused
         write()
-    return summary
+        skipped = len(spec.runs) - len(todo)
+        if skipped:
+            echo(
+                f"{skipped} run(s) finished earlier, skipped"
+                + ("" if retry_failed else " (--retry-failed reruns the failed ones)")
+            )
+        if not todo:
+            return summary
+        order = serial_order()
+        summary["mode"] = "serial" if serial else f"ray ({address or 'local'}, {cpus_per_task} CPU per task)"
+        try:
+            if serial:  # (torch's threads: this process's)
+                run_serial(todo, folder_of, timeout, done, env=order, inputs=inputs)
+            else:
+                with ray_session(address, instead=None):
+                    run_on_ray(
+                        todo,
+                        folder_of,
+                        timeout,
+                        done,
+                        env=task_env(cpus_per_task, device, order),
+                        cpus_per_task=cpus_per_task,
+                        resources=resources,
+                        args=lambda run: (run, str(folder_of(run)), inputs[run.name]),
+                    )
+        finally:
+            write()
+        return summary
 
 
 def _changed(record: dict, inputs: dict[str, str]) -> str | None:

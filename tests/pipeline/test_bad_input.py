@@ -470,34 +470,3 @@ def test_atomic_dir_moves_its_entries_in_or_leaves_the_folder_as_it_was(tmp_path
         (tmp / "frames" / "001.png").write_text("b")
     assert sorted(p.name for p in out.rglob("*")) == [WRITTEN_RECORD, "001.png", "frames", "mine.txt", "video.mp4"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
-
-
-def test_a_dead_processs_temporaries_go_with_the_next_write_anywhere_in_their_folder(tmp_path):
-    """kill -9 leaves temporaries of any output (a frame, a loss plot, a whole folder); the
-    next atomic write to any file of that folder removes those whose process is gone, and
-    touches nothing else: a live process's, a user's hidden or .tmp-looking files."""
-    import os
-    import subprocess
-    import sys
-
-    from clflow.fileio import atomic_write_text
-
-    dead = int(
-        subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True).stdout
-    )
-    leftovers = [tmp_path / f".loss.{dead}.k2j4x9qa.tmp.png", tmp_path / f".view_1.{dead}.ab_12cd3.tmp.mp4"]
-    for path in leftovers:
-        path.write_bytes(b"x")
-    folder = tmp_path / f".SIM.{dead}.zz81qq0w.tmp"
-    (folder / "frames").mkdir(parents=True)
-    kept = [
-        tmp_path / f".loss.{os.getpid()}.abcdefgh.tmp.png",
-        tmp_path / ".notes.tmp",
-        tmp_path / "a.tmp",
-        tmp_path / "notes.txt",
-    ]
-    for path in kept:
-        path.write_text("mine")
-    atomic_write_text(tmp_path / "params.json", "{}")
-    assert not any(p.exists() for p in [*leftovers, folder])
-    assert all(p.read_text() == "mine" for p in kept) and (tmp_path / "params.json").read_text() == "{}"

@@ -6,7 +6,6 @@ over config values."""
 
 import json
 import math
-import os
 import random
 import shutil
 import subprocess
@@ -176,18 +175,35 @@ def run(*args) -> subprocess.CompletedProcess:
     )
 
 
-def test_a_killed_simulations_leftovers_go_with_the_next_run(quick_demo, tmp_path):
-    """kill -9 leaves the temporary folder of an unfinished output; the next run of the same
-    output removes it (its process is gone) instead of keeping it forever."""
+_KILLED_MID_WRITE = """
+import sys, time
+from clflow.fileio import atomic_dir
+with atomic_dir(sys.argv[1], ("positions.npz",)) as new:
+    (new / "positions.npz").write_bytes(b"x" * 1000)
+    print("staged", flush=True)
+    time.sleep(60)
+"""
+
+
+def test_a_killed_simulations_leftovers_go_with_the_next_run_and_look_alikes_stay(tmp_path):
+    """kill -9 leaves the staging folder of an unfinished output in it; the next run of the
+    same output removes it (its claim can be locked: its writer is gone) instead of keeping
+    it forever. Names that only look like temporaries, beside the output or in it, stay."""
+    out = tmp_path / "s"
+    killed = subprocess.Popen([sys.executable, "-c", _KILLED_MID_WRITE, str(out)], stdout=subprocess.PIPE, text=True)
+    assert killed.stdout.readline().strip() == "staged"
+    killed.kill()
+    killed.wait()
+    assert [p.name for p in out.iterdir() if p.name.startswith(".clflow-staging.")]
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
-    leftover = tmp_path / f".s.{int(dead.stdout)}.abc123.tmp"
-    (leftover / "frames").mkdir(parents=True)
-    (leftover / "frames" / "000.png").write_bytes(b"x" * 1000)
-    someone_elses = tmp_path / f".s.{os.getpid()}.xyz.tmp"  # a live process's: kept
-    someone_elses.mkdir()
-    res = run("simulate", "--frames", 1, "--grid", 16, "--preview", "none", "-o", tmp_path / "s")
+    look_alikes = [tmp_path / f".s.{int(dead.stdout)}.abc123.tmp", out / f".s.{int(dead.stdout)}.abc123.tmp"]
+    for folder in look_alikes:
+        folder.mkdir()
+        (folder / "000.png").write_bytes(b"mine")
+    res = run("simulate", "--frames", 1, "--grid", 16, "--preview", "none", "-o", out)
     assert res.returncode == 0, res.stderr
-    assert not leftover.exists() and someone_elses.exists()
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".clflow-staging.")]
+    assert all((folder / "000.png").read_bytes() == b"mine" for folder in look_alikes)
 
 
 def test_a_resimulation_replaces_every_frame_and_what_was_rendered_from_them(quick_demo, tmp_path):
