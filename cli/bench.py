@@ -19,6 +19,7 @@ BENCHMARKS: dict[str, str] = {
     "launch": "clflow_cli.bench_launch:launch",
     "optimize": "clflow_cli.bench_optimize:optimize",
     "reconstruct": "clflow_cli.bench_reconstruct:reconstruct",
+    "write": "clflow_cli.bench_write:write",
 }
 
 
