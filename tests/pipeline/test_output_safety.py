@@ -113,3 +113,19 @@ def test_an_output_file_of_the_users_is_refused_before_any_work(quick_demo, tmp_
     res = run("--profile", mine, "simulate", "--frames", 1, "--grid", 16, "--preview", "none", "-o", tmp_path / "s")
     one_error(res, r"holds mine.mp4, which clflow did not write")
     assert mine.read_bytes() == b"my video" and not (tmp_path / "views").exists() and not (tmp_path / "s").exists()
+
+
+def test_links_and_empty_folders_put_into_a_rendering_are_refused_not_removed(quick_demo, tmp_path):
+    """A link to a folder, a link to a file and an empty folder that a user put into a
+    rendering clflow derived from a simulation: simulating there again refuses each, by one rule."""
+    sim = tmp_path / "sim"
+    assert run("simulate", quick_demo / "config.yaml", *SIMULATE, "-o", sim).returncode == 0
+    assert run("render4d", sim).returncode == 0
+    (tmp_path / "photos").mkdir()
+    (tmp_path / "photos" / "a.jpg").write_bytes(b"jpeg")
+    (sim / "render4d" / "to_folder").symlink_to(tmp_path / "photos")
+    (sim / "render4d" / "to_file").symlink_to(tmp_path / "photos" / "a.jpg")
+    (sim / "render4d" / "empty").mkdir()
+    res = run("simulate", quick_demo / "config.yaml", *SIMULATE, "-o", sim)
+    one_error(res, r"sim holds render4d/to_file, render4d/to_folder, render4d/empty/, which clflow did not write")
+    assert (tmp_path / "photos" / "a.jpg").read_bytes() == b"jpeg" and (sim / "render4d" / "empty").is_dir()
