@@ -172,11 +172,17 @@ def _describe(fd: int, shared: bool) -> None:
 
 
 def _holder(fd: int) -> dict:
-    try:
-        holder = json.loads(os.pread(fd, 1 << 16, 0) or b"{}")
-    except (OSError, ValueError):
-        return {}
-    return holder if isinstance(holder, dict) else {}
+    """Who holds the lock, as they wrote it (a holder that has just taken it writes within
+    milliseconds: read again for up to 50 ms; {} when it still says nothing)."""
+    for _ in range(10):
+        try:
+            holder = json.loads(os.pread(fd, 1 << 16, 0))
+            if isinstance(holder, dict):
+                return holder
+        except (OSError, ValueError):
+            pass
+        time.sleep(0.005)
+    return {}
 
 
 def _release(folder: Path, hold: _Hold) -> None:

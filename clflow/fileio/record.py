@@ -119,17 +119,20 @@ def _walk(entry: Path) -> list[Path]:
     return found
 
 
-def unowned_files(folder: Path, entry: Path) -> list[Path]:
+def unowned_files(folder: Path, entry: Path, records: dict[Path, Record] | None = None) -> list[Path]:
     """What of ``entry`` (in ``folder``) no written-record (``folder``'s or one between it
-    and the file) lists with its content: the user's files, links and folders."""
-    records: dict[Path, Record] = {}
+    and the file) lists with its content: the user's files, links and folders. ``records``:
+    the records read so far, by folder (shared by the calls of one check)."""
+    records = {} if records is None else records
     unowned = []
     for item in _walk(entry):
         if is_bookkeeping(item.name) and not item.is_dir():  # a record, a lock
             continue
         place, owned = item.parent, False
         while not owned:
-            record = records.setdefault(place, read_record(place))
+            if place not in records:
+                records[place] = read_record(place)
+            record = records[place]
             owned = record.owns(place, item.relative_to(place).as_posix())
             if place == folder:
                 break
@@ -182,7 +185,8 @@ def check_output_folder(path: str | os.PathLike, entries: tuple[str, ...], input
                     f"{given} is an input of this run and lies in {target}, which this run replaces: write "
                     f"elsewhere (-o) or move the input"
                 )
-    unowned = [item for target in found for item in unowned_files(path, target)]
+    records: dict[Path, Record] = {}
+    unowned = [item for target in found for item in unowned_files(path, target, records)]
     if not unowned:
         return
     them = "them" if len(unowned) > 1 else "it"

@@ -297,14 +297,9 @@ def _write_synced(path: Path, data: dict) -> None:
 
 
 def _sync(path: Path) -> None:
-    """fsync ``path`` (a file's data, a folder's entries; for a folder, everything under it)."""
-    if path.is_dir() and not path.is_symlink():
-        for root, _, files in os.walk(path):
-            for name in files:
-                _sync(Path(root, name))
-    flags = os.O_RDONLY | (os.O_DIRECTORY if path.is_dir() else 0)
+    """fsync ``path``: a file's data, or a folder's entries (not what they hold)."""
     try:
-        fd = os.open(path, flags | os.O_NOFOLLOW)
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | (os.O_DIRECTORY if path.is_dir() else 0))
     except OSError:
         return  # a link: nothing of its own to sync
     try:
@@ -313,6 +308,18 @@ def _sync(path: Path) -> None:
         pass  # file systems that cannot sync (some FUSE, /proc)
     finally:
         os.close(fd)
+
+
+def _sync_tree(folder: Path) -> None:
+    """fsync every file and folder under ``folder`` (a staged result, before its journal), at
+    once from threads: the file system commits concurrent syncs together, and one at a time
+    they cost a commit each (about 1 ms: 1 s for 1000 frames)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    paths = [Path(root, name) for root, dirs, files in os.walk(folder) for name in files + dirs]
+    with ThreadPoolExecutor(max_workers=min(32, max(1, len(paths)))) as pool:
+        list(pool.map(_sync, paths))
+    _sync(folder)
 
 
 @contextlib.contextmanager
@@ -350,7 +357,7 @@ def atomic_dir(
             record = Record(files=files, stats=kept)
             if source is not None:
                 record.source = os.path.relpath(Path(source).resolve(), path.resolve())
-            _sync(new)
+            _sync_tree(new)
             journal = {
                 "old": old,
                 "new": written,

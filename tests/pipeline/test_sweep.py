@@ -11,6 +11,7 @@ import yaml
 from click.testing import CliRunner
 
 from clflow.errors import InputError
+from clflow.fileio import atomic_write_text
 from clflow.sweep import load_spec
 from clflow_cli.main import cli
 
@@ -315,12 +316,14 @@ def test_a_run_whose_inputs_changed_runs_again_and_the_others_are_skipped(own_sc
     assert json.loads((out / "runs" / name / "result.json").read_text()) == second["config"]
     assert second["config_truth"] == {**first["config_truth"], "skipped": True}  # its inputs are the same
 
-    frame = sorted((folder / "scene" / "guidance").iterdir())[0]  # a file the config points at
+    frame = sorted((folder / "scene" / "guidance").glob("*.png"))[0]  # a frame of the folder the config points at
     frame.write_bytes(frame.read_bytes() + b"\0")
     again("its inputs changed since its result (guidance)")
 
     record = json.loads((out / "runs" / name / "result.json").read_text())  # as an earlier clflow wrote it
-    (out / "runs" / name / "result.json").write_text(json.dumps({k: v for k, v in record.items() if k != "inputs"}))
+    atomic_write_text(
+        out / "runs" / name / "result.json", json.dumps({k: v for k, v in record.items() if k != "inputs"})
+    )
     again("its result has no digest of its inputs (an earlier clflow's)")
     assert "2 run(s) finished earlier, skipped" in again()
 
