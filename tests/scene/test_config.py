@@ -4,6 +4,7 @@ import copy
 import dataclasses
 import json
 import math
+import re
 
 import pytest
 
@@ -261,6 +262,34 @@ def test_a_duplicate_key_is_an_error_with_its_dotted_path(folder, name, text, me
     (folder / name).write_text(text)
     with pytest.raises(InputError, match=f"{name}: {message}"):
         load_config(folder / name)
+
+
+def nested_block(levels: int, item: str) -> str:
+    """``bomb:`` holding ``levels`` block lists (``item`` ``-``) or mappings (``k:``), one in the other."""
+    return "bomb:\n" + "".join(f"{'  ' * (k + 1)}{item}\n" for k in range(levels))
+
+
+STRUCTURES = [
+    ("flow.yaml", "splats: " + "[" * 5000 + "]" * 5000, r"nested deeper than 100 levels \(line 1, column 108\)$"),
+    ("list.yaml", "splats: scene.ply\n" + nested_block(5000, "-"), r"nested deeper than 100 levels \(line 102, "),
+    ("map.yaml", "splats: scene.ply\n" + nested_block(5000, "k:"), r"nested deeper than 100 levels \(line 102, "),
+    ("deep.json", '{"splats": ' + "[" * 100_000 + "]" * 100_000 + "}", r"nested deeper than 100 levels \(line 1, "),
+    ("100.yaml", "splats: scene.ply\nbomb: " + "[" * 99 + "]" * 99, r"bomb: unknown key"),  # deep enough
+    ("100.json", '{"splats": "scene.ply", "bomb": ' + "[" * 99 + "]" * 99 + "}", r"bomb: unknown key"),
+]
+
+
+@pytest.mark.parametrize("name, text, message", STRUCTURES, ids=[name for name, _, _ in STRUCTURES])
+def test_nesting_is_bounded_before_python_runs_out_of_recursion(folder, name, text, message):
+    (folder / name).write_text(text)
+    with pytest.raises(InputError, match=f"^{re.escape(str(folder / name))}: {message}"):
+        load_config(folder / name)
+
+
+def test_a_set_value_nested_too_deep_is_one_line(scene_yaml):
+    item = "simulation.gravity=" + "[" * 200 + "]" * 200
+    with pytest.raises(InputError, match=r"the value is not valid YAML \(nested deeper than 100 levels \(line 1, "):
+        load_config(scene_yaml, [item])
 
 
 def test_material_hypotheses_check_parameters_against_all_of_them(folder):

@@ -1,5 +1,5 @@
-"""Config files: strict YAML and JSON (a key given twice refused, ``2e4`` a number), the
-CLI's ``--set`` overrides, and load_config."""
+"""Config files: strict YAML and JSON (a key given twice refused, ``2e4`` a number, the
+nesting bounded), the CLI's ``--set`` overrides, and load_config."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from clflow.errors import InputError
+from clflow.fileio.reading import MAX_NESTING, NestingError, parse_json
 from clflow.scene.config.parse import parse_config
 from clflow.scene.config.settings import SceneConfig
 
@@ -42,8 +43,13 @@ class DuplicateKeyError(Exception):
     """A mapping key given twice; the argument is its dotted path (and YAML line)."""
 
 
+class StructureError(Exception):
+    """A YAML document refused before it is built (nested too deep); the argument says where
+    and why."""
+
+
 def read_json(text: str) -> Any:
-    return _json_without_duplicates(json.loads(text, object_pairs_hook=_JsonPairs))
+    return _json_without_duplicates(parse_json(text, object_pairs_hook=_JsonPairs))
 
 
 #: A number with an exponent that YAML 1.1 (PyYAML) reads as a string: no dot (``2e4``) or
@@ -53,10 +59,22 @@ _EXPONENT_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE
 
 def read_yaml(text: str) -> Any:
     """``yaml.safe_load`` that reads ``2e4`` as a float and rejects a mapping key given twice
-    (PyYAML keeps the last)."""
+    (PyYAML keeps the last) and nesting deeper than MAX_NESTING levels (StructureError)."""
     import yaml
 
     class StrictLoader(yaml.SafeLoader):
+        depth = 0  # the lists and mappings open where the composer is
+
+        def compose_node(self, parent, index):
+            opens = self.check_event(yaml.SequenceStartEvent, yaml.MappingStartEvent)
+            if opens and self.depth == MAX_NESTING:  # before PyYAML's recursive composer runs out of stack
+                raise StructureError(f"nested deeper than {MAX_NESTING} levels ({_where(self.peek_event())})")
+            self.depth += opens
+            try:
+                return super().compose_node(parent, index)
+            finally:
+                self.depth -= opens
+
         def construct_document(self, node):
             self._check_duplicates(node, "")
             return super().construct_document(node)
@@ -80,6 +98,11 @@ def read_yaml(text: str) -> Any:
     return yaml.load(text, Loader=StrictLoader)
 
 
+def _where(node) -> str:
+    """Where a YAML node or event starts: line and column."""
+    return f"line {node.start_mark.line + 1}, column {node.start_mark.column + 1}"
+
+
 def read_data_file(path: str | Path, what: str) -> Any:
     """The parsed JSON (a .json file) or YAML of the user's ``what`` file at ``path`` (None
     when it holds nothing); InputError, one line naming the file, where and what is wrong,
@@ -92,6 +115,8 @@ def read_data_file(path: str | Path, what: str) -> Any:
     text = read_text(path, what)
     try:
         return read_json(text) if path.suffix.lower() == ".json" else read_yaml(text)
+    except (NestingError, StructureError) as exc:
+        raise InputError(f"{path}: {exc}") from None
     except json.JSONDecodeError as exc:
         raise InputError(f"{path}: not valid JSON: line {exc.lineno}, column {exc.colno}: {exc.msg}") from None
     except yaml.YAMLError as exc:
@@ -163,7 +188,7 @@ def _override(data: Any, item: str) -> str:
         )
     try:
         value = read_yaml(text)
-    except (yaml.YAMLError, DuplicateKeyError) as exc:
+    except (yaml.YAMLError, DuplicateKeyError, StructureError) as exc:
         raise InputError(f"--set {item}: the value is not valid YAML ({' '.join(str(exc).split())})") from None
     node, walked = data, ""
     for k, part in enumerate(parts):
