@@ -5,6 +5,7 @@ import dataclasses
 import json
 import math
 import re
+import time
 
 import pytest
 
@@ -264,6 +265,40 @@ def test_a_duplicate_key_is_an_error_with_its_dotted_path(folder, name, text, me
         load_config(folder / name)
 
 
+def alias_bomb(levels: int) -> str:
+    """A "billion laughs" under an unknown key: ``levels`` lists of 9 aliases of the list
+    before, 9^(levels + 1) values expanded."""
+    lines = ["bomb:", "  a0: &a0 [x, x, x, x, x, x, x, x, x]"]
+    lines += [f"  a{k}: &a{k} [{', '.join([f'*a{k - 1}'] * 9)}]" for k in range(1, levels + 1)]
+    return "\n".join(lines) + "\n"
+
+
+def test_an_alias_bomb_is_refused_at_once(scene_yaml):
+    """Every walk of the document (the duplicate keys', then the checks') followed the
+    aliases: 8 levels took 14 s, each level 9 times the one before."""
+    bomb = scene_yaml.with_name("bomb.yaml")
+    bomb.write_text(scene_yaml.read_text() + alias_bomb(8))
+    start = time.perf_counter()
+    with pytest.raises(
+        InputError, match=r"^\S*bomb.yaml: bomb.a5: more than 100,000 nodes .* with its aliases expanded: too many"
+    ):
+        load_config(bomb)
+    assert time.perf_counter() - start < 0.5
+
+
+def test_aliases_within_the_bound_are_read(folder):
+    import yaml
+
+    text = yaml.safe_dump({k: v for k, v in GOOD.items() if k != "forces"}) + (
+        "forces:\n"
+        "- {region: &top {box: {min: [-1, 0.5, -1], max: [1, 1, 1]}}, force: &push [0, 0, 2], end: 0.1}\n"
+        "- {region: *top, force: *push, start: 0.2}\n"
+    )
+    (folder / "aliases.yaml").write_text(text)
+    first, second = load_config(folder / "aliases.yaml").forces
+    assert first.region == second.region and first.vector == second.vector == (0.0, 0.0, 2.0)
+
+
 def nested_block(levels: int, item: str) -> str:
     """``bomb:`` holding ``levels`` block lists (``item`` ``-``) or mappings (``k:``), one in the other."""
     return "bomb:\n" + "".join(f"{'  ' * (k + 1)}{item}\n" for k in range(levels))
@@ -274,6 +309,12 @@ STRUCTURES = [
     ("list.yaml", "splats: scene.ply\n" + nested_block(5000, "-"), r"nested deeper than 100 levels \(line 102, "),
     ("map.yaml", "splats: scene.ply\n" + nested_block(5000, "k:"), r"nested deeper than 100 levels \(line 102, "),
     ("deep.json", '{"splats": ' + "[" * 100_000 + "]" * 100_000 + "}", r"nested deeper than 100 levels \(line 1, "),
+    ("loop.yaml", "splats: scene.ply\nbomb: &b [1, *b]\n", r"bomb\[1\]: an alias to a node that holds it \(line 2, "),
+    (
+        "chain.yaml",
+        "splats: scene.ply\nbomb:\n  a0: &a0 [1]\n" + "".join(f"  a{k}: &a{k} [*a{k - 1}]\n" for k in range(1, 150)),
+        r"bomb.a98\[0\]: nested deeper than 100 levels with its aliases expanded$",
+    ),
     ("100.yaml", "splats: scene.ply\nbomb: " + "[" * 99 + "]" * 99, r"bomb: unknown key"),  # deep enough
     ("100.json", '{"splats": "scene.ply", "bomb": ' + "[" * 99 + "]" * 99 + "}", r"bomb: unknown key"),
 ]

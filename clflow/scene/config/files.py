@@ -1,5 +1,5 @@
 """Config files: strict YAML and JSON (a key given twice refused, ``2e4`` a number, the
-nesting bounded), the CLI's ``--set`` overrides, and load_config."""
+nesting and a YAML file's aliases bounded), the CLI's ``--set`` overrides, and load_config."""
 
 from __future__ import annotations
 
@@ -44,8 +44,14 @@ class DuplicateKeyError(Exception):
 
 
 class StructureError(Exception):
-    """A YAML document refused before it is built (nested too deep); the argument says where
-    and why."""
+    """A YAML document refused before it is built: nested too deep, its aliases expanding
+    it too far or into itself; the argument says where and why."""
+
+
+#: The most nodes (mappings, lists, keys and values) a YAML document may have with its
+#: aliases expanded: hundreds of times a large config, a tiny part of the 9^9 of a
+#: "billion laughs" of nested aliases, which every walk of the result would follow.
+MAX_YAML_NODES = 100_000
 
 
 def read_json(text: str) -> Any:
@@ -59,7 +65,8 @@ _EXPONENT_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE
 
 def read_yaml(text: str) -> Any:
     """``yaml.safe_load`` that reads ``2e4`` as a float and rejects a mapping key given twice
-    (PyYAML keeps the last) and nesting deeper than MAX_NESTING levels (StructureError)."""
+    (PyYAML keeps the last), nesting deeper than MAX_NESTING levels and aliases that expand
+    the document past MAX_YAML_NODES nodes or into itself (StructureError)."""
     import yaml
 
     class StrictLoader(yaml.SafeLoader):
@@ -76,23 +83,8 @@ def read_yaml(text: str) -> Any:
                 self.depth -= opens
 
         def construct_document(self, node):
-            self._check_duplicates(node, "")
+            _check_tree(node)
             return super().construct_document(node)
-
-        def _check_duplicates(self, node, path: str) -> None:
-            if isinstance(node, yaml.MappingNode):
-                seen = set()
-                for key_node, value_node in node.value:
-                    key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
-                    if key is not None and key != "<<":
-                        if key in seen:
-                            line = key_node.start_mark.line + 1
-                            raise DuplicateKeyError(f"{_dotted(path, key)} (line {line})")
-                        seen.add(key)
-                    self._check_duplicates(value_node, _dotted(path, key))
-            elif isinstance(node, yaml.SequenceNode):
-                for i, item in enumerate(node.value):
-                    self._check_duplicates(item, _dotted(path, i))
 
     StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _EXPONENT_FLOAT, list("-+0123456789."))
     return yaml.load(text, Loader=StrictLoader)
@@ -101,6 +93,55 @@ def read_yaml(text: str) -> Any:
 def _where(node) -> str:
     """Where a YAML node or event starts: line and column."""
     return f"line {node.start_mark.line + 1}, column {node.start_mark.column + 1}"
+
+
+def _check_tree(root) -> None:
+    """Refuse a composed YAML document with a mapping key given twice (DuplicateKeyError),
+    or whose aliases nest it deeper than MAX_NESTING levels, expand it past MAX_YAML_NODES
+    nodes or into itself (StructureError). Each node is walked once, at its first place
+    (an alias comes after its anchor), and counted by its size wherever an alias repeats
+    it, so a "billion laughs" is refused as fast as its text is read."""
+    import yaml
+
+    sizes: dict[int, tuple[int, int]] = {}  # id(node) -> (nodes, levels of lists and mappings), aliases expanded
+    open_nodes: set[int] = set()
+
+    def walk(node, path: str, depth: int) -> int:
+        """The nodes of ``node``, ``depth`` lists and mappings down, aliases expanded."""
+        where = path or "the document"
+        if id(node) in open_nodes:
+            raise StructureError(f"{where}: an alias to a node that holds it ({_where(node)}): it would nest endlessly")
+        if id(node) not in sizes:
+            open_nodes.add(id(node))
+            children = []
+            if isinstance(node, yaml.MappingNode):
+                seen = set()
+                for key_node, value_node in node.value:
+                    key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+                    if key is not None and key != "<<":
+                        if key in seen:
+                            raise DuplicateKeyError(f"{_dotted(path, key)} (line {key_node.start_mark.line + 1})")
+                        seen.add(key)
+                    children += [(key_node, path), (value_node, _dotted(path, key))]
+            elif isinstance(node, yaml.SequenceNode):
+                children = [(item, _dotted(path, i)) for i, item in enumerate(node.value)]
+            count, levels = 1, 0
+            for child, child_path in children:
+                count += walk(child, child_path, depth + 1)
+                levels = max(levels, sizes[id(child)][1])
+                if count > MAX_YAML_NODES:
+                    raise StructureError(
+                        f"{where}: more than {MAX_YAML_NODES:,} nodes (lists, mappings, keys and values) with its "
+                        f"aliases expanded: too many to read (an alias bomb?); write fewer aliases"
+                    )
+            open_nodes.discard(id(node))
+            sizes[id(node)] = count, levels + isinstance(node, yaml.CollectionNode)
+        count, levels = sizes[id(node)]
+        if depth + levels > MAX_NESTING:
+            raise StructureError(f"{where}: nested deeper than {MAX_NESTING} levels with its aliases expanded")
+        return count
+
+    walk(root, "", 0)
 
 
 def read_data_file(path: str | Path, what: str) -> Any:
