@@ -31,6 +31,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
+from clflow.fileio.reading import parse_json
 from clflow_datasets import per_class
 from clflow_datasets.scene_cases import CaseObject, SceneCase, make_scene_case
 from clflow_datasets.synthetic import GENERATOR_VERSION, Resolution, SyntheticCase, make_case
@@ -445,7 +446,7 @@ def _earlier_summary(out: Path, settings: Settings, force: bool) -> dict:
     summary = {"settings": wanted, "cases": {}}
     if summary_path.exists():
         try:
-            previous = json.loads(summary_path.read_text())
+            previous = parse_json(summary_path.read_text())
             earlier = previous.get("settings") if isinstance(previous, dict) else None
             if isinstance(earlier, dict):  # a setting added since those results were made takes its default there
                 earlier = {**settings_record(Settings()), **earlier}
