@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -30,7 +31,8 @@ class NestingError(json.JSONDecodeError):
 
 def parse_json(text: str, **kwargs):
     """``json.loads(text, **kwargs)``, but a :class:`NestingError` (a JSONDecodeError) where
-    the text nests lists and objects deeper than MAX_NESTING levels, before it is parsed."""
+    the text nests lists and objects deeper than MAX_NESTING levels, before it is parsed, and
+    a JSONDecodeError for a number too long for Python to read (json's is a plain ValueError)."""
     depth = 0
     for match in _JSON_NESTING.finditer(text):
         bracket = match.group()
@@ -40,7 +42,16 @@ def parse_json(text: str, **kwargs):
                 raise NestingError(f"nested deeper than {MAX_NESTING} levels", text, match.start())
         elif bracket in ("]", "}"):
             depth -= 1
-    return json.loads(text, **kwargs)
+    try:
+        return json.loads(text, **kwargs)
+    except ValueError as exc:
+        if isinstance(exc, json.JSONDecodeError) or "integer string conversion" not in str(exc):
+            raise
+        digits = sys.get_int_max_str_digits()
+        long = re.search(rf"[0-9]{{{digits + 1},}}", text)
+        raise json.JSONDecodeError(
+            f"a number of {len(long.group()):,} digits (at most {digits:,})", text, long.start()
+        ) from None
 
 
 def read_text(path: str | os.PathLike, what: str = "file") -> str:

@@ -327,10 +327,44 @@ def test_nesting_is_bounded_before_python_runs_out_of_recursion(folder, name, te
         load_config(folder / name)
 
 
-def test_a_set_value_nested_too_deep_is_one_line(scene_yaml):
+UNREADABLE = [  # values PyYAML and json fail to build with a ValueError (or KeyError) of their own
+    (
+        "frames.yaml",
+        "splats: scene.ply\nsimulation: {frames: " + "9" * 5000 + "}\n",
+        r"not valid YAML: line 2, column 22: '9{20}'\.\.\. \(5,000 characters\) cannot be read as a YAML int "
+        r"\(Exceeds the limit \(4300 digits\) for integer string conversion: value has 5000 digits\)$",
+    ),
+    (
+        "date.yaml",
+        "splats: scene.ply\noutput: 2001-13-45\n",
+        r"not valid YAML: line 2, column 9: '2001-13-45' cannot be read as a YAML timestamp \(month must be in 1..12\)$",
+    ),
+    (
+        "bool.yaml",
+        "splats: scene.ply\nflow: {mask: !!bool maybe}\n",
+        r"not valid YAML: line 2, column 14: 'maybe' cannot be read as a YAML bool$",
+    ),
+    (
+        "frames.json",
+        '{"splats": "scene.ply", "simulation": {"frames": ' + "9" * 5000 + "}}",
+        r"not valid JSON: line 1, column 50: a number of 5,000 digits \(at most 4,300\)$",
+    ),
+]
+
+
+@pytest.mark.parametrize("name, text, message", UNREADABLE, ids=[name for name, _, _ in UNREADABLE])
+def test_a_value_the_parser_cannot_build_is_one_line(folder, name, text, message):
+    (folder / name).write_text(text)
+    with pytest.raises(InputError, match=f"^{re.escape(str(folder / name))}: {message}"):
+        load_config(folder / name)
+
+
+def test_a_set_value_nested_too_deep_or_unreadable_is_one_line(scene_yaml):
     item = "simulation.gravity=" + "[" * 200 + "]" * 200
     with pytest.raises(InputError, match=r"the value is not valid YAML \(nested deeper than 100 levels \(line 1, "):
         load_config(scene_yaml, [item])
+    with pytest.raises(InputError, match=r"the value is not valid YAML \(.*\(5,000 characters\) cannot be read as"):
+        load_config(scene_yaml, ["simulation.frames=" + "9" * 5000])
 
 
 def test_material_hypotheses_check_parameters_against_all_of_them(folder):

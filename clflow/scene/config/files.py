@@ -86,8 +86,31 @@ def read_yaml(text: str) -> Any:
             _check_tree(node)
             return super().construct_document(node)
 
+        def construct_object(self, node, deep=False):
+            try:
+                return super().construct_object(node, deep)
+            except (ValueError, KeyError, AttributeError) as exc:  # PyYAML's: 2001-13-45, !!bool maybe
+                if not isinstance(node, yaml.ScalarNode):
+                    raise
+                raise yaml.constructor.ConstructorError(
+                    None,
+                    None,
+                    f"{_shown(node.value)} cannot be read as a YAML {node.tag.rpartition(':')[2]}{_why(exc)}",
+                    node.start_mark,
+                ) from None
+
     StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _EXPONENT_FLOAT, list("-+0123456789."))
     return yaml.load(text, Loader=StrictLoader)
+
+
+def _shown(text: str) -> str:
+    """``text`` quoted, or its start and length when long."""
+    return repr(text) if len(text) <= 40 else f"{text[:20]!r}... ({len(text):,} characters)"
+
+
+def _why(exc: Exception) -> str:
+    """A ValueError's reason, without Python's advice (sys.set_int_max_str_digits)."""
+    return f" ({str(exc).split(';')[0]})" if isinstance(exc, ValueError) else ""
 
 
 def _where(node) -> str:
