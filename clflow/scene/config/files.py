@@ -216,7 +216,7 @@ def load_config(path: str | Path, overrides: Sequence[str] = ()) -> SceneConfig:
         # name the --set that brought in the bad key or value, not only the file
         where = str(exc).removeprefix(f"{path}: ").split(":")[0]
         for key, item in keys.items():
-            if key == where or key.startswith((where + ".", where + "[")) or where.startswith(key + "."):
+            if key == where or key.startswith((where + ".", where + "[")) or where.startswith((key + ".", key + "[")):
                 raise InputError(f"--set {item}: {str(exc).removeprefix(f'{path}: ')}") from None
         raise
 
