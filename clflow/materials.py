@@ -199,8 +199,13 @@ MATERIALS: dict[str, Material] = {
 # fmt: on
 
 #: up to 1e6 kg/m^3, 44 times osmium's 22,590: beyond it no material, and float32 masses and
-#: momenta overflow the kernels (a density of 1e40 used to fail later, blamed on the modulus)
-DENSITY = Param("density", "rho", "kg/m^3", 1000.0, (0.0, 1e6), (10.0, 2.5e4), high_inclusive=True, doc="mass density")
+#: momenta overflow the kernels (a density of 1e40 used to fail later, blamed on the modulus);
+#: from 1e-3 kg/m^3, a thousandth of air's: below it the wave speed sqrt(E / rho) overflows
+#: them instead (a density of 1e-308 blew the first frame up)
+DENSITY = Param(
+    "density", "rho", "kg/m^3", 1000.0, (1e-3, 1e6), (10.0, 2.5e4), low_inclusive=True, high_inclusive=True,
+    doc="mass density",
+)  # fmt: skip
 
 
 def get_material(name: str) -> Material:

@@ -31,6 +31,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
+from clflow.fileio.reading import parse_json
 from clflow_datasets import per_class
 from clflow_datasets.scene_cases import CaseObject, SceneCase, make_scene_case
 from clflow_datasets.synthetic import GENERATOR_VERSION, Resolution, SyntheticCase, make_case
@@ -191,6 +192,7 @@ def check_case(name: str, case: SyntheticCase | SceneCase) -> None:
             raise ValueError(f"case {name!r}: its {label} is out of range: {exc}") from None
 
 
+MAX_SPREAD = 1e3  # a case's room beside its shapes, in their sizes
 #: what a case file may say of a case (clflow eval sysid --cases FILE), in the table's terms
 CASE_KEYS = ("shape", "size", "lift", "spread", "material", "density", "truth", "guess", "optimize", "velocity")
 #: a case of several objects: its objects (a list, each of OBJECT_KEYS) and the room beside them
@@ -213,6 +215,7 @@ def load_cases(path: Path) -> dict[str, SyntheticCase]:
     if not isinstance(data, dict) or not data:
         raise InputError(f"{path}: expected a mapping of case names to cases")
     r = Reader(str(path), path.parent)
+    r.no_huge_integers(data)
     cases = {}
     for name, body in data.items():
         if not isinstance(name, str) or not name.isidentifier() or name in CASES:
@@ -231,6 +234,7 @@ def _scene_case_of(r, body, name: str) -> SceneCase:
     with a name, shape, size (m), position (its centre, m, +y up), material, density, truth,
     guess, optimize and velocity as a single case's; ``spread``: room beside them (in their
     box's longest side)."""
+    from clflow.scene.config.parse import LENGTH
 
     body = r.section(body, name, SCENE_CASE_KEYS)
     entries = body.get("objects")
@@ -245,7 +249,7 @@ def _scene_case_of(r, body, name: str) -> SceneCase:
             raise r.fail(f"{where}.name", f"must be a new identifier for the object, got {label!r}")
         names.add(label)
         one = _case_of(r, {k: v for k, v in entry.items() if k not in ("name", "position")}, where)
-        position = r.vec3(entry, "position", where, None)
+        position = r.vec3(entry, "position", where, None, limit=LENGTH)
         if position is None:
             raise r.fail(f"{where}.position", "is required: the shape's centre (m, +y up; the floor is y = 0)")
         obj = CaseObject(
@@ -257,7 +261,7 @@ def _scene_case_of(r, body, name: str) -> SceneCase:
                 f"{where}.position", f"puts the shape below the floor (its lowest point y = {obj.bounds()[0][1]:g} m)"
             )
         objects.append(obj)
-    spread = r.number(body, "spread", name, SceneCase.spread, low=0.0)
+    spread = r.number(body, "spread", name, SceneCase.spread, low=0.0, high=MAX_SPREAD)
     return SceneCase(objects=tuple(objects), spread=spread)
 
 
@@ -266,6 +270,7 @@ def _case_of(r, body, name: str) -> SyntheticCase:
     its values read by ``r`` (a clflow.scene.config Reader, errors naming ``name.key``)."""
     from clflow.errors import InputError
     from clflow.materials import DENSITY, get_material
+    from clflow.scene.config.parse import LENGTH, SPEED
     from clflow_datasets.synthetic import SHAPES
 
     body = r.section(body, name, CASE_KEYS)
@@ -289,15 +294,15 @@ def _case_of(r, body, name: str) -> SyntheticCase:
     spread = body.get("spread")
     return SyntheticCase(
         shape=r.choice(body, "shape", name, SHAPES, "cube"),
-        size=r.number(body, "size", name, SyntheticCase.size, low=0.0, strict_low=True),
-        lift=r.number(body, "lift", name, SyntheticCase.lift, low=0.0),
-        spread=None if spread is None else r.number(body, "spread", name, low=0.0),
+        size=r.number(body, "size", name, SyntheticCase.size, low=0.0, high=LENGTH, strict_low=True),
+        lift=r.number(body, "lift", name, SyntheticCase.lift, low=0.0, high=LENGTH),
+        spread=None if spread is None else r.number(body, "spread", name, low=0.0, high=MAX_SPREAD),
         material=material.name,
         truth=truth,
         guess=guess,
         optimize=optimize,
         density=density,
-        velocity=r.vec3(body, "velocity", name, (0.0, 0.0, 0.0)),
+        velocity=r.vec3(body, "velocity", name, (0.0, 0.0, 0.0), limit=SPEED),
     )
 
 
@@ -446,7 +451,7 @@ def _earlier_summary(out: Path, settings: Settings, force: bool) -> dict:
     summary = {"settings": wanted, "cases": {}}
     if summary_path.exists():
         try:
-            previous = json.loads(summary_path.read_text())
+            previous = parse_json(summary_path.read_text())
             earlier = previous.get("settings") if isinstance(previous, dict) else None
             if isinstance(earlier, dict):  # a setting added since those results were made takes its default there
                 earlier = {**settings_record(Settings()), **earlier}

@@ -41,6 +41,15 @@ def test_bad_parameters_get_specific_messages(material, params, message):
         validate_params(material, params)
 
 
+def test_a_density_is_refused_where_the_kernels_would_overflow():
+    """1e-308 kg/m^3 made the wave speed infinite in float32: the first frame blew up."""
+    with pytest.raises(
+        InputError, match=r"density \(rho\) = 1e-308 kg/m\^3 is outside the valid range \[0.001, 1e\+06\]"
+    ):
+        DENSITY.check(1e-308)
+    assert DENSITY.check(1e-3) == 1e-3 and DENSITY.check(1e6) == 1e6
+
+
 def test_defaults_fill_in_and_symbols_are_accepted():
     assert validate_params("plasticine", {"E": 2e6, "tau_Y": 1.54e4}) == {
         "youngs_modulus": 2e6,

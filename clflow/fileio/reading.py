@@ -3,12 +3,55 @@ naming the file and the problem) when it cannot be read as what it should be."""
 
 from __future__ import annotations
 
+import json
 import os
+import re
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     import numpy as np
+
+#: The deepest nesting of lists and mappings read from a user's JSON or YAML file: far more
+#: than any config or record has, far less than where Python's recursion (the parsers' and
+#: every walk of what they return) runs out.
+MAX_NESTING = 100
+
+# a JSON string (its brackets are text) or a bracket
+_JSON_NESTING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"|[][{}]')
+
+
+class NestingError(json.JSONDecodeError):
+    """JSON text nested deeper than MAX_NESTING levels, at the bracket that goes too deep."""
+
+    def __str__(self) -> str:
+        return f"{self.msg} (line {self.lineno}, column {self.colno})"
+
+
+def parse_json(text: str, **kwargs):
+    """``json.loads(text, **kwargs)``, but a :class:`NestingError` (a JSONDecodeError) where
+    the text nests lists and objects deeper than MAX_NESTING levels, before it is parsed, and
+    a JSONDecodeError for a number too long for Python to read (json's is a plain ValueError)."""
+    depth = 0
+    for match in _JSON_NESTING.finditer(text):
+        bracket = match.group()
+        if bracket in ("[", "{"):
+            depth += 1
+            if depth > MAX_NESTING:
+                raise NestingError(f"nested deeper than {MAX_NESTING} levels", text, match.start())
+        elif bracket in ("]", "}"):
+            depth -= 1
+    try:
+        return json.loads(text, **kwargs)
+    except ValueError as exc:
+        if isinstance(exc, json.JSONDecodeError) or "integer string conversion" not in str(exc):
+            raise
+        digits = sys.get_int_max_str_digits()
+        long = re.search(rf"[0-9]{{{digits + 1},}}", text)
+        raise json.JSONDecodeError(
+            f"a number of {len(long.group()):,} digits (at most {digits:,})", text, long.start()
+        ) from None
 
 
 def read_text(path: str | os.PathLike, what: str = "file") -> str:
@@ -36,10 +79,9 @@ def read_text(path: str | os.PathLike, what: str = "file") -> str:
 
 def read_json(path: str | os.PathLike, what: str = "file", expected: str = ""):
     """The parsed JSON of a user's file (:func:`read_text`; NaN and Infinity refused, as JSON
-    does); InputError, one line with the path, line and column, when it is not JSON
-    (``expected``: what the file should have been, added to the message)."""
-    import json
-
+    does); InputError, one line with the path, line and column, when it is not JSON or nests
+    deeper than MAX_NESTING levels (``expected``: what the file should have been, added to
+    the message)."""
     from clflow.errors import InputError
 
     def not_a_number(name: str):
@@ -47,7 +89,9 @@ def read_json(path: str | os.PathLike, what: str = "file", expected: str = ""):
 
     text = read_text(path, what)
     try:
-        return json.loads(text, parse_constant=not_a_number)
+        return parse_json(text, parse_constant=not_a_number)
+    except NestingError as exc:
+        raise InputError(f"{path}: {exc}{'; ' + expected if expected else ''}") from None
     except json.JSONDecodeError as exc:
         where = f"line {exc.lineno}, column {exc.colno}: " if exc.doc is text else ""
         raise InputError(f"{path}: not valid JSON: {where}{exc.msg}{'; ' + expected if expected else ''}") from None

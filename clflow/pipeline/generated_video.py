@@ -21,6 +21,7 @@ from typing import Callable
 import numpy as np
 
 from clflow.errors import InputError
+from clflow.fileio.reading import parse_json
 from clflow.scene.config import SceneConfig
 from clflow.scene.video_settings import PROMPT_TEMPLATE, check_settings, generate_request
 
@@ -114,7 +115,7 @@ def ensure_guidance_video(cfg: SceneConfig, progress: Callable[[int, int], None]
     meta = path.with_suffix(".json")
     if path.is_file() and meta.is_file():
         try:
-            if json.loads(meta.read_text()).get("digest") == digest:
+            if parse_json(meta.read_text()).get("digest") == digest:
                 log.info("guidance video: %s (generated earlier from the same inputs)", path)
                 return dataclasses.replace(cfg, video=path)
         except (OSError, json.JSONDecodeError):

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from clflow.environment import environment
 from clflow.fileio import atomic_write_text
+from clflow.fileio.reading import parse_json
 from clflow.limits import format_duration
 from clflow.pipeline.plots import range_text
 from clflow.scene.config import config_record
@@ -39,7 +40,7 @@ def write_run_record(cfg, output: Path, argv: list[str] | None = None) -> dict:
 
 def _read(path: Path) -> dict | None:
     try:
-        return json.loads(path.read_text())
+        return parse_json(path.read_text())
     except (OSError, ValueError):
         return None
 

@@ -80,11 +80,14 @@ def load_query_result(path: str | Path) -> QueryResult:
     registry's defaults. Problems raise :class:`InputError` naming the file and key.
     """
     from clflow.fileio import read_text
+    from clflow.fileio.reading import NestingError, parse_json
 
     path = Path(path)
     text = read_text(path, "query result")
     try:
-        raw = loads_strict(text)
+        raw = parse_json(text, parse_constant=_reject_constant)
+    except NestingError as exc:
+        raise InputError(f"{path}: {exc}") from None
     except (json.JSONDecodeError, ValueError) as exc:
         raise InputError(f"{path}: not valid JSON: {exc}") from None
     if not isinstance(raw, dict) or raw.get("format") != RESULT_FORMAT:

@@ -35,8 +35,10 @@ import torch
 import torch.nn.functional as nnf
 
 from clflow.errors import InputError
+from clflow.limits import check_memory
 
 MAX_VOXELS = 256**3  # refuse grids larger than this (memory/time); choose a larger spacing
+FILL_BYTES = 96  # bytes of memory at the peak per fill particle (its sub-grid points, float64, and copies)
 # widest gap between neighbouring Gaussians, in voxels, that the shell marks below close
 # (measured: 2.5 voxels closed, 3.1 leaked, on cube faces of flat Gaussians)
 CLOSED_GAP = 2.5
@@ -173,6 +175,12 @@ def fill_object(
         outside = grown
     interior = ~outside & ~closed
     inside, tie = _object_voxels(interior, outside, closed)
+    count = int(inside.sum()) * per_axis**3
+    check_memory(
+        count * FILL_BYTES,
+        f"filling the object with {count:,} particles",
+        "use a larger fill spacing or fewer particles per axis (fill.per_axis)",
+    )
     fill_cells = inside.nonzero().double()  # [M, 3]
     sub = (torch.arange(per_axis, dtype=torch.float64) + 0.5) / per_axis
     sub = torch.stack(torch.meshgrid(sub, sub, sub, indexing="ij"), -1).reshape(-1, 3)

@@ -206,13 +206,12 @@ def file_camera(cfg: SceneConfig, cam: CameraConfig):
     from clflow.splat import cameras
 
     if cam.cameras_file is not None:
-        import json
-
         from clflow.fileio import read_text
+        from clflow.fileio.reading import parse_json
 
         text = read_text(cam.cameras_file, "camera file")
         try:  # 3DGS cameras.json is a list; NeRF transforms.json an object with "frames"
-            is_list = isinstance(json.loads(text), list)
+            is_list = isinstance(parse_json(text), list)
         except ValueError as exc:
             raise InputError(f"{cam.cameras_file}: not a readable JSON camera file ({exc})") from None
         load = cameras.load_cameras_json if is_list else cameras.load_transforms_json

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from clflow.errors import ClflowError, InputError
+from clflow.fileio.reading import parse_json
 from clflow.parallel import ray_session, remote_task, serial_order, task_env
 from clflow.sweep.spec import Run, sysid_settings
 
@@ -70,7 +71,7 @@ def _started_with(folder: Path, inputs: dict) -> bool:
 
     noted = folder / "inputs.json"
     try:
-        other = json.loads(noted.read_text()) != inputs
+        other = parse_json(noted.read_text()) != inputs
     except (OSError, ValueError):
         other = (folder / "result.json").exists()
     atomic_write_text(noted, json.dumps(inputs, indent=2))

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from clflow.fileio.reading import parse_json
 from clflow.parallel import ray_session, serial_order, task_env
 from clflow.sweep.runner import run_on_ray, run_serial
 from clflow.sweep.spec import FINISHED, Run, Spec, inputs_of
@@ -15,7 +16,7 @@ from clflow.sweep.spec import FINISHED, Run, Spec, inputs_of
 
 def previous_record(folder: Path) -> dict | None:
     try:
-        record = json.loads((folder / "result.json").read_text())
+        record = parse_json((folder / "result.json").read_text())
     except (OSError, ValueError):
         return None
     return record if isinstance(record, dict) and record.get("status") in FINISHED else None

@@ -117,6 +117,12 @@ def huge_splats(c: Case) -> str:
     return c.config("huge", splats="huge.ply")
 
 
+def deep_json(c: Case, name: str) -> str:
+    """``name`` in the test's folder: JSON nested 200,000 levels deep (json.loads: a RecursionError)."""
+    (c.tmp / name).write_text('{"a": ' + "[" * 200_000 + "]" * 200_000 + "}")
+    return str(c.tmp / name)
+
+
 def pickled_mask(c: Case) -> str:
     np.save(c.demo / "pickled.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
     return c.config("pickled_mask", **{"object.select": {"mask": "pickled.npy"}})
@@ -303,6 +309,28 @@ PROBES = [
         ("sim/render4d",),
     ),
     Probe(
+        "camera-file-nested-200000-deep",
+        lambda c: [
+            "simulate",
+            c.config("deep_camera", camera={"file": deep_json(c, "cameras.json")}),
+            "-o",
+            c.tmp / "s",
+        ],
+        r"cameras.json: not a readable JSON camera file \(nested deeper than 100 levels \(line 1, column 106\)\)$",
+        ("s",),
+    ),
+    Probe(
+        "query-result-nested-200000-deep",
+        lambda c: [
+            "simulate",
+            c.config("deep_query", material={"type": "query", "query": {"result": deep_json(c, "query.json")}}),
+            "-o",
+            c.tmp / "s",
+        ],
+        r"query.json: nested deeper than 100 levels \(line 1, column 106\)$",
+        ("s",),
+    ),
+    Probe(
         "mask-npy-garbage",
         lambda c: ["optimize", garbage_mask(c)],
         r"garbage.npy: not a numpy .npz/.npy object mask$",
@@ -470,3 +498,19 @@ def test_atomic_dir_moves_its_entries_in_or_leaves_the_folder_as_it_was(tmp_path
         (tmp / "frames" / "001.png").write_text("b")
     assert sorted(p.name for p in out.rglob("*")) == [WRITTEN_RECORD, "001.png", "frames", "mine.txt", "video.mp4"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_records_nested_too_deep_read_as_damaged_ones(tmp_path):
+    """The records kept in output folders (a budget's choice, the results page's params.json,
+    a sweep run's result and inputs), nested 200,000 deep: read as damaged, not a traceback."""
+    from clflow.pipeline.fit.budget import load_choice
+    from clflow.pipeline.report import _read
+    from clflow.sweep.runner import _started_with
+    from clflow.sweep.study import previous_record
+
+    c = Case(None, None, tmp_path, None)
+    for name in ("result.json", "inputs.json"):
+        deep_json(c, name)
+    assert load_choice(tmp_path / "result.json", {}) is None and _read(tmp_path / "result.json") is None
+    assert previous_record(tmp_path) is None
+    assert _started_with(tmp_path, {"a": 1})  # other inputs than these: the run starts over

@@ -10,7 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from tests.pipeline.test_bad_input import Case, Probe, assert_probe, simulation  # noqa: F401 (a fixture)
+from tests.pipeline.test_bad_input import Case, Probe, assert_probe, deep_json, simulation  # noqa: F401 (a fixture)
+from tests.scene.test_config import alias_bomb, nested_block
 
 
 def run(*args, timeout=300) -> subprocess.CompletedProcess:
@@ -139,6 +140,14 @@ def case_file(c: Case, name: str, text: str) -> str:
     return str(c.tmp / name)
 
 
+def deep_checkpoint(c: Case) -> str:
+    """A config whose output holds a checkpoint.json nested 200,000 levels deep."""
+    path = c.config("resume_deep")
+    (c.tmp / "out").mkdir()
+    deep_json(c, "out/checkpoint.json")
+    return path
+
+
 BEFORE_WORK = [
     # options that do not apply to the input kind, values out of the documented range
     Probe(
@@ -226,6 +235,34 @@ BEFORE_WORK = [
     ),
     # files that do not parse, or hold nothing: one line saying so
     Probe(
+        "config-alias-bomb",
+        lambda c: ["simulate", case_file(c, "bomb.yaml", (c.demo / "config.yaml").read_text() + alias_bomb(8))],
+        r"bomb.yaml: bomb.a5: more than 100,000 nodes \(lists, mappings, keys and values\) with its aliases expanded",
+        setup=no_scene,
+    ),
+    Probe(
+        "config-yaml-nested-5000-deep",
+        lambda c: ["simulate", case_file(c, "deep.yaml", "splats: scene.ply\n" + nested_block(5000, "-"))],
+        r"deep.yaml: nested deeper than 100 levels \(line 102, column 201\)$",
+    ),
+    Probe(
+        "config-json-nested-100000-deep",
+        lambda c: ["simulate", case_file(c, "deep.json", '{"splats": ' + "[" * 100_000 + "]" * 100_000 + "}")],
+        r"deep.json: nested deeper than 100 levels \(line 1, column 111\)$",
+    ),
+    Probe(
+        "params-json-nested-200000-deep",
+        lambda c: ["simulate", c.config("p"), "--params-from", deep_json(c, "params.json")],
+        r"params.json: nested deeper than 100 levels \(line 1, column 106\); expected the params.json",
+        setup=no_scene,
+    ),
+    Probe(
+        "optimize-resume-from-a-checkpoint-nested-200000-deep",
+        lambda c: ["optimize", deep_checkpoint(c), "--resume"],
+        r"cannot resume from .*checkpoint.json: nested deeper than 100 levels \(line 1, column 106\)$",
+        setup=no_scene,
+    ),
+    Probe(
         "config-empty-with-a-set",
         lambda c: ["simulate", case_file(c, "empty.yaml", "# nothing yet\n"), "--set", "simulation.frames=2"],
         r"empty.yaml: the config file is empty$",
@@ -257,7 +294,7 @@ BEFORE_WORK = [
             "--cases",
             case_file(c, "c.yaml", "jelly: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}, size: 0}"),
         ],
-        r"c.yaml: jelly.size: must be > 0, got 0$",
+        r"c.yaml: jelly.size: must be in \(0, 10000\], got 0$",
         ("o",),
     ),
     Probe(

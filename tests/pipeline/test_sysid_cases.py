@@ -64,10 +64,33 @@ def test_a_case_file_gives_cases_in_the_tables_terms_run_with_the_benchmarks_pol
         ("a: {material: elastic}\na: {material: sand}", "a (line 2): duplicate key"),
         ("- just a list", "a mapping of case names"),
         # values checked as the scene config checks its own (they failed late, naming a generated file)
-        ("a: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}, size: 0}", "a.size: must be > 0, got 0"),
+        (
+            "a: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}, size: 0}",
+            "a.size: must be in (0, 10000], got 0",
+        ),
         ("a: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}, density: 0}", "a.density: must be > 0, got 0"),
         ("a: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}, density: 1.0e+7}", "a.density: density (rho)"),
-        ("a: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}, lift: -1}", "a.lift: must be >= 0"),
+        (
+            "a: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}, lift: -1}",
+            "a.lift: must be in [0, 10000], got -1",
+        ),
+        # numbers beyond what they can mean (a traceback, or an error from deep in the run, before)
+        (
+            "a: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}, size: 1.0e+308}",
+            "a.size: must be in (0, 10000]",
+        ),
+        (
+            "a: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}, spread: 1.0e+308}",
+            "a.spread: must be in [0, 1000]",
+        ),
+        (
+            "a: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}, velocity: [1.0e+308, 0, 0]}",
+            "a.velocity: must be 3 numbers in [-10000, 10000]",
+        ),
+        (
+            "a: {material: elastic, truth: {E: 1" + "0" * 400 + "}, guess: {E: 2.0e4}}",
+            "a.truth.E: an integer of 401 digits is beyond any value a config takes",
+        ),
         ("a: {material: elastic, truth: {E: 1.0e4}, guess: {E: 2.0e4}, optimize: E}", "a.optimize: must be a list"),
         ("a: {material: elastic, truth: {E: 1.0e4}}", "a.guess: is required"),
         # files that do not parse: one line saying where (a traceback before)

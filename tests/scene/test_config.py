@@ -4,6 +4,8 @@ import copy
 import dataclasses
 import json
 import math
+import re
+import time
 
 import pytest
 
@@ -87,17 +89,17 @@ BAD = [
     ("simulaton", {}, "simulaton: unknown key; known keys here: splats, scene"),
     ("simulation.frames", -3, "simulation.frames: must be an integer >= 1, got -3"),
     ("simulation.fps", "fast", "simulation.fps: must be a number, got 'fast'"),
-    ("simulation.substep_dt", 0, "simulation.substep_dt: must be > 0"),
-    ("simulation.flip", 1.5, "simulation.flip: must be <= 1"),
-    ("simulation.flip", -0.1, "simulation.flip: must be >= 0"),
+    ("simulation.substep_dt", 0, r"simulation.substep_dt: must be >= 1e-09, got 0"),
+    ("simulation.flip", 1.5, r"simulation.flip: must be in \[0, 1\], got 1.5"),
+    ("simulation.flip", -0.1, r"simulation.flip: must be in \[0, 1\], got -0.1"),
     ("simulation.gravity", [0, -9.81], "simulation.gravity: must be a list of 3 finite numbers"),
     ("simulation.domain", {"min": [0, 0, 0], "max": [1, -1, 1]}, "simulation.domain: min .* must be below max"),
     ("scene.up", "up", "scene.up: must be one of"),
-    ("scene.scale", 0, "scene.scale: must be > 0"),
+    ("scene.scale", 0, r"scene.scale: must be in \[1e-06, 1000\], got 0"),
     ("object.select", {}, "object.select: is required"),
     ("object.select", {"box": {"min": [0, 0, 0], "max": [1, 1, 1]}, "sphere": {}}, "object.select: give exactly one"),
     ("object.select", {"mask": "mask.npy"}, "object.select.mask: file not found"),
-    ("object.fill.spacing", -0.1, "object.fill.spacing: must be > 0"),
+    ("object.fill.spacing", -0.1, r"object.fill.spacing: must be in \[1e-06, 10000\], got -0.1"),
     ("material.type", "lava", "material: unknown material 'lava'"),
     ("material.parameters", {"poissons_ratio": 0.5}, r"material: elastic: poissons_ratio \(nu\) = 0.5 is outside"),
     ("material.parameters", {"yield_stress": 10}, "material 'elastic' has no parameter 'yield_stress'"),
@@ -113,7 +115,7 @@ BAD = [
         "boundaries.colliders\\[0\\].normal: must not be the zero",
     ),
     ("camera", {}, "camera: give a camera file"),
-    ("camera.fov_y_deg", 200, "camera.fov_y_deg: must be <= 179"),
+    ("camera.fov_y_deg", 200, r"camera.fov_y_deg: must be in \[1, 179\], got 200"),
     ("optimize.parameters", ["yield_stress"], "'yield_stress' is not a parameter of elastic"),
     ("optimize.learning_rates", {"poissons_ratio": 0.1}, "optimize.learning_rates.poissons_ratio: is not among"),
     ("video", "guide.mp4", "video: file or folder not found"),
@@ -140,8 +142,8 @@ BAD = [
     ),
     ("material.parameters", {"youngs_modulus": True}, "material.parameters.youngs_modulus: must be a number"),
     ("evaluation", {"ground_truth": {"density": -5.0}}, "evaluation.ground_truth: .*density"),
-    ("simulation.grid_resolution", 9, "simulation.grid_resolution: must be an integer >= 11"),
-    ("optimize.final_rate", 2, "optimize.final_rate: must be <= 1, got 2"),
+    ("simulation.grid_resolution", 9, r"simulation.grid_resolution: must be an integer in \[11, 100000\], got 9"),
+    ("optimize.final_rate", 2, r"optimize.final_rate: must be in \[0, 1\], got 2"),
     (
         "material",
         {"type": "query", "query": {"image": "scene.ply", "backend": "gpt"}},
@@ -261,6 +263,108 @@ def test_a_duplicate_key_is_an_error_with_its_dotted_path(folder, name, text, me
     (folder / name).write_text(text)
     with pytest.raises(InputError, match=f"{name}: {message}"):
         load_config(folder / name)
+
+
+def alias_bomb(levels: int) -> str:
+    """A "billion laughs" under an unknown key: ``levels`` lists of 9 aliases of the list
+    before, 9^(levels + 1) values expanded."""
+    lines = ["bomb:", "  a0: &a0 [x, x, x, x, x, x, x, x, x]"]
+    lines += [f"  a{k}: &a{k} [{', '.join([f'*a{k - 1}'] * 9)}]" for k in range(1, levels + 1)]
+    return "\n".join(lines) + "\n"
+
+
+def test_an_alias_bomb_is_refused_at_once(scene_yaml):
+    """Every walk of the document (the duplicate keys', then the checks') followed the
+    aliases: 8 levels took 14 s, each level 9 times the one before."""
+    bomb = scene_yaml.with_name("bomb.yaml")
+    bomb.write_text(scene_yaml.read_text() + alias_bomb(8))
+    start = time.perf_counter()
+    with pytest.raises(
+        InputError, match=r"^\S*bomb.yaml: bomb.a5: more than 100,000 nodes .* with its aliases expanded: too many"
+    ):
+        load_config(bomb)
+    assert time.perf_counter() - start < 0.5
+
+
+def test_aliases_within_the_bound_are_read(folder):
+    import yaml
+
+    text = yaml.safe_dump({k: v for k, v in GOOD.items() if k != "forces"}) + (
+        "forces:\n"
+        "- {region: &top {box: {min: [-1, 0.5, -1], max: [1, 1, 1]}}, force: &push [0, 0, 2], end: 0.1}\n"
+        "- {region: *top, force: *push, start: 0.2}\n"
+    )
+    (folder / "aliases.yaml").write_text(text)
+    first, second = load_config(folder / "aliases.yaml").forces
+    assert first.region == second.region and first.vector == second.vector == (0.0, 0.0, 2.0)
+
+
+def nested_block(levels: int, item: str) -> str:
+    """``bomb:`` holding ``levels`` block lists (``item`` ``-``) or mappings (``k:``), one in the other."""
+    return "bomb:\n" + "".join(f"{'  ' * (k + 1)}{item}\n" for k in range(levels))
+
+
+STRUCTURES = [
+    ("flow.yaml", "splats: " + "[" * 5000 + "]" * 5000, r"nested deeper than 100 levels \(line 1, column 108\)$"),
+    ("list.yaml", "splats: scene.ply\n" + nested_block(5000, "-"), r"nested deeper than 100 levels \(line 102, "),
+    ("map.yaml", "splats: scene.ply\n" + nested_block(5000, "k:"), r"nested deeper than 100 levels \(line 102, "),
+    ("deep.json", '{"splats": ' + "[" * 100_000 + "]" * 100_000 + "}", r"nested deeper than 100 levels \(line 1, "),
+    ("loop.yaml", "splats: scene.ply\nbomb: &b [1, *b]\n", r"bomb\[1\]: an alias to a node that holds it \(line 2, "),
+    (
+        "chain.yaml",
+        "splats: scene.ply\nbomb:\n  a0: &a0 [1]\n" + "".join(f"  a{k}: &a{k} [*a{k - 1}]\n" for k in range(1, 150)),
+        r"bomb.a98\[0\]: nested deeper than 100 levels with its aliases expanded$",
+    ),
+    ("100.yaml", "splats: scene.ply\nbomb: " + "[" * 99 + "]" * 99, r"bomb: unknown key"),  # deep enough
+    ("100.json", '{"splats": "scene.ply", "bomb": ' + "[" * 99 + "]" * 99 + "}", r"bomb: unknown key"),
+]
+
+
+@pytest.mark.parametrize("name, text, message", STRUCTURES, ids=[name for name, _, _ in STRUCTURES])
+def test_nesting_is_bounded_before_python_runs_out_of_recursion(folder, name, text, message):
+    (folder / name).write_text(text)
+    with pytest.raises(InputError, match=f"^{re.escape(str(folder / name))}: {message}"):
+        load_config(folder / name)
+
+
+UNREADABLE = [  # values PyYAML and json fail to build with a ValueError (or KeyError) of their own
+    (
+        "frames.yaml",
+        "splats: scene.ply\nsimulation: {frames: " + "9" * 5000 + "}\n",
+        r"not valid YAML: line 2, column 22: '9{20}'\.\.\. \(5,000 characters\) cannot be read as a YAML int "
+        r"\(Exceeds the limit \(4300 digits\) for integer string conversion: value has 5000 digits\)$",
+    ),
+    (
+        "date.yaml",
+        "splats: scene.ply\noutput: 2001-13-45\n",
+        r"not valid YAML: line 2, column 9: '2001-13-45' cannot be read as a YAML timestamp \(month must be in 1..12\)$",
+    ),
+    (
+        "bool.yaml",
+        "splats: scene.ply\nflow: {mask: !!bool maybe}\n",
+        r"not valid YAML: line 2, column 14: 'maybe' cannot be read as a YAML bool$",
+    ),
+    (
+        "frames.json",
+        '{"splats": "scene.ply", "simulation": {"frames": ' + "9" * 5000 + "}}",
+        r"not valid JSON: line 1, column 50: a number of 5,000 digits \(at most 4,300\)$",
+    ),
+]
+
+
+@pytest.mark.parametrize("name, text, message", UNREADABLE, ids=[name for name, _, _ in UNREADABLE])
+def test_a_value_the_parser_cannot_build_is_one_line(folder, name, text, message):
+    (folder / name).write_text(text)
+    with pytest.raises(InputError, match=f"^{re.escape(str(folder / name))}: {message}"):
+        load_config(folder / name)
+
+
+def test_a_set_value_nested_too_deep_or_unreadable_is_one_line(scene_yaml):
+    item = "simulation.gravity=" + "[" * 200 + "]" * 200
+    with pytest.raises(InputError, match=r"the value is not valid YAML \(nested deeper than 100 levels \(line 1, "):
+        load_config(scene_yaml, [item])
+    with pytest.raises(InputError, match=r"the value is not valid YAML \(.*\(5,000 characters\) cannot be read as"):
+        load_config(scene_yaml, ["simulation.frames=" + "9" * 5000])
 
 
 def test_material_hypotheses_check_parameters_against_all_of_them(folder):

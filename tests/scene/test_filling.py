@@ -56,6 +56,15 @@ def test_bad_inputs():
         fill_object(means * 1000, covs, opac, spacing=0.001)
 
 
+def test_more_fill_particles_than_the_memory_holds_are_refused_before_they_are_made(monkeypatch):
+    """per_axis 16 on a fine grid asked for billions of particles: the allocation failed (or
+    the machine ran out of memory) instead of a refusal."""
+    means, covs, opac = sphere_shell()
+    monkeypatch.setattr("clflow.limits.physical_memory", lambda: 10**9)
+    with pytest.raises(InputError, match=r"filling the object with [\d,]+ particles would hold about .* GB in memory"):
+        fill_object(means, covs, opac, spacing=0.01, per_axis=16)
+
+
 def test_a_cube_of_flat_face_gaussians_is_filled_inside_only():
     # Face Gaussians overhang the cube's edges by two standard deviations: the fill must
     # still stay inside the cube, and the volume must be the cube's.

@@ -34,6 +34,7 @@ from typing import Callable, Sequence
 
 from clflow.errors import InputError
 from clflow.fileio import atomic_write_text
+from clflow.fileio.reading import parse_json
 from clflow.limits import format_duration
 from clflow.pipeline.fit.diagnostics import GRID_CHECK_RATIO
 from clflow.pipeline.preflight import GRADIENT_COST, RunPlan
@@ -232,7 +233,7 @@ def choose_grid(
 def load_choice(path: Path, key: dict) -> GridChoice | None:
     """The choice saved in ``path`` for ``key`` (the budget, device and config), else None."""
     try:
-        data = json.loads(path.read_text())
+        data = parse_json(path.read_text())
         if data.get("key") != key:
             return None
         choice = data["choice"]

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import time
@@ -14,6 +13,7 @@ from typing import TYPE_CHECKING, Callable
 import torch
 
 from clflow.errors import ClflowError, InputError
+from clflow.fileio.reading import parse_json
 from clflow.limits import format_duration
 from clflow.pipeline.fit.state import LM_DAMPING, OptimizerState, config_digests
 
@@ -313,7 +313,7 @@ class Search:
         """A start's polish as saved in ``checkpoint`` (its calibration restored), None when
         there is none of this config and start point."""
         try:
-            data = json.loads(checkpoint.read_text())
+            data = parse_json(checkpoint.read_text())
             state = OptimizerState(**data["state"])
         except (OSError, ValueError, KeyError, TypeError):
             return None

@@ -13,6 +13,7 @@ import torch
 
 from clflow.errors import ClflowError, InputError
 from clflow.fileio import atomic_write_text
+from clflow.fileio.reading import parse_json
 from clflow.pipeline.forward import material_values, scene_values
 from clflow.scene.config import SceneConfig, config_record, split_parameter, velocity_names
 
@@ -145,13 +146,17 @@ def check_same_config(checkpoint: Path, saved, cfg: SceneConfig) -> None:
 
 
 def check_resume(checkpoint: Path, cfg: SceneConfig) -> None:
-    """:func:`check_same_config` of a checkpoint file, before any work (one that cannot be
-    read is the optimiser's to refuse when it loads it)."""
+    """:func:`check_same_config` of a checkpoint file, before any work; one that is not JSON
+    (or nests too deep) is refused as the optimiser would refuse it when it loads it, one
+    that cannot be read or holds other things is the optimiser's to refuse."""
     try:
-        saved = json.loads(checkpoint.read_text()).get("config_digests")
-    except (OSError, ValueError, AttributeError):
+        data = parse_json(checkpoint.read_text())
+    except OSError:
         return
-    check_same_config(checkpoint, saved, cfg)
+    except ValueError as exc:
+        raise InputError(f"cannot resume from {checkpoint}: {exc}") from None
+    if isinstance(data, dict):
+        check_same_config(checkpoint, data.get("config_digests"), cfg)
 
 
 class Checkpoints:
@@ -177,7 +182,7 @@ class Checkpoints:
 
     def load_state(self) -> OptimizerState:
         try:
-            data = json.loads(self.checkpoint.read_text())
+            data = parse_json(self.checkpoint.read_text())
             state = OptimizerState(**data["state"])
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise InputError(f"cannot resume from {self.checkpoint}: {exc}") from None

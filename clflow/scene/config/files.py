@@ -1,5 +1,5 @@
-"""Config files: strict YAML and JSON (a key given twice refused, ``2e4`` a number), the
-CLI's ``--set`` overrides, and load_config."""
+"""Config files: strict YAML and JSON (a key given twice refused, ``2e4`` a number, the
+nesting and a YAML file's aliases bounded), the CLI's ``--set`` overrides, and load_config."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from clflow.errors import InputError
+from clflow.fileio.reading import MAX_NESTING, NestingError, parse_json
 from clflow.scene.config.parse import parse_config
 from clflow.scene.config.settings import SceneConfig
 
@@ -42,8 +43,19 @@ class DuplicateKeyError(Exception):
     """A mapping key given twice; the argument is its dotted path (and YAML line)."""
 
 
+class StructureError(Exception):
+    """A YAML document refused before it is built: nested too deep, its aliases expanding
+    it too far or into itself; the argument says where and why."""
+
+
+#: The most nodes (mappings, lists, keys and values) a YAML document may have with its
+#: aliases expanded: hundreds of times a large config, a tiny part of the 9^9 of a
+#: "billion laughs" of nested aliases, which every walk of the result would follow.
+MAX_YAML_NODES = 100_000
+
+
 def read_json(text: str) -> Any:
-    return _json_without_duplicates(json.loads(text, object_pairs_hook=_JsonPairs))
+    return _json_without_duplicates(parse_json(text, object_pairs_hook=_JsonPairs))
 
 
 #: A number with an exponent that YAML 1.1 (PyYAML) reads as a string: no dot (``2e4``) or
@@ -53,31 +65,106 @@ _EXPONENT_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE
 
 def read_yaml(text: str) -> Any:
     """``yaml.safe_load`` that reads ``2e4`` as a float and rejects a mapping key given twice
-    (PyYAML keeps the last)."""
+    (PyYAML keeps the last), nesting deeper than MAX_NESTING levels and aliases that expand
+    the document past MAX_YAML_NODES nodes or into itself (StructureError)."""
     import yaml
 
     class StrictLoader(yaml.SafeLoader):
+        depth = 0  # the lists and mappings open where the composer is
+
+        def compose_node(self, parent, index):
+            opens = self.check_event(yaml.SequenceStartEvent, yaml.MappingStartEvent)
+            if opens and self.depth == MAX_NESTING:  # before PyYAML's recursive composer runs out of stack
+                raise StructureError(f"nested deeper than {MAX_NESTING} levels ({_where(self.peek_event())})")
+            self.depth += opens
+            try:
+                return super().compose_node(parent, index)
+            finally:
+                self.depth -= opens
+
         def construct_document(self, node):
-            self._check_duplicates(node, "")
+            _check_tree(node)
             return super().construct_document(node)
 
-        def _check_duplicates(self, node, path: str) -> None:
+        def construct_object(self, node, deep=False):
+            try:
+                return super().construct_object(node, deep)
+            except (ValueError, KeyError, AttributeError) as exc:  # PyYAML's: 2001-13-45, !!bool maybe
+                if not isinstance(node, yaml.ScalarNode):
+                    raise
+                raise yaml.constructor.ConstructorError(
+                    None,
+                    None,
+                    f"{_shown(node.value)} cannot be read as a YAML {node.tag.rpartition(':')[2]}{_why(exc)}",
+                    node.start_mark,
+                ) from None
+
+    StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _EXPONENT_FLOAT, list("-+0123456789."))
+    return yaml.load(text, Loader=StrictLoader)
+
+
+def _shown(text: str) -> str:
+    """``text`` quoted, or its start and length when long."""
+    return repr(text) if len(text) <= 40 else f"{text[:20]!r}... ({len(text):,} characters)"
+
+
+def _why(exc: Exception) -> str:
+    """A ValueError's reason, without Python's advice (sys.set_int_max_str_digits)."""
+    return f" ({str(exc).split(';')[0]})" if isinstance(exc, ValueError) else ""
+
+
+def _where(node) -> str:
+    """Where a YAML node or event starts: line and column."""
+    return f"line {node.start_mark.line + 1}, column {node.start_mark.column + 1}"
+
+
+def _check_tree(root) -> None:
+    """Refuse a composed YAML document with a mapping key given twice (DuplicateKeyError),
+    or whose aliases nest it deeper than MAX_NESTING levels, expand it past MAX_YAML_NODES
+    nodes or into itself (StructureError). Each node is walked once, at its first place
+    (an alias comes after its anchor), and counted by its size wherever an alias repeats
+    it, so a "billion laughs" is refused as fast as its text is read."""
+    import yaml
+
+    sizes: dict[int, tuple[int, int]] = {}  # id(node) -> (nodes, levels of lists and mappings), aliases expanded
+    open_nodes: set[int] = set()
+
+    def walk(node, path: str, depth: int) -> int:
+        """The nodes of ``node``, ``depth`` lists and mappings down, aliases expanded."""
+        where = path or "the document"
+        if id(node) in open_nodes:
+            raise StructureError(f"{where}: an alias to a node that holds it ({_where(node)}): it would nest endlessly")
+        if id(node) not in sizes:
+            open_nodes.add(id(node))
+            children = []
             if isinstance(node, yaml.MappingNode):
                 seen = set()
                 for key_node, value_node in node.value:
                     key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
                     if key is not None and key != "<<":
                         if key in seen:
-                            line = key_node.start_mark.line + 1
-                            raise DuplicateKeyError(f"{_dotted(path, key)} (line {line})")
+                            raise DuplicateKeyError(f"{_dotted(path, key)} (line {key_node.start_mark.line + 1})")
                         seen.add(key)
-                    self._check_duplicates(value_node, _dotted(path, key))
+                    children += [(key_node, path), (value_node, _dotted(path, key))]
             elif isinstance(node, yaml.SequenceNode):
-                for i, item in enumerate(node.value):
-                    self._check_duplicates(item, _dotted(path, i))
+                children = [(item, _dotted(path, i)) for i, item in enumerate(node.value)]
+            count, levels = 1, 0
+            for child, child_path in children:
+                count += walk(child, child_path, depth + 1)
+                levels = max(levels, sizes[id(child)][1])
+                if count > MAX_YAML_NODES:
+                    raise StructureError(
+                        f"{where}: more than {MAX_YAML_NODES:,} nodes (lists, mappings, keys and values) with its "
+                        f"aliases expanded: too many to read (an alias bomb?); write fewer aliases"
+                    )
+            open_nodes.discard(id(node))
+            sizes[id(node)] = count, levels + isinstance(node, yaml.CollectionNode)
+        count, levels = sizes[id(node)]
+        if depth + levels > MAX_NESTING:
+            raise StructureError(f"{where}: nested deeper than {MAX_NESTING} levels with its aliases expanded")
+        return count
 
-    StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _EXPONENT_FLOAT, list("-+0123456789."))
-    return yaml.load(text, Loader=StrictLoader)
+    walk(root, "", 0)
 
 
 def read_data_file(path: str | Path, what: str) -> Any:
@@ -92,6 +179,8 @@ def read_data_file(path: str | Path, what: str) -> Any:
     text = read_text(path, what)
     try:
         return read_json(text) if path.suffix.lower() == ".json" else read_yaml(text)
+    except (NestingError, StructureError) as exc:
+        raise InputError(f"{path}: {exc}") from None
     except json.JSONDecodeError as exc:
         raise InputError(f"{path}: not valid JSON: line {exc.lineno}, column {exc.colno}: {exc.msg}") from None
     except yaml.YAMLError as exc:
@@ -127,7 +216,7 @@ def load_config(path: str | Path, overrides: Sequence[str] = ()) -> SceneConfig:
         # name the --set that brought in the bad key or value, not only the file
         where = str(exc).removeprefix(f"{path}: ").split(":")[0]
         for key, item in keys.items():
-            if key == where or key.startswith((where + ".", where + "[")) or where.startswith(key + "."):
+            if key == where or key.startswith((where + ".", where + "[")) or where.startswith((key + ".", key + "[")):
                 raise InputError(f"--set {item}: {str(exc).removeprefix(f'{path}: ')}") from None
         raise
 
@@ -163,7 +252,7 @@ def _override(data: Any, item: str) -> str:
         )
     try:
         value = read_yaml(text)
-    except (yaml.YAMLError, DuplicateKeyError) as exc:
+    except (yaml.YAMLError, DuplicateKeyError, StructureError) as exc:
         raise InputError(f"--set {item}: the value is not valid YAML ({' '.join(str(exc).split())})") from None
     node, walked = data, ""
     for k, part in enumerate(parts):

@@ -46,11 +46,27 @@ from clflow.scene.config.settings import (
     Selection,
     SimulationSettings,
     main_grid_range,
+    split_parameter,
     velocity_names,
 )
 
+# What a value can mean (docs/scene_config.md, "Ranges"): far beyond any scene's, where it
+# means nothing and products of such values overflow (a domain of 1e308 m, a scale of 1e308).
+LENGTH = 1e4  # m: a coordinate or size in the simulation frame (10 km)
+SCENE_LENGTH = 1e9  # scene units: a coordinate or size in the splat file's frame
+SCALE = (1e-6, 1e3)  # metres per scene unit
+SPEED = 1e4  # m/s: a component of an initial velocity
+ACCELERATION = 1e6  # m/s^2: a component of gravity or of a force stage's acceleration
+FORCE = 1e9  # N: a component of a force stage's force
+FPS = (1e-3, 1e6)  # frames per second
+MAX_GRID = 100_000  # grid nodes along the domain's longest side (memory refuses far fewer)
+MAX_PER_AXIS = 16  # fill particles per voxel and axis (16^3 = 4096 a voxel)
+MAX_PIXELS = 16384  # an image's width or height: the most libx264 writes (a preview, a guidance video)
+MAX_RATE = 100.0  # a learning rate, per iteration in the optimiser's units (decades for a modulus)
 
-def _region(r: Reader, data: Any, path: str, allow_all: bool) -> Region:
+
+def _region(r: Reader, data: Any, path: str, allow_all: bool, limit: float) -> Region:
+    """A box or sphere (``all`` too, with ``allow_all``) within +-``limit`` (its frame's length)."""
     if data == "all" and allow_all:
         return Region("all")
     shapes = ("box", "sphere") + (("all",) if allow_all else ())
@@ -59,14 +75,15 @@ def _region(r: Reader, data: Any, path: str, allow_all: bool) -> Region:
         raise r.fail(path, f"give exactly one of {', '.join(shapes)}")
     if "box" in body:
         box = r.section(body["box"], f"{path}.box", ("min", "max"))
-        lower, upper = r.vec3(box, "min", f"{path}.box"), r.vec3(box, "max", f"{path}.box")
+        lower = r.vec3(box, "min", f"{path}.box", limit=limit)
+        upper = r.vec3(box, "max", f"{path}.box", limit=limit)
         if not all(lo < hi for lo, hi in zip(lower, upper)):
             raise r.fail(f"{path}.box", f"min {list(lower)} must be below max {list(upper)} on every axis")
         return Region.box(lower, upper)
     sphere = r.section(body["sphere"], f"{path}.sphere", ("center", "radius"))
     return Region.sphere(
-        r.vec3(sphere, "center", f"{path}.sphere"),
-        r.number(sphere, "radius", f"{path}.sphere", low=0.0, strict_low=True),
+        r.vec3(sphere, "center", f"{path}.sphere", limit=limit),
+        r.number(sphere, "radius", f"{path}.sphere", low=0.0, high=limit, strict_low=True),
     )
 
 
@@ -152,8 +169,8 @@ def _forces(r: Reader, items: list) -> tuple[ForceStage, ...]:
         start, end = _window(r, body, path)
         stages.append(
             ForceStage(
-                _region(r, body.get("region", "all"), f"{path}.region", allow_all=True),
-                r.vec3(body, kinds[0], path),
+                _region(r, body.get("region", "all"), f"{path}.region", allow_all=True, limit=LENGTH),
+                r.vec3(body, kinds[0], path, limit=FORCE if kinds[0] == "force" else ACCELERATION),
                 kinds[0],
                 start,
                 end,
@@ -169,7 +186,7 @@ def _colliders(r: Reader, data: Any) -> tuple[Collider, ...]:
         ground = r.section(body["ground"], "boundaries.ground", ("height", "mode", "friction"))
         out.append(
             Collider(
-                (0.0, r.number(ground, "height", "boundaries.ground", 0.0), 0.0),
+                (0.0, r.number(ground, "height", "boundaries.ground", 0.0, low=-LENGTH, high=LENGTH), 0.0),
                 (0.0, 1.0, 0.0),
                 r.choice(ground, "mode", "boundaries.ground", COLLIDER_MODES, "slip"),
                 r.number(ground, "friction", "boundaries.ground", 0.0, low=0.0),
@@ -178,13 +195,15 @@ def _colliders(r: Reader, data: Any) -> tuple[Collider, ...]:
     for i, item in enumerate(r.items(body, "colliders", "boundaries")):
         path = f"boundaries.colliders[{i}]"
         c = r.section(item, path, ("point", "normal", "mode", "friction", "start", "end"))
-        normal = r.vec3(c, "normal", path)
-        if not any(normal):
-            raise r.fail(f"{path}.normal", "must not be the zero vector")
+        normal = r.vec3(c, "normal", path, limit=1e6)
+        if math.hypot(*normal) < 1e-6:  # a direction, made a unit vector: its length neither under- nor overflows
+            raise r.fail(
+                f"{path}.normal", f"must not be the zero vector (its length must be >= 1e-06), got {list(normal)}"
+            )
         start, end = _window(r, c, path)
         out.append(
             Collider(
-                r.vec3(c, "point", path),
+                r.vec3(c, "point", path, limit=LENGTH),
                 normal,
                 r.choice(c, "mode", path, COLLIDER_MODES, "slip"),
                 r.number(c, "friction", path, 0.0, low=0.0),
@@ -203,20 +222,20 @@ def _simulation(r: Reader, data: Any) -> SimulationSettings:
     lower = upper = None
     if body.get("domain") is not None:
         dom = r.section(body["domain"], f"{p}.domain", ("min", "max"))
-        lower, upper = r.vec3(dom, "min", f"{p}.domain"), r.vec3(dom, "max", f"{p}.domain")
+        lower, upper = r.vec3(dom, "min", f"{p}.domain", limit=LENGTH), r.vec3(dom, "max", f"{p}.domain", limit=LENGTH)
         if not all(lo < hi for lo, hi in zip(lower, upper)):
             raise r.fail(f"{p}.domain", f"min {list(lower)} must be below max {list(upper)} on every axis")
     dt = body.get("substep_dt", "auto")
-    substep_dt = None if dt == "auto" else r.number(body, "substep_dt", p, low=0.0, strict_low=True)
+    substep_dt = None if dt == "auto" else r.number(body, "substep_dt", p, low=1e-9)
     return SimulationSettings(
-        grid_resolution=r.integer(body, "grid_resolution", p, 32, low=11),  # walls: 4 cells a side
+        grid_resolution=r.integer(body, "grid_resolution", p, 32, low=11, high=MAX_GRID),  # walls: 4 cells a side
         domain_lower=lower,
         domain_upper=upper,
         substep_dt=substep_dt,
         flip=r.number(body, "flip", p, SimulationSettings.flip, low=0.0, high=1.0),
-        fps=r.number(body, "fps", p, 24.0, low=0.0, strict_low=True),
+        fps=r.number(body, "fps", p, 24.0, low=FPS[0], high=FPS[1]),
         frames=r.integer(body, "frames", p, 24, low=1),
-        gravity=r.vec3(body, "gravity", p, (0.0, -9.81, 0.0)),
+        gravity=r.vec3(body, "gravity", p, (0.0, -9.81, 0.0), limit=ACCELERATION),
         max_substeps=r.integer(body, "max_substeps", p, DEFAULT_MAX_SUBSTEPS, low=1),
     )
 
@@ -250,7 +269,13 @@ def _camera(r: Reader, data: Any, p: str = "camera") -> CameraConfig:
     if image is not None and (not isinstance(image, str) or not image):
         raise r.fail(f"{p}.image", f"must be an image name of the COLMAP model, got {image!r}")
     if explicit:  # the camera's own checks (the same point, up along the view), naming the config's keys
-        _check_look_at(r, r.vec3(body, "position", p), r.vec3(body, "look_at", p), r.vec3(body, "up", p, CAMERA_UP), p)
+        _check_look_at(
+            r,
+            r.vec3(body, "position", p, limit=SCENE_LENGTH),
+            r.vec3(body, "look_at", p, limit=SCENE_LENGTH),
+            r.vec3(body, "up", p, CAMERA_UP, limit=SCENE_LENGTH),
+            p,
+        )
     return CameraConfig(
         cameras_file=r.file(body, "file", p, required=False),
         index=r.integer(body, "index", p, 0),
@@ -258,10 +283,10 @@ def _camera(r: Reader, data: Any, p: str = "camera") -> CameraConfig:
         image=image,
         position=r.vec3(body, "position", p) if explicit else None,
         look_at=r.vec3(body, "look_at", p) if explicit else None,
-        up=r.vec3(body, "up", p, CAMERA_UP),
+        up=r.vec3(body, "up", p, CAMERA_UP, limit=SCENE_LENGTH),
         fov_y_deg=r.number(body, "fov_y_deg", p, 50.0, low=1.0, high=179.0),
-        width=r.integer(body, "width", p, 512, low=8),
-        height=r.integer(body, "height", p, 512, low=8),
+        width=r.integer(body, "width", p, 512, low=8, high=MAX_PIXELS),
+        height=r.integer(body, "height", p, 512, low=8, high=MAX_PIXELS),
     )
 
 
@@ -359,11 +384,13 @@ def _generate(r: Reader, data: Any, simulation: SimulationSettings) -> GenerateS
         object=texts["object"] or "object",
         negative_prompt=texts["negative_prompt"] or "",
         image=r.file(body, "image", p, required=False),
-        seed=r.integer(body, "seed", p, 0),
-        frames=r.integer(body, "frames", p, low=2) if body.get("frames") is not None else None,
-        fps=r.number(body, "fps", p, low=0.0, strict_low=True) if body.get("fps") is not None else None,
-        steps=r.integer(body, "steps", p, low=1) if body.get("steps") is not None else None,
-        guidance_scale=r.number(body, "guidance_scale", p, low=0.0) if body.get("guidance_scale") is not None else None,
+        seed=r.integer(body, "seed", p, 0),  # at most MAX_INTEGER (2^63 - 1), as every integer: torch's takes 64 bits
+        frames=r.integer(body, "frames", p, low=2, high=10_000) if body.get("frames") is not None else None,
+        fps=r.number(body, "fps", p, low=FPS[0], high=FPS[1]) if body.get("fps") is not None else None,
+        steps=r.integer(body, "steps", p, low=1, high=10_000) if body.get("steps") is not None else None,
+        guidance_scale=r.number(body, "guidance_scale", p, low=0.0, high=1e3)
+        if body.get("guidance_scale") is not None
+        else None,
         size=size,
         fit=r.choice(body, "fit", p, ("pad", "crop"), "pad"),
         **flags,
@@ -383,15 +410,19 @@ def _video_size(r: Reader, value: Any, where: str) -> tuple[int, int] | None:
         and len(value) == 2
         and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)
     ):
-        return (value[0], value[1])
-    if isinstance(value, str):
+        size = (value[0], value[1])
+    elif isinstance(value, str) and len(value) <= 40:  # not thousands of digits, which int() refuses
         from clflow.generate import parse_size
 
         try:
-            return parse_size(value)
+            size = parse_size(value)
         except InputError as exc:
             raise r.fail(where, str(exc)) from None
-    raise r.fail(where, f"must be WIDTHxHEIGHT or [width, height] in pixels, got {value!r}")
+    else:
+        raise r.fail(where, f"must be WIDTHxHEIGHT or [width, height] in pixels, got {value!r}")
+    if max(size) > MAX_PIXELS:
+        raise r.fail(where, f"must be at most {MAX_PIXELS} pixels a side, got {size[0]}x{size[1]}")
+    return size
 
 
 def _optimize_settings(r: Reader, data: Any, objects: tuple[SceneObject, ...], frames: int) -> OptimizeSettings:
@@ -453,11 +484,11 @@ def _optimize_settings(r: Reader, data: Any, objects: tuple[SceneObject, ...], f
                 f"is not among optimize.parameters {names}"
                 + (" (nor estimated: optimize.estimate_velocity)" if velocity else ""),
             )
-    rates = {n: r.number(rates_in, n, f"{p}.learning_rates", low=0.0, strict_low=True) for n in rates_in}
+    rates = {n: r.number(rates_in, n, f"{p}.learning_rates", low=0.0, high=MAX_RATE, strict_low=True) for n in rates_in}
     horizon = r.section(body.get("horizon"), f"{p}.horizon", ("start", "step"))
     # hypotheses are told apart by the search
     search = _search(r, body["search"]) if body.get("search") is not None else SearchSettings() if hypotheses else None
-    bounds = _bounds(r, body.get("bounds"), names)
+    bounds = _bounds(r, body.get("bounds"), names, objects, hypotheses)
     return OptimizeSettings(
         parameters=tuple(names),
         learning_rates=rates,
@@ -482,7 +513,7 @@ def _budget(r: Reader, data: Any) -> BudgetSettings:
     found = r.section(data, p, ("seconds", "max_grid_resolution"))
     return BudgetSettings(
         seconds=r.number(found, "seconds", p, low=0.0, strict_low=True),
-        max_grid_resolution=r.integer(found, "max_grid_resolution", p, 0),
+        max_grid_resolution=r.integer(found, "max_grid_resolution", p, 0, high=MAX_GRID),
     )
 
 
@@ -536,8 +567,11 @@ def _search(r: Reader, data: Any) -> SearchSettings:
     return search
 
 
-def _bounds(r: Reader, data: Any, names: list[str]) -> dict[str, tuple[float, float]]:
-    """``optimize.bounds``: [lower, upper] in SI per optimised parameter."""
+def _bounds(
+    r: Reader, data: Any, names: list[str], objects: tuple[SceneObject, ...], hypotheses: tuple[str, ...]
+) -> dict[str, tuple[float, float]]:
+    """``optimize.bounds``: [lower, upper] in SI per optimised parameter, within the
+    parameter's valid range where the config names its material."""
     bounds = {}
     for name, box in r.mapping(data, "optimize.bounds").items():
         where = f"optimize.bounds.{name}"
@@ -551,8 +585,26 @@ def _bounds(r: Reader, data: Any, names: list[str]) -> dict[str, tuple[float, fl
             raise r.fail(where, f"must be [lower, upper] (SI), got {box!r}")
         if not box[0] < box[1]:
             raise r.fail(where, f"is empty or inverted: lower {box[0]:g} must be below upper {box[1]:g}")
+        param = _registry_param(name, objects, hypotheses)
+        if param is not None:
+            (lo, hi), (low_in, high_in) = param.valid, (param.low_inclusive, param.high_inclusive)
+            if box[0] < lo or (box[0] == lo and not low_in) or box[1] > hi or (box[1] == hi and not high_in):
+                valid = f"{'[' if low_in else '('}{lo:g}, {hi:g}{']' if high_in else ')'}"
+                raise r.fail(where, f"[{box[0]:g}, {box[1]:g}] must lie in {param.name}'s valid range {valid}")
         bounds[name] = (float(box[0]), float(box[1]))
     return bounds
+
+
+def _registry_param(name: str, objects: tuple[SceneObject, ...], hypotheses: tuple[str, ...]):
+    """The registry's Param that ``name`` of optimize.parameters stands for; None for a
+    velocity and for a material the query picks."""
+    k, param = split_parameter(objects, name)
+    if param == "density":
+        return DENSITY
+    for material in hypotheses or (objects[k].material.type,):
+        if material != "query" and param in get_material(material).param_names:
+            return get_material(material).param(param)
+    return None
 
 
 def _hypotheses(r: Reader, data: Any, names: list[str]) -> tuple[str, ...]:
@@ -607,6 +659,7 @@ TOP_KEYS = (
 def parse_config(data: Any, source: str = "<config>", base: Path | None = None) -> SceneConfig:
     """Validate a parsed config (dict) and return a :class:`SceneConfig`."""
     r = Reader(source, base or Path.cwd())
+    r.no_huge_integers(data)
     top = r.section(data, "", TOP_KEYS)
     if not top:
         raise r.fail("", "the config is empty")
@@ -634,7 +687,7 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     return SceneConfig(
         source=Path(source),
         splats=r.file(top, "splats", ""),
-        scale=r.number(scene, "scale", "scene", 1.0, low=0.0, strict_low=True),
+        scale=r.number(scene, "scale", "scene", 1.0, low=SCALE[0], high=SCALE[1]),
         up=r.choice(scene, "up", "scene", UP_AXES, "+y"),
         objects=objects,
         forces=_forces(r, r.items(top, "forces", "")),
@@ -699,7 +752,7 @@ def _objects_truth(r: Reader, data: Any, objects: tuple[SceneObject, ...]) -> di
     for name, value in given.items():
         obj, param = _object_parameter(r, p, name, objects)
         if param == VELOCITY:
-            value = r.vec3(given, name, p)
+            value = r.vec3(given, name, p, limit=SPEED)
         elif isinstance(value, bool) or not isinstance(value, (int, float)):
             raise r.fail(f"{p}.{name}", f"must be a number, got {value!r}")
         per_object.setdefault(obj.name, {})[param] = value
@@ -738,9 +791,11 @@ def _selection(r: Reader, data: Any, p: str = "object.select") -> Selection:
             None,
             None,
             r.file(select, "ply", p),
-            None if tolerance is None else r.number(select, "tolerance", p, low=0.0, strict_low=True),
+            None
+            if tolerance is None
+            else r.number(select, "tolerance", p, low=0.0, high=SCENE_LENGTH, strict_low=True),
         )
-    return Selection(_region(r, select, p, allow_all=False), None)
+    return Selection(_region(r, select, p, allow_all=False, limit=SCENE_LENGTH), None)
 
 
 def _fill(r: Reader, data: Any, p: str = "object.fill") -> FillSettings:
@@ -751,10 +806,8 @@ def _fill(r: Reader, data: Any, p: str = "object.fill") -> FillSettings:
         raise r.fail(f"{p}.enabled", f"must be true or false, got {enabled!r}")
     return FillSettings(
         enabled=enabled,
-        spacing=r.number(fill_in, "spacing", p, low=0.0, strict_low=True)
-        if fill_in.get("spacing") is not None
-        else None,
-        per_axis=r.integer(fill_in, "per_axis", p, 1, low=1),
+        spacing=r.number(fill_in, "spacing", p, low=1e-6, high=LENGTH) if fill_in.get("spacing") is not None else None,
+        per_axis=r.integer(fill_in, "per_axis", p, 1, low=1, high=MAX_PER_AXIS),
     )
 
 
@@ -772,7 +825,7 @@ def _objects(r: Reader, top: dict) -> tuple[SceneObject, ...]:
                 _selection(r, obj.get("select")),
                 _fill(r, obj.get("fill")),
                 _material(r, top.get("material")),
-                r.vec3(obj, "velocity", "object", (0.0, 0.0, 0.0)),
+                r.vec3(obj, "velocity", "object", (0.0, 0.0, 0.0), limit=SPEED),
             ),
         )
     single = [k for k in ("object", "material") if top.get(k) is not None]
@@ -820,7 +873,7 @@ def _objects(r: Reader, top: dict) -> tuple[SceneObject, ...]:
             _selection(r, body.get("select"), f"{where}.select"),
             _fill(r, body.get("fill"), f"{where}.fill"),
             _material(r, body.get("material"), f"{where}.material"),
-            r.vec3(body, "velocity", where, (0.0, 0.0, 0.0)),
+            r.vec3(body, "velocity", where, (0.0, 0.0, 0.0), limit=SPEED),
             key=where,
         )
         for name, body, where in entries
@@ -854,7 +907,7 @@ def _given_truth(r: Reader, data: Any) -> tuple[dict, float | None, tuple]:
     the material later), the density (kg/m^3, checked) and the velocity (m/s; () if absent)."""
     evaluation = r.section(data, "evaluation", ("ground_truth",))
     truth = dict(r.mapping(evaluation.get("ground_truth"), "evaluation.ground_truth"))
-    true_velocity = r.vec3(truth, VELOCITY, "evaluation.ground_truth", ())  # () when not given
+    true_velocity = r.vec3(truth, VELOCITY, "evaluation.ground_truth", (), limit=SPEED)  # () when not given
     truth.pop(VELOCITY, None)
     for name, value in truth.items():
         if isinstance(value, bool) or not isinstance(value, (int, float)):

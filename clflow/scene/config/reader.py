@@ -11,6 +11,23 @@ from clflow.errors import InputError
 
 _DEFAULT = object()
 
+#: The largest integer a config takes (int64's): no count or index goes beyond it, and far
+#: beyond it a float cannot hold one either (an OverflowError).
+MAX_INTEGER = 2**63 - 1
+
+
+def interval(low: float | None, high: float | None, strict_low: bool = False) -> str:
+    """The allowed values as the messages say them: ``>= 0``, ``<= 1``, ``in (0, 1000]``."""
+
+    def shown(v: float) -> str:
+        return str(v) if isinstance(v, int) else f"{v:g}"
+
+    if high is None:
+        return f"{'>' if strict_low else '>='} {shown(low)}"
+    if low is None:
+        return f"<= {shown(high)}"
+    return f"in {'(' if strict_low else '['}{shown(low)}, {shown(high)}]"
+
 
 class Reader:
     """Walks a parsed config with the dotted path of each key for error messages."""
@@ -21,6 +38,18 @@ class Reader:
 
     def fail(self, path: str, message: str) -> InputError:
         return InputError(f"{self.source}: {path}: {message}" if path else f"{self.source}: {message}")
+
+    def no_huge_integers(self, data: Any, path: str = "") -> None:
+        """Refuse an integer beyond +-MAX_INTEGER anywhere in ``data``, before a key's check
+        turns it into a float."""
+        if isinstance(data, dict):
+            for key, value in data.items():
+                self.no_huge_integers(value, f"{path}.{key}" if path else str(key))
+        elif isinstance(data, list):
+            for i, value in enumerate(data):
+                self.no_huge_integers(value, f"{path}[{i}]")
+        elif isinstance(data, int) and not isinstance(data, bool) and abs(data) > MAX_INTEGER:
+            raise self.fail(path, f"an integer of {len(str(abs(data)))} digits is beyond any value a config takes")
 
     def section(self, data: Any, path: str, known: tuple[str, ...]) -> dict:
         data = self.mapping(data, path)
@@ -59,6 +88,7 @@ class Reader:
         high: float | None = None,
         strict_low: bool = False,
     ) -> float:
+        """A finite number in [low, high] ((low, high] with ``strict_low``); either end may be open."""
         where, value = self._get(data, key, path, default)
         if value is _DEFAULT:
             return default
@@ -67,21 +97,24 @@ class Reader:
         value = float(value)
         if not math.isfinite(value):
             raise self.fail(where, f"must be finite, got {value}")
-        if low is not None and (value < low or (strict_low and value == low)):
-            raise self.fail(where, f"must be {'>' if strict_low else '>='} {low:g}, got {value:g}")
-        if high is not None and value > high:
-            raise self.fail(where, f"must be <= {high:g}, got {value:g}")
+        if (low is not None and (value < low or (strict_low and value == low))) or (high is not None and value > high):
+            raise self.fail(where, f"must be {interval(low, high, strict_low)}, got {value:g}")
         return value
 
-    def integer(self, data: dict, key: str, path: str, default: int | None = None, *, low: int = 0) -> int:
+    def integer(
+        self, data: dict, key: str, path: str, default: int | None = None, *, low: int = 0, high: int | None = None
+    ) -> int:
         where, value = self._get(data, key, path, default)
         if value is _DEFAULT:
             return default
-        if isinstance(value, bool) or not isinstance(value, int) or value < low:
-            raise self.fail(where, f"must be an integer >= {low}, got {value!r}")
+        if isinstance(value, bool) or not isinstance(value, int) or value < low or (high is not None and value > high):
+            raise self.fail(where, f"must be an integer {interval(low, high)}, got {value!r}")
         return value
 
-    def vec3(self, data: dict, key: str, path: str, default: tuple | None = None) -> tuple[float, float, float]:
+    def vec3(
+        self, data: dict, key: str, path: str, default: tuple | None = None, *, limit: float | None = None
+    ) -> tuple[float, float, float]:
+        """3 finite numbers, each within +-``limit`` when given."""
         where, value = self._get(data, key, path, default)
         if value is _DEFAULT:
             return default
@@ -91,6 +124,8 @@ class Reader:
             or not all(isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in value)
         ):
             raise self.fail(where, f"must be a list of 3 finite numbers, got {value!r}")
+        if limit is not None and not all(abs(c) <= limit for c in value):
+            raise self.fail(where, f"must be 3 numbers {interval(-limit, limit)}, got {list(value)}")
         return tuple(float(c) for c in value)
 
     def choice(self, data: dict, key: str, path: str, options: tuple[str, ...], default: str | None = None) -> str:
