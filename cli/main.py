@@ -15,8 +15,8 @@ from clflow import __version__
 from clflow_cli.options import OutputPath
 
 # torch's OpenMP threads spin for a while after every parallel torch op, taking the cores
-# from the OpenCL CPU device's worker threads (measured: 10-20 % of the rasteriser's forward
-# time). Let them sleep unless the user chose otherwise; libgomp reads this when torch loads,
+# from the OpenCL CPU device's worker threads (what it costs: docs/architecture.md, "Runtime").
+# Let them sleep unless the user chose otherwise; libgomp reads this when torch loads,
 # which is after this line (the commands import torch lazily).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 

@@ -21,10 +21,11 @@ PAC-NeRF's world is y-up in metres (gravity [0, -9.8, 0], ground plane y = 0), s
 scene has ``up: +y`` and scale 1. Its configs (Python files of ``cfg = dict(...)``, read
 without running them, or the same keys as JSON) give the material, its initial guess, the
 ground, gravity, the frame interval and which parameters to fit, in clflow's conventions
-(../shared/docs/pipeline.md): elasticity -> elastic (neo-Hookean), von Mises with E -> plasticine,
-von Mises with mu and kappa -> non-Newtonian (eta = plastic_viscosity), viscous fluid ->
-Newtonian (viscosity = mu / 2, bulk modulus = 7 kappa), Drucker-Prager -> sand. Without a
-config the material is left to the material query (``material: {type: query}``).
+(docs/reconstruct.md, "Dynamic capture, first frame"): elasticity -> elastic (neo-Hookean),
+von Mises with E -> plasticine, von Mises with mu and kappa -> non-Newtonian (eta =
+plastic_viscosity), viscous fluid -> Newtonian (viscosity = mu / 2, bulk modulus = 7 kappa),
+Drucker-Prager -> sand. Without a config the material is left to the material query
+(``material: {type: query}``).
 """
 
 from __future__ import annotations

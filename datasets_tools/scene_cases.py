@@ -1,4 +1,4 @@
-"""Identification cases of several objects (issue 48) for ``clflow eval sysid``: textured
+"""Identification cases of several objects for ``clflow eval sysid``: textured
 shapes, each its own material, simulated together in one grid on a sticky floor and seen by
 one guidance camera; every object's parameters are identified from the one video, named
 OBJECT.PARAM (``jelly.youngs_modulus``).

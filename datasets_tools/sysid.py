@@ -1,10 +1,10 @@
 """The system-identification benchmark behind ``clflow eval sysid``.
 
 PAC-NeRF's nine synthetic cases (materials, ground truths and initial guesses from its
-configs; ../shared/docs/pipeline.md), re-made with clflow's own geometry: a textured shape
-dropped onto a sticky floor, seen by one guidance camera. Parameters are in clflow's SI
-conventions; for the Newtonian cases that is viscosity = mu_PAC / 2 and bulk modulus =
-7 kappa_PAC (docs/pipeline.md), which leaves every relative error unchanged.
+configs), re-made with clflow's own geometry: a textured shape dropped onto a sticky floor,
+seen by one guidance camera. Parameters are in clflow's SI conventions; for the Newtonian
+cases that is viscosity = mu_PAC / 2 and bulk modulus = 7 kappa_PAC (docs/pipeline.md),
+which leaves every relative error unchanged.
 
 Every case's guidance video comes from a finer simulation and rendering than any the
 optimiser runs (``truth_scale``: the grid and image refined 2x, its own particle sampling and

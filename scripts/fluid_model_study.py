@@ -1,5 +1,5 @@
-"""Where does a coarse grid put a fluid's bulk modulus?  A study of model error (issue 34,
-item 3) on the pure-torch float64 reference substep (clflow.mpm.reference), no kernels.
+"""Where does a coarse grid put a fluid's bulk modulus?  A study of model error on the
+pure-torch float64 reference substep (clflow.mpm.reference), no kernels.
 
 A Newtonian sphere (diameter 0.3 m, viscosity 100 Pa s, density 1000 kg/m^3: the droplet
 of `clflow eval sysid`) falls 0.1 m onto a sticky floor. The "truth" runs at 2h cells per

@@ -33,8 +33,8 @@ SUITES = {
 }
 #: taichi's MLS-MPM in the same run where the peers extra is installed (the GPU yardstick)
 PEER = ["--peer", "taichi"] if importlib.util.find_spec("taichi") else []
-#: name -> clflow bench arguments, at GPU scale (issue 35's sizes) and for a dry run (--small);
-#: each runs with --profile but launch (it times the host without profiling events)
+#: name -> clflow bench arguments, at GPU scale (the sizes of docs/gpu.md's targets) and for a dry
+#: run (--small); each runs with --profile but launch (it times the host without profiling events)
 BENCHES = {
     "mpm-262k": (
         ["mpm", "--material", "elastic", "--substeps", "50", *PEER],

@@ -1,5 +1,5 @@
 """Checks before a long run starts, so a bad input fails in seconds with its numbers instead
-of running for hours or ending with a wrong result (issue 14).
+of running for hours or ending with a wrong result.
 
 - :func:`plan_run`: the substeps per frame the material needs, a timing of one substep, the
   predicted time, and the refusal of a run beyond ``simulation.max_substeps``

@@ -65,15 +65,16 @@ class KernelSignature:
 
     def __post_init__(self):
         # the kinds of argument values already checked against this signature: a call site
-        # repeats its kinds, so only its first call pays for the checks (G2P: ~6 us a call, not ~55)
+        # repeats its kinds, so only its first call pays for the checks (their cost:
+        # docs/architecture.md, "Runtime")
         object.__setattr__(self, "_checked", set())
         object.__setattr__(self, "_names", tuple(a.name for a in self.arguments))
 
     def scalar_dtypes(self) -> list:
         """Per argument, the numpy dtype of a scalar (``real`` resolved) or None (a pointer,
         struct or image): what ``cl.Kernel.set_scalar_arg_dtypes`` takes. Declared, pyopencl
-        packs the scalars itself (about 1 us a call) instead of inspecting each (10-20 us
-        each on PoCL: 0.6 ms of host time a substep, a quarter of a small scene's)."""
+        packs the scalars itself instead of inspecting each on every call (the cost:
+        docs/architecture.md, "Runtime")."""
         return [self._dtype(a.type_name) if a.type_name in (*SCALAR_TYPES, "real") else None for a in self.arguments]
 
     def _dtype(self, type_name: str) -> np.dtype:

@@ -18,8 +18,8 @@ from clflow.runtime.bridge import bind
 def polar_rotations(F: torch.Tensor) -> torch.Tensor:
     """R of the polar decomposition F = R S, [N, 3, 3] for F [N, 3, 3] (float32 or float64):
     a proper rotation even for det F <= 0 (inverted or flattened elements). The OpenCL SVD
-    of the simulator (kernels_cl/common/svd3.h, 8 matrices per work-item); torch's batched
-    SVD took 45 ms per frame for 20,000 Gaussians. Not differentiated: colours do not enter
+    of the simulator (kernels_cl/common/svd3.h, 8 matrices per work-item), faster than torch's
+    batched SVD (docs/splat_io.md). Not differentiated: colours do not enter
     the flow loss, and the SVD's gradient is singular at F = I, the rest state."""
     import numpy as np
 

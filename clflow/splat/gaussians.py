@@ -269,9 +269,8 @@ class Gaussians:
         """Gaussians of centres ``means`` [N, 3] m and ``covariances`` [N, 3, 3] m^2 (kept as
         given in ``covariance_cache``): unit Gaussians (1 m, identity rotation) deformed by a
         factor L of each covariance, L L^T = Sigma (Cholesky; the eigen-factor where Sigma is
-        singular). Cheap (no diagonalisation, no :meth:`validate`: 10 ms for 100,000), as a
-        per-frame render needs. ``opacities`` [N] clamped into [1e-6, 1 - 1e-6] (their
-        logits are stored)."""
+        singular). Cheap (no diagonalisation, no :meth:`validate`), as a per-frame render
+        needs. ``opacities`` [N] clamped into [1e-6, 1 - 1e-6] (their logits are stored)."""
         n, dtype = means.shape[0], means.dtype
         factors, failed = torch.linalg.cholesky_ex(covariances.detach())
         singular = failed != 0

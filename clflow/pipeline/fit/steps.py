@@ -256,14 +256,14 @@ class Steps:
 
         LM's Jacobian holds the error fixed: calibrated at C the model's minimum can lie at C
         itself for a range of C (the trophy: every C from 38.5 to 39.5 deg) while the
-        own-calibration loss still falls (issue 47, docs/pipeline.md). The search moves only
-        the variables the video pins down there (not weakly constrained by the Gauss-Newton
-        test of the identifiability check): along a direction the loss barely sees, the
-        smoother error would move a variable by its own noise (the toothpaste's shear
-        modulus went 5x from its truth, flat from 2.55e3 to 1e5 Pa). It searches again from
-        each point it moves to (LINE_ROUNDS in all). The state moves to the lowest point run
-        or stays, either way calibrated with the shift-mean error and scored against it
-        (``best``); ``line_search`` records what it did."""
+        own-calibration loss still falls (docs/pipeline.md, "The sand fix, tried and
+        reverted"). The search moves only the variables the video pins down there (not weakly
+        constrained by the Gauss-Newton test of the identifiability check): along a direction
+        the loss barely sees, the smoother error would move a variable by its own noise (the
+        toothpaste's shear modulus went 5x from its truth, flat from 2.55e3 to 1e5 Pa). It
+        searches again from each point it moves to (LINE_ROUNDS in all). The state moves to
+        the lowest point run or stays, either way calibrated with the shift-mean error and
+        scored against it (``best``); ``line_search`` records what it did."""
         from clflow.pipeline.fit.diagnostics import gauss_newton_spread
         from clflow.pipeline.fit.objective import JITTER_SHIFTS
 
