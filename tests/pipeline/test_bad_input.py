@@ -1,4 +1,4 @@
-"""Issue 14's I/O and CLI probes, a row each: bad output paths, a full disk, garbage input
+"""Probes of bad input and output through the CLI, a row each: bad output paths, a full disk, garbage input
 files, outputs and grids too large. Each gives exit code 1, one line naming the problem, no
 traceback, and leaves nothing partial behind."""
 

@@ -1,4 +1,4 @@
-"""optimize.budget (issue 34 item 4): the main grid a wall time affords, from the device's
+"""optimize.budget: the main grid a wall time affords, from the device's
 timing; the choice kept for a rerun; a budget too small refused before any work."""
 
 import dataclasses

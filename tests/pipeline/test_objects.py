@@ -1,4 +1,4 @@
-"""Scenes of several objects (issue 48): `objects:` in the config, simulated in one grid
+"""Scenes of several objects: `objects:` in the config, simulated in one grid
 through the CLI, each particle with its object's material; a single-object config
 simulates as before, bit for bit; bad input is one line before any work."""
 

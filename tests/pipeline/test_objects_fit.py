@@ -1,4 +1,4 @@
-"""Identification in a scene of several objects (issue 48): each object's material
+"""Identification in a scene of several objects: each object's material
 parameters, named OBJECT.PARAM, reach only its own particles in the one simulation, and
 their gradients match finite differences."""
 

@@ -1,4 +1,4 @@
-"""Issue 14's probes of clflow optimize / simulate: stiff materials refused before any work
+"""Probes of clflow optimize / simulate: stiff materials refused before any work
 with the numbers and the ways out, progress within long frames, unstable iterations never
 accepted, guidance videos that do not fit the scene refused, force stages that never act."""
 
@@ -156,7 +156,7 @@ def test_clamped_and_cfl_breaking_runs_are_flagged():
 
 
 def probe_config(demo_config, iterations=8):
-    """The issue's probe: a fixed substep_dt (stable up to E = 4.7e4 Pa) and a rate of 1.5
+    """The unstable-iteration probe: a fixed substep_dt (stable up to E = 4.7e4 Pa) and a rate of 1.5
     decades per iteration from E = 2e3 Pa (truth 2e4)."""
     cfg = demo_config(iterations=iterations)
     return dataclasses.replace(

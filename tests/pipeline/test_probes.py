@@ -1,4 +1,4 @@
-"""Issue 32's probes, run through the CLI as a user would, a row each: every class of bad
+"""Probes of bad input, run through the CLI as a user would, a row each: every class of bad
 input ends with exit status 1 (a bad input) or 2 (a wrong command line), one line, no
 traceback, before any work, and leaves nothing behind or the earlier result intact. Then
 what is left behind or mixed after a crash, a failure or a re-run, and a seeded fuzz pass

@@ -1,4 +1,4 @@
-"""Issue 46's probes, driven through the CLI as a user would: no retry loop that changes
+"""Probes of refusals, driven through the CLI as a user would: no retry loop that changes
 nothing (a hang), no check that comes after the work it could have spared, no plan printed
 that is not the plan run, and one error line that names the file or key and the problem."""
 

@@ -220,11 +220,10 @@ def test_search_settings_are_read(tmp_path):
 def test_the_search_finds_the_birds_basin_from_a_300x_soft_guess(tmp_path):
     """The benchmark's bird (elastic sphere, E = 3e5 Pa, nu 0.3) at the quick resolution with
     guidance from a 2x finer simulation, from PAC-NeRF's guess E = 1e3 Pa, nu 0.1, where
-    plain Adam walked E the wrong way (issue 12): the benchmark's search (24 samples, 12 more
-    around the best distinct ones) lands within a factor 2 of the truth, its loss far below
-    the typical sample's (measured 2026-11-24 on the first 24: loss 0.165 against a median
-    of 2.1; the start itself, a sphere this soft, breaks the CFL limit even after its
-    retries and is rejected as unstable)."""
+    plain Adam walked E the wrong way: the benchmark's search (24 samples, 12 more around the
+    best distinct ones) lands within a factor 2 of the truth, its loss far below the typical
+    sample's (docs/pipeline.md, "Tests"; the start itself, a sphere this soft, breaks the
+    CFL limit even after its retries and is rejected as unstable)."""
     from clflow.scene.config import load_config
     from clflow_datasets.synthetic import make_case
     from clflow_datasets.sysid import CASES, QUICK

@@ -256,15 +256,15 @@ def test_a_quick_case_reaches_the_loss_of_the_ground_truth(tmp_path, name, held,
     phase on one 1.5x finer reach a loss within 20 % of the ground truth's own on that grid
     (each against the flow estimator's error at its own parameters; near the truth the
     quick droplet's loss varies by +-15 % between points 5 % apart), a flow error near the
-    truth's, and a mean RE <= ``bound`` over the ``held`` parameters: issue 13's 0.15 for
-    the torus' E, issue 12's 0.3 for playdoh, 0.2 for the droplet (measured 2026-11-24 at
-    e4e400e: the torus' E 0.106, playdoh 0.257, the droplet 0.159, playdoh's and the
-    droplet's losses below their truth's: the quick model's own minimum; docs/benchmarks.md).
-    Parameters the loss hardly sees are held to being reported weakly constrained and
-    grid-sensitive (``unsure``): the torus' nu and the droplet's bulk modulus (the grid
-    check at 29fcecb: -0.63 and -0.94 in z from 47 to 32 and from 76 to 51 nodes). Every
-    90 % range holds the truth (issue 34; 2026-11-26: playdoh's E found 0.99e6 in 7.2e5 -
-    2.2e7 for 2e6, held only thanks to the search samples within the loss tolerance)."""
+    truth's, and a mean RE <= ``bound`` over the ``held`` parameters: the stricter quick
+    target's 0.15 for the torus' E, the quick target's 0.3 for playdoh, 0.2 for the droplet
+    (playdoh's and the droplet's losses end below their truth's: the quick model's own
+    minimum; the measured figures: docs/benchmarks.md and its log). Parameters the loss
+    hardly sees are held to being reported weakly constrained and grid-sensitive
+    (``unsure``): the torus' nu and the droplet's bulk modulus (the grid check's shifts:
+    docs/history/benchmarks-2026-11.md). Every 90 % range holds the truth (playdoh's E only
+    thanks to the search samples within the loss tolerance: docs/history/benchmarks-2026-11.md,
+    "Ranges that hold the truth")."""
     result = CliRunner().invoke(cli, ["eval", "sysid", "--quick", "--case", name, "-o", str(tmp_path / "out")])
     assert result.exit_code == 0, result.output
     record = json.loads((tmp_path / "out" / "sysid.json").read_text())["cases"][name]

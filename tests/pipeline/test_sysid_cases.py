@@ -206,7 +206,7 @@ def test_the_extra_set_covers_every_material_with_guesses_either_side_and_a_thro
     assert any(any(c.velocity) for c in single.values())
     paper = {(c.material, tuple(sorted(c.truth.items()))) for c in sysid.CASES.values()}
     assert not {(c.material, tuple(sorted(c.truth.items()))) for c in single.values()} & paper
-    # and two scenes of several objects (issue 48): a cube dropped on a heap, a ball thrown at a block
+    # and two scenes of several objects: a cube dropped on a heap, a ball thrown at a block
     scenes = {n: c for n, c in extra.items() if isinstance(c, sysid.SceneCase)}
     assert {n: [(o.name, o.material) for o in c.objects] for n, c in scenes.items()} == {
         "cube_on_heap": [("heap", "sand"), ("jelly", "elastic")],

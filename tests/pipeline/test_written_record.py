@@ -1,4 +1,4 @@
-"""Issue 46: a command replaces or removes only what clflow wrote (each output folder's
+"""The written-record: a command replaces or removes only what clflow wrote (each output folder's
 written-record, clflow.fileio.WRITTEN_RECORD, lists it with its content), never an input of
 the same run, and refuses in one line before any work when it would. Driven through the CLI
 as a user would; the user's files are hashed before and after."""

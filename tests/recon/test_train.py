@@ -78,9 +78,9 @@ def test_cli_help_states_the_settings_defaults():
 
 @pytest.mark.slow
 def test_held_out_psnr_on_60_views_at_128px(tmp_path):
-    """The issue's target: >= 28 dB held out, from random points. Measured 31.09 dB, SSIM
-    0.962 in 800 iterations (17 s at load 5.7 on 2 cores, 2026-11-24); the truth is a
-    6,144-Gaussian checkered sphere, not the trainer's initialisation."""
+    """The reconstruction target: >= 28 dB held out, from random points (measured:
+    docs/reconstruct.md, "Tests"); the truth is a 6,144-Gaussian checkered sphere, not the
+    trainer's initialisation."""
     make_multiview(tmp_path, shape="sphere", views=60, size=128, detail=32)
     iterations = 800
     settings = Settings(

@@ -572,7 +572,7 @@ def test_bad_objects(folder, changes, message):
 
 def test_each_objects_parameters_by_object_name(folder):
     """Several objects: optimize.parameters, bounds, learning rates and the ground truth name
-    OBJECT.PARAM, each checked against that object's material (issue 48)."""
+    OBJECT.PARAM, each checked against that object's material."""
     optimize = {
         "parameters": ["jelly.youngs_modulus", "jelly.velocity", "heap.friction_angle", "heap.density"],
         "bounds": {"heap.friction_angle": [20, 45]},
