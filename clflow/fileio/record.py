@@ -26,6 +26,7 @@ from pathlib import Path
 
 from clflow.errors import InputError
 from clflow.fileio.digest import BOOKKEEPING_PREFIX, content_digest, fingerprint
+from clflow.fileio.reading import parse_json
 
 WRITTEN_RECORD = ".clflow-written.json"
 #: a folder's entry in the record's files (an empty folder that clflow made)
@@ -70,10 +71,10 @@ def read_record(folder: str | os.PathLike) -> Record:
     """``folder``'s written-record (empty, with its problem, when missing or unreadable)."""
     path = Path(folder) / WRITTEN_RECORD
     try:
-        data = json.loads(path.read_text())
+        data = parse_json(path.read_text())
     except FileNotFoundError:
         return Record(problem="missing")
-    except (OSError, ValueError, RecursionError) as exc:
+    except (OSError, ValueError) as exc:
         return Record(problem=f"unreadable: {type(exc).__name__}")
     fields = {"files": dict, "stats": dict, "moving": dict}
     if not isinstance(data, dict) or not all(isinstance(data.get(k, {}), t) for k, t in fields.items()):
