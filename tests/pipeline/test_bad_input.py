@@ -503,14 +503,14 @@ def test_atomic_dir_moves_its_entries_in_or_leaves_the_folder_as_it_was(tmp_path
 def test_records_nested_too_deep_read_as_damaged_ones(tmp_path):
     """The records kept in output folders (a budget's choice, the results page's params.json,
     a sweep run's result and inputs), nested 200,000 deep: read as damaged, not a traceback."""
+    from clflow.fileio import atomic_write_text
     from clflow.pipeline.fit.budget import load_choice
     from clflow.pipeline.report import _read
     from clflow.sweep.runner import _started_with
     from clflow.sweep.study import previous_record
 
-    c = Case(None, None, tmp_path, None)
-    for name in ("result.json", "inputs.json"):
-        deep_json(c, name)
+    for name in ("result.json", "inputs.json"):  # clflow's own, damaged
+        atomic_write_text(tmp_path / name, '{"a": ' + "[" * 200_000 + "]" * 200_000 + "}")
     assert load_choice(tmp_path / "result.json", {}) is None and _read(tmp_path / "result.json") is None
     assert previous_record(tmp_path) is None
     assert _started_with(tmp_path, {"a": 1})  # other inputs than these: the run starts over
