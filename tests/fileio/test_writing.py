@@ -173,6 +173,22 @@ def test_a_lock_whose_holder_was_killed_is_taken_over_and_a_live_one_is_not(tmp_
     assert held(out) == result(2)
 
 
+def _wait_until_unlocked(claim: Path, seconds: float = 10.0) -> None:
+    """Until no process holds ``claim``'s lock (its writer is gone)."""
+    import fcntl
+    import time
+
+    deadline = time.monotonic() + seconds
+    with open(claim, "r+") as fh:
+        while True:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return
+            except BlockingIOError:
+                assert time.monotonic() < deadline, f"{claim} still locked"
+                time.sleep(0.01)
+
+
 def _namespaces() -> list[tuple]:
     """Ways to run a writer as another machine would look: this namespace, and (where this
     machine lets us) its own PID namespace, whose process ids mean nothing here."""
@@ -208,6 +224,7 @@ def test_a_live_writer_elsewhere_keeps_its_staging_and_a_dead_ones_goes(tmp_path
     proc = _start(_STALL_WRITE, out, prefix=prefix)
     proc.kill()
     proc.wait()
+    _wait_until_unlocked(next(out.glob(".clflow-staging.*/claim.json")))  # a namespace's child dies after unshare
     atomic_write_text(out / "ours.txt", "again")
     assert not [p for p in out.iterdir() if p.name.startswith(".clflow-staging")]
     assert (out / "theirs.txt").read_text() == "theirs"
