@@ -123,21 +123,29 @@ def _settle(folder: Path) -> None:
                 journal = _read_journal(stage)
                 if journal is not None:
                     _Transaction(folder, stage, journal).finish(verify=True)
-                shutil.rmtree(stage)
+                shutil.rmtree(stage, ignore_errors=True)
 
 
 @contextlib.contextmanager
 def _dead_claim(stage: Path, token: str) -> Iterator[bool]:
-    """Whether staging folder ``stage`` is clflow's and its writer gone (its claim names
-    its token and can be locked; held locked through the block). A claim that cannot be read
-    proves nothing: only an empty staging folder goes then."""
+    """Whether staging folder ``stage`` is clflow's and its writer gone, held so through the
+    block: its claim names its token and can be locked; or, stopped before its claim was in
+    place, it holds nothing but that claim's temporary, which can be locked, or nothing."""
     import fcntl
 
+    claim = stage / CLAIM
+    if not claim.exists():
+        left = os.listdir(stage)
+        if not left:
+            yield True
+            return
+        if left != [CLAIM + ".tmp"]:
+            yield False  # not a claim of clflow's making: nobody's to remove
+            return
+        claim = stage / left[0]
     try:
-        fd = os.open(stage / CLAIM, os.O_RDWR | os.O_CLOEXEC)
+        fd = os.open(claim, os.O_RDWR | os.O_CLOEXEC)
     except OSError:
-        with contextlib.suppress(OSError):
-            stage.rmdir()  # empty: a writer stopped between making it and claiming it
         yield False
         return
     try:
@@ -146,36 +154,60 @@ def _dead_claim(stage: Path, token: str) -> Iterator[bool]:
         except OSError:  # alive (held), or no locks on this file system: unknown
             yield False
             return
+        if claim.name != CLAIM:
+            yield True
+            return
         try:
-            ours = json.loads(os.pread(fd, 4096, 0)).get("token") == token
+            yield json.loads(os.pread(fd, 4096, 0)).get("token") == token
         except (OSError, ValueError, AttributeError):
-            ours = False
-        if not ours and os.listdir(stage) == [CLAIM]:
-            ours = True  # stopped while claiming: nothing but its claim to lose
-        yield ours
+            yield False
     finally:
         os.close(fd)
 
 
 class _Claim:
     """A staging folder ``.clflow-staging.<token>`` in ``folder``, claimed (locked) for this
-    writer's life and removed with all it holds when it ends."""
+    writer's life and removed with all it holds when it ends. The claim is written and
+    locked under a temporary name and then renamed into place, so a claim.json is always
+    whole and held; a staging folder that another run's settling removed while it was being
+    claimed is made again."""
 
     def __init__(self, folder: Path):
-        import fcntl
-
-        self.token = secrets.token_hex(16)
-        self.path = folder / f".clflow-staging.{self.token}"
-        try:
-            self.path.mkdir()
-        except OSError as exc:
-            raise OSError(exc.errno, f"cannot write here ({(exc.strerror or str(exc)).lower()})", str(folder)) from None
-        self.fd = os.open(self.path / CLAIM, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
-        with contextlib.suppress(OSError):
-            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        os.pwrite(self.fd, json.dumps({"token": self.token, "pid": os.getpid()}).encode(), 0)
+        for _ in range(10):
+            self.token = secrets.token_hex(16)
+            self.path = folder / f".clflow-staging.{self.token}"
+            try:
+                self.path.mkdir()
+            except OSError as exc:
+                raise OSError(
+                    exc.errno, f"cannot write here ({(exc.strerror or str(exc)).lower()})", str(folder)
+                ) from None
+            with contextlib.suppress(FileNotFoundError, BlockingIOError):  # settled away meanwhile: again
+                self.fd = self._claim()
+                break
+        else:
+            raise OSError(errno.EAGAIN, "cannot claim a staging folder here", str(folder))
         with _STAGING_LOCK:
             _STAGING.add(self.path.resolve())
+
+    def _claim(self) -> int:
+        import fcntl
+
+        tmp = self.path / (CLAIM + ".tmp")
+        fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise  # a settling run holds it and will remove the folder: claim another
+            except OSError:
+                pass  # no locks on this file system: never judged dead
+            os.pwrite(fd, json.dumps({"token": self.token, "pid": os.getpid()}).encode(), 0)
+            os.rename(tmp, self.path / CLAIM)
+        except BaseException:
+            os.close(fd)
+            raise
+        return fd
 
     def close(self) -> None:
         with _STAGING_LOCK:

@@ -107,7 +107,7 @@ PROBES = [
     Probe(
         "density-1e40",
         lambda c: ["optimize", c.config("dense", **{"material.density": 1e40})],
-        r"density \(rho\) = 1e\+40 kg/m\^3 is outside the valid range \(0, 1e\+06\]",
+        r"density \(rho\) = 1e\+40 kg/m\^3 is outside the valid range \[0.001, 1e\+06\]",
         ("out",),
     ),
     Probe(
