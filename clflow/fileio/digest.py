@@ -1,9 +1,8 @@
 """What a file or folder holds, as a digest, and a file's fingerprint.
 
 A digest (:func:`content_digest`) is a SHA-256 of the bytes, not of the place: moving or
-copying a file keeps it. Hashing runs at 1.5 GB/s on a core with SHA extensions and about
-0.5 GB/s without (docs/architecture.md, "Outputs"), so each file is read once per process
-for a (size, mtime, ctime, inode) it has. A fingerprint (:func:`fingerprint`) is that stat
+copying a file keeps it. Each file is read once per process for a (size, mtime, ctime,
+inode) it has (what hashing costs: docs/architecture.md, "Outputs"). A fingerprint (:func:`fingerprint`) is that stat
 tuple: equal fingerprints of one path mean the file was not written since, because any
 write moves its ctime, which no user call can set back.
 """

@@ -344,8 +344,8 @@ def _sync(path: Path) -> None:
 
 def _sync_tree(folder: Path) -> None:
     """fsync every file and folder under ``folder`` (a staged result, before its journal), at
-    once from threads: the file system commits concurrent syncs together, and one at a time
-    they cost a commit each (about 1 ms: 1 s for 1000 frames)."""
+    once from threads: the file system commits concurrent syncs together, where one at a
+    time each costs a commit of its own."""
     from concurrent.futures import ThreadPoolExecutor
 
     paths = [Path(root, name) for root, dirs, files in os.walk(folder) for name in files + dirs]
