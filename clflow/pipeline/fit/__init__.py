@@ -32,7 +32,8 @@ variables, main_variables, prepared, views, frames, model_grid, search_grid, ...
 - guidance: the guidance views, their videos' flow (cached) and the loss masks
 - objective: the loss, its gradient, the Jacobian and the estimator's bias (Objective)
 - steps: Levenberg-Marquardt, Adam, their boxes and schedules (Steps)
-- search: the global search and the polish of its starts (Search; starts_on_ray)
+- search: the global search and the polish of its starts (Search)
+- starts: how the starts' polishes are mapped: serially, or as Ray tasks (starts_on_ray)
 - diagnostics: identifiability, profiles and the grid check (Diagnostics)
 - budget: the main grid a time budget affords (optimize.budget), predicted from timed runs
 - results: params.json, metrics.json and the comparison videos (Results)
@@ -42,7 +43,7 @@ variables, main_variables, prepared, views, frames, model_grid, search_grid, ...
 from clflow.pipeline.fit.driver import Optimization
 from clflow.pipeline.fit.guidance import resampled_guidance
 from clflow.pipeline.fit.results import parameter_unit
-from clflow.pipeline.fit.search import starts_on_ray
+from clflow.pipeline.fit.starts import starts_on_ray
 from clflow.pipeline.fit.state import Evaluation, OptimizerState
 
 __all__ = ["Evaluation", "Optimization", "OptimizerState", "parameter_unit", "resampled_guidance", "starts_on_ray"]

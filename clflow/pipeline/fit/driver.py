@@ -3,6 +3,7 @@ from the parts in the other modules of clflow.pipeline.fit."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import logging
@@ -18,7 +19,8 @@ from clflow.pipeline.fit.diagnostics import Diagnostics
 from clflow.pipeline.fit.guidance import guidance_views_of
 from clflow.pipeline.fit.objective import Objective
 from clflow.pipeline.fit.results import Results
-from clflow.pipeline.fit.search import Search, _quiet, serial_starts
+from clflow.pipeline.fit.search import Search
+from clflow.pipeline.fit.starts import quiet, serial_starts
 from clflow.pipeline.fit.state import LM_DAMPING, Checkpoints, Evaluation, OptimizerState, config_digests
 from clflow.pipeline.fit.steps import LM_GAIN_TOLERANCE, LM_TOLERANCE, Steps, horizon, phase_of
 from clflow.pipeline.forward import prepare
@@ -201,9 +203,13 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
         self.cfg = self.prepared.cfg
         self._prepared = {g: p for g, p in self._prepared.items() if g in (self.search_grid, self.model_grid)}
 
-    def __getstate__(self) -> dict:
-        """What a Ray task gets (clflow.sweep): no progress callback or cached runs, starts polished in place."""
-        return {**self.__dict__, "progress": _quiet, "map_starts": serial_starts, "_lm_cache": {}}
+    def task_copy(self) -> Optimization:
+        """This run as a Ray task gets it (clflow.pipeline.fit.starts.starts_on_ray): no
+        progress callback (the rows are shown where the task's record arrives), its starts
+        polished in place, no cached Jacobians."""
+        task = copy.copy(self)
+        task.progress, task.map_starts, task._lm_cache = quiet, serial_starts, {}
+        return task
 
     def run(
         self, resume: bool = False, stop_after: int | None = None, start: OptimizerState | None = None

@@ -8,7 +8,6 @@ import math
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
 
 import torch
 
@@ -17,49 +16,7 @@ from clflow.fileio.reading import parse_json
 from clflow.limits import format_duration
 from clflow.pipeline.fit.state import LM_DAMPING, OptimizerState, config_digests
 
-if TYPE_CHECKING:
-    from clflow.pipeline.fit.driver import Optimization
-
 log = logging.getLogger(__name__)
-
-
-def _quiet(row: dict) -> None:
-    """No progress shown."""
-
-
-def serial_starts(
-    opt: Optimization, begin: OptimizerState, starts, resume: bool = False, budget: int | None = None
-) -> list[dict]:
-    """Polish each of ``starts`` (indices into begin.starts) one after another in this process
-    (``budget``: at most this many iterations in all); records of Optimization.polish."""
-    records = []
-    for k in starts:
-        records.append(opt.polish(begin, k, resume=resume, budget=budget))
-        if budget is not None:
-            budget -= records[-1]["iterations_here"]
-    return records
-
-
-def _polish_task(opt, begin, start: int, resume: bool) -> dict:
-    return opt.polish(begin, start, resume=resume)
-
-
-def starts_on_ray(**ray_options) -> Callable:
-    """An Optimization.map_starts (``clflow optimize --parallel``): each search start's polish a
-    Ray task (clflow.parallel.map_on_ray, ``ray_options`` its keywords), its rows shown as it finishes."""
-
-    def map_starts(opt, begin, starts, resume: bool = False, budget: int | None = None) -> list[dict]:
-        starts = list(starts)
-
-        def finished(index: int, record: dict) -> None:
-            for row in record["state"]["history"][len(begin.history) :]:
-                opt.progress(row)
-
-        from clflow.parallel import map_on_ray
-
-        return map_on_ray(_polish_task, [(opt, begin, k, resume) for k in starts], done=finished, **ray_options)
-
-    return map_starts
 
 
 class Search:
