@@ -232,9 +232,9 @@ class Optimization(Checkpoints, Objective, Steps, Search, Diagnostics, Results):
             if phase_of(opt, state.iteration)[0] == "main" and opt.budget is not None and self.grid_choice is None:
                 self.grid_choice = self.choose_main_grid(state)
             if len(state.polished) < len(state.starts):
-                budget = None if stop_after is None else stop_after - done_here
-                polish_all = self.map_starts if budget is None else serial_starts  # stop_after: tests, here
-                records = polish_all(self, state, range(len(state.starts)), resume, budget)
+                most = None if stop_after is None else stop_after - done_here
+                polish_all = self.map_starts if most is None else serial_starts  # stop_after: tests, here
+                records = polish_all(self, state, range(len(state.starts)), resume, most)
                 done_here += sum(r["iterations_here"] for r in records)
                 if not all(r["finished"] for r in records):  # stopped by stop_after
                     return state

@@ -223,12 +223,14 @@ class Search:
         )
         return True
 
-    def polish(self, begin: OptimizerState, start: int, resume: bool = False, budget: int | None = None) -> dict:
+    def polish(
+        self, begin: OptimizerState, start: int, resume: bool = False, max_iterations: int | None = None
+    ) -> dict:
         """Levenberg-Marquardt from search start ``start`` (``begin``: the state the search
         ended in) for ``search.start_iterations`` iterations or until it converges, as if no
         other start ran: its own time step (substeps from 1; the first start keeps begin's),
         calibration, rollbacks and horizon schedule. Checkpointed in ``output/starts/<start>/``
-        (``resume`` goes on from there; ``budget``: at most this many iterations now).
+        (``resume`` goes on from there; ``max_iterations``: at most this many now).
         Returns {"state": its end state (asdict), "errors": each view's estimator error
         [T, H, W, 2] at its end (None without flow.bias_correction), "finished",
         "iterations_here"}."""
@@ -254,7 +256,7 @@ class Search:
             failures, done = 0, 0
             last = state.history[-1] if state.history else {}
             finished = last.get("start") == start and bool(last.get("start_done"))
-            while not finished and (budget is None or done < budget):
+            while not finished and (max_iterations is None or done < max_iterations):
                 state, failures, row = self.step(state, failures, start)
                 if row is None:
                     continue

@@ -2,7 +2,7 @@
 this process, or each a Ray task (``clflow optimize --parallel``).
 
 A mapper takes the run, the state the search ended in, the indices of the starts to polish,
-whether to resume their checkpoints and an iteration budget, and returns the records of
+whether to resume their checkpoints and the most iterations they may run now, and returns the records of
 ``Optimization.polish`` in start order. The run only needs ``polish``, ``progress`` and
 ``task_copy`` (:class:`PolishesStarts`), so this module does not import the driver.
 """
@@ -17,7 +17,9 @@ from clflow.pipeline.fit.state import OptimizerState
 class PolishesStarts(Protocol):
     """What a mapper asks of the run (clflow.pipeline.fit.driver.Optimization)."""
 
-    def polish(self, begin: OptimizerState, start: int, resume: bool = False, budget: int | None = None) -> dict: ...
+    def polish(
+        self, begin: OptimizerState, start: int, resume: bool = False, max_iterations: int | None = None
+    ) -> dict: ...
 
     def progress(self, row: dict) -> None: ...
 
@@ -29,15 +31,19 @@ def quiet(row: dict) -> None:
 
 
 def serial_starts(
-    opt: PolishesStarts, begin: OptimizerState, starts: Iterable[int], resume: bool = False, budget: int | None = None
+    opt: PolishesStarts,
+    begin: OptimizerState,
+    starts: Iterable[int],
+    resume: bool = False,
+    max_iterations: int | None = None,
 ) -> list[dict]:
     """Polish each of ``starts`` (indices into begin.starts) one after another in this process
-    (``budget``: at most this many iterations in all); records of Optimization.polish."""
+    (``max_iterations``: at most this many in all); records of Optimization.polish."""
     records = []
     for k in starts:
-        records.append(opt.polish(begin, k, resume=resume, budget=budget))
-        if budget is not None:
-            budget -= records[-1]["iterations_here"]
+        records.append(opt.polish(begin, k, resume=resume, max_iterations=max_iterations))
+        if max_iterations is not None:
+            max_iterations -= records[-1]["iterations_here"]
     return records
 
 
@@ -50,7 +56,7 @@ def starts_on_ray(**ray_options) -> Callable[..., list[dict]]:
     ``ray_options`` its keywords) of the run's :meth:`task_copy`, its rows shown as it finishes."""
 
     def map_starts(
-        opt: PolishesStarts, begin: OptimizerState, starts: Iterable[int], resume: bool = False, budget=None
+        opt: PolishesStarts, begin: OptimizerState, starts: Iterable[int], resume: bool = False, max_iterations=None
     ) -> list[dict]:
         from clflow.parallel import map_on_ray
 
