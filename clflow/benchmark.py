@@ -10,13 +10,18 @@ the machine's load, and one record of the figures (``--json``).
 CPU time is that of every thread of this process (the OpenCL CPU driver's workers
 included), so on a machine shared with other jobs it barely moves while the wall time grows
 with the load; both are kept, with the 1-minute load average before and after.
+
+docs/benchmarks.md is generated from one record a benchmark (its current figure) in
+docs/benchmarks/records/: ``python -m clflow.benchmark`` writes it (``render_page``).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import statistics
+import textwrap
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -119,4 +124,110 @@ def write_record(path: str | os.PathLike, benchmark: str, parameters: dict, resu
     return record
 
 
-__all__ = ["Stopwatch", "Timing", "load_average", "measure", "write_record"]
+PAGE = Path("docs/benchmarks.md")
+RECORDS = Path("docs/benchmarks/records")
+# what each record of RECORDS holds; the last four may be null where the docs did not say
+RECORD_FIELDS = ("benchmark", "section", "what", "command", "date", "figures", "commit", "device", "load", "target")
+SECTIONS = {
+    "accuracy": "Accuracy: system identification (`clflow eval sysid`) and the demos",
+    "cpu": "Speed on the CPU",
+    "gpu": "Speed on a GPU",
+}
+PAGE_WIDTH = 100
+# the space between a number and its unit, kept on one line
+UNBROKEN = re.compile(r"(?<=\d) (?=(?:s|ms|us|min|px|MiB|GiB|M|B|dB|deg|%)(?!\w))")
+
+INTRODUCTION = """\
+How fast and how accurate clflow is now: one entry per benchmark, its current figure with the
+command that measures it, the date, the commit, the device, how busy the machine was (load
+average; the 2-core hosts share their cores with other jobs at times, so a load above 2
+means other work beside it) and its target where one is set. Wall-clock figures grow with
+the load, CPU time much less; the last bits of an identification depend on the host's CPU.
+Every earlier figure is in the history, by month:
+[history/benchmarks-2026-11.md](history/benchmarks-2026-11.md) and
+[history/benchmarks-2026-12.md](history/benchmarks-2026-12.md).
+
+This page is generated from the records in `docs/benchmarks/records/` (one JSON file a
+benchmark) by `python -m clflow.benchmark`; tests/test_benchmark_page.py holds the two equal.
+To record a new figure, replace the fields of its record (moving the old figure to the
+history), then run that command.
+
+## How to run them
+
+Every `clflow bench ...` command times through `clflow.benchmark.measure` (untimed warm-up,
+repeats, wall and CPU time, load before and after) and takes `--json PATH`: the figures, the
+parameters and the environment (versions, device, commit, date, load), e.g.
+`clflow bench raster --repeat 5 --json raster.json`. `clflow eval sysid -o FOLDER` writes
+`FOLDER/sysid.json` and `sysid.md` (every case's found values, ranges, losses and EPE);
+`--quick` runs three cases in minutes. `clflow demo` and `clflow sweep` are timed whole.
+Each entry below gives its command; `clflow --device NAME ...` runs it on another device
+(docs/gpu.md).
+"""
+
+
+def read_records(folder: str | os.PathLike = RECORDS) -> list[dict]:
+    """The benchmark records of ``folder`` (``NAME.json`` each), ordered by file name."""
+    return [json.loads(path.read_text()) for path in sorted(Path(folder).glob("*.json"))]
+
+
+def _wrapped(text: str, first: str, rest: str) -> str:
+    """``text`` filled to ``PAGE_WIDTH``; a line is never broken between a number and its unit
+    or around " - ", so no continuation line starts as a list item or with a bare unit."""
+    held = UNBROKEN.sub("\N{NO-BREAK SPACE}", text.replace(" - ", "\N{NO-BREAK SPACE}-\N{NO-BREAK SPACE}"))
+    filled = textwrap.fill(
+        held, PAGE_WIDTH, initial_indent=first, subsequent_indent=rest, break_long_words=False, break_on_hyphens=False
+    )
+    return filled.replace("\N{NO-BREAK SPACE}", " ")
+
+
+def _entry(record: dict) -> str:
+    """One benchmark's current figure as a list item, its lines at most ``PAGE_WIDTH`` wide."""
+    measured = [record["date"], record["commit"] and f"commit {record['commit']}", record["device"]]
+    measured += [record["load"] and f"load: {record['load']}"]
+    lines = [
+        f"command: `{record['command']}`",
+        "figures: " + "; ".join(f"{name}: {value}" for name, value in record["figures"].items()),
+        f"target: {record['target'] or 'none set'}",
+        "measured: " + "; ".join(part for part in measured if part),
+    ]
+    lines += [f"notes: {record['notes']}"] if record.get("notes") else []
+    lines += [f"more: {record['docs']}"] if record.get("docs") else []
+    lines += [f"record: `{RECORDS.as_posix()}/{record['benchmark']}.json`"]
+    items = [_wrapped(f"**{record['what']}**", "- ", "  ")] + [_wrapped(line, "  - ", "    ") for line in lines]
+    return "\n".join(items)
+
+
+def render_page(records: list[dict]) -> str:
+    """docs/benchmarks.md from ``records``: the introduction, then a section of entries for
+    each of ``SECTIONS``, in the records' order."""
+    parts = ["# Benchmarks\n", INTRODUCTION]
+    for section, title in SECTIONS.items():
+        entries = [_entry(record) for record in records if record["section"] == section]
+        parts.append(f"## {title}\n\n" + "\n".join(entries) + "\n")
+    return "\n".join(parts)
+
+
+def write_page(root: str | os.PathLike = ".") -> Path:
+    """Render the records under ``root`` into its docs/benchmarks.md; returns the page's path.
+    The page is a file of the repository, not a run's output: written in place, no
+    written-record beside it."""
+    page = Path(root) / PAGE
+    page.write_text(render_page(read_records(Path(root) / RECORDS)))
+    return page
+
+
+__all__ = [
+    "RECORD_FIELDS",
+    "SECTIONS",
+    "Stopwatch",
+    "Timing",
+    "load_average",
+    "measure",
+    "read_records",
+    "render_page",
+    "write_page",
+    "write_record",
+]
+
+if __name__ == "__main__":
+    print(write_page())
