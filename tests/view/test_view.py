@@ -222,6 +222,6 @@ def test_cli_serves_until_ctrl_c(tmp_path):
             err += lines.get()
     finally:
         proc.kill()
-    assert proc.returncode == 130, err  # Ctrl-C: 130, as every command (README)
+    assert proc.returncode == 130, err  # Ctrl-C: 130, as every command (docs/guarantees.md)
     assert yaml.safe_load(out.split("\n#")[0])["object"]["select"]["box"]["min"]  # stdout: the box YAML
     assert f"at {url}; Ctrl-C stops" in err and err.rstrip().endswith("stopped (Ctrl-C)")
