@@ -11,8 +11,7 @@ import pytest
 import yaml
 
 from clflow.mpm.constants import COLLIDER_MODES
-from clflow.scene.config import load_config
-from clflow.scene.config import parse as config_parse
+from clflow.scene.config import load_config, schema
 from clflow.scene.config import settings as config_settings
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -118,27 +117,8 @@ def test_the_objects_example_loads(folder):
     assert cfg.ground_truth == {"jelly.youngs_modulus": 6.0e4, "heap.friction_angle": 35.0}
 
 
-def _section_keys(source: str) -> set[str]:
-    """The keys of every ``r.section(..., (known keys))`` call and of TOP_KEYS."""
-    keys = set()
-    for match in re.finditer(r"r\.section\(", source):
-        depth, i = 1, match.end()
-        while depth:  # the call's text, to its closing parenthesis
-            depth += {"(": 1, ")": -1}.get(source[i], 0)
-            i += 1
-        call = source[match.end() : i - 1]
-        if call.rstrip().endswith("TOP_KEYS"):
-            continue  # read below
-        known = re.findall(r"\(([^()]*)\),?\s*$", call)  # the last argument: a tuple of strings
-        assert known, f"r.section call without a literal tuple of keys: {call!r}"
-        keys.update(re.findall(r'"(\w+)"', known[0]))
-    keys.update(re.findall(r'"(\w+)"', re.search(r"TOP_KEYS = \(([^)]*)\)", source).group(1)))
-    return keys
-
-
 def test_every_key_and_option_of_the_parser_is_documented():
-    source = Path(config_parse.__file__).read_text()
-    keys = _section_keys(source)
+    keys = {k.name.rpartition(".")[2] for section in schema.SECTIONS.values() for k in section.keys}
     assert {"splats", "grid_resolution", "per_axis", "fov_y_deg", "result", "final_rate"} <= keys
     missing = sorted(k for k in keys if not re.search(rf"`[^`\n]*\b{k}\b[^`\n]*`|^\s*-?\s*{k}:", DOC, re.M))
     assert not missing, f"docs/scene_config.md does not mention the keys {missing}"
