@@ -15,8 +15,8 @@ The package's modules: ``keys`` (a key's declaration: kind, unit, default, range
 ``settings`` and ``optimize_settings`` (the types, section by section, their fields declaring
 their keys), ``schema`` (every section's keys), ``reader`` (a key's type and range checked,
 errors naming file and key), ``parse`` with ``parse_objects`` and ``parse_optimize`` (a parsed
-config checked into a SceneConfig) and ``files`` (strict YAML/JSON, ``--set`` overrides,
-load_config).
+config checked into a SceneConfig), ``files`` (strict YAML/JSON, ``--set`` overrides,
+load_config) and ``doc`` (the key tables of docs/scene_config.md, written from the schema).
 """
 
 from clflow.scene.config import optimize_settings, settings

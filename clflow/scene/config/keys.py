@@ -2,7 +2,7 @@
 
 The settings dataclasses declare their fields with :func:`setting`; the keys that fill no
 field of their own are :class:`Key` values in ``clflow.scene.config.schema``. The reader's
-checks come from them.
+checks and the tables of docs/scene_config.md both come from them.
 """
 
 from __future__ import annotations

@@ -2,7 +2,8 @@
 
 A section's keys are the fields of its settings dataclass (``clflow.scene.config.settings``,
 declared with ``keys.setting``) or, where no dataclass field holds the key, :class:`Key`
-values here. The reader takes its allowed keys, defaults and ranges from :data:`SECTIONS`.
+values here. The reader takes its allowed keys, defaults and ranges from :data:`SECTIONS`;
+``clflow.scene.config.doc`` writes the tables of docs/scene_config.md from it.
 """
 
 from __future__ import annotations
