@@ -64,31 +64,27 @@ class Section:
         return Section(f"{self.path}.{head}", keys, order)
 
 
-def _key(name: str, kind: str, doc: str, **spec) -> Key:
-    return Key(name, kind, doc, **spec)
-
-
 def _region(path: str, limit: float, unit: str) -> tuple[Section, Section]:
     """A region's box and sphere (``path``: the region's), within +-``limit`` (``unit``, its
     frame's length)."""
     box = Section(
         f"{path}.box",
         (
-            _key(
+            Key(
                 "min",
                 "vec3",
                 "the box's lower corner, below `max` on every axis (bounds inclusive)",
                 unit=unit,
                 high=limit,
             ),
-            _key("max", "vec3", "its upper corner", unit=unit, high=limit),
+            Key("max", "vec3", "its upper corner", unit=unit, high=limit),
         ),
     )
     sphere = Section(
         f"{path}.sphere",
         (
-            _key("center", "vec3", "the sphere's centre", unit=unit, high=limit),
-            _key("radius", "number", "the sphere's radius", unit=unit, low=0.0, high=limit, strict_low=True),
+            Key("center", "vec3", "the sphere's centre", unit=unit, high=limit),
+            Key("radius", "number", "the sphere's radius", unit=unit, low=0.0, high=limit, strict_low=True),
         ),
     )
     return box, sphere
@@ -97,40 +93,40 @@ def _region(path: str, limit: float, unit: str) -> tuple[Section, Section]:
 TOP = Section(
     "",
     (
-        _key("splats", "file", "a 3DGS PLY file (or a compressed `.compressed.ply`, as SuperSplat writes)"),
-        _key("scene", "section", "the splat file's scale and axes", shown=""),
-        _key("object", "section", "the one object's Gaussians, fill and velocity (with `material`)", shown=""),
-        _key("material", "section", "the one object's material (with `object`)", shown=""),
-        _key(
+        Key("splats", "file", "a 3DGS PLY file (or a compressed `.compressed.ply`, as SuperSplat writes)"),
+        Key("scene", "section", "the splat file's scale and axes", shown=""),
+        Key("object", "section", "the one object's Gaussians, fill and velocity (with `material`)", shown=""),
+        Key("material", "section", "the one object's material (with `object`)", shown=""),
+        Key(
             "objects",
             "other",
             "several objects: a non-empty list of entries with a `name`, or a mapping of names to entries, each "
             "its own select, fill, velocity and material; not with `object` or `material`",
             shown="",
         ),
-        _key("forces", "list", "force stages", shown="none"),
-        _key("boundaries", "section", "the ground and colliders", shown="none"),
-        _key("simulation", "section", "the simulation's grid, time and gravity", shown=""),
-        _key("camera", "other", "the guidance camera (or a list of one per guidance view)"),
-        _key(
+        Key("forces", "list", "force stages", shown="none"),
+        Key("boundaries", "section", "the ground and colliders", shown="none"),
+        Key("simulation", "section", "the simulation's grid, time and gravity", shown=""),
+        Key("camera", "other", "the guidance camera (or a list of one per guidance view)"),
+        Key(
             "video",
             "other",
             "a video file (`.mp4 .avi .webm .mkv .mov .gif`) or a folder of numbered images, or a list of them, "
             "one per `camera` entry, or `{generate: ...}` (below); required by `clflow optimize` *(run)*",
             default=None,
         ),
-        _key("flow", "section", "the observed flow and the loss", shown=""),
-        _key("optimize", "section", "what to optimise, and how", shown=""),
-        _key("evaluation", "section", "known values, for metrics", shown="none"),
-        _key("output", "text", "a non-empty folder path", default="results"),
+        Key("flow", "section", "the observed flow and the loss", shown=""),
+        Key("optimize", "section", "what to optimise, and how", shown=""),
+        Key("evaluation", "section", "known values, for metrics", shown="none"),
+        Key("output", "text", "a non-empty folder path", default="results"),
     ),
 )
 SCENE = Section(
     "scene",
     (
-        _key("scale", "number", "metres per scene unit", default=1.0, low=SCALE[0], high=SCALE[1]),
-        _key("up", "choice", "the file's up axis, turned to +y", default="+y", choices=UP_AXES),
-        _key(
+        Key("scale", "number", "metres per scene unit", default=1.0, low=SCALE[0], high=SCALE[1]),
+        Key("up", "choice", "the file's up axis, turned to +y", default="+y", choices=UP_AXES),
+        Key(
             "dataparser_transforms",
             "file",
             "nerfstudio's `dataparser_transforms.json` (`transform` 3x4, a rotation and translation, and `scale`) "
@@ -143,13 +139,13 @@ SCENE = Section(
         ),
     ),
 )
-_SELECT = _key(
+_SELECT = Key(
     "select",
     "section",
     "exactly one of `box`, `sphere`, `mask`, `ply`; picks Gaussians by their centres in scene units",
 )
-_FILL = _key("fill", "section", "particles inside the object besides the Gaussian centres", shown="")
-_MATERIAL = _key(
+_FILL = Key("fill", "section", "particles inside the object besides the Gaussian centres", shown="")
+_MATERIAL = Key(
     "material", "section", "as the `material` section: `type` (or `query`), `parameters`, `model`, `density`"
 )
 OBJECT = Section("object", (_SELECT, _FILL, *keys_of(SceneObject)))
@@ -157,7 +153,7 @@ OBJECT_ENTRY = Section("objects.NAME", (*OBJECT.keys, _MATERIAL))  # an entry of
 OBJECT_ITEM = Section(  # an entry of the list form
     "objects[i]",
     (
-        _key(
+        Key(
             "name",
             "text",
             "letters, digits and `_`, not starting with a digit; unique (a name given twice is an error). "
@@ -170,12 +166,12 @@ OBJECT_ITEM = Section(  # an entry of the list form
 SELECT = Section(
     "object.select",
     (
-        _key("box", "section", "`min`, `max`: a box", shown=""),
-        _key("sphere", "section", "`center`, `radius`: a sphere", shown=""),
-        _key(
+        Key("box", "section", "`min`, `max`: a box", shown=""),
+        Key("sphere", "section", "`center`, `radius`: a sphere", shown=""),
+        Key(
             "mask", "file", "an `.npy` file: N booleans, or a 1-D array of integer indices in [0, N) *(run)*", shown=""
         ),
-        _key(
+        Key(
             "ply",
             "file",
             "a PLY of the part (3DGS or `x y z` points), e.g. the selection a splat editor (SuperSplat, ...) "
@@ -184,7 +180,7 @@ SELECT = Section(
             "logged *(run)*",
             shown="",
         ),
-        _key(
+        Key(
             "tolerance",
             "number",
             "only with `ply`",
@@ -205,14 +201,14 @@ _WINDOW = {k.name: k for k in keys_of(Collider)}  # start, end: as a collider's
 FORCE_STAGE = Section(
     "forces[i]",
     (
-        _key(
+        Key(
             "region",
             "other",
             "`all`, or exactly one of `box` (min < max) and `sphere` (radius > 0); m, simulation frame",
             default="all",
         ),
-        _key("force", "vec3", "N in total, shared by mass; exactly one of `force` and `acceleration`", high=FORCE),
-        _key("acceleration", "vec3", "m/s^2; exactly one of `force` and `acceleration`", high=ACCELERATION),
+        Key("force", "vec3", "N in total, shared by mass; exactly one of `force` and `acceleration`", high=FORCE),
+        Key("acceleration", "vec3", "m/s^2; exactly one of `force` and `acceleration`", high=ACCELERATION),
         _WINDOW["start"],
         replace(_WINDOW["end"], doc="> `start`: the stage acts during [`start`, `end`)"),
     ),
@@ -220,22 +216,22 @@ FORCE_STAGE = Section(
 REGION = Section(
     "forces[i].region",
     (
-        _key("box", "section", "`min`, `max`: a box", shown=""),
-        _key("sphere", "section", "`center`, `radius`: a sphere", shown=""),
+        Key("box", "section", "`min`, `max`: a box", shown=""),
+        Key("sphere", "section", "`center`, `radius`: a sphere", shown=""),
     ),
 )
 REGION_BOX, REGION_SPHERE = _region(REGION.path, LENGTH, "m")
 BOUNDARIES = Section(
     "boundaries",
     (
-        _key("ground", "section", "the half-space below y = height; always active", shown="no ground"),
-        _key("colliders", "list", "more half-spaces", shown="none"),
+        Key("ground", "section", "the half-space below y = height; always active", shown="no ground"),
+        Key("colliders", "list", "more half-spaces", shown="none"),
     ),
 )
 GROUND = Section(
     "boundaries.ground",
     (
-        _key("height", "number", "the solid is y < height", unit="m", default=0.0, low=-LENGTH, high=LENGTH),
+        Key("height", "number", "the solid is y < height", unit="m", default=0.0, low=-LENGTH, high=LENGTH),
         _WINDOW["mode"],
         _WINDOW["friction"],
     ),
@@ -250,7 +246,7 @@ CAMERA = Section(
     order=("file", "colmap", "image", "index", "position", "look_at", "up", "fov_y_deg", "width", "height"),
 )
 VIDEO = Section(
-    "video", (_key("generate", "section", "make the guidance video with an image-to-video model", shown=""),)
+    "video", (Key("generate", "section", "make the guidance video with an image-to-video model", shown=""),)
 )
 GENERATE = Section("video.generate", keys_of(GenerateSettings))
 FLOW = Section("flow", keys_of(FlowSettings))
@@ -278,7 +274,7 @@ BUDGET = Section("optimize.budget", keys_of(BudgetSettings))
 EVALUATION = Section(
     "evaluation",
     (
-        _key(
+        Key(
             "ground_truth",
             "mapping",
             "known parameter values, checked like `material.parameters`, `density`, and `velocity` (3 numbers "
