@@ -5,7 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from clflow.scene.config.keys import MAX_GRID, MAX_RATE, setting
-from clflow.scene.config.settings import VELOCITY, SimulationSettings
+
+VELOCITY = "velocity"  # the name of the object's initial velocity in optimize.parameters, evaluation.ground_truth
+VELOCITY_COMPONENTS = ("velocity_x", "velocity_y", "velocity_z")  # its components: m/s, scene axes
 
 OPTIMIZERS = ("adam", "levenberg_marquardt")
 
@@ -217,14 +219,4 @@ class OptimizeSettings:
         return self.search.object_samples * sum(map(len, self.parameters_by_object().values()))
 
 
-def main_grid_range(optimize: OptimizeSettings, simulation: SimulationSettings) -> tuple[int, int]:
-    """The coarsest and finest main grid (nodes) a budget chooses from: the search's grid
-    (the simulation's without one) up to ``budget.max_grid_resolution`` (0: twice the
-    simulation's grid, in cells)."""
-    search = optimize.search.grid_resolution if optimize.search is not None else 0
-    lowest = search or simulation.grid_resolution
-    finest = optimize.budget.max_grid_resolution if optimize.budget is not None else 0
-    return lowest, max(lowest, finest or 2 * (simulation.grid_resolution - 1) + 1)
-
-
-__all__ = ["BudgetSettings", "OPTIMIZERS", "OptimizeSettings", "SearchSettings", "main_grid_range"]
+__all__ = ["BudgetSettings", "OPTIMIZERS", "OptimizeSettings", "SearchSettings", "VELOCITY", "VELOCITY_COMPONENTS"]

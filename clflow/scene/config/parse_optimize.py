@@ -10,15 +10,20 @@ from clflow.errors import InputError
 from clflow.materials import DENSITY, get_material, validate_params
 from clflow.scene.config import schema
 from clflow.scene.config.keys import SPEED
-from clflow.scene.config.optimize_settings import BudgetSettings, OptimizeSettings, SearchSettings, main_grid_range
-from clflow.scene.config.reader import Reader
-from clflow.scene.config.settings import (
+from clflow.scene.config.optimize_settings import (
     VELOCITY,
     VELOCITY_COMPONENTS,
+    BudgetSettings,
+    OptimizeSettings,
+    SearchSettings,
+)
+from clflow.scene.config.reader import Reader
+from clflow.scene.config.settings import (
     FlowSettings,
     MaterialConfig,
     SceneObject,
     SimulationSettings,
+    main_grid_range,
     split_parameter,
     velocity_names,
 )

@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from clflow.errors import InputError
 from clflow.flow.optical_flow import (
@@ -32,16 +31,12 @@ from clflow.scene.config.keys import (
     SPEED,
     setting,
 )
-
-if TYPE_CHECKING:
-    from clflow.scene.config.optimize_settings import OptimizeSettings
+from clflow.scene.config.optimize_settings import VELOCITY, VELOCITY_COMPONENTS, OptimizeSettings
 
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 FLOW_METHODS = ("dis", "farneback")
 FLOW_LOSSES = ("l2", "charbonnier")
 MATERIAL_MODELS = {"elastic": ELASTIC_MODELS, "sand": SAND_MODELS}  # material.model options
-VELOCITY = "velocity"  # the name of the object's initial velocity in optimize.parameters, evaluation.ground_truth
-VELOCITY_COMPONENTS = ("velocity_x", "velocity_y", "velocity_z")  # its components: m/s, scene axes
 
 
 @dataclass(frozen=True)
@@ -404,6 +399,16 @@ class FlowSettings:
     )
 
 
+def main_grid_range(optimize: OptimizeSettings, simulation: SimulationSettings) -> tuple[int, int]:
+    """The coarsest and finest main grid (nodes) a budget chooses from: the search's grid
+    (the simulation's without one) up to ``budget.max_grid_resolution`` (0: twice the
+    simulation's grid, in cells)."""
+    search = optimize.search.grid_resolution if optimize.search is not None else 0
+    lowest = search or simulation.grid_resolution
+    finest = optimize.budget.max_grid_resolution if optimize.budget is not None else 0
+    return lowest, max(lowest, finest or 2 * (simulation.grid_resolution - 1) + 1)
+
+
 @dataclass(frozen=True)
 class SceneConfig:
     source: Path
@@ -518,10 +523,9 @@ __all__ = [
     "Selection",
     "SimulationSettings",
     "UP_AXES",
-    "VELOCITY",
-    "VELOCITY_COMPONENTS",
     "config_record",
     "is_velocity_component",
+    "main_grid_range",
     "split_parameter",
     "velocity_names",
 ]
