@@ -1,4 +1,5 @@
-"""The scene config's ``optimize`` section: the optimiser, its global search and time budget."""
+"""The scene config's ``optimize`` section: the optimiser, its global search and time budget,
+each field declaring its key (``keys.setting``)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,7 @@
-"""The scene config's types, section by section, and the names and choices its keys take
-(read and checked by clflow.scene.config.parse)."""
+"""The scene config's types, section by section, and the names and choices its keys take;
+a field a key sets declares it (``keys.setting``: kind, unit, default, range, meaning), which
+clflow.scene.config.parse reads and checks it by (the ``optimize`` section's types:
+``optimize_settings``)."""
 
 from __future__ import annotations
 
