@@ -11,8 +11,7 @@ import yaml
 from click.testing import CliRunner
 
 from clflow.errors import InputError
-from clflow.scene.config import parse as config_parse
-from clflow.scene.config import parse_config
+from clflow.scene.config import parse_config, schema
 from clflow_cli.main import cli
 from tests.pipeline._scenes import two_objects_config
 
@@ -114,13 +113,17 @@ def configs(quick_demo):
 
 
 def test_the_configs_hold_every_numeric_key_of_the_reader(configs):
-    """The keys the reader reads as numbers (r.number, r.integer, r.vec3 with a literal key),
-    but video.generate's (tests/generate/test_config.py: they need a model folder)."""
-    source = Path(config_parse.__file__).read_text()
-    read = set(re.findall(r'r\.(?:number|integer|vec3)\(\s*\w+,\s*"(\w+)"', source))
-    generate_only = {"seed", "steps", "guidance_scale"}
+    """The keys the schema declares numbers (integer, number, vec3), but video.generate's
+    (tests/generate/test_config.py: they need a model folder)."""
+    read = {
+        key.name.rpartition(".")[2]
+        for section in schema.SECTIONS.values()
+        if section is not schema.GENERATE
+        for key in section.keys
+        if key.kind in ("integer", "number", "vec3")
+    }
     given = {name_of(parts) for data in configs for parts, _ in numeric_leaves(data)}
-    assert read - generate_only - given == set()
+    assert read - given == set()
 
 
 def test_every_numeric_key_at_the_extremes_is_refused_in_one_line_or_means_something(configs, quick_demo):

@@ -1,4 +1,5 @@
-"""docs/scene_config.md stays true: its examples load, and it names every key the parser takes."""
+"""docs/scene_config.md stays true: its examples load, and its key tables are the schema's, which
+the parser reads."""
 
 import dataclasses
 import json
@@ -11,8 +12,8 @@ import pytest
 import yaml
 
 from clflow.mpm.constants import COLLIDER_MODES
-from clflow.scene.config import load_config
-from clflow.scene.config import parse as config_parse
+from clflow.scene.config import doc as config_doc
+from clflow.scene.config import load_config, schema
 from clflow.scene.config import settings as config_settings
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -118,30 +119,70 @@ def test_the_objects_example_loads(folder):
     assert cfg.ground_truth == {"jelly.youngs_modulus": 6.0e4, "heap.friction_angle": 35.0}
 
 
-def _section_keys(source: str) -> set[str]:
-    """The keys of every ``r.section(..., (known keys))`` call and of TOP_KEYS."""
-    keys = set()
-    for match in re.finditer(r"r\.section\(", source):
-        depth, i = 1, match.end()
-        while depth:  # the call's text, to its closing parenthesis
-            depth += {"(": 1, ")": -1}.get(source[i], 0)
-            i += 1
-        call = source[match.end() : i - 1]
-        if call.rstrip().endswith("TOP_KEYS"):
-            continue  # read below
-        known = re.findall(r"\(([^()]*)\),?\s*$", call)  # the last argument: a tuple of strings
-        assert known, f"r.section call without a literal tuple of keys: {call!r}"
-        keys.update(re.findall(r'"(\w+)"', known[0]))
-    keys.update(re.findall(r'"(\w+)"', re.search(r"TOP_KEYS = \(([^)]*)\)", source).group(1)))
-    return keys
+def test_the_key_tables_are_the_schema_s():
+    """The tables between the markers are what clflow.scene.config.doc writes (run it after
+    changing a key: python -m clflow.scene.config.doc)."""
+    assert config_doc.written(DOC) == DOC
 
 
-def test_every_key_and_option_of_the_parser_is_documented():
-    source = Path(config_parse.__file__).read_text()
-    keys = _section_keys(source)
-    assert {"splats", "grid_resolution", "per_axis", "fov_y_deg", "result", "final_rate"} <= keys
-    missing = sorted(k for k in keys if not re.search(rf"`[^`\n]*\b{k}\b[^`\n]*`|^\s*-?\s*{k}:", DOC, re.M))
-    assert not missing, f"docs/scene_config.md does not mention the keys {missing}"
+def test_every_section_has_one_table():
+    tables = [config_doc.TOP if p == "" else p for p in schema.SECTIONS]
+    assert sorted(config_doc.documented_sections(DOC)) == sorted(tables)
+
+
+def _normal(path: str) -> str:
+    """A section's path as the schema names it: any index [i], any object NAME (an object's
+    select, fill and material: as the one object's), any camera's."""
+    path = re.sub(r"\[\d+\]", "[i]", path)
+    path = re.sub(r"^objects\.\w+", "objects.NAME", path)
+    path = re.sub(r"^objects\.NAME\.(?=material)", "", path)  # an object's parts: as the one object's
+    path = re.sub(r"^objects\.NAME\.", "object.", path)
+    return re.sub(r"^camera\[i\]", "camera", path)
+
+
+def test_every_key_the_reader_takes_is_in_the_doc(folder, monkeypatch):
+    """The reader's allowed keys of each section it reads in the examples are the schema's, so
+    the tables' (the examples read every section but video.generate's: tests/generate)."""
+    from clflow.scene.config.reader import Reader
+
+    seen = {}
+    section = Reader.section
+
+    def recorded(self, data, path, known):
+        seen.setdefault(_normal(path), set()).add(tuple(known))
+        return section(self, data, path, known)
+
+    monkeypatch.setattr(Reader, "section", recorded)
+    test_the_complete_example_loads_with_its_values(folder)
+    test_the_alternative_forms_load(folder)
+    test_the_objects_example_loads(folder)
+    # the objects as a mapping, and a sphere for a force stage's region
+    base = {k: v for k, v in yaml.safe_load(BLOCKS[0]).items() if k not in ("object", "material", "evaluation")}
+    base["optimize"] = {}
+    base["forces"][0]["region"] = {"sphere": {"center": [0.0, 0.2, 0.0], "radius": 0.1}}
+    _load(folder, {**base, "objects": {o.pop("name"): o for o in yaml.safe_load(BLOCKS[3])["objects"]}})
+    table_keys = _table_keys()
+    for path, knowns in seen.items():
+        if path == "object.select":  # a box or sphere is read as a region too, after its select's keys
+            knowns -= {schema.REGION.known}
+        assert knowns == {schema.SECTIONS[path].known}, path
+        for key in schema.SECTIONS[path].known:
+            dotted = f"{path}.{key}" if path else key
+            assert dotted in table_keys or any(k.startswith(dotted + ".") for k in table_keys), dotted
+    assert set(schema.SECTIONS) - set(seen) == {"video", "video.generate"}
+
+
+def _table_keys() -> set[str]:
+    """The keys of the tables between the markers, as their rows name them."""
+    return {k for m in config_doc.TABLE.finditer(DOC) for k in re.findall(r"^\| `([^`]+)` \|", m.group(3), re.M)}
+
+
+def test_every_documented_key_is_the_schema_s():
+    keys = {f"{s.path}.{k.name}" if s.path else k.name for s in schema.SECTIONS.values() for k in s.keys}
+    assert _table_keys() == {k for k in keys if k.count(".") == 0 or k.rpartition(".")[0] in schema.SECTIONS}
+
+
+def test_every_option_is_documented():
     options = [
         *config_settings.UP_AXES,
         *COLLIDER_MODES,

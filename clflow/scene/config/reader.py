@@ -3,11 +3,13 @@ and the dotted key."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from typing import Any
 
 from clflow.errors import InputError
+from clflow.scene.config.keys import REQUIRED, Key, field_keys
 
 _DEFAULT = object()
 
@@ -160,3 +162,47 @@ class Reader:
         if not isinstance(value, list):
             raise self.fail(f"{path}.{key}" if path else key, f"must be a list, got {type(value).__name__}")
         return value
+
+    def read(self, data: dict, path: str, key: Key) -> Any:
+        """The value of ``key`` in ``data`` (its section's, at ``path``), checked as the key
+        declares it: kind, range, default (an optional key's absence: None)."""
+        if key.default is None and data.get(key.name) is None:
+            return None
+        default = None if key.default is REQUIRED else key.default
+        if key.kind == "integer":
+            return self.integer(data, key.name, path, default, low=key.low or 0, high=key.high)
+        if key.kind == "number":
+            return self.number(data, key.name, path, default, low=key.low, high=key.high, strict_low=key.strict_low)
+        if key.kind == "vec3":
+            return self.vec3(data, key.name, path, default, limit=key.high)
+        if key.kind == "choice":
+            return self.choice(data, key.name, path, key.choices, default)
+        if key.kind == "file":
+            return self.file(data, key.name, path, required=key.required, folder_ok=key.folder_ok)
+        where = f"{path}.{key.name}" if path else key.name
+        if key.kind == "flag":  # null is no default here: true or false only
+            value = data.get(key.name, default)
+            if not isinstance(value, bool):
+                raise self.fail(where, f"must be true or false, got {value!r}")
+            return value
+        if key.kind == "text":
+            value = data.get(key.name)
+            if value is not None and not isinstance(value, str):
+                raise self.fail(where, f"must be text, got {value!r}")
+            return default if value is None else value
+        raise TypeError(f"{where}: a {key.kind} key is read by its section's code")
+
+    def fields(self, data: dict, path: str, cls: type, **given: Any) -> dict[str, Any]:
+        """The keyword arguments of the settings dataclass ``cls`` from its section ``data``:
+        each field that declares a key read as it declares (:meth:`read`), in field order;
+        ``given``: the values of the fields read otherwise (a callable is called in its turn,
+        so that the errors come in field order)."""
+        declared = field_keys(cls)
+        out = {}
+        for f in dataclasses.fields(cls):
+            if f.name in given:
+                value = given[f.name]
+                out[f.name] = value() if callable(value) else value
+            elif f.name in declared:
+                out[f.name] = self.read(data, path, declared[f.name])
+        return out

@@ -1,5 +1,7 @@
-"""The scene config's types, section by section, and the names and choices its keys take
-(read and checked by clflow.scene.config.parse)."""
+"""The scene config's types, section by section, and the names and choices its keys take;
+a field a key sets declares it (``keys.setting``: kind, unit, default, range, meaning), which
+clflow.scene.config.parse reads and checks it by (the ``optimize`` section's types:
+``optimize_settings``)."""
 
 from __future__ import annotations
 
@@ -9,19 +11,34 @@ from pathlib import Path
 
 from clflow.errors import InputError
 from clflow.flow.optical_flow import (
+    BIAS_CORRECTIONS,
+    CONFIDENCES,
     DEFAULT_BIAS_CORRECTION,
     DEFAULT_CONFIDENCE,
     DEFAULT_PRESET,
+    DIS_PRESETS,
 )
+from clflow.materials import DENSITY
+from clflow.mpm.constants import COLLIDER_MODES
 from clflow.mpm.material_model import ELASTIC_MODELS, SAND_MODELS
 from clflow.regions import Region
+from clflow.scene.config.keys import (
+    ACCELERATION,
+    FPS,
+    LENGTH,
+    MAX_GRID,
+    MAX_PER_AXIS,
+    MAX_PIXELS,
+    SCENE_LENGTH,
+    SPEED,
+    setting,
+)
+from clflow.scene.config.optimize_settings import VELOCITY, VELOCITY_COMPONENTS, OptimizeSettings
 
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 FLOW_METHODS = ("dis", "farneback")
 FLOW_LOSSES = ("l2", "charbonnier")
 MATERIAL_MODELS = {"elastic": ELASTIC_MODELS, "sand": SAND_MODELS}  # material.model options
-VELOCITY = "velocity"  # the name of the object's initial velocity in optimize.parameters, evaluation.ground_truth
-VELOCITY_COMPONENTS = ("velocity_x", "velocity_y", "velocity_z")  # its components: m/s, scene axes
 
 
 @dataclass(frozen=True)
@@ -39,23 +56,66 @@ class Selection:
 
 @dataclass(frozen=True)
 class FillSettings:
-    enabled: bool = True
-    spacing: float | None = None  # m; None: half the grid spacing (8 particles per cell)
-    per_axis: int = 1
+    """An object's ``fill``: particles inside it besides the Gaussian centres."""
+
+    enabled: bool = setting(True, kind="flag", doc="fill the inside with particles")
+    spacing: float | None = setting(  # None: half the grid spacing (8 particles per cell)
+        None,
+        kind="number",
+        unit="m",
+        low=1e-6,
+        high=LENGTH,
+        shown="`dx / 2`",
+        doc="the voxel size of the fill grid (at most 256^3 voxels, and particles that fit in the machine's "
+        "memory *(run)*)",
+    )
+    per_axis: int = setting(
+        1, kind="integer", low=1, high=MAX_PER_AXIS, doc="each interior voxel gets `per_axis^3` particles"
+    )
 
 
 @dataclass(frozen=True)
 class MaterialConfig:
     """``type`` is a registry material, or "query" to ask the material query first."""
 
-    type: str
-    parameters: dict[str, float]
-    density: float | None  # kg/m^3; None only for "query" without a given density
-    model: str | None = None  # elastic: fixed_corotated/neo_hookean; sand: drucker_prager/volume_corrected
-    query_image: Path | None = None
-    query_result: Path | None = None  # a record of `clflow query`, read instead of asking
-    query_prompt: str = ""
-    query_backend: str = "offline"
+    type: str = setting(kind="other", doc="a registry name or alias (case-insensitive), or `query`")
+    parameters: dict[str, float] = setting(
+        kind="mapping",
+        shown="registry defaults",
+        doc="registry names in SI units; unknown names and values outside the valid range are errors",
+    )
+    density: float | None = setting(  # None only for "query" without a given density
+        kind="number",
+        unit="kg/m^3",
+        low=DENSITY.valid[0],  # the registry's range, checked by DENSITY
+        high=DENSITY.valid[1],
+        shown="the material's",
+        doc="the material's density",
+    )
+    model: str | None = setting(
+        None,
+        kind="other",
+        shown="see below",
+        doc="only for `elastic` (`fixed_corotated` by default, `neo_hookean`) and `sand` (`drucker_prager` by "
+        "default, `volume_corrected`)",
+    )
+    query_image: Path | None = setting(
+        None,
+        kind="file",
+        key="query.image",
+        doc="an image file; at most one of `image` and `result`. With neither, the query looks at the object in "
+        "the guidance video's first frame (written as `output/guidance_frame0.png`): the pixel box of its "
+        "Gaussians' centres seen by the guidance camera, widened by a tenth of its size on each side (each of "
+        "several objects its own box; the record's `crop_box`). Needs the video to be there already, at the "
+        "camera's size",
+    )
+    query_result: Path | None = setting(  # read instead of asking
+        None, kind="file", key="query.result", doc="a record file from `clflow query`"
+    )
+    query_prompt: str = setting("", kind="text", key="query.prompt", doc="text passed to the query")
+    query_backend: str = setting(
+        "offline", kind="choice", key="query.backend", choices=("offline", "openai"), doc="the query's backend"
+    )
 
 
 SINGLE_OBJECT = "object"  # the name of the one object of the single-object form (object + material)
@@ -73,7 +133,13 @@ class SceneObject:
     selection: Selection
     fill: FillSettings
     material: MaterialConfig
-    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    velocity: tuple[float, float, float] = setting(
+        (0.0, 0.0, 0.0),
+        kind="vec3",
+        unit="m/s",
+        high=SPEED,
+        doc="in the simulation frame (like forces and gravity): every particle's initial velocity",
+    )
     key: str = SINGLE_OBJECT
 
     @property
@@ -100,29 +166,84 @@ class ForceStage:
 
 @dataclass(frozen=True)
 class Collider:
-    point: tuple[float, float, float]
-    normal: tuple[float, float, float]
-    mode: str
-    friction: float
-    start: float = 0.0
-    end: float = math.inf
+    """A half-space {x : (x - point) . normal < 0}, active during [start, end) s."""
+
+    point: tuple[float, float, float] = setting(kind="vec3", unit="m", high=LENGTH, doc="a point on the plane")
+    normal: tuple[float, float, float] = setting(
+        kind="vec3", high=1e6, doc="of length >= 1e-6 (normalised): points into the free side"
+    )
+    mode: str = setting(
+        "slip",
+        kind="choice",
+        choices=COLLIDER_MODES,
+        doc="`sticky` (v = 0), `slip` (no normal velocity), `separate` (may leave the surface)",
+    )
+    friction: float = setting(
+        0.0,
+        kind="number",
+        low=0.0,
+        doc="Coulomb coefficient for slip and separate, acting while the material moves into the boundary",
+    )
+    start: float = setting(0.0, kind="number", unit="s", low=0.0, doc="active from")
+    end: float = setting(math.inf, kind="number", unit="s", shown="never", doc="> `start`: active until")
 
 
 DEFAULT_MAX_SUBSTEPS = 2000  # substeps per frame: beyond, a run is refused (docs/pipeline.md, pre-flight)
 
 
+# a corner of simulation.domain: both are required where the domain is given
+_DOMAIN_CORNER = {"kind": "vec3", "required": True, "unit": "m", "high": LENGTH, "shown": "around the object"}
+
+
 @dataclass(frozen=True)
 class SimulationSettings:
-    grid_resolution: int = 32  # nodes along the longest side of the domain
-    domain_lower: tuple[float, float, float] | None = None  # m; None: around the object
-    domain_upper: tuple[float, float, float] | None = None
-    substep_dt: float | None = None  # s; None: automatic (CFL, elastic wave speed, viscosity)
-    flip: float = 0.0  # PIC/FLIP blend in [0, 1] (clflow.mpm.Simulator); 0: APIC
-    fps: float = 24.0
-    frames: int = 24
-    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)  # m/s^2
-    # refuse a run (optimize, simulate) needing more substeps per frame (--max-substeps overrides)
-    max_substeps: int = DEFAULT_MAX_SUBSTEPS
+    grid_resolution: int = setting(
+        32,
+        kind="integer",
+        low=11,
+        high=MAX_GRID,
+        doc="nodes along the domain's longest side (the walls take 4 cells a side; the device's memory refuses "
+        "far fewer *(run)*)",
+    )
+    domain_lower: tuple[float, float, float] | None = setting(  # None: around the object
+        None, key="domain.min", doc="the domain's lower corner, below `max` on every axis", **_DOMAIN_CORNER
+    )
+    domain_upper: tuple[float, float, float] | None = setting(
+        None, key="domain.max", doc="its upper corner", **_DOMAIN_CORNER
+    )
+    substep_dt: float | None = setting(  # None: automatic (CFL, elastic wave speed, viscosity)
+        None, kind="number", unit="s", low=1e-9, shown="`auto`", doc="`auto` (the stable step) or a fixed substep"
+    )
+    flip: float = setting(  # clflow.mpm.Simulator
+        0.0,
+        kind="number",
+        low=0.0,
+        high=1.0,
+        doc="the PIC/FLIP blend of the particle velocities (0: APIC, whose damping grows with the substep count; "
+        'docs/mpm.md, "Transfers and time step"). For identification 0.99 is recommended: the identification '
+        "benchmark uses it, since with APIC a stiffer guess is also a more damped one",
+    )
+    fps: float = setting(
+        24.0,
+        kind="number",
+        low=FPS[0],
+        high=FPS[1],
+        doc="frames per second of the output and of the guidance video",
+    )
+    frames: int = setting(24, kind="integer", low=1, doc="frames simulated after the rest state")
+    gravity: tuple[float, float, float] = setting(
+        (0.0, -9.81, 0.0), kind="vec3", unit="m/s^2", high=ACCELERATION, doc="the acceleration of gravity"
+    )
+    max_substeps: int = setting(
+        DEFAULT_MAX_SUBSTEPS,
+        kind="integer",
+        low=1,
+        doc="`optimize` and `simulate` refuse a run needing more substeps per frame *(run)*; `--max-substeps N` "
+        "overrides it",
+    )
+
+
+_SCENE_VECTOR = {"kind": "vec3", "high": SCENE_LENGTH}  # a point or direction in the splat file's frame
 
 
 @dataclass(frozen=True)
@@ -130,16 +251,39 @@ class CameraConfig:
     """A camera from a 3DGS cameras.json / NeRF transforms.json entry, from an image of a
     COLMAP sparse model (by name, or ``index`` in name order), or explicit."""
 
-    cameras_file: Path | None = None
-    index: int = 0
-    colmap: Path | None = None  # a sparse model folder (cameras, images as .bin or .txt)
-    image: str | None = None  # the COLMAP image's name
-    position: tuple[float, float, float] | None = None  # scene units
-    look_at: tuple[float, float, float] | None = None
-    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
-    fov_y_deg: float = 50.0
-    width: int = 512
-    height: int = 512
+    cameras_file: Path | None = setting(
+        None, kind="file", key="file", doc="a 3DGS `cameras.json` (a JSON list) or a NeRF `transforms.json`"
+    )
+    index: int = setting(
+        0,
+        kind="integer",
+        low=0,
+        doc="< the number of cameras in `file` (or of images in `colmap`, in name order) *(run)*",
+    )
+    colmap: Path | None = setting(
+        None,
+        kind="file",
+        folder_ok=True,
+        doc="a COLMAP sparse model folder (e.g. `sparse/0`: `cameras` and `images` as `.bin` or `.txt`, read as "
+        "`clflow reconstruct` reads them); pinhole cameras only (undistort first)",
+    )
+    image: str | None = setting(
+        None,
+        kind="text",
+        doc="with `colmap`: the name of the image whose camera is the guidance camera (as in `images.txt`) *(run)*",
+    )
+    position: tuple[float, float, float] | None = setting(
+        None, unit="scene units", doc="the eye; required without `file`", **_SCENE_VECTOR
+    )
+    look_at: tuple[float, float, float] | None = setting(
+        None, unit="scene units", doc="the point at the image centre; required without `file`", **_SCENE_VECTOR
+    )
+    up: tuple[float, float, float] = setting(
+        (0.0, 1.0, 0.0), unit="scene axes", doc="the camera's up (use `[0, 0, 1]` for a z-up file)", **_SCENE_VECTOR
+    )
+    fov_y_deg: float = setting(50.0, kind="number", unit="deg", low=1.0, high=179.0, doc="the vertical field of view")
+    width: int = setting(512, kind="integer", unit="px", low=8, high=MAX_PIXELS, doc="the image's width")
+    height: int = setting(512, kind="integer", unit="px", low=8, high=MAX_PIXELS, doc="the image's height")
 
 
 @dataclass(frozen=True)
@@ -155,102 +299,106 @@ class GenerateSettings:
     """``video: {generate: ...}``: make the guidance video with an image-to-video model first
     (clflow.pipeline.generated_video; None values: the model's or the scene's defaults)."""
 
-    model: Path  # a local diffusers folder (clflow.generate.inspect_model)
-    prompt: str | None = None  # None: the motion prompt filled from the forces (prompt_template)
-    prompt_template: str | None = None  # None: clflow.scene.video_settings.PROMPT_TEMPLATE
-    object: str = "object"  # what the object is, for the template
-    negative_prompt: str = ""
-    image: Path | None = None  # None: the scene rendered from the guidance camera
-    seed: int = 0
-    frames: int | None = None  # None: enough for the simulated time, as the model makes them
-    fps: float | None = None  # None: simulation.fps
-    steps: int | None = None
-    guidance_scale: float | None = None
-    size: tuple[int, int] | None = None  # (width, height) the model generates at
-    fit: str = "pad"
-    cpu_offload: bool = False
-    vae_tiling: bool = False
-    vae_slicing: bool = False
+    model: Path = setting(  # clflow.generate.inspect_model
+        kind="other",
+        doc="a local diffusers folder: CogVideoX image-to-video or Stable Video Diffusion (never downloaded)",
+    )
+    prompt: str | None = setting(  # None: the motion prompt filled from the forces (prompt_template)
+        None, kind="text", shown="from the forces", doc="the motion prompt (CogVideoX; SVD takes none); non-empty"
+    )
+    prompt_template: str | None = setting(  # None: clflow.scene.video_settings.PROMPT_TEMPLATE
+        None,
+        kind="text",
+        shown="see docs/generate.md",
+        doc="the prompt made from the forces: placeholders `{object}`, `{motion}`, `{material}`",
+    )
+    object: str = setting("object", kind="text", doc="what the object is, for the template (`jelly cube`)")
+    negative_prompt: str = setting("", kind="text", shown="empty", doc="what not to show (CogVideoX)")
+    image: Path | None = setting(  # None: the scene rendered from the guidance camera
+        None,
+        kind="file",
+        shown="the rendered scene",
+        doc="the model's input image instead: the guidance camera's size",
+    )
+    seed: int = setting(0, kind="integer", low=0, doc="the same seed gives the same video")
+    frames: int | None = setting(  # None: enough for the simulated time, as the model makes them
+        None,
+        kind="integer",
+        low=2,
+        high=10_000,
+        shown="enough for the simulation",
+        doc="a count the model makes (CogVideoX: 1 + 8k); must cover `simulation.frames / simulation.fps` s at `fps`",
+    )
+    fps: float | None = setting(
+        None, kind="number", low=FPS[0], high=FPS[1], shown="`simulation.fps`", doc="the video's frame rate"
+    )
+    steps: int | None = setting(
+        None, kind="integer", low=1, high=10_000, shown="the model's (50, SVD 25)", doc="denoising steps"
+    )
+    guidance_scale: float | None = setting(
+        None,
+        kind="number",
+        low=0.0,
+        high=1e3,
+        shown="the model's (6, SVD 3)",
+        doc="classifier-free guidance (SVD >= 1)",
+    )
+    size: tuple[int, int] | None = setting(  # (width, height) the model generates at
+        None,
+        kind="other",
+        shown="the model's",
+        doc=f"`WIDTHxHEIGHT` or `[width, height]` the model generates at, at most {MAX_PIXELS} a side; the image "
+        "is scaled into it and the frames back to the camera's size",
+    )
+    fit: str = setting(
+        "pad",
+        kind="choice",
+        choices=("pad", "crop"),
+        doc="`pad` (the whole image, padded with its edge pixels) or `crop` (the frame filled)",
+    )
+    cpu_offload: bool = setting(False, kind="flag", doc="diffusers' model CPU offload (GPU runs)")
+    vae_tiling: bool = setting(False, kind="flag", doc="diffusers' VAE tiling (CogVideoX)")
+    vae_slicing: bool = setting(False, kind="flag", doc="diffusers' VAE slicing (CogVideoX)")
 
 
 @dataclass(frozen=True)
 class FlowSettings:
-    method: str = "dis"
-    preset: str = DEFAULT_PRESET
-    loss: str = "l2"
-    mask: str = "alpha"  # "alpha" (rendered object alpha at frame 0), "none", or a file
-    confidence: str = DEFAULT_CONFIDENCE  # per-pixel weight of the observed flow in the loss
-    bias_correction: str = DEFAULT_BIAS_CORRECTION  # the estimator's error on the simulation, subtracted
+    """``flow``: the optical-flow estimator, the loss, its mask, confidence and bias correction."""
 
-
-OPTIMIZERS = ("adam", "levenberg_marquardt")
-
-
-@dataclass(frozen=True)
-class SearchSettings:
-    """The global phase before the gradient iterations (clflow.pipeline.fit.search)."""
-
-    samples: int = 32  # forward-only runs over the parameter box
-    decades: float = 3.0  # the box of a log-scale parameter: the start times 10^(+-decades)
-    frames: int = 0  # frames in the search's loss (0: all)
-    starts: int = 1  # the best samples the local phase polishes (levenberg_marquardt) before keeping the best
-    start_iterations: int = 3  # Levenberg-Marquardt iterations per start before they are compared
-    refine: int = 0  # second-round samples, shared among the neighbourhoods of the best distinct samples
-    # with parameters of several objects, a round per object after the first: this many
-    # samples per parameter of the object over its own box, the others held at the best so far
-    object_samples: int = 12
-    # nodes along the domain's longest side for the search and the starts' polish (0: the
-    # simulation's): a coarser grid makes the global phase cheap, the main phase keeps the finer one
-    grid_resolution: int = 0
-
-
-@dataclass(frozen=True)
-class BudgetSettings:
-    """``optimize.budget``: the run's wall time, which chooses the main phase's grid from the
-    device's measured speed (clflow.pipeline.fit.budget)."""
-
-    seconds: float  # the whole optimisation: search, polishes, iterations, diagnostics
-    # the finest main grid to consider (0: twice the simulation's); the coarsest is the search's
-    max_grid_resolution: int = 0
-
-
-@dataclass(frozen=True)
-class OptimizeSettings:
-    parameters: tuple[str, ...] = ()
-    learning_rates: dict[str, float] = field(default_factory=dict)  # in the optimiser's space
-    iterations: int = 30
-    horizon_start: int = 0  # frames in the first iteration's loss (0: all)
-    horizon_step: int = 0  # frames added per iteration
-    final_rate: float = 0.1  # the rate falls (cosine) to this fraction of itself by the last iteration
-    search: SearchSettings | None = None  # None: no global phase
-    method: str = "adam"  # the local phase: "adam" or "levenberg_marquardt" (flow loss l2 only)
-    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)  # SI; the search box of a parameter
-    # material hypotheses: registry names, each searched before the one that fits best is
-    # optimised (clflow.pipeline.hypotheses); () for the config's own material only
-    materials: tuple[str, ...] = ()
-    estimate_velocity_frames: int = 0  # frames in the loss of the velocity phase
-    estimate_velocity_iterations: int = 0  # iterations of the velocity phase before the main one (0: none)
-    # several objects: the objects whose velocities the velocity phase estimates, by name
-    estimate_velocity_objects: tuple[str, ...] = ()
-    budget: BudgetSettings | None = None  # None: the main phase runs on simulation.grid_resolution
-
-    def parameters_by_object(self) -> dict[str, tuple[str, ...]]:
-        """Object name -> its optimised material parameters (OBJECT.PARAM), in the config's
-        order, where they belong to two objects or more; else {} (the search's object rounds)."""
-        if not all("." in name for name in self.parameters):
-            return {}
-        groups: dict[str, tuple[str, ...]] = {}
-        for name in self.parameters:
-            obj, _, param = name.partition(".")
-            if param != VELOCITY:  # the search looks at material parameters only
-                groups[obj] = groups.get(obj, ()) + (name,)
-        return groups if len(groups) > 1 else {}
-
-    def object_round_samples(self) -> int:
-        """The samples of the search's object rounds, all objects together (0: none)."""
-        if self.search is None:
-            return 0
-        return self.search.object_samples * sum(map(len, self.parameters_by_object().values()))
+    method: str = setting("dis", kind="choice", choices=FLOW_METHODS, doc="the optical-flow estimator")
+    preset: str = setting(
+        DEFAULT_PRESET,
+        kind="choice",
+        choices=DIS_PRESETS,
+        doc="DIS preset: OpenCV's `ultrafast`, `fast`, `medium` (finest level at 1/4, 1/4, 1/2 of the image size) "
+        "or `fine` (medium down to full resolution)",
+    )
+    loss: str = setting(
+        "l2",
+        kind="choice",
+        choices=FLOW_LOSSES,
+        doc="`l2` (squared endpoint error, px^2) or `charbonnier` (robust, px)",
+    )
+    mask: str = setting(  # "alpha" (rendered object alpha at frame 0), "none", or a file
+        "alpha",
+        kind="other",
+        doc="`alpha`, `none`, or a mask image file (its size must be the video's *(run)*)",
+    )
+    confidence: str = setting(  # per-pixel weight of the observed flow in the loss
+        DEFAULT_CONFIDENCE,
+        kind="choice",
+        choices=CONFIDENCES,
+        doc="`none` (every pixel of the mask counts fully) or `forward_backward` (each pixel weighted by the "
+        "forward-backward consistency of the observed flow, 0 where it leaves the frame)",
+    )
+    bias_correction: str = setting(  # the estimator's error on the simulation, subtracted
+        DEFAULT_BIAS_CORRECTION,
+        kind="choice",
+        choices=BIAS_CORRECTIONS,
+        doc="`none` (fit the observed flow as it is) or `simulated` (the optimiser renders its own simulation, "
+        "runs the same estimator on it and subtracts the estimator's error from the observed flow: docs/flow.md, "
+        '"Correcting the estimator\'s bias")',
+    )
 
 
 def main_grid_range(optimize: OptimizeSettings, simulation: SimulationSettings) -> tuple[int, int]:
@@ -358,7 +506,6 @@ def config_record(cfg: SceneConfig) -> dict:
 
 
 __all__ = [
-    "BudgetSettings",
     "CameraConfig",
     "Collider",
     "DEFAULT_MAX_SUBSTEPS",
@@ -371,18 +518,13 @@ __all__ = [
     "GuidanceView",
     "MATERIAL_MODELS",
     "MaterialConfig",
-    "OPTIMIZERS",
-    "OptimizeSettings",
     "SINGLE_OBJECT",
     "SceneConfig",
     "SceneObject",
-    "SearchSettings",
     "SeveralObjectsError",
     "Selection",
     "SimulationSettings",
     "UP_AXES",
-    "VELOCITY",
-    "VELOCITY_COMPONENTS",
     "config_record",
     "is_velocity_component",
     "main_grid_range",

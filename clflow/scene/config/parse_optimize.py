@@ -1,0 +1,348 @@
+"""The ``optimize`` and ``evaluation`` sections of a parsed config, checked against the
+config's objects, simulation and flow."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from clflow.errors import InputError
+from clflow.materials import DENSITY, get_material, validate_params
+from clflow.scene.config import schema
+from clflow.scene.config.keys import SPEED
+from clflow.scene.config.optimize_settings import (
+    VELOCITY,
+    VELOCITY_COMPONENTS,
+    BudgetSettings,
+    OptimizeSettings,
+    SearchSettings,
+)
+from clflow.scene.config.reader import Reader
+from clflow.scene.config.settings import (
+    FlowSettings,
+    MaterialConfig,
+    SceneObject,
+    SimulationSettings,
+    main_grid_range,
+    split_parameter,
+    velocity_names,
+)
+
+
+def optimize_settings(r: Reader, data: Any, objects: tuple[SceneObject, ...], frames: int) -> OptimizeSettings:
+    """``optimize``; with several objects each parameter is named OBJECT.PARAM."""
+    p = "optimize"
+    body = r.section(data, p, schema.OPTIMIZE.known)
+    names = body.get("parameters", [])
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise r.fail(f"{p}.parameters", f"must be a list of parameter names, got {names!r}")
+    hypotheses = _hypotheses(r, body.get("material"), names)
+    material = objects[0].material
+    if len(objects) > 1:
+        for name in names:
+            _object_parameter(r, f"{p}.parameters", name, objects)
+    elif material.type != "query" and not hypotheses:
+        mat = get_material(material.type)
+        for name in names:
+            if name not in ("density", VELOCITY) and name not in mat.param_names:
+                raise r.fail(
+                    f"{p}.parameters",
+                    f"{name!r} is not a parameter of {mat.name} "
+                    f"(its parameters: {', '.join(mat.param_names)}, density, velocity)",
+                )
+    phase = schema.ESTIMATE_VELOCITY
+    estimate = r.section(body.get("estimate_velocity"), f"{p}.estimate_velocity", phase.known)
+    if "objects" in estimate and len(objects) == 1:
+        raise r.fail(f"{p}.estimate_velocity.objects", "names objects of a config of several: drop it")
+    estimate_frames = estimate_iterations = 0
+    estimated: tuple[str, ...] = ()  # velocity, or OBJECT.velocity of each object the phase estimates
+    if estimate:
+        estimate_frames, estimate_iterations = (
+            r.read(estimate, f"{p}.estimate_velocity", phase[k]) for k in ("frames", "iterations")
+        )
+        if estimate_frames > frames:
+            raise r.fail(
+                f"{p}.estimate_velocity.frames", f"must be <= simulation.frames ({frames}), got {estimate_frames}"
+            )
+        estimated = (VELOCITY,) if len(objects) == 1 else _estimated_objects(r, estimate.get("objects"), objects)
+    rates_in = r.mapping(body.get("learning_rates"), f"{p}.learning_rates")
+    for name in rates_in:
+        if name not in names and name not in estimated:
+            velocity = name.rpartition(".")[2] == VELOCITY
+            raise r.fail(
+                f"{p}.learning_rates.{name}",
+                f"is not among optimize.parameters {names}"
+                + (" (nor estimated: optimize.estimate_velocity)" if velocity else ""),
+            )
+    rate = schema.OPTIMIZE["learning_rates"]  # each rate's range
+    rates = {
+        n: r.number(rates_in, n, f"{p}.learning_rates", low=rate.low, high=rate.high, strict_low=rate.strict_low)
+        for n in rates_in
+    }
+    horizon = r.section(body.get("horizon"), f"{p}.horizon", schema.HORIZON.known)
+    # hypotheses are told apart by the search
+    search = _search(r, body["search"]) if body.get("search") is not None else SearchSettings() if hypotheses else None
+    bounds = _bounds(r, body.get("bounds"), names, objects, hypotheses)
+    settings = r.fields(  # iterations, final_rate, method: as they declare
+        body,
+        p,
+        OptimizeSettings,
+        parameters=tuple(names),
+        learning_rates=rates,
+        horizon_start=lambda: r.read(horizon, f"{p}.horizon", schema.HORIZON["start"]),
+        horizon_step=lambda: r.read(horizon, f"{p}.horizon", schema.HORIZON["step"]),
+        search=search,
+        bounds=bounds,
+        estimate_velocity_frames=estimate_frames,
+        estimate_velocity_iterations=estimate_iterations,
+        estimate_velocity_objects=tuple(n.partition(".")[0] for n in estimated if len(objects) > 1),
+        materials=hypotheses,
+        budget=lambda: _budget(r, body["budget"]) if body.get("budget") is not None else None,
+    )
+    return OptimizeSettings(**settings)
+
+
+def _budget(r: Reader, data: Any) -> BudgetSettings:
+    """``optimize.budget``: seconds, and the finest main grid to consider."""
+    p = "optimize.budget"
+    return BudgetSettings(**r.fields(r.section(data, p, schema.BUDGET.known), p, BudgetSettings))
+
+
+def _estimated_objects(r: Reader, data: Any, objects: tuple[SceneObject, ...]) -> tuple[str, ...]:
+    """``optimize.estimate_velocity.objects`` of a config of several objects: the objects whose
+    velocities the velocity phase estimates, as OBJECT.velocity (required: an object at rest
+    has no velocity to estimate, and Adam's steps would move its weakly observed ones)."""
+    where = "optimize.estimate_velocity.objects"
+    names = [o.name for o in objects]
+    if not isinstance(data, list) or not data or not all(isinstance(n, str) for n in data):
+        raise r.fail(where, f"is required with several objects: a list of object names ({', '.join(names)})")
+    for name in data:
+        if name not in names:
+            raise r.fail(where, f"{name!r}: there is no object {name!r} (the objects: {', '.join(names)})")
+    if len(set(data)) < len(data):
+        raise r.fail(where, f"names an object twice: {data!r}")
+    return tuple(f"{n}.{VELOCITY}" for n in data)
+
+
+def _search(r: Reader, data: Any) -> SearchSettings:
+    """``optimize.search``: the global phase's samples, starts and grid."""
+    p = "optimize.search"
+    search = SearchSettings(**r.fields(r.section(data, p, schema.SEARCH.known), p, SearchSettings))
+    finest = schema.SIMULATION["grid_resolution"].low  # as simulation.grid_resolution: walls take 4 cells a side
+    if 0 < search.grid_resolution < finest:
+        raise r.fail(
+            f"{p}.grid_resolution", f"must be 0 (the simulation's) or >= {finest}, got {search.grid_resolution}"
+        )
+    if search.starts > search.samples:
+        raise r.fail(f"{p}.starts", f"must not exceed search.samples ({search.samples}), got {search.starts}")
+    return search
+
+
+def _bounds(
+    r: Reader, data: Any, names: list[str], objects: tuple[SceneObject, ...], hypotheses: tuple[str, ...]
+) -> dict[str, tuple[float, float]]:
+    """``optimize.bounds``: [lower, upper] in SI per optimised parameter, within the
+    parameter's valid range where the config names its material."""
+    bounds = {}
+    for name, box in r.mapping(data, "optimize.bounds").items():
+        where = f"optimize.bounds.{name}"
+        if name not in names:
+            raise r.fail(where, f"is not among optimize.parameters {names}")
+        if (
+            not isinstance(box, list)
+            or len(box) != 2
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in box)
+        ):
+            raise r.fail(where, f"must be [lower, upper] (SI), got {box!r}")
+        if not box[0] < box[1]:
+            raise r.fail(where, f"is empty or inverted: lower {box[0]:g} must be below upper {box[1]:g}")
+        param = _registry_param(name, objects, hypotheses)
+        if param is not None:
+            (lo, hi), (low_in, high_in) = param.valid, (param.low_inclusive, param.high_inclusive)
+            if box[0] < lo or (box[0] == lo and not low_in) or box[1] > hi or (box[1] == hi and not high_in):
+                valid = f"{'[' if low_in else '('}{lo:g}, {hi:g}{']' if high_in else ')'}"
+                raise r.fail(where, f"[{box[0]:g}, {box[1]:g}] must lie in {param.name}'s valid range {valid}")
+        bounds[name] = (float(box[0]), float(box[1]))
+    return bounds
+
+
+def _registry_param(name: str, objects: tuple[SceneObject, ...], hypotheses: tuple[str, ...]):
+    """The registry's Param that ``name`` of optimize.parameters stands for; None for a
+    velocity and for a material the query picks."""
+    k, param = split_parameter(objects, name)
+    if param == "density":
+        return DENSITY
+    for material in hypotheses or (objects[k].material.type,):
+        if material != "query" and param in get_material(material).param_names:
+            return get_material(material).param(param)
+    return None
+
+
+def _hypotheses(r: Reader, data: Any, names: list[str]) -> tuple[str, ...]:
+    """``optimize.material``: registry names (aliases resolved), each with at least one of
+    ``optimize.parameters``; every parameter belongs to at least one of them."""
+    p = "optimize.material"
+    if data is None:
+        return ()
+    if not isinstance(data, list) or not data or not all(isinstance(n, str) for n in data):
+        raise r.fail(p, f"must be a non-empty list of material names, got {data!r}")
+    try:
+        materials = [get_material(n) for n in data]
+    except InputError as exc:
+        raise r.fail(p, str(exc)) from None
+    canonical = [m.name for m in materials]
+    if len(set(canonical)) < len(canonical):
+        raise r.fail(p, f"names a material twice: {data!r}")
+    common = ("density", VELOCITY)
+    for m in materials:
+        if not any(n in common or n in m.param_names for n in names):
+            raise r.fail(
+                p,
+                f"{m.name} has none of optimize.parameters {names} (its parameters: "
+                f"{', '.join(m.param_names)}, density, velocity)",
+            )
+    for n in names:
+        if n not in common and not any(n in m.param_names for m in materials):
+            raise r.fail(
+                "optimize.parameters", f"{n!r} is a parameter of none of the hypotheses {', '.join(canonical)}"
+            )
+    return tuple(canonical)
+
+
+def refuse_identification(r: Reader, top: dict) -> None:
+    """A config of several objects identifies each object's material parameters
+    (OBJECT.PARAM); material hypotheses name no object yet, so they are refused."""
+    optimize = top.get("optimize") if isinstance(top.get("optimize"), dict) else {}
+    if optimize.get("material"):
+        raise r.fail(
+            "optimize.material",
+            "not built yet for several objects (optimize.parameters names each "
+            "object's parameters, OBJECT.PARAM, of the material its config gives); drop it",
+        )
+
+
+def _object_parameter(r: Reader, where: str, name: str, objects: tuple[SceneObject, ...]) -> tuple[SceneObject, str]:
+    """(object, parameter) of ``name`` (OBJECT.PARAM) of a config of several objects: the
+    object is one of them and the parameter its material's, density or velocity."""
+    names = ", ".join(o.name for o in objects)
+    obj_name, dot, param = name.partition(".")
+    example = f"{objects[0].name}.{next(iter(objects[0].material.parameters), 'density')}"
+    if not dot or not param:
+        raise r.fail(
+            where, f"{name!r}: with several objects name each parameter's object, OBJECT.PARAM (e.g. {example})"
+        )
+    obj = next((o for o in objects if o.name == obj_name), None)
+    if obj is None:
+        raise r.fail(where, f"{name!r}: there is no object {obj_name!r} (the objects: {names})")
+    if obj.material.type != "query" and param not in ("density", VELOCITY):
+        mat = get_material(obj.material.type)
+        if param not in mat.param_names:
+            raise r.fail(
+                where,
+                f"{name!r}: {param!r} is not a parameter of {obj.name}'s material {mat.name} "
+                f"(its parameters: {', '.join(mat.param_names)}, density, velocity)",
+            )
+    return obj, param
+
+
+def objects_truth(r: Reader, data: Any, objects: tuple[SceneObject, ...]) -> dict[str, float]:
+    """``evaluation.ground_truth`` of a config of several objects: OBJECT.PARAM -> SI value,
+    each checked against its object's material (density: kg/m^3; OBJECT.velocity: [3] m/s, as
+    its components OBJECT.velocity_x, ...)."""
+    p = "evaluation.ground_truth"
+    evaluation = r.section(data, "evaluation", schema.EVALUATION.known)
+    given = dict(r.mapping(evaluation.get("ground_truth"), p))
+    per_object: dict[str, dict] = {}
+    for name, value in given.items():
+        obj, param = _object_parameter(r, p, name, objects)
+        if param == VELOCITY:
+            value = r.vec3(given, name, p, limit=SPEED)
+        elif isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise r.fail(f"{p}.{name}", f"must be a number, got {value!r}")
+        per_object.setdefault(obj.name, {})[param] = value
+    truth = {}
+    for k, obj in enumerate(objects):
+        values = per_object.get(obj.name, {})
+        truth.update(zip(velocity_names(objects, k)[1], values.pop(VELOCITY, ())))
+        density = values.pop("density", None)
+        try:
+            if density is not None:
+                DENSITY.check(density)
+            if values and obj.material.type != "query":
+                values = {k: v for k, v in validate_params(obj.material.type, values).items() if k in values}
+        except InputError as exc:
+            raise r.fail(p, f"{obj.name}: {exc}") from None
+        truth.update({f"{obj.name}.{k}": float(v) for k, v in values.items()})
+        if density is not None:
+            truth[f"{obj.name}.density"] = float(density)
+    return truth
+
+
+def given_truth(r: Reader, data: Any) -> tuple[dict, float | None, tuple]:
+    """``evaluation.ground_truth`` as given: the material's values (numbers, checked against
+    the material later), the density (kg/m^3, checked) and the velocity (m/s; () if absent)."""
+    evaluation = r.section(data, "evaluation", schema.EVALUATION.known)
+    truth = dict(r.mapping(evaluation.get("ground_truth"), "evaluation.ground_truth"))
+    true_velocity = r.vec3(truth, VELOCITY, "evaluation.ground_truth", (), limit=SPEED)  # () when not given
+    truth.pop(VELOCITY, None)
+    for name, value in truth.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise r.fail(f"evaluation.ground_truth.{name}", f"must be a number, got {value!r}")
+    true_density = truth.pop("density", None)
+    if true_density is not None:
+        try:
+            DENSITY.check(true_density)
+        except InputError as exc:
+            raise r.fail("evaluation.ground_truth", str(exc)) from None
+    return truth, true_density, true_velocity
+
+
+def ground_truth(
+    r: Reader,
+    truth: dict,
+    true_density: float | None,
+    true_velocity: tuple,
+    material: MaterialConfig,
+    optimize: OptimizeSettings,
+) -> dict[str, float]:
+    """The ground truth's material values validated for the material (with hypotheses: the
+    first that has all its names), its density and velocity components, SI."""
+    if truth and (optimize.materials or material.type != "query"):
+        candidates = optimize.materials or (material.type,)
+        fitting = [m for m in candidates if set(truth) <= set(get_material(m).param_names)] or candidates[:1]
+        try:
+            truth = {k: v for k, v in validate_params(fitting[0], truth).items() if k in truth}
+        except InputError as exc:
+            raise r.fail("evaluation.ground_truth", str(exc)) from None
+    if true_density is not None:
+        truth["density"] = float(true_density)
+    truth.update(zip(VELOCITY_COMPONENTS, true_velocity))
+    return dict(truth)
+
+
+def check_optimize_fits(r: Reader, optimize: OptimizeSettings, simulation: SimulationSettings, flow: FlowSettings):
+    """The optimiser's settings that depend on other sections: several starts need
+    Levenberg-Marquardt, the search's grid is the coarser one, LM needs the l2 loss."""
+    if optimize.search is not None and optimize.search.starts > 1 and optimize.method != "levenberg_marquardt":
+        raise r.fail(
+            "optimize.search.starts",
+            "several starts are polished by levenberg_marquardt: set "
+            "optimize.method: levenberg_marquardt, or starts: 1",
+        )
+    if optimize.search is not None and optimize.search.grid_resolution > simulation.grid_resolution:
+        raise r.fail(
+            "optimize.search.grid_resolution",
+            f"must not exceed simulation.grid_resolution ({simulation.grid_resolution}): the search's "
+            f"grid is the coarse one, got {optimize.search.grid_resolution}",
+        )
+    budget = optimize.budget
+    if budget is not None and 0 < budget.max_grid_resolution < main_grid_range(optimize, simulation)[0]:
+        raise r.fail(
+            "optimize.budget.max_grid_resolution",
+            f"must be 0 or at least the search's grid ({main_grid_range(optimize, simulation)[0]}), the coarsest "
+            f"the budget chooses from, got {budget.max_grid_resolution}",
+        )
+    if optimize.method == "levenberg_marquardt" and flow.loss != "l2":
+        raise r.fail(
+            "optimize.method", f"levenberg_marquardt minimises a sum of squares: it needs flow.loss l2, not {flow.loss}"
+        )
