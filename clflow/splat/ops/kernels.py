@@ -17,4 +17,6 @@ def splat_kernel(source: str, name: str, dtype: torch.dtype, **defines):
 
 
 def grad_or_zeros(grad: Tensor | None, like: Tensor) -> Tensor:
+    """``grad`` made contiguous, or zeros shaped like ``like`` where autograd gave None (an
+    output nothing used)."""
     return torch.zeros_like(like) if grad is None else grad.contiguous()
