@@ -171,7 +171,7 @@ def _simulation_scene(folder: Path) -> ViewScene:
 def _rgb(sh, colors, where: str) -> np.ndarray:
     """[N, 3] colours in [0, 1]: the SH degree-0 colour (the rasteriser's convention, before its
     view-dependent terms), or 3-channel ``colors`` as they are."""
-    from clflow.splat.gaussians import sh0_to_rgb
+    from clflow.splat.sh import sh0_to_rgb
 
     if sh is not None:
         rgb = sh0_to_rgb(sh[:, 0, :]).numpy()
@@ -391,7 +391,7 @@ class Viewer:
         cam = self.scene.camera
         if cam is None:
             return
-        from clflow.splat.gaussians import rotmat_to_quat
+        from clflow.splat.geometry import rotmat_to_quat
 
         c2w = cam.camtoworld()
         self.frustum = self.server.scene.add_camera_frustum(

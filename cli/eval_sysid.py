@@ -12,7 +12,7 @@ from clflow_cli.sweep import parse_resources, with_ray_options
 
 
 def _case_help() -> str:
-    from clflow_datasets.sysid import CASES, QUICK_CASES
+    from clflow_datasets.sysid_cases import CASES, QUICK_CASES
 
     return (
         f"Run only this case (repeatable): {', '.join(CASES)}. Default: all {len(CASES)}, or the "
@@ -24,7 +24,7 @@ def _catalogue(case_file: str | None, case_set: str, quick: bool) -> tuple[dict,
     """(name -> case, the names run by default) of --cases FILE, --set and --quick."""
     from pathlib import Path
 
-    from clflow_datasets.sysid import CASES, EXTRA_CASES_FILE, QUICK_CASES, load_cases
+    from clflow_datasets.sysid_cases import CASES, EXTRA_CASES_FILE, QUICK_CASES, load_cases
 
     if case_file and case_set != "paper":
         raise click.UsageError("--cases and --set extra both choose the cases: give one")

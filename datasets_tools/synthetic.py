@@ -192,7 +192,9 @@ def floor(size: float, n: int, height: float = 0.0):
 def surface_gaussians(parts: list[tuple], opacity: float = 0.95):
     """Degree-0 float32 :class:`~clflow.splat.gaussians.Gaussians` of surface parts
     (means, scales, rotations, rgb arrays as the ``*_surface`` functions return), in order."""
-    from clflow.splat.gaussians import Gaussians, rgb_to_sh0, rotmat_to_quat
+    from clflow.splat.gaussians import Gaussians
+    from clflow.splat.geometry import rotmat_to_quat
+    from clflow.splat.sh import rgb_to_sh0
 
     means, scales, rotations, rgb = (torch.from_numpy(np.concatenate(arrays)) for arrays in zip(*parts))
     return Gaussians.from_activated(

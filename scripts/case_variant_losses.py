@@ -33,11 +33,11 @@ MADE = "variant.json"  # what the case in a folder was made with
 def make_variant(name: str, out: Path, resolution, truth: dict[str, float], truth_scale: int, seed: int = 0):
     """Case ``name`` with ``truth`` values replaced, made in ``out`` at ``resolution`` (a
     clflow_datasets Resolution) unless made there with the same; returns the case."""
-    from clflow_datasets import sysid
+    from clflow_datasets import sysid_cases
     from clflow_datasets.scene_cases import SceneCase, make_scene_case
     from clflow_datasets.synthetic import make_case
 
-    cases = {**sysid.load_cases(sysid.EXTRA_CASES_FILE), **sysid.CASES}
+    cases = {**sysid_cases.load_cases(sysid_cases.EXTRA_CASES_FILE), **sysid_cases.CASES}
     if name not in cases:
         raise SystemExit(f"no case {name!r}; the cases: {', '.join(sorted(cases))}")
     case = cases[name]

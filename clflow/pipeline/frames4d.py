@@ -167,7 +167,7 @@ def file_gaussians(g: Gaussians, scale: float, up: str, turned: int, objects: to
     R_up^T sh_rotations, so that a renderer without ``sh_rotations`` shows what clflow
     renders; the others' rotation is the frame change alone. ``objects`` [N]: each one's
     object (-1 static), kept as the float feature ``object`` (a PLY property)."""
-    from clflow.splat.gaussians import rotmat_to_quat
+    from clflow.splat.geometry import rotmat_to_quat
     from clflow.splat.sh import rotate_sh
 
     R_up = up_rotation(up)

@@ -22,7 +22,7 @@ import torch
 
 from clflow.errors import InputError
 from clflow.splat.cameras import Camera
-from clflow.splat.gaussians import quat_to_rotmat
+from clflow.splat.geometry import quat_to_rotmat
 
 # model id -> (name, number of parameters), COLMAP's camera models (sensor/models.h)
 CAMERA_MODELS = {

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
-from clflow.splat.gaussians import quat_to_rotmat
+from clflow.splat.geometry import quat_to_rotmat
 
 SPLIT_CHILDREN = 2  # each split Gaussian becomes this many (3DGS's N)
 SPLIT_SHRINK = 0.8 * SPLIT_CHILDREN  # children's scales are the parent's / 1.6

@@ -23,7 +23,9 @@ import torch
 
 from clflow.errors import InputError
 from clflow.splat.cameras import Camera
-from clflow.splat.gaussians import Gaussians, rgb_to_sh0, rotmat_to_quat
+from clflow.splat.gaussians import Gaussians
+from clflow.splat.geometry import rotmat_to_quat
+from clflow.splat.sh import rgb_to_sh0
 
 SHELLS = ("mirror", "extrude", "none")
 FOOTPRINT = 0.6  # in-plane std of a pixel's Gaussian, in pixel footprints (z / f)

@@ -21,9 +21,10 @@ from clflow.splat.cameras import (
     save_cameras_json,
     save_transforms_json,
 )
-from clflow.splat.gaussians import Gaussians, rgb_to_sh0, sh0_to_rgb
+from clflow.splat.gaussians import Gaussians
 from clflow.splat.ply import load_ply, save_ply
 from clflow.splat.render import Render, rasterize
+from clflow.splat.sh import rgb_to_sh0, sh0_to_rgb
 
 __all__ = [
     "Camera",

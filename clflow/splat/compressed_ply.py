@@ -29,8 +29,9 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
-from clflow.splat.gaussians import SH_C0, Gaussians, rgb_to_sh0, sh_degree_of
+from clflow.splat.gaussians import Gaussians
 from clflow.splat.ply_format import ply_vertex_properties, read_ply_elements, write_ply_elements
+from clflow.splat.sh import SH_C0, rgb_to_sh0, sh_degree_of
 
 CHUNK = 256  # Gaussians per chunk
 POSITION_BITS = (11, 10, 11)  # x, y, z (also the log scales)

@@ -31,107 +31,14 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
-import numpy as np
 import torch
 
 from clflow.errors import InputError
 from clflow.splat.constants import MIN_QUAT_NORM
-
-SH_C0 = 0.28209479177387814  # Y_0^0: RGB = SH_C0 * f_dc + 0.5 for degree 0
-MAX_SH_DEGREE = 3
+from clflow.splat.geometry import covariances_of, deformed_covariances, nearest_neighbour_rms, quat_to_rotmat
+from clflow.splat.sh import rgb_to_sh0, sh_degree_of
 
 TensorLike = torch.Tensor | Sequence[float]
-
-
-def sh_degree_of(num_coeffs: int) -> int:
-    """The SH degree d with (d + 1)^2 == num_coeffs (0..3), else :class:`InputError`."""
-    for degree in range(MAX_SH_DEGREE + 1):
-        if (degree + 1) ** 2 == num_coeffs:
-            return degree
-    raise InputError(f"{num_coeffs} SH coefficients per channel is not (d+1)^2 for a degree d in 0..{MAX_SH_DEGREE}")
-
-
-def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
-    """Degree-0 SH coefficient that renders as colour ``rgb`` (in [0, 1]) from every direction."""
-    return (rgb - 0.5) / SH_C0
-
-
-def sh0_to_rgb(sh0: torch.Tensor) -> torch.Tensor:
-    """The view-independent colour of degree-0 coefficients (before clamping at 0)."""
-    return sh0 * SH_C0 + 0.5
-
-
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices [N, 3, 3] of wxyz quaternions [N, 4] (normalised here)."""
-    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - w * z),
-            2 * (x * z + w * y),
-            2 * (x * y + w * z),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - w * x),
-            2 * (x * z - w * y),
-            2 * (y * z + w * x),
-            1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(quats.shape[:-1] + (3, 3))
-
-
-def covariances_of(scales: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
-    """Sigma = R diag(s)^2 R^T, [N, 3, 3] (m^2), from scales [N, 3] (m) and rotation
-    matrices [N, 3, 3]."""
-    rs = rotations * scales.unsqueeze(-2)  # R diag(s)
-    return rs @ rs.transpose(-1, -2)
-
-
-def deformed_covariances(rest: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
-    """F Sigma F^T, [N, 3, 3], for rest covariances [N, 3, 3] and deformation gradients F."""
-    return F @ rest @ F.transpose(-1, -2)
-
-
-def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
-    """wxyz quaternions [N, 4] of proper rotation matrices [N, 3, 3] (Shepperd's method)."""
-    m = R
-    trace = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
-    cand = torch.stack(
-        [
-            torch.stack([1 + trace, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], -1),
-            torch.stack(
-                [
-                    m[:, 2, 1] - m[:, 1, 2],
-                    1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
-                    m[:, 0, 1] + m[:, 1, 0],
-                    m[:, 0, 2] + m[:, 2, 0],
-                ],
-                -1,
-            ),
-            torch.stack(
-                [
-                    m[:, 0, 2] - m[:, 2, 0],
-                    m[:, 0, 1] + m[:, 1, 0],
-                    1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2],
-                    m[:, 1, 2] + m[:, 2, 1],
-                ],
-                -1,
-            ),
-            torch.stack(
-                [
-                    m[:, 1, 0] - m[:, 0, 1],
-                    m[:, 0, 2] + m[:, 2, 0],
-                    m[:, 1, 2] + m[:, 2, 1],
-                    1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2],
-                ],
-                -1,
-            ),
-        ],
-        1,
-    )  # [N, 4 candidates, 4]; the one with the largest norm is the best conditioned
-    best = cand.norm(dim=-1).argmax(dim=1)
-    q = cand[torch.arange(R.shape[0]), best]
-    return q / q.norm(dim=-1, keepdim=True)
 
 
 @dataclass(eq=False)
@@ -560,21 +467,6 @@ def _matrices(g: Gaussians, name: str) -> torch.Tensor:
     if name == "covariance_cache":
         return g.covariances
     return torch.eye(3, dtype=g.dtype, device=g.means.device).expand(len(g), 3, 3)
-
-
-def nearest_neighbour_rms(points: torch.Tensor, k: int = 3) -> torch.Tensor:
-    """[N] root mean square distance (m) of each point to its ``k`` nearest other points.
-
-    Exact, with a KD-tree (scipy): about a second for 10^5 points.
-    """
-    from scipy.spatial import cKDTree
-
-    xyz = points.detach().cpu().double().numpy()
-    k = min(k, len(xyz) - 1)
-    # k + 1 nearest include the point itself (distance 0); a duplicate point is a neighbour at 0.
-    distances, _ = cKDTree(xyz).query(xyz, k=k + 1)
-    rms = np.sqrt(np.mean(np.square(distances[:, 1:]), axis=1))
-    return torch.from_numpy(rms).to(points.dtype)
 
 
 def _check_finite(name: str, value: torch.Tensor, where: str = "") -> None:

@@ -24,8 +24,9 @@ import torch
 from numpy.lib.recfunctions import structured_to_unstructured
 
 from clflow.errors import InputError
-from clflow.splat.gaussians import Gaussians, rgb_to_sh0, sh_degree_of
+from clflow.splat.gaussians import Gaussians
 from clflow.splat.ply_format import COLOR_NAMES, read_ply_vertices, write_ply_vertices
+from clflow.splat.sh import rgb_to_sh0, sh_degree_of
 
 
 def gaussian_property_names(sh_degree: int, feature_names: tuple[str, ...] = ()) -> list[str]:

@@ -22,7 +22,7 @@ from clflow.splat.constants import (
     T_MIN,
     TILE_SIZE,
 )
-from clflow.splat.gaussians import covariances_of, quat_to_rotmat
+from clflow.splat.geometry import covariances_of, quat_to_rotmat
 from clflow.splat.ops import assemble_channels, split_outputs
 
 

@@ -1,14 +1,17 @@
 """Real spherical harmonics of degree 0..3 (the 3DGS convention) evaluated in torch.
 
 Colour = sum_k c_k Y_k(dir) + 0.5, clamped at 0, with coefficients [N, K, 3],
-K = (degree + 1)^2 and dir a unit view direction (Gaussian centre minus camera centre).
+K = (degree + 1)^2 and dir a unit view direction (Gaussian centre minus camera centre);
+the degree of a coefficient count, and the colour of degree-0 coefficients both ways.
 """
 
 from __future__ import annotations
 
 import torch
 
-SH_C0 = 0.28209479177387814
+from clflow.errors import InputError
+
+SH_C0 = 0.28209479177387814  # Y_0^0: RGB = SH_C0 * f_dc + 0.5 for degree 0
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
 SH_C3 = (
@@ -20,11 +23,30 @@ SH_C3 = (
     1.445305721320277,
     -0.5900435899266435,
 )
+MAX_SH_DEGREE = 3
 
 
 def num_sh_bases(degree: int) -> int:
     """K = (degree + 1)^2 coefficients per colour channel."""
     return (degree + 1) ** 2
+
+
+def sh_degree_of(num_coeffs: int) -> int:
+    """The SH degree d with (d + 1)^2 == num_coeffs (0..3), else :class:`InputError`."""
+    for degree in range(MAX_SH_DEGREE + 1):
+        if (degree + 1) ** 2 == num_coeffs:
+            return degree
+    raise InputError(f"{num_coeffs} SH coefficients per channel is not (d+1)^2 for a degree d in 0..{MAX_SH_DEGREE}")
+
+
+def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
+    """Degree-0 SH coefficient that renders as colour ``rgb`` (in [0, 1]) from every direction."""
+    return (rgb - 0.5) / SH_C0
+
+
+def sh0_to_rgb(sh0: torch.Tensor) -> torch.Tensor:
+    """The view-independent colour of degree-0 coefficients (before clamping at 0)."""
+    return sh0 * SH_C0 + 0.5
 
 
 def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:

@@ -226,7 +226,7 @@ class _SpecReader:
         return float(value)
 
     def case(self, value: Any, where: str) -> str:
-        from clflow_datasets.sysid import CASES
+        from clflow_datasets.sysid_cases import CASES
 
         if value not in CASES:
             raise self.fail(where, f"unknown sysid case {value!r}; the cases are {', '.join(CASES)}")

@@ -114,12 +114,12 @@ def test_without_the_extra_it_names_the_extra_to_install(models, object_png, tmp
 @pytest.fixture
 def no_loading(monkeypatch):
     """Fail the test if a model's weights are loaded: the refusals come before that."""
-    import clflow.generate
+    import clflow.generate.diffusion
 
     def refuse(*args, **kwargs):
         raise AssertionError("weights were loaded before the input was checked")
 
-    monkeypatch.setattr(clflow.generate, "_load", refuse)
+    monkeypatch.setattr(clflow.generate.diffusion, "_load", refuse)
 
 
 def _partial(models, tmp_path, drop):

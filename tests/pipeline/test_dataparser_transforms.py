@@ -10,7 +10,8 @@ import yaml
 from clflow.pipeline.render import render_rgb
 from clflow.scene.config import load_config
 from clflow.scene.load import guidance_camera, load_scene_gaussians
-from clflow.splat.gaussians import Gaussians, covariances_of, rotmat_to_quat
+from clflow.splat.gaussians import Gaussians
+from clflow.splat.geometry import covariances_of, rotmat_to_quat
 from clflow.splat.ply import load_ply, save_ply
 from clflow.splat.sh import rotate_sh
 from tests.splat._helpers import rotations

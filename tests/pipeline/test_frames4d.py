@@ -12,7 +12,7 @@ from click.testing import CliRunner
 from clflow.fileio import WRITTEN_RECORD
 from clflow.pipeline.forward import simulate_config
 from clflow.pipeline.frames4d import export_gaussians, load_frames
-from clflow.splat.gaussians import quat_to_rotmat, rotmat_to_quat
+from clflow.splat.geometry import quat_to_rotmat, rotmat_to_quat
 from clflow.splat.ply import load_ply
 from clflow_cli.main import cli
 

@@ -132,7 +132,7 @@ def test_a_second_view_narrows_what_one_view_leaves_open(tmp_path):
     from clflow.pipeline.fit import Optimization
     from clflow.scene.config import load_config
     from clflow_datasets.synthetic import Resolution, make_case
-    from clflow_datasets.sysid import CASES
+    from clflow_datasets.sysid_cases import CASES
 
     case = CASES["torus"]
     small = Resolution(object_detail=6, floor_side=12, image=64, grid=16, frames=8, iterations=2)

@@ -226,7 +226,8 @@ def test_the_search_finds_the_birds_basin_from_a_300x_soft_guess(tmp_path):
     CFL limit even after its retries and is rejected as unstable)."""
     from clflow.scene.config import load_config
     from clflow_datasets.synthetic import make_case
-    from clflow_datasets.sysid import CASES, QUICK
+    from clflow_datasets.sysid import QUICK
+    from clflow_datasets.sysid_cases import CASES
 
     make_case(tmp_path, CASES["bird"], QUICK, truth_scale=2)
     opt = Optimization(load_config(tmp_path / "config.yaml"))

@@ -14,8 +14,9 @@ from click.testing import CliRunner
 from clflow.errors import InputError
 from clflow.mpm import StabilityWarning
 from clflow_cli.main import cli
-from clflow_datasets import sysid
+from clflow_datasets import sysid, sysid_report
 from clflow_datasets.synthetic import Resolution, SyntheticCase, make_case
+from clflow_datasets.sysid_cases import CASES, check_case
 
 TINY = Resolution(object_detail=6, floor_side=8, image=48, grid=14, frames=3, iterations=2)
 
@@ -25,10 +26,10 @@ def main_table_rows(table: str) -> list[str]:
     return [line for line in table.split("\n\n")[0].splitlines() if line.startswith("|")]
 
 
-@pytest.mark.parametrize("name", list(sysid.CASES))
+@pytest.mark.parametrize("name", list(CASES))
 def test_every_case_starts_from_a_valid_guess(name):
-    sysid.check_case(name, sysid.CASES[name])  # e.g. the trophy's 10 degree friction angle (PAC-NeRF's start)
-    assert set(sysid.PUBLISHED[name]) == set(sysid.METHODS)
+    check_case(name, CASES[name])  # e.g. the trophy's 10 degree friction angle (PAC-NeRF's start)
+    assert set(sysid_report.PUBLISHED[name]) == set(sysid_report.METHODS)
 
 
 def test_the_guidance_is_not_the_optimisers_own_forward(tmp_path):
@@ -69,7 +70,7 @@ def test_a_truth_under_apic_is_a_transfer_the_optimiser_does_not_share(tmp_path)
     assert truth["simulation"].get("flip", 0.0) == 0.0 and opt["simulation"]["flip"] == 0.99
     assert json.loads((tmp_path / "case.json").read_text())["truth_flip"] == 0.0
     apic = sysid.settings_record(sysid.Settings(truth_transfer="apic"))
-    assert "ground truth under APIC" in sysid.markdown({"settings": apic, "cases": {}})
+    assert "ground truth under APIC" in sysid_report.markdown({"settings": apic, "cases": {}})
     older = {k: v for k, v in sysid.settings_record(sysid.Settings()).items() if k != "truth_transfer"}
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "sysid.json").write_text(json.dumps({"settings": older, "cases": {}}))
@@ -148,8 +149,8 @@ def test_unknown_case_is_one_clear_line(tmp_path):
 
 
 def test_a_case_out_of_range_is_refused_before_any_work(tmp_path, monkeypatch):
-    bad = dataclasses.replace(sysid.CASES["torus"], guess={"poissons_ratio": 0.7})
-    monkeypatch.setitem(sysid.CASES, "torus", bad)
+    bad = dataclasses.replace(CASES["torus"], guess={"poissons_ratio": 0.7})
+    monkeypatch.setitem(CASES, "torus", bad)
     with pytest.raises(InputError, match="torus.*guess is out of range"):
         sysid.evaluate(["torus"], tmp_path / "out", sysid.Settings(resolution=TINY))
     assert not (tmp_path / "out").exists()
@@ -168,9 +169,9 @@ def test_a_folder_with_other_files_is_refused_without_force(tmp_path):
 def tiny_cases(monkeypatch):
     """The torus case, shrunk to a few seconds."""
     case = dataclasses.replace(
-        sysid.CASES["torus"], guess={"youngs_modulus": 3e5}, optimize=("youngs_modulus",), search=3, starts=1, refine=0
+        CASES["torus"], guess={"youngs_modulus": 3e5}, optimize=("youngs_modulus",), search=3, starts=1, refine=0
     )
-    monkeypatch.setitem(sysid.CASES, "torus", case)
+    monkeypatch.setitem(CASES, "torus", case)
 
 
 def test_rerun_skips_finished_cases_and_other_settings_need_force(tmp_path, tiny_cases):
@@ -212,7 +213,7 @@ def test_an_interrupted_case_resumes_its_optimisation(tmp_path, tiny_cases, monk
 
     # Adam runs its count: the tiny torus' loss is so flat that Levenberg-Marquardt, within
     # its trust region, may stop by progress after one iteration, leaving nothing to resume
-    monkeypatch.setitem(sysid.CASES, "torus", dataclasses.replace(sysid.CASES["torus"], method="adam"))
+    monkeypatch.setitem(CASES, "torus", dataclasses.replace(CASES["torus"], method="adam"))
     out = tmp_path / "out"
     real_run = fit.Optimization.run
 
@@ -233,8 +234,8 @@ def test_an_interrupted_case_resumes_its_optimisation(tmp_path, tiny_cases, monk
 def test_a_changed_case_definition_is_made_and_run_again(tmp_path, tiny_cases, monkeypatch):
     out = tmp_path / "out"
     first = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))["cases"]["torus"]
-    changed = dataclasses.replace(sysid.CASES["torus"], lift=0.25)
-    monkeypatch.setitem(sysid.CASES, "torus", changed)
+    changed = dataclasses.replace(CASES["torus"], lift=0.25)
+    monkeypatch.setitem(CASES, "torus", changed)
     second = sysid.evaluate(["torus"], out, sysid.Settings(resolution=TINY))["cases"]["torus"]
     assert first["generation"]["definition"]["lift"] != second["generation"]["definition"]["lift"] == 0.25
     assert (
@@ -284,9 +285,9 @@ def test_parallel_cases_on_ray_give_the_serial_results(tmp_path, tiny_cases, mon
     from clflow.sweep import sysid_on_ray
 
     bird = dataclasses.replace(
-        sysid.CASES["bird"], guess={"youngs_modulus": 1e5}, optimize=("youngs_modulus",), search=3, starts=1, refine=0
+        CASES["bird"], guess={"youngs_modulus": 1e5}, optimize=("youngs_modulus",), search=3, starts=1, refine=0
     )
-    monkeypatch.setitem(sysid.CASES, "bird", bird)  # the tasks get the driver's definitions
+    monkeypatch.setitem(CASES, "bird", bird)  # the tasks get the driver's definitions
     settings = sysid.Settings(resolution=TINY)
     serial = sysid.evaluate(["torus", "bird"], tmp_path / "serial", settings)
     parallel = sysid.evaluate(["torus", "bird"], tmp_path / "parallel", settings, run_cases=sysid_on_ray())
@@ -309,14 +310,14 @@ def test_the_table_says_what_the_check_found_of_each_parameter():
             "grid_sensitive": ["yield_stress"],
         }
     }
-    assert sysid._caveat("viscosity", record) == " (loss flat from 0.188 to 18.8)"
-    assert sysid._caveat("bulk_modulus", record) == " (weakly constrained)"
-    assert sysid._caveat("yield_stress", record) == " (grid-sensitive, -0.42 on 51 nodes)"
-    assert sysid._caveat("shear_modulus", record) == ""
+    assert sysid_report._caveat("viscosity", record) == " (loss flat from 0.188 to 18.8)"
+    assert sysid_report._caveat("bulk_modulus", record) == " (weakly constrained)"
+    assert sysid_report._caveat("yield_stress", record) == " (grid-sensitive, -0.42 on 51 nodes)"
+    assert sysid_report._caveat("shear_modulus", record) == ""
 
 
 def test_the_benchmark_searches_on_the_base_grid_and_refines_on_a_finer_one(tmp_path):
-    case = dataclasses.replace(sysid.CASES["torus"])
+    case = dataclasses.replace(CASES["torus"])
     config = make_case(tmp_path, case, dataclasses.replace(TINY, main_grid_scale=1.5, flip=0.99), truth_scale=2)
     truth, opt = (yaml.safe_load((tmp_path / name).read_text()) for name in ("config_truth.yaml", "config.yaml"))
     # truth and optimiser alike blend FLIP in, as the benchmark's resolutions ask

@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from clflow.errors import InputError
 from clflow_cli.main import cli
-from clflow_datasets import per_class, sysid
+from clflow_datasets import per_class, sysid, sysid_cases, sysid_report
 from clflow_datasets.scene_cases import scene_case_config
 from tests.pipeline.test_sysid import TINY, main_table_rows
 
@@ -35,7 +35,7 @@ dough:
 def test_a_case_file_gives_cases_in_the_tables_terms_run_with_the_benchmarks_policy(tmp_path):
     path = tmp_path / "cases.yaml"
     path.write_text(CASE_FILE)
-    cases = sysid.load_cases(path)
+    cases = sysid_cases.load_cases(path)
     jelly = cases["jelly"]
     assert (jelly.shape, jelly.size, jelly.lift, jelly.material, jelly.velocity) == (
         "sphere",
@@ -101,7 +101,7 @@ def test_a_bad_case_file_is_one_line_before_any_work(tmp_path, text, message):
     path = tmp_path / "cases.yaml"
     path.write_text(text)
     with pytest.raises(InputError, match=re.escape(message)):
-        sysid.load_cases(path)
+        sysid_cases.load_cases(path)
     result = CliRunner().invoke(cli, ["eval", "sysid", "--cases", str(path), "-o", str(tmp_path / "out")])
     assert result.exit_code == 1 and message in result.output and "Traceback" not in result.output
     assert len(result.output.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
@@ -110,7 +110,7 @@ def test_a_bad_case_file_is_one_line_before_any_work(tmp_path, text, message):
 def test_cases_of_a_file_run_and_the_table_leaves_the_published_columns_out(tmp_path):
     path = tmp_path / "cases.yaml"
     path.write_text(CASE_FILE)
-    jelly = sysid.load_cases(path)["jelly"]
+    jelly = sysid_cases.load_cases(path)["jelly"]
     cases = {"jelly": dataclasses.replace(jelly, search=3, refine=0, starts=1)}  # seconds, not minutes
     summary = sysid.evaluate(["jelly"], tmp_path / "out", sysid.Settings(resolution=TINY), cases=cases)
     record = summary["cases"]["jelly"]
@@ -129,7 +129,7 @@ def test_a_table_of_some_published_cases_averages_the_published_rows_it_shows():
     ok = {"status": "ok", "material": "elastic", "parameters": {}, "mean_re": 0.1, "epe_px": 0.2, "floor_epe_px": 0.2,
           "final_loss": 1.0, "truth_loss": 1.0, "iterations": 1, "seconds": 1.0}  # fmt: skip
     settings = sysid.settings_record(sysid.Settings())
-    table = sysid.markdown({"settings": settings, "cases": {"torus": ok, "bird": ok}})
+    table = sysid_report.markdown({"settings": settings, "cases": {"torus": ok, "bird": ok}})
     mean_row = next(line for line in table.splitlines() if line.startswith("| **mean**"))
     assert "0.07/0.57" in mean_row  # PAC-NeRF: torus 0.06/0.52, bird 0.08/0.62
     assert "their means over the cases shown" in table
@@ -139,15 +139,15 @@ def test_the_table_gives_each_range_marks_a_miss_and_counts_the_ranges_that_hold
     def param(found, low, high, truth):
         entry = {"low": low, "high": high}
         return {"found": found, "truth": truth, "guess": 1.0, "re": abs(found - truth) / truth,
-                "range": [low, high], "holds_truth": sysid.holds(entry, truth)}  # fmt: skip
+                "range": [low, high], "holds_truth": sysid_report.holds(entry, truth)}  # fmt: skip
 
     record = {"status": "ok", "material": "plasticine", "mean_re": 0.2, "epe_px": 0.2, "floor_epe_px": 0.2,
               "final_loss": 1.0, "truth_loss": 1.0, "iterations": 1, "seconds": 1.0,
               "parameters": {"youngs_modulus": param(1.0e6, 8.5e5, 1.2e6, 2.0e6),
                              "yield_stress": param(1.5e4, 1.3e4, None, 1.54e4)}}  # fmt: skip
     summary = {"settings": sysid.settings_record(sysid.Settings()), "cases": {"clay": record}}
-    assert sysid.coverage(summary["cases"]) == (1, 2)
-    table = sysid.markdown(summary)
+    assert sysid_report.coverage(summary["cases"]) == (1, 2)
+    table = sysid_report.markdown(summary)
     assert "youngs_modulus: 1e+06 [8.5e+05, 1.2e+06] **misses** (2e+06)" in table
     assert "yield_stress: 1.5e+04 [1.3e+04, -] (1.54e+04)" in table
     assert "| 90 % ranges holding the truth | | 1 of 2 (50 %; 1 bounded on both sides, 0 on neither) |" in table
@@ -162,7 +162,7 @@ def test_the_table_gives_per_class_errors_as_the_peers_do_and_the_bounded_ranges
 
     def param(found, truth, low, high):
         return {"found": found, "truth": truth, "guess": 1.0, "re": abs(found - truth) / truth,
-                "range": [low, high], "holds_truth": sysid.holds({"low": low, "high": high}, truth)}  # fmt: skip
+                "range": [low, high], "holds_truth": sysid_report.holds({"low": low, "high": high}, truth)}  # fmt: skip
 
     def case(material, **params):
         return {"status": "ok", "material": material, "mean_re": 0.1, "epe_px": 0.2, "floor_epe_px": 0.2,
@@ -188,7 +188,7 @@ def test_the_table_gives_per_class_errors_as_the_peers_do_and_the_bounded_ranges
     assert bounded["parameters"] == 4  # poissons_ratio of "a" is open below
     assert abs(bounded["mean_re"] - (9.0 + 0.0 + 1 / 3 + 0.0625) / 4) < 1e-12
     assert abs(bounded["median_width_decades"] - (1.0 + 0.6020599913) / 2) < 1e-9  # widths 2, 1, 0.602, 0.176
-    text = sysid.markdown({"settings": sysid.settings_record(sysid.Settings()), "cases": cases})
+    text = sysid_report.markdown({"settings": sysid.settings_record(sysid.Settings()), "cases": cases})
     assert "| sand | friction_angle (deg) | 2.5 | 1 | 6.785 | 0.903 |" in text
     assert "| mean over the 4 ranges bounded on both sides | | median width 0.80 decades | 2.349 |" in text
     assert "a guide to the scale, not a same-data comparison" in text
@@ -197,14 +197,14 @@ def test_the_table_gives_per_class_errors_as_the_peers_do_and_the_bounded_ranges
 def test_the_extra_set_covers_every_material_with_guesses_either_side_and_a_thrown_case():
     from clflow.materials import MATERIALS
 
-    extra = sysid.load_cases(sysid.EXTRA_CASES_FILE)
+    extra = sysid_cases.load_cases(sysid_cases.EXTRA_CASES_FILE)
     single = {n: c for n, c in extra.items() if not isinstance(c, sysid.SceneCase)}
-    assert len(single) >= 9 and not set(extra) & set(sysid.CASES)
+    assert len(single) >= 9 and not set(extra) & set(sysid_cases.CASES)
     assert {c.material for c in single.values()} == set(MATERIALS)
     sides = {(c.guess[n] > c.truth[n]) for c in extra.values() for n in c.optimize}
     assert sides == {True, False}
     assert any(any(c.velocity) for c in single.values())
-    paper = {(c.material, tuple(sorted(c.truth.items()))) for c in sysid.CASES.values()}
+    paper = {(c.material, tuple(sorted(c.truth.items()))) for c in sysid_cases.CASES.values()}
     assert not {(c.material, tuple(sorted(c.truth.items()))) for c in single.values()} & paper
     # and two scenes of several objects: a cube dropped on a heap, a ball thrown at a block
     scenes = {n: c for n, c in extra.items() if isinstance(c, sysid.SceneCase)}
@@ -242,7 +242,7 @@ pair:
 def test_a_case_of_several_objects_names_each_objects_parameters(tmp_path):
     path = tmp_path / "cases.yaml"
     path.write_text(SCENE_FILE)
-    pair = sysid.load_cases(path)["pair"]
+    pair = sysid_cases.load_cases(path)["pair"]
     block, ball = pair.objects
     assert (block.name, block.shape, block.size, block.position, block.material) == (
         "block",
@@ -281,7 +281,7 @@ def test_a_bad_case_of_several_objects_is_one_line(tmp_path, old, new, message):
     path = tmp_path / "cases.yaml"
     path.write_text(SCENE_FILE.replace(old, new))
     with pytest.raises(InputError, match=re.escape(message)):
-        sysid.load_cases(path)
+        sysid_cases.load_cases(path)
 
 
 def test_set_extra_runs_clflows_own_cases_and_refuses_a_case_file_beside_it(tmp_path):
@@ -296,7 +296,7 @@ def test_set_extra_runs_clflows_own_cases_and_refuses_a_case_file_beside_it(tmp_
 def test_a_case_of_several_objects_runs_and_reports_each_objects_parameters(tmp_path):
     path = tmp_path / "cases.yaml"
     path.write_text(SCENE_FILE)
-    pair = dataclasses.replace(sysid.load_cases(path)["pair"], search=3, refine=0, starts=1)  # seconds
+    pair = dataclasses.replace(sysid_cases.load_cases(path)["pair"], search=3, refine=0, starts=1)  # seconds
     summary = sysid.evaluate(["pair"], tmp_path / "out", sysid.Settings(resolution=TINY), cases={"pair": pair})
     record = summary["cases"]["pair"]
     assert record["status"] == "ok", record["status"]

@@ -10,7 +10,7 @@ import numpy as np
 
 from clflow.recon.colmap import MODEL_IDS
 from clflow.splat.cameras import Camera
-from clflow.splat.gaussians import rotmat_to_quat
+from clflow.splat.geometry import rotmat_to_quat
 
 
 def model_of(cameras: list[Camera], points: np.ndarray | None = None):

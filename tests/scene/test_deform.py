@@ -4,7 +4,7 @@ import numpy as np
 import torch
 
 from clflow.scene.deform import polar_rotations
-from clflow.splat.gaussians import covariances_of, deformed_covariances
+from clflow.splat.geometry import covariances_of, deformed_covariances
 
 
 def random_rotations(n, seed=0):

@@ -10,9 +10,10 @@ import torch
 
 from clflow.errors import InputError
 from clflow.splat.compressed_ply import CHUNK, CHUNK_FIELDS, morton_order, save_compressed_ply
-from clflow.splat.gaussians import SH_C0, Gaussians
+from clflow.splat.gaussians import Gaussians
 from clflow.splat.ply import load_ply
 from clflow.splat.ply_format import read_ply_elements
+from clflow.splat.sh import SH_C0
 
 
 def random_gaussians(n, seed, degree=3):

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from clflow.errors import InputError
-from clflow.splat.gaussians import Gaussians, nearest_neighbour_rms, quat_to_rotmat
+from clflow.splat.gaussians import Gaussians
+from clflow.splat.geometry import nearest_neighbour_rms, quat_to_rotmat
 from tests.splat._helpers import rotations
 
 

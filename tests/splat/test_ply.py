@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from clflow.errors import InputError
-from clflow.splat.gaussians import Gaussians, sh0_to_rgb
+from clflow.splat.gaussians import Gaussians
 from clflow.splat.ply import load_ply, read_ply_vertices, save_ply, write_ply_vertices
+from clflow.splat.sh import sh0_to_rgb
 
 
 def inria_property_names(degree: int) -> list[str]:

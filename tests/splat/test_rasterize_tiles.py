@@ -5,9 +5,8 @@ pixel) against the dense torch reference, against each other, and run twice."""
 import pytest
 import torch
 
-from clflow.splat import ops
 from clflow.splat.binning import build_tile_lists
-from clflow.splat.ops import composite, covariances, project
+from clflow.splat.ops import composite, compositing, covariances, project
 from clflow.splat.reference import composite_reference
 from tests.splat._helpers import camera, random_scene
 
@@ -136,7 +135,7 @@ def test_small_local_memory_gives_the_same_results(monkeypatch, dtype):
     monkeypatch.setenv("CLFLOW_KERNELS", "gpu")
     tensors, tiles, _, width, height = splats(SCENES["deep"], dtype)
     full = run_composite(tensors, tiles, width, height)
-    monkeypatch.setattr(ops, "MAX_RASTER_LOCAL_BYTES", 8 * 1024)
+    monkeypatch.setattr(compositing, "MAX_RASTER_LOCAL_BYTES", 8 * 1024)
     small = run_composite(tensors, tiles, width, height)
     assert torch.equal(full[2], small[2])
     for a, b in zip((full[0], full[1], *full[3]), (small[0], small[1], *small[3])):

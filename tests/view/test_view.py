@@ -18,7 +18,7 @@ import yaml
 from click.testing import CliRunner
 
 from clflow.errors import InputError
-from clflow.splat.gaussians import sh0_to_rgb
+from clflow.splat.sh import sh0_to_rgb
 from clflow.view import box_yaml, count_inside, load_scene, rounded_box
 from clflow_cli.main import cli
 from tests.pipeline.test_written_record import sigint_as_a_terminal_sends_it
