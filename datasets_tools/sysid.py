@@ -16,7 +16,7 @@ truth's. Both the truth and the optimiser blend FLIP into APIC's transfer
 ``floor_epe_px`` in a result is the flow error of the ground truth parameters at
 the optimised resolution: the model error no optimiser can remove.
 
-    results = evaluate(["torus"], Path("out"), QUICK, Settings())   # writes out/sysid.json, .md
+    results = evaluate(["torus"], Path("out"), Settings(resolution=QUICK))   # writes out/sysid.json, .md
 
 The cases (the built-in table and case files) are :mod:`clflow_datasets.sysid_cases`; the
 tables of the results, Markdown beside the published ones, :mod:`clflow_datasets.sysid_report`.

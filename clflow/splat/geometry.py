@@ -82,10 +82,8 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
 
 
 def nearest_neighbour_rms(points: torch.Tensor, k: int = 3) -> torch.Tensor:
-    """[N] root mean square distance (m) of each point to its ``k`` nearest other points.
-
-    Exact, with a KD-tree (scipy): about a second for 10^5 points.
-    """
+    """[N] root mean square distance (m) of each point to its ``k`` nearest other points
+    (exact, with a KD-tree: scipy's cKDTree)."""
     from scipy.spatial import cKDTree
 
     xyz = points.detach().cpu().double().numpy()
