@@ -63,7 +63,7 @@ class StateGrad:
 
 
 def g2p_adjoint_record_reals(flip: float) -> int:
-    """Reals per particle slot of the gather adjoint's records (g2p_adjoint.cl G2P_ADJ_REC)."""
+    """Reals per particle slot of the gather adjoint's records (mpm/adjoint/g2p_adjoint.h G2P_ADJ_REC)."""
     return 18 if uses_flip(flip) else 15
 
 
@@ -89,12 +89,12 @@ class SubstepAdjoint:
         self.gather = kernel_plan(device).adjoint_scatter == "gather"
         if self.gather:
             self.cells = CellSort(device, n, grid, real, defines)
-            self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_records")
-            self.k_gather = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_gather")
+            self.k_g2p = k("mpm/adjoint/g2p_adjoint_gather.cl", "g2p_adjoint_records")
+            self.k_gather = k("mpm/adjoint/g2p_adjoint_gather.cl", "g2p_adjoint_gather")
             self.records = DeviceArray.empty(device, (n, g2p_adjoint_record_reals(self.flip)), dtype)
         else:
-            self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_private")
-            self.k_sum = k("mpm/p2g.cl", "sum_grid_copies")
+            self.k_g2p = k("mpm/adjoint/g2p_adjoint_private.cl", "g2p_adjoint_private")
+            self.k_sum = k("mpm/p2g_private.cl", "sum_grid_copies")
             itemsize = torch.tensor([], dtype=dtype).element_size()
             copy_bytes = velocity_channels(self.flip) * grid.nodes * itemsize  # vbar[, dvbar] per node
             self.copies = grid_copies(device, copy_bytes, n)

@@ -319,7 +319,7 @@ def launch_stress(owner, dt: float, F, C, args: dict, elastic_omits: tuple[str, 
 
 def p2g_particle_args(real_t, state: State, tape: SubstepTape, inputs: SubstepInputs) -> dict:
     """The particle arguments of the P2G kernels and of their adjoint (P2G_PARTICLE_ARGS of
-    kernels_cl/mpm/p2g.cl): n, dt, x, v, C, tau, mass, volume, group, accel."""
+    kernels_cl/mpm/mpm.h): n, dt, x, v, C, tau, mass, volume, group, accel."""
     p, n = inputs.particles, np.int32(state.x.shape[0])
     arrays = dict(x=state.x, v=state.v, C=state.C, tau=tape.tau, mass=p.mass, volume=p.volume, group=p.group)
     return dict(n=n, dt=real_t(inputs.dt)) | arrays | dict(accel=inputs.accel)
@@ -390,7 +390,7 @@ class SubstepKernels:
         check_grid_memory(device, grid, itemsize, self.flip)
         grid_bytes = channels * grid.nodes * itemsize
         if p2g == "private":
-            self.k_p2g = k("mpm/p2g.cl", "p2g_private")
+            self.k_p2g = k("mpm/p2g_private.cl", "p2g_private")
             self.copies = grid_copies(device, grid_bytes, n)
             self.chunk = -(-n // self.copies)
             self.grid_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * grid_bytes)
@@ -401,7 +401,7 @@ class SubstepKernels:
             self.k_p2g = k("mpm/p2g_gather.cl", "p2g_gather")
             self.p2g_records = DeviceArray.empty(device, (n, p2g_record_reals(self.flip)), dtype)
         else:
-            self.k_p2g = k("mpm/p2g.cl", "p2g_atomic")
+            self.k_p2g = k("mpm/p2g_atomic.cl", "p2g_atomic")
         self.scratch = SubstepTape.empty(device, n, grid.nodes, dtype, self.flip)
 
     def run(
