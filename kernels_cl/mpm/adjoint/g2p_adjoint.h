@@ -1,5 +1,6 @@
 /* Adjoint of G2P (g2p.cl), one particle's part, which both shapes of its scatter onto the grid
- * share (clflow/runtime/plan.py, stage adjoint_scatter), each deterministic without float atomics: g2p_adjoint_private.cl (CPU
+ * share (clflow/runtime/plan.py, stage adjoint_scatter: the forward P2G's shape, the plan's own
+ * after an atomic P2G), each deterministic without float atomics: g2p_adjoint_private.cl (CPU
  * devices: private grid copies) and g2p_adjoint_gather.cl (GPUs: a gather per node).
  *
  * Forward: v_pic = sum_i w v_i,  C' = (4/dx^2) sum_i w v_i d^T,  x' = clamp(x + dt v_pic),
