@@ -161,9 +161,10 @@ class Particles:
 class StressStage:
     """How the stress stage runs for a set of kernel material ids, for the forward and the
     adjoint alike: only the constitutive models present are compiled in (``mask``, the
-    MATERIALS_PRESENT define); all fixed-corotated elastic takes one fused SIMD kernel (SVD
-    included); otherwise the SVD of F_tr runs in SIMD lanes when a model needs it
-    (``needs_svd``), then the models one particle per work-item."""
+    MATERIALS_PRESENT define); all fixed-corotated elastic takes one fused kernel (SVD
+    included); otherwise the SVD of F_tr runs when a model needs it (``needs_svd``), then the
+    models one particle per work-item. The fused and SVD kernels take the plan's stress shape
+    (clflow.runtime.plan: SIMD lanes on CPU devices, a particle a work-item on GPUs)."""
 
     mask: int
     elastic_only: bool
@@ -180,7 +181,8 @@ class StressStage:
 
     def kernels(self, device: Device, real: str, plan: KernelPlan, adjoint: bool = False):
         """(stress kernel, SVD kernel or None) of the forward or the ``adjoint`` stress stage on
-        ``device`` in precision ``real``, as ``plan`` names them; built without the PIC/FLIP switch, which only the transfer kernels read,
+        ``device`` in precision ``real``, in the shape of ``plan`` (SIMD lanes or a particle a
+        work-item); built without the PIC/FLIP switch, which only the transfer kernels read,
         so blended and plain simulators share these programs."""
         defines = self.defines(0.0)
         stage = "stress_adjoint" if adjoint else "stress"
@@ -280,12 +282,13 @@ def check_grid_memory(
 
 def launch_stress(owner, dt: float, F, C, args: dict, elastic_omits: tuple[str, ...]) -> None:
     """Enqueue a stress stage, forward or adjoint, of ``owner`` (:class:`SubstepKernels` or its
-    adjoint: device, n, k_stress, k_svd, U/s/V) from F and C: the per-particle kernel takes
-    ``args`` after the SVD of the trial F (when k_svd); an elastic-only program runs on SIMD
-    lanes and takes ``args`` less ``elastic_omits``."""
+    adjoint: device, n, plan, k_stress, k_svd, U/s/V) from F and C: the per-particle kernel
+    takes ``args`` after the SVD of the trial F (when k_svd); an elastic-only kernel (SVD
+    included) takes ``args`` less ``elastic_omits``. The SVD and elastic-only kernels run on
+    SIMD lanes in the plan's "simd_lanes" shape, a particle a work-item in "plain"."""
     dev, n = owner.device, owner.n
     common = dict(n=np.int32(n), dt=owner.real_t(dt), F_in=F, C_in=C)
-    lanes = -(-n // SIMD_LANES)
+    lanes = -(-n // SIMD_LANES) if owner.plan.stress == "simd_lanes" else n
     if owner.elastic_only:
         dev.launch(owner.k_stress, lanes, common | {k: v for k, v in args.items() if k not in elastic_omits})
         return

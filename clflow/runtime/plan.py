@@ -1,7 +1,8 @@
 """Which kernel serves each parallel stage on a device: the one place that decides it.
 
 CPU devices (PoCL) run best with a few work-items per core, each streaming through a
-contiguous block (no barriers, no atomics); GPUs need tens of thousands of work-items and
+contiguous block (no barriers, no atomics), and with SIMD lanes where PoCL does not
+vectorise across work-items itself; GPUs need tens of thousands of work-items and
 work-groups that cooperate through local memory. A :class:`KernelPlan` names each stage's
 shape, and :data:`STAGE_KERNELS` the kernels (source under kernels_cl/, entry point) that
 serve each shape; docs/gpu.md ("Kernel shapes") lists the same table, and a test holds the
@@ -64,6 +65,7 @@ STAGE_KERNELS: dict[str, dict[str, dict[str, Kernel]]] = {
         "simd_lanes": _kernels(
             _STRESS, svd="trial_svd_simd", models="update_stress", elastic="update_stress_elastic_simd"
         ),
+        "plain": _kernels(_STRESS, svd="trial_svd", models="update_stress", elastic="update_stress_elastic"),
     },
     "p2g": {
         "private": {
@@ -94,6 +96,10 @@ STAGE_KERNELS: dict[str, dict[str, dict[str, Kernel]]] = {
             "svd": Kernel(_STRESS, "trial_svd_simd"),
             **_kernels(_STRESS_ADJOINT, models="update_stress_adjoint", elastic="update_stress_elastic_adjoint_simd"),
         },
+        "plain": {
+            "svd": Kernel(_STRESS, "trial_svd"),
+            **_kernels(_STRESS_ADJOINT, models="update_stress_adjoint", elastic="update_stress_elastic_adjoint"),
+        },
     },
     "raster": {
         "tile_rows": _kernels("splat/rasterize.cl", forward="rasterize_forward", backward="rasterize_backward"),
@@ -114,7 +120,7 @@ class KernelPlan:
     p2g: Literal["private", "gather", "atomic"]
     adjoint_scatter: Literal["private", "gather"]
     raster: Literal["tile_rows", "workgroup"]
-    stress: Literal["simd_lanes"]
+    stress: Literal["simd_lanes", "plain"]
 
     @property
     def stress_adjoint(self) -> str:
@@ -125,7 +131,7 @@ class KernelPlan:
     def of(kind: PlanKind) -> "KernelPlan":
         if kind == "cpu":
             return KernelPlan("cpu", "serial", "blocks", "private", "private", "tile_rows", "simd_lanes")
-        return KernelPlan("gpu", "workgroup", "workgroup", "gather", "gather", "workgroup", "simd_lanes")
+        return KernelPlan("gpu", "workgroup", "workgroup", "gather", "gather", "workgroup", "plain")
 
     def with_p2g(self, requested: P2GMode = "auto") -> "KernelPlan":
         """This plan with the P2G path taken: ``requested`` unless "auto"; then $CLFLOW_P2G,
