@@ -6,14 +6,16 @@ the gradients of the per-particle kernel parameters and masses, in reverse kerne
 
     g2p_adjoint_private              : (xbar', vbar', Cbar', grid_v[, grid_dv]) -> grid_vbar copies, xbar (part)
     sum_grid_copies                  : (grid_vbar copies)            -> grid_vbar (vbar_i[, dvbar_i])
-      or, in the GPU plan (clflow.runtime.plan), with the particles sorted by cell (CellSort):
+      or, where the P2G took the gather (the GPU plan, clflow.runtime.plan), with the
+      particles sorted by cell (CellSort):
     g2p_adjoint_records              : (xbar', vbar', Cbar', grid_v[, grid_dv]) -> slot records, xbar (part)
     g2p_adjoint_gather               : (slot records)                -> grid_vbar, a work-item per node
     grid_update_adjoint              : (grid_vbar, grid, boundaries) -> grid_bar (mbar_i, pbar_i[, p0bar_i])
     p2g_adjoint                      : (grid_bar, x, v, C, tau)      -> xbar, vbar, Cbar (part), taubar, massbar
     p2g_flip_adjoint (flip > 0)      : (grid_bar, vbar', x, v, C)    -> xbar, vbar, Cbar, massbar (parts)
-    trial_svd_simd + update_stress_adjoint : (taubar, Fbar', F, C, param) -> Fbar, Cbar, parambar
-      (update_stress_elastic_adjoint_simd when every particle is fixed-corotated elastic)
+    trial_svd[_simd] + update_stress_adjoint : (taubar, Fbar', F, C, param) -> Fbar, Cbar, parambar
+      (update_stress_elastic_adjoint[_simd] when every particle is fixed-corotated elastic;
+      _simd: SIMD lanes, the plan's CPU shape)
 
 Every sum has a fixed order (private grid copies reduced in order, per-node and per-particle
 gathers), so gradients are bit-identical across runs. States, gradients and the tape are
@@ -40,7 +42,7 @@ from clflow.mpm.substep import (
     p2g_particle_args,
 )
 from clflow.runtime.arrays import DeviceArray, numpy_real, real_of
-from clflow.runtime.plan import kernel_plan
+from clflow.runtime.plan import KernelPlan, kernel_plan
 from clflow.runtime.profile import profiled_step
 
 
@@ -63,38 +65,50 @@ class StateGrad:
 
 
 def g2p_adjoint_record_reals(flip: float) -> int:
-    """Reals per particle slot of the gather adjoint's records (g2p_adjoint.cl G2P_ADJ_REC)."""
+    """Reals per particle slot of the gather adjoint's records (mpm/adjoint/g2p_adjoint.h G2P_ADJ_REC)."""
     return 18 if uses_flip(flip) else 15
 
 
 class SubstepAdjoint:
     """The adjoint kernels of one device, precision, particle count, grid, material set and
-    PIC/FLIP blend, with their scratch buffers (grid adjoint, taubar, U s V, grid_v_bar, and the
-    private grid copies with their boxes, or in the GPU plan the cell sort and slot records)."""
+    PIC/FLIP blend, in the shapes of ``plan`` (the forward's, with the P2G path it took;
+    default the device's), with their scratch buffers (grid adjoint, taubar, U s V,
+    grid_v_bar, and the private grid copies with their boxes, or the cell sort and slot
+    records of the gather)."""
 
-    def __init__(self, device, dtype: torch.dtype, n: int, grid: Grid, materials: torch.Tensor, flip: float = 0.0):
+    def __init__(
+        self,
+        device,
+        dtype: torch.dtype,
+        n: int,
+        grid: Grid,
+        materials: torch.Tensor,
+        flip: float = 0.0,
+        plan: KernelPlan | None = None,
+    ):
         import pyopencl as cl
 
         self.device, self.dtype, self.n, self.grid, self.flip = device, dtype, n, grid, float(flip)
         real, self.real_t = real_of(dtype, "simulation"), numpy_real(dtype, "simulation")
-        stage = StressStage.of(materials)  # as the forward: fused SIMD adjoint for all-elastic scenes
+        stage = StressStage.of(materials)  # as the forward: a fused adjoint for all-elastic scenes
         defines = stage.defines(self.flip)
+        self.plan = plan = plan or kernel_plan(device)
         k = lambda src, name: device.kernel(src, name, real, defines)  # noqa: E731
+        scatter = lambda role: device.kernel(*plan.kernel("adjoint_scatter", role), real, defines)  # noqa: E731
         self.elastic_only = stage.elastic_only
-        self.k_stress, self.k_svd = stage.kernels(device, real, adjoint=True)
+        self.k_stress, self.k_svd = stage.kernels(device, real, plan, adjoint=True)
         self.U, self.s, self.V = stage.svd_buffers(device, n, dtype)
         self.k_grid = k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
         self.k_p2g = k("mpm/adjoint/p2g_adjoint.cl", "p2g_adjoint")
         self.k_flip = k("mpm/adjoint/p2g_adjoint.cl", "p2g_flip_adjoint") if uses_flip(self.flip) else None
-        self.gather = kernel_plan(device).adjoint_scatter == "gather"
+        self.gather = plan.adjoint_scatter == "gather"
+        self.k_g2p = scatter("g2p")
         if self.gather:
-            self.cells = CellSort(device, n, grid, real, defines)
-            self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_records")
-            self.k_gather = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_gather")
+            self.cells = CellSort(device, n, grid, real, defines, plan.kernel("adjoint_scatter", "cells"))
+            self.k_gather = scatter("gather")
             self.records = DeviceArray.empty(device, (n, g2p_adjoint_record_reals(self.flip)), dtype)
         else:
-            self.k_g2p = k("mpm/adjoint/g2p_adjoint.cl", "g2p_adjoint_private")
-            self.k_sum = k("mpm/p2g.cl", "sum_grid_copies")
+            self.k_sum = scatter("sum")
             itemsize = torch.tensor([], dtype=dtype).element_size()
             copy_bytes = velocity_channels(self.flip) * grid.nodes * itemsize  # vbar[, dvbar] per node
             self.copies = grid_copies(device, copy_bytes, n)

@@ -87,7 +87,8 @@ class _Engine:
 
     def __init__(self, sim: Simulator):
         self.forward = sim.kernels
-        self.adjoint = SubstepAdjoint(sim.device, sim.dtype, sim.n, sim.grid, sim.particles.material, sim.flip)
+        plan = sim.kernels.plan  # the forward's, with the P2G path it took
+        self.adjoint = SubstepAdjoint(sim.device, sim.dtype, sim.n, sim.grid, sim.particles.material, sim.flip, plan)
 
 
 log = logging.getLogger("clflow.mpm")

@@ -25,7 +25,6 @@ from clflow.mpm.material_model import explicit_viscosity, kernel_params, wave_sp
 from clflow.mpm.substep import (
     DriverAccelerations,
     Grid,
-    P2GMode,
     Particles,
     State,
     SubstepInputs,
@@ -33,6 +32,7 @@ from clflow.mpm.substep import (
 )
 from clflow.runtime import Device, get_device
 from clflow.runtime.arrays import DeviceArray, arrays_of, origin_device, to_cpu, to_device, to_origin
+from clflow.runtime.plan import P2GMode
 
 CFL_NUMBER = 0.3  # dt <= CFL_NUMBER dx / max|v|
 WAVE_NUMBER = 0.5  # dt <= WAVE_NUMBER dx / c, c the fastest elastic wave speed

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, fields
-from typing import Literal
 
 import numpy as np
 import torch
@@ -41,15 +40,10 @@ from clflow.mpm.constants import (
 )
 from clflow.runtime.arrays import DeviceArray, numpy_real, real_of
 from clflow.runtime.devices import Device
-from clflow.runtime.plan import kernel_plan
+from clflow.runtime.plan import P2G_ENV, Kernel, KernelPlan, P2GMode, kernel_plan
 from clflow.runtime.profile import profiled_step
 from clflow.runtime.sort import counting_sort
 
-P2GMode = Literal["auto", "private", "atomic", "gather"]
-P2G_MODES = ("auto", "private", "atomic", "gather")
-#: Forces the P2G path of every simulator whose caller asks for "auto" (the default):
-#: "private", "atomic" or "gather". CI runs the MPM suite with the GPUs' paths on PoCL this way.
-P2G_ENV = "CLFLOW_P2G"
 MAX_GRID_COPIES = 16  # private P2G grids at most (memory: copies x nodes x 4 reals)
 GRID_COPY_BUDGET = 1 << 30  # bytes all private grid copies may take together
 #: Fixes the number of private P2G grid copies. The copies' sum order sets the last bits of a
@@ -100,28 +94,15 @@ class Grid:
 
 
 def p2g_path(device: Device, requested: P2GMode = "auto") -> str:
-    """The P2G path a simulator takes: ``requested`` unless "auto"; then $CLFLOW_P2G, else the
-    device's plan (clflow.runtime.plan): private grid copies on CPU devices (a few
-    work-items, each its own grid), the gather per node on GPUs (a work-item per node over
-    particles sorted by cell). Both sum in a fixed order, so runs repeat to the bit; "atomic"
-    (a work-item per particle, atomic adds in no fixed order) is there to ask for."""
-    if requested not in P2G_MODES:
-        raise InputError(f"p2g must be one of {', '.join(P2G_MODES)}, not {requested!r}")
-    if requested != "auto":
-        return requested
-    forced = os.environ.get(P2G_ENV, "").strip().lower()
-    if forced:
-        if forced not in P2G_MODES:
-            raise InputError(f"${P2G_ENV} must be one of {', '.join(P2G_MODES)}, got {forced!r}")
-        if forced != "auto":
-            return forced
-    return kernel_plan(device).p2g
+    """The P2G path a simulator on ``device`` takes when it asks for ``requested``: the
+    plan's (clflow.runtime.plan.KernelPlan.with_p2g)."""
+    return kernel_plan(device, requested).p2g
 
 
 def check_device(device: Device, dtype: torch.dtype, p2g: P2GMode = "auto", differentiable: bool = False) -> None:
     """DeviceError, one line naming the device and what it lacks, unless ``device`` can run
-    the simulator in ``dtype`` on the P2G path ``p2g`` and, when ``differentiable``, the
-    adjoint (whose deterministic reductions accumulate in float64)."""
+    the simulator in ``dtype`` on the P2G path that asking for ``p2g`` takes and, when
+    ``differentiable``, the adjoint (whose deterministic reductions accumulate in float64)."""
     info = device.info
     if not info.fp64 and (dtype == torch.float64 or differentiable):
         needs = "float64 simulation (--double)" if dtype == torch.float64 else "the adjoint's float64 reductions"
@@ -180,9 +161,10 @@ class Particles:
 class StressStage:
     """How the stress stage runs for a set of kernel material ids, for the forward and the
     adjoint alike: only the constitutive models present are compiled in (``mask``, the
-    MATERIALS_PRESENT define); all fixed-corotated elastic takes one fused SIMD kernel (SVD
-    included); otherwise the SVD of F_tr runs in SIMD lanes when a model needs it
-    (``needs_svd``), then the models one particle per work-item."""
+    MATERIALS_PRESENT define); all fixed-corotated elastic takes one fused kernel (SVD
+    included); otherwise the SVD of F_tr runs when a model needs it (``needs_svd``), then the
+    models one particle per work-item. The fused and SVD kernels take the plan's stress shape
+    (clflow.runtime.plan: SIMD lanes on CPU devices, a particle a work-item on GPUs)."""
 
     mask: int
     elastic_only: bool
@@ -197,21 +179,16 @@ class StressStage:
     def defines(self, flip: float) -> dict[str, object]:
         return {**kernel_defines(flip), "MATERIALS_PRESENT": self.mask}
 
-    def kernels(self, device: Device, real: str, adjoint: bool = False):
+    def kernels(self, device: Device, real: str, plan: KernelPlan, adjoint: bool = False):
         """(stress kernel, SVD kernel or None) of the forward or the ``adjoint`` stress stage on
-        ``device`` in precision ``real``; built without the PIC/FLIP switch, which only the
-        transfer kernels read, so blended and plain simulators share these programs."""
+        ``device`` in precision ``real``, in the shape of ``plan`` (SIMD lanes or a particle a
+        work-item); built without the PIC/FLIP switch, which only the transfer kernels read,
+        so blended and plain simulators share these programs."""
         defines = self.defines(0.0)
-        build = lambda source, name: device.kernel(source, name, real, defines)  # noqa: E731
-        source = "mpm/adjoint/stress_adjoint.cl" if adjoint else "mpm/stress.cl"
-        name = {
-            (False, False): "update_stress",
-            (False, True): "update_stress_elastic_simd",
-            (True, False): "update_stress_adjoint",
-            (True, True): "update_stress_elastic_adjoint_simd",
-        }
-        svd = build("mpm/stress.cl", "trial_svd_simd") if self.needs_svd else None
-        return build(source, name[adjoint, self.elastic_only]), svd
+        stage = "stress_adjoint" if adjoint else "stress"
+        build = lambda role: device.kernel(*plan.kernel(stage, role), real, defines)  # noqa: E731
+        svd = build("svd") if self.needs_svd else None
+        return build("elastic" if self.elastic_only else "models"), svd
 
     def svd_buffers(self, device: Device, n: int, dtype: torch.dtype) -> tuple[DeviceArray, DeviceArray, DeviceArray]:
         """U [n, 3, 3], s [n, 3], V [n, 3, 3] of svd3(F_tr) on ``device`` (empty when no model needs them)."""
@@ -281,14 +258,16 @@ class SubstepTape:
         return SubstepTape(*(DeviceArray.empty(device, shape, dtype) for shape in shapes))
 
 
-def check_grid_memory(device: Device, grid: Grid, itemsize: int, flip: float = 0.0) -> None:
+def check_grid_memory(
+    device: Device, grid: Grid, itemsize: int, flip: float = 0.0, plan: KernelPlan | None = None
+) -> None:
     """Refuse a grid whose node arrays do not fit ``device``: (m, mv[, mv0]) and v[, dv] per
-    node (bracketed: PIC/FLIP blend ``flip`` > 0), and where the plan takes private P2G copies
-    at least one copy of the first."""
+    node (bracketed: PIC/FLIP blend ``flip`` > 0), and where the P2G path taken (``plan``'s,
+    default the device's) is the private one at least one copy of the first."""
     from clflow.limits import format_bytes
 
     info, nodes, channels = device.info, grid.nodes, grid_channels(flip)
-    private = kernel_plan(device).p2g == "private"
+    private = (plan or kernel_plan(device)).p2g == "private"
     total = nodes * itemsize * (channels + velocity_channels(flip) + (channels if private else 0))
     largest = nodes * itemsize * channels
     if total > info.global_mem_size or largest > info.max_mem_alloc_size:
@@ -303,12 +282,13 @@ def check_grid_memory(device: Device, grid: Grid, itemsize: int, flip: float = 0
 
 def launch_stress(owner, dt: float, F, C, args: dict, elastic_omits: tuple[str, ...]) -> None:
     """Enqueue a stress stage, forward or adjoint, of ``owner`` (:class:`SubstepKernels` or its
-    adjoint: device, n, k_stress, k_svd, U/s/V) from F and C: the per-particle kernel takes
-    ``args`` after the SVD of the trial F (when k_svd); an elastic-only program runs on SIMD
-    lanes and takes ``args`` less ``elastic_omits``."""
+    adjoint: device, n, plan, k_stress, k_svd, U/s/V) from F and C: the per-particle kernel
+    takes ``args`` after the SVD of the trial F (when k_svd); an elastic-only kernel (SVD
+    included) takes ``args`` less ``elastic_omits``. The SVD and elastic-only kernels run on
+    SIMD lanes in the plan's "simd_lanes" shape, a particle a work-item in "plain"."""
     dev, n = owner.device, owner.n
     common = dict(n=np.int32(n), dt=owner.real_t(dt), F_in=F, C_in=C)
-    lanes = -(-n // SIMD_LANES)
+    lanes = -(-n // SIMD_LANES) if owner.plan.stress == "simd_lanes" else n
     if owner.elastic_only:
         dev.launch(owner.k_stress, lanes, common | {k: v for k, v in args.items() if k not in elastic_omits})
         return
@@ -319,7 +299,7 @@ def launch_stress(owner, dt: float, F, C, args: dict, elastic_omits: tuple[str, 
 
 def p2g_particle_args(real_t, state: State, tape: SubstepTape, inputs: SubstepInputs) -> dict:
     """The particle arguments of the P2G kernels and of their adjoint (P2G_PARTICLE_ARGS of
-    kernels_cl/mpm/p2g.cl): n, dt, x, v, C, tau, mass, volume, group, accel."""
+    kernels_cl/mpm/mpm.h): n, dt, x, v, C, tau, mass, volume, group, accel."""
     p, n = inputs.particles, np.int32(state.x.shape[0])
     arrays = dict(x=state.x, v=state.v, C=state.C, tau=tape.tau, mass=p.mass, volume=p.volume, group=p.group)
     return dict(n=n, dt=real_t(inputs.dt)) | arrays | dict(accel=inputs.accel)
@@ -334,11 +314,12 @@ class CellSort:
     """The particles of a substep sorted by the cell of their stencil's base node, on the
     device, by counting sort (one pass; clflow.runtime.sort): ``order`` [n] int32, the
     particles cell by cell, each cell's in index order; ``starts`` [nodes + 1] int32, the
-    first slot of each cell (mpm/cells.h). The gather P2G and the gather adjoint take it."""
+    first slot of each cell (mpm/cells.h). The gather P2G and the gather adjoint take it, with
+    the kernel that keys the particles by cell (``cells``: their plan's)."""
 
-    def __init__(self, device: Device, n: int, grid: Grid, real: str, defines: dict):
+    def __init__(self, device: Device, n: int, grid: Grid, real: str, defines: dict, cells: Kernel):
         self.device, self.n, self.cells = device, n, grid.nodes
-        self.k_cells = device.kernel("mpm/p2g_gather.cl", "particle_cells", real, defines)
+        self.k_cells = device.kernel(*cells, real, defines)
         self.keys, self.rank, self.order = (DeviceArray.empty(device, (max(n, 1),), torch.int32) for _ in range(3))
         self.starts = DeviceArray.empty(device, (grid.nodes + 1,), torch.int32)
 
@@ -354,9 +335,10 @@ class CellSort:
 
 class SubstepKernels:
     """The substep kernels of one device, precision, particle count, grid, set of material ids
-    (``materials``: the kernel ids of the particles), P2G path (:func:`p2g_path`) and PIC/FLIP
-    blend ``flip`` (0: APIC), with their scratch buffers (U, s, V of F_tr, the private P2G
-    grid copies and a :class:`SubstepTape` for runs that keep none)."""
+    (``materials``: the kernel ids of the particles), P2G path asked for (``p2g``; ``plan``:
+    the device's kernel plan with the path taken) and PIC/FLIP blend ``flip`` (0: APIC), with
+    their scratch buffers (U, s, V of F_tr, the private P2G grid copies and a
+    :class:`SubstepTape` for runs that keep none)."""
 
     def __init__(
         self,
@@ -375,33 +357,31 @@ class SubstepKernels:
         self.real, self.real_t = real_of(dtype, "simulation"), numpy_real(dtype, "simulation")
         self.grid_args = grid.kernel_args(self.real_t)
         check_device(device, dtype, p2g)
-        self.p2g = p2g = p2g_path(device, p2g)
+        self.plan = plan = kernel_plan(device, p2g)
+        self.p2g = p2g = plan.p2g
         stage = StressStage.of(materials)
         self.defines = defines = stage.defines(self.flip)  # the -D switches of its programs
-        k = lambda src, name: device.kernel(src, name, self.real, defines)  # noqa: E731
+        k = lambda role: device.kernel(*plan.kernel("p2g", role), self.real, defines)  # noqa: E731
         self.elastic_only = stage.elastic_only
-        self.k_stress, self.k_svd = stage.kernels(device, self.real)
+        self.k_stress, self.k_svd = stage.kernels(device, self.real, plan)
         self.U, self.s, self.V = stage.svd_buffers(device, n, dtype)
         # the private path's grid update sums the P2G copies too, a row of nodes a work-item
-        self.k_grid = k("mpm/grid.cl", "sum_copies_update_grid" if p2g == "private" else "grid_update")
+        self.k_grid = k("grid")
         # the gather path runs G2P in slot order: neighbouring work-items read neighbouring nodes
-        self.k_g2p = k("mpm/g2p.cl", "g2p_sorted" if p2g == "gather" else "g2p")
+        self.k_g2p = k("g2p")
+        self.k_p2g = k("p2g")
         itemsize = torch.tensor([], dtype=dtype).element_size()
-        check_grid_memory(device, grid, itemsize, self.flip)
+        check_grid_memory(device, grid, itemsize, self.flip, plan)
         grid_bytes = channels * grid.nodes * itemsize
         if p2g == "private":
-            self.k_p2g = k("mpm/p2g.cl", "p2g_private")
             self.copies = grid_copies(device, grid_bytes, n)
             self.chunk = -(-n // self.copies)
             self.grid_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * grid_bytes)
             self.copy_boxes = DeviceArray.empty(device, (self.copies, 6), torch.int32)  # each copy's node box
         elif p2g == "gather":
-            self.cells = CellSort(device, n, grid, self.real, defines)
-            self.k_pack = k("mpm/p2g_gather.cl", "p2g_pack")
-            self.k_p2g = k("mpm/p2g_gather.cl", "p2g_gather")
+            self.cells = CellSort(device, n, grid, self.real, defines, plan.kernel("p2g", "cells"))
+            self.k_pack = k("pack")
             self.p2g_records = DeviceArray.empty(device, (n, p2g_record_reals(self.flip)), dtype)
-        else:
-            self.k_p2g = k("mpm/p2g.cl", "p2g_atomic")
         self.scratch = SubstepTape.empty(device, n, grid.nodes, dtype, self.flip)
 
     def run(

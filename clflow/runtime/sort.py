@@ -24,7 +24,7 @@ import torch
 from clflow.errors import InputError
 from clflow.runtime.arrays import DeviceArray
 from clflow.runtime.devices import Device, get_device
-from clflow.runtime.plan import kernel_plan
+from clflow.runtime.plan import STAGE_KERNELS, kernel_plan
 
 SORT_BLOCKS = 64  # blocks shape: contiguous blocks walked by one work-item each
 DIGIT_BITS = 8  # blocks shape: bits per pass of 32-bit keys (4 passes)
@@ -45,8 +45,8 @@ def _blocks(n: int, per_block: int) -> int:
 def scan_exclusive(device: Device, src, dst, n: int) -> None:
     """dst[i] = sum of src[:i] for i = 0..n (int32; dst holds n + 1, dst[n] the total). ``src``
     and ``dst`` may be the same buffer."""
-    if kernel_plan(device).scan == "serial" or n <= 0:
-        scan = device.kernel("common/scan.cl", "scan_serial")
+    if kernel_plan(device).scan == "serial" or n <= 0:  # nothing to scan: the one work-item writes the 0
+        scan = device.kernel(*STAGE_KERNELS["scan"]["serial"]["scan"])
         device.launch(scan, 1, {"in": src, "out": dst, "n": np.int32(n)}, 1)
         return
     _scan_workgroups(device, src, dst, n)
@@ -55,7 +55,8 @@ def scan_exclusive(device: Device, src, dst, n: int) -> None:
 def _scan_workgroups(device: Device, src, dst, n: int) -> None:
     """Reduce-then-scan: the block sums, scanned the same way (recursively), then each block."""
     blocks = _blocks(n, SCAN_BLOCK)
-    scan_blocks = device.kernel("common/scan.cl", "scan_blocks")
+    kernels = STAGE_KERNELS["scan"]["workgroup"]
+    scan_blocks = device.kernel(*kernels["blocks"])
     args = {"in": src, "out": dst, "n": np.int32(n)}
     if blocks == 1:
         device.launch(scan_blocks, SCAN_WG, args | dict(offsets=dst, has_offsets=np.int32(0)), SCAN_WG)
@@ -63,7 +64,7 @@ def _scan_workgroups(device: Device, src, dst, n: int) -> None:
     sums = device.take_scratch(4 * blocks)
     offsets = device.take_scratch(4 * (blocks + 1))
     device.launch(
-        device.kernel("common/scan.cl", "scan_block_sums"),
+        device.kernel(*kernels["block_sums"]),
         blocks * SCAN_WG,
         {"in": src, "n": np.int32(n), "sums": sums},
         SCAN_WG,
@@ -83,14 +84,16 @@ def radix_sort(device: Device, pair, spare, n: int, key_bits: int, digit_bits: i
     result ends in ``spare``."""
     if n == 0:
         return False
-    workgroups = kernel_plan(device).sort == "workgroup"
+    plan = kernel_plan(device)
+    workgroups = plan.sort == "workgroup"
     width = digit_width(key_bits, RADIX_BITS if workgroups else digit_bits)
     passes = -(-key_bits // width)
     blocks = _blocks(n, RADIX_BLOCK) if workgroups else SORT_BLOCKS
     hist = device.take_scratch(4 * ((1 << width) * blocks + 1))
-    suffix = "_wg" if workgroups else ""
-    histogram = device.kernel("common/sort.cl", "radix_histogram" + suffix)
-    scatter = device.kernel("common/sort.cl", "radix_scatter" + suffix)
+    histogram, scatter = (
+        device.kernel(*plan.kernel("sort", "histogram")),
+        device.kernel(*plan.kernel("sort", "scatter")),
+    )
     src, dst = pair, spare
     for p in range(passes):
         shift = np.int32(p * width)

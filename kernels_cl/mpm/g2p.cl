@@ -74,7 +74,8 @@ inline void g2p_particle(const grid_t g, const int p, G2P_ARGS)
     const int nx, const int ny, const int nz, const real dx, const real ox, const real oy, const real oz
 #define G2P_PASS dt, t, flip, x_in, v_in, grid_v, grid_dv, release_time, x_out, v_out, C_out, clamped
 
-/* A work-item per particle, in index order (CPU devices: the state streams in order). */
+/* A work-item per particle, in index order (after the private P2G, CPU devices' default, and
+ * the atomic one: the state streams in order). */
 __kernel void g2p(G2P_GRID_ARGS, const int n, G2P_ARGS)
 {
     const int p = get_global_id(0);
@@ -82,8 +83,8 @@ __kernel void g2p(G2P_GRID_ARGS, const int n, G2P_ARGS)
         g2p_particle(make_grid(nx, ny, nz, dx, ox, oy, oz), p, G2P_PASS);
 }
 
-/* A work-item per slot of the particles sorted by cell (p = order[slot], mpm/p2g_gather.cl):
- * neighbouring work-items read neighbouring grid nodes (GPUs). */
+/* A work-item per slot of the particles sorted by cell (p = order[slot], mpm/p2g_gather.cl),
+ * after the gather P2G (GPUs' default): neighbouring work-items read neighbouring grid nodes. */
 __kernel void g2p_sorted(G2P_GRID_ARGS, const int n, __global const int *order, G2P_ARGS)
 {
     const int s = get_global_id(0);

@@ -247,4 +247,13 @@ inline stencil_v_t make_stencil_v(const grid_t *g, const realv *x)
 }
 #endif
 
+/* The grid's and the particles' arguments of the P2G kernels (p2g_private.cl, p2g_atomic.cl,
+ * p2g_gather.cl; clflow.mpm.substep: Grid.kernel_args, p2g_particle_args). */
+#define P2G_GRID_ARGS                                                                                                  \
+    const int nx, const int ny, const int nz, const real dx, const real ox, const real oy, const real oz
+#define P2G_PARTICLE_ARGS                                                                                              \
+    const int n, const real dt, __global const real *x, __global const real *v, __global const real *C,                \
+        __global const real *tau, __global const real *mass, __global const real *volume, __global const int *group,   \
+        __global const real *accel
+
 #endif /* CLFLOW_MPM_H */

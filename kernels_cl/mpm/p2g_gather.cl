@@ -1,7 +1,7 @@
-/* Substep stage 2, the GPU way: particle to grid as a gather per node, over particles
- * sorted by cell.
+/* Substep stage 2, the GPU shape (clflow/runtime/plan.py: P2G "gather", GPUs by default):
+ * particle to grid as a gather per node, over particles sorted by cell.
  *
- * The same sums as p2g.cl (per node i and particle p with d = x_i - x_p:
+ * The same sums as p2g_private.cl (per node i and particle p with d = x_i - x_p:
  *   m_i += w m_p,  mv_i += w [m_p (v_p + dt a_p) + affine d],  mv0_i += w m_p (v_p + C_p d))
  * but each node adds its particles itself, in a fixed order: the 27 base cells whose
  * stencil reaches it in the order (a, b, c), each cell's particles in index order. No
@@ -17,8 +17,6 @@
  *   p2g_gather     : one work-item per node */
 #include "mpm/cells.h"
 
-#define P2G_GRID_ARGS                                                                                                  \
-    const int nx, const int ny, const int nz, const real dx, const real ox, const real oy, const real oz
 /* record of a slot: x (3), m, momentum m (v + dt a) (3), affine = m C - dt V (4/dx^2) tau (3 x 3)
  * and, with CLFLOW_FLIP, m v (3) and m C (3 x 3) */
 #define P2G_REC (CLFLOW_FLIP ? 28 : 16)

@@ -2,10 +2,14 @@
  *
  *   F_tr = (I + dt C_n) F_n;  (F_{n+1}, plastic_{n+1}) = Z(F_tr; param);  tau = tau(F_{n+1})
  *
- * Two kernels (one, update_stress_elastic_simd, when every particle is fixed-corotated
- * elastic): trial_svd_simd writes U, s, V = svd3(F_tr) with CLFLOW_SIMD_LANES particles per
- * work-item in vector registers (CPU compilers do not vectorise the SVD's Jacobi loop across
- * work-items themselves), then update_stress applies each particle's model.
+ * Two kernels, an SVD of F_tr then update_stress (each particle's model, a particle a
+ * work-item), or one fused kernel (SVD included) when every particle is fixed-corotated
+ * elastic. The SVD and the fused kernel come in the two shapes of the plan's stress stage
+ * (clflow/runtime/plan.py):
+ *  - "simd_lanes" (CPU devices): trial_svd_simd, update_stress_elastic_simd hold
+ *    CLFLOW_SIMD_LANES particles per work-item in vector registers (CPU compilers do not
+ *    vectorise the SVD's Jacobi loop across work-items themselves);
+ *  - "plain" (GPUs): trial_svd, update_stress_elastic, a particle a work-item.
  *
  * Reads state n, writes state n+1's F and plastic state and this substep's tau: nothing
  * is overwritten that the adjoint needs. param[p] holds PARAM_COUNT kernel parameters per
@@ -93,6 +97,44 @@ __kernel void update_stress(const int n, const real dt, __global const real *F_i
     store_row(F_out, p, 9, F_new);
     plastic_out[p] = plastic_new;
     store_row(tau_out, p, 9, tau);
+}
+
+/* U, s, V = svd3(F_tr), a particle a work-item (the "plain" shape of trial_svd_simd). */
+__kernel void trial_svd(const int n, const real dt, __global const real *F_in, __global const real *C_in,
+                        __global real *U_out, __global real *s_out, __global real *V_out)
+{
+    const int p = get_global_id(0);
+    if (p >= n)
+        return;
+    real F[9], C[9], step[9], F_tr[9], U[9], s[3], V[9];
+    load_row(F_in, p, 9, F);
+    load_row(C_in, p, 9, C);
+    trial_deformation(F, C, dt, step, F_tr);
+    svd3(F_tr, U, s, V);
+    store_row(U_out, p, 9, U);
+    store_row(s_out, p, 3, s);
+    store_row(V_out, p, 9, V);
+}
+
+/* update_stress for scenes whose particles are all fixed-corotated elastic, fused with the
+ * SVD, a particle a work-item (the "plain" shape of update_stress_elastic_simd). */
+__kernel void update_stress_elastic(const int n, const real dt, __global const real *F_in, __global const real *C_in,
+                                    __global const real *plastic_in, __global const real *param, __global real *F_out,
+                                    __global real *plastic_out, __global real *tau_out)
+{
+    const int p = get_global_id(0);
+    if (p >= n)
+        return;
+    real F[9], C[9], step[9], F_tr[9], U[9], s[3], V[9], tau[9];
+    load_row(F_in, p, 9, F);
+    load_row(C_in, p, 9, C);
+    trial_deformation(F, C, dt, step, F_tr);
+    svd3(F_tr, U, s, V);
+    __global const real *q = param + (long)p * PARAM_COUNT;
+    fixed_corotated_tau(F_tr, U, s, V, q[0], q[1], tau);
+    store_row(F_out, p, 9, F_tr);
+    store_row(tau_out, p, 9, tau);
+    plastic_out[p] = plastic_in[p];
 }
 
 #ifdef CLFLOW_SIMD_LANES

@@ -146,6 +146,18 @@ def test_the_gather_adjoint_writes_every_node_and_record(flip, monkeypatch):
     assert adjoint.gather and not hasattr(adjoint, "grid_v_bar_copies")
 
 
+@pytest.mark.parametrize("p2g,gather", [("private", False), ("gather", True), ("atomic", False)])
+def test_the_adjoint_takes_the_p2g_path_taken(p2g, gather, monkeypatch):
+    """A differentiable run's adjoint follows its simulator's plan, with the P2G path taken:
+    a private or gather P2G's scatter shape, the CPU plan's own after the atomic one."""
+    from clflow.mpm.autograd import engine
+
+    monkeypatch.setenv("CLFLOW_KERNELS", "cpu")
+    sim = two_blocks(p2g=p2g)
+    adjoint = engine(sim).adjoint
+    assert adjoint.plan == sim.kernels.plan and sim.kernels.plan.p2g == p2g and adjoint.gather == gather
+
+
 @pytest.mark.parametrize("material", ["plasticine", "metal", "foam", "sand", "newtonian", "non_newtonian", "snow"])
 def test_material_substep_adjoint_matches_autograd_of_reference(material):
     assert_adjoint_matches_reference(warmed_up(materials=(material,)))

@@ -217,21 +217,49 @@ def test_the_private_paths_grid_update_equals_grid_update_on_every_node(flip, sc
 
 
 def test_the_p2g_path_follows_the_plan_unless_forced(device, monkeypatch):
+    """The plan records the P2G path taken: its own, else $CLFLOW_P2G, else the simulator's
+    request; the adjoint's scatter takes a private or gather P2G's shape."""
     from clflow.errors import InputError
-    from clflow.mpm.substep import P2G_ENV, p2g_path
-    from clflow.runtime.plan import KERNELS_ENV
+    from clflow.mpm.substep import p2g_path
+    from clflow.runtime.plan import KERNELS_ENV, P2G_ENV, kernel_plan
 
     monkeypatch.delenv(P2G_ENV, raising=False)
     for kind, path in (("cpu", "private"), ("gpu", "gather")):
         monkeypatch.setenv(KERNELS_ENV, kind)
-        assert p2g_path(device) == path
+        assert p2g_path(device) == path and kernel_plan(device).adjoint_scatter == path
     assert p2g_path(device, "atomic") == "atomic"
+    assert kernel_plan(device, "private").adjoint_scatter == "private"  # the GPU plan, P2G private
+    assert kernel_plan(device, "atomic").adjoint_scatter == "gather"  # no atomic adjoint: the plan's own
     monkeypatch.setenv(P2G_ENV, "atomic")
-    assert p2g_path(device) == "atomic"
+    assert p2g_path(device) == "atomic" and kernel_plan(device).p2g == "atomic"
     assert p2g_path(device, "private") == "private"  # an explicit choice wins over the variable
     monkeypatch.setenv(P2G_ENV, "fast")
     with pytest.raises(InputError, match="CLFLOW_P2G must be one of"):
         p2g_path(device)
+
+
+def test_the_memory_check_counts_the_path_taken(device, monkeypatch):
+    """The grid's memory check counts a private P2G copy only where the plan's path takes it:
+    a device with room for the grid but not for a copy refuses the private path alone."""
+    import dataclasses
+    import types
+
+    from clflow.errors import InputError
+    from clflow.mpm.substep import check_grid_memory
+    from clflow.runtime.plan import KERNELS_ENV, P2G_ENV, kernel_plan
+
+    monkeypatch.setenv(KERNELS_ENV, "cpu")
+    monkeypatch.delenv(P2G_ENV, raising=False)
+    grid = Grid((32, 32, 32), 1 / 32)
+    nodes_bytes = grid.nodes * 8 * (4 + 3)  # float64 (m, mv) and v per node
+    info = dataclasses.replace(device.info, global_mem_size=nodes_bytes + 1)
+    small = types.SimpleNamespace(info=info)
+    for path in ("gather", "atomic"):
+        check_grid_memory(small, grid, 8, plan=kernel_plan(small, path))
+    with pytest.raises(InputError, match="of device memory"):
+        check_grid_memory(small, grid, 8, plan=kernel_plan(small, "private"))
+    monkeypatch.setenv(P2G_ENV, "gather")
+    check_grid_memory(small, grid, 8)  # the device's plan, with $CLFLOW_P2G's path
 
 
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-9), (torch.float32, 1e-4)])

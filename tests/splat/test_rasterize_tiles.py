@@ -149,3 +149,19 @@ def test_gpu_backward_gives_the_same_bits_twice(monkeypatch):
     first, second = (run_composite(tensors, tiles, width, height)[3] for _ in range(2))
     for a, b in zip(first, second):
         assert torch.equal(a, b)
+
+
+def test_each_plan_launches_the_compositing_kernels_it_registers(plan, device, monkeypatch):
+    """The compositing kernels a call launches are those of its plan's raster shape in
+    clflow.runtime.plan.STAGE_KERNELS (the registry docs/gpu.md lists)."""
+    from clflow.runtime.plan import kernel_plan
+
+    launched, launch = [], device.launch
+    monkeypatch.setattr(
+        device, "launch", lambda kernel, *args, **kw: launched.append(kernel) or launch(kernel, *args, **kw)
+    )
+    tensors, tiles, _, width, height = splats(SCENES["partial_tiles"])
+    run_composite(tensors, tiles, width, height)
+    names = {kernel.function_name for kernel in launched}
+    for role in ("forward", "backward"):
+        assert kernel_plan(device).kernel("raster", role).entry in names, (plan, role, names)

@@ -1,6 +1,8 @@
-/* Adjoint of the grid update (grid.cl), reading vbar from grid_v_bar, the column sum of the
- * G2P adjoint's private grid copies (sum_grid_copies; only on nodes with mass): boundary
- * conditions in reverse table order, then
+/* Adjoint of the grid update (grid.cl), for every shape of the G2P adjoint's scatter
+ * (clflow/runtime/plan.py): it reads vbar from grid_v_bar, which that scatter wrote (the
+ * column sum of its private grid copies, p2g_private.cl sum_grid_copies, on CPU devices; the
+ * gather per node, g2p_adjoint_gather.cl, on GPUs), only on nodes with mass:
+ * boundary conditions in reverse table order, then
  * v = mv/m + dt g:  pbar = vbar/m,  mbar = -(mv . vbar)/m^2  (0 on empty nodes).
  * With CLFLOW_FLIP grid_v_bar also holds dvbar of dv = v - mv0/m: vbar += dvbar before the
  * boundary conditions' adjoint (dv reads v after them), p0bar = -dvbar/m and

@@ -1,4 +1,4 @@
-/* Adjoint of P2G (p2g.cl), a gather: each particle reads the adjoint of its 27 nodes.
+/* Adjoint of P2G (p2g_private.cl and its other shapes), a gather: each particle reads the adjoint of its 27 nodes.
  *
  * Forward: m_i += w m,  mv_i += w [m (v + dt a) + A d],  A = m C - dt V (4/dx^2) tau.
  * Given grid_bar = (mbar_i, pbar_i) per node (GRID_CH reals; p2g_flip_adjoint reads the rest):

@@ -6,8 +6,10 @@
  *   plasticbar = dplastic'/dplastic^T plastic'bar (+ the yield stress's share for metal)
  * C_bar holds the P2G adjoint's part on entry; param_bar [n, PARAM_COUNT] is accumulated into
  * (one row per particle, summed over substeps: the host reduces rows in a fixed order).
- * U, s, V = svd3(F_tr) come from the forward's trial_svd_simd (stress.cl); scenes of
- * fixed-corotated elastic particles only take update_stress_elastic_adjoint_simd instead. */
+ * U, s, V = svd3(F_tr) come from the forward's SVD kernel (stress.cl: trial_svd_simd or
+ * trial_svd, the plan's stress shape); scenes of fixed-corotated elastic particles only take
+ * the fused update_stress_elastic_adjoint_simd (CPU devices: SIMD lanes) or
+ * update_stress_elastic_adjoint (GPUs: a particle a work-item) instead. */
 #include "mpm/mpm.h"
 #include "mpm/materials/elastic.h"
 #include "mpm/materials/elastic_adjoint.h"
@@ -102,6 +104,41 @@ __kernel void update_stress_adjoint(const int n, const real dt, __global const r
     plastic_bar[p] = plastic_b;
     for (int k = 0; k < PARAM_COUNT; ++k)
         param_bar[(long)p * PARAM_COUNT + k] += q_bar[k];
+}
+
+/* update_stress_adjoint for scenes whose particles are all fixed-corotated elastic (the
+ * forward's update_stress_elastic), fused with svd3(F_tr), a particle a work-item (the
+ * "plain" shape of update_stress_elastic_adjoint_simd). F' = F_tr and the plastic state
+ * passes through. */
+__kernel void update_stress_elastic_adjoint(const int n, const real dt, __global const real *F_in,
+                                            __global const real *C_in, __global const real *param,
+                                            __global const real *tau_bar, __global const real *F_bar_out,
+                                            __global const real *plastic_bar_out, __global real *F_bar,
+                                            __global real *C_bar, __global real *plastic_bar, __global real *param_bar)
+{
+    const int p = get_global_id(0);
+    if (p >= n)
+        return;
+    real F[9], C[9], step[9], F_tr[9], U[9], s[3], V[9], tb[9], F_tr_bar[9], Fb[9], Cb[9], dCb[9];
+    load_row(F_in, p, 9, F);
+    load_row(C_in, p, 9, C);
+    load_row(tau_bar, p, 9, tb);
+    load_row(F_bar_out, p, 9, F_tr_bar);
+    load_row(C_bar, p, 9, Cb);
+    __global const real *q = param + (long)p * PARAM_COUNT;
+    trial_deformation(F, C, dt, step, F_tr);
+    svd3(F_tr, U, s, V);
+    real mu_bar, lambda_bar;
+    fixed_corotated_adjoint(F_tr, U, s, V, q[0], q[1], tb, F_tr_bar, &mu_bar, &lambda_bar);
+    mat3_mul_at(step, F_tr_bar, Fb);
+    mat3_mul_bt(F_tr_bar, F, dCb);
+    for (int k = 0; k < 9; ++k)
+        Cb[k] += dt * dCb[k];
+    store_row(F_bar, p, 9, Fb);
+    store_row(C_bar, p, 9, Cb);
+    plastic_bar[p] = plastic_bar_out[p];
+    param_bar[(long)p * PARAM_COUNT] += mu_bar;
+    param_bar[(long)p * PARAM_COUNT + 1] += lambda_bar;
 }
 
 #ifdef CLFLOW_SIMD_LANES

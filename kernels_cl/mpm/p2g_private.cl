@@ -1,4 +1,5 @@
-/* Substep stage 2: particle to grid (APIC / MLS-MPM momentum and mass transfer).
+/* Substep stage 2: particle to grid (APIC / MLS-MPM momentum and mass transfer), the CPU
+ * shape (clflow/runtime/plan.py: P2G "private", CPU devices by default).
  *
  * For each of the 27 nodes i of particle p, with d = x_i - x_p:
  *   m_i  += w m_p
@@ -8,56 +9,14 @@
  * a_p = accel[group[p]] is the particle's driver acceleration (group -1: none).
  * Grid layout: grid[GRID_CH*node + (0: m, 1..3: mv, 4..6: mv0 with CLFLOW_FLIP)].
  *
- * Two ways to sum, chosen by the host from the device record:
- *  - p2g_private + sum_copies_update_grid (grid.cl; CPU devices, no float atomics): work-item k scatters the
- *    contiguous particle chunk k into its own grid copy with plain adds, then the copies
- *    are summed node by node in the fixed order k = 0, 1, ...: deterministic, bit-identical.
- *    Each copy is zeroed and summed only in the box of nodes its chunk touches (chunk_box).
- *  - p2g_atomic (GPUs): one work-item per particle, atomic_add_real into one grid. */
+ * p2g_private + sum_copies_update_grid (grid.cl): work-item k scatters the contiguous particle
+ * chunk k into its own grid copy with plain adds, then the copies are summed node by node in
+ * the fixed order k = 0, 1, ...: deterministic, bit-identical. Each copy is zeroed and summed
+ * only in the box of nodes its chunk touches (chunk_box). sum_grid_copies is the same column
+ * sum for the G2P adjoint's private copies. The other shapes of the same sums:
+ * p2g_gather.cl (GPUs: a gather per node over particles sorted by cell) and p2g_atomic.cl
+ * (asked for: atomic adds). */
 #include "mpm/mpm.h"
-#include "common/atomics.h"
-
-/* Particle p's 27 nodes, atomic adds (p2g_atomic). */
-inline void p2g_particle_atomic(const grid_t *g, const int p, const real dt, __global const real *x,
-                                __global const real *v, __global const real *C, __global const real *tau,
-                                __global const real *mass, __global const real *volume, __global const int *group,
-                                __global const real *accel, __global real *grid)
-{
-    real xp[3];
-    load_row(x, p, 3, xp);
-    const real m = mass[p];
-    const real stress_scale = -dt * volume[p] * 4 / (g->dx * g->dx);
-    vec3r affine[3]; /* rows of m C - dt V (4/dx^2) tau */
-    for (int r = 0; r < 3; ++r)
-        affine[r] = stress_scale * vload3(3 * p + r, tau) + m * vload3(3 * p + r, C);
-    const int gp = group[p];
-    const vec3r vp = vload3(p, v);
-    const vec3r momentum = m * (vp + (gp >= 0 ? dt * vload3(gp, accel) : (vec3r)0));
-#if CLFLOW_FLIP
-    const vec3r mC[3] = {m * vload3(3 * p, C), m * vload3(3 * p + 1, C), m * vload3(3 * p + 2, C)};
-#endif
-    const stencil_t st = make_stencil(g, xp);
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j)
-            for (int k = 0; k < 3; ++k) {
-                const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
-                const vec3r d = (vec3r)((i - st.fx[0]) * g->dx, (j - st.fx[1]) * g->dx, (k - st.fx[2]) * g->dx);
-                const vec3r mv = w * (momentum + (vec3r)(dot(affine[0], d), dot(affine[1], d), dot(affine[2], d)));
-                __global real *node = grid + GRID_CH * grid_index(g, st.base[0] + i, st.base[1] + j, st.base[2] + k);
-#if CLFLOW_FLIP
-                const vec3r mv0 = w * (m * vp + (vec3r)(dot(mC[0], d), dot(mC[1], d), dot(mC[2], d)));
-#endif
-                atomic_add_real(node, w * m);
-                atomic_add_real(node + 1, mv.x);
-                atomic_add_real(node + 2, mv.y);
-                atomic_add_real(node + 3, mv.z);
-#if CLFLOW_FLIP
-                atomic_add_real(node + 4, mv0.x);
-                atomic_add_real(node + 5, mv0.y);
-                atomic_add_real(node + 6, mv0.z);
-#endif
-            }
-}
 
 /* dot(a, b) of 3-vectors in lanes, as the dot builtin rounds it: (a0 b0 + a1 b1) + a2 b2, each
  * product and sum rounded on its own (separate statements: no fused multiply-add). */
@@ -71,7 +30,7 @@ inline realv dot3_v(const realv *a, const realv *b)
 }
 
 /* Particles p0 .. min(p0 + CLFLOW_SIMD_LANES, end) - 1 into a grid copy with plain adds: their
- * node values computed in vector lanes, lane by lane the operations of p2g_particle_atomic,
+ * node values computed in vector lanes, lane by lane the operations of p2g_particle_atomic (p2g_atomic.cl),
  * then added particle after particle, each one's 27 nodes in order: the sums of a scalar loop
  * over the particles to the bit, for a fraction of the arithmetic (CPU compilers do not
  * vectorise p2g_private's loop). */
@@ -150,13 +109,6 @@ inline void p2g_lanes(const grid_t *g, const int p0, const int end, const real d
     }
 }
 
-#define P2G_GRID_ARGS                                                                                                  \
-    const int nx, const int ny, const int nz, const real dx, const real ox, const real oy, const real oz
-#define P2G_PARTICLE_ARGS                                                                                              \
-    const int n, const real dt, __global const real *x, __global const real *v, __global const real *C,                \
-        __global const real *tau, __global const real *mass, __global const real *volume, __global const int *group,   \
-        __global const real *accel
-
 /* Work-item k zeroes grid copy k in the box its particles [k*chunk, (k+1)*chunk) touch (saved
  * in boxes[6k .. 6k+5]) and scatters them into it. */
 __kernel void p2g_private(P2G_GRID_ARGS, P2G_PARTICLE_ARGS, const int copies, const int chunk,
@@ -186,14 +138,4 @@ __kernel void sum_grid_copies(const int nx, const int ny, const int nz, const in
         return;
     int lo, hi;
     sum_copies_row(nx, ny, nz, channels, copies, boxes, grid_copies, grid, row, &lo, &hi);
-}
-
-/* One work-item per particle, atomic adds into `grid` (zeroed by the host). */
-__kernel void p2g_atomic(P2G_GRID_ARGS, P2G_PARTICLE_ARGS, __global real *grid)
-{
-    const int p = get_global_id(0);
-    if (p >= n)
-        return;
-    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
-    p2g_particle_atomic(&g, p, dt, x, v, C, tau, mass, volume, group, accel, grid);
 }
