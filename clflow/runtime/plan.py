@@ -102,9 +102,11 @@ STAGE_KERNELS: dict[str, dict[str, dict[str, Kernel]]] = {
         },
     },
     "raster": {
-        "tile_rows": _kernels("splat/rasterize.cl", forward="rasterize_forward", backward="rasterize_backward"),
+        "tile_rows": _kernels(
+            "splat/rasterize_tile_rows.cl", forward="rasterize_forward", backward="rasterize_backward"
+        ),
         "workgroup": _kernels(
-            "splat/rasterize_tiles.cl", forward="rasterize_tiles_forward", backward="rasterize_tiles_backward"
+            "splat/rasterize_workgroup.cl", forward="rasterize_tiles_forward", backward="rasterize_tiles_backward"
         ),
     },
 }

@@ -1,7 +1,9 @@
 """Constants of the splat rasteriser, named once and shared by the kernels (as -D defines),
 the torch op and the pure-torch reference (values as in 3DGS and gsplat)."""
 
-TILE_SIZE = 16  # pixels per tile side; a tile is a work-item (rasterize.cl) or a work-group (rasterize_tiles.cl)
+TILE_SIZE = (
+    16  # pixels per tile side; a tile is a work-item (rasterize_tile_rows.cl) or a work-group (rasterize_workgroup.cl)
+)
 EPS2D = 0.3  # pixel^2 added to the diagonal of every 2D covariance (low-pass dilation)
 ALPHA_MIN = 1.0 / 255.0  # a Gaussian whose alpha at a pixel is below this is skipped there
 ALPHA_MAX = 0.99  # alpha = min(ALPHA_MAX, opacity * exp(-sigma))

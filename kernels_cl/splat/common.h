@@ -7,7 +7,7 @@
  *   ALPHA_MIN      a Gaussian with alpha below this is skipped at a pixel
  *   ALPHA_MAX      alpha is clamped to at most this
  *   T_MIN          compositing stops before a Gaussian that takes T below this
- *   ROW_CULL_MARGIN  margin (in sigma) of the exact row cull in rasterize.cl
+ *   ROW_CULL_MARGIN  margin (in sigma) of the exact row cull in rasterize_tile_rows.cl
  * Contraction to fma is off so the forward and backward kernels take the same
  * skip/stop decisions from the same inputs. */
 #ifndef CLFLOW_SPLAT_COMMON_H

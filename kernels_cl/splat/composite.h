@@ -1,5 +1,5 @@
-/* What both shapes of the compositing kernels share (rasterize.cl: a work-item per tile, for
- * CPU devices; rasterize_tiles.cl: a work-group per tile, a work-item per pixel, for GPUs):
+/* What both shapes of the compositing kernels share (rasterize_tile_rows.cl: a work-item per tile, for
+ * CPU devices; rasterize_workgroup.cl: a work-group per tile, a work-item per pixel, for GPUs):
  * the layout of the entry records they read and of the gradient rows they write, the alpha
  * of a Gaussian at a pixel and the adjoint of the compositing step. The maths is written
  * once, as macros over a value type V (real for one pixel, a vector of reals for a row of
@@ -20,7 +20,7 @@
 #endif
 
 /* Per-Gaussian record (entries.cl: entry_records): mean2d x, y, conic A, B, C, opacity, then
- * the row cull's cut, slope and reach (rasterize.cl). A sorted entry's record is followed by
+ * the row cull's cut, slope and reach (rasterize_tile_rows.cl). A sorted entry's record is followed by
  * the Gaussian's CHANNELS features: entries [M, ENTRY_STRIDE] (entries.cl: sort_entry_records). */
 #define ENTRY_FIELDS 9
 #define ENTRY_STRIDE (ENTRY_FIELDS + CHANNELS)

@@ -1,5 +1,5 @@
-/* The per-view scratch of the compositing kernels, whichever shape runs (rasterize.cl,
- * rasterize_tiles.cl): the records of the sorted tile entries they read, and the sum of the
+/* The per-view scratch of the compositing kernels, whichever shape runs (rasterize_tile_rows.cl,
+ * rasterize_workgroup.cl): the records of the sorted tile entries they read, and the sum of the
  * per-slot gradient rows they write into per-Gaussian gradients.
  *
  * Inputs per Gaussian g: mean2d [N,2] (pixels), conic [N,3] (A, B, C), opacity [N],
@@ -9,7 +9,7 @@
 
 /* Per Gaussian, once per view (not per tile entry: the log, root and divisions would be
  * redone for every tile a Gaussian touches): records [N, ENTRY_FIELDS] = (mean2d x, y,
- * conic A, B, C, opacity, cut, slope, reach), the last three for rasterize.cl's row cull.
+ * conic A, B, C, opacity, cut, slope, reach), the last three for rasterize_tile_rows.cl's row cull.
  * Culled Gaussians get records no tile reads. */
 __kernel void entry_records(__global const real *means2d, __global const real *conics, __global const real *opacities,
                             __global real *records, const int n)

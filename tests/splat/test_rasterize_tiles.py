@@ -1,5 +1,5 @@
-"""Both shapes of the compositing kernels (clflow.runtime.plan: "cpu" runs rasterize.cl, a
-work-item per tile; "gpu" runs rasterize_tiles.cl, a work-group per tile and a work-item per
+"""Both shapes of the compositing kernels (clflow.runtime.plan: "cpu" runs rasterize_tile_rows.cl, a
+work-item per tile; "gpu" runs rasterize_workgroup.cl, a work-group per tile and a work-item per
 pixel) against the dense torch reference, against each other, and run twice."""
 
 import pytest

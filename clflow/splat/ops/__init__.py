@@ -8,7 +8,7 @@ Pipeline of :func:`rasterize_gaussians`, one view:
 3. tile lists sorted by (tile, depth) on the device (binning.py, binning.cl, sort.cl);
 4. ``clflow::splat_composite``: per-tile front-to-back compositing of every channel
    (colours, extra features, depth) with early termination, in the shape the device's
-   kernel plan picks (clflow.runtime.plan: rasterize.cl for CPUs, rasterize_tiles.cl for GPUs).
+   kernel plan picks (clflow.runtime.plan: rasterize_tile_rows.cl for CPUs, rasterize_workgroup.cl for GPUs).
 
 Both ops have OpenCL adjoints (back to front for compositing); per-Gaussian gradients are
 summed from per-(tile, Gaussian) slots in a fixed order, so they are deterministic.

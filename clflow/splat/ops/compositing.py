@@ -1,5 +1,5 @@
 """``clflow::splat_composite``: front-to-back compositing of the sorted splats per tile, in the
-shape the device's kernel plan picks (rasterize.cl for CPUs, rasterize_tiles.cl for GPUs),
+shape the device's kernel plan picks (rasterize_tile_rows.cl for CPUs, rasterize_workgroup.cl for GPUs),
 over per-entry records (entries.cl); and its adjoint, back to front, with the per-(tile,
 Gaussian) gradient slots summed per Gaussian in a fixed order."""
 
@@ -66,16 +66,19 @@ def _composite_launch(device, direction: str, dtype: torch.dtype, channels: int,
     ``direction`` ("forward" or "backward") in the shape the device's plan picks
     (clflow.runtime.plan):
 
-    - "tile_rows" (rasterize.cl): a work-item per 16 x 16 tile, each its own work-group, so
+    - "tile_rows" (rasterize_tile_rows.cl): a work-item per 16 x 16 tile, each its own work-group, so
       the busy tiles spread over the cores;
-    - "workgroup" (rasterize_tiles.cl): a work-group of TILE_PIXELS work-items per tile, one
+    - "workgroup" (rasterize_workgroup.cl): a work-group of TILE_PIXELS work-items per tile, one
       per pixel, entries staged in local memory in batches sized to LOCAL_MEM_BYTES.
     """
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
     image = dict(width=np.int32(width), height=np.int32(height), tiles_x=np.int32(tiles_x))
-    if kernel_plan(device).raster == "tile_rows":
-        kern = splat_kernel("rasterize.cl", f"rasterize_{direction}", dtype, CHANNELS=channels)
+    plan = kernel_plan(device)
+    source, entry = plan.kernel("raster", direction)
+    source = source.removeprefix("splat/")
+    if plan.raster == "tile_rows":
+        kern = splat_kernel(source, entry, dtype, CHANNELS=channels)
         return kern, n_tiles, image | dict(n_tiles=np.int32(n_tiles)), 1
     if device.info.max_work_group_size < TILE_PIXELS:
         raise DeviceError(
@@ -83,9 +86,7 @@ def _composite_launch(device, direction: str, dtype: torch.dtype, channels: int,
             f"compositing kernels need {TILE_PIXELS}; run the CPU shape (CLFLOW_KERNELS=cpu)"
         )
     local_bytes = min(device.info.local_mem_size, MAX_RASTER_LOCAL_BYTES)
-    kern = splat_kernel(
-        "rasterize_tiles.cl", f"rasterize_tiles_{direction}", dtype, CHANNELS=channels, LOCAL_MEM_BYTES=local_bytes
-    )
+    kern = splat_kernel(source, entry, dtype, CHANNELS=channels, LOCAL_MEM_BYTES=local_bytes)
     return kern, n_tiles * TILE_PIXELS, image, TILE_PIXELS
 
 

@@ -1,6 +1,6 @@
 /* Per-tile compositing of sorted splats for CPU devices (plan raster "tile_rows",
  * clflow/runtime/plan.py): forward (front to back) and adjoint (back to front).
- * rasterize_tiles.cl is the GPU shape of the same kernels; splat/composite.h holds the maths
+ * rasterize_workgroup.cl is the GPU shape of the same kernels; splat/composite.h holds the maths
  * both share.
  *
  * Inputs per tile t: ranges[t] = [start, end) into the (tile, depth) sorted list, whose entry
@@ -14,7 +14,7 @@
  * 16-wide vector (rowv), so every step runs on 16 pixels at once in SIMD registers (PoCL
  * did not vectorise per-pixel loops across work-items). No barriers, no local memory. */
 #if TILE_SIZE != 16
-#error "rasterize.cl holds a tile row in a 16-wide vector: TILE_SIZE must be 16"
+#error "rasterize_tile_rows.cl holds a tile row in a 16-wide vector: TILE_SIZE must be 16"
 #endif
 #if REAL_IS_DOUBLE
 typedef double16 rowv;

@@ -1,6 +1,6 @@
 /* Per-tile compositing of sorted splats for GPUs (plan raster "workgroup",
  * clflow/runtime/plan.py): forward (front to back) and adjoint (back to front), with the
- * outputs of rasterize.cl (the CPU shape). splat/composite.h holds the maths both share.
+ * outputs of rasterize_tile_rows.cl (the CPU shape). splat/composite.h holds the maths both share.
  *
  * Layout: one work-group of TILE_PIXELS = TILE_SIZE^2 work-items per tile, one work-item per
  * pixel (launch: local size TILE_PIXELS, global size n_tiles * TILE_PIXELS; group g is tile
