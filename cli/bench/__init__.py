@@ -12,7 +12,6 @@ BENCHMARKS: dict[str, str] = {
     "query": "clflow_cli.bench.query:query",
     "ply": "clflow_cli.bench.ply:ply",
     "flow": "clflow_cli.bench.flow:flow",
-    "flow-bias": "clflow_cli.bench.flow_bias:flow_bias",
     "raster": "clflow_cli.bench.raster:raster",
     "mpm": "clflow_cli.bench.mpm:mpm",
     "mpm-adjoint": "clflow_cli.bench.mpm_adjoint:mpm_adjoint",
