@@ -28,22 +28,7 @@ from clflow_cli.options import FiniteFloat, InputFile, out_option, pixel_box_opt
 @click.option("--video/--no-video", "write_panels_video", default=True, show_default=True,
               help="Also write flow.mp4 (frame | colour-coded flow; played at 24 fps when the rate is unknown).")  # fmt: skip
 @click.pass_obj
-def flow(
-    obj,
-    video,
-    output,
-    method,
-    preset,
-    raft_weights,
-    fps,
-    start,
-    end,
-    stride,
-    sim_fps,
-    mask_image,
-    box,
-    write_panels_video,
-):
+def flow(obj, video, output, write_panels_video, **options):
     """Optical flow between consecutive frames of VIDEO (a video file or an image folder).
 
     Writes OUT/flow.npz (flow [T-1, H, W, 2] px, valid [T-1, H, W] = forward-backward
@@ -53,46 +38,14 @@ def flow(
     """
     from pathlib import Path
 
-    import numpy as np
-
     from clflow.errors import InputError
-    from clflow.fileio import atomic_dir, check_output_folder
-    from clflow.flow.export import FLOW_ENTRIES, write_flow_folder
-    from clflow.flow.optical_flow import mask_from_box, mask_from_image
-    from clflow.flow.video import read_video
+    from clflow.pipeline.runs import export_flow
     from clflow_cli.progress import progress
 
-    if mask_image and box:
+    # options: method, preset, raft_weights, fps, start, end, stride, sim_fps, mask_image, box (export_flow's names)
+    if options["mask_image"] and options["box"]:
         raise InputError("give either --mask or --box, not both")
-    timed = [name for name, given in (("--start", start), ("--end", end), ("--sim-fps", sim_fps)) if given]
-    if timed and fps is None and Path(video).is_dir():  # known before its frames are read
+    timed = [name for name, key in (("--start", "start"), ("--end", "end"), ("--sim-fps", "sim_fps")) if options[key]]
+    if timed and options["fps"] is None and Path(video).is_dir():  # known before its frames are read
         raise click.UsageError(f"{video} is an image folder, which has no frame rate: {', '.join(timed)} needs --fps")
-    out = Path(output) if output else Path(Path(video).stem + "_flow")
-    inputs = [path for path in (video, mask_image, raft_weights) if path is not None]
-    check_output_folder(out, FLOW_ENTRIES, inputs)  # replaces only clflow's: before the work
-    clip = read_video(video, fps=fps)
-    click.echo(clip.describe())
-    if start > 0 or end is not None:
-        clip = clip.window(start, end)
-    if stride != 1:
-        clip = clip.every(stride)
-    if sim_fps is not None:
-        clip = clip.resample_rate(sim_fps)
-    object_mask = True
-    if mask_image:
-        object_mask = mask_from_image(mask_image, clip.width, clip.height)
-    elif box:
-        object_mask = mask_from_box(box, clip.width, clip.height)
-    with (
-        progress(3 * max(len(clip.frames) - 1, 0), "optical flow") as advance,  # forward, backward, files
-        atomic_dir(out, FLOW_ENTRIES, inputs) as staged,  # all or nothing: no earlier run's extra frames stay
-    ):
-        forward, valid = write_flow_folder(
-            clip, staged, method, preset, object_mask, raft_weights, write_panels_video, advance
-        )
-    speed = np.linalg.norm(forward, axis=-1)
-    click.echo(
-        f"{method}{'/' + preset if method == 'dis' else ''}: {len(forward)} flow fields {clip.width}x{clip.height}, "
-        f"mean speed {speed.mean():.3f} px/frame, max {max(float(speed.max()), 1e-6):.2f}, "
-        f"consistent {valid.mean():.1%} -> {out}"
-    )
+    export_flow(video, output, **options, panels_video=write_panels_video, echo=click.echo, progress=progress)

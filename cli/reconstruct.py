@@ -4,16 +4,15 @@ from __future__ import annotations
 
 import click
 
-from clflow_cli.main import Interrupted
 from clflow_cli.options import InputFile, count_option, given_options, out_option
-from clflow_cli.progress import progress
+from clflow_cli.progress import note, progress
 
 LOG_EVERY = 100  # iterations between progress lines when stderr is not a terminal
 #: what only a photo and its depth map take (no training), and what every reconstruction takes
 DEPTH_OPTIONS = ("depth_scale", "fov", "shell")
 COMMON_OPTIONS = ("images", "output_dir", "depth")
-#: what reconstruct writes into its folder
-RECONSTRUCTION_ENTRIES = ("point_cloud.ply", "cameras.json", "metrics.json", "checkpoint.pt", "preview")
+#: where a training's views come from (clflow.recon.load_views' options of those names)
+VIEW_SOURCES = ("transforms", "colmap", "cameras_json", "frame", "masks")
 
 
 @click.command("reconstruct")
@@ -58,11 +57,6 @@ def reconstruct(
     ctx,
     images,
     output_dir,
-    transforms,
-    colmap,
-    cameras_json,
-    frame,
-    masks,
     background,
     preview_every,
     checkpoint_every,
@@ -94,101 +88,28 @@ def reconstruct(
     if unused:
         why = "with --depth nothing is trained" if photo else "they go with --depth (a photo and its depth map)"
         raise click.UsageError(f"{why}: drop {', '.join(unused)}")
-    from clflow.fileio import check_output_folder, output_folder
+    if photo:
+        from clflow.pipeline.runs import reconstruct_photo
 
-    inputs = [path for path in (images, depth, transforms, colmap, cameras_json, masks) if path is not None]
-    with output_folder(output_dir):  # this run's: other runs are refused, before any work
-        check_output_folder(output_dir, RECONSTRUCTION_ENTRIES, inputs)  # replaces only clflow's
-        if depth is not None:
-            return _from_depth(images, depth, depth_scale, fov, shell, output_dir)
-        _train(images, output_dir, background, training, transforms, colmap, cameras_json, masks, frame, resume,
-               checkpoint_every, preview_every)  # fmt: skip
+        reconstruct_photo(images, depth, output_dir, depth_scale, fov, shell, echo=click.echo)
+        return
+    from clflow.pipeline.runs import reconstruct_images
+    from clflow.recon import Settings
 
-
-def _train(images, output_dir, background, training, transforms, colmap, cameras_json, masks, frame, resume,
-           checkpoint_every, preview_every) -> None:  # fmt: skip
-    """reconstruct's training, once the output folder is held and checked."""
-    from clflow.recon import Settings, load_views
-    from clflow.recon.train import reconstruct as train
-
+    sources = {name: training.pop(name) for name in VIEW_SOURCES}
     rgb = (1.0, 1.0, 1.0) if background == "white" else (0.0, 0.0, 0.0)
     # training: --iterations, --seed, --sh-degree, ... --holdout-every, Settings' fields by name (None: its default)
     settings = Settings(background=rgb, **{k: v for k, v in training.items() if v is not None})
-    iterations = settings.iterations
-    views = load_views(
-        images,
-        transforms=transforms,
-        colmap=colmap,
-        cameras_json=cameras_json,
-        masks=masks,
-        background=rgb,
-        frame=frame,
-    )
-    click.echo(f"{len(views.views)} views; training {iterations} iterations -> {output_dir}", err=True)
     show = lambda info: f"PSNR {info['psnr']:.2f} dB, {info['gaussians']} Gaussians"  # noqa: E731
-    with progress(iterations, "reconstructing", show=show, every=LOG_EVERY) as advance:
-        try:
-            result = train(
-                views,
-                output_dir,
-                settings,
-                resume=resume,
-                checkpoint_every=checkpoint_every,
-                preview_every=preview_every,
-                progress=lambda step, info: advance(info, to=step),
-            )
-        except KeyboardInterrupt:
-            from pathlib import Path
-
-            if not (Path(output_dir) / "checkpoint.pt").is_file():
-                raise Interrupted("interrupted before the first checkpoint; nothing was saved") from None
-            raise Interrupted(
-                f"interrupted; the last checkpoint (every {checkpoint_every} iterations) is in "
-                f"{output_dir}/checkpoint.pt: continue with the same command and --resume"
-            ) from None
-    _echo_result(result.metrics, output_dir)
-
-
-def _echo_result(metrics: dict, output_dir) -> None:
-    """One line: the Gaussians, the held-out views' PSNR and SSIM, the speed and the PLY."""
-    test = metrics["test"]
-    held_out = (
-        f"held-out PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f} ({test['views']} views)"
-        if test["views"]
-        else "no held-out views"
+    reconstruct_images(
+        images,
+        output_dir,
+        settings,
+        sources=sources,
+        resume=resume,
+        checkpoint_every=checkpoint_every,
+        preview_every=preview_every,
+        echo=click.echo,
+        note=note,
+        progress=lambda total, label: progress(total, label, show=show, every=LOG_EVERY),
     )
-    click.echo(
-        f"{metrics['gaussians']} Gaussians, {held_out}, "
-        f"{metrics['iterations_per_second'] or 0:.1f} it/s -> {output_dir}/point_cloud.ply"
-    )
-
-
-def _from_depth(image_path, depth_path, depth_scale, fov, shell, output_dir) -> None:
-    """Write the back-projected Gaussians of one photo and its camera."""
-    import math
-    from pathlib import Path
-
-    import torch
-
-    from clflow.errors import InputError
-    from clflow.media import read_image
-    from clflow.recon.depth import backproject, read_depth
-    from clflow.splat.cameras import Camera, intrinsics, save_cameras_json
-    from clflow.splat.ply import save_ply
-
-    if not Path(image_path).is_file():
-        raise InputError(f"{image_path}: with --depth, IMAGES must be one image file")
-    rgba = torch.from_numpy(read_image(Path(image_path)))
-    height, width = rgba.shape[:2]
-    camera = Camera(
-        torch.eye(4, dtype=torch.float64),
-        intrinsics(width, height, math.radians(fov)),
-        width,
-        height,
-        Path(image_path).name,
-    )
-    mask = rgba[..., 3] > 0.5 if rgba.shape[2] == 4 else None
-    gaussians = backproject(rgba[..., :3], read_depth(depth_path, depth_scale), camera, mask=mask, shell=shell)
-    save_ply(Path(output_dir) / "point_cloud.ply", gaussians)
-    save_cameras_json(Path(output_dir) / "cameras.json", [camera])
-    click.echo(f"{len(gaussians)} Gaussians from {image_path} and {depth_path} -> {output_dir}/point_cloud.ply")

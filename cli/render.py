@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import math
-import re
-
 import click
 
 from clflow_cli.options import (
@@ -18,7 +15,6 @@ from clflow_cli.options import (
     out_option,
 )
 
-VIDEO_SUFFIXES = (".mp4", ".gif")
 #: what only makes new views; a camera file's views are the file's
 NEW_VIEW_OPTIONS = ("eye", "target", "up", "n_orbit", "elevation", "azimuth", "fov", "width", "height")
 
@@ -57,9 +53,7 @@ NEW_VIEW_OPTIONS = ("eye", "target", "up", "n_orbit", "elevation", "azimuth", "f
               help="Compute precision of the rasteriser.")  # fmt: skip
 @max_output_option
 @click.pass_context
-def render(
-    ctx, splats, output_dir, box, sphere, background, sh_degree, video, fps, precision, max_output_gb, **view_options
-) -> None:
+def render(ctx, splats, output_dir, **options) -> None:
     """Render SPLATS (a 3DGS PLY file, or a plain x y z [r g b] point cloud) to PNG images.
 
     The views are the cameras of --cameras or --transforms, a look-at camera (--eye,
@@ -68,163 +62,14 @@ def render(
     --box and --sphere render a selection (both: the intersection), e.g. to check the
     object region before simulating it. Positions are in the PLY's world units (m).
     """
-    import glob
-    import time
-    from pathlib import Path
+    import dataclasses
 
-    import numpy as np
-    import torch
-
-    from clflow.errors import InputError
-    from clflow.fileio import atomic_dir, check_output_folder
-    from clflow.media import to_uint8, write_image, write_video
-    from clflow.splat import load_ply
-    from clflow.splat.ply import require_gaussians
-    from clflow.splat.render import rasterize
+    from clflow.pipeline.runs import Views, render_splats
     from clflow_cli.progress import progress
 
-    from_file = view_options["cameras_json"] or view_options["transforms_json"]
-    unused = given_options(ctx, lambda name: name in NEW_VIEW_OPTIONS) if from_file else []
+    views = Views(**{field.name: options.pop(field.name) for field in dataclasses.fields(Views)})
+    unused = given_options(ctx, lambda name: name in NEW_VIEW_OPTIONS) if views.from_file else []
     if unused:
         raise click.UsageError(f"{', '.join(unused)} make new views, --cameras/--transforms give theirs: drop them")
-    if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:
-        raise InputError(f"--video {video}: the file name must end in {' or '.join(VIDEO_SUFFIXES)}")
-    output_dir = Path(output_dir)
-    if not from_file:  # the views' number and size are the options': checked before the scene is read
-        count, pixels = view_options["n_orbit"] or 1, view_options["width"] * view_options["height"]
-        _check_room(output_dir, video, count, 3 * pixels * count, max_output_gb)
-    gaussians = require_gaussians(load_ply(splats), splats).to(getattr(torch, precision))
-    total = len(gaussians)
-    if box is not None:
-        gaussians = gaussians.select_box(box[:3], box[3:])
-    if sphere is not None:
-        gaussians = gaussians.select_sphere(sphere[:3], sphere[3])
-    if (box or sphere) and len(gaussians) == 0:
-        raise InputError(f"--box/--sphere select none of the {total} Gaussians of {splats}")
-    cameras = _views(gaussians, **view_options)
-    sizes = {(c.width, c.height) for c in cameras}
-    if video is not None and len(sizes) > 1:
-        raise InputError(f"--video: the views have different sizes {sorted(sizes)}; a video needs one size")
-    if from_file:
-        _check_room(output_dir, video, len(cameras), sum(3 * c.width * c.height for c in cameras), max_output_gb)
-    stems: list[str] = []
-    for i, camera in enumerate(cameras):
-        stem = _file_stem(camera.name)
-        stems.append(stem if stem not in stems else f"{stem}_{i:04d}")  # e.g. train/r_0 and test/r_0
-    names = tuple(glob.escape(f"{stem}.png") for stem in stems)
-    check_output_folder(output_dir, names, [splats])  # replaces only clflow's images: before the work
-    frames = []
-    seconds = 0.0
-    with atomic_dir(output_dir, names, [splats]) as tmp, progress(len(cameras), "rendering") as advance:
-        for camera, stem in zip(cameras, stems):  # all or nothing
-            start = time.perf_counter()
-            with torch.no_grad():
-                image = rasterize(
-                    gaussians, camera, background=background, sh_degree=sh_degree, render_depth=False
-                ).image
-            seconds += time.perf_counter() - start
-            frame = to_uint8(image)
-            write_image(tmp / f"{stem}.png", frame)
-            frames.append(frame)
-            advance(stem)
-        if video is not None:
-            write_video(video, np.stack(frames), fps)
-    click.echo(
-        f"rendered {len(gaussians)} Gaussians: {len(frames)} view(s) -> {output_dir}/ "
-        f"({1e3 * seconds / len(frames):.0f} ms per view, first includes kernel builds)"
-    )
-    if video is not None:
-        click.echo(f"video: {video}")
-
-
-def _check_room(output_dir, video: str | None, count: int, image_bytes: int, max_output_gb: float) -> None:
-    """Refuse ``count`` views of ``image_bytes`` in all when they (and their video) would not
-    fit the disk or --max-output-gb."""
-    from pathlib import Path
-
-    from clflow.limits import check_output
-
-    what, less = f"{count:,} views", "render fewer views"
-    check_output(output_dir, image_bytes, max_output_gb, what, less)
-    if video is not None:
-        check_output(Path(video).parent, image_bytes, max_output_gb, what, less)
-
-
-def _views(
-    gaussians,
-    *,
-    cameras_json,
-    transforms_json,
-    camera_keys,
-    eye,
-    target,
-    up,
-    n_orbit,
-    elevation,
-    azimuth,
-    fov,
-    width,
-    height,
-):
-    """The cameras the view options ask for (the command's options of those names; angles in
-    degrees, sizes in pixels; see the command's help)."""
-    import torch
-
-    from clflow.errors import InputError
-    from clflow.splat import cameras as cams
-
-    if cameras_json and transforms_json:
-        raise InputError("give --cameras or --transforms, not both")
-    if cameras_json or transforms_json:
-        loaded = cams.load_cameras_json(cameras_json) if cameras_json else cams.load_transforms_json(transforms_json)
-        return [_pick(loaded, key, cameras_json or transforms_json) for key in camera_keys] or loaded
-    if camera_keys:
-        raise InputError("--camera picks from --cameras or --transforms; give one of them")
-    elevation, azimuth = math.radians(elevation), math.radians(azimuth)
-    view = dict(fov_x=math.radians(fov), width=width, height=height)
-    if eye is None:
-        low, high = gaussians.bounds(quantile=0.01)
-        if target is not None:  # keep the framing distance, centre the given target
-            shift = torch.tensor(target, dtype=low.dtype) - 0.5 * (low + high)
-            low, high = low + shift, high + shift
-        return cams.frame_box(low, high, n_views=n_orbit or 1, elevation=elevation, azimuth=azimuth, up=up, **view)
-    if target is None:
-        low, high = gaussians.bounds(quantile=0.01)
-        target = (0.5 * (low + high)).tolist()
-    if not n_orbit:
-        return [cams.look_at(eye, target, up, keys=("--eye", "--target", "--up"), **view)]
-    # An orbit through the eye: its distance to the target and its elevation about up.
-    offset = torch.tensor(eye, dtype=torch.float64) - torch.tensor(target, dtype=torch.float64)
-    unit_up = torch.tensor(up, dtype=torch.float64) / torch.tensor(up, dtype=torch.float64).norm()
-    radius = offset.norm().item()
-    if radius == 0:
-        raise InputError("--eye and --target are the same point")
-    return cams.orbit(
-        target,
-        radius,
-        n_views=n_orbit,
-        elevation=math.asin((offset @ unit_up).item() / radius),
-        up=up,
-        azimuth=azimuth,
-        **view,
-    )
-
-
-def _pick(cameras, key: str, source: str):
-    """The camera named ``key``, or at index ``key``."""
-    for camera in cameras:
-        if camera.name == key or _file_stem(camera.name) == key:
-            return camera
-    if key.lstrip("-").isdigit() and -len(cameras) <= int(key) < len(cameras):
-        return cameras[int(key)]
-    from clflow.errors import InputError
-
-    names = ", ".join(c.name for c in cameras[:5]) + (", ..." if len(cameras) > 5 else "")
-    raise InputError(f"{source}: no camera named {key!r} and no index {key} among {len(cameras)} ({names})")
-
-
-def _file_stem(name: str) -> str:
-    """A camera name as a safe file name: its last path component, odd characters replaced."""
-    stem = re.sub(r"[^A-Za-z0-9_.-]", "_", name.replace("\\", "/").rsplit("/", 1)[-1])
-    stem = re.sub(r"\.(png|jpe?g)$", "", stem, flags=re.IGNORECASE)
-    return stem.strip(".") or "view"
+    # options: box, sphere, background, sh_degree, video, fps, precision, max_output_gb (render_splats' names)
+    render_splats(splats, output_dir, views, **options, echo=click.echo, progress=progress)

@@ -142,7 +142,7 @@ def test_a_100k_gaussian_raster_call_is_gpu_shaped(device, launches):
     """bench raster's scene (100k Gaussians at 512^2), forward and backward: the tile sort's
     radix passes, the scans and the compositing are all work-group shaped."""
     from clflow.splat.ops import rasterize_gaussians
-    from clflow_cli.bench_raster import make_scene
+    from clflow_cli.bench.raster import make_scene
 
     args, kwargs = make_scene(100_000, 512, 512)
     leaves = [a.requires_grad_() for a in args[:5]]

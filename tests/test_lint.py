@@ -11,7 +11,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-PYTHON_TREE = ["clflow", "cli", "datasets_tools", "tests", "scripts"]
+PYTHON_TREE = ["clflow", "cli", "datasets_tools", "tests", "scripts", "experiments"]
 
 
 def _ruff(*args: str) -> subprocess.CompletedProcess:

@@ -1,5 +1,5 @@
 """Pure-torch reference of one MLS-MPM substep (small sizes; used by the tests and by
-scripts/fluid_model_study.py).
+experiments/fluid_model_study.py).
 
 Written from the equations, vectorised over particles, independent of the kernels except
 for the shared constants; the tests compare the float64 kernels against it.

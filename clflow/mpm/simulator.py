@@ -226,11 +226,8 @@ def _material_arrays(materials, material_index, n: int, dtype: torch.dtype):
         si_rows.append(kernel.si_values)
         densities.append(rho)
         plastic0.append(kernel.plastic)
-        limits.append(
-            MaterialLimits(
-                mat.name, wave_speed(mat.name, spec.params, rho), explicit_viscosity(mat.name, spec.params), rho
-            )
-        )
+        speed, viscosity = wave_speed(mat.name, spec.params, rho), explicit_viscosity(mat.name, spec.params)
+        limits.append(MaterialLimits(mat.name, speed, viscosity, rho))
     table = torch.tensor(rows, dtype=torch.float64)[index]
     return (
         table[:, 0].to(torch.int32).contiguous(),
@@ -445,12 +442,8 @@ class Simulator:
                     (WAVE_NUMBER * dx / m.wave_speed, f"elastic wave speed {m.wave_speed:.3g} m/s of {m.name}")
                 )
             if m.viscosity > 0:
-                limits.append(
-                    (
-                        VISCOUS_NUMBER * m.density * dx**2 / m.viscosity,
-                        f"viscous diffusion of {m.name}, viscosity {m.viscosity:.3g} Pa s at {m.density:.3g} kg/m^3",
-                    )
-                )
+                reason = f"viscous diffusion of {m.name}, viscosity {m.viscosity:.3g} Pa s at {m.density:.3g} kg/m^3"
+                limits.append((VISCOUS_NUMBER * m.density * dx**2 / m.viscosity, reason))
         vmax = float(v.double().norm(dim=-1).max()) if v.numel() else 0.0
         if vmax > 0:
             limits.append((CFL_NUMBER * dx / vmax, f"CFL with max speed {vmax:.3g} m/s"))
@@ -510,6 +503,13 @@ class Simulator:
         for array in arrays_of(self._state):
             array.push_host_edits()
         return self._state
+
+    def particle_arrays(self) -> list[DeviceArray]:
+        """Every per-particle array the simulator keeps on its device (what its memory per
+        particle counts): the current and the next state, the constant particle data, the
+        kernels' per-particle scratch (tau, U, s, V) and the clamp flags [N] uint8."""
+        arrays = arrays_of(self._state) + arrays_of(self._next) + arrays_of(self.device_particles)
+        return arrays + [self.kernels.scratch.tau, self.kernels.U, self.kernels.s, self.kernels.V, self._clamped]
 
     def substep_inputs(self) -> SubstepInputs:
         """What the next substep reads besides the state (at the current time), on the device."""

@@ -422,7 +422,7 @@ class Device:
         up to a multiple of ``local_size``; kernels guard their tail work-items. ``local_size``
         None leaves the choice to the driver (no padding).
         """
-        gsize, lsize = self._work_sizes(global_size, local_size)
+        gsize, lsize = self.work_sizes(global_size, local_size)
         if not isinstance(args, Mapping):
             from clflow.runtime.signatures import KernelCallError
 
@@ -445,9 +445,13 @@ class Device:
             self.profile.record(kernel.function_name, event)
         return event
 
-    def _work_sizes(self, global_size, local_size) -> tuple[tuple, tuple | None]:
-        """(global, local) work sizes of :meth:`launch`, the global padded to whole work-groups
-        (cached: a substep asks for the same few again and again)."""
+    def work_sizes(
+        self, global_size: int | Sequence[int], local_size: int | Sequence[int] | None = 64
+    ) -> tuple[tuple, tuple | None]:
+        """(global, local) work sizes, in work-items per dimension, that :meth:`launch` enqueues
+        for these arguments: the local size capped at the device's work-group limit and the
+        global padded to whole work-groups (local None: the driver's choice, no padding). Cached:
+        a substep asks for the same few again and again."""
         plain = isinstance(global_size, int) and (local_size is None or isinstance(local_size, int))
         key = (global_size, local_size) if plain else None
         sizes = None if key is None else self._sizes.get(key)

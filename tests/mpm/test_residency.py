@@ -80,3 +80,17 @@ def test_on_shared_memory_nothing_is_copied_at_all(device):
     if not device.zero_copy:
         pytest.skip(f"{device.info.label} has its own memory here")
     assert differentiable_run_copies(10) == (0, 0)
+
+
+def test_particle_arrays_are_both_states_and_every_per_particle_array(device):
+    """What bench mpm counts per particle: one entry per particle in each, both states
+    whichever is current after a substep, nothing twice."""
+    from clflow.runtime.arrays import arrays_of
+
+    sim = scene()
+    for _ in range(2):
+        arrays = sim.particle_arrays()
+        assert all(a.shape[0] == sim.n for a in arrays)
+        assert len({id(a) for a in arrays}) == len(arrays)
+        assert {id(a) for a in arrays_of(sim.device_state)} < {id(a) for a in arrays}
+        sim.step()

@@ -1,32 +1,20 @@
-"""`clflow bench flow-bias`: the observed flow's bias at the ground truth, measured."""
+"""experiments/flow_bias.py: the observed flow's bias at the ground truth, measured."""
 
-from click.testing import CliRunner
+import importlib.util
+from pathlib import Path
 
-from clflow_cli.main import cli
+from tests.conftest import REPO
 
 
-def test_the_full_resolution_preset_is_the_less_biased_on_the_quick_demo():
-    result = CliRunner().invoke(
-        cli,
-        [
-            "bench",
-            "flow-bias",
-            "--case",
-            "cube",
-            "--preset",
-            "medium",
-            "--preset",
-            "fine",
-            "--confidence",
-            "forward_backward",
-            "--iterations",
-            "0",
-        ],
-        catch_exceptions=False,
-    )
-    assert result.exit_code == 0, result.output
+def test_the_full_resolution_preset_is_the_less_biased_on_the_quick_demo(capsys):
+    spec = importlib.util.spec_from_file_location("flow_bias", Path(REPO) / "experiments" / "flow_bias.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    argv = ["--case", "cube", "--preset", "medium", "--preset", "fine", "--confidence", "forward_backward"]
+    assert script.main([*argv, "--iterations", "0"]) == 0
+    output = capsys.readouterr().out
     # case preset confidence slope EPE kept youngs_modulus RE-at-min; RE-recovered
-    rows = {line.split()[1]: line.split() for line in result.output.splitlines() if line.startswith("cube ")}
+    rows = {line.split()[1]: line.split() for line in output.splitlines() if line.startswith("cube ")}
     slope = {preset: float(row[3]) for preset, row in rows.items()}
     epe = {preset: float(row[4]) for preset, row in rows.items()}
     at_minimum = {preset: float(row[7].rstrip("%;")) / 100 for preset, row in rows.items()}

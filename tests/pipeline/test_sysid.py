@@ -339,7 +339,7 @@ def test_the_benchmark_searches_on_the_base_grid_and_refines_on_a_finer_one(tmp_
 
 @pytest.mark.slow
 def test_the_loss_scan_gives_the_loss_and_both_gradients_along_a_parameter(tmp_path, tiny_cases):
-    """scripts/loss_scan.py on a finished case: per value the loss at the final point's
+    """experiments/loss_scan.py on a finished case: per value the loss at the final point's
     calibration, the adjoint's dloss/dz and the optimiser's backward difference, which agree
     where the loss is smooth, and the loss against the estimator's error at the value itself;
     with --grid the same on another grid over the same domain."""
@@ -351,7 +351,7 @@ def test_the_loss_scan_gives_the_loss_and_both_gradients_along_a_parameter(tmp_p
     landing = dataclasses.replace(TINY, frames=10)  # the torus lands at frame 6: E shows
     sysid.evaluate(["torus"], tmp_path / "out", sysid.Settings(resolution=landing))
     config, scan = tmp_path / "out" / "cases" / "torus" / "config.yaml", tmp_path / "scan.json"
-    cmd = [sys.executable, "scripts/loss_scan.py", str(config), "youngs_modulus", "1e4", "3e5", "--points", "3"]
+    cmd = [sys.executable, "experiments/loss_scan.py", str(config), "youngs_modulus", "1e4", "3e5", "--points", "3"]
     res = subprocess.run([*cmd, "--json", str(scan)], cwd=REPO, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     rows = json.loads(scan.read_text())["rows"]
@@ -374,7 +374,7 @@ def test_the_loss_scan_gives_the_loss_and_both_gradients_along_a_parameter(tmp_p
 
 
 def test_case_variant_losses_scores_a_case_made_with_other_truth_values(tmp_path, tiny_cases):
-    """scripts/case_variant_losses.py: a case made with a truth value changed scores lowest
+    """experiments/case_variant_losses.py: a case made with a truth value changed scores lowest
     near that value; the folder remembers how it was made and refuses another making; a
     name outside the case's truth is refused."""
     import importlib.util
@@ -382,7 +382,7 @@ def test_case_variant_losses_scores_a_case_made_with_other_truth_values(tmp_path
     from tests.conftest import REPO
 
     spec = importlib.util.spec_from_file_location(
-        "case_variant_losses", Path(REPO) / "scripts" / "case_variant_losses.py"
+        "case_variant_losses", Path(REPO) / "experiments" / "case_variant_losses.py"
     )
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)

@@ -10,13 +10,8 @@ GRID = 64
 
 
 def _particle_bytes(sim) -> int:
-    """Device bytes of every per-particle array of a simulator: two states, the constant
-    particle data, the kernels' per-particle scratch (tau, U, s, V) and the clamp flags."""
-    from clflow.runtime.arrays import arrays_of
-
-    arrays = arrays_of(sim.device_state) + arrays_of(sim._next) + arrays_of(sim.device_particles)
-    arrays += [sim.kernels.scratch.tau, sim.kernels.U, sim.kernels.s, sim.kernels.V, sim._clamped]
-    return sum(a.nbytes for a in arrays)
+    """Device bytes of every per-particle array of a simulator (``Simulator.particle_arrays``)."""
+    return sum(a.nbytes for a in sim.particle_arrays())
 
 
 def _run_peer(x, h: float, dx: float, grid_res: int, substeps: int, device, elastic: dict | None) -> dict:

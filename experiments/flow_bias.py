@@ -1,9 +1,28 @@
-"""``clflow bench flow-bias``: how far the observed flow is from the simulated one at the
-ground truth, and what that does to the recovered parameters (docs/flow.md)."""
+"""How far the observed flow is from the simulated one at the ground truth, and what that
+does to the recovered parameters (docs/flow.md, "Observed-flow bias").
 
-import click
+Per synthetic case (known parameters), DIS preset and flow.confidence: at the truth, the
+least-squares slope of the observed on the simulated flow (1 = unbiased) and their EPE, both
+weighted as the loss weighs pixels; the signed relative error (RE) of each parameter at the
+minimum of the loss near the truth; the RE of the parameters `clflow optimize` recovers from
+the case's guess.
 
-from clflow_cli.bench import bench_command
+    python experiments/flow_bias.py                                   # 96 px, every case and setting
+    python experiments/flow_bias.py --size demo --preset medium --preset fine
+    python experiments/flow_bias.py --case cube --preset medium --preset fine \\
+        --confidence forward_backward --iterations 0
+
+Results also as JSON (--json: the rows, the parameters and clflow.environment).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+# torch's OpenMP threads would spin and take the OpenCL CPU device's cores (docs/architecture.md)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 CASES = ("cube", "torus", "plasticine")
 
@@ -109,22 +128,9 @@ def measure_case(config, output, preset: str, confidence: str, iterations: int |
     return row
 
 
-@bench_command("flow-bias")
-@click.option("--case", "cases", type=click.Choice(CASES), multiple=True, help="Only these cases (repeatable; default all).")  # fmt: skip
-@click.option("--preset", "presets", multiple=True, help="DIS presets to compare (repeatable; default all).")
-@click.option("--confidence", "confidences", multiple=True,
-              help="flow.confidence settings to compare (repeatable; default all).")  # fmt: skip
-@click.option("--size", type=click.Choice(["quick", "demo"]), default="quick", show_default=True,
-              help="quick: 96 px, 8 frames, 14 iterations (the QUICK demo); demo: 160 px, 12 frames, 20.")  # fmt: skip
-@click.option("--iterations", type=click.IntRange(min=0), default=None,
-              help="Optimisation iterations (0: the flow bias only). Default: the size's.")  # fmt: skip
-def flow_bias(cases, presets, confidences, size, iterations):
-    """Observed-flow bias of each DIS preset with and without the flow confidence, on
-    synthetic cases with known parameters: at the truth, the least-squares slope of the
-    observed on the simulated flow (1 = unbiased) and their EPE, both weighted as the loss
-    weighs pixels; the signed relative error (RE) of each parameter at the minimum of the
-    loss near the truth; the RE of the parameters `clflow optimize` recovers from the case's
-    guess."""
+def flow_bias(cases, presets, confidences, size: str, iterations: int | None) -> dict:
+    """Measure and print each row (case, preset, confidence: slope, EPE px, share of the
+    mask kept, RE at the loss minimum, RE recovered); returns the rows by "case preset confidence"."""
     import tempfile
     import warnings
     from pathlib import Path
@@ -139,11 +145,11 @@ def flow_bias(cases, presets, confidences, size, iterations):
     resolution = QUICK if size == "quick" else Resolution()
     known = synthetic_cases()
     rows = {}
-    click.echo(
+    print(
         f"load average {load_average()}; {resolution.image} px, {resolution.frames} frames, "
         f"{resolution.iterations if iterations is None else iterations} iterations"
     )
-    click.echo(
+    print(
         f"{'case':11s} {'preset':10s} {'confidence':17s} {'slope':>6s} {'EPE px':>7s} {'kept':>5s}  "
         f"RE at the loss minimum; RE recovered"
     )
@@ -161,9 +167,58 @@ def flow_bias(cases, presets, confidences, size, iterations):
                     )
                     recovered = ", ".join(f"{e:+.2%}" for e in row["error"].values())
                     timing = f" ({row['seconds']:.0f} s)" if row["error"] else ""
-                    click.echo(
+                    print(
                         f"{name:11s} {preset:10s} {confidence:17s} {row['slope']:6.3f} {row['epe']:7.3f} "
                         f"{row['kept']:5.2f}  {at_minimum}; {recovered or '-'}{timing}"
                     )
-    click.echo(f"load average {load_average()}")
+    print(f"load average {load_average()}")
     return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    repeatable = (  # (option, dest, metavar, what), each repeatable, default: all
+        ("--case", "cases", "{" + ",".join(CASES) + "}", "only these cases"),
+        ("--preset", "presets", "PRESET", "DIS presets to compare"),
+        ("--confidence", "confidences", "SETTING", "flow.confidence settings to compare"),
+    )
+    for option, dest, metavar, what in repeatable:
+        parser.add_argument(
+            option, dest=dest, metavar=metavar, action="append", default=[], help=f"{what} (repeatable; default all)"
+        )
+    parser.add_argument(
+        "--size",
+        choices=("quick", "demo"),
+        default="quick",
+        help="quick: 96 px, 8 frames, 14 iterations (the QUICK demo); demo: 160 px, 12 frames, 20",
+    )
+    parser.add_argument(
+        "--iterations",
+        type=_count,
+        metavar="N",
+        default=None,
+        help="optimisation iterations (0: the flow bias only); default: the size's",
+    )
+    parser.add_argument("--json", metavar="PATH", help="also write the rows, the parameters and the environment")
+    args = parser.parse_args(argv)
+    if unknown := sorted(set(args.cases) - set(CASES)):
+        parser.error(f"--case {', '.join(unknown)}: not among {', '.join(CASES)}")
+    parameters = {k: v for k, v in vars(args).items() if k != "json"}
+    rows = flow_bias(**parameters)
+    if args.json:
+        from clflow.benchmark import write_record
+
+        write_record(args.json, "flow-bias", parameters, rows)
+        print(f"wrote {args.json}")
+    return 0
+
+
+def _count(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value} is below 0")
+    return value
+
+
+if __name__ == "__main__":
+    sys.exit(main())

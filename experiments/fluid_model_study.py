@@ -18,9 +18,9 @@ relative to the truth's. Variants:
   --ramp       the sticky floor scales each node's velocity by its distance from the plane
                (a ramp one cell wide) instead of zeroing the nodes behind it.
 
-    python scripts/fluid_model_study.py --offset 0 0.25 0.5 0.75          # ~15 min on one core
-    python scripts/fluid_model_study.py --ramp --offset 0 0.25 0.5 0.75
-    python scripts/fluid_model_study.py --averaged rate --offset 0.75 0.5
+    python experiments/fluid_model_study.py --offset 0 0.25 0.5 0.75          # ~15 min on one core
+    python experiments/fluid_model_study.py --ramp --offset 0 0.25 0.5 0.75
+    python experiments/fluid_model_study.py --averaged rate --offset 0.75 0.5
 
 Findings: docs/mpm.md, "Model error of the fluids".
 """

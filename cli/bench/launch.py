@@ -57,7 +57,7 @@ def _launch_phases(device, sim, calls: int) -> dict:
         signature = device.signature(kernel)
         values = signature.ordered(args)
         raw = [v if getattr(v, "buffer", None) is None else v.buffer for v in values]
-        gsize, lsize = device._work_sizes(size, local_size)
+        gsize, lsize = device.work_sizes(size, local_size)
         ordered = _per_call_us(lambda: signature.ordered(args), calls)
         set_args = _per_call_us(lambda: kernel.set_args(*raw), calls)
         device.finish()

@@ -9,17 +9,16 @@ from clflow_cli.options import OutputPath
 
 # name -> "module:command" of each benchmark; imported only when it runs.
 BENCHMARKS: dict[str, str] = {
-    "query": "clflow_cli.bench_query:query",
-    "ply": "clflow_cli.bench_ply:ply",
-    "flow": "clflow_cli.bench_flow:flow",
-    "flow-bias": "clflow_cli.bench_flow_bias:flow_bias",
-    "raster": "clflow_cli.bench_raster:raster",
-    "mpm": "clflow_cli.bench_mpm:mpm",
-    "mpm-adjoint": "clflow_cli.bench_mpm_adjoint:mpm_adjoint",
-    "launch": "clflow_cli.bench_launch:launch",
-    "optimize": "clflow_cli.bench_optimize:optimize",
-    "reconstruct": "clflow_cli.bench_reconstruct:reconstruct",
-    "write": "clflow_cli.bench_write:write",
+    "query": "clflow_cli.bench.query:query",
+    "ply": "clflow_cli.bench.ply:ply",
+    "flow": "clflow_cli.bench.flow:flow",
+    "raster": "clflow_cli.bench.raster:raster",
+    "mpm": "clflow_cli.bench.mpm:mpm",
+    "mpm-adjoint": "clflow_cli.bench.mpm_adjoint:mpm_adjoint",
+    "launch": "clflow_cli.bench.launch:launch",
+    "optimize": "clflow_cli.bench.optimize:optimize",
+    "reconstruct": "clflow_cli.bench.reconstruct:reconstruct",
+    "write": "clflow_cli.bench.write:write",
 }
 
 

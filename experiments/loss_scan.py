@@ -11,8 +11,8 @@ substeps (or on --grid's, at its own stable substeps) and gives
   - dloss/dz by the adjoint, and the backward difference of LM_STEP that the optimiser's
     Jacobian takes, and the central difference across the scan's neighbours.
 
-    python scripts/loss_scan.py OUT/cases/trophy/config.yaml friction_angle 36 41 --points 21 --json scan.json
-    python scripts/loss_scan.py OUT/cases/sand_heap/config.yaml friction_angle 48.5 51.5 --points 3 --grid 84
+    python experiments/loss_scan.py OUT/cases/trophy/config.yaml friction_angle 36 41 --points 21 --json scan.json
+    python experiments/loss_scan.py OUT/cases/sand_heap/config.yaml friction_angle 48.5 51.5 --points 3 --grid 84
 
 Results also as JSON (--json). docs/pipeline.md records what the scans showed.
 """

@@ -10,8 +10,8 @@ model (--grid, --substep-dt, --fill-spacing apply to the optimiser's model only)
 few minutes how far it moves the minimum. Prints a JSON line per value and the minimum of
 the parabola through the three lowest.
 
-    python scripts/case_variant_losses.py sand_ring friction_angle --values 23.5 25 26.5 --out /tmp/ring
-    python scripts/case_variant_losses.py sand_heap friction_angle --values 48.5 50 51.5 \\
+    python experiments/case_variant_losses.py sand_ring friction_angle --values 23.5 25 26.5 --out /tmp/ring
+    python experiments/case_variant_losses.py sand_heap friction_angle --values 48.5 50 51.5 \\
         --truth youngs_modulus=1e5 --out /tmp/heap_soft
 
 docs/pipeline.md ("What moves the sand's grid bias") records what it showed.
