@@ -109,7 +109,8 @@ def mpm_adjoint(ctx, particles, grid_res, frames, substeps, double):
         f"{frames} frames x {substeps} substeps, {'float64' if double else 'float32'}"
     )
     _echo_times(forward, forward_cpu, backward, backward_cpu, n * steps)
-    copies = engine(sim).adjoint.copies if sim.kernels.p2g == "private" else 0
+    adjoint = engine(sim).adjoint  # its scatter follows the path the plan took, not the forward P2G's
+    copies = 0 if adjoint.gather else adjoint.copies
     est = memory_estimate(n, sim.grid.nodes, frames, substeps, dtype, grid_copies=copies) / 2**20
     click.echo(f"peak memory growth {peak:8.1f} MiB (peak RSS - RSS before the run); formula {est:.1f} MiB")
     _echo_copies(copied, steps, frames)
