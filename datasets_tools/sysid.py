@@ -142,8 +142,8 @@ def run_case(
         metrics = opt.write_results(state)
         record.update(grid=metrics["grid"], optimise_seconds=metrics["seconds"], budget=metrics.get("budget"))
         truth_z = {n: float(opt.params[n].encode(case.truth[n])) for n in opt.params}
-        # at the truth's own stable time step: MPM's answer depends on dt (quick playdoh at the
-        # truth: 0.0057 at its 40 substeps per frame, 0.028 at 254), and the final run's may be finer
+        # at the truth's own stable time step: MPM's answer depends on dt (docs/history,
+        # "MPM depends on the substep"), and the final run's may be finer
         floor = opt.evaluate({**state.z, **truth_z}, opt.frames, with_grad=False)
         floor_epe = opt.endpoint_error(floor.flows, floor.more_flows)
         # both losses against the estimator's error measured at their own parameters (the final
