@@ -105,6 +105,7 @@ def run_case(
     from clflow.fileio import atomic_write_text, remove_entries
     from clflow.pipeline.fit import Optimization
     from clflow.pipeline.fit.budget import BudgetTooSmall
+    from clflow.pipeline.runs import write_results
     from clflow.scene.config import load_config
 
     case = case or CASES[name]
@@ -139,7 +140,7 @@ def run_case(
     try:
         opt = Optimization(cfg, progress=progress)
         state = opt.run(resume=True)
-        metrics = opt.write_results(state)
+        metrics = write_results(opt, state)
         record.update(grid=metrics["grid"], optimise_seconds=metrics["seconds"], budget=metrics.get("budget"))
         truth_z = {n: float(opt.params[n].encode(case.truth[n])) for n in opt.params}
         # at the truth's own stable time step: MPM's answer depends on dt (docs/history,

@@ -21,6 +21,7 @@ from clflow.pipeline.fit.budget import (
 )
 from clflow.pipeline.preflight import GRADIENT_COST, RunPlan
 from clflow.pipeline.report import write_report
+from clflow.pipeline.runs import write_results
 from clflow.pipeline.simulation import SubstepLimitError
 from clflow.scene.config import BudgetSettings, OptimizeSettings, SearchSettings
 from clflow_datasets.sysid import TRUTH_MARGIN, with_budget
@@ -207,7 +208,7 @@ def test_a_budget_chooses_the_grid_when_the_main_phase_begins_and_a_rerun_keeps_
     assert opt.grid_choice.grid == opt.model_grid == opt.cfg.simulation.grid_resolution == 33
     assert opt.search_grid == 27 and [g for g, _ in opt.grid_choice.candidates] == candidate_grids(27, 33)
     assert 0 < opt.grid_choice.spent_seconds and opt.grid_choice.budget_seconds < 1e5
-    metrics = opt.write_results(state)
+    metrics = write_results(opt, state)
     assert metrics["grid"] == {"main": 33, "search": 27} and metrics["budget"]["grid"] == 33
     assert metrics["seconds"] > 0
     page = write_report(cfg.output).read_text()

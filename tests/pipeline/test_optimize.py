@@ -9,6 +9,7 @@ import pytest
 from clflow.errors import ClflowError
 from clflow.pipeline.fit import Optimization, OptimizerState
 from clflow.pipeline.fit.steps import horizon, rate_schedule
+from clflow.pipeline.runs import write_results
 from clflow_datasets.demo import TRUTH
 
 
@@ -22,7 +23,7 @@ def test_demo_recovers_youngs_modulus_from_a_10x_low_guess(demo_config):
     losses = [row["loss"] for row in state.history]
     assert losses[1] < losses[0]
 
-    metrics = opt.write_results(state)  # its flow loss: at the final parameters, all frames
+    metrics = write_results(opt, state)  # its flow loss: at the final parameters, all frames
     initial = opt.evaluate(opt.initial_state().z, cfg.simulation.frames, with_grad=False).loss
     assert metrics["flow_loss"] < 0.2 * initial
     assert metrics["relative_error"]["youngs_modulus"] < 0.10

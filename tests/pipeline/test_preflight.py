@@ -15,6 +15,7 @@ from click.testing import CliRunner
 
 from clflow.media import write_image
 from clflow.pipeline.fit import Optimization
+from clflow.pipeline.runs import write_results
 from clflow_cli.main import cli
 
 
@@ -184,7 +185,7 @@ def test_a_fixed_substep_and_a_large_rate_never_accept_an_unstable_iteration(dem
         opt.evaluate(row["z"], row["frames"], with_grad=False)  # raises UnstableRun on CFL / clamping / dt
     final = opt.values(state.z)["youngs_modulus"]
     assert abs(final - 2e4) / 2e4 < 0.3
-    metrics = opt.write_results(state)
+    metrics = write_results(opt, state)
     assert json.loads((opt.cfg.output / "metrics.json").read_text())["rollbacks"] == metrics["rollbacks"]
     assert metrics["rollbacks"][0]["reason"] == first["reason"]
 

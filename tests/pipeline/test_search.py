@@ -39,7 +39,6 @@ def searching(demo_config, monkeypatch):
             return Evaluation(value, grads, [], SimpleNamespace(substeps=1), grid or opt.model_grid)
 
         monkeypatch.setattr(opt, "evaluate", evaluate)
-        monkeypatch.setattr(opt, "write_results", lambda state: None)
         return opt, calls
 
     return make

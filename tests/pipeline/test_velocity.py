@@ -13,6 +13,7 @@ import yaml
 from clflow.mpm import Force, Grid, MaterialSpec, Simulator
 from clflow.pipeline.fit import Optimization
 from clflow.pipeline.forward import material_values, prepare
+from clflow.pipeline.runs import write_results
 from clflow.pipeline.simulation import build_simulator, run
 from clflow.scene.config import VELOCITY_COMPONENTS, load_config
 from tests.mpm._helpers import cube
@@ -142,7 +143,7 @@ def test_the_velocity_alone_is_recovered_from_the_video(thrown, tmp_path):
     assert sorted(state.z) == sorted(VELOCITY_COMPONENTS)
     losses = [row["loss"] for row in state.history]
     assert losses[-1] < 0.3 * losses[0]
-    metrics = opt.write_results(state)
+    metrics = write_results(opt, state)
     estimate = opt.velocities(state.z)[0]
     assert metrics["velocity_error_m_s"] == pytest.approx(math.dist(estimate, THROW))
     assert metrics["relative_error"]["velocity"] == pytest.approx(math.dist(estimate, THROW) / math.sqrt(3))

@@ -8,6 +8,7 @@ import json
 import logging
 import math
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -52,11 +53,11 @@ def weak_reason(std_z: float, loss_rise: float) -> str:
 class Results:
     """The results folder of a finished optimisation (needs everything above)."""
 
-    def write_results(self, state: OptimizerState, out=None) -> dict:
+    def write_result_files(self, state: OptimizerState, out: Path) -> dict:
         """params.json, metrics.json, history.json (search.json), loss.png and a comparison
-        video per guidance view in ``out`` (default: the config's output folder); returns the
-        metrics."""
-        out = self.cfg.output if out is None else out
+        video per guidance view in folder ``out`` (a staging folder of
+        clflow.pipeline.runs.write_results, which moves them in as one step with run.json and
+        index.html); returns the metrics."""
         result = self.final_evaluation(state)
         final = self.values(state.z)
         metrics = self.result_metrics(state, result)

@@ -10,7 +10,15 @@ raises KeyboardInterrupt with a one-line message saying what was saved and how t
 """
 
 from clflow.pipeline.runs.flow import export_flow
-from clflow.pipeline.runs.optimize import CACHES, RESULTS, RESUMABLE, RUN_ENTRIES, resume_command, run_optimization
+from clflow.pipeline.runs.optimize import (
+    CACHES,
+    RESULTS,
+    RESUMABLE,
+    RUN_ENTRIES,
+    resume_command,
+    run_optimization,
+    write_results,
+)
 from clflow.pipeline.runs.progress import format_row, iteration_lines
 from clflow.pipeline.runs.reconstruct import RECONSTRUCTION_ENTRIES, reconstruct_images, reconstruct_photo
 from clflow.pipeline.runs.records import input_files, read_params_record
@@ -48,4 +56,5 @@ __all__ = [
     "run_optimization",
     "simulate_particles",
     "simulate_scene",
+    "write_results",
 ]

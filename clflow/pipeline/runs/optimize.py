@@ -260,26 +260,34 @@ def _optimize_prepared(cfg, again, resume, force_video, echo, note, bar, paralle
     return metrics
 
 
-def _write_results(opt, state, again: str, note) -> dict:
-    """The final evaluation (grid check, identifiability) and every result of RESULTS, as
-    one step: an interruption or failure leaves the folder as it was (the checkpoint holds
-    every iteration, so ``again`` only writes them)."""
+def write_results(opt, state) -> dict:
+    """The final evaluation (grid check, identifiability) and every result of RESULTS
+    (params.json, metrics.json, history, plot, comparison videos, run.json, index.html) of
+    the optimisation ``opt`` ended in ``state``, into its output folder as one step: an
+    interruption or failure leaves the folder as it was. The one writer of an optimisation's
+    results, for ``clflow optimize``, ``eval sysid``'s cases and sweeps; returns the metrics."""
     from clflow.fileio import atomic_dir
     from clflow.pipeline.report import write_report, write_run_record
 
     output = opt.cfg.output
+    with atomic_dir(output, replaces=RESULTS, inputs=input_files(opt.cfg)) as staged:
+        metrics = opt.write_result_files(state, staged)
+        write_run_record(opt.cfg, staged)
+        write_report(output, staged)
+    return metrics
+
+
+def _write_results(opt, state, again: str, note) -> dict:
+    """:func:`write_results`, an interruption answered with how to write them (``again``:
+    the checkpoint holds every iteration)."""
     try:
         note("checking the result and writing it")
-        with atomic_dir(output, replaces=RESULTS, inputs=input_files(opt.cfg)) as staged:
-            metrics = opt.write_results(state, staged)
-            write_run_record(opt.cfg, staged)
-            write_report(output, staged)
+        return write_results(opt, state)
     except KeyboardInterrupt:
         raise KeyboardInterrupt(
             f"interrupted while checking and writing the results, none of which were written; the "
             f"{state.iteration} iterations are saved in {opt.checkpoint}: write them with `{again}`"
         ) from None
-    return metrics
 
 
-__all__ = ["CACHES", "RESULTS", "RESUMABLE", "RUN_ENTRIES", "resume_command", "run_optimization"]
+__all__ = ["CACHES", "RESULTS", "RESUMABLE", "RUN_ENTRIES", "resume_command", "run_optimization", "write_results"]
