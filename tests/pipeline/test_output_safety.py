@@ -36,7 +36,8 @@ def test_simulate_leaves_files_beside_its_output_that_look_like_temporaries(quic
 
 
 def _started(*args, until: str) -> subprocess.Popen:
-    """``clflow *args``, returned once it printed a line that starts with ``until``."""
+    """``clflow *args``, returned stopped (SIGSTOP) once it printed a line that starts with
+    ``until``: it holds its output folder until continued (SIGCONT), however fast the run."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "clflow_cli", *map(str, args)],
         stdout=subprocess.PIPE,
@@ -45,6 +46,7 @@ def _started(*args, until: str) -> subprocess.Popen:
     )
     for line in proc.stdout:
         if line.startswith(until):
+            proc.send_signal(signal.SIGSTOP)
             return proc
     raise AssertionError(f"clflow {' '.join(map(str, args))} ended before {until!r}")
 
@@ -57,6 +59,7 @@ def test_a_second_simulate_into_a_folder_being_written_is_refused_naming_the_fir
     one_error(second, r"C2 is being written by another clflow run \(`clflow simulate .*`, pid \d+ on .*, since .*\): "
                       r"let it finish, write elsewhere \(-o\), or run with `clflow --wait \.\.\.` to wait for it")  # fmt: skip
     assert "simulating" not in second.stderr
+    first.send_signal(signal.SIGCONT)
     first.communicate(timeout=600)
     assert first.returncode == 0
     assert sorted(p.name for p in out.glob("frame_*.ply")) == [f"frame_{k:03d}.ply" for k in range(7)]
@@ -71,6 +74,7 @@ def test_a_second_optimize_into_a_running_ones_folder_is_refused_and_its_result_
     second = run("optimize", quick_demo / "config.yaml", "-o", out, "--iterations", 3)
     one_error(second, r"OC is being written by another clflow run \(`clflow optimize .*--iterations 14`")
     first.send_signal(signal.SIGINT)
+    first.send_signal(signal.SIGCONT)
     first.communicate(timeout=300)
     assert (out / "checkpoint.json").is_file()  # the first run's, resumable: not replaced by the second
 
