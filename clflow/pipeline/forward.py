@@ -4,7 +4,6 @@ and videos (``clflow simulate CONFIG``; per-frame Gaussians: clflow.pipeline.fra
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -14,7 +13,7 @@ import torch
 
 from clflow.media import to_uint8
 from clflow.pipeline.render import frame_gaussians, render_rgb
-from clflow.pipeline.simulation import ObjectSetup, ObjectValues, build_scene_simulator, setup_object
+from clflow.pipeline.simulation import ObjectSetup, ObjectValues, build_simulator, setup_object
 from clflow.scene.config import SceneConfig, split_parameter
 from clflow.scene.load import guidance_camera, load_scene_objects
 from clflow.splat.gaussians import Gaussians
@@ -43,16 +42,14 @@ class Prepared:
 
 @dataclass
 class SimulationResult:
+    """A forward run of a prepared scene: its frames, and the values it ran with."""
+
     prepared: Prepared
-    params: dict[str, float]
-    density: float
     x: torch.Tensor  # [T+1, M, 3] particle positions (m)
     F: torch.Tensor  # [T+1, M, 3, 3] deformation gradients
     clamped: torch.Tensor | None = None  # [T+1] particles clamped at the grid's edge per frame
     substeps: int = 0  # substeps per frame the run used
-    # each object's values (clflow.pipeline.simulation.ObjectValues); params and density are
-    # the one object's ({} and NaN for several)
-    values: tuple = ()
+    values: tuple = ()  # each object's clflow.pipeline.simulation.ObjectValues
 
     def scene_at(self, t: int) -> Gaussians:
         p = self.prepared
@@ -78,25 +75,10 @@ def prepare(cfg: SceneConfig, dtype: torch.dtype = torch.float32, scene=None) ->
     return Prepared(cfg, static, obj, setup, guidance_camera(cfg))
 
 
-def material_values(cfg: SceneConfig, overrides: dict[str, float] | None = None) -> tuple[dict[str, float], float]:
-    """(material parameters, density) of the config's one object, with ``overrides`` (SI) applied."""
-    params = dict(cfg.material.parameters)
-    density = cfg.material.density
-    for name, value in (overrides or {}).items():
-        if name == "density":
-            density = float(value)
-        else:
-            params[name] = float(value)
-    return params, density
-
-
 def scene_values(cfg: SceneConfig, overrides: dict[str, float] | None = None) -> tuple[ObjectValues, ...]:
     """Each object's ObjectValues as the config gives them, with ``overrides`` (SI; density
     too) applied: the one object's by bare name, else by OBJECT.PARAM (an optimisation's
     values; ValueError for a name of no object)."""
-    if len(cfg.objects) == 1:
-        params, density = material_values(cfg, overrides)
-        return (ObjectValues(params, density, cfg.velocity),)
     params = [dict(o.material.parameters) for o in cfg.objects]
     densities = [o.material.density for o in cfg.objects]
     for name, value in (overrides or {}).items():
@@ -125,15 +107,15 @@ def simulate_config(
     substeps, as the optimiser does, and is an error (SimulationError) at the limit or with a
     fixed ``simulation.substep_dt``; ``strict_cfl=False`` only warns."""
     from clflow.mpm import SimulationError
-    from clflow.pipeline.preflight import describe, plan_scene_run
+    from clflow.pipeline.preflight import describe, plan_run
 
     prepared = prepared or prepare(cfg)
     values = scene_values(cfg, overrides)
     max_substeps = cfg.simulation.max_substeps if max_substeps is None else max_substeps
-    plan = plan_scene_run(cfg, prepared.setup, values, min_substeps=min_substeps, max_substeps=max_substeps)
+    plan = plan_run(cfg, prepared.setup, values, min_substeps=min_substeps, max_substeps=max_substeps)
     log.info("%s", describe(plan, "simulation", gradient=False))
     while True:
-        sim = build_scene_simulator(cfg, prepared.setup, values, min_substeps=min_substeps, max_substeps=max_substeps)
+        sim = build_simulator(cfg, prepared.setup, values, min_substeps=min_substeps, max_substeps=max_substeps)
         try:
             traj = sim.run(cfg.simulation.frames, on_frame, strict_cfl=strict_cfl)
             break
@@ -151,8 +133,7 @@ def simulate_config(
                 ) from None
             log.info("%s: simulating again at %d substeps per frame", exc, 2 * sim.substeps)
             min_substeps = 2 * sim.substeps
-    params, density = (values[0].params, values[0].density) if len(values) == 1 else ({}, math.nan)
-    return SimulationResult(prepared, params, density, traj.x, traj.F, traj.clamped, sim.substeps, values)
+    return SimulationResult(prepared, traj.x, traj.F, traj.clamped, sim.substeps, values)
 
 
 def render_frames(result: SimulationResult, camera=None, supersample: int = 1) -> np.ndarray:

@@ -40,15 +40,19 @@ def _direction(vector) -> str:
 
 
 def motion_prompt(cfg: SceneConfig, template: str | None = None, object_name: str | None = None) -> str:
-    """The prompt for the config's motion: each force or acceleration stage ("pushed to the
-    left", with its start time when it is not at once), the initial velocity ("thrown ..."),
-    else a fall under gravity."""
+    """The prompt for the config's motion: the initial velocity ("thrown ..."; objects thrown
+    apart each by name), each force or acceleration stage ("pushed to the left", with its
+    start time when it is not at once), else a fall under gravity; the material the objects'
+    ("elastic", "elastic and sand")."""
     gen = cfg.generate
     template = template or (gen.prompt_template if gen and gen.prompt_template else PROMPT_TEMPLATE)
     object_name = object_name or (gen.object if gen else "object")
     parts = []
-    if any(cfg.velocity):
-        parts.append(f"thrown {_direction(cfg.velocity)}")
+    thrown = {o.velocity for o in cfg.objects}
+    if len(thrown) == 1:  # one object, or all thrown alike
+        parts += [f"thrown {_direction(v)}" for v in thrown if any(v)]
+    else:
+        parts += [f"{o.name} thrown {_direction(o.velocity)}" for o in cfg.objects if any(o.velocity)]
     for stage in cfg.forces:
         if not any(stage.vector):
             continue
@@ -58,7 +62,8 @@ def motion_prompt(cfg: SceneConfig, template: str | None = None, object_name: st
     if not parts:
         parts.append("falling under gravity" if any(cfg.simulation.gravity) else "at rest")
     motion = ", then ".join(parts)
-    material = cfg.material.type if cfg.material.type != "query" else "physical"
+    types = dict.fromkeys(o.material.type if o.material.type != "query" else "physical" for o in cfg.objects)
+    material = " and ".join(types)
     return template.format(object=object_name, motion=motion, material=material.replace("_", " "))
 
 

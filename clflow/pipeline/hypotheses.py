@@ -32,10 +32,12 @@ log = logging.getLogger(__name__)
 
 def hypothesis_config(cfg: SceneConfig, material: str) -> SceneConfig:
     """``cfg`` (a concrete material) with material ``material`` and the parameters it has;
-    its output is ``cfg.output/hypotheses/<material>``; no further hypotheses."""
+    its output is ``cfg.output/hypotheses/<material>``; no further hypotheses. Hypotheses are
+    of a config of one object (the config reader refuses them with several)."""
+    (obj,) = cfg.objects
     mat = get_material(material)
-    same = cfg.material.type == mat.name
-    params = validate_params(mat.name, {k: v for k, v in cfg.material.parameters.items() if k in mat.param_names})
+    same = obj.material.type == mat.name
+    params = validate_params(mat.name, {k: v for k, v in obj.material.parameters.items() if k in mat.param_names})
     names = tuple(n for n in cfg.optimize.parameters if n in ("density", VELOCITY) or n in mat.param_names)
     optimize = dataclasses.replace(
         cfg.optimize,
@@ -44,9 +46,11 @@ def hypothesis_config(cfg: SceneConfig, material: str) -> SceneConfig:
         learning_rates={k: v for k, v in cfg.optimize.learning_rates.items() if k in names or k == VELOCITY},
         bounds={k: v for k, v in cfg.optimize.bounds.items() if k in names},
     )
-    material_cfg = MaterialConfig(mat.name, params, cfg.material.density, model=cfg.material.model if same else None)
+    material_cfg = MaterialConfig(mat.name, params, obj.material.density, model=obj.material.model if same else None)
     return dataclasses.replace(
-        cfg.with_object(material=material_cfg), optimize=optimize, output=cfg.output / "hypotheses" / mat.name
+        cfg.with_objects([dataclasses.replace(obj, material=material_cfg)]),
+        optimize=optimize,
+        output=cfg.output / "hypotheses" / mat.name,
     )
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 from clflow.errors import InputError
 from clflow.fileio import atomic_path
 from clflow.materials import get_material, validate_params
-from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig
+from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig, split_parameter
 
 log = logging.getLogger(__name__)
 
@@ -29,21 +29,19 @@ def resolve_material(cfg: SceneConfig) -> SceneConfig:
     unchanged."""
     if not any(o.material.type == "query" for o in cfg.objects):
         return cfg
-    if len(cfg.objects) == 1:
-        return cfg.with_object(material=_resolved(cfg, cfg.object, "material_query.json"))
     return cfg.with_objects(
-        dataclasses.replace(o, material=_resolved(cfg, o, f"material_query.{o.name}.json"))
-        if o.material.type == "query"
-        else o
-        for o in cfg.objects
+        dataclasses.replace(o, material=_resolved(cfg, k)) if o.material.type == "query" else o
+        for k, o in enumerate(cfg.objects)
     )
 
 
-def _resolved(cfg: SceneConfig, obj, record: str):
-    """The MaterialConfig the query gives ``obj`` (a SceneObject of ``type: query``), its
-    record saved as ``output/record``."""
+def _resolved(cfg: SceneConfig, k: int):
+    """The MaterialConfig the query gives object ``k`` (of ``type: query``), its record saved
+    in the output folder (``material_query.json``; with several objects one per object)."""
     from clflow.fileio import check_output_folder
 
+    obj = cfg.objects[k]
+    record = obj.own_file("material_query", ".json")
     mat, key = obj.material, obj.material_key
     # before the query is asked: it replaces only what clflow wrote (a record read back in place stays)
     rereads = mat.query_result is not None and mat.query_result.resolve() == (cfg.output / record).resolve()
@@ -65,17 +63,18 @@ def _resolved(cfg: SceneConfig, obj, record: str):
             image, prompt=mat.query_prompt, box=box, backend=mat.query_backend, model_config=model_config
         )
     for warning in result.warnings:
-        log.warning("material query%s: %s", "" if len(cfg.objects) == 1 else f" of {obj.name}", warning)
+        log.warning("material query (%s): %s", key, warning)
     cfg.output.mkdir(parents=True, exist_ok=True)
     result.save(cfg.output / record)
     where = f"{cfg.source}: {key}.parameters (material {result.material} from the query)"
     params = validate_params(result.material, {**result.parameters, **mat.parameters}, where)
     known = set(get_material(result.material).param_names) | {"density", VELOCITY, *VELOCITY_COMPONENTS}
-    if len(cfg.objects) == 1:
-        named = [*cfg.optimize.parameters, *cfg.ground_truth]
-    else:  # this object's: OBJECT.PARAM
-        prefix = f"{obj.name}."
-        named = [n[len(prefix) :] for n in (*cfg.optimize.parameters, *cfg.ground_truth) if n.startswith(prefix)]
+    named = [  # this object's (its PARAM of OBJECT.PARAM)
+        param
+        for n in (*cfg.optimize.parameters, *cfg.ground_truth)
+        for j, param in [split_parameter(cfg.objects, n)]
+        if j == k
+    ]
     wrong = [n for n in named if n not in known]
     if wrong and not cfg.optimize.materials:  # hypotheses: checked against them (scene config)
         raise InputError(
@@ -84,8 +83,8 @@ def _resolved(cfg: SceneConfig, obj, record: str):
         )
     density = mat.density if mat.density is not None else result.density
     log.info(
-        "material query%s: %s, density %g kg/m^3, %s",
-        "" if len(cfg.objects) == 1 else f" of {obj.name}",
+        "material query (%s): %s, density %g kg/m^3, %s",
+        key,
         result.material,
         density,
         params,

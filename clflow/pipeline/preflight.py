@@ -27,9 +27,8 @@ from clflow.errors import InputError
 from clflow.limits import format_duration
 from clflow.mpm import StabilityWarning
 from clflow.pipeline.simulation import (
-    ObjectValues,
     SubstepLimitError,
-    build_scene_simulator,
+    build_simulator,
     substep_limit_message,
     unstable_start,
 )
@@ -81,37 +80,6 @@ GRADIENT_COST = 3.0
 def plan_run(
     cfg: SceneConfig,
     setup,
-    params: dict[str, float],
-    density: float,
-    *,
-    frames: int | None = None,
-    velocity=None,
-    min_substeps: int = 1,
-    max_substeps: int | None = None,
-    dtype: torch.dtype = torch.float32,
-    optimizing: bool = False,
-) -> RunPlan:
-    """The substeps of a run of the one object's ``params`` and the seconds one substep takes
-    (two substeps timed on a throwaway simulator); SubstepLimitError (the numbers and the ways
-    out) beyond ``max_substeps``, InputError for a fixed ``simulation.substep_dt`` above the
-    stable step of ``params`` (``optimizing``: the message says the optimiser would reject
-    every such run)."""
-    values = ObjectValues(params, density, cfg.velocity if velocity is None else velocity)
-    return plan_scene_run(
-        cfg,
-        setup,
-        (values,),
-        frames=frames,
-        min_substeps=min_substeps,
-        max_substeps=max_substeps,
-        dtype=dtype,
-        optimizing=optimizing,
-    )
-
-
-def plan_scene_run(
-    cfg: SceneConfig,
-    setup,
     values,
     *,
     frames: int | None = None,
@@ -120,10 +88,14 @@ def plan_scene_run(
     dtype: torch.dtype = torch.float32,
     optimizing: bool = False,
 ) -> RunPlan:
-    """:func:`plan_run` of the config's objects, each with its ObjectValues (``values``)."""
+    """The substeps of a run of the config's objects, each with its ObjectValues
+    (``values``), and the seconds one substep takes (two substeps timed on a throwaway
+    simulator); SubstepLimitError (the numbers and the ways out) beyond ``max_substeps``,
+    InputError for a fixed ``simulation.substep_dt`` above the stable step of these values
+    (``optimizing``: the message says the optimiser would reject every such run)."""
     with warnings.catch_warnings():  # an unstable fixed step is refused below, with the config key
         warnings.simplefilter("ignore", StabilityWarning)
-        sim = build_scene_simulator(cfg, setup, values, dtype=dtype, min_substeps=min_substeps)
+        sim = build_simulator(cfg, setup, values, dtype=dtype, min_substeps=min_substeps)
     stable = sim.limit_reason(sim.state.v)
     limit = stable if cfg.simulation.substep_dt is None else f"simulation.substep_dt; stable: {stable}"
     if max_substeps is not None and sim.substeps > max_substeps:
@@ -287,5 +259,4 @@ __all__ = [
     "describe",
     "measure_view",
     "plan_run",
-    "plan_scene_run",
 ]

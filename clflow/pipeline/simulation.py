@@ -232,25 +232,6 @@ def _particles(fill, grid, means: torch.Tensor, covariances: torch.Tensor, opaci
 def build_simulator(
     cfg: SceneConfig,
     setup: ObjectSetup,
-    params: dict[str, float],
-    density: float,
-    dtype: torch.dtype = torch.float32,
-    min_substeps: int = 1,
-    velocity: torch.Tensor | None = None,
-    max_substeps: int | None = None,
-):
-    """A :class:`clflow.mpm.Simulator` of the config's one object with material parameters
-    ``params`` (SI), ``density`` (kg/m^3) and initial velocity ``velocity`` ([3] m/s in the
-    simulation frame, default ``object.velocity``): :func:`build_scene_simulator`'s."""
-    values = ObjectValues(params, density, cfg.velocity if velocity is None else velocity)
-    return build_scene_simulator(
-        cfg, setup, (values,), dtype=dtype, min_substeps=min_substeps, max_substeps=max_substeps
-    )
-
-
-def build_scene_simulator(
-    cfg: SceneConfig,
-    setup: ObjectSetup,
     values,
     *,
     dtype: torch.dtype = torch.float32,

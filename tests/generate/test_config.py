@@ -110,7 +110,9 @@ def test_the_motion_prompt_comes_from_the_forces_and_can_be_overridden(scene, tm
     assert "The jelly cube is hit and pushed to the right" in prompt and "elastic" in prompt
     left = ForceStage(Region("all"), (-3.0, 0.0, 0.0), "force", 0.2, float("inf"))
     assert "is pushed to the left after 0.2 s" in motion_prompt(dataclasses.replace(cfg, forces=(left,)))
-    thrown = dataclasses.replace(cfg, forces=()).with_object(velocity=(0.0, 1.0, -1.0))
+    thrown = dataclasses.replace(
+        cfg, forces=(), objects=(dataclasses.replace(cfg.objects[0], velocity=(0.0, 1.0, -1.0)),)
+    )
     assert "thrown upwards and away from the camera" in motion_prompt(thrown)
     assert (
         motion_prompt(dataclasses.replace(cfg, forces=()), "{object}: {motion}") == "jelly cube: falling under gravity"

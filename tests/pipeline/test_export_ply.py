@@ -42,7 +42,7 @@ def deformed(demo_config):
     stretch = torch.diag_embed(1 + 0.3 * torch.rand(60, 3, generator=torch.Generator().manual_seed(4)))
     x = torch.stack([obj.means, obj.means + torch.tensor([0.1, -0.05, 0.02])])
     F = torch.stack([torch.eye(3).expand(60, 3, 3), turn @ stretch])
-    return SimulationResult(Prepared(cfg, static, obj, None, camera), {}, 1000.0, x, F), camera
+    return SimulationResult(Prepared(cfg, static, obj, None, camera), x, F), camera
 
 
 def test_exported_frame_renders_like_clflow(deformed, tmp_path):

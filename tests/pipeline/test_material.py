@@ -31,13 +31,13 @@ def test_query_fills_in_the_material_and_config_values_win(quick_demo, tmp_path)
     cfg = query_config(
         quick_demo, tmp_path, {"type": "query", "query": {"image": "jelly.png"}, "parameters": {"poissons_ratio": 0.4}}
     )
-    assert cfg.material.density is None
+    assert cfg.objects[0].material.density is None
     resolved = resolve_material(cfg)
     record = json.loads((tmp_path / "out" / "material_query.json").read_text())
-    assert resolved.material.type == record["material"] == "elastic"
-    assert resolved.material.density == record["density"] > 0
-    assert resolved.material.parameters["youngs_modulus"] == record["parameters"]["youngs_modulus"]
-    assert resolved.material.parameters["poissons_ratio"] == 0.4  # the config's value, not the query's
+    assert resolved.objects[0].material.type == record["material"] == "elastic"
+    assert resolved.objects[0].material.density == record["density"] > 0
+    assert resolved.objects[0].material.parameters["youngs_modulus"] == record["parameters"]["youngs_modulus"]
+    assert resolved.objects[0].material.parameters["poissons_ratio"] == 0.4  # the config's value, not the query's
 
 
 def test_a_saved_query_record_is_the_initial_guess(quick_demo, tmp_path):
@@ -51,7 +51,7 @@ def test_a_saved_query_record_is_the_initial_guess(quick_demo, tmp_path):
         optimize=("youngs_modulus",),
     )
     resolved = resolve_material(cfg)
-    assert resolved.material.type == "metal" and resolved.material.density > 7000
+    assert resolved.objects[0].material.type == "metal" and resolved.objects[0].material.density > 7000
 
 
 def test_query_takes_an_image_or_a_record_not_both(quick_demo, tmp_path):
@@ -102,10 +102,11 @@ def test_material_model_reaches_the_simulator(demo_config, material, model, kern
     from clflow.materials import validate_params
     from clflow.mpm.constants import MATERIAL_IDS
     from clflow.pipeline.forward import prepare
-    from clflow.pipeline.simulation import build_simulator
+    from clflow.pipeline.simulation import ObjectValues, build_simulator
 
     cfg = demo_config()
     params = validate_params(material, {})
-    cfg = cfg.with_object(material=dataclasses.replace(cfg.material, type=material, parameters=params, model=model))
-    sim = build_simulator(cfg, prepare(cfg).setup, params, 1500.0)
+    material_cfg = dataclasses.replace(cfg.objects[0].material, type=material, parameters=params, model=model)
+    cfg = cfg.with_objects([dataclasses.replace(cfg.objects[0], material=material_cfg)])
+    sim = build_simulator(cfg, prepare(cfg).setup, (ObjectValues(params, 1500.0, cfg.objects[0].velocity),))
     assert set(sim.particles.material.tolist()) == {MATERIAL_IDS[kernel_material]}

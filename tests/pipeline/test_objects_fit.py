@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from clflow.pipeline.forward import prepare, scene_values
-from clflow.pipeline.simulation import build_scene_simulator, run, scene_run_values
+from clflow.pipeline.simulation import build_simulator, run, scene_run_values
 from clflow.scene.config import load_config
 from tests.pipeline._scenes import two_objects_config, write_config
 
@@ -19,7 +19,7 @@ def final_loss(cfg, prepared, values: dict[str, torch.Tensor]) -> torch.Tensor:
     """A scalar of the run of ``values`` (OBJECT.PARAM -> 0-d tensor): the cube's particles'
     mean height and the heap's mean spread, each frame, weighted so that both objects count."""
     objects = scene_values(cfg, {n: float(v.detach()) for n, v in values.items()})
-    sim = build_scene_simulator(cfg, prepared.setup, objects, dtype=torch.float64, min_substeps=8)
+    sim = build_simulator(cfg, prepared.setup, objects, dtype=torch.float64, min_substeps=8)
     traj = run(sim, cfg.simulation.frames, scene_run_values(cfg, prepared.setup, objects, values))
     index = prepared.setup.object_index
     cube, heap = traj.x[:, index == 0], traj.x[:, index == 1]

@@ -15,7 +15,7 @@ from clflow_datasets.demo import TRUTH
 
 def test_demo_recovers_youngs_modulus_from_a_10x_low_guess(demo_config):
     cfg = demo_config()
-    assert cfg.material.parameters["youngs_modulus"] == pytest.approx(TRUTH["youngs_modulus"] / 10)
+    assert cfg.objects[0].material.parameters["youngs_modulus"] == pytest.approx(TRUTH["youngs_modulus"] / 10)
     opt = Optimization(cfg)
     state = opt.run()
     final = opt.values(state.z)["youngs_modulus"]

@@ -168,7 +168,7 @@ def probe_config(demo_config, iterations=8):
 
 
 def test_a_fixed_substep_and_a_large_rate_never_accept_an_unstable_iteration(demo_config):
-    from clflow.pipeline.forward import material_values
+    from clflow.pipeline.forward import scene_values
     from clflow.pipeline.simulation import build_simulator
 
     opt = Optimization(probe_config(demo_config))
@@ -179,8 +179,7 @@ def test_a_fixed_substep_and_a_large_rate_never_accept_an_unstable_iteration(dem
     assert "exceeds the stable step" in first["reason"]
     assert first["back_to"]["youngs_modulus"] == pytest.approx(2000.0)
     for row in state.history:  # every accepted iteration: stable at its own parameters
-        params, density = material_values(opt.cfg, row["params"])
-        sim = build_simulator(opt.cfg, opt.prepared.setup, params, density)
+        sim = build_simulator(opt.cfg, opt.prepared.setup, scene_values(opt.cfg, row["params"]))
         assert sim.stable_substeps() <= row["substeps"], row
         opt.evaluate(row["z"], row["frames"], with_grad=False)  # raises UnstableRun on CFL / clamping / dt
     final = opt.values(state.z)["youngs_modulus"]

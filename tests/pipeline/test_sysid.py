@@ -132,12 +132,12 @@ def test_a_truth_obeys_its_cfl_limit(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error", StabilityWarning)  # no frame of the truth breaks the limit
         make_case(tmp_path, case, dataclasses.replace(TINY, frames=9), truth_scale=1)
-    from clflow.pipeline.forward import material_values, prepare
+    from clflow.pipeline.forward import prepare, scene_values
     from clflow.pipeline.simulation import build_simulator
     from clflow.scene.config import load_config
 
     cfg = load_config(tmp_path / "config_truth.yaml")
-    at_rest = build_simulator(cfg, prepare(cfg).setup, *material_values(cfg)).substeps
+    at_rest = build_simulator(cfg, prepare(cfg).setup, scene_values(cfg)).substeps
     assert json.loads((tmp_path / "case.json").read_text())["truth_substeps"] >= 2 * at_rest  # run again
 
 

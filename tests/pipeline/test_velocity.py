@@ -12,7 +12,7 @@ import yaml
 
 from clflow.mpm import Force, Grid, MaterialSpec, Simulator
 from clflow.pipeline.fit import Optimization
-from clflow.pipeline.forward import material_values, prepare
+from clflow.pipeline.forward import prepare, scene_values
 from clflow.pipeline.runs import write_results
 from clflow.pipeline.simulation import build_simulator, run
 from clflow.scene.config import VELOCITY_COMPONENTS, load_config
@@ -61,24 +61,25 @@ def test_gradient_of_the_initial_velocity_matches_central_differences():
 @pytest.mark.parametrize("up", ["+x", "-x", "+y", "-y", "+z", "-z"])
 def test_object_velocity_is_in_the_simulation_frame_whatever_the_files_up_axis(demo_config, up):
     """Like forces and gravity, the velocity is not turned by scene.up: (0, 2, 0) is up."""
-    cfg = dataclasses.replace(demo_config(), up=up).with_object(velocity=(0.5, 2.0, -1.0))
+    cfg = dataclasses.replace(demo_config(), up=up)
+    cfg = cfg.with_objects([dataclasses.replace(cfg.objects[0], velocity=(0.5, 2.0, -1.0))])
     setup = prepare(demo_config()).setup
-    params, density = material_values(cfg)
-    sim = build_simulator(cfg, setup, params, density)
+    sim = build_simulator(cfg, setup, scene_values(cfg))
     assert sim.state.v.double().unique(dim=0).tolist() == [[0.5, 2.0, -1.0]]
 
 
 def test_the_simulator_starts_at_the_velocity_and_takes_substeps_for_it(demo_config):
     cfg = demo_config()
     setup = prepare(cfg).setup
-    params, density = material_values(cfg)
-    at_rest = build_simulator(cfg, setup, params, density)
-    thrown = build_simulator(cfg.with_object(velocity=(0.0, 0.0, 3.0)), setup, params, density)
+    at_rest = build_simulator(cfg, setup, scene_values(cfg))
+    moving = cfg.with_objects([dataclasses.replace(cfg.objects[0], velocity=(0.0, 0.0, 3.0))])
+    thrown = build_simulator(moving, setup, scene_values(moving))
     assert bool((at_rest.state.v == 0).all())
     assert thrown.state.v.tolist() == [[0.0, 0.0, 3.0]] * thrown.n
     assert thrown.substeps > at_rest.substeps  # CFL: 3 m/s crosses a cell of 3.3 cm in 11 ms
     # an explicit velocity wins over the config's
-    explicit = build_simulator(cfg, setup, params, density, velocity=torch.tensor([1.0, 0, 0]))
+    (values,) = scene_values(cfg)
+    explicit = build_simulator(cfg, setup, (dataclasses.replace(values, velocity=torch.tensor([1.0, 0, 0])),))
     assert explicit.state.v[0].tolist() == [1.0, 0.0, 0.0]
 
 
@@ -127,10 +128,10 @@ def thrown(tmp_path_factory):
 def thrown_config(folder, output, **optimize):
     """The thrown case's config starting at rest, with the true velocity as ground truth."""
     cfg = load_config(folder / "config.yaml")
-    assert cfg.velocity == THROW  # written by the generator
+    assert cfg.objects[0].velocity == THROW  # written by the generator
     optimize = {"learning_rates": {}, "horizon_start": 0, **optimize}
     return dataclasses.replace(
-        cfg.with_object(velocity=(0.0, 0.0, 0.0)),
+        cfg.with_objects([dataclasses.replace(cfg.objects[0], velocity=(0.0, 0.0, 0.0))]),
         output=output,
         optimize=dataclasses.replace(cfg.optimize, **optimize),
         ground_truth={**cfg.ground_truth, **dict(zip(VELOCITY_COMPONENTS, THROW))},

@@ -197,15 +197,15 @@ def test_scene_from_config_is_optimize_ready(tmp_path):
     assert code == 0, output
     assert "3 frames at 24 fps (from " in output and "frame_dt" in output
     cfg = load_config(tmp_path / "scene" / "config.yaml")
-    assert (cfg.material.type, cfg.material.model) == ("elastic", "neo_hookean")
-    assert cfg.material.parameters == {"youngs_modulus": 1e5, "poissons_ratio": 0.1}
-    assert cfg.material.density == 1000.0 and cfg.simulation.gravity == (0.0, -9.8, 0.0)
+    assert (cfg.objects[0].material.type, cfg.objects[0].material.model) == ("elastic", "neo_hookean")
+    assert cfg.objects[0].material.parameters == {"youngs_modulus": 1e5, "poissons_ratio": 0.1}
+    assert cfg.objects[0].material.density == 1000.0 and cfg.simulation.gravity == (0.0, -9.8, 0.0)
     (ground,) = cfg.colliders
     assert (ground.point, ground.normal, ground.mode) == ((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), "sticky")
     assert (cfg.simulation.fps, cfg.simulation.frames) == (24.0, 2)
     assert cfg.optimize.parameters == ("youngs_modulus", "poissons_ratio")
     assert (cfg.optimize.estimate_velocity_frames, cfg.optimize.estimate_velocity_iterations) == (1, 10)
-    box = cfg.selection.region
+    box = cfg.objects[0].selection.region
     assert box.kind == "box" and box.lower[0] < -0.2 < 0.3 < box.upper[0] and box.upper[1] < 5.0  # faint one out
     # the camera: camera 1's PAC-NeRF pose and intrinsic, through the config (+y up, scale 1)
     c2w, K = poses[1]
@@ -229,8 +229,8 @@ def test_scene_without_config_leaves_the_material_to_the_query(tmp_path):
     assert code == 0, output
     assert "--set optimize.parameters=" in output
     cfg = load_config(tmp_path / "scene" / "config.yaml")
-    assert cfg.material.type == "query" and cfg.material.query_prompt == "a jelly torus"
-    assert cfg.material.query_image == (tmp_path / "scene" / "object.png").resolve()
+    assert cfg.objects[0].material.type == "query" and cfg.objects[0].material.query_prompt == "a jelly torus"
+    assert cfg.objects[0].material.query_image == (tmp_path / "scene" / "object.png").resolve()
     assert (cfg.simulation.fps, cfg.simulation.frames) == (pytest.approx(12.0), 3)
     assert cfg.colliders[0].point == (0.0, 0.05, 0.0) and cfg.optimize.parameters == ()
     frames, _, fps = decode_video(tmp_path / "scene" / "guidance.mp4")

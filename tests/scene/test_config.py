@@ -43,8 +43,8 @@ def parse(data, folder):
 def test_a_complete_config_parses_with_defaults(folder):
     cfg = parse(GOOD, folder)
     assert cfg.splats == folder / "scene.ply" and cfg.scale == 0.5 and cfg.up == "+z"
-    assert cfg.material.type == "elastic" and cfg.material.density == 500.0
-    assert cfg.material.parameters == {"youngs_modulus": 1e4, "poissons_ratio": 0.3}
+    assert cfg.objects[0].material.type == "elastic" and cfg.objects[0].material.density == 500.0
+    assert cfg.objects[0].material.parameters == {"youngs_modulus": 1e4, "poissons_ratio": 0.3}
     assert cfg.forces[0].kind == "force" and cfg.forces[0].region.kind == "sphere"
     assert cfg.forces[0].end == 0.2 and cfg.colliders[0].normal == (0.0, 1.0, 0.0)
     assert cfg.colliders[1].mode == "sticky" and cfg.colliders[1].end == math.inf
@@ -201,7 +201,7 @@ def test_bad_configs_name_the_key_and_the_problem(folder, path, value, message):
 
 
 def test_velocity_keys(folder):
-    assert parse(GOOD, folder).velocity == (0.0, 0.0, 0.0)  # at rest by default
+    assert parse(GOOD, folder).objects[0].velocity == (0.0, 0.0, 0.0)  # at rest by default
     data = edit("object.velocity", [0.5, -1, 2])
     data["optimize"] = {
         "parameters": ["youngs_modulus", "velocity"],
@@ -210,7 +210,7 @@ def test_velocity_keys(folder):
     }
     data["evaluation"] = {"ground_truth": {"youngs_modulus": 2e4, "velocity": [0.5, -1, 0]}}
     cfg = parse(data, folder)
-    assert cfg.velocity == (0.5, -1.0, 2.0)  # as written: m/s in the simulation frame
+    assert cfg.objects[0].velocity == (0.5, -1.0, 2.0)  # as written: m/s in the simulation frame
     opt = cfg.optimize
     assert opt.parameters == ("youngs_modulus", "velocity") and opt.learning_rates == {"velocity": 0.2}
     assert (opt.estimate_velocity_frames, opt.estimate_velocity_iterations) == (4, 10)
@@ -389,7 +389,7 @@ def test_yaml_numbers_with_an_exponent_are_numbers(folder):
     assert "youngs_modulus: 2e4" in text
     (folder / "scene.yaml").write_text(text + "evaluation:\n  ground_truth: {youngs_modulus: 1.5E+5, density: 5e2}\n")
     cfg = load_config(folder / "scene.yaml")
-    assert cfg.material.parameters["youngs_modulus"] == 2e4
+    assert cfg.objects[0].material.parameters["youngs_modulus"] == 2e4
     assert cfg.ground_truth == {"youngs_modulus": 1.5e5, "density": 500.0}
     (folder / "quoted.yaml").write_text(text.replace("youngs_modulus: 2e4", "youngs_modulus: '2e4'"))
     with pytest.raises(InputError, match=r"youngs_modulus.*'2e4'"):  # a quoted string stays a string
@@ -415,8 +415,8 @@ def test_overrides_set_keys_before_validation(scene_yaml):
             "scene.up=+y",
         ],
     )
-    assert cfg.simulation.frames == 20 and cfg.material.parameters["youngs_modulus"] == 3e5
-    assert cfg.velocity == (0.0, 1.5, 0.0) and cfg.optimize.search.samples == 4 and cfg.up == "+y"
+    assert cfg.simulation.frames == 20 and cfg.objects[0].material.parameters["youngs_modulus"] == 3e5
+    assert cfg.objects[0].velocity == (0.0, 1.5, 0.0) and cfg.optimize.search.samples == 4 and cfg.up == "+y"
     assert load_config(scene_yaml, ["simulation.frames=20", "simulation.frames=8"]).simulation.frames == 8  # last wins
     assert load_config(scene_yaml).simulation.frames == 12
 
@@ -427,7 +427,7 @@ def test_overrides_index_list_items(scene_yaml):
         ["forces.0.end=0.5", "forces.0.region.sphere.radius=0.2", "object.velocity=[0, 1, 0]", "object.velocity.1=2.5"],
     )
     assert cfg.forces[0].end == 0.5 and cfg.forces[0].region.radius == 0.2
-    assert cfg.velocity[1] == 2.5
+    assert cfg.objects[0].velocity[1] == 2.5
 
 
 @pytest.mark.parametrize(
@@ -473,8 +473,6 @@ def several(**changes):
 
 
 def test_objects_as_a_list_or_a_mapping_and_one_object_in_either_form(folder):
-    from clflow.scene.config import SeveralObjectsError
-
     cfg = parse(several(), folder)
     jelly, heap = cfg.objects
     assert cfg.object_names == ("jelly", "heap") and (jelly.key, heap.material_key) == (
@@ -486,16 +484,16 @@ def test_objects_as_a_list_or_a_mapping_and_one_object_in_either_form(folder):
     assert heap.material.type == "sand" and heap.material.density == 1600.0 and heap.selection.region.kind == "sphere"
     mapping = several(objects={o["name"]: {k: v for k, v in o.items() if k != "name"} for o in several()["objects"]})
     assert parse(mapping, folder) == cfg
-    with pytest.raises(SeveralObjectsError, match="several objects \\(jelly, heap\\)"):
-        cfg.material  # noqa: B018  (a step built for one object asks)
     # the single-object form is one SceneObject named object, its material under material
     single = parse(GOOD, folder)
     (obj,) = single.objects
     assert (obj.name, obj.key, obj.material_key) == ("object", "object", "material")
-    assert single.material is obj.material and single.selection is obj.selection and single.velocity == obj.velocity
     listed = parse(several(objects=[several()["objects"][0]], optimize=GOOD["optimize"]), folder)
     assert listed.objects[0].material == obj.material and listed.objects[0].selection == obj.selection
-    assert single.with_object(velocity=(1.0, 0.0, 0.0)).velocity == (1.0, 0.0, 0.0)
+    assert (obj.own_file("material_query", ".json"), jelly.own_file("material_query", ".json")) == (
+        "material_query.json",
+        "material_query.jelly.json",
+    )
 
 
 @pytest.mark.parametrize(

@@ -69,8 +69,11 @@ def test_the_complete_example_loads_with_its_values(folder):
     assert (sim.frames, sim.fps, sim.grid_resolution, sim.substep_dt) == (12, 24.0, 24, None)
     assert sim.domain_lower == (-0.5, -0.2, -0.5) and sim.gravity == (0.0, -9.81, 0.0)
     assert cfg.splats == (folder / "scene.ply").resolve() and cfg.video == (folder / "guidance").resolve()
-    assert cfg.selection.region.kind == "box" and cfg.fill.spacing == 0.01
-    assert cfg.material.model == "fixed_corotated" and cfg.material.parameters["youngs_modulus"] == 2000.0
+    assert cfg.objects[0].selection.region.kind == "box" and cfg.objects[0].fill.spacing == 0.01
+    assert (
+        cfg.objects[0].material.model == "fixed_corotated"
+        and cfg.objects[0].material.parameters["youngs_modulus"] == 2000.0
+    )
     assert cfg.forces[0].kind == "acceleration" and cfg.forces[0].end == 0.12
     assert [c.mode for c in cfg.colliders] == ["sticky", "separate"] and cfg.colliders[1].end == 0.5
     assert cfg.camera.position == (0.25, 0.45, 0.75) and cfg.camera.width == 96
@@ -85,17 +88,20 @@ def test_the_complete_example_loads_with_its_values(folder):
 def test_the_alternative_forms_load(folder):
     base = yaml.safe_load(BLOCKS[0])
     cfg = _load(folder, _merge(base, yaml.safe_load(BLOCKS[1])))
-    assert cfg.selection.region.kind == "sphere" and cfg.selection.region.radius == 0.12
-    assert cfg.material.type == "query" and cfg.material.query_image == (folder / "object.png").resolve()
-    assert cfg.material.density == 1100.0 and cfg.material.parameters == {"poissons_ratio": 0.4}
+    assert cfg.objects[0].selection.region.kind == "sphere" and cfg.objects[0].selection.region.radius == 0.12
+    assert (
+        cfg.objects[0].material.type == "query"
+        and cfg.objects[0].material.query_image == (folder / "object.png").resolve()
+    )
+    assert cfg.objects[0].material.density == 1100.0 and cfg.objects[0].material.parameters == {"poissons_ratio": 0.4}
     assert cfg.forces[0].region.kind == "all" and cfg.forces[0].kind == "force"
     assert math.isinf(cfg.forces[0].end)
     assert cfg.camera.cameras_file == (folder / "cameras.json").resolve() and cfg.simulation.substep_dt == 0.0005
 
     cfg = _load(folder, _merge(base, yaml.safe_load(BLOCKS[2])))
-    assert cfg.selection.mask == (folder / "object.npy").resolve()
-    assert cfg.material.query_result == (folder / "object.material.json").resolve()
-    assert cfg.material.query_image is None and cfg.material.density is None
+    assert cfg.objects[0].selection.mask == (folder / "object.npy").resolve()
+    assert cfg.objects[0].material.query_result == (folder / "object.material.json").resolve()
+    assert cfg.objects[0].material.query_image is None and cfg.objects[0].material.density is None
 
 
 def test_the_objects_example_loads(folder):

@@ -20,13 +20,12 @@ from clflow.pipeline.fit.state import Evaluation, OptimizerState, UnstableRun
 from clflow.pipeline.forward import (
     Prepared,
     SimulationResult,
-    material_values,
     prepare,
     render_frames,
     scene_values,
 )
 from clflow.pipeline.render import frame_gaussians, render_flow
-from clflow.pipeline.simulation import ObjectValues, build_scene_simulator, object_masks, run, scene_run_values
+from clflow.pipeline.simulation import ObjectValues, build_simulator, object_masks, run, scene_run_values
 from clflow.scene.config import SceneConfig, is_velocity_component, velocity_names
 
 log = logging.getLogger(__name__)
@@ -85,12 +84,12 @@ class Objective:
         """The RunPlan of z (default: the initial parameters) on a grid of ``grid`` nodes:
         substeps, the seconds of a substep and of a frame's flow rendered (timed there);
         SubstepLimitError beyond ``simulation.max_substeps``."""
-        from clflow.pipeline.preflight import plan_scene_run
+        from clflow.pipeline.preflight import plan_run
 
         z = self.initial_state().z if z is None else z  # plan_run builds the simulator: it checks the forces
         objects = self.object_values(self.values(z), self.velocities(z))
         prepared = self.prepared_on(grid)
-        plan = plan_scene_run(
+        plan = plan_run(
             prepared.cfg,
             prepared.setup,
             objects,
@@ -102,7 +101,7 @@ class Objective:
     def simulator_on(self, grid: int, z: dict[str, float]):
         """A forward simulator of z on a grid of ``grid`` nodes (its substeps those of z's
         stability limits at the start)."""
-        return build_scene_simulator(
+        return build_simulator(
             self.cfg, self.prepared_on(grid).setup, self.object_values(self.values(z), self.velocities(z))
         )
 
@@ -110,9 +109,6 @@ class Objective:
         """Each object's ObjectValues with the optimised ``values`` (SI, by z name) and initial
         ``velocities`` (one [3] tuple or tensor per object, m/s)."""
         overrides = {n: values[n] for n in self.params}
-        if len(self.cfg.objects) == 1:
-            params, density = material_values(self.cfg, overrides)
-            return (ObjectValues(params, density, velocities[0]),)
         return tuple(
             dataclasses.replace(v, velocity=velocity)
             for v, velocity in zip(scene_values(self.cfg, overrides), velocities)
@@ -237,7 +233,7 @@ class Objective:
         objects = self.object_values({n: float(v.detach()) for n, v in decoded.items()}, speeds)
         with warnings.catch_warnings():  # an unstable step or run fails below, saying why (UnstableRun)
             warnings.simplefilter("ignore", StabilityWarning)
-            sim = build_scene_simulator(
+            sim = build_simulator(
                 self.cfg,
                 prepared.setup,
                 objects,
@@ -290,9 +286,7 @@ class Objective:
 
         margin = max(max(abs(dx), abs(dy)) for dx, dy in shifts)
         traj = result.trajectory
-        simulated = SimulationResult(
-            self.prepared, {}, 0.0, traj.x[: frames + 1].detach(), traj.F[: frames + 1].detach()
-        )
+        simulated = SimulationResult(self.prepared, traj.x[: frames + 1].detach(), traj.F[: frames + 1].detach())
         errors = []
         for view, flows in zip(self.views, [result.flows, *result.more_flows]):
             wide = render_frames(simulated, view.camera.widened(margin), supersample=SUPERSAMPLE)

@@ -16,9 +16,9 @@ from clflow.errors import ClflowError
 from clflow.fileio import atomic_write_text
 from clflow.pipeline.fit.diagnostics import MIN_LOSS_RISE, PROFILE_RISE, WEAK_STD_Z
 from clflow.pipeline.fit.state import OptimizerState
-from clflow.pipeline.forward import SimulationResult, material_values, render_frames
+from clflow.pipeline.forward import SimulationResult, render_frames
 from clflow.pipeline.plots import range_text, write_history_plot
-from clflow.scene.config import SceneConfig, is_velocity_component, split_parameter, velocity_names
+from clflow.scene.config import SceneConfig, is_velocity_component, objects_form, split_parameter, velocity_names
 
 log = logging.getLogger(__name__)
 
@@ -62,29 +62,12 @@ class Results:
         final = self.values(state.z)
         metrics = self.result_metrics(state, result)
         ranges = metrics["identifiability"]["ranges"]
-        if len(self.cfg.objects) == 1:
-            params, density = material_values(self.cfg, {n: final[n] for n in self.params})
-            materials = {
-                "material": self.cfg.material.type,
-                "parameters": params,
-                "density": density,
-                "velocity": list(self.velocities(state.z)[0]),
-            }
-        else:  # each object's material with its optimised values (OBJECT.PARAM in optimized)
-            params, density = {}, math.nan
-            materials = {
-                "objects": {
-                    o.name: {
-                        "material": o.material.type,
-                        "parameters": v.params,
-                        "density": v.density,
-                        "velocity": list(v.velocity),
-                    }
-                    for o, v in zip(self.cfg.objects, self.object_values(final, self.velocities(state.z)))
-                }
-            }
+        materials = [  # each object's material with its optimised values
+            {"material": o.material.type, "parameters": v.params, "density": v.density, "velocity": list(v.velocity)}
+            for o, v in zip(self.cfg.objects, self.object_values(final, self.velocities(state.z)))
+        ]
         record = {
-            **materials,
+            **objects_form(self.cfg.objects, materials),
             "optimized": final,
             "units": {n: parameter_unit(self.cfg, n) for n in final},
             # each optimised value's range (SI; None: open, the video only bounds the other side)
@@ -100,7 +83,7 @@ class Results:
         if state.search:
             atomic_write_text(out / "search.json", json.dumps(state.search, indent=1))
         write_history_plot(out / "loss.png", state.history, self.cfg.ground_truth, ranges)
-        self.write_comparison_videos(result, params, density, out)
+        self.write_comparison_videos(result, out)
         return metrics
 
     def final_evaluation(self, state: OptimizerState):
@@ -215,14 +198,14 @@ class Results:
         for a, b, rho in identifiability["trade_offs"]:
             log.warning("%s and %s trade off (correlation %.3f): the video fixes a combination of them", a, b, rho)
 
-    def write_comparison_videos(self, result, params: dict, density: float, out) -> None:
+    def write_comparison_videos(self, result, out) -> None:
         """Per guidance view, side by side: guidance | guidance flow | simulated flow | error,
         and the simulated frames from that view (out/comparison.mp4, comparison_view1.mp4, ...)."""
         from clflow.flow.visualize import comparison_panel
         from clflow.media import write_video
 
         traj = result.trajectory
-        simulated = SimulationResult(self.prepared, params, density, traj.x.detach(), traj.F.detach())
+        simulated = SimulationResult(self.prepared, traj.x.detach(), traj.F.detach())
         for k, (view, view_flows) in enumerate(zip(self.views, [result.flows, *result.more_flows])):
             sim_frames = render_frames(simulated, camera=view.camera)
             max_flow = max(float(view.observed.norm(dim=-1).max()), 1e-6)

@@ -14,7 +14,7 @@ import torch
 from clflow.errors import ClflowError, InputError
 from clflow.fileio import atomic_write_text
 from clflow.fileio.reading import parse_json
-from clflow.pipeline.forward import material_values, scene_values
+from clflow.pipeline.forward import scene_values
 from clflow.scene.config import SceneConfig, config_record, split_parameter, velocity_names
 
 if TYPE_CHECKING:
@@ -164,15 +164,11 @@ class Checkpoints:
     and read from on --resume (needs cfg, params, variables, checkpoint, restore_calibration)."""
 
     def initial_state(self) -> OptimizerState:
-        if len(self.cfg.objects) == 1:
-            values, density = material_values(self.cfg)
-            values["density"] = density
-        else:  # OBJECT.PARAM: that object's
-            objects = scene_values(self.cfg)
-            values = {}
-            for n in self.params:
-                k, param = split_parameter(self.cfg.objects, n)
-                values[n] = objects[k].density if param == "density" else objects[k].params[param]
+        objects = scene_values(self.cfg)
+        values = {}
+        for n in self.params:  # the one object's PARAM, or OBJECT.PARAM: that object's
+            k, param = split_parameter(self.cfg.objects, n)
+            values[n] = objects[k].density if param == "density" else objects[k].params[param]
         z = {n: float(p.encode(values[n])) for n, p in self.params.items()}
         for k, obj in enumerate(self.cfg.objects):  # an optimised velocity starts at its config's
             components = velocity_names(self.cfg.objects, k)[1]

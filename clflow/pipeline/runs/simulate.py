@@ -59,16 +59,14 @@ def simulate_scene(
     from clflow.scene.load import load_scene_objects
 
     cfg = load_config(config_path, settings)
-    scene = None
-    if len(cfg.objects) > 1:
-        scene = load_scene_objects(cfg, torch.float32)  # selections checked (empty, overlapping) before a query
+    scene = load_scene_objects(cfg, torch.float32)  # selections checked (empty, overlapping) before a query
     out = Path(out_dir) if out_dir else cfg.output / "simulation"
     check_output(out)
     with output_folder(out):  # this run's: other runs are refused, before any work
         cfg = resolve_material(cfg)
-        overrides, min_substeps = {}, 1
+        min_substeps = 1
         if params_file:
-            cfg, overrides, min_substeps = read_params_record(params_file, cfg)
+            cfg, min_substeps = read_params_record(params_file, cfg)
         inputs = [*input_files(cfg), *([params_file] if params_file else [])]
         check_output_folder(out, SIMULATION_ENTRIES, inputs, derived=True)
         prepared = prepare(cfg, scene=scene)
@@ -81,14 +79,13 @@ def simulate_scene(
         with shown as advance:
             result = simulate_config(
                 cfg,
-                overrides,
-                prepared,
+                prepared=prepared,
                 max_substeps=max_substeps,
                 on_frame=_frame_progress(advance),
                 min_substeps=min_substeps,
             )
         if len(cfg.objects) == 1:
-            echo(f"{result.x.shape[1]:,} particles of {cfg.material.type}, {frames} frames")
+            echo(f"{result.x.shape[1]:,} particles of {cfg.objects[0].material.type}, {frames} frames")
         else:
             counts = torch.bincount(prepared.setup.object_index, minlength=len(cfg.objects)).tolist()
             each = ", ".join(f"{o.name} {c:,} of {o.material.type}" for o, c in zip(cfg.objects, counts))

@@ -9,7 +9,6 @@ import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from clflow.errors import InputError
 from clflow.flow.optical_flow import (
     BIAS_CORRECTIONS,
     CONFIDENCES,
@@ -147,9 +146,10 @@ class SceneObject:
         """The config key of its material: ``material`` or ``objects.NAME.material``."""
         return "material" if self.key == SINGLE_OBJECT else f"{self.key}.material"
 
-
-class SeveralObjectsError(InputError):
-    """A step built for one object only asked a config of several for its object."""
+    def own_file(self, stem: str, suffix: str) -> str:
+        """The name of a file of its own in an output folder: STEM.SUFFIX for the object of
+        the single-object form, STEM.NAME.SUFFIX for one of several."""
+        return f"{stem}{suffix}" if self.key == SINGLE_OBJECT else f"{stem}.{self.name}{suffix}"
 
 
 @dataclass(frozen=True)
@@ -432,29 +432,8 @@ class SceneConfig:
     dataparser_transforms: Path | None = None  # nerfstudio's: camera files' frame -> the splat file's
 
     @property
-    def object(self) -> SceneObject:
-        """The config's one object, for the steps built for one (optimisation, the guidance
-        video's generation); SeveralObjectsError (one line) for a config of several."""
-        if len(self.objects) != 1:
-            names = ", ".join(o.name for o in self.objects)
-            raise SeveralObjectsError(
-                f"{self.source}: several objects ({names}): this step works on one object only for now"
-            )
-        return self.objects[0]
-
-    # the one object's parts, as the single-object form gives them
-    selection = property(lambda self: self.object.selection, doc="the one object's Selection")
-    fill = property(lambda self: self.object.fill, doc="the one object's FillSettings")
-    material = property(lambda self: self.object.material, doc="the one object's MaterialConfig")
-    velocity = property(lambda self: self.object.velocity, doc="the one object's initial velocity, m/s")
-
-    @property
     def object_names(self) -> tuple[str, ...]:
         return tuple(o.name for o in self.objects)
-
-    def with_object(self, **changes) -> SceneConfig:
-        """The config with the one object's fields changed (``material=``, ``velocity=``, ...)."""
-        return replace(self, objects=(replace(self.object, **changes),))
 
     def with_objects(self, objects) -> SceneConfig:
         """The config with ``objects`` (a sequence of SceneObject) instead of its own."""
@@ -489,6 +468,32 @@ def split_parameter(objects, name: str) -> tuple[int, str]:
     return names.index(obj), param
 
 
+def objects_form(objects: tuple[SceneObject, ...], entries: list[dict]) -> dict:
+    """``entries`` (one dict per object of ``objects``) as a record writes them, in the form
+    of the config: the one object's keys at the top; with several ``{"objects": {name: entry}}``."""
+    if len(objects) == 1:
+        return dict(entries[0])
+    return {"objects": {o.name: entry for o, entry in zip(objects, entries)}}
+
+
+def object_entries(objects: tuple[SceneObject, ...], record) -> list:
+    """Each object's entry of ``record``, a record written in the form of the config
+    (:func:`objects_form`; None for an object it lacks); ValueError when the record's form
+    is not the config's."""
+    several = isinstance(record, dict) and "objects" in record
+    if several != (len(objects) > 1):
+        what = "several objects" if several else "one object"
+        raise ValueError(f"holds the parameters of {what}; the config simulates {len(objects)}")
+    if not several:
+        return [record]
+    entries = record["objects"]
+    missing = [o.name for o in objects if not isinstance(entries, dict) or not isinstance(entries.get(o.name), dict)]
+    if missing:
+        listed = ", ".join(entries) if isinstance(entries, dict) else "none"
+        raise ValueError(f"lacks the object {missing[0]!r} of the config (it lists {listed})")
+    return [entries[o.name] for o in objects]
+
+
 def config_record(cfg: SceneConfig) -> dict:
     """``dataclasses.asdict`` of ``cfg`` for the records (run.json, a checkpoint's config
     digests): a config of one object keeps the keys it had before configs held several
@@ -521,11 +526,12 @@ __all__ = [
     "SINGLE_OBJECT",
     "SceneConfig",
     "SceneObject",
-    "SeveralObjectsError",
     "Selection",
     "SimulationSettings",
     "UP_AXES",
     "config_record",
+    "object_entries",
+    "objects_form",
     "is_velocity_component",
     "main_grid_range",
     "split_parameter",
