@@ -142,20 +142,20 @@ def run_case(
         state = opt.run(resume=True)
         metrics = write_results(opt, state)
         record.update(grid=metrics["grid"], optimise_seconds=metrics["seconds"], budget=metrics.get("budget"))
-        truth_z = {n: float(opt.params[n].encode(case.truth[n])) for n in opt.params}
+        truth_z = {n: float(opt.problem.params[n].encode(case.truth[n])) for n in opt.problem.params}
         # at the truth's own stable time step: MPM's answer depends on dt (docs/history,
         # "MPM depends on the substep"), and the final run's may be finer
-        floor = opt.evaluate({**state.z, **truth_z}, opt.frames, with_grad=False)
-        floor_epe = opt.endpoint_error(floor.flows, floor.more_flows)
+        floor = opt.objective.evaluate({**state.z, **truth_z}, opt.problem.frames, with_grad=False)
+        floor_epe = opt.objective.endpoint_error(floor.flows, floor.more_flows)
         # both losses against the estimator's error measured at their own parameters (the final
         # point's targets hold its own): comparable, the truth's the floor of the optimiser's loss
-        truth_loss = opt.self_consistent_loss(floor, opt.frames, opt.final_shifts)
+        truth_loss = opt.objective.self_consistent_loss(floor, opt.problem.frames, opt.objective.final_shifts)
     except BudgetTooSmall:  # the settings', not the case's: every case would fail alike
         raise
     except ClflowError as exc:
         record.update(status=f"failed: {exc}", seconds=time.perf_counter() - start)
         return record
-    record["parameters"] = parameter_records(case, opt.values(state.z), metrics["identifiability"]["ranges"])
+    record["parameters"] = parameter_records(case, opt.problem.values(state.z), metrics["identifiability"]["ranges"])
     record.update(
         mean_re=float(np.mean([p["re"] for p in record["parameters"].values()])),
         epe_px=metrics["epe_px"],

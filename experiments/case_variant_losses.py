@@ -84,16 +84,16 @@ def losses_along(
         fill = lambda o: dataclasses.replace(o.fill, spacing=fill_spacing)  # noqa: E731
         cfg = dataclasses.replace(cfg, objects=tuple(dataclasses.replace(o, fill=fill(o)) for o in cfg.objects))
     opt = Optimization(cfg)
-    if param not in opt.params:
-        raise SystemExit(f"{param} is not optimised in {config}; its parameters: {', '.join(opt.params)}")
-    z = {name: float(p.encode(truth[name])) for name, p in opt.params.items()}
+    if param not in opt.problem.params:
+        raise SystemExit(f"{param} is not optimised in {config}; its parameters: {', '.join(opt.problem.params)}")
+    z = {name: float(p.encode(truth[name])) for name, p in opt.problem.params.items()}
     rows = []
     for value in values:
         started = time.perf_counter()
-        z[param] = float(opt.params[param].encode(value))
-        at = opt.evaluate(z, opt.frames, with_grad=False)
-        loss = opt.self_consistent_loss(at, opt.frames, opt.final_shifts)
-        rows.append({"value": value, "loss": loss, "grid": opt.model_grid, "substeps": at.substeps})
+        z[param] = float(opt.problem.params[param].encode(value))
+        at = opt.objective.evaluate(z, opt.problem.frames, with_grad=False)
+        loss = opt.objective.self_consistent_loss(at, opt.problem.frames, opt.objective.final_shifts)
+        rows.append({"value": value, "loss": loss, "grid": opt.problem.model_grid, "substeps": at.substeps})
         report(rows[-1] | {"s": round(time.perf_counter() - started)})
     return rows
 

@@ -61,7 +61,7 @@ def loss_minimum(opt, z_truth: dict[str, float], name: str, steps: int = 16) -> 
     ratio = (5**0.5 - 1) / 2
 
     def loss(z: float) -> float:
-        return opt.evaluate({**z_truth, name: z}, opt.frames, with_grad=False).loss
+        return opt.objective.evaluate({**z_truth, name: z}, opt.problem.frames, with_grad=False).loss
 
     lo, hi = z_truth[name] - SEARCH_HALF_WIDTH, z_truth[name] + SEARCH_HALF_WIDTH
     a, b = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
@@ -102,19 +102,19 @@ def measure_case(config, output, preset: str, confidence: str, iterations: int |
         cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=max(iterations, 1)))
     opt = Optimization(cfg)
     truth = cfg.ground_truth
-    z_truth = {n: float(p.encode(truth[n])) for n, p in opt.params.items()}
-    at_truth = opt.evaluate(z_truth, opt.frames, with_grad=False)
+    z_truth = {n: float(p.encode(truth[n])) for n, p in opt.problem.params.items()}
+    at_truth = opt.objective.evaluate(z_truth, opt.problem.frames, with_grad=False)
     simulated, observed, weight = (
         torch.stack(at_truth.flows).numpy(),
-        opt.views[0].observed.numpy(),
-        opt.views[0].weight.numpy(),
+        opt.problem.views[0].observed.numpy(),
+        opt.problem.views[0].weight.numpy(),
     )
     z_minimum = {n: loss_minimum(opt, z_truth, n) for n in z_truth}
-    at_minimum = opt.values(z_minimum)
+    at_minimum = opt.problem.values(z_minimum)
     row = {
         "slope": flow_slope(observed, simulated, weight),
         "epe": endpoint_error(observed, simulated, weight),
-        "kept": float(weight.sum() / opt.views[0].mask.sum() / opt.frames),
+        "kept": float(weight.sum() / opt.problem.views[0].mask.sum() / opt.problem.frames),
         "minimum": {n: (at_minimum[n] - truth[n]) / truth[n] for n in at_minimum},
         "beyond": {n for n, z in z_minimum.items() if abs(z - z_truth[n]) > 0.99 * SEARCH_HALF_WIDTH},
         "error": {},
@@ -122,7 +122,7 @@ def measure_case(config, output, preset: str, confidence: str, iterations: int |
     }
     if iterations != 0:
         timing = measure(opt.run, warmup=0)
-        final = opt.values(timing.result.z)
+        final = opt.problem.values(timing.result.z)
         row["seconds"], row["cpu_seconds"] = timing.median_wall, timing.median_cpu
         row["error"] = {n: (final[n] - truth[n]) / truth[n] for n in final}
     return row

@@ -60,26 +60,30 @@ def main(argv: list[str] | None = None) -> int:
 
     opt = Optimization(load_config(args.config))
     state = opt.run(resume=True)
-    if args.param not in opt.params:
-        raise SystemExit(f"{args.param} is not optimised here; the parameters are {', '.join(opt.params)}")
-    encode = opt.params[args.param].encode
-    frames = opt.frames
-    print(f"final point {opt.values(state.z)} at {state.substeps} substeps per frame, loss {state.best['loss']:.5g}")
-    grid = opt.model_grid if args.grid is None else args.grid
-    substeps = state.substeps if grid == opt.model_grid else 1  # another grid: its own stable substeps
-    if args.calibrate_at is not None and opt.corrects_bias:
+    if args.param not in opt.problem.params:
+        raise SystemExit(f"{args.param} is not optimised here; the parameters are {', '.join(opt.problem.params)}")
+    encode = opt.problem.params[args.param].encode
+    frames = opt.problem.frames
+    print(
+        f"final point {opt.problem.values(state.z)} at {state.substeps} substeps per frame, loss {state.best['loss']:.5g}"
+    )
+    grid = opt.problem.model_grid if args.grid is None else args.grid
+    substeps = state.substeps if grid == opt.problem.model_grid else 1  # another grid: its own stable substeps
+    if args.calibrate_at is not None and opt.problem.corrects_bias:
         # the run's own calibration file stays as the run left it: this one goes elsewhere
-        opt.estimator_error_file = Path(tempfile.mkdtemp(prefix="loss-scan-")) / "estimator_error.npz"
+        opt.objective.calibration_file = Path(tempfile.mkdtemp(prefix="loss-scan-")) / "estimator_error.npz"
         z = {**state.z, args.param: float(encode(args.calibrate_at))}
         at = dataclasses.replace(state, z=z, calibrated_at=None)
-        opt.calibrate(at, opt.evaluate(z, frames, with_grad=False, min_substeps=substeps, grid=grid), frames)
+        opt.objective.calibrate(
+            at, opt.objective.evaluate(z, frames, with_grad=False, min_substeps=substeps, grid=grid), frames
+        )
         print(f"targets calibrated at {args.param} = {args.calibrate_at:g}")
     rows = []
     for value in np.linspace(args.low, args.high, args.points):
         started = time.perf_counter()
         z = {**state.z, args.param: float(encode(float(value)))}
-        at = opt.evaluate(z, frames, min_substeps=substeps, variables=(args.param,), grid=grid)
-        nearby = opt.evaluate(
+        at = opt.objective.evaluate(z, frames, min_substeps=substeps, variables=(args.param,), grid=grid)
+        nearby = opt.objective.evaluate(
             {**z, args.param: z[args.param] - LM_STEP}, frames, with_grad=False, min_substeps=at.substeps, grid=grid
         )
         row = {
@@ -92,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
             "lm_backward_difference_dz": (at.loss - nearby.loss) / LM_STEP,
         }
         if not args.no_self_consistent:
-            row["self_consistent_loss"] = opt.self_consistent_loss(at, frames, opt.final_shifts)
+            row["self_consistent_loss"] = opt.objective.self_consistent_loss(at, frames, opt.objective.final_shifts)
         row["seconds"] = time.perf_counter() - started
         rows.append(row)
         print(
@@ -104,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     for before, row, after in zip(rows, rows[1:], rows[2:]):
         row["scan_central_difference_dz"] = (after["loss"] - before["loss"]) / (after["z"] - before["z"])
-    record = {"config": str(args.config), "param": args.param, "final": opt.values(state.z), "rows": rows}
+    record = {"config": str(args.config), "param": args.param, "final": opt.problem.values(state.z), "rows": rows}
     record["calibrated_at"] = args.calibrate_at
     if args.json:
         tmp = args.json.with_name(f".{args.json.name}.tmp")

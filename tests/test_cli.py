@@ -83,20 +83,22 @@ def test_unknown_device_is_a_clear_error(monkeypatch):
 class _InterruptedOptimization:
     """Stands in for clflow.pipeline.fit.Optimization: Ctrl-C during run()."""
 
-    total_iterations = 3
-
     def __init__(self, cfg, checkpoint, iterations_in_run):
-        self.cfg, self.checkpoint, self.progress = cfg, checkpoint, None
+        from types import SimpleNamespace
+
+        self.cfg, self.progress = cfg, None
+        self.problem = SimpleNamespace(total_iterations=3)
+        self.checkpoint = SimpleNamespace(path=checkpoint, exists=checkpoint.exists)
         self.iterations_in_run = iterations_in_run
 
     def load_state(self):
         from types import SimpleNamespace
 
-        return SimpleNamespace(iteration=json.loads(self.checkpoint.read_text())["state"]["iteration"])
+        return SimpleNamespace(iteration=json.loads(self.checkpoint.path.read_text())["state"]["iteration"])
 
     def run(self, resume, start=None):
         if self.iterations_in_run:
-            atomic_write_text(self.checkpoint, json.dumps({"state": {"iteration": self.iterations_in_run}}))
+            atomic_write_text(self.checkpoint.path, json.dumps({"state": {"iteration": self.iterations_in_run}}))
         raise KeyboardInterrupt
 
 

@@ -80,9 +80,9 @@ def search_hypothesis(
         opt = Optimization(
             hyp, progress=(lambda row: progress(material, row)) if progress else None, force_video=force_video
         )
-        state = opt.load_state() if resume and opt.checkpoint.exists() else opt.initial_state()
+        state = opt.load_state() if resume and opt.checkpoint.exists() else opt.problem.initial_state()
         if not state.searched:
-            state = opt.global_search(state)
+            state = opt.search.global_search(state, opt.progress)
     except ClflowError as exc:  # no sample of this material ran: the others may
         if isinstance(exc, InputError) and not isinstance(exc, SubstepLimitError):
             raise  # the user's config: no hypothesis can fix that

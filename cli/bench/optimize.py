@@ -37,8 +37,8 @@ def optimize(gaussians, image, frames, grid, iterations):
         )
         load = measure(lambda: Optimization(cfg), warmup=0)
         opt = load.result
-        setup = opt.prepared.setup
-        n_gauss = opt.prepared.obj_rest.means.shape[0] + opt.prepared.static.means.shape[0]
+        setup = opt.problem.prepared.setup
+        n_gauss = opt.problem.prepared.obj_rest.means.shape[0] + opt.problem.prepared.static.means.shape[0]
         click.echo(
             f"scene: {n_gauss:,} Gaussians ({setup.particles.n_gaussians:,} on the object, "
             f"{setup.particles.n_fill:,} fill particles), grid {setup.grid.resolution}, {frames} frames, "

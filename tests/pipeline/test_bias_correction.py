@@ -23,22 +23,25 @@ def test_calibrated_at_the_parameters_that_made_the_video_the_residual_vanishes(
     for t, frame in enumerate(render_frames(truth, supersample=SUPERSAMPLE)):
         write_image(tmp_path / "video" / f"{t:03d}.png", frame)
     opt = Optimization(dataclasses.replace(cfg, video=tmp_path / "video"))
-    state = opt.initial_state()
-    state.z = {n: float(p.encode(TRUTH[n])) for n, p in opt.params.items()}
-    at_truth = opt.evaluate(state.z, opt.frames, with_grad=False)
+    state = opt.problem.initial_state()
+    state.z = {n: float(p.encode(TRUTH[n])) for n, p in opt.problem.params.items()}
+    at_truth = opt.objective.evaluate(state.z, opt.problem.frames, with_grad=False)
     raw = at_truth.loss
     assert raw > 1e-3  # DIS's own error on this video, px^2
 
     # the search's score of a sample: against the video's flow less the error at that sample
-    assert float(opt.loss_of([at_truth.flows], opt.estimator_errors(at_truth, opt.frames))) < 1e-3 * raw
-    calibrated = opt.calibrate(state, at_truth, opt.frames)
-    assert calibrated.calibrated_at == {"z": state.z, "frames": opt.frames, "grid": opt.model_grid}
-    assert opt.rescored(at_truth).loss < 1e-3 * raw  # the estimator's error cancels
-    error = opt.views[0].estimator_error
-    assert error.shape == opt.views[0].observed.shape and float(error.abs().max()) > 0.05
+    assert (
+        float(opt.objective.loss_of([at_truth.flows], opt.objective.estimator_errors(at_truth, opt.problem.frames)))
+        < 1e-3 * raw
+    )
+    calibrated = opt.objective.calibrate(state, at_truth, opt.problem.frames)
+    assert calibrated.calibrated_at == {"z": state.z, "frames": opt.problem.frames, "grid": opt.problem.model_grid}
+    assert opt.objective.rescored(at_truth).loss < 1e-3 * raw  # the estimator's error cancels
+    error = opt.objective.errors[0]
+    assert error.shape == opt.problem.views[0].observed.shape and float(error.abs().max()) > 0.05
     # the loss of evaluate() itself fits the corrected target
-    assert opt.evaluate(state.z, opt.frames, with_grad=False).loss == pytest.approx(
-        opt.rescored(at_truth).loss, abs=1e-9
+    assert opt.objective.evaluate(state.z, opt.problem.frames, with_grad=False).loss == pytest.approx(
+        opt.objective.rescored(at_truth).loss, abs=1e-9
     )
 
 
@@ -48,12 +51,12 @@ def test_the_default_corrects_and_none_leaves_the_observed_flow(demo_config):
     state = opt.run()
     assert state.calibrated_at is not None and any(row.get("calibrated") for row in state.history)
     assert (opt.cfg.output / "estimator_error.npz").exists()
-    assert not bool((opt.views[0].target == opt.views[0].observed).all())
+    assert not bool((opt.objective.target(0) == opt.problem.views[0].observed).all())
 
     cfg = demo_config(iterations=2, name="plain")
     plain = Optimization(dataclasses.replace(cfg, flow=dataclasses.replace(cfg.flow, bias_correction="none")))
     state = plain.run()
-    assert state.calibrated_at is None and plain.views[0].target is plain.views[0].observed
+    assert state.calibrated_at is None and plain.objective.target(0) is plain.problem.views[0].observed
     assert not (plain.cfg.output / "estimator_error.npz").exists()
 
 
@@ -79,7 +82,7 @@ def test_a_lost_error_file_is_measured_again_at_the_calibration_point(demo_confi
     (cfg.output / "estimator_error.npz").unlink()
     at_point = dataclasses.replace(state, z=dict(state.calibrated_at["z"]))  # as after a rejected step
     fresh = Optimization(cfg)
-    fresh.restore_calibration(at_point)
-    np.testing.assert_allclose(fresh.views[0].estimator_error.numpy(), saved, atol=1e-6)
+    fresh.objective.restore_calibration(at_point)
+    np.testing.assert_allclose(fresh.objective.errors[0].numpy(), saved, atol=1e-6)
     with np.load(cfg.output / "estimator_error.npz") as data:
         assert json.loads(str(data["key"])) == state.calibrated_at

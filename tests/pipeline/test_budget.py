@@ -19,6 +19,8 @@ from clflow.pipeline.fit.budget import (
     search_seconds,
     typical_sample,
 )
+from clflow.pipeline.fit.problem import Problem
+from clflow.pipeline.fit.search import SearchDesign
 from clflow.pipeline.preflight import GRADIENT_COST, RunPlan
 from clflow.pipeline.report import write_report
 from clflow.pipeline.runs import write_results
@@ -203,10 +205,10 @@ def test_a_budget_chooses_the_grid_when_the_main_phase_begins_and_a_rerun_keeps_
     cfg = demo_config(iterations=1)
     cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, budget=budget))
     opt = Optimization(cfg)
-    assert opt.grid_choice is None and opt.model_grid == 27  # the run on the coarsest grid fits
+    assert opt.grid_choice is None and opt.problem.model_grid == 27  # the run on the coarsest grid fits
     state = opt.run()
-    assert opt.grid_choice.grid == opt.model_grid == opt.cfg.simulation.grid_resolution == 33
-    assert opt.search_grid == 27 and [g for g, _ in opt.grid_choice.candidates] == candidate_grids(27, 33)
+    assert opt.grid_choice.grid == opt.problem.model_grid == opt.cfg.simulation.grid_resolution == 33
+    assert opt.problem.search_grid == 27 and [g for g, _ in opt.grid_choice.candidates] == candidate_grids(27, 33)
     assert 0 < opt.grid_choice.spent_seconds and opt.grid_choice.budget_seconds < 1e5
     metrics = write_results(opt, state)
     assert metrics["grid"] == {"main": 33, "search": 27} and metrics["budget"]["grid"] == 33
@@ -219,9 +221,9 @@ def test_a_budget_chooses_the_grid_when_the_main_phase_begins_and_a_rerun_keeps_
     def untimed(self, grid, z):
         raise AssertionError("a rerun of the same config on the same device times nothing")
 
-    monkeypatch.setattr(Optimization, "start_substeps", untimed)
+    monkeypatch.setattr(Problem, "start_substeps", untimed)
     again = Optimization(cfg)  # its checkpoint, saved on 33 nodes, fits the config of 27
-    assert again.grid_choice == opt.grid_choice and again.model_grid == 33
+    assert again.grid_choice == opt.grid_choice and again.problem.model_grid == 33
     assert again.run(resume=True).iteration == 1
 
 
@@ -241,7 +243,7 @@ def test_the_pre_flight_check_costs_each_search_sample_at_its_parameters(demo_co
 
     monkeypatch.setattr("clflow.pipeline.fit.driver.choose_grid", recording)
     opt = Optimization(cfg)
-    start = opt.rest_substeps(opt.search_grid, opt.initial_state().z)
+    start = opt.problem.rest_substeps(opt.problem.search_grid, opt.problem.initial_state().z)
     design = seen["design"]
     assert len(design) == 8 and design[0] == start  # the design begins at the start
     assert max(design) > 2 * start  # the stiffest samples need several times the start's substeps
@@ -264,7 +266,7 @@ def test_the_main_grid_choice_costs_each_start_s_polish_at_its_parameters(demo_c
     opt = Optimization(cfg)
     state = opt.run(stop_after=1)
     assert seen[0] == () and len(state.starts) == 2  # before any work the starts are unknown
-    own = [opt.rest_substeps(opt.search_grid, z) for z in state.starts]
+    own = [opt.problem.rest_substeps(opt.problem.search_grid, z) for z in state.starts]
     assert list(seen[1]) == own, own
 
 
@@ -277,8 +279,8 @@ def test_a_search_past_its_deadline_ends_with_the_samples_it_has(demo_config, ca
         cfg, optimize=dataclasses.replace(cfg.optimize, search=search, budget=BudgetSettings(1e5))
     )
     opt = Optimization(cfg)
-    assert 9e4 < opt.search_deadline < 1e5  # the budget less the rest's predicted seconds
-    opt.search_deadline = 0.0  # as if the samples had taken the budget
+    assert 9e4 < opt.search.deadline < 1e5  # the budget less the rest's predicted seconds
+    opt.search.deadline = 0.0  # as if the samples had taken the budget
     with caplog.at_level(logging.WARNING):
         state = opt.run(stop_after=1)
     assert state.searched and len(state.search) == 1 and state.iteration == 1
@@ -294,20 +296,20 @@ def test_a_search_past_its_deadline_in_its_second_round_keeps_what_it_ran(demo_c
         cfg, optimize=dataclasses.replace(cfg.optimize, search=search, budget=BudgetSettings(1e5))
     )
     opt = Optimization(cfg)
-    first_round_done = Optimization.refinement_points
+    first_round_done = SearchDesign.refinement_points
 
     def deadline_after_one_more(self, regions, z):
         points = first_round_done(self, regions, z)
-        real_sample = self.self_consistent_loss
+        real_sample = opt.objective.self_consistent_loss
 
         def then_late(*args, **kwargs):
-            self.search_deadline = 0.0  # the sample now running is the last
+            opt.search.deadline = 0.0  # the sample now running is the last
             return real_sample(*args, **kwargs)
 
-        monkeypatch.setattr(self, "self_consistent_loss", then_late)
+        monkeypatch.setattr(opt.objective, "self_consistent_loss", then_late)
         return points
 
-    monkeypatch.setattr(Optimization, "refinement_points", deadline_after_one_more)
+    monkeypatch.setattr(SearchDesign, "refinement_points", deadline_after_one_more)
     with caplog.at_level(logging.WARNING):
         state = opt.run(stop_after=1)
     assert state.searched and len(state.search) == 4 + 1 and state.search[-1].get("around") is not None

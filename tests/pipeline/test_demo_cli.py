@@ -78,8 +78,8 @@ def test_an_interrupted_demo_says_and_takes_its_own_resume_command(tmp_path, mon
     `clflow demo --resume ...` (not the optimize command, which would skip the demo's
     simulation and 4D render), which then finishes the demo; --resume of a folder with no
     demo is refused before anything is made."""
-    import clflow.pipeline.fit.driver as driver
     import clflow_datasets.demo
+    from clflow.pipeline.fit.iteration import Iterations
 
     folder = tmp_path / "demo"
     res = CliRunner().invoke(cli, ["demo", "--resume", str(folder)])
@@ -97,7 +97,7 @@ def test_an_interrupted_demo_says_and_takes_its_own_resume_command(tmp_path, mon
     assert f"make it again with `clflow demo --resume --quick {folder} --views 0`" in res.output
     monkeypatch.setattr(clflow_datasets.demo, "make_demo", make_demo)
 
-    step = driver.Optimization.step
+    step = Iterations.step
     calls = []
 
     def interrupted_step(self, state, failures, start=None):
@@ -106,11 +106,11 @@ def test_an_interrupted_demo_says_and_takes_its_own_resume_command(tmp_path, mon
             raise KeyboardInterrupt
         return step(self, state, failures, start)
 
-    monkeypatch.setattr(driver.Optimization, "step", interrupted_step)
+    monkeypatch.setattr(Iterations, "step", interrupted_step)
     res = CliRunner().invoke(cli, ["demo", "--resume", "--quick", "--views", "0", str(folder)])
     assert res.exit_code == 130, res.output
     assert f"continue with `clflow demo --resume --quick {folder} --views 0`" in res.output
-    monkeypatch.setattr(driver.Optimization, "step", step)
+    monkeypatch.setattr(Iterations, "step", step)
     res = CliRunner().invoke(cli, ["demo", "--resume", "--quick", "--views", "0", str(folder)])
     assert res.exit_code == 0, res.output
     assert "resuming the demo" in res.output and (folder / "results" / "simulation" / "frame_008.ply").is_file()

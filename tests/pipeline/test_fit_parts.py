@@ -1,5 +1,6 @@
 """The optimiser's parts (clflow.pipeline.fit) on their own, with small inputs: no scene, no
-simulation, no Optimization; each part is given only the attributes it reads."""
+simulation, no Optimization; each part is given stand-ins of its collaborators with only
+what it reads of them."""
 
 import dataclasses
 import math
@@ -21,7 +22,7 @@ from clflow.pipeline.fit.diagnostics import (
     walk_end,
     widen_by_search,
 )
-from clflow.pipeline.fit.search import Search
+from clflow.pipeline.fit.search import Search, SearchDesign
 from clflow.pipeline.fit.state import LM_DAMPING
 from clflow.pipeline.fit.steps import (
     LINE_GAIN,
@@ -35,11 +36,9 @@ from clflow.pipeline.fit.steps import (
 )
 
 
-class BoxedSteps(Steps):
-    """Steps with a local box (z units) and nothing else."""
-
-    def __init__(self, box: dict[str, tuple[float, float]]):
-        self._local_box = box
+def boxed_steps(box: dict[str, tuple[float, float]]) -> Steps:
+    """Steps of a problem with a local box (z units) and nothing else."""
+    return Steps(SimpleNamespace(problem=SimpleNamespace(local_box=lambda: box)))
 
 
 M = torch.tensor([[4.0, 0.5], [0.5, 0.1]], dtype=torch.float64)  # b is poorly determined
@@ -47,19 +46,19 @@ G = torch.tensor([-2.0, -0.5], dtype=torch.float64)
 
 
 def test_bounded_step_solves_the_model_when_no_edge_is_in_the_way():
-    step = BoxedSteps({}).bounded_step(M, G, {"a": 0.0, "b": 0.0}, ("a", "b"))
+    step = boxed_steps({}).bounded_step(M, G, {"a": 0.0, "b": 0.0}, ("a", "b"))
     torch.testing.assert_close(M @ step, -G)
 
 
 def test_bounded_step_holds_a_variable_on_its_edge_and_solves_the_rest_without_it():
     z = {"a": 0.0, "b": 1.0}  # b on its upper edge; the free solution pushes it up
-    assert float(BoxedSteps({}).bounded_step(M, G, z, ("a", "b"))[1]) > 0
-    step = BoxedSteps({"b": (-1.0, 1.0)}).bounded_step(M, G, z, ("a", "b"))
+    assert float(boxed_steps({}).bounded_step(M, G, z, ("a", "b"))[1]) > 0
+    step = boxed_steps({"b": (-1.0, 1.0)}).bounded_step(M, G, z, ("a", "b"))
     assert float(step[1]) == 0.0 and float(step[0]) == pytest.approx(-float(G[0]) / float(M[0, 0]))
 
 
 def test_the_trust_region_cuts_the_poorly_determined_component_most():
-    steps, z = BoxedSteps({}), {"a": 0.0, "b": 0.0}
+    steps, z = boxed_steps({}), {"a": 0.0, "b": 0.0}
     free = steps.bounded_step(M, G, z, ("a", "b"))
     cut = steps.trust_region_step(M, G, z, ("a", "b"), radius=0.1 * float(free.norm()))
     assert float(cut.norm()) == pytest.approx(0.1 * float(free.norm()), rel=1e-6)
@@ -82,16 +81,17 @@ def test_a_profile_is_flat_only_when_both_moves_change_the_loss_little(ratios, i
     assert flat({"loss_ratio": ratios}) is is_flat
 
 
-class GridSearch(Search):
-    """Search with a fixed box, parameters and counts (what neighbourhoods and refinement read)."""
-
-    def __init__(self, starts: int, refine: int, samples: int = 4):
-        search = SimpleNamespace(starts=starts, refine=refine, samples=samples)
-        self.cfg = SimpleNamespace(optimize=SimpleNamespace(search=search))
-        self.params = {"e": None, "nu": None}
-
-    def search_box(self, z0):
-        return {"e": (0.0, 4.0), "nu": (0.0, 1.0)}
+def grid_design(starts: int, refine: int, samples: int = 4) -> SearchDesign:
+    """The design of a problem with a fixed box, parameters and counts (what neighbourhoods
+    and refinement read)."""
+    search = SimpleNamespace(starts=starts, refine=refine, samples=samples)
+    return SearchDesign(
+        SimpleNamespace(
+            cfg=SimpleNamespace(optimize=SimpleNamespace(search=search)),
+            params={"e": None, "nu": None},
+            search_box=lambda z0: {"e": (0.0, 4.0), "nu": (0.0, 1.0)},
+        )
+    )
 
 
 def test_second_round_regions_are_the_best_distinct_samples_cut_to_the_box():
@@ -101,33 +101,34 @@ def test_second_round_regions_are_the_best_distinct_samples_cut_to_the_box():
         {"z": {"e": 3.9, "nu": 0.9}, "loss": 0.3},
         {"z": {"e": 2.0, "nu": 0.1}, "loss": None},  # a failed sample
     ]
-    regions = GridSearch(starts=2, refine=5).neighbourhoods(rows, {"e": 0.0, "nu": 0.0})
+    regions = grid_design(starts=2, refine=5).neighbourhoods(rows, {"e": 0.0, "nu": 0.0})
     assert [i for i, _ in regions] == [0, 2]
     spacing = 4.0 * 4**-0.5  # the box's width / first-round samples^(1/parameters)
     assert regions[0][1]["e"] == pytest.approx((1.0 - spacing / 2, 1.0 + spacing / 2))
     assert regions[1][1]["e"][1] == 4.0 and regions[1][1]["nu"][1] == 1.0  # cut to the search box
-    points = GridSearch(starts=2, refine=5).refinement_points(regions, {"e": 0.0, "nu": 0.0})
+    points = grid_design(starts=2, refine=5).refinement_points(regions, {"e": 0.0, "nu": 0.0})
     assert [i for i, _ in points] == [0, 0, 0, 2, 2]  # 5 shared, the first region one more
     for i, z in points:
         assert all(lo <= z[n] <= hi for n, (lo, hi) in dict(regions)[i].items())
 
 
-class SeparableSearch(Search):
-    """Search over two objects' parameters (jelly's log10 E in [2, 6], heap's friction angle in
-    [20, 50]) whose loss is one narrow well per object: 2 - exp(-(d/w)^2) - exp(-(e/w')^2)."""
+class SeparableObjective:
+    """The objective of two objects' parameters (jelly's log10 E in [2, 6], heap's friction
+    angle in [20, 50]) whose loss is one narrow well per object: 2 - exp(-(d/w)^2) - exp(-(e/w')^2)."""
 
     def __init__(self, object_samples: int):
         from clflow.scene.config import OptimizeSettings, SearchSettings
 
         search = SearchSettings(samples=8, refine=0, starts=1, object_samples=object_samples)
         optimize = OptimizeSettings(parameters=("jelly.youngs_modulus", "heap.friction_angle"), search=search)
-        self.cfg = SimpleNamespace(optimize=optimize)
-        self.params = {"jelly.youngs_modulus": None, "heap.friction_angle": None}
-        self.frames, self.search_grid, self.search_deadline = 4, 24, None
-        self.saved = []
-
-    def search_box(self, z0):
-        return {"jelly.youngs_modulus": (2.0, 6.0), "heap.friction_angle": (20.0, 50.0)}
+        self.problem = SimpleNamespace(
+            cfg=SimpleNamespace(optimize=optimize),
+            params={"jelly.youngs_modulus": None, "heap.friction_angle": None},
+            frames=4,
+            search_grid=24,
+            search_box=lambda z0: {"jelly.youngs_modulus": (2.0, 6.0), "heap.friction_angle": (20.0, 50.0)},
+            values=dict,
+        )
 
     def evaluate(self, z, frames, with_grad=True, grid=None):
         jelly = math.exp(-(((z["jelly.youngs_modulus"] - 4.7) / 0.25) ** 2))
@@ -137,14 +138,10 @@ class SeparableSearch(Search):
     def self_consistent_loss(self, result, frames):
         return result.loss
 
-    def values(self, z):
-        return dict(z)
 
-    def save_state(self, state):
-        self.saved.append(len(state.search))
-
-    def progress(self, row):
-        pass
+def separable_search(object_samples: int) -> Search:
+    """The search of :class:`SeparableObjective`, its checkpoint a stand-in that saves nothing."""
+    return Search(SeparableObjective(object_samples), SimpleNamespace(save=lambda state: None), started=0.0)
 
 
 def test_object_rounds_find_each_objects_narrow_well_that_the_joint_design_misses():
@@ -152,11 +149,11 @@ def test_object_rounds_find_each_objects_narrow_well_that_the_joint_design_misse
 
     z0 = {"jelly.youngs_modulus": 3.0, "heap.friction_angle": 25.0}
     begin = OptimizerState(z=z0, iteration=0, m={}, v={})
-    joint = SeparableSearch(object_samples=0).global_search(begin)
+    joint = separable_search(object_samples=0).global_search(begin)
     assert len(joint.search) == 8
     assert min(r["loss"] for r in joint.search) > 1.0  # 8 samples land in neither well at once
 
-    state = SeparableSearch(object_samples=8).global_search(begin)
+    state = separable_search(object_samples=8).global_search(begin)
     rows = state.search
     assert len(rows) == 8 + 8 + 8 and [r.get("object") for r in rows[8:]] == ["jelly"] * 8 + ["heap"] * 8
     held = min(rows[:8], key=lambda r: r["loss"])["z"]
@@ -166,7 +163,7 @@ def test_object_rounds_find_each_objects_narrow_well_that_the_joint_design_misse
     # each within its well's width (an object round spaces its 8 samples 0.5 decade, 3.75 deg apart)
     assert abs(state.z["jelly.youngs_modulus"] - 4.7) < 0.25 and abs(state.z["heap.friction_angle"] - 37.0) < 2.5
     for cut in (11, 19):  # interrupted in either object's round, a resumed search is the same
-        resumed = SeparableSearch(object_samples=8).global_search(dataclasses.replace(begin, search=rows[:cut]))
+        resumed = separable_search(object_samples=8).global_search(dataclasses.replace(begin, search=rows[:cut]))
         assert [r["z"] for r in resumed.search] == [r["z"] for r in rows] and resumed.z == state.z
 
 
@@ -313,7 +310,7 @@ def bowl(bottom: float, depth: float = 1.0, floor: float = 0.01):
 
 
 def search_line(loss, f0=None, z0=0.0, max_step=LM_MAX_STEP, g_lm=None, box=None):
-    steps = BoxedSteps(box or {})
+    steps = boxed_steps(box or {})
     z = {"a": z0}
     return line_search(
         loss,
@@ -385,7 +382,7 @@ def test_the_line_search_starts_no_nearer_than_its_difference_width():
     # Gauss-Newton step is a twentieth of the way; the first point lies LINE_STEP out, the
     # probe itself in one variable (not run again), and the points grow from there
     loss, calls = bowl(0.6, depth=1 / 20)
-    steps = BoxedSteps({})
+    steps = boxed_steps({})
     z0 = {"a": 0.0}
     found = line_search(
         loss,

@@ -19,20 +19,24 @@ Z_TRUE = math.log10(2e4) + 0.37  # the model's minimiser, 1.37 decades above the
 
 
 def evaluation_of(opt, flows, frames, grid=None) -> Evaluation:
-    """What ``opt.evaluate`` returns for made-up ``flows`` of the first ``frames`` frames."""
-    view = opt.views[0]
+    """What ``opt.objective.evaluate`` returns for made-up ``flows`` of the first ``frames`` frames."""
+    view = opt.problem.views[0]
     loss = float(flow_loss(opt.cfg, flows, view.observed[:frames], view.weight[:frames]))
-    return Evaluation(loss, {}, flows, SimpleNamespace(substeps=1), grid or opt.model_grid)
+    return Evaluation(loss, {}, flows, SimpleNamespace(substeps=1), grid or opt.problem.model_grid)
 
 
 def fixed_field(opt) -> torch.Tensor:
     """A seeded random field the shape of the observed flows (float64)."""
-    return torch.randn(opt.views[0].observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    return torch.randn(
+        opt.problem.views[0].observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64
+    )
 
 
 def search_finds(opt, monkeypatch, *youngs_moduli: float) -> None:
     """The global search samples the start, then these log10 Young's moduli, in order."""
-    monkeypatch.setattr(opt, "search_points", lambda z0: [dict(z0), *({"youngs_modulus": z} for z in youngs_moduli)])
+    monkeypatch.setattr(
+        opt.search.design, "search_points", lambda z0: [dict(z0), *({"youngs_modulus": z} for z in youngs_moduli)]
+    )
 
 
 @pytest.fixture
@@ -54,10 +58,10 @@ def lm(demo_config, monkeypatch):
         def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
             calls.append(dict(z))
             shift = math.tanh(curvature * (z["youngs_modulus"] - Z_TRUE)) / curvature
-            flows = [opt.views[0].observed[t] + shift * field[t] for t in range(frames)]
+            flows = [opt.problem.views[0].observed[t] + shift * field[t] for t in range(frames)]
             return evaluation_of(opt, flows, frames, grid)
 
-        monkeypatch.setattr(opt, "evaluate", evaluate)
+        monkeypatch.setattr(opt.objective, "evaluate", evaluate)
         return opt, calls
 
     return make
@@ -65,16 +69,16 @@ def lm(demo_config, monkeypatch):
 
 def test_the_residuals_sum_of_squares_is_the_flow_loss(lm):
     opt, _ = lm()
-    ev = opt.evaluate({"youngs_modulus": Z_TRUE + 0.3}, opt.frames)
-    assert float((opt.residuals(ev.flows) ** 2).sum()) == pytest.approx(ev.loss, rel=1e-12)
+    ev = opt.objective.evaluate({"youngs_modulus": Z_TRUE + 0.3}, opt.problem.frames)
+    assert float((opt.objective.residuals(ev.flows) ** 2).sum()) == pytest.approx(ev.loss, rel=1e-12)
 
 
 def test_it_converges_from_over_a_decade_off_in_a_few_iterations(lm):
     opt, calls = lm(iterations=12)
-    assert opt.initial_state().z["youngs_modulus"] == pytest.approx(Z_TRUE - 1.37)  # the demo's 10x-low start
+    assert opt.problem.initial_state().z["youngs_modulus"] == pytest.approx(Z_TRUE - 1.37)  # the demo's 10x-low start
     state = opt.run()
     assert abs(state.z["youngs_modulus"] - Z_TRUE) < 1e-3
-    assert state.history[-1].get("converged") and state.iteration == opt.total_iterations
+    assert state.history[-1].get("converged") and state.iteration == opt.problem.total_iterations
     losses = [row["loss"] for row in state.history]
     assert losses[-1] < 1e-6 * losses[0] and len(losses) < 12  # stopped by progress, not by the count
     assert len(calls) <= 2 * len(state.history)  # one base run and one per parameter
@@ -82,13 +86,13 @@ def test_it_converges_from_over_a_decade_off_in_a_few_iterations(lm):
 
 def test_an_uphill_step_is_rejected_and_the_damping_grows(lm, monkeypatch):
     opt, _ = lm(iterations=2, curvature=1.0)
-    state = opt.initial_state()
+    state = opt.problem.initial_state()
     variables = ("youngs_modulus",)
-    base, J = opt.jacobian(state.z, opt.frames, 1, variables, opt.model_grid)
-    stepped = opt.lm_step(state, base, J, opt.frames, variables)
+    base, J = opt.objective.jacobian(state.z, opt.problem.frames, 1, variables, opt.problem.model_grid)
+    stepped = opt.steps.lm_step(state, base, J, opt.problem.frames, variables)
     assert stepped.best["z"] == state.z and stepped.damping == pytest.approx(LM_DAMPING)
     uphill = dataclasses.replace(base, loss=2 * base.loss)  # as if the new point were worse
-    rejected = opt.lm_step(stepped, uphill, J, opt.frames, variables)
+    rejected = opt.steps.lm_step(stepped, uphill, J, opt.problem.frames, variables)
     assert rejected.z == state.z and rejected.damping == pytest.approx(4 * LM_DAMPING)
     assert rejected.iteration == stepped.iteration + 1
 
@@ -98,20 +102,22 @@ def test_a_rejection_quarters_the_trust_region_and_a_new_best_point_doubles_it(l
     # rejected step would come back nearly unchanged without the trust region
     opt, _ = lm(iterations=4)
     variables = ("youngs_modulus",)
-    state = opt.initial_state()
-    base, J = opt.jacobian(state.z, opt.frames, 1, variables, opt.model_grid)
-    stepped = opt.lm_step(state, base, J, opt.frames, variables)
+    state = opt.problem.initial_state()
+    base, J = opt.objective.jacobian(state.z, opt.problem.frames, 1, variables, opt.problem.model_grid)
+    stepped = opt.steps.lm_step(state, base, J, opt.problem.frames, variables)
     first = abs(stepped.z["youngs_modulus"] - state.z["youngs_modulus"])
     assert stepped.step_scale == pytest.approx(1.0) and first == pytest.approx(1.0)  # the full LM_MAX_STEP
-    rejected = opt.lm_step(stepped, dataclasses.replace(base, loss=2 * base.loss), J, opt.frames, variables)
+    rejected = opt.steps.lm_step(
+        stepped, dataclasses.replace(base, loss=2 * base.loss), J, opt.problem.frames, variables
+    )
     assert rejected.step_scale == pytest.approx(0.25) and rejected.z == state.z
-    again = opt.lm_step(rejected, base, J, opt.frames, variables)  # back at the best point
+    again = opt.steps.lm_step(rejected, base, J, opt.problem.frames, variables)  # back at the best point
     assert (
         again.step_scale == pytest.approx(0.25)
         and abs(again.z["youngs_modulus"] - state.z["youngs_modulus"]) <= 0.25 + 1e-12
     )
-    trial, J_trial = opt.jacobian(again.z, opt.frames, 1, variables, opt.model_grid)
-    accepted = opt.lm_step(again, trial, J_trial, opt.frames, variables)
+    trial, J_trial = opt.objective.jacobian(again.z, opt.problem.frames, 1, variables, opt.problem.model_grid)
+    accepted = opt.steps.lm_step(again, trial, J_trial, opt.problem.frames, variables)
     assert accepted.best["z"] == again.z and accepted.step_scale == pytest.approx(0.5)
 
 
@@ -121,13 +127,13 @@ def test_a_rejected_short_step_is_not_tried_again(lm):
     0.06 degree step three times, each a 12 s run, as the radius shrank from 1 towards it)."""
     opt, _ = lm(iterations=4)
     variables = ("youngs_modulus",)
-    state = opt.initial_state()
-    base, J = opt.jacobian(state.z, opt.frames, 1, variables, opt.model_grid)
-    best = opt.lm_step(state, base, J, opt.frames, variables)
+    state = opt.problem.initial_state()
+    base, J = opt.objective.jacobian(state.z, opt.problem.frames, 1, variables, opt.problem.model_grid)
+    best = opt.steps.lm_step(state, base, J, opt.problem.frames, variables)
     short = dataclasses.replace(best, z={"youngs_modulus": state.z["youngs_modulus"] + 0.05})  # inside radius 1
-    rejected = opt.lm_step(short, dataclasses.replace(base, loss=2 * base.loss), J, opt.frames, variables)
+    rejected = opt.steps.lm_step(short, dataclasses.replace(base, loss=2 * base.loss), J, opt.problem.frames, variables)
     assert rejected.z == state.z and rejected.step_scale == pytest.approx(0.05 / 4)
-    again = opt.lm_step(rejected, base, J, opt.frames, variables)
+    again = opt.steps.lm_step(rejected, base, J, opt.problem.frames, variables)
     assert abs(again.z["youngs_modulus"] - state.z["youngs_modulus"]) <= 0.05 / 4 + 1e-12
 
 
@@ -139,8 +145,8 @@ def test_the_trust_region_cuts_the_poorly_determined_component_first(lm):
     M = torch.diag(torch.tensor([1.0, 1e-4], dtype=torch.float64))
     g = torch.tensor([-0.1, -1e-3], dtype=torch.float64)
     z, variables = {"a": 0.0, "b": 0.0}, ("a", "b")
-    assert opt.trust_region_step(M, g, z, variables, 100.0).tolist() == pytest.approx([0.1, 10.0])  # inside
-    step = opt.trust_region_step(M, g, z, variables, 1.0)
+    assert opt.steps.trust_region_step(M, g, z, variables, 100.0).tolist() == pytest.approx([0.1, 10.0])  # inside
+    step = opt.steps.trust_region_step(M, g, z, variables, 1.0)
     assert float(step.norm()) == pytest.approx(1.0, rel=1e-6)
     assert float(step[0]) == pytest.approx(0.1, rel=2e-3) and 0.99 < float(step[1]) < 1.0
 
@@ -151,13 +157,13 @@ def test_a_small_trust_region_does_not_stop_the_run_by_progress(lm):
     step taken here promises less than the tolerance, so weighing it would have stopped)."""
     opt, _ = lm(iterations=4)
     variables = ("youngs_modulus",)
-    state = opt.initial_state()
-    base, J = opt.jacobian(state.z, opt.frames, 1, variables, opt.model_grid)
-    tiny = opt.lm_step(dataclasses.replace(state, step_scale=1 / 1024), base, J, opt.frames, variables)
+    state = opt.problem.initial_state()
+    base, J = opt.objective.jacobian(state.z, opt.problem.frames, 1, variables, opt.problem.model_grid)
+    tiny = opt.steps.lm_step(dataclasses.replace(state, step_scale=1 / 1024), base, J, opt.problem.frames, variables)
     assert not tiny.converged
     assert abs(tiny.z["youngs_modulus"] - state.z["youngs_modulus"]) == pytest.approx(1 / 1024)
     r, step = (
-        opt.residuals(base.flows),
+        opt.objective.residuals(base.flows),
         torch.tensor([tiny.z["youngs_modulus"] - state.z["youngs_modulus"]], dtype=J.dtype),
     )
     promised = -float(2 * (J.T @ r) @ step + step @ (J.T @ J) @ step)
@@ -169,13 +175,13 @@ def test_back_at_the_best_point_a_changed_loss_is_taken_not_rejected(lm):
     # from before the best point recorded its substeps re-runs it at another step): rejecting
     # it against itself would stall for good
     opt, _ = lm(iterations=2)
-    state = opt.initial_state()
+    state = opt.problem.initial_state()
     variables = ("youngs_modulus",)
-    base, J = opt.jacobian(state.z, opt.frames, 1, variables, opt.model_grid)
-    stepped = opt.lm_step(state, base, J, opt.frames, variables)
+    base, J = opt.objective.jacobian(state.z, opt.problem.frames, 1, variables, opt.problem.model_grid)
+    stepped = opt.steps.lm_step(state, base, J, opt.problem.frames, variables)
     back = dataclasses.replace(stepped, z=dict(stepped.best["z"]))
     higher = dataclasses.replace(base, loss=base.loss * 1.001)
-    again = opt.lm_step(back, higher, J, opt.frames, variables)
+    again = opt.steps.lm_step(back, higher, J, opt.problem.frames, variables)
     assert again.z != back.z and again.best["loss"] == higher.loss
     assert again.damping == back.damping  # back after a rejection: the raised damping stands
 
@@ -186,26 +192,30 @@ def test_a_step_downhill_only_against_the_old_calibration_is_rejected(lm, monkey
     # (the search's criterion) higher than the best point's: the step is taken back
     opt, _ = lm(iterations=4)
     opt.cfg.output.mkdir(parents=True, exist_ok=True)
-    field = torch.randn(opt.views[0].observed.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    field = torch.randn(
+        opt.problem.views[0].observed.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64
+    )
     scale = {"now": 0.0}
-    monkeypatch.setattr(type(opt), "corrects_bias", property(lambda self: True))
-    monkeypatch.setattr(opt, "estimator_errors", lambda result, frames, shifts=None: [scale["now"] * field[:frames]])
+    monkeypatch.setattr(type(opt.problem), "corrects_bias", property(lambda self: True))
+    monkeypatch.setattr(
+        opt.objective, "estimator_errors", lambda result, frames, shifts=None: [scale["now"] * field[:frames]]
+    )
     variables = ("youngs_modulus",)
-    state = opt.initial_state()
-    base, J = opt.jacobian(state.z, opt.frames, 1, variables, opt.model_grid)
-    stepped = opt.lm_step(state, base, J, opt.frames, variables, calibrate=True)
+    state = opt.problem.initial_state()
+    base, J = opt.objective.jacobian(state.z, opt.problem.frames, 1, variables, opt.problem.model_grid)
+    stepped = opt.steps.lm_step(state, base, J, opt.problem.frames, variables, calibrate=True)
     assert stepped.calibrated_at["z"] == state.z and stepped.z != state.z
-    trial, J_trial = opt.jacobian(stepped.z, opt.frames, 1, variables, opt.model_grid)
+    trial, J_trial = opt.objective.jacobian(stepped.z, opt.problem.frames, 1, variables, opt.problem.model_grid)
     assert trial.loss < stepped.best["loss"]  # downhill against the best point's calibration
     scale["now"] = error_at_trial
-    after = opt.lm_step(stepped, trial, J_trial, opt.frames, variables, calibrate=True)
+    after = opt.steps.lm_step(stepped, trial, J_trial, opt.problem.frames, variables, calibrate=True)
     if accepted:
         assert after.best["z"] == stepped.z and after.calibrated_at["z"] == stepped.z
     else:
         assert after.z == state.z and after.best == stepped.best and after.damping == pytest.approx(4 * stepped.damping)
         assert after.calibrated_at == stepped.calibrated_at
-        assert float(opt.views[0].estimator_error.abs().max()) == 0.0  # the best point's error is back
-        again = opt.jacobian(after.z, opt.frames, 1, variables, opt.model_grid)[0]
+        assert float(opt.objective.errors[0].abs().max()) == 0.0  # the best point's error is back
+        again = opt.objective.jacobian(after.z, opt.problem.frames, 1, variables, opt.problem.model_grid)[0]
         assert again.loss == pytest.approx(stepped.best["loss"], rel=1e-12)
 
 
@@ -215,7 +225,7 @@ def test_a_rejected_trial_leaves_the_best_points_time_step_and_the_result_is_the
     # next run (the best point again) goes back to the best point's 5, not to the most any
     # run needed
     opt, calls = lm(iterations=2)
-    fake = opt.evaluate
+    fake = opt.objective.evaluate
     trial, asked = {}, []
 
     def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
@@ -225,19 +235,19 @@ def test_a_rejected_trial_leaves_the_best_points_time_step_and_the_result_is_the
             return dataclasses.replace(ev, loss=10 * ev.loss + 1, trajectory=SimpleNamespace(substeps=7))
         return dataclasses.replace(ev, trajectory=SimpleNamespace(substeps=max(5, min_substeps)))
 
-    monkeypatch.setattr(opt, "evaluate", evaluate)
-    state, _, _ = opt.step(opt.initial_state(), 0)
+    monkeypatch.setattr(opt.objective, "evaluate", evaluate)
+    state, _, _ = opt.iterations.step(opt.problem.initial_state(), 0)
     assert state.z != state.best["z"] and state.substeps == 1 and state.best["substeps"] == 5
     trial["z"], asked[:] = dict(state.z), []
-    rejected, _, _ = opt.step(state, 0)
+    rejected, _, _ = opt.iterations.step(state, 0)
     assert asked[0] == 1  # the trial's own run
     assert rejected.z == rejected.best["z"] and rejected.substeps == 5
     # a run that ends by its count ends at its best point, not at a step it never ran: the
     # last iteration accepts the trial (now an ordinary point) and computes a step from it
     trial.clear()
-    final = opt.run(start=dataclasses.replace(state, iteration=opt.total_iterations - 1))
+    final = opt.run(start=dataclasses.replace(state, iteration=opt.problem.total_iterations - 1))
     assert final.best["z"] == state.z and final.z == final.best["z"] and not final.converged
-    assert final.iteration == opt.total_iterations
+    assert final.iteration == opt.problem.total_iterations
 
 
 def test_it_needs_the_l2_loss(tmp_path):
@@ -271,8 +281,10 @@ def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypat
     )
     opt = Optimization(cfg)
     g = torch.Generator().manual_seed(1)
-    field_e, field_nu = (torch.randn(opt.views[0].observed.shape, generator=g, dtype=torch.float64) for _ in range(2))
-    noise = 0.01 * torch.randn(opt.views[0].observed.shape, generator=g, dtype=torch.float64)
+    field_e, field_nu = (
+        torch.randn(opt.problem.views[0].observed.shape, generator=g, dtype=torch.float64) for _ in range(2)
+    )
+    noise = 0.01 * torch.randn(opt.problem.views[0].observed.shape, generator=g, dtype=torch.float64)
 
     def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
         e, nu = z["youngs_modulus"] - Z_TRUE, z["poissons_ratio"]
@@ -282,11 +294,11 @@ def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypat
             "nu_barely_matters": e * field_e + 0.005 * nu * field_nu,
             "only_the_sum_matters": (e + nu) * field_e,
         }[model]
-        flows = [opt.views[0].observed[t] + noise[t] + shift[t] for t in range(frames)]
+        flows = [opt.problem.views[0].observed[t] + noise[t] + shift[t] for t in range(frames)]
         return evaluation_of(opt, flows, frames, grid)
 
-    monkeypatch.setattr(opt, "evaluate", evaluate)
-    report = opt.identifiability({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0}, 1)
+    monkeypatch.setattr(opt.objective, "evaluate", evaluate)
+    report = opt.diagnostics.identifiability({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0}, 1)
     assert sorted(report["weakly_constrained"]) == sorted(weak)
     assert bool(report["trade_offs"]) == trade_off
     if trade_off:
@@ -299,7 +311,7 @@ def test_identifiability_flags_what_the_video_cannot_tell(demo_config, monkeypat
     assert sorted(report["profile"]) == sorted(weak)
     for name, row in report["profile"].items():
         assert len(row["values"]) == len(row["loss_ratio"]) == 3  # below, at and above the point
-        assert row["values"][1] == opt.values({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0})[name]
+        assert row["values"][1] == opt.problem.values({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0})[name]
         assert row["values"][0] < row["values"][1] < row["values"][2] and row["loss_ratio"][1] == 1.0
     # unresolved: a nu that does nothing; a nu that barely matters over 0.1 raises the loss by
     # a quarter over a whole z unit; E or nu alone breaks a sum that fits
@@ -321,31 +333,34 @@ def test_the_grid_check_measures_how_far_a_coarser_grid_moves_the_fit(demo_confi
     opt = Optimization(cfg)
     g = torch.Generator().manual_seed(2)
     field_e, field_nu, noise = (
-        torch.randn(opt.views[0].observed.shape, generator=g, dtype=torch.float64) for _ in range(3)
+        torch.randn(opt.problem.views[0].observed.shape, generator=g, dtype=torch.float64) for _ in range(3)
     )
     grids = []
 
     def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
-        grid = grid or opt.model_grid
+        grid = grid or opt.problem.model_grid
         grids.append(grid)
-        coarse = grid != opt.model_grid
+        coarse = grid != opt.problem.model_grid
         e, nu = z["youngs_modulus"] - Z_TRUE + 0.3 * coarse, z["poissons_ratio"] - 0.02 * coarse
-        flows = [opt.views[0].observed[t] + 0.01 * noise[t] + e * field_e[t] + nu * field_nu[t] for t in range(frames)]
+        flows = [
+            opt.problem.views[0].observed[t] + 0.01 * noise[t] + e * field_e[t] + nu * field_nu[t]
+            for t in range(frames)
+        ]
         return evaluation_of(opt, flows, frames, grid)
 
-    monkeypatch.setattr(opt, "evaluate", evaluate)
-    report = opt.identifiability({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0}, 1)
+    monkeypatch.setattr(opt.objective, "evaluate", evaluate)
+    report = opt.diagnostics.identifiability({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0}, 1)
     # the demo has no search grid, and 1.5x coarser its walls leave the object no room: 1.5x finer
     with pytest.raises(InputError, match="does not fit inside simulation.domain"):
-        opt.prepared_on(round((opt.model_grid - 1) / 1.5) + 1)
-    check = round((opt.model_grid - 1) * 1.5) + 1
-    assert report["grids"] == [check, opt.model_grid] and grids.count(check) == 1
+        opt.problem.prepared_on(round((opt.problem.model_grid - 1) / 1.5) + 1)
+    check = round((opt.problem.model_grid - 1) * 1.5) + 1
+    assert report["grids"] == [check, opt.problem.model_grid] and grids.count(check) == 1
     assert report["grid_shift_z"]["youngs_modulus"] == pytest.approx(-0.3, abs=1e-9)
     assert report["grid_shift_z"]["poissons_ratio"] == pytest.approx(0.02, abs=1e-9)
     assert report["grid_sensitive"] == ["youngs_modulus"]
     # the ranges take the model grid's own error by Richardson: h / (H - h) = 3x the shift of a
     # 1.5x finer check; this model ignores the time step, so its check moves nothing
-    richardson = 1 / abs((opt.model_grid - 1) / (check - 1) - 1)
+    richardson = 1 / abs((opt.problem.model_grid - 1) / (check - 1) - 1)
     assert report["ranges"]["youngs_modulus"]["grid_z"] == pytest.approx(0.3 * richardson, rel=1e-9)
     assert report["substep_shift_z"]["youngs_modulus"] == pytest.approx(0.0, abs=1e-12)
 
@@ -361,12 +376,12 @@ def test_a_finer_grid_check_widens_the_ranges_where_it_moves_more_than_the_coars
         cfg, optimize=dataclasses.replace(cfg.optimize, parameters=("youngs_modulus", "poissons_ratio"))
     )
     opt = Optimization(cfg)
-    opt.search_grid = round((opt.model_grid - 1) / 1.5) + 1
-    monkeypatch.setattr(opt, "prepared_on", lambda grid: None)  # room for the object on the coarser grid
-    finer = round((opt.model_grid - 1) * 1.5) + 1
+    opt.problem.search_grid = round((opt.problem.model_grid - 1) / 1.5) + 1
+    monkeypatch.setattr(opt.problem, "prepared_on", lambda grid: None)  # room for the object on the coarser grid
+    finer = round((opt.problem.model_grid - 1) * 1.5) + 1
     g = torch.Generator().manual_seed(4)
     field_e, field_nu, noise, error = (
-        torch.randn(opt.views[0].observed.shape, generator=g, dtype=torch.float64) for _ in range(4)
+        torch.randn(opt.problem.views[0].observed.shape, generator=g, dtype=torch.float64) for _ in range(4)
     )
     grids = []
 
@@ -374,29 +389,34 @@ def test_a_finer_grid_check_widens_the_ranges_where_it_moves_more_than_the_coars
         # E's best fit lies 0.01 higher on the coarser grid and finer_error higher on the finer one;
         # the finer grid's model error is a third of the coarser one's, and grows with finer_error
         def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
-            grid = grid or opt.model_grid
+            grid = grid or opt.problem.model_grid
             grids.append(grid)
             if grid in fails:
                 raise MemoryError("no room for the grid")
-            moved = {opt.search_grid: 0.01, finer: finer_error}.get(grid, 0.0)
-            model_error = 0.05 * {opt.search_grid: 1.0, finer: 0.3 + 10 * finer_error}.get(grid, 0.0)
+            moved = {opt.problem.search_grid: 0.01, finer: finer_error}.get(grid, 0.0)
+            model_error = 0.05 * {opt.problem.search_grid: 1.0, finer: 0.3 + 10 * finer_error}.get(grid, 0.0)
             e, nu = z["youngs_modulus"] - Z_TRUE - moved, z["poissons_ratio"]
-            flows = [opt.views[0].observed[t] + 0.05 * noise[t] + model_error * error[t] + e * field_e[t]
+            flows = [opt.problem.views[0].observed[t] + 0.05 * noise[t] + model_error * error[t] + e * field_e[t]
                      + nu * field_nu[t] for t in range(frames)]  # fmt: skip
             return evaluation_of(opt, flows, frames, grid)
 
-        monkeypatch.setattr(opt, "evaluate", evaluate)
+        monkeypatch.setattr(opt.objective, "evaluate", evaluate)
         grids.clear()
-        return opt.identifiability({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0}, 1)
+        return opt.diagnostics.identifiability({"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0}, 1)
 
     quiet, loud = report_with(0.0), report_with(0.1)
-    assert grids.count(opt.search_grid) == grids.count(finer) == 1  # one run on each check grid
+    assert grids.count(opt.problem.search_grid) == grids.count(finer) == 1  # one run on each check grid
     for report in (quiet, loud):
         coarse_check, finer_check = report["grid_checks"]
-        assert [coarse_check["nodes"], finer_check["nodes"]] == [opt.search_grid, finer]
-        assert report["grids"] == [opt.search_grid, opt.model_grid]  # the table's grid-sensitive note: the coarser
-        assert coarse_check["richardson"] == pytest.approx(1 / ((opt.model_grid - 1) / (opt.search_grid - 1) - 1))
-        assert finer_check["richardson"] == pytest.approx(1 / (1 - (opt.model_grid - 1) / (finer - 1)))
+        assert [coarse_check["nodes"], finer_check["nodes"]] == [opt.problem.search_grid, finer]
+        assert report["grids"] == [
+            opt.problem.search_grid,
+            opt.problem.model_grid,
+        ]  # the table's grid-sensitive note: the coarser
+        assert coarse_check["richardson"] == pytest.approx(
+            1 / ((opt.problem.model_grid - 1) / (opt.problem.search_grid - 1) - 1)
+        )
+        assert finer_check["richardson"] == pytest.approx(1 / (1 - (opt.problem.model_grid - 1) / (finer - 1)))
         scaled = [c["richardson"] * c["loss_change"] for c in (coarse_check, finer_check)]
         assert report["loss_tolerance"] == pytest.approx(max(scaled), rel=1e-9)  # the time step moves nothing here
         e_moves = [c["richardson"] * abs(c["shift_z"]["youngs_modulus"]) for c in (coarse_check, finer_check)]
@@ -436,22 +456,22 @@ def test_a_range_reaches_out_to_where_a_flattening_loss_crosses_the_tolerance(de
     opt = Optimization(cfg)
     g = torch.Generator().manual_seed(3)
     field_e, field_nu, noise, coarse_noise = (
-        torch.randn(opt.views[0].observed.shape, generator=g, dtype=torch.float64) for _ in range(4)
+        torch.randn(opt.problem.views[0].observed.shape, generator=g, dtype=torch.float64) for _ in range(4)
     )
 
     def flows_at(z, grid=None):
         dz = z["youngs_modulus"] - Z_TRUE
         e, nu = 0.02 * math.tanh(dz / 0.02) + 0.15 * dz, z["poissons_ratio"]
-        coarse = (grid or opt.model_grid) != opt.model_grid  # model error: the loss moves by ~10 %
-        return [opt.views[0].observed[t] + 0.05 * (noise[t] + 0.3 * coarse * coarse_noise[t]) + e * field_e[t]
-                + nu * field_nu[t] for t in range(opt.frames)]  # fmt: skip
+        coarse = (grid or opt.problem.model_grid) != opt.problem.model_grid  # model error: the loss moves by ~10 %
+        return [opt.problem.views[0].observed[t] + 0.05 * (noise[t] + 0.3 * coarse * coarse_noise[t]) + e * field_e[t]
+                + nu * field_nu[t] for t in range(opt.problem.frames)]  # fmt: skip
 
     def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
         return evaluation_of(opt, flows_at(z, grid)[:frames], frames, grid)
 
-    monkeypatch.setattr(opt, "evaluate", evaluate)
+    monkeypatch.setattr(opt.objective, "evaluate", evaluate)
     z = {"youngs_modulus": Z_TRUE, "poissons_ratio": 0.0}
-    report = opt.identifiability(z, 1)
+    report = opt.diagnostics.identifiability(z, 1)
     limit = 1 + report["loss_tolerance"]
     e, nu = report["ranges"]["youngs_modulus"], report["ranges"]["poissons_ratio"]
     high = math.log10(e["high"]) - Z_TRUE
@@ -469,14 +489,14 @@ def test_a_range_reaches_out_to_where_a_flattening_loss_crosses_the_tolerance(de
         )
     else:  # ended on a run that reached 90 % of the tolerance
         assert high == pytest.approx(inside[0]) and inside[1] >= reached
-    loss = lambda dz: float(evaluate({**z, "youngs_modulus": Z_TRUE + dz}, opt.frames).loss)  # noqa: E731
+    loss = lambda dz: float(evaluate({**z, "youngs_modulus": Z_TRUE + dz}, opt.problem.frames).loss)  # noqa: E731
     assert loss(high) / loss(0.0) < 1.01 * limit  # nu held here, refitted in the walk: 1 % either way
     assert nu["walked_z"] == pytest.approx([nu["profile_z"], nu["profile_z"]], rel=0.01)
     # a search whose highest E fits as well as its best opens that side, which is then not walked
     search = [
         {"z": {**z, "youngs_modulus": Z_TRUE + dz}, "loss": loss} for dz, loss in [(0, 1.0), (1, 1.01), (-1, 9.0)]
     ]
-    e = opt.identifiability(z, 1, search)["ranges"]["youngs_modulus"]
+    e = opt.diagnostics.identifiability(z, 1, search)["ranges"]["youngs_modulus"]
     assert e["high"] is None and e["walked_z"][1] is None and e["walk_loss_ratio"][1] == []
     assert e["low"] is not None and e["walk_loss_ratio"][0]
 
@@ -485,21 +505,21 @@ def test_a_rejected_step_goes_back_to_the_best_point_without_new_runs(lm):
     opt, calls = lm(iterations=2)
     variables = ("youngs_modulus",)
     best_z, trial_z = {"youngs_modulus": Z_TRUE - 1.0}, {"youngs_modulus": Z_TRUE - 0.5}
-    opt.jacobian(best_z, opt.frames, 1, variables, opt.model_grid)
-    opt.jacobian(trial_z, opt.frames, 1, variables, opt.model_grid)
+    opt.objective.jacobian(best_z, opt.problem.frames, 1, variables, opt.problem.model_grid)
+    opt.objective.jacobian(trial_z, opt.problem.frames, 1, variables, opt.problem.model_grid)
     runs = len(calls)
-    opt.jacobian(best_z, opt.frames, 1, variables, opt.model_grid)  # back after a rejection
-    opt.jacobian(
-        {"youngs_modulus": Z_TRUE - 0.7}, opt.frames, 1, variables, opt.model_grid
+    opt.objective.jacobian(best_z, opt.problem.frames, 1, variables, opt.problem.model_grid)  # back after a rejection
+    opt.objective.jacobian(
+        {"youngs_modulus": Z_TRUE - 0.7}, opt.problem.frames, 1, variables, opt.problem.model_grid
     )  # a shorter step, rejected too
     assert len(calls) == runs + 2
-    opt.jacobian(best_z, opt.frames, 1, variables, opt.model_grid)
+    opt.objective.jacobian(best_z, opt.problem.frames, 1, variables, opt.problem.model_grid)
     assert len(calls) == runs + 2
 
 
 def test_it_stops_when_the_model_promises_no_progress(lm):
     opt, calls = lm(iterations=12)
-    state = opt.initial_state()
+    state = opt.problem.initial_state()
     state.z = {"youngs_modulus": Z_TRUE}  # at the minimiser: r = 0, nothing to gain
     state = opt.run(start=state)
     assert state.converged and state.history[-1].get("converged") and len(state.history) == 1
@@ -533,13 +553,13 @@ def test_several_starts_are_polished_and_the_best_is_kept(demo_config, monkeypat
     def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
         e = z["youngs_modulus"]  # two basins: the true one (residual 0) and a false one (0.5)
         shift = min(math.sqrt((e - Z_TRUE) ** 2 + 1e-8), math.sqrt((e - Z_FALSE) ** 2 + 1e-8) + 0.5)
-        flows = [opt.views[0].observed[t] + shift * field[t] for t in range(frames)]
+        flows = [opt.problem.views[0].observed[t] + shift * field[t] for t in range(frames)]
         return evaluation_of(opt, flows, frames, grid)
 
-    monkeypatch.setattr(opt, "evaluate", evaluate)
+    monkeypatch.setattr(opt.objective, "evaluate", evaluate)
     # the search's best sample lies in the false basin, the runner-up in the true one
     search_finds(opt, monkeypatch, Z_FALSE + 0.05, Z_TRUE + 0.6)
-    assert opt.total_iterations == 6 + (starts - 1) * 3
+    assert opt.problem.total_iterations == 6 + (starts - 1) * 3
     state = opt.run()
     if starts == 1:
         assert abs(state.z["youngs_modulus"] - Z_FALSE) < 0.1 and not state.polished  # stuck in the false basin
@@ -561,21 +581,21 @@ def test_a_coarse_search_grid_runs_the_global_phase_and_the_main_grid_picks_the_
     fine = cfg.simulation.grid_resolution
     coarse = fine - 3
     opt = Optimization(with_starts(cfg, 2, grid_resolution=coarse))
-    assert (opt.search_grid, opt.model_grid) == (coarse, fine)
-    assert opt._prepared[coarse].setup.grid.dx > opt._prepared[fine].setup.grid.dx
+    assert (opt.problem.search_grid, opt.problem.model_grid) == (coarse, fine)
+    assert opt.problem._prepared[coarse].setup.grid.dx > opt.problem._prepared[fine].setup.grid.dx
     field = fixed_field(opt)
     grids = []
 
     def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
-        grid = grid or opt.model_grid
+        grid = grid or opt.problem.model_grid
         grids.append(grid)
         e = z["youngs_modulus"]  # two basins: on the coarse grid the false one is the deeper
         to_true, to_false = math.sqrt((e - Z_TRUE) ** 2 + 1e-8), math.sqrt((e - Z_FALSE) ** 2 + 1e-8)
         shift = min(to_true + 0.02, to_false) if grid == coarse else min(to_true, to_false + 0.5)
-        flows = [opt.views[0].observed[t] + shift * field[t] for t in range(frames)]
+        flows = [opt.problem.views[0].observed[t] + shift * field[t] for t in range(frames)]
         return evaluation_of(opt, flows, frames, grid)
 
-    monkeypatch.setattr(opt, "evaluate", evaluate)
+    monkeypatch.setattr(opt.objective, "evaluate", evaluate)
     search_finds(opt, monkeypatch, Z_FALSE + 0.05, Z_TRUE + 0.05)
     state = opt.run()
     assert {r["grid"] for r in state.search} == {coarse}
@@ -590,17 +610,17 @@ def test_a_coarse_search_grid_runs_the_global_phase_and_the_main_grid_picks_the_
 
 def test_a_variable_on_its_box_edge_is_held_and_the_rest_solved_again(lm, monkeypatch):
     opt, _ = lm()
-    monkeypatch.setattr(opt, "local_box", lambda: {"a": (0.0, 1.0), "b": (0.0, 1.0)})
+    monkeypatch.setattr(opt.problem, "local_box", lambda: {"a": (0.0, 1.0), "b": (0.0, 1.0)})
     M = torch.tensor([[2.0, 1.0], [1.0, 2.0]], dtype=torch.float64)
     g = torch.tensor([1.0, -1.0], dtype=torch.float64)  # free step: (-1, 1)
-    inside = opt.bounded_step(M, g, {"a": 0.5, "b": 0.5}, ("a", "b"))
+    inside = opt.steps.bounded_step(M, g, {"a": 0.5, "b": 0.5}, ("a", "b"))
     assert inside.tolist() == pytest.approx([-1.0, 1.0])
     # a on its lower edge, pushed out: held, and b's step is that of b alone, -g_b / M_bb
-    assert opt.bounded_step(M, g, {"a": 0.0, "b": 0.5}, ("a", "b")).tolist() == pytest.approx([0.0, 0.5])
+    assert opt.steps.bounded_step(M, g, {"a": 0.0, "b": 0.5}, ("a", "b")).tolist() == pytest.approx([0.0, 0.5])
     # then b on its upper edge, pushed out too: nothing moves (the model promises nothing: converged)
-    assert opt.bounded_step(M, g, {"a": 0.0, "b": 1.0}, ("a", "b")).tolist() == [0.0, 0.0]
+    assert opt.steps.bounded_step(M, g, {"a": 0.0, "b": 1.0}, ("a", "b")).tolist() == [0.0, 0.0]
     # an edge the step points away from holds nothing
-    assert opt.bounded_step(M, g, {"a": 1.0, "b": 0.0}, ("a", "b")).tolist() == pytest.approx([-1.0, 1.0])
+    assert opt.steps.bounded_step(M, g, {"a": 1.0, "b": 0.0}, ("a", "b")).tolist() == pytest.approx([-1.0, 1.0])
 
 
 def test_the_profile_calls_flat_only_a_loss_that_neither_rises_nor_falls(lm):
@@ -609,16 +629,18 @@ def test_the_profile_calls_flat_only_a_loss_that_neither_rises_nor_falls(lm):
     hold the point, and only the side below is run."""
     opt, _ = lm()
     z = {"youngs_modulus": Z_TRUE - 1.0}
-    ev = opt.evaluate(z, opt.frames)
-    row = opt.profile(z, 1, ["youngs_modulus"], float((opt.residuals(ev.flows) ** 2).sum()))["youngs_modulus"]
+    ev = opt.objective.evaluate(z, opt.problem.frames)
+    row = opt.diagnostics.profile(z, 1, ["youngs_modulus"], float((opt.objective.residuals(ev.flows) ** 2).sum()))[
+        "youngs_modulus"
+    ]
     low, at, high = row["loss_ratio"]
     assert low > 1.1 and at == 1.0 and high < 0.9 and not flat(row)
     assert flat({"loss_ratio": [1.05, 1.0, 0.95]}) and not flat({"loss_ratio": [1.05, 1.0, 0.5]})  # a fall
     assert not flat({"loss_ratio": [1.0, 1.0, None]}) and not flat({"loss_ratio": [1.0]})  # a failed run; no side
-    above = {"youngs_modulus": opt.typical_box("youngs_modulus")[1] + 0.5}
-    row = opt.profile(above, 1, ["youngs_modulus"], 1.0)["youngs_modulus"]
-    assert len(row["values"]) == 2 and row["values"][1] == opt.values(above)["youngs_modulus"]
-    assert opt.profile(z, 1, ["velocity_x"], 1.0) == {}  # a velocity component is not profiled
+    above = {"youngs_modulus": opt.problem.typical_box("youngs_modulus")[1] + 0.5}
+    row = opt.diagnostics.profile(above, 1, ["youngs_modulus"], 1.0)["youngs_modulus"]
+    assert len(row["values"]) == 2 and row["values"][1] == opt.problem.values(above)["youngs_modulus"]
+    assert opt.diagnostics.profile(z, 1, ["velocity_x"], 1.0) == {}  # a velocity component is not profiled
 
 
 def test_a_rejected_trial_says_so_and_the_run_says_why_it_stopped(lm, monkeypatch, caplog):
@@ -627,14 +649,14 @@ def test_a_rejected_trial_says_so_and_the_run_says_why_it_stopped(lm, monkeypatc
     from clflow.pipeline.runs import format_row
 
     opt, _ = lm(iterations=4)
-    z0, field = opt.initial_state().z["youngs_modulus"], fixed_field(opt)
+    z0, field = opt.problem.initial_state().z["youngs_modulus"], fixed_field(opt)
 
     def evaluate(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
         d = z["youngs_modulus"] - z0
-        flows = [opt.views[0].observed[t] + (1 + d + 10 * d * d) * field[t] for t in range(frames)]
+        flows = [opt.problem.views[0].observed[t] + (1 + d + 10 * d * d) * field[t] for t in range(frames)]
         return evaluation_of(opt, flows, frames, grid)
 
-    monkeypatch.setattr(opt, "evaluate", evaluate)
+    monkeypatch.setattr(opt.objective, "evaluate", evaluate)
     with caplog.at_level("INFO", logger="clflow.pipeline.fit.driver"):
         state = opt.run()
     rejected = [row for row in state.history if row.get("rejected")]
@@ -661,11 +683,13 @@ def test_after_lm_stops_a_line_search_of_the_own_calibration_loss_goes_on(lm, mo
     # a tenth; the own-calibration loss (0.1 tanh(z - z_true))^2 |field|^2 falls all the way
     # to z_true, and the line search after LM's last iteration follows it
     opt, calls = lm(iterations=4)
-    observed, fake = opt.views[0].observed, opt.evaluate
-    monkeypatch.setattr(opt, "evaluate", lambda *args, **kwargs: opt.rescored(fake(*args, **kwargs)))  # the targets'
-    monkeypatch.setattr(type(opt), "corrects_bias", property(lambda self: True))
+    observed, fake = opt.problem.views[0].observed, opt.objective.evaluate
     monkeypatch.setattr(
-        opt,
+        opt.objective, "evaluate", lambda *args, **kwargs: opt.objective.rescored(fake(*args, **kwargs))
+    )  # the targets'
+    monkeypatch.setattr(type(opt.problem), "corrects_bias", property(lambda self: True))
+    monkeypatch.setattr(
+        opt.objective,
         "estimator_errors",
         lambda result, frames, shifts=None: [-0.9 * (torch.stack(result.flows[:frames]) - observed[:frames])],
     )
@@ -684,8 +708,10 @@ def test_after_lm_stops_a_line_search_of_the_own_calibration_loss_goes_on(lm, mo
     assert state.best["z"] == state.z and state.best["loss"] == searched["loss"]
     assert state.calibrated_at["z"] == state.z  # the final point's own calibration, over the shifts
     assert state.calibrated_at["shifts"] == [list(shift) for shift in JITTER_SHIFTS]
-    final = opt.jacobian(state.z, opt.frames, state.substeps, ("youngs_modulus",), opt.model_grid)[0]
-    assert opt.rescored(final).loss == pytest.approx(searched["loss"], rel=1e-9)
+    final = opt.objective.jacobian(
+        state.z, opt.problem.frames, state.substeps, ("youngs_modulus",), opt.problem.model_grid
+    )[0]
+    assert opt.objective.rescored(final).loss == pytest.approx(searched["loss"], rel=1e-9)
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("line search of the own")]
     assert len(lines) == 1 and " to {" in lines[0]
     # done once: a resumed finished run does not search again
@@ -699,12 +725,14 @@ def test_the_line_search_holds_a_variable_the_video_does_not_pin_down(lm, monkey
     # (model error): a step of 0.1 in z raises the loss by far under 1 %, so Young's modulus
     # is weakly constrained and the line search leaves it where LM stopped
     opt, calls = lm(iterations=4)
-    observed, fake = opt.views[0].observed, opt.evaluate
+    observed, fake = opt.problem.views[0].observed, opt.objective.evaluate
     offset = 40.0 * torch.ones_like(observed)
-    monkeypatch.setattr(opt, "evaluate", lambda *args, **kwargs: opt.rescored(fake(*args, **kwargs)))
-    monkeypatch.setattr(type(opt), "corrects_bias", property(lambda self: True))
     monkeypatch.setattr(
-        opt,
+        opt.objective, "evaluate", lambda *args, **kwargs: opt.objective.rescored(fake(*args, **kwargs))
+    )
+    monkeypatch.setattr(type(opt.problem), "corrects_bias", property(lambda self: True))
+    monkeypatch.setattr(
+        opt.objective,
         "estimator_errors",
         lambda result, frames, shifts=None: [
             -0.9 * (torch.stack(result.flows[:frames]) - observed[:frames]) - offset[:frames]
@@ -714,7 +742,7 @@ def test_the_line_search_holds_a_variable_the_video_does_not_pin_down(lm, monkey
         state = opt.run()
     searched = state.line_search
     assert searched["held"] == ["youngs_modulus"] and not searched["moved"]
-    assert state.z == state.best["z"] and opt.values(state.z) == searched["from"]
+    assert state.z == state.best["z"] and opt.problem.values(state.z) == searched["from"]
     assert state.best["loss"] == searched["loss_from"]  # scored against the shift-mean error
     assert state.calibrated_at["shifts"] == [list(shift) for shift in JITTER_SHIFTS]
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("line search of the own")]

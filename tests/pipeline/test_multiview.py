@@ -35,17 +35,17 @@ def _optimization(quick_demo, tmp_path, name, **keys):
 
 
 def _loss(opt, z):
-    return opt.evaluate(z, opt.frames, with_grad=False)
+    return opt.objective.evaluate(z, opt.problem.frames, with_grad=False)
 
 
 def test_one_view_as_a_list_is_the_single_view(quick_demo, tmp_path):
     data = yaml.safe_load((quick_demo / "config.yaml").read_text())
     single = _optimization(quick_demo, tmp_path, "single")
     listed = _optimization(quick_demo, tmp_path, "listed", camera=[data["camera"]], video=[data["video"]])
-    z = single.initial_state().z
+    z = single.problem.initial_state().z
     a, b = _loss(single, z), _loss(listed, z)
-    assert len(listed.views) == 1 and b.loss == a.loss
-    assert bool((single.residuals(a.flows) == listed.residuals(b.flows, b.more_flows)).all())
+    assert len(listed.problem.views) == 1 and b.loss == a.loss
+    assert bool((single.objective.residuals(a.flows) == listed.objective.residuals(b.flows, b.more_flows)).all())
 
 
 def test_two_views_give_the_mean_of_their_losses(quick_demo, tmp_path, side_view):
@@ -56,14 +56,14 @@ def test_two_views_give_the_mean_of_their_losses(quick_demo, tmp_path, side_view
     both = _optimization(
         quick_demo, tmp_path, "both", camera=[data["camera"], side_camera], video=[data["video"], side_video]
     )
-    z = front.initial_state().z  # the start, not the truth: each view's loss is > 0
+    z = front.problem.initial_state().z  # the start, not the truth: each view's loss is > 0
     a, b, ab = _loss(front, z), _loss(side, z), _loss(both, z)
     assert a.loss > 0 and b.loss > 0 and abs(a.loss - b.loss) > 0.01 * a.loss  # the views differ
     assert ab.loss == pytest.approx((a.loss + b.loss) / 2, rel=1e-12)
     # Levenberg-Marquardt's residuals cover both views
-    assert float((both.residuals(ab.flows, ab.more_flows) ** 2).sum()) == pytest.approx(ab.loss, rel=1e-9)
-    assert both.endpoint_error(ab.flows, ab.more_flows) == pytest.approx(
-        (front.endpoint_error(a.flows) + side.endpoint_error(b.flows)) / 2, rel=1e-9
+    assert float((both.objective.residuals(ab.flows, ab.more_flows) ** 2).sum()) == pytest.approx(ab.loss, rel=1e-9)
+    assert both.objective.endpoint_error(ab.flows, ab.more_flows) == pytest.approx(
+        (front.objective.endpoint_error(a.flows) + side.objective.endpoint_error(b.flows)) / 2, rel=1e-9
     )
     assert (tmp_path / "both" / "observed_flow.npz").exists() and (tmp_path / "both" / "observed_flow_1.npz").exists()
 
@@ -143,8 +143,8 @@ def test_a_second_view_narrows_what_one_view_leaves_open(tmp_path):
         opt = Optimization(
             dataclasses.replace(cfg, more_views=cfg.more_views[: views - 1], output=tmp_path / f"results_{views}")
         )
-        truth = {n: float(p.encode(case.truth[n])) for n, p in opt.params.items()}
-        found[views] = opt.identifiability(truth, 1)
+        truth = {n: float(p.encode(case.truth[n])) for n, p in opt.problem.params.items()}
+        found[views] = opt.diagnostics.identifiability(truth, 1)
     one, two = found[1], found[2]
     assert abs(one["correlation"]["youngs_modulus"]["poissons_ratio"]) > 0.9
     assert "poissons_ratio" in one["weakly_constrained"]

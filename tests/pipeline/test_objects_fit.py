@@ -193,18 +193,22 @@ def test_the_flow_losss_gradient_per_object_matches_finite_differences(tmp_path)
     data["flow"] = {"bias_correction": "none"}
     data["optimize"] = {"parameters": ["jelly.youngs_modulus", "heap.friction_angle", "jelly.velocity"]}
     opt = Optimization(load_config(write_config(tmp_path, data)))
-    z = opt.initial_state().z
+    z = opt.problem.initial_state().z
     assert [z[f"jelly.velocity_{c}"] for c in "xyz"] == [0.0, -2.0, 0.0] and "heap.velocity_x" not in z
     zt = {n: torch.tensor(v, dtype=torch.float64) for n, v in z.items()}
-    velocity = opt.velocity_input(zt, opt.prepared)  # [M, 3]: the jelly's particles its own, the heap's at rest
-    jelly = opt.prepared.setup.object_index == 0
+    velocity = opt.problem.velocity_input(
+        zt, opt.problem.prepared
+    )  # [M, 3]: the jelly's particles its own, the heap's at rest
+    jelly = opt.problem.prepared.setup.object_index == 0
     assert torch.equal(velocity[jelly], torch.tensor([0.0, -2.0, 0.0], dtype=torch.float64).expand(int(jelly.sum()), 3))
     assert not velocity[~jelly].any()
-    base = opt.evaluate(z, opt.frames, min_substeps=8)
+    base = opt.objective.evaluate(z, opt.problem.frames, min_substeps=8)
     for name in ("jelly.youngs_modulus", "heap.friction_angle", "jelly.velocity_y"):
         h = 0.01  # in z; 0.05 m/s of velocity is past the loss's linear range (12 % off the adjoint)
-        up = opt.evaluate({**z, name: z[name] + h}, opt.frames, with_grad=False, min_substeps=8).loss
-        down = opt.evaluate({**z, name: z[name] - h}, opt.frames, with_grad=False, min_substeps=8).loss
+        up = opt.objective.evaluate({**z, name: z[name] + h}, opt.problem.frames, with_grad=False, min_substeps=8).loss
+        down = opt.objective.evaluate(
+            {**z, name: z[name] - h}, opt.problem.frames, with_grad=False, min_substeps=8
+        ).loss
         numeric = (up - down) / (2 * h)
         # float32 runs and the rasteriser: a few per cent (measured at the guess, E 2e4: 0.8 % for
         # E, 6 % for the angle, 0.5 % for the velocity); the float64 test above holds the

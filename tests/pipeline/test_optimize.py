@@ -3,12 +3,14 @@
 import dataclasses
 import json
 import math
+from types import SimpleNamespace
 
 import pytest
 
 from clflow.errors import ClflowError
 from clflow.pipeline.fit import Optimization, OptimizerState
-from clflow.pipeline.fit.steps import horizon, rate_schedule
+from clflow.pipeline.fit.checkpoint import Checkpoint
+from clflow.pipeline.fit.steps import Steps, horizon, rate_schedule
 from clflow.pipeline.runs import write_results
 from clflow_datasets.demo import TRUTH
 
@@ -18,13 +20,13 @@ def test_demo_recovers_youngs_modulus_from_a_10x_low_guess(demo_config):
     assert cfg.objects[0].material.parameters["youngs_modulus"] == pytest.approx(TRUTH["youngs_modulus"] / 10)
     opt = Optimization(cfg)
     state = opt.run()
-    final = opt.values(state.z)["youngs_modulus"]
+    final = opt.problem.values(state.z)["youngs_modulus"]
     assert abs(final - TRUTH["youngs_modulus"]) / TRUTH["youngs_modulus"] < 0.10
     losses = [row["loss"] for row in state.history]
     assert losses[1] < losses[0]
 
     metrics = write_results(opt, state)  # its flow loss: at the final parameters, all frames
-    initial = opt.evaluate(opt.initial_state().z, cfg.simulation.frames, with_grad=False).loss
+    initial = opt.objective.evaluate(opt.problem.initial_state().z, cfg.simulation.frames, with_grad=False).loss
     assert metrics["flow_loss"] < 0.2 * initial
     assert metrics["relative_error"]["youngs_modulus"] < 0.10
     out = cfg.output
@@ -50,7 +52,7 @@ def test_resume_after_an_interruption_gives_the_uninterrupted_result(demo_config
 
 def test_a_failed_iteration_rolls_back_and_halves_the_step(demo_config, monkeypatch):
     opt = Optimization(demo_config(iterations=3))
-    real = opt.evaluate
+    real = opt.objective.evaluate
     calls = []
 
     def flaky(z, frames, **kw):
@@ -59,7 +61,7 @@ def test_a_failed_iteration_rolls_back_and_halves_the_step(demo_config, monkeypa
             raise FloatingPointError("the flow loss is not finite")
         return real(z, frames, **kw)
 
-    monkeypatch.setattr(opt, "evaluate", flaky)
+    monkeypatch.setattr(opt.objective, "evaluate", flaky)
     state = opt.run()
     assert state.iteration == 3 and state.step_scale == 0.5
     assert calls[2] == calls[0], "the retry starts from the last good parameters"
@@ -68,20 +70,20 @@ def test_a_failed_iteration_rolls_back_and_halves_the_step(demo_config, monkeypa
 def test_repeated_failures_stop_with_the_reason_and_keep_the_checkpoint(demo_config, monkeypatch):
     opt = Optimization(demo_config(iterations=5))
     opt.run(stop_after=1)
-    before = (opt.checkpoint).read_text()
+    before = opt.checkpoint.path.read_text()
 
     def broken(z, frames, **kw):
         raise FloatingPointError("the gradient is not finite")
 
-    monkeypatch.setattr(opt, "evaluate", broken)
+    monkeypatch.setattr(opt.objective, "evaluate", broken)
     with pytest.raises(ClflowError, match="optimisation stopped at iteration 1: the gradient is not finite"):
         opt.run(resume=True)
-    assert opt.checkpoint.read_text() == before, "the last good checkpoint survives"
+    assert opt.checkpoint.path.read_text() == before, "the last good checkpoint survives"
 
 
 def test_adam_restarts_its_momentum_after_an_overshoot(demo_config):
-    opt = Optimization.__new__(Optimization)
-    opt.cfg = demo_config()
+    steps = Steps.__new__(Steps)  # adam_step reads the config alone
+    steps.problem = SimpleNamespace(cfg=demo_config())
     state = OptimizerState(
         5,
         {"youngs_modulus": 4.5},
@@ -91,10 +93,10 @@ def test_adam_restarts_its_momentum_after_an_overshoot(demo_config):
         momentum_steps=5,
     )
     # the last step went up by 0.2 and the gradient is now positive: uphill, so restart
-    after = opt.adam_step(state, {"youngs_modulus": 2.0})
+    after = steps.adam_step(state, {"youngs_modulus": 2.0})
     assert after.momentum_steps == 1 and after.z["youngs_modulus"] < 4.5
     # the same step with a negative gradient keeps the momentum
-    kept = opt.adam_step(state, {"youngs_modulus": -2.0})
+    kept = steps.adam_step(state, {"youngs_modulus": -2.0})
     assert kept.momentum_steps == 6 and kept.m["youngs_modulus"] < -0.3
 
 
@@ -171,23 +173,21 @@ def test_resume_refuses_a_changed_config_and_names_what_changed(tmp_path):
     }
     cfg = parse_config(data, "scene.yaml", tmp_path)
 
-    def checkpointing(cfg):  # just what save_state/load_state use, without the scene's preparation
-        opt = Optimization.__new__(Optimization)
-        opt.cfg, opt.checkpoint, opt.variables = cfg, tmp_path / "checkpoint.json", ["youngs_modulus"]
-        return opt
+    def checkpointing(cfg):  # just what a checkpoint reads of its problem, without the scene's preparation
+        return Checkpoint(tmp_path / "checkpoint.json", SimpleNamespace(cfg=cfg, variables=("youngs_modulus",)))
 
     state = OptimizerState(3, {"youngs_modulus": 1.0}, {"youngs_modulus": 0.0}, {"youngs_modulus": 0.0})
-    checkpointing(cfg).save_state(state)
-    assert checkpointing(dataclasses.replace(cfg, output=tmp_path / "elsewhere")).load_state().iteration == 3
+    checkpointing(cfg).save(state)
+    assert checkpointing(dataclasses.replace(cfg, output=tmp_path / "elsewhere")).load().iteration == 3
     longer = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, iterations=60))
-    assert checkpointing(longer).load_state().iteration == 3  # --resume --iterations N extends a run
+    assert checkpointing(longer).load().iteration == 3  # --resume --iterations N extends a run
     changed = dataclasses.replace(cfg, scale=2.0, simulation=dataclasses.replace(cfg.simulation, frames=99))
     with pytest.raises(
         InputError,
         match=r"config changed since it was saved \(scale, simulation\); "
         r"give another -o/--out, or delete the checkpoint",
     ):
-        checkpointing(changed).load_state()
+        checkpointing(changed).load()
 
 
 def observed_flow_of(cfg, prepared, frames):

@@ -113,7 +113,7 @@ def test_an_interrupted_polish_resumes_to_the_uninterrupted_result(demo_config):
     assert _untimed(dataclasses.asdict(parts)) == _untimed(dataclasses.asdict(whole))
     assert len(parts.polished) == 2 and parts.iteration == 5
     # the second start polished alone, in a fresh optimiser (as a Ray task does), is the same polish
-    alone = Optimization(config("alone")).polish(begin, 1)
+    alone = Optimization(config("alone")).polish.polish(begin, 1)
     rows = [{k: v for k, v in r.items() if k != "iteration"} for r in _untimed(whole.history) if r.get("start") == 1]
     assert [{k: v for k, v in r.items() if k != "iteration"} for r in _untimed(alone["state"]["history"])] == rows
     assert alone["finished"] and alone["state"]["best"]["loss"] == whole.polished[1]["loss"]

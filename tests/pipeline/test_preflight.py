@@ -179,10 +179,10 @@ def test_a_fixed_substep_and_a_large_rate_never_accept_an_unstable_iteration(dem
     assert "exceeds the stable step" in first["reason"]
     assert first["back_to"]["youngs_modulus"] == pytest.approx(2000.0)
     for row in state.history:  # every accepted iteration: stable at its own parameters
-        sim = build_simulator(opt.cfg, opt.prepared.setup, scene_values(opt.cfg, row["params"]))
+        sim = build_simulator(opt.cfg, opt.problem.prepared.setup, scene_values(opt.cfg, row["params"]))
         assert sim.stable_substeps() <= row["substeps"], row
-        opt.evaluate(row["z"], row["frames"], with_grad=False)  # raises UnstableRun on CFL / clamping / dt
-    final = opt.values(state.z)["youngs_modulus"]
+        opt.objective.evaluate(row["z"], row["frames"], with_grad=False)  # raises UnstableRun on CFL / clamping / dt
+    final = opt.problem.values(state.z)["youngs_modulus"]
     assert abs(final - 2e4) / 2e4 < 0.3
     metrics = write_results(opt, state)
     assert json.loads((opt.cfg.output / "metrics.json").read_text())["rollbacks"] == metrics["rollbacks"]

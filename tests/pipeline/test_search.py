@@ -36,9 +36,9 @@ def searching(demo_config, monkeypatch):
             calls.append(dict(z))
             value = loss(z["youngs_modulus"])
             grads = {"youngs_modulus": 0.0} if with_grad else {}
-            return Evaluation(value, grads, [], SimpleNamespace(substeps=1), grid or opt.model_grid)
+            return Evaluation(value, grads, [], SimpleNamespace(substeps=1), grid or opt.problem.model_grid)
 
-        monkeypatch.setattr(opt, "evaluate", evaluate)
+        monkeypatch.setattr(opt.objective, "evaluate", evaluate)
         return opt, calls
 
     return make
@@ -46,12 +46,12 @@ def searching(demo_config, monkeypatch):
 
 def test_the_search_finds_the_global_basin_from_the_local_one(searching):
     opt, calls = searching(samples=16)
-    start = opt.initial_state().z["youngs_modulus"]
+    start = opt.problem.initial_state().z["youngs_modulus"]
     assert start == pytest.approx(math.log10(2e3))  # the demo's guess, in the shallow basin's reach
-    state = opt.global_search(opt.initial_state())
-    assert state.searched and len(state.search) == 16 and calls[0] == opt.initial_state().z
+    state = opt.search.global_search(opt.problem.initial_state(), opt.progress)
+    assert state.searched and len(state.search) == 16 and calls[0] == opt.problem.initial_state().z
     assert abs(state.z["youngs_modulus"] - 4.3) < 0.15  # in the global basin
-    box = opt.search_box(opt.initial_state().z)["youngs_modulus"]
+    box = opt.problem.search_box(opt.problem.initial_state().z)["youngs_modulus"]
     assert box == pytest.approx((3.0, start + 2.0))  # clipped below by the typical range, E >= 1e3 Pa
     assert all(box[0] <= r["z"]["youngs_modulus"] <= box[1] for r in state.search)
 
@@ -70,13 +70,13 @@ def interrupt_after(opt, samples: int) -> None:
 
 def test_the_design_is_reproducible_and_a_resumed_search_is_the_same(searching):
     whole, _ = searching(name="whole")
-    done = whole.global_search(whole.initial_state())
+    done = whole.search.global_search(whole.problem.initial_state(), whole.progress)
     split, calls = searching(name="split")
-    partial = dataclasses.replace(split.initial_state(), search=[])
+    partial = dataclasses.replace(split.problem.initial_state(), search=[])
     interrupt_after(split, 5)
     with pytest.raises(KeyboardInterrupt):
-        split.global_search(partial)
-    saved = json.loads(split.checkpoint.read_text())["state"]
+        split.search.global_search(partial, split.progress)
+    saved = json.loads(split.checkpoint.path.read_text())["state"]
     assert len(saved["search"]) == 5 and not saved["searched"]
     split.progress = lambda row: None
     resumed = split.run(resume=True)
@@ -89,7 +89,9 @@ def test_a_second_round_finds_a_narrow_well_between_the_first_rounds_samples(sea
     """A broad funnel with a narrow, deeper well beside its best first-round sample, closer to
     it than the design's spacing: the first round cannot see it, a second round around the
     best sample does."""
-    design = searching(samples=8)[0].search_points(searching(samples=8, name="d")[0].initial_state().z)
+    design = searching(samples=8)[0].search.design.search_points(
+        searching(samples=8, name="d")[0].problem.initial_state().z
+    )
     nearest = min((z["youngs_modulus"] for z in design), key=lambda e: abs(e - 4.3))
     well = (nearest + 0.05, nearest + 0.14)  # inside the neighbourhood (half a spacing: 2.3 / 8 / 2 = 0.144)
 
@@ -97,9 +99,9 @@ def test_a_second_round_finds_a_narrow_well_between_the_first_rounds_samples(sea
         return 0.5 * (e - 4.3) ** 2 - (1.0 if well[0] <= e <= well[1] else 0.0)
 
     once, _ = searching(samples=8, loss=funnel_and_well, name="once")
-    assert once.global_search(once.initial_state()).z["youngs_modulus"] == nearest
+    assert once.search.global_search(once.problem.initial_state(), once.progress).z["youngs_modulus"] == nearest
     twice, calls = searching(samples=8, refine=4, loss=funnel_and_well, name="twice")
-    state = twice.global_search(twice.initial_state())
+    state = twice.search.global_search(twice.problem.initial_state(), twice.progress)
     assert len(calls) == len(state.search) == 12
     assert all(
         r["around"] == [s["z"] for s in state.search[:8]].index({"youngs_modulus": nearest}) for r in state.search[8:]
@@ -109,11 +111,11 @@ def test_a_second_round_finds_a_narrow_well_between_the_first_rounds_samples(sea
 
 def test_each_start_is_the_best_of_its_own_neighbourhood(searching):
     opt, _ = searching(samples=16, refine=8, starts=3)
-    state = opt.global_search(opt.initial_state())
+    state = opt.search.global_search(opt.problem.initial_state(), opt.progress)
     first, second = state.search[:16], state.search[16:]
     centres = list(dict.fromkeys(r["around"] for r in second))  # in rank order
     assert len(centres) == 3 and [sum(r["around"] == c for r in second) for c in centres] == [3, 3, 2]
-    spacing = opt.search_box(opt.initial_state().z)["youngs_modulus"]
+    spacing = opt.problem.search_box(opt.problem.initial_state().z)["youngs_modulus"]
     spacing = (spacing[1] - spacing[0]) / 16
     ranked = sorted(range(16), key=lambda i: first[i]["loss"])
     assert centres[0] == ranked[0]  # the best sample always leads
@@ -130,22 +132,22 @@ def test_each_start_is_the_best_of_its_own_neighbourhood(searching):
 
 def test_a_second_round_smaller_than_its_neighbourhoods_keeps_every_centre_a_start(searching):
     opt, calls = searching(samples=16, refine=2, starts=3)
-    state = opt.global_search(opt.initial_state())
+    state = opt.search.global_search(opt.problem.initial_state(), opt.progress)
     assert len(calls) == len(state.search) == 18
-    centres = [i for i, _ in opt.neighbourhoods(state.search[:16], opt.initial_state().z)]
+    centres = [i for i, _ in opt.search.design.neighbourhoods(state.search[:16], opt.problem.initial_state().z)]
     assert len(centres) == 3 and [r["around"] for r in state.search[16:]] == centres[:2]
     assert state.search[centres[2]]["z"] in state.starts and len(state.starts) == 3  # unsampled, still a start
 
 
 def test_a_search_interrupted_in_its_second_round_resumes_the_same(searching):
     whole, _ = searching(samples=8, refine=4, name="whole")
-    done = whole.global_search(whole.initial_state())
+    done = whole.search.global_search(whole.problem.initial_state(), whole.progress)
     split, calls = searching(samples=8, refine=4, name="split")
     interrupt_after(split, 10)
     with pytest.raises(KeyboardInterrupt):
-        split.global_search(split.initial_state())
+        split.search.global_search(split.problem.initial_state(), split.progress)
     split.progress = lambda row: None
-    resumed = split.global_search(split.load_state())
+    resumed = split.search.global_search(split.load_state(), split.progress)
     assert len(calls) == 12  # each sample once
     assert resumed.search == [{**r, "seconds": s["seconds"]} for r, s in zip(done.search, resumed.search)]
     assert resumed.z == done.z
@@ -157,11 +159,11 @@ def test_failed_samples_are_skipped_and_none_running_is_an_error(searching, monk
     def failing(z, frames, with_grad=True, min_substeps=1, variables=None, grid=None):
         raise FloatingPointError("the flow loss is not finite")
 
-    monkeypatch.setattr(opt, "evaluate", failing)
+    monkeypatch.setattr(opt.objective, "evaluate", failing)
     from clflow.errors import ClflowError
 
     with pytest.raises(ClflowError, match="no parameters whose simulation ran"):
-        opt.global_search(opt.initial_state())
+        opt.search.global_search(opt.problem.initial_state(), opt.progress)
 
 
 def config_with(optimize: dict) -> dict:
@@ -230,8 +232,8 @@ def test_the_search_finds_the_birds_basin_from_a_300x_soft_guess(tmp_path):
 
     make_case(tmp_path, CASES["bird"], QUICK, truth_scale=2)
     opt = Optimization(load_config(tmp_path / "config.yaml"))
-    state = opt.global_search(opt.initial_state())
-    found = opt.values(state.z)["youngs_modulus"]
+    state = opt.search.global_search(opt.problem.initial_state(), opt.progress)
+    found = opt.problem.values(state.z)["youngs_modulus"]
     assert 3e5 / 2 < found < 3e5 * 2
     losses = sorted(r["loss"] for r in state.search if r["loss"] is not None)  # None: a rejected, unstable run
     assert losses[0] < 0.2 * losses[len(losses) // 2]  # far below the typical sample: a basin, not luck

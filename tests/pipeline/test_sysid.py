@@ -108,7 +108,7 @@ def test_a_case_with_several_views_films_one_motion_from_each_camera(tmp_path):
     assert first.shape == second.shape == (TINY.image, TINY.image, 3) and np.abs(first.astype(int) - second).mean() > 5
     assert json.loads((tmp_path / "case.json").read_text())["views"] == 2
     opt = Optimization(load_config(tmp_path / "config.yaml"))
-    assert len(opt.views) == 2
+    assert len(opt.problem.views) == 2
 
 
 def test_a_case_without_room_for_its_motion_fails(tmp_path):
@@ -330,10 +330,10 @@ def test_the_benchmark_searches_on_the_base_grid_and_refines_on_a_finer_one(tmp_
 
     optimization = Optimization(load_config(config))
     assert optimization.cfg.simulation.flip == 0.99
-    (coarse, fine) = (optimization._prepared[n].setup for n in (base, opt["simulation"]["grid_resolution"]))
+    (coarse, fine) = (optimization.problem._prepared[n].setup for n in (base, opt["simulation"]["grid_resolution"]))
     assert coarse.grid.dx == pytest.approx(1.5 * fine.grid.dx, rel=0.05)
     assert coarse.particles.positions.shape[0] < fine.particles.positions.shape[0]  # each grid its own fill
-    n = optimization.prepared.obj_rest.means.shape[0]  # the Gaussians come first in either: one render
+    n = optimization.problem.prepared.obj_rest.means.shape[0]  # the Gaussians come first in either: one render
     assert torch.equal(coarse.particles.positions[:n], fine.particles.positions[:n])
 
 

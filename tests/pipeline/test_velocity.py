@@ -145,7 +145,7 @@ def test_the_velocity_alone_is_recovered_from_the_video(thrown, tmp_path):
     losses = [row["loss"] for row in state.history]
     assert losses[-1] < 0.3 * losses[0]
     metrics = write_results(opt, state)
-    estimate = opt.velocities(state.z)[0]
+    estimate = opt.problem.velocities(state.z)[0]
     assert metrics["velocity_error_m_s"] == pytest.approx(math.dist(estimate, THROW))
     assert metrics["relative_error"]["velocity"] == pytest.approx(math.dist(estimate, THROW) / math.sqrt(3))
     assert metrics["relative_error"]["velocity"] < 0.05
@@ -169,7 +169,7 @@ def test_the_velocity_phase_runs_first_and_resumes_across_the_phases(thrown, tmp
     # the velocity phase leaves the material at its guess, the main phase the velocity at its estimate
     assert len({r["z"]["youngs_modulus"] for r in rows[:13]}) == 1 < len({r["z"]["velocity_x"] for r in rows[:13]})
     assert len({tuple(r["z"][n] for n in VELOCITY_COMPONENTS) for r in rows[12:]}) == 1
-    estimate = whole_opt.velocities(whole.z)[0]
+    estimate = whole_opt.problem.velocities(whole.z)[0]
     assert math.dist(estimate, THROW) < 0.1 * math.dist((0, 0, 0), THROW), estimate
 
     cfg = thrown_config(thrown, tmp_path / "split", **settings)

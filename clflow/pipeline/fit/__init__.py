@@ -24,20 +24,23 @@ Results in ``output/``: params.json, metrics.json, history.json, loss.png, compa
 (comparison_view1.mp4, ... for more guidance views), observed_flow.npz (the video's flow and
 its confidence, computed once).
 
-The package's modules, one part each; ``Optimization`` (driver) is the mixins put together,
-and each mixin uses the attributes that ``Optimization.__init__`` sets (cfg, params,
-variables, main_variables, prepared, views, frames, model_grid, search_grid, ...):
+The package's modules, one part each; ``Optimization`` (driver) holds one object of each
+part, and every part gets what it needs when it is made:
 
-- state: OptimizerState, Evaluation, the checkpoint and its config digests (Checkpoints)
-- guidance: the guidance views, their videos' flow (cached) and the loss masks
-- objective: the loss, its gradient, the Jacobian and the estimator's bias (Objective)
-- steps: Levenberg-Marquardt, Adam, their boxes and schedules (Steps)
-- search: the global search and the polish of its starts (Search)
+- problem: Problem, what is fitted (config, parameterisation, variables, prepared scenes
+  per grid, guidance views, the boxes the phases stay in)
+- objective: Objective, the loss, its gradient, the residuals' Jacobian and the flow
+  estimator's calibration
+- steps: Steps, Levenberg-Marquardt, Adam and the own-loss line search; their schedules
+- iteration: Iterations, one iteration from a state to the next (rollbacks, convergence)
+- search: SearchDesign, Search (the global phase) and StartPolish (a start's polish)
 - starts: how the starts' polishes are mapped: serially, or as Ray tasks (starts_on_ray)
-- diagnostics: identifiability, profiles and the grid check (Diagnostics)
+- diagnostics: Diagnostics, identifiability, profiles and the grid check
 - budget: the main grid a time budget affords (optimize.budget), predicted from timed runs
-- results: params.json, metrics.json and the comparison videos (Results)
-- driver: Optimization.run and one iteration
+- results: Results, params.json, metrics.json and the comparison videos
+- state: OptimizerState, Evaluation and the config digests; checkpoint: Checkpoint
+- guidance: the guidance views, their videos' flow (cached) and the loss masks
+- driver: Optimization, the parts put together and the loop over phases and iterations
 """
 
 from clflow.pipeline.fit.driver import Optimization

@@ -9,6 +9,7 @@ import math
 import torch
 
 from clflow.errors import ClflowError, InputError
+from clflow.pipeline.fit.objective import Objective
 from clflow.pipeline.fit.state import Evaluation
 
 log = logging.getLogger(__name__)
@@ -230,9 +231,13 @@ def flat(profile_row: dict) -> bool:
 
 
 class Diagnostics:
-    """Which digits of a result to believe: standard errors and trade-offs from the residuals'
-    Jacobian, profiles of weakly constrained parameters, the grid check (needs evaluate,
-    jacobian, residuals, local_box)."""
+    """How well the guidance video pins down the result of an
+    :class:`~clflow.pipeline.fit.objective.Objective`: identifiability, ranges, profiles,
+    and the grid and time-step checks."""
+
+    def __init__(self, objective: Objective):
+        self.objective = objective
+        self.problem = objective.problem
 
     def identifiability(self, z: dict[str, float], min_substeps: int, search: list[dict] | None = None) -> dict:
         """How well the video pins down each variable at z: from the residuals' Jacobian J
@@ -248,9 +253,9 @@ class Diagnostics:
         grid (:meth:`grid_checks`); ``grid_shift_z``: how far each variable's best fit moves
         on the coarser one (the finer one where only it ran), ``grid_sensitive`` those moved
         beyond WEAK_STD_Z, whose value the discretisation sets as much as the video."""
-        variables = self.main_variables
-        base, J = self.jacobian(z, self.frames, min_substeps, variables, self.model_grid)
-        residuals = self.residuals(base.flows, base.more_flows)
+        variables = self.problem.main_variables
+        base, J = self.objective.jacobian(z, self.problem.frames, min_substeps, variables, self.problem.model_grid)
+        residuals = self.objective.residuals(base.flows, base.more_flows)
         spread = gauss_newton_spread(J, residuals)
         inverse, std, rise, loss = spread.inverse, spread.std, spread.rise, spread.loss
         correlation = spread.covariance / torch.outer(std, std).clamp(min=1e-300)
@@ -264,7 +269,7 @@ class Diagnostics:
         profile = self.profile(z, base.substeps, weak, loss)
         checks = self.grid_checks(z, base, J, inverse, variables)
         check_substeps, dt_shift, dt_change = self.substep_shift(z, base, J, inverse, variables)
-        robust = frame_robust_covariance(J, residuals, self.residual_frames(len(base.flows)), inverse)
+        robust = frame_robust_covariance(J, residuals, self.objective.residual_frames(len(base.flows)), inverse)
         unresolved = [n for n, row in profile.items() if flat(row)]
         # the grid's error by Richardson, the larger of the two checks' (two estimates of one
         # error); the time step's, halved, once its own
@@ -291,7 +296,7 @@ class Diagnostics:
             open_sides=search_open,
         )
         ranges = self.ranges(z, variables, frame_std, discretisation, profile_z, unresolved, walk_args)
-        widen_by_search(ranges, z, search or [], tolerance, self.values)
+        widen_by_search(ranges, z, search or [], tolerance, self.problem.values)
         return {
             "ranges": ranges,
             "loss_tolerance": tolerance,
@@ -303,7 +308,7 @@ class Diagnostics:
             "profile": profile,
             "profile_rise": PROFILE_RISE,
             "unresolved": unresolved,
-            "grids": [checks[0]["nodes"], self.model_grid],
+            "grids": [checks[0]["nodes"], self.problem.model_grid],
             "grid_shift_z": checks[0]["shift_z"],
             "grid_sensitive": [n for n, moved in checks[0]["shift_z"].items() if abs(moved) > WEAK_STD_Z],
             "grid_checks": checks,
@@ -336,14 +341,14 @@ class Diagnostics:
         for name, frames_z, half_profile in zip(variables, frame_std, profile_z):
             grid_z = discretisation.get(name, 0.0)
             sigma = (frames_z**2 + grid_z**2) ** 0.5
-            box = self.box_of(name, z)
+            box = self.problem.box_of(name, z)
             floor = max(half_profile, PROFILE_STEP if name in unresolved else 0.0)
             walked, ratios = self.walk(z, name, max(RANGE_Z * sigma, floor), box, **walk_args)
             low, high = parameter_range(z[name], sigma, box, floor, walked)
             out[name] = {
-                "value": self.values(z)[name],
-                "low": None if low is None else self.values({**z, name: low})[name],
-                "high": None if high is None else self.values({**z, name: high})[name],
+                "value": self.problem.values(z)[name],
+                "low": None if low is None else self.problem.values({**z, name: low})[name],
+                "high": None if high is None else self.problem.values({**z, name: high})[name],
                 "level": RANGE_LEVEL,
                 "sigma_z": sigma,
                 "frames_z": frames_z,
@@ -353,15 +358,6 @@ class Diagnostics:
                 "walk_loss_ratio": ratios,
             }
         return out
-
-    def box_of(self, name: str, z: dict[str, float]) -> tuple[float, float]:
-        """(lower, upper) in z where the search looked for variable ``name``, widened to hold
-        z: the local phase's box, else a material parameter's typical range; a velocity
-        component's is unbounded."""
-        if name not in self.params:
-            return -math.inf, math.inf
-        lo, hi = self.local_box().get(name) or self.typical_box(name)
-        return min(lo, z[name]), max(hi, z[name])
 
     def walk(
         self,
@@ -392,14 +388,21 @@ class Diagnostics:
             def loss_at(step: float, sign=sign) -> float | None:
                 moved = {}
                 for other, dz in directions[name].items():
-                    lo, hi = self.box_of(other, z)
+                    lo, hi = self.problem.box_of(other, z)
                     moved[other] = min(max(z[other] + sign * step * dz, lo), hi)
                 try:
-                    run = self.evaluate({**z, **moved}, self.frames, with_grad=False, min_substeps=substeps)
+                    run = self.objective.evaluate(
+                        {**z, **moved}, self.problem.frames, with_grad=False, min_substeps=substeps
+                    )
                 except (FloatingPointError, ClflowError) as exc:
-                    log.info("the range of %s: the run at %s failed: %s", name, self.values({**z, **moved})[name], exc)
+                    log.info(
+                        "the range of %s: the run at %s failed: %s",
+                        name,
+                        self.problem.values({**z, **moved})[name],
+                        exc,
+                    )
                     return None
-                return float((self.residuals(run.flows, run.more_flows) ** 2).sum())
+                return float((self.objective.residuals(run.flows, run.more_flows) ** 2).sum())
 
             half, runs = walk_end(loss_at, start, edge, limit, loss)
             halves.append(half)
@@ -421,12 +424,12 @@ class Diagnostics:
         error for a first-order method: 2 for a 1.5x coarser check, 3 for a 1.5x finer one.
         Where the coarser grid's thicker walls leave the object no room in the domain, the
         finer check is the only one. The coarser check comes first."""
-        coarse = self.search_grid
-        if coarse >= self.model_grid:
-            coarse = round((self.model_grid - 1) / GRID_CHECK_RATIO) + 1
-        finer = round((self.model_grid - 1) * GRID_CHECK_RATIO) + 1
+        coarse = self.problem.search_grid
+        if coarse >= self.problem.model_grid:
+            coarse = round((self.problem.model_grid - 1) / GRID_CHECK_RATIO) + 1
+        finer = round((self.problem.model_grid - 1) * GRID_CHECK_RATIO) + 1
         try:
-            self.prepared_on(coarse)
+            self.problem.prepared_on(coarse)
             grids = [coarse, finer]
         except InputError:
             log.info(
@@ -437,7 +440,7 @@ class Diagnostics:
         for nodes in grids:
             what = f"the grid check at {nodes} nodes"
             shift, change = self.rerun_shift(z, base, J, inverse, variables, what, grid=nodes)
-            richardson = 1 / max(abs((self.model_grid - 1) / (nodes - 1) - 1), 1e-6)
+            richardson = 1 / max(abs((self.problem.model_grid - 1) / (nodes - 1) - 1), 1e-6)
             checks.append(
                 {"nodes": nodes, "ran": bool(shift), "shift_z": shift, "loss_change": change, "richardson": richardson}
             )
@@ -453,7 +456,7 @@ class Diagnostics:
         substeps = 2 * base.substeps
         what = f"the time-step check at {substeps} substeps per frame"
         shift, change = self.rerun_shift(
-            z, base, J, inverse, variables, what, min_substeps=substeps, grid=self.model_grid
+            z, base, J, inverse, variables, what, min_substeps=substeps, grid=self.problem.model_grid
         )
         return substeps, shift, change
 
@@ -471,11 +474,14 @@ class Diagnostics:
         grid or min_substeps): (the fit's move per variable, :func:`fit_shift`; the loss's
         relative change |L_new / L - 1|). ({}, 0.0) where that run fails."""
         try:
-            run = self.evaluate(z, self.frames, with_grad=False, **how)
+            run = self.objective.evaluate(z, self.problem.frames, with_grad=False, **how)
         except (FloatingPointError, MemoryError, ClflowError) as exc:
             log.warning("%s failed (%s): the ranges leave its error out", what, exc)
             return {}, 0.0
-        before, after = self.residuals(base.flows, base.more_flows), self.residuals(run.flows, run.more_flows)
+        before, after = (
+            self.objective.residuals(base.flows, base.more_flows),
+            self.objective.residuals(run.flows, run.more_flows),
+        )
         loss_change = abs(float((after**2).sum()) / max(float((before**2).sum()), 1e-300) - 1)
         return fit_shift(after - before, J, inverse, variables), loss_change
 
@@ -486,25 +492,23 @@ class Diagnostics:
         the loss there with the others held over ``loss``, the loss at z (None where the run
         failed)."""
         out = {}
-        for name in (n for n in names if n in self.params):
-            lo, hi = self.box_of(name, z)
+        for name in (n for n in names if n in self.problem.params):
+            lo, hi = self.problem.box_of(name, z)
             row: dict[str, list] = {"values": [], "loss_ratio": []}
             for target in sorted({max(lo, z[name] - PROFILE_STEP), z[name], min(hi, z[name] + PROFILE_STEP)}):
                 moved, ratio = {**z, name: target}, 1.0
                 if target != z[name]:
                     try:
-                        ev = self.evaluate(moved, self.frames, with_grad=False, min_substeps=min_substeps)
-                        ratio = float((self.residuals(ev.flows, ev.more_flows) ** 2).sum()) / max(loss, 1e-300)
+                        ev = self.objective.evaluate(
+                            moved, self.problem.frames, with_grad=False, min_substeps=min_substeps
+                        )
+                        ratio = float((self.objective.residuals(ev.flows, ev.more_flows) ** 2).sum()) / max(
+                            loss, 1e-300
+                        )
                     except (FloatingPointError, ClflowError) as exc:
-                        log.info("profile of %s at %s failed: %s", name, self.values(moved)[name], exc)
+                        log.info("profile of %s at %s failed: %s", name, self.problem.values(moved)[name], exc)
                         ratio = None
-                row["values"].append(self.values(moved)[name])
+                row["values"].append(self.problem.values(moved)[name])
                 row["loss_ratio"].append(ratio)
             out[name] = row
         return out
-
-    def typical_box(self, name: str) -> tuple[float, float]:
-        """(lower, upper) in z of material parameter ``name``'s typical range."""
-        p = self.params[name]
-        lo, hi = (float(p.encode(v)) for v in p.param.typical) if p.param.scale != "linear" else p.param.typical
-        return lo, hi

@@ -109,22 +109,13 @@ def loss_mask(cfg: SceneConfig, prepared: Prepared, camera=None, what: str = "th
 @dataclass
 class View:
     """One guidance view: its camera (simulation frame), observed flow [T, H, W, 2], loss
-    weight [T, H, W] (mask x confidence), loss mask [H, W], video frames [T+1, H, W, 3] and
-    the flow estimator's own error [T, H, W, 2] on the simulation's rendered video
-    (``flow.bias_correction``; zero until the first calibration)."""
+    weight [T, H, W] (mask x confidence), loss mask [H, W] and video frames [T+1, H, W, 3]."""
 
     camera: object  # clflow.splat.cameras.Camera
     observed: torch.Tensor
     weight: torch.Tensor
     mask: torch.Tensor
     video_frames: np.ndarray
-    estimator_error: torch.Tensor | None = None
-
-    @property
-    def target(self) -> torch.Tensor:
-        """[T, H, W, 2] what the simulated flow is fitted to: the observed flow less the
-        estimator's error measured on the simulation (the observed flow itself before any)."""
-        return self.observed if self.estimator_error is None else self.observed - self.estimator_error
 
 
 def guidance_views_of(cfg: SceneConfig, prepared: Prepared, frames: int) -> list[View]:

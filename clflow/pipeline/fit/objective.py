@@ -1,32 +1,32 @@
-"""The objective of an optimisation: the flow loss at a point of the parameters."""
+"""The objective of an optimisation: the flow loss at a point of the parameters, and the
+calibration of the flow estimator's error it compares against."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import logging
 import math
-import time
 import warnings
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from clflow.errors import ClflowError
 from clflow.fileio import atomic_path
 from clflow.mpm import StabilityWarning
+from clflow.pipeline.fit.problem import Problem
 from clflow.pipeline.fit.state import Evaluation, OptimizerState, UnstableRun
 from clflow.pipeline.forward import (
     Prepared,
     SimulationResult,
-    prepare,
     render_frames,
-    scene_values,
 )
 from clflow.pipeline.render import frame_gaussians, render_flow
-from clflow.pipeline.simulation import ObjectValues, build_simulator, object_masks, run, scene_run_values
-from clflow.scene.config import SceneConfig, is_velocity_component, velocity_names
+from clflow.pipeline.simulation import build_simulator, run, scene_run_values
+from clflow.scene.config import SceneConfig
 
 log = logging.getLogger(__name__)
 
@@ -67,148 +67,36 @@ def flow_loss(cfg: SceneConfig, flows, observed: torch.Tensor, weight: torch.Ten
 
 
 class Objective:
-    """The loss and its gradient at a point: simulate, render each view's flow, compare with the
-    observed flow less the estimator's own error (bias calibration); the residuals and their
-    Jacobian for Levenberg-Marquardt (needs cfg, params, views, frames, model and search grids)."""
+    """The loss of a :class:`~clflow.pipeline.fit.problem.Problem` at a point z: simulate,
+    render each view's flow, compare with the observed flow less the flow estimator's own
+    error (the calibration, ``flow.bias_correction``); the residuals and their Jacobian for
+    Levenberg-Marquardt.
 
-    def preflight(self):
-        """Force stages and the substeps at the initial parameters: the predicted time is
-        logged, a run beyond ``simulation.max_substeps`` refused (SubstepLimitError)."""
-        from clflow.pipeline.preflight import describe
+    The calibration is this objective's state: ``errors``, each view's estimator error
+    [T, H, W, 2] (None before any), measured at ``OptimizerState.calibrated_at`` and saved in
+    ``calibration_file`` (a search start's polish has an objective, and a file, of its own).
+    The last two Jacobians are cached (the best point's and the last step's)."""
 
-        plan = self.plan_on(self.model_grid)
-        log.info("%s", describe(plan, "optimize", gradient=True))
-        return plan
+    def __init__(self, problem: Problem, calibration_file: Path):
+        self.problem = problem
+        self.calibration_file = calibration_file
+        self.errors: list[torch.Tensor | None] = [None] * len(problem.views)
+        # (z, frames, variables, grid, substeps) -> (Evaluation, J)
+        self._lm_cache: dict[tuple, tuple[Evaluation, torch.Tensor]] = {}
 
-    def plan_on(self, grid: int, z: dict[str, float] | None = None):
-        """The RunPlan of z (default: the initial parameters) on a grid of ``grid`` nodes:
-        substeps, the seconds of a substep and of a frame's flow rendered (timed there);
-        SubstepLimitError beyond ``simulation.max_substeps``."""
-        from clflow.pipeline.preflight import plan_run
+    def fork(self, calibration_file: Path) -> Objective:
+        """This objective with a calibration of its own (none measured yet; saved in
+        ``calibration_file``) and no cached Jacobians: a search start's polish's."""
+        other = copy.copy(self)
+        other.calibration_file, other.errors, other._lm_cache = calibration_file, [None] * len(self.errors), {}
+        return other
 
-        z = self.initial_state().z if z is None else z  # plan_run builds the simulator: it checks the forces
-        objects = self.object_values(self.values(z), self.velocities(z))
-        prepared = self.prepared_on(grid)
-        plan = plan_run(
-            prepared.cfg,
-            prepared.setup,
-            objects,
-            max_substeps=self.cfg.simulation.max_substeps,
-            optimizing=True,
-        )
-        return dataclasses.replace(plan, render_seconds_per_frame=self.render_seconds(prepared))
-
-    def simulator_on(self, grid: int, z: dict[str, float]):
-        """A forward simulator of z on a grid of ``grid`` nodes (its substeps those of z's
-        stability limits at the start)."""
-        return build_simulator(
-            self.cfg, self.prepared_on(grid).setup, self.object_values(self.values(z), self.velocities(z))
-        )
-
-    def object_values(self, values: dict[str, float], velocities) -> tuple[ObjectValues, ...]:
-        """Each object's ObjectValues with the optimised ``values`` (SI, by z name) and initial
-        ``velocities`` (one [3] tuple or tensor per object, m/s)."""
-        overrides = {n: values[n] for n in self.params}
-        return tuple(
-            dataclasses.replace(v, velocity=velocity)
-            for v, velocity in zip(scene_values(self.cfg, overrides), velocities)
-        )
-
-    def start_substeps(self, grid: int, z: dict[str, float]) -> int:
-        """Substeps per frame the run of z takes on a grid of ``grid`` nodes over every frame,
-        the CFL retries its motion makes included (forward only, no flow rendered)."""
-        sim = self.simulator_on(grid, z)
-        with torch.no_grad(), warnings.catch_warnings():
-            warnings.simplefilter("ignore", StabilityWarning)  # the optimiser's runs retry the same way
-            return run(sim, self.frames, {}).substeps
-
-    def rest_substeps(self, grid: int, z: dict[str, float]) -> int:
-        """Substeps per frame the stability limits of z ask at its start on a grid of ``grid``
-        nodes (no run: the substeps a search sample of z begins with)."""
-        return self.simulator_on(grid, z).substeps
-
-    def render_seconds(self, prepared: Prepared) -> float:
-        """Seconds one frame step's flow takes in every view, rendered and its gradient back
-        (timed once in the guidance view on ``prepared``'s scene at rest: what an iteration
-        adds to the simulation's time)."""
-        p = prepared
-        x = p.setup.particles.positions.to(p.obj_rest.means.dtype).clone().requires_grad_()
-        F = torch.eye(3, dtype=x.dtype).expand(x.shape[0], 3, 3)
-        seconds = []
-        for _ in range(2):  # the first builds the rasteriser's kernels
-            started = time.perf_counter()
-            scene = frame_gaussians(p.static, p.obj_rest, x, F)
-            render_flow(scene, scene, p.camera)[0].sum().backward()
-            seconds.append(time.perf_counter() - started)
-        return seconds[-1] * (1 + len(self.cfg.more_views))
-
-    def check_guidance(self, force: bool) -> list[str]:
-        """The guidance checks of every view (clflow.pipeline.preflight.check_guidance): their
-        problems when forced, else InputError on any."""
-        from clflow.pipeline.preflight import AGREEMENT_FRAMES, check_guidance, flow_agreement, measure_view
-
-        # inside the mask the weight is the observed flow's confidence
-        self.guidance = [
-            measure_view(
-                self.prepared, view.camera, view.mask, view.video_frames, view.observed.numpy(), view.weight.numpy()
-            )
-            for view in self.views
-        ]
-        if not any(map(is_velocity_component, self.variables)):  # else the start's velocity may be anything
-            try:
-                start = self.evaluate(self.initial_state().z, min(AGREEMENT_FRAMES, self.frames), with_grad=False)
-            except (FloatingPointError, ClflowError) as exc:  # the first iteration will say so
-                log.info("no flow-direction check: the start's simulation fails (%s)", exc)
-            else:
-                self.guidance = [
-                    dataclasses.replace(check, agreement=flow_agreement(flows, view.observed, view.weight))
-                    for check, view, flows in zip(self.guidance, self.views, [start.flows, *start.more_flows])
-                ]
-        return check_guidance(self.cfg, self.guidance, force)
-
-    def prepared_on(self, grid: int) -> Prepared:
-        """The scene prepared on a grid of ``grid`` nodes over the same domain (the model's,
-        the search's, the grid check's), made on first use."""
-        if grid not in self._prepared:
-            simulation = dataclasses.replace(self.cfg.simulation, grid_resolution=grid)
-            self._prepared[grid] = prepare(dataclasses.replace(self.cfg, simulation=simulation))
-        return self._prepared[grid]
-
-    def values(self, z: dict[str, float]) -> dict[str, float]:
-        """The value of every variable in z: material parameters in SI, velocity components in m/s."""
-        out = {n: float(p.decode(torch.tensor(z[n], dtype=torch.float64))) for n, p in self.params.items()}
-        out.update((n, v) for n, v in z.items() if is_velocity_component(n))
-        return out
-
-    def velocities(self, z: dict[str, float]) -> tuple[tuple[float, float, float], ...]:
-        """Each object's initial velocity (m/s, simulation frame) at z: its components in z
-        where they are optimised, else its config's."""
-        out = []
-        for k, obj in enumerate(self.cfg.objects):
-            names = velocity_names(self.cfg.objects, k)[1]
-            out.append(tuple(z[n] for n in names) if names[0] in z else obj.velocity)
-        return tuple(out)
-
-    def velocity_input(self, zt: dict[str, torch.Tensor], prepared: Prepared) -> torch.Tensor | None:
-        """The initial velocity :func:`run` takes from the z tensors ``zt``: None where no
-        object's velocity is optimised; the one object's [3]; with several objects per
-        particle [M, 3], each object's particles its own (a masked sum, as
-        scene_run_values: an object's components reach only its particles)."""
-        names = [velocity_names(self.cfg.objects, k)[1] for k in range(len(self.cfg.objects))]
-        if not any(n[0] in zt for n in names):
-            return None
-        if len(names) == 1:
-            return torch.stack([zt[n] for n in names[0]])
-        per_object = torch.stack(
-            [
-                torch.stack([zt[c].double() for c in n])
-                if n[0] in zt
-                else torch.tensor(obj.velocity, dtype=torch.float64)
-                for n, obj in zip(names, self.cfg.objects)
-            ]
-        )  # [K, 3]
-        masks = object_masks(prepared.setup, len(names))  # [K, M]
-        return (per_object[:, None, :] * masks[:, :, None]).sum(0)
+    def target(self, view: int) -> torch.Tensor:
+        """[T, H, W, 2] what the simulated flow of guidance view ``view`` is fitted to: the
+        observed flow less the estimator's error measured on the simulation (the observed
+        flow itself before any)."""
+        observed, error = self.problem.views[view].observed, self.errors[view]
+        return observed if error is None else observed - error
 
     def evaluate(
         self,
@@ -222,26 +110,26 @@ class Objective:
         """Loss (and dloss/dz of ``variables``, default every z name) at z over ``frames``
         frames, simulated on the grid of ``grid`` nodes (the model's or the search's; None:
         the model's)."""
-        variables = self.variables if variables is None else variables
-        grid = self.model_grid if grid is None else grid
-        prepared = self.prepared_on(grid)
+        variables = self.problem.variables if variables is None else variables
+        grid = self.problem.model_grid if grid is None else grid
+        prepared = self.problem.prepared_on(grid)
         zt = {n: torch.tensor(v, dtype=torch.float64, requires_grad=with_grad and n in variables) for n, v in z.items()}
-        decoded = {n: p.decode(zt[n]) for n, p in self.params.items()}
-        velocity = self.velocity_input(zt, prepared)
+        decoded = {n: p.decode(zt[n]) for n, p in self.problem.params.items()}
+        velocity = self.problem.velocity_input(zt, prepared)
         one_object = velocity is not None and velocity.dim() == 1  # the one object's velocity, a tensor
-        speeds = (velocity,) if one_object else self.velocities(z)
-        objects = self.object_values({n: float(v.detach()) for n, v in decoded.items()}, speeds)
+        speeds = (velocity,) if one_object else self.problem.velocities(z)
+        objects = self.problem.object_values({n: float(v.detach()) for n, v in decoded.items()}, speeds)
         with warnings.catch_warnings():  # an unstable step or run fails below, saying why (UnstableRun)
             warnings.simplefilter("ignore", StabilityWarning)
             sim = build_simulator(
-                self.cfg,
+                self.problem.cfg,
                 prepared.setup,
                 objects,
                 min_substeps=min_substeps,
-                max_substeps=self.cfg.simulation.max_substeps,
+                max_substeps=self.problem.cfg.simulation.max_substeps,
             )
             # several objects: each parameter per particle, its object's particles alone
-            traj = run(sim, frames, scene_run_values(self.cfg, prepared.setup, objects, decoded), velocity)
+            traj = run(sim, frames, scene_run_values(self.problem.cfg, prepared.setup, objects, decoded), velocity)
         needed = sim.stable_substeps()
         if traj.substeps < needed:  # a fixed simulation.substep_dt too long for these parameters
             raise UnstableRun(
@@ -250,7 +138,7 @@ class Objective:
             )
         if traj.unstable:  # finished, but not a run to learn from
             raise UnstableRun(traj.unstable)
-        cameras = [v.camera for v in self.views]
+        cameras = [v.camera for v in self.problem.views]
         flows, *more_flows = simulated_view_flows(prepared, traj.x, traj.F, frames, cameras)
         loss = self.loss_of([flows, *more_flows])
         if not bool(torch.isfinite(loss.detach())):
@@ -282,13 +170,17 @@ class Objective:
         from clflow.flow.optical_flow import observed_flow, shift_mean_flow
 
         def estimate(video: np.ndarray) -> np.ndarray:
-            return observed_flow(video, self.cfg.flow.method, preset=self.cfg.flow.preset, source="the simulation")
+            return observed_flow(
+                video, self.problem.cfg.flow.method, preset=self.problem.cfg.flow.preset, source="the simulation"
+            )
 
         margin = max(max(abs(dx), abs(dy)) for dx, dy in shifts)
         traj = result.trajectory
-        simulated = SimulationResult(self.prepared, traj.x[: frames + 1].detach(), traj.F[: frames + 1].detach())
+        simulated = SimulationResult(
+            self.problem.prepared, traj.x[: frames + 1].detach(), traj.F[: frames + 1].detach()
+        )
         errors = []
-        for view, flows in zip(self.views, [result.flows, *result.more_flows]):
+        for view, flows in zip(self.problem.views, [result.flows, *result.more_flows]):
             wide = render_frames(simulated, view.camera.widened(margin), supersample=SUPERSAMPLE)
             estimated = shift_mean_flow(wide, margin, shifts, estimate)
             errors.append(torch.from_numpy(estimated).double() - torch.stack(flows[:frames]).double())
@@ -304,7 +196,7 @@ class Objective:
     ) -> OptimizerState:
         """Keep the flow estimator's error on the simulation ``result`` (at state.z, its first
         ``frames`` frames; over ``shifts`` as :meth:`estimator_errors`) as each view's
-        ``estimator_error`` (saved in ``output/estimator_error.npz``). The loss then compares
+        error (``errors``, saved in ``calibration_file``). The loss then compares
         the simulated flow with the observed flow less that error, so the estimator's
         systematic error (DIS blends a moving object with its background, docs/flow.md)
         cancels instead of biasing the parameters. ``errors``: that error, already measured."""
@@ -315,8 +207,8 @@ class Objective:
             return state
         measured = self.estimator_errors(result, frames, shifts) if errors is None else errors
         full_errors = []
-        for view, error in zip(self.views, measured):
-            full = torch.zeros_like(view.observed) if view.estimator_error is None else view.estimator_error.clone()
+        for view, kept, error in zip(self.problem.views, self.errors, measured):
+            full = torch.zeros_like(view.observed) if kept is None else kept.clone()
             full[:frames] = error
             full_errors.append(full.numpy())
         self.set_estimator_errors(full_errors)
@@ -325,8 +217,8 @@ class Objective:
 
     def set_estimator_errors(self, errors: list[np.ndarray] | None) -> None:
         """Each view's estimator error [T, H, W, 2] (None: none), the cached evaluations rescored."""
-        for i, view in enumerate(self.views):
-            view.estimator_error = None if errors is None else torch.as_tensor(errors[i]).clone()
+        views = self.problem.views
+        self.errors = [None] * len(views) if errors is None else [torch.as_tensor(e).clone() for e in errors]
         self._lm_cache = {key: (self.rescored(cached), J) for key, (cached, J) in self._lm_cache.items()}
 
     def restore_estimator_errors(self, calibrated_at: dict | None, errors: list | None) -> None:
@@ -337,12 +229,12 @@ class Objective:
             self.save_calibration(calibrated_at)
 
     def save_calibration(self, calibrated_at: dict) -> None:
-        """The views' estimator errors, measured at ``calibrated_at``, into ``estimator_error_file``."""
-        with atomic_path(self.estimator_error_file) as tmp, open(tmp, "wb") as fh:
+        """The views' estimator errors, measured at ``calibrated_at``, into ``calibration_file``."""
+        with atomic_path(self.calibration_file) as tmp, open(tmp, "wb") as fh:
             np.savez(
                 fh,
                 key=np.array(json.dumps(calibrated_at, sort_keys=True)),
-                **{f"view_{i}": view.estimator_error.numpy() for i, view in enumerate(self.views)},
+                **{f"view_{i}": error.numpy() for i, error in enumerate(self.errors)},
             )
 
     def restore_calibration(self, state: OptimizerState) -> None:
@@ -350,36 +242,32 @@ class Objective:
         output/estimator_error.npz, or measured again at ``state.calibrated_at``."""
         key = json.dumps(state.calibrated_at, sort_keys=True)
         try:
-            with np.load(self.estimator_error_file, allow_pickle=False) as data:
+            with np.load(self.calibration_file, allow_pickle=False) as data:
                 if str(data["key"]) == key:
-                    self.set_estimator_errors([data[f"view_{i}"] for i in range(len(self.views))])
+                    self.set_estimator_errors([data[f"view_{i}"] for i in range(len(self.problem.views))])
                     return
         except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):  # none, an older one, or damaged
             pass
         log.info("measuring the flow estimator's error again at the checkpoint's calibration point")
         z, frames = state.calibrated_at["z"], state.calibrated_at["frames"]
-        grid = state.calibrated_at.get("grid", self.model_grid)
+        grid = state.calibrated_at.get("grid", self.problem.model_grid)
         shifts = tuple(tuple(shift) for shift in state.calibrated_at.get("shifts", ONE_SHIFT))
         at = dataclasses.replace(state, z=dict(z), calibrated_at=None)  # measured there, whatever state.z is now
         result = self.evaluate(z, frames, with_grad=False, min_substeps=state.substeps, grid=grid)
         self.calibrate(at, result, frames, shifts)
-
-    @property
-    def corrects_bias(self) -> bool:
-        return self.cfg.flow.bias_correction == "simulated"
 
     def loss_of(self, view_flows: list[list[torch.Tensor]], errors: list[torch.Tensor] | None = None) -> torch.Tensor:
         """The flow loss of each view's simulated flows (T of [H, W, 2]) against its target (or
         against its observed flow less ``errors``, the estimator's error per view), the mean
         over views."""
         if errors is None:
-            targets = [view.target for view in self.views]
+            targets = [self.target(k) for k in range(len(self.problem.views))]
         else:
-            targets = [view.observed[: len(error)] - error for view, error in zip(self.views, errors)]
+            targets = [view.observed[: len(error)] - error for view, error in zip(self.problem.views, errors)]
         return sum(
-            flow_loss(self.cfg, flows, target[: len(flows)], view.weight[: len(flows)])
-            for flows, target, view in zip(view_flows, targets, self.views)
-        ) / len(self.views)
+            flow_loss(self.problem.cfg, flows, target[: len(flows)], view.weight[: len(flows)])
+            for flows, target, view in zip(view_flows, targets, self.problem.views)
+        ) / len(self.problem.views)
 
     def self_consistent_loss(
         self, result: Evaluation, frames: int, shifts: tuple[tuple[int, int], ...] = ONE_SHIFT
@@ -387,7 +275,7 @@ class Objective:
         """``result``'s loss against the observed flow less the estimator's error on ``result``'s
         own simulation (over ``shifts``, :meth:`estimator_errors`): the video's estimated flow
         against the simulation's, estimated alike (with flow.bias_correction; else its loss)."""
-        if not self.corrects_bias:
+        if not self.problem.corrects_bias:
             return result.loss
         errors = self.estimator_errors(result, frames, shifts)
         return float(self.loss_of([result.flows, *result.more_flows], errors))
@@ -397,7 +285,7 @@ class Objective:
         """The camera shifts of the estimator's error that scores the result (its final point's
         calibration): JITTER_SHIFTS after Levenberg-Marquardt, whose last word is the line
         search of that smooth own-calibration loss; else ONE_SHIFT, as every iteration's."""
-        return JITTER_SHIFTS if self.cfg.optimize.method == "levenberg_marquardt" else ONE_SHIFT
+        return JITTER_SHIFTS if self.problem.cfg.optimize.method == "levenberg_marquardt" else ONE_SHIFT
 
     def rescored(self, result: Evaluation) -> Evaluation:
         """``result`` with its loss against the current targets (after a calibration)."""
@@ -408,10 +296,10 @@ class Objective:
         (simulated [H, W, 2] per frame step; ``more_flows`` those of views 1..), weighted by
         mask x confidence like the loss."""
         parts = []
-        for view_flows, view in zip([flows, *more_flows], self.views):
+        for k, (view_flows, view) in enumerate(zip([flows, *more_flows], self.problem.views)):
             weight = view.weight[: len(view_flows)]  # [T, H, W]
-            root = (weight / weight.sum() / len(self.views)).sqrt()[..., None]
-            target = view.target
+            root = (weight / weight.sum() / len(self.problem.views)).sqrt()[..., None]
+            target = self.target(k)
             parts += [((f.double() - target[t]) * root[t])[weight[t] > 0].reshape(-1) for t, f in enumerate(view_flows)]
         return torch.cat(parts)
 
@@ -419,7 +307,7 @@ class Objective:
         """[R] int64: the frame step (0..steps-1) of each entry of :meth:`residuals` for
         ``steps`` simulated frame steps per view; a step's residuals in every view share it."""
         parts = []
-        for view in self.views:
+        for view in self.problem.views:
             inside = (view.weight[:steps] > 0).reshape(steps, -1).sum(1)  # pixels, each (u, v)
             parts += [torch.full((2 * int(n),), t, dtype=torch.int64) for t, n in enumerate(inside)]
         return torch.cat(parts)
@@ -464,7 +352,7 @@ class Objective:
                             for t, f in enumerate(view_flows)
                         ]
                     )
-                    for view_flows, view in zip([flows, *more_flows], self.views)
+                    for view_flows, view in zip([flows, *more_flows], self.problem.views)
                 ]
             )
         )

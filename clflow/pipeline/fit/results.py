@@ -8,13 +8,18 @@ import json
 import logging
 import math
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from clflow.errors import ClflowError
 from clflow.fileio import atomic_write_text
-from clflow.pipeline.fit.diagnostics import MIN_LOSS_RISE, PROFILE_RISE, WEAK_STD_Z
+from clflow.pipeline.fit.budget import GridChoice
+from clflow.pipeline.fit.checkpoint import Checkpoint
+from clflow.pipeline.fit.diagnostics import MIN_LOSS_RISE, PROFILE_RISE, WEAK_STD_Z, Diagnostics
+from clflow.pipeline.fit.objective import Objective
+from clflow.pipeline.fit.problem import Problem
 from clflow.pipeline.fit.state import OptimizerState
 from clflow.pipeline.forward import SimulationResult, render_frames
 from clflow.pipeline.plots import range_text, write_history_plot
@@ -50,8 +55,25 @@ def weak_reason(std_z: float, loss_rise: float) -> str:
     )
 
 
+@dataclass
 class Results:
-    """The results folder of a finished optimisation (needs everything above)."""
+    """The results folder of a finished optimisation: its objective and diagnostics, the
+    checkpoint its final calibration goes into, and what the run records beside them
+    (``started``: time.perf_counter at its start; how the material was chosen, the guidance
+    checks and the budget's grid choice)."""
+
+    objective: Objective
+    diagnostics: Diagnostics
+    checkpoint: Checkpoint
+    started: float
+    hypotheses: dict | None = None
+    guidance: list = field(default_factory=list)
+    guidance_warnings: list[str] = field(default_factory=list)
+    grid_choice: GridChoice | None = None
+
+    @property
+    def problem(self) -> Problem:
+        return self.objective.problem
 
     def write_result_files(self, state: OptimizerState, out: Path) -> dict:
         """params.json, metrics.json, history.json (search.json), loss.png and a comparison
@@ -59,30 +81,32 @@ class Results:
         clflow.pipeline.runs.write_results, which moves them in as one step with run.json and
         index.html); returns the metrics."""
         result = self.final_evaluation(state)
-        final = self.values(state.z)
+        final = self.problem.values(state.z)
         metrics = self.result_metrics(state, result)
         ranges = metrics["identifiability"]["ranges"]
         materials = [  # each object's material with its optimised values
             {"material": o.material.type, "parameters": v.params, "density": v.density, "velocity": list(v.velocity)}
-            for o, v in zip(self.cfg.objects, self.object_values(final, self.velocities(state.z)))
+            for o, v in zip(
+                self.problem.cfg.objects, self.problem.object_values(final, self.problem.velocities(state.z))
+            )
         ]
         record = {
-            **objects_form(self.cfg.objects, materials),
+            **objects_form(self.problem.cfg.objects, materials),
             "optimized": final,
-            "units": {n: parameter_unit(self.cfg, n) for n in final},
+            "units": {n: parameter_unit(self.problem.cfg, n) for n in final},
             # each optimised value's range (SI; None: open, the video only bounds the other side)
             "ranges": {n: {k: ranges[n][k] for k in ("low", "high", "level")} for n in final if n in ranges},
             # the substeps per frame the final evaluation needed (after any CFL retry): a
             # re-simulation of this result (clflow simulate --params-from) takes at least these
             "substeps": result.substeps,
-            "fps": self.cfg.simulation.fps,
+            "fps": self.problem.cfg.simulation.fps,
         }
         atomic_write_text(out / "params.json", json.dumps(record, indent=2))
         atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2))
         atomic_write_text(out / "history.json", json.dumps(state.history, indent=1))
         if state.search:
             atomic_write_text(out / "search.json", json.dumps(state.search, indent=1))
-        write_history_plot(out / "loss.png", state.history, self.cfg.ground_truth, ranges)
+        write_history_plot(out / "loss.png", state.history, self.problem.cfg.ground_truth, ranges)
         self.write_comparison_videos(result, out)
         return metrics
 
@@ -91,7 +115,9 @@ class Results:
         parameters, or at the last accepted ones when those fail (``state`` changes in place and
         is saved); scored against the estimator's error there when the bias is corrected."""
         try:
-            result, _ = self.jacobian(state.z, self.frames, state.substeps, self.main_variables, self.model_grid)
+            result, _ = self.objective.jacobian(
+                state.z, self.problem.frames, state.substeps, self.problem.main_variables, self.problem.model_grid
+            )
         except (FloatingPointError, ClflowError) as exc:
             if not state.history:
                 raise
@@ -102,17 +128,21 @@ class Results:
                     "iteration": state.iteration,
                     "phase": "final",
                     "reason": str(exc),
-                    "params": self.values(state.z),
-                    "back_to": self.values(good),
+                    "params": self.problem.values(state.z),
+                    "back_to": self.problem.values(good),
                 }
             )
             state.z = dict(good)
-            self.save_state(state)
-            result, _ = self.jacobian(state.z, self.frames, state.substeps, self.main_variables, self.model_grid)
-        if self.corrects_bias:
-            state.calibrated_at = self.calibrate(state, result, self.frames, self.final_shifts).calibrated_at
-            self.save_state(state)
-            result = self.rescored(result)
+            self.checkpoint.save(state)
+            result, _ = self.objective.jacobian(
+                state.z, self.problem.frames, state.substeps, self.problem.main_variables, self.problem.model_grid
+            )
+        if self.problem.corrects_bias:
+            state.calibrated_at = self.objective.calibrate(
+                state, result, self.problem.frames, self.objective.final_shifts
+            ).calibrated_at
+            self.checkpoint.save(state)
+            result = self.objective.rescored(result)
         return result
 
     def result_metrics(self, state: OptimizerState, result) -> dict:
@@ -120,15 +150,18 @@ class Results:
         the grids (and the budget's choice), the seconds, the rollbacks, the guidance checks,
         the identifiability (its warnings logged) and the relative error against the config's
         ground truth when it has one."""
-        final = self.values(state.z)
+        final = self.problem.values(state.z)
         metrics = {
             "flow_loss": result.loss,
-            "epe_px": self.endpoint_error(result.flows, result.more_flows),
+            "epe_px": self.objective.endpoint_error(result.flows, result.more_flows),
             "iterations": len(state.history),
             "seconds_per_iteration": float(np.mean([h["seconds"] for h in state.history])) if state.history else 0.0,
         }
-        metrics["grid"] = {"main": self.model_grid, "search": self.search_grid}  # nodes along the longest side
-        metrics["identifiability"] = self.identifiability(state.z, state.substeps, state.search)
+        metrics["grid"] = {
+            "main": self.problem.model_grid,
+            "search": self.problem.search_grid,
+        }  # nodes along the longest side
+        metrics["identifiability"] = self.diagnostics.identifiability(state.z, state.substeps, state.search)
         # in this process: setup, the guidance's flow, search, iterations and the diagnostics above
         metrics["seconds"] = time.perf_counter() - self.started
         if self.grid_choice is not None:  # optimize.budget chose the main grid
@@ -143,16 +176,18 @@ class Results:
         self.warn_identifiability(metrics["identifiability"])
         if self.hypotheses:
             metrics["material_hypotheses"] = self.hypotheses
-        truth = self.cfg.ground_truth
+        truth = self.problem.cfg.ground_truth
         if truth:
-            metrics["relative_error"] = {n: abs(final[n] - truth[n]) / abs(truth[n]) for n in self.params if n in truth}
-            for k, velocity in enumerate(self.velocities(state.z)):
-                name, components = velocity_names(self.cfg.objects, k)
+            metrics["relative_error"] = {
+                n: abs(final[n] - truth[n]) / abs(truth[n]) for n in self.problem.params if n in truth
+            }
+            for k, velocity in enumerate(self.problem.velocities(state.z)):
+                name, components = velocity_names(self.problem.cfg.objects, k)
                 if components[0] not in final or components[0] not in truth:
                     continue
                 true_velocity = [truth[n] for n in components]
                 error = math.dist(velocity, true_velocity)  # |v - v_true|, m/s
-                if len(self.cfg.objects) == 1:
+                if len(self.problem.cfg.objects) == 1:
                     metrics["velocity_error_m_s"] = error
                 else:  # by OBJECT.velocity
                     metrics.setdefault("velocity_error_m_s", {})[name] = error
@@ -170,7 +205,7 @@ class Results:
                 name,
                 entry["value"],
                 round(100 * entry["level"]),
-                range_text(entry, parameter_unit(self.cfg, name)),
+                range_text(entry, parameter_unit(self.problem.cfg, name)),
             )
         for name in identifiability["weakly_constrained"]:
             reason = weak_reason(identifiability["std_z"][name], identifiability["loss_rise"][name])
@@ -192,7 +227,7 @@ class Results:
                 "optimiser's units; its value carries a discretisation error of about that size",
                 name,
                 coarse_grid,
-                self.model_grid,
+                self.problem.model_grid,
                 identifiability["grid_shift_z"][name],
             )
         for a, b, rho in identifiability["trade_offs"]:
@@ -205,8 +240,8 @@ class Results:
         from clflow.media import write_video
 
         traj = result.trajectory
-        simulated = SimulationResult(self.prepared, traj.x.detach(), traj.F.detach())
-        for k, (view, view_flows) in enumerate(zip(self.views, [result.flows, *result.more_flows])):
+        simulated = SimulationResult(self.problem.prepared, traj.x.detach(), traj.F.detach())
+        for k, (view, view_flows) in enumerate(zip(self.problem.views, [result.flows, *result.more_flows])):
             sim_frames = render_frames(simulated, camera=view.camera)
             max_flow = max(float(view.observed.norm(dim=-1).max()), 1e-6)
             panels = [
@@ -219,6 +254,6 @@ class Results:
                     ],
                     1,
                 )
-                for t in range(self.frames)
+                for t in range(self.problem.frames)
             ]
-            write_video(out / comparison_video(k), np.stack(panels), self.cfg.simulation.fps)
+            write_video(out / comparison_video(k), np.stack(panels), self.problem.cfg.simulation.fps)

@@ -7,51 +7,37 @@ import logging
 import math
 import time
 from dataclasses import asdict
-from pathlib import Path
+from typing import Callable
 
 import torch
 
-from clflow.errors import ClflowError, InputError
+from clflow.errors import ClflowError
 from clflow.fileio.reading import parse_json
 from clflow.limits import format_duration
+from clflow.pipeline.fit.checkpoint import Checkpoint
+from clflow.pipeline.fit.iteration import Iterations
+from clflow.pipeline.fit.objective import Objective
+from clflow.pipeline.fit.problem import Problem
+from clflow.pipeline.fit.starts import quiet
 from clflow.pipeline.fit.state import LM_DAMPING, OptimizerState, config_digests
+from clflow.pipeline.fit.steps import Steps
 
 log = logging.getLogger(__name__)
 
 
-class Search:
-    """The global phase (optimize.search): samples of a box around the start, a second round
-    around the best, each of the best polished by a few Levenberg-Marquardt iterations, the
-    best polish kept on the main grid (needs evaluate, lm_step, jacobian, save_state)."""
+class SearchDesign:
+    """Where the global search of a problem samples: its box around the start, the first
+    round's Sobol design, an object's round, the second round's neighbourhoods."""
 
-    def search_box(self, z0: dict[str, float]) -> dict[str, tuple[float, float]]:
-        """(lower, upper) in z of each parameter's search box: ``optimize.bounds`` when
-        given; else a log parameter's start times 10^(+-decades) within its typical range,
-        and a bounded or linear one's typical range; each widened to hold the start."""
-        opt = self.cfg.optimize
-        box = {}
-        for name, p in self.params.items():
-            if name in opt.bounds:
-                lo, hi = (float(p.encode(v)) for v in opt.bounds[name])
-                if not lo <= z0[name] <= hi:
-                    raise InputError(
-                        f"{self.cfg.source}: the start of {name} lies outside optimize.bounds.{name} "
-                        f"{list(opt.bounds[name])}"
-                    )
-            else:
-                lo, hi = self.typical_box(name)
-                if p.param.scale == "log":
-                    lo, hi = max(lo, z0[name] - opt.search.decades), min(hi, z0[name] + opt.search.decades)
-                lo, hi = min(lo, z0[name]), max(hi, z0[name])
-            box[name] = (lo, hi)
-        return box
+    def __init__(self, problem: Problem):
+        self.problem = problem
 
     def search_points(self, z0: dict[str, float]) -> list[dict[str, float]]:
         """The global phase's design: the start, then a scrambled Sobol sequence (seed 0,
         reproducible) over the search box."""
-        box = self.search_box(z0)
-        names = list(self.params)
-        count = self.cfg.optimize.search.samples
+        box = self.problem.search_box(z0)
+        names = list(self.problem.params)
+        count = self.problem.cfg.optimize.search.samples
         unit = torch.quasirandom.SobolEngine(len(names), scramble=True, seed=0).draw(
             max(0, count - 1), dtype=torch.float64
         )
@@ -66,8 +52,8 @@ class Search:
         every other parameter at ``held``. Objects meet only through contact, so one object's
         best parameters hardly move with another's: a joint design of n samples resolves each
         of d parameters at n^(1/d) values, an object's round at its own count."""
-        box = self.search_box(z0)
-        count = self.cfg.optimize.search.object_samples * len(names)
+        box = self.problem.search_box(z0)
+        count = self.problem.cfg.optimize.search.object_samples * len(names)
         unit = torch.quasirandom.SobolEngine(len(names), scramble=True, seed=seed).draw(count, dtype=torch.float64)
         return [
             {**held, **{n: box[n][0] + u * (box[n][1] - box[n][0]) for n, u in zip(names, row)}}
@@ -81,13 +67,13 @@ class Search:
         ``search.starts`` samples of the rounds before (``rows``) that lie outside each other's
         box, best first. A box spans one first-round spacing per parameter (the search box's
         width / samples^(1/parameters)) centred on its sample, cut to the search box."""
-        box, names = self.search_box(z0), list(self.params)
-        count = self.cfg.optimize.search.samples
+        box, names = self.problem.search_box(z0), list(self.problem.params)
+        count = self.problem.cfg.optimize.search.samples
         spacing = {n: (box[n][1] - box[n][0]) * count ** (-1.0 / len(names)) for n in names}
         ranked = sorted((i for i, r in enumerate(rows) if r["loss"] is not None), key=lambda i: rows[i]["loss"])
         centres: list[int] = []
         for i in ranked:
-            if len(centres) == self.cfg.optimize.search.starts:
+            if len(centres) == self.problem.cfg.optimize.search.starts:
                 break
             z = rows[i]["z"]
             if all(max(abs(z[n] - rows[c]["z"][n]) / spacing[n] for n in names) > 0.5 for c in centres):
@@ -114,7 +100,7 @@ class Search:
         a scrambled Sobol sequence (seed 1) in each."""
         if not regions:
             return []
-        names, total = list(self.params), self.cfg.optimize.search.refine
+        names, total = list(self.problem.params), self.problem.cfg.optimize.search.refine
         counts = [total // len(regions) + (k < total % len(regions)) for k in range(len(regions))]
         unit = torch.quasirandom.SobolEngine(len(names), scramble=True, seed=1).draw(max(counts), dtype=torch.float64)
         return [
@@ -123,7 +109,29 @@ class Search:
             for row in unit[:count].tolist()
         ]
 
-    def global_search(self, state: OptimizerState) -> OptimizerState:
+
+class Search:
+    """The global phase (optimize.search) of a problem and its objective: samples of a box
+    around the start, a second round around the best, each of the best polished by a few
+    Levenberg-Marquardt iterations (:class:`StartPolish`), the best polish kept on the main
+    grid. Every sample goes into ``checkpoint``; under ``optimize.budget`` the search ends
+    once ``deadline`` seconds after ``started`` (time.perf_counter) have passed."""
+
+    def __init__(
+        self,
+        objective: Objective,
+        checkpoint: Checkpoint,
+        started: float,
+        deadline: float | None = None,
+    ):
+        self.objective = objective
+        self.problem = objective.problem
+        self.design = SearchDesign(objective.problem)
+        self.checkpoint = checkpoint
+        self.started = started
+        self.deadline = deadline
+
+    def global_search(self, state: OptimizerState, progress: Callable[[dict], None] = quiet) -> OptimizerState:
         """Forward-only losses at the search design; with parameters of several objects, a
         round per object (:meth:`object_points`, in the config's order, each holding the
         others at the best sample so far); then (``search.refine``) a second round around the
@@ -135,29 +143,29 @@ class Search:
         estimated flow against the simulation's, estimated alike). Under ``optimize.budget``
         it ends early once past its deadline, skipping what is left of its rounds
         (search_overran)."""
-        settings = self.cfg.optimize.search
-        frames = min(self.frames, settings.frames or self.frames)
+        settings = self.problem.cfg.optimize.search
+        frames = min(self.problem.frames, settings.frames or self.problem.frames)
         rows = list(state.search)
-        objects = self.cfg.optimize.parameters_by_object() if settings.object_samples else {}
-        planned = settings.samples + self.cfg.optimize.object_round_samples() + settings.refine
+        objects = self.problem.cfg.optimize.parameters_by_object() if settings.object_samples else {}
+        planned = settings.samples + self.problem.cfg.optimize.object_round_samples() + settings.refine
 
         def sample(z: dict[str, float], **round_of) -> None:
             nonlocal state
             start = time.perf_counter()
             try:
-                loss = self.self_consistent_loss(
-                    self.evaluate(z, frames, with_grad=False, grid=self.search_grid), frames
+                loss = self.objective.self_consistent_loss(
+                    self.objective.evaluate(z, frames, with_grad=False, grid=self.problem.search_grid), frames
                 )
             except (FloatingPointError, ClflowError) as exc:
-                log.info("search sample %s failed: %s", self.values(z), exc)
+                log.info("search sample %s failed: %s", self.problem.values(z), exc)
                 loss = None
             rows.append(
-                {"z": z, "params": self.values(z), "loss": loss, "frames": frames, **round_of}
-                | {"grid": self.search_grid, "seconds": time.perf_counter() - start}
+                {"z": z, "params": self.problem.values(z), "loss": loss, "frames": frames, **round_of}
+                | {"grid": self.problem.search_grid, "seconds": time.perf_counter() - start}
             )
             state = dataclasses.replace(state, search=list(rows))
-            self.save_state(state)
-            self.progress({**rows[-1], "phase": "search", "iteration": len(rows) - 1})
+            self.checkpoint.save(state)
+            progress({**rows[-1], "phase": "search", "iteration": len(rows) - 1})
 
         def run_round(points: list[dict[str, float]], done: int, **round_of) -> bool:
             """Sample ``points`` after the ``done`` rows of the rounds before; False once the
@@ -168,20 +176,20 @@ class Search:
                 sample(z, **round_of)
             return True
 
-        design = self.search_points(state.z)
+        design = self.design.search_points(state.z)
         complete = run_round(design, 0)  # not cut short by the budget
         if not any(r["loss"] is not None for r in rows):
             raise ClflowError(f"the global search found no parameters whose simulation ran ({len(rows)} samples)")
         done = len(design)
         for seed, (name, names) in enumerate(objects.items() if complete else (), start=2):
             held = min((r for r in rows[:done] if r["loss"] is not None), key=lambda r: r["loss"])
-            points = self.object_points(names, held["z"], state.z, seed)
+            points = self.design.object_points(names, held["z"], state.z, seed)
             complete = run_round(points, done, object=name)
             if not complete:
                 break
             done += len(points)
-        regions = self.neighbourhoods(rows[:done], state.z) if settings.refine and complete else []
-        for around, z in self.refinement_points(regions, state.z)[len(rows) - done :]:
+        regions = self.design.neighbourhoods(rows[:done], state.z) if settings.refine and complete else []
+        for around, z in self.design.refinement_points(regions, state.z)[len(rows) - done :]:
             if self.search_overran(rows, planned):
                 break
             sample(z, around=around)
@@ -198,7 +206,7 @@ class Search:
             picks = ranked[: settings.starts]
         starts = [dict(r["z"]) for r in picks] if settings.starts > 1 else []
         state = dataclasses.replace(state, z=dict(best["z"]), searched=True, starts=starts)
-        self.save_state(state)
+        self.checkpoint.save(state)
         return state
 
     def search_overran(self, rows: list[dict], planned: int) -> bool:
@@ -207,10 +215,10 @@ class Search:
         predicted time on the coarsest main grid; the search then ends with the samples it has
         (``planned``: how many it meant to run). The deadline counts from this process's
         start: a resumed search gets its full share again."""
-        if self.search_deadline is None or not any(r["loss"] is not None for r in rows):
+        if self.deadline is None or not any(r["loss"] is not None for r in rows):
             return False
         spent = time.perf_counter() - self.started
-        if spent <= self.search_deadline:
+        if spent <= self.deadline:
             return False
         log.warning(
             "budget: the search stopped after %d of %d samples, %s into the run: the rest is predicted to take "
@@ -218,70 +226,10 @@ class Search:
             len(rows),
             planned,
             format_duration(spent),
-            format_duration(self.cfg.optimize.budget.seconds - self.search_deadline),
-            format_duration(self.cfg.optimize.budget.seconds),
+            format_duration(self.problem.cfg.optimize.budget.seconds - self.deadline),
+            format_duration(self.problem.cfg.optimize.budget.seconds),
         )
         return True
-
-    def polish(
-        self, begin: OptimizerState, start: int, resume: bool = False, max_iterations: int | None = None
-    ) -> dict:
-        """Levenberg-Marquardt from search start ``start`` (``begin``: the state the search
-        ended in) for ``search.start_iterations`` iterations or until it converges, as if no
-        other start ran: its own time step (substeps from 1; the first start keeps begin's),
-        calibration, rollbacks and horizon schedule. Checkpointed in ``output/starts/<start>/``
-        (``resume`` goes on from there; ``max_iterations``: at most this many now).
-        Returns {"state": its end state (asdict), "errors": each view's estimator error
-        [T, H, W, 2] at its end (None without flow.bias_correction), "finished",
-        "iterations_here"}."""
-        folder = self.cfg.output / "starts" / str(start)
-        z0 = dict(begin.starts[start])
-        main_file, self.estimator_error_file = self.estimator_error_file, folder / "estimator_error.npz"
-        try:
-            self._lm_cache = {}
-            self.set_estimator_errors(None)  # nothing measured yet (a saved polish restores its own)
-            state = self.load_polish(folder / "checkpoint.json", z0) if resume else None
-            if state is None:
-                state = dataclasses.replace(
-                    begin,
-                    z=z0,
-                    substeps=begin.substeps if start == 0 else 1,
-                    best=None,
-                    damping=LM_DAMPING,
-                    converged=False,
-                    calibrated_at=None,
-                    history=list(begin.history),
-                    rollbacks=list(begin.rollbacks),
-                )
-            failures, done = 0, 0
-            last = state.history[-1] if state.history else {}
-            finished = last.get("start") == start and bool(last.get("start_done"))
-            while not finished and (max_iterations is None or done < max_iterations):
-                state, failures, row = self.step(state, failures, start)
-                if row is None:
-                    continue
-                finished, done = bool(row.get("start_done")), done + 1
-                self.save_state(state, folder / "checkpoint.json", start=z0)
-                self.progress(row)
-            errors = None if state.calibrated_at is None else [v.estimator_error.numpy() for v in self.views]
-        finally:
-            self.estimator_error_file = main_file
-        return {"state": asdict(state), "errors": errors, "finished": finished, "iterations_here": done}
-
-    def load_polish(self, checkpoint: Path, z0: dict[str, float]) -> OptimizerState | None:
-        """A start's polish as saved in ``checkpoint`` (its calibration restored), None when
-        there is none of this config and start point."""
-        try:
-            data = parse_json(checkpoint.read_text())
-            state = OptimizerState(**data["state"])
-        except (OSError, ValueError, KeyError, TypeError):
-            return None
-        ours = (config_digests(self.cfg), config_digests(self.cfg, by_path=True))
-        if data.get("start") != z0 or data.get("config_digests") not in ours:
-            return None
-        if state.calibrated_at is not None:
-            self.restore_calibration(state)
-        return state
 
     def keep_best_start(self, begin: OptimizerState, records: list[dict]) -> OptimizerState:
         """The state after every start's polish (``records`` of :meth:`polish`, in start
@@ -302,18 +250,20 @@ class Search:
                 {
                     "z": dict(end.best["z"]),
                     "loss": end.best["loss"],
-                    "params": self.values(end.best["z"]),
+                    "params": self.problem.values(end.best["z"]),
                     "substeps": end.substeps,
                 }
             )
             ends.append(end)
         ranking = "loss"
-        if self.search_grid != self.model_grid and len(polished) > 1:
+        if self.problem.search_grid != self.problem.model_grid and len(polished) > 1:
             ranking = "model_loss"
             for record in polished:
                 try:
-                    result = self.evaluate(record["z"], self.frames, with_grad=False, min_substeps=record["substeps"])
-                    record["model_loss"] = self.self_consistent_loss(result, self.frames)
+                    result = self.objective.evaluate(
+                        record["z"], self.problem.frames, with_grad=False, min_substeps=record["substeps"]
+                    )
+                    record["model_loss"] = self.objective.self_consistent_loss(result, self.problem.frames)
                 except (FloatingPointError, ClflowError) as exc:
                     log.info("start %s fails on the main phase's grid: %s", record["params"], exc)
                     record["model_loss"] = math.inf
@@ -341,5 +291,84 @@ class Search:
             converged=False,
             calibrated_at=ends[index].calibrated_at,
         )
-        self.restore_estimator_errors(state.calibrated_at, records[index]["errors"])
+        self.objective.restore_estimator_errors(state.calibrated_at, records[index]["errors"])
+        return state
+
+
+class StartPolish:
+    """Levenberg-Marquardt from a search start of the run's objective, as if no other start
+    ran: a fork of the objective (a calibration of its own), iterations and a checkpoint of
+    its own, in ``output/starts/<start>/``."""
+
+    def __init__(self, objective: Objective):
+        self.objective = objective
+        self.problem = objective.problem
+
+    def detached(self) -> StartPolish:
+        """The polisher a Ray task gets (clflow.pipeline.fit.starts): the run's objective
+        without its cached Jacobians."""
+        return StartPolish(self.objective.fork(self.objective.calibration_file))
+
+    def polish(
+        self,
+        begin: OptimizerState,
+        start: int,
+        resume: bool = False,
+        max_iterations: int | None = None,
+        progress: Callable[[dict], None] = quiet,
+    ) -> dict:
+        """Levenberg-Marquardt from search start ``start`` (``begin``: the state the search
+        ended in) for ``search.start_iterations`` iterations or until it converges: its own
+        time step (substeps from 1; the first start keeps begin's), calibration, rollbacks
+        and horizon schedule (``resume`` goes on from its checkpoint; ``max_iterations``: at
+        most this many now; ``progress`` gets each iteration's row). Returns {"state": its
+        end state (asdict), "errors": each view's estimator error [T, H, W, 2] at its end
+        (None without a calibration), "finished", "iterations_here"}."""
+        folder = self.problem.cfg.output / "starts" / str(start)
+        z0 = dict(begin.starts[start])
+        objective = self.objective.fork(folder / "estimator_error.npz")
+        iterations = Iterations(Steps(objective))
+        checkpoint = Checkpoint(folder / "checkpoint.json", self.problem)
+        state = self.load(checkpoint, objective, z0) if resume else None
+        if state is None:
+            state = dataclasses.replace(
+                begin,
+                z=z0,
+                substeps=begin.substeps if start == 0 else 1,
+                best=None,
+                damping=LM_DAMPING,
+                converged=False,
+                calibrated_at=None,
+                history=list(begin.history),
+                rollbacks=list(begin.rollbacks),
+            )
+        failures, done = 0, 0
+        last = state.history[-1] if state.history else {}
+        finished = last.get("start") == start and bool(last.get("start_done"))
+        while not finished and (max_iterations is None or done < max_iterations):
+            state, failures, row = iterations.step(state, failures, start)
+            if row is None:
+                continue
+            finished, done = bool(row.get("start_done")), done + 1
+            checkpoint.save(state, start=z0)
+            progress(row)
+        errors = None if state.calibrated_at is None else [e.numpy() for e in objective.errors]
+        return {"state": asdict(state), "errors": errors, "finished": finished, "iterations_here": done}
+
+    def load(self, checkpoint: Checkpoint, objective: Objective, z0: dict[str, float]) -> OptimizerState | None:
+        """A start's polish as saved in ``checkpoint`` (its calibration restored into
+        ``objective``), None when there is none of this config and start point."""
+        try:
+            data = parse_json(checkpoint.path.read_text())
+            state = OptimizerState(**data["state"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+        cfg = self.problem.cfg
+        if data.get("start") != z0 or data.get("config_digests") not in (
+            config_digests(cfg),
+            config_digests(cfg, by_path=True),
+        ):
+            return None
+        if state.calibrated_at is not None:
+            objective.restore_calibration(state)
         return state

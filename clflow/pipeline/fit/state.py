@@ -5,17 +5,15 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
 
 from clflow.errors import ClflowError, InputError
-from clflow.fileio import atomic_write_text
 from clflow.fileio.reading import parse_json
-from clflow.pipeline.forward import scene_values
-from clflow.scene.config import SceneConfig, config_record, split_parameter, velocity_names
+from clflow.scene.config import SceneConfig, config_record
 
 if TYPE_CHECKING:
     from clflow.mpm.autograd import Frames
@@ -157,48 +155,3 @@ def check_resume(checkpoint: Path, cfg: SceneConfig) -> None:
         raise InputError(f"cannot resume from {checkpoint}: {exc}") from None
     if isinstance(data, dict):
         check_same_config(checkpoint, data.get("config_digests"), cfg)
-
-
-class Checkpoints:
-    """The optimiser's state: the initial one, and the checkpoint it is saved in after every iteration
-    and read from on --resume (needs cfg, params, variables, checkpoint, restore_calibration)."""
-
-    def initial_state(self) -> OptimizerState:
-        objects = scene_values(self.cfg)
-        values = {}
-        for n in self.params:  # the one object's PARAM, or OBJECT.PARAM: that object's
-            k, param = split_parameter(self.cfg.objects, n)
-            values[n] = objects[k].density if param == "density" else objects[k].params[param]
-        z = {n: float(p.encode(values[n])) for n, p in self.params.items()}
-        for k, obj in enumerate(self.cfg.objects):  # an optimised velocity starts at its config's
-            components = velocity_names(self.cfg.objects, k)[1]
-            if components[0] in self.variables:
-                z.update(zip(components, obj.velocity))
-        return OptimizerState(0, z, {n: 0.0 for n in z}, {n: 0.0 for n in z})
-
-    def load_state(self) -> OptimizerState:
-        try:
-            data = parse_json(self.checkpoint.read_text())
-            state = OptimizerState(**data["state"])
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise InputError(f"cannot resume from {self.checkpoint}: {exc}") from None
-        if set(state.z) != set(self.variables):
-            raise InputError(f"{self.checkpoint} optimises {sorted(state.z)}, the config {sorted(self.variables)}")
-        check_same_config(self.checkpoint, data.get("config_digests"), self.cfg)
-        if state.calibrated_at is not None:
-            self.restore_calibration(state)
-        return state
-
-    def save_state(self, state: OptimizerState, path: Path | None = None, **extra) -> None:
-        """``state`` into the checkpoint (or ``path``, with ``extra`` entries)."""
-        atomic_write_text(
-            path or self.checkpoint,
-            json.dumps(
-                {
-                    "config": str(self.cfg.source),
-                    "state": asdict(state),
-                    "config_digests": config_digests(self.cfg),
-                    **extra,
-                }
-            ),
-        )

@@ -4,7 +4,6 @@ in, the horizon curriculum and the learning-rate schedule."""
 from __future__ import annotations
 
 import dataclasses
-import functools
 import logging
 import math
 from typing import Callable
@@ -13,6 +12,7 @@ import torch
 
 from clflow.errors import ClflowError
 from clflow.mpm.parameterization import clip_factor
+from clflow.pipeline.fit.objective import Objective
 from clflow.pipeline.fit.state import LM_DAMPING, Evaluation, OptimizerState
 from clflow.scene.config import SceneConfig, is_velocity_component
 
@@ -167,8 +167,13 @@ def line_search(
 
 
 class Steps:
-    """One step from a point: Levenberg-Marquardt in a trust region (Moré), cut to the local
-    phase's box, or Adam (needs cfg, params, variables, jacobian, save_state)."""
+    """One step from a point of an :class:`~clflow.pipeline.fit.objective.Objective`:
+    Levenberg-Marquardt in a trust region (More), cut to the local phase's box, or Adam;
+    and the line search of the own-calibration loss after Levenberg-Marquardt."""
+
+    def __init__(self, objective: Objective):
+        self.objective = objective
+        self.problem = objective.problem
 
     def lm_step(
         self,
@@ -214,23 +219,23 @@ class Steps:
         damping = state.damping / 3.0 if moved else state.damping
         step_scale = min(1.0, 2.0 * state.step_scale) if moved else state.step_scale
         if calibrate:
-            before = state.calibrated_at, [view.estimator_error for view in self.views]
-            state = self.calibrate(state, base, frames)
-            base = self.rescored(base)
+            before = state.calibrated_at, list(self.objective.errors)
+            state = self.objective.calibrate(state, base, frames)
+            base = self.objective.rescored(base)
             if comparable and base.loss > best["loss"]:
                 # downhill only against the best point's calibration; against its own (each
                 # point's loss against the estimator's error on its own simulation, as the
                 # search scores) it is worse: the step chased the estimator's error, reject it
                 log.info(
                     "step to %s rejected: loss %.4g against the estimator's error there, %.4g at the best point",
-                    self.values(state.z),
+                    self.problem.values(state.z),
                     base.loss,
                     best["loss"],
                 )
-                self.restore_estimator_errors(*before)
+                self.objective.restore_estimator_errors(*before)
                 return reject(calibrated_at=before[0])
         best = {"z": dict(state.z), "loss": base.loss, "frames": frames, "substeps": base.substeps}
-        r = self.residuals(base.flows, base.more_flows)
+        r = self.objective.residuals(base.flows, base.more_flows)
         A, g = J.T @ J, J.T @ r
         diagonal = torch.diag(torch.diag(A).clamp(min=1e-12 * float(torch.diag(A).max().clamp(min=1e-30))))
         M = A + damping * diagonal
@@ -267,17 +272,22 @@ class Steps:
         from clflow.pipeline.fit.diagnostics import gauss_newton_spread
         from clflow.pipeline.fit.objective import JITTER_SHIFTS
 
-        best, frames, variables, grid = state.best, self.frames, self.main_variables, self.model_grid
-        base, J = self.jacobian(best["z"], frames, best.get("substeps", state.substeps), variables, grid)
+        best, frames, variables, grid = (
+            state.best,
+            self.problem.frames,
+            self.problem.main_variables,
+            self.problem.model_grid,
+        )
+        base, J = self.objective.jacobian(best["z"], frames, best.get("substeps", state.substeps), variables, grid)
         state = dataclasses.replace(state, z=dict(best["z"]), substeps=base.substeps)
-        state = self.calibrate(state, base, frames, JITTER_SHIFTS)
-        base = self.rescored(base)
+        state = self.objective.calibrate(state, base, frames, JITTER_SHIFTS)
+        base = self.objective.rescored(base)
         f0 = base.loss
-        r = self.residuals(base.flows, base.more_flows)
+        r = self.objective.residuals(base.flows, base.more_flows)
         weak = gauss_newton_spread(J, r).weak(variables)
         moving = tuple(n for n in variables if n not in weak)
         columns = [variables.index(n) for n in moving]
-        record = {"from": self.values(best["z"]), "loss_from": f0, "held": weak, "moved": False}
+        record = {"from": self.problem.values(best["z"]), "loss_from": f0, "held": weak, "moved": False}
         best = {"z": dict(best["z"]), "loss": f0, "frames": frames, "substeps": base.substeps}
         if not moving:
             log.info("line search of the own-calibration loss: none of %s is pinned down, all stay", list(weak))
@@ -286,12 +296,12 @@ class Steps:
 
         def own_loss(z: dict[str, float]) -> float:
             try:
-                result = self.evaluate(z, frames, with_grad=False, grid=grid)
-                errors = self.estimator_errors(result, frames, JITTER_SHIFTS)
+                result = self.objective.evaluate(z, frames, with_grad=False, grid=grid)
+                errors = self.objective.estimator_errors(result, frames, JITTER_SHIFTS)
             except (FloatingPointError, ClflowError) as exc:
-                log.info("line search: %s fails (%s)", self.values(z), exc)
+                log.info("line search: %s fails (%s)", self.problem.values(z), exc)
                 return math.inf
-            loss = float(self.loss_of([result.flows, *result.more_flows], errors))
+            loss = float(self.objective.loss_of([result.flows, *result.more_flows], errors))
             if loss < kept.get("loss", math.inf):
                 kept.update(loss=loss, z=dict(z), result=result, errors=errors)
             return loss
@@ -308,13 +318,13 @@ class Steps:
                 moving,
                 lambda M, g, at: self.bounded_step(M, g, at, moving),
                 g_lm=slope,  # the first probe on the downhill side of LM's J^T r, then of the last slope
-                box=self.local_box(),
+                box=self.problem.local_box(),
             )
             rounds.append(
                 {
                     "slope": found["slope"],
                     "direction": found["direction"],
-                    "points": [{"params": self.values(p["z"]), "loss": p["loss"]} for p in found["points"]],
+                    "points": [{"params": self.problem.values(p["z"]), "loss": p["loss"]} for p in found["points"]],
                     "moved": found["moved"],
                 }
             )
@@ -324,7 +334,7 @@ class Steps:
         moved = loss < f0  # then the lowest point run is the state's (a last round's may lie a little lower)
         if moved:
             z, loss = kept["z"], kept["loss"]
-        record.update(rounds=rounds, moved=moved, to=self.values(z), loss=loss)
+        record.update(rounds=rounds, moved=moved, to=self.problem.values(z), loss=loss)
         points = sum(len(each["points"]) for each in rounds)
         held = f", {list(weak)} held" if weak else ""
         if not moved:
@@ -354,17 +364,9 @@ class Steps:
         )
         result = kept["result"]
         moved_state = dataclasses.replace(state, z=dict(kept["z"]), substeps=result.substeps, line_search=record)
-        moved_state = self.calibrate(moved_state, result, frames, JITTER_SHIFTS, errors=kept["errors"])
+        moved_state = self.objective.calibrate(moved_state, result, frames, JITTER_SHIFTS, errors=kept["errors"])
         best = {"z": dict(kept["z"]), "loss": kept["loss"], "frames": frames, "substeps": result.substeps}
         return dataclasses.replace(moved_state, best=best)
-
-    @functools.cached_property
-    def _local_box(self) -> dict[str, tuple[float, float]]:
-        return self.search_box(self.initial_state().z) if self.cfg.optimize.search is not None else {}
-
-    def local_box(self) -> dict[str, tuple[float, float]]:
-        """(lower, upper) in z that the local phase stays in: the search's box (none without a search)."""
-        return self._local_box
 
     def bounded_step(
         self, M: torch.Tensor, g: torch.Tensor, z: dict[str, float], variables: tuple[str, ...]
@@ -372,7 +374,7 @@ class Steps:
         """The step [P] solving M step = -g, with a variable that sits on its box edge while the
         step would push it out held there and the rest solved again without it (the clipped
         step would otherwise promise what it cannot deliver, and rejected steps repeat)."""
-        box = self.local_box()
+        box = self.problem.local_box()
         free = torch.ones(len(variables), dtype=torch.bool)
         step = torch.zeros_like(g)
         while bool(free.any()):
@@ -433,15 +435,15 @@ class Steps:
             last = state.history[-1]["z"]
             if sum(grads[n] * (z[n] - last[n]) for n in grads) > 0:
                 m, k_m = {n: 0.0 for n in m}, 1
-        _, iteration, iterations = phase_of(self.cfg.optimize, state.iteration)
+        _, iteration, iterations = phase_of(self.problem.cfg.optimize, state.iteration)
         k = iteration + 1  # gradients in v since the phase began (for Adam's bias correction)
-        schedule = rate_schedule(self.cfg.optimize, iteration, iterations)
+        schedule = rate_schedule(self.problem.cfg.optimize, iteration, iterations)
         for n, g in grads.items():
             g *= scale
             m[n] = BETAS[0] * m[n] + (1 - BETAS[0]) * g
             v[n] = BETAS[1] * v[n] + (1 - BETAS[1]) * g * g
             m_hat, v_hat = m[n] / (1 - BETAS[0] ** k_m), v[n] / (1 - BETAS[1] ** k)
-            rate = learning_rate(self.cfg, n) * state.step_scale * schedule
+            rate = learning_rate(self.problem.cfg, n) * state.step_scale * schedule
             z[n] -= rate * m_hat / (math.sqrt(v_hat) + ADAM_EPS)
         return dataclasses.replace(
             state, iteration=state.iteration + 1, z=z, m=m, v=v, history=list(state.history), momentum_steps=k_m

@@ -194,7 +194,7 @@ def _echo_results(opt, state, metrics: dict, report: Path, echo, note) -> None:
     from clflow.pipeline.fit import parameter_unit
 
     cfg = opt.cfg
-    final = opt.values(state.z)
+    final = opt.problem.values(state.z)
     echo("optimised: " + ", ".join(f"{n} = {v:.6g} {parameter_unit(cfg, n)}" for n, v in final.items()))
     if "relative_error" in metrics:
         echo(
@@ -235,7 +235,7 @@ def _optimize_prepared(cfg, again, resume, force_video, echo, note, bar, paralle
         from clflow.pipeline.fit import starts_on_ray
 
         opt.map_starts = starts_on_ray(**parallel)
-    total = opt.total_iterations  # the velocity phase's (optimize.estimate_velocity) and the main phase's
+    total = opt.problem.total_iterations  # the velocity phase's (optimize.estimate_velocity) and the main phase's
     done = opt.load_state().iteration if resume and opt.checkpoint.exists() else 0
     with (bar or (lambda t, d: iteration_lines(t, d, note)))(total, done) as advance:
 
@@ -252,7 +252,7 @@ def _optimize_prepared(cfg, again, resume, force_video, echo, note, bar, paralle
             if not opt.checkpoint.exists():
                 raise KeyboardInterrupt("interrupted before the first iteration finished; nothing was saved") from None
             raise KeyboardInterrupt(
-                f"interrupted after {opt.load_state().iteration} iterations (saved in {opt.checkpoint}); "
+                f"interrupted after {opt.load_state().iteration} iterations (saved in {opt.checkpoint.path}); "
                 f"continue with `{again}`"
             ) from None
     metrics = _write_results(opt, state, again, note)
@@ -286,7 +286,7 @@ def _write_results(opt, state, again: str, note) -> dict:
     except KeyboardInterrupt:
         raise KeyboardInterrupt(
             f"interrupted while checking and writing the results, none of which were written; the "
-            f"{state.iteration} iterations are saved in {opt.checkpoint}: write them with `{again}`"
+            f"{state.iteration} iterations are saved in {opt.checkpoint.path}: write them with `{again}`"
         ) from None
 
 
