@@ -33,8 +33,8 @@ part, and every part gets what it needs when it is made:
   estimator's calibration
 - steps: Steps, Levenberg-Marquardt, Adam and the own-loss line search; their schedules
 - iteration: Iterations, one iteration from a state to the next (rollbacks, convergence)
-- search: SearchDesign, Search (the global phase) and StartPolish (a start's polish)
-- starts: how the starts' polishes are mapped: serially, or as Ray tasks (starts_on_ray)
+- search: SearchDesign, Search (the global phase) and StartPolish (a start's polish); the
+  polishes mapped serially, or as Ray tasks (starts_on_ray)
 - diagnostics: Diagnostics, identifiability, profiles and the grid check
 - budget: the main grid a time budget affords (optimize.budget), predicted from timed runs
 - results: Results, params.json, metrics.json and the comparison videos
@@ -46,7 +46,7 @@ part, and every part gets what it needs when it is made:
 from clflow.pipeline.fit.driver import Optimization
 from clflow.pipeline.fit.guidance import resampled_guidance
 from clflow.pipeline.fit.results import parameter_unit
-from clflow.pipeline.fit.starts import starts_on_ray
+from clflow.pipeline.fit.search import starts_on_ray
 from clflow.pipeline.fit.state import Evaluation, OptimizerState
 
 __all__ = ["Evaluation", "Optimization", "OptimizerState", "parameter_unit", "resampled_guidance", "starts_on_ray"]

@@ -20,8 +20,7 @@ from clflow.pipeline.fit.iteration import Iterations
 from clflow.pipeline.fit.objective import Objective
 from clflow.pipeline.fit.problem import Problem
 from clflow.pipeline.fit.results import Results
-from clflow.pipeline.fit.search import Search, SearchDesign, StartPolish
-from clflow.pipeline.fit.starts import quiet, serial_starts
+from clflow.pipeline.fit.search import Search, SearchDesign, StartPolish, quiet, serial_starts
 from clflow.pipeline.fit.state import OptimizerState, config_digests
 from clflow.pipeline.fit.steps import Steps, phase_of
 from clflow.pipeline.generated_video import ensure_guidance_video
@@ -39,7 +38,7 @@ class Optimization:
     iteration), ``search`` and ``polish`` (the global phase and its starts' polishes),
     ``diagnostics`` (identifiability and the grid check) and ``checkpoint``. ``progress``
     gets each iteration's and search sample's row; ``map_starts`` maps the starts' polishes
-    (clflow.pipeline.fit.starts: serially, or as Ray tasks)."""
+    (clflow.pipeline.fit.search: serially, or as Ray tasks)."""
 
     def __init__(
         self,

@@ -1,4 +1,6 @@
-"""The global search of an optimisation and the polish of its best starts."""
+"""The global search of an optimisation and the polish of its best starts: one after
+another in this process (:func:`serial_starts`), or each a Ray task (:func:`starts_on_ray`,
+``clflow optimize --parallel``)."""
 
 from __future__ import annotations
 
@@ -7,7 +9,7 @@ import logging
 import math
 import time
 from dataclasses import asdict
-from typing import Callable
+from typing import Callable, Iterable
 
 import torch
 
@@ -18,11 +20,14 @@ from clflow.pipeline.fit.checkpoint import Checkpoint
 from clflow.pipeline.fit.iteration import Iterations
 from clflow.pipeline.fit.objective import Objective
 from clflow.pipeline.fit.problem import Problem
-from clflow.pipeline.fit.starts import quiet
 from clflow.pipeline.fit.state import LM_DAMPING, OptimizerState, config_digests
 from clflow.pipeline.fit.steps import Steps
 
 log = logging.getLogger(__name__)
+
+
+def quiet(row: dict) -> None:
+    """No progress shown (a Ray task's: its rows are shown where its record arrives)."""
 
 
 class SearchDesign:
@@ -305,7 +310,7 @@ class StartPolish:
         self.problem = objective.problem
 
     def detached(self) -> StartPolish:
-        """The polisher a Ray task gets (clflow.pipeline.fit.starts): the run's objective
+        """The polisher a Ray task gets (:func:`starts_on_ray`): the run's objective
         without its cached Jacobians."""
         return StartPolish(self.objective.fork(self.objective.calibration_file))
 
@@ -372,3 +377,57 @@ class StartPolish:
         if state.calibrated_at is not None:
             objective.restore_calibration(state)
         return state
+
+
+# A mapper of the starts' polishes (``Optimization.map_starts``) takes the polisher, the state
+# the search ended in, the indices of the starts to polish, whether to resume their
+# checkpoints, the most iterations they may run now and where their rows go, and returns
+# the records of StartPolish.polish in start order.
+
+
+def serial_starts(
+    polisher: StartPolish,
+    begin: OptimizerState,
+    starts: Iterable[int],
+    resume: bool = False,
+    max_iterations: int | None = None,
+    progress: Callable[[dict], None] = quiet,
+) -> list[dict]:
+    """Polish each of ``starts`` (indices into begin.starts) one after another in this process
+    (``max_iterations``: at most this many in all), each row to ``progress``; records of
+    StartPolish.polish."""
+    records = []
+    for k in starts:
+        records.append(polisher.polish(begin, k, resume, max_iterations, progress))
+        if max_iterations is not None:
+            max_iterations -= records[-1]["iterations_here"]
+    return records
+
+
+def _polish_task(polisher: StartPolish, begin: OptimizerState, start: int, resume: bool) -> dict:
+    return polisher.polish(begin, start, resume=resume)
+
+
+def starts_on_ray(**ray_options) -> Callable[..., list[dict]]:
+    """A mapper whose every start's polish is a Ray task (clflow.parallel.map_on_ray,
+    ``ray_options`` its keywords), its rows shown as it finishes."""
+
+    def map_starts(
+        polisher: StartPolish,
+        begin: OptimizerState,
+        starts: Iterable[int],
+        resume: bool = False,
+        max_iterations: int | None = None,
+        progress: Callable[[dict], None] = quiet,
+    ) -> list[dict]:
+        from clflow.parallel import map_on_ray
+
+        def finished(index: int, record: dict) -> None:
+            for row in record["state"]["history"][len(begin.history) :]:
+                progress(row)
+
+        detached = polisher.detached()
+        tasks = [(detached, begin, k, resume) for k in starts]
+        return map_on_ray(_polish_task, tasks, done=finished, **ray_options)
+
+    return map_starts
