@@ -29,10 +29,10 @@ def read_params_record(path: str | Path, cfg):
     return cfg.with_objects(objects), _record_substeps(path, record, cfg)
 
 
-def _object_from_entry(path, entry: dict | None, obj):
+def _object_from_entry(path, entry, obj):
     """The config's object ``obj`` (a SceneObject) with the material parameters, density and
-    velocity of its ``entry`` of a params.json, checked before any work against the config's
-    material."""
+    velocity of its ``entry`` of a params.json (what the record holds there, checked before
+    any work against the config's material)."""
     from clflow.materials import DENSITY, validate_params
     from clflow.scene.config.settings import SINGLE_OBJECT
 

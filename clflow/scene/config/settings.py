@@ -478,8 +478,8 @@ def objects_form(objects: tuple[SceneObject, ...], entries: list[dict]) -> dict:
 
 def object_entries(objects: tuple[SceneObject, ...], record) -> list:
     """Each object's entry of ``record``, a record written in the form of the config
-    (:func:`objects_form`; None for an object it lacks); ValueError when the record's form
-    is not the config's."""
+    (:func:`objects_form`); ValueError when the record's form is not the config's or it
+    lacks one of the objects."""
     several = isinstance(record, dict) and "objects" in record
     if several != (len(objects) > 1):
         what = "several objects" if several else "one object"
