@@ -7,56 +7,10 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
+from typing import Iterable
 
 from clflow_datasets.scene_cases import CaseObject, SceneCase
 from clflow_datasets.synthetic import SyntheticCase
-
-# name -> case; shapes are clflow's own (cube, sphere, torus), sizes in metres, truths SI.
-# Sizes make each case observable at 24 fps: the truth's slowest elastic period, about 4
-# size / shear wave speed, spans 2-5 frames (a 0.2 m torus with E = 1e6 Pa rings at 6 ms,
-# invisible between frames 42 ms apart); each shape falls about 0.3 of its size.
-# a table, one case a row: kept as written
-# fmt: off
-CASES: dict[str, SyntheticCase] = {
-    "droplet": SyntheticCase(shape="sphere", size=0.3, lift=0.1, spread=1.75, material="newtonian",
-                             truth={"viscosity": 100.0, "bulk_modulus": 7.0e5},
-                             guess={"viscosity": 0.5, "bulk_modulus": 7.0e3},
-                             optimize=("viscosity", "bulk_modulus")),
-    "letter": SyntheticCase(shape="cube", size=0.3, lift=0.1, spread=1.75, material="newtonian",
-                            truth={"viscosity": 50.0, "bulk_modulus": 7.0e5},
-                            guess={"viscosity": 0.5, "bulk_modulus": 7.0e6},
-                            optimize=("viscosity", "bulk_modulus")),
-    "cream": SyntheticCase(shape="sphere", size=0.4, lift=0.12, spread=1.25, material="non_newtonian",
-                           truth={"shear_modulus": 1.0e4, "bulk_modulus": 1.0e6, "yield_stress": 3.0e3, "viscosity": 10.0},
-                           guess={"shear_modulus": 100.0, "bulk_modulus": 1.0e4, "yield_stress": 10.0, "viscosity": 1.0},
-                           optimize=("shear_modulus", "bulk_modulus", "yield_stress", "viscosity")),
-    "toothpaste": SyntheticCase(shape="torus", size=0.4, lift=0.12, spread=1.25, material="non_newtonian",
-                                truth={"shear_modulus": 5.0e3, "bulk_modulus": 1.0e5, "yield_stress": 200.0,
-                                       "viscosity": 10.0},
-                                guess={"shear_modulus": 100.0, "bulk_modulus": 1.0e4, "yield_stress": 10.0,
-                                       "viscosity": 0.1},
-                                optimize=("shear_modulus", "bulk_modulus", "yield_stress", "viscosity")),
-    "torus": SyntheticCase(shape="torus", size=1.0, lift=0.3, spread=0.75, material="elastic",
-                           truth={"youngs_modulus": 1.0e6, "poissons_ratio": 0.3},
-                           guess={"youngs_modulus": 1.0e5, "poissons_ratio": 0.1},
-                           optimize=("youngs_modulus", "poissons_ratio")),
-    "bird": SyntheticCase(shape="sphere", size=0.6, lift=0.2, spread=0.75, material="elastic",
-                          truth={"youngs_modulus": 3.0e5, "poissons_ratio": 0.3},
-                          guess={"youngs_modulus": 1.0e3, "poissons_ratio": 0.1},
-                          optimize=("youngs_modulus", "poissons_ratio")),
-    "playdoh": SyntheticCase(shape="cube", size=1.0, lift=0.3, spread=0.75, material="plasticine",
-                             truth={"youngs_modulus": 2.0e6, "poissons_ratio": 0.3, "yield_stress": 1.54e4},
-                             guess={"youngs_modulus": 1.0e5, "poissons_ratio": 0.4, "yield_stress": 1.0e3},
-                             optimize=("youngs_modulus", "poissons_ratio", "yield_stress")),
-    "cat": SyntheticCase(shape="sphere", size=0.8, lift=0.25, spread=0.75, material="plasticine",
-                         truth={"youngs_modulus": 1.0e6, "poissons_ratio": 0.3, "yield_stress": 3.85e3},
-                         guess={"youngs_modulus": 1.0e3, "poissons_ratio": 0.2, "yield_stress": 100.0},
-                         optimize=("youngs_modulus", "poissons_ratio", "yield_stress")),
-    "trophy": SyntheticCase(shape="cube", size=0.5, lift=0.15, spread=1.25, material="sand",
-                            truth={"friction_angle": 40.0, "youngs_modulus": 1.0e6, "poissons_ratio": 0.3},
-                            guess={"friction_angle": 10.0}, optimize=("friction_angle",)),
-}
-# fmt: on
 
 
 # every case, one policy: a global search of the parameter box first (12 samples per free
@@ -72,8 +26,8 @@ def _with_policy(case: SyntheticCase) -> SyntheticCase:
     return replace(case, search=samples, refine=samples // 2, starts=3, horizon=(0, 0), method="levenberg_marquardt")
 
 
-CASES = {name: _with_policy(case) for name, case in CASES.items()}
-
+#: PAC-NeRF's nine (the built-in set)
+PAPER_CASES_FILE = Path(__file__).with_name("pacnerf_cases.yaml")
 QUICK_CASES = ("torus", "playdoh", "droplet")  # elastic, plasticine, Newtonian: the CI subset
 #: clflow's own second set (--set extra): every material type, so coverage is not tuned on the nine
 EXTRA_CASES_FILE = Path(__file__).with_name("extra_cases.yaml")
@@ -107,13 +61,14 @@ SCENE_CASE_KEYS = ("objects", "spread")
 OBJECT_KEYS = ("name", "shape", "size", "position", "material", "density", "truth", "guess", "optimize", "velocity")
 
 
-def load_cases(path: Path) -> dict[str, SyntheticCase]:
+def load_cases(path: Path, reserved: Iterable[str] | None = None) -> dict[str, SyntheticCase | SceneCase]:
     """The cases of a YAML or JSON file: a mapping of name -> {shape, size (m), lift (m),
     spread (sizes), material, density (kg/m^3), truth and guess (SI, by registry name),
     optimize (names; default: the truth's; guess gives each a start), velocity (m/s, 3
     numbers)}, each run with the benchmark's policy (search, starts, Levenberg-Marquardt).
     Values are checked as a scene config checks its own; InputError, one line naming the file
-    and the case's key, for anything clflow cannot run."""
+    and the case's key, for anything clflow cannot run; names must be new (not in
+    ``reserved``, default the built-in CASES)."""
     from clflow.errors import InputError
     from clflow.scene.config.files import read_data_file
     from clflow.scene.config.reader import Reader
@@ -123,9 +78,10 @@ def load_cases(path: Path) -> dict[str, SyntheticCase]:
         raise InputError(f"{path}: expected a mapping of case names to cases")
     r = Reader(str(path), path.parent)
     r.no_huge_integers(data)
+    reserved = set(CASES if reserved is None else reserved)
     cases = {}
     for name, body in data.items():
-        if not isinstance(name, str) or not name.isidentifier() or name in CASES:
+        if not isinstance(name, str) or not name.isidentifier() or name in reserved:
             raise InputError(f"{path}: case name {name!r}: use a new identifier (not one of the built-in cases)")
         several = isinstance(body, dict) and "objects" in body
         cases[name] = _with_policy(_scene_case_of(r, body, name) if several else _case_of(r, body, name))
@@ -213,9 +169,12 @@ def _case_of(r, body, name: str) -> SyntheticCase:
     )
 
 
+CASES = load_cases(PAPER_CASES_FILE, reserved=())  # name -> case, the benchmark's policy applied
+
 __all__ = [
     "CASES",
     "EXTRA_CASES_FILE",
+    "PAPER_CASES_FILE",
     "QUICK_CASES",
     "check_case",
     "load_cases",
