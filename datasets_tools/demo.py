@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from clflow_datasets.scene_cases import CaseObject, SceneCase, make_scene_case
+from clflow_datasets.scene_cases import CaseObject, SceneCase
 from clflow_datasets.synthetic import Resolution, SyntheticCase, make_case, push_upper_part
 
 TRUTH = {"youngs_modulus": 2.0e4, "poissons_ratio": 0.3}  # a soft jelly, Pa
@@ -79,7 +79,7 @@ def make_demo(folder: str | Path, resolution: Resolution = Resolution(), seed: i
 
 def make_pair_demo(folder: str | Path, resolution: Resolution = Resolution(), seed: int = 0) -> Path:
     """Write the two-object demo case into ``folder``; returns the path of its ``config.yaml``."""
-    return make_scene_case(Path(folder), PAIR, resolution, seed)
+    return make_case(Path(folder), PAIR, resolution, seed, truth_scale=2)
 
 
 __all__ = ["DEMO", "PAIR", "QUICK", "TRUTH", "benchmark_size", "make_demo", "make_pair_demo"]

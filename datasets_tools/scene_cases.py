@@ -9,20 +9,20 @@ sampling and substep), the frames area-averaged down to the guidance's size, so 
 optimiser cannot reproduce the video exactly (no inverse crime).
 
     case = SceneCase(objects=(CaseObject("jelly", ...), CaseObject("heap", ...)))
-    make_scene_case(Path("out/cases/drop"), case, QUICK, truth_scale=2)
+    make_case(Path("out/cases/drop"), case, QUICK, truth_scale=2)  # clflow_datasets.synthetic
 """
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from clflow.scene.config import FlowSettings
-from clflow_datasets.synthetic import SURFACES, Resolution, _rounded, _write_guidance, floor, surface_gaussians
+from clflow_datasets.synthetic import SURFACES, Resolution, _rounded, add_optimization, floor, surface_gaussians
 
 
 @dataclass(frozen=True)
@@ -71,6 +71,18 @@ class SceneCase:
     ground: str = "sticky"
     camera_offset: tuple[float, float, float] = (0.6, 0.9, 1.9)  # camera - centre, in extents
     fov_y_deg: float = 40.0
+
+    ROOM: ClassVar[str] = "SceneCase.spread"  # what gives a case more room
+
+    def make_scene(self, folder: Path, resolution: Resolution, seed: int = 0) -> None:
+        """Write its scene.ply into ``folder`` (:func:`write_scene`)."""
+        write_scene(folder, self, resolution, seed)
+
+    def make_config(
+        self, resolution: Resolution, values: dict[str, float], optimize: bool, scale: int = 1, views: int = 1
+    ) -> dict:
+        """Its scene config with ``values`` (OBJECT.PARAM; :func:`scene_case_config`)."""
+        return scene_case_config(self, resolution, values, optimize, scale, views)
 
     @property
     def truth(self) -> dict[str, float]:
@@ -147,10 +159,13 @@ def write_scene(folder: Path, case: SceneCase, resolution: Resolution, seed: int
 
 
 def scene_case_config(
-    case: SceneCase, resolution: Resolution, values: dict[str, float], optimize: bool, scale: int = 1
+    case: SceneCase, resolution: Resolution, values: dict[str, float], optimize: bool, scale: int = 1, views: int = 1
 ) -> dict:
     """The case's scene config (a dict) with ``values`` (OBJECT.PARAM -> SI, over the
-    truth's); ``scale`` multiplies the grid (nodes - 1) and the image size."""
+    truth's); ``scale`` multiplies the grid (nodes - 1) and the image size; one guidance view
+    (``views``: ValueError for more)."""
+    if views != 1:
+        raise ValueError("a case of several objects has one guidance view")
     lower, upper, nodes = scene_domain(case, resolution, scale)
     simulation = {
         "grid_resolution": nodes,
@@ -188,71 +203,9 @@ def scene_case_config(
         "flow": asdict(FlowSettings()),
         "output": "results",
     }
-    coarse_search = optimize and bool(case.search) and resolution.main_grid_scale != 1
-    if coarse_search:
-        search_grid = nodes
-        simulation["grid_resolution"] = round((search_grid - 1) * resolution.main_grid_scale) + 1
     if optimize:
-        config["video"] = "guidance"
-        config["optimize"] = {
-            "parameters": list(case.optimize),
-            "learning_rates": {n: case.learning_rate for n in case.optimize},
-            "iterations": resolution.iterations,
-            "horizon": {"start": case.horizon[0], "step": case.horizon[1]},
-        }
-        if case.search:
-            search = {"samples": case.search}
-            search.update({"starts": case.starts} if case.starts > 1 else {})
-            search.update({"refine": case.refine} if case.refine else {})
-            search.update({"grid_resolution": search_grid} if coarse_search else {})
-            config["optimize"]["search"] = search
-        if case.method != "adam":
-            config["optimize"]["method"] = case.method
-        config["evaluation"] = {"ground_truth": dict(case.truth)}
+        add_optimization(config, case, resolution, "guidance")
     return config
 
 
-def make_scene_case(
-    folder: Path,
-    case: SceneCase,
-    resolution: Resolution,
-    seed: int = 0,
-    *,
-    truth_scale: int = 2,
-    noise: float = 0.0,
-    codec: str | None = None,
-    views: int = 1,
-    truth_flip: float | None = None,
-) -> Path:
-    """Write the case into ``folder`` as clflow_datasets.synthetic.make_case writes a
-    single-object case (scene.ply, config_truth.yaml, guidance/, config.yaml, case.json);
-    one guidance view. ValueError if the truth's run clamps particles at the grid's edge or
-    reaches the domain's walls."""
-    import yaml
-
-    from clflow.fileio import atomic_write_text
-    from clflow.scene.config import parse_config
-    from clflow_datasets.synthetic import case_record, truth_run
-
-    if views != 1:
-        raise ValueError("a case of several objects has one guidance view")
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    write_scene(folder, case, resolution, seed)
-    truth_resolution = resolution if truth_flip is None else Resolution(**{**asdict(resolution), "flip": truth_flip})
-    truth = scene_case_config(case, truth_resolution, case.truth, optimize=False, scale=int(truth_scale))
-    atomic_write_text(folder / "config_truth.yaml", yaml.safe_dump(truth, sort_keys=False))
-    truth_cfg = parse_config(truth, str(folder / "config_truth.yaml"), folder)
-    result = truth_run(folder, truth_cfg, "spread")
-    config = scene_case_config(case, resolution, {**case.truth, **case.guess}, optimize=True)
-    coded = _write_guidance(folder, result, truth_cfg, resolution.image, 24, noise, codec, seed)
-    if coded:
-        config["video"] = coded[0]
-    atomic_write_text(folder / "config.yaml", yaml.safe_dump(config, sort_keys=False))
-    extra = {"noise": noise, "codec": codec, "seed": seed, "views": views}
-    record = case_record(truth, config, truth_cfg, result, resolution.image, truth_resolution.flip, extra)
-    atomic_write_text(folder / "case.json", json.dumps(record, indent=2))
-    return folder / "config.yaml"
-
-
-__all__ = ["CaseObject", "SceneCase", "make_scene_case", "scene_case_config", "scene_domain"]
+__all__ = ["CaseObject", "SceneCase", "scene_case_config", "scene_domain"]

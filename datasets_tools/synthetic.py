@@ -27,6 +27,7 @@ import copy
 import math
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -90,6 +91,18 @@ class SyntheticCase:
     spread: float | None = None  # room around the shape on each side (sizes); None: the default domain
     camera_offset: tuple[float, float, float] = (1.25, 1.75, 3.75)  # camera - centre, in sizes
     fov_y_deg: float = 40.0
+
+    ROOM: ClassVar[str] = "SyntheticCase.spread"  # what gives a case more room
+
+    def make_scene(self, folder: Path, resolution: Resolution, seed: int = 0) -> None:
+        """Write its scene.ply into ``folder`` (:func:`write_scene`)."""
+        write_scene(folder, self, resolution, seed)
+
+    def make_config(
+        self, resolution: Resolution, values: dict[str, float], optimize: bool, scale: int = 1, views: int = 1
+    ) -> dict:
+        """Its scene config with ``values`` (:func:`case_config`)."""
+        return case_config(self, resolution, values, optimize, scale, views)
 
     @property
     def center(self) -> np.ndarray:
@@ -336,30 +349,39 @@ def case_config(
         "flow": asdict(FlowSettings()),  # the defaults, spelled out
         "output": "results",
     }
-    coarse_search = optimize and bool(case.search) and resolution.main_grid_scale != 1
-    if coarse_search:  # the global phase on the coarser grid, the main phase on a finer one
+    if optimize:
+        add_optimization(
+            config, case, resolution, [guidance_name(v) for v in range(views)] if views > 1 else guidance_name(0)
+        )
+    return config
+
+
+def add_optimization(config: dict, case, resolution: Resolution, video: str | list[str]) -> None:
+    """Give a case's ``config`` (a dict) its ``video`` (the guidance's folder or folders) and
+    the case's optimize and evaluation sections (``case``: a SyntheticCase or SceneCase); with
+    a search and resolution.main_grid_scale != 1 the global phase keeps the config's grid and
+    the main phase runs on one main_grid_scale times finer."""
+    simulation = config["simulation"]
+    coarse_search = bool(case.search) and resolution.main_grid_scale != 1
+    if coarse_search:
         search_grid = simulation["grid_resolution"]
         simulation["grid_resolution"] = round((search_grid - 1) * resolution.main_grid_scale) + 1
-    if optimize:
-        config["video"] = [guidance_name(v) for v in range(views)] if views > 1 else guidance_name(0)
-        config["optimize"] = {
-            "parameters": list(case.optimize),
-            "learning_rates": {n: case.learning_rate for n in case.optimize},
-            "iterations": resolution.iterations,
-            "horizon": {"start": case.horizon[0], "step": case.horizon[1]},
-        }
-        if case.search:
-            config["optimize"]["search"] = {"samples": case.search}
-            if case.starts > 1:
-                config["optimize"]["search"]["starts"] = case.starts
-            if case.refine:
-                config["optimize"]["search"]["refine"] = case.refine
-            if coarse_search:
-                config["optimize"]["search"]["grid_resolution"] = search_grid
-        if case.method != "adam":
-            config["optimize"]["method"] = case.method
-        config["evaluation"] = {"ground_truth": dict(case.truth)}
-    return config
+    config["video"] = video
+    config["optimize"] = {
+        "parameters": list(case.optimize),
+        "learning_rates": {n: case.learning_rate for n in case.optimize},
+        "iterations": resolution.iterations,
+        "horizon": {"start": case.horizon[0], "step": case.horizon[1]},
+    }
+    if case.search:
+        search = {"samples": case.search}
+        search.update({"starts": case.starts} if case.starts > 1 else {})
+        search.update({"refine": case.refine} if case.refine else {})
+        search.update({"grid_resolution": search_grid} if coarse_search else {})
+        config["optimize"]["search"] = search
+    if case.method != "adam":
+        config["optimize"]["method"] = case.method
+    config["evaluation"] = {"ground_truth": dict(case.truth)}
 
 
 def wall_contacts(result) -> int:
@@ -415,7 +437,7 @@ def _write_guidance(folder: Path, result, truth_cfg, image: int, fps: float, noi
 
 def make_case(
     folder: str | Path,
-    case: SyntheticCase,
+    case,
     resolution: Resolution = Resolution(),
     seed: int = 0,
     *,
@@ -425,7 +447,9 @@ def make_case(
     views: int = 1,
     truth_flip: float | None = None,
 ) -> Path:
-    """Write the case into ``folder`` (see module docstring); returns its ``config.yaml``.
+    """Write the case (a :class:`SyntheticCase`, or a clflow_datasets.scene_cases.SceneCase
+    of several objects, one view) into ``folder`` (see module docstring); returns its
+    ``config.yaml``.
 
     ``truth_scale``: the ground truth's grid and image refinement (1: the optimiser's own
     resolution, an inverse crime; 2 for benchmarks); ``truth_flip``: the ground truth's PIC/FLIP
@@ -448,15 +472,15 @@ def make_case(
         raise ValueError(f"noise must be >= 0 grey levels, got {noise}")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    write_scene(folder, case, resolution, seed)
+    case.make_scene(folder, resolution, seed)
     # the truth's own transfer (truth_flip; default the optimiser's): nature is neither APIC nor FLIP
     truth_resolution = resolution if truth_flip is None else replace(resolution, flip=float(truth_flip))
-    truth = case_config(case, truth_resolution, case.truth, optimize=False, scale=int(truth_scale), views=views)
+    truth = case.make_config(truth_resolution, case.truth, optimize=False, scale=int(truth_scale), views=views)
     atomic_write_text(folder / "config_truth.yaml", yaml.safe_dump(truth, sort_keys=False))
     truth_cfg = parse_config(truth, str(folder / "config_truth.yaml"), folder)
-    result = truth_run(folder, truth_cfg, "SyntheticCase.spread")
+    result = truth_run(folder, truth_cfg, case.ROOM)
     fps = truth["simulation"]["fps"]
-    config = case_config(case, resolution, {**case.truth, **case.guess}, optimize=True, views=views)
+    config = case.make_config(resolution, {**case.truth, **case.guess}, optimize=True, views=views)
     coded = _write_guidance(folder, result, truth_cfg, resolution.image, fps, noise, codec, seed)
     if coded:
         config["video"] = coded if views > 1 else coded[0]
@@ -516,6 +540,7 @@ __all__ = [
     "wall_contacts",
     "floor",
     "make_case",
+    "add_optimization",
     "CASE_FILES",
     "case_record",
     "truth_run",

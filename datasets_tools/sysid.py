@@ -35,7 +35,7 @@ from typing import Callable
 
 from clflow.fileio.reading import parse_json
 from clflow_datasets import per_class
-from clflow_datasets.scene_cases import SceneCase, make_scene_case
+from clflow_datasets.scene_cases import SceneCase
 from clflow_datasets.synthetic import GENERATOR_VERSION, Resolution, SyntheticCase, make_case
 from clflow_datasets.sysid_cases import CASES, check_case
 from clflow_datasets.sysid_report import holds, markdown
@@ -74,6 +74,20 @@ class Settings:
     # s of each case's optimisation (optimize.budget: the main grid from the device's speed; None: the resolution's)
     case_budget: float | None = None
 
+    @classmethod
+    def at(cls, quick: bool, iterations: int | None = None, **fields) -> Settings:
+        """Settings at the QUICK or FULL resolution (``iterations``: its Levenberg-Marquardt
+        iterations instead of the resolution's), the other ``fields`` as given."""
+        resolution = QUICK if quick else FULL
+        if iterations is not None:
+            resolution = replace(resolution, iterations=iterations)
+        return cls(resolution=resolution, **fields)
+
+    def case_options(self) -> dict:
+        """clflow_datasets.synthetic.make_case's keywords of these settings."""
+        made = {key: getattr(self, key) for key in ("truth_scale", "noise", "codec", "views")}
+        return {**made, "truth_flip": TRUTH_FLIP[self.truth_transfer]}
+
 
 #: the ground truth's grid stays this many times finer (in cells) than any main grid a budget chooses
 TRUTH_MARGIN = 4 / 3
@@ -110,24 +124,13 @@ def run_case(
 
     case = case or CASES[name]
     check_case(name, case)
-    make = make_scene_case if isinstance(case, SceneCase) else make_case
     start = time.perf_counter()
     made = folder / "case.json"
     definition = case_definition(case)
     if made.exists() and json.loads(made.read_text()).get("definition") != definition:
         remove_entries(folder.parent, (glob.escape(folder.name),))  # made from another definition: make it anew
     if not made.exists():  # an interrupted generation leaves no case.json: make it again
-        make(
-            folder,
-            case,
-            settings.resolution,
-            settings.seed,
-            truth_scale=settings.truth_scale,
-            noise=settings.noise,
-            codec=settings.codec,
-            views=settings.views,
-            truth_flip=TRUTH_FLIP[settings.truth_transfer],
-        )
+        make_case(folder, case, settings.resolution, settings.seed, **settings.case_options())
         record = json.loads(made.read_text())
         record["definition"] = definition
         atomic_write_text(made, json.dumps(record, indent=2))

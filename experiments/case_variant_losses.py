@@ -34,7 +34,6 @@ def make_variant(name: str, out: Path, resolution, truth: dict[str, float], trut
     """Case ``name`` with ``truth`` values replaced, made in ``out`` at ``resolution`` (a
     clflow_datasets Resolution) unless made there with the same; returns the case."""
     from clflow_datasets import sysid_cases
-    from clflow_datasets.scene_cases import SceneCase, make_scene_case
     from clflow_datasets.synthetic import make_case
 
     cases = {**sysid_cases.load_cases(sysid_cases.EXTRA_CASES_FILE), **sysid_cases.CASES}
@@ -53,8 +52,7 @@ def make_variant(name: str, out: Path, resolution, truth: dict[str, float], trut
         return case
     if out.exists() and any(out.iterdir()):
         raise SystemExit(f"{out} is not empty and holds no {MADE}; give a new or empty --out")
-    make = make_scene_case if isinstance(case, SceneCase) else make_case
-    make(out, case, resolution, seed, truth_scale=truth_scale)
+    make_case(out, case, resolution, seed, truth_scale=truth_scale)
     record.write_text(json.dumps(made, indent=2) + "\n")  # last: an interrupted making leaves none
     return case
 
