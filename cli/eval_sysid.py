@@ -97,26 +97,15 @@ def sysid(
     from the published initial guesses, and print a table like Table 3 of the PhysFlow paper.
 
     A rerun with the same settings skips finished cases and resumes an interrupted one."""
-    import dataclasses
     from pathlib import Path
 
-    from clflow_datasets.sysid import FULL, QUICK, Settings, evaluate, markdown
+    from clflow_datasets.sysid import Settings, evaluate, markdown
 
-    resolution = QUICK if quick else FULL
-    if iterations is not None:
-        resolution = dataclasses.replace(resolution, iterations=iterations)
     catalogue, default_names = _catalogue(case_file, case_set, quick)
     names = list(dict.fromkeys(cases)) or default_names
-    settings = Settings(
-        resolution=resolution,
-        truth_scale=truth_scale,
-        noise=noise,
-        codec=codec,
-        seed=seed,
-        views=views,
-        truth_transfer=truth_transfer,
-        case_budget=None if budget is None else budget / len(names),
-    )
+    given = dict(truth_scale=truth_scale, noise=noise, codec=codec, seed=seed, views=views)
+    budget_each = None if budget is None else budget / len(names)
+    settings = Settings.at(quick, iterations, **given, truth_transfer=truth_transfer, case_budget=budget_each)
 
     def progress(name: str, row: dict) -> None:
         from clflow.pipeline.runs import format_row

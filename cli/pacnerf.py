@@ -14,7 +14,7 @@ from clflow_cli.options import InputFile
               help="Scene folder: config.yaml, scene.ply, camera.json, the guidance video (and object.png).")  # fmt: skip
 @click.option("--camera", type=click.IntRange(min=0), default=0, show_default=True,
               help="The camera whose frames become the guidance video.")  # fmt: skip
-@click.option("--config", "pac_config", type=InputFile(),
+@click.option("--config", type=InputFile(),
               help="PAC-NeRF config (.py, read without running it, or .json): material and its initial guess, ground, "
                    "gravity, frame_dt, the parameters to fit. Without it the material is left to the query.")  # fmt: skip
 @click.option("--box", type=float, nargs=6, metavar="X0 Y0 Z0 X1 Y1 Z1",
@@ -27,11 +27,11 @@ from clflow_cli.options import InputFile
 @click.option("--fps", type=click.FloatRange(min=0, min_open=True),
               help="Frame rate (default: the config's 1 / frame_dt, else the index's times).")  # fmt: skip
 @click.option("--prompt", default="", help="Text about the object for the material query (without --config).")
-@click.option("--optimize", "fit", multiple=True, metavar="NAME",
+@click.option("--optimize", multiple=True, metavar="NAME",
               help="A parameter to fit (repeatable); default: the config's physical_params.")  # fmt: skip
 @click.option("--video", type=click.Choice(["mp4", "mkv"]), default="mp4", show_default=True,
               help="Guidance video format: H.264 or lossless FFV1.")  # fmt: skip
-def pacnerf(data, splats, output_dir, camera, pac_config, box, ground, background, masks, fps, prompt, fit, video):
+def pacnerf(data, splats, output_dir, background, video, **options):
     """Turn the multi-camera capture DATA (PAC-NeRF's layout: all_data.json and
     r_CAMERA_FRAME.png images) and SPLATS, the reconstruction of its frame 0
     (`clflow reconstruct DATA --frame 0 -o SPLATS`), into a scene folder for
@@ -40,23 +40,10 @@ def pacnerf(data, splats, output_dir, camera, pac_config, box, ground, backgroun
     from clflow_datasets.pacnerf import make_scene
 
     rgb = (0.0, 0.0, 0.0) if background == "black" else (1.0, 1.0, 1.0)
-    summary = make_scene(
-        data,
-        splats,
-        output_dir,
-        camera=camera,
-        config=pac_config,
-        box=box,
-        ground=ground,
-        background=rgb,
-        masks=masks,
-        fps=fps,
-        prompt=prompt,
-        optimize=fit,
-        video=f"guidance.{video}",
-    )
+    # the other options are make_scene's keywords (camera, config, box, ground, masks, fps, prompt, optimize)
+    summary = make_scene(data, splats, output_dir, background=rgb, video=f"guidance.{video}", **options)
     click.echo(
-        f"camera {camera}: {summary['frames']} frames at {summary['fps']:g} fps (from {summary['fps_from']}); "
+        f"camera {options['camera']}: {summary['frames']} frames at {summary['fps']:g} fps (from {summary['fps_from']}); "
         f"material {summary['material']}; fitting {', '.join(summary['optimize']) or 'nothing yet'}"
     )
     if summary["optimize"]:

@@ -65,7 +65,7 @@ def with_ray_options(f):
               help="Stop a run that takes longer and record it as timed out (a spec's timeout: overrides).")  # fmt: skip
 @click.option("--retry-failed", is_flag=True, help="Run again the runs that failed, timed out or were killed earlier.")
 @click.pass_context
-def sweep(ctx, spec, output, serial, address, cpus_per_task, resources, timeout, retry_failed):
+def sweep(ctx, spec, output, serial, resources, **options):
     """Run every run of SPEC (YAML: scene configs, a base config with a grid or list of --set
     overrides, sysid cases; docs/sweep.md), each in its own folder under OUT, as Ray tasks
     on this machine's cores (or a cluster: --address), and merge them into OUT/sweep.json
@@ -80,27 +80,19 @@ def sweep(ctx, spec, output, serial, address, cpus_per_task, resources, timeout,
     from clflow.sweep import load_spec
     from clflow.sweep import sweep as run_sweep
 
-    if serial and (address or resources):
+    if serial and (options["address"] or resources):
         raise click.UsageError("--serial runs in this process: drop --address and --resources")
     needs = parse_resources(resources)
     parsed = load_spec(spec)  # all of it checked before any work
     if not serial:
         require_ray()
     out = Path(output)
+    echo = lambda line: click.echo(line, err=True)  # noqa: E731
     click.echo(f"{len(parsed.runs)} runs{' (serial)' if serial else ''}; results in {out}", err=True)
     try:
-        summary = run_sweep(
-            parsed,
-            out,
-            serial=serial,
-            address=address,
-            cpus_per_task=cpus_per_task,
-            resources=needs,
-            timeout=timeout,
-            retry_failed=retry_failed,
-            device=ctx.obj.device_spec if ctx.obj else None,
-            echo=lambda line: click.echo(line, err=True),
-        )
+        device = ctx.obj.device_spec if ctx.obj else None
+        # the other options are the sweep's keywords (address, cpus_per_task, timeout, retry_failed)
+        summary = run_sweep(parsed, out, serial=serial, resources=needs, device=device, echo=echo, **options)
     except KeyboardInterrupt:
         raise Interrupted(
             f"interrupted; finished runs are kept in {out / 'sweep.json'}; run the same command again to continue"

@@ -259,19 +259,9 @@ def framing_distance(radius: float, fov_x: float, width: int, height: int) -> fl
     return radius / math.sin(min(fov_x, fov_y) / 2)
 
 
-def frame_box(
-    low: Vector,
-    high: Vector,
-    *,
-    n_views: int = 1,
-    elevation: float = math.radians(20),
-    azimuth: float = 0.0,
-    up: Vector = (0.0, 0.0, 1.0),
-    fov_x: float,
-    width: int,
-    height: int,
-) -> list[Camera]:
-    """An orbit of ``n_views`` cameras around the box [low, high] (m) that each see all of it.
+def frame_box(low: Vector, high: Vector, *, fov_x: float, width: int, height: int, **orbit_options) -> list[Camera]:
+    """An :func:`orbit` of cameras around the box [low, high] (m) that each see all of it
+    (``orbit_options``: orbit's n_views, elevation, azimuth and up).
 
     The cameras look at the box centre from the distance at which the box's circumscribed
     sphere fits the narrower field of view.
@@ -281,17 +271,7 @@ def frame_box(
         raise InputError(f"box low {low.tolist()} is not <= high {high.tolist()} on every axis")
     radius = max(0.5 * (high - low).norm().item(), 1e-6)  # a single point still gets a view
     distance = framing_distance(radius, fov_x, width, height)
-    return orbit(
-        0.5 * (low + high),
-        distance,
-        n_views=n_views,
-        elevation=elevation,
-        up=up,
-        azimuth=azimuth,
-        fov_x=fov_x,
-        width=width,
-        height=height,
-    )
+    return orbit(0.5 * (low + high), distance, fov_x=fov_x, width=width, height=height, **orbit_options)
 
 
 # -- dataset files -------------------------------------------------------------------------

@@ -355,11 +355,7 @@ def _listed_runs(r: _SpecReader, top: dict, spec: _Defaults) -> list[Run]:
 
 def sysid_settings(record: dict):
     """clflow_datasets.sysid.Settings from a spec's ``sysid`` section."""
-    import dataclasses
+    from clflow_datasets.sysid import Settings
 
-    from clflow_datasets.sysid import FULL, QUICK, Settings
-
-    resolution = QUICK if record.get("quick") else FULL
-    if record.get("iterations") is not None:
-        resolution = dataclasses.replace(resolution, iterations=record["iterations"])
-    return Settings(resolution=resolution, **{k: v for k, v in record.items() if k not in ("quick", "iterations")})
+    fields = {k: v for k, v in record.items() if k not in ("quick", "iterations")}
+    return Settings.at(bool(record.get("quick")), record.get("iterations"), **fields)
