@@ -12,6 +12,7 @@ from click.testing import CliRunner
 from clflow import __version__
 from clflow.fileio import atomic_write_text
 from clflow_cli.main import BUILTIN_COMMANDS, cli
+from tests._helpers import run_python
 
 
 def test_help_and_every_command_help_import_neither_torch_nor_opencl():
@@ -27,8 +28,7 @@ def test_help_and_every_command_help_import_neither_torch_nor_opencl():
         "heavy = sorted(m for m in ('torch', 'pyopencl', 'cv2', 'numpy', 'kornia') if m in sys.modules)\n"
         "print(heavy)\n"
     )
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert res.returncode == 0, res.stderr
+    res = run_python(code)
     assert res.stdout.strip() == "[]"
 
 
@@ -39,8 +39,7 @@ def test_cli_lets_torch_openmp_threads_sleep_unless_told_otherwise(preset, expec
     env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
     if preset:
         env["OMP_WAIT_POLICY"] = preset
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
-    assert res.returncode == 0, res.stderr
+    res = run_python(code, env=env)
     assert res.stdout.strip() == expected
 
 

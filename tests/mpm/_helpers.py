@@ -60,6 +60,22 @@ def random_scene(materials, seed: int = 0, n: int = 300, dtype=torch.float64, **
     return moving_scene(x, v, materials, Grid((16, 16, 16), 1 / 16), dtype, **kwargs)
 
 
+def tiny_plasticine(flip: float = 0.0, **kwargs) -> Simulator:
+    """13 plasticine particles, 2 substeps a frame, no walls (``kwargs``: random_scene's):
+    the smallest scene whose kernels oclgrind checks."""
+    return random_scene({"plasticine": MATERIAL_CASES["plasticine"]}, n=13, substeps=2, frame_dt=2e-4, walls=None,
+                        flip=flip, **kwargs)  # fmt: skip
+
+
+def assert_velocity_gradient(sim: Simulator) -> None:
+    """One frame's sum(x^2) has a finite, non-zero gradient in the initial velocities."""
+    from clflow.mpm.autograd import simulate
+
+    v0 = sim.state.v.clone().requires_grad_()
+    (simulate(sim, 1, velocities=v0).x ** 2).sum().backward()
+    assert bool(torch.isfinite(v0.grad).all()) and float(v0.grad.abs().sum()) > 0
+
+
 def two_blocks(materials=("newtonian",), n_side: int = 5, dtype=torch.float64, **kwargs) -> Simulator:
     """Two blocks of n_side^3 particles each, 0.45 m apart in a 32^3 grid of 1/32 m, moving
     towards each other (the private P2G path unless ``kwargs`` say otherwise): each private

@@ -10,6 +10,7 @@ import sys
 import numpy as np
 import pytest
 
+from tests._helpers import run_python
 from tests.pipeline.test_bad_input import Case, Probe, assert_probe, deep_json, simulation  # noqa: F401 (a fixture)
 from tests.scene.test_config import alias_bomb, nested_block
 
@@ -409,6 +410,5 @@ def test_torchs_info_lines_stay_out_of_a_commands_output():
         "logging.getLogger('torch._subclasses.fake_tensor').info('FakeTensor cache stats:')\n"
         "logging.getLogger('clflow').info('a line of clflow')\n"
     )
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert res.returncode == 0, res.stderr
+    res = run_python(code)
     assert "FakeTensor" not in res.stderr and "a line of clflow" in res.stderr

@@ -20,7 +20,7 @@ from clflow.pipeline.fit.iteration import Iterations
 from clflow.pipeline.fit.objective import Objective
 from clflow.pipeline.fit.problem import Problem
 from clflow.pipeline.fit.results import Results
-from clflow.pipeline.fit.search import Search, SearchDesign, StartPolish, quiet, serial_starts
+from clflow.pipeline.fit.search import Search, SearchDesign, StartPolish, StartsMapper, quiet, serial_starts
 from clflow.pipeline.fit.state import OptimizerState, config_digests
 from clflow.pipeline.fit.steps import Steps, phase_of
 from clflow.pipeline.generated_video import ensure_guidance_video
@@ -52,7 +52,7 @@ class Optimization:
         cfg = ensure_guidance_video(resolve_material(cfg))  # video: {generate: ...} made first
         self.hypotheses = hypotheses  # how the material was chosen (clflow.pipeline.hypotheses), for metrics
         self.progress = progress or quiet
-        self.map_starts: Callable[..., list[dict]] = serial_starts
+        self.map_starts: StartsMapper = serial_starts
         self.problem = problem = Problem(cfg)
         # optimize.budget: seconds after ``started`` by which the search must end (check_budget)
         search_deadline: float | None = None
@@ -219,9 +219,12 @@ class Optimization:
             if phase_of(opt, state.iteration)[0] == "main" and opt.budget is not None and self.grid_choice is None:
                 self.grid_choice = self.choose_main_grid(state)
             if len(state.polished) < len(state.starts):
-                most = None if stop_after is None else stop_after - done_here
-                polish_all = self.map_starts if most is None else serial_starts  # stop_after: tests, here
-                records = polish_all(self.polish, state, range(len(state.starts)), resume, most, self.progress)
+                starts = range(len(state.starts))
+                if stop_after is None:
+                    records = self.map_starts(self.polish, state, starts, resume, self.progress)
+                else:  # tests of resuming: here, at most the iterations left
+                    most = stop_after - done_here
+                    records = serial_starts(self.polish, state, starts, resume, self.progress, max_iterations=most)
                 done_here += sum(r["iterations_here"] for r in records)
                 if not all(r["finished"] for r in records):  # stopped by stop_after
                     return state
@@ -259,17 +262,9 @@ class Optimization:
         return state
 
     def results(self) -> Results:
-        """The writer of this run's results folder."""
-        return Results(
-            self.objective,
-            self.diagnostics,
-            self.checkpoint,
-            self.started,
-            hypotheses=self.hypotheses,
-            guidance=self.guidance,
-            guidance_warnings=self.guidance_warnings,
-            grid_choice=self.grid_choice,
-        )
+        """The writer of this run's results folder: its fields are this run's parts and records
+        of the same names."""
+        return Results(**{f.name: getattr(self, f.name) for f in dataclasses.fields(Results)})
 
     def write_result_files(self, state: OptimizerState, out: Path) -> dict:
         """params.json, metrics.json, history.json, loss.png and the comparison videos of the

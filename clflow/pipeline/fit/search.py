@@ -379,10 +379,10 @@ class StartPolish:
         return state
 
 
-# A mapper of the starts' polishes (``Optimization.map_starts``) takes the polisher, the state
-# the search ended in, the indices of the starts to polish, whether to resume their
-# checkpoints, the most iterations they may run now and where their rows go, and returns
-# the records of StartPolish.polish in start order.
+#: A mapper of the starts' polishes (``Optimization.map_starts``): (the polisher, the state
+#: the search ended in, the indices of the starts to polish, whether to resume their
+#: checkpoints, where their rows go) -> the records of StartPolish.polish in start order.
+StartsMapper = Callable[[StartPolish, OptimizerState, Iterable[int], bool, Callable[[dict], None]], list[dict]]
 
 
 def serial_starts(
@@ -390,12 +390,12 @@ def serial_starts(
     begin: OptimizerState,
     starts: Iterable[int],
     resume: bool = False,
-    max_iterations: int | None = None,
     progress: Callable[[dict], None] = quiet,
+    max_iterations: int | None = None,
 ) -> list[dict]:
     """Polish each of ``starts`` (indices into begin.starts) one after another in this process
     (``max_iterations``: at most this many in all), each row to ``progress``; records of
-    StartPolish.polish."""
+    StartPolish.polish. A :data:`StartsMapper`."""
     records = []
     for k in starts:
         records.append(polisher.polish(begin, k, resume, max_iterations, progress))
@@ -408,18 +408,11 @@ def _polish_task(polisher: StartPolish, begin: OptimizerState, start: int, resum
     return polisher.polish(begin, start, resume=resume)
 
 
-def starts_on_ray(**ray_options) -> Callable[..., list[dict]]:
+def starts_on_ray(**ray_options) -> StartsMapper:
     """A mapper whose every start's polish is a Ray task (clflow.parallel.map_on_ray,
     ``ray_options`` its keywords), its rows shown as it finishes."""
 
-    def map_starts(
-        polisher: StartPolish,
-        begin: OptimizerState,
-        starts: Iterable[int],
-        resume: bool = False,
-        max_iterations: int | None = None,
-        progress: Callable[[dict], None] = quiet,
-    ) -> list[dict]:
+    def map_starts(polisher, begin, starts, resume, progress):
         from clflow.parallel import map_on_ray
 
         def finished(index: int, record: dict) -> None:
