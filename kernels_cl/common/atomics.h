@@ -13,7 +13,9 @@
  * the other work-items' compare-and-swaps (oclgrind reports it).
  *
  * The order of concurrent additions is not fixed, so sums through this helper are not
- * bit-reproducible: CPU paths use private copies reduced in a fixed order instead. */
+ * bit-reproducible: only the P2G asked for as "atomic" (p2g_atomic.cl) and scatter_add.cl take
+ * it; the default P2G shapes sum in a fixed order without float atomics (private copies on CPU
+ * devices, a gather per node on GPUs). */
 #ifndef CLFLOW_ATOMICS_H
 #define CLFLOW_ATOMICS_H
 
@@ -31,6 +33,9 @@
 #define CLFLOW_PTX_ATOMIC_ADD 0
 #endif
 
+/* For the width of real: whether the device's own float add is there (CLFLOW_NATIVE_ATOMIC_ADD)
+ * and, for the compare-and-swap fallback, an unsigned integer of that width (real_bits), the
+ * bit casts both ways and that width's compare-and-swap. */
 #if REAL_IS_DOUBLE
 #if CLFLOW_FLOAT_ATOMICS && defined(__opencl_c_ext_fp64_global_atomic_add)
 #define CLFLOW_NATIVE_ATOMIC_ADD 1
@@ -38,12 +43,20 @@
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 #define CLFLOW_NATIVE_ATOMIC_ADD 0
 #endif
+typedef ulong real_bits;
+#define REAL_AS_BITS as_ulong
+#define BITS_AS_REAL as_double
+#define BITS_CMPXCHG atom_cmpxchg
 #else
 #if CLFLOW_FLOAT_ATOMICS && defined(__opencl_c_ext_fp32_global_atomic_add)
 #define CLFLOW_NATIVE_ATOMIC_ADD 1
 #else
 #define CLFLOW_NATIVE_ATOMIC_ADD 0
 #endif
+typedef uint real_bits;
+#define REAL_AS_BITS as_uint
+#define BITS_AS_REAL as_float
+#define BITS_CMPXCHG atomic_cmpxchg
 #endif
 
 inline void atomic_add_real(volatile __global real *p, real v)
@@ -66,19 +79,12 @@ inline void atomic_add_real(volatile __global real *p, real v)
 #else
     atomic_fetch_add_explicit((volatile __global atomic_float *)p, v, memory_order_relaxed, memory_scope_device);
 #endif
-#elif REAL_IS_DOUBLE
-    volatile __global ulong *bits = (volatile __global ulong *)p;
-    ulong seen = as_ulong(0.0), expected;
-    do {
-        expected = seen;
-        seen = atom_cmpxchg(bits, expected, as_ulong(as_double(expected) + v));
-    } while (seen != expected);
 #else
-    volatile __global uint *bits = (volatile __global uint *)p;
-    uint seen = as_uint(0.0f), expected;
+    volatile __global real_bits *bits = (volatile __global real_bits *)p;
+    real_bits seen = REAL_AS_BITS((real)0), expected;
     do {
         expected = seen;
-        seen = atomic_cmpxchg(bits, expected, as_uint(as_float(expected) + v));
+        seen = BITS_CMPXCHG(bits, expected, REAL_AS_BITS(BITS_AS_REAL(expected) + v));
     } while (seen != expected);
 #endif
 }

@@ -1,6 +1,8 @@
 /* Particles sorted by cell (clflow.runtime.sort.counting_sort of particle_cells' keys): the
  * particles of base cell c, in index order, are the slots [starts[c], starts[c + 1]). A node's
- * gather visits the 27 base cells whose stencil reaches it. */
+ * gather visits the 27 base cells whose stencil reaches it (gather_run), each cell's slots in
+ * order, and reads each slot's record (gather_record): the gathers of p2g_gather.cl and
+ * g2p_adjoint_gather.cl. */
 #ifndef CLFLOW_MPM_CELLS_H
 #define CLFLOW_MPM_CELLS_H
 
@@ -14,6 +16,30 @@ inline int2 cell_run(const grid_t *g, __global const int *starts, const int bi, 
         return (int2)(0, 0);
     const long cell = grid_index(g, bi, bj, bk);
     return (int2)(starts[cell], starts[cell + 1]);
+}
+
+/* The 27 base cells whose stencil reaches node (i, j, k), in the fixed order of a node's gather:
+ * cell o = 9a + 3b + c (a, b, c in 0..2) is (i - a, j - b, k - c), and the node is at offset
+ * (a, b, c) from the base of each of its particles' stencils. gather_run: cell o's slots. */
+inline int2 gather_run(const grid_t *g, __global const int *starts, const int i, const int j, const int k, const int o)
+{
+    return cell_run(g, starts, i - o / 9, j - o / 3 % 3, k - o % 3);
+}
+
+/* Slot s's record (`width` reals a slot, the particle's position x first) and, at the node of
+ * gather cell o (gather_run), the particle's weight *w and d = x_node - x (m). */
+inline __global const real *gather_record(const grid_t *g, __global const real *records, const int width, const int s,
+                                          const int o, real *w, real *d)
+{
+    __global const real *rec = records + (long)width * s;
+    const real xp[3] = {rec[0], rec[1], rec[2]};
+    const stencil_t st = make_stencil(g, xp);
+    const int a = o / 9, b = o / 3 % 3, c = o % 3;
+    *w = st.w[0][a] * st.w[1][b] * st.w[2][c];
+    d[0] = (a - st.fx[0]) * g->dx;
+    d[1] = (b - st.fx[1]) * g->dx;
+    d[2] = (c - st.fx[2]) * g->dx;
+    return rec;
 }
 
 #endif /* CLFLOW_MPM_CELLS_H */

@@ -97,11 +97,16 @@ inline void chunk_box(const grid_t *g, __global const real *x, const int begin, 
     }
 }
 
-/* Copy k of `copies` [nodes, channels] arrays, zeroed inside ``box`` (chunk_box), the box saved
- * as boxes[6k .. 6k+5] for the column sum. */
-inline __global real *boxed_copy(const grid_t *g, __global real *copies, const int k, const int channels,
-                                 const int *box, __global int *boxes)
+/* Work-item k's grid copy: its particle chunk [*begin, *end) = [k*chunk, (k+1)*chunk) cut at n,
+ * and copy k of the consecutive [nodes, channels] arrays at `copies`, zeroed inside the chunk's
+ * box (chunk_box), the box saved as boxes[6k .. 6k+5] for the column sum. */
+inline __global real *chunk_copy(const grid_t *g, __global const real *x, const int n, const int k, const int chunk,
+                                 const int channels, __global real *copies, __global int *boxes, int *begin, int *end)
 {
+    *begin = min(n, k * chunk);
+    *end = min(n, (k + 1) * chunk);
+    int box[6];
+    chunk_box(g, x, *begin, *end, box);
     __global real *copy = copies + (long)k * channels * g->nx * g->ny * g->nz;
     for (int i = box[0]; i < box[3]; ++i)
         for (int j = box[1]; j < box[4]; ++j) {
@@ -117,7 +122,7 @@ inline __global real *boxed_copy(const grid_t *g, __global real *copies, const i
 /* Row (i, j) = (row / ny, row % ny) of the column sum of `copies` private grid copies
  * ([nodes, channels] each, consecutive in grid_copies): the row's channels * nz contiguous
  * reals of grid = the sum over copies k = 0, 1, ..., in that order, of copy k's part of the
- * row that lies in box k (boxed_copy; zero elsewhere). Returns the nodes [*lo, *hi) of the row
+ * row that lies in box k (chunk_copy; zero elsewhere). Returns the nodes [*lo, *hi) of the row
  * that some box holds (lo = nz, hi = 0 when none): outside them the row is zero. */
 inline void sum_copies_row(const int nx, const int ny, const int nz, const int channels, const int copies,
                            __global const int *boxes, __global const real *grid_copies, __global real *grid,

@@ -4,9 +4,9 @@
  * The same sums as p2g_private.cl (per node i and particle p with d = x_i - x_p:
  *   m_i += w m_p,  mv_i += w [m_p (v_p + dt a_p) + affine d],  mv0_i += w m_p (v_p + C_p d))
  * but each node adds its particles itself, in a fixed order: the 27 base cells whose
- * stencil reaches it in the order (a, b, c), each cell's particles in index order. No
- * atomics and no private grid copies: the result repeats to the bit on any device and any
- * number of work-items.
+ * stencil reaches it in the order of gather_run (mpm/cells.h), each cell's particles in index
+ * order. No atomics and no private grid copies: the result repeats to the bit on any device
+ * and any number of work-items.
  *
  *   particle_cells : x -> key[p] = flat index of p's base cell, counted into starts
  *   (counting sort, clflow.runtime.sort: order = the particles by cell, starts[cell] = the
@@ -74,26 +74,21 @@ __kernel void p2g_gather(P2G_GRID_ARGS, __global const real *records, __global c
 #if CLFLOW_FLIP
     vec3r mv0_sum = 0;
 #endif
-    for (int a = 0; a < 3; ++a)
-        for (int b = 0; b < 3; ++b)
-            for (int c = 0; c < 3; ++c) {
-                const int2 run = cell_run(&g, starts, ni - a, nj - b, nk - c);
-                for (int s = run.x; s < run.y; ++s) {
-                    __global const real *rec = records + (long)P2G_REC * s;
-                    const real xp[3] = {rec[0], rec[1], rec[2]};
-                    const stencil_t st = make_stencil(&g, xp);
-                    const real w = st.w[0][a] * st.w[1][b] * st.w[2][c];
-                    const vec3r d = (vec3r)((a - st.fx[0]) * dx, (b - st.fx[1]) * dx, (c - st.fx[2]) * dx);
-                    const vec3r affine0 = vload3(0, rec + 7), affine1 = vload3(0, rec + 10),
-                                affine2 = vload3(0, rec + 13);
-                    m_sum += w * rec[3];
-                    mv_sum += w * (vload3(0, rec + 4) + (vec3r)(dot(affine0, d), dot(affine1, d), dot(affine2, d)));
+    for (int o = 0; o < 27; ++o) {
+        const int2 run = gather_run(&g, starts, ni, nj, nk, o);
+        for (int s = run.x; s < run.y; ++s) {
+            real w, da[3];
+            __global const real *rec = gather_record(&g, records, P2G_REC, s, o, &w, da);
+            const vec3r d = (vec3r)(da[0], da[1], da[2]);
+            const vec3r affine0 = vload3(0, rec + 7), affine1 = vload3(0, rec + 10), affine2 = vload3(0, rec + 13);
+            m_sum += w * rec[3];
+            mv_sum += w * (vload3(0, rec + 4) + (vec3r)(dot(affine0, d), dot(affine1, d), dot(affine2, d)));
 #if CLFLOW_FLIP
-                    const vec3r mC0 = vload3(0, rec + 19), mC1 = vload3(0, rec + 22), mC2 = vload3(0, rec + 25);
-                    mv0_sum += w * (vload3(0, rec + 16) + (vec3r)(dot(mC0, d), dot(mC1, d), dot(mC2, d)));
+            const vec3r mC0 = vload3(0, rec + 19), mC1 = vload3(0, rec + 22), mC2 = vload3(0, rec + 25);
+            mv0_sum += w * (vload3(0, rec + 16) + (vec3r)(dot(mC0, d), dot(mC1, d), dot(mC2, d)));
 #endif
-                }
-            }
+        }
+    }
     __global real *out = grid + GRID_CH * node;
     out[0] = m_sum;
     out[1] = mv_sum.x;

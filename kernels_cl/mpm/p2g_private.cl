@@ -118,10 +118,8 @@ __kernel void p2g_private(P2G_GRID_ARGS, P2G_PARTICLE_ARGS, const int copies, co
     if (k >= copies)
         return;
     const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
-    const int begin = min(n, k * chunk), end = min(n, (k + 1) * chunk);
-    int box[6];
-    chunk_box(&g, x, begin, end, box);
-    __global real *grid = boxed_copy(&g, grid_copies, k, GRID_CH, box, boxes);
+    int begin, end;
+    __global real *grid = chunk_copy(&g, x, n, k, chunk, GRID_CH, grid_copies, boxes, &begin, &end);
     for (int p0 = begin; p0 < end; p0 += CLFLOW_SIMD_LANES)
         p2g_lanes(&g, p0, end, dt, x, v, C, tau, mass, volume, group, accel, grid);
 }

@@ -26,7 +26,7 @@ __kernel void g2p_adjoint_records(const int nx, const int ny, const int nz, cons
 }
 
 /* A work-item per node: grid_v_bar[node] = sum over the particles whose stencil reaches it (27
- * base cells in the order (a, b, c), each cell's slots in order) of w (u + B d)[, w flip vbar']. */
+ * base cells in the order of gather_run, each cell's slots in order) of w (u + B d)[, w flip vbar']. */
 __kernel void g2p_adjoint_gather(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
                                  const real oz, __global const real *records, __global const int *starts,
                                  __global real *grid_v_bar)
@@ -39,27 +39,22 @@ __kernel void g2p_adjoint_gather(const int nx, const int ny, const int nz, const
     real sum[GV_CH];
     for (int q = 0; q < GV_CH; ++q)
         sum[q] = 0;
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j)
-            for (int k = 0; k < 3; ++k) {
-                const int2 run = cell_run(&g, starts, ni - i, nj - j, nk - k);
-                for (int s = run.x; s < run.y; ++s) {
-                    __global const real *rec = records + (long)G2P_ADJ_REC * s;
-                    const real xp[3] = {rec[0], rec[1], rec[2]};
-                    const stencil_t st = make_stencil(&g, xp);
-                    const real w = st.w[0][i] * st.w[1][j] * st.w[2][k];
-                    const real d[3] = {(i - st.fx[0]) * dx, (j - st.fx[1]) * dx, (k - st.fx[2]) * dx};
-                    __global const real *u = rec + 3, *B = rec + 6;
-                    for (int a = 0; a < 3; ++a) {
-                        const real Bd = B[3 * a] * d[0] + B[3 * a + 1] * d[1] + B[3 * a + 2] * d[2];
-                        sum[a] += w * (u[a] + Bd);
-                    }
-#if CLFLOW_FLIP
-                    for (int a = 0; a < 3; ++a)
-                        sum[3 + a] += w * rec[15 + a];
-#endif
-                }
+    for (int o = 0; o < 27; ++o) {
+        const int2 run = gather_run(&g, starts, ni, nj, nk, o);
+        for (int s = run.x; s < run.y; ++s) {
+            real w, d[3];
+            __global const real *rec = gather_record(&g, records, G2P_ADJ_REC, s, o, &w, d);
+            __global const real *u = rec + 3, *B = rec + 6;
+            for (int a = 0; a < 3; ++a) {
+                const real Bd = B[3 * a] * d[0] + B[3 * a + 1] * d[1] + B[3 * a + 2] * d[2];
+                sum[a] += w * (u[a] + Bd);
             }
+#if CLFLOW_FLIP
+            for (int a = 0; a < 3; ++a)
+                sum[3 + a] += w * rec[15 + a];
+#endif
+        }
+    }
     for (int q = 0; q < GV_CH; ++q)
         grid_v_bar[GV_CH * node + q] = sum[q];
 }

@@ -20,10 +20,8 @@ __kernel void g2p_adjoint_private(const int nx, const int ny, const int nz, cons
     if (k >= copies)
         return;
     const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
-    const int begin = min(n, k * chunk), end = min(n, (k + 1) * chunk);
-    int box[6];
-    chunk_box(&g, x_in, begin, end, box);
-    __global real *grid_v_bar = boxed_copy(&g, grid_v_bar_copies, k, GV_CH, box, boxes);
+    int begin, end;
+    __global real *grid_v_bar = chunk_copy(&g, x_in, n, k, chunk, GV_CH, grid_v_bar_copies, boxes, &begin, &end);
     for (int p = begin; p < end; ++p)
         g2p_adjoint_particle(&g, p, dt, t, flip, x_in, v_out, release_time, grid_v, grid_dv, x_bar_out, v_bar_out,
                              C_bar_out, grid_v_bar, x_bar, 0);
