@@ -94,16 +94,16 @@ def search_hypothesis(
     progress: Callable[[str, dict], None] | None = None,
     force_video: bool = False,
 ) -> dict:
-    """The global search of ``hypothesis`` (of :func:`hypotheses`; ``progress(name, row)``)
-    of ``cfg`` (resolved; in its own folder,
-    the observed flow copied from ``cfg.output`` when it is there). Returns {"record": its
+    """The global search of ``hypothesis`` (of :func:`hypotheses`) of ``cfg`` (resolved; in
+    its own folder, the observed flow copied from ``cfg.output`` when it is there;
+    ``progress(name, row)``, name its :func:`hypothesis_name`). Returns {"record": its
     entry in hypotheses.json, "state": the optimiser state its search ended in (None when it
     failed), "config": its config}; a failure other than the user's config is recorded."""
     from clflow.pipeline.fit import Optimization
     from clflow.pipeline.fit.guidance import observed_flow_cache
     from clflow.pipeline.simulation import SubstepLimitError
 
-    hyp, material = hypothesis_config(cfg, hypothesis), hypothesis_name(cfg, hypothesis)
+    hyp, name = hypothesis_config(cfg, hypothesis), hypothesis_name(cfg, hypothesis)
     hyp.output.mkdir(parents=True, exist_ok=True)
     for view in range(1 + len(cfg.more_views)):  # the observed flow is computed once for all
         shared, own = observed_flow_cache(cfg, view), observed_flow_cache(hyp, view)
@@ -112,15 +112,15 @@ def search_hypothesis(
     start = time.perf_counter()
     try:
         opt = Optimization(
-            hyp, progress=(lambda row: progress(material, row)) if progress else None, force_video=force_video
+            hyp, progress=(lambda row: progress(name, row)) if progress else None, force_video=force_video
         )
         state = opt.load_state() if resume and opt.checkpoint.exists() else opt.problem.initial_state()
         if not state.searched:
             state = opt.search.global_search(state, opt.progress)
-    except ClflowError as exc:  # no sample of this material ran: the others may
+    except ClflowError as exc:  # no sample of this hypothesis ran: the others may
         if isinstance(exc, InputError) and not isinstance(exc, SubstepLimitError):
             raise  # the user's config: no hypothesis can fix that
-        log.warning("hypothesis %s failed: %s", material, exc)
+        log.warning("hypothesis %s failed: %s", name, exc)
         return {
             "record": {"failed": str(exc), "seconds_this_run": time.perf_counter() - start},
             "state": None,
@@ -128,7 +128,7 @@ def search_hypothesis(
         }
     finite = [r for r in state.search if r["loss"] is not None]
     best = min(finite, key=lambda r: r["loss"])
-    log.info("hypothesis %s: best search loss %.4g at %s", material, best["loss"], best["params"])
+    log.info("hypothesis %s: best search loss %.4g at %s", name, best["loss"], best["params"])
     record = {
         "loss": best["loss"],
         "parameters": best["params"],
@@ -175,14 +175,14 @@ def choose_material(
     cfg.output.mkdir(parents=True, exist_ok=True)
     record, states, configs = {}, {}, {}
     names = [hypothesis_name(cfg, h) for h in hypotheses(cfg)]
-    for material, found in zip(names, search_all(cfg, resume, progress, force_video)):
-        record[material] = found["record"]
+    for name, found in zip(names, search_all(cfg, resume, progress, force_video)):
+        record[name] = found["record"]
         if found["state"] is None:
             continue
         for view in range(1 + len(cfg.more_views)):
             if not observed_flow_cache(cfg, view).exists():
                 copy_file(observed_flow_cache(found["config"], view), observed_flow_cache(cfg, view))
-        states[material], configs[material] = found["state"], found["config"]
+        states[name], configs[name] = found["state"], found["config"]
     ran = [m for m in record if "loss" in record[m]]
     if not ran:
         raise ClflowError(
