@@ -18,9 +18,10 @@ and the static ones once::
 ``frame_000.ply ...`` are standard 3DGS PLY files in the splat file's own frame and units,
 so they overlay the input scene in any 3DGS viewer: the whole scene per frame, or (object
 only) the object per frame and ``static.ply`` once; or the same as ``.compressed.ply``
-(SuperSplat / PlayCanvas). With several objects a plain PLY has one more float property,
-``object``: the Gaussian's object (an index into the npz's object_names), -1 for a static
-one (the compressed layout has no room for it: the npz holds it). A PLY cannot say that a
+(SuperSplat / PlayCanvas). Each Gaussian of a PLY keeps its object (an index into the npz's
+object_names, 0 for the one object of a single-object config), -1 for a static one: a plain
+PLY as one more float property, ``object``; a compressed one as runs of vertices named in a
+header comment (:mod:`clflow.splat.compressed_ply`). A PLY cannot say that a
 Gaussian's SH turned with it, so the object's SH coefficients are written rotated into each frame
 (:func:`clflow.splat.sh.rotate_sh`): a viewer shows the view-dependent colours clflow's
 renders show.
@@ -102,7 +103,7 @@ def export_size(prepared, frames: int, preview: bool) -> tuple[int, int]:
     colours = g.sh[0].numel() if g.sh is not None else g.colors.shape[1]
     particles = prepared.setup.particles.positions.shape[0]
     cam = prepared.camera
-    ply = 14 + colours + (len(prepared.cfg.objects) > 1)  # floats per PLY Gaussian; several objects: + object
+    ply = 15 + colours  # floats per PLY Gaussian, its object's included
     per_frame = 4 * (21 * n + (n + s) * ply) + (6 * cam.width * cam.height if preview else 0)
     held = 4 * (TRAJECTORY_REALS * particles + 21 * n + (n + s) * (22 + colours))  # trajectory, frames, stacks
     return (frames + 1) * per_frame, (frames + 1) * held
@@ -146,17 +147,13 @@ def export_gaussians(result, folder: Path, object_only: bool = False, compressed
     objects = prepared.gaussian_objects
     arrays["object"] = objects.numpy().astype(np.int32)
     arrays["object_names"] = np.array(cfg.object_names)
-    # several objects: each PLY Gaussian's object (-1 static), which the compressed layout cannot hold
-    several = len(cfg.objects) > 1 and not compressed
-    labels = torch.cat([objects, torch.full((static.means.shape[0],), -1, dtype=torch.long)]) if several else None
+    labels = torch.cat([objects, torch.full((static.means.shape[0],), -1, dtype=torch.long)])  # each PLY Gaussian's
     with atomic_path(folder / NPZ_NAME) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **arrays)
     if object_only:
-        static_labels = None if labels is None else labels[n:]
-        save(folder / f"{STATIC_NAME}{suffix}", file_gaussians(static, cfg.scale, cfg.up, 0, static_labels))
+        save(folder / f"{STATIC_NAME}{suffix}", file_gaussians(static, cfg.scale, cfg.up, 0, labels[n:]))
     for t, g in enumerate(frames):
-        part = g.select(torch.arange(n)) if object_only else g
-        shown = None if labels is None else labels[:n] if object_only else labels
+        part, shown = (g.select(torch.arange(n)), labels[:n]) if object_only else (g, labels)
         save(folder / f"frame_{t:03d}{suffix}", file_gaussians(part, cfg.scale, cfg.up, turned=n, objects=shown))
 
 

@@ -76,7 +76,7 @@ def _resolved(cfg: SceneConfig, k: int):
         if j == k
     ]
     wrong = [n for n in named if n not in known]
-    if wrong and not cfg.optimize.materials:  # hypotheses: checked against them (scene config)
+    if wrong and obj.name not in cfg.optimize.materials:  # its hypotheses: checked against them (scene config)
         raise InputError(
             f"{cfg.source}: the query chose {result.material}, which has no parameter "
             f"{', '.join(map(repr, wrong))} (optimize.parameters / evaluation.ground_truth)"

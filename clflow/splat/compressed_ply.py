@@ -18,19 +18,30 @@ binary little-endian elements::
 A field of b bits holds round(t (2^b - 1)) for t in [0, 1] the value's place between the
 chunk's bounds; the SH bytes cover [-4, 4) in steps of 1/32 (values beyond are clipped).
 Written here from the format's description (PlayCanvas's splat-transform is the reference).
+
+Gaussians with an integer feature ``object`` (clflow's exports: each Gaussian's object,
+-1 static) are written object by object, each object's along the Morton curve, and the
+header says which runs of vertices are which object::
+
+    comment clflow objects -1:5000 0:152 1:236       (value:count, in file order)
+
+The layout has no room for another vertex property or element: the PlayCanvas engine reads
+a file as compressed only when its elements and their properties are exactly the ones above,
+and every reader skips comments.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import re
 
 import numpy as np
 import torch
 
 from clflow.errors import InputError
 from clflow.splat.gaussians import Gaussians
-from clflow.splat.ply_format import ply_vertex_properties, read_ply_elements, write_ply_elements
+from clflow.splat.ply_format import ply_comments, ply_vertex_properties, read_ply_elements, write_ply_elements
 from clflow.splat.sh import SH_C0, rgb_to_sh0, sh_degree_of
 
 CHUNK = 256  # Gaussians per chunk
@@ -41,6 +52,8 @@ CHUNK_FIELDS = ("min_x", "min_y", "min_z", "max_x", "max_y", "max_z",
                 "min_scale_x", "min_scale_y", "min_scale_z", "max_scale_x", "max_scale_y", "max_scale_z",
                 "min_r", "min_g", "min_b", "max_r", "max_g", "max_b")  # fmt: skip
 VERTEX_FIELDS = ("packed_position", "packed_rotation", "packed_scale", "packed_color")
+OBJECT_FEATURE = "object"  # the feature written as runs of vertices
+OBJECT_COMMENT = "clflow objects"  # the header comment of those runs: OBJECT_COMMENT value:count ...
 
 
 def morton_order(points: np.ndarray) -> np.ndarray:
@@ -133,9 +146,11 @@ def _store_bounds(chunks: np.ndarray, values: np.ndarray, first: int, limit: flo
 
 def save_compressed_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
     """Write ``gaussians`` as a compressed PLY (layout in the module docstring), sorted by
-    :func:`morton_order` of their centres, atomically. Gaussians with plain RGB ``colors``
-    are written as degree 0; deformed or turned ones are refused."""
+    :func:`morton_order` of their centres (by object first when they have the feature
+    ``object``, kept as the header's runs), atomically. Gaussians with plain RGB ``colors``
+    are written as degree 0; other features are not kept; deformed or turned ones are refused."""
     gaussians.check_undeformed(str(path))
+    objects = _objects_of(gaussians, path)
     g = gaussians.detach().to(dtype=torch.float64, device="cpu")
     if g.sh is not None:
         sh = g.sh.numpy()
@@ -146,6 +161,8 @@ def save_compressed_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
             f"{path}: a compressed PLY stores RGB; these Gaussians have {g.colors.shape[1]} colour channels"
         )
     order = morton_order(g.means.numpy())
+    if objects is not None:
+        order = order[np.argsort(objects[order], kind="stable")]  # object by object, each along the curve
     means, log_scales, quats = g.means.numpy()[order], g.log_scales.numpy()[order], g.quats.numpy()[order]
     sh, opacities = sh[order], g.opacities.numpy()[order]
     n = len(order)
@@ -169,7 +186,35 @@ def save_compressed_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
         codes = np.clip(np.trunc((rest / (2 * SH_RANGE) + 0.5) * 256), 0, 255).astype(np.uint8)
         table.view(np.uint8).reshape(n, count)[:] = codes
         elements["sh"] = table
-    write_ply_elements(path, elements, comment="clflow compressed 3DGS (PlayCanvas layout)")
+    comments = ["clflow compressed 3DGS (PlayCanvas layout)"]
+    if objects is not None:
+        values, counts = np.unique(objects[order], return_counts=True)  # sorted: one run per object
+        comments.append(" ".join([OBJECT_COMMENT, *(f"{v}:{c}" for v, c in zip(values, counts))]))
+    write_ply_elements(path, elements, comments=tuple(comments))
+
+
+def _objects_of(g: Gaussians, path: str | os.PathLike) -> np.ndarray | None:
+    """[N] int64: the feature ``object`` of ``g`` (None without it); InputError unless integers."""
+    if OBJECT_FEATURE not in g.feature_names:
+        return None
+    column = g.features[:, g.feature_names.index(OBJECT_FEATURE)].detach().double().cpu().numpy()
+    if not np.array_equal(column, np.round(column)):
+        raise InputError(f"{path}: the feature {OBJECT_FEATURE!r} must hold integers (each Gaussian's object)")
+    return column.astype(np.int64)
+
+
+def _read_objects(path: str | os.PathLike, n: int) -> np.ndarray | None:
+    """[n] int64: each vertex's object, from the header's runs (None when it has none)."""
+    lines = [c.split()[2:] for c in ply_comments(path) if c.split()[:2] == OBJECT_COMMENT.split()]
+    if not lines:
+        return None
+    pairs = [[int(v) for v in run.split(":")] for run in lines[0] if re.fullmatch(r"-?\d+:\d+", run)]
+    if len(lines) > 1 or len(pairs) < len(lines[0]) or sum(count for _, count in pairs) != n:
+        raise InputError(
+            f"{path}: the header's '{OBJECT_COMMENT}' comment must be one line of value:count runs covering "
+            f"the {n} Gaussians, got {' | '.join(' '.join(line) for line in lines)!r}"
+        )
+    return np.repeat([value for value, _ in pairs], [count for _, count in pairs]).astype(np.int64)
 
 
 def is_compressed_ply(path: str | os.PathLike) -> bool:
@@ -192,7 +237,8 @@ def position_error(path: str | os.PathLike) -> float:
 def load_compressed_ply(path: str | os.PathLike) -> Gaussians:
     """Read a compressed PLY (SuperSplat / PlayCanvas / :func:`save_compressed_ply`) as
     float32 :class:`Gaussians` in file order; opacities are kept inside (0, 1) by half a
-    step. Raises :class:`InputError` naming the file for a malformed one."""
+    step; the header's object runs, when it has them, as the feature ``object``. Raises
+    :class:`InputError` naming the file for a malformed one."""
     try:
         elements = read_ply_elements(path, ("chunk", "vertex"), optional=("sh",))
     except InputError as exc:
@@ -241,10 +287,13 @@ def load_compressed_ply(path: str | os.PathLike) -> Gaussians:
         rest = ((unit - 0.5) * 2 * SH_RANGE).reshape(n, 3, count // 3).transpose(0, 2, 1)
         sh = np.concatenate([sh, rest], 1)
     f32 = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
+    objects = _read_objects(path, n)
     return Gaussians(
         means=f32(means),
         quats=f32(_unpack_rotations(field("packed_rotation"))),
         log_scales=f32(log_scales),
         opacity_logits=f32(np.log(alpha / (1 - alpha))),
         sh=f32(sh),
+        features=None if objects is None else f32(objects[:, None]),
+        feature_names=() if objects is None else (OBJECT_FEATURE,),
     ).validate(str(path))

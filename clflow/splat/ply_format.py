@@ -51,16 +51,26 @@ def ply_vertex_properties(path: str | os.PathLike) -> list[str]:
     """The vertex element's property names, read from the header alone (the first
     MAX_HEADER_BYTES of the file); InputError naming the file for a malformed header or no
     vertex element."""
+    elements = {e.name: e for e in _read_header(path)[1]}
+    if "vertex" not in elements:
+        raise InputError(f"{Path(path)}: no 'vertex' element (elements: {', '.join(elements) or 'none'})")
+    return [name for name, _ in elements["vertex"].properties]
+
+
+def ply_comments(path: str | os.PathLike) -> list[str]:
+    """The header's comment lines, each without its ``comment `` keyword, in file order."""
+    return _read_header(path)[3]
+
+
+def _read_header(path: str | os.PathLike) -> tuple[str, list[_Element], int, list[str]]:
+    """:func:`_parse_header` of the first MAX_HEADER_BYTES of the file at ``path``."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
             head = fh.read(MAX_HEADER_BYTES)
     except OSError as exc:
         raise InputError(f"{path}: cannot read PLY file ({exc.strerror})") from None
-    elements = {e.name: e for e in _parse_header(head, path)[1]}
-    if "vertex" not in elements:
-        raise InputError(f"{path}: no 'vertex' element (elements: {', '.join(elements) or 'none'})")
-    return [name for name, _ in elements["vertex"].properties]
+    return _parse_header(head, path)
 
 
 def read_ply_elements(
@@ -75,7 +85,7 @@ def read_ply_elements(
         data = path.read_bytes()
     except OSError as exc:
         raise InputError(f"{path}: cannot read PLY file ({exc.strerror})") from None
-    fmt, elements, body_start = _parse_header(data, path)
+    fmt, elements, body_start, _ = _parse_header(data, path)
     names = [e.name for e in elements]
     wanted = tuple(wanted) + tuple(name for name in optional if name in names)
     for name in wanted:
@@ -124,12 +134,13 @@ def write_ply_vertices(path: str | os.PathLike, table: np.ndarray, *, ascii: boo
 
 
 def write_ply_elements(
-    path: str | os.PathLike, elements: dict[str, np.ndarray], *, ascii: bool = False, comment: str | None = None
+    path: str | os.PathLike, elements: dict[str, np.ndarray], *, ascii: bool = False, comments: tuple[str, ...] = ()
 ) -> None:
     """Write structured arrays as PLY elements in the order given (one property per field),
-    atomically: binary little-endian, or ASCII (float32 in 9 significant digits)."""
+    atomically: binary little-endian, or ASCII (float32 in 9 significant digits); each of
+    ``comments`` (one line each) a header comment."""
     header = ["ply", f"format {'ascii' if ascii else 'binary_little_endian'} 1.0"]
-    header += [f"comment {comment}"] if comment else []
+    header += [f"comment {comment}" for comment in comments]
     bodies = []
     for name, table in elements.items():
         if table.dtype.names is None or table.ndim != 1:
@@ -152,7 +163,8 @@ def write_ply_elements(
         tmp.write_bytes(("\n".join(header) + "\n").encode("ascii") + b"".join(bodies))
 
 
-def _parse_header(data: bytes, path: Path) -> tuple[str, list[_Element], int]:
+def _parse_header(data: bytes, path: Path) -> tuple[str, list[_Element], int, list[str]]:
+    """(format, elements, offset of the body, comments) of a PLY file's bytes ``data``."""
     if not data.startswith(b"ply"):
         raise InputError(f"{path}: not a PLY file (it does not start with 'ply')")
     match = re.search(rb"end_header\r?\n", data[:MAX_HEADER_BYTES])
@@ -160,8 +172,11 @@ def _parse_header(data: bytes, path: Path) -> tuple[str, list[_Element], int]:
         raise InputError(f"{path}: malformed PLY header: no 'end_header' line in the first {MAX_HEADER_BYTES} bytes")
     fmt = None
     elements: list[_Element] = []
+    comments: list[str] = []
     for number, raw in enumerate(data[: match.start()].decode("ascii", "replace").splitlines()[1:], start=2):
         words = raw.split()
+        if words and words[0] == "comment":
+            comments.append(raw.strip()[len("comment") :].strip())
         if not words or words[0] in ("comment", "obj_info"):
             continue
         where = f"{path}: header line {number} {raw.strip()!r}"
@@ -188,7 +203,7 @@ def _parse_header(data: bytes, path: Path) -> tuple[str, list[_Element], int]:
             raise InputError(f"{where}: unknown header keyword {words[0]!r}")
     if fmt is None:
         raise InputError(f"{path}: malformed PLY header: no 'format' line")
-    return fmt, elements, match.end()
+    return fmt, elements, match.end(), comments
 
 
 def _dtype(element: _Element, byte_order: str) -> np.dtype:

@@ -53,7 +53,8 @@ def test_exported_frame_renders_like_clflow(deformed, tmp_path):
     with torch.no_grad():
         want = render_rgb(result.scene_at(1), camera)
         cam = to_file_camera(camera, up_rotation(cfg.up), cfg.scale)
-        show = lambda g: rasterize(g, cam, background=(1.0, 1.0, 1.0), render_depth=False).image  # noqa: E731
+        colours = lambda g: dataclasses.replace(g, features=None, feature_names=())  # noqa: E731
+        show = lambda g: rasterize(colours(g), cam, background=(1.0, 1.0, 1.0), render_depth=False).image  # noqa: E731
         whole = show(load_ply(tmp_path / "all" / "frame_001.ply"))
         parts = show(
             Gaussians.cat([load_ply(tmp_path / "split" / "frame_001.ply"), load_ply(tmp_path / "split" / "static.ply")])
@@ -65,6 +66,9 @@ def test_exported_frame_renders_like_clflow(deformed, tmp_path):
     assert (unturned - want).abs().max() > 0.1  # without the SH rotation the colours differ
     assert len(load_ply(tmp_path / "split" / "frame_000.ply")) == 60
     assert len(load_ply(tmp_path / "split" / "static.ply")) == 40 and not (tmp_path / "all" / "static.ply").exists()
+    # each Gaussian's object: the one object's index 0, -1 static
+    objects = lambda name: load_ply(tmp_path / name).features[:, 0].tolist()  # noqa: E731
+    assert objects("all/frame_001.ply") == [0] * 60 + [-1] * 40 and objects("split/static.ply") == [-1] * 40
 
 
 def test_simulate_object_only_and_compressed(quick_demo, tmp_path):
@@ -91,6 +95,9 @@ def test_simulate_object_only_and_compressed(quick_demo, tmp_path):
         extent = float((standard.means.max(0).values - standard.means.min(0).values).max())
         distance = torch.cdist(small.means, standard.means).min(1).values  # the compressed file is in Morton order
         assert float(distance.max()) < extent / 1000  # within a quantisation step (11 bits per chunk)
+        assert small.feature_names == standard.feature_names == ("object",)
+        assert sorted(small.features[:, 0].tolist()) == sorted(standard.features[:, 0].tolist())
+    assert set(last.features[:, 0].tolist()) == {0} and set(static.features[:, 0].tolist()) == {-1}
     for flag in ("--object-only", "--compressed-ply"):
         res = CliRunner().invoke(cli, ["simulate", flag, "-o", str(tmp_path / "p")])
         assert res.exit_code == 2 and f"{flag} needs a scene CONFIG" in res.output

@@ -214,3 +214,36 @@ def test_the_flow_losss_gradient_per_object_matches_finite_differences(tmp_path)
         # E, 6 % for the angle, 0.5 % for the velocity); the float64 test above holds the
         # simulation to 0.2 %
         assert base.grads[name] == pytest.approx(numeric, rel=0.1), (name, base.grads, numeric)
+
+
+def test_material_hypotheses_of_one_object_among_several(tmp_path):
+    """optimize.material names the cube's hypotheses in a scene of two: each combination is
+    searched in its folder and recorded by its name, and the best is optimised."""
+    import json
+
+    truth = fit_config(tmp_path)
+    res = run_cli("simulate", write_config(tmp_path, truth, "truth.yaml"), "-o", tmp_path / "truth", "--preview", "png")
+    assert res.exit_code == 0, res.output
+    data = fit_config(tmp_path)
+    data["video"] = str(tmp_path / "truth" / "guidance")
+    data["flow"] = {"bias_correction": "none"}
+    data["optimize"] = {
+        "parameters": ["jelly.youngs_modulus", "jelly.viscosity", "heap.friction_angle"],
+        "material": {"jelly": ["elastic", "newtonian"]},
+        "bounds": {"jelly.youngs_modulus": [1.0e4, 4.0e4], "jelly.viscosity": [1.0, 1.0e3]},
+        "search": {"samples": 4, "object_samples": 0},
+        "iterations": 1,
+    }
+    res = run_cli("optimize", write_config(tmp_path, data), "-o", tmp_path / "fit")
+    assert res.exit_code == 0, res.output
+    record = json.loads((tmp_path / "fit" / "hypotheses.json").read_text())
+    assert set(record["hypotheses"]) == {"jelly-elastic", "jelly-newtonian"}
+    assert all(r["samples"] == 4 for r in record["hypotheses"].values())
+    assert set(record["hypotheses"]["jelly-newtonian"]["parameters"]) == {"jelly.viscosity", "heap.friction_angle"}
+    for name in record["hypotheses"]:
+        assert (tmp_path / "fit" / "hypotheses" / name / "checkpoint.json").is_file()
+    assert record["chosen"] == "jelly-elastic" and f"material: {record['chosen']} fits best" in res.output
+    params = json.loads((tmp_path / "fit" / "params.json").read_text())
+    assert params["objects"]["jelly"]["material"] == "elastic" and params["objects"]["heap"]["material"] == "sand"
+    assert set(params["optimized"]) == {"jelly.youngs_modulus", "heap.friction_angle"}
+    assert json.loads((tmp_path / "fit" / "metrics.json").read_text())["material_hypotheses"] == record

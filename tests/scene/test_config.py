@@ -370,7 +370,7 @@ def test_a_set_value_nested_too_deep_or_unreadable_is_one_line(scene_yaml):
 def test_material_hypotheses_check_parameters_against_all_of_them(folder):
     data = edit("optimize", {"parameters": ["youngs_modulus", "viscosity"], "material": ["Elastic", "newtonian"]})
     cfg = parse(data, folder)
-    assert cfg.optimize.materials == ("elastic", "newtonian")  # registry names
+    assert cfg.optimize.materials == {"object": ("elastic", "newtonian")}  # registry names, of the one object
     assert cfg.optimize.search is not None  # the search tells them apart: on by default
     with pytest.raises(
         InputError, match="optimize.parameters: 'yield_stress' is a parameter of none of the hypotheses"
@@ -460,7 +460,7 @@ def test_a_bad_override_is_one_line_naming_it(scene_yaml, item, message):
 
 def several(**changes):
     """GOOD with two objects (a list of entries with names) instead of object + material,
-    and no identification (not built for several objects yet)."""
+    without identification."""
     data = copy.deepcopy(GOOD)
     obj, material = data.pop("object"), data.pop("material")
     data["optimize"] = {"iterations": 5}
@@ -521,7 +521,38 @@ def test_objects_as_a_list_or_a_mapping_and_one_object_in_either_form(folder):
             {"evaluation": {"ground_truth": {"ghost.youngs_modulus": 1e4}}},
             r"evaluation.ground_truth: 'ghost.youngs_modulus': there is no object 'ghost' \(the objects: jelly, heap\)",
         ),
-        ({"optimize": {"material": ["sand"]}}, "optimize.material: not built yet for several objects"),
+        (
+            {"optimize": {"parameters": ["jelly.density"], "material": ["sand"]}},
+            r"optimize.material: with several objects must map object names \(jelly, heap\) to lists of materials",
+        ),
+        (
+            {"optimize": {"parameters": ["jelly.density"], "material": {"ghost": ["sand"]}}},
+            r"optimize.material.ghost: there is no object 'ghost' \(the objects: jelly, heap\)",
+        ),
+        (
+            {"optimize": {"parameters": ["heap.density"], "material": {"heap": ["sand", "lava"]}}},
+            "optimize.material.heap: unknown material 'lava'",
+        ),
+        (
+            {"optimize": {"parameters": ["heap.friction_angle"], "material": {"heap": ["sand", "newtonian"]}}},
+            "optimize.material.heap: newtonian has none of optimize.parameters",
+        ),
+        (
+            {"optimize": {"parameters": ["heap.viscosity", "heap.density"], "material": {"heap": ["sand", "snow"]}}},
+            "optimize.parameters: 'heap.viscosity' is a parameter of none of the hypotheses sand, snow",
+        ),
+        (
+            {
+                "optimize": {
+                    "parameters": ["jelly.density", "heap.density"],
+                    "material": {
+                        "jelly": ["elastic", "plasticine", "metal", "foam", "snow"],
+                        "heap": ["sand", "snow", "newtonian", "elastic"],
+                    },
+                }
+            },
+            r"optimize.material: 20 combinations of materials \(5 of jelly x 4 of heap\); at most 16: name fewer",
+        ),
         ({"optimize": {"parameters": ["youngs_modulus"]}}, r"optimize.parameters: 'youngs_modulus': with several"),
         (
             {"optimize": {"parameters": ["ghost.youngs_modulus"]}},
@@ -595,6 +626,53 @@ def test_each_objects_parameters_by_object_name(folder):
     }
     with pytest.raises(InputError, match=r"ground_truth: heap: .*friction_angle"):
         parse(several(evaluation={"ground_truth": {"heap.friction_angle": 95}}), folder)
+
+
+def test_material_hypotheses_of_several_objects(folder):
+    """optimize.material of several objects maps objects to their lists; the hypotheses are
+    every combination, each a config of those materials optimising the entries they have."""
+    from clflow.pipeline.hypotheses import hypotheses, hypothesis_config, hypothesis_name
+
+    optimize = {
+        "parameters": [
+            "jelly.youngs_modulus",
+            "jelly.yield_stress",
+            "jelly.velocity",
+            "heap.friction_angle",
+            "heap.youngs_modulus",
+        ],
+        "material": {"heap": ["sand", "snow"], "jelly": ["jelly", "plasticine"]},  # jelly: elastic's alias
+        "learning_rates": {"jelly.yield_stress": 0.1, "jelly.velocity": 0.3},
+        "bounds": {"jelly.yield_stress": [100, 1e4]},
+    }
+    truth = {"jelly.yield_stress": 500.0}  # of plasticine, one of the jelly's hypotheses
+    cfg = parse(several(optimize=optimize, evaluation={"ground_truth": truth}), folder)
+    assert cfg.optimize.materials == {"jelly": ("elastic", "plasticine"), "heap": ("sand", "snow")}  # objects' order
+    assert cfg.optimize.search is not None  # hypotheses are told apart by the search
+    combinations = hypotheses(cfg)
+    assert combinations == [
+        {"jelly": "elastic", "heap": "sand"},
+        {"jelly": "elastic", "heap": "snow"},
+        {"jelly": "plasticine", "heap": "sand"},
+        {"jelly": "plasticine", "heap": "snow"},
+    ]
+    assert [hypothesis_name(cfg, h) for h in combinations][1] == "jelly-elastic+heap-snow"
+    hyp = hypothesis_config(cfg, combinations[1])
+    jelly, heap = hyp.objects
+    assert (jelly.material.type, heap.material.type) == ("elastic", "snow")
+    assert jelly.material.parameters == {"youngs_modulus": 1e4, "poissons_ratio": 0.3}  # the config's
+    assert heap.material.density == cfg.objects[1].material.density and "friction_angle" not in heap.material.parameters
+    assert heap.material.parameters["youngs_modulus"] == cfg.objects[1].material.parameters["youngs_modulus"]
+    assert hyp.optimize.parameters == ("jelly.youngs_modulus", "jelly.velocity", "heap.youngs_modulus")  # no friction
+    assert hyp.optimize.learning_rates == {"jelly.velocity": 0.3} and hyp.optimize.bounds == {}
+    assert hyp.optimize.materials == {} and hyp.output == cfg.output / "hypotheses" / "jelly-elastic+heap-snow"
+    hyp = hypothesis_config(cfg, combinations[2])
+    assert hyp.optimize.parameters == cfg.optimize.parameters
+    assert hyp.objects[1].material == cfg.objects[1].material  # sand: as configured
+    # an object not named keeps its material; one object's list is a product of one list
+    cfg = parse(several(optimize={"parameters": ["heap.density"], "material": {"heap": ["sand", "snow"]}}), folder)
+    assert [hypothesis_name(cfg, h) for h in hypotheses(cfg)] == ["heap-sand", "heap-snow"]
+    assert hypothesis_config(cfg, hypotheses(cfg)[1]).objects[0].material == cfg.objects[0].material
 
 
 def test_two_objects_of_one_name(folder):

@@ -1,6 +1,7 @@
 """Compressed PLY (clflow.splat.compressed_ply): the layout SuperSplat / PlayCanvas read,
 checked against hand-packed bits and by a round trip within each field's quantisation step."""
 
+import dataclasses
 import math
 import struct
 
@@ -20,6 +21,11 @@ def random_gaussians(n, seed, degree=3):
     g = torch.Generator().manual_seed(seed)
     r = lambda *shape: torch.randn(*shape, generator=g, dtype=torch.float64)  # noqa: E731
     return Gaussians(r(n, 3) * torch.tensor([1.0, 2.0, 0.5]), r(n, 4), r(n, 3) - 3, r(n), sh=r(n, (degree + 1) ** 2, 3))
+
+
+def with_objects(g, objects):
+    """``g`` with the feature ``object`` [N]."""
+    return dataclasses.replace(g, features=objects.reshape(-1, 1).to(g.means.dtype), feature_names=("object",))
 
 
 def per_chunk_step(values, bits):
@@ -139,3 +145,48 @@ def test_bad_compressed_files(tmp_path):
     with pytest.raises(InputError, match=r"signed.ply: the sh element's properties must be uchar"):
         load_ply(tmp_path / "signed.ply")
     assert set(read_ply_elements(tmp_path / "g.ply", ("vertex",), optional=("sh", "nope"))) == {"vertex", "sh"}
+
+
+@pytest.mark.parametrize("labels", [[0], [-1, 0, 1, 2]])
+def test_the_object_feature_round_trips_as_runs_of_vertices(tmp_path, labels):
+    """Each Gaussian's object (one object, or static -1 and three) comes back with it; the
+    layout stays the one PlayCanvas reads: the runs are a header comment, no new property."""
+    n = 700
+    g = random_gaussians(n, seed=7, degree=1)
+    objects = torch.tensor(labels, dtype=torch.float64)[
+        torch.randint(len(labels), (n,), generator=torch.Generator().manual_seed(8))
+    ]
+    g = with_objects(g, objects)
+    path = tmp_path / "g.compressed.ply"
+    save_compressed_ply(path, g)
+    back = load_ply(path)
+    assert back.feature_names == ("object",)
+    got = back.features[:, 0].long()
+    assert got.tolist() == sorted(got.tolist())  # object by object
+    nearest = torch.cdist(back.means.double(), g.means).argmin(1)  # each read Gaussian's written one
+    assert torch.equal(got, objects[nearest].long()) and len(set(nearest.tolist())) == n
+    header = path.read_bytes().split(b"end_header")[0].decode()
+    runs = " ".join(f"{v}:{int((objects == v).sum())}" for v in sorted(set(labels)))
+    assert f"comment clflow objects {runs}\n" in header
+    assert [line for line in header.splitlines() if line.startswith("property uint")] == [
+        f"property uint packed_{k}" for k in ("position", "rotation", "scale", "color")
+    ]
+    assert len([line for line in header.splitlines() if line.startswith("element")]) == 3  # chunk, vertex, sh
+    # without the feature: no runs, no feature
+    save_compressed_ply(tmp_path / "plain.compressed.ply", random_gaussians(10, 1))
+    assert load_ply(tmp_path / "plain.compressed.ply").features is None
+
+
+def test_bad_object_runs_are_refused(tmp_path):
+    g = random_gaussians(20, 3, degree=0)
+    labelled = with_objects(g, torch.zeros(20))
+    save_compressed_ply(tmp_path / "g.ply", labelled)
+    data = (tmp_path / "g.ply").read_bytes()
+    assert b"comment clflow objects 0:20\n" in data
+    for name, runs in (("short", b"0:19"), ("word", b"0:x"), ("twice", b"0:20\ncomment clflow objects 0:20")):
+        (tmp_path / f"{name}.ply").write_bytes(data.replace(b"objects 0:20", b"objects " + runs, 1))
+        with pytest.raises(InputError, match=rf"{name}.ply: the header's 'clflow objects' comment must be one line"):
+            load_ply(tmp_path / f"{name}.ply")
+    half = with_objects(g, torch.full((20,), 0.5))
+    with pytest.raises(InputError, match="h.ply: the feature 'object' must hold integers"):
+        save_compressed_ply(tmp_path / "h.ply", half)

@@ -350,3 +350,20 @@ def test_the_package_exports_the_rasterize_function_even_after_the_ops_module_is
     from clflow.splat import rasterize as exported
 
     assert exported is rasterize and callable(clflow.splat.rasterize)
+
+
+def test_cli_renders_the_colours_of_an_export_with_objects(tmp_path, scene):
+    """A PLY of `clflow simulate` has each Gaussian's object as a property: an RGB image as
+    without it (the property is no colour channel)."""
+    import dataclasses
+
+    g = three_gaussians(camera())
+    save_ply(
+        tmp_path / "labelled.ply",
+        dataclasses.replace(g, features=torch.zeros(3, 1, dtype=F64), feature_names=("object",)),
+    )
+    for name, path in (("plain", scene), ("labelled", tmp_path / "labelled.ply")):
+        assert run("render", path, "-o", tmp_path / name, "--width", 40, "--height", 30).exit_code == 0
+    labelled, plain = (read_png(tmp_path / name / "orbit_0000.png") for name in ("labelled", "plain"))
+    assert cv2.imread(str(tmp_path / "labelled" / "orbit_0000.png"), cv2.IMREAD_UNCHANGED).shape == (30, 40, 3)
+    assert np.array_equal(labelled, plain)  # not RGBA with the objects as alpha

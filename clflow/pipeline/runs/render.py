@@ -131,6 +131,7 @@ def render_splats(
         count, pixels = views.n_orbit or 1, views.width * views.height
         _check_room(out_dir, video, count, 3 * pixels * count, max_output_gb)
     gaussians = require_gaussians(load_ply(splats), splats).to(getattr(torch, precision))
+    gaussians = dataclasses.replace(gaussians, features=None, feature_names=())  # colours only (not `object`, ...)
     total = len(gaussians)
     if box is not None:
         gaussians = gaussians.select_box(box[:3], box[3:])

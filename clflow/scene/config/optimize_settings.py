@@ -9,6 +9,7 @@ from clflow.scene.config.keys import MAX_GRID, MAX_RATE, setting
 
 VELOCITY = "velocity"  # the name of the object's initial velocity in optimize.parameters, evaluation.ground_truth
 VELOCITY_COMPONENTS = ("velocity_x", "velocity_y", "velocity_z")  # its components: m/s, scene axes
+MAX_HYPOTHESES = 16  # material combinations optimize.material may make (each a search of its own)
 
 OPTIMIZERS = ("adam", "levenberg_marquardt")
 
@@ -155,17 +156,20 @@ class OptimizeSettings:
         "valid range): that parameter's search box instead of the default (a bounded parameter's default box is "
         "its typical range, widened to hold the start); the start must lie inside",
     )
-    # material hypotheses: registry names, each searched before the one that fits best is
-    # optimised (clflow.pipeline.hypotheses); () for the config's own material only
-    materials: tuple[str, ...] = setting(
-        (),
+    # material hypotheses: object name -> registry names; each combination is searched before
+    # the one that fits best is optimised (clflow.pipeline.hypotheses); {} for the config's own
+    materials: dict[str, tuple[str, ...]] = setting(
+        factory=dict,
         kind="list",
         key="material",
         shown="none",
         doc="a list of material names (hypotheses, e.g. `[elastic, plasticine]`): each runs the search alone over "
         "its entries of `parameters` (each hypothesis needs at least one; every parameter belongs to at least "
         "one), the one whose best sample has the lowest loss is optimised; turns the search on with its defaults "
-        "when `search` is absent (see below)",
+        "when `search` is absent (see below). With several objects a mapping from object names to such lists "
+        "(`{jelly: [elastic, plasticine], heap: [sand, snow]}`; each list against its object's `OBJECT.PARAM` "
+        f"entries, the objects not named keep their material): the hypotheses are every combination, at most "
+        f"{MAX_HYPOTHESES}",
     )
     estimate_velocity_frames: int = setting(  # frames in the loss of the velocity phase
         0,
@@ -220,4 +224,12 @@ class OptimizeSettings:
         return self.search.object_samples * sum(map(len, self.parameters_by_object().values()))
 
 
-__all__ = ["BudgetSettings", "OPTIMIZERS", "OptimizeSettings", "SearchSettings", "VELOCITY", "VELOCITY_COMPONENTS"]
+__all__ = [
+    "BudgetSettings",
+    "MAX_HYPOTHESES",
+    "OPTIMIZERS",
+    "OptimizeSettings",
+    "SearchSettings",
+    "VELOCITY",
+    "VELOCITY_COMPONENTS",
+]

@@ -182,8 +182,6 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         raise r.fail("", "the config is empty")
     scene = r.section(top.get("scene"), "scene", schema.SCENE.known)
     objects = parse_objects.objects(r, top)
-    if len(objects) > 1:
-        parse_optimize.refuse_identification(r, top)
     material = objects[0].material
     flow = _flow(r, top.get("flow"))
     if len(objects) == 1:
@@ -196,7 +194,7 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     if len(objects) == 1:
         truth = parse_optimize.ground_truth(r, truth, true_density, true_velocity, material, optimize)
     else:
-        truth = parse_optimize.objects_truth(r, top.get("evaluation"), objects)
+        truth = parse_optimize.objects_truth(r, top.get("evaluation"), objects, optimize.materials)
     parse_optimize.check_optimize_fits(r, optimize, simulation, flow)
     cameras, videos = _views(r, top)
     if len(cameras) > 1 and flow.mask not in ("alpha", "none"):

@@ -11,6 +11,7 @@ from clflow.materials import DENSITY, get_material, validate_params
 from clflow.scene.config import schema
 from clflow.scene.config.keys import SPEED
 from clflow.scene.config.optimize_settings import (
+    MAX_HYPOTHESES,
     VELOCITY,
     VELOCITY_COMPONENTS,
     BudgetSettings,
@@ -36,11 +37,11 @@ def optimize_settings(r: Reader, data: Any, objects: tuple[SceneObject, ...], fr
     names = body.get("parameters", [])
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise r.fail(f"{p}.parameters", f"must be a list of parameter names, got {names!r}")
-    hypotheses = _hypotheses(r, body.get("material"), names)
+    hypotheses = _material_hypotheses(r, body.get("material"), names, objects)
     material = objects[0].material
     if len(objects) > 1:
         for name in names:
-            _object_parameter(r, f"{p}.parameters", name, objects)
+            _object_parameter(r, f"{p}.parameters", name, objects, hypotheses)
     elif material.type != "query" and not hypotheses:
         mat = get_material(material.type)
         for name in names:
@@ -139,7 +140,7 @@ def _search(r: Reader, data: Any) -> SearchSettings:
 
 
 def _bounds(
-    r: Reader, data: Any, names: list[str], objects: tuple[SceneObject, ...], hypotheses: tuple[str, ...]
+    r: Reader, data: Any, names: list[str], objects: tuple[SceneObject, ...], hypotheses: dict[str, tuple[str, ...]]
 ) -> dict[str, tuple[float, float]]:
     """``optimize.bounds``: [lower, upper] in SI per optimised parameter, within the
     parameter's valid range where the config names its material."""
@@ -166,24 +167,54 @@ def _bounds(
     return bounds
 
 
-def _registry_param(name: str, objects: tuple[SceneObject, ...], hypotheses: tuple[str, ...]):
+def _registry_param(name: str, objects: tuple[SceneObject, ...], hypotheses: dict[str, tuple[str, ...]]):
     """The registry's Param that ``name`` of optimize.parameters stands for; None for a
     velocity and for a material the query picks."""
     k, param = split_parameter(objects, name)
     if param == "density":
         return DENSITY
-    for material in hypotheses or (objects[k].material.type,):
+    for material in hypotheses.get(objects[k].name, (objects[k].material.type,)):
         if material != "query" and param in get_material(material).param_names:
             return get_material(material).param(param)
     return None
 
 
-def _hypotheses(r: Reader, data: Any, names: list[str]) -> tuple[str, ...]:
-    """``optimize.material``: registry names (aliases resolved), each with at least one of
-    ``optimize.parameters``; every parameter belongs to at least one of them."""
+def _material_hypotheses(
+    r: Reader, data: Any, names: list[str], objects: tuple[SceneObject, ...]
+) -> dict[str, tuple[str, ...]]:
+    """``optimize.material``: object name -> its hypotheses (:func:`_hypotheses`), in the
+    objects' order; of one object a list, of several a mapping OBJECT -> list (the objects
+    not named keep their material), each list checked against its object's entries of
+    optimize.parameters. The hypotheses are the lists' product: at most MAX_HYPOTHESES."""
     p = "optimize.material"
     if data is None:
-        return ()
+        return {}
+    if len(objects) == 1:
+        return {objects[0].name: _hypotheses(r, p, data, names)}
+    known = [o.name for o in objects]
+    if not isinstance(data, dict) or not data:
+        raise r.fail(
+            p, f"with several objects must map object names ({', '.join(known)}) to lists of materials, got {data!r}"
+        )
+    for name in data:
+        if name not in known:
+            raise r.fail(f"{p}.{name}", f"there is no object {name!r} (the objects: {', '.join(known)})")
+    lists = {
+        o.name: _hypotheses(r, f"{p}.{o.name}", data[o.name], [n for n in names if n.partition(".")[0] == o.name])
+        for o in objects
+        if o.name in data
+    }
+    count = math.prod(len(materials) for materials in lists.values())
+    if count > MAX_HYPOTHESES:
+        sizes = " x ".join(f"{len(m)} of {name}" for name, m in lists.items())
+        raise r.fail(p, f"{count} combinations of materials ({sizes}); at most {MAX_HYPOTHESES}: name fewer")
+    return lists
+
+
+def _hypotheses(r: Reader, p: str, data: Any, names: list[str]) -> tuple[str, ...]:
+    """The list of materials at key ``p``: registry names (aliases resolved), each with at
+    least one of ``names`` (its object's entries of optimize.parameters: PARAM, or
+    OBJECT.PARAM with several objects); each of those belongs to at least one of them."""
     if not isinstance(data, list) or not data or not all(isinstance(n, str) for n in data):
         raise r.fail(p, f"must be a non-empty list of material names, got {data!r}")
     try:
@@ -194,36 +225,28 @@ def _hypotheses(r: Reader, data: Any, names: list[str]) -> tuple[str, ...]:
     if len(set(canonical)) < len(canonical):
         raise r.fail(p, f"names a material twice: {data!r}")
     common = ("density", VELOCITY)
+    bare = {n: n.rpartition(".")[2] for n in names}  # OBJECT.PARAM -> PARAM
     for m in materials:
-        if not any(n in common or n in m.param_names for n in names):
+        if not any(b in common or b in m.param_names for b in bare.values()):
             raise r.fail(
                 p,
                 f"{m.name} has none of optimize.parameters {names} (its parameters: "
                 f"{', '.join(m.param_names)}, density, velocity)",
             )
-    for n in names:
-        if n not in common and not any(n in m.param_names for m in materials):
+    for n, b in bare.items():
+        if b not in common and not any(b in m.param_names for m in materials):
             raise r.fail(
                 "optimize.parameters", f"{n!r} is a parameter of none of the hypotheses {', '.join(canonical)}"
             )
     return tuple(canonical)
 
 
-def refuse_identification(r: Reader, top: dict) -> None:
-    """A config of several objects identifies each object's material parameters
-    (OBJECT.PARAM); material hypotheses name no object yet, so they are refused."""
-    optimize = top.get("optimize") if isinstance(top.get("optimize"), dict) else {}
-    if optimize.get("material"):
-        raise r.fail(
-            "optimize.material",
-            "not built yet for several objects (optimize.parameters names each "
-            "object's parameters, OBJECT.PARAM, of the material its config gives); drop it",
-        )
-
-
-def _object_parameter(r: Reader, where: str, name: str, objects: tuple[SceneObject, ...]) -> tuple[SceneObject, str]:
+def _object_parameter(
+    r: Reader, where: str, name: str, objects: tuple[SceneObject, ...], hypotheses: dict[str, tuple[str, ...]]
+) -> tuple[SceneObject, str]:
     """(object, parameter) of ``name`` (OBJECT.PARAM) of a config of several objects: the
-    object is one of them and the parameter its material's, density or velocity."""
+    object is one of them and the parameter its material's (for an object of ``hypotheses``
+    checked against those instead, by :func:`_hypotheses`), density or velocity."""
     names = ", ".join(o.name for o in objects)
     obj_name, dot, param = name.partition(".")
     example = f"{objects[0].name}.{next(iter(objects[0].material.parameters), 'density')}"
@@ -234,7 +257,7 @@ def _object_parameter(r: Reader, where: str, name: str, objects: tuple[SceneObje
     obj = next((o for o in objects if o.name == obj_name), None)
     if obj is None:
         raise r.fail(where, f"{name!r}: there is no object {obj_name!r} (the objects: {names})")
-    if obj.material.type != "query" and param not in ("density", VELOCITY):
+    if obj.material.type != "query" and obj.name not in hypotheses and param not in ("density", VELOCITY):
         mat = get_material(obj.material.type)
         if param not in mat.param_names:
             raise r.fail(
@@ -245,16 +268,19 @@ def _object_parameter(r: Reader, where: str, name: str, objects: tuple[SceneObje
     return obj, param
 
 
-def objects_truth(r: Reader, data: Any, objects: tuple[SceneObject, ...]) -> dict[str, float]:
+def objects_truth(
+    r: Reader, data: Any, objects: tuple[SceneObject, ...], hypotheses: dict[str, tuple[str, ...]]
+) -> dict[str, float]:
     """``evaluation.ground_truth`` of a config of several objects: OBJECT.PARAM -> SI value,
-    each checked against its object's material (density: kg/m^3; OBJECT.velocity: [3] m/s, as
-    its components OBJECT.velocity_x, ...)."""
+    each checked against its object's material (of its ``hypotheses``, the first that has
+    all its names; density: kg/m^3; OBJECT.velocity: [3] m/s, as its components
+    OBJECT.velocity_x, ...)."""
     p = "evaluation.ground_truth"
     evaluation = r.section(data, "evaluation", schema.EVALUATION.known)
     given = dict(r.mapping(evaluation.get("ground_truth"), p))
     per_object: dict[str, dict] = {}
     for name, value in given.items():
-        obj, param = _object_parameter(r, p, name, objects)
+        obj, param = _object_parameter(r, p, name, objects, hypotheses)
         if param == VELOCITY:
             value = r.vec3(given, name, p, limit=SPEED)
         elif isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -269,7 +295,8 @@ def objects_truth(r: Reader, data: Any, objects: tuple[SceneObject, ...]) -> dic
             if density is not None:
                 DENSITY.check(density)
             if values and obj.material.type != "query":
-                values = {k: v for k, v in validate_params(obj.material.type, values).items() if k in values}
+                material = _fitting(hypotheses.get(obj.name, (obj.material.type,)), values)
+                values = {k: v for k, v in validate_params(material, values).items() if k in values}
         except InputError as exc:
             raise r.fail(p, f"{obj.name}: {exc}") from None
         truth.update({f"{obj.name}.{k}": float(v) for k, v in values.items()})
@@ -308,16 +335,20 @@ def ground_truth(
     """The ground truth's material values validated for the material (with hypotheses: the
     first that has all its names), its density and velocity components, SI."""
     if truth and (optimize.materials or material.type != "query"):
-        candidates = optimize.materials or (material.type,)
-        fitting = [m for m in candidates if set(truth) <= set(get_material(m).param_names)] or candidates[:1]
+        candidates = next(iter(optimize.materials.values()), (material.type,))
         try:
-            truth = {k: v for k, v in validate_params(fitting[0], truth).items() if k in truth}
+            truth = {k: v for k, v in validate_params(_fitting(candidates, truth), truth).items() if k in truth}
         except InputError as exc:
             raise r.fail("evaluation.ground_truth", str(exc)) from None
     if true_density is not None:
         truth["density"] = float(true_density)
     truth.update(zip(VELOCITY_COMPONENTS, true_velocity))
     return dict(truth)
+
+
+def _fitting(materials: tuple[str, ...], truth: dict) -> str:
+    """The first of ``materials`` that has every name of ``truth``, else the first."""
+    return next((m for m in materials if set(truth) <= set(get_material(m).param_names)), materials[0])
 
 
 def check_optimize_fits(r: Reader, optimize: OptimizeSettings, simulation: SimulationSettings, flow: FlowSettings):

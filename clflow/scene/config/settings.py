@@ -497,14 +497,15 @@ def object_entries(objects: tuple[SceneObject, ...], record) -> list:
 def config_record(cfg: SceneConfig) -> dict:
     """``dataclasses.asdict`` of ``cfg`` for the records (run.json, a checkpoint's config
     digests): a config of one object keeps the keys it had before configs held several
-    (selection, fill, material, velocity at the top), so older records still compare; one of
-    several has ``objects``."""
+    (selection, fill, material, velocity at the top; optimize.materials its object's list),
+    so older records still compare; one of several has ``objects``."""
     from dataclasses import asdict
 
     fields = asdict(cfg)
     objects = fields.pop("objects")
     if len(objects) == 1:
         fields.update({key: objects[0][key] for key in ("selection", "fill", "material", "velocity")})
+        fields["optimize"]["materials"] = next(iter(fields["optimize"]["materials"].values()), ())
     else:
         fields["objects"] = objects
     return fields
