@@ -72,18 +72,6 @@ class SceneCase:
     camera_offset: tuple[float, float, float] = (0.6, 0.9, 1.9)  # camera - centre, in extents
     fov_y_deg: float = 40.0
 
-    ROOM: ClassVar[str] = "SceneCase.spread"  # what gives a case more room
-
-    def make_scene(self, folder: Path, resolution: Resolution, seed: int = 0) -> None:
-        """Write its scene.ply into ``folder`` (:func:`write_scene`)."""
-        write_scene(folder, self, resolution, seed)
-
-    def make_config(
-        self, resolution: Resolution, values: dict[str, float], optimize: bool, scale: int = 1, views: int = 1
-    ) -> dict:
-        """Its scene config with ``values`` (OBJECT.PARAM; :func:`scene_case_config`)."""
-        return scene_case_config(self, resolution, values, optimize, scale, views)
-
     @property
     def truth(self) -> dict[str, float]:
         return {f"{o.name}.{n}": v for o in self.objects for n, v in o.truth.items()}
@@ -108,6 +96,73 @@ class SceneCase:
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         lows, highs = zip(*(o.bounds() for o in self.objects))
         return np.min(lows, 0), np.max(highs, 0)
+
+    ROOM: ClassVar[str] = "SceneCase.spread"  # what gives a case more room
+
+    def make_scene(self, folder: Path, resolution: Resolution, seed: int = 0) -> None:
+        """Write its scene.ply into ``folder``: each object's surface Gaussians (the second and later tinted
+        otherwise), then the floor's."""
+        from clflow.splat.ply import save_ply
+
+        rng = np.random.default_rng(seed)
+        parts = []
+        for k, o in enumerate(self.objects):
+            means, scales, rotations, rgb = SURFACES[o.shape](
+                o.size, np.asarray(o.position), resolution.object_detail, rng
+            )
+            parts.append((means, scales, rotations, rgb if k % 2 == 0 else rgb[:, [2, 0, 1]]))
+        lower, upper = self.bounds()
+        parts.append(floor(3 * float((upper - lower).max()), resolution.floor_side))
+        save_ply(folder / "scene.ply", surface_gaussians(parts))
+
+    def make_config(
+        self, resolution: Resolution, values: dict[str, float], optimize: bool, scale: int = 1, views: int = 1
+    ) -> dict:
+        """Its scene config (a dict) with ``values`` (OBJECT.PARAM -> SI, over the
+        truth's); ``scale`` multiplies the grid (nodes - 1) and the image size; one guidance view
+        (``views``: ValueError for more)."""
+        if views != 1:
+            raise ValueError("a case of several objects has one guidance view")
+        lower, upper, nodes = scene_domain(self, resolution, scale)
+        simulation = {
+            "grid_resolution": nodes,
+            "fps": 24,
+            "frames": resolution.frames,
+            "domain": {"min": lower, "max": upper},
+        }
+        if resolution.flip:
+            simulation["flip"] = resolution.flip
+        objects = []
+        for o in self.objects:
+            low, high = o.bounds()
+            margin = 0.025 * o.size
+            params = {**o.truth, **{n.partition(".")[2]: v for n, v in values.items() if n.startswith(f"{o.name}.")}}
+            entry = {
+                "name": o.name,
+                "select": {
+                    "box": {
+                        "min": _rounded([low[0] - margin, low[1] - min(margin, 0.005), low[2] - margin]),
+                        "max": _rounded(high + margin),
+                    }
+                },
+                "material": {"type": o.material, "parameters": params, "density": o.density},
+            }
+            if any(o.velocity):
+                entry["velocity"] = _rounded(o.velocity)
+            objects.append(entry)
+        config = {
+            "splats": "scene.ply",
+            "scene": {"scale": 1.0, "up": "+y"},
+            "objects": objects,
+            "boundaries": {"ground": {"height": 0.0, "mode": self.ground}},
+            "simulation": simulation,
+            "camera": scene_camera(self, resolution.image * scale),
+            "flow": asdict(FlowSettings()),
+            "output": "results",
+        }
+        if optimize:
+            add_optimization(config, self, resolution, "guidance")
+        return config
 
 
 def scene_domain(case: SceneCase, resolution: Resolution, scale: int = 1) -> tuple[list[float], list[float], int]:
@@ -143,69 +198,4 @@ def scene_camera(case: SceneCase, image: int) -> dict:
     }
 
 
-def write_scene(folder: Path, case: SceneCase, resolution: Resolution, seed: int = 0) -> None:
-    """The case's scene.ply: each object's surface Gaussians (the second and later tinted
-    otherwise), then the floor's."""
-    from clflow.splat.ply import save_ply
-
-    rng = np.random.default_rng(seed)
-    parts = []
-    for k, o in enumerate(case.objects):
-        means, scales, rotations, rgb = SURFACES[o.shape](o.size, np.asarray(o.position), resolution.object_detail, rng)
-        parts.append((means, scales, rotations, rgb if k % 2 == 0 else rgb[:, [2, 0, 1]]))
-    lower, upper = case.bounds()
-    parts.append(floor(3 * float((upper - lower).max()), resolution.floor_side))
-    save_ply(folder / "scene.ply", surface_gaussians(parts))
-
-
-def scene_case_config(
-    case: SceneCase, resolution: Resolution, values: dict[str, float], optimize: bool, scale: int = 1, views: int = 1
-) -> dict:
-    """The case's scene config (a dict) with ``values`` (OBJECT.PARAM -> SI, over the
-    truth's); ``scale`` multiplies the grid (nodes - 1) and the image size; one guidance view
-    (``views``: ValueError for more)."""
-    if views != 1:
-        raise ValueError("a case of several objects has one guidance view")
-    lower, upper, nodes = scene_domain(case, resolution, scale)
-    simulation = {
-        "grid_resolution": nodes,
-        "fps": 24,
-        "frames": resolution.frames,
-        "domain": {"min": lower, "max": upper},
-    }
-    if resolution.flip:
-        simulation["flip"] = resolution.flip
-    objects = []
-    for o in case.objects:
-        low, high = o.bounds()
-        margin = 0.025 * o.size
-        params = {**o.truth, **{n.partition(".")[2]: v for n, v in values.items() if n.startswith(f"{o.name}.")}}
-        entry = {
-            "name": o.name,
-            "select": {
-                "box": {
-                    "min": _rounded([low[0] - margin, low[1] - min(margin, 0.005), low[2] - margin]),
-                    "max": _rounded(high + margin),
-                }
-            },
-            "material": {"type": o.material, "parameters": params, "density": o.density},
-        }
-        if any(o.velocity):
-            entry["velocity"] = _rounded(o.velocity)
-        objects.append(entry)
-    config = {
-        "splats": "scene.ply",
-        "scene": {"scale": 1.0, "up": "+y"},
-        "objects": objects,
-        "boundaries": {"ground": {"height": 0.0, "mode": case.ground}},
-        "simulation": simulation,
-        "camera": scene_camera(case, resolution.image * scale),
-        "flow": asdict(FlowSettings()),
-        "output": "results",
-    }
-    if optimize:
-        add_optimization(config, case, resolution, "guidance")
-    return config
-
-
-__all__ = ["CaseObject", "SceneCase", "scene_case_config", "scene_domain"]
+__all__ = ["CaseObject", "SceneCase", "scene_domain"]

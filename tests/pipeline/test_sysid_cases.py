@@ -11,7 +11,6 @@ from click.testing import CliRunner
 from clflow.errors import InputError
 from clflow_cli.main import cli
 from clflow_datasets import per_class, sysid, sysid_cases, sysid_report
-from clflow_datasets.scene_cases import scene_case_config
 from tests.pipeline.test_sysid import TINY, main_table_rows
 
 CASE_FILE = """
@@ -259,7 +258,7 @@ def test_a_case_of_several_objects_names_each_objects_parameters(tmp_path):
     }
     assert pair.material == "elastic + plasticine" and pair.spread == 0.3
     assert pair.method == "levenberg_marquardt" and pair.starts == 3 and pair.search == 24  # the policy
-    config = scene_case_config(pair, TINY, pair.guess, optimize=True)
+    config = pair.make_config(TINY, pair.guess, optimize=True)
     assert [o["name"] for o in config["objects"]] == ["block", "ball"]
     assert config["optimize"]["parameters"] == ["block.youngs_modulus", "ball.yield_stress"]
     assert config["objects"][0]["material"]["parameters"] == {"youngs_modulus": 1.0e4, "poissons_ratio": 0.3}
