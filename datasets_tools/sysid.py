@@ -18,7 +18,7 @@ the optimised resolution: the model error no optimiser can remove.
 
     results = evaluate(["torus"], Path("out"), Settings(resolution=QUICK))   # writes out/sysid.json, .md
 
-The cases (the built-in table and case files) are :mod:`clflow_datasets.sysid_cases`; the
+The cases (the nine of pacnerf_cases.yaml and case files) are :mod:`clflow_datasets.sysid_cases`; the
 tables of the results, Markdown beside the published ones, :mod:`clflow_datasets.sysid_report`.
 """
 
