@@ -22,8 +22,9 @@ from clflow.pipeline.fit.diagnostics import (
     walk_end,
     widen_by_search,
 )
+from clflow.pipeline.fit.objective import Objective
 from clflow.pipeline.fit.search import Search, SearchDesign
-from clflow.pipeline.fit.state import LM_DAMPING
+from clflow.pipeline.fit.state import LM_DAMPING, UnstableRun
 from clflow.pipeline.fit.steps import (
     LINE_GAIN,
     LINE_MAX_GROWTH,
@@ -130,13 +131,15 @@ class SeparableObjective:
             values=dict,
         )
 
-    def evaluate(self, z, frames, with_grad=True, grid=None):
+    def evaluate(self, z, frames, with_grad=True, min_substeps=1, grid=None):
         jelly = math.exp(-(((z["jelly.youngs_modulus"] - 4.7) / 0.25) ** 2))
         heap = math.exp(-(((z["heap.friction_angle"] - 37.0) / 2.5) ** 2))
         return SimpleNamespace(loss=2.0 - jelly - heap)
 
     def self_consistent_loss(self, result, frames):
         return result.loss
+
+    evaluate_batch = Objective.evaluate_batch  # the real batch, over this evaluate
 
 
 def separable_search(object_samples: int) -> Search:
@@ -165,6 +168,28 @@ def test_object_rounds_find_each_objects_narrow_well_that_the_joint_design_misse
     for cut in (11, 19):  # interrupted in either object's round, a resumed search is the same
         resumed = separable_search(object_samples=8).global_search(dataclasses.replace(begin, search=rows[:cut]))
         assert [r["z"] for r in resumed.search] == [r["z"] for r in rows] and resumed.z == state.z
+
+
+def test_a_batch_yields_each_points_evaluation_or_error_and_simulates_only_what_is_asked():
+    class Stand:
+        evaluate_batch = Objective.evaluate_batch
+
+        def __init__(self):
+            self.asked = []
+
+        def evaluate(self, z, frames, with_grad=True, min_substeps=1, grid=None):
+            self.asked.append((z["e"], frames, with_grad, min_substeps, grid))
+            if z["e"] < 0:
+                raise UnstableRun("dt exceeds the stable step")
+            return SimpleNamespace(loss=z["e"] ** 2)
+
+    stand = Stand()
+    points = [{"e": 1.0}, {"e": -1.0}, {"e": 2.0}, {"e": 3.0}]
+    results = stand.evaluate_batch(points, 4, min_substeps=3, grid=24)
+    assert stand.asked == []  # nothing simulated before it is asked for
+    first, failed, third = next(results), next(results), next(results)
+    assert first.loss == 1.0 and isinstance(failed, UnstableRun) and third.loss == 4.0  # a failure loses no other
+    assert stand.asked == [(1.0, 4, False, 3, 24), (-1.0, 4, False, 3, 24), (2.0, 4, False, 3, 24)]  # not the 4th
 
 
 def test_the_frame_robust_covariance_is_the_spread_of_refits_under_frame_correlated_errors():

@@ -495,19 +495,19 @@ class Diagnostics:
         for name in (n for n in names if n in self.problem.params):
             lo, hi = self.problem.box_of(name, z)
             row: dict[str, list] = {"values": [], "loss_ratio": []}
-            for target in sorted({max(lo, z[name] - PROFILE_STEP), z[name], min(hi, z[name] + PROFILE_STEP)}):
+            targets = sorted({max(lo, z[name] - PROFILE_STEP), z[name], min(hi, z[name] + PROFILE_STEP)})
+            sides = [{**z, name: target} for target in targets if target != z[name]]
+            runs = iter(self.objective.evaluate_batch(sides, self.problem.frames, min_substeps=min_substeps))
+            for target in targets:
                 moved, ratio = {**z, name: target}, 1.0
                 if target != z[name]:
-                    try:
-                        ev = self.objective.evaluate(
-                            moved, self.problem.frames, with_grad=False, min_substeps=min_substeps
-                        )
-                        ratio = float((self.objective.residuals(ev.flows, ev.more_flows) ** 2).sum()) / max(
-                            loss, 1e-300
-                        )
-                    except (FloatingPointError, ClflowError) as exc:
-                        log.info("profile of %s at %s failed: %s", name, self.problem.values(moved)[name], exc)
+                    ev = next(runs)
+                    if isinstance(ev, Exception):
+                        log.info("profile of %s at %s failed: %s", name, self.problem.values(moved)[name], ev)
                         ratio = None
+                    else:
+                        residuals = self.objective.residuals(ev.flows, ev.more_flows)
+                        ratio = float((residuals**2).sum()) / max(loss, 1e-300)
                 row["values"].append(self.problem.values(moved)[name])
                 row["loss_ratio"].append(ratio)
             out[name] = row

@@ -10,11 +10,13 @@ import logging
 import math
 import warnings
 import zipfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from clflow.errors import ClflowError
 from clflow.fileio import atomic_path
 from clflow.mpm import StabilityWarning
 from clflow.pipeline.fit.problem import Problem
@@ -157,6 +159,23 @@ class Objective:
             grid,
             tuple([f.detach() for f in view] for view in more_flows),
         )
+
+    def evaluate_batch(
+        self, points: list[dict[str, float]], frames: int, *, min_substeps: int = 1, grid: int | None = None
+    ) -> Iterator[Evaluation | Exception]:
+        """Forward-only evaluations of independent ``points`` (z dicts), yielded in order as
+        each is known, each what ``evaluate(z, frames, with_grad=False, min_substeps=...,
+        grid=...)`` gives; a point whose run fails (FloatingPointError, ClflowError: an
+        unstable run, a substep limit) yields its error instead, so that one failing point
+        loses none of the others. The points are simulated one after another, each when the
+        consumer asks for it: one that stops iterating (a budget spent, a failed column)
+        simulates no more."""
+        for z in points:
+            try:
+                result = self.evaluate(z, frames, with_grad=False, min_substeps=min_substeps, grid=grid)
+            except (FloatingPointError, ClflowError) as exc:
+                result = exc
+            yield result
 
     def estimator_errors(
         self, result: Evaluation, frames: int, shifts: tuple[tuple[int, int], ...] = ONE_SHIFT
@@ -325,11 +344,11 @@ class Objective:
             return self._lm_cache[key]
         base = self.evaluate(z, frames, with_grad=False, min_substeps=min_substeps, grid=grid)
         r0 = self.residuals(base.flows, base.more_flows)
+        points = [{**z, name: z[name] - LM_STEP} for name in variables]
         columns = []
-        for name in variables:
-            nearby = self.evaluate(
-                {**z, name: z[name] - LM_STEP}, frames, with_grad=False, min_substeps=base.substeps, grid=grid
-            )
+        for nearby in self.evaluate_batch(points, frames, min_substeps=base.substeps, grid=grid):
+            if isinstance(nearby, Exception):
+                raise nearby
             columns.append((r0 - self.residuals(nearby.flows, nearby.more_flows)) / LM_STEP)
         J = torch.stack(columns, 1)
         # kept under the substeps the run used: a revisit asks for those (a retried run restarts

@@ -154,50 +154,47 @@ class Search:
         objects = self.problem.cfg.optimize.parameters_by_object() if settings.object_samples else {}
         planned = settings.samples + self.problem.cfg.optimize.object_round_samples() + settings.refine
 
-        def sample(z: dict[str, float], **round_of) -> None:
+        def run_round(points: list[tuple[dict[str, float], dict]]) -> bool:
+            """Sample ``points`` ((z, what the row records of its round)) as one batch, a row
+            and a checkpoint as each is known; False once the budget cut it short."""
             nonlocal state
-            start = time.perf_counter()
-            try:
-                loss = self.objective.self_consistent_loss(
-                    self.objective.evaluate(z, frames, with_grad=False, grid=self.problem.search_grid), frames
-                )
-            except (FloatingPointError, ClflowError) as exc:
-                log.info("search sample %s failed: %s", self.problem.values(z), exc)
-                loss = None
-            rows.append(
-                {"z": z, "params": self.problem.values(z), "loss": loss, "frames": frames, **round_of}
-                | {"grid": self.problem.search_grid, "seconds": time.perf_counter() - start}
-            )
-            state = dataclasses.replace(state, search=list(rows))
-            self.checkpoint.save(state)
-            progress({**rows[-1], "phase": "search", "iteration": len(rows) - 1})
-
-        def run_round(points: list[dict[str, float]], done: int, **round_of) -> bool:
-            """Sample ``points`` after the ``done`` rows of the rounds before; False once the
-            budget cut it short."""
-            for z in points[len(rows) - done :]:
+            results = self.objective.evaluate_batch([z for z, _ in points], frames, grid=self.problem.search_grid)
+            for z, round_of in points:
                 if self.search_overran(rows, planned):
                     return False
-                sample(z, **round_of)
+                start = time.perf_counter()
+                try:
+                    result = next(results)
+                    if isinstance(result, Exception):
+                        raise result
+                    loss = self.objective.self_consistent_loss(result, frames)
+                except (FloatingPointError, ClflowError) as exc:
+                    log.info("search sample %s failed: %s", self.problem.values(z), exc)
+                    loss = None
+                rows.append(
+                    {"z": z, "params": self.problem.values(z), "loss": loss, "frames": frames, **round_of}
+                    | {"grid": self.problem.search_grid, "seconds": time.perf_counter() - start}
+                )
+                state = dataclasses.replace(state, search=list(rows))
+                self.checkpoint.save(state)
+                progress({**rows[-1], "phase": "search", "iteration": len(rows) - 1})
             return True
 
         design = self.design.search_points(state.z)
-        complete = run_round(design, 0)  # not cut short by the budget
+        complete = run_round([(z, {}) for z in design[len(rows) :]])  # not cut short by the budget
         if not any(r["loss"] is not None for r in rows):
             raise ClflowError(f"the global search found no parameters whose simulation ran ({len(rows)} samples)")
         done = len(design)
         for seed, (name, names) in enumerate(objects.items() if complete else (), start=2):
             held = min((r for r in rows[:done] if r["loss"] is not None), key=lambda r: r["loss"])
             points = self.design.object_points(names, held["z"], state.z, seed)
-            complete = run_round(points, done, object=name)
+            complete = run_round([(z, {"object": name}) for z in points[len(rows) - done :]])
             if not complete:
                 break
             done += len(points)
         regions = self.design.neighbourhoods(rows[:done], state.z) if settings.refine and complete else []
-        for around, z in self.design.refinement_points(regions, state.z)[len(rows) - done :]:
-            if self.search_overran(rows, planned):
-                break
-            sample(z, around=around)
+        refinement = self.design.refinement_points(regions, state.z)[len(rows) - done :]
+        run_round([(z, {"around": around}) for around, z in refinement])
         ranked = sorted((r for r in rows if r["loss"] is not None), key=lambda r: r["loss"])
         best = ranked[0]
         log.info("global search: best of %d samples %s (loss %.4g)", len(rows), best["params"], best["loss"])
