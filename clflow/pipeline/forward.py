@@ -35,9 +35,8 @@ class Prepared:
     @property
     def gaussian_objects(self) -> torch.Tensor:
         """[n] int64: the object (an index into ``cfg.objects``) of each of ``obj_rest``'s Gaussians."""
-        index = self.setup.object_index if self.setup is not None else None
         n = self.obj_rest.means.shape[0]
-        return torch.zeros(n, dtype=torch.long) if index is None else index[:n]
+        return torch.zeros(n, dtype=torch.long) if self.setup is None else self.setup.object_index[:n]
 
 
 @dataclass
@@ -66,7 +65,7 @@ def prepare(cfg: SceneConfig, dtype: torch.dtype = torch.float32, scene=None) ->
     setup = setup_object(cfg, obj, labels[order])
     log.info(
         "%s: %d Gaussians + %d fill particles; grid %s, dx %.4g m",
-        "object" if len(cfg.objects) == 1 else f"{len(cfg.objects)} objects ({', '.join(cfg.object_names)})",
+        cfg.objects_label,
         setup.particles.n_gaussians,
         setup.particles.n_fill,
         setup.grid.resolution,

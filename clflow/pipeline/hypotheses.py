@@ -29,7 +29,7 @@ from clflow.errors import ClflowError, InputError
 from clflow.fileio import atomic_write_text, copy_file
 from clflow.materials import get_material, validate_params
 from clflow.pipeline.material import resolve_material
-from clflow.scene.config import VELOCITY, MaterialConfig, SceneConfig, split_parameter
+from clflow.scene.config import VELOCITY, MaterialConfig, SceneConfig, object_name, split_parameter
 
 log = logging.getLogger(__name__)
 
@@ -45,9 +45,8 @@ def hypothesis_name(cfg: SceneConfig, hypothesis: dict[str, str]) -> str:
     """The name of ``hypothesis`` (of :func:`hypotheses`) in records and as a folder: the
     material of a config of one object, else its OBJECT-MATERIAL pairs joined by ``+``
     (object and material names are letters, digits and ``_``)."""
-    if len(cfg.objects) == 1:
-        return next(iter(hypothesis.values()))
-    return "+".join(f"{name}-{material}" for name, material in hypothesis.items())
+    names = cfg.object_names
+    return "+".join(object_name(cfg.objects, names.index(obj), material, "-") for obj, material in hypothesis.items())
 
 
 def hypothesis_config(cfg: SceneConfig, hypothesis: dict[str, str]) -> SceneConfig:

@@ -55,7 +55,7 @@ def check_forces(cfg: SceneConfig, positions: torch.Tensor, dtype: torch.dtype =
     duration = sim.frames / sim.fps
     x = positions.to(dtype).double()  # as the simulator tests them (clflow.mpm.boundaries.DriverGroups)
     masks = []
-    what = "object" if len(cfg.objects) == 1 else "objects"
+    what = cfg.objects_word
     for i, stage in enumerate(cfg.forces):
         masks.append(stage.region.select(x))
         if not bool(masks[-1].any()):
@@ -123,13 +123,12 @@ class ObjectSetup:
 
     ``particles``: positions [M, 3] m, the objects' Gaussian centres first (object by object,
     in the config's order), then their fill particles (object by object); rest volume per
-    particle, one number for one object, else [M] m^3 (each object its own).
-    ``object_index``: [M] int64, each particle's object (an index into ``cfg.objects``);
-    None for a config of one object."""
+    particle [M] m^3 (each object its own).
+    ``object_index``: [M] int64, each particle's object (an index into ``cfg.objects``)."""
 
     particles: ObjectParticles
     grid: Grid
-    object_index: torch.Tensor | None = None
+    object_index: torch.Tensor
 
 
 @dataclass(frozen=True)
@@ -184,35 +183,33 @@ def simulation_grid(cfg: SceneConfig, lower: torch.Tensor, upper: torch.Tensor):
 
 def setup_object(cfg: SceneConfig, obj: Gaussians, gaussian_objects: torch.Tensor | None = None) -> ObjectSetup:
     """Particles of the objects (their Gaussians ``obj`` in the simulation frame, object by
-    object; ``gaussian_objects`` [n] each one's object, needed for several) and the grid,
+    object; ``gaussian_objects`` [n] each one's object, None: all the first's) and the grid,
     which holds all of them."""
     means = obj.means.detach().double()
     lower, upper = means.min(0).values, means.max(0).values
     grid = simulation_grid(cfg, lower, upper)
     check_grid_memory(get_device(), grid, itemsize=4)  # before the fill, whose own limit would blame its spacing
     covariances = obj.covariances.double()
-    object_index = None
-    if len(cfg.objects) == 1:
-        particles = _particles(cfg.objects[0].fill, grid, means, covariances, obj.opacities)
-    else:
-        parts = []
-        for k, o in enumerate(cfg.objects):
-            mine = gaussian_objects == k
-            parts.append(_particles(o.fill, grid, means[mine], covariances[mine], obj.opacities[mine]))
-        # (object, rows): every object's Gaussian centres, then every object's fill particles
-        pieces = [(k, p.positions[: p.n_gaussians]) for k, p in enumerate(parts)]
-        pieces += [(k, p.positions[p.n_gaussians :]) for k, p in enumerate(parts)]
-        particles = ObjectParticles(
-            torch.cat([x for _, x in pieces]),
-            sum(p.n_gaussians for p in parts),
-            torch.cat([torch.full((len(x),), float(parts[k].volume), dtype=torch.float64) for k, x in pieces]),
-        )
-        object_index = torch.cat([torch.full((len(x),), k, dtype=torch.long) for k, x in pieces])
+    if gaussian_objects is None:
+        gaussian_objects = torch.zeros(means.shape[0], dtype=torch.long)
+    parts = []
+    for k, o in enumerate(cfg.objects):
+        mine = gaussian_objects == k
+        parts.append(_particles(o.fill, grid, means[mine], covariances[mine], obj.opacities[mine]))
+    # (object, rows): every object's Gaussian centres, then every object's fill particles
+    pieces = [(k, p.positions[: p.n_gaussians]) for k, p in enumerate(parts)]
+    pieces += [(k, p.positions[p.n_gaussians :]) for k, p in enumerate(parts)]
+    particles = ObjectParticles(
+        torch.cat([x for _, x in pieces]),
+        sum(p.n_gaussians for p in parts),
+        torch.cat([torch.full((len(x),), float(parts[k].volume), dtype=torch.float64) for k, x in pieces]),
+    )
+    object_index = torch.cat([torch.full((len(x),), k, dtype=torch.long) for k, x in pieces])
     inner_lo = torch.tensor(grid.origin, dtype=torch.float64) + (WALL_CELLS + 1) * grid.dx
     inner_hi = torch.tensor(grid.upper, dtype=torch.float64) - (WALL_CELLS + 1) * grid.dx
     x = particles.positions.double()
     if bool(((x < inner_lo) | (x > inner_hi)).any()):
-        what = "object" if len(cfg.objects) == 1 else "objects"
+        what = cfg.objects_word
         raise InputError(
             f"{cfg.source}: the {what} ({lower.tolist()} .. {upper.tolist()} m) does not fit inside "
             f"simulation.domain minus its walls ({inner_lo.tolist()} .. {inner_hi.tolist()} m)"
@@ -270,17 +267,13 @@ def build_simulator(
         for o, v in zip(cfg.objects, values)
     ]
     speeds = [torch.as_tensor(v.velocity, dtype=torch.float64).detach() for v in values]
-    if setup.object_index is None:  # one object
-        velocities = speeds[0].expand(x.shape[0], 3)
-    else:
-        velocities = torch.stack(speeds)[setup.object_index]
     sim = Simulator(
         x,
         setup.particles.volume,
-        materials[0] if setup.object_index is None else materials,
+        materials,
         setup.grid,
         material_index=setup.object_index,
-        velocities=velocities,
+        velocities=torch.stack(speeds)[setup.object_index],
         frame_dt=frame_dt,
         substeps=substeps,
         gravity=sim_cfg.gravity,
@@ -322,22 +315,22 @@ def object_masks(setup: ObjectSetup, count: int) -> torch.Tensor:
 def scene_run_values(
     cfg: SceneConfig, setup: ObjectSetup, values, decoded: dict[str, torch.Tensor]
 ) -> dict[str, torch.Tensor]:
-    """The inputs of :func:`run` for ``decoded`` (optimised name -> 0-d tensor, SI): the one
-    object's as they are; with several objects (OBJECT.PARAM) each parameter per particle
-    [M] (float64), every object's particles with its own value (``values``: the objects'
-    ObjectValues for those not optimised), so that an object's parameter reaches only its
-    own particles and its gradient comes from them alone (a masked sum: a fixed-order
-    backward)."""
-    if len(cfg.objects) == 1 or not decoded:
-        return decoded
+    """The inputs of :func:`run` for ``decoded`` (optimised name -> 0-d tensor, SI), by
+    parameter: one that every object takes from the same tensor (the one object's) as it is;
+    else per particle [M] (float64), every object's particles with its own value (``values``:
+    the objects' ObjectValues for those not optimised), so that an object's parameter
+    reaches only its own particles and its gradient comes from them alone (a masked sum: a
+    fixed-order backward)."""
     by_param: dict[str, dict[int, torch.Tensor]] = {}
     for name, value in decoded.items():
         k, param = split_parameter(cfg.objects, name)
         by_param.setdefault(param, {})[k] = value
     count = len(cfg.objects)
-    masks = object_masks(setup, count)
     out = {}
     for param, given in by_param.items():
+        if len(given) == count and len({id(v) for v in given.values()}) == 1:
+            out[param] = next(iter(given.values()))
+            continue
         fallback = float(next(iter(given.values())).detach())  # particles without the parameter ignore it
         fixed = [v.density if param == "density" else v.params.get(param, fallback) for v in values]
         per_object = torch.stack(
@@ -346,5 +339,5 @@ def scene_run_values(
                 for k in range(count)
             ]
         )
-        out[param] = (per_object[:, None] * masks).sum(0)
+        out[param] = (per_object[:, None] * object_masks(setup, count)).sum(0)
     return out

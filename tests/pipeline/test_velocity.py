@@ -15,7 +15,7 @@ from clflow.pipeline.fit import Optimization
 from clflow.pipeline.forward import prepare, scene_values
 from clflow.pipeline.runs import write_results
 from clflow.pipeline.simulation import build_simulator, run
-from clflow.scene.config import VELOCITY_COMPONENTS, load_config
+from clflow.scene.config import SINGLE_OBJECT, VELOCITY_COMPONENTS, load_config
 from tests.mpm._helpers import cube
 from tests.pipeline.test_frames4d import run as run_cli
 
@@ -160,6 +160,7 @@ def test_the_velocity_phase_runs_first_and_resumes_across_the_phases(thrown, tmp
         iterations=2,
         estimate_velocity_frames=3,
         estimate_velocity_iterations=12,
+        estimate_velocity_objects=(SINGLE_OBJECT,),
     )
     whole_opt = Optimization(thrown_config(thrown, tmp_path / "whole", **settings))
     whole = whole_opt.run()

@@ -118,8 +118,8 @@ class Objective:
         zt = {n: torch.tensor(v, dtype=torch.float64, requires_grad=with_grad and n in variables) for n, v in z.items()}
         decoded = {n: p.decode(zt[n]) for n, p in self.problem.params.items()}
         velocity = self.problem.velocity_input(zt, prepared)
-        one_object = velocity is not None and velocity.dim() == 1  # the one object's velocity, a tensor
-        speeds = (velocity,) if one_object else self.problem.velocities(z)
+        shared = velocity is not None and velocity.dim() == 1  # every object's velocity, a tensor [3]
+        speeds = (velocity,) * len(self.problem.cfg.objects) if shared else self.problem.velocities(z)
         objects = self.problem.object_values({n: float(v.detach()) for n, v in decoded.items()}, speeds)
         with warnings.catch_warnings():  # an unstable step or run fails below, saying why (UnstableRun)
             warnings.simplefilter("ignore", StabilityWarning)

@@ -57,13 +57,13 @@ class Problem:
         self.params = parameterizations(cfg)
         opt = cfg.optimize
         # each object's velocity components where optimize.parameters names its velocity; the
-        # velocity phase's: the one object's, or those of estimate_velocity.objects
+        # velocity phase's: those of estimate_velocity_objects
         velocities = [velocity_names(cfg.objects, k) for k in range(len(cfg.objects))]
         optimised = tuple(c for name, components in velocities if name in opt.parameters for c in components)
         self.velocity_variables = tuple(
             c
             for o, (_, components) in zip(cfg.objects, velocities)
-            if opt.estimate_velocity_iterations and (len(cfg.objects) == 1 or o.name in opt.estimate_velocity_objects)
+            if opt.estimate_velocity_iterations and o.name in opt.estimate_velocity_objects
             for c in components
         )
         estimated = tuple(c for c in self.velocity_variables if c not in optimised)
@@ -127,13 +127,14 @@ class Problem:
 
     def velocity_input(self, zt: dict[str, torch.Tensor], prepared: Prepared) -> torch.Tensor | None:
         """The initial velocity :func:`run` takes from the z tensors ``zt``: None where no
-        object's velocity is optimised; the one object's [3]; with several objects per
-        particle [M, 3], each object's particles its own (a masked sum, as
-        scene_run_values: an object's components reach only its particles)."""
+        object's velocity is optimised; [3] where every object's velocity is the same
+        components (the one object's); else per particle [M, 3], each object's particles its
+        own (a masked sum, as scene_run_values: an object's components reach only its
+        particles)."""
         names = [velocity_names(self.cfg.objects, k)[1] for k in range(len(self.cfg.objects))]
         if not any(n[0] in zt for n in names):
             return None
-        if len(names) == 1:
+        if len(set(names)) == 1:
             return torch.stack([zt[n] for n in names[0]])
         per_object = torch.stack(
             [

@@ -23,7 +23,14 @@ from clflow.pipeline.fit.problem import Problem
 from clflow.pipeline.fit.state import OptimizerState
 from clflow.pipeline.forward import SimulationResult, render_frames
 from clflow.pipeline.plots import range_text, write_history_plot
-from clflow.scene.config import SceneConfig, is_velocity_component, objects_form, split_parameter, velocity_names
+from clflow.scene.config import (
+    VELOCITY,
+    SceneConfig,
+    is_velocity_component,
+    objects_form,
+    split_parameter,
+    velocity_names,
+)
 
 log = logging.getLogger(__name__)
 
@@ -181,18 +188,17 @@ class Results:
             metrics["relative_error"] = {
                 n: abs(final[n] - truth[n]) / abs(truth[n]) for n in self.problem.params if n in truth
             }
+            errors = {}  # |v - v_true| (m/s) by velocity_names' name
             for k, velocity in enumerate(self.problem.velocities(state.z)):
                 name, components = velocity_names(self.problem.cfg.objects, k)
                 if components[0] not in final or components[0] not in truth:
                     continue
                 true_velocity = [truth[n] for n in components]
-                error = math.dist(velocity, true_velocity)  # |v - v_true|, m/s
-                if len(self.problem.cfg.objects) == 1:
-                    metrics["velocity_error_m_s"] = error
-                else:  # by OBJECT.velocity
-                    metrics.setdefault("velocity_error_m_s", {})[name] = error
+                errors[name] = math.dist(velocity, true_velocity)
                 if any(true_velocity):
-                    metrics["relative_error"][name] = error / math.hypot(*true_velocity)
+                    metrics["relative_error"][name] = errors[name] / math.hypot(*true_velocity)
+            if errors:  # the one object's (named plain velocity) alone, else by OBJECT.velocity
+                metrics["velocity_error_m_s"] = errors.get(VELOCITY, errors)
         return metrics
 
     def warn_identifiability(self, identifiability: dict) -> None:

@@ -84,12 +84,9 @@ def simulate_scene(
                 on_frame=_frame_progress(advance),
                 min_substeps=min_substeps,
             )
-        if len(cfg.objects) == 1:
-            echo(f"{result.x.shape[1]:,} particles of {cfg.objects[0].material.type}, {frames} frames")
-        else:
-            counts = torch.bincount(prepared.setup.object_index, minlength=len(cfg.objects)).tolist()
-            each = ", ".join(f"{o.name} {c:,} of {o.material.type}" for o, c in zip(cfg.objects, counts))
-            echo(f"{result.x.shape[1]:,} particles ({each}), {frames} frames")
+        counts = torch.bincount(prepared.setup.object_index, minlength=len(cfg.objects)).tolist()
+        each = ", ".join(f"{o.name} {c:,} of {o.material.type}" for o, c in zip(cfg.objects, counts))
+        echo(f"{result.x.shape[1]:,} particles ({each}), {frames} frames")
         # all or nothing: a failure leaves OUT as it was; a success replaces the earlier
         # simulation's frames (all of them) and what was rendered from it
         with atomic_dir(out, replaces=SIMULATION_ENTRIES, inputs=inputs, derived=True) as tmp:
@@ -97,10 +94,9 @@ def simulate_scene(
             if preview != "none":
                 render_video(result, tmp / "guidance", video=tmp / "guidance.mp4" if preview == "mp4" else None)
         suffix = ".compressed.ply" if compressed else ".ply"
-        objects = "object" if len(cfg.objects) == 1 else "objects"
         echo(
             f"wrote {out / 'gaussians.npz'} and {result.x.shape[0]} PLY frames ({out / ('frame_000' + suffix)} ...)"
-            + (f" of the {objects}, the static scene in {out / ('static' + suffix)}" if object_only else "")
+            + (f" of the {cfg.objects_word}, the static scene in {out / ('static' + suffix)}" if object_only else "")
         )
         if preview != "none":
             echo(f"wrote {out / 'guidance.mp4' if preview == 'mp4' else out / 'guidance'}")

@@ -187,7 +187,7 @@ class OptimizeSettings:
         required=True,
         doc="iterations of the velocity phase; give both keys, or leave out `estimate_velocity` for no velocity phase",
     )
-    # several objects: the objects whose velocities the velocity phase estimates, by name
+    # the objects whose velocities the velocity phase estimates, by name (of one object: its one)
     estimate_velocity_objects: tuple[str, ...] = setting(
         (),
         kind="list",

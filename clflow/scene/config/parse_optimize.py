@@ -96,7 +96,10 @@ def optimize_settings(r: Reader, data: Any, objects: tuple[SceneObject, ...], fr
         bounds=bounds,
         estimate_velocity_frames=estimate_frames,
         estimate_velocity_iterations=estimate_iterations,
-        estimate_velocity_objects=tuple(n.partition(".")[0] for n in estimated if len(objects) > 1),
+        # the one object's name, or those of estimate_velocity.objects
+        estimate_velocity_objects=(objects[0].name,) * bool(estimated)
+        if len(objects) == 1
+        else tuple(n.partition(".")[0] for n in estimated),
         materials=hypotheses,
         budget=lambda: _budget(r, body["budget"]) if body.get("budget") is not None else None,
     )

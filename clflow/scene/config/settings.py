@@ -435,6 +435,17 @@ class SceneConfig:
     def object_names(self) -> tuple[str, ...]:
         return tuple(o.name for o in self.objects)
 
+    @property
+    def objects_word(self) -> str:
+        """How a message calls the config's objects: "object" (one) or "objects"."""
+        return "object" if len(self.objects) == 1 else "objects"
+
+    @property
+    def objects_label(self) -> str:
+        """How a log line names them: "object", or "2 objects (jelly, heap)"."""
+        names = ", ".join(self.object_names)
+        return self.objects_word if len(self.objects) == 1 else f"{len(self.objects)} objects ({names})"
+
     def with_objects(self, objects) -> SceneConfig:
         """The config with ``objects`` (a sequence of SceneObject) instead of its own."""
         return replace(self, objects=tuple(objects))
@@ -444,10 +455,13 @@ def velocity_names(objects, k: int) -> tuple[str, tuple[str, str, str]]:
     """Object ``k``'s initial velocity as ``optimize.parameters`` and ``evaluation.ground_truth``
     name it, and its z components (m/s, scene axes): velocity and VELOCITY_COMPONENTS for the
     one object, OBJECT.velocity and OBJECT.velocity_x, ... with several."""
-    if len(objects) == 1:
-        return VELOCITY, VELOCITY_COMPONENTS
-    prefix = f"{objects[k].name}."
-    return prefix + VELOCITY, tuple(prefix + c for c in VELOCITY_COMPONENTS)
+    return object_name(objects, k, VELOCITY), tuple(object_name(objects, k, c) for c in VELOCITY_COMPONENTS)
+
+
+def object_name(objects, k: int, name: str, separator: str = ".") -> str:
+    """``name`` (a parameter, a material) as records name object ``k``'s: bare for the one
+    object, ``OBJECT<separator>name`` with several (``jelly.velocity``)."""
+    return name if len(objects) == 1 else f"{objects[k].name}{separator}{name}"
 
 
 def is_velocity_component(name: str) -> bool:
@@ -497,8 +511,9 @@ def object_entries(objects: tuple[SceneObject, ...], record) -> list:
 def config_record(cfg: SceneConfig) -> dict:
     """``dataclasses.asdict`` of ``cfg`` for the records (run.json, a checkpoint's config
     digests): a config of one object keeps the keys it had before configs held several
-    (selection, fill, material, velocity at the top; optimize.materials its object's list),
-    so older records still compare; one of several has ``objects``."""
+    (selection, fill, material, velocity at the top; optimize.materials its object's list;
+    no optimize.estimate_velocity_objects, the one object's name), so older records still
+    compare; one of several has ``objects``."""
     from dataclasses import asdict
 
     fields = asdict(cfg)
@@ -506,6 +521,7 @@ def config_record(cfg: SceneConfig) -> dict:
     if len(objects) == 1:
         fields.update({key: objects[0][key] for key in ("selection", "fill", "material", "velocity")})
         fields["optimize"]["materials"] = next(iter(fields["optimize"]["materials"].values()), ())
+        fields["optimize"]["estimate_velocity_objects"] = ()
     else:
         fields["objects"] = objects
     return fields
@@ -532,6 +548,7 @@ __all__ = [
     "UP_AXES",
     "config_record",
     "object_entries",
+    "object_name",
     "objects_form",
     "is_velocity_component",
     "main_grid_range",
