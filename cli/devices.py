@@ -19,7 +19,10 @@ def devices(obj, as_json: bool) -> None:
     from clflow.runtime import get_device, list_devices
     from clflow.runtime.drivers import adopt_unregistered
     from clflow.runtime.plan import plan_for_type
+    from clflow.runtime.program_cache import program_cache_dir
 
+    folder = program_cache_dir()
+    programs = None if folder is None else str(folder)  # None: $CLFLOW_PROGRAM_CACHE=off
     infos = list_devices()
     selected = get_device(obj.device_spec).info
     adoption = adopt_unregistered(get_device(obj.device_spec).kernel_cache_dir.parent)
@@ -32,10 +35,8 @@ def devices(obj, as_json: bool) -> None:
             dict(dataclasses.asdict(i), selected=(i == selected), kernel_plan=dataclasses.asdict(plan_for_type(i.type)))
             for i in infos
         ]
-        cache = str(get_device(obj.device_spec).kernel_cache_dir)
-        click.echo(
-            json.dumps({"devices": rows, "kernel_cache_dir": cache, "unregistered_drivers": unregistered}, indent=2)
-        )
+        caches = {"kernel_cache_dir": str(get_device(obj.device_spec).kernel_cache_dir), "program_cache_dir": programs}
+        click.echo(json.dumps({"devices": rows, **caches, "unregistered_drivers": unregistered}, indent=2))
         return
     yes = {True: "yes", False: "no"}
     for info in infos:
@@ -52,6 +53,7 @@ def devices(obj, as_json: bool) -> None:
         click.echo(f"    global memory:      {info.global_mem_size / 2**30:.1f} GiB")
         click.echo(f"    kernel plan:        {plan_for_type(info.type).describe()}")
     click.echo(f"kernel cache dir: {get_device(obj.device_spec).kernel_cache_dir}")
+    click.echo(f"program cache dir: {programs or 'off ($CLFLOW_PROGRAM_CACHE)'}")
     for d in unregistered:
         how = "used for this process" if d["used"] else "not used (CLFLOW_ADOPT_DRIVERS=0 or a read-only cache)"
         click.echo(

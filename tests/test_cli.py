@@ -207,6 +207,7 @@ def test_only_a_slow_build_says_it_compiled(device, caplog, monkeypatch):
 
     from clflow.runtime import devices
 
+    monkeypatch.setenv("CLFLOW_PROGRAM_CACHE", "off")  # a program of an earlier run would load, not compile
     kernel_defines = {"REDUCE_WG": 64, "ROWS_PER_ITEM": 16}
     device.program("common/reduce.cl", "float", kernel_defines)
     with caplog.at_level(logging.INFO, logger="clflow.runtime"):

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from clflow.errors import DeviceError
+from clflow.runtime.program_cache import ProgramBuilds
 
 if TYPE_CHECKING:
     from clflow.runtime.profile import KernelProfile
@@ -279,6 +280,8 @@ class Device:
         self._context = None
         self._queue = None
         self._programs: dict[tuple, Any] = {}
+        self._arguments: dict[tuple, dict] = {}  # program key -> its kernels' arguments (Device._built)
+        self.builds = ProgramBuilds()  # programs compiled and loaded from the program cache
         self._kernels: dict[tuple, Any] = {}
         self._signatures: dict[int, KernelSignature] = {}  # id(cached kernel) -> its arguments
         self._spare_scratch: list[Any] = []  # scratch buffers free for reuse (take_scratch)
@@ -350,7 +353,9 @@ class Device:
     # -- programs and kernels -------------------------------------------------------------
 
     def program(self, source: str, real: str = "float", defines: dict[str, Any] | None = None):
-        """Build (once) the program of ``kernels_cl/<source>`` with the given switches.
+        """Build (once) the program of ``kernels_cl/<source>`` with the given switches: loaded
+        from the program cache (clflow.runtime.program_cache) where it holds it, else
+        compiled and kept there.
 
         Args:
             source: path of the ``.cl`` file relative to ``kernels_cl/``.
@@ -364,29 +369,64 @@ class Device:
         with self._lock:
             prog = self._programs.get(key)
             if prog is None:
-                cl = _import_pyopencl()
-                text = load_source(source)
-                options = build_options(self.info, real, defines)
-                started = time.perf_counter()
-                try:
-                    with warnings.catch_warnings():
-                        warnings.simplefilter("ignore", cl.CompilerWarning)
-                        prog = cl.Program(self.context, text).build(options=options)
-                except cl.RuntimeError as exc:
-                    from clflow.errors import KernelBuildError
-
-                    raise KernelBuildError(
-                        f"building kernels_cl/{source} ({' '.join(options)}) failed on {self.info.name}:\n{exc}"
-                    ) from None
+                text, options = load_source(source), build_options(self.info, real, defines)
+                prog, self._arguments[key] = self._built(source, text, options)
                 self._programs[key] = prog
-                seconds = time.perf_counter() - started
-                if seconds > SLOW_BUILD_SECONDS:  # a real compile, not the driver's cache: say why it waits
-                    log.info("compiled kernels_cl/%s in %.1f s (cached for later runs)", source, seconds)
             return prog
+
+    def _built(self, source: str, text: str, options: list[str]):
+        """(program, its kernels' arguments: name -> ((argument, type name), ...)) of ``text``
+        built with ``options``: the cached binary where the cache holds one the driver takes,
+        else compiled from source and cached. Counted in ``builds`` and a running profile."""
+        from clflow.runtime import program_cache as cache
+
+        cl = _import_pyopencl()
+        folder = None if self.info.is_oclgrind else cache.program_cache_dir()  # oclgrind reports on the source
+        name = cache.program_key(text, options, self.info)
+        cached = cache.load_program(folder, name)
+        started = time.perf_counter()
+        if cached is not None:
+            try:
+                prog = cl.Program(self.context, [self.cl_device], [cached.binary]).build(options=options)
+            except cl.Error as exc:
+                log.info("kernels_cl/%s: the driver refused the cached program (%s); compiling it", source, exc)
+            else:
+                self._count_build(False, time.perf_counter() - started)
+                return prog, cached.arguments
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", cl.CompilerWarning)
+                prog = cl.Program(self.context, text).build(options=options)
+        except cl.RuntimeError as exc:
+            from clflow.errors import KernelBuildError
+
+            raise KernelBuildError(
+                f"building kernels_cl/{source} ({' '.join(options)}) failed on {self.info.name}:\n{exc}"
+            ) from None
+        seconds = time.perf_counter() - started
+        self._count_build(True, seconds)
+        if seconds > SLOW_BUILD_SECONDS:  # a real compile, not the driver's cache: say why it waits
+            log.info("compiled kernels_cl/%s in %.1f s (cached for later runs)", source, seconds)
+        from clflow.runtime.signatures import kernel_arguments
+
+        arguments = {k.function_name: kernel_arguments(k) for k in prog.all_kernels()}
+        try:
+            binary = prog.binaries[0]
+        except cl.Error:  # a driver that gives no binaries: every process compiles
+            binary = b""
+        if binary:
+            cache.store_program(folder, name, cache.CachedProgram(binary, arguments), source)
+        return prog, arguments
+
+    def _count_build(self, compiled: bool, seconds: float) -> None:
+        self.builds.add(compiled, seconds)
+        if self.profile is not None:
+            self.profile.builds.add(compiled, seconds)
 
     def kernel(self, source: str, name: str, real: str = "float", defines: dict[str, Any] | None = None):
         """The cached ``cl.Kernel`` ``name`` of ``kernels_cl/<source>`` (built once, reused)."""
-        key = (source, name, real, tuple(sorted((defines or {}).items())))
+        program_key = (source, real, tuple(sorted((defines or {}).items())))
+        key = (source, name, *program_key[1:])
         with self._lock:
             kern = self._kernels.get(key)
             if kern is None:
@@ -394,7 +434,8 @@ class Device:
                 self._kernels[key] = kern
                 from clflow.runtime.signatures import KernelSignature  # numpy: not at import (CLI --help)
 
-                signature = self._signatures[id(kern)] = KernelSignature.of(kern, real)  # cached kernels live on
+                signature = KernelSignature.of(name, real, self._arguments[program_key][name])
+                self._signatures[id(kern)] = signature  # cached kernels live on
                 kern.set_scalar_arg_dtypes(signature.scalar_dtypes())
             return kern
 

@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager, nullcontext
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
+
+from clflow.runtime.program_cache import ProgramBuilds
 
 PENDING_EVENTS = 4096  # events held before the oldest half are waited for and summed
 
@@ -30,11 +32,13 @@ class StepTotals:
 
 @dataclass
 class KernelProfile:
-    """Launches and device seconds per kernel name, and :class:`StepTotals` per step kind."""
+    """Launches and device seconds per kernel name, :class:`StepTotals` per step kind, and the
+    programs built meanwhile."""
 
     kernels: dict[str, list] = field(default_factory=dict)  # name -> [launches, device seconds]
     steps: dict[str, StepTotals] = field(default_factory=dict)
     launches: int = 0
+    builds: ProgramBuilds = field(default_factory=ProgramBuilds)
     started: float = field(default_factory=time.perf_counter)
     _pending: list = field(default_factory=list)
 
@@ -93,7 +97,14 @@ class KernelProfile:
             if s.count
         }
         wall_s = time.perf_counter() - self.started
-        return {"kernels": kernels, "launches": self.launches, "device_s": device_s, "wall_s": wall_s, "steps": steps}
+        return {
+            "kernels": kernels,
+            "launches": self.launches,
+            "device_s": device_s,
+            "wall_s": wall_s,
+            "steps": steps,
+            "builds": asdict(self.builds),
+        }
 
 
 def format_profile(report: dict, top: int = 12) -> str:
@@ -111,6 +122,12 @@ def format_profile(report: dict, top: int = 12) -> str:
     if len(report["kernels"]) > top:
         rest = report["kernels"][top:]
         lines.append(f"  ({len(rest)} more kernels: {sum(r['share'] for r in rest):.1%})")
+    builds = report.get("builds") or {}
+    if builds.get("compiled") or builds.get("loaded"):
+        lines.append(
+            f"  programs: {builds['compiled']} compiled ({builds['compile_s']:.2f} s), {builds['loaded']} loaded "
+            f"from the program cache ({builds['load_s']:.2f} s)"
+        )
     for kind, step in report["steps"].items():
         lines.append(
             f"  per {kind}: {step['launches_per_step']:.1f} launches, {step['host_s_per_step'] * 1e6:.0f} us of host "

@@ -38,6 +38,15 @@ class KernelCallError(TypeError):
     the user's input, so it keeps its traceback."""
 
 
+def kernel_arguments(kernel) -> tuple[tuple[str, str], ...]:
+    """((name, declared type name), ...) of a ``cl.Kernel`` built from source with
+    ``-cl-kernel-arg-info``, in order."""
+    return tuple(
+        (kernel.get_arg_info(i, _ARG_NAME), kernel.get_arg_info(i, _ARG_TYPE_NAME).replace(" ", ""))
+        for i in range(kernel.num_args)
+    )
+
+
 @dataclass(frozen=True)
 class KernelArgument:
     """One argument of a kernel: its name and declared type ("int", "real", "real*", ...)."""
@@ -55,13 +64,10 @@ class KernelSignature:
     arguments: tuple[KernelArgument, ...]
 
     @staticmethod
-    def of(kernel, real: str) -> "KernelSignature":
-        """The signature of a built ``cl.Kernel`` whose program was built with ``REAL=real``."""
-        arguments = tuple(
-            KernelArgument(kernel.get_arg_info(i, _ARG_NAME), kernel.get_arg_info(i, _ARG_TYPE_NAME).replace(" ", ""))
-            for i in range(kernel.num_args)
-        )
-        return KernelSignature(kernel.function_name, real, arguments)
+    def of(kernel: str, real: str, arguments) -> "KernelSignature":
+        """The signature of kernel ``kernel`` of a program built with ``REAL=real`` whose
+        ``arguments`` are ((name, type name), ...) (:func:`kernel_arguments`)."""
+        return KernelSignature(kernel, real, tuple(KernelArgument(name, type_name) for name, type_name in arguments))
 
     def __post_init__(self):
         # the kinds of argument values already checked against this signature: a call site
