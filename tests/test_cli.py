@@ -205,14 +205,14 @@ def test_pyopencl_build_messages_are_dropped_unless_vv(device, caplog, flags, fo
 def test_only_a_slow_build_says_it_compiled(device, caplog, monkeypatch):
     import logging
 
-    from clflow.runtime import devices
+    from clflow.runtime import programs
 
     monkeypatch.setenv("CLFLOW_PROGRAM_CACHE", "off")  # a program of an earlier run would load, not compile
     kernel_defines = {"REDUCE_WG": 64, "ROWS_PER_ITEM": 16}
     device.program("common/reduce.cl", "float", kernel_defines)
     with caplog.at_level(logging.INFO, logger="clflow.runtime"):
         device.program("common/reduce.cl", "float", kernel_defines)  # built: nothing to say
-        monkeypatch.setattr(devices, "SLOW_BUILD_SECONDS", -1.0)  # every build counts as slow
+        monkeypatch.setattr(programs, "SLOW_BUILD_SECONDS", -1.0)  # every build counts as slow
         device.program("common/reduce.cl", "float", {**kernel_defines, "PROBE_SLOW": 1})
     said = [r.getMessage() for r in caplog.records if r.name == "clflow.runtime"]
     assert len(said) == 1 and said[0].startswith("compiled kernels_cl/common/reduce.cl in ")

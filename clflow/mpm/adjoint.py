@@ -42,6 +42,7 @@ from clflow.mpm.substep import (
     p2g_particle_args,
 )
 from clflow.runtime.arrays import DeviceArray, numpy_real, real_of
+from clflow.runtime.binding import LaunchCache
 from clflow.runtime.plan import KernelPlan, kernel_plan
 from clflow.runtime.profile import profiled_step
 
@@ -118,6 +119,7 @@ class SubstepAdjoint:
         self.grid_v_bar = DeviceArray.empty(device, (grid.nodes, velocity_channels(self.flip)), dtype)
         self.grid_bar = DeviceArray.empty(device, (grid.nodes, grid_channels(self.flip)), dtype)
         self.tau_bar = DeviceArray.empty(device, (n, 3, 3), dtype)
+        self.bound = LaunchCache()  # run()'s launches, bound per set of arrays
 
     def run(
         self,
@@ -133,37 +135,45 @@ class SubstepAdjoint:
         """Pull ``grad_after`` = dL/d(after) back through the substep state -> after (run with
         ``inputs``, recorded in ``tape``) into ``grad`` = dL/d(state) (overwritten); adds the
         parameter and mass gradients into ``param_grad`` [N, PARAM_COUNT] and ``mass_grad`` [N].
-        Every argument but ``inputs``' scalars is a DeviceArray (or a dataclass of them)."""
+        Every argument but ``inputs``' scalars is a DeviceArray (or a dataclass of them). Its
+        launches are bound on the first call with these arrays (clflow.runtime.binding)."""
         with profiled_step(self.device, "adjoint substep"):
-            dev, R = self.device, self.real_t
-            grid_args = self.grid.kernel_args(R)
-            particles = inputs.particles
-            self._launch_g2p_adjoint(state, after, tape, inputs, grad_after, grad)
-            grids = dict(grid=tape.grid_mv, grid_v_bar=self.grid_v_bar, grid_bar=self.grid_bar)
-            dev.launch(self.k_grid, self.grid.nodes, grid_args | inputs.grid_update_args(R) | grids)
-            # p2g_adjoint writes v_bar, which p2g_flip_adjoint then reads and adds to
-            bars = dict(grid_bar=self.grid_bar, x_bar=grad.x, v_bar=grad.v, C_bar=grad.C, tau_bar=self.tau_bar)
-            particle_args = p2g_particle_args(R, state, tape, inputs)
-            dev.launch(
-                self.k_p2g, -(-self.n // SIMD_LANES), grid_args | particle_args | bars | dict(mass_bar=mass_grad)
-            )
-            if self.k_flip is not None:
-                self._launch_flip_adjoint(state, inputs, grad_after, grad, mass_grad)
-            self.launch_stress_adjoint(
-                inputs.dt,
-                state.F,
-                state.C,
-                state.plastic,
-                particles.material,
-                particles.param,
-                self.tau_bar,
-                grad_after.F,
-                grad_after.plastic,
-                grad.F,
-                grad.C,
-                grad.plastic,
-                param_grad,
-            )
+            objects = (state, after, tape, inputs.particles, inputs.boundaries, inputs.accel, grad_after, grad)
+            objects += (param_grad, mass_grad)
+            args = (state, after, tape, inputs, grad_after, grad, param_grad, mass_grad)
+            enqueue = lambda: self._enqueue(*args)  # noqa: E731
+            recording = self.bound.recording(self.device, objects, (inputs.dt, inputs.gravity), enqueue)
+            self.device.replay(recording, self.real_t(inputs.t))
+
+    def _enqueue(self, state, after, tape, inputs, grad_after, grad, param_grad, mass_grad) -> None:
+        """The launches of :meth:`run`, in order."""
+        dev, R = self.device, self.real_t
+        grid_args = self.grid.kernel_args(R)
+        particles = inputs.particles
+        self._launch_g2p_adjoint(state, after, tape, inputs, grad_after, grad)
+        grids = dict(grid=tape.grid_mv, grid_v_bar=self.grid_v_bar, grid_bar=self.grid_bar)
+        dev.launch(self.k_grid, self.grid.nodes, grid_args | inputs.grid_update_args(R) | grids)
+        # p2g_adjoint writes v_bar, which p2g_flip_adjoint then reads and adds to
+        bars = dict(grid_bar=self.grid_bar, x_bar=grad.x, v_bar=grad.v, C_bar=grad.C, tau_bar=self.tau_bar)
+        particle_args = p2g_particle_args(R, state, tape, inputs)
+        dev.launch(self.k_p2g, -(-self.n // SIMD_LANES), grid_args | particle_args | bars | dict(mass_bar=mass_grad))
+        if self.k_flip is not None:
+            self._launch_flip_adjoint(state, inputs, grad_after, grad, mass_grad)
+        self.launch_stress_adjoint(
+            inputs.dt,
+            state.F,
+            state.C,
+            state.plastic,
+            particles.material,
+            particles.param,
+            self.tau_bar,
+            grad_after.F,
+            grad_after.plastic,
+            grad.F,
+            grad.C,
+            grad.plastic,
+            param_grad,
+        )
 
     def _launch_g2p_adjoint(self, state, after, tape, inputs, grad_after, grad) -> None:
         """G2P's adjoint: dL/dx into ``grad.x``, dL/d(grid v) into ``grid_v_bar`` (through the

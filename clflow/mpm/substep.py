@@ -39,6 +39,7 @@ from clflow.mpm.constants import (
     velocity_channels,
 )
 from clflow.runtime.arrays import DeviceArray, numpy_real, real_of
+from clflow.runtime.binding import LaunchCache, Recording
 from clflow.runtime.devices import Device
 from clflow.runtime.plan import P2G_ENV, Kernel, KernelPlan, P2GMode, kernel_plan
 from clflow.runtime.profile import profiled_step
@@ -383,6 +384,7 @@ class SubstepKernels:
             self.k_pack = k("pack")
             self.p2g_records = DeviceArray.empty(device, (n, p2g_record_reals(self.flip)), dtype)
         self.scratch = SubstepTape.empty(device, n, grid.nodes, dtype, self.flip)
+        self.bound = LaunchCache()  # run()'s launches, bound per set of arrays
 
     def run(
         self,
@@ -394,37 +396,55 @@ class SubstepKernels:
     ) -> None:
         """Enqueue the substep from ``state`` (time inputs.t) by inputs.dt into ``out`` (States
         of DeviceArrays); ``clamped`` uint8 [N] flags that G2P sets to 1 for particles it
-        clamps; tau and the grids go into ``tape`` (default: ``self.scratch``)."""
+        clamps; tau and the grids go into ``tape`` (default: ``self.scratch``). Its launches
+        are bound on the first call with these arrays (clflow.runtime.binding); later calls
+        set the time and enqueue them."""
+        tape = tape or self.scratch
         with profiled_step(self.device, "substep"):
-            dev, R, n = self.device, self.real_t, np.int32(self.n)
-            grid_args = self.grid_args
-            tape = tape or self.scratch
-            particles = inputs.particles
-            outputs = dict(F_out=out.F, plastic_out=out.plastic, tau_out=tape.tau)
-            stress_args = dict(plastic_in=state.plastic, material=particles.material, param=particles.param) | outputs
-            launch_stress(self, inputs.dt, state.F, state.C, stress_args, elastic_omits=("material",))
-            p2g_args = grid_args | p2g_particle_args(R, state, tape, inputs)
-            grids = dict(grid=tape.grid_mv, grid_v=tape.grid_v, grid_dv=tape.grid_dv)
-            grid_update_args = grid_args | inputs.grid_update_args(R) | grids
-            if self.p2g == "private":
-                copies = dict(copies=np.int32(self.copies), grid_copies=self.grid_copies, boxes=self.copy_boxes)
-                dev.launch(self.k_p2g, self.copies, p2g_args | copies | dict(chunk=np.int32(self.chunk)), local_size=1)
-                nx, ny, _ = self.grid.resolution
-                dev.launch(self.k_grid, nx * ny, grid_update_args | copies)
-            elif self.p2g == "gather":
-                order, starts = self.cells.sort(state.x, grid_args)
-                pack = dict(dx=grid_args["dx"], order=order, records=self.p2g_records)
-                dev.launch(self.k_pack, self.n, p2g_particle_args(R, state, tape, inputs) | pack)
-                cells = dict(records=self.p2g_records, starts=starts, grid=tape.grid_mv)
-                dev.launch(self.k_p2g, self.grid.nodes, grid_args | cells)
-            else:
-                tape.grid_mv.zero_()  # on the device, in queue order: the atomics add onto zeros
-                dev.launch(self.k_p2g, self.n, p2g_args | dict(grid=tape.grid_mv))
-            if self.p2g != "private":
-                dev.launch(self.k_grid, self.grid.nodes, grid_update_args)
-            g2p = dict(n=n, dt=R(inputs.dt), t=R(inputs.t), flip=R(self.flip), x_in=state.x, v_in=state.v)
-            if self.p2g == "gather":
-                g2p["order"] = self.cells.order
-            g2p |= dict(grid_v=tape.grid_v, grid_dv=tape.grid_dv, release_time=particles.release_time)
-            g2p |= dict(x_out=out.x, v_out=out.v, C_out=out.C, clamped=clamped)
-            dev.launch(self.k_g2p, self.n, grid_args | g2p)
+            objects = (state, out, tape, inputs.particles, inputs.boundaries, inputs.accel, clamped)
+            enqueue = lambda: self._enqueue(state, out, inputs, clamped, tape)  # noqa: E731
+            recording = self.bound.recording(self.device, objects, (inputs.dt, inputs.gravity), enqueue)
+            self.device.replay(recording, self.real_t(inputs.t))
+
+    def record(
+        self, state: State, out: State, inputs: SubstepInputs, clamped: DeviceArray, tape: SubstepTape | None = None
+    ) -> Recording:
+        """The launches of :meth:`run` with these arguments, bound and not enqueued
+        (clflow.runtime.binding): what a replay enqueues, and how many launches a substep makes."""
+        with self.device.recording() as recording:
+            self._enqueue(state, out, inputs, clamped, tape or self.scratch)
+        return recording
+
+    def _enqueue(self, state: State, out: State, inputs: SubstepInputs, clamped: DeviceArray, tape: SubstepTape):
+        """The launches of :meth:`run`, in order."""
+        dev, R, n = self.device, self.real_t, np.int32(self.n)
+        grid_args = self.grid_args
+        particles = inputs.particles
+        outputs = dict(F_out=out.F, plastic_out=out.plastic, tau_out=tape.tau)
+        stress_args = dict(plastic_in=state.plastic, material=particles.material, param=particles.param) | outputs
+        launch_stress(self, inputs.dt, state.F, state.C, stress_args, elastic_omits=("material",))
+        p2g_args = grid_args | p2g_particle_args(R, state, tape, inputs)
+        grids = dict(grid=tape.grid_mv, grid_v=tape.grid_v, grid_dv=tape.grid_dv)
+        grid_update_args = grid_args | inputs.grid_update_args(R) | grids
+        if self.p2g == "private":
+            copies = dict(copies=np.int32(self.copies), grid_copies=self.grid_copies, boxes=self.copy_boxes)
+            dev.launch(self.k_p2g, self.copies, p2g_args | copies | dict(chunk=np.int32(self.chunk)), local_size=1)
+            nx, ny, _ = self.grid.resolution
+            dev.launch(self.k_grid, nx * ny, grid_update_args | copies)
+        elif self.p2g == "gather":
+            order, starts = self.cells.sort(state.x, grid_args)
+            pack = dict(dx=grid_args["dx"], order=order, records=self.p2g_records)
+            dev.launch(self.k_pack, self.n, p2g_particle_args(R, state, tape, inputs) | pack)
+            cells = dict(records=self.p2g_records, starts=starts, grid=tape.grid_mv)
+            dev.launch(self.k_p2g, self.grid.nodes, grid_args | cells)
+        else:
+            tape.grid_mv.zero_()  # on the device, in queue order: the atomics add onto zeros
+            dev.launch(self.k_p2g, self.n, p2g_args | dict(grid=tape.grid_mv))
+        if self.p2g != "private":
+            dev.launch(self.k_grid, self.grid.nodes, grid_update_args)
+        g2p = dict(n=n, dt=R(inputs.dt), t=R(inputs.t), flip=R(self.flip), x_in=state.x, v_in=state.v)
+        if self.p2g == "gather":
+            g2p["order"] = self.cells.order
+        g2p |= dict(grid_v=tape.grid_v, grid_dv=tape.grid_dv, release_time=particles.release_time)
+        g2p |= dict(x_out=out.x, v_out=out.v, C_out=out.C, clamped=clamped)
+        dev.launch(self.k_g2p, self.n, grid_args | g2p)

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
+from clflow.runtime.binding import Fill
 
 if TYPE_CHECKING:
     from clflow.runtime.devices import Device
@@ -103,7 +104,7 @@ class DeviceArray:
     the OpenCL buffer kernels take; ``aliased`` says whether it is a host tensor's memory.
     """
 
-    __slots__ = ("device", "shape", "dtype", "nbytes", "buffer", "host", "_mirror", "_mirror_version")
+    __slots__ = ("device", "shape", "dtype", "nbytes", "buffer", "host", "_mirror", "_mirror_version", "__weakref__")
 
     def __init__(self, device: "Device", shape: Sequence[int], dtype: torch.dtype, host: torch.Tensor | None = None):
         import pyopencl as cl
@@ -181,6 +182,10 @@ class DeviceArray:
         """Fill with zero bytes on the device."""
         import pyopencl as cl
 
+        recording = self.device.recorder  # inside Device.recording: a step to replay
+        if recording is not None:
+            recording.steps.append(Fill(self))
+            return self
         if self.nbytes:
             self.device.keep_until_done([a.host for a in (self,) if a.host is not None])
             cl.enqueue_fill_buffer(self.device.queue, self.buffer, np.zeros(1, np.uint8), 0, self.nbytes)

@@ -16,17 +16,17 @@ discrete GPU must, so the tests of that path run on a CPU device too.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
-import time
-import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from clflow.errors import DeviceError
+from clflow.runtime.binding import BoundLaunch, Fill, Recording
 from clflow.runtime.program_cache import ProgramBuilds
 
 if TYPE_CHECKING:
@@ -43,7 +43,6 @@ BRIDGE_MODES = ("auto", "copy")  # auto: alias host memory where the device shar
 
 
 SPARE_SCRATCH_BYTES = 256 * 2**20  # scratch memory a device keeps for reuse (take_scratch)
-SLOW_BUILD_SECONDS = 1.0  # a program build longer than this compiled (PoCL's cache answers in ms)
 MAX_IN_FLIGHT = 256  # zero-copy arrays kept alive for pending commands before the device is waited for
 
 
@@ -291,12 +290,18 @@ class Device:
         self._in_flight: dict[int, Any] = {}
         self._sizes: dict[tuple, tuple] = {}  # (global, local) size asked -> what launch enqueues
         self.profile: KernelProfile | None = None  # launches recorded while a profile runs
+        self._recording = threading.local()  # .into: the Recording of this thread's Device.recording
 
     @property
     def zero_copy(self) -> bool:
         """Whether buffers alias torch tensors' host memory (a device sharing the host's
         memory, outside the bridge's copy mode) instead of copying."""
         return self.info.host_unified_memory and bridge_mode() != "copy"
+
+    @property
+    def recorder(self) -> Recording | None:
+        """The recording this thread's launches go into (inside :meth:`recording`), else None."""
+        return getattr(self._recording, "into", None)
 
     def __repr__(self) -> str:
         return f"Device({self.info.label!r})"
@@ -362,7 +367,7 @@ class Device:
             real: ``"float"`` or ``"double"``: the ``REAL``/``real`` type of the kernels.
             defines: extra ``-D`` macros (name -> value).
         """
-        from clflow.runtime.programs import build_options, load_source
+        from clflow.runtime.programs import build_options, build_program, load_source
 
         self.require_real(real)
         key = (source, real, tuple(sorted((defines or {}).items())))
@@ -370,55 +375,13 @@ class Device:
             prog = self._programs.get(key)
             if prog is None:
                 text, options = load_source(source), build_options(self.info, real, defines)
-                prog, self._arguments[key] = self._built(source, text, options)
+                prog, self._arguments[key] = build_program(self, source, text, options)
                 self._programs[key] = prog
             return prog
 
-    def _built(self, source: str, text: str, options: list[str]):
-        """(program, its kernels' arguments: name -> ((argument, type name), ...)) of ``text``
-        built with ``options``: the cached binary where the cache holds one the driver takes,
-        else compiled from source and cached. Counted in ``builds`` and a running profile."""
-        from clflow.runtime import program_cache as cache
-
-        cl = _import_pyopencl()
-        folder = None if self.info.is_oclgrind else cache.program_cache_dir()  # oclgrind reports on the source
-        name = cache.program_key(text, options, self.info)
-        cached = cache.load_program(folder, name)
-        started = time.perf_counter()
-        if cached is not None:
-            try:
-                prog = cl.Program(self.context, [self.cl_device], [cached.binary]).build(options=options)
-            except cl.Error as exc:
-                log.info("kernels_cl/%s: the driver refused the cached program (%s); compiling it", source, exc)
-            else:
-                self._count_build(False, time.perf_counter() - started)
-                return prog, cached.arguments
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", cl.CompilerWarning)
-                prog = cl.Program(self.context, text).build(options=options)
-        except cl.RuntimeError as exc:
-            from clflow.errors import KernelBuildError
-
-            raise KernelBuildError(
-                f"building kernels_cl/{source} ({' '.join(options)}) failed on {self.info.name}:\n{exc}"
-            ) from None
-        seconds = time.perf_counter() - started
-        self._count_build(True, seconds)
-        if seconds > SLOW_BUILD_SECONDS:  # a real compile, not the driver's cache: say why it waits
-            log.info("compiled kernels_cl/%s in %.1f s (cached for later runs)", source, seconds)
-        from clflow.runtime.signatures import kernel_arguments
-
-        arguments = {k.function_name: kernel_arguments(k) for k in prog.all_kernels()}
-        try:
-            binary = prog.binaries[0]
-        except cl.Error:  # a driver that gives no binaries: every process compiles
-            binary = b""
-        if binary:
-            cache.store_program(folder, name, cache.CachedProgram(binary, arguments), source)
-        return prog, arguments
-
-    def _count_build(self, compiled: bool, seconds: float) -> None:
+    def count_build(self, compiled: bool, seconds: float) -> None:
+        """Count a program ``compiled`` from source (else loaded from the program cache) in
+        ``builds`` and a running profile."""
         self.builds.add(compiled, seconds)
         if self.profile is not None:
             self.profile.builds.add(compiled, seconds)
@@ -463,14 +426,29 @@ class Device:
         up to a multiple of ``local_size``; kernels guard their tail work-items. ``local_size``
         None leaves the choice to the driver (no padding).
         """
+        bound = self.bind(kernel, global_size, args, local_size)
+        if self.recorder is not None:  # Device.recording: kept to replay, not enqueued
+            self.recorder.steps.append(bound)
+            self.recorder.hosts.update((id(h), h) for h in bound.hosts)
+            return None
+        if bound.hosts:
+            self.keep_until_done(bound.hosts)
+        return self.enqueue(bound)
+
+    def bind(
+        self, kernel, global_size: int | Sequence[int], args: Mapping[str, Any], local_size: int | Sequence[int] | None
+    ) -> BoundLaunch:
+        """The launch of :meth:`launch` laid out (arguments checked and in order, arrays as
+        their buffers, work sizes padded), to enqueue now or many times
+        (clflow.runtime.binding)."""
         gsize, lsize = self.work_sizes(global_size, local_size)
         if not isinstance(args, Mapping):
             from clflow.runtime.signatures import KernelCallError
 
             raise KernelCallError(f"kernel {kernel.function_name}: pass its arguments by name (a mapping)")
-        values = self.signature(kernel).ordered(args)
+        signature = self.signature(kernel)
         raw, hosts = [], []
-        for value in values:
+        for value in signature.ordered(args):
             buffer = getattr(value, "buffer", None)  # a clflow.runtime.arrays.DeviceArray
             if buffer is None:
                 raw.append(value)
@@ -478,13 +456,43 @@ class Device:
                 raw.append(buffer)
                 if value.host is not None:
                     hosts.append(value.host)
-        if hosts:
-            self.keep_until_done(hosts)
-        kernel.set_args(*raw)
-        event = _import_pyopencl().enqueue_nd_range_kernel(self.queue, kernel, gsize, lsize)
+        return BoundLaunch(kernel, gsize, lsize, raw, signature.time_index, hosts)
+
+    def enqueue(self, bound: BoundLaunch):
+        """Set ``bound``'s arguments and enqueue it (its zero-copy hosts already kept)."""
+        bound.kernel.set_args(*bound.raw)
+        event = _import_pyopencl().enqueue_nd_range_kernel(
+            self.queue, bound.kernel, bound.global_size, bound.local_size
+        )
         if self.profile is not None:
-            self.profile.record(kernel.function_name, event)
+            self.profile.record(bound.kernel.function_name, event)
         return event
+
+    @contextlib.contextmanager
+    def recording(self) -> Iterator[Recording]:
+        """Record the launches and zeroings of the block (bound, not enqueued) into a
+        :class:`~clflow.runtime.binding.Recording` for :meth:`replay`; scratch taken meanwhile
+        belongs to the recording."""
+        if self.recorder is not None:
+            raise RuntimeError("Device.recording: already recording")
+        self._recording.into = recording = Recording()
+        try:
+            yield recording
+        finally:
+            self._recording.into = None
+
+    def replay(self, recording: Recording, t) -> None:
+        """Enqueue ``recording``'s steps in order, the time ``t`` (a sized scalar) set in each
+        launch that takes it."""
+        if recording.hosts:
+            self.keep_until_done(list(recording.hosts.values()))
+        for step in recording.steps:
+            if isinstance(step, Fill):
+                step.array.zero_()
+                continue
+            if step.time_index is not None:
+                step.raw[step.time_index] = t
+            self.enqueue(step)
 
     def work_sizes(
         self, global_size: int | Sequence[int], local_size: int | Sequence[int] | None = 64
@@ -542,15 +550,20 @@ class Device:
             if fits:
                 buf = min(fits, key=lambda b: b.size)
                 self._spare_scratch.remove(buf)
-                return buf
-        cl = _import_pyopencl()
-        return cl.Buffer(self.context, cl.mem_flags.READ_WRITE, nbytes)
+            else:
+                cl = _import_pyopencl()
+                buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, nbytes)
+            if self.recorder is not None:  # a replay writes it: the recording's for good
+                self.recorder.scratch.append(buf)
+            return buf
 
     def give_back_scratch(self, buf) -> None:
         """Keep ``buf`` (from :meth:`take_scratch`, no longer in use) for reuse; at most
         SPARE_SCRATCH_BYTES are kept, the most recently given back first (a buffer larger
         than the bound on its own is dropped without evicting the others)."""
         with self._lock:
+            if self.recorder is not None and self.recorder.owns(buf):
+                return
             kept, total = [], 0
             for spare in [buf] + self._spare_scratch:
                 if total + spare.size <= SPARE_SCRATCH_BYTES:

@@ -1,4 +1,5 @@
-"""Finding OpenCL C sources in ``kernels_cl/`` and the switches they are built with.
+"""Finding OpenCL C sources in ``kernels_cl/``, the switches they are built with, and
+building them (through the program cache, clflow.runtime.program_cache).
 
 ``#include "path.h"`` lines are resolved here, against ``kernels_cl/`` (the include path),
 and inlined, so the text handed to the driver is self-contained: the driver's kernel cache
@@ -9,7 +10,10 @@ such as oclgrind need no include flags.
 from __future__ import annotations
 
 import functools
+import logging
 import re
+import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +21,8 @@ from clflow.errors import KernelBuildError
 
 # AMD chips whose global memory has a float atomic add (__builtin_amdgcn_global_atomic_fadd_*)
 AMD_GLOBAL_FADD_CHIPS = ("gfx90a", "gfx940", "gfx941", "gfx942", "gfx950")
+SLOW_BUILD_SECONDS = 1.0  # a program build longer than this compiled (PoCL's cache answers in ms)
+log = logging.getLogger("clflow.runtime")
 _INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$')
 
 
@@ -85,3 +91,49 @@ def build_options(info, real: str, defines: dict[str, Any] | None = None) -> lis
             raise ValueError(f"invalid macro name {name!r}")
         opts.append(f"-D{name}={int(value) if isinstance(value, bool) else value}")
     return opts
+
+
+def build_program(device, source: str, text: str, options: list[str]):
+    """(program, its kernels' arguments: name -> ((argument, type name), ...)) of ``text``
+    built with ``options``: the cached binary where the cache holds one the driver takes,
+    else compiled from source and cached. Counted in ``builds`` and a running profile."""
+    import pyopencl as cl  # a device exists: pyopencl is there
+
+    from clflow.runtime import program_cache as cache
+
+    folder = None if device.info.is_oclgrind else cache.program_cache_dir()  # oclgrind reports on the source
+    name = cache.program_key(text, options, device.info)
+    cached = cache.load_program(folder, name)
+    started = time.perf_counter()
+    if cached is not None:
+        try:
+            prog = cl.Program(device.context, [device.cl_device], [cached.binary]).build(options=options)
+        except cl.Error as exc:
+            log.info("kernels_cl/%s: the driver refused the cached program (%s); compiling it", source, exc)
+        else:
+            device.count_build(False, time.perf_counter() - started)
+            return prog, cached.arguments
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", cl.CompilerWarning)
+            prog = cl.Program(device.context, text).build(options=options)
+    except cl.RuntimeError as exc:
+        from clflow.errors import KernelBuildError
+
+        raise KernelBuildError(
+            f"building kernels_cl/{source} ({' '.join(options)}) failed on {device.info.name}:\n{exc}"
+        ) from None
+    seconds = time.perf_counter() - started
+    device.count_build(True, seconds)
+    if seconds > SLOW_BUILD_SECONDS:  # a real compile, not the driver's cache: say why it waits
+        log.info("compiled kernels_cl/%s in %.1f s (cached for later runs)", source, seconds)
+    from clflow.runtime.signatures import kernel_arguments
+
+    arguments = {k.function_name: kernel_arguments(k) for k in prog.all_kernels()}
+    try:
+        binary = prog.binaries[0]
+    except cl.Error:  # a driver that gives no binaries: every process compiles
+        binary = b""
+    if binary:
+        cache.store_program(folder, name, cache.CachedProgram(binary, arguments), source)
+    return prog, arguments

@@ -76,6 +76,11 @@ class KernelSignature:
         object.__setattr__(self, "_checked", set())
         object.__setattr__(self, "_names", tuple(a.name for a in self.arguments))
 
+    @property
+    def time_index(self) -> int | None:
+        """The position of the argument ``t`` (a substep's time), None where there is none."""
+        return self._names.index("t") if "t" in self._names else None
+
     def scalar_dtypes(self) -> list:
         """Per argument, the numpy dtype of a scalar (``real`` resolved) or None (a pointer,
         struct or image): what ``cl.Kernel.set_scalar_arg_dtypes`` takes. Declared, pyopencl

@@ -1,9 +1,11 @@
 """``clflow bench launch``: the host's side of a substep, where a GPU waits for its host.
 
 A small scene's substep is bound by the host's time to enqueue it, not by the device: this
-times the substep loop (host time and wall time per substep) at a few particle counts, and
-one launch's phases on two of the substep's kernels: the argument table
-(``KernelSignature.ordered``), pyopencl's ``set_args`` and the driver's enqueue alone.
+times the substep loop (host time and wall time per substep) at a few particle counts,
+counts a substep's launches, and times one launch's phases on two of the substep's kernels:
+the argument table (``KernelSignature.ordered``) and the binding, paid once per set of
+arrays (clflow.runtime.binding), then pyopencl's ``set_args`` and the driver's enqueue,
+paid by every substep.
 """
 
 import time
@@ -40,41 +42,58 @@ def _per_call_us(fn, calls: int) -> float:
     return (time.perf_counter() - started) / calls * 1e6
 
 
-def _launch_phases(device, sim, calls: int) -> dict:
-    """Microseconds per call of each phase of a launch, on the REPEATABLE kernels of one substep."""
+def _substep_recording(device, sim):
+    """(the next substep's launches bound, not enqueued; each launch's (kernel, global size,
+    arguments, local size) as the substep asked for it)."""
+    import torch
+
+    from clflow.runtime.arrays import DeviceArray
+
+    asked, bind = [], device.bind
+    device.bind = lambda kernel, size, args, local_size: (
+        asked.append((kernel, size, args, local_size)) or bind(kernel, size, args, local_size)
+    )
+    try:
+        state = sim.device_state
+        clamped = DeviceArray.zeros(device, (sim.n,), torch.uint8)
+        recording = sim.kernels.record(state, state.empty_like(), sim.substep_inputs(), clamped)
+    finally:
+        del device.bind  # the class's method again
+    return recording, asked
+
+
+def _launch_phases(device, asked, calls: int) -> dict:
+    """Microseconds per call of each phase of a launch, on the REPEATABLE kernels of one substep:
+    the argument table and binding (paid once per set of arrays: clflow.runtime.binding),
+    set_args and the driver's enqueue (paid by every substep), a whole unbound launch."""
     import pyopencl as cl
 
-    launches = []
-    device.launch = lambda kernel, size, args, local_size=64: launches.append((kernel, size, args, local_size))
-    try:
-        sim.step()  # recorded, not enqueued
-    finally:
-        del device.launch  # the class's method again
     phases = {}
-    for kernel, size, args, local_size in launches:
+    for kernel, size, args, local_size in asked:
         if kernel.function_name not in REPEATABLE:
             continue
         signature = device.signature(kernel)
-        values = signature.ordered(args)
-        raw = [v if getattr(v, "buffer", None) is None else v.buffer for v in values]
-        gsize, lsize = device.work_sizes(size, local_size)
+        bound = device.bind(kernel, size, args, local_size)
         ordered = _per_call_us(lambda: signature.ordered(args), calls)
-        set_args = _per_call_us(lambda: kernel.set_args(*raw), calls)
+        binding = _per_call_us(lambda: device.bind(kernel, size, args, local_size), calls)
+        set_args = _per_call_us(lambda: kernel.set_args(*bound.raw), calls)
         device.finish()
-        enqueue = _per_call_us(lambda: cl.enqueue_nd_range_kernel(device.queue, kernel, gsize, lsize), calls)
+        queue, gsize, lsize = device.queue, bound.global_size, bound.local_size
+        enqueue = _per_call_us(lambda: cl.enqueue_nd_range_kernel(queue, kernel, gsize, lsize), calls)
         device.finish()
         launch = _per_call_us(lambda: device.launch(kernel, size, args, local_size), calls)
         device.finish()
         phases[kernel.function_name] = {
-            "arguments": len(raw),
+            "arguments": len(bound.raw),
             "ordered_us": ordered,
+            "bind_us": binding,
             "set_args_us": set_args,
             "enqueue_us": enqueue,
             "launch_us": launch,
         }
         click.echo(
-            f"  {kernel.function_name:12s} {len(raw):2d} arguments: table {ordered:5.1f} us, set_args {set_args:5.1f} "
-            f"us, enqueue {enqueue:5.1f} us; a whole launch {launch:5.1f} us"
+            f"  {kernel.function_name:12s} {len(bound.raw):2d} arguments: table {ordered:5.1f} us (bound {binding:5.1f}"
+            f" us, once), set_args {set_args:5.1f} us, enqueue {enqueue:5.1f} us; an unbound launch {launch:5.1f} us"
         )
     return phases
 
@@ -90,6 +109,7 @@ def launch(ctx, substeps, calls):
     from clflow.environment import load_average
     from clflow.mpm import Simulator
     from clflow.runtime import get_device
+    from clflow.runtime.binding import BoundLaunch
 
     device = ctx.obj.device() if ctx.obj else get_device()
     click.echo(f"device: {device.info.label}; load average before the run: {load_average()}")
@@ -113,6 +133,11 @@ def launch(ctx, substeps, calls):
             f"{n:7,d} particles, grid {grid_res}^3: {host / substeps * 1e6:7.1f} us of host time a substep, "
             f"{wall / substeps * 1e6:7.1f} us of wall time"
         )
+    recording, asked = _substep_recording(device, sim)
+    launches = sum(isinstance(step, BoundLaunch) for step in recording.steps)
+    results["launches_per_substep"] = launches
+    results["plan"] = sim.kernels.plan.describe()
+    click.echo(f"a substep: {launches} launches ({sim.kernels.plan.describe()})")
     click.echo("one launch, by phase:")
-    results["phases"] = _launch_phases(device, sim, calls)
+    results["phases"] = _launch_phases(device, asked, calls)
     return results
