@@ -23,8 +23,8 @@ MAX_ELEMENTS_PER_WORK_ITEM = 256
 MAX_LOCAL_MEMORY = 48 * 1024
 # The GPU plan's forward substep: [SVD of F_tr], stress, particle_cells (keys and counts),
 # the counts' scan (3 launches beyond 2048 cells), place_keys, order_runs, p2g_pack,
-# p2g_gather, grid_update, g2p_sorted.
-SUBSTEP_LAUNCHES = {"elastic": 11, "sand": 12}
+# p2g_gather_update (the gather and the grid update), g2p_sorted.
+SUBSTEP_LAUNCHES = {"elastic": 10, "sand": 11}
 # Its adjoint: the cell sort again (6), g2p_adjoint_records, g2p_adjoint_gather,
 # grid_update_adjoint, p2g_adjoint, [SVD], stress adjoint.
 ADJOINT_LAUNCHES = {"elastic": 11, "sand": 12}

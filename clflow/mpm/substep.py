@@ -5,7 +5,8 @@
                     (update_stress_elastic_simd: both in one when all particles are elastic)
     p2g           : (x_n, v_n, C_n, tau, mass, volume)     -> grid [nodes, GRID_CH] (m, mv[, mv0])
                     (private grid copies, each zeroed and summed only in the box of nodes
-                    its particles touch; a gather per node over particles sorted by cell; or atomics)
+                    its particles touch; a gather per node over particles sorted by cell,
+                    which updates the node in the same launch; or atomics)
     grid_update   : (grid, boundary table, t)              -> grid_v [nodes, 3][, grid_dv]
     g2p           : (x_n[, v_n], grid_v[, grid_dv], release_time) -> x_n+1, v_n+1, C_n+1
 
@@ -366,8 +367,9 @@ class SubstepKernels:
         self.elastic_only = stage.elastic_only
         self.k_stress, self.k_svd = stage.kernels(device, self.real, plan)
         self.U, self.s, self.V = stage.svd_buffers(device, n, dtype)
-        # the private path's grid update sums the P2G copies too, a row of nodes a work-item
-        self.k_grid = k("grid")
+        # the private path's grid update sums the P2G copies too, a row of nodes a work-item;
+        # the gather's launch updates each node it gathered
+        self.k_grid = None if p2g == "gather" else k("grid")
         # the gather path runs G2P in slot order: neighbouring work-items read neighbouring nodes
         self.k_g2p = k("g2p")
         self.k_p2g = k("p2g")
@@ -435,12 +437,11 @@ class SubstepKernels:
             order, starts = self.cells.sort(state.x, grid_args)
             pack = dict(dx=grid_args["dx"], order=order, records=self.p2g_records)
             dev.launch(self.k_pack, self.n, p2g_particle_args(R, state, tape, inputs) | pack)
-            cells = dict(records=self.p2g_records, starts=starts, grid=tape.grid_mv)
-            dev.launch(self.k_p2g, self.grid.nodes, grid_args | cells)
+            cells = dict(records=self.p2g_records, starts=starts)
+            dev.launch(self.k_p2g, self.grid.nodes, grid_update_args | cells)
         else:
             tape.grid_mv.zero_()  # on the device, in queue order: the atomics add onto zeros
             dev.launch(self.k_p2g, self.n, p2g_args | dict(grid=tape.grid_mv))
-        if self.p2g != "private":
             dev.launch(self.k_grid, self.grid.nodes, grid_update_args)
         g2p = dict(n=n, dt=R(inputs.dt), t=R(inputs.t), flip=R(self.flip), x_in=state.x, v_in=state.v)
         if self.p2g == "gather":

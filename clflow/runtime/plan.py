@@ -73,10 +73,9 @@ STAGE_KERNELS: dict[str, dict[str, dict[str, Kernel]]] = {
             "grid": Kernel("mpm/grid.cl", "sum_copies_update_grid"),
             "g2p": _G2P,
         },
-        "gather": {
+        "gather": {  # the grid update in the gather's launch
             "cells": _CELLS,
-            **_kernels("mpm/p2g_gather.cl", pack="p2g_pack", p2g="p2g_gather"),
-            "grid": _GRID_UPDATE,
+            **_kernels("mpm/p2g_gather.cl", pack="p2g_pack", p2g="p2g_gather_update"),
             "g2p": Kernel("mpm/g2p.cl", "g2p_sorted"),
         },
         "atomic": {"p2g": Kernel("mpm/p2g_atomic.cl", "p2g_atomic"), "grid": _GRID_UPDATE, "g2p": _G2P},

@@ -14,8 +14,10 @@
  *   p2g_pack       : the particle data P2G reads, in slot order: records [n, P2G_REC]
  *                    (x, m, momentum, affine[, m v, m C]): the gather then reads runs of
  *                    contiguous memory instead of chasing particle indices
- *   p2g_gather     : one work-item per node */
+ *   p2g_gather_update : one work-item per node, its sums and then its grid update */
 #include "mpm/cells.h"
+/* update_node and GRID_UPDATE_ARGS, for p2g_gather_update */
+#include "mpm/grid.cl"
 
 /* record of a slot: x (3), m, momentum m (v + dt a) (3), affine = m C - dt V (4/dx^2) tau (3 x 3)
  * and, with CLFLOW_FLIP, m v (3) and m C (3 x 3) */
@@ -62,23 +64,20 @@ __kernel void p2g_pack(const int n, const real dx, const real dt, __global const
 #endif
 }
 
-__kernel void p2g_gather(P2G_GRID_ARGS, __global const real *records, __global const int *starts, __global real *grid)
+/* The sums of node (ni, nj, nk), flat index `node`, into grid[node] (GRID_CH reals). */
+inline void gather_node(const grid_t *g, const long node, const int ni, const int nj, const int nk,
+                        __global const real *records, __global const int *starts, __global real *grid)
 {
-    const long node = get_global_id(0);
-    if (node >= (long)nx * ny * nz)
-        return;
-    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
-    const int ni = node / ((long)ny * nz), nj = (node / nz) % ny, nk = node % nz;
     real m_sum = 0;
     vec3r mv_sum = 0;
 #if CLFLOW_FLIP
     vec3r mv0_sum = 0;
 #endif
     for (int o = 0; o < 27; ++o) {
-        const int2 run = gather_run(&g, starts, ni, nj, nk, o);
+        const int2 run = gather_run(g, starts, ni, nj, nk, o);
         for (int s = run.x; s < run.y; ++s) {
             real w, da[3];
-            __global const real *rec = gather_record(&g, records, P2G_REC, s, o, &w, da);
+            __global const real *rec = gather_record(g, records, P2G_REC, s, o, &w, da);
             const vec3r d = (vec3r)(da[0], da[1], da[2]);
             const vec3r affine0 = vload3(0, rec + 7), affine1 = vload3(0, rec + 10), affine2 = vload3(0, rec + 13);
             m_sum += w * rec[3];
@@ -99,4 +98,21 @@ __kernel void p2g_gather(P2G_GRID_ARGS, __global const real *records, __global c
     out[5] = mv0_sum.y;
     out[6] = mv0_sum.z;
 #endif
+}
+
+/* A work-item per node: its sums (kept in `grid`: the adjoint reads them), then its grid
+ * update (grid.cl update_node: velocity, gravity, boundary conditions[, dv]) from them, in
+ * one launch for the substep's stages 2 and 3. */
+__kernel void p2g_gather_update(GRID_UPDATE_ARGS, __global const real *records, __global const int *starts,
+                                __global real *grid, __global real *grid_v, __global real *grid_dv,
+                                __global const real *bc, const int n_bc)
+{
+    const long node = get_global_id(0);
+    if (node >= (long)nx * ny * nz)
+        return;
+    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const int ni = node / ((long)ny * nz), nj = (node / nz) % ny, nk = node % nz;
+    gather_node(&g, node, ni, nj, nk, records, starts, grid);
+    const real gravity[3] = {gx, gy, gz};
+    update_node(&g, node, ni, nj, nk, dt, t, gravity, mass_eps, grid, grid_v, grid_dv, bc, n_bc);
 }
