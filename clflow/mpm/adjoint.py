@@ -9,8 +9,10 @@ the gradients of the per-particle kernel parameters and masses, in reverse kerne
       or, where the P2G took the gather (the GPU plan, clflow.runtime.plan), with the
       particles sorted by cell (CellSort):
     g2p_adjoint_records              : (xbar', vbar', Cbar', grid_v[, grid_dv]) -> slot records, xbar (part)
-    g2p_adjoint_gather               : (slot records)                -> grid_vbar, a work-item per node
+    g2p_adjoint_gather_update        : (slot records)                -> grid_vbar, a work-item per node,
+                                       and grid_update_adjoint's work on that node
     grid_update_adjoint              : (grid_vbar, grid, boundaries) -> grid_bar (mbar_i, pbar_i[, p0bar_i])
+      (a launch of its own after sum_grid_copies)
     p2g_adjoint                      : (grid_bar, x, v, C, tau)      -> xbar, vbar, Cbar (part), taubar, massbar
     p2g_flip_adjoint (flip > 0)      : (grid_bar, vbar', x, v, C)    -> xbar, vbar, Cbar, massbar (parts)
     trial_svd[_simd] + update_stress_adjoint : (taubar, Fbar', F, C, param) -> Fbar, Cbar, parambar
@@ -99,10 +101,10 @@ class SubstepAdjoint:
         self.elastic_only = stage.elastic_only
         self.k_stress, self.k_svd = stage.kernels(device, real, plan, adjoint=True)
         self.U, self.s, self.V = stage.svd_buffers(device, n, dtype)
-        self.k_grid = k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
+        self.gather = plan.adjoint_scatter == "gather"  # its launch also takes the grid update's adjoint
+        self.k_grid = None if self.gather else k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
         self.k_p2g = k("mpm/adjoint/p2g_adjoint.cl", "p2g_adjoint")
         self.k_flip = k("mpm/adjoint/p2g_adjoint.cl", "p2g_flip_adjoint") if uses_flip(self.flip) else None
-        self.gather = plan.adjoint_scatter == "gather"
         self.k_g2p = scatter("g2p")
         if self.gather:
             self.cells = CellSort(device, n, grid, real, defines, plan.kernel("adjoint_scatter", "cells"))
@@ -150,9 +152,8 @@ class SubstepAdjoint:
         dev, R = self.device, self.real_t
         grid_args = self.grid.kernel_args(R)
         particles = inputs.particles
-        self._launch_g2p_adjoint(state, after, tape, inputs, grad_after, grad)
         grids = dict(grid=tape.grid_mv, grid_v_bar=self.grid_v_bar, grid_bar=self.grid_bar)
-        dev.launch(self.k_grid, self.grid.nodes, grid_args | inputs.grid_update_args(R) | grids)
+        self._launch_g2p_adjoint(state, after, tape, inputs, grad_after, grad, grids)
         # p2g_adjoint writes v_bar, which p2g_flip_adjoint then reads and adds to
         bars = dict(grid_bar=self.grid_bar, x_bar=grad.x, v_bar=grad.v, C_bar=grad.C, tau_bar=self.tau_bar)
         particle_args = p2g_particle_args(R, state, tape, inputs)
@@ -175,9 +176,11 @@ class SubstepAdjoint:
             param_grad,
         )
 
-    def _launch_g2p_adjoint(self, state, after, tape, inputs, grad_after, grad) -> None:
+    def _launch_g2p_adjoint(self, state, after, tape, inputs, grad_after, grad, grids: dict) -> None:
         """G2P's adjoint: dL/dx into ``grad.x``, dL/d(grid v) into ``grid_v_bar`` (through the
-        private grid copies and their column sum, or the slot records and a gather per node)."""
+        private grid copies and their column sum, or the slot records and a gather per node),
+        then the grid update's adjoint into ``grid_bar`` (``grids``: the grid arrays it takes;
+        in the gather's launch)."""
         R, grid_args = self.real_t, self.grid.kernel_args(self.real_t)
         # v' read back as v_pic; with FLIP the kernel sums v_pic itself (any buffer will do)
         v_out = tape.grid_v if uses_flip(self.flip) else after.v
@@ -187,8 +190,8 @@ class SubstepAdjoint:
         if self.gather:
             order, starts = self.cells.sort(state.x, grid_args)
             self.device.launch(self.k_g2p, self.n, grid_args | args | dict(order=order, records=self.records))
-            gather = dict(records=self.records, starts=starts, grid_v_bar=self.grid_v_bar)
-            self.device.launch(self.k_gather, self.grid.nodes, grid_args | gather)
+            update = grid_args | inputs.grid_update_args(R) | grids
+            self.device.launch(self.k_gather, self.grid.nodes, update | dict(records=self.records, starts=starts))
             return
         args |= dict(copies=np.int32(self.copies), chunk=np.int32(self.chunk))
         args |= dict(grid_v_bar_copies=self.grid_v_bar_copies, boxes=self.copy_boxes)
@@ -198,6 +201,7 @@ class SubstepAdjoint:
         rows = dict(nx=np.int32(nx), ny=np.int32(ny), nz=np.int32(nz), channels=np.int32(velocity_channels(self.flip)))
         copies = dict(copies=np.int32(self.copies), boxes=self.copy_boxes, grid_copies=self.grid_v_bar_copies)
         self.device.launch(self.k_sum, nx * ny, rows | copies | dict(grid=self.grid_v_bar))
+        self.device.launch(self.k_grid, self.grid.nodes, grid_args | inputs.grid_update_args(R) | grids)
 
     def _launch_flip_adjoint(self, state, inputs, grad_after, grad, mass_grad) -> None:
         """The PIC/FLIP blend's P2G adjoint: adds to ``grad``'s x, v, C and ``mass_grad``."""

@@ -87,7 +87,9 @@ STAGE_KERNELS: dict[str, dict[str, dict[str, Kernel]]] = {
         },
         "gather": {
             "cells": _CELLS,
-            **_kernels("mpm/adjoint/g2p_adjoint_gather.cl", g2p="g2p_adjoint_records", gather="g2p_adjoint_gather"),
+            **_kernels(
+                "mpm/adjoint/g2p_adjoint_gather.cl", g2p="g2p_adjoint_records", gather="g2p_adjoint_gather_update"
+            ),
         },
     },
     "stress_adjoint": {

@@ -2,13 +2,14 @@
  * "gather", GPUs by default): a work-item per particle slot (particles sorted by cell,
  * mpm/p2g_gather.cl particle_cells) computes xbar and writes what the grid needs of the
  * particle into its slot's record (g2p_adjoint_records); then a work-item per node sums the
- * records of the particles whose stencil reaches it, cell by cell in a fixed order
- * (g2p_adjoint_gather). The maths: g2p_adjoint.h. */
+ * records of the particles whose stencil reaches it, cell by cell in a fixed order, and takes
+ * the grid update's adjoint of the node (g2p_adjoint_gather_update). The maths: g2p_adjoint.h. */
 #include "mpm/adjoint/g2p_adjoint.h"
+#include "mpm/adjoint/grid_adjoint.cl"
 #include "mpm/cells.h"
 
 /* A work-item per slot of the particles sorted by cell (p = order[slot]): x_bar[p], and the
- * slot's record for g2p_adjoint_gather. */
+ * slot's record for g2p_adjoint_gather_update. */
 __kernel void g2p_adjoint_records(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
                                   const real oz, const int n, const real dt, const real t, const real flip,
                                   __global const real *x_in, __global const real *v_out,
@@ -26,10 +27,11 @@ __kernel void g2p_adjoint_records(const int nx, const int ny, const int nz, cons
 }
 
 /* A work-item per node: grid_v_bar[node] = sum over the particles whose stencil reaches it (27
- * base cells in the order of gather_run, each cell's slots in order) of w (u + B d)[, w flip vbar']. */
-__kernel void g2p_adjoint_gather(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
-                                 const real oz, __global const real *records, __global const int *starts,
-                                 __global real *grid_v_bar)
+ * base cells in the order of gather_run, each cell's slots in order) of w (u + B d)[, w flip vbar'],
+ * then the grid update's adjoint of the node from it (grid_adjoint.cl), in one launch. */
+__kernel void g2p_adjoint_gather_update(GRID_UPDATE_ARGS, __global const real *records, __global const int *starts,
+                                        __global real *grid_v_bar, __global const real *grid, __global const real *bc,
+                                        const int n_bc, __global real *grid_bar)
 {
     const long node = get_global_id(0);
     if (node >= (long)nx * ny * nz)
@@ -57,4 +59,6 @@ __kernel void g2p_adjoint_gather(const int nx, const int ny, const int nz, const
     }
     for (int q = 0; q < GV_CH; ++q)
         grid_v_bar[GV_CH * node + q] = sum[q];
+    update_node_adjoint(node, ni, nj, nk, dx, ox, oy, oz, dt, t, gx, gy, gz, mass_eps, grid, grid_v_bar, bc, n_bc,
+                        grid_bar);
 }

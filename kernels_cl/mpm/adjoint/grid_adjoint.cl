@@ -1,7 +1,8 @@
 /* Adjoint of the grid update (grid.cl), for every shape of the G2P adjoint's scatter
  * (clflow/runtime/plan.py): it reads vbar from grid_v_bar, which that scatter wrote (the
- * column sum of its private grid copies, p2g_private.cl sum_grid_copies, on CPU devices; the
- * gather per node, g2p_adjoint_gather.cl, on GPUs), only on nodes with mass:
+ * column sum of its private grid copies, p2g_private.cl sum_grid_copies, on CPU devices, then
+ * grid_update_adjoint; the gather per node, g2p_adjoint_gather.cl, on GPUs, which calls
+ * update_node_adjoint itself), only on nodes with mass:
  * boundary conditions in reverse table order, then
  * v = mv/m + dt g:  pbar = vbar/m,  mbar = -(mv . vbar)/m^2  (0 on empty nodes).
  * With CLFLOW_FLIP grid_v_bar also holds dvbar of dv = v - mv0/m: vbar += dvbar before the
@@ -64,16 +65,13 @@ inline int overrides(__global const real *rec, const real *xi)
     return !isnan(probe[0]);
 }
 
-__kernel void grid_update_adjoint(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
-                                  const real oz, const real dt, const real t, const real gx, const real gy,
-                                  const real gz, const real mass_eps, __global const real *grid,
-                                  __global const real *grid_v_bar, __global const real *bc, const int n_bc,
-                                  __global real *grid_bar)
+/* The adjoint of node (i, j, k), flat index `node`: grid_bar[node] from grid_v_bar[node]. */
+inline void update_node_adjoint(const long node, const int i, const int j, const int k, const real dx, const real ox,
+                                const real oy, const real oz, const real dt, const real t, const real gx, const real gy,
+                                const real gz, const real mass_eps, __global const real *grid,
+                                __global const real *grid_v_bar, __global const real *bc, const int n_bc,
+                                __global real *grid_bar)
 {
-    const long node = get_global_id(0);
-    const long nodes = (long)nx * ny * nz;
-    if (node >= nodes)
-        return;
     const real m = grid[GRID_CH * node];
     real out[GRID_CH];
     for (int c = 0; c < GRID_CH; ++c)
@@ -96,7 +94,6 @@ __kernel void grid_update_adjoint(const int nx, const int ny, const int nz, cons
         }
         out[0] = mv0_dot / (m * m);
 #endif
-        const int k = node % nz, j = (node / nz) % ny, i = node / ((long)nz * ny);
         const real xi[3] = {ox + i * dx, oy + j * dx, oz + k * dx};
         for (int b = n_bc - 1; b >= 0; --b) {
             __global const real *rec = bc + (long)b * BC_STRIDE;
@@ -122,4 +119,16 @@ __kernel void grid_update_adjoint(const int nx, const int ny, const int nz, cons
         out[0] -= mv_dot / (m * m);
     }
     store_row(grid_bar, node, GRID_CH, out);
+}
+
+/* A work-item per node (after the private scatter's column sum). */
+__kernel void grid_update_adjoint(GRID_UPDATE_ARGS, __global const real *grid, __global const real *grid_v_bar,
+                                  __global const real *bc, const int n_bc, __global real *grid_bar)
+{
+    const long node = get_global_id(0);
+    if (node >= (long)nx * ny * nz)
+        return;
+    const int k = node % nz, j = (node / nz) % ny, i = node / ((long)nz * ny);
+    update_node_adjoint(node, i, j, k, dx, ox, oy, oz, dt, t, gx, gy, gz, mass_eps, grid, grid_v_bar, bc, n_bc,
+                        grid_bar);
 }
