@@ -23,7 +23,9 @@ from clflow.errors import KernelBuildError
 AMD_GLOBAL_FADD_CHIPS = ("gfx90a", "gfx940", "gfx941", "gfx942", "gfx950")
 SLOW_BUILD_SECONDS = 1.0  # a program build longer than this compiled (PoCL's cache answers in ms)
 log = logging.getLogger("clflow.runtime")
-_INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$')
+# an include line, a trailing comment allowed; any other line that starts #include is refused
+_INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*(?://.*|/\*.*\*/\s*)?$')
+_ANY_INCLUDE = re.compile(r"^\s*#\s*include\b")
 
 
 @functools.lru_cache(maxsize=1)
@@ -56,6 +58,9 @@ def load_source(relpath: str) -> str:
         lines = [f'#line 1 "{path.relative_to(root).as_posix()}"']
         for number, line in enumerate(path.read_text().splitlines(), start=1):
             match = _INCLUDE.match(line)
+            if match is None and _ANY_INCLUDE.match(line):
+                where = f"{path.relative_to(root).as_posix()}:{number}"
+                raise KernelBuildError(f'{where}: write includes as #include "path.h" (from kernels_cl/), not {line!r}')
             if match:
                 target = (root / match.group(1)).resolve()
                 lines.extend(expand(target, stack + (path,)))

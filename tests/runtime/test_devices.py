@@ -105,7 +105,7 @@ def test_includes_are_inlined_once(tmp_path, monkeypatch):
     (tmp_path / "common").mkdir()
     (tmp_path / "common" / "a.h").write_text('#include "common/b.h"\nint a_marker;\n')
     (tmp_path / "common" / "b.h").write_text("int b_marker;\n")
-    (tmp_path / "k.cl").write_text('#include "common/a.h"\n#include "common/b.h"\nint k_marker;\n')
+    (tmp_path / "k.cl").write_text('#include "common/a.h" /* a and b */\n#include "common/b.h"\nint k_marker;\n')
     monkeypatch.setattr(programs, "kernels_dir", lambda: tmp_path)
     text = programs.load_source("k.cl")
     assert text.count("b_marker") == 1 and "a_marker" in text and "k_marker" in text
@@ -121,6 +121,9 @@ def test_circular_and_missing_includes_are_clear_errors(tmp_path, monkeypatch):
         programs.load_source("x.h")
     with pytest.raises(KernelBuildError, match="not found"):
         programs.load_source("z.cl")
+    (tmp_path / "w.cl").write_text("int w;\n#include <nope.h>\n")
+    with pytest.raises(KernelBuildError, match=r"^w.cl:2: write includes as #include \"path.h\""):
+        programs.load_source("w.cl")
 
 
 def test_compile_errors_carry_the_build_log(device, monkeypatch):
