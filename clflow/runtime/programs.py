@@ -123,8 +123,6 @@ def build_program(device, source: str, text: str, options: list[str]):
             warnings.simplefilter("ignore", cl.CompilerWarning)
             prog = cl.Program(device.context, text).build(options=options)
     except cl.RuntimeError as exc:
-        from clflow.errors import KernelBuildError
-
         raise KernelBuildError(
             f"building kernels_cl/{source} ({' '.join(options)}) failed on {device.info.name}:\n{exc}"
         ) from None
