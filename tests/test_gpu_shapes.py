@@ -22,12 +22,12 @@ MAX_ELEMENTS_PER_WORK_ITEM = 256
 # compositing kernels size their batches to the device's, up to this)
 MAX_LOCAL_MEMORY = 48 * 1024
 # The GPU plan's forward substep: [SVD of F_tr], stress, particle_cells (keys and counts),
-# the counts' scan (3 launches beyond 2048 cells), place_keys, order_runs, p2g_pack,
+# the counts' scan (2 launches from 2049 to 4 M cells), place_keys, order_runs, p2g_pack,
 # p2g_gather_update (the gather and the grid update), g2p_sorted.
-SUBSTEP_LAUNCHES = {"elastic": 10, "sand": 11}
-# Its adjoint: the cell sort again (6), g2p_adjoint_records, g2p_adjoint_gather_update (the
+SUBSTEP_LAUNCHES = {"elastic": 9, "sand": 10}
+# Its adjoint: the cell sort again (5), g2p_adjoint_records, g2p_adjoint_gather_update (the
 # gather and the grid update's adjoint), p2g_adjoint, [SVD], stress adjoint.
-ADJOINT_LAUNCHES = {"elastic": 10, "sand": 11}
+ADJOINT_LAUNCHES = {"elastic": 9, "sand": 10}
 ITEMSIZE = {"char": 1, "uchar": 1, "short": 2, "ushort": 2, "int": 4, "uint": 4, "float": 4, "double": 8}
 
 

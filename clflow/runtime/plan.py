@@ -55,7 +55,7 @@ _GRID_UPDATE, _G2P = Kernel("mpm/grid.cl", "grid_update"), Kernel("mpm/g2p.cl", 
 STAGE_KERNELS: dict[str, dict[str, dict[str, Kernel]]] = {
     "scan": {
         "serial": _kernels(_SCAN, scan="scan_serial"),
-        "workgroup": _kernels(_SCAN, block_sums="scan_block_sums", blocks="scan_blocks"),
+        "workgroup": _kernels(_SCAN, block_sums="scan_block_sums", summed="scan_blocks_summed", blocks="scan_blocks"),
     },
     "sort": {
         "blocks": _kernels(_SORT, histogram="radix_histogram", scatter="radix_scatter"),

@@ -29,6 +29,10 @@ from clflow.runtime.plan import STAGE_KERNELS, kernel_plan
 SORT_BLOCKS = 64  # blocks shape: contiguous blocks walked by one work-item each
 DIGIT_BITS = 8  # blocks shape: bits per pass of 32-bit keys (4 passes)
 SCAN_WG, SCAN_BLOCK = 256, 2048  # kernels_cl/common/scan.h: work-group size, elements per work-group
+# blocks up to which a work-group adds the block sums before its block itself (each reads
+# fewer than this many; all together fewer than its square, 4 M at most): beyond, the sums are
+# scanned recursively
+SCAN_SUMMED_BLOCKS = 2048
 RADIX_BITS, RADIX_BLOCK = 4, 1024  # sort.cl: the work-group shape's digit bits and pairs per work-group
 
 
@@ -53,7 +57,9 @@ def scan_exclusive(device: Device, src, dst, n: int) -> None:
 
 
 def _scan_workgroups(device: Device, src, dst, n: int) -> None:
-    """Reduce-then-scan: the block sums, scanned the same way (recursively), then each block."""
+    """Reduce-then-scan: the block sums, then each block offset by the sums before it (which
+    its work-group adds up; up to SCAN_SUMMED_BLOCKS blocks), else by the sums scanned the
+    same way (recursively)."""
     blocks = _blocks(n, SCAN_BLOCK)
     kernels = STAGE_KERNELS["scan"]["workgroup"]
     scan_blocks = device.kernel(*kernels["blocks"])
@@ -62,13 +68,17 @@ def _scan_workgroups(device: Device, src, dst, n: int) -> None:
         device.launch(scan_blocks, SCAN_WG, args | dict(offsets=dst, has_offsets=np.int32(0)), SCAN_WG)
         return
     sums = device.take_scratch(4 * blocks)
-    offsets = device.take_scratch(4 * (blocks + 1))
     device.launch(
         device.kernel(*kernels["block_sums"]),
         blocks * SCAN_WG,
         {"in": src, "n": np.int32(n), "sums": sums},
         SCAN_WG,
     )
+    if blocks <= SCAN_SUMMED_BLOCKS:  # each block adds the sums before it: two launches in all
+        device.launch(device.kernel(*kernels["summed"]), blocks * SCAN_WG, args | dict(sums=sums), SCAN_WG)
+        device.give_back_scratch(sums)
+        return
+    offsets = device.take_scratch(4 * (blocks + 1))
     _scan_workgroups(device, sums, offsets, blocks)
     device.launch(scan_blocks, blocks * SCAN_WG, args | dict(offsets=offsets, has_offsets=np.int32(1)), SCAN_WG)
     # the in-order queue runs every later use of these buffers after the commands above

@@ -1,5 +1,5 @@
 """The GPU plan's kernels under oclgrind: no out-of-bounds access, no data race (the
-work-group scan and radix sort with their barriers and local
+work-group scan in its two-launch form and radix sort with their barriers and local
 memory, the counting sort's integer atomics, the cell-sorted gather P2G, G2P and G2P adjoint,
 APIC and the PIC/FLIP blend)."""
 
@@ -17,7 +17,9 @@ SCRIPT = textwrap.dedent(
     os.environ["CLFLOW_KERNELS"] = "gpu"
     import warnings
     import torch
-    from clflow.runtime.sort import sort_by_key, sort_pairs
+    from clflow.runtime import get_device
+    from clflow.runtime.arrays import DeviceArray
+    from clflow.runtime.sort import scan_exclusive, sort_by_key, sort_pairs
     from tests.mpm._helpers import assert_velocity_gradient, tiny_plasticine
     warnings.simplefilter("ignore")
     gen = torch.Generator().manual_seed(0)
@@ -26,6 +28,11 @@ SCRIPT = textwrap.dedent(
     assert torch.equal(sorted_keys, torch.sort(keys).values)
     order, _ = sort_by_key(keys % 37, 37)
     assert torch.equal(order.long(), torch.sort(keys % 37, stable=True).indices)
+    counts = torch.randint(0, 9, (5000,), generator=gen, dtype=torch.int32)  # three blocks: the two-launch scan
+    device = get_device()
+    scanned = DeviceArray.of(device, torch.zeros(5001, dtype=torch.int32))
+    scan_exclusive(device, DeviceArray.of(device, counts), scanned, 5000)
+    assert torch.equal(scanned.read()[1:], torch.cumsum(counts, 0).to(torch.int32))
     for flip in (0.0, 0.9):
         sim = tiny_plasticine(flip=flip)
         assert sim.kernels.p2g == "gather"

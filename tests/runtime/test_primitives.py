@@ -1,13 +1,13 @@
 """Scans and sorts (clflow.runtime.sort) in both shapes of the plan (clflow.runtime.plan),
 against torch: exact, stable, the same bits run after run, including sizes at and across
-the work-group shape's block edges and the recursion of its scan."""
+the work-group shape's block edges and both forms of its scan."""
 
 import pytest
 import torch
 
 from clflow.runtime.arrays import DeviceArray
 from clflow.runtime.plan import KernelPlan, kernel_plan
-from clflow.runtime.sort import SCAN_BLOCK, scan_exclusive, sort_by_key, sort_pairs
+from clflow.runtime.sort import SCAN_BLOCK, SCAN_SUMMED_BLOCKS, scan_exclusive, sort_by_key, sort_pairs
 
 
 def device_scan(device, values: torch.Tensor, in_place: bool = False) -> torch.Tensor:
@@ -29,10 +29,11 @@ def test_scan_is_exact(device, plan_kind, n):
     assert torch.equal(device_scan(device, values, in_place=True), expected_scan(values))
 
 
-def test_the_work_group_scan_recurses_twice(device, monkeypatch):
-    """More blocks than one block holds: the block sums' own block sums are scanned too."""
+@pytest.mark.parametrize("n", [SCAN_BLOCK * SCAN_SUMMED_BLOCKS, SCAN_BLOCK * SCAN_SUMMED_BLOCKS + 3])
+def test_the_work_group_scan_at_the_edge_of_its_two_launch_form(device, monkeypatch, n):
+    """The most blocks whose work-groups add the sums before them themselves, and one more:
+    then the block sums are scanned by the work-group scan too."""
     monkeypatch.setenv("CLFLOW_KERNELS", "gpu")
-    n = SCAN_BLOCK * SCAN_BLOCK + 3
     values = torch.randint(0, 3, (n,), generator=torch.Generator().manual_seed(1), dtype=torch.int32)
     assert torch.equal(device_scan(device, values, in_place=True), expected_scan(values))
 
