@@ -59,7 +59,8 @@ class Recording:
 class LaunchCache:
     """Recordings of one block of launches, keyed by the objects its arguments come from
     (compared by identity, held weakly) and extra values (numbers it depends on); at most
-    ``limit``, the least recently used dropped first."""
+    ``limit``, the least recently used dropped first (an array the block zeroes is held by its
+    Fill step: a recording keyed by such an array leaves only that way)."""
 
     def __init__(self, limit: int = 256):
         self.limit = limit

@@ -279,7 +279,7 @@ class Device:
         self._context = None
         self._queue = None
         self._programs: dict[tuple, Any] = {}
-        self._arguments: dict[tuple, dict] = {}  # program key -> its kernels' arguments (Device._built)
+        self._arguments: dict[tuple, dict] = {}  # program key -> its kernels' arguments (build_program's)
         self.builds = ProgramBuilds()  # programs compiled and loaded from the program cache
         self._kernels: dict[tuple, Any] = {}
         self._signatures: dict[int, KernelSignature] = {}  # id(cached kernel) -> its arguments

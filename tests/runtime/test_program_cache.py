@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 
@@ -45,6 +46,9 @@ def test_a_second_process_builds_nothing_and_gets_the_same_kernel_arguments(tmp_
 
 def test_a_refused_or_damaged_program_is_compiled_again_and_replaced(device, tmp_path, monkeypatch):
     monkeypatch.setenv(PROGRAM_CACHE_ENV, str(tmp_path))
+    mine = tmp_path / "notes.txt"  # a file of the user's in the folder: never touched
+    mine.write_text("mine")
+    before = hashlib.sha256(mine.read_bytes()).hexdigest()
     fresh(device).program(SOURCE, "double", DEFINES)
     (cached,) = tmp_path.glob("*.clbin")
     header, _, binary = cached.read_bytes().partition(b"\n")
@@ -58,6 +62,8 @@ def test_a_refused_or_damaged_program_is_compiled_again_and_replaced(device, tmp
     loaded = fresh(device)
     loaded.program(SOURCE, "double", DEFINES)
     assert (loaded.builds.compiled, loaded.builds.loaded) == (0, 1)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([cached.name, mine.name])  # no temporary left
+    assert hashlib.sha256(mine.read_bytes()).hexdigest() == before
 
 
 @pytest.mark.parametrize("cache", ["off", "a file"])
