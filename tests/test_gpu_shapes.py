@@ -21,13 +21,15 @@ MAX_ELEMENTS_PER_WORK_ITEM = 256
 # sorts take a fixed 26 KiB or less, within the 32 KiB of any full-profile device; the
 # compositing kernels size their batches to the device's, up to this)
 MAX_LOCAL_MEMORY = 48 * 1024
-# The GPU plan's forward substep: [SVD of F_tr], stress, particle_cells (keys and counts),
-# the counts' scan (2 launches from 2049 to 4 M cells), place_keys, order_runs, p2g_pack,
+# The GPU plan's forward substep: the stress (the SVD inline) with the particles keyed and
+# counted by cell, the counts' scan (one launch up to 4 M cells: the keys counted its block
+# sums), place_keys, order_pack (each cell's run in index order, then its records),
 # p2g_gather_update (the gather and the grid update), g2p_sorted.
-SUBSTEP_LAUNCHES = {"elastic": 9, "sand": 10}
-# Its adjoint: the cell sort again (5), g2p_adjoint_records, g2p_adjoint_gather_update (the
-# gather and the grid update's adjoint), p2g_adjoint, [SVD], stress adjoint.
-ADJOINT_LAUNCHES = {"elastic": 9, "sand": 10}
+SUBSTEP_LAUNCHES = {"elastic": 6, "sand": 6}
+# Its adjoint, over the forward's cell sort kept in the tape: g2p_adjoint_records,
+# g2p_adjoint_gather_update (the gather and the grid update's adjoint), p2g_adjoint, [SVD],
+# stress adjoint.
+ADJOINT_LAUNCHES = {"elastic": 4, "sand": 5}
 ITEMSIZE = {"char": 1, "uchar": 1, "short": 2, "ushort": 2, "int": 4, "uint": 4, "float": 4, "double": 8}
 
 
@@ -93,7 +95,6 @@ def cube_simulator(device, material: str):
 @pytest.mark.parametrize("material", ["elastic", "sand"])
 def test_a_262k_substep_and_its_adjoint_are_gpu_shaped(device, launches, material):
     from clflow.mpm.adjoint import StateGrad, SubstepAdjoint
-    from clflow.mpm.substep import SubstepTape
     from clflow.runtime.arrays import DeviceArray
 
     sim = cube_simulator(device, material)
@@ -111,11 +112,11 @@ def test_a_262k_substep_and_its_adjoint_are_gpu_shaped(device, launches, materia
     assert not [x.kernel for x in forward if x.kernel.endswith("_simd")]  # the PoCL-made SIMD-lane stress kernels
 
     n, dtype = sim.n, sim.dtype
-    tape = SubstepTape.empty(device, n, sim.grid.nodes, dtype, sim.flip)
+    tape = sim.kernels.empty_tape()
     state, inputs = sim.device_state, sim.substep_inputs()
     after = state.empty_like()
     sim.kernels.run(state, after, inputs, DeviceArray.zeros(device, (n,), torch.uint8), tape=tape)
-    adjoint = SubstepAdjoint(device, dtype, n, sim.grid, sim.particles.material, sim.flip)
+    adjoint = SubstepAdjoint(device, dtype, n, sim.grid, sim.particles.material, sim.flip, sim.kernels.plan)
     grads = [StateGrad.zeros(device, n, dtype) for _ in range(2)]
     param_grad = DeviceArray.zeros(device, sim.particles.param.shape, dtype)
     mass_grad = DeviceArray.zeros(device, (n,), dtype)

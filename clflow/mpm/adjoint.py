@@ -6,8 +6,8 @@ the gradients of the per-particle kernel parameters and masses, in reverse kerne
 
     g2p_adjoint_private              : (xbar', vbar', Cbar', grid_v[, grid_dv]) -> grid_vbar copies, xbar (part)
     sum_grid_copies                  : (grid_vbar copies)            -> grid_vbar (vbar_i[, dvbar_i])
-      or, where the P2G took the gather (the GPU plan, clflow.runtime.plan), with the
-      particles sorted by cell (CellSort):
+      or, where the P2G took the gather (the GPU plan, clflow.runtime.plan), over the
+      particles the forward sorted by cell (kept in its SubstepTape):
     g2p_adjoint_records              : (xbar', vbar', Cbar', grid_v[, grid_dv]) -> slot records, xbar (part)
     g2p_adjoint_gather_update        : (slot records)                -> grid_vbar, a work-item per node,
                                        and grid_update_adjoint's work on that node
@@ -33,7 +33,6 @@ import torch
 
 from clflow.mpm.constants import SIMD_LANES, grid_channels, uses_flip, velocity_channels
 from clflow.mpm.substep import (
-    CellSort,
     Grid,
     State,
     StressStage,
@@ -76,8 +75,7 @@ class SubstepAdjoint:
     """The adjoint kernels of one device, precision, particle count, grid, material set and
     PIC/FLIP blend, in the shapes of ``plan`` (the forward's, with the P2G path it took;
     default the device's), with their scratch buffers (grid adjoint, taubar, U s V,
-    grid_v_bar, and the private grid copies with their boxes, or the cell sort and slot
-    records of the gather)."""
+    grid_v_bar, and the private grid copies with their boxes, or the gather's slot records)."""
 
     def __init__(
         self,
@@ -100,14 +98,13 @@ class SubstepAdjoint:
         scatter = lambda role: device.kernel(*plan.kernel("adjoint_scatter", role), real, defines)  # noqa: E731
         self.elastic_only = stage.elastic_only
         self.k_stress, self.k_svd = stage.kernels(device, real, plan, adjoint=True)
-        self.U, self.s, self.V = stage.svd_buffers(device, n, dtype)
+        self.U, self.s, self.V = stage.svd_buffers(device, n if self.k_svd is not None else 0, dtype)
         self.gather = plan.adjoint_scatter == "gather"  # its launch also takes the grid update's adjoint
         self.k_grid = None if self.gather else k("mpm/adjoint/grid_adjoint.cl", "grid_update_adjoint")
         self.k_p2g = k("mpm/adjoint/p2g_adjoint.cl", "p2g_adjoint")
         self.k_flip = k("mpm/adjoint/p2g_adjoint.cl", "p2g_flip_adjoint") if uses_flip(self.flip) else None
         self.k_g2p = scatter("g2p")
         if self.gather:
-            self.cells = CellSort(device, n, grid, real, defines, plan.kernel("adjoint_scatter", "cells"))
             self.k_gather = scatter("gather")
             self.records = DeviceArray.empty(device, (n, g2p_adjoint_record_reals(self.flip)), dtype)
         else:
@@ -187,11 +184,12 @@ class SubstepAdjoint:
         args = dict(n=np.int32(self.n), dt=R(inputs.dt), t=R(inputs.t), flip=R(self.flip), x_in=state.x, v_out=v_out)
         args |= dict(release_time=inputs.particles.release_time, grid_v=tape.grid_v, grid_dv=tape.grid_dv)
         args |= dict(x_bar_out=grad_after.x, v_bar_out=grad_after.v, C_bar_out=grad_after.C, x_bar=grad.x)
-        if self.gather:
-            order, starts = self.cells.sort(state.x, grid_args)
-            self.device.launch(self.k_g2p, self.n, grid_args | args | dict(order=order, records=self.records))
+        if self.gather:  # over the particles the forward sorted by cell
+            if not tape.sorted_by_cell:
+                raise ValueError("the gather adjoint needs a tape with the cell sort (SubstepKernels.empty_tape)")
+            self.device.launch(self.k_g2p, self.n, grid_args | args | dict(order=tape.order, records=self.records))
             update = grid_args | inputs.grid_update_args(R) | grids
-            self.device.launch(self.k_gather, self.grid.nodes, update | dict(records=self.records, starts=starts))
+            self.device.launch(self.k_gather, self.grid.nodes, update | dict(records=self.records, starts=tape.starts))
             return
         args |= dict(copies=np.int32(self.copies), chunk=np.int32(self.chunk))
         args |= dict(grid_v_bar_copies=self.grid_v_bar_copies, boxes=self.copy_boxes)

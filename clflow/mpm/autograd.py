@@ -53,6 +53,7 @@ from clflow.mpm.simulator import (
 from clflow.mpm.substep import DriverAccelerations, State, SubstepInputs, SubstepTape, p2g_record_reals
 from clflow.runtime.arrays import DeviceArray, origin_device, to_cpu, to_origin
 from clflow.runtime.reduction import sum_rows
+from clflow.runtime.sort import counts_length
 
 
 @dataclass
@@ -219,7 +220,7 @@ class _Run:
         stage_rows = [DeviceArray.zeros(dev, (n, 3), dtype) for _ in spec.drivers.forces]
         first = self.checkpoints[0]
         states = [None] + [first.empty_like() for _ in range(k)]
-        tapes = [SubstepTape.empty(dev, n, spec.grid.nodes, dtype, spec.flip) for _ in range(k)]
+        tapes = [self.engine.forward.empty_tape() for _ in range(k)]
         starts = list(range(0, S, k))  # first substep of each segment
         # second level (only when a frame's replay exceeds the budget): segment start states
         segment_states = [first.empty_like() for _ in starts[1:]]
@@ -277,8 +278,9 @@ def memory_estimate(
     of every later segment and a scratch state (two-level checkpointing); the kernels'
     working buffers (two forward states, tau, grids; two state gradients, taubar, U s V,
     parameter and mass gradients, the grid adjoint and the sum of its copies: g per node; the
-    GPU plan's two cell sorts, 3 ints per particle and 1 per node each, and its P2G and
-    adjoint records, counted in either plan); and ``grid_copies`` private grid copies of g
+    GPU plan's cell sort, 2 ints per particle and about 1 per node, each tape's order and
+    cell starts, 1 per particle and per node, and its P2G and adjoint records, counted in
+    either plan); and ``grid_copies`` private grid copies of g
     reals per node (CPU path: P2G and its adjoint)."""
     itemsize = torch.tensor([], dtype=dtype).element_size()
     k = substeps if segment is None else segment
@@ -287,7 +289,9 @@ def memory_estimate(
     replay = k * (n * (25 + 9) + g * nodes) + (n * 25 * (-(-substeps // k)) if k < substeps else 0)
     working = n * (2 * 25 + 9) + g * nodes + n * (2 * 25 + 9 + 21 + PARAM_COUNT + 1) + g * nodes
     records = n * (p2g_record_reals(flip) + g2p_adjoint_record_reals(flip))
-    cell_sorts = 2 * 4 * (3 * n + nodes + 1)  # bytes: int32 keys, ranks and order, each cell's start
+    # bytes: the cell sort's int32 keys, ranks and counts, and each tape's order and cell starts
+    # (the replay's k and the kernels' own)
+    cell_sorts = 4 * (2 * n + counts_length(nodes) + (k + 1) * (n + nodes + 1))
     return itemsize * (checkpoints + replay + working + records + grid_copies * g * nodes) + cell_sorts
 
 

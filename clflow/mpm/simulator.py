@@ -507,9 +507,11 @@ class Simulator:
     def particle_arrays(self) -> list[DeviceArray]:
         """Every per-particle array the simulator keeps on its device (what its memory per
         particle counts): the current and the next state, the constant particle data, the
-        kernels' per-particle scratch (tau, U, s, V) and the clamp flags [N] uint8."""
+        kernels' per-particle scratch (tau, and U, s, V where an SVD kernel writes them) and
+        the clamp flags [N] uint8."""
         arrays = arrays_of(self._state) + arrays_of(self._next) + arrays_of(self.device_particles)
-        return arrays + [self.kernels.scratch.tau, self.kernels.U, self.kernels.s, self.kernels.V, self._clamped]
+        svd = [a for a in (self.kernels.U, self.kernels.s, self.kernels.V) if a.shape[0]]
+        return arrays + [self.kernels.scratch.tau, *svd, self._clamped]
 
     def substep_inputs(self) -> SubstepInputs:
         """What the next substep reads besides the state (at the current time), on the device."""

@@ -2,7 +2,9 @@
 
     trial_svd_simd: (F_n, C_n)                             -> U, s, V = svd3(F_tr)
     update_stress : (F_n, C_n, U, s, V, plastic_n, param)  -> F_n+1, plastic_n+1, tau
-                    (update_stress_elastic_simd: both in one when all particles are elastic)
+                    (update_stress_elastic_simd: both in one when all particles are elastic;
+                    where P2G gathers in the GPU plan, update_stress[_elastic]_cells: the
+                    SVD inline, and each particle keyed and counted by cell at x_n)
     p2g           : (x_n, v_n, C_n, tau, mass, volume)     -> grid [nodes, GRID_CH] (m, mv[, mv0])
                     (private grid copies, each zeroed and summed only in the box of nodes
                     its particles touch; a gather per node over particles sorted by cell,
@@ -11,9 +13,9 @@
     g2p           : (x_n[, v_n], grid_v[, grid_dv], release_time) -> x_n+1, v_n+1, C_n+1
 
 (bracketed: with the PIC/FLIP blend, ``flip`` > 0; GRID_CH = constants.grid_channels).
-State n is only read, so the adjoint can replay a substep from a checkpoint; tau and the
-grids go into a :class:`SubstepTape`, the caller's (to keep them for the adjoint) or the
-kernels' own scratch one.
+State n is only read, so the adjoint can replay a substep from a checkpoint; tau, the grids
+and the gather's cell sort go into a :class:`SubstepTape`, the caller's (to keep them for
+the adjoint) or the kernels' own scratch one.
 
 Everything a substep touches lives in device memory (:class:`~clflow.runtime.arrays.DeviceArray`):
 the state, the particles' constant data, the boundary table, the driver accelerations and the
@@ -42,9 +44,9 @@ from clflow.mpm.constants import (
 from clflow.runtime.arrays import DeviceArray, numpy_real, real_of
 from clflow.runtime.binding import LaunchCache, Recording
 from clflow.runtime.devices import Device
-from clflow.runtime.plan import P2G_ENV, Kernel, KernelPlan, P2GMode, kernel_plan
+from clflow.runtime.plan import P2G_ENV, KernelPlan, P2GMode, kernel_plan
 from clflow.runtime.profile import profiled_step
-from clflow.runtime.sort import counting_sort
+from clflow.runtime.sort import counting_sort, counts_length
 
 MAX_GRID_COPIES = 16  # private P2G grids at most (memory: copies x nodes x 4 reals)
 GRID_COPY_BUDGET = 1 << 30  # bytes all private grid copies may take together
@@ -184,18 +186,22 @@ class StressStage:
     def kernels(self, device: Device, real: str, plan: KernelPlan, adjoint: bool = False):
         """(stress kernel, SVD kernel or None) of the forward or the ``adjoint`` stress stage on
         ``device`` in precision ``real``, in the shape of ``plan`` (SIMD lanes or a particle a
-        work-item); built without the PIC/FLIP switch, which only the transfer kernels read,
-        so blended and plain simulators share these programs."""
+        work-item; a forward that also keys the particles by cell, the SVD inline, where the
+        plan says so: KernelPlan.stress_keys_cells); built without the PIC/FLIP switch, which
+        only the transfer kernels read, so blended and plain simulators share these programs."""
         defines = self.defines(0.0)
         stage = "stress_adjoint" if adjoint else "stress"
         build = lambda role: device.kernel(*plan.kernel(stage, role), real, defines)  # noqa: E731
+        if plan.stress_keys_cells and not adjoint:
+            return build("elastic_cells" if self.elastic_only else "models_cells"), None
         svd = build("svd") if self.needs_svd else None
         return build("elastic" if self.elastic_only else "models"), svd
 
-    def svd_buffers(self, device: Device, n: int, dtype: torch.dtype) -> tuple[DeviceArray, DeviceArray, DeviceArray]:
-        """U [n, 3, 3], s [n, 3], V [n, 3, 3] of svd3(F_tr) on ``device`` (empty when no model needs them)."""
-        m = n if self.needs_svd else 0
-        return tuple(DeviceArray.empty(device, shape, dtype) for shape in ((m, 3, 3), (m, 3), (m, 3, 3)))
+    @staticmethod
+    def svd_buffers(device: Device, n: int, dtype: torch.dtype) -> tuple[DeviceArray, DeviceArray, DeviceArray]:
+        """U [n, 3, 3], s [n, 3], V [n, 3, 3] of svd3(F_tr) on ``device`` (n = 0 where no SVD
+        kernel writes them)."""
+        return tuple(DeviceArray.empty(device, shape, dtype) for shape in ((n, 3, 3), (n, 3), (n, 3, 3)))
 
 
 class DriverAccelerations:
@@ -247,17 +253,30 @@ class SubstepTape:
     """What a substep writes besides the next state, and its adjoint reads (DeviceArrays):
     tau [N, 3, 3] (Kirchhoff stress, Pa), the grid [nodes, GRID_CH] (m, mv[, mv0]; kg,
     kg m/s), the grid velocities [nodes, 3] (m/s) and, with a PIC/FLIP blend, their change in
-    the substep grid_dv [nodes, 3] (else [1, 3], unused)."""
+    the substep grid_dv [nodes, 3] (else [1, 3], unused); where P2G gathers, the particles
+    sorted by cell (:class:`CellSort`): ``order`` [N] and ``starts`` [nodes + 1] int32 (else
+    [1], unused), which the adjoint's gather reads instead of sorting again."""
 
     tau: DeviceArray
     grid_mv: DeviceArray
     grid_v: DeviceArray
     grid_dv: DeviceArray
+    order: DeviceArray
+    starts: DeviceArray
 
     @staticmethod
-    def empty(device: Device, n: int, nodes: int, dtype: torch.dtype, flip: float = 0.0) -> "SubstepTape":
+    def empty(
+        device: Device, n: int, nodes: int, dtype: torch.dtype, flip: float = 0.0, sorted_by_cell: bool = False
+    ) -> "SubstepTape":
         shapes = ((n, 3, 3), (nodes, grid_channels(flip)), (nodes, 3), (nodes if uses_flip(flip) else 1, 3))
-        return SubstepTape(*(DeviceArray.empty(device, shape, dtype) for shape in shapes))
+        reals = [DeviceArray.empty(device, shape, dtype) for shape in shapes]
+        sort_shapes = ((max(n, 1),), (nodes + 1,)) if sorted_by_cell else ((1,), (1,))
+        return SubstepTape(*reals, *(DeviceArray.empty(device, shape, torch.int32) for shape in sort_shapes))
+
+    @property
+    def sorted_by_cell(self) -> bool:
+        """Whether the tape holds a cell sort (the gather path's tapes)."""
+        return self.starts.shape[0] > 1
 
 
 def check_grid_memory(
@@ -282,12 +301,13 @@ def check_grid_memory(
         )
 
 
-def launch_stress(owner, dt: float, F, C, args: dict, elastic_omits: tuple[str, ...]) -> None:
+def launch_stress(owner, dt: float, F, C, args: dict, elastic_omits: tuple[str, ...], svd_inline: bool = False) -> None:
     """Enqueue a stress stage, forward or adjoint, of ``owner`` (:class:`SubstepKernels` or its
     adjoint: device, n, plan, k_stress, k_svd, U/s/V) from F and C: the per-particle kernel
-    takes ``args`` after the SVD of the trial F (when k_svd); an elastic-only kernel (SVD
-    included) takes ``args`` less ``elastic_omits``. The SVD and elastic-only kernels run on
-    SIMD lanes in the plan's "simd_lanes" shape, a particle a work-item in "plain"."""
+    takes ``args`` after the SVD of the trial F (when k_svd), or computes the SVD itself
+    (``svd_inline``: the forward's _cells kernels); an elastic-only kernel (SVD included)
+    takes ``args`` less ``elastic_omits``. The SVD and elastic-only kernels run on SIMD lanes
+    in the plan's "simd_lanes" shape, a particle a work-item in "plain"."""
     dev, n = owner.device, owner.n
     common = dict(n=np.int32(n), dt=owner.real_t(dt), F_in=F, C_in=C)
     lanes = -(-n // SIMD_LANES) if owner.plan.stress == "simd_lanes" else n
@@ -296,7 +316,8 @@ def launch_stress(owner, dt: float, F, C, args: dict, elastic_omits: tuple[str, 
         return
     if owner.k_svd is not None:
         dev.launch(owner.k_svd, lanes, common | dict(U_out=owner.U, s_out=owner.s, V_out=owner.V))
-    dev.launch(owner.k_stress, n, common | dict(U_in=owner.U, s_in=owner.s, V_in=owner.V) | args)
+    svd = {} if svd_inline else dict(U_in=owner.U, s_in=owner.s, V_in=owner.V)  # unread where no model needs it
+    dev.launch(owner.k_stress, n, common | svd | args)
 
 
 def p2g_particle_args(real_t, state: State, tape: SubstepTape, inputs: SubstepInputs) -> dict:
@@ -314,25 +335,32 @@ def p2g_record_reals(flip: float) -> int:
 
 class CellSort:
     """The particles of a substep sorted by the cell of their stencil's base node, on the
-    device, by counting sort (one pass; clflow.runtime.sort): ``order`` [n] int32, the
-    particles cell by cell, each cell's in index order; ``starts`` [nodes + 1] int32, the
-    first slot of each cell (mpm/cells.h). The gather P2G and the gather adjoint take it, with
-    the kernel that keys the particles by cell (``cells``: their plan's)."""
+    device, by counting sort (one pass; clflow.runtime.sort) into a tape's ``order`` [n]
+    int32, the particles cell by cell, and ``starts`` [nodes + 1] int32, the first slot of
+    each cell (mpm/cells.h), each cell's run left for the P2G's order_pack to put in index
+    order. The particles are keyed and counted by ``k_cells`` (particle_cells), or, when it
+    is None, by the stress kernel (:meth:`key_args`); ``keys``, ``rank`` and ``counts`` are
+    its scratch."""
 
-    def __init__(self, device: Device, n: int, grid: Grid, real: str, defines: dict, cells: Kernel):
-        self.device, self.n, self.cells = device, n, grid.nodes
-        self.k_cells = device.kernel(*cells, real, defines)
-        self.keys, self.rank, self.order = (DeviceArray.empty(device, (max(n, 1),), torch.int32) for _ in range(3))
-        self.starts = DeviceArray.empty(device, (grid.nodes + 1,), torch.int32)
+    def __init__(self, device: Device, n: int, grid: Grid, k_cells=None):
+        self.device, self.n, self.cells, self.k_cells = device, n, grid.nodes, k_cells
+        self.keys, self.rank = (DeviceArray.empty(device, (max(n, 1),), torch.int32) for _ in range(2))
+        self.counts = DeviceArray.empty(device, (counts_length(grid.nodes),), torch.int32)
 
-    def sort(self, x: DeviceArray, grid_args: dict) -> tuple[DeviceArray, DeviceArray]:
-        """Enqueue the sort of the particles at ``x`` [n, 3] (m); returns (order, starts)."""
-        dev, n = self.device, np.int32(self.n)
-        self.starts.zero_()  # the counts particle_cells adds to
-        cells = dict(n=n, x=x, key=self.keys, counts=self.starts, rank=self.rank)
-        dev.launch(self.k_cells, self.n, grid_args | cells)
-        counting_sort(dev, self.keys, self.n, self.cells, self.starts, self.rank, self.order, counted=True)
-        return self.order, self.starts
+    def key_args(self, x: DeviceArray) -> dict:
+        """The arguments of a kernel that keys and counts the particles at ``x`` [n, 3] (m)
+        (CELL_KEY_ARGS of mpm/cells.h, and x)."""
+        return dict(x=x, key=self.keys, counts=self.counts, rank=self.rank)
+
+    def sort(self, x: DeviceArray, grid_args: dict, tape: SubstepTape) -> None:
+        """Enqueue the sort of the particles at ``x`` into ``tape``'s order and starts, after
+        the zeroing of ``counts`` and, when k_cells is None, the kernel that counted them."""
+        if self.k_cells is not None:
+            self.device.launch(self.k_cells, self.n, grid_args | dict(n=np.int32(self.n)) | self.key_args(x))
+        counting_sort(
+            self.device, self.keys, self.n, self.cells, self.counts, self.rank, tape.order, tape.starts,
+            counted=True, order_runs=False,
+        )  # fmt: skip
 
 
 class SubstepKernels:
@@ -366,7 +394,7 @@ class SubstepKernels:
         k = lambda role: device.kernel(*plan.kernel("p2g", role), self.real, defines)  # noqa: E731
         self.elastic_only = stage.elastic_only
         self.k_stress, self.k_svd = stage.kernels(device, self.real, plan)
-        self.U, self.s, self.V = stage.svd_buffers(device, n, dtype)
+        self.U, self.s, self.V = stage.svd_buffers(device, n if self.k_svd is not None else 0, dtype)
         # the private path's grid update sums the P2G copies too, a row of nodes a work-item;
         # the gather's launch updates each node it gathered
         self.k_grid = None if p2g == "gather" else k("grid")
@@ -382,11 +410,16 @@ class SubstepKernels:
             self.grid_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * grid_bytes)
             self.copy_boxes = DeviceArray.empty(device, (self.copies, 6), torch.int32)  # each copy's node box
         elif p2g == "gather":
-            self.cells = CellSort(device, n, grid, self.real, defines, plan.kernel("p2g", "cells"))
-            self.k_pack = k("pack")
+            k_cells = None if plan.stress_keys_cells else k("cells")  # else the stress kernel keys them
+            self.cells = CellSort(device, n, grid, k_cells)
+            self.k_pack = k("order_pack")
             self.p2g_records = DeviceArray.empty(device, (n, p2g_record_reals(self.flip)), dtype)
-        self.scratch = SubstepTape.empty(device, n, grid.nodes, dtype, self.flip)
+        self.scratch = self.empty_tape()
         self.bound = LaunchCache()  # run()'s launches, bound per set of arrays
+
+    def empty_tape(self) -> SubstepTape:
+        """A tape for this kernels' substeps (with the cell sort where P2G gathers)."""
+        return SubstepTape.empty(self.device, self.n, self.grid.nodes, self.dtype, self.flip, self.p2g == "gather")
 
     def run(
         self,
@@ -422,9 +455,15 @@ class SubstepKernels:
         dev, R, n = self.device, self.real_t, np.int32(self.n)
         grid_args = self.grid_args
         particles = inputs.particles
+        gather = self.p2g == "gather"
+        if gather:
+            self.cells.counts.zero_()  # the counts the cell keys add to
         outputs = dict(F_out=out.F, plastic_out=out.plastic, tau_out=tape.tau)
         stress_args = dict(plastic_in=state.plastic, material=particles.material, param=particles.param) | outputs
-        launch_stress(self, inputs.dt, state.F, state.C, stress_args, elastic_omits=("material",))
+        keys_cells = gather and self.plan.stress_keys_cells
+        if keys_cells:
+            stress_args |= grid_args | self.cells.key_args(state.x)
+        launch_stress(self, inputs.dt, state.F, state.C, stress_args, ("material",), svd_inline=keys_cells)
         p2g_args = grid_args | p2g_particle_args(R, state, tape, inputs)
         grids = dict(grid=tape.grid_mv, grid_v=tape.grid_v, grid_dv=tape.grid_dv)
         grid_update_args = grid_args | inputs.grid_update_args(R) | grids
@@ -433,19 +472,22 @@ class SubstepKernels:
             dev.launch(self.k_p2g, self.copies, p2g_args | copies | dict(chunk=np.int32(self.chunk)), local_size=1)
             nx, ny, _ = self.grid.resolution
             dev.launch(self.k_grid, nx * ny, grid_update_args | copies)
-        elif self.p2g == "gather":
-            order, starts = self.cells.sort(state.x, grid_args)
-            pack = dict(dx=grid_args["dx"], order=order, records=self.p2g_records)
-            dev.launch(self.k_pack, self.n, p2g_particle_args(R, state, tape, inputs) | pack)
-            cells = dict(records=self.p2g_records, starts=starts)
-            dev.launch(self.k_p2g, self.grid.nodes, grid_update_args | cells)
+        elif gather:
+            self.cells.sort(state.x, grid_args, tape)
+            particle = {k: v for k, v in p2g_particle_args(R, state, tape, inputs).items() if k != "n"}
+            cells = dict(n_cells=np.int32(self.grid.nodes), starts=tape.starts, order=tape.order)
+            pack = particle | cells | dict(dx=grid_args["dx"], records=self.p2g_records)
+            dev.launch(self.k_pack, self.grid.nodes, pack)
+            dev.launch(
+                self.k_p2g, self.grid.nodes, grid_update_args | dict(records=self.p2g_records, starts=tape.starts)
+            )
         else:
             tape.grid_mv.zero_()  # on the device, in queue order: the atomics add onto zeros
             dev.launch(self.k_p2g, self.n, p2g_args | dict(grid=tape.grid_mv))
             dev.launch(self.k_grid, self.grid.nodes, grid_update_args)
         g2p = dict(n=n, dt=R(inputs.dt), t=R(inputs.t), flip=R(self.flip), x_in=state.x, v_in=state.v)
-        if self.p2g == "gather":
-            g2p["order"] = self.cells.order
+        if gather:
+            g2p["order"] = tape.order
         g2p |= dict(grid_v=tape.grid_v, grid_dv=tape.grid_dv, release_time=particles.release_time)
         g2p |= dict(x_out=out.x, v_out=out.v, C_out=out.C, clamped=clamped)
         dev.launch(self.k_g2p, self.n, grid_args | g2p)

@@ -48,7 +48,6 @@ def _kernels(source: str, **entries: str) -> dict[str, Kernel]:
 
 _SCAN, _SORT, _PRIVATE = "common/scan.cl", "common/sort.cl", "mpm/p2g_private.cl"
 _STRESS, _STRESS_ADJOINT = "mpm/stress.cl", "mpm/adjoint/stress_adjoint.cl"
-_CELLS = Kernel("mpm/p2g_gather.cl", "particle_cells")
 _GRID_UPDATE, _G2P = Kernel("mpm/grid.cl", "grid_update"), Kernel("mpm/g2p.cl", "g2p")
 
 #: stage -> shape -> role -> the kernel that serves it there (roles in launch order).
@@ -65,7 +64,14 @@ STAGE_KERNELS: dict[str, dict[str, dict[str, Kernel]]] = {
         "simd_lanes": _kernels(
             _STRESS, svd="trial_svd_simd", models="update_stress", elastic="update_stress_elastic_simd"
         ),
-        "plain": _kernels(_STRESS, svd="trial_svd", models="update_stress", elastic="update_stress_elastic"),
+        "plain": _kernels(
+            _STRESS,
+            svd="trial_svd",
+            models="update_stress",
+            elastic="update_stress_elastic",
+            models_cells="update_stress_cells",  # the SVD inline, and the particles keyed by cell
+            elastic_cells="update_stress_elastic_cells",
+        ),
     },
     "p2g": {
         "private": {
@@ -74,8 +80,7 @@ STAGE_KERNELS: dict[str, dict[str, dict[str, Kernel]]] = {
             "g2p": _G2P,
         },
         "gather": {  # the grid update in the gather's launch
-            "cells": _CELLS,
-            **_kernels("mpm/p2g_gather.cl", pack="p2g_pack", p2g="p2g_gather_update"),
+            **_kernels("mpm/p2g_gather.cl", cells="particle_cells", order_pack="order_pack", p2g="p2g_gather_update"),
             "g2p": Kernel("mpm/g2p.cl", "g2p_sorted"),
         },
         "atomic": {"p2g": Kernel("mpm/p2g_atomic.cl", "p2g_atomic"), "grid": _GRID_UPDATE, "g2p": _G2P},
@@ -85,12 +90,9 @@ STAGE_KERNELS: dict[str, dict[str, dict[str, Kernel]]] = {
             "g2p": Kernel("mpm/adjoint/g2p_adjoint_private.cl", "g2p_adjoint_private"),
             "sum": Kernel(_PRIVATE, "sum_grid_copies"),
         },
-        "gather": {
-            "cells": _CELLS,
-            **_kernels(
-                "mpm/adjoint/g2p_adjoint_gather.cl", g2p="g2p_adjoint_records", gather="g2p_adjoint_gather_update"
-            ),
-        },
+        "gather": _kernels(  # over the forward's cell sort, which the tape keeps
+            "mpm/adjoint/g2p_adjoint_gather.cl", g2p="g2p_adjoint_records", gather="g2p_adjoint_gather_update"
+        ),
     },
     "stress_adjoint": {
         "simd_lanes": {
@@ -124,6 +126,13 @@ class KernelPlan:
     adjoint_scatter: Literal["private", "gather"]
     raster: Literal["tile_rows", "workgroup"]
     stress: Literal["simd_lanes", "plain"]
+
+    @property
+    def stress_keys_cells(self) -> bool:
+        """Whether the forward stress kernels also key the particles by cell for the gather's
+        sort (the plain shape's update_stress_cells, update_stress_elastic_cells: one launch
+        fewer a substep); the SIMD-lane ones leave it to particle_cells."""
+        return self.p2g == "gather" and self.stress == "plain"
 
     @property
     def stress_adjoint(self) -> str:

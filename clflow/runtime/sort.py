@@ -6,7 +6,7 @@ alone, so it repeats to the bit; the sorts are stable.
     scan_exclusive(device, counts, offsets, n)          # offsets[i] = sum(counts[:i]), offsets[n] the total
     swapped = radix_sort(device, (keys, values), (keys2, values2), n, key_bits, digit_bits)
     # the sorted pairs are in (keys2, values2) when swapped, else in (keys, values)
-    counting_sort(device, keys, n, n_keys, starts, rank, order)   # keys < n_keys, one pass
+    counting_sort(device, keys, n, n_keys, counts, rank, order)   # keys < n_keys, one pass
 
 The rasteriser sorts its tile entries by radix sort, the simulator its particles by grid cell
 by counting sort. pyopencl's own scan and radix sort (``pyopencl.scan``,
@@ -46,26 +46,38 @@ def _blocks(n: int, per_block: int) -> int:
     return max(1, -(-n // per_block))
 
 
-def scan_exclusive(device: Device, src, dst, n: int) -> None:
+def scan_exclusive(device: Device, src, dst, n: int, block_sums: tuple | None = None) -> None:
     """dst[i] = sum of src[:i] for i = 0..n (int32; dst holds n + 1, dst[n] the total). ``src``
-    and ``dst`` may be the same buffer."""
+    and ``dst`` may be the same buffer. ``block_sums`` (buffer, first index): where the sums
+    of src's blocks of SCAN_BLOCK elements already lie (counted with the elements: the
+    counting sort's), which spares the work-group shape its reduce pass."""
     if kernel_plan(device).scan == "serial" or n <= 0:  # nothing to scan: the one work-item writes the 0
         scan = device.kernel(*STAGE_KERNELS["scan"]["serial"]["scan"])
         device.launch(scan, 1, {"in": src, "out": dst, "n": np.int32(n)}, 1)
         return
-    _scan_workgroups(device, src, dst, n)
+    _scan_workgroups(device, src, dst, n, block_sums)
 
 
-def _scan_workgroups(device: Device, src, dst, n: int) -> None:
-    """Reduce-then-scan: the block sums, then each block offset by the sums before it (which
-    its work-group adds up; up to SCAN_SUMMED_BLOCKS blocks), else by the sums scanned the
-    same way (recursively)."""
+def _scan_workgroups(device: Device, src, dst, n: int, block_sums: tuple | None = None) -> None:
+    """Reduce-then-scan: the block sums (unless ``block_sums`` holds them), then each block
+    offset by the sums before it (which its work-group adds up; up to SCAN_SUMMED_BLOCKS
+    blocks), else by the sums scanned the same way (recursively)."""
     blocks = _blocks(n, SCAN_BLOCK)
     kernels = STAGE_KERNELS["scan"]["workgroup"]
     scan_blocks = device.kernel(*kernels["blocks"])
     args = {"in": src, "out": dst, "n": np.int32(n)}
     if blocks == 1:
         device.launch(scan_blocks, SCAN_WG, args | dict(offsets=dst, has_offsets=np.int32(0)), SCAN_WG)
+        return
+    summed = blocks <= SCAN_SUMMED_BLOCKS  # each block adds the sums before it: one launch after the sums
+    if summed and block_sums is not None:
+        sums, first = block_sums
+        device.launch(
+            device.kernel(*kernels["summed"]),
+            blocks * SCAN_WG,
+            args | dict(sums=sums, sums_at=np.int32(first)),
+            SCAN_WG,
+        )
         return
     sums = device.take_scratch(4 * blocks)
     device.launch(
@@ -74,8 +86,10 @@ def _scan_workgroups(device: Device, src, dst, n: int) -> None:
         {"in": src, "n": np.int32(n), "sums": sums},
         SCAN_WG,
     )
-    if blocks <= SCAN_SUMMED_BLOCKS:  # each block adds the sums before it: two launches in all
-        device.launch(device.kernel(*kernels["summed"]), blocks * SCAN_WG, args | dict(sums=sums), SCAN_WG)
+    if summed:
+        device.launch(
+            device.kernel(*kernels["summed"]), blocks * SCAN_WG, args | dict(sums=sums, sums_at=np.int32(0)), SCAN_WG
+        )
         device.give_back_scratch(sums)
         return
     offsets = device.take_scratch(4 * (blocks + 1))
@@ -125,23 +139,46 @@ def radix_sort(device: Device, pair, spare, n: int, key_bits: int, digit_bits: i
     return passes % 2 == 1
 
 
-def counting_sort(device: Device, keys, n: int, n_keys: int, starts, rank, order, counted: bool = False) -> None:
+def counts_length(n_keys: int) -> int:
+    """Length of a counting sort's ``counts`` for keys in [0, n_keys): a count per key, the
+    total, then a count per block of SCAN_BLOCK keys (the scan's block sums)."""
+    return n_keys + 1 + _blocks(n_keys, SCAN_BLOCK)
+
+
+def counting_sort(
+    device: Device,
+    keys,
+    n: int,
+    n_keys: int,
+    counts,
+    rank,
+    order,
+    starts=None,
+    counted: bool = False,
+    order_runs: bool = True,
+) -> None:
     """``order`` [n] int32: the indices 0..n-1 sorted by ``keys`` [n] (uint32, each < n_keys),
-    equal keys in index order; ``starts`` [n_keys + 1] int32 (a DeviceArray): where each key's run begins
-    (starts[n_keys] = n); ``rank`` [n] int32 scratch. ``counted``: the caller has already
-    zeroed ``starts``, counted the keys into it and written each one's ``rank``
-    (common/sort.cl count_keys, or a kernel that computes the keys and counts them at once)."""
+    equal keys in index order; ``starts`` [n_keys + 1] int32 (default: ``counts``, scanned in
+    place): where each key's run begins (starts[n_keys] = n). ``counts``
+    [counts_length(n_keys)] and ``rank`` [n] int32: scratch. ``counted``: the caller has
+    already zeroed ``counts``, counted the keys and their blocks into it and written each
+    one's rank (common/sort.cl count_keys, or a kernel that computes the keys and counts
+    them at once: mpm/cells.h count_cell). ``order_runs`` False: each run is left in the order
+    the atomics placed it, for the caller to put in index order (common/runs.h) as it reads it."""
     if not counted:
-        starts.zero_()
+        counts.zero_()
         device.launch(
-            device.kernel("common/sort.cl", "count_keys"), n, dict(keys=keys, n=np.int32(n), counts=starts, rank=rank)
+            device.kernel("common/sort.cl", "count_keys"),
+            n,
+            dict(keys=keys, n=np.int32(n), n_keys=np.int32(n_keys), counts=counts, rank=rank),
         )
-    scan_exclusive(device, starts, starts, n_keys)
+    starts = counts if starts is None else starts
+    scan_exclusive(device, counts, starts, n_keys, block_sums=(counts, n_keys + 1))
     placed = dict(keys=keys, rank=rank, starts=starts, n=np.int32(n), order=order)
     device.launch(device.kernel("common/sort.cl", "place_keys"), n, placed)
-    device.launch(
-        device.kernel("common/sort.cl", "order_runs"), n_keys, dict(starts=starts, n_keys=np.int32(n_keys), order=order)
-    )
+    if order_runs:
+        runs = dict(starts=starts, n_keys=np.int32(n_keys), order=order)
+        device.launch(device.kernel("common/sort.cl", "order_runs"), n_keys, runs)
 
 
 def key_ranges(device: Device, keys, ranges, n: int) -> None:
@@ -178,7 +215,7 @@ def sort_by_key(keys: torch.Tensor, n_keys: int, device: Device | None = None):
     if n and (int(keys.min()) < 0 or int(keys.max()) >= n_keys):
         raise InputError(f"sort_by_key: keys must lie in [0, {n_keys})")
     key_array = DeviceArray.of(device, keys.to(torch.int32))
-    starts = DeviceArray.empty(device, (n_keys + 1,), torch.int32)
+    counts = DeviceArray.empty(device, (counts_length(n_keys),), torch.int32)
     rank, order = (DeviceArray.empty(device, (max(n, 1),), torch.int32) for _ in range(2))
-    counting_sort(device, key_array, n, n_keys, starts, rank, order)
-    return order.read()[:n], starts.read()
+    counting_sort(device, key_array, n, n_keys, counts, rank, order)
+    return order.read()[:n], counts.read()[: n_keys + 1]

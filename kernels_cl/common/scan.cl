@@ -6,8 +6,9 @@
  *  - reduce-then-scan for GPUs, in blocks of SCAN_BLOCK = SCAN_WG x SCAN_ITEMS:
  *      scan_block_sums    : sums[b] = sum of block b                (a work-group per block)
  *      scan_blocks_summed : out = sum of sums[0..b) + the block's own exclusive scan, each
- *                           work-group adding the sums before it itself (two launches in all;
- *                           clflow.runtime.sort takes it up to SCAN_SUMMED_BLOCKS blocks)
+ *                           work-group adding the sums before it itself (two launches in all,
+ *                           one where the sums were counted with the elements; clflow.runtime
+ *                           .sort takes it up to SCAN_SUMMED_BLOCKS blocks)
  *    or, for more blocks, the sums scanned the same way, recursively, into offsets[0..nblocks]
  *    and scan_blocks: out = offsets[b] + the block's own exclusive scan.
  *    Every work-item handles SCAN_ITEMS elements; no work-item walks more. Decoupled
@@ -89,16 +90,17 @@ scan_blocks(__global const int *in, __global int *out, const int n, __global con
     scan_block(in, out, n, b, get_local_id(0), has_offsets ? offsets[b] : 0, block, vals, tmp);
 }
 
-/* Block b's exclusive scan plus the sum of sums[0..b) (scan_block_sums'), which the group adds
+/* Block b's exclusive scan plus the sum of the block sums before it, sums[sums_at .. sums_at + b)
+ * (scan_block_sums', or counted with the elements: mpm/cells.h count_cell), which the group adds
  * up itself, a strided share a work-item. */
 __kernel __attribute__((reqd_work_group_size(SCAN_WG, 1, 1))) void
-scan_blocks_summed(__global const int *in, __global int *out, const int n, __global const int *sums)
+scan_blocks_summed(__global const int *in, __global int *out, const int n, __global const int *sums, const int sums_at)
 {
     __local int block[SCAN_BLOCK], vals[SCAN_WG], tmp[SCAN_WG];
     const int l = get_local_id(0), b = get_group_id(0);
     int before = 0;
     for (int j = l; j < b; j += SCAN_WG)
-        before += sums[j];
+        before += sums[sums_at + j];
     vals[l] = before;
     const int offset = scan_local(vals, tmp, l); /* the group's total: every sum before block b */
     scan_block(in, out, n, b, l, offset, block, vals, tmp);

@@ -18,8 +18,9 @@
  * Counting sort of keys in [0, K) (count_keys, place_keys, order_runs): counts per key
  * (integer atomics), their exclusive scan gives each key's start, each element lands at its
  * key's start plus the rank its atomic returned, then each key's run is put in index order
- * (insertion sort of a run: the keys it is made for, grid cells, hold a few elements each).
+ * (common/runs.h).
  * One pass over the data for any key width, and the order is fixed. */
+#include "common/runs.h"
 #include "common/scan.h"
 
 __kernel void radix_histogram(__global const uint *keys, const int n, const int shift, const uint mask,
@@ -147,12 +148,17 @@ radix_scatter_wg(__global const uint *keys_in, __global const int *values_in, __
 }
 
 /* rank[i] = the count of keys[i] before this one was counted (in no fixed order); counts[k]
- * ends as the number of keys k (zeroed beforehand). */
-__kernel void count_keys(__global const uint *keys, const int n, __global int *counts, __global int *rank)
+ * ends as the number of keys k, and counts[n_keys + 1 + b] as the number in block b of
+ * SCAN_BLOCK keys, the scan's block sums (counts zeroed beforehand). */
+__kernel void count_keys(__global const uint *keys, const int n, const int n_keys, __global int *counts,
+                         __global int *rank)
 {
     const int i = get_global_id(0);
-    if (i < n)
-        rank[i] = atomic_inc(&counts[keys[i]]);
+    if (i >= n)
+        return;
+    const uint key = keys[i];
+    rank[i] = atomic_inc(&counts[key]);
+    atomic_inc(&counts[n_keys + 1 + key / SCAN_BLOCK]);
 }
 
 /* order[starts[keys[i]] + rank[i]] = i: each element into its key's run. */
@@ -169,16 +175,6 @@ __kernel void place_keys(__global const uint *keys, __global const int *rank, __
 __kernel void order_runs(__global const int *starts, const int n_keys, __global int *order)
 {
     const int k = get_global_id(0);
-    if (k >= n_keys)
-        return;
-    const int begin = starts[k], end = starts[k + 1];
-    for (int i = begin + 1; i < end; ++i) {
-        const int v = order[i];
-        int j = i - 1;
-        while (j >= begin && order[j] > v) {
-            order[j + 1] = order[j];
-            --j;
-        }
-        order[j + 1] = v;
-    }
+    if (k < n_keys)
+        sort_run(order, starts[k], starts[k + 1]);
 }

@@ -1,12 +1,30 @@
-/* Particles sorted by cell (clflow.runtime.sort.counting_sort of particle_cells' keys): the
- * particles of base cell c, in index order, are the slots [starts[c], starts[c + 1]). A node's
+/* Particles sorted by cell (clflow.runtime.sort.counting_sort of the keys count_cell writes):
+ * the particles of base cell c, in index order, are the slots [starts[c], starts[c + 1]). A node's
  * gather visits the 27 base cells whose stencil reaches it (gather_run), each cell's slots in
  * order, and reads each slot's record (gather_record): the gathers of p2g_gather.cl and
  * g2p_adjoint_gather.cl. */
 #ifndef CLFLOW_MPM_CELLS_H
 #define CLFLOW_MPM_CELLS_H
 
+#include "common/scan.h"
 #include "mpm/mpm.h"
+
+/* The arguments count_cell writes: each particle's cell key [n], the counts [cells + 1 +
+ * cells / SCAN_BLOCK + 1] (zeroed beforehand) and each particle's rank [n]. */
+#define CELL_KEY_ARGS __global uint *key, __global int *counts, __global int *rank
+
+/* Particle p at xp (m) counted into its base cell: key[p] = the cell, rank[p] = its place among
+ * the cell's particles (in the order the atomics ran), counts[cell] += 1, and its SCAN_BLOCK
+ * block of cells counted after the cells' counts and total, counts[cells + 1 + cell /
+ * SCAN_BLOCK] += 1: the scan's block sums, so that it needs no pass of its own to add them. */
+inline void count_cell(const grid_t *g, const int p, const real *xp, CELL_KEY_ARGS)
+{
+    const stencil_t st = make_stencil(g, xp);
+    const uint cell = (uint)grid_index(g, st.base[0], st.base[1], st.base[2]);
+    key[p] = cell;
+    rank[p] = atomic_inc(&counts[cell]);
+    atomic_inc(&counts[(long)g->nx * g->ny * g->nz + 1 + cell / SCAN_BLOCK]);
+}
 
 /* The slots [x, y) of base cell (bi, bj, bk); empty when no stencil can be based there (a
  * stencil's base lies in [0, n - 3] per axis). */

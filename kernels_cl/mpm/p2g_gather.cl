@@ -8,13 +8,16 @@
  * order. No atomics and no private grid copies: the result repeats to the bit on any device
  * and any number of work-items.
  *
- *   particle_cells : x -> key[p] = flat index of p's base cell, counted into starts
- *   (counting sort, clflow.runtime.sort: order = the particles by cell, starts[cell] = the
- *   first slot of each cell's run, a run in index order)
- *   p2g_pack       : the particle data P2G reads, in slot order: records [n, P2G_REC]
- *                    (x, m, momentum, affine[, m v, m C]): the gather then reads runs of
- *                    contiguous memory instead of chasing particle indices
+ *   particle_cells : x -> key[p] = flat index of p's base cell, counted (cells.h count_cell;
+ *                    in the GPU plan the stress kernel counts them, mpm/stress.cl)
+ *   (counting sort, clflow.runtime.sort: the counts scanned into starts[cell], the first slot
+ *   of each cell's run, and each particle placed in its cell's run)
+ *   order_pack     : a work-item per cell: its run in index order, then the particle data P2G
+ *                    reads in slot order, records [n, P2G_REC] (x, m, momentum, affine[, m v,
+ *                    m C]): the gather then reads runs of contiguous memory instead of
+ *                    chasing particle indices
  *   p2g_gather_update : one work-item per node, its sums and then its grid update */
+#include "common/runs.h"
 #include "mpm/cells.h"
 /* update_node and GRID_UPDATE_ARGS, for p2g_gather_update */
 #include "mpm/grid.cl"
@@ -23,8 +26,9 @@
  * and, with CLFLOW_FLIP, m v (3) and m C (3 x 3) */
 #define P2G_REC (CLFLOW_FLIP ? 28 : 16)
 
-__kernel void particle_cells(P2G_GRID_ARGS, const int n, __global const real *x, __global uint *key,
-                             __global int *counts, __global int *rank)
+/* Each particle counted into its base cell (cells.h count_cell): the cell sort's keys where the
+ * stress kernel does not count them itself (mpm/stress.cl update_stress_cells). */
+__kernel void particle_cells(P2G_GRID_ARGS, const int n, __global const real *x, CELL_KEY_ARGS)
 {
     const int p = get_global_id(0);
     if (p >= n)
@@ -32,21 +36,15 @@ __kernel void particle_cells(P2G_GRID_ARGS, const int n, __global const real *x,
     const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
     real xp[3];
     load_row(x, p, 3, xp);
-    const stencil_t st = make_stencil(&g, xp);
-    const uint cell = (uint)grid_index(&g, st.base[0], st.base[1], st.base[2]);
-    key[p] = cell;
-    rank[p] = atomic_inc(&counts[cell]);
+    count_cell(&g, p, xp, key, counts, rank);
 }
 
-__kernel void p2g_pack(const int n, const real dx, const real dt, __global const real *x, __global const real *v,
-                       __global const real *C, __global const real *tau, __global const real *mass,
-                       __global const real *volume, __global const int *group, __global const real *accel,
-                       __global const int *order, __global real *records)
+/* Slot s's record, of particle p. */
+inline void pack_slot(const int s, const int p, const real dx, const real dt, __global const real *x,
+                      __global const real *v, __global const real *C, __global const real *tau,
+                      __global const real *mass, __global const real *volume, __global const int *group,
+                      __global const real *accel, __global real *records)
 {
-    const int s = get_global_id(0);
-    if (s >= n)
-        return;
-    const int p = order[s];
     __global real *rec = records + (long)P2G_REC * s;
     const real m = mass[p];
     const real stress_scale = -dt * volume[p] * 4 / (dx * dx);
@@ -62,6 +60,22 @@ __kernel void p2g_pack(const int n, const real dx, const real dt, __global const
     for (int r = 0; r < 3; ++r)
         vstore3(m * vload3(3 * p + r, C), 0, rec + 19 + 3 * r);
 #endif
+}
+
+/* A work-item per cell: its run of `order` put in index order (common/runs.h; the atomics
+ * placed it in no fixed order), then the record of each of its slots. */
+__kernel void order_pack(const int n_cells, __global const int *starts, __global int *order, const real dx,
+                         const real dt, __global const real *x, __global const real *v, __global const real *C,
+                         __global const real *tau, __global const real *mass, __global const real *volume,
+                         __global const int *group, __global const real *accel, __global real *records)
+{
+    const int cell = get_global_id(0);
+    if (cell >= n_cells)
+        return;
+    const int begin = starts[cell], end = starts[cell + 1];
+    sort_run(order, begin, end);
+    for (int s = begin; s < end; ++s)
+        pack_slot(s, order[s], dx, dt, x, v, C, tau, mass, volume, group, accel, records);
 }
 
 /* The sums of node (ni, nj, nk), flat index `node`, into grid[node] (GRID_CH reals). */

@@ -9,14 +9,17 @@
  *  - "simd_lanes" (CPU devices): trial_svd_simd, update_stress_elastic_simd hold
  *    CLFLOW_SIMD_LANES particles per work-item in vector registers (CPU compilers do not
  *    vectorise the SVD's Jacobi loop across work-items themselves);
- *  - "plain" (GPUs): trial_svd, update_stress_elastic, a particle a work-item.
+ *  - "plain" (GPUs): trial_svd, update_stress_elastic, a particle a work-item; where P2G
+ *    gathers over particles sorted by cell, update_stress_cells (the SVD inline) and
+ *    update_stress_elastic_cells also count each particle into its cell (mpm/cells.h), so
+ *    the stage and the cell sort's first pass are one launch.
  *
  * Reads state n, writes state n+1's F and plastic state and this substep's tau: nothing
  * is overwritten that the adjoint needs. param[p] holds PARAM_COUNT kernel parameters per
  * particle (their meaning per material: clflow/mpm/constants.py, kernel_params()).
  * MATERIALS_PRESENT (a bit mask of material ids) leaves out the models a scene does not use:
  * smaller code that the compiler vectorises better. */
-#include "mpm/mpm.h"
+#include "mpm/cells.h"
 #include "mpm/materials/elastic.h"
 #include "mpm/materials/metal.h"
 #include "mpm/materials/newtonian.h"
@@ -25,16 +28,13 @@
 #include "mpm/materials/snow.h"
 #include "mpm/materials/viscoplastic.h"
 
-__kernel void update_stress(const int n, const real dt, __global const real *F_in, __global const real *C_in,
-                            __global const real *U_in, __global const real *s_in, __global const real *V_in,
-                            __global const real *plastic_in, __global const int *material, __global const real *param,
-                            __global real *F_out, __global real *plastic_out, __global real *tau_out)
+/* Particle p's return mapping and stress (its model's) from C and F_tr = (I + dt C) F, and
+ * U s V = svd3(F_tr) where a model present needs it: F_out, plastic_out, tau_out of p. */
+inline void model_stress(const int p, const real dt, real *C, real *F_tr, real *U, real *s, real *V,
+                         __global const real *plastic_in, __global const int *material, __global const real *param,
+                         __global real *F_out, __global real *plastic_out, __global real *tau_out)
 {
-    const int p = get_global_id(0);
-    if (p >= n)
-        return;
-    real F[9], C[9], step[9], F_tr[9], F_new[9], tau[9], U[9], s[3], V[9];
-    load_stress_inputs(p, dt, F_in, C_in, U_in, s_in, V_in, F, C, step, F_tr, U, s, V);
+    real F_new[9], tau[9];
     __global const real *q = param + (long)p * PARAM_COUNT;
     const real plastic = plastic_in[p];
     real plastic_new = plastic;
@@ -99,6 +99,61 @@ __kernel void update_stress(const int n, const real dt, __global const real *F_i
     store_row(tau_out, p, 9, tau);
 }
 
+/* Particle p's fixed-corotated elastic update, SVD included: F_out = F_tr, tau_out. */
+inline void elastic_stress(const int p, const real dt, __global const real *F_in, __global const real *C_in,
+                           __global const real *plastic_in, __global const real *param, __global real *F_out,
+                           __global real *plastic_out, __global real *tau_out)
+{
+    real F[9], C[9], step[9], F_tr[9], U[9], s[3], V[9], tau[9];
+    load_row(F_in, p, 9, F);
+    load_row(C_in, p, 9, C);
+    trial_deformation(F, C, dt, step, F_tr);
+    svd3(F_tr, U, s, V);
+    __global const real *q = param + (long)p * PARAM_COUNT;
+    fixed_corotated_tau(F_tr, U, s, V, q[0], q[1], tau);
+    store_row(F_out, p, 9, F_tr);
+    store_row(tau_out, p, 9, tau);
+    plastic_out[p] = plastic_in[p];
+}
+
+/* Each particle's model after the SVD of F_tr (trial_svd[_simd]: U_in, s_in, V_in). */
+__kernel void update_stress(const int n, const real dt, __global const real *F_in, __global const real *C_in,
+                            __global const real *U_in, __global const real *s_in, __global const real *V_in,
+                            __global const real *plastic_in, __global const int *material, __global const real *param,
+                            __global real *F_out, __global real *plastic_out, __global real *tau_out)
+{
+    const int p = get_global_id(0);
+    if (p >= n)
+        return;
+    real F[9], C[9], step[9], F_tr[9], U[9], s[3], V[9];
+    load_stress_inputs(p, dt, F_in, C_in, U_in, s_in, V_in, F, C, step, F_tr, U, s, V);
+    model_stress(p, dt, C, F_tr, U, s, V, plastic_in, material, param, F_out, plastic_out, tau_out);
+}
+
+/* update_stress with the SVD of F_tr inline, and each particle counted into its base cell at x
+ * (mpm/cells.h count_cell: the gather's cell sort): the "plain" shape's stage 1 in one launch. */
+__kernel void update_stress_cells(P2G_GRID_ARGS, const int n, const real dt, __global const real *F_in,
+                                  __global const real *C_in, __global const real *plastic_in,
+                                  __global const int *material, __global const real *param, __global real *F_out,
+                                  __global real *plastic_out, __global real *tau_out, __global const real *x,
+                                  CELL_KEY_ARGS)
+{
+    const int p = get_global_id(0);
+    if (p >= n)
+        return;
+    real F[9], C[9], step[9], F_tr[9], U[9], s[3], V[9], xp[3];
+    load_row(F_in, p, 9, F);
+    load_row(C_in, p, 9, C);
+    trial_deformation(F, C, dt, step, F_tr);
+#if MATERIALS_PRESENT & SVD_MATERIALS
+    svd3(F_tr, U, s, V);
+#endif
+    model_stress(p, dt, C, F_tr, U, s, V, plastic_in, material, param, F_out, plastic_out, tau_out);
+    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    load_row(x, p, 3, xp);
+    count_cell(&g, p, xp, key, counts, rank);
+}
+
 /* U, s, V = svd3(F_tr), a particle a work-item (the "plain" shape of trial_svd_simd). */
 __kernel void trial_svd(const int n, const real dt, __global const real *F_in, __global const real *C_in,
                         __global real *U_out, __global real *s_out, __global real *V_out)
@@ -123,18 +178,24 @@ __kernel void update_stress_elastic(const int n, const real dt, __global const r
                                     __global real *plastic_out, __global real *tau_out)
 {
     const int p = get_global_id(0);
+    if (p < n)
+        elastic_stress(p, dt, F_in, C_in, plastic_in, param, F_out, plastic_out, tau_out);
+}
+
+/* update_stress_elastic with each particle counted into its base cell at x (as update_stress_cells). */
+__kernel void update_stress_elastic_cells(P2G_GRID_ARGS, const int n, const real dt, __global const real *F_in,
+                                          __global const real *C_in, __global const real *plastic_in,
+                                          __global const real *param, __global real *F_out, __global real *plastic_out,
+                                          __global real *tau_out, __global const real *x, CELL_KEY_ARGS)
+{
+    const int p = get_global_id(0);
     if (p >= n)
         return;
-    real F[9], C[9], step[9], F_tr[9], U[9], s[3], V[9], tau[9];
-    load_row(F_in, p, 9, F);
-    load_row(C_in, p, 9, C);
-    trial_deformation(F, C, dt, step, F_tr);
-    svd3(F_tr, U, s, V);
-    __global const real *q = param + (long)p * PARAM_COUNT;
-    fixed_corotated_tau(F_tr, U, s, V, q[0], q[1], tau);
-    store_row(F_out, p, 9, F_tr);
-    store_row(tau_out, p, 9, tau);
-    plastic_out[p] = plastic_in[p];
+    elastic_stress(p, dt, F_in, C_in, plastic_in, param, F_out, plastic_out, tau_out);
+    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    real xp[3];
+    load_row(x, p, 3, xp);
+    count_cell(&g, p, xp, key, counts, rank);
 }
 
 #ifdef CLFLOW_SIMD_LANES

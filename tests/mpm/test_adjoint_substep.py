@@ -7,7 +7,7 @@ import torch
 
 from clflow.mpm import Grid, HalfSpace, MaterialSpec, Simulator, reference
 from clflow.mpm.adjoint import StateGrad, SubstepAdjoint
-from clflow.mpm.substep import Particles, SubstepTape
+from clflow.mpm.substep import Particles
 from clflow.runtime.arrays import DeviceArray, to_device, to_host
 from tests.mpm._helpers import MATERIAL_CASES, cube, poison, random_scene, two_blocks
 
@@ -32,12 +32,12 @@ def kernel_vjp(sim, grad_after: StateGrad, adjoint: SubstepAdjoint | None = None
     """(dL/d state, dL/d param, dL/d mass) of L = <grad_after, substep(state)> by the kernels
     (``adjoint``'s, default a new SubstepAdjoint)."""
     n, dtype, dev = sim.n, sim.dtype, sim.device
-    tape = SubstepTape.empty(dev, n, sim.grid.nodes, dtype, sim.flip)
+    tape = sim.kernels.empty_tape()
     state = sim.device_state
     after = state.empty_like()
     inputs = sim.substep_inputs()
     sim.kernels.run(state, after, inputs, clamp_flags(sim), tape=tape)
-    adjoint = adjoint or SubstepAdjoint(dev, dtype, n, sim.grid, sim.particles.material, sim.flip)
+    adjoint = adjoint or SubstepAdjoint(dev, dtype, n, sim.grid, sim.particles.material, sim.flip, sim.kernels.plan)
     grad = StateGrad.zeros(dev, n, dtype)
     param_grad = DeviceArray.zeros(dev, sim.particles.param.shape, dtype)
     mass_grad = DeviceArray.zeros(dev, (n,), dtype)
@@ -136,10 +136,11 @@ def test_the_gather_adjoint_writes_every_node_and_record(flip, monkeypatch):
     full of NaN beforehand, every node is written (empty ones with zeros), so the adjoint of
     two separate moving blocks equals the reference's; no private copies exist."""
     monkeypatch.setenv("CLFLOW_KERNELS", "gpu")
-    sim = two_blocks(("newtonian", "elastic"), flip=flip)
+    sim = two_blocks(("newtonian", "elastic"), flip=flip, p2g="gather")
     for _ in range(5):
         sim.step()
-    adjoint = SubstepAdjoint(sim.device, sim.dtype, sim.n, sim.grid, sim.particles.material, sim.flip)
+    plan = sim.kernels.plan  # the adjoint's gather reads the forward's cell sort
+    adjoint = SubstepAdjoint(sim.device, sim.dtype, sim.n, sim.grid, sim.particles.material, sim.flip, plan)
     poison(sim.device, adjoint.records.buffer)
     poison(sim.device, adjoint.grid_v_bar.buffer)
     assert_adjoint_matches_reference(sim, adjoint=adjoint)

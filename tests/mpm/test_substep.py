@@ -50,10 +50,11 @@ def run_both(sim, substeps):
 @pytest.mark.parametrize("material", list(MATERIAL_CASES))
 def test_matches_reference_float64(material, substeps):
     sim = random_scene({material: MATERIAL_CASES[material]})  # 300 particles: a partial SIMD tail
-    # elastic-only scenes take the fused SIMD stress kernel; the others the SIMD SVD (but the
-    # J-only Newtonian fluid) and the per-particle model kernel
+    # elastic-only scenes take the fused stress kernel; the others the SVD (but the J-only
+    # Newtonian fluid; inline in the GPU plan's gather) and the per-particle model kernel
     assert sim.kernels.elastic_only == (material == "elastic")
-    assert (sim.kernels.k_svd is not None) == (material not in ("elastic", "newtonian"))
+    svd_launch = material not in ("elastic", "newtonian") and not sim.kernels.plan.stress_keys_cells
+    assert (sim.kernels.k_svd is not None) == svd_launch
     assert run_both(sim, substeps) < 1e-9
 
 
@@ -277,25 +278,22 @@ def test_the_gather_sorts_particles_by_cell_and_sums_each_node_in_that_order():
     """Particles crossing cells between substeps (random velocities): the cell lists are
     rebuilt every substep, every particle in exactly one list, in index order within its cell,
     the cell its position says, and the gather's grid equals the private copies' to round-off."""
-    from clflow.mpm.substep import SubstepTape
     from clflow.runtime.arrays import DeviceArray
 
     sims = [random_scene(MATERIAL_CASES, n=700, p2g=mode) for mode in ("private", "gather")]
     for sim in sims:
         for _ in range(5):
             sim.step()
-    grids = []
+    tapes = []
     for sim in sims:
-        tape = SubstepTape.empty(sim.device, sim.n, sim.grid.nodes, sim.dtype)
+        tapes.append(sim.kernels.empty_tape())
         state = sim.device_state
-        sim.kernels.run(
-            state, state.empty_like(), sim.substep_inputs(), DeviceArray.zeros(sim.device, (sim.n,), torch.uint8), tape
-        )
-        grids.append(tape.grid_mv.read())
-    assert rel_diff(grids[1], grids[0]) < 1e-12
-    gather = sims[1]  # sorted last at its current state
-    cells = gather.kernels.cells
-    starts, order = cells.starts.read().long(), cells.order.read().long()
+        clamped = DeviceArray.zeros(sim.device, (sim.n,), torch.uint8)
+        sim.kernels.run(state, state.empty_like(), sim.substep_inputs(), clamped, tapes[-1])
+    assert rel_diff(tapes[1].grid_mv.read(), tapes[0].grid_mv.read()) < 1e-12
+    gather, tape = sims[1], tapes[1]  # its tape holds the sort at the gather's current state
+    assert tape.sorted_by_cell and not tapes[0].sorted_by_cell
+    starts, order = tape.starts.read().long(), tape.order.read().long()
     counts = starts.diff()
     assert int(counts.sum()) == gather.n and int(counts.max()) > 1  # each particle once; cells shared
     xi = (gather.state.x.double() - torch.tensor(gather.grid.origin, dtype=torch.float64)) / gather.grid.dx

@@ -48,14 +48,16 @@ def test_a_replayed_substep_is_the_launched_one_to_the_bit(device):
 def test_a_recording_is_dropped_with_an_array_it_was_made_for_and_keeps_its_scratch(device):
     cache = LaunchCache()
     keys = DeviceArray.of(device, torch.zeros(8, dtype=torch.int32))
-    counts = DeviceArray.zeros(device, (4,), torch.int32)
+    counts = DeviceArray.zeros(device, (4,), torch.int32)  # 2 keys, the total and one block's count
     scratch_rank = {"rank": DeviceArray.empty(device, (8,), torch.int32)}  # dropped below
     kernel = device.kernel(*SCALE)
     taken = []
 
     def block():
         counts.zero_()
-        device.launch(kernel, 8, dict(keys=keys, n=np.int32(8), counts=counts, rank=scratch_rank["rank"]))
+        device.launch(
+            kernel, 8, dict(keys=keys, n=np.int32(8), n_keys=np.int32(2), counts=counts, rank=scratch_rank["rank"])
+        )
         taken.append(device.take_scratch(64))
         device.give_back_scratch(taken[-1])
 
@@ -65,7 +67,7 @@ def test_a_recording_is_dropped_with_an_array_it_was_made_for_and_keeps_its_scra
     assert cache.recording(device, objects(), (), block) is first and len(taken) == 1
     for _ in range(3):
         device.replay(first, None)
-    assert counts.read().tolist() == [8, 0, 0, 0]  # zeroed before each count: one run's counts
+    assert counts.read().tolist() == [8, 0, 0, 8]  # zeroed before each count: one run's counts
     assert device.take_scratch(64) is not taken[0]  # the recording's for good
     del scratch_rank["rank"]
     gc.collect()

@@ -1,7 +1,8 @@
 """The GPU plan's kernels under oclgrind: no out-of-bounds access, no data race (the
-work-group scan in its two-launch form and radix sort with their barriers and local
-memory, the counting sort's integer atomics, the cell-sorted gather P2G, G2P and G2P adjoint,
-APIC and the PIC/FLIP blend)."""
+work-group scan in its two-launch form, and in one over block sums counted with the keys,
+and radix sort with their barriers and local memory, the counting sort's integer atomics,
+the stress kernels that key the particles by cell, the cell-sorted gather P2G with its
+order_pack, G2P and G2P adjoint, APIC and the PIC/FLIP blend)."""
 
 import textwrap
 
@@ -20,14 +21,15 @@ SCRIPT = textwrap.dedent(
     from clflow.runtime import get_device
     from clflow.runtime.arrays import DeviceArray
     from clflow.runtime.sort import scan_exclusive, sort_by_key, sort_pairs
-    from tests.mpm._helpers import assert_velocity_gradient, tiny_plasticine
+    from tests.mpm._helpers import MATERIAL_CASES, assert_velocity_gradient, random_scene, tiny_plasticine
     warnings.simplefilter("ignore")
     gen = torch.Generator().manual_seed(0)
     keys = torch.randint(0, 2**20, (2100,), generator=gen, dtype=torch.int32)  # two blocks of 2048
     sorted_keys, _ = sort_pairs(keys, torch.arange(2100, dtype=torch.int32), key_bits=20)
     assert torch.equal(sorted_keys, torch.sort(keys).values)
-    order, _ = sort_by_key(keys % 37, 37)
-    assert torch.equal(order.long(), torch.sort(keys % 37, stable=True).indices)
+    for n_keys in (37, 5000):  # one block of keys; three, whose counts the keys counted
+        order, _ = sort_by_key(keys % n_keys, n_keys)
+        assert torch.equal(order.long(), torch.sort(keys % n_keys, stable=True).indices)
     counts = torch.randint(0, 9, (5000,), generator=gen, dtype=torch.int32)  # three blocks: the two-launch scan
     device = get_device()
     scanned = DeviceArray.of(device, torch.zeros(5001, dtype=torch.int32))
@@ -37,6 +39,8 @@ SCRIPT = textwrap.dedent(
         sim = tiny_plasticine(flip=flip)
         assert sim.kernels.p2g == "gather"
         assert_velocity_gradient(sim)
+    elastic = {"elastic": MATERIAL_CASES["elastic"]}  # the fused elastic stress that keys the cells
+    assert_velocity_gradient(random_scene(elastic, n=13, substeps=2, frame_dt=2e-4, walls=None))
     print("done on", sim.device.info.label)
     """
 )
