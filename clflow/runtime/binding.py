@@ -4,9 +4,10 @@ A small simulation's substep is bound by the host's time to enqueue it (docs/gpu
 call rebuilds the same argument dicts, checks them against the kernels' signatures and lays
 them out in order. Here a block of launches (a substep) runs once under
 :meth:`Device.recording`, which binds each launch (arguments checked and laid out, buffers
-resolved, work sizes padded) and each zeroing of an array instead of enqueuing them; later
-calls replay the recorded steps, setting only the time ``t`` (the one argument a substep
-changes from call to call) before each enqueue.
+resolved, work sizes padded, each on a kernel object of its own whose arguments are set
+once) and each zeroing of an array instead of enqueuing them; later calls replay the
+recorded steps, setting only the time ``t`` (the one argument a substep changes from call to
+call) before each enqueue.
 
 A recording is valid while the objects its arguments came from are the same: a
 :class:`LaunchCache` keys it by their identities, holds them by weak reference and drops it
@@ -25,7 +26,9 @@ from typing import Any
 @dataclass
 class BoundLaunch:
     """One launch laid out: the kernel, its padded work sizes, its argument values in the
-    kernel's order (buffers for arrays) and where the time ``t`` goes (None: not taken)."""
+    kernel's order (buffers for arrays) and where the time ``t`` goes (None: not taken);
+    ``owned``: the kernel object is this launch's alone, its arguments already set (a
+    recorded launch: a replay sets only the time)."""
 
     kernel: Any
     global_size: tuple
@@ -33,6 +36,7 @@ class BoundLaunch:
     raw: list
     time_index: int | None
     hosts: list  # host tensors its zero-copy arrays alias
+    owned: bool = False
 
 
 @dataclass

@@ -17,6 +17,7 @@ discrete GPU must, so the tests of that path run on a CPU device too.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 import threading
@@ -428,6 +429,7 @@ class Device:
         """
         bound = self.bind(kernel, global_size, args, local_size)
         if self.recorder is not None:  # Device.recording: kept to replay, not enqueued
+            bound = self._owned(bound)
             self.recorder.steps.append(bound)
             self.recorder.hosts.update((id(h), h) for h in bound.hosts)
             return None
@@ -458,9 +460,21 @@ class Device:
                     hosts.append(value.host)
         return BoundLaunch(kernel, gsize, lsize, raw, signature.time_index, hosts)
 
+    def _owned(self, bound: BoundLaunch) -> BoundLaunch:
+        """``bound`` on a kernel object of its own (from the same program) with its arguments
+        set now: the cached kernel is shared by every launch site, its own only by this
+        launch, so a replay sets just the time."""
+        cl = _import_pyopencl()
+        kernel = cl.Kernel(bound.kernel.program, bound.kernel.function_name)
+        kernel.set_scalar_arg_dtypes(self.signature(bound.kernel).scalar_dtypes())
+        kernel.set_args(*bound.raw)
+        return dataclasses.replace(bound, kernel=kernel, owned=True)
+
     def enqueue(self, bound: BoundLaunch):
-        """Set ``bound``'s arguments and enqueue it (its zero-copy hosts already kept)."""
-        bound.kernel.set_args(*bound.raw)
+        """Set ``bound``'s arguments (unless its kernel holds them) and enqueue it (its
+        zero-copy hosts already kept)."""
+        if not bound.owned:
+            bound.kernel.set_args(*bound.raw)
         event = _import_pyopencl().enqueue_nd_range_kernel(
             self.queue, bound.kernel, bound.global_size, bound.local_size
         )
@@ -482,8 +496,8 @@ class Device:
             self._recording.into = None
 
     def replay(self, recording: Recording, t) -> None:
-        """Enqueue ``recording``'s steps in order, the time ``t`` (a sized scalar) set in each
-        launch that takes it."""
+        """Enqueue ``recording``'s steps in order, the time ``t`` (a numpy scalar of the
+        kernels' real) set in each launch that takes it, the only argument a replay sets."""
         if recording.hosts:
             self.keep_until_done(list(recording.hosts.values()))
         for step in recording.steps:
@@ -491,7 +505,7 @@ class Device:
                 step.array.zero_()
                 continue
             if step.time_index is not None:
-                step.raw[step.time_index] = t
+                step.kernel.set_arg(step.time_index, t)
             self.enqueue(step)
 
     def work_sizes(
