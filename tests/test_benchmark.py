@@ -107,6 +107,7 @@ def test_bench_launch_times_the_substep_loop_and_each_launch_phase(tmp_path, dev
     results = json.loads(out.read_text())["results"]
     assert set(results["sizes"]) == {"512", "4096", "32768"}
     assert all(0 < s["host_us_per_substep"] <= s["wall_us_per_substep"] for s in results["sizes"].values())
+    assert all(0 < s["host_cpu_us_per_substep"] for s in results["sizes"].values())
     assert len(results["phases"]) == 2 and any(name.startswith("g2p") for name in results["phases"])
     assert all(p["enqueue_us"] > 0 and p["arguments"] > 5 for p in results["phases"].values())
     assert "launch" not in vars(device)  # the recording stand-in is gone: launches enqueue again
