@@ -460,7 +460,7 @@ class SubstepKernels:
             self.cells.counts.zero_()  # the counts the cell keys add to
         outputs = dict(F_out=out.F, plastic_out=out.plastic, tau_out=tape.tau)
         stress_args = dict(plastic_in=state.plastic, material=particles.material, param=particles.param) | outputs
-        keys_cells = gather and self.plan.stress_keys_cells
+        keys_cells = self.plan.stress_keys_cells  # the gather's keys counted by the stress kernel
         if keys_cells:
             stress_args |= grid_args | self.cells.key_args(state.x)
         launch_stress(self, inputs.dt, state.F, state.C, stress_args, ("material",), svd_inline=keys_cells)

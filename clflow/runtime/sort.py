@@ -70,27 +70,22 @@ def _scan_workgroups(device: Device, src, dst, n: int, block_sums: tuple | None 
         device.launch(scan_blocks, SCAN_WG, args | dict(offsets=dst, has_offsets=np.int32(0)), SCAN_WG)
         return
     summed = blocks <= SCAN_SUMMED_BLOCKS  # each block adds the sums before it: one launch after the sums
-    if summed and block_sums is not None:
+    given = summed and block_sums is not None
+    if given:
         sums, first = block_sums
+    else:
+        sums, first = device.take_scratch(4 * blocks), 0
         device.launch(
-            device.kernel(*kernels["summed"]),
+            device.kernel(*kernels["block_sums"]),
             blocks * SCAN_WG,
-            args | dict(sums=sums, sums_at=np.int32(first)),
+            {"in": src, "n": np.int32(n), "sums": sums},
             SCAN_WG,
         )
-        return
-    sums = device.take_scratch(4 * blocks)
-    device.launch(
-        device.kernel(*kernels["block_sums"]),
-        blocks * SCAN_WG,
-        {"in": src, "n": np.int32(n), "sums": sums},
-        SCAN_WG,
-    )
     if summed:
-        device.launch(
-            device.kernel(*kernels["summed"]), blocks * SCAN_WG, args | dict(sums=sums, sums_at=np.int32(0)), SCAN_WG
-        )
-        device.give_back_scratch(sums)
+        summed_args = args | dict(sums=sums, sums_at=np.int32(first))
+        device.launch(device.kernel(*kernels["summed"]), blocks * SCAN_WG, summed_args, SCAN_WG)
+        if not given:
+            device.give_back_scratch(sums)
         return
     offsets = device.take_scratch(4 * (blocks + 1))
     _scan_workgroups(device, sums, offsets, blocks)
