@@ -38,6 +38,7 @@ from clflow.mpm.substep import (
     StressStage,
     SubstepInputs,
     SubstepTape,
+    check_members,
     grid_copies,
     launch_stress,
     p2g_particle_args,
@@ -74,7 +75,7 @@ def g2p_adjoint_record_reals(flip: float) -> int:
 class SubstepAdjoint:
     """The adjoint kernels of one device, precision, particle count, grid, material set and
     PIC/FLIP blend, in the shapes of ``plan`` (the forward's, with the P2G path it took;
-    default the device's), with their scratch buffers (grid adjoint, taubar, U s V,
+    default the device's), for a population of ``members`` (SubstepKernels), with their scratch buffers (grid adjoint, taubar, U s V,
     grid_v_bar, and the private grid copies with their boxes, or the gather's slot records)."""
 
     def __init__(
@@ -86,10 +87,12 @@ class SubstepAdjoint:
         materials: torch.Tensor,
         flip: float = 0.0,
         plan: KernelPlan | None = None,
+        members: int = 1,
     ):
         import pyopencl as cl
 
         self.device, self.dtype, self.n, self.grid, self.flip = device, dtype, n, grid, float(flip)
+        self.members, self.nodes = check_members(n, members), members * grid.nodes  # nodes: all members'
         real, self.real_t = real_of(dtype, "simulation"), numpy_real(dtype, "simulation")
         stage = StressStage.of(materials)  # as the forward: a fused adjoint for all-elastic scenes
         defines = stage.defines(self.flip)
@@ -110,13 +113,14 @@ class SubstepAdjoint:
         else:
             self.k_sum = scatter("sum")
             itemsize = torch.tensor([], dtype=dtype).element_size()
-            copy_bytes = velocity_channels(self.flip) * grid.nodes * itemsize  # vbar[, dvbar] per node
+            copy_bytes = velocity_channels(self.flip) * self.nodes * itemsize  # vbar[, dvbar] per node
             self.copies = grid_copies(device, copy_bytes, n)
             self.chunk = -(-n // self.copies)
             self.grid_v_bar_copies = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, self.copies * copy_bytes)
             self.copy_boxes = DeviceArray.empty(device, (self.copies, 6), torch.int32)  # each copy's node box
-        self.grid_v_bar = DeviceArray.empty(device, (grid.nodes, velocity_channels(self.flip)), dtype)
-        self.grid_bar = DeviceArray.empty(device, (grid.nodes, grid_channels(self.flip)), dtype)
+        self.grid_v_bar = DeviceArray.empty(device, (self.nodes, velocity_channels(self.flip)), dtype)
+        self.grid_bar = DeviceArray.empty(device, (self.nodes, grid_channels(self.flip)), dtype)
+        self.grid_args = grid.kernel_args(self.real_t, members)
         self.tau_bar = DeviceArray.empty(device, (n, 3, 3), dtype)
         self.bound = LaunchCache()  # run()'s launches, bound per set of arrays
 
@@ -147,7 +151,7 @@ class SubstepAdjoint:
     def _enqueue(self, state, after, tape, inputs, grad_after, grad, param_grad, mass_grad) -> None:
         """The launches of :meth:`run`, in order."""
         dev, R = self.device, self.real_t
-        grid_args = self.grid.kernel_args(R)
+        grid_args = self.grid_args
         particles = inputs.particles
         grids = dict(grid=tape.grid_mv, grid_v_bar=self.grid_v_bar, grid_bar=self.grid_bar)
         self._launch_g2p_adjoint(state, after, tape, inputs, grad_after, grad, grids)
@@ -178,7 +182,7 @@ class SubstepAdjoint:
         private grid copies and their column sum, or the slot records and a gather per node),
         then the grid update's adjoint into ``grid_bar`` (``grids``: the grid arrays it takes;
         in the gather's launch)."""
-        R, grid_args = self.real_t, self.grid.kernel_args(self.real_t)
+        R, grid_args = self.real_t, self.grid_args
         # v' read back as v_pic; with FLIP the kernel sums v_pic itself (any buffer will do)
         v_out = tape.grid_v if uses_flip(self.flip) else after.v
         args = dict(n=np.int32(self.n), dt=R(inputs.dt), t=R(inputs.t), flip=R(self.flip), x_in=state.x, v_out=v_out)
@@ -189,17 +193,19 @@ class SubstepAdjoint:
                 raise ValueError("the gather adjoint needs a tape with the cell sort (SubstepKernels.empty_tape)")
             self.device.launch(self.k_g2p, self.n, grid_args | args | dict(order=tape.order, records=self.records))
             update = grid_args | inputs.grid_update_args(R) | grids
-            self.device.launch(self.k_gather, self.grid.nodes, update | dict(records=self.records, starts=tape.starts))
+            self.device.launch(self.k_gather, self.nodes, update | dict(records=self.records, starts=tape.starts))
             return
         args |= dict(copies=np.int32(self.copies), chunk=np.int32(self.chunk))
         args |= dict(grid_v_bar_copies=self.grid_v_bar_copies, boxes=self.copy_boxes)
         self.device.launch(self.k_g2p, self.copies, grid_args | args, local_size=1)
-        # the column sum of the copies into grid_v_bar, a row of nodes a work-item, each copy inside its box
+        # the column sum of the copies into grid_v_bar, a row of nodes of the stacked grid (every
+        # member's, mpm.h) a work-item, each copy inside its box
         nx, ny, nz = self.grid.resolution
+        nx *= self.members
         rows = dict(nx=np.int32(nx), ny=np.int32(ny), nz=np.int32(nz), channels=np.int32(velocity_channels(self.flip)))
         copies = dict(copies=np.int32(self.copies), boxes=self.copy_boxes, grid_copies=self.grid_v_bar_copies)
         self.device.launch(self.k_sum, nx * ny, rows | copies | dict(grid=self.grid_v_bar))
-        self.device.launch(self.k_grid, self.grid.nodes, grid_args | inputs.grid_update_args(R) | grids)
+        self.device.launch(self.k_grid, self.nodes, grid_args | inputs.grid_update_args(R) | grids)
 
     def _launch_flip_adjoint(self, state, inputs, grad_after, grad, mass_grad) -> None:
         """The PIC/FLIP blend's P2G adjoint: adds to ``grad``'s x, v, C and ``mass_grad``."""
@@ -207,7 +213,7 @@ class SubstepAdjoint:
         args = dict(n=np.int32(self.n), t=R(inputs.t), flip=R(self.flip), x=state.x, v=state.v, C=state.C)
         args |= dict(mass=particles.mass, release_time=particles.release_time)
         args |= dict(v_bar_out=grad_after.v, grid_bar=self.grid_bar, x_bar=grad.x, v_bar=grad.v, C_bar=grad.C)
-        self.device.launch(self.k_flip, self.n, self.grid.kernel_args(R) | args | dict(mass_bar=mass_grad))
+        self.device.launch(self.k_flip, self.n, self.grid_args | args | dict(mass_bar=mass_grad))
 
     def launch_stress_adjoint(
         self,

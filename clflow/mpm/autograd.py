@@ -41,6 +41,7 @@ from clflow.materials import get_material
 from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, g2p_adjoint_record_reals
 from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, grid_channels, velocity_channels
 from clflow.mpm.material_model import KERNEL_PARAMETERS, REGISTRY_MATERIAL, kernel_columns
+from clflow.mpm.population import split_members
 from clflow.mpm.simulator import (
     FrameProgress,
     SimulationError,
@@ -59,8 +60,9 @@ from clflow.runtime.sort import counts_length
 @dataclass
 class Frames:
     """Per-frame states of a differentiable run; frame 0 is the initial state.
-    x, v [T+1, N, 3] (m, m/s), F [T+1, N, 3, 3] (deformation gradient); ``substeps`` per
-    frame that the run used (more than the simulator's after a NaN/CFL retry)."""
+    x, v [T+1, N, 3] (m, m/s), F [T+1, N, 3, 3] (deformation gradient), with the member axis
+    after T for a population (x [T+1, K, N, 3]); ``substeps`` per frame that the run used
+    (more than the simulator's after a NaN/CFL retry)."""
 
     x: torch.Tensor
     v: torch.Tensor
@@ -89,7 +91,8 @@ class _Engine:
     def __init__(self, sim: Simulator):
         self.forward = sim.kernels
         plan = sim.kernels.plan  # the forward's, with the P2G path it took
-        self.adjoint = SubstepAdjoint(sim.device, sim.dtype, sim.n, sim.grid, sim.particles.material, sim.flip, plan)
+        materials = sim.particles.material
+        self.adjoint = SubstepAdjoint(sim.device, sim.dtype, sim.n, sim.grid, materials, sim.flip, plan, sim.members)
 
 
 log = logging.getLogger("clflow.mpm")
@@ -124,7 +127,7 @@ class _Run:
         else:
             what = "memory_budget"
         self.segment = replay_segment(
-            sim.n, spec.grid.nodes, frames, substeps, spec.dtype, memory_budget, spec.flip, what=what
+            sim.n, sim.members * spec.grid.nodes, frames, substeps, spec.dtype, memory_budget, spec.flip, what=what
         )
 
     def time(self, frame: int, substep: int) -> float:
@@ -348,19 +351,26 @@ class _BroadcastRows(torch.autograd.Function):
         return sum_rows(rows, ctx.device).to(grad.dtype).reshape(ctx.shape), None, None
 
 
-def per_particle(value, n: int, name: str, dtype: torch.dtype, device, trailing: tuple[int, ...] = ()) -> torch.Tensor:
+def per_particle(
+    value, n: int, name: str, dtype: torch.dtype, device, trailing: tuple[int, ...] = (), members: int | None = None
+) -> torch.Tensor:
     """``value`` as [N, *trailing] of ``dtype``: a global value (shape ``trailing``) is
-    broadcast with a deterministic backward; a per-particle one is taken as it is."""
+    broadcast with a deterministic backward; a per-particle one is taken as it is; for a
+    population of ``members`` (a batched simulator), one value per member [K, *trailing] is
+    broadcast to each member's block of N / K particles."""
     value = torch.as_tensor(value)
     if not value.is_floating_point():
         value = value.to(dtype)
     if tuple(value.shape) == trailing:
         out = _BroadcastRows.apply(value.to(dtype), n, device)
+    elif members is not None and tuple(value.shape) == (members,) + trailing:
+        out = torch.cat([_BroadcastRows.apply(value[m].to(dtype), n // members, device) for m in range(members)])
     elif tuple(value.shape) == (n,) + trailing:
         out = value.to(dtype)
     else:
+        per_member = f", {[members, *trailing]} (per member)" if members is not None else ""
         raise InputError(
-            f"{name}: expected shape {list(trailing)} (global) or {[n, *trailing]} "
+            f"{name}: expected shape {list(trailing)} (global){per_member} or {[n, *trailing]} "
             f"(per particle), got {list(value.shape)}"
         )
     if not bool(torch.isfinite(out.detach()).all()):
@@ -382,7 +392,8 @@ def _material_param_rows(sim: Simulator, params: dict, dtype: torch.dtype) -> to
             f"params: {', '.join(unknown)} is not a parameter of the simulated material(s) "
             f"{', '.join(present)}; their parameters: {', '.join(sorted(known))}"
         )
-    rows = {name: per_particle(value, n, name, dtype, sim.device) for name, value in params.items()}
+    members = sim.members if sim.batched else None
+    rows = {name: per_particle(value, n, name, dtype, sim.device, members=members) for name, value in params.items()}
     columns = [base.param[:, k] for k in range(base.param.shape[1])]
     for kernel_material in present:
         given = [name for name in KERNEL_PARAMETERS[kernel_material] if name in rows]
@@ -426,8 +437,11 @@ def simulate(
             "youngs_modulus" Pa, "poissons_ratio", "yield_stress" Pa, "friction_angle" deg,
             "viscosity" Pa s), each global (0-d) or per particle [N]; a name applies to every
             particle whose material has it (KERNEL_PARAMETERS); the rest keep their values.
-        density: rho (kg/m^3), global or [N]: particle mass = rho x rest volume.
-        positions, velocities: initial x [N, 3] (m) and v [N, 3] (m/s).
+            For a population (clflow.mpm.population) N counts every member's particles, and
+            a value may also be given per member [K].
+        density: rho (kg/m^3), global, per member [K] or [N]: particle mass = rho x rest volume.
+        positions, velocities: initial x [N, 3] (m) and v [N, 3] (m/s); for a population
+            [K, N / K, 3] (each member's) or [N / K, 3] (shared).
         stage_accelerations: [S, 3] acceleration (m/s^2) of each driver stage (the simulator's
             ``forces``, in order). A stage given as a force F (N) on a region of mass M
             accelerates it by F / M: pass ``force / region_masses(simulator)[s]`` to
@@ -444,7 +458,8 @@ def simulate(
             intermediate states (two-level checkpointing: one more forward pass per frame).
 
     Returns:
-        :class:`Frames` with x, v [frames + 1, N, 3] and F [frames + 1, N, 3, 3], on the torch
+        :class:`Frames` with x, v [frames + 1, N, 3] and F [frames + 1, N, 3, 3] (a population:
+        [frames + 1, K, N / K, ...]), on the torch
         device of the tensors given (any one device: copied to the host once, gradients flow
         back, the copies counted in ``simulator.device.transfers``).
     """
@@ -469,18 +484,30 @@ def simulate(
     for _ in range(int(retries)):
         try:
             run = _Run(sim, int(frames), substeps, memory_budget, strict_cfl=True)
-            return Frames(
+            out = Frames(
                 *_Simulate.apply(run, param, mass, x0, v0, stage_accel), substeps=substeps, clamped=run.clamped_count
             )
+            return _member_axis(sim, out)
         except SimulationError as err:
             log.info("%s; retrying with %d substeps per frame", err, 2 * substeps)  # routine: the guard at work
             substeps *= 2
     run = _Run(sim, int(frames), substeps, memory_budget)
-    return Frames(
+    out = Frames(
         *_Simulate.apply(run, param, mass, x0, v0, stage_accel),
         substeps=substeps,
         clamped=run.clamped_count,
         cfl_violation=run.cfl_violation,
+    )
+    return _member_axis(sim, out)
+
+
+def _member_axis(sim: Simulator, frames: Frames) -> Frames:
+    """A batched simulator's frames with the member axis: x, v [T+1, K, N / K, 3], F [T+1, K, N / K, 3, 3]."""
+    if not sim.batched:
+        return frames
+    k = sim.members
+    return dataclasses.replace(
+        frames, x=split_members(frames.x, k), v=split_members(frames.v, k), F=split_members(frames.F, k)
     )
 
 
@@ -510,16 +537,17 @@ def _parameter_rows(sim: Simulator, params: dict | None, kernel_params) -> torch
 
 def _masses(sim: Simulator, density) -> torch.Tensor:
     """[N] particle masses (kg): ``density`` (kg/m^3, global or [N]) x rest volume."""
-    rho = per_particle(density, sim.n, "density", sim.dtype, sim.device)
+    rho = per_particle(density, sim.n, "density", sim.dtype, sim.device, members=sim.members if sim.batched else None)
     if bool((rho.detach() <= 0).any()):
         raise InputError("density must be > 0 kg/m^3")
     return rho * sim.particles.volume
 
 
 def _initial_state(sim: Simulator, positions, velocities) -> tuple[torch.Tensor, torch.Tensor]:
-    """x0 [N, 3] (m) and v0 [N, 3] (m/s): as given (checked), else the simulator's."""
-    x0 = sim.state.x if positions is None else torch.as_tensor(positions).to(sim.dtype)
-    v0 = sim.state.v if velocities is None else torch.as_tensor(velocities).to(sim.dtype)
+    """x0 [N, 3] (m) and v0 [N, 3] (m/s): as given (checked), else the simulator's; for a
+    batched simulator each [K, N / K, 3] (per member) or [N / K, 3] (every member alike)."""
+    x0 = sim.state.x if positions is None else _members_rows(sim, torch.as_tensor(positions).to(sim.dtype))
+    v0 = sim.state.v if velocities is None else _members_rows(sim, torch.as_tensor(velocities).to(sim.dtype))
     for name, value in (("positions", x0), ("velocities", v0)):
         if tuple(value.shape) != (sim.n, 3):
             raise InputError(f"{name}: expected shape [{sim.n}, 3], got {list(value.shape)}")
@@ -527,6 +555,14 @@ def _initial_state(sim: Simulator, positions, velocities) -> tuple[torch.Tensor,
             raise InputError(f"{name} contains NaN or inf")
     check_inside(x0.detach(), sim.grid)
     return x0, v0
+
+
+def _members_rows(sim: Simulator, rows: torch.Tensor) -> torch.Tensor:
+    """A batched simulator's [K, N / K, 3] or [N / K, 3] rows as [N, 3] (other shapes pass, to be refused)."""
+    k = sim.members
+    if not sim.batched or rows.dim() not in (2, 3) or rows.shape[-2] * k != sim.n:
+        return rows
+    return rows.reshape(sim.n, 3) if rows.dim() == 3 else rows.repeat(k, 1)
 
 
 def _stage_accelerations(sim: Simulator, given) -> torch.Tensor:
@@ -542,16 +578,18 @@ def _stage_accelerations(sim: Simulator, given) -> torch.Tensor:
 
 
 def _stage_members(simulator: Simulator, stage: int) -> torch.Tensor:
-    """[N] bool: the particles driver stage ``stage`` acts on."""
-    group = simulator.drivers.group.long()
+    """[N] bool: the particles driver stage ``stage`` acts on (in every member of a population)."""
+    group = simulator.particles.group.long()
     return (group >= 0) & simulator.drivers.members[group.clamp(min=0), stage]
 
 
 def region_masses(simulator: Simulator) -> torch.Tensor:
-    """[S] total mass (kg) of the particles each driver stage acts on (float64)."""
-    mass = simulator.particles.mass.double()
+    """[S] total mass (kg) of the particles each driver stage acts on (float64; in one member
+    of a population, all alike)."""
+    n = simulator.n // simulator.members
+    mass = simulator.particles.mass[:n].double()
     return (
-        torch.stack([mass[_stage_members(simulator, s)].sum() for s in range(len(simulator.drivers.forces))])
+        torch.stack([mass[_stage_members(simulator, s)[:n]].sum() for s in range(len(simulator.drivers.forces))])
         if simulator.drivers.forces
         else torch.zeros(0, dtype=torch.float64)
     )

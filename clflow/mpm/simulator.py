@@ -22,6 +22,14 @@ from clflow.materials import DENSITY, get_material
 from clflow.mpm.boundaries import DriverGroups, Force, GridCondition, boundary_table, wall_colliders
 from clflow.mpm.constants import CLAMP_MARGIN, COLLIDER_MODES, MASS_EPS_REL, WALL_CELLS
 from clflow.mpm.material_model import explicit_viscosity, kernel_params, wave_speed
+from clflow.mpm.population import (
+    check_forces_shared_mass,
+    member_materials,
+    member_velocities,
+    population_size,
+    split_members,
+    tile,
+)
 from clflow.mpm.substep import (
     DriverAccelerations,
     Grid,
@@ -121,7 +129,8 @@ class MaterialLimits:
 class Trajectory:
     """Per-frame states; frame 0 is the initial state. x, v [T, N, 3] (m, m/s),
     F [T, N, 3, 3], plastic [T, N], time [T] (s), clamped [T] (particles clamped back into
-    the domain during the frame)."""
+    the domain during the frame). A population's states have the member axis after T:
+    x [T, K, N, 3] (clflow.mpm.population)."""
 
     x: torch.Tensor
     v: torch.Tensor
@@ -142,9 +151,10 @@ def _as_tensor(value, shape: tuple[int, ...], what: str, dtype: torch.dtype) -> 
     return t.to(dtype, copy=True).contiguous()  # never alias the caller's tensor
 
 
-def _particle_inputs(positions: torch.Tensor, volume, velocities, grid: Grid, dtype: torch.dtype):
-    """Checked copies: x [N, 3] (m, inside ``grid``), v [N, 3] (m/s, zero when None) in
-    ``dtype``; rest volumes [N] (m^3, > 0) in float64."""
+def _particle_inputs(positions: torch.Tensor, volume, velocities, grid: Grid, dtype: torch.dtype, members: int):
+    """Checked copies for a population of ``members`` (1: a single run): x [K N, 3] (m, inside
+    ``grid``), v [K N, 3] (m/s, zero when None; from [N, 3] or [K, N, 3]) in ``dtype``; rest
+    volumes [K N] (m^3, > 0) in float64."""
     if positions.dim() != 2 or positions.shape[1] != 3:
         raise InputError(f"positions: expected shape [N, 3], got {list(positions.shape)}")
     n = positions.shape[0]
@@ -152,8 +162,14 @@ def _particle_inputs(positions: torch.Tensor, volume, velocities, grid: Grid, dt
         raise InputError("positions: the particle set is empty")
     x = _as_tensor(positions, (n, 3), "positions", dtype)
     check_inside(x, grid)
-    v = torch.zeros(n, 3, dtype=dtype) if velocities is None else _as_tensor(velocities, (n, 3), "velocities", dtype)
-    vol = _as_tensor(volume, (n,), "volume", torch.float64)
+    x, k_n = tile(x, members), members * n
+    velocities = member_velocities(velocities, members, n)
+    v = (
+        torch.zeros(k_n, 3, dtype=dtype)
+        if velocities is None
+        else _as_tensor(velocities, (k_n, 3), "velocities", dtype)
+    )
+    vol = tile(_as_tensor(volume, (n,), "volume", torch.float64), members)
     if not bool((vol > 0).all()):
         raise InputError("volume: every particle volume must be > 0 m^3")
     return x, v, vol
@@ -196,6 +212,16 @@ def _gravity(gravity: Sequence[float]) -> tuple[float, float, float]:
     if len(g) != 3 or not all(math.isfinite(c) for c in g):
         raise InputError(f"gravity must be 3 finite numbers (m/s^2), got {gravity!r}")
     return g
+
+
+def _population_materials(materials, material_index, n: int, dtype: torch.dtype, members: int):
+    """_material_arrays of each of ``members`` (population.member_materials), member after
+    member: the arrays [K N, ...], the limits of every member's specs."""
+    parts = [_material_arrays(member_materials(materials, m), material_index, n, dtype) for m in range(members)]
+    if members == 1:
+        return parts[0]
+    arrays = [torch.cat(column).contiguous() for column in list(zip(*parts))[:5]]
+    return (*arrays, [limit for part in parts for limit in part[5]])
 
 
 def _material_arrays(materials, material_index, n: int, dtype: torch.dtype):
@@ -307,9 +333,10 @@ class Simulator:
             the trajectory on that device.
         volume: rest volume per particle (m^3), a number or [N].
         materials: one :class:`MaterialSpec` or a list of them (then ``material_index`` [N]
-            picks each particle's entry).
+            picks each particle's entry). A parameter or density given as K values makes a
+            population of K members in lockstep (clflow.mpm.population).
         grid: the background :class:`Grid`.
-        velocities: [N, 3] initial velocities (m/s), default 0.
+        velocities: [N, 3] initial velocities (m/s), default 0; [K, N, 3]: each member's.
         frame_dt: time between output frames (s).
         substeps: substeps per frame; None chooses the smallest stable count.
         gravity: (m/s^2).
@@ -361,21 +388,26 @@ class Simulator:
         host = lambda t: to_cpu(t, self.device)  # noqa: E731
         positions, volume, velocities = host(torch.as_tensor(positions)), host(volume), host(velocities)
         material_index, release_times = host(material_index), host(release_times)
-        x, v, vol = _particle_inputs(positions, volume, velocities, grid, dtype)
-        n = x.shape[0]
-        material, param, si_values, density, plastic0, material_limits = _material_arrays(
-            materials, material_index, n, dtype
+        batch = population_size(materials, velocities)
+        #: the population's members (clflow.mpm.population; 1: a single run), and whether the
+        #: inputs had a batch dimension (then the outputs have one)
+        self.members, self.batched = batch or 1, batch is not None
+        check_forces_shared_mass(forces, materials)
+        x, v, vol = _particle_inputs(positions, volume, velocities, grid, dtype, self.members)
+        n, n_member = x.shape[0], positions.shape[0]
+        material, param, si_values, density, plastic0, material_limits = _population_materials(
+            materials, material_index, n_member, dtype, self.members
         )
         mass = vol * density
 
-        drivers = DriverGroups(forces, x.double(), mass)
+        drivers = DriverGroups(forces, x[:n_member].double(), mass[:n_member])  # a member's; every member alike
         particles = Particles(
             mass=mass.to(dtype).contiguous(),
             volume=vol.to(dtype).contiguous(),
             material=material,
             param=param,
-            group=drivers.group.contiguous(),
-            release_time=_release_times(release_times, n, dtype),
+            group=tile(drivers.group, self.members).contiguous(),
+            release_time=tile(_release_times(release_times, n_member, dtype), self.members),
             mass_eps=MASS_EPS_REL * float(mass.min()),
         )
         eye = torch.eye(3, dtype=dtype).expand(n, 3, 3).contiguous()
@@ -398,7 +430,7 @@ class Simulator:
         self.use_substeps(self._checked_substeps(substeps, v))
         self.time = 0.0
         self.frame = 0
-        self.kernels = SubstepKernels(self.device, dtype, n, grid, particles.material, p2g, float(flip))
+        self.kernels = SubstepKernels(self.device, dtype, n, grid, particles.material, p2g, float(flip), self.members)
         # constant data: on zero-copy devices the host tensors' own memory
         self.device_particles = to_device(particles, self.device, alias=True)
         self.device_boundaries = DeviceArray.alias(self.device, self.spec.boundaries, "boundaries")
@@ -588,14 +620,19 @@ class Simulator:
         finally:
             self._progress = None
         back = lambda t: to_origin(t, self.origin, self.device)  # noqa: E731
+        states = lambda i: back(self._batch(torch.stack([s[i] for s in snaps])))  # noqa: E731
         return Trajectory(
-            x=back(torch.stack([s[0] for s in snaps])),
-            v=back(torch.stack([s[1] for s in snaps])),
-            F=back(torch.stack([s[2] for s in snaps])),
-            plastic=back(torch.stack([s[3] for s in snaps])),
+            x=states(0),
+            v=states(1),
+            F=states(2),
+            plastic=states(3),
             time=back(torch.tensor([s[4] for s in snaps], dtype=torch.float64)),
             clamped=back(torch.tensor([s[5] for s in snaps], dtype=torch.int64)),
         )
+
+    def _batch(self, t: torch.Tensor) -> torch.Tensor:
+        """[T, K N, ...] -> [T, K, N, ...] for a population given a batch dimension."""
+        return split_members(t, self.members) if self.batched else t
 
     def _snapshot(self, clamped: int):
         s = self.state

@@ -91,10 +91,19 @@ class Grid:
     def upper(self) -> tuple[float, float, float]:
         return tuple(o + (n - 1) * self.dx for o, n in zip(self.origin, self.resolution))
 
-    def kernel_args(self, real_t) -> dict:
-        """The grid's arguments of every MPM kernel (GRID_ARGS): nodes per axis, dx, origin (m)."""
+    def kernel_args(self, real_t, members: int = 1) -> dict:
+        """The grid's arguments of every MPM kernel (MPM_GRID_ARGS of kernels_cl/mpm/mpm.h):
+        nodes per axis, the population's ``members`` (each on a grid like this one), dx and
+        the origin (m)."""
         (nx, ny, nz), (ox, oy, oz) = (np.int32(n) for n in self.resolution), (real_t(o) for o in self.origin)
-        return dict(nx=nx, ny=ny, nz=nz, dx=real_t(self.dx), ox=ox, oy=oy, oz=oz)
+        return dict(nx=nx, ny=ny, nz=nz, members=np.int32(members), dx=real_t(self.dx), ox=ox, oy=oy, oz=oz)
+
+
+def check_members(n: int, members: int) -> int:
+    """``members`` (>= 1), checked to divide the ``n`` particles of a population into equal blocks."""
+    if int(members) < 1 or n % int(members):
+        raise InputError(f"a population of {members} members cannot split {n} particles into equal blocks")
+    return int(members)
 
 
 def p2g_path(device: Device, requested: P2GMode = "auto") -> str:
@@ -280,21 +289,23 @@ class SubstepTape:
 
 
 def check_grid_memory(
-    device: Device, grid: Grid, itemsize: int, flip: float = 0.0, plan: KernelPlan | None = None
+    device: Device, grid: Grid, itemsize: int, flip: float = 0.0, plan: KernelPlan | None = None, members: int = 1
 ) -> None:
     """Refuse a grid whose node arrays do not fit ``device``: (m, mv[, mv0]) and v[, dv] per
-    node (bracketed: PIC/FLIP blend ``flip`` > 0), and where the P2G path taken (``plan``'s,
-    default the device's) is the private one at least one copy of the first."""
+    node (bracketed: PIC/FLIP blend ``flip`` > 0) of each of a population's ``members``, and
+    where the P2G path taken (``plan``'s, default the device's) is the private one at least
+    one copy of the first."""
     from clflow.limits import format_bytes
 
-    info, nodes, channels = device.info, grid.nodes, grid_channels(flip)
+    info, nodes, channels = device.info, members * grid.nodes, grid_channels(flip)
     private = (plan or kernel_plan(device)).p2g == "private"
     total = nodes * itemsize * (channels + velocity_channels(flip) + (channels if private else 0))
     largest = nodes * itemsize * channels
     if total > info.global_mem_size or largest > info.max_mem_alloc_size:
         size = "x".join(str(int(r)) for r in grid.resolution)
+        size += f" grid for each of {members} members" if members > 1 else " grid"
         raise InputError(
-            f"a {size} grid ({nodes:,} nodes) needs {format_bytes(total)} of device memory, buffers up to "
+            f"a {size} ({nodes:,} nodes) needs {format_bytes(total)} of device memory, buffers up to "
             f"{format_bytes(largest)}; {info.name} has {format_bytes(info.global_mem_size)}, buffers up to "
             f"{format_bytes(info.max_mem_alloc_size)}: use a coarser grid (simulation.grid_resolution or "
             f"--grid) or a smaller simulation.domain"
@@ -336,16 +347,16 @@ def p2g_record_reals(flip: float) -> int:
 class CellSort:
     """The particles of a substep sorted by the cell of their stencil's base node, on the
     device, by counting sort (one pass; clflow.runtime.sort) into a tape's ``order`` [n]
-    int32, the particles cell by cell, and ``starts`` [nodes + 1] int32, the first slot of
-    each cell (mpm/cells.h), each cell's run left for the P2G's order_pack to put in index
+    int32, the particles cell by cell, and ``starts`` [cells + 1] int32, the first slot of
+    each of the ``cells`` (every member's grid nodes; mpm/cells.h), each cell's run left for the P2G's order_pack to put in index
     order. The particles are keyed and counted by ``k_cells`` (particle_cells), or, when it
     is None, by the stress kernel (:meth:`key_args`); ``keys``, ``rank`` and ``counts`` are
     its scratch."""
 
-    def __init__(self, device: Device, n: int, grid: Grid, k_cells=None):
-        self.device, self.n, self.cells, self.k_cells = device, n, grid.nodes, k_cells
+    def __init__(self, device: Device, n: int, cells: int, k_cells=None):
+        self.device, self.n, self.cells, self.k_cells = device, n, cells, k_cells
         self.keys, self.rank = (DeviceArray.empty(device, (max(n, 1),), torch.int32) for _ in range(2))
-        self.counts = DeviceArray.empty(device, (counts_length(grid.nodes),), torch.int32)
+        self.counts = DeviceArray.empty(device, (counts_length(cells),), torch.int32)
 
     def key_args(self, x: DeviceArray) -> dict:
         """The arguments of a kernel that keys and counts the particles at ``x`` [n, 3] (m)
@@ -366,9 +377,10 @@ class CellSort:
 class SubstepKernels:
     """The substep kernels of one device, precision, particle count, grid, set of material ids
     (``materials``: the kernel ids of the particles), P2G path asked for (``p2g``; ``plan``:
-    the device's kernel plan with the path taken) and PIC/FLIP blend ``flip`` (0: APIC), with
-    their scratch buffers (U, s, V of F_tr, the private P2G grid copies and a
-    :class:`SubstepTape` for runs that keep none)."""
+    the device's kernel plan with the path taken), PIC/FLIP blend ``flip`` (0: APIC) and
+    population size (``members``: the n particles are ``members`` equal blocks in lockstep,
+    each on its own copy of ``grid``; kernels_cl/mpm/mpm.h), with their scratch buffers (U, s,
+    V of F_tr, the private P2G grid copies and a :class:`SubstepTape` for runs that keep none)."""
 
     def __init__(
         self,
@@ -379,13 +391,15 @@ class SubstepKernels:
         materials: torch.Tensor,
         p2g: P2GMode = "auto",
         flip: float = 0.0,
+        members: int = 1,
     ):
         import pyopencl as cl
 
         self.device, self.dtype, self.n, self.grid, self.flip = device, dtype, n, grid, float(flip)
+        self.members, self.nodes = check_members(n, members), members * grid.nodes  # nodes: all members'
         channels = grid_channels(self.flip)
         self.real, self.real_t = real_of(dtype, "simulation"), numpy_real(dtype, "simulation")
-        self.grid_args = grid.kernel_args(self.real_t)
+        self.grid_args = grid.kernel_args(self.real_t, members)
         check_device(device, dtype, p2g)
         self.plan = plan = kernel_plan(device, p2g)
         self.p2g = p2g = plan.p2g
@@ -402,8 +416,8 @@ class SubstepKernels:
         self.k_g2p = k("g2p")
         self.k_p2g = k("p2g")
         itemsize = torch.tensor([], dtype=dtype).element_size()
-        check_grid_memory(device, grid, itemsize, self.flip, plan)
-        grid_bytes = channels * grid.nodes * itemsize
+        check_grid_memory(device, grid, itemsize, self.flip, plan, members)
+        grid_bytes = channels * self.nodes * itemsize
         if p2g == "private":
             self.copies = grid_copies(device, grid_bytes, n)
             self.chunk = -(-n // self.copies)
@@ -411,7 +425,7 @@ class SubstepKernels:
             self.copy_boxes = DeviceArray.empty(device, (self.copies, 6), torch.int32)  # each copy's node box
         elif p2g == "gather":
             k_cells = None if plan.stress_keys_cells else k("cells")  # else the stress kernel keys them
-            self.cells = CellSort(device, n, grid, k_cells)
+            self.cells = CellSort(device, n, self.nodes, k_cells)
             self.k_pack = k("order_pack")
             self.p2g_records = DeviceArray.empty(device, (n, p2g_record_reals(self.flip)), dtype)
         self.scratch = self.empty_tape()
@@ -419,7 +433,7 @@ class SubstepKernels:
 
     def empty_tape(self) -> SubstepTape:
         """A tape for this kernels' substeps (with the cell sort where P2G gathers)."""
-        return SubstepTape.empty(self.device, self.n, self.grid.nodes, self.dtype, self.flip, self.p2g == "gather")
+        return SubstepTape.empty(self.device, self.n, self.nodes, self.dtype, self.flip, self.p2g == "gather")
 
     def run(
         self,
@@ -471,20 +485,18 @@ class SubstepKernels:
             copies = dict(copies=np.int32(self.copies), grid_copies=self.grid_copies, boxes=self.copy_boxes)
             dev.launch(self.k_p2g, self.copies, p2g_args | copies | dict(chunk=np.int32(self.chunk)), local_size=1)
             nx, ny, _ = self.grid.resolution
-            dev.launch(self.k_grid, nx * ny, grid_update_args | copies)
+            dev.launch(self.k_grid, self.members * nx * ny, grid_update_args | copies)  # rows of the stacked grid
         elif gather:
             self.cells.sort(state.x, grid_args, tape)
             particle = {k: v for k, v in p2g_particle_args(R, state, tape, inputs).items() if k != "n"}
-            cells = dict(n_cells=np.int32(self.grid.nodes), starts=tape.starts, order=tape.order)
+            cells = dict(n_cells=np.int32(self.nodes), starts=tape.starts, order=tape.order)
             pack = particle | cells | dict(dx=grid_args["dx"], records=self.p2g_records)
-            dev.launch(self.k_pack, self.grid.nodes, pack)
-            dev.launch(
-                self.k_p2g, self.grid.nodes, grid_update_args | dict(records=self.p2g_records, starts=tape.starts)
-            )
+            dev.launch(self.k_pack, self.nodes, pack)
+            dev.launch(self.k_p2g, self.nodes, grid_update_args | dict(records=self.p2g_records, starts=tape.starts))
         else:
             tape.grid_mv.zero_()  # on the device, in queue order: the atomics add onto zeros
             dev.launch(self.k_p2g, self.n, p2g_args | dict(grid=tape.grid_mv))
-            dev.launch(self.k_grid, self.grid.nodes, grid_update_args)
+            dev.launch(self.k_grid, self.nodes, grid_update_args)
         g2p = dict(n=n, dt=R(inputs.dt), t=R(inputs.t), flip=R(self.flip), x_in=state.x, v_in=state.v)
         if gather:
             g2p["order"] = tape.order

@@ -10,10 +10,10 @@
 #include "mpm/mpm.h"
 
 /* The arguments count_cell writes: each particle's cell key [n], the counts [cells + 1 +
- * cells / SCAN_BLOCK + 1] (zeroed beforehand) and each particle's rank [n]. */
+ * cells / SCAN_BLOCK + 1] (cells: all members') (zeroed beforehand) and each particle's rank [n]. */
 #define CELL_KEY_ARGS __global uint *key, __global int *counts, __global int *rank
 
-/* Particle p at xp (m) counted into its base cell: key[p] = the cell, rank[p] = its place among
+/* Particle p at xp (m) counted into its base cell in grid g (its member's): key[p] = the cell, rank[p] = its place among
  * the cell's particles (in the order the atomics ran), counts[cell] += 1, and its SCAN_BLOCK
  * block of cells counted after the cells' counts and total, counts[cells + 1 + cell /
  * SCAN_BLOCK] += 1: the scan's block sums, so that it needs no pass of its own to add them. */
@@ -23,7 +23,7 @@ inline void count_cell(const grid_t *g, const int p, const real *xp, CELL_KEY_AR
     const uint cell = (uint)grid_index(g, st.base[0], st.base[1], st.base[2]);
     key[p] = cell;
     rank[p] = atomic_inc(&counts[cell]);
-    atomic_inc(&counts[(long)g->nx * g->ny * g->nz + 1 + cell / SCAN_BLOCK]);
+    atomic_inc(&counts[population_nodes(g) + 1 + cell / SCAN_BLOCK]);
 }
 
 /* The slots [x, y) of base cell (bi, bj, bk); empty when no stencil can be based there (a

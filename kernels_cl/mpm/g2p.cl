@@ -18,7 +18,7 @@
         __global real *restrict x_out, __global real *restrict v_out, __global real *restrict C_out,                   \
         __global uchar *restrict clamped
 
-/* Particle p's G2P and advection. */
+/* Particle p's G2P and advection on grid g (its member's). */
 inline void g2p_particle(const grid_t g, const int p, G2P_ARGS)
 {
     const real dx = g.dx;
@@ -70,24 +70,24 @@ inline void g2p_particle(const grid_t g, const int p, G2P_ARGS)
     vstore3(C2, 3 * p + 2, C_out);
 }
 
-#define G2P_GRID_ARGS                                                                                                  \
-    const int nx, const int ny, const int nz, const real dx, const real ox, const real oy, const real oz
 #define G2P_PASS dt, t, flip, x_in, v_in, grid_v, grid_dv, release_time, x_out, v_out, C_out, clamped
 
 /* A work-item per particle, in index order (after the private P2G, CPU devices' default, and
  * the atomic one: the state streams in order). */
-__kernel void g2p(G2P_GRID_ARGS, const int n, G2P_ARGS)
+__kernel void g2p(MPM_GRID_ARGS, const int n, G2P_ARGS)
 {
     const int p = get_global_id(0);
+    const grid_t g = MPM_GRID;
     if (p < n)
-        g2p_particle(make_grid(nx, ny, nz, dx, ox, oy, oz), p, G2P_PASS);
+        g2p_particle(particle_grid(&g, p, n), p, G2P_PASS);
 }
 
 /* A work-item per slot of the particles sorted by cell (p = order[slot], mpm/p2g_gather.cl),
  * after the gather P2G (GPUs' default): neighbouring work-items read neighbouring grid nodes. */
-__kernel void g2p_sorted(G2P_GRID_ARGS, const int n, __global const int *order, G2P_ARGS)
+__kernel void g2p_sorted(MPM_GRID_ARGS, const int n, __global const int *order, G2P_ARGS)
 {
     const int s = get_global_id(0);
+    const grid_t g = MPM_GRID;
     if (s < n)
-        g2p_particle(make_grid(nx, ny, nz, dx, ox, oy, oz), order[s], G2P_PASS);
+        g2p_particle(particle_grid(&g, order[s], n), order[s], G2P_PASS);
 }

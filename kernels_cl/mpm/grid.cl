@@ -130,26 +130,25 @@ inline void update_node(const grid_t *g, const long node, const int i, const int
 }
 
 #define GRID_UPDATE_ARGS                                                                                               \
-    const int nx, const int ny, const int nz, const real dx, const real ox, const real oy, const real oz,              \
-        const real dt, const real t, const real gx, const real gy, const real gz, const real mass_eps
+    MPM_GRID_ARGS, const real dt, const real t, const real gx, const real gy, const real gz, const real mass_eps
 
 /* A work-item per node (the gather and atomic P2G paths). */
 __kernel void grid_update(GRID_UPDATE_ARGS, __global const real *grid, __global real *grid_v, __global real *grid_dv,
                           __global const real *bc, const int n_bc)
 {
     const long node = get_global_id(0);
-    const long nodes = (long)nx * ny * nz;
-    if (node >= nodes)
+    const grid_t g0 = MPM_GRID;
+    if (node >= population_nodes(&g0))
         return;
-    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
     const real gravity[3] = {gx, gy, gz};
-    const int k = node % nz, j = (node / nz) % ny, i = node / ((long)nz * ny);
+    int i, j, k;
+    const grid_t g = node_grid(&g0, node, &i, &j, &k);
     update_node(&g, node, i, j, k, dt, t, gravity, mass_eps, grid, grid_v, grid_dv, bc, n_bc);
 }
 
-/* The private P2G path's grid stage, a work-item per row of nodes (i, j): the row of the
- * column sum of p2g_private's grid copies into `grid` (sum_copies_row), then grid_update of
- * the row's nodes that a copy's box holds; the others have no mass (with mass_eps >= 0:
+/* The private P2G path's grid stage, a work-item per row of nodes (i, j) of the stacked grid
+ * (every member's, mpm.h): the row of the column sum of p2g_private's grid copies into `grid`
+ * (sum_copies_row), then grid_update of the row's nodes that a copy's box holds; the others have no mass (with mass_eps >= 0:
  * velocity and change 0, as grid_update gives them). The same values as a sum kernel and
  * grid_update, in one launch, with the grid update only where the particles are. */
 __kernel void sum_copies_update_grid(GRID_UPDATE_ARGS, const int copies, __global const int *boxes,
@@ -157,20 +156,21 @@ __kernel void sum_copies_update_grid(GRID_UPDATE_ARGS, const int copies, __globa
                                      __global real *grid_dv, __global const real *bc, const int n_bc)
 {
     const int row = get_global_id(0);
-    if (row >= nx * ny)
+    if (row >= members * nx * ny)
         return;
     int lo, hi;
-    sum_copies_row(nx, ny, nz, GRID_CH, copies, boxes, grid_copies, grid, row, &lo, &hi);
+    sum_copies_row(members * nx, ny, nz, GRID_CH, copies, boxes, grid_copies, grid, row, &lo, &hi);
     if (!(mass_eps >= 0)) { /* an empty node is not simply at rest: update them all */
         lo = 0;
         hi = nz;
     }
-    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const grid_t g = MPM_GRID; /* update_node reads only its dx and origin */
     const real gravity[3] = {gx, gy, gz};
     for (int k = 0; k < nz; ++k) {
         const long node = (long)row * nz + k;
         if (k >= lo && k < hi) {
-            update_node(&g, node, row / ny, row % ny, k, dt, t, gravity, mass_eps, grid, grid_v, grid_dv, bc, n_bc);
+            update_node(&g, node, row / ny % nx, row % ny, k, dt, t, gravity, mass_eps, grid, grid_v, grid_dv, bc,
+                        n_bc);
             continue;
         }
         for (int a = 0; a < 3; ++a) {

@@ -4,7 +4,15 @@
  * A particle at x has xi = (x - origin)/dx, base = floor(xi - 0.5), f = xi - base, and
  * touches the 3x3x3 nodes base + (0..2) with weights w0 = 0.5(1.5-f)^2, w1 = 0.75-(f-1)^2,
  * w2 = 0.5(f-0.5)^2 per axis; D^-1 = 4/dx^2. Positions are kept inside
- * [CLAMP_MARGIN, n-1-CLAMP_MARGIN] cells by G2P, so base is always a valid node. */
+ * [CLAMP_MARGIN, n-1-CLAMP_MARGIN] cells by G2P, so base is always a valid node.
+ *
+ * A population of `members` simulations in lockstep (clflow.mpm.population): member m owns the
+ * particles [m n / members, (m + 1) n / members) of the n and its own grid, the nodes [m nodes,
+ * (m + 1) nodes) of every grid array, all members' grids alike (the same size, origin and
+ * boundary table). Laid out member after member, the grids are one grid of members nx nodes
+ * along x ("stacked"), which is how the private copies' boxes and rows count them. A
+ * particle's grid_t is its member's (particle_grid: offset = m nodes); a node's, with its
+ * node coordinates inside its member's grid, node_grid. One member: offset 0 throughout. */
 #ifndef CLFLOW_MPM_H
 #define CLFLOW_MPM_H
 
@@ -29,19 +37,31 @@ typedef double3 vec3r;
 typedef float3 vec3r;
 #endif
 
+/* One member's grid: nx*ny*nz nodes, its node (0, 0, 0) at flat index `offset` of the
+ * population's grid arrays (`members` grids of the same shape). */
 typedef struct {
-    int nx, ny, nz;
+    int nx, ny, nz, members;
+    long offset;
     real dx;
     real origin[3];
 } grid_t;
 
-inline grid_t make_grid(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
-                        const real oz)
+/* The grid's arguments of every MPM kernel (clflow.mpm.substep.Grid.kernel_args), and the
+ * grid_t they make: member 0's. */
+#define MPM_GRID_ARGS                                                                                                  \
+    const int nx, const int ny, const int nz, const int members, const real dx, const real ox, const real oy,          \
+        const real oz
+#define MPM_GRID make_grid(nx, ny, nz, members, dx, ox, oy, oz)
+
+inline grid_t make_grid(const int nx, const int ny, const int nz, const int members, const real dx, const real ox,
+                        const real oy, const real oz)
 {
     grid_t g;
     g.nx = nx;
     g.ny = ny;
     g.nz = nz;
+    g.members = members;
+    g.offset = 0;
     g.dx = dx;
     g.origin[0] = ox;
     g.origin[1] = oy;
@@ -54,9 +74,53 @@ inline int grid_extent(const grid_t *g, const int axis)
     return axis == 0 ? g->nx : (axis == 1 ? g->ny : g->nz);
 }
 
-inline long grid_index(const grid_t *g, const int i, const int j, const int k)
+/* Nodes of one member's grid, and of all members' together. */
+inline long grid_nodes(const grid_t *g)
+{
+    return (long)g->nx * g->ny * g->nz;
+}
+
+inline long population_nodes(const grid_t *g)
+{
+    return g->members * grid_nodes(g);
+}
+
+/* The flat offset of node (i, j, k) from node (0, 0, 0) of a grid. */
+inline long node_offset(const grid_t *g, const int i, const int j, const int k)
 {
     return ((long)i * g->ny + j) * g->nz + k;
+}
+
+/* The flat index of node (i, j, k) of grid g (its member's) in the grid arrays. */
+inline long grid_index(const grid_t *g, const int i, const int j, const int k)
+{
+    return g->offset + node_offset(g, i, j, k);
+}
+
+/* The member of particle p of the population's n particles. */
+inline int particle_member(const grid_t *g, const long p, const int n)
+{
+    return p / (n / g->members);
+}
+
+/* The grid of particle p's member (n particles in all). */
+inline grid_t particle_grid(const grid_t *g, const long p, const int n)
+{
+    grid_t m = *g;
+    m.offset = particle_member(g, p, n) * grid_nodes(g);
+    return m;
+}
+
+/* The grid of the member that owns flat node `node`, and the node's coordinates (*i, *j, *k) in it. */
+inline grid_t node_grid(const grid_t *g, const long node, int *i, int *j, int *k)
+{
+    grid_t m = *g;
+    const long own = node % grid_nodes(g);
+    m.offset = node - own;
+    *k = own % g->nz;
+    *j = (own / g->nz) % g->ny;
+    *i = own / ((long)g->nz * g->ny);
+    return m;
 }
 
 /* The base node of a particle's 3x3x3 stencil along ``axis`` at coordinate xa (m): floor(xi -
@@ -72,29 +136,40 @@ inline int stencil_base(const grid_t *g, const real xa, const int axis)
  * It zeroes and records only the box of nodes its particles' stencils touch, box[0..2] (lower)
  * to box[3..5] (upper, exclusive), in nodes; a column sum reads copy k only inside box k, so
  * nodes no particle of the chunk reaches cost neither a write nor a read (a small object in a
- * large domain: most of them). An empty chunk has an empty box; one with a position that is not
- * finite (whose stencil make_stencil clamps somewhere) the whole grid. */
-inline void chunk_box(const grid_t *g, __global const real *x, const int begin, const int end, int *box)
+ * large domain: most of them). The box's x runs in the stacked grid of the population (a chunk
+ * may hold particles of several members). An empty chunk has an empty box; one with a position
+ * that is not finite (whose stencil make_stencil clamps somewhere) its members' whole grids. */
+inline void chunk_box(const grid_t *g, __global const real *x, const int n, const int begin, const int end, int *box)
 {
     if (begin >= end) {
         for (int a = 0; a < 6; ++a)
             box[a] = 0;
         return;
     }
+    /* along x the box runs in the stacked grid from the chunk's first member's lowest node to its
+     * last member's highest (every member between wholly): lo[0] of the first, hi[0] of the last */
+    const int first = particle_member(g, begin, n), last = particle_member(g, end - 1, n);
     real lo[3], hi[3], finite = 0; /* finite: 0 while every coordinate is (inf * 0, NaN * 0: NaN) */
     for (int a = 0; a < 3; ++a)
         lo[a] = hi[a] = x[3 * (long)begin + a];
-    for (long p = begin; p < end; ++p)
+    hi[0] = x[3 * (long)(end - 1)];
+    for (long p = begin; p < end; ++p) {
+        const int m = particle_member(g, p, n);
         for (int a = 0; a < 3; ++a) {
             const real xa = x[3 * p + a];
-            lo[a] = fmin(lo[a], xa);
-            hi[a] = fmax(hi[a], xa);
+            if (a > 0 || m == first)
+                lo[a] = fmin(lo[a], xa);
+            if (a > 0 || m == last)
+                hi[a] = fmax(hi[a], xa);
             finite += xa * 0;
         }
+    }
     for (int a = 0; a < 3; ++a) { /* stencil_base is monotonic: the extremes' stencils bound the box */
         box[a] = finite == 0 ? stencil_base(g, lo[a], a) : 0;
         box[3 + a] = finite == 0 ? stencil_base(g, hi[a], a) + 3 : grid_extent(g, a);
     }
+    box[0] += first * g->nx;
+    box[3] += last * g->nx;
 }
 
 /* Work-item k's grid copy: its particle chunk [*begin, *end) = [k*chunk, (k+1)*chunk) cut at n,
@@ -106,11 +181,11 @@ inline __global real *chunk_copy(const grid_t *g, __global const real *x, const 
     *begin = min(n, k * chunk);
     *end = min(n, (k + 1) * chunk);
     int box[6];
-    chunk_box(g, x, *begin, *end, box);
-    __global real *copy = copies + (long)k * channels * g->nx * g->ny * g->nz;
+    chunk_box(g, x, n, *begin, *end, box);
+    __global real *copy = copies + (long)k * channels * population_nodes(g);
     for (int i = box[0]; i < box[3]; ++i)
         for (int j = box[1]; j < box[4]; ++j) {
-            const long row = channels * grid_index(g, i, j, 0);
+            const long row = channels * node_offset(g, i, j, 0); /* i: in the stacked grid */
             for (int e = channels * box[2]; e < channels * box[5]; ++e)
                 copy[row + e] = 0;
         }
@@ -227,15 +302,15 @@ inline realv load_param_lanes_v(const int n, const int p0, __global const real *
         ((real *)&q)[l] = param[(long)min(p0 + l, n - 1) * PARAM_COUNT + column];
     return q;
 }
-/* make_stencil for the lanes of a SIMD work-item (x[axis] in lanes): each lane's base node
- * as a flat grid index, fx and the weights in lanes. */
+/* make_stencil for the lanes of a SIMD work-item, particles p0 + lane of n (x[axis] in lanes):
+ * each lane's base node as a flat index in its member's grid, fx and the weights in lanes. */
 typedef struct {
     long corner[CLFLOW_SIMD_LANES];
     realv fx[3];
     realv w[3][3];
 } stencil_v_t;
 
-inline stencil_v_t make_stencil_v(const grid_t *g, const realv *x)
+inline stencil_v_t make_stencil_v(const grid_t *g, const realv *x, const int p0, const int n)
 {
     stencil_v_t st;
     for (int l = 0; l < CLFLOW_SIMD_LANES; ++l) {
@@ -244,7 +319,8 @@ inline stencil_v_t make_stencil_v(const grid_t *g, const realv *x)
             base[a] = stencil_base(g, LANE(x[a], l), a);
             ((real *)&st.fx[a])[l] = (LANE(x[a], l) - g->origin[a]) / g->dx - base[a];
         }
-        st.corner[l] = grid_index(g, base[0], base[1], base[2]);
+        const grid_t gl = particle_grid(g, min(p0 + l, n - 1), n);
+        st.corner[l] = grid_index(&gl, base[0], base[1], base[2]);
     }
     for (int a = 0; a < 3; ++a)
         STENCIL_WEIGHTS(st.fx[a], st.w[a]);
@@ -252,10 +328,8 @@ inline stencil_v_t make_stencil_v(const grid_t *g, const realv *x)
 }
 #endif
 
-/* The grid's and the particles' arguments of the P2G kernels (p2g_private.cl, p2g_atomic.cl,
- * p2g_gather.cl; clflow.mpm.substep: Grid.kernel_args, p2g_particle_args). */
-#define P2G_GRID_ARGS                                                                                                  \
-    const int nx, const int ny, const int nz, const real dx, const real ox, const real oy, const real oz
+/* The particles' arguments of the P2G kernels (p2g_private.cl, p2g_atomic.cl,
+ * p2g_gather.cl; clflow.mpm.substep.p2g_particle_args). */
 #define P2G_PARTICLE_ARGS                                                                                              \
     const int n, const real dt, __global const real *x, __global const real *v, __global const real *C,                \
         __global const real *tau, __global const real *mass, __global const real *volume, __global const int *group,   \

@@ -49,11 +49,11 @@ inline void p2g_particle_atomic(const grid_t *g, const int p, const real dt, __g
 }
 
 /* One work-item per particle, atomic adds into `grid` (zeroed by the host). */
-__kernel void p2g_atomic(P2G_GRID_ARGS, P2G_PARTICLE_ARGS, __global real *grid)
+__kernel void p2g_atomic(MPM_GRID_ARGS, P2G_PARTICLE_ARGS, __global real *grid)
 {
     const int p = get_global_id(0);
     if (p >= n)
         return;
-    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const grid_t g0 = MPM_GRID, g = particle_grid(&g0, p, n);
     p2g_particle_atomic(&g, p, dt, x, v, C, tau, mass, volume, group, accel, grid);
 }

@@ -28,12 +28,12 @@
 
 /* Each particle counted into its base cell (cells.h count_cell): the cell sort's keys where the
  * stress kernel does not count them itself (mpm/stress.cl update_stress_cells). */
-__kernel void particle_cells(P2G_GRID_ARGS, const int n, __global const real *x, CELL_KEY_ARGS)
+__kernel void particle_cells(MPM_GRID_ARGS, const int n, __global const real *x, CELL_KEY_ARGS)
 {
     const int p = get_global_id(0);
     if (p >= n)
         return;
-    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const grid_t g0 = MPM_GRID, g = particle_grid(&g0, p, n);
     real xp[3];
     load_row(x, p, 3, xp);
     count_cell(&g, p, xp, key, counts, rank);
@@ -122,10 +122,11 @@ __kernel void p2g_gather_update(GRID_UPDATE_ARGS, __global const real *records, 
                                 __global const real *bc, const int n_bc)
 {
     const long node = get_global_id(0);
-    if (node >= (long)nx * ny * nz)
+    const grid_t g0 = MPM_GRID;
+    if (node >= population_nodes(&g0))
         return;
-    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
-    const int ni = node / ((long)ny * nz), nj = (node / nz) % ny, nk = node % nz;
+    int ni, nj, nk;
+    const grid_t g = node_grid(&g0, node, &ni, &nj, &nk);
     gather_node(&g, node, ni, nj, nk, records, starts, grid);
     const real gravity[3] = {gx, gy, gz};
     update_node(&g, node, ni, nj, nk, dt, t, gravity, mass_eps, grid, grid_v, grid_dv, bc, n_bc);

@@ -29,12 +29,12 @@ inline realv dot3_v(const realv *a, const realv *b)
     return xy + zz;
 }
 
-/* Particles p0 .. min(p0 + CLFLOW_SIMD_LANES, end) - 1 into a grid copy with plain adds: their
+/* Particles p0 .. min(p0 + CLFLOW_SIMD_LANES, end) - 1 (of n) into a grid copy with plain adds: their
  * node values computed in vector lanes, lane by lane the operations of p2g_particle_atomic (p2g_atomic.cl),
  * then added particle after particle, each one's 27 nodes in order: the sums of a scalar loop
  * over the particles to the bit, for a fraction of the arithmetic (CPU compilers do not
  * vectorise p2g_private's loop). */
-inline void p2g_lanes(const grid_t *g, const int p0, const int end, const real dt, __global const real *x,
+inline void p2g_lanes(const grid_t *g, const int n, const int p0, const int end, const real dt, __global const real *x,
                       __global const real *v, __global const real *C, __global const real *tau,
                       __global const real *mass, __global const real *volume, __global const int *group,
                       __global const real *accel, __global real *grid)
@@ -69,7 +69,7 @@ inline void p2g_lanes(const grid_t *g, const int p0, const int end, const real d
 #endif
         }
     }
-    const stencil_v_t st = make_stencil_v(g, xv);
+    const stencil_v_t st = make_stencil_v(g, xv, p0, n);
     realv node_w[27], node_mv[27][3];
 #if CLFLOW_FLIP
     realv node_mv0[27][3];
@@ -95,7 +95,7 @@ inline void p2g_lanes(const grid_t *g, const int p0, const int end, const real d
             for (int j = 0; j < 3; ++j)
                 for (int k = 0; k < 3; ++k) {
                     const int o = 9 * i + 3 * j + k;
-                    __global real *node = grid + GRID_CH * (st.corner[l] + grid_index(g, i, j, k));
+                    __global real *node = grid + GRID_CH * (st.corner[l] + node_offset(g, i, j, k));
                     node[0] += LANE(node_w[o], l) * mp;
                     node[1] += LANE(node_mv[o][0], l);
                     node[2] += LANE(node_mv[o][1], l);
@@ -111,23 +111,24 @@ inline void p2g_lanes(const grid_t *g, const int p0, const int end, const real d
 
 /* Work-item k zeroes grid copy k in the box its particles [k*chunk, (k+1)*chunk) touch (saved
  * in boxes[6k .. 6k+5]) and scatters them into it. */
-__kernel void p2g_private(P2G_GRID_ARGS, P2G_PARTICLE_ARGS, const int copies, const int chunk,
+__kernel void p2g_private(MPM_GRID_ARGS, P2G_PARTICLE_ARGS, const int copies, const int chunk,
                           __global real *grid_copies, __global int *boxes)
 {
     const int k = get_global_id(0);
     if (k >= copies)
         return;
-    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const grid_t g = MPM_GRID;
     int begin, end;
     __global real *grid = chunk_copy(&g, x, n, k, chunk, GRID_CH, grid_copies, boxes, &begin, &end);
     for (int p0 = begin; p0 < end; p0 += CLFLOW_SIMD_LANES)
-        p2g_lanes(&g, p0, end, dt, x, v, C, tau, mass, volume, group, accel, grid);
+        p2g_lanes(&g, n, p0, end, dt, x, v, C, tau, mass, volume, group, accel, grid);
 }
 
 /* grid[node] = the sum over copies k = 0, 1, ..., in that order, of copies[k][node] ([nodes,
  * channels] each), each copy counted as zero outside its box (chunk_box): the column sum of the
  * private-copy scatters (g2p_adjoint_private's here; p2g_private's in grid.cl's
- * sum_copies_update_grid). A work-item per row of nodes (sum_copies_row). */
+ * sum_copies_update_grid). A work-item per row of nodes (sum_copies_row) of the stacked grid:
+ * nx counts all members' nodes along x (mpm.h). */
 __kernel void sum_grid_copies(const int nx, const int ny, const int nz, const int channels, const int copies,
                               __global const int *boxes, __global const real *grid_copies, __global real *grid)
 {

@@ -132,7 +132,7 @@ __kernel void update_stress(const int n, const real dt, __global const real *F_i
 
 /* update_stress with the SVD of F_tr inline, and each particle counted into its base cell at x
  * (mpm/cells.h count_cell: the gather's cell sort): the "plain" shape's stage 1 in one launch. */
-__kernel void update_stress_cells(P2G_GRID_ARGS, const int n, const real dt, __global const real *F_in,
+__kernel void update_stress_cells(MPM_GRID_ARGS, const int n, const real dt, __global const real *F_in,
                                   __global const real *C_in, __global const real *plastic_in,
                                   __global const int *material, __global const real *param, __global real *F_out,
                                   __global real *plastic_out, __global real *tau_out, __global const real *x,
@@ -149,7 +149,7 @@ __kernel void update_stress_cells(P2G_GRID_ARGS, const int n, const real dt, __g
     svd3(F_tr, U, s, V);
 #endif
     model_stress(p, dt, C, F_tr, U, s, V, plastic_in, material, param, F_out, plastic_out, tau_out);
-    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const grid_t g0 = MPM_GRID, g = particle_grid(&g0, p, n);
     load_row(x, p, 3, xp);
     count_cell(&g, p, xp, key, counts, rank);
 }
@@ -183,7 +183,7 @@ __kernel void update_stress_elastic(const int n, const real dt, __global const r
 }
 
 /* update_stress_elastic with each particle counted into its base cell at x (as update_stress_cells). */
-__kernel void update_stress_elastic_cells(P2G_GRID_ARGS, const int n, const real dt, __global const real *F_in,
+__kernel void update_stress_elastic_cells(MPM_GRID_ARGS, const int n, const real dt, __global const real *F_in,
                                           __global const real *C_in, __global const real *plastic_in,
                                           __global const real *param, __global real *F_out, __global real *plastic_out,
                                           __global real *tau_out, __global const real *x, CELL_KEY_ARGS)
@@ -192,7 +192,7 @@ __kernel void update_stress_elastic_cells(P2G_GRID_ARGS, const int n, const real
     if (p >= n)
         return;
     elastic_stress(p, dt, F_in, C_in, plastic_in, param, F_out, plastic_out, tau_out);
-    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const grid_t g0 = MPM_GRID, g = particle_grid(&g0, p, n);
     real xp[3];
     load_row(x, p, 3, xp);
     count_cell(&g, p, xp, key, counts, rank);

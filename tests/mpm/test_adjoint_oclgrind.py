@@ -1,6 +1,7 @@
 """Every MPM adjoint kernel under oclgrind: no out-of-bounds access, no data race (tiny scene
 with every material, colliders, velocity regions, a force stage and a clamped particle; and an
-elastic-only scene, which takes the fused SIMD stress adjoint; a PIC/FLIP blend)."""
+elastic-only scene, which takes the fused SIMD stress adjoint; a PIC/FLIP blend; a population
+of three on the private and the gather paths)."""
 
 import textwrap
 
@@ -41,6 +42,13 @@ SCRIPT = textwrap.dedent(
     assert bool(torch.isfinite(E.grad)) and float(E.grad) != 0
     # the PIC/FLIP blend's kernels (7-channel grid, dv, p2g_flip_adjoint), forward and adjoint
     assert_velocity_gradient(tiny_plasticine(flip=0.9, p2g="private"))
+    # a population of three, each member on its own grid, on the private and the gather paths
+    for path in ("private", "gather"):
+        pop = random_scene({"elastic": dict(MATERIAL_CASES["elastic"], youngs_modulus=[1e4, 2e4, 3e4])}, n=13,
+                           substeps=2, frame_dt=2e-4, walls=None, p2g=path)
+        E = torch.tensor([1e4, 2e4, 3e4], dtype=torch.float64, requires_grad=True)
+        (simulate(pop, 1, params={"youngs_modulus": E}).x ** 2).sum().backward()
+        assert bool(torch.isfinite(E.grad).all()) and bool((E.grad != 0).all())
     print("done on", sim.device.info.label)
     """
 )

@@ -1,4 +1,5 @@
-"""Every MPM kernel under oclgrind: no out-of-bounds access, no data race (tiny scene)."""
+"""Every MPM kernel under oclgrind: no out-of-bounds access, no data race (tiny scenes, and a
+population of three on the private and the gather paths)."""
 
 import textwrap
 
@@ -29,6 +30,11 @@ SCRIPT = textwrap.dedent(
                         boundaries=[HalfSpace((0, 0.2, 0), (0, 1, 0), "slip", 0.3), Box((0.4,) * 3, (0.5,) * 3),
                                     RotatingCylinder((0.5,) * 3, (0, 1, 0), 0.2, 0.1, 2.0)])
         assert sim.run(1).clamped[1] == 1
+    population = MaterialSpec("elastic", {"youngs_modulus": [1e4, 2e4, 3e4]})  # each member on its own grid
+    for path in ("private", "gather"):
+        sim = Simulator(x, 1e-5, population, Grid((8, 8, 8), 1 / 7), velocities=v, walls=None, frame_dt=2e-4,
+                        substeps=2, p2g=path)
+        assert sim.run(1).clamped[1] == 3
     print("done on", sim.device.info.label)
     """
 )

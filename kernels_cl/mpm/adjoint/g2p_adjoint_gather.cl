@@ -10,8 +10,7 @@
 
 /* A work-item per slot of the particles sorted by cell (p = order[slot]): x_bar[p], and the
  * slot's record for g2p_adjoint_gather_update. */
-__kernel void g2p_adjoint_records(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
-                                  const real oz, const int n, const real dt, const real t, const real flip,
+__kernel void g2p_adjoint_records(MPM_GRID_ARGS, const int n, const real dt, const real t, const real flip,
                                   __global const real *x_in, __global const real *v_out,
                                   __global const real *release_time, __global const real *grid_v,
                                   __global const real *grid_dv, __global const real *x_bar_out,
@@ -21,7 +20,7 @@ __kernel void g2p_adjoint_records(const int nx, const int ny, const int nz, cons
     const int s = get_global_id(0);
     if (s >= n)
         return;
-    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const grid_t g0 = MPM_GRID, g = particle_grid(&g0, order[s], n);
     g2p_adjoint_particle(&g, order[s], dt, t, flip, x_in, v_out, release_time, grid_v, grid_dv, x_bar_out, v_bar_out,
                          C_bar_out, 0, x_bar, records + (long)G2P_ADJ_REC * s);
 }
@@ -34,10 +33,11 @@ __kernel void g2p_adjoint_gather_update(GRID_UPDATE_ARGS, __global const real *r
                                         const int n_bc, __global real *grid_bar)
 {
     const long node = get_global_id(0);
-    if (node >= (long)nx * ny * nz)
+    const grid_t g0 = MPM_GRID;
+    if (node >= population_nodes(&g0))
         return;
-    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
-    const int ni = node / ((long)ny * nz), nj = (node / nz) % ny, nk = node % nz;
+    int ni, nj, nk;
+    const grid_t g = node_grid(&g0, node, &ni, &nj, &nk);
     real sum[GV_CH];
     for (int q = 0; q < GV_CH; ++q)
         sum[q] = 0;

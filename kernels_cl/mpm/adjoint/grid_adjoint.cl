@@ -126,9 +126,11 @@ __kernel void grid_update_adjoint(GRID_UPDATE_ARGS, __global const real *grid, _
                                   __global const real *bc, const int n_bc, __global real *grid_bar)
 {
     const long node = get_global_id(0);
-    if (node >= (long)nx * ny * nz)
+    const grid_t g0 = MPM_GRID;
+    if (node >= population_nodes(&g0))
         return;
-    const int k = node % nz, j = (node / nz) % ny, i = node / ((long)nz * ny);
+    int i, j, k;
+    node_grid(&g0, node, &i, &j, &k);
     update_node_adjoint(node, i, j, k, dx, ox, oy, oz, dt, t, gx, gy, gz, mass_eps, grid, grid_v_bar, bc, n_bc,
                         grid_bar);
 }

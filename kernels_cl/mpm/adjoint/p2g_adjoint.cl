@@ -14,8 +14,7 @@
  * with the axis-2 weights, the (i, j) level with the others. */
 #include "mpm/adjoint/adjoint.h"
 
-__kernel void p2g_adjoint(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
-                          const real oz, const int n, const real dt, __global const real *x, __global const real *v,
+__kernel void p2g_adjoint(MPM_GRID_ARGS, const int n, const real dt, __global const real *x, __global const real *v,
                           __global const real *C, __global const real *tau, __global const real *mass,
                           __global const real *volume, __global const int *group, __global const real *accel,
                           __global const real *grid_bar, __global real *x_bar, __global real *v_bar,
@@ -24,7 +23,7 @@ __kernel void p2g_adjoint(const int nx, const int ny, const int nz, const real d
     const int p0 = get_global_id(0) * CLFLOW_SIMD_LANES;
     if (p0 >= n)
         return;
-    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const grid_t g = MPM_GRID;
     realv xp[3], vel[3], Cp[9], taup[9], A[9], xb[3], m, vol;
     load_lanes_v(n, p0, 3, x, xp);
     load_lanes_v(n, p0, 3, v, vel);
@@ -41,7 +40,7 @@ __kernel void p2g_adjoint(const int nx, const int ny, const int nz, const real d
     const realv stress_scale = -dt * vol * 4 / (dx * dx);
     for (int k = 0; k < 9; ++k)
         A[k] = stress_scale * taup[k] + m * Cp[k];
-    const stencil_v_t st = make_stencil_v(&g, xp);
+    const stencil_v_t st = make_stencil_v(&g, xp, p0, n);
     const stencil_gradient_v_t sg = make_stencil_gradient_v(&st, dx);
     /* u = m (v + dt a) + A d is affine in the node offsets: u = u0 + dx (A_:0 i + A_:1 j + A_:2 k) */
     realv u0[3];
@@ -59,7 +58,7 @@ __kernel void p2g_adjoint(const int nx, const int ny, const int nz, const real d
             /* along k: sums of w2 mbar, w2 pbar, w2 k pbar, w2 s, dw2 s with
              * s = m mbar + pbar . u, the node's part of dL/dw */
             realv m_k = 0, p_k[3] = {0, 0, 0}, pk_k[3] = {0, 0, 0}, s_w = 0, s_dw = 0;
-            const long row = ((long)i * g.ny + j) * g.nz;
+            const long row = node_offset(&g, i, j, 0);
 #pragma unroll
             for (int k = 0; k < 3; ++k) {
                 realv gb[4];
@@ -120,8 +119,7 @@ __kernel void p2g_adjoint(const int nx, const int ny, const int nz, const real d
  *   vbar += m S + flip vbar' (released),   Cbar += m M,   mbar += S . v + <M, C>,
  *   xbar += sum_i grad(w) m p0bar_i . (v + C d) - m C^T S
  * all accumulated into. */
-__kernel void p2g_flip_adjoint(const int nx, const int ny, const int nz, const real dx, const real ox, const real oy,
-                               const real oz, const int n, const real t, const real flip, __global const real *x,
+__kernel void p2g_flip_adjoint(MPM_GRID_ARGS, const int n, const real t, const real flip, __global const real *x,
                                __global const real *v, __global const real *C, __global const real *mass,
                                __global const real *release_time, __global const real *v_bar_out,
                                __global const real *grid_bar, __global real *x_bar, __global real *v_bar,
@@ -130,7 +128,7 @@ __kernel void p2g_flip_adjoint(const int nx, const int ny, const int nz, const r
     const int p = get_global_id(0);
     if (p >= n)
         return;
-    const grid_t g = make_grid(nx, ny, nz, dx, ox, oy, oz);
+    const grid_t g0 = MPM_GRID, g = particle_grid(&g0, p, n);
     real xp[3], vp[3], Cp[9], xb[3], S[3] = {0, 0, 0}, M[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
     load_row(x, p, 3, xp);
     load_row(v, p, 3, vp);
