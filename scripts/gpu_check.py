@@ -5,7 +5,7 @@ JSON (device, versions, kernel plan, tests, benchmarks, profiles).
 
     python scripts/gpu_check.py                      # first GPU, device suites, full-size benches
     python scripts/gpu_check.py --suite all          # the whole test suite
-    python scripts/gpu_check.py --device pocl --small --suite none   # a dry run on PoCL
+    python scripts/gpu_check.py --device pthread --small --suite none   # a dry run on PoCL
     python scripts/gpu_check.py --bench sysid-quick  # also `clflow eval sysid --quick` (minutes)
 
 Run from the repository root (the tests are read from tests/); scripts/gpu_check.sh installs
@@ -58,8 +58,11 @@ BENCHES = {
         ["raster", "-n", "5000", "--size", "256", "--repeat", "2"],
     ),
     "launch": (["launch"], ["launch", "--substeps", "5", "--calls", "10"]),
+    "launch-cpu-plan": (["launch"], ["launch", "--substeps", "5", "--calls", "10"]),
     "optimize": (["optimize"], ["optimize", "--gaussians", "2000", "--image", "64", "--frames", "3", "--grid", "12"]),
 }
+#: name -> clflow's global options for that bench (the CPU plan's shapes on the GPU, to compare)
+GLOBAL_OPTIONS = {"launch-cpu-plan": ["--kernels", "cpu"]}
 #: name -> whole clflow commands ({work}: a fresh folder), timed, with `clflow --profile`
 COMMANDS = {
     "demo": (["demo", "{work}/demo"], ["demo", "--quick", "{work}/demo"]),
@@ -174,9 +177,9 @@ def main(argv: list[str] | None = None) -> int:
             continue
         full, small = BENCHES[name]
         out_json = logs / f"bench-{name}.json"
-        profiled = [] if name == "launch" else ["--profile"]  # the launch bench times the host without events
+        profiled = [] if full[0] == "launch" else ["--profile"]  # the launch bench times the host without events
         bench_args = [*(small if args.small else full), *profiled, "--json", str(out_json)]
-        cmd = [sys.executable, "-m", "clflow_cli", "bench", *bench_args]
+        cmd = [sys.executable, "-m", "clflow_cli", *GLOBAL_OPTIONS.get(name, []), "bench", *bench_args]
         code, seconds, tail = run(cmd, logs / f"bench-{name}.log", args.timeout, env)
         entry = {"exit": code, "seconds": round(seconds, 1), "output": tail[-2500:]}
         if code == 0 and out_json.exists():

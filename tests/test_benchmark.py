@@ -110,4 +110,8 @@ def test_bench_launch_times_the_substep_loop_and_each_launch_phase(tmp_path, dev
     assert all(0 < s["host_cpu_us_per_substep"] for s in results["sizes"].values())
     assert len(results["phases"]) == 2 and any(name.startswith("g2p") for name in results["phases"])
     assert all(p["enqueue_us"] > 0 and p["arguments"] > 5 for p in results["phases"].values())
+    population = results["population"]
+    assert (population["members"], population["particles_per_member"]) == (24, 512)
+    share = population["host_us_per_member_substep"] / results["sizes"]["512"]["host_us_per_substep"]
+    assert share == pytest.approx(population["host_share_of_single"]) and 0 < share
     assert "launch" not in vars(device)  # the recording stand-in is gone: launches enqueue again

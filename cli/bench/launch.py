@@ -1,7 +1,9 @@
 """``clflow bench launch``: the host's side of a substep, where a GPU waits for its host.
 
 A small scene's substep is bound by the host's time to enqueue it, not by the device: this
-times the substep loop (host time and wall time per substep) at a few particle counts,
+times the substep loop (host time and wall time per substep) at a few particle counts and
+for a population of the smallest scene (clflow.mpm.population: its members share each
+substep's launches, so the host's time per member-substep falls with their number),
 counts a substep's launches, and times one launch's phases on two of the substep's kernels:
 the argument table (``KernelSignature.ordered``) and the binding, paid once per set of
 arrays (clflow.runtime.binding), then pyopencl's ``set_args`` and the driver's enqueue,
@@ -19,6 +21,7 @@ SIZES = ((8, 16), (16, 32), (32, 48))  # (particles per axis, grid nodes per axi
 #: kernels whose launches can repeat without changing what they read (grid update, G2P):
 #: the phases are timed on them
 REPEATABLE = ("sum_copies_update_grid", "p2g_gather_update", "g2p_sorted", "g2p")
+POPULATION = 24  # members of the population timed (a global search's samples)
 
 
 def _cube(particles_per_axis: int, grid_res: int):
@@ -33,6 +36,19 @@ def _cube(particles_per_axis: int, grid_res: int):
     axis = 0.5 - particles_per_axis * h / 2 + h * (0.5 + torch.arange(particles_per_axis, dtype=torch.float64))
     x = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
     return x, h**3, MaterialSpec("elastic"), Grid((grid_res,) * 3, dx)
+
+
+def _time_substeps(device, sim, substeps: int) -> tuple[float, float, float]:
+    """(host, host thread CPU, wall) seconds of ``substeps`` substeps of ``sim``, after 10 that build and warm."""
+    for _ in range(10):
+        sim.step()
+    device.finish()
+    started, started_cpu = time.perf_counter(), time.thread_time()
+    for _ in range(substeps):
+        sim.step()
+    host, host_cpu = time.perf_counter() - started, time.thread_time() - started_cpu
+    device.finish()
+    return host, host_cpu, time.perf_counter() - started
 
 
 def _per_call_us(fn, calls: int) -> float:
@@ -104,7 +120,9 @@ def _launch_phases(device, asked, calls: int) -> dict:
 @click.pass_context
 def launch(ctx, substeps, calls):
     """Host time per substep (no profile: its events cost time too) at 512, 4,096 and 32,768
-    particles, and per launch: the argument table, set_args and the driver's enqueue. Where
+    particles, for a population of 24 members of the smallest scene (per member-substep,
+    against a single run's substep), and per launch: the argument table, set_args and the
+    driver's enqueue (the kernel plan: the device's, or $CLFLOW_KERNELS's). Where
     a substep's wall time equals its host time, the device waits for the host. The host's
     own CPU time (its thread's) is given too: on a CPU device the device's threads share the
     cores, and the host's time then includes waiting for one."""
@@ -119,15 +137,7 @@ def launch(ctx, substeps, calls):
     for particles_per_axis, grid_res in SIZES:
         x, volume, material, grid = _cube(particles_per_axis, grid_res)
         sim = Simulator(x, volume, material, grid, frame_dt=1e-3, device=device)
-        for _ in range(10):  # builds and warms
-            sim.step()
-        device.finish()
-        started, started_cpu = time.perf_counter(), time.thread_time()
-        for _ in range(substeps):
-            sim.step()
-        host, host_cpu = time.perf_counter() - started, time.thread_time() - started_cpu
-        device.finish()
-        wall = time.perf_counter() - started
+        host, host_cpu, wall = _time_substeps(device, sim, substeps)
         n, us = x.shape[0], 1e6 / substeps
         results["sizes"][str(n)] = {
             "grid": grid_res,
@@ -139,6 +149,7 @@ def launch(ctx, substeps, calls):
             f"{n:7,d} particles, grid {grid_res}^3: {host * us:7.1f} us of host time a substep "
             f"({host_cpu * us:6.1f} us on its thread), {wall * us:7.1f} us of wall time"
         )
+    results["population"] = _population(device, substeps, results["sizes"])
     recording, asked = _substep_recording(device, sim)
     launches = sum(isinstance(step, BoundLaunch) for step in recording.steps)
     results["launches_per_substep"] = launches
@@ -147,3 +158,34 @@ def launch(ctx, substeps, calls):
     click.echo("one launch, by phase:")
     results["phases"] = _launch_phases(device, asked, calls)
     return results
+
+
+def _population(device, substeps: int, sizes: dict) -> dict:
+    """The smallest scene as a population of POPULATION members (Young's moduli 1e4-1e5 Pa):
+    host time per member-substep against the single run's per substep (``sizes``' first)."""
+    import torch
+
+    from clflow.mpm import MaterialSpec, Simulator
+
+    particles_per_axis, grid_res = SIZES[0]
+    x, volume, _, grid = _cube(particles_per_axis, grid_res)
+    moduli = torch.logspace(4, 5, POPULATION, dtype=torch.float64)
+    sim = Simulator(x, volume, MaterialSpec("elastic", {"youngs_modulus": moduli}), grid, frame_dt=1e-3, device=device)
+    host, host_cpu, wall = _time_substeps(device, sim, substeps)
+    us = 1e6 / substeps / POPULATION
+    single = sizes[str(x.shape[0])]
+    result = {
+        "members": POPULATION,
+        "particles_per_member": x.shape[0],
+        "host_us_per_member_substep": host * us,
+        "host_cpu_us_per_member_substep": host_cpu * us,
+        "wall_us_per_member_substep": wall * us,
+        "host_share_of_single": host * us / single["host_us_per_substep"],
+        "host_cpu_share_of_single": host_cpu * us / single["host_cpu_us_per_substep"],
+    }
+    click.echo(
+        f"a population of {POPULATION} x {x.shape[0]:,d} particles: {host * us:6.1f} us of host time a "
+        f"member-substep ({host_cpu * us:5.1f} us on its thread), {result['host_share_of_single']:.3f} "
+        f"({result['host_cpu_share_of_single']:.3f}) of a single run's; {wall * us:7.1f} us of wall time"
+    )
+    return result
