@@ -42,12 +42,15 @@ def _member_value(value, m: int):
     return value if _batch_of(value, "") is None else float(torch.as_tensor(value, dtype=torch.float64)[m])
 
 
+def _specs(materials) -> list:
+    """The MaterialSpecs of ``materials``: one, or a list or tuple of them."""
+    return list(materials) if isinstance(materials, (list, tuple)) else [materials]
+
+
 def population_size(materials, velocities) -> int | None:
     """K, the members the inputs' batch dimension makes (every batched input must agree), or
     None when nothing is batched (a single run)."""
-    from clflow.mpm.simulator import MaterialSpec
-
-    specs = [materials] if isinstance(materials, MaterialSpec) else list(materials)
+    specs = _specs(materials)
     sizes = {}
     for k, spec in enumerate(specs):
         for name, value in spec.params.items():
@@ -65,21 +68,12 @@ def population_size(materials, velocities) -> int | None:
 def member_materials(materials, m: int):
     """Member m's materials: ``materials`` (one MaterialSpec or a list) with each batched
     parameter and density replaced by its m-th value."""
-    from clflow.mpm.simulator import MaterialSpec
 
-    def one(spec: MaterialSpec) -> MaterialSpec:
+    def one(spec):
         params = {name: _member_value(value, m) for name, value in spec.params.items()}
         return replace(spec, params=params, density=_member_value(spec.density, m))
 
-    return one(materials) if isinstance(materials, MaterialSpec) else [one(spec) for spec in materials]
-
-
-def has_batched_density(materials) -> bool:
-    """Whether some member densities differ in ``materials`` (given per member)."""
-    from clflow.mpm.simulator import MaterialSpec
-
-    specs = [materials] if isinstance(materials, MaterialSpec) else list(materials)
-    return any(_batch_of(spec.density, "density") is not None for spec in specs)
+    return [one(spec) for spec in materials] if isinstance(materials, (list, tuple)) else one(materials)
 
 
 def tile(t: torch.Tensor | None, members: int) -> torch.Tensor | None:
@@ -109,7 +103,7 @@ def split_members(t: torch.Tensor, members: int) -> torch.Tensor:
 def check_forces_shared_mass(forces: Sequence, materials) -> None:
     """Force stages given as forces (N) act on a group's total mass, the same in every member
     only when the densities are: refuse per-member densities with force stages."""
-    if forces and has_batched_density(materials):
+    if forces and any(_batch_of(spec.density, "density") is not None for spec in _specs(materials)):
         raise InputError(
             "a population with force stages needs one density for all members (a stage's force is "
             "spread over its particles' mass); give density as a number"
