@@ -34,6 +34,7 @@ def member_velocities(k: int) -> torch.Tensor:
 def plan(request, monkeypatch, copy_mode):
     """The kernel plan a simulator takes: the CPU plan, the GPU plan (forced, copy mode) or the CPU plan's atomic P2G."""
     monkeypatch.setenv("CLFLOW_KERNELS", "gpu" if request.param == "gpu" else "cpu")
+    monkeypatch.delenv("CLFLOW_P2G", raising=False)  # the path is this fixture's (a device mode may set one)
     return request.param
 
 
@@ -66,6 +67,7 @@ def test_members_of_different_materials_and_densities(monkeypatch):
     """A population may batch any parameter and the density of every material of a
     scene; each member is the run of its own values."""
     monkeypatch.setenv("CLFLOW_KERNELS", "cpu")
+    monkeypatch.delenv("CLFLOW_P2G", raising=False)
     x = block(torch.float64)
     index = (x[:, 0] > 0.45).long()
     sand = MaterialSpec("sand", {"friction_angle": [25.0, 35.0]}, density=[1500.0, 2000.0])
