@@ -40,6 +40,7 @@ from clflow.errors import InputError
 from clflow.materials import get_material
 from clflow.mpm.adjoint import StateGrad, SubstepAdjoint, g2p_adjoint_record_reals
 from clflow.mpm.constants import MATERIAL_IDS, PARAM_COUNT, grid_channels, velocity_channels
+from clflow.mpm.inputs import check_inside
 from clflow.mpm.material_model import KERNEL_PARAMETERS, REGISTRY_MATERIAL, kernel_columns
 from clflow.mpm.population import split_members
 from clflow.mpm.simulator import (
@@ -48,7 +49,6 @@ from clflow.mpm.simulator import (
     Simulator,
     StabilityWarning,
     cfl_breach,
-    check_inside,
     finite,
 )
 from clflow.mpm.substep import DriverAccelerations, State, SubstepInputs, SubstepTape, p2g_record_reals
