@@ -236,15 +236,19 @@ def build_simulator(
     max_substeps: int | None = None,
 ):
     """A :class:`clflow.mpm.Simulator` of the config's objects in one grid, each with its
-    :class:`ObjectValues` (``values``, one per object in ``cfg.objects``' order); substeps from
+    :class:`ObjectValues` (``values``, one per object in ``cfg.objects``' order; or, for a
+    population of K runs in lockstep, clflow.mpm.population, K such lists); substeps from
     ``simulation.substep_dt``, else the stability limits of these values (the stiffest
     material and the fastest object decide) but at least ``min_substeps``. SubstepLimitError
     beyond ``max_substeps`` per frame (None: no limit); InputError for a force stage that
     holds no particle or never acts."""
     from clflow.mpm import Force, HalfSpace, MaterialSpec, Simulator
 
-    if len(values) != len(cfg.objects):
-        raise ValueError(f"{len(values)} objects' values for the config's {len(cfg.objects)} objects")
+    single = isinstance(values[0], ObjectValues)
+    members = [values] if single else list(values)
+    for member in members:
+        if len(member) != len(cfg.objects):
+            raise ValueError(f"{len(member)} objects' values for the config's {len(cfg.objects)} objects")
     sim_cfg = cfg.simulation
     frame_dt = 1.0 / sim_cfg.fps
     substeps = None if sim_cfg.substep_dt is None else max(1, math.ceil(frame_dt / sim_cfg.substep_dt - 1e-9))
@@ -262,18 +266,24 @@ def build_simulator(
             )
         )
     colliders = [HalfSpace(c.point, c.normal, c.mode, c.friction, c.start, c.end) for c in cfg.colliders]
-    materials = [
-        MaterialSpec(get_material(o.material.type).name, dict(v.params), v.density, o.material.model)
-        for o, v in zip(cfg.objects, values)
-    ]
-    speeds = [torch.as_tensor(v.velocity, dtype=torch.float64).detach() for v in values]
+
+    def per_member(column: list[float]):  # one value where the members agree, else each member's
+        return column[0] if all(c == column[0] for c in column) else column
+
+    materials = []
+    for k, o in enumerate(cfg.objects):
+        params = {name: per_member([m[k].params[name] for m in members]) for name in members[0][k].params}
+        density = per_member([m[k].density for m in members])
+        materials.append(MaterialSpec(get_material(o.material.type).name, params, density, o.material.model))
+    speeds = [torch.stack([torch.as_tensor(v.velocity, dtype=torch.float64).detach() for v in m]) for m in members]
+    velocities = torch.stack([s[setup.object_index] for s in speeds])  # [K, M, 3]
     sim = Simulator(
         x,
         setup.particles.volume,
         materials,
         setup.grid,
         material_index=setup.object_index,
-        velocities=torch.stack(speeds)[setup.object_index],
+        velocities=velocities[0] if single else velocities,
         frame_dt=frame_dt,
         substeps=substeps,
         gravity=sim_cfg.gravity,

@@ -19,6 +19,7 @@ import torch
 from clflow.errors import ClflowError
 from clflow.fileio import atomic_path
 from clflow.mpm import StabilityWarning
+from clflow.pipeline.fit.population import RunPoint, evaluate_in_populations, populations_pay, run_point
 from clflow.pipeline.fit.problem import Problem
 from clflow.pipeline.fit.state import Evaluation, OptimizerState, UnstableRun
 from clflow.pipeline.forward import (
@@ -27,7 +28,7 @@ from clflow.pipeline.forward import (
     render_frames,
 )
 from clflow.pipeline.render import frame_gaussians, render_flow
-from clflow.pipeline.simulation import build_simulator, run, scene_run_values
+from clflow.pipeline.simulation import build_simulator, scene_run_values
 from clflow.scene.config import SceneConfig
 
 log = logging.getLogger(__name__)
@@ -114,14 +115,20 @@ class Objective:
         the model's)."""
         variables = self.problem.variables if variables is None else variables
         grid = self.problem.model_grid if grid is None else grid
+        point = self._point(z, grid, min_substeps, grads_of=variables if with_grad else ())
+        return self._evaluation(point, run_point(point, frames), frames)
+
+    def _point(self, z: dict[str, float], grid: int, min_substeps: int, grads_of: tuple[str, ...] = ()) -> RunPoint:
+        """What a run at z on the grid of ``grid`` nodes takes: its simulator (built, not run)
+        and the inputs of clflow.pipeline.simulation.run, with z's ``grads_of`` requiring grad."""
         prepared = self.problem.prepared_on(grid)
-        zt = {n: torch.tensor(v, dtype=torch.float64, requires_grad=with_grad and n in variables) for n, v in z.items()}
+        zt = {n: torch.tensor(v, dtype=torch.float64, requires_grad=n in grads_of) for n, v in z.items()}
         decoded = {n: p.decode(zt[n]) for n, p in self.problem.params.items()}
         velocity = self.problem.velocity_input(zt, prepared)
         shared = velocity is not None and velocity.dim() == 1  # every object's velocity, a tensor [3]
         speeds = (velocity,) * len(self.problem.cfg.objects) if shared else self.problem.velocities(z)
         objects = self.problem.object_values({n: float(v.detach()) for n, v in decoded.items()}, speeds)
-        with warnings.catch_warnings():  # an unstable step or run fails below, saying why (UnstableRun)
+        with warnings.catch_warnings():
             warnings.simplefilter("ignore", StabilityWarning)
             sim = build_simulator(
                 self.problem.cfg,
@@ -130,8 +137,13 @@ class Objective:
                 min_substeps=min_substeps,
                 max_substeps=self.problem.cfg.simulation.max_substeps,
             )
-            # several objects: each parameter per particle, its object's particles alone
-            traj = run(sim, frames, scene_run_values(self.problem.cfg, prepared.setup, objects, decoded), velocity)
+        # several objects: each parameter per particle, its object's particles alone
+        run_values = scene_run_values(self.problem.cfg, prepared.setup, objects, decoded)
+        return RunPoint(zt, grads_of, grid, prepared, objects, sim, run_values, velocity)
+
+    def _evaluation(self, point: RunPoint, traj, frames: int) -> Evaluation:
+        """The Evaluation of ``point``'s run ``traj`` (Frames), its gradients where it asked for them."""
+        sim = point.sim
         needed = sim.stable_substeps()
         if traj.substeps < needed:  # a fixed simulation.substep_dt too long for these parameters
             raise UnstableRun(
@@ -141,14 +153,14 @@ class Objective:
         if traj.unstable:  # finished, but not a run to learn from
             raise UnstableRun(traj.unstable)
         cameras = [v.camera for v in self.problem.views]
-        flows, *more_flows = simulated_view_flows(prepared, traj.x, traj.F, frames, cameras)
+        flows, *more_flows = simulated_view_flows(point.prepared, traj.x, traj.F, frames, cameras)
         loss = self.loss_of([flows, *more_flows])
         if not bool(torch.isfinite(loss.detach())):
             raise FloatingPointError("the flow loss is not finite")
         grads = {}
-        if with_grad:
+        if point.grads_of:
             loss.backward()
-            grads = {n: float(zt[n].grad) for n in variables}
+            grads = {n: float(point.zt[n].grad) for n in point.grads_of}
             if not all(math.isfinite(g) for g in grads.values()):
                 raise FloatingPointError("the gradient is not finite")
         return Evaluation(
@@ -156,20 +168,26 @@ class Objective:
             grads,
             [f.detach() for f in flows],
             traj,
-            grid,
+            point.grid,
             tuple([f.detach() for f in view] for view in more_flows),
         )
 
     def evaluate_batch(
         self, points: list[dict[str, float]], frames: int, *, min_substeps: int = 1, grid: int | None = None
     ) -> Iterator[Evaluation | Exception]:
-        """Forward-only evaluations of independent ``points`` (z dicts), yielded in order as
-        each is known, each what ``evaluate(z, frames, with_grad=False, min_substeps=...,
-        grid=...)`` gives; a point whose run fails (FloatingPointError, ClflowError: an
-        unstable run, a substep limit) yields its error instead, so that one failing point
-        loses none of the others. The points are simulated one after another, each when the
-        consumer asks for it: one that stops iterating (a budget spent, a failed column)
-        simulates no more."""
+        """Forward-only evaluations of independent ``points`` (z dicts), yielded in order, each
+        what ``evaluate(z, frames, with_grad=False, min_substeps=..., grid=...)`` gives; a
+        point whose run fails (FloatingPointError, ClflowError: an unstable run, a substep
+        limit) yields its error instead, so that one failing point loses none of the others.
+
+        Where populations pay (clflow.pipeline.fit.population: the GPU plan) the points are
+        simulated together as populations, all before the first is yielded. Elsewhere they
+        are simulated one after another, each when the consumer asks for it: one that stops
+        iterating (a budget spent, a failed column) simulates no more."""
+        if populations_pay() and len(points) > 1:
+            grid = self.problem.model_grid if grid is None else grid
+            yield from evaluate_in_populations(self, points, frames, min_substeps, grid)
+            return
         for z in points:
             try:
                 result = self.evaluate(z, frames, with_grad=False, min_substeps=min_substeps, grid=grid)
