@@ -100,7 +100,7 @@ inline long grid_index(const grid_t *g, const int i, const int j, const int k)
 /* The member of particle p of the population's n particles. */
 inline int particle_member(const grid_t *g, const long p, const int n)
 {
-    return p / (n / g->members);
+    return g->members == 1 ? 0 : (int)p / (n / g->members); /* a single run divides nothing */
 }
 
 /* The grid of particle p's member (n particles in all). */
@@ -115,11 +115,11 @@ inline grid_t particle_grid(const grid_t *g, const long p, const int n)
 inline grid_t node_grid(const grid_t *g, const long node, int *i, int *j, int *k)
 {
     grid_t m = *g;
-    const long own = node % grid_nodes(g);
+    const int own = g->members == 1 ? (int)node : (int)(node % grid_nodes(g)); /* < 2^31: one member's */
     m.offset = node - own;
     *k = own % g->nz;
     *j = (own / g->nz) % g->ny;
-    *i = own / ((long)g->nz * g->ny);
+    *i = own / (g->nz * g->ny);
     return m;
 }
 
