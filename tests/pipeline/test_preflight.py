@@ -190,16 +190,16 @@ def test_a_fixed_substep_and_a_large_rate_never_accept_an_unstable_iteration(dem
 
 
 def test_a_clamped_iteration_is_rolled_back(demo_config, monkeypatch):
-    from clflow.pipeline.fit import objective
+    from clflow.pipeline.fit import population  # where the objective's runs are made (run_point)
 
-    real, calls = objective.run, []
+    real, calls = population.run, []
 
     def clamping(*args, **kwargs):
         frames = real(*args, **kwargs)
         calls.append(1)
         return dataclasses.replace(frames, clamped=7) if len(calls) == 2 else frames
 
-    monkeypatch.setattr(objective, "run", clamping)
+    monkeypatch.setattr(population, "run", clamping)
     opt = Optimization(demo_config(iterations=2))
     calls.clear()  # the pre-flight's runs
     state = opt.run()
