@@ -303,17 +303,21 @@ def run(simulator, frames: int, values: dict[str, torch.Tensor], velocity: torch
     ``values`` (registry name or "density" -> 0-d tensor, SI) and the initial velocity
     ``velocity`` ([3] m/s, simulation frame, given to every particle; default: the
     simulator's) as inputs; returns Frames (x, v [T+1, M, 3], F [T+1, M, 3, 3])."""
-    from clflow.mpm.autograd import per_particle, simulate
+    from clflow.mpm.autograd import simulate
 
     params = {name: value for name, value in values.items() if name != "density"}
-    velocities = (
-        None
-        if velocity is None
-        else per_particle(velocity, simulator.n, "velocity", simulator.dtype, simulator.device, trailing=(3,))
-    )
+    velocities = None if velocity is None else particle_velocities(simulator, velocity)
     return simulate(
         simulator, frames, params=params or None, density=values.get("density"), velocities=velocities, retries=2
     )
+
+
+def particle_velocities(simulator, velocity: torch.Tensor) -> torch.Tensor:
+    """[M, 3] initial velocities (m/s) of ``simulator``'s particles from ``velocity`` ([3], every
+    particle's, or [M, 3]), with a fixed-order backward."""
+    from clflow.mpm.autograd import per_particle
+
+    return per_particle(velocity, simulator.n, "velocity", simulator.dtype, simulator.device, trailing=(3,))
 
 
 def object_masks(setup: ObjectSetup, count: int) -> torch.Tensor:

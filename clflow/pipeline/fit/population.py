@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import torch
 
 from clflow.errors import ClflowError
-from clflow.pipeline.simulation import build_simulator, run
+from clflow.pipeline.simulation import build_simulator, particle_velocities, run
 
 POPULATION = 32  # members at most in one population (a search's samples a round)
 
@@ -139,9 +139,6 @@ def member_values(values: list[dict[str, torch.Tensor]], n: int) -> dict[str, to
 
 def member_velocity(point: RunPoint) -> torch.Tensor:
     """[n, 3] the initial velocity (m/s) ``point``'s run starts from."""
-    from clflow.mpm.autograd import per_particle
-
-    sim = point.sim
     if point.velocity is None:
-        return sim.state.v.clone()
-    return per_particle(point.velocity, sim.n, "velocity", sim.dtype, sim.device, trailing=(3,))
+        return point.sim.state.v.clone()
+    return particle_velocities(point.sim, point.velocity)
