@@ -20,6 +20,8 @@ from clflow.pipeline.fit.diagnostics import (
     frame_robust_covariance,
     parameter_range,
     walk_end,
+    walk_in_lockstep,
+    walk_steps,
     widen_by_search,
 )
 from clflow.pipeline.fit.objective import Objective
@@ -306,6 +308,24 @@ def test_a_steeper_loss_or_a_failed_run_keeps_the_start():
     values = {1.0: 2.5, 2.0: 400.0}
     half, runs = walk_end(values.get, 1.0, 10.0, LIMIT, LOSS)  # the run at 1.5 fails
     assert [s for s, _ in runs] == [1.0, 2.0] and half == pytest.approx(1.0 + (3.0 - 2.5) / (400 - 2.5))
+
+
+def test_walks_in_lockstep_end_as_each_alone_and_run_a_round_as_one_batch():
+    """Three sides walked together (one confirmed at once, one halving a bracket, one that
+    cannot start): each ends as it would alone, and each round asks every unfinished walk's
+    next step in one batch, so the first round holds them all."""
+    rises = [lambda s: 0.5 * (s / 0.1) ** 2, lambda s: 0.5 * (s / 0.7) ** 2, lambda s: 0.0]
+    starts = [0.1, 0.1, 20.0]  # the last beyond its edge: open, no run
+    alone = [walk_end(lambda s, r=r: LOSS * (1 + r(s)), a, 10.0, LIMIT, LOSS) for r, a in zip(rises, starts)]
+    rounds = []
+
+    def losses_of(asked):
+        rounds.append([index for index, _ in asked])
+        return [LOSS * (1 + rises[index](step)) for index, step in asked]
+
+    together = walk_in_lockstep([walk_steps(a, 10.0, LIMIT, LOSS) for a in starts], losses_of)
+    assert together == alone and alone[2] == (None, [])
+    assert rounds[0] == [0, 1] and all(r == [1] for r in rounds[1:]) and len(rounds) == len(alone[1][1])
 
 
 def test_search_samples_within_the_tolerance_widen_a_range_and_the_extreme_one_opens_it():

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from collections.abc import Callable, Generator
 
 import torch
 
@@ -143,17 +144,19 @@ def parameter_range(
     return (None if low is None or low < box[0] else low), (None if high is None or high > box[1] else high)
 
 
-def walk_end(loss_at, start: float, edge: float, limit: float, loss: float) -> tuple[float | None, list]:
-    """(the half-width in z of one side of a range, the (step, loss) runs made): from ``start``
-    (the half-width so far) outwards while ``loss_at(step)`` (the loss ``step`` z units out;
-    None where the run failed) stays within ``limit``, each step out to where the secant from
+def walk_steps(start: float, edge: float, limit: float, loss: float) -> Generator[float, float | None, tuple]:
+    """One side of a range walked outwards: yields each step (z units out from the fit) to
+    run and is sent that run's loss (None where it failed); returns (the half-width in z,
+    the (step, loss) runs made). From ``start`` (the half-width so far) outwards while the
+    loss stays within ``limit``, each step out to where the secant from
     the last run inside reaches ``limit``, WALK_GROWTH[0] to WALK_GROWTH[1] times the last
     step (a loss that flattens goes out fast); once a run lies beyond, the rest of the
     WALK_RUNS runs halve the bracket until it spans at most WALK_BRACKET of its inner end. The end is the crossing interpolated linearly in the
     last bracket (an inner bound of a convex rise), a run that rose WALK_REACHED of the way
     to ``limit``, or the last run inside; None (open) where the run at ``edge``, the searched
     box's edge, stays inside. Never below ``start``: a loss steeper than the quadratic (the
-    first run beyond) keeps the range it had. ``loss``: the loss at the fit."""
+    first run beyond) keeps the range it had. ``loss``: the loss at the fit. A generator,
+    so that the walks of every side and parameter advance together (:func:`walk_in_lockstep`)."""
     inside, beyond, step, runs = (0.0, loss), None, start, []
     if not (0 < start <= edge and math.isfinite(start) and math.isfinite(limit)):  # nothing to walk from
         return (None if start > edge else start), runs
@@ -161,7 +164,7 @@ def walk_end(loss_at, start: float, edge: float, limit: float, loss: float) -> t
         if beyond is not None and beyond[0] - inside[0] <= WALK_BRACKET * inside[0]:
             break
         step = min(step, edge) if beyond is None else (inside[0] + beyond[0]) / 2
-        value = loss_at(step)
+        value = yield step
         if value is None or not math.isfinite(value):
             break
         runs.append((step, value))
@@ -185,6 +188,32 @@ def walk_end(loss_at, start: float, edge: float, limit: float, loss: float) -> t
         return max(start, inside[0]), runs
     (before, below), (after, above) = inside, beyond
     return max(start, before + (after - before) * (limit - below) / (above - below)), runs
+
+
+def walk_in_lockstep(walks: list[Generator], losses_of: Callable[[list[tuple[int, float]]], list]) -> list[tuple]:
+    """The results of the :func:`walk_steps` generators ``walks``, advanced together: each
+    round, every unfinished walk's next step, run by ``losses_of([(walk index, step), ...])``
+    (one loss or None per step, in that order) as one batch."""
+    results: list = [None] * len(walks)
+    pending = []
+    for index, walk in enumerate(walks):
+        try:
+            pending.append((index, next(walk)))
+        except StopIteration as end:
+            results[index] = end.value
+    while pending:
+        asked, pending = pending, []
+        for (index, _), value in zip(asked, losses_of(asked)):
+            try:
+                pending.append((index, walks[index].send(value)))
+            except StopIteration as end:
+                results[index] = end.value
+    return results
+
+
+def walk_end(loss_at: Callable[[float], float | None], start: float, edge: float, limit: float, loss: float) -> tuple:
+    """:func:`walk_steps` alone, each step's loss from ``loss_at(step)``."""
+    return walk_in_lockstep([walk_steps(start, edge, limit, loss)], lambda asked: [loss_at(s) for _, s in asked])[0]
 
 
 def widen_by_search(ranges: dict[str, dict], z: dict[str, float], search: list[dict], tolerance: float, values) -> None:
@@ -332,19 +361,24 @@ class Diagnostics:
         failed; ``profile_z``: the half-width where the loss, the others refitted, rises by
         the model's loss tolerance). The range is the widest of RANGE_Z sigma, the profile's
         and, for a parameter whose profile is flat (``unresolved``), PROFILE_STEP, either way;
-        each end not open is then walked (:meth:`walk`; ``walked_z``: the half-widths below
+        each end not open is then walked (:meth:`walks`; ``walked_z``: the half-widths below
         and above, None where open; ``walk_loss_ratio``: below and above, [step in z, loss
         over the fit's] of each run).
         Open ends lie beyond the local phase's box (else the parameter's typical range;
         velocities: none)."""
+        sigmas = [
+            (frames_z**2 + discretisation.get(name, 0.0) ** 2) ** 0.5 for name, frames_z in zip(variables, frame_std)
+        ]
+        floors = [
+            max(half_profile, PROFILE_STEP if name in unresolved else 0.0)
+            for name, half_profile in zip(variables, profile_z)
+        ]
+        starts = {name: max(RANGE_Z * sigma, floor) for name, sigma, floor in zip(variables, sigmas, floors)}
+        walks = self.walks(z, starts, **walk_args)
         out = {}
-        for name, frames_z, half_profile in zip(variables, frame_std, profile_z):
-            grid_z = discretisation.get(name, 0.0)
-            sigma = (frames_z**2 + grid_z**2) ** 0.5
-            box = self.problem.box_of(name, z)
-            floor = max(half_profile, PROFILE_STEP if name in unresolved else 0.0)
-            walked, ratios = self.walk(z, name, max(RANGE_Z * sigma, floor), box, **walk_args)
-            low, high = parameter_range(z[name], sigma, box, floor, walked)
+        for name, frames_z, half_profile, sigma, floor in zip(variables, frame_std, profile_z, sigmas, floors):
+            walked, ratios = walks[name]
+            low, high = parameter_range(z[name], sigma, self.problem.box_of(name, z), floor, walked)
             out[name] = {
                 "value": self.problem.values(z)[name],
                 "low": None if low is None else self.problem.values({**z, name: low})[name],
@@ -352,62 +386,70 @@ class Diagnostics:
                 "level": RANGE_LEVEL,
                 "sigma_z": sigma,
                 "frames_z": frames_z,
-                "grid_z": grid_z,
+                "grid_z": discretisation.get(name, 0.0),
                 "profile_z": half_profile,
                 "walked_z": list(walked),
                 "walk_loss_ratio": ratios,
             }
         return out
 
-    def walk(
+    def walks(
         self,
         z: dict[str, float],
-        name: str,
-        start: float,
-        box: tuple[float, float],
+        starts: dict[str, float],
         directions: dict,
         limit: float,
         loss: float,
         substeps: int,
         open_sides: dict[str, tuple[bool, bool]],
-    ) -> tuple[tuple, list]:
-        """((below, above) half-widths in z of ``name``'s range that forward runs measured, the
-        runs' loss ratios [[step, ratio], ...] per side): :func:`walk_end` from ``start`` along
-        ``directions[name]`` (the others refitted to first order, each kept in its own box)
-        while the loss stays within ``limit``; ``loss`` the fit's, runs at ``substeps``. A
-        side whose ``start`` already leaves ``box``, or that ``open_sides[name]`` (below,
-        above) opens, is not walked (it is open)."""
-        halves, ratios = [], []
-        opened = open_sides.get(name, (False, False))
-        for sign, edge, is_open in ((-1, z[name] - box[0], opened[0]), (1, box[1] - z[name], opened[1])):
-            if start > edge or is_open:
-                halves.append(None)
-                ratios.append([])
-                continue
+    ) -> dict[str, tuple[tuple, list]]:
+        """Per variable of ``starts`` ((below, above) half-widths in z of its range that
+        forward runs measured, the runs' loss ratios [[step, ratio], ...] per side): a
+        :func:`walk_steps` each side from ``starts[name]`` along ``directions[name]`` (the
+        others refitted to first order, each kept in its own box) while the loss stays within
+        ``limit``; ``loss`` the fit's, runs at ``substeps``. A side whose start already
+        leaves the box, or that ``open_sides[name]`` (below, above) opens, is not walked (it
+        is open). Every side walks in lockstep: a round's runs are one batch
+        (Objective.evaluate_batch: a population where the kernel plan gathers)."""
+        sides, walks = [], []
+        for name, start in starts.items():
+            box, opened = self.problem.box_of(name, z), open_sides.get(name, (False, False))
+            for sign, edge, is_open in ((-1, z[name] - box[0], opened[0]), (1, box[1] - z[name], opened[1])):
+                if not (start > edge or is_open):
+                    sides.append((name, sign))
+                    walks.append(walk_steps(start, edge, limit, loss))
 
-            def loss_at(step: float, sign=sign) -> float | None:
-                moved = {}
-                for other, dz in directions[name].items():
-                    lo, hi = self.problem.box_of(other, z)
-                    moved[other] = min(max(z[other] + sign * step * dz, lo), hi)
-                try:
-                    run = self.objective.evaluate(
-                        {**z, **moved}, self.problem.frames, with_grad=False, min_substeps=substeps
-                    )
-                except (FloatingPointError, ClflowError) as exc:
-                    log.info(
-                        "the range of %s: the run at %s failed: %s",
-                        name,
-                        self.problem.values({**z, **moved})[name],
-                        exc,
-                    )
-                    return None
-                return float((self.objective.residuals(run.flows, run.more_flows) ** 2).sum())
+        def moved(side: int, step: float) -> dict[str, float]:
+            name, sign = sides[side]
+            point = dict(z)
+            for other, dz in directions[name].items():
+                lo, hi = self.problem.box_of(other, z)
+                point[other] = min(max(z[other] + sign * step * dz, lo), hi)
+            return point
 
-            half, runs = walk_end(loss_at, start, edge, limit, loss)
-            halves.append(half)
-            ratios.append([[step, value / max(loss, 1e-300)] for step, value in runs])
-        return tuple(halves), ratios
+        def losses_of(asked: list[tuple[int, float]]) -> list[float | None]:
+            points = [moved(side, step) for side, step in asked]
+            runs = self.objective.evaluate_batch(points, self.problem.frames, min_substeps=substeps)
+            losses = []
+            for (side, _), point, run in zip(asked, points, runs):
+                if isinstance(run, Exception):
+                    name = sides[side][0]
+                    log.info("the range of %s: the run at %s failed: %s", name, self.problem.values(point)[name], run)
+                    losses.append(None)
+                else:
+                    losses.append(float((self.objective.residuals(run.flows, run.more_flows) ** 2).sum()))
+            return losses
+
+        ended = dict(zip(sides, walk_in_lockstep(walks, losses_of)))
+        out = {}
+        for name in starts:
+            halves, ratios = [], []
+            for sign in (-1, 1):
+                half, runs = ended.get((name, sign), (None, []))
+                halves.append(half)
+                ratios.append([[step, value / max(loss, 1e-300)] for step, value in runs])
+            out[name] = (tuple(halves), ratios)
+        return out
 
     def grid_checks(
         self, z: dict[str, float], base: Evaluation, J: torch.Tensor, inverse: torch.Tensor, variables: tuple[str, ...]

@@ -1,5 +1,7 @@
 """Independent forward runs of an identification (a search's samples, the Levenberg-Marquardt
-columns, a profile's sides) simulated together as populations (clflow.mpm.population).
+columns, a profile's sides, a round of the range walks) simulated together as populations
+(clflow.mpm.population). The grid and time-step checks run on other grids and step counts
+than the fit, so each is a simulation of its own.
 
 Points of the same substep count, up to POPULATION at a time, become the members of one
 population: one simulator whose launches advance them all. The members keep their own
