@@ -315,7 +315,7 @@ def run(simulator, frames: int, values: dict[str, torch.Tensor], velocity: torch
 def particle_velocities(simulator, velocity: torch.Tensor) -> torch.Tensor:
     """[M, 3] initial velocities (m/s) of ``simulator``'s particles from ``velocity`` ([3], every
     particle's, or [M, 3]), with a fixed-order backward."""
-    from clflow.mpm.autograd import per_particle
+    from clflow.mpm.run_inputs import per_particle
 
     return per_particle(velocity, simulator.n, "velocity", simulator.dtype, simulator.device, trailing=(3,))
 

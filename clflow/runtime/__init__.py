@@ -11,17 +11,8 @@
 This module imports neither torch nor pyopencl until a device is used.
 """
 
-from clflow.runtime.devices import (
-    Device,
-    DeviceInfo,
-    bridge_mode,
-    default_kernel_cache_dir,
-    get_device,
-    list_devices,
-    round_up,
-    set_bridge_mode,
-    set_default_device,
-)
+from clflow.runtime.devices import Device, bridge_mode, get_device, round_up, set_bridge_mode, set_default_device
+from clflow.runtime.discovery import DeviceInfo, default_kernel_cache_dir, list_devices
 
 __all__ = [
     "Device",

@@ -1,12 +1,6 @@
-"""OpenCL platform/device discovery, selection by name, and the per-device runtime.
-
-A :class:`Device` owns one context and one in-order queue (created lazily, reused) and
-caches every program and kernel it builds. Devices are chosen by name, never silently by
-index:
-
-* ``spec`` (from ``--device`` or ``CLFLOW_DEVICE``) is a case-insensitive substring of the
-  device name, or ``"platform:device"`` with a substring for each part;
-* without a spec: the first GPU, else PoCL's CPU device, else any CPU device.
+"""The per-device runtime: a :class:`Device` owns one context and one in-order queue
+(created lazily, reused) and caches every program and kernel it builds; :func:`get_device`
+gives the shared one of a spec (found and chosen by clflow.runtime.discovery).
 
 The bridge between torch and device memory (``Device.zero_copy``) aliases host memory on
 devices that share it; the copy mode (``CLFLOW_BRIDGE=copy``, ``clflow --bridge copy`` or
@@ -28,15 +22,13 @@ from typing import TYPE_CHECKING, Any
 
 from clflow.errors import DeviceError
 from clflow.runtime.binding import BoundLaunch, Fill, Recording
+from clflow.runtime.discovery import DeviceInfo, choose, default_kernel_cache_dir, discover, import_pyopencl
 from clflow.runtime.program_cache import ProgramBuilds
 
 if TYPE_CHECKING:
     from clflow.runtime.profile import KernelProfile
     from clflow.runtime.signatures import KernelSignature
 
-INSTALL_HINT = (
-    "install an OpenCL driver; on Debian/Ubuntu the CPU one is: apt-get install pocl-opencl-icd ocl-icd-libopencl1"
-)
 log = logging.getLogger("clflow.runtime")
 ENV_DEVICE = "CLFLOW_DEVICE"
 ENV_BRIDGE = "CLFLOW_BRIDGE"
@@ -45,170 +37,6 @@ BRIDGE_MODES = ("auto", "copy")  # auto: alias host memory where the device shar
 
 SPARE_SCRATCH_BYTES = 256 * 2**20  # scratch memory a device keeps for reuse (take_scratch)
 MAX_IN_FLIGHT = 256  # zero-copy arrays kept alive for pending commands before the device is waited for
-
-
-def default_kernel_cache_dir() -> Path:
-    """Per-user directory for PoCL's compiled-kernel cache (``$XDG_CACHE_HOME/clflow/pocl``)."""
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "clflow" / "pocl"
-
-
-def _configure_kernel_cache() -> Path:
-    """Point PoCL's kernel cache at a per-user directory unless the user chose one.
-
-    Must run before the OpenCL runtime is initialised (PoCL reads it when it starts).
-    """
-    if "POCL_CACHE_DIR" not in os.environ:
-        path = default_kernel_cache_dir()
-        try:
-            path.mkdir(parents=True, exist_ok=True)
-            os.environ["POCL_CACHE_DIR"] = str(path)
-        except OSError:  # read-only home: PoCL falls back to its own default
-            pass
-    return Path(os.environ.get("POCL_CACHE_DIR", default_kernel_cache_dir()))
-
-
-def _import_pyopencl():
-    try:
-        import pyopencl as cl
-    except ImportError as exc:  # libOpenCL.so missing or pyopencl not installed
-        raise DeviceError(f"cannot load the OpenCL runtime ({exc}); {INSTALL_HINT}") from None
-    return cl
-
-
-@dataclass(frozen=True)
-class DeviceInfo:
-    """What clflow needs to know about an OpenCL device (sizes in bytes)."""
-
-    platform: str
-    name: str
-    type: str  # "GPU", "CPU", "ACCELERATOR" or "OTHER"
-    opencl_version: str
-    opencl_c_version: str
-    driver_version: str
-    fp64: bool
-    float_atomics: bool  # cl_ext_float_atomics present (kernels also check the feature macros)
-    host_unified_memory: bool  # host and device share memory: buffers can alias tensors
-    compute_units: int
-    max_work_group_size: int
-    local_mem_size: int
-    global_mem_size: int
-    max_mem_alloc_size: int  # the largest single buffer
-    int64_atomics: bool = False  # cl_khr_int64_base_atomics (float64 compare-and-swap atomics)
-
-    @property
-    def is_pocl(self) -> bool:
-        return "portable computing language" in self.platform.lower() or "pocl" in self.platform.lower()
-
-    @property
-    def is_oclgrind(self) -> bool:
-        return "oclgrind" in self.platform.lower()
-
-    @property
-    def label(self) -> str:
-        """``platform:device``, the form accepted by ``--device``."""
-        return f"{self.platform}:{self.name}"
-
-
-def _device_type(cl, dev) -> str:
-    t = dev.type
-    for name in ("GPU", "CPU", "ACCELERATOR"):
-        if t & getattr(cl.device_type, name):
-            return name
-    return "OTHER"
-
-
-def _describe(cl, platform, dev) -> DeviceInfo:
-    extensions = set(dev.extensions.split())
-    dtype = _device_type(cl, dev)
-    try:
-        unified = bool(dev.host_unified_memory)
-    except cl.Error:  # removed from the OpenCL 3.0 core query set on some drivers
-        unified = False
-    return DeviceInfo(
-        platform=platform.name.strip(),
-        name=dev.name.strip(),
-        type=dtype,
-        opencl_version=dev.version.strip(),
-        opencl_c_version=dev.opencl_c_version.strip(),
-        driver_version=dev.driver_version.strip(),
-        fp64="cl_khr_fp64" in extensions,
-        float_atomics="cl_ext_float_atomics" in extensions,
-        host_unified_memory=unified or dtype == "CPU",
-        compute_units=int(dev.max_compute_units),
-        max_work_group_size=int(dev.max_work_group_size),
-        local_mem_size=int(dev.local_mem_size),
-        global_mem_size=int(dev.global_mem_size),
-        max_mem_alloc_size=int(dev.max_mem_alloc_size),
-        int64_atomics="cl_khr_int64_base_atomics" in extensions,
-    )
-
-
-def _discover() -> list[tuple[DeviceInfo, Any]]:
-    """All (info, pyopencl.Device) pairs of all platforms, in platform order (installed GPU
-    drivers without an ICD entry included: clflow.runtime.drivers)."""
-    from clflow.runtime.drivers import adopt_unregistered
-
-    cache = _configure_kernel_cache()
-    adoption = adopt_unregistered(cache.parent)
-    cl = _import_pyopencl()
-    try:
-        platforms = cl.get_platforms()
-    except cl.Error:
-        platforms = []
-    found = []
-    for platform in platforms:
-        try:
-            devices = platform.get_devices()
-        except cl.Error:  # a platform with no devices raises DEVICE_NOT_FOUND
-            continue
-        found.extend((_describe(cl, platform, d), d) for d in devices)
-    if not found:
-        unused = (
-            ""
-            if adoption.used
-            else "".join(
-                f"; the {d.vendor} driver {d.path} is installed without an ICD entry: {d.how_to_register()}"
-                for d in adoption.drivers
-            )
-        )
-        raise DeviceError(f"no OpenCL platform or device found{unused}; {INSTALL_HINT}")
-    return found
-
-
-def list_devices() -> list[DeviceInfo]:
-    """Every OpenCL device of every platform."""
-    return [info for info, _ in _discover()]
-
-
-def _matches(info: DeviceInfo, spec: str) -> bool:
-    spec = spec.strip().lower()
-    if ":" in spec:
-        plat, _, dev = spec.partition(":")
-        return plat.strip() in info.platform.lower() and dev.strip() in info.name.lower()
-    return spec in info.name.lower() or spec == info.platform.lower()
-
-
-def _choose(found: list[tuple[DeviceInfo, Any]], spec: str | None) -> tuple[DeviceInfo, Any]:
-    if spec:
-        hits = [pair for pair in found if _matches(pair[0], spec)]
-        available = "\n".join(f"  {info.label} ({info.type})" for info, _ in found)
-        if not hits:
-            raise DeviceError(f"no OpenCL device matches {spec!r}; available devices:\n{available}")
-        if len(hits) > 1:
-            names = "\n".join(f"  {info.label}" for info, _ in hits)
-            raise DeviceError(f"{spec!r} matches several devices; use a longer name or 'platform:device':\n{names}")
-        return hits[0]
-    for want in (
-        lambda i: i.type == "GPU",
-        lambda i: i.is_pocl and i.type == "CPU",
-        lambda i: i.type == "CPU",
-        lambda i: True,
-    ):
-        for pair in found:
-            if want(pair[0]):
-                return pair
-    raise AssertionError("unreachable: _discover never returns an empty list")
 
 
 def round_up(n: int, multiple: int) -> int:
@@ -311,7 +139,7 @@ class Device:
     def context(self):
         with self._lock:
             if self._context is None:
-                cl = _import_pyopencl()
+                cl = import_pyopencl()
                 self._context = cl.Context([self.cl_device])
             return self._context
 
@@ -320,7 +148,7 @@ class Device:
         """The device's one in-order command queue."""
         with self._lock:
             if self._queue is None:
-                cl = _import_pyopencl()
+                cl = import_pyopencl()
                 self._queue = cl.CommandQueue(self.context)
             return self._queue
 
@@ -329,7 +157,7 @@ class Device:
         with profiling enabled, after the commands already enqueued have run."""
         from clflow.runtime.profile import KernelProfile
 
-        cl = _import_pyopencl()
+        cl = import_pyopencl()
         with self._lock:
             if self._queue is not None:
                 self.finish()
@@ -464,7 +292,7 @@ class Device:
         """``bound`` on a kernel object of its own (from the same program) with its arguments
         set now: the cached kernel is shared by every launch site, its own only by this
         launch, so a replay sets just the time."""
-        cl = _import_pyopencl()
+        cl = import_pyopencl()
         kernel = cl.Kernel(bound.kernel.program, bound.kernel.function_name)
         kernel.set_scalar_arg_dtypes(self.signature(bound.kernel).scalar_dtypes())
         kernel.set_args(*bound.raw)
@@ -475,9 +303,7 @@ class Device:
         zero-copy hosts already kept)."""
         if not bound.owned:
             bound.kernel.set_args(*bound.raw)
-        event = _import_pyopencl().enqueue_nd_range_kernel(
-            self.queue, bound.kernel, bound.global_size, bound.local_size
-        )
+        event = import_pyopencl().enqueue_nd_range_kernel(self.queue, bound.kernel, bound.global_size, bound.local_size)
         if self.profile is not None:
             self.profile.record(bound.kernel.function_name, event)
         return event
@@ -565,7 +391,7 @@ class Device:
                 buf = min(fits, key=lambda b: b.size)
                 self._spare_scratch.remove(buf)
             else:
-                cl = _import_pyopencl()
+                cl = import_pyopencl()
                 buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, nbytes)
             if self.recorder is not None:  # a replay writes it: the recording's for good
                 self.recorder.scratch.append(buf)
@@ -604,7 +430,7 @@ def get_device(spec: str | None = None) -> Device:
     with _REGISTRY_LOCK:
         if spec in _DEVICES:
             return _DEVICES[spec]
-        info, cl_device = _choose(_discover(), spec)
+        info, cl_device = choose(discover(), spec)
         device = next((d for d in _DEVICES.values() if d.info == info), None) or Device(info, cl_device)
         _DEVICES[spec] = device
         return device

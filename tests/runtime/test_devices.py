@@ -9,9 +9,9 @@ import pytest
 
 from clflow.errors import DeviceError, KernelBuildError
 from clflow.runtime import devices as devmod
-from clflow.runtime import programs
+from clflow.runtime import discovery, programs
 
-POCL_CPU = devmod.DeviceInfo(
+POCL_CPU = discovery.DeviceInfo(
     platform="Portable Computing Language",
     name="pthread-skylake",
     type="CPU",
@@ -38,26 +38,26 @@ def pairs(*infos):
 
 
 def test_default_prefers_gpu_then_pocl_cpu_then_any_cpu():
-    assert devmod._choose(pairs(INTEL_CPU, POCL_CPU, NVIDIA_GPU), None)[0] == NVIDIA_GPU
-    assert devmod._choose(pairs(INTEL_CPU, POCL_CPU), None)[0] == POCL_CPU
-    assert devmod._choose(pairs(INTEL_CPU), None)[0] == INTEL_CPU
+    assert discovery.choose(pairs(INTEL_CPU, POCL_CPU, NVIDIA_GPU), None)[0] == NVIDIA_GPU
+    assert discovery.choose(pairs(INTEL_CPU, POCL_CPU), None)[0] == POCL_CPU
+    assert discovery.choose(pairs(INTEL_CPU), None)[0] == INTEL_CPU
 
 
 def test_select_by_name_substring_case_insensitive():
     found = pairs(INTEL_CPU, POCL_CPU, NVIDIA_GPU)
-    assert devmod._choose(found, "rtx 4090")[0] == NVIDIA_GPU
-    assert devmod._choose(found, "PTHREAD")[0] == POCL_CPU
+    assert discovery.choose(found, "rtx 4090")[0] == NVIDIA_GPU
+    assert discovery.choose(found, "PTHREAD")[0] == POCL_CPU
 
 
 def test_select_by_platform_and_device():
     found = pairs(INTEL_CPU, POCL_CPU, NVIDIA_GPU)
-    assert devmod._choose(found, "portable:pthread")[0] == POCL_CPU
-    assert devmod._choose(found, "intel:xeon")[0] == INTEL_CPU
+    assert discovery.choose(found, "portable:pthread")[0] == POCL_CPU
+    assert discovery.choose(found, "intel:xeon")[0] == INTEL_CPU
 
 
 def test_unknown_device_lists_the_available_ones():
     with pytest.raises(DeviceError) as err:
-        devmod._choose(pairs(INTEL_CPU, POCL_CPU), "radeon")
+        discovery.choose(pairs(INTEL_CPU, POCL_CPU), "radeon")
     assert "radeon" in str(err.value)
     assert INTEL_CPU.label in str(err.value) and POCL_CPU.label in str(err.value)
 
@@ -65,14 +65,14 @@ def test_unknown_device_lists_the_available_ones():
 def test_ambiguous_name_is_an_error_not_a_silent_pick():
     other = dataclasses.replace(POCL_CPU, name="pthread-other")
     with pytest.raises(DeviceError, match="several devices"):
-        devmod._choose(pairs(POCL_CPU, other), "pthread")
+        discovery.choose(pairs(POCL_CPU, other), "pthread")
 
 
 def test_this_machine_has_the_pocl_cpu_device(device):
     """What CI's set-up installs; elsewhere (a GPU selected) it says nothing about clflow."""
     if not device.info.is_pocl:
         pytest.skip(f"the selected device is {device.info.label}, not PoCL: CI's set-up is not under test here")
-    assert any(info.is_pocl and info.type == "CPU" for info in devmod.list_devices())
+    assert any(info.is_pocl and info.type == "CPU" for info in discovery.list_devices())
     assert device.info.fp64 and device.info.compute_units >= 1
 
 

@@ -59,8 +59,8 @@ def test_processes_starting_together_all_adopt_the_driver(unregistered):
     each must see the driver (on the first GPU, three of eight workers saw only PoCL)."""
     env, _ = unregistered
     code = (
-        "from clflow.runtime import drivers, devices\n"
-        "a = drivers.adopt_unregistered(devices._configure_kernel_cache().parent)\n"
+        "from clflow.runtime import discovery, drivers\n"
+        "a = drivers.adopt_unregistered(discovery.configure_kernel_cache().parent)\n"
         "print(a.used)"
     )
     procs = [
