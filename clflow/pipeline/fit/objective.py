@@ -173,10 +173,16 @@ class Objective:
         )
 
     def evaluate_batch(
-        self, points: list[dict[str, float]], frames: int, *, min_substeps: int = 1, grid: int | None = None
+        self,
+        points: list[dict[str, float]],
+        frames: int,
+        *,
+        min_substeps: int | list[int] = 1,
+        grid: int | None = None,
     ) -> Iterator[Evaluation | Exception]:
         """Forward-only evaluations of independent ``points`` (z dicts), yielded in order, each
-        what ``evaluate(z, frames, with_grad=False, min_substeps=..., grid=...)`` gives; a
+        what ``evaluate(z, frames, with_grad=False, min_substeps=..., grid=...)`` gives
+        (``min_substeps``: every point's, or a list of each point's); a
         point whose run fails (FloatingPointError, ClflowError: an unstable run, a substep
         limit) yields its error instead, so that one failing point loses none of the others.
 
@@ -184,13 +190,14 @@ class Objective:
         simulated together as populations, all before the first is yielded. Elsewhere they
         are simulated one after another, each when the consumer asks for it: one that stops
         iterating (a budget spent, a failed column) simulates no more."""
+        substeps = min_substeps if isinstance(min_substeps, list) else [min_substeps] * len(points)
         if populations_pay() and len(points) > 1:
             grid = self.problem.model_grid if grid is None else grid
-            yield from evaluate_in_populations(self, points, frames, min_substeps, grid)
+            yield from evaluate_in_populations(self, points, frames, substeps, grid)
             return
-        for z in points:
+        for z, least in zip(points, substeps):
             try:
-                result = self.evaluate(z, frames, with_grad=False, min_substeps=min_substeps, grid=grid)
+                result = self.evaluate(z, frames, with_grad=False, min_substeps=least, grid=grid)
             except (FloatingPointError, ClflowError) as exc:
                 result = exc
             yield result

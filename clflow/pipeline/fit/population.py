@@ -1,6 +1,6 @@
 """Independent forward runs of an identification (a search's samples, the Levenberg-Marquardt
-columns, a profile's sides, a round of the range walks) simulated together as populations
-(clflow.mpm.population). The grid and time-step checks run on other grids and step counts
+columns, a profile's sides, a round of the range walks, the search starts' scores on the main
+grid) simulated together as populations (clflow.mpm.population). The grid and time-step checks run on other grids and step counts
 than the fit, so each is a simulation of its own.
 
 Points of the same substep count, up to POPULATION at a time, become the members of one
@@ -65,14 +65,15 @@ def populations_pay() -> bool:
     return kernel_plan(get_device()).p2g == "gather"
 
 
-def evaluate_in_populations(objective, points: list[dict[str, float]], frames: int, min_substeps: int, grid: int):
-    """Objective.evaluate_batch's results for ``points``, in their order (an Evaluation or the
-    error of each), the points simulated in populations of equal substep counts."""
+def evaluate_in_populations(objective, points: list[dict[str, float]], frames: int, min_substeps: list[int], grid: int):
+    """Objective.evaluate_batch's results for ``points`` (each run at ``min_substeps`` of its
+    own at least), in their order (an Evaluation or the error of each), the points simulated
+    in populations of equal substep counts."""
     results: list = [None] * len(points)
     built: dict[int, RunPoint] = {}
-    for i, z in enumerate(points):
+    for i, (z, least) in enumerate(zip(points, min_substeps)):
         try:
-            built[i] = objective._point(z, grid, min_substeps)
+            built[i] = objective._point(z, grid, least)
         except (FloatingPointError, ClflowError) as exc:  # a substep limit: this point alone
             results[i] = exc
     by_substeps: dict[int, list[int]] = {}

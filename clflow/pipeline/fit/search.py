@@ -260,11 +260,13 @@ class Search:
         ranking = "loss"
         if self.problem.search_grid != self.problem.model_grid and len(polished) > 1:
             ranking = "model_loss"
-            for record in polished:
+            runs = self.objective.evaluate_batch(
+                [r["z"] for r in polished], self.problem.frames, min_substeps=[r["substeps"] for r in polished]
+            )
+            for record, result in zip(polished, runs):
                 try:
-                    result = self.objective.evaluate(
-                        record["z"], self.problem.frames, with_grad=False, min_substeps=record["substeps"]
-                    )
+                    if isinstance(result, Exception):
+                        raise result
                     record["model_loss"] = self.objective.self_consistent_loss(result, self.problem.frames)
                 except (FloatingPointError, ClflowError) as exc:
                     log.info("start %s fails on the main phase's grid: %s", record["params"], exc)
