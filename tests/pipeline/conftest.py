@@ -29,3 +29,13 @@ def demo_config(quick_demo, tmp_path):
         return cfg
 
     return load
+
+
+@pytest.fixture
+def points_one_by_one(monkeypatch):
+    """Every batch evaluated point by point through ``Objective.evaluate``, as the CPU plan
+    does, so that a test's stand-in for ``evaluate`` sees every run even where the kernel
+    plan would simulate a batch as one population (the GPU plan: CLFLOW_KERNELS=gpu)."""
+    from clflow.pipeline.fit import objective
+
+    monkeypatch.setattr(objective, "populations_pay", lambda: False)

@@ -15,6 +15,9 @@ from clflow.pipeline.fit.objective import JITTER_SHIFTS, flow_loss
 from clflow.pipeline.fit.state import LM_DAMPING
 from clflow.pipeline.fit.steps import LINE_ROUNDS, LM_GAIN_TOLERANCE
 
+# the tests stand in for Objective.evaluate: batches go through it point by point in every plan
+pytestmark = pytest.mark.usefixtures("points_one_by_one")
+
 Z_TRUE = math.log10(2e4) + 0.37  # the model's minimiser, 1.37 decades above the demo's start
 
 

@@ -11,6 +11,9 @@ from clflow.errors import InputError
 from clflow.pipeline.fit import Evaluation, Optimization
 from clflow.scene.config import SearchSettings, parse_config
 
+# the tests stand in for Objective.evaluate: batches go through it point by point in every plan
+pytestmark = pytest.mark.usefixtures("points_one_by_one")
+
 
 def two_basins(z: float) -> float:
     """A 1-D loss of log10 E with a shallow local minimum at 3.3 and the global one at 4.3."""
