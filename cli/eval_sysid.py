@@ -35,6 +35,16 @@ def _catalogue(case_file: str | None, case_set: str, quick: bool) -> tuple[dict,
     return CASES, list(QUICK_CASES if quick else CASES)
 
 
+def _degradation(ctx, param, spec: str | None):
+    """--degrade's SPEC as a clflow_datasets.degradation.Degradation (the default: none)."""
+    from clflow_datasets.degradation import Degradation
+
+    try:
+        return Degradation() if spec is None else Degradation.parse(spec)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
+
+
 @click.command("sysid")
 @out_option("output", "Results folder: sysid.json, sysid.md and cases/NAME/ (scene, guidance, results).",
             required=True)  # fmt: skip
@@ -58,7 +68,13 @@ def _catalogue(case_file: str | None, case_set: str, quick: bool) -> tuple[dict,
               help="Sensor noise added to the guidance frames, 8-bit grey levels (standard deviation).")  # fmt: skip
 @click.option("--codec", type=click.Choice([".mp4", ".webm", ".avi"]), default=None,
               help="Read the guidance through this lossy video encoding instead of lossless PNG frames.")  # fmt: skip
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the scene's texture grain and the noise.")
+@click.option("--degrade", "degradation", callback=_degradation, default=None, metavar="SPEC",
+              help="The guidance's artefacts, as a generated or hand-held video has them: a preset (realistic) "
+                   "and/or name=value items, comma-separated: flicker (exposure gain's standard deviation, "
+                   "relative), offset (exposure offset, grey levels), shake (px a frame), roll (deg a frame), "
+                   "blur (px), jpeg (quality), speed (playback speed, e.g. 0.8). Drawn from --seed.")  # fmt: skip
+@click.option("--seed", type=int, default=0, show_default=True,
+              help="Seed of the scene's texture grain, the noise and the artefacts.")  # fmt: skip
 @click.option("--views", type=click.IntRange(1, 4), default=1, show_default=True,
               help="Guidance views of each case (the first, then cameras turned 90, -90 and 180 deg about the "
                    "vertical); the loss is the mean over views.")  # fmt: skip
@@ -83,6 +99,7 @@ def sysid(
     truth_transfer,
     noise,
     codec,
+    degradation,
     seed,
     views,
     budget,
@@ -103,7 +120,7 @@ def sysid(
 
     catalogue, default_names = _catalogue(case_file, case_set, quick)
     names = list(dict.fromkeys(cases)) or default_names
-    given = dict(truth_scale=truth_scale, noise=noise, codec=codec, seed=seed, views=views)
+    given = dict(truth_scale=truth_scale, noise=noise, codec=codec, degradation=degradation, seed=seed, views=views)
     budget_each = None if budget is None else budget / len(names)
     settings = Settings.at(quick, iterations, **given, truth_transfer=truth_transfer, case_budget=budget_each)
 

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from clflow.scene.config import FlowSettings
+from clflow_datasets.degradation import Degradation
 
 SHAPES = ("cube", "sphere", "torus")
 # bumped whenever make_case makes a case differently from the same SyntheticCase, so that
@@ -397,15 +398,22 @@ def wall_contacts(result) -> int:
     return int(((result.x < lower) | (result.x > upper)).any(-1).sum())
 
 
-def degrade(frames: np.ndarray, size: int, noise: float, rng: np.random.Generator) -> np.ndarray:
+def degrade(
+    frames: np.ndarray,
+    size: int,
+    noise: float,
+    rng: np.random.Generator,
+    degradation: Degradation = Degradation(),
+    artefact_rng: np.random.Generator | None = None,
+) -> np.ndarray:
     """Frames [T, H, W, 3] uint8 area-averaged down to [T, size, size, 3], with Gaussian
-    sensor noise of ``noise`` grey levels (standard deviation, 8-bit scale) added."""
-    import cv2
-
-    out = np.stack([cv2.resize(f, (size, size), interpolation=cv2.INTER_AREA) for f in frames]).astype(np.float64)
+    sensor noise of ``noise`` grey levels (standard deviation, 8-bit scale, drawn from
+    ``rng``) added and the artefacts of ``degradation`` (drawn from ``artefact_rng``; the
+    order: clflow_datasets.degradation)."""
+    out = degradation.apply(frames, size, artefact_rng or np.random.default_rng(0))
     if noise > 0:
         out += rng.normal(0.0, noise, out.shape)
-    return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+    return degradation.encode(out)
 
 
 CASE_FILES = ("scene.ply", "config_truth.yaml", "guidance", "guidance.mp4", "config.yaml", "case.json")
@@ -413,9 +421,12 @@ CASE_FILES = ("scene.ply", "config_truth.yaml", "guidance", "guidance.mp4", "con
 and ``guidance_K*`` for further views)."""
 
 
-def _write_guidance(folder: Path, result, truth_cfg, image: int, fps: float, noise: float, codec, seed: int):
-    """Each view of the truth's ``result`` rendered, degraded to ``image`` px with ``noise``,
-    as PNG frames and an MP4 (and coded with ``codec``); returns the coded videos' names."""
+def _write_guidance(
+    folder: Path, result, truth_cfg, image: int, fps: float, noise: float, codec, seed: int, degradation: Degradation
+):
+    """Each view of the truth's ``result`` rendered, degraded to ``image`` px with ``noise`` and
+    ``degradation``, as PNG frames and an MP4 at ``fps`` (and coded with ``codec``); returns
+    the coded videos' names."""
     from clflow.media import write_image, write_video
     from clflow.pipeline.forward import render_frames
     from clflow.scene.load import guidance_camera
@@ -423,7 +434,8 @@ def _write_guidance(folder: Path, result, truth_cfg, image: int, fps: float, noi
     cameras = [None] + [guidance_camera(truth_cfg, v.camera) for v in truth_cfg.more_views]
     coded = []
     for view, camera in enumerate(cameras):  # view 0's noise draws are those of a one-view case
-        frames = degrade(render_frames(result, camera), image, noise, np.random.default_rng(seed + 1 + 1000 * view))
+        rngs = np.random.default_rng(seed + 1 + 1000 * view), np.random.default_rng([seed, view])
+        frames = degrade(render_frames(result, camera), image, noise, rngs[0], degradation, rngs[1])
         name = guidance_name(view)
         (folder / name).mkdir(exist_ok=True)
         for t, frame in enumerate(frames):
@@ -446,6 +458,7 @@ def make_case(
     codec: str | None = None,
     views: int = 1,
     truth_flip: float | None = None,
+    degradation: Degradation = Degradation(),
 ) -> Path:
     """Write the case (a :class:`SyntheticCase`, or a clflow_datasets.scene_cases.SceneCase
     of several objects, one view) into ``folder`` (see module docstring); returns its
@@ -456,7 +469,9 @@ def make_case(
     blend (0: APIC; default the resolution's, the optimiser's own); ``noise``: sensor noise (8-bit grey
     levels); ``codec``: a video suffix (".mp4", ".webm", ...) whose lossy encoding the
     optimiser then reads instead of the PNG frames; ``views``: guidance views of the same
-    motion (``guidance/``, ``guidance_1/`` ..., cameras at VIEW_AZIMUTHS_DEG). Raises
+    motion (``guidance/``, ``guidance_1/`` ..., cameras at VIEW_AZIMUTHS_DEG); ``degradation``:
+    what a generated or hand-held video adds (clflow_datasets.degradation; its ``speed``
+    simulates the truth at that many times the video's frame interval). Raises
     ValueError if the ground-truth run clamps particles at the grid's edge (the domain is
     too small for the motion)."""
     import json
@@ -476,16 +491,20 @@ def make_case(
     # the truth's own transfer (truth_flip; default the optimiser's): nature is neither APIC nor FLIP
     truth_resolution = resolution if truth_flip is None else replace(resolution, flip=float(truth_flip))
     truth = case.make_config(truth_resolution, case.truth, optimize=False, scale=int(truth_scale), views=views)
+    fps = truth["simulation"]["fps"]  # the video's; the truth's frames lie `speed` times its interval apart
+    if degradation.speed != 1.0:
+        truth["simulation"]["fps"] = fps / degradation.speed
     atomic_write_text(folder / "config_truth.yaml", yaml.safe_dump(truth, sort_keys=False))
     truth_cfg = parse_config(truth, str(folder / "config_truth.yaml"), folder)
     result = truth_run(folder, truth_cfg, case.ROOM)
-    fps = truth["simulation"]["fps"]
     config = case.make_config(resolution, {**case.truth, **case.guess}, optimize=True, views=views)
-    coded = _write_guidance(folder, result, truth_cfg, resolution.image, fps, noise, codec, seed)
+    coded = _write_guidance(folder, result, truth_cfg, resolution.image, fps, noise, codec, seed, degradation)
     if coded:
         config["video"] = coded if views > 1 else coded[0]
     atomic_write_text(folder / "config.yaml", yaml.safe_dump(config, sort_keys=False))
     extra = {"noise": noise, "codec": codec, "seed": seed, "views": views}
+    if degradation != Degradation():
+        extra["degradation"] = asdict(degradation)
     record = case_record(truth, config, truth_cfg, result, resolution.image, truth_resolution.flip, extra)
     atomic_write_text(folder / "case.json", json.dumps(record, indent=2))
     return folder / "config.yaml"

@@ -8,7 +8,8 @@ which leaves every relative error unchanged.
 
 Every case's guidance video comes from a finer simulation and rendering than any the
 optimiser runs (``truth_scale``: the grid and image refined 2x, its own particle sampling and
-substep, area-downsampled frames; optional noise and video compression), so the optimiser
+substep, area-downsampled frames; optional noise, video compression and the artefacts of a
+generated or hand-held video: clflow_datasets.degradation), so the optimiser
 cannot reproduce it exactly. The optimiser searches on the base grid and runs its main phase
 on one ``Resolution.main_grid_scale`` (1.5) times finer, still 1.33x coarser than the
 truth's. Both the truth and the optimiser blend FLIP into APIC's transfer
@@ -35,6 +36,7 @@ from typing import Callable
 
 from clflow.fileio.reading import parse_json
 from clflow_datasets import per_class
+from clflow_datasets.degradation import Degradation
 from clflow_datasets.scene_cases import SceneCase
 from clflow_datasets.synthetic import GENERATOR_VERSION, Resolution, SyntheticCase, make_case
 from clflow_datasets.sysid_cases import CASES, check_case
@@ -68,6 +70,7 @@ class Settings:
     truth_scale: int = 2  # ground truth's grid and image refinement
     noise: float = 0.0  # sensor noise, 8-bit grey levels
     codec: str | None = None  # video suffix of a lossy guidance video, e.g. ".mp4"
+    degradation: Degradation = Degradation()  # what a generated or hand-held video adds (flicker, shake, ...)
     seed: int = 0
     views: int = 1  # guidance views (clflow_datasets.synthetic.VIEW_AZIMUTHS_DEG)
     truth_transfer: str = "flip"  # the truth's transfer: "flip" (the optimiser's blend) or "apic" (a mismatch)
@@ -85,7 +88,7 @@ class Settings:
 
     def case_options(self) -> dict:
         """clflow_datasets.synthetic.make_case's keywords of these settings."""
-        made = {key: getattr(self, key) for key in ("truth_scale", "noise", "codec", "views")}
+        made = {key: getattr(self, key) for key in ("truth_scale", "noise", "codec", "views", "degradation")}
         return {**made, "truth_flip": TRUTH_FLIP[self.truth_transfer]}
 
 

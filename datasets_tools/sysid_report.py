@@ -7,6 +7,7 @@ from __future__ import annotations
 import statistics
 
 from clflow_datasets import per_class
+from clflow_datasets.degradation import Degradation
 
 # Table 3 of the PhysFlow paper (CVPR 2025): (mean RE, EPE px) per case and method; their
 # images are 800 x 800 px, so their EPE is not comparable with ours in pixels.
@@ -180,7 +181,9 @@ def _closing(summary: dict, methods: tuple[str, ...]) -> list[str]:
         f"PIC/FLIP blend {res.get('flip', 0.0):g}, "
         f"image {res['image']} px, {res['frames']} frames, "
         f"{res['iterations']} iterations; ground truth at {s['truth_scale']}x grid and image; noise "
-        f"{s['noise']} grey levels; codec {s['codec'] or 'none (PNG)'}; seed {s['seed']}; "
+        f"{s['noise']} grey levels; codec {s['codec'] or 'none (PNG)'}; "
+        + _artefacts(Degradation(**s.get("degradation", {})))
+        + f"seed {s['seed']}; "
         f"{s.get('views', 1)} guidance view{'s' if s.get('views', 1) > 1 else ''}"
         + (
             "; ground truth under APIC, a transfer the optimiser does not share."
@@ -191,6 +194,11 @@ def _closing(summary: dict, methods: tuple[str, ...]) -> list[str]:
         f"torch {env.get('torch', '?')}, "
         f"pyopencl {env.get('pyopencl', '?')} on {env.get('device', '?')} (load {env.get('load', '?')}). " + published,
     ]
+
+
+def _artefacts(degradation: Degradation) -> str:
+    """The settings line's words for a degraded guidance ("" for a clean one)."""
+    return "" if degradation == Degradation() else f"artefacts: {degradation.describe()}; "
 
 
 __all__ = [
