@@ -38,6 +38,12 @@ def _window(start: float, end: float, what: str) -> list[float]:
     return [float(start), float(end)]
 
 
+def _record(kind: float, condition, what: str, *fields: list[float]) -> list[float]:
+    """A boundary condition's kernel record: its ``kind``, its time window (``condition``'s
+    start and end, checked as ``what``'s) and its ``fields`` in order."""
+    return [kind] + _window(condition.start, condition.end, what) + [value for part in fields for value in part]
+
+
 @dataclass(frozen=True)
 class HalfSpace:
     """Collider filling {x : (x - point).normal < 0}; ``normal`` points into the free side.
@@ -59,13 +65,8 @@ class HalfSpace:
             raise InputError(f"collider mode {self.mode!r} unknown; choose one of {', '.join(COLLIDER_MODES)}")
         if not (self.friction >= 0 and math.isfinite(self.friction)):
             raise InputError(f"collider friction must be a finite number >= 0, got {self.friction}")
-        return (
-            [BC_HALFSPACE]
-            + _window(self.start, self.end, "collider")
-            + vec3(self.point, "collider point")
-            + _unit(self.normal, "collider normal")
-            + [COLLIDER_MODES[self.mode], float(self.friction)]
-        )
+        point, normal = vec3(self.point, "collider point"), _unit(self.normal, "collider normal")
+        return _record(BC_HALFSPACE, self, "collider", point, normal, [COLLIDER_MODES[self.mode], float(self.friction)])
 
 
 @dataclass(frozen=True)
@@ -83,7 +84,7 @@ class Box:
         lo, hi = vec3(self.lower, "box lower"), vec3(self.upper, "box upper")
         if any(a > b for a, b in zip(lo, hi)):
             raise InputError(f"box lower {lo} is not below upper {hi}")
-        return [BC_BOX] + _window(self.start, self.end, "box") + lo + hi + vec3(self.velocity, "box velocity")
+        return _record(BC_BOX, self, "box", lo, hi, vec3(self.velocity, "box velocity"))
 
 
 @dataclass(frozen=True)
@@ -105,13 +106,9 @@ class RotatingCylinder:
             raise InputError(f"cylinder radius and half_length must be > 0, got {self.radius}, {self.half_length}")
         if not math.isfinite(self.angular_velocity):
             raise InputError(f"cylinder angular_velocity must be finite, got {self.angular_velocity}")
-        return (
-            [BC_CYLINDER]
-            + _window(self.start, self.end, "cylinder")
-            + vec3(self.center, "cylinder center")
-            + _unit(self.axis, "cylinder axis")
-            + [float(self.radius), float(self.half_length), float(self.angular_velocity)]
-        )
+        center, axis = vec3(self.center, "cylinder center"), _unit(self.axis, "cylinder axis")
+        shape = [float(self.radius), float(self.half_length), float(self.angular_velocity)]
+        return _record(BC_CYLINDER, self, "cylinder", center, axis, shape)
 
 
 GridCondition = Union[HalfSpace, Box, RotatingCylinder]

@@ -70,6 +70,20 @@ WALK_REACHED = 0.9
 
 
 @dataclasses.dataclass(frozen=True)
+class RangeWalk:
+    """How the ends of the ranges are walked from the fit: per variable its direction in z
+    (the others refitted to first order: {other: dz per dz of it}), the loss ``limit`` a
+    walk stays within, the fit's ``loss``, the ``substeps`` the runs take at the least, and
+    per variable the (below, above) sides the search's samples already opened."""
+
+    directions: dict[str, dict[str, float]]
+    limit: float
+    loss: float
+    substeps: int
+    open_sides: dict[str, tuple[bool, bool]]
+
+
+@dataclasses.dataclass(frozen=True)
 class GaussNewtonSpread:
     """How well residuals pin each variable down, in the Gauss-Newton picture (pixels as
     independent noise): ``inverse`` (J^T J)^-1 [n, n], ``covariance`` s^2 (J^T J)^-1 with s^2
@@ -317,14 +331,10 @@ class Diagnostics:
             n: (low_open and low < z[n], high_open and high > z[n])
             for n, ((low, high), (low_open, high_open), _) in search_extent(search or [], tolerance).items()
         }
-        walk_args = dict(
-            directions=directions,
-            limit=loss * (1 + tolerance),
-            loss=loss,
-            substeps=base.substeps,
-            open_sides=search_open,
+        walk = RangeWalk(
+            directions, limit=loss * (1 + tolerance), loss=loss, substeps=base.substeps, open_sides=search_open
         )
-        ranges = self.ranges(z, variables, frame_std, discretisation, profile_z, unresolved, walk_args)
+        ranges = self.ranges(z, variables, frame_std, discretisation, profile_z, unresolved, walk)
         widen_by_search(ranges, z, search or [], tolerance, self.problem.values)
         return {
             "ranges": ranges,
@@ -353,7 +363,7 @@ class Diagnostics:
         discretisation: dict[str, float],
         profile_z: list[float],
         unresolved: list[str],
-        walk_args: dict,
+        walk: RangeWalk,
     ) -> dict[str, dict]:
         """Per variable its RANGE_LEVEL range: ``low`` and ``high`` (SI; None where open),
         ``sigma_z`` and its parts (``frames_z``: the frame-robust standard deviation;
@@ -361,7 +371,7 @@ class Diagnostics:
         failed; ``profile_z``: the half-width where the loss, the others refitted, rises by
         the model's loss tolerance). The range is the widest of RANGE_Z sigma, the profile's
         and, for a parameter whose profile is flat (``unresolved``), PROFILE_STEP, either way;
-        each end not open is then walked (:meth:`walks`; ``walked_z``: the half-widths below
+        each end not open is then walked (:meth:`walks` by ``walk``; ``walked_z``: the half-widths below
         and above, None where open; ``walk_loss_ratio``: below and above, [step in z, loss
         over the fit's] of each run).
         Open ends lie beyond the local phase's box (else the parameter's typical range;
@@ -374,7 +384,7 @@ class Diagnostics:
             for name, half_profile in zip(variables, profile_z)
         ]
         starts = {name: max(RANGE_Z * sigma, floor) for name, sigma, floor in zip(variables, sigmas, floors)}
-        walks = self.walks(z, starts, **walk_args)
+        walks = self.walks(z, starts, walk)
         out = {}
         for name, frames_z, half_profile, sigma, floor in zip(variables, frame_std, profile_z, sigmas, floors):
             walked, ratios = walks[name]
@@ -393,24 +403,17 @@ class Diagnostics:
             }
         return out
 
-    def walks(
-        self,
-        z: dict[str, float],
-        starts: dict[str, float],
-        directions: dict,
-        limit: float,
-        loss: float,
-        substeps: int,
-        open_sides: dict[str, tuple[bool, bool]],
-    ) -> dict[str, tuple[tuple, list]]:
+    def walks(self, z: dict[str, float], starts: dict[str, float], walk: RangeWalk) -> dict[str, tuple[tuple, list]]:
         """Per variable of ``starts`` ((below, above) half-widths in z of its range that
         forward runs measured, the runs' loss ratios [[step, ratio], ...] per side): a
-        :func:`walk_steps` each side from ``starts[name]`` along ``directions[name]`` (the
-        others refitted to first order, each kept in its own box) while the loss stays within
-        ``limit``; ``loss`` the fit's, runs at ``substeps``. A side whose start already
-        leaves the box, or that ``open_sides[name]`` (below, above) opens, is not walked (it
-        is open). Every side walks in lockstep: a round's runs are one batch
-        (Objective.evaluate_batch: a population where the kernel plan gathers)."""
+        :func:`walk_steps` each side from ``starts[name]`` along ``walk.directions[name]``
+        (the others refitted to first order, each kept in its own box) while the loss stays
+        within ``walk.limit``. A side whose start already leaves the box, or that
+        ``walk.open_sides`` opens, is not walked (it is open). Every side walks in lockstep:
+        a round's runs are one batch (Objective.evaluate_batch: a population where the
+        kernel plan gathers)."""
+        directions, limit, loss, substeps = walk.directions, walk.limit, walk.loss, walk.substeps
+        open_sides = walk.open_sides
         sides, walks = [], []
         for name, start in starts.items():
             box, opened = self.problem.box_of(name, z), open_sides.get(name, (False, False))
