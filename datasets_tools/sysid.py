@@ -45,12 +45,10 @@ from clflow_datasets.sysid_report import holds, markdown
 log = logging.getLogger(__name__)
 
 # PAC-NeRF's 14 frames at 24 fps; Levenberg-Marquardt iterations (each 1 + parameters forward
-# runs) after the search (16: on the 1.5x main grid the cat's 9 main iterations of 12 were
-# still climbing from its coarse start, loss 0.0079 against the truth's 0.0038); QUICK is
-# small enough for CI. flip 0.99 for truth and optimiser: APIC's damping grows with the
-# substeps, which the stiffness sets, so under APIC a fluid's bulk modulus moved the loss
-# mostly through the substep count (quick droplet: bulk RE 0.72 with APIC, 0.17 with FLIP;
-# docs/mpm.md, "Transfers and time step").
+# runs) after the search, enough for the slowest case to stop by progress on the main grid;
+# QUICK is small enough for CI. flip 0.99 for truth and optimiser: APIC's damping grows with
+# the substeps, which the stiffness sets, so under APIC a fluid's bulk modulus would move the
+# loss mostly through the substep count (docs/mpm.md, "Transfers and time step").
 FULL = Resolution(
     object_detail=12, floor_side=32, image=160, grid=24, frames=14, iterations=16, main_grid_scale=1.5, flip=0.99
 )

@@ -43,7 +43,7 @@ from clflow.runtime.plan import P2GMode
 CFL_NUMBER = 0.3  # dt <= CFL_NUMBER dx / max|v|
 WAVE_NUMBER = 0.5  # dt <= WAVE_NUMBER dx / c, c the fastest elastic wave speed
 # dt <= VISCOUS_NUMBER rho dx^2 / mu, mu the explicit viscosity (material_model.explicit_viscosity);
-# a Newtonian block blows up above 0.34-0.46 (measured, docs/mpm.md "Safety")
+# a margin below where a Newtonian block blows up (docs/mpm.md, "Safety")
 VISCOUS_NUMBER = 0.2
 PROGRESS_SECONDS = 5.0  # a frame that takes longer logs its progress this often
 

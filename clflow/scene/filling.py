@@ -40,7 +40,7 @@ from clflow.limits import check_memory
 MAX_VOXELS = 256**3  # refuse grids larger than this (memory/time); choose a larger spacing
 FILL_BYTES = 96  # bytes of memory at the peak per fill particle (its sub-grid points, float64, and copies)
 # widest gap between neighbouring Gaussians, in voxels, that the shell marks below close
-# (measured: 2.5 voxels closed, 3.1 leaked, on cube faces of flat Gaussians)
+# (docs/pipeline.md, "Modules": what closes and what leaks)
 CLOSED_GAP = 2.5
 
 

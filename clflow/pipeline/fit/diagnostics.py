@@ -23,46 +23,37 @@ TRADE_OFF_CORRELATION = 0.95
 # standard errors treat pixels as independent noise, but what remains at the optimum is mostly
 # model error (the grid, the estimator), which moves the minimum by more than that
 MIN_LOSS_RISE = 0.01
+# How each check works, and the benchmark cases that set these constants:
+# docs/pipeline.md, "Identifiability" (the profile, the grid check, the ranges and their walks).
 # a weakly constrained material parameter is moved alone PROFILE_STEP either way in z (a
 # decade of a log-scale parameter, cut to its box); it is unresolved over that range when
-# neither move changes the loss by PROFILE_RISE of itself (the cream's viscosity: under 1 %
-# from 1 to 10 Pa s)
+# neither move changes the loss by PROFILE_RISE of itself
 PROFILE_STEP = 1.0
 PROFILE_RISE = 0.1
 # the grid check reruns the final point on the search grid (without a coarser search grid, on
 # one GRID_CHECK_RATIO times coarser) and moves the best fit by the residuals' change: a
-# variable whose fit moves more than WEAK_STD_Z is grid-sensitive (the full droplet's bulk
-# modulus: 0.42 decades from 51 to 76 nodes, where it ended at 0.35 of its truth; the bird's
-# E: 0.001 decades, RE 0.05; docs/history/benchmarks-2026-11.md, "The bulk modulus sits below the model error");
-# a second run on one GRID_CHECK_RATIO times finer catches the model error that the coarser
-# grid does not show where convergence is not monotone (the thrown block of the extra set:
-# its loss rose 23 % on the coarser grid, 92 % on the finer one, 52 % at its truth)
+# variable whose fit moves more than WEAK_STD_Z is grid-sensitive; a second run on one
+# GRID_CHECK_RATIO times finer catches the model error a coarser grid does not show where the
+# convergence in the grid is not monotone
 GRID_CHECK_RATIO = 1.5
 # the reported range: a two-sided 90 % normal range, z +- RANGE_Z * sigma, where sigma^2 adds
-# the frame-robust (sandwich) variance and the model grid's own discretisation error, which
-# Richardson's rule for a first-order method puts at a grid check's shift times
-# h / |H - h| (h the model grid's spacing, H the check's: twice the shift for H = 1.5 h,
-# three times for H = h / 1.5; the larger of the two checks'), and the time-step check's
-# shift (substeps doubled); at least as wide as the Gauss-Newton profile (the others
-# refitted) where the loss rises by the model's own loss tolerance, the relative change of
-# the loss that those checks make at the same point (quick playdoh: 54 % on the 1.5x
-# coarser grid), which a weakly constrained nu can cross only far away; an end beyond
-# the box the search looked in is open (the data only bound that side)
+# the frame-robust (sandwich) variance, the model grid's own discretisation error (Richardson's
+# rule for a first-order method: a grid check's shift times h / |H - h|, h the model grid's
+# spacing and H the check's; the larger of the two checks') and the time-step check's shift
+# (substeps doubled); at least as wide as the Gauss-Newton profile (the others refitted) where
+# the loss rises by the model's own loss tolerance (the relative change those checks make at
+# the same point); an end beyond the box the search looked in is open (the data bound only
+# that side)
 RANGE_LEVEL = 0.9
 RANGE_Z = 1.6449
-# ... and each end not open is then walked (:func:`walk_end`): the Gauss-Newton profile takes
-# the loss as quadratic, but model error makes it flatter away from the fit (the extra set at
-# full resolution: the snowball's E has a loss 1.5x the fit's at its truth, 0.10 decades
-# above, where the quadratic puts 4.1x; the sponge's E 1.66 decades below at 1.2x), so the
-# loss is measured along the profile's direction (the others refitted to first order) at the
-# end, and further out while it stays within the tolerance: at most WALK_RUNS forward runs an
-# end, each step out to the secant's crossing, WALK_GROWTH times the last at least and at most,
-# then halving the bracket once a run lies beyond until it spans at most WALK_BRACKET of its
-# inner end (the sponge's first step beyond went from a loss 1.7x the fit's to 600x: a chord
-# across that moved the end by 0.01 decade, three halvings by 0.46, where its truth lies 0.33
-# beyond); never narrowing the range. A run whose rise is WALK_REACHED of the tolerance's confirms the
-# end where it is (a quadratic rise crosses within 5 % further out): where the Gauss-Newton
-# profile sets the end, the first run lands on the tolerance, and one run decides
+# ... and each end not open is then walked (:func:`walk_steps`), as model error makes the loss
+# flatter away from the fit than the quadratic profile says: a forward run at the end along
+# the profile's direction (the others refitted to first order), further out while it stays
+# within the tolerance, at most WALK_RUNS runs an end, each step out to the secant's crossing,
+# WALK_GROWTH times the last at least and at most, then halving the bracket once a run lies
+# beyond until it spans at most WALK_BRACKET of its inner end; never narrowing the range. A
+# run whose rise is WALK_REACHED of the tolerance's confirms the end where it is: where the
+# Gauss-Newton profile sets the end, the first run lands on the tolerance, and one run decides
 WALK_RUNS = 6
 WALK_BRACKET = 0.25
 WALK_GROWTH = (1.5, 4.0)

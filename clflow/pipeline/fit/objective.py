@@ -42,9 +42,8 @@ SUPERSAMPLE = 2
 # Levenberg-Marquardt's last word (Steps.own_loss_line_search) and the result's own loss take
 # the estimator's error as the mean of its answers over these whole-pixel shifts (dx, dy) of
 # the camera, from one rendering JITTER_MARGIN px wider on each side (no resampling): one
-# answer jumps by 20-40 % of the loss between points 0.5 deg apart on the sand (DIS's patch
-# grid is fixed to the image corner; docs/pipeline.md, "Why the sand stops short"), the mean
-# is smooth. Every residue mod 4 twice per axis, each parity pair (dx, dy mod 2) twice, the
+# answer jumps between nearby points (DIS's patch grid is fixed to the image corner;
+# docs/pipeline.md, "Why the sand stops short"), the mean is smooth. Every residue mod 4 twice per axis, each parity pair (dx, dy mod 2) twice, the
 # mean shift zero.
 # The iterations before keep one answer (ONE_SHIFT), at an eighth of the estimator's cost.
 JITTER_SHIFTS = ((0, 0), (0, -3), (1, 2), (-3, -1), (-2, -2), (2, 3), (-1, 0), (3, 1))
