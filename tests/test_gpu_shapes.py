@@ -23,8 +23,8 @@ MAX_ELEMENTS_PER_WORK_ITEM = 256
 MAX_LOCAL_MEMORY = 48 * 1024
 # The GPU plan's forward substep: the stress (the SVD inline) with the particles keyed and
 # counted by cell, the counts' scan (one launch up to 4 M cells: the keys counted its block
-# sums), place_keys, order_pack (each cell's run in index order, then its records),
-# p2g_gather_update (the gather and the grid update), g2p_sorted.
+# sums), place_keys, p2g_blocks (each cell's run in index order, the blocks' tiles of sums),
+# p2g_blocks_update (the tiles' sums and the grid update), g2p_sorted.
 SUBSTEP_LAUNCHES = {"elastic": 6, "sand": 6}
 # Its adjoint, over the forward's cell sort kept in the tape: g2p_adjoint_records,
 # g2p_adjoint_gather_update (the gather and the grid update's adjoint), p2g_adjoint, [SVD],

@@ -58,7 +58,7 @@ from clflow.mpm.simulator import (
     cfl_breach,
     finite,
 )
-from clflow.mpm.substep import DriverAccelerations, State, SubstepInputs, SubstepTape, p2g_record_reals
+from clflow.mpm.substep import DriverAccelerations, State, SubstepInputs, SubstepTape, p2g_partial_reals
 from clflow.runtime.arrays import DeviceArray, origin_device, to_cpu, to_origin
 from clflow.runtime.reduction import sum_rows
 from clflow.runtime.sort import counts_length
@@ -289,8 +289,8 @@ def memory_estimate(
     working buffers (two forward states, tau, grids; two state gradients, taubar, U s V,
     parameter and mass gradients, the grid adjoint and the sum of its copies: g per node; the
     GPU plan's cell sort, 2 ints per particle and about 1 per node, each tape's order and
-    cell starts, 1 per particle and per node, and its P2G and adjoint records, counted in
-    either plan); and ``grid_copies`` private grid copies of g
+    cell starts, 1 per particle and per node, the P2G blocks' tiles of sums, about 3.4 g per
+    node, and the adjoint's records, counted in either plan); and ``grid_copies`` private grid copies of g
     reals per node (CPU path: P2G and its adjoint)."""
     itemsize = torch.tensor([], dtype=dtype).element_size()
     k = substeps if segment is None else segment
@@ -298,7 +298,7 @@ def memory_estimate(
     checkpoints = (frames + 1) * n * (25 + 15 + 15)
     replay = k * (n * (25 + 9) + g * nodes) + (n * 25 * (-(-substeps // k)) if k < substeps else 0)
     working = n * (2 * 25 + 9) + g * nodes + n * (2 * 25 + 9 + 21 + PARAM_COUNT + 1) + g * nodes
-    records = n * (p2g_record_reals(flip) + g2p_adjoint_record_reals(flip))
+    records = p2g_partial_reals(nodes, flip) + n * g2p_adjoint_record_reals(flip)
     # bytes: the cell sort's int32 keys, ranks and counts, and each tape's order and cell starts
     # (the replay's k and the kernels' own)
     cell_sorts = 4 * (2 * n + counts_length(nodes) + (k + 1) * (n + nodes + 1))

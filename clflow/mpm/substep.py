@@ -7,8 +7,8 @@
                     SVD inline, and each particle keyed and counted by cell at x_n)
     p2g           : (x_n, v_n, C_n, tau, mass, volume)     -> grid [nodes, GRID_CH] (m, mv[, mv0])
                     (private grid copies, each zeroed and summed only in the box of nodes
-                    its particles touch; a gather per node over particles sorted by cell,
-                    which updates the node in the same launch; or atomics)
+                    its particles touch; a gather over blocks of cells, the particles sorted
+                    by cell and each read once, whose sums the grid update adds; or atomics)
     grid_update   : (grid, boundary table, t)              -> grid_v [nodes, 3][, grid_dv]
     g2p           : (x_n[, v_n], grid_v[, grid_dv], release_time) -> x_n+1, v_n+1, C_n+1
 
@@ -25,6 +25,7 @@ wait for the device.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, fields
 
@@ -294,13 +295,14 @@ def check_grid_memory(
     """Refuse a grid whose node arrays do not fit ``device``: (m, mv[, mv0]) and v[, dv] per
     node (bracketed: PIC/FLIP blend ``flip`` > 0) of each of a population's ``members``, and
     where the P2G path taken (``plan``'s, default the device's) is the private one at least
-    one copy of the first."""
+    one copy of the first, where it is the gather its blocks' tiles of sums (p2g_partial_reals)."""
     from clflow.limits import format_bytes
 
     info, nodes, channels = device.info, members * grid.nodes, grid_channels(flip)
-    private = (plan or kernel_plan(device)).p2g == "private"
-    total = nodes * itemsize * (channels + velocity_channels(flip) + (channels if private else 0))
-    largest = nodes * itemsize * channels
+    path = (plan or kernel_plan(device)).p2g
+    own = {"private": nodes * channels, "gather": p2g_partial_reals(nodes, flip)}.get(path, 0)
+    total = itemsize * (nodes * (channels + velocity_channels(flip)) + own)
+    largest = itemsize * max(nodes * channels, own)
     if total > info.global_mem_size or largest > info.max_mem_alloc_size:
         size = "x".join(str(int(r)) for r in grid.resolution)
         size += f" grid for each of {members} members" if members > 1 else " grid"
@@ -339,16 +341,29 @@ def p2g_particle_args(real_t, state: State, tape: SubstepTape, inputs: SubstepIn
     return dict(n=n, dt=real_t(inputs.dt)) | arrays | dict(accel=inputs.accel)
 
 
-def p2g_record_reals(flip: float) -> int:
-    """Reals per particle of the gather's P2G records (mpm/p2g_gather.cl P2G_REC)."""
-    return 28 if uses_flip(flip) else 16
+#: The gather P2G's blocks: P2G_BLOCK base cells a side, each block's tile of sums P2G_TILE
+#: nodes a side, one work-item a tile node (mpm/p2g_gather.cl).
+P2G_BLOCK = 4
+P2G_TILE = P2G_BLOCK + 2
+
+
+def p2g_blocks(grid: Grid, members: int = 1) -> int:
+    """Blocks of the gather P2G (mpm/p2g_gather.cl blocks_along): a grid's base cells (its
+    nodes less 2 a side) in P2G_BLOCK^3 blocks, for each of ``members`` grids."""
+    return members * math.prod(-(-(int(r) - 2) // P2G_BLOCK) for r in grid.resolution)
+
+
+def p2g_partial_reals(nodes: int, flip: float = 0.0) -> int:
+    """Reals of the gather P2G's tiles of sums over a grid of ``nodes`` nodes: at most
+    (P2G_TILE / P2G_BLOCK)^3 tile nodes a grid node (3.4), grid_channels(flip) reals each."""
+    return -(-nodes * P2G_TILE**3 // P2G_BLOCK**3) * grid_channels(flip)
 
 
 class CellSort:
     """The particles of a substep sorted by the cell of their stencil's base node, on the
     device, by counting sort (one pass; clflow.runtime.sort) into a tape's ``order`` [n]
     int32, the particles cell by cell, and ``starts`` [cells + 1] int32, the first slot of
-    each of the ``cells`` (every member's grid nodes; mpm/cells.h), each cell's run left for the P2G's order_pack to put in index
+    each of the ``cells`` (every member's grid nodes; mpm/cells.h), each cell's run left for the P2G's blocks to put in index
     order. The particles are keyed and counted by ``k_cells`` (particle_cells), or, when it
     is None, by the stress kernel (:meth:`key_args`); ``keys``, ``rank`` and ``counts`` are
     its scratch."""
@@ -380,7 +395,10 @@ class SubstepKernels:
     the device's kernel plan with the path taken), PIC/FLIP blend ``flip`` (0: APIC) and
     population size (``members``: the n particles are ``members`` equal blocks in lockstep,
     each on its own copy of ``grid``; kernels_cl/mpm/mpm.h), with their scratch buffers (U, s,
-    V of F_tr, the private P2G grid copies and a :class:`SubstepTape` for runs that keep none)."""
+    V of F_tr, the private P2G grid copies or the gather's tiles of sums, and a
+    :class:`SubstepTape` for runs that keep none). ``count_reads``: the gather P2G counts the
+    particles it reads from global memory into ``p2g_reads`` [1] int32 (tests check its
+    design, one read a particle)."""
 
     def __init__(
         self,
@@ -392,6 +410,7 @@ class SubstepKernels:
         p2g: P2GMode = "auto",
         flip: float = 0.0,
         members: int = 1,
+        count_reads: bool = False,
     ):
         import pyopencl as cl
 
@@ -405,19 +424,21 @@ class SubstepKernels:
         self.p2g = p2g = plan.p2g
         stage = StressStage.of(materials)
         self.defines = defines = stage.defines(self.flip)  # the -D switches of its programs
-        k = lambda role: device.kernel(*plan.kernel("p2g", role), self.real, defines)  # noqa: E731
+        counting = defines | {"CLFLOW_COUNT_READS": 1} if count_reads and p2g == "gather" else defines
+        k = lambda role: device.kernel(*plan.kernel("p2g", role), self.real, counting if role == "p2g" else defines)  # noqa: E731
         self.elastic_only = stage.elastic_only
         self.k_stress, self.k_svd = stage.kernels(device, self.real, plan)
         self.U, self.s, self.V = stage.svd_buffers(device, n if self.k_svd is not None else 0, dtype)
         # the private path's grid update sums the P2G copies too, a row of nodes a work-item;
-        # the gather's launch updates each node it gathered
-        self.k_grid = None if p2g == "gather" else k("grid")
+        # the gather's the tiles of its blocks
+        self.k_grid = k("grid")
         # the gather path runs G2P in slot order: neighbouring work-items read neighbouring nodes
         self.k_g2p = k("g2p")
         self.k_p2g = k("p2g")
         itemsize = torch.tensor([], dtype=dtype).element_size()
         check_grid_memory(device, grid, itemsize, self.flip, plan, members)
         grid_bytes = channels * self.nodes * itemsize
+        self.p2g_reads = None
         if p2g == "private":
             self.copies = grid_copies(device, grid_bytes, n)
             self.chunk = -(-n // self.copies)
@@ -426,8 +447,11 @@ class SubstepKernels:
         elif p2g == "gather":
             k_cells = None if plan.stress_keys_cells else k("cells")  # else the stress kernel keys them
             self.cells = CellSort(device, n, self.nodes, k_cells)
-            self.k_pack = k("order_pack")
-            self.p2g_records = DeviceArray.empty(device, (n, p2g_record_reals(self.flip)), dtype)
+            self.blocks = p2g_blocks(grid, members)
+            self.block_partials = DeviceArray.empty(device, (self.blocks * P2G_TILE**3, channels), dtype)
+            self.block_counts = DeviceArray.empty(device, (self.blocks,), torch.int32)
+            if count_reads:
+                self.p2g_reads = DeviceArray.zeros(device, (1,), torch.int32)
         self.scratch = self.empty_tape()
         self.bound = LaunchCache()  # run()'s launches, bound per set of arrays
 
@@ -488,11 +512,11 @@ class SubstepKernels:
             dev.launch(self.k_grid, self.members * nx * ny, grid_update_args | copies)  # rows of the stacked grid
         elif gather:
             self.cells.sort(state.x, grid_args, tape)
-            particle = {k: v for k, v in p2g_particle_args(R, state, tape, inputs).items() if k != "n"}
-            cells = dict(n_cells=np.int32(self.nodes), starts=tape.starts, order=tape.order)
-            pack = particle | cells | dict(dx=grid_args["dx"], records=self.p2g_records)
-            dev.launch(self.k_pack, self.nodes, pack)
-            dev.launch(self.k_p2g, self.nodes, grid_update_args | dict(records=self.p2g_records, starts=tape.starts))
+            blocks = dict(partials=self.block_partials, block_counts=self.block_counts)
+            reads = {} if self.p2g_reads is None else dict(reads=self.p2g_reads)
+            cells = dict(starts=tape.starts, order=tape.order)
+            dev.launch(self.k_p2g, self.blocks * P2G_TILE**3, p2g_args | cells | blocks | reads, local_size=P2G_TILE**3)
+            dev.launch(self.k_grid, self.nodes, grid_update_args | blocks)
         else:
             tape.grid_mv.zero_()  # on the device, in queue order: the atomics add onto zeros
             dev.launch(self.k_p2g, self.n, p2g_args | dict(grid=tape.grid_mv))

@@ -79,8 +79,8 @@ STAGE_KERNELS: dict[str, dict[str, dict[str, Kernel]]] = {
             "grid": Kernel("mpm/grid.cl", "sum_copies_update_grid"),
             "g2p": _G2P,
         },
-        "gather": {  # the grid update in the gather's launch
-            **_kernels("mpm/p2g_gather.cl", cells="particle_cells", order_pack="order_pack", p2g="p2g_gather_update"),
+        "gather": {  # over blocks of cells, each particle read once; the grid update after the blocks' sums
+            **_kernels("mpm/p2g_gather.cl", cells="particle_cells", p2g="p2g_blocks", grid="p2g_blocks_update"),
             "g2p": Kernel("mpm/g2p.cl", "g2p_sorted"),
         },
         "atomic": {"p2g": Kernel("mpm/p2g_atomic.cl", "p2g_atomic"), "grid": _GRID_UPDATE, "g2p": _G2P},
@@ -147,7 +147,7 @@ class KernelPlan:
 
     def with_p2g(self, requested: P2GMode = "auto") -> "KernelPlan":
         """This plan with the P2G path taken: ``requested`` unless "auto"; then $CLFLOW_P2G,
-        else the plan's own (private grid copies on CPU devices, the gather per node on GPUs).
+        else the plan's own (private grid copies on CPU devices, the gather over blocks of cells on GPUs).
         The private and gather paths sum in a fixed order, so runs repeat to the bit; "atomic"
         (a work-item per particle, atomic adds in no fixed order) is there to ask for. The
         adjoint's scatter takes the P2G's shape, private or gather (it has no atomic one)."""

@@ -20,7 +20,7 @@ from clflow_cli.options import count_option
 SIZES = ((8, 16), (16, 32), (32, 48))  # (particles per axis, grid nodes per axis)
 #: kernels whose launches can repeat without changing what they read (grid update, G2P):
 #: the phases are timed on them
-REPEATABLE = ("sum_copies_update_grid", "p2g_gather_update", "g2p_sorted", "g2p")
+REPEATABLE = ("sum_copies_update_grid", "p2g_blocks_update", "g2p_sorted", "g2p")
 POPULATION = 24  # members of the population timed (a global search's samples)
 
 

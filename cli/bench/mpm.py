@@ -107,7 +107,9 @@ def mpm(ctx, substeps, particles_per_axis, grid_res, materials, double, peer):
     click.echo(f"load average before the run: {load_average()} (figures scale down on a shared machine)")
     from clflow.mpm.substep import p2g_path
 
-    p2g = {"private": "private grid copies", "atomic": "atomics", "gather": "gather per node"}[p2g_path(device)]
+    p2g = {"private": "private grid copies", "atomic": "atomics", "gather": "gather over blocks of cells"}[
+        p2g_path(device)
+    ]
     memory = "separate memory" if not device.zero_copy else "shared memory"
     click.echo(
         f"device: {device.info.label} ({memory}; P2G: {p2g}); {n:,} particles, grid {grid_res}^3, "

@@ -15,7 +15,7 @@
  * The order of concurrent additions is not fixed, so sums through this helper are not
  * bit-reproducible: only the P2G asked for as "atomic" (p2g_atomic.cl) and scatter_add.cl take
  * it; the default P2G shapes sum in a fixed order without float atomics (private copies on CPU
- * devices, a gather per node on GPUs). */
+ * devices, a gather over blocks of cells on GPUs). */
 #ifndef CLFLOW_ATOMICS_H
 #define CLFLOW_ATOMICS_H
 

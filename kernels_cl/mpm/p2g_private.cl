@@ -14,7 +14,7 @@
  * the fixed order k = 0, 1, ...: deterministic, bit-identical. Each copy is zeroed and summed
  * only in the box of nodes its chunk touches (chunk_box). sum_grid_copies is the same column
  * sum for the G2P adjoint's private copies. The other shapes of the same sums:
- * p2g_gather.cl (GPUs: a gather per node over particles sorted by cell) and p2g_atomic.cl
+ * p2g_gather.cl (GPUs: a gather over blocks of cells, particles sorted by cell) and p2g_atomic.cl
  * (asked for: atomic adds). */
 #include "mpm/mpm.h"
 

@@ -114,7 +114,7 @@ def loss_rounding(sim: Simulator) -> float:
 
 def assert_repeats(a: torch.Tensor, b: torch.Tensor, sim: Simulator, what: str = "") -> None:
     """``a`` and ``b`` from two runs of the same computation on ``sim``'s kernels: bit-identical
-    on the deterministic P2G paths (private grid copies, the gather per node: fixed orders),
+    on the deterministic P2G paths (private grid copies, the gather over blocks: fixed orders),
     within ATOMIC_REPEAT_TOL on the atomic one."""
     if sim.kernels.p2g in ("private", "gather"):
         assert torch.equal(a, b), what

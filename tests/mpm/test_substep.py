@@ -141,7 +141,7 @@ def test_scene_exercises_the_return_mapping(material):
 @pytest.mark.parametrize("p2g", ["private", "atomic", "gather"])
 @pytest.mark.parametrize("materials", [MATERIAL_CASES, {"elastic": MATERIAL_CASES["elastic"]}])
 def test_repeated_runs_float32(materials, p2g):
-    """Private grid copies and the gather per node sum in fixed orders: two runs are
+    """Private grid copies and the gather over blocks sum in fixed orders: two runs are
     bit-identical. Atomic adds sum in the order the work-items happen to run, so the last
     bits differ between runs; they agree to ATOMIC_REPEAT_TOL."""
     runs = []
@@ -240,27 +240,35 @@ def test_the_p2g_path_follows_the_plan_unless_forced(device, monkeypatch):
 
 
 def test_the_memory_check_counts_the_path_taken(device, monkeypatch):
-    """The grid's memory check counts a private P2G copy only where the plan's path takes it:
-    a device with room for the grid but not for a copy refuses the private path alone."""
+    """The grid's memory check counts what the plan's P2G path takes beside the grid: a
+    private copy of its sums, the gather's tiles of sums (about 3.4 times them), or nothing
+    (atomics): a device with room for the grid and a copy refuses the gather alone."""
     import dataclasses
     import types
 
     from clflow.errors import InputError
-    from clflow.mpm.substep import check_grid_memory
+    from clflow.mpm.substep import check_grid_memory, p2g_partial_reals
     from clflow.runtime.plan import KERNELS_ENV, P2G_ENV, kernel_plan
 
     monkeypatch.setenv(KERNELS_ENV, "cpu")
     monkeypatch.delenv(P2G_ENV, raising=False)
     grid = Grid((32, 32, 32), 1 / 32)
     nodes_bytes = grid.nodes * 8 * (4 + 3)  # float64 (m, mv) and v per node
-    info = dataclasses.replace(device.info, global_mem_size=nodes_bytes + 1)
-    small = types.SimpleNamespace(info=info)
-    for path in ("gather", "atomic"):
-        check_grid_memory(small, grid, 8, plan=kernel_plan(small, path))
+
+    def device_of(size: int):
+        return types.SimpleNamespace(info=dataclasses.replace(device.info, global_mem_size=size))
+
+    small, with_copy = device_of(nodes_bytes + 1), device_of(nodes_bytes + grid.nodes * 8 * 4 + 1)
+    check_grid_memory(small, grid, 8, plan=kernel_plan(small, "atomic"))
+    for path in ("private", "gather"):
+        with pytest.raises(InputError, match="of device memory"):
+            check_grid_memory(small, grid, 8, plan=kernel_plan(small, path))
+    check_grid_memory(with_copy, grid, 8, plan=kernel_plan(with_copy, "private"))
     with pytest.raises(InputError, match="of device memory"):
-        check_grid_memory(small, grid, 8, plan=kernel_plan(small, "private"))
+        check_grid_memory(with_copy, grid, 8, plan=kernel_plan(with_copy, "gather"))
+    with_tiles = device_of(nodes_bytes + 8 * p2g_partial_reals(grid.nodes) + 1)
     monkeypatch.setenv(P2G_ENV, "gather")
-    check_grid_memory(small, grid, 8)  # the device's plan, with $CLFLOW_P2G's path
+    check_grid_memory(with_tiles, grid, 8)  # the device's plan, with $CLFLOW_P2G's path
 
 
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-9), (torch.float32, 1e-4)])
@@ -302,3 +310,35 @@ def test_the_gather_sorts_particles_by_cell_and_sums_each_node_in_that_order():
     nx, ny, nz = gather.grid.resolution
     cell = (base[:, 0] * ny + base[:, 1]) * nz + base[:, 2]
     assert torch.equal(order, torch.sort(cell, stable=True).indices)  # by cell, then index
+
+
+@pytest.mark.parametrize("flip", [0.0, 0.95])
+def test_the_gather_reads_each_particle_once_and_sums_as_the_private_copies(flip):
+    """The gather P2G over blocks of cells reads each particle from global memory once a
+    substep (counted by the kernel itself), in a scene of 400 particles in two cells (runs
+    staged over several stages) beside sparse ones, and its grid equals the private copies'
+    to round-off."""
+    from clflow.mpm.substep import SubstepKernels
+    from clflow.runtime.arrays import DeviceArray
+
+    gen = torch.Generator().manual_seed(3)
+    dense = 0.5 + 0.05 * torch.rand(400, 3, generator=gen, dtype=torch.float64)  # cells of 1/16 m
+    sparse = 0.2 + 0.6 * torch.rand(300, 3, generator=gen, dtype=torch.float64)
+    x = torch.cat([dense, sparse])
+    v = 0.3 * torch.randn(x.shape, generator=gen, dtype=torch.float64)
+    sims = [
+        moving_scene(x, v, MATERIAL_CASES, Grid((16, 16, 16), 1 / 16), p2g=mode, flip=flip)
+        for mode in ("private", "gather")
+    ]
+    grids = []
+    for sim in sims:
+        sim.step()
+        kernels = SubstepKernels(
+            sim.device, sim.dtype, sim.n, sim.grid, sim.particles.material, sim.kernels.p2g, sim.flip, count_reads=True
+        )
+        tape, state = kernels.empty_tape(), sim.device_state
+        clamped = DeviceArray.zeros(sim.device, (sim.n,), torch.uint8)
+        kernels.run(state, state.empty_like(), sim.substep_inputs(), clamped, tape)
+        grids.append(tape.grid_mv.read())
+    assert int(kernels.p2g_reads.read()[0]) == sims[1].n
+    assert rel_diff(grids[1], grids[0]) < 1e-12

@@ -1,8 +1,8 @@
 """The GPU plan's kernels under oclgrind: no out-of-bounds access, no data race (the
 work-group scan in its two-launch form, and in one over block sums counted with the keys,
 and radix sort with their barriers and local memory, the counting sort's integer atomics,
-the stress kernels that key the particles by cell, the cell-sorted gather P2G with its
-order_pack, G2P and G2P adjoint, APIC and the PIC/FLIP blend)."""
+the stress kernels that key the particles by cell, the cell-sorted gather P2G over blocks
+with its local memory and barriers, G2P and G2P adjoint, APIC and the PIC/FLIP blend)."""
 
 import textwrap
 
