@@ -191,9 +191,11 @@ def test_resume_refuses_a_changed_config_and_names_what_changed(tmp_path):
 
 
 def observed_flow_of(cfg, prepared, frames):
-    """View 0's guidance frames at the simulation's frame times, their flow and its confidence,
-    cached in output/observed_flow.npz, as the optimiser reads them."""
-    from clflow.pipeline.fit.guidance import cached_observed_flow, guidance_video, observed_flow_cache
+    """View 0's guidance frames at the simulation's frame times (stabilised as the config
+    asks), their flow and its confidence, cached in output/observed_flow.npz, as the optimiser
+    reads them."""
+    from clflow.pipeline.fit.guidance import cached_observed_flow, guidance_video, observed_flow_cache, static_pixels
 
     video = guidance_video(cfg, cfg.video, prepared.camera, frames)
-    return (video.frames, *cached_observed_flow(cfg, cfg.video, video.frames, observed_flow_cache(cfg, 0)))
+    static = static_pixels(prepared, prepared.camera)
+    return cached_observed_flow(cfg, cfg.video, video.frames, static, observed_flow_cache(cfg, 0))[:3]

@@ -59,25 +59,48 @@ def resampled_guidance(cfg: SceneConfig, path: Path | None, frames: int):
 
 
 def cached_observed_flow(
-    cfg: SceneConfig, path: Path, frames: np.ndarray, cache: Path
-) -> tuple[np.ndarray, np.ndarray]:
-    """Optical flow [T, H, W, 2] of ``frames`` [T+1, H, W, 3] (the video at ``path``) and its
-    confidence [T, H, W], cached in ``cache``."""
+    cfg: SceneConfig, path: Path, frames: np.ndarray, static: np.ndarray, cache: Path
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict | None]:
+    """The guidance ``frames`` [T+1, H, W, 3] (the video at ``path``) stabilised over the
+    ``static`` [H, W] pixels where ``flow.stabilise`` asks (clflow.flow.stabilise), their
+    optical flow [T, H, W, 2] and its confidence [T, H, W], cached in ``cache``, and what the
+    stabilisation removed (its record; None without one)."""
     from clflow.flow.optical_flow import observed_confidence, observed_flow
+    from clflow.flow.stabilise import stabilise
 
-    key = np.array([cfg.flow.method, cfg.flow.preset, cfg.flow.confidence, str(path), str(len(frames) - 1)])
+    flow_cfg = cfg.flow
+    key = np.array(
+        [flow_cfg.method, flow_cfg.preset, flow_cfg.confidence, flow_cfg.stabilise, str(path), str(len(frames) - 1)]
+    )
+    record = None
+    if flow_cfg.stabilise == "static":
+        frames, stabilisation = stabilise(frames, static)
+        record = stabilisation.record()
     try:  # the folder's check proved it clflow's; one of an older clflow, or damaged, is made again
         with np.load(cache, allow_pickle=False) as data:
             if data["key"].tolist() == key.tolist():
-                return data["flow"], data["confidence"]
+                return frames, data["flow"], data["confidence"], record
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
         pass
-    estimator = dict(preset=cfg.flow.preset, source=str(path))
-    flow = observed_flow(frames, cfg.flow.method, **estimator)
-    confidence = observed_confidence(frames, flow, cfg.flow.confidence, cfg.flow.method, **estimator)
+    estimator = dict(preset=flow_cfg.preset, source=str(path))
+    flow = observed_flow(frames, flow_cfg.method, **estimator)
+    confidence = observed_confidence(frames, flow, flow_cfg.confidence, flow_cfg.method, **estimator)
     with atomic_path(cache) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, flow=flow, confidence=confidence, key=key)
-    return flow, confidence
+    return frames, flow, confidence, record
+
+
+def static_pixels(prepared: Prepared, camera) -> np.ndarray:
+    """[H, W] bool: the pixels of ``camera`` that show none of the objects at rest, nor what
+    lies within a sixth of the image of them (where they may move): the scene that should
+    stay still in the guidance video."""
+    import torch.nn.functional as nnf
+
+    with torch.no_grad():
+        alpha = render_object_alpha(prepared.obj_rest, camera)
+    grow = max(4, min(camera.width, camera.height) // 6)
+    near = nnf.max_pool2d((alpha > 0.05).float()[None, None], 2 * grow + 1, stride=1, padding=grow)[0, 0] > 0
+    return ~near.numpy()
 
 
 def observed_flow_cache(cfg: SceneConfig, view: int) -> Path:
@@ -109,13 +132,16 @@ def loss_mask(cfg: SceneConfig, prepared: Prepared, camera=None, what: str = "th
 @dataclass
 class View:
     """One guidance view: its camera (simulation frame), observed flow [T, H, W, 2], loss
-    weight [T, H, W] (mask x confidence), loss mask [H, W] and video frames [T+1, H, W, 3]."""
+    weight [T, H, W] (mask x confidence), loss mask [H, W], video frames [T+1, H, W, 3] (as
+    the flow saw them: stabilised where ``flow.stabilise`` asks) and what the stabilisation
+    removed (clflow.flow.stabilise.Stabilisation.record; None without one)."""
 
     camera: object  # clflow.splat.cameras.Camera
     observed: torch.Tensor
     weight: torch.Tensor
     mask: torch.Tensor
     video_frames: np.ndarray
+    stabilisation: dict | None = None
 
 
 def guidance_views_of(cfg: SceneConfig, prepared: Prepared, frames: int) -> list[View]:
@@ -137,7 +163,12 @@ def guidance_views_of(cfg: SceneConfig, prepared: Prepared, frames: int) -> list
     ]
     views = []
     for i, (cam, path, video, mask) in enumerate(zip(cameras, paths, videos, masks)):
-        flow, confidence = cached_observed_flow(cfg, path, video.frames, observed_flow_cache(cfg, i))
+        static = static_pixels(prepared, cam)
+        frames, flow, confidence, stabilised = cached_observed_flow(
+            cfg, path, video.frames, static, observed_flow_cache(cfg, i)
+        )
+        if stabilised is not None and stabilised["note"]:
+            log.info("guidance view %d: %s", i, stabilised["note"])
         weight = mask * torch.from_numpy(confidence).double()  # [T, H, W] in [0, 1]
-        views.append(View(cam, torch.from_numpy(flow).double(), weight, mask, video.frames))
+        views.append(View(cam, torch.from_numpy(flow).double(), weight, mask, frames, stabilised))
     return views

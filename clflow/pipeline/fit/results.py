@@ -178,6 +178,8 @@ class Results:
             metrics["line_search"] = state.line_search
         if self.guidance:
             metrics["guidance_checks"] = [check.record() for check in self.guidance]
+        if any(view.stabilisation is not None for view in self.problem.views):  # per view: what flow.stabilise removed
+            metrics["stabilisation"] = [view.stabilisation for view in self.problem.views]
         if self.guidance_warnings:  # forced past a failed guidance check (--force-video)
             metrics["warnings"] = list(self.guidance_warnings)
         self.warn_identifiability(metrics["identifiability"])

@@ -37,6 +37,9 @@ from clflow.scene.config.optimize_settings import VELOCITY, VELOCITY_COMPONENTS,
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 FLOW_METHODS = ("dis", "farneback")
 FLOW_LOSSES = ("l2", "charbonnier")
+#: flow.stabilise: ``static`` registers the guidance to its first frame's camera and exposure
+#: over the pixels outside the objects (clflow.flow.stabilise); ``none`` takes it as it is
+STABILISATIONS = ("static", "none")
 MATERIAL_MODELS = {"elastic": ELASTIC_MODELS, "sand": SAND_MODELS}  # material.model options
 
 
@@ -391,6 +394,14 @@ class FlowSettings:
         doc="`none` (every pixel of the mask counts fully) or `forward_backward` (each pixel weighted by the "
         "forward-backward consistency of the observed flow, 0 where it leaves the frame)",
     )
+    stabilise: str = setting(
+        "static",
+        kind="choice",
+        choices=STABILISATIONS,
+        doc="`static` (each guidance frame registered to the first's camera and exposure over the pixels outside "
+        "the objects before the flow: a shaking camera's motion and a flickering exposure taken out; a steady, "
+        'evenly lit video is left as it is; docs/flow.md, "Stabilising the guidance") or `none`',
+    )
     bias_correction: str = setting(  # the estimator's error on the simulation, subtracted
         DEFAULT_BIAS_CORRECTION,
         kind="choice",
@@ -533,6 +544,7 @@ __all__ = [
     "DEFAULT_MAX_SUBSTEPS",
     "FLOW_LOSSES",
     "FLOW_METHODS",
+    "STABILISATIONS",
     "FillSettings",
     "FlowSettings",
     "ForceStage",

@@ -1,0 +1,215 @@
+"""A guidance video registered to its first frame's camera and exposure over the static
+pixels, before its optical flow: what a hand-held or generated video's drifting camera and
+flickering exposure add to the flow, taken out.
+
+    static = ~grown_object_mask                                # bool [H, W]
+    frames, stabilisation = stabilise(video.frames, static)    # [T, H, W, 3] uint8
+    stabilisation.record()                                     # for metrics.json
+
+The static pixels (the scene outside the objects) should neither move nor change brightness.
+For each frame t >= 1 corners of frame 0's static part are tracked into frame t (pyramidal
+Lucas-Kanade, each frame first matched to frame 0's static mean and spread, both ways; the
+points whose round trip misses by over 0.5 px dropped) and a similarity (rotation, scale,
+translation) from frame t to frame 0 fitted to them by RANSAC; frame t is warped by it. Then
+each channel's gain and offset to frame 0 are fitted over the registered static pixels
+(least squares on both frames a little smoothed, again without the outliers) and applied. A correction smaller than
+what it could resolve (a warp moving no pixel by MOTION_FLOOR_PX, an exposure changing no
+grey level by half a level) is not applied, so a steady, evenly lit video, a rendering among
+them, comes back the same bits. Without MIN_FEATURES trackable corners in the static part
+(a plain backdrop) the camera is left alone and the record says so: a flat background shows
+no camera motion, and none can be removed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from clflow.errors import InputError
+
+#: a warp that moves no pixel of the frame by more than this (px) is not applied
+MOTION_FLOOR_PX = 0.1
+#: an exposure correction that changes no grey level by more than this is not applied
+EXPOSURE_FLOOR = 0.5
+#: fewest tracked static corners that fit a camera motion
+MIN_FEATURES = 24
+#: fewest static pixels that fit an exposure
+MIN_STATIC_PIXELS = 400
+#: the exposure is fitted on both frames under a Gaussian of this standard deviation (px):
+#: JPEG's blocks and the warp's interpolation average out (on the quick torus under the
+#: realistic degradation the fitted levels came closest to the truth's at 1 px: docs/flow.md)
+EXPOSURE_SMOOTHING_PX = 1.0
+
+
+@dataclass(frozen=True)
+class Stabilisation:
+    """What :func:`stabilise` removed from each of a video's T frames.
+
+    warps: [T, 2, 3] the similarity taking frame t's pixels to frame 0's (identity where not
+        applied); motion_px: [T] the farthest a pixel of frame t was moved (0 where not);
+    gains, offsets: [T, C] each channel's exposure correction (frame 0's level = gain x
+        frame t's + offset; 1 and 0 where not applied);
+    features: [T] static corners the warp was fitted to (0 for frame 0); note: why the
+        camera motion was left alone, or ""."""
+
+    warps: np.ndarray
+    motion_px: np.ndarray
+    gains: np.ndarray
+    offsets: np.ndarray
+    features: np.ndarray
+    note: str = ""
+
+    def record(self) -> dict:
+        """The summary for metrics.json: the largest and mean motion removed (px), the
+        largest exposure change (grey levels at mid-grey), the frames changed, the note."""
+        mid = np.abs(self.gains * 127.5 + self.offsets - 127.5)
+        changed = (self.motion_px > 0) | (mid.max(axis=1) > 0)
+        return {
+            "motion_removed_px": {"max": float(self.motion_px.max()), "mean": float(self.motion_px[1:].mean())},
+            "exposure_removed_grey_levels": float(mid.max()),
+            "frames_changed": int(changed.sum()),
+            "frames": len(self.motion_px),
+            "min_features": int(self.features[1:].min()) if len(self.features) > 1 else 0,
+            "note": self.note,
+        }
+
+
+def _grey(frame: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY) if frame.ndim == 3 else frame
+
+
+def _matched(grey: np.ndarray, reference: np.ndarray, static: np.ndarray) -> np.ndarray:
+    """``grey`` [H, W] uint8 with its static pixels' mean and spread made ``reference``'s
+    (tracking then sees the same brightness in both)."""
+    a, b = grey[static].astype(np.float64), reference[static].astype(np.float64)
+    scale = b.std() / max(a.std(), 1e-6)
+    return np.clip((grey - a.mean()) * scale + b.mean() + 0.5, 0, 255).astype(np.uint8)
+
+
+def _smooth(levels: np.ndarray) -> np.ndarray:
+    """[H, W] float grey levels under a Gaussian of EXPOSURE_SMOOTHING_PX."""
+    import cv2
+
+    return cv2.GaussianBlur(levels, (0, 0), EXPOSURE_SMOOTHING_PX, borderType=cv2.BORDER_REFLECT101)
+
+
+def _displacement(warp: np.ndarray, width: int, height: int) -> float:
+    """The farthest (px) ``warp`` [2, 3] moves a pixel of a width x height frame (at a corner)."""
+    corners = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1]], np.float64)
+    moved = corners @ warp[:, :2].T + warp[:, 2]
+    return float(np.linalg.norm(moved - corners, axis=1).max())
+
+
+def camera_warp(
+    frame: np.ndarray, first: np.ndarray, static: np.ndarray, corners: np.ndarray
+) -> tuple[np.ndarray | None, int]:
+    """The similarity [2, 3] taking ``frame``'s pixels to ``first``'s (grey [H, W] uint8),
+    fitted to the static ``corners`` [n, 1, 2] float32 of ``first`` tracked into ``frame``;
+    None when fewer than MIN_FEATURES track both ways. Also the corners it was fitted to."""
+    import cv2
+
+    lk = dict(winSize=(21, 21), maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.01))
+    matched = _matched(frame, first, static)
+    ahead, ok_ahead, _ = cv2.calcOpticalFlowPyrLK(first, matched, corners, None, **lk)
+    back, ok_back, _ = cv2.calcOpticalFlowPyrLK(matched, first, ahead, None, **lk)
+    good = (ok_ahead[:, 0] == 1) & (ok_back[:, 0] == 1) & (np.linalg.norm((back - corners)[:, 0], axis=1) < 0.5)
+    if good.sum() < MIN_FEATURES:
+        return None, int(good.sum())
+    warp, inliers = cv2.estimateAffinePartial2D(
+        ahead[good], corners[good], method=cv2.RANSAC, ransacReprojThreshold=1.0, maxIters=4000, confidence=0.999
+    )
+    if warp is None or int(inliers.sum()) < MIN_FEATURES:
+        return None, 0 if inliers is None else int(inliers.sum())
+    return warp, int(inliers.sum())
+
+
+def exposure_fit(frame: np.ndarray, first: np.ndarray, static: np.ndarray) -> tuple[float, float]:
+    """(gain, offset) with ``first`` ~ gain x ``frame`` + offset over the ``static`` pixels
+    of one channel (float [H, W]), neither end of the 8-bit range: least squares, then again
+    without the pixels more than 3 robust spreads off (a moving part that left the mask)."""
+    use = static & (frame > 2) & (frame < 253) & (first > 2) & (first < 253)
+    x, y = frame[use].astype(np.float64), first[use].astype(np.float64)
+    if x.size < MIN_STATIC_PIXELS or x.std() < 1.0:
+        return 1.0, 0.0
+    keep = np.ones(x.size, bool)
+    for _ in range(2):
+        gain, offset = np.polyfit(x[keep], y[keep], 1)
+        residual = y - (gain * x + offset)
+        spread = 1.4826 * np.median(np.abs(residual[keep] - np.median(residual[keep])))
+        keep = np.abs(residual) <= 3 * spread + 1.0
+        if keep.sum() < MIN_STATIC_PIXELS:
+            return 1.0, 0.0
+    return float(gain), float(offset)
+
+
+def stabilise(frames: np.ndarray, static: np.ndarray) -> tuple[np.ndarray, Stabilisation]:
+    """``frames`` [T, H, W(, 3)] uint8 registered to frame 0's camera and exposure over the
+    ``static`` [H, W] bool pixels (module docstring); the frames (a new array, or ``frames``
+    itself when nothing was applied) and what was removed."""
+    import cv2
+
+    frames = np.asarray(frames)
+    if frames.dtype != np.uint8 or frames.ndim not in (3, 4) or len(frames) < 2:
+        raise InputError(
+            f"stabilise: frames must be [T, H, W(, 3)] uint8 with T >= 2, got {frames.dtype} {frames.shape}"
+        )
+    static = np.asarray(static, bool)
+    if static.shape != frames.shape[1:3]:
+        raise InputError(f"stabilise: the static mask is {static.shape}, the frames {frames.shape[1:3]}")
+    count, height, width = len(frames), frames.shape[1], frames.shape[2]
+    channels = frames.shape[3] if frames.ndim == 4 else 1
+    warps = np.repeat(np.eye(2, 3)[None], count, axis=0)
+    motion = np.zeros(count)
+    gains, offsets = np.ones((count, channels)), np.zeros((count, channels))
+    features = np.zeros(count, int)
+    note = ""
+    greys = [_grey(f) for f in frames]
+    reference = np.stack(
+        [_smooth(c) for c in np.moveaxis(frames[0].astype(np.float64).reshape(height, width, channels), -1, 0)], -1
+    )
+    inner = cv2.erode(static.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0  # corners off the mask's edge
+    corners = cv2.goodFeaturesToTrack(greys[0], 400, 0.01, 5, mask=inner.astype(np.uint8) * 255, blockSize=5)
+    if corners is None or len(corners) < MIN_FEATURES:
+        note = f"the camera's motion is not removed: {0 if corners is None else len(corners)} static corners to track, {MIN_FEATURES} needed"
+    out = frames.copy()
+    changed = False
+    for t in range(1, count):
+        frame = frames[t]
+        seen = static
+        if not note:
+            warp, features[t] = camera_warp(greys[t], greys[0], static, corners.astype(np.float32))
+            if warp is not None and _displacement(warp, width, height) > MOTION_FLOOR_PX:
+                warps[t], motion[t] = warp, _displacement(warp, width, height)
+                frame = cv2.warpAffine(
+                    frame, warp, (width, height), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE
+                )
+                margin = int(np.ceil(motion[t])) + 2  # the replicated border is no evidence of exposure
+                seen = static.copy()
+                seen[:margin], seen[-margin:], seen[:, :margin], seen[:, -margin:] = False, False, False, False
+        levels = frame.astype(np.float64).reshape(height, width, channels)
+        corrected = levels.copy()
+        for c in range(channels):
+            # fitted on both frames smoothed alike: the warp's interpolation softens frame t
+            # alone, which would tilt the fit towards a higher gain
+            gain, offset = exposure_fit(_smooth(levels[..., c]), reference[..., c], seen)
+            if max(abs(offset), abs(255 * gain + offset - 255)) > EXPOSURE_FLOOR:
+                gains[t, c], offsets[t, c] = gain, offset
+                corrected[..., c] = gain * levels[..., c] + offset
+        if motion[t] > 0 or (gains[t] != 1).any() or (offsets[t] != 0).any():
+            out[t] = np.clip(corrected + 0.5, 0, 255).astype(np.uint8).reshape(frames.shape[1:])
+            changed = True
+    return (out if changed else frames), Stabilisation(warps, motion, gains, offsets, features, note)
+
+
+__all__ = [
+    "EXPOSURE_FLOOR",
+    "MIN_FEATURES",
+    "MOTION_FLOOR_PX",
+    "Stabilisation",
+    "camera_warp",
+    "exposure_fit",
+    "stabilise",
+]
