@@ -167,6 +167,7 @@ def run_case(
         final_loss=metrics["flow_loss"],
         truth_loss=truth_loss,
         identifiability=metrics["identifiability"],
+        stabilisation=metrics.get("stabilisation"),  # per view: what flow.stabilise removed
         iterations=len(state.history),
         substeps=state.substeps,
         generation_seconds=generated - start,
