@@ -32,8 +32,9 @@ from clflow.errors import InputError
 MOTION_FLOOR_PX = 0.1
 #: an exposure correction that changes no grey level by more than this is not applied
 EXPOSURE_FLOOR = 0.5
-#: fewest tracked static corners that fit a camera motion
-MIN_FEATURES = 24
+#: fewest tracked static corners that fit a camera motion (a similarity has 4 degrees of
+#: freedom; RANSAC needs a margin of them to reject a moving part)
+MIN_FEATURES = 12
 #: fewest static pixels that fit an exposure
 MIN_STATIC_PIXELS = 400
 #: the exposure is fitted on both frames under a Gaussian of this standard deviation (px):

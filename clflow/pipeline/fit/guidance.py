@@ -92,13 +92,14 @@ def cached_observed_flow(
 
 def static_pixels(prepared: Prepared, camera) -> np.ndarray:
     """[H, W] bool: the pixels of ``camera`` that show none of the objects at rest, nor what
-    lies within a sixth of the image of them (where they may move): the scene that should
-    stay still in the guidance video."""
+    lies within a twelfth of the image of them (as the loss mask grows them): the scene that
+    should stay still in the guidance video (where an object moves farther, the
+    stabilisation's robust fits drop it)."""
     import torch.nn.functional as nnf
 
     with torch.no_grad():
         alpha = render_object_alpha(prepared.obj_rest, camera)
-    grow = max(4, min(camera.width, camera.height) // 6)
+    grow = max(2, min(camera.width, camera.height) // 12)
     near = nnf.max_pool2d((alpha > 0.05).float()[None, None], 2 * grow + 1, stride=1, padding=grow)[0, 0] > 0
     return ~near.numpy()
 
