@@ -12,10 +12,10 @@ Lucas-Kanade, each frame first matched to frame 0's static mean and spread, both
 points whose round trip misses by over 0.5 px dropped) and a similarity (rotation, scale,
 translation) from frame t to frame 0 fitted to them by RANSAC; frame t is warped by it. Then
 each channel's gain and offset to frame 0 are fitted over the registered static pixels
-(least squares on both frames a little smoothed, again without the outliers) and applied. A correction smaller than
-what it could resolve (a warp moving no pixel by MOTION_FLOOR_PX, an exposure changing no
-grey level by half a level) is not applied, so a steady, evenly lit video, a rendering among
-them, comes back the same bits. Without MIN_FEATURES trackable corners in the static part
+(least squares on both frames a little smoothed, again without the outliers) and applied.
+A correction smaller than what it could resolve (a warp moving no pixel by MOTION_FLOOR_PX,
+an exposure changing no grey level by EXPOSURE_FLOOR) is not applied, so a steady, evenly
+lit video, a rendering among them, comes back the same bits. Without MIN_FEATURES trackable corners in the static part
 (a plain backdrop) the camera is left alone and the record says so: a flat background shows
 no camera motion, and none can be removed.
 """
@@ -182,8 +182,9 @@ def stabilise(frames: np.ndarray, static: np.ndarray) -> tuple[np.ndarray, Stabi
         seen = static
         if not note:
             warp, features[t] = camera_warp(greys[t], greys[0], static, corners.astype(np.float32))
-            if warp is not None and _displacement(warp, width, height) > MOTION_FLOOR_PX:
-                warps[t], motion[t] = warp, _displacement(warp, width, height)
+            moved = 0.0 if warp is None else _displacement(warp, width, height)
+            if moved > MOTION_FLOOR_PX:
+                warps[t], motion[t] = warp, moved
                 frame = cv2.warpAffine(
                     frame, warp, (width, height), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE
                 )
