@@ -8,7 +8,7 @@ flickering exposure add to the flow, taken out.
 
 The static pixels (the scene outside the objects) should neither move nor change brightness.
 For each frame t >= 1 corners of frame 0's static part are tracked into frame t (pyramidal
-Lucas-Kanade, each frame first matched to frame 0's static mean and spread, both ways; the
+Lucas-Kanade, each frame's levels first fitted to frame 0's over them, both ways; the
 points whose round trip misses by over 0.5 px dropped) and a similarity (rotation, scale,
 translation) from frame t to frame 0 fitted to them by RANSAC; frame t is warped by it. Then
 each channel's gain and offset to frame 0 are fitted over the registered static pixels
@@ -83,11 +83,13 @@ def _grey(frame: np.ndarray) -> np.ndarray:
 
 
 def _matched(grey: np.ndarray, reference: np.ndarray, static: np.ndarray) -> np.ndarray:
-    """``grey`` [H, W] uint8 with its static pixels' mean and spread made ``reference``'s
-    (tracking then sees the same brightness in both)."""
-    a, b = grey[static].astype(np.float64), reference[static].astype(np.float64)
-    scale = b.std() / max(a.std(), 1e-6)
-    return np.clip((grey - a.mean()) * scale + b.mean() + 0.5, 0, 255).astype(np.uint8)
+    """``grey`` [H, W] uint8 with its static pixels' levels fitted to ``reference``'s
+    (:func:`exposure_fit`; tracking then sees the same brightness in both), or ``grey``
+    itself where the fit changes nothing."""
+    gain, offset = exposure_fit(grey.astype(np.float64), reference.astype(np.float64), static)
+    if (gain, offset) == (1.0, 0.0):
+        return grey
+    return np.clip(gain * grey + offset + 0.5, 0, 255).astype(np.uint8)
 
 
 def _smooth(levels: np.ndarray) -> np.ndarray:
@@ -120,7 +122,7 @@ def camera_warp(
     if good.sum() < MIN_FEATURES:
         return None, int(good.sum())
     warp, inliers = cv2.estimateAffinePartial2D(
-        ahead[good], corners[good], method=cv2.RANSAC, ransacReprojThreshold=1.0, maxIters=4000, confidence=0.999
+        ahead[good], corners[good], method=cv2.LMEDS, maxIters=4000, confidence=0.999
     )
     if warp is None or int(inliers.sum()) < MIN_FEATURES:
         return None, 0 if inliers is None else int(inliers.sum())
@@ -129,20 +131,24 @@ def camera_warp(
 
 def exposure_fit(frame: np.ndarray, first: np.ndarray, static: np.ndarray) -> tuple[float, float]:
     """(gain, offset) with ``first`` ~ gain x ``frame`` + offset over the ``static`` pixels
-    of one channel (float [H, W]), neither end of the 8-bit range: least squares, then again
-    without the pixels more than 3 robust spreads off (a moving part that left the mask)."""
+    of one channel (float [H, W]), neither end of the 8-bit range: least squares over the
+    pixels whose change is within 3 robust spreads of the median change, then again over
+    those within 3 robust spreads of that fit (a moving part that left the mask is neither)."""
     use = static & (frame > 2) & (frame < 253) & (first > 2) & (first < 253)
     x, y = frame[use].astype(np.float64), first[use].astype(np.float64)
     if x.size < MIN_STATIC_PIXELS or x.std() < 1.0:
         return 1.0, 0.0
-    keep = np.ones(x.size, bool)
+    # the start: the pixels whose change is near the typical change (a gain moves levels
+    # apart by a few grey levels; a moving part that left the mask, or passed through, by more)
+    change = y - x
+    keep = np.abs(change - np.median(change)) <= 3 * 1.4826 * np.median(np.abs(change - np.median(change))) + 1.0
     for _ in range(2):
+        if keep.sum() < MIN_STATIC_PIXELS:
+            return 1.0, 0.0
         gain, offset = np.polyfit(x[keep], y[keep], 1)
         residual = y - (gain * x + offset)
         spread = 1.4826 * np.median(np.abs(residual[keep] - np.median(residual[keep])))
         keep = np.abs(residual) <= 3 * spread + 1.0
-        if keep.sum() < MIN_STATIC_PIXELS:
-            return 1.0, 0.0
     return float(gain), float(offset)
 
 
