@@ -170,6 +170,16 @@ def guidance_views_of(cfg: SceneConfig, prepared: Prepared, frames: int) -> list
         )
         if stabilised is not None and stabilised["note"]:
             log.info("guidance view %d: %s", i, stabilised["note"])
+        if stabilised is not None and stabilised["frames_changed"]:
+            log.info(
+                "guidance view %d stabilised: %d of %d frames registered to the first (camera motion up to %.2f px, "
+                "exposure up to %.1f grey levels removed)",
+                i,
+                stabilised["frames_changed"],
+                stabilised["frames"],
+                stabilised["motion_removed_px"]["max"],
+                stabilised["exposure_removed_grey_levels"],
+            )
         weight = mask * torch.from_numpy(confidence).double()  # [T, H, W] in [0, 1]
         views.append(View(cam, torch.from_numpy(flow).double(), weight, mask, frames, stabilised))
     return views
