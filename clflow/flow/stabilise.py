@@ -7,17 +7,20 @@ flickering exposure add to the flow, taken out.
     stabilisation.record()                                     # for metrics.json
 
 The static pixels (the scene outside the objects) should neither move nor change brightness.
-For each frame t >= 1 corners of frame 0's static part are tracked into frame t (pyramidal
-Lucas-Kanade, each frame's levels first fitted to frame 0's over them, both ways; the
-points whose round trip misses by over 0.5 px dropped) and a similarity (rotation, scale,
-translation) from frame t to frame 0 fitted to them by RANSAC; frame t is warped by it. Then
-each channel's gain and offset to frame 0 are fitted over the registered static pixels
-(least squares on both frames a little smoothed, again without the outliers) and applied.
-A correction smaller than what it could resolve (a warp moving no pixel by MOTION_FLOOR_PX,
-an exposure changing no grey level by EXPOSURE_FLOOR) is not applied, so a steady, evenly
-lit video, a rendering among them, comes back the same bits. Without MIN_FEATURES trackable corners in the static part
-(a plain backdrop) the camera is left alone and the record says so: a flat background shows
-no camera motion, and none can be removed.
+For each frame t >= 1 corners of frame 0's static part are tracked into frame t, starting
+where the frame before's warp puts them (a drifting camera's frame t is far from frame 0 but
+near its predecessor), by pyramidal Lucas-Kanade (frame t's levels first fitted to frame
+0's over them), both ways; the points whose round trip misses by over 0.5 px are dropped, and a
+similarity (rotation, scale, translation) from frame t to frame 0 is fitted to the rest by
+least median of squares; frame t is warped by it. Then each channel's gain and offset to
+frame 0 are fitted over the registered static pixels (least squares on both frames a little
+smoothed, again without the outliers) and applied. A correction smaller than what it could
+resolve (a warp moving no pixel by MOTION_FLOOR_PX, an exposure changing no grey level by
+EXPOSURE_FLOOR) is not applied, so a steady, evenly lit video, a rendering among them,
+comes back the same bits. Without MIN_FEATURES trackable corners in the static part (a
+plain backdrop) the camera is left alone and the record says so: a flat background shows
+no camera motion, and none can be removed; a frame into which too few corners track is left
+as it is, and named.
 """
 
 from __future__ import annotations
@@ -32,9 +35,9 @@ from clflow.errors import InputError
 MOTION_FLOOR_PX = 0.1
 #: an exposure correction that changes no grey level by more than this is not applied
 EXPOSURE_FLOOR = 0.5
-#: fewest tracked static corners that fit a camera motion (a similarity has 4 degrees of
-#: freedom; RANSAC needs a margin of them to reject a moving part)
-MIN_FEATURES = 12
+#: fewest tracked static corners that fit a camera motion: twice the similarity's 4 degrees
+#: of freedom (the quick demo's 96 px guidance keeps 11 into its last frame under a 4 px drift)
+MIN_FEATURES = 8
 #: fewest static pixels that fit an exposure
 MIN_STATIC_PIXELS = 400
 #: the exposure is fitted on both frames under a Gaussian of this standard deviation (px):
@@ -99,6 +102,17 @@ def _smooth(levels: np.ndarray) -> np.ndarray:
     return cv2.GaussianBlur(levels, (0, 0), EXPOSURE_SMOOTHING_PX, borderType=cv2.BORDER_REFLECT101)
 
 
+def _warped(image: np.ndarray, warp: np.ndarray) -> np.ndarray:
+    """``image`` [H, W(, C)] moved by the affine ``warp`` [2, 3] (bicubic, the border
+    replicated); ``image`` itself for the identity."""
+    import cv2
+
+    if (warp == np.eye(2, 3)).all():
+        return image
+    height, width = image.shape[:2]
+    return cv2.warpAffine(image, warp, (width, height), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+
+
 def _displacement(warp: np.ndarray, width: int, height: int) -> float:
     """The farthest (px) ``warp`` [2, 3] moves a pixel of a width x height frame (at a corner)."""
     corners = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1]], np.float64)
@@ -107,17 +121,25 @@ def _displacement(warp: np.ndarray, width: int, height: int) -> float:
 
 
 def camera_warp(
-    frame: np.ndarray, first: np.ndarray, static: np.ndarray, corners: np.ndarray
+    frame: np.ndarray, first: np.ndarray, static: np.ndarray, corners: np.ndarray, guess: np.ndarray
 ) -> tuple[np.ndarray | None, int]:
     """The similarity [2, 3] taking ``frame``'s pixels to ``first``'s (grey [H, W] uint8),
-    fitted to the static ``corners`` [n, 1, 2] float32 of ``first`` tracked into ``frame``;
-    None when fewer than MIN_FEATURES track both ways. Also the corners it was fitted to."""
+    fitted to the static ``corners`` [n, 1, 2] float32 of ``first`` tracked into ``frame``
+    from where ``guess`` [2, 3] (a warp from ``frame`` to ``first``: the frame before's)
+    puts them; None when fewer than MIN_FEATURES track both ways. Also the corners it was
+    fitted to."""
     import cv2
 
     lk = dict(winSize=(21, 21), maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.01))
     matched = _matched(frame, first, static)
-    ahead, ok_ahead, _ = cv2.calcOpticalFlowPyrLK(first, matched, corners, None, **lk)
-    back, ok_back, _ = cv2.calcOpticalFlowPyrLK(matched, first, ahead, None, **lk)
+    inverse = cv2.invertAffineTransform(guess)
+    start = (corners @ inverse[:, :2].T + inverse[:, 2]).astype(np.float32)
+    ahead, ok_ahead, _ = cv2.calcOpticalFlowPyrLK(
+        first, matched, corners, start, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk
+    )
+    back, ok_back, _ = cv2.calcOpticalFlowPyrLK(
+        matched, first, ahead, corners.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk
+    )
     good = (ok_ahead[:, 0] == 1) & (ok_back[:, 0] == 1) & (np.linalg.norm((back - corners)[:, 0], axis=1) < 0.5)
     if good.sum() < MIN_FEATURES:
         return None, int(good.sum())
@@ -178,23 +200,26 @@ def stabilise(frames: np.ndarray, static: np.ndarray) -> tuple[np.ndarray, Stabi
         [_smooth(c) for c in np.moveaxis(frames[0].astype(np.float64).reshape(height, width, channels), -1, 0)], -1
     )
     inner = cv2.erode(static.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0  # corners off the mask's edge
-    corners = cv2.goodFeaturesToTrack(greys[0], 400, 0.01, 5, mask=inner.astype(np.uint8) * 255, blockSize=5)
+    corners = cv2.goodFeaturesToTrack(greys[0], 400, 0.005, 3, mask=inner.astype(np.uint8) * 255, blockSize=5)
     if corners is None or len(corners) < MIN_FEATURES:
         note = f"the camera's motion is not removed: {0 if corners is None else len(corners)} static corners to track, {MIN_FEATURES} needed"
     out = frames.copy()
     changed = False
+    known = np.eye(2, 3)  # the latest frame's warp: where frame t's search starts (the camera drifts)
+    lost = []  # frames whose camera could not be tracked: left as they are
     for t in range(1, count):
-        frame = frames[t]
-        seen = static
+        frame, seen = frames[t], static
         if not note:
-            warp, features[t] = camera_warp(greys[t], greys[0], static, corners.astype(np.float32))
-            moved = 0.0 if warp is None else _displacement(warp, width, height)
+            warp, features[t] = camera_warp(greys[t], greys[0], static, corners.astype(np.float32), known)
+            if warp is None:
+                lost.append(t)
+                continue
+            known = warp
+            moved = _displacement(warp, width, height)
             if moved > MOTION_FLOOR_PX:
                 warps[t], motion[t] = warp, moved
-                frame = cv2.warpAffine(
-                    frame, warp, (width, height), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE
-                )
-                margin = int(np.ceil(motion[t])) + 2  # the replicated border is no evidence of exposure
+                frame = _warped(frame, warp)
+                margin = int(np.ceil(moved)) + 2  # the replicated border is no evidence of exposure
                 seen = static.copy()
                 seen[:margin], seen[-margin:], seen[:, :margin], seen[:, -margin:] = False, False, False, False
         levels = frame.astype(np.float64).reshape(height, width, channels)
@@ -205,10 +230,15 @@ def stabilise(frames: np.ndarray, static: np.ndarray) -> tuple[np.ndarray, Stabi
             gain, offset = exposure_fit(_smooth(levels[..., c]), reference[..., c], seen)
             if max(abs(offset), abs(255 * gain + offset - 255)) > EXPOSURE_FLOOR:
                 gains[t, c], offsets[t, c] = gain, offset
-                corrected[..., c] = gain * levels[..., c] + offset
+                # a clipped level stays clipped: the sensor's white (a bright sky) was at
+                # least that bright in frame 0 too, and its black as dark
+                channel = levels[..., c]
+                corrected[..., c] = np.where((channel <= 0) | (channel >= 255), channel, gain * channel + offset)
         if motion[t] > 0 or (gains[t] != 1).any() or (offsets[t] != 0).any():
             out[t] = np.clip(corrected + 0.5, 0, 255).astype(np.uint8).reshape(frames.shape[1:])
             changed = True
+    if lost:
+        note = f"frames {', '.join(map(str, lost))} are left as they are: under {MIN_FEATURES} static corners tracked into them"
     return (out if changed else frames), Stabilisation(warps, motion, gains, offsets, features, note)
 
 
