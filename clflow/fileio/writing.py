@@ -346,12 +346,21 @@ def _sync_tree(folder: Path) -> None:
     """fsync every file and folder under ``folder`` (a staged result, before its journal), at
     once from threads: the file system commits concurrent syncs together, where one at a
     time each costs a commit of its own."""
+    paths = [Path(root, name) for root, dirs, files in os.walk(folder) for name in files + dirs]
+    _in_threads(_sync, paths, workers=32)
+    _sync(folder)
+
+
+def _in_threads(fn, items: list, workers: int) -> list:
+    """``[fn(item) for item in items]`` from up to ``workers`` threads, with Ctrl-C and
+    SIGTERM held back until they are done: an exception raised inside concurrent.futures'
+    bookkeeping in this thread (a semaphore's or a future's condition) breaks it (RuntimeError:
+    release unlocked lock, or a worker left waiting on a lock no one releases, which hangs the
+    interpreter's exit), where a stop handled after it is an ordinary KeyboardInterrupt."""
     from concurrent.futures import ThreadPoolExecutor
 
-    paths = [Path(root, name) for root, dirs, files in os.walk(folder) for name in files + dirs]
-    with ThreadPoolExecutor(max_workers=min(32, max(1, len(paths)))) as pool:
-        list(pool.map(_sync, paths))
-    _sync(folder)
+    with _signals_held(), ThreadPoolExecutor(max_workers=max(1, min(workers, len(items)))) as pool:
+        return list(pool.map(fn, items))
 
 
 @contextlib.contextmanager
@@ -414,8 +423,6 @@ def _recorded(record: Record, folder: Path, replaced: set[str]) -> dict[str, str
 def _digests(new: Path) -> dict[str, str]:
     """The record's files of staged result ``new``: each file's digest (hashed from threads:
     SHA-256 lets go of the GIL, so each core hashes a file), each empty folder."""
-    from concurrent.futures import ThreadPoolExecutor
-
     files, folders = {}, {}
     for root, dirs, names in os.walk(new):
         rel = Path(root).relative_to(new).as_posix()
@@ -423,8 +430,7 @@ def _digests(new: Path) -> dict[str, str]:
             files[f"{name}" if rel == "." else f"{rel}/{name}"] = Path(root, name)
         if not dirs and not names and rel != ".":
             folders[f"{rel}/"] = FOLDER
-    with ThreadPoolExecutor(max_workers=max(1, min(len(files), os.cpu_count() or 1))) as pool:
-        digests = dict(zip(files, pool.map(content_digest, files.values())))
+    digests = dict(zip(files, _in_threads(content_digest, list(files.values()), workers=os.cpu_count() or 1)))
     return {**digests, **folders}
 
 

@@ -8,8 +8,9 @@ not, and stale frames of a longer earlier version must go.
 - ``kills FOLDER N SEED``: N times, fork a writer of the next version into FOLDER (its
   moves slowed, so a stop lands inside them too), stop it at a random moment with SIGKILL,
   SIGINT or SIGTERM, then settle the folder as the next run does and check it holds the
-  earlier committed version or the new one, whole, and a record that lists exactly it.
-  Prints a JSON summary.
+  earlier committed version or the new one, whole, and a record that lists exactly it,
+  and that the writer ended as a stop ends it (interrupted or killed; one that failed
+  otherwise or hung is listed as unclean). Prints a JSON summary.
 - ``race FOLDER N WAIT``: fork N writers that start together; each prints a JSON line.
 """
 
@@ -88,7 +89,7 @@ def kills(folder: Path, n: int, seed: int) -> dict:
     began = time.perf_counter()
     write(folder, 0)
     whole = time.perf_counter() - began  # a stop anywhere from before the staging to after the move
-    committed, outcomes, mixed = 0, {"earlier": 0, "new": 0, "stopped in the move": 0}, []
+    committed, outcomes, mixed, unclean = 0, {"earlier": 0, "new": 0, "stopped in the move": 0}, [], []
     for version in range(1, n + 1):
         signal.pthread_sigmask(signal.SIG_BLOCK, STOPS)  # until the child has a command's handlers
         pid = os.fork()
@@ -99,11 +100,17 @@ def kills(folder: Path, n: int, seed: int) -> dict:
                 write(folder, version)
             except KeyboardInterrupt:
                 os._exit(130)
+            except BaseException as exc:  # a stop that broke something else: said, and failed
+                os.write(2, f"version {version}: {exc!r}\n".encode())
+                os._exit(1)
             os._exit(0)
         signal.pthread_sigmask(signal.SIG_UNBLOCK, STOPS)
         time.sleep(rng.uniform(0, 1.2 * whole))
-        os.kill(pid, rng.choice([signal.SIGKILL, signal.SIGKILL, signal.SIGINT, signal.SIGTERM]))
-        os.waitpid(pid, 0)
+        stop = rng.choice([signal.SIGKILL, signal.SIGKILL, signal.SIGINT, signal.SIGTERM])
+        os.kill(pid, stop)
+        status = exited(pid, within=30.0)
+        if status not in (0, 130, -signal.SIGKILL):  # a write ends, is interrupted, or is killed
+            unclean.append({"version": version, "stop": stop.name, "status": status})
         journals = list(folder.glob(".clflow-staging.*/journal.json"))
         outcomes["stopped in the move"] += bool(journals)
         with output_folder(folder):  # the next run: finishes or undoes what the stopped one left
@@ -117,7 +124,21 @@ def kills(folder: Path, n: int, seed: int) -> dict:
             mixed.append({"version": version, "files": files})
         if not recorded_exactly(folder) or any(p.name.startswith(".clflow-staging") for p in folder.iterdir()):
             mixed.append({"version": version, "unrecorded or left staged": sorted(os.listdir(folder))})
-    return {"kills": n, **outcomes, "bad": mixed, "write_s": whole}
+    return {"kills": n, **outcomes, "bad": mixed, "unclean": unclean, "write_s": whole}
+
+
+def exited(pid: int, within: float) -> int:
+    """Child ``pid``'s exit status (its code, or minus the signal that ended it); one that
+    has not ended ``within`` seconds is killed and reported as ``"hung"``."""
+    deadline = time.monotonic() + within
+    while time.monotonic() < deadline:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            return os.waitstatus_to_exitcode(status)
+        time.sleep(0.01)
+    os.kill(pid, signal.SIGKILL)
+    os.waitpid(pid, 0)
+    return "hung"
 
 
 def race(folder: Path, n: int, wait: bool) -> None:
