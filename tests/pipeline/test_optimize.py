@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import logging
 import math
 from types import SimpleNamespace
 
@@ -10,6 +11,7 @@ import pytest
 from clflow.errors import ClflowError
 from clflow.pipeline.fit import Optimization, OptimizerState
 from clflow.pipeline.fit.checkpoint import Checkpoint
+from clflow.pipeline.fit.results import UNEXPLAINED_WARNING, unexplained_warning
 from clflow.pipeline.fit.steps import Steps, horizon, rate_schedule
 from clflow.pipeline.runs import write_results
 from clflow_datasets.demo import TRUTH
@@ -29,6 +31,7 @@ def test_demo_recovers_youngs_modulus_from_a_10x_low_guess(demo_config):
     initial = opt.objective.evaluate(opt.problem.initial_state().z, cfg.simulation.frames, with_grad=False).loss
     assert metrics["flow_loss"] < 0.2 * initial
     assert metrics["relative_error"]["youngs_modulus"] < 0.10
+    assert metrics["unexplained_motion"]["fraction"] < UNEXPLAINED_WARNING and "warnings" not in metrics
     out = cfg.output
     for name in ("params.json", "metrics.json", "history.json", "loss.png", "comparison.mp4", "checkpoint.json"):
         assert (out / name).stat().st_size > 0, name
@@ -36,6 +39,41 @@ def test_demo_recovers_youngs_modulus_from_a_10x_low_guess(demo_config):
     assert record["material"] == "elastic" and record["units"] == {"youngs_modulus": "Pa"}
     assert record["parameters"]["youngs_modulus"] == pytest.approx(final)
     assert not list(out.glob("*.tmp*")), "temporary files left behind"
+
+
+def test_a_video_playing_at_another_speed_leaves_its_motion_unexplained_and_is_warned_of(
+    demo_config, monkeypatch, caplog
+):
+    """At the true material the demo's guidance is explained but for a trace; read as a
+    video played at 0.8x (its motion stretched over 1.25x the frames' real time) no
+    material explains it: the result says so in one line, with the likely causes."""
+    fractions = []
+    for speed in (1.0, 0.8):
+        cfg = demo_config(name=f"speed_{speed}")
+        cfg = dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, fps=cfg.simulation.fps * speed))
+        opt = Optimization(cfg)
+        state = opt.problem.initial_state()
+        state.z["youngs_modulus"] = float(opt.problem.params["youngs_modulus"].encode(TRUTH["youngs_modulus"]))
+        result = opt.objective.evaluate(state.z, cfg.simulation.frames, with_grad=False)
+        opt.objective.calibrate(state, result, cfg.simulation.frames)  # the estimator's error there, as a fit's end
+        fractions.append(opt.objective.unexplained_motion(result)["fraction"])
+    assert fractions[0] < 0.02 < UNEXPLAINED_WARNING < fractions[1], fractions  # measured: 0.1 % and 21 %
+    nothing = {
+        "ranges": {},
+        "weakly_constrained": [],
+        "unresolved": [],
+        "grids": [0],
+        "grid_sensitive": [],
+        "trade_offs": [],
+    }
+    monkeypatch.setattr(opt.diagnostics, "identifiability", lambda *args: nothing)
+    with caplog.at_level(logging.WARNING, logger="clflow"):
+        metrics = opt.results().result_metrics(state, result)
+    line = unexplained_warning(fractions[1])
+    assert metrics["unexplained_motion"]["fraction"] == fractions[1] and metrics["warnings"] == [line]
+    assert [r.getMessage() for r in caplog.records] == [line]
+    assert f"leaves {100 * fractions[1]:.0f} % of the observed motion unexplained" in line
+    assert all(cause in line for cause in ("simulation.fps", "flow.stabilise", "optimize.material"))
 
 
 def test_resume_after_an_interruption_gives_the_uninterrupted_result(demo_config):

@@ -399,3 +399,22 @@ class Objective:
                 ]
             )
         )
+
+    def unexplained_motion(self, result: Evaluation) -> dict[str, float]:
+        """How much of the observed motion the simulation ``result`` leaves unexplained: the
+        mean squared flow residual against the targets (``residual_px2``, weighted per pixel
+        as the loss, over every frame of every view) as a ``fraction`` of the observed flow's
+        own mean square (``still_px2``, the residual of a scene that does not move). An l2
+        ratio whatever ``flow.loss`` is."""
+        residual = still = total_weight = 0.0
+        for k, (view, view_flows) in enumerate(zip(self.problem.views, [result.flows, *result.more_flows])):
+            weight = view.weight[: len(view_flows)]
+            difference = torch.stack(view_flows).double() - self.target(k)[: len(view_flows)]
+            residual += float((weight * (difference**2).sum(-1)).sum())
+            still += float((weight * (view.observed[: len(view_flows)] ** 2).sum(-1)).sum())
+            total_weight += float(weight.sum())
+        return {
+            "residual_px2": residual / total_weight,
+            "still_px2": still / total_weight,
+            "fraction": residual / still if still > 0 else 0.0,
+        }

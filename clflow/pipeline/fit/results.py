@@ -34,6 +34,23 @@ from clflow.scene.config import (
 
 log = logging.getLogger(__name__)
 
+# a fit that leaves more than this fraction of the observed motion unexplained (the squared
+# flow residual over the observed flow's own) is warned of: clean renderings leave under 1 %,
+# the quick set's realistic degradation, stabilised, 3-7 %; a camera left moving 15-52 %
+# (docs/pipeline.md, "A fit that does not explain the video")
+UNEXPLAINED_WARNING = 0.10
+
+
+def unexplained_warning(fraction: float) -> str:
+    """The one line that says a fit leaves ``fraction`` of the observed motion unexplained, and why it may."""
+    return (
+        f"the fit leaves {100 * fraction:.0f} % of the observed motion unexplained (a video the model follows "
+        f"leaves under {100 * UNEXPLAINED_WARNING:.0f} %): the video may play at another speed than real time "
+        "(a generated one often does: set simulation.fps to its frame rate divided by that speed), its camera may "
+        "move in a way flow.stabilise did not take out (is it static, with the objects' surroundings in view?), "
+        "or the material type may be wrong (optimize.material compares hypotheses)"
+    )
+
 
 def comparison_video(view: int) -> str:
     """The results' comparison video of guidance view ``view`` (0: the config's camera)."""
@@ -155,8 +172,9 @@ class Results:
     def result_metrics(self, state: OptimizerState, result) -> dict:
         """metrics.json: the loss and end-point error at the final parameters, the iterations,
         the grids (and the budget's choice), the seconds, the rollbacks, the guidance checks,
-        the identifiability (its warnings logged) and the relative error against the config's
-        ground truth when it has one."""
+        how much of the observed motion the fit leaves unexplained (a warning above
+        UNEXPLAINED_WARNING), the identifiability (its warnings logged) and the relative error
+        against the config's ground truth when it has one."""
         final = self.problem.values(state.z)
         metrics = {
             "flow_loss": result.loss,
@@ -182,6 +200,11 @@ class Results:
             metrics["stabilisation"] = [view.stabilisation for view in self.problem.views]
         if self.guidance_warnings:  # forced past a failed guidance check (--force-video)
             metrics["warnings"] = list(self.guidance_warnings)
+        metrics["unexplained_motion"] = self.objective.unexplained_motion(result)
+        if metrics["unexplained_motion"]["fraction"] > UNEXPLAINED_WARNING:
+            line = unexplained_warning(metrics["unexplained_motion"]["fraction"])
+            log.warning("%s", line)
+            metrics.setdefault("warnings", []).append(line)
         self.warn_identifiability(metrics["identifiability"])
         if self.hypotheses:
             metrics["material_hypotheses"] = self.hypotheses
