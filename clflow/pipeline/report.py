@@ -117,6 +117,9 @@ def write_report(output: Path, staged: Path | None = None) -> Path:
             ("iterations", metrics.get("iterations", "")),
             ("seconds per iteration", f"{metrics.get('seconds_per_iteration', float('nan')):.3g}"),
         ]
+        if "unexplained_motion" in metrics:  # the squared flow residual over the observed flow's own
+            rows.append(("observed motion left unexplained", f"{metrics['unexplained_motion']['fraction']:.1%}"))
+        rows += [("warning", line) for line in metrics.get("warnings", [])]
         if "grid" in metrics:  # nodes along the domain's longest side
             rows.append(("grid: main phase, search (nodes)", f"{metrics['grid']['main']}, {metrics['grid']['search']}"))
         if "budget" in metrics:

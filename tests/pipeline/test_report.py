@@ -1,5 +1,6 @@
 """The results page: index.html and run.json of `clflow optimize`, opened in a headless browser."""
 
+import html
 import json
 import re
 import shutil
@@ -86,6 +87,20 @@ def test_the_page_says_which_parameters_the_video_does_not_resolve(tmp_path):
     assert "weakly constrained: viscosity" in page
     assert "unresolved: viscosity" in page and "loss within 10 % from 0.188 to 18.8 (SI)" in page
     assert "grid-sensitive: bulk_modulus" in page and "fit moves -0.42 (optimiser units) on 51 nodes" in page
+
+
+def test_the_page_says_how_much_motion_the_fit_leaves_unexplained_and_its_warnings(tmp_path):
+    from clflow.pipeline.fit.results import unexplained_warning
+    from clflow.pipeline.report import write_report
+
+    line = unexplained_warning(0.21)
+    motion = {"residual_px2": 0.05, "still_px2": 0.24, "fraction": 0.21}
+    (tmp_path / "metrics.json").write_text(
+        json.dumps({"flow_loss": 0.05, "unexplained_motion": motion, "warnings": [line]})
+    )
+    page = write_report(tmp_path).read_text()
+    assert "observed motion left unexplained</td><td>21.0%" in page.replace("\n", "")
+    assert html.escape(line) in page
 
 
 def test_the_page_gives_each_optimised_parameter_its_range(tmp_path):

@@ -47,7 +47,8 @@ def unexplained_warning(fraction: float) -> str:
         f"the fit leaves {100 * fraction:.0f} % of the observed motion unexplained (a video the model follows "
         f"leaves under {100 * UNEXPLAINED_WARNING:.0f} %): the video may play at another speed than real time "
         "(a generated one often does: set simulation.fps to its frame rate divided by that speed), its camera may "
-        "move in a way flow.stabilise did not take out (is it static, with the objects' surroundings in view?), "
+        "move in a way flow.stabilise did not take out (that needs flow.stabilise: static and some of the objects' "
+        "still surroundings in view), "
         "or the material type may be wrong (optimize.material compares hypotheses)"
     )
 
