@@ -166,6 +166,7 @@ def run_case(
         floor_epe_px=floor_epe,
         final_loss=metrics["flow_loss"],
         truth_loss=truth_loss,
+        unexplained=metrics["unexplained_motion"]["fraction"],  # the share of the observed motion left unexplained
         identifiability=metrics["identifiability"],
         stabilisation=metrics.get("stabilisation"),  # per view: what flow.stabilise removed
         iterations=len(state.history),

@@ -273,6 +273,7 @@ def test_a_quick_case_reaches_the_loss_of_the_ground_truth(tmp_path, name, held,
     history = json.loads((tmp_path / "out" / "cases" / name / "results" / "history.json").read_text())
     assert record["final_loss"] <= 1.2 * record["truth_loss"] < history[0]["loss"]
     assert record["epe_px"] <= 1.05 * record["floor_epe_px"]
+    assert record["unexplained"] < 0.02  # of the observed motion (clean guidance; a warning above 0.1)
     assert sum(record["parameters"][n]["re"] for n in held) / len(held) <= bound, record["parameters"]
     assert set(unsure) <= set(record["identifiability"]["weakly_constrained"])
     assert set(unsure) <= set(record["identifiability"]["grid_sensitive"])
