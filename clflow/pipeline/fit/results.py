@@ -35,9 +35,8 @@ from clflow.scene.config import (
 log = logging.getLogger(__name__)
 
 # a fit that leaves more than this fraction of the observed motion unexplained (the squared
-# flow residual over the observed flow's own) is warned of: clean renderings leave under 1 %,
-# the quick set's realistic degradation, stabilised, 3-7 %; a camera left moving 15-52 %
-# (docs/pipeline.md, "A fit that does not explain the video")
+# flow residual over the observed flow's own) is warned of; what fits leave, clean, degraded,
+# at a wrong playback speed: docs/pipeline.md, "A fit that does not explain the video"
 UNEXPLAINED_WARNING = 0.10
 
 
