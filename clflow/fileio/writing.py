@@ -53,8 +53,10 @@ from clflow.fileio.record import (
     write_record,
 )
 
-#: the signals a result's last moves hold back (Ctrl-C, and what schedulers send)
-HELD_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: the signals a result's last moves hold back (Ctrl-C, what schedulers send, and the alarm
+#: of a sweep's time limit: each handler raises, and an exception inside the moves would
+#: leave them half made)
+HELD_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGALRM)
 STAGING = re.compile(r"\.clflow-staging\.(?P<token>[0-9a-f]{32})")
 CLAIM, JOURNAL = "claim.json", "journal.json"
 
@@ -352,8 +354,8 @@ def _sync_tree(folder: Path) -> None:
 
 
 def _in_threads(fn, items: list, workers: int) -> list:
-    """``[fn(item) for item in items]`` from up to ``workers`` threads, with Ctrl-C and
-    SIGTERM held back until they are done: an exception raised inside concurrent.futures'
+    """``[fn(item) for item in items]`` from up to ``workers`` threads, with HELD_SIGNALS
+    held back until they are done: an exception raised inside concurrent.futures'
     bookkeeping in this thread (a semaphore's or a future's condition) breaks it (RuntimeError:
     release unlocked lock, or a worker left waiting on a lock no one releases, which hangs the
     interpreter's exit), where a stop handled after it is an ordinary KeyboardInterrupt."""
@@ -405,7 +407,7 @@ def atomic_dir(
                 "record": {"files": record.files, "stats": record.stats, "source": record.source},
                 "earlier_record": None if earlier.problem else earlier.to_json(),
             }
-            with _signals_held():  # Ctrl-C or SIGTERM now lands after the move, not inside it
+            with _signals_held():  # Ctrl-C, SIGTERM or a time limit now lands after the move, not inside it
                 _Transaction(path, claim.path, journal).commit()
         finally:
             claim.close()
@@ -526,7 +528,7 @@ def copy_file(source: str | os.PathLike, path: str | os.PathLike) -> None:
 
 @contextlib.contextmanager
 def _signals_held() -> Iterator[None]:
-    """SIGINT and SIGTERM held back until the block ends, then handled as they would have
+    """HELD_SIGNALS held back until the block ends, then the first handled as it would have
     been (in the main thread, where Python handles signals; elsewhere a no-op)."""
     if threading.current_thread() is not threading.main_thread():
         yield

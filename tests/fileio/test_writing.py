@@ -340,7 +340,10 @@ def test_a_link_to_nothing_is_refused_before_the_work(tmp_path):
             pytest.fail("entered")
 
 
-def test_sigterm_inside_the_move_lands_after_it(tmp_path, monkeypatch):
+@pytest.mark.parametrize(
+    "stop", [signal.SIGTERM, signal.SIGALRM], ids=["TERM", "ALRM"]
+)  # a scheduler's, a time limit's
+def test_a_stop_inside_the_move_lands_after_it(tmp_path, monkeypatch, stop):
     out = tmp_path / "out"
     write(out, 1)
     real, moves = os.rename, []
@@ -348,19 +351,19 @@ def test_sigterm_inside_the_move_lands_after_it(tmp_path, monkeypatch):
     def rename(src, dst):
         moves.append(dst)
         if len(moves) == 2:
-            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), stop)
         real(src, dst)
 
     def terminate(signum, frame):
         raise KeyboardInterrupt
 
-    before = signal.signal(signal.SIGTERM, terminate)
+    before = signal.signal(stop, terminate)
     monkeypatch.setattr(writing.os, "rename", rename)
     try:
         with pytest.raises(KeyboardInterrupt):
             write(out, 2)
     finally:
-        signal.signal(signal.SIGTERM, before)
+        signal.signal(stop, before)
     assert len(moves) > 2 and held(out) == result(2) and recorded_exactly(out)
 
 
