@@ -212,9 +212,13 @@ class _Claim:
         return fd
 
     def close(self) -> None:
+        """Let go of the claim and remove the staging folder, unless it holds a journal: a
+        move (or its undo) begun and not ended, by an exception of any kind, which the
+        folder's next holder finishes from it (its claim, no longer locked, is dead)."""
         with _STAGING_LOCK:
             _STAGING.discard(self.path.resolve())
-        shutil.rmtree(self.path, ignore_errors=True)
+        if not (self.path / JOURNAL).exists():
+            shutil.rmtree(self.path, ignore_errors=True)
         os.close(self.fd)
 
 

@@ -96,6 +96,30 @@ atomic_write_text(sys.argv[1], "new")
 """
 
 
+def test_an_exception_of_any_kind_inside_the_move_leaves_it_to_the_next_holder(tmp_path, monkeypatch):
+    """Not an OSError (which is undone at once): the journal and the entries moved aside stay
+    in the staging folder, and whoever holds the folder next finishes the move from them."""
+    out = tmp_path / "out"
+    write(out, 1)
+    real, moves = os.rename, []
+
+    def rename(src, dst):
+        moves.append(dst)
+        if len(moves) == 2:
+            raise MemoryError
+        real(src, dst)
+
+    monkeypatch.setattr(writing.os, "rename", rename)
+    with pytest.raises(MemoryError):
+        write(out, 2)
+    monkeypatch.setattr(writing.os, "rename", real)
+    assert [p.name for p in out.glob(".clflow-staging.*/journal.json")] == ["journal.json"]
+    with output_folder(out):
+        pass
+    assert held(out) == result(2) and recorded_exactly(out)
+    assert [p.name for p in out.iterdir() if p.name.startswith(".clflow-staging")] == []
+
+
 def test_a_file_stopped_between_its_record_and_its_move_is_still_clflows(tmp_path):
     out = tmp_path / "out"
     atomic_write_text(out / "params.json", "old")
