@@ -96,20 +96,31 @@ atomic_write_text(sys.argv[1], "new")
 """
 
 
+def renames_stopped(monkeypatch, at: int, stop) -> tuple:
+    """The writer's renames counted, ``stop()`` called before the ``at``-th; returns the real
+    rename and the list of their destinations."""
+    real, moves = os.rename, []
+
+    def rename(src, dst):
+        moves.append(dst)
+        if len(moves) == at:
+            stop()
+        real(src, dst)
+
+    monkeypatch.setattr(writing.os, "rename", rename)
+    return real, moves
+
+
 def test_an_exception_of_any_kind_inside_the_move_leaves_it_to_the_next_holder(tmp_path, monkeypatch):
     """Not an OSError (which is undone at once): the journal and the entries moved aside stay
     in the staging folder, and whoever holds the folder next finishes the move from them."""
     out = tmp_path / "out"
     write(out, 1)
-    real, moves = os.rename, []
 
-    def rename(src, dst):
-        moves.append(dst)
-        if len(moves) == 2:
-            raise MemoryError
-        real(src, dst)
+    def fail():
+        raise MemoryError
 
-    monkeypatch.setattr(writing.os, "rename", rename)
+    real, moves = renames_stopped(monkeypatch, at=2, stop=fail)
     with pytest.raises(MemoryError):
         write(out, 2)
     monkeypatch.setattr(writing.os, "rename", real)
@@ -370,19 +381,12 @@ def test_a_link_to_nothing_is_refused_before_the_work(tmp_path):
 def test_a_stop_inside_the_move_lands_after_it(tmp_path, monkeypatch, stop):
     out = tmp_path / "out"
     write(out, 1)
-    real, moves = os.rename, []
-
-    def rename(src, dst):
-        moves.append(dst)
-        if len(moves) == 2:
-            os.kill(os.getpid(), stop)
-        real(src, dst)
 
     def terminate(signum, frame):
         raise KeyboardInterrupt
 
     before = signal.signal(stop, terminate)
-    monkeypatch.setattr(writing.os, "rename", rename)
+    _, moves = renames_stopped(monkeypatch, at=2, stop=lambda: os.kill(os.getpid(), stop))
     try:
         with pytest.raises(KeyboardInterrupt):
             write(out, 2)
