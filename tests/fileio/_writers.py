@@ -127,7 +127,7 @@ def kills(folder: Path, n: int, seed: int) -> dict:
     return {"kills": n, **outcomes, "bad": mixed, "unclean": unclean, "write_s": whole}
 
 
-def exited(pid: int, within: float) -> int:
+def exited(pid: int, within: float) -> int | str:
     """Child ``pid``'s exit status (its code, or minus the signal that ended it); one that
     has not ended ``within`` seconds is killed and reported as ``"hung"``."""
     deadline = time.monotonic() + within

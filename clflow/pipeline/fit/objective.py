@@ -406,13 +406,15 @@ class Objective:
         as the loss, over every frame of every view) as a ``fraction`` of the observed flow's
         own mean square (``still_px2``, the residual of a scene that does not move). An l2
         ratio whatever ``flow.loss`` is."""
+        from clflow.flow.losses import masked_flow_loss
+
         residual = still = total_weight = 0.0
         for k, (view, view_flows) in enumerate(zip(self.problem.views, [result.flows, *result.more_flows])):
-            weight = view.weight[: len(view_flows)]
-            difference = torch.stack(view_flows).double() - self.target(k)[: len(view_flows)]
-            residual += float((weight * (difference**2).sum(-1)).sum())
-            still += float((weight * (view.observed[: len(view_flows)] ** 2).sum(-1)).sum())
-            total_weight += float(weight.sum())
+            simulated, T = torch.stack(view_flows).double(), len(view_flows)
+            weight = float(view.weight[:T].sum())  # each view's mean counted by its weight
+            residual += weight * float(masked_flow_loss(simulated, self.target(k)[:T], view.weight[:T]))
+            still += weight * float(masked_flow_loss(torch.zeros_like(simulated), view.observed[:T], view.weight[:T]))
+            total_weight += weight
         return {
             "residual_px2": residual / total_weight,
             "still_px2": still / total_weight,
