@@ -29,7 +29,7 @@ from clflow.errors import ClflowError, InputError
 from clflow.fileio import atomic_write_text, copy_file
 from clflow.materials import get_material, validate_params
 from clflow.pipeline.material import resolve_material
-from clflow.scene.config import VELOCITY, MaterialConfig, SceneConfig, object_name, split_parameter
+from clflow.scene.config import TIME_SCALE, VELOCITY, MaterialConfig, SceneConfig, object_name, split_parameter
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +57,8 @@ def hypothesis_config(cfg: SceneConfig, hypothesis: dict[str, str]) -> SceneConf
     objects = [_with_material(obj, hypothesis.get(obj.name, obj.material.type)) for obj in cfg.objects]
 
     def kept(name: str) -> bool:
+        if name == TIME_SCALE.name:  # the scene's, whatever its objects are
+            return True
         k, param = split_parameter(cfg.objects, name)
         return param in ("density", VELOCITY) or param in get_material(objects[k].material.type).param_names
 

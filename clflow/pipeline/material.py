@@ -10,7 +10,7 @@ from pathlib import Path
 from clflow.errors import InputError
 from clflow.fileio import atomic_path
 from clflow.materials import get_material, validate_params
-from clflow.scene.config import VELOCITY, VELOCITY_COMPONENTS, SceneConfig, split_parameter
+from clflow.scene.config import TIME_SCALE, VELOCITY, VELOCITY_COMPONENTS, SceneConfig, split_parameter
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +72,7 @@ def _resolved(cfg: SceneConfig, k: int):
     named = [  # this object's (its PARAM of OBJECT.PARAM)
         param
         for n in (*cfg.optimize.parameters, *cfg.ground_truth)
+        if n != TIME_SCALE.name  # the scene's, no object's
         for j, param in [split_parameter(cfg.objects, n)]
         if j == k
     ]

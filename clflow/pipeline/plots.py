@@ -13,7 +13,7 @@ from pathlib import Path
 
 from clflow.fileio import atomic_path
 from clflow.materials import DENSITY, MATERIALS
-from clflow.scene.config import is_velocity_component
+from clflow.scene.config import TIME_SCALE, is_velocity_component
 
 #: Colour and marker of each optimiser phase (another phase gets the next default colour).
 PHASE_STYLE = {"velocity": ("tab:orange", "s"), "search": ("tab:green", "^"), "main": ("tab:blue", "o")}
@@ -26,7 +26,8 @@ def _parameter_axis(name: str) -> tuple[str, bool]:
     several objects OBJECT.PARAM)."""
     if is_velocity_component(name):
         return f"{name} (m/s)", False
-    params = {p.name: p for material in MATERIALS.values() for p in material.params} | {DENSITY.name: DENSITY}
+    params = {p.name: p for material in MATERIALS.values() for p in material.params}
+    params |= {DENSITY.name: DENSITY, TIME_SCALE.name: TIME_SCALE}
     param = name.rpartition(".")[2]
     if param not in params:
         return name, False

@@ -87,15 +87,17 @@ def plan_run(
     max_substeps: int | None = None,
     dtype: torch.dtype = torch.float32,
     optimizing: bool = False,
+    time_scale: float = 1.0,
 ) -> RunPlan:
     """The substeps of a run of the config's objects, each with its ObjectValues
     (``values``), and the seconds one substep takes (two substeps timed on a throwaway
     simulator); SubstepLimitError (the numbers and the ways out) beyond ``max_substeps``,
     InputError for a fixed ``simulation.substep_dt`` above the stable step of these values
-    (``optimizing``: the message says the optimiser would reject every such run)."""
+    (``optimizing``: the message says the optimiser would reject every such run);
+    ``time_scale``: simulated seconds per video second (clflow.pipeline.simulation.build_simulator)."""
     with warnings.catch_warnings():  # an unstable fixed step is refused below, with the config key
         warnings.simplefilter("ignore", StabilityWarning)
-        sim = build_simulator(cfg, setup, values, dtype=dtype, min_substeps=min_substeps)
+        sim = build_simulator(cfg, setup, values, dtype=dtype, min_substeps=min_substeps, time_scale=time_scale)
     stable = sim.limit_reason(sim.state.v)
     limit = stable if cfg.simulation.substep_dt is None else f"simulation.substep_dt; stable: {stable}"
     if max_substeps is not None and sim.substeps > max_substeps:

@@ -234,12 +234,15 @@ def build_simulator(
     dtype: torch.dtype = torch.float32,
     min_substeps: int = 1,
     max_substeps: int | None = None,
+    time_scale: float = 1.0,
 ):
     """A :class:`clflow.mpm.Simulator` of the config's objects in one grid, each with its
     :class:`ObjectValues` (``values``, one per object in ``cfg.objects``' order; or, for a
     population of K runs in lockstep, clflow.mpm.population, K such lists); substeps from
     ``simulation.substep_dt``, else the stability limits of these values (the stiffest
-    material and the fastest object decide) but at least ``min_substeps``. SubstepLimitError
+    material and the fastest object decide) but at least ``min_substeps``; a frame
+    ``time_scale`` / simulation.fps seconds (the video's clock, optimize.parameters'
+    time_scale; 1: its stated frame rate). SubstepLimitError
     beyond ``max_substeps`` per frame (None: no limit); InputError for a force stage that
     holds no particle or never acts."""
     from clflow.mpm import Force, HalfSpace, MaterialSpec, Simulator
@@ -250,7 +253,7 @@ def build_simulator(
         if len(member) != len(cfg.objects):
             raise ValueError(f"{len(member)} objects' values for the config's {len(cfg.objects)} objects")
     sim_cfg = cfg.simulation
-    frame_dt = 1.0 / sim_cfg.fps
+    frame_dt = time_scale / sim_cfg.fps
     substeps = None if sim_cfg.substep_dt is None else max(1, math.ceil(frame_dt / sim_cfg.substep_dt - 1e-9))
     x = setup.particles.positions
     forces = []

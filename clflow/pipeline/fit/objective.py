@@ -29,7 +29,7 @@ from clflow.pipeline.forward import (
 )
 from clflow.pipeline.render import frame_gaussians, render_flow
 from clflow.pipeline.simulation import build_simulator, scene_run_values
-from clflow.scene.config import SceneConfig
+from clflow.scene.config import TIME_SCALE, SceneConfig
 
 log = logging.getLogger(__name__)
 
@@ -127,6 +127,7 @@ class Objective:
         shared = velocity is not None and velocity.dim() == 1  # every object's velocity, a tensor [3]
         speeds = (velocity,) * len(self.problem.cfg.objects) if shared else self.problem.velocities(z)
         objects = self.problem.object_values({n: float(v.detach()) for n, v in decoded.items()}, speeds)
+        scale = self.problem.time_scale(z)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", StabilityWarning)
             sim = build_simulator(
@@ -135,10 +136,14 @@ class Objective:
                 objects,
                 min_substeps=min_substeps,
                 max_substeps=self.problem.cfg.simulation.max_substeps,
+                time_scale=scale,
             )
-        # several objects: each parameter per particle, its object's particles alone
-        run_values = scene_run_values(self.problem.cfg, prepared.setup, objects, decoded)
-        return RunPoint(zt, grads_of, grid, prepared, objects, sim, run_values, velocity)
+        # several objects: each parameter per particle, its object's particles alone (the
+        # time scale is the simulator's frame step, no material's: its Jacobian column is LM's
+        # finite difference, never a gradient)
+        material = {n: v for n, v in decoded.items() if n != TIME_SCALE.name}
+        run_values = scene_run_values(self.problem.cfg, prepared.setup, objects, material)
+        return RunPoint(zt, grads_of, grid, prepared, objects, sim, run_values, velocity, scale)
 
     def _evaluation(self, point: RunPoint, traj, frames: int) -> Evaluation:
         """The Evaluation of ``point``'s run ``traj`` (Frames), its gradients where it asked for them."""

@@ -3,9 +3,10 @@ columns, a profile's sides, a round of the range walks, the search starts' score
 grid) simulated together as populations (clflow.mpm.population). The grid and time-step checks run on other grids and step counts
 than the fit, so each is a simulation of its own.
 
-Points of the same substep count, up to POPULATION at a time, become the members of one
-population: one simulator whose launches advance them all. The members keep their own
-substep count (points are grouped by it rather than run at the stiffest one's), so each is
+Points of the same substep count and time scale (frame step), up to POPULATION at a time,
+become the members of one population: one simulator whose launches advance them all. The
+members keep their own substep count (points are grouped by it rather than run at the
+stiffest one's), so each is
 its own run: on the gather P2G path (the GPU plan) to the bit, as its losses then are. A
 population that fails or ends unstable (NaN, a CFL breach, particles clamped) is run again
 point by point, so that each point fails or not on its own, as it would alone.
@@ -32,9 +33,9 @@ POPULATION = 32  # members at most in one population (a search's samples a round
 @dataclass
 class RunPoint:
     """One point's run, built and not yet run: z as tensors (``grads_of`` require grad), the
-    grid it runs on and the scene prepared there, the objects' values, the simulator, and
-    the inputs of clflow.pipeline.simulation.run (SI values by parameter; the initial velocity
-    or None)."""
+    grid it runs on and the scene prepared there, the objects' values, the simulator, the
+    inputs of clflow.pipeline.simulation.run (SI values by parameter; the initial velocity
+    or None), and the simulated seconds per video second its simulator was built with."""
 
     zt: dict[str, torch.Tensor]
     grads_of: tuple[str, ...]
@@ -44,6 +45,7 @@ class RunPoint:
     sim: object
     run_values: dict[str, torch.Tensor]
     velocity: torch.Tensor | None
+    time_scale: float
 
 
 def run_point(point: RunPoint, frames: int):
@@ -68,7 +70,7 @@ def populations_pay() -> bool:
 def evaluate_in_populations(objective, points: list[dict[str, float]], frames: int, min_substeps: list[int], grid: int):
     """Objective.evaluate_batch's results for ``points`` (each run at ``min_substeps`` of its
     own at least), in their order (an Evaluation or the error of each), the points simulated
-    in populations of equal substep counts."""
+    in populations of equal substep counts and time scales."""
     results: list = [None] * len(points)
     built: dict[int, RunPoint] = {}
     for i, (z, least) in enumerate(zip(points, min_substeps)):
@@ -76,10 +78,10 @@ def evaluate_in_populations(objective, points: list[dict[str, float]], frames: i
             built[i] = objective._point(z, grid, least)
         except (FloatingPointError, ClflowError) as exc:  # a substep limit: this point alone
             results[i] = exc
-    by_substeps: dict[int, list[int]] = {}
+    groups: dict[tuple[int, float], list[int]] = {}
     for i, point in built.items():
-        by_substeps.setdefault(point.sim.substeps, []).append(i)
-    for indices in by_substeps.values():
+        groups.setdefault((point.sim.substeps, point.time_scale), []).append(i)
+    for indices in groups.values():
         for start in range(0, len(indices), POPULATION):
             members = indices[start : start + POPULATION]
             runs = (
@@ -96,7 +98,7 @@ def evaluate_in_populations(objective, points: list[dict[str, float]], frames: i
 
 def run_population(cfg, points: list[RunPoint], frames: int) -> list | None:
     """Each point's Frames from one population run of ``points`` (of scene config ``cfg``, on
-    the same grid, of one substep count), or None when the population fails or ends unstable
+    the same grid, of one substep count and time scale), or None when the population fails or ends unstable
     (then they run one by one)."""
     from clflow.mpm.autograd import simulate
 
@@ -110,6 +112,7 @@ def run_population(cfg, points: list[RunPoint], frames: int) -> list | None:
                 [p.objects for p in points],
                 min_substeps=first.sim.substeps,
                 max_substeps=cfg.simulation.max_substeps,
+                time_scale=first.time_scale,
             )
             if population.substeps != first.sim.substeps:
                 return None

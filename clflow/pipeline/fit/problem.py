@@ -19,21 +19,32 @@ from clflow.pipeline.fit.state import OptimizerState
 from clflow.pipeline.forward import Prepared, prepare, scene_values
 from clflow.pipeline.render import frame_gaussians, render_flow
 from clflow.pipeline.simulation import ObjectValues, build_simulator, object_masks, run
-from clflow.scene.config import VELOCITY, SceneConfig, is_velocity_component, split_parameter, velocity_names
+from clflow.scene.config import (
+    TIME_SCALE,
+    VELOCITY,
+    SceneConfig,
+    is_velocity_component,
+    split_parameter,
+    velocity_names,
+)
 
 log = logging.getLogger(__name__)
 
 
 def parameterizations(cfg: SceneConfig):
-    """Material parameter name -> its parameterisation, for each of optimize.parameters
-    but a velocity (with several objects OBJECT.PARAM, of that object's material)."""
-    from clflow.mpm.parameterization import parameterization
+    """Parameter name -> its parameterisation, for each of optimize.parameters but a
+    velocity: a material's (with several objects OBJECT.PARAM, of that object's material)
+    and the scene's time_scale."""
+    from clflow.mpm.parameterization import Parameterization, parameterization
 
     names = cfg.optimize.parameters
     if not names:
         raise InputError(f"{cfg.source}: optimize.parameters is empty: name the parameters to optimise")
     out = {}
     for name in names:
+        if name == TIME_SCALE.name:
+            out[name] = Parameterization(TIME_SCALE)
+            continue
         k, param = split_parameter(cfg.objects, name)
         if param != VELOCITY:
             out[name] = parameterization(cfg.objects[k].material.type, param)
@@ -119,7 +130,7 @@ class Problem:
     def object_values(self, values: dict[str, float], velocities) -> tuple[ObjectValues, ...]:
         """Each object's ObjectValues with the optimised ``values`` (SI, by z name) and initial
         ``velocities`` (one [3] tuple or tensor per object, m/s)."""
-        overrides = {n: values[n] for n in self.params}
+        overrides = {n: values[n] for n in self.params if n != TIME_SCALE.name}
         return tuple(
             dataclasses.replace(v, velocity=velocity)
             for v, velocity in zip(scene_values(self.cfg, overrides), velocities)
@@ -153,6 +164,9 @@ class Problem:
         objects = scene_values(self.cfg)
         values = {}
         for n in self.params:  # the one object's PARAM, or OBJECT.PARAM: that object's
+            if n == TIME_SCALE.name:
+                values[n] = TIME_SCALE.default  # the video plays at the speed it was filmed
+                continue
             k, param = split_parameter(self.cfg.objects, n)
             values[n] = objects[k].density if param == "density" else objects[k].params[param]
         z = {n: float(p.encode(values[n])) for n, p in self.params.items()}
@@ -162,11 +176,21 @@ class Problem:
                 z.update(zip(components, obj.velocity))
         return OptimizerState(0, z, {n: 0.0 for n in z}, {n: 0.0 for n in z})
 
+    def time_scale(self, z: dict[str, float]) -> float:
+        """Simulated seconds per second of the guidance video at z: its time_scale where
+        optimised, else 1."""
+        if TIME_SCALE.name not in self.params:
+            return 1.0
+        return float(self.params[TIME_SCALE.name].decode(torch.tensor(z[TIME_SCALE.name], dtype=torch.float64)))
+
     def simulator_on(self, grid: int, z: dict[str, float]):
         """A forward simulator of z on a grid of ``grid`` nodes (its substeps those of z's
         stability limits at the start)."""
         return build_simulator(
-            self.cfg, self.prepared_on(grid).setup, self.object_values(self.values(z), self.velocities(z))
+            self.cfg,
+            self.prepared_on(grid).setup,
+            self.object_values(self.values(z), self.velocities(z)),
+            time_scale=self.time_scale(z),
         )
 
     def plan_on(self, grid: int, z: dict[str, float] | None = None):
@@ -184,6 +208,7 @@ class Problem:
             objects,
             max_substeps=self.cfg.simulation.max_substeps,
             optimizing=True,
+            time_scale=self.time_scale(z),
         )
         return dataclasses.replace(plan, render_seconds_per_frame=self.render_seconds(prepared))
 

@@ -24,6 +24,7 @@ from clflow.pipeline.fit.state import OptimizerState
 from clflow.pipeline.forward import SimulationResult, render_frames
 from clflow.pipeline.plots import range_text, write_history_plot
 from clflow.scene.config import (
+    TIME_SCALE,
     VELOCITY,
     SceneConfig,
     is_velocity_component,
@@ -45,7 +46,8 @@ def unexplained_warning(fraction: float) -> str:
     return (
         f"the fit leaves {100 * fraction:.0f} % of the observed motion unexplained (a video the model follows "
         f"leaves under {100 * UNEXPLAINED_WARNING:.0f} %): the video may play at another speed than real time "
-        "(a generated one often does: set simulation.fps to its frame rate divided by that speed), its camera may "
+        "(a generated one often does: add time_scale to optimize.parameters, or set simulation.fps to its frame "
+        "rate divided by that speed), its camera may "
         "move in a way flow.stabilise did not take out (that needs flow.stabilise: static and some of the objects' "
         "still surroundings in view), "
         "or the material type may be wrong (optimize.material compares hypotheses)"
@@ -64,6 +66,8 @@ def parameter_unit(cfg: SceneConfig, name: str) -> str:
 
     if is_velocity_component(name):
         return "m/s"
+    if name == TIME_SCALE.name:
+        return TIME_SCALE.unit
     k, param = split_parameter(cfg.objects, name)
     return DENSITY.unit if param == "density" else get_material(cfg.objects[k].material.type).param(param).unit
 

@@ -195,7 +195,11 @@ def _echo_results(opt, state, metrics: dict, report: Path, echo, note) -> None:
 
     cfg = opt.cfg
     final = opt.problem.values(state.z)
-    echo("optimised: " + ", ".join(f"{n} = {v:.6g} {parameter_unit(cfg, n)}" for n, v in final.items()))
+    units = {n: parameter_unit(cfg, n) for n in final}
+    echo(
+        "optimised: "
+        + ", ".join(f"{n} = {v:.6g}" + ("" if units[n] == "1" else f" {units[n]}") for n, v in final.items())
+    )
     if "relative_error" in metrics:
         echo(
             "relative error vs ground truth: "

@@ -5,10 +5,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from clflow.materials import Param
 from clflow.scene.config.keys import MAX_GRID, MAX_RATE, setting
 
 VELOCITY = "velocity"  # the name of the object's initial velocity in optimize.parameters, evaluation.ground_truth
 VELOCITY_COMPONENTS = ("velocity_x", "velocity_y", "velocity_z")  # its components: m/s, scene axes
+#: the guidance video's clock, the scene's own parameter (no OBJECT. with several objects): the
+#: seconds of motion one second of the video shows. A generated video's clock is not the
+#: simulation's (a model asked for 8 fps may move at 0.7x or 1.3x): the simulated frame interval
+#: is time_scale / simulation.fps, 1 the video's stated rate, below 1 slow motion
+TIME_SCALE = Param(
+    "time_scale", "tau", "1", 1.0, (0.1, 10.0), (0.5, 2.0),
+    doc="seconds of the scene's motion one second of the guidance video shows",
+)  # fmt: skip
 MAX_HYPOTHESES = 16  # material combinations optimize.material may make (each a search of its own)
 
 OPTIMIZERS = ("adam", "levenberg_marquardt")
@@ -104,7 +113,8 @@ class OptimizeSettings:
         (),
         kind="list",
         doc="a list of the material's parameter names, `density` or `velocity` (several objects: `OBJECT.PARAM`, "
-        "see `objects`); `clflow optimize` needs at least one *(run)*",
+        "see `objects`), and `time_scale`, the video's clock (the scene's, never OBJECT.time_scale; "
+        'docs/pipeline.md, "An unknown playback speed"); `clflow optimize` needs at least one *(run)*',
     )
     learning_rates: dict[str, float] = setting(  # in the optimiser's space
         factory=dict,
@@ -208,10 +218,11 @@ class OptimizeSettings:
     def parameters_by_object(self) -> dict[str, tuple[str, ...]]:
         """Object name -> its optimised material parameters (OBJECT.PARAM), in the config's
         order, where they belong to two objects or more; else {} (the search's object rounds)."""
-        if not all("." in name for name in self.parameters):
+        names = [n for n in self.parameters if n != TIME_SCALE.name]  # the scene's, no object's
+        if not all("." in name for name in names):
             return {}
         groups: dict[str, tuple[str, ...]] = {}
-        for name in self.parameters:
+        for name in names:
             obj, _, param = name.partition(".")
             if param != VELOCITY:  # the search looks at material parameters only
                 groups[obj] = groups.get(obj, ()) + (name,)
@@ -230,6 +241,7 @@ __all__ = [
     "OPTIMIZERS",
     "OptimizeSettings",
     "SearchSettings",
+    "TIME_SCALE",
     "VELOCITY",
     "VELOCITY_COMPONENTS",
 ]

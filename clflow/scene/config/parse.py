@@ -196,6 +196,8 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
     else:
         truth = parse_optimize.objects_truth(r, top.get("evaluation"), objects, optimize.materials)
     parse_optimize.check_optimize_fits(r, optimize, simulation, flow)
+    forces = parse_objects.forces(r, r.items(top, "forces", ""))
+    parse_optimize.check_time_scale(r, optimize, simulation, objects, forces)
     cameras, videos = _views(r, top)
     if len(cameras) > 1 and flow.mask not in ("alpha", "none"):
         raise r.fail("flow.mask", "a mask image fits one view: with several guidance views use alpha or none")
@@ -205,7 +207,7 @@ def parse_config(data: Any, source: str = "<config>", base: Path | None = None) 
         scale=r.read(scene, "scene", schema.SCENE["scale"]),
         up=r.read(scene, "scene", schema.SCENE["up"]),
         objects=objects,
-        forces=parse_objects.forces(r, r.items(top, "forces", "")),
+        forces=forces,
         colliders=parse_objects.colliders(r, top.get("boundaries")),
         simulation=simulation,
         camera=cameras[0],

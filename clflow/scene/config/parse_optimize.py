@@ -12,6 +12,7 @@ from clflow.scene.config import schema
 from clflow.scene.config.keys import SPEED
 from clflow.scene.config.optimize_settings import (
     MAX_HYPOTHESES,
+    TIME_SCALE,
     VELOCITY,
     VELOCITY_COMPONENTS,
     BudgetSettings,
@@ -41,15 +42,16 @@ def optimize_settings(r: Reader, data: Any, objects: tuple[SceneObject, ...], fr
     material = objects[0].material
     if len(objects) > 1:
         for name in names:
-            _object_parameter(r, f"{p}.parameters", name, objects, hypotheses)
+            if name != TIME_SCALE.name:  # the scene's, no object's
+                _object_parameter(r, f"{p}.parameters", name, objects, hypotheses)
     elif material.type != "query" and not hypotheses:
         mat = get_material(material.type)
         for name in names:
-            if name not in ("density", VELOCITY) and name not in mat.param_names:
+            if name not in ("density", VELOCITY, TIME_SCALE.name) and name not in mat.param_names:
                 raise r.fail(
                     f"{p}.parameters",
                     f"{name!r} is not a parameter of {mat.name} "
-                    f"(its parameters: {', '.join(mat.param_names)}, density, velocity)",
+                    f"(its parameters: {', '.join(mat.param_names)}, density, velocity; and time_scale)",
                 )
     phase = schema.ESTIMATE_VELOCITY
     estimate = r.section(body.get("estimate_velocity"), f"{p}.estimate_velocity", phase.known)
@@ -173,6 +175,8 @@ def _bounds(
 def _registry_param(name: str, objects: tuple[SceneObject, ...], hypotheses: dict[str, tuple[str, ...]]):
     """The registry's Param that ``name`` of optimize.parameters stands for; None for a
     velocity and for a material the query picks."""
+    if name == TIME_SCALE.name:
+        return TIME_SCALE
     k, param = split_parameter(objects, name)
     if param == "density":
         return DENSITY
@@ -227,7 +231,7 @@ def _hypotheses(r: Reader, p: str, data: Any, names: list[str]) -> tuple[str, ..
     canonical = [m.name for m in materials]
     if len(set(canonical)) < len(canonical):
         raise r.fail(p, f"names a material twice: {data!r}")
-    common = ("density", VELOCITY)
+    common = ("density", VELOCITY, TIME_SCALE.name)
     bare = {n: n.rpartition(".")[2] for n in names}  # OBJECT.PARAM -> PARAM
     for m in materials:
         if not any(b in common or b in m.param_names for b in bare.values()):
@@ -282,14 +286,17 @@ def objects_truth(
     evaluation = r.section(data, "evaluation", schema.EVALUATION.known)
     given = dict(r.mapping(evaluation.get("ground_truth"), p))
     per_object: dict[str, dict] = {}
+    truth = {}
     for name, value in given.items():
+        if name == TIME_SCALE.name:  # the scene's, no object's
+            truth[name] = _time_scale_truth(r, value)
+            continue
         obj, param = _object_parameter(r, p, name, objects, hypotheses)
         if param == VELOCITY:
             value = r.vec3(given, name, p, limit=SPEED)
         elif isinstance(value, bool) or not isinstance(value, (int, float)):
             raise r.fail(f"{p}.{name}", f"must be a number, got {value!r}")
         per_object.setdefault(obj.name, {})[param] = value
-    truth = {}
     for k, obj in enumerate(objects):
         values = per_object.get(obj.name, {})
         truth.update(zip(velocity_names(objects, k)[1], values.pop(VELOCITY, ())))
@@ -336,7 +343,10 @@ def ground_truth(
     optimize: OptimizeSettings,
 ) -> dict[str, float]:
     """The ground truth's material values validated for the material (with hypotheses: the
-    first that has all its names), its density and velocity components, SI."""
+    first that has all its names), its density and velocity components, SI; the video's
+    time_scale."""
+    truth = dict(truth)
+    time_scale = truth.pop(TIME_SCALE.name, None)
     if truth and (optimize.materials or material.type != "query"):
         candidates = next(iter(optimize.materials.values()), (material.type,))
         try:
@@ -346,7 +356,56 @@ def ground_truth(
     if true_density is not None:
         truth["density"] = float(true_density)
     truth.update(zip(VELOCITY_COMPONENTS, true_velocity))
+    if time_scale is not None:
+        truth[TIME_SCALE.name] = _time_scale_truth(r, time_scale)
     return dict(truth)
+
+
+def _time_scale_truth(r: Reader, value) -> float:
+    """``evaluation.ground_truth.time_scale``, checked against its valid range."""
+    try:
+        return TIME_SCALE.check(value)
+    except InputError as exc:
+        raise r.fail("evaluation.ground_truth", str(exc)) from None
+
+
+def check_time_scale(r: Reader, optimize: OptimizeSettings, simulation: SimulationSettings, objects, forces) -> None:
+    """optimize.parameters' time_scale is identified only where the scene fixes the clock:
+    gravity, a force stage or an initial velocity the optimiser is given (a faster clock
+    and a stiffer or runnier material look alike otherwise); by Levenberg-Marquardt, whose
+    finite differences take its derivative (the time step has no adjoint); and an estimated
+    velocity is optimised beside it (the velocity phase assumes the video's clock)."""
+    if TIME_SCALE.name not in optimize.parameters:
+        return
+    where = "optimize.parameters"
+    optimised = [
+        n.rpartition(".")[0] or objects[0].name for n in optimize.parameters if n.rpartition(".")[2] == VELOCITY
+    ]
+    known_motion = any(
+        any(o.velocity) and o.name not in optimised and o.name not in optimize.estimate_velocity_objects
+        for o in objects
+    )
+    if not (any(simulation.gravity) or forces or known_motion):
+        raise r.fail(
+            where,
+            "time_scale: nothing in this scene fixes the video's clock (simulation.gravity is zero, no force "
+            "stage, no known initial velocity): a faster clock and a stiffer material look alike. Drop "
+            "time_scale and set simulation.fps to the video's frame rate divided by its playback speed",
+        )
+    if optimize.method != "levenberg_marquardt":
+        raise r.fail(
+            where,
+            "time_scale needs optimize.method: levenberg_marquardt (its derivative is a finite difference; "
+            "the simulation's time step has no adjoint)",
+        )
+    unfitted = [o for o in optimize.estimate_velocity_objects if o not in optimised]
+    if unfitted:
+        name = VELOCITY if len(objects) == 1 else f"{unfitted[0]}.{VELOCITY}"
+        raise r.fail(
+            where,
+            f"time_scale with optimize.estimate_velocity needs {name} among optimize.parameters too: the "
+            "velocity phase reads the video at its stated clock, so the main phase must refit it with the clock",
+        )
 
 
 def _fitting(materials: tuple[str, ...], truth: dict) -> str:
