@@ -73,6 +73,9 @@ def _degradation(ctx, param, spec: str | None):
                    "and/or name=value items, comma-separated: flicker (exposure gain's standard deviation, "
                    "relative), offset (exposure offset, grey levels), shake (px a frame), roll (deg a frame), "
                    "blur (px), jpeg (quality), speed (playback speed, e.g. 0.8). Drawn from --seed.")  # fmt: skip
+@click.option("--fit-time-scale", is_flag=True,
+              help="Fit the video's clock too (optimize.parameters' time_scale; its truth --degrade's speed) and "
+                   "report its error apart from the material's.")  # fmt: skip
 @click.option("--seed", type=int, default=0, show_default=True,
               help="Seed of the scene's texture grain, the noise and the artefacts.")  # fmt: skip
 @click.option("--views", type=click.IntRange(1, 4), default=1, show_default=True,
@@ -100,6 +103,7 @@ def sysid(
     noise,
     codec,
     degradation,
+    fit_time_scale,
     seed,
     views,
     budget,
@@ -122,7 +126,14 @@ def sysid(
     names = list(dict.fromkeys(cases)) or default_names
     given = dict(truth_scale=truth_scale, noise=noise, codec=codec, degradation=degradation, seed=seed, views=views)
     budget_each = None if budget is None else budget / len(names)
-    settings = Settings.at(quick, iterations, **given, truth_transfer=truth_transfer, case_budget=budget_each)
+    settings = Settings.at(
+        quick,
+        iterations,
+        **given,
+        truth_transfer=truth_transfer,
+        case_budget=budget_each,
+        fit_time_scale=fit_time_scale,
+    )
 
     def progress(name: str, row: dict) -> None:
         from clflow.pipeline.runs import format_row

@@ -74,6 +74,8 @@ class Settings:
     truth_transfer: str = "flip"  # the truth's transfer: "flip" (the optimiser's blend) or "apic" (a mismatch)
     # s of each case's optimisation (optimize.budget: the main grid from the device's speed; None: the resolution's)
     case_budget: float | None = None
+    # the video's clock fitted too (optimize.parameters' time_scale; its truth the degradation's speed)
+    fit_time_scale: bool = False
 
     @classmethod
     def at(cls, quick: bool, iterations: int | None = None, **fields) -> Settings:
@@ -121,7 +123,7 @@ def run_case(
     from clflow.pipeline.fit import Optimization
     from clflow.pipeline.fit.budget import BudgetTooSmall
     from clflow.pipeline.runs import write_results
-    from clflow.scene.config import load_config
+    from clflow.scene.config import TIME_SCALE, load_config
 
     case = case or CASES[name]
     check_case(name, case)
@@ -138,6 +140,12 @@ def run_case(
     generation = json.loads(made.read_text())
     generated = time.perf_counter()
     cfg = load_config(folder / "config.yaml")
+    truth = dict(case.truth)
+    if settings.fit_time_scale:
+        truth[TIME_SCALE.name] = settings.degradation.speed
+        fitted = json.dumps([*cfg.optimize.parameters, TIME_SCALE.name])
+        clock = (f"optimize.parameters={fitted}", f"evaluation.ground_truth.time_scale={truth[TIME_SCALE.name]!r}")
+        cfg = load_config(folder / "config.yaml", clock)
     if settings.case_budget is not None:
         cfg = with_budget(cfg, settings.case_budget, generation["truth_grid_resolution"])
     record = {"case": name, "material": case.material, "generation": generation, "status": "ok"}
@@ -146,7 +154,7 @@ def run_case(
         state = opt.run(resume=True)
         metrics = write_results(opt, state)
         record.update(grid=metrics["grid"], optimise_seconds=metrics["seconds"], budget=metrics.get("budget"))
-        truth_z = {n: float(opt.problem.params[n].encode(case.truth[n])) for n in opt.problem.params}
+        truth_z = {n: float(opt.problem.params[n].encode(truth[n])) for n in opt.problem.params}
         # at the truth's own stable time step: MPM's answer depends on dt (docs/history,
         # "MPM depends on the substep"), and the final run's may be finer
         floor = opt.objective.evaluate({**state.z, **truth_z}, opt.problem.frames, with_grad=False)
@@ -159,7 +167,17 @@ def run_case(
     except ClflowError as exc:
         record.update(status=f"failed: {exc}", seconds=time.perf_counter() - start)
         return record
-    record["parameters"] = parameter_records(case, opt.problem.values(state.z), metrics["identifiability"]["ranges"])
+    found, ranges = opt.problem.values(state.z), metrics["identifiability"]["ranges"]
+    record["parameters"] = parameter_records(case, found, ranges)
+    if settings.fit_time_scale:  # the clock's: apart from the material's mean RE
+        speed = truth[TIME_SCALE.name]
+        record["time_scale"] = {
+            "found": found[TIME_SCALE.name],
+            "truth": speed,
+            "re": abs(found[TIME_SCALE.name] - speed) / speed,
+            "range": [ranges[TIME_SCALE.name]["low"], ranges[TIME_SCALE.name]["high"]],
+            "holds_truth": holds(ranges[TIME_SCALE.name], speed),
+        }
     record.update(
         mean_re=float(np.mean([p["re"] for p in record["parameters"].values()])),
         epe_px=metrics["epe_px"],

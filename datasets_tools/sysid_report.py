@@ -88,6 +88,9 @@ def markdown(summary: dict) -> str:
             f"{n}: {_fmt(p['found'])} {_range(p)} ({_fmt(p['truth'])}), RE {p['re']:.3f}{_caveat(n, r)}"
             for n, p in r["parameters"].items()
         )
+        if "time_scale" in r:  # the video's clock, fitted beside the material: not in its mean RE
+            p = r["time_scale"]
+            params += f"<br>time_scale: {_fmt(p['found'])} {_range(p)} ({_fmt(p['truth'])}), RE {p['re']:.3f}"
         lines.append(
             f"| {name} | {r['material']} | {params} | {r['mean_re']:.3f} | {r['epe_px']:.3f} "
             f"({r['floor_epe_px']:.3f}) | {r['final_loss']:.3g} / {r['truth_loss']:.3g} | {r['iterations']}"

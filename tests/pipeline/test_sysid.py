@@ -208,6 +208,20 @@ def test_a_budget_chooses_each_case_s_grid_and_the_table_names_it(tmp_path, tiny
     assert f" on {record['grid']['main']} nodes |" in table and "a budget of 10000 s per case" in table
 
 
+def test_the_clock_fitted_is_reported_apart_from_the_material(tmp_path, tiny_cases):
+    from clflow_datasets.degradation import Degradation
+
+    settings = sysid.Settings(resolution=TINY, degradation=Degradation(speed=0.8), fit_time_scale=True)
+    record = sysid.evaluate(["torus"], tmp_path / "out", settings)["cases"]["torus"]
+    assert record["status"] == "ok" and set(record["parameters"]) == {"youngs_modulus"}
+    assert record["mean_re"] == record["parameters"]["youngs_modulus"]["re"]  # the material's alone
+    clock = record["time_scale"]
+    assert clock["truth"] == 0.8 and clock["re"] == pytest.approx(abs(clock["found"] - 0.8) / 0.8)
+    assert clock["found"] != 1.0  # it moved from the video's own clock
+    table = (tmp_path / "out" / "sysid.md").read_text()
+    assert f"time_scale: {sysid_report._fmt(clock['found'])}" in table
+
+
 def test_an_interrupted_case_resumes_its_optimisation(tmp_path, tiny_cases, monkeypatch):
     from clflow.pipeline import fit
 
