@@ -345,7 +345,7 @@ def ground_truth(
     """The ground truth's material values validated for the material (with hypotheses: the
     first that has all its names), its density and velocity components, SI; the video's
     time_scale."""
-    truth = dict(truth)
+    truth = dict(truth)  # the caller's is left as it is
     time_scale = truth.pop(TIME_SCALE.name, None)
     if truth and (optimize.materials or material.type != "query"):
         candidates = next(iter(optimize.materials.values()), (material.type,))
@@ -358,7 +358,7 @@ def ground_truth(
     truth.update(zip(VELOCITY_COMPONENTS, true_velocity))
     if time_scale is not None:
         truth[TIME_SCALE.name] = _time_scale_truth(r, time_scale)
-    return dict(truth)
+    return truth
 
 
 def _time_scale_truth(r: Reader, value) -> float:
@@ -378,9 +378,8 @@ def check_time_scale(r: Reader, optimize: OptimizeSettings, simulation: Simulati
     if TIME_SCALE.name not in optimize.parameters:
         return
     where = "optimize.parameters"
-    optimised = [
-        n.rpartition(".")[0] or objects[0].name for n in optimize.parameters if n.rpartition(".")[2] == VELOCITY
-    ]
+    named = (split_parameter(objects, n) for n in optimize.parameters if n != TIME_SCALE.name)
+    optimised = [objects[k].name for k, param in named if param == VELOCITY]  # objects whose velocity is fitted
     known_motion = any(
         any(o.velocity) and o.name not in optimised and o.name not in optimize.estimate_velocity_objects
         for o in objects
