@@ -204,6 +204,17 @@ class DeviceArray:
             self._mirror = None
         return self
 
+    def copy_from_buffer(self, buffer) -> "DeviceArray":
+        """Fill the array from the start of OpenCL ``buffer`` (at least ``nbytes`` long: a
+        scratch buffer's result kept), on the device."""
+        import pyopencl as cl
+
+        if self.nbytes:
+            self.device.keep_until_done([self.host] if self.host is not None else [])
+            cl.enqueue_copy(self.device.queue, self.buffer, buffer, byte_count=self.nbytes)
+            self._mirror = None
+        return self
+
     def add_(self, other: "DeviceArray | torch.Tensor", alpha: float = 1.0) -> "DeviceArray":
         """``self += alpha * other`` on the device (float arrays); a tensor ``other`` (same
         element count) is uploaded first."""

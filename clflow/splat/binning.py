@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
-from clflow.runtime.arrays import real_of
+from clflow.runtime.arrays import DeviceArray, real_of
 from clflow.runtime.bridge import bind
 from clflow.runtime.devices import Device, get_device
 from clflow.runtime.sort import key_ranges, radix_sort, scan_exclusive
@@ -73,6 +73,9 @@ def build_tile_lists(
     Args:
         means2d: [N, 2] pixel positions; depths: [N] camera z (m); radii: [N] int32 pixel
             radii (0: culled); tiles_touched: [N] int32 tiles per Gaussian, from projection.
+            Torch tensors give lists of tensors; device arrays
+            (:class:`~clflow.runtime.arrays.DeviceArray`) lists of device arrays, nothing
+            copied to the host but the entry count.
         width, height: image size (pixels).
     """
     device = device or get_device()
@@ -80,19 +83,16 @@ def build_tile_lists(
     n = means2d.shape[0]
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
+    on_device = isinstance(means2d, DeviceArray)
 
     def kern(name):
         return device.kernel("splat/binning.cl", name, real, SPLAT_DEFINES)
 
-    # checked before the device's int32 scan of the counts can overflow
-    total = int(tiles_touched.sum(dtype=torch.int64))
-    if total > MAX_TILE_ENTRIES:
-        raise InputError(
-            f"rasterize: the Gaussians touch {total} (tile, Gaussian) pairs, more than the bound "
-            f"{MAX_TILE_ENTRIES} ({MAX_TILE_ENTRIES * BYTES_PER_ENTRY / 2**30:.1f} GiB of tile lists, and compositing "
-            "records of 9 + channels reals per entry); "
-            "render fewer or smaller Gaussians, or a smaller image"
-        )
+    # checked before the device's int32 scan of the counts can overflow (device arrays: only
+    # where the scan could overflow, else its total, below)
+    if not on_device or n * n_tiles > np.iinfo(np.int32).max:
+        touched = tiles_touched.read() if on_device else tiles_touched
+        _check_entries(int(touched.sum(dtype=torch.int64)))
     # the sort's buffers live on the device for this call only; the host reads the entry
     # count and the lists the compositing op takes
     with bind(device) as b:
@@ -109,11 +109,14 @@ def build_tile_lists(
         device.launch(kern("gather_counts"), n, touched)
         scan_exclusive(device, counts, offsets, n)
         m = b.read_element(offsets, n, np.int32)
+        _check_entries(m)
         # 2. entries in depth order, 3. stable sort by tile, 4. per-tile ranges
         tile_pairs = [b.scratch(4 * m) for _ in range(4)]
-        slot_gaussian = torch.empty(m, dtype=torch.int32)
-        first_slot = torch.empty(n, dtype=torch.int32)  # every Gaussian's is written
-        ranges = torch.zeros(n_tiles, 2, dtype=torch.int32)  # empty tiles stay (0, 0)
+        empty = (lambda *shape: DeviceArray.empty(device, shape, torch.int32)) if on_device else _int32_tensor
+        slot_gaussian = empty(m)
+        first_slot = empty(n)  # every Gaussian's is written
+        ranges = empty(n_tiles, 2)
+        ranges.zero_()  # empty tiles stay (0, 0)
         entries = dict(order=order, offsets=offsets, means2d=b.input(means2d), radii=b.input(radii))
         entries |= dict(tile_keys=tile_pairs[0], slots=tile_pairs[1])
         entries |= dict(slot_gaussian=b.output(slot_gaussian), first_slot=b.output(first_slot))
@@ -122,6 +125,25 @@ def build_tile_lists(
         swapped = radix_sort(device, tile_pairs[:2], tile_pairs[2:], m, tile_bits, TILE_DIGIT_BITS)
         keys, slots = (tile_pairs[2], tile_pairs[3]) if swapped else (tile_pairs[0], tile_pairs[1])
         key_ranges(device, keys, b.inout(ranges), m)
-        sorted_slots = torch.empty(m, dtype=torch.int32)
-        b.copy_to(sorted_slots, slots)
+        sorted_slots = empty(m)
+        if on_device:
+            sorted_slots.copy_from_buffer(slots)
+        else:
+            b.copy_to(sorted_slots, slots)
     return TileLists(ranges, sorted_slots, slot_gaussian, first_slot, tiles_touched)
+
+
+def _int32_tensor(*shape: int) -> torch.Tensor:
+    return torch.empty(shape, dtype=torch.int32)
+
+
+def _check_entries(total: int) -> None:
+    """InputError when the Gaussians touch more (tile, Gaussian) pairs than MAX_TILE_ENTRIES
+    (or so many that the int32 count wrapped)."""
+    if total > MAX_TILE_ENTRIES or total < 0:
+        raise InputError(
+            f"rasterize: the Gaussians touch {total} (tile, Gaussian) pairs, more than the bound "
+            f"{MAX_TILE_ENTRIES} ({MAX_TILE_ENTRIES * BYTES_PER_ENTRY / 2**30:.1f} GiB of tile lists, and compositing "
+            "records of 9 + channels reals per entry); "
+            "render fewer or smaller Gaussians, or a smaller image"
+        )

@@ -117,19 +117,31 @@ def composite(
         contributor, for the adjoint).
     """
     device = get_device()
-    channels = features.shape[1]
-    out = features.new_empty(height, width, channels)
+    out = features.new_empty(height, width, features.shape[1])
     T_final = features.new_empty(height, width)
     n_contrib = torch.empty(height, width, dtype=torch.int32)
-    kern, global_size, size_args, local_size = _composite_launch(
-        device, "forward", features.dtype, channels, width, height
-    )
     with bind(device) as b:
-        entries = _sorted_entry_records(device, b, means2d, conics, opacities, features, sorted_slots, slot_gaussian)
-        image = dict(ranges=b.input(ranges), entries=entries, background=b.input(background))
-        image |= dict(out=b.output(out), T_final=b.output(T_final), n_contrib=b.output(n_contrib))
-        device.launch(kern, global_size, image | size_args, local_size)
+        splats = (means2d, conics, opacities, features, background)
+        launch_composite(device, b, splats, (ranges, sorted_slots, slot_gaussian), (out, T_final, n_contrib))
     return out, T_final, n_contrib
+
+
+def launch_composite(device, b, splats: tuple, tiles: tuple, outputs: tuple) -> None:
+    """Enqueue the compositing on tensors or device arrays bound by ``b``: ``splats``
+    (means2d, conics, opacities, features, background), ``tiles`` (ranges, sorted_slots,
+    slot_gaussian of the tile lists), ``outputs`` (out [H, W, C], T_final [H, W], n_contrib
+    [H, W] int32), as :func:`composite` documents them."""
+    means2d, conics, opacities, features, background = splats
+    ranges, sorted_slots, slot_gaussian = tiles
+    out, T_final, n_contrib = outputs
+    height, width = T_final.shape
+    kern, global_size, size_args, local_size = _composite_launch(
+        device, "forward", features.dtype, features.shape[1], width, height
+    )
+    entries = _sorted_entry_records(device, b, means2d, conics, opacities, features, sorted_slots, slot_gaussian)
+    image = dict(ranges=b.input(ranges), entries=entries, background=b.input(background))
+    image |= dict(out=b.output(out), T_final=b.output(T_final), n_contrib=b.output(n_contrib))
+    device.launch(kern, global_size, image | size_args, local_size)
 
 
 @composite.register_fake
@@ -172,30 +184,49 @@ def composite_backward(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Adjoint of :func:`composite`: dL/d(means2d, conics, opacities, features)."""
     device = get_device()
-    n, channels = features.shape
-    m = sorted_slots.shape[0]
     v_means2d, v_conics = torch.empty_like(means2d), torch.empty_like(conics)
     v_opacities, v_features = torch.empty_like(opacities), torch.empty_like(features)
+    outputs = (v_means2d, v_conics, v_opacities, v_features)
+    with bind(device) as b:
+        splats = (means2d, conics, opacities, features, background)
+        tiles = (ranges, sorted_slots, slot_gaussian, first_slot, tiles_touched)
+        launch_composite_backward(device, b, splats, tiles, (T_final, n_contrib, v_out, v_T_final), outputs)
+    return outputs
+
+
+def launch_composite_backward(device, b, splats: tuple, tiles: tuple, grads: tuple, outputs: tuple, n=None) -> None:
+    """Enqueue the compositing's adjoint on tensors or device arrays bound by ``b``:
+    ``splats`` and ``tiles`` (all five lists) as :func:`composite_backward` takes them,
+    ``grads`` (T_final, n_contrib, v_out, v_T_final), ``outputs`` (v_means2d, v_conics,
+    v_opacities, v_features) of the first ``n`` Gaussians (default all N)."""
+    means2d, conics, opacities, features, background = splats
+    ranges, sorted_slots, slot_gaussian, first_slot, tiles_touched = tiles
+    T_final, n_contrib, v_out, v_T_final = grads
+    height, width = T_final.shape
+    n = features.shape[0] if n is None else n
+    channels, m = features.shape[1], sorted_slots.shape[0]
     backward, global_size, size_args, local_size = _composite_launch(
         device, "backward", features.dtype, channels, width, height
     )
     reduce = splat_kernel("entries.cl", "reduce_slots", features.dtype, CHANNELS=channels)
-    with bind(device) as b:
-        entries = _sorted_entry_records(device, b, means2d, conics, opacities, features, sorted_slots, slot_gaussian)
-        # [M, 6 + C]: one gradient row per (tile, Gaussian) pair, written once by its tile
-        slots = b.scratch(m * (6 + channels) * features.dtype.itemsize)
-        image = dict(ranges=b.input(ranges), sorted_slots=b.input(sorted_slots), entries=entries)
-        image |= dict(background=b.input(background), T_final=b.input(T_final), n_contrib=b.input(n_contrib))
-        grads = dict(v_out=b.input(v_out), v_T=b.input(v_T_final), slot_grads=slots)
-        device.launch(backward, global_size, image | grads | size_args, local_size)
-        device.launch(
-            reduce,
-            n,
-            dict(slot_grads=slots, first_slot=b.input(first_slot), tiles_touched=b.input(tiles_touched), n=np.int32(n))
-            | dict(v_means2d=b.output(v_means2d), v_conics=b.output(v_conics))
-            | dict(v_opacities=b.output(v_opacities), v_features=b.output(v_features)),
-        )
-    return v_means2d, v_conics, v_opacities, v_features
+    entries = _sorted_entry_records(device, b, means2d, conics, opacities, features, sorted_slots, slot_gaussian)
+    # [M, 6 + C]: one gradient row per (tile, Gaussian) pair, written once by its tile
+    slots = b.scratch(m * (6 + channels) * features.dtype.itemsize)
+    image = dict(ranges=b.input(ranges), sorted_slots=b.input(sorted_slots), entries=entries)
+    image |= dict(background=b.input(background), T_final=b.input(T_final), n_contrib=b.input(n_contrib))
+    device.launch(
+        backward,
+        global_size,
+        image | dict(v_out=b.input(v_out), v_T=b.input(v_T_final), slot_grads=slots) | size_args,
+        local_size,
+    )
+    v_means2d, v_conics, v_opacities, v_features = (b.output(out) for out in outputs)
+    device.launch(
+        reduce,
+        n,
+        dict(slot_grads=slots, first_slot=b.input(first_slot), tiles_touched=b.input(tiles_touched), n=np.int32(n))
+        | dict(v_means2d=v_means2d, v_conics=v_conics, v_opacities=v_opacities, v_features=v_features),
+    )
 
 
 @composite_backward.register_fake

@@ -21,6 +21,22 @@ def _projection_args(b, means, covars, viewmat, K, width: int, height: int) -> d
     )
 
 
+def launch_project(device, b, gaussians: tuple, view: tuple, outputs: tuple) -> None:
+    """Enqueue the projection (project.cl) on tensors or device arrays bound by ``b``:
+    ``gaussians`` (means [N, 3], covars [N, 3, 3], viewmat [4, 4], K [3, 3]), ``view``
+    (width, height, near) and ``outputs`` (means2d [N, 2], conics [N, 3], depths [N], radii
+    [N] int32, tiles_touched [N] int32), as :func:`project` documents them."""
+    means, covars, viewmat, K = gaussians
+    width, height, near = view
+    n = means.shape[0]
+    kern = splat_kernel("project.cl", "project_forward", means.dtype)
+    near_real = np.float64(near) if means.dtype == torch.float64 else np.float32(near)
+    splats = _projection_args(b, means, covars, viewmat, K, width, height) | dict(near_plane=near_real)
+    names = ("means2d", "conics", "depths", "radii", "tiles_touched")
+    outputs = {name: b.output(out) for name, out in zip(names, outputs)}
+    device.launch(kern, -(-n // SPLAT_LANES), splats | outputs)
+
+
 @torch.library.custom_op("clflow::splat_project", mutates_args=())
 def project(
     means: Tensor, covars: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int, near: float
@@ -39,19 +55,17 @@ def project(
     """
     device = get_device()
     n = means.shape[0]
-    means2d = means.new_empty(n, 2)
-    conics = means.new_empty(n, 3)
-    depths = means.new_empty(n)
-    radii = torch.empty(n, dtype=torch.int32)
-    tiles_touched = torch.empty(n, dtype=torch.int32)
-    kern = splat_kernel("project.cl", "project_forward", means.dtype)
-    near_real = np.float64(near) if means.dtype == torch.float64 else np.float32(near)
+    i32 = dict(dtype=torch.int32)
+    outputs = (
+        means.new_empty(n, 2),
+        means.new_empty(n, 3),
+        means.new_empty(n),
+        torch.empty(n, **i32),
+        torch.empty(n, **i32),
+    )
     with bind(device) as b:
-        splats = _projection_args(b, means, covars, viewmat, K, width, height) | dict(near_plane=near_real)
-        outputs = dict(means2d=b.output(means2d), conics=b.output(conics), depths=b.output(depths))
-        outputs |= dict(radii=b.output(radii), tiles_touched=b.output(tiles_touched))
-        device.launch(kern, -(-n // SPLAT_LANES), splats | outputs)
-    return means2d, conics, depths, radii, tiles_touched
+        launch_project(device, b, (means, covars, viewmat, K), (width, height, near), outputs)
+    return outputs
 
 
 @project.register_fake
@@ -82,16 +96,34 @@ def project_backward(
 ) -> tuple[Tensor, Tensor]:
     """Adjoint of :func:`project`: (dL/dmeans [N, 3], dL/dcovars [N, 3, 3])."""
     device = get_device()
-    n = means.shape[0]
     v_means = torch.empty_like(means)
     v_covars = torch.empty_like(covars)
-    kern = splat_kernel("project.cl", "project_backward", means.dtype)
     with bind(device) as b:
-        splats = _projection_args(b, means, covars, viewmat, K, width, height) | dict(radii=b.input(radii))
-        grads = dict(v_means2d=b.input(v_means2d), v_conics=b.input(v_conics), v_depths=b.input(v_depths))
-        grads |= dict(v_means=b.output(v_means), v_covars=b.output(v_covars))
-        device.launch(kern, n, splats | grads)
+        launch_project_backward(
+            device,
+            b,
+            (means, covars, viewmat, K, radii),
+            (v_means2d, v_conics, v_depths),
+            (v_means, v_covars),
+            width,
+            height,
+        )
     return v_means, v_covars
+
+
+def launch_project_backward(device, b, gaussians: tuple, grads: tuple, outputs: tuple, width: int, height: int, n=None):
+    """Enqueue the projection's adjoint on tensors or device arrays bound by ``b``:
+    ``gaussians`` (means, covars, viewmat, K, radii), ``grads`` (v_means2d, v_conics,
+    v_depths), ``outputs`` (v_means [N, 3], v_covars [N, 3, 3]) of the first ``n`` Gaussians
+    (default all N)."""
+    means, covars, viewmat, K, radii = gaussians
+    n = means.shape[0] if n is None else n
+    kern = splat_kernel("project.cl", "project_backward", means.dtype)
+    splats = _projection_args(b, means, covars, viewmat, K, width, height) | dict(radii=b.input(radii), n=np.int32(n))
+    v_means2d, v_conics, v_depths = grads
+    args = dict(v_means2d=b.input(v_means2d), v_conics=b.input(v_conics), v_depths=b.input(v_depths))
+    args |= dict(v_means=b.output(outputs[0]), v_covars=b.output(outputs[1]))
+    device.launch(kern, n, splats | args)
 
 
 @project_backward.register_fake
