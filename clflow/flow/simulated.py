@@ -241,19 +241,22 @@ def render_simulated_flow(
 
     A Gaussian that is not in front of the near plane at both frames (a camera inside or
     passing through the object) has no projected motion: its features are 0 (finite, and
-    with a zero gradient) instead of the NaN of a projection through the camera centre.
+    with a zero gradient) instead of the NaN of a projection through the camera centre; it is
+    drawn where it is at frame t (culled there when not in front of the near plane).
     """
     from clflow.splat.ops import rasterize_gaussians
 
     depth_t, depth_t1 = _camera_points(means_t, viewmat)[..., 2], _camera_points(means_t1, viewmat)[..., 2]
     ahead = (depth_t > near) & (depth_t1 > near)
+    moving_t, moving_t1 = means_t, means_t1
     if not bool(ahead.all()):
-        # project a point in front of the camera instead, then drop those features
+        # their features from a point in front of the camera instead, then dropped; each is
+        # still drawn where it is at frame t (culled there when behind the near plane)
         W, t = viewmat[:3, :3].to(means_t.dtype), viewmat[:3, 3].to(means_t.dtype)
         in_front = (torch.tensor([0.0, 0.0, 1.0], dtype=means_t.dtype, device=means_t.device) - t) @ W
-        means_t = torch.where(ahead[:, None], means_t, in_front)
-        means_t1 = torch.where(ahead[:, None], means_t1, in_front)
-    features = flow_features(means_t, means_t1, viewmat, K, model=model, covars_t=covars_t, covars_t1=covars_t1)
+        moving_t = torch.where(ahead[:, None], means_t, in_front)
+        moving_t1 = torch.where(ahead[:, None], means_t1, in_front)
+    features = flow_features(moving_t, moving_t1, viewmat, K, model=model, covars_t=covars_t, covars_t1=covars_t1)
     if not bool(ahead.all()):
         features = torch.where(ahead[:, None], features, torch.zeros_like(features))
     image, alpha, _, _ = rasterize_gaussians(
