@@ -18,16 +18,15 @@ import torch
 
 from clflow.errors import ClflowError
 from clflow.fileio import atomic_path
+from clflow.flow.scene_flow import DeviceScene, render_scene_flows
 from clflow.mpm import StabilityWarning
 from clflow.pipeline.fit.population import RunPoint, evaluate_in_populations, populations_pay, run_point
 from clflow.pipeline.fit.problem import Problem
 from clflow.pipeline.fit.state import Evaluation, OptimizerState, UnstableRun
 from clflow.pipeline.forward import (
-    Prepared,
     SimulationResult,
     render_frames,
 )
-from clflow.pipeline.render import frame_gaussians, render_flow
 from clflow.pipeline.simulation import build_simulator, scene_run_values
 from clflow.scene.config import TIME_SCALE, SceneConfig
 
@@ -51,11 +50,11 @@ ONE_SHIFT = ((0, 0),)
 
 
 def simulated_view_flows(
-    prepared: Prepared, x: torch.Tensor, F: torch.Tensor, frames: int, cameras: list
+    scene: DeviceScene, x: torch.Tensor, F: torch.Tensor, frames: int, cameras: list
 ) -> list[list[torch.Tensor]]:
-    """Simulated flows [H, W, 2] of each frame step t -> t+1 (t < frames) seen by each of ``cameras``."""
-    scenes = [frame_gaussians(prepared.static, prepared.obj_rest, x[t], F[t]) for t in range(frames + 1)]
-    return [[render_flow(scenes[t], scenes[t + 1], cam)[0] for t in range(frames)] for cam in cameras]
+    """Simulated flows [H, W, 2] of each frame step t -> t+1 (t < frames) of the run x [>= frames
+    + 1, M, 3], F [>= frames + 1, M, 3, 3] on ``scene`` seen by each of ``cameras``."""
+    return [render_scene_flows(scene, x[: frames + 1], F[: frames + 1], cam) for cam in cameras]
 
 
 def flow_loss(cfg: SceneConfig, flows, observed: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
@@ -157,7 +156,8 @@ class Objective:
         if traj.unstable:  # finished, but not a run to learn from
             raise UnstableRun(traj.unstable)
         cameras = [v.camera for v in self.problem.views]
-        flows, *more_flows = simulated_view_flows(point.prepared, traj.x, traj.F, frames, cameras)
+        scene = self.problem.scene_on_device(point.grid)
+        flows, *more_flows = simulated_view_flows(scene, traj.x, traj.F, frames, cameras)
         loss = self.loss_of([flows, *more_flows])
         if not bool(torch.isfinite(loss.detach())):
             raise FloatingPointError("the flow loss is not finite")

@@ -13,11 +13,11 @@ import warnings
 import torch
 
 from clflow.errors import InputError
+from clflow.flow.scene_flow import DeviceScene, render_scene_flows
 from clflow.mpm import StabilityWarning
 from clflow.pipeline.fit.guidance import View
 from clflow.pipeline.fit.state import OptimizerState
 from clflow.pipeline.forward import Prepared, prepare, scene_values
-from clflow.pipeline.render import frame_gaussians, render_flow
 from clflow.pipeline.simulation import ObjectValues, build_simulator, object_masks, run
 from clflow.scene.config import (
     TIME_SCALE,
@@ -88,6 +88,7 @@ class Problem:
         self.model_grid = cfg.simulation.grid_resolution
         self.search_grid = (opt.search.grid_resolution if opt.search else 0) or self.model_grid
         self._prepared = {self.model_grid: prepare(cfg)}
+        self._device_scenes: dict[int, DeviceScene] = {}  # by grid, as _prepared
         self.prepared_on(self.search_grid)
         self.views: list[View] = []
 
@@ -103,6 +104,7 @@ class Problem:
         self.model_grid = grid
         self.cfg = self.prepared_on(grid).cfg
         self._prepared = {g: p for g, p in self._prepared.items() if g in (self.search_grid, self.model_grid)}
+        self._device_scenes = {g: s for g, s in self._device_scenes.items() if g in self._prepared}
 
     def prepared_on(self, grid: int) -> Prepared:
         """The scene prepared on a grid of ``grid`` nodes over the same domain (the model's,
@@ -111,6 +113,14 @@ class Problem:
             simulation = dataclasses.replace(self.cfg.simulation, grid_resolution=grid)
             self._prepared[grid] = prepare(dataclasses.replace(self.cfg, simulation=simulation))
         return self._prepared[grid]
+
+    def scene_on_device(self, grid: int) -> DeviceScene:
+        """The Gaussians of the scene prepared on the grid of ``grid`` nodes on the device, to
+        render a run's simulated flow from (made on first use)."""
+        if grid not in self._device_scenes:
+            prepared = self.prepared_on(grid)
+            self._device_scenes[grid] = DeviceScene(prepared.static, prepared.obj_rest)
+        return self._device_scenes[grid]
 
     def values(self, z: dict[str, float]) -> dict[str, float]:
         """The value of every variable in z: material parameters in SI, velocity components in m/s."""
@@ -230,13 +240,13 @@ class Problem:
         (timed once in the guidance view on ``prepared``'s scene at rest: what an iteration
         adds to the simulation's time)."""
         p = prepared
-        x = p.setup.particles.positions.to(p.obj_rest.means.dtype).clone().requires_grad_()
-        F = torch.eye(3, dtype=x.dtype).expand(x.shape[0], 3, 3)
+        scene = DeviceScene(p.static, p.obj_rest)
+        x = p.setup.particles.positions.to(p.obj_rest.means.dtype).expand(2, -1, 3).clone().requires_grad_()
+        F = torch.eye(3, dtype=x.dtype).expand(2, x.shape[1], 3, 3)
         seconds = []
         for _ in range(2):  # the first builds the rasteriser's kernels
             started = time.perf_counter()
-            scene = frame_gaussians(p.static, p.obj_rest, x, F)
-            render_flow(scene, scene, p.camera)[0].sum().backward()
+            render_scene_flows(scene, x, F, p.camera)[0].sum().backward()
             seconds.append(time.perf_counter() - started)
         return seconds[-1] * (1 + len(self.cfg.more_views))
 
