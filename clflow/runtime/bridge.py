@@ -74,6 +74,7 @@ class TensorBinding:
                 raise InputError(f"{what}: dtype {t.dtype}, expected {dtype}")
             if writable:
                 t.device_wrote()
+            self._keep.append(t)  # a temporary array (its zero-copy host memory) lives until finish
             return t.buffer
         check_tensor(t, what, dtype)
         cl, mf = self._cl, self._cl.mem_flags

@@ -119,3 +119,28 @@ def test_scratch_buffers_are_reused_once_given_back_and_the_spare_memory_is_boun
     kept = list(device._spare_scratch)
     device.give_back_scratch(device.take_scratch(6000))  # too large on its own: dropped alone
     assert device._spare_scratch == kept
+
+
+def test_a_device_array_lent_to_a_binding_lives_until_the_binding_finishes(device):
+    """A temporary DeviceArray whose buffer a kernel takes (b.input(DeviceArray.of(...))) is
+    kept by the binding until its kernels have run: on a zero-copy device its buffer is the
+    array's own host memory, which torch would otherwise hand to the next tensor while the
+    kernel still reads it (a rendering read another array's values that way)."""
+    import gc
+    import weakref
+
+    from clflow.runtime.arrays import DeviceArray
+
+    values = torch.arange(64, dtype=torch.float32)
+    index = torch.arange(64, dtype=torch.int32)
+    out = torch.zeros(64, dtype=torch.float32)
+    with bind(device) as b:
+        lent = DeviceArray.of(device, values)
+        alive = weakref.ref(lent)
+        run_scatter(device, b, lent, index, out)
+        del lent
+        gc.collect()
+        assert alive() is not None
+    gc.collect()
+    assert alive() is None
+    assert torch.equal(out, values)
