@@ -11,11 +11,11 @@ from typing import Callable
 import numpy as np
 import torch
 
-from clflow.media import to_uint8
-from clflow.pipeline.render import frame_gaussians, render_rgb
+from clflow.pipeline.render import frame_gaussians, render_rgb_frames
 from clflow.pipeline.simulation import ObjectSetup, ObjectValues, build_simulator, setup_object
 from clflow.scene.config import SceneConfig, split_parameter
 from clflow.scene.load import guidance_camera, load_scene_objects
+from clflow.splat.device_scene import DeviceScene
 from clflow.splat.gaussians import Gaussians
 
 log = logging.getLogger(__name__)
@@ -135,16 +135,19 @@ def simulate_config(
     return SimulationResult(prepared, traj.x, traj.F, traj.clamped, sim.substeps, values)
 
 
-def render_frames(result: SimulationResult, camera=None, supersample: int = 1) -> np.ndarray:
+def render_frames(
+    result: SimulationResult, camera=None, supersample: int = 1, scene: DeviceScene | None = None
+) -> np.ndarray:
     """[T+1, H, W, 3] uint8 frames of the simulation seen by ``camera`` (default: guidance);
     ``supersample``: each pixel the area average of supersample^2 rendered ones, as a
-    camera's pixel integrates light over its area."""
+    camera's pixel integrates light over its area. Rendered with the scene on the device
+    (``scene``: the prepared scene's, made here when not given)."""
     import cv2
 
     camera = camera or result.prepared.camera
     fine = camera.scaled(supersample) if supersample > 1 else camera
-    with torch.no_grad():
-        frames = [to_uint8(render_rgb(result.scene_at(t), fine)) for t in range(result.x.shape[0])]
+    p = result.prepared
+    frames = list(render_rgb_frames(scene or DeviceScene(p.static, p.obj_rest), result.x, result.F, fine))
     if supersample > 1:
         frames = [cv2.resize(f, (camera.width, camera.height), interpolation=cv2.INTER_AREA) for f in frames]
     return np.stack(frames)

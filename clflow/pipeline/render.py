@@ -1,11 +1,15 @@
 """Rendering a simulated scene: colours of a frame, and the simulated optical flow between
-two frames (differentiable in the object's positions and deformation gradients)."""
+two frames (differentiable in the object's positions and deformation gradients); a run's
+colour frames with the scene on the device (:func:`render_rgb_frames`)."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
+from clflow.runtime.arrays import DeviceArray
 from clflow.scene.deform import polar_rotations
+from clflow.splat.device_scene import DeviceScene, render_frame, rgb_uint8
 from clflow.splat.gaussians import Gaussians
 
 
@@ -57,3 +61,41 @@ def render_object_alpha(g: Gaussians, camera) -> torch.Tensor:
     """[H, W] opacity of ``g`` alone (e.g. the object at frame 0)."""
     _, alpha, _, _ = _rasterize(g, camera, torch.ones(g.means.shape[0], 1, dtype=g.means.dtype))
     return alpha[..., 0]
+
+
+def gaussian_colors(g: Gaussians, viewmat: torch.Tensor) -> torch.Tensor:
+    """[N, C] colours of ``g`` seen from the camera of ``viewmat`` [4, 4]: its SH evaluated
+    along each view direction (turned by its sh_rotations), as :func:`render_rgb` renders them,
+    or its plain colours."""
+    from clflow.splat.ops import view_directions
+    from clflow.splat.sh import sh_to_rgb
+
+    if g.sh is None:
+        return g.colors
+    rotations = g.sh_rotations if g.sh_degree else None
+    return sh_to_rgb(g.sh_degree, g.sh, view_directions(g.means, viewmat.to(g.means.dtype), rotations))
+
+
+def render_rgb_frames(
+    scene: DeviceScene, x: torch.Tensor, F: torch.Tensor, camera, background=(1.0, 1.0, 1.0)
+) -> np.ndarray:
+    """[T+1, H, W, 3] uint8 frames of a run x [T+1, >= n, 3], F [T+1, >= n, 3, 3] seen by
+    ``camera``, rendered with the scene on the device: :func:`render_rgb` of
+    :func:`frame_gaussians` per frame, where only the object's x, F and colours go to the
+    device and the frame's bytes come back (the static Gaussians' colours once a call)."""
+    n, dtype, dev = scene.n, scene.dtype, scene.device
+    with torch.no_grad():
+        x, F = x[:, :n].to(dtype), F[:, :n].to(dtype)
+        static = gaussian_colors(scene.static, camera.viewmat).to(dtype)
+        template = DeviceArray.of(dev, torch.cat([static.new_zeros(n, static.shape[1]), static]).contiguous())
+        behind = DeviceArray.of(dev, torch.tensor(background, dtype=dtype))
+        frames = []
+        for t in range(x.shape[0]):
+            moved = scene.obj_rest.deformed(x[t], F[t], polar_rotations(F[t]))
+            colors = template.clone().copy_from_buffer(
+                DeviceArray.of(dev, gaussian_colors(moved, camera.viewmat).contiguous()),
+                n * static.shape[1] * static.element_size(),
+            )
+            image, _ = render_frame(scene, scene.frame(x[t].contiguous(), F[t].contiguous()), colors, behind, camera)
+            frames.append(rgb_uint8(scene, image))
+    return np.stack(frames)

@@ -7,10 +7,11 @@ import pytest
 import torch
 
 from clflow.errors import InputError
-from clflow.flow.scene_flow import DeviceScene, render_scene_flows
+from clflow.flow.scene_flow import render_scene_flows
 from clflow.pipeline.render import frame_gaussians, render_flow
 from clflow.runtime import get_device
 from clflow.splat.cameras import Camera
+from clflow.splat.device_scene import DeviceScene
 from clflow.splat.gaussians import Gaussians
 
 D = torch.float64

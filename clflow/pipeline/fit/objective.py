@@ -18,7 +18,7 @@ import torch
 
 from clflow.errors import ClflowError
 from clflow.fileio import atomic_path
-from clflow.flow.scene_flow import DeviceScene, render_scene_flows
+from clflow.flow.scene_flow import render_scene_flows
 from clflow.mpm import StabilityWarning
 from clflow.pipeline.fit.population import RunPoint, evaluate_in_populations, populations_pay, run_point
 from clflow.pipeline.fit.problem import Problem
@@ -29,6 +29,7 @@ from clflow.pipeline.forward import (
 )
 from clflow.pipeline.simulation import build_simulator, scene_run_values
 from clflow.scene.config import TIME_SCALE, SceneConfig
+from clflow.splat.device_scene import DeviceScene
 
 log = logging.getLogger(__name__)
 
@@ -227,9 +228,9 @@ class Objective:
         simulated = SimulationResult(
             self.problem.prepared, traj.x[: frames + 1].detach(), traj.F[: frames + 1].detach()
         )
-        errors = []
+        errors, scene = [], self.problem.scene_on_device(self.problem.model_grid)
         for view, flows in zip(self.problem.views, [result.flows, *result.more_flows]):
-            wide = render_frames(simulated, view.camera.widened(margin), supersample=SUPERSAMPLE)
+            wide = render_frames(simulated, view.camera.widened(margin), SUPERSAMPLE, scene)
             estimated = shift_mean_flow(wide, margin, shifts, estimate)
             errors.append(torch.from_numpy(estimated).double() - torch.stack(flows[:frames]).double())
         return errors

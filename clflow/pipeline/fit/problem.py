@@ -13,7 +13,7 @@ import warnings
 import torch
 
 from clflow.errors import InputError
-from clflow.flow.scene_flow import DeviceScene, render_scene_flows
+from clflow.flow.scene_flow import render_scene_flows
 from clflow.mpm import StabilityWarning
 from clflow.pipeline.fit.guidance import View
 from clflow.pipeline.fit.state import OptimizerState
@@ -27,6 +27,7 @@ from clflow.scene.config import (
     split_parameter,
     velocity_names,
 )
+from clflow.splat.device_scene import DeviceScene
 
 log = logging.getLogger(__name__)
 

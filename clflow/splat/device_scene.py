@@ -1,0 +1,173 @@
+"""A simulated scene's Gaussians kept on the device, and one frame's rendering there.
+
+A :class:`DeviceScene` holds the object's n Gaussians first (their rest covariances kept),
+then the static ones, written to the device once. :meth:`DeviceScene.frame` makes one frame's
+scene from the object's particle positions x and deformation gradients F by a kernel
+(kernels_cl/splat/scene_frame.cl: means x, covariances F Sigma0 F^T over the first n rows);
+:func:`render_frame` composites per-Gaussian channels at a frame's geometry with every
+intermediate (projection, tile lists, transmittance) left on the device in a
+:class:`RenderTape`, which :func:`render_frame_backward` reads. Nothing of the static
+Gaussians crosses to the device again, and their gradients are never formed.
+
+These are the rasteriser's own kernels (clflow.splat.ops: ``launch_project``,
+``build_tile_lists``, ``launch_composite`` and their adjoints) on device arrays; the
+per-op path (``rasterize_gaussians`` of ``clflow.pipeline.render.frame_gaussians``) is their
+reference (tests/flow/test_scene_flow.py, tests/pipeline/test_render_frames.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from clflow.errors import InputError
+from clflow.runtime.arrays import DeviceArray
+from clflow.runtime.bridge import bind
+from clflow.runtime.devices import Device, get_device
+from clflow.splat.binning import TileLists, build_tile_lists
+from clflow.splat.gaussians import Gaussians
+from clflow.splat.ops.compositing import launch_composite, launch_composite_backward
+from clflow.splat.ops.kernels import splat_kernel
+from clflow.splat.ops.projection import launch_project, launch_project_backward
+
+
+@dataclass
+class SceneFrame:
+    """One frame's scene on the device: means [N, 3] (m), covariances [N, 3, 3] (m^2), and the
+    object's F [n, 3, 3] they were made with."""
+
+    means: DeviceArray
+    covars: DeviceArray
+    F: DeviceArray
+
+
+@dataclass
+class RenderTape:
+    """What a frame's rendering leaves on the device for its backward: the projection
+    (means2d, conics, depths, radii, tiles_touched), the tile lists, the channels [N, C], the
+    background [C], the transmittance [H, W] and the contributor counts [H, W]."""
+
+    frame: SceneFrame
+    projected: tuple[DeviceArray, ...]
+    lists: TileLists
+    channels: DeviceArray
+    background: DeviceArray
+    T_final: DeviceArray
+    n_contrib: DeviceArray
+
+
+class DeviceScene:
+    """A simulated scene's Gaussians on the device (see the module docstring).
+
+    Args:
+        static: the Gaussians that do not move. obj_rest: the object's n Gaussians at rest
+            (their covariances Sigma0 are deformed by each frame's F); both of one float dtype.
+    """
+
+    def __init__(self, static: Gaussians, obj_rest: Gaussians, device: Device | None = None):
+        self.device = device or get_device()
+        self.dtype = obj_rest.means.dtype
+        if static.means.dtype != self.dtype:
+            raise InputError(f"DeviceScene: static Gaussians are {static.means.dtype}, the object's {self.dtype}")
+        self.static, self.obj_rest = static, obj_rest
+        self.n = len(obj_rest)
+        dev, dtype = self.device, self.dtype
+        self.rest_covars = DeviceArray.of(dev, obj_rest.covariances.to(dtype).contiguous(), "rest covariances")
+        scene = Gaussians.cat([obj_rest, static])  # the object's rows are overwritten per frame
+        self._means = DeviceArray.of(dev, scene.means.detach().contiguous(), "means")
+        self._covars = DeviceArray.of(dev, scene.covariances.detach().to(dtype).contiguous(), "covariances")
+        self.opacities = DeviceArray.of(dev, scene.opacities.detach().to(dtype).contiguous(), "opacities")
+
+    def __len__(self) -> int:
+        return self._means.shape[0]
+
+    def frame(self, x: torch.Tensor, F: torch.Tensor) -> SceneFrame:
+        """The scene at one frame: the object's Gaussians at x [n, 3] (m) deformed by F [n, 3, 3]
+        (host tensors of the scene's dtype), on the device."""
+        dev = self.device
+        x_dev, F_dev = DeviceArray.of(dev, x, "positions"), DeviceArray.of(dev, F, "deformation gradients")
+        means, covars = self._means.clone(), self._covars.clone()
+        kern = splat_kernel("scene_frame.cl", "object_frame", self.dtype)
+        args = dict(x=x_dev, F=F_dev, rest_covars=self.rest_covars, means=means, covars=covars)
+        dev.launch(kern, self.n, args | dict(n=np.int32(self.n)))
+        return SceneFrame(means, covars, F_dev)
+
+    def view(self, camera) -> tuple[DeviceArray, DeviceArray]:
+        """``camera``'s viewmat [4, 4] and intrinsics [3, 3] on the device, in the scene's dtype."""
+        dev, dtype = self.device, self.dtype
+        viewmat = DeviceArray.of(dev, camera.viewmat.to(dtype).contiguous(), "viewmat")
+        return viewmat, DeviceArray.of(dev, camera.K.to(dtype).contiguous(), "intrinsics")
+
+
+def render_frame(
+    scene: DeviceScene, frame: SceneFrame, channels: DeviceArray, background: DeviceArray, camera, near: float = 0.01
+) -> tuple[DeviceArray, RenderTape]:
+    """``channels`` [N, C] composited over ``background`` [C] at ``frame``'s geometry, seen by
+    ``camera``: the image [H, W, C] (sum_i c_i alpha_i T_i + T_final background) and the tape
+    (with the transmittance T_final [H, W]), all on the device."""
+    dev, dtype, N = scene.device, scene.dtype, len(scene)
+    width, height = camera.width, camera.height
+    projected = (
+        DeviceArray.empty(dev, (N, 2), dtype),
+        DeviceArray.empty(dev, (N, 3), dtype),
+        DeviceArray.empty(dev, (N,), dtype),
+        DeviceArray.empty(dev, (N,), torch.int32),
+        DeviceArray.empty(dev, (N,), torch.int32),
+    )
+    with bind(dev) as b:
+        launch_project(dev, b, (frame.means, frame.covars, *scene.view(camera)), (width, height, near), projected)
+    means2d, conics, depths, radii, tiles_touched = projected
+    lists = build_tile_lists(means2d, depths, radii, tiles_touched, width, height, dev)
+    image = DeviceArray.empty(dev, (height, width, channels.shape[1]), dtype)
+    T_final = DeviceArray.empty(dev, (height, width), dtype)
+    n_contrib = DeviceArray.empty(dev, (height, width), torch.int32)
+    with bind(dev) as b:
+        splats = (means2d, conics, scene.opacities, channels, background)
+        tiles = (lists.ranges, lists.sorted_slots, lists.slot_gaussian)
+        launch_composite(dev, b, splats, tiles, (image, T_final, n_contrib))
+    return image, RenderTape(frame, projected, lists, channels, background, T_final, n_contrib)
+
+
+def render_frame_backward(
+    scene: DeviceScene, tape: RenderTape, v_image: DeviceArray, v_T: DeviceArray, camera
+) -> tuple[DeviceArray, DeviceArray, DeviceArray]:
+    """The object's gradients from a frame's image [H, W, C] and transmittance [H, W]
+    gradients: (dL/dmeans [n, 3] through the geometry, dL/dcovars [n, 3, 3], dL/dchannels
+    [n, C]), on the device."""
+    dev, dtype, n = scene.device, scene.dtype, scene.n
+    means2d, conics, _depths, radii, _tiles_touched = tape.projected
+    lists, channels = tape.lists, tape.channels
+    rows = lambda *shape: DeviceArray.empty(dev, shape, dtype)  # noqa: E731
+    v_means2d, v_conics, v_opacities, v_channels = rows(n, 2), rows(n, 3), rows(n), rows(n, channels.shape[1])
+    v_means, v_covars = rows(n, 3), rows(n, 3, 3)
+    with bind(dev) as b:
+        splats = (means2d, conics, scene.opacities, channels, tape.background)
+        tiles = (lists.ranges, lists.sorted_slots, lists.slot_gaussian, lists.first_slot, lists.tiles_touched)
+        grads = (tape.T_final, tape.n_contrib, v_image, v_T)
+        launch_composite_backward(dev, b, splats, tiles, grads, (v_means2d, v_conics, v_opacities, v_channels), n)
+        view = (tape.frame.means, tape.frame.covars, *scene.view(camera), radii)
+        v_projected = (v_means2d, v_conics, DeviceArray.zeros(dev, (n,), dtype))
+        launch_project_backward(dev, b, view, v_projected, (v_means, v_covars), camera.width, camera.height, n)
+    return v_means, v_covars, v_channels
+
+
+def object_frame_backward(scene: DeviceScene, frame: SceneFrame, v_means: DeviceArray, v_covars: DeviceArray):
+    """(dL/dx [n, 3], dL/dF [n, 3, 3]) of the object from its Gaussians' mean and covariance
+    gradients at ``frame`` (Sigma = F Sigma0 F^T), on the device."""
+    dev, n = scene.device, scene.n
+    v_x, v_F = DeviceArray.empty(dev, (n, 3), scene.dtype), DeviceArray.empty(dev, (n, 3, 3), scene.dtype)
+    args = dict(F=frame.F, rest_covars=scene.rest_covars, v_means=v_means, v_covars=v_covars, v_x=v_x, v_F=v_F)
+    dev.launch(splat_kernel("scene_frame.cl", "object_frame_backward", scene.dtype), n, args | dict(n=np.int32(n)))
+    return v_x, v_F
+
+
+def rgb_uint8(scene: DeviceScene, image: DeviceArray) -> np.ndarray:
+    """[H, W, 3] uint8 of a rendered image [H, W, 3] (values in [0, 1] clamped, NaN as 0, x 255
+    rounded half up: clflow.media.to_uint8), converted on the device and read."""
+    height, width, channels = image.shape
+    out = DeviceArray.empty(scene.device, image.shape, torch.uint8)
+    kern = splat_kernel("scene_frame.cl", "rgb_uint8", scene.dtype)
+    scene.device.launch(kern, height * width * channels, dict(image=image, out=out, n=np.int32(image.numel())))
+    return out.read().numpy()
