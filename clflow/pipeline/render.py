@@ -81,21 +81,23 @@ def render_rgb_frames(
 ) -> np.ndarray:
     """[T+1, H, W, 3] uint8 frames of a run x [T+1, >= n, 3], F [T+1, >= n, 3, 3] seen by
     ``camera``, rendered with the scene on the device: :func:`render_rgb` of
-    :func:`frame_gaussians` per frame, where only the object's x, F and colours go to the
-    device and the frame's bytes come back (the static Gaussians' colours once a call)."""
+    :func:`frame_gaussians` per frame, where only the object's x and F go to the device and
+    the frame's bytes come back (the static Gaussians' colours once a call; the object's,
+    where they change, made on the device: DeviceScene.object_colors)."""
     n, dtype, dev = scene.n, scene.dtype, scene.device
     with torch.no_grad():
         x, F = x[:, :n].to(dtype), F[:, :n].to(dtype)
         static = gaussian_colors(scene.static, camera.viewmat).to(dtype)
-        template = DeviceArray.of(dev, torch.cat([static.new_zeros(n, static.shape[1]), static]).contiguous())
-        behind = DeviceArray.of(dev, torch.tensor(background, dtype=dtype))
+        fixed = static.new_zeros(n, 3) if scene.object_colors_vary else gaussian_colors(scene.obj_rest, camera.viewmat)
+        template = DeviceArray.of(dev, torch.cat([fixed.to(dtype), static]).contiguous(), "colours")
+        behind = DeviceArray.of(dev, torch.tensor(background, dtype=dtype), "background")
         frames = []
         for t in range(x.shape[0]):
-            moved = scene.obj_rest.deformed(x[t], F[t], polar_rotations(F[t]))
-            colors = template.clone().copy_from_buffer(
-                DeviceArray.of(dev, gaussian_colors(moved, camera.viewmat).contiguous()),
-                n * static.shape[1] * static.element_size(),
-            )
-            image, _ = render_frame(scene, scene.frame(x[t].contiguous(), F[t].contiguous()), colors, behind, camera)
+            frame = scene.frame(x[t].contiguous(), F[t].contiguous())
+            colors = template
+            if scene.object_colors_vary:
+                colors = template.clone()
+                scene.object_colors(frame, camera, colors)
+            image, _ = render_frame(scene, frame, colors, behind, camera)
             frames.append(rgb_uint8(scene, image))
     return np.stack(frames)

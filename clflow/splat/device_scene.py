@@ -23,14 +23,27 @@ import numpy as np
 import torch
 
 from clflow.errors import InputError
-from clflow.runtime.arrays import DeviceArray
+from clflow.runtime.arrays import DeviceArray, real_of
 from clflow.runtime.bridge import bind
 from clflow.runtime.devices import Device, get_device
 from clflow.splat.binning import TileLists, build_tile_lists
+from clflow.splat.constants import SPLAT_LANES
 from clflow.splat.gaussians import Gaussians
 from clflow.splat.ops.compositing import launch_composite, launch_composite_backward
 from clflow.splat.ops.kernels import splat_kernel
 from clflow.splat.ops.projection import launch_project, launch_project_backward
+from clflow.splat.sh import SH_C0, SH_C1, SH_C2, SH_C3
+
+# the SH basis constants of clflow.splat.sh, for scene_frame.cl's object_colors
+SH_DEFINES = {"SH_C0": repr(SH_C0), "SH_C1": repr(SH_C1)}
+SH_DEFINES |= {f"SH_C2_{k}": repr(c) for k, c in enumerate(SH_C2)} | {
+    f"SH_C3_{k}": repr(c) for k, c in enumerate(SH_C3)
+}
+
+
+def _frame_kernel(name: str, dtype: torch.dtype):
+    """Kernel ``name`` of kernels_cl/splat/scene_frame.cl for ``dtype``."""
+    return splat_kernel("scene_frame.cl", name, dtype, **SH_DEFINES)
 
 
 @dataclass
@@ -79,6 +92,9 @@ class DeviceScene:
         self._means = DeviceArray.of(dev, scene.means.detach().contiguous(), "means")
         self._covars = DeviceArray.of(dev, scene.covariances.detach().to(dtype).contiguous(), "covariances")
         self.opacities = DeviceArray.of(dev, scene.opacities.detach().to(dtype).contiguous(), "opacities")
+        # the object's SH coefficients and rest sh_rotations, uploaded when colours are first asked for
+        self._sh: DeviceArray | None = None
+        self._rest_rotations: DeviceArray | None = None
 
     def __len__(self) -> int:
         return self._means.shape[0]
@@ -89,10 +105,38 @@ class DeviceScene:
         dev = self.device
         x_dev, F_dev = DeviceArray.of(dev, x, "positions"), DeviceArray.of(dev, F, "deformation gradients")
         means, covars = self._means.clone(), self._covars.clone()
-        kern = splat_kernel("scene_frame.cl", "object_frame", self.dtype)
+        kern = _frame_kernel("object_frame", self.dtype)
         args = dict(x=x_dev, F=F_dev, rest_covars=self.rest_covars, means=means, covars=covars)
         dev.launch(kern, self.n, args | dict(n=np.int32(self.n)))
         return SceneFrame(means, covars, F_dev)
+
+    @property
+    def object_colors_vary(self) -> bool:
+        """Whether the object's colours change from frame to frame (SH of degree >= 1 turn
+        with each Gaussian and depend on the view direction)."""
+        return bool(self.obj_rest.sh is not None and self.obj_rest.sh_degree)
+
+    def object_colors(self, frame: SceneFrame, camera, colors: DeviceArray) -> None:
+        """Write the object's colours at ``frame`` seen by ``camera`` over the first n rows of
+        ``colors`` [N, 3] (SH of degree >= 1: the polar rotations of the frame's F and the SH
+        evaluated on the device; the coefficients uploaded on first use)."""
+        if not self.object_colors_vary:
+            raise InputError("DeviceScene.object_colors: the object's colours do not change; take them once")
+        dev, dtype, n, g = self.device, self.dtype, self.n, self.obj_rest
+        if self._sh is None:
+            self._sh = DeviceArray.of(dev, g.sh.detach().to(dtype).contiguous(), "SH coefficients")
+            rest = g.sh_rotations
+            self._rest_rotations = None if rest is None else DeviceArray.of(dev, rest.to(dtype).contiguous())
+        polar = DeviceArray.empty(dev, (n, 3, 3), dtype)
+        kern = dev.kernel("common/svd3.cl", "polar_rotation", real_of(dtype), {"CLFLOW_SIMD_LANES": SPLAT_LANES})
+        dev.launch(kern, -(-n // SPLAT_LANES), dict(n=np.int32(n), F=frame.F, R=polar))
+        W, t = camera.viewmat[:3, :3].to(dtype), camera.viewmat[:3, 3].to(dtype)
+        centre = DeviceArray.of(dev, (-W.T @ t).contiguous(), "camera centre")
+        rest = self._rest_rotations
+        args = dict(means=frame.means, polar=polar, rest_rotations=polar if rest is None else rest)
+        args |= dict(has_rest=np.int32(rest is not None), sh=self._sh, bases=np.int32(g.sh.shape[1]))
+        args |= dict(degree=np.int32(g.sh_degree), camera=centre, colors=colors, n=np.int32(n))
+        dev.launch(_frame_kernel("object_colors", dtype), n, args)
 
     def view(self, camera) -> tuple[DeviceArray, DeviceArray]:
         """``camera``'s viewmat [4, 4] and intrinsics [3, 3] on the device, in the scene's dtype."""
@@ -159,7 +203,7 @@ def object_frame_backward(scene: DeviceScene, frame: SceneFrame, v_means: Device
     dev, n = scene.device, scene.n
     v_x, v_F = DeviceArray.empty(dev, (n, 3), scene.dtype), DeviceArray.empty(dev, (n, 3, 3), scene.dtype)
     args = dict(F=frame.F, rest_covars=scene.rest_covars, v_means=v_means, v_covars=v_covars, v_x=v_x, v_F=v_F)
-    dev.launch(splat_kernel("scene_frame.cl", "object_frame_backward", scene.dtype), n, args | dict(n=np.int32(n)))
+    dev.launch(_frame_kernel("object_frame_backward", scene.dtype), n, args | dict(n=np.int32(n)))
     return v_x, v_F
 
 
@@ -168,6 +212,6 @@ def rgb_uint8(scene: DeviceScene, image: DeviceArray) -> np.ndarray:
     rounded half up: clflow.media.to_uint8), converted on the device and read."""
     height, width, channels = image.shape
     out = DeviceArray.empty(scene.device, image.shape, torch.uint8)
-    kern = splat_kernel("scene_frame.cl", "rgb_uint8", scene.dtype)
+    kern = _frame_kernel("rgb_uint8", scene.dtype)
     scene.device.launch(kern, height * width * channels, dict(image=image, out=out, n=np.int32(image.numel())))
     return out.read().numpy()
