@@ -7,7 +7,8 @@ the frame's particle positions and deformation gradients, each Gaussian's projec
 displacement by a kernel (kernels_cl/splat/scene_flow.cl), and every intermediate of the
 rasteriser (projections, tile lists, the transmittance) stays on the device until the
 backward has used it. What crosses to the
-host per frame step: the object's x and F in, the composited flow features and
+host per frame step: the object's x and F in (nothing where the run's states on the device
+are given), the composited flow features and
 transmittance out; the backward takes their gradients in and gives the object's gradients
 out. The flow model is "mean" (each Gaussian's projected displacement), as
 :func:`~clflow.pipeline.render.render_flow` renders it.
@@ -30,9 +31,12 @@ from clflow.splat.ops.kernels import splat_kernel
 
 class _SceneFlows(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, scene: DeviceScene, camera, near: float, x: torch.Tensor, F: torch.Tensor):
+    def forward(ctx, scene: DeviceScene, camera, near: float, states, x: torch.Tensor, F: torch.Tensor):
         dev, dtype, N = scene.device, scene.dtype, len(scene)
-        frames = [scene.frame(x[t].contiguous(), F[t].contiguous()) for t in range(x.shape[0])]
+        if states is None:
+            frames = [scene.frame(x[t].contiguous(), F[t].contiguous()) for t in range(x.shape[0])]
+        else:  # the same values, already on the device
+            frames = [scene.frame(state.x, state.F) for state in states]
         steps = x.shape[0] - 1
         images = torch.empty(steps, camera.height, camera.width, 2, dtype=dtype)
         transmittance = torch.empty(steps, camera.height, camera.width, dtype=dtype)
@@ -66,7 +70,7 @@ class _SceneFlows(torch.autograd.Function):
             v_F[t] += step[1]
             v_x[t + 1] += step[2]
         ctx.tapes = ctx.frames = None  # the device memory is given back
-        return None, None, None, v_x, v_F
+        return None, None, None, None, v_x, v_F
 
 
 def _zeros_or(grads: torch.Tensor | None, t: int, shape: tuple, dtype) -> torch.Tensor:
@@ -89,7 +93,14 @@ def _step_backward(scene: DeviceScene, next_frame, tape, camera, near: float, v_
 
 
 def render_scene_flows(
-    scene: DeviceScene, x: torch.Tensor, F: torch.Tensor, camera, *, normalize: bool = True, near: float = 0.01
+    scene: DeviceScene,
+    x: torch.Tensor,
+    F: torch.Tensor,
+    camera,
+    *,
+    states=None,
+    normalize: bool = True,
+    near: float = 0.01,
 ) -> list[torch.Tensor]:
     """The simulated flow [H, W, 2] (px per frame) of each frame step t -> t+1 of a run, seen by
     ``camera``, differentiable in x and F.
@@ -98,6 +109,9 @@ def render_scene_flows(
         scene: the scene's Gaussians on the device.
         x: [T + 1, >= n, 3] particle positions (m) per frame; the first n are the object's
             Gaussians (fill particles after them are ignored). F: [T + 1, >= n, 3, 3].
+        states: the run's states on the device, one a frame (clflow.mpm.Frames.states: the
+            same values as x and F): the frames are read from them, not copied from x and F,
+            which still carry the gradients.
         normalize: divide by the rendered alpha (:func:`~clflow.flow.simulated.flow_from_features`).
         near: Gaussians with camera z <= near (m) are culled; one not ahead of it at both
             frames has no flow.
@@ -108,6 +122,9 @@ def render_scene_flows(
             f"render_scene_flows: x [T + 1, >= {n}, 3] and F [T + 1, >= {n}, 3, 3] of T >= 1 frame steps, "
             f"got {tuple(x.shape)} and {tuple(F.shape)}"
         )
-    images, transmittance = _SceneFlows.apply(scene, camera, near, x[:, :n].to(scene.dtype), F[:, :n].to(scene.dtype))
+    if states is not None and len(states) != x.shape[0]:
+        raise InputError(f"render_scene_flows: {len(states)} device states for {x.shape[0]} frames")
+    x, F = x[:, :n].to(scene.dtype), F[:, :n].to(scene.dtype)
+    images, transmittance = _SceneFlows.apply(scene, camera, near, states, x, F)
     alpha = 1 - transmittance[..., None]
     return [flow_from_features(images[t], alpha[t] if normalize else None) for t in range(images.shape[0])]

@@ -79,6 +79,11 @@ class Frames:
     # (at least once in some frame) and the first CFL violation (a message; None: none)
     clamped: int = 0
     cfl_violation: str | None = None
+    # each frame's state on the device (the run's checkpoints and its last state), the same
+    # values as x, v, F, for readers that take the frames there (clflow.flow.scene_flow,
+    # clflow.pipeline.render.render_rgb_frames); None for a population or a run of tensors on
+    # another torch device
+    states: tuple[State, ...] | None = None
 
     @property
     def unstable(self) -> str | None:
@@ -199,6 +204,7 @@ class _Run:
                 self.cfl_violation = self.cfl_violation or message
             if f + 1 < T:  # the last frame's state is never replayed from
                 self.checkpoints.append(a.clone())
+        self.frame_states = (*self.checkpoints, a)
         if breaches:  # one warning a run, not one a frame
             frames_text = (
                 f"frame {breaches[0][0]}" if len(breaches) == 1 else f"{len(breaches)} frames from {breaches[0][0]}"
@@ -416,7 +422,10 @@ def simulate(
         try:
             run = _Run(sim, int(frames), substeps, memory_budget, strict_cfl=True)
             out = Frames(
-                *_Simulate.apply(run, param, mass, x0, v0, stage_accel), substeps=substeps, clamped=run.clamped_count
+                *_Simulate.apply(run, param, mass, x0, v0, stage_accel),
+                substeps=substeps,
+                clamped=run.clamped_count,
+                states=run.frame_states,
             )
             return _member_axis(sim, out)
         except SimulationError as err:
@@ -428,6 +437,7 @@ def simulate(
         substeps=substeps,
         clamped=run.clamped_count,
         cfl_violation=run.cfl_violation,
+        states=run.frame_states,
     )
     return _member_axis(sim, out)
 
@@ -438,7 +448,11 @@ def _member_axis(sim: Simulator, frames: Frames) -> Frames:
         return frames
     k = sim.members
     return dataclasses.replace(
-        frames, x=split_members(frames.x, k), v=split_members(frames.v, k), F=split_members(frames.F, k)
+        frames,
+        x=split_members(frames.x, k),
+        v=split_members(frames.v, k),
+        F=split_members(frames.F, k),
+        states=None,  # every member's rows in one state
     )
 
 
@@ -449,7 +463,7 @@ def _simulate_via_host(sim: Simulator, frames: int, origin: torch.device, params
     host_params = {name: to_cpu(value, sim.device) for name, value in (params or {}).items()} or None
     out = simulate(sim, frames, params=host_params, **on_host, **options)
     back = lambda t: to_origin(t, origin, sim.device)  # noqa: E731
-    return dataclasses.replace(out, x=back(out.x), v=back(out.v), F=back(out.F))
+    return dataclasses.replace(out, x=back(out.x), v=back(out.v), F=back(out.F), states=None)
 
 
 __all__ = [

@@ -136,18 +136,20 @@ def simulate_config(
 
 
 def render_frames(
-    result: SimulationResult, camera=None, supersample: int = 1, scene: DeviceScene | None = None
+    result: SimulationResult, camera=None, supersample: int = 1, scene: DeviceScene | None = None, states=None
 ) -> np.ndarray:
     """[T+1, H, W, 3] uint8 frames of the simulation seen by ``camera`` (default: guidance);
     ``supersample``: each pixel the area average of supersample^2 rendered ones, as a
     camera's pixel integrates light over its area. Rendered with the scene on the device
-    (``scene``: the prepared scene's, made here when not given)."""
+    (``scene``: the prepared scene's, made here when not given; ``states``: the run's frames
+    there, clflow.mpm.Frames.states)."""
     import cv2
 
     camera = camera or result.prepared.camera
     fine = camera.scaled(supersample) if supersample > 1 else camera
     p = result.prepared
-    frames = list(render_rgb_frames(scene or DeviceScene(p.static, p.obj_rest), result.x, result.F, fine))
+    scene = scene or DeviceScene(p.static, p.obj_rest)
+    frames = list(render_rgb_frames(scene, result.x, result.F, fine, states=states))
     if supersample > 1:
         frames = [cv2.resize(f, (camera.width, camera.height), interpolation=cv2.INTER_AREA) for f in frames]
     return np.stack(frames)

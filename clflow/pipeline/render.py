@@ -77,13 +77,14 @@ def gaussian_colors(g: Gaussians, viewmat: torch.Tensor) -> torch.Tensor:
 
 
 def render_rgb_frames(
-    scene: DeviceScene, x: torch.Tensor, F: torch.Tensor, camera, background=(1.0, 1.0, 1.0)
+    scene: DeviceScene, x: torch.Tensor, F: torch.Tensor, camera, background=(1.0, 1.0, 1.0), states=None
 ) -> np.ndarray:
     """[T+1, H, W, 3] uint8 frames of a run x [T+1, >= n, 3], F [T+1, >= n, 3, 3] seen by
     ``camera``, rendered with the scene on the device: :func:`render_rgb` of
     :func:`frame_gaussians` per frame, where only the object's x and F go to the device and
     the frame's bytes come back (the static Gaussians' colours once a call; the object's,
-    where they change, made on the device: DeviceScene.object_colors)."""
+    where they change, made on the device: DeviceScene.object_colors). ``states``: the run's
+    states on the device, one a frame (clflow.mpm.Frames.states), read instead of x and F."""
     n, dtype, dev = scene.n, scene.dtype, scene.device
     with torch.no_grad():
         x, F = x[:, :n].to(dtype), F[:, :n].to(dtype)
@@ -93,7 +94,11 @@ def render_rgb_frames(
         behind = DeviceArray.of(dev, torch.tensor(background, dtype=dtype), "background")
         frames = []
         for t in range(x.shape[0]):
-            frame = scene.frame(x[t].contiguous(), F[t].contiguous())
+            frame = (
+                scene.frame(x[t].contiguous(), F[t].contiguous())
+                if states is None
+                else scene.frame(states[t].x, states[t].F)
+            )
             colors = template
             if scene.object_colors_vary:
                 colors = template.clone()

@@ -41,9 +41,11 @@ SH_DEFINES |= {f"SH_C2_{k}": repr(c) for k, c in enumerate(SH_C2)} | {
 }
 
 
-def _frame_kernel(name: str, dtype: torch.dtype):
-    """Kernel ``name`` of kernels_cl/splat/scene_frame.cl for ``dtype``."""
-    return splat_kernel("scene_frame.cl", name, dtype, **SH_DEFINES)
+def _frame_kernel(name: str, dtype: torch.dtype, state_dtype: torch.dtype | None = None):
+    """Kernel ``name`` of kernels_cl/splat/scene_frame.cl for ``dtype``, reading a frame's x
+    and F in ``state_dtype`` (default ``dtype``)."""
+    state_real = real_of(state_dtype or dtype, "a frame's positions")
+    return splat_kernel("scene_frame.cl", name, dtype, STATE_REAL=state_real, **SH_DEFINES)
 
 
 @dataclass
@@ -99,16 +101,22 @@ class DeviceScene:
     def __len__(self) -> int:
         return self._means.shape[0]
 
-    def frame(self, x: torch.Tensor, F: torch.Tensor) -> SceneFrame:
-        """The scene at one frame: the object's Gaussians at x [n, 3] (m) deformed by F [n, 3, 3]
-        (host tensors of the scene's dtype), on the device."""
-        dev = self.device
-        x_dev, F_dev = DeviceArray.of(dev, x, "positions"), DeviceArray.of(dev, F, "deformation gradients")
+    def frame(self, x: torch.Tensor | DeviceArray, F: torch.Tensor | DeviceArray) -> SceneFrame:
+        """The scene at one frame: the object's Gaussians at x [n, 3] (m) deformed by F [n, 3, 3]:
+        host tensors of the scene's dtype (copied to the device), or a simulation state's
+        device arrays x [>= n, 3], F [>= n, 3, 3] of any float dtype (read there: nothing
+        crosses), whose first n rows are the object's."""
+        dev, n = self.device, self.n
+        if not isinstance(x, DeviceArray):
+            x, F = DeviceArray.of(dev, x, "positions"), DeviceArray.of(dev, F, "deformation gradients")
+        if x.shape[0] < n or x.shape[1:] != (3,) or F.shape[0] < n or F.shape[1:] != (3, 3) or x.dtype != F.dtype:
+            raise InputError(f"DeviceScene.frame: x [>= {n}, 3] and F [>= {n}, 3, 3] of one dtype, got {x!r} and {F!r}")
         means, covars = self._means.clone(), self._covars.clone()
-        kern = _frame_kernel("object_frame", self.dtype)
-        args = dict(x=x_dev, F=F_dev, rest_covars=self.rest_covars, means=means, covars=covars)
-        dev.launch(kern, self.n, args | dict(n=np.int32(self.n)))
-        return SceneFrame(means, covars, F_dev)
+        F_own = DeviceArray.empty(dev, (n, 3, 3), self.dtype)
+        kern = _frame_kernel("object_frame", self.dtype, x.dtype)
+        args = dict(x=x, F=F, rest_covars=self.rest_covars, means=means, covars=covars, F_out=F_own)
+        dev.launch(kern, n, args | dict(n=np.int32(n)))
+        return SceneFrame(means, covars, F_own)
 
     @property
     def object_colors_vary(self) -> bool:

@@ -12,20 +12,23 @@
  * Buffers: x [n,3], F [n,3,3], rest_covars [n,3,3], means [N,3], covars [N,3,3] (row-major). */
 #include "splat/common.h"
 
-#if !defined(SH_C0) || !defined(SH_C1) || !defined(SH_C2_0) || !defined(SH_C3_0)
-#error "build with the SH constants (clflow/splat/device_scene.py: SH_DEFINES)"
+#if !defined(SH_C0) || !defined(SH_C1) || !defined(SH_C2_0) || !defined(SH_C3_0) || !defined(STATE_REAL)
+#error "build with the SH constants and STATE_REAL (clflow/splat/device_scene.py: _frame_kernel)"
 #endif
 
-__kernel void object_frame(__global const real *x, __global const real *F, __global const real *rest_covars,
-                           __global real *means, __global real *covars, const int n)
+/* x [>= n, 3], F [>= n, 3, 3] of STATE_REAL (a simulation's state, or the scene's own real);
+ * F_out [n, 3, 3] the object's F in real (what the adjoint and the colours read). */
+__kernel void object_frame(__global const STATE_REAL *x, __global const STATE_REAL *F, __global const real *rest_covars,
+                           __global real *means, __global real *covars, __global real *F_out, const int n)
 {
     const int i = get_global_id(0);
     if (i >= n)
         return;
     real f[9], S[9], A[9];
     for (int k = 0; k < 9; ++k) {
-        f[k] = F[9 * i + k];
+        f[k] = (real)F[9 * i + k];
         S[k] = rest_covars[9 * i + k];
+        F_out[9 * i + k] = f[k];
     }
     for (int r = 0; r < 3; ++r) /* A = F Sigma0 */
         for (int c = 0; c < 3; ++c)
@@ -34,7 +37,7 @@ __kernel void object_frame(__global const real *x, __global const real *F, __glo
         for (int c = 0; c < 3; ++c)
             covars[9 * i + 3 * r + c] = A[3 * r] * f[3 * c] + A[3 * r + 1] * f[3 * c + 1] + A[3 * r + 2] * f[3 * c + 2];
     for (int k = 0; k < 3; ++k)
-        means[3 * i + k] = x[3 * i + k];
+        means[3 * i + k] = (real)x[3 * i + k];
 }
 
 /* dL/dx_i = dL/dmu_i; dL/dF_i = (G + G^T) F_i Sigma0_i with G = dL/dSigma_i. */

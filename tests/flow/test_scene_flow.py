@@ -175,3 +175,43 @@ def test_only_the_object_and_the_images_cross_in_copy_mode():
         assert forward.to_device + backward.to_host < static_n * 12 * real  # less than the static scene once
     finally:
         set_bridge_mode(None)
+
+
+def test_a_runs_states_on_the_device_stand_for_its_x_and_F():
+    """Given the run's states on the device (float64, as a simulation's), the flows and their
+    gradients equal those made from the host x and F, and in copy mode the forward copies
+    neither to the device."""
+    from types import SimpleNamespace
+
+    from clflow.runtime.arrays import DeviceArray
+    from clflow.runtime.devices import set_bridge_mode
+
+    set_bridge_mode("copy")
+    try:
+        n, steps = 30, 2
+        obj = gaussians(n, 1, [0.0, 0.0, 0.0], 0.5, torch.float32)
+        static = gaussians(2000, 2, [0.0, 0.0, 0.6], 1.4, torch.float32)
+        cam, device = camera(), get_device()
+        scene = DeviceScene(static, obj)
+        x, F = run(steps, n, 5, seed=3)  # float64, fill particles after the object's
+        states = [
+            SimpleNamespace(x=DeviceArray.of(device, x[t]), F=DeviceArray.of(device, F[t])) for t in range(steps + 1)
+        ]
+
+        def flows_and_grad(**kw):
+            xs, Fs = x.clone().requires_grad_(), F.clone().requires_grad_()
+            mark = device.transfers.mark()
+            flows = render_scene_flows(scene, xs, Fs, cam, **kw)
+            copied = device.transfers.since(mark)
+            sum((f * f).sum() for f in flows).backward()
+            return torch.stack(flows), xs.grad, Fs.grad, copied
+
+        *got, on_device = flows_and_grad(states=states)
+        *want, _ = flows_and_grad()
+        for a, b in zip(got, want):
+            assert torch.equal(a, b)
+        assert on_device.to_device <= (steps + 1) * 4096  # the camera's matrices and zero fills
+    finally:
+        set_bridge_mode(None)
+    with pytest.raises(InputError, match="device states"):
+        render_scene_flows(scene, x, F, cam, states=states[:2])

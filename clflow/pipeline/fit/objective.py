@@ -50,12 +50,13 @@ JITTER_SHIFTS = ((0, 0), (0, -3), (1, 2), (-3, -1), (-2, -2), (2, 3), (-1, 0), (
 ONE_SHIFT = ((0, 0),)
 
 
-def simulated_view_flows(
-    scene: DeviceScene, x: torch.Tensor, F: torch.Tensor, frames: int, cameras: list
-) -> list[list[torch.Tensor]]:
-    """Simulated flows [H, W, 2] of each frame step t -> t+1 (t < frames) of the run x [>= frames
-    + 1, M, 3], F [>= frames + 1, M, 3, 3] on ``scene`` seen by each of ``cameras``."""
-    return [render_scene_flows(scene, x[: frames + 1], F[: frames + 1], cam) for cam in cameras]
+def simulated_view_flows(scene: DeviceScene, traj, frames: int, cameras: list) -> list[list[torch.Tensor]]:
+    """Simulated flows [H, W, 2] of each frame step t -> t+1 (t < frames) of the run ``traj``
+    (clflow.mpm.Frames: x [>= frames + 1, M, 3], F, its states on the device where it has them)
+    on ``scene`` seen by each of ``cameras``."""
+    x, F = traj.x[: frames + 1], traj.F[: frames + 1]
+    states = None if traj.states is None else traj.states[: frames + 1]
+    return [render_scene_flows(scene, x, F, cam, states=states) for cam in cameras]
 
 
 def flow_loss(cfg: SceneConfig, flows, observed: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
@@ -158,7 +159,7 @@ class Objective:
             raise UnstableRun(traj.unstable)
         cameras = [v.camera for v in self.problem.views]
         scene = self.problem.scene_on_device(point.grid)
-        flows, *more_flows = simulated_view_flows(scene, traj.x, traj.F, frames, cameras)
+        flows, *more_flows = simulated_view_flows(scene, traj, frames, cameras)
         loss = self.loss_of([flows, *more_flows])
         if not bool(torch.isfinite(loss.detach())):
             raise FloatingPointError("the flow loss is not finite")
@@ -229,8 +230,9 @@ class Objective:
             self.problem.prepared, traj.x[: frames + 1].detach(), traj.F[: frames + 1].detach()
         )
         errors, scene = [], self.problem.scene_on_device(self.problem.model_grid)
+        states = None if traj.states is None else traj.states[: frames + 1]  # x and F on the device
         for view, flows in zip(self.problem.views, [result.flows, *result.more_flows]):
-            wide = render_frames(simulated, view.camera.widened(margin), SUPERSAMPLE, scene)
+            wide = render_frames(simulated, view.camera.widened(margin), SUPERSAMPLE, scene, states)
             estimated = shift_mean_flow(wide, margin, shifts, estimate)
             errors.append(torch.from_numpy(estimated).double() - torch.stack(flows[:frames]).double())
         return errors
