@@ -224,7 +224,10 @@ class _Run:
             )
         return x, v, F
 
-    def backward(self, grad_x, grad_v, grad_F):
+    def backward(self, grad_x, grad_v, grad_F, device_grads=None):
+        """The inputs' gradients from the frames' (host tensors [T+1, ...] or None) and, where
+        given, ``device_grads(frame)``: (dL/dx [N, 3], dL/dF [N, 3, 3]) of a frame as device
+        arrays of the run's dtype (or None), what a reader of the frames on the device gives."""
         sim, spec, n, S, dtype, dev = self.sim, self.spec, self.sim.n, self.substeps, self.spec.dtype, self.device
         k = self.segment
         adjoint = self.engine.adjoint
@@ -246,6 +249,9 @@ class _Run:
             for g, acc in ((grad_x, grad.x), (grad_v, grad.v), (grad_F, grad.F)):
                 if g is not None:
                     acc.add_(g[frame])
+            for g, acc in zip(device_grads(frame) if device_grads else (), (grad.x, grad.F)):
+                if g is not None:
+                    acc.add_(g)
 
         progress = FrameProgress("adjoint", self.frames, S, device=dev)
         for f in reversed(range(self.frames)):
@@ -341,6 +347,7 @@ class _Simulate(torch.autograd.Function):
     @staticmethod
     def forward(ctx, run: _Run, param, mass, x0, v0, stage_accel):
         ctx.run = run
+        ctx.set_materialize_grads(False)  # an output nothing used gives None: no zeros uploaded
         return run.forward(param, mass, x0, v0, stage_accel)
 
     @staticmethod
@@ -348,6 +355,27 @@ class _Simulate(torch.autograd.Function):
         run = ctx.run
         contiguous = [None if g is None else g.contiguous() for g in (grad_x, grad_v, grad_F)]
         return (None, *run.backward(*contiguous))
+
+
+class _SimulateRead(torch.autograd.Function):
+    """A run and a reader of its frames on the device (see :func:`simulate`'s ``reader``) as one
+    op: outputs the reader's tensors, then x, v, F."""
+
+    @staticmethod
+    def forward(ctx, run: _Run, reader, param, mass, x0, v0, stage_accel):
+        x, v, F = run.forward(param, mass, x0, v0, stage_accel)
+        outputs = tuple(reader.forward(run.frame_states))
+        ctx.run, ctx.reader, ctx.read = run, reader, len(outputs)
+        ctx.set_materialize_grads(False)  # an output nothing used gives None: no zeros uploaded
+        return (*outputs, x, v, F)
+
+    @staticmethod
+    def backward(ctx, *grads):
+        run, read = ctx.run, ctx.read
+        device_grads = ctx.reader.backward(grads[:read]) if any(g is not None for g in grads[:read]) else None
+        contiguous = [None if g is None else g.contiguous() for g in grads[read:]]
+        ctx.reader = None  # its device memory is given back
+        return (None, None, *run.backward(*contiguous, device_grads=device_grads))
 
 
 def simulate(
@@ -362,7 +390,8 @@ def simulate(
     kernel_params=None,
     retries: int = 0,
     memory_budget: int | None = None,
-) -> Frames:
+    reader=None,
+) -> Frames | tuple[Frames, tuple[torch.Tensor, ...]]:
     """Differentiable run of ``frames`` frames from the simulator's current state.
 
     Every keyword may be a tensor that requires grad; None keeps the simulator's value.
@@ -394,6 +423,14 @@ def simulate(
             frame's replay does not fit, backward replays it in shorter segments from
             intermediate states (two-level checkpointing: one more forward pass per frame).
 
+        reader: what reads the run's frames on the device in the same op (a renderer of its
+            flow, clflow.flow.scene_flow.FlowReader): ``reader.forward(states)`` (one State
+            of device arrays a frame) returns tensors; ``reader.backward(grads)`` (theirs)
+            returns ``frame -> (dL/dx [N, 3], dL/dF [N, 3, 3])`` as device arrays of the
+            run's dtype (or None), added to the frames' own gradients on the device. Then
+            the result is (Frames, the reader's tensors); not for a population or tensors on
+            another torch device.
+
     Returns:
         :class:`Frames` with x, v [frames + 1, N, 3] and F [frames + 1, N, 3, 3] (a population:
         [frames + 1, K, N / K, ...]), on the torch
@@ -411,6 +448,8 @@ def simulate(
         kernel_params=kernel_params,
     )
     origin = origin_device(*(params or {}).values(), *tensors.values(), what="simulate: the tensors")
+    if reader is not None and (origin.type != "cpu" or sim.batched):
+        raise InputError("simulate: a reader of the frames on the device takes one run of CPU tensors")
     if origin.type != "cpu":
         return _simulate_via_host(sim, frames, origin, params, tensors, retries=retries, memory_budget=memory_budget)
     param = parameter_rows(sim, params, kernel_params)
@@ -418,28 +457,35 @@ def simulate(
     x0, v0 = initial_state(sim, positions, velocities)
     stage_accel = stage_accelerations_of(sim, stage_accelerations)
     substeps = sim.substeps
+    inputs = (param, mass, x0, v0, stage_accel)
     for _ in range(int(retries)):
         try:
-            run = _Run(sim, int(frames), substeps, memory_budget, strict_cfl=True)
-            out = Frames(
-                *_Simulate.apply(run, param, mass, x0, v0, stage_accel),
-                substeps=substeps,
-                clamped=run.clamped_count,
-                states=run.frame_states,
-            )
-            return _member_axis(sim, out)
+            return _apply(_Run(sim, int(frames), substeps, memory_budget, strict_cfl=True), inputs, reader)
         except SimulationError as err:
             log.info("%s; retrying with %d substeps per frame", err, 2 * substeps)  # routine: the guard at work
             substeps *= 2
-    run = _Run(sim, int(frames), substeps, memory_budget)
+    return _apply(_Run(sim, int(frames), substeps, memory_budget), inputs, reader)
+
+
+def _apply(run: _Run, inputs: tuple, reader):
+    """The op of ``run`` on ``inputs`` (param, mass, x0, v0, stage accelerations): its Frames,
+    and the reader's tensors where a reader is given."""
+    if reader is None:
+        x, v, F = _Simulate.apply(run, *inputs)
+        read = None
+    else:
+        *read, x, v, F = _SimulateRead.apply(run, reader, *inputs)
     out = Frames(
-        *_Simulate.apply(run, param, mass, x0, v0, stage_accel),
-        substeps=substeps,
+        x,
+        v,
+        F,
+        substeps=run.substeps,
         clamped=run.clamped_count,
         cfl_violation=run.cfl_violation,
         states=run.frame_states,
     )
-    return _member_axis(sim, out)
+    out = _member_axis(run.sim, out)
+    return out if reader is None else (out, tuple(read))
 
 
 def _member_axis(sim: Simulator, frames: Frames) -> Frames:

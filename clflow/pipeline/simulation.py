@@ -301,17 +301,19 @@ def build_simulator(
     return sim
 
 
-def run(simulator, frames: int, values: dict[str, torch.Tensor], velocity: torch.Tensor | None = None):
+def run(simulator, frames: int, values: dict[str, torch.Tensor], velocity: torch.Tensor | None = None, reader=None):
     """Differentiable run (clflow.mpm.autograd.simulate) with the material parameters in
     ``values`` (registry name or "density" -> 0-d tensor, SI) and the initial velocity
     ``velocity`` ([3] m/s, simulation frame, given to every particle; default: the
-    simulator's) as inputs; returns Frames (x, v [T+1, M, 3], F [T+1, M, 3, 3])."""
+    simulator's) as inputs; returns Frames (x, v [T+1, M, 3], F [T+1, M, 3, 3]), or (Frames,
+    the reader's tensors) with a ``reader`` of the frames on the device (simulate's)."""
     from clflow.mpm.autograd import simulate
 
     params = {name: value for name, value in values.items() if name != "density"}
     velocities = None if velocity is None else particle_velocities(simulator, velocity)
+    density = values.get("density")
     return simulate(
-        simulator, frames, params=params or None, density=values.get("density"), velocities=velocities, retries=2
+        simulator, frames, params=params or None, density=density, velocities=velocities, retries=2, reader=reader
     )
 
 

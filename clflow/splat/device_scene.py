@@ -41,11 +41,16 @@ SH_DEFINES |= {f"SH_C2_{k}": repr(c) for k, c in enumerate(SH_C2)} | {
 }
 
 
+def state_defines(state_dtype: torch.dtype) -> dict:
+    """The switches of kernels_cl/splat/scene_frame.cl for a simulation state of ``state_dtype``
+    (the SH constants too)."""
+    return {"STATE_REAL": real_of(state_dtype, "a frame's positions"), **SH_DEFINES}
+
+
 def _frame_kernel(name: str, dtype: torch.dtype, state_dtype: torch.dtype | None = None):
     """Kernel ``name`` of kernels_cl/splat/scene_frame.cl for ``dtype``, reading a frame's x
     and F in ``state_dtype`` (default ``dtype``)."""
-    state_real = real_of(state_dtype or dtype, "a frame's positions")
-    return splat_kernel("scene_frame.cl", name, dtype, STATE_REAL=state_real, **SH_DEFINES)
+    return splat_kernel("scene_frame.cl", name, dtype, **state_defines(state_dtype or dtype))
 
 
 @dataclass

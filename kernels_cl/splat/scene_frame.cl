@@ -133,3 +133,13 @@ __kernel void object_colors(__global const real *means, __global const real *pol
         colors[3 * i + ch] = max(rgb + (real)0.5, (real)0);
     }
 }
+
+/* out[i] = rows[i] (i < count) in STATE_REAL: the object's gradient rows into a state's
+ * gradient (the rows after them, the fill particles', stay as they are). */
+__kernel void rows_to_state(__global const real *rows, __global STATE_REAL *out, const int count)
+{
+    const int i = get_global_id(0);
+    if (i >= count)
+        return;
+    out[i] = (STATE_REAL)rows[i];
+}

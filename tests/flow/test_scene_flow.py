@@ -215,3 +215,58 @@ def test_a_runs_states_on_the_device_stand_for_its_x_and_F():
         set_bridge_mode(None)
     with pytest.raises(InputError, match="device states"):
         render_scene_flows(scene, x, F, cam, states=states[:2])
+
+
+def test_a_flow_read_in_the_runs_op_gives_the_per_op_gradient():
+    """simulate(..., reader=FlowReader(...)): the flows of a swirling block's run and the
+    gradient of a loss of them with respect to E, rho and the initial velocity equal those of
+    the run's host frames rendered after it (render_scene_flows), to round-off; the first
+    particles are the object's Gaussians, the rest fill."""
+    from clflow.flow.scene_flow import FlowReader, flows_of
+    from clflow.mpm.autograd import simulate
+    from tests.mpm.test_adjoint_trajectory import scene as swirling_scene
+
+    sim = swirling_scene(substeps=4)
+    n = 60
+    g = torch.Generator().manual_seed(2)
+    x0 = sim.state.x[:n].float()
+    obj = Gaussians.from_activated(
+        x0.double(),
+        torch.randn(n, 4, generator=g, dtype=D),
+        0.01 + 0.02 * torch.rand(n, 3, generator=g, dtype=D),
+        0.3 + 0.6 * torch.rand(n, generator=g, dtype=D),
+        colors=torch.rand(n, 3, generator=g, dtype=D),
+    ).to(torch.float32)
+    static = gaussians(50, 3, [0.5, 0.5, 1.0], 1.0, torch.float32)
+    viewmat = torch.eye(4, dtype=D)
+    viewmat[:3, 3] = torch.tensor([-0.5, -0.5, 1.2], dtype=D)
+    cam = Camera(viewmat, torch.tensor([[60.0, 0, 24], [0, 60.0, 20], [0, 0, 1]], dtype=D), 48, 40)
+    scene = DeviceScene(static, obj)
+    weights = torch.rand(3, cam.height, cam.width, 2, generator=torch.Generator().manual_seed(4), dtype=D)
+
+    def loss_and_grads(fused: bool):
+        E = torch.tensor(2e4, dtype=D, requires_grad=True)
+        rho = torch.tensor(800.0, dtype=D, requires_grad=True)
+        v0 = sim.state.v.clone().requires_grad_()
+        inputs = dict(params={"youngs_modulus": E}, density=rho, velocities=v0)
+        if fused:
+            frames, read = simulate(sim, 3, **inputs, reader=FlowReader(scene, [cam]))
+            flows = flows_of(*read)
+        else:
+            frames = simulate(sim, 3, **inputs)
+            flows = render_scene_flows(scene, frames.x, frames.F, cam)
+        loss = sum((f.double() * w).sum() for f, w in zip(flows, weights))
+        loss.backward()
+        return torch.stack(flows).double(), E.grad, rho.grad, v0.grad
+
+    got, want = loss_and_grads(True), loss_and_grads(False)
+    assert float(want[0].detach().abs().max()) > 0.1 and float(want[1].abs()) > 0
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-12)
+    # a population's states hold every member's rows: its frames are read on the host
+    from clflow.mpm import MaterialSpec, Simulator
+
+    spec = MaterialSpec("elastic", {"youngs_modulus": torch.tensor([1e4, 2e4]), "poissons_ratio": 0.3})
+    pop = Simulator(sim.state.x.float(), 1e-5, spec, sim.grid, velocities=torch.zeros(2, sim.n, 3), dtype=torch.float32)
+    with pytest.raises(InputError, match="reader"):
+        simulate(pop, 1, reader=FlowReader(scene, [cam]))

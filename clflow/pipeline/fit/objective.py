@@ -18,7 +18,7 @@ import torch
 
 from clflow.errors import ClflowError
 from clflow.fileio import atomic_path
-from clflow.flow.scene_flow import render_scene_flows
+from clflow.flow.scene_flow import FlowReader, flows_of, render_scene_flows
 from clflow.mpm import StabilityWarning
 from clflow.pipeline.fit.population import RunPoint, evaluate_in_populations, populations_pay, run_point
 from clflow.pipeline.fit.problem import Problem
@@ -116,7 +116,9 @@ class Objective:
         variables = self.problem.variables if variables is None else variables
         grid = self.problem.model_grid if grid is None else grid
         point = self._point(z, grid, min_substeps, grads_of=variables if with_grad else ())
-        return self._evaluation(point, run_point(point, frames), frames)
+        reader = FlowReader(self.problem.scene_on_device(grid), [view.camera for view in self.problem.views])
+        traj, read = run_point(point, frames, reader)
+        return self._evaluation(point, traj, frames, read)
 
     def _point(self, z: dict[str, float], grid: int, min_substeps: int, grads_of: tuple[str, ...] = ()) -> RunPoint:
         """What a run at z on the grid of ``grid`` nodes takes: its simulator (built, not run)
@@ -146,8 +148,10 @@ class Objective:
         run_values = scene_run_values(self.problem.cfg, prepared.setup, objects, material)
         return RunPoint(zt, grads_of, grid, prepared, objects, sim, run_values, velocity, scale)
 
-    def _evaluation(self, point: RunPoint, traj, frames: int) -> Evaluation:
-        """The Evaluation of ``point``'s run ``traj`` (Frames), its gradients where it asked for them."""
+    def _evaluation(self, point: RunPoint, traj, frames: int, read: tuple | None = None) -> Evaluation:
+        """The Evaluation of ``point``'s run ``traj`` (Frames), its gradients where it asked for
+        them; ``read``: what the run's FlowReader gave (each view's features and transmittance,
+        rendered in the run's op), else the flows are rendered here."""
         sim = point.sim
         needed = sim.stable_substeps()
         if traj.substeps < needed:  # a fixed simulation.substep_dt too long for these parameters
@@ -158,8 +162,10 @@ class Objective:
         if traj.unstable:  # finished, but not a run to learn from
             raise UnstableRun(traj.unstable)
         cameras = [v.camera for v in self.problem.views]
-        scene = self.problem.scene_on_device(point.grid)
-        flows, *more_flows = simulated_view_flows(scene, traj, frames, cameras)
+        if read is None:
+            flows, *more_flows = simulated_view_flows(self.problem.scene_on_device(point.grid), traj, frames, cameras)
+        else:
+            flows, *more_flows = [flows_of(read[2 * k], read[2 * k + 1]) for k in range(len(cameras))]
         loss = self.loss_of([flows, *more_flows])
         if not bool(torch.isfinite(loss.detach())):
             raise FloatingPointError("the flow loss is not finite")

@@ -48,14 +48,15 @@ class RunPoint:
     time_scale: float
 
 
-def run_point(point: RunPoint, frames: int):
-    """The differentiable run of ``point`` (Frames); a step or run that is unstable is for the
-    caller to judge (Objective._evaluation), so its warnings are not shown."""
+def run_point(point: RunPoint, frames: int, reader=None):
+    """The differentiable run of ``point`` (Frames; with a ``reader`` of its frames on the
+    device, (Frames, the reader's tensors)); a step or run that is unstable is for the caller
+    to judge (Objective._evaluation), so its warnings are not shown."""
     from clflow.mpm import StabilityWarning
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", StabilityWarning)
-        return run(point.sim, frames, point.run_values, point.velocity)
+        return run(point.sim, frames, point.run_values, point.velocity, reader=reader)
 
 
 def populations_pay() -> bool:
