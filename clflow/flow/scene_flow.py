@@ -1,17 +1,17 @@
 """The simulated flow of a whole run, rendered with the scene on the device.
 
 :func:`render_scene_flows` is :func:`clflow.pipeline.render.render_flow` of every frame step
-of a simulation at once, for a :class:`~clflow.splat.device_scene.DeviceScene`: the static
-Gaussians are written to the device once, each frame's object Gaussians are made there from
-the frame's particle positions and deformation gradients, each Gaussian's projected
-displacement by a kernel (kernels_cl/splat/scene_flow.cl), and every intermediate of the
-rasteriser (projections, tile lists, the transmittance) stays on the device until the
-backward has used it. What crosses to the
-host per frame step: the object's x and F in (nothing where the run's states on the device
-are given), the composited flow features and
-transmittance out; the backward takes their gradients in and gives the object's gradients
-out. The flow model is "mean" (each Gaussian's projected displacement), as
-:func:`~clflow.pipeline.render.render_flow` renders it.
+of a run at once, for a :class:`~clflow.splat.device_scene.DeviceScene`: the static Gaussians
+are on the device already, each frame's object Gaussians are made there from the frame's
+particle positions and deformation gradients, each Gaussian's projected displacement by a
+kernel (kernels_cl/splat/scene_flow.cl), and every intermediate of the rasteriser
+(projections, tile lists, transmittance) stays on the device until the backward has used it.
+Per frame step the object's x and F go in (nothing where the run's states on the device are
+given), the composited features and transmittance come out; the backward takes their
+gradients in and gives the object's out. :class:`FlowReader` renders the same inside the
+run's own op (clflow.mpm.autograd.simulate's ``reader``): the frames are read from the run's
+states and the gradients handed to its adjoint on the device. The flow model is "mean" (each
+Gaussian's projected displacement), as ``render_flow`` renders it.
 
 The per-op path (``render_flow`` of ``frame_gaussians``: torch and the rasteriser's ops) is
 its reference; the two agree to float round-off (tests/flow/test_scene_flow.py).

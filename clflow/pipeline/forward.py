@@ -142,17 +142,11 @@ def render_frames(
     ``supersample``: each pixel the area average of supersample^2 rendered ones, as a
     camera's pixel integrates light over its area. Rendered with the scene on the device
     (``scene``: the prepared scene's, made here when not given; ``states``: the run's frames
-    there, clflow.mpm.Frames.states)."""
-    import cv2
-
+    there, clflow.mpm.Frames.states), averaged there too."""
     camera = camera or result.prepared.camera
-    fine = camera.scaled(supersample) if supersample > 1 else camera
     p = result.prepared
     scene = scene or DeviceScene(p.static, p.obj_rest)
-    frames = list(render_rgb_frames(scene, result.x, result.F, fine, states=states))
-    if supersample > 1:
-        frames = [cv2.resize(f, (camera.width, camera.height), interpolation=cv2.INTER_AREA) for f in frames]
-    return np.stack(frames)
+    return render_rgb_frames(scene, result.x, result.F, camera, states=states, supersample=supersample)
 
 
 def render_video(result: SimulationResult, frames_dir: Path, video: Path | None = None, camera=None) -> np.ndarray:

@@ -77,14 +77,23 @@ def gaussian_colors(g: Gaussians, viewmat: torch.Tensor) -> torch.Tensor:
 
 
 def render_rgb_frames(
-    scene: DeviceScene, x: torch.Tensor, F: torch.Tensor, camera, background=(1.0, 1.0, 1.0), states=None
+    scene: DeviceScene,
+    x: torch.Tensor,
+    F: torch.Tensor,
+    camera,
+    background=(1.0, 1.0, 1.0),
+    states=None,
+    supersample: int = 1,
 ) -> np.ndarray:
     """[T+1, H, W, 3] uint8 frames of a run x [T+1, >= n, 3], F [T+1, >= n, 3, 3] seen by
     ``camera``, rendered with the scene on the device: :func:`render_rgb` of
     :func:`frame_gaussians` per frame, where only the object's x and F go to the device and
     the frame's bytes come back (the static Gaussians' colours once a call; the object's,
     where they change, made on the device: DeviceScene.object_colors). ``states``: the run's
-    states on the device, one a frame (clflow.mpm.Frames.states), read instead of x and F."""
+    states on the device, one a frame (clflow.mpm.Frames.states), read instead of x and F.
+    ``supersample``: rendered at that many times ``camera``'s pixels per side, each pixel the
+    mean of its block (rgb_uint8), on the device."""
+    fine = camera.scaled(supersample) if supersample > 1 else camera
     n, dtype, dev = scene.n, scene.dtype, scene.device
     with torch.no_grad():
         x, F = x[:, :n].to(dtype), F[:, :n].to(dtype)
@@ -102,7 +111,7 @@ def render_rgb_frames(
             colors = template
             if scene.object_colors_vary:
                 colors = template.clone()
-                scene.object_colors(frame, camera, colors)
-            image, _ = render_frame(scene, frame, colors, behind, camera)
-            frames.append(rgb_uint8(scene, image))
+                scene.object_colors(frame, fine, colors)
+            image, _ = render_frame(scene, frame, colors, behind, fine)
+            frames.append(rgb_uint8(scene, image, supersample))
     return np.stack(frames)

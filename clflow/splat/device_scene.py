@@ -220,11 +220,23 @@ def object_frame_backward(scene: DeviceScene, frame: SceneFrame, v_means: Device
     return v_x, v_F
 
 
-def rgb_uint8(scene: DeviceScene, image: DeviceArray) -> np.ndarray:
-    """[H, W, 3] uint8 of a rendered image [H, W, 3] (values in [0, 1] clamped, NaN as 0, x 255
-    rounded half up: clflow.media.to_uint8), converted on the device and read."""
-    height, width, channels = image.shape
-    out = DeviceArray.empty(scene.device, image.shape, torch.uint8)
+def rgb_uint8(scene: DeviceScene, image: DeviceArray, factor: int = 1) -> np.ndarray:
+    """[H, W, C] uint8 of a rendered image [H factor, W factor, C] (values in [0, 1] clamped,
+    NaN as 0, x 255 rounded half up: clflow.media.to_uint8; then, with ``factor`` > 1, each
+    factor x factor block's mean rounded half up, as OpenCV's INTER_AREA), made on the device
+    and read."""
+    fine_height, fine_width, channels = image.shape
+    dev = scene.device
+    out = DeviceArray.empty(dev, image.shape, torch.uint8)
     kern = _frame_kernel("rgb_uint8", scene.dtype)
-    scene.device.launch(kern, height * width * channels, dict(image=image, out=out, n=np.int32(image.numel())))
-    return out.read().numpy()
+    dev.launch(kern, image.numel(), dict(image=image, out=out, n=np.int32(image.numel())))
+    if factor == 1:
+        return out.read().numpy()
+    if fine_height % factor or fine_width % factor:
+        raise InputError(f"rgb_uint8: a {fine_width} x {fine_height} image is no whole {factor}x supersample")
+    height, width = fine_height // factor, fine_width // factor
+    small = DeviceArray.empty(dev, (height, width, channels), torch.uint8)
+    args = dict(image=out, out=small, height=np.int32(height), width=np.int32(width))
+    args |= dict(channels=np.int32(channels), factor=np.int32(factor))
+    dev.launch(_frame_kernel("area_average_uint8", scene.dtype), small.numel(), args)
+    return small.read().numpy()

@@ -143,3 +143,21 @@ __kernel void rows_to_state(__global const real *rows, __global STATE_REAL *out,
         return;
     out[i] = (STATE_REAL)rows[i];
 }
+
+/* out [H, W, C] = the mean of each factor x factor block of image [H factor, W factor, C],
+ * rounded half up: (sum + factor^2 / 2) / factor^2 (OpenCV's INTER_AREA for a whole factor).
+ * One output byte a work-item. */
+__kernel void area_average_uint8(__global const uchar *image, __global uchar *out, const int height, const int width,
+                                 const int channels, const int factor)
+{
+    const int i = get_global_id(0);
+    if (i >= height * width * channels)
+        return;
+    const int c = i % channels, col = (i / channels) % width, row = i / (channels * width);
+    const int fine_width = width * factor, area = factor * factor;
+    int sum = 0;
+    for (int dy = 0; dy < factor; ++dy)
+        for (int dx = 0; dx < factor; ++dx)
+            sum += image[((row * factor + dy) * fine_width + col * factor + dx) * channels + c];
+    out[i] = (uchar)((sum + area / 2) / area);
+}

@@ -88,3 +88,24 @@ def test_only_the_object_and_the_bytes_cross_in_copy_mode():
         assert moved.to_host <= frames * (cam.width * cam.height * 3 + small)
     finally:
         set_bridge_mode(None)
+
+
+@pytest.mark.parametrize("factor", [2, 3])
+def test_a_supersampled_frame_is_averaged_as_opencv_does(factor):
+    """render_rgb_frames(..., supersample=s): the fine frame averaged on the device, block by
+    block, rounded half up, equals OpenCV's INTER_AREA of the fine frame for s = 2 (the
+    estimator's calibration) and is within one grey level of it for 3 (OpenCV rounds half to
+    even there)."""
+    import cv2
+
+    obj = sh_gaussians(30, 1, [0.0, 0.0, 0.0], 0.4, 3, torch.float32)
+    static = sh_gaussians(40, 2, [0.0, 0.0, 0.5], 1.2, 3, torch.float32)
+    cam = camera(36, 28)
+    x, F = run(1, 30, seed=3)
+    scene = DeviceScene(static, obj)
+    fine = render_rgb_frames(scene, x, F, cam.scaled(factor))
+    got = render_rgb_frames(scene, x, F, cam, supersample=factor)
+    want = np.stack([cv2.resize(f, (cam.width, cam.height), interpolation=cv2.INTER_AREA) for f in fine])
+    assert got.shape == want.shape == (2, cam.height, cam.width, 3)
+    diff = np.abs(got.astype(int) - want.astype(int))
+    assert diff.max() == 0 if factor == 2 else diff.max() <= 1
