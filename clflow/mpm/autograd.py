@@ -85,6 +85,11 @@ class Frames:
     # another torch device
     states: tuple[State, ...] | None = None
 
+    def __getstate__(self) -> dict:
+        """A copy for another process (a Ray task, a pickle) keeps x, v, F and leaves the
+        states on the device behind: device memory is this process's."""
+        return {**self.__dict__, "states": None}
+
     @property
     def unstable(self) -> str | None:
         """Why this run is not to be trusted (a CFL violation, particles clamped at the grid's

@@ -94,3 +94,17 @@ def test_particle_arrays_are_both_states_and_every_per_particle_array(device):
         assert len({id(a) for a in arrays}) == len(arrays)
         assert {id(a) for a in arrays_of(sim.device_state)} < {id(a) for a in arrays}
         sim.step()
+
+
+def test_a_runs_states_are_its_frames_on_the_device_and_stay_in_this_process(device):
+    """Frames.states: each frame's state on the device, the same values as x, v, F; a pickled
+    copy (a Ray task's) keeps x, v, F and leaves the device memory behind."""
+    import pickle
+
+    sim = scene()
+    frames = simulate(sim, 2)
+    assert frames.states is not None and len(frames.states) == 3
+    for t, state in enumerate(frames.states):
+        assert torch.equal(state.x.read(), frames.x[t]) and torch.equal(state.F.read(), frames.F[t])
+    copy = pickle.loads(pickle.dumps(frames))
+    assert copy.states is None and torch.equal(copy.x, frames.x) and frames.states is not None

@@ -47,7 +47,7 @@ SCENE_SCRIPT = textwrap.dedent(
     scene = DeviceScene(sh_gaussians(5, 2, [0.0, 0.0, 0.5], 1.2, 2, f32), sh_gaussians(4, 1, [0.0, 0.0, 0.0], 0.4, 2, f32))
     cam = camera(20, 18)
     x, F = run(1, 4, seed=3)
-    frames = render_rgb_frames(scene, x, F, cam)
+    frames = render_rgb_frames(scene, x, F, cam, supersample=2)
     xs = x.clone().requires_grad_()
     flows = render_scene_flows(scene, xs, F.clone().requires_grad_(), cam)
     sum(f.sum() for f in flows).backward()
@@ -58,8 +58,9 @@ SCENE_SCRIPT = textwrap.dedent(
 
 
 def test_the_scene_kernels_are_clean_under_oclgrind(oclgrind):
-    """A run's frames and flows with the scene on the device (scene_frame.cl, scene_flow.cl,
-    the polar rotations, the SH colours), forward and backward."""
+    """A run's frames (supersampled, averaged on the device) and flows with the scene on the
+    device (scene_frame.cl, scene_flow.cl, the polar rotations, the SH colours), forward and
+    backward."""
     out, report = oclgrind(SCENE_SCRIPT, timeout=600, uninitialized=False)
     assert "done" in out
     assert report.strip() == "", report[:2000]

@@ -115,6 +115,11 @@ class Problem:
             self._prepared[grid] = prepare(dataclasses.replace(self.cfg, simulation=simulation))
         return self._prepared[grid]
 
+    def __getstate__(self) -> dict:
+        """A copy for another process (a Ray task) leaves the device scenes behind: device
+        memory is this process's; the copy makes its own on first use."""
+        return {**self.__dict__, "_device_scenes": {}}
+
     def scene_on_device(self, grid: int) -> DeviceScene:
         """The Gaussians of the scene prepared on the grid of ``grid`` nodes on the device, to
         render a run's simulated flow from (made on first use)."""
