@@ -157,3 +157,42 @@ def test_a_100k_gaussian_raster_call_is_gpu_shaped(device, launches):
     names = {x.kernel for x in launches}
     assert {"rasterize_tiles_forward", "rasterize_tiles_backward", "radix_scatter_wg", "scan_blocks"} <= names
     assert not {"rasterize_forward", "rasterize_backward", "scan_serial", "radix_histogram"} & names
+
+
+def test_a_100k_gaussian_scene_on_the_device_is_gpu_shaped(device, launches):
+    """A run's flows (forward and backward) and its supersampled colour frames with a
+    100k-Gaussian scene on the device (20k on the object, SH of degree 1): its own kernels
+    (the frame's Gaussians, the mean-flow features, the polar rotations and SH colours, the
+    byte conversion and the 2x average) a Gaussian, a value or a byte a
+    work-item, and the rasteriser's work-group shaped."""
+    from clflow.flow.scene_flow import render_scene_flows
+    from clflow.pipeline.render import render_rgb_frames
+    from clflow.splat.cameras import Camera
+    from clflow.splat.device_scene import DeviceScene
+    from clflow.splat.gaussians import Gaussians
+
+    def gaussians(n, seed, spread, depth):
+        g = torch.Generator().manual_seed(seed)
+        means = (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * spread
+        means[:, 2] += depth
+        scales = 0.005 + 0.01 * torch.rand(n, 3, generator=g, dtype=torch.float64)
+        sh = 0.3 * torch.randn(n, 4, 3, generator=g, dtype=torch.float64)
+        quats, opacities = torch.randn(n, 4, generator=g, dtype=torch.float64), torch.full((n,), 0.6)
+        return Gaussians.from_activated(means, quats, scales, opacities.double(), sh=sh).to(torch.float32)
+
+    scene = DeviceScene(gaussians(80_000, 1, 2.0, 0.5), gaussians(20_000, 2, 0.6, 0.0))
+    K = torch.tensor([[160.0, 0.0, 64.0], [0.0, 160.0, 64.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    viewmat = torch.eye(4, dtype=torch.float64)
+    viewmat[2, 3] = 2.5
+    cam = Camera(viewmat, K, 128, 128)
+    rest = scene.obj_rest.means.double()
+    x = torch.stack([rest + 0.01 * t for t in range(3)]).requires_grad_()
+    F = torch.eye(3, dtype=torch.float64).expand(3, 20_000, 3, 3).contiguous().requires_grad_()
+    sum(f.sum() for f in render_scene_flows(scene, x, F, cam)).backward()
+    frames = render_rgb_frames(scene, x.detach(), F.detach(), cam, supersample=2)
+    assert frames.shape == (3, 128, 128, 3) and x.grad is not None
+    assert_gpu_shaped(launches)
+    names = {x.kernel for x in launches}
+    expected = {"object_frame", "mean_flow_features", "mean_flow_features_backward", "object_frame_backward"}
+    assert expected | {"polar_rotation", "object_colors", "rgb_uint8", "area_average_uint8"} <= names
+    assert "rasterize_tiles_forward" in names and "rasterize_forward" not in names

@@ -30,7 +30,7 @@ from clflow.splat.device_scene import (
     object_frame_backward,
     render_frame,
     render_frame_backward,
-    state_defines,
+    rows_in_state,
 )
 from clflow.splat.ops.kernels import splat_kernel
 
@@ -44,9 +44,10 @@ class _FlowRender:
         self.scene, self.cameras, self.near = scene, cameras, near
         self.frames, self.tapes = None, None  # each frame's SceneFrame; each camera's step tapes
 
-    def forward(self, frames: list) -> list[torch.Tensor]:
+    def forward(self, frames) -> list[torch.Tensor]:
         """(images [T, H, W, 2], transmittance [T, H, W]) of each camera, in camera order, from
         the run's T + 1 SceneFrames."""
+        frames = list(frames)
         scene, near = self.scene, self.near
         dev, dtype, N = scene.device, scene.dtype, len(scene)
         steps = len(frames) - 1
@@ -97,12 +98,8 @@ class _FlowRender:
 class _SceneFlows(torch.autograd.Function):
     @staticmethod
     def forward(ctx, scene: DeviceScene, camera, near: float, states, x: torch.Tensor, F: torch.Tensor):
-        if states is None:
-            frames = [scene.frame(x[t].contiguous(), F[t].contiguous()) for t in range(x.shape[0])]
-        else:  # the same values, already on the device
-            frames = [scene.frame(state.x, state.F) for state in states]
         ctx.render = _FlowRender(scene, [camera], near)
-        return tuple(ctx.render.forward(frames))
+        return tuple(ctx.render.forward(scene.frames(x, F, states)))
 
     @staticmethod
     def backward(ctx, v_images, v_transmittance):
@@ -124,25 +121,16 @@ class FlowReader:
         self.state_shape: tuple | None = None  # (particles, dtype) of the run's states
 
     def forward(self, states) -> list[torch.Tensor]:
-        scene = self.render.scene
         self.state_shape = (states[0].x.shape[0], states[0].x.dtype)
-        return self.render.forward([scene.frame(state.x, state.F) for state in states])
+        return self.render.forward(self.render.scene.frames(None, None, states))
 
     def backward(self, grads):
         v_x, v_F = self.render.backward(grads)
         scene, (particles, state_dtype) = self.render.scene, self.state_shape
-        kern = splat_kernel("scene_frame.cl", "rows_to_state", scene.dtype, **state_defines(state_dtype))
 
         def state_grads(frame: int) -> tuple[DeviceArray, DeviceArray]:
-            """(dL/dx [N, 3], dL/dF [N, 3, 3]) of frame ``frame`` in the run's dtype: the
-            object's rows, zero for the fill particles."""
-            out = []
-            for rows, width in ((v_x[frame], 3), (v_F[frame], 9)):
-                full = DeviceArray.zeros(scene.device, (particles, *rows.shape[1:]), state_dtype)
-                count = scene.n * width
-                scene.device.launch(kern, count, dict(rows=rows, out=full, count=np.int32(count)))
-                out.append(full)
-            return out[0], out[1]
+            """(dL/dx [N, 3], dL/dF [N, 3, 3]) of frame ``frame`` in the run's dtype."""
+            return tuple(rows_in_state(scene, rows[frame], particles, state_dtype) for rows in (v_x, v_F))
 
         return state_grads
 

@@ -349,27 +349,13 @@ def replay_segment(
 
 
 class _Simulate(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, run: _Run, param, mass, x0, v0, stage_accel):
-        ctx.run = run
-        ctx.set_materialize_grads(False)  # an output nothing used gives None: no zeros uploaded
-        return run.forward(param, mass, x0, v0, stage_accel)
-
-    @staticmethod
-    def backward(ctx, grad_x, grad_v, grad_F):
-        run = ctx.run
-        contiguous = [None if g is None else g.contiguous() for g in (grad_x, grad_v, grad_F)]
-        return (None, *run.backward(*contiguous))
-
-
-class _SimulateRead(torch.autograd.Function):
-    """A run and a reader of its frames on the device (see :func:`simulate`'s ``reader``) as one
-    op: outputs the reader's tensors, then x, v, F."""
+    """A run as an op, with a reader of its frames on the device where given (see
+    :func:`simulate`'s ``reader``): outputs the reader's tensors, then x, v, F."""
 
     @staticmethod
     def forward(ctx, run: _Run, reader, param, mass, x0, v0, stage_accel):
         x, v, F = run.forward(param, mass, x0, v0, stage_accel)
-        outputs = tuple(reader.forward(run.frame_states))
+        outputs = () if reader is None else tuple(reader.forward(run.frame_states))
         ctx.run, ctx.reader, ctx.read = run, reader, len(outputs)
         ctx.set_materialize_grads(False)  # an output nothing used gives None: no zeros uploaded
         return (*outputs, x, v, F)
@@ -475,11 +461,7 @@ def simulate(
 def _apply(run: _Run, inputs: tuple, reader):
     """The op of ``run`` on ``inputs`` (param, mass, x0, v0, stage accelerations): its Frames,
     and the reader's tensors where a reader is given."""
-    if reader is None:
-        x, v, F = _Simulate.apply(run, *inputs)
-        read = None
-    else:
-        *read, x, v, F = _SimulateRead.apply(run, reader, *inputs)
+    *read, x, v, F = _Simulate.apply(run, reader, *inputs)
     out = Frames(
         x,
         v,

@@ -102,12 +102,7 @@ def render_rgb_frames(
         template = DeviceArray.of(dev, torch.cat([fixed.to(dtype), static]).contiguous(), "colours")
         behind = DeviceArray.of(dev, torch.tensor(background, dtype=dtype), "background")
         frames = []
-        for t in range(x.shape[0]):
-            frame = (
-                scene.frame(x[t].contiguous(), F[t].contiguous())
-                if states is None
-                else scene.frame(states[t].x, states[t].F)
-            )
+        for frame in scene.frames(x, F, states):
             colors = template
             if scene.object_colors_vary:
                 colors = template.clone()

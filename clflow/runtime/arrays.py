@@ -204,21 +204,14 @@ class DeviceArray:
             self._mirror = None
         return self
 
-    def copy_from_buffer(self, buffer, nbytes: int | None = None) -> "DeviceArray":
-        """Fill the array's first ``nbytes`` (default all) from the start of OpenCL ``buffer``
-        or of a DeviceArray (a scratch buffer's result kept; the first rows of an array
-        written from a smaller one), on the device."""
+    def copy_from_buffer(self, buffer) -> "DeviceArray":
+        """Fill the array from the start of OpenCL ``buffer`` (at least ``nbytes`` long: a
+        scratch buffer's result kept), on the device."""
         import pyopencl as cl
 
-        nbytes = self.nbytes if nbytes is None else int(nbytes)
-        if nbytes > self.nbytes:
-            raise InputError(f"copy_from_buffer: {nbytes} bytes into {self!r} of {self.nbytes}")
-        if isinstance(buffer, DeviceArray):
-            self.device.keep_until_done([buffer.host] if buffer.host is not None else [])
-            buffer = buffer.buffer
-        if nbytes:
+        if self.nbytes:
             self.device.keep_until_done([self.host] if self.host is not None else [])
-            cl.enqueue_copy(self.device.queue, self.buffer, buffer, byte_count=nbytes)
+            cl.enqueue_copy(self.device.queue, self.buffer, buffer, byte_count=self.nbytes)
             self._mirror = None
         return self
 

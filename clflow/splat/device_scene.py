@@ -41,16 +41,11 @@ SH_DEFINES |= {f"SH_C2_{k}": repr(c) for k, c in enumerate(SH_C2)} | {
 }
 
 
-def state_defines(state_dtype: torch.dtype) -> dict:
-    """The switches of kernels_cl/splat/scene_frame.cl for a simulation state of ``state_dtype``
-    (the SH constants too)."""
-    return {"STATE_REAL": real_of(state_dtype, "a frame's positions"), **SH_DEFINES}
-
-
 def _frame_kernel(name: str, dtype: torch.dtype, state_dtype: torch.dtype | None = None):
-    """Kernel ``name`` of kernels_cl/splat/scene_frame.cl for ``dtype``, reading a frame's x
-    and F in ``state_dtype`` (default ``dtype``)."""
-    return splat_kernel("scene_frame.cl", name, dtype, **state_defines(state_dtype or dtype))
+    """Kernel ``name`` of kernels_cl/splat/scene_frame.cl for ``dtype``, reading (or writing) a
+    simulation state's values in ``state_dtype`` (default ``dtype``)."""
+    state_real = real_of(state_dtype or dtype, "a frame's positions")
+    return splat_kernel("scene_frame.cl", name, dtype, STATE_REAL=state_real, **SH_DEFINES)
 
 
 @dataclass
@@ -102,6 +97,7 @@ class DeviceScene:
         # the object's SH coefficients and rest sh_rotations, uploaded when colours are first asked for
         self._sh: DeviceArray | None = None
         self._rest_rotations: DeviceArray | None = None
+        self._views: dict[bytes, tuple[DeviceArray, ...]] = {}  # a camera's matrices, uploaded once
 
     def __len__(self) -> int:
         return self._means.shape[0]
@@ -123,6 +119,14 @@ class DeviceScene:
         dev.launch(kern, n, args | dict(n=np.int32(n)))
         return SceneFrame(means, covars, F_own)
 
+    def frames(self, x: torch.Tensor, F: torch.Tensor, states=None):
+        """Each frame's :meth:`frame` of a run x [T+1, n, 3], F [T+1, n, 3, 3] (host tensors of
+        the scene's dtype), or of its ``states`` on the device (clflow.mpm.Frames.states: the
+        same values, read there), one at a time."""
+        if states is None:
+            return (self.frame(x[t].contiguous(), F[t].contiguous()) for t in range(x.shape[0]))
+        return (self.frame(state.x, state.F) for state in states)
+
     @property
     def object_colors_vary(self) -> bool:
         """Whether the object's colours change from frame to frame (SH of degree >= 1 turn
@@ -143,8 +147,7 @@ class DeviceScene:
         polar = DeviceArray.empty(dev, (n, 3, 3), dtype)
         kern = dev.kernel("common/svd3.cl", "polar_rotation", real_of(dtype), {"CLFLOW_SIMD_LANES": SPLAT_LANES})
         dev.launch(kern, -(-n // SPLAT_LANES), dict(n=np.int32(n), F=frame.F, R=polar))
-        W, t = camera.viewmat[:3, :3].to(dtype), camera.viewmat[:3, 3].to(dtype)
-        centre = DeviceArray.of(dev, (-W.T @ t).contiguous(), "camera centre")
+        *_, centre = self._view(camera)
         rest = self._rest_rotations
         args = dict(means=frame.means, polar=polar, rest_rotations=polar if rest is None else rest)
         args |= dict(has_rest=np.int32(rest is not None), sh=self._sh, bases=np.int32(g.sh.shape[1]))
@@ -152,10 +155,19 @@ class DeviceScene:
         dev.launch(_frame_kernel("object_colors", dtype), n, args)
 
     def view(self, camera) -> tuple[DeviceArray, DeviceArray]:
-        """``camera``'s viewmat [4, 4] and intrinsics [3, 3] on the device, in the scene's dtype."""
-        dev, dtype = self.device, self.dtype
-        viewmat = DeviceArray.of(dev, camera.viewmat.to(dtype).contiguous(), "viewmat")
-        return viewmat, DeviceArray.of(dev, camera.K.to(dtype).contiguous(), "intrinsics")
+        """``camera``'s viewmat [4, 4] and intrinsics [3, 3] on the device, in the scene's dtype
+        (uploaded on the camera's first use: an upload waits for the queue)."""
+        return self._view(camera)[:2]
+
+    def _view(self, camera) -> tuple[DeviceArray, DeviceArray, DeviceArray]:
+        """(viewmat, intrinsics, the camera's centre [3], m) of ``camera`` on the device."""
+        key = camera.viewmat.numpy().tobytes() + camera.K.numpy().tobytes()
+        if key not in self._views:
+            dev, dtype = self.device, self.dtype
+            W, t = camera.viewmat[:3, :3].to(dtype), camera.viewmat[:3, 3].to(dtype)
+            matrices = (camera.viewmat.to(dtype), camera.K.to(dtype), -W.T @ t)
+            self._views[key] = tuple(DeviceArray.of(dev, m.contiguous(), "camera") for m in matrices)
+        return self._views[key]
 
 
 def render_frame(
@@ -240,3 +252,13 @@ def rgb_uint8(scene: DeviceScene, image: DeviceArray, factor: int = 1) -> np.nda
     args |= dict(channels=np.int32(channels), factor=np.int32(factor))
     dev.launch(_frame_kernel("area_average_uint8", scene.dtype), small.numel(), args)
     return small.read().numpy()
+
+
+def rows_in_state(scene: DeviceScene, rows: DeviceArray, particles: int, state_dtype: torch.dtype) -> DeviceArray:
+    """The object's rows [n, ...] (a gradient, the scene's dtype) as a simulation state's
+    [particles, ...] of ``state_dtype``: the object's first, zero for the fill particles."""
+    full = DeviceArray.zeros(scene.device, (particles, *rows.shape[1:]), state_dtype)
+    count = rows.numel()
+    kern = _frame_kernel("rows_to_state", scene.dtype, state_dtype)
+    scene.device.launch(kern, count, dict(rows=rows, out=full, count=np.int32(count)))
+    return full
