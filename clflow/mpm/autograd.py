@@ -32,7 +32,6 @@ import dataclasses
 import logging
 import warnings
 import weakref
-from dataclasses import dataclass
 
 import torch
 
@@ -55,8 +54,7 @@ from clflow.mpm.simulator import (
     SimulationError,
     Simulator,
     StabilityWarning,
-    cfl_breach,
-    finite,
+    state_health,
 )
 from clflow.mpm.substep import DriverAccelerations, State, SubstepInputs, SubstepTape, p2g_partial_reals
 from clflow.runtime.arrays import DeviceArray, origin_device, to_cpu, to_origin
@@ -64,31 +62,55 @@ from clflow.runtime.reduction import sum_rows
 from clflow.runtime.sort import counts_length
 
 
-@dataclass
 class Frames:
     """Per-frame states of a differentiable run; frame 0 is the initial state.
     x, v [T+1, N, 3] (m, m/s), F [T+1, N, 3, 3] (deformation gradient), with the member axis
     after T for a population (x [T+1, K, N, 3]); ``substeps`` per frame that the run used
-    (more than the simulator's after a NaN/CFL retry)."""
+    (more than the simulator's after a NaN/CFL retry).
 
-    x: torch.Tensor
-    v: torch.Tensor
-    F: torch.Tensor
-    substeps: int = 0
-    # what makes the run untrustworthy though it finished: particles clamped at the grid's edge
-    # (at least once in some frame) and the first CFL violation (a message; None: none)
-    clamped: int = 0
-    cfl_violation: str | None = None
-    # each frame's state on the device (the run's checkpoints and its last state), the same
-    # values as x, v, F, for readers that take the frames there (clflow.flow.scene_flow,
-    # clflow.pipeline.render.render_rgb_frames); None for a population or a run of tensors on
-    # another torch device
-    states: tuple[State, ...] | None = None
+    ``states``: each frame's state on the device (the run's checkpoints and its last state),
+    for readers that take the frames there (clflow.flow.scene_flow,
+    clflow.pipeline.render.render_rgb_frames); None for a population or a run of tensors on
+    another torch device. x, v or F given as None is read from the states when first asked
+    for (a run with a reader: its gradient flows through the reader's tensors, not these)."""
+
+    def __init__(
+        self,
+        x: torch.Tensor | None,
+        v: torch.Tensor | None,
+        F: torch.Tensor | None,
+        substeps: int = 0,
+        clamped: int = 0,
+        cfl_violation: str | None = None,
+        states: tuple[State, ...] | None = None,
+    ):
+        if states is None and (x is None or v is None or F is None):
+            raise InputError("Frames: x, v and F are needed where there are no states to read them from")
+        self._values = {"x": x, "v": v, "F": F}
+        self.substeps = substeps
+        # what makes the run untrustworthy though it finished: particles clamped at the grid's
+        # edge (at least once in some frame) and the first CFL violation (a message; None: none)
+        self.clamped, self.cfl_violation, self.states = clamped, cfl_violation, states
+
+    def _value(self, name: str) -> torch.Tensor:
+        value = self._values[name]
+        if value is None:  # read once, from the device
+            value = self._values[name] = torch.stack([getattr(state, name).read() for state in self.states])
+        return value
+
+    x = property(lambda self: self._value("x"), doc="[T+1, N, 3] positions (m)")
+    v = property(lambda self: self._value("v"), doc="[T+1, N, 3] velocities (m/s)")
+    F = property(lambda self: self._value("F"), doc="[T+1, N, 3, 3] deformation gradients")
+
+    def replace(self, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor) -> Frames:
+        """These frames with other values (a member's, or copies on another torch device) and
+        no states on the device."""
+        return Frames(x, v, F, self.substeps, self.clamped, self.cfl_violation)
 
     def __getstate__(self) -> dict:
-        """A copy for another process (a Ray task, a pickle) keeps x, v, F and leaves the
-        states on the device behind: device memory is this process's."""
-        return {**self.__dict__, "states": None}
+        """A copy for another process (a Ray task, a pickle) keeps x, v, F (read now where they
+        were not) and leaves the states on the device behind: device memory is this process's."""
+        return {**self.__dict__, "_values": {name: self._value(name) for name in self._values}, "states": None}
 
     @property
     def unstable(self) -> str | None:
@@ -160,7 +182,9 @@ class _Run:
     def substep(self, state: State, out: State, frame: int, s: int, tape: SubstepTape | None = None) -> None:
         self.engine.forward.run(state, out, self.inputs(frame, s), self.clamped, tape=tape)
 
-    def forward(self, param, mass, x0, v0, stage_accel) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(self, param, mass, x0, v0, stage_accel) -> None:
+        """Run the frames, keeping each frame's state on the device (``frame_states``); the host
+        reads each frame's health (NaN/inf, the fastest speed), not the frame."""
         sim, T, n, dev = self.sim, self.frames, self.sim.n, self.device
         self.accel = DriverAccelerations(dev, self.spec.drivers, self.spec.dtype, stage_accel.detach().double())
         self.particles = dataclasses.replace(
@@ -169,9 +193,6 @@ class _Run:
             mass=DeviceArray.alias(dev, mass.detach(), "masses"),
         )
         self.clamped = DeviceArray.zeros(dev, (n,), torch.uint8)
-        dtype = self.spec.dtype
-        x, v = torch.empty(T + 1, n, 3, dtype=dtype), torch.empty(T + 1, n, 3, dtype=dtype)
-        F = torch.empty(T + 1, n, 3, 3, dtype=dtype)
         s0 = sim.device_state
         first = State(
             DeviceArray.of(dev, x0.detach(), "positions"),
@@ -181,7 +202,6 @@ class _Run:
             s0.plastic.clone(),
         )
         self.checkpoints = [first]
-        x[0], v[0], F[0] = x0.detach(), v0.detach(), s0.F.read()
         a, b = first.clone(), first.empty_like()
         self.cfl_violation, breaches = None, []
         progress = FrameProgress("differentiable run", T, self.substeps, device=dev)
@@ -190,14 +210,14 @@ class _Run:
                 self.substep(a, b, f, s)
                 a, b = b, a
                 progress.tick(f, s)
-            a.x.read(x[f + 1]), a.v.read(v[f + 1]), a.F.read(F[f + 1])
-            if not finite(x[f + 1], v[f + 1], F[f + 1]):
+            health = state_health(dev, a)
+            if not health.finite:
                 raise SimulationError(
                     f"the differentiable run became NaN/inf during frame {f + 1} "
                     f"(t = {self.time(f + 1, 0):.4g} s); reduce dt (substeps per frame now {self.substeps}) "
                     f"or the material stiffness / forces"
                 )
-            vmax = cfl_breach(v[f + 1], self.dt, self.spec.grid.dx)
+            vmax = health.cfl_breach(self.dt, self.spec.grid.dx)
             if vmax is not None:
                 message = (
                     f"differentiable run, frame {f + 1}: max speed {vmax:.3g} m/s breaks the CFL limit "
@@ -227,12 +247,17 @@ class _Run:
                 RuntimeWarning,
                 stacklevel=4,
             )
-        return x, v, F
 
-    def backward(self, grad_x, grad_v, grad_F, device_grads=None):
-        """The inputs' gradients from the frames' (host tensors [T+1, ...] or None) and, where
-        given, ``device_grads(frame)``: (dL/dx [N, 3], dL/dF [N, 3, 3]) of a frame as device
-        arrays of the run's dtype (or None), what a reader of the frames on the device gives."""
+    def read_frames(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """x, v [T+1, N, 3] and F [T+1, N, 3, 3] of the run, read from its frame states."""
+        return tuple(torch.stack([getattr(state, name).read() for state in self.frame_states]) for name in "xvF")
+
+    def backward(self, grad_x, grad_v, grad_F, device_grads=None, needed=(True,) * 5):
+        """The inputs' gradients (param, mass, x0, v0, stage accelerations; None for an input
+        not ``needed``, whose gradient is not read from the device) from the frames' (host
+        tensors [T+1, ...] or None) and, where given, ``device_grads(frame)``: (dL/dx [N, 3],
+        dL/dF [N, 3, 3]) of a frame as device arrays of the run's dtype (or None), what a reader
+        of the frames on the device gives."""
         sim, spec, n, S, dtype, dev = self.sim, self.spec, self.sim.n, self.substeps, self.spec.dtype, self.device
         k = self.segment
         adjoint = self.engine.adjoint
@@ -281,10 +306,11 @@ class _Run:
                     progress.tick(self.frames - 1 - f, S - 1 - s)  # counted in the order the adjoint runs
         add_output_grads(0)
         stage_grad = torch.zeros(len(spec.drivers.forces), 3, dtype=dtype)
-        for stage, rows in enumerate(stage_rows):
+        for stage, rows in enumerate(stage_rows if needed[4] else ()):
             members = rows.read()[stage_members(sim, stage)].contiguous()
             stage_grad[stage] = sum_rows(members, dev).to(dtype)
-        return param_grad.read(), mass_grad.read(), grad.x.read(), grad.v.read(), stage_grad
+        grads = (param_grad, mass_grad, grad.x, grad.v)
+        return (*(g.read() if need else None for g, need in zip(grads, needed)), stage_grad if needed[4] else None)
 
 
 def memory_estimate(
@@ -349,24 +375,27 @@ def replay_segment(
 
 
 class _Simulate(torch.autograd.Function):
-    """A run as an op, with a reader of its frames on the device where given (see
-    :func:`simulate`'s ``reader``): outputs the reader's tensors, then x, v, F."""
+    """A run as an op: outputs x, v, F, or, with a reader of its frames on the device (see
+    :func:`simulate`'s ``reader``), the reader's tensors instead."""
 
     @staticmethod
     def forward(ctx, run: _Run, reader, param, mass, x0, v0, stage_accel):
-        x, v, F = run.forward(param, mass, x0, v0, stage_accel)
-        outputs = () if reader is None else tuple(reader.forward(run.frame_states))
-        ctx.run, ctx.reader, ctx.read = run, reader, len(outputs)
+        run.forward(param, mass, x0, v0, stage_accel)
+        ctx.run, ctx.reader = run, reader
         ctx.set_materialize_grads(False)  # an output nothing used gives None: no zeros uploaded
-        return (*outputs, x, v, F)
+        return run.read_frames() if reader is None else tuple(reader.forward(run.frame_states))
 
     @staticmethod
     def backward(ctx, *grads):
-        run, read = ctx.run, ctx.read
-        device_grads = ctx.reader.backward(grads[:read]) if any(g is not None for g in grads[:read]) else None
-        contiguous = [None if g is None else g.contiguous() for g in grads[read:]]
-        ctx.reader = None  # its device memory is given back
-        return (None, None, *run.backward(*contiguous, device_grads=device_grads))
+        run, reader = ctx.run, ctx.reader
+        if reader is None:
+            host_grads, device_grads = [None if g is None else g.contiguous() for g in grads], None
+        else:
+            host_grads = (None, None, None)
+            device_grads = reader.backward(grads) if any(g is not None for g in grads) else None
+            ctx.reader = None  # its device memory is given back
+        needed = tuple(ctx.needs_input_grad[2:])
+        return (None, None, *run.backward(*host_grads, device_grads=device_grads, needed=needed))
 
 
 def simulate(
@@ -460,19 +489,19 @@ def simulate(
 
 def _apply(run: _Run, inputs: tuple, reader):
     """The op of ``run`` on ``inputs`` (param, mass, x0, v0, stage accelerations): its Frames,
-    and the reader's tensors where a reader is given."""
-    *read, x, v, F = _Simulate.apply(run, reader, *inputs)
+    and the reader's tensors where a reader is given (then the Frames read x, v, F from the
+    device only when asked for)."""
+    outputs = _Simulate.apply(run, reader, *inputs)
+    values = outputs if reader is None else (None, None, None)
     out = Frames(
-        x,
-        v,
-        F,
+        *values,
         substeps=run.substeps,
         clamped=run.clamped_count,
         cfl_violation=run.cfl_violation,
         states=run.frame_states,
     )
     out = _member_axis(run.sim, out)
-    return out if reader is None else (out, tuple(read))
+    return out if reader is None else (out, tuple(outputs))
 
 
 def _member_axis(sim: Simulator, frames: Frames) -> Frames:
@@ -480,13 +509,7 @@ def _member_axis(sim: Simulator, frames: Frames) -> Frames:
     if not sim.batched:
         return frames
     k = sim.members
-    return dataclasses.replace(
-        frames,
-        x=split_members(frames.x, k),
-        v=split_members(frames.v, k),
-        F=split_members(frames.F, k),
-        states=None,  # every member's rows in one state
-    )
+    return frames.replace(split_members(frames.x, k), split_members(frames.v, k), split_members(frames.F, k))
 
 
 def _simulate_via_host(sim: Simulator, frames: int, origin: torch.device, params, tensors: dict, **options) -> Frames:
@@ -496,7 +519,7 @@ def _simulate_via_host(sim: Simulator, frames: int, origin: torch.device, params
     host_params = {name: to_cpu(value, sim.device) for name, value in (params or {}).items()} or None
     out = simulate(sim, frames, params=host_params, **on_host, **options)
     back = lambda t: to_origin(t, origin, sim.device)  # noqa: E731
-    return dataclasses.replace(out, x=back(out.x), v=back(out.v), F=back(out.F), states=None)
+    return out.replace(back(out.x), back(out.v), back(out.F))
 
 
 __all__ = [

@@ -70,6 +70,11 @@ def velocity_channels(flip: float) -> int:
     return 6 if uses_flip(flip) else 3
 
 
+# kernels_cl/mpm/health.cl: a work-group's items, and the fixed number of groups whose
+# (largest |v|^2, not finite) pairs the host reads after a frame
+HEALTH_WG, HEALTH_GROUPS = 64, 64
+
+
 def kernel_defines(flip: float = 0.0) -> dict[str, object]:
     """The -D switches every MPM kernel is built with; ``flip`` > 0 builds the PIC/FLIP
     blend's transfers (CLFLOW_FLIP)."""
@@ -84,6 +89,7 @@ def kernel_defines(flip: float = 0.0) -> dict[str, object]:
         SAFE_NORM_EPS2=repr(SAFE_NORM_EPS2),
         NEWTONIAN_J_MIN=repr(NEWTONIAN_J_MIN),
         CLAMP_MARGIN=CLAMP_MARGIN,
+        HEALTH_WG=HEALTH_WG,
         BC_STRIDE=BC_STRIDE,
         BC_HALFSPACE=BC_HALFSPACE,
         BC_BOX=BC_BOX,

@@ -15,11 +15,20 @@ import warnings
 from dataclasses import dataclass, replace
 from typing import Callable, Sequence
 
+import numpy as np
 import torch
 
 from clflow.errors import ClflowError, InputError
 from clflow.mpm.boundaries import DriverGroups, Force, GridCondition, boundary_table, wall_colliders
-from clflow.mpm.constants import CLAMP_MARGIN, COLLIDER_MODES, MASS_EPS_REL, WALL_CELLS
+from clflow.mpm.constants import (
+    CLAMP_MARGIN,
+    COLLIDER_MODES,
+    HEALTH_GROUPS,
+    HEALTH_WG,
+    MASS_EPS_REL,
+    WALL_CELLS,
+    kernel_defines,
+)
 from clflow.mpm.inputs import (
     MaterialLimits,
     MaterialSpec,
@@ -37,7 +46,7 @@ from clflow.mpm.substep import (
     SubstepKernels,
 )
 from clflow.runtime import Device, get_device
-from clflow.runtime.arrays import DeviceArray, arrays_of, origin_device, to_cpu, to_device, to_origin
+from clflow.runtime.arrays import DeviceArray, arrays_of, origin_device, real_of, to_cpu, to_device, to_origin
 from clflow.runtime.plan import P2GMode
 
 CFL_NUMBER = 0.3  # dt <= CFL_NUMBER dx / max|v|
@@ -171,16 +180,35 @@ class SimulationSpec:
         return self.frame_dt / self.substeps
 
 
-def finite(*tensors: torch.Tensor) -> bool:
-    """Whether every value of ``tensors`` is finite."""
-    return all(bool(torch.isfinite(t).all()) for t in tensors)
+def max_speed(v: torch.Tensor) -> float:
+    """The fastest speed (m/s) of velocities ``v`` [N, 3] (m/s), 0 for none."""
+    return float(v.double().norm(dim=-1).max()) if v.numel() else 0.0
 
 
-def cfl_breach(v: torch.Tensor, dt: float, dx: float) -> float | None:
-    """The fastest particle's speed (m/s) of velocities ``v`` [N, 3] (m/s) when it moves
-    more than CFL_NUMBER cells in ``dt`` (s) on a grid of spacing ``dx`` (m), else None."""
-    vmax = float(v.double().norm(dim=-1).max())
-    return vmax if vmax * dt > CFL_NUMBER * dx else None
+@dataclass(frozen=True)
+class StateHealth:
+    """What a run checks of a state after each frame: whether every value of x, v, F is
+    finite, and the fastest finite particle's speed (m/s)."""
+
+    finite: bool
+    max_speed: float
+
+    def cfl_breach(self, dt: float, dx: float) -> float | None:
+        """The fastest speed (m/s) when it moves more than CFL_NUMBER cells in ``dt`` (s) on a
+        grid of spacing ``dx`` (m), else None."""
+        return self.max_speed if self.max_speed * dt > CFL_NUMBER * dx else None
+
+
+def state_health(device: Device, state: State) -> StateHealth:
+    """The :class:`StateHealth` of ``state`` (DeviceArrays), reduced on the device: the host
+    reads 2 HEALTH_GROUPS reals, not the state."""
+    n, dtype = state.x.shape[0], state.x.dtype
+    partial = DeviceArray.empty(device, (HEALTH_GROUPS, 2), dtype)
+    kern = device.kernel("mpm/health.cl", "state_health", real_of(dtype), kernel_defines())
+    args = dict(n=np.int32(n), x=state.x, v=state.v, F=state.F, partial=partial)
+    device.launch(kern, HEALTH_GROUPS * HEALTH_WG, args, HEALTH_WG)
+    speed2, bad = partial.read().double().unbind(-1)
+    return StateHealth(not bool(bad.any()), math.sqrt(float(speed2.max())))
 
 
 class Simulator:
@@ -310,7 +338,7 @@ class Simulator:
 
     def _checked_substeps(self, substeps: int | None, v: torch.Tensor) -> int:
         """``substeps`` per frame (None: the stable number), warning when fewer than stable."""
-        auto = self._stable_substeps(v)
+        auto = self._stable_substeps(max_speed(v))
         if substeps is None:
             return auto
         if int(substeps) < 1:
@@ -331,7 +359,8 @@ class Simulator:
         if not (grid.dx > 0 and math.isfinite(grid.dx)):
             raise InputError(f"grid dx must be a positive length (m), got {grid.dx}")
 
-    def _dt_limits(self, v: torch.Tensor) -> list[tuple[float, str]]:
+    def _dt_limits(self, vmax: float) -> list[tuple[float, str]]:
+        """(the largest stable dt (s), why) of each limit at the fastest speed ``vmax`` (m/s)."""
         dx = self.grid.dx
         limits = []
         for m in self.material_limits:
@@ -342,17 +371,21 @@ class Simulator:
             if m.viscosity > 0:
                 reason = f"viscous diffusion of {m.name}, viscosity {m.viscosity:.3g} Pa s at {m.density:.3g} kg/m^3"
                 limits.append((VISCOUS_NUMBER * m.density * dx**2 / m.viscosity, reason))
-        vmax = float(v.double().norm(dim=-1).max()) if v.numel() else 0.0
         if vmax > 0:
             limits.append((CFL_NUMBER * dx / vmax, f"CFL with max speed {vmax:.3g} m/s"))
         return limits
 
     def stable_substeps(self, v: torch.Tensor | None = None) -> int:
-        """Smallest substep count per frame meeting the CFL, elastic-wave and viscous limits."""
-        return self._stable_substeps(self.state.v if v is None else v)
+        """Smallest substep count per frame meeting the CFL, elastic-wave and viscous limits at
+        velocities ``v`` [N, 3] (m/s; None: the current state's, its fastest speed found on the
+        device; a state not finite has no stable substep)."""
+        if v is None:
+            health = state_health(self.device, self.device_state)
+            return self._stable_substeps(health.max_speed if health.finite else math.inf)
+        return self._stable_substeps(max_speed(v))
 
-    def _stable_substeps(self, v: torch.Tensor) -> int:
-        limits = self._dt_limits(v)
+    def _stable_substeps(self, vmax: float) -> int:
+        limits = self._dt_limits(vmax)
         dt_max, reason = min(limits, default=(self.frame_dt, ""))
         if not dt_max > 0:  # a speed so large its square overflows: the run has blown up
             raise SimulationError(
@@ -381,7 +414,8 @@ class Simulator:
     material_limits = property(lambda self: self.spec.material_limits, doc="MaterialLimits per material spec")
 
     def limit_reason(self, v: torch.Tensor) -> str:
-        return min(self._dt_limits(v), default=(0.0, "no limit"))[1]
+        """What limits the substep at velocities ``v`` [N, 3] (m/s), in words."""
+        return min(self._dt_limits(max_speed(v)), default=(0.0, "no limit"))[1]
 
     # -- stepping ---------------------------------------------------------------------------
 
@@ -443,8 +477,8 @@ class Simulator:
             if self._progress is not None:
                 self._progress.tick(self.frame, s)
         self.frame += 1
-        state = self.state
-        if not finite(state.x, state.v, state.F):
+        health = state_health(self.device, self.device_state)
+        if not health.finite:
             v_before = v_before.read()
             raise SimulationError(
                 f"the simulation became NaN/inf during frame {self.frame} (t = {self.time:.4g} s); likely cause: "
@@ -459,7 +493,7 @@ class Simulator:
                 RuntimeWarning,
                 stacklevel=2,
             )
-        vmax = cfl_breach(state.v, self.dt, self.grid.dx)
+        vmax = health.cfl_breach(self.dt, self.grid.dx)
         if vmax is not None:
             message = (
                 f"frame {self.frame}: max speed {vmax:.3g} m/s breaks the CFL limit at dt = {self.dt:.3g} s; "

@@ -78,8 +78,8 @@ def gaussian_colors(g: Gaussians, viewmat: torch.Tensor) -> torch.Tensor:
 
 def render_rgb_frames(
     scene: DeviceScene,
-    x: torch.Tensor,
-    F: torch.Tensor,
+    x: torch.Tensor | None,
+    F: torch.Tensor | None,
     camera,
     background=(1.0, 1.0, 1.0),
     states=None,
@@ -90,13 +90,15 @@ def render_rgb_frames(
     :func:`frame_gaussians` per frame, where only the object's x and F go to the device and
     the frame's bytes come back (the static Gaussians' colours once a call; the object's,
     where they change, made on the device: DeviceScene.object_colors). ``states``: the run's
-    states on the device, one a frame (clflow.mpm.Frames.states), read instead of x and F.
+    states on the device, one a frame (clflow.mpm.Frames.states), read instead of x and F
+    (then None will do for those).
     ``supersample``: rendered at that many times ``camera``'s pixels per side, each pixel the
     mean of its block (rgb_uint8), on the device."""
     fine = camera.scaled(supersample) if supersample > 1 else camera
     n, dtype, dev = scene.n, scene.dtype, scene.device
     with torch.no_grad():
-        x, F = x[:, :n].to(dtype), F[:, :n].to(dtype)
+        if states is None:
+            x, F = x[:, :n].to(dtype), F[:, :n].to(dtype)
         static = gaussian_colors(scene.static, camera.viewmat).to(dtype)
         fixed = static.new_zeros(n, 3) if scene.object_colors_vary else gaussian_colors(scene.obj_rest, camera.viewmat)
         template = DeviceArray.of(dev, torch.cat([fixed.to(dtype), static]).contiguous(), "colours")

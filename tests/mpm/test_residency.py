@@ -10,6 +10,7 @@ import torch
 from clflow.errors import InputError
 from clflow.mpm import Force, Region, autograd
 from clflow.mpm.autograd import memory_estimate, simulate
+from clflow.runtime.arrays import DeviceArray
 from tests.mpm._helpers import MATERIAL_CASES, random_scene
 
 FORCE = Force(Region.box((0.3, 0.3, 0.3), (0.5, 0.7, 0.7)), start=0.0, end=0.015, acceleration=(2.0, 0.0, 0.0))
@@ -108,3 +109,49 @@ def test_a_runs_states_are_its_frames_on_the_device_and_stay_in_this_process(dev
         assert torch.equal(state.x.read(), frames.x[t]) and torch.equal(state.F.read(), frames.F[t])
     copy = pickle.loads(pickle.dumps(frames))
     assert copy.states is None and torch.equal(copy.x, frames.x) and frames.states is not None
+
+
+class _LastPositions:
+    """A reader of a run's frames on the device (simulate's ``reader``): its last frame's x,
+    read to the host; that frame's x gradient handed back on the device."""
+
+    def forward(self, states):
+        self.frames = len(states) - 1
+        return (states[-1].x.read(),)
+
+    def backward(self, grads):
+        (grad,) = grads
+        device = self.device
+
+        def state_grads(frame):
+            return (DeviceArray.of(device, grad.contiguous()), None) if frame == self.frames else (None, None)
+
+        return state_grads
+
+
+def reader_run(sim, frames: int):
+    """(Frames, its reader's tensors, bytes to the host) of a run with a _LastPositions reader
+    and its backward."""
+    E = torch.tensor(1e4, dtype=torch.float64, requires_grad=True)
+    reader = _LastPositions()
+    reader.device = sim.device
+    mark = sim.device.transfers.mark()
+    out, (last,) = simulate(sim, frames, params={"youngs_modulus": E}, reader=reader)
+    last.sum().backward()
+    return out, last, E.grad, sim.device.transfers.since(mark).to_host
+
+
+def test_a_run_with_a_reader_reads_its_health_not_its_frames(copy_mode):
+    """With a reader, a frame more costs the host only its health check (HEALTH_GROUPS pairs
+    of reals), not the frame's x, v, F; the Frames read those from the device when asked,
+    equal to a run's without a reader, and the gradient is the same."""
+    from clflow.mpm.constants import HEALTH_GROUPS
+
+    _, _, _, three = reader_run(scene(), 3)
+    out, last, grad, six = reader_run(scene(), 6)
+    assert six - three == 3 * HEALTH_GROUPS * 2 * 8  # float64
+    E = torch.tensor(1e4, dtype=torch.float64, requires_grad=True)
+    plain = simulate(scene(), 6, params={"youngs_modulus": E})
+    plain.x[-1].sum().backward()
+    assert torch.equal(last, plain.x[-1]) and torch.equal(grad, E.grad)
+    assert torch.equal(out.x, plain.x) and torch.equal(out.v, plain.v) and torch.equal(out.F, plain.F)

@@ -210,3 +210,35 @@ def test_a_device_without_a_needed_capability_is_refused_in_one_line(device, lac
     if not differentiable:  # the simulator refuses it as well, before it builds a kernel
         with pytest.raises(DeviceError, match=match):
             Simulator(X, 1e-5, ELASTIC, GRID, dtype=dtype, p2g=p2g, device=lacking)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_state_health_is_the_states_finiteness_and_fastest_speed(device, dtype):
+    """state_health (reduced on the device) against torch: the fastest particle's speed, and
+    a NaN or inf anywhere in x, v or F, the last particle's included (n not a multiple of the
+    kernel's grid), found."""
+    from clflow.mpm.constants import HEALTH_GROUPS, HEALTH_WG
+    from clflow.mpm.simulator import state_health
+    from clflow.mpm.substep import State
+    from clflow.runtime.arrays import DeviceArray
+
+    n = 3 * HEALTH_GROUPS * HEALTH_WG + 5
+    gen = torch.Generator().manual_seed(0)
+    x, v = torch.rand(n, 3, generator=gen, dtype=dtype), torch.randn(n, 3, generator=gen, dtype=dtype)
+    F = torch.eye(3, dtype=dtype).expand(n, 3, 3) + 0.1 * torch.randn(n, 3, 3, generator=gen, dtype=dtype)
+    v[1234] = torch.tensor([30.0, -40.0, 0.0], dtype=dtype)  # 50 m/s, the fastest
+
+    def health(x, v, F):
+        arrays = [
+            DeviceArray.of(device, t.contiguous()) for t in (x, v, F, torch.zeros_like(F), torch.zeros(n, dtype=dtype))
+        ]
+        return state_health(device, State(arrays[0], arrays[1], arrays[3], arrays[2], arrays[4]))
+
+    clean = health(x, v, F)
+    assert clean.finite and clean.max_speed == pytest.approx(float(v.double().norm(dim=-1).max()), rel=1e-6)
+    assert clean.max_speed == pytest.approx(50.0, rel=1e-6)
+    assert clean.cfl_breach(dt=1e-3, dx=0.01) == clean.max_speed and clean.cfl_breach(dt=1e-5, dx=0.01) is None
+    for name, row, value in (("x", n - 1, math.nan), ("v", 0, math.inf), ("F", n - 1, -math.inf)):
+        bad = {"x": x.clone(), "v": v.clone(), "F": F.clone()}
+        bad[name][row].view(-1)[-1] = value
+        assert not health(bad["x"], bad["v"], bad["F"]).finite, name

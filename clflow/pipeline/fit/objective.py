@@ -23,10 +23,7 @@ from clflow.mpm import StabilityWarning
 from clflow.pipeline.fit.population import RunPoint, evaluate_in_populations, populations_pay, run_point
 from clflow.pipeline.fit.problem import Problem
 from clflow.pipeline.fit.state import Evaluation, OptimizerState, UnstableRun
-from clflow.pipeline.forward import (
-    SimulationResult,
-    render_frames,
-)
+from clflow.pipeline.render import render_rgb_frames
 from clflow.pipeline.simulation import build_simulator, scene_run_values
 from clflow.scene.config import TIME_SCALE, SceneConfig
 from clflow.splat.device_scene import DeviceScene
@@ -232,13 +229,13 @@ class Objective:
 
         margin = max(max(abs(dx), abs(dy)) for dx, dy in shifts)
         traj = result.trajectory
-        simulated = SimulationResult(
-            self.problem.prepared, traj.x[: frames + 1].detach(), traj.F[: frames + 1].detach()
-        )
+        if traj.states is None:
+            x, F, states = traj.x[: frames + 1].detach(), traj.F[: frames + 1].detach(), None
+        else:  # x and F on the device, never read to the host
+            x, F, states = None, None, traj.states[: frames + 1]
         errors, scene = [], self.problem.scene_on_device(self.problem.model_grid)
-        states = None if traj.states is None else traj.states[: frames + 1]  # x and F on the device
         for view, flows in zip(self.problem.views, [result.flows, *result.more_flows]):
-            wide = render_frames(simulated, view.camera.widened(margin), SUPERSAMPLE, scene, states)
+            wide = render_rgb_frames(scene, x, F, view.camera.widened(margin), states=states, supersample=SUPERSAMPLE)
             estimated = shift_mean_flow(wide, margin, shifts, estimate)
             errors.append(torch.from_numpy(estimated).double() - torch.stack(flows[:frames]).double())
         return errors

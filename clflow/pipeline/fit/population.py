@@ -18,7 +18,6 @@ member between a particle chunk's first and last: the points run one by one ther
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
 from dataclasses import dataclass
 
@@ -127,7 +126,7 @@ def run_population(cfg, points: list[RunPoint], frames: int) -> list | None:
         return None
     if out.unstable:
         return None
-    member = lambda m: dataclasses.replace(out, x=out.x[:, m], v=out.v[:, m], F=out.F[:, m])  # noqa: E731
+    member = lambda m: out.replace(out.x[:, m], out.v[:, m], out.F[:, m])  # noqa: E731
     return [member(m) for m in range(len(points))]
 
 
