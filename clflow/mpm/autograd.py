@@ -184,7 +184,8 @@ class _Run:
 
     def forward(self, param, mass, x0, v0, stage_accel) -> None:
         """Run the frames, keeping each frame's state on the device (``frame_states``); the host
-        reads each frame's health (NaN/inf, the fastest speed), not the frame."""
+        reads each frame's health (NaN/inf, the fastest speed), not the frame. x0, v0: None
+        for the simulator's own state."""
         sim, T, n, dev = self.sim, self.frames, self.sim.n, self.device
         self.accel = DriverAccelerations(dev, self.spec.drivers, self.spec.dtype, stage_accel.detach().double())
         self.particles = dataclasses.replace(
@@ -195,8 +196,8 @@ class _Run:
         self.clamped = DeviceArray.zeros(dev, (n,), torch.uint8)
         s0 = sim.device_state
         first = State(
-            DeviceArray.of(dev, x0.detach(), "positions"),
-            DeviceArray.of(dev, v0.detach(), "velocities"),
+            s0.x.clone() if x0 is None else DeviceArray.of(dev, x0.detach(), "positions"),
+            s0.v.clone() if v0 is None else DeviceArray.of(dev, v0.detach(), "velocities"),
             s0.C.clone(),
             s0.F.clone(),
             s0.plastic.clone(),

@@ -115,17 +115,21 @@ def masses(sim: Simulator, density) -> torch.Tensor:
     return rho * sim.particles.volume
 
 
-def initial_state(sim: Simulator, positions, velocities) -> tuple[torch.Tensor, torch.Tensor]:
-    """x0 [N, 3] (m) and v0 [N, 3] (m/s): as given (checked), else the simulator's; for a
-    batched simulator each [K, N / K, 3] (per member) or [N / K, 3] (every member alike)."""
-    x0 = sim.state.x if positions is None else members_rows(sim, torch.as_tensor(positions).to(sim.dtype))
-    v0 = sim.state.v if velocities is None else members_rows(sim, torch.as_tensor(velocities).to(sim.dtype))
+def initial_state(sim: Simulator, positions, velocities) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """x0 [N, 3] (m) and v0 [N, 3] (m/s) as given (checked), None for the simulator's own (on
+    the device already); for a batched simulator each [K, N / K, 3] (per member) or
+    [N / K, 3] (every member alike)."""
+    x0 = None if positions is None else members_rows(sim, torch.as_tensor(positions).to(sim.dtype))
+    v0 = None if velocities is None else members_rows(sim, torch.as_tensor(velocities).to(sim.dtype))
     for name, value in (("positions", x0), ("velocities", v0)):
+        if value is None:
+            continue
         if tuple(value.shape) != (sim.n, 3):
             raise InputError(f"{name}: expected shape [{sim.n}, 3], got {list(value.shape)}")
         if not bool(torch.isfinite(value.detach()).all()):
             raise InputError(f"{name} contains NaN or inf")
-    check_inside(x0.detach(), sim.grid)
+    if x0 is not None:
+        check_inside(x0.detach(), sim.grid)
     return x0, v0
 
 
