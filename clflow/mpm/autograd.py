@@ -14,8 +14,10 @@ reverse. Memory, in reals: (frames + 1) N 55 (checkpoints, outputs and their gra
 docs/mpm_adjoint.md).
 
 Checkpoints, replayed states, tapes and gradients stay on the device (DeviceArrays); the host
-sees each frame's x, v, F once (the op's outputs) and, in backward, each frame's output
-gradients once and the parameter, mass and initial-state gradients at the end.
+sees each frame's health (NaN/inf, the fastest speed: kernels_cl/mpm/health.cl), each frame's
+x, v, F once (the op's outputs; with a reader, only when Frames is asked for them) and, in
+backward, each frame's output gradients once and the gradients of the inputs that need them
+at the end.
 
 Parameter gradients are per particle; a global parameter (a 0-d tensor) is broadcast to
 the particles with a backward that sums the rows in a fixed order
