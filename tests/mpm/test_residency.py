@@ -144,7 +144,8 @@ def reader_run(sim, frames: int):
 def test_a_run_with_a_reader_reads_its_health_not_its_frames(copy_mode):
     """With a reader, a frame more costs the host only its health check (HEALTH_GROUPS pairs
     of reals), not the frame's x, v, F; the Frames read those from the device when asked,
-    equal to a run's without a reader, and the gradient is the same."""
+    equal to a run's without a reader, and the gradient is the same (to rounding: the atomic
+    P2G's order of addition is not fixed)."""
     from clflow.mpm.constants import HEALTH_GROUPS
 
     _, _, _, three = reader_run(scene(), 3)
@@ -153,5 +154,7 @@ def test_a_run_with_a_reader_reads_its_health_not_its_frames(copy_mode):
     E = torch.tensor(1e4, dtype=torch.float64, requires_grad=True)
     plain = simulate(scene(), 6, params={"youngs_modulus": E})
     plain.x[-1].sum().backward()
-    assert torch.equal(last, plain.x[-1]) and torch.equal(grad, E.grad)
-    assert torch.equal(out.x, plain.x) and torch.equal(out.v, plain.v) and torch.equal(out.F, plain.F)
+    assert torch.equal(out.x[-1], last)  # the reader's frame, read again
+    close = lambda a, b: torch.allclose(a, b, rtol=1e-9, atol=1e-12)  # noqa: E731
+    assert close(last, plain.x[-1]) and close(grad, E.grad)
+    assert close(out.x, plain.x) and close(out.v, plain.v) and close(out.F, plain.F)
