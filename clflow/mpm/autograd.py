@@ -64,6 +64,11 @@ from clflow.runtime.reduction import sum_rows
 from clflow.runtime.sort import counts_length
 
 
+def read_states(states, name: str) -> torch.Tensor:
+    """Field ``name`` ("x", "v" or "F") of each of ``states`` (device arrays), stacked on the host."""
+    return torch.stack([getattr(state, name).read() for state in states])
+
+
 class Frames:
     """Per-frame states of a differentiable run; frame 0 is the initial state.
     x, v [T+1, N, 3] (m, m/s), F [T+1, N, 3, 3] (deformation gradient), with the member axis
@@ -97,7 +102,7 @@ class Frames:
     def _value(self, name: str) -> torch.Tensor:
         value = self._values[name]
         if value is None:  # read once, from the device
-            value = self._values[name] = torch.stack([getattr(state, name).read() for state in self.states])
+            value = self._values[name] = read_states(self.states, name)
         return value
 
     x = property(lambda self: self._value("x"), doc="[T+1, N, 3] positions (m)")
@@ -253,7 +258,7 @@ class _Run:
 
     def read_frames(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """x, v [T+1, N, 3] and F [T+1, N, 3, 3] of the run, read from its frame states."""
-        return tuple(torch.stack([getattr(state, name).read() for state in self.frame_states]) for name in "xvF")
+        return tuple(read_states(self.frame_states, name) for name in "xvF")
 
     def backward(self, grad_x, grad_v, grad_F, device_grads=None, needed=(True,) * 5):
         """The inputs' gradients (param, mass, x0, v0, stage accelerations; None for an input
