@@ -19,6 +19,7 @@ from clflow.pipeline.fit.diagnostics import (
     flat,
     frame_robust_covariance,
     parameter_range,
+    search_extent,
     walk_end,
     walk_in_lockstep,
     walk_steps,
@@ -341,6 +342,17 @@ def test_search_samples_within_the_tolerance_widen_a_range_and_the_extreme_one_o
     assert ranges["b"]["low"] is None and ranges["b"]["high"] == 0.5  # b's lowest sample (-2) is kept
     assert ranges["v"] == {"low": 0.0, "high": 1.0}  # not searched: as it was
     assert ranges["a"]["search_kept"] == 3
+
+
+def test_a_coarse_grids_loss_floor_under_every_sample_keeps_the_same_samples():
+    """The allowance is a loss difference: a floor the search grid's model error adds to
+    every sample (10x the fit's loss in a two-object case) keeps the samples it kept without
+    one, where a fraction of the best would keep them all and open both sides."""
+    losses = [(0.0, 0.107), (0.2, 0.12), (0.5, 0.2), (-1.0, 0.5), (3.0, 0.9)]
+    for floor in (0.0, 1.0):
+        search = [{"z": {"a": a}, "loss": floor + loss} for a, loss in losses]
+        (low, high), (low_open, high_open), kept = search_extent(search, 0.05)["a"]
+        assert (low, high, kept) == (0.0, 0.2, 2) and not (low_open or high_open)
 
 
 def bowl(bottom: float, depth: float = 1.0, floor: float = 0.01):

@@ -495,9 +495,12 @@ def test_a_range_reaches_out_to_where_a_flattening_loss_crosses_the_tolerance(de
     loss = lambda dz: float(evaluate({**z, "youngs_modulus": Z_TRUE + dz}, opt.problem.frames).loss)  # noqa: E731
     assert loss(high) / loss(0.0) < 1.01 * limit  # nu held here, refitted in the walk: 1 % either way
     assert nu["walked_z"] == pytest.approx([nu["profile_z"], nu["profile_z"]], rel=0.01)
-    # a search whose highest E fits as well as its best opens that side, which is then not walked
+    # a search whose highest E fits as well as its best (within the tolerance times the fit's
+    # loss) opens that side, which is then not walked
+    fit, within = loss(0.0), 0.5 * report["loss_tolerance"]
     search = [
-        {"z": {**z, "youngs_modulus": Z_TRUE + dz}, "loss": loss} for dz, loss in [(0, 1.0), (1, 1.01), (-1, 9.0)]
+        {"z": {**z, "youngs_modulus": Z_TRUE + dz}, "loss": fit * ratio}
+        for dz, ratio in [(0, 1.0), (1, 1 + within), (-1, 9.0)]
     ]
     e = opt.diagnostics.identifiability(z, 1, search)["ranges"]["youngs_modulus"]
     assert e["high"] is None and e["walked_z"][1] is None and e["walk_loss_ratio"][1] == []

@@ -221,14 +221,16 @@ def walk_end(loss_at: Callable[[float], float | None], start: float, edge: float
     return walk_in_lockstep([walk_steps(start, edge, limit, loss)], lambda asked: [loss_at(s) for _, s in asked])[0]
 
 
-def widen_by_search(ranges: dict[str, dict], z: dict[str, float], search: list[dict], tolerance: float, values) -> None:
+def widen_by_search(ranges: dict[str, dict], z: dict[str, float], search: list[dict], allowance: float, values) -> None:
     """Widen each range (Diagnostics.ranges, in place) to the search samples whose loss is
-    within ``tolerance`` of the search's best (state.search rows: z, loss): the non-local
+    within ``allowance`` of the search's best (state.search rows: z, loss): the non-local
     profile the search's own runs give for free (quick playdoh's E: the best samples lie
     from 2e6 to 2.2e7 Pa within 1.4x of the best loss, where the final point's curvature
     alone would allow 0.1 decade). A side reached by the search's most extreme sample in that
-    direction is open: the data do not bound it. ``values(z)``: SI values of a point."""
-    extent = search_extent(search, tolerance)
+    direction is open: the data do not bound it. ``allowance``: a loss difference, the
+    model's loss tolerance times the fit's own loss (:func:`search_extent`). ``values(z)``:
+    SI values of a point."""
+    extent = search_extent(search, allowance)
     for name, entry in ranges.items():
         if name not in extent:
             continue
@@ -240,15 +242,20 @@ def widen_by_search(ranges: dict[str, dict], z: dict[str, float], search: list[d
         entry["search_kept"] = kept
 
 
-def search_extent(search: list[dict], tolerance: float) -> dict[str, tuple]:
-    """Per searched variable ((lowest, highest) z of the search samples whose loss is within
-    ``tolerance`` of the best, (whether that lowest is the lowest sample run, whether that
-    highest is the highest), how many samples that is); {} without samples."""
+def search_extent(search: list[dict], allowance: float) -> dict[str, tuple]:
+    """Per searched variable ((lowest, highest) z of the search samples whose loss exceeds the
+    best by at most ``allowance``, (whether that lowest is the lowest sample run, whether that
+    highest is the highest), how many samples that is); {} without samples.
+
+    ``allowance`` is a loss difference, not a fraction of the search's best: the search
+    ranks its samples on its own, usually coarser, grid, whose model error puts a floor
+    under every sample's loss (10x the fit's in a two-object case: 1.07 against 0.107), and a
+    fraction of that floor would keep samples the main grid tells apart."""
     rows = [r for r in search if r.get("loss") is not None]
     if not rows:
         return {}
     best = min(r["loss"] for r in rows)
-    kept = [r for r in rows if r["loss"] <= (1 + tolerance) * best]
+    kept = [r for r in rows if r["loss"] <= best + allowance]
     out = {}
     for name in rows[0]["z"]:
         seen, near = [r["z"][name] for r in rows], [r["z"][name] for r in kept]
@@ -317,16 +324,18 @@ class Diagnostics:
         directions = {
             n: dict(zip(variables, (inverse[:, i] / inverse[i, i]).tolist())) for i, n in enumerate(variables)
         }
-        # the search's samples open a side where its most extreme one fits within the tolerance: not walked
+        # the search's samples within the tolerance of the fit's own loss (base.loss: flow.loss,
+        # as the samples'; the model grid's) open a side where its most extreme one lies: not walked
+        allowance = tolerance * base.loss
         search_open = {
             n: (low_open and low < z[n], high_open and high > z[n])
-            for n, ((low, high), (low_open, high_open), _) in search_extent(search or [], tolerance).items()
+            for n, ((low, high), (low_open, high_open), _) in search_extent(search or [], allowance).items()
         }
         walk = RangeWalk(
             directions, limit=loss * (1 + tolerance), loss=loss, substeps=base.substeps, open_sides=search_open
         )
         ranges = self.ranges(z, variables, frame_std, discretisation, profile_z, unresolved, walk)
-        widen_by_search(ranges, z, search or [], tolerance, self.problem.values)
+        widen_by_search(ranges, z, search or [], allowance, self.problem.values)
         return {
             "ranges": ranges,
             "loss_tolerance": tolerance,
