@@ -224,9 +224,9 @@ def walk_end(loss_at: Callable[[float], float | None], start: float, edge: float
 def widen_by_search(ranges: dict[str, dict], z: dict[str, float], search: list[dict], allowance: float, values) -> None:
     """Widen each range (Diagnostics.ranges, in place) to the search samples whose loss is
     within ``allowance`` of the search's best (state.search rows: z, loss): the non-local
-    profile the search's own runs give for free (quick playdoh's E: the best samples lie
-    from 2e6 to 2.2e7 Pa within 1.4x of the best loss, where the final point's curvature
-    alone would allow 0.1 decade). A side reached by the search's most extreme sample in that
+    profile the search's own runs give for free (quick playdoh's E reaches its truth only
+    through the samples kept: 4.6e5 to 1e8 Pa, where the final point's curvature alone would
+    allow 0.1 decade). A side reached by the search's most extreme sample in that
     direction is open: the data do not bound it. ``allowance``: a loss difference, the
     model's loss tolerance times the fit's own loss (:func:`search_extent`). ``values(z)``:
     SI values of a point."""
