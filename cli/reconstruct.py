@@ -36,7 +36,7 @@ VIEW_SOURCES = ("transforms", "colmap", "cameras_json", "frame", "masks")
 @click.option("--densify-from", type=click.IntRange(min=0), help="First densification after this iteration (default 500).")  # fmt: skip
 @click.option("--densify-until", type=click.IntRange(min=0), help="Last densification at this iteration (default 3500).")  # fmt: skip
 @count_option("--densify-every", help="Densify every N iterations (default 100).")
-@count_option('--reset-every', help="Reset the opacities every N iterations while densifying (default 3000).")  # fmt: skip
+@count_option('--reset-every', help="Reset the opacities every N iterations while densifying, where N more follow (default 3000).")  # fmt: skip
 @count_option('--init-points', help="Random initial Gaussians when the cameras bring no point cloud (COLMAP's points3D; default 10000).")  # fmt: skip
 @click.option("--holdout-every", type=click.IntRange(min=0),
               help="Hold out views 0, N, 2N, ... for the metrics (0: none; default 8).")  # fmt: skip

@@ -10,7 +10,10 @@ rendered and compared with L1 + 0.2 D-SSIM (kornia); Adam with per-attribute rat
 scales, quaternions, opacity logits, SH DC and (/20) the higher SH bands, whose degree rises
 by one every ``sh_every`` iterations. Densification (clflow.recon.densify) from
 ``densify_from`` to ``densify_until`` every ``densify_every`` iterations, opacities reset
-every ``reset_every``. Every random draw comes from a generator seeded by (seed, iteration),
+every ``reset_every`` while densifying, each reset followed by at least ``reset_every``
+iterations (3DGS's schedule, 30,000 iterations densified until 15,000, always leaves its last
+reset that many; a shorter run that stopped at a reset would end with every Gaussian nearly
+transparent: a black scene). Every random draw comes from a generator seeded by (seed, iteration),
 so a run on the CPU device is repeatable bit for bit and a resumed run continues exactly.
 
 Scene extent (m): 1.1 x the largest distance of a camera from the cameras' centroid (3DGS).
@@ -337,7 +340,8 @@ def _begin(views: ViewSet, train: list, out: Path, settings: Settings, extent: f
 
 def _densify(step: int, optimizer, stats: ViewSpaceStats, params: dict, extent: float, settings: Settings):
     """At step ``step``: densify and prune on schedule (fresh statistics after), reset the
-    opacities on schedule; the parameters and statistics to go on with."""
+    opacities on schedule where ``reset_every`` iterations follow; the parameters and
+    statistics to go on with."""
     if step > settings.densify_from and step % settings.densify_every == 0:
         params, _ = densify_and_prune(
             optimizer,
@@ -348,7 +352,7 @@ def _densify(step: int, optimizer, stats: ViewSpaceStats, params: dict, extent: 
             generator=torch.Generator().manual_seed(settings.seed * 1_000_003 + step),
         )
         stats = ViewSpaceStats.zeros(params["means"].shape[0])
-    if step % settings.reset_every == 0:
+    if step % settings.reset_every == 0 and settings.iterations - step >= settings.reset_every:
         reset_opacities(optimizer)
     return params, stats
 

@@ -15,9 +15,9 @@ from clflow.recon.train import random_points, visible_count
 from clflow.splat import load_cameras_json, load_ply
 from clflow_datasets.multiview import make_multiview
 
-# a short run that still densifies (at 20..50), resets opacities (at 40) and raises the SH degree
+# a short run that still densifies (at 20..50), resets opacities (at 20 and 40) and raises the SH degree
 SHORT = Settings(
-    iterations=60, densify_from=19, densify_until=50, densify_every=10, reset_every=40, sh_every=20, init_points=300
+    iterations=60, densify_from=19, densify_until=50, densify_every=10, reset_every=20, sh_every=20, init_points=300
 )
 
 
@@ -64,6 +64,26 @@ def test_outputs_are_standard_files_and_a_resumed_run_is_identical(small_capture
     assert (tmp_path / "b" / "point_cloud.ply").read_bytes() == ply  # same seed: bit-identical on the CPU
     with pytest.raises(InputError, match="settings differ from it: seed"):
         reconstruct(views, tmp_path / "b", dataclasses.replace(SHORT, seed=1), resume=True)
+
+
+@pytest.mark.parametrize("iterations, resets", [(60, [20, 40]), (59, [20]), (20, [])])
+def test_every_opacity_reset_is_followed_by_an_interval_of_training(
+    small_capture, tmp_path, monkeypatch, iterations, resets
+):
+    """A run that stopped at (or soon after) a reset would write nearly transparent Gaussians:
+    a 3,000-iteration run with the default reset at 3,000 gave a black splat."""
+    from clflow.recon import train
+
+    done, resets_at = [], []  # the steps finished (progress runs after a step's reset), the resets' steps
+    real_reset = train.reset_opacities
+    monkeypatch.setattr(
+        train, "reset_opacities", lambda optimizer: (resets_at.append(len(done) + 1), real_reset(optimizer))
+    )
+    settings = dataclasses.replace(SHORT, iterations=iterations)
+    reconstruct(
+        load_views(small_capture / "images"), tmp_path / "out", settings, progress=lambda step, info: done.append(step)
+    )
+    assert resets_at == resets
 
 
 def test_cli_help_states_the_settings_defaults():
