@@ -60,6 +60,19 @@ BENCHES = {
     "launch": (["launch"], ["launch", "--substeps", "5", "--calls", "10"]),
     "launch-cpu-plan": (["launch"], ["launch", "--substeps", "5", "--calls", "10"]),
     "optimize": (["optimize"], ["optimize", "--gaussians", "2000", "--image", "64", "--frames", "3", "--grid", "12"]),
+    # a capture's shape: a tenth as many Gaussians again a cell (a median of about 120 at rest)
+    "optimize-1M": (
+        ["optimize", "--gaussians", "1000000", "--iterations", "1"],
+        ["optimize", "--gaussians", "20000", "--image", "64", "--frames", "3", "--grid", "12", "--iterations", "1"],
+    ),
+    # the quick set's scenes at the nine's resolution, each with its own method (Levenberg-Marquardt)
+    **{
+        f"optimize-{case}": (
+            ["optimize", "--case", case, "--iterations", "1"],
+            ["optimize", "--case", case, "--quick", "--iterations", "1"],
+        )
+        for case in ("torus", "playdoh", "droplet")
+    },
 }
 #: name -> clflow's global options for that bench (the CPU plan's shapes on the GPU, to compare)
 GLOBAL_OPTIONS = {"launch-cpu-plan": ["--kernels", "cpu"]}

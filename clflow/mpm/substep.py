@@ -353,6 +353,56 @@ def p2g_blocks(grid: Grid, members: int = 1) -> int:
     return members * math.prod(-(-(int(r) - 2) // P2G_BLOCK) for r in grid.resolution)
 
 
+@dataclass(frozen=True)
+class CellOccupancy:
+    """How particles fill a grid, the shape the cell-sorted kernels' time follows: the base
+    cells (a stencil's lowest node, as mpm/cells.h keys them) that hold a particle, of
+    ``cells``; the P2G_BLOCK^3 blocks that do, of ``blocks`` (the gather skips the others);
+    the particles in an occupied cell (its run, which one work-item puts in order):
+    median, 99th percentile and the longest."""
+
+    particles: int
+    cells: int
+    occupied_cells: int
+    blocks: int
+    occupied_blocks: int
+    run_median: float
+    run_p99: float
+    run_max: int
+
+    def summary(self) -> str:
+        return (
+            f"{self.particles:,} particles in {self.occupied_cells:,} of {self.cells:,} cells "
+            f"({self.occupied_blocks:,} of {self.blocks:,} blocks of {P2G_BLOCK}^3); particles a cell: median "
+            f"{self.run_median:g}, 99th percentile {self.run_p99:g}, most {self.run_max:,}"
+        )
+
+
+def cell_occupancy(grid: Grid, x: torch.Tensor) -> CellOccupancy:
+    """The :class:`CellOccupancy` of particles at ``x`` [N, 3] (m) in ``grid``: each counted in
+    its stencil's base cell, floor((x - origin) / dx - 1/2) clamped to [0, resolution - 3] per
+    axis as the kernels' make_stencil does."""
+    extent = torch.tensor([int(r) - 2 for r in grid.resolution])
+    xi = (x.double() - torch.tensor(grid.origin, dtype=torch.float64)) / grid.dx
+    base = torch.minimum(torch.floor(xi - 0.5).long().clamp(min=0), extent - 1)
+    cell = (base[:, 0] * extent[1] + base[:, 1]) * extent[2] + base[:, 2]
+    _, runs = torch.unique(cell, return_counts=True)
+    blocks_along = -(-extent // P2G_BLOCK)
+    block = base // P2G_BLOCK
+    block_id = (block[:, 0] * blocks_along[1] + block[:, 1]) * blocks_along[2] + block[:, 2]
+    runs = runs.double() if len(runs) else torch.zeros(1, dtype=torch.float64)
+    return CellOccupancy(
+        particles=int(x.shape[0]),
+        cells=int(extent.prod()),
+        occupied_cells=int((runs > 0).sum()),
+        blocks=p2g_blocks(grid),
+        occupied_blocks=int(torch.unique(block_id).numel()),
+        run_median=float(runs.median()),
+        run_p99=float(torch.quantile(runs, 0.99)),
+        run_max=int(runs.max()),
+    )
+
+
 def p2g_partial_reals(nodes: int, flip: float = 0.0) -> int:
     """Reals of the gather P2G's tiles of sums over a grid of ``nodes`` nodes: at most
     (P2G_TILE / P2G_BLOCK)^3 tile nodes a grid node (3.4), grid_channels(flip) reals each."""

@@ -312,6 +312,40 @@ def test_the_gather_sorts_particles_by_cell_and_sums_each_node_in_that_order():
     assert torch.equal(order, torch.sort(cell, stable=True).indices)  # by cell, then index
 
 
+def test_the_cell_occupancy_counts_the_runs_the_gather_sorts():
+    """clflow bench optimize's scene shape (cell_occupancy, on the host) is the gather's own
+    cell sort: the same occupied cells and the same runs."""
+    from clflow.mpm.substep import cell_occupancy
+    from clflow.runtime.arrays import DeviceArray
+
+    sim = random_scene(MATERIAL_CASES, n=700, p2g="gather")
+    for _ in range(3):
+        sim.step()
+    tape, state = sim.kernels.empty_tape(), sim.device_state
+    sim.kernels.run(
+        state, state.empty_like(), sim.substep_inputs(), DeviceArray.zeros(sim.device, (sim.n,), torch.uint8), tape
+    )
+    runs = tape.starts.read().long().diff()
+    runs = runs[runs > 0].double()
+    shape = cell_occupancy(sim.grid, sim.state.x)
+    assert (shape.particles, shape.occupied_cells, shape.run_max) == (sim.n, len(runs), int(runs.max()))
+    assert (shape.run_median, shape.run_p99) == (float(runs.median()), float(torch.quantile(runs, 0.99)))
+    assert shape.cells == torch.prod(torch.tensor(sim.grid.resolution) - 2)
+
+
+def test_the_cell_occupancy_of_a_placed_cluster():
+    """Nine particles: eight in one base cell, one four cells along x (the next block of
+    P2G_BLOCK^3 cells), on a 12^3 grid of 10^3 base cells in 3^3 blocks."""
+    from clflow.mpm.substep import cell_occupancy
+
+    grid = Grid((12, 12, 12), 0.1, origin=(-0.5, 0.0, 0.0))
+    x = torch.tensor([[-0.5 + 0.26 + 0.01 * k, 0.27, 0.28] for k in range(8)] + [[-0.5 + 0.66, 0.27, 0.28]])
+    shape = cell_occupancy(grid, x)
+    assert (shape.cells, shape.occupied_cells, shape.blocks, shape.occupied_blocks) == (1000, 2, 27, 2)
+    assert (shape.run_median, shape.run_max) == (1.0, 8)
+    assert "9 particles in 2 of 1,000 cells (2 of 27 blocks of 4^3)" in shape.summary()
+
+
 @pytest.mark.parametrize("flip", [0.0, 0.95])
 def test_the_gather_reads_each_particle_once_and_sums_as_the_private_copies(flip):
     """The gather P2G over blocks of cells reads each particle from global memory once a

@@ -1,0 +1,52 @@
+"""`clflow bench optimize` on your own config or a benchmark case: timed iterations, the
+scene's shape (particles a cell), and the config's own output folder left alone."""
+
+import json
+
+import pytest
+from click.testing import CliRunner
+
+from clflow_cli.main import cli
+
+
+def _files(folder):
+    return sorted((p.relative_to(folder), p.stat().st_mtime_ns) for p in folder.rglob("*"))
+
+
+def test_a_config_is_timed_with_its_shape_and_its_output_left_alone(quick_demo, tmp_path):
+    before = _files(quick_demo)
+    record = tmp_path / "bench.json"
+    args = [
+        "bench",
+        "optimize",
+        "--config",
+        str(quick_demo / "config.yaml"),
+        "--iterations",
+        "1",
+        "--json",
+        str(record),
+    ]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    assert "at rest:" in result.output and "particles a cell: median" in result.output
+    scene = json.loads(record.read_text())["results"]["scene"]
+    shape = scene["occupancy"]
+    assert scene["particles"] == shape["particles"] > 0 and scene["method"] == "adam"
+    assert 0 < shape["occupied_cells"] <= shape["cells"] and 1 <= shape["run_median"] <= shape["run_max"]
+    assert _files(quick_demo) == before  # nothing written beside or inside the config's folder
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--config", "{cfg}", "--case", "torus"], "--config and --case both choose the scene"),
+        (["--config", "{cfg}", "--grid", "16"], "--grid size the demo-like scene"),
+        (["--quick"], "--quick sizes a --case"),
+        (["--case", "no_such_case"], "'no_such_case' is no case; the cases: droplet"),
+    ],
+)
+def test_what_cannot_be_timed_is_refused_in_one_line(quick_demo, args, message):
+    args = [a.format(cfg=quick_demo / "config.yaml") for a in args]
+    result = CliRunner().invoke(cli, ["bench", "optimize", *args])
+    assert result.exit_code == 2 and message in result.output, result.output
+    assert "Traceback" not in result.output
