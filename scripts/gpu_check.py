@@ -65,11 +65,11 @@ BENCHES = {
         ["optimize", "--gaussians", "1000000", "--iterations", "1"],
         ["optimize", "--gaussians", "20000", "--image", "64", "--frames", "3", "--grid", "12", "--iterations", "1"],
     ),
-    # the quick set's scenes at the nine's resolution, each with its own method (Levenberg-Marquardt)
+    # the quick set's scenes at the nine's resolution from their truths, each with its own method (Levenberg-Marquardt)
     **{
         f"optimize-{case}": (
-            ["optimize", "--case", case, "--iterations", "1"],
-            ["optimize", "--case", case, "--quick", "--iterations", "1"],
+            ["optimize", "--case", case, "--at-truth", "--iterations", "1"],
+            ["optimize", "--case", case, "--quick", "--at-truth", "--iterations", "1"],
         )
         for case in ("torus", "playdoh", "droplet")
     },

@@ -22,8 +22,11 @@ DEMO_SIZES = ("gaussians", "image", "frames", "grid")
               help="Time a case of `clflow eval sysid` (the paper's nine or the extra set's) instead, its guidance "
                    "made at the optimiser's own resolution.")  # fmt: skip
 @click.option("--quick", is_flag=True, help="With --case: the quick resolution of `clflow eval sysid --quick`.")
+@click.option("--at-truth", is_flag=True,
+              help="Start from the config's evaluation.ground_truth (a case's truth) instead of its initial guess: "
+                   "iterations near a fit (a published guess may be unstable without the search).")  # fmt: skip
 @count_option("--iterations", default=2, help="Iterations timed.")
-def optimize(gaussians, image, frames, grid, config_path, case, quick, iterations):
+def optimize(gaussians, image, frames, grid, config_path, case, quick, at_truth, iterations):
     """Make a demo-like scene (datasets_tools), or take a benchmark case or your config, then
     time full-horizon iterations of `clflow optimize` (no search; the config's method: Adam's
     simulate + adjoint, render simulated flow, loss and its backward, or Levenberg-Marquardt's
@@ -71,6 +74,8 @@ def optimize(gaussians, image, frames, grid, config_path, case, quick, iteration
                 budget=None,
             ),
         )
+        if at_truth:
+            cfg = _at_truth(cfg)
         load = measure(lambda: Optimization(cfg), warmup=0)
         opt = load.result
         setup = opt.problem.prepared.setup
@@ -113,6 +118,11 @@ def optimize(gaussians, image, frames, grid, config_path, case, quick, iteration
             "grid": list(setup.grid.resolution),
             "frames": cfg.simulation.frames,
             "method": cfg.optimize.method,
+            "start": {  # the material parameters the iterations start from (SI)
+                (f"{o.name}.{n}" if len(cfg.objects) > 1 else n): v
+                for o in cfg.objects
+                for n, v in o.material.parameters.items()
+            },
             "occupancy": dataclasses.asdict(occupancy),
         },
         "make_scene": make.record(),
@@ -128,6 +138,25 @@ def optimize(gaussians, image, frames, grid, config_path, case, quick, iteration
             for r, m in zip(rows, copied)
         ],
     }
+
+
+def _at_truth(cfg):
+    """``cfg`` with each object's material parameters at its evaluation.ground_truth."""
+    import dataclasses
+
+    from clflow.scene.config import split_parameter
+
+    if not cfg.ground_truth:
+        raise click.UsageError(f"--at-truth: {cfg.source} has no evaluation.ground_truth")
+    truths = [{} for _ in cfg.objects]
+    for name, value in cfg.ground_truth.items():
+        k, param = split_parameter(cfg.objects, name)
+        if param in cfg.objects[k].material.parameters:
+            truths[k][param] = value
+    return cfg.with_objects(
+        dataclasses.replace(o, material=dataclasses.replace(o.material, parameters={**o.material.parameters, **t}))
+        for o, t in zip(cfg.objects, truths)
+    )
 
 
 def _scene(folder, config_path, case: str | None, quick: bool, demo_size: tuple[int, int, int, int]):

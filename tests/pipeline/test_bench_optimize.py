@@ -4,8 +4,10 @@ scene's shape (particles a cell), and the config's own output folder left alone.
 import json
 
 import pytest
+import yaml
 from click.testing import CliRunner
 
+from clflow.scene.config import load_config
 from clflow_cli.main import cli
 
 
@@ -16,24 +18,28 @@ def _files(folder):
 def test_a_config_is_timed_with_its_shape_and_its_output_left_alone(quick_demo, tmp_path):
     before = _files(quick_demo)
     record = tmp_path / "bench.json"
-    args = [
-        "bench",
-        "optimize",
-        "--config",
-        str(quick_demo / "config.yaml"),
-        "--iterations",
-        "1",
-        "--json",
-        str(record),
-    ]
+    config = quick_demo / "config.yaml"
+    args = ["bench", "optimize", "--config", str(config), "--at-truth", "--iterations", "1", "--json", str(record)]
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 0, result.output
     assert "at rest:" in result.output and "particles a cell: median" in result.output
     scene = json.loads(record.read_text())["results"]["scene"]
     shape = scene["occupancy"]
     assert scene["particles"] == shape["particles"] > 0 and scene["method"] == "adam"
+    truth = load_config(config).ground_truth
+    assert truth and all(scene["start"][n] == v for n, v in truth.items())  # --at-truth: from the truth
     assert 0 < shape["occupied_cells"] <= shape["cells"] and 1 <= shape["run_median"] <= shape["run_max"]
     assert _files(quick_demo) == before  # nothing written beside or inside the config's folder
+
+
+def test_at_the_truth_needs_one(quick_demo, tmp_path):
+    config = yaml.safe_load((quick_demo / "config.yaml").read_text())
+    del config["evaluation"]
+    for key in ("splats", "video"):  # the copy lies elsewhere: its files by absolute path
+        config[key] = str(quick_demo / config[key])
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(config))
+    result = CliRunner().invoke(cli, ["bench", "optimize", "--config", str(tmp_path / "config.yaml"), "--at-truth"])
+    assert result.exit_code == 2 and "has no evaluation.ground_truth" in result.output, result.output
 
 
 @pytest.mark.parametrize(
