@@ -31,7 +31,7 @@ def optimize(gaussians, image, frames, grid, config_path, case, quick, at_truth,
     time full-horizon iterations of `clflow optimize` (no search; the config's method: Adam's
     simulate + adjoint, render simulated flow, loss and its backward, or Levenberg-Marquardt's
     runs), and say how the particles fill the grid (particles a cell: what the cell-sorted GPU
-    kernels' time follows)."""
+    kernels' time follows). --profile profiles the timed iterations alone."""
     import dataclasses
     import tempfile
     import warnings
@@ -101,6 +101,9 @@ def optimize(gaussians, image, frames, grid, config_path, case, quick, at_truth,
 
         marks = [device.transfers.mark()]
         opt.progress = record
+        if device.profile is not None:  # --profile: the timed iterations', not making and loading the scene
+            device.stop_profile()
+            device.start_profile()
         run = measure(opt.run, warmup=0)
         for row, moved in zip(rows, copied):
             click.echo(

@@ -19,13 +19,28 @@ def test_a_config_is_timed_with_its_shape_and_its_output_left_alone(quick_demo, 
     before = _files(quick_demo)
     record = tmp_path / "bench.json"
     config = quick_demo / "config.yaml"
-    args = ["bench", "optimize", "--config", str(config), "--at-truth", "--iterations", "1", "--json", str(record)]
+    args = [
+        "bench",
+        "optimize",
+        "--config",
+        str(config),
+        "--at-truth",
+        "--iterations",
+        "1",
+        "--profile",
+        "--json",
+        str(record),
+    ]
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 0, result.output
     assert "at rest:" in result.output and "particles a cell: median" in result.output
     scene = json.loads(record.read_text())["results"]["scene"]
     shape = scene["occupancy"]
     assert scene["particles"] == shape["particles"] > 0 and scene["method"] == "adam"
+    results = json.loads(record.read_text())["results"]
+    profile = results["profile"]  # the iteration's alone, not making and loading the scene
+    assert profile["steps"]["adjoint substep"]["count"] > 0
+    assert profile["wall_s"] <= results["run"]["wall_s"][0] + 0.5
     truth = load_config(config).ground_truth
     assert truth and all(scene["start"][n] == v for n, v in truth.items())  # --at-truth: from the truth
     assert 0 < shape["occupied_cells"] <= shape["cells"] and 1 <= shape["run_median"] <= shape["run_max"]
