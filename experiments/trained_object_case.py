@@ -4,10 +4,11 @@ gives the cell-sorted kernels (Gaussians clustered on the surface, not a procedu
 The case is made as the benchmark makes it (its guidance at the optimiser's own resolution),
 then its object's Gaussians in scene.ply are replaced by those of PLY (a `clflow reconstruct`
 output, say), centred on the object and scaled uniformly to its largest side; the floor and the
-guidance video stay the case's. Time it with
+guidance video stay the case's (a published guess may be unstable without the search: time
+it from the truth). Time it with
 
     python experiments/trained_object_case.py OUT --ply trained.ply --case bird [--quick]
-    clflow bench optimize --config OUT/config.yaml --profile
+    clflow bench optimize --config OUT/config.yaml --at-truth --profile
 
 A trained splat of the procedural sphere (60 views, 128 px; docs/gpu.md records what it showed):
 

@@ -60,7 +60,7 @@ BENCHES = {
     "launch": (["launch"], ["launch", "--substeps", "5", "--calls", "10"]),
     "launch-cpu-plan": (["launch"], ["launch", "--substeps", "5", "--calls", "10"]),
     "optimize": (["optimize"], ["optimize", "--gaussians", "2000", "--image", "64", "--frames", "3", "--grid", "12"]),
-    # a capture's shape: a tenth as many Gaussians again a cell (a median of about 120 at rest)
+    # a capture's shape: 200k Gaussians on the object, 404 particles in a surface cell at rest (docs/gpu.md)
     "optimize-1M": (
         ["optimize", "--gaussians", "1000000", "--iterations", "1"],
         ["optimize", "--gaussians", "20000", "--image", "64", "--frames", "3", "--grid", "12", "--iterations", "1"],
