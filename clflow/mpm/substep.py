@@ -386,15 +386,16 @@ def cell_occupancy(grid: Grid, x: torch.Tensor) -> CellOccupancy:
     xi = (x.double() - torch.tensor(grid.origin, dtype=torch.float64)) / grid.dx
     base = torch.minimum(torch.floor(xi - 0.5).long().clamp(min=0), extent - 1)
     cell = (base[:, 0] * extent[1] + base[:, 1]) * extent[2] + base[:, 2]
-    _, runs = torch.unique(cell, return_counts=True)
+    runs = torch.unique(cell, return_counts=True)[1].double()  # the occupied cells' counts
     blocks_along = -(-extent // P2G_BLOCK)
     block = base // P2G_BLOCK
     block_id = (block[:, 0] * blocks_along[1] + block[:, 1]) * blocks_along[2] + block[:, 2]
-    runs = runs.double() if len(runs) else torch.zeros(1, dtype=torch.float64)
+    occupied = len(runs)
+    runs = runs if occupied else torch.zeros(1, dtype=torch.float64)
     return CellOccupancy(
         particles=int(x.shape[0]),
         cells=int(extent.prod()),
-        occupied_cells=int((runs > 0).sum()),
+        occupied_cells=occupied,
         blocks=p2g_blocks(grid),
         occupied_blocks=int(torch.unique(block_id).numel()),
         run_median=float(runs.median()),

@@ -1,6 +1,7 @@
 """`clflow bench optimize` on your own config or a benchmark case: timed iterations, the
 scene's shape (particles a cell), and the config's own output folder left alone."""
 
+import hashlib
 import json
 
 import pytest
@@ -12,7 +13,15 @@ from clflow_cli.main import cli
 
 
 def _files(folder):
-    return sorted((p.relative_to(folder), p.stat().st_mtime_ns) for p in folder.rglob("*"))
+    """Every path under ``folder`` with its content's hash and its modification time."""
+    return sorted(
+        (
+            p.relative_to(folder),
+            hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None,
+            p.stat().st_mtime_ns,
+        )
+        for p in folder.rglob("*")
+    )
 
 
 def test_a_config_is_timed_with_its_shape_and_its_output_left_alone(quick_demo, tmp_path):
