@@ -76,6 +76,9 @@ def _degradation(ctx, param, spec: str | None):
 @click.option("--fit-time-scale", is_flag=True,
               help="Fit the video's clock too (optimize.parameters' time_scale; its truth --degrade's speed) and "
                    "report its error apart from the material's.")  # fmt: skip
+@click.option("--prior", type=click.Choice(["none", "knowledge"]), default="none", show_default=True,
+              help="optimize.prior of every case: knowledge, what the video leaves weakly constrained takes the "
+                   "knowledge base's value for the case's material type (within the video's ranges).")  # fmt: skip
 @click.option("--seed", type=int, default=0, show_default=True,
               help="Seed of the scene's texture grain, the noise and the artefacts.")  # fmt: skip
 @click.option("--views", type=click.IntRange(1, 4), default=1, show_default=True,
@@ -104,6 +107,7 @@ def sysid(
     codec,
     degradation,
     fit_time_scale,
+    prior,
     seed,
     views,
     budget,
@@ -133,6 +137,7 @@ def sysid(
         truth_transfer=truth_transfer,
         case_budget=budget_each,
         fit_time_scale=fit_time_scale,
+        prior=prior,
     )
 
     def progress(name: str, row: dict) -> None:

@@ -76,6 +76,9 @@ class Settings:
     case_budget: float | None = None
     # the video's clock fitted too (optimize.parameters' time_scale; its truth the degradation's speed)
     fit_time_scale: bool = False
+    # optimize.prior: "knowledge", the knowledge base's entry of the case's material type decides
+    # what the video leaves weakly constrained (within the video's ranges)
+    prior: str = "none"
 
     @classmethod
     def at(cls, quick: bool, iterations: int | None = None, **fields) -> Settings:
@@ -140,12 +143,12 @@ def run_case(
     generation = json.loads(made.read_text())
     generated = time.perf_counter()
     cfg = load_config(folder / "config.yaml")
-    truth = dict(case.truth)
+    truth, overrides = dict(case.truth), (f"optimize.prior={settings.prior}",)
     if settings.fit_time_scale:
         truth[TIME_SCALE.name] = settings.degradation.speed
         fitted = json.dumps([*cfg.optimize.parameters, TIME_SCALE.name])
-        clock = (f"optimize.parameters={fitted}", f"evaluation.ground_truth.time_scale={truth[TIME_SCALE.name]!r}")
-        cfg = load_config(folder / "config.yaml", clock)
+        overrides += (f"optimize.parameters={fitted}", f"evaluation.ground_truth.time_scale={truth[TIME_SCALE.name]!r}")
+    cfg = load_config(folder / "config.yaml", overrides)
     if settings.case_budget is not None:
         cfg = with_budget(cfg, settings.case_budget, generation["truth_grid_resolution"])
     record = {"case": name, "material": case.material, "generation": generation, "status": "ok"}
@@ -167,7 +170,9 @@ def run_case(
     except ClflowError as exc:
         record.update(status=f"failed: {exc}", seconds=time.perf_counter() - start)
         return record
-    found, ranges = opt.problem.values(state.z), metrics["identifiability"]["ranges"]
+    # the result's values (the prior's where it moved the fit), as params.json gives them
+    found = json.loads((cfg.output / "params.json").read_text())["optimized"]
+    ranges = metrics["identifiability"]["ranges"]
     record["parameters"] = parameter_records(case, found, ranges)
     if settings.fit_time_scale:  # the clock's: apart from the material's mean RE
         speed = truth[TIME_SCALE.name]

@@ -189,6 +189,11 @@ def _closing(summary: dict, methods: tuple[str, ...]) -> list[str]:
         + f"seed {s['seed']}; "
         f"{s.get('views', 1)} guidance view{'s' if s.get('views', 1) > 1 else ''}"
         + (
+            "; optimize.prior knowledge (the knowledge base decides what the video leaves weakly constrained)"
+            if s.get("prior") == "knowledge"
+            else ""
+        )
+        + (
             "; ground truth under APIC, a transfer the optimiser does not share."
             if s.get("truth_transfer") == "apic"
             else "."

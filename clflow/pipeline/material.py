@@ -90,7 +90,10 @@ def _resolved(cfg: SceneConfig, k: int):
         density,
         params,
     )
-    return dataclasses.replace(mat, type=result.material, parameters=params, density=density)
+    # query_result: the record it came from (what optimize.prior: knowledge reads of the query's match)
+    return dataclasses.replace(
+        mat, type=result.material, parameters=params, density=density, query_result=cfg.output / record
+    )
 
 
 def guidance_view_crop(cfg: SceneConfig, obj) -> tuple[Path, tuple[float, float, float, float]]:

@@ -109,14 +109,16 @@ class Results:
         clflow.pipeline.runs.write_results, which moves them in as one step with run.json and
         index.html); returns the metrics."""
         result = self.final_evaluation(state)
-        final = self.problem.values(state.z)
-        metrics = self.result_metrics(state, result)
+        identifiability = self.diagnostics.identifiability(state.z, state.substeps, state.search)
+        z, result, prior = self.prior_decision(state, result, identifiability)
+        final = self.problem.values(z)
+        metrics = self.result_metrics(state, result, identifiability, z)
+        if prior is not None:
+            metrics["prior"] = prior
         ranges = metrics["identifiability"]["ranges"]
         materials = [  # each object's material with its optimised values
             {"material": o.material.type, "parameters": v.params, "density": v.density, "velocity": list(v.velocity)}
-            for o, v in zip(
-                self.problem.cfg.objects, self.problem.object_values(final, self.problem.velocities(state.z))
-            )
+            for o, v in zip(self.problem.cfg.objects, self.problem.object_values(final, self.problem.velocities(z)))
         ]
         record = {
             **objects_form(self.problem.cfg.objects, materials),
@@ -173,13 +175,45 @@ class Results:
             result = self.objective.rescored(result)
         return result
 
-    def result_metrics(self, state: OptimizerState, result) -> dict:
-        """metrics.json: the loss and end-point error at the final parameters, the iterations,
-        the grids (and the budget's choice), the seconds, the rollbacks, the guidance checks,
-        how much of the observed motion the fit leaves unexplained (a warning above
-        UNEXPLAINED_WARNING), the identifiability (its warnings logged) and the relative error
-        against the config's ground truth when it has one."""
-        final = self.problem.values(state.z)
+    def prior_decision(self, state: OptimizerState, result, identifiability: dict) -> tuple[dict, object, dict | None]:
+        """(the final point, its evaluation, metrics.json's ``prior`` or None): with
+        ``optimize.prior: knowledge`` the prior's move from the fit (clflow.pipeline.fit.prior;
+        the moved point's run scored against the estimator's error on its own simulation),
+        else the fit's own."""
+        if self.problem.cfg.optimize.prior != "knowledge":
+            return state.z, result, None
+        from clflow.pipeline.fit.prior import decide, knowledge_priors
+
+        decision = decide(self.objective, state.z, state.substeps, identifiability, knowledge_priors(self.problem.cfg))
+        for name, entry in decision.record["parameters"].items():
+            if entry["decided_by"] != "video":  # every prior-decided value in one line each
+                log.info(
+                    "%s: %.4g (%s: the prior of %s), %.4g from the video alone",
+                    name,
+                    entry["value"],
+                    entry["decided_by"],
+                    entry["entry"],
+                    entry["video_fit"],
+                )
+        if decision.result is None:
+            return state.z, result, decision.record
+        moved = decision.result
+        if self.problem.corrects_bias:
+            own = self.objective.self_consistent_loss(moved, self.problem.frames, self.objective.final_shifts)
+            moved = dataclasses.replace(moved, loss=own)
+        return decision.z, moved, decision.record
+
+    def result_metrics(
+        self, state: OptimizerState, result, identifiability: dict | None = None, z: dict[str, float] | None = None
+    ) -> dict:
+        """metrics.json: the loss and end-point error at the final parameters (``z``, default
+        state.z), the iterations, the grids (and the budget's choice), the seconds, the
+        rollbacks, the guidance checks, how much of the observed motion the fit leaves
+        unexplained (a warning above UNEXPLAINED_WARNING), the identifiability at state.z (its
+        warnings logged; ``identifiability``: already measured) and the relative error against
+        the config's ground truth when it has one."""
+        z = state.z if z is None else z
+        final = self.problem.values(z)
         metrics = {
             "flow_loss": result.loss,
             "epe_px": self.objective.endpoint_error(result.flows, result.more_flows),
@@ -190,7 +224,11 @@ class Results:
             "main": self.problem.model_grid,
             "search": self.problem.search_grid,
         }  # nodes along the longest side
-        metrics["identifiability"] = self.diagnostics.identifiability(state.z, state.substeps, state.search)
+        metrics["identifiability"] = (
+            self.diagnostics.identifiability(state.z, state.substeps, state.search)
+            if identifiability is None
+            else identifiability
+        )
         # in this process: setup, the guidance's flow, search, iterations and the diagnostics above
         metrics["seconds"] = time.perf_counter() - self.started
         if self.grid_choice is not None:  # optimize.budget chose the main grid
@@ -218,7 +256,7 @@ class Results:
                 n: abs(final[n] - truth[n]) / abs(truth[n]) for n in self.problem.params if n in truth
             }
             errors = {}  # |v - v_true| (m/s) by velocity_names' name
-            for k, velocity in enumerate(self.problem.velocities(state.z)):
+            for k, velocity in enumerate(self.problem.velocities(z)):
                 name, components = velocity_names(self.problem.cfg.objects, k)
                 if components[0] not in final or components[0] not in truth:
                     continue

@@ -114,6 +114,8 @@ def config_digests(cfg: SceneConfig, by_path: bool = False) -> dict[str, str]:
     fields.pop("output", None)
     fields["optimize"].pop("iterations", None)
     fields["simulation"].pop("max_substeps", None)  # a run stopped by the limit may resume with a higher one
+    if fields["optimize"].get("prior") == "none":  # no prior: the digests of checkpoints from before it
+        fields["optimize"].pop("prior")
     if fields["optimize"].get("budget") is not None:  # the main grid is the budget's choice (budget.json)
         fields["simulation"].pop("grid_resolution", None)
     if not fields["more_views"]:  # one view: the digests of checkpoints from before several views

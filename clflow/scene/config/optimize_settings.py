@@ -209,6 +209,16 @@ class OptimizeSettings:
         "theirs. An object at rest has nothing to estimate, and Adam's steps (about the rate each, whatever the "
         "gradient) would move its weakly observed components",
     )
+    prior: str = setting(
+        "none",
+        kind="choice",
+        choices=("none", "knowledge"),
+        doc="`knowledge`: a parameter the video leaves weakly constrained takes the point of its 90 % range nearest "
+        "the material knowledge base's value for the object (the entry the material query matched, else the type's "
+        "default entry), the others refitted; kept only within the fit's loss tolerance, the ranges the video's "
+        "alone; `metrics.json`'s `prior` says who decided each parameter (docs/pipeline.md, \"A prior from the "
+        'material query")',
+    )
     budget: BudgetSettings | None = setting(  # None: the main phase runs on simulation.grid_resolution
         None,
         kind="section",

@@ -264,6 +264,7 @@ OPTIMIZE = Section(
         "method",
         "estimate_velocity",
         "material",
+        "prior",
         "budget",
     ),
 )

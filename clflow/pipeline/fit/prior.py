@@ -1,0 +1,207 @@
+"""A prior from the material query for what the guidance video leaves undetermined
+(``optimize.prior: knowledge``).
+
+A parameter the identifiability check flags weakly constrained or unresolved goes wherever
+the video's artefacts (blur, a lossy codec, the camera's shake left over) push it, and
+parameters it trades off with follow it (a plasticine's E follows its Poisson's ratio). With
+the prior, the result is the point of the video's own 90 % ranges nearest what the material
+query knows: each such parameter moves to the knowledge base's value for the object (the
+entry the query matched, else its material type's default entry), or to the end of its
+range nearest that value, and every other variable is refitted to first order (the
+residuals' Jacobian at the fit). The move is kept only where a forward run confirms that its
+loss stays within the model's loss tolerance of the fit's (the ranges' own criterion), else
+half of it, and so on (MOVE_FRACTIONS). It is the limit of a MAP estimate whose prior weight
+is too small to move anything the video determines: the prior decides only among the points
+the video cannot tell apart. The ranges stay the video's alone, so they hold the truth as
+often as without the prior; ``metrics.json``'s ``prior`` says per parameter who decided it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import torch
+
+from clflow.errors import ClflowError, InputError
+from clflow.pipeline.fit.objective import Objective
+from clflow.pipeline.fit.state import Evaluation
+from clflow.scene.config import TIME_SCALE, VELOCITY, SceneConfig, split_parameter
+
+log = logging.getLogger(__name__)
+
+# the prior's move is tried whole, then at these fractions, until a run's loss stays within
+# the model's loss tolerance of the fit's; none passing: no move
+MOVE_FRACTIONS = (1.0, 0.5, 0.25)
+
+
+@dataclasses.dataclass(frozen=True)
+class Prior:
+    """What the material query knows of one parameter: ``value`` and its plausible range
+    ``low``..``high`` (SI), from the knowledge-base entry ``entry`` (``how`` it was chosen)."""
+
+    value: float
+    low: float
+    high: float
+    entry: str
+    how: str
+
+
+def knowledge_priors(cfg: SceneConfig) -> dict[str, Prior]:
+    """Per optimised material parameter (and density) of ``cfg`` (its materials resolved):
+    the :class:`Prior` of its object's knowledge-base entry; velocities and the clock have none."""
+    from clflow.query.knowledge import load_knowledge_base
+
+    kb = load_knowledge_base()
+    out = {}
+    for name in cfg.optimize.parameters:
+        if name == TIME_SCALE.name:
+            continue
+        k, param = split_parameter(cfg.objects, name)
+        if param == VELOCITY:
+            continue
+        entry, how = _entry_of(kb, cfg.objects[k].material)
+        value = entry.density if param == "density" else entry.parameters.get(param)
+        if value is not None:
+            out[name] = Prior(value.value, value.low, value.high, entry.name, how)
+    return out
+
+
+def _entry_of(kb, material) -> tuple:
+    """(entry, how it was chosen): the entry the material query matched for ``material`` (a
+    resolved MaterialConfig; its record in ``query_result``), else its type's default entry."""
+    if material.query_result is not None:
+        from clflow.query.result import load_query_result
+
+        matched = load_query_result(material.query_result).matched
+        try:
+            entry = kb.entry(matched) if matched else None
+        except InputError:  # a foundation model's own name for the object
+            entry = None
+        if entry is not None and entry.material == material.type:
+            return entry, "the material query's match"
+    return kb.default_entry(material.type), f"the knowledge base's default {material.type} entry"
+
+
+@dataclasses.dataclass(frozen=True)
+class PriorDecision:
+    """What the prior did to a fit at ``fit_z``: the final point ``z`` and its run ``result``
+    (the fit's own where nothing moved), and ``record``, metrics.json's ``prior``."""
+
+    z: dict[str, float]
+    result: Evaluation | None
+    record: dict
+
+
+def decide(
+    objective: Objective,
+    z: dict[str, float],
+    substeps: int,
+    identifiability: dict,
+    priors: dict[str, Prior],
+) -> PriorDecision:
+    """The prior's move from the fit ``z`` (run at ``substeps``), given its
+    Diagnostics.identifiability report: the point of the video's ranges nearest ``priors``
+    for the weakly constrained parameters, the others refitted to first order, confirmed by
+    a forward run within the model's loss tolerance (see the module's docstring)."""
+    problem = objective.problem
+    variables = problem.main_variables
+    weak = set(identifiability["weakly_constrained"]) | set(identifiability["unresolved"])
+    targets = {
+        name: range_point(problem, name, z, identifiability["ranges"][name], priors[name])
+        for name in variables
+        if name in priors and name in weak and name in identifiability["ranges"]
+    }
+    targets = {name: t for name, t in targets.items() if t != z[name]}
+    base, J = objective.jacobian(z, problem.frames, substeps, variables, problem.model_grid)
+    loss = float((objective.residuals(base.flows, base.more_flows) ** 2).sum())
+    limit = loss * (1 + identifiability["loss_tolerance"])
+    move = refitted_move(J, variables, {name: t - z[name] for name, t in targets.items()})
+    tried, kept, result = [], 0.0, None
+    if targets:
+        points = [moved(problem, z, move, fraction) for fraction in MOVE_FRACTIONS]
+        runs = objective.evaluate_batch(points, problem.frames, min_substeps=substeps)
+        for fraction, run in zip(MOVE_FRACTIONS, runs):
+            if isinstance(run, (FloatingPointError, ClflowError)):
+                tried.append({"fraction": fraction, "failed": str(run)})
+                continue
+            ratio = float((objective.residuals(run.flows, run.more_flows) ** 2).sum()) / max(loss, 1e-300)
+            tried.append({"fraction": fraction, "loss_ratio": ratio})
+            if ratio * loss <= limit:
+                kept, result = fraction, run
+                break
+    final = moved(problem, z, move, kept) if kept else dict(z)
+    fit_values, values = problem.values(z), problem.values(final)
+    parameters = {}
+    for name, prior in priors.items():
+        if name not in variables:
+            continue
+        parameters[name] = {
+            "prior": prior.value,
+            "prior_range": [prior.low, prior.high],
+            "entry": prior.entry,
+            "how": prior.how,
+            "video_fit": fit_values[name],
+            "value": values[name],
+            "decided_by": decided_by(name, targets, kept, priors, problem),
+        }
+    if targets and not kept:
+        log.info("the prior's move (%s) leaves the loss tolerance at every fraction tried: kept the fit", targets)
+    record = {
+        "source": "knowledge",
+        "parameters": parameters,
+        "move": {"fraction": kept, "tried": tried, "loss_limit_ratio": limit / max(loss, 1e-300)},
+    }
+    return PriorDecision(final, result, record)
+
+
+def range_point(problem, name: str, z: dict[str, float], entry: dict, prior: Prior) -> float:
+    """The point (z) of ``name``'s range ``entry`` (Diagnostics.ranges: SI ends, None where
+    open, then the box the search looked in) nearest the prior's value."""
+    p = problem.params[name]
+    box = problem.box_of(name, z)
+    low = box[0] if entry["low"] is None else float(p.encode(entry["low"]))
+    high = box[1] if entry["high"] is None else float(p.encode(entry["high"]))
+    target = float(p.encode(prior.value))  # the knowledge base's values lie in the typical ranges
+    return min(max(target, min(low, z[name])), max(high, z[name]))
+
+
+def refitted_move(J: torch.Tensor, variables: tuple[str, ...], deltas: dict[str, float]) -> dict[str, float]:
+    """Per variable its move in z when those of ``deltas`` move by them and the others are
+    refitted to first order: the least-squares change of the rest that best cancels the
+    residuals' change ``J`` [R, P] (columns in ``variables``' order) makes."""
+    move = {name: deltas.get(name, 0.0) for name in variables}
+    fixed = [i for i, name in enumerate(variables) if name in deltas]
+    free = [i for i, name in enumerate(variables) if name not in deltas]
+    if not fixed or not free:
+        return move
+    shift = J[:, fixed] @ torch.tensor([deltas[variables[i]] for i in fixed], dtype=J.dtype)
+    refit = torch.linalg.lstsq(J[:, free], -shift[:, None]).solution[:, 0]
+    for i, dz in zip(free, refit.tolist()):
+        move[variables[i]] = dz
+    return move
+
+
+def moved(problem, z: dict[str, float], move: dict[str, float], fraction: float) -> dict[str, float]:
+    """z moved by ``fraction`` of ``move``, each variable kept in its box (Problem.box_of)."""
+    out = dict(z)
+    for name, dz in move.items():
+        low, high = problem.box_of(name, z)
+        out[name] = min(max(z[name] + fraction * dz, low), high)
+    return out
+
+
+def decided_by(name: str, targets: dict[str, float], kept: float, priors: dict[str, Prior], problem) -> str:
+    """Who set ``name``'s final value: ``video`` (the video determines it, or the prior's move
+    was not kept), ``prior`` (moved to the prior's value, inside the video's range),
+    ``range_end`` (moved to the end of the video's range nearest the prior) or
+    ``prior_partly`` (a fraction of the move kept)."""
+    if name not in targets or not kept:
+        return "video"
+    if kept < 1.0:
+        return "prior_partly"
+    at_prior = abs(targets[name] - float(problem.params[name].encode(priors[name].value)))
+    return "prior" if at_prior < 1e-12 else "range_end"
+
+
+__all__ = ["Prior", "PriorDecision", "decide", "knowledge_priors"]
