@@ -146,3 +146,33 @@ def test_a_move_that_leaves_the_loss_tolerance_is_not_kept(synthetic):
     assert decision.record["move"]["fraction"] == 0.0 and len(decision.record["move"]["tried"]) == 3
     assert all(t["loss_ratio"] > decision.record["move"]["loss_limit_ratio"] for t in decision.record["move"]["tried"])
     assert decision.record["parameters"]["poissons_ratio"]["decided_by"] == "video"
+
+
+@pytest.mark.usefixtures("points_one_by_one")
+def test_the_results_say_who_decided_each_parameter_and_a_run_confirms_each_move(demo_config, monkeypatch):
+    """The demo's fit (E within 10 % of its truth, test_optimize) with a report that calls its E weak and unbounded: rubber's E (5e6 Pa,
+    25x the demo's truth) is tried, the real runs raise the loss beyond the tolerance, so
+    params.json keeps the video's E and metrics.json says so."""
+    import json
+
+    from clflow.pipeline.runs import write_results
+
+    cfg = demo_config()
+    opt = Optimization(dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, prior="knowledge")))
+    state = opt.run()
+    measured = opt.diagnostics.identifiability
+
+    def e_called_weak(z, substeps, search=None):
+        report = measured(z, substeps, search)
+        report["ranges"]["youngs_modulus"].update(low=None, high=None)
+        return {**report, "weakly_constrained": ["youngs_modulus"]}
+
+    monkeypatch.setattr(opt.diagnostics, "identifiability", e_called_weak)
+    metrics = write_results(opt, state)
+    entry = metrics["prior"]["parameters"]["youngs_modulus"]
+    assert (entry["entry"], entry["prior"]) == ("rubber", 5e6)
+    tried = metrics["prior"]["move"]["tried"]
+    assert len(tried) == 3 and all(t["loss_ratio"] > metrics["prior"]["move"]["loss_limit_ratio"] for t in tried)
+    assert entry["decided_by"] == "video" and entry["value"] == entry["video_fit"]
+    params = json.loads((cfg.output / "params.json").read_text())
+    assert params["optimized"]["youngs_modulus"] == entry["value"] == opt.problem.values(state.z)["youngs_modulus"]
