@@ -174,6 +174,12 @@ def run_case(
     found = json.loads((cfg.output / "params.json").read_text())["optimized"]
     ranges = metrics["identifiability"]["ranges"]
     record["parameters"] = parameter_records(case, found, ranges)
+    for n, decision in metrics.get("prior", {}).get("parameters", {}).items():  # optimize.prior: who decided
+        if n in record["parameters"]:
+            fit = decision["video_fit"]
+            record["parameters"][n].update(
+                decided_by=decision["decided_by"], video_fit=fit, video_re=abs(fit - case.truth[n]) / abs(case.truth[n])
+            )
     if settings.fit_time_scale:  # the clock's: apart from the material's mean RE
         speed = truth[TIME_SCALE.name]
         record["time_scale"] = {

@@ -62,6 +62,9 @@ def _caveat(name: str, record: dict) -> str:
     notes = ["weakly constrained"] if name in ident.get("weakly_constrained", []) else []
     if name in ident.get("grid_sensitive", []):
         notes.append(f"grid-sensitive, {ident['grid_shift_z'][name]:+.2f} on {ident['grids'][0]} nodes")
+    p = record.get("parameters", {}).get(name, {})
+    if p.get("decided_by", "video") != "video":  # optimize.prior moved it within its range
+        notes.append(f"{p['decided_by']}: the video's own {_fmt(p['video_fit'])}, RE {p['video_re']:.3f}")
     return f" ({'; '.join(notes)})" if notes else ""
 
 
@@ -155,6 +158,20 @@ def _summary_rows(cases: dict, methods: tuple[str, ...]) -> list[str]:
         f"| median | | | {statistics.median(r['mean_re'] for r in ok):.3f} | "
         f"{statistics.median(r['epe_px'] for r in ok):.3f} | | | |" + " |" * len(methods),
         *bounded_row,
+        *_video_alone_row(ok, methods),
+    ]
+
+
+def _video_alone_row(ok: list[dict], methods: tuple[str, ...]) -> list[str]:
+    """With optimize.prior: the mean RE of the video's own fits (before the prior's move), the
+    same runs', and how many parameters the prior decided; [] without."""
+    if not any("video_re" in p for r in ok for p in r["parameters"].values()):
+        return []
+    alone = [statistics.fmean(p.get("video_re", p["re"]) for p in r["parameters"].values()) for r in ok]
+    decided = sum(p.get("decided_by", "video") != "video" for r in ok for p in r["parameters"].values())
+    return [
+        f"| mean from the video alone (the fits before the prior; it decided {decided} parameters) | | | "
+        f"{statistics.fmean(alone):.3f} | | | | |" + " |" * len(methods)
     ]
 
 

@@ -331,6 +331,19 @@ def test_the_table_says_what_the_check_found_of_each_parameter():
     assert sysid_report._caveat("shear_modulus", record) == ""
 
 
+def test_the_table_says_what_the_prior_decided_and_the_video_s_own_mean():
+    nu = {"found": 0.3, "truth": 0.3, "re": 0.0, "decided_by": "prior", "video_fit": 0.06, "video_re": 0.8}
+    e = {"found": 2e6, "truth": 2e6, "re": 0.1, "decided_by": "video", "video_fit": 2.2e6, "video_re": 0.1}
+    record = {"identifiability": {"weakly_constrained": ["poissons_ratio"]}, "parameters": {"poissons_ratio": nu}}
+    assert sysid_report._caveat("poissons_ratio", record) == (
+        " (weakly constrained; prior: the video's own 0.06, RE 0.800)"
+    )
+    case = {"status": "ok", "mean_re": 0.05, "epe_px": 0.2, "parameters": {"poissons_ratio": nu, "youngs_modulus": e}}
+    (row,) = sysid_report._video_alone_row([case], ())
+    assert "it decided 1 parameters" in row and "| 0.450 |" in row
+    assert sysid_report._video_alone_row([{**case, "parameters": {"youngs_modulus": {"re": 0.1}}}], ()) == []
+
+
 def test_the_benchmark_searches_on_the_base_grid_and_refines_on_a_finer_one(tmp_path):
     case = dataclasses.replace(CASES["torus"])
     config = make_case(tmp_path, case, dataclasses.replace(TINY, main_grid_scale=1.5, flip=0.99), truth_scale=2)
