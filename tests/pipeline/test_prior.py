@@ -24,7 +24,7 @@ def test_the_prior_is_the_query_s_match_else_the_type_s_default_entry(quick_demo
     playdoh = kb.entry("play-doh").parameters["youngs_modulus"]
     prior = knowledge_priors(resolve_material(cfg))["youngs_modulus"]
     assert (prior.entry, prior.value, prior.low, prior.high) == ("play-doh", playdoh.value, playdoh.low, playdoh.high)
-    assert prior.how == "the material query's match"
+    assert prior.how == "the material query's answer, the range of its match"
     (tmp_path / "b").mkdir()
     explicit = query_config(quick_demo, tmp_path / "b", {"type": "plasticine"}, ("poissons_ratio", "yield_stress"))
     priors = knowledge_priors(explicit)

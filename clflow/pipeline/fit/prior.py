@@ -49,7 +49,7 @@ class Prior:
 
 def knowledge_priors(cfg: SceneConfig) -> dict[str, Prior]:
     """Per optimised material parameter (and density) of ``cfg`` (its materials resolved):
-    the :class:`Prior` of its object's knowledge-base entry; velocities and the clock have none."""
+    the :class:`Prior` of its object (:func:`object_prior`); velocities and the clock have none."""
     from clflow.query.knowledge import load_knowledge_base
 
     kb = load_knowledge_base()
@@ -58,29 +58,36 @@ def knowledge_priors(cfg: SceneConfig) -> dict[str, Prior]:
         if name == TIME_SCALE.name:
             continue
         k, param = split_parameter(cfg.objects, name)
-        if param == VELOCITY:
-            continue
-        entry, how = _entry_of(kb, cfg.objects[k].material)
-        value = entry.density if param == "density" else entry.parameters.get(param)
-        if value is not None:
-            out[name] = Prior(value.value, value.low, value.high, entry.name, how)
+        if param != VELOCITY:
+            prior = object_prior(kb, cfg.objects[k].material, param)
+            if prior is not None:
+                out[name] = prior
     return out
 
 
-def _entry_of(kb, material) -> tuple:
-    """(entry, how it was chosen): the entry the material query matched for ``material`` (a
-    resolved MaterialConfig; its record in ``query_result``), else its type's default entry."""
+def object_prior(kb, material, param: str) -> Prior | None:
+    """The prior of ``param`` (or density) of an object of ``material`` (a resolved
+    MaterialConfig): with a material query's record (``query_result``) its answer's value
+    (the vision model's, or the entry it matched offline) and the range of the entry it
+    matched; else the knowledge base's default entry of the type, its value and range."""
+    answer, entry, how = None, None, f"the knowledge base's default {material.type} entry"
     if material.query_result is not None:
         from clflow.query.result import load_query_result
 
-        matched = load_query_result(material.query_result).matched
+        record = load_query_result(material.query_result)
+        answer = record.density if param == "density" else record.parameters.get(param)
         try:
-            entry = kb.entry(matched) if matched else None
+            entry = kb.entry(record.matched) if record.matched else None
         except InputError:  # a foundation model's own name for the object
             entry = None
-        if entry is not None and entry.material == material.type:
-            return entry, "the material query's match"
-    return kb.default_entry(material.type), f"the knowledge base's default {material.type} entry"
+        entry = entry if entry is not None and entry.material == material.type else None
+        how = "the material query's answer" + (", the range of its match" if entry else ", the type's default range")
+    entry = entry or kb.default_entry(material.type)
+    known = entry.density if param == "density" else entry.parameters.get(param)
+    if known is None:
+        return None
+    value = known.value if answer is None else answer
+    return Prior(value, min(known.low, value), max(known.high, value), entry.name, how)
 
 
 @dataclasses.dataclass(frozen=True)
