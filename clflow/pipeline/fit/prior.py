@@ -2,17 +2,20 @@
 (``optimize.prior: knowledge``).
 
 A parameter the identifiability check flags weakly constrained or unresolved goes wherever
-the video's artefacts (blur, a lossy codec, the camera's shake left over) push it, and
-parameters it trades off with follow it (a plasticine's E follows its Poisson's ratio). With
-the prior, the result is the point of the video's own 90 % ranges nearest what the material
-query knows: each such parameter moves to the knowledge base's value for the object (the
-entry the query matched, else its material type's default entry), or to the end of its
-range nearest that value, and every other variable is refitted to first order (the
-residuals' Jacobian at the fit). The move is kept only where a forward run confirms that its
-loss stays within the model's loss tolerance of the fit's (the ranges' own criterion), else
-half of it, and so on (MOVE_FRACTIONS). It is the limit of a MAP estimate whose prior weight
-is too small to move anything the video determines: the prior decides only among the points
-the video cannot tell apart. The ranges stay the video's alone, so they hold the truth as
+the video's artefacts (blur, a lossy codec, the camera's shake left over) push it, and the
+parameters it trades off with follow it (a plasticine's E follows its Poisson's ratio). The
+prior is the plausible interval the material knowledge base gives the object: the range of
+the entry the material query matched, else the union of the ranges of every entry of its
+material type (what any object of that type may have). A weakly constrained parameter the
+video left outside that interval moves to the interval's nearest point that its own 90 %
+range admits (to the range's end where the two do not meet), every other variable refitted
+to first order (the residuals' Jacobian at the fit); a value inside the interval stays. The
+move is kept only where a forward run confirms that its loss stays within the model's loss
+tolerance of the fit's (the ranges' own criterion), else half of it, and so on
+(MOVE_FRACTIONS). It is the MAP estimate under a prior flat over the plausible interval and
+falling off outside it, with a weight too small to move anything the video determines: the
+prior decides only among the points the video cannot tell apart, and only where the video's
+own point is implausible. The ranges stay the video's alone, so they hold the truth as
 often as without the prior; ``metrics.json``'s ``prior`` says per parameter who decided it.
 """
 
@@ -20,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 
 import torch
 
@@ -37,8 +41,9 @@ MOVE_FRACTIONS = (1.0, 0.5, 0.25)
 
 @dataclasses.dataclass(frozen=True)
 class Prior:
-    """What the material query knows of one parameter: ``value`` and its plausible range
-    ``low``..``high`` (SI), from the knowledge-base entry ``entry`` (``how`` it was chosen)."""
+    """What the material query knows of one parameter: its ``value`` (the query's answer or
+    the type's default entry's) and the plausible interval ``low``..``high`` (SI) the
+    decision uses, from the knowledge-base entry ``entry`` (``how`` it was chosen)."""
 
     value: float
     low: float
@@ -67,10 +72,10 @@ def knowledge_priors(cfg: SceneConfig) -> dict[str, Prior]:
 
 def object_prior(kb, material, param: str) -> Prior | None:
     """The prior of ``param`` (or density) of an object of ``material`` (a resolved
-    MaterialConfig): with a material query's record (``query_result``) its answer's value
-    (the vision model's, or the entry it matched offline) and the range of the entry it
-    matched; else the knowledge base's default entry of the type, its value and range."""
-    answer, entry, how = None, None, f"the knowledge base's default {material.type} entry"
+    MaterialConfig): with a material query's record (``query_result``) that matched an entry
+    of the type, the query's answer and that entry's range; else the type's default entry's
+    value and the union of the ranges of every entry of the type."""
+    answer, entry = None, None
     if material.query_result is not None:
         from clflow.query.result import load_query_result
 
@@ -81,13 +86,23 @@ def object_prior(kb, material, param: str) -> Prior | None:
         except InputError:  # a foundation model's own name for the object
             entry = None
         entry = entry if entry is not None and entry.material == material.type else None
-        how = "the material query's answer" + (", the range of its match" if entry else ", the type's default range")
-    entry = entry or kb.default_entry(material.type)
-    known = entry.density if param == "density" else entry.parameters.get(param)
-    if known is None:
+    if entry is not None:
+        known = _known(entry, param)
+        if known is None:
+            return None
+        value = known.value if answer is None else answer
+        return Prior(value, min(known.low, value), max(known.high, value), entry.name, "the material query's match")
+    default = kb.default_entry(material.type)
+    known = [k for e in kb.entries if e.material == material.type for k in [_known(e, param)] if k is not None]
+    if _known(default, param) is None or not known:
         return None
-    value = known.value if answer is None else answer
-    return Prior(value, min(known.low, value), max(known.high, value), entry.name, how)
+    low, high = min(k.low for k in known), max(k.high for k in known)
+    return Prior(_known(default, param).value, low, high, default.name, f"every {material.type} entry's range")
+
+
+def _known(entry, param: str):
+    """The knowledge base's Value of ``param`` (or density) in ``entry``; None if it has none."""
+    return entry.density if param == "density" else entry.parameters.get(param)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,9 +123,9 @@ def decide(
     priors: dict[str, Prior],
 ) -> PriorDecision:
     """The prior's move from the fit ``z`` (run at ``substeps``), given its
-    Diagnostics.identifiability report: the point of the video's ranges nearest ``priors``
-    for the weakly constrained parameters, the others refitted to first order, confirmed by
-    a forward run within the model's loss tolerance (see the module's docstring)."""
+    Diagnostics.identifiability report: each weakly constrained parameter outside its
+    prior's interval into it (:func:`range_point`), the others refitted to first order,
+    confirmed by a forward run within the model's loss tolerance (the module's docstring)."""
     problem = objective.problem
     variables = problem.main_variables
     weak = set(identifiability["weakly_constrained"]) | set(identifiability["unresolved"])
@@ -163,14 +178,27 @@ def decide(
 
 
 def range_point(problem, name: str, z: dict[str, float], entry: dict, prior: Prior) -> float:
-    """The point (z) of ``name``'s range ``entry`` (Diagnostics.ranges: SI ends, None where
-    open, then the box the search looked in) nearest the prior's value."""
+    """The point (z) nearest the fit ``z[name]`` inside the prior's interval that ``name``'s
+    range ``entry`` (Diagnostics.ranges: SI ends, None where open, then the box the search
+    looked in) admits; the range's end nearest the interval where they do not meet."""
     p = problem.params[name]
     box = problem.box_of(name, z)
     low = box[0] if entry["low"] is None else float(p.encode(entry["low"]))
     high = box[1] if entry["high"] is None else float(p.encode(entry["high"]))
-    target = float(p.encode(prior.value))  # the knowledge base's values lie in the typical ranges
-    return min(max(target, min(low, z[name])), max(high, z[name]))
+    plausible = min(max(z[name], z_of(p, prior.low)), z_of(p, prior.high))
+    return min(max(plausible, min(low, z[name])), max(high, z[name]))
+
+
+def z_of(p, value: float) -> float:
+    """z of ``value`` for parameterisation ``p``; -inf / +inf at or beyond an end no z reaches
+    (0 on a log scale, a bounded parameter's valid ends)."""
+    if p.param.scale == "log" and value <= 0:
+        return -math.inf
+    if p.param.scale == "bounded":
+        lo, hi = p.bounds
+        if value <= lo or value >= hi:
+            return -math.inf if value <= lo else math.inf
+    return float(p.encode(value))
 
 
 def refitted_move(J: torch.Tensor, variables: tuple[str, ...], deltas: dict[str, float]) -> dict[str, float]:
@@ -199,16 +227,18 @@ def moved(problem, z: dict[str, float], move: dict[str, float], fraction: float)
 
 
 def decided_by(name: str, targets: dict[str, float], kept: float, priors: dict[str, Prior], problem) -> str:
-    """Who set ``name``'s final value: ``video`` (the video determines it, or the prior's move
-    was not kept), ``prior`` (moved to the prior's value, inside the video's range),
-    ``range_end`` (moved to the end of the video's range nearest the prior) or
-    ``prior_partly`` (a fraction of the move kept)."""
+    """Who set ``name``'s final value: ``video`` (the video determines it, its value is
+    plausible, or the prior's move was not kept), ``prior`` (moved into the prior's
+    interval, inside the video's range), ``range_end`` (moved to the end of the video's range
+    nearest the interval, which the range does not reach) or ``prior_partly`` (a fraction of
+    the move kept)."""
     if name not in targets or not kept:
         return "video"
     if kept < 1.0:
         return "prior_partly"
-    at_prior = abs(targets[name] - float(problem.params[name].encode(priors[name].value)))
-    return "prior" if at_prior < 1e-12 else "range_end"
+    p, prior = problem.params[name], priors[name]
+    inside = z_of(p, prior.low) - 1e-12 <= targets[name] <= z_of(p, prior.high) + 1e-12
+    return "prior" if inside else "range_end"
 
 
 __all__ = ["Prior", "PriorDecision", "decide", "knowledge_priors"]
