@@ -32,8 +32,9 @@ def test_the_prior_is_the_query_s_match_else_every_entry_of_the_type(quick_demo,
     for name, prior in priors.items():
         entries = [e.parameters[name] for e in kb.entries if e.material == "plasticine"]
         assert (prior.low, prior.high) == (min(v.low for v in entries), max(v.high for v in entries))
-        assert prior.value == kb.default_entry("plasticine").parameters[name].value
-        assert prior.how == "every plasticine entry's range"
+        values = sorted(v.value for v in entries)
+        assert prior.value == values[(len(values) - 1) // 2]
+        assert prior.how == "the median of the plasticine entries, the union of their ranges"
 
 
 def test_the_refit_cancels_what_the_moved_variables_change_to_first_order():
@@ -79,9 +80,10 @@ def synthetic(demo_config, monkeypatch):
     return make
 
 
-def weak_nu(opt, z, report, low=None, high=None) -> dict:
-    """``report`` saying that nu is weakly constrained, its range ``low``..``high`` (None:
-    open), E's the fit's alone, the loss tolerance 1 %: what a real grid check gives."""
+def weak_nu(opt, z, report, low=None, high=None, unresolved=False) -> dict:
+    """``report`` saying that nu is weakly constrained (and ``unresolved``), its range
+    ``low``..``high`` (None: open), E's the fit's alone, the loss tolerance 1 %: what a real
+    grid check gives."""
     fit = opt.problem.values(z)
     ranges = {
         "youngs_modulus": {"low": fit["youngs_modulus"], "high": fit["youngs_modulus"]},
@@ -90,7 +92,7 @@ def weak_nu(opt, z, report, low=None, high=None) -> dict:
     return {
         **report,
         "weakly_constrained": ["poissons_ratio"],
-        "unresolved": [],
+        "unresolved": ["poissons_ratio"] if unresolved else [],
         "loss_tolerance": 0.01,
         "ranges": ranges,
     }
@@ -129,6 +131,22 @@ def test_a_plausible_value_stays_and_an_interval_beyond_the_range_stops_at_its_e
     decision = decide(opt.objective, z, 1, weak_nu(opt, z, report, low=-0.5, high=-0.1), priors)
     entry = decision.record["parameters"]["poissons_ratio"]
     assert entry["decided_by"] == "range_end" and entry["value"] == pytest.approx(-0.1, abs=1e-9)
+
+
+def test_an_unresolved_parameter_takes_the_prior_s_value_within_its_range(synthetic):
+    """A flat loss: any value is the video's, so the prior's (the median of the elastic
+    entries' nu) decides, cut to the range where that lies beyond."""
+    opt, z, report = synthetic(nu_weight=0.0, coupling=0.1)
+    priors = knowledge_priors(opt.problem.cfg)
+    kb = load_knowledge_base()
+    values = sorted(e.parameters["poissons_ratio"].value for e in kb.entries if e.material == "elastic")
+    assert priors["poissons_ratio"].value == values[(len(values) - 1) // 2] == 0.3
+    decision = decide(opt.objective, z, 1, weak_nu(opt, z, report, unresolved=True), priors)
+    entry = decision.record["parameters"]["poissons_ratio"]
+    assert entry["decided_by"] == "prior" and entry["value"] == pytest.approx(0.3, abs=1e-9)
+    decision = decide(opt.objective, z, 1, weak_nu(opt, z, report, high=0.2, unresolved=True), priors)
+    entry = decision.record["parameters"]["poissons_ratio"]
+    assert entry["decided_by"] == "prior" and entry["value"] == pytest.approx(0.2, abs=1e-9)
 
 
 def test_the_prior_moves_nothing_the_video_determines(synthetic):

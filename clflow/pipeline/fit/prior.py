@@ -4,19 +4,23 @@
 A parameter the identifiability check flags weakly constrained or unresolved goes wherever
 the video's artefacts (blur, a lossy codec, the camera's shake left over) push it, and the
 parameters it trades off with follow it (a plasticine's E follows its Poisson's ratio). The
-prior is the plausible interval the material knowledge base gives the object: the range of
-the entry the material query matched, else the union of the ranges of every entry of its
-material type (what any object of that type may have). A weakly constrained parameter the
-video left outside that interval moves to the interval's nearest point that its own 90 %
-range admits (to the range's end where the two do not meet), every other variable refitted
-to first order (the residuals' Jacobian at the fit); a value inside the interval stays. The
-move is kept only where a forward run confirms that its loss stays within the model's loss
+prior is what the material knowledge base says of the object: the query's answer and the
+range of the entry it matched, else the median of its material type's entries and the union
+of their ranges (what any object of that type may have). After the fit:
+
+- an unresolved parameter (its loss flat over a decade either way: the video has no say)
+  takes the prior's value;
+- a weakly constrained one the video left outside the prior's range moves to that range's
+  nearest point (a value inside it stays);
+
+each within the parameter's own 90 % range (at its end where the prior lies beyond), every
+other variable refitted to first order (the residuals' Jacobian at the fit). The move is
+kept only where a forward run confirms that its loss stays within the model's loss
 tolerance of the fit's (the ranges' own criterion), else half of it, and so on
-(MOVE_FRACTIONS). It is the MAP estimate under a prior flat over the plausible interval and
-falling off outside it, with a weight too small to move anything the video determines: the
-prior decides only among the points the video cannot tell apart, and only where the video's
-own point is implausible. The ranges stay the video's alone, so they hold the truth as
-often as without the prior; ``metrics.json``'s ``prior`` says per parameter who decided it.
+(MOVE_FRACTIONS). It is the MAP estimate under that prior with a weight too small to move
+anything the video determines: the prior decides only among the points the video cannot
+tell apart. The ranges stay the video's alone, so they hold the truth as often as without
+the prior; ``metrics.json``'s ``prior`` says per parameter who decided it.
 """
 
 from __future__ import annotations
@@ -41,9 +45,9 @@ MOVE_FRACTIONS = (1.0, 0.5, 0.25)
 
 @dataclasses.dataclass(frozen=True)
 class Prior:
-    """What the material query knows of one parameter: its ``value`` (the query's answer or
-    the type's default entry's) and the plausible interval ``low``..``high`` (SI) the
-    decision uses, from the knowledge-base entry ``entry`` (``how`` it was chosen)."""
+    """What the material query knows of one parameter: its ``value`` (the query's answer, or
+    the median over the type's entries) and its plausible interval ``low``..``high`` (SI),
+    from the knowledge-base entry ``entry`` (``how`` they were chosen)."""
 
     value: float
     low: float
@@ -73,8 +77,8 @@ def knowledge_priors(cfg: SceneConfig) -> dict[str, Prior]:
 def object_prior(kb, material, param: str) -> Prior | None:
     """The prior of ``param`` (or density) of an object of ``material`` (a resolved
     MaterialConfig): with a material query's record (``query_result``) that matched an entry
-    of the type, the query's answer and that entry's range; else the type's default entry's
-    value and the union of the ranges of every entry of the type."""
+    of the type, the query's answer and that entry's range; else the (lower) median of the
+    values of the type's entries and the union of their ranges."""
     answer, entry = None, None
     if material.query_result is not None:
         from clflow.query.result import load_query_result
@@ -92,12 +96,13 @@ def object_prior(kb, material, param: str) -> Prior | None:
             return None
         value = known.value if answer is None else answer
         return Prior(value, min(known.low, value), max(known.high, value), entry.name, "the material query's match")
-    default = kb.default_entry(material.type)
-    known = [k for e in kb.entries if e.material == material.type for k in [_known(e, param)] if k is not None]
-    if _known(default, param) is None or not known:
+    known = [(e, k) for e in kb.entries if e.material == material.type for k in [_known(e, param)] if k is not None]
+    if not known:
         return None
-    low, high = min(k.low for k in known), max(k.high for k in known)
-    return Prior(_known(default, param).value, low, high, default.name, f"every {material.type} entry's range")
+    middle, _ = sorted(known, key=lambda pair: pair[1].value)[(len(known) - 1) // 2]  # the lower median
+    low, high = min(k.low for _, k in known), max(k.high for _, k in known)
+    how = f"the median of the {material.type} entries, the union of their ranges"
+    return Prior(_known(middle, param).value, low, high, middle.name, how)
 
 
 def _known(entry, param: str):
@@ -123,14 +128,15 @@ def decide(
     priors: dict[str, Prior],
 ) -> PriorDecision:
     """The prior's move from the fit ``z`` (run at ``substeps``), given its
-    Diagnostics.identifiability report: each weakly constrained parameter outside its
-    prior's interval into it (:func:`range_point`), the others refitted to first order,
+    Diagnostics.identifiability report: each weakly constrained or unresolved parameter
+    where the prior puts it (:func:`range_point`), the others refitted to first order,
     confirmed by a forward run within the model's loss tolerance (the module's docstring)."""
     problem = objective.problem
     variables = problem.main_variables
     weak = set(identifiability["weakly_constrained"]) | set(identifiability["unresolved"])
+    unresolved = set(identifiability["unresolved"])
     targets = {
-        name: range_point(problem, name, z, identifiability["ranges"][name], priors[name])
+        name: range_point(problem, name, z, identifiability["ranges"][name], priors[name], name in unresolved)
         for name in variables
         if name in priors and name in weak and name in identifiability["ranges"]
     }
@@ -177,16 +183,18 @@ def decide(
     return PriorDecision(final, result, record)
 
 
-def range_point(problem, name: str, z: dict[str, float], entry: dict, prior: Prior) -> float:
-    """The point (z) nearest the fit ``z[name]`` inside the prior's interval that ``name``'s
-    range ``entry`` (Diagnostics.ranges: SI ends, None where open, then the box the search
-    looked in) admits; the range's end nearest the interval where they do not meet."""
+def range_point(problem, name: str, z: dict[str, float], entry: dict, prior: Prior, unresolved: bool) -> float:
+    """Where the prior puts ``name`` (z), within its range ``entry`` (Diagnostics.ranges: SI
+    ends, None where open, then the box the search looked in): an ``unresolved`` one (the
+    loss flat over a decade: any point there is the video's) at the prior's value; a weakly
+    constrained one at the point of the prior's interval nearest the fit (the fit itself
+    where that is plausible); either cut to the range."""
     p = problem.params[name]
     box = problem.box_of(name, z)
     low = box[0] if entry["low"] is None else float(p.encode(entry["low"]))
     high = box[1] if entry["high"] is None else float(p.encode(entry["high"]))
-    plausible = min(max(z[name], z_of(p, prior.low)), z_of(p, prior.high))
-    return min(max(plausible, min(low, z[name])), max(high, z[name]))
+    wanted = z_of(p, prior.value) if unresolved else min(max(z[name], z_of(p, prior.low)), z_of(p, prior.high))
+    return min(max(wanted, min(low, z[name])), max(high, z[name]))
 
 
 def z_of(p, value: float) -> float:
