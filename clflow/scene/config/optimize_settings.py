@@ -213,11 +213,12 @@ class OptimizeSettings:
         "none",
         kind="choice",
         choices=("none", "knowledge"),
-        doc="`knowledge`: a parameter the video leaves weakly constrained takes the point of its 90 % range nearest "
-        "the material knowledge base's value for the object (the entry the material query matched, else the type's "
-        "default entry), the others refitted; kept only within the fit's loss tolerance, the ranges the video's "
-        "alone; `metrics.json`'s `prior` says who decided each parameter (docs/pipeline.md, \"A prior from the "
-        'material query")',
+        doc="`knowledge`: after the fit, a parameter the video leaves unresolved takes the material knowledge base's "
+        "value for the object (the query's answer, else the median of its type's entries), and a weakly constrained "
+        "one outside the knowledge base's range for it moves into that range; each within its own 90 % range, the "
+        "others refitted, kept only within the fit's loss tolerance; the ranges stay the video's, and "
+        "`metrics.json`'s `prior` says who decided each parameter (docs/pipeline.md, \"A prior from the material "
+        'query")',
     )
     budget: BudgetSettings | None = setting(  # None: the main phase runs on simulation.grid_resolution
         None,
