@@ -140,6 +140,15 @@ def write_report(output: Path, staged: Path | None = None) -> Path:
             rise = f"loss within {100 * ident['profile_rise']:.0f} %"
             rows.append((f"unresolved: {name}", f"{rise} from {min(values):.3g} to {max(values):.3g} (SI)"))
         rows += [(f"trade-off: {a} / {b}", f"correlation {rho:.3f}") for a, b, rho in ident.get("trade_offs", [])]
+        rows += [  # optimize.prior: what the material knowledge base decided, and the video's own value
+            (
+                f"decided by the prior: {n}",
+                f"{e['value']:.4g} ({e['decided_by']}; {e['entry']}, {e['prior_range'][0]:.3g} - "
+                f"{e['prior_range'][1]:.3g}); the video alone {e['video_fit']:.4g}",
+            )
+            for n, e in metrics.get("prior", {}).get("parameters", {}).items()
+            if e["decided_by"] != "video"
+        ]
         rows += [
             (
                 f"grid-sensitive: {n}",

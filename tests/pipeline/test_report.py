@@ -89,6 +89,18 @@ def test_the_page_says_which_parameters_the_video_does_not_resolve(tmp_path):
     assert "grid-sensitive: bulk_modulus" in page and "fit moves -0.42 (optimiser units) on 51 nodes" in page
 
 
+def test_the_page_says_what_the_prior_decided_and_what_the_video_alone_said(tmp_path):
+    from clflow.pipeline.report import write_report
+
+    decided = {"value": 0.4, "decided_by": "prior", "entry": "butter", "prior_range": [0.25, 0.49], "video_fit": 0.034}
+    kept = {"value": 1.5e4, "decided_by": "video", "entry": "butter", "prior_range": [50, 6e7], "video_fit": 1.5e4}
+    prior = {"parameters": {"poissons_ratio": decided, "yield_stress": kept}}
+    (tmp_path / "metrics.json").write_text(json.dumps({"flow_loss": 0.02, "prior": prior}))
+    page = write_report(tmp_path).read_text()
+    assert "decided by the prior: poissons_ratio" in page and "yield_stress" not in page
+    assert "0.4 (prior; butter, 0.25 - 0.49); the video alone 0.034" in page
+
+
 def test_the_page_says_how_much_motion_the_fit_leaves_unexplained_and_its_warnings(tmp_path):
     from clflow.pipeline.fit.results import unexplained_warning
     from clflow.pipeline.report import write_report
