@@ -174,7 +174,9 @@ def decide(
             "decided_by": decided_by(name, targets, kept, priors, problem),
         }
     if targets and not kept:
-        log.info("the prior's move (%s) leaves the loss tolerance at every fraction tried: kept the fit", targets)
+        log.info(
+            "the prior's move of %s leaves the loss tolerance at every fraction tried: kept the fit", sorted(targets)
+        )
     record = {
         "source": "knowledge",
         "parameters": parameters,
