@@ -77,8 +77,8 @@ def _degradation(ctx, param, spec: str | None):
               help="Fit the video's clock too (optimize.parameters' time_scale; its truth --degrade's speed) and "
                    "report its error apart from the material's.")  # fmt: skip
 @click.option("--prior", type=click.Choice(["none", "knowledge"]), default="none", show_default=True,
-              help="optimize.prior of every case: knowledge, what the video leaves weakly constrained takes the "
-                   "knowledge base's value for the case's material type (within the video's ranges).")  # fmt: skip
+              help="optimize.prior of every case: knowledge, the material knowledge base decides what the video "
+                   "leaves unresolved or implausible, within the video's ranges (docs/pipeline.md).")  # fmt: skip
 @click.option("--seed", type=int, default=0, show_default=True,
               help="Seed of the scene's texture grain, the noise and the artefacts.")  # fmt: skip
 @click.option("--views", type=click.IntRange(1, 4), default=1, show_default=True,

@@ -76,8 +76,8 @@ class Settings:
     case_budget: float | None = None
     # the video's clock fitted too (optimize.parameters' time_scale; its truth the degradation's speed)
     fit_time_scale: bool = False
-    # optimize.prior: "knowledge", the knowledge base's entry of the case's material type decides
-    # what the video leaves weakly constrained (within the video's ranges)
+    # optimize.prior of every case: "knowledge", the material knowledge base decides what the
+    # video leaves unresolved or implausible (within the video's ranges; clflow.pipeline.fit.prior)
     prior: str = "none"
 
     @classmethod
@@ -174,12 +174,14 @@ def run_case(
     found = json.loads((cfg.output / "params.json").read_text())["optimized"]
     ranges = metrics["identifiability"]["ranges"]
     record["parameters"] = parameter_records(case, found, ranges)
-    for n, decision in metrics.get("prior", {}).get("parameters", {}).items():  # optimize.prior: who decided
-        if n in record["parameters"]:
-            fit = decision["video_fit"]
-            record["parameters"][n].update(
-                decided_by=decision["decided_by"], video_fit=fit, video_re=abs(fit - case.truth[n]) / abs(case.truth[n])
-            )
+    decisions = metrics.get("prior", {}).get("parameters", {})  # optimize.prior: who decided each
+    if decisions:
+        alone = parameter_records(case, {**found, **{n: d["video_fit"] for n, d in decisions.items()}}, ranges)
+        for n, decision in decisions.items():
+            if n in record["parameters"]:
+                record["parameters"][n].update(
+                    decided_by=decision["decided_by"], video_fit=decision["video_fit"], video_re=alone[n]["re"]
+                )
     if settings.fit_time_scale:  # the clock's: apart from the material's mean RE
         speed = truth[TIME_SCALE.name]
         record["time_scale"] = {

@@ -112,8 +112,8 @@ def _known(entry, param: str):
 
 @dataclasses.dataclass(frozen=True)
 class PriorDecision:
-    """What the prior did to a fit at ``fit_z``: the final point ``z`` and its run ``result``
-    (the fit's own where nothing moved), and ``record``, metrics.json's ``prior``."""
+    """What the prior did to a fit: the final point ``z`` (the fit's own where nothing moved),
+    the run there ``result`` (None where nothing moved), and ``record``, metrics.json's ``prior``."""
 
     z: dict[str, float]
     result: Evaluation | None
